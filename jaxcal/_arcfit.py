@@ -1,0 +1,574 @@
+"""First error function: the arc fit of one joint's sweep (seed method, step 4).
+
+While joint $j$ turns alone, marker $m$'s position $P_{mt}$ (camera frame) lies
+on a circle about the joint axis (direction $V$, through point $Q$), and its
+orientation $O_{mt}$ turns about $V$ by the same angle $\\varphi_t$:
+
+$$P_{mt} = Q + R(V, \\varphi_t)(p_m - Q), \\qquad O_{mt} = R(V, \\varphi_t)\\, O_m,$$
+
+with $(p_m, O_m)$ the marker pose at $\\varphi = 0$. With encoders,
+$\\varphi_t = r\\,\\alpha_t$ ($\\alpha_t$ the encoder angle, $r$ the rate, i.e.
+the ratio of the true to the nominal reduction when $\\alpha$ is the encoder
+angle already divided by the nominal ratio). Without encoders every
+$\\varphi_t$ is an unknown, gauge-fixed by $\\varphi = 0$ at the first valid
+frame, and $r$ is not identifiable.
+
+Parameterisation (minimal, smooth at the solution): the axis line is four
+numbers $(u, v, w_1, w_2)$ about a reference frame $(R_{ref}, c)$ from the
+closed-form initialisation: $V = \\mathrm{normalize}(R_{ref}[u, v, 1]^T)$ and
+$Q = c + R_{ref}[w_1, w_2, 0]^T$ (the point where the line crosses the plane
+through $c$ orthogonal to the reference direction). The axis-to-kinematics
+fit measures model axes in exactly these coordinates, so the arc fit's
+covariance whitens its residuals without linearisation error in the
+parameterisation.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Bool, Float, Int
+
+from ._geometry import frame_from_z, make_pose, matmul, matvec, normalize, skew, so3_exp, so3_log
+
+_DEG = np.pi / 180.0
+MIN_FRAMES = 5
+MIN_SWEEP_DEG = 5.0
+
+
+class ArcData(eqx.Module):
+    """Measurements of one joint sweep, padded to a fixed number of frames.
+
+    **Fields:**
+    - `positions`: marker positions in the camera frame (m), `(markers, frames, 3)`.
+    - `orientations`: marker orientations `O_cam_marker`, `(markers, frames, 3, 3)`, or None.
+    - `encoder`: encoder angles (rad), `(frames,)`, or None (no encoders).
+    - `mask`: which entries were observed, `(markers, frames)`; padding is False
+      and may hold any value, NaN included.
+    - `sqrt_info`: whitening matrices $W$ with $W^T W = \\Sigma^{-1}$ of the
+      per-frame error `(position, rotation vector)`, `(markers, frames, 6, 6)`
+      (`3, 3` without orientations).
+    """
+
+    positions: Float[Array, "markers frames 3"]
+    orientations: Float[Array, "markers frames 3 3"] | None
+    encoder: Float[Array, " frames"] | None
+    mask: Bool[Array, "markers frames"]
+    sqrt_info: Float[Array, "markers frames k k"]
+
+
+def make_arc_data(
+    positions,
+    orientations=None,
+    encoder=None,
+    mask=None,
+    *,
+    sigma_position: float = 1e-4,
+    sigma_rotation: float = 1e-3,
+    covariances=None,
+) -> ArcData:
+    """Build `ArcData`, adding a marker axis if absent and filling defaults.
+
+    **Arguments:**
+    - `positions`: `(frames, 3)` or `(markers, frames, 3)` (m).
+    - `orientations`: matching `(..., 3, 3)` or None.
+    - `encoder`: `(frames,)` encoder angles (rad) or None.
+    - `mask`: `(frames,)` / `(markers, frames)` bools, default all observed.
+    - `sigma_position` (m), `sigma_rotation` (rad): isotropic noise used when no
+      `covariances` are given.
+    - `covariances`: per-frame covariance of (position, rotation vector),
+      `(..., frames, 6, 6)` (or `3, 3` without orientations).
+    """
+    P = jnp.asarray(positions, jnp.float64)
+    if P.ndim == 2:
+        P = P[None]
+        orientations = None if orientations is None else jnp.asarray(orientations, jnp.float64)[None]
+        mask = None if mask is None else jnp.asarray(mask)[None]
+        covariances = None if covariances is None else jnp.asarray(covariances, jnp.float64)[None]
+    M, F = P.shape[:2]
+    O = None if orientations is None else jnp.asarray(orientations, jnp.float64)
+    k = 3 if O is None else 6
+    mask = jnp.ones((M, F), bool) if mask is None else jnp.asarray(mask, bool)
+    if covariances is None:
+        diag = jnp.array([1.0 / sigma_position] * 3 + [1.0 / sigma_rotation] * 3)[:k]
+        W = jnp.broadcast_to(jnp.diag(diag), (M, F, k, k))
+    else:
+        C = jnp.asarray(covariances, jnp.float64)
+        C = jnp.where(mask[..., None, None], C, jnp.eye(k))
+        # Sigma^{-1} = L^{-T} L^{-1} with Sigma = L L^T, so W = L^{-1}.
+        L = jnp.linalg.cholesky(C)
+        W = jax.vmap(jax.vmap(lambda Li: jax.scipy.linalg.solve_triangular(Li, jnp.eye(k), lower=True)))(L)
+    enc = None if encoder is None else jnp.asarray(encoder, jnp.float64)
+    return ArcData(positions=P, orientations=O, encoder=enc, mask=mask, sqrt_info=W)
+
+
+class ArcParams(eqx.Module):
+    """Unknowns of the arc fit (see module docstring)."""
+
+    line: Float[Array, "4"]
+    rate: Float[Array, ""]
+    p0: Float[Array, "markers 3"]
+    r0: Float[Array, "markers 3"]
+    angles: Float[Array, " frames"] | None  # only without encoders
+
+
+class ArcReference(eqx.Module):
+    """Fixed reference of the parameterisation, from the initialisation."""
+
+    R_ref: Float[Array, "3 3"]
+    c: Float[Array, "3"]
+    O_ref: Float[Array, "markers 3 3"]
+    gauge: Float[Array, " frames"]  # 1.0 where the angle is free, 0.0 at the gauge frame
+
+
+class ArcFitResult(eqx.Module):
+    """A fitted joint axis.
+
+    **Fields:**
+    - `direction` $V$ (unit, camera frame), `point` $Q$: the axis point closest
+      to the markers' centroid (m).
+    - `rate` $r$ (NaN without encoders: not identifiable), `has_encoder`.
+    - `T_cam_marker0`: marker poses at $\\varphi = 0$ (encoder zero), `(markers, 4, 4)`.
+    - `angles`: fitted $\\varphi_t$ (rad), `(frames,)`.
+    - `cov`: covariance of $(V, Q, r)$, `(7, 7)` (rank 5: $V$ is unit, $Q$ slides on the line).
+    - `meas`, `meas_cov`: the line coordinates $(u, v, w_1, w_2)$ and the
+      zero poses $(p_m, r_m)$ with their joint covariance, which the
+      axis-to-kinematics fit consumes; `R_ref`, `c`, `O_ref` their reference.
+    - `result`, `num_steps`: optimistix's own result code and step count.
+    - `residual_rms`: RMS of the whitened residuals (about 1 when the given
+      noise model is honest); `position_rms` (m), `rotation_rms` (rad).
+    - `num_frames`: observed frames.
+    """
+
+    direction: Float[Array, "3"]
+    point: Float[Array, "3"]
+    rate: Float[Array, ""]
+    T_cam_marker0: Float[Array, "markers 4 4"]
+    angles: Float[Array, " frames"]
+    cov: Float[Array, "7 7"]
+    rate_var: Float[Array, ""]
+    meas: Float[Array, " k"]
+    meas_cov: Float[Array, "k k"]
+    R_ref: Float[Array, "3 3"]
+    c: Float[Array, "3"]
+    O_ref: Float[Array, "markers 3 3"]
+    result: optx.RESULTS
+    num_steps: Int[Array, ""]
+    residual_rms: Float[Array, ""]
+    position_rms: Float[Array, ""]
+    rotation_rms: Float[Array, ""]
+    num_frames: Int[Array, ""]
+    has_encoder: bool = eqx.field(static=True)
+
+
+# --------------------------------------------------------------------------- model
+
+
+def rotations_about_unit_axis(V: Float[Array, "3"], angles: Float[Array, " n"]) -> Float[Array, "n 3 3"]:
+    """$R(V, \\varphi) = I + \\sin\\varphi\\,[V]_\\times + (1 - \\cos\\varphi)[V]_\\times^2$ for unit `V`.
+
+    Rodrigues' formula without the small-angle branches `so3_exp` needs for a
+    general rotation vector: with a unit axis it is smooth everywhere, and it
+    is the inner loop of the arc fit (its Jacobian dominates the solve).
+    """
+    K = skew(V)
+    K2 = K @ K
+    s, c = jnp.sin(angles), jnp.cos(angles)
+    return jnp.eye(3) + s[:, None, None] * K + (1.0 - c)[:, None, None] * K2
+
+
+def line_from_params(line: Float[Array, "4"], R_ref, c) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+    """(point, unit direction) of the line coordinates `(u, v, w1, w2)`."""
+    V = normalize(R_ref @ jnp.stack([line[0], line[1], jnp.ones_like(line[0])]))
+    Q = c + R_ref[:, :2] @ line[2:]
+    return Q, V
+
+
+def line_to_params(point, direction, R_ref, c, *, sign_free: bool = False) -> Float[Array, "4"]:
+    """Inverse of `line_from_params` for any line not parallel to the reference plane.
+
+    With `sign_free`, the direction is flipped to the reference hemisphere
+    first (lines without an orientation, e.g. fitted without encoders).
+    """
+    d = R_ref.T @ direction
+    if sign_free:
+        d = d * jnp.sign(jnp.where(d[2] == 0, 1.0, d[2]))
+    # Where the line crosses the plane through c orthogonal to R_ref[:, 2].
+    s = -jnp.dot(point - c, R_ref[:, 2]) / jnp.dot(direction, R_ref[:, 2])
+    x = point + s * direction - c
+    return jnp.stack([d[0] / d[2], d[1] / d[2], jnp.dot(R_ref[:, 0], x), jnp.dot(R_ref[:, 1], x)])
+
+
+def _phi(params: ArcParams, ref: ArcReference, data: ArcData) -> Float[Array, " frames"]:
+    if data.encoder is not None:
+        return params.rate * data.encoder
+    return params.angles * ref.gauge
+
+
+def arc_residuals(params: ArcParams, args: tuple[ArcReference, ArcData]) -> Float[Array, "markers frames k"]:
+    """Whitened residuals of the arc model (the first error function).
+
+    Per marker and frame, $W\\,[\\hat P - P;\\ \\log(O\\,\\hat O^T)]$ (position in
+    m, orientation as a camera-frame rotation vector), zero where masked.
+    """
+    ref, data = args
+    Q, V = line_from_params(params.line, ref.R_ref, ref.c)
+    phi = _phi(params, ref, data)
+    s, c1 = jnp.sin(phi)[:, None], (1.0 - jnp.cos(phi))[:, None]
+    mask = data.mask
+    P = jnp.where(mask[..., None], data.positions, 0.0)
+    K = skew(V)
+
+    def one_marker(p0, r0, O_ref, P_m, O_m, W_m, mask_m):
+        # Rodrigues about the unit axis, R_t x = x + s_t V x x + (1 - c_t) V x (V x x),
+        # with everything that does not depend on the frame hoisted out: the
+        # per-frame work (and so the Jacobian's) is a few multiply-adds.
+        d = p0 - Q
+        a = jnp.cross(V, d)
+        b = jnp.cross(V, a)
+        e = (Q + d) + s * a + c1 * b - P_m
+        if O_m is not None:
+            O0 = O_ref @ so3_exp(r0)
+            G1 = K @ O0
+            G2 = K @ G1
+            O_pred = O0 + s[:, :, None] * G1 + c1[:, :, None] * G2  # (F, 3, 3)
+            O_m = jnp.where(mask_m[:, None, None], O_m, jnp.eye(3))
+            A = matmul(O_m, jnp.swapaxes(O_pred, -1, -2))
+            e = jnp.concatenate([e, so3_log(A)], axis=-1)
+        r = matvec(W_m, e)
+        return jnp.where(mask_m[:, None], r, 0.0)
+
+    O_all = data.orientations
+    if O_all is None:
+        return jax.vmap(lambda p0, r0, Oref, Pm, Wm, mm: one_marker(p0, r0, Oref, Pm, None, Wm, mm))(
+            params.p0, params.r0, ref.O_ref, P, data.sqrt_info, mask
+        )
+    return jax.vmap(one_marker)(params.p0, params.r0, ref.O_ref, P, O_all, data.sqrt_info, mask)
+
+
+# --------------------------------------------------------------------------- closed-form initialisation
+
+
+def _masked_mean(x, w, axis):
+    wsum = jnp.maximum(jnp.sum(w, axis=axis), 1e-300)
+    return jnp.sum(x * w, axis=axis) / wsum
+
+
+def _project_rotation(A: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
+    U, _, Vt = jnp.linalg.svd(A)
+    D = jnp.diag(jnp.array([1.0, 1.0, jnp.sign(jnp.linalg.det(U @ Vt))]))
+    return U @ D @ Vt
+
+
+def _forward_fill(x: Float[Array, " frames"], valid: Bool[Array, " frames"]) -> Float[Array, " frames"]:
+    idx = jax.lax.cummax(jnp.where(valid, jnp.arange(x.shape[0]), 0))
+    first = jnp.argmax(valid)
+    return x[jnp.where(idx < first, first, idx)]
+
+
+def initialise_arc(data: ArcData) -> tuple[ArcParams, ArcReference]:
+    """Closed-form start: plane by SVD, algebraic circle fit, axis from relative
+    rotations, rate from a linear fit of observed angle against encoder angle.
+    """
+    mask = data.mask
+    w = mask.astype(jnp.float64)
+    P = jnp.where(mask[..., None], data.positions, 0.0)
+    M, F = mask.shape
+    # 1. Plane normal: smallest eigenvector of the pooled scatter (each marker
+    #    centred on its own centroid; all circles share the axis direction).
+    centroids = jax.vmap(lambda Pm, wm: _masked_mean(Pm, wm[:, None], 0))(P, w)  # (M, 3)
+    X = (P - centroids[:, None, :]) * w[..., None]
+    scatter = jnp.einsum("mfa,mfb->ab", X, X)
+    _, evecs = jnp.linalg.eigh(scatter)
+    n_plane = evecs[:, 0]
+
+    any_valid = jnp.any(mask, axis=0)
+    t_ref = jnp.argmax(any_valid)  # first frame where some marker is seen
+    m_ref = jnp.argmax(mask[:, t_ref])
+    # 2. Axis from relative rotations when orientations exist (robust when the
+    #    marker sits near the axis, where the circle degenerates).
+    if data.orientations is not None:
+        O = jnp.where(mask[..., None, None], data.orientations, jnp.eye(3))
+        O_first = jax.vmap(lambda Om, mm: Om[jnp.argmax(mm)])(O, mask)  # (M, 3, 3)
+        rel = jax.vmap(lambda Om, O0: jax.vmap(lambda Ot: so3_log(Ot @ O0.T))(Om))(O, O_first)  # (M, F, 3)
+        S_rot = jnp.einsum("mfa,mfb->ab", rel * w[..., None], rel)
+        _, evecs_r = jnp.linalg.eigh(S_rot)
+        V0 = evecs_r[:, -1]
+    else:
+        V0 = n_plane
+    # 3. Circle centre: algebraic (Kasa) fit, shared 2D centre, one c per marker.
+    c_all = _masked_mean(centroids, jnp.any(mask, axis=1).astype(jnp.float64)[:, None], 0)
+    R_ref = frame_from_z(V0)
+    xy = jnp.einsum("mfa,ak->mfk", P - c_all, R_ref[:, :2])
+    A = jnp.concatenate(
+        [2.0 * xy, jnp.broadcast_to(jnp.eye(M)[:, None, :], (M, F, M))], axis=-1
+    )  # unknowns (a, b, c_1..c_M)
+    b = jnp.sum(xy**2, axis=-1)
+    A = (A * w[..., None]).reshape(M * F, 2 + M)
+    b = (b * w).reshape(M * F)
+    # Normal equations with a tiny ridge so markers never seen stay finite.
+    sol = jnp.linalg.solve(A.T @ A + 1e-12 * jnp.eye(2 + M), A.T @ b)
+    Q0 = c_all + R_ref[:, :2] @ sol[:2]
+    # 4. Observed angles about V0, relative to each marker's first frame.
+    if data.orientations is not None:
+        phi_obs = jnp.einsum("mfa,a->mf", rel, V0)
+    else:
+        first_idx = jax.vmap(jnp.argmax)(mask)
+        d = P - Q0
+        d = d - jnp.einsum("mfa,a->mf", d, V0)[..., None] * V0
+        d_first = jax.vmap(lambda dm, i: dm[i])(d, first_idx)
+        cr = jnp.einsum("mfa,a->mf", jnp.cross(d_first[:, None, :], d), V0)
+        dt = jnp.einsum("mfa,ma->mf", d, d_first)
+        phi_obs = jnp.arctan2(cr, dt)
+    phi_obs = jax.vmap(lambda p, mm: jnp.unwrap(_forward_fill(p, mm)))(phi_obs, mask)
+
+    if data.encoder is not None:
+        # Rate and sign from the linear fit phi = r * alpha + b_m, pooled.
+        alpha = data.encoder
+        a_mean = jax.vmap(lambda wm: _masked_mean(alpha, wm, 0))(w)  # per marker
+        p_mean = jax.vmap(lambda pm, wm: _masked_mean(pm, wm, 0))(phi_obs, w)
+        da = (alpha[None, :] - a_mean[:, None]) * w
+        dp = (phi_obs - p_mean[:, None]) * w
+        rate0 = jnp.sum(da * dp) / jnp.maximum(jnp.sum(da * da), 1e-300)
+        sign = jnp.where(rate0 < 0, -1.0, 1.0)
+        V0 = V0 * sign
+        rate0 = rate0 * sign
+        R_ref = frame_from_z(V0)
+        phi_t = rate0 * alpha
+        angles0 = None
+        gauge = jnp.ones(F)
+    else:
+        rate0 = jnp.ones(())
+        phi_t = jnp.where(any_valid, phi_obs[m_ref], 0.0)
+        # phi_obs of marker m_ref is zero at its first frame, which is t_ref.
+        angles0 = phi_t
+        gauge = jnp.ones(F).at[t_ref].set(0.0)
+
+    # 5. Marker pose at phi = 0: rotate every observation back and average.
+    R_back = jax.vmap(lambda a: so3_exp(-V0 * a))(phi_t)  # (F, 3, 3)
+    back = Q0 + jnp.einsum("fab,mfb->mfa", R_back, P - Q0)
+    p0 = jax.vmap(lambda bm, wm: _masked_mean(bm, wm[:, None], 0))(back, w)
+    if data.orientations is not None:
+        O_back = jnp.einsum("fab,mfbc->mfac", R_back, O)
+        O0 = jax.vmap(lambda Ob, wm: _project_rotation(jnp.sum(Ob * wm[:, None, None], axis=0)))(O_back, w)
+    else:
+        O0 = jnp.broadcast_to(jnp.eye(3), (M, 3, 3))
+    params = ArcParams(
+        line=jnp.zeros(4), rate=jnp.asarray(rate0, jnp.float64), p0=p0, r0=jnp.zeros((M, 3)), angles=angles0
+    )
+    ref = ArcReference(R_ref=R_ref, c=Q0, O_ref=O0, gauge=gauge)
+    return params, ref
+
+
+# --------------------------------------------------------------------------- solve
+
+
+def _free_mask(params: ArcParams, data: ArcData, ref: ArcReference) -> ArcParams:
+    """Which parameters exist for this data (1.0) or are structurally absent (0.0)."""
+    has_enc = data.encoder is not None
+    has_rot = data.orientations is not None
+    return ArcParams(
+        line=jnp.ones(4),
+        rate=jnp.asarray(1.0 if has_enc else 0.0),
+        p0=jnp.ones_like(params.p0),
+        r0=jnp.ones_like(params.r0) * (1.0 if has_rot else 0.0),
+        angles=None if has_enc else ref.gauge,
+    )
+
+
+def fit_arc(
+    data: ArcData,
+    *,
+    rtol: float = 1e-8,
+    atol: float = 3e-2,
+    max_steps: int = 50,
+    throw: bool = False,
+    scale_covariance: bool = True,
+) -> ArcFitResult:
+    """Fit one joint's axis (and rate) to a sweep; pure, jittable and vmappable.
+
+    Closed-form initialisation (`initialise_arc`), then optimistix
+    Levenberg-Marquardt on `arc_residuals`. The covariance is
+    $(J^T J)^{+}$ of the whitened residuals at the solution, times
+    $\\hat\\sigma^2 = \\|r\\|^2/(m - n)$ when `scale_covariance` (set it False
+    when the given noise model is trusted).
+
+    **Arguments:**
+    - `data`: an `ArcData` (see `make_arc_data`).
+    - `rtol`, `atol`, `max_steps`, `throw`: passed to optimistix. The residuals
+      are whitened, so `atol` is in units of the noise: the solver stops when
+      a step moves every prediction by less than `atol` standard deviations
+      (Gauss-Newton then leaves the iterate ~`atol**2` from the optimum; tighter
+      tolerances only chase float64 round-off in the loss).
+
+    **Returns:** an `ArcFitResult`.
+    """
+    params0, ref = initialise_arc(data)
+    free = _free_mask(params0, data, ref)
+    args = (ref, data)
+
+    def fn(p, args):
+        p = jax.tree.map(lambda x, f: x * f, p, free)
+        return arc_residuals(p, args)
+
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(fn, solver, params0, args, max_steps=max_steps, throw=throw)
+    params = jax.tree.map(lambda x, f: x * f, sol.value, free)
+    return _summarise(params, ref, data, free, sol.result, sol.stats["num_steps"], scale_covariance)
+
+
+def _summarise(params, ref, data, free, result, num_steps, scale_covariance) -> ArcFitResult:
+    flat, unravel = ravel_pytree(params)
+    free_flat, _ = ravel_pytree(free)
+    r = arc_residuals(params, (ref, data))
+
+    def flat_res(x):
+        return arc_residuals(unravel(x), (ref, data)).reshape(-1)
+
+    J = jax.jacfwd(flat_res)(flat) * free_flat[None, :]
+    JtJ = J.T @ J
+    # Pseudo-inverse restricted to the free parameters (absent ones have zero columns).
+    P = jnp.diag(free_flat)
+    cov = jnp.linalg.pinv(JtJ + (1.0 - P), hermitian=True) * free_flat[:, None] * free_flat[None, :]
+    k = r.shape[-1]
+    n_obs = jnp.sum(data.mask) * k
+    n_free = jnp.sum(free_flat)
+    ssr = jnp.sum(r**2)
+    dof = jnp.maximum(n_obs - n_free, 1.0)
+    if scale_covariance:
+        cov = cov * (ssr / dof)
+    cov_p = unravel_cov(cov, unravel, flat, data.orientations is not None)
+
+    Q, V = line_from_params(params.line, ref.R_ref, ref.c)
+
+    # (V, Q, r) covariance by the Jacobian of (line, rate) -> (V, Q, r).
+    def vqr(lr):
+        Qx, Vx = line_from_params(lr[:4], ref.R_ref, ref.c)
+        return jnp.concatenate([Vx, Qx, lr[4:]])
+
+    lr = jnp.concatenate([params.line, params.rate[None]])
+    G = jax.jacfwd(vqr)(lr)
+    cov_lr = cov_p["line_rate"]
+    cov_vqr = G @ cov_lr @ G.T
+    # Report Q as the axis point closest to the markers' centroid.
+    mask_w = data.mask.astype(jnp.float64)
+    P = jnp.where(data.mask[..., None], data.positions, 0.0)
+    centroid = _masked_mean(P.reshape(-1, 3), mask_w.reshape(-1)[:, None], 0)
+    Q_c = Q + jnp.dot(centroid - Q, V) * V
+    O0 = jax.vmap(lambda Oref, r0: Oref @ so3_exp(r0))(ref.O_ref, params.r0)
+    T0 = jax.vmap(make_pose)(O0, params.p0)
+    has_enc = data.encoder is not None
+    # Unwhitened RMS of positions and rotations.
+    raw = _raw_errors(params, ref, data)
+    pos_rms = jnp.sqrt(jnp.sum(jnp.sum(raw[..., :3] ** 2, -1) * mask_w) / jnp.maximum(jnp.sum(mask_w), 1))
+    rot_rms = (
+        jnp.sqrt(jnp.sum(jnp.sum(raw[..., 3:] ** 2, -1) * mask_w) / jnp.maximum(jnp.sum(mask_w), 1))
+        if raw.shape[-1] == 6
+        else jnp.asarray(jnp.nan)
+    )
+    has_rot = data.orientations is not None
+    meas = jnp.concatenate(
+        [params.line, params.p0.reshape(-1)] + ([params.r0.reshape(-1)] if has_rot else [])
+    )
+    return ArcFitResult(
+        direction=V,
+        point=Q_c,
+        rate=params.rate if has_enc else jnp.asarray(jnp.nan),
+        T_cam_marker0=T0,
+        angles=_phi(params, ref, data),
+        cov=cov_vqr,
+        rate_var=cov_lr[4, 4] if has_enc else jnp.asarray(jnp.nan),
+        meas=meas,
+        meas_cov=cov_p["meas"],
+        R_ref=ref.R_ref,
+        c=ref.c,
+        O_ref=ref.O_ref,
+        result=result,
+        num_steps=num_steps,
+        residual_rms=jnp.sqrt(ssr / jnp.maximum(n_obs, 1)),
+        position_rms=pos_rms,
+        rotation_rms=rot_rms,
+        num_frames=jnp.sum(jnp.any(data.mask, axis=0)),
+        has_encoder=has_enc,
+    )
+
+
+def unravel_cov(cov, unravel, flat, has_rot: bool) -> dict:
+    """Blocks of the flat covariance for (line, rate) and (line, p0[, r0])."""
+    n = flat.shape[0]
+    idx = jax.tree.map(lambda x: x.astype(jnp.int32), unravel(jnp.arange(n, dtype=jnp.float64)))
+    line_i = idx.line
+    rate_i = idx.rate[None]
+    meas_i = jnp.concatenate([line_i, idx.p0.reshape(-1)] + ([idx.r0.reshape(-1)] if has_rot else []))
+    lr_i = jnp.concatenate([line_i, rate_i])
+    return {"line_rate": cov[jnp.ix_(lr_i, lr_i)], "meas": cov[jnp.ix_(meas_i, meas_i)]}
+
+
+def _raw_errors(params, ref, data):
+    """Unwhitened (position, rotation) errors, by setting W to identity."""
+    k = data.sqrt_info.shape[-1]
+    eye = jnp.broadcast_to(jnp.eye(k), data.sqrt_info.shape)
+    return arc_residuals(params, (ref, eqx.tree_at(lambda d: d.sqrt_info, data, eye)))
+
+
+# --------------------------------------------------------------------------- input checks
+
+
+def validate_arc_data(data: ArcData, joint: str) -> None:
+    """Raise a `ValueError` naming `joint` if the sweep cannot give an axis.
+
+    Checks shapes, NaN/inf in observed entries, at least `MIN_FRAMES`
+    observed frames, and a sweep of at least `MIN_SWEEP_DEG` degrees.
+    """
+    P = np.asarray(data.positions)
+    mask = np.asarray(data.mask)
+    if P.ndim != 3 or P.shape[-1] != 3:
+        raise ValueError(f"joint {joint!r}: positions must have shape (markers, frames, 3), got {P.shape}")
+    M, F = P.shape[:2]
+    if mask.shape != (M, F):
+        raise ValueError(f"joint {joint!r}: mask has shape {mask.shape}, positions imply {(M, F)}")
+    if data.orientations is not None and np.shape(data.orientations) != (M, F, 3, 3):
+        raise ValueError(
+            f"joint {joint!r}: orientations have shape {np.shape(data.orientations)}, expected {(M, F, 3, 3)}"
+        )
+    if data.encoder is not None and np.shape(data.encoder) != (F,):
+        raise ValueError(
+            f"joint {joint!r}: {np.shape(data.encoder)[0] if np.ndim(data.encoder) else 0} encoder angles "
+            f"for {F} frames (lengths must match)"
+        )
+    if not np.all(np.isfinite(P[mask])):
+        t = np.argwhere(mask & ~np.all(np.isfinite(P), axis=-1))[0]
+        raise ValueError(f"joint {joint!r}: non-finite position at marker {t[0]}, frame {t[1]}")
+    if data.orientations is not None:
+        O = np.asarray(data.orientations)
+        bad = mask & ~np.all(np.isfinite(O), axis=(-1, -2))
+        if bad.any():
+            t = np.argwhere(bad)[0]
+            raise ValueError(f"joint {joint!r}: non-finite orientation at marker {t[0]}, frame {t[1]}")
+    if data.encoder is not None:
+        enc = np.asarray(data.encoder)
+        bad = mask.any(axis=0) & ~np.isfinite(enc)
+        if bad.any():
+            raise ValueError(f"joint {joint!r}: non-finite encoder angle at frame {np.flatnonzero(bad)[0]}")
+    n_frames = int(mask.any(axis=0).sum())
+    if n_frames < MIN_FRAMES:
+        raise ValueError(f"joint {joint!r}: only {n_frames} valid frames, at least {MIN_FRAMES} are needed")
+    span = sweep_span_deg(data)
+    if span < MIN_SWEEP_DEG:
+        raise ValueError(
+            f"joint {joint!r}: the sweep covers {span:.2f} degrees, at least {MIN_SWEEP_DEG:g} are needed"
+        )
+
+
+def sweep_span_deg(data: ArcData) -> float:
+    """Angle swept by the joint (deg): from encoders, else from the measured motion."""
+    mask = np.asarray(data.mask)
+    seen = mask.any(axis=0)
+    if data.encoder is not None:
+        enc = np.asarray(data.encoder)[seen]
+        return float((enc.max() - enc.min()) / _DEG)
+    params, ref = jax.jit(initialise_arc)(data)
+    phi = np.asarray(params.angles)[seen]
+    return float((phi.max() - phi.min()) / _DEG)

@@ -1,0 +1,405 @@
+"""The serial-chain kinematic model, forward kinematics and model conversions.
+
+Conventions (defined once, used everywhere):
+
+* Frames: `T_a_b` maps points from frame b into frame a. The model's reference
+  frame is its *base* (the root link of the chain).
+* Joint $i$ has a fixed origin `T_parent_joint[i]` (parent link frame -> joint
+  frame, as a URDF `<origin>`), a unit `axis` expressed in the joint frame, and
+  moves its child link by $\\exp(\\text{axis}\\,\\theta_i)$ (revolute) or
+  $\\text{axis}\\,\\theta_i$ (prismatic).
+* Encoders and angles: a motor encoder reads the motor angle $m_i$; the
+  *commanded* joint position is $q_i = m_i / \\rho_i$ with $\\rho_i$ the
+  reduction ratio (`reduction_ratio`, motor turns per joint turn); the angle
+  the joint really stands at is $\\theta_i = q_i + \\delta_i$ with $\\delta_i$
+  the zero offset (`zero_offset`). Forward kinematics takes $q$.
+* After the last joint a fixed `T_last_flange` reaches the flange, and
+  `T_flange_tool` the tool (or marker) frame.
+"""
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._geometry import make_pose, matrix_to_rpy, normalize, rpy_to_matrix, se3_exp, so3_exp
+
+REVOLUTE = "revolute"
+PRISMATIC = "prismatic"
+
+
+class KinematicModel(eqx.Module):
+    """A serial chain of revolute/prismatic joints, as a pytree.
+
+    Numbers are leaves (so a batch of models is the same Module with a leading
+    axis on every array, and `jax.vmap` maps over models); joint types and
+    names are static structure.
+    """
+
+    T_parent_joint: Float[Array, "joints 4 4"]
+    axis: Float[Array, "joints 3"]
+    zero_offset: Float[Array, " joints"]
+    reduction_ratio: Float[Array, " joints"]
+    T_last_flange: Float[Array, "4 4"]
+    T_flange_tool: Float[Array, "4 4"]
+    joint_types: tuple[str, ...] = eqx.field(static=True)
+    joint_names: tuple[str, ...] = eqx.field(static=True)
+    link_names: tuple[str, ...] = eqx.field(static=True)
+
+    def __check_init__(self):
+        n = len(self.joint_types)
+        if len(self.joint_names) != n:
+            raise ValueError(f"KinematicModel: {n} joint types but {len(self.joint_names)} joint names")
+        if len(self.link_names) != n + 2:
+            raise ValueError(
+                f"KinematicModel: link_names must list base, {n} joint child links and the flange "
+                f"({n + 2} names), got {len(self.link_names)}"
+            )
+        for name, kind in zip(self.joint_names, self.joint_types):
+            if kind not in (REVOLUTE, PRISMATIC):
+                raise ValueError(f"KinematicModel: joint {name!r} has unsupported type {kind!r}")
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.joint_types)
+
+
+def make_model(
+    T_parent_joint,
+    axis,
+    *,
+    joint_names: Sequence[str],
+    joint_types: Sequence[str] | None = None,
+    link_names: Sequence[str] | None = None,
+    zero_offset=None,
+    reduction_ratio=None,
+    T_last_flange=None,
+    T_flange_tool=None,
+) -> KinematicModel:
+    """Build a `KinematicModel` from arrays, filling defaults (float64)."""
+    T_parent_joint = jnp.asarray(T_parent_joint, dtype=jnp.float64)
+    n = T_parent_joint.shape[0]
+    if T_parent_joint.shape != (n, 4, 4):
+        raise ValueError(f"T_parent_joint must have shape (joints, 4, 4), got {T_parent_joint.shape}")
+    axis = np.asarray(axis, dtype=np.float64)
+    if axis.shape != (n, 3):
+        raise ValueError(f"axis must have shape ({n}, 3), got {axis.shape}")
+    norms = np.linalg.norm(axis, axis=1)
+    if np.any(~np.isfinite(norms) | (norms < 1e-12)):
+        j = int(np.flatnonzero(~np.isfinite(norms) | (norms < 1e-12))[0])
+        raise ValueError(f"joint {tuple(joint_names)[j]!r}: axis {axis[j].tolist()} is zero or not finite")
+    axis = jnp.asarray(axis / norms[:, None])
+    for name, value in (("zero_offset", zero_offset), ("reduction_ratio", reduction_ratio)):
+        if value is not None and np.shape(value) != (n,):
+            raise ValueError(f"{name} must have shape ({n},), got {np.shape(value)}")
+    for name, value in (("T_last_flange", T_last_flange), ("T_flange_tool", T_flange_tool)):
+        if value is not None and np.shape(value) != (4, 4):
+            raise ValueError(f"{name} must have shape (4, 4), got {np.shape(value)}")
+    joint_types = tuple(joint_types) if joint_types is not None else (REVOLUTE,) * n
+    link_names = (
+        tuple(link_names)
+        if link_names is not None
+        else ("base",) + tuple(f"link{i + 1}" for i in range(n)) + ("flange",)
+    )
+    eye = jnp.eye(4, dtype=jnp.float64)
+    return KinematicModel(
+        T_parent_joint=T_parent_joint,
+        axis=axis,
+        zero_offset=jnp.zeros(n) if zero_offset is None else jnp.asarray(zero_offset, jnp.float64),
+        reduction_ratio=jnp.ones(n) if reduction_ratio is None else jnp.asarray(reduction_ratio, jnp.float64),
+        T_last_flange=eye if T_last_flange is None else jnp.asarray(T_last_flange, jnp.float64),
+        T_flange_tool=eye if T_flange_tool is None else jnp.asarray(T_flange_tool, jnp.float64),
+        joint_types=joint_types,
+        joint_names=tuple(joint_names),
+        link_names=link_names,
+    )
+
+
+def _joint_motion(kind: str, axis: Float[Array, "3"], theta: Float[Array, ""]) -> Float[Array, "4 4"]:
+    if kind == REVOLUTE:
+        return make_pose(so3_exp(axis * theta), jnp.zeros(3, dtype=axis.dtype))
+    return make_pose(jnp.eye(3, dtype=axis.dtype), axis * theta)
+
+
+def joint_angles(model: KinematicModel, q: Float[Array, " joints"]) -> Float[Array, " joints"]:
+    """The angles the joints really stand at, $\\theta = q + \\delta$."""
+    return q + model.zero_offset
+
+
+def commanded_from_motor(
+    model: KinematicModel, motor: Float[Array, "... joints"]
+) -> Float[Array, "... joints"]:
+    """Commanded joint positions from motor encoder angles, $q = m / \\rho$."""
+    return motor / model.reduction_ratio
+
+
+@jax.jit
+def forward_kinematics(model: KinematicModel, q: Float[Array, " joints"]) -> Float[Array, "links 4 4"]:
+    """Poses of every link in the base frame at commanded joint positions `q`.
+
+    **Arguments:**
+    - `model`: the chain.
+    - `q`: commanded joint positions (rad or m), shape `(joints,)`.
+
+    **Returns:** `T_base_link` for `model.link_names` (base, each joint's child
+    link, flange), shape `(joints + 2, 4, 4)`. Vmap over `q` for many
+    configurations and over `model` for many models.
+    """
+    theta = joint_angles(model, q)
+    T = jnp.eye(4, dtype=model.T_parent_joint.dtype)
+    frames = [T]
+    for i, kind in enumerate(model.joint_types):
+        T = T @ model.T_parent_joint[i] @ _joint_motion(kind, model.axis[i], theta[i])
+        frames.append(T)
+    frames.append(T @ model.T_last_flange)
+    return jnp.stack(frames)
+
+
+def tool_pose(model: KinematicModel, q: Float[Array, " joints"]) -> Float[Array, "4 4"]:
+    """`T_base_tool` at commanded joint positions `q`."""
+    return forward_kinematics(model, q)[-1] @ model.T_flange_tool
+
+
+def joint_axes(
+    model: KinematicModel, q: Float[Array, " joints"]
+) -> tuple[Float[Array, "joints 3"], Float[Array, "joints 3"]]:
+    """Every joint's axis line in the base frame at `q`: (points, unit directions).
+
+    The point is the origin of the joint frame, which lies on the axis.
+    """
+    frames = forward_kinematics(model, q)
+    T_joint = jnp.einsum("jab,jbc->jac", frames[:-2], model.T_parent_joint)
+    dirs = jnp.einsum("jab,jb->ja", T_joint[:, :3, :3], model.axis)
+    return T_joint[:, :3, 3], dirs
+
+
+# --------------------------------------------------------------------------- DH tables
+
+
+def _dh_link(a, alpha, d, theta) -> np.ndarray:
+    """Standard (Denavit-Hartenberg 1955) $R_z(\\theta) T_z(d) T_x(a) R_x(\\alpha)$."""
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    return np.array(
+        [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d], [0, 0, 0, 1.0]]
+    )
+
+
+def _mdh_link(a, alpha, d, theta) -> np.ndarray:
+    """Modified (Craig 1986) $R_x(\\alpha) T_x(a) R_z(\\theta) T_z(d)$."""
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    return np.array(
+        [
+            [ct, -st, 0, a],
+            [st * ca, ct * ca, -sa, -sa * d],
+            [st * sa, ct * sa, ca, ca * d],
+            [0, 0, 0, 1.0],
+        ]
+    )
+
+
+def _as_table(a, alpha, d, theta):
+    arrays = [np.asarray(x, dtype=np.float64) for x in (a, alpha, d, theta)]
+    n = arrays[0].shape[0]
+    for name, x in zip(("a", "alpha", "d", "theta"), arrays):
+        if x.shape != (n,):
+            raise ValueError(f"DH table column {name!r} has shape {x.shape}, expected ({n},)")
+    return arrays
+
+
+def from_dh(
+    a,
+    alpha,
+    d,
+    theta,
+    *,
+    joint_names: Sequence[str],
+    flange=None,
+    T_base=None,
+    reduction_ratio=None,
+    link_names: Sequence[str] | None = None,
+) -> KinematicModel:
+    """A revolute chain from a standard DH table, $T_i = R_z(\\theta_i+q_i) T_z(d_i) T_x(a_i) R_x(\\alpha_i)$.
+
+    The joint frames are the DH frames: joint 1's origin is `T_base`, joint
+    $k$'s origin is $T_z(d_{k-1})T_x(a_{k-1})R_x(\\alpha_{k-1})$ (with the
+    constant $\\theta_{k-1}$ folded in), and the last row goes into
+    `T_last_flange` (followed by the optional `flange` 4x4).
+
+    **Arguments:** `a` (m), `alpha` (rad), `d` (m), `theta` (rad, constant
+    joint offsets of the table), each of shape `(joints,)`.
+    """
+    a, alpha, d, theta = _as_table(a, alpha, d, theta)
+    n = a.shape[0]
+    origins = []
+    prev = np.eye(4) if T_base is None else np.asarray(T_base, np.float64)
+    for i in range(n):
+        # Joint i rotates about z after the constant theta_i of the table.
+        origins.append(prev @ _dh_link(0.0, 0.0, 0.0, theta[i]))
+        prev = _dh_link(a[i], alpha[i], d[i], 0.0)
+    last = prev if flange is None else prev @ np.asarray(flange, np.float64)
+    return make_model(
+        np.stack(origins),
+        np.tile([0.0, 0.0, 1.0], (n, 1)),
+        joint_names=joint_names,
+        link_names=link_names,
+        reduction_ratio=reduction_ratio,
+        T_last_flange=last,
+    )
+
+
+def from_mdh(
+    a,
+    alpha,
+    d,
+    theta,
+    *,
+    joint_names: Sequence[str],
+    flange=None,
+    T_base=None,
+    reduction_ratio=None,
+    link_names: Sequence[str] | None = None,
+) -> KinematicModel:
+    """A revolute chain from a modified (Craig) DH table, $T_i = R_x(\\alpha_{i-1}) T_x(a_{i-1}) R_z(\\theta_i+q_i) T_z(d_i)$.
+
+    Row $i$ holds $(a_{i-1}, \\alpha_{i-1}, d_i, \\theta_i)$ as in Craig's
+    table; joint $i$'s origin is $R_x(\\alpha_{i-1})T_x(a_{i-1})R_z(\\theta_i)$ and
+    its $T_z(d_i)$ is carried into the next origin (or into `T_last_flange`,
+    followed by `flange`).
+    """
+    a, alpha, d, theta = _as_table(a, alpha, d, theta)
+    n = a.shape[0]
+    origins = []
+    carry = np.eye(4) if T_base is None else np.asarray(T_base, np.float64)
+    for i in range(n):
+        origins.append(carry @ _mdh_link(a[i], alpha[i], 0.0, theta[i]))
+        carry = _mdh_link(0.0, 0.0, d[i], 0.0)
+    last = carry if flange is None else carry @ np.asarray(flange, np.float64)
+    return make_model(
+        np.stack(origins),
+        np.tile([0.0, 0.0, 1.0], (n, 1)),
+        joint_names=joint_names,
+        link_names=link_names,
+        reduction_ratio=reduction_ratio,
+        T_last_flange=last,
+    )
+
+
+def origins_xyz_rpy(model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
+    """Joint origins as URDF `xyz` (m) and `rpy` (rad), shape `(joints, 3)` each."""
+    T = np.asarray(model.T_parent_joint)
+    rpy = np.stack([np.asarray(matrix_to_rpy(jnp.asarray(Ti[:3, :3]))) for Ti in T])
+    return T[:, :3, 3].copy(), rpy
+
+
+def origin_from_xyz_rpy(xyz, rpy) -> Float[Array, "4 4"]:
+    """4x4 transform of a URDF `<origin xyz rpy>`."""
+    return make_pose(rpy_to_matrix(jnp.asarray(rpy, jnp.float64)), jnp.asarray(xyz, jnp.float64))
+
+
+# --------------------------------------------------------------------------- product of exponentials
+
+
+class POEModel(eqx.Module):
+    """Product-of-exponentials form: $T(q) = e^{[S_1] q_1} \\cdots e^{[S_n] q_n} M$.
+
+    `screws[i] = (v_i, w_i)` is joint $i$'s screw axis in the base frame at
+    the zero *commanded* configuration ($q = 0$, so zero offsets already
+    applied): exactly what a joint-by-joint arc fit measures. `M` is the
+    flange pose at that configuration.
+    """
+
+    screws: Float[Array, "joints 6"]
+    M: Float[Array, "4 4"]
+
+
+def to_poe(model: KinematicModel) -> POEModel:
+    """Space-frame screw axes of `model` at $q = 0$."""
+    points, dirs = joint_axes(model, jnp.zeros(model.num_joints))
+    screws = []
+    for i, kind in enumerate(model.joint_types):
+        if kind == REVOLUTE:
+            screws.append(jnp.concatenate([-jnp.cross(dirs[i], points[i]), dirs[i]]))
+        else:
+            screws.append(jnp.concatenate([dirs[i], jnp.zeros(3)]))
+    return POEModel(screws=jnp.stack(screws), M=forward_kinematics(model, jnp.zeros(model.num_joints))[-1])
+
+
+def poe_forward_kinematics(poe: POEModel, q: Float[Array, " joints"]) -> Float[Array, "4 4"]:
+    """Flange pose from the product-of-exponentials form."""
+    T = jnp.eye(4, dtype=poe.M.dtype)
+    for i in range(poe.screws.shape[0]):
+        T = T @ se3_exp(poe.screws[i] * q[i])
+    return T @ poe.M
+
+
+# --------------------------------------------------------------------------- perturbation
+
+
+class PerturbationScales(eqx.Module):
+    """Standard deviations of the deviations of a real arm from its datasheet.
+
+    Units as named: millimetres, degrees and percent (zero offsets of
+    prismatic joints use `zero_offset_mm`).
+    """
+
+    origin_mm: float = 1.0
+    origin_deg: float = 0.2
+    axis_tilt_deg: float = 0.2
+    zero_offset_deg: float = 0.5
+    zero_offset_mm: float = 0.5
+    ratio_percent: float = 1.0
+    tool_mm: float = 0.0
+    tool_deg: float = 0.0
+
+
+def _tilt(axis: Float[Array, "3"], key: PRNGKeyArray, sigma_rad) -> Float[Array, "3"]:
+    w = sigma_rad * jax.random.normal(key, (3,), dtype=axis.dtype)
+    w = w - jnp.dot(w, axis) * axis  # a tilt, not a spin about the axis
+    return normalize(so3_exp(w) @ axis)
+
+
+def perturb_model(model: KinematicModel, key: PRNGKeyArray, scales: PerturbationScales) -> KinematicModel:
+    """Draw a "true" arm from `model`: Gaussian deviations with the given scales.
+
+    Joint origins move by `origin_mm` per axis and rotate by `origin_deg`
+    about each axis, axes tilt by `axis_tilt_deg`, zero offsets by
+    `zero_offset_deg` (`zero_offset_mm` for prismatic joints), reduction ratios by `ratio_percent` %, the tool by
+    `tool_mm` / `tool_deg`. Pure and vmappable over `key`.
+    """
+    n = model.num_joints
+    k_t, k_r, k_a, k_z, k_ratio, k_tool_t, k_tool_r = jax.random.split(key, 7)
+    mm, deg = 1e-3, jnp.pi / 180.0
+    dt = scales.origin_mm * mm * jax.random.normal(k_t, (n, 3))
+    dr = scales.origin_deg * deg * jax.random.normal(k_r, (n, 3))
+    dT = jax.vmap(make_pose)(jax.vmap(so3_exp)(dr), dt)
+    # Translate in the parent frame, rotate in the joint frame.
+    T_parent_joint = model.T_parent_joint.at[:, :3, 3].add(dt)
+    T_parent_joint = T_parent_joint.at[:, :3, :3].set(
+        jnp.einsum("jab,jbc->jac", model.T_parent_joint[:, :3, :3], dT[:, :3, :3])
+    )
+    axis_keys = jax.random.split(k_a, n)
+    axis = jax.vmap(_tilt, in_axes=(0, 0, None))(model.axis, axis_keys, scales.axis_tilt_deg * deg)
+    offset_scale = jnp.array(
+        [
+            scales.zero_offset_deg * deg if kind == REVOLUTE else scales.zero_offset_mm * mm
+            for kind in model.joint_types
+        ]
+    )
+    zero_offset = model.zero_offset + offset_scale * jax.random.normal(k_z, (n,))
+    ratio = model.reduction_ratio * (1.0 + 0.01 * scales.ratio_percent * jax.random.normal(k_ratio, (n,)))
+    tool_t = scales.tool_mm * mm * jax.random.normal(k_tool_t, (3,))
+    tool_r = scales.tool_deg * deg * jax.random.normal(k_tool_r, (3,))
+    T_flange_tool = model.T_flange_tool @ make_pose(so3_exp(tool_r), tool_t)
+    return eqx.tree_at(
+        lambda m: (m.T_parent_joint, m.axis, m.zero_offset, m.reduction_ratio, m.T_flange_tool),
+        model,
+        (T_parent_joint, axis, zero_offset, ratio, T_flange_tool),
+    )
+
+
+def with_tool(model: KinematicModel, T_flange_tool) -> KinematicModel:
+    """`model` with its tool (or marker) transform replaced."""
+    return eqx.tree_at(lambda m: m.T_flange_tool, model, jnp.asarray(T_flange_tool, jnp.float64))

@@ -1,0 +1,364 @@
+"""Synthetic sweeps and vmapped Monte Carlo sensitivity studies.
+
+A trial draws a "true" arm from the nominal one (`perturb_model`) and a true
+camera pose, synthesises the marker poses of joint-by-joint sweeps
+analytically (forward kinematics, no rendering), adds noise, runs the arc
+fits (vmapped over joints) and the axis fit, and scores the result against
+the truth. `monte_carlo` runs N trials as one `jit(vmap(...))` call; a
+failed trial is flagged through optimistix's result codes and never stops
+the batch.
+
+Gauge: the camera only sees lines, so the robot's base frame is defined by
+joint 1's nominal frame (its origin and zero offset are held at nominal by
+the identifiability analysis). Truths are drawn with joint 1's frame at
+nominal accordingly (`anchor_base`), so that $T_{cam,base}$ errors compare
+like with like.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, PRNGKeyArray
+
+from ._arcfit import ArcData, fit_arc, make_arc_data
+from ._axisfit import AxisFitResult, fit_axes
+from ._geometry import make_pose, matmul, pose_inverse, se3_exp, so3_exp, so3_log
+from ._kinematics import KinematicModel, PerturbationScales, forward_kinematics, joint_axes, perturb_model
+
+_MM = 1e-3
+_DEG = jnp.pi / 180.0
+
+
+class SweepPlan(eqx.Module):
+    """Joint-by-joint sweeps: each joint turns through `range_deg` (centred on
+    its zero) in `frames` camera frames while the others stay at zero."""
+
+    range_deg: float = 60.0
+    frames: int = eqx.field(static=True, default=40)
+
+
+class NoiseModel(eqx.Module):
+    """Measurement noise (standard deviations): marker position (mm),
+    orientation (deg) and encoder angle (deg of joint motion)."""
+
+    position_mm: float = 0.1
+    orientation_deg: float = 0.05
+    encoder_deg: float = 0.0
+
+
+def anchor_base(true: KinematicModel, nominal: KinematicModel) -> KinematicModel:
+    """`true` with joint 1's origin, axis and zero offset reset to nominal (the gauge)."""
+    return eqx.tree_at(
+        lambda m: (m.T_parent_joint, m.axis, m.zero_offset),
+        true,
+        (
+            true.T_parent_joint.at[0].set(nominal.T_parent_joint[0]),
+            true.axis.at[0].set(nominal.axis[0]),
+            true.zero_offset.at[0].set(nominal.zero_offset[0]),
+        ),
+    )
+
+
+def sweep_commands(model: KinematicModel, plan: SweepPlan) -> Float[Array, "joints frames joints"]:
+    """Commanded joint positions of every sweep: joint j moves, the others at 0."""
+    n = model.num_joints
+    half = 0.5 * plan.range_deg * _DEG
+    ramp = jnp.linspace(-half, half, plan.frames)
+    return jnp.eye(n)[:, None, :] * ramp[None, :, None]
+
+
+def synthesize_sweeps(
+    true: KinematicModel,
+    T_cam_base: Float[Array, "4 4"],
+    T_flange_marker: Float[Array, "markers 4 4"],
+    plan: SweepPlan,
+    noise: NoiseModel,
+    key: PRNGKeyArray,
+    *,
+    nominal_ratio: Float[Array, " joints"],
+    use_encoders: bool = True,
+    use_orientations: bool = True,
+) -> ArcData:
+    """Noisy marker poses of every joint sweep, stacked over joints.
+
+    The controller commands motor angles $m = q\\,\\rho_{nom}$; the joint really
+    turns by $m / \\rho_{true}$; the encoder reports $\\alpha = m/\\rho_{nom}$ plus
+    noise (so the arc rate is $\\rho_{nom}/\\rho_{true}$).
+    """
+    q_nom = sweep_commands(true, plan)  # (J, F, J): what the controller intended
+    motor = q_nom * nominal_ratio
+    q_true = motor / true.reduction_ratio
+    k_p, k_r, k_e = jax.random.split(key, 3)
+    n, F, M = true.num_joints, plan.frames, T_flange_marker.shape[0]
+    T_base_flange = jax.vmap(jax.vmap(lambda q: forward_kinematics(true, q)[-1]))(q_true)  # (J, F, 4, 4)
+    T = jnp.einsum("ab,jfbc,mcd->jmfad", T_cam_base, T_base_flange, T_flange_marker)
+    pos = T[..., :3, 3] + noise.position_mm * _MM * jax.random.normal(k_p, (n, M, F, 3))
+    dR = jax.vmap(so3_exp)(noise.orientation_deg * _DEG * jax.random.normal(k_r, (n * M * F, 3)))
+    rot = matmul(dR.reshape(n, M, F, 3, 3), T[..., :3, :3])
+    alpha = jnp.einsum("jfj->jf", q_nom) + noise.encoder_deg * _DEG * jax.random.normal(k_e, (n, F))
+    sig_p = jnp.maximum(noise.position_mm * _MM, 1e-7)
+    sig_r = jnp.maximum(noise.orientation_deg * _DEG, 1e-7)
+    return jax.vmap(
+        lambda P, O, a: make_arc_data(
+            P,
+            O if use_orientations else None,
+            a if use_encoders else None,
+            sigma_position=sig_p,
+            sigma_rotation=sig_r,
+        )
+    )(pos, rot, alpha)
+
+
+def fit_sweeps(
+    nominal: KinematicModel, data: ArcData, *, free=None, max_steps: int = 100, **axis_kwargs
+) -> tuple:
+    """Arc fits of every joint (vmapped) followed by the axis fit."""
+    arcs = jax.vmap(lambda d: fit_arc(d, scale_covariance=False, max_steps=max_steps))(data)
+    return arcs, fit_axes(nominal, arcs, free=free, max_steps=max_steps, **axis_kwargs)
+
+
+class TrialResult(eqx.Module):
+    """Errors of one trial against its truth (a leading trial axis in batches).
+
+    - `ee_rms_mm`, `ee_max_mm`: marker (tool point) position error in the camera
+      frame over random validation configurations, calibrated vs true.
+    - `ee_rms_mm_nominal`: the same for the nominal model with the calibrated
+      camera pose (what the arm would do uncalibrated).
+    - `cam_rot_deg`, `cam_trans_mm`: $T_{cam,base}$ error against the truth in
+      the estimator's gauge (the same fit on noise-free sweeps).
+    - `axis_dir_deg`, `axis_pos_mm`: per joint, the angle and the distance
+      between the estimated and true axis lines at the zero configuration.
+    - `ratio_err_percent`: per joint reduction-ratio error (NaN without encoders).
+    - `arc_result` (per joint), `axis_result`: optimistix result codes;
+      `success`: all of them succeeded.
+    """
+
+    ee_rms_mm: Float[Array, ""]
+    ee_max_mm: Float[Array, ""]
+    ee_rms_mm_nominal: Float[Array, ""]
+    cam_rot_deg: Float[Array, ""]
+    cam_trans_mm: Float[Array, ""]
+    axis_dir_deg: Float[Array, " joints"]
+    axis_pos_mm: Float[Array, " joints"]
+    ratio_err_percent: Float[Array, " joints"]
+    arc_result: optx.RESULTS
+    axis_result: optx.RESULTS
+    success: Bool[Array, ""]
+
+
+def score(
+    fit: AxisFitResult,
+    true: KinematicModel,
+    T_cam_base: Float[Array, "4 4"],
+    T_flange_marker: Float[Array, "markers 4 4"],
+    nominal: KinematicModel,
+    q_val: Float[Array, "n joints"],
+    T_cam_base_gauge: Float[Array, "4 4"] | None = None,
+) -> dict:
+    """Errors of a calibration against the truth (see `TrialResult`)."""
+
+    def marker_in_cam(model, T_cb, mount, q):
+        return (T_cb @ forward_kinematics(model, q)[-1] @ mount)[:3, 3]
+
+    est = jax.vmap(lambda q: marker_in_cam(fit.model, fit.T_cam_base, fit.T_flange_marker[0], q))(q_val)
+    tru = jax.vmap(lambda q: marker_in_cam(true, T_cam_base, T_flange_marker[0], q))(q_val)
+    nom = jax.vmap(lambda q: marker_in_cam(nominal, fit.T_cam_base, fit.T_flange_marker[0], q))(q_val)
+    err = jnp.linalg.norm(est - tru, axis=-1) / _MM
+    err_nom = jnp.linalg.norm(nom - tru, axis=-1) / _MM
+    # The camera sees the base frame only up to the gauge (see module
+    # docstring): compare with the truth in the estimator's gauge when given.
+    T_ref = T_cam_base if T_cam_base_gauge is None else T_cam_base_gauge
+    dT = pose_inverse(T_ref) @ fit.T_cam_base
+    q0 = jnp.zeros(true.num_joints)
+    p_e, d_e = joint_axes(fit.model, q0)
+    p_t, d_t = joint_axes(true, q0)
+    # Both in the camera frame.
+    p_e = p_e @ fit.T_cam_base[:3, :3].T + fit.T_cam_base[:3, 3]
+    d_e = d_e @ fit.T_cam_base[:3, :3].T
+    p_t = p_t @ T_cam_base[:3, :3].T + T_cam_base[:3, 3]
+    d_t = d_t @ T_cam_base[:3, :3].T
+    cosang = jnp.clip(jnp.sum(d_e * d_t, -1), -1.0, 1.0)
+    sinang = jnp.linalg.norm(jnp.cross(d_e, d_t), axis=-1)
+    dp = p_e - p_t
+    # Distance of the true axis point from the estimated line (lines nearly parallel).
+    pos = jnp.linalg.norm(dp - jnp.sum(dp * d_e, -1, keepdims=True) * d_e, axis=-1)
+    return dict(
+        ee_rms_mm=jnp.sqrt(jnp.mean(err**2)),
+        ee_max_mm=jnp.max(err),
+        ee_rms_mm_nominal=jnp.sqrt(jnp.mean(err_nom**2)),
+        cam_rot_deg=jnp.linalg.norm(so3_log(dT[:3, :3])) / _DEG,
+        cam_trans_mm=jnp.linalg.norm(dT[:3, 3]) / _MM,
+        axis_dir_deg=jnp.arctan2(sinang, cosang) / _DEG,
+        axis_pos_mm=pos / _MM,
+        ratio_err_percent=100.0 * (fit.model.reduction_ratio - true.reduction_ratio) / true.reduction_ratio,
+    )
+
+
+class MonteCarloSetup(eqx.Module):
+    """Fixed inputs of a Monte Carlo study."""
+
+    nominal: KinematicModel
+    T_cam_base: Float[Array, "4 4"]
+    T_flange_marker: Float[Array, "markers 4 4"]
+    scales: PerturbationScales
+    noise: NoiseModel
+    plan: SweepPlan
+    camera_sigma_mm: float = 20.0
+    camera_sigma_deg: float = 2.0
+    mount_sigma_mm: float = 2.0
+    mount_sigma_deg: float = 1.0
+    n_validation: int = eqx.field(static=True, default=100)
+    use_encoders: bool = eqx.field(static=True, default=True)
+    use_orientations: bool = eqx.field(static=True, default=True)
+    max_steps: int = eqx.field(static=True, default=100)
+
+
+def _draw_truth(setup: MonteCarloSetup, key: PRNGKeyArray):
+    k_model, k_cam, k_mount = jax.random.split(key, 3)
+    true = anchor_base(perturb_model(setup.nominal, k_model, setup.scales), setup.nominal)
+    kc1, kc2 = jax.random.split(k_cam)
+    cam_twist = jnp.concatenate(
+        [
+            setup.camera_sigma_mm * _MM * jax.random.normal(kc1, (3,)),
+            setup.camera_sigma_deg * _DEG * jax.random.normal(kc2, (3,)),
+        ]
+    )
+    T_cam_base = setup.T_cam_base @ se3_exp(cam_twist)
+    M = setup.T_flange_marker.shape[0]
+    km1, km2 = jax.random.split(k_mount)
+    mount_twist = jnp.concatenate(
+        [
+            setup.mount_sigma_mm * _MM * jax.random.normal(km1, (M, 3)),
+            setup.mount_sigma_deg * _DEG * jax.random.normal(km2, (M, 3)),
+        ],
+        axis=-1,
+    )
+    T_flange_marker = matmul(setup.T_flange_marker, jax.vmap(se3_exp)(mount_twist))
+    return true, T_cam_base, T_flange_marker
+
+
+def run_trial(
+    setup: MonteCarloSetup, key: PRNGKeyArray, free: Bool[Array, " n"] | None = None
+) -> TrialResult:
+    """One Monte Carlo trial (pure; vmap over `key`)."""
+    k_truth, k_noise, k_val = jax.random.split(key, 3)
+    true, T_cam_base, T_flange_marker = _draw_truth(setup, k_truth)
+    data = synthesize_sweeps(
+        true,
+        T_cam_base,
+        T_flange_marker,
+        setup.plan,
+        setup.noise,
+        k_noise,
+        nominal_ratio=setup.nominal.reduction_ratio,
+        use_encoders=setup.use_encoders,
+        use_orientations=setup.use_orientations,
+    )
+    # The truth expressed in the estimator's gauge: the same fit on noise-free
+    # sweeps, whose T_cam_base is what a perfect calibration returns. Both
+    # fits run as one vmap (one trace, one compile).
+    exact = synthesize_sweeps(
+        true,
+        T_cam_base,
+        T_flange_marker,
+        setup.plan,
+        NoiseModel(0.0, 0.0, 0.0),
+        k_noise,
+        nominal_ratio=setup.nominal.reduction_ratio,
+        use_encoders=setup.use_encoders,
+        use_orientations=setup.use_orientations,
+    )
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), data, exact)
+    arcs2, fit2 = jax.vmap(lambda d: fit_sweeps(setup.nominal, d, free=free, max_steps=setup.max_steps))(both)
+    arcs, fit, fit_exact = (
+        jax.tree.map(lambda x: x[0], arcs2),
+        jax.tree.map(lambda x: x[0], fit2),
+        jax.tree.map(lambda x: x[1], fit2),
+    )
+    q_val = jax.random.uniform(
+        k_val, (setup.n_validation, setup.nominal.num_joints), minval=-jnp.pi, maxval=jnp.pi
+    )
+    s = score(fit, true, T_cam_base, T_flange_marker, setup.nominal, q_val, fit_exact.T_cam_base)
+    success = jnp.all(arcs.result == optx.RESULTS.successful) & (fit.result == optx.RESULTS.successful)
+    return TrialResult(**s, arc_result=arcs.result, axis_result=fit.result, success=success)
+
+
+def nominal_free_mask(setup: MonteCarloSetup) -> Bool[Array, " n"]:
+    """The identifiable parameters at the nominal geometry (noise-free sweeps),
+    used for every trial so all trials estimate the same parameters."""
+    quiet = eqx.tree_at(lambda s: s.noise, setup, NoiseModel(0.0, 0.0, 0.0))
+    data = synthesize_sweeps(
+        setup.nominal,
+        setup.T_cam_base,
+        setup.T_flange_marker,
+        setup.plan,
+        quiet.noise,
+        jax.random.key(0),
+        nominal_ratio=setup.nominal.reduction_ratio,
+        use_encoders=setup.use_encoders,
+        use_orientations=setup.use_orientations,
+    )
+    _, fit = fit_sweeps(setup.nominal, data)
+    return fit.free
+
+
+def default_setup(
+    nominal: KinematicModel,
+    *,
+    noise: NoiseModel | None = None,
+    plan: SweepPlan | None = None,
+    scales: PerturbationScales | None = None,
+) -> MonteCarloSetup:
+    """A camera 1.5 m from the base looking at the arm, a marker 5 cm off the flange."""
+    T_cam_base = make_pose(jnp.array([[0.0, 1, 0], [0, 0, -1], [-1, 0, 0]]), jnp.array([0.0, 0.3, 1.5]))
+    T_flange_marker = make_pose(jnp.eye(3), jnp.array([0.0, 0.05, 0.02]))[None]
+    return MonteCarloSetup(
+        nominal=nominal,
+        T_cam_base=T_cam_base,
+        T_flange_marker=T_flange_marker,
+        scales=PerturbationScales() if scales is None else scales,
+        noise=NoiseModel() if noise is None else noise,
+        plan=SweepPlan() if plan is None else plan,
+    )
+
+
+def _dynamic(setup: MonteCarloSetup) -> MonteCarloSetup:
+    """Numbers as arrays, so a new noise level or scale reuses the compiled trial."""
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if isinstance(x, float | int) else x, setup)
+
+
+def monte_carlo(setup: MonteCarloSetup, key: PRNGKeyArray, trials: int) -> TrialResult:
+    """Run `trials` seeded trials in one `jit(vmap(run_trial))` call.
+
+    **Returns:** a `TrialResult` with a leading `(trials,)` axis. Trials whose
+    solvers failed have `success == False` (and their codes in
+    `arc_result` / `axis_result`); they never raise.
+    """
+    setup = _dynamic(setup)
+    free = _free_mask_jit(setup)
+    keys = jax.random.split(key, trials)
+    return _batched_trials(setup, keys, free)
+
+
+_free_mask_jit = jax.jit(nominal_free_mask)
+
+
+@jax.jit
+def _batched_trials(setup, keys, free):
+    return jax.vmap(lambda k: run_trial(setup, k, free))(keys)
+
+
+def summarize(result: TrialResult) -> dict[str, float]:
+    """Plain-number summary of a batch of trials (medians and 95th percentiles)."""
+    ok = np.asarray(result.success)
+    out = {"trials": int(ok.size), "success_rate": float(ok.mean())}
+    for name in ("ee_rms_mm", "ee_max_mm", "ee_rms_mm_nominal", "cam_rot_deg", "cam_trans_mm"):
+        v = np.asarray(getattr(result, name))[ok]
+        out[f"{name}_median"] = float(np.median(v)) if v.size else float("nan")
+        out[f"{name}_p95"] = float(np.percentile(v, 95)) if v.size else float("nan")
+    for name in ("axis_dir_deg", "axis_pos_mm", "ratio_err_percent"):
+        v = np.abs(np.asarray(getattr(result, name))[ok])
+        out[f"{name}_max_median"] = float(np.median(v.max(axis=-1))) if v.size else float("nan")
+    return out

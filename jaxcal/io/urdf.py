@@ -1,0 +1,537 @@
+"""Read a serial chain from a URDF file, and write a calibrated chain back.
+
+Impure edge: files, XML and yourdfpy. Never jitted; returns `KinematicModel`s.
+
+How a URDF maps onto a `KinematicModel`:
+
+* The chain is the path of joints from `base_link` to `tip_link`.
+* `revolute` and `continuous` joints become `"revolute"`, `prismatic` joints
+  `"prismatic"`; `floating` and `planar` joints are rejected.
+* Fixed joints before a movable joint are composed into that joint's origin
+  (`T_parent_joint`); fixed joints after the last movable joint make up
+  `T_last_flange`.
+* `link_names` are the base link, each movable joint's child link, and the tip
+  link (the flange).
+* The zero offset of a joint is read from (and written to)
+  `<calibration rising="..."/>`, the reduction ratio from the
+  `<mechanicalReduction>` of the ROS transmission that names the joint
+  (1.0 where there is none). Tools other than jaxcal ignore `<calibration>`:
+  in yourdfpy, MuJoCo or ROS the joint angle is the commanded one.
+"""
+
+import math
+import os
+import tempfile
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import yourdfpy
+
+from .._geometry import matrix_to_rpy, rpy_to_matrix
+from .._kinematics import (
+    PRISMATIC,
+    REVOLUTE,
+    KinematicModel,
+    make_model,
+    origin_from_xyz_rpy,
+    origins_xyz_rpy,
+)
+
+_MOVABLE = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC}
+_UNSUPPORTED = ("floating", "planar")
+# Fixed transforms folded into a joint origin count as identity below this (max abs entry).
+_IDENTITY_ATOL = 1e-12
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _parse_xml(path: Path) -> ET.ElementTree:
+    """Parse `path` as XML with comments kept; ValueError on a missing file or bad XML."""
+    if not path.is_file():
+        raise ValueError(f"URDF file {str(path)!r} does not exist")
+    parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
+    try:
+        tree = ET.parse(path, parser=parser)
+    except ET.ParseError as e:
+        raise ValueError(f"URDF file {str(path)!r} is not well-formed XML: {e}") from None
+    if tree.getroot().tag != "robot":
+        raise ValueError(f"URDF file {str(path)!r}: root element is <{tree.getroot().tag}>, expected <robot>")
+    return tree
+
+
+def _reduction_elements(transmission: ET.Element) -> list[ET.Element]:
+    """`<mechanicalReduction>` elements of a ROS transmission (in the actuator, or legacy direct)."""
+    return transmission.findall("actuator/mechanicalReduction") + transmission.findall("mechanicalReduction")
+
+
+def _transmissions_by_joint(root: ET.Element) -> dict[str, list[ET.Element]]:
+    """Every top-level `<transmission>` indexed by the names of the joints it drives."""
+    out: dict[str, list[ET.Element]] = {}
+    for tr in root.findall("transmission"):
+        for j in tr.findall("joint"):
+            name = j.get("name")
+            if name is not None:
+                out.setdefault(name, []).append(tr)
+    return out
+
+
+def _reduction_ratio(joint: str, transmissions: dict[str, list[ET.Element]], path: Path) -> float:
+    """The mechanical reduction of `joint` (1.0 without a transmission)."""
+    found = transmissions.get(joint, [])
+    if len(found) > 1:
+        names = [tr.get("name") for tr in found]
+        raise ValueError(
+            f"URDF file {str(path)!r}: joint {joint!r} is driven by several transmissions {names}"
+        )
+    if not found:
+        return 1.0
+    tr = found[0]
+    if len(tr.findall("joint")) != 1:
+        raise ValueError(
+            f"URDF file {str(path)!r}: transmission {tr.get('name')!r} couples several joints; "
+            f"the reduction ratio of joint {joint!r} is ambiguous"
+        )
+    values = set()
+    for el in _reduction_elements(tr):
+        try:
+            values.add(float((el.text or "").strip()))
+        except ValueError:
+            raise ValueError(
+                f"URDF file {str(path)!r}: transmission {tr.get('name')!r} has a non-numeric "
+                f"mechanicalReduction {el.text!r}"
+            ) from None
+    if not values:
+        return 1.0
+    if len(values) > 1:
+        raise ValueError(
+            f"URDF file {str(path)!r}: transmission {tr.get('name')!r} gives joint {joint!r} "
+            f"several reductions {sorted(values)}"
+        )
+    ratio = values.pop()
+    if not math.isfinite(ratio) or ratio == 0.0:
+        raise ValueError(
+            f"URDF file {str(path)!r}: transmission {tr.get('name')!r} has invalid reduction {ratio!r}"
+        )
+    return ratio
+
+
+def _load_yourdfpy(path: Path) -> yourdfpy.URDF:
+    try:
+        # A zero joint axis makes yourdfpy's scene graph divide by zero; load_urdf rejects it itself.
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=False)
+    except (KeyError, AttributeError, TypeError, ValueError) as e:
+        # yourdfpy reports missing attributes/elements as raw Python errors.
+        raise ValueError(f"URDF file {str(path)!r} could not be read by yourdfpy: {e!r}") from None
+
+
+def _leaves_with_motion(children: dict[str, list], base: str) -> list[str]:
+    """Leaf links below `base` whose path from `base` crosses a non-fixed joint."""
+    leaves, stack, seen = [], [(base, False)], set()
+    while stack:
+        link, moved = stack.pop()
+        if link in seen:  # a malformed URDF with a cycle
+            continue
+        seen.add(link)
+        kids = children.get(link, [])
+        if not kids and moved:
+            leaves.append(link)
+        for j in kids:
+            stack.append((j.child, moved or j.type != "fixed"))
+    return sorted(leaves)
+
+
+def _chain(
+    urdf: yourdfpy.URDF, path: Path, base_link: str | None, tip_link: str | None
+) -> tuple[list, str, str]:
+    """The joints from `base_link` to `tip_link` (base first), and the two link names."""
+    links = {link.name for link in urdf.robot.links}
+    parent_joint = {j.child: j for j in urdf.robot.joints}
+    children: dict[str, list] = {}
+    for j in urdf.robot.joints:
+        children.setdefault(j.parent, []).append(j)
+    if base_link is None:
+        roots = sorted(links - set(parent_joint))
+        if len(roots) != 1:
+            raise ValueError(f"URDF file {str(path)!r}: expected one root link, found {roots}")
+        base_link = roots[0]
+    elif base_link not in links:
+        raise ValueError(
+            f"URDF file {str(path)!r}: unknown base link {base_link!r}; links are {sorted(links)}"
+        )
+    if tip_link is None:
+        leaves = _leaves_with_motion(children, base_link)
+        if not leaves:
+            raise ValueError(f"URDF file {str(path)!r}: no movable joint below base link {base_link!r}")
+        if len(leaves) > 1:
+            raise ValueError(
+                f"URDF file {str(path)!r}: the tree branches below {base_link!r}; pass tip_link, "
+                f"one of the leaves {leaves}"
+            )
+        tip_link = leaves[0]
+    elif tip_link not in links:
+        raise ValueError(f"URDF file {str(path)!r}: unknown tip link {tip_link!r}; links are {sorted(links)}")
+    joints, link = [], tip_link
+    while link != base_link:
+        if link not in parent_joint or len(joints) > len(parent_joint):
+            raise ValueError(
+                f"URDF file {str(path)!r}: no chain of joints from base link {base_link!r} "
+                f"to tip link {tip_link!r}"
+            )
+        joints.append(parent_joint[link])
+        link = parent_joint[link].parent
+    return joints[::-1], base_link, tip_link
+
+
+def _origin(joint) -> np.ndarray:
+    return np.eye(4) if joint.origin is None else np.asarray(joint.origin, dtype=np.float64)
+
+
+def _check_joint(joint, path: Path) -> None:
+    if joint.type in _UNSUPPORTED:
+        raise ValueError(
+            f"URDF file {str(path)!r}: joint {joint.name!r} is {joint.type}; only revolute, "
+            "continuous, prismatic and fixed joints are supported"
+        )
+    if joint.type != "fixed" and joint.type not in _MOVABLE:
+        raise ValueError(f"URDF file {str(path)!r}: joint {joint.name!r} has unknown type {joint.type!r}")
+    if joint.mimic is not None:
+        raise ValueError(f"URDF file {str(path)!r}: joint {joint.name!r} mimics another joint (unsupported)")
+
+
+def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -> KinematicModel:
+    """Read the serial chain from `base_link` to `tip_link` of a URDF file.
+
+    **Arguments:**
+    - `path`: the URDF file.
+    - `base_link`: the model's base frame; defaults to the root link.
+    - `tip_link`: the flange; defaults to the one leaf link below `base_link`
+      reached through a movable joint (a ValueError lists the leaves if the
+      tree branches).
+
+    **Returns:** a `KinematicModel` with `T_parent_joint` (m), unit axes,
+    zero offsets from `<calibration rising>` (rad or m, default 0) and
+    reduction ratios from the transmissions (default 1).
+
+    Raises `ValueError` naming the file for a missing file, malformed XML,
+    unknown links, no path between them, no movable joint, or an unsupported
+    (floating, planar, mimic) or degenerate (zero-axis) joint.
+    """
+    path = Path(path)
+    root = _parse_xml(path).getroot()
+    urdf = _load_yourdfpy(path)
+    joints, base_link, tip_link = _chain(urdf, path, base_link, tip_link)
+    transmissions = _transmissions_by_joint(root)
+
+    origins, axes, types, names, child_links, offsets, ratios = [], [], [], [], [], [], []
+    pending = np.eye(4)
+    for joint in joints:
+        _check_joint(joint, path)
+        if joint.type == "fixed":
+            pending = pending @ _origin(joint)
+            continue
+        axis = np.asarray(joint.axis, dtype=np.float64)
+        norm = float(np.linalg.norm(axis))
+        if not norm > 0.0 or not math.isfinite(norm):
+            raise ValueError(
+                f"URDF file {str(path)!r}: joint {joint.name!r} has a zero or invalid axis {axis}"
+            )
+        origins.append(pending @ _origin(joint))
+        pending = np.eye(4)
+        axes.append(axis / norm)
+        types.append(_MOVABLE[joint.type])
+        names.append(joint.name)
+        child_links.append(joint.child)
+        rising = None if joint.calibration is None else joint.calibration.rising
+        offsets.append(0.0 if rising is None else float(rising))
+        ratios.append(_reduction_ratio(joint.name, transmissions, path))
+    if not names:
+        raise ValueError(
+            f"URDF file {str(path)!r}: no movable joint between base link {base_link!r} "
+            f"and tip link {tip_link!r}"
+        )
+    return make_model(
+        np.stack(origins),
+        np.stack(axes),
+        joint_names=names,
+        joint_types=types,
+        link_names=[base_link, *child_links, tip_link],
+        zero_offset=np.asarray(offsets),
+        reduction_ratio=np.asarray(ratios),
+        T_last_flange=pending,
+    )
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _fmt(values) -> str:
+    """Floats as Python `repr` (the shortest string that round-trips exactly)."""
+    return " ".join(repr(float(v)) for v in np.ravel(values))
+
+
+def _rpy_error(R: np.ndarray, rpy: np.ndarray) -> float:
+    return float(np.abs(np.asarray(rpy_to_matrix(jnp.asarray(rpy))) - R).max())
+
+
+def _rpy_exact(R: np.ndarray, rpy: np.ndarray) -> np.ndarray:
+    """`rpy`, or gimbal-lock-safe angles where those reproduce `R` better.
+
+    At pitch $= \\pm\\pi/2$ only roll $\\mp$ yaw is determined, and
+    `matrix_to_rpy` takes roll and yaw separately from entries that are pure
+    round-off. Here roll comes from those small entries and yaw from the
+    $O(1)$ entries $R_{01}, R_{11}$, which fixes the difference to full
+    precision (error $O(\\cos^2 \\text{pitch})$).
+    """
+    err = _rpy_error(R, rpy)
+    if err <= 1e-15 or abs(R[2, 0]) < 1.0 - 1e-10:
+        return rpy
+    pitch = math.atan2(-R[2, 0], math.hypot(R[0, 0], R[1, 0]))
+    roll = math.atan2(R[2, 1], R[2, 2]) if (R[2, 1] != 0.0 or R[2, 2] != 0.0) else 0.0
+    if R[2, 0] < 0.0:  # pitch near +pi/2: R01 = sin(roll - yaw), R11 = cos(roll - yaw)
+        yaw = roll - math.atan2(R[0, 1], R[1, 1])
+    else:  # pitch near -pi/2: R01 = -sin(roll + yaw), R11 = cos(roll + yaw)
+        yaw = math.atan2(-R[0, 1], R[1, 1]) - roll
+    safe = np.array([roll, pitch, math.atan2(math.sin(yaw), math.cos(yaw))])
+    return safe if _rpy_error(R, safe) < err else rpy
+
+
+def _checked_rpy(T: np.ndarray, xyz: np.ndarray, rpy: np.ndarray, what: str) -> np.ndarray:
+    """`rpy` repaired at gimbal lock and checked to reproduce `T` to 1e-12."""
+    rpy = _rpy_exact(T[:3, :3], np.asarray(rpy, dtype=np.float64))
+    back = np.asarray(origin_from_xyz_rpy(xyz, rpy))
+    if not np.abs(back - T).max() <= 1e-12:
+        raise ValueError(f"save_urdf: {what} is not a rigid transform and cannot be written as xyz/rpy:\n{T}")
+    return rpy
+
+
+def _set_origin(joint_el: ET.Element, xyz: np.ndarray, rpy: np.ndarray) -> None:
+    origin = joint_el.find("origin")
+    if origin is None:
+        origin = ET.Element("origin")
+        joint_el.insert(0, origin)
+    origin.set("xyz", _fmt(xyz))
+    origin.set("rpy", _fmt(rpy))
+
+
+def _joint_origins(model: KinematicModel, arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """xyz/rpy of every joint origin of `model`, exact to 1e-12."""
+    xyz, rpy = origins_xyz_rpy(model)
+    rpy = np.stack(
+        [
+            _checked_rpy(T, x, r, f"origin of joint {name!r}")
+            for T, x, r, name in zip(arrays["T_parent_joint"], xyz, rpy, model.joint_names)
+        ]
+    )
+    return xyz, rpy
+
+
+def _flange_origin(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    xyz = T[:3, 3].copy()
+    rpy = np.asarray(matrix_to_rpy(jnp.asarray(T[:3, :3])))
+    return xyz, _checked_rpy(T, xyz, rpy, "T_last_flange")
+
+
+def _set_child(parent: ET.Element, tag: str, **attrib: str) -> ET.Element:
+    el = parent.find(tag)
+    if el is None:
+        el = ET.SubElement(parent, tag)
+    for k, v in attrib.items():
+        el.set(k, v)
+    return el
+
+
+def _new_transmission(joint: str, ratio: float) -> ET.Element:
+    tr = ET.Element("transmission", name=f"{joint}_trans")
+    ET.SubElement(tr, "type").text = "transmission_interface/SimpleTransmission"
+    j = ET.SubElement(tr, "joint", name=joint)
+    ET.SubElement(j, "hardwareInterface").text = "hardware_interface/EffortJointInterface"
+    act = ET.SubElement(tr, "actuator", name=f"{joint}_motor")
+    ET.SubElement(act, "hardwareInterface").text = "hardware_interface/EffortJointInterface"
+    ET.SubElement(act, "mechanicalReduction").text = repr(float(ratio))
+    return tr
+
+
+def _set_ratio(
+    root: ET.Element, transmissions: dict[str, list[ET.Element]], joint: str, ratio: float
+) -> None:
+    found = transmissions.get(joint, [])
+    if not found:
+        if ratio != 1.0:
+            root.append(_new_transmission(joint, ratio))
+        return
+    for tr in found:  # the reader has rejected ambiguous cases, so this is one transmission
+        reductions = _reduction_elements(tr)
+        if not reductions:
+            holder = tr.find("actuator")
+            reductions = [ET.SubElement(tr if holder is None else holder, "mechanicalReduction")]
+        for el in reductions:
+            el.text = repr(float(ratio))
+
+
+def _model_arrays(model: KinematicModel) -> dict[str, np.ndarray]:
+    arrays = {
+        "T_parent_joint": np.asarray(model.T_parent_joint, dtype=np.float64),
+        "axis": np.asarray(model.axis, dtype=np.float64),
+        "zero_offset": np.asarray(model.zero_offset, dtype=np.float64),
+        "reduction_ratio": np.asarray(model.reduction_ratio, dtype=np.float64),
+        "T_last_flange": np.asarray(model.T_last_flange, dtype=np.float64),
+    }
+    n = model.num_joints
+    expected = {"T_parent_joint": (n, 4, 4), "axis": (n, 3), "zero_offset": (n,), "reduction_ratio": (n,)}
+    expected["T_last_flange"] = (4, 4)
+    for name, shape in expected.items():
+        if arrays[name].shape != shape:
+            raise ValueError(
+                f"save_urdf: model.{name} has shape {arrays[name].shape}, expected {shape} "
+                "(save one model, not a batch)"
+            )
+        if not np.all(np.isfinite(arrays[name])):
+            raise ValueError(f"save_urdf: model.{name} is not finite")
+    return arrays
+
+
+def _fill_from_source(model: KinematicModel, arrays: dict[str, np.ndarray], source: Path) -> ET.ElementTree:
+    tree = _parse_xml(source)
+    root = tree.getroot()
+    urdf = _load_yourdfpy(source)
+    joints, _, _ = _chain(urdf, source, model.link_names[0], model.link_names[-1])
+    movable = [j for j in joints if j.type != "fixed"]
+    for j in joints:
+        _check_joint(j, source)
+    if tuple(j.name for j in movable) != model.joint_names:
+        raise ValueError(
+            f"save_urdf: the chain {model.link_names[0]!r} -> {model.link_names[-1]!r} of source "
+            f"{str(source)!r} has joints {[j.name for j in movable]}, the model has {list(model.joint_names)}"
+        )
+    for j, kind in zip(movable, model.joint_types):
+        if _MOVABLE[j.type] != kind:
+            raise ValueError(
+                f"save_urdf: joint {j.name!r} is {j.type} in {str(source)!r} but {kind} in the model"
+            )
+
+    elements = {el.get("name"): el for el in root.findall("joint")}
+    transmissions = _transmissions_by_joint(root)
+    xyz, rpy = _joint_origins(model, arrays)
+    i, folded = 0, []
+    for j in joints:
+        if j.type == "fixed":
+            folded.append(j)
+            continue
+        for f in folded:
+            if not np.abs(_origin(f) - np.eye(4)).max() <= _IDENTITY_ATOL:
+                raise ValueError(
+                    f"save_urdf: fixed joint {f.name!r} of {str(source)!r} is folded into the origin of "
+                    f"joint {j.name!r}; its transform is not the identity, so the calibrated origin "
+                    "cannot be written back to the URDF one joint at a time"
+                )
+        folded = []
+        el = elements[j.name]
+        _set_origin(el, xyz[i], rpy[i])
+        _set_child(el, "axis", xyz=_fmt(arrays["axis"][i]))
+        _set_child(el, "calibration", rising=repr(float(arrays["zero_offset"][i])))
+        ratio = float(arrays["reduction_ratio"][i])
+        _reduction_ratio(j.name, transmissions, source)  # rejects ambiguous transmissions
+        _set_ratio(root, transmissions, j.name, ratio)
+        i += 1
+
+    # The fixed joints after the last movable one carry T_last_flange.
+    nominal = np.eye(4)
+    for f in folded:
+        nominal = nominal @ _origin(f)
+    if not np.array_equal(nominal, arrays["T_last_flange"]):
+        if not folded:
+            raise ValueError(
+                f"save_urdf: model.T_last_flange is not the identity but {str(source)!r} has no fixed "
+                f"joint after the last movable joint to hold it (flange link {model.link_names[-1]!r})"
+            )
+        rest = np.eye(4)
+        for f in folded[1:]:
+            rest = rest @ _origin(f)
+        _set_origin(elements[folded[0].name], *_flange_origin(arrays["T_last_flange"] @ np.linalg.inv(rest)))
+    return tree
+
+
+def _minimal_tree(model: KinematicModel, arrays: dict[str, np.ndarray], robot_name: str) -> ET.ElementTree:
+    links = model.link_names
+    flange_is_link = links[-1] == links[-2]
+    if flange_is_link and not np.abs(arrays["T_last_flange"] - np.eye(4)).max() <= _IDENTITY_ATOL:
+        raise ValueError(
+            f"save_urdf: the flange link {links[-1]!r} is the last joint's child link, so the "
+            "non-identity model.T_last_flange has no fixed joint to go into; give the flange its own name"
+        )
+    if len(set(links[: -1 if flange_is_link else None])) != len(links) - flange_is_link:
+        raise ValueError(f"save_urdf: model.link_names has duplicates: {list(links)}")
+    xyz, rpy = _joint_origins(model, arrays)
+    root = ET.Element("robot", name=robot_name)
+    root.append(ET.Comment(" Kinematic chain written by jaxcal.io.save_urdf: no geometry, no inertia. "))
+    for name in dict.fromkeys(links):
+        ET.SubElement(root, "link", name=name)
+    for i, (name, kind) in enumerate(zip(model.joint_names, model.joint_types)):
+        el = ET.SubElement(root, "joint", name=name, type=kind)
+        ET.SubElement(el, "parent", link=links[i])
+        ET.SubElement(el, "child", link=links[i + 1])
+        _set_origin(el, xyz[i], rpy[i])
+        ET.SubElement(el, "axis", xyz=_fmt(arrays["axis"][i]))
+        ET.SubElement(el, "limit", lower=repr(-math.pi), upper=repr(math.pi), effort="0.0", velocity="0.0")
+        ET.SubElement(el, "calibration", rising=repr(float(arrays["zero_offset"][i])))
+    if not flange_is_link:
+        fixed_name = f"{links[-1]}_joint"
+        while fixed_name in model.joint_names:
+            fixed_name += "_fixed"
+        el = ET.SubElement(root, "joint", name=fixed_name, type="fixed")
+        ET.SubElement(el, "parent", link=links[-2])
+        ET.SubElement(el, "child", link=links[-1])
+        _set_origin(el, *_flange_origin(arrays["T_last_flange"]))
+    for name, ratio in zip(model.joint_names, arrays["reduction_ratio"]):
+        root.append(_new_transmission(name, ratio))
+    return ET.ElementTree(root)
+
+
+def _write_atomic(tree: ET.ElementTree, path: Path) -> None:
+    ET.indent(tree, space="  ")
+    text = '<?xml version="1.0"?>\n' + ET.tostring(tree.getroot(), encoding="unicode") + "\n"
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_urdf(model: KinematicModel, path, *, source=None) -> None:
+    """Write `model` as a URDF file (atomically: a temporary file, then a rename).
+
+    With `source` (the URDF the model was loaded from), the file is a copy of
+    `source` in which each chain joint gets the model's `<origin>` (xyz/rpy)
+    and `<axis>`, `<calibration rising="zero_offset"/>`, and its
+    transmission's `mechanicalReduction` set to the reduction ratio;
+    `T_last_flange` goes into the fixed joint(s) after the last movable joint.
+    Fixed joints that `load_urdf` folded into a movable joint's origin must be
+    identity transforms (to 1e-12), otherwise a `ValueError` explains that the
+    origin cannot be written back one joint at a time.
+
+    Without `source`, a minimal URDF: links without geometry, the joints with
+    origins, axes, limits of $\\pm\\pi$, calibration, a fixed joint to the
+    flange, and one transmission per joint.
+
+    `load_urdf` of the written file gives back the model to 1e-12 (floats are
+    written as `repr`). `model.T_flange_tool` is not written.
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise ValueError(f"save_urdf: directory {str(path.parent)!r} of {str(path)!r} does not exist")
+    arrays = _model_arrays(model)
+    if source is not None:
+        tree = _fill_from_source(model, arrays, Path(source))
+    else:
+        tree = _minimal_tree(model, arrays, robot_name=path.stem)
+    _write_atomic(tree, path)

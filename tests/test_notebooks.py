@@ -1,0 +1,28 @@
+"""Notebooks are executed, so they never rot."""
+
+import os
+from pathlib import Path
+
+import nbformat
+import pytest
+from conftest import CACHE_DIR
+from nbclient import NotebookClient
+
+NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+def test_notebook_executes(path, monkeypatch, tmp_path):
+    # The kernel shares the suite's compilation cache and draws into a file backend.
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(CACHE_DIR))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    nb = nbformat.read(path, as_version=4)
+    NotebookClient(
+        nb, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
+    ).execute()
+    errors = [
+        o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.output_type == "error"
+    ]
+    assert not errors
+    assert os.path.exists(path)  # the notebook on disk is never modified by the run
