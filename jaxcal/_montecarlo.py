@@ -132,7 +132,7 @@ class TrialResult(eqx.Module):
       between the estimated and true axis lines at the zero configuration.
     - `ratio_err_percent`: per joint reduction-ratio error (NaN without encoders).
     - `arc_result` (per joint), `axis_result`: optimistix result codes;
-      `success`: all of them succeeded.
+      `success`: all of them succeeded and the result is finite.
     """
 
     ee_rms_mm: Float[Array, ""]
@@ -281,7 +281,12 @@ def run_trial(
         k_val, (setup.n_validation, setup.nominal.num_joints), minval=-jnp.pi, maxval=jnp.pi
     )
     s = score(fit, true, T_cam_base, T_flange_marker, setup.nominal, q_val, fit_exact.T_cam_base)
-    success = jnp.all(arcs.result == optx.RESULTS.successful) & (fit.result == optx.RESULTS.successful)
+    success = (
+        jnp.all(arcs.result == optx.RESULTS.successful)
+        & (fit.result == optx.RESULTS.successful)
+        & jnp.all(jnp.isfinite(fit.T_cam_base))
+        & jnp.isfinite(s["ee_rms_mm"])
+    )
     return TrialResult(**s, arc_result=arcs.result, axis_result=fit.result, success=success)
 
 

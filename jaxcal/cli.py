@@ -79,8 +79,9 @@ def _single_trial_report(console, setup, seed: int) -> bool:
         "solver",
     ):
         t.add_column(col, justify="right")
+    arc_ok = np.asarray(arcs.result == optx.RESULTS.successful)
     for j, name in enumerate(setup.nominal.joint_names):
-        code = "ok" if arcs.result[j] == optx.RESULTS.successful else "FAILED"
+        code = "ok" if arc_ok[j] else "FAILED"
         t.add_row(
             name,
             str(int(arcs.num_frames[j])),
@@ -111,7 +112,7 @@ def _single_trial_report(console, setup, seed: int) -> bool:
         f"T_cam_base: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
         f"(std {np.round(sd[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(sd[3:]), 4).tolist()} deg)"
     )
-    ok = bool(fit.result == optx.RESULTS.successful) and bool(np.all(np.asarray(arcs.result._value) == 0))
+    ok = bool(fit.result == optx.RESULTS.successful) and bool(arc_ok.all())
     console.print(
         f"Axis fit: {'ok' if ok else 'FAILED'} in {int(fit.num_steps)} steps, residual RMS {float(fit.residual_rms):.3f}"
     )

@@ -75,7 +75,7 @@ def test_noisy_recovery_matches_reported_covariance():
     keys = jax.random.split(jax.random.key(4), 300)
     truths, datas = jax.vmap(lambda k: arc_data(k, noisy=True))(keys)
     res = jax.jit(jax.vmap(fit_arc))(datas)
-    assert np.all(np.asarray(res.result._value) == 0)
+    assert np.all(np.asarray(res.result == optx.RESULTS.successful))
     # Rate: scalar normalised error.
     z_rate = (np.asarray(res.rate) - 1.01) / np.sqrt(np.asarray(res.rate_var))
     assert 0.8 < np.sqrt(np.mean(z_rate**2)) < 1.25

