@@ -142,7 +142,8 @@ def flat_params(params: ArcParams) -> np.ndarray:
     )
 
 
-def _unflatten(x, M: int) -> ArcParams:
+def unflatten_params(x, M: int) -> ArcParams:
+    """Inverse of `flat_params` for `M` markers (works on NumPy and JAX arrays)."""
     return ArcParams(
         line=x[:4], rate=x[4], p0=x[5 : 5 + 3 * M].reshape(M, 3), r0=x[5 + 3 * M :].reshape(M, 3), angles=None
     )
@@ -153,7 +154,7 @@ def _jax_flat_residual(x, P, O, enc, R_ref, c, O_ref, W):
     M, F = P.shape[:2]
     data = ArcData(positions=P, orientations=O, encoder=enc, mask=jnp.ones((M, F), bool), sqrt_info=W)
     ref = ArcReference(R_ref=R_ref, c=c, O_ref=O_ref, gauge=jnp.ones(F))
-    return arc_residuals(_unflatten(x, M), (ref, data)).reshape(-1)
+    return arc_residuals(unflatten_params(x, M), (ref, data)).reshape(-1)
 
 
 jax_residual = jax.jit(_jax_flat_residual)

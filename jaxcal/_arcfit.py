@@ -166,19 +166,6 @@ class ArcFitResult(eqx.Module):
 # --------------------------------------------------------------------------- model
 
 
-def rotations_about_unit_axis(V: Float[Array, "3"], angles: Float[Array, " n"]) -> Float[Array, "n 3 3"]:
-    """$R(V, \\varphi) = I + \\sin\\varphi\\,[V]_\\times + (1 - \\cos\\varphi)[V]_\\times^2$ for unit `V`.
-
-    Rodrigues' formula without the small-angle branches `so3_exp` needs for a
-    general rotation vector: with a unit axis it is smooth everywhere, and it
-    is the inner loop of the arc fit (its Jacobian dominates the solve).
-    """
-    K = skew(V)
-    K2 = K @ K
-    s, c = jnp.sin(angles), jnp.cos(angles)
-    return jnp.eye(3) + s[:, None, None] * K + (1.0 - c)[:, None, None] * K2
-
-
 def line_from_params(line: Float[Array, "4"], R_ref, c) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """(point, unit direction) of the line coordinates `(u, v, w1, w2)`."""
     V = normalize(R_ref @ jnp.stack([line[0], line[1], jnp.ones_like(line[0])]))

@@ -41,6 +41,33 @@ def _setup(args):
     return mc.default_setup(load_robot(args.robot), noise=noise, plan=plan)
 
 
+def _detailed_trial(setup, key, free):
+    """One trial with everything kept (truth, arc fits, axis fit, errors), jitted whole."""
+    import jax
+
+    from . import _montecarlo as mc
+
+    @jax.jit
+    def run(setup, key, free):
+        k_truth, k_noise, k_val = jax.random.split(key, 3)
+        true, T_cam_base, T_flange_marker = mc._draw_truth(setup, k_truth)
+        data = mc.synthesize_sweeps(
+            true,
+            T_cam_base,
+            T_flange_marker,
+            setup.plan,
+            setup.noise,
+            k_noise,
+            nominal_ratio=setup.nominal.reduction_ratio,
+        )
+        arcs, fit = mc.fit_sweeps(setup.nominal, data, free=free)
+        q_val = jax.random.uniform(k_val, (1000, setup.nominal.num_joints), minval=-np.pi, maxval=np.pi)
+        s = mc.score(fit, true, T_cam_base, T_flange_marker, setup.nominal, q_val)
+        return true, T_cam_base, T_flange_marker, arcs, fit, s
+
+    return run(setup, key, free)
+
+
 def _single_trial_report(console, setup, seed: int) -> bool:
     import jax
     import optimistix as optx
@@ -51,22 +78,7 @@ def _single_trial_report(console, setup, seed: int) -> bool:
 
     setup = mc._dynamic(setup)
     free = mc._free_mask_jit(setup)
-    true, T_cam_base, T_flange_marker = mc._draw_truth(setup, jax.random.key(seed))
-    data = mc.synthesize_sweeps(
-        true,
-        T_cam_base,
-        T_flange_marker,
-        setup.plan,
-        setup.noise,
-        jax.random.key(seed + 1),
-        nominal_ratio=setup.nominal.reduction_ratio,
-    )
-    arcs, fit = jax.jit(lambda d: mc.fit_sweeps(setup.nominal, d, free=free))(data)
-    q_val = jax.random.uniform(
-        jax.random.key(seed + 2), (1000, setup.nominal.num_joints), minval=-np.pi, maxval=np.pi
-    )
-    s = mc.score(fit, true, T_cam_base, T_flange_marker, setup.nominal, q_val)
-
+    true, T_cam_base, T_flange_marker, arcs, fit, s = _detailed_trial(setup, jax.random.key(seed), free)
     t = Table(title="Arc fits (one per joint sweep)")
     for col in (
         "joint",
@@ -136,7 +148,7 @@ def cmd_demo(args) -> int:
 
     from . import _montecarlo as mc
 
-    console = Console()
+    console = Console(width=max(Console().width, 110))
     console.rule("[bold]jaxcal demo: UR5e, joint-by-joint sweeps, analytic marker poses")
     setup = _setup(args)
     t0 = time.perf_counter()
@@ -181,6 +193,16 @@ def _add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
     p.add_argument("--frames", type=int, default=40, help="camera frames per joint sweep")
 
 
+def _enable_compilation_cache() -> None:
+    """Keep compiled XLA programs between runs (a second `jaxcal demo` skips compilation)."""
+    import jax
+
+    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "jaxcal" / "xla"
+        jax.config.update("jax_compilation_cache_dir", str(cache))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -192,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", help="write the summary here (atomically)")
     p.set_defaults(func=cmd_montecarlo)
     args = parser.parse_args(argv)
+    _enable_compilation_cache()
     try:
         return args.func(args)
     except ValueError as e:
