@@ -212,6 +212,7 @@ def scipy_fit(stage: AxisStage, arrays: dict, clock: dict, stats: dict, *, exact
         res = least_squares(arc_residuals_np, arrays["x0"][j], jac=jac, method="lm", args=args)
         x_arcs.append(res.x)
         stats["arc_nfev"].append(res.nfev)
+        stats["arc_njev"].append(res.njev)
         stats["ok"].append(res.status > 0)
     t1 = time.perf_counter()
     problem = jax.block_until_ready(stage.setup(np.stack(x_arcs), arrays["ref"], arrays["data"]))
@@ -225,6 +226,7 @@ def scipy_fit(stage: AxisStage, arrays: dict, clock: dict, stats: dict, *, exact
 
     res = least_squares(fun, np.zeros(stage.n_free), jac=axis_jac if exact_jac else "2-point", method="lm")
     stats["axis_nfev"].append(res.nfev)
+    stats["axis_njev"].append(res.njev)
     stats["ok"].append(res.status > 0)
     t3 = time.perf_counter()
     cal = jax.block_until_ready(stage.finish(res.x, problem))
@@ -364,12 +366,12 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
         scipy_nfev={
             f"{name}_{which}": _describe(st[name])
             for which, st in zip(("noisy", "noise_free"), stats)
-            for name in ("arc_nfev", "axis_nfev")
+            for name in ("arc_nfev", "arc_njev", "axis_nfev", "axis_njev")
         },
         scipy_jac_nfev={
             f"{name}_{which}": _describe(st[name])
             for which, st in zip(("noisy", "noise_free"), stats_jac)
-            for name in ("arc_nfev", "axis_nfev")
+            for name in ("arc_nfev", "arc_njev", "axis_nfev", "axis_njev")
         },
         axis_free_parameters=int(free.sum()),
         jaxcal_arc_num_steps=_describe(arc_steps),
@@ -413,10 +415,12 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
 
 
 def _new_stats() -> dict:
-    return dict(arc_nfev=[], axis_nfev=[], ok=[])
+    return dict(arc_nfev=[], arc_njev=[], axis_nfev=[], axis_njev=[], ok=[])
 
 
-def _describe(x) -> dict:
+def _describe(x) -> dict | None:
+    if any(v is None for v in x):  # SciPy reports no njev for finite-difference Jacobians
+        return None
     x = np.asarray(x)
     return dict(mean=float(x.mean()), max=int(x.max()))
 
