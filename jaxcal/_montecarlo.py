@@ -239,37 +239,39 @@ def _draw_truth(setup: MonteCarloSetup, key: PRNGKeyArray):
     return true, T_cam_base, T_flange_marker
 
 
+def trial_sweeps(
+    setup: MonteCarloSetup,
+    true: KinematicModel,
+    T_cam_base: Float[Array, "4 4"],
+    T_flange_marker: Float[Array, "markers 4 4"],
+    key: PRNGKeyArray,
+    noise: NoiseModel | None = None,
+) -> ArcData:
+    """`synthesize_sweeps` with the setup's plan, noise (unless given) and options."""
+    return synthesize_sweeps(
+        true,
+        T_cam_base,
+        T_flange_marker,
+        setup.plan,
+        setup.noise if noise is None else noise,
+        key,
+        nominal_ratio=setup.nominal.reduction_ratio,
+        use_encoders=setup.use_encoders,
+        use_orientations=setup.use_orientations,
+    )
+
+
 def run_trial(
     setup: MonteCarloSetup, key: PRNGKeyArray, free: Bool[Array, " n"] | None = None
 ) -> TrialResult:
     """One Monte Carlo trial (pure; vmap over `key`)."""
     k_truth, k_noise, k_val = jax.random.split(key, 3)
     true, T_cam_base, T_flange_marker = _draw_truth(setup, k_truth)
-    data = synthesize_sweeps(
-        true,
-        T_cam_base,
-        T_flange_marker,
-        setup.plan,
-        setup.noise,
-        k_noise,
-        nominal_ratio=setup.nominal.reduction_ratio,
-        use_encoders=setup.use_encoders,
-        use_orientations=setup.use_orientations,
-    )
+    data = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise)
     # The truth expressed in the estimator's gauge: the same fit on noise-free
     # sweeps, whose T_cam_base is what a perfect calibration returns. Both
     # fits run as one vmap (one trace, one compile).
-    exact = synthesize_sweeps(
-        true,
-        T_cam_base,
-        T_flange_marker,
-        setup.plan,
-        NoiseModel(0.0, 0.0, 0.0),
-        k_noise,
-        nominal_ratio=setup.nominal.reduction_ratio,
-        use_encoders=setup.use_encoders,
-        use_orientations=setup.use_orientations,
-    )
+    exact = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise, NoiseModel(0.0, 0.0, 0.0))
     both = jax.tree.map(lambda a, b: jnp.stack([a, b]), data, exact)
     arcs2, fit2 = jax.vmap(lambda d: fit_sweeps(setup.nominal, d, free=free, max_steps=setup.max_steps))(both)
     arcs, fit, fit_exact = (
@@ -293,17 +295,13 @@ def run_trial(
 def nominal_free_mask(setup: MonteCarloSetup) -> Bool[Array, " n"]:
     """The identifiable parameters at the nominal geometry (noise-free sweeps),
     used for every trial so all trials estimate the same parameters."""
-    quiet = eqx.tree_at(lambda s: s.noise, setup, NoiseModel(0.0, 0.0, 0.0))
-    data = synthesize_sweeps(
+    data = trial_sweeps(
+        setup,
         setup.nominal,
         setup.T_cam_base,
         setup.T_flange_marker,
-        setup.plan,
-        quiet.noise,
         jax.random.key(0),
-        nominal_ratio=setup.nominal.reduction_ratio,
-        use_encoders=setup.use_encoders,
-        use_orientations=setup.use_orientations,
+        NoiseModel(0.0, 0.0, 0.0),
     )
     _, fit = fit_sweeps(setup.nominal, data)
     return fit.free

@@ -51,15 +51,7 @@ def _detailed_trial(setup, key, free):
     def run(setup, key, free):
         k_truth, k_noise, k_val = jax.random.split(key, 3)
         true, T_cam_base, T_flange_marker = mc._draw_truth(setup, k_truth)
-        data = mc.synthesize_sweeps(
-            true,
-            T_cam_base,
-            T_flange_marker,
-            setup.plan,
-            setup.noise,
-            k_noise,
-            nominal_ratio=setup.nominal.reduction_ratio,
-        )
+        data = mc.trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise)
         arcs, fit = mc.fit_sweeps(setup.nominal, data, free=free)
         q_val = jax.random.uniform(k_val, (1000, setup.nominal.num_joints), minval=-np.pi, maxval=np.pi)
         s = mc.score(fit, true, T_cam_base, T_flange_marker, setup.nominal, q_val)
