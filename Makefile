@@ -8,7 +8,20 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint format bench clean
+.PHONY: demo test lint format bench clean gl
+
+# Headless OpenGL for MuJoCo (EGL + Mesa; OSMesa as the fallback).
+GL_PACKAGES := libegl1 libgl1-mesa-dri
+gl:
+	@if ldconfig -p | grep -q 'libEGL.so.1' && ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1; then :; \
+	elif ldconfig -p | grep -q 'libOSMesa.so'; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "installing $(GL_PACKAGES) (headless OpenGL for MuJoCo rendering)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(GL_PACKAGES) >/dev/null; \
+	else \
+		echo "MuJoCo rendering needs a headless OpenGL library: sudo apt-get install $(GL_PACKAGES) (or libosmesa6)"; \
+		exit 1; \
+	fi
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -16,10 +29,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e ".[test]"
 	@touch $(STAMP)
 
-demo: $(STAMP)
+demo: $(STAMP) gl
 	$(PY) -m jaxcal demo
 
-test: $(STAMP)
+test: $(STAMP) gl
 	$(PY) -m pytest -q
 
 lint: $(STAMP)
@@ -33,6 +46,7 @@ format: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/arcfit.py --json results/arcfit.json
 	$(PY) benchmarks/montecarlo.py --trials 1000 --json results/montecarlo.json
+	$(PY) benchmarks/render.py --json results/render.json
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache results

@@ -1,4 +1,4 @@
-"""Command line: `jaxcal demo`, `jaxcal montecarlo`.
+"""Command line: `jaxcal demo`, `jaxcal montecarlo`, `jaxcal simulate`.
 
 `demo` runs the estimator core end to end on the shipped UR5e: a perturbed
 "true" arm, analytic joint-by-joint sweeps with realistic marker noise, the
@@ -195,6 +195,53 @@ def _enable_compilation_cache() -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution must look like 640x480, got {text!r}") from None
+    return w, h
+
+
+def cmd_simulate(args) -> int:
+    from .sim.simulate import SimConfig, simulate
+
+    config = SimConfig(
+        robot=args.robot,
+        seed=args.seed,
+        resolution=args.resolution,
+        frames_per_joint=args.frames_per_joint,
+        range_deg=args.sweep_deg,
+        markers=args.markers,
+        cameras=args.cameras,
+        eye_in_hand=args.eye_in_hand,
+        markers_on_links=args.markers_on_links,
+        clock_offset_ms=args.clock_offset_ms,
+        clock_drift_ppm=args.clock_drift_ppm,
+        clock_jitter_ms=args.clock_jitter_ms,
+        clock_known=not args.unknown_clock_offset,
+        drop_rate=args.drop_rate,
+        encoders=not args.no_encoders,
+        distortion=tuple(args.distortion),
+    )
+    start = time.perf_counter()
+    try:
+        out = simulate(config, args.out, overwrite=args.overwrite, progress=not args.quiet)
+    except FileExistsError as e:
+        print(f"jaxcal: error: {e}", file=sys.stderr)
+        return 2
+    from .io.dataset import load_dataset
+
+    ds = load_dataset(out)
+    visible = sum(all(f["visible"].values()) for f in ds.truth["frames"])
+    print(
+        f"wrote {out}: {len(ds.frames['file'])} images from {len(ds.cameras)} camera(s), "
+        f"{len(ds.truth['dropped_frames'])} dropped, targets fully in view in {visible} "
+        f"({time.perf_counter() - start:.1f} s)"
+    )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -205,6 +252,31 @@ def main(argv: list[str] | None = None) -> int:
     _add_study_args(p, trials=1000)
     p.add_argument("--json", help="write the summary here (atomically)")
     p.set_defaults(func=cmd_montecarlo)
+    p = sub.add_parser(
+        "simulate", help="render a perturbed arm's calibration dataset (MuJoCo) into a directory"
+    )
+    p.add_argument("--robot", default="ur5e", help="shipped robot (ur5e, panda) or a URDF file")
+    p.add_argument("--out", required=True, help="dataset directory (must be empty or absent)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH pixels")
+    p.add_argument("--frames-per-joint", type=int, default=30)
+    p.add_argument("--sweep-deg", type=float, default=40.0, help="angle each joint sweeps (deg)")
+    p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
+    p.add_argument("--cameras", type=int, default=1, help="fixed cameras (eye-to-hand)")
+    p.add_argument("--eye-in-hand", action="store_true", help="camera on the flange, board in the world")
+    p.add_argument("--markers-on-links", action="store_true", help="a plate on every link too")
+    p.add_argument("--clock-offset-ms", type=float, default=0.0, help="camera clock minus controller clock")
+    p.add_argument("--clock-drift-ppm", type=float, default=0.0)
+    p.add_argument("--clock-jitter-ms", type=float, default=0.0)
+    p.add_argument("--unknown-clock-offset", action="store_true", help="leave the offset out of the metadata")
+    p.add_argument("--drop-rate", type=float, default=0.0, help="probability that a frame is lost")
+    p.add_argument("--no-encoders", action="store_true", help="write no encoder log")
+    p.add_argument(
+        "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_simulate)
     args = parser.parse_args(argv)
     _enable_compilation_cache()
     try:

@@ -3,6 +3,10 @@ from pathlib import Path
 import jax
 import pytest
 
+from jaxcal.sim._gl import select_backend
+
+select_backend()  # before anything imports mujoco: headless EGL (or OSMesa) for the rendering tests
+
 jax.config.update("jax_enable_x64", True)
 # Compiled programs are cached on disk, so a second run of the suite (and the
 # notebook kernels it starts) skips XLA compilation.

@@ -1,0 +1,375 @@
+"""A MuJoCo scene built from a jaxcal `KinematicModel`: arm, marker plates, cameras.
+
+Every joint becomes a body whose frame is the model's joint frame
+(`T_parent_joint`) and whose hinge/slide axis is the model's axis, so
+MuJoCo's kinematics are the model's exactly (the tests check it to 1e-9).
+MuJoCo's joint position is the angle the joint really stands at,
+$\\theta = q + \\delta$ (`jaxcal.joint_angles`). Links are drawn as capsules
+between consecutive joint origins; plates carry the OpenCV-generated texture
+of their `TargetSpec` on a quad whose vertices and texture coordinates are
+placed from the spec's own frame, so what is printed is what PnP assumes.
+
+Cameras use OpenCV's convention ($z$ forward, $y$ down; MuJoCo's cameras look
+down $-z$ with $y$ up, hence a fixed flip). Intrinsics follow from MuJoCo's
+vertical field of view and the resolution with square pixels:
+$f = (H/2) / \\tan(\\mathrm{fovy}/2)$, and principal point
+$c = ((W-1)/2, (H-1)/2)$ because OpenGL puts pixel $i$'s centre at $i + 1/2$
+where OpenCV puts it at $i$. Lens distortion (OpenCV's model) is applied to
+the rendered image afterwards.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..markers import TargetSpec
+from ._gl import no_backend_error, select_backend
+
+select_backend()
+import cv2  # noqa: E402
+import mujoco  # noqa: E402
+
+_CV_FROM_MJ = np.diag([1.0, -1.0, -1.0])  # camera axes: OpenCV (x right, y down, z forward) vs MuJoCo
+
+
+def _quat(R) -> np.ndarray:
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).ravel())
+    return q
+
+
+def _pose(T) -> dict:
+    T = np.asarray(T, np.float64)
+    return {"pos": T[:3, 3].copy(), "quat": _quat(T[:3, :3])}
+
+
+@dataclass(frozen=True, eq=False)
+class CameraSpec:
+    """A pinhole camera. `T_mount_cam` places it (OpenCV axes) in `mount`'s frame:
+    `"world"` for a fixed camera, or a link name (e.g. the flange) for eye-in-hand.
+
+    `distortion`: OpenCV's (k1, k2, p1, p2, k3), applied to the rendered image.
+    """
+
+    name: str = "cam0"
+    width: int = 640
+    height: int = 480
+    fovy_deg: float = 50.0
+    T_mount_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    mount: str = "world"
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def K(self) -> np.ndarray:
+        """Intrinsic matrix (px), OpenCV pixel-centre convention."""
+        f = 0.5 * self.height / np.tan(0.5 * np.deg2rad(self.fovy_deg))
+        return np.array(
+            [[f, 0.0, 0.5 * (self.width - 1)], [0.0, f, 0.5 * (self.height - 1)], [0.0, 0.0, 1.0]]
+        )
+
+    @property
+    def dist(self) -> np.ndarray:
+        return np.asarray(self.distortion, np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class PlateSpec:
+    """A target printed on a plate fixed to `link` (a link name of the model, or `"world"`)."""
+
+    target: TargetSpec
+    link: str
+    T_link_target: np.ndarray
+
+
+class Scene:
+    """The compiled MuJoCo model of one arm with its plates and cameras.
+
+    `set_angles(theta)` poses the arm (true joint angles, rad / m);
+    `render(camera)` returns an RGB image (H, W, 3) uint8 of that camera;
+    `body_pose(name)` / `camera_pose(name)` read MuJoCo's world poses.
+    """
+
+    def __init__(self, spec, plates, cameras, link_names, joint_names):
+        self.spec = spec
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        self.plates = tuple(plates)
+        self.cameras = {c.name: c for c in cameras}
+        self.link_names = tuple(link_names)
+        self.joint_names = tuple(joint_names)
+        self._qpos = np.array([self.model.joint(n).qposadr[0] for n in joint_names], dtype=int)
+        self._renderers: dict = {}
+        self.shadows = self.model.vis.quality.shadowsize > 0
+        self._undistort_maps: dict = {}
+        mujoco.mj_forward(self.model, self.data)
+
+    def set_angles(self, theta) -> None:
+        self.data.qpos[self._qpos] = np.asarray(theta, np.float64)
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+
+    def body_pose(self, name: str) -> np.ndarray:
+        body = self.data.body(name)
+        T = np.eye(4)
+        T[:3, :3] = body.xmat.reshape(3, 3)
+        T[:3, 3] = body.xpos
+        return T
+
+    def camera_pose(self, name: str) -> np.ndarray:
+        """`T_world_cam` of camera `name`, OpenCV axes."""
+        cam = self.data.camera(name)
+        T = np.eye(4)
+        T[:3, :3] = cam.xmat.reshape(3, 3) @ _CV_FROM_MJ
+        T[:3, 3] = cam.xpos
+        return T
+
+    def _renderer(self, cam: CameraSpec):
+        key = (cam.height, cam.width)
+        if key not in self._renderers:
+            try:
+                r = mujoco.Renderer(self.model, height=cam.height, width=cam.width)
+            except Exception as e:  # the GL backends raise assorted types
+                raise no_backend_error(e) from e
+            r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
+            r.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = self.shadows
+            self._renderers[key] = r
+        return self._renderers[key]
+
+    def _distortion_map(self, cam: CameraSpec):
+        if cam.name not in self._undistort_maps:
+            # For every pixel of the distorted image, where it comes from in the ideal one.
+            u, v = np.meshgrid(
+                np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64)
+            )
+            pts = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
+            ideal = cv2.undistortPointsIter(
+                pts,
+                cam.K,
+                cam.dist,
+                R=None,
+                P=cam.K,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-6),
+            )
+            ideal = ideal.reshape(cam.height, cam.width, 2).astype(np.float32)
+            self._undistort_maps[cam.name] = (ideal[..., 0].copy(), ideal[..., 1].copy())
+        return self._undistort_maps[cam.name]
+
+    def render(self, camera: str) -> np.ndarray:
+        cam = self.cameras[camera]
+        r = self._renderer(cam)
+        r.update_scene(self.data, camera=camera)
+        image = r.render()
+        if np.any(cam.dist != 0):
+            mx, my = self._distortion_map(cam)
+            image = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return image
+
+    def close(self) -> None:
+        for r in self._renderers.values():
+            r.close()
+        self._renderers.clear()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# --------------------------------------------------------------------------- building
+
+
+def _add_plate(spec, parent, plate: PlateSpec, index: int) -> None:
+    target = plate.target
+    image, corners = target.image()
+    rgb = np.ascontiguousarray(np.repeat(image[:, :, None], 3, axis=2))
+    tex_name, mat_name, mesh_name = f"tex_plate{index}", f"mat_plate{index}", f"mesh_plate{index}"
+    tex = spec.add_texture(
+        name=tex_name,
+        type=mujoco.mjtTexture.mjTEXTURE_2D,
+        width=image.shape[1],
+        height=image.shape[0],
+        nchannel=3,
+    )
+    tex.data = rgb.tobytes()
+    mat = spec.add_material(name=mat_name)
+    mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = tex_name
+    mat.emission, mat.specular, mat.shininess = 1.0, 0.0, 0.0
+    # Quad: corners TL, TR, BR, BL with texture coordinates (s, t) = (u, v) / size,
+    # row 0 of the texture at t = 0. Both windings, so either side shows it.
+    uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]])
+    mesh = spec.add_mesh(
+        name=mesh_name,
+        uservert=corners.ravel().tolist(),
+        usertexcoord=uv.ravel().tolist(),
+        userface=faces.ravel().tolist(),
+        userfacetexcoord=faces.ravel().tolist(),
+    )
+    mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL
+    body = parent.add_body(name=f"plate:{target.name}", **_pose(plate.T_link_target))
+    body.explicitinertial = True
+    body.mass, body.inertia = 0.05, [1e-5, 1e-5, 1e-5]
+    body.add_geom(
+        name=f"plate:{target.name}:face",
+        type=mujoco.mjtGeom.mjGEOM_MESH,
+        meshname=mesh_name,
+        material=mat_name,
+        contype=0,
+        conaffinity=0,
+    )
+    # A backing board just behind the printed face.
+    normal = target.front_normal()
+    centre = corners.mean(axis=0) - normal * 0.004
+    half = 0.5 * np.array(
+        [np.linalg.norm(corners[1] - corners[0]), np.linalg.norm(corners[3] - corners[0]), 0.006]
+    )
+    right, down = (corners[1] - corners[0]) / (2 * half[0]), (corners[3] - corners[0]) / (2 * half[1])
+    R = np.stack([right, down, np.cross(right, down)], axis=1)
+    body.add_geom(
+        name=f"plate:{target.name}:back",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=half.tolist(),
+        pos=centre,
+        quat=_quat(R),
+        rgba=[0.25, 0.25, 0.28, 1.0],
+        contype=0,
+        conaffinity=0,
+    )
+
+
+def _add_link_geometry(
+    body, offset: np.ndarray, axis: np.ndarray | None, radius: float, rgba, capsule: bool = True
+) -> None:
+    """A capsule (or cylinder) from the body origin to its child's origin, and a joint drum along the axis."""
+    length = float(np.linalg.norm(offset))
+    if length > 1e-6:
+        body.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_CAPSULE if capsule else mujoco.mjtGeom.mjGEOM_CYLINDER,
+            fromto=[0.0, 0.0, 0.0, *offset.tolist()],
+            size=[radius, 0.0, 0.0],
+            rgba=rgba,
+            contype=0,
+            conaffinity=0,
+        )
+    if axis is not None:
+        z = axis / np.linalg.norm(axis)
+        body.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            fromto=[*(-1.2 * radius * z).tolist(), *(1.2 * radius * z).tolist()],
+            size=[1.15 * radius, 0.0, 0.0],
+            rgba=[0.15, 0.3, 0.55, 1.0],
+            contype=0,
+            conaffinity=0,
+        )
+
+
+def build_scene(
+    model,
+    *,
+    plates=(),
+    cameras=(CameraSpec(),),
+    T_world_base=None,
+    link_radius: float = 0.035,
+    floor_z: float | None = None,
+    shadows: bool = False,
+) -> Scene:
+    """Build the MuJoCo scene of `model` (a `KinematicModel`) with `plates` and `cameras`.
+
+    **Arguments:**
+    - `model`: the arm as it really is (the truth, in simulations).
+    - `plates`: `PlateSpec`s; `link` names one of `model.link_names` or `"world"`.
+    - `cameras`: `CameraSpec`s; `mount` is `"world"` or a link name.
+    - `T_world_base`: the base's pose in the world (default identity).
+    - `floor_z`: height of a grey floor plane (none if `None`).
+    - `shadows`: cast shadows (MuJoCo's default look; several times slower on a CPU).
+    """
+    links, joints = tuple(model.link_names), tuple(model.joint_names)
+    for p in plates:
+        if p.link != "world" and p.link not in links:
+            raise ValueError(f"plate {p.target.name!r}: unknown link {p.link!r}; links are {links}")
+    for c in cameras:
+        if c.mount != "world" and c.mount not in links:
+            raise ValueError(f"camera {c.name!r}: unknown mount {c.mount!r}; use 'world' or one of {links}")
+    names = [c.name for c in cameras] + [p.target.name for p in plates]
+    if len(set(names)) != len(names):
+        raise ValueError(f"camera and target names must be unique, got {names}")
+
+    spec = mujoco.MjSpec()
+    spec.modelname = "jaxcal_scene"
+    width = max(c.width for c in cameras) if cameras else 640
+    height = max(c.height for c in cameras) if cameras else 480
+    spec.visual.global_.offwidth, spec.visual.global_.offheight = int(width), int(height)
+    spec.visual.headlight.ambient = [0.45, 0.45, 0.45]
+    spec.visual.headlight.diffuse = [0.5, 0.5, 0.5]
+    if not shadows:
+        spec.visual.quality.shadowsize = 0
+    sky = spec.add_texture(
+        name="sky",
+        type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+        builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+        rgb1=[0.75, 0.82, 0.9],
+        rgb2=[0.25, 0.3, 0.38],
+        width=256,
+        height=256,
+    )
+    del sky
+    world = spec.worldbody
+    if floor_z is not None:
+        world.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            pos=[0.0, 0.0, floor_z],
+            size=[3.0, 3.0, 0.1],
+            rgba=[0.55, 0.57, 0.6, 1.0],
+            contype=0,
+            conaffinity=0,
+        )
+    world.add_light(pos=[0.0, 0.0, 3.0], dir=[0.0, 0.0, -1.0], diffuse=[0.5, 0.5, 0.5], castshadow=shadows)
+
+    T_parent_joint = np.asarray(model.T_parent_joint, np.float64)
+    axes = np.asarray(model.axis, np.float64)
+    T_last_flange = np.asarray(model.T_last_flange, np.float64)
+    n = len(joints)
+    base = world.add_body(name=links[0], **_pose(np.eye(4) if T_world_base is None else T_world_base))
+    bodies = {links[0]: base}
+    grey = [[0.78, 0.78, 0.8, 1.0], [0.62, 0.64, 0.68, 1.0]]
+    _add_link_geometry(base, T_parent_joint[0][:3, 3], None, 1.6 * link_radius, grey[1])
+    parent = base
+    for i in range(n):
+        body = parent.add_body(name=links[i + 1], **_pose(T_parent_joint[i]))
+        body.explicitinertial = True
+        body.mass, body.inertia = 1.0, [1e-3, 1e-3, 1e-3]
+        kind = (
+            mujoco.mjtJoint.mjJNT_HINGE if model.joint_types[i] == "revolute" else mujoco.mjtJoint.mjJNT_SLIDE
+        )
+        body.add_joint(
+            name=joints[i],
+            type=kind,
+            axis=axes[i].tolist(),
+        )
+        child = T_parent_joint[i + 1][:3, 3] if i + 1 < n else T_last_flange[:3, 3]
+        _add_link_geometry(body, child, axes[i], link_radius, grey[i % 2], capsule=i + 1 < n)
+        bodies[links[i + 1]] = body
+        parent = body
+    flange = parent.add_body(name=links[-1], **_pose(T_last_flange))
+    flange.explicitinertial = True
+    flange.mass, flange.inertia = 0.1, [1e-4, 1e-4, 1e-4]
+    flange.add_geom(
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        fromto=[0.0, 0.0, -0.008, 0.0, 0.0, 0.0],
+        size=[0.04, 0.0, 0.0],
+        rgba=[0.3, 0.3, 0.3, 1.0],
+        contype=0,
+        conaffinity=0,
+    )
+    bodies[links[-1]] = flange
+    bodies["world"] = world
+
+    for i, plate in enumerate(plates):
+        _add_plate(spec, bodies[plate.link], plate, i)
+    for cam in cameras:
+        T = np.asarray(cam.T_mount_cam, np.float64)
+        bodies[cam.mount].add_camera(
+            name=cam.name, pos=T[:3, 3], quat=_quat(T[:3, :3] @ _CV_FROM_MJ), fovy=float(cam.fovy_deg)
+        )
+    return Scene(spec, plates, cameras, links, joints)

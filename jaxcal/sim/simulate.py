@@ -1,0 +1,489 @@
+"""`simulate`: a perturbed arm filmed by rendered cameras, written as a dataset.
+
+The nominal robot (what the calibrator is given) is perturbed into the true
+one (seeded: joint origins, axis tilts, zero offsets, reduction ratios; joint
+1's frame stays nominal because it *defines* the base frame, the same gauge
+as `jaxcal.monte_carlo`). The marker plate's mount and the cameras' poses
+get their own true deviations from their nominal (design) values. Each joint
+sweeps alone; the encoders log motor angles at their rate; the cameras
+render frames at theirs, stamped by their own clock. Everything the
+calibration should recover is written to `truth.json` beside the images.
+"""
+
+import shutil
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..io.dataset import (
+    SCHEMA,
+    SCHEMA_VERSION,
+    CameraInfo,
+    TargetInfo,
+    atomic_directory,
+    write_encoders,
+    write_frames,
+    write_json,
+)
+from ..markers import TargetSpec
+from .motion import ClockModel, EncoderModel, encoder_stream, frame_times, joint_sweeps, true_angles
+from .scene import CameraSpec, PlateSpec, build_scene
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything `simulate` needs; the defaults make the demo's dataset.
+
+    Perturbations (standard deviations): `origin_mm`, `origin_deg`,
+    `axis_tilt_deg`, `zero_offset_deg`, `ratio_percent` for the arm;
+    `mount_mm`, `mount_deg` for the marker plate (or eye-in-hand camera)
+    mount and the camera placement.
+    """
+
+    robot: str = "ur5e"
+    seed: int = 0
+    resolution: tuple[int, int] = (640, 480)
+    fovy_deg: float = 50.0
+    cameras: int = 1
+    camera_distance: float = 0.9
+    eye_in_hand: bool = False
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    markers: str = "charuco"
+    dictionary: str = "DICT_4X4_50"
+    squares: tuple[int, int] = (5, 4)
+    square_length: float = 0.04
+    marker_length: float = 0.03
+    markers_on_links: bool = False
+    frames_per_joint: int = 30
+    range_deg: float = 40.0
+    fps: float = 30.0
+    clock_offset_ms: float = 0.0
+    clock_drift_ppm: float = 0.0
+    clock_jitter_ms: float = 0.0
+    clock_known: bool = True
+    drop_rate: float = 0.0
+    encoders: bool = True
+    encoder_rate_hz: float = 500.0
+    encoder_noise_counts: float = 0.5
+    origin_mm: float = 1.0
+    origin_deg: float = 0.2
+    axis_tilt_deg: float = 0.2
+    zero_offset_deg: float = 0.5
+    ratio_percent: float = 1.0
+    mount_mm: float = 2.0
+    mount_deg: float = 1.0
+    link_plates: tuple = field(default=(), repr=False)
+
+    def check(self) -> None:
+        w, h = self.resolution
+        if w < 32 or h < 32:
+            raise ValueError(f"resolution {w}x{h} is too small (at least 32x32)")
+        if self.cameras < 1:
+            raise ValueError("at least one camera")
+        if self.eye_in_hand and self.cameras != 1:
+            raise ValueError("eye-in-hand simulates one camera on the flange")
+        if self.frames_per_joint < 2:
+            raise ValueError("frames_per_joint must be at least 2")
+        if not 0.0 <= self.drop_rate < 1.0:
+            raise ValueError(f"drop_rate must be in [0, 1), got {self.drop_rate}")
+        if self.markers not in ("charuco", "aruco"):
+            raise ValueError(f"markers must be 'charuco' or 'aruco', got {self.markers!r}")
+
+
+# --------------------------------------------------------------------------- geometry helpers
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """`T_world_cam` (OpenCV axes) of a camera at `eye` looking at `target`."""
+    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-6:
+        x = np.cross(z, (0.0, 1.0, 0.0))
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def _rot(axis, angle) -> np.ndarray:
+    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _jitter(T, rng, mm, deg) -> np.ndarray:
+    w = np.deg2rad(deg) * rng.standard_normal(3)
+    angle = np.linalg.norm(w)
+    dT = np.eye(4)
+    if angle > 0:
+        dT[:3, :3] = _rot(w, angle)
+    dT[:3, 3] = 1e-3 * mm * rng.standard_normal(3)
+    return np.asarray(T) @ dT
+
+
+def facing_mount(spec: TargetSpec, normal, centre, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """`T_link_target` putting `spec`'s printed face at `centre`, facing `normal`,
+    upright for a viewer whose up is `up` (all in the link frame)."""
+    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+    up = np.asarray(up, np.float64)
+    d = -(up - np.dot(up, n) * n)
+    if np.linalg.norm(d) < 1e-6:
+        d = np.cross(n, (1.0, 0.0, 0.0))
+    d /= np.linalg.norm(d)
+    r = np.cross(n, d)  # a viewer looking along -n: right = down x forward
+    _, right, down = spec.pattern_extent()
+    R = np.stack([r, d, n], axis=1) @ np.stack([right, down, spec.front_normal()], axis=1).T
+    top_left, _, _ = spec.pattern_extent()
+    w, h = spec.pattern_size
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(centre, np.float64) - R @ (top_left + 0.5 * w * right + 0.5 * h * down)
+    return T
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def _nominal(robot: str):
+    from ..io.urdf import load_urdf
+    from ..robots import _known, robot_path
+
+    if robot in _known("*.urdf", ".urdf"):
+        path = robot_path(robot)
+    else:
+        path = Path(robot)
+        if not path.is_file():
+            raise ValueError(
+                f"robot {robot!r} is neither a shipped robot ({_known('*.urdf', '.urdf')}) nor a file"
+            )
+    return load_urdf(path), path
+
+
+def draw_truth(nominal, config: SimConfig):
+    """The true arm: `nominal` perturbed with `config`'s scales (seeded), joint 1's frame kept."""
+    import jax
+
+    from .._kinematics import PerturbationScales, perturb_model
+    from .._montecarlo import anchor_base
+
+    scales = PerturbationScales(
+        origin_mm=config.origin_mm,
+        origin_deg=config.origin_deg,
+        axis_tilt_deg=config.axis_tilt_deg,
+        zero_offset_deg=config.zero_offset_deg,
+        ratio_percent=config.ratio_percent,
+    )
+    true = perturb_model(nominal, jax.random.key(config.seed), scales)
+    return anchor_base(true, nominal)
+
+
+def model_to_json(model) -> dict:
+    return {
+        "joint_names": list(model.joint_names),
+        "joint_types": list(model.joint_types),
+        "link_names": list(model.link_names),
+        "T_parent_joint": np.asarray(model.T_parent_joint).tolist(),
+        "axis": np.asarray(model.axis).tolist(),
+        "zero_offset": np.asarray(model.zero_offset).tolist(),
+        "reduction_ratio": np.asarray(model.reduction_ratio).tolist(),
+        "T_last_flange": np.asarray(model.T_last_flange).tolist(),
+    }
+
+
+def model_from_json(d: dict):
+    from .._kinematics import make_model
+
+    return make_model(
+        np.asarray(d["T_parent_joint"]),
+        np.asarray(d["axis"]),
+        joint_names=d["joint_names"],
+        joint_types=d["joint_types"],
+        link_names=d["link_names"],
+        zero_offset=np.asarray(d["zero_offset"]),
+        reduction_ratio=np.asarray(d["reduction_ratio"]),
+        T_last_flange=np.asarray(d["T_last_flange"]),
+    )
+
+
+def _target_spec(
+    config: SimConfig, name: str, first_id: int, *, world: bool = False, small: bool = False
+) -> TargetSpec:
+    if config.markers == "aruco":
+        return TargetSpec(
+            kind="aruco",
+            dictionary=config.dictionary,
+            marker_length=config.marker_length * 2.5,
+            first_id=first_id,
+            name=name,
+        )
+    squares = tuple(config.squares)
+    if world:  # the board an eye-in-hand camera looks at: larger, seen from further
+        squares = (squares[0] + 2, squares[1] + 2)
+    if small:  # the plates on the links: 3x3 squares (4 markers each)
+        squares = (3, 3)
+    return TargetSpec(
+        kind="charuco",
+        dictionary=config.dictionary,
+        squares=squares,
+        square_length=config.square_length,
+        marker_length=config.marker_length,
+        first_id=first_id,
+        name=name,
+    )
+
+
+def _scene_layout(nominal, true, config: SimConfig, rng):
+    """Nominal and true plates and cameras, placed from the zero configuration."""
+    import jax
+
+    from .._kinematics import forward_kinematics
+
+    links = nominal.link_names
+    w, h = config.resolution
+    n = nominal.num_joints
+    F0 = np.asarray(jax.device_get(forward_kinematics(nominal, np.zeros(n))))
+    flange = links[-1]
+    out_flange = F0[-1][:3, 2]  # the flange's z axis points out of the tool face
+    plates_nominal, cameras = [], []
+    ids = 0
+    if not config.eye_in_hand:
+        spec = _target_spec(config, "plate0", ids)
+        ids += spec.num_markers
+        up = F0[-1][:3, :3].T @ np.array([0.0, 0.0, 1.0])  # upright as seen at the zero configuration
+        T_mount = facing_mount(spec, (0.0, 0.0, 1.0), (0.0, 0.0, 0.012), up=up)
+        plates_nominal.append(PlateSpec(spec, flange, T_mount))
+        centre = (F0[-1] @ T_mount)[:3, 3]
+        normal = (F0[-1] @ T_mount)[:3, :3] @ spec.front_normal()
+        yaws = [0.0] if config.cameras == 1 else np.linspace(-25.0, 25.0, config.cameras)
+        horiz = np.array([normal[0], normal[1], 0.0])
+        for k, yaw in enumerate(yaws):
+            d = _rot((0.0, 0.0, 1.0), np.deg2rad(yaw)) @ normal
+            if np.linalg.norm(horiz) > 0.5:  # look slightly down at a plate that faces sideways
+                d = _rot(np.cross(d, (0.0, 0.0, 1.0)), np.deg2rad(-15.0)) @ d
+            eye = centre + config.camera_distance * d
+            T_wc = _jitter(look_at(eye, centre), rng, 0.0, 0.0)
+            cameras.append(
+                CameraSpec(f"cam{k}", w, h, config.fovy_deg, T_wc, "world", tuple(config.distortion))
+            )
+        if config.markers_on_links:
+            eye = cameras[0].T_mount_cam[:3, 3]
+            for i in range(1, n):
+                link = links[i]
+                child = np.asarray(nominal.T_parent_joint[i])[:3, 3]
+                mid_link = 0.5 * child
+                T_wl = F0[i]
+                to_cam = np.linalg.inv(T_wl[:3, :3]) @ (eye - (T_wl @ np.r_[mid_link, 1.0])[:3])
+                to_cam /= np.linalg.norm(to_cam)
+                spec = _target_spec(config, f"plate{i}", ids, small=True)
+                ids += spec.num_markers
+                up = np.linalg.inv(T_wl[:3, :3]) @ np.array([0.0, 0.0, 1.0])
+                T_mount = facing_mount(spec, to_cam, mid_link + 0.06 * to_cam, up=up)
+                plates_nominal.append(PlateSpec(spec, link, T_mount))
+    else:
+        T_flange_cam = np.eye(4)
+        T_flange_cam[:3, 3] = (0.0, 0.0, 0.03)
+        cameras.append(
+            CameraSpec("cam0", w, h, config.fovy_deg, T_flange_cam, flange, tuple(config.distortion))
+        )
+        spec = _target_spec(config, "board0", ids, world=True)
+        centre = F0[-1][:3, 3] + config.camera_distance * out_flange
+        up = F0[-1][:3, 1] * -1.0  # upright in the camera's view (image y is down)
+        plates_nominal.append(PlateSpec(spec, "world", facing_mount(spec, -out_flange, centre, up=up)))
+    # The truth: mounts and the eye-in-hand camera deviate from their design.
+    plates_true = [
+        PlateSpec(p.target, p.link, _jitter(p.T_link_target, rng, config.mount_mm, config.mount_deg))
+        for p in plates_nominal
+    ]
+    cameras_true = [
+        replace(c, T_mount_cam=_jitter(c.T_mount_cam, rng, config.mount_mm, config.mount_deg))
+        if c.mount != "world"
+        else c
+        for c in cameras
+    ]
+    return plates_nominal, plates_true, cameras, cameras_true
+
+
+def _visible(spec: TargetSpec, T_cam_target, cam: CameraSpec, margin_px: float = 2.0) -> bool:
+    P = (T_cam_target[:3, :3] @ spec.points().T).T + T_cam_target[:3, 3]
+    if np.any(P[:, 2] <= 0.05):
+        return False
+    facing = -(T_cam_target[:3, :3] @ spec.front_normal()) @ (P.mean(0) / np.linalg.norm(P.mean(0)))
+    if facing < np.cos(np.deg2rad(75.0)):
+        return False
+    p = (cam.K @ (P / P[:, 2:]).T).T[:, :2]
+    return bool(np.all((p >= -0.5 + margin_px) & (p <= np.array([cam.width, cam.height]) - 0.5 - margin_px)))
+
+
+def simulate(config: SimConfig, out, *, overwrite: bool = False, progress: bool = True) -> Path:
+    """Render `config`'s synthetic dataset into directory `out` (atomically).
+
+    Refuses a non-empty `out` unless `overwrite`. Returns the dataset path.
+    """
+    import jax
+
+    from .._kinematics import forward_kinematics
+    from ..io.urdf import save_urdf
+
+    config.check()
+    out = Path(out)
+    nominal, urdf_path = _nominal(config.robot)
+    true = draw_truth(nominal, config)
+    rng = np.random.default_rng(config.seed)
+    plates_nominal, plates_true, cameras_nominal, cameras_true = _scene_layout(nominal, true, config, rng)
+    names = nominal.joint_names
+    nominal_ratio = np.asarray(nominal.reduction_ratio)
+
+    trajectory = joint_sweeps(names, config.range_deg, sweep_s=config.frames_per_joint / config.fps)
+    clock = ClockModel(
+        fps=config.fps,
+        offset_ms=config.clock_offset_ms,
+        drift_ppm=config.clock_drift_ppm,
+        jitter_ms=config.clock_jitter_ms,
+        drop_rate=config.drop_rate,
+    )
+    encoder = EncoderModel(rate_hz=config.encoder_rate_hz, noise_counts=config.encoder_noise_counts)
+    enc_t, enc_motor = encoder_stream(trajectory, nominal_ratio, encoder, rng)
+    t_frames = np.concatenate(frame_times(trajectory, config.frames_per_joint, clock))
+    keep = rng.random(len(t_frames)) >= clock.drop_rate
+    theta = true_angles(trajectory, t_frames, nominal_ratio, true.reduction_ratio, true.zero_offset)
+    q_true = theta - np.asarray(true.zero_offset)
+    link_poses = np.asarray(jax.device_get(jax.vmap(forward_kinematics, in_axes=(None, 0))(true, q_true)))
+    stamps = clock.stamp(t_frames, rng)
+    link_index = {name: i for i, name in enumerate(nominal.link_names)}
+
+    def T_world(link: str, f: int) -> np.ndarray:
+        return np.eye(4) if link == "world" else link_poses[f, link_index[link]]
+
+    scene = build_scene(
+        true, plates=plates_true, cameras=cameras_true, floor_z=None if config.eye_in_hand else -0.6
+    )
+    rows = {"camera": [], "frame": [], "timestamp": [], "file": []}
+    truth_frames = []
+    todo = [(f, c) for f in np.flatnonzero(keep) for c in cameras_true]
+    with atomic_directory(out, overwrite=overwrite) as tmp, scene:
+        for c in cameras_true:
+            (tmp / "images" / c.name).mkdir(parents=True)
+        bar = _progress(progress, len(todo), f"rendering {len(todo)} images")
+        with bar as p:
+            task = p.add_task("render", total=len(todo)) if p is not None else None
+            for f, cam in todo:
+                scene.set_angles(theta[f])
+                image = scene.render(cam.name)
+                rel = f"images/{cam.name}/{f:06d}.png"
+                if not cv2.imwrite(str(tmp / rel), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+                    raise OSError(f"could not write {tmp / rel}")
+                rows["camera"].append(cam.name)
+                rows["frame"].append(int(f))
+                rows["timestamp"].append(float(stamps[f]))
+                rows["file"].append(rel)
+                T_wc = T_world(cam.mount, f) @ cam.T_mount_cam
+                T_cw = np.linalg.inv(T_wc)
+                poses, visible = {}, {}
+                for plate in plates_true:
+                    T = T_cw @ T_world(plate.link, f) @ plate.T_link_target
+                    poses[plate.target.name] = T
+                    visible[plate.target.name] = _visible(plate.target, T, cam)
+                truth_frames.append(
+                    {
+                        "row": len(rows["file"]) - 1,
+                        "camera": cam.name,
+                        "frame": int(f),
+                        "t": float(t_frames[f]),
+                        "theta": theta[f],
+                        "q": q_true[f],
+                        "T_cam_target": poses,
+                        "visible": visible,
+                    }
+                )
+                if p is not None:
+                    p.advance(task)
+
+        shutil.copyfile(urdf_path, tmp / "robot.urdf")
+        save_urdf(true, tmp / "truth.urdf", source=urdf_path)
+        write_frames(tmp / "frames.csv", rows["camera"], rows["frame"], rows["timestamp"], rows["file"])
+        if config.encoders:
+            write_encoders(tmp / "encoders.csv", enc_t, enc_motor, names)
+        cameras_meta = [
+            CameraInfo(c.name, c.width, c.height, c.K, c.dist, c.mount).to_dict() for c in cameras_nominal
+        ]
+        targets_meta = [TargetInfo(p.target, p.link, p.T_link_target).to_dict() for p in plates_nominal]
+        metadata = {
+            "schema": SCHEMA,
+            "schema_version": SCHEMA_VERSION,
+            "description": f"synthetic {config.robot} dataset rendered by jaxcal simulate (seed {config.seed})",
+            "robot": {
+                "urdf": "robot.urdf",
+                "base_link": nominal.link_names[0],
+                "flange_link": nominal.link_names[-1],
+                "joints": list(names),
+            },
+            "cameras": cameras_meta,
+            "targets": targets_meta,
+            "encoders": {
+                "file": "encoders.csv",
+                "quantity": "motor_angle",
+                "unit": "rad",
+                "rate_hz": encoder.rate_hz,
+                "counts_per_rev": encoder.counts_per_rev,
+            }
+            if config.encoders
+            else None,
+            "clock": {"offset_s": 1e-3 * config.clock_offset_ms if config.clock_known else None},
+            "motion": [{"joint": s.joint, "start": s.start, "end": s.end} for s in trajectory.segments],
+            "simulation": {k: v for k, v in asdict(config).items() if k != "link_plates"},
+        }
+        write_json(tmp / "metadata.json", metadata)
+        T_world_cams = {c.name: c.T_mount_cam for c in cameras_true if c.mount == "world"}
+        write_json(
+            tmp / "truth.json",
+            {
+                "model": model_to_json(true),
+                "T_world_base": np.eye(4),
+                "cameras": {
+                    c.name: {
+                        "mount": c.mount,
+                        "T_mount_cam": c.T_mount_cam,
+                        **(
+                            {"T_cam_base": np.linalg.inv(T_world_cams[c.name])}
+                            if c.name in T_world_cams
+                            else {}
+                        ),
+                    }
+                    for c in cameras_true
+                },
+                "targets": {
+                    p.target.name: {"link": p.link, "T_link_target": p.T_link_target} for p in plates_true
+                },
+                "clock": {
+                    "offset_s": 1e-3 * config.clock_offset_ms,
+                    "drift_ppm": config.clock_drift_ppm,
+                    "jitter_ms": config.clock_jitter_ms,
+                },
+                "dropped_frames": np.flatnonzero(~keep).tolist(),
+                "frames": truth_frames,
+            },
+        )
+    return out
+
+
+class _NoProgress:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _progress(enabled: bool, total: int, description: str):
+    if not enabled:
+        return _NoProgress()
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    return Progress(
+        TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=False
+    )
