@@ -261,12 +261,19 @@ def _scene_layout(nominal, true, config: SimConfig, rng):
         normal = (F0[-1] @ T_mount)[:3, :3] @ spec.front_normal()
         yaws = [0.0] if config.cameras == 1 else np.linspace(-25.0, 25.0, config.cameras)
         horiz = np.array([normal[0], normal[1], 0.0])
+        view = normal
+        if np.linalg.norm(horiz) < 0.7:
+            # A plate facing up or down (e.g. the Panda's flange at zero): view it from 50 deg off
+            # its normal, from the side away from the arm's base column, which would hide it.
+            away = np.array([centre[0], centre[1], 0.0])
+            away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1e-6 else np.array([1.0, 0.0, 0.0])
+            view = np.cos(np.deg2rad(50.0)) * normal + np.sin(np.deg2rad(50.0)) * away
         for k, yaw in enumerate(yaws):
-            d = _rot((0.0, 0.0, 1.0), np.deg2rad(yaw)) @ normal
+            d = _rot((0.0, 0.0, 1.0), np.deg2rad(yaw)) @ view
             if np.linalg.norm(horiz) > 0.5:  # look slightly down at a plate that faces sideways
                 d = _rot(np.cross(d, (0.0, 0.0, 1.0)), np.deg2rad(-15.0)) @ d
             eye = centre + config.camera_distance * d
-            T_wc = _jitter(look_at(eye, centre), rng, 0.0, 0.0)
+            T_wc = look_at(eye, centre)
             cameras.append(
                 CameraSpec(f"cam{k}", w, h, config.fovy_deg, T_wc, "world", tuple(config.distortion))
             )
