@@ -213,6 +213,7 @@ def cmd_simulate(args) -> int:
         frames_per_joint=args.frames_per_joint,
         range_deg=args.sweep_deg,
         markers=args.markers,
+        dictionary=args.dictionary,
         cameras=args.cameras,
         eye_in_hand=args.eye_in_hand,
         markers_on_links=args.markers_on_links,
@@ -263,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames-per-joint", type=int, default=30)
     p.add_argument("--sweep-deg", type=float, default=40.0, help="angle each joint sweeps (deg)")
     p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
+    p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
     p.add_argument("--cameras", type=int, default=1, help="fixed cameras (eye-to-hand)")
     p.add_argument("--eye-in-hand", action="store_true", help="camera on the flange, board in the world")
     p.add_argument("--markers-on-links", action="store_true", help="a plate on every link too")

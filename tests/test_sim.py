@@ -272,3 +272,19 @@ def test_cli_simulate(tmp_path, capsys):
     assert "12 images" in capsys.readouterr().out
     assert main(args) == 2
     assert "not empty" in capsys.readouterr().err
+
+
+def test_arbitrary_trajectory_is_filmed_at_the_frame_rate(tmp_path):
+    from jaxcal.sim.motion import free_motion
+
+    q = np.zeros((3, 6))
+    q[1, :3] = np.deg2rad([10.0, -8.0, 5.0])
+    config = SimConfig(resolution=(160, 120), fps=15.0, encoders=False)
+    ds = load_dataset(
+        simulate(config, tmp_path / "free", trajectory=free_motion([0.0, 0.4, 0.8], q), progress=False)
+    )
+    assert ds.segments == ((None, 0.0, 0.8),) and ds.encoder_t is None
+    np.testing.assert_allclose(np.diff(ds.frames["timestamp"]), 1 / 15.0, atol=1e-12)
+    assert len(ds.frames["file"]) == 12
+    theta = np.array([f["theta"] for f in ds.truth["frames"]])
+    assert np.ptp(theta[:, 0]) > np.deg2rad(8.0) and np.ptp(theta[:, 3]) < 1e-12

@@ -326,9 +326,14 @@ def _visible(spec: TargetSpec, T_cam_target, cam: CameraSpec, margin_px: float =
     return bool(np.all((p >= -0.5 + margin_px) & (p <= np.array([cam.width, cam.height]) - 0.5 - margin_px)))
 
 
-def simulate(config: SimConfig, out, *, overwrite: bool = False, progress: bool = True) -> Path:
+def simulate(
+    config: SimConfig, out, *, trajectory=None, overwrite: bool = False, progress: bool = True
+) -> Path:
     """Render `config`'s synthetic dataset into directory `out` (atomically).
 
+    `trajectory`: a `jaxcal.sim.motion.Trajectory` of commanded joint positions
+    (e.g. `free_motion(times, q)`), filmed at `config.fps` over its segments;
+    default: joint-by-joint sweeps of `config.frames_per_joint` frames.
     Refuses a non-empty `out` unless `overwrite`. Returns the dataset path.
     """
     import jax
@@ -345,7 +350,11 @@ def simulate(config: SimConfig, out, *, overwrite: bool = False, progress: bool 
     names = nominal.joint_names
     nominal_ratio = np.asarray(nominal.reduction_ratio)
 
-    trajectory = joint_sweeps(names, config.range_deg, sweep_s=config.frames_per_joint / config.fps)
+    sweeps = trajectory is None
+    if sweeps:
+        trajectory = joint_sweeps(names, config.range_deg, sweep_s=config.frames_per_joint / config.fps)
+    elif trajectory.q.shape[1] != len(names):
+        raise ValueError(f"trajectory has {trajectory.q.shape[1]} joints, the robot {len(names)}")
     clock = ClockModel(
         fps=config.fps,
         offset_ms=config.clock_offset_ms,
@@ -355,7 +364,7 @@ def simulate(config: SimConfig, out, *, overwrite: bool = False, progress: bool 
     )
     encoder = EncoderModel(rate_hz=config.encoder_rate_hz, noise_counts=config.encoder_noise_counts)
     enc_t, enc_motor = encoder_stream(trajectory, nominal_ratio, encoder, rng)
-    t_frames = np.concatenate(frame_times(trajectory, config.frames_per_joint, clock))
+    t_frames = np.concatenate(frame_times(trajectory, config.frames_per_joint if sweeps else None, clock))
     keep = rng.random(len(t_frames)) >= clock.drop_rate
     theta = true_angles(trajectory, t_frames, nominal_ratio, true.reduction_ratio, true.zero_offset)
     q_true = theta - np.asarray(true.zero_offset)
