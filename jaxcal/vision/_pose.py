@@ -1,0 +1,161 @@
+"""Marker pose from one detection (PnP) with its covariance."""
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..markers import TargetSpec
+from ._detect import MIN_POINTS, Detection, VisionError
+
+# Floor on the residual-estimated pixel noise: rendered or very clean corners can
+# fit to a few hundredths of a pixel, which would make the covariance overconfident.
+SIGMA_FLOOR_PX = 0.05
+
+
+@dataclass(frozen=True, eq=False)
+class PoseEstimate:
+    """A target's pose in the camera frame, from PnP on one `Detection`.
+
+    - `T_cam_target`: (4, 4), maps target-frame points (m) into the camera frame.
+    - `cov`: (6, 6) covariance of the error $(p, w)$: $p$ the target origin in
+      the camera frame (m), $w$ a camera-frame *left* rotation perturbation
+      (rad), $O_{true} = \\exp([w]_\\times) O_{est}$. This is the error the arc
+      fit whitens: $(\\hat P - P, \\log(O_{meas} O_{pred}^T))$.
+    - `rms_px`: reprojection RMS over points, $\\sqrt{\\sum_i \\|r_i\\|^2 / n}$, px.
+    - `n_points`: features used.
+    - `sigma_px`: the pixel noise (per coordinate) `cov` was scaled by, px.
+    """
+
+    T_cam_target: np.ndarray
+    cov: np.ndarray
+    rms_px: float
+    n_points: int
+    sigma_px: float
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(n, 3) -> (n, 3, 3) cross-product matrices."""
+    z = np.zeros(len(v))
+    return np.stack(
+        [
+            np.stack([z, -v[:, 2], v[:, 1]], axis=-1),
+            np.stack([v[:, 2], z, -v[:, 0]], axis=-1),
+            np.stack([-v[:, 1], v[:, 0], z], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def pose_jacobian(points: np.ndarray, T_cam_target: np.ndarray, K, dist) -> tuple[np.ndarray, np.ndarray]:
+    """Projected pixels and their Jacobian w.r.t. the $(p, w)$ pose error.
+
+    With $P_c = \\exp([w]_\\times) R X + t + p$, $\\partial u / \\partial p =
+    \\partial u / \\partial P_c$ (OpenCV's `projectPoints` Jacobian w.r.t. `tvec`,
+    distortion included) and $\\partial u / \\partial w = -\\partial u /
+    \\partial P_c \\, [R X]_\\times$.
+
+    **Arguments:** `points` (n, 3) target frame, m; `T_cam_target` (4, 4);
+    `K` (3, 3); `dist` OpenCV coefficients or `None`.
+
+    **Returns:** `(pixels (n, 2), J (2n, 6))`, rows `(u_0, v_0, u_1, ...)`,
+    columns $(p, w)$.
+    """
+    R, t = T_cam_target[:3, :3], T_cam_target[:3, 3]
+    rvec = cv2.Rodrigues(R)[0]
+    pixels, jac = cv2.projectPoints(points, rvec, t, np.asarray(K, np.float64), _dist(dist))
+    Jt = jac[:, 3:6].reshape(-1, 2, 3)
+    Jw = -np.einsum("nij,njk->nik", Jt, _skew(points @ R.T))
+    J = np.concatenate([Jt, Jw], axis=2).reshape(-1, 6)
+    return pixels.reshape(-1, 2), J
+
+
+def _dist(dist) -> np.ndarray:
+    return np.zeros(5) if dist is None else np.asarray(dist, np.float64).ravel()
+
+
+def _se3(rvec, tvec) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
+    T[:3, 3] = np.asarray(tvec, np.float64).ravel()
+    return T
+
+
+def estimate_pose(
+    det: Detection, target: TargetSpec, K, dist, *, sigma_px: float | None = None
+) -> "PoseEstimate | None":
+    """PnP of one detection, with the pose covariance from the reprojection Jacobian.
+
+    ChArUco: `SOLVEPNP_IPPE` (planar) to start, then `solvePnPRefineLM` on all
+    corners. Single ArUco: `SOLVEPNP_IPPE_SQUARE`, then the same refinement.
+    Distortion is handled by OpenCV's projection model throughout.
+
+    The covariance is $s^2 (J^T J)^{-1}$ with $J$ the Jacobian of the projected
+    pixels w.r.t. the $(p, w)$ error (see `PoseEstimate`). $s$ is `sigma_px`
+    if given, else estimated from the residual, $s^2 = \\sum r^2 / (2n - 6)$
+    (2n pixel coordinates, 6 pose parameters), floored at 0.05 px.
+
+    **Arguments:**
+
+    - `det`: the detection (feature ids index `target.points()`).
+    - `target`: the target detected.
+    - `K`: (3, 3) camera matrix, px. `dist`: OpenCV distortion coefficients or `None`.
+    - `sigma_px`: known pixel noise per coordinate, px.
+
+    **Returns:** a `PoseEstimate`, or `None` with fewer than 4 points, with
+    the points on one line, or if PnP fails.
+    """
+    K = np.asarray(K, np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise VisionError(f"target {target.name!r}: camera matrix K must be a finite 3x3 array")
+    dist = _dist(dist)
+    if sigma_px is not None and not sigma_px > 0:
+        raise VisionError(f"target {target.name!r}: sigma_px must be > 0, got {sigma_px}")
+    all_points = target.points()
+    if len(det.ids) and (det.ids.min() < 0 or det.ids.max() >= len(all_points)):
+        raise VisionError(
+            f"target {target.name!r}: feature ids {det.ids.min()}..{det.ids.max()} outside "
+            f"0..{len(all_points) - 1}"
+        )
+    n = len(det.ids)
+    if n < MIN_POINTS:
+        return None
+    obj, img = all_points[det.ids], det.pixels
+    centred = obj - obj.mean(0)
+    s = np.linalg.svd(centred, compute_uv=False)
+    if s[1] <= 1e-9 * s[0]:  # collinear: the rotation about the line is free
+        return None
+    if target.kind == "aruco":
+        if sorted(det.ids.tolist()) != [0, 1, 2, 3]:
+            return None
+        order = np.argsort(det.ids)
+        obj, img = obj[order], img[order]
+        flags = cv2.SOLVEPNP_IPPE_SQUARE
+    else:
+        flags = cv2.SOLVEPNP_IPPE
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flags)
+        if not ok or rvec is None or tvec is None:  # IPPE can fail on 4 oblique points
+            ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+        if not ok or rvec is None or tvec is None:
+            return None
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    except cv2.error:
+        return None
+    T = _se3(rvec, tvec)
+    if T[2, 3] <= 0:
+        return None
+    projected, J = pose_jacobian(obj, T, K, dist)
+    r = (projected - img).ravel()
+    rms = float(np.sqrt(np.sum(r**2) / n))
+    if sigma_px is None:
+        dof = 2 * n - 6
+        sigma = SIGMA_FLOOR_PX if dof <= 0 else max(float(np.sqrt(np.sum(r**2) / dof)), SIGMA_FLOOR_PX)
+    else:
+        sigma = float(sigma_px)
+    JtJ = J.T @ J
+    if not np.all(np.isfinite(JtJ)) or np.linalg.cond(JtJ) > 1e14:
+        return None
+    cov = sigma**2 * np.linalg.inv(JtJ)
+    cov = 0.5 * (cov + cov.T)
+    return PoseEstimate(T_cam_target=T, cov=cov, rms_px=rms, n_points=n, sigma_px=sigma)
