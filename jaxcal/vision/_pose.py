@@ -61,6 +61,7 @@ def pose_jacobian(points: np.ndarray, T_cam_target: np.ndarray, K, dist) -> tupl
     **Returns:** `(pixels (n, 2), J (2n, 6))`, rows `(u_0, v_0, u_1, ...)`,
     columns $(p, w)$.
     """
+    points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
     R, t = T_cam_target[:3, :3], T_cam_target[:3, 3]
     rvec = cv2.Rodrigues(R)[0]
     pixels, jac = cv2.projectPoints(points, rvec, t, np.asarray(K, np.float64), _dist(dist))
