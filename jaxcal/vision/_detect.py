@@ -14,6 +14,7 @@ from ..markers import TargetSpec, aruco_dictionary
 
 # Fewest features that still fix a pose: 4 ChArUco corners, or the 4 corners of a marker.
 MIN_POINTS = 4
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
 # Below this many images per worker, a process pool costs more (worker start-up,
 # ~2 s) than it saves (~10 ms per 640x480 image).
 _POOL_MIN_PER_WORKER = 32
@@ -79,6 +80,14 @@ def _camera_key(K, dist):
     return tuple(K.ravel().tolist()), tuple(d.tolist())
 
 
+@lru_cache(maxsize=64)
+def target_points(target: TargetSpec) -> np.ndarray:
+    """`target.points()`, computed once per target (read-only)."""
+    points = target.points()
+    points.flags.writeable = False
+    return points
+
+
 @lru_cache(maxsize=32)
 def _detector(target: TargetSpec, K: tuple | None, dist: tuple | None):
     # Keyed on the spec's printed fields (its `name` does not take part in ==).
@@ -106,25 +115,21 @@ def _grey(image: np.ndarray) -> np.ndarray:
 
 def _refine_window(target: TargetSpec, pixels: np.ndarray, ids: np.ndarray) -> int:
     """Half-size (px) of the `cornerSubPix` window: inside the white gap between a
-    chessboard corner and the nearest marker, so no marker edge enters it."""
+    chessboard corner and the nearest marker, so no marker edge enters it.
+
+    `ids` sorted ascending; the square's pixel length is the shortest distance
+    between detected neighbours (same row next column, or next row).
+    """
     cols = target.squares[0] - 1
-    rc = np.stack([ids // cols, ids % cols], axis=1)
-    # Pixel length of one square from pairs of detected neighbours (same row, next column).
-    lookup = {(int(r), int(c)): k for k, (r, c) in enumerate(rc)}
-    steps = [
-        np.linalg.norm(pixels[lookup[(r, c + 1)]] - pixels[k])
-        for k, (r, c) in enumerate(rc.tolist())
-        if (r, c + 1) in lookup
-    ]
-    steps += [
-        np.linalg.norm(pixels[lookup[(r + 1, c)]] - pixels[k])
-        for k, (r, c) in enumerate(rc.tolist())
-        if (r + 1, c) in lookup
-    ]
-    if not steps:
+    steps = []
+    for step, valid in [(1, ids % cols != cols - 1), (cols, np.ones(len(ids), bool))]:
+        pos = np.minimum(np.searchsorted(ids, ids + step), len(ids) - 1)
+        hit = valid & (ids[pos] == ids + step)
+        steps.append(np.linalg.norm(pixels[pos[hit]] - pixels[hit], axis=1))
+    steps = np.concatenate(steps)
+    if not len(steps):
         return 2
-    square_px = float(np.min(steps))
-    gap_px = 0.5 * square_px * (1.0 - target.marker_length / target.square_length)
+    gap_px = 0.5 * float(steps.min()) * (1.0 - target.marker_length / target.square_length)
     return int(np.clip(np.floor(gap_px), 2, 10))
 
 
@@ -162,12 +167,11 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
     if ids is None or len(ids) < MIN_POINTS:
         return None
     ids = ids.ravel().astype(np.int64)
-    pixels = corners.reshape(-1, 2).astype(np.float32)
-    half = _refine_window(target, pixels, ids)
-    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
-    pixels = cv2.cornerSubPix(grey, pixels.reshape(-1, 1, 2), (half, half), (-1, -1), criteria)
     order = np.argsort(ids)
-    return Detection(ids[order], pixels.reshape(-1, 2)[order])
+    ids, pixels = ids[order], corners.reshape(-1, 2)[order]
+    half = _refine_window(target, pixels, ids)
+    pixels = cv2.cornerSubPix(grey, np.ascontiguousarray(pixels), (half, half), (-1, -1), _SUBPIX_CRITERIA)
+    return Detection(ids, pixels)
 
 
 # --------------------------------------------------------------------------- many files
@@ -210,6 +214,20 @@ def _progress(enabled: bool, description: str):
     return Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
 
 
+@lru_cache(maxsize=1)
+def _process_context():
+    """`forkserver`, its server preloaded with this module: the server starts (and
+    imports jaxcal, ~2 s) once per process, then every worker is a cheap fork of
+    it. Never a plain fork of the caller, which may be running JAX's threads."""
+    import multiprocessing
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return get_context("spawn")
+    context = get_context("forkserver")
+    context.set_forkserver_preload([__name__])
+    return context
+
+
 def _init_worker() -> None:
     cv2.setNumThreads(1)  # one image per core; OpenCV's own threads would oversubscribe
 
@@ -227,13 +245,13 @@ def detect_frames(
     """Detect every target in every image file.
 
     Images are read with `cv2.imread(..., IMREAD_GRAYSCALE)`. Long lists are
-    spread over a pool of `workers`. The process pool uses the `spawn`
-    context (the parent may have started JAX, which must not be forked), so
-    a script that calls this at import time needs the usual
-    `if __name__ == "__main__":` guard; each worker pays a start-up of about
-    2 s (importing jaxcal), which is why short lists run here. `pool="thread"`
-    uses threads instead (OpenCV releases the GIL while it detects): no
-    start-up cost, nearly the same speed-up.
+    spread over a pool of `workers`. The process pool uses the `forkserver`
+    context (`spawn` where there is none): the caller may be running JAX,
+    which must not be forked. A script that calls this at import time
+    therefore needs the usual `if __name__ == "__main__":` guard. The first
+    pool of a process pays about 2 s to start the server (it imports
+    jaxcal), which is why short lists run here. `pool="thread"` uses threads
+    instead (OpenCV releases the GIL while it detects): no start-up cost.
 
     **Arguments:**
 
@@ -281,7 +299,7 @@ def detect_frames(
         size = max(1, min(16, len(paths) // (4 * workers)))
         chunks = [paths[i : i + size] for i in range(0, len(paths), size)]
         if pool == "process":
-            executor = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker)
+            executor = ProcessPoolExecutor(workers, mp_context=_process_context(), initializer=_init_worker)
         else:
             executor = ThreadPoolExecutor(workers)
         with executor:

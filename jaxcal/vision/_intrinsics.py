@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from ..markers import TargetSpec
-from ._detect import Detection, VisionError
+from ._detect import Detection, VisionError, target_points
 
 # A view needs enough corners, off one line, to constrain a homography well.
 MIN_CORNERS_PER_VIEW = 6
@@ -51,7 +51,7 @@ def calibrate_intrinsics(
     width, height = (int(v) for v in image_size)
     if width <= 0 or height <= 0:
         raise VisionError(f"{where}: image_size must be (width, height) > 0, got {image_size}")
-    points = target.points()
+    points = target_points(target)
     objs, imgs = [], []
     for det in detections:
         if det is None or len(det.ids) < MIN_CORNERS_PER_VIEW:

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from ..markers import TargetSpec
-from ._detect import MIN_POINTS, Detection, VisionError
+from ._detect import MIN_POINTS, Detection, VisionError, target_points
 
 # Floor on the residual-estimated pixel noise: rendered or very clean corners can
 # fit to a few hundredths of a pixel, which would make the covariance overconfident.
@@ -112,7 +112,7 @@ def estimate_pose(
     dist = _dist(dist)
     if sigma_px is not None and not sigma_px > 0:
         raise VisionError(f"target {target.name!r}: sigma_px must be > 0, got {sigma_px}")
-    all_points = target.points()
+    all_points = target_points(target)
     if len(det.ids) and (det.ids.min() < 0 or det.ids.max() >= len(all_points)):
         raise VisionError(
             f"target {target.name!r}: feature ids {det.ids.min()}..{det.ids.max()} outside "
