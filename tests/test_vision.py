@@ -222,5 +222,8 @@ def test_calibrate_intrinsics_refuses_bad_input():
     with pytest.raises(VisionError, match="2 usable views"):
         calibrate_intrinsics(views[:2], BOARD, (640, 480))
     flat = synthetic_views(K, None, rng, tilt_deg=0.0)
-    with pytest.raises(VisionError, match="'board'"):
+    with pytest.raises(VisionError, match="'board': the board's orientation varies by only"):
         calibrate_intrinsics(flat, BOARD, (640, 480))
+    few_corners = [Detection(v.ids[:5], v.pixels[:5]) for v in views]
+    with pytest.raises(VisionError, match="0 usable views"):
+        calibrate_intrinsics(few_corners, BOARD, (640, 480))
