@@ -1,6 +1,7 @@
 """Marker detection: ChArUco corners and single-ArUco corners in one image, or many files."""
 
 import os
+import threading
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -89,8 +90,9 @@ def target_points(target: TargetSpec) -> np.ndarray:
 
 
 @lru_cache(maxsize=32)
-def _detector(target: TargetSpec, K: tuple | None, dist: tuple | None):
-    # Keyed on the spec's printed fields (its `name` does not take part in ==).
+def _detector(target: TargetSpec, K: tuple | None, dist: tuple | None, thread: int):
+    # Keyed on the spec's printed fields (its `name` does not take part in ==),
+    # and on the thread: OpenCV's detectors are not documented as thread-safe.
     if target.kind == "aruco":
         return cv2.aruco.ArucoDetector(aruco_dictionary(target.dictionary), _aruco_parameters())
     charuco = cv2.aruco.CharucoParameters()
@@ -118,7 +120,8 @@ def _refine_window(target: TargetSpec, pixels: np.ndarray, ids: np.ndarray) -> i
     chessboard corner and the nearest marker, so no marker edge enters it.
 
     `ids` sorted ascending; the square's pixel length is the shortest distance
-    between detected neighbours (same row next column, or next row).
+    between detected neighbours (same row next column, or next row). Below 2
+    (or with no neighbours) it returns 0: keep OpenCV's own refinement.
     """
     cols = target.squares[0] - 1
     steps = []
@@ -128,9 +131,9 @@ def _refine_window(target: TargetSpec, pixels: np.ndarray, ids: np.ndarray) -> i
         steps.append(np.linalg.norm(pixels[pos[hit]] - pixels[hit], axis=1))
     steps = np.concatenate(steps)
     if not len(steps):
-        return 2
+        return 0
     gap_px = 0.5 * float(steps.min()) * (1.0 - target.marker_length / target.square_length)
-    return int(np.clip(np.floor(gap_px), 2, 10))
+    return int(min(np.floor(gap_px), 10))
 
 
 def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Detection | None":
@@ -154,7 +157,7 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
     """
     grey = _grey(image)
     K_key, dist_key = _camera_key(K, dist)
-    detector = _detector(target, K_key, dist_key)
+    detector = _detector(target, K_key, dist_key, threading.get_ident())
     if target.kind == "aruco":
         corners, ids, _ = detector.detectMarkers(grey)
         if ids is None:
@@ -170,7 +173,10 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
     order = np.argsort(ids)
     ids, pixels = ids[order], corners.reshape(-1, 2)[order]
     half = _refine_window(target, pixels, ids)
-    pixels = cv2.cornerSubPix(grey, np.ascontiguousarray(pixels), (half, half), (-1, -1), _SUBPIX_CRITERIA)
+    if half >= 2:
+        pixels = cv2.cornerSubPix(
+            grey, np.ascontiguousarray(pixels), (half, half), (-1, -1), _SUBPIX_CRITERIA
+        )
     return Detection(ids, pixels)
 
 
