@@ -9,6 +9,7 @@ import pytest
 from helpers import arc_data, arc_problem, tree_allclose
 
 from jaxcal._arcfit import (
+    _arc_residuals_autodiff,
     arc_residuals,
     fit_arc,
     initialise_arc,
@@ -116,6 +117,42 @@ def test_autodiff_matches_finite_differences(encoder):
     h = 1e-6
     fd = np.stack([(f(flat.at[i].add(h)) - f(flat.at[i].add(-h))) / (2 * h) for i in range(flat.size)], 1)
     np.testing.assert_allclose(Jf, fd, rtol=1e-5, atol=1e-3 * np.abs(Jf).max() * 1e-3)
+
+
+@pytest.mark.parametrize(("encoder", "orientations"), [(True, False), (False, True)])
+def test_closed_form_jacobian_matches_autodiff(encoder, orientations):
+    """The custom JVP of `arc_residuals` equals JAX's own derivative (forward and
+    reverse, two markers, a masked frame with NaN padding), and derivatives
+    with respect to the encoder angles (a clock offset) still flow."""
+    _, P, O, alpha = arc_problem(jax.random.key(12), frames=8, markers=2, sigma_p=1e-4, sigma_r=1e-3)
+    mask = np.ones((2, 8), bool)
+    mask[0, 3] = mask[1, 6] = False
+    P = np.where(mask[..., None], np.asarray(P), np.nan)
+    data = make_arc_data(P, O if orientations else None, alpha if encoder else None, mask)
+    params, ref = initialise_arc(data)
+    params = jax.tree.map(lambda x: x + 1e-2, params)
+    flat, unravel = jax.flatten_util.ravel_pytree(params)
+
+    def f(fn):
+        return lambda x: fn(unravel(x), (ref, data)).reshape(-1)
+
+    J_auto = jax.jit(jax.jacfwd(f(_arc_residuals_autodiff)))(flat)
+    assert np.all(np.isfinite(J_auto))
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(f(arc_residuals)))(flat), J_auto, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(jax.jit(jax.jacrev(f(arc_residuals)))(flat), J_auto, rtol=1e-12, atol=1e-9)
+    if encoder:
+
+        def g(fn):
+            return lambda e: fn(params, (ref, eqx.tree_at(lambda d: d.encoder, data, e))).reshape(-1)
+
+        J_enc = jax.jit(jax.jacfwd(g(_arc_residuals_autodiff)))(data.encoder)
+        assert np.abs(J_enc).max() > 0
+        np.testing.assert_allclose(
+            jax.jit(jax.jacfwd(g(arc_residuals)))(data.encoder), J_enc, rtol=1e-12, atol=1e-9
+        )
+        np.testing.assert_allclose(
+            jax.jit(jax.jacrev(g(arc_residuals)))(data.encoder), J_enc, rtol=1e-12, atol=1e-9
+        )
 
 
 def test_line_coordinates_round_trip():
