@@ -91,8 +91,10 @@ def make_arc_data(
     - `mask`: `(frames,)` / `(markers, frames)` bools, default all observed.
     - `sigma_position` (m), `sigma_rotation` (rad): isotropic noise used when no
       `covariances` are given.
-    - `covariances`: per-frame covariance of (position, rotation vector),
-      `(..., frames, 6, 6)` (or `3, 3` without orientations).
+    - `covariances`: per-frame covariance of the measurement error
+      (position, camera-frame rotation vector $w$ with $O = \exp([w]_\times) O_{true}$),
+      `(..., frames, 6, 6)` (or `3, 3` without orientations), as
+      `jaxcal.vision.estimate_pose` reports it.
     """
     P = jnp.asarray(positions, jnp.float64)
     if P.ndim == 2:
@@ -110,6 +112,13 @@ def make_arc_data(
     else:
         C = jnp.asarray(covariances, jnp.float64)
         C = jnp.where(mask[..., None, None], C, jnp.eye(k))
+        # The residual is (predicted - measured position, log(measured predicted^T)):
+        # the position error enters with the opposite sign of the rotation error,
+        # so its cross-covariance with the rotation flips (C -> S C S,
+        # S = diag(-1, -1, -1, 1, 1, 1)). This matters for PnP poses, whose
+        # lateral position and rotation errors are strongly correlated.
+        s = jnp.array([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])[:k]
+        C = C * s[:, None] * s[None, :]
         # Sigma^{-1} = L^{-T} L^{-1} with Sigma = L L^T, so W = L^{-1}.
         L = jnp.linalg.cholesky(C)
         W = jax.vmap(jax.vmap(lambda Li: jax.scipy.linalg.solve_triangular(Li, jnp.eye(k), lower=True)))(L)

@@ -1,10 +1,10 @@
-"""Command line: `jaxcal demo`, `jaxcal montecarlo`, `jaxcal simulate`.
+"""Command line: `jaxcal demo | calibrate | simulate | montecarlo`.
 
-`demo` runs the estimator core end to end on the shipped UR5e: a perturbed
-"true" arm, analytic joint-by-joint sweeps with realistic marker noise, the
-arc fits, the axis fit, and a before/after table; then a small Monte Carlo
-study. (Rendering and the image front end arrive with `jaxcal simulate` and
-`jaxcal calibrate`.)
+- `demo`: render a perturbed UR5e filming a ChArUco plate (MuJoCo), calibrate
+  it from the images, print a before/after table, write the report.
+- `calibrate DATASET --out DIR`: images -> calibrated robot, camera pose, report.
+- `simulate`: render a synthetic dataset (see docs/dataset.md).
+- `montecarlo`: vmapped sensitivity study on analytic marker poses.
 """
 
 import argparse
@@ -134,44 +134,180 @@ def _summary_table(console, summary: dict, title: str):
     console.print(t)
 
 
-def cmd_demo(args) -> int:
-    import jax
-    from rich.console import Console
-
-    from . import _montecarlo as mc
-
-    console = Console(width=max(Console().width, 110))
-    console.rule("[bold]jaxcal demo: UR5e, joint-by-joint sweeps, analytic marker poses")
-    setup = _setup(args)
-    t0 = time.perf_counter()
-    ok = _single_trial_report(console, setup, args.seed)
-    console.print(f"(single trial incl. compilation: {time.perf_counter() - t0:.1f} s)")
-    t0 = time.perf_counter()
-    result = mc.monte_carlo(setup, jax.random.key(args.seed), args.trials)
-    jax.block_until_ready(result)
-    summary = mc.summarize(result)
-    _summary_table(console, summary, f"Monte Carlo: {args.trials} trials in one jit(vmap) call")
-    console.print(f"({time.perf_counter() - t0:.1f} s incl. compilation)")
-    ok = ok and summary["success_rate"] == 1.0
-    return 0 if ok else 1
-
-
 def cmd_montecarlo(args) -> int:
     import jax
     from rich.console import Console
 
     from . import _montecarlo as mc
 
-    console = Console(stderr=True)
     setup = _setup(args)
+    ok = True
+    if args.detail:
+        console = Console(width=max(Console().width, 110))
+        console.rule("[bold]One trial in detail: UR5e, joint-by-joint sweeps, analytic marker poses")
+        t0 = time.perf_counter()
+        ok = _single_trial_report(console, setup, args.seed)
+        console.print(f"(single trial incl. compilation: {time.perf_counter() - t0:.1f} s)")
+    else:
+        console = Console(stderr=True)
     t0 = time.perf_counter()
     result = mc.monte_carlo(setup, jax.random.key(args.seed), args.trials)
     jax.block_until_ready(result)
     summary = mc.summarize(result) | {"seconds": time.perf_counter() - t0}
-    _summary_table(console, summary, f"Monte Carlo: {args.trials} trials")
+    _summary_table(console, summary, f"Monte Carlo: {args.trials} trials in one jit(vmap) call")
     if args.json:
         _write_json_atomic(Path(args.json), summary)
-    return 0 if summary["success_rate"] > 0 else 1
+    ok = ok and summary["success_rate"] == 1.0 if args.detail else summary["success_rate"] > 0
+    return 0 if ok else 1
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    """Fail before any work if `out` cannot receive the results."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise ValueError(f"--out {out}: not empty (pass --overwrite to replace it)")
+    parent = out.resolve().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"--out {out}: cannot write in {parent}")
+
+
+def _calibration_tables(console, result) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"Joint sweeps (camera {result.camera})")
+    for col in (
+        "joint",
+        "frames",
+        "pos RMS mm",
+        "rot RMS deg",
+        "ratio nominal",
+        "ratio est",
+        "std",
+        "solver",
+    ):
+        t.add_column(col, justify="right")
+    v = result.validation
+    if v is not None:
+        t.add_column("ratio true", justify="right")
+        t.add_column("axis err deg", justify="right")
+    for k, a in enumerate(result.arcs):
+        row = [
+            a["joint"],
+            str(a["frames"]),
+            f"{a['position_rms_mm']:.3f}",
+            f"{a['rotation_rms_deg']:.3f}",
+            f"{a['ratio_nominal']:.3f}",
+            "n/a" if a["ratio"] is None else f"{a['ratio']:.3f}",
+            "n/a" if a["ratio_std"] is None else f"{a['ratio_std']:.3f}",
+            f"{a['solver']['result']} ({a['solver']['steps']})",
+        ]
+        if v is not None:
+            e = v["parameter_errors"][a["joint"]]
+            row += [f"{v['true_ratios'][k]:.3f}", f"{e['axis_direction_deg']:.3f}"]
+        t.add_row(*row)
+    console.print(t)
+    T, sd = result.T_cam_base, result.std_cam
+    console.print(
+        f"T_cam_base: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
+        f"(std {np.round(sd[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(sd[3:]), 4).tolist()} deg)"
+    )
+    c = result.clock
+    console.print(
+        f"clock offset: {1e3 * c['offset_s']:.2f} ms"
+        + (f" (estimated, std {1e3 * c['std_s']:.2f} ms)" if c["estimated"] else " (from the metadata)")
+    )
+    console.print(
+        f"held at nominal (the camera cannot see them): {len(result.frozen)} parameters, see report.md"
+    )
+    if v is not None:
+        t = Table(title="Before / after, against the truth (target origin, 1000 random configurations)")
+        t.add_column("")
+        t.add_column("nominal model", justify="right")
+        t.add_column("calibrated", justify="right")
+        t.add_row("EE RMS mm", f"{v['ee_rms_mm_before']:.3f}", f"{v['ee_rms_mm_after']:.3f}")
+        t.add_row("EE max mm", f"{v['ee_max_mm_before']:.3f}", f"{v['ee_max_mm_after']:.3f}")
+        ce = v["T_cam_base_error"]
+        t.add_row("T_cam_base error", "", f"{ce['trans_mm']:.3f} mm, {ce['rot_deg']:.4f} deg")
+        ratio = [
+            abs(e["ratio_percent"]) for e in v["parameter_errors"].values() if e["ratio_percent"] is not None
+        ]
+        if ratio:
+            t.add_row("max ratio error %", "", f"{max(ratio):.4f}")
+        if v.get("clock_offset_error_ms") is not None and c["estimated"]:
+            t.add_row("clock offset error ms", "", f"{v['clock_offset_error_ms']:.3f}")
+        console.print(t)
+    for w in result.warnings:
+        console.print(f"[yellow]note:[/yellow] {w}")
+
+
+def _run_calibration(console, dataset, out: Path, args) -> int:
+    from .pipeline import calibrate
+    from .report import write_outputs
+
+    t0 = time.perf_counter()
+    result = calibrate(
+        dataset,
+        camera=args.camera,
+        workers=args.workers,
+        progress=not args.quiet,
+        estimate_clock=True if args.estimate_clock else None,
+        log=lambda text: console.print(f"[dim]{text}[/dim]"),
+    )
+    _calibration_tables(console, result)
+    write_outputs(result, out, overwrite=True)
+    console.print(
+        f"wrote {out}/: result.json, calibrated.urdf, camera_{result.camera}.yaml, report.md "
+        f"({time.perf_counter() - t0:.1f} s)"
+    )
+    if not result.ok:
+        console.print("[red]calibration FAILED: a solver did not converge (see result.json 'solver')[/red]")
+        return 1
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    from rich.console import Console
+
+    out = Path(args.out)
+    _check_out(out, args.overwrite)
+    console = Console(width=max(Console().width, 110))
+    return _run_calibration(console, args.dataset, out, args)
+
+
+def cmd_demo(args) -> int:
+    from rich.console import Console
+
+    from .sim.simulate import SimConfig, simulate
+
+    out = Path(args.out)
+    _check_out(out, overwrite=True)
+    console = Console(width=max(Console().width, 110))
+    console.rule("[bold]jaxcal demo: a perturbed UR5e, rendered, calibrated from its images")
+    config = SimConfig(
+        robot="ur5e",
+        seed=args.seed,
+        resolution=args.resolution,
+        frames_per_joint=args.frames_per_joint,
+        clock_offset_ms=40.0,
+        clock_known=False,
+    )
+    t0 = time.perf_counter()
+    dataset = simulate(config, out / "dataset", overwrite=True, progress=not args.quiet)
+    console.print(
+        f"rendered {dataset} ({args.resolution[0]}x{args.resolution[1]}, {args.frames_per_joint} frames per joint, "
+        f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
+    )
+    return _run_calibration(console, dataset, out / "result", args)
+
+
+def _add_calibrate_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--camera", help="fixed camera to use (default: the first)")
+    p.add_argument("--workers", type=int, help="processes for marker detection (default: all cores)")
+    p.add_argument("--estimate-clock", action="store_true", help="estimate the clock offset even if given")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def _add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
@@ -246,12 +382,25 @@ def cmd_simulate(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("demo", help="calibrate a perturbed UR5e from synthetic sweeps and show before/after")
-    _add_study_args(p, trials=200)
+    p = sub.add_parser(
+        "demo", help="render a perturbed UR5e, calibrate it from the images, show before/after"
+    )
+    p.add_argument("--out", default="jaxcal-demo", help="where the dataset and the results go")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resolution", type=_resolution, default=(1280, 960), help="WxH pixels")
+    p.add_argument("--frames-per-joint", type=int, default=30)
+    _add_calibrate_args(p)
     p.set_defaults(func=cmd_demo)
-    p = sub.add_parser("montecarlo", help="vmapped Monte Carlo sensitivity study")
+    p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
+    p.add_argument("dataset", help="dataset directory")
+    p.add_argument("--out", required=True, help="result directory (must be empty or absent)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
+    _add_calibrate_args(p)
+    p.set_defaults(func=cmd_calibrate)
+    p = sub.add_parser("montecarlo", help="vmapped Monte Carlo sensitivity study (analytic marker poses)")
     _add_study_args(p, trials=1000)
     p.add_argument("--json", help="write the summary here (atomically)")
+    p.add_argument("--detail", action="store_true", help="first show one trial in detail")
     p.set_defaults(func=cmd_montecarlo)
     p = sub.add_parser(
         "simulate", help="render a perturbed arm's calibration dataset (MuJoCo) into a directory"
@@ -283,7 +432,7 @@ def main(argv: list[str] | None = None) -> int:
     _enable_compilation_cache()
     try:
         return args.func(args)
-    except ValueError as e:
+    except (ValueError, OSError) as e:
         print(f"jaxcal: error: {e}", file=sys.stderr)
         return 2
 

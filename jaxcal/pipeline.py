@@ -1,0 +1,782 @@
+"""From a dataset on disk to a calibrated robot: `jaxcal.calibrate(dataset)`.
+
+detect (OpenCV) -> PnP with covariance -> clock sync (encoder angles at the
+frame times; the offset estimated when unknown) -> frames assigned to joint
+sweeps -> arc fits of every joint at once (vmapped) -> axis fit -> the
+calibrated model, $T_{cam,base}$ and the marker mount, with standard
+deviations, an identifiability report and, for synthetic datasets, a
+validation against the truth.
+
+This module is an impure edge (files, OpenCV through `jaxcal.vision`); the
+maths it calls (`fit_arc`, `fit_axes`, `fit_clock_offset`) is pure and jitted.
+The command line (`jaxcal calibrate`, `jaxcal demo`) and the Python API share
+this one code path.
+"""
+
+import functools
+import time
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+_DEG = np.pi / 180.0
+#: A joint counts as "at zero" (not the one sweeping) within this angle.
+AT_ZERO_DEG = 0.05
+#: The sweeping joint must be at least this far from zero for encoder-based assignment.
+MOVING_DEG = 0.5
+
+
+class CalibrationError(ValueError):
+    """The dataset cannot be calibrated as it is (the message says why and where)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Sweeps:
+    """The marker poses of every joint sweep, ready for the arc fits (NumPy).
+
+    - `rows`: per joint, the dataset's frame-table rows used, `(joints, frames)`
+      padded with -1.
+    - `positions` (m), `orientations`, `covariances` (of position and camera-frame
+      rotation vector), `mask` `(joints, markers, frames, ...)`.
+    - `t_cam`: camera-clock stamps `(joints, frames)`; `encoder`: commanded joint
+      positions interpolated at them (rad) or None.
+    """
+
+    rows: np.ndarray
+    positions: np.ndarray
+    orientations: np.ndarray
+    covariances: np.ndarray
+    mask: np.ndarray
+    t_cam: np.ndarray
+    encoder: np.ndarray | None
+
+    def arc_data(self):
+        """Stacked `ArcData` (joints leading) for `jax.vmap(fit_arc)`."""
+        import jax
+
+        from ._arcfit import make_arc_data
+
+        enc = self.encoder
+        return jax.vmap(
+            lambda P, O, C, m, e: make_arc_data(P, O, e, m, covariances=C),
+            in_axes=(0, 0, 0, 0, None if enc is None else 0),
+        )(self.positions, self.orientations, self.covariances, self.mask, enc)
+
+
+@dataclass(eq=False)
+class CalibrationResult:
+    """Everything `calibrate` found (NumPy arrays and the calibrated `KinematicModel`).
+
+    - `model`, `nominal`: calibrated and nominal models; `T_cam_base` (4, 4);
+      `T_flange_target`: calibrated marker mounts `(markers, 4, 4)`.
+    - `parameters`: one row per physical parameter (`name`, `unit`,
+      `nominal`, `estimate`, `std`, `free`).
+    - `frozen`: parameters the data cannot see, held at nominal.
+    - `arcs`: per-joint arc-fit summaries; `sweeps`: the measurements.
+    - `clock`: offset (s), its std, and whether it was estimated.
+    - `frames`: counts of used / dropped frames with reasons.
+    - `validation`: errors against the truth (synthetic datasets), else None.
+    """
+
+    dataset: Path
+    robot_urdf: Path
+    camera: str
+    targets: list
+    nominal: object
+    model: object
+    T_cam_base: np.ndarray
+    std_cam: np.ndarray
+    T_flange_target: np.ndarray
+    parameters: list
+    frozen: list
+    arcs: list
+    sweeps: Sweeps
+    arc_fit: object
+    axis_fit: object
+    clock: dict
+    frames: dict
+    intrinsics: dict
+    solver: dict
+    timings: dict = field(default_factory=dict)
+    validation: dict | None = None
+    warnings: list = field(default_factory=list)
+    ee_errors: dict | None = None
+
+    @property
+    def ok(self) -> bool:
+        """Every solver reported success and the estimate is finite."""
+        return bool(self.solver["success"]) and bool(np.all(np.isfinite(self.T_cam_base)))
+
+    def to_json(self) -> dict:
+        """The `result.json` payload (plain Python types)."""
+        from .sim.simulate import model_to_json
+
+        T = self.T_cam_base
+        return {
+            "schema": "jaxcal.result",
+            "schema_version": 1,
+            "dataset": str(self.dataset),
+            "camera": self.camera,
+            "targets": self.targets,
+            "ok": self.ok,
+            "T_cam_base": {
+                "matrix": T.tolist(),
+                "xyz_m": T[:3, 3].tolist(),
+                "quaternion_xyzw": _quaternion_xyzw(T[:3, :3]).tolist(),
+                "std_xyz_mm": (1e3 * self.std_cam[:3]).tolist(),
+                "std_rot_deg": np.degrees(self.std_cam[3:]).tolist(),
+            },
+            "T_flange_target": self.T_flange_target.tolist(),
+            "reduction_ratios": {
+                a["joint"]: {
+                    "nominal": a["ratio_nominal"],
+                    "estimate": a["ratio"],
+                    "std": a["ratio_std"],
+                    "identifiable": a["ratio_identifiable"],
+                }
+                for a in self.arcs
+            },
+            "parameters": self.parameters,
+            "identifiability": {
+                "estimated": sum(bool(p["free"]) for p in self.parameters if p["group"] == "correction"),
+                "frozen": self.frozen,
+                "note": "frozen parameters cannot be seen by a camera watching joint axes "
+                "(they trade off against others or against T_cam_base); they are held at nominal",
+            },
+            "arcs": self.arcs,
+            "frames": self.frames,
+            "clock": self.clock,
+            "intrinsics": self.intrinsics,
+            "solver": self.solver,
+            "timings_s": self.timings,
+            "validation": self.validation,
+            "warnings": self.warnings,
+            "model": model_to_json(self.model),
+        }
+
+
+# --------------------------------------------------------------------------- small helpers
+
+
+def _quaternion_xyzw(R: np.ndarray) -> np.ndarray:
+    import cv2
+
+    rvec = cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
+    angle = np.linalg.norm(rvec)
+    axis = rvec / angle if angle > 0 else np.array([1.0, 0.0, 0.0])
+    return np.r_[np.sin(angle / 2) * axis, np.cos(angle / 2)]
+
+
+def _rpy(R):
+    import jax.numpy as jnp
+
+    return jnp.stack(
+        [
+            jnp.arctan2(R[2, 1], R[2, 2]),
+            jnp.arctan2(-R[2, 0], jnp.sqrt(R[0, 0] ** 2 + R[1, 0] ** 2)),
+            jnp.arctan2(R[1, 0], R[0, 0]),
+        ]
+    )
+
+
+def _progress(enabled: bool, description: str, total: int):
+    from .sim.simulate import _progress as bar
+
+    return bar(enabled, total, description)
+
+
+# --------------------------------------------------------------------------- stages
+
+
+def _camera_rows(ds, camera: str) -> np.ndarray:
+    rows = np.flatnonzero(ds.frames["camera"] == camera)
+    if rows.size == 0:
+        raise CalibrationError(f"{ds.root / 'frames.csv'}: no frames for camera {camera!r}")
+    return rows
+
+
+def _flange_targets(ds, flange: str):
+    targets = [t for t in ds.targets if t.link == flange]
+    if not targets:
+        links = sorted({t.link for t in ds.targets})
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: no target rides on the flange link {flange!r} (targets are on "
+            f"{links}); the joint-sweep method films a target on the flange"
+        )
+    return targets
+
+
+def detect_poses(ds, camera, targets, K, dist, *, workers=None, progress=True):
+    """Detections and PnP poses of `targets` in every frame of `camera`.
+
+    **Returns:** `(rows, detections, poses)`: the frame-table rows, per row a
+    dict target name -> `Detection`, and per row a dict target name ->
+    `PoseEstimate` (targets not found or without a pose are absent).
+    """
+    from .vision import detect_frames, estimate_pose
+
+    rows = _camera_rows(ds, camera.name)
+    paths = [ds.image_path(int(i)) for i in rows]
+    dets = detect_frames(paths, [t.spec for t in targets], K=K, dist=dist, workers=workers, progress=progress)
+    poses = []
+    for det in dets:
+        p = {}
+        for t in targets:
+            d = det.get(t.name)
+            if d is not None:
+                est = estimate_pose(d, t.spec, K, dist)
+                if est is not None:
+                    p[t.name] = est
+        poses.append(p)
+    return rows, dets, poses
+
+
+def self_calibrate(ds, camera, targets, rows, *, workers=None, progress=True):
+    """Intrinsics from the ChArUco frames themselves (the seed's variant); `(K, dist, rms_px)`."""
+    from .vision import calibrate_intrinsics, detect_frames
+
+    charuco = [t for t in targets if t.spec.kind == "charuco"]
+    if not charuco:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: camera {camera.name!r} has no intrinsics (K is null) and no "
+            "ChArUco target to self-calibrate them from"
+        )
+    t = charuco[0]
+    paths = [ds.image_path(int(i)) for i in rows]
+    dets = detect_frames(paths, [t.spec], workers=workers, progress=progress)
+    found = [d[t.name] for d in dets if t.name in d]
+    return calibrate_intrinsics(found, t.spec, (camera.width, camera.height))
+
+
+def commanded_positions(ds, nominal) -> tuple[np.ndarray, np.ndarray] | None:
+    """The encoder log as commanded joint positions `motor / nominal ratio`: `(t (T,), q (T, joints))`."""
+    if ds.encoder_t is None:
+        return None
+    ratio = np.asarray(nominal.reduction_ratio, np.float64)
+    return ds.encoder_t, ds.encoder_motor / ratio
+
+
+def assign_frames(ds, t_ctrl: np.ndarray, q: np.ndarray | None, num_joints: int) -> np.ndarray:
+    """Which joint sweeps in each frame (index, or -1 for none).
+
+    From the metadata's motion segments when present; otherwise from the
+    encoder log: the one joint more than `MOVING_DEG` from zero while every
+    other stays within `AT_ZERO_DEG`.
+    """
+    index = {name: j for j, name in enumerate(ds.joint_names)}
+    joint = np.full(len(t_ctrl), -1)
+    if ds.segments:
+        for name, start, end in ds.segments:
+            if name is None:
+                continue
+            joint[(t_ctrl >= start) & (t_ctrl <= end)] = index[name]
+        return joint
+    if q is None:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: cannot tell which joint moves in which frame: the metadata has "
+            "no 'motion' segments and there is no encoder log"
+        )
+    away = np.abs(q) > MOVING_DEG * _DEG
+    still = np.abs(q) < AT_ZERO_DEG * _DEG
+    for j in range(num_joints):
+        others = np.delete(np.arange(num_joints), j)
+        joint[away[:, j] & np.all(still[:, others], axis=1)] = j
+    return joint
+
+
+def _interp(t, enc_t, enc_q) -> np.ndarray:
+    return np.stack([np.interp(t, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])], axis=-1)
+
+
+def build_sweeps(ds, rows, poses, targets, joint_of_row, q_at_row, t_cam, num_joints) -> tuple[Sweeps, dict]:
+    """Group the per-frame poses into padded per-joint sweeps; also the per-joint frame counts."""
+    M = len(targets)
+    per_joint = [
+        np.flatnonzero((joint_of_row == j) & np.array([bool(p) for p in poses])) for j in range(num_joints)
+    ]
+    F = max(1, max(len(k) for k in per_joint))
+    J = num_joints
+    R = np.full((J, F), -1)
+    P = np.zeros((J, M, F, 3))
+    O = np.broadcast_to(np.eye(3), (J, M, F, 3, 3)).copy()
+    C = np.broadcast_to(np.eye(6), (J, M, F, 6, 6)).copy()
+    mask = np.zeros((J, M, F), bool)
+    T = np.zeros((J, F))
+    E = None if q_at_row is None else np.zeros((J, F))
+    for j, idx in enumerate(per_joint):
+        R[j, : len(idx)] = rows[idx]
+        T[j, : len(idx)] = t_cam[idx]
+        T[j, len(idx) :] = t_cam[idx[-1]] if len(idx) else 0.0
+        if E is not None:
+            E[j, : len(idx)] = q_at_row[idx, j]
+        for f, i in enumerate(idx):
+            for m, t in enumerate(targets):
+                est = poses[i].get(t.name)
+                if est is None:
+                    continue
+                P[j, m, f] = est.T_cam_target[:3, 3]
+                O[j, m, f] = est.T_cam_target[:3, :3]
+                C[j, m, f] = est.cov
+                mask[j, m, f] = True
+    counts = {ds.joint_names[j]: int(len(idx)) for j, idx in enumerate(per_joint)}
+    return Sweeps(R, P, O, C, mask, T, E), counts
+
+
+# --------------------------------------------------------------------------- jitted solves
+
+
+@functools.cache
+def _jit_arcs():
+    import jax
+
+    from ._arcfit import fit_arc
+
+    return jax.jit(jax.vmap(lambda d: fit_arc(d, max_steps=100)))
+
+
+@functools.cache
+def _jit_axes(use_poses: bool):
+    import jax
+
+    from ._axisfit import fit_axes
+
+    def fit(nominal, arcs, mount, free=None):
+        return fit_axes(nominal, arcs, T_flange_marker=mount, use_poses=use_poses, free=free)
+
+    return jax.jit(fit)
+
+
+def _physical(nominal, mounts0, T_cam_base0, unravel):
+    """Map flattened axis-fit parameters to the physical ones reported (xyz, rpy, offsets, camera, mount)."""
+    import jax
+    import jax.numpy as jnp
+
+    from ._axisfit import apply_correction
+    from ._geometry import se3_exp, so3_log
+
+    def f(x):
+        params = unravel(x)
+        model, mounts = apply_correction(nominal, mounts0, params.correction)
+        T_cb = T_cam_base0 @ se3_exp(params.cam)
+        origins = jax.vmap(lambda T: jnp.concatenate([T[:3, 3], _rpy(T[:3, :3])]))(model.T_parent_joint)
+        mount = jax.vmap(lambda T: jnp.concatenate([T[:3, 3], _rpy(T[:3, :3])]))(mounts)
+        dR = so3_log(T_cam_base0[:3, :3].T @ T_cb[:3, :3])
+        return jnp.concatenate([origins.reshape(-1), model.zero_offset, T_cb[:3, 3], dR, mount.reshape(-1)])
+
+    return f
+
+
+def _parameter_table(nominal, fit, mounts0, T_cam_base0, targets) -> list:
+    import jax
+    import jax.numpy as jnp
+    from jax.flatten_util import ravel_pytree
+
+    flat, unravel = ravel_pytree(fit.params)
+    f = _physical(nominal, jnp.asarray(mounts0), jnp.asarray(T_cam_base0), unravel)
+    est = np.asarray(f(flat))
+    nom = np.asarray(f(jnp.zeros_like(flat)))
+    G = np.asarray(jax.jacfwd(f)(flat))
+    std = np.sqrt(np.maximum(np.einsum("ia,ab,ib->i", G, np.asarray(fit.cov), G), 0.0))
+    free_cols = np.asarray(fit.free)
+    moves = np.abs(G[:, free_cols]).sum(axis=1) > 1e-12
+    rows = []
+    pose = [("x", "m"), ("y", "m"), ("z", "m"), ("roll", "rad"), ("pitch", "rad"), ("yaw", "rad")]
+    for j in nominal.joint_names:
+        rows += [(f"{j}.origin.{a}", u, "correction") for a, u in pose]
+    rows += [(f"{j}.zero_offset", "rad", "correction") for j in nominal.joint_names]
+    rows += [(f"T_cam_base.{a}", "m", "camera") for a in "xyz"]
+    rows += [(f"T_cam_base.rot_{a}", "rad", "camera") for a in "xyz"]
+    for t in targets:
+        rows += [(f"{t.name}.mount.{a}", u, "mount") for a, u in pose]
+    return [
+        {
+            "name": n,
+            "unit": u,
+            "group": g,
+            "nominal": float(nom[i]),
+            "estimate": float(est[i]),
+            "std": float(std[i]),
+            "free": bool(moves[i]),
+        }
+        for i, (n, u, g) in enumerate(rows)
+    ]
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _validation(
+    ds, nominal, fit, camera, targets, sweeps, mounts0, use_poses, fit_arcs_have_encoder, q_val_seed=0, n=1000
+):
+    """Errors against `truth.json`: EE (target origin) in the camera frame over random configurations,
+    axis lines, ratios, T_cam_base (raw and in the estimator's gauge)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from . import _montecarlo as mc
+    from ._geometry import pose_inverse, so3_log
+    from ._kinematics import forward_kinematics
+    from .sim.simulate import model_from_json
+
+    truth = ds.truth
+    true = model_from_json(truth["model"])
+    cam_truth = truth["cameras"].get(camera, {})
+    if "T_cam_base" not in cam_truth:
+        return None, None
+    T_cb_true = jnp.asarray(cam_truth["T_cam_base"])
+    mounts_true = jnp.stack([jnp.asarray(truth["targets"][t.name]["T_link_target"]) for t in targets])
+    q_val = jax.random.uniform(
+        jax.random.key(q_val_seed), (n, nominal.num_joints), minval=-np.pi, maxval=np.pi
+    )
+    s = jax.jit(mc.score)(fit, true, T_cb_true, mounts_true, nominal, q_val)
+
+    # Per-configuration errors (for the plot).
+    def marker(model, T_cb, mount, q):
+        return (T_cb @ jax.vmap(lambda qq: forward_kinematics(model, qq)[-1])(q) @ mount)[:, :3, 3]
+
+    tru = marker(true, T_cb_true, mounts_true[0], q_val)
+    est = marker(fit.model, fit.T_cam_base, fit.T_flange_marker[0], q_val)
+    nom = marker(nominal, fit.T_cam_base, fit.T_flange_marker[0], q_val)
+    err_after = np.asarray(jnp.linalg.norm(est - tru, axis=-1)) * 1e3
+    err_before = np.asarray(jnp.linalg.norm(nom - tru, axis=-1)) * 1e3
+
+    # The estimator's gauge for T_cam_base: the same axis fit on (nearly) exact
+    # sweeps of the truth, with the same parameters frozen. The sweeps have the
+    # dataset's shapes, so the arc and axis fits reuse their compiled code.
+    F = sweeps.mask.shape[-1]
+    plan = mc.SweepPlan(range_deg=40.0, frames=F)
+    tiny = mc.NoiseModel(position_mm=1e-3, orientation_deg=1e-4, encoder_deg=0.0)
+    exact = eqx.filter_jit(mc.synthesize_sweeps)(
+        true,
+        T_cb_true,
+        mounts_true,
+        plan,
+        tiny,
+        jax.random.key(1),
+        nominal_ratio=nominal.reduction_ratio,
+        use_encoders=bool(fit_arcs_have_encoder),
+    )
+    arcs_exact = _jit_arcs()(exact)
+    T_gauge = _jit_axes(bool(use_poses))(nominal, arcs_exact, mounts0, fit.free).T_cam_base
+    dT = np.asarray(pose_inverse(T_gauge) @ fit.T_cam_base)
+    dT_raw = np.asarray(pose_inverse(T_cb_true) @ fit.T_cam_base)
+    ratio_err = np.asarray(s["ratio_err_percent"])
+    out = {
+        "configurations": n,
+        "ee_point": "target origin, camera frame",
+        "ee_rms_mm_before": float(np.sqrt(np.mean(err_before**2))),
+        "ee_max_mm_before": float(err_before.max()),
+        "ee_rms_mm_after": float(np.sqrt(np.mean(err_after**2))),
+        "ee_max_mm_after": float(err_after.max()),
+        "T_cam_base_error": {
+            "trans_mm": float(np.linalg.norm(dT[:3, 3]) * 1e3),
+            "rot_deg": float(np.degrees(np.linalg.norm(np.asarray(so3_log(jnp.asarray(dT[:3, :3])))))),
+            "gauge": "the truth seen through the same frozen parameters (the same fit on exact sweeps)",
+            "raw_trans_mm": float(np.linalg.norm(dT_raw[:3, 3]) * 1e3),
+            "raw_rot_deg": float(
+                np.degrees(np.linalg.norm(np.asarray(so3_log(jnp.asarray(dT_raw[:3, :3])))))
+            ),
+        },
+        "parameter_errors": {
+            j: {
+                "axis_direction_deg": float(s["axis_dir_deg"][k]),
+                "axis_position_mm": float(s["axis_pos_mm"][k]),
+                "ratio_percent": None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
+                "zero_offset_deg": float(np.degrees(fit.model.zero_offset[k] - true.zero_offset[k])),
+            }
+            for k, j in enumerate(nominal.joint_names)
+        },
+        "true_ratios": np.asarray(true.reduction_ratio).tolist(),
+        "true_clock_offset_s": truth.get("clock", {}).get("offset_s"),
+    }
+    return out, {"before": err_before, "after": err_after}
+
+
+# --------------------------------------------------------------------------- the pipeline
+
+
+def calibrate(
+    dataset,
+    *,
+    camera: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    estimate_clock: bool | None = None,
+    validate: bool = True,
+    log=None,
+) -> CalibrationResult:
+    """Calibrate the robot and camera of `dataset` (a path or a loaded `Dataset`).
+
+    **Arguments:**
+    - `camera`: which fixed camera to use (default the first one mounted in
+      the world).
+    - `workers`: processes for detection (default all cores).
+    - `estimate_clock`: estimate the camera-controller clock offset (default:
+      when the metadata leaves it null).
+    - `validate`: with a synthetic dataset's `truth.json`, add the validation block.
+    - `log`: a callable taking one line of progress text (default silent).
+
+    **Returns:** a `CalibrationResult`. Raises `CalibrationError` /
+    `DatasetError` / `VisionError` (all `ValueError`) naming the problem.
+    """
+    import jax
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    from ._arcfit import validate_arc_data
+    from ._axisfit import parameter_names, register_lines
+    from ._clocksync import fit_clock_offset
+    from ._geometry import pose_inverse, se3_exp
+    from ._kinematics import forward_kinematics
+    from .io.dataset import Dataset, load_dataset
+
+    say = log or (lambda text: None)
+    timings = {}
+    t_start = time.perf_counter()
+    ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
+    nominal = ds.load_model()
+    if tuple(nominal.joint_names) != tuple(ds.joint_names):
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: robot.joints {list(ds.joint_names)} differ from the chain in "
+            f"{ds.robot_urdf} ({list(nominal.joint_names)})"
+        )
+    fixed = [c for c in ds.cameras if c.mount == "world"]
+    if camera is None:
+        if not fixed:
+            raise CalibrationError(
+                f"{ds.root / 'metadata.json'}: no fixed camera (mount 'world'); eye-in-hand datasets are "
+                "calibrated by the refinement stage (not yet available)"
+            )
+        cam = fixed[0]
+    else:
+        try:
+            cam = ds.camera(camera)
+        except KeyError:
+            raise CalibrationError(
+                f"camera {camera!r} is not in {ds.root / 'metadata.json'} (cameras: {[c.name for c in ds.cameras]})"
+            ) from None
+        if cam.mount != "world":
+            raise CalibrationError(
+                f"camera {camera!r} rides on {cam.mount!r}; the joint-sweep method needs a fixed camera"
+            )
+    flange = nominal.link_names[-1]
+    targets = _flange_targets(ds, flange)
+    notes = []
+    if len(ds.cameras) > 1:
+        notes.append(
+            f"calibrated with camera {cam.name!r} only; the other cameras are used by the refinement stage"
+        )
+    ignored = [t.name for t in ds.targets if t.link != flange]
+    if ignored:
+        notes.append(f"targets not on the flange are not used by the two-stage method: {ignored}")
+    timings["load_s"] = time.perf_counter() - t_start
+
+    # Intrinsics.
+    t0 = time.perf_counter()
+    rows = _camera_rows(ds, cam.name)
+    K, dist = cam.K, cam.dist
+    intrinsics = {"source": "metadata"}
+    if K is None:
+        say(f"camera {cam.name}: no intrinsics in the metadata, self-calibrating from the ChArUco frames")
+        K, dist, rms = self_calibrate(ds, cam, targets, rows, workers=workers, progress=progress)
+        intrinsics = {"source": "self-calibrated (ChArUco)", "rms_px": float(rms)}
+    intrinsics.update({"K": np.asarray(K).tolist(), "distortion": np.asarray(dist).tolist()})
+
+    # Detection and PnP.
+    say(f"detecting {', '.join(t.name for t in targets)} in {len(rows)} frames of camera {cam.name}")
+    rows, dets, poses = detect_poses(ds, cam, targets, K, dist, workers=workers, progress=progress)
+    found = np.array([bool(p) for p in poses])
+    if not found.any():
+        raise CalibrationError(
+            f"{ds.root}: no target was found in any of the {len(rows)} images of camera {cam.name!r}; check the "
+            f"targets' dictionary ({', '.join(sorted({t.spec.dictionary for t in targets}))}), ids and sizes "
+            "in metadata.json"
+        )
+    timings["detect_s"] = time.perf_counter() - t0
+
+    # Clock and joint assignment.
+    t0 = time.perf_counter()
+    t_cam = ds.frames["timestamp"][rows]
+    log_q = commanded_positions(ds, nominal)
+    offset = ds.clock_offset_s
+    if estimate_clock is None:
+        estimate_clock = offset is None and log_q is not None
+    if estimate_clock and log_q is None:
+        raise CalibrationError(f"{ds.root}: the clock offset cannot be estimated without an encoder log")
+    offset0 = 0.0 if offset is None else offset
+    clock = {"offset_s": offset0, "std_s": None, "estimated": False, "drift_ppm": ds.clock_drift_ppm}
+    if offset is None and not estimate_clock:
+        notes.append("clock offset unknown and not estimated: 0 assumed")
+
+    def sync(offset_s):
+        t_ctrl = (t_cam - offset_s) / (1.0 + 1e-6 * ds.clock_drift_ppm)
+        if log_q is None:
+            return t_ctrl, None, np.ones(len(t_ctrl), bool)
+        enc_t, enc_q = log_q
+        inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+        if not inside.any():
+            raise CalibrationError(
+                f"{ds.root}: no overlap between the image timestamps of camera {cam.name!r} "
+                f"([{t_cam.min():.3f}, {t_cam.max():.3f}] s camera clock, offset {offset_s * 1e3:.1f} ms) and "
+                f"the encoder log ([{enc_t[0]:.3f}, {enc_t[-1]:.3f}] s, {ds.root / 'encoders.csv'})"
+            )
+        return t_ctrl, _interp(t_ctrl, enc_t, enc_q), inside
+
+    def sweeps_at(offset_s):
+        t_ctrl, q, inside = sync(offset_s)
+        joint = np.where(inside, assign_frames(ds, t_ctrl, q, nominal.num_joints), -1)
+        sw, counts = build_sweeps(ds, rows, poses, targets, joint, q, t_cam, nominal.num_joints)
+        return sw, counts, joint, inside
+
+    sweeps, counts, joint, inside = sweeps_at(offset0)
+    if estimate_clock:
+        say("estimating the camera-controller clock offset (arc fits of all joints with a shared offset)")
+        cf = jax.jit(partial(fit_clock_offset, offset0_s=offset0, drift_ppm=ds.clock_drift_ppm))(
+            sweeps.arc_data(), jnp.asarray(sweeps.t_cam), jnp.asarray(log_q[0]), jnp.asarray(log_q[1])
+        )
+        if not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s)):
+            raise CalibrationError(f"{ds.root}: the clock-offset fit failed ({cf.result})")
+        clock.update(offset_s=float(cf.offset_s), std_s=float(cf.std_s), estimated=True)
+        sweeps, counts, joint, inside = sweeps_at(float(cf.offset_s))
+    timings["sync_s"] = time.perf_counter() - t0
+
+    data = sweeps.arc_data()
+    for j, name in enumerate(ds.joint_names):
+        if counts[name] == 0:
+            raise CalibrationError(
+                f"{ds.root}: joint {name!r}: no frame of camera {cam.name!r} shows a target while this joint "
+                "sweeps alone"
+            )
+        try:
+            validate_arc_data(jax.tree.map(lambda x, j=j: x[j], data), name)
+        except ValueError as e:
+            raise CalibrationError(f"{ds.root}: {e}") from None
+
+    # Arc fits, then the axis fit.
+    t0 = time.perf_counter()
+    say(f"arc fits of {nominal.num_joints} joints (one vmapped solve)")
+    arcs = _jit_arcs()(data)
+    jax.block_until_ready(arcs)
+    timings["arc_fit_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    say("axis fit: kinematic parameters and camera-to-base")
+    mounts0 = [t.T_link_target for t in targets]
+    if all(m is not None for m in mounts0):
+        mounts0 = jnp.asarray(np.stack(mounts0))
+    else:
+        mounts0 = None
+    use_poses = bool(arcs.has_encoder)
+    if mounts0 is None:
+        T0 = register_lines(nominal, arcs)
+        T_cf = T0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints))[-1]
+        mounts0 = jnp.einsum("ab,mbc->mac", pose_inverse(T_cf), arcs.T_cam_marker0[0])
+    fit = _jit_axes(use_poses)(nominal, arcs, mounts0)
+    jax.block_until_ready(fit)
+    timings["axis_fit_s"] = time.perf_counter() - t0
+
+    # Summaries.
+    ok_arc = np.asarray(arcs.result == optx.RESULTS.successful)
+    ok_axis = bool(fit.result == optx.RESULTS.successful)
+    names = parameter_names(nominal, len(targets))
+    frozen = [n for n, f in zip(names, np.asarray(fit.free)) if not f]
+    T_cam_base0 = np.asarray(fit.T_cam_base) @ np.linalg.inv(np.asarray(se3_exp(fit.params.cam)))
+    parameters = _parameter_table(nominal, fit, mounts0, T_cam_base0, targets)
+    nominal_ratio = np.asarray(nominal.reduction_ratio)
+    arc_rows = []
+    for j, name in enumerate(ds.joint_names):
+        rate = float(arcs.rate[j])
+        has = bool(arcs.has_encoder)
+        arc_rows.append(
+            {
+                "joint": name,
+                "frames": int(arcs.num_frames[j]),
+                "position_rms_mm": float(arcs.position_rms[j]) * 1e3,
+                "rotation_rms_deg": float(np.degrees(arcs.rotation_rms[j])),
+                "residual_rms": float(arcs.residual_rms[j]),
+                "direction_cam": np.asarray(arcs.direction[j]).tolist(),
+                "point_cam_m": np.asarray(arcs.point[j]).tolist(),
+                "ratio_nominal": float(nominal_ratio[j]),
+                "ratio": float(nominal_ratio[j] / rate) if has else None,
+                "ratio_std": float(nominal_ratio[j] * np.sqrt(max(float(arcs.rate_var[j]), 0.0)) / rate**2)
+                if has
+                else None,
+                "ratio_identifiable": has,
+                "solver": {
+                    "result": "successful" if ok_arc[j] else "failed",
+                    "steps": int(arcs.num_steps[j]),
+                },
+            }
+        )
+    if not arcs.has_encoder:
+        notes.append("no encoder log: reduction ratios are not identifiable (images alone give the axes)")
+    n_rows = len(rows)
+    frames = {
+        "images": int(n_rows),
+        "target_found": int(found.sum()),
+        "no_target": int((~found).sum()),
+        "outside_encoder_log": int((~inside).sum()),
+        "not_in_a_sweep": int(((joint < 0) & inside & found).sum()),
+        "used_per_joint": counts,
+        "dropped_capture_indices": _dropped(ds, cam.name),
+    }
+    std_cam = np.asarray(fit.std[:6])
+    result = CalibrationResult(
+        dataset=ds.root,
+        robot_urdf=ds.robot_urdf,
+        camera=cam.name,
+        targets=[t.name for t in targets],
+        nominal=nominal,
+        model=jax.device_get(fit.model),
+        T_cam_base=np.asarray(fit.T_cam_base),
+        std_cam=std_cam,
+        T_flange_target=np.asarray(fit.T_flange_marker),
+        parameters=parameters,
+        frozen=frozen,
+        arcs=arc_rows,
+        sweeps=sweeps,
+        arc_fit=jax.device_get(arcs),
+        axis_fit=jax.device_get(fit),
+        clock=clock,
+        frames=frames,
+        intrinsics=intrinsics,
+        solver={
+            "success": bool(ok_arc.all() and ok_axis),
+            "arc_fits_ok": ok_arc.tolist(),
+            "axis_fit": _result_name(fit.result),
+            "axis_fit_steps": int(fit.num_steps),
+            "axis_fit_residual_rms": float(fit.residual_rms),
+        },
+        timings=timings,
+        warnings=notes,
+    )
+    if validate and ds.truth is not None:
+        t0 = time.perf_counter()
+        say("validating against truth.json (1000 random configurations)")
+        result.validation, result.ee_errors = _validation(
+            ds, nominal, fit, cam.name, targets, sweeps, mounts0, use_poses, arcs.has_encoder
+        )
+        if result.validation is not None:
+            result.validation["clock_offset_error_ms"] = (
+                None
+                if result.validation["true_clock_offset_s"] is None
+                else 1e3 * (clock["offset_s"] - result.validation["true_clock_offset_s"])
+            )
+        timings["validation_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    return result
+
+
+def _result_name(result) -> str:
+    import optimistix as optx
+
+    return "successful" if bool(result == optx.RESULTS.successful) else "failed"
+
+
+def _dropped(ds, camera: str) -> list:
+    idx = np.sort(ds.frames["frame"][ds.frames["camera"] == camera])
+    if idx.size == 0:
+        return []
+    return sorted(set(range(int(idx[0]), int(idx[-1]) + 1)) - set(int(i) for i in idx))

@@ -1,0 +1,228 @@
+"""Writing a calibration's results: `result.json`, `calibrated.urdf`, the camera pose as
+OpenCV YAML, and `report.md` with its plots. Everything goes into a temporary
+directory beside the destination and is renamed into place, so a failure
+leaves nothing partial behind.
+"""
+
+from pathlib import Path
+
+import numpy as np
+
+
+def arc_geometry(result, j: int) -> dict:
+    """Joint `j`'s measured marker positions in its fitted arc's plane.
+
+    **Returns:** `u`, `v` (mm, in-plane, about the fitted axis point), `radius`
+    (mm), `radial` and `axial` residuals (mm) of every observed frame (first marker).
+    """
+    V = np.asarray(result.arc_fit.direction[j])
+    Q = np.asarray(result.arc_fit.point[j])
+    mask = result.sweeps.mask[j, 0]
+    P = result.sweeps.positions[j, 0][mask]
+    d = P - Q
+    h = d @ V
+    inplane = d - h[:, None] * V
+    e1 = inplane[0] / np.linalg.norm(inplane[0])
+    e2 = np.cross(V, e1)
+    rho = np.linalg.norm(inplane, axis=1)
+    return {
+        "u": 1e3 * inplane @ e1,
+        "v": 1e3 * inplane @ e2,
+        "radius": 1e3 * rho.mean(),
+        "radial": 1e3 * (rho - rho.mean()),
+        "axial": 1e3 * (h - h.mean()),
+    }
+
+
+def _plots(result, out: Path) -> list[tuple[str, str]]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [a["joint"] for a in result.arcs]
+    figs = []
+    cols = min(3, len(names))
+    rows = int(np.ceil(len(names) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.6 * rows), squeeze=False)
+    for j, name in enumerate(names):
+        ax = axes[j // cols][j % cols]
+        g = arc_geometry(result, j)
+        t = np.linspace(0, 2 * np.pi, 400)
+        ax.plot(
+            g["radius"] * np.cos(t),
+            g["radius"] * np.sin(t),
+            "-",
+            lw=0.8,
+            color="tab:blue",
+            label="fitted arc",
+        )
+        ax.plot(g["u"], g["v"], ".", ms=4, color="tab:red", label="marker (PnP)")
+        ax.plot([0], [0], "+", color="k")
+        span = max(np.ptp(g["u"]), np.ptp(g["v"]), 20.0)
+        ax.set_xlim(g["u"].mean() - 0.7 * span, g["u"].mean() + 0.7 * span)
+        ax.set_ylim(g["v"].mean() - 0.7 * span, g["v"].mean() + 0.7 * span)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name}: r = {g['radius']:.1f} mm", fontsize=9)
+        ax.set_xlabel("mm (in the arc's plane)", fontsize=8)
+        if j == 0:
+            ax.legend(fontsize=7)
+    for k in range(len(names), rows * cols):
+        axes[k // cols][k % cols].axis("off")
+    fig.tight_layout()
+    fig.savefig(out / "arcs.png", dpi=110)
+    plt.close(fig)
+    figs.append(("arcs.png", "Marker positions of every sweep in its fitted arc's plane"))
+
+    radial = np.concatenate([arc_geometry(result, j)["radial"] for j in range(len(names))])
+    axial = np.concatenate([arc_geometry(result, j)["axial"] for j in range(len(names))])
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+    ax[0].hist(radial, bins=30, color="tab:blue")
+    ax[0].set_title("radial residual (mm)", fontsize=9)
+    ax[1].hist(axial, bins=30, color="tab:orange")
+    ax[1].set_title("along-axis residual (mm)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "residuals.png", dpi=110)
+    plt.close(fig)
+    figs.append(("residuals.png", "Arc residuals of every frame (distance from the fitted circle)"))
+
+    if result.ee_errors is not None:
+        before, after = result.ee_errors["before"], result.ee_errors["after"]
+        fig, ax = plt.subplots(figsize=(7, 3.6))
+        bins = np.logspace(
+            np.log10(max(min(after.min(), before.min()), 1e-3)), np.log10(before.max() * 1.1), 50
+        )
+        ax.hist(
+            before, bins=bins, alpha=0.7, label=f"nominal model (RMS {np.sqrt(np.mean(before**2)):.2f} mm)"
+        )
+        ax.hist(after, bins=bins, alpha=0.7, label=f"calibrated (RMS {np.sqrt(np.mean(after**2)):.3f} mm)")
+        ax.set_xscale("log")
+        ax.set_xlabel("end-effector position error (mm), 1000 random configurations")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / "ee_error.png", dpi=110)
+        plt.close(fig)
+        figs.append(("ee_error.png", "End-effector error against the truth, before and after"))
+    return figs
+
+
+def _camera_yaml(path: Path, result) -> None:
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("camera_name", result.camera)
+        fs.write("T_cam_base", result.T_cam_base)
+        fs.write("T_base_cam", np.linalg.inv(result.T_cam_base))
+        fs.write("camera_matrix", np.asarray(result.intrinsics["K"], np.float64))
+        fs.write(
+            "distortion_coefficients", np.asarray(result.intrinsics["distortion"], np.float64).reshape(1, -1)
+        )
+    finally:
+        fs.release()
+
+
+def _fmt(x, spec=".3f") -> str:
+    return "n/a" if x is None else format(x, spec)
+
+
+def _markdown(result, figs) -> str:
+    r = result.to_json()
+    lines = [
+        f"# jaxcal calibration of `{result.dataset}`",
+        "",
+        f"Camera `{result.camera}`, target(s) {', '.join(f'`{t}`' for t in result.targets)}; "
+        f"solvers: {'all successful' if result.ok else '**FAILED**'}.",
+        "",
+    ]
+    v = result.validation
+    if v is not None:
+        c = v["T_cam_base_error"]
+        lines += [
+            "## Against the truth (synthetic dataset)",
+            "",
+            "| | nominal model | calibrated |",
+            "| --- | ---: | ---: |",
+            f"| EE RMS (mm) | {v['ee_rms_mm_before']:.3f} | {v['ee_rms_mm_after']:.3f} |",
+            f"| EE max (mm) | {v['ee_max_mm_before']:.3f} | {v['ee_max_mm_after']:.3f} |",
+            "",
+            f"T_cam_base error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
+            f"raw {c['raw_trans_mm']:.3f} mm, {c['raw_rot_deg']:.4f} deg).",
+            "",
+        ]
+    T = r["T_cam_base"]
+    lines += [
+        "## Camera pose",
+        "",
+        f"T_cam_base translation {np.round(np.asarray(T['xyz_m']) * 1e3, 3).tolist()} mm "
+        f"(std {np.round(T['std_xyz_mm'], 3).tolist()} mm, {np.round(T['std_rot_deg'], 4).tolist()} deg); "
+        f"quaternion (xyzw) {np.round(T['quaternion_xyzw'], 6).tolist()}.",
+        "",
+        f"Clock offset: {1e3 * result.clock['offset_s']:.2f} ms"
+        + (
+            f" (estimated, std {1e3 * result.clock['std_s']:.2f} ms)"
+            if result.clock["estimated"]
+            else " (given)"
+        ),
+        "",
+        "## Joints",
+        "",
+        "| joint | frames | pos RMS mm | rot RMS deg | ratio nominal | ratio | std | solver |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
+    for a in result.arcs:
+        lines.append(
+            f"| {a['joint']} | {a['frames']} | {a['position_rms_mm']:.3f} | {a['rotation_rms_deg']:.4f} | "
+            f"{a['ratio_nominal']:.4f} | {_fmt(a['ratio'], '.4f')} | {_fmt(a['ratio_std'], '.4f')} | "
+            f"{a['solver']['result']} ({a['solver']['steps']} steps) |"
+        )
+    lines += [
+        "",
+        "## Parameters (nominal, estimate, standard deviation)",
+        "",
+        "| parameter | unit | nominal | estimate | std | estimated |",
+        "| --- | --- | ---: | ---: | ---: | --- |",
+    ]
+    for p in result.parameters:
+        lines.append(
+            f"| {p['name']} | {p['unit']} | {p['nominal']:.6f} | {p['estimate']:.6f} | {p['std']:.2e} | "
+            f"{'yes' if p['free'] else 'held at nominal'} |"
+        )
+    lines += [
+        "",
+        "## Identifiability",
+        "",
+        "Held at nominal (the camera cannot see them): " + ", ".join(result.frozen),
+        "",
+    ]
+    f = result.frames
+    lines += [
+        "## Frames",
+        "",
+        f"{f['images']} images; target found in {f['target_found']}; {f['no_target']} without a target, "
+        f"{f['outside_encoder_log']} outside the encoder log, {f['not_in_a_sweep']} in no single-joint sweep; "
+        f"dropped capture indices: {len(f['dropped_capture_indices'])}.",
+        "",
+    ]
+    if result.warnings:
+        lines += ["## Notes", ""] + [f"- {w}" for w in result.warnings] + [""]
+    lines += ["## Plots", ""]
+    for name, caption in figs:
+        lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]
+    return "\n".join(lines)
+
+
+def write_outputs(result, out, *, overwrite: bool = False) -> Path:
+    """Write `result` into directory `out` (atomically): `result.json`,
+    `calibrated.urdf`, `camera_<name>.yaml`, `report.md` and its PNG plots."""
+    from .io.dataset import atomic_directory, write_json
+    from .io.urdf import save_urdf
+
+    out = Path(out)
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        write_json(tmp / "result.json", result.to_json())
+        save_urdf(result.model, tmp / "calibrated.urdf", source=result.robot_urdf)
+        _camera_yaml(tmp / f"camera_{result.camera}.yaml", result)
+        figs = _plots(result, tmp)
+        (tmp / "report.md").write_text(_markdown(result, figs))
+    return out
