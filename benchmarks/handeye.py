@@ -1,0 +1,375 @@
+"""Benchmark: jaxcal's hand-eye calibration side by side with OpenCV's seven solvers.
+
+Two parts, every method given the same data:
+
+1. `protocol`: OpenCV's own hand-eye test protocol
+   (`modules/calib3d/test/test_hand_eye_calibration.cpp`), eye-in-hand: random
+   camera-to-gripper and target-to-base transforms, robot poses of 5-45 deg
+   and 0.5-1.5 m, Gaussian noise on the board poses' rotation vectors
+   (2 mrad) and translations (5 mm) and on the robot poses' (1 mrad, 1 mm),
+   times `scale` in {0.5, 1, 2}, with 10 and 20 poses, `--trials` seeded
+   trials each. OpenCV's `calibrateHandEye` (TSAI, PARK, HORAUD, ANDREFF,
+   DANIILIDIS) and `calibrateRobotWorldHandEye` (SHAH, LI) get the pose
+   pairs; jaxcal gets the same pose pairs (`HandEyePoses`, pose-level maximum
+   likelihood with the protocol's noise model, exact robot poses:
+   `jaxcal`; robot poses treated as noisy too: `jaxcal_robot_noise`).
+2. `rendered`: a UR5e (MuJoCo, `jaxcal.sim`) carries a ChArUco plate in front
+   of a fixed 640x480 camera (eye-to-hand) through `--frames` random wrist
+   poses; corners are found by `cv2.aruco.CharucoDetector`, board poses by
+   `cv2.solvePnP` (iterative). OpenCV's methods and `jaxcal_poses` get the
+   PnP poses and the exact robot poses; `jaxcal` gets the detected corners
+   themselves (`HandEyePixels`, reprojection error), which is its advantage.
+
+Errors are those of the camera's pose on the robot (`T_gripper_cam` in part
+1, `T_base_cam` in part 2): rotation (deg) and translation (mm), mean over
+trials. `time_ms` is the median wall time of one solve; jaxcal's is one
+jitted call after compilation (compile time reported apart).
+
+How to run (from the repository root)::
+
+    .venv/bin/python benchmarks/handeye.py --json results/handeye.json
+    .venv/bin/python benchmarks/handeye.py --quick
+
+The JSON holds `methods` (per method `rot_deg`, `trans_mm`, `time_ms`) and
+`jaxcal_rot_ratio_vs_best_opencv`, `jaxcal_trans_ratio_vs_best_opencv` (jaxcal's
+mean error over the best OpenCV method's, per metric) for part 1, the same
+keys under `rendered` for part 2, `data` (what each method was given), the
+per-configuration breakdown, compile times and the machine.
+"""
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import equinox as eqx
+import jax
+import numpy as np
+
+import jaxcal
+from jaxcal import _handeye as he
+
+HAND_EYE = ("TSAI", "PARK", "HORAUD", "ANDREFF", "DANIILIDIS")
+ROBOT_WORLD = ("SHAH", "LI")
+OPENCV = HAND_EYE + ROBOT_WORLD
+SIGMA_CAM = (0.002, 0.005)  # rad, m: OpenCV's test noise on target2cam
+SIGMA_ROBOT = (0.001, 0.001)  # rad, m: on gripper2base
+
+# --------------------------------------------------------------------------- shared
+
+
+def pose(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rotvec, np.float64))[0]
+    T[:3, 3] = np.asarray(t, np.float64).ravel()
+    return T
+
+
+def errors(T_est, T_true) -> tuple[float, float]:
+    """(rotation error deg, translation error mm)."""
+    dR = np.asarray(T_est)[:3, :3] @ T_true[:3, :3].T
+    rot = np.degrees(np.linalg.norm(cv2.Rodrigues(dR)[0]))
+    return float(rot), float(1e3 * np.linalg.norm(np.asarray(T_est)[:3, 3] - T_true[:3, 3]))
+
+
+def timed(fn, *args):
+    t = time.perf_counter()
+    out = fn(*args)
+    jax.block_until_ready(out)
+    return out, 1e3 * (time.perf_counter() - t)
+
+
+def opencv_solves(T_grip_base, T_cam_target):
+    """Each OpenCV method on (gripper2base, target2cam) pairs: `{name: (T_gripper_cam, ms)}`.
+
+    The robot-world solvers get base2gripper = inverse robot poses (their A X = Z B
+    form) and return gripper2cam, inverted here.
+    """
+    Rg, tg = T_grip_base[:, :3, :3], T_grip_base[:, :3, 3]
+    Rc, tc = T_cam_target[:, :3, :3], T_cam_target[:, :3, 3]
+    out = {}
+    for name in HAND_EYE:
+        t = time.perf_counter()
+        R, tv = cv2.calibrateHandEye(Rg, tg, Rc, tc, method=getattr(cv2, f"CALIB_HAND_EYE_{name}"))
+        out[name] = (pose(cv2.Rodrigues(R)[0], tv), 1e3 * (time.perf_counter() - t))
+    inv = np.linalg.inv(T_grip_base)
+    for name in ROBOT_WORLD:
+        t = time.perf_counter()
+        _, _, R, tv = cv2.calibrateRobotWorldHandEye(
+            Rc, tc, inv[:, :3, :3], inv[:, :3, 3], method=getattr(cv2, f"CALIB_ROBOT_WORLD_HAND_EYE_{name}")
+        )
+        out[name] = (np.linalg.inv(pose(cv2.Rodrigues(R)[0], tv)), 1e3 * (time.perf_counter() - t))
+    return out
+
+
+def summarise(records: dict) -> dict:
+    """`{method: [(rot, trans, ms), ...]}` -> means and median time, and jaxcal's ratios."""
+    methods = {
+        k: {
+            "rot_deg": float(np.mean([r[0] for r in v])),
+            "trans_mm": float(np.mean([r[1] for r in v])),
+            "time_ms": float(np.median([r[2] for r in v])),
+            "n": len(v),
+        }
+        for k, v in records.items()
+    }
+    best_rot = min(methods[k]["rot_deg"] for k in OPENCV)
+    best_trans = min(methods[k]["trans_mm"] for k in OPENCV)
+    return {
+        "methods": methods,
+        "best_opencv_rot": min(OPENCV, key=lambda k: methods[k]["rot_deg"]),
+        "best_opencv_trans": min(OPENCV, key=lambda k: methods[k]["trans_mm"]),
+        "jaxcal_rot_ratio_vs_best_opencv": methods["jaxcal"]["rot_deg"] / best_rot,
+        "jaxcal_trans_ratio_vs_best_opencv": methods["jaxcal"]["trans_mm"] / best_trans,
+    }
+
+
+# --------------------------------------------------------------------------- part 1: OpenCV's protocol
+
+
+def opencv_protocol(rng, n: int, scale: float):
+    """`(T_gripper_cam, T_base_gripper (n,4,4), T_cam_target (n,4,4))` as OpenCV's test makes them."""
+
+    def gen(th_deg, tr):
+        axis = rng.uniform(-1.0, 1.0, 3)
+        theta = rng.uniform(*np.radians(th_deg)) * np.sign(rng.uniform(-1.0, 1.0))
+        t = rng.uniform(*tr, 3) * np.sign(rng.uniform(-1.0, 1.0, 3))
+        return pose(theta * axis, t)
+
+    def noisy(T, sr, st):
+        out = pose(cv2.Rodrigues(T[:3, :3])[0].ravel() + rng.normal(0.0, sr, 3), T[:3, 3])
+        out[:3, 3] += rng.normal(0.0, st, 3)
+        return out
+
+    T_gc = gen((10, 50), (0.05, 0.5))
+    T_bt = gen((5, 85), (0.5, 3.5))
+    Tg, Tc = [], []
+    for _ in range(n):
+        T_bg = gen((5, 45), (0.5, 1.5))
+        Tc.append(noisy(np.linalg.inv(T_gc) @ np.linalg.inv(T_bg) @ T_bt, *(scale * np.array(SIGMA_CAM))))
+        Tg.append(noisy(T_bg, *(scale * np.array(SIGMA_ROBOT))))
+    return T_gc, np.stack(Tg), np.stack(Tc)
+
+
+def protocol_part(trials: int, counts, scales, seed: int) -> dict:
+    solve = eqx.filter_jit(he.calibrate_hand_eye)
+    rng = np.random.default_rng(seed)
+    records = {k: [] for k in (*OPENCV, "jaxcal", "jaxcal_robot_noise")}
+    configs, compile_s = [], {}
+    for n in counts:
+        for scale in scales:
+            rec = {k: [] for k in records}
+            for _ in range(trials):
+                T_gc, Tg, Tc = opencv_protocol(rng, n, scale)
+                for name, (T, ms) in opencv_solves(Tg, Tc).items():
+                    rec[name].append((*errors(T, T_gc), ms))
+                common = dict(
+                    eye_in_hand=True,
+                    sigma_translation=scale * SIGMA_CAM[1],
+                    sigma_rotation=scale * SIGMA_CAM[0],
+                )
+                variants = {
+                    "jaxcal": he.make_hand_eye_poses(Tg, Tc, **common),
+                    "jaxcal_robot_noise": he.make_hand_eye_poses(
+                        Tg,
+                        Tc,
+                        **common,
+                        robot_sigma_translation=scale * SIGMA_ROBOT[1],
+                        robot_sigma_rotation=scale * SIGMA_ROBOT[0],
+                    ),
+                }
+                for name, data in variants.items():
+                    key = f"{name}_n{n}"
+                    if key not in compile_s:
+                        _, compile_s[key] = timed(solve, data)
+                        compile_s[key] /= 1e3
+                    r, ms = timed(solve, data)
+                    rec[name].append((*errors(r.T_ee_cam[0], T_gc), ms))
+            for k in records:
+                records[k] += rec[k]
+            s = summarise(rec)
+            configs.append(
+                {
+                    "poses": n,
+                    "noise_scale": scale,
+                    **{k: s[k] for k in s if k.startswith("jaxcal_")},
+                    "methods": s["methods"],
+                }
+            )
+            print(
+                f"  poses {n:3d} noise x{scale:<4g} jaxcal {s['methods']['jaxcal']['rot_deg']:.4f} deg "
+                f"{s['methods']['jaxcal']['trans_mm']:.2f} mm | best OpenCV "
+                f"{min(s['methods'][k]['rot_deg'] for k in OPENCV):.4f} deg "
+                f"{min(s['methods'][k]['trans_mm'] for k in OPENCV):.2f} mm",
+                flush=True,
+            )
+    out = summarise(records)
+    out.update(configs=configs, compile_s=compile_s, trials_per_config=trials)
+    return out
+
+
+# --------------------------------------------------------------------------- part 2: rendered ChArUco
+
+
+def render_frames(frames: int, seed: int, resolution=(640, 480)):
+    """A UR5e with a ChArUco plate on its flange, filmed by a fixed camera (eye-to-hand)."""
+    from jaxcal._kinematics import forward_kinematics
+    from jaxcal.markers import TargetSpec
+    from jaxcal.robots import load_robot
+    from jaxcal.sim.scene import CameraSpec, PlateSpec, build_scene
+    from jaxcal.sim.simulate import facing_mount, look_at
+
+    rng = np.random.default_rng(seed)
+    model = load_robot("ur5e")
+    n = model.num_joints
+    q0 = np.zeros(n)
+    F0 = np.asarray(forward_kinematics(model, q0))
+    spec = TargetSpec(squares=(5, 4), square_length=0.04, marker_length=0.03, name="plate")
+    up = F0[-1][:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    T_flange_board = facing_mount(spec, (0.0, 0.0, 1.0), (0.0, 0.0, 0.012), up=up)
+    T_base_board0 = F0[-1] @ T_flange_board
+    normal = T_base_board0[:3, :3] @ spec.front_normal()
+    centre = T_base_board0[:3, :3] @ spec.points().mean(0) + T_base_board0[:3, 3]
+    d = normal + np.array([0.0, 0.0, 0.3])
+    T_base_cam = look_at(centre + 0.6 * d / np.linalg.norm(d), centre)
+    cam = CameraSpec("cam0", *resolution, 50.0, T_base_cam, "world")
+    scene = build_scene(model, plates=[PlateSpec(spec, model.link_names[-1], T_flange_board)], cameras=[cam])
+    board = spec.board()
+    detector = cv2.aruco.CharucoDetector(board)
+    points = spec.points()
+    T_base_ee, corners, mask, T_cam_board = [], [], [], []
+    spread = np.radians([6.0, 6.0, 6.0, 20.0, 20.0, 25.0])
+    tries = 0
+    while len(T_base_ee) < frames and tries < 20 * frames:
+        tries += 1
+        q = q0 + rng.uniform(-1.0, 1.0, n) * spread
+        scene.set_angles(q)
+        T_be = scene.body_pose(model.link_names[-1])
+        A = np.linalg.inv(T_base_cam) @ T_be @ T_flange_board
+        P = points @ A[:3, :3].T + A[:3, 3]
+        facing = -(A[:3, :3] @ spec.front_normal()) @ (P.mean(0) / np.linalg.norm(P.mean(0)))
+        if facing < np.cos(np.radians(60.0)):
+            continue
+        gray = cv2.cvtColor(scene.render("cam0"), cv2.COLOR_RGB2GRAY)
+        ch_corners, ch_ids, _, _ = detector.detectBoard(gray)
+        if ch_ids is None or len(ch_ids) < 6:
+            continue
+        ids = ch_ids.ravel()
+        uv = np.full((len(points), 2), np.nan)
+        uv[ids] = ch_corners.reshape(-1, 2)
+        ok, rvec, tvec = cv2.solvePnP(points[ids], ch_corners.reshape(-1, 2), cam.K, None)
+        if not ok:
+            continue
+        T_base_ee.append(T_be)
+        corners.append(uv)
+        mask.append(np.isfinite(uv[:, 0]))
+        T_cam_board.append(pose(rvec.ravel(), tvec))
+    scene.close()
+    return dict(
+        T_base_ee=np.stack(T_base_ee),
+        pixels=np.stack(corners),
+        mask=np.stack(mask),
+        T_cam_board=np.stack(T_cam_board),
+        K=cam.K,
+        points=points,
+        T_base_cam=T_base_cam,
+        T_ee_board=T_flange_board,
+        tries=tries,
+    )
+
+
+def rendered_part(frames: int, seed: int) -> dict:
+    t = time.perf_counter()
+    d = render_frames(frames, seed)
+    render_s = time.perf_counter() - t
+    T_be, T_cb = d["T_base_ee"], d["T_cam_board"]
+    records = {}
+    # Eye-to-hand through OpenCV's eye-in-hand API: gripper2base := base2gripper, result = cam2base.
+    for name, (T, ms) in opencv_solves(np.linalg.inv(T_be), T_cb).items():
+        records[name] = [(*errors(T, d["T_base_cam"]), ms)]
+    solve = eqx.filter_jit(he.calibrate_hand_eye)
+    px = he.make_hand_eye_pixels(T_be, d["pixels"], d["K"], d["points"], d["mask"], sigma_px=0.3)
+    poses = he.make_hand_eye_poses(T_be, T_cb, sigma_translation=1e-3, sigma_rotation=2e-3)
+    compile_s = {}
+    for name, data in (("jaxcal", px), ("jaxcal_poses", poses)):
+        _, compile_s[name] = timed(solve, data)
+        compile_s[name] /= 1e3
+        runs = [timed(solve, data) for _ in range(5)]
+        r = runs[0][0]
+        records[name] = [(*errors(r.T_base_cam[0], d["T_base_cam"]), float(np.median([x[1] for x in runs])))]
+        if name == "jaxcal":
+            pixel_rms, rejected = float(r.pixel_rms), r.rejected_frames().tolist()
+    out = summarise(records)
+    pnp_err = []
+    for T_be_f, T_cb_f in zip(T_be, T_cb):
+        A = np.linalg.inv(d["T_base_cam"]) @ T_be_f @ d["T_ee_board"]
+        pnp_err.append(errors(T_cb_f, A))
+    out.update(
+        frames=len(T_be),
+        resolution=[640, 480],
+        corners_per_frame=float(d["mask"].sum(1).mean()),
+        pnp_rot_deg_mean=float(np.mean([e[0] for e in pnp_err])),
+        pnp_trans_mm_mean=float(np.mean([e[1] for e in pnp_err])),
+        jaxcal_pixel_rms=pixel_rms,
+        jaxcal_rejected_frames=rejected,
+        compile_s=compile_s,
+        render_s=render_s,
+    )
+    return out
+
+
+# --------------------------------------------------------------------------- main
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--json", type=Path, help="write the results here (atomically)")
+    p.add_argument("--trials", type=int, default=20, help="seeded trials per protocol configuration")
+    p.add_argument("--frames", type=int, default=30, help="rendered frames")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help="a smoke run: 3 trials, 10 poses, 12 frames")
+    a = p.parse_args(argv)
+    counts, scales = ((10,), (1.0,)) if a.quick else ((10, 20), (0.5, 1.0, 2.0))
+    trials, frames = (3, 12) if a.quick else (a.trials, a.frames)
+    print("OpenCV's hand-eye protocol (pose pairs, eye-in-hand):", flush=True)
+    part1 = protocol_part(trials, counts, scales, a.seed)
+    print("Rendered ChArUco frames (UR5e, eye-to-hand):", flush=True)
+    part2 = rendered_part(frames, a.seed)
+    result = {
+        "methods": part1["methods"],
+        "jaxcal_rot_ratio_vs_best_opencv": part1["jaxcal_rot_ratio_vs_best_opencv"],
+        "jaxcal_trans_ratio_vs_best_opencv": part1["jaxcal_trans_ratio_vs_best_opencv"],
+        "best_opencv_rot": part1["best_opencv_rot"],
+        "best_opencv_trans": part1["best_opencv_trans"],
+        "protocol": {k: v for k, v in part1.items() if k != "methods"},
+        "rendered": part2,
+        "data": {
+            "protocol": "identical pose pairs for every method (OpenCV's test protocol, eye-in-hand, "
+            "noisy robot and board poses); jaxcal: HandEyePoses (pose-level ML with the protocol's "
+            "noise sigmas), jaxcal_robot_noise: the same plus robot poses treated as noisy",
+            "rendered": "OpenCV methods and jaxcal_poses: the same PnP board poses (cv2.solvePnP on "
+            "CharucoDetector corners) and exact robot poses; jaxcal: the detected corners themselves "
+            "(HandEyePixels, reprojection error)",
+        },
+        "targets": {"ratio_max": 0.5, "jaxcal_time_ms_max": 5.0},
+        "device": f"{jax.devices()[0].platform}: {platform.processor() or platform.machine()}",
+        "cpu_count": os.cpu_count(),
+        "jaxcal_version": jaxcal.__version__,
+        "opencv_version": cv2.__version__,
+    }
+    text = json.dumps(result, indent=2)
+    print(text)
+    if a.json is not None:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=a.json.parent, delete=False, suffix=".tmp") as f:
+            f.write(text + "\n")
+        os.replace(f.name, a.json)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,400 @@
+"""Hand-eye calibration: eye-to-hand, eye-in-hand, several cameras, outliers, TCP touch, OpenCV."""
+
+import cv2
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+from jaxcal import _handeye as he
+
+# --------------------------------------------------------------------------- synthetic problems
+
+
+def _pose(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rotvec, np.float64))[0]
+    T[:3, 3] = t
+    return T
+
+
+def _inv(T):
+    return np.linalg.inv(T)
+
+
+K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
+BOARD = np.concatenate(
+    [np.stack(np.meshgrid(np.arange(5), np.arange(4)), -1).reshape(-1, 2) * 0.04, np.zeros((20, 1))], axis=1
+)
+
+
+def pixel_problem(seed: int, *, frames: int = 10, eye_in_hand: bool = False):
+    """Two cameras (a stereo pair) viewing a 5x4 board over `frames` robot poses, noise-free.
+
+    Returns `(T_base_ee, pixels, X, Y)`: `X` `(2, 4, 4)` = T_cam_base (eye-to-hand)
+    or T_cam_ee (eye-in-hand), `Y` = T_ee_board or T_base_board.
+    """
+    rng = np.random.default_rng(seed)
+    X0 = _pose([0.4, -0.3, 0.2], [0.1, -0.05, 0.9])
+    X = np.stack([X0, _pose([0.0, 0.12, 0.02], [-0.12, 0.0, 0.01]) @ X0])
+    Y = _pose([0.3, -0.2, 0.1], [0.02, 0.03, 0.1])
+    centre = _pose([0.0, 0.0, 0.0], -BOARD.mean(0))
+    A0 = np.stack(
+        [
+            _pose(rng.normal(0.0, 0.3, 3), [*rng.normal(0.0, 0.04, 2), 0.75 + rng.normal(0.0, 0.05)]) @ centre
+            for _ in range(frames)
+        ]
+    )
+    B = np.stack([_inv(X[0]) @ a @ _inv(Y) for a in A0])  # A = X B Y
+    A = np.einsum("cij,fjk,kl->cfil", X, B, Y)
+    p = np.einsum("cfij,pj->cfpi", A[..., :3, :3], BOARD) + A[..., None, :3, 3]
+    uv = np.einsum("ij,cfpj->cfpi", K, p)
+    uv = uv[..., :2] / uv[..., 2:]
+    assert np.all((uv > 0) & (uv < [640, 480]))
+    T_base_ee = np.linalg.inv(B) if eye_in_hand else B
+    return T_base_ee, uv, X, Y
+
+
+def opencv_protocol(rng, n: int, scale: float):
+    """OpenCV's own hand-eye test data (calib3d/test/test_hand_eye_calibration.cpp), eye-in-hand.
+
+    Returns `(T_gripper_cam, T_base_gripper (n,4,4), T_cam_target (n,4,4))`, with
+    Gaussian noise of `scale` times (2 mrad, 5 mm) on the board poses and
+    (1 mrad, 1 mm) on the robot poses (on the rotation vector and the translation).
+    """
+
+    def gen(th, tr):
+        axis = rng.uniform(-1.0, 1.0, 3)
+        theta = rng.uniform(*np.radians(th)) * np.sign(rng.uniform(-1.0, 1.0))
+        t = rng.uniform(*tr, 3) * np.sign(rng.uniform(-1.0, 1.0, 3))
+        return _pose(theta * axis, t)
+
+    def noisy(T, sr, st):
+        out = _pose(cv2.Rodrigues(T[:3, :3])[0].ravel() + rng.normal(0.0, sr, 3), T[:3, 3])
+        out[:3, 3] += rng.normal(0.0, st, 3)
+        return out
+
+    T_gc = gen((10, 50), (0.05, 0.5))
+    T_bt = gen((5, 85), (0.5, 3.5))
+    Tg, Tc = [], []
+    for _ in range(n):
+        T_bg = gen((5, 45), (0.5, 1.5))
+        Tc.append(noisy(_inv(T_gc) @ _inv(T_bg) @ T_bt, 0.002 * scale, 0.005 * scale))
+        Tg.append(noisy(T_bg, 0.001 * scale, 0.001 * scale))
+    return T_gc, np.stack(Tg), np.stack(Tc)
+
+
+def _err(T_est, T_true):
+    """(rotation error rad, translation error m)."""
+    dR = np.asarray(T_est)[:3, :3] @ T_true[:3, :3].T
+    return np.linalg.norm(cv2.Rodrigues(dR)[0]), np.linalg.norm(np.asarray(T_est)[:3, 3] - T_true[:3, 3])
+
+
+def _succeeded(result) -> bool:
+    return bool(result.result == optx.RESULTS.successful)
+
+
+# One compiled solver per data structure, shared by the tests below.
+_calibrate = eqx.filter_jit(he.calibrate_hand_eye)
+_calibrate_batch = eqx.filter_jit(eqx.filter_vmap(he.calibrate_hand_eye))
+
+
+# --------------------------------------------------------------------------- image features
+
+
+@pytest.fixture(scope="module")
+def eye_to_hand():
+    return pixel_problem(0)
+
+
+def test_pixels_eye_to_hand_two_cameras_exact(eye_to_hand):
+    T_base_ee, uv, X, Y = eye_to_hand
+    r = _calibrate(he.make_hand_eye_pixels(T_base_ee, uv, K, BOARD))
+    assert _succeeded(r) and int(r.num_rejected) == 0
+    np.testing.assert_allclose(r.T_cam_base, X, atol=1e-9)
+    np.testing.assert_allclose(r.T_base_cam, np.linalg.inv(X), atol=1e-9)
+    np.testing.assert_allclose(r.T_ee_board, Y, atol=1e-9)
+    assert float(r.pixel_rms) < 1e-8
+    with pytest.raises(AttributeError, match="eye-to-hand"):
+        _ = r.T_ee_cam
+
+
+def test_pixels_noise_and_outlier_rejected(eye_to_hand):
+    """0.3 px noise, one robot pose off by 3 deg and 1 cm: that frame is rejected, the rest is ML."""
+    T_base_ee, uv, X, Y = eye_to_hand
+    rng = np.random.default_rng(1)
+    bad = T_base_ee.copy()
+    bad[4] = bad[4] @ _pose([0.0, np.radians(3.0), 0.0], [0.01, 0.0, 0.0])
+    data = he.make_hand_eye_pixels(bad, uv + rng.normal(0.0, 0.3, uv.shape), K, BOARD, sigma_px=0.3)
+    r = _calibrate(data)
+    assert _succeeded(r)
+    assert r.rejected_frames().tolist() == [4]
+    assert np.asarray(r.rejected).sum() == 2  # both cameras' views of that pose
+    assert 0.8 < float(r.residual_rms) < 1.2  # the noise model is honest on the kept frames
+    np.testing.assert_allclose(float(r.pixel_rms), 0.3 * float(r.residual_rms))
+    for c in range(2):
+        rot, trans = _err(r.T_base_cam[c], np.linalg.inv(X[c]))
+        std = np.asarray(r.std_robot_cam[c])
+        assert trans < 4.0 * np.linalg.norm(std[:3]) and trans < 2e-3
+        assert rot < 4.0 * np.linalg.norm(std[3:]) and rot < np.radians(0.1)
+    # Without rejection the bad pose drags the solution far off (the same compiled solver).
+    r_all = _calibrate(data, reject_outliers=jnp.asarray(False))
+    assert int(r_all.num_rejected) == 0
+    assert (
+        _err(r_all.T_base_cam[0], np.linalg.inv(X[0]))[1] > 3 * _err(r.T_base_cam[0], np.linalg.inv(X[0]))[1]
+    )
+
+
+def test_pixels_eye_in_hand():
+    T_base_ee, uv, X, Y = pixel_problem(2, eye_in_hand=True)
+    r = _calibrate(he.make_hand_eye_pixels(T_base_ee, uv, K, BOARD, eye_in_hand=True))
+    assert _succeeded(r)
+    np.testing.assert_allclose(r.T_cam_ee, X, atol=1e-9)
+    np.testing.assert_allclose(r.T_base_board, Y, atol=1e-9)
+    rng = np.random.default_rng(3)
+    noisy = he.make_hand_eye_pixels(
+        T_base_ee, uv + rng.normal(0.0, 0.5, uv.shape), K, BOARD, eye_in_hand=True, sigma_px=0.5
+    )
+    r = _calibrate(noisy)
+    assert _succeeded(r) and int(r.num_rejected) == 0
+    rot, trans = _err(r.T_ee_cam[0], np.linalg.inv(X[0]))
+    assert trans < 4.0 * np.linalg.norm(np.asarray(r.std_robot_cam[0, :3])) and trans < 3e-3
+    assert rot < 4.0 * np.linalg.norm(np.asarray(r.std_robot_cam[0, 3:]))
+
+
+# --------------------------------------------------------------------------- pose level, against OpenCV
+
+_OPENCV_HAND_EYE = ("TSAI", "PARK", "HORAUD", "ANDREFF", "DANIILIDIS")
+_OPENCV_ROBOT_WORLD = ("SHAH", "LI")
+
+
+def _opencv(Tg, Tc):
+    """Every OpenCV method's T_gripper_cam on eye-in-hand pose pairs."""
+    out = {}
+    for name in _OPENCV_HAND_EYE:
+        R, t = cv2.calibrateHandEye(
+            Tg[:, :3, :3],
+            Tg[:, :3, 3],
+            Tc[:, :3, :3],
+            Tc[:, :3, 3],
+            method=getattr(cv2, f"CALIB_HAND_EYE_{name}"),
+        )
+        out[name] = _pose(cv2.Rodrigues(R)[0].ravel(), t.ravel())
+    Tgb = np.linalg.inv(Tg)
+    for name in _OPENCV_ROBOT_WORLD:
+        _, _, R, t = cv2.calibrateRobotWorldHandEye(
+            Tc[:, :3, :3],
+            Tc[:, :3, 3],
+            Tgb[:, :3, :3],
+            Tgb[:, :3, 3],
+            method=getattr(cv2, f"CALIB_ROBOT_WORLD_HAND_EYE_{name}"),
+        )
+        out[name] = np.linalg.inv(_pose(cv2.Rodrigues(R)[0].ravel(), t.ravel()))
+    return out
+
+
+def _pose_data(Tg, Tc, scale):
+    return he.make_hand_eye_poses(
+        Tg,
+        Tc,
+        eye_in_hand=True,
+        sigma_translation=0.005 * scale,
+        sigma_rotation=0.002 * scale,
+        robot_sigma_translation=0.001 * scale,
+        robot_sigma_rotation=0.001 * scale,
+    )
+
+
+def test_poses_against_opencv():
+    """OpenCV's own protocol, 10 poses: trial 0 noise-free, 15 seeded noisy trials, vmapped.
+
+    Noise-free: every OpenCV method, jaxcal's closed form and its solve recover
+    T_gripper_cam. Noisy: jaxcal (pose-level ML with the protocol's noise model)
+    beats the best OpenCV method on average, and its standard deviations match
+    its actual errors.
+    """
+    rng = np.random.default_rng(5)
+    trials = [opencv_protocol(rng, 10, 0.0 if i == 0 else 1.0) for i in range(16)]
+    data = jax.tree.map(lambda *x: jnp.stack(x), *[_pose_data(Tg, Tc, 1.0) for _, Tg, Tc in trials])
+    X0, _ = jax.jit(jax.vmap(he.initialise_hand_eye))(data)
+    r = _calibrate_batch(data)
+    assert bool(jnp.all(r.result == optx.RESULTS.successful))
+    assert int(jnp.sum(r.num_rejected)) == 0
+
+    T_gc, Tg, Tc = trials[0]
+    for name, T in _opencv(Tg, Tc).items():
+        rot, trans = _err(T, T_gc)
+        assert rot < 1e-7 and trans < 1e-7, name
+    np.testing.assert_allclose(np.linalg.inv(X0[0, 0]), T_gc, atol=1e-9)  # the closed form alone
+    np.testing.assert_allclose(r.T_ee_cam[0, 0], T_gc, atol=1e-9)
+    np.testing.assert_allclose(r.T_base_ee[0], Tg, atol=1e-9)  # no robot correction needed
+
+    ours = np.array([_err(r.T_ee_cam[i, 0], t[0]) for i, t in enumerate(trials)])[1:]
+    theirs = {k: [] for k in _OPENCV_HAND_EYE + _OPENCV_ROBOT_WORLD}
+    for T_gc, Tg, Tc in trials[1:]:
+        for name, T in _opencv(Tg, Tc).items():
+            theirs[name].append(_err(T, T_gc))
+    best = np.min([np.mean(v, axis=0) for v in theirs.values()], axis=0)
+    mean = ours.mean(0)
+    assert mean[0] < 0.85 * best[0] and mean[1] < 0.85 * best[1], (mean, best)
+    # Normalised errors: |error| / sqrt(trace of the 3x3 block) has RMS 1 for a calibrated covariance.
+    std = np.asarray(r.std_robot_cam[1:, 0])
+    z_t = ours[:, 1] / np.linalg.norm(std[:, :3], axis=1)
+    z_r = ours[:, 0] / np.linalg.norm(std[:, 3:], axis=1)
+    assert 0.7 < np.sqrt(np.mean(z_t**2)) < 1.35
+    assert 0.7 < np.sqrt(np.mean(z_r**2)) < 1.35
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def _good_poses():
+    _, Tg, Tc = opencv_protocol(np.random.default_rng(6), 6, 0.0)
+    return Tg, Tc
+
+
+def _one_axis(n, axis=(0.0, 0.0, 1.0), step_deg=10.0):
+    return np.stack(
+        [_pose(np.radians(step_deg * i) * np.asarray(axis), [0.1 * i, 0.0, 0.5]) for i in range(n)]
+    )
+
+
+@pytest.mark.parametrize(
+    "case, error, match",
+    [
+        ("too_few", he.TooFewPosesError, "only 2 frames"),
+        ("one_axis", he.DegenerateMotionError, "second, non-parallel axis"),
+        ("small", he.DegenerateMotionError, "at least 5 deg"),
+        ("lengths", he.LengthMismatchError, "6 robot poses .* 5 board poses"),
+        ("robot_not_rotation", he.NotARotationError, r"T_base_ee: pose \(3,\) is not a rotation"),
+        ("board_not_rotation", he.NotARotationError, r"T_cam_board: pose \(0, 2\) is not a rotation"),
+        ("bottom_row", he.NotARotationError, "bottom row"),
+        ("nan_robot", he.NonFiniteError, "T_base_ee: non-finite"),
+        ("shape", he.ShapeError, "T_cam_board must have shape"),
+    ],
+)
+def test_bad_pose_input(case, error, match):
+    Tg, Tc = _good_poses()
+    if case == "too_few":
+        Tg, Tc = Tg[:2], Tc[:2]
+    elif case == "one_axis":
+        Tg = _one_axis(6)
+    elif case == "small":
+        Tg = _one_axis(6, axis=(0.6, 0.8, 0.0), step_deg=0.5)
+    elif case == "lengths":
+        Tc = Tc[:5]
+    elif case == "robot_not_rotation":
+        Tg[3, :3, :3] *= 1.01
+    elif case == "board_not_rotation":
+        Tc[2, :3, :3] = Tc[2, :3, :3] @ np.diag([1.0, 1.0, -1.0])  # a reflection: det = -1
+    elif case == "bottom_row":
+        Tg[1, 3, 0] = 0.5
+    elif case == "nan_robot":
+        Tg[0, 0, 3] = np.nan
+    elif case == "shape":
+        Tc = Tc[:, :3]
+    with pytest.raises(error, match=match) as info:
+        he.make_hand_eye_poses(Tg, Tc, eye_in_hand=True)
+    assert isinstance(info.value, ValueError)
+
+
+def test_bad_pixel_input():
+    T_base_ee, uv, _, _ = pixel_problem(0, frames=4)
+    with pytest.raises(he.LengthMismatchError, match="4 robot poses .* 3 frames of pixels"):
+        he.make_hand_eye_pixels(T_base_ee, uv[:, :3], K, BOARD)
+    bad = uv.copy()
+    bad[1, 2, 5] = np.nan
+    with pytest.raises(he.NonFiniteError, match="camera 1, frame 2, point 5"):
+        he.make_hand_eye_pixels(T_base_ee, bad, K, BOARD, mask=np.ones(uv.shape[:3], bool))
+    mask = np.ones(uv.shape[:3], bool)
+    mask[1] = False
+    with pytest.raises(he.TooFewPosesError, match="camera 1 has no usable view"):
+        he.make_hand_eye_pixels(T_base_ee, uv, K, BOARD, mask=mask)
+    with pytest.raises(he.ShapeError, match="K has shape"):
+        he.make_hand_eye_pixels(T_base_ee, uv, np.stack([K, K, K]), BOARD)
+    # Every frame but one rotates about the same axis: too little diversity even though 4 poses.
+    with pytest.raises(he.DegenerateMotionError, match="non-parallel"):
+        he.make_hand_eye_pixels(_one_axis(4, axis=(1.0, 0.0, 0.0)), uv, K, BOARD)
+
+
+# --------------------------------------------------------------------------- TCP touch
+
+
+def touch_problem(seed: int, *, eye_in_hand: bool, n: int = 8):
+    """Board points seen by the camera and touched by the TCP with varied tool orientations."""
+    rng = np.random.default_rng(seed)
+    tcp = np.array([0.01, -0.02, 0.15])
+    T_base_board = _pose([0.05, -0.1, 0.3], [0.6, 0.1, 0.05])
+    X = (
+        _pose([2.5, 0.3, -0.4], [0.05, 0.02, 0.08])
+        if eye_in_hand
+        else _pose([2.2, 0.5, 0.2], [1.2, 0.3, 0.8])
+    )
+    pts_board = BOARD[rng.choice(len(BOARD), n, replace=False)]
+    pts_base = pts_board @ T_base_board[:3, :3].T + T_base_board[:3, 3]
+    D = []
+    for p in pts_base:  # touch: the TCP at p, the tool tilted at random
+        R = cv2.Rodrigues(np.array([np.pi, 0.0, 0.0]) + rng.normal(0.0, 0.3, 3))[0]
+        D.append(_pose(cv2.Rodrigues(R)[0].ravel(), p - R @ tcp))
+    D = np.stack(D)
+    if eye_in_hand:  # the camera looks from one end-effector pose
+        C = T_base_board @ _pose([np.pi, 0.0, 0.0], [0.08, 0.06, 0.5]) @ _inv(X)  # C X = T_base_cam
+        points_cam = np.einsum("ij,kj->ki", _inv(C @ X), np.concatenate([pts_base, np.ones((n, 1))], 1))[
+            :, :3
+        ]
+        return points_cam, D, C, tcp, X
+    points_cam = np.einsum("ij,kj->ki", _inv(X), np.concatenate([pts_base, np.ones((n, 1))], 1))[:, :3]
+    return points_cam, D, None, tcp, X
+
+
+_calibrate_touch = eqx.filter_jit(he.calibrate_touch)
+
+
+@pytest.mark.parametrize("eye_in_hand", [False, True])
+def test_touch_exact_and_noisy(eye_in_hand):
+    P, D, C, tcp, X = touch_problem(7, eye_in_hand=eye_in_hand)
+    r = _calibrate_touch(he.make_touch_data(P, D, C))  # TCP offset unknown
+    assert _succeeded(r) and r.eye_in_hand == eye_in_hand
+    np.testing.assert_allclose(r.T_robot_cam, X, atol=1e-9)
+    np.testing.assert_allclose(r.tcp, tcp, atol=1e-9)
+    rng = np.random.default_rng(8)
+    sigma = 2e-4
+    noisy = he.make_touch_data(P + rng.normal(0.0, sigma, P.shape), D, C, sigma=sigma)
+    r = _calibrate_touch(noisy)
+    assert _succeeded(r)
+    assert np.linalg.norm(np.asarray(r.tcp) - tcp) < 4.0 * np.linalg.norm(np.asarray(r.std_tcp))
+    rot, trans = _err(r.T_robot_cam, X)
+    std = np.asarray(r.std_robot_cam)
+    assert trans < 4.0 * np.linalg.norm(std[:3]) and np.linalg.norm(std[:3]) < 3e-3
+    assert rot < 4.0 * np.linalg.norm(std[3:]) and np.linalg.norm(std[3:]) < np.radians(0.5)
+    assert 0.3 * sigma < float(r.rms) < 2.0 * sigma
+
+
+def test_touch_known_tcp():
+    P, D, _, tcp, X = touch_problem(10, eye_in_hand=False)
+    r = _calibrate_touch(he.make_touch_data(P[:3], D[:3], tcp=tcp))  # three points suffice
+    assert _succeeded(r)
+    np.testing.assert_allclose(r.T_base_cam, X, atol=1e-9)
+    np.testing.assert_allclose(r.tcp, tcp)
+    assert np.all(np.asarray(r.std_tcp) == 0.0)
+
+
+def test_touch_bad_input():
+    P, D, _, tcp, _ = touch_problem(9, eye_in_hand=False)
+    with pytest.raises(he.LengthMismatchError, match="8 camera points but T_base_ee_touch"):
+        he.make_touch_data(P, D[:7])
+    with pytest.raises(he.TooFewPosesError, match="only 4 touched points, at least 5"):
+        he.make_touch_data(P[:4], D[:4])
+    line = np.outer(np.arange(8), [0.01, 0.02, 0.0])
+    with pytest.raises(he.DegenerateMotionError, match="collinear"):
+        he.make_touch_data(line, D, tcp=tcp)
+    same = np.broadcast_to(D[0], D.shape).copy()
+    same[:, :3, 3] = D[:, :3, 3]
+    with pytest.raises(he.DegenerateMotionError, match="unknown TCP offset"):
+        he.make_touch_data(P, same)
+    bent = D.copy()
+    bent[2, :3, :3] *= 2.0
+    with pytest.raises(he.NotARotationError, match=r"T_base_ee_touch: pose \(2,\)"):
+        he.make_touch_data(P, bent, tcp=tcp)
