@@ -170,7 +170,7 @@ def _check_out(out: Path, overwrite: bool) -> None:
     parent = out.resolve().parent
     while not parent.exists():
         parent = parent.parent
-    if not os.access(parent, os.W_OK):
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
         raise ValueError(f"--out {out}: cannot write in {parent}")
 
 
@@ -291,13 +291,15 @@ def cmd_demo(args) -> int:
         seed=args.seed,
         resolution=args.resolution,
         frames_per_joint=args.frames_per_joint,
+        range_deg=args.sweep_deg,
         clock_offset_ms=40.0,
         clock_known=False,
     )
     t0 = time.perf_counter()
     dataset = simulate(config, out / "dataset", overwrite=True, progress=not args.quiet)
     console.print(
-        f"rendered {dataset} ({args.resolution[0]}x{args.resolution[1]}, {args.frames_per_joint} frames per joint, "
+        f"rendered {dataset} ({args.resolution[0]}x{args.resolution[1]}, {args.frames_per_joint} frames per "
+        f"{args.sweep_deg:g}-degree sweep, "
         f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
     )
     return _run_calibration(console, dataset, out / "result", args)
@@ -388,7 +390,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="jaxcal-demo", help="where the dataset and the results go")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", type=_resolution, default=(1280, 960), help="WxH pixels")
-    p.add_argument("--frames-per-joint", type=int, default=30)
+    p.add_argument("--frames-per-joint", type=int, default=40)
+    p.add_argument("--sweep-deg", type=float, default=80.0, help="angle each joint sweeps (deg)")
     _add_calibrate_args(p)
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")

@@ -11,7 +11,7 @@ frame through the 3D points of its features (what PnP is solved against):
 - ArUco: OpenCV's single-marker frame (`SOLVEPNP_IPPE_SQUARE`): origin at the
   marker centre, x right, y up, z out of the printed face. Features are the 4
   marker corners (top-left, top-right, bottom-right, bottom-left), id =
-  4 * marker id + corner.
+  4 * (marker id - first id) + corner, the row in `TargetSpec.points()`.
 
 Both the renderer (`jaxcal.sim`) and the vision front end build their board
 from the same spec, so the texture and the object points cannot disagree.

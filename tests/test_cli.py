@@ -1,4 +1,4 @@
-"""The command line: `jaxcal demo` and `jaxcal montecarlo`."""
+"""The command line: `jaxcal montecarlo` (`demo` and `calibrate` are in test_calibrate.py)."""
 
 import json
 
@@ -8,8 +8,8 @@ from jaxcal.cli import main
 
 
 @pytest.mark.slow
-def test_demo_prints_before_after_and_succeeds(capsys):
-    assert main(["demo", "--trials", "8", "--frames", "24"]) == 0
+def test_montecarlo_detail_prints_before_after_and_succeeds(capsys):
+    assert main(["montecarlo", "--detail", "--trials", "8", "--frames", "24"]) == 0
     out = capsys.readouterr().out
     assert "Before / after" in out and "Identifiability" in out
     assert "shoulder_pan_joint.zero_offset" in out  # named as held at nominal
