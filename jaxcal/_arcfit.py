@@ -35,8 +35,8 @@ from jaxtyping import Array, Bool, Float, Int
 from ._geometry import (
     frame_from_z,
     make_pose,
-    matmul,
-    matvec,
+    matmul_unrolled,
+    matvec_unrolled,
     normalize,
     safe_norm,
     skew,
@@ -92,7 +92,7 @@ def make_arc_data(
     - `sigma_position` (m), `sigma_rotation` (rad): isotropic noise used when no
       `covariances` are given.
     - `covariances`: per-frame covariance of the measurement error
-      (position, camera-frame rotation vector $w$ with $O = \exp([w]_\times) O_{true}$),
+      (position, camera-frame rotation vector $w$ with $O = \\exp([w]_\\times) O_{true}$),
       `(..., frames, 6, 6)` (or `3, 3` without orientations), as
       `jaxcal.vision.estimate_pose` reports it.
     """
@@ -282,7 +282,7 @@ def _arc_terms(
             G2 = K @ G1
             O_pred = O0 + s[:, :, None] * G1 + c1[:, :, None] * G2  # (F, 3, 3)
             O_m = jnp.where(mask_m[:, None, None], O_m, jnp.eye(3))
-            A = matmul(O_m, jnp.swapaxes(O_pred, -1, -2))
+            A = matmul_unrolled(O_m, jnp.swapaxes(O_pred, -1, -2))
             theta = so3_log(A)
             e = jnp.concatenate([e, theta], axis=-1)
             if jacobian:
@@ -293,15 +293,15 @@ def _arc_terms(
                         jnp.zeros((F, 3, 2)),
                         -jnp.broadcast_to(V[:, None], (F, 3, 1)),
                         jnp.zeros((F, 3, 3)),
-                        -matmul(O_pred, so3_right_jacobian(r0)),
+                        -matmul_unrolled(O_pred, so3_right_jacobian(r0)),
                     ],
                     axis=-1,
                 )  # (F, 3, 11)
-                D = jnp.concatenate([D, matmul(Jinv, omega)], axis=-2)
-        r = jnp.where(mask_m[:, None], matvec(W_m, e), 0.0)
+                D = jnp.concatenate([D, matmul_unrolled(Jinv, omega)], axis=-2)
+        r = jnp.where(mask_m[:, None], matvec_unrolled(W_m, e), 0.0)
         if not jacobian:
             return r, None
-        return r, jnp.where(mask_m[:, None, None], matmul(W_m, D), 0.0)
+        return r, jnp.where(mask_m[:, None, None], matmul_unrolled(W_m, D), 0.0)
 
     O_all = data.orientations
     if O_all is None:
@@ -311,19 +311,36 @@ def _arc_terms(
     return jax.vmap(one_marker)(params.p0, params.r0, ref.O_ref, P, O_all, data.sqrt_info, mask)
 
 
-def _local_tangent(t: ArcParams, ref: ArcReference, data: ArcData) -> Float[Array, "markers frames 11"]:
-    """A parameter tangent as the local tangents $\\tau$ of every residual (see `_arc_terms`)."""
-    M, F = data.mask.shape
+def _contract(D: Float[Array, "markers frames k 11"], t: ArcParams, ref: ArcReference, data: ArcData):
+    """$D\\,\\tau$: a parameter tangent `t` pushed through the local derivatives of
+    `_arc_terms` (each residual sees the line, its frame's angle and its marker's
+    zero pose), as eleven multiply-adds per residual."""
     dphi = t.rate * data.encoder if data.encoder is not None else t.angles * ref.gauge
-    return jnp.concatenate(
-        [
-            jnp.broadcast_to(t.line, (M, F, 4)),
-            jnp.broadcast_to(dphi[None, :, None], (M, F, 1)),
-            jnp.broadcast_to(t.p0[:, None, :], (M, F, 3)),
-            jnp.broadcast_to(t.r0[:, None, :], (M, F, 3)),
-        ],
-        axis=-1,
-    )
+    out = D[..., 4] * dphi[None, :, None]
+    for i in range(4):
+        out = out + D[..., i] * t.line[i]
+    for a in range(3):
+        out = out + D[..., 5 + a] * t.p0[:, None, None, a] + D[..., 8 + a] * t.r0[:, None, None, a]
+    return out
+
+
+def _flat_jacobian(D: Float[Array, "markers frames k 11"], ref: ArcReference, data: ArcData):
+    """The Jacobian with respect to the flattened `ArcParams` (`ravel_pytree`
+    order: line, rate, p0, r0[, angles]), assembled from the local derivatives
+    by placement (no autodiff), `(markers * frames * k, n)`."""
+    M, F, k, _ = D.shape
+    eye_m = jnp.eye(M)[:, None, None, :, None]
+    cols = [
+        D[..., :4],
+        (D[..., 4] * data.encoder[None, :, None])[..., None]
+        if data.encoder is not None
+        else jnp.zeros((M, F, k, 1)),
+        (D[..., None, 5:8] * eye_m).reshape(M, F, k, 3 * M),
+        (D[..., None, 8:11] * eye_m).reshape(M, F, k, 3 * M),
+    ]
+    if data.encoder is None:
+        cols.append(D[..., 4, None] * (ref.gauge[:, None] * jnp.eye(F))[None, :, None, :])
+    return jnp.concatenate(cols, axis=-1).reshape(M * F * k, -1)
 
 
 @jax.custom_jvp
@@ -368,8 +385,7 @@ def _arc_residuals_jvp(primals, tangents):
     ref, data = args
     r, D = _arc_terms(params, ref, data, jacobian=True)
     t = jax.tree.map(_instantiate, t_params, is_leaf=is_zero)
-    tau = _local_tangent(t, ref, data)
-    return r, jnp.sum(D * tau[..., None, :], axis=-1)
+    return r, _contract(D, t, ref, data)
 
 
 arc_residuals.defjvp(_arc_residuals_jvp, symbolic_zeros=True)
@@ -549,12 +565,8 @@ def fit_arc(
 def _summarise(params, ref, data, free, result, num_steps, scale_covariance) -> ArcFitResult:
     flat, unravel = ravel_pytree(params)
     free_flat, _ = ravel_pytree(free)
-    r = arc_residuals(params, (ref, data))
-
-    def flat_res(x):
-        return arc_residuals(unravel(x), (ref, data)).reshape(-1)
-
-    J = jax.jacfwd(flat_res)(flat) * free_flat[None, :]
+    r, D = _arc_terms(params, ref, data, jacobian=True)
+    J = _flat_jacobian(D, ref, data) * free_flat[None, :]
     JtJ = J.T @ J
     # Pseudo-inverse restricted to the free parameters (absent ones have zero columns).
     P = jnp.diag(free_flat)

@@ -52,6 +52,27 @@ def matvec(A: Float[Array, "... n k"], x: Float[Array, "... k"]) -> Float[Array,
     return jnp.sum(A * x[..., None, :], axis=-1)
 
 
+def matmul_unrolled(A: Float[Array, "... n k"], B: Float[Array, "... k m"]) -> Float[Array, "... n m"]:
+    """Batched product of small matrices as `k` broadcast multiply-adds (no reduction).
+
+    Same product as `matmul`; XLA's CPU backend fuses the unrolled sum into a
+    plain elementwise loop, several times faster than the reduction for the
+    6x6 whitening and 3x3 blocks of a residual Jacobian over many frames.
+    """
+    out = A[..., :, 0, None] * B[..., 0, None, :]
+    for j in range(1, A.shape[-1]):
+        out = out + A[..., :, j, None] * B[..., j, None, :]
+    return out
+
+
+def matvec_unrolled(A: Float[Array, "... n k"], x: Float[Array, "... k"]) -> Float[Array, "... n"]:
+    """Batched small matrix-vector product as `k` multiply-adds (see `matmul_unrolled`)."""
+    out = A[..., :, 0] * x[..., 0, None]
+    for j in range(1, A.shape[-1]):
+        out = out + A[..., :, j] * x[..., j, None]
+    return out
+
+
 def so3_exp(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
     """Rodrigues' formula $\\exp([w]_\\times)$ for a rotation vector `w` (rad)."""
     theta_sq = jnp.dot(w, w)
