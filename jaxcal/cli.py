@@ -11,7 +11,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -19,15 +18,10 @@ import numpy as np
 
 
 def _write_json_atomic(path: Path, payload: dict) -> None:
+    from .io._files import write_text_atomic
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f, indent=2)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, json.dumps(payload, indent=2))
 
 
 def _setup(args):
@@ -360,6 +354,7 @@ def cmd_simulate(args) -> int:
         clock_jitter_ms=args.clock_jitter_ms,
         clock_known=not args.unknown_clock_offset,
         drop_rate=args.drop_rate,
+        grayscale=args.grayscale,
         encoders=not args.no_encoders,
         distortion=tuple(args.distortion),
     )
@@ -426,6 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--unknown-clock-offset", action="store_true", help="leave the offset out of the metadata")
     p.add_argument("--drop-rate", type=float, default=0.0, help="probability that a frame is lost")
     p.add_argument("--no-encoders", action="store_true", help="write no encoder log")
+    p.add_argument("--grayscale", action="store_true", help="write single-channel PNGs")
     p.add_argument(
         "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
     )

@@ -34,17 +34,16 @@ def arc_geometry(result, j: int) -> dict:
     }
 
 
-def _plots(result, out: Path) -> list[tuple[str, str]]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def plot_arcs(result):
+    """Every joint's marker positions in its fitted arc's plane, with the fitted
+    circle (a matplotlib `Figure`, made without pyplot: no global state, any backend)."""
+    from matplotlib.figure import Figure
 
     names = [a["joint"] for a in result.arcs]
-    figs = []
     cols = min(3, len(names))
     rows = int(np.ceil(len(names) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.6 * rows), squeeze=False)
+    fig = Figure(figsize=(4 * cols, 3.6 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
     for j, name in enumerate(names):
         ax = axes[j // cols][j % cols]
         g = arc_geometry(result, j)
@@ -70,39 +69,56 @@ def _plots(result, out: Path) -> list[tuple[str, str]]:
     for k in range(len(names), rows * cols):
         axes[k // cols][k % cols].axis("off")
     fig.tight_layout()
-    fig.savefig(out / "arcs.png", dpi=110)
-    plt.close(fig)
-    figs.append(("arcs.png", "Marker positions of every sweep in its fitted arc's plane"))
+    return fig
 
-    radial = np.concatenate([arc_geometry(result, j)["radial"] for j in range(len(names))])
-    axial = np.concatenate([arc_geometry(result, j)["axial"] for j in range(len(names))])
-    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
-    ax[0].hist(radial, bins=30, color="tab:blue")
+
+def plot_residuals(result):
+    """Histograms of the radial and along-axis arc residuals of every frame (a `Figure`)."""
+    from matplotlib.figure import Figure
+
+    geometry = [arc_geometry(result, j) for j in range(len(result.arcs))]
+    fig = Figure(figsize=(9, 3.4))
+    ax = fig.subplots(1, 2)
+    ax[0].hist(np.concatenate([g["radial"] for g in geometry]), bins=30, color="tab:blue")
     ax[0].set_title("radial residual (mm)", fontsize=9)
-    ax[1].hist(axial, bins=30, color="tab:orange")
+    ax[1].hist(np.concatenate([g["axial"] for g in geometry]), bins=30, color="tab:orange")
     ax[1].set_title("along-axis residual (mm)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(out / "residuals.png", dpi=110)
-    plt.close(fig)
-    figs.append(("residuals.png", "Arc residuals of every frame (distance from the fitted circle)"))
+    return fig
 
-    if result.ee_errors is not None:
-        before, after = result.ee_errors["before"], result.ee_errors["after"]
-        fig, ax = plt.subplots(figsize=(7, 3.6))
-        bins = np.logspace(
-            np.log10(max(min(after.min(), before.min()), 1e-3)), np.log10(before.max() * 1.1), 50
-        )
-        ax.hist(
-            before, bins=bins, alpha=0.7, label=f"nominal model (RMS {np.sqrt(np.mean(before**2)):.2f} mm)"
-        )
-        ax.hist(after, bins=bins, alpha=0.7, label=f"calibrated (RMS {np.sqrt(np.mean(after**2)):.3f} mm)")
-        ax.set_xscale("log")
-        ax.set_xlabel("end-effector position error (mm), 1000 random configurations")
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out / "ee_error.png", dpi=110)
-        plt.close(fig)
-        figs.append(("ee_error.png", "End-effector error against the truth, before and after"))
+
+def plot_ee_errors(result):
+    """End-effector error against the truth, nominal model vs calibrated, over the
+    validation's random configurations (a `Figure`; `None` without a truth)."""
+    from matplotlib.figure import Figure
+
+    if result.ee_errors is None:
+        return None
+    before, after = result.ee_errors["before"], result.ee_errors["after"]
+    fig = Figure(figsize=(7, 3.6))
+    ax = fig.subplots()
+    bins = np.logspace(np.log10(max(min(after.min(), before.min()), 1e-3)), np.log10(before.max() * 1.1), 50)
+    ax.hist(before, bins=bins, alpha=0.7, label=f"nominal model (RMS {np.sqrt(np.mean(before**2)):.2f} mm)")
+    ax.hist(after, bins=bins, alpha=0.7, label=f"calibrated (RMS {np.sqrt(np.mean(after**2)):.3f} mm)")
+    ax.set_xscale("log")
+    ax.set_xlabel(f"end-effector position error (mm), {len(before)} random configurations")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def _plots(result, out: Path) -> list[tuple[str, str]]:
+    figs = []
+    for name, plot, caption in (
+        ("arcs.png", plot_arcs, "Marker positions of every sweep in its fitted arc's plane"),
+        ("residuals.png", plot_residuals, "Arc residuals of every frame (distance from the fitted circle)"),
+        ("ee_error.png", plot_ee_errors, "End-effector error against the truth, before and after"),
+    ):
+        fig = plot(result)
+        if fig is None:
+            continue
+        fig.savefig(out / name, dpi=110)
+        figs.append((name, caption))
     return figs
 
 

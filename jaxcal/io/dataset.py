@@ -21,7 +21,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..markers import TargetSpec
+from ._files import make_temp_dir
 
 SCHEMA = "jaxcal.dataset"
 SCHEMA_VERSION = 1
@@ -177,7 +177,7 @@ def atomic_directory(dest, *, overwrite: bool = False):
     parent.mkdir(parents=True, exist_ok=True)
     if not os.access(parent, os.W_OK):
         raise PermissionError(f"cannot write in {parent}")
-    tmp = Path(tempfile.mkdtemp(dir=parent, prefix=f".{dest.name}.", suffix=".tmp"))
+    tmp = make_temp_dir(parent, dest.name)
     try:
         yield tmp
         old = None

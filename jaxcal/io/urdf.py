@@ -20,8 +20,6 @@ How a URDF maps onto a `KinematicModel`:
 """
 
 import math
-import os
-import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -38,6 +36,7 @@ from .._kinematics import (
     origin_from_xyz_rpy,
     origins_xyz_rpy,
 )
+from ._files import write_text_atomic
 
 _MOVABLE = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC}
 _UNSUPPORTED = ("floating", "planar")
@@ -493,18 +492,9 @@ def _minimal_tree(model: KinematicModel, arrays: dict[str, np.ndarray], robot_na
 
 def _write_atomic(tree: ET.ElementTree, path: Path) -> None:
     ET.indent(tree, space="  ")
-    text = '<?xml version="1.0"?>\n' + ET.tostring(tree.getroot(), encoding="unicode") + "\n"
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_text_atomic(
+        path, '<?xml version="1.0"?>\n' + ET.tostring(tree.getroot(), encoding="unicode") + "\n"
+    )
 
 
 def save_urdf(model: KinematicModel, path, *, source=None) -> None:

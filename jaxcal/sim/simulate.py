@@ -39,7 +39,8 @@ class SimConfig:
     Perturbations (standard deviations): `origin_mm`, `origin_deg`,
     `axis_tilt_deg`, `zero_offset_deg`, `ratio_percent` for the arm;
     `mount_mm`, `mount_deg` for the marker plate (or eye-in-hand camera)
-    mount and the camera placement.
+    mount and the camera placement. `grayscale` writes 8-bit single-channel
+    PNGs (what a machine-vision camera gives; a third of the size).
     """
 
     robot: str = "ur5e"
@@ -64,6 +65,7 @@ class SimConfig:
     clock_jitter_ms: float = 0.0
     clock_known: bool = True
     drop_rate: float = 0.0
+    grayscale: bool = False
     encoders: bool = True
     encoder_rate_hz: float = 500.0
     encoder_noise_counts: float = 0.5
@@ -391,7 +393,8 @@ def simulate(
                 scene.set_angles(theta[f])
                 image = scene.render(cam.name)
                 rel = f"images/{cam.name}/{f:06d}.png"
-                if not cv2.imwrite(str(tmp / rel), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+                code = cv2.COLOR_RGB2GRAY if config.grayscale else cv2.COLOR_RGB2BGR
+                if not cv2.imwrite(str(tmp / rel), cv2.cvtColor(image, code)):
                     raise OSError(f"could not write {tmp / rel}")
                 rows["camera"].append(cam.name)
                 rows["frame"].append(int(f))

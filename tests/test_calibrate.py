@@ -1,0 +1,287 @@
+"""Images -> calibrated robot: `jaxcal.calibrate`, `jaxcal calibrate`, `jaxcal demo`, and bad input.
+
+One small rendered UR5e dataset (640x480, 12 frames per 60-degree sweep, a
+40 ms clock offset left out of the metadata) is shared by every test; it has
+the demo's configuration at a lower resolution, so the demo test reuses the
+compiled solvers.
+"""
+
+import csv
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxcal.cli import main
+from jaxcal.io.dataset import DatasetError
+from jaxcal.pipeline import CalibrationError, calibrate
+from jaxcal.report import write_outputs
+from jaxcal.sim.simulate import SimConfig, simulate
+from jaxcal.vision import VisionError
+
+CONFIG = SimConfig(
+    robot="ur5e",
+    seed=0,
+    resolution=(640, 480),
+    frames_per_joint=12,
+    range_deg=60.0,
+    clock_offset_ms=40.0,
+    clock_known=False,
+)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return simulate(CONFIG, tmp_path_factory.mktemp("ds") / "ur5e", progress=False)
+
+
+@pytest.fixture(scope="module")
+def result(dataset):
+    return calibrate(dataset, progress=False, workers=1)
+
+
+def _digest(root: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def _copy(dataset: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "copy"
+    shutil.copytree(dataset, dst)
+    return dst
+
+
+def _edit_json(path: Path, edit) -> None:
+    meta = json.loads(path.read_text())
+    edit(meta)
+    path.write_text(json.dumps(meta))
+
+
+# --------------------------------------------------------------------------- recovery
+
+
+@pytest.mark.slow
+def test_calibration_recovers_the_rendered_arm(result):
+    v = result.validation
+    assert result.ok
+    # 640x480 and 12 frames a 60-degree sweep (the board is ~150 px wide, PnP
+    # depth noise ~1 mm): a looser bound than the 1280x960 acceptance run
+    # (0.30 mm, 40 frames a 80-degree sweep), still well below the nominal model.
+    assert v["ee_rms_mm_before"] > 4.0
+    assert v["ee_rms_mm_after"] < 4.0
+    assert v["ee_rms_mm_after"] < 0.5 * v["ee_rms_mm_before"]
+    assert v["T_cam_base_error"]["trans_mm"] < 1.5 and v["T_cam_base_error"]["rot_deg"] < 0.4
+    ratio = [abs(e["ratio_percent"]) for e in v["parameter_errors"].values()]
+    assert max(ratio) < 0.3  # the ratios were perturbed by ~1 %
+    # The clock offset was not in the metadata: estimated through the arc fits.
+    assert result.clock["estimated"]
+    assert abs(v["clock_offset_error_ms"]) < 1.0
+    assert result.clock["std_s"] < 1e-3
+    # Whitened arc residuals near 1: the PnP covariances are honest.
+    assert all(0.3 < a["residual_rms"] < 2.0 for a in result.arcs)
+    assert "shoulder_pan_joint.zero_offset" in result.frozen  # unobservable, held at nominal
+
+
+@pytest.mark.slow
+def test_outputs_are_complete_and_consistent(result, tmp_path):
+    import cv2
+    import jax
+
+    from jaxcal import forward_kinematics
+    from jaxcal.io.urdf import load_urdf
+
+    out = write_outputs(result, tmp_path / "res")
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(
+        [
+            "result.json",
+            "calibrated.urdf",
+            "camera_cam0.yaml",
+            "report.md",
+            "arcs.png",
+            "residuals.png",
+            "ee_error.png",
+        ]
+    )
+    r = json.loads((out / "result.json").read_text())
+    for key in ("T_cam_base", "parameters", "reduction_ratios", "identifiability", "arcs", "frames", "clock",
+                "timings_s", "solver", "validation"):  # fmt: skip
+        assert key in r
+    assert r["validation"]["ee_rms_mm_after"] == pytest.approx(result.validation["ee_rms_mm_after"])
+    assert np.allclose(r["T_cam_base"]["matrix"], result.T_cam_base)
+    # Every parameter has nominal, estimate, std; frozen ones did not move.
+    for p in r["parameters"]:
+        assert {"name", "unit", "nominal", "estimate", "std", "free"} <= set(p)
+        if not p["free"]:
+            assert p["estimate"] == pytest.approx(p["nominal"], abs=1e-12) and p["std"] == pytest.approx(
+                0, abs=1e-12
+            )
+    # The calibrated URDF round-trips to the calibrated model.
+    urdf = load_urdf(out / "calibrated.urdf")
+    q = np.random.default_rng(0).uniform(-3, 3, (5, 6))
+    for qi in q:
+        a = np.asarray(jax.device_get(forward_kinematics(urdf, qi)))
+        b = np.asarray(jax.device_get(forward_kinematics(result.model, qi)))
+        assert np.allclose(a, b, atol=1e-9)
+    assert np.allclose(urdf.reduction_ratio, result.model.reduction_ratio, rtol=1e-12)
+    fs = cv2.FileStorage(str(out / "camera_cam0.yaml"), cv2.FILE_STORAGE_READ)
+    assert np.allclose(fs.getNode("T_cam_base").mat(), result.T_cam_base)
+    fs.release()
+    report = (out / "report.md").read_text()
+    assert "EE RMS" in report and "![" in report
+
+
+@pytest.mark.slow
+def test_without_encoders_ratios_are_not_identifiable(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    (ds / "encoders.csv").unlink()
+    _edit_json(ds / "metadata.json", lambda m: m.update(encoders=None, clock={"offset_s": 0.04}))
+    r = calibrate(ds, progress=False, workers=1)
+    assert r.ok
+    assert all(a["ratio"] is None and not a["ratio_identifiable"] for a in r.arcs)
+    assert any("not identifiable" in w for w in r.warnings)
+    assert r.validation["ee_rms_mm_after"] < 0.5 * r.validation["ee_rms_mm_before"]
+
+
+@pytest.mark.slow
+def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
+    before = _digest(dataset)
+    out = tmp_path / "res"
+    assert main(["calibrate", str(dataset), "--out", str(out), "--quiet", "--workers", "1"]) == 0
+    assert _digest(dataset) == before  # input files are never modified
+    assert (out / "result.json").is_file() and not list(tmp_path.glob(".res.*"))
+    assert main(["calibrate", str(dataset), "--out", str(out), "--quiet"]) == 2  # not empty
+    assert "not empty" in capsys.readouterr().err
+    demo = ["demo", "--out", str(tmp_path / "demo"), "--resolution", "640x480"]
+    demo += ["--frames-per-joint", "12", "--sweep-deg", "60"]
+    assert main([*demo, "--quiet", "--workers", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "Before / after" in text and "EE RMS mm" in text
+    assert (tmp_path / "demo" / "result" / "report.md").is_file()
+
+
+# --------------------------------------------------------------------------- bad input (one test per case)
+
+
+def _fails(ds, exc, *words, **kw):
+    with pytest.raises(exc) as e:
+        calibrate(ds, progress=False, workers=1, **kw)
+    for w in words:
+        assert w in str(e.value), str(e.value)
+
+
+def test_missing_metadata(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    (ds / "metadata.json").unlink()
+    _fails(ds, DatasetError, "metadata.json", "missing")
+
+
+def test_unknown_schema_version(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    _edit_json(ds / "metadata.json", lambda m: m.update(schema_version=99))
+    _fails(ds, DatasetError, "schema_version", "99")
+
+
+def test_missing_image(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    victim = sorted((ds / "images" / "cam0").iterdir())[3]
+    victim.unlink()
+    _fails(ds, VisionError, victim.name)
+
+
+def test_unreadable_image(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    victim = sorted((ds / "images" / "cam0").iterdir())[5]
+    victim.write_bytes(b"not a png")
+    _fails(ds, VisionError, victim.name)
+
+
+def test_wrong_marker_dictionary(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    _edit_json(ds / "metadata.json", lambda m: m["targets"][0].update(dictionary="DICT_6X6_250"))
+    _fails(ds, CalibrationError, "no target was found", "DICT_6X6_250")
+
+
+def test_sweep_with_too_few_frames(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    meta = json.loads((ds / "metadata.json").read_text())
+    seg = next(s for s in meta["motion"] if s["joint"] == "elbow_joint")
+    span = seg["end"] - seg["start"]
+    seg["end"] = seg["start"] + 0.25 * span  # only the first few frames of the sweep count
+    (ds / "metadata.json").write_text(json.dumps(meta))
+    _fails(ds, CalibrationError, "elbow_joint", "valid frames")
+
+
+def test_sweep_under_five_degrees(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    path = ds / "encoders.csv"
+    rows = list(csv.reader(path.read_text().splitlines()))
+    col = rows[0].index("wrist_1_joint")
+    for r in rows[1:]:
+        r[col] = repr(0.05 * float(r[col]))  # the log says the joint barely moved (4 deg)
+    with path.open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    _fails(ds, CalibrationError, "wrist_1_joint", "degrees")
+
+
+def test_no_overlap_between_images_and_encoders(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    path = ds / "encoders.csv"
+    rows = list(csv.reader(path.read_text().splitlines()))
+    for r in rows[1:]:
+        r[0] = repr(float(r[0]) + 1000.0)
+    with path.open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    _fails(ds, CalibrationError, "no overlap", "encoders.csv")
+
+
+def test_nan_in_encoder_table(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    path = ds / "encoders.csv"
+    lines = path.read_text().splitlines()
+    cells = lines[10].split(",")
+    cells[2] = "nan"
+    lines[10] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    _fails(ds, DatasetError, "encoders.csv line 11", "NaN")
+
+
+def test_unknown_joint_name(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    _edit_json(ds / "metadata.json", lambda m: m["motion"][2].update(joint="elbow_jiont"))
+    _fails(ds, DatasetError, "elbow_jiont", "unknown joint")
+
+
+def test_robot_file_missing(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    (ds / "robot.urdf").unlink()
+    _fails(ds, DatasetError, "robot.urdf", "missing")
+
+
+def test_robot_file_malformed(dataset, tmp_path):
+    ds = _copy(dataset, tmp_path)
+    (ds / "robot.urdf").write_text("<robot name='x'><link name='a'></robot")
+    _fails(ds, DatasetError, "robot.urdf")
+
+
+def test_output_directory_not_writable(dataset, tmp_path, capsys):
+    if os.geteuid() == 0:
+        # root ignores permission bits: a path under a regular file is unwritable for everyone.
+        blocker = tmp_path / "file"
+        blocker.write_text("x")
+        out = blocker / "res"
+    else:
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o500)
+        out = locked / "res"
+    assert main(["calibrate", str(dataset), "--out", str(out), "--quiet"]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert not out.exists()
