@@ -130,6 +130,8 @@ def _camera_yaml(path: Path, result) -> None:
         fs.write("camera_name", result.camera)
         fs.write("T_cam_base", result.T_cam_base)
         fs.write("T_base_cam", np.linalg.inv(result.T_cam_base))
+        # 1-sigma of the right-multiplied twist T_cam_base = T @ exp(xi): tx ty tz (m), rx ry rz (rad).
+        fs.write("T_cam_base_std", np.asarray(result.std_cam, np.float64).reshape(1, -1))
         fs.write("camera_matrix", np.asarray(result.intrinsics["K"], np.float64))
         fs.write(
             "distortion_coefficients", np.asarray(result.intrinsics["distortion"], np.float64).reshape(1, -1)

@@ -134,6 +134,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     assert np.allclose(urdf.reduction_ratio, result.model.reduction_ratio, rtol=1e-12)
     fs = cv2.FileStorage(str(out / "camera_cam0.yaml"), cv2.FILE_STORAGE_READ)
     assert np.allclose(fs.getNode("T_cam_base").mat(), result.T_cam_base)
+    assert np.allclose(fs.getNode("T_cam_base_std").mat().ravel(), result.std_cam)
     fs.release()
     report = (out / "report.md").read_text()
     assert "EE RMS" in report and "![" in report
