@@ -40,6 +40,10 @@ from ._montecarlo import fit_sweeps as fit_sweeps  # noqa: E402
 from ._montecarlo import monte_carlo as monte_carlo  # noqa: E402
 from ._montecarlo import summarize as summarize  # noqa: E402
 from ._montecarlo import synthesize_sweeps as synthesize_sweeps  # noqa: E402
+from .pipeline import CalibrationError as CalibrationError  # noqa: E402
+from .pipeline import CalibrationResult as CalibrationResult  # noqa: E402
+from .pipeline import calibrate as calibrate  # noqa: E402
+from .report import write_outputs as write_outputs  # noqa: E402
 
 try:
     __version__ = importlib.metadata.version("jaxcal")

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._cache import enable_compilation_cache
+
 
 def _write_json_atomic(path: Path, payload: dict) -> None:
     from .io._files import write_text_atomic
@@ -317,16 +319,6 @@ def _add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
     p.add_argument("--frames", type=int, default=40, help="camera frames per joint sweep")
 
 
-def _enable_compilation_cache() -> None:
-    """Keep compiled XLA programs between runs (a second `jaxcal demo` skips compilation)."""
-    import jax
-
-    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "jaxcal" / "xla"
-        jax.config.update("jax_compilation_cache_dir", str(cache))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-
-
 def _resolution(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -428,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_simulate)
     args = parser.parse_args(argv)
-    _enable_compilation_cache()
+    enable_compilation_cache()
     try:
         return args.func(args)
     except (ValueError, OSError) as e:

@@ -368,16 +368,29 @@ def _physical(nominal, mounts0, T_cam_base0, unravel):
     return f
 
 
-def _parameter_table(nominal, fit, mounts0, T_cam_base0, targets) -> list:
+@functools.cache
+def _jit_physical():
+    """`_physical` at the estimate and at zero, and its Jacobian, as one compiled call."""
     import jax
     import jax.numpy as jnp
     from jax.flatten_util import ravel_pytree
 
-    flat, unravel = ravel_pytree(fit.params)
-    f = _physical(nominal, jnp.asarray(mounts0), jnp.asarray(T_cam_base0), unravel)
-    est = np.asarray(f(flat))
-    nom = np.asarray(f(jnp.zeros_like(flat)))
-    G = np.asarray(jax.jacfwd(f)(flat))
+    @jax.jit
+    def run(nominal, mounts0, T_cam_base0, params):
+        flat, unravel = ravel_pytree(params)
+        f = _physical(nominal, mounts0, T_cam_base0, unravel)
+        return f(flat), f(jnp.zeros_like(flat)), jax.jacfwd(f)(flat)
+
+    return run
+
+
+def _parameter_table(nominal, fit, mounts0, T_cam_base0, targets) -> list:
+    import jax.numpy as jnp
+
+    est, nom, G = (
+        np.asarray(a)
+        for a in _jit_physical()(nominal, jnp.asarray(mounts0), jnp.asarray(T_cam_base0), fit.params)
+    )
     std = np.sqrt(np.maximum(np.einsum("ia,ab,ib->i", G, np.asarray(fit.cov), G), 0.0))
     free_cols = np.asarray(fit.free)
     moves = np.abs(G[:, free_cols]).sum(axis=1) > 1e-12
@@ -519,6 +532,9 @@ def calibrate(
     - `validate`: with a synthetic dataset's `truth.json`, add the validation block.
     - `log`: a callable taking one line of progress text (default silent).
 
+    Compiled solvers are kept in JAX's persistent cache (see `jaxcal._cache`),
+    so a second call on data of the same shapes skips compilation.
+
     **Returns:** a `CalibrationResult`. Raises `CalibrationError` /
     `DatasetError` / `VisionError` (all `ValueError`) naming the problem.
     """
@@ -528,11 +544,13 @@ def calibrate(
 
     from ._arcfit import validate_arc_data
     from ._axisfit import parameter_names, register_lines
+    from ._cache import enable_compilation_cache
     from ._clocksync import fit_clock_offset
     from ._geometry import pose_inverse, se3_exp
     from ._kinematics import forward_kinematics
     from .io.dataset import Dataset, load_dataset
 
+    enable_compilation_cache()
     say = log or (lambda text: None)
     timings = {}
     t_start = time.perf_counter()
