@@ -33,7 +33,7 @@ demo: $(STAMP) gl
 	$(PY) -m jaxcal demo
 
 test: $(STAMP) gl
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=15
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks
