@@ -78,6 +78,10 @@ class CalibrationResult:
     - `clock`: offset (s), its std, and whether it was estimated.
     - `frames`: counts of used / dropped frames with reasons.
     - `validation`: errors against the truth (synthetic datasets), else None.
+    - `refinement`: the reprojection refinement's summary (`None` when it did
+      not run); `refine_fit`: its `RefineResult`. When it ran, `model`,
+      `T_cam_base`, `T_flange_target`, `parameters`, the ratios and the clock
+      are the refined ones and the two-stage figures sit beside them.
     """
 
     dataset: Path
@@ -103,6 +107,8 @@ class CalibrationResult:
     validation: dict | None = None
     warnings: list = field(default_factory=list)
     ee_errors: dict | None = None
+    refinement: dict | None = None
+    refine_fit: object = None
 
     @property
     def ok(self) -> bool:
@@ -151,6 +157,7 @@ class CalibrationResult:
             "intrinsics": self.intrinsics,
             "solver": self.solver,
             "timings_s": self.timings,
+            "refinement": self.refinement,
             "validation": self.validation,
             "warnings": self.warnings,
             "model": model_to_json(self.model),
@@ -421,10 +428,24 @@ def _parameter_table(nominal, fit, mounts0, T_cam_base0, targets) -> list:
 
 
 def _validation(
-    ds, nominal, fit, camera, targets, sweeps, mounts0, use_poses, fit_arcs_have_encoder, q_val_seed=0, n=1000
+    ds,
+    nominal,
+    fit,
+    camera,
+    targets,
+    sweeps,
+    mounts0,
+    use_poses,
+    fit_arcs_have_encoder,
+    q_val_seed=0,
+    n=1000,
+    refined=None,
 ):
     """Errors against `truth.json`: EE (target origin) in the camera frame over random configurations,
-    axis lines, ratios, T_cam_base (raw and in the estimator's gauge)."""
+    axis lines, ratios, T_cam_base (raw and in the estimator's gauge).
+
+    With `refined` (a `RefineResult`), the `*_after` figures and the parameter
+    errors are the refined ones and `*_two_stage` the axis fit's."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -444,6 +465,9 @@ def _validation(
     q_val = jax.random.uniform(
         jax.random.key(q_val_seed), (n, nominal.num_joints), minval=-np.pi, maxval=np.pi
     )
+    two_stage = fit
+    if refined is not None:
+        fit = refined
     s = jax.jit(mc.score)(fit, true, T_cb_true, mounts_true, nominal, q_val)
 
     # Per-configuration errors (for the plot).
@@ -455,6 +479,8 @@ def _validation(
     nom = marker(nominal, fit.T_cam_base, fit.T_flange_marker[0], q_val)
     err_after = np.asarray(jnp.linalg.norm(est - tru, axis=-1)) * 1e3
     err_before = np.asarray(jnp.linalg.norm(nom - tru, axis=-1)) * 1e3
+    est2 = marker(two_stage.model, two_stage.T_cam_base, two_stage.T_flange_marker[0], q_val)
+    err_two = np.asarray(jnp.linalg.norm(est2 - tru, axis=-1)) * 1e3
 
     # The estimator's gauge for T_cam_base: the same axis fit on (nearly) exact
     # sweeps of the truth, with the same parameters frozen. The sweeps have the
@@ -473,7 +499,7 @@ def _validation(
         use_encoders=bool(fit_arcs_have_encoder),
     )
     arcs_exact = _jit_arcs()(exact)
-    T_gauge = _jit_axes(bool(use_poses))(nominal, arcs_exact, mounts0, fit.free).T_cam_base
+    T_gauge = _jit_axes(bool(use_poses))(nominal, arcs_exact, mounts0, two_stage.free).T_cam_base
     dT = np.asarray(pose_inverse(T_gauge) @ fit.T_cam_base)
     dT_raw = np.asarray(pose_inverse(T_cb_true) @ fit.T_cam_base)
     ratio_err = np.asarray(s["ratio_err_percent"])
@@ -484,6 +510,9 @@ def _validation(
         "ee_max_mm_before": float(err_before.max()),
         "ee_rms_mm_after": float(np.sqrt(np.mean(err_after**2))),
         "ee_max_mm_after": float(err_after.max()),
+        "ee_rms_mm_two_stage": float(np.sqrt(np.mean(err_two**2))),
+        "ee_max_mm_two_stage": float(err_two.max()),
+        "refined": refined is not None,
         "T_cam_base_error": {
             "trans_mm": float(np.linalg.norm(dT[:3, 3]) * 1e3),
             "rot_deg": float(np.degrees(np.linalg.norm(np.asarray(so3_log(jnp.asarray(dT[:3, :3])))))),
@@ -505,7 +534,13 @@ def _validation(
         "true_ratios": np.asarray(true.reduction_ratio).tolist(),
         "true_clock_offset_s": truth.get("clock", {}).get("offset_s"),
     }
-    return out, {"before": err_before, "after": err_after}
+    if refined is not None:
+        d2 = np.asarray(pose_inverse(T_gauge) @ two_stage.T_cam_base)
+        out["T_cam_base_error_two_stage"] = {
+            "trans_mm": float(np.linalg.norm(d2[:3, 3]) * 1e3),
+            "rot_deg": float(np.degrees(np.linalg.norm(np.asarray(so3_log(jnp.asarray(d2[:3, :3])))))),
+        }
+    return out, {"before": err_before, "two_stage": err_two, "after": err_after}
 
 
 # --------------------------------------------------------------------------- the pipeline
@@ -519,6 +554,7 @@ def calibrate(
     progress: bool = True,
     estimate_clock: bool | None = None,
     validate: bool = True,
+    refine: bool = True,
     log=None,
 ) -> CalibrationResult:
     """Calibrate the robot and camera of `dataset` (a path or a loaded `Dataset`).
@@ -530,6 +566,9 @@ def calibrate(
     - `estimate_clock`: estimate the camera-controller clock offset (default:
       when the metadata leaves it null).
     - `validate`: with a synthetic dataset's `truth.json`, add the validation block.
+    - `refine`: after the two-stage fit, minimise the reprojection error of
+      every detected corner over all parameters (`jaxcal._refine`); needs the
+      encoder log. `False` stops at the two-stage result.
     - `log`: a callable taking one line of progress text (default silent).
 
     Compiled solvers are kept in JAX's persistent cache (see `jaxcal._cache`),
@@ -770,11 +809,29 @@ def calibrate(
         timings=timings,
         warnings=notes,
     )
+    if refine and log_q is None:
+        notes.append("no encoder log: the reprojection refinement needs joint angles; stopped at two-stage")
+    elif refine:
+        t0 = time.perf_counter()
+        say("refinement: reprojection error of every corner over all parameters (robust, Cauchy)")
+        _refine_stage(
+            result, ds, cam, targets, rows, dets, t_cam, log_q, K, dist, fit, arcs, mounts0, T_cam_base0
+        )
+        timings["refine_s"] = time.perf_counter() - t0
     if validate and ds.truth is not None:
         t0 = time.perf_counter()
         say("validating against truth.json (1000 random configurations)")
         result.validation, result.ee_errors = _validation(
-            ds, nominal, fit, cam.name, targets, sweeps, mounts0, use_poses, arcs.has_encoder
+            ds,
+            nominal,
+            fit,
+            cam.name,
+            targets,
+            sweeps,
+            mounts0,
+            use_poses,
+            arcs.has_encoder,
+            refined=result.refine_fit,
         )
         if result.validation is not None:
             result.validation["clock_offset_error_ms"] = (
@@ -798,3 +855,174 @@ def _dropped(ds, camera: str) -> list:
     if idx.size == 0:
         return []
     return sorted(set(range(int(idx[0]), int(idx[-1]) + 1)) - set(int(i) for i in idx))
+
+
+# --------------------------------------------------------------------------- refinement
+
+
+@functools.cache
+def _jit_refine(free: tuple):
+    import jax
+
+    from ._refine import refine
+
+    return jax.jit(lambda problem, params0: refine(problem, params0, np.asarray(free)))
+
+
+@functools.cache
+def _jit_identifiable():
+    import jax
+
+    from ._refine import identifiable_mask
+
+    return jax.jit(identifiable_mask)
+
+
+def _refine_stage(
+    result, ds, cam, targets, rows, dets, t_cam, log_q, K, dist, fit, arcs, mounts0, T_cam_base0
+):
+    """Reprojection refinement from the two-stage result; updates `result` in place.
+
+    Every frame of `cam` inside the encoder log with a detected target
+    contributes all its corners (sweep or not). The axis fit's frozen
+    parameters stay frozen; rates are free with encoders, the clock offset
+    when it was estimated. The two-stage figures are kept beside the refined.
+    """
+    from types import SimpleNamespace
+
+    import jax
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    from ._axisfit import AxisFitParams
+    from ._refine import (
+        RefineParams,
+        RefineProblem,
+        default_free,
+        make_corner_data,
+        refine_parameter_names,
+        summarize_refinement,
+    )
+
+    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).ravel()
+    if d.size > 5 and np.any(d[5:] != 0):
+        result.warnings.append(
+            f"camera {cam.name!r}: distortion beyond (k1, k2, p1, p2, k3) is not modelled by the refinement; "
+            "stopped at two-stage"
+        )
+        return
+    dist5 = np.zeros(5)
+    dist5[: min(5, d.size)] = d[:5]
+    enc_t, enc_q = log_q
+    offset = result.clock["offset_s"]
+    t_ctrl = (t_cam - offset) / (1.0 + 1e-6 * ds.clock_drift_ppm)
+    inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+    pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in targets}
+    P, U, tgt, frame, tc = [], [], [], [], []
+    for i, det in enumerate(dets):
+        if not inside[i]:
+            continue
+        for m, t in enumerate(targets):
+            dt = det.get(t.name)
+            if dt is None or len(dt.ids) < 4:
+                continue
+            P.append(pts[t.name][dt.ids])
+            U.append(dt.pixels)
+            tgt.append(m)
+            frame.append(int(rows[i]))
+            tc.append(float(t_cam[i]))
+    if not P:
+        result.warnings.append("refinement: no detected corners inside the encoder log; stopped at two-stage")
+        return
+    data = make_corner_data(
+        P, U, np.array(tgt), np.array(frame), np.array(tc), enc_t, enc_q, ds.clock_drift_ppm
+    )
+    nominal = result.nominal
+    n, M = nominal.num_joints, len(targets)
+    problem = RefineProblem(
+        nominal=nominal,
+        T_flange_marker0=jnp.asarray(mounts0),
+        T_cam_base0=jnp.asarray(T_cam_base0),
+        K0=jnp.asarray(K, jnp.float64),
+        dist0=jnp.asarray(dist5),
+        offset0_s=jnp.asarray(offset),
+        data=data,
+    )
+    has = bool(arcs.has_encoder)
+    params0 = RefineParams(
+        cam=fit.params.cam,
+        correction=fit.params.correction,
+        rate=jnp.asarray(arcs.rate) if has else jnp.ones(n),
+        clock_ms=jnp.zeros(()),
+        intrinsics=jnp.zeros(9),
+    )
+    cand = default_free(n, M, rates=has, clock=bool(result.clock["estimated"]))
+    n_ax = np.asarray(fit.free).size
+    cand[:n_ax] &= np.asarray(fit.free)
+    free, _ = _jit_identifiable()(problem, params0, cand)
+    free = np.asarray(free)
+    res = _jit_refine(tuple(bool(f) for f in free))(problem, params0)
+    jax.block_until_ready(res)
+    names = refine_parameter_names(nominal, M)
+    summary = summarize_refinement(res, names, data)
+    ok = bool(res.result == optx.RESULTS.successful) and bool(np.all(np.isfinite(np.asarray(res.T_cam_base))))
+    std = np.asarray(res.std)
+    newly = [nm for nm, c, f in zip(names, cand, free) if c and not f]
+
+    # The reported figures become the refined ones; the two-stage ones stay beside them.
+    two = {
+        "T_cam_base": np.asarray(result.T_cam_base).tolist(),
+        "std_cam": np.asarray(result.std_cam).tolist(),
+        "T_flange_target": np.asarray(result.T_flange_target).tolist(),
+        "clock_offset_s": result.clock["offset_s"],
+        "ratios": {a["joint"]: a["ratio"] for a in result.arcs},
+    }
+    shim = SimpleNamespace(
+        params=AxisFitParams(cam=res.params.cam, correction=res.params.correction),
+        cov=np.asarray(res.cov)[:n_ax, :n_ax],
+        free=free[:n_ax],
+    )
+    result.model = jax.device_get(res.model)
+    result.T_cam_base = np.asarray(res.T_cam_base)
+    result.std_cam = std[:6]
+    result.T_flange_target = np.asarray(res.T_flange_marker)
+    result.parameters = _parameter_table(nominal, shim, mounts0, T_cam_base0, targets)
+    result.frozen = [nm for nm, f in zip(names[:n_ax], free[:n_ax]) if not f]
+    rate = np.asarray(res.params.rate)
+    nominal_ratio = np.asarray(nominal.reduction_ratio)
+    for j, a in enumerate(result.arcs):
+        a["ratio_two_stage"], a["ratio_std_two_stage"] = a["ratio"], a["ratio_std"]
+        if has:
+            a["ratio"] = float(nominal_ratio[j] / rate[j])
+            a["ratio_std"] = float(nominal_ratio[j] * std[names.index(f"{a['joint']}.rate")] / rate[j] ** 2)
+    ic = names.index("clock_offset_ms")
+    if result.clock["estimated"]:
+        result.clock.update(
+            offset_s_two_stage=result.clock["offset_s"],
+            std_s_two_stage=result.clock["std_s"],
+            offset_s=float(res.offset_s),
+            std_s=float(1e-3 * std[ic]),
+        )
+    result.refine_fit = jax.device_get(res)
+    result.solver.update(
+        success=bool(result.solver["success"]) and ok,
+        refinement=summary["solver"]["result"],
+        refinement_steps=summary["solver"]["steps"],
+        refinement_rounds_ok=bool(res.rounds_ok),
+    )
+    summary.update(
+        views=int(data.mask.shape[0]),
+        frames=len(set(frame)),
+        free_parameters=int(free.sum()),
+        held_at_start=[nm for nm, f in zip(names, free) if not f],
+        frozen_beyond_two_stage=newly,
+        std={nm: float(std[i]) for i, nm in enumerate(names) if free[i]},
+        two_stage=two,
+        loss="cauchy IRLS (3 rounds), then least squares on the inliers (3.7 robust sigmas)",
+    )
+    result.refinement = summary
+    if summary["outlier_frames"]:
+        result.warnings.append(
+            f"refinement: {len(summary['outlier_frames'])} frame(s) whose corners stay outliers: "
+            f"{summary['outlier_frames'][:20]}"
+        )

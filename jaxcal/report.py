@@ -99,7 +99,11 @@ def plot_ee_errors(result):
     ax = fig.subplots()
     bins = np.logspace(np.log10(max(min(after.min(), before.min()), 1e-3)), np.log10(before.max() * 1.1), 50)
     ax.hist(before, bins=bins, alpha=0.7, label=f"nominal model (RMS {np.sqrt(np.mean(before**2)):.2f} mm)")
-    ax.hist(after, bins=bins, alpha=0.7, label=f"calibrated (RMS {np.sqrt(np.mean(after**2)):.3f} mm)")
+    two = result.ee_errors.get("two_stage") if result.refinement is not None else None
+    if two is not None:
+        ax.hist(two, bins=bins, alpha=0.6, label=f"two-stage (RMS {np.sqrt(np.mean(two**2)):.3f} mm)")
+    label = "refined" if two is not None else "calibrated"
+    ax.hist(after, bins=bins, alpha=0.7, label=f"{label} (RMS {np.sqrt(np.mean(after**2)):.3f} mm)")
     ax.set_xscale("log")
     ax.set_xlabel(f"end-effector position error (mm), {len(before)} random configurations")
     ax.legend(fontsize=8)
@@ -156,18 +160,57 @@ def _markdown(result, figs) -> str:
     v = result.validation
     if v is not None:
         c = v["T_cam_base_error"]
+        refined = bool(v.get("refined"))
+        head, two_rms, two_max = "", "", ""
+        if refined:
+            head = " two-stage |"
+            two_rms, two_max = (f" {v['ee_rms_mm_two_stage']:.3f} |", f" {v['ee_max_mm_two_stage']:.3f} |")
         lines += [
             "## Against the truth (synthetic dataset)",
             "",
-            "| | nominal model | calibrated |",
-            "| --- | ---: | ---: |",
-            f"| EE RMS (mm) | {v['ee_rms_mm_before']:.3f} | {v['ee_rms_mm_after']:.3f} |",
-            f"| EE max (mm) | {v['ee_max_mm_before']:.3f} | {v['ee_max_mm_after']:.3f} |",
+            f"| | nominal model |{head} {'refined' if refined else 'calibrated'} |",
+            "| --- | ---: |" + (" ---: |" if refined else "") + " ---: |",
+            f"| EE RMS (mm) | {v['ee_rms_mm_before']:.3f} |{two_rms} {v['ee_rms_mm_after']:.3f} |",
+            f"| EE max (mm) | {v['ee_max_mm_before']:.3f} |{two_max} {v['ee_max_mm_after']:.3f} |",
             "",
             f"T_cam_base error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
             f"raw {c['raw_trans_mm']:.3f} mm, {c['raw_rot_deg']:.4f} deg).",
             "",
         ]
+    ref = result.refinement
+    if ref is not None:
+        lines += [
+            "## Refinement (reprojection of every corner)",
+            "",
+            f"{ref['corners']} corners in {ref['frames']} frames, {ref['free_parameters']} parameters; "
+            f"{ref['loss']}; solver {ref['solver']['result']} ({ref['solver']['steps']} steps). "
+            f"Inlier RMS {ref['inlier_rms_px']:.3f} px, pixel sigma {ref['sigma_px']:.3f} px, "
+            f"{ref['outlier_corners']} outlier corners; condition number {ref['condition_number']:.3g}.",
+            "",
+            "Frames whose corners stay outliers: "
+            + (", ".join(str(f) for f in ref["outlier_frames"]) if ref["outlier_frames"] else "none"),
+            "",
+            "Correlations above 0.95: "
+            + (
+                "; ".join(f"{p['a']} / {p['b']} ({p['rho']:+.3f})" for p in ref["correlations"])
+                if ref["correlations"]
+                else "none"
+            ),
+            "",
+            "Unidentifiable directions at the solution: "
+            + (
+                "; ".join(", ".join(w["parameters"]) for w in ref["weak_directions"])
+                if ref["weak_directions"]
+                else "none beyond the parameters held at nominal"
+            ),
+            "",
+        ]
+        if v is not None and "T_cam_base_error_two_stage" in v:
+            c2 = v["T_cam_base_error_two_stage"]
+            lines += [
+                f"Two-stage T_cam_base error: {c2['trans_mm']:.3f} mm, {c2['rot_deg']:.4f} deg.",
+                "",
+            ]
     T = r["T_cam_base"]
     lines += [
         "## Camera pose",

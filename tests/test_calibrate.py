@@ -88,6 +88,12 @@ def test_calibration_recovers_the_rendered_arm(result):
     # Whitened arc residuals near 1: the PnP covariances are honest.
     assert all(0.3 < a["residual_rms"] < 2.0 for a in result.arcs)
     assert "shoulder_pan_joint.zero_offset" in result.frozen  # unobservable, held at nominal
+    # The reprojection refinement runs by default, starts from the two-stage fit and improves on it.
+    ref = result.refinement
+    assert v["refined"] and ref["solver"]["result"] == "successful"
+    assert v["ee_rms_mm_after"] <= v["ee_rms_mm_two_stage"]
+    assert ref["inlier_rms_px"] < 0.5 and ref["outlier_frames"] == []
+    assert ref["frozen_beyond_two_stage"] == []  # the same gauge as the axis fit
 
 
 @pytest.mark.slow
@@ -113,7 +119,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     )
     r = json.loads((out / "result.json").read_text())
     for key in ("T_cam_base", "parameters", "reduction_ratios", "identifiability", "arcs", "frames", "clock",
-                "timings_s", "solver", "validation"):  # fmt: skip
+                "timings_s", "solver", "validation", "refinement"):  # fmt: skip
         assert key in r
     assert r["validation"]["ee_rms_mm_after"] == pytest.approx(result.validation["ee_rms_mm_after"])
     assert np.allclose(r["T_cam_base"]["matrix"], result.T_cam_base)
@@ -149,6 +155,7 @@ def test_without_encoders_ratios_are_not_identifiable(dataset, tmp_path):
     assert r.ok
     assert all(a["ratio"] is None and not a["ratio_identifiable"] for a in r.arcs)
     assert any("not identifiable" in w for w in r.warnings)
+    assert r.refinement is None and any("stopped at two-stage" in w for w in r.warnings)
     assert r.validation["ee_rms_mm_after"] < 0.5 * r.validation["ee_rms_mm_before"]
 
 
@@ -161,6 +168,13 @@ def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
     assert (out / "result.json").is_file() and not list(tmp_path.glob(".res.*"))
     assert main(["calibrate", str(dataset), "--out", str(out), "--quiet"]) == 2  # not empty
     assert "not empty" in capsys.readouterr().err
+    two = tmp_path / "two_stage"
+    assert (
+        main(["calibrate", str(dataset), "--out", str(two), "--quiet", "--workers", "1", "--no-refine"]) == 0
+    )
+    r_two, r_ref = (json.loads((d / "result.json").read_text()) for d in (two, out))
+    assert r_two["refinement"] is None and r_ref["refinement"] is not None
+    assert r_two["validation"]["ee_rms_mm_after"] == pytest.approx(r_ref["validation"]["ee_rms_mm_two_stage"])
     demo = ["demo", "--out", str(tmp_path / "demo"), "--resolution", "640x480"]
     demo += ["--frames-per-joint", "12", "--sweep-deg", "60"]
     assert main([*demo, "--quiet", "--workers", "1"]) == 0
