@@ -46,8 +46,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._axisfit import KinematicCorrection, apply_correction, parameter_names
 from ._clocksync import controller_time, interpolate_encoders
-from ._geometry import se3_exp
-from ._kinematics import KinematicModel, forward_kinematics
+from ._geometry import se3_exp, skew
+from ._kinematics import REVOLUTE, KinematicModel
 
 _MS = 1e-3
 #: Names of the intrinsic increments, in `RefineParams.intrinsics` order.
@@ -299,19 +299,54 @@ def joint_positions(params: RefineParams, problem: RefineProblem) -> Float[Array
     return q * params.rate
 
 
-def target_poses(params: RefineParams, problem: RefineProblem) -> Float[Array, "views 4 4"]:
-    """$T_{cam,target}$ of every view at `params`."""
+def _chain(
+    params: RefineParams, problem: RefineProblem
+) -> tuple[Float[Array, "views 3 3"], Float[Array, "views 3"]]:
+    """Rotation and translation of $T_{cam,target}$ for every view.
+
+    The product $T_{cam,base}\\,T_{base,flange}(q_v)\\,T_{flange,target}$ of
+    `forward_kinematics` of the corrected model, written on (rotation,
+    translation) pairs with Rodrigues' formula for the joint motions (exact
+    for unit axes, no small-angle branch): about half the run time and two
+    thirds of the compile time of its Jacobian against the 4x4 chain (the
+    tests check both agree).
+    """
     model, mounts = apply_correction(problem.nominal, problem.T_flange_marker0, params.correction)
     T_cb = problem.T_cam_base0 @ se3_exp(params.cam)
-    q = joint_positions(params, problem)
-    T_bf = jax.vmap(lambda qq: forward_kinematics(model, qq)[-1])(q)
-    return jnp.einsum("ab,vbc,vcd->vad", T_cb, T_bf, mounts[problem.data.target])
+    theta = joint_positions(params, problem) + model.zero_offset  # (V, J)
+    V = theta.shape[0]
+    R = jnp.broadcast_to(T_cb[:3, :3], (V, 3, 3))
+    t = jnp.broadcast_to(T_cb[:3, 3], (V, 3))
+    for i, kind in enumerate(model.joint_types):
+        T_p = model.T_parent_joint[i]
+        t = t + R @ T_p[:3, 3]
+        R = R @ T_p[:3, :3]
+        a = model.axis[i]
+        if kind == REVOLUTE:
+            A = skew(a)
+            s, c = jnp.sin(theta[:, i]), jnp.cos(theta[:, i])
+            R = R @ (jnp.eye(3) + s[:, None, None] * A + (1.0 - c)[:, None, None] * (A @ A))
+        else:
+            t = t + R @ a * theta[:, i, None]
+    T_lf = model.T_last_flange
+    t = t + R @ T_lf[:3, 3]
+    R = R @ T_lf[:3, :3]
+    M = mounts[problem.data.target]
+    t = t + jnp.einsum("vab,vb->va", R, M[:, :3, 3])
+    return R @ M[:, :3, :3], t
+
+
+def target_poses(params: RefineParams, problem: RefineProblem) -> Float[Array, "views 4 4"]:
+    """$T_{cam,target}$ of every view at `params`."""
+    R, t = _chain(params, problem)
+    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0]), (R.shape[0], 1, 4))
+    return jnp.concatenate([jnp.concatenate([R, t[..., None]], axis=-1), bottom], axis=-2)
 
 
 def projected_corners(params: RefineParams, problem: RefineProblem) -> Float[Array, "views corners 2"]:
     """Every corner reprojected at `params` (px), padding included."""
-    T = target_poses(params, problem)
-    X = jnp.einsum("vab,vkb->vka", T[:, :3, :3], problem.data.points) + T[:, None, :3, 3]
+    R, t = _chain(params, problem)
+    X = jnp.einsum("vab,vkb->vka", R, problem.data.points) + t[:, None, :]
     K, dist = camera_matrix(params, problem)
     return project(K, dist, X)
 

@@ -15,6 +15,9 @@ import optimistix as optx
 import pytest
 from jax.flatten_util import ravel_pytree
 
+from jaxcal._axisfit import apply_correction
+from jaxcal._geometry import se3_exp
+from jaxcal._kinematics import forward_kinematics
 from jaxcal._montecarlo import default_setup
 from jaxcal._refine import (
     RefineProblem,
@@ -22,12 +25,14 @@ from jaxcal._refine import (
     default_free,
     grid_points,
     identifiable_mask,
+    joint_positions,
     projected_corners,
     refine,
     refine_parameter_names,
     reprojection_residuals,
     summarize_refinement,
     sweep_corner_data,
+    target_poses,
     zero_params,
 )
 from jaxcal.robots import load_robot
@@ -35,7 +40,7 @@ from jaxcal.robots import load_robot
 NOMINAL = load_robot("ur5e")
 SETUP = default_setup(NOMINAL)
 N = NOMINAL.num_joints
-TRIALS = 12
+TRIALS = 8
 SIGMA_PX = 0.3
 PROBLEM = RefineProblem(
     nominal=NOMINAL,
@@ -116,6 +121,16 @@ def test_identifiable_parameters(free):
     assert "shoulder_pan_joint.zero_offset" in frozen
     assert all(f"shoulder_pan_joint.origin.{p}" in frozen for p in ("tx", "ty", "tz", "rx", "ry", "rz"))
     assert not free[NAMES.index("clock_offset_ms")] and not free[NAMES.index("intrinsics.fx")]
+
+
+def test_chain_matches_forward_kinematics():
+    x = jnp.asarray(FLAT0 + 1e-2 * np.random.default_rng(3).standard_normal(FLAT0.size))
+    p = UNRAVEL(x)
+    model, mounts = apply_correction(NOMINAL, SETUP.T_flange_marker, p.correction)
+    q = joint_positions(p, PROBLEM)
+    T_cb = SETUP.T_cam_base @ se3_exp(p.cam)
+    expected = jax.vmap(lambda qq: T_cb @ forward_kinematics(model, qq)[-1] @ mounts[0])(q)
+    assert np.allclose(np.asarray(target_poses(p, PROBLEM)), np.asarray(expected), atol=1e-12)
 
 
 def test_jacobian_matches_finite_differences():
