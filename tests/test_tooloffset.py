@@ -1,0 +1,207 @@
+"""Tool offset by arc fitting (seed 2): circle fits, the iterative axis correction, MuJoCo rig."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+from jaxcal import _tooloffset as to
+from jaxcal._geometry import orthonormal_basis
+from jaxcal.sim.tool import ToolScene
+
+_fit = jax.jit(to.fit_circle)
+N = 12  # points per arc everywhere: one compilation per dimension
+
+
+def _arc_3d(rng, span_deg, noise=0.0):
+    n = rng.normal(size=3)
+    n /= np.linalg.norm(n)
+    B = np.asarray(orthonormal_basis(jnp.asarray(n)))
+    c, r = rng.normal(0.0, 0.3, 3), 0.07
+    t = np.radians(np.linspace(0.0, span_deg, N)) + 0.4
+    P = c + r * (np.cos(t)[:, None] * B[:, 0] + np.sin(t)[:, None] * B[:, 1])
+    return P + rng.normal(0.0, noise, P.shape), c, n, r
+
+
+@pytest.mark.parametrize("span_deg", [90.0, 330.0])
+def test_fit_circle_3d_exact(span_deg):
+    P, c, n, r = _arc_3d(np.random.default_rng(0), span_deg)
+    fit = _fit(jnp.asarray(P), jnp.ones(N, bool))  # the compilation the masked fits share
+    assert fit.result == optx.RESULTS.successful
+    np.testing.assert_allclose(fit.centre, c, atol=1e-10)
+    np.testing.assert_allclose(abs(float(jnp.dot(fit.normal, n))), 1.0, atol=1e-12)
+    np.testing.assert_allclose(fit.radius, r, atol=1e-10)
+    assert float(fit.rms) < 1e-10
+
+
+def test_fit_circle_noise_and_mask():
+    """0.1 mm noise on a 90 deg arc; a masked wild point is ignored."""
+    rng = np.random.default_rng(1)
+    errs = []
+    for _ in range(20):
+        P, c, _, r = _arc_3d(rng, 90.0, noise=1e-4)
+        P[3] = 10.0
+        mask = np.ones(N, bool)
+        mask[3] = False
+        fit = _fit(jnp.asarray(P), jnp.asarray(mask))
+        errs.append([np.linalg.norm(np.asarray(fit.centre) - c), abs(float(fit.radius) - r)])
+        assert 0.7e-4 < float(fit.rms) < 2e-4  # sqrt(2) x 0.1 mm: two residuals per point
+    errs = np.array(errs)
+    # A 90 deg arc of radius 70 mm with 0.1 mm noise: centre and radius to well under a millimetre.
+    assert errs[:, 0].mean() < 5e-4 and errs[:, 1].mean() < 4e-4
+    assert errs[:, 0].mean() > 1e-5  # the noise is really there
+
+
+def _synthetic_measure(tip, roll, handedness, scale):
+    """An analytic rig: the tip's image when rotating about the axis through `tcp`."""
+
+    def measure(tcp):
+        angles = np.radians(np.arange(0.0, 360.0, 30.0))
+        d = np.asarray(tip) - tcp
+        phi = np.arctan2(d[1], d[0]) + angles
+        psi = roll + handedness * phi
+        r = np.linalg.norm(d) / scale
+        return np.stack([200.0 + r * np.cos(psi), 150.0 + r * np.sin(psi)], 1), angles, None
+
+    return measure
+
+
+@pytest.mark.parametrize("handedness", [1.0, -1.0])
+def test_estimate_offset_exact(handedness):
+    tip, roll, scale = np.array([0.004, -0.007]), 0.3, 5e-4
+    px, angles, _ = _synthetic_measure(tip, roll, handedness, scale)(np.zeros(2))
+    est = to._estimate(  # the loop's compiled estimator
+        jnp.asarray(px), jnp.asarray(angles), metres_per_unit=scale, camera_roll=roll
+    )
+    assert float(est.handedness) == handedness
+    np.testing.assert_allclose(est.offset, tip, atol=1e-12)
+    np.testing.assert_allclose(est.radius, np.linalg.norm(tip), atol=1e-12)
+
+
+def _synthetic_measure_3d(tip, roll, handedness, depth=0.2):
+    """The tip in the camera frame (m), e.g. from stereo: the camera rolled and facing along or against the axis."""
+
+    def measure(tcp):
+        angles = np.radians(np.arange(0.0, 360.0, 30.0))
+        d = np.asarray(tip) - tcp
+        c, s = np.cos(angles), np.sin(angles)
+        p_axis = np.stack([c * d[0] - s * d[1], s * d[0] + c * d[1], np.zeros_like(c)], 1)
+        cr, sr = np.cos(roll), np.sin(roll)
+        R = np.array([[cr, -sr, 0.0], [sr, cr, 0.0], [0.0, 0.0, 1.0]]) @ np.diag(
+            [1.0, handedness, handedness]
+        )
+        return p_axis @ R.T + [0.01, -0.02, depth], angles, None
+
+    return measure
+
+
+@pytest.mark.parametrize("handedness", [1.0, -1.0])
+def test_estimate_offset_exact_3d(handedness):
+    """3D tip positions: the circle in space, the offset in the axis frame, and the loop in one step."""
+    tip, roll = np.array([0.004, -0.007]), 0.3
+    measure = _synthetic_measure_3d(tip, roll, handedness)
+    P, angles, _ = measure(np.zeros(2))
+    est = to._estimate(jnp.asarray(P), jnp.asarray(angles), camera_roll=roll)
+    assert float(est.handedness) == handedness
+    np.testing.assert_allclose(est.offset, tip, atol=1e-12)
+    np.testing.assert_allclose(est.radius, np.linalg.norm(tip), atol=1e-12)
+    r = to.calibrate_tool_offset(measure, np.zeros(2), metres_per_unit=1.0, camera_roll=roll, tol=1e-9)
+    assert r.converged and r.iterations == 2  # one correction, then a radius of ~0
+    np.testing.assert_allclose(r.tcp, tip, atol=1e-12)
+
+
+def _synthetic_pointer(target, roll, handedness, scale, centre=(160.0, 120.0)):
+    """The stylus axis's image: the principal point when the stylus is at `target` (m)."""
+
+    def measure(xy):
+        cr, sr = np.cos(roll), np.sin(roll)
+        R = np.array([[cr, -sr], [sr, cr]])
+        return np.asarray(centre) + R @ np.diag([1.0, handedness]) @ (np.asarray(xy) - target) / scale
+
+    return measure
+
+
+@pytest.mark.parametrize("roll_error_deg", [0.0, 25.0])
+def test_align_to_principal_point_exact(roll_error_deg):
+    """The second offset: one move with the exact roll; converging (ratio 2 sin(12.5 deg)) with a 25 deg error."""
+    target, roll, scale = np.array([0.012, -0.005]), 0.3, 4e-4
+    measure = _synthetic_pointer(target, roll + np.radians(roll_error_deg), -1.0, scale)
+    al = to.align_to_principal_point(
+        measure,
+        np.zeros(2),
+        (160.0, 120.0),
+        metres_per_px=scale,
+        camera_roll=roll,
+        handedness=-1.0,
+        tol_px=1e-6,
+        max_iter=30,
+    )
+    assert al.converged
+    np.testing.assert_allclose(al.position, target, atol=1e-9)
+    np.testing.assert_allclose(al.offset, target)
+    if roll_error_deg == 0.0:
+        assert al.iterations == 2
+    else:
+        ratios = al.errors_px[1:] / al.errors_px[:-1]
+        np.testing.assert_allclose(ratios, 2 * np.sin(np.radians(12.5)), rtol=1e-6)
+
+
+def test_iteration_converges_with_wrong_roll():
+    """The camera's roll is off by 25 deg: each step shrinks the error by 2 sin(12.5 deg) = 0.43."""
+    tip = np.array([0.004, -0.007])
+    measure = _synthetic_measure(tip, 0.3 + np.radians(25.0), 1.0, 5e-4)
+    r = to.calibrate_tool_offset(
+        measure, np.zeros(2), metres_per_unit=5e-4, camera_roll=0.3, tol=1e-6, max_iter=20
+    )
+    assert r.converged and 10 <= r.iterations <= 13  # 8.1 mm x 0.433^n < 1 um
+    ratios = r.radii[1:] / r.radii[:-1]
+    np.testing.assert_allclose(ratios, 2 * np.sin(np.radians(12.5)), rtol=1e-6)
+    assert np.linalg.norm(r.tcp - tip) < 1e-6
+    # Stopping when the radius stops changing (here: at most two rotations).
+    r2 = to.calibrate_tool_offset(measure, np.zeros(2), metres_per_unit=5e-4, tol=0.0, tol_change=1.0)
+    assert r2.converged and r2.iterations == 2
+
+
+@pytest.mark.slow
+def test_mujoco_rig_tool_offset_and_principal_point():
+    """Rendered: a stylus 7.2 mm off the preset axis, the camera rolled 8 deg (not known to the loop)."""
+    with ToolScene(tip_xy=(0.006, -0.004), camera_roll=np.radians(8.0), width=320, height_px=240) as rig:
+        r = to.calibrate_tool_offset(rig.measure_arc, np.zeros(2), metres_per_unit=rig.metres_per_px)
+        assert r.converged and r.iterations <= 6
+        np.testing.assert_allclose(r.radii[0], np.linalg.norm(rig.tip_xy), rtol=0.02)
+        assert np.all(np.diff(r.radii) < 0)
+        assert np.linalg.norm(r.tcp - rig.tip_xy) < 1e-4  # 0.1 mm, about 0.16 px at 320x240
+        # Second offset: bring the stylus axis onto the principal point.
+        start = np.array([0.01, -0.006])
+        al = to.align_to_principal_point(
+            lambda xy: rig.measure_point(xy, tcp=r.tcp), start, rig.K[:2, 2], metres_per_px=rig.metres_per_px
+        )
+        assert al.converged and al.iterations <= 6 and al.errors_px[-1] < 0.05
+        # Aligned when the tip is on the camera's axis (world xy = 0): axis_xy = tcp - tip.
+        np.testing.assert_allclose(al.position, r.tcp - rig.tip_xy, atol=1.5e-4)
+        np.testing.assert_allclose(al.offset, al.position - start)
+
+
+@pytest.mark.parametrize(
+    "points, angles, mask, match",
+    [
+        (np.zeros((2, 2)), np.array([0.0, 1.0]), None, "only 2 points"),
+        (np.zeros((5, 2)), np.zeros(4), None, "5 points but angles"),
+        (np.zeros((5, 4)), np.zeros(5), None, r"shape \(n, 2\) or \(n, 3\)"),
+        (np.array([[0.0, 0.0], [1.0, np.nan], [0.0, 1.0], [1.0, 1.0]]), np.arange(4.0), None, "index 1"),
+        (np.zeros((5, 2)), np.radians(np.arange(5.0) * 5.0), None, "spans 20.0 deg"),
+        (np.zeros((5, 2)), np.arange(5.0), np.array([1, 1, 0, 0, 0], bool), "only 2 points"),
+    ],
+)
+def test_bad_input(points, angles, mask, match):
+    with pytest.raises(to.ToolOffsetInputError, match=match) as info:
+        to.validate_arc_points(points, angles, mask)
+    assert isinstance(info.value, ValueError)
+
+
+def test_lost_tip_is_an_error():
+    with pytest.raises(to.ToolOffsetInputError, match="measure returned"):
+        to.align_to_principal_point(
+            lambda xy: np.full(2, np.nan), np.zeros(2), (160.0, 120.0), metres_per_px=1e-3
+        )
