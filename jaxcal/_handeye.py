@@ -17,8 +17,10 @@ transform and minimises the difference between predicted and measured image
 features directly (the reprojection error of every board corner), which is
 the maximum-likelihood estimate under pixel noise. A pose-level variant
 (measured $T^{cam}_{board}$ from PnP, as OpenCV's protocol gives) whitens the
-pose error instead. Robot poses may be treated as noisy: one correction per
-pose with a Gaussian prior.
+pose error instead. Robot poses may be treated as noisy: with pixels, one
+correction per pose with a Gaussian prior; with poses, the corrections are
+marginalised (each frame's pose error whitened by $\\Sigma_A + J \\Sigma_r J^T$,
+`_robot_whitening`), so the solve keeps its 6 (cameras + 1) unknowns.
 
 Pipeline (all pure, jittable and vmappable):
 1. Closed-form start. Board poses from pixels by a planar homography (Zhang's
@@ -123,7 +125,8 @@ class HandEyePoses(eqx.Module):
     - `mask`: which board poses were measured, `(cameras, frames)`.
     - `sigma`: pose noise `(translation m x3, rotation rad x3)`; the translation
       error is in the camera frame, the rotation error a camera-frame rotation vector.
-    - `robot_sigma`, `eye_in_hand`: as in `HandEyePixels`.
+    - `robot_sigma`, `eye_in_hand`: as in `HandEyePixels`; noisy robot poses
+      are marginalised out of the pose errors rather than solved for.
     """
 
     T_base_ee: Float[Array, "frames 4 4"]
@@ -405,11 +408,17 @@ class HandEyeParams(eqx.Module):
 
 
 class HandEyeReference(eqx.Module):
-    """Start of the parameterisation (closed form) and the active mask."""
+    """Start of the parameterisation (closed form), the active mask and the pose-error whitening.
+
+    `whiten` (pose data with noisy robot poses only): per frame, $L_f^{-1}$ with
+    $L_f L_f^T = S_f$ the covariance of the frame's stacked pose errors
+    (see `_robot_whitening`), `(frames, 6 cameras, 6 cameras)`; None otherwise.
+    """
 
     X0: Float[Array, "cameras 4 4"]
     Y0: Float[Array, "4 4"]
     active: Bool[Array, "cameras frames"]
+    whiten: Float[Array, "frames n n"] | None = None
 
 
 def _nearest_rotation(M: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
@@ -464,12 +473,63 @@ def _observation_residuals(params, ref, data) -> Float[Array, "cameras frames k"
         meas = jnp.where(m[..., None], data.pixels, 0.0)
         e = jnp.where(m[..., None], (uv - meas) / data.sigma_px, 0.0)
         return e.reshape(e.shape[:2] + (-1,))
+    e = _pose_errors(A_pred, ref, data)
+    if ref.whiten is None:
+        return e / data.sigma
+    C, F = e.shape[:2]
+    w = jnp.einsum("fij,fj->fi", ref.whiten, jnp.swapaxes(e, 0, 1).reshape(F, 6 * C))
+    return jnp.swapaxes(w.reshape(F, C, 6), 0, 1)
+
+
+def _pose_errors(A_pred, ref, data: "HandEyePoses") -> Float[Array, "cameras frames 6"]:
+    """Unwhitened pose errors (translation m, camera-frame rotation vector rad), zero where inactive."""
     m = data.mask & ref.active
     A = jnp.where(m[..., None, None], data.T_cam_board, jnp.eye(4))
     e_t = A_pred[..., :3, 3] - A[..., :3, 3]
     e_r = so3_log(matmul(A_pred[..., :3, :3], jnp.swapaxes(A[..., :3, :3], -1, -2)))
-    e = jnp.concatenate([e_t, e_r], axis=-1) / data.sigma
-    return jnp.where(m[..., None], e, 0.0)
+    return jnp.where(m[..., None], jnp.concatenate([e_t, e_r], axis=-1), 0.0)
+
+
+def _robot_whitening(params, ref, data: "HandEyePoses"):
+    """Noisy robot poses marginalised out of the pose errors (the Schur complement, exact to first order).
+
+    A robot correction $\\delta_f$ (as in `_corrected_robot`) moves frame $f$'s
+    stacked pose errors by $J_f \\delta_f$; minimising over $\\delta_f$ with its
+    prior $\\mathcal N(0, \\Sigma_r)$ leaves $e_f^T S_f^{-1} e_f$ with
+    $S_f = \\Sigma_A + J_f \\Sigma_r J_f^T$ (Gauss-Markov). Returns
+    `(L_f^{-1}, J_f, S_f^{-1})` at `params`; the per-frame blocks come from six
+    forward-mode derivatives, one correction direction shared by all frames.
+    """
+    C, F = data.mask.shape
+    X, Y = _transforms(params, ref)
+
+    def errors(d):
+        T = _corrected_robot(data.T_base_ee, jnp.broadcast_to(d, (F, 6)))
+        return _pose_errors(matmul(matmul(X[:, None], _B(T, data.eye_in_hand)[None]), Y), ref, data)
+
+    J = jax.jacfwd(errors)(jnp.zeros(6))  # (C, F, 6, 6): d e_cf / d delta_f
+    J = jnp.swapaxes(J, 0, 1).reshape(F, 6 * C, 6)
+    S = jnp.einsum("fia,a,fja->fij", J, data.robot_sigma**2, J) + jnp.diag(jnp.tile(data.sigma**2, C))
+    L = jnp.linalg.cholesky(S)
+    eye = jnp.broadcast_to(jnp.eye(6 * C), S.shape)
+    L_inv = jax.scipy.linalg.solve_triangular(L, eye, lower=True)
+    return L_inv, J, jnp.einsum("fki,fkj->fij", L_inv, L_inv)
+
+
+def _with_whitening(params, ref, data):
+    if isinstance(data, HandEyePoses) and data.robot_sigma is not None:
+        whiten = jax.lax.stop_gradient(_robot_whitening(params, ref, data)[0])
+        return HandEyeReference(X0=ref.X0, Y0=ref.Y0, active=ref.active, whiten=whiten)
+    return ref
+
+
+def _robot_correction(params, ref, data: "HandEyePoses") -> Float[Array, "frames 6"]:
+    """The MAP robot corrections given the fit: $\\hat\\delta_f = -\\Sigma_r J_f^T S_f^{-1} e_f$."""
+    _, J, S_inv = _robot_whitening(params, ref, data)
+    e = _pose_errors(predicted_board_poses(params, ref, data), ref, data)
+    C, F = e.shape[:2]
+    e = jnp.swapaxes(e, 0, 1).reshape(F, 6 * C)
+    return -data.robot_sigma * jnp.einsum("fia,fij,fj->fa", J, S_inv, e)
 
 
 def _prior_residuals(params, data):
@@ -760,7 +820,8 @@ def calibrate_hand_eye(
     params0 = HandEyeParams(
         cam_robot=jnp.zeros((C, 6)),
         robot_board=jnp.zeros(6),
-        robot=None if data.robot_sigma is None else jnp.zeros((F, 6)),
+        # Pose data: noisy robot poses are marginalised (`_robot_whitening`); pixels: solved for.
+        robot=None if data.robot_sigma is None or isinstance(data, HandEyePoses) else jnp.zeros((F, 6)),
     )
     observed = jnp.any(data.mask, axis=-1) if isinstance(data, HandEyePixels) else data.mask
 
@@ -768,7 +829,7 @@ def calibrate_hand_eye(
         # One Levenberg-Marquardt, traced once and run per stage: robust (Cauchy)
         # then plain on the groups the robust stage kept.
         params, active = carry
-        ref = HandEyeReference(X0=X0, Y0=Y0, active=active)
+        ref = _with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
         sol = _lm(_robust_residuals, params, (ref, data, loss_scale, robust), rtol, atol, max_steps, False)
         rms = _group_rms(sol.value, ref, data)
         scale = jnp.maximum(jnp.nanmedian(rms), min_outlier_scale)
@@ -782,7 +843,7 @@ def calibrate_hand_eye(
     result, num_steps = jax.tree.map(lambda x: x[-1], results), steps[-1]
     if throw:
         params = result.error_if(params, result != optx.RESULTS.successful)
-    ref = HandEyeReference(X0=X0, Y0=Y0, active=active)
+    ref = _with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
     return _summarise(params, ref, data, observed & ~active, result, num_steps, scale_covariance)
 
 
@@ -836,12 +897,19 @@ def _summarise(params, ref, data, rejected, result, num_steps, scale_covariance)
         std_robot_cam=std[6 * C : 12 * C].reshape(C, 6),
         std_robot_board=std[12 * C :],
         cov=cov,
-        T_base_ee=_corrected_robot(data.T_base_ee, params.robot),
+        T_base_ee=_corrected_robot(
+            data.T_base_ee,
+            _robot_correction(params, ref, data) if ref.whiten is not None else params.robot,
+        ),
         residual_rms=jnp.sqrt(ssr_obs / jnp.maximum(n_obs, 1.0)),
         pixel_rms=jnp.sqrt(ssr_obs / jnp.maximum(n_obs, 1.0)) * data.sigma_px
         if is_px
         else jnp.asarray(jnp.nan),
-        group_rms=_group_rms(params, HandEyeReference(ref.X0, ref.Y0, ref.active | rejected), data),
+        group_rms=_group_rms(
+            params,
+            _with_whitening(params, HandEyeReference(ref.X0, ref.Y0, ref.active | rejected), data),
+            data,
+        ),
         rejected=rejected,
         num_rejected=jnp.sum(rejected),
         result=result,
