@@ -31,12 +31,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.custom_derivatives import SymbolicZero
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
-from ._arcfit import ArcFitResult, line_to_params
-from ._geometry import make_pose, matmul, pose_inverse, se3_exp, so3_log
-from ._kinematics import KinematicModel, forward_kinematics, joint_axes
+from ._arcfit import ArcFitResult, _instantiate, line_to_params
+from ._geometry import make_pose, matmul, pose_inverse, se3_exp, skew, so3_log, so3_right_jacobian_inv
+from ._kinematics import REVOLUTE, KinematicModel, _joint_motion, forward_kinematics, joint_axes
 
 _POSE_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 
@@ -117,8 +118,9 @@ def _meas_dim(arcs: ArcFitResult, use_poses: bool) -> int:
     return arcs.meas.shape[-1] if use_poses else 4
 
 
-def axis_residuals(params: AxisFitParams, problem: AxisFitProblem) -> Float[Array, "joints k"]:
-    """Whitened residuals of the second error function, one row per joint sweep."""
+def _axis_residuals_autodiff(params: AxisFitParams, problem: AxisFitProblem) -> Float[Array, "joints k"]:
+    """`axis_residuals` written with the model's own `joint_axes` and `forward_kinematics`,
+    differentiated by JAX (the reference the closed-form Jacobian is tested against)."""
     model, mounts = apply_correction(problem.nominal, problem.T_flange_marker0, params.correction)
     T_cam_base = problem.T_cam_base0 @ se3_exp(params.cam)
     q0 = jnp.zeros(model.num_joints)
@@ -144,6 +146,194 @@ def axis_residuals(params: AxisFitParams, problem: AxisFitProblem) -> Float[Arra
         pred = jnp.concatenate(parts, axis=-1)
     e = pred - arcs.meas[:, :k]
     return jnp.einsum("jab,jb->ja", problem.sqrt_info, e)
+
+
+def _se3_exp_body_jacobian(xi: Float[Array, "6"]) -> tuple[Float[Array, "4 4"], Float[Array, "6 6"]]:
+    """`T = se3_exp(xi)` and $B$ with $T^{-1}\\,dT = (B\\,d\\xi)^\\wedge$ (body twist, `(v, w)`).
+
+    $B$ is the right Jacobian of SE(3), taken here by forward-mode autodiff of the
+    6-input map (six tangents through one small function, exact to round-off).
+    """
+    eye = jnp.eye(6, dtype=xi.dtype)
+    T, dT = jax.vmap(lambda e: jax.jvp(se3_exp, (xi,), (e,)), out_axes=(None, 0))(eye)  # dT: (6, 4, 4)
+    R = T[:3, :3]
+    A = jnp.einsum("ba,kbc->kac", R, dT[:, :3, :3])  # R^T dR per column, skew
+    w = jnp.stack([A[:, 2, 1], A[:, 0, 2], A[:, 1, 0]])  # (3, 6)
+    v = matmul(R.T, dT[:, :3, 3].T)  # (3, 6)
+    return T, jnp.concatenate([v, w])
+
+
+def _adjoint(T: Float[Array, "4 4"]) -> Float[Array, "6 6"]:
+    """$\\mathrm{Ad}_T$ for twists `(v, w)`: body twist -> spatial twist, $(Rv + t \\times Rw,\\ Rw)$."""
+    R, t = T[:3, :3], T[:3, 3]
+    top = jnp.concatenate([R, matmul(skew(t), R)], axis=1)
+    bottom = jnp.concatenate([jnp.zeros((3, 3), T.dtype), R], axis=1)
+    return jnp.concatenate([top, bottom])
+
+
+def _column_masks(nominal: KinematicModel, n_markers: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which flattened parameters move joint $j$'s axis (`(joints, n)`) and marker $m$ (`(markers, n)`).
+
+    Joint $j$'s axis moves with the camera pose, the origins of joints $i \\le j$
+    and the zero offsets of joints $i < j$; a marker with everything but the
+    other markers' mounts.
+    """
+    n = nominal.num_joints
+    j = np.arange(n)[:, None]
+    i = np.arange(n)[None, :]
+    line = np.concatenate(
+        [
+            np.ones((n, 6)),
+            np.repeat(i <= j, 6, axis=1),
+            i < j,
+            np.zeros((n, 6 * n_markers)),
+        ],
+        axis=1,
+    )
+    marker = np.concatenate(
+        [np.ones((n_markers, 6 + 7 * n)), np.repeat(np.eye(n_markers), 6, axis=1)], axis=1
+    )
+    return line, marker
+
+
+def _axis_terms(
+    params: AxisFitParams, problem: AxisFitProblem, *, jacobian: bool
+) -> tuple[Float[Array, "joints k"], Float[Array, "joints k n"] | None]:
+    """Whitened residuals and, with `jacobian`, their closed-form Jacobian with
+    respect to the flattened parameters (`parameter_names` order).
+
+    One pass over the chain at the zero configuration in the camera frame
+    ($T_{cam,base} = T_0\\exp(\\xi_c)$, joint frames
+    $T_j = T_{j-1}^{+} T^{origin}_j \\exp(\\xi_j)$, $T_j^{+} = T_j \\exp(a_j\\theta_j)$).
+    Every parameter enters as a spatial (camera-frame) twist $s = (v, \\omega)$:
+    $\\mathrm{Ad}_{T}B(\\xi)$ for a pose correction right-multiplying the frame
+    $T$ ($B$ the right Jacobian of SE(3)), $(p_i \\times d_i, d_i)$ for a revolute
+    zero offset. A twist moves every frame downstream of it: a point $x$ by
+    $v + \\omega \\times x$, a direction $d$ by $\\omega \\times d$, and a rotation
+    residual $\\log(O_{ref}^T R)$ by $J_l^{-1} O_{ref}^T \\omega$ (left Jacobian
+    of SO(3), Barfoot eq. 7.77). The line coordinates' derivative with respect
+    to (point, direction) is a 4x6 local Jacobian.
+    """
+    nominal = problem.nominal
+    corr = params.correction
+    n = nominal.num_joints
+    M = problem.T_flange_marker0.shape[0]
+    if jacobian:
+        E_c, B_c = _se3_exp_body_jacobian(params.cam)
+        E_o, B_o = jax.vmap(_se3_exp_body_jacobian)(corr.origin)
+        E_m, B_m = jax.vmap(_se3_exp_body_jacobian)(corr.tool)
+    else:
+        E_c = se3_exp(params.cam)
+        E_o = jax.vmap(se3_exp)(corr.origin)
+        E_m = jax.vmap(se3_exp)(corr.tool)
+    # Small products as broadcast-and-sum (`matmul`), fused by XLA under vmap.
+    T_cb = matmul(problem.T_cam_base0, E_c)
+    theta = nominal.zero_offset + corr.zero_offset
+    T = T_cb
+    frames = []
+    for i, kind in enumerate(nominal.joint_types):
+        T = matmul(matmul(T, nominal.T_parent_joint[i]), E_o[i])
+        frames.append(T)
+        T = matmul(T, _joint_motion(kind, nominal.axis[i], theta[i]))
+    T_cm = matmul(matmul(matmul(T, nominal.T_last_flange), problem.T_flange_marker0), E_m)  # (M, 4, 4)
+    frames = jnp.stack(frames)  # joint frames in the camera frame, (J, 4, 4)
+    points = frames[:, :3, 3]
+    dirs = jnp.einsum("jab,jb->ja", frames[:, :3, :3], nominal.axis)
+    arcs = problem.arcs
+    sign_free = not arcs.has_encoder
+
+    def line(p, d, R, c):
+        return line_to_params(p, d, R, c, sign_free=sign_free)
+
+    lines = jax.vmap(line)(points, dirs, arcs.R_ref, arcs.c)
+    k = _meas_dim(arcs, problem.use_poses)
+    pred = [lines]
+    with_rot = problem.use_poses and k > 4 + 3 * M
+    if problem.use_poses:
+        p_m = T_cm[:, :3, 3]  # (M, 3)
+        pred.append(jnp.broadcast_to(p_m.reshape(-1), (n, 3 * M)))
+        if with_rot:
+            A = jnp.einsum("jmba,mbc->jmac", arcs.O_ref, T_cm[:, :3, :3])  # O_ref^T R, (J, M, 3, 3)
+            r_m = so3_log(A)
+            pred.append(r_m.reshape(n, 3 * M))
+    e = jnp.concatenate(pred, axis=-1) - arcs.meas[:, :k]
+    W = problem.sqrt_info
+    r = jnp.einsum("jab,jb->ja", W, e)
+    if not jacobian:
+        return r, None
+
+    # Spatial twists of every parameter, (6, n_params), in parameter_names order.
+    S_cam = matmul(_adjoint(T_cb), B_c)
+    S_origin = jnp.einsum("jab,jbc->ajc", jax.vmap(_adjoint)(frames), B_o).reshape(6, 6 * n)
+    zero_cols = []
+    for i, kind in enumerate(nominal.joint_types):
+        if kind == REVOLUTE:
+            zero_cols.append(jnp.concatenate([jnp.cross(points[i], dirs[i]), dirs[i]]))
+        else:
+            zero_cols.append(jnp.concatenate([dirs[i], jnp.zeros(3, dirs.dtype)]))
+    S_zero = jnp.stack(zero_cols, axis=1)
+    S_tool = jnp.einsum("mab,mbc->amc", jax.vmap(_adjoint)(T_cm), B_m).reshape(6, 6 * M)
+    S = jnp.concatenate([S_cam, S_origin, S_zero, S_tool], axis=1)
+    v, w = S[:3].T, S[3:].T  # (n_params, 3)
+    line_mask, marker_mask = (jnp.asarray(x, r.dtype) for x in _column_masks(nominal, M))
+    dp = (v[None] + jnp.cross(w[None], points[:, None])) * line_mask[..., None]  # (J, n_params, 3)
+    dd = jnp.cross(w[None], dirs[:, None]) * line_mask[..., None]
+    L_p, L_d = jax.vmap(jax.jacfwd(line, argnums=(0, 1)))(points, dirs, arcs.R_ref, arcs.c)  # (J, 4, 3)
+    jac = [jnp.einsum("jab,jpb->jap", L_p, dp) + jnp.einsum("jab,jpb->jap", L_d, dd)]
+    if problem.use_poses:
+        dpm = (v[None] + jnp.cross(w[None], p_m[:, None])) * marker_mask[..., None]  # (M, n_params, 3)
+        jac.append(jnp.broadcast_to(jnp.swapaxes(dpm, 1, 2).reshape(3 * M, -1), (n, 3 * M, v.shape[0])))
+        if with_rot:
+            # d log(O_ref^T R) = J_l^{-1}(r) O_ref^T dw, with J_l^{-1}(r) = J_r^{-1}(r)^T.
+            G = jnp.einsum("jmba,jmbc->jmac", so3_right_jacobian_inv(r_m), jnp.swapaxes(arcs.O_ref, -1, -2))
+            dwm = w[None] * marker_mask[..., None]  # (M, n_params, 3)
+            jac.append(jnp.einsum("jmab,mpb->jmap", G, dwm).reshape(n, 3 * M, -1))
+    D = jnp.concatenate(jac, axis=1)  # (J, k, n_params)
+    return r, jnp.einsum("jab,jbp->jap", W, D)
+
+
+def _flat_params(params: AxisFitParams) -> Float[Array, " n"]:
+    return ravel_pytree(params)[0]
+
+
+@jax.custom_jvp
+def axis_residuals(params: AxisFitParams, problem: AxisFitProblem) -> Float[Array, "joints k"]:
+    """Whitened residuals of the second error function, one row per joint sweep.
+
+    Per joint: the model axis, mapped into the camera frame, in the arc fit's
+    line coordinates minus the measured ones (and, with poses, the marker
+    position and orientation at zero), whitened by the arc covariance.
+    Differentiable as usual; the derivative with respect to `params` is the
+    closed form of `_axis_terms` (one pass over the chain), so every solver
+    step, the identifiability analysis and the covariance share one small
+    Jacobian instead of tracing forward kinematics through autodiff.
+    """
+    return _axis_terms(params, problem, jacobian=False)[0]
+
+
+def _axis_residuals_jvp(primals, tangents):
+    params, problem = primals
+    t_params, t_problem = tangents
+    is_zero = lambda x: isinstance(x, SymbolicZero)
+    if not all(is_zero(t) for t in jax.tree.leaves(t_problem, is_leaf=is_zero)):
+        # Derivatives with respect to the measurements (e.g. implicit differentiation): autodiff.
+        inst = lambda tree: jax.tree.map(_instantiate, tree, is_leaf=is_zero)
+        return jax.jvp(_axis_residuals_autodiff, (params, problem), (inst(t_params), inst(t_problem)))
+    r, J = _axis_terms(params, problem, jacobian=True)
+    t = _flat_params(jax.tree.map(_instantiate, t_params, is_leaf=is_zero))
+    return r, J @ t
+
+
+axis_residuals.defjvp(_axis_residuals_jvp, symbolic_zeros=True)
+
+
+def axis_jacobian(
+    params: AxisFitParams, problem: AxisFitProblem
+) -> tuple[Float[Array, "joints k"], Float[Array, "joints*k n"]]:
+    """`axis_residuals` and their Jacobian with respect to the flattened parameters
+    (`parameter_names` order), in closed form: `(joints, k)` and `(joints * k, n)`."""
+    r, J = _axis_terms(params, problem, jacobian=True)
+    return r, J.reshape(-1, J.shape[-1])
 
 
 def _whitening(cov: Float[Array, "k k"]) -> Float[Array, "k k"]:
@@ -213,8 +403,7 @@ def identifiable_mask(
     **Returns:** `(free, independence)` over the flattened parameters; the
     independence is each column's relative distance from the kept span.
     """
-    flat, unravel = ravel_pytree(params)
-    J = jax.jacfwd(lambda x: axis_residuals(unravel(x), problem).reshape(-1))(flat)
+    _, J = axis_jacobian(params, problem)
     norms = jnp.linalg.norm(J, axis=0)
     Jn = J / jnp.where(norms > 0, norms, 1.0)
     order = jnp.asarray(_priority(problem.nominal, problem.T_flange_marker0.shape[0]))
@@ -350,11 +539,11 @@ def fit_axes(
     sol = optx.least_squares(fn, solver, flat0, problem, max_steps=max_steps, throw=throw)
     x = sol.value * keep_f
     params = unravel(x)
-    J = jax.jacfwd(lambda y: fn(y, problem).reshape(-1))(x) * keep_f[None, :]
+    r, J = axis_jacobian(params, problem)
+    J = J * keep_f[None, :]
     cov = (
         jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - keep_f), hermitian=True) * keep_f[:, None] * keep_f[None, :]
     )
-    r = fn(x, problem)
     model, mounts = apply_correction(nominal, T_flange_marker, params.correction)
     if arcs.has_encoder:
         model = eqx.tree_at(lambda m: m.reduction_ratio, model, nominal.reduction_ratio / arcs.rate)
