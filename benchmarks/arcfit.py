@@ -363,7 +363,7 @@ def run(n: int, frames: int, n_scipy: int, repeats: int, seed: int) -> dict:
             "SciPy starts from jaxcal's closed-form initialise_arc, computed for all problems before "
             "SciPy's clock starts; jaxcal_s includes that initialisation (see jaxcal_parts_s), so the "
             "comparison favours SciPy.",
-            "jaxcal_s also includes fit_arc's covariance (a jacfwd and a pinv per problem) and summary; "
+            "jaxcal_s also includes fit_arc's covariance (the closed-form Jacobian and a pinv per problem) and summary; "
             "SciPy computes neither. jaxcal_parts_s.initialise_and_solve is jaxcal without them.",
             "scipy_s: least_squares(method='lm') with its default 2-point finite differences (SciPy "
             "computes them in Python, approx_derivative, and drives MINPACK's lmder) on a vectorised "

@@ -6,8 +6,9 @@ noise, encoders and orientations).
 
 - jaxcal: `jaxcal._montecarlo.monte_carlo`, every trial in one
   `jit(vmap(run_trial))` call. A trial synthesises the sweeps, fits them
-  (six arc fits, vmapped, then the axis fit), does the same on noise-free
-  sweeps (the gauge reference of `score`) and scores the result. The first
+  (six arc fits, vmapped, then the axis fit), runs the same axis fit on the
+  exact arcs of its truth (`exact_arcs`: what noise-free arc fits return,
+  the gauge reference of `score`) and scores the result. The first
   call compiles and runs; `compile_s` is the first call's time minus the
   best later one (`jaxcal_s`).
 - SciPy: for each trial, the same sweeps (jaxcal's `synthesize_sweeps` on
@@ -18,7 +19,7 @@ noise, encoders and orientations).
   arc covariance and axis-problem set-up as one jitted call, then the axis
   fit, on jaxcal's own `axis_residuals` jitted and called from NumPy (finite
   differences) with the same identifiability mask (`nominal_free_mask`).
-  Like jaxcal's trial, SciPy fits both the noisy and the noise-free sweeps.
+  Like jaxcal's trial, SciPy then solves the axis fit again on the exact arcs.
   It is timed on a subset (`--scipy-trials`), scaled to `--trials`, and
   scored with jaxcal's `score`.
 
@@ -65,12 +66,12 @@ from jaxcal._axisfit import (
 from jaxcal._geometry import pose_inverse, se3_exp
 from jaxcal._kinematics import KinematicModel, forward_kinematics
 from jaxcal._montecarlo import (
-    NoiseModel,
     SweepPlan,
     _draw_truth,
     _dynamic,
     _free_mask_jit,
     default_setup,
+    exact_arcs,
     fit_sweeps,
     monte_carlo,
     score,
@@ -83,9 +84,9 @@ from jaxcal.robots import load_robot
 
 
 def _trial_inputs(setup, key):
-    """What `run_trial` draws from `key`: the truth, the noisy and noise-free sweeps
-    (stacked, `(2, joints, ...)`), the validation configurations, and jaxcal's
-    closed-form arc starts (SciPy's starting point)."""
+    """What `run_trial` draws from `key`: the truth, the noisy sweeps, the
+    validation configurations, and jaxcal's closed-form arc starts (SciPy's
+    starting point)."""
     k_truth, k_noise, k_val = jax.random.split(key, 3)
     true, T_cam_base, T_flange_marker = _draw_truth(setup, k_truth)
     kw = dict(
@@ -94,16 +95,12 @@ def _trial_inputs(setup, key):
         use_orientations=setup.use_orientations,
     )
     data = synthesize_sweeps(true, T_cam_base, T_flange_marker, setup.plan, setup.noise, k_noise, **kw)
-    exact = synthesize_sweeps(
-        true, T_cam_base, T_flange_marker, setup.plan, NoiseModel(0.0, 0.0, 0.0), k_noise, **kw
-    )
-    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), data, exact)
-    params0, ref = jax.vmap(jax.vmap(initialise_arc))(both)
+    params0, ref = jax.vmap(initialise_arc)(data)
     q_val = jax.random.uniform(
         k_val, (setup.n_validation, setup.nominal.num_joints), minval=-jnp.pi, maxval=jnp.pi
     )
     return dict(
-        true=true, T_cam_base=T_cam_base, T_flange_marker=T_flange_marker, data=both, params0=params0, ref=ref
+        true=true, T_cam_base=T_cam_base, T_flange_marker=T_flange_marker, data=data, params0=params0, ref=ref
     ), q_val
 
 
@@ -122,6 +119,7 @@ class AxisStage(NamedTuple):
     """jaxcal's pieces around SciPy's solves, each jitted once for every trial."""
 
     setup: Callable  # (x_arcs, ref, data) -> AxisFitProblem
+    setup_exact: Callable  # (problem, true, T_cam_base, T_flange_marker) -> AxisFitProblem
     residuals: Callable  # (x_free, problem) -> flat whitened residuals
     jacobian: Callable  # (x_free, problem) -> their Jacobian (jax.jacfwd)
     finish: Callable  # (x_free, problem) -> Calibrated
@@ -156,7 +154,15 @@ def make_axis_stage(nominal: KinematicModel, free: np.ndarray, n_markers: int) -
             mask = _free_mask(params, data, ref)
             return _summarise(params, ref, data, mask, optx.RESULTS.successful, jnp.asarray(0), False)
 
-        arcs = jax.vmap(one)(x_arcs, ref, data)
+        return problem_of(jax.vmap(one)(x_arcs, ref, data))
+
+    def setup_exact(problem, true, T_cam_base, T_flange_marker):
+        """The reference fit's problem: `run_trial`'s exact arcs from the noisy ones."""
+        return problem_of(
+            exact_arcs(problem.arcs, true, T_cam_base, T_flange_marker, nominal.reduction_ratio)
+        )
+
+    def problem_of(arcs):
         T_cam_base0 = register_lines(nominal, arcs)
         T_cam_flange = T_cam_base0 @ forward_kinematics(nominal, jnp.zeros(n))[-1]
         T_flange_marker = jnp.einsum("ab,mbc->mac", pose_inverse(T_cam_flange), arcs.T_cam_marker0[0])
@@ -186,6 +192,7 @@ def make_axis_stage(nominal: KinematicModel, free: np.ndarray, n_markers: int) -
 
     return AxisStage(
         setup=jax.jit(setup),
+        setup_exact=jax.jit(setup_exact),
         residuals=jax.jit(residuals),
         jacobian=jax.jit(jax.jacfwd(residuals)),
         finish=jax.jit(finish),
@@ -193,11 +200,12 @@ def make_axis_stage(nominal: KinematicModel, free: np.ndarray, n_markers: int) -
     )
 
 
-def scipy_fit(stage: AxisStage, arrays: dict, clock: dict, stats: dict, *, exact_jac: bool) -> Calibrated:
-    """One sweep set (six joints) through SciPy: arc fits, jaxcal's set-up, axis fit.
+def scipy_fit(stage: AxisStage, arrays: dict, clock: dict, stats: tuple, *, exact_jac: bool) -> list:
+    """One trial through SciPy, as `run_trial`: the six arc fits, jaxcal's set-up,
+    the axis fit, then the reference axis fit on the exact arcs (`exact_arcs`).
 
-    With `exact_jac`, both solves get jaxcal's Jacobian (jitted `jax.jacfwd`)
-    instead of finite differences.
+    With `exact_jac`, every solve gets jaxcal's Jacobian (jitted `jax.jacfwd`)
+    instead of finite differences. **Returns:** the two `Calibrated`.
     """
     t0 = time.perf_counter()
     x_arcs = []
@@ -211,12 +219,23 @@ def scipy_fit(stage: AxisStage, arrays: dict, clock: dict, stats: dict, *, exact
 
         res = least_squares(arc_residuals_np, arrays["x0"][j], jac=jac, method="lm", args=args)
         x_arcs.append(res.x)
-        stats["arc_nfev"].append(res.nfev)
-        stats["arc_njev"].append(res.njev)
-        stats["ok"].append(res.status > 0)
+        stats[0]["arc_nfev"].append(res.nfev)
+        stats[0]["arc_njev"].append(res.njev)
+        stats[0]["ok"].append(res.status > 0)
     t1 = time.perf_counter()
+    clock["arc_lm"] += t1 - t0
     problem = jax.block_until_ready(stage.setup(np.stack(x_arcs), arrays["ref"], arrays["data"]))
+    clock["jaxcal_glue"] += time.perf_counter() - t1
+    cal = _scipy_axes(stage, problem, clock, stats[0], exact_jac=exact_jac)
     t2 = time.perf_counter()
+    problem = jax.block_until_ready(stage.setup_exact(problem, *arrays["truth"]))
+    clock["jaxcal_glue"] += time.perf_counter() - t2
+    return [cal, _scipy_axes(stage, problem, clock, stats[1], exact_jac=exact_jac)]
+
+
+def _scipy_axes(stage: AxisStage, problem, clock: dict, stats: dict, *, exact_jac: bool) -> Calibrated:
+    """The axis fit by SciPy on a set-up problem, then jaxcal's read-out."""
+    t0 = time.perf_counter()
 
     def fun(xf):
         return np.asarray(stage.residuals(xf, problem))
@@ -228,37 +247,42 @@ def scipy_fit(stage: AxisStage, arrays: dict, clock: dict, stats: dict, *, exact
     stats["axis_nfev"].append(res.nfev)
     stats["axis_njev"].append(res.njev)
     stats["ok"].append(res.status > 0)
-    t3 = time.perf_counter()
+    t1 = time.perf_counter()
     cal = jax.block_until_ready(stage.finish(res.x, problem))
-    t4 = time.perf_counter()
-    clock["arc_lm"] += t1 - t0
-    clock["jaxcal_glue"] += (t2 - t1) + (t4 - t3)
-    clock["axis_lm"] += t3 - t2
+    clock["axis_lm"] += t1 - t0
+    clock["jaxcal_glue"] += time.perf_counter() - t1
     return cal
 
 
 def time_scipy(stage: AxisStage, arrays: list, *, exact_jac: bool) -> tuple[float, list, dict, tuple]:
-    """Every measured trial's noisy and noise-free fits, after one untimed warm-up fit.
+    """Every measured trial's noisy and reference fits, after one untimed warm-up trial.
 
     **Returns:** the wall time, the `Calibrated` pairs, the time per stage, and
-    the solver statistics of the noisy and of the noise-free fits.
+    the solver statistics of the noisy and of the reference fits.
     """
-    warm = dict.fromkeys(_STAGES, 0.0)
-    scipy_fit(stage, arrays[0][0], warm, _new_stats(), exact_jac=exact_jac)
+    scipy_fit(
+        stage, arrays[0], dict.fromkeys(_STAGES, 0.0), (_new_stats(), _new_stats()), exact_jac=exact_jac
+    )
     clock, stats, cals = dict.fromkeys(_STAGES, 0.0), (_new_stats(), _new_stats()), []
     t0 = time.perf_counter()
     for trial in arrays:
-        cals.append([scipy_fit(stage, a, clock, st, exact_jac=exact_jac) for a, st in zip(trial, stats)])
+        cals.append(scipy_fit(stage, trial, clock, stats, exact_jac=exact_jac))
     return time.perf_counter() - t0, cals, clock, stats
 
 
 _STAGES = ("arc_lm", "jaxcal_glue", "axis_lm")
 
 
-def _numpy_arrays(inputs: dict, trial: int, which: int) -> dict:
-    """NumPy views of one trial's sweeps (`which`: 0 noisy, 1 noise-free) and their starts."""
-    data, ref, params0 = jax.tree.map(
-        lambda a: a[trial, which], (inputs["data"], inputs["ref"], inputs["params0"])
+def _numpy_arrays(inputs: dict, trial: int) -> dict:
+    """NumPy views of one trial's sweeps and their starts, and its truth."""
+    data, ref, params0, truth = jax.tree.map(
+        lambda a: a[trial],
+        (
+            inputs["data"],
+            inputs["ref"],
+            inputs["params0"],
+            (inputs["true"], inputs["T_cam_base"], inputs["T_flange_marker"]),
+        ),
     )
     W = np.asarray(data.sqrt_info)  # (J, M, F, 6, 6)
     w = np.diagonal(W[:, 0, 0], axis1=-2, axis2=-1)  # (J, 6)
@@ -290,6 +314,7 @@ def _numpy_arrays(inputs: dict, trial: int, which: int) -> dict:
         ],
         ref=ref,
         data=data,
+        truth=truth,
     )
 
 
@@ -318,7 +343,7 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
     keys = jax.random.split(key, trials)[:n_scipy]
     inputs, q_val = jax.jit(jax.vmap(_trial_inputs, in_axes=(None, 0)))(dyn, keys)
     stage = make_axis_stage(dyn.nominal, free, setup.T_flange_marker.shape[0])
-    arrays = [[_numpy_arrays(inputs, i, which) for which in (0, 1)] for i in range(n_scipy)]
+    arrays = [_numpy_arrays(inputs, i) for i in range(n_scipy)]
     scipy_t, cals, clock, stats = time_scipy(stage, arrays, exact_jac=False)
     scipy_jac_t, _, clock_jac, stats_jac = time_scipy(stage, arrays, exact_jac=True)
 
@@ -331,7 +356,7 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
     jax_ee = np.asarray(result.ee_rms_mm)[:n_scipy]
 
     # jaxcal's own solver steps on the same noisy sweeps (not part of any timing).
-    noisy = jax.tree.map(lambda a: a[:, 0], inputs["data"])
+    noisy = inputs["data"]
     arcs, axes = jax.jit(
         jax.vmap(lambda d: fit_sweeps(dyn.nominal, d, free=free, max_steps=setup.max_steps))
     )(noisy)
@@ -365,12 +390,12 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
         scipy_jac_success_rate=float(np.mean(stats_jac[0]["ok"] + stats_jac[1]["ok"])),
         scipy_nfev={
             f"{name}_{which}": _describe(st[name])
-            for which, st in zip(("noisy", "noise_free"), stats)
+            for which, st in zip(("noisy", "reference"), stats)
             for name in ("arc_nfev", "arc_njev", "axis_nfev", "axis_njev")
         },
         scipy_jac_nfev={
             f"{name}_{which}": _describe(st[name])
-            for which, st in zip(("noisy", "noise_free"), stats_jac)
+            for which, st in zip(("noisy", "reference"), stats_jac)
             for name in ("arc_nfev", "arc_njev", "axis_nfev", "axis_njev")
         },
         axis_free_parameters=int(free.sum()),
@@ -391,10 +416,12 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
         ),
         cpu_count=os.cpu_count(),
         notes=[
-            "jaxcal_s is one monte_carlo call: data synthesis, the noisy and the noise-free fits, and scoring "
+            "jaxcal_s is one monte_carlo call: data synthesis, the noisy fits, the reference axis fit on the exact "
+            "arcs (exact_arcs, the gauge of score), and scoring "
             "of every trial (plus the nominal identifiability mask). compile_s = first call - best later "
             "call (it includes compiling that mask's fit).",
-            "SciPy's clock covers the fits only (noisy and noise-free sweeps, as jaxcal's trial): the data, "
+            "SciPy's clock covers the fits only (the noisy arc and axis fits and the reference axis fit, as "
+            "jaxcal's trial): the data, "
             "jaxcal's closed-form arc starts (initialise_arc) and the scoring are computed beforehand or "
             "after, which favours SciPy. scipy_s = per-trial time x trials, measured on scipy_measured_trials.",
             "Arc fits: least_squares(method='lm') with finite differences on the NumPy residual of "
@@ -419,7 +446,7 @@ def _new_stats() -> dict:
 
 
 def _describe(x) -> dict | None:
-    if any(v is None for v in x):  # SciPy reports no njev for finite-difference Jacobians
+    if not len(x) or any(v is None for v in x):  # SciPy reports no njev for finite differences
         return None
     x = np.asarray(x)
     return dict(mean=float(x.mean()), max=int(x.max()))

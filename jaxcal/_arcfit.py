@@ -35,6 +35,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._geometry import (
     frame_from_z,
     make_pose,
+    matmul,
     matmul_unrolled,
     matvec_unrolled,
     normalize,
@@ -311,19 +312,6 @@ def _arc_terms(
     return jax.vmap(one_marker)(params.p0, params.r0, ref.O_ref, P, O_all, data.sqrt_info, mask)
 
 
-def _contract(D: Float[Array, "markers frames k 11"], t: ArcParams, ref: ArcReference, data: ArcData):
-    """$D\\,\\tau$: a parameter tangent `t` pushed through the local derivatives of
-    `_arc_terms` (each residual sees the line, its frame's angle and its marker's
-    zero pose), as eleven multiply-adds per residual."""
-    dphi = t.rate * data.encoder if data.encoder is not None else t.angles * ref.gauge
-    out = D[..., 4] * dphi[None, :, None]
-    for i in range(4):
-        out = out + D[..., i] * t.line[i]
-    for a in range(3):
-        out = out + D[..., 5 + a] * t.p0[:, None, None, a] + D[..., 8 + a] * t.r0[:, None, None, a]
-    return out
-
-
 def _flat_jacobian(D: Float[Array, "markers frames k 11"], ref: ArcReference, data: ArcData):
     """The Jacobian with respect to the flattened `ArcParams` (`ravel_pytree`
     order: line, rate, p0, r0[, angles]), assembled from the local derivatives
@@ -385,7 +373,11 @@ def _arc_residuals_jvp(primals, tangents):
     ref, data = args
     r, D = _arc_terms(params, ref, data, jacobian=True)
     t = jax.tree.map(_instantiate, t_params, is_leaf=is_zero)
-    return r, _contract(D, t, ref, data)
+    # One matrix-vector product with the assembled Jacobian: a solver that
+    # materialises the linearisation (vmap over basis tangents) gets one small
+    # matrix product instead of a contraction per basis vector.
+    J = _flat_jacobian(D, ref, data)
+    return r, (J @ ravel_pytree(t)[0]).reshape(r.shape)
 
 
 arc_residuals.defjvp(_arc_residuals_jvp, symbolic_zeros=True)
@@ -567,7 +559,8 @@ def _summarise(params, ref, data, free, result, num_steps, scale_covariance) -> 
     free_flat, _ = ravel_pytree(free)
     r, D = _arc_terms(params, ref, data, jacobian=True)
     J = _flat_jacobian(D, ref, data) * free_flat[None, :]
-    JtJ = J.T @ J
+    # J^T J as broadcast-and-sum: fused by XLA on CPU, where a batched dot_general is slow.
+    JtJ = jnp.sum(J[:, :, None] * J[:, None, :], axis=0)
     # Pseudo-inverse restricted to the free parameters (absent ones have zero columns).
     P = jnp.diag(free_flat)
     cov = jnp.linalg.pinv(JtJ + (1.0 - P), hermitian=True) * free_flat[:, None] * free_flat[None, :]
@@ -590,7 +583,7 @@ def _summarise(params, ref, data, free, result, num_steps, scale_covariance) -> 
     lr = jnp.concatenate([params.line, params.rate[None]])
     G = jax.jacfwd(vqr)(lr)
     cov_lr = cov_p["line_rate"]
-    cov_vqr = G @ cov_lr @ G.T
+    cov_vqr = matmul(matmul(G, cov_lr), G.T)
     # Report Q as the axis point closest to the markers' centroid.
     mask_w = data.mask.astype(jnp.float64)
     P = jnp.where(data.mask[..., None], data.positions, 0.0)

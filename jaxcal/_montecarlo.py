@@ -22,7 +22,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ._arcfit import ArcData, fit_arc, make_arc_data
+from ._arcfit import ArcData, ArcFitResult, fit_arc, line_to_params, make_arc_data
 from ._axisfit import AxisFitResult, fit_axes
 from ._geometry import make_pose, matmul, pose_inverse, se3_exp, so3_exp, so3_log
 from ._kinematics import KinematicModel, PerturbationScales, forward_kinematics, joint_axes, perturb_model
@@ -160,7 +160,7 @@ def score(
     """Errors of a calibration against the truth (see `TrialResult`)."""
 
     def marker_in_cam(model, T_cb, mount, q):
-        return (T_cb @ forward_kinematics(model, q)[-1] @ mount)[:3, 3]
+        return matmul(matmul(T_cb, forward_kinematics(model, q)[-1]), mount)[:3, 3]
 
     est = jax.vmap(lambda q: marker_in_cam(fit.model, fit.T_cam_base, fit.T_flange_marker[0], q))(q_val)
     tru = jax.vmap(lambda q: marker_in_cam(true, T_cam_base, T_flange_marker[0], q))(q_val)
@@ -261,6 +261,48 @@ def trial_sweeps(
     )
 
 
+def exact_arcs(
+    arcs: ArcFitResult,
+    true: KinematicModel,
+    T_cam_base: Float[Array, "4 4"],
+    T_flange_marker: Float[Array, "markers 4 4"],
+    nominal_ratio: Float[Array, " joints"],
+) -> ArcFitResult:
+    """What the arc fits of noise-free sweeps (with encoders) return, from the truth.
+
+    The true axes and marker zero poses, expressed in the line coordinates of
+    the given (noisy) fits' references (`R_ref`, `c`, `O_ref`) and carrying
+    their covariances, so an axis fit on them solves the noise-free problem
+    with realistic whitening (its optimum is exact: the residuals vanish).
+    Noise-free arc fits recover the same numbers to ~1e-9 (`tests/test_arcfit.py`),
+    at the cost of six more LM solves per trial.
+    """
+    q0 = jnp.zeros(true.num_joints)
+    points, dirs = joint_axes(true, q0)
+    points = points @ T_cam_base[:3, :3].T + T_cam_base[:3, 3]
+    dirs = dirs @ T_cam_base[:3, :3].T
+    T0 = T_cam_base @ forward_kinematics(true, q0)[-1] @ T_flange_marker  # (M, 4, 4)
+    lines = jax.vmap(line_to_params)(points, dirs, arcs.R_ref, arcs.c)
+    n, M = points.shape[0], T0.shape[0]
+    parts = [lines, jnp.broadcast_to(T0[:, :3, 3].reshape(-1), (n, 3 * M))]
+    if arcs.meas.shape[-1] > 4 + 3 * M:  # orientations were measured
+        r0 = so3_log(jnp.einsum("jmba,mbc->jmac", arcs.O_ref, T0[:, :3, :3]))  # (J, M, 3)
+        parts.append(r0.reshape(n, 3 * M))
+    # The reported axis point is the one closest to the markers' centroid: project the fit's.
+    point = points + jnp.sum((arcs.point - points) * dirs, -1, keepdims=True) * dirs
+    return eqx.tree_at(
+        lambda a: (a.direction, a.point, a.rate, a.T_cam_marker0, a.meas),
+        arcs,
+        (
+            dirs,
+            point,
+            nominal_ratio / true.reduction_ratio,
+            jnp.broadcast_to(T0, arcs.T_cam_marker0.shape),
+            jnp.concatenate(parts, axis=-1),
+        ),
+    )
+
+
 def run_trial(
     setup: MonteCarloSetup, key: PRNGKeyArray, free: Bool[Array, " n"] | None = None
 ) -> TrialResult:
@@ -268,17 +310,23 @@ def run_trial(
     k_truth, k_noise, k_val = jax.random.split(key, 3)
     true, T_cam_base, T_flange_marker = _draw_truth(setup, k_truth)
     data = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise)
-    # The truth expressed in the estimator's gauge: the same fit on noise-free
-    # sweeps, whose T_cam_base is what a perfect calibration returns. Both
-    # fits run as one vmap (one trace, one compile).
-    exact = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise, NoiseModel(0.0, 0.0, 0.0))
-    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), data, exact)
-    arcs2, fit2 = jax.vmap(lambda d: fit_sweeps(setup.nominal, d, free=free, max_steps=setup.max_steps))(both)
-    arcs, fit, fit_exact = (
-        jax.tree.map(lambda x: x[0], arcs2),
-        jax.tree.map(lambda x: x[0], fit2),
-        jax.tree.map(lambda x: x[1], fit2),
-    )
+    # The truth expressed in the estimator's gauge: the same axis fit on exact
+    # measurements, whose T_cam_base is what a perfect calibration returns. Both
+    # axis fits run as one vmap (one trace, one compile).
+    if setup.use_encoders:
+        arcs = jax.vmap(lambda d: fit_arc(d, scale_covariance=False, max_steps=setup.max_steps))(data)
+        exact = exact_arcs(arcs, true, T_cam_base, T_flange_marker, setup.nominal.reduction_ratio)
+        both = jax.tree.map(lambda a, b: jnp.stack([a, b]), arcs, exact)
+        fit2 = jax.vmap(lambda a: fit_axes(setup.nominal, a, free=free, max_steps=setup.max_steps))(both)
+    else:
+        # Without encoders the zero poses are not at q = 0: fit noise-free sweeps instead.
+        exact = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise, NoiseModel(0.0, 0.0, 0.0))
+        both = jax.tree.map(lambda a, b: jnp.stack([a, b]), data, exact)
+        arcs2, fit2 = jax.vmap(lambda d: fit_sweeps(setup.nominal, d, free=free, max_steps=setup.max_steps))(
+            both
+        )
+        arcs = jax.tree.map(lambda x: x[0], arcs2)
+    fit, fit_exact = jax.tree.map(lambda x: x[0], fit2), jax.tree.map(lambda x: x[1], fit2)
     q_val = jax.random.uniform(
         k_val, (setup.n_validation, setup.nominal.num_joints), minval=-jnp.pi, maxval=jnp.pi
     )

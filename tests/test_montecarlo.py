@@ -5,7 +5,8 @@ import numpy as np
 import optimistix as optx
 from helpers import ur5e_setup
 
-from jaxcal._montecarlo import NoiseModel, monte_carlo, summarize
+from jaxcal._arcfit import fit_arc
+from jaxcal._montecarlo import NoiseModel, _draw_truth, exact_arcs, monte_carlo, summarize, trial_sweeps
 
 SETUP = ur5e_setup(frames=24)
 TRIALS = 8  # one batch shape for every test here (and test_cli): one compilation
@@ -54,3 +55,22 @@ def test_failed_trials_are_flagged_not_raised():
     res = monte_carlo(broken, jax.random.key(3), TRIALS)
     assert np.asarray(res.success).shape == (TRIALS,)
     assert not np.any(np.asarray(res.success))
+
+
+def test_exact_arcs_equal_noise_free_arc_fits():
+    """The reference fit's shortcut: `exact_arcs` gives what arc fits of
+    noise-free sweeps measure (line coordinates and zero poses, in the fits'
+    own references), so the gauge reference is the same fit, minus six LM solves."""
+
+    def make(key):
+        true, T_cam_base, T_flange_marker = _draw_truth(SETUP, key)
+        quiet = trial_sweeps(SETUP, true, T_cam_base, T_flange_marker, key, NoiseModel(0.0, 0.0, 0.0))
+        arcs = jax.vmap(lambda d: fit_arc(d, scale_covariance=False))(quiet)
+        return arcs, exact_arcs(arcs, true, T_cam_base, T_flange_marker, SETUP.nominal.reduction_ratio)
+
+    arcs, exact = jax.jit(make)(jax.random.key(4))
+    np.testing.assert_allclose(exact.meas, arcs.meas, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(exact.direction, arcs.direction, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(exact.point, arcs.point, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(exact.rate, arcs.rate, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(exact.T_cam_marker0, arcs.T_cam_marker0, rtol=0, atol=1e-8)
