@@ -46,6 +46,7 @@ from ._geometry import (
     so3_right_jacobian,
     so3_right_jacobian_inv,
 )
+from ._linalg import after, nearest_rotation
 
 _DEG = np.pi / 180.0
 MIN_FRAMES = 5
@@ -391,12 +392,6 @@ def _masked_mean(x, w, axis):
     return jnp.sum(x * w, axis=axis) / wsum
 
 
-def _project_rotation(A: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
-    U, _, Vt = jnp.linalg.svd(A)
-    D = jnp.diag(jnp.array([1.0, 1.0, jnp.sign(jnp.linalg.det(U @ Vt))]))
-    return U @ D @ Vt
-
-
 def _forward_fill(x: Float[Array, " frames"], valid: Bool[Array, " frames"]) -> Float[Array, " frames"]:
     idx = jax.lax.cummax(jnp.where(valid, jnp.arange(x.shape[0]), 0))
     first = jnp.argmax(valid)
@@ -404,26 +399,23 @@ def _forward_fill(x: Float[Array, " frames"], valid: Bool[Array, " frames"]) -> 
 
 
 def initialise_arc(data: ArcData) -> tuple[ArcParams, ArcReference]:
-    """Closed-form start: plane by SVD, algebraic circle fit, axis from relative
-    rotations, rate from a linear fit of observed angle against encoder angle.
+    """Closed-form start: axis from relative rotations (or, with positions only,
+    the circles' plane normal), algebraic circle fit, rate from a linear fit of
+    observed angle against encoder angle.
     """
     mask = data.mask
     w = mask.astype(jnp.float64)
     P = jnp.where(mask[..., None], data.positions, 0.0)
     M, F = mask.shape
-    # 1. Plane normal: smallest eigenvector of the pooled scatter (each marker
-    #    centred on its own centroid; all circles share the axis direction).
     centroids = jax.vmap(lambda Pm, wm: _masked_mean(Pm, wm[:, None], 0))(P, w)  # (M, 3)
-    X = (P - centroids[:, None, :]) * w[..., None]
-    scatter = jnp.einsum("mfa,mfb->ab", X, X)
-    _, evecs = jnp.linalg.eigh(scatter)
-    n_plane = evecs[:, 0]
 
     any_valid = jnp.any(mask, axis=0)
     t_ref = jnp.argmax(any_valid)  # first frame where some marker is seen
     m_ref = jnp.argmax(mask[:, t_ref])
-    # 2. Axis from relative rotations when orientations exist (robust when the
-    #    marker sits near the axis, where the circle degenerates).
+    # 1-2. Axis direction: from relative rotations when orientations exist (robust
+    #    when the marker sits near the axis, where the circle degenerates); else the
+    #    plane normal, the smallest eigenvector of the pooled scatter (each marker
+    #    centred on its own centroid; all circles share the axis direction).
     if data.orientations is not None:
         O = jnp.where(mask[..., None, None], data.orientations, jnp.eye(3))
         O_first = jax.vmap(lambda Om, mm: Om[jnp.argmax(mm)])(O, mask)  # (M, 3, 3)
@@ -432,7 +424,9 @@ def initialise_arc(data: ArcData) -> tuple[ArcParams, ArcReference]:
         _, evecs_r = jnp.linalg.eigh(S_rot)
         V0 = evecs_r[:, -1]
     else:
-        V0 = n_plane
+        X = (P - centroids[:, None, :]) * w[..., None]
+        _, evecs = jnp.linalg.eigh(jnp.einsum("mfa,mfb->ab", X, X))
+        V0 = evecs[:, 0]
     # 3. Circle centre: algebraic (Kasa) fit, shared 2D centre, one c per marker.
     c_all = _masked_mean(centroids, jnp.any(mask, axis=1).astype(jnp.float64)[:, None], 0)
     R_ref = frame_from_z(V0)
@@ -486,8 +480,9 @@ def initialise_arc(data: ArcData) -> tuple[ArcParams, ArcReference]:
     back = Q0 + jnp.einsum("fab,mfb->mfa", R_back, P - Q0)
     p0 = jax.vmap(lambda bm, wm: _masked_mean(bm, wm[:, None], 0))(back, w)
     if data.orientations is not None:
-        O_back = jnp.einsum("fab,mfbc->mfac", R_back, O)
-        O0 = jax.vmap(lambda Ob, wm: _project_rotation(jnp.sum(Ob * wm[:, None, None], axis=0)))(O_back, w)
+        # After the circle fit's solve: two LAPACK calls never run side by side (see _linalg).
+        O_back = after(jnp.einsum("fab,mfbc->mfac", R_back, O), Q0)
+        O0 = nearest_rotation(jnp.einsum("mfab,mf->mab", O_back, w))
     else:
         O0 = jnp.broadcast_to(jnp.eye(3), (M, 3, 3))
     params = ArcParams(

@@ -38,6 +38,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._arcfit import ArcFitResult, _instantiate, line_to_params
 from ._geometry import make_pose, matmul, pose_inverse, se3_exp, skew, so3_log, so3_right_jacobian_inv
 from ._kinematics import REVOLUTE, KinematicModel, _joint_motion, forward_kinematics, joint_axes
+from ._linalg import after, gauss_newton_covariance, nearest_rotation
 
 _POSE_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 
@@ -361,9 +362,7 @@ def register_lines(nominal: KinematicModel, arcs: ArcFitResult) -> Float[Array, 
 
     def register(signs):
         H = jnp.einsum("j,ja,jb->ab", w * signs, D, dirs)  # sum w s D d^T
-        U, _, Vt = jnp.linalg.svd(H)
-        S = jnp.diag(jnp.array([1.0, 1.0, jnp.sign(jnp.linalg.det(U @ Vt))]))
-        R = U @ S @ Vt
+        R = nearest_rotation(H)
         dirs_c = dirs @ R.T
         Pj = jnp.eye(3) - dirs_c[:, :, None] * dirs_c[:, None, :]  # (J, 3, 3)
         rhs = jnp.einsum("jab,jb->ja", Pj, arcs.point - points @ R.T)
@@ -439,7 +438,8 @@ class AxisFitResult(eqx.Module):
     - `cov`: covariance of the flattened parameters.
     - `result`, `num_steps`: optimistix's result and step count.
     - `residual_rms`: RMS of the whitened residuals.
-    - `singular_values`: of the whitened Jacobian of the free parameters at the solution.
+    - `singular_values`: of the whitened Jacobian of the free parameters at the
+      solution, its columns scaled to unit norm.
     """
 
     model: KinematicModel
@@ -504,7 +504,8 @@ def fit_axes(
         T_cam_flange = T_cam_base0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints))[-1]
         T_flange_marker = jnp.einsum("ab,mbc->mac", pose_inverse(T_cam_flange), arcs.T_cam_marker0[0])
     k = _meas_dim(arcs, use_poses)
-    W = jax.vmap(_whitening)(arcs.meas_cov[:, :k, :k])
+    # After the registration's SVDs: LAPACK calls never run side by side (see _linalg).
+    W = jax.vmap(_whitening)(after(arcs.meas_cov[:, :k, :k], T_cam_base0))
     problem = AxisFitProblem(
         nominal=nominal,
         T_flange_marker0=T_flange_marker,
@@ -540,10 +541,8 @@ def fit_axes(
     x = sol.value * keep_f
     params = unravel(x)
     r, J = axis_jacobian(params, problem)
-    J = J * keep_f[None, :]
-    cov = (
-        jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - keep_f), hermitian=True) * keep_f[:, None] * keep_f[None, :]
-    )
+    # Frozen parameters: zero columns, zero variance; one SVD (see _linalg).
+    cov, sv, _ = gauss_newton_covariance(J * keep_f[None, :])
     model, mounts = apply_correction(nominal, T_flange_marker, params.correction)
     if arcs.has_encoder:
         model = eqx.tree_at(lambda m: m.reduction_ratio, model, nominal.reduction_ratio / arcs.rate)
@@ -559,5 +558,5 @@ def fit_axes(
         result=sol.result,
         num_steps=sol.stats["num_steps"],
         residual_rms=jnp.sqrt(jnp.mean(r**2)),
-        singular_values=jnp.linalg.svd(J, compute_uv=False),
+        singular_values=sv,
     )

@@ -20,7 +20,7 @@ the maximum-likelihood estimate under pixel noise. A pose-level variant
 pose error instead. Robot poses may be treated as noisy: with pixels, one
 correction per pose with a Gaussian prior; with poses, the corrections are
 marginalised (each frame's pose error whitened by $\\Sigma_A + J \\Sigma_r J^T$,
-`_robot_whitening`), so the solve keeps its 6 (cameras + 1) unknowns.
+`_robot_jacobian`), so the solve keeps its 6 (cameras + 1) unknowns.
 
 Pipeline (all pure, jittable and vmappable):
 1. Closed-form start. Board poses from pixels by a planar homography (Zhang's
@@ -47,6 +47,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
 from ._geometry import make_pose, matmul, pose_inverse, se3_exp, so3_exp, so3_log
+from ._linalg import after, nearest_rotation
 
 MIN_POSES = 3
 MIN_ROTATION_DEG = 5.0
@@ -412,19 +413,13 @@ class HandEyeReference(eqx.Module):
 
     `whiten` (pose data with noisy robot poses only): per frame, $L_f^{-1}$ with
     $L_f L_f^T = S_f$ the covariance of the frame's stacked pose errors
-    (see `_robot_whitening`), `(frames, 6 cameras, 6 cameras)`; None otherwise.
+    (see `_robot_jacobian`), `(frames, 6 cameras, 6 cameras)`; None otherwise.
     """
 
     X0: Float[Array, "cameras 4 4"]
     Y0: Float[Array, "4 4"]
     active: Bool[Array, "cameras frames"]
     whiten: Float[Array, "frames n n"] | None = None
-
-
-def _nearest_rotation(M: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
-    U, _, Vt = jnp.linalg.svd(M)
-    D = jnp.diag(jnp.array([1.0, 1.0, jnp.sign(jnp.linalg.det(U @ Vt))]))
-    return U @ D @ Vt
 
 
 def _corrected_robot(T_base_ee, delta):
@@ -490,15 +485,15 @@ def _pose_errors(A_pred, ref, data: "HandEyePoses") -> Float[Array, "cameras fra
     return jnp.where(m[..., None], jnp.concatenate([e_t, e_r], axis=-1), 0.0)
 
 
-def _robot_whitening(params, ref, data: "HandEyePoses"):
+def _robot_jacobian(params, ref, data: "HandEyePoses"):
     """Noisy robot poses marginalised out of the pose errors (the Schur complement, exact to first order).
 
     A robot correction $\\delta_f$ (as in `_corrected_robot`) moves frame $f$'s
     stacked pose errors by $J_f \\delta_f$; minimising over $\\delta_f$ with its
     prior $\\mathcal N(0, \\Sigma_r)$ leaves $e_f^T S_f^{-1} e_f$ with
-    $S_f = \\Sigma_A + J_f \\Sigma_r J_f^T$ (Gauss-Markov). Returns
-    `(L_f^{-1}, J_f, S_f^{-1})` at `params`; the per-frame blocks come from six
-    forward-mode derivatives, one correction direction shared by all frames.
+    $S_f = \\Sigma_A + J_f \\Sigma_r J_f^T$ (Gauss-Markov). Returns `(J_f, S_f)`
+    at `params`; the per-frame blocks come from six forward-mode derivatives,
+    one correction direction shared by all frames.
     """
     C, F = data.mask.shape
     X, Y = _transforms(params, ref)
@@ -510,26 +505,33 @@ def _robot_whitening(params, ref, data: "HandEyePoses"):
     J = jax.jacfwd(errors)(jnp.zeros(6))  # (C, F, 6, 6): d e_cf / d delta_f
     J = jnp.swapaxes(J, 0, 1).reshape(F, 6 * C, 6)
     S = jnp.einsum("fia,a,fja->fij", J, data.robot_sigma**2, J) + jnp.diag(jnp.tile(data.sigma**2, C))
+    return J, S
+
+
+def _robot_whitening(params, ref, data: "HandEyePoses") -> Float[Array, "frames n n"]:
+    """$L_f^{-1}$ with $L_f L_f^T = S_f$ (see `_robot_jacobian`), so $S_f^{-1} = L_f^{-T} L_f^{-1}$."""
+    _, S = _robot_jacobian(params, ref, data)
     L = jnp.linalg.cholesky(S)
-    eye = jnp.broadcast_to(jnp.eye(6 * C), S.shape)
-    L_inv = jax.scipy.linalg.solve_triangular(L, eye, lower=True)
-    return L_inv, J, jnp.einsum("fki,fkj->fij", L_inv, L_inv)
+    eye = jnp.broadcast_to(jnp.eye(S.shape[-1]), S.shape)
+    return jax.scipy.linalg.solve_triangular(L, eye, lower=True)
 
 
 def _with_whitening(params, ref, data):
     if isinstance(data, HandEyePoses) and data.robot_sigma is not None:
-        whiten = jax.lax.stop_gradient(_robot_whitening(params, ref, data)[0])
+        whiten = jax.lax.stop_gradient(_robot_whitening(params, ref, data))
         return HandEyeReference(X0=ref.X0, Y0=ref.Y0, active=ref.active, whiten=whiten)
     return ref
 
 
 def _robot_correction(params, ref, data: "HandEyePoses") -> Float[Array, "frames 6"]:
-    """The MAP robot corrections given the fit: $\\hat\\delta_f = -\\Sigma_r J_f^T S_f^{-1} e_f$."""
-    _, J, S_inv = _robot_whitening(params, ref, data)
+    """The MAP robot corrections given the fit, $\\hat\\delta_f = -\\Sigma_r J_f^T S_f^{-1} e_f$,
+    with `ref.whiten` the whitening at `params` (no new factorisation)."""
+    J, _ = _robot_jacobian(params, ref, data)
     e = _pose_errors(predicted_board_poses(params, ref, data), ref, data)
     C, F = e.shape[:2]
     e = jnp.swapaxes(e, 0, 1).reshape(F, 6 * C)
-    return -data.robot_sigma * jnp.einsum("fia,fij,fj->fa", J, S_inv, e)
+    S_inv_e = jnp.einsum("fki,fkj,fj->fi", ref.whiten, ref.whiten, e)
+    return -data.robot_sigma * jnp.einsum("fia,fi->fa", J, S_inv_e)
 
 
 def _prior_residuals(params, data):
@@ -587,8 +589,9 @@ def _plane_frame(points: Float[Array, "points 3"]) -> tuple[Float[Array, "4 4"],
 
 def _homography_pose(uv, w, K, ab, T_board_plane):
     """`T_cam_board` from one view by a normalised DLT homography and Zhang's decomposition."""
-    xy = jnp.einsum("ij,pj->pi", jnp.linalg.inv(K), jnp.concatenate([uv, jnp.ones_like(uv[:, :1])], axis=1))
-    xy = xy[:, :2] / xy[:, 2:]
+    # Normalised image coordinates (K is upper triangular: no factorisation needed).
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    xy = jnp.stack([(uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0], y], axis=1)
     wsum = jnp.maximum(jnp.sum(w), 1.0)
     mean_xy = jnp.sum(xy * w[:, None], 0) / wsum
     s_xy = jnp.sqrt(2.0) / jnp.maximum(jnp.sqrt(jnp.sum(jnp.sum((xy - mean_xy) ** 2, -1) * w) / wsum), 1e-12)
@@ -609,13 +612,13 @@ def _homography_pose(uv, w, K, ab, T_board_plane):
     )
     _, V = jnp.linalg.eigh(rows.T @ rows)
     Hn = V[:, 0].reshape(3, 3)
-    T_img = jnp.array([[s_xy, 0.0, -s_xy * mean_xy[0]], [0.0, s_xy, -s_xy * mean_xy[1]], [0.0, 0.0, 1.0]])
+    T_img_inv = jnp.array([[1.0 / s_xy, 0.0, mean_xy[0]], [0.0, 1.0 / s_xy, mean_xy[1]], [0.0, 0.0, 1.0]])
     T_pl = jnp.array([[s_ab, 0.0, -s_ab * mean_ab[0]], [0.0, s_ab, -s_ab * mean_ab[1]], [0.0, 0.0, 1.0]])
-    H = jnp.linalg.inv(T_img) @ Hn @ T_pl
+    H = T_img_inv @ Hn @ T_pl
     lam = 2.0 / (jnp.linalg.norm(H[:, 0]) + jnp.linalg.norm(H[:, 1]))
     lam = jnp.where(H[2, 2] < 0, -lam, lam)  # the board is in front of the camera
     r1, r2, t = lam * H[:, 0], lam * H[:, 1], lam * H[:, 2]
-    R = _nearest_rotation(jnp.stack([r1, r2, jnp.cross(r1, r2)], axis=1))
+    R = nearest_rotation(jnp.stack([r1, r2, jnp.cross(r1, r2)], axis=1))
     return make_pose(R, t) @ pose_inverse(T_board_plane)
 
 
@@ -659,8 +662,9 @@ def solve_axzb(
     _, V = jnp.linalg.eigh(G)
     w = V[:, -1]
     w = jnp.where(jnp.linalg.det(w.reshape(3, 3)) < 0, -w, w)
-    R_W = _nearest_rotation(w.reshape(3, 3))
-    R_X = jax.vmap(lambda Sc: _nearest_rotation((Sc @ w).reshape(3, 3)))(S)
+    # R_W and every R_X in one batched SVD (see _linalg).
+    R = nearest_rotation(jnp.concatenate([w[None], S @ w]).reshape(1 + C, 3, 3))
+    R_W, R_X = R[0], R[1:]
     # Translations: unknowns (t_W, t_X1..t_XC).
     sel = jnp.eye(C)[:, None, :, None, None] * jnp.eye(3)  # (C, 1, C, 3, 3)
     J = jnp.concatenate(
@@ -820,7 +824,7 @@ def calibrate_hand_eye(
     params0 = HandEyeParams(
         cam_robot=jnp.zeros((C, 6)),
         robot_board=jnp.zeros(6),
-        # Pose data: noisy robot poses are marginalised (`_robot_whitening`); pixels: solved for.
+        # Pose data: noisy robot poses are marginalised (`_robot_jacobian`); pixels: solved for.
         robot=None if data.robot_sigma is None or isinstance(data, HandEyePoses) else jnp.zeros((F, 6)),
     )
     observed = jnp.any(data.mask, axis=-1) if isinstance(data, HandEyePixels) else data.mask
@@ -907,7 +911,10 @@ def _summarise(params, ref, data, rejected, result, num_steps, scale_covariance)
         else jnp.asarray(jnp.nan),
         group_rms=_group_rms(
             params,
-            _with_whitening(params, HandEyeReference(ref.X0, ref.Y0, ref.active | rejected), data),
+            # Its own whitening, factorised after the covariance's (see _linalg).
+            _with_whitening(
+                after(params, cov), HandEyeReference(ref.X0, ref.Y0, ref.active | rejected), data
+            ),
             data,
         ),
         rejected=rejected,
@@ -1101,7 +1108,7 @@ def initialise_touch(data: TouchData) -> tuple[Float[Array, "4 4"], Float[Array,
     A, b = A.reshape(-1, n), (rhs * jnp.sqrt(w)[:, None]).reshape(-1)
     z = jnp.linalg.solve(A.T @ A + 1e-12 * jnp.eye(n), A.T @ b)
     g1, g2 = z[0:3], z[3:6]
-    R = _nearest_rotation(jnp.stack([g1, g2, jnp.cross(g1, g2)], axis=1)) @ U.T
+    R = nearest_rotation(jnp.stack([g1, g2, jnp.cross(g1, g2)], axis=1)) @ U.T
     # Translation (and tcp) at that rotation: R_C (R p + t) - R_D tcp = t_D - t_C.
     rhs2 = rhs - jnp.einsum("kij,jl,kl->ki", RC, R, P)
     blocks2 = [RC] if known else [RC, -RD]

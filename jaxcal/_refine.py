@@ -48,6 +48,7 @@ from ._axisfit import KinematicCorrection, apply_correction, parameter_names
 from ._clocksync import controller_time, interpolate_encoders
 from ._geometry import se3_exp, skew
 from ._kinematics import REVOLUTE, KinematicModel
+from ._linalg import gauss_newton_covariance
 
 _MS = 1e-3
 #: Names of the intrinsic increments, in `RefineParams.intrinsics` order.
@@ -583,11 +584,10 @@ def refine(
     used = w > 0
     n_obs = 2.0 * jnp.sum(w)
     sigma2 = jnp.sum(r**2) / jnp.maximum(n_obs - idx.size, 1.0)
-    cov_f = sigma2 * jnp.linalg.pinv(J.T @ J, hermitian=True)
+    # One SVD for the covariance and the identifiability report (see _linalg).
+    cov_f, sv, Vt = gauss_newton_covariance(J)
     n = flat0.shape[0]
-    cov = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(cov_f)
-    Jn = J / jnp.maximum(jnp.linalg.norm(J, axis=0), 1e-300)
-    _, sv, Vt = jnp.linalg.svd(Jn, full_matrices=False)
+    cov = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(sigma2 * cov_f)
     raw = projected_corners(params, problem) - problem.data.pixels
     raw = jnp.where(mask[..., None], raw, 0.0)
     inl_rms = jnp.sqrt(

@@ -9,6 +9,7 @@ import optimistix as optx
 import pytest
 
 from jaxcal import _handeye as he
+from jaxcal._linalg import concurrent_decompositions
 
 # --------------------------------------------------------------------------- synthetic problems
 
@@ -356,6 +357,20 @@ def test_poses_against_opencv():
 
 
 # --------------------------------------------------------------------------- bad input
+
+
+def test_batched_solves_keep_lapack_calls_ordered(eye_to_hand):
+    """No two LAPACK calls of a vmapped solve can run side by side: on a
+    two-core machine that deadlocks jaxlib's CPU thread pool (see jaxcal._linalg).
+    Pose data with noisy robot poses (whitening) and pixel data (homographies)."""
+    rng = np.random.default_rng(5)
+    trials = [opencv_protocol(rng, 10, 1.0) for _ in range(2)]
+    poses = jax.tree.map(lambda *x: jnp.stack(x), *[_pose_data(Tg, Tc, 1.0) for _, Tg, Tc in trials])
+    T_base_ee, uv, _, _ = eye_to_hand
+    pixels = he.make_hand_eye_pixels(T_base_ee, uv, K, BOARD)
+    pixels = jax.tree.map(lambda x: jnp.stack([x, x]) if eqx.is_array(x) else x, pixels)
+    for data in (poses, pixels):
+        assert concurrent_decompositions(eqx.filter_vmap(he.calibrate_hand_eye), data) == []
 
 
 def _good_poses():

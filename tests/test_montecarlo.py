@@ -1,12 +1,25 @@
 """Monte Carlo entry point: one jit(vmap) call over seeded trials."""
 
+import dataclasses
+
 import jax
 import numpy as np
 import optimistix as optx
 from helpers import ur5e_setup
 
 from jaxcal._arcfit import fit_arc
-from jaxcal._montecarlo import NoiseModel, _draw_truth, exact_arcs, monte_carlo, summarize, trial_sweeps
+from jaxcal._linalg import concurrent_decompositions
+from jaxcal._montecarlo import (
+    NoiseModel,
+    _draw_truth,
+    _dynamic,
+    _free_mask_jit,
+    exact_arcs,
+    monte_carlo,
+    run_trial,
+    summarize,
+    trial_sweeps,
+)
 
 SETUP = ur5e_setup(frames=24)
 TRIALS = 8  # one batch shape for every test here (and test_cli): one compilation
@@ -74,3 +87,14 @@ def test_exact_arcs_equal_noise_free_arc_fits():
     np.testing.assert_allclose(exact.point, arcs.point, rtol=0, atol=1e-8)
     np.testing.assert_allclose(exact.rate, arcs.rate, rtol=0, atol=1e-9)
     np.testing.assert_allclose(exact.T_cam_marker0, arcs.T_cam_marker0, rtol=0, atol=1e-8)
+
+
+def test_batched_trials_keep_lapack_calls_ordered():
+    """No two LAPACK calls of a vmapped trial can run side by side: on a
+    two-core machine that deadlocks jaxlib's CPU thread pool (see jaxcal._linalg).
+    With and without encoders (different arc and axis fit paths)."""
+    for setup in (SETUP, dataclasses.replace(SETUP, use_encoders=False)):
+        setup = _dynamic(setup)
+        free = _free_mask_jit(setup)
+        keys = jax.random.split(jax.random.key(0), 2)
+        assert concurrent_decompositions(jax.vmap(lambda k, s=setup: run_trial(s, k, free)), keys) == []

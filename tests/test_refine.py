@@ -18,6 +18,7 @@ from jax.flatten_util import ravel_pytree
 from jaxcal._axisfit import apply_correction
 from jaxcal._geometry import se3_exp
 from jaxcal._kinematics import forward_kinematics
+from jaxcal._linalg import concurrent_decompositions
 from jaxcal._montecarlo import default_setup
 from jaxcal._refine import (
     RefineProblem,
@@ -150,6 +151,17 @@ def test_jacobian_matches_finite_differences():
     scale = np.maximum(np.abs(J).max(0), 1e-3)
     err = np.abs(J - fd).max(0) / scale
     assert err.max() < 1e-5, NAMES[int(np.argmax(err))]
+
+
+def test_batched_refinement_keeps_lapack_calls_ordered(free):
+    """No two LAPACK calls of a vmapped refinement can run side by side: on a
+    two-core machine that deadlocks jaxlib's CPU thread pool (see jaxcal._linalg)."""
+
+    def one(pixels):
+        return refine(eqx.tree_at(lambda p: p.data.pixels, PROBLEM, pixels), P0, free)
+
+    pixels = jnp.broadcast_to(PROBLEM.data.pixels, (2,) + PROBLEM.data.pixels.shape)
+    assert concurrent_decompositions(jax.vmap(one), pixels) == []
 
 
 def test_exact_recovery_on_noise_free_corners(solve, truth, free):
