@@ -32,8 +32,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP) gl
 	$(PY) -m jaxcal demo
 
+# Two worker processes (one per core on CI's two), each test file on one worker
+# so module fixtures are built once; compilation is mostly single-threaded.
 test: $(STAMP) gl
-	$(PY) -m pytest -q --durations=15
+	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks
