@@ -1,11 +1,11 @@
-"""Benchmark: UR5e Monte Carlo trials, jaxcal's one `jit(vmap)` call against SciPy in a loop.
+"""Benchmark: UR5e Monte Carlo trials, jaxcal's one jitted call (vmapped chunks) against SciPy in a loop.
 
 What is compared: full six-joint UR5e calibration trials (a camera 1.5 m
 away, one marker 5 cm off the flange, 40-frame sweeps, 0.1 mm / 0.05 deg
 noise, encoders and orientations).
 
-- jaxcal: `jaxcal._montecarlo.monte_carlo`, every trial in one
-  `jit(vmap(run_trial))` call. A trial synthesises the sweeps, fits them
+- jaxcal: `jaxcal._montecarlo.monte_carlo`, every trial in one jitted
+  call (`vmap(run_trial)` over chunks of `CPU_CHUNK` trials). A trial synthesises the sweeps, fits them
   (six arc fits, vmapped, then the axis fit), runs the same axis fit on the
   exact arcs of its truth (`exact_arcs`: what noise-free arc fits return,
   the gauge reference of `score`) and scores the result. The first

@@ -4,7 +4,7 @@ A trial draws a "true" arm from the nominal one (`perturb_model`) and a true
 camera pose, synthesises the marker poses of joint-by-joint sweeps
 analytically (forward kinematics, no rendering), adds noise, runs the arc
 fits (vmapped over joints) and the axis fit, and scores the result against
-the truth. `monte_carlo` runs N trials as one `jit(vmap(...))` call; a
+the truth. `monte_carlo` runs N trials in one jitted call (vmapped chunks); a
 failed trial is flagged through optimistix's result codes and never stops
 the batch.
 
@@ -14,6 +14,8 @@ the identifiability analysis). Truths are drawn with joint 1's frame at
 nominal accordingly (`anchor_base`), so that $T_{cam,base}$ errors compare
 like with like.
 """
+
+import functools
 
 import equinox as eqx
 import jax
@@ -380,25 +382,58 @@ def _dynamic(setup: MonteCarloSetup) -> MonteCarloSetup:
     return jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if isinstance(x, float | int) else x, setup)
 
 
-def monte_carlo(setup: MonteCarloSetup, key: PRNGKeyArray, trials: int) -> TrialResult:
-    """Run `trials` seeded trials in one `jit(vmap(run_trial))` call.
+#: Default trials per vmapped chunk on the CPU. Under `vmap` every solver
+#: loop runs as many steps as the slowest problem of its batch, so one
+#: straggler costs the whole batch its steps; chunks bound that cost (seed 0,
+#: 1000 UR5e trials: 19.9 s as one batch, see benchmarks/montecarlo.py).
+CPU_CHUNK = 250
+
+
+def monte_carlo(
+    setup: MonteCarloSetup, key: PRNGKeyArray, trials: int, *, chunk: int | None = None
+) -> TrialResult:
+    """Run `trials` seeded trials in one jitted call: `vmap(run_trial)` over
+    chunks of at most `chunk` trials, the chunks one after another (`lax.map`).
+
+    `chunk` defaults to `CPU_CHUNK` on the CPU and to all trials at once on an
+    accelerator; the trials and their results do not depend on it (trial `i`
+    uses key `split(key, trials)[i]`).
 
     **Returns:** a `TrialResult` with a leading `(trials,)` axis. Trials whose
     solvers failed have `success == False` (and their codes in
     `arc_result` / `axis_result`); they never raise.
     """
+    if trials < 1:
+        raise ValueError(f"monte_carlo: trials must be at least 1, got {trials}")
+    if chunk is None:
+        chunk = CPU_CHUNK if jax.default_backend() == "cpu" else trials
+    if chunk < 1:
+        raise ValueError(f"monte_carlo: chunk must be at least 1, got {chunk}")
     setup = _dynamic(setup)
     free = _free_mask_jit(setup)
-    keys = jax.random.split(key, trials)
-    return _batched_trials(setup, keys, free)
+    return _batched_trials(setup, jax.random.split(key, trials), free, chunk)
 
 
 _free_mask_jit = jax.jit(nominal_free_mask)
 
 
-@jax.jit
-def _batched_trials(setup, keys, free):
-    return jax.vmap(lambda k: run_trial(setup, k, free))(keys)
+@functools.partial(jax.jit, static_argnames="chunk")
+def _batched_trials(setup, keys, free, chunk):
+    return map_in_chunks(lambda k: run_trial(setup, k, free), keys, chunk)
+
+
+def map_in_chunks(fn, xs, chunk: int):
+    """`vmap(fn)(xs)` computed as `lax.map` over chunks of at most `chunk`
+    leading entries of `xs` (equal chunks; the last is padded with copies of
+    the first entries, whose results are dropped)."""
+    n = jax.tree.leaves(xs)[0].shape[0]
+    n_chunks = -(-n // chunk)
+    size = -(-n // n_chunks)
+    pad = n_chunks * size - n
+    xs = jax.tree.map(lambda x: jnp.concatenate([x, x[:pad]]) if pad else x, xs)
+    xs = jax.tree.map(lambda x: x.reshape((n_chunks, size) + x.shape[1:]), xs)
+    out = jax.lax.map(jax.vmap(fn), xs)
+    return jax.tree.map(lambda y: y.reshape((n_chunks * size,) + y.shape[2:])[:n], out)
 
 
 def summarize(result: TrialResult) -> dict[str, float]:

@@ -72,7 +72,10 @@ class RefineParams(eqx.Module):
     - `rate`: per joint, joint turn per commanded turn, $\\rho_{nom} / \\rho$.
     - `clock_ms`: clock offset increment over the start value (ms).
     - `intrinsics`: increments of $(f_x, f_y, c_x, c_y)$ (px) and
-      $(k_1, k_2, p_1, p_2, k_3)$.
+      $(k_1, k_2, p_1, p_2, k_3)$ of the first camera.
+    - `other_cams`: with several fixed cameras, a twist on each further
+      camera's pose, $T_{cam_c,base} = T_{c,0}\\,\\exp(\\xi_c)$; `None` with one.
+      Last in the flattened order, so a single-camera layout is a prefix.
     """
 
     cam: Float[Array, "6"]
@@ -80,6 +83,7 @@ class RefineParams(eqx.Module):
     rate: Float[Array, " joints"]
     clock_ms: Float[Array, ""]
     intrinsics: Float[Array, "9"]
+    other_cams: Float[Array, "others 6"] | None = None
 
 
 class CornerData(eqx.Module):
@@ -94,6 +98,9 @@ class CornerData(eqx.Module):
     - `enc_t` (s, controller clock), `enc_q` (rad): the encoder log as commanded
       joint positions (motor angle over the nominal ratio), `(T,)`, `(T, joints)`.
     - `drift_ppm`: the known clock drift.
+    - `camera`: which camera took each view, `(views,)`: 0 the first (the
+      one `T_cam_base0` belongs to), `c` the `RefineProblem.other_cameras`
+      entry `c - 1`; `None`: all the first.
     """
 
     points: Float[Array, "views corners 3"]
@@ -105,12 +112,23 @@ class CornerData(eqx.Module):
     enc_t: Float[Array, " T"]
     enc_q: Float[Array, "T joints"]
     drift_ppm: Float[Array, ""]
+    camera: Int[Array, " views"] | None = None
+
+
+class OtherCameras(eqx.Module):
+    """Further fixed cameras of a refinement: start poses `T_cam_base0`
+    `(others, 4, 4)` and their (fixed) intrinsics `K` `(others, 3, 3)`, `dist`
+    `(others, 5)`. They share the robot, the targets and the clock."""
+
+    T_cam_base0: Float[Array, "others 4 4"]
+    K: Float[Array, "others 3 3"]
+    dist: Float[Array, "others 5"]
 
 
 class RefineProblem(eqx.Module):
     """Everything fixed during the refinement: the nominal model and mounts
     (the origin of `correction`), the reference camera pose, the start
-    intrinsics and clock offset, and the corners."""
+    intrinsics and clock offset, the corners, and any further cameras."""
 
     nominal: KinematicModel
     T_flange_marker0: Float[Array, "markers 4 4"]
@@ -119,6 +137,7 @@ class RefineProblem(eqx.Module):
     dist0: Float[Array, "5"]
     offset0_s: Float[Array, ""]
     data: CornerData
+    other_cameras: OtherCameras | None = None
 
 
 def make_corner_data(
@@ -130,16 +149,20 @@ def make_corner_data(
     enc_t: np.ndarray,
     enc_q: np.ndarray,
     drift_ppm: float = 0.0,
+    camera: np.ndarray | None = None,
 ) -> CornerData:
     """Pad per-view corner lists into a `CornerData` (NumPy in, arrays out).
 
     **Arguments:** `points[v]` `(n_v, 3)` target-frame corners (m) and
     `pixels[v]` `(n_v, 2)` their detections (px) of view `v`; `target`,
-    `frame`, `t_cam` `(views,)`; the encoder log `enc_t (T,)`, `enc_q (T, joints)`.
+    `frame`, `t_cam` `(views,)`; the encoder log `enc_t (T,)`, `enc_q (T, joints)`;
+    `camera` `(views,)` (see `CornerData`; default all 0).
     """
     V = len(points)
     if V == 0:
         raise ValueError("make_corner_data: no views")
+    if camera is not None and len(camera) != V:
+        raise ValueError(f"make_corner_data: {V} point sets but {len(camera)} camera indices")
     if len(pixels) != V or len(target) != V or len(frame) != V or len(t_cam) != V:
         raise ValueError(
             f"make_corner_data: {V} point sets but {len(pixels)} pixel sets, {len(target)} targets, "
@@ -175,6 +198,7 @@ def make_corner_data(
         enc_t=jnp.asarray(enc_t),
         enc_q=jnp.asarray(enc_q),
         drift_ppm=jnp.asarray(float(drift_ppm)),
+        camera=None if camera is None else jnp.asarray(np.asarray(camera, np.int64)),
     )
 
 
@@ -207,17 +231,23 @@ def zero_params(num_joints: int, num_markers: int) -> RefineParams:
     )
 
 
-def refine_parameter_names(model: KinematicModel, num_markers: int) -> list[str]:
+def refine_parameter_names(
+    model: KinematicModel, num_markers: int, other_cameras: tuple[str, ...] | list[str] = ()
+) -> list[str]:
     """Names of the flattened `RefineParams`: the axis fit's `parameter_names`,
-    then the rates, the clock offset and the intrinsics."""
+    then the rates, the clock offset, the intrinsics and the further cameras'
+    poses (`"{camera}.T_cam_base.tx"`, ...)."""
     names = parameter_names(model, num_markers)
     names += [f"{j}.rate" for j in model.joint_names]
     names += ["clock_offset_ms"]
     names += [f"intrinsics.{k}" for k in INTRINSIC_NAMES]
+    cam = names[:6]
+    for c in other_cameras:
+        names += [f"{c}.{p}" for p in cam]
     return names
 
 
-def _groups(n: int, M: int) -> dict[str, np.ndarray]:
+def _groups(n: int, M: int, others: int = 0) -> dict[str, np.ndarray]:
     """Index ranges of the parameter groups in the flattened `RefineParams`."""
     sizes = [
         ("cam", 6),
@@ -227,6 +257,7 @@ def _groups(n: int, M: int) -> dict[str, np.ndarray]:
         ("rate", n),
         ("clock", 1),
         ("intr", 9),
+        ("others", 6 * others),
     ]
     out, start = {}, 0
     for name, size in sizes:
@@ -236,22 +267,43 @@ def _groups(n: int, M: int) -> dict[str, np.ndarray]:
 
 
 def default_free(
-    num_joints: int, num_markers: int, *, rates: bool = True, clock: bool = False, intrinsics: bool = False
+    num_joints: int,
+    num_markers: int,
+    *,
+    rates: bool = True,
+    clock: bool = False,
+    intrinsics: bool = False,
+    other_cameras: int = 0,
 ) -> np.ndarray:
-    """Candidate mask: pose and kinematic corrections, and the optional groups."""
-    g = _groups(num_joints, num_markers)
-    free = np.ones(g["intr"][-1] + 1, bool)
+    """Candidate mask: pose and kinematic corrections (every camera's pose
+    included), and the optional groups."""
+    g = _groups(num_joints, num_markers, other_cameras)
+    free = np.ones(g["intr"][-1] + 1 + g["others"].size, bool)
     free[g["rate"]] = rates
     free[g["clock"]] = clock
     free[g["intr"]] = intrinsics
     return free
 
 
-def _priority(num_joints: int, num_markers: int) -> np.ndarray:
-    """The axis fit's column order (camera, mount, zero offsets, origins base
+def _priority(num_joints: int, num_markers: int, others: int = 0) -> np.ndarray:
+    """The axis fit's column order (cameras, mount, zero offsets, origins base
     to tip), then rates, clock and intrinsics."""
-    g = _groups(num_joints, num_markers)
-    return np.concatenate([g[k] for k in ("cam", "tool", "zero", "origin", "rate", "clock", "intr")])
+    g = _groups(num_joints, num_markers, others)
+    keys = ("cam", "others", "tool", "zero", "origin", "rate", "clock", "intr")
+    return np.concatenate([g[k] for k in keys])
+
+
+def _num_others(problem: RefineProblem) -> int:
+    return 0 if problem.other_cameras is None else problem.other_cameras.T_cam_base0.shape[-3]
+
+
+def camera_poses(params: RefineParams, problem: RefineProblem) -> Float[Array, "cameras 4 4"]:
+    """Every camera's $T_{cam,base}$ at `params`: the first, then `other_cameras`."""
+    T0 = (problem.T_cam_base0 @ se3_exp(params.cam))[None]
+    if problem.other_cameras is None:
+        return T0
+    others = problem.other_cameras.T_cam_base0 @ jax.vmap(se3_exp)(params.other_cams)
+    return jnp.concatenate([T0, others])
 
 
 def project(
@@ -313,11 +365,15 @@ def _chain(
     tests check both agree).
     """
     model, mounts = apply_correction(problem.nominal, problem.T_flange_marker0, params.correction)
-    T_cb = problem.T_cam_base0 @ se3_exp(params.cam)
     theta = joint_positions(params, problem) + model.zero_offset  # (V, J)
     V = theta.shape[0]
-    R = jnp.broadcast_to(T_cb[:3, :3], (V, 3, 3))
-    t = jnp.broadcast_to(T_cb[:3, 3], (V, 3))
+    if problem.other_cameras is None or problem.data.camera is None:
+        T_cb = problem.T_cam_base0 @ se3_exp(params.cam)
+        R = jnp.broadcast_to(T_cb[:3, :3], (V, 3, 3))
+        t = jnp.broadcast_to(T_cb[:3, 3], (V, 3))
+    else:
+        T_v = camera_poses(params, problem)[problem.data.camera]
+        R, t = T_v[:, :3, :3], T_v[:, :3, 3]
     for i, kind in enumerate(model.joint_types):
         T_p = model.T_parent_joint[i]
         t = t + R @ T_p[:3, 3]
@@ -349,7 +405,11 @@ def projected_corners(params: RefineParams, problem: RefineProblem) -> Float[Arr
     R, t = _chain(params, problem)
     X = jnp.einsum("vab,vkb->vka", R, problem.data.points) + t[:, None, :]
     K, dist = camera_matrix(params, problem)
-    return project(K, dist, X)
+    if problem.other_cameras is None or problem.data.camera is None:
+        return project(K, dist, X)
+    Ks = jnp.concatenate([K[None], problem.other_cameras.K])[problem.data.camera]
+    ds = jnp.concatenate([dist[None], problem.other_cameras.dist])[problem.data.camera]
+    return jax.vmap(project)(Ks, ds, X)
 
 
 def reprojection_residuals(
@@ -408,7 +468,7 @@ def identifiable_mask(
     norms = jnp.linalg.norm(J, axis=0)
     Jn = J / jnp.where(norms > 0, norms, 1.0)
     n_joints = problem.nominal.num_joints
-    order = jnp.asarray(_priority(n_joints, problem.T_flange_marker0.shape[0]))
+    order = jnp.asarray(_priority(n_joints, problem.T_flange_marker0.shape[0], _num_others(problem)))
     cand = jnp.asarray(candidates, bool)
     m, n = J.shape
 
@@ -433,7 +493,8 @@ class RefineResult(eqx.Module):
 
     - `params`: the solution (`RefineParams`); `model`: the calibrated model
       (reduction ratios $\\rho_{nom}/r$, `T_flange_tool` the first mount);
-      `T_cam_base`, `T_flange_marker`, `K`, `dist`, `offset_s` (s).
+      `T_cam_base` (the first camera), `T_cam_bases` (every camera,
+      `(cameras, 4, 4)`), `T_flange_marker`, `K`, `dist`, `offset_s` (s).
     - `std`, `cov`: standard deviations and covariance of the flattened
       parameters (`refine_parameter_names` order; zero where frozen).
     - `free`: the parameters estimated (the others held at their start).
@@ -450,6 +511,7 @@ class RefineResult(eqx.Module):
     params: RefineParams
     model: KinematicModel
     T_cam_base: Float[Array, "4 4"]
+    T_cam_bases: Float[Array, "cameras 4 4"]
     T_flange_marker: Float[Array, "markers 4 4"]
     K: Float[Array, "3 3"]
     dist: Float[Array, "5"]
@@ -512,6 +574,12 @@ def refine(
     """
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    several = problem.other_cameras is not None
+    if several != (params0.other_cams is not None) or (several and problem.data.camera is None):
+        raise ValueError(
+            "refine: with other_cameras, params0.other_cams (one twist per further camera) and "
+            "data.camera (each view's camera) are needed; without, neither"
+        )
     flat0, unravel = ravel_pytree(params0)
     try:
         free = np.asarray(free, bool)
@@ -605,6 +673,7 @@ def refine(
         params=params,
         model=model,
         T_cam_base=problem.T_cam_base0 @ se3_exp(params.cam),
+        T_cam_bases=camera_poses(params, problem),
         T_flange_marker=mounts,
         K=K,
         dist=dist,

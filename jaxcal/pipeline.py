@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -82,6 +83,9 @@ class CalibrationResult:
       not run); `refine_fit`: its `RefineResult`. When it ran, `model`,
       `T_cam_base`, `T_flange_target`, `parameters`, the ratios and the clock
       are the refined ones and the two-stage figures sit beside them.
+    - `other_cameras`: further fixed cameras, each `{"camera", "T_cam_base",
+      "std_cam", "views", ...}`: the refinement estimates their poses along
+      with the robot (one model, one `T_cam_base` per camera).
     """
 
     dataset: Path
@@ -109,6 +113,7 @@ class CalibrationResult:
     ee_errors: dict | None = None
     refinement: dict | None = None
     refine_fit: object = None
+    other_cameras: list = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -158,6 +163,21 @@ class CalibrationResult:
             "solver": self.solver,
             "timings_s": self.timings,
             "refinement": self.refinement,
+            "other_cameras": [
+                {
+                    "camera": c["camera"],
+                    "views": c["views"],
+                    "T_cam_base": {
+                        "matrix": np.asarray(c["T_cam_base"]).tolist(),
+                        "xyz_m": np.asarray(c["T_cam_base"])[:3, 3].tolist(),
+                        "quaternion_xyzw": _quaternion_xyzw(np.asarray(c["T_cam_base"])[:3, :3]).tolist(),
+                        "std_xyz_mm": (1e3 * np.asarray(c["std_cam"][:3])).tolist(),
+                        "std_rot_deg": np.degrees(np.asarray(c["std_cam"][3:])).tolist(),
+                    },
+                    "T_cam_base_start": np.asarray(c["T_cam_base_start"]).tolist(),
+                }
+                for c in self.other_cameras
+            ],
             "validation": self.validation,
             "warnings": self.warnings,
             "model": model_to_json(self.model),
@@ -555,13 +575,16 @@ def calibrate(
     estimate_clock: bool | None = None,
     validate: bool = True,
     refine: bool = True,
+    other_cameras: bool = True,
     log=None,
 ) -> CalibrationResult:
     """Calibrate the robot and camera of `dataset` (a path or a loaded `Dataset`).
 
     **Arguments:**
-    - `camera`: which fixed camera to use (default the first one mounted in
-      the world).
+    - `camera`: which fixed camera the two-stage fit uses (default the first
+      one mounted in the world). The refinement adds every other fixed camera
+      (`other_cameras=False`: only this one): one robot model, one
+      `T_cam_base` per camera, all cameras on the dataset's one clock.
     - `workers`: processes for detection (default all cores).
     - `estimate_clock`: estimate the camera-controller clock offset (default:
       when the metadata leaves it null).
@@ -622,9 +645,15 @@ def calibrate(
     flange = nominal.link_names[-1]
     targets = _flange_targets(ds, flange)
     notes = []
+    extra = [c for c in fixed if c.name != cam.name] if (refine and other_cameras) else []
     if len(ds.cameras) > 1:
         notes.append(
-            f"calibrated with camera {cam.name!r} only; the other cameras are used by the refinement stage"
+            f"two-stage fit from camera {cam.name!r}; "
+            + (
+                f"the refinement adds {[c.name for c in extra]}"
+                if extra
+                else "the other cameras are not used (other_cameras=False, or none is fixed)"
+            )
         )
     ignored = [t.name for t in ds.targets if t.link != flange]
     if ignored:
@@ -813,10 +842,17 @@ def calibrate(
         notes.append("no encoder log: the reprojection refinement needs joint angles; stopped at two-stage")
     elif refine:
         t0 = time.perf_counter()
-        say("refinement: reprojection error of every corner over all parameters (robust, Cauchy)")
-        _refine_stage(
-            result, ds, cam, targets, rows, dets, t_cam, log_q, K, dist, fit, arcs, mounts0, T_cam_base0
+        views = [_CameraViews(cam, rows, dets, poses, t_cam, K, dist)]
+        for c in extra:
+            say(f"camera {c.name}: detecting {', '.join(t.name for t in targets)} for the refinement")
+            views.append(_camera_views(ds, c, targets, workers=workers, progress=progress))
+        timings["detect_other_cameras_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        say(
+            "refinement: reprojection error of every corner over all parameters (robust, Cauchy)"
+            + (f", {len(views)} cameras" if len(views) > 1 else "")
         )
+        _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0)
         timings["refine_s"] = time.perf_counter() - t0
     if validate and ds.truth is not None:
         t0 = time.perf_counter()
@@ -839,9 +875,35 @@ def calibrate(
                 if result.validation["true_clock_offset_s"] is None
                 else 1e3 * (clock["offset_s"] - result.validation["true_clock_offset_s"])
             )
+        if result.validation is not None and result.other_cameras:
+            result.validation["other_cameras"] = _other_camera_errors(ds.truth, result)
         timings["validation_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     return result
+
+
+def _other_camera_errors(truth: dict, result) -> dict:
+    """Each further camera's pose relative to the first, against the truth
+    (gauge-free: the base frame cancels), at the start and refined."""
+    cams = truth.get("cameras", {})
+    if "T_cam_base" not in cams.get(result.camera, {}):
+        return {}
+    T0_true = np.asarray(cams[result.camera]["T_cam_base"])
+    out = {}
+    for c in result.other_cameras:
+        if "T_cam_base" not in cams.get(c["camera"], {}):
+            continue
+        rel_true = np.asarray(cams[c["camera"]]["T_cam_base"]) @ np.linalg.inv(T0_true)
+        row = {}
+        for key, T in (("start", c["T_cam_base_start"]), ("refined", c["T_cam_base"])):
+            D = np.linalg.inv(rel_true) @ (np.asarray(T) @ np.linalg.inv(result.T_cam_base))
+            cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+            row[key] = {
+                "trans_mm": float(1e3 * np.linalg.norm(D[:3, 3])),
+                "rot_deg": float(np.degrees(np.arccos(cos))),
+            }
+        out[c["camera"]] = row
+    return out
 
 
 def _result_name(result) -> str:
@@ -878,12 +940,74 @@ def _jit_identifiable():
     return jax.jit(identifiable_mask)
 
 
-def _refine_stage(
-    result, ds, cam, targets, rows, dets, t_cam, log_q, K, dist, fit, arcs, mounts0, T_cam_base0
-):
+class _CameraViews(NamedTuple):
+    """One fixed camera's frames for the refinement: dataset rows, detections,
+    PnP poses, camera-clock stamps and intrinsics."""
+
+    camera: object
+    rows: np.ndarray
+    dets: list
+    poses: list
+    t_cam: np.ndarray
+    K: np.ndarray
+    dist: np.ndarray | None
+
+
+def _camera_views(ds, camera, targets, *, workers=None, progress=True) -> _CameraViews:
+    """Detect `targets` in every frame of a further fixed camera (its intrinsics
+    from the metadata, or self-calibrated from its ChArUco frames)."""
+    rows = _camera_rows(ds, camera.name)
+    K, dist = camera.K, camera.dist
+    if K is None:
+        K, dist, _ = self_calibrate(ds, camera, targets, rows, workers=workers, progress=progress)
+    rows, dets, poses = detect_poses(ds, camera, targets, K, dist, workers=workers, progress=progress)
+    return _CameraViews(camera, rows, dets, poses, ds.frames["timestamp"][rows], np.asarray(K), dist)
+
+
+def _dist5(dist) -> np.ndarray | None:
+    """OpenCV's first five distortion coefficients; `None` if more are non-zero."""
+    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).ravel()
+    if d.size > 5 and np.any(d[5:] != 0):
+        return None
+    out = np.zeros(5)
+    out[: min(5, d.size)] = d[:5]
+    return out
+
+
+def _start_pose(views: _CameraViews, t_ctrl, inside, enc_t, enc_q, rate, model, mounts, targets):
+    """A further camera's `T_cam_base` from its PnP poses and the two-stage
+    robot: per view $T_{cam,target} (T_{base,flange}(q) T_{flange,target})^{-1}$,
+    the rotations averaged (nearest rotation to their sum), the median translation."""
+    import jax
+
+    from ._kinematics import forward_kinematics
+
+    idx = [i for i in range(len(views.rows)) if inside[i] and views.poses[i]]
+    if not idx:
+        return None
+    q = _interp(t_ctrl[idx], enc_t, enc_q) * np.asarray(rate)
+    T_bf = np.asarray(jax.jit(jax.vmap(lambda qq: forward_kinematics(model, qq)[-1]))(q))
+    est = []
+    for k, i in enumerate(idx):
+        for m, t in enumerate(targets):
+            pose = views.poses[i].get(t.name)
+            if pose is not None:
+                est.append(pose.T_cam_target @ np.linalg.inv(T_bf[k] @ np.asarray(mounts[m])))
+    est = np.stack(est)
+    U, _, Vt = np.linalg.svd(est[:, :3, :3].sum(0))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.median(est[:, :3, 3], axis=0)
+    return T
+
+
+def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0):
     """Reprojection refinement from the two-stage result; updates `result` in place.
 
-    Every frame of `cam` inside the encoder log with a detected target
+    `views`: the two-stage camera's `_CameraViews` first, then any further
+    fixed cameras (their start poses from their PnP poses and the two-stage
+    robot). Every frame inside the encoder log with a detected target
     contributes all its corners (sweep or not). The axis fit's frozen
     parameters stay frozen; rates are free with encoders, the clock offset
     when it was estimated. The two-stage figures are kept beside the refined.
@@ -896,6 +1020,7 @@ def _refine_stage(
 
     from ._axisfit import AxisFitParams
     from ._refine import (
+        OtherCameras,
         RefineParams,
         RefineProblem,
         default_free,
@@ -904,38 +1029,63 @@ def _refine_stage(
         summarize_refinement,
     )
 
-    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).ravel()
-    if d.size > 5 and np.any(d[5:] != 0):
+    cam, K = views[0].camera, views[0].K
+    dist5 = _dist5(views[0].dist)
+    if dist5 is None:
         result.warnings.append(
             f"camera {cam.name!r}: distortion beyond (k1, k2, p1, p2, k3) is not modelled by the refinement; "
             "stopped at two-stage"
         )
         return
-    dist5 = np.zeros(5)
-    dist5[: min(5, d.size)] = d[:5]
     enc_t, enc_q = log_q
     offset = result.clock["offset_s"]
-    t_ctrl = (t_cam - offset) / (1.0 + 1e-6 * ds.clock_drift_ppm)
-    inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+    has = bool(arcs.has_encoder)
+    rate0 = jnp.asarray(arcs.rate) if has else jnp.ones(result.nominal.num_joints)
     pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in targets}
-    P, U, tgt, frame, tc = [], [], [], [], []
-    for i, det in enumerate(dets):
-        if not inside[i]:
-            continue
-        for m, t in enumerate(targets):
-            dt = det.get(t.name)
-            if dt is None or len(dt.ids) < 4:
+    P, U, tgt, frame, tc, cams = [], [], [], [], [], []
+    others, used = [], [views[0]]
+    for v in views:
+        t_ctrl = (v.t_cam - offset) / (1.0 + 1e-6 * ds.clock_drift_ppm)
+        inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+        if v is not views[0]:
+            d5 = _dist5(v.dist)
+            T0 = _start_pose(v, t_ctrl, inside, enc_t, enc_q, rate0, fit.model, fit.T_flange_marker, targets)
+            if d5 is None or T0 is None:
+                result.warnings.append(
+                    f"camera {v.camera.name!r}: "
+                    + ("unmodelled distortion" if d5 is None else "no target pose inside the encoder log")
+                    + "; left out of the refinement"
+                )
                 continue
-            P.append(pts[t.name][dt.ids])
-            U.append(dt.pixels)
-            tgt.append(m)
-            frame.append(int(rows[i]))
-            tc.append(float(t_cam[i]))
+            others.append((T0, np.asarray(v.K, np.float64), d5))
+            used.append(v)
+        c = len(used) - 1
+        for i, det in enumerate(v.dets):
+            if not inside[i]:
+                continue
+            for m, t in enumerate(targets):
+                dt = det.get(t.name)
+                if dt is None or len(dt.ids) < 4:
+                    continue
+                P.append(pts[t.name][dt.ids])
+                U.append(dt.pixels)
+                tgt.append(m)
+                frame.append(int(v.rows[i]))
+                tc.append(float(v.t_cam[i]))
+                cams.append(c)
     if not P:
         result.warnings.append("refinement: no detected corners inside the encoder log; stopped at two-stage")
         return
     data = make_corner_data(
-        P, U, np.array(tgt), np.array(frame), np.array(tc), enc_t, enc_q, ds.clock_drift_ppm
+        P,
+        U,
+        np.array(tgt),
+        np.array(frame),
+        np.array(tc),
+        enc_t,
+        enc_q,
+        ds.clock_drift_ppm,
+        camera=np.array(cams) if others else None,
     )
     nominal = result.nominal
     n, M = nominal.num_joints, len(targets)
@@ -947,23 +1097,24 @@ def _refine_stage(
         dist0=jnp.asarray(dist5),
         offset0_s=jnp.asarray(offset),
         data=data,
+        other_cameras=OtherCameras(*(jnp.asarray(np.stack(a)) for a in zip(*others))) if others else None,
     )
-    has = bool(arcs.has_encoder)
     params0 = RefineParams(
         cam=fit.params.cam,
         correction=fit.params.correction,
-        rate=jnp.asarray(arcs.rate) if has else jnp.ones(n),
+        rate=rate0,
         clock_ms=jnp.zeros(()),
         intrinsics=jnp.zeros(9),
+        other_cams=jnp.zeros((len(others), 6)) if others else None,
     )
-    cand = default_free(n, M, rates=has, clock=bool(result.clock["estimated"]))
+    cand = default_free(n, M, rates=has, clock=bool(result.clock["estimated"]), other_cameras=len(others))
     n_ax = np.asarray(fit.free).size
     cand[:n_ax] &= np.asarray(fit.free)
     free, _ = _jit_identifiable()(problem, params0, cand)
     free = np.asarray(free)
     res = _jit_refine(tuple(bool(f) for f in free))(problem, params0)
     jax.block_until_ready(res)
-    names = refine_parameter_names(nominal, M)
+    names = refine_parameter_names(nominal, M, [v.camera.name for v in used[1:]])
     summary = summarize_refinement(res, names, data)
     ok = bool(res.result == optx.RESULTS.successful) and bool(np.all(np.isfinite(np.asarray(res.T_cam_base))))
     std = np.asarray(res.std)
@@ -1021,6 +1172,22 @@ def _refine_stage(
         loss="cauchy IRLS (3 rounds), then least squares on the inliers (3.7 robust sigmas)",
     )
     result.refinement = summary
+    cams_v = np.zeros(len(frame), int) if not others else np.array(cams)
+    summary["views_per_camera"] = {v.camera.name: int((cams_v == c).sum()) for c, v in enumerate(used)}
+    T_all = np.asarray(res.T_cam_bases)
+    for c, v in enumerate(used[1:], start=1):
+        k = len(names) - 6 * (len(used) - 1) + 6 * (c - 1)
+        result.other_cameras.append(
+            {
+                "camera": v.camera.name,
+                "T_cam_base": T_all[c],
+                "std_cam": std[k : k + 6],
+                "views": summary["views_per_camera"][v.camera.name],
+                "T_cam_base_start": np.asarray(others[c - 1][0]),
+                "K": others[c - 1][1],
+                "distortion": others[c - 1][2],
+            }
+        )
     if summary["outlier_frames"]:
         result.warnings.append(
             f"refinement: {len(summary['outlier_frames'])} frame(s) whose corners stay outliers: "

@@ -126,20 +126,18 @@ def _plots(result, out: Path) -> list[tuple[str, str]]:
     return figs
 
 
-def _camera_yaml(path: Path, result) -> None:
+def _camera_yaml(path: Path, name: str, T_cam_base, std, K, dist) -> None:
     import cv2
 
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
-        fs.write("camera_name", result.camera)
-        fs.write("T_cam_base", result.T_cam_base)
-        fs.write("T_base_cam", np.linalg.inv(result.T_cam_base))
+        fs.write("camera_name", name)
+        fs.write("T_cam_base", np.asarray(T_cam_base, np.float64))
+        fs.write("T_base_cam", np.linalg.inv(T_cam_base))
         # 1-sigma of the right-multiplied twist T_cam_base = T @ exp(xi): tx ty tz (m), rx ry rz (rad).
-        fs.write("T_cam_base_std", np.asarray(result.std_cam, np.float64).reshape(1, -1))
-        fs.write("camera_matrix", np.asarray(result.intrinsics["K"], np.float64))
-        fs.write(
-            "distortion_coefficients", np.asarray(result.intrinsics["distortion"], np.float64).reshape(1, -1)
-        )
+        fs.write("T_cam_base_std", np.asarray(std, np.float64).reshape(1, -1))
+        fs.write("camera_matrix", np.asarray(K, np.float64))
+        fs.write("distortion_coefficients", np.asarray(dist, np.float64).reshape(1, -1))
     finally:
         fs.release()
 
@@ -219,6 +217,24 @@ def _markdown(result, figs) -> str:
         f"(std {np.round(T['std_xyz_mm'], 3).tolist()} mm, {np.round(T['std_rot_deg'], 4).tolist()} deg); "
         f"quaternion (xyzw) {np.round(T['quaternion_xyzw'], 6).tolist()}.",
         "",
+    ]
+    errs = (v or {}).get("other_cameras", {})
+    for c in r.get("other_cameras", []):
+        Tc = c["T_cam_base"]
+        line = (
+            f"Camera {c['camera']} ({c['views']} views, refined with the robot): T_cam_base translation "
+            f"{np.round(np.asarray(Tc['xyz_m']) * 1e3, 3).tolist()} mm (std "
+            f"{np.round(Tc['std_xyz_mm'], 3).tolist()} mm, {np.round(Tc['std_rot_deg'], 4).tolist()} deg)."
+        )
+        if c["camera"] in errs:
+            e = errs[c["camera"]]
+            line += (
+                f" Pose relative to {result.camera} vs the truth: {e['refined']['trans_mm']:.3f} mm, "
+                f"{e['refined']['rot_deg']:.4f} deg (start from PnP: {e['start']['trans_mm']:.3f} mm, "
+                f"{e['start']['rot_deg']:.4f} deg)."
+            )
+        lines += [line, ""]
+    lines += [
         f"Clock offset: {1e3 * result.clock['offset_s']:.2f} ms"
         + (
             f" (estimated, std {1e3 * result.clock['std_s']:.2f} ms)"
@@ -283,7 +299,23 @@ def write_outputs(result, out, *, overwrite: bool = False) -> Path:
     with atomic_directory(out, overwrite=overwrite) as tmp:
         write_json(tmp / "result.json", result.to_json())
         save_urdf(result.model, tmp / "calibrated.urdf", source=result.robot_urdf)
-        _camera_yaml(tmp / f"camera_{result.camera}.yaml", result)
+        _camera_yaml(
+            tmp / f"camera_{result.camera}.yaml",
+            result.camera,
+            result.T_cam_base,
+            result.std_cam,
+            result.intrinsics["K"],
+            result.intrinsics["distortion"],
+        )
+        for c in result.other_cameras:
+            _camera_yaml(
+                tmp / f"camera_{c['camera']}.yaml",
+                c["camera"],
+                c["T_cam_base"],
+                c["std_cam"],
+                c["K"],
+                c["distortion"],
+            )
         figs = _plots(result, tmp)
         (tmp / "report.md").write_text(_markdown(result, figs))
     return out

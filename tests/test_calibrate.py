@@ -3,7 +3,8 @@
 One small rendered UR5e dataset (640x480, 12 frames per 60-degree sweep, a
 40 ms clock offset left out of the metadata) is shared by every test; it has
 the demo's configuration at a lower resolution, so the demo test reuses the
-compiled solvers.
+compiled solvers. The demo test films the arm with two cameras (the
+refinement's several-camera path).
 """
 
 import csv
@@ -142,6 +143,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     assert np.allclose(fs.getNode("T_cam_base").mat(), result.T_cam_base)
     assert np.allclose(fs.getNode("T_cam_base_std").mat().ravel(), result.std_cam)
     fs.release()
+    assert r["other_cameras"] == [] and result.other_cameras == []
     report = (out / "report.md").read_text()
     assert "EE RMS" in report and "![" in report
 
@@ -175,12 +177,30 @@ def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
     r_two, r_ref = (json.loads((d / "result.json").read_text()) for d in (two, out))
     assert r_two["refinement"] is None and r_ref["refinement"] is not None
     assert r_two["validation"]["ee_rms_mm_after"] == pytest.approx(r_ref["validation"]["ee_rms_mm_two_stage"])
+    # The demo, filmed by two fixed cameras: the two-stage fit from the first,
+    # the refinement over both (one robot, one T_cam_base each).
     demo = ["demo", "--out", str(tmp_path / "demo"), "--resolution", "640x480"]
-    demo += ["--frames-per-joint", "12", "--sweep-deg", "60"]
+    demo += ["--frames-per-joint", "12", "--sweep-deg", "60", "--cameras", "2"]
     assert main([*demo, "--quiet", "--workers", "1"]) == 0
     text = capsys.readouterr().out
-    assert "Before / after" in text and "EE RMS mm" in text
-    assert (tmp_path / "demo" / "result" / "report.md").is_file()
+    assert "Before / after" in text and "EE RMS mm" in text and "T_cam_base of cam1" in text
+    res = tmp_path / "demo" / "result"
+    assert (res / "report.md").is_file() and "Camera cam1" in (res / "report.md").read_text()
+    r = json.loads((res / "result.json").read_text())
+    v, ref = r["validation"], r["refinement"]
+    assert ref["views_per_camera"]["cam1"] > 40 and ref["solver"]["result"] == "successful"
+    assert v["ee_rms_mm_after"] < v["ee_rms_mm_two_stage"]
+    # cam1's pose relative to cam0: from its PnP start to the truth within a few of its std.
+    (other,) = r["other_cameras"]
+    e = v["other_cameras"]["cam1"]
+    std_mm = float(np.linalg.norm(other["T_cam_base"]["std_xyz_mm"]))
+    assert e["refined"]["trans_mm"] < min(0.5 * e["start"]["trans_mm"], 4 * std_mm)
+    assert e["refined"]["rot_deg"] < 0.05
+    import cv2
+
+    fs = cv2.FileStorage(str(res / "camera_cam1.yaml"), cv2.FILE_STORAGE_READ)
+    assert np.allclose(fs.getNode("T_cam_base").mat(), other["T_cam_base"]["matrix"])
+    fs.release()
 
 
 # --------------------------------------------------------------------------- bad input (one test per case)

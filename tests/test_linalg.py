@@ -5,6 +5,8 @@ for unordered LAPACK calls in their own test modules; here: the helpers and
 the checker itself.
 """
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -86,3 +88,79 @@ def test_checker_finds_side_by_side_decompositions():
     assert len(found) == 1 and found[0].startswith("/scan")
     # The ordered version computes the same numbers.
     np.testing.assert_allclose(_two_decompositions(a[0], b[0], True), _two_decompositions(a[0], b[0], False))
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_checker_sees_inside_lineax_solves(batched):
+    """lineax's `linear_solve` (every optimistix Levenberg-Marquardt step) keeps
+    its factorisation out of the jaxpr; the checker counts it as one, vmapped
+    (equinox's `vprim`) or not."""
+    import lineax as lx
+
+    def f(A, b, ordered):
+        x = lx.linear_solve(lx.MatrixLinearOperator(A), b).value
+        s = jnp.linalg.svd(after(A, x) if ordered else A, compute_uv=False)
+        return x.sum() + s.sum()
+
+    A, b = jnp.eye(3) + 0.1 * jnp.ones((3, 3)), jnp.ones(3)
+    args = (A[None].repeat(4, 0), b[None].repeat(4, 0)) if batched else (A, b)
+    wrap = jax.vmap if batched else (lambda g: g)
+    found = concurrent_decompositions(wrap(lambda A, b: f(A, b, False)), *args)
+    # (vmapped outside a loop, lineax may bind its LU directly)
+    assert len(found) == 1 and ("linear_solve" in found[0] or "(lu)" in found[0]) and "svd" in found[0]
+    assert concurrent_decompositions(wrap(lambda A, b: f(A, b, True)), *args) == []
+
+
+def _operands(hlo: str) -> dict[str, list[str]]:
+    """`{instruction: [operand names]}` of a compiled program's HLO text (all computations)."""
+    graph = {}
+    for line in hlo.splitlines():
+        m = re.match(r"\s*(?:ROOT )?%([\w.\-]+) = .*?\b[\w\-]+\((.*?)\)(?:, |$)", line)
+        if m:
+            graph[m.group(1)] = re.findall(r"%([\w.\-]+)", m.group(2))
+    return graph
+
+
+def test_after_orders_the_compiled_program():
+    """The ordering must survive XLA's optimisations: in the compiled program
+    the eigh's input depends on the SVD's output (with an optimisation
+    barrier instead, XLA drops the barrier and the two are independent)."""
+    a = jax.random.normal(jax.random.key(0), (64, 5, 5))
+    b = a @ jnp.swapaxes(a, -1, -2)
+
+    def depends(fn) -> bool:
+        hlo = jax.jit(fn).lower(a, b).compile().as_text()
+        graph = _operands(hlo)
+        eigh = [n for n, line in _defining_lines(hlo).items() if "dsyevd" in line]
+        svd = {n for n, line in _defining_lines(hlo).items() if "dgesdd" in line}
+        assert len(eigh) == 1 and len(svd) == 1
+        seen, todo = set(), list(graph[eigh[0]])
+        while todo:
+            n = todo.pop()
+            if n in svd:
+                return True
+            if n not in seen:
+                seen.add(n)
+                todo += graph.get(n, [])
+        return False
+
+    def ordered(x, y):
+        return _two_decompositions(x, y, True)
+
+    def barrier(x, y):
+        s = jnp.linalg.svd(x, compute_uv=False)
+        y, _ = jax.lax.optimization_barrier((y, s))
+        return s.sum() + jnp.linalg.eigh(y)[0].sum()
+
+    assert depends(ordered)
+    assert not depends(barrier)
+    np.testing.assert_array_equal(after(b, a), b)
+
+
+def _defining_lines(hlo: str) -> dict[str, str]:
+    out = {}
+    for line in hlo.splitlines():
+        m = re.match(r"\s*(?:ROOT )?%([\w.\-]+) = ", line)
+        if m:
+            out[m.group(1)] = line
+    return out

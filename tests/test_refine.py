@@ -16,11 +16,13 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from jaxcal._axisfit import apply_correction
-from jaxcal._geometry import se3_exp
+from jaxcal._geometry import make_pose, se3_exp, so3_exp
 from jaxcal._kinematics import forward_kinematics
 from jaxcal._linalg import concurrent_decompositions
 from jaxcal._montecarlo import default_setup
 from jaxcal._refine import (
+    CornerData,
+    OtherCameras,
     RefineProblem,
     _groups,
     default_free,
@@ -220,3 +222,80 @@ def test_bad_arguments(free):
         refine(PROBLEM, P0, free, loss="tukey")
     with pytest.raises(ValueError, match="no free parameter"):
         refine(PROBLEM, P0, np.zeros_like(free))
+
+
+def _two_cameras():
+    """`PROBLEM` seen by a second camera too, 40 deg round the arm, with other intrinsics."""
+    d = PROBLEM.data
+    V = d.points.shape[0]
+
+    def twice(a):
+        return jnp.concatenate([a, a])
+
+    data = CornerData(
+        points=twice(d.points),
+        pixels=twice(d.pixels),
+        mask=twice(d.mask),
+        target=twice(d.target),
+        frame=twice(d.frame),
+        t_cam=twice(d.t_cam),
+        enc_t=d.enc_t,
+        enc_q=d.enc_q,
+        drift_ppm=d.drift_ppm,
+        camera=jnp.repeat(jnp.arange(2), V),
+    )
+    T_side = SETUP.T_cam_base @ make_pose(so3_exp(jnp.array([0.0, 0.0, 0.7])), jnp.array([0.2, 0.1, 0.0]))
+    others = OtherCameras(
+        T_cam_base0=T_side[None],
+        K=jnp.array([[[900.0, 0, 600], [0, 900, 500], [0, 0, 1]]]),
+        dist=jnp.zeros((1, 5)),
+    )
+    problem = RefineProblem(
+        nominal=PROBLEM.nominal,
+        T_flange_marker0=PROBLEM.T_flange_marker0,
+        T_cam_base0=PROBLEM.T_cam_base0,
+        K0=PROBLEM.K0,
+        dist0=PROBLEM.dist0,
+        offset0_s=PROBLEM.offset0_s,
+        data=data,
+        other_cameras=others,
+    )
+    params0 = eqx.tree_at(lambda p: p.other_cams, P0, jnp.zeros((1, 6)), is_leaf=lambda x: x is None)
+    return problem, params0, T_side
+
+
+def test_two_cameras_share_one_robot(truth, free):
+    """A second fixed camera: its pose is one more unknown of the same
+    refinement; each camera's views go through its own pose and intrinsics,
+    and noise-free corners give back both cameras and the robot exactly."""
+    problem, params0, T_side = _two_cameras()
+    flat0, unravel = ravel_pytree(params0)
+    names = refine_parameter_names(NOMINAL, 1, ["side"])
+    assert len(names) == flat0.size == FLAT0.size + 6
+    assert names[-6:] == [f"side.T_cam_base.{p}" for p in ("tx", "ty", "tz", "rx", "ry", "rz")]
+    cand = default_free(N, 1, other_cameras=1)
+    free2, _ = jax.jit(identifiable_mask)(problem, params0, cand)
+    free2 = np.asarray(free2)
+    # The base frame's gauge is the first camera's: the second adds its own pose, nothing else.
+    assert free2[-6:].all() and np.array_equal(free2[:-6], free)
+
+    side = np.array([2e-3, -1e-3, 3e-3, 2e-3, -3e-3, 1e-3])
+    x_true = jnp.asarray(np.concatenate([truth, side]))
+    p_true = unravel(x_true)
+    # Camera 1's views are camera 0's chain re-based on its own pose.
+    model, mounts = apply_correction(NOMINAL, SETUP.T_flange_marker, p_true.correction)
+    q = joint_positions(p_true, PROBLEM)
+    T1 = T_side @ se3_exp(jnp.asarray(side))
+    expected = jax.vmap(lambda qq: T1 @ forward_kinematics(model, qq)[-1] @ mounts[0])(q)
+    V = q.shape[0]
+    np.testing.assert_allclose(target_poses(p_true, problem)[V:], expected, atol=1e-12)
+
+    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
+    start = unravel(flat0 + 0.5 * (x_true - flat0) * free2)
+    res = jax.jit(lambda pb, s: refine(pb, s, free2, loss=None))(problem, start)
+    assert res.result == optx.RESULTS.successful
+    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
+    assert err.max() < 1e-8, names[int(np.argmax(err))]
+    np.testing.assert_allclose(res.T_cam_bases[1], T1, atol=1e-9)
+    np.testing.assert_allclose(res.T_cam_bases[0], res.T_cam_base, atol=0)
+    assert float(res.std[-1]) > 0
