@@ -33,9 +33,10 @@ demo: $(STAMP) gl
 	$(PY) -m jaxcal demo
 
 # Two worker processes (one per core on CI's two), each test file on one worker
-# so module fixtures are built once; compilation is mostly single-threaded.
+# so module fixtures are built once (files sharing compiled programs share a
+# worker: tests/conftest.py); compilation is mostly single-threaded.
 test: $(STAMP) gl
-	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile
+	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadgroup
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

@@ -895,8 +895,13 @@ def _other_camera_errors(truth: dict, result) -> dict:
             continue
         rel_true = np.asarray(cams[c["camera"]]["T_cam_base"]) @ np.linalg.inv(T0_true)
         row = {}
-        for key, T in (("start", c["T_cam_base_start"]), ("refined", c["T_cam_base"])):
-            D = np.linalg.inv(rel_true) @ (np.asarray(T) @ np.linalg.inv(result.T_cam_base))
+        # The start is relative to the two-stage first camera (the gauge it was computed in).
+        T0_two = np.asarray(result.refinement["two_stage"]["T_cam_base"])
+        for key, T, T0 in (
+            ("start", c["T_cam_base_start"], T0_two),
+            ("refined", c["T_cam_base"], result.T_cam_base),
+        ):
+            D = np.linalg.inv(rel_true) @ (np.asarray(T) @ np.linalg.inv(T0))
             cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
             row[key] = {
                 "trans_mm": float(1e3 * np.linalg.norm(D[:3, 3])),
