@@ -32,6 +32,7 @@ def key():
 _SHARED = {"test_cli.py": "montecarlo", "test_montecarlo.py": "montecarlo"}
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's loadgroup reads the marks
 def pytest_collection_modifyitems(config, items):
     for item in items:
         item.add_marker(pytest.mark.xdist_group(_SHARED.get(item.path.name, item.path.name)))
