@@ -32,11 +32,11 @@ $(STAMP): pyproject.toml
 demo: $(STAMP) gl
 	$(PY) -m jaxcal demo
 
-# Two worker processes (one per core on CI's two), each test file on one worker
-# so module fixtures are built once (files sharing compiled programs share a
-# worker: tests/conftest.py); compilation is mostly single-threaded.
+# Two worker processes (one per core on CI's two), tests handed out one by one:
+# compilation is mostly single-threaded, and balancing the two workers beats
+# keeping files whole (a module fixture may then be built on both).
 test: $(STAMP) gl
-	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadgroup
+	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist load
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

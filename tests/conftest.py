@@ -25,14 +25,3 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 @pytest.fixture
 def key():
     return jax.random.key(0)
-
-
-#: Files that share compiled programs run on one xdist worker, one after the
-#: other (`make test` uses `--dist loadgroup`); every other file is its own group.
-_SHARED = {"test_cli.py": "montecarlo", "test_montecarlo.py": "montecarlo"}
-
-
-@pytest.hookimpl(tryfirst=True)  # before xdist's loadgroup reads the marks
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        item.add_marker(pytest.mark.xdist_group(_SHARED.get(item.path.name, item.path.name)))
