@@ -128,7 +128,14 @@ class OtherCameras(eqx.Module):
 class RefineProblem(eqx.Module):
     """Everything fixed during the refinement: the nominal model and mounts
     (the origin of `correction`), the reference camera pose, the start
-    intrinsics and clock offset, the corners, and any further cameras."""
+    intrinsics and clock offset, the corners, and any further cameras.
+
+    `eye_in_hand`: the camera rides on the flange and the target is fixed in
+    the world. The chain is the same with the roles swapped, $T_{board,cam}(q)
+    = T_{board,base}\\,T_{base,flange}(q)\\,T_{flange,cam}$: `T_cam_base0` and
+    `params.cam` then hold $T_{board,base}$, the (single) marker mount holds
+    $T_{flange,cam}$, and the corners are projected through its inverse.
+    """
 
     nominal: KinematicModel
     T_flange_marker0: Float[Array, "markers 4 4"]
@@ -138,6 +145,7 @@ class RefineProblem(eqx.Module):
     offset0_s: Float[Array, ""]
     data: CornerData
     other_cameras: OtherCameras | None = None
+    eye_in_hand: bool = eqx.field(static=True, default=False)
 
 
 def make_corner_data(
@@ -390,7 +398,11 @@ def _chain(
     R = R @ T_lf[:3, :3]
     M = mounts[problem.data.target]
     t = t + jnp.einsum("vab,vb->va", R, M[:, :3, 3])
-    return R @ M[:, :3, :3], t
+    R = R @ M[:, :3, :3]
+    if problem.eye_in_hand:  # T_board_cam above; the camera sees the board through its inverse
+        R = jnp.swapaxes(R, -1, -2)
+        t = -jnp.einsum("vab,vb->va", R, t)
+    return R, t
 
 
 def target_poses(params: RefineParams, problem: RefineProblem) -> Float[Array, "views 4 4"]:
@@ -575,6 +587,8 @@ def refine(
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     several = problem.other_cameras is not None
+    if problem.eye_in_hand and (several or problem.T_flange_marker0.shape[0] != 1):
+        raise ValueError("refine: eye-in-hand takes one camera (the one mount) and no further cameras")
     if several != (params0.other_cams is not None) or (several and problem.data.camera is None):
         raise ValueError(
             "refine: with other_cameras, params0.other_cams (one twist per further camera) and "

@@ -206,8 +206,14 @@ def _calibration_tables(console, result) -> None:
         t.add_row(*row)
     console.print(t)
     T, sd = result.T_cam_base, result.std_cam
+    if result.eye_in_hand:
+        Tf = result.T_flange_target[0]
+        console.print(
+            f"eye-in-hand: T_flange_cam t = {np.round(Tf[:3, 3] * 1e3, 2).tolist()} mm; the board "
+            f"{result.board} relative to the base:"
+        )
     console.print(
-        f"T_cam_base: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
+        f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'}: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
         f"(std {np.round(sd[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(sd[3:]), 4).tolist()} deg)"
     )
     errs = (v or {}).get("other_cameras", {})
@@ -233,7 +239,7 @@ def _calibration_tables(console, result) -> None:
         f"held at nominal (the camera cannot see them): {len(result.frozen)} parameters, see report.md"
     )
     if v is not None:
-        t = Table(title="Before / after, against the truth (target origin, 1000 random configurations)")
+        t = Table(title=f"Before / after, against the truth ({v['ee_point']}, 1000 random configurations)")
         t.add_column("")
         t.add_column("nominal model", justify="right")
         refined = bool(v.get("refined"))
@@ -249,7 +255,12 @@ def _calibration_tables(console, result) -> None:
         row("EE max mm", f"{v['ee_max_mm_before']:.3f}", "ee_max_mm")
         pad = [""] if refined else []
         ce = v["T_cam_base_error"]
-        t.add_row("T_cam_base error", "", *pad, f"{ce['trans_mm']:.3f} mm, {ce['rot_deg']:.4f} deg")
+        t.add_row(
+            f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'} error",
+            "",
+            *pad,
+            f"{ce['trans_mm']:.3f} mm, {ce['rot_deg']:.4f} deg",
+        )
         ratio = [
             abs(e["ratio_percent"]) for e in v["parameter_errors"].values() if e["ratio_percent"] is not None
         ]
@@ -316,22 +327,34 @@ def cmd_demo(args) -> int:
     _check_out(out, overwrite=True)
     console = Console(width=max(Console().width, 132))
     console.rule("[bold]jaxcal demo: a perturbed UR5e, rendered, calibrated from its images")
+    if args.eye_in_hand and args.cameras != 1:
+        print(
+            "jaxcal: error: --eye-in-hand films with one camera (on the flange); drop --cameras",
+            file=sys.stderr,
+        )
+        return 2
+    sweep = (
+        args.sweep_deg if args.sweep_deg is not None else (EYE_IN_HAND_SWEEP if args.eye_in_hand else 80.0)
+    )
     config = SimConfig(
         robot="ur5e",
         seed=args.seed,
         resolution=args.resolution,
         frames_per_joint=args.frames_per_joint,
-        range_deg=args.sweep_deg,
+        range_deg=sweep,
         clock_offset_ms=40.0,
         clock_known=False,
         cameras=args.cameras,
+        eye_in_hand=args.eye_in_hand,
+        camera_distance=EYE_IN_HAND_BOARD_M if args.eye_in_hand else 0.9,
     )
     t0 = time.perf_counter()
     dataset = simulate(config, out / "dataset", overwrite=True, progress=not args.quiet)
     console.print(
         f"rendered {dataset} ({args.resolution[0]}x{args.resolution[1]}, {args.frames_per_joint} frames per "
-        f"{args.sweep_deg:g}-degree sweep, "
-        f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
+        f"{_fmt_degrees(sweep)}-degree sweep{'' if np.ndim(sweep) == 0 else 's'}, "
+        + ("camera on the flange, board in the world, " if args.eye_in_hand else "")
+        + f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
     )
     return _run_calibration(console, dataset, out / "result", args)
 
@@ -378,6 +401,31 @@ def _resolution(text: str) -> tuple[int, int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"resolution must look like 640x480, got {text!r}") from None
     return w, h
+
+
+def _degrees(text: str) -> float | tuple[float, ...]:
+    """One angle for every joint ("40") or one per joint ("40,40,40,40,40,300")."""
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"angles must look like 40 or 40,40,40,40,40,300, got {text!r}"
+        ) from None
+    if any(not 0.0 < x <= 360.0 for x in v):
+        raise argparse.ArgumentTypeError(f"each sweep must be in (0, 360] degrees, got {text!r}")
+    return v[0] if len(v) == 1 else v
+
+
+def _fmt_degrees(v) -> str:
+    return f"{v:g}" if np.ndim(v) == 0 else ",".join(f"{x:g}" for x in v)
+
+
+#: The eye-in-hand demo's sweeps: the camera spins about its own axis with the
+#: last joint, which keeps the board in view over a wide sweep (and pins that
+#: axis, which passes near the camera, down); the others turn it away from the board.
+EYE_IN_HAND_SWEEP = (40.0, 40.0, 40.0, 40.0, 40.0, 300.0)
+#: ... and the board 0.6 m in front of the camera (at 0.9 m the EE error about triples).
+EYE_IN_HAND_BOARD_M = 0.6
 
 
 def cmd_simulate(args) -> int:
@@ -431,8 +479,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", type=_resolution, default=(1280, 960), help="WxH pixels")
     p.add_argument("--frames-per-joint", type=int, default=40)
-    p.add_argument("--sweep-deg", type=float, default=80.0, help="angle each joint sweeps (deg)")
+    p.add_argument(
+        "--sweep-deg",
+        type=_degrees,
+        default=None,
+        help="angle each joint sweeps (deg), one or one per joint (default 80; eye-in-hand "
+        + _fmt_degrees(EYE_IN_HAND_SWEEP)
+        + ")",
+    )
     p.add_argument("--cameras", type=int, default=1, help="fixed cameras filming the arm")
+    p.add_argument(
+        "--eye-in-hand", action="store_true", help="the camera on the flange, a ChArUco board in the world"
+    )
     _add_calibrate_args(p)
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
@@ -455,7 +513,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH pixels")
     p.add_argument("--frames-per-joint", type=int, default=30)
-    p.add_argument("--sweep-deg", type=float, default=40.0, help="angle each joint sweeps (deg)")
+    p.add_argument(
+        "--sweep-deg", type=_degrees, default=40.0, help="angle each joint sweeps (deg), one or one per joint"
+    )
     p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
     p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
     p.add_argument("--cameras", type=int, default=1, help="fixed cameras (eye-to-hand)")

@@ -13,6 +13,7 @@ The command line (`jaxcal calibrate`, `jaxcal demo`) and the Python API share
 this one code path.
 """
 
+import dataclasses
 import functools
 import time
 from dataclasses import dataclass, field
@@ -86,6 +87,10 @@ class CalibrationResult:
     - `other_cameras`: further fixed cameras, each `{"camera", "T_cam_base",
       "std_cam", "views", ...}`: the refinement estimates their poses along
       with the robot (one model, one `T_cam_base` per camera).
+    - `eye_in_hand`: the camera rides on the flange and films `board`, fixed
+      in the world. The fields keep their eye-to-hand names with the roles
+      swapped: `T_cam_base` holds $T_{board,base}$ and `T_flange_target[0]`
+      holds $T_{flange,cam}$ (`result.json` names them so).
     """
 
     dataset: Path
@@ -114,6 +119,8 @@ class CalibrationResult:
     refinement: dict | None = None
     refine_fit: object = None
     other_cameras: list = field(default_factory=list)
+    eye_in_hand: bool = False
+    board: str | None = None
 
     @property
     def ok(self) -> bool:
@@ -125,21 +132,30 @@ class CalibrationResult:
         from .sim.simulate import model_to_json
 
         T = self.T_cam_base
+        fixed = {
+            "matrix": T.tolist(),
+            "xyz_m": T[:3, 3].tolist(),
+            "quaternion_xyzw": _quaternion_xyzw(T[:3, :3]).tolist(),
+            "std_xyz_mm": (1e3 * self.std_cam[:3]).tolist(),
+            "std_rot_deg": np.degrees(self.std_cam[3:]).tolist(),
+        }
+        if self.eye_in_hand:
+            poses = {
+                "board": self.board,
+                "T_board_base": fixed,
+                "T_flange_cam": self.T_flange_target[0].tolist(),
+            }
+        else:
+            poses = {"T_cam_base": fixed, "T_flange_target": self.T_flange_target.tolist()}
         return {
             "schema": "jaxcal.result",
             "schema_version": 1,
             "dataset": str(self.dataset),
+            "setup": "eye_in_hand" if self.eye_in_hand else "eye_to_hand",
             "camera": self.camera,
             "targets": self.targets,
             "ok": self.ok,
-            "T_cam_base": {
-                "matrix": T.tolist(),
-                "xyz_m": T[:3, 3].tolist(),
-                "quaternion_xyzw": _quaternion_xyzw(T[:3, :3]).tolist(),
-                "std_xyz_mm": (1e3 * self.std_cam[:3]).tolist(),
-                "std_rot_deg": np.degrees(self.std_cam[3:]).tolist(),
-            },
-            "T_flange_target": self.T_flange_target.tolist(),
+            **poses,
             "reduction_ratios": {
                 a["joint"]: {
                     "nominal": a["ratio_nominal"],
@@ -233,6 +249,33 @@ def _flange_targets(ds, flange: str):
             f"{links}); the joint-sweep method films a target on the flange"
         )
     return targets
+
+
+def _eye_in_hand_target(ds, camera, flange: str):
+    """The fixed board an eye-in-hand `camera` films, and the pseudo-target of
+    the fits: the board's pattern, named after the camera, riding on the
+    flange (its "mount" is $T_{flange,cam}$, found by the fits)."""
+    from .io.dataset import TargetInfo
+
+    boards = [t for t in ds.targets if t.link == "world"]
+    if not boards:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: camera {camera.name!r} rides on the flange {flange!r} but no target is "
+            f"fixed in the world (link 'world'); targets are on {sorted({t.link for t in ds.targets})}"
+        )
+    board = boards[0]
+    spec = dataclasses.replace(board.spec, name=camera.name)
+    return board, [TargetInfo(spec, flange, None)]
+
+
+def _names(names: list, eye_in_hand: bool) -> list:
+    """Parameter names in an eye-in-hand setup's words: the fixed frame is the
+    board's, the mount is the camera's."""
+    if not eye_in_hand:
+        return names
+    return [
+        n.replace("T_cam_base.", "T_board_base.").replace("marker.mount.", "camera.mount.") for n in names
+    ]
 
 
 def detect_poses(ds, camera, targets, K, dist, *, workers=None, progress=True):
@@ -411,7 +454,7 @@ def _jit_physical():
     return run
 
 
-def _parameter_table(nominal, fit, mounts0, T_cam_base0, targets) -> list:
+def _parameter_table(nominal, fit, mounts0, T_cam_base0, targets, eye_in_hand=False) -> list:
     import jax.numpy as jnp
 
     est, nom, G = (
@@ -426,8 +469,9 @@ def _parameter_table(nominal, fit, mounts0, T_cam_base0, targets) -> list:
     for j in nominal.joint_names:
         rows += [(f"{j}.origin.{a}", u, "correction") for a, u in pose]
     rows += [(f"{j}.zero_offset", "rad", "correction") for j in nominal.joint_names]
-    rows += [(f"T_cam_base.{a}", "m", "camera") for a in "xyz"]
-    rows += [(f"T_cam_base.rot_{a}", "rad", "camera") for a in "xyz"]
+    fixed = "T_board_base" if eye_in_hand else "T_cam_base"
+    rows += [(f"{fixed}.{a}", "m", "camera") for a in "xyz"]
+    rows += [(f"{fixed}.rot_{a}", "rad", "camera") for a in "xyz"]
     for t in targets:
         rows += [(f"{t.name}.mount.{a}", u, "mount") for a, u in pose]
     return [
@@ -460,12 +504,15 @@ def _validation(
     q_val_seed=0,
     n=1000,
     refined=None,
+    board=None,
 ):
     """Errors against `truth.json`: EE (target origin) in the camera frame over random configurations,
     axis lines, ratios, T_cam_base (raw and in the estimator's gauge).
 
     With `refined` (a `RefineResult`), the `*_after` figures and the parameter
-    errors are the refined ones and `*_two_stage` the axis fit's."""
+    errors are the refined ones and `*_two_stage` the axis fit's. With `board`
+    (eye-in-hand), the fixed frame is the board's and the mount the camera's:
+    the EE point is the camera's origin in the board frame."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -478,10 +525,19 @@ def _validation(
     truth = ds.truth
     true = model_from_json(truth["model"])
     cam_truth = truth["cameras"].get(camera, {})
-    if "T_cam_base" not in cam_truth:
+    if board is not None:
+        if "T_mount_cam" not in cam_truth or board not in truth["targets"]:
+            return None, None
+        T_world_board = np.asarray(truth["targets"][board]["T_link_target"])
+        T_cb_true = jnp.asarray(
+            np.linalg.inv(T_world_board) @ np.asarray(truth.get("T_world_base", np.eye(4)))
+        )
+        mounts_true = jnp.asarray(cam_truth["T_mount_cam"])[None]
+    elif "T_cam_base" not in cam_truth:
         return None, None
-    T_cb_true = jnp.asarray(cam_truth["T_cam_base"])
-    mounts_true = jnp.stack([jnp.asarray(truth["targets"][t.name]["T_link_target"]) for t in targets])
+    else:
+        T_cb_true = jnp.asarray(cam_truth["T_cam_base"])
+        mounts_true = jnp.stack([jnp.asarray(truth["targets"][t.name]["T_link_target"]) for t in targets])
     q_val = jax.random.uniform(
         jax.random.key(q_val_seed), (n, nominal.num_joints), minval=-np.pi, maxval=np.pi
     )
@@ -525,7 +581,7 @@ def _validation(
     ratio_err = np.asarray(s["ratio_err_percent"])
     out = {
         "configurations": n,
-        "ee_point": "target origin, camera frame",
+        "ee_point": "camera origin, board frame" if board is not None else "target origin, camera frame",
         "ee_rms_mm_before": float(np.sqrt(np.mean(err_before**2))),
         "ee_max_mm_before": float(err_before.max()),
         "ee_rms_mm_after": float(np.sqrt(np.mean(err_after**2))),
@@ -623,14 +679,16 @@ def calibrate(
             f"{ds.root / 'metadata.json'}: robot.joints {list(ds.joint_names)} differ from the chain in "
             f"{ds.robot_urdf} ({list(nominal.joint_names)})"
         )
+    flange = nominal.link_names[-1]
     fixed = [c for c in ds.cameras if c.mount == "world"]
     if camera is None:
-        if not fixed:
+        on_hand = [c for c in ds.cameras if c.mount == flange]
+        if not fixed and not on_hand:
             raise CalibrationError(
-                f"{ds.root / 'metadata.json'}: no fixed camera (mount 'world'); eye-in-hand datasets are "
-                "calibrated by the refinement stage (not yet available)"
+                f"{ds.root / 'metadata.json'}: no camera is fixed (mount 'world') or on the flange link "
+                f"{flange!r} (mounts: {sorted({c.mount for c in ds.cameras})})"
             )
-        cam = fixed[0]
+        cam = fixed[0] if fixed else on_hand[0]
     else:
         try:
             cam = ds.camera(camera)
@@ -638,14 +696,27 @@ def calibrate(
             raise CalibrationError(
                 f"camera {camera!r} is not in {ds.root / 'metadata.json'} (cameras: {[c.name for c in ds.cameras]})"
             ) from None
-        if cam.mount != "world":
+        if cam.mount not in ("world", flange):
             raise CalibrationError(
-                f"camera {camera!r} rides on {cam.mount!r}; the joint-sweep method needs a fixed camera"
+                f"camera {camera!r} rides on {cam.mount!r}; the joint-sweep method needs a fixed camera or "
+                f"one on the flange link {flange!r}"
             )
-    flange = nominal.link_names[-1]
-    targets = _flange_targets(ds, flange)
+    eye_in_hand = cam.mount == flange
     notes = []
-    extra = [c for c in fixed if c.name != cam.name] if (refine and other_cameras) else []
+    if eye_in_hand:
+        # The camera moves and a board stands still: the camera's pose in the board
+        # frame follows exactly the arcs a flange target traces in a fixed camera's
+        # frame, so the same fits run on the inverted PnP poses, with the board in
+        # the role of the camera and the camera in that of the flange target.
+        board, targets = _eye_in_hand_target(ds, cam, flange)
+        extra = []
+        others = [t.name for t in ds.targets if t.name != board.name]
+        if others:
+            notes.append(f"eye-in-hand: board {board.name!r} is the reference; not used: {others}")
+    else:
+        board = None
+        targets = _flange_targets(ds, flange)
+        extra = [c for c in fixed if c.name != cam.name] if (refine and other_cameras) else []
     if len(ds.cameras) > 1:
         notes.append(
             f"two-stage fit from camera {cam.name!r}; "
@@ -656,7 +727,7 @@ def calibrate(
             )
         )
     ignored = [t.name for t in ds.targets if t.link != flange]
-    if ignored:
+    if ignored and not eye_in_hand:
         notes.append(f"targets not on the flange are not used by the two-stage method: {ignored}")
     timings["load_s"] = time.perf_counter() - t_start
 
@@ -674,6 +745,8 @@ def calibrate(
     # Detection and PnP.
     say(f"detecting {', '.join(t.name for t in targets)} in {len(rows)} frames of camera {cam.name}")
     rows, dets, poses = detect_poses(ds, cam, targets, K, dist, workers=workers, progress=progress)
+    if eye_in_hand:  # the camera's pose in the board frame (see above)
+        poses = [{k: p.inverse() for k, p in d.items()} for d in poses]
     found = np.array([bool(p) for p in poses])
     if not found.any():
         raise CalibrationError(
@@ -766,10 +839,10 @@ def calibrate(
     # Summaries.
     ok_arc = np.asarray(arcs.result == optx.RESULTS.successful)
     ok_axis = bool(fit.result == optx.RESULTS.successful)
-    names = parameter_names(nominal, len(targets))
+    names = _names(parameter_names(nominal, len(targets)), eye_in_hand)
     frozen = [n for n, f in zip(names, np.asarray(fit.free)) if not f]
     T_cam_base0 = np.asarray(fit.T_cam_base) @ np.linalg.inv(np.asarray(se3_exp(fit.params.cam)))
-    parameters = _parameter_table(nominal, fit, mounts0, T_cam_base0, targets)
+    parameters = _parameter_table(nominal, fit, mounts0, T_cam_base0, targets, eye_in_hand)
     nominal_ratio = np.asarray(nominal.reduction_ratio)
     arc_rows = []
     for j, name in enumerate(ds.joint_names):
@@ -837,6 +910,8 @@ def calibrate(
         },
         timings=timings,
         warnings=notes,
+        eye_in_hand=eye_in_hand,
+        board=None if board is None else board.name,
     )
     if refine and log_q is None:
         notes.append("no encoder log: the reprojection refinement needs joint angles; stopped at two-stage")
@@ -868,6 +943,7 @@ def calibrate(
             use_poses,
             arcs.has_encoder,
             refined=result.refine_fit,
+            board=result.board,
         )
         if result.validation is not None:
             result.validation["clock_offset_error_ms"] = (
@@ -1103,6 +1179,7 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
         offset0_s=jnp.asarray(offset),
         data=data,
         other_cameras=OtherCameras(*(jnp.asarray(np.stack(a)) for a in zip(*others))) if others else None,
+        eye_in_hand=result.eye_in_hand,
     )
     params0 = RefineParams(
         cam=fit.params.cam,
@@ -1119,7 +1196,7 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
     free = np.asarray(free)
     res = _jit_refine(tuple(bool(f) for f in free))(problem, params0)
     jax.block_until_ready(res)
-    names = refine_parameter_names(nominal, M, [v.camera.name for v in used[1:]])
+    names = _names(refine_parameter_names(nominal, M, [v.camera.name for v in used[1:]]), result.eye_in_hand)
     summary = summarize_refinement(res, names, data)
     ok = bool(res.result == optx.RESULTS.successful) and bool(np.all(np.isfinite(np.asarray(res.T_cam_base))))
     std = np.asarray(res.std)
@@ -1142,7 +1219,7 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
     result.T_cam_base = np.asarray(res.T_cam_base)
     result.std_cam = std[:6]
     result.T_flange_target = np.asarray(res.T_flange_marker)
-    result.parameters = _parameter_table(nominal, shim, mounts0, T_cam_base0, targets)
+    result.parameters = _parameter_table(nominal, shim, mounts0, T_cam_base0, targets, result.eye_in_hand)
     result.frozen = [nm for nm, f in zip(names[:n_ax], free[:n_ax]) if not f]
     rate = np.asarray(res.params.rate)
     nominal_ratio = np.asarray(nominal.reduction_ratio)

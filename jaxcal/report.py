@@ -126,16 +126,24 @@ def _plots(result, out: Path) -> list[tuple[str, str]]:
     return figs
 
 
-def _camera_yaml(path: Path, name: str, T_cam_base, std, K, dist) -> None:
+def _camera_yaml(path: Path, name: str, T_cam_base, std, K, dist, *, T_flange_cam=None) -> None:
+    """OpenCV YAML of one camera: intrinsics and its pose. With `T_flange_cam`
+    (eye-in-hand) the pose is the camera's on the flange, and `T_cam_base`
+    holds the board's $T_{board,base}$ (written under that name)."""
     import cv2
 
+    fixed = "T_cam_base" if T_flange_cam is None else "T_board_base"
+    inverse = "T_base_cam" if T_flange_cam is None else "T_base_board"
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
         fs.write("camera_name", name)
-        fs.write("T_cam_base", np.asarray(T_cam_base, np.float64))
-        fs.write("T_base_cam", np.linalg.inv(T_cam_base))
-        # 1-sigma of the right-multiplied twist T_cam_base = T @ exp(xi): tx ty tz (m), rx ry rz (rad).
-        fs.write("T_cam_base_std", np.asarray(std, np.float64).reshape(1, -1))
+        if T_flange_cam is not None:
+            fs.write("T_flange_cam", np.asarray(T_flange_cam, np.float64))
+            fs.write("T_cam_flange", np.linalg.inv(T_flange_cam))
+        fs.write(fixed, np.asarray(T_cam_base, np.float64))
+        fs.write(inverse, np.linalg.inv(T_cam_base))
+        # 1-sigma of the right-multiplied twist T = T0 @ exp(xi): tx ty tz (m), rx ry rz (rad).
+        fs.write(f"{fixed}_std", np.asarray(std, np.float64).reshape(1, -1))
         fs.write("camera_matrix", np.asarray(K, np.float64))
         fs.write("distortion_coefficients", np.asarray(dist, np.float64).reshape(1, -1))
     finally:
@@ -171,7 +179,7 @@ def _markdown(result, figs) -> str:
             f"| EE RMS (mm) | {v['ee_rms_mm_before']:.3f} |{two_rms} {v['ee_rms_mm_after']:.3f} |",
             f"| EE max (mm) | {v['ee_max_mm_before']:.3f} |{two_max} {v['ee_max_mm_after']:.3f} |",
             "",
-            f"T_cam_base error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
+            f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'} error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
             f"raw {c['raw_trans_mm']:.3f} mm, {c['raw_rot_deg']:.4f} deg).",
             "",
         ]
@@ -206,14 +214,25 @@ def _markdown(result, figs) -> str:
         if v is not None and "T_cam_base_error_two_stage" in v:
             c2 = v["T_cam_base_error_two_stage"]
             lines += [
-                f"Two-stage T_cam_base error: {c2['trans_mm']:.3f} mm, {c2['rot_deg']:.4f} deg.",
+                f"Two-stage {'T_board_base' if result.eye_in_hand else 'T_cam_base'} error: {c2['trans_mm']:.3f} mm, {c2['rot_deg']:.4f} deg.",
                 "",
             ]
-    T = r["T_cam_base"]
+    fixed = "T_board_base" if result.eye_in_hand else "T_cam_base"
+    T = r[fixed]
     lines += [
         "## Camera pose",
         "",
-        f"T_cam_base translation {np.round(np.asarray(T['xyz_m']) * 1e3, 3).tolist()} mm "
+        *(
+            [
+                f"Eye-in-hand: camera {result.camera} on the flange, board {result.board} in the world. "
+                f"T_flange_cam translation {np.round(result.T_flange_target[0][:3, 3] * 1e3, 3).tolist()} mm "
+                "(its standard deviations are the mount rows of the parameter table).",
+                "",
+            ]
+            if result.eye_in_hand
+            else []
+        ),
+        f"{fixed} translation {np.round(np.asarray(T['xyz_m']) * 1e3, 3).tolist()} mm "
         f"(std {np.round(T['std_xyz_mm'], 3).tolist()} mm, {np.round(T['std_rot_deg'], 4).tolist()} deg); "
         f"quaternion (xyzw) {np.round(T['quaternion_xyzw'], 6).tolist()}.",
         "",
@@ -306,6 +325,7 @@ def write_outputs(result, out, *, overwrite: bool = False) -> Path:
             result.std_cam,
             result.intrinsics["K"],
             result.intrinsics["distortion"],
+            T_flange_cam=result.T_flange_target[0] if result.eye_in_hand else None,
         )
         for c in result.other_cameras:
             _camera_yaml(

@@ -7,6 +7,8 @@ Every noisy test runs through one compiled `jit(vmap(refine))` over a batch
 of trials: plain least squares is the robust solver with `c = reject = inf`.
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -298,3 +300,52 @@ def test_two_cameras_share_one_robot(truth, free):
     np.testing.assert_allclose(res.T_cam_bases[1], T1, atol=1e-9)
     np.testing.assert_allclose(res.T_cam_bases[0], res.T_cam_base, atol=0)
     assert float(res.std[-1]) > 0
+
+
+def test_eye_in_hand_recovers_the_board_and_the_robot():
+    """Eye-in-hand: the camera rides on the flange and films a board fixed in
+    the world. The chain is the eye-to-hand one with the roles swapped
+    (T_board_cam = T_board_base FK(q) T_flange_cam), the corners projected
+    through its inverse; noise-free corners give back the robot, the camera
+    mount and the board exactly."""
+    T_flange_cam = make_pose(jnp.eye(3), jnp.array([0.0, 0.0, 0.03]))
+    # The board 0.5 m in front of the camera at the zero configuration, facing it.
+    T_cam_board = make_pose(jnp.eye(3), jnp.array([-0.1, -0.08, 0.5]))
+    T_base_board = forward_kinematics(NOMINAL, jnp.zeros(N))[-1] @ T_flange_cam @ T_cam_board
+    problem = dataclasses.replace(
+        PROBLEM,
+        T_flange_marker0=T_flange_cam[None],
+        T_cam_base0=jnp.linalg.inv(T_base_board),
+        data=sweep_corner_data(grid_points(), N, 8, 30.0),
+        eye_in_hand=True,
+    )
+    free, _ = jax.jit(identifiable_mask)(problem, P0, default_free(N, 1))
+    free = np.asarray(free)
+    assert free[_groups(N, 1)["tool"]].all(), "the camera mount must be identifiable"
+    g = _groups(N, 1)
+    scale = np.zeros(FLAT0.size)
+    scale[g["cam"]] = 5e-3
+    scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
+    scale[g["zero"]] = 3e-3
+    scale[g["tool"]] = [1e-3] * 3 + [5e-3] * 3
+    scale[g["rate"]] = 0.01
+    x_true = jnp.asarray(FLAT0 + scale * np.random.default_rng(3).standard_normal(FLAT0.size) * free)
+    p_true = UNRAVEL(x_true)
+
+    model, mounts = apply_correction(NOMINAL, problem.T_flange_marker0, p_true.correction)
+    T_bb = problem.T_cam_base0 @ se3_exp(p_true.cam)
+    q = joint_positions(p_true, problem)
+    expected = jax.vmap(lambda qq: jnp.linalg.inv(T_bb @ forward_kinematics(model, qq)[-1] @ mounts[0]))(q)
+    np.testing.assert_allclose(target_poses(p_true, problem), expected, atol=1e-12)
+    assert float(jnp.min(target_poses(p_true, problem)[:, 2, 3])) > 0.15  # the board stays in front
+
+    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
+    start = UNRAVEL(jnp.asarray(FLAT0 + 0.5 * (np.asarray(x_true) - FLAT0) * free))
+    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(problem, start)
+    assert res.result == optx.RESULTS.successful
+    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
+    assert err.max() < 1e-8, NAMES[int(np.argmax(err))]
+    np.testing.assert_allclose(res.T_flange_marker[0], mounts[0], atol=1e-9)
+    with pytest.raises(ValueError, match="eye-in-hand"):
+        two = eqx.tree_at(lambda p: p.T_flange_marker0, problem, jnp.stack([T_flange_cam, T_flange_cam]))
+        refine(two, zero_params(N, 2), default_free(N, 2))

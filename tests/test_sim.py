@@ -288,3 +288,19 @@ def test_arbitrary_trajectory_is_filmed_at_the_frame_rate(tmp_path):
     assert len(ds.frames["file"]) == 12
     theta = np.array([f["theta"] for f in ds.truth["frames"]])
     assert np.ptp(theta[:, 0]) > np.deg2rad(8.0) and np.ptp(theta[:, 3]) < 1e-12
+
+
+def test_joint_sweeps_take_one_range_per_joint():
+    from jaxcal.sim.motion import joint_sweeps
+
+    names = ["a", "b", "c"]
+    traj = joint_sweeps(names, (40.0, 40.0, 300.0))
+    for j, seg in enumerate(traj.segments):
+        assert seg.joint == names[j]
+        # Waypoints 3j+1 and 3j+2 are the sweep's ends; the other joints stay at zero.
+        lo, hi = traj.q[3 * j + 1], traj.q[3 * j + 2]
+        np.testing.assert_allclose(np.degrees(hi[j] - lo[j]), (40.0, 40.0, 300.0)[j])
+        assert np.all(np.delete(lo, j) == 0) and np.all(np.delete(hi, j) == 0)
+    np.testing.assert_allclose(joint_sweeps(names, 40.0).q, joint_sweeps(names, (40.0,) * 3).q)
+    with pytest.raises(ValueError, match="2 angles for 3 joints"):
+        joint_sweeps(names, (40.0, 40.0))

@@ -55,19 +55,28 @@ class Trajectory:
 
 
 def joint_sweeps(
-    joint_names, range_deg: float = 40.0, sweep_s: float = 1.5, move_s: float = 0.8, joints=None
+    joint_names, range_deg=40.0, sweep_s: float = 1.5, move_s: float = 0.8, joints=None
 ) -> Trajectory:
     """Joint-by-joint sweeps about the zero configuration.
 
     Each joint in turn goes 0 -> -range/2 (`move_s`), sweeps to +range/2
     (`sweep_s`, recorded), and returns to 0 (`move_s`); the others stay at 0.
-    `joints` (indices) selects which joints sweep (default all).
+    `range_deg`: one angle for every joint, or one per joint (e.g. a wide
+    sweep of the last joint of an eye-in-hand arm, which spins the camera
+    about its own axis and keeps the board in view). `joints` (indices)
+    selects which joints sweep (default all).
     """
     n = len(joint_names)
     joints = range(n) if joints is None else joints
-    half = 0.5 * np.deg2rad(range_deg)
+    ranges = np.broadcast_to(np.asarray(range_deg, np.float64), (n,)) if np.ndim(range_deg) == 0 else None
+    if ranges is None:
+        ranges = np.asarray(range_deg, np.float64)
+        if ranges.shape != (n,):
+            raise ValueError(f"range_deg has {ranges.size} angles for {n} joints {list(joint_names)}")
+    halves = 0.5 * np.deg2rad(ranges)
     times, q, segments = [0.0], [np.zeros(n)], []
     for j in joints:
+        half = halves[j]
         e = np.eye(n)[j]
         t = times[-1]
         times += [t + move_s, t + move_s + sweep_s, t + 2 * move_s + sweep_s]

@@ -58,7 +58,7 @@ class SimConfig:
     marker_length: float = 0.03
     markers_on_links: bool = False
     frames_per_joint: int = 30
-    range_deg: float = 40.0
+    range_deg: float | tuple[float, ...] = 40.0
     fps: float = 30.0
     clock_offset_ms: float = 0.0
     clock_drift_ppm: float = 0.0

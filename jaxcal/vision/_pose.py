@@ -33,6 +33,26 @@ class PoseEstimate:
     n_points: int
     sigma_px: float
 
+    def inverse(self) -> "PoseEstimate":
+        """The target's view of the camera: $T_{target,cam} = T_{cam,target}^{-1}$
+        with its covariance in the same $(p, w)$ convention (now in the target
+        frame), for eye-in-hand data, where the camera moves and the board stays.
+
+        With $T = (O, P)$: $O' = O^T$, $P' = -O^T P$; to first order
+        $w' = -O^T w$ and $p' = -O^T p - O^T [P]_\\times w$, so
+        $\\Sigma' = A \\Sigma A^T$ with $A = \\begin{pmatrix} -O^T & -O^T[P]_\\times \\\\
+        0 & -O^T \\end{pmatrix}$.
+        """
+        O, P = self.T_cam_target[:3, :3], self.T_cam_target[:3, 3]
+        T = np.eye(4)
+        T[:3, :3] = O.T
+        T[:3, 3] = -O.T @ P
+        A = np.zeros((6, 6))
+        A[:3, :3] = -O.T
+        A[:3, 3:] = -O.T @ _skew(P[None])[0]
+        A[3:, 3:] = -O.T
+        return PoseEstimate(T, A @ self.cov @ A.T, self.rms_px, self.n_points, self.sigma_px)
+
 
 def _skew(v: np.ndarray) -> np.ndarray:
     """(n, 3) -> (n, 3, 3) cross-product matrices."""
