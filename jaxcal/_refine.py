@@ -76,6 +76,10 @@ class RefineParams(eqx.Module):
     - `other_cams`: with several fixed cameras, a twist on each further
       camera's pose, $T_{cam_c,base} = T_{c,0}\\,\\exp(\\xi_c)$; `None` with one.
       Last in the flattened order, so a single-camera layout is a prefix.
+    - `angles`: without encoders, the sweeping joint's position in every view
+      (rad, commanded coordinates: the zero offset is added), the other joints
+      at their commanded zero (`CornerData.sweep_joint`); `None` with an
+      encoder log. After `other_cams` in the flattened order.
     """
 
     cam: Float[Array, "6"]
@@ -84,6 +88,7 @@ class RefineParams(eqx.Module):
     clock_ms: Float[Array, ""]
     intrinsics: Float[Array, "9"]
     other_cams: Float[Array, "others 6"] | None = None
+    angles: Float[Array, " views"] | None = None
 
 
 class CornerData(eqx.Module):
@@ -101,6 +106,9 @@ class CornerData(eqx.Module):
     - `camera`: which camera took each view, `(views,)`: 0 the first (the
       one `T_cam_base0` belongs to), `c` the `RefineProblem.other_cameras`
       entry `c - 1`; `None`: all the first.
+    - `sweep_joint`: without encoders, which joint sweeps alone in each view
+      (the others at zero); with `RefineParams.angles` the encoder log is
+      not used.
     """
 
     points: Float[Array, "views corners 3"]
@@ -113,6 +121,7 @@ class CornerData(eqx.Module):
     enc_q: Float[Array, "T joints"]
     drift_ppm: Float[Array, ""]
     camera: Int[Array, " views"] | None = None
+    sweep_joint: Int[Array, " views"] | None = None
 
 
 class OtherCameras(eqx.Module):
@@ -158,13 +167,15 @@ def make_corner_data(
     enc_q: np.ndarray,
     drift_ppm: float = 0.0,
     camera: np.ndarray | None = None,
+    sweep_joint: np.ndarray | None = None,
 ) -> CornerData:
     """Pad per-view corner lists into a `CornerData` (NumPy in, arrays out).
 
     **Arguments:** `points[v]` `(n_v, 3)` target-frame corners (m) and
     `pixels[v]` `(n_v, 2)` their detections (px) of view `v`; `target`,
     `frame`, `t_cam` `(views,)`; the encoder log `enc_t (T,)`, `enc_q (T, joints)`;
-    `camera` `(views,)` (see `CornerData`; default all 0).
+    `camera` `(views,)` (see `CornerData`; default all 0); `sweep_joint`
+    `(views,)` for a refinement without encoders.
     """
     V = len(points)
     if V == 0:
@@ -207,6 +218,7 @@ def make_corner_data(
         enc_q=jnp.asarray(enc_q),
         drift_ppm=jnp.asarray(float(drift_ppm)),
         camera=None if camera is None else jnp.asarray(np.asarray(camera, np.int64)),
+        sweep_joint=None if sweep_joint is None else jnp.asarray(np.asarray(sweep_joint, np.int64)),
     )
 
 
@@ -240,11 +252,15 @@ def zero_params(num_joints: int, num_markers: int) -> RefineParams:
 
 
 def refine_parameter_names(
-    model: KinematicModel, num_markers: int, other_cameras: tuple[str, ...] | list[str] = ()
+    model: KinematicModel,
+    num_markers: int,
+    other_cameras: tuple[str, ...] | list[str] = (),
+    angles: tuple[str, ...] | list[str] = (),
 ) -> list[str]:
     """Names of the flattened `RefineParams`: the axis fit's `parameter_names`,
-    then the rates, the clock offset, the intrinsics and the further cameras'
-    poses (`"{camera}.T_cam_base.tx"`, ...)."""
+    then the rates, the clock offset, the intrinsics, the further cameras'
+    poses (`"{camera}.T_cam_base.tx"`, ...) and, without encoders, the
+    per-view joint angles (named by the caller, e.g. `"frame12.elbow_joint"`)."""
     names = parameter_names(model, num_markers)
     names += [f"{j}.rate" for j in model.joint_names]
     names += ["clock_offset_ms"]
@@ -252,10 +268,10 @@ def refine_parameter_names(
     cam = names[:6]
     for c in other_cameras:
         names += [f"{c}.{p}" for p in cam]
-    return names
+    return names + list(angles)
 
 
-def _groups(n: int, M: int, others: int = 0) -> dict[str, np.ndarray]:
+def _groups(n: int, M: int, others: int = 0, angles: int = 0) -> dict[str, np.ndarray]:
     """Index ranges of the parameter groups in the flattened `RefineParams`."""
     sizes = [
         ("cam", 6),
@@ -266,6 +282,7 @@ def _groups(n: int, M: int, others: int = 0) -> dict[str, np.ndarray]:
         ("clock", 1),
         ("intr", 9),
         ("others", 6 * others),
+        ("angles", angles),
     ]
     out, start = {}, 0
     for name, size in sizes:
@@ -282,22 +299,23 @@ def default_free(
     clock: bool = False,
     intrinsics: bool = False,
     other_cameras: int = 0,
+    angles: int = 0,
 ) -> np.ndarray:
-    """Candidate mask: pose and kinematic corrections (every camera's pose
-    included), and the optional groups."""
-    g = _groups(num_joints, num_markers, other_cameras)
-    free = np.ones(g["intr"][-1] + 1 + g["others"].size, bool)
+    """Candidate mask: pose and kinematic corrections (every camera's pose and
+    every per-view angle included), and the optional groups."""
+    g = _groups(num_joints, num_markers, other_cameras, angles)
+    free = np.ones(g["intr"][-1] + 1 + g["others"].size + angles, bool)
     free[g["rate"]] = rates
     free[g["clock"]] = clock
     free[g["intr"]] = intrinsics
     return free
 
 
-def _priority(num_joints: int, num_markers: int, others: int = 0) -> np.ndarray:
+def _priority(num_joints: int, num_markers: int, others: int = 0, angles: int = 0) -> np.ndarray:
     """The axis fit's column order (cameras, mount, zero offsets, origins base
-    to tip), then rates, clock and intrinsics."""
-    g = _groups(num_joints, num_markers, others)
-    keys = ("cam", "others", "tool", "zero", "origin", "rate", "clock", "intr")
+    to tip), then rates, clock, intrinsics and per-view angles."""
+    g = _groups(num_joints, num_markers, others, angles)
+    keys = ("cam", "others", "tool", "zero", "origin", "rate", "clock", "intr", "angles")
     return np.concatenate([g[k] for k in keys])
 
 
@@ -352,8 +370,13 @@ def camera_matrix(
 
 
 def joint_positions(params: RefineParams, problem: RefineProblem) -> Float[Array, "views joints"]:
-    """Commanded joint positions of every view, $r \\odot q_{log}(t_{ctrl})$ (rad)."""
+    """Commanded joint positions of every view, $r \\odot q_{log}(t_{ctrl})$ (rad);
+    without encoders (`params.angles`), the sweeping joint at its unknown
+    angle and the others at zero."""
     data = problem.data
+    if params.angles is not None:
+        n = problem.nominal.num_joints
+        return jax.nn.one_hot(data.sweep_joint, n, dtype=params.angles.dtype) * params.angles[:, None]
     offset = problem.offset0_s + _MS * params.clock_ms
     t = controller_time(data.t_cam, offset, data.drift_ppm)
     q = jax.vmap(lambda qj: interpolate_encoders(t, data.enc_t, qj), out_axes=1)(data.enc_q.T)
@@ -480,7 +503,10 @@ def identifiable_mask(
     norms = jnp.linalg.norm(J, axis=0)
     Jn = J / jnp.where(norms > 0, norms, 1.0)
     n_joints = problem.nominal.num_joints
-    order = jnp.asarray(_priority(n_joints, problem.T_flange_marker0.shape[0], _num_others(problem)))
+    n_angles = 0 if params.angles is None else params.angles.shape[0]
+    order = jnp.asarray(
+        _priority(n_joints, problem.T_flange_marker0.shape[0], _num_others(problem), n_angles)
+    )
     cand = jnp.asarray(candidates, bool)
     m, n = J.shape
 
@@ -587,6 +613,11 @@ def refine(
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     several = problem.other_cameras is not None
+    if (params0.angles is not None) != (problem.data.sweep_joint is not None):
+        raise ValueError(
+            "refine: without encoders both params0.angles (one per view) and data.sweep_joint are needed; "
+            "with encoders, neither"
+        )
     if problem.eye_in_hand and (several or problem.T_flange_marker0.shape[0] != 1):
         raise ValueError("refine: eye-in-hand takes one camera (the one mount) and no further cameras")
     if several != (params0.other_cams is not None) or (several and problem.data.camera is None):

@@ -28,6 +28,8 @@ _DEG = np.pi / 180.0
 AT_ZERO_DEG = 0.05
 #: The sweeping joint must be at least this far from zero for encoder-based assignment.
 MOVING_DEG = 0.5
+#: Independence threshold of the refinement's identifiability search without encoders.
+NO_ENCODER_TOL = 1e-3
 
 
 class CalibrationError(ValueError):
@@ -913,9 +915,12 @@ def calibrate(
         eye_in_hand=eye_in_hand,
         board=None if board is None else board.name,
     )
-    if refine and log_q is None:
-        notes.append("no encoder log: the reprojection refinement needs joint angles; stopped at two-stage")
-    elif refine:
+    if refine and log_q is None and extra:
+        notes.append(
+            f"no encoder log: the refinement uses camera {cam.name!r} only (not {[c.name for c in extra]})"
+        )
+        extra = []
+    if refine:
         t0 = time.perf_counter()
         views = [_CameraViews(cam, rows, dets, poses, t_cam, K, dist)]
         for c in extra:
@@ -927,7 +932,7 @@ def calibrate(
             "refinement: reprojection error of every corner over all parameters (robust, Cauchy)"
             + (f", {len(views)} cameras" if len(views) > 1 else "")
         )
-        _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0)
+        _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0, joint)
         timings["refine_s"] = time.perf_counter() - t0
     if validate and ds.truth is not None:
         t0 = time.perf_counter()
@@ -1083,7 +1088,35 @@ def _start_pose(views: _CameraViews, t_ctrl, inside, enc_t, enc_q, rate, model, 
     return T
 
 
-def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0):
+def _sweep_angles(R_pnp, target, joint, model, T_cam_base, mounts) -> np.ndarray:
+    """Start angles of the sweeping joint in every view without encoders, from
+    its PnP orientation and the two-stage model: with the others at zero the
+    joint turns the target about its axis $w_j$ (camera frame), $R(a) =
+    \\exp(a[w_j]_\\times) R(0)$, so $a$ is the rotation of $R_{PnP} R(0)^T$
+    about $w_j$.
+
+    **Arguments:** per view the PnP rotation `R_pnp` `(V, 3, 3)`, the target
+    index and the sweeping joint `(V,)`; the two-stage model, `T_cam_base` and
+    mounts `(targets, 4, 4)`.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from ._geometry import so3_log
+    from ._kinematics import forward_kinematics
+
+    n = model.num_joints
+    q = jnp.concatenate([jnp.zeros((1, n)), jnp.eye(n)])  # home, then each joint at 1 rad
+    T = np.asarray(jax.jit(jax.vmap(lambda qq: T_cam_base @ forward_kinematics(model, qq)[-1]))(q))
+    R0 = np.einsum("ab,mbc->mac", T[0, :3, :3], np.asarray(mounts)[:, :3, :3])  # (targets, 3, 3)
+    w = np.asarray(jax.vmap(lambda R: so3_log(R @ jnp.asarray(T[0, :3, :3]).T))(jnp.asarray(T[1:, :3, :3])))
+    M = np.einsum("vab,vcb->vac", np.asarray(R_pnp), R0[np.asarray(target)])
+    vee = 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], -1)
+    cos = 0.5 * (np.trace(M, axis1=1, axis2=2) - 1.0)
+    return np.arctan2(np.einsum("va,va->v", w[np.asarray(joint)], vee), cos)
+
+
+def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0, joint_of_row):
     """Reprojection refinement from the two-stage result; updates `result` in place.
 
     `views`: the two-stage camera's `_CameraViews` first, then any further
@@ -1092,9 +1125,16 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
     contributes all its corners (sweep or not). The axis fit's frozen
     parameters stay frozen; rates are free with encoders, the clock offset
     when it was estimated. The two-stage figures are kept beside the refined.
+
+    Without an encoder log (`log_q` None; one camera), the sweep frames
+    (`joint_of_row` >= 0) with a PnP pose contribute, each with its sweeping
+    joint's angle as one more unknown (started from `_sweep_angles`); the
+    other joints sit at their commanded zero, the reduction ratios and the
+    clock offset are not identifiable.
     """
     from types import SimpleNamespace
 
+    import equinox as eqx
     import jax
     import jax.numpy as jnp
     import optimistix as optx
@@ -1118,16 +1158,21 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
             "stopped at two-stage"
         )
         return
-    enc_t, enc_q = log_q
+    no_encoders = log_q is None
+    n = result.nominal.num_joints
+    # Without encoders the log is not read (RefineParams.angles): a placeholder keeps the shapes.
+    enc_t, enc_q = log_q if not no_encoders else (np.array([-np.inf, np.inf]), np.zeros((2, n)))
     offset = result.clock["offset_s"]
     has = bool(arcs.has_encoder)
     rate0 = jnp.asarray(arcs.rate) if has else jnp.ones(result.nominal.num_joints)
     pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in targets}
-    P, U, tgt, frame, tc, cams = [], [], [], [], [], []
+    P, U, tgt, frame, tc, cams, sweep, pnp = [], [], [], [], [], [], [], []
     others, used = [], [views[0]]
     for v in views:
         t_ctrl = (v.t_cam - offset) / (1.0 + 1e-6 * ds.clock_drift_ppm)
         inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+        if no_encoders:
+            inside = np.asarray(joint_of_row) >= 0
         if v is not views[0]:
             d5 = _dist5(v.dist)
             T0 = _start_pose(v, t_ctrl, inside, enc_t, enc_q, rate0, fit.model, fit.T_flange_marker, targets)
@@ -1148,6 +1193,12 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
                 dt = det.get(t.name)
                 if dt is None or len(dt.ids) < 4:
                     continue
+                if no_encoders:
+                    pose = v.poses[i].get(t.name)
+                    if pose is None:
+                        continue
+                    sweep.append(int(joint_of_row[i]))
+                    pnp.append(pose.T_cam_target[:3, :3])
                 P.append(pts[t.name][dt.ids])
                 U.append(dt.pixels)
                 tgt.append(m)
@@ -1167,6 +1218,7 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
         enc_q,
         ds.clock_drift_ppm,
         camera=np.array(cams) if others else None,
+        sweep_joint=np.array(sweep) if no_encoders else None,
     )
     nominal = result.nominal
     n, M = nominal.num_joints, len(targets)
@@ -1188,15 +1240,38 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
         clock_ms=jnp.zeros(()),
         intrinsics=jnp.zeros(9),
         other_cams=jnp.zeros((len(others), 6)) if others else None,
+        angles=None,
     )
-    cand = default_free(n, M, rates=has, clock=bool(result.clock["estimated"]), other_cameras=len(others))
+    angle_names = []
+    if no_encoders:
+        a0 = _sweep_angles(
+            np.stack(pnp), tgt, sweep, fit.model, jnp.asarray(fit.T_cam_base), fit.T_flange_marker
+        )
+        params0 = eqx.tree_at(lambda p: p.angles, params0, jnp.asarray(a0), is_leaf=lambda x: x is None)
+        angle_names = [f"frame{f}.{nominal.joint_names[j]}" for f, j in zip(frame, sweep)]
+    cand = default_free(
+        n,
+        M,
+        rates=has,
+        clock=bool(result.clock["estimated"]),
+        other_cameras=len(others),
+        angles=len(angle_names),
+    )
     n_ax = np.asarray(fit.free).size
-    cand[:n_ax] &= np.asarray(fit.free)
-    free, _ = _jit_identifiable()(problem, params0, cand)
+    if not no_encoders:
+        cand[:n_ax] &= np.asarray(fit.free)  # the two-stage gauge
+    # Without encoders the lines-only axis fit holds the mount at nominal, which
+    # the corners do see: they decide, with a stricter independence threshold. A
+    # zero offset then only shows through the home pose of the other joints'
+    # sweeps, nearly degenerate with the link geometry (parallel axes: the
+    # default threshold keeps directions with singular values ~1e-7 of the largest).
+    free, _ = _jit_identifiable()(problem, params0, cand, tol=NO_ENCODER_TOL if no_encoders else 1e-6)
     free = np.asarray(free)
     res = _jit_refine(tuple(bool(f) for f in free))(problem, params0)
     jax.block_until_ready(res)
-    names = _names(refine_parameter_names(nominal, M, [v.camera.name for v in used[1:]]), result.eye_in_hand)
+    names = _names(
+        refine_parameter_names(nominal, M, [v.camera.name for v in used[1:]], angle_names), result.eye_in_hand
+    )
     summary = summarize_refinement(res, names, data)
     ok = bool(res.result == optx.RESULTS.successful) and bool(np.all(np.isfinite(np.asarray(res.T_cam_base))))
     std = np.asarray(res.std)
@@ -1253,12 +1328,29 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
         two_stage=two,
         loss="cauchy IRLS (3 rounds), then least squares on the inliers (3.7 robust sigmas)",
     )
+    if no_encoders:
+        g0 = len(names) - len(angle_names)
+        a = np.asarray(res.params.angles)
+        summary["joint_angles"] = {
+            "note": "no encoder log: each sweep frame's joint angle was estimated from the images "
+            "(commanded coordinates; the other joints at zero); reduction ratios are not identifiable",
+            "views": [
+                {
+                    "frame": int(f),
+                    "joint": nominal.joint_names[j],
+                    "angle_deg": float(np.degrees(a[k])),
+                    "std_deg": float(np.degrees(std[g0 + k])),
+                }
+                for k, (f, j) in enumerate(zip(frame, sweep))
+            ],
+        }
+        summary["std"] = {nm: sd for nm, sd in summary["std"].items() if nm not in set(angle_names)}
     result.refinement = summary
     cams_v = np.zeros(len(frame), int) if not others else np.array(cams)
     summary["views_per_camera"] = {v.camera.name: int((cams_v == c).sum()) for c, v in enumerate(used)}
     T_all = np.asarray(res.T_cam_bases)
     for c, v in enumerate(used[1:], start=1):
-        k = len(names) - 6 * (len(used) - 1) + 6 * (c - 1)
+        k = names.index(f"{v.camera.name}.T_cam_base.tx")
         result.other_cameras.append(
             {
                 "camera": v.camera.name,

@@ -349,3 +349,53 @@ def test_eye_in_hand_recovers_the_board_and_the_robot():
     with pytest.raises(ValueError, match="eye-in-hand"):
         two = eqx.tree_at(lambda p: p.T_flange_marker0, problem, jnp.stack([T_flange_cam, T_flange_cam]))
         refine(two, zero_params(N, 2), default_free(N, 2))
+
+
+def test_without_encoders_the_angles_are_unknowns():
+    """No encoder log: each view's sweeping-joint angle is an unknown (the
+    others at zero); rates and clock drop out (zero Jacobian columns), every
+    angle stays identifiable, and noise-free corners give back the robot and
+    the angles exactly."""
+    d = PROBLEM.data
+    V = d.points.shape[0]
+    joint = np.repeat(np.arange(N), V // N)
+    problem = eqx.tree_at(
+        lambda p: p.data.sweep_joint, PROBLEM, jnp.asarray(joint), is_leaf=lambda x: x is None
+    )
+    commanded = np.asarray(d.enc_q)[np.arange(V), joint]
+    params0 = eqx.tree_at(lambda p: p.angles, P0, jnp.asarray(commanded), is_leaf=lambda x: x is None)
+    flat0, unravel = ravel_pytree(params0)
+    g = _groups(N, 1, 0, V)
+    assert flat0.size == FLAT0.size + V and g["angles"].size == V
+    names = refine_parameter_names(NOMINAL, 1, angles=[f"view{v}" for v in range(V)])
+    assert len(names) == flat0.size and names[-1] == f"view{V - 1}"
+    free, _ = jax.jit(identifiable_mask)(
+        problem, params0, default_free(N, 1, rates=True, clock=True, angles=V)
+    )
+    free = np.asarray(free)
+    assert free[g["angles"]].all()
+    assert not free[g["rate"]].any() and not free[g["clock"]].any()
+    # The zero offsets of the middle joints stay visible (they set the pose while the others sweep).
+    assert free[g["zero"]][1:5].all()
+
+    rng = np.random.default_rng(5)
+    scale = np.zeros(flat0.size)
+    scale[g["cam"]] = 5e-3
+    scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
+    scale[g["zero"]] = 3e-3
+    scale[g["tool"]] = [1e-3] * 3 + [5e-3] * 3
+    scale[g["angles"]] = 0.02
+    x_true = jnp.asarray(np.asarray(flat0) + scale * rng.standard_normal(flat0.size) * free)
+    p_true = unravel(x_true)
+    q = joint_positions(p_true, problem)
+    np.testing.assert_allclose(q[np.arange(V), joint], p_true.angles)
+    assert float(jnp.abs(q).sum()) == pytest.approx(float(jnp.abs(p_true.angles).sum()))
+
+    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
+    start = unravel(flat0 + 0.5 * (x_true - flat0) * free)
+    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(problem, start)
+    assert res.result == optx.RESULTS.successful
+    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
+    assert err.max() < 1e-8, names[int(np.argmax(err))]
+    with pytest.raises(ValueError, match="without encoders"):
+        refine(PROBLEM, params0, free)
