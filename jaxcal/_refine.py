@@ -144,6 +144,12 @@ class RefineProblem(eqx.Module):
     = T_{board,base}\\,T_{base,flange}(q)\\,T_{flange,cam}$: `T_cam_base0` and
     `params.cam` then hold $T_{board,base}$, the (single) marker mount holds
     $T_{flange,cam}$, and the corners are projected through its inverse.
+
+    `target_link`: with markers on several links, the link each target rides
+    on, as an index into `nominal.link_names` (0 the base, `i + 1` the child
+    of joint `i`, `joints + 1` the flange); its mount in
+    `T_flange_marker0` / `correction.tool` is then relative to that link.
+    `None`: every target on the flange.
     """
 
     nominal: KinematicModel
@@ -155,6 +161,7 @@ class RefineProblem(eqx.Module):
     data: CornerData
     other_cameras: OtherCameras | None = None
     eye_in_hand: bool = eqx.field(static=True, default=False)
+    target_link: Int[Array, " markers"] | None = None
 
 
 def make_corner_data(
@@ -405,6 +412,7 @@ def _chain(
     else:
         T_v = camera_poses(params, problem)[problem.data.camera]
         R, t = T_v[:, :3, :3], T_v[:, :3, 3]
+    links = [(R, t)]  # the chain up to each link, for targets on several links
     for i, kind in enumerate(model.joint_types):
         T_p = model.T_parent_joint[i]
         t = t + R @ T_p[:3, 3]
@@ -416,9 +424,15 @@ def _chain(
             R = R @ (jnp.eye(3) + s[:, None, None] * A + (1.0 - c)[:, None, None] * (A @ A))
         else:
             t = t + R @ a * theta[:, i, None]
+        links.append((R, t))
     T_lf = model.T_last_flange
     t = t + R @ T_lf[:3, 3]
     R = R @ T_lf[:3, :3]
+    if problem.target_link is not None:
+        links.append((R, t))
+        k = problem.target_link[problem.data.target]
+        R = jnp.stack([r for r, _ in links])[k, jnp.arange(V)]
+        t = jnp.stack([tt for _, tt in links])[k, jnp.arange(V)]
     M = mounts[problem.data.target]
     t = t + jnp.einsum("vab,vb->va", R, M[:, :3, 3])
     R = R @ M[:, :3, :3]
@@ -617,6 +631,11 @@ def refine(
         raise ValueError(
             "refine: without encoders both params0.angles (one per view) and data.sweep_joint are needed; "
             "with encoders, neither"
+        )
+    if problem.target_link is not None and problem.target_link.shape != (problem.T_flange_marker0.shape[0],):
+        raise ValueError(
+            f"refine: target_link has shape {problem.target_link.shape}, expected one link per target "
+            f"({problem.T_flange_marker0.shape[0]})"
         )
     if problem.eye_in_hand and (several or problem.T_flange_marker0.shape[0] != 1):
         raise ValueError("refine: eye-in-hand takes one camera (the one mount) and no further cameras")

@@ -333,6 +333,9 @@ def cmd_demo(args) -> int:
             file=sys.stderr,
         )
         return 2
+    if args.eye_in_hand and args.markers_on_links:
+        print("jaxcal: error: choose one of --eye-in-hand and --markers-on-links", file=sys.stderr)
+        return 2
     sweep = (
         args.sweep_deg if args.sweep_deg is not None else (EYE_IN_HAND_SWEEP if args.eye_in_hand else 80.0)
     )
@@ -347,12 +350,29 @@ def cmd_demo(args) -> int:
         cameras=args.cameras,
         eye_in_hand=args.eye_in_hand,
         camera_distance=EYE_IN_HAND_BOARD_M if args.eye_in_hand else 0.9,
+        markers_on_links=args.markers_on_links,
     )
+    trajectory = None
+    what = f"{args.frames_per_joint} frames per {_fmt_degrees(sweep)}-degree sweep" + (
+        "" if np.ndim(sweep) == 0 else "s"
+    )
+    if args.markers_on_links:
+        from .robots import load_robot
+        from .sim.motion import random_motion
+
+        names = load_robot("ur5e").joint_names
+        seconds = args.frames_per_joint * len(names) / config.fps
+        trajectory = random_motion(names, seconds, LINKS_AMPLITUDE_DEG, seed=args.seed)
+        what = (
+            f"every joint at once, +-{LINKS_AMPLITUDE_DEG:g} deg, {seconds:g} s at {config.fps:g} fps, "
+            "a plate on every link"
+        )
     t0 = time.perf_counter()
-    dataset = simulate(config, out / "dataset", overwrite=True, progress=not args.quiet)
+    dataset = simulate(
+        config, out / "dataset", trajectory=trajectory, overwrite=True, progress=not args.quiet
+    )
     console.print(
-        f"rendered {dataset} ({args.resolution[0]}x{args.resolution[1]}, {args.frames_per_joint} frames per "
-        f"{_fmt_degrees(sweep)}-degree sweep{'' if np.ndim(sweep) == 0 else 's'}, "
+        f"rendered {dataset} ({args.resolution[0]}x{args.resolution[1]}, {what}, "
         + ("camera on the flange, board in the world, " if args.eye_in_hand else "")
         + f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
     )
@@ -426,6 +446,8 @@ def _fmt_degrees(v) -> str:
 EYE_IN_HAND_SWEEP = (40.0, 40.0, 40.0, 40.0, 40.0, 300.0)
 #: ... and the board 0.6 m in front of the camera (at 0.9 m the EE error about triples).
 EYE_IN_HAND_BOARD_M = 0.6
+#: The markers-on-every-link demo's random motion, +- about zero.
+LINKS_AMPLITUDE_DEG = 25.0
 
 
 def cmd_simulate(args) -> int:
@@ -451,9 +473,18 @@ def cmd_simulate(args) -> int:
         encoders=not args.no_encoders,
         distortion=tuple(args.distortion),
     )
+    trajectory = None
+    if args.random_motion is not None:
+        from .sim.motion import random_motion
+        from .sim.simulate import _nominal
+
+        names = _nominal(args.robot)[0].joint_names
+        trajectory = random_motion(names, args.random_motion, args.motion_amplitude_deg, seed=args.seed)
     start = time.perf_counter()
     try:
-        out = simulate(config, args.out, overwrite=args.overwrite, progress=not args.quiet)
+        out = simulate(
+            config, args.out, trajectory=trajectory, overwrite=args.overwrite, progress=not args.quiet
+        )
     except FileExistsError as e:
         print(f"jaxcal: error: {e}", file=sys.stderr)
         return 2
@@ -491,6 +522,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--eye-in-hand", action="store_true", help="the camera on the flange, a ChArUco board in the world"
     )
+    p.add_argument(
+        "--markers-on-links",
+        action="store_true",
+        help="a plate on every link, every joint moving at once (random waypoints, as many frames as the "
+        "sweeps would take); sequential initialisation, then the refinement",
+    )
     _add_calibrate_args(p)
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
@@ -521,6 +558,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cameras", type=int, default=1, help="fixed cameras (eye-to-hand)")
     p.add_argument("--eye-in-hand", action="store_true", help="camera on the flange, board in the world")
     p.add_argument("--markers-on-links", action="store_true", help="a plate on every link too")
+    p.add_argument(
+        "--random-motion",
+        type=float,
+        metavar="SECONDS",
+        help="move every joint at once through random waypoints for this long, filmed throughout "
+        "(default: joint-by-joint sweeps); calibrated with --markers-on-links",
+    )
+    p.add_argument(
+        "--motion-amplitude-deg", type=float, default=25.0, help="random motion range, +- about zero"
+    )
     p.add_argument("--clock-offset-ms", type=float, default=0.0, help="camera clock minus controller clock")
     p.add_argument("--clock-drift-ppm", type=float, default=0.0)
     p.add_argument("--clock-jitter-ms", type=float, default=0.0)

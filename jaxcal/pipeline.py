@@ -23,6 +23,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._links import arm_targets, link_poses, sequential_sweeps, start_mounts
+
 _DEG = np.pi / 180.0
 #: A joint counts as "at zero" (not the one sweeping) within this angle.
 AT_ZERO_DEG = 0.05
@@ -569,7 +571,7 @@ def _validation(
     exact = eqx.filter_jit(mc.synthesize_sweeps)(
         true,
         T_cb_true,
-        mounts_true,
+        mounts_true[: mounts0.shape[0]],  # the axis fit's markers (the flange's, first)
         plan,
         tiny,
         jax.random.key(1),
@@ -704,6 +706,7 @@ def calibrate(
                 f"one on the flange link {flange!r}"
             )
     eye_in_hand = cam.mount == flange
+    links_mode = not eye_in_hand and bool(ds.segments) and all(j is None for j, _, _ in ds.segments)
     notes = []
     if eye_in_hand:
         # The camera moves and a board stands still: the camera's pose in the board
@@ -717,8 +720,25 @@ def calibrate(
             notes.append(f"eye-in-hand: board {board.name!r} is the reference; not used: {others}")
     else:
         board = None
-        targets = _flange_targets(ds, flange)
+        targets = _flange_targets(ds, flange) if not links_mode else None
         extra = [c for c in fixed if c.name != cam.name] if (refine and other_cameras) else []
+    target_link = None
+    if links_mode:
+        # Every joint moves at once: the seed's sequential procedure on markers on every link.
+        try:
+            targets, target_link, per_joint = arm_targets(ds, nominal)
+        except ValueError as e:
+            raise CalibrationError(f"{ds.root / 'metadata.json'}: {e}") from None
+        if ds.encoder_t is None:
+            raise CalibrationError(
+                f"{ds.root}: arbitrary motion (no single-joint 'motion' segment) needs the encoder log: the "
+                "sequential method undoes each joint's rotation with its encoder angle"
+            )
+        extra = []
+        notes.append(
+            "arbitrary motion, markers on every link: sequential initialisation (each joint's axis from its child "
+            "link's marker, the earlier joints undone with their encoders), then the refinement over all markers"
+        )
     if len(ds.cameras) > 1:
         notes.append(
             f"two-stage fit from camera {cam.name!r}; "
@@ -729,7 +749,7 @@ def calibrate(
             )
         )
     ignored = [t.name for t in ds.targets if t.link != flange]
-    if ignored and not eye_in_hand:
+    if ignored and not eye_in_hand and not links_mode:
         notes.append(f"targets not on the flange are not used by the two-stage method: {ignored}")
     timings["load_s"] = time.perf_counter() - t_start
 
@@ -792,8 +812,49 @@ def calibrate(
         sw, counts = build_sweeps(ds, rows, poses, targets, joint, q, t_cam, nominal.num_joints)
         return sw, counts, joint, inside
 
-    sweeps, counts, joint, inside = sweeps_at(offset0)
-    if estimate_clock:
+    if links_mode:
+        t_ctrl, q_rows, inside = sync(offset0)
+        sel = np.flatnonzero(inside & found)
+        if estimate_clock:
+            # The first joint's child-link plate moves with that joint alone: its arc,
+            # against the encoder log, gives the offset (before anything is undone).
+            say("estimating the camera-controller clock offset (the first joint's arc, its link's plate)")
+            from ._arcfit import make_arc_data
+
+            try:
+                P1, O1, C1, k1 = link_poses([poses[i] for i in sel], targets, per_joint[0])
+            except ValueError as e:
+                raise CalibrationError(f"{ds.root}: joint {ds.joint_names[0]!r}: {e}") from None
+            d1 = jax.tree.map(lambda x: x[None], make_arc_data(P1, O1, None, covariances=C1))
+            cf = jax.jit(partial(fit_clock_offset, offset0_s=offset0, drift_ppm=ds.clock_drift_ppm))(
+                d1, jnp.asarray(t_cam[sel][k1])[None], jnp.asarray(log_q[0]), jnp.asarray(log_q[1][:, :1])
+            )
+            if not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s)):
+                raise CalibrationError(f"{ds.root}: the clock-offset fit failed ({cf.result})")
+            clock.update(offset_s=float(cf.offset_s), std_s=float(cf.std_s), estimated=True)
+            t_ctrl, q_rows, inside = sync(float(cf.offset_s))
+            sel = np.flatnonzero(inside & found)
+        say(
+            f"sequential arc fits of {nominal.num_joints} joints (markers on every link, earlier joints undone)"
+        )
+        Ps, Os, Cs, mk, arc_list = sequential_sweeps(
+            rows[sel], [poses[i] for i in sel], targets, per_joint, q_rows[sel], t_cam[sel], _jit_arc_one()
+        )
+        n_j = nominal.num_joints
+        sweeps = Sweeps(
+            np.where(mk[:, 0], rows[sel][None], -1),
+            Ps,
+            Os,
+            Cs,
+            mk,
+            np.broadcast_to(t_cam[sel], (n_j, sel.size)).copy(),
+            q_rows[sel].T.copy(),
+        )
+        counts = {name: int(mk[j, 0].sum()) for j, name in enumerate(ds.joint_names)}
+        joint = np.full(len(rows), -1)
+    else:
+        sweeps, counts, joint, inside = sweeps_at(offset0)
+    if estimate_clock and not links_mode:
         say("estimating the camera-controller clock offset (arc fits of all joints with a shared offset)")
         cf = jax.jit(partial(fit_clock_offset, offset0_s=offset0, drift_ppm=ds.clock_drift_ppm))(
             sweeps.arc_data(), jnp.asarray(sweeps.t_cam), jnp.asarray(log_q[0]), jnp.asarray(log_q[1])
@@ -818,18 +879,24 @@ def calibrate(
 
     # Arc fits, then the axis fit.
     t0 = time.perf_counter()
-    say(f"arc fits of {nominal.num_joints} joints (one vmapped solve)")
-    arcs = _jit_arcs()(data)
+    if links_mode:
+        arcs = jax.tree.map(lambda *a: jnp.stack(a), *arc_list)
+    else:
+        say(f"arc fits of {nominal.num_joints} joints (one vmapped solve)")
+        arcs = _jit_arcs()(data)
     jax.block_until_ready(arcs)
     timings["arc_fit_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     say("axis fit: kinematic parameters and camera-to-base")
-    mounts0 = [t.T_link_target for t in targets]
+    # With markers on every link each arc has its own marker: the axis fit uses
+    # the lines only and the flange marker's mount; the refinement sees them all.
+    fit_targets = targets[:1] if links_mode else targets
+    mounts0 = [t.T_link_target for t in fit_targets]
     if all(m is not None for m in mounts0):
         mounts0 = jnp.asarray(np.stack(mounts0))
     else:
         mounts0 = None
-    use_poses = bool(arcs.has_encoder)
+    use_poses = bool(arcs.has_encoder) and not links_mode
     if mounts0 is None:
         T0 = register_lines(nominal, arcs)
         T_cf = T0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints))[-1]
@@ -841,10 +908,10 @@ def calibrate(
     # Summaries.
     ok_arc = np.asarray(arcs.result == optx.RESULTS.successful)
     ok_axis = bool(fit.result == optx.RESULTS.successful)
-    names = _names(parameter_names(nominal, len(targets)), eye_in_hand)
+    names = _names(parameter_names(nominal, len(fit_targets)), eye_in_hand)
     frozen = [n for n, f in zip(names, np.asarray(fit.free)) if not f]
     T_cam_base0 = np.asarray(fit.T_cam_base) @ np.linalg.inv(np.asarray(se3_exp(fit.params.cam)))
-    parameters = _parameter_table(nominal, fit, mounts0, T_cam_base0, targets, eye_in_hand)
+    parameters = _parameter_table(nominal, fit, mounts0, T_cam_base0, fit_targets, eye_in_hand)
     nominal_ratio = np.asarray(nominal.reduction_ratio)
     arc_rows = []
     for j, name in enumerate(ds.joint_names):
@@ -932,7 +999,13 @@ def calibrate(
             "refinement: reprojection error of every corner over all parameters (robust, Cauchy)"
             + (f", {len(views)} cameras" if len(views) > 1 else "")
         )
-        _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0, joint)
+        links = None
+        if links_mode:
+            links = (
+                target_link,
+                _link_mounts(fit, q_rows[sel], [poses[i] for i in sel], targets, target_link),
+            )
+        _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0, joint, links)
         timings["refine_s"] = time.perf_counter() - t0
     if validate and ds.truth is not None:
         t0 = time.perf_counter()
@@ -1116,7 +1189,32 @@ def _sweep_angles(R_pnp, target, joint, model, T_cam_base, mounts) -> np.ndarray
     return np.arctan2(np.einsum("va,va->v", w[np.asarray(joint)], vee), cos)
 
 
-def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0, joint_of_row):
+@functools.cache
+def _jit_arc_one():
+    import jax
+
+    from ._arcfit import fit_arc
+
+    return jax.jit(lambda d: fit_arc(d, max_steps=100))
+
+
+def _link_mounts(fit, q, poses, targets, link) -> np.ndarray:
+    """Start mounts of every arm target on its link (`jaxcal._links.start_mounts`)
+    from the two-stage robot at the rows' encoder positions `q`."""
+    import jax
+    import jax.numpy as jnp
+
+    from ._kinematics import forward_kinematics
+
+    T = jax.jit(jax.vmap(lambda qq: jnp.asarray(fit.T_cam_base) @ forward_kinematics(fit.model, qq)))(
+        jnp.asarray(q)
+    )
+    return start_mounts(np.asarray(T), poses, targets, link)
+
+
+def _refine_stage(
+    result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_base0, joint_of_row, links=None
+):
     """Reprojection refinement from the two-stage result; updates `result` in place.
 
     `views`: the two-stage camera's `_CameraViews` first, then any further
@@ -1131,6 +1229,10 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
     joint's angle as one more unknown (started from `_sweep_angles`); the
     other joints sit at their commanded zero, the reduction ratios and the
     clock offset are not identifiable.
+
+    With markers on every link (`links`: each target's link index and its
+    start mount on that link, `_link_mounts`), every target's corners go
+    through its own link's chain; the corners decide what is identifiable.
     """
     from types import SimpleNamespace
 
@@ -1222,6 +1324,10 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
     )
     nominal = result.nominal
     n, M = nominal.num_joints, len(targets)
+    correction = fit.params.correction
+    if links is not None:
+        mounts0 = links[1]
+        correction = eqx.tree_at(lambda c: c.tool, correction, jnp.zeros((M, 6)))
     problem = RefineProblem(
         nominal=nominal,
         T_flange_marker0=jnp.asarray(mounts0),
@@ -1232,10 +1338,11 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
         data=data,
         other_cameras=OtherCameras(*(jnp.asarray(np.stack(a)) for a in zip(*others))) if others else None,
         eye_in_hand=result.eye_in_hand,
+        target_link=None if links is None else jnp.asarray(links[0]),
     )
     params0 = RefineParams(
         cam=fit.params.cam,
-        correction=fit.params.correction,
+        correction=correction,
         rate=rate0,
         clock_ms=jnp.zeros(()),
         intrinsics=jnp.zeros(9),
@@ -1257,15 +1364,16 @@ def _refine_stage(result, ds, views, targets, log_q, fit, arcs, mounts0, T_cam_b
         other_cameras=len(others),
         angles=len(angle_names),
     )
-    n_ax = np.asarray(fit.free).size
-    if not no_encoders:
+    n_ax = 6 + 7 * n + 6 * M  # the axis-fit part of the layout
+    if not no_encoders and links is None:
         cand[:n_ax] &= np.asarray(fit.free)  # the two-stage gauge
     # Without encoders the lines-only axis fit holds the mount at nominal, which
     # the corners do see: they decide, with a stricter independence threshold. A
     # zero offset then only shows through the home pose of the other joints'
     # sweeps, nearly degenerate with the link geometry (parallel axes: the
     # default threshold keeps directions with singular values ~1e-7 of the largest).
-    free, _ = _jit_identifiable()(problem, params0, cand, tol=NO_ENCODER_TOL if no_encoders else 1e-6)
+    strict = no_encoders or links is not None
+    free, _ = _jit_identifiable()(problem, params0, cand, tol=NO_ENCODER_TOL if strict else 1e-6)
     free = np.asarray(free)
     res = _jit_refine(tuple(bool(f) for f in free))(problem, params0)
     jax.block_until_ready(res)

@@ -31,6 +31,7 @@ from jaxcal._refine import (
     grid_points,
     identifiable_mask,
     joint_positions,
+    make_corner_data,
     projected_corners,
     refine,
     refine_parameter_names,
@@ -399,3 +400,56 @@ def test_without_encoders_the_angles_are_unknowns():
     assert err.max() < 1e-8, names[int(np.argmax(err))]
     with pytest.raises(ValueError, match="without encoders"):
         refine(PROBLEM, params0, free)
+
+
+def test_targets_on_several_links_under_arbitrary_motion():
+    """Markers on every link: each target's chain stops at its link (here the
+    flange, the child of joint 1 and the child of joint 3), all joints move at
+    once, and noise-free corners give back the robot and all three mounts."""
+    rng = np.random.default_rng(7)
+    F = 24
+    q = rng.uniform(-0.5, 0.5, (F, N))
+    t = 0.05 * np.arange(F)
+    links = np.array([N + 1, 2, 4])
+    F0 = forward_kinematics(NOMINAL, jnp.zeros(N))
+    # Each target sits where the flange plate is at zero, rigidly on its own link.
+    mounts = jnp.stack([jnp.linalg.inv(F0[k]) @ F0[-1] @ SETUP.T_flange_marker[0] for k in links])
+    pts = grid_points()
+    M = len(links)
+    data = make_corner_data(
+        [pts] * (F * M),
+        [np.zeros((len(pts), 2))] * (F * M),
+        np.tile(np.arange(M), F),
+        np.repeat(np.arange(F), M),
+        np.repeat(t, M),
+        t,
+        q,
+    )
+    problem = dataclasses.replace(PROBLEM, T_flange_marker0=mounts, data=data, target_link=jnp.asarray(links))
+    params0 = zero_params(N, M)
+    flat0, unravel = ravel_pytree(params0)
+    p_true = unravel(flat0)
+    expected = jax.vmap(lambda qq: SETUP.T_cam_base @ forward_kinematics(NOMINAL, qq)[links] @ mounts)(q)
+    np.testing.assert_allclose(target_poses(p_true, problem), expected.reshape(F * M, 4, 4), atol=1e-12)
+
+    free, _ = jax.jit(identifiable_mask)(problem, params0, default_free(N, M))
+    free = np.asarray(free)
+    g = _groups(N, M)
+    assert free[g["tool"]].all(), "every mount is seen"
+    scale = np.zeros(flat0.size)
+    scale[g["cam"]] = 5e-3
+    scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
+    scale[g["zero"]] = 3e-3
+    scale[g["tool"]] = np.tile([1e-3] * 3 + [5e-3] * 3, M)
+    scale[g["rate"]] = 0.01
+    x_true = jnp.asarray(np.asarray(flat0) + scale * rng.standard_normal(flat0.size) * free)
+    p_true = unravel(x_true)
+    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
+    start = unravel(flat0 + 0.5 * (x_true - flat0) * free)
+    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(problem, start)
+    assert res.result == optx.RESULTS.successful
+    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
+    names = refine_parameter_names(NOMINAL, M)
+    assert err.max() < 1e-8, names[int(np.argmax(err))]
+    with pytest.raises(ValueError, match="one link per target"):
+        refine(dataclasses.replace(problem, target_link=jnp.asarray(links[:2])), start, free)

@@ -85,6 +85,20 @@ def joint_sweeps(
     return Trajectory(times, q, segments)
 
 
+def random_motion(
+    joint_names, seconds: float = 8.0, amplitude_deg=25.0, waypoints: int = 8, seed: int = 0
+) -> Trajectory:
+    """Every joint at once through random waypoints (uniform within
+    +-`amplitude_deg` about zero, one value or one per joint), from and back to
+    the zero configuration, recorded throughout: the arbitrary motion of the
+    markers-on-every-link method."""
+    n = len(joint_names)
+    rng = np.random.default_rng(seed)
+    amp = np.deg2rad(np.broadcast_to(np.asarray(amplitude_deg, np.float64), (n,)))
+    q = np.concatenate([np.zeros((1, n)), rng.uniform(-1.0, 1.0, (waypoints, n)) * amp, np.zeros((1, n))])
+    return free_motion(np.linspace(0.0, seconds, waypoints + 2), q)
+
+
 def free_motion(times, q) -> Trajectory:
     """An arbitrary trajectory through waypoints, recorded from start to end."""
     times = np.asarray(times, np.float64)

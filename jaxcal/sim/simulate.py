@@ -226,14 +226,15 @@ def _target_spec(
     squares = tuple(config.squares)
     if world:  # the board an eye-in-hand camera looks at: larger, seen from further
         squares = (squares[0] + 2, squares[1] + 2)
-    if small:  # the plates on the links: 3x3 squares (4 markers each)
-        squares = (3, 3)
+    scale = 1.0
+    if small:  # the plates on the links, filmed from further away: 4x4 larger squares (8 markers each)
+        squares, scale = (4, 4), 1.5
     return TargetSpec(
         kind="charuco",
         dictionary=config.dictionary,
         squares=squares,
-        square_length=config.square_length,
-        marker_length=config.marker_length,
+        square_length=scale * config.square_length,
+        marker_length=scale * config.marker_length,
         first_id=first_id,
         name=name,
     )
@@ -270,12 +271,24 @@ def _scene_layout(nominal, true, config: SimConfig, rng):
             away = np.array([centre[0], centre[1], 0.0])
             away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1e-6 else np.array([1.0, 0.0, 0.0])
             view = np.cos(np.deg2rad(50.0)) * normal + np.sin(np.deg2rad(50.0)) * away
+        aim, distance = centre, config.camera_distance
+        if config.markers_on_links:
+            # Frame the whole arm: aim at the middle of the plates-to-be and back off until
+            # all of them fit in 84 % of the vertical field of view.
+            mids = [
+                (F0[i] @ np.r_[0.5 * np.asarray(nominal.T_parent_joint[i])[:3, 3], 1.0])[:3]
+                for i in range(1, n)
+            ]
+            pts = np.stack([centre, *mids])
+            aim = 0.5 * (pts.min(0) + pts.max(0))
+            extent = np.max(np.linalg.norm(pts - aim, axis=1))
+            distance = max(distance, extent / np.tan(0.42 * np.deg2rad(config.fovy_deg)))
         for k, yaw in enumerate(yaws):
             d = _rot((0.0, 0.0, 1.0), np.deg2rad(yaw)) @ view
             if np.linalg.norm(horiz) > 0.5:  # look slightly down at a plate that faces sideways
                 d = _rot(np.cross(d, (0.0, 0.0, 1.0)), np.deg2rad(-15.0)) @ d
-            eye = centre + config.camera_distance * d
-            T_wc = look_at(eye, centre)
+            eye = aim + distance * d
+            T_wc = look_at(eye, aim)
             cameras.append(
                 CameraSpec(f"cam{k}", w, h, config.fovy_deg, T_wc, "world", tuple(config.distortion))
             )
@@ -291,7 +304,12 @@ def _scene_layout(nominal, true, config: SimConfig, rng):
                 spec = _target_spec(config, f"plate{i}", ids, small=True)
                 ids += spec.num_markers
                 up = np.linalg.inv(T_wl[:3, :3]) @ np.array([0.0, 0.0, 1.0])
-                T_mount = facing_mount(spec, to_cam, mid_link + 0.06 * to_cam, up=up)
+                # On stalks, alternately above and below the arm, so that the plates of
+                # short neighbouring links (the wrist's) do not hide each other.
+                side = up - (up @ to_cam) * to_cam
+                side /= np.linalg.norm(side)
+                centre_i = mid_link + 0.06 * to_cam + (0.22 if i % 2 else -0.22) * side
+                T_mount = facing_mount(spec, to_cam, centre_i, up=up)
                 plates_nominal.append(PlateSpec(spec, link, T_mount))
     else:
         T_flange_cam = np.eye(4)
