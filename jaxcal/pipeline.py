@@ -946,7 +946,7 @@ def calibrate(
         "target_found": int(found.sum()),
         "no_target": int((~found).sum()),
         "outside_encoder_log": int((~inside).sum()),
-        "not_in_a_sweep": int(((joint < 0) & inside & found).sum()),
+        "not_in_a_sweep": 0 if links_mode else int(((joint < 0) & inside & found).sum()),
         "used_per_joint": counts,
         "dropped_capture_indices": _dropped(ds, cam.name),
     }
