@@ -139,10 +139,16 @@ def start_mounts(T_cam_links, poses, targets, link):
             for f, p in enumerate(poses)
             if t.name in p
         ]
-        est = np.stack(est)
-        U, _, Vt = np.linalg.svd(est[:, :3, :3].sum(0))
-        T = np.eye(4)
-        T[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        T[:3, 3] = np.median(est[:, :3, 3], axis=0)
-        out.append(T)
+        out.append(average_pose(np.stack(est)))
     return np.stack(out)
+
+
+def average_pose(T: np.ndarray) -> np.ndarray:
+    """A robust mean of poses `(k, 4, 4)` (per-frame estimates of one fixed
+    transform): the nearest rotation to the sum of the rotations, the median
+    translation."""
+    U, _, Vt = np.linalg.svd(T[:, :3, :3].sum(0))
+    out = np.eye(4)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    out[:3, 3] = np.median(T[:, :3, 3], axis=0)
+    return out

@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._links import arm_targets, link_poses, sequential_sweeps, start_mounts
+from ._links import arm_targets, average_pose, link_poses, sequential_sweeps, start_mounts
 
 _DEG = np.pi / 180.0
 #: A joint counts as "at zero" (not the one sweeping) within this angle.
@@ -1152,13 +1152,7 @@ def _start_pose(views: _CameraViews, t_ctrl, inside, enc_t, enc_q, rate, model, 
             pose = views.poses[i].get(t.name)
             if pose is not None:
                 est.append(pose.T_cam_target @ np.linalg.inv(T_bf[k] @ np.asarray(mounts[m])))
-    est = np.stack(est)
-    U, _, Vt = np.linalg.svd(est[:, :3, :3].sum(0))
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.median(est[:, :3, 3], axis=0)
-    return T
+    return average_pose(np.stack(est))
 
 
 def _sweep_angles(R_pnp, target, joint, model, T_cam_base, mounts) -> np.ndarray:

@@ -79,3 +79,26 @@ def test_arbitrary_motion_needs_a_plate_on_every_link(dataset, tmp_path):
     (ds / "metadata.json").write_text(json.dumps(meta))
     with pytest.raises(CalibrationError, match="joint 'elbow_joint': no target on link 'forearm_link'"):
         calibrate(ds, progress=False, workers=1)
+
+
+def test_undo_joint_inverts_a_turn_about_the_axis():
+    from jaxcal._links import _rotation, undo_joint
+
+    rng = np.random.default_rng(2)
+    V = rng.normal(size=3)
+    V /= np.linalg.norm(V)
+    Q = rng.normal(size=3)
+    angle = rng.uniform(-1.0, 1.0, 5)
+    P = rng.normal(size=(5, 3))
+    O = np.stack([_rotation(rng.normal(size=3) / np.sqrt(3.0), rng.uniform(0, 3, 1))[0] for _ in range(5)])
+    A = rng.normal(size=(5, 6, 6))
+    C = A @ np.swapaxes(A, 1, 2)
+    R = _rotation(V, angle)  # the joint turns the poses by +angle about (V, Q)
+    B = np.zeros((5, 6, 6))
+    B[:, :3, :3] = B[:, 3:, 3:] = R
+    P2, O2, C2 = undo_joint(
+        Q + np.einsum("fab,fb->fa", R, P - Q), R @ O, B @ C @ np.swapaxes(B, 1, 2), V, Q, angle
+    )
+    np.testing.assert_allclose(P2, P, atol=1e-12)
+    np.testing.assert_allclose(O2, O, atol=1e-12)
+    np.testing.assert_allclose(C2, C, atol=1e-10)
