@@ -36,7 +36,7 @@ demo: $(STAMP) gl
 # compilation is mostly single-threaded, and balancing the two workers beats
 # keeping files whole (a module fixture may then be built on both).
 test: $(STAMP) gl
-	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadgroup
+	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist load
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

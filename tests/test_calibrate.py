@@ -24,9 +24,6 @@ from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
 from jaxcal.vision import VisionError
 
-# One worker builds the rendered dataset and its calibration once (pytest-xdist --dist loadgroup).
-pytestmark = pytest.mark.xdist_group("calibrate")
-
 CONFIG = SimConfig(
     robot="ur5e",
     seed=0,

@@ -6,9 +6,6 @@ import pytest
 
 from jaxcal.cli import main
 
-# test_cli and test_montecarlo share the compiled Monte Carlo trial: one worker (--dist loadgroup).
-pytestmark = pytest.mark.xdist_group("montecarlo")
-
 
 @pytest.mark.slow
 def test_montecarlo_detail_prints_before_after_and_succeeds(capsys):

@@ -16,7 +16,7 @@ from jaxcal.pipeline import calibrate
 from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
 
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("eye_in_hand")]
+pytestmark = pytest.mark.slow
 
 CONFIG = SimConfig(
     robot="ur5e",

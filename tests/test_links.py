@@ -15,7 +15,7 @@ from jaxcal.robots import load_robot
 from jaxcal.sim.motion import random_motion
 from jaxcal.sim.simulate import SimConfig, simulate
 
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("links")]
+pytestmark = pytest.mark.slow
 
 NAMES = load_robot("ur5e").joint_names
 CONFIG = SimConfig(

@@ -23,10 +23,6 @@ from jaxcal._montecarlo import (
     trial_sweeps,
 )
 
-# test_cli and test_montecarlo share the compiled Monte Carlo trial: one worker (--dist loadgroup).
-pytestmark = pytest.mark.xdist_group("montecarlo")
-
-
 SETUP = ur5e_setup(frames=24)
 TRIALS = 8  # one batch shape for every test here (and test_cli): one compilation
 
