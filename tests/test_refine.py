@@ -69,17 +69,24 @@ def free():
     return np.asarray(mask)
 
 
-@pytest.fixture(scope="module")
-def truth(free):
-    g = _groups(N, 1)
-    scale = np.zeros(FLAT0.size)
-    scale[g["cam"]] = [5e-3] * 3 + [5e-3] * 3
+def _perturbed(flat0, free, rng, markers: int = 1, angles: int = 0) -> np.ndarray:
+    """A truth near `flat0`, on the `free` parameters only: 5 mm / mrad on the
+    camera, 1 mm and 2 mrad on the joint origins, 3 mrad zero offsets, 1 mm and
+    5 mrad on each mount, 1 % rates, 0.02 rad per-view angles."""
+    g = _groups(N, markers, 0, angles)
+    scale = np.zeros(np.size(flat0))
+    scale[g["cam"]] = 5e-3
     scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
     scale[g["zero"]] = 3e-3
-    scale[g["tool"]] = [1e-3] * 3 + [5e-3] * 3
+    scale[g["tool"]] = np.tile([1e-3] * 3 + [5e-3] * 3, markers)
     scale[g["rate"]] = 0.01
-    x = FLAT0 + scale * np.random.default_rng(0).standard_normal(FLAT0.size) * free
-    return x
+    scale[g["angles"]] = 0.02
+    return np.asarray(flat0) + scale * rng.standard_normal(np.size(flat0)) * free
+
+
+@pytest.fixture(scope="module")
+def truth(free):
+    return _perturbed(FLAT0, free, np.random.default_rng(0))
 
 
 @pytest.fixture(scope="module")
@@ -323,14 +330,7 @@ def test_eye_in_hand_recovers_the_board_and_the_robot():
     free, _ = jax.jit(identifiable_mask)(problem, P0, default_free(N, 1))
     free = np.asarray(free)
     assert free[_groups(N, 1)["tool"]].all(), "the camera mount must be identifiable"
-    g = _groups(N, 1)
-    scale = np.zeros(FLAT0.size)
-    scale[g["cam"]] = 5e-3
-    scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
-    scale[g["zero"]] = 3e-3
-    scale[g["tool"]] = [1e-3] * 3 + [5e-3] * 3
-    scale[g["rate"]] = 0.01
-    x_true = jnp.asarray(FLAT0 + scale * np.random.default_rng(3).standard_normal(FLAT0.size) * free)
+    x_true = jnp.asarray(_perturbed(FLAT0, free, np.random.default_rng(3)))
     p_true = UNRAVEL(x_true)
 
     model, mounts = apply_correction(NOMINAL, problem.T_flange_marker0, p_true.correction)
@@ -379,14 +379,7 @@ def test_without_encoders_the_angles_are_unknowns():
     # The zero offsets of the middle joints stay visible (they set the pose while the others sweep).
     assert free[g["zero"]][1:5].all()
 
-    rng = np.random.default_rng(5)
-    scale = np.zeros(flat0.size)
-    scale[g["cam"]] = 5e-3
-    scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
-    scale[g["zero"]] = 3e-3
-    scale[g["tool"]] = [1e-3] * 3 + [5e-3] * 3
-    scale[g["angles"]] = 0.02
-    x_true = jnp.asarray(np.asarray(flat0) + scale * rng.standard_normal(flat0.size) * free)
+    x_true = jnp.asarray(_perturbed(flat0, free, np.random.default_rng(5), angles=V))
     p_true = unravel(x_true)
     q = joint_positions(p_true, problem)
     np.testing.assert_allclose(q[np.arange(V), joint], p_true.angles)
@@ -436,13 +429,7 @@ def test_targets_on_several_links_under_arbitrary_motion():
     free = np.asarray(free)
     g = _groups(N, M)
     assert free[g["tool"]].all(), "every mount is seen"
-    scale = np.zeros(flat0.size)
-    scale[g["cam"]] = 5e-3
-    scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
-    scale[g["zero"]] = 3e-3
-    scale[g["tool"]] = np.tile([1e-3] * 3 + [5e-3] * 3, M)
-    scale[g["rate"]] = 0.01
-    x_true = jnp.asarray(np.asarray(flat0) + scale * rng.standard_normal(flat0.size) * free)
+    x_true = jnp.asarray(_perturbed(flat0, free, rng, markers=M))
     p_true = unravel(x_true)
     problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
     start = unravel(flat0 + 0.5 * (x_true - flat0) * free)
