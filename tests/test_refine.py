@@ -127,6 +127,20 @@ def _corrupt(pixels, key, fraction=0.1):
 INF = jnp.inf
 
 
+def _assert_exact_recovery(problem, flat0, unravel, x_true, free, names):
+    """From the truth's noise-free corners and a start half-way from `flat0`
+    to the truth `x_true` (flattened), plain least squares over the `free`
+    parameters gives back every parameter to 1e-8; returns the `RefineResult`."""
+    x_true = jnp.asarray(x_true)
+    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(unravel(x_true), problem))
+    start = unravel(jnp.asarray(flat0) + 0.5 * (x_true - jnp.asarray(flat0)) * free)
+    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(problem, start)
+    assert res.result == optx.RESULTS.successful
+    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
+    assert err.max() < 1e-8, names[int(np.argmax(err))]
+    return res
+
+
 def test_identifiable_parameters(free):
     frozen = [n for n, f, c in zip(NAMES, free, default_free(N, 1)) if c and not f]
     # The same gauge as the axis fit: 30 kinematic + camera + mount parameters and the 6 rates.
@@ -299,12 +313,7 @@ def test_two_cameras_share_one_robot(truth, free):
     V = q.shape[0]
     np.testing.assert_allclose(target_poses(p_true, problem)[V:], expected, atol=1e-12)
 
-    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
-    start = unravel(flat0 + 0.5 * (x_true - flat0) * free2)
-    res = jax.jit(lambda pb, s: refine(pb, s, free2, loss=None))(problem, start)
-    assert res.result == optx.RESULTS.successful
-    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
-    assert err.max() < 1e-8, names[int(np.argmax(err))]
+    res = _assert_exact_recovery(problem, flat0, unravel, x_true, free2, names)
     np.testing.assert_allclose(res.T_cam_bases[1], T1, atol=1e-9)
     np.testing.assert_allclose(res.T_cam_bases[0], res.T_cam_base, atol=0)
     assert float(res.std[-1]) > 0
@@ -340,12 +349,7 @@ def test_eye_in_hand_recovers_the_board_and_the_robot():
     np.testing.assert_allclose(target_poses(p_true, problem), expected, atol=1e-12)
     assert float(jnp.min(target_poses(p_true, problem)[:, 2, 3])) > 0.15  # the board stays in front
 
-    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
-    start = UNRAVEL(jnp.asarray(FLAT0 + 0.5 * (np.asarray(x_true) - FLAT0) * free))
-    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(problem, start)
-    assert res.result == optx.RESULTS.successful
-    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
-    assert err.max() < 1e-8, NAMES[int(np.argmax(err))]
+    res = _assert_exact_recovery(problem, FLAT0, UNRAVEL, x_true, free, NAMES)
     np.testing.assert_allclose(res.T_flange_marker[0], mounts[0], atol=1e-9)
     with pytest.raises(ValueError, match="eye-in-hand"):
         two = eqx.tree_at(lambda p: p.T_flange_marker0, problem, jnp.stack([T_flange_cam, T_flange_cam]))
@@ -385,12 +389,7 @@ def test_without_encoders_the_angles_are_unknowns():
     np.testing.assert_allclose(q[np.arange(V), joint], p_true.angles)
     assert float(jnp.abs(q).sum()) == pytest.approx(float(jnp.abs(p_true.angles).sum()))
 
-    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
-    start = unravel(flat0 + 0.5 * (x_true - flat0) * free)
-    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(problem, start)
-    assert res.result == optx.RESULTS.successful
-    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
-    assert err.max() < 1e-8, names[int(np.argmax(err))]
+    _assert_exact_recovery(problem, flat0, unravel, x_true, free, names)
     with pytest.raises(ValueError, match="without encoders"):
         refine(PROBLEM, params0, free)
 
@@ -431,12 +430,6 @@ def test_targets_on_several_links_under_arbitrary_motion():
     assert free[g["tool"]].all(), "every mount is seen"
     x_true = jnp.asarray(_perturbed(flat0, free, rng, markers=M))
     p_true = unravel(x_true)
-    problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(p_true, problem))
-    start = unravel(flat0 + 0.5 * (x_true - flat0) * free)
-    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(problem, start)
-    assert res.result == optx.RESULTS.successful
-    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
-    names = refine_parameter_names(NOMINAL, M)
-    assert err.max() < 1e-8, names[int(np.argmax(err))]
+    _assert_exact_recovery(problem, flat0, unravel, x_true, free, refine_parameter_names(NOMINAL, M))
     with pytest.raises(ValueError, match="one link per target"):
-        refine(dataclasses.replace(problem, target_link=jnp.asarray(links[:2])), start, free)
+        refine(dataclasses.replace(problem, target_link=jnp.asarray(links[:2])), params0, free)
