@@ -48,6 +48,15 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._geometry import make_pose, matmul, pose_inverse, se3_exp, so3_exp, so3_log
 from ._linalg import after, nearest_rotation
+from .errors import (
+    DegenerateMotionError,
+    HandEyeInputError,
+    LengthMismatchError,
+    NonFiniteError,
+    NotARotationError,
+    ShapeError,
+    TooFewPosesError,
+)
 
 MIN_POSES = 3
 MIN_ROTATION_DEG = 5.0
@@ -56,34 +65,6 @@ MIN_POINTS_PER_VIEW = 4
 _ROTATION_TOL = 1e-6
 
 # --------------------------------------------------------------------------- errors
-
-
-class HandEyeInputError(ValueError):
-    """Input that cannot give a hand-eye calibration; the message names the input and the frame."""
-
-
-class ShapeError(HandEyeInputError):
-    """An array has the wrong shape (poses that are not 4x4, intrinsics per camera, ...)."""
-
-
-class LengthMismatchError(HandEyeInputError):
-    """Two inputs that must pair up (robot poses and frames, points and touches) differ in length."""
-
-
-class NotARotationError(HandEyeInputError):
-    """A pose's rotation block is not a rotation matrix (or its bottom row is not (0, 0, 0, 1))."""
-
-
-class NonFiniteError(HandEyeInputError):
-    """A NaN or infinite value where an observation is marked valid."""
-
-
-class TooFewPosesError(HandEyeInputError):
-    """Fewer observed robot poses (or touched points) than the problem needs."""
-
-
-class DegenerateMotionError(HandEyeInputError):
-    """The motion cannot identify the transforms: rotations below the minimum or about one axis only."""
 
 
 # --------------------------------------------------------------------------- data

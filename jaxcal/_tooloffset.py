@@ -33,13 +33,10 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._geometry import normalize, orthonormal_basis, safe_norm
+from .errors import ToolOffsetInputError
 
 MIN_POINTS = 3
 MIN_SPAN_DEG = 30.0
-
-
-class ToolOffsetInputError(ValueError):
-    """Input that cannot give an arc fit; the message names the input."""
 
 
 class CircleFit(eqx.Module):

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._links import arm_targets, average_pose, link_poses, sequential_sweeps, start_mounts
+from .errors import CalibrationError
 
 _DEG = np.pi / 180.0
 #: A joint counts as "at zero" (not the one sweeping) within this angle.
@@ -32,10 +33,6 @@ AT_ZERO_DEG = 0.05
 MOVING_DEG = 0.5
 #: Independence threshold of the refinement's identifiability search without encoders.
 NO_ENCODER_TOL = 1e-3
-
-
-class CalibrationError(ValueError):
-    """The dataset cannot be calibrated as it is (the message says why and where)."""
 
 
 @dataclass(frozen=True, eq=False)

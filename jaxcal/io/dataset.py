@@ -27,15 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import DatasetError
 from ..markers import TargetSpec
 from ._files import make_temp_dir
 
 SCHEMA = "jaxcal.dataset"
 SCHEMA_VERSION = 1
-
-
-class DatasetError(ValueError):
-    """A dataset file is missing, malformed or inconsistent (the message names it)."""
 
 
 @dataclass(frozen=True, eq=False)

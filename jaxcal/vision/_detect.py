@@ -11,6 +11,7 @@ from multiprocessing import get_context
 import cv2
 import numpy as np
 
+from ..errors import VisionError
 from ..markers import TargetSpec, aruco_dictionary
 
 # Fewest features that still fix a pose: 4 ChArUco corners, or the 4 corners of a marker.
@@ -19,10 +20,6 @@ _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
 # Below this many images per worker, a process pool costs more (worker start-up,
 # ~2 s) than it saves (~10 ms per 640x480 image).
 _POOL_MIN_PER_WORKER = 32
-
-
-class VisionError(ValueError):
-    """An image, target or camera cannot be processed (the message names it)."""
 
 
 @dataclass(frozen=True, eq=False)
