@@ -50,12 +50,12 @@ from jax.flatten_util import ravel_pytree
 import jaxcal  # noqa: F401  (float64)
 from jaxcal._arcfit import fit_arc, make_arc_data
 from jaxcal._axisfit import fit_axes
+from jaxcal._correction import ParameterLayout
 from jaxcal._geometry import make_pose, se3_log, so3_exp
 from jaxcal._montecarlo import default_setup
 from jaxcal._refine import (
     RefineParams,
     RefineProblem,
-    _groups,
     default_free,
     fisher_std,
     grid_points,
@@ -72,7 +72,7 @@ from jaxcal.robots import load_robot
 
 
 def _truth(flat0: np.ndarray, free: np.ndarray, n: int, seed: int) -> np.ndarray:
-    g = _groups(n, 1)
+    g = ParameterLayout.sized(n, 1).indices()
     scale = np.zeros(flat0.size)
     scale[g["cam"]] = [5e-3] * 3 + [5e-3] * 3
     scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, n)

@@ -67,10 +67,10 @@ from jaxcal._geometry import pose_inverse, se3_exp
 from jaxcal._kinematics import KinematicModel, forward_kinematics
 from jaxcal._montecarlo import (
     SweepPlan,
-    _draw_truth,
-    _dynamic,
     _free_mask_jit,
     default_setup,
+    draw_trial_truth,
+    dynamic_setup,
     exact_arcs,
     fit_sweeps,
     monte_carlo,
@@ -88,7 +88,7 @@ def _trial_inputs(setup, key):
     validation configurations, and jaxcal's closed-form arc starts (SciPy's
     starting point)."""
     k_truth, k_noise, k_val = jax.random.split(key, 3)
-    true, T_cam_base, T_flange_marker = _draw_truth(setup, k_truth)
+    true, T_cam_base, T_flange_marker = draw_trial_truth(setup, k_truth)
     kw = dict(
         nominal_ratio=setup.nominal.reduction_ratio,
         use_encoders=setup.use_encoders,
@@ -338,7 +338,7 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
 
     # SciPy: the same trials' data (the keys monte_carlo splits), made outside the clock.
     n_scipy = min(n_scipy, trials)
-    dyn = _dynamic(setup)
+    dyn = dynamic_setup(setup)
     free = np.asarray(_free_mask_jit(dyn))  # what monte_carlo gives its trials (already compiled)
     keys = jax.random.split(key, trials)[:n_scipy]
     inputs, q_val = jax.jit(jax.vmap(_trial_inputs, in_axes=(None, 0)))(dyn, keys)

@@ -14,9 +14,9 @@ from ._arcfit import fit_arc as fit_arc  # noqa: E402
 from ._arcfit import make_arc_data as make_arc_data  # noqa: E402
 from ._arcfit import validate_arc_data as validate_arc_data  # noqa: E402
 from ._axisfit import AxisFitResult as AxisFitResult  # noqa: E402
-from ._axisfit import KinematicCorrection as KinematicCorrection  # noqa: E402
 from ._axisfit import fit_axes as fit_axes  # noqa: E402
 from ._axisfit import parameter_names as parameter_names  # noqa: E402
+from ._correction import KinematicCorrection as KinematicCorrection  # noqa: E402
 from ._handeye import HandEyePixels as HandEyePixels  # noqa: E402
 from ._handeye import HandEyePoses as HandEyePoses  # noqa: E402
 from ._handeye import HandEyeResult as HandEyeResult  # noqa: E402
@@ -81,9 +81,9 @@ from .errors import SuspectResultError as SuspectResultError  # noqa: E402
 from .errors import TooFewPosesError as TooFewPosesError  # noqa: E402
 from .errors import ToolOffsetInputError as ToolOffsetInputError  # noqa: E402
 from .errors import VisionError as VisionError  # noqa: E402
-from .pipeline import CalibrationResult as CalibrationResult  # noqa: E402
 from .pipeline import calibrate as calibrate  # noqa: E402
 from .report import write_outputs as write_outputs  # noqa: E402
+from .stages import CalibrationResult as CalibrationResult  # noqa: E402
 
 try:
     __version__ = importlib.metadata.version("jaxcal")

@@ -29,33 +29,17 @@ import itertools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
-from jax.custom_derivatives import SymbolicZero
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
-from ._arcfit import ArcFitResult, _instantiate, line_to_params
+from . import _lsq
+from ._arcfit import ArcFitResult, line_to_params
+from ._correction import KinematicCorrection as KinematicCorrection  # re-exported
+from ._correction import ParameterLayout, apply_correction, zero_correction
 from ._geometry import make_pose, matmul, pose_inverse, se3_exp, skew, so3_log, so3_right_jacobian_inv
-from ._kinematics import REVOLUTE, KinematicModel, _joint_motion, forward_kinematics, joint_axes
-from ._linalg import after, gauss_newton_covariance, nearest_rotation
-
-_POSE_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
-
-
-class KinematicCorrection(eqx.Module):
-    """Corrections to a nominal model, the unknowns of a kinematic calibration.
-
-    - `origin`: per joint, a twist $(v, \\omega)$ (m, rad) right-multiplying the
-      origin, `T_parent_joint @ se3_exp(origin[j])` (i.e. in the joint frame).
-    - `zero_offset`: added to the zero offsets (rad).
-    - `tool`: per marker, a twist right-multiplying the marker mount
-      `T_flange_marker`.
-    """
-
-    origin: Float[Array, "joints 6"]
-    zero_offset: Float[Array, " joints"]
-    tool: Float[Array, "markers 6"]
+from ._kinematics import REVOLUTE, KinematicModel, forward_kinematics, joint_axes, joint_motion
+from ._linalg import after, nearest_rotation
 
 
 class AxisFitParams(eqx.Module):
@@ -65,43 +49,9 @@ class AxisFitParams(eqx.Module):
     correction: KinematicCorrection
 
 
-def apply_correction(
-    model: KinematicModel, T_flange_marker: Float[Array, "markers 4 4"], corr: KinematicCorrection
-) -> tuple[KinematicModel, Float[Array, "markers 4 4"]]:
-    """The corrected model and marker mounts."""
-    dT = jax.vmap(se3_exp)(corr.origin)
-    new = eqx.tree_at(
-        lambda m: (m.T_parent_joint, m.zero_offset),
-        model,
-        (matmul(model.T_parent_joint, dT), model.zero_offset + corr.zero_offset),
-    )
-    mounts = matmul(T_flange_marker, jax.vmap(se3_exp)(corr.tool))
-    return new, mounts
-
-
 def parameter_names(model: KinematicModel, num_markers: int) -> list[str]:
-    """Names of the flattened `AxisFitParams` (the order of `ravel_pytree`)."""
-    names = [f"T_cam_base.{p}" for p in _POSE_NAMES]
-    for j in model.joint_names:
-        names += [f"{j}.origin.{p}" for p in _POSE_NAMES]
-    names += [f"{j}.zero_offset" for j in model.joint_names]
-    marker = ["marker"] if num_markers == 1 else [f"marker{m}" for m in range(num_markers)]
-    for mk in marker:
-        names += [f"{mk}.mount.{p}" for p in _POSE_NAMES]
-    return names
-
-
-def _priority(model: KinematicModel, num_markers: int) -> np.ndarray:
-    """Column order for the identifiability search: camera first, then the
-    marker mount, zero offsets, and the joint origins from base to tip (a
-    dependent column is frozen, so earlier groups are preferred)."""
-    n = model.num_joints
-    idx = np.arange(6 + 6 * n + n + 6 * num_markers)
-    cam = idx[:6]
-    origin = idx[6 : 6 + 6 * n]
-    zero = idx[6 + 6 * n : 6 + 7 * n]
-    tool = idx[6 + 7 * n :]
-    return np.concatenate([cam, tool, zero, origin])
+    """Names of the flattened `AxisFitParams` (the order of `ravel_pytree`; see `jaxcal._correction`)."""
+    return ParameterLayout.of(model, num_markers).names(refine=False)
 
 
 class AxisFitProblem(eqx.Module):
@@ -172,31 +122,6 @@ def _adjoint(T: Float[Array, "4 4"]) -> Float[Array, "6 6"]:
     return jnp.concatenate([top, bottom])
 
 
-def _column_masks(nominal: KinematicModel, n_markers: int) -> tuple[np.ndarray, np.ndarray]:
-    """Which flattened parameters move joint $j$'s axis (`(joints, n)`) and marker $m$ (`(markers, n)`).
-
-    Joint $j$'s axis moves with the camera pose, the origins of joints $i \\le j$
-    and the zero offsets of joints $i < j$; a marker with everything but the
-    other markers' mounts.
-    """
-    n = nominal.num_joints
-    j = np.arange(n)[:, None]
-    i = np.arange(n)[None, :]
-    line = np.concatenate(
-        [
-            np.ones((n, 6)),
-            np.repeat(i <= j, 6, axis=1),
-            i < j,
-            np.zeros((n, 6 * n_markers)),
-        ],
-        axis=1,
-    )
-    marker = np.concatenate(
-        [np.ones((n_markers, 6 + 7 * n)), np.repeat(np.eye(n_markers), 6, axis=1)], axis=1
-    )
-    return line, marker
-
-
 def _axis_terms(
     params: AxisFitParams, problem: AxisFitProblem, *, jacobian: bool
 ) -> tuple[Float[Array, "joints k"], Float[Array, "joints k n"] | None]:
@@ -235,7 +160,7 @@ def _axis_terms(
     for i, kind in enumerate(nominal.joint_types):
         T = matmul(matmul(T, nominal.T_parent_joint[i]), E_o[i])
         frames.append(T)
-        T = matmul(T, _joint_motion(kind, nominal.axis[i], theta[i]))
+        T = matmul(T, joint_motion(kind, nominal.axis[i], theta[i]))
     T_cm = matmul(matmul(matmul(T, nominal.T_last_flange), problem.T_flange_marker0), E_m)  # (M, 4, 4)
     frames = jnp.stack(frames)  # joint frames in the camera frame, (J, 4, 4)
     points = frames[:, :3, 3]
@@ -276,7 +201,8 @@ def _axis_terms(
     S_tool = jnp.einsum("mab,mbc->amc", jax.vmap(_adjoint)(T_cm), B_m).reshape(6, 6 * M)
     S = jnp.concatenate([S_cam, S_origin, S_zero, S_tool], axis=1)
     v, w = S[:3].T, S[3:].T  # (n_params, 3)
-    line_mask, marker_mask = (jnp.asarray(x, r.dtype) for x in _column_masks(nominal, M))
+    layout = ParameterLayout.of(nominal, M)
+    line_mask, marker_mask = (jnp.asarray(layout.axis_columns(g), r.dtype) for g in ("line", "marker"))
     dp = (v[None] + jnp.cross(w[None], points[:, None])) * line_mask[..., None]  # (J, n_params, 3)
     dd = jnp.cross(w[None], dirs[:, None]) * line_mask[..., None]
     L_p, L_d = jax.vmap(jax.jacfwd(line, argnums=(0, 1)))(points, dirs, arcs.R_ref, arcs.c)  # (J, 4, 3)
@@ -293,12 +219,7 @@ def _axis_terms(
     return r, jnp.einsum("jab,jbp->jap", W, D)
 
 
-def _flat_params(params: AxisFitParams) -> Float[Array, " n"]:
-    return ravel_pytree(params)[0]
-
-
-@jax.custom_jvp
-def axis_residuals(params: AxisFitParams, problem: AxisFitProblem) -> Float[Array, "joints k"]:
+def _axis_residuals(params: AxisFitParams, problem: AxisFitProblem) -> Float[Array, "joints k"]:
     """Whitened residuals of the second error function, one row per joint sweep.
 
     Per joint: the model axis, mapped into the camera frame, in the arc fit's
@@ -312,20 +233,11 @@ def axis_residuals(params: AxisFitParams, problem: AxisFitProblem) -> Float[Arra
     return _axis_terms(params, problem, jacobian=False)[0]
 
 
-def _axis_residuals_jvp(primals, tangents):
-    params, problem = primals
-    t_params, t_problem = tangents
-    is_zero = lambda x: isinstance(x, SymbolicZero)
-    if not all(is_zero(t) for t in jax.tree.leaves(t_problem, is_leaf=is_zero)):
-        # Derivatives with respect to the measurements (e.g. implicit differentiation): autodiff.
-        inst = lambda tree: jax.tree.map(_instantiate, tree, is_leaf=is_zero)
-        return jax.jvp(_axis_residuals_autodiff, (params, problem), (inst(t_params), inst(t_problem)))
-    r, J = _axis_terms(params, problem, jacobian=True)
-    t = _flat_params(jax.tree.map(_instantiate, t_params, is_leaf=is_zero))
-    return r, J @ t
-
-
-axis_residuals.defjvp(_axis_residuals_jvp, symbolic_zeros=True)
+axis_residuals = _lsq.closed_form_jvp(
+    _axis_residuals,
+    lambda params, problem: _axis_terms(params, problem, jacobian=True),
+    _axis_residuals_autodiff,
+)
 
 
 def axis_jacobian(
@@ -394,7 +306,7 @@ def identifiable_mask(
     """Which parameters the measurements determine, by greedy column selection.
 
     The whitened Jacobian's columns are normalised and visited in the
-    priority order of `_priority`; a column is kept when its component
+    priority order of `ParameterLayout.priority`; a column is kept when its component
     orthogonal to the span of the kept ones is above `tol` (a
     column-pivoted, rank-revealing Gram-Schmidt QR with a fixed pivot
     order). Pure and vmappable.
@@ -403,25 +315,8 @@ def identifiable_mask(
     independence is each column's relative distance from the kept span.
     """
     _, J = axis_jacobian(params, problem)
-    norms = jnp.linalg.norm(J, axis=0)
-    Jn = J / jnp.where(norms > 0, norms, 1.0)
-    order = jnp.asarray(_priority(problem.nominal, problem.T_flange_marker0.shape[0]))
-    m, n = J.shape
-    basis0 = jnp.zeros((m, n))
-
-    def body(i, carry):
-        basis, keep, indep, count = carry
-        col = Jn[:, order[i]]
-        resid = col - basis @ (basis.T @ col)
-        resid = resid - basis @ (basis.T @ resid)  # re-orthogonalise
-        r = jnp.linalg.norm(resid)
-        ok = (r > tol) & (norms[order[i]] > 0)
-        basis = jnp.where(ok, basis.at[:, count].set(resid / jnp.where(ok, r, 1.0)), basis)
-        return basis, keep.at[order[i]].set(ok), indep.at[order[i]].set(r), count + ok
-
-    init = (basis0, jnp.zeros(n, bool), jnp.zeros(n), jnp.asarray(0))
-    _, keep, indep, _ = jax.lax.fori_loop(0, n, body, init)
-    return keep, indep
+    layout = ParameterLayout.of(problem.nominal, problem.T_flange_marker0.shape[0])
+    return _lsq.independent_columns(J, layout.priority(refine=False), tol=tol)
 
 
 class AxisFitResult(eqx.Module):
@@ -440,6 +335,9 @@ class AxisFitResult(eqx.Module):
     - `residual_rms`: RMS of the whitened residuals.
     - `singular_values`: of the whitened Jacobian of the free parameters at the
       solution, its columns scaled to unit norm.
+    - `T_cam_base0`, `T_flange_marker0`: the references the corrections are
+      relative to (`T_cam_base = T_cam_base0 @ se3_exp(params.cam)`; the
+      nominal mounts, `apply_correction` maps them to `T_flange_marker`).
     """
 
     model: KinematicModel
@@ -454,6 +352,8 @@ class AxisFitResult(eqx.Module):
     num_steps: Int[Array, ""]
     residual_rms: Float[Array, ""]
     singular_values: Float[Array, " n"]
+    T_cam_base0: Float[Array, "4 4"]
+    T_flange_marker0: Float[Array, "markers 4 4"]
 
 
 def fit_axes(
@@ -515,12 +415,7 @@ def fit_axes(
         use_poses=use_poses,
     )
     n = nominal.num_joints
-    params0 = AxisFitParams(
-        cam=jnp.zeros(6),
-        correction=KinematicCorrection(
-            origin=jnp.zeros((n, 6)), zero_offset=jnp.zeros(n), tool=jnp.zeros((n_markers, 6))
-        ),
-    )
+    params0 = AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(n, n_markers))
     flat0, unravel = ravel_pytree(params0)
     if free is None:
         keep, indep = identifiable_mask(problem, params0)
@@ -536,13 +431,12 @@ def fit_axes(
     def fn(x, problem):
         return axis_residuals(unravel(x * keep_f), problem)
 
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(fn, solver, flat0, problem, max_steps=max_steps, throw=throw)
+    sol = _lsq.solve(fn, flat0, problem, _lsq.LMOptions(rtol, atol, max_steps, throw))
     x = sol.value * keep_f
     params = unravel(x)
     r, J = axis_jacobian(params, problem)
     # Frozen parameters: zero columns, zero variance; one SVD (see _linalg).
-    cov, sv, _ = gauss_newton_covariance(J * keep_f[None, :])
+    cov, sv, _ = _lsq.covariance(J, keep)
     model, mounts = apply_correction(nominal, T_flange_marker, params.correction)
     if arcs.has_encoder:
         model = eqx.tree_at(lambda m: m.reduction_ratio, model, nominal.reduction_ratio / arcs.rate)
@@ -559,4 +453,6 @@ def fit_axes(
         num_steps=sol.stats["num_steps"],
         residual_rms=jnp.sqrt(jnp.mean(r**2)),
         singular_values=sv,
+        T_cam_base0=T_cam_base0,
+        T_flange_marker0=T_flange_marker,
     )

@@ -118,7 +118,7 @@ def make_model(
     )
 
 
-def _joint_motion(kind: str, axis: Float[Array, "3"], theta: Float[Array, ""]) -> Float[Array, "4 4"]:
+def joint_motion(kind: str, axis: Float[Array, "3"], theta: Float[Array, ""]) -> Float[Array, "4 4"]:
     if kind == REVOLUTE:
         return make_pose(so3_exp(axis * theta), jnp.zeros(3, dtype=axis.dtype))
     return make_pose(jnp.eye(3, dtype=axis.dtype), axis * theta)
@@ -154,7 +154,7 @@ def forward_kinematics(model: KinematicModel, q: Float[Array, " joints"]) -> Flo
     # Products as broadcast-and-sum (`matmul`): under vmap over configurations a
     # batched 4x4 dot_general is several times slower on CPU.
     for i, kind in enumerate(model.joint_types):
-        T = matmul(matmul(T, model.T_parent_joint[i]), _joint_motion(kind, model.axis[i], theta[i]))
+        T = matmul(matmul(T, model.T_parent_joint[i]), joint_motion(kind, model.axis[i], theta[i]))
         frames.append(T)
     frames.append(matmul(T, model.T_last_flange))
     return jnp.stack(frames)
@@ -181,7 +181,7 @@ def joint_axes(
 # --------------------------------------------------------------------------- DH tables
 
 
-def _dh_link(a, alpha, d, theta) -> np.ndarray:
+def dh_link(a, alpha, d, theta) -> np.ndarray:
     """Standard (Denavit-Hartenberg 1955) $R_z(\\theta) T_z(d) T_x(a) R_x(\\alpha)$."""
     ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
     return np.array(
@@ -189,7 +189,7 @@ def _dh_link(a, alpha, d, theta) -> np.ndarray:
     )
 
 
-def _mdh_link(a, alpha, d, theta) -> np.ndarray:
+def mdh_link(a, alpha, d, theta) -> np.ndarray:
     """Modified (Craig 1986) $R_x(\\alpha) T_x(a) R_z(\\theta) T_z(d)$."""
     ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
     return np.array(
@@ -239,8 +239,8 @@ def from_dh(
     prev = np.eye(4) if T_base is None else np.asarray(T_base, np.float64)
     for i in range(n):
         # Joint i rotates about z after the constant theta_i of the table.
-        origins.append(prev @ _dh_link(0.0, 0.0, 0.0, theta[i]))
-        prev = _dh_link(a[i], alpha[i], d[i], 0.0)
+        origins.append(prev @ dh_link(0.0, 0.0, 0.0, theta[i]))
+        prev = dh_link(a[i], alpha[i], d[i], 0.0)
     last = prev if flange is None else prev @ np.asarray(flange, np.float64)
     return make_model(
         np.stack(origins),
@@ -276,8 +276,8 @@ def from_mdh(
     origins = []
     carry = np.eye(4) if T_base is None else np.asarray(T_base, np.float64)
     for i in range(n):
-        origins.append(carry @ _mdh_link(a[i], alpha[i], 0.0, theta[i]))
-        carry = _mdh_link(0.0, 0.0, d[i], 0.0)
+        origins.append(carry @ mdh_link(a[i], alpha[i], 0.0, theta[i]))
+        carry = mdh_link(0.0, 0.0, d[i], 0.0)
     last = carry if flange is None else carry @ np.asarray(flange, np.float64)
     return make_model(
         np.stack(origins),
@@ -405,3 +405,16 @@ def perturb_model(model: KinematicModel, key: PRNGKeyArray, scales: Perturbation
 def with_tool(model: KinematicModel, T_flange_tool) -> KinematicModel:
     """`model` with its tool (or marker) transform replaced."""
     return eqx.tree_at(lambda m: m.T_flange_tool, model, jnp.asarray(T_flange_tool, jnp.float64))
+
+
+def anchor_base(true: KinematicModel, nominal: KinematicModel) -> KinematicModel:
+    """`true` with joint 1's origin, axis and zero offset reset to nominal (the gauge)."""
+    return eqx.tree_at(
+        lambda m: (m.T_parent_joint, m.axis, m.zero_offset),
+        true,
+        (
+            true.T_parent_joint.at[0].set(nominal.T_parent_joint[0]),
+            true.axis.at[0].set(nominal.axis[0]),
+            true.zero_offset.at[0].set(nominal.zero_offset[0]),
+        ),
+    )

@@ -21,6 +21,8 @@ after the other; the maths is the arc fit's.
 
 import numpy as np
 
+from ._arcfit import make_arc_data
+
 
 def _rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """Rodrigues: rotations about the unit `axis` by `angle` `(F,)` -> `(F, 3, 3)`."""
@@ -104,8 +106,6 @@ def sequential_sweeps(rows, poses, targets, per_joint, q, t_cam, fit_one):
     arcs)`: per joint `(joints, 1, F, ...)` arrays padded to all rows, and the
     list of `ArcFitResult`s.
     """
-    from ._arcfit import make_arc_data
-
     F = len(rows)
     n = len(per_joint)
     Ps = np.zeros((n, 1, F, 3))

@@ -25,9 +25,17 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._arcfit import ArcData, ArcFitResult, fit_arc, line_to_params, make_arc_data
-from ._axisfit import AxisFitResult, fit_axes
-from ._geometry import make_pose, matmul, pose_inverse, se3_exp, so3_exp, so3_log
-from ._kinematics import KinematicModel, PerturbationScales, forward_kinematics, joint_axes, perturb_model
+from ._axisfit import fit_axes
+from ._geometry import make_pose, matmul, se3_exp, so3_exp, so3_log
+from ._kinematics import (
+    KinematicModel,
+    PerturbationScales,
+    anchor_base,
+    forward_kinematics,
+    joint_axes,
+    perturb_model,
+)
+from ._scoring import score as score  # re-exported
 
 _MM = 1e-3
 _DEG = jnp.pi / 180.0
@@ -48,19 +56,6 @@ class NoiseModel(eqx.Module):
     position_mm: float = 0.1
     orientation_deg: float = 0.05
     encoder_deg: float = 0.0
-
-
-def anchor_base(true: KinematicModel, nominal: KinematicModel) -> KinematicModel:
-    """`true` with joint 1's origin, axis and zero offset reset to nominal (the gauge)."""
-    return eqx.tree_at(
-        lambda m: (m.T_parent_joint, m.axis, m.zero_offset),
-        true,
-        (
-            true.T_parent_joint.at[0].set(nominal.T_parent_joint[0]),
-            true.axis.at[0].set(nominal.axis[0]),
-            true.zero_offset.at[0].set(nominal.zero_offset[0]),
-        ),
-    )
 
 
 def sweep_commands(model: KinematicModel, plan: SweepPlan) -> Float[Array, "joints frames joints"]:
@@ -150,54 +145,6 @@ class TrialResult(eqx.Module):
     success: Bool[Array, ""]
 
 
-def score(
-    fit: AxisFitResult,
-    true: KinematicModel,
-    T_cam_base: Float[Array, "4 4"],
-    T_flange_marker: Float[Array, "markers 4 4"],
-    nominal: KinematicModel,
-    q_val: Float[Array, "n joints"],
-    T_cam_base_gauge: Float[Array, "4 4"] | None = None,
-) -> dict:
-    """Errors of a calibration against the truth (see `TrialResult`)."""
-
-    def marker_in_cam(model, T_cb, mount, q):
-        return matmul(matmul(T_cb, forward_kinematics(model, q)[-1]), mount)[:3, 3]
-
-    est = jax.vmap(lambda q: marker_in_cam(fit.model, fit.T_cam_base, fit.T_flange_marker[0], q))(q_val)
-    tru = jax.vmap(lambda q: marker_in_cam(true, T_cam_base, T_flange_marker[0], q))(q_val)
-    nom = jax.vmap(lambda q: marker_in_cam(nominal, fit.T_cam_base, fit.T_flange_marker[0], q))(q_val)
-    err = jnp.linalg.norm(est - tru, axis=-1) / _MM
-    err_nom = jnp.linalg.norm(nom - tru, axis=-1) / _MM
-    # The camera sees the base frame only up to the gauge (see module
-    # docstring): compare with the truth in the estimator's gauge when given.
-    T_ref = T_cam_base if T_cam_base_gauge is None else T_cam_base_gauge
-    dT = pose_inverse(T_ref) @ fit.T_cam_base
-    q0 = jnp.zeros(true.num_joints)
-    p_e, d_e = joint_axes(fit.model, q0)
-    p_t, d_t = joint_axes(true, q0)
-    # Both in the camera frame.
-    p_e = p_e @ fit.T_cam_base[:3, :3].T + fit.T_cam_base[:3, 3]
-    d_e = d_e @ fit.T_cam_base[:3, :3].T
-    p_t = p_t @ T_cam_base[:3, :3].T + T_cam_base[:3, 3]
-    d_t = d_t @ T_cam_base[:3, :3].T
-    cosang = jnp.clip(jnp.sum(d_e * d_t, -1), -1.0, 1.0)
-    sinang = jnp.linalg.norm(jnp.cross(d_e, d_t), axis=-1)
-    dp = p_e - p_t
-    # Distance of the true axis point from the estimated line (lines nearly parallel).
-    pos = jnp.linalg.norm(dp - jnp.sum(dp * d_e, -1, keepdims=True) * d_e, axis=-1)
-    return dict(
-        ee_rms_mm=jnp.sqrt(jnp.mean(err**2)),
-        ee_max_mm=jnp.max(err),
-        ee_rms_mm_nominal=jnp.sqrt(jnp.mean(err_nom**2)),
-        cam_rot_deg=jnp.linalg.norm(so3_log(dT[:3, :3])) / _DEG,
-        cam_trans_mm=jnp.linalg.norm(dT[:3, 3]) / _MM,
-        axis_dir_deg=jnp.arctan2(sinang, cosang) / _DEG,
-        axis_pos_mm=pos / _MM,
-        ratio_err_percent=100.0 * (fit.model.reduction_ratio - true.reduction_ratio) / true.reduction_ratio,
-    )
-
-
 class MonteCarloSetup(eqx.Module):
     """Fixed inputs of a Monte Carlo study."""
 
@@ -217,7 +164,7 @@ class MonteCarloSetup(eqx.Module):
     max_steps: int = eqx.field(static=True, default=100)
 
 
-def _draw_truth(setup: MonteCarloSetup, key: PRNGKeyArray):
+def draw_trial_truth(setup: MonteCarloSetup, key: PRNGKeyArray):
     k_model, k_cam, k_mount = jax.random.split(key, 3)
     true = anchor_base(perturb_model(setup.nominal, k_model, setup.scales), setup.nominal)
     kc1, kc2 = jax.random.split(k_cam)
@@ -310,7 +257,7 @@ def run_trial(
 ) -> TrialResult:
     """One Monte Carlo trial (pure; vmap over `key`)."""
     k_truth, k_noise, k_val = jax.random.split(key, 3)
-    true, T_cam_base, T_flange_marker = _draw_truth(setup, k_truth)
+    true, T_cam_base, T_flange_marker = draw_trial_truth(setup, k_truth)
     data = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise)
     # The truth expressed in the estimator's gauge: the same axis fit on exact
     # measurements, whose T_cam_base is what a perfect calibration returns. Both
@@ -377,7 +324,7 @@ def default_setup(
     )
 
 
-def _dynamic(setup: MonteCarloSetup) -> MonteCarloSetup:
+def dynamic_setup(setup: MonteCarloSetup) -> MonteCarloSetup:
     """Numbers as arrays, so a new noise level or scale reuses the compiled trial."""
     return jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if isinstance(x, float | int) else x, setup)
 
@@ -409,7 +356,7 @@ def monte_carlo(
         chunk = CPU_CHUNK if jax.default_backend() == "cpu" else trials
     if chunk < 1:
         raise ValueError(f"monte_carlo: chunk must be at least 1, got {chunk}")
-    setup = _dynamic(setup)
+    setup = dynamic_setup(setup)
     free = _free_mask_jit(setup)
     return _batched_trials(setup, jax.random.split(key, trials), free, chunk)
 

@@ -14,22 +14,28 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
+import optimistix as optx
+from rich.console import Console
+from rich.table import Table
 
+from . import _montecarlo as mc
+from ._axisfit import parameter_names
 from ._cache import enable_compilation_cache
+from .io._files import write_text_atomic
+from .io.dataset import load_dataset
+from .pipeline import calibrate
+from .report import write_outputs
+from .robots import load_robot
 
 
 def _write_json_atomic(path: Path, payload: dict) -> None:
-    from .io._files import write_text_atomic
-
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, json.dumps(payload, indent=2))
 
 
 def _setup(args):
-    from . import _montecarlo as mc
-    from .robots import load_robot
-
     noise = mc.NoiseModel(
         position_mm=args.noise_mm, orientation_deg=args.noise_deg, encoder_deg=args.encoder_noise_deg
     )
@@ -39,14 +45,11 @@ def _setup(args):
 
 def _detailed_trial(setup, key, free):
     """One trial with everything kept (truth, arc fits, axis fit, errors), jitted whole."""
-    import jax
-
-    from . import _montecarlo as mc
 
     @jax.jit
     def run(setup, key, free):
         k_truth, k_noise, k_val = jax.random.split(key, 3)
-        true, T_cam_base, T_flange_marker = mc._draw_truth(setup, k_truth)
+        true, T_cam_base, T_flange_marker = mc.draw_trial_truth(setup, k_truth)
         data = mc.trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise)
         arcs, fit = mc.fit_sweeps(setup.nominal, data, free=free)
         q_val = jax.random.uniform(k_val, (1000, setup.nominal.num_joints), minval=-np.pi, maxval=np.pi)
@@ -57,15 +60,9 @@ def _detailed_trial(setup, key, free):
 
 
 def _single_trial_report(console, setup, seed: int) -> bool:
-    import jax
-    import optimistix as optx
-    from rich.table import Table
 
-    from . import _montecarlo as mc
-    from ._axisfit import parameter_names
-
-    setup = mc._dynamic(setup)
-    free = mc._free_mask_jit(setup)
+    setup = mc.dynamic_setup(setup)
+    free = jax.jit(mc.nominal_free_mask)(setup)
     true, T_cam_base, T_flange_marker, arcs, fit, s = _detailed_trial(setup, jax.random.key(seed), free)
     t = Table(title="Arc fits (one per joint sweep)")
     for col in (
@@ -120,8 +117,6 @@ def _single_trial_report(console, setup, seed: int) -> bool:
 
 
 def _summary_table(console, summary: dict, title: str):
-    from rich.table import Table
-
     t = Table(title=title)
     t.add_column("metric")
     t.add_column("value", justify="right")
@@ -131,10 +126,6 @@ def _summary_table(console, summary: dict, title: str):
 
 
 def cmd_montecarlo(args) -> int:
-    import jax
-    from rich.console import Console
-
-    from . import _montecarlo as mc
 
     setup = _setup(args)
     ok = True
@@ -171,8 +162,6 @@ def _check_out(out: Path, overwrite: bool) -> None:
 
 
 def _calibration_tables(console, result) -> None:
-    from rich.table import Table
-
     t = Table(title=f"Joint sweeps (camera {result.camera})")
     for col in (
         "joint",
@@ -281,9 +270,6 @@ def _calibration_tables(console, result) -> None:
 
 
 def _run_calibration(console, dataset, out: Path, args) -> int:
-    from .pipeline import calibrate
-    from .report import write_outputs
-
     t0 = time.perf_counter()
     result = calibrate(
         dataset,
@@ -310,8 +296,6 @@ def _run_calibration(console, dataset, out: Path, args) -> int:
 
 
 def cmd_calibrate(args) -> int:
-    from rich.console import Console
-
     out = Path(args.out)
     _check_out(out, args.overwrite)
     console = Console(width=max(Console().width, 132))
@@ -319,8 +303,6 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from rich.console import Console
-
     from .sim.simulate import SimConfig, simulate
 
     out = Path(args.out)
@@ -357,7 +339,6 @@ def cmd_demo(args) -> int:
         "" if np.ndim(sweep) == 0 else "s"
     )
     if args.markers_on_links:
-        from .robots import load_robot
         from .sim.motion import random_motion
 
         names = load_robot("ur5e").joint_names
@@ -476,9 +457,9 @@ def cmd_simulate(args) -> int:
     trajectory = None
     if args.random_motion is not None:
         from .sim.motion import random_motion
-        from .sim.simulate import _nominal
+        from .sim.simulate import nominal_robot
 
-        names = _nominal(args.robot)[0].joint_names
+        names = nominal_robot(args.robot)[0].joint_names
         trajectory = random_motion(names, args.random_motion, args.motion_amplitude_deg, seed=args.seed)
     start = time.perf_counter()
     try:
@@ -488,7 +469,6 @@ def cmd_simulate(args) -> int:
     except FileExistsError as e:
         print(f"jaxcal: error: {e}", file=sys.stderr)
         return 2
-    from .io.dataset import load_dataset
 
     ds = load_dataset(out)
     visible = sum(all(f["visible"].values()) for f in ds.truth["frames"])

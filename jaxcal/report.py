@@ -8,6 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .io.dataset import atomic_directory, write_json
+from .io.urdf import save_urdf
+
 
 def arc_geometry(result, j: int) -> dict:
     """Joint `j`'s measured marker positions in its fitted arc's plane.
@@ -163,6 +166,16 @@ def _markdown(result, figs) -> str:
         f"solvers: {'all successful' if result.ok else '**FAILED**'}.",
         "",
     ]
+    lines += _truth_section(result) + _refinement_section(result) + _camera_section(result, r)
+    lines += _joints_section(result) + _frames_section(result)
+    lines += ["## Plots", ""]
+    for name, caption in figs:
+        lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]
+    return "\n".join(lines)
+
+
+def _truth_section(result) -> list[str]:
+    lines = []
     v = result.validation
     if v is not None:
         c = v["T_cam_base_error"]
@@ -183,6 +196,12 @@ def _markdown(result, figs) -> str:
             f"raw {c['raw_trans_mm']:.3f} mm, {c['raw_rot_deg']:.4f} deg).",
             "",
         ]
+    return lines
+
+
+def _refinement_section(result) -> list[str]:
+    lines = []
+    v = result.validation
     ref = result.refinement
     if ref is not None:
         lines += [
@@ -217,9 +236,14 @@ def _markdown(result, figs) -> str:
                 f"Two-stage {'T_board_base' if result.eye_in_hand else 'T_cam_base'} error: {c2['trans_mm']:.3f} mm, {c2['rot_deg']:.4f} deg.",
                 "",
             ]
+    return lines
+
+
+def _camera_section(result, r) -> list[str]:
+    v = result.validation
     fixed = "T_board_base" if result.eye_in_hand else "T_cam_base"
     T = r[fixed]
-    lines += [
+    lines = [
         "## Camera pose",
         "",
         *(
@@ -253,7 +277,7 @@ def _markdown(result, figs) -> str:
                 f"{e['start']['rot_deg']:.4f} deg)."
             )
         lines += [line, ""]
-    lines += [
+    return lines + [
         f"Clock offset: {1e3 * result.clock['offset_s']:.2f} ms"
         + (
             f" (estimated, std {1e3 * result.clock['std_s']:.2f} ms)"
@@ -261,6 +285,11 @@ def _markdown(result, figs) -> str:
             else " (given)"
         ),
         "",
+    ]
+
+
+def _joints_section(result) -> list[str]:
+    lines = [
         "## Joints",
         "",
         "| joint | frames | pos RMS mm | rot RMS deg | ratio nominal | ratio | std | solver |",
@@ -291,8 +320,12 @@ def _markdown(result, figs) -> str:
         "Held at nominal (the camera cannot see them): " + ", ".join(result.frozen),
         "",
     ]
+    return lines
+
+
+def _frames_section(result) -> list[str]:
     f = result.frames
-    lines += [
+    lines = [
         "## Frames",
         "",
         f"{f['images']} images; target found in {f['target_found']}; {f['no_target']} without a target, "
@@ -302,18 +335,12 @@ def _markdown(result, figs) -> str:
     ]
     if result.warnings:
         lines += ["## Notes", ""] + [f"- {w}" for w in result.warnings] + [""]
-    lines += ["## Plots", ""]
-    for name, caption in figs:
-        lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]
-    return "\n".join(lines)
+    return lines
 
 
 def write_outputs(result, out, *, overwrite: bool = False) -> Path:
     """Write `result` into directory `out` (atomically): `result.json`,
     `calibrated.urdf`, `camera_<name>.yaml`, `report.md` and its PNG plots."""
-    from .io.dataset import atomic_directory, write_json
-    from .io.urdf import save_urdf
-
     out = Path(out)
     with atomic_directory(out, overwrite=overwrite) as tmp:
         write_json(tmp / "result.json", result.to_json())

@@ -8,20 +8,21 @@ from pathlib import Path
 
 import numpy as np
 
-from ._kinematics import KinematicModel, _dh_link, _mdh_link, from_dh, from_mdh
+from ._kinematics import KinematicModel, dh_link, from_dh, from_mdh, mdh_link
 from .io.urdf import load_urdf
 
 ROBOTS_DIR = Path(__file__).resolve().parents[1] / "data" / "robots"
 
 
-def _known(pattern: str, strip: str = "") -> list[str]:
+def shipped(pattern: str = "*.urdf", strip: str = ".urdf") -> list[str]:
+    """Names of the shipped robot files matching `pattern` (without `strip`)."""
     return sorted(p.name.removesuffix(strip) for p in ROBOTS_DIR.glob(pattern))
 
 
 def robot_path(name: str) -> Path:
     """Path of the URDF of the shipped robot `name` (`"ur5e"`, `"panda"`)."""
-    if not isinstance(name, str) or name not in _known("*.urdf", ".urdf"):
-        raise ValueError(f"unknown robot {name!r}; known robots are {_known('*.urdf', '.urdf')}")
+    if not isinstance(name, str) or name not in shipped():
+        raise ValueError(f"unknown robot {name!r}; known robots are {shipped()}")
     return ROBOTS_DIR / f"{name}.urdf"
 
 
@@ -38,7 +39,7 @@ def dh_model(name: str) -> KinematicModel:
     between are the table's (DH or MDH) frames, named `"{name}_link{i}"`.
     Reduction ratios are 1 (the tables do not give them).
     """
-    known = _known("*_dh.json", ".json") + _known("*_mdh.json", ".json")
+    known = shipped("*_dh.json", ".json") + shipped("*_mdh.json", ".json")
     if not isinstance(name, str) or name not in known:
         raise ValueError(f"unknown DH table {name!r}; known tables are {sorted(known)}")
     path = ROBOTS_DIR / f"{name}.json"
@@ -54,7 +55,7 @@ def dh_model(name: str) -> KinematicModel:
     except KeyError as e:
         raise ValueError(f"DH table {str(path)!r} has no field {e.args[0]!r}") from None
     f = [float(flange[k]) for k in ("a", "alpha", "d", "theta")]
-    T_flange = _dh_link(*f) if convention == "dh" else _mdh_link(*f)
+    T_flange = dh_link(*f) if convention == "dh" else mdh_link(*f)
     build = from_dh if convention == "dh" else from_mdh
     n = len(joint_names)
     return build(

@@ -12,9 +12,9 @@ from jaxcal._arcfit import fit_arc
 from jaxcal._linalg import concurrent_decompositions
 from jaxcal._montecarlo import (
     NoiseModel,
-    _draw_truth,
-    _dynamic,
     _free_mask_jit,
+    draw_trial_truth,
+    dynamic_setup,
     exact_arcs,
     map_in_chunks,
     monte_carlo,
@@ -78,7 +78,7 @@ def test_exact_arcs_equal_noise_free_arc_fits():
     own references), so the gauge reference is the same fit, minus six LM solves."""
 
     def make(key):
-        true, T_cam_base, T_flange_marker = _draw_truth(SETUP, key)
+        true, T_cam_base, T_flange_marker = draw_trial_truth(SETUP, key)
         quiet = trial_sweeps(SETUP, true, T_cam_base, T_flange_marker, key, NoiseModel(0.0, 0.0, 0.0))
         arcs = jax.vmap(lambda d: fit_arc(d, scale_covariance=False))(quiet)
         return arcs, exact_arcs(arcs, true, T_cam_base, T_flange_marker, SETUP.nominal.reduction_ratio)
@@ -96,7 +96,7 @@ def test_batched_trials_keep_lapack_calls_ordered():
     two-core machine that deadlocks jaxlib's CPU thread pool (see jaxcal._linalg).
     With and without encoders (different arc and axis fit paths)."""
     for setup in (SETUP, dataclasses.replace(SETUP, use_encoders=False)):
-        setup = _dynamic(setup)
+        setup = dynamic_setup(setup)
         free = _free_mask_jit(setup)
         keys = jax.random.split(jax.random.key(0), 2)
         assert concurrent_decompositions(jax.vmap(lambda k, s=setup: run_trial(s, k, free)), keys) == []

@@ -18,6 +18,7 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from jaxcal._axisfit import apply_correction
+from jaxcal._correction import ParameterLayout
 from jaxcal._geometry import make_pose, se3_exp, so3_exp
 from jaxcal._kinematics import forward_kinematics
 from jaxcal._linalg import concurrent_decompositions
@@ -26,7 +27,6 @@ from jaxcal._refine import (
     CornerData,
     OtherCameras,
     RefineProblem,
-    _groups,
     default_free,
     grid_points,
     identifiable_mask,
@@ -73,7 +73,7 @@ def _perturbed(flat0, free, rng, markers: int = 1, angles: int = 0) -> np.ndarra
     """A truth near `flat0`, on the `free` parameters only: 5 mm / mrad on the
     camera, 1 mm and 2 mrad on the joint origins, 3 mrad zero offsets, 1 mm and
     5 mrad on each mount, 1 % rates, 0.02 rad per-view angles."""
-    g = _groups(N, markers, 0, angles)
+    g = ParameterLayout.sized(N, markers, 0, angles).indices()
     scale = np.zeros(np.size(flat0))
     scale[g["cam"]] = 5e-3
     scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
@@ -338,7 +338,7 @@ def test_eye_in_hand_recovers_the_board_and_the_robot():
     )
     free, _ = jax.jit(identifiable_mask)(problem, P0, default_free(N, 1))
     free = np.asarray(free)
-    assert free[_groups(N, 1)["tool"]].all(), "the camera mount must be identifiable"
+    assert free[ParameterLayout.sized(N, 1).indices()["tool"]].all(), "the camera mount must be identifiable"
     x_true = jnp.asarray(_perturbed(FLAT0, free, np.random.default_rng(3)))
     p_true = UNRAVEL(x_true)
 
@@ -370,7 +370,7 @@ def test_without_encoders_the_angles_are_unknowns():
     commanded = np.asarray(d.enc_q)[np.arange(V), joint]
     params0 = eqx.tree_at(lambda p: p.angles, P0, jnp.asarray(commanded), is_leaf=lambda x: x is None)
     flat0, unravel = ravel_pytree(params0)
-    g = _groups(N, 1, 0, V)
+    g = ParameterLayout.sized(N, 1, 0, V).indices()
     assert flat0.size == FLAT0.size + V and g["angles"].size == V
     names = refine_parameter_names(NOMINAL, 1, angles=[f"view{v}" for v in range(V)])
     assert len(names) == flat0.size and names[-1] == f"view{V - 1}"
@@ -426,7 +426,7 @@ def test_targets_on_several_links_under_arbitrary_motion():
 
     free, _ = jax.jit(identifiable_mask)(problem, params0, default_free(N, M))
     free = np.asarray(free)
-    g = _groups(N, M)
+    g = ParameterLayout.sized(N, M).indices()
     assert free[g["tool"]].all(), "every mount is seen"
     x_true = jnp.asarray(_perturbed(flat0, free, rng, markers=M))
     p_true = unravel(x_true)

@@ -9,11 +9,12 @@ import pytest
 
 from jaxcal import forward_kinematics
 from jaxcal.io.dataset import DatasetError, load_dataset
+from jaxcal.io.model_json import model_from_json
 from jaxcal.markers import TargetSpec
 from jaxcal.robots import load_robot
 from jaxcal.sim import CameraSpec, PlateSpec, build_scene
 from jaxcal.sim._gl import no_backend_error
-from jaxcal.sim.simulate import SimConfig, draw_truth, facing_mount, look_at, model_from_json, simulate
+from jaxcal.sim.simulate import SimConfig, draw_truth, facing_mount, look_at, simulate
 
 pytestmark = pytest.mark.slow
 

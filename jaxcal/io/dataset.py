@@ -30,6 +30,7 @@ import numpy as np
 from ..errors import DatasetError
 from ..markers import TargetSpec
 from ._files import make_temp_dir
+from .urdf import load_urdf
 
 SCHEMA = "jaxcal.dataset"
 SCHEMA_VERSION = 1
@@ -119,8 +120,6 @@ class Dataset:
 
     def load_model(self):
         """The nominal `KinematicModel` from the dataset's robot file."""
-        from .urdf import load_urdf
-
         try:
             return load_urdf(self.robot_urdf, self.base_link, self.flange_link)
         except (OSError, ValueError) as e:

@@ -32,7 +32,7 @@ import mujoco  # noqa: E402
 _CV_FROM_MJ = np.diag([1.0, -1.0, -1.0])  # camera axes: OpenCV (x right, y down, z forward) vs MuJoCo
 
 
-def _quat(R) -> np.ndarray:
+def mujoco_quat(R) -> np.ndarray:
     q = np.zeros(4)
     mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).ravel())
     return q
@@ -40,7 +40,7 @@ def _quat(R) -> np.ndarray:
 
 def _pose(T) -> dict:
     T = np.asarray(T, np.float64)
-    return {"pos": T[:3, 3].copy(), "quat": _quat(T[:3, :3])}
+    return {"pos": T[:3, 3].copy(), "quat": mujoco_quat(T[:3, :3])}
 
 
 @dataclass(frozen=True, eq=False)
@@ -231,7 +231,7 @@ def _add_plate(spec, parent, plate: PlateSpec, index: int) -> None:
         type=mujoco.mjtGeom.mjGEOM_BOX,
         size=half.tolist(),
         pos=centre,
-        quat=_quat(R),
+        quat=mujoco_quat(R),
         rgba=[0.25, 0.25, 0.28, 1.0],
         contype=0,
         conaffinity=0,
@@ -370,6 +370,6 @@ def build_scene(
     for cam in cameras:
         T = np.asarray(cam.T_mount_cam, np.float64)
         bodies[cam.mount].add_camera(
-            name=cam.name, pos=T[:3, 3], quat=_quat(T[:3, :3] @ _CV_FROM_MJ), fovy=float(cam.fovy_deg)
+            name=cam.name, pos=T[:3, 3], quat=mujoco_quat(T[:3, :3] @ _CV_FROM_MJ), fovy=float(cam.fovy_deg)
         )
     return Scene(spec, plates, cameras, links, joints)

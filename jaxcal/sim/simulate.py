@@ -15,8 +15,11 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
+import jax
 import numpy as np
 
+from .._kinematics import PerturbationScales, anchor_base, forward_kinematics, perturb_model
+from .._progress import progress as progress_bar
 from ..io.dataset import (
     SCHEMA,
     SCHEMA_VERSION,
@@ -27,7 +30,10 @@ from ..io.dataset import (
     write_frames,
     write_json,
 )
+from ..io.model_json import model_to_json
+from ..io.urdf import load_urdf, save_urdf
 from ..markers import TargetSpec
+from ..robots import robot_path, shipped
 from .motion import ClockModel, EncoderModel, encoder_stream, frame_times, joint_sweeps, true_angles
 from .scene import CameraSpec, PlateSpec, build_scene
 
@@ -151,28 +157,19 @@ def facing_mount(spec: TargetSpec, normal, centre, up=(0.0, 0.0, 1.0)) -> np.nda
 # --------------------------------------------------------------------------- the run
 
 
-def _nominal(robot: str):
-    from ..io.urdf import load_urdf
-    from ..robots import _known, robot_path
-
-    if robot in _known("*.urdf", ".urdf"):
+def nominal_robot(robot: str):
+    """The nominal model and URDF path of a shipped robot's name or a URDF file."""
+    if robot in shipped():
         path = robot_path(robot)
     else:
         path = Path(robot)
         if not path.is_file():
-            raise ValueError(
-                f"robot {robot!r} is neither a shipped robot ({_known('*.urdf', '.urdf')}) nor a file"
-            )
+            raise ValueError(f"robot {robot!r} is neither a shipped robot ({shipped()}) nor a file")
     return load_urdf(path), path
 
 
 def draw_truth(nominal, config: SimConfig):
     """The true arm: `nominal` perturbed with `config`'s scales (seeded), joint 1's frame kept."""
-    import jax
-
-    from .._kinematics import PerturbationScales, perturb_model
-    from .._montecarlo import anchor_base
-
     scales = PerturbationScales(
         origin_mm=config.origin_mm,
         origin_deg=config.origin_deg,
@@ -182,34 +179,6 @@ def draw_truth(nominal, config: SimConfig):
     )
     true = perturb_model(nominal, jax.random.key(config.seed), scales)
     return anchor_base(true, nominal)
-
-
-def model_to_json(model) -> dict:
-    return {
-        "joint_names": list(model.joint_names),
-        "joint_types": list(model.joint_types),
-        "link_names": list(model.link_names),
-        "T_parent_joint": np.asarray(model.T_parent_joint).tolist(),
-        "axis": np.asarray(model.axis).tolist(),
-        "zero_offset": np.asarray(model.zero_offset).tolist(),
-        "reduction_ratio": np.asarray(model.reduction_ratio).tolist(),
-        "T_last_flange": np.asarray(model.T_last_flange).tolist(),
-    }
-
-
-def model_from_json(d: dict):
-    from .._kinematics import make_model
-
-    return make_model(
-        np.asarray(d["T_parent_joint"]),
-        np.asarray(d["axis"]),
-        joint_names=d["joint_names"],
-        joint_types=d["joint_types"],
-        link_names=d["link_names"],
-        zero_offset=np.asarray(d["zero_offset"]),
-        reduction_ratio=np.asarray(d["reduction_ratio"]),
-        T_last_flange=np.asarray(d["T_last_flange"]),
-    )
 
 
 def _target_spec(
@@ -242,10 +211,6 @@ def _target_spec(
 
 def _scene_layout(nominal, true, config: SimConfig, rng):
     """Nominal and true plates and cameras, placed from the zero configuration."""
-    import jax
-
-    from .._kinematics import forward_kinematics
-
     links = nominal.link_names
     w, h = config.resolution
     n = nominal.num_joints
@@ -356,14 +321,9 @@ def simulate(
     default: joint-by-joint sweeps of `config.frames_per_joint` frames.
     Refuses a non-empty `out` unless `overwrite`. Returns the dataset path.
     """
-    import jax
-
-    from .._kinematics import forward_kinematics
-    from ..io.urdf import save_urdf
-
     config.check()
     out = Path(out)
-    nominal, urdf_path = _nominal(config.robot)
+    nominal, urdf_path = nominal_robot(config.robot)
     true = draw_truth(nominal, config)
     rng = np.random.default_rng(config.seed)
     plates_nominal, plates_true, cameras_nominal, cameras_true = _scene_layout(nominal, true, config, rng)
@@ -404,7 +364,7 @@ def simulate(
     with atomic_directory(out, overwrite=overwrite) as tmp, scene:
         for c in cameras_true:
             (tmp / "images" / c.name).mkdir(parents=True)
-        bar = _progress(progress, len(todo), f"rendering {len(todo)} images")
+        bar = progress_bar(progress, f"rendering {len(todo)} images")
         with bar as p:
             task = p.add_task("render", total=len(todo)) if p is not None else None
             for f, cam in todo:
@@ -445,82 +405,69 @@ def simulate(
         write_frames(tmp / "frames.csv", rows["camera"], rows["frame"], rows["timestamp"], rows["file"])
         if config.encoders:
             write_encoders(tmp / "encoders.csv", enc_t, enc_motor, names)
-        cameras_meta = [
-            CameraInfo(c.name, c.width, c.height, c.K, c.dist, c.mount).to_dict() for c in cameras_nominal
-        ]
-        targets_meta = [TargetInfo(p.target, p.link, p.T_link_target).to_dict() for p in plates_nominal]
-        metadata = {
-            "schema": SCHEMA,
-            "schema_version": SCHEMA_VERSION,
-            "description": f"synthetic {config.robot} dataset rendered by jaxcal simulate (seed {config.seed})",
-            "robot": {
-                "urdf": "robot.urdf",
-                "base_link": nominal.link_names[0],
-                "flange_link": nominal.link_names[-1],
-                "joints": list(names),
-            },
-            "cameras": cameras_meta,
-            "targets": targets_meta,
-            "encoders": {
-                "file": "encoders.csv",
-                "quantity": "motor_angle",
-                "unit": "rad",
-                "rate_hz": encoder.rate_hz,
-                "counts_per_rev": encoder.counts_per_rev,
-            }
-            if config.encoders
-            else None,
-            "clock": {"offset_s": 1e-3 * config.clock_offset_ms if config.clock_known else None},
-            "motion": [{"joint": s.joint, "start": s.start, "end": s.end} for s in trajectory.segments],
-            "simulation": {k: v for k, v in asdict(config).items() if k != "link_plates"},
-        }
-        write_json(tmp / "metadata.json", metadata)
-        T_world_cams = {c.name: c.T_mount_cam for c in cameras_true if c.mount == "world"}
+        write_json(
+            tmp / "metadata.json",
+            _metadata(config, nominal, cameras_nominal, plates_nominal, encoder, trajectory),
+        )
+        truth = _truth(config, true, cameras_true, plates_true)
         write_json(
             tmp / "truth.json",
-            {
-                "model": model_to_json(true),
-                "T_world_base": np.eye(4),
-                "cameras": {
-                    c.name: {
-                        "mount": c.mount,
-                        "T_mount_cam": c.T_mount_cam,
-                        **(
-                            {"T_cam_base": np.linalg.inv(T_world_cams[c.name])}
-                            if c.name in T_world_cams
-                            else {}
-                        ),
-                    }
-                    for c in cameras_true
-                },
-                "targets": {
-                    p.target.name: {"link": p.link, "T_link_target": p.T_link_target} for p in plates_true
-                },
-                "clock": {
-                    "offset_s": 1e-3 * config.clock_offset_ms,
-                    "drift_ppm": config.clock_drift_ppm,
-                    "jitter_ms": config.clock_jitter_ms,
-                },
-                "dropped_frames": np.flatnonzero(~keep).tolist(),
-                "frames": truth_frames,
-            },
+            truth | {"dropped_frames": np.flatnonzero(~keep).tolist(), "frames": truth_frames},
         )
     return out
 
 
-class _NoProgress:
-    def __enter__(self):
-        return None
+def _metadata(config: SimConfig, nominal, cameras_nominal, plates_nominal, encoder, trajectory) -> dict:
+    """`metadata.json` of a rendered dataset: what a user would know (the nominal robot and cameras)."""
+    cameras_meta = [
+        CameraInfo(c.name, c.width, c.height, c.K, c.dist, c.mount).to_dict() for c in cameras_nominal
+    ]
+    targets_meta = [TargetInfo(p.target, p.link, p.T_link_target).to_dict() for p in plates_nominal]
+    return {
+        "schema": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "description": f"synthetic {config.robot} dataset rendered by jaxcal simulate (seed {config.seed})",
+        "robot": {
+            "urdf": "robot.urdf",
+            "base_link": nominal.link_names[0],
+            "flange_link": nominal.link_names[-1],
+            "joints": list(nominal.joint_names),
+        },
+        "cameras": cameras_meta,
+        "targets": targets_meta,
+        "encoders": {
+            "file": "encoders.csv",
+            "quantity": "motor_angle",
+            "unit": "rad",
+            "rate_hz": encoder.rate_hz,
+            "counts_per_rev": encoder.counts_per_rev,
+        }
+        if config.encoders
+        else None,
+        "clock": {"offset_s": 1e-3 * config.clock_offset_ms if config.clock_known else None},
+        "motion": [{"joint": s.joint, "start": s.start, "end": s.end} for s in trajectory.segments],
+        "simulation": {k: v for k, v in asdict(config).items() if k != "link_plates"},
+    }
 
-    def __exit__(self, *exc):
-        return False
 
-
-def _progress(enabled: bool, total: int, description: str):
-    if not enabled:
-        return _NoProgress()
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    return Progress(
-        TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=False
-    )
+def _truth(config: SimConfig, true, cameras_true, plates_true) -> dict:
+    """`truth.json` of a rendered dataset, without its per-frame records."""
+    T_world_cams = {c.name: c.T_mount_cam for c in cameras_true if c.mount == "world"}
+    return {
+        "model": model_to_json(true),
+        "T_world_base": np.eye(4),
+        "cameras": {
+            c.name: {
+                "mount": c.mount,
+                "T_mount_cam": c.T_mount_cam,
+                **({"T_cam_base": np.linalg.inv(T_world_cams[c.name])} if c.name in T_world_cams else {}),
+            }
+            for c in cameras_true
+        },
+        "targets": {p.target.name: {"link": p.link, "T_link_target": p.T_link_target} for p in plates_true},
+        "clock": {
+            "offset_s": 1e-3 * config.clock_offset_ms,
+            "drift_ppm": config.clock_drift_ppm,
+            "jitter_ms": config.clock_jitter_ms,
+        },
+    }

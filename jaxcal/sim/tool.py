@@ -17,7 +17,7 @@ camera and locate the tip by its red-weighted centroid; they are the
 import numpy as np
 
 from ._gl import no_backend_error, select_backend
-from .scene import CameraSpec, _quat
+from .scene import CameraSpec, mujoco_quat
 
 select_backend()
 import mujoco  # noqa: E402
@@ -85,7 +85,7 @@ class ToolScene:
         world.add_camera(
             name="tool_cam",
             pos=[0.0, 0.0, 0.0],
-            quat=_quat(T[:3, :3] @ np.diag([1.0, -1.0, -1.0])),
+            quat=mujoco_quat(T[:3, :3] @ np.diag([1.0, -1.0, -1.0])),
             fovy=float(fovy_deg),
         )
         self.model = spec.compile()

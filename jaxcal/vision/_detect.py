@@ -11,6 +11,7 @@ from multiprocessing import get_context
 import cv2
 import numpy as np
 
+from .._progress import progress as progress_bar
 from ..errors import VisionError
 from ..markers import TargetSpec, aruco_dictionary
 
@@ -201,22 +202,6 @@ def _detect_chunk(paths: list, targets: tuple, K, dist) -> list:
     return [_detect_file(p, targets, K, dist) for p in paths]
 
 
-class _NoProgress:
-    def __enter__(self):
-        return None
-
-    def __exit__(self, *exc):
-        return False
-
-
-def _progress(enabled: bool, description: str):
-    if not enabled:
-        return _NoProgress()
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    return Progress(TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-
-
 @lru_cache(maxsize=1)
 def _process_context():
     """`forkserver`, its server preloaded with this module: the server starts (and
@@ -290,7 +275,7 @@ def detect_frames(
         raise VisionError(f"workers must be >= 1, got {workers}")
     workers = max(1, min(int(workers), len(paths)))
     results: list = []
-    with _progress(progress and len(paths) > 0, f"detecting markers in {len(paths)} images") as bar:
+    with progress_bar(progress and len(paths) > 0, f"detecting markers in {len(paths)} images") as bar:
         task = bar.add_task("detect", total=len(paths)) if bar is not None else None
         if workers == 1:
             for p in paths:

@@ -1,0 +1,215 @@
+"""The least-squares kit every jaxcal solver shares.
+
+Every estimator in jaxcal is a Levenberg-Marquardt solve of whitened
+residuals (optimistix), followed by the Gauss-Newton covariance of the free
+parameters and, for the kinematic problems, a rank-revealing search for the
+parameters the data cannot see. This module writes each of those once:
+
+- `solve`: optimistix's Levenberg-Marquardt with jaxcal's options (`LMOptions`),
+  returning optimistix's own `Solution` (its `result` codes, its `num_steps`).
+- `freeze`: parameters held at their start value (a pytree or flat mask).
+- `independent_columns`: the greedy, column-pivoted Gram-Schmidt of a
+  Jacobian in a fixed priority order (which parameters are identifiable).
+- `covariance`: $\\hat\\sigma^2 (J^T J)^+$ over the free parameters, from one
+  SVD (`jaxcal._linalg.gauss_newton_covariance`, safe to batch on a CPU),
+  with the residual-variance scaling $\\hat\\sigma^2 = \\|r\\|^2 / (m - n)$.
+- `closed_form_jvp`: a residual function whose derivative with respect to
+  its parameters is a hand-written Jacobian (checked against autodiff in the
+  tests) and with respect to the data is autodiff.
+- `BATCHED_ENTRY_POINTS`: the vmapped programs whose LAPACK calls must stay
+  ordered (see `jaxcal._linalg`); the tests run the checker on each.
+"""
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jax.custom_derivatives import SymbolicZero
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Bool, Float, PyTree
+
+from ._linalg import gauss_newton_covariance
+
+#: Every vmapped program jaxcal runs, by import path: each must keep its
+#: decompositions ordered (`jaxcal._linalg.concurrent_decompositions` returns
+#: `[]`). `tests/test_linalg.py` checks every entry.
+BATCHED_ENTRY_POINTS = (
+    "jaxcal._arcfit.fit_arc",
+    "jaxcal._axisfit.fit_axes",
+    "jaxcal._montecarlo.run_trial",
+    "jaxcal._refine.refine",
+    "jaxcal.calibrate_hand_eye",
+)
+
+
+#: Robust losses of the iteratively reweighted solves (`None`: plain least squares).
+LOSSES = ("cauchy", "huber", None)
+
+
+def robust_weights(e: Float[Array, "..."], loss: str | None, c: float) -> Float[Array, "..."]:
+    """IRLS weights of residual norms `e` (in robust sigmas).
+
+    Cauchy: $w = 1/(1 + (e/c)^2)$; Huber: $w = \\min(1, c/e)$; `None`: 1.
+    """
+    if loss is None:
+        return jnp.ones_like(e)
+    if loss == "cauchy":
+        return 1.0 / (1.0 + (e / c) ** 2)
+    if loss == "huber":
+        return jnp.minimum(1.0, c / jnp.maximum(e, 1e-12))
+    raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+
+
+def robust_scale(e: Float[Array, "..."], mask: Bool[Array, "..."], median_of_norm: float) -> Float[Array, ""]:
+    """The noise sigma (per coordinate) from the median of the residual norms `e`
+    over `mask`: the median divided by `median_of_norm`, the median of the norm
+    of a standard normal vector of the residual's dimension (e.g. Rayleigh's
+    $\\sqrt{2 \\ln 2}$ for a pixel)."""
+    med = jnp.nanmedian(jnp.where(mask, e, jnp.nan))
+    return jnp.maximum(med / median_of_norm, 1e-9)
+
+
+class LMOptions(eqx.Module):
+    """Levenberg-Marquardt settings (see `optimistix.LevenbergMarquardt`).
+
+    The residuals jaxcal solves are whitened, so `atol` is in units of the
+    noise: a step that moves every prediction by less than `atol` standard
+    deviations stops the solve. `normal_cholesky` solves each step's normal
+    equations by Cholesky (for tall, Jacobi-scaled, well-conditioned
+    Jacobians: far faster than lineax's default QR on a CPU).
+    """
+
+    rtol: float = 1e-8
+    atol: float = 3e-2
+    max_steps: int = eqx.field(static=True, default=100)
+    throw: bool = eqx.field(static=True, default=False)
+    normal_cholesky: bool = eqx.field(static=True, default=False)
+
+    def solver(self) -> optx.LevenbergMarquardt:
+        if self.normal_cholesky:
+            return optx.LevenbergMarquardt(
+                rtol=self.rtol, atol=self.atol, linear_solver=lx.Normal(lx.Cholesky())
+            )
+        return optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol)
+
+
+def solve(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> optx.Solution:
+    """`optx.least_squares(fn, LM, y0, args)`: optimistix's `Solution`, whose
+    `result` and `stats["num_steps"]` the callers report as they are."""
+    return optx.least_squares(
+        fn, options.solver(), y0, args, max_steps=options.max_steps, throw=options.throw
+    )
+
+
+def freeze(tree: PyTree, free: PyTree) -> PyTree:
+    """`tree` with the entries where `free` is 0 (or False) set to zero: the
+    parameters are corrections about a start, so zero holds them there."""
+    return jax.tree.map(lambda x, f: x * jnp.asarray(f, x.dtype), tree, free)
+
+
+def independent_columns(
+    J: Float[Array, "m n"],
+    order: np.ndarray,
+    *,
+    tol: float,
+    candidates: Bool[Array, " n"] | None = None,
+) -> tuple[Bool[Array, " n"], Float[Array, " n"]]:
+    """Which parameters the Jacobian determines, by greedy column selection.
+
+    The columns are normalised and visited in `order`; a column (among the
+    `candidates`) is kept when its component orthogonal to the span of the
+    kept ones is above `tol` (a column-pivoted, rank-revealing Gram-Schmidt
+    with a fixed pivot order, re-orthogonalised once). Pure and vmappable.
+
+    **Returns:** `(free, independence)`: each column's relative distance from
+    the span of the columns kept before it.
+    """
+    norms = jnp.linalg.norm(J, axis=0)
+    Jn = J / jnp.where(norms > 0, norms, 1.0)
+    m, n = J.shape
+    cand = jnp.ones(n, bool) if candidates is None else jnp.asarray(candidates, bool)
+    order = jnp.asarray(order)
+
+    def body(i, carry):
+        basis, keep, indep, count = carry
+        j = order[i]
+        col = Jn[:, j]
+        resid = col - basis @ (basis.T @ col)
+        resid = resid - basis @ (basis.T @ resid)  # re-orthogonalise
+        r = jnp.linalg.norm(resid)
+        ok = (r > tol) & (norms[j] > 0) & cand[j]
+        basis = jnp.where(ok, basis.at[:, count].set(resid / jnp.where(ok, r, 1.0)), basis)
+        return basis, keep.at[j].set(ok), indep.at[j].set(r), count + ok
+
+    init = (jnp.zeros((m, n), J.dtype), jnp.zeros(n, bool), jnp.zeros(n, J.dtype), jnp.asarray(0))
+    _, keep, indep, _ = jax.lax.fori_loop(0, n, body, init)
+    return keep, indep
+
+
+def residual_variance(r: Float[Array, "..."], n_obs, n_free) -> Float[Array, ""]:
+    """$\\hat\\sigma^2 = \\|r\\|^2 / \\max(m - n, 1)$ of whitened residuals."""
+    return jnp.sum(r**2) / jnp.maximum(n_obs - n_free, 1.0)
+
+
+def covariance(
+    J: Float[Array, "m n"], free: Bool[Array, " n"] | None = None, sigma2: Float[Array, ""] | float = 1.0
+) -> tuple[Float[Array, "n n"], Float[Array, " n"], Float[Array, "n n"]]:
+    """The Gauss-Newton covariance $\\sigma^2 (J^T J)^+$ of the free columns
+    (frozen ones: zero rows and columns), with the singular values and right
+    singular vectors of the column-normalised `J`, from one SVD."""
+    if free is not None:
+        J = J * jnp.asarray(free, J.dtype)[None, :]
+    cov, sv, Vt = gauss_newton_covariance(J)
+    return sigma2 * cov, sv, Vt
+
+
+def instantiate(t):
+    """Materialise a symbolic zero tangent (`float0` for integer and boolean inputs)."""
+    if not isinstance(t, SymbolicZero):
+        return t
+    if t.dtype == jax.dtypes.float0:
+        return np.zeros(t.shape, jax.dtypes.float0)
+    return jnp.zeros(t.shape, t.dtype)
+
+
+def closed_form_jvp(
+    primal: Callable[[Any, Any], Array],
+    terms: Callable[[Any, Any], tuple[Array, Array]],
+    autodiff: Callable[[Any, Any], Array],
+) -> Callable[[Any, Any], Array]:
+    """A residual function `f(params, args)` with a hand-written Jacobian.
+
+    `primal(params, args)` computes the residuals; `terms(params, args)`
+    returns them with their Jacobian with respect to the flattened `params`
+    (`ravel_pytree` order), shaped `(r.size, n)` or `r.shape + (n,)`;
+    `autodiff(params, args)` computes the same residuals in plain,
+    differentiable JAX (the oracle the tests check `terms` against). The
+    derivative with respect to `params` is `J @ t` (one small matrix product,
+    so a solver that materialises the linearisation pays nothing per basis
+    tangent); with respect to `args` (e.g. implicit differentiation through a
+    fit) it is autodiff of `autodiff`.
+    """
+
+    @jax.custom_jvp
+    def f(params, args):
+        return primal(params, args)
+
+    def jvp(primals, tangents):
+        params, args = primals
+        t_params, t_args = tangents
+        is_zero = lambda x: isinstance(x, SymbolicZero)  # noqa: E731
+        inst = lambda tree: jax.tree.map(instantiate, tree, is_leaf=is_zero)  # noqa: E731
+        if not all(is_zero(t) for t in jax.tree.leaves(t_args, is_leaf=is_zero)):
+            return jax.jvp(autodiff, (params, args), (inst(t_params), inst(t_args)))
+        r, J = terms(params, args)
+        t = ravel_pytree(inst(t_params))[0]
+        return r, (J.reshape(-1, t.shape[0]) @ t).reshape(r.shape)
+
+    f.defjvp(jvp, symbolic_zeros=True)
+    f.__doc__ = primal.__doc__
+    return f

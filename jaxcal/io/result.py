@@ -1,0 +1,85 @@
+"""`result.json`: a calibration result as plain JSON (schema `jaxcal.result`, version 1)."""
+
+import cv2
+import numpy as np
+
+from .model_json import model_to_json
+
+
+def quaternion_xyzw(R) -> np.ndarray:
+    """The unit quaternion `(x, y, z, w)` of a rotation matrix."""
+    rvec = cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
+    angle = np.linalg.norm(rvec)
+    axis = rvec / angle if angle > 0 else np.array([1.0, 0.0, 0.0])
+    return np.r_[np.sin(angle / 2) * axis, np.cos(angle / 2)]
+
+
+def pose_json(T, std) -> dict:
+    """A pose with its 1-sigma twist `(tx, ty, tz, rx, ry, rz)` (m, rad) as JSON."""
+    T, std = np.asarray(T), np.asarray(std)
+    return {
+        "matrix": T.tolist(),
+        "xyz_m": T[:3, 3].tolist(),
+        "quaternion_xyzw": quaternion_xyzw(T[:3, :3]).tolist(),
+        "std_xyz_mm": (1e3 * std[:3]).tolist(),
+        "std_rot_deg": np.degrees(std[3:]).tolist(),
+    }
+
+
+def result_to_json(result) -> dict:
+    """The `result.json` payload of a `CalibrationResult` (plain Python types)."""
+    fixed = pose_json(result.T_cam_base, result.std_cam)
+    if result.eye_in_hand:
+        poses = {
+            "board": result.board,
+            "T_board_base": fixed,
+            "T_flange_cam": result.T_flange_target[0].tolist(),
+        }
+    else:
+        poses = {"T_cam_base": fixed, "T_flange_target": result.T_flange_target.tolist()}
+    return {
+        "schema": "jaxcal.result",
+        "schema_version": 1,
+        "dataset": str(result.dataset),
+        "setup": result.kind.label,
+        "capture": result.kind.describe(),
+        "camera": result.camera,
+        "targets": result.targets,
+        "ok": result.ok,
+        **poses,
+        "reduction_ratios": {
+            a["joint"]: {
+                "nominal": a["ratio_nominal"],
+                "estimate": a["ratio"],
+                "std": a["ratio_std"],
+                "identifiable": a["ratio_identifiable"],
+            }
+            for a in result.arcs
+        },
+        "parameters": result.parameters,
+        "identifiability": {
+            "estimated": sum(bool(p["free"]) for p in result.parameters if p["group"] == "correction"),
+            "frozen": result.frozen,
+            "note": "frozen parameters cannot be seen by a camera watching joint axes "
+            "(they trade off against others or against T_cam_base); they are held at nominal",
+        },
+        "arcs": result.arcs,
+        "frames": result.frames,
+        "clock": result.clock,
+        "intrinsics": result.intrinsics,
+        "solver": result.solver,
+        "timings_s": result.timings,
+        "refinement": result.refinement,
+        "other_cameras": [
+            {
+                "camera": c["camera"],
+                "views": c["views"],
+                "T_cam_base": pose_json(c["T_cam_base"], c["std_cam"]),
+                "T_cam_base_start": np.asarray(c["T_cam_base_start"]).tolist(),
+            }
+            for c in result.other_cameras
+        ],
+        "validation": result.validation,
+        "warnings": result.warnings,
+        "model": model_to_json(result.model),
+    }

@@ -1,0 +1,152 @@
+"""Stage 2, observe: intrinsics, marker detection and PnP (with covariance)
+in every frame of the cameras the calibration uses (OpenCV, through
+`jaxcal.vision`)."""
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import CalibrationError
+from ..io.dataset import CameraInfo, Dataset, TargetInfo
+from ..vision import calibrate_intrinsics, detect_frames, estimate_pose
+from .setup import Options, Setup
+
+
+@dataclass(frozen=True, eq=False)
+class CameraObservations:
+    """One camera's frames.
+
+    - `rows`: the frame-table rows of this camera; `t_cam`: their camera-clock stamps (s).
+    - `detections`: per row, target name -> `jaxcal.vision.Detection`.
+    - `poses`: per row, target name -> `PoseEstimate` (targets not found, or
+      without a pose, are absent). For an eye-in-hand camera, the camera's
+      pose in the board frame (the inverted PnP pose, covariance carried).
+    - `K`, `dist`: the intrinsics used; `intrinsics`: where they came from.
+    """
+
+    camera: CameraInfo
+    rows: np.ndarray
+    detections: list
+    poses: list
+    t_cam: np.ndarray
+    K: np.ndarray
+    dist: np.ndarray | None
+    intrinsics: dict
+
+    @property
+    def found(self) -> np.ndarray:
+        """Rows where some target has a pose."""
+        return np.array([bool(p) for p in self.poses])
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """The two-stage camera's observations and the further cameras' (for the refinement)."""
+
+    primary: CameraObservations
+    others: tuple[CameraObservations, ...]
+    timings: dict
+
+
+def camera_rows(ds: Dataset, camera: str) -> np.ndarray:
+    """The frame-table rows of `camera`."""
+    rows = np.flatnonzero(ds.frames["camera"] == camera)
+    if rows.size == 0:
+        raise CalibrationError(f"{ds.root / 'frames.csv'}: no frames for camera {camera!r}")
+    return rows
+
+
+def detect_poses(ds: Dataset, rows, targets, K, dist, *, workers=None, progress=True) -> tuple[list, list]:
+    """Detections and PnP poses of `targets` in the frames `rows`.
+
+    **Returns:** `(detections, poses)`: per row a dict target name ->
+    `Detection`, and per row a dict target name -> `PoseEstimate`.
+    """
+    paths = [ds.image_path(int(i)) for i in rows]
+    dets = detect_frames(paths, [t.spec for t in targets], K=K, dist=dist, workers=workers, progress=progress)
+    poses = []
+    for det in dets:
+        p = {}
+        for t in targets:
+            d = det.get(t.name)
+            if d is not None:
+                est = estimate_pose(d, t.spec, K, dist)
+                if est is not None:
+                    p[t.name] = est
+        poses.append(p)
+    return dets, poses
+
+
+def self_calibrate(ds: Dataset, camera: CameraInfo, targets, rows, *, workers=None, progress=True):
+    """Intrinsics from the ChArUco frames themselves (the seed's variant); `(K, dist, rms_px)`."""
+    charuco = [t for t in targets if t.spec.kind == "charuco"]
+    if not charuco:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: camera {camera.name!r} has no intrinsics (K is null) and no "
+            "ChArUco target to self-calibrate them from"
+        )
+    t = charuco[0]
+    paths = [ds.image_path(int(i)) for i in rows]
+    dets = detect_frames(paths, [t.spec], workers=workers, progress=progress)
+    found = [d[t.name] for d in dets if t.name in d]
+    return calibrate_intrinsics(found, t.spec, (camera.width, camera.height))
+
+
+def observe_camera(
+    ds: Dataset,
+    camera: CameraInfo,
+    targets: tuple[TargetInfo, ...],
+    options: Options,
+    *,
+    invert: bool = False,
+) -> CameraObservations:
+    """Intrinsics (from the metadata, else self-calibrated from the ChArUco
+    frames), detection and PnP in every frame of `camera`; with `invert`, the
+    poses are the camera's in the target frame."""
+    rows = camera_rows(ds, camera.name)
+    K, dist = camera.K, camera.dist
+    intrinsics = {"source": "metadata"}
+    if K is None:
+        options.say(
+            f"camera {camera.name}: no intrinsics in the metadata, self-calibrating from the ChArUco frames"
+        )
+        K, dist, rms = self_calibrate(
+            ds, camera, targets, rows, workers=options.workers, progress=options.progress
+        )
+        intrinsics = {"source": "self-calibrated (ChArUco)", "rms_px": float(rms)}
+    intrinsics.update({"K": np.asarray(K).tolist(), "distortion": np.asarray(dist).tolist()})
+    options.say(
+        f"detecting {', '.join(t.name for t in targets)} in {len(rows)} frames of camera {camera.name}"
+    )
+    dets, poses = detect_poses(ds, rows, targets, K, dist, workers=options.workers, progress=options.progress)
+    if invert:
+        poses = [{k: p.inverse() for k, p in d.items()} for d in poses]
+    return CameraObservations(
+        camera, rows, dets, poses, ds.frames["timestamp"][rows], np.asarray(K), dist, intrinsics
+    )
+
+
+def observe(setup: Setup, options: Options) -> Observations:
+    """Observe the two-stage camera (and, for the refinement, every further
+    camera): a `CalibrationError` when no target is found at all."""
+    ds = setup.dataset
+    t0 = time.perf_counter()
+    primary = observe_camera(ds, setup.camera, setup.targets, options, invert=setup.kind.inverts_poses)
+    if not primary.found.any():
+        raise CalibrationError(
+            f"{ds.root}: no target was found in any of the {len(primary.rows)} images of camera "
+            f"{setup.camera.name!r}; check the targets' dictionary "
+            f"({', '.join(sorted({t.spec.dictionary for t in setup.targets}))}), ids and sizes in metadata.json"
+        )
+    timings = {"detect_s": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    others = []
+    for c in setup.extra_cameras:
+        options.say(
+            f"camera {c.name}: detecting {', '.join(t.name for t in setup.targets)} for the refinement"
+        )
+        others.append(observe_camera(ds, c, setup.targets, options))
+    if setup.extra_cameras:
+        timings["detect_other_cameras_s"] = time.perf_counter() - t0
+    return Observations(primary, tuple(others), timings)

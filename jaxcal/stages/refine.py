@@ -1,0 +1,397 @@
+"""Stage 5, refinement: the reprojection error of every detected corner,
+minimised over every parameter from the two-stage start (`jaxcal._refine`).
+
+Every frame inside the encoder log with a detected target contributes all
+its corners (sweep or not), from every camera observed. The axis fit's
+frozen parameters stay frozen where the capture kind keeps the two-stage
+gauge; rates are free with encoders, the clock offset when it was
+estimated. Without an encoder log each sweep view's joint angle is one more
+unknown; with markers on every link every target's corners go through its
+own link's chain and the corners decide what is identifiable.
+"""
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._clocksync import controller_time
+from .._correction import ParameterLayout, physical_parameters
+from .._geometry import so3_log
+from .._kinematics import forward_kinematics
+from .._links import average_pose, start_mounts
+from .._refine import OtherCameras, RefineParams, RefineProblem, make_corner_data, summarize_refinement
+from . import _programs
+from .observe import CameraObservations, Observations
+from .setup import Options, Setup
+from .synchronise import Sync, interpolate
+from .two_stage import TwoStage
+
+LOSS = "cauchy IRLS (3 rounds), then least squares on the inliers (3.7 robust sigmas)"
+
+
+@dataclass(frozen=True, eq=False)
+class Refined:
+    """The refinement's outcome.
+
+    - `fit`: the `RefineResult`, or None when the refinement could not run
+      (`warnings` say why; the two-stage result stands).
+    - `layout`, `names`: the refinement's parameter layout and names.
+    - `summary`: the `refinement` block of `result.json`.
+    - `parameters`, `frozen`: the physical parameter table and the held
+      parameters, at the refined estimate.
+    - `ratios`: per joint `(ratio, std)` (None without encoders); `clock`: the
+      refined offset and std (None when the clock was not estimated).
+    - `other_cameras`: per further camera its refined pose, std, views, start and intrinsics.
+    """
+
+    fit: object = None
+    layout: ParameterLayout | None = None
+    names: list = field(default_factory=list)
+    summary: dict | None = None
+    parameters: list | None = None
+    frozen: list | None = None
+    ratios: list | None = None
+    clock: dict | None = None
+    other_cameras: list = field(default_factory=list)
+    warnings: tuple[str, ...] = ()
+    timings: dict = field(default_factory=dict)
+
+
+def dist5(dist) -> np.ndarray | None:
+    """OpenCV's first five distortion coefficients; `None` if more are non-zero."""
+    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).ravel()
+    if d.size > 5 and np.any(d[5:] != 0):
+        return None
+    out = np.zeros(5)
+    out[: min(5, d.size)] = d[:5]
+    return out
+
+
+def _start_pose(views: CameraObservations, t_ctrl, inside, log_q, rate, model, mounts, targets):
+    """A further camera's `T_cam_base` from its PnP poses and the two-stage
+    robot: per view $T_{cam,target} (T_{base,flange}(q) T_{flange,target})^{-1}$,
+    averaged (`average_pose`)."""
+    idx = [i for i in range(len(views.rows)) if inside[i] and views.poses[i]]
+    if not idx:
+        return None
+    q = interpolate(t_ctrl[idx], *log_q) * np.asarray(rate)
+    T_bf = np.asarray(jax.jit(jax.vmap(lambda qq: forward_kinematics(model, qq)[-1]))(q))
+    est = []
+    for k, i in enumerate(idx):
+        for m, t in enumerate(targets):
+            pose = views.poses[i].get(t.name)
+            if pose is not None:
+                est.append(pose.T_cam_target @ np.linalg.inv(T_bf[k] @ np.asarray(mounts[m])))
+    return average_pose(np.stack(est))
+
+
+def sweep_angles(R_pnp, target, joint, model, T_cam_base, mounts) -> np.ndarray:
+    """Start angles of the sweeping joint in every view without encoders, from
+    its PnP orientation and the two-stage model: with the others at zero the
+    joint turns the target about its axis $w_j$ (camera frame), $R(a) =
+    \\exp(a[w_j]_\\times) R(0)$, so $a$ is the rotation of $R_{PnP} R(0)^T$
+    about $w_j$.
+
+    **Arguments:** per view the PnP rotation `R_pnp` `(V, 3, 3)`, the target
+    index and the sweeping joint `(V,)`; the two-stage model, `T_cam_base` and
+    mounts `(targets, 4, 4)`.
+    """
+    n = model.num_joints
+    q = jnp.concatenate([jnp.zeros((1, n)), jnp.eye(n)])  # home, then each joint at 1 rad
+    T = np.asarray(jax.jit(jax.vmap(lambda qq: T_cam_base @ forward_kinematics(model, qq)[-1]))(q))
+    R0 = np.einsum("ab,mbc->mac", T[0, :3, :3], np.asarray(mounts)[:, :3, :3])  # (targets, 3, 3)
+    w = np.asarray(jax.vmap(lambda R: so3_log(R @ jnp.asarray(T[0, :3, :3]).T))(jnp.asarray(T[1:, :3, :3])))
+    M = np.einsum("vab,vcb->vac", np.asarray(R_pnp), R0[np.asarray(target)])
+    vee = 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], -1)
+    cos = 0.5 * (np.trace(M, axis1=1, axis2=2) - 1.0)
+    return np.arctan2(np.einsum("va,va->v", w[np.asarray(joint)], vee), cos)
+
+
+@dataclass
+class _Corners:
+    """Per view (one target in one frame of one camera) the corners and their bookkeeping."""
+
+    points: list = field(default_factory=list)
+    pixels: list = field(default_factory=list)
+    target: list = field(default_factory=list)
+    frame: list = field(default_factory=list)
+    t_cam: list = field(default_factory=list)
+    camera: list = field(default_factory=list)
+    sweep: list = field(default_factory=list)
+    pnp: list = field(default_factory=list)
+    others: list = field(default_factory=list)  # (T_cam_base0, K, dist5) per further camera used
+    used: list = field(default_factory=list)  # the CameraObservations used, the primary first
+    warnings: list = field(default_factory=list)
+
+
+def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Corners:
+    ds, kind = setup.dataset, setup.kind
+    no_encoders = not kind.encoders
+    offset = sync.clock["offset_s"]
+    rate0 = jnp.asarray(two.arcs.rate) if kind.encoders else jnp.ones(setup.nominal.num_joints)
+    pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in setup.targets}
+    out = _Corners(used=[obs.primary])
+    for v in (obs.primary, *obs.others):
+        t_ctrl = controller_time(v.t_cam, offset, ds.clock_drift_ppm)
+        if no_encoders:
+            inside = np.asarray(sync.joint) >= 0
+        else:
+            enc_t = sync.log_q[0]
+            inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+        if v is not obs.primary:
+            d5 = dist5(v.dist)
+            fit = two.fit
+            T0 = _start_pose(
+                v, t_ctrl, inside, sync.log_q, rate0, fit.model, fit.T_flange_marker, setup.targets
+            )
+            if d5 is None or T0 is None:
+                out.warnings.append(
+                    f"camera {v.camera.name!r}: "
+                    + ("unmodelled distortion" if d5 is None else "no target pose inside the encoder log")
+                    + "; left out of the refinement"
+                )
+                continue
+            out.others.append((T0, np.asarray(v.K, np.float64), d5))
+            out.used.append(v)
+        c = len(out.used) - 1
+        for i, det in enumerate(v.detections):
+            if not inside[i]:
+                continue
+            for m, t in enumerate(setup.targets):
+                dt = det.get(t.name)
+                if dt is None or len(dt.ids) < 4:
+                    continue
+                if no_encoders:
+                    pose = v.poses[i].get(t.name)
+                    if pose is None:
+                        continue
+                    out.sweep.append(int(sync.joint[i]))
+                    out.pnp.append(pose.T_cam_target[:3, :3])
+                out.points.append(pts[t.name][dt.ids])
+                out.pixels.append(dt.pixels)
+                out.target.append(m)
+                out.frame.append(int(v.rows[i]))
+                out.t_cam.append(float(v.t_cam[i]))
+                out.camera.append(c)
+    return out
+
+
+def _link_mounts(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> np.ndarray:
+    """Start mounts of every arm target on its link (`jaxcal._links.start_mounts`)
+    from the two-stage robot at the rows' encoder positions."""
+    fit, sel = two.fit, two.link_rows
+    T = jax.jit(jax.vmap(lambda qq: jnp.asarray(fit.T_cam_base) @ forward_kinematics(fit.model, qq)))(
+        jnp.asarray(sync.q[sel])
+    )
+    return start_mounts(np.asarray(T), [obs.primary.poses[i] for i in sel], setup.targets, setup.target_link)
+
+
+def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners: _Corners, K, d5):
+    """The `RefineProblem`, its start, the layout and the candidate mask."""
+    kind, nominal, fit = setup.kind, setup.nominal, two.fit
+    n, M = nominal.num_joints, len(setup.targets)
+    log_q = sync.log_q if kind.encoders else (np.array([-np.inf, np.inf]), np.zeros((2, n)))  # unread
+    data = make_corner_data(
+        corners.points,
+        corners.pixels,
+        np.array(corners.target),
+        np.array(corners.frame),
+        np.array(corners.t_cam),
+        *log_q,
+        setup.dataset.clock_drift_ppm,
+        camera=np.array(corners.camera) if corners.others else None,
+        sweep_joint=np.array(corners.sweep) if kind.per_view_angles else None,
+    )
+    correction, mounts0 = fit.params.correction, fit.T_flange_marker0
+    if kind.sequential:
+        mounts0 = _link_mounts(setup, obs, sync, two)
+        correction = eqx.tree_at(lambda c: c.tool, correction, jnp.zeros((M, 6)))
+    problem = RefineProblem(
+        nominal=nominal,
+        T_flange_marker0=jnp.asarray(mounts0),
+        T_cam_base0=jnp.asarray(fit.T_cam_base0),
+        K0=jnp.asarray(K, jnp.float64),
+        dist0=jnp.asarray(d5),
+        offset0_s=jnp.asarray(sync.clock["offset_s"]),
+        data=data,
+        other_cameras=OtherCameras(*(jnp.asarray(np.stack(a)) for a in zip(*corners.others)))
+        if corners.others
+        else None,
+        eye_in_hand=kind.eye_in_hand,
+        target_link=jnp.asarray(setup.target_link) if kind.sequential else None,
+    )
+    params0 = RefineParams(
+        cam=fit.params.cam,
+        correction=correction,
+        rate=jnp.asarray(two.arcs.rate) if kind.encoders else jnp.ones(n),
+        clock_ms=jnp.zeros(()),
+        intrinsics=jnp.zeros(9),
+        other_cams=jnp.zeros((len(corners.others), 6)) if corners.others else None,
+        angles=None,
+    )
+    angle_names = []
+    if kind.per_view_angles:
+        a0 = sweep_angles(
+            np.stack(corners.pnp), corners.target, corners.sweep, fit.model, jnp.asarray(fit.T_cam_base),
+            fit.T_flange_marker,
+        )  # fmt: skip
+        params0 = eqx.tree_at(lambda p: p.angles, params0, jnp.asarray(a0), is_leaf=lambda x: x is None)
+        angle_names = [f"frame{f}.{nominal.joint_names[j]}" for f, j in zip(corners.frame, corners.sweep)]
+    layout = ParameterLayout.of(
+        nominal,
+        M,
+        other_cameras=tuple(v.camera.name for v in corners.used[1:]),
+        angles=tuple(angle_names),
+        eye_in_hand=kind.eye_in_hand,
+    )
+    cand = layout.candidates(rates=kind.encoders, clock=bool(sync.clock["estimated"]))
+    if kind.keeps_two_stage_gauge:
+        cand[: layout.axis_size] &= np.asarray(fit.free)
+    return problem, params0, layout, cand
+
+
+def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, layout, cand, free) -> Refined:
+    """The refined figures (the two-stage ones stay beside them in `summary`)."""
+    nominal, kind = setup.nominal, setup.kind
+    names = layout.names()
+    summary = summarize_refinement(res, names, problem.data)
+    std = np.asarray(res.std)
+    n_ax = layout.axis_size
+    mount_names = [t.name for t in setup.targets]
+    parameters = physical_parameters(
+        layout, nominal, problem.T_flange_marker0, problem.T_cam_base0, res.params.cam, res.params.correction,
+        np.asarray(res.cov)[:n_ax, :n_ax], free[:n_ax], mount_names,
+    )  # fmt: skip
+    ratios = None
+    if kind.encoders:
+        rate, nominal_ratio = np.asarray(res.params.rate), np.asarray(nominal.reduction_ratio)
+        i_rate = layout.index("rate")
+        ratios = [
+            (float(nominal_ratio[j] / rate[j]), float(nominal_ratio[j] * std[i_rate[j]] / rate[j] ** 2))
+            for j in range(nominal.num_joints)
+        ]
+    clock = None
+    if sync.clock["estimated"]:
+        clock = {"offset_s": float(res.offset_s), "std_s": float(1e-3 * std[layout.index("clock")[0]])}
+    frame = corners.frame
+    summary.update(
+        views=int(problem.data.mask.shape[0]),
+        frames=len(set(frame)),
+        free_parameters=int(free.sum()),
+        held_at_start=[nm for nm, f in zip(names, free) if not f],
+        frozen_beyond_two_stage=[nm for nm, c, f in zip(names, cand, free) if c and not f],
+        std={nm: float(std[i]) for i, nm in enumerate(names) if free[i]},
+        two_stage={
+            "T_cam_base": np.asarray(two.fit.T_cam_base).tolist(),
+            "std_cam": np.asarray(two.fit.std[:6]).tolist(),
+            "T_flange_target": np.asarray(two.fit.T_flange_marker).tolist(),
+            "clock_offset_s": sync.clock["offset_s"],
+            "ratios": {a["joint"]: a["ratio"] for a in two.arc_rows},
+        },
+        loss=LOSS,
+    )
+    if kind.per_view_angles:
+        g0 = layout.index("angles")[0]
+        a = np.asarray(res.params.angles)
+        summary["joint_angles"] = {
+            "note": "no encoder log: each sweep frame's joint angle was estimated from the images "
+            "(commanded coordinates; the other joints at zero); reduction ratios are not identifiable",
+            "views": [
+                {
+                    "frame": int(f),
+                    "joint": nominal.joint_names[j],
+                    "angle_deg": float(np.degrees(a[k])),
+                    "std_deg": float(np.degrees(std[g0 + k])),
+                }
+                for k, (f, j) in enumerate(zip(frame, corners.sweep))
+            ],
+        }
+        summary["std"] = {nm: sd for nm, sd in summary["std"].items() if nm not in set(layout.angles)}
+    cams_v = np.zeros(len(frame), int) if not corners.others else np.array(corners.camera)
+    summary["views_per_camera"] = {
+        v.camera.name: int((cams_v == c).sum()) for c, v in enumerate(corners.used)
+    }
+    T_all = np.asarray(res.T_cam_bases)
+    others = []
+    for c, v in enumerate(corners.used[1:], start=1):
+        k = layout.index("others")[6 * (c - 1)]
+        T0, K, d5 = corners.others[c - 1]
+        others.append(
+            {
+                "camera": v.camera.name,
+                "T_cam_base": T_all[c],
+                "std_cam": std[k : k + 6],
+                "views": summary["views_per_camera"][v.camera.name],
+                "T_cam_base_start": np.asarray(T0),
+                "K": K,
+                "distortion": d5,
+            }
+        )
+    warnings = list(corners.warnings)
+    if summary["outlier_frames"]:
+        warnings.append(
+            f"refinement: {len(summary['outlier_frames'])} frame(s) whose corners stay outliers: "
+            f"{summary['outlier_frames'][:20]}"
+        )
+    return Refined(
+        fit=jax.device_get(res),
+        layout=layout,
+        names=names,
+        summary=summary,
+        parameters=parameters,
+        frozen=[nm for nm, f in zip(names[:n_ax], free[:n_ax]) if not f],
+        ratios=ratios,
+        clock=clock,
+        other_cameras=others,
+        warnings=tuple(warnings),
+    )
+
+
+def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: Options) -> Refined:
+    """Refine the two-stage result on every corner (see the module docstring)."""
+    t0 = time.perf_counter()
+    cam = setup.camera
+    d5 = dist5(obs.primary.dist)
+    if d5 is None:
+        return Refined(
+            warnings=(
+                f"camera {cam.name!r}: distortion beyond (k1, k2, p1, p2, k3) is not modelled by the refinement; "
+                "stopped at two-stage",
+            )
+        )
+    corners = _collect(setup, obs, sync, two)
+    if not corners.points:
+        return Refined(
+            warnings=(
+                *corners.warnings,
+                "refinement: no detected corners inside the encoder log; stopped at two-stage",
+            )
+        )
+    n_cams = len(corners.used)
+    options.say(
+        "refinement: reprojection error of every corner over all parameters (robust, Cauchy)"
+        + (f", {n_cams} cameras" if n_cams > 1 else "")
+    )
+    problem, params0, layout, cand = _problem(setup, obs, sync, two, corners, obs.primary.K, d5)
+    free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.kind.identifiability_tol)
+    free = np.asarray(free)
+    res = _programs.refinement(free)(problem, params0)
+    jax.block_until_ready(res)
+    out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
+    return dataclasses.replace(out, timings={"refine_s": time.perf_counter() - t0})
+
+
+def succeeded(refined: Refined) -> bool:
+    """The refinement ran, its final solve succeeded and the pose is finite."""
+    res = refined.fit
+    if res is None:
+        return False
+    return bool(res.result == optx.RESULTS.successful) and bool(
+        np.all(np.isfinite(np.asarray(res.T_cam_base)))
+    )

@@ -1,0 +1,190 @@
+"""Stage 7, result: the stage records assembled into one immutable `CalibrationResult`."""
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ..io.dataset import Dataset
+from ..io.result import result_to_json
+from .observe import Observations
+from .refine import Refined, succeeded
+from .setup import Setup
+from .synchronise import Sweeps, Sync
+from .two_stage import TwoStage, result_name
+from .validate import Validation
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Everything `calibrate` found (NumPy arrays and the calibrated `KinematicModel`).
+
+    - `model`, `nominal`: calibrated and nominal models; `T_cam_base` (4, 4);
+      `T_flange_target`: calibrated marker mounts `(markers, 4, 4)`.
+    - `parameters`: one row per physical parameter (`name`, `unit`,
+      `nominal`, `estimate`, `std`, `free`).
+    - `frozen`: parameters the data cannot see, held at nominal.
+    - `arcs`: per-joint arc-fit summaries; `sweeps`: the measurements.
+    - `clock`: offset (s), its std, and whether it was estimated.
+    - `frames`: counts of used / dropped frames with reasons.
+    - `validation`: errors against the truth (synthetic datasets), else None.
+    - `refinement`: the reprojection refinement's summary (`None` when it did
+      not run); `refine_fit`: its `RefineResult`. When it ran, `model`,
+      `T_cam_base`, `T_flange_target`, `parameters`, the ratios and the clock
+      are the refined ones and the two-stage figures sit beside them.
+    - `other_cameras`: further fixed cameras, each `{"camera", "T_cam_base",
+      "std_cam", "views", ...}`: the refinement estimates their poses along
+      with the robot (one model, one `T_cam_base` per camera).
+    - `kind`: the capture kind (`jaxcal.stages.kinds.CaptureKind`).
+    - `eye_in_hand`: the camera rides on the flange and films `board`, fixed
+      in the world. The fields keep their eye-to-hand names with the roles
+      swapped: `T_cam_base` holds $T_{board,base}$ and `T_flange_target[0]`
+      holds $T_{flange,cam}$ (`result.json` names them so).
+    """
+
+    dataset: Path
+    robot_urdf: Path
+    camera: str
+    targets: list
+    nominal: object
+    model: object
+    T_cam_base: np.ndarray
+    std_cam: np.ndarray
+    T_flange_target: np.ndarray
+    parameters: list
+    frozen: list
+    arcs: list
+    sweeps: Sweeps
+    arc_fit: object
+    axis_fit: object
+    clock: dict
+    frames: dict
+    intrinsics: dict
+    solver: dict
+    kind: object
+    timings: dict = field(default_factory=dict)
+    validation: dict | None = None
+    warnings: list = field(default_factory=list)
+    ee_errors: dict | None = None
+    refinement: dict | None = None
+    refine_fit: object = None
+    other_cameras: list = field(default_factory=list)
+    board: str | None = None
+
+    @property
+    def eye_in_hand(self) -> bool:
+        return bool(self.kind.eye_in_hand)
+
+    @property
+    def ok(self) -> bool:
+        """Every solver reported success and the estimate is finite."""
+        return bool(self.solver["success"]) and bool(np.all(np.isfinite(self.T_cam_base)))
+
+    def to_json(self) -> dict:
+        """The `result.json` payload (plain Python types; see `jaxcal.io.result`)."""
+        return result_to_json(self)
+
+
+def dropped_capture_indices(ds: Dataset, camera: str) -> list:
+    """Capture indices missing between a camera's first and last frame."""
+    idx = np.sort(ds.frames["frame"][ds.frames["camera"] == camera])
+    if idx.size == 0:
+        return []
+    return sorted(set(range(int(idx[0]), int(idx[-1]) + 1)) - set(int(i) for i in idx))
+
+
+def frames_summary(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> dict:
+    """How the two-stage camera's frames were used."""
+    found, inside, joint = obs.primary.found, sync.inside, sync.joint
+    return {
+        "images": int(len(obs.primary.rows)),
+        "target_found": int(found.sum()),
+        "no_target": int((~found).sum()),
+        "outside_encoder_log": int((~inside).sum()),
+        "not_in_a_sweep": 0 if setup.kind.sequential else int(((joint < 0) & inside & found).sum()),
+        "used_per_joint": two.counts,
+        "dropped_capture_indices": dropped_capture_indices(setup.dataset, setup.camera.name),
+    }
+
+
+def _arcs(two: TwoStage, refined: Refined | None) -> list:
+    """The arc rows, with the refined ratios (the two-stage ones beside them) when refined."""
+    if refined is None or refined.fit is None:
+        return two.arc_rows
+    rows = []
+    for j, a in enumerate(two.arc_rows):
+        a = dict(a, ratio_two_stage=a["ratio"], ratio_std_two_stage=a["ratio_std"])
+        if refined.ratios is not None:
+            a["ratio"], a["ratio_std"] = refined.ratios[j]
+        rows.append(a)
+    return rows
+
+
+def assemble(
+    setup: Setup,
+    obs: Observations,
+    sync: Sync,
+    two: TwoStage,
+    refined: Refined | None,
+    validation: Validation | None,
+    t_start: float,
+) -> CalibrationResult:
+    """One `CalibrationResult` from the stage records (the refined figures in
+    front when the refinement ran, the two-stage ones beside them)."""
+    fit = two.fit
+    ran = refined is not None and refined.fit is not None
+    res = refined.fit if ran else None
+    clock = dict(sync.clock)
+    if ran and refined.clock is not None:
+        clock.update(
+            offset_s_two_stage=clock["offset_s"],
+            std_s_two_stage=clock["std_s"],
+            offset_s=refined.clock["offset_s"],
+            std_s=refined.clock["std_s"],
+        )
+    solver = dict(two.solver)
+    if ran:
+        solver.update(
+            success=bool(solver["success"]) and succeeded(refined),
+            refinement=result_name(res.result),
+            refinement_steps=refined.summary["solver"]["steps"],
+            refinement_rounds_ok=bool(res.rounds_ok),
+        )
+    warnings = [*setup.notes, *sync.notes, *two.notes, *(refined.warnings if refined is not None else ())]
+    timings = {}
+    for record in (setup, obs, sync, two, refined, validation):
+        if record is not None:
+            timings.update(record.timings)
+    timings["total_s"] = time.perf_counter() - t_start
+    return CalibrationResult(
+        dataset=setup.dataset.root,
+        robot_urdf=setup.dataset.robot_urdf,
+        camera=setup.camera.name,
+        targets=[t.name for t in setup.targets],
+        nominal=setup.nominal,
+        model=jax.device_get(res.model if ran else fit.model),
+        T_cam_base=np.asarray(res.T_cam_base if ran else fit.T_cam_base),
+        std_cam=np.asarray(res.std[:6] if ran else fit.std[:6]),
+        T_flange_target=np.asarray(res.T_flange_marker if ran else fit.T_flange_marker),
+        parameters=refined.parameters if ran else two.parameters,
+        frozen=refined.frozen if ran else two.frozen,
+        arcs=_arcs(two, refined),
+        sweeps=two.sweeps,
+        arc_fit=jax.device_get(two.arcs),
+        axis_fit=jax.device_get(fit),
+        clock=clock,
+        frames=frames_summary(setup, obs, sync, two),
+        intrinsics=obs.primary.intrinsics,
+        solver=solver,
+        kind=setup.kind,
+        timings=timings,
+        validation=None if validation is None else validation.report,
+        warnings=warnings,
+        ee_errors=None if validation is None else validation.ee_errors,
+        refinement=refined.summary if ran else None,
+        refine_fit=res,
+        other_cameras=refined.other_cameras if ran else [],
+        board=None if setup.board is None else setup.board.name,
+    )

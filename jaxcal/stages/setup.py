@@ -1,0 +1,205 @@
+"""Stage 1, setup: the dataset, the nominal robot, the capture kind, the
+cameras and targets the fits use, and the options, resolved once."""
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._kinematics import KinematicModel
+from .._links import arm_targets
+from ..errors import CalibrationError
+from ..io.dataset import CameraInfo, Dataset, TargetInfo, load_dataset
+from .kinds import CaptureKind
+
+
+@dataclass(frozen=True)
+class Options:
+    """What the caller asked for (see `jaxcal.calibrate`)."""
+
+    camera: str | None = None
+    workers: int | None = None
+    progress: bool = True
+    estimate_clock: bool | None = None
+    validate: bool = True
+    refine: bool = True
+    other_cameras: bool = True
+    log: Callable[[str], None] | None = None
+
+    def say(self, text: str) -> None:
+        if self.log is not None:
+            self.log(text)
+
+
+@dataclass(frozen=True, eq=False)
+class Setup:
+    """A calibration problem, resolved.
+
+    - `dataset`, `nominal`: the loaded dataset and its nominal robot.
+    - `kind`: the `CaptureKind`.
+    - `camera`: the camera of the two-stage fit; `extra_cameras`: further
+      fixed cameras the refinement adds.
+    - `targets`: the targets the fits use, in mount order (eye-to-hand: those on
+      the flange; eye-in-hand: the board's pattern named after the camera,
+      riding on the flange, its mount $T_{flange,cam}$; markers on every
+      link: every arm target, flange first).
+    - `board`: eye-in-hand, the fixed board the camera films.
+    - `target_link`, `per_joint`: markers on every link, each target's link
+      index and per joint the targets whose poses give its arc.
+    - `notes`: what the user should know about how the capture is used.
+    """
+
+    dataset: Dataset
+    nominal: KinematicModel
+    kind: CaptureKind
+    camera: CameraInfo
+    targets: tuple[TargetInfo, ...]
+    board: TargetInfo | None
+    target_link: np.ndarray | None
+    per_joint: tuple | None
+    extra_cameras: tuple[CameraInfo, ...]
+    notes: tuple[str, ...]
+    timings: dict
+
+    @property
+    def root(self):
+        return self.dataset.root
+
+    @property
+    def metadata_path(self):
+        return self.dataset.root / "metadata.json"
+
+    @property
+    def fit_targets(self) -> tuple[TargetInfo, ...]:
+        """The targets of the axis fit: with markers on every link each arc has
+        its own marker, so the axis fit uses the lines and the flange marker's
+        mount only (the refinement sees them all)."""
+        return self.targets[:1] if self.kind.sequential else self.targets
+
+
+def _choose_camera(ds: Dataset, name: str | None, flange: str) -> CameraInfo:
+    fixed = [c for c in ds.cameras if c.mount == "world"]
+    on_hand = [c for c in ds.cameras if c.mount == flange]
+    if name is None:
+        if not fixed and not on_hand:
+            raise CalibrationError(
+                f"{ds.root / 'metadata.json'}: no camera is fixed (mount 'world') or on the flange link "
+                f"{flange!r} (mounts: {sorted({c.mount for c in ds.cameras})})"
+            )
+        return fixed[0] if fixed else on_hand[0]
+    try:
+        cam = ds.camera(name)
+    except KeyError:
+        raise CalibrationError(
+            f"camera {name!r} is not in {ds.root / 'metadata.json'} (cameras: {[c.name for c in ds.cameras]})"
+        ) from None
+    if cam.mount not in ("world", flange):
+        raise CalibrationError(
+            f"camera {name!r} rides on {cam.mount!r}; the joint-sweep method needs a fixed camera or "
+            f"one on the flange link {flange!r}"
+        )
+    return cam
+
+
+def _flange_targets(ds: Dataset, flange: str) -> tuple[TargetInfo, ...]:
+    targets = tuple(t for t in ds.targets if t.link == flange)
+    if not targets:
+        links = sorted({t.link for t in ds.targets})
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: no target rides on the flange link {flange!r} (targets are on "
+            f"{links}); the joint-sweep method films a target on the flange"
+        )
+    return targets
+
+
+def _eye_in_hand_target(ds: Dataset, camera: CameraInfo, flange: str) -> tuple[TargetInfo, TargetInfo]:
+    """The fixed board an eye-in-hand `camera` films, and the pseudo-target of
+    the fits: the board's pattern, named after the camera, riding on the
+    flange (its "mount" is $T_{flange,cam}$, found by the fits)."""
+    boards = [t for t in ds.targets if t.link == "world"]
+    if not boards:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: camera {camera.name!r} rides on the flange {flange!r} but no target is "
+            f"fixed in the world (link 'world'); targets are on {sorted({t.link for t in ds.targets})}"
+        )
+    board = boards[0]
+    return board, TargetInfo(dataclasses.replace(board.spec, name=camera.name), flange, None)
+
+
+def setup(dataset, options: Options) -> Setup:
+    """Load `dataset` (a path or a `Dataset`) and resolve the capture kind,
+    the camera, the targets and the further cameras (see `Setup`)."""
+    t0 = time.perf_counter()
+    ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
+    nominal = ds.load_model()
+    if tuple(nominal.joint_names) != tuple(ds.joint_names):
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: robot.joints {list(ds.joint_names)} differ from the chain in "
+            f"{ds.robot_urdf} ({list(nominal.joint_names)})"
+        )
+    flange = nominal.link_names[-1]
+    cam = _choose_camera(ds, options.camera, flange)
+    kind = CaptureKind.of(
+        camera_on_flange=cam.mount == flange, segments=ds.segments, encoders=ds.encoder_t is not None
+    )
+    notes = []
+    board = target_link = per_joint = None
+    extra: list[CameraInfo] = []
+    if kind.eye_in_hand:
+        board, target = _eye_in_hand_target(ds, cam, flange)
+        targets = (target,)
+        others = [t.name for t in ds.targets if t.name != board.name]
+        if others:
+            notes.append(f"eye-in-hand: board {board.name!r} is the reference; not used: {others}")
+    elif kind.sequential:
+        try:
+            arm, target_link, per_joint = arm_targets(ds, nominal)
+        except ValueError as e:
+            raise CalibrationError(f"{ds.root / 'metadata.json'}: {e}") from None
+        targets, per_joint = tuple(arm), tuple(per_joint)
+        if not kind.encoders:
+            raise CalibrationError(
+                f"{ds.root}: arbitrary motion (no single-joint 'motion' segment) needs the encoder log: the "
+                "sequential method undoes each joint's rotation with its encoder angle"
+            )
+        notes.append(
+            "arbitrary motion, markers on every link: sequential initialisation (each joint's axis from its "
+            "child link's marker, the earlier joints undone with their encoders), then the refinement over all "
+            "markers"
+        )
+    else:
+        targets = _flange_targets(ds, flange)
+        if options.refine and options.other_cameras:
+            extra = [c for c in ds.cameras if c.mount == "world" and c.name != cam.name]
+    if len(ds.cameras) > 1:
+        notes.append(
+            f"two-stage fit from camera {cam.name!r}; "
+            + (
+                f"the refinement adds {[c.name for c in extra]}"
+                if extra
+                else "the other cameras are not used (other_cameras=False, or none is fixed)"
+            )
+        )
+    ignored = [t.name for t in ds.targets if t.link != flange]
+    if ignored and not kind.eye_in_hand and not kind.sequential:
+        notes.append(f"targets not on the flange are not used by the two-stage method: {ignored}")
+    if extra and not kind.refines_other_cameras:
+        notes.append(
+            f"no encoder log: the refinement uses camera {cam.name!r} only (not {[c.name for c in extra]})"
+        )
+        extra = []
+    return Setup(
+        dataset=ds,
+        nominal=nominal,
+        kind=kind,
+        camera=cam,
+        targets=targets,
+        board=board,
+        target_link=target_link,
+        per_joint=per_joint,
+        extra_cameras=tuple(extra),
+        notes=tuple(notes),
+        timings={"load_s": time.perf_counter() - t0},
+    )

@@ -1,0 +1,279 @@
+"""Stage 3, synchronise: the camera-controller clock offset (estimated when
+unknown), the encoder log at every frame, and which joint sweeps in which
+frame; for single-joint sweeps, the padded per-joint sweeps the arc fits take.
+
+The clock relation lives in `jaxcal._clocksync.controller_time`.
+"""
+
+import time
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._arcfit import make_arc_data
+from .._clocksync import controller_time
+from .._links import link_poses
+from ..errors import CalibrationError
+from ..io.dataset import Dataset
+from . import _programs
+from .observe import CameraObservations, Observations
+from .setup import Options, Setup
+
+_DEG = np.pi / 180.0
+#: A joint counts as "at zero" (not the one sweeping) within this angle.
+AT_ZERO_DEG = 0.05
+#: The sweeping joint must be at least this far from zero for encoder-based assignment.
+MOVING_DEG = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Sweeps:
+    """The marker poses of every joint sweep, ready for the arc fits (NumPy).
+
+    - `rows`: per joint, the dataset's frame-table rows used, `(joints, frames)`
+      padded with -1.
+    - `positions` (m), `orientations`, `covariances` (of position and camera-frame
+      rotation vector), `mask` `(joints, markers, frames, ...)`.
+    - `t_cam`: camera-clock stamps `(joints, frames)`; `encoder`: commanded joint
+      positions interpolated at them (rad) or None.
+    """
+
+    rows: np.ndarray
+    positions: np.ndarray
+    orientations: np.ndarray
+    covariances: np.ndarray
+    mask: np.ndarray
+    t_cam: np.ndarray
+    encoder: np.ndarray | None
+
+    def arc_data(self):
+        """Stacked `ArcData` (joints leading) for `jax.vmap(fit_arc)`."""
+        enc = self.encoder
+        return jax.vmap(
+            lambda P, O, C, m, e: make_arc_data(P, O, e, m, covariances=C),
+            in_axes=(0, 0, 0, 0, None if enc is None else 0),
+        )(self.positions, self.orientations, self.covariances, self.mask, enc)
+
+
+@dataclass(frozen=True, eq=False)
+class Sync:
+    """The clock and the frames placed on the controller's time line.
+
+    - `clock`: `offset_s`, `std_s`, `estimated`, `drift_ppm`.
+    - `log_q`: the encoder log as commanded joint positions `(t (T,), q (T, joints))`, or None.
+    - `t_ctrl`, `q`, `inside`: per row of the two-stage camera, the controller
+      time, the interpolated commanded positions (None without a log) and
+      whether it lies inside the log.
+    - `joint`: per row, the joint sweeping alone (-1: none; all -1 with free motion).
+    - `sweeps`, `counts`: the per-joint sweeps and frames used per joint
+      (single-joint sweeps; None with free motion, whose sweeps come from the
+      sequential procedure).
+    """
+
+    clock: dict
+    log_q: tuple[np.ndarray, np.ndarray] | None
+    t_ctrl: np.ndarray
+    q: np.ndarray | None
+    inside: np.ndarray
+    joint: np.ndarray
+    sweeps: Sweeps | None
+    counts: dict | None
+    notes: tuple[str, ...]
+    timings: dict
+
+
+def commanded_positions(ds: Dataset, nominal) -> tuple[np.ndarray, np.ndarray] | None:
+    """The encoder log as commanded joint positions `motor / nominal ratio`: `(t (T,), q (T, joints))`."""
+    if ds.encoder_t is None:
+        return None
+    ratio = np.asarray(nominal.reduction_ratio, np.float64)
+    return ds.encoder_t, ds.encoder_motor / ratio
+
+
+def interpolate(t, enc_t, enc_q) -> np.ndarray:
+    """The log `enc_q (T, joints)` linearly interpolated at controller times `t` (NumPy)."""
+    return np.stack([np.interp(t, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])], axis=-1)
+
+
+def assign_frames(ds: Dataset, t_ctrl: np.ndarray, q: np.ndarray | None, num_joints: int) -> np.ndarray:
+    """Which joint sweeps in each frame (index, or -1 for none).
+
+    From the metadata's motion segments when present; otherwise from the
+    encoder log: the one joint more than `MOVING_DEG` from zero while every
+    other stays within `AT_ZERO_DEG`.
+    """
+    index = {name: j for j, name in enumerate(ds.joint_names)}
+    joint = np.full(len(t_ctrl), -1)
+    if ds.segments:
+        for name, start, end in ds.segments:
+            if name is None:
+                continue
+            joint[(t_ctrl >= start) & (t_ctrl <= end)] = index[name]
+        return joint
+    if q is None:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: cannot tell which joint moves in which frame: the metadata has "
+            "no 'motion' segments and there is no encoder log"
+        )
+    away = np.abs(q) > MOVING_DEG * _DEG
+    still = np.abs(q) < AT_ZERO_DEG * _DEG
+    for j in range(num_joints):
+        others = np.delete(np.arange(num_joints), j)
+        joint[away[:, j] & np.all(still[:, others], axis=1)] = j
+    return joint
+
+
+def build_sweeps(ds: Dataset, obs: CameraObservations, targets, joint_of_row, q_at_row, num_joints):
+    """Group the per-frame poses into padded per-joint sweeps; also the per-joint frame counts."""
+    rows, poses, t_cam = obs.rows, obs.poses, obs.t_cam
+    M = len(targets)
+    found = obs.found
+    per_joint = [np.flatnonzero((joint_of_row == j) & found) for j in range(num_joints)]
+    F = max(1, max(len(k) for k in per_joint))
+    J = num_joints
+    R = np.full((J, F), -1)
+    P = np.zeros((J, M, F, 3))
+    O = np.broadcast_to(np.eye(3), (J, M, F, 3, 3)).copy()
+    C = np.broadcast_to(np.eye(6), (J, M, F, 6, 6)).copy()
+    mask = np.zeros((J, M, F), bool)
+    T = np.zeros((J, F))
+    E = None if q_at_row is None else np.zeros((J, F))
+    for j, idx in enumerate(per_joint):
+        R[j, : len(idx)] = rows[idx]
+        T[j, : len(idx)] = t_cam[idx]
+        T[j, len(idx) :] = t_cam[idx[-1]] if len(idx) else 0.0
+        if E is not None:
+            E[j, : len(idx)] = q_at_row[idx, j]
+        for f, i in enumerate(idx):
+            for m, t in enumerate(targets):
+                est = poses[i].get(t.name)
+                if est is None:
+                    continue
+                P[j, m, f] = est.T_cam_target[:3, 3]
+                O[j, m, f] = est.T_cam_target[:3, :3]
+                C[j, m, f] = est.cov
+                mask[j, m, f] = True
+    counts = {ds.joint_names[j]: int(len(idx)) for j, idx in enumerate(per_joint)}
+    return Sweeps(R, P, O, C, mask, T, E), counts
+
+
+class _Timeline:
+    """The two-stage camera's frames placed on the controller clock at a given offset."""
+
+    def __init__(self, setup: Setup, obs: CameraObservations, log_q):
+        self.setup, self.obs, self.log_q = setup, obs, log_q
+
+    def at(self, offset_s: float):
+        """`(t_ctrl, q, inside)` of every row at `offset_s`."""
+        ds, obs = self.setup.dataset, self.obs
+        t_ctrl = controller_time(obs.t_cam, offset_s, ds.clock_drift_ppm)
+        if self.log_q is None:
+            return t_ctrl, None, np.ones(len(t_ctrl), bool)
+        enc_t, enc_q = self.log_q
+        inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+        if not inside.any():
+            raise CalibrationError(
+                f"{ds.root}: no overlap between the image timestamps of camera {obs.camera.name!r} "
+                f"([{obs.t_cam.min():.3f}, {obs.t_cam.max():.3f}] s camera clock, offset {offset_s * 1e3:.1f} ms) "
+                f"and the encoder log ([{enc_t[0]:.3f}, {enc_t[-1]:.3f}] s, {ds.root / 'encoders.csv'})"
+            )
+        return t_ctrl, interpolate(t_ctrl, enc_t, enc_q), inside
+
+    def sweeps(self, offset_s: float):
+        """`(sweeps, counts, joint, t_ctrl, q, inside)` at `offset_s` (single-joint sweeps)."""
+        n = self.setup.nominal.num_joints
+        t_ctrl, q, inside = self.at(offset_s)
+        joint = np.where(inside, assign_frames(self.setup.dataset, t_ctrl, q, n), -1)
+        sw, counts = build_sweeps(self.setup.dataset, self.obs, self.setup.targets, joint, q, n)
+        return sw, counts, joint, t_ctrl, q, inside
+
+
+def _clock_from_sweeps(sweeps: Sweeps, log_q, offset0: float, drift_ppm: float):
+    """All joints' arc fits with one shared offset."""
+    return _programs.clock_fit()(
+        sweeps.arc_data(),
+        jnp.asarray(sweeps.t_cam),
+        jnp.asarray(log_q[0]),
+        jnp.asarray(log_q[1]),
+        offset0,
+        drift_ppm,
+    )
+
+
+def _clock_from_first_link(setup: Setup, obs: CameraObservations, sel, log_q, offset0: float):
+    """The first joint's child-link plate moves with that joint alone: its arc,
+    against the encoder log, gives the offset (before anything is undone)."""
+    ds = setup.dataset
+    try:
+        P1, O1, C1, k1 = link_poses([obs.poses[i] for i in sel], setup.targets, setup.per_joint[0])
+    except ValueError as e:
+        raise CalibrationError(f"{ds.root}: joint {ds.joint_names[0]!r}: {e}") from None
+    d1 = jax.tree.map(lambda x: x[None], make_arc_data(P1, O1, None, covariances=C1))
+    return _programs.clock_fit()(
+        d1,
+        jnp.asarray(obs.t_cam[sel][k1])[None],
+        jnp.asarray(log_q[0]),
+        jnp.asarray(log_q[1][:, :1]),
+        offset0,
+        ds.clock_drift_ppm,
+    )
+
+
+def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
+    """Place the frames on the controller clock (see `Sync`), estimating the
+    clock offset when the metadata leaves it null (or `options.estimate_clock`)."""
+    t0 = time.perf_counter()
+    ds, nominal = setup.dataset, setup.nominal
+    log_q = commanded_positions(ds, nominal)
+    offset = ds.clock_offset_s
+    estimate = options.estimate_clock
+    if estimate is None:
+        estimate = offset is None and log_q is not None
+    if estimate and log_q is None:
+        raise CalibrationError(f"{ds.root}: the clock offset cannot be estimated without an encoder log")
+    offset0 = 0.0 if offset is None else offset
+    clock = {"offset_s": offset0, "std_s": None, "estimated": False, "drift_ppm": ds.clock_drift_ppm}
+    notes = []
+    if offset is None and not estimate:
+        notes.append("clock offset unknown and not estimated: 0 assumed")
+    line = _Timeline(setup, obs.primary, log_q)
+    sweeps = counts = None
+    if setup.kind.sequential:
+        t_ctrl, q, inside = line.at(offset0)
+        joint = np.full(len(t_ctrl), -1)
+        if estimate:
+            options.say(
+                "estimating the camera-controller clock offset (the first joint's arc, its link's plate)"
+            )
+            sel = np.flatnonzero(inside & obs.primary.found)
+            cf = _clock_from_first_link(setup, obs.primary, sel, log_q, offset0)
+    else:
+        sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(offset0)
+        if estimate:
+            options.say(
+                "estimating the camera-controller clock offset (arc fits of all joints with a shared offset)"
+            )
+            cf = _clock_from_sweeps(sweeps, log_q, offset0, ds.clock_drift_ppm)
+    if estimate:
+        if not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s)):
+            raise CalibrationError(f"{ds.root}: the clock-offset fit failed ({cf.result})")
+        clock.update(offset_s=float(cf.offset_s), std_s=float(cf.std_s), estimated=True)
+        if setup.kind.sequential:
+            t_ctrl, q, inside = line.at(clock["offset_s"])
+        else:
+            sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(clock["offset_s"])
+    return Sync(
+        clock=clock,
+        log_q=log_q,
+        t_ctrl=t_ctrl,
+        q=q,
+        inside=inside,
+        joint=joint,
+        sweeps=sweeps,
+        counts=counts,
+        notes=tuple(notes),
+        timings={"sync_s": time.perf_counter() - t0},
+    )

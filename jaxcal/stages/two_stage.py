@@ -1,0 +1,201 @@
+"""Stage 4, two-stage fit: an arc per joint (the first error function), then
+the axes to the kinematic parameters and the camera pose (the second).
+
+With single-joint sweeps every joint's arc is fitted at once (vmapped); with
+markers on every link, joint after joint by the seed's sequential procedure
+(`jaxcal._links`).
+"""
+
+import time
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._arcfit import validate_arc_data
+from .._axisfit import register_lines
+from .._correction import ParameterLayout, physical_parameters
+from .._geometry import pose_inverse
+from .._kinematics import forward_kinematics
+from .._links import sequential_sweeps
+from ..errors import CalibrationError
+from . import _programs
+from .observe import Observations
+from .setup import Options, Setup
+from .synchronise import Sweeps, Sync
+
+
+@dataclass(frozen=True, eq=False)
+class TwoStage:
+    """The two-stage result.
+
+    - `sweeps`, `counts`: the sweeps the arcs were fitted on, and frames per joint.
+    - `arcs`: the `ArcFitResult`s stacked over joints; `fit`: the `AxisFitResult`
+      (its `T_cam_base0`, `T_flange_marker0` are the references of the
+      corrections: the start of the refinement).
+    - `layout`: the axis fit's `ParameterLayout`; `parameters`: the physical
+      parameter table; `frozen`: names held at nominal.
+    - `arc_rows`: per-joint summaries for reports; `solver`: success flags.
+    - `link_rows`: markers on every link, the two-stage camera's rows inside
+      the encoder log with a pose (the refinement's start mounts use them).
+    """
+
+    sweeps: Sweeps
+    counts: dict
+    arcs: object
+    fit: object
+    layout: ParameterLayout
+    parameters: list
+    frozen: list
+    arc_rows: list
+    solver: dict
+    notes: tuple[str, ...]
+    link_rows: np.ndarray | None
+    timings: dict
+
+
+def _sequential(setup: Setup, obs: Observations, sync: Sync):
+    """Markers on every link: the sweeps and arcs of the sequential procedure."""
+    p = obs.primary
+    sel = np.flatnonzero(sync.inside & p.found)
+    n = setup.nominal.num_joints
+    Ps, Os, Cs, mk, arc_list = sequential_sweeps(
+        p.rows[sel], [p.poses[i] for i in sel], setup.targets, setup.per_joint, sync.q[sel], p.t_cam[sel],
+        _programs.arc_fit(),
+    )  # fmt: skip
+    sweeps = Sweeps(
+        np.where(mk[:, 0], p.rows[sel][None], -1),
+        Ps,
+        Os,
+        Cs,
+        mk,
+        np.broadcast_to(p.t_cam[sel], (n, sel.size)).copy(),
+        sync.q[sel].T.copy(),
+    )
+    counts = {name: int(mk[j, 0].sum()) for j, name in enumerate(setup.dataset.joint_names)}
+    return sweeps, counts, jax.tree.map(lambda *a: jnp.stack(a), *arc_list), sel
+
+
+def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data) -> None:
+    ds = setup.dataset
+    for j, name in enumerate(ds.joint_names):
+        if counts[name] == 0:
+            raise CalibrationError(
+                f"{ds.root}: joint {name!r}: no frame of camera {setup.camera.name!r} shows a target while this "
+                "joint sweeps alone"
+            )
+        try:
+            validate_arc_data(jax.tree.map(lambda x, j=j: x[j], data), name)
+        except ValueError as e:
+            raise CalibrationError(f"{ds.root}: {e}") from None
+
+
+def _start_mounts(setup: Setup, arcs):
+    """The fit targets' nominal mounts; where one is unknown, every mount from
+    the measured zero pose and the registered camera pose."""
+    mounts0 = [t.T_link_target for t in setup.fit_targets]
+    if all(m is not None for m in mounts0):
+        return jnp.asarray(np.stack(mounts0))
+    nominal = setup.nominal
+    T0 = register_lines(nominal, arcs)
+    T_cf = T0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints))[-1]
+    return jnp.einsum("ab,mbc->mac", pose_inverse(T_cf), arcs.T_cam_marker0[0])
+
+
+def arc_rows(setup: Setup, arcs) -> list[dict]:
+    """Per-joint arc summaries (frames, RMS, axis, ratio with its std, solver)."""
+    nominal_ratio = np.asarray(setup.nominal.reduction_ratio)
+    ok = np.asarray(arcs.result == optx.RESULTS.successful)
+    has = bool(arcs.has_encoder)
+    rows = []
+    for j, name in enumerate(setup.dataset.joint_names):
+        rate = float(arcs.rate[j])
+        rows.append(
+            {
+                "joint": name,
+                "frames": int(arcs.num_frames[j]),
+                "position_rms_mm": float(arcs.position_rms[j]) * 1e3,
+                "rotation_rms_deg": float(np.degrees(arcs.rotation_rms[j])),
+                "residual_rms": float(arcs.residual_rms[j]),
+                "direction_cam": np.asarray(arcs.direction[j]).tolist(),
+                "point_cam_m": np.asarray(arcs.point[j]).tolist(),
+                "ratio_nominal": float(nominal_ratio[j]),
+                "ratio": float(nominal_ratio[j] / rate) if has else None,
+                "ratio_std": float(nominal_ratio[j] * np.sqrt(max(float(arcs.rate_var[j]), 0.0)) / rate**2)
+                if has
+                else None,
+                "ratio_identifiable": has,
+                "solver": {"result": "successful" if ok[j] else "failed", "steps": int(arcs.num_steps[j])},
+            }
+        )
+    return rows
+
+
+def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> TwoStage:
+    """Arc fits, then the axis fit (see `TwoStage`)."""
+    nominal, kind = setup.nominal, setup.kind
+    timings = {}
+    t0 = time.perf_counter()
+    link_rows = None
+    if kind.sequential:
+        options.say(
+            f"sequential arc fits of {nominal.num_joints} joints (markers on every link, earlier joints undone)"
+        )
+        sweeps, counts, arcs, link_rows = _sequential(setup, obs, sync)
+        _check_sweeps(setup, sweeps, counts, sweeps.arc_data())
+    else:
+        sweeps, counts = sync.sweeps, sync.counts
+        data = sweeps.arc_data()
+        _check_sweeps(setup, sweeps, counts, data)
+        options.say(f"arc fits of {nominal.num_joints} joints (one vmapped solve)")
+        arcs = _programs.arc_fits()(data)
+    jax.block_until_ready(arcs)
+    timings["arc_fit_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    options.say("axis fit: kinematic parameters and camera-to-base")
+    mounts0 = _start_mounts(setup, arcs)
+    fit = _programs.axis_fit(kind.axis_fit_uses_poses)(nominal, arcs, mounts0)
+    jax.block_until_ready(fit)
+    timings["axis_fit_s"] = time.perf_counter() - t0
+
+    layout = ParameterLayout.of(nominal, len(setup.fit_targets), eye_in_hand=kind.eye_in_hand)
+    names = layout.names(refine=False)
+    free = np.asarray(fit.free)
+    parameters = physical_parameters(
+        layout, nominal, fit.T_flange_marker0, fit.T_cam_base0, fit.params.cam, fit.params.correction,
+        fit.cov, free, [t.name for t in setup.fit_targets],
+    )  # fmt: skip
+    ok_arc = np.asarray(arcs.result == optx.RESULTS.successful)
+    notes = (
+        ()
+        if arcs.has_encoder
+        else ("no encoder log: reduction ratios are not identifiable (images alone give the axes)",)
+    )
+    return TwoStage(
+        sweeps=sweeps,
+        counts=counts,
+        arcs=arcs,
+        fit=fit,
+        layout=layout,
+        parameters=parameters,
+        frozen=[n for n, f in zip(names, free) if not f],
+        arc_rows=arc_rows(setup, arcs),
+        solver={
+            "success": bool(ok_arc.all() and bool(fit.result == optx.RESULTS.successful)),
+            "arc_fits_ok": ok_arc.tolist(),
+            "axis_fit": result_name(fit.result),
+            "axis_fit_steps": int(fit.num_steps),
+            "axis_fit_residual_rms": float(fit.residual_rms),
+        },
+        notes=notes,
+        link_rows=link_rows,
+        timings=timings,
+    )
+
+
+def result_name(result) -> str:
+    """`"successful"` or `"failed"` for an optimistix result code."""
+    return "successful" if bool(result == optx.RESULTS.successful) else "failed"

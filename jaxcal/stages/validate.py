@@ -1,0 +1,208 @@
+"""Stage 6, validate (synthetic datasets): the calibration against `truth.json`.
+
+End-effector error over random configurations (nominal, two-stage and
+refined), the camera pose in the estimator's gauge, per-joint axis, ratio
+and zero-offset errors, the clock offset and the further cameras' poses.
+"""
+
+import time
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._geometry import pose_inverse, so3_log
+from .._kinematics import forward_kinematics
+from .._montecarlo import NoiseModel, SweepPlan, synthesize_sweeps
+from .._scoring import score
+from ..io.model_json import model_from_json
+from . import _programs
+from .refine import Refined
+from .setup import Options, Setup
+from .synchronise import Sync
+from .two_stage import TwoStage
+
+#: Random configurations of the end-effector comparison, and their seed.
+CONFIGURATIONS = 1000
+SEED = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Validation:
+    """`report`: the `validation` block of `result.json`; `ee_errors`: per
+    configuration the EE error (mm) `before` (nominal model), `two_stage`, `after`."""
+
+    report: dict
+    ee_errors: dict
+    timings: dict
+
+
+def _truth_poses(setup: Setup, truth: dict):
+    """The true fixed frame and mounts in the fits' roles, or None when the truth lacks them."""
+    cam_truth = truth["cameras"].get(setup.camera.name, {})
+    if setup.board is not None:
+        board = setup.board.name
+        if "T_mount_cam" not in cam_truth or board not in truth["targets"]:
+            return None
+        T_world_board = np.asarray(truth["targets"][board]["T_link_target"])
+        T_cb = np.linalg.inv(T_world_board) @ np.asarray(truth.get("T_world_base", np.eye(4)))
+        return jnp.asarray(T_cb), jnp.asarray(cam_truth["T_mount_cam"])[None]
+    if "T_cam_base" not in cam_truth:
+        return None
+    mounts = jnp.stack([jnp.asarray(truth["targets"][t.name]["T_link_target"]) for t in setup.targets])
+    return jnp.asarray(cam_truth["T_cam_base"]), mounts
+
+
+def _rot_deg(R) -> float:
+    return float(np.degrees(np.linalg.norm(np.asarray(so3_log(jnp.asarray(R))))))
+
+
+def _pose_error(dT) -> dict:
+    return {"trans_mm": float(np.linalg.norm(dT[:3, 3]) * 1e3), "rot_deg": _rot_deg(dT[:3, :3])}
+
+
+def _gauge(setup: Setup, two: TwoStage, true, T_cb_true, mounts_true):
+    """The estimator's gauge for the fixed frame: the same axis fit on (nearly)
+    exact sweeps of the truth, with the same parameters frozen. The sweeps have
+    the dataset's shapes, so the arc and axis fits reuse their compiled code."""
+    nominal, fit = setup.nominal, two.fit
+    plan = SweepPlan(range_deg=40.0, frames=two.sweeps.mask.shape[-1])
+    tiny = NoiseModel(position_mm=1e-3, orientation_deg=1e-4, encoder_deg=0.0)
+    mounts0 = fit.T_flange_marker0
+    exact = eqx.filter_jit(synthesize_sweeps)(
+        true,
+        T_cb_true,
+        mounts_true[: mounts0.shape[0]],  # the axis fit's markers (the flange's, first)
+        plan,
+        tiny,
+        jax.random.key(1),
+        nominal_ratio=nominal.reduction_ratio,
+        use_encoders=bool(two.arcs.has_encoder),
+    )
+    arcs_exact = _programs.arc_fits()(exact)
+    return _programs.axis_fit(setup.kind.axis_fit_uses_poses)(
+        nominal, arcs_exact, mounts0, fit.free
+    ).T_cam_base
+
+
+def _ee_errors(nominal, true, T_cb_true, mount_true, fits: dict, q_val) -> dict:
+    """Per configuration, the marker position error (mm) of each model in `fits`."""
+
+    def marker(model, T_cb, mount):
+        return (T_cb @ jax.vmap(lambda qq: forward_kinematics(model, qq)[-1])(q_val) @ mount)[:, :3, 3]
+
+    tru = marker(true, T_cb_true, mount_true)
+    return {
+        k: np.asarray(jnp.linalg.norm(marker(model, T_cb, mount) - tru, axis=-1)) * 1e3
+        for k, (model, T_cb, mount) in fits.items()
+    }
+
+
+def other_camera_errors(truth: dict, camera: str, T_two_stage, T_refined, others: list) -> dict:
+    """Each further camera's pose relative to the first, against the truth
+    (gauge-free: the base frame cancels), at the start (relative to the
+    two-stage first camera, the gauge it was computed in) and refined."""
+    cams = truth.get("cameras", {})
+    if "T_cam_base" not in cams.get(camera, {}):
+        return {}
+    T0_true = np.asarray(cams[camera]["T_cam_base"])
+    out = {}
+    for c in others:
+        if "T_cam_base" not in cams.get(c["camera"], {}):
+            continue
+        rel_true = np.asarray(cams[c["camera"]]["T_cam_base"]) @ np.linalg.inv(T0_true)
+        row = {}
+        for key, T, T0 in (
+            ("start", c["T_cam_base_start"], T_two_stage),
+            ("refined", c["T_cam_base"], T_refined),
+        ):
+            D = np.linalg.inv(rel_true) @ (np.asarray(T) @ np.linalg.inv(np.asarray(T0)))
+            cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+            row[key] = {
+                "trans_mm": float(1e3 * np.linalg.norm(D[:3, 3])),
+                "rot_deg": float(np.degrees(np.arccos(cos))),
+            }
+        out[c["camera"]] = row
+    return out
+
+
+def validate(
+    setup: Setup, sync: Sync, two: TwoStage, refined: Refined | None, options: Options
+) -> Validation | None:
+    """Errors against `truth.json` (None when the truth lacks the poses to compare)."""
+    t0 = time.perf_counter()
+    truth = setup.dataset.truth
+    poses = _truth_poses(setup, truth)
+    if poses is None:
+        return None
+    options.say(f"validating against truth.json ({CONFIGURATIONS} random configurations)")
+    T_cb_true, mounts_true = poses
+    nominal, two_fit = setup.nominal, two.fit
+    true = model_from_json(truth["model"])
+    res = refined.fit if refined is not None else None
+    fit = res if res is not None else two_fit
+    q_val = jax.random.uniform(
+        jax.random.key(SEED), (CONFIGURATIONS, nominal.num_joints), minval=-np.pi, maxval=np.pi
+    )
+    s = jax.jit(score)(fit, true, T_cb_true, mounts_true, nominal, q_val)
+    err = _ee_errors(
+        nominal,
+        true,
+        T_cb_true,
+        mounts_true[0],
+        {
+            "before": (nominal, fit.T_cam_base, fit.T_flange_marker[0]),
+            "two_stage": (two_fit.model, two_fit.T_cam_base, two_fit.T_flange_marker[0]),
+            "after": (fit.model, fit.T_cam_base, fit.T_flange_marker[0]),
+        },
+        q_val,
+    )
+    T_gauge = _gauge(setup, two, true, T_cb_true, mounts_true)
+    dT = np.asarray(pose_inverse(T_gauge) @ fit.T_cam_base)
+    dT_raw = np.asarray(pose_inverse(T_cb_true) @ fit.T_cam_base)
+    ratio_err = np.asarray(s["ratio_err_percent"])
+    rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
+    out = {
+        "configurations": CONFIGURATIONS,
+        "ee_point": "camera origin, board frame"
+        if setup.board is not None
+        else "target origin, camera frame",
+        "ee_rms_mm_before": rms(err["before"]),
+        "ee_max_mm_before": float(err["before"].max()),
+        "ee_rms_mm_after": rms(err["after"]),
+        "ee_max_mm_after": float(err["after"].max()),
+        "ee_rms_mm_two_stage": rms(err["two_stage"]),
+        "ee_max_mm_two_stage": float(err["two_stage"].max()),
+        "refined": res is not None,
+        "T_cam_base_error": {
+            **_pose_error(dT),
+            "gauge": "the truth seen through the same frozen parameters (the same fit on exact sweeps)",
+            "raw_trans_mm": float(np.linalg.norm(dT_raw[:3, 3]) * 1e3),
+            "raw_rot_deg": _rot_deg(dT_raw[:3, :3]),
+        },
+        "parameter_errors": {
+            j: {
+                "axis_direction_deg": float(s["axis_dir_deg"][k]),
+                "axis_position_mm": float(s["axis_pos_mm"][k]),
+                "ratio_percent": None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
+                "zero_offset_deg": float(np.degrees(fit.model.zero_offset[k] - true.zero_offset[k])),
+            }
+            for k, j in enumerate(nominal.joint_names)
+        },
+        "true_ratios": np.asarray(true.reduction_ratio).tolist(),
+        "true_clock_offset_s": truth.get("clock", {}).get("offset_s"),
+    }
+    if res is not None:
+        out["T_cam_base_error_two_stage"] = _pose_error(
+            np.asarray(pose_inverse(T_gauge) @ two_fit.T_cam_base)
+        )
+    offset_s = refined.clock["offset_s"] if refined is not None and refined.clock else sync.clock["offset_s"]
+    true_offset = out["true_clock_offset_s"]
+    out["clock_offset_error_ms"] = None if true_offset is None else 1e3 * (offset_s - true_offset)
+    if refined is not None and refined.other_cameras:
+        out["other_cameras"] = other_camera_errors(
+            truth, setup.camera.name, two_fit.T_cam_base, res.T_cam_base, refined.other_cameras
+        )
+    return Validation(out, err, {"validation_s": time.perf_counter() - t0})

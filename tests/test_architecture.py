@@ -1,0 +1,159 @@
+"""The shape of the code (docs/architecture.md), held by reading its syntax trees.
+
+- Edges point down: no calibration module imports `jaxcal.sim`, `jaxcal.cli`
+  or MuJoCo, directly or through another jaxcal module, and the module
+  import graph has no cycles.
+- Imports are at the top of a module (what depends on what is visible
+  there); the one exception is the command line importing the simulator for
+  the commands that render (`demo`, `simulate`), so that `jaxcal calibrate`
+  runs where MuJoCo or OpenGL is missing.
+- No private name (`_x`) is imported from another module; private modules
+  (`jaxcal._arcfit`) are imported for their public names.
+- Rooms stay small: no function over 120 lines, no module over 700.
+"""
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "jaxcal"
+#: Modules that may render (import the simulator / MuJoCo).
+RENDERING = ("jaxcal.sim", "jaxcal.cli", "jaxcal.__main__")
+
+
+def _modules() -> dict[str, ast.Module]:
+    out = {}
+    for p in sorted(PACKAGE.rglob("*.py")):
+        parts = list(p.relative_to(PACKAGE.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = ast.parse(p.read_text(), str(p))
+    return out
+
+
+MODULES = _modules()
+
+
+def _is_package(name: str) -> bool:
+    return (PACKAGE.parent / Path(*name.split(".")) / "__init__.py").is_file()
+
+
+def _resolve(module: str, node: ast.ImportFrom) -> str:
+    if node.level == 0:
+        return node.module or ""
+    base = module.split(".")
+    if not _is_package(module):
+        base = base[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _imports(module: str, tree: ast.Module, *, top_level: bool):
+    """`(line, imported module, names)` of the module's imports (top level, or inside functions)."""
+    scopes = (
+        [tree]
+        if top_level
+        else [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    )
+    for scope in scopes:
+        body = scope.body if top_level else list(ast.walk(scope))
+        for node in body:
+            if isinstance(node, ast.Import):
+                for a in node.names:
+                    yield node.lineno, a.name, []
+            elif isinstance(node, ast.ImportFrom):
+                target = _resolve(module, node)
+                names = [a.name for a in node.names]
+                # `from . import _arcfit` imports a module, not a name.
+                subs = [n for n in names if f"{target}.{n}" in MODULES]
+                for n in subs:
+                    yield node.lineno, f"{target}.{n}", []
+                rest = [n for n in names if n not in subs]
+                if rest or not subs:
+                    yield node.lineno, target, rest
+
+
+def _graph() -> dict[str, set[str]]:
+    graph = {}
+    for name, tree in MODULES.items():
+        deps = set()
+        for _, target, _ in _imports(name, tree, top_level=True):
+            deps.add(target)
+        graph[name] = deps
+    return graph
+
+
+def test_no_function_local_imports_of_jaxcal_modules():
+    found = []
+    for name, tree in MODULES.items():
+        for line, target, _ in _imports(name, tree, top_level=False):
+            if not target.startswith("jaxcal"):
+                continue
+            if name == "jaxcal.cli" and target.startswith("jaxcal.sim"):
+                continue
+            found.append(f"{name}:{line} imports {target}")
+    assert found == []
+
+
+def test_no_private_names_imported_across_modules():
+    found = []
+    for name, tree in MODULES.items():
+        for line, target, names in _imports(name, tree, top_level=True):
+            if target.startswith("jaxcal"):
+                found += [
+                    f"{name}:{line} {target}.{n}" for n in names if n.startswith("_") and n != "__version__"
+                ]
+    assert found == []
+
+
+def test_the_import_graph_has_no_cycles():
+    graph = {m: {d for d in deps if d in MODULES} for m, deps in _graph().items()}
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(m, path):
+        state[m] = 1
+        for d in sorted(graph[m]):
+            if d == m or d.startswith(m + "."):  # a package importing its own submodules
+                continue
+            if state.get(d) == 1:
+                cycles.append(path[path.index(d) :] + [d] if d in path else [m, d])
+            elif d not in state:
+                visit(d, path + [d])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+    assert cycles == []
+
+
+def test_calibration_modules_never_reach_the_simulator_or_mujoco():
+    graph = _graph()
+
+    def reach(m, seen):
+        for d in graph.get(m, ()):
+            if d not in seen:
+                seen.add(d)
+                reach(d, seen)
+        return seen
+
+    bad = []
+    for m in MODULES:
+        if m.startswith(RENDERING) or m == "jaxcal.sim":
+            continue
+        for d in reach(m, set()):
+            if d.startswith(("jaxcal.sim", "jaxcal.cli", "mujoco")) or d == "jaxcal.sim":
+                bad.append(f"{m} -> {d}")
+    assert bad == []
+
+
+def test_functions_and_modules_stay_small():
+    long_functions, long_modules = [], []
+    for name, tree in MODULES.items():
+        lines = max((getattr(n, "end_lineno", 0) or 0) for n in ast.walk(tree))
+        if lines > 700:
+            long_modules.append(f"{name} ({lines} lines)")
+        for n in ast.walk(tree):
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.end_lineno - n.lineno + 1 > 120:
+                long_functions.append(f"{name}.{n.name} ({n.end_lineno - n.lineno + 1} lines)")
+    assert long_functions == [] and long_modules == []
