@@ -109,6 +109,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(
         [
+            ".jaxcal",
             "result.json",
             "calibrated.urdf",
             "camera_cam0.yaml",

@@ -19,9 +19,6 @@ destination and renamed into place.
 import csv
 import json
 import math
-import os
-import shutil
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,7 +26,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..markers import TargetSpec
-from ._files import make_temp_dir
+from ._files import atomic_directory as atomic_directory
 
 SCHEMA = "jaxcal.dataset"
 SCHEMA_VERSION = 1
@@ -156,37 +153,6 @@ def write_encoders(path: Path, t, motor, joint_names) -> None:
         w.writerow(["timestamp", *joint_names])
         for ti, mi in zip(t, motor):
             w.writerow([repr(float(ti)), *(repr(float(v)) for v in mi)])
-
-
-@contextmanager
-def atomic_directory(dest, *, overwrite: bool = False):
-    """Yield a temporary directory beside `dest`; on success it becomes `dest`.
-
-    Refuses a non-empty `dest` unless `overwrite`; on failure nothing is left
-    behind and an existing `dest` is untouched.
-    """
-    dest = Path(dest)
-    if dest.exists() and not dest.is_dir():
-        raise FileExistsError(f"{dest} exists and is not a directory")
-    if dest.is_dir() and any(dest.iterdir()) and not overwrite:
-        raise FileExistsError(f"{dest} is not empty (pass overwrite=True / --overwrite to replace it)")
-    parent = dest.resolve().parent
-    parent.mkdir(parents=True, exist_ok=True)
-    if not os.access(parent, os.W_OK):
-        raise PermissionError(f"cannot write in {parent}")
-    tmp = make_temp_dir(parent, dest.name)
-    try:
-        yield tmp
-        old = None
-        if dest.exists():
-            old = parent / f".{dest.name}.{os.getpid()}.old"
-            os.replace(dest, old)
-        os.replace(tmp, dest)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 # --------------------------------------------------------------------------- reading
