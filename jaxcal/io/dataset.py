@@ -530,7 +530,9 @@ def _frames(root: Path, cameras: tuple[CameraInfo, ...], meta_loc: Loc) -> dict:
             raise DatasetError(f"{w}: frame {frame_text!r} is not a non-negative integer")
         frame = int(frame_text) if len(frame_text) <= 12 else MAX_FRAME_INDEX + 1
         if frame > MAX_FRAME_INDEX:
-            raise DatasetError(f"{w}: frame {sc.show(frame_text)} is above the largest capture index {MAX_FRAME_INDEX}")
+            raise DatasetError(
+                f"{w}: frame {sc.show(frame_text)} is above the largest capture index {MAX_FRAME_INDEX}"
+            )
         if (name, frame) in seen_frame:
             raise DatasetError(
                 f"{w}: camera {name!r} frame {frame} is already on line {seen_frame[name, frame]}"
