@@ -9,7 +9,6 @@
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -23,7 +22,7 @@ from rich.table import Table
 from . import _montecarlo as mc
 from ._axisfit import parameter_names
 from ._cache import enable_compilation_cache
-from .io._files import write_text_atomic
+from .io._files import check_output_dir, marked_directory, output_lock, write_text_atomic
 from .io.dataset import load_dataset
 from .pipeline import calibrate
 from .report import write_outputs
@@ -148,17 +147,15 @@ def cmd_montecarlo(args) -> int:
     return 0 if ok else 1
 
 
-def _check_out(out: Path, overwrite: bool) -> None:
-    """Fail before any work if `out` cannot receive the results."""
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a directory")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise ValueError(f"--out {out}: not empty (pass --overwrite to replace it)")
-    parent = out.resolve().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK):
-        raise ValueError(f"--out {out}: cannot write in {parent}")
+def _positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return v
 
 
 def _calibration_tables(console, result) -> None:
@@ -269,7 +266,7 @@ def _calibration_tables(console, result) -> None:
         console.print(f"[yellow]note:[/yellow] {w}")
 
 
-def _run_calibration(console, dataset, out: Path, args) -> int:
+def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
     t0 = time.perf_counter()
     result = calibrate(
         dataset,
@@ -282,7 +279,7 @@ def _run_calibration(console, dataset, out: Path, args) -> int:
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
     )
     _calibration_tables(console, result)
-    write_outputs(result, out, overwrite=True)
+    write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked)
     console.print(
         f"wrote {out}/: result.json, calibrated.urdf, "
         + "".join(f"camera_{c}.yaml, " for c in [result.camera] + [c["camera"] for c in result.other_cameras])
@@ -296,19 +293,19 @@ def _run_calibration(console, dataset, out: Path, args) -> int:
 
 
 def cmd_calibrate(args) -> int:
+
     out = Path(args.out)
-    _check_out(out, args.overwrite)
-    console = Console(width=max(Console().width, 132))
-    return _run_calibration(console, args.dataset, out, args)
+    # Before any work: --out may not hold or overlap the dataset, and --overwrite replaces
+    # only a result jaxcal wrote; the lock makes a second run on the same --out fail at once.
+    checked = check_output_dir(
+        out, inputs=[args.dataset], overwrite=args.overwrite, kind="result", what="--out"
+    )
+    with output_lock(out, what="--out"):
+        console = Console(width=max(Console().width, 132))
+        return _run_calibration(console, args.dataset, out, args, overwrite=args.overwrite, checked=checked)
 
 
 def cmd_demo(args) -> int:
-    from .sim.simulate import SimConfig, simulate
-
-    out = Path(args.out)
-    _check_out(out, overwrite=True)
-    console = Console(width=max(Console().width, 132))
-    console.rule("[bold]jaxcal demo: a perturbed UR5e, rendered, calibrated from its images")
     if args.eye_in_hand and args.cameras != 1:
         print(
             "jaxcal: error: --eye-in-hand films with one camera (on the flange); drop --cameras",
@@ -318,6 +315,18 @@ def cmd_demo(args) -> int:
     if args.eye_in_hand and args.markers_on_links:
         print("jaxcal: error: choose one of --eye-in-hand and --markers-on-links", file=sys.stderr)
         return 2
+    out = Path(args.out)
+    # The demo directory (absent, empty or an earlier demo's) holds dataset/ and result/,
+    # each replaced atomically; anything else there is refused before any work.
+    with marked_directory(out, kind="demo", what="--out"):
+        return _demo(out, args)
+
+
+def _demo(out: Path, args) -> int:
+    from .sim.simulate import SimConfig, simulate
+
+    console = Console(width=max(Console().width, 132))
+    console.rule("[bold]jaxcal demo: a perturbed UR5e, rendered, calibrated from its images")
     sweep = (
         args.sweep_deg if args.sweep_deg is not None else (EYE_IN_HAND_SWEEP if args.eye_in_hand else 80.0)
     )
@@ -357,7 +366,7 @@ def cmd_demo(args) -> int:
         + ("camera on the flange, board in the world, " if args.eye_in_hand else "")
         + f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
     )
-    return _run_calibration(console, dataset, out / "result", args)
+    return _run_calibration(console, dataset, out / "result", args, overwrite=True)
 
 
 def _add_calibrate_args(p: argparse.ArgumentParser) -> None:
@@ -368,7 +377,9 @@ def _add_calibrate_args(p: argparse.ArgumentParser) -> None:
         help="refine with --camera's images only (by default every fixed camera joins the refinement, "
         "each with its own T_cam_base)",
     )
-    p.add_argument("--workers", type=int, help="processes for marker detection (default: all cores)")
+    p.add_argument(
+        "--workers", type=_positive_int, help="processes for marker detection, >= 1 (default: all cores)"
+    )
     p.add_argument("--estimate-clock", action="store_true", help="estimate the clock offset even if given")
     p.add_argument(
         "--no-refine",
@@ -434,6 +445,9 @@ LINKS_AMPLITUDE_DEG = 25.0
 def cmd_simulate(args) -> int:
     from .sim.simulate import SimConfig, simulate
 
+    robot_file = [args.robot] if Path(args.robot).exists() else []
+    check_output_dir(args.out, inputs=robot_file, overwrite=args.overwrite, kind="dataset", what="--out")
+
     config = SimConfig(
         robot=args.robot,
         seed=args.seed,
@@ -462,13 +476,10 @@ def cmd_simulate(args) -> int:
         names = nominal_robot(args.robot)[0].joint_names
         trajectory = random_motion(names, args.random_motion, args.motion_amplitude_deg, seed=args.seed)
     start = time.perf_counter()
-    try:
+    with output_lock(args.out, what="--out"):
         out = simulate(
             config, args.out, trajectory=trajectory, overwrite=args.overwrite, progress=not args.quiet
         )
-    except FileExistsError as e:
-        print(f"jaxcal: error: {e}", file=sys.stderr)
-        return 2
 
     ds = load_dataset(out)
     visible = sum(all(f["visible"].values()) for f in ds.truth["frames"])
@@ -512,8 +523,12 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
     p.add_argument("dataset", help="dataset directory")
-    p.add_argument("--out", required=True, help="result directory (must be empty or absent)")
-    p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="result directory: absent or empty, never the dataset, inside it or around it",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace a result directory jaxcal wrote")
     _add_calibrate_args(p)
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("montecarlo", help="vmapped Monte Carlo sensitivity study (analytic marker poses)")
@@ -526,7 +541,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--robot", default="ur5e", help="shipped robot (ur5e, panda) or a URDF file")
     p.add_argument("--out", required=True, help="dataset directory (must be empty or absent)")
-    p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
+    p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH pixels")
     p.add_argument("--frames-per-joint", type=int, default=30)

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io.dataset import atomic_directory, write_json
+from .io._files import atomic_directory
+from .io.dataset import write_json
 from .io.urdf import save_urdf
 
 
@@ -338,11 +339,20 @@ def _frames_section(result) -> list[str]:
     return lines
 
 
-def write_outputs(result, out, *, overwrite: bool = False) -> Path:
+def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=None) -> Path:
     """Write `result` into directory `out` (atomically): `result.json`,
-    `calibrated.urdf`, `camera_<name>.yaml`, `report.md` and its PNG plots."""
+    `calibrated.urdf`, `camera_<name>.yaml`, `report.md` and its PNG plots.
+
+    `out` may not be, contain or lie inside the dataset or any of `inputs`
+    (default: the result's dataset); an existing non-empty `out` is replaced
+    only with `overwrite` and only when it is a result jaxcal wrote (its
+    `.jaxcal` marker). `checked`: the `jaxcal.io._files.OutputDir` found when
+    the run started, so that a directory that appeared since is refused (see
+    `jaxcal.io._files.atomic_directory`). Raises `OutputError` naming `out`.
+    """
     out = Path(out)
-    with atomic_directory(out, overwrite=overwrite) as tmp:
+    inputs = (result.dataset,) if inputs is None else tuple(inputs)
+    with atomic_directory(out, overwrite=overwrite, inputs=inputs, kind="result", checked=checked) as tmp:
         write_json(tmp / "result.json", result.to_json())
         save_urdf(result.model, tmp / "calibrated.urdf", source=result.robot_urdf)
         _camera_yaml(

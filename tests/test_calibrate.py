@@ -22,7 +22,6 @@ from jaxcal.io.dataset import DatasetError
 from jaxcal.pipeline import CalibrationError, calibrate
 from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
-from jaxcal.vision import VisionError
 
 CONFIG = SimConfig(
     robot="ur5e",
@@ -109,6 +108,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(
         [
+            ".jaxcal",
             "result.json",
             "calibrated.urdf",
             "camera_cam0.yaml",
@@ -245,14 +245,14 @@ def test_missing_image(dataset, tmp_path):
     ds = _copy(dataset, tmp_path)
     victim = sorted((ds / "images" / "cam0").iterdir())[3]
     victim.unlink()
-    _fails(ds, VisionError, victim.name)
+    _fails(ds, DatasetError, victim.name, "missing")  # at load, before any detection
 
 
 def test_unreadable_image(dataset, tmp_path):
     ds = _copy(dataset, tmp_path)
     victim = sorted((ds / "images" / "cam0").iterdir())[5]
     victim.write_bytes(b"not a png")
-    _fails(ds, VisionError, victim.name)
+    _fails(ds, DatasetError, victim.name, "not an image")
 
 
 def test_wrong_marker_dictionary(dataset, tmp_path):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from jaxcal import forward_kinematics
+from jaxcal.errors import OutputError
 from jaxcal.io.dataset import DatasetError, load_dataset
 from jaxcal.io.model_json import model_from_json
 from jaxcal.markers import TargetSpec
@@ -235,7 +236,7 @@ def test_simulate_refuses_a_non_empty_directory_and_leaves_nothing_on_failure(tm
     out = tmp_path / "ds"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    with pytest.raises(FileExistsError, match="not empty"):
+    with pytest.raises(OutputError, match="not empty"):
         simulate(SimConfig(resolution=(64, 48), frames_per_joint=2), out, progress=False)
     assert (out / "keep.txt").read_text() == "mine"
     with pytest.raises(ValueError, match="drop_rate"):

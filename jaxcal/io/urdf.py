@@ -21,6 +21,7 @@ How a URDF maps onto a `KinematicModel`:
 
 import math
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -115,6 +116,89 @@ def _reduction_ratio(joint: str, transmissions: dict[str, list[ET.Element]], pat
             f"URDF file {str(path)!r}: transmission {tr.get('name')!r} has invalid reduction {ratio!r}"
         )
     return ratio
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """What the URDF says of one movable joint, read without building the model.
+
+    `joint_type`: `revolute`, `continuous` or `prismatic`; `lower`, `upper`
+    (rad or m) from `<limit>`, `None` for a continuous joint or when absent;
+    `velocity` (rad/s or m/s), `None` when absent or zero; `reduction_ratio`
+    from the joint's transmission (1.0 without one).
+    """
+
+    joint_type: str
+    lower: float | None
+    upper: float | None
+    velocity: float | None
+    reduction_ratio: float
+
+
+@dataclass(frozen=True)
+class UrdfOutline:
+    """A URDF's link names, its joints by child link (`child -> (joint, type,
+    parent)`), and the `JointLimits` of the joints asked for."""
+
+    links: frozenset
+    parent_joint: dict
+    limits: dict
+
+
+def _limit_value(joint: ET.Element, attr: str, path: Path) -> float | None:
+    el = joint.find("limit")
+    text = None if el is None else el.get(attr)
+    if text is None:
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(
+            f"URDF file {str(path)!r}: joint {joint.get('name')!r} has a non-numeric limit {attr}={text!r}"
+        ) from None
+    if not math.isfinite(v):
+        raise ValueError(f"URDF file {str(path)!r}: joint {joint.get('name')!r} has limit {attr}={text!r}")
+    return v
+
+
+def urdf_outline(path, joint_names=()) -> UrdfOutline:
+    """Links, joints and the limits of `joint_names` of a URDF file, from its XML alone
+    (fast: no model, no yourdfpy). Raises `ValueError` naming the file for a missing
+    or malformed file, or a name in `joint_names` that is not a movable joint."""
+    path = Path(path)
+    root = _parse_xml(path).getroot()
+    links = frozenset(el.get("name") for el in root.findall("link") if el.get("name"))
+    parent_joint, elements = {}, {}
+    for el in root.findall("joint"):
+        name, kind = el.get("name"), el.get("type")
+        parent, child = el.find("parent"), el.find("child")
+        if not name or parent is None or child is None:
+            raise ValueError(f"URDF file {str(path)!r}: a <joint> lacks a name, parent or child")
+        parent_joint[child.get("link")] = (name, kind, parent.get("link"))
+        elements[name] = el
+    transmissions = _transmissions_by_joint(root)
+    limits = {}
+    for name in joint_names:
+        el = elements.get(name)
+        if el is None:
+            raise ValueError(f"URDF file {str(path)!r} has no joint {name!r}")
+        kind = el.get("type")
+        if kind not in _MOVABLE:
+            raise ValueError(f"URDF file {str(path)!r}: joint {name!r} is {kind}, not a movable joint")
+        lower = upper = None
+        if kind != "continuous":
+            lower, upper = _limit_value(el, "lower", path), _limit_value(el, "upper", path)
+        if lower is not None and upper is not None and not lower < upper:
+            lower = upper = None  # an unset (0, 0) or inverted range says nothing
+        velocity = _limit_value(el, "velocity", path)
+        limits[name] = JointLimits(
+            kind,
+            lower,
+            upper,
+            velocity if velocity is not None and velocity > 0 else None,
+            _reduction_ratio(name, transmissions, path),
+        )
+    return UrdfOutline(links, parent_joint, limits)
 
 
 def _load_yourdfpy(path: Path) -> yourdfpy.URDF:

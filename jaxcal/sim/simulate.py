@@ -319,7 +319,9 @@ def simulate(
     `trajectory`: a `jaxcal.sim.motion.Trajectory` of commanded joint positions
     (e.g. `free_motion(times, q)`), filmed at `config.fps` over its segments;
     default: joint-by-joint sweeps of `config.frames_per_joint` frames.
-    Refuses a non-empty `out` unless `overwrite`. Returns the dataset path.
+    Refuses a non-empty `out` unless `overwrite` and it is a dataset jaxcal
+    wrote (see `jaxcal.io._files.check_output_dir`); `out` gets the `.jaxcal`
+    marker of kind `"dataset"`. Returns the dataset path.
     """
     config.check()
     out = Path(out)
@@ -361,7 +363,7 @@ def simulate(
     rows = {"camera": [], "frame": [], "timestamp": [], "file": []}
     truth_frames = []
     todo = [(f, c) for f in np.flatnonzero(keep) for c in cameras_true]
-    with atomic_directory(out, overwrite=overwrite) as tmp, scene:
+    with atomic_directory(out, overwrite=overwrite, inputs=(urdf_path,), kind="dataset") as tmp, scene:
         for c in cameras_true:
             (tmp / "images" / c.name).mkdir(parents=True)
         bar = progress_bar(progress, f"rendering {len(todo)} images")

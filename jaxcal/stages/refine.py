@@ -29,7 +29,7 @@ from .._refine import OtherCameras, RefineParams, RefineProblem, make_corner_dat
 from . import _programs
 from .observe import CameraObservations, Observations
 from .setup import Options, Setup
-from .synchronise import Sync, interpolate
+from .synchronise import Sync, interpolate, usable
 from .two_stage import TwoStage
 
 LOSS = "cauchy IRLS (3 rounds), then least squares on the inliers (3.7 robust sigmas)"
@@ -142,8 +142,7 @@ def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Cor
         if no_encoders:
             inside = np.asarray(sync.joint) >= 0
         else:
-            enc_t = sync.log_q[0]
-            inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+            inside, _ = usable(ds, t_ctrl, sync.log_q)
         if v is not obs.primary:
             d5 = dist5(v.dist)
             fit = two.fit

@@ -66,7 +66,8 @@ class Sync:
     - `log_q`: the encoder log as commanded joint positions `(t (T,), q (T, joints))`, or None.
     - `t_ctrl`, `q`, `inside`: per row of the two-stage camera, the controller
       time, the interpolated commanded positions (None without a log) and
-      whether it lies inside the log.
+      whether it lies inside the log and outside every encoder glitch
+      (`glitched`: the rows dropped for a glitch, see `Dataset.encoder_glitches`).
     - `joint`: per row, the joint sweeping alone (-1: none; all -1 with free motion).
     - `sweeps`, `counts`: the per-joint sweeps and frames used per joint
       (single-joint sweeps; None with free motion, whose sweeps come from the
@@ -78,6 +79,7 @@ class Sync:
     t_ctrl: np.ndarray
     q: np.ndarray | None
     inside: np.ndarray
+    glitched: np.ndarray
     joint: np.ndarray
     sweeps: Sweeps | None
     counts: dict | None
@@ -160,6 +162,16 @@ def build_sweeps(ds: Dataset, obs: CameraObservations, targets, joint_of_row, q_
     return Sweeps(R, P, O, C, mask, T, E), counts
 
 
+def usable(ds: Dataset, t_ctrl: np.ndarray, log_q) -> tuple[np.ndarray, np.ndarray]:
+    """`(inside, glitched)`: frames at controller times `t_ctrl` inside the
+    encoder log and outside every glitch's interval, and those in a glitch."""
+    glitched = ds.in_encoder_glitch(t_ctrl)
+    if log_q is None:
+        return ~glitched, glitched
+    enc_t = log_q[0]
+    return (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1]) & ~glitched, glitched
+
+
 class _Timeline:
     """The two-stage camera's frames placed on the controller clock at a given offset."""
 
@@ -173,7 +185,7 @@ class _Timeline:
         if self.log_q is None:
             return t_ctrl, None, np.ones(len(t_ctrl), bool)
         enc_t, enc_q = self.log_q
-        inside = (t_ctrl >= enc_t[0]) & (t_ctrl <= enc_t[-1])
+        inside, _ = usable(ds, t_ctrl, self.log_q)
         if not inside.any():
             raise CalibrationError(
                 f"{ds.root}: no overlap between the image timestamps of camera {obs.camera.name!r} "
@@ -236,7 +248,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
         raise CalibrationError(f"{ds.root}: the clock offset cannot be estimated without an encoder log")
     offset0 = 0.0 if offset is None else offset
     clock = {"offset_s": offset0, "std_s": None, "estimated": False, "drift_ppm": ds.clock_drift_ppm}
-    notes = []
+    notes = list(ds.notes)
     if offset is None and not estimate:
         notes.append("clock offset unknown and not estimated: 0 assumed")
     line = _Timeline(setup, obs.primary, log_q)
@@ -267,6 +279,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
             sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(clock["offset_s"])
     return Sync(
         clock=clock,
+        glitched=setup.dataset.in_encoder_glitch(t_ctrl),
         log_q=log_q,
         t_ctrl=t_ctrl,
         q=q,

@@ -1,0 +1,194 @@
+"""Type and range checks for the dataset's JSON files, with messages that name
+the file, the field path and the value (`metadata.json: cameras[0].width:
+expected an integer from 1 to 100000, got 'wide'`).
+
+Hand-written rather than a schema library: each check says what it expected
+in the words of `docs/dataset.md`, and nothing here can raise anything but
+`DatasetError`.
+"""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError
+
+#: Longest value repr quoted in a message.
+_REPR = 60
+
+
+def show(value) -> str:
+    """A short repr of `value` for an error message."""
+    try:
+        text = json.dumps(value) if isinstance(value, dict | list) else repr(value)
+    except (TypeError, ValueError, RecursionError):
+        text = repr(type(value).__name__)
+    return text if len(text) <= _REPR else text[: _REPR - 5] + " ...]"
+
+
+class Loc:
+    """Where a value sits: a file and a field path (`cameras[0].K`)."""
+
+    __slots__ = ("file", "path")
+
+    def __init__(self, file, path: str = ""):
+        self.file = str(file)
+        self.path = path
+
+    def __str__(self) -> str:
+        return f"{self.file}: {self.path}" if self.path else self.file
+
+    def key(self, name: str) -> "Loc":
+        return Loc(self.file, f"{self.path}.{name}" if self.path else name)
+
+    def index(self, i: int) -> "Loc":
+        return Loc(self.file, f"{self.path}[{i}]")
+
+    def fail(self, message: str) -> DatasetError:
+        """The error to raise: `raise loc.fail("...")`."""
+        return DatasetError(f"{self}: {message}")
+
+    def expected(self, what: str, value) -> DatasetError:
+        return self.fail(f"expected {what}, got {show(value)}")
+
+
+def read_json(path: Path, what: str) -> object:
+    """Parse the JSON file `path`; every failure is a `DatasetError` naming it."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: {what} missing") from None
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read the {what} ({e.strerror})") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise DatasetError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    try:
+        return json.loads(text, parse_constant=_no_constant)
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{path}: not valid JSON ({e})") from None
+    except RecursionError:
+        raise DatasetError(f"{path}: not valid JSON (nested too deeply)") from None
+    except ValueError as e:  # NaN/Infinity literals, integers too long to convert
+        raise DatasetError(f"{path}: not valid JSON ({e})") from None
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not JSON (write null or a finite number)")
+
+
+def obj(x, loc: Loc, required=(), optional=(), ignored=()) -> dict:
+    """`x` as a JSON object with the `required` keys, some `optional` ones, and
+    nothing else (keys in `ignored`, or starting with `x_`, are allowed and not read)."""
+    if not isinstance(x, dict):
+        raise loc.expected("a JSON object", x)
+    for k in required:
+        if k not in x:
+            raise loc.fail(f"missing field {k!r}")
+    known = set(required) | set(optional) | set(ignored)
+    unknown = sorted(k for k in x if k not in known and not k.startswith("x_"))
+    if unknown:
+        raise loc.fail(
+            f"unknown field{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}; known fields are "
+            f"{', '.join(map(repr, sorted(set(required) | set(optional))))} (your own notes go under keys "
+            "starting with 'x_')"
+        )
+    return x
+
+
+def string(x, loc: Loc, *, choices=None, allow_empty: bool = False) -> str:
+    if not isinstance(x, str) or (not x and not allow_empty):
+        raise loc.expected("a non-empty string" if not allow_empty else "a string", x)
+    if choices is not None and x not in choices:
+        raise loc.expected(f"one of {', '.join(map(repr, choices))}", x)
+    return x
+
+
+def integer(x, loc: Loc, lo: int | None = None, hi: int | None = None) -> int:
+    if (
+        isinstance(x, bool)
+        or not isinstance(x, int)
+        or (lo is not None and x < lo)
+        or (hi is not None and x > hi)
+    ):
+        raise loc.expected(_range_words("an integer", lo, hi), x)
+    return x
+
+
+def number(
+    x, loc: Loc, lo: float | None = None, hi: float | None = None, *, above: float | None = None
+) -> float:
+    """A finite JSON number (not a bool, not a string) in [`lo`, `hi`], or > `above`."""
+    ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+    if ok and (
+        (lo is not None and x < lo) or (hi is not None and x > hi) or (above is not None and x <= above)
+    ):
+        ok = False
+    if not ok:
+        what = _range_words("a finite number", lo, hi)
+        if above is not None:
+            what = f"a finite number greater than {above:g}"
+        raise loc.expected(what, x)
+    return float(x)
+
+
+def _range_words(what: str, lo, hi) -> str:
+    if lo is not None and hi is not None:
+        return f"{what} from {lo:g} to {hi:g}"
+    if lo is not None:
+        return f"{what} >= {lo:g}"
+    if hi is not None:
+        return f"{what} <= {hi:g}"
+    return what
+
+
+def array(x, loc: Loc, shape: tuple) -> np.ndarray:
+    """Nested lists of finite JSON numbers of exactly `shape` (`shape[0]` may be
+    `None`: any length)."""
+    flat: list[float] = []
+    words = f"a {_shape_words(shape)} array of numbers"
+
+    def walk(v, depth: int, where: Loc) -> None:
+        if depth == len(shape):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise where.expected("a finite number", v)
+            flat.append(float(v))
+            return
+        n = shape[depth]
+        if not isinstance(v, list) or (n is not None and len(v) != n):
+            raise loc.expected(words, x)
+        for i, item in enumerate(v):
+            walk(item, depth + 1, where.index(i))
+
+    walk(x, 0, loc)
+    full = (len(x) if shape[0] is None else shape[0], *shape[1:])
+    return np.asarray(flat, np.float64).reshape(full)
+
+
+def _shape_words(shape: tuple) -> str:
+    return "x".join("N" if n is None else str(n) for n in shape)
+
+
+def pose(x, loc: Loc) -> np.ndarray:
+    """A 4x4 rigid transform: finite, bottom row (0, 0, 0, 1), a rotation block."""
+    T = array(x, loc, (4, 4))
+    if not np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() <= 1e-9:
+        raise loc.fail(f"bottom row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    R = T[:3, :3]
+    if not np.abs(R.T @ R - np.eye(3)).max() <= 1e-6 or np.linalg.det(R) <= 0:
+        raise loc.fail("the upper-left 3x3 block is not a rotation matrix (orthonormal, determinant +1)")
+    return T
+
+
+def names(x, loc: Loc, *, unique: bool = True) -> list[str]:
+    """A non-empty list of non-empty strings (distinct when `unique`)."""
+    if not isinstance(x, list) or not x:
+        raise loc.expected("a non-empty list of names", x)
+    out = [string(v, loc.index(i)) for i, v in enumerate(x)]
+    if unique and len(set(out)) != len(out):
+        dup = sorted({n for n in out if out.count(n) > 1})
+        raise loc.fail(f"names must be distinct, {', '.join(map(repr, dup))} repeated")
+    return out
