@@ -81,16 +81,21 @@ def _second_dataset(tmp: Path) -> Path:
     segs = [s for s in meta["motion"] if s["joint"] in ("shoulder_lift_joint", "wrist_2_joint")]
     offset = (meta.get("clock") or {}).get("offset_s") or 0.04
     rows = list(csv.reader((dst / "frames.csv").read_text().splitlines()))
-    keep, k = [rows[0]], 0
-    for r in rows[1:]:
+    keep, kept_rows, k = [rows[0]], [], 0
+    for i, r in enumerate(rows[1:]):
         t_ctrl = float(r[2]) - offset
         if any(s["start"] <= t_ctrl <= s["end"] for s in segs):
             k += 1
             if k % 3 == 0:
                 continue
         keep.append(r)
+        kept_rows.append(i)
     with open(dst / "frames.csv", "w", newline="") as f:
         csv.writer(f).writerows(keep)
+    truth = json.loads((dst / "truth.json").read_text())
+    new_row = {old: new for new, old in enumerate(kept_rows)}
+    truth["frames"] = [dict(f, row=new_row[f["row"]]) for f in truth["frames"] if f["row"] in new_row]
+    (dst / "truth.json").write_text(json.dumps(truth))
     return dst
 
 

@@ -90,7 +90,7 @@ def link_poses(poses, targets, cands):
     return P, O, C, idx
 
 
-def sequential_sweeps(rows, poses, targets, per_joint, q, t_cam, fit_one):
+def sequential_sweeps(rows, poses, targets, per_joint, q, t_cam, fit_one, frames: int | None = None):
     """The sequential procedure: per joint, its child link's marker poses with
     the earlier joints undone, and the arc fit of them.
 
@@ -101,13 +101,17 @@ def sequential_sweeps(rows, poses, targets, per_joint, q, t_cam, fit_one):
     - `targets`, `per_joint`: from `arm_targets` (the first candidate target
       seen in most frames is used).
     - `fit_one`: the jitted arc fit of one joint's `ArcData`.
+    - `frames`: pad every sweep to this many frames (default: the rows), so
+      captures of similar length share the compiled arc fit.
 
-    **Returns:** `(positions, orientations, covariances, mask, used_rows,
-    arcs)`: per joint `(joints, 1, F, ...)` arrays padded to all rows, and the
+    **Returns:** `(positions, orientations, covariances, mask, arcs)`: per
+    joint `(joints, 1, F, ...)` arrays over all rows (padded, masked), and the
     list of `ArcFitResult`s.
     """
-    F = len(rows)
+    F = len(rows) if frames is None else int(frames)
     n = len(per_joint)
+    q_all = np.zeros((F, q.shape[1]))
+    q_all[: len(rows)] = q
     Ps = np.zeros((n, 1, F, 3))
     Os = np.broadcast_to(np.eye(3), (n, 1, F, 3, 3)).copy()
     Cs = np.broadcast_to(np.eye(6), (n, 1, F, 6, 6)).copy()
@@ -119,7 +123,7 @@ def sequential_sweeps(rows, poses, targets, per_joint, q, t_cam, fit_one):
             angle = float(arc.rate) * q[idx, i]
             P, O, C = undo_joint(P, O, C, np.asarray(arc.direction), np.asarray(arc.point), angle)
         Ps[j, 0, idx], Os[j, 0, idx], Cs[j, 0, idx], mask[j, 0, idx] = P, O, C, True
-        arcs.append(fit_one(make_arc_data(Ps[j], Os[j], q[:, j], mask[j], covariances=Cs[j])))
+        arcs.append(fit_one(make_arc_data(Ps[j], Os[j], q_all[:, j], mask[j], covariances=Cs[j])))
     return Ps, Os, Cs, mask, arcs
 
 

@@ -146,6 +146,7 @@ def make_corner_data(
     drift_ppm: float = 0.0,
     camera: np.ndarray | None = None,
     sweep_joint: np.ndarray | None = None,
+    views: int | None = None,
 ) -> CornerData:
     """Pad per-view corner lists into a `CornerData` (NumPy in, arrays out).
 
@@ -153,7 +154,9 @@ def make_corner_data(
     `pixels[v]` `(n_v, 2)` their detections (px) of view `v`; `target`,
     `frame`, `t_cam` `(views,)`; the encoder log `enc_t (T,)`, `enc_q (T, joints)`;
     `camera` `(views,)` (see `CornerData`; default all 0); `sweep_joint`
-    `(views,)` for a refinement without encoders.
+    `(views,)` for a refinement without encoders; `views`: pad to this many
+    views (masked out; frame -1, the first view's stamp), so that captures of
+    similar size share the compiled refinement.
     """
     V = len(points)
     if V == 0:
@@ -185,13 +188,24 @@ def make_corner_data(
         X[v, : len(x)] = x
         U[v, : len(u)] = u
         m[v, : len(x)] = True
+    pad = 0 if views is None else int(views) - V
+    if pad < 0:
+        raise ValueError(f"make_corner_data: {V} views do not fit in {views}")
+
+    def padded(a, fill, dtype):
+        a = np.asarray(a, dtype)
+        return np.concatenate([a, np.full((pad,) + a.shape[1:], fill, dtype)])
+
+    X, U, m = padded(X, 0.0, np.float64), padded(U, 0.0, np.float64), padded(m, False, bool)
+    camera = None if camera is None else padded(camera, 0, np.int64)
+    sweep_joint = None if sweep_joint is None else padded(sweep_joint, 0, np.int64)
     return CornerData(
         points=jnp.asarray(X),
         pixels=jnp.asarray(U),
         mask=jnp.asarray(m),
-        target=jnp.asarray(np.asarray(target, np.int64)),
-        frame=jnp.asarray(np.asarray(frame, np.int64)),
-        t_cam=jnp.asarray(np.asarray(t_cam, np.float64)),
+        target=jnp.asarray(padded(target, 0, np.int64)),
+        frame=jnp.asarray(padded(frame, -1, np.int64)),
+        t_cam=jnp.asarray(padded(t_cam, float(np.asarray(t_cam)[0]), np.float64)),
         enc_t=jnp.asarray(enc_t),
         enc_q=jnp.asarray(enc_q),
         drift_ppm=jnp.asarray(float(drift_ppm)),

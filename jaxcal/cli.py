@@ -266,6 +266,10 @@ def _calibration_tables(console, result) -> None:
         console.print(f"[yellow]note:[/yellow] {w}")
 
 
+#: Exit codes of `jaxcal calibrate` / `demo` by result status (2: bad input, before any result).
+EXIT_CODES = {"ok": 0, "failed": 1, "suspect": 3}
+
+
 def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
     t0 = time.perf_counter()
     result = calibrate(
@@ -274,11 +278,18 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         workers=args.workers,
         progress=not args.quiet,
         estimate_clock=True if args.estimate_clock else None,
+        trust_clock=args.trust_clock,
         refine=not args.no_refine,
         other_cameras=not args.single_camera,
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
     )
     _calibration_tables(console, result)
+    code = EXIT_CODES[result.status]
+    for reason in result.reasons:
+        console.print(f"[red]{result.status}:[/red] {reason}")
+    if args.strict and code != 0:
+        console.print(f"[red]--strict: the calibration is {result.status}; nothing written[/red]")
+        return code
     write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked)
     console.print(
         f"wrote {out}/: result.json, calibrated.urdf, "
@@ -286,10 +297,11 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         + "report.md "
         f"({time.perf_counter() - t0:.1f} s)"
     )
-    if not result.ok:
-        console.print("[red]calibration FAILED: a solver did not converge (see result.json 'solver')[/red]")
-        return 1
-    return 0
+    if code:
+        console.print(
+            f"[red]calibration {result.status.upper()}: see the reasons above and result.json 'status'[/red]"
+        )
+    return code
 
 
 def cmd_calibrate(args) -> int:
@@ -380,7 +392,22 @@ def _add_calibrate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--workers", type=_positive_int, help="processes for marker detection, >= 1 (default: all cores)"
     )
-    p.add_argument("--estimate-clock", action="store_true", help="estimate the clock offset even if given")
+    p.add_argument(
+        "--estimate-clock",
+        action="store_true",
+        help="estimate the clock offset (the default whenever there is an encoder log)",
+    )
+    p.add_argument(
+        "--trust-clock",
+        action="store_true",
+        help="use metadata.json's clock offset as it is (by default it is checked against the estimate, "
+        "which is used)",
+    )
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="write nothing and exit 3 (1 if a solver failed) when a plausibility check fails",
+    )
     p.add_argument(
         "--no-refine",
         action="store_true",

@@ -14,7 +14,9 @@ import time
 from . import stages
 from ._cache import enable_compilation_cache
 from .errors import CalibrationError as CalibrationError  # re-exported
+from .errors import SuspectResultError
 from .stages import CalibrationResult as CalibrationResult  # re-exported
+from .stages import Limits
 
 
 def calibrate(
@@ -27,6 +29,9 @@ def calibrate(
     validate: bool = True,
     refine: bool = True,
     other_cameras: bool = True,
+    trust_clock: bool = False,
+    limits: Limits | None = None,
+    strict: bool = False,
     log=None,
 ) -> CalibrationResult:
     """Calibrate the robot and camera of `dataset` (a path or a loaded `Dataset`).
@@ -40,10 +45,17 @@ def calibrate(
     - `workers`: processes for detection (default all cores).
     - `estimate_clock`: estimate the camera-controller clock offset (default:
       when the metadata leaves it null).
+    - `trust_clock`: use the metadata's clock offset as it is (by default the
+      offset is estimated whenever there is an encoder log, and a given one
+      that disagrees is a warning).
     - `validate`: with a synthetic dataset's `truth.json`, add the validation block.
     - `refine`: after the two-stage fit, minimise the reprojection error of
       every detected corner over all parameters (`jaxcal._refine`); `False`
       stops at the two-stage result.
+    - `limits`: the plausibility checks' limits (`jaxcal.stages.Limits`); a
+      result that fails one has `status == "suspect"` and its `reasons`.
+    - `strict`: raise `SuspectResultError` instead of returning a suspect or
+      failed result.
     - `log`: a callable taking one line of progress text (default silent).
 
     Compiled solvers are kept in JAX's persistent cache (see `jaxcal._cache`),
@@ -55,13 +67,21 @@ def calibrate(
     """
     enable_compilation_cache()
     t_start = time.perf_counter()
-    options = stages.Options(camera, workers, progress, estimate_clock, validate, refine, other_cameras, log)
+    options = stages.Options(
+        camera, workers, progress, estimate_clock, validate, refine, other_cameras, log, trust_clock,
+        stages.Limits() if limits is None else limits,
+    )  # fmt: skip
     setup = stages.setup(dataset, options)
     obs = stages.observe(setup, options)
     sync = stages.synchronise(setup, obs, options)
     two = stages.two_stage(setup, obs, sync, options)
     refined = stages.refine(setup, obs, sync, two, options) if refine else None
+    verdict = stages.verdict(setup, obs, sync, two, refined, options.limits)
+    if strict and verdict.status != "ok":
+        raise SuspectResultError(
+            f"{setup.root}: the calibration is {verdict.status}: " + "; ".join(verdict.reasons)
+        )
     validation = None
     if validate and setup.dataset.truth is not None:
         validation = stages.validate(setup, sync, two, refined, options)
-    return stages.assemble(setup, obs, sync, two, refined, validation, t_start)
+    return stages.assemble(setup, obs, sync, two, refined, verdict, validation, t_start)

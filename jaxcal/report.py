@@ -164,9 +164,11 @@ def _markdown(result, figs) -> str:
         f"# jaxcal calibration of `{result.dataset}`",
         "",
         f"Camera `{result.camera}`, target(s) {', '.join(f'`{t}`' for t in result.targets)}; "
-        f"solvers: {'all successful' if result.ok else '**FAILED**'}.",
+        f"solvers: {'all successful' if result.ok else '**FAILED**'}; status **{result.status}**.",
         "",
     ]
+    if result.reasons:
+        lines += ["## Why the result is " + result.status, ""] + [f"- {r}" for r in result.reasons] + [""]
     lines += _truth_section(result) + _refinement_section(result) + _camera_section(result, r)
     lines += _joints_section(result) + _frames_section(result)
     lines += ["## Plots", ""]

@@ -46,6 +46,8 @@ def result_to_json(result) -> dict:
         "camera": result.camera,
         "targets": result.targets,
         "ok": result.ok,
+        "status": result.status,
+        "reasons": list(result.reasons),
         **poses,
         "reduction_ratios": {
             a["joint"]: {
@@ -81,5 +83,6 @@ def result_to_json(result) -> dict:
         ],
         "validation": result.validation,
         "warnings": result.warnings,
+        "checks": [] if result.verdict is None else list(result.verdict.checks),
         "model": model_to_json(result.model),
     }

@@ -3,7 +3,7 @@
 `jaxcal.calibrate` runs them in order; each is a function from typed inputs
 to a typed, immutable record, and none changes another's output:
 
-    setup -> observe -> synchronise -> two_stage -> refine -> validate -> assemble
+    setup -> observe -> synchronise -> two_stage -> refine -> verdict -> validate -> assemble
 
 The capture kind (`kinds.CaptureKind`) is resolved once by `setup`; every
 difference between kinds is one of its properties.
@@ -12,6 +12,7 @@ difference between kinds is one of its properties.
 from .kinds import CaptureKind as CaptureKind
 from .kinds import Motion as Motion
 from .kinds import Mount as Mount
+from .limits import Limits as Limits
 from .observe import Observations as Observations
 from .observe import observe as observe
 from .refine import Refined as Refined
@@ -28,3 +29,5 @@ from .two_stage import TwoStage as TwoStage
 from .two_stage import two_stage as two_stage
 from .validate import Validation as Validation
 from .validate import validate as validate
+from .verdict import Verdict as Verdict
+from .verdict import verdict as verdict

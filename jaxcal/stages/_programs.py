@@ -8,49 +8,61 @@ persistent cache (`jaxcal._cache`) keeps them across processes.
 import functools
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._arcfit import fit_arc
 from .._axisfit import fit_axes
+from .._buckets import bucket
 from .._clocksync import fit_clock_offset
+from .._kinematics import forward_kinematics
 from .._refine import identifiable_mask, refine
 
 
 @functools.cache
 def arc_fits():
     """Every joint's arc fit at once: `jax.vmap(fit_arc)` over stacked `ArcData`."""
-    return jax.jit(jax.vmap(lambda d: fit_arc(d, max_steps=100)))
+    def arc_fits(data):
+        return jax.vmap(lambda d: fit_arc(d, max_steps=100))(data)
+
+    return jax.jit(arc_fits)
 
 
 @functools.cache
 def arc_fit():
     """One joint's arc fit (the sequential procedure fits joint after joint)."""
-    return jax.jit(lambda d: fit_arc(d, max_steps=100))
+    def arc_fit(data):
+        return fit_arc(data, max_steps=100)
+
+    return jax.jit(arc_fit)
 
 
 @functools.cache
 def axis_fit(use_poses: bool):
     """`fit_axes(nominal, arcs, T_flange_marker=mount, free=free)`."""
 
-    def fit(nominal, arcs, mount, free=None):
+    def axis_fit(nominal, arcs, mount, free=None):
         return fit_axes(nominal, arcs, T_flange_marker=mount, use_poses=use_poses, free=free)
 
-    return jax.jit(fit)
+    return jax.jit(axis_fit)
 
 
 @functools.cache
 def clock_fit():
     """`fit_clock_offset(data, t_cam, enc_t, enc_q, offset0_s, drift_ppm)`."""
 
-    def fit(data, t_cam, enc_t, enc_q, offset0_s, drift_ppm):
+    def clock_fit(data, t_cam, enc_t, enc_q, offset0_s, drift_ppm):
         return fit_clock_offset(data, t_cam, enc_t, enc_q, offset0_s=offset0_s, drift_ppm=drift_ppm)
 
-    return jax.jit(fit)
+    return jax.jit(clock_fit)
 
 
 @functools.cache
 def _refinement(free: tuple):
-    return jax.jit(lambda problem, params0: refine(problem, params0, np.asarray(free)))
+    def refinement(problem, params0):
+        return refine(problem, params0, np.asarray(free))
+
+    return jax.jit(refinement)
 
 
 def refinement(free: np.ndarray):
@@ -62,3 +74,20 @@ def refinement(free: np.ndarray):
 def identifiable():
     """The refinement's `identifiable_mask(problem, params, candidates, tol=...)`."""
     return jax.jit(identifiable_mask)
+
+
+@functools.cache
+def _chains():
+    def chains(T_cam_base, model, q):
+        return T_cam_base @ jax.vmap(lambda qq: forward_kinematics(model, qq))(q)
+
+    return jax.jit(chains)
+
+
+def chains(T_cam_base, model, q) -> np.ndarray:
+    """$T_{cam,base}\\,T_{base,link}(q)$ for every link and configuration `q (n, joints)`:
+    `(n, links, 4, 4)` (computed on `q` padded to a bucket)."""
+    q = np.asarray(q, np.float64)
+    padded = np.zeros((bucket(len(q)), q.shape[1]))
+    padded[: len(q)] = q
+    return np.asarray(_chains()(jnp.asarray(T_cam_base), model, jnp.asarray(padded)))[: len(q)]

@@ -20,10 +20,10 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._buckets import bucket, pad_log
 from .._clocksync import controller_time
 from .._correction import ParameterLayout, physical_parameters
 from .._geometry import so3_log
-from .._kinematics import forward_kinematics
 from .._links import average_pose, start_mounts
 from .._refine import OtherCameras, RefineParams, RefineProblem, make_corner_data, summarize_refinement
 from . import _programs
@@ -32,6 +32,8 @@ from .setup import Options, Setup
 from .synchronise import Sync, interpolate, usable
 from .two_stage import TwoStage
 
+#: Names of the per-view angles of padding views (never free, never reported).
+PADDING = "(padding)"
 LOSS = "cauchy IRLS (3 rounds), then least squares on the inliers (3.7 robust sigmas)"
 
 
@@ -81,7 +83,7 @@ def _start_pose(views: CameraObservations, t_ctrl, inside, log_q, rate, model, m
     if not idx:
         return None
     q = interpolate(t_ctrl[idx], *log_q) * np.asarray(rate)
-    T_bf = np.asarray(jax.jit(jax.vmap(lambda qq: forward_kinematics(model, qq)[-1]))(q))
+    T_bf = _programs.chains(np.eye(4), model, q)[:, -1]
     est = []
     for k, i in enumerate(idx):
         for m, t in enumerate(targets):
@@ -103,8 +105,8 @@ def sweep_angles(R_pnp, target, joint, model, T_cam_base, mounts) -> np.ndarray:
     mounts `(targets, 4, 4)`.
     """
     n = model.num_joints
-    q = jnp.concatenate([jnp.zeros((1, n)), jnp.eye(n)])  # home, then each joint at 1 rad
-    T = np.asarray(jax.jit(jax.vmap(lambda qq: T_cam_base @ forward_kinematics(model, qq)[-1]))(q))
+    q = np.concatenate([np.zeros((1, n)), np.eye(n)])  # home, then each joint at 1 rad
+    T = _programs.chains(T_cam_base, model, q)[:, -1]
     R0 = np.einsum("ab,mbc->mac", T[0, :3, :3], np.asarray(mounts)[:, :3, :3])  # (targets, 3, 3)
     w = np.asarray(jax.vmap(lambda R: so3_log(R @ jnp.asarray(T[0, :3, :3]).T))(jnp.asarray(T[1:, :3, :3])))
     M = np.einsum("vab,vcb->vac", np.asarray(R_pnp), R0[np.asarray(target)])
@@ -185,17 +187,19 @@ def _link_mounts(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> 
     """Start mounts of every arm target on its link (`jaxcal._links.start_mounts`)
     from the two-stage robot at the rows' encoder positions."""
     fit, sel = two.fit, two.link_rows
-    T = jax.jit(jax.vmap(lambda qq: jnp.asarray(fit.T_cam_base) @ forward_kinematics(fit.model, qq)))(
-        jnp.asarray(sync.q[sel])
-    )
-    return start_mounts(np.asarray(T), [obs.primary.poses[i] for i in sel], setup.targets, setup.target_link)
+    T = _programs.chains(fit.T_cam_base, fit.model, sync.q[sel])
+    return start_mounts(T, [obs.primary.poses[i] for i in sel], setup.targets, setup.target_link)
 
 
 def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners: _Corners, K, d5):
     """The `RefineProblem`, its start, the layout and the candidate mask."""
     kind, nominal, fit = setup.kind, setup.nominal, two.fit
     n, M = nominal.num_joints, len(setup.targets)
-    log_q = sync.log_q if kind.encoders else (np.array([-np.inf, np.inf]), np.zeros((2, n)))  # unread
+    if kind.encoders:
+        log_q = pad_log(*sync.log_q, bucket(len(sync.log_q[0])))
+    else:
+        log_q = (np.array([-np.inf, np.inf]), np.zeros((2, n)))  # not read: each view's angle is an unknown
+    V = len(corners.points)
     data = make_corner_data(
         corners.points,
         corners.pixels,
@@ -206,6 +210,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         setup.dataset.clock_drift_ppm,
         camera=np.array(corners.camera) if corners.others else None,
         sweep_joint=np.array(corners.sweep) if kind.per_view_angles else None,
+        views=bucket(V),
     )
     correction, mounts0 = fit.params.correction, fit.T_flange_marker0
     if kind.sequential:
@@ -240,8 +245,10 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
             np.stack(corners.pnp), corners.target, corners.sweep, fit.model, jnp.asarray(fit.T_cam_base),
             fit.T_flange_marker,
         )  # fmt: skip
+        a0 = np.concatenate([a0, np.zeros(bucket(V) - V)])  # padded views: zero columns, never free
         params0 = eqx.tree_at(lambda p: p.angles, params0, jnp.asarray(a0), is_leaf=lambda x: x is None)
         angle_names = [f"frame{f}.{nominal.joint_names[j]}" for f, j in zip(corners.frame, corners.sweep)]
+        angle_names += [f"{PADDING}{k}" for k in range(bucket(V) - V)]
     layout = ParameterLayout.of(
         nominal,
         M,
@@ -280,11 +287,13 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         clock = {"offset_s": float(res.offset_s), "std_s": float(1e-3 * std[layout.index("clock")[0]])}
     frame = corners.frame
     summary.update(
-        views=int(problem.data.mask.shape[0]),
+        views=len(frame),
         frames=len(set(frame)),
         free_parameters=int(free.sum()),
-        held_at_start=[nm for nm, f in zip(names, free) if not f],
-        frozen_beyond_two_stage=[nm for nm, c, f in zip(names, cand, free) if c and not f],
+        held_at_start=[nm for nm, f in zip(names, free) if not f and not nm.startswith(PADDING)],
+        frozen_beyond_two_stage=[
+            nm for nm, c, f in zip(names, cand, free) if c and not f and not nm.startswith(PADDING)
+        ],
         std={nm: float(std[i]) for i, nm in enumerate(names) if free[i]},
         two_stage={
             "T_cam_base": np.asarray(two.fit.T_cam_base).tolist(),

@@ -15,6 +15,7 @@ from .setup import Setup
 from .synchronise import Sweeps, Sync
 from .two_stage import TwoStage, result_name
 from .validate import Validation
+from .verdict import Verdict
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,6 +38,8 @@ class CalibrationResult:
     - `other_cameras`: further fixed cameras, each `{"camera", "T_cam_base",
       "std_cam", "views", ...}`: the refinement estimates their poses along
       with the robot (one model, one `T_cam_base` per camera).
+    - `verdict`: the plausibility checks (`status`, `reasons`: see
+      `jaxcal.stages.verdict`).
     - `kind`: the capture kind (`jaxcal.stages.kinds.CaptureKind`).
     - `eye_in_hand`: the camera rides on the flange and films `board`, fixed
       in the world. The fields keep their eye-to-hand names with the roles
@@ -72,6 +75,17 @@ class CalibrationResult:
     refine_fit: object = None
     other_cameras: list = field(default_factory=list)
     board: str | None = None
+    verdict: Verdict | None = None
+
+    @property
+    def status(self) -> str:
+        """`ok`, `suspect` (a plausibility check failed: see `reasons`) or `failed` (a solver)."""
+        return "ok" if self.verdict is None else self.verdict.status
+
+    @property
+    def reasons(self) -> tuple[str, ...]:
+        """Why the result is suspect or failed (empty when ok)."""
+        return () if self.verdict is None else self.verdict.reasons
 
     @property
     def eye_in_hand(self) -> bool:
@@ -129,6 +143,7 @@ def assemble(
     sync: Sync,
     two: TwoStage,
     refined: Refined | None,
+    verdict: Verdict,
     validation: Validation | None,
     t_start: float,
 ) -> CalibrationResult:
@@ -188,4 +203,5 @@ def assemble(
         refine_fit=res,
         other_cameras=refined.other_cameras if ran else [],
         board=None if setup.board is None else setup.board.name,
+        verdict=verdict,
     )

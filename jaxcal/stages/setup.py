@@ -13,6 +13,7 @@ from .._links import arm_targets
 from ..errors import CalibrationError
 from ..io.dataset import CameraInfo, Dataset, TargetInfo, load_dataset
 from .kinds import CaptureKind
+from .limits import Limits
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,8 @@ class Options:
     refine: bool = True
     other_cameras: bool = True
     log: Callable[[str], None] | None = None
+    trust_clock: bool = False
+    limits: Limits = Limits()
 
     def say(self, text: str) -> None:
         if self.log is not None:

@@ -14,6 +14,7 @@ import numpy as np
 import optimistix as optx
 
 from .._arcfit import make_arc_data
+from .._buckets import bucket, pad_log
 from .._clocksync import controller_time
 from .._links import link_poses
 from ..errors import CalibrationError
@@ -134,7 +135,7 @@ def build_sweeps(ds: Dataset, obs: CameraObservations, targets, joint_of_row, q_
     M = len(targets)
     found = obs.found
     per_joint = [np.flatnonzero((joint_of_row == j) & found) for j in range(num_joints)]
-    F = max(1, max(len(k) for k in per_joint))
+    F = bucket(max(len(k) for k in per_joint))  # similar captures share the compiled fits
     J = num_joints
     R = np.full((J, F), -1)
     P = np.zeros((J, M, F, 3))
@@ -205,11 +206,12 @@ class _Timeline:
 
 def _clock_from_sweeps(sweeps: Sweeps, log_q, offset0: float, drift_ppm: float):
     """All joints' arc fits with one shared offset."""
+    enc_t, enc_q = pad_log(*log_q, bucket(len(log_q[0])))
     return _programs.clock_fit()(
         sweeps.arc_data(),
         jnp.asarray(sweeps.t_cam),
-        jnp.asarray(log_q[0]),
-        jnp.asarray(log_q[1]),
+        jnp.asarray(enc_t),
+        jnp.asarray(enc_q),
         offset0,
         drift_ppm,
     )
@@ -223,27 +225,51 @@ def _clock_from_first_link(setup: Setup, obs: CameraObservations, sel, log_q, of
         P1, O1, C1, k1 = link_poses([obs.poses[i] for i in sel], setup.targets, setup.per_joint[0])
     except ValueError as e:
         raise CalibrationError(f"{ds.root}: joint {ds.joint_names[0]!r}: {e}") from None
-    d1 = jax.tree.map(lambda x: x[None], make_arc_data(P1, O1, None, covariances=C1))
+    F, k = bucket(len(k1)), len(k1)
+    pad = lambda x, fill: np.concatenate([x, np.broadcast_to(fill, (F - k,) + x.shape[1:])])  # noqa: E731
+    mask = np.arange(F) < k
+    d1 = make_arc_data(pad(P1, 0.0), pad(O1, np.eye(3)), None, mask, covariances=pad(C1, np.eye(6)))
+    t1 = pad(obs.t_cam[sel][k1], obs.t_cam[sel][k1][-1])
+    enc_t, enc_q = pad_log(log_q[0], log_q[1][:, :1], bucket(len(log_q[0])))
     return _programs.clock_fit()(
-        d1,
-        jnp.asarray(obs.t_cam[sel][k1])[None],
-        jnp.asarray(log_q[0]),
-        jnp.asarray(log_q[1][:, :1]),
+        jax.tree.map(lambda x: x[None], d1),
+        jnp.asarray(t1)[None],
+        jnp.asarray(enc_t),
+        jnp.asarray(enc_q),
         offset0,
         ds.clock_drift_ppm,
     )
 
 
+#: A given clock offset disagrees with the estimate beyond this many of its std (and 0.5 ms).
+CLOCK_SIGMAS = 5.0
+
+
+def _compare_clock(ds: Dataset, given: float, clock: dict) -> list[str]:
+    """A warning when the metadata's offset is not what the sweeps say."""
+    diff = given - clock["offset_s"]
+    if abs(diff) <= max(CLOCK_SIGMAS * clock["std_s"], 0.5e-3):
+        return []
+    return [
+        f"{ds.root / 'metadata.json'}: clock.offset_s is {1e3 * given:.3f} ms but the sweeps say "
+        f"{1e3 * clock['offset_s']:.3f} +- {1e3 * clock['std_s']:.3f} ms ({1e3 * diff:+.3f} ms apart); "
+        "using the estimate (pass --trust-clock to use the metadata's)"
+    ]
+
+
 def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     """Place the frames on the controller clock (see `Sync`), estimating the
-    clock offset when the metadata leaves it null (or `options.estimate_clock`)."""
+    clock offset whenever there is an encoder log (a given offset that
+    disagrees is a warning; `options.trust_clock` keeps the given one)."""
     t0 = time.perf_counter()
     ds, nominal = setup.dataset, setup.nominal
     log_q = commanded_positions(ds, nominal)
     offset = ds.clock_offset_s
     estimate = options.estimate_clock
     if estimate is None:
-        estimate = offset is None and log_q is not None
+        # The estimate is cheap and accurate to microseconds: made whenever an encoder
+        # log exists, and used unless the caller trusts the metadata's offset.
+        estimate = log_q is not None and (offset is None or not options.trust_clock)
     if estimate and log_q is None:
         raise CalibrationError(f"{ds.root}: the clock offset cannot be estimated without an encoder log")
     offset0 = 0.0 if offset is None else offset
@@ -273,6 +299,9 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
         if not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s)):
             raise CalibrationError(f"{ds.root}: the clock-offset fit failed ({cf.result})")
         clock.update(offset_s=float(cf.offset_s), std_s=float(cf.std_s), estimated=True)
+        if offset is not None:
+            clock["given_s"] = offset
+            notes += _compare_clock(ds, offset, clock)
         if setup.kind.sequential:
             t_ctrl, q, inside = line.at(clock["offset_s"])
         else:

@@ -16,6 +16,7 @@ import optimistix as optx
 
 from .._arcfit import validate_arc_data
 from .._axisfit import register_lines
+from .._buckets import bucket
 from .._correction import ParameterLayout, physical_parameters
 from .._geometry import pose_inverse
 from .._kinematics import forward_kinematics
@@ -61,18 +62,17 @@ def _sequential(setup: Setup, obs: Observations, sync: Sync):
     p = obs.primary
     sel = np.flatnonzero(sync.inside & p.found)
     n = setup.nominal.num_joints
+    F = bucket(sel.size)
     Ps, Os, Cs, mk, arc_list = sequential_sweeps(
         p.rows[sel], [p.poses[i] for i in sel], setup.targets, setup.per_joint, sync.q[sel], p.t_cam[sel],
-        _programs.arc_fit(),
+        _programs.arc_fit(), frames=F,
     )  # fmt: skip
+    pad = F - sel.size
+    rows = np.concatenate([p.rows[sel], np.full(pad, -1)])
+    t_cam = np.concatenate([p.t_cam[sel], np.full(pad, p.t_cam[sel][-1])])
+    q = np.concatenate([sync.q[sel], np.zeros((pad, n))])
     sweeps = Sweeps(
-        np.where(mk[:, 0], p.rows[sel][None], -1),
-        Ps,
-        Os,
-        Cs,
-        mk,
-        np.broadcast_to(p.t_cam[sel], (n, sel.size)).copy(),
-        sync.q[sel].T.copy(),
+        np.where(mk[:, 0], rows[None], -1), Ps, Os, Cs, mk, np.broadcast_to(t_cam, (n, F)).copy(), q.T.copy()
     )
     counts = {name: int(mk[j, 0].sum()) for j, name in enumerate(setup.dataset.joint_names)}
     return sweeps, counts, jax.tree.map(lambda *a: jnp.stack(a), *arc_list), sel

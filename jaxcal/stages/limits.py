@@ -1,0 +1,38 @@
+"""What a plausible calibration looks like: the limits of the verdict's checks (`jaxcal.stages.verdict`)."""
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What a plausible calibration looks like (each a bound on the reported estimate).
+
+    - `origin_mm`, `origin_deg`: a joint origin's translation (norm) and each
+      of its roll / pitch / yaw away from nominal (3 sigma of a real arm's
+      deviation is a few mm and a fraction of a degree).
+    - `zero_offset_deg`: a zero offset's correction.
+    - `ratio_percent`: a reduction ratio away from nominal.
+    - `mount_mm`, `mount_deg`: a target mount away from its nominal (when the
+      metadata gives one).
+    - `board_scale_percent`: the joint axes' spacing measured through the
+      target against the nominal robot's (a mis-sized target scales every
+      measured length).
+    - `arc_residual`, `axis_residual`: whitened RMS of the arc fits and of the
+      axis fit (about 1 when the pose covariances are honest).
+    - `sigma_px`, `outlier_fraction`: the refinement's pixel noise and the
+      share of corners it rejects.
+    - `intrinsics_rms_px`: a self-calibration's reprojection RMS.
+    """
+
+    origin_mm: float = 15.0
+    origin_deg: float = 3.0
+    zero_offset_deg: float = 5.0
+    ratio_percent: float = 5.0
+    mount_mm: float = 30.0
+    mount_deg: float = 10.0
+    board_scale_percent: float = 2.0
+    arc_residual: float = 5.0
+    axis_residual: float = 5.0
+    sigma_px: float = 2.0
+    outlier_fraction: float = 0.2
+    intrinsics_rms_px: float = 1.0

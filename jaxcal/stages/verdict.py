@@ -1,0 +1,194 @@
+"""Stage 7, verdict: the answer checked against physics before anyone trusts it.
+
+A calibration engineer looks at a result before using it: are the
+corrections within manufacturing tolerance, does the target's printed size
+fit the arm's link lengths, are the residuals at the detector's noise, did
+every solver converge, are self-calibrated intrinsics plausible. Each check
+here is one of those, with its limit in `Limits` (documented defaults; pass
+your own to `jaxcal.calibrate(limits=...)`). A result that fails one is
+`status: "suspect"` with its reasons (the CLI exits 3); a solver that failed
+makes it `"failed"`.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._geometry import line_distance
+from .._kinematics import joint_axes
+from .limits import Limits
+from .observe import Observations
+from .refine import Refined, succeeded
+from .setup import Setup
+from .synchronise import Sync
+from .two_stage import TwoStage
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """`status` (`ok`, `suspect` or `failed`), the failed checks' `reasons`,
+    and every check with its value and limit (`checks`)."""
+
+    status: str
+    reasons: tuple[str, ...]
+    checks: tuple[dict, ...] = field(default_factory=tuple)
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float, float]]]:
+    """How far apart consecutive joint axes are measured, over the nominal
+    robot's spacing: the median ratio over pairs at least 5 cm apart (near
+    parallel pairs by the distance of one axis point from the other line,
+    skew ones by the common normal), and the pairs `(joints, measured,
+    nominal)` (m)."""
+    nominal = setup.nominal
+    p_nom, d_nom = (np.asarray(a) for a in joint_axes(nominal, np.zeros(nominal.num_joints)))
+    p_meas, d_meas = np.asarray(arcs.point), np.asarray(arcs.direction)
+    names = nominal.joint_names
+    pairs = []
+    for i in range(nominal.num_joints - 1):
+        nom = float(line_distance(p_nom[i], d_nom[i], p_nom[i + 1], d_nom[i + 1]))
+        if nom < 0.05:
+            continue
+        if abs(float(np.dot(d_meas[i], d_meas[i + 1]))) > np.cos(np.radians(5.0)):
+            dp = p_meas[i + 1] - p_meas[i]
+            meas = float(np.linalg.norm(dp - np.dot(dp, d_meas[i]) * d_meas[i]))
+        else:
+            meas = float(line_distance(p_meas[i], d_meas[i], p_meas[i + 1], d_meas[i + 1]))
+        pairs.append((f"{names[i]}/{names[i + 1]}", meas, nom))
+    if not pairs:
+        return float("nan"), pairs
+    return float(np.median([m / n for _, m, n in pairs])), pairs
+
+
+class _Checks:
+    def __init__(self):
+        self.rows, self.reasons = [], []
+
+    def add(self, name: str, value: float, limit: float, message: str) -> None:
+        ok = bool(np.isfinite(value) and value <= limit)
+        self.rows.append({"check": name, "value": float(value), "limit": float(limit), "passed": ok})
+        if not ok:
+            self.reasons.append(message)
+
+
+def _corrections(c: _Checks, parameters: list, limits: Limits, measured_mounts: set) -> None:
+    """Joint origins, zero offsets and mounts against their nominal values."""
+    rows = {p["name"]: p for p in parameters}
+    groups: dict[str, dict] = {}
+    for p in parameters:
+        if p["group"] not in ("correction", "mount") or p["name"].endswith(".zero_offset"):
+            continue
+        owner, _, what = p["name"].rpartition(".")
+        groups.setdefault(owner, {})[what] = p["estimate"] - p["nominal"]
+    for owner, d in groups.items():
+        mount = owner.endswith(".mount")
+        if mount and owner.rpartition(".")[0] in measured_mounts:
+            continue  # no nominal mount in the metadata: the measured one is the reference
+        mm = 1e3 * float(np.linalg.norm([d.get(k, 0.0) for k in "xyz"]))
+        deg = float(np.degrees(np.max(np.abs(_wrap([d.get(k, 0.0) for k in ("roll", "pitch", "yaw")])))))
+        lim_mm, lim_deg = (
+            (limits.mount_mm, limits.mount_deg) if mount else (limits.origin_mm, limits.origin_deg)
+        )
+        c.add(f"{owner}.mm", mm, lim_mm, f"{owner} moved {mm:.1f} mm from nominal (limit {lim_mm:g} mm)")
+        c.add(
+            f"{owner}.deg", deg, lim_deg, f"{owner} turned {deg:.2f} deg from nominal (limit {lim_deg:g} deg)"
+        )
+    for name, p in rows.items():
+        if name.endswith(".zero_offset"):
+            deg = float(np.degrees(abs(_wrap(p["estimate"] - p["nominal"]))))
+            c.add(
+                name,
+                deg,
+                limits.zero_offset_deg,
+                f"{name} moved {deg:.2f} deg from nominal (limit {limits.zero_offset_deg:g} deg)",
+            )
+
+
+def verdict(
+    setup: Setup, obs: Observations, sync: Sync, two: TwoStage, refined: Refined | None, limits: Limits
+) -> Verdict:
+    """Check the result (see the module docstring)."""
+    c = _Checks()
+    ran = refined is not None and refined.fit is not None
+    parameters = refined.parameters if ran else two.parameters
+    measured = {t.name for t in setup.fit_targets if t.T_link_target is None}
+    if setup.kind.sequential:
+        measured |= {t.name for t in setup.targets}  # link mounts start from PnP
+    _corrections(c, parameters, limits, measured)
+    arcs = two.arc_rows
+    for a in arcs:
+        if a["ratio"] is not None:
+            pct = 100.0 * abs(a["ratio"] / a["ratio_nominal"] - 1.0)
+            c.add(
+                f"{a['joint']}.ratio",
+                pct,
+                limits.ratio_percent,
+                f"{a['joint']}: reduction ratio {a['ratio']:.4g} is {pct:.1f} % from the nominal "
+                f"{a['ratio_nominal']:.4g} (limit {limits.ratio_percent:g} %; encoder units or ratio wrong?)",
+            )
+        c.add(
+            f"{a['joint']}.arc_residual",
+            a["residual_rms"],
+            limits.arc_residual,
+            f"{a['joint']}: the arc fit's whitened residual RMS is {a['residual_rms']:.2f} (expected about 1): "
+            "its poses do not lie on one arc (wrong clock, encoder or frames?)",
+        )
+    rms = float(two.fit.residual_rms)
+    c.add(
+        "axis_residual",
+        rms,
+        limits.axis_residual,
+        f"the axis fit's whitened residual RMS is {rms:.3g} (expected about 1): the measured axes do not fit the "
+        "nominal robot's structure",
+    )
+    scale, pairs = axis_spacing_ratio(setup, two.arcs)
+    if pairs:
+        pct = 100.0 * abs(scale - 1.0)
+        square = [t.spec for t in setup.targets if getattr(t.spec, "square_length", None)]
+        hint = (
+            f"; a square of {1e3 * square[0].square_length / scale:.2f} mm would fit"
+            if square and scale > 0
+            else ""
+        )
+        c.add(
+            "board_scale",
+            pct,
+            limits.board_scale_percent,
+            f"the joint axes measured through the target are {100 * scale:.1f} % of the nominal robot's spacing "
+            f"({', '.join(f'{n} {1e3 * m:.1f} vs {1e3 * nm:.1f} mm' for n, m, nm in pairs)}): is the target's "
+            f"printed size the one in metadata.json{hint}?",
+        )
+    if ran:
+        s = refined.summary
+        c.add(
+            "sigma_px",
+            s["sigma_px"],
+            limits.sigma_px,
+            f"the refinement's pixel noise is {s['sigma_px']:.2f} px (limit {limits.sigma_px:g} px)",
+        )
+        frac = s["outlier_corners"] / max(s["corners"], 1)
+        c.add(
+            "outlier_fraction",
+            frac,
+            limits.outlier_fraction,
+            f"the refinement rejected {100 * frac:.0f} % of the corners (limit {100 * limits.outlier_fraction:g} %)",
+        )
+    for o in (obs.primary, *obs.others):
+        if "rms_px" in o.intrinsics:
+            c.add(
+                f"{o.camera.name}.intrinsics_rms_px",
+                o.intrinsics["rms_px"],
+                limits.intrinsics_rms_px,
+                f"camera {o.camera.name!r}: self-calibrated intrinsics reproject at {o.intrinsics['rms_px']:.2f} px "
+                f"(limit {limits.intrinsics_rms_px:g} px)",
+            )
+    failed = not two.solver["success"] or (ran and not succeeded(refined))
+    status = "failed" if failed else ("suspect" if c.reasons else "ok")
+    reasons = list(c.reasons)
+    if failed:
+        reasons.insert(0, "a solver did not converge (see result.json 'solver')")
+    return Verdict(status, tuple(reasons), tuple(c.rows))
