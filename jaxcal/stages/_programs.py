@@ -22,6 +22,7 @@ from .._refine import identifiable_mask, refine
 @functools.cache
 def arc_fits():
     """Every joint's arc fit at once: `jax.vmap(fit_arc)` over stacked `ArcData`."""
+
     def arc_fits(data):
         return jax.vmap(lambda d: fit_arc(d, max_steps=100))(data)
 
@@ -31,6 +32,7 @@ def arc_fits():
 @functools.cache
 def arc_fit():
     """One joint's arc fit (the sequential procedure fits joint after joint)."""
+
     def arc_fit(data):
         return fit_arc(data, max_steps=100)
 

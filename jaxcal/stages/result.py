@@ -9,13 +9,13 @@ import numpy as np
 
 from ..io.dataset import Dataset
 from ..io.result import result_to_json
-from .observe import Observations
-from .refine import Refined, succeeded
-from .setup import Setup
-from .synchronise import Sweeps, Sync
-from .two_stage import TwoStage, result_name
-from .validate import Validation
-from .verdict import Verdict
+from ._observe import Observations
+from ._refine import Refined, succeeded
+from ._setup import Setup
+from ._synchronise import Sweeps, Sync
+from ._two_stage import TwoStage, result_name
+from ._validate import Validation
+from ._verdict import Verdict
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,6 +121,7 @@ def frames_summary(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -
         "not_in_a_sweep": 0 if setup.kind.sequential else int(((joint < 0) & inside & found).sum()),
         "used_per_joint": two.counts,
         "dropped_capture_indices": dropped_capture_indices(setup.dataset, setup.camera.name),
+        "pnp_outliers": [int(r) for r, _, _ in obs.primary.dropped],
     }
 
 
@@ -168,7 +169,13 @@ def assemble(
             refinement_steps=refined.summary["solver"]["steps"],
             refinement_rounds_ok=bool(res.rounds_ok),
         )
-    warnings = [*setup.notes, *sync.notes, *two.notes, *(refined.warnings if refined is not None else ())]
+    warnings = [
+        *setup.notes,
+        *obs.notes,
+        *sync.notes,
+        *two.notes,
+        *(refined.warnings if refined is not None else ()),
+    ]
     timings = {}
     for record in (setup, obs, sync, two, refined, validation):
         if record is not None:

@@ -16,12 +16,12 @@ import numpy as np
 
 from .._geometry import line_distance
 from .._kinematics import joint_axes
+from ._observe import Observations
+from ._refine import Refined, succeeded
+from ._setup import Setup
+from ._synchronise import Sync
+from ._two_stage import TwoStage
 from .limits import Limits
-from .observe import Observations
-from .refine import Refined, succeeded
-from .setup import Setup
-from .synchronise import Sync
-from .two_stage import TwoStage
 
 
 @dataclass(frozen=True)

@@ -19,10 +19,10 @@ from .._montecarlo import NoiseModel, SweepPlan, synthesize_sweeps
 from .._scoring import score
 from ..io.model_json import model_from_json
 from . import _programs
-from .refine import Refined
-from .setup import Options, Setup
-from .synchronise import Sync
-from .two_stage import TwoStage
+from ._refine import Refined
+from ._setup import Options, Setup
+from ._synchronise import Sync
+from ._two_stage import TwoStage
 
 #: Random configurations of the end-effector comparison, and their seed.
 CONFIGURATIONS = 1000

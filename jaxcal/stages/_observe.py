@@ -10,7 +10,7 @@ import numpy as np
 from ..errors import CalibrationError
 from ..io.dataset import CameraInfo, Dataset, TargetInfo
 from ..vision import calibrate_intrinsics, detect_frames, estimate_pose
-from .setup import Options, Setup
+from ._setup import Options, Setup
 
 
 @dataclass(frozen=True, eq=False)
@@ -23,6 +23,9 @@ class CameraObservations:
       without a pose, are absent). For an eye-in-hand camera, the camera's
       pose in the board frame (the inverted PnP pose, covariance carried).
     - `K`, `dist`: the intrinsics used; `intrinsics`: where they came from.
+    - `dropped`: rows whose PnP reprojection error is far above the rest
+      (`pnp_outliers`): their poses are left out (their corners still go to
+      the refinement, whose robust loss weighs them).
     """
 
     camera: CameraInfo
@@ -33,6 +36,7 @@ class CameraObservations:
     K: np.ndarray
     dist: np.ndarray | None
     intrinsics: dict
+    dropped: tuple = ()
 
     @property
     def found(self) -> np.ndarray:
@@ -47,6 +51,30 @@ class Observations:
     primary: CameraObservations
     others: tuple[CameraObservations, ...]
     timings: dict
+    notes: tuple[str, ...] = ()
+
+
+#: A pose is an outlier when its PnP reprojection RMS exceeds this many times
+#: the camera's median, and `PNP_OUTLIER_PX` pixels.
+PNP_OUTLIER_RATIO = 5.0
+PNP_OUTLIER_PX = 0.5
+
+
+def pnp_outliers(poses: list) -> dict[int, dict]:
+    """Per row, the targets whose PnP reprojection RMS is far above the camera's
+    median (`PNP_OUTLIER_RATIO` times, and over `PNP_OUTLIER_PX`): a misdetected
+    or distorted target (a smudged or bent plate, a reflection) whose pose
+    would pull the arcs. `{row: {target: rms_px}}`."""
+    rms = [p.rms_px for d in poses for p in d.values()]
+    if len(rms) < 5:
+        return {}
+    limit = max(PNP_OUTLIER_RATIO * float(np.median(rms)), PNP_OUTLIER_PX)
+    out = {}
+    for i, d in enumerate(poses):
+        bad = {name: p.rms_px for name, p in d.items() if p.rms_px > limit}
+        if bad:
+            out[i] = bad
+    return out
 
 
 def camera_rows(ds: Dataset, camera: str) -> np.ndarray:
@@ -120,10 +148,13 @@ def observe_camera(
         f"detecting {', '.join(t.name for t in targets)} in {len(rows)} frames of camera {camera.name}"
     )
     dets, poses = detect_poses(ds, rows, targets, K, dist, workers=options.workers, progress=options.progress)
+    outliers = pnp_outliers(poses)
+    poses = [{k: p for k, p in d.items() if k not in outliers.get(i, {})} for i, d in enumerate(poses)]
     if invert:
         poses = [{k: p.inverse() for k, p in d.items()} for d in poses]
+    dropped = tuple((int(rows[i]), name, rms) for i, bad in outliers.items() for name, rms in bad.items())
     return CameraObservations(
-        camera, rows, dets, poses, ds.frames["timestamp"][rows], np.asarray(K), dist, intrinsics
+        camera, rows, dets, poses, ds.frames["timestamp"][rows], np.asarray(K), dist, intrinsics, dropped
     )
 
 
@@ -149,4 +180,13 @@ def observe(setup: Setup, options: Options) -> Observations:
         others.append(observe_camera(ds, c, setup.targets, options))
     if setup.extra_cameras:
         timings["detect_other_cameras_s"] = time.perf_counter() - t0
-    return Observations(primary, tuple(others), timings)
+    notes = []
+    for o in (primary, *others):
+        if o.dropped:
+            files = [f"{ds.frames['file'][r]} ({name}, {rms:.2f} px)" for r, name, rms in o.dropped[:10]]
+            notes.append(
+                f"camera {o.camera.name!r}: {len(o.dropped)} pose(s) left out of the arc fits, their PnP "
+                f"reprojection error far above the rest: {', '.join(files)}"
+                + (" ..." if len(o.dropped) > 10 else "")
+            )
+    return Observations(primary, tuple(others), timings, tuple(notes))

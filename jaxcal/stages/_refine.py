@@ -27,10 +27,10 @@ from .._geometry import so3_log
 from .._links import average_pose, start_mounts
 from .._refine import OtherCameras, RefineParams, RefineProblem, make_corner_data, summarize_refinement
 from . import _programs
-from .observe import CameraObservations, Observations
-from .setup import Options, Setup
-from .synchronise import Sync, interpolate, usable
-from .two_stage import TwoStage
+from ._observe import CameraObservations, Observations
+from ._setup import Options, Setup
+from ._synchronise import Sync, interpolate, usable
+from ._two_stage import TwoStage
 
 #: Names of the per-view angles of padding views (never free, never reported).
 PADDING = "(padding)"

@@ -20,8 +20,8 @@ from .._links import link_poses
 from ..errors import CalibrationError
 from ..io.dataset import Dataset
 from . import _programs
-from .observe import CameraObservations, Observations
-from .setup import Options, Setup
+from ._observe import CameraObservations, Observations
+from ._setup import Options, Setup
 
 _DEG = np.pi / 180.0
 #: A joint counts as "at zero" (not the one sweeping) within this angle.

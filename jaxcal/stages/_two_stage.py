@@ -23,9 +23,9 @@ from .._kinematics import forward_kinematics
 from .._links import sequential_sweeps
 from ..errors import CalibrationError
 from . import _programs
-from .observe import Observations
-from .setup import Options, Setup
-from .synchronise import Sweeps, Sync
+from ._observe import Observations
+from ._setup import Options, Setup
+from ._synchronise import Sweeps, Sync
 
 
 @dataclass(frozen=True, eq=False)
