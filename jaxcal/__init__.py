@@ -8,6 +8,11 @@ import jax as _jax
 # importing jaxcal turns it on for the whole process.
 _jax.config.update("jax_enable_x64", True)
 
+from ._cache import enable_compilation_cache as _enable_compilation_cache  # noqa: E402
+
+# Compiled programs persist across processes (opt out: JAXCAL_NO_CACHE=1; see jaxcal._cache).
+_enable_compilation_cache()
+
 from ._arcfit import ArcData as ArcData  # noqa: E402
 from ._arcfit import ArcFitResult as ArcFitResult  # noqa: E402
 from ._arcfit import fit_arc as fit_arc  # noqa: E402

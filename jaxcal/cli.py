@@ -279,6 +279,7 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         progress=not args.quiet,
         estimate_clock=True if args.estimate_clock else None,
         trust_clock=args.trust_clock,
+        refine_intrinsics=args.refine_intrinsics,
         refine=not args.no_refine,
         other_cameras=not args.single_camera,
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
@@ -402,6 +403,13 @@ def _add_calibrate_args(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="use metadata.json's clock offset as it is (by default it is checked against the estimate, "
         "which is used)",
+    )
+    p.add_argument(
+        "--refine-intrinsics",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="free the camera's intrinsics in the refinement (default: when metadata.json has no K and "
+        "they are self-calibrated from the sweep images)",
     )
     p.add_argument(
         "--strict",

@@ -30,6 +30,7 @@ def calibrate(
     refine: bool = True,
     other_cameras: bool = True,
     trust_clock: bool = False,
+    refine_intrinsics: bool | None = None,
     limits: Limits | None = None,
     strict: bool = False,
     log=None,
@@ -48,6 +49,10 @@ def calibrate(
     - `trust_clock`: use the metadata's clock offset as it is (by default the
       offset is estimated whenever there is an encoder log, and a given one
       that disagrees is a warning).
+    - `refine_intrinsics`: free the first camera's intrinsics in the
+      refinement (focal lengths, principal point and the distortion the data
+      support; default: when they were self-calibrated because the metadata
+      has no `K`).
     - `validate`: with a synthetic dataset's `truth.json`, add the validation block.
     - `refine`: after the two-stage fit, minimise the reprojection error of
       every detected corner over all parameters (`jaxcal._refine`); `False`
@@ -68,9 +73,18 @@ def calibrate(
     enable_compilation_cache()
     t_start = time.perf_counter()
     options = stages.Options(
-        camera, workers, progress, estimate_clock, validate, refine, other_cameras, log, trust_clock,
-        stages.Limits() if limits is None else limits,
-    )  # fmt: skip
+        camera=camera,
+        workers=workers,
+        progress=progress,
+        estimate_clock=estimate_clock,
+        validate=validate,
+        refine=refine,
+        other_cameras=other_cameras,
+        log=log,
+        trust_clock=trust_clock,
+        refine_intrinsics=refine_intrinsics,
+        limits=stages.Limits() if limits is None else limits,
+    )
     setup = stages.setup(dataset, options)
     obs = stages.observe(setup, options)
     sync = stages.synchronise(setup, obs, options)

@@ -17,6 +17,7 @@ from .._buckets import bucket
 from .._clocksync import fit_clock_offset
 from .._kinematics import forward_kinematics
 from .._refine import identifiable_mask, refine
+from .._uncertainty import ee_sigma, random_configurations
 
 
 @functools.cache
@@ -93,3 +94,26 @@ def chains(T_cam_base, model, q) -> np.ndarray:
     padded = np.zeros((bucket(len(q)), q.shape[1]))
     padded[: len(q)] = q
     return np.asarray(_chains()(jnp.asarray(T_cam_base), model, jnp.asarray(padded)))[: len(q)]
+
+
+@functools.cache
+def _ee_sigma():
+    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, key):
+        q = random_configurations(key, EE_CONFIGURATIONS, nominal.num_joints)
+        return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q)
+
+    return jax.jit(ee_sigma_program)
+
+
+#: Configurations (seed 0) of the end-effector uncertainty.
+EE_CONFIGURATIONS = 1000
+
+
+def end_effector_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov) -> np.ndarray:
+    """Per configuration (1000, seed 0: the validation's sample) the 1-sigma tool-point uncertainty (m)."""
+    return np.asarray(
+        _ee_sigma()(
+            nominal, jnp.asarray(T_cam_base0), jnp.asarray(mounts0), cam, correction, jnp.asarray(cov),
+            jax.random.key(0),
+        )
+    )  # fmt: skip

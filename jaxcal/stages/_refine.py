@@ -22,7 +22,7 @@ import optimistix as optx
 
 from .._buckets import bucket, pad_log
 from .._clocksync import controller_time
-from .._correction import ParameterLayout, physical_parameters
+from .._correction import INTRINSIC_NAMES, ParameterLayout, physical_parameters
 from .._geometry import so3_log
 from .._links import average_pose, start_mounts
 from .._refine import OtherCameras, RefineParams, RefineProblem, make_corner_data, summarize_refinement
@@ -49,6 +49,9 @@ class Refined:
       parameters, at the refined estimate.
     - `ratios`: per joint `(ratio, std)` (None without encoders); `clock`: the
       refined offset and std (None when the clock was not estimated).
+    - `references`: `(T_cam_base0, T_flange_marker0)`, what the correction is relative to.
+    - `intrinsics`: the first camera's refined `K`, `distortion`, their std
+      and the coefficients held (None when the intrinsics were held fixed).
     - `other_cameras`: per further camera its refined pose, std, views, start and intrinsics.
     """
 
@@ -60,6 +63,8 @@ class Refined:
     frozen: list | None = None
     ratios: list | None = None
     clock: dict | None = None
+    intrinsics: dict | None = None
+    references: tuple | None = None
     other_cameras: list = field(default_factory=list)
     warnings: tuple[str, ...] = ()
     timings: dict = field(default_factory=dict)
@@ -191,7 +196,16 @@ def _link_mounts(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> 
     return start_mounts(T, [obs.primary.poses[i] for i in sel], setup.targets, setup.target_link)
 
 
-def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners: _Corners, K, d5):
+def frees_intrinsics(obs: Observations, options: Options) -> bool:
+    """The first camera's intrinsics join the refinement when they were
+    self-calibrated (the sweep images alone fix them poorly, and held fixed
+    they bias the robot) or when the caller asks (`refine_intrinsics`)."""
+    if options.refine_intrinsics is not None:
+        return bool(options.refine_intrinsics)
+    return obs.primary.intrinsics["source"] != "metadata"
+
+
+def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners: _Corners, K, d5, options):
     """The `RefineProblem`, its start, the layout and the candidate mask."""
     kind, nominal, fit = setup.kind, setup.nominal, two.fit
     n, M = nominal.num_joints, len(setup.targets)
@@ -256,7 +270,9 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         angles=tuple(angle_names),
         eye_in_hand=kind.eye_in_hand,
     )
-    cand = layout.candidates(rates=kind.encoders, clock=bool(sync.clock["estimated"]))
+    cand = layout.candidates(
+        rates=kind.encoders, clock=bool(sync.clock["estimated"]), intrinsics=frees_intrinsics(obs, options)
+    )
     if kind.keeps_two_stage_gauge:
         cand[: layout.axis_size] &= np.asarray(fit.free)
     return problem, params0, layout, cand
@@ -282,6 +298,15 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
             (float(nominal_ratio[j] / rate[j]), float(nominal_ratio[j] * std[i_rate[j]] / rate[j] ** 2))
             for j in range(nominal.num_joints)
         ]
+    intrinsics = None
+    i_intr = layout.index("intr")
+    if free[i_intr].any():
+        intrinsics = {
+            "K": np.asarray(res.K).tolist(),
+            "distortion": np.asarray(res.dist).tolist(),
+            "std": {n: float(std[i]) for n, i in zip(INTRINSIC_NAMES, i_intr) if free[i]},
+            "held": [n for n, i in zip(INTRINSIC_NAMES, i_intr) if not free[i]],
+        }
     clock = None
     if sync.clock["estimated"]:
         clock = {"offset_s": float(res.offset_s), "std_s": float(1e-3 * std[layout.index("clock")[0]])}
@@ -356,6 +381,8 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         frozen=[nm for nm, f in zip(names[:n_ax], free[:n_ax]) if not f],
         ratios=ratios,
         clock=clock,
+        intrinsics=intrinsics,
+        references=(np.asarray(problem.T_cam_base0), np.asarray(problem.T_flange_marker0)),
         other_cameras=others,
         warnings=tuple(warnings),
     )
@@ -386,7 +413,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         "refinement: reprojection error of every corner over all parameters (robust, Cauchy)"
         + (f", {n_cams} cameras" if n_cams > 1 else "")
     )
-    problem, params0, layout, cand = _problem(setup, obs, sync, two, corners, obs.primary.K, d5)
+    problem, params0, layout, cand = _problem(setup, obs, sync, two, corners, obs.primary.K, d5, options)
     free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.kind.identifiability_tol)
     free = np.asarray(free)
     res = _programs.refinement(free)(problem, params0)

@@ -29,6 +29,7 @@ class Options:
     other_cameras: bool = True
     log: Callable[[str], None] | None = None
     trust_clock: bool = False
+    refine_intrinsics: bool | None = None
     limits: Limits = Limits()
 
     def say(self, text: str) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 
 from .._geometry import line_distance
 from .._kinematics import joint_axes
+from . import _programs
 from ._observe import Observations
 from ._refine import Refined, succeeded
 from ._setup import Setup
@@ -108,6 +109,24 @@ def _corrections(c: _Checks, parameters: list, limits: Limits, measured_mounts: 
             )
 
 
+def _ee_sigma_mm(setup: Setup, two: TwoStage, refined: Refined | None) -> float:
+    """RMS over random configurations of the propagated 1-sigma tool-point uncertainty (mm)."""
+    if refined is None:
+        fit = two.fit
+        refs, cam, corr, cov = (
+            (fit.T_cam_base0, fit.T_flange_marker0),
+            fit.params.cam,
+            fit.params.correction,
+            fit.cov,
+        )
+    else:
+        res, n = refined.fit, refined.layout.axis_size
+        refs, cam, corr = refined.references, res.params.cam, res.params.correction
+        cov = np.asarray(res.cov)[:n, :n]
+    sigma = _programs.end_effector_sigma(setup.nominal, *refs, cam, corr, cov)
+    return float(1e3 * np.sqrt(np.mean(sigma**2)))
+
+
 def verdict(
     setup: Setup, obs: Observations, sync: Sync, two: TwoStage, refined: Refined | None, limits: Limits
 ) -> Verdict:
@@ -177,6 +196,14 @@ def verdict(
             limits.outlier_fraction,
             f"the refinement rejected {100 * frac:.0f} % of the corners (limit {100 * limits.outlier_fraction:g} %)",
         )
+    sigma = _ee_sigma_mm(setup, two, refined if ran else None)
+    c.add(
+        "ee_sigma_mm",
+        sigma,
+        limits.ee_sigma_mm,
+        f"the data pin the tool point only to {sigma:.2f} mm (1-sigma RMS over random configurations, limit "
+        f"{limits.ee_sigma_mm:g} mm): too little motion, too few frames, or intrinsics the capture cannot fix",
+    )
     for o in (obs.primary, *obs.others):
         if "rms_px" in o.intrinsics:
             c.add(

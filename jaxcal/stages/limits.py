@@ -22,6 +22,9 @@ class Limits:
     - `sigma_px`, `outlier_fraction`: the refinement's pixel noise and the
       share of corners it rejects.
     - `intrinsics_rms_px`: a self-calibration's reprojection RMS.
+    - `ee_sigma_mm`: the tool point's 1-sigma uncertainty the covariance
+      implies (RMS over random configurations): above it, the capture does
+      not determine the robot well enough to trust it.
     """
 
     origin_mm: float = 15.0
@@ -36,3 +39,4 @@ class Limits:
     sigma_px: float = 2.0
     outlier_fraction: float = 0.2
     intrinsics_rms_px: float = 1.0
+    ee_sigma_mm: float = 3.0

@@ -138,6 +138,23 @@ def _arcs(two: TwoStage, refined: Refined | None) -> list:
     return rows
 
 
+def _intrinsics(obs: Observations, refined: Refined | None) -> dict:
+    """The first camera's intrinsics: refined when the refinement freed them (the start beside them)."""
+    start = obs.primary.intrinsics
+    if refined is None or refined.intrinsics is None:
+        return start
+    return {
+        **start,
+        "K": refined.intrinsics["K"],
+        "distortion": refined.intrinsics["distortion"],
+        "refined": True,
+        "std": refined.intrinsics["std"],
+        "held_in_refinement": refined.intrinsics["held"],
+        "K_start": start["K"],
+        "distortion_start": start["distortion"],
+    }
+
+
 def assemble(
     setup: Setup,
     obs: Observations,
@@ -199,7 +216,7 @@ def assemble(
         axis_fit=jax.device_get(fit),
         clock=clock,
         frames=frames_summary(setup, obs, sync, two),
-        intrinsics=obs.primary.intrinsics,
+        intrinsics=_intrinsics(obs, refined if ran else None),
         solver=solver,
         kind=setup.kind,
         timings=timings,

@@ -1,0 +1,60 @@
+"""What a calibration's covariance means at the end effector.
+
+The solvers report the covariance $\\Sigma$ of the correction vector
+(`jaxcal._correction`). A user asks a different question: how far off can
+the tool point be? With $p(q; x)$ the target origin in the fixed frame at
+configuration $q$ (the camera origin in the board frame, eye-in-hand) and
+$G_q = \\partial p / \\partial x$, its covariance is $G_q \\Sigma G_q^T$; over a
+sample of configurations the RMS of $\\sqrt{\\mathrm{tr}}$ is the 1-sigma
+end-effector uncertainty the data support (to first order).
+"""
+
+import jax
+import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._correction import KinematicCorrection, apply_correction
+from ._geometry import se3_exp
+from ._kinematics import KinematicModel, forward_kinematics
+
+
+def tool_points(
+    nominal: KinematicModel,
+    T_cam_base0: Float[Array, "4 4"],
+    T_flange_marker0: Float[Array, "markers 4 4"],
+    cam: Float[Array, "6"],
+    correction: KinematicCorrection,
+    q: Float[Array, "n joints"],
+) -> Float[Array, "n 3"]:
+    """The first target's origin in the fixed frame at every configuration `q` (m)."""
+    model, mounts = apply_correction(nominal, T_flange_marker0, correction)
+    T_cb = T_cam_base0 @ se3_exp(cam)
+    return jax.vmap(lambda qq: (T_cb @ forward_kinematics(model, qq)[-1] @ mounts[0])[:3, 3])(q)
+
+
+def ee_sigma(
+    nominal: KinematicModel,
+    T_cam_base0,
+    T_flange_marker0,
+    cam,
+    correction: KinematicCorrection,
+    cov: Float[Array, "n n"],
+    q: Float[Array, "c joints"],
+) -> Float[Array, " c"]:
+    """Per configuration, the 1-sigma end-effector position uncertainty
+    $\\sqrt{\\mathrm{tr}(G_q \\Sigma G_q^T)}$ (m), `cov` over the flattened
+    `(cam, correction)` (the axis-fit prefix of the layout)."""
+    flat, unravel = ravel_pytree((cam, correction))
+
+    def points(x):
+        c, corr = unravel(x)
+        return tool_points(nominal, T_cam_base0, T_flange_marker0, c, corr, q)
+
+    G = jax.jacfwd(points)(flat)  # (c, 3, n)
+    return jnp.sqrt(jnp.maximum(jnp.einsum("cia,ab,cib->c", G, cov, G), 0.0))
+
+
+def random_configurations(key: PRNGKeyArray, n: int, joints: int) -> Float[Array, "n joints"]:
+    """`n` configurations uniform in $[-\\pi, \\pi]$ per joint (the validation's sample)."""
+    return jax.random.uniform(key, (n, joints), minval=-jnp.pi, maxval=jnp.pi)
