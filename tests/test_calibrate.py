@@ -336,3 +336,46 @@ def test_output_directory_not_writable(dataset, tmp_path, capsys):
     assert main(["calibrate", str(dataset), "--out", str(out), "--quiet"]) == 2
     assert "--out" in capsys.readouterr().err
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- answers checked against physics
+
+
+@pytest.mark.slow
+def test_a_mis_sized_board_is_suspect_and_strict_writes_nothing(dataset, tmp_path, capsys):
+    """The plate was printed 10 % larger than metadata.json says: every PnP
+    length is 10 % short. The verdict names the target's size (and the CLI
+    exits 3; with --strict it writes nothing)."""
+    ds = _copy(dataset, tmp_path)
+    _edit_json(
+        ds / "metadata.json",
+        lambda m: m["targets"][0].update(
+            square_length=m["targets"][0]["square_length"] / 1.1,
+            marker_length=m["targets"][0]["marker_length"] / 1.1,
+        ),
+    )
+    r = calibrate(ds, progress=False, workers=1, refine=False)
+    assert r.status == "suspect"
+    board = [c for c in r.verdict.checks if c["check"] == "board_scale"][0]
+    assert 7.0 < board["value"] < 13.0, board  # measured: the axes 91 % as far apart as nominal
+    assert any("printed size" in reason for reason in r.reasons), r.reasons
+    out = tmp_path / "res"
+    args = ["calibrate", str(ds), "--out", str(out), "--quiet", "--workers", "1", "--no-refine"]
+    assert main([*args, "--strict"]) == 3
+    assert not out.exists() and "nothing written" in capsys.readouterr().out
+    assert main(args) == 3
+    assert json.loads((out / "result.json").read_text())["status"] == "suspect"
+
+
+@pytest.mark.slow
+def test_a_wrong_clock_offset_is_caught(dataset, tmp_path):
+    """metadata.json says the clocks agree; they are 40 ms apart. The estimate
+    is used and the disagreement named; trusting the metadata gives a suspect result."""
+    ds = _copy(dataset, tmp_path)
+    _edit_json(ds / "metadata.json", lambda m: m.update(clock={"offset_s": 0.0}))
+    r = calibrate(ds, progress=False, workers=1, refine=False)
+    assert abs(r.clock["offset_s"] - 0.040) < 1e-3 and r.clock["given_s"] == 0.0
+    assert any("clock.offset_s is 0.000 ms but the sweeps say 40" in w for w in r.warnings), r.warnings
+    assert r.status == "ok", r.reasons
+    trusted = calibrate(ds, progress=False, workers=1, refine=False, trust_clock=True)
+    assert trusted.clock["offset_s"] == 0.0 and trusted.status == "suspect", trusted.reasons

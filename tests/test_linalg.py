@@ -6,6 +6,7 @@ the checker itself.
 """
 
 import re
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +15,7 @@ import pytest
 
 from jaxcal._geometry import so3_exp
 from jaxcal._linalg import after, concurrent_decompositions, gauss_newton_covariance, nearest_rotation
+from jaxcal._lsq import BATCHED_ENTRY_POINTS
 
 
 @pytest.fixture
@@ -164,3 +166,24 @@ def _defining_lines(hlo: str) -> dict[str, str]:
         if m:
             out[m.group(1)] = line
     return out
+
+
+# --------------------------------------------------------------------------- every batched entry point
+
+#: Where each of `jaxcal._lsq.BATCHED_ENTRY_POINTS` is checked (file::test).
+GUARDS = {
+    # A Monte Carlo trial vmaps the arc fits over joints and the axis fit, and the trials over keys.
+    "jaxcal._arcfit.fit_arc": "test_montecarlo.py::test_batched_trials_keep_lapack_calls_ordered",
+    "jaxcal._axisfit.fit_axes": "test_montecarlo.py::test_batched_trials_keep_lapack_calls_ordered",
+    "jaxcal._montecarlo.run_trial": "test_montecarlo.py::test_batched_trials_keep_lapack_calls_ordered",
+    "jaxcal._refine.refine": "test_refine.py::test_batched_refinement_keeps_lapack_calls_ordered",
+    "jaxcal.calibrate_hand_eye": "test_handeye.py::test_batched_solves_keep_lapack_calls_ordered",
+}
+
+
+def test_every_batched_entry_point_is_guarded():
+    assert set(GUARDS) == set(BATCHED_ENTRY_POINTS)
+    here = Path(__file__).parent
+    for where in GUARDS.values():
+        file, name = where.split("::")
+        assert f"def {name}(" in (here / file).read_text(), f"{where} is missing"
