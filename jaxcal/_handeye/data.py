@@ -1,0 +1,233 @@
+"""Hand-eye measurements: image features (`HandEyePixels`) or board poses (`HandEyePoses`), built and checked."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ..errors import (
+    HandEyeInputError,
+    LengthMismatchError,
+    NonFiniteError,
+    ShapeError,
+    TooFewPosesError,
+)
+from .checks import MIN_POINTS_PER_VIEW, MIN_POSES, check_motion_diversity, check_rotations
+
+
+class HandEyePixels(eqx.Module):
+    """Board corners seen by one or more cameras at every robot pose, padded and masked.
+
+    **Fields:**
+    - `T_base_ee`: end-effector poses reported by the robot, `(frames, 4, 4)` (m).
+    - `pixels`: detected corners (undistorted, px), `(cameras, frames, points, 2)`;
+      entries where `mask` is False may hold anything, NaN included.
+    - `mask`: which corners were detected, `(cameras, frames, points)`.
+    - `K`: pinhole intrinsics, `(cameras, 3, 3)`.
+    - `board_points`: corners in the board frame (m), `(points, 3)`; the
+      closed-form start assumes they are (nearly) coplanar.
+    - `sigma_px`: pixel noise standard deviation (px).
+    - `robot_sigma`: robot pose noise `(translation m x3, rotation rad x3)`,
+      or None for exact robot poses.
+    - `eye_in_hand`: False for a fixed camera and the board on the end effector
+      (an array, so both arrangements share one compiled solver).
+    """
+
+    T_base_ee: Float[Array, "frames 4 4"]
+    pixels: Float[Array, "cameras frames points 2"]
+    mask: Bool[Array, "cameras frames points"]
+    K: Float[Array, "cameras 3 3"]
+    board_points: Float[Array, "points 3"]
+    sigma_px: Float[Array, ""]
+    robot_sigma: Float[Array, "6"] | None
+    eye_in_hand: Bool[Array, ""]
+
+
+class HandEyePoses(eqx.Module):
+    """Board poses measured in the camera frame (e.g. by PnP) at every robot pose.
+
+    **Fields:**
+    - `T_base_ee`: end-effector poses reported by the robot, `(frames, 4, 4)` (m).
+    - `T_cam_board`: measured board poses, `(cameras, frames, 4, 4)`.
+    - `mask`: which board poses were measured, `(cameras, frames)`.
+    - `sigma`: pose noise `(translation m x3, rotation rad x3)`; the translation
+      error is in the camera frame, the rotation error a camera-frame rotation vector.
+    - `robot_sigma`, `eye_in_hand`: as in `HandEyePixels`; noisy robot poses
+      are marginalised out of the pose errors rather than solved for.
+    """
+
+    T_base_ee: Float[Array, "frames 4 4"]
+    T_cam_board: Float[Array, "cameras frames 4 4"]
+    mask: Bool[Array, "cameras frames"]
+    sigma: Float[Array, "6"]
+    robot_sigma: Float[Array, "6"] | None
+    eye_in_hand: Bool[Array, ""]
+
+
+HandEyeData = HandEyePixels | HandEyePoses
+
+
+def _sigma6(translation, rotation) -> Float[Array, "6"]:
+    return jnp.concatenate(
+        [jnp.full(3, translation, dtype=jnp.float64), jnp.full(3, rotation, dtype=jnp.float64)]
+    )
+
+
+def _robot_sigma(translation, rotation):
+    if (translation is None) != (rotation is None):
+        raise HandEyeInputError("robot_sigma_translation and robot_sigma_rotation must be given together")
+    return None if translation is None else _sigma6(translation, rotation)
+
+
+def make_hand_eye_pixels(
+    T_base_ee,
+    pixels,
+    K,
+    board_points,
+    mask=None,
+    *,
+    eye_in_hand: bool = False,
+    sigma_px: float = 1.0,
+    robot_sigma_translation: float | None = None,
+    robot_sigma_rotation: float | None = None,
+    validate: bool = True,
+) -> HandEyePixels:
+    """Build `HandEyePixels`, adding a camera axis if absent, and validate it.
+
+    **Arguments:**
+    - `T_base_ee`: `(frames, 4, 4)` robot poses (a list of 4x4 matrices works).
+    - `pixels`: `(frames, points, 2)` or `(cameras, frames, points, 2)` (px).
+    - `K`: `(3, 3)` or `(cameras, 3, 3)`.
+    - `board_points`: `(points, 3)` (m, board frame).
+    - `mask`: matching `(..., frames, points)` bools; default: finite pixels.
+    - `eye_in_hand`, `sigma_px`: see `HandEyePixels`.
+    - `robot_sigma_translation` (m), `robot_sigma_rotation` (rad): robot pose
+      noise; leave both None for exact robot poses.
+    - `validate`: run `validate_hand_eye` (raises `ValueError` on bad input).
+    """
+    T = jnp.asarray(np.asarray(T_base_ee, dtype=np.float64))
+    px = np.asarray(pixels, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    if px.ndim == 3:
+        px = px[None]
+        mask = None if mask is None else np.asarray(mask)[None]
+    if px.ndim != 4 or px.shape[-1] != 2:
+        raise ShapeError(
+            f"pixels must have shape (frames, points, 2) or (cameras, frames, points, 2), got {px.shape}"
+        )
+    if K.ndim == 2:
+        K = np.broadcast_to(K, (px.shape[0], 3, 3))
+    mask = np.all(np.isfinite(px), axis=-1) if mask is None else np.asarray(mask, bool)
+    data = HandEyePixels(
+        T_base_ee=T,
+        pixels=jnp.asarray(px),
+        mask=jnp.asarray(mask),
+        K=jnp.asarray(K),
+        board_points=jnp.asarray(np.asarray(board_points, dtype=np.float64)),
+        sigma_px=jnp.asarray(sigma_px, jnp.float64),
+        robot_sigma=_robot_sigma(robot_sigma_translation, robot_sigma_rotation),
+        eye_in_hand=jnp.asarray(eye_in_hand, bool),
+    )
+    if validate:
+        validate_hand_eye(data)
+    return data
+
+
+def make_hand_eye_poses(
+    T_base_ee,
+    T_cam_board,
+    mask=None,
+    *,
+    eye_in_hand: bool = False,
+    sigma_translation: float = 1e-3,
+    sigma_rotation: float = 1e-3,
+    robot_sigma_translation: float | None = None,
+    robot_sigma_rotation: float | None = None,
+    validate: bool = True,
+) -> HandEyePoses:
+    """Build `HandEyePoses`, adding a camera axis if absent, and validate it.
+
+    **Arguments:**
+    - `T_base_ee`: `(frames, 4, 4)` robot poses.
+    - `T_cam_board`: `(frames, 4, 4)` or `(cameras, frames, 4, 4)` measured board poses.
+    - `mask`: `(frames,)` or `(cameras, frames)` bools; default: finite poses.
+    - `sigma_translation` (m), `sigma_rotation` (rad): board pose noise.
+    - `robot_sigma_translation`, `robot_sigma_rotation`, `eye_in_hand`,
+      `validate`: see `make_hand_eye_pixels`.
+    """
+    A = np.asarray(T_cam_board, dtype=np.float64)
+    if A.ndim == 3:
+        A = A[None]
+        mask = None if mask is None else np.asarray(mask)[None]
+    if A.ndim != 4 or A.shape[-2:] != (4, 4):
+        raise ShapeError(
+            f"T_cam_board must have shape (frames, 4, 4) or (cameras, frames, 4, 4), got {A.shape}"
+        )
+    mask = np.all(np.isfinite(A), axis=(-1, -2)) if mask is None else np.asarray(mask, bool)
+    data = HandEyePoses(
+        T_base_ee=jnp.asarray(np.asarray(T_base_ee, dtype=np.float64)),
+        T_cam_board=jnp.asarray(A),
+        mask=jnp.asarray(mask),
+        sigma=_sigma6(sigma_translation, sigma_rotation),
+        robot_sigma=_robot_sigma(robot_sigma_translation, robot_sigma_rotation),
+        eye_in_hand=jnp.asarray(eye_in_hand, bool),
+    )
+    if validate:
+        validate_hand_eye(data)
+    return data
+
+
+def validate_hand_eye(data: HandEyeData) -> None:
+    """Raise a `ValueError` naming the problem if `data` cannot give a hand-eye calibration.
+
+    Checks: shapes and matching lengths (robot poses against frames, cameras
+    against intrinsics), rotations that are rotations, non-finite observed
+    values, at least `MIN_POSES` observed poses (with `MIN_POINTS_PER_VIEW`
+    corners for pixels), and the motion diversity of `check_motion_diversity`.
+    """
+    T = np.asarray(data.T_base_ee)
+    if T.ndim != 3 or T.shape[-2:] != (4, 4):
+        raise ShapeError(f"T_base_ee must have shape (frames, 4, 4), got {T.shape}")
+    F = T.shape[0]
+    if isinstance(data, HandEyePixels):
+        px, mask = np.asarray(data.pixels), np.asarray(data.mask)
+        C, Fp, P = px.shape[:3]
+        if Fp != F:
+            raise LengthMismatchError(
+                f"{F} robot poses (T_base_ee) but {Fp} frames of pixels (lengths must match)"
+            )
+        if mask.shape != px.shape[:3]:
+            raise ShapeError(f"mask has shape {mask.shape}, pixels imply {px.shape[:3]}")
+        if np.shape(data.K) != (C, 3, 3):
+            raise ShapeError(f"K has shape {np.shape(data.K)}, expected {(C, 3, 3)} for {C} cameras")
+        if np.shape(data.board_points) != (P, 3):
+            raise ShapeError(f"board_points has shape {np.shape(data.board_points)}, pixels imply {(P, 3)}")
+        if not np.all(np.isfinite(np.asarray(data.board_points))):
+            raise NonFiniteError("board_points: non-finite entries")
+        bad = mask & ~np.all(np.isfinite(px), axis=-1)
+        if bad.any():
+            c, f, p = (int(k) for k in np.argwhere(bad)[0])
+            raise NonFiniteError(f"pixels: non-finite detected corner at camera {c}, frame {f}, point {p}")
+        views = mask.sum(-1) >= MIN_POINTS_PER_VIEW
+        what = f"frames with at least {MIN_POINTS_PER_VIEW} detected corners"
+    else:
+        A, mask = np.asarray(data.T_cam_board), np.asarray(data.mask)
+        C, Fa = A.shape[:2]
+        if Fa != F:
+            raise LengthMismatchError(
+                f"{F} robot poses (T_base_ee) but {Fa} board poses (T_cam_board) (lengths must match)"
+            )
+        if mask.shape != (C, F):
+            raise ShapeError(f"mask has shape {mask.shape}, T_cam_board implies {(C, F)}")
+        # Index messages by (camera, frame): unmeasured poses are replaced by the identity.
+        check_rotations(np.where(mask[..., None, None], A, np.eye(4)), "T_cam_board")
+        views = mask
+        what = "frames with a measured board pose"
+    check_rotations(T, "T_base_ee")
+    unseen = np.flatnonzero(~views.any(1))
+    if unseen.size:
+        raise TooFewPosesError(f"camera {unseen[0]} has no usable view ({what}); its pose cannot be solved")
+    seen = views.any(0)
+    if int(seen.sum()) < MIN_POSES:
+        raise TooFewPosesError(f"only {int(seen.sum())} {what}, at least {MIN_POSES} robot poses are needed")
+    check_motion_diversity(T[seen])
