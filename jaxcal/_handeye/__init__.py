@@ -20,7 +20,7 @@ the maximum-likelihood estimate under pixel noise. A pose-level variant
 pose error instead. Robot poses may be treated as noisy: with pixels, one
 correction per pose with a Gaussian prior; with poses, the corrections are
 marginalised (each frame's pose error whitened by $\\Sigma_A + J \\Sigma_r J^T$,
-`model.robot_jacobian`), so the solve keeps its 6 (cameras + 1) unknowns.
+`model.pose_error_covariance`), so the solve keeps its 6 (cameras + 1) unknowns.
 
 Modules, by role: `data` (measurements, `make_*`, `validate_hand_eye`), `checks`
 (rotations, motion diversity), `model` (parameters and residuals), `closed`

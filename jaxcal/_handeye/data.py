@@ -9,10 +9,17 @@ from ..errors import (
     HandEyeInputError,
     LengthMismatchError,
     NonFiniteError,
+    NotPositiveDefiniteError,
     ShapeError,
     TooFewPosesError,
 )
 from .checks import MIN_POINTS_PER_VIEW, MIN_POSES, check_motion_diversity, check_rotations
+from .consistency import (
+    CONSISTENCY_TOL_DEG,
+    MotionConsistency,
+    check_motion_consistency,
+    homography_rotations,
+)
 
 
 class HandEyePixels(eqx.Module):
@@ -52,6 +59,10 @@ class HandEyePoses(eqx.Module):
     - `mask`: which board poses were measured, `(cameras, frames)`.
     - `sigma`: pose noise `(translation m x3, rotation rad x3)`; the translation
       error is in the camera frame, the rotation error a camera-frame rotation vector.
+    - `cov`: per-view covariances of that error, `(cameras, frames, 6, 6)`
+      (m, rad; e.g. `jaxcal.vision.PoseEstimate.cov`), used instead of `sigma`;
+      None to use `sigma`. Entries where `mask` is False are ignored (set
+      positive definite).
     - `robot_sigma`, `eye_in_hand`: as in `HandEyePixels`; noisy robot poses
       are marginalised out of the pose errors rather than solved for.
     """
@@ -60,6 +71,7 @@ class HandEyePoses(eqx.Module):
     T_cam_board: Float[Array, "cameras frames 4 4"]
     mask: Bool[Array, "cameras frames"]
     sigma: Float[Array, "6"]
+    cov: Float[Array, "cameras frames 6 6"] | None
     robot_sigma: Float[Array, "6"] | None
     eye_in_hand: Bool[Array, ""]
 
@@ -91,6 +103,7 @@ def make_hand_eye_pixels(
     robot_sigma_translation: float | None = None,
     robot_sigma_rotation: float | None = None,
     validate: bool = True,
+    frame_names=None,
 ) -> HandEyePixels:
     """Build `HandEyePixels`, adding a camera axis if absent, and validate it.
 
@@ -104,6 +117,7 @@ def make_hand_eye_pixels(
     - `robot_sigma_translation` (m), `robot_sigma_rotation` (rad): robot pose
       noise; leave both None for exact robot poses.
     - `validate`: run `validate_hand_eye` (raises `ValueError` on bad input).
+    - `frame_names`: labels of the frames for its messages (default: indices).
     """
     T = jnp.asarray(np.asarray(T_base_ee, dtype=np.float64))
     px = np.asarray(pixels, dtype=np.float64)
@@ -129,7 +143,7 @@ def make_hand_eye_pixels(
         eye_in_hand=jnp.asarray(eye_in_hand, bool),
     )
     if validate:
-        validate_hand_eye(data)
+        validate_hand_eye(data, frame_names=frame_names)
     return data
 
 
@@ -141,9 +155,11 @@ def make_hand_eye_poses(
     eye_in_hand: bool = False,
     sigma_translation: float = 1e-3,
     sigma_rotation: float = 1e-3,
+    cov=None,
     robot_sigma_translation: float | None = None,
     robot_sigma_rotation: float | None = None,
     validate: bool = True,
+    frame_names=None,
 ) -> HandEyePoses:
     """Build `HandEyePoses`, adding a camera axis if absent, and validate it.
 
@@ -152,8 +168,11 @@ def make_hand_eye_poses(
     - `T_cam_board`: `(frames, 4, 4)` or `(cameras, frames, 4, 4)` measured board poses.
     - `mask`: `(frames,)` or `(cameras, frames)` bools; default: finite poses.
     - `sigma_translation` (m), `sigma_rotation` (rad): board pose noise.
+    - `cov`: per-view 6x6 covariances of the board pose error instead,
+      `(frames, 6, 6)` or `(cameras, frames, 6, 6)` (translation m, camera-frame
+      rotation rad: `jaxcal.vision.PoseEstimate.cov`, whose error convention this is).
     - `robot_sigma_translation`, `robot_sigma_rotation`, `eye_in_hand`,
-      `validate`: see `make_hand_eye_pixels`.
+      `validate`, `frame_names`: see `make_hand_eye_pixels`.
     """
     A = np.asarray(T_cam_board, dtype=np.float64)
     if A.ndim == 3:
@@ -164,26 +183,37 @@ def make_hand_eye_poses(
             f"T_cam_board must have shape (frames, 4, 4) or (cameras, frames, 4, 4), got {A.shape}"
         )
     mask = np.all(np.isfinite(A), axis=(-1, -2)) if mask is None else np.asarray(mask, bool)
+    sigma = _sigma6(sigma_translation, sigma_rotation)
+    if cov is not None:
+        cov = _pose_covariances(cov, A.shape[:2], mask, np.asarray(sigma))
     data = HandEyePoses(
         T_base_ee=jnp.asarray(np.asarray(T_base_ee, dtype=np.float64)),
         T_cam_board=jnp.asarray(A),
         mask=jnp.asarray(mask),
-        sigma=_sigma6(sigma_translation, sigma_rotation),
+        sigma=sigma,
+        cov=None if cov is None else jnp.asarray(cov),
         robot_sigma=_robot_sigma(robot_sigma_translation, robot_sigma_rotation),
         eye_in_hand=jnp.asarray(eye_in_hand, bool),
     )
     if validate:
-        validate_hand_eye(data)
+        validate_hand_eye(data, frame_names=frame_names)
     return data
 
 
-def validate_hand_eye(data: HandEyeData) -> None:
+def validate_hand_eye(
+    data: HandEyeData, *, frame_names=None, tolerance_deg: float = CONSISTENCY_TOL_DEG
+) -> MotionConsistency:
     """Raise a `ValueError` naming the problem if `data` cannot give a hand-eye calibration.
 
     Checks: shapes and matching lengths (robot poses against frames, cameras
     against intrinsics), rotations that are rotations, non-finite observed
     values, at least `MIN_POSES` observed poses (with `MIN_POINTS_PER_VIEW`
-    corners for pixels), and the motion diversity of `check_motion_diversity`.
+    corners for pixels), the motion diversity of `check_motion_diversity`, and
+    that the robot's relative rotation angles agree with the camera's
+    (`check_motion_consistency`: refused when most pairs of frames disagree by
+    more than `tolerance_deg`).
+
+    **Returns:** the `MotionConsistency` (which frames disagree with most others).
     """
     T = np.asarray(data.T_base_ee)
     if T.ndim != 3 or T.shape[-2:] != (4, 4):
@@ -210,6 +240,7 @@ def validate_hand_eye(data: HandEyeData) -> None:
             raise NonFiniteError(f"pixels: non-finite detected corner at camera {c}, frame {f}, point {p}")
         views = mask.sum(-1) >= MIN_POINTS_PER_VIEW
         what = f"frames with at least {MIN_POINTS_PER_VIEW} detected corners"
+        rotations = lambda: homography_rotations(px, mask, data.K, data.board_points)[0]
     else:
         A, mask = np.asarray(data.T_cam_board), np.asarray(data.mask)
         C, Fa = A.shape[:2]
@@ -221,8 +252,11 @@ def validate_hand_eye(data: HandEyeData) -> None:
             raise ShapeError(f"mask has shape {mask.shape}, T_cam_board implies {(C, F)}")
         # Index messages by (camera, frame): unmeasured poses are replaced by the identity.
         check_rotations(np.where(mask[..., None, None], A, np.eye(4)), "T_cam_board")
+        if data.cov is not None:
+            _check_covariances(np.asarray(data.cov), mask)
         views = mask
         what = "frames with a measured board pose"
+        rotations = lambda: A[..., :3, :3]
     check_rotations(T, "T_base_ee")
     unseen = np.flatnonzero(~views.any(1))
     if unseen.size:
@@ -231,3 +265,36 @@ def validate_hand_eye(data: HandEyeData) -> None:
     if int(seen.sum()) < MIN_POSES:
         raise TooFewPosesError(f"only {int(seen.sum())} {what}, at least {MIN_POSES} robot poses are needed")
     check_motion_diversity(T[seen])
+    return check_motion_consistency(
+        rotations(), views, T, tolerance_deg=tolerance_deg, frame_names=frame_names
+    )
+
+
+def _pose_covariances(cov, shape, mask, sigma) -> np.ndarray:
+    """`cov` as `(cameras, frames, 6, 6)`, unmeasured entries replaced by `diag(sigma^2)`."""
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.ndim == 3:
+        cov = cov[None]
+    if cov.shape != (*shape, 6, 6):
+        raise ShapeError(
+            f"cov must have shape (frames, 6, 6) or (cameras, frames, 6, 6) = {(*shape, 6, 6)}, got {cov.shape}"
+        )
+    return np.where(mask[..., None, None], cov, np.diag(sigma**2))
+
+
+def _check_covariances(cov, mask) -> None:
+    bad = mask & ~np.all(np.isfinite(cov), axis=(-1, -2))
+    if bad.any():
+        c, f = (int(k) for k in np.argwhere(bad)[0])
+        raise NonFiniteError(f"cov: non-finite covariance at camera {c}, frame {f}")
+    sym = np.max(np.abs(cov - np.swapaxes(cov, -1, -2)), axis=(-1, -2)) > 1e-9 * np.max(
+        np.abs(cov), axis=(-1, -2)
+    )
+    eig = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    bad = mask & (sym | (eig[..., 0] <= 0.0))
+    if bad.any():
+        c, f = (int(k) for k in np.argwhere(bad)[0])
+        raise NotPositiveDefiniteError(
+            f"cov: the covariance at camera {c}, frame {f} is not symmetric positive definite "
+            f"(smallest eigenvalue {eig[c, f, 0]:.3g})"
+        )

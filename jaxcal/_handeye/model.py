@@ -26,9 +26,10 @@ class HandEyeParams(eqx.Module):
 class HandEyeReference(eqx.Module):
     """Start of the parameterisation (closed form), the active mask and the pose-error whitening.
 
-    `whiten` (pose data with noisy robot poses only): per frame, $L_f^{-1}$ with
-    $L_f L_f^T = S_f$ the covariance of the frame's stacked pose errors
-    (see `robot_jacobian`), `(frames, 6 cameras, 6 cameras)`; None otherwise.
+    `whiten` (pose data with per-frame covariances or noisy robot poses only):
+    per frame, $L_f^{-1}$ with $L_f L_f^T = S_f$ the covariance of the frame's
+    stacked pose errors (see `pose_error_covariance`), `(frames, 6 cameras,
+    6 cameras)`; None otherwise.
     """
 
     X0: Float[Array, "cameras 4 4"]
@@ -91,7 +92,7 @@ def _observation_residuals(params, ref, data) -> Float[Array, "cameras frames k"
     return jnp.swapaxes(w.reshape(F, C, 6), 0, 1)
 
 
-def _pose_errors(A_pred, ref, data: "HandEyePoses") -> Float[Array, "cameras frames 6"]:
+def _pose_errors(A_pred, ref, data: HandEyePoses) -> Float[Array, "cameras frames 6"]:
     """Unwhitened pose errors (translation m, camera-frame rotation vector rad), zero where inactive."""
     m = data.mask & ref.active
     A = jnp.where(m[..., None, None], data.T_cam_board, jnp.eye(4))
@@ -100,16 +101,19 @@ def _pose_errors(A_pred, ref, data: "HandEyePoses") -> Float[Array, "cameras fra
     return jnp.where(m[..., None], jnp.concatenate([e_t, e_r], axis=-1), 0.0)
 
 
-def robot_jacobian(params, ref, data: "HandEyePoses"):
-    """Noisy robot poses marginalised out of the pose errors (the Schur complement, exact to first order).
+def board_covariance(data: HandEyePoses) -> Float[Array, "frames n n"]:
+    """$\\Sigma_A$ per frame: the block diagonal of every camera's board-pose covariance,
+    `(frames, 6 cameras, 6 cameras)`; from `data.cov` when given, else $\\mathrm{diag}(\\sigma^2)$."""
+    C, F = data.mask.shape
+    if data.cov is None:
+        return jnp.broadcast_to(jnp.diag(jnp.tile(data.sigma**2, C)), (F, 6 * C, 6 * C))
+    return jnp.einsum("cd,cfij->fcidj", jnp.eye(C), data.cov).reshape(F, 6 * C, 6 * C)
 
-    A robot correction $\\delta_f$ (as in `corrected_robot`) moves frame $f$'s
-    stacked pose errors by $J_f \\delta_f$; minimising over $\\delta_f$ with its
-    prior $\\mathcal N(0, \\Sigma_r)$ leaves $e_f^T S_f^{-1} e_f$ with
-    $S_f = \\Sigma_A + J_f \\Sigma_r J_f^T$ (Gauss-Markov). Returns `(J_f, S_f)`
-    at `params`; the per-frame blocks come from six forward-mode derivatives,
-    one correction direction shared by all frames.
-    """
+
+def robot_jacobian(params, ref, data: HandEyePoses) -> Float[Array, "frames n 6"]:
+    """How a robot correction $\\delta_f$ (as in `corrected_robot`) moves frame $f$'s
+    stacked pose errors, $J_f$ `(frames, 6 cameras, 6)`, at `params`: six
+    forward-mode derivatives, one correction direction shared by all frames."""
     C, F = data.mask.shape
     X, Y = transforms(params, ref)
 
@@ -118,30 +122,49 @@ def robot_jacobian(params, ref, data: "HandEyePoses"):
         return _pose_errors(matmul(matmul(X[:, None], robot_motion(T, data.eye_in_hand)[None]), Y), ref, data)
 
     J = jax.jacfwd(errors)(jnp.zeros(6))  # (C, F, 6, 6): d e_cf / d delta_f
-    J = jnp.swapaxes(J, 0, 1).reshape(F, 6 * C, 6)
-    S = jnp.einsum("fia,a,fja->fij", J, data.robot_sigma**2, J) + jnp.diag(jnp.tile(data.sigma**2, C))
-    return J, S
+    return jnp.swapaxes(J, 0, 1).reshape(F, 6 * C, 6)
 
 
-def robot_whitening(params, ref, data: "HandEyePoses") -> Float[Array, "frames n n"]:
-    """$L_f^{-1}$ with $L_f L_f^T = S_f$ (see `robot_jacobian`), so $S_f^{-1} = L_f^{-T} L_f^{-1}$."""
-    _, S = robot_jacobian(params, ref, data)
+def pose_error_covariance(params, ref, data: HandEyePoses) -> Float[Array, "frames n n"]:
+    """$S_f$, the covariance of frame $f$'s stacked pose errors (the Schur complement, exact to first order).
+
+    Noisy robot poses are marginalised: minimising over a correction
+    $\\delta_f \\sim \\mathcal N(0, \\Sigma_r)$ leaves $e_f^T S_f^{-1} e_f$ with
+    $S_f = \\Sigma_{A,f} + J_f \\Sigma_r J_f^T$ (Gauss-Markov; `robot_jacobian`),
+    $\\Sigma_{A,f}$ from `board_covariance`. Exact robot poses: $S_f = \\Sigma_{A,f}$.
+    """
+    S = board_covariance(data)
+    if data.robot_sigma is None:
+        return S
+    J = robot_jacobian(params, ref, data)
+    return S + jnp.einsum("fia,a,fja->fij", J, data.robot_sigma**2, J)
+
+
+def pose_whitening(params, ref, data: HandEyePoses) -> Float[Array, "frames n n"]:
+    """$L_f^{-1}$ with $L_f L_f^T = S_f$ (see `pose_error_covariance`), so $S_f^{-1} = L_f^{-T} L_f^{-1}$."""
+    S = pose_error_covariance(params, ref, data)
     L = jnp.linalg.cholesky(S)
     eye = jnp.broadcast_to(jnp.eye(S.shape[-1]), S.shape)
     return jax.scipy.linalg.solve_triangular(L, eye, lower=True)
 
 
+def needs_whitening(data: HandEyeData) -> bool:
+    """Pose data whose errors are correlated: per-frame covariances, or noisy robot poses."""
+    return isinstance(data, HandEyePoses) and (data.robot_sigma is not None or data.cov is not None)
+
+
 def with_whitening(params, ref, data):
-    if isinstance(data, HandEyePoses) and data.robot_sigma is not None:
-        whiten = jax.lax.stop_gradient(robot_whitening(params, ref, data))
+    """`ref` with the pose-error whitening at `params` (`pose_whitening`) where `needs_whitening`."""
+    if needs_whitening(data):
+        whiten = jax.lax.stop_gradient(pose_whitening(params, ref, data))
         return HandEyeReference(X0=ref.X0, Y0=ref.Y0, active=ref.active, whiten=whiten)
     return ref
 
 
-def robot_correction(params, ref, data: "HandEyePoses") -> Float[Array, "frames 6"]:
+def robot_correction(params, ref, data: HandEyePoses) -> Float[Array, "frames 6"]:
     """The MAP robot corrections given the fit, $\\hat\\delta_f = -\\Sigma_r J_f^T S_f^{-1} e_f$,
     with `ref.whiten` the whitening at `params` (no new factorisation)."""
-    J, _ = robot_jacobian(params, ref, data)
+    J = robot_jacobian(params, ref, data)
     e = _pose_errors(predicted_board_poses(params, ref, data), ref, data)
     C, F = e.shape[:2]
     e = jnp.swapaxes(e, 0, 1).reshape(F, 6 * C)

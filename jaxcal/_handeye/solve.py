@@ -39,14 +39,23 @@ class HandEyeResult(eqx.Module):
       transform, both in its parent frame: $\\delta t = \\hat t - t$ and
       $\\hat R = \\exp(\\delta w) R$. From $(J^T J)^{-1}$ of the whitened
       residuals (robot corrections marginalised), scaled by the residual
-      variance when `scale_covariance`.
+      variance `variance_factor` where it exceeds 1 (when `scale_covariance`).
+    - `cov`: that covariance of the flat parameter vector (tangent deltas).
+    - `variance_factor`: $\\|r\\|^2 / (m - n)$, the residual variance in units
+      of the stated noise (about 1 when the noise model is honest).
     - `T_base_ee`: the robot poses used (corrected when `robot_sigma` was given).
+    - `robot_rms` `(frames,)`: whitened RMS of each frame's robot correction,
+      $\\|\\delta_f / \\sigma_{robot}\\| / \\sqrt 6$ (NaN for exact robot poses).
     - `residual_rms`: RMS of the whitened observation residuals over the kept
       groups (about 1 when the noise model is honest); `pixel_rms` (px, NaN for
       pose data).
     - `group_rms`: whitened RMS per (camera, frame) `(cameras, frames)`, NaN where unobserved.
     - `rejected`: (camera, frame) groups rejected as outliers; `num_rejected`.
-    - `result`, `num_steps`: optimistix's own result code and step count (final solve).
+    - `stage_result`, `stage_steps` `(2,)`: optimistix's result code and step
+      count of each Levenberg-Marquardt stage (robust, then plain).
+    - `result`: the first unsuccessful stage's code (successful when both
+      are); `num_steps`: the steps of both stages together.
+    - `T_cam_robot_start`, `T_robot_board_start`: the closed-form start.
     """
 
     T_cam_robot: Float[Array, "cameras 4 4"]
@@ -56,7 +65,9 @@ class HandEyeResult(eqx.Module):
     std_robot_cam: Float[Array, "cameras 6"]
     std_robot_board: Float[Array, "6"]
     cov: Float[Array, "n n"]
+    variance_factor: Float[Array, ""]
     T_base_ee: Float[Array, "frames 4 4"]
+    robot_rms: Float[Array, " frames"]
     residual_rms: Float[Array, ""]
     pixel_rms: Float[Array, ""]
     group_rms: Float[Array, "cameras frames"]
@@ -64,6 +75,10 @@ class HandEyeResult(eqx.Module):
     num_rejected: Int[Array, ""]
     result: optx.RESULTS
     num_steps: Int[Array, ""]
+    stage_result: optx.RESULTS
+    stage_steps: Int[Array, "2"]
+    T_cam_robot_start: Float[Array, "cameras 4 4"]
+    T_robot_board_start: Float[Array, "4 4"]
     eye_in_hand: Bool[Array, ""]
 
     def _named(self, want_eye_in_hand: bool, name: str, value):
@@ -118,7 +133,7 @@ def calibrate_hand_eye(
     loss_scale: float = 2.0,
     rtol: float = 1e-8,
     atol: float = 1e-6,
-    max_steps: int = 50,
+    max_steps: int = 200,
     throw: bool = False,
     scale_covariance: bool = True,
 ) -> HandEyeResult:
@@ -134,11 +149,18 @@ def calibrate_hand_eye(
     - `data`: `HandEyePixels` or `HandEyePoses`.
     - `reject_outliers`: solve with a Cauchy loss first, reject (camera, frame)
       groups whose whitened RMS exceeds `outlier_threshold` times
-      max(median group RMS, `min_outlier_scale`), then re-solve without them.
+      max(median group RMS, `min_outlier_scale`), and (pixels with noisy
+      robot poses) frames whose robot correction's whitened RMS exceeds
+      `outlier_threshold` times max(its median, 1), then re-solve without them.
+      Which are rejected depends on the robust stage's optimum only: once it
+      has converged, not on `max_steps`.
     - `loss_scale`: Cauchy scale $b$ (whitened units) of the robust solve.
-    - `rtol`, `atol`, `max_steps`, `throw`: optimistix's (tolerances on the
+    - `rtol`, `atol`, `max_steps` (per stage), `throw`: optimistix's (tolerances on the
       tangent deltas in m/rad and on the whitened residuals).
-    - `scale_covariance`: multiply the covariance by $\\|r\\|^2/(m - n)$.
+    - `scale_covariance`: multiply the covariance by $\\max(1, \\|r\\|^2/(m - n))$:
+      when the residuals are larger than the stated noise, the stated noise
+      was optimistic and the covariance grows with them; when smaller, the
+      stated noise is kept (a small residual may be luck or overfitting).
 
     **Returns:** a `HandEyeResult`.
     """
@@ -147,7 +169,7 @@ def calibrate_hand_eye(
     params0 = HandEyeParams(
         cam_robot=jnp.zeros((C, 6)),
         robot_board=jnp.zeros(6),
-        # Pose data: noisy robot poses are marginalised (`model.robot_jacobian`); pixels: solved for.
+        # Pose data: noisy robot poses are marginalised (`model.pose_error_covariance`); pixels: solved for.
         robot=None if data.robot_sigma is None or isinstance(data, HandEyePoses) else jnp.zeros((F, 6)),
     )
     observed = jnp.any(data.mask, axis=-1) if isinstance(data, HandEyePixels) else data.mask
@@ -163,17 +185,42 @@ def calibrate_hand_eye(
         rms = _group_rms(sol.value, ref, data)
         scale = jnp.maximum(jnp.nanmedian(rms), min_outlier_scale)
         reject = robust & active & (rms > outlier_threshold * scale)
+        if sol.value.robot is not None:
+            # A robot pose far outside its stated noise is absorbed by its correction
+            # (the pixels then fit): reject the frame on the correction's size.
+            p = jnp.where(jnp.any(active, axis=0), _prior_rms(sol.value, data), jnp.nan)
+            p_scale = jnp.maximum(jnp.nanmedian(p), 1.0)
+            reject = reject | (robust & active & (p > outlier_threshold * p_scale)[None])
         return (sol.value, active & ~reject), (sol.result, sol.stats["num_steps"])
 
     # `reject_outliers` is traced, so both settings share one compiled solver; when False
     # the first stage is plain too and the second starts from its optimum.
     stages = jnp.stack([jnp.asarray(reject_outliers, bool), jnp.asarray(False)])
     (params, active), (results, steps) = jax.lax.scan(stage, (params0, observed), stages)
-    result, num_steps = jax.tree.map(lambda x: x[-1], results), steps[-1]
+    first, last = (jax.tree.map(lambda x, i=i: x[i], results) for i in (0, 1))
+    result = optx.RESULTS.where(first == optx.RESULTS.successful, last, first)
     if throw:
         params = result.error_if(params, result != optx.RESULTS.successful)
     ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
-    return _summarise(params, ref, data, observed & ~active, result, num_steps, scale_covariance)
+    out = _summarise(params, ref, data, observed & ~active, scale_covariance)
+    return eqx.tree_at(
+        lambda r: (
+            r.result,
+            r.num_steps,
+            r.stage_result,
+            r.stage_steps,
+            r.T_cam_robot_start,
+            r.T_robot_board_start,
+        ),
+        out,
+        (result, jnp.sum(steps), results, steps, X0, Y0),
+        is_leaf=lambda x: x is None,
+    )
+
+
+def _prior_rms(params, data) -> Float[Array, " frames"]:
+    """Whitened RMS of each frame's robot correction (pixels with robot corrections)."""
+    return jnp.sqrt(jnp.mean((params.robot / data.robot_sigma) ** 2, axis=-1))
 
 
 def _group_rms(params, ref, data) -> Float[Array, "cameras frames"]:
@@ -182,7 +229,8 @@ def _group_rms(params, ref, data) -> Float[Array, "cameras frames"]:
     return jnp.where(n > 0, jnp.sqrt(jnp.sum(r**2, axis=-1) / jnp.maximum(n, 1.0)), jnp.nan)
 
 
-def _summarise(params, ref, data, rejected, result, num_steps, scale_covariance) -> HandEyeResult:
+def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
+    """The result at `params`: covariance, standard deviations, residual statistics (solver fields left None)."""
     flat, unravel = ravel_pytree(params)
 
     def flat_res(x):
@@ -195,8 +243,9 @@ def _summarise(params, ref, data, rejected, result, num_steps, scale_covariance)
     n_obs = jnp.sum(group_sizes(ref, data))
     n_prior = 0 if params.robot is None else params.robot.size
     dof = jnp.maximum(n_obs + n_prior - flat.size, 1.0)
+    variance_factor = jnp.sum(r_all**2) / dof
     if scale_covariance:
-        cov = cov * (jnp.sum(r_all**2) / dof)
+        cov = cov * jnp.maximum(variance_factor, 1.0)
 
     X, Y = transforms(params, ref)
     Xi = jax.vmap(pose_inverse)(X)
@@ -218,6 +267,14 @@ def _summarise(params, ref, data, rejected, result, num_steps, scale_covariance)
     r_obs, _ = hand_eye_residuals(params, (ref, data))
     ssr_obs = jnp.sum(r_obs**2)
     is_px = isinstance(data, HandEyePixels)
+    marginalised = isinstance(data, HandEyePoses) and data.robot_sigma is not None
+    delta = robot_correction(params, ref, data) if marginalised else params.robot
+    F = data.T_base_ee.shape[0]
+    robot_rms = (
+        jnp.full(F, jnp.nan)
+        if delta is None
+        else jnp.sqrt(jnp.mean((delta / data.robot_sigma) ** 2, axis=-1))
+    )
     return HandEyeResult(
         T_cam_robot=X,
         T_robot_cam=Xi,
@@ -226,10 +283,9 @@ def _summarise(params, ref, data, rejected, result, num_steps, scale_covariance)
         std_robot_cam=std[6 * C : 12 * C].reshape(C, 6),
         std_robot_board=std[12 * C :],
         cov=cov,
-        T_base_ee=corrected_robot(
-            data.T_base_ee,
-            robot_correction(params, ref, data) if ref.whiten is not None else params.robot,
-        ),
+        variance_factor=variance_factor,
+        T_base_ee=corrected_robot(data.T_base_ee, delta),
+        robot_rms=robot_rms,
         residual_rms=jnp.sqrt(ssr_obs / jnp.maximum(n_obs, 1.0)),
         pixel_rms=jnp.sqrt(ssr_obs / jnp.maximum(n_obs, 1.0)) * data.sigma_px
         if is_px
@@ -242,7 +298,11 @@ def _summarise(params, ref, data, rejected, result, num_steps, scale_covariance)
         ),
         rejected=rejected,
         num_rejected=jnp.sum(rejected),
-        result=result,
-        num_steps=num_steps,
+        result=None,
+        num_steps=None,
+        stage_result=None,
+        stage_steps=None,
+        T_cam_robot_start=None,
+        T_robot_board_start=None,
         eye_in_hand=data.eye_in_hand,
     )
