@@ -25,7 +25,9 @@ marginalised (each frame's pose error whitened by $\\Sigma_A + J \\Sigma_r J^T$,
 Modules, by role: `data` (measurements, `make_*`, `validate_hand_eye`), `checks`
 (rotations, motion diversity), `model` (parameters and residuals), `closed`
 (closed-form start), `solve` (`calibrate_hand_eye`, `HandEyeResult`), `touch`
-(TCP touch), `common` (the pose error and the LM call).
+(TCP touch), `common` (the pose error and the LM call), `consistency` (robot
+against camera rotation angles, before solving), `assess` (k-fold spread and
+verdicts, after).
 
 Pipeline (all pure, jittable and vmappable):
 1. Closed-form start. Board poses from pixels by a planar homography (Zhang's
@@ -45,11 +47,19 @@ $X = X_0 \\exp(\\xi)$ with $\\xi = (v, w)$ (translation first, m and rad).
 
 from ..errors import DegenerateMotionError as DegenerateMotionError
 from ..errors import HandEyeInputError as HandEyeInputError
+from ..errors import InconsistentPosesError as InconsistentPosesError
 from ..errors import LengthMismatchError as LengthMismatchError
 from ..errors import NonFiniteError as NonFiniteError
 from ..errors import NotARotationError as NotARotationError
+from ..errors import NotPositiveDefiniteError as NotPositiveDefiniteError
 from ..errors import ShapeError as ShapeError
 from ..errors import TooFewPosesError as TooFewPosesError
+from .assess import HandEyeVerdict as HandEyeVerdict
+from .assess import KFoldSpread as KFoldSpread
+from .assess import assess_hand_eye as assess_hand_eye
+from .assess import kfold_spread as kfold_spread
+from .assess import pose_difference as pose_difference
+from .assess import std_ratio as std_ratio
 from .checks import MIN_AXIS_SEPARATION_DEG as MIN_AXIS_SEPARATION_DEG
 from .checks import MIN_POINTS_PER_VIEW as MIN_POINTS_PER_VIEW
 from .checks import MIN_POSES as MIN_POSES
@@ -59,11 +69,18 @@ from .checks import check_rotations as check_rotations
 from .closed import board_poses_from_pixels as board_poses_from_pixels
 from .closed import initialise_hand_eye as initialise_hand_eye
 from .closed import solve_axzb as solve_axzb
+from .consistency import MotionConsistency as MotionConsistency
+from .consistency import check_motion_consistency as check_motion_consistency
+from .consistency import motion_consistency as motion_consistency
+from .consistency import rotation_angle as rotation_angle
+from .data import FRAME_BUCKETS as FRAME_BUCKETS
 from .data import HandEyeData as HandEyeData
 from .data import HandEyePixels as HandEyePixels
 from .data import HandEyePoses as HandEyePoses
+from .data import bucket as bucket
 from .data import make_hand_eye_pixels as make_hand_eye_pixels
 from .data import make_hand_eye_poses as make_hand_eye_poses
+from .data import pad_hand_eye as pad_hand_eye
 from .data import validate_hand_eye as validate_hand_eye
 from .model import HandEyeParams as HandEyeParams
 from .model import HandEyeReference as HandEyeReference

@@ -298,3 +298,74 @@ def _check_covariances(cov, mask) -> None:
             f"cov: the covariance at camera {c}, frame {f} is not symmetric positive definite "
             f"(smallest eigenvalue {eig[c, f, 0]:.3g})"
         )
+
+
+#: Frame counts are padded up to one of these (then to multiples of 64), so that
+#: captures of similar size share one compiled solver.
+FRAME_BUCKETS = (8, 16, 24, 32, 48, 64, 96, 128)
+#: Board point counts are padded up to a multiple of this.
+POINT_BUCKET = 16
+
+
+def bucket(n: int, sizes=FRAME_BUCKETS, step: int = 64) -> int:
+    """The smallest of `sizes` that holds `n`, else `n` rounded up to a multiple of `step`."""
+    for s in sizes:
+        if n <= s:
+            return s
+    return -(-n // step) * step
+
+
+def pad_hand_eye(data: HandEyeData, frames: int | None = None, points: int | None = None) -> HandEyeData:
+    """`data` padded with unobserved frames (identity robot poses) and, for pixels, board points
+    (copies of the first: coplanar, masked), so that new captures reuse compiled programs.
+
+    Padding changes no estimate: padded entries are masked out of every
+    residual, and a padded frame's robot correction (noisy robot poses) meets
+    only its prior, so it stays zero and leaves the degrees of freedom as they were.
+
+    **Arguments:** `frames` (default `bucket(frames)`), `points` (pixels; default
+    the next multiple of `POINT_BUCKET`). **Returns:** the padded data (NumPy-built, outside jit).
+    """
+    F = data.T_base_ee.shape[0]
+    Fp = bucket(F) if frames is None else int(frames)
+    if Fp < F:
+        raise ShapeError(f"cannot pad {F} frames to {Fp}")
+    pad_f = Fp - F
+    T = np.concatenate([np.asarray(data.T_base_ee), np.broadcast_to(np.eye(4), (pad_f, 4, 4))])
+    if isinstance(data, HandEyePixels):
+        C, _, P = data.mask.shape
+        Pp = -(-P // POINT_BUCKET) * POINT_BUCKET if points is None else int(points)
+        if Pp < P:
+            raise ShapeError(f"cannot pad {P} board points to {Pp}")
+        px = np.zeros((C, Fp, Pp, 2))
+        px[:, :F, :P] = np.where(np.asarray(data.mask)[..., None], np.asarray(data.pixels), 0.0)
+        mask = np.zeros((C, Fp, Pp), bool)
+        mask[:, :F, :P] = np.asarray(data.mask)
+        board = np.asarray(data.board_points)
+        board = np.concatenate([board, np.broadcast_to(board[:1], (Pp - P, 3))])
+        return HandEyePixels(
+            T_base_ee=jnp.asarray(T),
+            pixels=jnp.asarray(px),
+            mask=jnp.asarray(mask),
+            K=data.K,
+            board_points=jnp.asarray(board),
+            sigma_px=data.sigma_px,
+            robot_sigma=data.robot_sigma,
+            eye_in_hand=data.eye_in_hand,
+        )
+    C = data.mask.shape[0]
+    A = np.concatenate([np.asarray(data.T_cam_board), np.broadcast_to(np.eye(4), (C, pad_f, 4, 4))], axis=1)
+    mask = np.concatenate([np.asarray(data.mask), np.zeros((C, pad_f), bool)], axis=1)
+    cov = None
+    if data.cov is not None:
+        filler = np.broadcast_to(np.diag(np.asarray(data.sigma) ** 2), (C, pad_f, 6, 6))
+        cov = jnp.asarray(np.concatenate([np.asarray(data.cov), filler], axis=1))
+    return HandEyePoses(
+        T_base_ee=jnp.asarray(T),
+        T_cam_board=jnp.asarray(A),
+        mask=jnp.asarray(mask),
+        sigma=data.sigma,
+        cov=cov,
+        robot_sigma=data.robot_sigma,
+        eye_in_hand=data.eye_in_hand,
+    )

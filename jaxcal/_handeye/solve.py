@@ -39,8 +39,13 @@ class HandEyeResult(eqx.Module):
       transform, both in its parent frame: $\\delta t = \\hat t - t$ and
       $\\hat R = \\exp(\\delta w) R$. From $(J^T J)^{-1}$ of the whitened
       residuals (robot corrections marginalised), scaled by the residual
-      variance `variance_factor` where it exceeds 1 (when `scale_covariance`).
+      variance `variance_factor` where it exceeds 1; and, when
+      `scale_covariance`, never below the frame-robust variance (`cov_frames`),
+      per component.
     - `cov`: that covariance of the flat parameter vector (tangent deltas).
+    - `cov_frames`: the cluster-robust covariance, one cluster per frame
+      (errors shared by a frame's corners: robot pose error, view-dependent
+      detector bias; see `_frame_robust_covariance`).
     - `variance_factor`: $\\|r\\|^2 / (m - n)$, the residual variance in units
       of the stated noise (about 1 when the noise model is honest).
     - `T_base_ee`: the robot poses used (corrected when `robot_sigma` was given).
@@ -65,6 +70,7 @@ class HandEyeResult(eqx.Module):
     std_robot_cam: Float[Array, "cameras 6"]
     std_robot_board: Float[Array, "6"]
     cov: Float[Array, "n n"]
+    cov_frames: Float[Array, "n n"]
     variance_factor: Float[Array, ""]
     T_base_ee: Float[Array, "frames 4 4"]
     robot_rms: Float[Array, " frames"]
@@ -229,6 +235,28 @@ def _group_rms(params, ref, data) -> Float[Array, "cameras frames"]:
     return jnp.where(n > 0, jnp.sqrt(jnp.sum(r**2, axis=-1) / jnp.maximum(n, 1.0)), jnp.nan)
 
 
+def _frame_robust_covariance(J, r, bread, ref, data) -> Float[Array, "n n"]:
+    """The cluster-robust (sandwich) covariance with one cluster per frame.
+
+    $B \\big(\\sum_f g_f g_f^T\\big) B \\cdot G/(G-1)$, $g_f = J_f^T r_f$ the
+    gradient of frame $f$'s residuals (all cameras and its robot prior),
+    $B = (J^T J)^{-1}$, $G$ the frames kept. Unlike $s^2 B$ it does not assume
+    the errors independent within a frame: a frame's corners share its robot
+    pose error and the detector's view-dependent bias, which move the whole
+    view together (the model's $\\sigma$ sees them only as a little extra
+    pixel noise). Same expectation as $B$ when the noise model holds.
+    """
+    C, F = ref.active.shape
+    per_group = 2 * data.mask.shape[-1] if isinstance(data, HandEyePixels) else 6
+    n_obs, n = C * F * per_group, J.shape[1]
+    g = jnp.einsum("cfkn,cfk->fn", J[:n_obs].reshape(C, F, per_group, n), r[:n_obs].reshape(C, F, per_group))
+    if r.shape[0] > n_obs:  # the robot corrections' prior, one block per frame
+        g = g + jnp.einsum("fkn,fk->fn", J[n_obs:].reshape(F, 6, n), r[n_obs:].reshape(F, 6))
+    kept = jnp.sum(jnp.any(ref.active, axis=0))
+    meat = g.T @ g * kept / jnp.maximum(kept - 1.0, 1.0)
+    return bread @ meat @ bread
+
+
 def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
     """The result at `params`: covariance, standard deviations, residual statistics (solver fields left None)."""
     flat, unravel = ravel_pytree(params)
@@ -239,13 +267,13 @@ def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
 
     J = jax.jacfwd(flat_res)(flat)
     r_all = flat_res(flat)
-    cov = jnp.linalg.pinv(J.T @ J, hermitian=True)
+    bread = jnp.linalg.pinv(J.T @ J, hermitian=True)
     n_obs = jnp.sum(group_sizes(ref, data))
     n_prior = 0 if params.robot is None else params.robot.size
     dof = jnp.maximum(n_obs + n_prior - flat.size, 1.0)
     variance_factor = jnp.sum(r_all**2) / dof
-    if scale_covariance:
-        cov = cov * jnp.maximum(variance_factor, 1.0)
+    cov = bread * jnp.maximum(variance_factor, 1.0) if scale_covariance else bread
+    cov_frames = _frame_robust_covariance(J, r_all, bread, ref, data)
 
     X, Y = transforms(params, ref)
     Xi = jax.vmap(pose_inverse)(X)
@@ -262,7 +290,10 @@ def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
         )
 
     G = jax.jacfwd(errors)(flat)
-    std = jnp.sqrt(jnp.maximum(jnp.einsum("ia,ab,ib->i", G, cov, G), 0.0))
+    var = jnp.einsum("ia,ab,ib->i", G, cov, G)
+    if scale_covariance:
+        var = jnp.maximum(var, jnp.einsum("ia,ab,ib->i", G, cov_frames, G))
+    std = jnp.sqrt(jnp.maximum(var, 0.0))
     C = X.shape[0]
     r_obs, _ = hand_eye_residuals(params, (ref, data))
     ssr_obs = jnp.sum(r_obs**2)
@@ -283,6 +314,7 @@ def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
         std_robot_cam=std[6 * C : 12 * C].reshape(C, 6),
         std_robot_board=std[12 * C :],
         cov=cov,
+        cov_frames=cov_frames,
         variance_factor=variance_factor,
         T_base_ee=corrected_robot(data.T_base_ee, delta),
         robot_rms=robot_rms,
