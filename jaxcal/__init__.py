@@ -87,6 +87,7 @@ from .errors import JaxcalError as JaxcalError  # noqa: E402
 from .errors import LengthMismatchError as LengthMismatchError  # noqa: E402
 from .errors import NonFiniteError as NonFiniteError  # noqa: E402
 from .errors import NotARotationError as NotARotationError  # noqa: E402
+from .errors import NotPositiveDefiniteError as NotPositiveDefiniteError  # noqa: E402
 from .errors import ShapeError as ShapeError  # noqa: E402
 from .errors import SuspectResultError as SuspectResultError  # noqa: E402
 from .errors import TooFewPosesError as TooFewPosesError  # noqa: E402

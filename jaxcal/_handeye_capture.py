@@ -38,9 +38,12 @@ OUTLIER_THRESHOLD = 3.0
 
 @lru_cache(maxsize=4)
 def hand_eye_solver(max_steps: int = 200) -> Callable:
-    """`jax.jit(calibrate_hand_eye)` at `max_steps`, one per value (shapes are bucketed by the caller)."""
+    """`jax.jit(calibrate_hand_eye)` at `max_steps` as `solve(data, reject_outliers)`, one per value
+    (shapes are bucketed by the caller; `reject_outliers` is traced, so both share the program)."""
     return jax.jit(
-        lambda data: calibrate_hand_eye(data, max_steps=max_steps, outlier_threshold=OUTLIER_THRESHOLD)
+        lambda data, reject: calibrate_hand_eye(
+            data, reject_outliers=reject, max_steps=max_steps, outlier_threshold=OUTLIER_THRESHOLD
+        )
     )
 
 
@@ -212,10 +215,11 @@ def calibrate_hand_eye_capture(
     seconds["prepare"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     solve = hand_eye_solver(max_steps)
-    result = jax.tree.map(np.asarray, solve(observations.data))
+    result = jax.tree.map(np.asarray, solve(observations.data, True))
     seconds["solve"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    kfold = kfold_spread(solve, observations.data, result, folds=folds) if folds else None
+    # The folds leave the rejected groups out already: plain solves, same compiled program.
+    kfold = kfold_spread(lambda d: solve(d, False), observations.data, result, folds=folds) if folds else None
     seconds["kfold"] = time.perf_counter() - t0
     verdict = assess_hand_eye(
         result,

@@ -103,10 +103,10 @@ class TargetSpec:
             cols, rows = 1, 1
         else:
             cols, rows = self.squares
-        if self.kind in ("charuco", "chessboard") and (cols < 2 or rows < 2 or cols * rows < 6):
-            raise ValueError(
-                f"{where}: a {self.kind} board needs at least 2x2 squares and 6 in all, got {self.squares}"
-            )
+        if self.kind == "charuco" and (cols < 2 or rows < 2):
+            raise ValueError(f"{where}: a ChArUco board needs at least 2x2 squares, got {self.squares}")
+        if self.kind == "chessboard" and (cols < 2 or rows < 2 or (cols - 1) * (rows - 1) < 4):
+            raise ValueError(f"{where}: a chessboard needs at least 4 inner corners, got {self.squares} squares")
         if self.kind in ("circles", "acircles", "aruco_grid") and (cols < 1 or rows < 1 or cols * rows < 3):
             raise ValueError(f"{where}: a {self.kind} target needs at least 3 features, got {self.squares}")
         if self.kind in ("charuco", "aruco_grid") and not 0 < self.marker_length < self.square_length:
@@ -187,8 +187,13 @@ class TargetSpec:
         if self.kind == "aruco":
             h = 0.5 * self.marker_length
             return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-        if self.kind == "aruco_grid":
-            return np.asarray(self.board().getObjPoints(), np.float64).reshape(-1, 3)
+        if self.kind == "aruco_grid":  # OpenCV's GridBoard object points, in float64
+            cols, _ = self.squares
+            row, col = np.divmod(np.arange(self.num_markers), cols)
+            m = self.marker_length
+            square = np.array([[0.0, 0.0], [m, 0.0], [m, m], [0.0, m]])
+            xy = (np.stack([col, row], 1)[:, None, :] * s + square).reshape(-1, 2)
+            return np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
         w, h = self.pattern
         j, i = np.divmod(np.arange(w * h), w)  # row j, column i; id = j w + i
         if self.kind == "chessboard":

@@ -50,21 +50,31 @@ def homography_rotations(pixels, mask, K, board_points) -> tuple[np.ndarray, np.
     `ok` where a view has at least 4 corners (identity elsewhere).
     """
     px, mask, K = np.asarray(pixels, float), np.asarray(mask, bool), np.asarray(K, float)
-    P = np.asarray(board_points, float)
+    C, F = mask.shape[:2]
+    ok = mask.sum(-1) >= 4
+    R = np.broadcast_to(np.eye(3), (C, F, 3, 3)).copy()
+    c, f = np.nonzero(ok)
+    if len(c):
+        R[c, f] = _homography_rotations(px[c, f], mask[c, f], K[c], np.asarray(board_points, float))
+    return R, ok
+
+
+def _homography_rotations(px, mask, K, P) -> np.ndarray:
+    """`(views, 3, 3)` for views with at least 4 points: `px` `(views, points, 2)`, `K` `(views, 3, 3)`."""
     c = P.mean(0)
     _, V = np.linalg.eigh((P - c).T @ (P - c))
     U = np.stack([V[:, 2], V[:, 1], np.cross(V[:, 2], V[:, 1])], axis=1)  # R_board_plane
     ab = (P - c) @ U[:, :2]
-    y = (px[..., 1] - K[:, None, None, 1, 2]) / K[:, None, None, 1, 1]
-    x = (px[..., 0] - K[:, None, None, 0, 2] - K[:, None, None, 0, 1] * y) / K[:, None, None, 0, 0]
+    y = (px[..., 1] - K[:, None, 1, 2]) / K[:, None, 1, 1]
+    x = (px[..., 0] - K[:, None, 0, 2] - K[:, None, 0, 1] * y) / K[:, None, 0, 0]
     w = mask.astype(float)
     x, y = np.where(mask, x, 0.0), np.where(mask, y, 0.0)
     # Hartley normalisation of the image side; the plane side is scaled once.
-    n = np.maximum(w.sum(-1), 1.0)
+    n = w.sum(-1)
     mx, my = (w * x).sum(-1) / n, (w * y).sum(-1) / n
-    sx = np.sqrt(((w * ((x - mx[..., None]) ** 2 + (y - my[..., None]) ** 2)).sum(-1)) / n)
-    s = np.sqrt(2.0) / np.maximum(sx, 1e-12)
-    xn, yn = (x - mx[..., None]) * s[..., None], (y - my[..., None]) * s[..., None]
+    spread = np.sqrt((w * ((x - mx[:, None]) ** 2 + (y - my[:, None]) ** 2)).sum(-1) / n)
+    s = np.sqrt(2.0) / np.maximum(spread, 1e-12)
+    xn, yn = (x - mx[:, None]) * s[:, None], (y - my[:, None]) * s[:, None]
     sa = np.sqrt(2.0) / max(np.sqrt(np.mean(np.sum(ab**2, -1))), 1e-12)
     a = np.broadcast_to(ab * sa, px.shape[:-1] + (2,))
     one, zero = np.ones_like(xn), np.zeros_like(xn)
@@ -81,21 +91,19 @@ def homography_rotations(pixels, mask, K, board_points) -> tuple[np.ndarray, np.
         * np.concatenate([w, w], -1)[..., None]
     )
     _, _, Vt = np.linalg.svd(rows, full_matrices=False)
-    Hn = Vt[..., -1, :].reshape(px.shape[:2] + (3, 3))
-    T_img_inv = np.zeros(px.shape[:2] + (3, 3))
-    T_img_inv[..., 0, 0] = T_img_inv[..., 1, 1] = 1.0 / s
-    T_img_inv[..., 0, 2], T_img_inv[..., 1, 2], T_img_inv[..., 2, 2] = mx, my, 1.0
+    Hn = Vt[:, -1, :].reshape(-1, 3, 3)
+    T_img_inv = np.zeros((len(px), 3, 3))
+    T_img_inv[:, 0, 0] = T_img_inv[:, 1, 1] = 1.0 / s
+    T_img_inv[:, 0, 2], T_img_inv[:, 1, 2], T_img_inv[:, 2, 2] = mx, my, 1.0
     H = T_img_inv @ Hn @ np.diag([sa, sa, 1.0])
-    lam = 2.0 / (np.linalg.norm(H[..., :, 0], axis=-1) + np.linalg.norm(H[..., :, 1], axis=-1))
-    lam = np.where(H[..., 2, 2] < 0, -lam, lam)
-    r1, r2 = lam[..., None] * H[..., :, 0], lam[..., None] * H[..., :, 1]
+    lam = 2.0 / (np.linalg.norm(H[:, :, 0], axis=-1) + np.linalg.norm(H[:, :, 1], axis=-1))
+    lam = np.where(H[:, 2, 2] < 0, -lam, lam)  # the board is in front of the camera
+    r1, r2 = lam[:, None] * H[:, :, 0], lam[:, None] * H[:, :, 1]
     M = np.stack([r1, r2, np.cross(r1, r2)], axis=-1)
     Us, _, Vs = np.linalg.svd(M)
-    D = np.ones(M.shape[:-1])
-    D[..., 2] = np.sign(np.linalg.det(Us @ Vs))
-    R = (Us * D[..., None, :]) @ Vs @ U.T
-    ok = mask.sum(-1) >= 4
-    return np.where(ok[..., None, None], R, np.eye(3)), ok
+    D = np.ones((len(px), 3))
+    D[:, 2] = np.sign(np.linalg.det(Us @ Vs))
+    return (Us * D[:, None, :]) @ Vs @ U.T
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .._geometry import make_pose, matmul, pose_inverse, se3_exp, so3_exp, so3_log
+from .._linalg import after
 from .data import HandEyeData, HandEyePixels, HandEyePoses
 
 
@@ -142,7 +143,9 @@ def pose_error_covariance(params, ref, data: HandEyePoses) -> Float[Array, "fram
 
 def pose_whitening(params, ref, data: HandEyePoses) -> Float[Array, "frames n n"]:
     """$L_f^{-1}$ with $L_f L_f^T = S_f$ (see `pose_error_covariance`), so $S_f^{-1} = L_f^{-T} L_f^{-1}$."""
-    S = pose_error_covariance(params, ref, data)
+    # Ordered after whatever gave `params` and the start (see _linalg): with exact robot
+    # poses S does not depend on them, and its factorisation could run beside theirs.
+    S = after(pose_error_covariance(params, ref, data), params, ref.X0)
     L = jnp.linalg.cholesky(S)
     eye = jnp.broadcast_to(jnp.eye(S.shape[-1]), S.shape)
     return jax.scipy.linalg.solve_triangular(L, eye, lower=True)

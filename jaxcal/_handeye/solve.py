@@ -40,8 +40,10 @@ class HandEyeResult(eqx.Module):
       $\\hat R = \\exp(\\delta w) R$. From $(J^T J)^{-1}$ of the whitened
       residuals (robot corrections marginalised), scaled by the residual
       variance `variance_factor` where it exceeds 1; and, when
-      `scale_covariance`, never below the frame-robust variance (`cov_frames`),
-      per component.
+      `scale_covariance`, replaced per component by the frame-robust variance
+      (`cov_frames`) where that is significantly larger (by more than twice
+      its own sampling spread, $1 + 2\\sqrt{2/G}$ times, $G$ the frames kept):
+      errors shared within a frame that the pixel noise model misses.
     - `cov`: that covariance of the flat parameter vector (tangent deltas).
     - `cov_frames`: the cluster-robust covariance, one cluster per frame
       (errors shared by a frame's corners: robot pose error, view-dependent
@@ -292,7 +294,11 @@ def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
     G = jax.jacfwd(errors)(flat)
     var = jnp.einsum("ia,ab,ib->i", G, cov, G)
     if scale_covariance:
-        var = jnp.maximum(var, jnp.einsum("ia,ab,ib->i", G, cov_frames, G))
+        # The frame-robust variance where it exceeds the model's by more than its own sampling
+        # spread (two standard deviations of a variance estimated from `kept` frames).
+        var_frames = jnp.einsum("ia,ab,ib->i", G, cov_frames, G)
+        kept = jnp.maximum(jnp.sum(jnp.any(ref.active, axis=0)), 2.0)
+        var = jnp.where(var_frames > var * (1.0 + 2.0 * jnp.sqrt(2.0 / kept)), var_frames, var)
     std = jnp.sqrt(jnp.maximum(var, 0.0))
     C = X.shape[0]
     r_obs, _ = hand_eye_residuals(params, (ref, data))

@@ -416,9 +416,9 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
     if not isinstance(target, dict):
         raise DatasetError(f"{where}: field 'target' must be an object, got {target!r}")
     try:
-        spec = TargetSpec.from_dict(target, where=f"{where}: target")
+        spec = TargetSpec.from_dict(target, where=f"target {target.get('name', 'target')!r}")
     except ValueError as e:
-        raise DatasetError(str(e)) from None
+        raise DatasetError(f"{where}: field 'target': {e}") from None
     poses = _require(meta, "poses", where)
     pw = f"{where}: poses"
     file = _require(poses, "file", pw)
