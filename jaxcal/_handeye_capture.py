@@ -115,6 +115,12 @@ def _intrinsics(capture, detections, log) -> tuple[CameraIntrinsics, ...]:
     return tuple(out)
 
 
+def _distortions(dists) -> np.ndarray:
+    """Every camera's OpenCV coefficients zero-padded to the longest, `(cameras, n)`."""
+    n = max(len(d) for d in dists)
+    return np.stack([np.pad(np.asarray(d, np.float64), (0, n - len(d))) for d in dists])
+
+
 def _rejection_reasons(result, observations, threshold: float) -> dict:
     """`{frame: reason}` for every rejected frame, from the final per-view RMS."""
     rejected = np.asarray(result.rejected)
@@ -205,7 +211,7 @@ def calibrate_hand_eye_capture(
         target,
         capture.T_base_ee,
         np.stack([i.K for i in intrinsics]),
-        np.stack([np.resize(i.dist, max(len(j.dist) for j in intrinsics)) for i in intrinsics]),
+        _distortions([i.dist for i in intrinsics]),
         eye_in_hand=capture.eye_in_hand,
         sigma_px=sigma_px,
         frame_names=capture.frames,

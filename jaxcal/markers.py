@@ -106,7 +106,9 @@ class TargetSpec:
         if self.kind == "charuco" and (cols < 2 or rows < 2):
             raise ValueError(f"{where}: a ChArUco board needs at least 2x2 squares, got {self.squares}")
         if self.kind == "chessboard" and (cols < 2 or rows < 2 or (cols - 1) * (rows - 1) < 4):
-            raise ValueError(f"{where}: a chessboard needs at least 4 inner corners, got {self.squares} squares")
+            raise ValueError(
+                f"{where}: a chessboard needs at least 4 inner corners, got {self.squares} squares"
+            )
         if self.kind in ("circles", "acircles", "aruco_grid") and (cols < 1 or rows < 1 or cols * rows < 3):
             raise ValueError(f"{where}: a {self.kind} target needs at least 3 features, got {self.squares}")
         if self.kind in ("charuco", "aruco_grid") and not 0 < self.marker_length < self.square_length:

@@ -224,6 +224,7 @@ def robot_noise_data():
     return _pixel_data(rng, sigma=0.2, robot=(5e-4, 5e-4), bad=(3, 9), robot_noise=3e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("max_steps", [200, 400])
 def test_rejection_with_robot_noise_does_not_depend_on_max_steps(robot_noise_data, max_steps):
     """Robot noise on: each stage reports its own result and steps; once converged, the frames
@@ -265,6 +266,7 @@ def test_bad_fit_and_far_from_start_are_suspect():
     assert any("from the closed-form start" in x for x in jaxcal.assess_hand_eye(far).reasons)
 
 
+@pytest.mark.slow
 def test_normalised_errors_and_kfold_spread_are_honest():
     """60 seeded trials of analytic corners (0.3 px noise): the errors over the reported std have RMS
     in 0.8-1.25 (translation and rotation), and the 8-fold spread matches the std within 2x on average."""

@@ -62,7 +62,8 @@ class HandEyeResult(eqx.Module):
       count of each Levenberg-Marquardt stage (robust, then plain).
     - `result`: the first unsuccessful stage's code (successful when both
       are); `num_steps`: the steps of both stages together.
-    - `T_cam_robot_start`, `T_robot_board_start`: the closed-form start.
+    - `T_cam_robot_start`, `T_robot_board_start`: the closed-form solution on the
+      groups kept (`solve_axzb`), which the optimum should be near.
     """
 
     T_cam_robot: Float[Array, "cameras 4 4"]
@@ -209,6 +210,11 @@ def calibrate_hand_eye(
     result = optx.RESULTS.where(first == optx.RESULTS.successful, last, first)
     if throw:
         params = result.error_if(params, result != optx.RESULTS.successful)
+    # The closed form again on the kept groups only: what the verdict compares the optimum with
+    # (the first start also saw the outliers). Ordered after the solve, and before the summary.
+    kept = data.mask & (active[..., None] if isinstance(data, HandEyePixels) else active)
+    X0_kept, Y0_kept = initialise_hand_eye(after(eqx.tree_at(lambda d: d.mask, data, kept), params))
+    params = after(params, X0_kept, Y0_kept)
     ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
     out = _summarise(params, ref, data, observed & ~active, scale_covariance)
     return eqx.tree_at(
@@ -221,7 +227,7 @@ def calibrate_hand_eye(
             r.T_robot_board_start,
         ),
         out,
-        (result, jnp.sum(steps), results, steps, X0, Y0),
+        (result, jnp.sum(steps), results, steps, X0_kept, Y0_kept),
         is_leaf=lambda x: x is None,
     )
 

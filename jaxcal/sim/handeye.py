@@ -20,6 +20,8 @@ import mujoco  # noqa: E402  (after .scene, which selects the GL backend)
 import numpy as np
 
 from .._kinematics import forward_kinematics
+from ..io.dataset import atomic_directory
+from ..io.handeye import HandEyeCamera, write_hand_eye_description
 from ..markers import TargetSpec
 from ..robots import load_robot
 from .scene import CameraSpec, PlateSpec, Scene, add_plate, build_scene
@@ -247,9 +249,6 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
 
     **Returns:** the capture directory.
     """
-    from ..io.dataset import atomic_directory
-    from ..io.handeye import HandEyeCamera, write_hand_eye_description
-
     rng = np.random.default_rng(config.seed)
     spec = config.target
     width, height = config.resolution

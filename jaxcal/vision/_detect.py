@@ -219,6 +219,8 @@ def _detect_grid(grey: np.ndarray, target: TargetSpec) -> "Detection | None":
         return None
     pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
     ids = _orient_grid(grey, target, pixels)
+    if ids is None:
+        return None
     order = np.argsort(ids)
     return Detection(ids[order], pixels[order])
 
@@ -243,19 +245,22 @@ def _grid_relabellings(target: TargetSpec) -> tuple[np.ndarray, ...]:
     return tuple(out)
 
 
-def _orient_grid(grey: np.ndarray, target: TargetSpec, pixels: np.ndarray) -> np.ndarray:
-    """Feature ids for a full grid in OpenCV's order: the relabelling that shows the
-    printed face (not its mirror image) and, for a chessboard, puts black squares on black.
+def _orient_grid(grey: np.ndarray, target: TargetSpec, pixels: np.ndarray) -> "np.ndarray | None":
+    """Feature ids for a full grid in OpenCV's order, or None for a grid that is not the target.
 
     OpenCV's grid finders order the points by how the grid lies in the image,
     so the same board turned by 180 degrees comes back with id 0 at the other
     end. Of the relabellings that map the grid onto itself, keep those whose
     plane-to-image homography preserves orientation (the target frame's z
     points away from the camera, so a board seen from the front has a
-    positive Jacobian determinant), then score a chessboard's candidates by
-    the image brightness at the centres of its white minus its black squares.
-    A symmetric target (`TargetSpec.symmetric`) keeps its first candidate: the
-    hand-eye front end resolves it from the robot's motion.
+    positive Jacobian determinant), then, for a chessboard, the one that puts
+    the most squares on their printed colour (square (0, 0) black), sampled
+    at every square's centre through the homography. A chessboard grid with
+    more than `MAX_WRONG_SQUARES` of its squares on the wrong colour is
+    refused: the finder took the board's outer edge for a row of corners (a
+    grid shifted by one square). A symmetric target (`TargetSpec.symmetric`)
+    keeps its first candidate: the hand-eye front end resolves it from the
+    robot's motion.
     """
     P = target_points(target)[:, :2]
     best, best_score = None, -np.inf
@@ -270,11 +275,18 @@ def _orient_grid(grey: np.ndarray, target: TargetSpec, pixels: np.ndarray) -> np
         score = _chessboard_score(grey, target, H) if target.kind == "chessboard" else 0.0
         if score > best_score:
             best, best_score = perm, score
-    return np.arange(len(P)) if best is None else best
+    if best is None or (target.kind == "chessboard" and best_score < 1.0 - 2.0 * MAX_WRONG_SQUARES):
+        return None
+    return best
+
+
+#: Share of a chessboard's squares allowed on the wrong colour (sampling at an edge, glare).
+MAX_WRONG_SQUARES = 0.03
 
 
 def _chessboard_score(grey: np.ndarray, target: TargetSpec, H: np.ndarray) -> float:
-    """Mean brightness at the white squares' centres minus at the black ones' (square (0, 0) black)."""
+    """Share of the squares whose centre is on its printed side of the black/white threshold
+    (square (0, 0) black), minus the share on the wrong side: 1 for a perfect match, -1 inverted."""
     cols, rows = target.squares
     b, a = np.mgrid[0:rows, 0:cols]
     centres = np.stack([(a.ravel() + 0.5), (b.ravel() + 0.5)], 1) * target.square_length
@@ -283,11 +295,12 @@ def _chessboard_score(grey: np.ndarray, target: TargetSpec, H: np.ndarray) -> fl
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
     u, v = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1]).T
     value = grey[v, u].astype(np.float64)
-    black = ((a + b).ravel() % 2 == 0) & inside
-    white = ((a + b).ravel() % 2 == 1) & inside
-    if not black.any() or not white.any():
-        return 0.0
-    return float(value[white].mean() - value[black].mean())
+    black = (a + b).ravel() % 2 == 0
+    if not (black & inside).any() or not (~black & inside).any():
+        return -1.0
+    threshold = 0.5 * (np.median(value[black & inside]) + np.median(value[~black & inside]))
+    right = np.where(black, value < threshold, value > threshold)[inside]
+    return float(2.0 * right.mean() - 1.0)
 
 
 # --------------------------------------------------------------------------- many files

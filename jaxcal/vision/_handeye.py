@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .._cache import enable_compilation_cache
 from .._handeye import (
     HandEyePixels,
     MotionConsistency,
@@ -91,9 +92,11 @@ def _resolve_turns(poses, T_base_ee, target: TargetSpec) -> list[int]:
 
     Turning the plate by $M$ changes a view's pose to $A M^{-1}$ and its
     relative rotations to the others; the choice whose relative rotation
-    angles agree with the robot's (`jaxcal._handeye.consistency`) is kept,
-    the first view fixing the plate's frame. A wrong turn of 180 degrees
-    changes those angles by up to 180 degrees, so the choice is clear.
+    angles agree best (median over the other views) with the robot's
+    (`jaxcal._handeye.consistency`) is kept, view by view, three sweeps; then
+    the turn most views got is taken off every view (the plate's frame is
+    defined up to a common turn). A wrong turn of 180 degrees changes those
+    angles by up to 180 degrees, so the choice is clear.
     """
     perms = target.rotations()
     seen = [f for f, p in enumerate(poses) if p is not None]
@@ -105,7 +108,7 @@ def _resolve_turns(poses, T_base_ee, target: TargetSpec) -> list[int]:
     RB = np.asarray(T_base_ee)[:, :3, :3]
     robot = np.degrees(rotation_angle(np.einsum("fji,gjk->fgik", RB, RB)))
     for _ in range(3):
-        for f in seen[1:]:
+        for f in seen:
             others = [g for g in seen if g != f]
             cost = [
                 np.median(
@@ -114,6 +117,10 @@ def _resolve_turns(poses, T_base_ee, target: TargetSpec) -> list[int]:
                 for R in cand[f]
             ]
             turn[f] = int(np.argmin(cost))
+    # Any common turn is as consistent: keep OpenCV's labels where most views have them.
+    angles = [target.rotation_angle(p) for p in perms]
+    common = angles[np.bincount([turn[f] for f in seen], minlength=len(perms)).argmax()]
+    turn = {f: angles.index((angles[k] - common) % 360) for f, k in turn.items()}
     return [turn.get(f, 0) for f in range(len(poses))]
 
 
@@ -168,6 +175,7 @@ def hand_eye_from_detections(
     **Raises:** `VisionError` for unusable input (a symmetric target seen by
     several cameras), and the `jaxcal.HandEyeInputError`s of `validate_hand_eye`.
     """
+    enable_compilation_cache()  # the solve that follows compiles once per bucket, then comes from disk
     det = _per_camera(detections, target)
     C = len(det)
     T = np.asarray(T_base_ee, np.float64)
