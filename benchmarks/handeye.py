@@ -23,6 +23,16 @@ Two parts, every method given the same data:
    `cv2.solvePnP` (iterative). OpenCV's methods and `jaxcal_poses` get the
    PnP poses and the exact robot poses; `jaxcal` gets the detected corners
    themselves (`HandEyePixels`, reprojection error), which is its advantage.
+3. `captures`: what `jaxcal handeye` does with a capture on disk. Rendered
+   captures (`jaxcal.sim.handeye.simulate_hand_eye`, 640x480, `--capture-frames`
+   frames, `--captures` seeds) of a chessboard, a symmetric circle grid and a
+   ChArUco board, eye-in-hand and eye-to-hand, with lens distortion; jaxcal
+   runs its whole pipeline (`calibrate_hand_eye_capture`: detection, PnP,
+   undistortion, checks, solve, 10-fold spread); OpenCV's seven methods get
+   the same detections' PnP poses (`jaxcal.vision.estimate_pose`, distortion
+   modelled, symmetric views turned as jaxcal turned them) and the robot
+   poses. Also reported: jaxcal's std, its k-fold spread, and the normalised
+   error (error / std) over the captures.
 
 Errors are those of the camera's pose on the robot (`T_gripper_cam` in part
 1, `T_base_cam` in part 2): rotation (deg) and translation (mm), mean over
@@ -36,6 +46,7 @@ How to run (from the repository root)::
 
     .venv/bin/python benchmarks/handeye.py --json results/handeye.json
     .venv/bin/python benchmarks/handeye.py --quick
+    .venv/bin/python benchmarks/handeye.py --parts captures --json results/handeye_captures.json
 
 The JSON holds `methods` (per method `rot_deg`, `trans_mm`, `time_ms`) and
 `jaxcal_rot_ratio_vs_best_opencv`, `jaxcal_trans_ratio_vs_best_opencv` (jaxcal's
@@ -317,6 +328,88 @@ def rendered_part(frames: int, seed: int) -> dict:
     return out
 
 
+# --------------------------------------------------------------------------- part 3: captures on disk
+
+CAPTURE_TARGETS = ("chessboard", "circles", "charuco")
+DISTORTION = (-0.08, 0.05, 0.0005, -0.0003, 0.0)
+
+
+def captures_part(captures: int, frames: int, seed: int) -> dict:
+    from jaxcal.cli import SIM_TARGETS
+    from jaxcal.markers import TargetSpec
+    from jaxcal.sim.handeye import HandEyeSimConfig, simulate_hand_eye  # MuJoCo: imported when needed
+
+    records = {k: [] for k in (*OPENCV, "jaxcal")}
+    z, spread, per_config = [], [], {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for target in CAPTURE_TARGETS:
+            for eye_in_hand in (True, False):
+                key = f"{target}_{'eye_in_hand' if eye_in_hand else 'eye_to_hand'}"
+                per_config[key] = []
+                for k in range(captures):
+                    config = HandEyeSimConfig(
+                        target=TargetSpec(name="target", **SIM_TARGETS[target]),
+                        eye_in_hand=eye_in_hand,
+                        frames=frames,
+                        seed=seed + 100 * k + 7,
+                        distortion=DISTORTION,
+                    )
+                    path = simulate_hand_eye(config, Path(tmp) / f"{key}_{k}")
+                    run, ms = timed(jaxcal.calibrate_hand_eye_capture, path)
+                    truth = np.asarray(run.capture.truth["T_robot_cam"]["cam0"])
+                    rot, trans = errors(run.T_robot_cam[0], truth)
+                    records["jaxcal"].append((rot, trans, ms))
+                    std = np.asarray(run.result.std_robot_cam[0])
+                    z.append(
+                        (1e-3 * trans / np.linalg.norm(std[:3]), np.radians(rot) / np.linalg.norm(std[3:]))
+                    )
+                    if run.kfold is not None:
+                        spread.append(he.std_ratio(run.kfold, run.result)[0])
+                    # OpenCV on the same detections' PnP poses (as jaxcal labelled them).
+                    seen = [f for f, p in enumerate(run.observations.poses[0]) if p is not None]
+                    T_cb = np.stack([run.observations.poses[0][f].T_cam_target for f in seen])
+                    T_be = run.capture.T_base_ee[seen]
+                    grip = T_be if eye_in_hand else np.linalg.inv(T_be)
+                    for name, (T, ms_cv) in opencv_solves(grip, T_cb).items():
+                        records[name].append((*errors(T, truth), ms_cv))
+                    per_config[key].append(
+                        {
+                            "jaxcal": [rot, trans],
+                            "status": run.verdict.status,
+                            "best_opencv": min(
+                                errors(T, truth) for T, _ in opencv_solves(grip, T_cb).values()
+                            ),
+                            "pixel_rms": float(run.result.pixel_rms),
+                            "seconds": run.seconds,
+                        }
+                    )
+                    print(
+                        f"  {key} #{k}: jaxcal {rot:.4f} deg {trans:.3f} mm ({run.verdict.status}) | best OpenCV "
+                        f"{min(e[0] for e in (errors(T, truth) for T, _ in opencv_solves(grip, T_cb).values())):.4f} deg "
+                        f"{min(e[1] for e in (errors(T, truth) for T, _ in opencv_solves(grip, T_cb).values())):.3f} mm",
+                        flush=True,
+                    )
+    out = summarise(records)
+    z = np.asarray(z)
+    out.update(
+        captures_per_config=captures,
+        frames=frames,
+        resolution=[640, 480],
+        distortion=list(DISTORTION),
+        normalised_error_rms={
+            "translation": float(np.sqrt(np.mean(z[:, 0] ** 2))),
+            "rotation": float(np.sqrt(np.mean(z[:, 1] ** 2))),
+        },
+        kfold_over_std_median={
+            "translation": float(np.median([r[0] for r in spread])),
+            "rotation": float(np.median([r[1] for r in spread])),
+        },
+        configs=per_config,
+        note="jaxcal time_ms is the whole pipeline (detection, checks, solve, 10-fold spread); OpenCV's is its solve",
+    )
+    return out
+
+
 # --------------------------------------------------------------------------- main
 
 
@@ -326,37 +419,56 @@ def main(argv=None) -> dict:
     p.add_argument("--trials", type=int, default=20, help="seeded trials per protocol configuration")
     p.add_argument("--frames", type=int, default=30, help="rendered frames")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quick", action="store_true", help="a smoke run: 3 trials, 10 poses, 12 frames")
+    p.add_argument("--captures", type=int, default=3, help="rendered captures per target and arrangement")
+    p.add_argument("--capture-frames", type=int, default=16, help="frames per rendered capture")
+    p.add_argument(
+        "--parts", default="protocol,rendered,captures", help="comma-separated: protocol, rendered, captures"
+    )
+    p.add_argument(
+        "--quick", action="store_true", help="a smoke run: 3 trials, 10 poses, 12 frames, 1 capture"
+    )
     a = p.parse_args(argv)
+    parts = set(a.parts.split(","))
     counts, scales = ((10,), (1.0,)) if a.quick else ((10, 20), (0.5, 1.0, 2.0))
     trials, frames = (3, 12) if a.quick else (a.trials, a.frames)
-    print("OpenCV's hand-eye protocol (pose pairs, eye-in-hand):", flush=True)
-    part1 = protocol_part(trials, counts, scales, a.seed)
-    print("Rendered ChArUco frames (UR5e, eye-to-hand):", flush=True)
-    part2 = rendered_part(frames, a.seed)
-    result = {
-        "methods": part1["methods"],
-        "jaxcal_rot_ratio_vs_best_opencv": part1["jaxcal_rot_ratio_vs_best_opencv"],
-        "jaxcal_trans_ratio_vs_best_opencv": part1["jaxcal_trans_ratio_vs_best_opencv"],
-        "best_opencv_rot": part1["best_opencv_rot"],
-        "best_opencv_trans": part1["best_opencv_trans"],
-        "cramer_rao": part1["cramer_rao"],
-        "protocol": {k: v for k, v in part1.items() if k != "methods"},
-        "rendered": part2,
-        "data": {
-            "protocol": "identical pose pairs for every method (OpenCV's test protocol, eye-in-hand, "
-            "noisy robot and board poses); jaxcal: HandEyePoses (pose-level ML with the protocol's "
-            "noise sigmas on board and robot poses), jaxcal_robot_exact: robot poses taken as exact",
-            "rendered": "OpenCV methods and jaxcal_poses: the same PnP board poses (cv2.solvePnP on "
-            "CharucoDetector corners) and exact robot poses; jaxcal: the detected corners themselves "
-            "(HandEyePixels, reprojection error)",
-        },
-        "targets": {"ratio_max": 0.5, "jaxcal_time_ms_max": 5.0},
-        "device": f"{jax.devices()[0].platform}: {platform.processor() or platform.machine()}",
-        "cpu_count": os.cpu_count(),
-        "jaxcal_version": jaxcal.__version__,
-        "opencv_version": cv2.__version__,
-    }
+    result = {}
+    if "protocol" in parts:
+        print("OpenCV's hand-eye protocol (pose pairs, eye-in-hand):", flush=True)
+        part1 = protocol_part(trials, counts, scales, a.seed)
+        result.update(
+            methods=part1["methods"],
+            jaxcal_rot_ratio_vs_best_opencv=part1["jaxcal_rot_ratio_vs_best_opencv"],
+            jaxcal_trans_ratio_vs_best_opencv=part1["jaxcal_trans_ratio_vs_best_opencv"],
+            best_opencv_rot=part1["best_opencv_rot"],
+            best_opencv_trans=part1["best_opencv_trans"],
+            cramer_rao=part1["cramer_rao"],
+            protocol={k: v for k, v in part1.items() if k != "methods"},
+        )
+    if "rendered" in parts:
+        print("Rendered ChArUco frames (UR5e, eye-to-hand):", flush=True)
+        result["rendered"] = rendered_part(frames, a.seed)
+    if "captures" in parts:
+        print("Rendered captures through jaxcal's hand-eye pipeline:", flush=True)
+        result["captures"] = captures_part(1 if a.quick else a.captures, a.capture_frames, a.seed)
+    result.update(
+        {
+            "data": {
+                "protocol": "identical pose pairs for every method (OpenCV's test protocol, eye-in-hand, "
+                "noisy robot and board poses); jaxcal: HandEyePoses (pose-level ML with the protocol's "
+                "noise sigmas on board and robot poses), jaxcal_robot_exact: robot poses taken as exact",
+                "rendered": "OpenCV methods and jaxcal_poses: the same PnP board poses (cv2.solvePnP on "
+                "CharucoDetector corners) and exact robot poses; jaxcal: the detected corners themselves "
+                "(HandEyePixels, reprojection error)",
+                "captures": "OpenCV methods: PnP poses (jaxcal.vision.estimate_pose, distortion modelled) of the "
+                "detections jaxcal used, and the robot poses; jaxcal: calibrate_hand_eye_capture on the capture",
+            },
+            "targets": {"ratio_max": 0.5, "jaxcal_time_ms_max": 5.0},
+            "device": f"{jax.devices()[0].platform}: {platform.processor() or platform.machine()}",
+            "cpu_count": os.cpu_count(),
+            "jaxcal_version": jaxcal.__version__,
+            "opencv_version": cv2.__version__,
+        }
+    )
     text = json.dumps(result, indent=2)
     print(text)
     if a.json is not None:

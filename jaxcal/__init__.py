@@ -13,6 +13,7 @@ from ._cache import enable_compilation_cache as _enable_compilation_cache  # noq
 # Compiled programs persist across processes (opt out: JAXCAL_NO_CACHE=1; see jaxcal._cache).
 _enable_compilation_cache()
 
+from . import vision as vision  # noqa: E402
 from ._arcfit import ArcData as ArcData  # noqa: E402
 from ._arcfit import ArcFitResult as ArcFitResult  # noqa: E402
 from ._arcfit import fit_arc as fit_arc  # noqa: E402
@@ -25,22 +26,31 @@ from ._correction import KinematicCorrection as KinematicCorrection  # noqa: E40
 from ._handeye import HandEyePixels as HandEyePixels  # noqa: E402
 from ._handeye import HandEyePoses as HandEyePoses  # noqa: E402
 from ._handeye import HandEyeResult as HandEyeResult  # noqa: E402
+from ._handeye import HandEyeVerdict as HandEyeVerdict  # noqa: E402
+from ._handeye import KFoldSpread as KFoldSpread  # noqa: E402
+from ._handeye import MotionConsistency as MotionConsistency  # noqa: E402
 from ._handeye import TouchData as TouchData  # noqa: E402
 from ._handeye import TouchResult as TouchResult  # noqa: E402
+from ._handeye import assess_hand_eye as assess_hand_eye  # noqa: E402
 from ._handeye import calibrate_hand_eye as calibrate_hand_eye  # noqa: E402
 from ._handeye import calibrate_touch as calibrate_touch  # noqa: E402
+from ._handeye import check_motion_consistency as check_motion_consistency  # noqa: E402
 from ._handeye import check_motion_diversity as check_motion_diversity  # noqa: E402
 from ._handeye import check_rotations as check_rotations  # noqa: E402
 from ._handeye import hand_eye_residuals as hand_eye_residuals  # noqa: E402
 from ._handeye import initialise_hand_eye as initialise_hand_eye  # noqa: E402
 from ._handeye import initialise_touch as initialise_touch  # noqa: E402
+from ._handeye import kfold_spread as kfold_spread  # noqa: E402
 from ._handeye import make_hand_eye_pixels as make_hand_eye_pixels  # noqa: E402
 from ._handeye import make_hand_eye_poses as make_hand_eye_poses  # noqa: E402
 from ._handeye import make_touch_data as make_touch_data  # noqa: E402
+from ._handeye import pad_hand_eye as pad_hand_eye  # noqa: E402
 from ._handeye import solve_axzb as solve_axzb  # noqa: E402
 from ._handeye import touch_residuals as touch_residuals  # noqa: E402
 from ._handeye import validate_hand_eye as validate_hand_eye  # noqa: E402
 from ._handeye import validate_touch as validate_touch  # noqa: E402
+from ._handeye_capture import HandEyeRun as HandEyeRun  # noqa: E402
+from ._handeye_capture import calibrate_hand_eye_capture as calibrate_hand_eye_capture  # noqa: E402
 from ._kinematics import KinematicModel as KinematicModel  # noqa: E402
 from ._kinematics import PerturbationScales as PerturbationScales  # noqa: E402
 from ._kinematics import POEModel as POEModel  # noqa: E402
@@ -77,18 +87,25 @@ from .errors import CalibrationError as CalibrationError  # noqa: E402
 from .errors import DatasetError as DatasetError  # noqa: E402
 from .errors import DegenerateMotionError as DegenerateMotionError  # noqa: E402
 from .errors import HandEyeInputError as HandEyeInputError  # noqa: E402
+from .errors import InconsistentPosesError as InconsistentPosesError  # noqa: E402
 from .errors import JaxcalError as JaxcalError  # noqa: E402
 from .errors import LengthMismatchError as LengthMismatchError  # noqa: E402
 from .errors import NonFiniteError as NonFiniteError  # noqa: E402
 from .errors import NotARotationError as NotARotationError  # noqa: E402
+from .errors import NotPositiveDefiniteError as NotPositiveDefiniteError  # noqa: E402
 from .errors import ShapeError as ShapeError  # noqa: E402
 from .errors import SuspectResultError as SuspectResultError  # noqa: E402
 from .errors import TooFewPosesError as TooFewPosesError  # noqa: E402
 from .errors import ToolOffsetInputError as ToolOffsetInputError  # noqa: E402
 from .errors import VisionError as VisionError  # noqa: E402
+from .io.handeye import HandEyeCapture as HandEyeCapture  # noqa: E402
+from .io.handeye import load_hand_eye_capture as load_hand_eye_capture  # noqa: E402
+from .io.handeye_results import write_hand_eye_outputs as write_hand_eye_outputs  # noqa: E402
 from .pipeline import calibrate as calibrate  # noqa: E402
 from .report import write_outputs as write_outputs  # noqa: E402
 from .stages import CalibrationResult as CalibrationResult  # noqa: E402
+from .vision import HandEyeObservations as HandEyeObservations  # noqa: E402
+from .vision import hand_eye_from_detections as hand_eye_from_detections  # noqa: E402
 
 try:
     __version__ = importlib.metadata.version("jaxcal")

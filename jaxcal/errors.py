@@ -63,3 +63,12 @@ class DegenerateMotionError(HandEyeInputError):
 
 class ToolOffsetInputError(JaxcalError):
     """Input that cannot give a tool-offset arc fit; the message names the input."""
+
+
+class InconsistentPosesError(HandEyeInputError):
+    """Robot poses and images disagree: the relative rotation angles between frames differ
+    (poses in the wrong order, a wrong unit or quaternion order, another capture's poses)."""
+
+
+class NotPositiveDefiniteError(HandEyeInputError):
+    """A covariance matrix that is not symmetric positive definite (the message names camera and frame)."""

@@ -1,6 +1,9 @@
-"""Rendered hand-eye data: a UR5e carries a ChArUco plate in front of a fixed camera (eye-to-hand).
+"""Rendered hand-eye data: arrays for the benchmark, and captures on disk for `jaxcal handeye`.
 
-Impure (MuJoCo, OpenCV); never jitted. `render_eye_to_hand` moves the wrist
+Impure (MuJoCo, OpenCV); never jitted. `simulate_hand_eye` writes a capture
+(`jaxcal.io.handeye`'s format) of any target kind, eye-in-hand or
+eye-to-hand, the flange a free body at random wrist poses around a look-at
+point (no arm: only the camera and the target are in view). `render_eye_to_hand` moves the wrist
 through random poses about the zero configuration, renders the camera,
 detects the ChArUco corners with `cv2.aruco.CharucoDetector` and estimates
 each board pose with `cv2.solvePnP`, so the same frames feed jaxcal's
@@ -8,13 +11,20 @@ image-feature solver (the corners) and OpenCV's pose-pair solvers (the PnP
 poses). Used by `benchmarks/handeye.py` and the tests.
 """
 
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
 import cv2
+import mujoco  # noqa: E402  (after .scene, which selects the GL backend)
 import numpy as np
 
 from .._kinematics import forward_kinematics
+from ..io._files import atomic_directory
+from ..io.handeye import HandEyeCamera, write_hand_eye_description
 from ..markers import TargetSpec
 from ..robots import load_robot
-from .scene import CameraSpec, PlateSpec, build_scene
+from .scene import CameraSpec, PlateSpec, Scene, add_plate, build_scene
 from .simulate import facing_mount, look_at
 
 
@@ -104,3 +114,261 @@ def render_eye_to_hand(
         T_ee_board=T_flange_board,
         tries=tries,
     )
+
+
+# --------------------------------------------------------------------------- captures on disk
+
+
+@dataclass(frozen=True)
+class HandEyeSimConfig:
+    """A rendered hand-eye capture (see `simulate_hand_eye`).
+
+    - `target`: what is printed on the plate.
+    - `eye_in_hand`: camera on the flange and the target on the table; else the
+      camera fixed and the target on the flange.
+    - `frames`, `resolution` (W, H px), `fovy_deg`, `distortion` (OpenCV k1 k2 p1 p2 k3).
+    - `distance` (m): camera to target centre; each view varies it by +-15 %.
+    - `tilt_deg`: the view direction turns up to this far from the target's
+      normal (at least 8 deg); `roll_deg`: the camera (eye-in-hand) or target
+      (eye-to-hand) turns up to this far about the line of sight.
+    - `pose_format`, `translation_unit`, `rotation_unit`: how `poses.csv` is written.
+    - `robot_error_fraction`: this share of the frames gets its recorded robot
+      pose off by `robot_error_deg` (about a random axis) and `robot_error_mm`
+      (in a random direction), in the flange frame; the truth lists them.
+    - `intrinsics_known`: write K and the distortion (else `null`: self-calibrated).
+    """
+
+    target: TargetSpec = field(
+        default_factory=lambda: TargetSpec("chessboard", squares=(8, 7), square_length=0.025, name="board")
+    )
+    eye_in_hand: bool = True
+    frames: int = 16
+    seed: int = 0
+    resolution: tuple[int, int] = (640, 480)
+    fovy_deg: float = 50.0
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    distance: float = 0.5
+    tilt_deg: float = 35.0
+    roll_deg: float = 90.0
+    pose_format: str = "xyz_quat"
+    translation_unit: str = "m"
+    rotation_unit: str = "rad"
+    robot_error_fraction: float = 0.0
+    robot_error_deg: float = 2.0
+    robot_error_mm: float = 5.0
+    intrinsics_known: bool = True
+
+
+#: Ground truth of the simulated rigs (flange frame / base frame, m, rad).
+T_EE_CAM = _pose([0.08, -0.12, 1.55], [0.045, -0.03, 0.07])
+BOARD_CENTRE_EYE_IN_HAND = np.array([0.6, 0.05, 0.02])
+BOARD_CENTRE_EYE_TO_HAND = np.array([0.6, 0.0, 0.2])
+#: Eye-to-hand: the fixed camera looks at the target's mean position from this direction.
+CAMERA_DIRECTION_EYE_TO_HAND = np.array([-0.05, -0.8, 0.6]) / np.linalg.norm([-0.05, -0.8, 0.6])
+
+
+def _turn(axis, angle) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(axis, np.float64) / np.linalg.norm(axis) * angle)[0]
+
+
+def _tilted(n: np.ndarray, rng, tilt_deg: float) -> np.ndarray:
+    """`n` turned by 8 deg to `tilt_deg` about a random axis perpendicular to it."""
+    a = rng.normal(size=3)
+    a -= (a @ n) * n
+    angle = np.radians(rng.uniform(min(8.0, tilt_deg), tilt_deg))
+    return _turn(a, angle) @ n
+
+
+def _in_view(points_base, T_base_cam, K, size, margin: float = 12.0) -> bool:
+    T = np.linalg.inv(T_base_cam)
+    p = points_base @ T[:3, :3].T + T[:3, 3]
+    if np.any(p[:, 2] <= 0.05):
+        return False
+    uv = p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    return bool(np.all((uv >= margin) & (uv <= np.asarray(size) - 1 - margin)))
+
+
+def _views(config: HandEyeSimConfig, rng, K, T_ee_board, T_base_board):
+    """True flange poses `(frames, 4, 4)` and the fixed camera pose (eye-to-hand) or None."""
+    spec = config.target
+    outline = spec.image()[1]  # the plate's outer corners: the whole plate must be in view
+    size = config.resolution
+    poses, tries = [], 0
+    if config.eye_in_hand:
+        c0 = T_base_board[:3, :3] @ spec.points().mean(0) + T_base_board[:3, 3]
+        n0 = T_base_board[:3, :3] @ spec.front_normal()  # from the board toward its viewer
+        while len(poses) < config.frames:
+            tries += 1
+            if tries > 200 * config.frames:
+                raise RuntimeError("simulate_hand_eye: could not place the views; lower tilt_deg or distance")
+            look = c0 + np.append(rng.uniform(-0.03, 0.03, 2), 0.0)
+            eye = look + config.distance * rng.uniform(0.85, 1.15) * _tilted(n0, rng, config.tilt_deg)
+            up = _turn(look - eye, np.radians(rng.uniform(-config.roll_deg, config.roll_deg))) @ [
+                0.0,
+                1.0,
+                0.0,
+            ]
+            T_base_cam = look_at(eye, look, up=up)
+            corners = outline @ T_base_board[:3, :3].T + T_base_board[:3, 3]
+            if _in_view(corners, T_base_cam, K, size):
+                poses.append(T_base_cam @ np.linalg.inv(T_EE_CAM))
+        return np.stack(poses), None
+    camera = BOARD_CENTRE_EYE_TO_HAND + config.distance * CAMERA_DIRECTION_EYE_TO_HAND
+    T_base_cam = look_at(camera, BOARD_CENTRE_EYE_TO_HAND)
+    while len(poses) < config.frames:
+        tries += 1
+        if tries > 200 * config.frames:
+            raise RuntimeError("simulate_hand_eye: could not place the views; lower tilt_deg or distance")
+        centre = BOARD_CENTRE_EYE_TO_HAND + rng.uniform(-0.1, 0.1, 3) * config.distance
+        to_cam = camera - centre
+        n = _tilted(to_cam / np.linalg.norm(to_cam), rng, config.tilt_deg)
+        up = _turn(n, np.radians(rng.uniform(-config.roll_deg, config.roll_deg))) @ [0.0, 0.0, 1.0]
+        T_base_board = facing_mount(spec, n, centre, up=up)
+        corners = outline @ T_base_board[:3, :3].T + T_base_board[:3, 3]
+        if _in_view(corners, T_base_cam, K, size):
+            poses.append(T_base_board @ np.linalg.inv(T_ee_board))
+    return np.stack(poses), T_base_cam
+
+
+def _perturb(T, rng, deg: float, mm: float) -> np.ndarray:
+    a = rng.normal(size=3)
+    d = rng.normal(size=3)
+    return T @ _pose(np.radians(deg) * a / np.linalg.norm(a), 1e-3 * mm * d / np.linalg.norm(d))
+
+
+def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False) -> Path:
+    """Render a hand-eye capture with MuJoCo and write it in the capture format (`jaxcal.io.handeye`).
+
+    The flange is a free (mocap) body posed at random wrist poses around a
+    look-at point: eye-in-hand, the camera on the flange views a target on
+    the table from `distance`, the view direction tilted by up to `tilt_deg`
+    from the target's normal and rolled by up to `roll_deg`; eye-to-hand, a
+    fixed camera views the target carried on the flange, the target moved by
+    up to a tenth of `distance` along each axis and turned likewise. Every view keeps the whole plate in the
+    image. `truth.json` holds the true transforms and robot poses.
+
+    **Returns:** the capture directory.
+    """
+    rng = np.random.default_rng(config.seed)
+    spec = config.target
+    width, height = config.resolution
+    T_ee_board = facing_mount(spec, (0.0, 0.0, 1.0), (0.0, 0.0, 0.03), up=(1.0, 0.0, 0.0))
+    T_base_board = facing_mount(spec, (0.0, 0.0, 1.0), BOARD_CENTRE_EYE_IN_HAND, up=(1.0, 0.0, 0.0))
+    probe = CameraSpec("cam0", width, height, config.fovy_deg, np.eye(4), "world", tuple(config.distortion))
+    T_true, T_base_cam = _views(config, rng, probe.K, T_ee_board, T_base_board)
+    if config.eye_in_hand:
+        cam = CameraSpec("cam0", width, height, config.fovy_deg, T_EE_CAM, "flange", tuple(config.distortion))
+        plate = PlateSpec(spec, "world", T_base_board)
+    else:
+        cam = CameraSpec(
+            "cam0", width, height, config.fovy_deg, T_base_cam, "world", tuple(config.distortion)
+        )
+        plate = PlateSpec(spec, "flange", T_ee_board)
+    n_bad = int(round(config.robot_error_fraction * config.frames))
+    bad = np.sort(rng.choice(config.frames, n_bad, replace=False)) if n_bad else np.zeros(0, int)
+    T_recorded = T_true.copy()
+    for f in bad:
+        T_recorded[f] = _perturb(T_true[f], rng, config.robot_error_deg, config.robot_error_mm)
+    names = [f"{i:04d}" for i in range(config.frames)]
+    scene = _mocap_scene(plate, cam)
+    with atomic_directory(out, overwrite=overwrite, kind="dataset") as tmp:
+        (tmp / "images" / cam.name).mkdir(parents=True)
+        try:
+            for name, T in zip(names, T_true):
+                scene.set_flange(T)
+                image = scene.render(cam.name)
+                cv2.imwrite(
+                    str(tmp / "images" / cam.name / f"{name}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+                )
+        finally:
+            scene.close()
+        write_hand_eye_description(
+            tmp,
+            eye_in_hand=config.eye_in_hand,
+            cameras=[
+                HandEyeCamera(
+                    cam.name,
+                    width,
+                    height,
+                    cam.K if config.intrinsics_known else None,
+                    cam.dist,
+                    f"{cam.name}_optical_frame",
+                )
+            ],
+            target=spec,
+            frames=names,
+            T_base_ee=T_recorded,
+            pose_format=config.pose_format,
+            translation_unit=config.translation_unit,
+            rotation_unit=config.rotation_unit,
+            description=f"rendered by jaxcal simulate-handeye (seed {config.seed})",
+        )
+        truth = {
+            "arrangement": "eye_in_hand" if config.eye_in_hand else "eye_to_hand",
+            "T_robot_cam": {cam.name: (T_EE_CAM if config.eye_in_hand else T_base_cam).tolist()},
+            "T_robot_board": (T_base_board if config.eye_in_hand else T_ee_board).tolist(),
+            "K": {cam.name: cam.K.tolist()},
+            "T_base_ee": T_true.tolist(),
+            "corrupted_frames": [names[f] for f in bad],
+            "robot_error": {"deg": config.robot_error_deg, "mm": config.robot_error_mm},
+            "config": {k: v for k, v in asdict(config).items() if k != "target"},
+        }
+        (tmp / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+    return Path(out)
+
+
+class _MocapScene(Scene):
+    """A `Scene` whose flange is a mocap body posed directly (no arm)."""
+
+    def set_flange(self, T_base_ee) -> None:
+        T = np.asarray(T_base_ee, np.float64)
+        self.data.mocap_pos[0] = T[:3, 3]
+        q = np.zeros(4)
+        mujoco.mju_mat2Quat(q, np.ascontiguousarray(T[:3, :3]).ravel())
+        self.data.mocap_quat[0] = q
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+
+
+def _mocap_scene(plate: PlateSpec, cam: CameraSpec) -> _MocapScene:
+    spec = mujoco.MjSpec()
+    spec.modelname = "jaxcal_handeye"
+    spec.visual.global_.offwidth, spec.visual.global_.offheight = cam.width, cam.height
+    spec.visual.headlight.ambient = [0.45, 0.45, 0.45]
+    spec.visual.headlight.diffuse = [0.5, 0.5, 0.5]
+    spec.visual.quality.shadowsize = 0
+    spec.add_texture(
+        name="sky",
+        type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+        builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+        rgb1=[0.75, 0.82, 0.9],
+        rgb2=[0.25, 0.3, 0.38],
+        width=256,
+        height=256,
+    )
+    world = spec.worldbody
+    world.add_light(pos=[0.0, 0.0, 3.0], dir=[0.0, 0.0, -1.0], diffuse=[0.5, 0.5, 0.5], castshadow=False)
+    world.add_geom(  # a grey table under the eye-in-hand target
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        pos=[0.0, 0.0, 0.0],
+        size=[3.0, 3.0, 0.1],
+        rgba=[0.5, 0.52, 0.55, 1.0],
+        contype=0,
+        conaffinity=0,
+    )
+    flange = world.add_body(name="flange", mocap=True)
+    flange.add_geom(
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        fromto=[0.0, 0.0, -0.02, 0.0, 0.0, 0.0],
+        size=[0.035, 0.0, 0.0],
+        rgba=[0.3, 0.3, 0.3, 1.0],
+        contype=0,
+        conaffinity=0,
+    )
+    bodies = {"world": world, "flange": flange}
+    add_plate(spec, bodies[plate.link], plate, 0)
+    T = np.asarray(cam.T_mount_cam, np.float64)
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(T[:3, :3] @ np.diag([1.0, -1.0, -1.0])).ravel())
+    bodies[cam.mount].add_camera(name=cam.name, pos=T[:3, 3], quat=q, fovy=float(cam.fovy_deg))
+    return _MocapScene(spec, [plate], [cam], ("world", "flange"), ())

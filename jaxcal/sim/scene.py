@@ -179,7 +179,8 @@ class Scene:
 # --------------------------------------------------------------------------- building
 
 
-def _add_plate(spec, parent, plate: PlateSpec, index: int) -> None:
+def add_plate(spec, parent, plate: PlateSpec, index: int) -> None:
+    """Add `plate`'s textured face (its `TargetSpec.image()`) and a backing board to body `parent` of `spec`."""
     target = plate.target
     image, corners = target.image()
     rgb = np.ascontiguousarray(np.repeat(image[:, :, None], 3, axis=2))
@@ -366,7 +367,7 @@ def build_scene(
     bodies["world"] = world
 
     for i, plate in enumerate(plates):
-        _add_plate(spec, bodies[plate.link], plate, i)
+        add_plate(spec, bodies[plate.link], plate, i)
     for cam in cameras:
         T = np.asarray(cam.T_mount_cam, np.float64)
         bodies[cam.mount].add_camera(

@@ -1,4 +1,4 @@
-"""Marker detection: ChArUco corners and single-ArUco corners in one image, or many files."""
+"""Target detection in one image, or many files: ChArUco corners, ArUco markers and grids, chessboards, circle grids."""
 
 import os
 import threading
@@ -13,7 +13,7 @@ import numpy as np
 
 from .._progress import progress as progress_bar
 from ..errors import VisionError
-from ..markers import TargetSpec, aruco_dictionary
+from ..markers import GRID_KINDS, TargetSpec, aruco_dictionary
 
 # Fewest features that still fix a pose: 4 ChArUco corners, or the 4 corners of a marker.
 MIN_POINTS = 4
@@ -28,9 +28,10 @@ class Detection:
     """One target's features found in one image.
 
     - `ids`: (n,) int, feature ids = row indices into `TargetSpec.points()`
-      (ChArUco: OpenCV's corner ids; single ArUco: the corner 0..3 in the order
-      top-left, top-right, bottom-right, bottom-left, i.e.
-      `4 * (marker id - first_id) + corner`). Sorted ascending.
+      (ChArUco: OpenCV's corner ids; single ArUco and ArUco grids: the corner
+      0..3 in the order top-left, top-right, bottom-right, bottom-left, i.e.
+      `4 * (marker id - first_id) + corner`; chessboards and circle grids:
+      the grid index, see `jaxcal.markers`). Sorted ascending.
     - `pixels`: (n, 2) float64, where they are in the (distorted) image, px,
       OpenCV's pixel-centre convention (the centre of pixel (0, 0) is (0, 0)),
       sub-pixel refined.
@@ -91,8 +92,10 @@ def target_points(target: TargetSpec) -> np.ndarray:
 def _detector(target: TargetSpec, K: tuple | None, dist: tuple | None, thread: int):
     # Keyed on the spec's printed fields (its `name` does not take part in ==),
     # and on the thread: OpenCV's detectors are not documented as thread-safe.
-    if target.kind == "aruco":
+    if target.kind in ("aruco", "aruco_grid"):
         return cv2.aruco.ArucoDetector(aruco_dictionary(target.dictionary), _aruco_parameters())
+    if target.kind in GRID_KINDS:
+        return None
     charuco = cv2.aruco.CharucoParameters()
     if K is not None:
         charuco.cameraMatrix = np.asarray(K, np.float64).reshape(3, 3)
@@ -141,7 +144,12 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
     corners are interpolated through the camera model), then `cornerSubPix` on
     the chessboard corners with a window kept inside the white gap between
     the corner and the nearest marker. Single ArUco: `ArucoDetector` with
-    `CORNER_REFINE_SUBPIX`, the marker whose id is `target.first_id`.
+    `CORNER_REFINE_SUBPIX`, the marker whose id is `target.first_id`. ArUco
+    (or AprilTag) grid: every board marker seen once. Chessboard:
+    `findChessboardCornersSB` (exhaustive, accurate); circle grids:
+    `findCirclesGrid`; both find the whole grid or nothing, and their ids are
+    then fixed so that the target frame does not depend on how the board
+    lies in the image (`_orient_grid`).
 
     **Arguments:**
 
@@ -155,7 +163,11 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
     """
     grey = _grey(image)
     K_key, dist_key = _camera_key(K, dist)
+    if target.kind in GRID_KINDS:
+        return _detect_grid(grey, target)
     detector = _detector(target, K_key, dist_key, threading.get_ident())
+    if target.kind == "aruco_grid":
+        return _detect_marker_grid(grey, target, detector)
     if target.kind == "aruco":
         corners, ids, _ = detector.detectMarkers(grey)
         if ids is None:
@@ -176,6 +188,120 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
             grey, np.ascontiguousarray(pixels), (half, half), (-1, -1), _SUBPIX_CRITERIA
         )
     return Detection(ids, pixels)
+
+
+def _detect_marker_grid(grey: np.ndarray, target: TargetSpec, detector) -> "Detection | None":
+    """The 4 corners of every board marker seen exactly once, ids `4 (id - first_id) + corner`."""
+    corners, ids, _ = detector.detectMarkers(grey)
+    if ids is None:
+        return None
+    ids = ids.ravel().astype(np.int64) - target.first_id
+    inside = (ids >= 0) & (ids < target.num_markers)
+    unique, counts = np.unique(ids[inside], return_counts=True)
+    keep = inside & np.isin(ids, unique[counts == 1])  # a repeated id is ambiguous: drop it
+    if not keep.any():
+        return None
+    feature = (4 * ids[keep][:, None] + np.arange(4)).ravel()
+    pixels = np.concatenate([np.asarray(corners[k]).reshape(4, 2) for k in np.flatnonzero(keep)])
+    order = np.argsort(feature)
+    return Detection(feature[order], pixels[order])
+
+
+def _detect_grid(grey: np.ndarray, target: TargetSpec) -> "Detection | None":
+    if target.kind == "chessboard":
+        flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+        ok, pixels = cv2.findChessboardCornersSB(grey, target.pattern, flags=flags)
+    else:
+        flags = cv2.CALIB_CB_SYMMETRIC_GRID if target.kind == "circles" else cv2.CALIB_CB_ASYMMETRIC_GRID
+        ok, pixels = cv2.findCirclesGrid(grey, target.pattern, flags=flags)
+        if not ok:  # the clustering variant copes with stronger perspective
+            ok, pixels = cv2.findCirclesGrid(grey, target.pattern, flags=flags | cv2.CALIB_CB_CLUSTERING)
+    if not ok or pixels is None:
+        return None
+    pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
+    ids = _orient_grid(grey, target, pixels)
+    if ids is None:
+        return None
+    order = np.argsort(ids)
+    return Detection(ids[order], pixels[order])
+
+
+@lru_cache(maxsize=32)
+def _grid_relabellings(target: TargetSpec) -> tuple[np.ndarray, ...]:
+    """Every relabelling of the grid's points by a turn or a mirror image that maps
+    the point set onto itself (the labellings OpenCV's grid finders may return)."""
+    P = target_points(target)[:, :2]
+    c = P.mean(0)
+    scale = np.max(np.abs(P - c)) + 1e-12
+    out = []
+    for mirror in (1.0, -1.0):
+        for k in range(4):
+            a = 0.5 * np.pi * k
+            R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ np.diag([mirror, 1.0])
+            Q = (P - c) @ R.T + c
+            d = np.linalg.norm(Q[:, None] - P[None], axis=-1)
+            perm = np.argmin(d, axis=1)
+            if np.max(d[np.arange(len(P)), perm]) < 1e-9 * scale and len(set(perm.tolist())) == len(P):
+                out.append(perm)
+    return tuple(out)
+
+
+def _orient_grid(grey: np.ndarray, target: TargetSpec, pixels: np.ndarray) -> "np.ndarray | None":
+    """Feature ids for a full grid in OpenCV's order, or None for a grid that is not the target.
+
+    OpenCV's grid finders order the points by how the grid lies in the image,
+    so the same board turned by 180 degrees comes back with id 0 at the other
+    end. Of the relabellings that map the grid onto itself, keep those whose
+    plane-to-image homography preserves orientation (the target frame's z
+    points away from the camera, so a board seen from the front has a
+    positive Jacobian determinant), then, for a chessboard, the one that puts
+    the most squares on their printed colour (square (0, 0) black), sampled
+    at every square's centre through the homography. A chessboard grid with
+    more than `MAX_WRONG_SQUARES` of its squares on the wrong colour is
+    refused: the finder took the board's outer edge for a row of corners (a
+    grid shifted by one square). A symmetric target (`TargetSpec.symmetric`)
+    keeps its first candidate: the hand-eye front end resolves it from the
+    robot's motion.
+    """
+    P = target_points(target)[:, :2]
+    best, best_score = None, -np.inf
+    for perm in _grid_relabellings(target):
+        H, _ = cv2.findHomography(P[perm], pixels, 0)
+        if H is None:
+            continue
+        c = np.append(P.mean(0), 1.0)
+        w = H[2] @ c
+        if np.linalg.det(H) * w <= 0:  # mirrored: not the printed face
+            continue
+        score = _chessboard_score(grey, target, H) if target.kind == "chessboard" else 0.0
+        if score > best_score:
+            best, best_score = perm, score
+    if best is None or (target.kind == "chessboard" and best_score < 1.0 - 2.0 * MAX_WRONG_SQUARES):
+        return None
+    return best
+
+
+#: Share of a chessboard's squares allowed on the wrong colour (sampling at an edge, glare).
+MAX_WRONG_SQUARES = 0.03
+
+
+def _chessboard_score(grey: np.ndarray, target: TargetSpec, H: np.ndarray) -> float:
+    """Share of the squares whose centre is on its printed side of the black/white threshold
+    (square (0, 0) black), minus the share on the wrong side: 1 for a perfect match, -1 inverted."""
+    cols, rows = target.squares
+    b, a = np.mgrid[0:rows, 0:cols]
+    centres = np.stack([(a.ravel() + 0.5), (b.ravel() + 0.5)], 1) * target.square_length
+    uv = cv2.perspectiveTransform(centres.reshape(-1, 1, 2), H).reshape(-1, 2)
+    h, w = grey.shape
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+    u, v = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1]).T
+    value = grey[v, u].astype(np.float64)
+    black = (a + b).ravel() % 2 == 0
+    if not (black & inside).any() or not (~black & inside).any():
+        return -1.0
+    threshold = 0.5 * (np.median(value[black & inside]) + np.median(value[~black & inside]))
+    right = np.where(black, value < threshold, value > threshold)[inside]
+    return float(2.0 * right.mean() - 1.0)
 
 
 # --------------------------------------------------------------------------- many files

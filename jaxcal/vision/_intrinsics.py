@@ -1,4 +1,4 @@
-"""Camera intrinsics from ChArUco views (Zhang's method through OpenCV)."""
+"""Camera intrinsics from views of a planar board (Zhang's method through OpenCV)."""
 
 from collections.abc import Sequence
 
@@ -22,7 +22,7 @@ def calibrate_intrinsics(
     *,
     flags: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Camera matrix and distortion from ChArUco corners seen in several views.
+    """Camera matrix and distortion from a board's features seen in several views.
 
     `cv2.calibrateCamera` on the corners (object points from
     `target.points()`), OpenCV's 5-coefficient model unless `flags` says
@@ -32,21 +32,22 @@ def calibrate_intrinsics(
 
     - `detections`: one `Detection` of `target` per view; views with fewer than
       6 corners, or all on one line, are skipped.
-    - `target`: a ChArUco target.
+    - `target`: a board (any kind but a single ArUco marker).
     - `image_size`: `(width, height)`, px.
     - `flags`: OpenCV `CALIB_*` flags.
 
     **Returns:** `(K (3, 3) px, dist (5,), rms_px)`, `rms_px` OpenCV's
     reprojection RMS over all corners.
 
-    **Raises:** `VisionError` for a target that is not ChArUco, fewer than 3
+    **Raises:** `VisionError` for a single ArUco marker, fewer than 3
     usable views, or views too alike (the board's normal varies by less than
     10 degrees, or the focal length and principal point stay undetermined).
     """
     where = f"target {target.name!r}"
-    if target.kind != "charuco":
+    if target.kind == "aruco":
         raise VisionError(
-            f"{where}: intrinsics need a ChArUco board (a single ArUco marker has too few corners)"
+            f"{where}: intrinsics need a board (ChArUco, chessboard, circle or ArUco grid); "
+            "a single ArUco marker has too few corners"
         )
     width, height = (int(v) for v in image_size)
     if width <= 0 or height <= 0:

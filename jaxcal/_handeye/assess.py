@@ -1,0 +1,241 @@
+"""Verdicts on a hand-eye result: the k-fold spread of its transforms, and plausibility checks (NumPy).
+
+Run outside jit on a `HandEyeResult`. `kfold_spread` re-solves with each
+fold of frames left out through the caller's compiled solver (the mask is
+data, so no new compilation) and turns the fold estimates into a
+delete-a-group jackknife standard deviation, comparable to the covariance's
+(`HandEyeResult.std_robot_cam`). `assess_hand_eye` says whether the result
+can be trusted: `status` is `"ok"` or `"suspect"`, with the reasons, and
+notes that do not change the status.
+"""
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import numpy as np
+import optimistix as optx
+
+from .consistency import MotionConsistency, rotation_angle
+from .data import HandEyeData, HandEyePixels
+from .solve import HandEyeResult
+
+#: Stage names, in `HandEyeResult.stage_result` order.
+STAGES = ("robust", "plain")
+
+
+def _log_rotation(R: np.ndarray) -> np.ndarray:
+    angle = rotation_angle(R)
+    s = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    n = np.linalg.norm(s, axis=-1, keepdims=True)
+    return np.where(n > 1e-12, s / np.where(n > 1e-12, n, 1.0), 0.0) * angle[..., None]
+
+
+def pose_difference(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
+    """`(..., 6)`: translation difference (m) and parent-frame rotation vector of $R R_{ref}^T$ (rad),
+    the error convention of `HandEyeResult`'s standard deviations."""
+    T, T_ref = np.asarray(T, np.float64), np.asarray(T_ref, np.float64)
+    dR = T[..., :3, :3] @ np.swapaxes(T_ref[..., :3, :3], -1, -2)
+    return np.concatenate([T[..., :3, 3] - T_ref[..., :3, 3], _log_rotation(dR)], axis=-1)
+
+
+@dataclass(frozen=True)
+class KFoldSpread:
+    """The spread of the transforms over folds of frames (delete-a-group jackknife).
+
+    With $K$ folds and $\\theta_k$ the estimate without fold $k$,
+    $\\mathrm{var} = \\frac{K-1}{K} \\sum_k (\\theta_k - \\bar\\theta)^2$ per
+    component, which estimates the full-data estimator's variance.
+
+    - `folds`: $K$; `fold_frames`: the frames each fold leaves out.
+    - `std_robot_cam` `(cameras, 6)`, `std_robot_board` `(6,)`: translation (m)
+      and rotation (rad), as `HandEyeResult.std_robot_cam`.
+    - `converged` `(folds,)`: whether each fold's solve succeeded.
+    """
+
+    folds: int
+    fold_frames: tuple[tuple[int, ...], ...]
+    std_robot_cam: np.ndarray
+    std_robot_board: np.ndarray
+    converged: np.ndarray
+
+
+def kfold_spread(
+    solve: Callable[[HandEyeData], HandEyeResult],
+    data: HandEyeData,
+    result: HandEyeResult,
+    *,
+    folds: int = 10,
+    min_frames: int = 8,
+) -> "KFoldSpread | None":
+    """Re-solve `folds` times, each time without one fold of the kept frames.
+
+    Frames are dealt to folds in turn (frame $i$ of the kept ones to fold
+    $i \\bmod K$); groups the full solve rejected stay out of every fold.
+
+    **Arguments:** `solve` the (compiled) solver that gave `result` from
+    `data`; `folds` $K$ (at most the number of kept frames); `min_frames`:
+    below this many kept frames, return `None` (too few to leave any out).
+
+    **Returns:** a `KFoldSpread`, or `None`.
+    """
+    rejected = np.asarray(result.rejected)
+    mask = np.asarray(data.mask)
+    per_group = mask.any(-1) if isinstance(data, HandEyePixels) else mask
+    kept = np.flatnonzero((per_group & ~rejected).any(0))
+    if len(kept) < max(min_frames, 2):
+        return None
+    K = min(folds, len(kept))
+    base = mask & ~(rejected[..., None] if isinstance(data, HandEyePixels) else rejected)
+    fold_frames = tuple(tuple(int(f) for f in kept[k::K]) for k in range(K))
+    X, Y, ok = [], [], []
+    for frames in fold_frames:
+        m = base.copy()
+        m[:, list(frames)] = False
+        r = solve(eqx.tree_at(lambda d: d.mask, data, np.asarray(m)))
+        X.append(np.asarray(r.T_robot_cam))
+        Y.append(np.asarray(r.T_robot_board))
+        ok.append(bool(r.result == optx.RESULTS.successful))
+    X, Y = np.stack(X), np.stack(Y)
+    eX = pose_difference(X, np.asarray(result.T_robot_cam)[None])  # (K, C, 6)
+    eY = pose_difference(Y, np.asarray(result.T_robot_board)[None])  # (K, 6)
+
+    def jackknife(e):
+        return np.sqrt((K - 1) / K * np.sum((e - e.mean(0)) ** 2, axis=0))
+
+    return KFoldSpread(K, fold_frames, jackknife(eX), jackknife(eY), np.asarray(ok))
+
+
+@dataclass(frozen=True)
+class HandEyeVerdict:
+    """Whether a hand-eye result can be trusted.
+
+    - `status`: `"ok"` or `"suspect"`.
+    - `reasons`: why it is suspect (empty when ok).
+    - `notes`: what a user should know that does not make it suspect
+      (inconsistent or rejected frames, the k-fold spread against the std).
+    """
+
+    status: str
+    reasons: tuple[str, ...]
+    notes: tuple[str, ...]
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def _message(code) -> str:
+    if bool(code == optx.RESULTS.nonlinear_max_steps_reached):
+        return "it stopped at its step cap"
+    if bool(code == optx.RESULTS.nonlinear_divergence):
+        return "it diverged"
+    return "optimistix reported failure"
+
+
+def _labels(frames, frame_names) -> str:
+    names = [str(frame_names[f]) if frame_names is not None else str(f) for f in frames]
+    return ", ".join(names[:20]) + (f" and {len(names) - 20} more" if len(names) > 20 else "")
+
+
+def std_ratio(kfold: KFoldSpread, result: HandEyeResult) -> np.ndarray:
+    """`(cameras, 2)`: k-fold spread over reported std, for translation and rotation (norms of 3)."""
+    std = np.asarray(result.std_robot_cam)
+    spread = kfold.std_robot_cam
+    return np.stack(
+        [
+            np.linalg.norm(spread[:, :3], axis=1) / np.maximum(np.linalg.norm(std[:, :3], axis=1), 1e-300),
+            np.linalg.norm(spread[:, 3:], axis=1) / np.maximum(np.linalg.norm(std[:, 3:], axis=1), 1e-300),
+        ],
+        axis=1,
+    )
+
+
+def assess_hand_eye(
+    result: HandEyeResult,
+    *,
+    kfold: "KFoldSpread | None" = None,
+    consistency: "MotionConsistency | None" = None,
+    frame_names=None,
+    camera_names=None,
+    max_steps: int | None = None,
+    max_residual_ratio: float = 3.0,
+    max_start_rotation_deg: float = 5.0,
+    max_start_translation_m: float = 0.05,
+    max_rejected_fraction: float = 0.3,
+) -> HandEyeVerdict:
+    """Plausibility checks of a hand-eye result (call outside jit).
+
+    Suspect when: a Levenberg-Marquardt stage did not converge (its own
+    result code and step count); the whitened residual RMS exceeds
+    `max_residual_ratio` (pixels: the reprojection RMS is that many times the
+    stated detector noise); a camera ends further than
+    `max_start_rotation_deg` / `max_start_translation_m` from the closed-form
+    start (the solve went where the data's closed form does not lead); or more
+    than `max_rejected_fraction` of the observed frames were rejected.
+    Notes: frames the rotation-angle pre-check found inconsistent, rejected
+    frames, and a k-fold spread that differs from the reported std by more
+    than 2x (either way).
+    """
+    reasons, notes = [], []
+    cams = camera_names or [f"camera {c}" for c in range(np.shape(result.T_robot_cam)[0])]
+    steps = np.asarray(result.stage_steps)
+    for i, name in enumerate(STAGES):
+        code_i = jax.tree.map(lambda x, i=i: x[i], result.stage_result)
+        if not bool(code_i == optx.RESULTS.successful):
+            cap = f" (max_steps={max_steps})" if max_steps is not None else ""
+            reasons.append(
+                f"the {name} solve did not converge: {_message(code_i)} after {int(steps[i])} steps{cap}"
+            )
+    ratio = float(result.residual_rms)
+    if ratio > max_residual_ratio:
+        if np.isfinite(float(result.pixel_rms)):
+            sigma = float(result.pixel_rms) / max(ratio, 1e-300)
+            reasons.append(
+                f"the reprojection RMS, {float(result.pixel_rms):.3g} px, is {ratio:.1f} times the detector's "
+                f"noise ({sigma:.3g} px): the robot poses and the images do not fit one hand-eye transform"
+            )
+        else:
+            reasons.append(
+                f"the whitened pose-error RMS is {ratio:.1f} (about 1 expected): the robot poses and the "
+                "board poses do not fit one hand-eye transform"
+            )
+    X, X0 = np.asarray(result.T_robot_cam), np.linalg.inv(np.asarray(result.T_cam_robot_start))
+    for c, name in enumerate(cams):
+        rot = np.degrees(rotation_angle(X[c, :3, :3] @ X0[c, :3, :3].T))
+        trans = np.linalg.norm(X[c, :3, 3] - X0[c, :3, 3])
+        if rot > max_start_rotation_deg or trans > max_start_translation_m:
+            reasons.append(
+                f"{name}'s pose ended {rot:.1f} deg and {1e3 * trans:.0f} mm from the closed-form start "
+                f"(limits {max_start_rotation_deg:g} deg, {1e3 * max_start_translation_m:.0f} mm)"
+            )
+    rejected = np.asarray(result.rejected).any(0)
+    observed = rejected | np.isfinite(np.asarray(result.group_rms)).any(0)
+    n_obs = max(int(observed.sum()), 1)
+    if rejected.sum() > max_rejected_fraction * n_obs:
+        reasons.append(
+            f"{int(rejected.sum())} of {n_obs} frames were rejected as outliers "
+            f"(more than {100 * max_rejected_fraction:.0f}%)"
+        )
+    elif rejected.any():
+        notes.append(f"rejected as outliers: frames {_labels(np.flatnonzero(rejected), frame_names)}")
+    if consistency is not None and consistency.inconsistent.any():
+        notes.append(
+            f"frames {_labels(consistency.inconsistent_frames(), frame_names)}: the robot's rotation between "
+            f"them and most other frames differs from the camera's by more than {consistency.tolerance_deg:g} deg"
+        )
+    if kfold is not None:
+        r = std_ratio(kfold, result)
+        for c, name in enumerate(cams):
+            for k, what in enumerate(("translation", "rotation")):
+                if not 0.5 <= r[c, k] <= 2.0:
+                    notes.append(
+                        f"{name} {what}: the {kfold.folds}-fold spread is {r[c, k]:.2f} times the reported std; "
+                        + (
+                            "the std is optimistic (unmodelled errors): trust the k-fold spread"
+                            if r[c, k] > 2.0
+                            else "the std is conservative"
+                        )
+                    )
+    return HandEyeVerdict("suspect" if reasons else "ok", tuple(reasons), tuple(notes))

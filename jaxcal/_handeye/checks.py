@@ -1,0 +1,98 @@
+"""Input checks shared by the hand-eye and TCP-touch data (NumPy, outside jit)."""
+
+import numpy as np
+
+from ..errors import DegenerateMotionError, NonFiniteError, NotARotationError, ShapeError
+
+MIN_POSES = 3
+MIN_ROTATION_DEG = 5.0
+MIN_AXIS_SEPARATION_DEG = 5.0
+MIN_POINTS_PER_VIEW = 4
+_ROTATION_TOL = 1e-6
+
+
+def _so3_log_np(R: np.ndarray) -> np.ndarray:
+    s = 0.5 * np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    sn = np.linalg.norm(s, axis=-1)
+    theta = np.arctan2(sn, c)
+    # Near pi the antisymmetric part vanishes: take the axis from R + I instead.
+    near_pi = (sn < 1e-6) & (c < 0)
+    scale = np.where(sn < 1e-12, 1.0, theta / np.where(sn < 1e-12, 1.0, sn))
+    w = scale[..., None] * s
+    if np.any(near_pi):
+        B = (R[near_pi] + np.eye(3)) / 2.0
+        col = np.argmax(np.linalg.norm(B, axis=-2), axis=-1)
+        axis = B[np.arange(len(col)), :, col]
+        w[near_pi] = np.pi * axis / np.linalg.norm(axis, axis=-1, keepdims=True)
+    return w
+
+
+def _at(i: int, shape: tuple) -> tuple[int, ...]:
+    """The index tuple of flat index `i` (plain ints, for messages)."""
+    return tuple(int(k) for k in np.unravel_index(i, shape))
+
+
+def check_rotations(T, name: str) -> None:
+    """Raise a `ValueError` naming `name` unless every `T[..., :3, :3]` is a rotation.
+
+    The tolerance is `1e-6` on $\\|R^T R - I\\|_\\infty$ and on $|\\det R - 1|$;
+    non-finite entries and a bottom row other than `(0, 0, 0, 1)` are errors too.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape[-2:] != (4, 4):
+        raise ShapeError(f"{name}: expected 4x4 poses, got shape {T.shape}")
+    flat = T.reshape(-1, 4, 4)
+    bad = ~np.all(np.isfinite(flat), axis=(-1, -2))
+    if bad.any():
+        raise NonFiniteError(f"{name}: non-finite pose at index {_at(np.flatnonzero(bad)[0], T.shape[:-2])}")
+    R = flat[:, :3, :3]
+    orth = np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)), axis=(-1, -2))
+    det = np.linalg.det(R)
+    bad = (orth > _ROTATION_TOL) | (np.abs(det - 1.0) > _ROTATION_TOL)
+    if bad.any():
+        i = np.flatnonzero(bad)[0]
+        raise NotARotationError(
+            f"{name}: pose {_at(i, T.shape[:-2])} is not a rotation "
+            f"(det = {det[i]:.6g}, max |R^T R - I| = {orth[i]:.3g})"
+        )
+    bottom = np.max(np.abs(flat[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])), axis=-1)
+    if np.any(bottom > _ROTATION_TOL):
+        i = np.flatnonzero(bottom > _ROTATION_TOL)[0]
+        raise NotARotationError(
+            f"{name}: pose {_at(i, T.shape[:-2])} has bottom row {flat[i, 3]}, not (0, 0, 0, 1)"
+        )
+
+
+def check_motion_diversity(T_base_ee, name: str = "robot poses") -> None:
+    """Raise a `ValueError` unless the poses rotate about two non-parallel axes (seed 4).
+
+    Every pair of poses gives a relative rotation $R_i^T R_j$ (end-effector
+    frame). At least one must turn by `MIN_ROTATION_DEG` or more, and among
+    those turning that much, one axis must differ by at least
+    `MIN_AXIS_SEPARATION_DEG` (sign-agnostic) from the axis of the largest.
+    """
+    R = np.asarray(T_base_ee, dtype=np.float64)[..., :3, :3]
+    n = R.shape[0]
+    i, j = np.triu_indices(n, 1)
+    rel = np.swapaxes(R[i], -1, -2) @ R[j]
+    w = _so3_log_np(rel)
+    ang = np.degrees(np.linalg.norm(w, axis=-1))
+    big = ang >= MIN_ROTATION_DEG
+    if not big.any():
+        raise DegenerateMotionError(
+            f"{name}: the largest rotation between two poses is {ang.max() if ang.size else 0.0:.2f} deg; "
+            f"hand-eye calibration needs rotations of at least {MIN_ROTATION_DEG:g} deg about at least two "
+            "non-parallel axes"
+        )
+    axes = w[big] / np.linalg.norm(w[big], axis=-1, keepdims=True)
+    ref = axes[np.argmax(ang[big])]
+    sep = np.degrees(np.arccos(np.clip(np.abs(axes @ ref), 0.0, 1.0)))
+    if sep.max() < MIN_AXIS_SEPARATION_DEG:
+        raise DegenerateMotionError(
+            f"{name}: every rotation of at least {MIN_ROTATION_DEG:g} deg is about one axis "
+            f"(end-effector frame {np.array2string(ref, precision=3)}, within {sep.max():.2f} deg); "
+            f"add a rotation of at least {MIN_ROTATION_DEG:g} deg about a second, non-parallel axis"
+        )

@@ -1,0 +1,352 @@
+"""The hand-eye solve: robust then plain Levenberg-Marquardt, outlier rejection, covariance."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Bool, Float, Int
+
+from .._geometry import pose_inverse
+from .._linalg import after
+from .closed import initialise_hand_eye
+from .common import least_squares, pose_error
+from .data import HandEyeData, HandEyePixels, HandEyePoses
+from .model import (
+    HandEyeParams,
+    HandEyeReference,
+    corrected_robot,
+    group_sizes,
+    hand_eye_residuals,
+    robot_correction,
+    robust_residuals,
+    transforms,
+    with_whitening,
+)
+
+
+class HandEyeResult(eqx.Module):
+    """A hand-eye calibration.
+
+    **Fields:**
+    - `T_cam_robot`: per camera, `(cameras, 4, 4)`: $T_{cam\\_base}$ (eye-to-hand)
+      or $T_{cam\\_ee}$ (eye-in-hand); `T_robot_cam` its inverse
+      ($T_{base\\_cam}$ or $T_{ee\\_cam}$, the camera's pose on the robot).
+    - `T_robot_board`: $T_{ee\\_board}$ (eye-to-hand) or $T_{base\\_board}$ (eye-in-hand).
+    - `std_cam_robot`, `std_robot_cam` `(cameras, 6)`, `std_robot_board` `(6,)`:
+      standard deviations of (translation (m), rotation vector (rad)) of each
+      transform, both in its parent frame: $\\delta t = \\hat t - t$ and
+      $\\hat R = \\exp(\\delta w) R$. From $(J^T J)^{-1}$ of the whitened
+      residuals (robot corrections marginalised), scaled by the residual
+      variance `variance_factor` where it exceeds 1; and, when
+      `scale_covariance`, replaced per component by the frame-robust variance
+      (`cov_frames`) where that is significantly larger (by more than twice
+      its own sampling spread, $1 + 2\\sqrt{2/G}$ times, $G$ the frames kept):
+      errors shared within a frame that the pixel noise model misses.
+    - `cov`: that covariance of the flat parameter vector (tangent deltas).
+    - `cov_frames`: the cluster-robust covariance, one cluster per frame
+      (errors shared by a frame's corners: robot pose error, view-dependent
+      detector bias; see `_frame_robust_covariance`).
+    - `variance_factor`: $\\|r\\|^2 / (m - n)$, the residual variance in units
+      of the stated noise (about 1 when the noise model is honest).
+    - `T_base_ee`: the robot poses used (corrected when `robot_sigma` was given).
+    - `robot_rms` `(frames,)`: whitened RMS of each frame's robot correction,
+      $\\|\\delta_f / \\sigma_{robot}\\| / \\sqrt 6$ (NaN for exact robot poses).
+    - `residual_rms`: RMS of the whitened observation residuals over the kept
+      groups (about 1 when the noise model is honest); `pixel_rms` (px, NaN for
+      pose data).
+    - `group_rms`: whitened RMS per (camera, frame) `(cameras, frames)`, NaN where unobserved.
+    - `rejected`: (camera, frame) groups rejected as outliers; `num_rejected`.
+    - `stage_result`, `stage_steps` `(2,)`: optimistix's result code and step
+      count of each Levenberg-Marquardt stage (robust, then plain).
+    - `result`: the first unsuccessful stage's code (successful when both
+      are); `num_steps`: the steps of both stages together.
+    - `T_cam_robot_start`, `T_robot_board_start`: the closed-form solution on the
+      groups kept (`solve_axzb`), which the optimum should be near.
+    """
+
+    T_cam_robot: Float[Array, "cameras 4 4"]
+    T_robot_cam: Float[Array, "cameras 4 4"]
+    T_robot_board: Float[Array, "4 4"]
+    std_cam_robot: Float[Array, "cameras 6"]
+    std_robot_cam: Float[Array, "cameras 6"]
+    std_robot_board: Float[Array, "6"]
+    cov: Float[Array, "n n"]
+    cov_frames: Float[Array, "n n"]
+    variance_factor: Float[Array, ""]
+    T_base_ee: Float[Array, "frames 4 4"]
+    robot_rms: Float[Array, " frames"]
+    residual_rms: Float[Array, ""]
+    pixel_rms: Float[Array, ""]
+    group_rms: Float[Array, "cameras frames"]
+    rejected: Bool[Array, "cameras frames"]
+    num_rejected: Int[Array, ""]
+    result: optx.RESULTS
+    num_steps: Int[Array, ""]
+    stage_result: optx.RESULTS
+    stage_steps: Int[Array, "2"]
+    T_cam_robot_start: Float[Array, "cameras 4 4"]
+    T_robot_board_start: Float[Array, "4 4"]
+    eye_in_hand: Bool[Array, ""]
+
+    def _named(self, want_eye_in_hand: bool, name: str, value):
+        # Read outside jit (the flag may be batched under vmap: all trials share it).
+        eye_in_hand = bool(np.all(np.asarray(self.eye_in_hand)))
+        if eye_in_hand != want_eye_in_hand:
+            kind = "eye-in-hand" if eye_in_hand else "eye-to-hand"
+            raise AttributeError(f"{name} is not defined for an {kind} calibration")
+        return value
+
+    @property
+    def T_cam_base(self) -> Float[Array, "cameras 4 4"]:
+        """Eye-to-hand: base -> camera."""
+        return self._named(False, "T_cam_base", self.T_cam_robot)
+
+    @property
+    def T_base_cam(self) -> Float[Array, "cameras 4 4"]:
+        """Eye-to-hand: the camera's pose in the base frame."""
+        return self._named(False, "T_base_cam", self.T_robot_cam)
+
+    @property
+    def T_ee_board(self) -> Float[Array, "4 4"]:
+        """Eye-to-hand: the board's pose on the end effector."""
+        return self._named(False, "T_ee_board", self.T_robot_board)
+
+    @property
+    def T_cam_ee(self) -> Float[Array, "cameras 4 4"]:
+        """Eye-in-hand: end effector -> camera."""
+        return self._named(True, "T_cam_ee", self.T_cam_robot)
+
+    @property
+    def T_ee_cam(self) -> Float[Array, "cameras 4 4"]:
+        """Eye-in-hand: the camera's pose on the end effector."""
+        return self._named(True, "T_ee_cam", self.T_robot_cam)
+
+    @property
+    def T_base_board(self) -> Float[Array, "4 4"]:
+        """Eye-in-hand: the board's pose in the base frame."""
+        return self._named(True, "T_base_board", self.T_robot_board)
+
+    def rejected_frames(self) -> np.ndarray:
+        """Indices of the frames rejected in any camera (NumPy; call outside jit)."""
+        return np.flatnonzero(np.asarray(self.rejected).any(axis=0))
+
+
+def calibrate_hand_eye(
+    data: HandEyeData,
+    *,
+    reject_outliers: bool | Bool[Array, ""] = True,
+    outlier_threshold: float = 3.0,
+    min_outlier_scale: float = 0.1,
+    loss_scale: float = 2.0,
+    rtol: float = 1e-8,
+    atol: float = 1e-6,
+    max_steps: int = 200,
+    throw: bool = False,
+    scale_covariance: bool = True,
+) -> HandEyeResult:
+    """Hand-eye calibration (eye-to-hand or eye-in-hand, one or more cameras); pure, jittable, vmappable.
+
+    Minimises $\\sum_{c,f} \\|r_{cf}\\|^2 + \\sum_f \\|\\delta_f/\\sigma_{robot}\\|^2$
+    over $X_c$, $Y$ (and robot corrections $\\delta_f$), with $r_{cf}$ the
+    whitened reprojection errors of camera $c$ at robot pose $f$ (or the
+    whitened pose error for `HandEyePoses`). See the module docstring for the
+    pipeline. Validate inputs first (`make_hand_eye_*` do).
+
+    **Arguments:**
+    - `data`: `HandEyePixels` or `HandEyePoses`.
+    - `reject_outliers`: solve with a Cauchy loss first, reject (camera, frame)
+      groups whose whitened RMS exceeds `outlier_threshold` times
+      max(median group RMS, `min_outlier_scale`), and (pixels with noisy
+      robot poses) frames whose robot correction's whitened RMS exceeds
+      `outlier_threshold` times max(its median, 1), then re-solve without them.
+      Which are rejected depends on the robust stage's optimum only: once it
+      has converged, not on `max_steps`.
+    - `loss_scale`: Cauchy scale $b$ (whitened units) of the robust solve.
+    - `rtol`, `atol`, `max_steps` (per stage), `throw`: optimistix's (tolerances on the
+      tangent deltas in m/rad and on the whitened residuals).
+    - `scale_covariance`: multiply the covariance by $\\max(1, \\|r\\|^2/(m - n))$:
+      when the residuals are larger than the stated noise, the stated noise
+      was optimistic and the covariance grows with them; when smaller, the
+      stated noise is kept (a small residual may be luck or overfitting).
+
+    **Returns:** a `HandEyeResult`.
+    """
+    X0, Y0 = initialise_hand_eye(data)
+    C, F = data.mask.shape[:2]
+    params0 = HandEyeParams(
+        cam_robot=jnp.zeros((C, 6)),
+        robot_board=jnp.zeros(6),
+        # Pose data: noisy robot poses are marginalised (`model.pose_error_covariance`); pixels: solved for.
+        robot=None if data.robot_sigma is None or isinstance(data, HandEyePoses) else jnp.zeros((F, 6)),
+    )
+    observed = jnp.any(data.mask, axis=-1) if isinstance(data, HandEyePixels) else data.mask
+
+    def stage(carry, robust):
+        # One Levenberg-Marquardt, traced once and run per stage: robust (Cauchy)
+        # then plain on the groups the robust stage kept.
+        params, active = carry
+        ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
+        sol = least_squares(
+            robust_residuals, params, (ref, data, loss_scale, robust), rtol, atol, max_steps, False
+        )
+        rms = _group_rms(sol.value, ref, data)
+        scale = jnp.maximum(jnp.nanmedian(rms), min_outlier_scale)
+        reject = robust & active & (rms > outlier_threshold * scale)
+        if sol.value.robot is not None:
+            # A robot pose far outside its stated noise is absorbed by its correction
+            # (the pixels then fit): reject the frame on the correction's size.
+            p = jnp.where(jnp.any(active, axis=0), _prior_rms(sol.value, data), jnp.nan)
+            p_scale = jnp.maximum(jnp.nanmedian(p), 1.0)
+            reject = reject | (robust & active & (p > outlier_threshold * p_scale)[None])
+        return (sol.value, active & ~reject), (sol.result, sol.stats["num_steps"])
+
+    # `reject_outliers` is traced, so both settings share one compiled solver; when False
+    # the first stage is plain too and the second starts from its optimum.
+    stages = jnp.stack([jnp.asarray(reject_outliers, bool), jnp.asarray(False)])
+    (params, active), (results, steps) = jax.lax.scan(stage, (params0, observed), stages)
+    first, last = (jax.tree.map(lambda x, i=i: x[i], results) for i in (0, 1))
+    result = optx.RESULTS.where(first == optx.RESULTS.successful, last, first)
+    if throw:
+        params = result.error_if(params, result != optx.RESULTS.successful)
+    # The closed form again on the kept groups only: what the verdict compares the optimum with
+    # (the first start also saw the outliers). Ordered after the solve, and before the summary.
+    kept = data.mask & (active[..., None] if isinstance(data, HandEyePixels) else active)
+    X0_kept, Y0_kept = initialise_hand_eye(after(eqx.tree_at(lambda d: d.mask, data, kept), params))
+    params = after(params, X0_kept, Y0_kept)
+    ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
+    out = _summarise(params, ref, data, observed & ~active, scale_covariance)
+    return eqx.tree_at(
+        lambda r: (
+            r.result,
+            r.num_steps,
+            r.stage_result,
+            r.stage_steps,
+            r.T_cam_robot_start,
+            r.T_robot_board_start,
+        ),
+        out,
+        (result, jnp.sum(steps), results, steps, X0_kept, Y0_kept),
+        is_leaf=lambda x: x is None,
+    )
+
+
+def _prior_rms(params, data) -> Float[Array, " frames"]:
+    """Whitened RMS of each frame's robot correction (pixels with robot corrections)."""
+    return jnp.sqrt(jnp.mean((params.robot / data.robot_sigma) ** 2, axis=-1))
+
+
+def _group_rms(params, ref, data) -> Float[Array, "cameras frames"]:
+    r, _ = hand_eye_residuals(params, (ref, data))
+    n = group_sizes(ref, data)
+    return jnp.where(n > 0, jnp.sqrt(jnp.sum(r**2, axis=-1) / jnp.maximum(n, 1.0)), jnp.nan)
+
+
+def _frame_robust_covariance(J, r, bread, ref, data) -> Float[Array, "n n"]:
+    """The cluster-robust (sandwich) covariance with one cluster per frame.
+
+    $B \\big(\\sum_f g_f g_f^T\\big) B \\cdot G/(G-1)$, $g_f = J_f^T r_f$ the
+    gradient of frame $f$'s residuals (all cameras and its robot prior),
+    $B = (J^T J)^{-1}$, $G$ the frames kept. Unlike $s^2 B$ it does not assume
+    the errors independent within a frame: a frame's corners share its robot
+    pose error and the detector's view-dependent bias, which move the whole
+    view together (the model's $\\sigma$ sees them only as a little extra
+    pixel noise). Same expectation as $B$ when the noise model holds.
+    """
+    C, F = ref.active.shape
+    per_group = 2 * data.mask.shape[-1] if isinstance(data, HandEyePixels) else 6
+    n_obs, n = C * F * per_group, J.shape[1]
+    g = jnp.einsum("cfkn,cfk->fn", J[:n_obs].reshape(C, F, per_group, n), r[:n_obs].reshape(C, F, per_group))
+    if r.shape[0] > n_obs:  # the robot corrections' prior, one block per frame
+        g = g + jnp.einsum("fkn,fk->fn", J[n_obs:].reshape(F, 6, n), r[n_obs:].reshape(F, 6))
+    kept = jnp.sum(jnp.any(ref.active, axis=0))
+    meat = g.T @ g * kept / jnp.maximum(kept - 1.0, 1.0)
+    return bread @ meat @ bread
+
+
+def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
+    """The result at `params`: covariance, standard deviations, residual statistics (solver fields left None)."""
+    flat, unravel = ravel_pytree(params)
+
+    def flat_res(x):
+        r, prior = hand_eye_residuals(unravel(x), (ref, data))
+        return jnp.concatenate([r.reshape(-1)] + ([] if prior is None else [prior.reshape(-1)]))
+
+    J = jax.jacfwd(flat_res)(flat)
+    r_all = flat_res(flat)
+    bread = jnp.linalg.pinv(J.T @ J, hermitian=True)
+    n_obs = jnp.sum(group_sizes(ref, data))
+    n_prior = 0 if params.robot is None else params.robot.size
+    dof = jnp.maximum(n_obs + n_prior - flat.size, 1.0)
+    variance_factor = jnp.sum(r_all**2) / dof
+    cov = bread * jnp.maximum(variance_factor, 1.0) if scale_covariance else bread
+    cov_frames = _frame_robust_covariance(J, r_all, bread, ref, data)
+
+    X, Y = transforms(params, ref)
+    Xi = jax.vmap(pose_inverse)(X)
+
+    def errors(x):
+        Xx, Yx = transforms(unravel(x), ref)
+        Xix = jax.vmap(pose_inverse)(Xx)
+        return jnp.concatenate(
+            [
+                jax.vmap(pose_error)(Xx, X).reshape(-1),
+                jax.vmap(pose_error)(Xix, Xi).reshape(-1),
+                pose_error(Yx, Y),
+            ]
+        )
+
+    G = jax.jacfwd(errors)(flat)
+    var = jnp.einsum("ia,ab,ib->i", G, cov, G)
+    if scale_covariance:
+        # The frame-robust variance where it exceeds the model's by more than its own sampling
+        # spread (two standard deviations of a variance estimated from `kept` frames).
+        var_frames = jnp.einsum("ia,ab,ib->i", G, cov_frames, G)
+        kept = jnp.maximum(jnp.sum(jnp.any(ref.active, axis=0)), 2.0)
+        var = jnp.where(var_frames > var * (1.0 + 2.0 * jnp.sqrt(2.0 / kept)), var_frames, var)
+    std = jnp.sqrt(jnp.maximum(var, 0.0))
+    C = X.shape[0]
+    r_obs, _ = hand_eye_residuals(params, (ref, data))
+    ssr_obs = jnp.sum(r_obs**2)
+    is_px = isinstance(data, HandEyePixels)
+    marginalised = isinstance(data, HandEyePoses) and data.robot_sigma is not None
+    delta = robot_correction(params, ref, data) if marginalised else params.robot
+    F = data.T_base_ee.shape[0]
+    robot_rms = (
+        jnp.full(F, jnp.nan)
+        if delta is None
+        else jnp.sqrt(jnp.mean((delta / data.robot_sigma) ** 2, axis=-1))
+    )
+    return HandEyeResult(
+        T_cam_robot=X,
+        T_robot_cam=Xi,
+        T_robot_board=Y,
+        std_cam_robot=std[: 6 * C].reshape(C, 6),
+        std_robot_cam=std[6 * C : 12 * C].reshape(C, 6),
+        std_robot_board=std[12 * C :],
+        cov=cov,
+        cov_frames=cov_frames,
+        variance_factor=variance_factor,
+        T_base_ee=corrected_robot(data.T_base_ee, delta),
+        robot_rms=robot_rms,
+        residual_rms=jnp.sqrt(ssr_obs / jnp.maximum(n_obs, 1.0)),
+        pixel_rms=jnp.sqrt(ssr_obs / jnp.maximum(n_obs, 1.0)) * data.sigma_px
+        if is_px
+        else jnp.asarray(jnp.nan),
+        group_rms=_group_rms(
+            params,
+            # Its own whitening, factorised after the covariance's (see _linalg).
+            with_whitening(after(params, cov), HandEyeReference(ref.X0, ref.Y0, ref.active | rejected), data),
+            data,
+        ),
+        rejected=rejected,
+        num_rejected=jnp.sum(rejected),
+        result=None,
+        num_steps=None,
+        stage_result=None,
+        stage_steps=None,
+        T_cam_robot_start=None,
+        T_robot_board_start=None,
+        eye_in_hand=data.eye_in_hand,
+    )

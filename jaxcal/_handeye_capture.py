@@ -1,0 +1,250 @@
+"""Hand-eye calibration of a capture on disk: detection, intrinsics, checks, solve, k-fold, verdict.
+
+`calibrate_hand_eye_capture(path)` is what `jaxcal handeye DATASET` runs. The
+stages hand records down: `load_hand_eye_capture` -> `detect_frames` per
+camera -> `calibrate_intrinsics` where K is unknown ->
+`hand_eye_from_detections` (PnP, symmetric targets resolved, distortion
+removed, padded to a bucket, and the robot-versus-camera rotation-angle check
+that refuses mismatched data before any solve) -> `calibrate_hand_eye` (one
+compiled program per bucket, kept across calls and, through the persistent
+compilation cache, across processes) -> `kfold_spread` -> `assess_hand_eye`.
+"""
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import jax
+import numpy as np
+
+from ._cache import enable_compilation_cache
+from ._handeye import (
+    HandEyeResult,
+    HandEyeVerdict,
+    KFoldSpread,
+    assess_hand_eye,
+    calibrate_hand_eye,
+    kfold_spread,
+    pose_difference,
+)
+from .errors import CalibrationError
+from .io.handeye import HandEyeCapture, load_hand_eye_capture
+from .vision import HandEyeObservations, calibrate_intrinsics, detect_frames, hand_eye_from_detections
+
+#: Outlier threshold of `calibrate_hand_eye` (times the median group RMS); reported with rejections.
+OUTLIER_THRESHOLD = 3.0
+
+
+@lru_cache(maxsize=4)
+def hand_eye_solver(max_steps: int = 200) -> Callable:
+    """`jax.jit(calibrate_hand_eye)` at `max_steps` as `solve(data, reject_outliers)`, one per value
+    (shapes are bucketed by the caller; `reject_outliers` is traced, so both share the program)."""
+    return jax.jit(
+        lambda data, reject: calibrate_hand_eye(
+            data, reject_outliers=reject, max_steps=max_steps, outlier_threshold=OUTLIER_THRESHOLD
+        )
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class CameraIntrinsics:
+    """`K` (3, 3) px and `dist` (OpenCV) of a camera; `source` `"given"` or
+    `"self-calibrated"` (then `rms_px` is OpenCV's calibration RMS)."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    source: str
+    rms_px: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class HandEyeRun:
+    """A capture's hand-eye calibration and everything said about it.
+
+    - `capture`, `intrinsics` (per camera), `detected` `(cameras, frames)`.
+    - `observations`: what `hand_eye_from_detections` built (padded data, PnP poses, checks).
+    - `result`: the `HandEyeResult` (NumPy leaves; padded frames beyond
+      `observations.frames`); `kfold`: the k-fold spread or None.
+    - `verdict`: status (`"ok"` / `"suspect"`), reasons and notes.
+    - `rejected`: `{frame index: reason}` of the frames the solve rejected.
+    - `truth_error`: synthetic captures: per camera the error of
+      `T_robot_cam` against the truth, `(translation m, rotation rad)`, else None.
+    - `seconds`: wall time per stage.
+    """
+
+    capture: HandEyeCapture
+    intrinsics: tuple[CameraIntrinsics, ...]
+    detected: np.ndarray
+    observations: HandEyeObservations
+    result: HandEyeResult
+    kfold: "KFoldSpread | None"
+    verdict: HandEyeVerdict
+    rejected: dict
+    truth_error: "np.ndarray | None"
+    max_steps: int
+    seconds: dict = field(default_factory=dict)
+
+    @property
+    def frames(self) -> int:
+        return self.observations.frames
+
+    @property
+    def T_robot_cam(self) -> np.ndarray:
+        """`(cameras, 4, 4)`: each camera's pose on the robot: `T_ee_cam` (eye-in-hand) or `T_base_cam`."""
+        return np.asarray(self.result.T_robot_cam)
+
+    @property
+    def exit_code(self) -> int:
+        """0 when ok, 3 when suspect (the `jaxcal handeye` exit code)."""
+        return 0 if self.verdict.ok else 3
+
+
+def _intrinsics(capture, detections, log) -> tuple[CameraIntrinsics, ...]:
+    out = []
+    for cam, dets in zip(capture.cameras, detections):
+        if cam.K is not None:
+            out.append(CameraIntrinsics(np.asarray(cam.K), np.asarray(cam.dist), "given"))
+            continue
+        views = [d.get(capture.target.name) for d in dets]
+        K, dist, rms = calibrate_intrinsics(views, capture.target, (cam.width, cam.height))
+        log(
+            f"camera {cam.name}: intrinsics self-calibrated from {sum(v is not None for v in views)} views ({rms:.3f} px RMS)"
+        )
+        out.append(CameraIntrinsics(K, dist, "self-calibrated", float(rms)))
+    return tuple(out)
+
+
+def _distortions(dists) -> np.ndarray:
+    """Every camera's OpenCV coefficients zero-padded to the longest, `(cameras, n)`."""
+    n = max(len(d) for d in dists)
+    return np.stack([np.pad(np.asarray(d, np.float64), (0, n - len(d))) for d in dists])
+
+
+def _rejection_reasons(result, observations, threshold: float) -> dict:
+    """`{frame: reason}` for every rejected frame, from the final per-view RMS."""
+    rejected = np.asarray(result.rejected)
+    rms = np.asarray(result.group_rms) * observations.sigma_px
+    kept = np.where(rejected, np.nan, rms)
+    median = float(np.nanmedian(kept)) if np.isfinite(kept).any() else float("nan")
+    out = {}
+    for f in np.flatnonzero(rejected.any(0)):
+        cams = np.flatnonzero(rejected[:, f])
+        worst = float(np.nanmax(rms[cams, f]))
+        out[int(f)] = (
+            f"reprojection RMS {worst:.3g} px against a median of {median:.3g} px over the kept views "
+            f"(rejected above {threshold:g}x the median); its robot pose does not fit the others"
+        )
+    return out
+
+
+def _truth_error(capture, result) -> "np.ndarray | None":
+    if not capture.truth or "T_robot_cam" not in capture.truth:
+        return None
+    X = np.stack([np.asarray(capture.truth["T_robot_cam"][c.name]) for c in capture.cameras])
+    e = pose_difference(np.asarray(result.T_robot_cam), X)
+    return np.stack([np.linalg.norm(e[:, :3], axis=1), np.linalg.norm(e[:, 3:], axis=1)], axis=1)
+
+
+def calibrate_hand_eye_capture(
+    capture,
+    *,
+    robot_sigma_translation: float | None = None,
+    robot_sigma_rotation: float | None = None,
+    sigma_px: float | None = None,
+    folds: int = 10,
+    max_steps: int = 200,
+    workers: int | None = 1,
+    progress: bool = False,
+    log: Callable[[str], None] = lambda text: None,
+) -> HandEyeRun:
+    """Hand-eye calibration of a capture (see the module docstring); impure (files, OpenCV).
+
+    **Arguments:**
+    - `capture`: a capture directory (`jaxcal.io.handeye` format) or a loaded `HandEyeCapture`.
+    - `robot_sigma_translation` (m), `robot_sigma_rotation` (rad): robot pose
+      noise (each pose then gets a correction with that prior); None: exact.
+    - `sigma_px`: the detector's pixel noise; None: estimated from PnP's residuals.
+    - `folds`: k of the k-fold spread (0: skip it).
+    - `max_steps`: Levenberg-Marquardt steps per stage.
+    - `workers`, `progress`: marker detection (see `jaxcal.vision.detect_frames`).
+    - `log`: called with progress messages.
+
+    **Returns:** a `HandEyeRun`.
+
+    **Raises:** `DatasetError` (the capture), `VisionError` (images, intrinsics),
+    `HandEyeInputError` (too few views, degenerate motion, robot poses that do
+    not match the images), `CalibrationError` (no view of the target at all).
+    """
+    enable_compilation_cache()
+    seconds = {}
+    t0 = time.perf_counter()
+    if not isinstance(capture, HandEyeCapture):
+        capture = load_hand_eye_capture(capture)
+    target = capture.target
+    detections = []
+    for cam, paths in zip(capture.cameras, capture.images):
+        detections.append(
+            detect_frames(
+                paths,
+                [target],
+                K=cam.K,
+                dist=cam.dist if cam.K is not None else None,
+                workers=workers,
+                progress=progress,
+                pool="thread",
+            )
+        )
+    detected = np.array([[target.name in d for d in dets] for dets in detections])
+    seconds["detect"] = time.perf_counter() - t0
+    for cam, row in zip(capture.cameras, detected):
+        log(f"camera {cam.name}: {target.kind} found in {int(row.sum())} of {len(row)} images")
+        if not row.any():
+            raise CalibrationError(
+                f"{capture.root}: target {target.name!r} ({target.kind}) not found in any image of camera "
+                f"{cam.name!r}; check handeye.json field 'target'"
+            )
+    t0 = time.perf_counter()
+    intrinsics = _intrinsics(capture, detections, log)
+    observations = hand_eye_from_detections(
+        detections,
+        target,
+        capture.T_base_ee,
+        np.stack([i.K for i in intrinsics]),
+        _distortions([i.dist for i in intrinsics]),
+        eye_in_hand=capture.eye_in_hand,
+        sigma_px=sigma_px,
+        frame_names=capture.frames,
+        robot_sigma_translation=robot_sigma_translation,
+        robot_sigma_rotation=robot_sigma_rotation,
+    )
+    seconds["prepare"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    solve = hand_eye_solver(max_steps)
+    result = jax.tree.map(np.asarray, solve(observations.data, True))
+    seconds["solve"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    # The folds leave the rejected groups out already: plain solves, same compiled program.
+    kfold = kfold_spread(lambda d: solve(d, False), observations.data, result, folds=folds) if folds else None
+    seconds["kfold"] = time.perf_counter() - t0
+    verdict = assess_hand_eye(
+        result,
+        kfold=kfold,
+        consistency=observations.consistency,
+        frame_names=capture.frames,
+        camera_names=[f"camera {c.name}" for c in capture.cameras],
+        max_steps=max_steps,
+    )
+    return HandEyeRun(
+        capture=capture,
+        intrinsics=intrinsics,
+        detected=detected,
+        observations=observations,
+        result=result,
+        kfold=kfold,
+        verdict=verdict,
+        rejected=_rejection_reasons(result, observations, OUTLIER_THRESHOLD),
+        truth_error=_truth_error(capture, result),
+        max_steps=max_steps,
+        seconds=seconds,
+    )

@@ -1,0 +1,511 @@
+"""The hand-eye capture format: images per camera, one robot pose per frame (see `docs/handeye.md`).
+
+```
+CAPTURE/
+  handeye.json              arrangement, pose format and units, cameras, target
+  poses.csv                 frame,<pose columns>: the flange pose in the base frame per frame
+  images/<camera>/<frame>.png   (or .jpg, .jpeg, .bmp, .tif, .tiff)
+  truth.json                synthetic captures only (`jaxcal simulate-handeye`)
+```
+
+Pose columns, by `poses.format` (the header names the columns, in any order):
+
+- `matrix`: `m00,m01,...,m33`, the 4x4 `T_base_ee` row-major;
+- `xyz_quat`: `x,y,z,qx,qy,qz,qw` (unit quaternion; its order is the header's);
+- `xyz_rpy`: `x,y,z,roll,pitch,yaw`, ROS/URDF fixed-axis angles,
+  $R = R_z(yaw) R_y(pitch) R_x(roll)$;
+- `xyz_rotvec`: `x,y,z,rx,ry,rz`, a rotation vector (axis times angle, as
+  Universal Robots report poses).
+
+`poses.translation_unit` (`m` or `mm`) is required, and `poses.rotation_unit`
+(`rad` or `deg`) for `xyz_rpy` and `xyz_rotvec`. `load_hand_eye_capture`
+checks every field and raises `DatasetError` naming the file, line, field and
+value at fault; it modifies nothing.
+"""
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError
+from ..markers import TargetSpec
+
+SCHEMA = "jaxcal.handeye"
+SCHEMA_VERSION = 1
+ARRANGEMENTS = ("eye_in_hand", "eye_to_hand")
+POSE_COLUMNS = {
+    "matrix": tuple(f"m{i}{j}" for i in range(4) for j in range(4)),
+    "xyz_quat": ("x", "y", "z", "qx", "qy", "qz", "qw"),
+    "xyz_rpy": ("x", "y", "z", "roll", "pitch", "yaw"),
+    "xyz_rotvec": ("x", "y", "z", "rx", "ry", "rz"),
+}
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+#: A translation above this many metres is taken for a unit mistake.
+MAX_TRANSLATION_M = 20.0
+
+
+@dataclass(frozen=True, eq=False)
+class HandEyeCamera:
+    """A camera of a capture: `K` (3, 3) px or `None` (self-calibrated from the
+    capture), OpenCV distortion `dist`, and its frame name for ROS outputs."""
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray | None
+    dist: np.ndarray
+    frame_id: str
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "width": self.width,
+            "height": self.height,
+            "K": None if self.K is None else np.asarray(self.K).tolist(),
+            "distortion": np.asarray(self.dist).tolist(),
+            "frame_id": self.frame_id,
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class HandEyeCapture:
+    """A hand-eye capture read from disk.
+
+    - `eye_in_hand`: the cameras ride on the flange (else they are fixed and the
+      target rides on the flange).
+    - `frames`: the frame names (`poses.csv`'s `frame` column), in file order.
+    - `T_base_ee`: `(frames, 4, 4)` flange poses in the base frame, metres.
+    - `images`: per camera, per frame, the image path.
+    - `base_frame`, `ee_frame`, `target_frame`: frame names for the ROS outputs.
+    - `truth`: the parsed `truth.json` of a synthetic capture, else `None`.
+    """
+
+    root: Path
+    eye_in_hand: bool
+    cameras: tuple[HandEyeCamera, ...]
+    target: TargetSpec
+    frames: tuple[str, ...]
+    T_base_ee: np.ndarray
+    images: tuple[tuple[Path, ...], ...]
+    base_frame: str = "base_link"
+    ee_frame: str = "tool0"
+    target_frame: str = "calibration_target"
+    description: str = ""
+    truth: dict | None = field(default=None)
+
+    @property
+    def arrangement(self) -> str:
+        return "eye_in_hand" if self.eye_in_hand else "eye_to_hand"
+
+
+# --------------------------------------------------------------------------- rotations (NumPy)
+
+
+def quaternion_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """Rotation matrices `(..., 3, 3)` of unit quaternions `(..., 4)` in (x, y, z, w) order."""
+    x, y, z, w = np.moveaxis(np.asarray(q_xyzw, np.float64), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), `w >= 0`, of a rotation matrix (3, 3) (Shepperd's method)."""
+    R = np.asarray(R, np.float64)
+    t = np.trace(R)
+    diag = np.diag(R)
+    k = int(np.argmax([t, *diag]))
+    if k == 0:
+        s = 2.0 * math.sqrt(1.0 + t)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    else:
+        i = k - 1
+        j, m = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(1.0 + R[i, i] - R[j, j] - R[m, m])
+        q = [0.0, 0.0, 0.0, (R[m, j] - R[j, m]) / s]
+        q[i], q[j], q[m] = 0.25 * s, (R[j, i] + R[i, j]) / s, (R[m, i] + R[i, m]) / s
+    q = np.asarray(q)
+    return q if q[3] >= 0 else -q
+
+
+def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
+    """$R_z(yaw) R_y(pitch) R_x(roll)$ (ROS/URDF fixed axes), `(..., 3)` rad -> `(..., 3, 3)`."""
+    r, p, y = np.moveaxis(np.asarray(rpy, np.float64), -1, 0)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.stack(
+        [
+            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+            np.stack([-sp, cp * sr, cp * cr], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
+    """Inverse of `rpy_to_matrix` (pitch in [-pi/2, pi/2])."""
+    R = np.asarray(R, np.float64)
+    pitch = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([roll, pitch, yaw], -1)
+
+
+def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula, `(..., 3)` rad -> `(..., 3, 3)`."""
+    w = np.asarray(w, np.float64)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    Kx = np.zeros(w.shape[:-1] + (3, 3))
+    Kx[..., 0, 1], Kx[..., 0, 2], Kx[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    Kx = Kx - np.swapaxes(Kx, -1, -2)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * Kx + b * (Kx @ Kx)
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad) of a rotation matrix (3, 3), through its quaternion."""
+    q = matrix_to_quaternion(R)
+    s = np.linalg.norm(q[:3])
+    if s < 1e-12:
+        return 2.0 * q[:3] / q[3]
+    return 2.0 * math.atan2(s, q[3]) * q[:3] / s
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _require(d, key: str, where: str):
+    if not isinstance(d, dict) or key not in d:
+        raise DatasetError(f"{where}: missing field {key!r}")
+    return d[key]
+
+
+def _choice(d: dict, key: str, allowed, where: str) -> str:
+    value = _require(d, key, where)
+    if value not in allowed:
+        raise DatasetError(f"{where}: field {key!r} must be one of {list(allowed)}, got {value!r}")
+    return value
+
+
+def _matrix(x, shape, where: str) -> np.ndarray:
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{where}: not a numeric array, got {x!r}") from None
+    if a.shape != shape:
+        raise DatasetError(f"{where}: expected shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise DatasetError(f"{where}: contains NaN or inf")
+    return a
+
+
+def _positive_int(d: dict, key: str, where: str) -> int:
+    value = _require(d, key, where)
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise DatasetError(f"{where}: field {key!r} must be a positive integer, got {value!r}")
+    return value
+
+
+def _cameras(meta: dict, where: str) -> tuple[HandEyeCamera, ...]:
+    cams = _require(meta, "cameras", where)
+    if not isinstance(cams, list) or not cams:
+        raise DatasetError(f"{where}: field 'cameras' must be a non-empty list")
+    out = []
+    for i, c in enumerate(cams):
+        w = f"{where}: cameras[{i}]"
+        name = _require(c, "name", w)
+        if not isinstance(name, str) or not name or "/" in name:
+            raise DatasetError(f"{w}: field 'name' must be a non-empty string without '/', got {name!r}")
+        w = f"{where}: camera {name!r}"
+        width, height = _positive_int(c, "width", w), _positive_int(c, "height", w)
+        K = c.get("K")
+        if K is not None:
+            K = _matrix(K, (3, 3), f"{w} field 'K'")
+            if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0.0, 0.0, 1.0]) and K[1, 0] == 0):
+                raise DatasetError(
+                    f"{w} field 'K': expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0"
+                )
+        dist = c.get("distortion", [0.0] * 5)
+        try:
+            dist = np.asarray(dist, np.float64).ravel()
+        except (TypeError, ValueError):
+            raise DatasetError(f"{w} field 'distortion': not numeric, got {dist!r}") from None
+        if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+            raise DatasetError(
+                f"{w} field 'distortion': expected 4, 5, 8, 12 or 14 finite OpenCV coefficients, got {dist.size}"
+            )
+        frame_id = c.get("frame_id", f"{name}_optical_frame")
+        if not isinstance(frame_id, str) or not frame_id:
+            raise DatasetError(f"{w} field 'frame_id': must be a non-empty string, got {frame_id!r}")
+        out.append(HandEyeCamera(name, width, height, K, dist, frame_id))
+    names = [c.name for c in out]
+    if len(set(names)) != len(names):
+        raise DatasetError(f"{where}: camera names are not unique: {names}")
+    return tuple(out)
+
+
+def _rotation_error(R: np.ndarray) -> np.ndarray:
+    return np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)), axis=(-1, -2))
+
+
+def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np.ndarray]:
+    """`(frames, T_base_ee (frames, 4, 4) in metres)` from the pose table."""
+    fmt = _choice(spec, "format", POSE_COLUMNS, where)
+    unit_t = _choice(spec, "translation_unit", ("m", "mm"), where)
+    unit_r = (
+        _choice(spec, "rotation_unit", ("rad", "deg"), where) if fmt in ("xyz_rpy", "xyz_rotvec") else "rad"
+    )
+    if not path.is_file():
+        raise DatasetError(f"{path}: pose file missing (named by {where} field 'file')")
+    with open(path, newline="") as f:
+        rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    want = POSE_COLUMNS[fmt]
+    if not rows:
+        raise DatasetError(f"{path}: empty; expected a header 'frame,{','.join(want)}'")
+    header = [h.strip() for h in rows[0]]
+    if header[:1] != ["frame"] or sorted(header[1:]) != sorted(want):
+        raise DatasetError(
+            f"{path} line 1: header {','.join(header)!r} does not match format {fmt!r}: expected 'frame' "
+            f"then the columns {','.join(want)} (in any order)"
+        )
+    col = [header.index(c) for c in want]
+    frames, values = [], []
+    for n, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise DatasetError(f"{path} line {n}: {len(row)} fields, the header has {len(header)}")
+        name = row[0].strip()
+        if not name or "/" in name:
+            raise DatasetError(f"{path} line {n}: field 'frame' must be a file stem, got {row[0]!r}")
+        v = []
+        for c in col:
+            try:
+                x = float(row[c])
+            except ValueError:
+                raise DatasetError(
+                    f"{path} line {n} (frame {name}): field {header[c]!r} = {row[c]!r} is not a number"
+                ) from None
+            if not math.isfinite(x):
+                raise DatasetError(
+                    f"{path} line {n} (frame {name}): field {header[c]!r} is {row[c]} (NaN/inf not allowed)"
+                )
+            v.append(x)
+        frames.append(name)
+        values.append(v)
+    if not frames:
+        raise DatasetError(f"{path}: no poses after the header")
+    dup = sorted({f for f in frames if frames.count(f) > 1})
+    if dup:
+        raise DatasetError(f"{path}: frame names repeat: {dup[:10]}")
+    V = np.asarray(values)
+    scale_t = 1e-3 if unit_t == "mm" else 1.0
+    scale_r = math.pi / 180.0 if unit_r == "deg" else 1.0
+    T = np.broadcast_to(np.eye(4), (len(V), 4, 4)).copy()
+    if fmt == "matrix":
+        M = V.reshape(-1, 4, 4)
+        bottom = np.max(np.abs(M[:, 3] - [0.0, 0.0, 0.0, 1.0]), axis=-1)
+        bad = np.flatnonzero(bottom > 1e-6)
+        if bad.size:
+            i = bad[0]
+            raise DatasetError(
+                f"{path} line {i + 2} (frame {frames[i]}): bottom row {M[i, 3].tolist()}, not [0, 0, 0, 1]"
+            )
+        T[:, :3, :3], T[:, :3, 3] = M[:, :3, :3], M[:, :3, 3] * scale_t
+    else:
+        T[:, :3, 3] = V[:, :3] * scale_t
+        if fmt == "xyz_quat":
+            norm = np.linalg.norm(V[:, 3:], axis=1)
+            bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+            if bad.size:
+                i = bad[0]
+                raise DatasetError(
+                    f"{path} line {i + 2} (frame {frames[i]}): quaternion norm {norm[i]:.6g}, not 1 "
+                    "(columns qx, qy, qz, qw)"
+                )
+            T[:, :3, :3] = quaternion_to_matrix(V[:, 3:] / norm[:, None])
+        elif fmt == "xyz_rpy":
+            T[:, :3, :3] = rpy_to_matrix(V[:, 3:] * scale_r)
+        else:
+            T[:, :3, :3] = rotvec_to_matrix(V[:, 3:] * scale_r)
+    err = _rotation_error(T[:, :3, :3])
+    bad = np.flatnonzero((err > 1e-5) | (np.linalg.det(T[:, :3, :3]) < 0))
+    if bad.size:
+        i = bad[0]
+        raise DatasetError(
+            f"{path} line {i + 2} (frame {frames[i]}): the rotation is not a rotation matrix "
+            f"(max |R^T R - I| = {err[i]:.3g}, det = {np.linalg.det(T[i, :3, :3]):.6g})"
+        )
+    far = np.flatnonzero(np.linalg.norm(T[:, :3, 3], axis=1) > MAX_TRANSLATION_M)
+    if far.size:
+        i = far[0]
+        raise DatasetError(
+            f"{path} line {i + 2} (frame {frames[i]}): translation {np.linalg.norm(T[i, :3, 3]):.1f} m from the "
+            f"base; is {where} field 'translation_unit' ({unit_t!r}) right?"
+        )
+    return tuple(frames), T
+
+
+def _images(root: Path, cameras, frames) -> tuple[tuple[Path, ...], ...]:
+    out = []
+    for cam in cameras:
+        folder = root / "images" / cam.name
+        if not folder.is_dir():
+            raise DatasetError(f"{folder}: image folder of camera {cam.name!r} missing")
+        found = {}
+        for p in folder.iterdir():
+            if p.suffix.lower() in IMAGE_SUFFIXES:
+                if p.stem in found:
+                    raise DatasetError(
+                        f"{folder}: two images for frame {p.stem!r}: {found[p.stem].name}, {p.name}"
+                    )
+                found[p.stem] = p
+        missing = [f for f in frames if f not in found]
+        if missing:
+            raise DatasetError(
+                f"{folder}: no image for frame(s) {missing[:10]} of poses.csv "
+                f"(expected {folder}/<frame>{{{','.join(IMAGE_SUFFIXES)}}})"
+            )
+        out.append(tuple(found[f] for f in frames))
+    return tuple(out)
+
+
+def _name(d: dict, key: str, default: str, where: str) -> str:
+    value = d.get(key, default)
+    if not isinstance(value, str) or not value:
+        raise DatasetError(f"{where}: field {key!r} must be a non-empty string, got {value!r}")
+    return value
+
+
+def load_hand_eye_capture(path) -> HandEyeCapture:
+    """Read and check the hand-eye capture in directory `path` (nothing is modified).
+
+    **Raises:** `DatasetError` naming the file, line, field and value at fault.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: capture directory not found")
+    meta_path = root / "handeye.json"
+    if not meta_path.is_file():
+        raise DatasetError(f"{meta_path}: capture description missing (see docs/handeye.md)")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{meta_path}: not valid JSON ({e})") from None
+    where = str(meta_path)
+    if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
+        got = meta.get("schema") if isinstance(meta, dict) else meta
+        raise DatasetError(f"{where}: field 'schema' must be {SCHEMA!r}, got {got!r}")
+    if meta.get("schema_version") != SCHEMA_VERSION:
+        raise DatasetError(
+            f"{where}: unknown schema_version {meta.get('schema_version')!r}; this jaxcal reads {SCHEMA_VERSION}"
+        )
+    arrangement = _choice(meta, "arrangement", ARRANGEMENTS, where)
+    cameras = _cameras(meta, where)
+    target = _require(meta, "target", where)
+    if not isinstance(target, dict):
+        raise DatasetError(f"{where}: field 'target' must be an object, got {target!r}")
+    try:
+        spec = TargetSpec.from_dict(target, where=f"target {target.get('name', 'target')!r}")
+    except ValueError as e:
+        raise DatasetError(f"{where}: field 'target': {e}") from None
+    poses = _require(meta, "poses", where)
+    pw = f"{where}: poses"
+    file = _require(poses, "file", pw)
+    frames, T = _read_poses(root / str(file), poses, pw)
+    images = _images(root, cameras, frames)
+    names = meta.get("frames", {})
+    if not isinstance(names, dict):
+        raise DatasetError(f"{where}: field 'frames' must be an object, got {names!r}")
+    truth = None
+    if (root / "truth.json").is_file():
+        try:
+            truth = json.loads((root / "truth.json").read_text())
+        except json.JSONDecodeError as e:
+            raise DatasetError(f"{root / 'truth.json'}: not valid JSON ({e})") from None
+    return HandEyeCapture(
+        root=root,
+        eye_in_hand=arrangement == "eye_in_hand",
+        cameras=cameras,
+        target=spec,
+        frames=frames,
+        T_base_ee=T,
+        images=images,
+        base_frame=_name(names, "base", "base_link", f"{where}: frames"),
+        ee_frame=_name(names, "ee", "tool0", f"{where}: frames"),
+        target_frame=_name(names, "target", "calibration_target", f"{where}: frames"),
+        description=str(meta.get("description", "")),
+        truth=truth,
+    )
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def pose_rows(
+    T_base_ee: np.ndarray, fmt: str, translation_unit: str = "m", rotation_unit: str = "rad"
+) -> list:
+    """The pose table's value columns (in `POSE_COLUMNS[fmt]` order) for `(frames, 4, 4)` poses."""
+    T = np.asarray(T_base_ee, np.float64)
+    st = 1e3 if translation_unit == "mm" else 1.0
+    sr = 180.0 / math.pi if rotation_unit == "deg" else 1.0
+    rows = []
+    for M in T:
+        t = (M[:3, 3] * st).tolist()
+        if fmt == "matrix":
+            N = M.copy()
+            N[:3, 3] *= st
+            rows.append(N.ravel().tolist())
+        elif fmt == "xyz_quat":
+            rows.append(t + matrix_to_quaternion(M[:3, :3]).tolist())
+        elif fmt == "xyz_rpy":
+            rows.append(t + (matrix_to_rpy(M[:3, :3]) * sr).tolist())
+        else:
+            rows.append(t + (matrix_to_rotvec(M[:3, :3]) * sr).tolist())
+    return rows
+
+
+def write_hand_eye_description(
+    root,
+    *,
+    eye_in_hand: bool,
+    cameras: list[HandEyeCamera],
+    target: TargetSpec,
+    frames: list[str],
+    T_base_ee: np.ndarray,
+    pose_format: str = "xyz_quat",
+    translation_unit: str = "m",
+    rotation_unit: str = "rad",
+    description: str = "",
+) -> None:
+    """Write `handeye.json` and `poses.csv` into `root` (the images are the caller's)."""
+    root = Path(root)
+    poses = {"file": "poses.csv", "format": pose_format, "translation_unit": translation_unit}
+    if pose_format in ("xyz_rpy", "xyz_rotvec"):
+        poses["rotation_unit"] = rotation_unit
+    meta = {
+        "schema": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "description": description,
+        "arrangement": "eye_in_hand" if eye_in_hand else "eye_to_hand",
+        "frames": {"base": "base_link", "ee": "tool0", "target": "calibration_target"},
+        "poses": poses,
+        "cameras": [c.to_dict() for c in cameras],
+        "target": target.to_dict(),
+    }
+    (root / "handeye.json").write_text(json.dumps(meta, indent=1) + "\n")
+    with open(root / "poses.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", *POSE_COLUMNS[pose_format]])
+        for name, row in zip(frames, pose_rows(T_base_ee, pose_format, translation_unit, rotation_unit)):
+            w.writerow([name, *(repr(float(v)) for v in row)])

@@ -1,0 +1,384 @@
+"""Writing a hand-eye calibration: `result.json`, the camera pose for OpenCV, ROS and easy_handeye, `report.md`.
+
+```
+OUT/
+  result.json                      everything (see `hand_eye_summary`)
+  camera_<name>.yaml               OpenCV FileStorage: T_robot_cam, K, distortion, std
+  ros_<name>.launch.yaml           ROS 2 launch file: a tf2_ros static_transform_publisher
+  ros_<name>.txt                   its command line (ROS 2 and ROS 1 argument orders)
+  easy_handeye_<name>.yaml         easy_handeye's calibration file (frames, translation, quaternion xyzw)
+  report.md, residuals.png, consistency.png
+```
+
+The directory is written atomically (`jaxcal.io._files.atomic_directory`).
+"""
+
+import json
+from pathlib import Path
+
+import cv2
+import jax
+import numpy as np
+import optimistix as optx
+
+from ._files import atomic_directory
+from .handeye import matrix_to_quaternion
+
+
+def _code(code) -> str:
+    if bool(code == optx.RESULTS.successful):
+        return "successful"
+    if bool(code == optx.RESULTS.nonlinear_max_steps_reached):
+        return "max_steps_reached"
+    return "failed"
+
+
+def _index(code, i: int):
+    return jax.tree.map(lambda x: x[i], code)
+
+
+def _std(std6) -> dict:
+    std6 = np.asarray(std6)
+    return {"translation_mm": (1e3 * std6[:3]).tolist(), "rotation_deg": np.degrees(std6[3:]).tolist()}
+
+
+def _transform(T) -> dict:
+    T = np.asarray(T)
+    return {
+        "matrix": T.tolist(),
+        "translation_m": T[:3, 3].tolist(),
+        "quaternion_xyzw": matrix_to_quaternion(T[:3, :3]).tolist(),
+    }
+
+
+def camera_frames(run, c: int) -> tuple[str, str]:
+    """`(parent, child)` frame names of camera `c`'s pose: the flange (eye-in-hand) or base, and the camera."""
+    cap = run.capture
+    return (cap.ee_frame if cap.eye_in_hand else cap.base_frame), cap.cameras[c].frame_id
+
+
+def hand_eye_summary(run) -> dict:
+    """Everything `result.json` holds: status, transforms with std and k-fold spread, per-frame residuals,
+    rejected frames with reasons, the consistency check, the solver's stages, and the truth when known."""
+    cap, r, obs = run.capture, run.result, run.observations
+    F = obs.frames
+    sigma = obs.sigma_px
+    cams = {}
+    for c, cam in enumerate(cap.cameras):
+        parent, child = camera_frames(run, c)
+        entry = {
+            "parent_frame": parent,
+            "child_frame": child,
+            "T_robot_cam": _transform(r.T_robot_cam[c]),
+            "T_cam_robot": np.asarray(r.T_cam_robot[c]).tolist(),
+            "std": _std(r.std_robot_cam[c]),
+            "intrinsics": {
+                "K": np.asarray(run.intrinsics[c].K).tolist(),
+                "distortion": np.asarray(run.intrinsics[c].dist).tolist(),
+                "source": run.intrinsics[c].source,
+                "rms_px": run.intrinsics[c].rms_px,
+            },
+            "views": int(run.detected[c].sum()),
+        }
+        if run.kfold is not None:
+            entry["kfold_std"] = _std(run.kfold.std_robot_cam[c])
+            t = np.linalg.norm(run.kfold.std_robot_cam[c, :3]) / max(
+                np.linalg.norm(r.std_robot_cam[c, :3]), 1e-300
+            )
+            w = np.linalg.norm(run.kfold.std_robot_cam[c, 3:]) / max(
+                np.linalg.norm(r.std_robot_cam[c, 3:]), 1e-300
+            )
+            entry["kfold_over_std"] = {"translation": float(t), "rotation": float(w)}
+        if run.truth_error is not None:
+            entry["truth_error"] = {
+                "translation_mm": float(1e3 * run.truth_error[c, 0]),
+                "rotation_deg": float(np.degrees(run.truth_error[c, 1])),
+            }
+        cams[cam.name] = entry
+    frames = []
+    rms = np.asarray(r.group_rms)[:, :F] * sigma
+    robot_rms = np.asarray(r.robot_rms)[:F]
+    for f, name in enumerate(cap.frames):
+        frames.append(
+            {
+                "frame": name,
+                "detected": {cam.name: bool(run.detected[c, f]) for c, cam in enumerate(cap.cameras)},
+                "rms_px": {
+                    cam.name: (None if not np.isfinite(rms[c, f]) else float(rms[c, f]))
+                    for c, cam in enumerate(cap.cameras)
+                },
+                "robot_correction_sigma": None if not np.isfinite(robot_rms[f]) else float(robot_rms[f]),
+                "rejected": f in run.rejected,
+                "reason": run.rejected.get(f),
+                "inconsistent_rotation": bool(obs.consistency.inconsistent[f]),
+            }
+        )
+    mc = obs.consistency
+    return {
+        "status": run.verdict.status,
+        "reasons": list(run.verdict.reasons),
+        "notes": list(run.verdict.notes),
+        "arrangement": cap.arrangement,
+        "capture": str(cap.root),
+        "target": {
+            "spec": cap.target.to_dict(),
+            "parent_frame": cap.base_frame if cap.eye_in_hand else cap.ee_frame,
+            "T_robot_target": _transform(r.T_robot_board),
+            "std": _std(r.std_robot_board),
+            "kfold_std": None if run.kfold is None else _std(run.kfold.std_robot_board),
+            "symmetric_views_turned": [
+                {"camera": cap.cameras[c].name, "frame": cap.frames[f], "degrees": a}
+                for c, f, a in obs.turned
+            ],
+        },
+        "cameras": cams,
+        "rejected_frames": [
+            {
+                "frame": cap.frames[f],
+                "cameras": [cap.cameras[c].name for c in np.flatnonzero(np.asarray(r.rejected)[:, f])],
+                "reason": why,
+            }
+            for f, why in sorted(run.rejected.items())
+        ],
+        "frames": frames,
+        "consistency": {
+            "tolerance_deg": mc.tolerance_deg,
+            "disagreeing_fraction": mc.disagreeing_fraction,
+            "median_difference_deg": mc.median_error_deg,
+            "mean_difference_deg": mc.mean_error_deg,
+            "inconsistent_frames": [cap.frames[f] for f in mc.inconsistent_frames()],
+        },
+        "kfold": None
+        if run.kfold is None
+        else {
+            "folds": run.kfold.folds,
+            "converged": np.asarray(run.kfold.converged).tolist(),
+            "fold_frames": [[cap.frames[f] for f in fold] for fold in run.kfold.fold_frames],
+        },
+        "solver": {
+            "stages": [
+                {
+                    "name": name,
+                    "result": _code(_index(r.stage_result, i)),
+                    "steps": int(np.asarray(r.stage_steps)[i]),
+                }
+                for i, name in enumerate(("robust", "plain"))
+            ],
+            "max_steps": run.max_steps,
+            "pixel_rms_px": float(r.pixel_rms),
+            "sigma_px": sigma,
+            "variance_factor": float(r.variance_factor),
+            "frames": F,
+            "padded_frames": int(np.shape(r.T_base_ee)[0]),
+        },
+        "seconds": run.seconds,
+    }
+
+
+# --------------------------------------------------------------------------- camera pose files
+
+
+def write_opencv_yaml(path: Path, run, c: int) -> None:
+    """OpenCV FileStorage YAML: `T_robot_cam` (4x4), `K`, `distortion`, `std` (6: m, rad) and the frames."""
+    parent, child = camera_frames(run, c)
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("arrangement", run.capture.arrangement)
+        fs.write("parent_frame", parent)
+        fs.write("child_frame", child)
+        fs.write("T_robot_cam", np.asarray(run.result.T_robot_cam[c], np.float64))
+        fs.write("std_robot_cam", np.asarray(run.result.std_robot_cam[c], np.float64).reshape(1, 6))
+        fs.write("K", np.asarray(run.intrinsics[c].K, np.float64))
+        fs.write("distortion", np.asarray(run.intrinsics[c].dist, np.float64).reshape(1, -1))
+        fs.write("image_width", run.capture.cameras[c].width)
+        fs.write("image_height", run.capture.cameras[c].height)
+        fs.write("status", run.verdict.status)
+    finally:
+        fs.release()
+
+
+def static_transform_args(run, c: int) -> dict:
+    """The `static_transform_publisher` argument lines of camera `c`'s pose (ROS 2 named, ROS 1 positional)."""
+    parent, child = camera_frames(run, c)
+    T = np.asarray(run.result.T_robot_cam[c])
+    t, q = T[:3, 3], matrix_to_quaternion(T[:3, :3])
+    v = [f"{x:.9g}" for x in (*t, *q)]
+    ros2 = (
+        f"--x {v[0]} --y {v[1]} --z {v[2]} --qx {v[3]} --qy {v[4]} --qz {v[5]} --qw {v[6]} "
+        f"--frame-id {parent} --child-frame-id {child}"
+    )
+    return {"ros2": ros2, "ros1": " ".join(v) + f" {parent} {child}", "parent": parent, "child": child}
+
+
+def write_ros(folder: Path, run, c: int) -> None:
+    name = run.capture.cameras[c].name
+    a = static_transform_args(run, c)
+    launch = (
+        f"# jaxcal hand-eye calibration ({run.capture.arrangement}, status {run.verdict.status}):\n"
+        f"# the pose of {a['child']} in {a['parent']}.  Run: ros2 launch ros_{name}.launch.yaml\n"
+        "launch:\n"
+        "- node:\n"
+        "    pkg: tf2_ros\n"
+        "    exec: static_transform_publisher\n"
+        f"    name: jaxcal_handeye_{name}\n"
+        f'    args: "{a["ros2"]}"\n'
+    )
+    (folder / f"ros_{name}.launch.yaml").write_text(launch)
+    (folder / f"ros_{name}.txt").write_text(
+        f"ros2 run tf2_ros static_transform_publisher {a['ros2']}\n"
+        f"rosrun tf2_ros static_transform_publisher {a['ros1']}\n"
+    )
+
+
+def write_easy_handeye(path: Path, run, c: int) -> None:
+    """easy_handeye's calibration YAML: `eye_on_hand`, the four frames, `transformation` (x y z qx qy qz qw)."""
+    cap = run.capture
+    T = np.asarray(run.result.T_robot_cam[c])
+    q = matrix_to_quaternion(T[:3, :3])
+    lines = [
+        f"eye_on_hand: {'true' if cap.eye_in_hand else 'false'}",
+        f"robot_base_frame: {cap.base_frame}",
+        f"robot_effector_frame: {cap.ee_frame}",
+        f"tracking_base_frame: {cap.cameras[c].frame_id}",
+        f"tracking_marker_frame: {cap.target_frame}",
+        "transformation:",
+        *(f"  {k}: {v:.12g}" for k, v in zip(("x", "y", "z"), T[:3, 3])),
+        *(f"  {k}: {v:.12g}" for k, v in zip(("qx", "qy", "qz", "qw"), q)),
+    ]
+    path.write_text("\n".join(lines) + "\n")
+
+
+# --------------------------------------------------------------------------- report
+
+
+def plot_residuals(run):
+    """Per-frame reprojection RMS per camera (px; rejected frames in red, undetected marked) and
+    each frame's median robot-versus-camera rotation-angle difference (a matplotlib `Figure`, no pyplot)."""
+    from matplotlib.figure import Figure
+
+    cap, r, obs = run.capture, run.result, run.observations
+    F = obs.frames
+    rms = np.asarray(r.group_rms)[:, :F] * obs.sigma_px
+    rejected = np.asarray(r.rejected)[:, :F]
+    C = len(cap.cameras)
+    fig = Figure(figsize=(max(6.0, 0.28 * F + 2.0), 2.6 * (C + 1)))
+    axes = fig.subplots(C + 1, 1, squeeze=False)[:, 0]
+    x = np.arange(F)
+    for c, cam in enumerate(cap.cameras):
+        ax = axes[c]
+        y = np.nan_to_num(rms[c], nan=0.0)
+        colours = np.where(rejected[c], "tab:red", "tab:blue")
+        ax.bar(x, y, color=colours)
+        missing = ~run.detected[c]
+        ax.plot(x[missing], np.zeros(missing.sum()), "x", color="k", label="target not found")
+        ax.axhline(obs.sigma_px, color="k", lw=0.8, ls="--", label=f"detector noise {obs.sigma_px:.3g} px")
+        ax.set_ylabel("RMS px")
+        ax.set_title(f"camera {cam.name}: reprojection RMS per frame (red: rejected)")
+        ax.legend(loc="upper right", fontsize=7)
+    ax = axes[-1]
+    pair = obs.consistency.pair_error_deg
+    diff = np.array([np.median(row[np.isfinite(row)]) if np.isfinite(row).any() else 0.0 for row in pair])
+    ax.bar(
+        x,
+        np.nan_to_num(diff[:F], nan=0.0),
+        color=np.where(obs.consistency.inconsistent[:F], "tab:red", "tab:green"),
+    )
+    ax.axhline(obs.consistency.tolerance_deg, color="k", lw=0.8, ls="--", label="tolerance")
+    ax.set_ylabel("deg")
+    ax.set_title("median |robot - camera| relative rotation angle with the other frames")
+    ax.legend(loc="upper right", fontsize=7)
+    ax.set_xticks(x)
+    ax.set_xticklabels(cap.frames, rotation=90, fontsize=6)
+    for a in axes[:-1]:
+        a.set_xticks(x)
+        a.set_xticklabels([])
+    fig.tight_layout()
+    return fig
+
+
+def _fmt(v, digits=3) -> str:
+    return f"{v:.{digits}f}"
+
+
+def report_markdown(summary: dict) -> str:
+    s = summary
+    lines = [
+        "# jaxcal hand-eye calibration",
+        "",
+        f"Capture `{s['capture']}` ({s['arrangement'].replace('_', '-')}), status **{s['status']}**.",
+        "",
+    ]
+    if s["reasons"]:
+        lines += ["Why it is suspect:", ""] + [f"- {x}" for x in s["reasons"]] + [""]
+    if s["notes"]:
+        lines += ["Notes:", ""] + [f"- {x}" for x in s["notes"]] + [""]
+    lines += [
+        "| camera | pose of | in | t (mm) | quaternion xyzw | std t (mm) | std rot (deg) | k-fold t (mm) | k-fold rot (deg) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, c in s["cameras"].items():
+        t = np.asarray(c["T_robot_cam"]["translation_m"]) * 1e3
+        kf = c.get("kfold_std")
+        lines.append(
+            f"| {name} | {c['child_frame']} | {c['parent_frame']} | {np.round(t, 2).tolist()} | "
+            f"{np.round(c['T_robot_cam']['quaternion_xyzw'], 5).tolist()} | "
+            f"{_fmt(np.linalg.norm(c['std']['translation_mm']))} | {_fmt(np.linalg.norm(c['std']['rotation_deg']), 4)} | "
+            + (
+                f"{_fmt(np.linalg.norm(kf['translation_mm']))} | {_fmt(np.linalg.norm(kf['rotation_deg']), 4)} |"
+                if kf
+                else "n/a | n/a |"
+            )
+        )
+    lines += [
+        "",
+        "Standard deviations are the norms of the three components (translation in the parent frame, "
+        "rotation as a parent-frame rotation vector); the k-fold column is the jackknife spread over "
+        f"{s['kfold']['folds'] if s['kfold'] else 0} folds of frames.",
+        "",
+    ]
+    for name, c in s["cameras"].items():
+        if "truth_error" in c:
+            e = c["truth_error"]
+            lines.append(
+                f"Synthetic capture: camera {name} is off the truth by {_fmt(e['translation_mm'])} mm, {_fmt(e['rotation_deg'], 4)} deg."
+            )
+    sv = s["solver"]
+    stages = ", ".join(f"{x['name']} {x['result']} in {x['steps']} steps" for x in sv["stages"])
+    lines += [
+        "",
+        f"Solver: {stages}; reprojection RMS {_fmt(sv['pixel_rms_px'])} px against the detector's "
+        f"{_fmt(sv['sigma_px'])} px (variance factor {_fmt(sv['variance_factor'], 2)}); {sv['frames']} frames.",
+        "",
+        f"Rotation-angle check: {100 * s['consistency']['disagreeing_fraction']:.0f}% of frame pairs differ by more "
+        f"than {s['consistency']['tolerance_deg']:g} deg (median {_fmt(s['consistency']['median_difference_deg'])} deg).",
+        "",
+    ]
+    if s["rejected_frames"]:
+        lines += ["| rejected frame | cameras | reason |", "| --- | --- | --- |"]
+        lines += [
+            f"| {x['frame']} | {', '.join(x['cameras'])} | {x['reason']} |" for x in s["rejected_frames"]
+        ]
+        lines.append("")
+    lines += ["![per-frame residuals](residuals.png)", ""]
+    return "\n".join(lines)
+
+
+def write_hand_eye_outputs(run, out, *, overwrite: bool = False, checked=None) -> Path:
+    """Write every output of `run` (a `HandEyeRun`) into directory `out`, atomically.
+
+    `out` may not be, contain or lie inside the capture; `overwrite` replaces
+    only a result jaxcal wrote (see `jaxcal.io._files.atomic_directory`).
+
+    **Returns:** `out`.
+    """
+    summary = hand_eye_summary(run)
+    inputs = (run.capture.root,)
+    with atomic_directory(out, overwrite=overwrite, inputs=inputs, kind="result", checked=checked) as tmp:
+        (tmp / "result.json").write_text(json.dumps(summary, indent=1) + "\n")
+        for c, cam in enumerate(run.capture.cameras):
+            write_opencv_yaml(tmp / f"camera_{cam.name}.yaml", run, c)
+            write_ros(tmp, run, c)
+            write_easy_handeye(tmp / f"easy_handeye_{cam.name}.yaml", run, c)
+        plot_residuals(run).savefig(tmp / "residuals.png", dpi=110)
+        (tmp / "report.md").write_text(report_markdown(summary))
+    return Path(out)
