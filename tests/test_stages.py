@@ -1,0 +1,238 @@
+"""The stages and their building blocks, without rendering or solving.
+
+Capture kinds are resolved from copies of the shipped dataset with their
+metadata edited (eye-in-hand, markers on every link, no encoder log, two
+cameras); the synchronisation, the verdict's checks, the parameter layout,
+the least-squares kit and the size buckets are checked on analytic inputs.
+The solvers each stage calls are tested in their own files (test_arcfit,
+test_axisfit, test_refine: exact recovery for every capture kind on analytic
+corners), and one rendered capture per kind runs end to end (test_calibrate,
+test_eye_in_hand, test_links).
+"""
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from jaxcal import stages
+from jaxcal._buckets import bucket, pad_log
+from jaxcal._correction import ParameterLayout, physical_parameters, zero_correction
+from jaxcal._kinematics import joint_axes
+from jaxcal._lsq import closed_form_jvp, covariance, independent_columns
+from jaxcal.errors import CalibrationError
+from jaxcal.io.dataset import load_dataset
+from jaxcal.robots import load_robot
+from jaxcal.stages._synchronise import assign_frames, usable
+from jaxcal.stages._verdict import axis_spacing_ratio
+from jaxcal.stages.kinds import Motion, Mount
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "ur5e_sweeps"
+OPTIONS = stages.Options(progress=False, workers=1)
+
+
+def _variant(tmp_path: Path, edit) -> Path:
+    """A copy of the shipped dataset without its truth, `edit(metadata)` applied."""
+    dst = tmp_path / "ds"
+    shutil.copytree(DATA, dst, ignore=shutil.ignore_patterns("truth.*"))
+    meta = json.loads((dst / "metadata.json").read_text())
+    edit(meta, dst)
+    (dst / "metadata.json").write_text(json.dumps(meta))
+    return dst
+
+
+def _eye_in_hand(meta, root):
+    meta["cameras"][0]["mount"] = "flange"
+    meta["targets"][0]["link"] = "world"
+
+
+def _no_encoders(meta, root):
+    (root / "encoders.csv").unlink()
+    meta["encoders"] = None
+
+
+def _two_cameras(meta, root):
+    second = dict(meta["cameras"][0], name="cam1")
+    meta["cameras"].append(second)
+
+
+def _free_motion_without_link_plates(meta, root):
+    meta["motion"] = [{"joint": None, "start": meta["motion"][0]["start"], "end": meta["motion"][-1]["end"]}]
+
+
+# --------------------------------------------------------------------------- setup: capture kinds
+
+
+@pytest.mark.parametrize(
+    "edit, mount, motion, encoders, fixed",
+    [
+        (lambda m, r: None, Mount.EYE_TO_HAND, Motion.SWEEPS, True, "T_cam_base"),
+        (_eye_in_hand, Mount.EYE_IN_HAND, Motion.SWEEPS, True, "T_board_base"),
+        (_no_encoders, Mount.EYE_TO_HAND, Motion.SWEEPS, False, "T_cam_base"),
+    ],
+)
+def test_setup_resolves_the_capture_kind(tmp_path, edit, mount, motion, encoders, fixed):
+    s = stages.setup(_variant(tmp_path, edit), OPTIONS)
+    kind = s.kind
+    assert (kind.mount, kind.motion, kind.encoders) == (mount, motion, encoders)
+    assert kind.fixed_frame == fixed and kind.inverts_poses == (mount is Mount.EYE_IN_HAND)
+    assert kind.axis_fit_uses_poses == encoders and kind.per_view_angles == (not encoders)
+    assert kind.identifiability_tol == (1e-6 if encoders else 1e-3)
+    assert len(s.targets) == 1
+    if mount is Mount.EYE_IN_HAND:
+        # The board's pattern, named after the camera, rides on the flange in the fits.
+        assert s.board.name == "plate0" and s.targets[0].name == "cam0" and s.targets[0].link == "flange"
+
+
+def test_setup_adds_further_fixed_cameras_only_where_the_kind_refines_them(tmp_path):
+    s = stages.setup(_variant(tmp_path, _two_cameras), OPTIONS)
+    assert [c.name for c in s.extra_cameras] == ["cam1"] and s.kind.refines_other_cameras
+    assert any("the refinement adds ['cam1']" in n for n in s.notes)
+    single = stages.setup(s.dataset, stages.Options(progress=False, other_cameras=False))
+    assert single.extra_cameras == ()
+    both = _variant(tmp_path / "b", lambda m, r: (_two_cameras(m, r), _no_encoders(m, r)))
+    s2 = stages.setup(both, OPTIONS)
+    assert s2.extra_cameras == () and any("uses camera 'cam0' only" in n for n in s2.notes)
+
+
+def test_free_motion_needs_a_plate_on_every_link(tmp_path):
+    with pytest.raises(CalibrationError, match="no target on link 'shoulder_link'"):
+        stages.setup(_variant(tmp_path, _free_motion_without_link_plates), OPTIONS)
+
+
+def test_an_unknown_camera_is_named(tmp_path):
+    with pytest.raises(CalibrationError, match="camera 'cam9' is not in"):
+        stages.setup(DATA, stages.Options(camera="cam9"))
+
+
+# --------------------------------------------------------------------------- synchronise
+
+
+def test_frames_are_assigned_from_the_motion_segments_or_the_encoder_log():
+    ds = load_dataset(DATA)
+    t = np.array([s[1] + 0.5 * (s[2] - s[1]) for s in ds.segments] + [ds.segments[-1][2] + 10.0])
+    assert assign_frames(ds, t, None, 6).tolist() == [0, 1, 2, 3, 4, 5, -1]
+    # Without segments: the one joint away from zero while the others stay at zero.
+    q = np.zeros((4, 6))
+    q[0, 2] = 0.3  # elbow alone
+    q[1, [1, 2]] = 0.3  # two joints: no sweep
+    q[2, 4] = 0.001  # below MOVING_DEG
+    q[3, 5] = -1.0
+    no_segments = dataclasses.replace(ds, segments=())
+    assert assign_frames(no_segments, np.zeros(4), q, 6).tolist() == [2, -1, -1, 5]
+
+
+def test_frames_in_an_encoder_glitch_are_not_usable():
+    ds = load_dataset(DATA)
+    t = ds.encoder_t[[5, 50, 100]]
+    inside, glitched = usable(ds, t, (ds.encoder_t, ds.encoder_motor))
+    assert inside.all() and not glitched.any()
+    outside, _ = usable(ds, np.array([ds.encoder_t[0] - 1.0, ds.encoder_t[-1] + 1.0]), (ds.encoder_t, None))
+    assert not outside.any()
+
+
+# --------------------------------------------------------------------------- verdict
+
+
+class _Arcs:
+    def __init__(self, point, direction):
+        self.point, self.direction = point, direction
+
+
+def test_the_axes_spacing_measures_a_mis_sized_target():
+    s = stages.setup(DATA, OPTIONS)
+    p, d = (np.asarray(a) for a in joint_axes(s.nominal, jnp.zeros(6)))
+    R = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
+    for scale in (1.0, 1.1, 0.95):
+        # The camera sees the axes through the target: every length times `scale`.
+        ratio, pairs = axis_spacing_ratio(s, _Arcs(scale * p @ R.T + [0.1, 0.2, 0.9], d @ R.T))
+        assert ratio == pytest.approx(scale, rel=1e-9) and len(pairs) == 2  # the two long parallel pairs
+
+
+# --------------------------------------------------------------------------- parameter layout and least squares
+
+
+def test_the_layout_names_every_parameter_once_in_solver_order():
+    model = load_robot("ur5e")
+    lay = ParameterLayout.of(model, 2, other_cameras=("side",), angles=("a", "b"))
+    names = lay.names()
+    assert len(names) == lay.size == len(set(names))
+    idx = lay.indices()
+    assert sorted(np.concatenate(list(idx.values())).tolist()) == list(range(lay.size))
+    assert (
+        names[idx["zero"][2]] == "elbow_joint.zero_offset" and names[idx["others"][0]] == "side.T_cam_base.tx"
+    )
+    assert lay.names(refine=False) == names[: lay.axis_size]
+    assert sorted(lay.priority().tolist()) == list(range(lay.size))
+    eih = ParameterLayout.of(model, 1, eye_in_hand=True).names(refine=False)
+    assert eih[0] == "T_board_base.tx" and eih[-1] == "camera.mount.rz"
+
+
+def test_the_physical_table_is_the_nominal_at_zero_correction():
+    model = load_robot("ur5e")
+    lay = ParameterLayout.of(model, 1)
+    T0, mount = np.eye(4), np.eye(4)[None]
+    n = lay.axis_size
+    rows = physical_parameters(
+        lay,
+        model,
+        mount,
+        T0,
+        jnp.zeros(6),
+        zero_correction(6, 1),
+        np.eye(n) * 1e-6,
+        np.ones(n, bool),
+        ["plate"],
+    )
+    assert all(r["estimate"] == pytest.approx(r["nominal"], abs=1e-15) for r in rows)
+    assert all(r["std"] > 0 for r in rows if r["free"])
+    assert rows[-1]["name"] == "plate.mount.yaw"
+
+
+def test_independent_columns_follow_the_priority_order():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(20, 3))
+    J = jnp.asarray(np.column_stack([A, A[:, 0] + A[:, 1], A[:, 2] * 3.0]))  # columns 3, 4 depend on 0-2
+    keep, _ = independent_columns(J, np.arange(5), tol=1e-8)
+    assert keep.tolist() == [True, True, True, False, False]
+    keep, _ = independent_columns(J, np.array([4, 3, 2, 1, 0]), tol=1e-8)
+    assert keep.tolist() == [False, True, False, True, True]
+    cov, sv, _ = covariance(J, jnp.asarray([True, True, True, False, False]), 2.0)
+    np.testing.assert_allclose(cov[:3, :3], 2.0 * np.linalg.inv(A.T @ A), rtol=1e-9)
+    assert np.all(np.asarray(cov)[3:] == 0.0)
+
+
+def test_a_closed_form_jacobian_is_used_for_parameters_and_autodiff_for_data():
+    def f(x, a):
+        return jnp.sin(x) * a
+
+    def terms(x, a):
+        return f(x, a), jnp.diag(jnp.cos(x) * a)
+
+    g = closed_form_jvp(f, terms, f)
+    x, a = jnp.array([0.1, 0.7]), jnp.array([2.0, 3.0])
+    np.testing.assert_allclose(jax.jacfwd(g)(x, a), jax.jacfwd(f)(x, a), rtol=1e-12)
+    np.testing.assert_allclose(jax.jacfwd(g, argnums=1)(x, a), jax.jacfwd(f, argnums=1)(x, a), rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- size buckets
+
+
+def test_buckets_grow_by_at_most_half_and_logs_pad_without_changing_interpolation():
+    sizes = [bucket(n) for n in range(1, 5000)]
+    assert all(s >= n for n, s in zip(range(1, 5000), sizes))
+    ladder = sorted(set(sizes))
+    assert all(b / a <= 1.5 for a, b in zip(ladder, ladder[1:]))
+    t = np.linspace(0.0, 2.0, 11)
+    q = np.stack([np.sin(t), t**2], -1)
+    tp, qp = pad_log(t, q, bucket(len(t)))
+    assert len(tp) == 12 and np.all(np.diff(tp) > 0)
+    probe = np.linspace(-1.0, 5.0, 97)
+    for j in range(2):
+        np.testing.assert_array_equal(np.interp(probe, tp, qp[:, j]), np.interp(probe, t, q[:, j]))
