@@ -122,6 +122,8 @@ def _plots(result, out: Path) -> list[tuple[str, str]]:
         ("residuals.png", plot_residuals, "Arc residuals of every frame (distance from the fitted circle)"),
         ("ee_error.png", plot_ee_errors, "End-effector error against the truth, before and after"),
     ):
+        if plot is not plot_ee_errors and result.arc_fit is None:
+            continue  # a pose-based capture has no arcs
         fig = plot(result)
         if fig is None:
             continue

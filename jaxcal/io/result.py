@@ -49,15 +49,7 @@ def result_to_json(result) -> dict:
         "status": result.status,
         "reasons": list(result.reasons),
         **poses,
-        "reduction_ratios": {
-            a["joint"]: {
-                "nominal": a["ratio_nominal"],
-                "estimate": a["ratio"],
-                "std": a["ratio_std"],
-                "identifiable": a["ratio_identifiable"],
-            }
-            for a in result.arcs
-        },
+        "reduction_ratios": result.ratios,
         "parameters": result.parameters,
         "identifiability": {
             "estimated": sum(bool(p["free"]) for p in result.parameters if p["group"] == "correction"),

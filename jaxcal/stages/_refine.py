@@ -141,7 +141,9 @@ def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Cor
     ds, kind = setup.dataset, setup.kind
     no_encoders = not kind.encoders
     offset = sync.clock["offset_s"]
-    rate0 = jnp.asarray(two.arcs.rate) if kind.encoders else jnp.ones(setup.nominal.num_joints)
+    rate0 = (
+        jnp.asarray(two.arcs.rate) if kind.encoders and kind.has_arcs else jnp.ones(setup.nominal.num_joints)
+    )
     pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in setup.targets}
     out = _Corners(used=[obs.primary])
     for v in (obs.primary, *obs.others):
@@ -247,7 +249,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
     params0 = RefineParams(
         cam=fit.params.cam,
         correction=correction,
-        rate=jnp.asarray(two.arcs.rate) if kind.encoders else jnp.ones(n),
+        rate=jnp.asarray(two.arcs.rate) if kind.encoders and kind.has_arcs else jnp.ones(n),
         clock_ms=jnp.zeros(()),
         intrinsics=jnp.zeros(9),
         other_cams=jnp.zeros((len(corners.others), 6)) if corners.others else None,

@@ -145,12 +145,26 @@ def setup(dataset, options: Options) -> Setup:
         )
     flange = nominal.link_names[-1]
     cam = _choose_camera(ds, options.camera, flange)
+    link_targets = any(t.link not in (flange, "world") for t in ds.targets)
     kind = CaptureKind.of(
-        camera_on_flange=cam.mount == flange, segments=ds.segments, encoders=ds.encoder_t is not None
+        camera_on_flange=cam.mount == flange,
+        segments=ds.segments,
+        encoders=ds.encoder_t is not None,
+        link_targets=link_targets,
     )
     notes = []
     board = target_link = per_joint = None
     extra: list[CameraInfo] = []
+    if not kind.has_arcs:
+        if not kind.encoders:
+            raise CalibrationError(
+                f"{ds.root}: a pose-based capture (arbitrary motion, no plate on the links) needs the encoder log: "
+                "each image's joint positions come from it"
+            )
+        notes.append(
+            "pose-based capture (arbitrary motion, no plate on the links): the refinement starts from the nominal "
+            "robot and a closed-form hand-eye estimate of the camera and the mount"
+        )
     if kind.eye_in_hand:
         board, target = _eye_in_hand_target(ds, cam, flange)
         targets = (target,)
@@ -187,7 +201,7 @@ def setup(dataset, options: Options) -> Setup:
             )
         )
     ignored = [t.name for t in ds.targets if t.link != flange]
-    if ignored and not kind.eye_in_hand and not kind.sequential:
+    if ignored and not kind.eye_in_hand and not kind.sequential and kind.has_arcs:
         notes.append(f"targets not on the flange are not used by the two-stage method: {ignored}")
     if extra and not kind.refines_other_cameras:
         notes.append(

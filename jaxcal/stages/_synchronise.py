@@ -22,6 +22,7 @@ from ..io.dataset import Dataset
 from . import _programs
 from ._observe import CameraObservations, Observations
 from ._setup import Options, Setup
+from .kinds import Motion
 
 _DEG = np.pi / 180.0
 #: A joint counts as "at zero" (not the one sweeping) within this angle.
@@ -266,6 +267,13 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     log_q = commanded_positions(ds, nominal)
     offset = ds.clock_offset_s
     estimate = options.estimate_clock
+    if estimate and not setup.kind.has_arcs:
+        raise CalibrationError(
+            f"{ds.root}: the clock offset of a pose-based capture cannot be estimated (it comes from the arcs of "
+            "moving joints); give it in metadata.json, or film the poses standing still"
+        )
+    if estimate is None and not setup.kind.has_arcs:
+        estimate = False
     if estimate is None:
         # The estimate is cheap and accurate to microseconds: made whenever an encoder
         # log exists, and used unless the caller trusts the metadata's offset.
@@ -276,10 +284,13 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     clock = {"offset_s": offset0, "std_s": None, "estimated": False, "drift_ppm": ds.clock_drift_ppm}
     notes = list(ds.notes)
     if offset is None and not estimate:
-        notes.append("clock offset unknown and not estimated: 0 assumed")
+        notes.append(
+            "clock offset unknown and not estimated: 0 assumed"
+            + ("" if setup.kind.has_arcs else " (harmless when the arm stands still in every image)")
+        )
     line = _Timeline(setup, obs.primary, log_q)
     sweeps = counts = None
-    if setup.kind.sequential:
+    if setup.kind.motion is not Motion.SWEEPS:
         t_ctrl, q, inside = line.at(offset0)
         joint = np.full(len(t_ctrl), -1)
         if estimate:
@@ -302,7 +313,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
         if offset is not None:
             clock["given_s"] = offset
             notes += _compare_clock(ds, offset, clock)
-        if setup.kind.sequential:
+        if setup.kind.motion is not Motion.SWEEPS:
             t_ctrl, q, inside = line.at(clock["offset_s"])
         else:
             sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(clock["offset_s"])

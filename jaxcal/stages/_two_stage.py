@@ -15,12 +15,13 @@ import numpy as np
 import optimistix as optx
 
 from .._arcfit import validate_arc_data
-from .._axisfit import register_lines
+from .._axisfit import AxisFitParams, AxisFitResult, register_lines
 from .._buckets import bucket
-from .._correction import ParameterLayout, physical_parameters
+from .._correction import ParameterLayout, physical_parameters, zero_correction
 from .._geometry import pose_inverse
+from .._handeye import check_motion_diversity, solve_axzb
 from .._kinematics import forward_kinematics
-from .._links import sequential_sweeps
+from .._links import average_pose, sequential_sweeps
 from ..errors import CalibrationError
 from . import _programs
 from ._observe import Observations
@@ -32,7 +33,8 @@ from ._synchronise import Sweeps, Sync
 class TwoStage:
     """The two-stage result.
 
-    - `sweeps`, `counts`: the sweeps the arcs were fitted on, and frames per joint.
+    - `sweeps`, `counts`: the sweeps the arcs were fitted on, and frames per
+      joint (a pose-based capture: None, and the poses used).
     - `arcs`: the `ArcFitResult`s stacked over joints; `fit`: the `AxisFitResult`
       (its `T_cam_base0`, `T_flange_marker0` are the references of the
       corrections: the start of the refinement).
@@ -76,6 +78,60 @@ def _sequential(setup: Setup, obs: Observations, sync: Sync):
     )
     counts = {name: int(mk[j, 0].sum()) for j, name in enumerate(setup.dataset.joint_names)}
     return sweeps, counts, jax.tree.map(lambda *a: jnp.stack(a), *arc_list), sel
+
+
+def _pose_start(setup: Setup, obs: Observations, sync: Sync):
+    """A pose-based capture's start: the nominal robot, and the camera pose and
+    mounts from the closed-form hand-eye solution $A = X B Y$ (Shah) of the PnP
+    poses $A$ against the nominal flange poses $B$ at the encoder positions
+    (`jaxcal.solve_axzb`): $X = T_{cam,base}$, $Y = T_{flange,target}$."""
+    ds, nominal, p = setup.dataset, setup.nominal, obs.primary
+    sel = [i for i in np.flatnonzero(sync.inside & p.found)]
+    first = setup.targets[0].name
+    frames = [i for i in sel if first in p.poses[i]]
+    if len(frames) < 3:
+        raise CalibrationError(
+            f"{ds.root}: a pose-based capture needs at least 3 images showing {first!r} inside the encoder log, "
+            f"camera {setup.camera.name!r} has {len(frames)}"
+        )
+    B = _programs.chains(np.eye(4), nominal, sync.q[frames])[:, -1]
+    try:
+        check_motion_diversity(B, f"{ds.root}: the poses of camera {setup.camera.name!r}")
+    except ValueError as e:
+        raise CalibrationError(str(e)) from None
+    A = np.stack([p.poses[i][first].T_cam_target for i in frames])
+    X, Y = (
+        np.asarray(a) for a in solve_axzb(jnp.asarray(A)[None], jnp.asarray(B), jnp.ones((1, len(frames))))
+    )
+    T_cam_base = X[0]
+    mounts = [Y]
+    for t in setup.targets[1:]:
+        est = [
+            np.linalg.inv(T_cam_base @ B[k]) @ p.poses[i][t.name].T_cam_target
+            for k, i in enumerate(frames)
+            if t.name in p.poses[i]
+        ]
+        mounts.append(average_pose(np.stack(est)) if est else Y)
+    n, M = nominal.num_joints, len(setup.targets)
+    mounts0 = jnp.asarray(np.stack(mounts))
+    k = ParameterLayout.of(nominal, M).axis_size
+    fit = AxisFitResult(
+        model=nominal,
+        T_flange_marker=mounts0,
+        T_cam_base=jnp.asarray(T_cam_base),
+        params=AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(n, M)),
+        std=jnp.zeros(k),
+        cov=jnp.zeros((k, k)),
+        free=jnp.zeros(k, bool),
+        independence=jnp.full(k, jnp.nan),
+        result=optx.RESULTS.successful,
+        num_steps=jnp.asarray(0),
+        residual_rms=jnp.asarray(jnp.nan),
+        singular_values=jnp.zeros(k),
+        T_cam_base0=jnp.asarray(T_cam_base),
+        T_flange_marker0=mounts0,
+    )
+    return fit, len(frames)
 
 
 def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data) -> None:
@@ -134,8 +190,11 @@ def arc_rows(setup: Setup, arcs) -> list[dict]:
 
 
 def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> TwoStage:
-    """Arc fits, then the axis fit (see `TwoStage`)."""
+    """Arc fits, then the axis fit (see `TwoStage`); for a pose-based capture,
+    the nominal robot and a closed-form hand-eye start."""
     nominal, kind = setup.nominal, setup.kind
+    if not kind.has_arcs:
+        return _poses(setup, obs, sync, options)
     timings = {}
     t0 = time.perf_counter()
     link_rows = None
@@ -193,6 +252,32 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         notes=notes,
         link_rows=link_rows,
         timings=timings,
+    )
+
+
+def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> TwoStage:
+    """The two-stage record of a pose-based capture: no arcs, no axis fit."""
+    t0 = time.perf_counter()
+    options.say("pose-based capture: closed-form hand-eye start (camera and mount) from the nominal robot")
+    fit, poses = _pose_start(setup, obs, sync)
+    layout = ParameterLayout.of(setup.nominal, len(setup.targets), eye_in_hand=setup.kind.eye_in_hand)
+    parameters = physical_parameters(
+        layout, setup.nominal, fit.T_flange_marker0, fit.T_cam_base0, fit.params.cam, fit.params.correction,
+        fit.cov, np.asarray(fit.free), [t.name for t in setup.targets],
+    )  # fmt: skip
+    return TwoStage(
+        sweeps=None,
+        counts={"poses": poses},
+        arcs=None,
+        fit=fit,
+        layout=layout,
+        parameters=parameters,
+        frozen=[],
+        arc_rows=[],
+        solver={"success": True, "arc_fits_ok": [], "axis_fit": "not run (pose-based capture)"},
+        notes=(),
+        link_rows=None,
+        timings={"hand_eye_start_s": time.perf_counter() - t0},
     )
 
 

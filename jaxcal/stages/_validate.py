@@ -159,7 +159,9 @@ def validate(
         },
         q_val,
     )
-    T_gauge = _gauge(setup, two, true, T_cb_true, mounts_true)
+    # The estimator's gauge: the axis fit's frozen parameters (a pose-based capture has no axis fit,
+    # and the refinement holds joint 1's frame at nominal, as the truth does).
+    T_gauge = _gauge(setup, two, true, T_cb_true, mounts_true) if setup.kind.has_arcs else T_cb_true
     dT = np.asarray(pose_inverse(T_gauge) @ fit.T_cam_base)
     dT_raw = np.asarray(pose_inverse(T_cb_true) @ fit.T_cam_base)
     ratio_err = np.asarray(s["ratio_err_percent"])

@@ -127,28 +127,29 @@ def _ee_sigma_mm(setup: Setup, two: TwoStage, refined: Refined | None) -> float:
     return float(1e3 * np.sqrt(np.mean(sigma**2)))
 
 
-def verdict(
-    setup: Setup, obs: Observations, sync: Sync, two: TwoStage, refined: Refined | None, limits: Limits
-) -> Verdict:
-    """Check the result (see the module docstring)."""
-    c = _Checks()
-    ran = refined is not None and refined.fit is not None
-    parameters = refined.parameters if ran else two.parameters
-    measured = {t.name for t in setup.fit_targets if t.T_link_target is None}
-    if setup.kind.sequential:
-        measured |= {t.name for t in setup.targets}  # link mounts start from PnP
-    _corrections(c, parameters, limits, measured)
-    arcs = two.arc_rows
-    for a in arcs:
-        if a["ratio"] is not None:
-            pct = 100.0 * abs(a["ratio"] / a["ratio_nominal"] - 1.0)
-            c.add(
-                f"{a['joint']}.ratio",
-                pct,
-                limits.ratio_percent,
-                f"{a['joint']}: reduction ratio {a['ratio']:.4g} is {pct:.1f} % from the nominal "
-                f"{a['ratio_nominal']:.4g} (limit {limits.ratio_percent:g} %; encoder units or ratio wrong?)",
-            )
+def _ratios(c: _Checks, setup: Setup, two: TwoStage, refined: Refined | None, limits: Limits) -> None:
+    """The reported reduction ratios (refined when the refinement ran) against the nominal ones."""
+    nominal = np.asarray(setup.nominal.reduction_ratio)
+    if refined is not None and refined.ratios is not None:
+        ratios = [r for r, _ in refined.ratios]
+    else:
+        ratios = [a["ratio"] for a in two.arc_rows] or [None] * len(nominal)
+    for joint, nom, ratio in zip(setup.nominal.joint_names, nominal, ratios):
+        if ratio is None:
+            continue
+        pct = 100.0 * abs(ratio / nom - 1.0)
+        c.add(
+            f"{joint}.ratio",
+            pct,
+            limits.ratio_percent,
+            f"{joint}: reduction ratio {ratio:.4g} is {pct:.1f} % from the nominal {nom:.4g} "
+            f"(limit {limits.ratio_percent:g} %; encoder units or ratio wrong?)",
+        )
+
+
+def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
+    """The arc fits, the axis fit, and the axes' spacing against the nominal robot's."""
+    for a in two.arc_rows:
         c.add(
             f"{a['joint']}.arc_residual",
             a["residual_rms"],
@@ -165,37 +166,57 @@ def verdict(
         "nominal robot's structure",
     )
     scale, pairs = axis_spacing_ratio(setup, two.arcs)
-    if pairs:
-        pct = 100.0 * abs(scale - 1.0)
-        square = [t.spec for t in setup.targets if getattr(t.spec, "square_length", None)]
-        hint = (
-            f"; a square of {1e3 * square[0].square_length / scale:.2f} mm would fit"
-            if square and scale > 0
-            else ""
-        )
-        c.add(
-            "board_scale",
-            pct,
-            limits.board_scale_percent,
-            f"the joint axes measured through the target are {100 * scale:.1f} % of the nominal robot's spacing "
-            f"({', '.join(f'{n} {1e3 * m:.1f} vs {1e3 * nm:.1f} mm' for n, m, nm in pairs)}): is the target's "
-            f"printed size the one in metadata.json{hint}?",
-        )
+    if not pairs:
+        return
+    pct = 100.0 * abs(scale - 1.0)
+    square = [t.spec for t in setup.targets if getattr(t.spec, "square_length", None)]
+    hint = (
+        f"; a square of {1e3 * square[0].square_length / scale:.2f} mm would fit"
+        if square and scale > 0
+        else ""
+    )
+    c.add(
+        "board_scale",
+        pct,
+        limits.board_scale_percent,
+        f"the joint axes measured through the target are {100 * scale:.1f} % of the nominal robot's spacing "
+        f"({', '.join(f'{n} {1e3 * m:.1f} vs {1e3 * nm:.1f} mm' for n, m, nm in pairs)}): is the target's "
+        f"printed size the one in metadata.json{hint}?",
+    )
+
+
+def _refinement(c: _Checks, refined: Refined, limits: Limits) -> None:
+    s = refined.summary
+    c.add(
+        "sigma_px",
+        s["sigma_px"],
+        limits.sigma_px,
+        f"the refinement's pixel noise is {s['sigma_px']:.2f} px (limit {limits.sigma_px:g} px)",
+    )
+    frac = s["outlier_corners"] / max(s["corners"], 1)
+    c.add(
+        "outlier_fraction",
+        frac,
+        limits.outlier_fraction,
+        f"the refinement rejected {100 * frac:.0f} % of the corners (limit {100 * limits.outlier_fraction:g} %)",
+    )
+
+
+def verdict(
+    setup: Setup, obs: Observations, sync: Sync, two: TwoStage, refined: Refined | None, limits: Limits
+) -> Verdict:
+    """Check the result (see the module docstring)."""
+    c = _Checks()
+    ran = refined is not None and refined.fit is not None
+    measured = {t.name for t in setup.fit_targets if t.T_link_target is None}
+    if setup.kind.sequential:
+        measured |= {t.name for t in setup.targets}  # link mounts start from PnP
+    _corrections(c, refined.parameters if ran else two.parameters, limits, measured)
+    _ratios(c, setup, two, refined if ran else None, limits)
+    if setup.kind.has_arcs:
+        _axes(c, setup, two, limits)
     if ran:
-        s = refined.summary
-        c.add(
-            "sigma_px",
-            s["sigma_px"],
-            limits.sigma_px,
-            f"the refinement's pixel noise is {s['sigma_px']:.2f} px (limit {limits.sigma_px:g} px)",
-        )
-        frac = s["outlier_corners"] / max(s["corners"], 1)
-        c.add(
-            "outlier_fraction",
-            frac,
-            limits.outlier_fraction,
-            f"the refinement rejected {100 * frac:.0f} % of the corners (limit {100 * limits.outlier_fraction:g} %)",
-        )
+        _refinement(c, refined, limits)
     sigma = _ee_sigma_mm(setup, two, refined if ran else None)
     c.add(
         "ee_sigma_mm",

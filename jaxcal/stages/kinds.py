@@ -4,16 +4,17 @@ A capture is resolved once, by `CaptureKind.of`, into three independent
 choices, and every difference between kinds is a property here; the stages
 ask the kind, they do not test flags of their own.
 
-| property                    | eye-to-hand sweeps | eye-in-hand sweeps | markers on every link | no encoder log |
-| --------------------------- | ------------------ | ------------------ | --------------------- | -------------- |
-| `fixed_frame`               | `T_cam_base`       | `T_board_base`     | `T_cam_base`          | (as its mount) |
-| `inverts_poses`             | no                 | yes                | no                    |                |
-| `sequential`                | no                 | no                 | yes                   |                |
-| `axis_fit_uses_poses`       | yes                | yes                | no                    | no             |
-| `refines_other_cameras`     | yes                | no                 | no                    | no             |
-| `keeps_two_stage_gauge`     | yes                | yes                | no                    | no             |
-| `identifiability_tol`       | 1e-6               | 1e-6               | 1e-3                  | 1e-3           |
-| `per_view_angles`           | no                 | no                 | no                    | yes            |
+| property                | eye-to-hand sweeps | eye-in-hand sweeps | markers on every link | poses        | no encoder log |
+| ----------------------- | ------------------ | ------------------ | --------------------- | ------------ | -------------- |
+| `fixed_frame`           | `T_cam_base`       | `T_board_base`     | `T_cam_base`          | (its mount)  | (its mount)    |
+| `inverts_poses`         | no                 | yes                | no                    | eye-in-hand  |                |
+| `has_arcs`              | yes                | yes                | yes                   | no           |                |
+| `sequential`            | no                 | no                 | yes                   | no           |                |
+| `axis_fit_uses_poses`   | yes                | yes                | no                    | (no fit)     | no             |
+| `refines_other_cameras` | yes                | no                 | no                    | eye-to-hand  | no             |
+| `keeps_two_stage_gauge` | yes                | yes                | no                    | no           | no             |
+| `identifiability_tol`   | 1e-6               | 1e-6               | 1e-3                  | 1e-3         | 1e-3           |
+| `per_view_angles`       | no                 | no                 | no                    | no           | yes            |
 
 - **Eye-to-hand, single-joint sweeps** (the seed method): fixed cameras film
   targets on the flange while one joint turns at a time.
@@ -25,6 +26,9 @@ ask the kind, they do not test flags of their own.
 - **Markers on every link, arbitrary motion** (`Motion.FREE`): every joint
   moves at once; the seed's sequential procedure recovers each joint's arc
   from its child link's plate with the earlier joints undone.
+- **Poses** (`Motion.POSES`, stop-and-shoot or any motion with the target
+  on the flange only): no arcs; the refinement starts from the nominal
+  robot and a closed-form hand-eye estimate of the camera and mount.
 - **No encoder log**: the arcs are fitted with per-frame angles (ratios are
   not identifiable), and the refinement makes each view's joint angle an
   unknown.
@@ -55,6 +59,7 @@ class Motion(enum.Enum):
 
     SWEEPS = "sweeps"
     FREE = "free"
+    POSES = "poses"
 
 
 @dataclass(frozen=True)
@@ -66,15 +71,21 @@ class CaptureKind:
     encoders: bool
 
     @classmethod
-    def of(cls, *, camera_on_flange: bool, segments: tuple, encoders: bool) -> "CaptureKind":
-        """The kind of a dataset: the camera's mount, and arbitrary motion when
-        every motion segment has `joint: null` (markers on every link)."""
-        free = not camera_on_flange and bool(segments) and all(j is None for j, _, _ in segments)
-        return cls(
-            Mount.EYE_IN_HAND if camera_on_flange else Mount.EYE_TO_HAND,
-            Motion.FREE if free else Motion.SWEEPS,
-            encoders,
-        )
+    def of(
+        cls, *, camera_on_flange: bool, segments: tuple, encoders: bool, link_targets: bool
+    ) -> "CaptureKind":
+        """The kind of a dataset: the camera's mount, and, when every motion
+        segment has `joint: null` (arbitrary motion), markers on every link if
+        targets ride on links other than the flange (`link_targets`), else
+        poses of the flange target."""
+        arbitrary = bool(segments) and all(j is None for j, _, _ in segments)
+        if not arbitrary:
+            motion = Motion.SWEEPS
+        elif link_targets and not camera_on_flange:
+            motion = Motion.FREE
+        else:
+            motion = Motion.POSES
+        return cls(Mount.EYE_IN_HAND if camera_on_flange else Mount.EYE_TO_HAND, motion, encoders)
 
     @property
     def eye_in_hand(self) -> bool:
@@ -91,6 +102,11 @@ class CaptureKind:
         return self.eye_in_hand
 
     @property
+    def has_arcs(self) -> bool:
+        """Joint axes come from arc fits (sweeps, or the sequential procedure)."""
+        return self.motion is not Motion.POSES
+
+    @property
     def sequential(self) -> bool:
         """Each joint's arc comes from its child link's plate, earlier joints undone."""
         return self.motion is Motion.FREE
@@ -105,7 +121,7 @@ class CaptureKind:
     @property
     def refines_other_cameras(self) -> bool:
         """Further fixed cameras join the refinement (each with its own pose)."""
-        return self.mount is Mount.EYE_TO_HAND and self.motion is Motion.SWEEPS and self.encoders
+        return self.mount is Mount.EYE_TO_HAND and self.motion is not Motion.FREE and self.encoders
 
     @property
     def keeps_two_stage_gauge(self) -> bool:

@@ -16,6 +16,7 @@ from ._synchronise import Sweeps, Sync
 from ._two_stage import TwoStage, result_name
 from ._validate import Validation
 from ._verdict import Verdict
+from .kinds import Motion
 
 
 @dataclass(frozen=True, eq=False)
@@ -27,7 +28,10 @@ class CalibrationResult:
     - `parameters`: one row per physical parameter (`name`, `unit`,
       `nominal`, `estimate`, `std`, `free`).
     - `frozen`: parameters the data cannot see, held at nominal.
-    - `arcs`: per-joint arc-fit summaries; `sweeps`: the measurements.
+    - `arcs`: per-joint arc-fit summaries (empty for a pose-based capture);
+      `sweeps`: the measurements (None without arcs).
+    - `ratios`: per joint the reduction ratio's `nominal`, `estimate`, `std`
+      and whether it is `identifiable` (refined when the refinement ran).
     - `clock`: offset (s), its std, and whether it was estimated.
     - `frames`: counts of used / dropped frames with reasons.
     - `validation`: errors against the truth (synthetic datasets), else None.
@@ -59,7 +63,8 @@ class CalibrationResult:
     parameters: list
     frozen: list
     arcs: list
-    sweeps: Sweeps
+    ratios: dict
+    sweeps: Sweeps | None
     arc_fit: object
     axis_fit: object
     clock: dict
@@ -118,7 +123,9 @@ def frames_summary(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -
         "no_target": int((~found).sum()),
         "outside_encoder_log": int((~inside & ~sync.glitched).sum()),
         "in_encoder_glitch": int(sync.glitched.sum()),
-        "not_in_a_sweep": 0 if setup.kind.sequential else int(((joint < 0) & inside & found).sum()),
+        "not_in_a_sweep": 0
+        if setup.kind.motion is not Motion.SWEEPS
+        else int(((joint < 0) & inside & found).sum()),
         "used_per_joint": two.counts,
         "dropped_capture_indices": dropped_capture_indices(setup.dataset, setup.camera.name),
         "pnp_outliers": [int(r) for r, _, _ in obs.primary.dropped],
@@ -152,6 +159,30 @@ def _intrinsics(obs: Observations, refined: Refined | None) -> dict:
         "held_in_refinement": refined.intrinsics["held"],
         "K_start": start["K"],
         "distortion_start": start["distortion"],
+    }
+
+
+def _ratio_table(setup: Setup, two: TwoStage, refined: Refined | None, arcs: list) -> dict:
+    nominal = np.asarray(setup.nominal.reduction_ratio)
+    if arcs:
+        return {
+            a["joint"]: {
+                "nominal": a["ratio_nominal"],
+                "estimate": a["ratio"],
+                "std": a["ratio_std"],
+                "identifiable": a["ratio_identifiable"],
+            }
+            for a in arcs
+        }
+    refined_ratios = None if refined is None else refined.ratios
+    return {
+        j: {
+            "nominal": float(nominal[k]),
+            "estimate": None if refined_ratios is None else refined_ratios[k][0],
+            "std": None if refined_ratios is None else refined_ratios[k][1],
+            "identifiable": refined_ratios is not None,
+        }
+        for k, j in enumerate(setup.nominal.joint_names)
     }
 
 
@@ -210,7 +241,8 @@ def assemble(
         T_flange_target=np.asarray(res.T_flange_marker if ran else fit.T_flange_marker),
         parameters=refined.parameters if ran else two.parameters,
         frozen=refined.frozen if ran else two.frozen,
-        arcs=_arcs(two, refined),
+        arcs=(arcs := _arcs(two, refined)),
+        ratios=_ratio_table(setup, two, refined if ran else None, arcs),
         sweeps=two.sweeps,
         arc_fit=jax.device_get(two.arcs),
         axis_fit=jax.device_get(fit),
