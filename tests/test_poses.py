@@ -35,7 +35,7 @@ def test_poses_calibrate_from_the_nominal_robot_and_a_hand_eye_start(dataset, tm
     assert r["frames"]["used_per_joint"]["poses"] > 80
     # The start is the nominal robot; the corners give the calibrated one.
     assert v["ee_rms_mm_before"] > 4.0 and v["ee_rms_mm_after"] < 0.5 * v["ee_rms_mm_before"]
-    assert v["T_cam_base_error"]["trans_mm"] < 3.0 and v["T_cam_base_error"]["rot_deg"] < 0.1
+    assert v["T_cam_base_error"]["trans_mm"] < 3.0 and v["T_cam_base_error"]["rot_deg"] < 0.3
     ratio = [abs(e["ratio_percent"]) for e in v["parameter_errors"].values()]
     assert max(ratio) < 1.0  # perturbed by ~1 %: every joint moved far enough to see it
     assert r["status"] == "ok" and not (out / "arcs.png").exists() and (out / "ee_error.png").exists()

@@ -101,9 +101,19 @@ def test_setup_adds_further_fixed_cameras_only_where_the_kind_refines_them(tmp_p
     assert s2.extra_cameras == () and any("uses camera 'cam0' only" in n for n in s2.notes)
 
 
-def test_free_motion_needs_a_plate_on_every_link(tmp_path):
+def test_free_motion_with_the_plate_on_the_flange_only_is_pose_based(tmp_path):
+    s = stages.setup(_variant(tmp_path, _free_motion_without_link_plates), OPTIONS)
+    assert s.kind.motion is Motion.POSES and not s.kind.has_arcs and not s.kind.keeps_two_stage_gauge
+    assert any("pose-based capture" in n for n in s.notes)
+
+
+def test_free_motion_needs_a_plate_on_every_link_once_links_carry_plates(tmp_path):
+    def edit(meta, root):
+        _free_motion_without_link_plates(meta, root)
+        meta["targets"].append(dict(meta["targets"][0], name="plate1", link="upper_arm_link", first_id=20))
+
     with pytest.raises(CalibrationError, match="no target on link 'shoulder_link'"):
-        stages.setup(_variant(tmp_path, _free_motion_without_link_plates), OPTIONS)
+        stages.setup(_variant(tmp_path, edit), OPTIONS)
 
 
 def test_an_unknown_camera_is_named(tmp_path):

@@ -149,7 +149,11 @@ class CaptureKind:
     def describe(self) -> str:
         parts = [self.mount.value.replace("_", "-")]
         parts.append(
-            "single-joint sweeps" if self.motion is Motion.SWEEPS else "markers on every link, free motion"
+            {
+                Motion.SWEEPS: "single-joint sweeps",
+                Motion.FREE: "markers on every link, free motion",
+                Motion.POSES: "poses of the flange target",
+            }[self.motion]
         )
         parts.append("encoder log" if self.encoders else "no encoder log")
         return ", ".join(parts)
