@@ -55,7 +55,12 @@ def parameter_names(model: KinematicModel, num_markers: int) -> list[str]:
 
 
 class AxisFitProblem(eqx.Module):
-    """Everything fixed during the axis fit."""
+    """Everything fixed during the axis fit.
+
+    `home`: per joint sweep (row), the commanded configuration of the other
+    joints while it swept, its own entry zero (the encoder zero its arc's
+    zero pose refers to); `None`: every sweep from the zero configuration.
+    """
 
     nominal: KinematicModel
     T_flange_marker0: Float[Array, "markers 4 4"]
@@ -63,6 +68,7 @@ class AxisFitProblem(eqx.Module):
     arcs: ArcFitResult  # stacked over joints
     sqrt_info: Float[Array, "joints k k"]
     use_poses: bool = eqx.field(static=True)
+    home: Float[Array, "joints joints"] | None = None
 
 
 def _meas_dim(arcs: ArcFitResult, use_poses: bool) -> int:
@@ -74,8 +80,12 @@ def _axis_residuals_autodiff(params: AxisFitParams, problem: AxisFitProblem) -> 
     differentiated by JAX (the reference the closed-form Jacobian is tested against)."""
     model, mounts = apply_correction(problem.nominal, problem.T_flange_marker0, params.correction)
     T_cam_base = problem.T_cam_base0 @ se3_exp(params.cam)
-    q0 = jnp.zeros(model.num_joints)
-    points, dirs = joint_axes(model, q0)
+    n = model.num_joints
+    home = jnp.zeros((n, n)) if problem.home is None else problem.home
+    # Joint j's axis and the marker, each at its own sweep's home configuration.
+    points, dirs = jax.vmap(lambda q, j: jax.tree.map(lambda a: a[j], joint_axes(model, q)))(
+        home, jnp.arange(n)
+    )
     points_c = points @ T_cam_base[:3, :3].T + T_cam_base[:3, 3]
     dirs_c = dirs @ T_cam_base[:3, :3].T
     arcs = problem.arcs
@@ -86,14 +96,16 @@ def _axis_residuals_autodiff(params: AxisFitParams, problem: AxisFitProblem) -> 
     k = _meas_dim(arcs, problem.use_poses)
     pred = lines
     if problem.use_poses:
-        T_cam_marker = T_cam_base @ forward_kinematics(model, q0)[-1] @ mounts  # (M, 4, 4)
-        p_m = T_cam_marker[:, :3, 3]  # (M, 3)
-        parts = [lines, jnp.broadcast_to(p_m.reshape(-1), (lines.shape[0], p_m.size))]
-        if k > 4 + p_m.size:  # orientations were measured
+        T_cam_marker = jax.vmap(lambda q: T_cam_base @ forward_kinematics(model, q)[-1] @ mounts)(
+            home
+        )  # (J, M)
+        p_m = T_cam_marker[..., :3, 3]  # (J, M, 3)
+        parts = [lines, p_m.reshape(n, -1)]
+        if k > 4 + p_m[0].size:  # orientations were measured
             r_m = jax.vmap(
-                lambda O_ref: jax.vmap(lambda Oref_m, T: so3_log(Oref_m.T @ T[:3, :3]))(O_ref, T_cam_marker)
-            )(arcs.O_ref)  # (J, M, 3)
-            parts.append(r_m.reshape(lines.shape[0], -1))
+                lambda O_ref, T_j: jax.vmap(lambda Oref_m, T: so3_log(Oref_m.T @ T[:3, :3]))(O_ref, T_j)
+            )(arcs.O_ref, T_cam_marker)  # (J, M, 3)
+            parts.append(r_m.reshape(n, -1))
         pred = jnp.concatenate(parts, axis=-1)
     e = pred - arcs.meas[:, :k]
     return jnp.einsum("jab,jb->ja", problem.sqrt_info, e)
@@ -122,24 +134,11 @@ def _adjoint(T: Float[Array, "4 4"]) -> Float[Array, "6 6"]:
     return jnp.concatenate([top, bottom])
 
 
-def _axis_terms(
-    params: AxisFitParams, problem: AxisFitProblem, *, jacobian: bool
-) -> tuple[Float[Array, "joints k"], Float[Array, "joints k n"] | None]:
-    """Whitened residuals and, with `jacobian`, their closed-form Jacobian with
-    respect to the flattened parameters (`parameter_names` order).
-
-    One pass over the chain at the zero configuration in the camera frame
-    ($T_{cam,base} = T_0\\exp(\\xi_c)$, joint frames
-    $T_j = T_{j-1}^{+} T^{origin}_j \\exp(\\xi_j)$, $T_j^{+} = T_j \\exp(a_j\\theta_j)$).
-    Every parameter enters as a spatial (camera-frame) twist $s = (v, \\omega)$:
-    $\\mathrm{Ad}_{T}B(\\xi)$ for a pose correction right-multiplying the frame
-    $T$ ($B$ the right Jacobian of SE(3)), $(p_i \\times d_i, d_i)$ for a revolute
-    zero offset. A twist moves every frame downstream of it: a point $x$ by
-    $v + \\omega \\times x$, a direction $d$ by $\\omega \\times d$, and a rotation
-    residual $\\log(O_{ref}^T R)$ by $J_l^{-1} O_{ref}^T \\omega$ (left Jacobian
-    of SO(3), Barfoot eq. 7.77). The line coordinates' derivative with respect
-    to (point, direction) is a 4x6 local Jacobian.
-    """
+def _chain(params: AxisFitParams, problem: AxisFitProblem, q, jacobian: bool):
+    """One pass over the chain at commanded configuration `q`, in the camera
+    frame: the joint frames `(J, 4, 4)` (before each joint's motion), the
+    marker poses `(M, 4, 4)` and, with `jacobian`, every parameter's spatial
+    twist `(6, n_params)` (see `_axis_terms`)."""
     nominal = problem.nominal
     corr = params.correction
     n = nominal.num_joints
@@ -154,7 +153,7 @@ def _axis_terms(
         E_m = jax.vmap(se3_exp)(corr.tool)
     # Small products as broadcast-and-sum (`matmul`), fused by XLA under vmap.
     T_cb = matmul(problem.T_cam_base0, E_c)
-    theta = nominal.zero_offset + corr.zero_offset
+    theta = nominal.zero_offset + corr.zero_offset + q
     T = T_cb
     frames = []
     for i, kind in enumerate(nominal.joint_types):
@@ -163,31 +162,10 @@ def _axis_terms(
         T = matmul(T, joint_motion(kind, nominal.axis[i], theta[i]))
     T_cm = matmul(matmul(matmul(T, nominal.T_last_flange), problem.T_flange_marker0), E_m)  # (M, 4, 4)
     frames = jnp.stack(frames)  # joint frames in the camera frame, (J, 4, 4)
+    if not jacobian:
+        return frames, T_cm, None
     points = frames[:, :3, 3]
     dirs = jnp.einsum("jab,jb->ja", frames[:, :3, :3], nominal.axis)
-    arcs = problem.arcs
-    sign_free = not arcs.has_encoder
-
-    def line(p, d, R, c):
-        return line_to_params(p, d, R, c, sign_free=sign_free)
-
-    lines = jax.vmap(line)(points, dirs, arcs.R_ref, arcs.c)
-    k = _meas_dim(arcs, problem.use_poses)
-    pred = [lines]
-    with_rot = problem.use_poses and k > 4 + 3 * M
-    if problem.use_poses:
-        p_m = T_cm[:, :3, 3]  # (M, 3)
-        pred.append(jnp.broadcast_to(p_m.reshape(-1), (n, 3 * M)))
-        if with_rot:
-            A = jnp.einsum("jmba,mbc->jmac", arcs.O_ref, T_cm[:, :3, :3])  # O_ref^T R, (J, M, 3, 3)
-            r_m = so3_log(A)
-            pred.append(r_m.reshape(n, 3 * M))
-    e = jnp.concatenate(pred, axis=-1) - arcs.meas[:, :k]
-    W = problem.sqrt_info
-    r = jnp.einsum("jab,jb->ja", W, e)
-    if not jacobian:
-        return r, None
-
     # Spatial twists of every parameter, (6, n_params), in parameter_names order.
     S_cam = matmul(_adjoint(T_cb), B_c)
     S_origin = jnp.einsum("jab,jbc->ajc", jax.vmap(_adjoint)(frames), B_o).reshape(6, 6 * n)
@@ -199,22 +177,84 @@ def _axis_terms(
             zero_cols.append(jnp.concatenate([dirs[i], jnp.zeros(3, dirs.dtype)]))
     S_zero = jnp.stack(zero_cols, axis=1)
     S_tool = jnp.einsum("mab,mbc->amc", jax.vmap(_adjoint)(T_cm), B_m).reshape(6, 6 * M)
-    S = jnp.concatenate([S_cam, S_origin, S_zero, S_tool], axis=1)
-    v, w = S[:3].T, S[3:].T  # (n_params, 3)
+    return frames, T_cm, jnp.concatenate([S_cam, S_origin, S_zero, S_tool], axis=1)
+
+
+def _axis_terms(
+    params: AxisFitParams, problem: AxisFitProblem, *, jacobian: bool
+) -> tuple[Float[Array, "joints k"], Float[Array, "joints k n"] | None]:
+    """Whitened residuals and, with `jacobian`, their closed-form Jacobian with
+    respect to the flattened parameters (`parameter_names` order).
+
+    One pass over the chain in the camera frame per sweep home (one pass
+    when every sweep starts from zero) ($T_{cam,base} = T_0\\exp(\\xi_c)$,
+    joint frames $T_j = T_{j-1}^{+} T^{origin}_j \\exp(\\xi_j)$,
+    $T_j^{+} = T_j \\exp(a_j\\theta_j)$). Every parameter enters as a spatial
+    (camera-frame) twist $s = (v, \\omega)$: $\\mathrm{Ad}_{T}B(\\xi)$ for a pose
+    correction right-multiplying the frame $T$ ($B$ the right Jacobian of
+    SE(3)), $(p_i \\times d_i, d_i)$ for a revolute zero offset. A twist moves
+    every frame downstream of it: a point $x$ by $v + \\omega \\times x$, a
+    direction $d$ by $\\omega \\times d$, and a rotation residual
+    $\\log(O_{ref}^T R)$ by $J_l^{-1} O_{ref}^T \\omega$ (left Jacobian of
+    SO(3), Barfoot eq. 7.77). The line coordinates' derivative with respect to
+    (point, direction) is a 4x6 local Jacobian.
+    """
+    nominal = problem.nominal
+    n = nominal.num_joints
+    M = problem.T_flange_marker0.shape[0]
+    if problem.home is None:
+        frames, T_cm, S = _chain(params, problem, jnp.zeros(n, problem.T_cam_base0.dtype), jacobian)
+        frames_j, T_cm_j = frames, jnp.broadcast_to(T_cm, (n,) + T_cm.shape)
+        S_j = None if S is None else S[None]
+    else:
+        # Each sweep's joint at that sweep's home (the axis of joint j depends on joints < j only).
+        all_frames, T_cm_j, S_j = jax.vmap(lambda q: _chain(params, problem, q, jacobian))(problem.home)
+        frames_j = all_frames[jnp.arange(n), jnp.arange(n)]
+    points = frames_j[:, :3, 3]
+    dirs = jnp.einsum("jab,jb->ja", frames_j[:, :3, :3], nominal.axis)
+    arcs = problem.arcs
+    sign_free = not arcs.has_encoder
+
+    def line(p, d, R, c):
+        return line_to_params(p, d, R, c, sign_free=sign_free)
+
+    lines = jax.vmap(line)(points, dirs, arcs.R_ref, arcs.c)
+    k = _meas_dim(arcs, problem.use_poses)
+    pred = [lines]
+    with_rot = problem.use_poses and k > 4 + 3 * M
+    if problem.use_poses:
+        p_m = T_cm_j[..., :3, 3]  # (J, M, 3)
+        pred.append(p_m.reshape(n, 3 * M))
+        if with_rot:
+            A = jnp.einsum("jmba,jmbc->jmac", arcs.O_ref, T_cm_j[..., :3, :3])  # O_ref^T R, (J, M, 3, 3)
+            r_m = so3_log(A)
+            pred.append(r_m.reshape(n, 3 * M))
+    e = jnp.concatenate(pred, axis=-1) - arcs.meas[:, :k]
+    W = problem.sqrt_info
+    r = jnp.einsum("jab,jb->ja", W, e)
+    if not jacobian:
+        return r, None
+
+    v, w = jnp.swapaxes(S_j[:, :3], -1, -2), jnp.swapaxes(S_j[:, 3:], -1, -2)  # (1 or J, n_params, 3)
     layout = ParameterLayout.of(nominal, M)
     line_mask, marker_mask = (jnp.asarray(layout.axis_columns(g), r.dtype) for g in ("line", "marker"))
-    dp = (v[None] + jnp.cross(w[None], points[:, None])) * line_mask[..., None]  # (J, n_params, 3)
-    dd = jnp.cross(w[None], dirs[:, None]) * line_mask[..., None]
+    dp = (v + jnp.cross(w, points[:, None])) * line_mask[..., None]  # (J, n_params, 3)
+    dd = jnp.cross(w, dirs[:, None]) * line_mask[..., None]
     L_p, L_d = jax.vmap(jax.jacfwd(line, argnums=(0, 1)))(points, dirs, arcs.R_ref, arcs.c)  # (J, 4, 3)
     jac = [jnp.einsum("jab,jpb->jap", L_p, dp) + jnp.einsum("jab,jpb->jap", L_d, dd)]
     if problem.use_poses:
-        dpm = (v[None] + jnp.cross(w[None], p_m[:, None])) * marker_mask[..., None]  # (M, n_params, 3)
-        jac.append(jnp.broadcast_to(jnp.swapaxes(dpm, 1, 2).reshape(3 * M, -1), (n, 3 * M, v.shape[0])))
+        vm, wm = v[:, None], w[:, None]  # (1 or J, 1, n_params, 3)
+        dpm = (vm + jnp.cross(wm, p_m[:, :, None])) * marker_mask[None, ..., None]  # (J, M, n_params, 3)
+        jac.append(jnp.swapaxes(dpm, -1, -2).reshape(n, 3 * M, -1))
         if with_rot:
             # d log(O_ref^T R) = J_l^{-1}(r) O_ref^T dw, with J_l^{-1}(r) = J_r^{-1}(r)^T.
             G = jnp.einsum("jmba,jmbc->jmac", so3_right_jacobian_inv(r_m), jnp.swapaxes(arcs.O_ref, -1, -2))
-            dwm = w[None] * marker_mask[..., None]  # (M, n_params, 3)
-            jac.append(jnp.einsum("jmab,mpb->jmap", G, dwm).reshape(n, 3 * M, -1))
+            dwm = wm * marker_mask[None, ..., None]  # (1 or J, M, n_params, 3)
+            jac.append(
+                jnp.einsum("jmab,jmpb->jmap", G, jnp.broadcast_to(dwm, (n,) + dwm.shape[1:])).reshape(
+                    n, 3 * M, -1
+                )
+            )
     D = jnp.concatenate(jac, axis=1)  # (J, k, n_params)
     return r, jnp.einsum("jab,jbp->jap", W, D)
 
@@ -259,15 +299,26 @@ def _whitening(cov: Float[Array, "k k"]) -> Float[Array, "k k"]:
     return W / scale[None, :]
 
 
-def register_lines(nominal: KinematicModel, arcs: ArcFitResult) -> Float[Array, "4 4"]:
+def model_axes(model: KinematicModel, home: Float[Array, "joints joints"] | None):
+    """Every joint's axis line (base frame) at its own sweep's home configuration
+    (row `j` of `home`; `None`: the zero configuration): `(points, directions)`."""
+    n = model.num_joints
+    if home is None:
+        return joint_axes(model, jnp.zeros(n))
+    return jax.vmap(lambda q, j: jax.tree.map(lambda a: a[j], joint_axes(model, q)))(home, jnp.arange(n))
+
+
+def register_lines(
+    nominal: KinematicModel, arcs: ArcFitResult, home: Float[Array, "joints joints"] | None = None
+) -> Float[Array, "4 4"]:
     """Closed-form `T_cam_base` start: align the nominal axes with the measured ones.
 
     Rotation by Kabsch on the axis directions (with encoders the signs are
     known; without, every sign pattern is tried and the best kept), then the
     translation by linear least squares on the line offsets,
-    $(I - d d^T)(R q + t - Q) = 0$ per joint.
+    $(I - d d^T)(R q + t - Q) = 0$ per joint; each axis at its sweep's `home`.
     """
-    points, dirs = joint_axes(nominal, jnp.zeros(nominal.num_joints))
+    points, dirs = model_axes(nominal, home)
     D = arcs.direction
     w = 1.0 / jnp.maximum(jnp.trace(arcs.cov[:, :3, :3], axis1=-2, axis2=-1), 1e-16)
     w = w / jnp.max(w)
@@ -364,6 +415,7 @@ def fit_axes(
     T_cam_base0: Float[Array, "4 4"] | None = None,
     use_poses: bool | None = None,
     free: Bool[Array, " n"] | None = None,
+    home: Float[Array, "joints joints"] | None = None,
     rtol: float = 1e-8,
     atol: float = 3e-2,
     max_steps: int = 100,
@@ -384,6 +436,9 @@ def fit_axes(
     - `free`: a mask of parameters to estimate, flattened in
       `parameter_names` order (default: `identifiable_mask` at the start).
       Pass a mask computed once for many trials to freeze the same ones.
+    - `home`: per joint sweep (row `j`), the commanded configuration the
+      other joints held while joint `j` swept, entry `j` zero (its encoder
+      zero); default: every sweep from the zero configuration.
 
     **Returns:** an `AxisFitResult`.
     """
@@ -396,12 +451,17 @@ def fit_axes(
     n_markers = arcs.T_cam_marker0.shape[1]
     if use_poses is None:
         use_poses = arcs.has_encoder
+    if home is not None:
+        home = jnp.asarray(home, jnp.float64)
+        if home.shape != (nominal.num_joints, nominal.num_joints):
+            raise ValueError(f"home has shape {home.shape}, expected one configuration per joint sweep")
     if T_cam_base0 is None:
-        T_cam_base0 = register_lines(nominal, arcs)
+        T_cam_base0 = register_lines(nominal, arcs, home)
     if T_flange_marker is None:
-        # Marker at zero, seen by the first joint's sweep: T_flange_marker =
-        # (T_cam_base T_base_flange(0))^-1 T_cam_marker0.
-        T_cam_flange = T_cam_base0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints))[-1]
+        # Marker at the first sweep's encoder zero, seen by that sweep: T_flange_marker =
+        # (T_cam_base T_base_flange(home_0))^-1 T_cam_marker0.
+        q0 = jnp.zeros(nominal.num_joints) if home is None else home[0]
+        T_cam_flange = T_cam_base0 @ forward_kinematics(nominal, q0)[-1]
         T_flange_marker = jnp.einsum("ab,mbc->mac", pose_inverse(T_cam_flange), arcs.T_cam_marker0[0])
     k = _meas_dim(arcs, use_poses)
     # After the registration's SVDs: LAPACK calls never run side by side (see _linalg).
@@ -413,6 +473,7 @@ def fit_axes(
         arcs=arcs,
         sqrt_info=W,
         use_poses=use_poses,
+        home=home,
     )
     n = nominal.num_joints
     params0 = AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(n, n_markers))

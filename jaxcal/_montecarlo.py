@@ -58,12 +58,16 @@ class NoiseModel(eqx.Module):
     encoder_deg: float = 0.0
 
 
-def sweep_commands(model: KinematicModel, plan: SweepPlan) -> Float[Array, "joints frames joints"]:
-    """Commanded joint positions of every sweep: joint j moves, the others at 0."""
+def sweep_commands(
+    model: KinematicModel, plan: SweepPlan, home: Float[Array, "joints joints"] | None = None
+) -> Float[Array, "joints frames joints"]:
+    """Commanded joint positions of every sweep: joint j moves, the others at 0
+    (or at row j of `home`, whose entry j is zero)."""
     n = model.num_joints
     half = 0.5 * plan.range_deg * _DEG
     ramp = jnp.linspace(-half, half, plan.frames)
-    return jnp.eye(n)[:, None, :] * ramp[None, :, None]
+    q = jnp.eye(n)[:, None, :] * ramp[None, :, None]
+    return q if home is None else q + home[:, None, :]
 
 
 def synthesize_sweeps(
@@ -77,6 +81,7 @@ def synthesize_sweeps(
     nominal_ratio: Float[Array, " joints"],
     use_encoders: bool = True,
     use_orientations: bool = True,
+    home: Float[Array, "joints joints"] | None = None,
 ) -> ArcData:
     """Noisy marker poses of every joint sweep, stacked over joints.
 
@@ -84,7 +89,7 @@ def synthesize_sweeps(
     turns by $m / \\rho_{true}$; the encoder reports $\\alpha = m/\\rho_{nom}$ plus
     noise (so the arc rate is $\\rho_{nom}/\\rho_{true}$).
     """
-    q_nom = sweep_commands(true, plan)  # (J, F, J): what the controller intended
+    q_nom = sweep_commands(true, plan, home)  # (J, F, J): what the controller intended
     motor = q_nom * nominal_ratio
     q_true = motor / true.reduction_ratio
     k_p, k_r, k_e = jax.random.split(key, 3)

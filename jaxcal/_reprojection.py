@@ -77,6 +77,8 @@ class CornerData(eqx.Module):
     - `camera`: which camera took each view, `(views,)`: 0 the first (the
       one `T_cam_base0` belongs to), `c` the `RefineProblem.other_cameras`
       entry `c - 1`; `None`: all the first.
+    - `sweep_home`: without encoders, the commanded configuration the other
+      joints hold in each view (its sweep's home; `None`: zero).
     - `sweep_joint`: without encoders, which joint sweeps alone in each view
       (the others at zero); with `RefineParams.angles` the encoder log is
       not used.
@@ -93,6 +95,7 @@ class CornerData(eqx.Module):
     drift_ppm: Float[Array, ""]
     camera: Int[Array, " views"] | None = None
     sweep_joint: Int[Array, " views"] | None = None
+    sweep_home: Float[Array, "views joints"] | None = None
 
 
 class OtherCameras(eqx.Module):
@@ -147,6 +150,7 @@ def make_corner_data(
     camera: np.ndarray | None = None,
     sweep_joint: np.ndarray | None = None,
     views: int | None = None,
+    sweep_home: np.ndarray | None = None,
 ) -> CornerData:
     """Pad per-view corner lists into a `CornerData` (NumPy in, arrays out).
 
@@ -199,6 +203,7 @@ def make_corner_data(
     X, U, m = padded(X, 0.0, np.float64), padded(U, 0.0, np.float64), padded(m, False, bool)
     camera = None if camera is None else padded(camera, 0, np.int64)
     sweep_joint = None if sweep_joint is None else padded(sweep_joint, 0, np.int64)
+    sweep_home = None if sweep_home is None else padded(sweep_home, 0.0, np.float64)
     return CornerData(
         points=jnp.asarray(X),
         pixels=jnp.asarray(U),
@@ -211,6 +216,7 @@ def make_corner_data(
         drift_ppm=jnp.asarray(float(drift_ppm)),
         camera=None if camera is None else jnp.asarray(np.asarray(camera, np.int64)),
         sweep_joint=None if sweep_joint is None else jnp.asarray(np.asarray(sweep_joint, np.int64)),
+        sweep_home=None if sweep_home is None else jnp.asarray(sweep_home),
     )
 
 
@@ -267,11 +273,12 @@ def camera_matrix(
 def joint_positions(params: RefineParams, problem: RefineProblem) -> Float[Array, "views joints"]:
     """Commanded joint positions of every view, $r \\odot q_{log}(t_{ctrl})$ (rad);
     without encoders (`params.angles`), the sweeping joint at its unknown
-    angle and the others at zero."""
+    angle and the others at its sweep's home (`CornerData.sweep_home`, zero by default)."""
     data = problem.data
     if params.angles is not None:
         n = problem.nominal.num_joints
-        return jax.nn.one_hot(data.sweep_joint, n, dtype=params.angles.dtype) * params.angles[:, None]
+        q = jax.nn.one_hot(data.sweep_joint, n, dtype=params.angles.dtype) * params.angles[:, None]
+        return q if data.sweep_home is None else q + data.sweep_home
     offset = problem.offset0_s + _MS * params.clock_ms
     t = controller_time(data.t_cam, offset, data.drift_ppm)
     q = jax.vmap(lambda qj: interpolate_encoders(t, data.enc_t, qj), out_axes=1)(data.enc_q.T)

@@ -468,6 +468,14 @@ def _degrees(text: str) -> float | tuple[float, ...]:
     return v[0] if len(v) == 1 else v
 
 
+def _home(text: str) -> tuple[float, ...]:
+    """One angle per joint, in degrees ("0,-20,30,-15,20,0")."""
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"home must look like 0,-20,30,-15,20,0 (deg), got {text!r}") from None
+
+
 def _fmt_degrees(v) -> str:
     return f"{v:g}" if np.ndim(v) == 0 else ",".join(f"{x:g}" for x in v)
 
@@ -494,6 +502,7 @@ def cmd_simulate(args) -> int:
         resolution=args.resolution,
         frames_per_joint=args.frames_per_joint,
         range_deg=args.sweep_deg,
+        home_deg=args.home_deg,
         markers=args.markers,
         dictionary=args.dictionary,
         cameras=args.cameras,
@@ -770,6 +779,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames-per-joint", type=int, default=30)
     p.add_argument(
         "--sweep-deg", type=_degrees, default=40.0, help="angle each joint sweeps (deg), one or one per joint"
+    )
+    p.add_argument(
+        "--home-deg",
+        type=_home,
+        default=None,
+        help="the configuration every sweep starts from and the others hold, one angle per joint "
+        "(deg, e.g. 0,-20,30,-15,20,0; default zero)",
     )
     p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
     p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")

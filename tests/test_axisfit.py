@@ -109,6 +109,24 @@ def test_exact_recovery_with_encoders(free):
     np.testing.assert_allclose(fit.model.reduction_ratio, NOMINAL.reduction_ratio, rtol=1e-10)
 
 
+def test_exact_recovery_from_a_home_configuration(free):
+    """Sweeps about a home that is not zero (each joint's arc measured with the
+    others there): the fit predicts every axis and marker pose at its sweep's home."""
+    model, mounts, T_cam_base = _param_truth(jax.random.key(4), free)
+    data = synthesize_sweeps(
+        model, T_cam_base, mounts, SETUP.plan, NoiseModel(0.0, 0.0, 0.0), jax.random.key(5),
+        nominal_ratio=NOMINAL.reduction_ratio, home=HOME,
+    )  # fmt: skip
+    fit = jax.jit(lambda d: fit_axes(NOMINAL, jax.vmap(fit_arc)(d), free=free, home=HOME))(data)
+    assert fit.result == optx.RESULTS.successful
+    np.testing.assert_allclose(fit.model.T_parent_joint, model.T_parent_joint, atol=1e-8)
+    np.testing.assert_allclose(fit.T_cam_base, T_cam_base, atol=1e-8)
+    np.testing.assert_allclose(fit.T_flange_marker, mounts, atol=1e-8)
+    # Treating the same sweeps as if they started from zero is wrong by far.
+    wrong = jax.jit(lambda d: fit_axes(NOMINAL, jax.vmap(fit_arc)(d), free=free))(data)
+    assert float(wrong.residual_rms) > 1e3 * max(float(fit.residual_rms), 1e-6)
+
+
 def test_exact_recovery_without_encoders(free):
     """Lines only: kinematics and camera pose (the last joint's zero offset and the
     marker mount are not identifiable without knowing which frame is zero)."""
@@ -228,8 +246,14 @@ def test_autodiff_matches_finite_differences(sweeps):
 
 
 # (encoders without the marker poses runs the lines-only residuals of (False, False) on other arcs)
-@pytest.mark.parametrize(("use_encoders", "use_poses"), [(True, True), (False, False)])
-def test_closed_form_jacobian_matches_autodiff(use_encoders, use_poses):
+#: A home configuration for every sweep (UR5e's [0, -90, 90, -90, -90, 0] deg family), own entry zero.
+HOME = jnp.asarray(np.radians([0.0, -60.0, 70.0, -40.0, 30.0, 20.0])) * (1.0 - jnp.eye(6))
+
+
+@pytest.mark.parametrize(
+    ("use_encoders", "use_poses", "home"), [(True, True, False), (False, False, False), (True, True, True)]
+)
+def test_closed_form_jacobian_matches_autodiff(use_encoders, use_poses, home):
     """The closed-form Jacobian of `axis_residuals` (its custom JVP, forward and
     reverse, and `axis_jacobian`) equals JAX's derivative of the same residuals
     written with `forward_kinematics`, to 1e-10, off the solution; derivatives
@@ -253,6 +277,7 @@ def test_closed_form_jacobian_matches_autodiff(use_encoders, use_poses):
         arcs=arcs,
         sqrt_info=jax.vmap(_whitening)(arcs.meas_cov[:, :k, :k]),
         use_poses=use_poses,
+        home=HOME if home else None,
     )
     flat0, unravel = jax.flatten_util.ravel_pytree(_zeros())
     x = flat0 + 0.02 * jax.random.normal(jax.random.key(0), flat0.shape)  # off the solution

@@ -140,7 +140,9 @@ class Dataset:
       angles in radians, whatever `encoders.unit` the file used; the rows of
       `encoder_glitches` are removed.
     - `clock_offset_s`: $t_{cam} - t_{controller}$ if known, else `None`.
-    - `segments`: `(joint name or None, start, end)` on the controller clock.
+    - `segments`: `(joint name or None, start, end)` on the controller clock;
+      `segment_homes`: per segment the commanded configuration the other joints
+      held (rad; the sweeping joint's entry zero), or None when not given.
     - `truth`: the parsed `truth.json` of a synthetic dataset, else `None`.
     - `joint_limits`: joint name -> `jaxcal.io.urdf.JointLimits` (URDF type,
       position and velocity limits, nominal reduction ratio).
@@ -166,6 +168,7 @@ class Dataset:
     clock_drift_ppm: float
     segments: tuple
     truth: dict | None = field(default=None)
+    segment_homes: tuple = ()
     joint_limits: dict = field(default_factory=dict)
     encoder_unit: str | None = None
     encoder_glitches: tuple[EncoderGlitch, ...] = ()
@@ -477,13 +480,13 @@ def _clock(meta: dict, loc: Loc) -> tuple[float | None, float]:
 def _motion(meta: dict, loc: Loc, joints: tuple[str, ...]) -> tuple:
     motion = meta.get("motion")
     if motion is None:
-        return ()
+        return (), ()
     if not isinstance(motion, list):
         raise loc.expected("a list of segments {joint, start, end}", motion)
-    out = []
+    out, homes = [], []
     for i, s in enumerate(motion):
         w = loc.index(i)
-        sc.obj(s, w, required=("joint", "start", "end"))
+        sc.obj(s, w, required=("joint", "start", "end"), optional=("home",))
         joint = s["joint"]
         if joint is not None:
             sc.string(joint, w.key("joint"))
@@ -493,8 +496,14 @@ def _motion(meta: dict, loc: Loc, joints: tuple[str, ...]) -> tuple:
         end = sc.number(s["end"], w.key("end"))
         if not end > start:
             raise w.fail(f"end ({end:g}) must be after start ({start:g})")
+        home = None
+        if s.get("home") is not None:
+            home = sc.array(s["home"], w.key("home"), (len(joints),))
+            if joint is not None:
+                home[joints.index(joint)] = 0.0  # the sweeping joint's own entry is its encoder zero
         out.append((joint, start, end))
-    return tuple(out)
+        homes.append(home)
+    return tuple(out), tuple(homes)
 
 
 # --------------------------------------------------------------------------- reading: frames.csv
@@ -874,7 +883,7 @@ def load_dataset(path) -> Dataset:
     targets = _targets(meta, loc.key("targets"), links)
     emeta = _encoder_meta(meta, loc.key("encoders"))
     offset, drift = _clock(meta, loc.key("clock"))
-    segments = _motion(meta, loc.key("motion"), joints)
+    segments, homes = _motion(meta, loc.key("motion"), joints)
     notes = []
     truth_path = root / "truth.json"
     frames = _frames(root, cameras, loc)
@@ -903,6 +912,7 @@ def load_dataset(path) -> Dataset:
         clock_offset_s=offset,
         clock_drift_ppm=drift,
         segments=segments,
+        segment_homes=homes,
         truth=truth,
         joint_limits=limits,
         encoder_unit=None if emeta is None else emeta["unit"],

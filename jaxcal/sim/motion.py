@@ -23,6 +23,7 @@ class Segment:
     joint: str | None
     start: float
     end: float
+    home: tuple[float, ...] | None = None
 
 
 class Trajectory:
@@ -55,12 +56,14 @@ class Trajectory:
 
 
 def joint_sweeps(
-    joint_names, range_deg=40.0, sweep_s: float = 1.5, move_s: float = 0.8, joints=None
+    joint_names, range_deg=40.0, sweep_s: float = 1.5, move_s: float = 0.8, joints=None, home=None
 ) -> Trajectory:
-    """Joint-by-joint sweeps about the zero configuration.
+    """Joint-by-joint sweeps about the zero configuration (or `home`, rad).
 
     Each joint in turn goes 0 -> -range/2 (`move_s`), sweeps to +range/2
-    (`sweep_s`, recorded), and returns to 0 (`move_s`); the others stay at 0.
+    (`sweep_s`, recorded), and returns to 0 (`move_s`); the others stay at 0
+    (with `home`, every position is relative to it: the arm starts and rests
+    there, and each segment records it).
     `range_deg`: one angle for every joint, or one per joint (e.g. a wide
     sweep of the last joint of an eye-in-hand arm, which spins the camera
     about its own axis and keeps the board in view). `joints` (indices)
@@ -74,14 +77,18 @@ def joint_sweeps(
         if ranges.shape != (n,):
             raise ValueError(f"range_deg has {ranges.size} angles for {n} joints {list(joint_names)}")
     halves = 0.5 * np.deg2rad(ranges)
-    times, q, segments = [0.0], [np.zeros(n)], []
+    h = np.zeros(n) if home is None else np.asarray(home, np.float64)
+    if h.shape != (n,):
+        raise ValueError(f"home has {h.size} positions for {n} joints {list(joint_names)}")
+    times, q, segments = [0.0], [h], []
     for j in joints:
         half = halves[j]
         e = np.eye(n)[j]
         t = times[-1]
         times += [t + move_s, t + move_s + sweep_s, t + 2 * move_s + sweep_s]
-        q += [-half * e, half * e, np.zeros(n)]
-        segments.append(Segment(joint_names[j], t + move_s, t + move_s + sweep_s))
+        q += [h - half * e, h + half * e, h]
+        seg_home = None if home is None else tuple(float(x) for x in h * (1.0 - e))
+        segments.append(Segment(joint_names[j], t + move_s, t + move_s + sweep_s, seg_home))
     return Trajectory(times, q, segments)
 
 

@@ -65,6 +65,7 @@ class SimConfig:
     markers_on_links: bool = False
     frames_per_joint: int = 30
     range_deg: float | tuple[float, ...] = 40.0
+    home_deg: tuple[float, ...] | None = None
     fps: float = 30.0
     clock_offset_ms: float = 0.0
     clock_drift_ppm: float = 0.0
@@ -210,11 +211,12 @@ def _target_spec(
 
 
 def _scene_layout(nominal, true, config: SimConfig, rng):
-    """Nominal and true plates and cameras, placed from the zero configuration."""
+    """Nominal and true plates and cameras, placed from the zero configuration (or `home_deg`)."""
     links = nominal.link_names
     w, h = config.resolution
     n = nominal.num_joints
-    F0 = np.asarray(jax.device_get(forward_kinematics(nominal, np.zeros(n))))
+    q0 = np.zeros(n) if config.home_deg is None else np.radians(config.home_deg)
+    F0 = np.asarray(jax.device_get(forward_kinematics(nominal, q0)))
     flange = links[-1]
     out_flange = F0[-1][:3, 2]  # the flange's z axis points out of the tool face
     plates_nominal, cameras = [], []
@@ -334,7 +336,10 @@ def simulate(
 
     sweeps = trajectory is None
     if sweeps:
-        trajectory = joint_sweeps(names, config.range_deg, sweep_s=config.frames_per_joint / config.fps)
+        home = None if config.home_deg is None else np.radians(config.home_deg)
+        trajectory = joint_sweeps(
+            names, config.range_deg, sweep_s=config.frames_per_joint / config.fps, home=home
+        )
     elif trajectory.q.shape[1] != len(names):
         raise ValueError(f"trajectory has {trajectory.q.shape[1]} joints, the robot {len(names)}")
     clock = ClockModel(
@@ -447,7 +452,11 @@ def _metadata(config: SimConfig, nominal, cameras_nominal, plates_nominal, encod
         if config.encoders
         else None,
         "clock": {"offset_s": 1e-3 * config.clock_offset_ms if config.clock_known else None},
-        "motion": [{"joint": s.joint, "start": s.start, "end": s.end} for s in trajectory.segments],
+        "motion": [
+            {"joint": s.joint, "start": s.start, "end": s.end}
+            | ({} if s.home is None else {"home": list(s.home)})
+            for s in trajectory.segments
+        ],
         "simulation": {k: v for k, v in asdict(config).items() if k != "link_plates"},
     }
 

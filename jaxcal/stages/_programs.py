@@ -42,10 +42,10 @@ def arc_fit():
 
 @functools.cache
 def axis_fit(use_poses: bool):
-    """`fit_axes(nominal, arcs, T_flange_marker=mount, free=free)`."""
+    """`fit_axes(nominal, arcs, T_flange_marker=mount, free=free, home=home)`."""
 
-    def axis_fit(nominal, arcs, mount, free=None):
-        return fit_axes(nominal, arcs, T_flange_marker=mount, use_poses=use_poses, free=free)
+    def axis_fit(nominal, arcs, mount, free=None, home=None):
+        return fit_axes(nominal, arcs, T_flange_marker=mount, use_poses=use_poses, free=free, home=home)
 
     return jax.jit(axis_fit)
 

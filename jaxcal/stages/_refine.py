@@ -98,26 +98,32 @@ def _start_pose(views: CameraObservations, t_ctrl, inside, log_q, rate, model, m
     return average_pose(np.stack(est))
 
 
-def sweep_angles(R_pnp, target, joint, model, T_cam_base, mounts) -> np.ndarray:
+def sweep_angles(R_pnp, target, joint, model, T_cam_base, mounts, homes=None) -> np.ndarray:
     """Start angles of the sweeping joint in every view without encoders, from
-    its PnP orientation and the two-stage model: with the others at zero the
-    joint turns the target about its axis $w_j$ (camera frame), $R(a) =
-    \\exp(a[w_j]_\\times) R(0)$, so $a$ is the rotation of $R_{PnP} R(0)^T$
-    about $w_j$.
+    its PnP orientation and the two-stage model: with the others at their
+    sweep's home the joint turns the target about its axis $w_j$ (camera
+    frame), $R(a) = \\exp(a[w_j]_\\times) R(0)$, so $a$ is the rotation of
+    $R_{PnP} R(0)^T$ about $w_j$.
 
     **Arguments:** per view the PnP rotation `R_pnp` `(V, 3, 3)`, the target
     index and the sweeping joint `(V,)`; the two-stage model, `T_cam_base` and
-    mounts `(targets, 4, 4)`.
+    mounts `(targets, 4, 4)`; `homes` `(joints, joints)` per sweep (None: zero).
     """
     n = model.num_joints
-    q = np.concatenate([np.zeros((1, n)), np.eye(n)])  # home, then each joint at 1 rad
+    home = np.zeros((n, n)) if homes is None else np.asarray(homes)
+    # Per joint: at its home, then with the joint at 1 rad.
+    q = np.concatenate([home, home + np.eye(n)])
     T = _programs.chains(T_cam_base, model, q)[:, -1]
-    R0 = np.einsum("ab,mbc->mac", T[0, :3, :3], np.asarray(mounts)[:, :3, :3])  # (targets, 3, 3)
-    w = np.asarray(jax.vmap(lambda R: so3_log(R @ jnp.asarray(T[0, :3, :3]).T))(jnp.asarray(T[1:, :3, :3])))
-    M = np.einsum("vab,vcb->vac", np.asarray(R_pnp), R0[np.asarray(target)])
+    R_home, R_turned = T[:n, :3, :3], T[n:, :3, :3]
+    w = np.asarray(
+        jax.vmap(lambda A, B: so3_log(A @ B.T))(jnp.asarray(R_turned), jnp.asarray(R_home))
+    )  # (n, 3)
+    joint, target = np.asarray(joint), np.asarray(target)
+    R0 = np.einsum("vab,vbc->vac", R_home[joint], np.asarray(mounts)[target][:, :3, :3])  # (V, 3, 3)
+    M = np.einsum("vab,vcb->vac", np.asarray(R_pnp), R0)
     vee = 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], -1)
     cos = 0.5 * (np.trace(M, axis1=1, axis2=2) - 1.0)
-    return np.arctan2(np.einsum("va,va->v", w[np.asarray(joint)], vee), cos)
+    return np.arctan2(np.einsum("va,va->v", w[joint], vee), cos)
 
 
 @dataclass
@@ -227,6 +233,9 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         camera=np.array(corners.camera) if corners.others else None,
         sweep_joint=np.array(corners.sweep) if kind.per_view_angles else None,
         views=bucket(V),
+        sweep_home=np.asarray(sync.homes)[corners.sweep]
+        if kind.per_view_angles and sync.homes is not None
+        else None,
     )
     correction, mounts0 = fit.params.correction, fit.T_flange_marker0
     if kind.sequential:
@@ -259,7 +268,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
     if kind.per_view_angles:
         a0 = sweep_angles(
             np.stack(corners.pnp), corners.target, corners.sweep, fit.model, jnp.asarray(fit.T_cam_base),
-            fit.T_flange_marker,
+            fit.T_flange_marker, sync.homes,
         )  # fmt: skip
         a0 = np.concatenate([a0, np.zeros(bucket(V) - V)])  # padded views: zero columns, never free
         params0 = eqx.tree_at(lambda p: p.angles, params0, jnp.asarray(a0), is_leaf=lambda x: x is None)

@@ -74,6 +74,9 @@ class Sync:
     - `sweeps`, `counts`: the per-joint sweeps and frames used per joint
       (single-joint sweeps; None with free motion, whose sweeps come from the
       sequential procedure).
+    - `homes`: per joint sweep, the commanded configuration the other joints
+      held (its own entry zero), `(joints, joints)`; None when every sweep
+      started from zero.
     """
 
     clock: dict
@@ -85,6 +88,7 @@ class Sync:
     joint: np.ndarray
     sweeps: Sweeps | None
     counts: dict | None
+    homes: np.ndarray | None
     notes: tuple[str, ...]
     timings: dict
 
@@ -242,6 +246,45 @@ def _clock_from_first_link(setup: Setup, obs: CameraObservations, sel, log_q, of
     )
 
 
+#: The other joints must stand this still while one sweeps (deg).
+STILL_DEG = 0.5
+
+
+def sweep_homes(
+    ds: Dataset, joint: np.ndarray, q: np.ndarray | None, inside: np.ndarray
+) -> np.ndarray | None:
+    """Per joint sweep, the configuration the other joints held: the median of
+    the encoder log over the sweep's frames (a `CalibrationError` names a joint
+    that moved), else the metadata's `home` of the joint's segment, else zero.
+    None when every home is within `AT_ZERO_DEG` of zero (the zero configuration)."""
+    n = len(ds.joint_names)
+    homes = np.zeros((n, n))
+    for j in range(n):
+        if q is not None:
+            rows = np.flatnonzero((joint == j) & inside)
+            if rows.size == 0:
+                continue
+            others = np.delete(np.arange(n), j)
+            h = np.median(q[rows], axis=0)
+            spread = np.degrees(np.abs(q[np.ix_(rows, others)] - h[others]).max(axis=0))
+            if spread.max() > STILL_DEG:
+                k = others[int(np.argmax(spread))]
+                raise CalibrationError(
+                    f"{ds.root / 'encoders.csv'}: joint {ds.joint_names[k]!r} moved by {spread.max():.2f} deg while "
+                    f"{ds.joint_names[j]!r} swept (at most {STILL_DEG:g} deg): the arc of a sweep needs the other "
+                    "joints standing still"
+                )
+            homes[j] = h
+        else:
+            given = [
+                hm for (name, _, _), hm in zip(ds.segments, ds.segment_homes) if name == ds.joint_names[j]
+            ]
+            if given and given[0] is not None:
+                homes[j] = given[0]
+        homes[j, j] = 0.0
+    return None if np.degrees(np.abs(homes).max()) < AT_ZERO_DEG else homes
+
+
 #: A given clock offset disagrees with the estimate beyond this many of its std (and 0.5 ms).
 CLOCK_SIGMAS = 5.0
 
@@ -317,7 +360,17 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
             t_ctrl, q, inside = line.at(clock["offset_s"])
         else:
             sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(clock["offset_s"])
+    homes = sweep_homes(ds, joint, q, inside) if setup.kind.motion is Motion.SWEEPS else None
+    if homes is not None:
+        notes.append(
+            "sweeps from a home configuration other than zero: "
+            + "; ".join(
+                f"{name} with the others at {np.round(np.degrees(h), 1).tolist()} deg"
+                for name, h in zip(ds.joint_names, homes)
+            )
+        )
     return Sync(
+        homes=homes,
         clock=clock,
         glitched=setup.dataset.in_encoder_glitch(t_ctrl),
         log_q=log_q,

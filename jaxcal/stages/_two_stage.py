@@ -148,15 +148,16 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data) -> None:
             raise CalibrationError(f"{ds.root}: {e}") from None
 
 
-def _start_mounts(setup: Setup, arcs):
+def _start_mounts(setup: Setup, arcs, homes):
     """The fit targets' nominal mounts; where one is unknown, every mount from
     the measured zero pose and the registered camera pose."""
     mounts0 = [t.T_link_target for t in setup.fit_targets]
     if all(m is not None for m in mounts0):
         return jnp.asarray(np.stack(mounts0))
     nominal = setup.nominal
-    T0 = register_lines(nominal, arcs)
-    T_cf = T0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints))[-1]
+    home = None if homes is None else jnp.asarray(homes)
+    T0 = register_lines(nominal, arcs, home)
+    T_cf = T0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints) if home is None else home[0])[-1]
     return jnp.einsum("ab,mbc->mac", pose_inverse(T_cf), arcs.T_cam_marker0[0])
 
 
@@ -215,8 +216,9 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
 
     t0 = time.perf_counter()
     options.say("axis fit: kinematic parameters and camera-to-base")
-    mounts0 = _start_mounts(setup, arcs)
-    fit = _programs.axis_fit(kind.axis_fit_uses_poses)(nominal, arcs, mounts0)
+    mounts0 = _start_mounts(setup, arcs, sync.homes)
+    home = None if sync.homes is None else jnp.asarray(sync.homes)
+    fit = _programs.axis_fit(kind.axis_fit_uses_poses)(nominal, arcs, mounts0, None, home)
     jax.block_until_ready(fit)
     timings["axis_fit_s"] = time.perf_counter() - t0
 

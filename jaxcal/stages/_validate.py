@@ -63,7 +63,7 @@ def _pose_error(dT) -> dict:
     return {"trans_mm": float(np.linalg.norm(dT[:3, 3]) * 1e3), "rot_deg": _rot_deg(dT[:3, :3])}
 
 
-def _gauge(setup: Setup, two: TwoStage, true, T_cb_true, mounts_true):
+def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true):
     """The estimator's gauge for the fixed frame: the same axis fit on (nearly)
     exact sweeps of the truth, with the same parameters frozen. The sweeps have
     the dataset's shapes, so the arc and axis fits reuse their compiled code."""
@@ -71,6 +71,7 @@ def _gauge(setup: Setup, two: TwoStage, true, T_cb_true, mounts_true):
     plan = SweepPlan(range_deg=40.0, frames=two.sweeps.mask.shape[-1])
     tiny = NoiseModel(position_mm=1e-3, orientation_deg=1e-4, encoder_deg=0.0)
     mounts0 = fit.T_flange_marker0
+    home = None if sync.homes is None else jnp.asarray(sync.homes)
     exact = eqx.filter_jit(synthesize_sweeps)(
         true,
         T_cb_true,
@@ -80,10 +81,11 @@ def _gauge(setup: Setup, two: TwoStage, true, T_cb_true, mounts_true):
         jax.random.key(1),
         nominal_ratio=nominal.reduction_ratio,
         use_encoders=bool(two.arcs.has_encoder),
+        home=home,
     )
     arcs_exact = _programs.arc_fits()(exact)
     return _programs.axis_fit(setup.kind.axis_fit_uses_poses)(
-        nominal, arcs_exact, mounts0, fit.free
+        nominal, arcs_exact, mounts0, fit.free, home
     ).T_cam_base
 
 
@@ -161,7 +163,7 @@ def validate(
     )
     # The estimator's gauge: the axis fit's frozen parameters (a pose-based capture has no axis fit,
     # and the refinement holds joint 1's frame at nominal, as the truth does).
-    T_gauge = _gauge(setup, two, true, T_cb_true, mounts_true) if setup.kind.has_arcs else T_cb_true
+    T_gauge = _gauge(setup, sync, two, true, T_cb_true, mounts_true) if setup.kind.has_arcs else T_cb_true
     dT = np.asarray(pose_inverse(T_gauge) @ fit.T_cam_base)
     dT_raw = np.asarray(pose_inverse(T_cb_true) @ fit.T_cam_base)
     ratio_err = np.asarray(s["ratio_err_percent"])
