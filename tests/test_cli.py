@@ -8,16 +8,14 @@ from jaxcal.cli import main
 
 
 @pytest.mark.slow
-def test_montecarlo_detail_prints_before_after_and_succeeds(capsys):
-    assert main(["montecarlo", "--detail", "--trials", "8", "--frames", "24"]) == 0
-    out = capsys.readouterr().out
-    assert "Before / after" in out and "Identifiability" in out
-    assert "shoulder_pan_joint.zero_offset" in out  # named as held at nominal
-
-
-def test_montecarlo_writes_json_atomically(tmp_path, capsys):
+def test_montecarlo_detail_and_json(tmp_path, capsys):
+    """One run (the trial program compiles once): the detailed trial's tables, then
+    the summary written atomically."""
     out = tmp_path / "sub" / "mc.json"
-    assert main(["montecarlo", "--trials", "8", "--frames", "24", "--json", str(out)]) == 0
+    assert main(["montecarlo", "--detail", "--trials", "8", "--frames", "24", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "Before / after" in text and "Identifiability" in text
+    assert "shoulder_pan_joint.zero_offset" in text  # named as held at nominal
     summary = json.loads(out.read_text())
     assert summary["trials"] == 8 and summary["success_rate"] == 1.0
     assert summary["ee_rms_mm_median"] < 1.0
