@@ -473,7 +473,9 @@ def _home(text: str) -> tuple[float, ...]:
     try:
         return tuple(float(x) for x in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"home must look like 0,-20,30,-15,20,0 (deg), got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"home must look like 0,-20,30,-15,20,0 (deg), got {text!r}"
+        ) from None
 
 
 def _fmt_degrees(v) -> str:

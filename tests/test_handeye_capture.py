@@ -458,6 +458,7 @@ def test_rendered_capture_calibrates_through_the_command(tmp_path, capsys, targe
         "ros_cam0.launch.yaml",
         "ros_cam0.txt",
         "easy_handeye_cam0.yaml",
+        ".jaxcal",  # the marker that lets --overwrite replace what jaxcal wrote, and only that
     }
     assert {p.name for p in out.iterdir()} == names
     s = json.loads((out / "result.json").read_text())
