@@ -710,14 +710,10 @@ def _arc_blocks(g, l, args):
     return to_blocks(r), to_blocks(Jg), to_blocks(Jl)
 
 
-def _block_masks(ref: ArcReference, g) -> tuple[Float[Array, " n_g"], Float[Array, "frames 1"]]:
-    return jnp.ones_like(g), ref.gauge[:, None]
-
-
 def _solve_blocks(params, ref, data, free, w, *, rtol, atol, max_steps):
     """Levenberg-Marquardt by blocks (`jaxcal._schur`) without encoders: linear in the frames."""
     g, l = _to_blocks(params, data)
-    g_mask, l_mask = _block_masks(ref, g)
+    g_mask, l_mask = _to_blocks(free, data)
     sol = block_least_squares(
         _arc_blocks,
         g,
@@ -726,15 +722,10 @@ def _solve_blocks(params, ref, data, free, w, *, rtol, atol, max_steps):
         rtol=rtol,
         atol=atol,
         max_steps=max_steps,
-        g_mask=g_mask,
-        l_mask=l_mask,
+        g_mask=g_mask > 0,
+        l_mask=l_mask > 0,
     )
-    new = _from_blocks(sol.g, sol.l, ref, data)
-    # Keep the frozen entries (rate; r0 without orientations) as they were.
-    new = eqx.tree_at(
-        lambda p: (p.rate, p.r0), new, (params.rate, params.r0 if data.orientations is None else new.r0)
-    )
-    return new, sol.result, sol.num_steps
+    return _from_blocks(sol.g, sol.l, ref, data), sol.result, sol.num_steps
 
 
 def _covariance(params, ref, data, free, w):
@@ -748,9 +739,9 @@ def _covariance(params, ref, data, free, w):
     has_rot = data.orientations is not None
     if data.encoder is None:
         g, l = _to_blocks(params, data)
-        g_mask, l_mask = _block_masks(ref, g)
+        g_mask, l_mask = _to_blocks(free, data)
         _, Jg, Jl = _arc_blocks(g, l, (ref, data, sw))
-        cov = block_covariance(Jg, Jl, g_mask=g_mask, l_mask=l_mask)
+        cov = block_covariance(Jg, Jl, g_mask=g_mask > 0, l_mask=l_mask > 0)
         h = block_leverage(Jg * g_mask, Jl * l_mask[:, None, :], cov).reshape(F, M, k).sum(-1).T
         cov_lr = jnp.zeros((5, 5), g.dtype).at[:4, :4].set(cov.gg[:4, :4])
         return cov_lr, cov.gg, h

@@ -47,6 +47,9 @@ together). On the same problem it takes the same steps as
 `optx.least_squares(fn, optx.LevenbergMarquardt(rtol, atol), ...)` up to
 floating-point round-off (the normal equations here, QR there). The status
 is `optx.RESULTS.successful` or `optx.RESULTS.nonlinear_max_steps_reached`.
+Unlike optimistix there is no implicit adjoint: the solution is not meant to
+be differentiated with respect to `args` (forward mode runs through the
+loop; reverse mode through `lax.while_loop` is not supported by JAX).
 
 **Covariance.** At $\\lambda = 0$ the inverse of the normal matrix has the
 blocks $\\Sigma_{gg} = S^{-1}$ (the marginal covariance of $g$),
