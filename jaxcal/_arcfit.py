@@ -47,6 +47,8 @@ from ._geometry import (
     so3_right_jacobian_inv,
 )
 from ._linalg import after, nearest_rotation
+from ._robust import MIN_DOF, check_loss, robust_scale, sample_weights
+from ._schur import block_covariance, block_least_squares, block_leverage
 
 _DEG = np.pi / 180.0
 MIN_FRAMES = 5
@@ -160,9 +162,23 @@ class ArcFitResult(eqx.Module):
     - `meas`, `meas_cov`: the line coordinates $(u, v, w_1, w_2)$ and the
       zero poses $(p_m, r_m)$ with their joint covariance, which the
       axis-to-kinematics fit consumes; `R_ref`, `c`, `O_ref` their reference.
-    - `result`, `num_steps`: optimistix's own result code and step count.
-    - `residual_rms`: RMS of the whitened residuals (about 1 when the given
-      noise model is honest); `position_rms` (m), `rotation_rms` (rad).
+    - `result`: optimistix's result code: `successful` when every round's
+      solve converged, else the first failing round's code; `num_steps`: the
+      steps of all rounds; `round_results`, `round_steps`: each round's
+      (one round without a robust loss; `rounds` IRLS rounds and the inlier
+      solve with one).
+    - `residual_rms`: RMS of the whitened residuals of the samples the final
+      solve used (about 1 when the given noise model is honest);
+      `position_rms` (m), `rotation_rms` (rad) over the same samples.
+    - `sample_residuals`: each (marker, frame) sample's whitened residual
+      norm $\\|W e\\|$ at the solution (noise units, 0 where unobserved),
+      `(markers, frames)`; `weights`: the final solve's weights (the
+      observation mask without a robust loss; 1 for inliers and 0 for rejected
+      samples after the inlier solve); `inlier`: observed samples the final
+      solve used; `robust_scale`: the noise scale its residuals show (median
+      over the samples it used of $\\|We\\|/m(\\nu)$, $m(\\nu)$ the median of
+      $\\chi_\\nu$, $\\nu$ the sample's degrees of freedom; about 1 when the
+      noise model is honest; see `jaxcal._robust`).
     - `num_frames`: observed frames.
     """
 
@@ -184,6 +200,12 @@ class ArcFitResult(eqx.Module):
     position_rms: Float[Array, ""]
     rotation_rms: Float[Array, ""]
     num_frames: Int[Array, ""]
+    sample_residuals: Float[Array, "markers frames"]
+    weights: Float[Array, "markers frames"]
+    inlier: Bool[Array, "markers frames"]
+    robust_scale: Float[Array, ""]
+    round_results: optx.RESULTS
+    round_steps: Int[Array, " rounds"]
     has_encoder: bool = eqx.field(static=True)
 
 
@@ -374,6 +396,17 @@ def _arc_residuals_jvp(primals, tangents):
     ref, data = args
     r, D = _arc_terms(params, ref, data, jacobian=True)
     t = jax.tree.map(_instantiate, t_params, is_leaf=is_zero)
+    if data.encoder is None:
+        # Without encoders the assembled Jacobian has a column per frame, (markers *
+        # frames * k) x frames: contract the local derivatives instead (each residual
+        # sees its own frame's angle and marker's zero pose only).
+        dr = (
+            D[..., :4] @ t.line
+            + D[..., 4] * (t.angles * ref.gauge)[None, :, None]
+            + jnp.einsum("mfkj,mj->mfk", D[..., 5:8], t.p0)
+            + jnp.einsum("mfkj,mj->mfk", D[..., 8:11], t.r0)
+        )
+        return r, dr
     # One matrix-vector product with the assembled Jacobian: a solver that
     # materialises the linearisation (vmap over basis tangents) gets one small
     # matrix product instead of a contraction per basis vector.
@@ -508,9 +541,23 @@ def _free_mask(params: ArcParams, data: ArcData, ref: ArcReference) -> ArcParams
     )
 
 
+def _round_plan(loss: str | None, rounds: int, reject) -> np.ndarray:
+    """Which rounds are the hard inlier solve (static): `rounds` soft IRLS
+    rounds and, with `reject`, one inlier solve; one plain round without a loss."""
+    if loss is None:
+        return np.zeros(1, bool)
+    if rounds < 1:
+        raise ValueError(f"fit_arc: rounds must be at least 1 with a robust loss, got {rounds}")
+    return np.array([False] * rounds + ([True] if reject is not None else []))
+
+
 def fit_arc(
     data: ArcData,
     *,
+    loss: str | None = None,
+    c: float = 3.0,
+    reject: float | None = 3.7,
+    rounds: int = 3,
     rtol: float = 1e-8,
     atol: float = 3e-2,
     max_steps: int = 50,
@@ -519,54 +566,242 @@ def fit_arc(
 ) -> ArcFitResult:
     """Fit one joint's axis (and rate) to a sweep; pure, jittable and vmappable.
 
-    Closed-form initialisation (`initialise_arc`), then optimistix
-    Levenberg-Marquardt on `arc_residuals`. The covariance is
-    $(J^T J)^{+}$ of the whitened residuals at the solution, times
-    $\\hat\\sigma^2 = \\|r\\|^2/(m - n)$ when `scale_covariance` (set it False
-    when the given noise model is trusted).
+    Closed-form initialisation (`initialise_arc`), then Levenberg-Marquardt
+    on `arc_residuals`: optimistix's with encoders; without, the same
+    iteration by blocks (`jaxcal._schur`), the per-frame angles eliminated by
+    the Schur complement, so time and memory grow linearly with the frames.
+    The covariance is $(J^T J)^{+}$ of the whitened residuals at the solution
+    (by blocks without encoders), times $\\hat\\sigma^2 = \\|r\\|^2/(m - n)$
+    when `scale_covariance` (set it False when the given noise model is trusted).
+
+    Robust loss (iteratively reweighted least squares, as `jaxcal._refine.refine`):
+    each (marker, frame) sample's whitened residual norm $e$ is put in robust
+    sigmas, $z = e/s$ with $s$ the median of $e/m(\\nu)$ ($m(\\nu)$ the median
+    of $\\chi_\\nu$, $\\nu = k - h$ the sample's degrees of freedom, $k = 3$ or
+    6, $h$ its leverage: a frame's own angle takes one), mapped to the 2-D
+    radius with the same tail probability (`jaxcal._robust`), and weighted
+    (Cauchy $1/(1 + (z/c)^2)$, Huber $\\min(1, c/z)$); `rounds` solves with
+    the weights of the previous solution, then one least-squares solve on the
+    inliers ($z <$ `reject`, weight 1; others 0), whose Jacobian gives the
+    covariance, scaled by the inlier residual variance: honest standard
+    deviations. All rounds are one `lax.scan` (one compiled solver); each
+    round's weights come from a converged solution, so which samples are
+    rejected does not depend on `max_steps` once every round converges.
 
     **Arguments:**
-    - `data`: an `ArcData` (see `make_arc_data`).
-    - `rtol`, `atol`, `max_steps`, `throw`: passed to optimistix. The residuals
-      are whitened, so `atol` is in units of the noise: the solver stops when
-      a step moves every prediction by less than `atol` standard deviations
-      (Gauss-Newton then leaves the iterate ~`atol**2` from the optimum; tighter
-      tolerances only chase float64 round-off in the loss).
+    - `data`: an `ArcData` (see `make_arc_data`; `stack_sweeps` for several).
+    - `loss`: `"cauchy"`, `"huber"` or `None` (plain least squares, one solve).
+    - `c`: the loss constant, `reject`: the inlier threshold (`None`: no
+      inlier solve), both as 2-D radii in robust sigmas (a clean sample is
+      rejected with probability $e^{-reject^2/2}$, 0.1 % at 3.7); `rounds`:
+      IRLS solves before the inlier solve. Ignored without a loss.
+    - `rtol`, `atol`, `max_steps`, `throw`: the solver's (optimistix's rules;
+      `max_steps` per round). The residuals are whitened, so `atol` is in
+      units of the noise: the solver stops when a step moves every
+      prediction by less than `atol` standard deviations (Gauss-Newton then
+      leaves the iterate ~`atol**2` from the optimum; tighter tolerances only
+      chase float64 round-off in the loss). `throw`: raise (through
+      `eqx.error_if`) when a round does not converge.
 
     **Returns:** an `ArcFitResult`.
     """
+    check_loss(loss)
+    hard_flags = _round_plan(loss, rounds, reject)
     params0, ref = initialise_arc(data)
     free = _free_mask(params0, data, ref)
-    args = (ref, data)
+    mask = data.mask
+    mask_f = mask.astype(params0.line.dtype)
+    k = data.sqrt_info.shape[-1]
+    reject_ = jnp.inf if reject is None else reject
+    solve = _solve_dense if data.encoder is not None else _solve_blocks
+
+    def weights_at(params, hard):
+        if loss is None:
+            return mask_f
+        e, h = _sample_stats(params, ref, data, free, mask_f)
+        return sample_weights(e, h, mask, k=k, loss=loss, c=c, reject=reject_, hard=hard)[0]
+
+    def body(carry, hard):
+        params, steps, ok = carry
+        w = weights_at(params, hard)
+        new, result, n = solve(params, ref, data, free, w, rtol=rtol, atol=atol, max_steps=max_steps)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new)]))
+        new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, params)
+        good = result == optx.RESULTS.successful
+        return (new, steps + n, ok & good), (w, result, n)
+
+    (params, steps, ok), (ws, results, round_steps) = jax.lax.scan(
+        body, (params0, jnp.asarray(0), jnp.asarray(True)), jnp.asarray(hard_flags)
+    )
+    first_bad = jnp.argmax(results != optx.RESULTS.successful)
+    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
+    if throw:
+        params = eqx.error_if(params, ~ok, "fit_arc: a Levenberg-Marquardt solve did not converge")
+    params = jax.tree.map(lambda x, f: x * f, params, free)
+    return _summarise(
+        params,
+        ref,
+        data,
+        free,
+        result,
+        steps,
+        scale_covariance,
+        weights=ws[-1],
+        round_results=results,
+        round_steps=round_steps,
+    )
+
+
+def _solve_dense(params, ref, data, free, w, *, rtol, atol, max_steps):
+    """optimistix's Levenberg-Marquardt on the weighted residuals (with encoders: few unknowns)."""
 
     def fn(p, args):
+        ref_, data_, sw = args
         p = jax.tree.map(lambda x, f: x * f, p, free)
-        return arc_residuals(p, args)
+        return arc_residuals(p, (ref_, data_)) * sw[..., None]
 
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(fn, solver, params0, args, max_steps=max_steps, throw=throw)
-    params = jax.tree.map(lambda x, f: x * f, sol.value, free)
-    return _summarise(params, ref, data, free, sol.result, sol.stats["num_steps"], scale_covariance)
+    sol = optx.least_squares(fn, solver, params, (ref, data, jnp.sqrt(w)), max_steps=max_steps, throw=False)
+    return sol.value, sol.result, sol.stats["num_steps"]
 
 
-def _summarise(params, ref, data, free, result, num_steps, scale_covariance) -> ArcFitResult:
+def _to_blocks(params: ArcParams, data: ArcData) -> tuple[Float[Array, " n_g"], Float[Array, "frames 1"]]:
+    """Global `(line, p0[, r0])` and local (per-frame angle) parameters of a fit without encoders."""
+    parts = [params.line, params.p0.reshape(-1)]
+    if data.orientations is not None:
+        parts.append(params.r0.reshape(-1))
+    return jnp.concatenate(parts), params.angles[:, None]
+
+
+def _from_blocks(g, l, ref: ArcReference, data: ArcData) -> ArcParams:
+    """Inverse of `_to_blocks` (the rate, absent, is 0; the gauge frame's angle 0)."""
+    M = data.positions.shape[0]
+    r0 = (
+        g[4 + 3 * M : 4 + 6 * M].reshape(M, 3)
+        if data.orientations is not None
+        else jnp.zeros((M, 3), g.dtype)
+    )
+    return ArcParams(
+        line=g[:4],
+        rate=jnp.zeros((), g.dtype),
+        p0=g[4 : 4 + 3 * M].reshape(M, 3),
+        r0=r0,
+        angles=l[:, 0] * ref.gauge,
+    )
+
+
+def _arc_blocks(g, l, args):
+    """The arc model by blocks for `jaxcal._schur`: one block per frame (every
+    marker's residuals, weighted by $\\sqrt{w}$), `(frames, markers * k)`, its
+    derivatives with respect to the global `(line, p0[, r0])` and to the
+    frame's own angle, placed from `_arc_terms`' local derivatives."""
+    ref, data, sw = args
+    r, D = _arc_terms(_from_blocks(g, l, ref, data), ref, data, jacobian=True)
+    r = r * sw[..., None]
+    D = D * sw[..., None, None]
+    M, F, k, _ = D.shape
+    eye_m = jnp.eye(M)[:, None, None, :, None]
+    cols = [D[..., :4], (D[..., None, 5:8] * eye_m).reshape(M, F, k, 3 * M)]
+    if data.orientations is not None:
+        cols.append((D[..., None, 8:11] * eye_m).reshape(M, F, k, 3 * M))
+    Jg = jnp.concatenate(cols, axis=-1)
+    Jl = D[..., 4:5] * ref.gauge[None, :, None, None]
+    to_blocks = lambda x: jnp.moveaxis(x, 1, 0).reshape((F, M * k) + x.shape[3:])  # noqa: E731
+    return to_blocks(r), to_blocks(Jg), to_blocks(Jl)
+
+
+def _solve_blocks(params, ref, data, free, w, *, rtol, atol, max_steps):
+    """Levenberg-Marquardt by blocks (`jaxcal._schur`) without encoders: linear in the frames."""
+    g, l = _to_blocks(params, data)
+    g_mask, l_mask = _to_blocks(free, data)
+    sol = block_least_squares(
+        _arc_blocks,
+        g,
+        l,
+        (ref, data, jnp.sqrt(w)),
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        g_mask=g_mask > 0,
+        l_mask=l_mask > 0,
+    )
+    return _from_blocks(sol.g, sol.l, ref, data), sol.result, sol.num_steps
+
+
+def _covariance(params, ref, data, free, w):
+    """Unscaled covariance blocks and each sample's leverage, with weights `w`.
+
+    **Returns:** `(cov_line_rate (5, 5), cov_meas (k, k), leverage (markers, frames))`.
+    """
+    M, F = data.mask.shape
+    k = data.sqrt_info.shape[-1]
+    sw = jnp.sqrt(w)
+    has_rot = data.orientations is not None
+    if data.encoder is None:
+        g, l = _to_blocks(params, data)
+        g_mask, l_mask = _to_blocks(free, data)
+        _, Jg, Jl = _arc_blocks(g, l, (ref, data, sw))
+        cov = block_covariance(Jg, Jl, g_mask=g_mask > 0, l_mask=l_mask > 0)
+        h = block_leverage(Jg * g_mask, Jl * l_mask[:, None, :], cov).reshape(F, M, k).sum(-1).T
+        cov_lr = jnp.zeros((5, 5), g.dtype).at[:4, :4].set(cov.gg[:4, :4])
+        return cov_lr, cov.gg, h
     flat, unravel = ravel_pytree(params)
     free_flat, _ = ravel_pytree(free)
-    r, D = _arc_terms(params, ref, data, jacobian=True)
-    J = _flat_jacobian(D, ref, data) * free_flat[None, :]
-    # J^T J as broadcast-and-sum: fused by XLA on CPU, where a batched dot_general is slow.
-    JtJ = jnp.sum(J[:, :, None] * J[:, None, :], axis=0)
+    _, D = _arc_terms(params, ref, data, jacobian=True)
+    J = _flat_jacobian(D * sw[..., None, None], ref, data) * free_flat[None, :]
     # Pseudo-inverse restricted to the free parameters (absent ones have zero columns).
-    P = jnp.diag(free_flat)
-    cov = jnp.linalg.pinv(JtJ + (1.0 - P), hermitian=True) * free_flat[:, None] * free_flat[None, :]
-    k = r.shape[-1]
-    n_obs = jnp.sum(data.mask) * k
-    n_free = jnp.sum(free_flat)
-    ssr = jnp.sum(r**2)
-    dof = jnp.maximum(n_obs - n_free, 1.0)
-    if scale_covariance:
-        cov = cov * (ssr / dof)
-    cov_p = unravel_cov(cov, unravel, flat, data.orientations is not None)
+    cov = (
+        jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - free_flat), hermitian=True)
+        * free_flat[:, None]
+        * free_flat[None, :]
+    )
+    h = jnp.sum((J @ cov) * J, axis=-1).reshape(M, F, k).sum(-1)
+    cov_p = unravel_cov(cov, unravel, flat, has_rot)
+    return cov_p["line_rate"], cov_p["meas"], h
+
+
+def _sample_stats(params, ref, data, free, w):
+    """Each sample's whitened residual norm and leverage (with design weights `w`), `(markers, frames)` each."""
+    e = jnp.linalg.norm(arc_residuals(params, (ref, data)), axis=-1)
+    return e, _covariance(params, ref, data, free, w)[2]
+
+
+def _summarise(
+    params,
+    ref,
+    data,
+    free,
+    result,
+    num_steps,
+    scale_covariance,
+    *,
+    weights=None,
+    round_results=None,
+    round_steps=None,
+) -> ArcFitResult:
+    """The `ArcFitResult` at `params` (frozen entries already zero), the
+    covariance from the Jacobian with `weights` (default: the mask)."""
+    mask = data.mask
+    mask_w = mask.astype(jnp.float64)
+    w = mask_w if weights is None else weights
+    if round_results is None:
+        round_results = jax.tree.map(lambda r: r[None], result)
+        round_steps = jnp.asarray(num_steps)[None]
+    has_enc = data.encoder is not None
+    has_rot = data.orientations is not None
+    k = data.sqrt_info.shape[-1]
+    cov_lr, meas_cov, h = _covariance(params, ref, data, free, w)
+    r = arc_residuals(params, (ref, data))
+    e = jnp.linalg.norm(r, axis=-1)
+    n_obs = k * jnp.sum(w)
+    ssr = jnp.sum(w * e**2)
+    # Degrees of freedom: observations less the parameters the data determine,
+    # the trace of the hat matrix (the free parameters unless some are never
+    # observed, e.g. a marker padded in by `stack_sweeps`).
+    dof = jnp.maximum(n_obs - jnp.sum(h), 1.0)
+    sigma2 = ssr / dof if scale_covariance else 1.0
+    cov_lr = cov_lr * sigma2
+    meas_cov = meas_cov * sigma2
 
     Q, V = line_from_params(params.line, ref.R_ref, ref.c)
 
@@ -577,28 +812,28 @@ def _summarise(params, ref, data, free, result, num_steps, scale_covariance) -> 
 
     lr = jnp.concatenate([params.line, params.rate[None]])
     G = jax.jacfwd(vqr)(lr)
-    cov_lr = cov_p["line_rate"]
     cov_vqr = matmul(matmul(G, cov_lr), G.T)
     # Report Q as the axis point closest to the markers' centroid.
-    mask_w = data.mask.astype(jnp.float64)
-    P = jnp.where(data.mask[..., None], data.positions, 0.0)
+    P = jnp.where(mask[..., None], data.positions, 0.0)
     centroid = _masked_mean(P.reshape(-1, 3), mask_w.reshape(-1)[:, None], 0)
     Q_c = Q + jnp.dot(centroid - Q, V) * V
     O0 = jax.vmap(lambda Oref, r0: Oref @ so3_exp(r0))(ref.O_ref, params.r0)
     T0 = jax.vmap(make_pose)(O0, params.p0)
-    has_enc = data.encoder is not None
-    # Unwhitened RMS of positions and rotations.
+    # Unwhitened RMS of positions and rotations over the samples the solve used.
+    used = (w > 0) & mask
+    used_w = used.astype(jnp.float64)
+    n_used = jnp.maximum(jnp.sum(used_w), 1)
     raw = _raw_errors(params, ref, data)
-    pos_rms = jnp.sqrt(jnp.sum(jnp.sum(raw[..., :3] ** 2, -1) * mask_w) / jnp.maximum(jnp.sum(mask_w), 1))
+    pos_rms = jnp.sqrt(jnp.sum(jnp.sum(raw[..., :3] ** 2, -1) * used_w) / n_used)
     rot_rms = (
-        jnp.sqrt(jnp.sum(jnp.sum(raw[..., 3:] ** 2, -1) * mask_w) / jnp.maximum(jnp.sum(mask_w), 1))
+        jnp.sqrt(jnp.sum(jnp.sum(raw[..., 3:] ** 2, -1) * used_w) / n_used)
         if raw.shape[-1] == 6
         else jnp.asarray(jnp.nan)
     )
-    has_rot = data.orientations is not None
     meas = jnp.concatenate(
         [params.line, params.p0.reshape(-1)] + ([params.r0.reshape(-1)] if has_rot else [])
     )
+    nu = jnp.clip(k - h, MIN_DOF, float(k))
     return ArcFitResult(
         direction=V,
         point=Q_c,
@@ -608,16 +843,22 @@ def _summarise(params, ref, data, free, result, num_steps, scale_covariance) -> 
         cov=cov_vqr,
         rate_var=cov_lr[4, 4] if has_enc else jnp.asarray(jnp.nan),
         meas=meas,
-        meas_cov=cov_p["meas"],
+        meas_cov=meas_cov,
         R_ref=ref.R_ref,
         c=ref.c,
         O_ref=ref.O_ref,
         result=result,
-        num_steps=num_steps,
+        num_steps=jnp.asarray(num_steps),
         residual_rms=jnp.sqrt(ssr / jnp.maximum(n_obs, 1)),
         position_rms=pos_rms,
         rotation_rms=rot_rms,
-        num_frames=jnp.sum(jnp.any(data.mask, axis=0)),
+        num_frames=jnp.sum(jnp.any(mask, axis=0)),
+        sample_residuals=jnp.where(mask, e, 0.0),
+        weights=w,
+        inlier=used,
+        robust_scale=robust_scale(e, nu, used),
+        round_results=round_results,
+        round_steps=jnp.asarray(round_steps),
         has_encoder=has_enc,
     )
 
@@ -638,6 +879,127 @@ def _raw_errors(params, ref, data):
     k = data.sqrt_info.shape[-1]
     eye = jnp.broadcast_to(jnp.eye(k), data.sqrt_info.shape)
     return arc_residuals(params, (ref, eqx.tree_at(lambda d: d.sqrt_info, data, eye)))
+
+
+# --------------------------------------------------------------------------- several sweeps
+
+
+def _bucket_size(n: int, bucket: int | str) -> int:
+    if bucket == "pow2":
+        return 1 << max(n - 1, 0).bit_length()
+    if isinstance(bucket, str) or int(bucket) < 1:
+        raise ValueError(f"stack_sweeps: bucket must be a positive int or 'pow2', got {bucket!r}")
+    return -(-n // int(bucket)) * int(bucket)
+
+
+def stack_sweeps(
+    sweeps,
+    orientations=None,
+    encoders=None,
+    masks=None,
+    *,
+    covariances=None,
+    sigma_position: float = 1e-4,
+    sigma_rotation: float = 1e-3,
+    bucket: int | str = 64,
+) -> ArcData:
+    """Stack sweeps of different lengths into one `ArcData` for `jax.vmap(fit_arc)`.
+
+    Every sweep is padded (masked out) to one number of frames, rounded up to
+    a bucket so that sweeps of similar length share a compiled program: a
+    multiple of `bucket` (default 64) or, with `bucket="pow2"`, the next power
+    of two. Markers are padded the same way (never observed) when the sweeps
+    have different numbers. Padding holds zeros, identity rotations and
+    identity whitening; `fit_arc` ignores it (its results equal those of the
+    unpadded sweep to round-off). NumPy glue: call it outside `jit`.
+
+    **Arguments:**
+    - `sweeps`: one `ArcData` per joint (from `make_arc_data`), or one
+      positions array per joint, `(frames_j, 3)` or `(markers, frames_j, 3)` (m),
+      with `orientations`, `encoders`, `masks`, `covariances`: matching lists
+      (or None) and the noise levels, as `make_arc_data` takes them.
+    - `bucket`: the padding rule (above).
+
+    **Returns:** an `ArcData` with a leading joints axis,
+    `(joints, markers, frames, ...)`.
+    """
+    sweeps = list(sweeps)
+    if not sweeps:
+        raise ValueError("stack_sweeps: no sweeps")
+    if isinstance(sweeps[0], ArcData):
+        if any(x is not None for x in (orientations, encoders, masks, covariances)):
+            raise ValueError("stack_sweeps: give ArcData sweeps alone, or positions with matching lists")
+        if not all(isinstance(d, ArcData) for d in sweeps):
+            raise ValueError("stack_sweeps: mix of ArcData and arrays")
+        datas = sweeps
+    else:
+        n = len(sweeps)
+
+        def each(x, name):
+            if x is None:
+                return [None] * n
+            if len(x) != n:
+                raise ValueError(f"stack_sweeps: {n} position arrays but {len(x)} {name}")
+            return list(x)
+
+        datas = [
+            make_arc_data(
+                P,
+                O,
+                e,
+                m,
+                sigma_position=sigma_position,
+                sigma_rotation=sigma_rotation,
+                covariances=C,
+            )
+            for P, O, e, m, C in zip(
+                sweeps,
+                each(orientations, "orientation arrays"),
+                each(encoders, "encoder arrays"),
+                each(masks, "masks"),
+                each(covariances, "covariance arrays"),
+            )
+        ]
+    has_rot = {d.orientations is not None for d in datas}
+    has_enc = {d.encoder is not None for d in datas}
+    if len(has_rot) > 1 or len(has_enc) > 1:
+        raise ValueError(
+            "stack_sweeps: every sweep needs the same inputs (orientations: "
+            f"{[d.orientations is not None for d in datas]}, encoders: {[d.encoder is not None for d in datas]})"
+        )
+    M = max(d.mask.shape[0] for d in datas)
+    F = _bucket_size(max(d.mask.shape[1] for d in datas), bucket)
+    k = datas[0].sqrt_info.shape[-1]
+
+    def pad(x, fill):
+        x = np.asarray(x)
+        out = np.broadcast_to(np.asarray(fill, x.dtype), (M, F) + x.shape[2:]).copy()
+        out[: x.shape[0], : x.shape[1]] = x
+        return out
+
+    return ArcData(
+        positions=jnp.asarray(np.stack([pad(d.positions, 0.0) for d in datas])),
+        orientations=(
+            jnp.asarray(np.stack([pad(d.orientations, np.eye(3)) for d in datas]))
+            if has_rot == {True}
+            else None
+        ),
+        encoder=(
+            jnp.asarray(np.stack([np.pad(np.asarray(d.encoder), (0, F - d.encoder.shape[0])) for d in datas]))
+            if has_enc == {True}
+            else None
+        ),
+        mask=jnp.asarray(np.stack([pad(d.mask, False) for d in datas])),
+        sqrt_info=jnp.asarray(np.stack([pad(d.sqrt_info, np.eye(k)) for d in datas])),
+    )
+
+
+def arc_outliers(res: ArcFitResult, mask: Bool[Array, "markers frames"]) -> np.ndarray:
+    """The (marker, frame) samples a robust arc fit rejected: observed in
+    `mask` and not used by its final solve, as an `(n, 2)` int array (NumPy;
+    outside jit, one fit, not a batch)."""
+    bad = np.asarray(mask) & ~np.asarray(res.inlier)
+    return np.argwhere(bad)
 
 
 # --------------------------------------------------------------------------- input checks

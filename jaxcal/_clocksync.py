@@ -23,9 +23,10 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
-from ._arcfit import ArcData, _free_mask, arc_residuals, initialise_arc
+from ._arcfit import ArcData, _free_mask, _round_plan, arc_residuals, initialise_arc
+from ._robust import check_loss, sample_weights
 
 _MS = 1e-3
 
@@ -52,8 +53,14 @@ class ClockFit(eqx.Module):
     """The estimated clock offset.
 
     - `offset_s`, `std_s`: $\\delta$ and its standard deviation (s).
-    - `result`, `num_steps`: optimistix's result and step count.
-    - `residual_rms`: RMS of the whitened arc residuals at the solution.
+    - `result`: optimistix's result (`successful` when every round converged,
+      else the first failing round's code); `num_steps`: the steps of all
+      rounds; `round_results`, `round_steps`: each round's.
+    - `residual_rms`: RMS of the whitened arc residuals the final solve used.
+    - `sample_residuals`: each (joint, marker, frame) sample's whitened
+      residual norm at the solution, `(joints, markers, frames)` (0 where
+      unobserved); `weights`: the final solve's weights; `inlier`: the
+      observed samples it used (see `jaxcal._arcfit.fit_arc`).
     """
 
     offset_s: Float[Array, ""]
@@ -61,6 +68,11 @@ class ClockFit(eqx.Module):
     result: optx.RESULTS
     num_steps: Int[Array, ""]
     residual_rms: Float[Array, ""]
+    sample_residuals: Float[Array, "joints markers frames"]
+    weights: Float[Array, "joints markers frames"]
+    inlier: Bool[Array, "joints markers frames"]
+    round_results: optx.RESULTS
+    round_steps: Int[Array, " rounds"]
 
 
 def _with_encoder(data: ArcData, encoder: Float[Array, " frames"]) -> ArcData:
@@ -75,6 +87,10 @@ def fit_clock_offset(
     *,
     offset0_s: float = 0.0,
     drift_ppm: float = 0.0,
+    loss: str | None = None,
+    c: float = 3.0,
+    reject: float | None = 3.7,
+    rounds: int = 3,
     rtol: float = 1e-8,
     atol: float = 1e-2,
     max_steps: int = 100,
@@ -88,6 +104,13 @@ def fit_clock_offset(
     ms for conditioning). Each joint's arc start is the closed form at
     `offset0_s`.
 
+    With a robust `loss`, the rounds of `jaxcal._arcfit.fit_arc`: IRLS
+    solves weighting each (joint, marker, frame) sample by its whitened
+    residual norm in robust sigmas (one scale per joint, degrees of freedom
+    from the sample's leverage in the joint problem), then a least-squares
+    solve on the inliers whose Jacobian gives $\\delta$'s standard deviation.
+    A corrupted frame otherwise pulls the offset, which every joint shares.
+
     **Arguments:**
     - `data`: the sweeps, stacked over joints (`encoder` is ignored and
       replaced by the interpolated log), `(joints, markers, frames, ...)`.
@@ -96,9 +119,14 @@ def fit_clock_offset(
     - `enc_t` (s, controller clock), `enc_q`: the encoder log as commanded
       joint positions (`motor / nominal ratio`, rad), `(T, joints)`.
     - `offset0_s`: a start for $\\delta$ (s); `drift_ppm`: the known drift.
+    - `loss`, `c`, `reject`, `rounds`: as `fit_arc` (default: plain least squares).
+    - `rtol`, `atol`, `max_steps` (per round), `throw`: the solver's.
 
     **Returns:** a `ClockFit`.
     """
+    check_loss(loss)
+    hard_flags = _round_plan(loss, rounds, reject)
+    reject_ = jnp.inf if reject is None else reject
 
     def encoders(offset_s):
         t = controller_time(t_cam, offset_s, drift_ppm)
@@ -108,28 +136,73 @@ def fit_clock_offset(
     data0 = jax.vmap(_with_encoder)(data, enc0)
     params0, refs = jax.vmap(initialise_arc)(data0)
     free = jax.vmap(_free_mask)(params0, data0, refs)
+    mask = data.mask
+    mask_f = mask.astype(jnp.float64)
+    k = data.sqrt_info.shape[-1]
 
-    def residuals(y, args):
+    def residuals(y, w):
         arc_params, offset_ms = y
         arc_params = jax.tree.map(lambda x, f: x * f, arc_params, free)
         d = jax.vmap(_with_encoder)(data, encoders(offset0_s + _MS * offset_ms))
-        return jax.vmap(lambda p, r, dj: arc_residuals(p, (r, dj)))(arc_params, refs, d)
+        r = jax.vmap(lambda p, r, dj: arc_residuals(p, (r, dj)))(arc_params, refs, d)
+        return r * jnp.sqrt(w)[..., None]
+
+    free_flat = ravel_pytree((free, jnp.ones(())))[0]
+
+    def jacobian_and_cov(y, w):
+        """The weighted Jacobian and the unscaled $(J^TJ)^{+}$ over the free parameters."""
+        flat, unravel = ravel_pytree(y)
+        J = jax.jacfwd(lambda x: residuals(unravel(x), w).reshape(-1))(flat) * free_flat
+        cov = jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - free_flat), hermitian=True)
+        return J, cov * free_flat[:, None] * free_flat[None, :]
+
+    def weights_at(y, hard):
+        if loss is None:
+            return mask_f
+        J, cov = jacobian_and_cov(y, mask_f)
+        h = jnp.sum((J @ cov) * J, axis=-1).reshape(mask.shape + (k,)).sum(-1)
+        e = jnp.linalg.norm(residuals(y, mask_f), axis=-1)
+        weigh = lambda e_j, h_j, m_j: sample_weights(  # noqa: E731
+            e_j, h_j, m_j, k=k, loss=loss, c=c, reject=reject_, hard=hard
+        )[0]
+        return jax.vmap(weigh)(e, h, mask)  # one noise scale per joint
+
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+
+    def body(carry, hard):
+        y, steps, ok = carry
+        w = weights_at(y, hard)
+        sol = optx.least_squares(residuals, solver, y, w, max_steps=max_steps, throw=False)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(sol.value)]))
+        y_new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), sol.value, y)
+        good = sol.result == optx.RESULTS.successful
+        return (y_new, steps + sol.stats["num_steps"], ok & good), (w, sol.result, sol.stats["num_steps"])
 
     y0 = (params0, jnp.zeros(()))
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(residuals, solver, y0, None, max_steps=max_steps, throw=throw)
-    flat, unravel = ravel_pytree(sol.value)
-    free_flat = ravel_pytree((free, jnp.ones(())))[0]
-    J = jax.jacfwd(lambda x: residuals(unravel(x), None).reshape(-1))(flat) * free_flat
-    r = residuals(sol.value, None)
-    n = jnp.sum(free_flat)
-    sigma2 = jnp.sum(r**2) / jnp.maximum(jnp.sum(data.mask) * r.shape[-1] - n, 1.0)
-    cov = jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - free_flat), hermitian=True)
+    (y, steps, ok), (ws, results, round_steps) = jax.lax.scan(
+        body, (y0, jnp.asarray(0), jnp.asarray(True)), jnp.asarray(hard_flags)
+    )
+    first_bad = jnp.argmax(results != optx.RESULTS.successful)
+    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
+    if throw:
+        y = eqx.error_if(y, ~ok, "fit_clock_offset: a Levenberg-Marquardt solve did not converge")
+    w = ws[-1]
+    J, cov = jacobian_and_cov(y, w)
+    r = residuals(y, w)
+    n = jnp.sum((J @ cov) * J)  # the parameters the data determine (trace of the hat matrix)
+    n_obs = jnp.sum(w) * k
+    sigma2 = jnp.sum(r**2) / jnp.maximum(n_obs - n, 1.0)
     var_ms = cov[-1, -1] * sigma2
+    e = jnp.linalg.norm(residuals(y, mask_f), axis=-1)
     return ClockFit(
-        offset_s=offset0_s + _MS * sol.value[1],
+        offset_s=offset0_s + _MS * y[1],
         std_s=_MS * jnp.sqrt(jnp.maximum(var_ms, 0.0)),
-        result=sol.result,
-        num_steps=sol.stats["num_steps"],
-        residual_rms=jnp.sqrt(jnp.sum(r**2) / jnp.maximum(jnp.sum(data.mask) * r.shape[-1], 1.0)),
+        result=result,
+        num_steps=steps,
+        residual_rms=jnp.sqrt(jnp.sum(r**2) / jnp.maximum(n_obs, 1.0)),
+        sample_residuals=jnp.where(mask, e, 0.0),
+        weights=w,
+        inlier=(w > 0) & mask,
+        round_results=results,
+        round_steps=round_steps,
     )

@@ -53,3 +53,30 @@ def arc_data(key, *, encoder=True, orientations=True, sigma_p=1e-4, sigma_r=1e-3
 def ur5e_setup(noise=None, frames=40) -> MonteCarloSetup:
     """The UR5e filmed from 1.5 m with a marker 5 cm off the flange."""
     return default_setup(load_robot("ur5e"), noise=noise, plan=SweepPlan(frames=frames))
+
+
+def corrupt_frames(
+    key, P, O, *, fraction=0.1, sigma_p=1e-4, sigma_r=1e-3, position_sigmas=20.0, rotation_sigmas=10.0
+):
+    """Gross errors in a random `fraction` of the frames (every marker of a
+    frame): positions moved by `position_sigmas` noise sigmas and orientations
+    turned by `rotation_sigmas`, each in a random direction.
+
+    **Returns:** `(P, O, bad, dP)`: the corrupted arrays, the `(markers, frames)`
+    mask of corrupted samples and the position displacements (m).
+    """
+    P, O = np.asarray(P), np.asarray(O)
+    M, F = P.shape[:2]
+    k1, k2, k3 = jax.random.split(key, 3)
+    frames = np.asarray(jax.random.choice(k1, F, (int(round(fraction * F)),), replace=False))
+    bad = np.zeros((M, F), bool)
+    bad[:, frames] = True
+    d = np.array(jax.random.normal(k2, (M, F, 3)))
+    dP = np.where(
+        bad[..., None], position_sigmas * sigma_p * d / np.linalg.norm(d, axis=-1, keepdims=True), 0.0
+    )
+    a = np.array(jax.random.normal(k3, (M, F, 3)))
+    a = rotation_sigmas * sigma_r * a / np.linalg.norm(a, axis=-1, keepdims=True)
+    dR = np.asarray(jax.vmap(jax.vmap(so3_exp))(jnp.asarray(a)))
+    O = np.where(bad[..., None, None], dR @ O, O)
+    return P + dP, O, bad, dP

@@ -1,0 +1,131 @@
+"""Robust weights for residual groups of any size: a $k$-vector per sample.
+
+The refinement down-weights each corner by the norm of its 2-vector pixel
+residual, in robust sigmas, against thresholds `c` and `reject` that are
+radii of the 2-D (Rayleigh) distribution. A sample with a $k$-vector
+residual (an arc-fit frame: position, or position and rotation, $k = 3$ or
+6) has a norm distributed as $\\sigma\\chi_\\nu$, with $\\nu = k - h$ its
+degrees of freedom left by the fit: $h = \\mathrm{tr}\\,H_{ii}$, the
+sample's leverage (the trace of its diagonal block of the hat matrix
+$J(J^TJ)^{-1}J^T$; the leverages sum to the number of parameters). A
+per-frame unknown shared by no other sample, such as the joint angle of a
+one-marker sweep without encoders, takes one degree of freedom of each
+sample ($\\nu \\approx 2$ for positions only): the plain $\\chi_3$ would put
+the threshold 25 % too low and reject eight times too many clean samples.
+
+So that `c` and `reject` mean what they mean in the refinement, each norm is
+mapped to the Rayleigh radius with the same tail probability,
+
+$$z^{eq} = \\sqrt{-2 \\ln Q\\big(\\tfrac{\\nu}{2}, \\tfrac{z^2}{2}\\big)}, \\qquad z = e / s,$$
+
+with $Q$ the regularised upper incomplete gamma function ($\\chi^2_\\nu$'s
+survival function is $Q(\\nu/2, x/2)$; for $\\nu = 2$, $z^{eq} = z$), and
+the scale $s$ is the median over the samples of $e_i / m(\\nu_i)$, with
+$m(\\nu)$ the median of $\\chi_\\nu$ (the refinement's Rayleigh median
+$\\sqrt{2 \\ln 2}$ for $\\nu = 2$). `reject = 3.7` then rejects a clean
+sample with probability $e^{-3.7^2/2} = 1.1 \\times 10^{-3}$ whatever $k$.
+"""
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.special import gammainc, gammaincc, gammaln
+from jaxtyping import Array, Bool, Float
+
+LOSSES = ("cauchy", "huber", None)
+#: Degrees of freedom are clipped to at least this (tiny problems, where a
+#: sample's leverage approaches its size, carry no outlier information).
+MIN_DOF = 1.0
+
+
+def check_loss(loss: str | None) -> None:
+    """Raise a `ValueError` unless `loss` is one of `LOSSES`."""
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+
+
+def loss_weights(
+    z: Float[Array, "..."], loss: str | None, c: float | Float[Array, ""]
+) -> Float[Array, "..."]:
+    """IRLS weights of residual radii `z` (robust sigmas).
+
+    Cauchy: $w = 1/(1 + (z/c)^2)$; Huber: $w = \\min(1, c/z)$; `None`: 1.
+    """
+    check_loss(loss)
+    if loss is None:
+        return jnp.ones_like(z)
+    if loss == "cauchy":
+        return 1.0 / (1.0 + (z / c) ** 2)
+    return jnp.minimum(1.0, c / jnp.maximum(z, 1e-12))
+
+
+def chi_median(nu: Float[Array, "..."]) -> Float[Array, "..."]:
+    """Median of the $\\chi_\\nu$ distribution (the norm of a $\\nu$-vector of unit normals).
+
+    Wilson-Hilferty's start $x_0 = \\tfrac{\\nu}{2}(1 - \\tfrac{2}{9\\nu})^3$ for the
+    median of $\\chi^2_\\nu / 2$, then four Newton steps on $P(\\nu/2, x) = 1/2$
+    (the density is $x^{a-1}e^{-x}/\\Gamma(a)$): machine precision for
+    $\\nu \\ge 1$. Returns $\\sqrt{2x}$.
+    """
+    a = 0.5 * nu
+    x = a * (1.0 - 2.0 / (9.0 * nu)) ** 3
+    for _ in range(4):
+        density = jnp.exp((a - 1.0) * jnp.log(x) - x - gammaln(a))
+        x = jnp.maximum(x - (gammainc(a, x) - 0.5) / density, 1e-3 * x)
+    return jnp.sqrt(2.0 * x)
+
+
+def rayleigh_equivalent(z: Float[Array, "..."], nu: Float[Array, "..."]) -> Float[Array, "..."]:
+    """The Rayleigh radius with the tail probability of `z` under $\\chi_\\nu$ (see the module docstring).
+
+    $-\\ln Q(a, x)$ from `gammaincc` while it is representable, else from its
+    asymptotic form $x - (a - 1)\\ln x + \\ln\\Gamma(a)$ (relative error
+    $(a-1)/x < 1\\%$ there).
+    """
+    a = 0.5 * nu
+    x = 0.5 * z**2
+    big = x > 600.0
+    xs = jnp.where(big, 1.0, x)
+    direct = -jnp.log(gammaincc(a, xs))
+    asymptotic = x - (a - 1.0) * jnp.log(jnp.where(big, x, 1.0)) + gammaln(a)
+    return jnp.sqrt(2.0 * jnp.maximum(jnp.where(big, asymptotic, direct), 0.0))
+
+
+def robust_scale(
+    e: Float[Array, "*samples"], nu: Float[Array, "*samples"], mask: Bool[Array, "*samples"]
+) -> Float[Array, ""]:
+    """The noise scale $s$: the median over observed samples of $e_i / m(\\nu_i)$ (at least 1e-9)."""
+    u = e / chi_median(nu)
+    return jnp.maximum(jnp.nanmedian(jnp.where(mask, u, jnp.nan)), 1e-9)
+
+
+def sample_weights(
+    e: Float[Array, "*samples"],
+    leverage: Float[Array, "*samples"],
+    mask: Bool[Array, "*samples"],
+    *,
+    k: int,
+    loss: str | None,
+    c: float | Float[Array, ""],
+    reject: float | Float[Array, ""],
+    hard: Bool[Array, ""] | bool,
+) -> tuple[Float[Array, "*samples"], Float[Array, "*samples"], Float[Array, ""]]:
+    """IRLS weights of samples with whitened residual norms `e` ($k$-vectors).
+
+    **Arguments:**
+    - `e`: each sample's whitened residual norm; `leverage`: its leverage
+      $h$ (so $\\nu = k - h$, clipped to `[MIN_DOF, k]`); `mask`: observed samples.
+    - `loss`, `c`: the soft weights; `reject`, `hard`: where `hard`, the
+      weights are 1 within `reject` and 0 beyond (the inlier solve).
+
+    **Returns:** `(weights, z_eq, s)`: the weights (0 where unobserved), each
+    sample's Rayleigh-equivalent radius in robust sigmas, and the scale.
+    All three are constants for differentiation (IRLS holds weights fixed).
+    """
+    e, leverage = jax.lax.stop_gradient((e, leverage))
+    nu = jnp.clip(k - leverage, MIN_DOF, float(k))
+    s = robust_scale(e, nu, mask)
+    z = jnp.where(mask, rayleigh_equivalent(e / s, nu), 0.0)
+    soft = loss_weights(z, loss, c)
+    inl = (z < reject).astype(e.dtype)
+    w = jnp.where(hard, inl, soft) * mask
+    return w, z, s
