@@ -44,7 +44,9 @@ import scipy
 from scipy.optimize import least_squares
 
 import jaxcal
-from jaxcal._arcfit import ArcData, ArcParams, ArcReference, arc_residuals, fit_arc, initialise_arc
+from jaxcal._arcdata import ArcData
+from jaxcal._arcfit import fit_arc
+from jaxcal._arcmodel import ArcParams, ArcReference, arc_residuals, initialise_arc
 
 SIGMA_P = 1e-4  # m
 SIGMA_R = 1e-3  # rad

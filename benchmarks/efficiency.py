@@ -48,7 +48,8 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 import jaxcal  # noqa: F401  (float64)
-from jaxcal._arcfit import fit_arc, make_arc_data
+from jaxcal._arcdata import make_arc_data
+from jaxcal._arcfit import fit_arc
 from jaxcal._axisfit import fit_axes
 from jaxcal._correction import ParameterLayout
 from jaxcal._geometry import make_pose, se3_log, so3_exp

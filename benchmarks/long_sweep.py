@@ -56,7 +56,9 @@ from arcfit import skew_np, so3_exp_np, so3_log_np, write_json
 from scipy.optimize import least_squares
 
 import jaxcal
-from jaxcal._arcfit import _arc_blocks, _to_blocks, fit_arc, initialise_arc, stack_sweeps
+from jaxcal._arcdata import stack_sweeps
+from jaxcal._arcfit import _arc_blocks, _to_blocks, fit_arc
+from jaxcal._arcmodel import initialise_arc
 
 SIGMA_P = 1e-4  # m
 SIGMA_R = 1e-3  # rad

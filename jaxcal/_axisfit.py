@@ -34,7 +34,8 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _lsq
-from ._arcfit import ArcFitResult, line_to_params
+from ._arcfit import ArcFitResult
+from ._arcmodel import line_to_params
 from ._correction import KinematicCorrection as KinematicCorrection  # re-exported
 from ._correction import ParameterLayout, apply_correction, zero_correction
 from ._geometry import make_pose, matmul, pose_inverse, se3_exp, skew, so3_log, so3_right_jacobian_inv

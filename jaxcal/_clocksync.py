@@ -25,8 +25,9 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
-from ._arcfit import ArcData, _free_mask, _round_plan, arc_residuals, initialise_arc
-from ._robust import check_loss, sample_weights
+from ._arcdata import ArcData
+from ._arcmodel import arc_residuals, free_mask, initialise_arc
+from ._robust import check_loss, round_plan, sample_weights
 
 _MS = 1e-3
 
@@ -125,7 +126,7 @@ def fit_clock_offset(
     **Returns:** a `ClockFit`.
     """
     check_loss(loss)
-    hard_flags = _round_plan(loss, rounds, reject)
+    hard_flags = round_plan(loss, rounds, reject)
     reject_ = jnp.inf if reject is None else reject
 
     def encoders(offset_s):
@@ -135,7 +136,7 @@ def fit_clock_offset(
     enc0 = encoders(offset0_s)
     data0 = jax.vmap(_with_encoder)(data, enc0)
     params0, refs = jax.vmap(initialise_arc)(data0)
-    free = jax.vmap(_free_mask)(params0, data0, refs)
+    free = jax.vmap(free_mask)(params0, data0, refs)
     mask = data.mask
     mask_f = mask.astype(jnp.float64)
     k = data.sqrt_info.shape[-1]

@@ -21,7 +21,7 @@ after the other; the maths is the arc fit's.
 
 import numpy as np
 
-from ._arcfit import make_arc_data
+from ._arcdata import make_arc_data
 
 
 def _rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:

@@ -47,33 +47,6 @@ BATCHED_ENTRY_POINTS = (
 )
 
 
-#: Robust losses of the iteratively reweighted solves (`None`: plain least squares).
-LOSSES = ("cauchy", "huber", None)
-
-
-def robust_weights(e: Float[Array, "..."], loss: str | None, c: float) -> Float[Array, "..."]:
-    """IRLS weights of residual norms `e` (in robust sigmas).
-
-    Cauchy: $w = 1/(1 + (e/c)^2)$; Huber: $w = \\min(1, c/e)$; `None`: 1.
-    """
-    if loss is None:
-        return jnp.ones_like(e)
-    if loss == "cauchy":
-        return 1.0 / (1.0 + (e / c) ** 2)
-    if loss == "huber":
-        return jnp.minimum(1.0, c / jnp.maximum(e, 1e-12))
-    raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-
-
-def robust_scale(e: Float[Array, "..."], mask: Bool[Array, "..."], median_of_norm: float) -> Float[Array, ""]:
-    """The noise sigma (per coordinate) from the median of the residual norms `e`
-    over `mask`: the median divided by `median_of_norm`, the median of the norm
-    of a standard normal vector of the residual's dimension (e.g. Rayleigh's
-    $\\sqrt{2 \\ln 2}$ for a pixel)."""
-    med = jnp.nanmedian(jnp.where(mask, e, jnp.nan))
-    return jnp.maximum(med / median_of_norm, 1e-9)
-
-
 class LMOptions(eqx.Module):
     """Levenberg-Marquardt settings (see `optimistix.LevenbergMarquardt`).
 

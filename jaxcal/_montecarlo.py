@@ -24,7 +24,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ._arcfit import ArcData, ArcFitResult, fit_arc, line_to_params, make_arc_data
+from ._arcdata import ArcData, make_arc_data
+from ._arcfit import ArcFitResult, fit_arc
+from ._arcmodel import line_to_params
 from ._axisfit import fit_axes
 from ._geometry import make_pose, matmul, se3_exp, so3_exp, so3_log
 from ._kinematics import (

@@ -48,8 +48,6 @@ from ._correction import INTRINSIC_NAMES as INTRINSIC_NAMES  # re-exported
 from ._correction import KinematicCorrection, ParameterLayout, apply_correction, zero_correction
 from ._geometry import se3_exp
 from ._kinematics import KinematicModel
-from ._lsq import LOSSES as LOSSES  # re-exported
-from ._lsq import robust_weights as robust_weights  # re-exported
 from ._reprojection import (  # re-exported: the model the refinement solves
     CornerData as CornerData,
 )
@@ -67,10 +65,10 @@ from ._reprojection import projected_corners as projected_corners
 from ._reprojection import reprojection_residuals as reprojection_residuals
 from ._reprojection import sweep_corner_data as sweep_corner_data
 from ._reprojection import target_poses as target_poses
+from ._robust import check_loss, loss_weights, robust_scale, round_plan
 
 _MS = 1e-3
 #: Median of the norm of a 2-D standard normal vector (Rayleigh), $\\sqrt{2 \\ln 2}$.
-_RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
 #: The solver's variables are scaled so that every Jacobian column has this
 #: norm at the start: optimistix's Levenberg-Marquardt starts with unit
 #: damping, so its first steps are near Gauss-Newton ones (the start, the
@@ -327,8 +325,7 @@ def refine(
 
 def _checked(problem: RefineProblem, params0: RefineParams, free, loss):
     """`refine`'s static checks; `(flat0, unravel, free, free indices)`."""
-    if loss not in LOSSES:
-        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    check_loss(loss)
     several = problem.other_cameras is not None
     if (params0.angles is not None) != (problem.data.sweep_joint is not None):
         raise ValueError(
@@ -368,17 +365,14 @@ def _rounds(fn, y0, mask, loss, rounds, c, reject, options):
     final solve on the inliers. `(y, steps, ok, last weights, results, steps per round)`."""
     mask_f = mask.astype(y0.dtype)
     robust = loss is not None
-    n_soft = rounds if robust else 0
     final_hard = robust and reject is not None
-    n_rounds = n_soft + (1 if final_hard or not robust else 0)
-    if robust and reject is None:
-        n_rounds = max(n_soft, 1)
-    hard_flags = jnp.arange(n_rounds) == n_rounds - 1 if final_hard else jnp.zeros(n_rounds, bool)
+    hard_flags = round_plan(loss, rounds, reject)
+    nu = jnp.full(mask.shape, 2.0)  # a corner's residual has two coordinates
 
     def weights_at(y, hard):
         e = jnp.linalg.norm(fn(y, mask_f).reshape(mask.shape + (2,)), axis=-1)
-        s = _lsq.robust_scale(e, mask, _RAYLEIGH_MEDIAN)
-        soft = robust_weights(e / s, loss, c) if robust else jnp.ones_like(e)
+        s = robust_scale(e, nu, mask)
+        soft = loss_weights(e / s, loss, c)
         inl = (e / s < (reject if reject is not None else jnp.inf)) if final_hard else jnp.ones_like(mask)
         return jnp.where(hard, inl.astype(e.dtype), soft) * mask_f
 

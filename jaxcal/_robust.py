@@ -28,6 +28,7 @@ sample with probability $e^{-3.7^2/2} = 1.1 \\times 10^{-3}$ whatever $k$.
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.scipy.special import gammainc, gammaincc, gammaln
 from jaxtyping import Array, Bool, Float
 
@@ -129,3 +130,13 @@ def sample_weights(
     inl = (z < reject).astype(e.dtype)
     w = jnp.where(hard, inl, soft) * mask
     return w, z, s
+
+
+def round_plan(loss: str | None, rounds: int, reject) -> np.ndarray:
+    """Which rounds are the hard inlier solve (static): `rounds` soft IRLS
+    rounds and, with `reject`, one inlier solve; one plain round without a loss."""
+    if loss is None:
+        return np.zeros(1, bool)
+    if rounds < 1:
+        raise ValueError(f"rounds must be at least 1 with a robust loss, got {rounds}")
+    return np.array([False] * rounds + ([True] if reject is not None else []))

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal._arcfit import make_arc_data
+from jaxcal._arcdata import make_arc_data
 from jaxcal._geometry import normalize, so3_exp
 from jaxcal._montecarlo import MonteCarloSetup, SweepPlan, default_setup
 from jaxcal.robots import load_robot

@@ -9,18 +9,15 @@ import pytest
 from helpers import arc_data, arc_problem, corrupt_frames, tree_allclose
 from jax.flatten_util import ravel_pytree
 
-from jaxcal._arcfit import (
+from jaxcal._arcdata import make_arc_data, stack_sweeps
+from jaxcal._arcfit import arc_outliers, fit_arc, validate_arc_data
+from jaxcal._arcmodel import (
     _arc_residuals_autodiff,
-    _free_mask,
-    arc_outliers,
     arc_residuals,
-    fit_arc,
+    free_mask,
     initialise_arc,
     line_from_params,
     line_to_params,
-    make_arc_data,
-    stack_sweeps,
-    validate_arc_data,
 )
 from jaxcal._geometry import so3_exp, so3_log
 from jaxcal._linalg import concurrent_decompositions
@@ -231,7 +228,7 @@ def _plain_fit(data, *, rtol=1e-8, atol=3e-2, max_steps=50):
     Levenberg-Marquardt on the flat `ArcParams` (per-frame angles included),
     covariance $\\hat\\sigma^2 (J^TJ)^{+}$ of the dense autodiff Jacobian."""
     params0, ref = initialise_arc(data)
-    free = _free_mask(params0, data, ref)
+    free = free_mask(params0, data, ref)
 
     def fn(p, args):
         return arc_residuals(jax.tree.map(lambda x, f: x * f, p, free), args)

@@ -8,7 +8,8 @@ import pytest
 from helpers import corrupt_frames
 from jax.flatten_util import ravel_pytree
 
-from jaxcal._arcfit import _free_mask, arc_residuals, initialise_arc, make_arc_data
+from jaxcal._arcdata import make_arc_data
+from jaxcal._arcmodel import arc_residuals, free_mask, initialise_arc
 from jaxcal._clocksync import _with_encoder, controller_time, fit_clock_offset, interpolate_encoders
 from jaxcal._geometry import normalize, so3_exp
 
@@ -62,7 +63,7 @@ def _plain_clock_fit(data, t_cam, enc_t, enc_q):
 
     data0 = jax.vmap(_with_encoder)(data, encoders(0.0))
     params0, refs = jax.vmap(initialise_arc)(data0)
-    free = jax.vmap(_free_mask)(params0, data0, refs)
+    free = jax.vmap(free_mask)(params0, data0, refs)
 
     def residuals(y, args):
         p, ms = y

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._arcfit import make_arc_data
+from .._arcdata import make_arc_data
 from .._buckets import bucket, pad_log
 from .._clocksync import controller_time
 from .._links import link_poses
