@@ -34,7 +34,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
 from .._correction import ParameterLayout
-from .._refine import CornerData, RefineParams, RefineProblem, identifiable_mask, zero_params
+from .._refine import CornerData, RefineProblem, identifiable_mask, zero_params
 from .._reprojection import reprojection_residuals
 from .._uncertainty import tool_points
 from ..stages.kinds import CaptureKind, Motion

@@ -407,7 +407,7 @@ def _camera(x, loc: Loc) -> PlanCamera:
     )
 
 
-def _target(x, loc: Loc) -> PlanTarget:
+def target_from_dict(x, loc: Loc) -> PlanTarget:
     obj(x, loc, required=("spec", "link", "T_link_target"))
     try:
         spec = TargetSpec.from_dict(obj(x["spec"], loc.key("spec"), optional=TargetSpec.__dataclass_fields__),
@@ -431,7 +431,7 @@ def plan_from_dict(x, path="plan") -> CapturePlan:
     joints = tuple(names(x["joints"], loc.key("joints")))
     n = len(joints)
     camera = _camera(x["camera"], loc.key("camera"))
-    target = _target(x["target"], loc.key("target"))
+    target = target_from_dict(x["target"], loc.key("target"))
     if camera.mount == "world" and target.link == "world":
         raise loc.fail(
             "the camera and the target cannot both be fixed in the world (one rides on the flange)"

@@ -134,14 +134,25 @@ class PlanScene(eqx.Module):
     eye_in_hand: bool = eqx.field(static=True, default=False)
 
 
-def arm_capsules(model: KinematicModel, plate: tuple[float, float] | None) -> tuple[Capsules, np.ndarray]:
+def plate_box(spec) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """The printed plate in its target frame: centre of the backing board (4 mm
+    behind the face, as rendered), unit right and down directions, width and
+    height with the margin (m)."""
+    top_left, right, down = spec.pattern_extent()
+    w, h = spec.pattern_size
+    m = spec.margin
+    centre = top_left + 0.5 * w * right + 0.5 * h * down - 0.004 * spec.front_normal()
+    return centre, right, down, w + 2 * m, h + 2 * m
+
+
+def arm_capsules(model: KinematicModel, plate=None) -> tuple[Capsules, np.ndarray]:
     """The rendered arm's geometry as capsules, and which bodies may hide the target.
 
     Mirrors `jaxcal.sim.scene.build_scene`: a capsule (cylinder for the last
     link) of radius `LINK_RADIUS` from each body's origin to its child's, a drum
     of radius 1.15 r and half-length 1.2 r along each joint axis, the base's
-    column (1.6 r), the flange disk; with `plate = (width, height)` (m) the
-    plate's backing board on the payload body as two capsules along its width.
+    column (1.6 r), the flange disk; with `plate` (`plate_box`) the plate's
+    backing board on the payload body as three capsules along its longer side.
     Cylinders become capsules (a little larger at their ends: conservative).
 
     **Returns:** `(capsules, occluder mask)`: the flange disk, the last link
@@ -162,10 +173,11 @@ def arm_capsules(model: KinematicModel, plate: tuple[float, float] | None) -> tu
         rows.append((i + 1, -1.2 * r * z, 1.2 * r * z, 1.15 * r, i + 1 < n))
     rows.append((n + 1, np.array([0.0, 0.0, -0.008]), np.zeros(3), 0.04, False))
     if plate is not None:
-        w, h = plate
-        for y in (-0.25 * h, 0.25 * h):
-            rows.append((n + 2, np.array([-0.5 * w + 0.25 * h, y, 0.0]), np.array([0.5 * w - 0.25 * h, y, 0.0]),
-                         0.25 * h, False))  # fmt: skip
+        c, right, down, w, h = plate
+        if h > w:
+            right, down, w, h = down, right, h, w
+        for y in (-h / 3, 0.0, h / 3):  # three rows of radius h/6 spanning the width: the corners covered
+            rows.append((n + 2, c + y * down - 0.5 * w * right, c + y * down + 0.5 * w * right, h / 6, False))
     body, a, b, radius, occ = zip(*rows)
     caps = Capsules(
         body=jnp.asarray(np.array(body)),
@@ -329,11 +341,11 @@ def make_scene(
     lower,
     upper,
     eye_in_hand: bool,
-    plate: tuple[float, float] | None = None,
+    plate=None,
     floor_z: float | None = None,
 ) -> PlanScene:
     """A `PlanScene` from NumPy inputs (see `PlanScene`; `plate` the plate's
-    (width, height) in m when it rides on the flange, for its collisions)."""
+    `plate_box` when it rides on the flange, for its collisions)."""
     caps, occ = arm_capsules(nominal, None if eye_in_hand else plate)
     return PlanScene(
         nominal=nominal,
