@@ -163,6 +163,12 @@ class PlanEvaluation:
       (`PRIOR`) leaves after the free parameters absorb what they can: zero for
       a redundant parameter (a reparametrisation of the others), not for one
       the plan fails to identify.
+    - `ratio_interval`: the 5 % and 95 % quantiles of one capture's measured EE
+      RMS over `ee_rms` under the Gaussian model: the mean-square EE error is
+      $\\delta^T M \\delta = \\sum_i \\lambda_i z_i^2$ with $\\delta \\sim N(0, \\Sigma)$,
+      $\\lambda = \\mathrm{eig}(\\Sigma^{1/2} M \\Sigma^{1/2})$; `effective_dof`
+      $= (\\sum \\lambda)^2 / \\sum \\lambda^2$: with few, one capture's figure
+      scatters widely about the prediction.
     - `sigma_px`: the pixel noise assumed; `frames`, `corners`: what was used.
     - `singular_values`: of the column-normalised information (free parameters).
     """
@@ -179,6 +185,8 @@ class PlanEvaluation:
     frames: int
     corners: int
     singular_values: np.ndarray
+    ratio_interval: tuple[float, float] = (np.nan, np.nan)
+    effective_dof: float = np.nan
 
     @property
     def held(self) -> list[str]:
@@ -208,6 +216,8 @@ class PlanEvaluation:
             "held_redundant": [n for n in self.held if n not in self.unidentifiable],
             "unidentifiable": self.unidentifiable,
             "ee_rms_mm_with_held": 1e3 * self.ee_rms_with_held,
+            "ratio_interval_90": list(self.ratio_interval),
+            "effective_dof": self.effective_dof,
         }
 
 
@@ -283,6 +293,7 @@ def evaluate_views(
     cov_f = sigma_px**2 * (pinv @ pinv.T)
     std[np.flatnonzero(free)] = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
     ee = np.sqrt(np.maximum(np.einsum("cia,ab,cib->c", Gf, cov_f, Gf), 0.0))
+    interval, dof = ratio_spread(cov_f, np.einsum("cia,cib->ab", Gf, Gf) / len(configs))
     prior = prior_scales(d.layout)
     held = {}
     for k in np.flatnonzero(~in_free):
@@ -302,7 +313,23 @@ def evaluate_views(
         frames=int(len(q)),
         corners=corners,
         singular_values=sv,
+        ratio_interval=interval,
+        effective_dof=dof,
     )
+
+
+def ratio_spread(cov: np.ndarray, M: np.ndarray, draws: int = 20000) -> tuple[tuple[float, float], float]:
+    """The 90 % interval of one capture's EE RMS over its prediction, and the
+    effective number of independent error directions (see `PlanEvaluation`)."""
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    half = V * np.sqrt(np.maximum(w, 0.0))
+    lam = np.maximum(np.linalg.eigvalsh(half.T @ M @ half), 0.0)
+    if lam.sum() <= 0:
+        return (np.nan, np.nan), np.nan
+    z = np.random.default_rng(0).standard_normal((draws, lam.size))
+    r = np.sqrt((z**2 @ lam) / lam.sum())
+    lo, hi = np.percentile(r, [5.0, 95.0])
+    return (float(lo), float(hi)), float(lam.sum() ** 2 / np.sum(lam**2))
 
 
 _identifiable = jax.jit(identifiable_mask, static_argnames="tol")

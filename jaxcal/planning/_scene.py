@@ -190,8 +190,8 @@ def arm_capsules(model: KinematicModel, plate=None) -> tuple[Capsules, np.ndarra
 
 def collision_pairs(body: np.ndarray, num_joints: int) -> np.ndarray:
     """Pairs of capsules that may touch: on different bodies that are not parent
-    and child (MuJoCo's default filter); the base's own geometry never moves
-    against the first link (parent and child), the payload rides on the flange."""
+    and child (MuJoCo's default filter), not both on the rigid end (last link,
+    flange, payload); `make_scene` then leaves out the pairs that always touch."""
     parent = {k: k - 1 for k in range(1, num_joints + 3)}
     out = []
     for i in range(len(body)):
@@ -203,6 +203,33 @@ def collision_pairs(body: np.ndarray, num_joints: int) -> np.ndarray:
                 continue  # the last link, the flange and its payload are one rigid end
             out.append((i, j))
     return np.array(out, dtype=int).reshape(-1, 2)
+
+
+def pair_clearances(scene: PlanScene, q: Float[Array, " joints"]) -> Float[Array, " P"]:
+    """Clearance (m) of every collision pair of `scene` at configuration `q`."""
+    g = frame_geometry(scene, q)
+    a, b = _capsules_in_base(scene, g.bodies)
+    rad = scene.capsules.radius
+    i, j = scene.pairs[:, 0], scene.pairs[:, 1]
+    return jax.vmap(segment_distance)(a[i], b[i], a[j], b[j]) - rad[i] - rad[j]
+
+
+#: A pair of capsules touching in more than this share of random configurations is structural
+#: (a shoulder whose links start at one point, the drums of a short wrist): left out of the
+#: self-collision check, like MoveIt's "default in collision" pairs; no motion avoids it.
+ALWAYS = 0.5
+
+
+def always_touching(scene: PlanScene, samples: int = 1000) -> np.ndarray:
+    """Which of `scene.pairs` touch in more than `ALWAYS` of `samples` random
+    configurations within the joint limits (seeded), or never move relative to
+    each other (their clearance varies by under 0.1 mm: no motion changes it)."""
+    lo = jnp.maximum(scene.lower, -jnp.pi)
+    hi = jnp.minimum(scene.upper, jnp.pi)
+    q = jax.random.uniform(jax.random.key(0), (samples, lo.shape[0]), minval=lo, maxval=hi)
+    d = jax.jit(jax.vmap(lambda qq: pair_clearances(scene, qq)))(q)
+    rigid = jnp.max(d, axis=0) - jnp.min(d, axis=0) < 1e-4
+    return np.asarray((jnp.mean(d < 0.0, axis=0) > ALWAYS) | rigid)
 
 
 def corner_edges(points: np.ndarray) -> np.ndarray:
@@ -291,7 +318,7 @@ def margins(scene: PlanScene, limits: FeasibilityLimits, q: Float[Array, " joint
     rad = scene.capsules.radius
     i, j = scene.pairs[:, 0], scene.pairs[:, 1]
     dist = jax.vmap(segment_distance)(a[i], b[i], a[j], b[j]) - rad[i] - rad[j]
-    out["self_collision"] = jnp.min(dist) - limits.clearance
+    out["self_collision"] = jnp.min(dist, initial=jnp.inf) - limits.clearance
     moving = scene.capsules.body > 0
     low = jnp.minimum(a[:, 2], b[:, 2]) - rad - scene.floor_z
     out["scene_collision"] = jnp.min(jnp.where(moving, low, jnp.inf)) - limits.clearance
@@ -347,7 +374,7 @@ def make_scene(
     """A `PlanScene` from NumPy inputs (see `PlanScene`; `plate` the plate's
     `plate_box` when it rides on the flange, for its collisions)."""
     caps, occ = arm_capsules(nominal, None if eye_in_hand else plate)
-    return PlanScene(
+    scene = PlanScene(
         nominal=nominal,
         lower=jnp.asarray(lower, jnp.float64),
         upper=jnp.asarray(upper, jnp.float64),
@@ -365,3 +392,5 @@ def make_scene(
         floor_z=jnp.asarray(-np.inf if floor_z is None else float(floor_z)),
         eye_in_hand=eye_in_hand,
     )
+    keep = ~always_touching(scene)
+    return eqx.tree_at(lambda s: s.pairs, scene, scene.pairs[keep])

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PlanError
-from ..planning import CapturePlan, PoseSet, plan_to_dict
+from ..planning import ALWAYS, CapturePlan, PoseSet, Robot, plan_to_dict
 from .motion import Segment, Trajectory
 from .scene import CameraSpec, PlateSpec, build_scene, mujoco
 from .simulate import SimConfig, nominal_robot, simulate
@@ -59,7 +59,7 @@ class MujocoChecker:
 
     def __init__(self, plan: CapturePlan, *, margin: float = 0.005):
         model, _ = nominal_robot(plan.robot)
-        self.nominal = model
+        self.nominal, self.robot = model, plan.robot
         plates, cameras = plan_layout(plan)
         floor = plan.floor_z
         self.scene = build_scene(model, plates=plates, cameras=cameras, floor_z=floor)
@@ -70,6 +70,11 @@ class MujocoChecker:
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
         self.qpos = np.array([self.model.joint(n).qposadr[0] for n in model.joint_names], dtype=int)
+        self.excluded = self._structural(model)
+        for a, b in self.excluded:
+            spec.add_exclude(bodyname1=a, bodyname2=b)
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
         self.floor = {
             i for i in range(self.model.ngeom) if self.model.geom_type[i] == mujoco.mjtGeom.mjGEOM_PLANE
         }
@@ -78,6 +83,24 @@ class MujocoChecker:
         self.points = plan.target.spec.points()
         self.eye_in_hand = plan.eye_in_hand
         self.margin = margin
+
+    def _structural(self, model, samples: int = 500) -> list[tuple[str, str]]:
+        """Body pairs in contact in more than `ALWAYS` of random configurations within
+        the joint limits (seeded): structural, left out (`jaxcal.planning`'s rule)."""
+        limits = Robot.load(self.robot).lower, Robot.load(self.robot).upper
+        lo, hi = (np.clip(v, -np.pi, np.pi) for v in limits)
+        counts: dict = {}
+        for q in np.random.default_rng(0).uniform(lo, hi, (samples, len(lo))):
+            self._pose(q)
+            pairs = set()
+            for c in self.data.contact[: self.data.ncon]:
+                if c.dist < -1e-4:
+                    b = sorted((int(self.model.geom_bodyid[c.geom1]), int(self.model.geom_bodyid[c.geom2])))
+                    pairs.add(tuple(b))
+            for p in pairs:
+                counts[p] = counts.get(p, 0) + 1
+        return [(self.model.body(a).name, self.model.body(b).name) for (a, b), k in counts.items()
+                if k > ALWAYS * samples and 0 not in (a, b)]  # fmt: skip
 
     def _pose(self, q) -> None:
         self.data.qpos[self.qpos] = np.asarray(q, np.float64) + np.asarray(self.nominal.zero_offset)
