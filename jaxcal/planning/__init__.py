@@ -29,6 +29,7 @@ from ._plan import load_plan as load_plan
 from ._plan import plan_from_dict as plan_from_dict
 from ._plan import plan_to_dict as plan_to_dict
 from ._plan import save_plan as save_plan
+from ._report import plot_evaluation as plot_evaluation
 from ._scene import ALWAYS as ALWAYS
 from ._scene import CHECKS as CHECKS
 from ._scene import FeasibilityLimits as FeasibilityLimits

@@ -420,9 +420,15 @@ def target_from_dict(x, loc: Loc) -> PlanTarget:
 
 
 def plan_from_dict(x, path="plan") -> CapturePlan:
-    """A `CapturePlan` from its JSON object, every field checked (`DatasetError`
-    naming the field; `load_plan` turns it into a `PlanFileError`)."""
-    loc = Loc(path)
+    """A `CapturePlan` from its JSON object, every field checked (a `PlanFileError`
+    naming the file and the field)."""
+    try:
+        return _plan_from_dict(x, Loc(path))
+    except DatasetError as e:
+        raise PlanFileError(str(e)) from None
+
+
+def _plan_from_dict(x, loc: Loc) -> CapturePlan:
     required = ("schema", "schema_version", "robot", "joints", "camera", "target", "taught", "segments")
     optional = ("description", "floor_z", "checks", "corrections", "prediction")
     obj(x, loc, required=required, optional=optional)

@@ -5,16 +5,13 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from .._correction import zero_correction  # noqa: E402
-from .._uncertainty import tool_points  # noqa: E402
-from ._evaluate import PlanEvaluation  # noqa: E402
-from ._scene import PlanScene  # noqa: E402
+from .._correction import zero_correction
+from .._uncertainty import tool_points
+from ._evaluate import PlanEvaluation
+from ._scene import PlanScene
 
 
 def parameter_rows(ev: PlanEvaluation, top: int | None = None) -> list[tuple[str, str]]:
@@ -50,7 +47,8 @@ def plot_evaluation(ev: PlanEvaluation, scene: PlanScene, configs, path, title: 
     points coloured by their sigma (mm), and its histogram; written to `path` (PNG)."""
     p = workspace_points(scene, configs)
     s = 1e3 * np.asarray(ev.ee_sigma)
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.6), layout="constrained")
+    fig = Figure(figsize=(15, 4.6), layout="constrained")  # no pyplot: no global state, any backend
+    ax = fig.subplots(1, 3)
     vmax = float(np.percentile(s, 99))
     for a, (i, j), lab in zip(ax[:2], ((0, 1), (0, 2)), (("x m", "y m"), ("x m", "z m"))):
         sc = a.scatter(p[:, i], p[:, j], c=s, s=6, cmap="viridis", vmin=0.0, vmax=vmax)
@@ -72,6 +70,5 @@ def plot_evaluation(ev: PlanEvaluation, scene: PlanScene, configs, path, title: 
         fig.savefig(tmp, dpi=90)
         os.replace(tmp, path)
     finally:
-        plt.close(fig)
         tmp.unlink(missing_ok=True)
     return path
