@@ -805,10 +805,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="dataset directory (must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH pixels")
-    p.add_argument("--frames-per-joint", type=int, default=30)
+    # The defaults film the demo's capture (EE RMS 0.19 mm refined; the former 640x480, 30 frames per
+    # 40-degree sweep gave 1.2 mm): see docs/plan.md, and `--plan` for a planned capture (0.04 mm).
+    p.add_argument("--resolution", type=_resolution, default=(1280, 960), help="WxH pixels")
+    p.add_argument("--frames-per-joint", type=int, default=40)
     p.add_argument(
-        "--sweep-deg", type=_degrees, default=40.0, help="angle each joint sweeps (deg), one or one per joint"
+        "--sweep-deg", type=_degrees, default=80.0, help="angle each joint sweeps (deg), one or one per joint"
     )
     p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
     p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
