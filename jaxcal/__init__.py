@@ -102,6 +102,11 @@ from .io.handeye import HandEyeCapture as HandEyeCapture  # noqa: E402
 from .io.handeye import load_hand_eye_capture as load_hand_eye_capture  # noqa: E402
 from .io.handeye_results import write_hand_eye_outputs as write_hand_eye_outputs  # noqa: E402
 from .pipeline import calibrate as calibrate  # noqa: E402
+from .planning import CapturePlan as CapturePlan  # noqa: E402
+from .planning import evaluate_plan as evaluate_plan  # noqa: E402
+from .planning import load_plan as load_plan  # noqa: E402
+from .planning import plan as plan  # noqa: E402
+from .planning import save_plan as save_plan  # noqa: E402
 from .report import write_outputs as write_outputs  # noqa: E402
 from .stages import CalibrationResult as CalibrationResult  # noqa: E402
 from .vision import HandEyeObservations as HandEyeObservations  # noqa: E402

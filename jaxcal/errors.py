@@ -72,3 +72,24 @@ class InconsistentPosesError(HandEyeInputError):
 
 class NotPositiveDefiniteError(HandEyeInputError):
     """A covariance matrix that is not symmetric positive definite (the message names camera and frame)."""
+
+
+class PlanError(JaxcalError):
+    """A capture plan cannot be made, read or evaluated as asked (the message says why and where)."""
+
+
+class PlanFileError(PlanError):
+    """A plan file is malformed: unknown fields, wrong types or values out of range (the message names
+    the file and the field)."""
+
+
+class UnreachableRegionError(PlanError):
+    """The region where accuracy matters holds no configuration the arm can reach."""
+
+
+class CameraViewError(PlanError):
+    """The camera sees the target in none of the configurations tried (not one feasible frame)."""
+
+
+class BudgetTooSmallError(PlanError):
+    """Too few frames to identify anything (or fewer than the plan's structure needs)."""

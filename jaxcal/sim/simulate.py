@@ -34,7 +34,8 @@ from ..io.model_json import model_to_json
 from ..io.urdf import load_urdf, save_urdf
 from ..markers import TargetSpec
 from ..robots import robot_path, shipped
-from .motion import ClockModel, EncoderModel, encoder_stream, frame_times, joint_sweeps, true_angles
+from .motion import ClockModel, EncoderModel, encoder_stream, joint_sweeps, true_angles
+from .motion import frame_times as frame_times_of
 from .scene import CameraSpec, PlateSpec, build_scene
 
 
@@ -289,6 +290,12 @@ def _scene_layout(nominal, true, config: SimConfig, rng):
         up = F0[-1][:3, 1] * -1.0  # upright in the camera's view (image y is down)
         plates_nominal.append(PlateSpec(spec, "world", facing_mount(spec, -out_flange, centre, up=up)))
     # The truth: mounts and the eye-in-hand camera deviate from their design.
+    plates_true, cameras_true = _true_layout(plates_nominal, cameras, config, rng)
+    return plates_nominal, plates_true, cameras, cameras_true
+
+
+def _true_layout(plates_nominal, cameras, config: SimConfig, rng):
+    """The plates' true mounts and a flange camera's true pose: the design, jittered."""
     plates_true = [
         PlateSpec(p.target, p.link, _jitter(p.T_link_target, rng, config.mount_mm, config.mount_deg))
         for p in plates_nominal
@@ -299,7 +306,7 @@ def _scene_layout(nominal, true, config: SimConfig, rng):
         else c
         for c in cameras
     ]
-    return plates_nominal, plates_true, cameras, cameras_true
+    return plates_true, cameras_true
 
 
 def _visible(spec: TargetSpec, T_cam_target, cam: CameraSpec, margin_px: float = 2.0) -> bool:
@@ -314,13 +321,23 @@ def _visible(spec: TargetSpec, T_cam_target, cam: CameraSpec, margin_px: float =
 
 
 def simulate(
-    config: SimConfig, out, *, trajectory=None, overwrite: bool = False, progress: bool = True
+    config: SimConfig,
+    out,
+    *,
+    trajectory=None,
+    overwrite: bool = False,
+    progress: bool = True,
+    frame_times=None,
+    layout=None,
+    notes: dict | None = None,
 ) -> Path:
     """Render `config`'s synthetic dataset into directory `out` (atomically).
 
     `trajectory`: a `jaxcal.sim.motion.Trajectory` of commanded joint positions
     (e.g. `free_motion(times, q)`), filmed at `config.fps` over its segments;
     default: joint-by-joint sweeps of `config.frames_per_joint` frames.
+    `frame_times`, `layout`, `notes`: a capture plan's frames, design and
+    records (`jaxcal.sim.plan.render_plan`; see `_layouts` and `_metadata`).
     Refuses a non-empty `out` unless `overwrite` and it is a dataset jaxcal
     wrote (see `jaxcal.io._files.check_output_dir`); `out` gets the `.jaxcal`
     marker of kind `"dataset"`. Returns the dataset path.
@@ -330,7 +347,7 @@ def simulate(
     nominal, urdf_path = nominal_robot(config.robot)
     true = draw_truth(nominal, config)
     rng = np.random.default_rng(config.seed)
-    plates_nominal, plates_true, cameras_nominal, cameras_true = _scene_layout(nominal, true, config, rng)
+    plates_nominal, plates_true, cameras_nominal, cameras_true = _layouts(nominal, true, config, rng, layout)
     names = nominal.joint_names
     nominal_ratio = np.asarray(nominal.reduction_ratio)
 
@@ -351,7 +368,11 @@ def simulate(
     )
     encoder = EncoderModel(rate_hz=config.encoder_rate_hz, noise_counts=config.encoder_noise_counts)
     enc_t, enc_motor = encoder_stream(trajectory, nominal_ratio, encoder, rng)
-    t_frames = np.concatenate(frame_times(trajectory, config.frames_per_joint if sweeps else None, clock))
+    t_frames = (
+        np.concatenate(frame_times_of(trajectory, config.frames_per_joint if sweeps else None, clock))
+        if frame_times is None
+        else np.asarray(frame_times, np.float64)
+    )
     keep = rng.random(len(t_frames)) >= clock.drop_rate
     theta = true_angles(trajectory, t_frames, nominal_ratio, true.reduction_ratio, true.zero_offset)
     q_true = theta - np.asarray(true.zero_offset)
@@ -412,10 +433,10 @@ def simulate(
         write_frames(tmp / "frames.csv", rows["camera"], rows["frame"], rows["timestamp"], rows["file"])
         if config.encoders:
             write_encoders(tmp / "encoders.csv", enc_t, enc_motor, names)
-        write_json(
-            tmp / "metadata.json",
-            _metadata(config, nominal, cameras_nominal, plates_nominal, encoder, trajectory),
-        )
+        for name, text in (notes or {}).get("files", {}).items():
+            (tmp / name).write_text(text)
+        meta = _metadata(config, nominal, cameras_nominal, plates_nominal, encoder, trajectory, notes)
+        write_json(tmp / "metadata.json", meta)
         truth = _truth(config, true, cameras_true, plates_true)
         write_json(
             tmp / "truth.json",
@@ -424,8 +445,23 @@ def simulate(
     return out
 
 
-def _metadata(config: SimConfig, nominal, cameras_nominal, plates_nominal, encoder, trajectory) -> dict:
-    """`metadata.json` of a rendered dataset: what a user would know (the nominal robot and cameras)."""
+def _layouts(nominal, true, config: SimConfig, rng, layout=None):
+    """Nominal and true plates and cameras: placed from `config`, or `layout =
+    (plates, cameras)` as designed (a capture plan's), the true plate mounts (and
+    a flange camera's pose) deviating from the design as always."""
+    if layout is None:
+        return _scene_layout(nominal, true, config, rng)
+    plates_nominal, cameras_nominal = (list(x) for x in layout)
+    plates_true, cameras_true = _true_layout(plates_nominal, cameras_nominal, config, rng)
+    return plates_nominal, plates_true, cameras_nominal, cameras_true
+
+
+def _metadata(
+    config: SimConfig, nominal, cameras_nominal, plates_nominal, encoder, trajectory, notes=None
+) -> dict:
+    """`metadata.json` of a rendered dataset: what a user would know (the nominal robot and cameras).
+    A plan's `notes`: `metadata` (keys added at the top), `segments` (one dict per
+    recorded segment, added to its `motion` entry); `files` are written by `simulate`."""
     cameras_meta = [
         CameraInfo(c.name, c.width, c.height, c.K, c.dist, c.mount).to_dict() for c in cameras_nominal
     ]
@@ -455,10 +491,13 @@ def _metadata(config: SimConfig, nominal, cameras_nominal, plates_nominal, encod
         "motion": [
             {"joint": s.joint, "start": s.start, "end": s.end}
             | ({} if s.home is None else {"home": list(s.home)})
-            for s in trajectory.segments
+            | extra
+            for s, extra in zip(
+                trajectory.segments, (notes or {}).get("segments") or [{}] * len(trajectory.segments)
+            )
         ],
         "simulation": {k: v for k, v in asdict(config).items() if k != "link_plates"},
-    }
+    } | (notes or {}).get("metadata", {})
 
 
 def _truth(config: SimConfig, true, cameras_true, plates_true) -> dict:

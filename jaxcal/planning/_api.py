@@ -1,0 +1,470 @@
+"""`jaxcal.plan` and `jaxcal.evaluate_plan`: a capture planned, checked and pre-evaluated.
+
+`plan` follows seed 002 and goes past it: generate poses about a taught pose,
+check each (named reasons) and move the failing ones toward the taught pose or
+drop them, then choose the frames by gradient descent on the predicted
+end-effector error of the refinement that will solve them, from several starts
+(`method="greedy"`: FIGAROH's greedy D-optimal selection from the same
+candidates instead), order them into a short tour, check the moves, and
+pre-evaluate the result; with `goal_mm`, regenerate with wider candidates while
+the prediction falls short.
+"""
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._correction import zero_correction
+from .._uncertainty import random_configurations, tool_points
+from ..errors import BudgetTooSmallError, CameraViewError, PlanError, PlanFileError, UnreachableRegionError
+from ..io.urdf import load_urdf, urdf_outline
+from ..robots import robot_path, shipped
+from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation, design, ee_gram, ee_jacobians, evaluate_views
+from ._layout import default_layout
+from ._optimise import (
+    candidate_poses,
+    correct_toward,
+    descend,
+    greedy_d_optimal,
+    order_poses,
+    path_clear,
+    view_blocks,
+)
+from ._plan import CapturePlan, Correction, PlanCamera, PlanTarget, PoseSet, Sweep, load_plan
+from ._scene import CHECKS, FeasibilityLimits, PlanScene, make_scene, plate_box
+
+#: Workspace configurations of the EE prediction (the validation's sample: 1000, seed 0).
+WORKSPACE = 1000
+#: Fewest frames of a pose plan: the hand-eye start needs three.
+MIN_POSES = 3
+
+
+@dataclass(frozen=True)
+class Robot:
+    """A robot for planning: its name or URDF path, the nominal model and commanded joint limits."""
+
+    source: str
+    model: object
+    lower: np.ndarray
+    upper: np.ndarray
+
+    @classmethod
+    def load(cls, robot: str) -> "Robot":
+        path = robot_path(robot) if robot in shipped() else Path(robot)
+        if not path.is_file():
+            raise PlanError(f"robot {robot!r} is neither a shipped robot ({shipped()}) nor a URDF file")
+        model = load_urdf(path)
+        limits = urdf_outline(path, model.joint_names).limits
+        lower = np.array([-np.inf if limits[j].lower is None else limits[j].lower for j in model.joint_names])
+        upper = np.array([np.inf if limits[j].upper is None else limits[j].upper for j in model.joint_names])
+        return cls(str(robot), model, lower, upper)
+
+
+def scene_of(robot: Robot, camera: PlanCamera, target: PlanTarget, floor_z, where: str = "plan") -> PlanScene:
+    """The planning scene of a camera and target on `robot` (checks the mounts name the flange or the world)."""
+    flange = robot.model.link_names[-1]
+    eye_in_hand = camera.mount != "world"
+    if eye_in_hand and camera.mount != flange:
+        raise PlanFileError(
+            f"{where}: camera.mount must be 'world' or the flange {flange!r}, got {camera.mount!r}"
+        )
+    if not eye_in_hand and target.link != flange:
+        raise PlanFileError(f"{where}: target.link must be the flange {flange!r} (a fixed camera films it), "
+                            f"got {target.link!r}")  # fmt: skip
+    spec = target.spec
+    T_fixed = np.linalg.inv(target.T_link_target) if eye_in_hand else np.linalg.inv(camera.T_mount_cam)
+    T_mount = camera.T_mount_cam if eye_in_hand else target.T_link_target
+    return make_scene(
+        robot.model,
+        K=camera.K,
+        dist=camera.distortion,
+        image=(camera.width, camera.height),
+        T_fixed=T_fixed,
+        T_mount=T_mount,
+        points=spec.points(),
+        normal=spec.front_normal(),
+        lower=robot.lower,
+        upper=robot.upper,
+        eye_in_hand=eye_in_hand,
+        plate=plate_box(spec),
+        floor_z=floor_z,
+    )
+
+
+def workspace(robot: Robot, scene: PlanScene, region=None, key=None) -> np.ndarray:
+    """The configurations the EE prediction averages over: the validation's 1000
+    (uniform in $[-\\pi, \\pi]$ per joint, seed 0), or with `region = (lo, hi)`
+    (base frame, m) up to 1000 configurations within the joint limits whose EE
+    point lies in that box (`UnreachableRegionError` when none does)."""
+    n = robot.model.num_joints
+    if region is None:
+        return np.asarray(random_configurations(jax.random.key(0), WORKSPACE, n))
+    lo, hi = (np.asarray(v, np.float64).reshape(3) for v in region)
+    if not np.all(hi > lo):
+        raise UnreachableRegionError(
+            f"region: the box's upper corner {hi.tolist()} must exceed its lower {lo.tolist()}"
+        )
+    a, b = np.maximum(robot.lower, -np.pi), np.minimum(robot.upper, np.pi)
+    key = jax.random.key(0) if key is None else key
+    q = np.asarray(jax.random.uniform(key, (200_000, n), minval=a, maxval=b))
+    corr = zero_correction(n, 1)
+    T_base = np.eye(4) if not scene.eye_in_hand else np.eye(4)
+    p = np.asarray(_points(scene, T_base, corr, jnp.asarray(q)))
+    inside = np.all((p >= lo) & (p <= hi), axis=1)
+    if inside.sum() < 10:
+        raise UnreachableRegionError(
+            f"region [{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] (m, base frame): "
+            f"the {'camera' if scene.eye_in_hand else 'target'} reaches it in {int(inside.sum())} of {len(q)} "
+            "random configurations within the joint limits; give a region the arm can reach"
+        )
+    return q[inside][:WORKSPACE]
+
+
+@jax.jit
+def _points(scene, T_base, corr, q):
+    return tool_points(scene.nominal, T_base, scene.T_mount[None], jnp.zeros(6), corr, q)
+
+
+def views(plan: CapturePlan) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The frames of `plan`: configurations, times and whether it is a plan of sweeps."""
+    q, t, _ = plan.views()
+    sweeps = any(isinstance(s, Sweep) for s in plan.segments)
+    return q, t, sweeps
+
+
+def evaluate_plan(
+    plan: "CapturePlan | str | Path",
+    *,
+    region=None,
+    sigma_px: float = DEFAULT_SIGMA_PX,
+    limits: FeasibilityLimits | None = None,
+) -> PlanEvaluation:
+    """Predict, before any capture, what the refinement will make of `plan`.
+
+    **Arguments:**
+    - `plan`: a `CapturePlan` or a plan file.
+    - `region`: `(lo, hi)` corners of a box in the base frame (m) where the EE
+      accuracy matters (default: the validation's 1000 random configurations).
+    - `sigma_px`: the detector's corner noise (px per coordinate).
+    - `limits`: the feasibility limits (default the plan's own `checks`): frames
+      that fail them are left out, as the detector would miss them.
+
+    **Returns:** a `PlanEvaluation` (per-parameter standard deviations, what is
+    left unidentifiable, the EE 1-sigma at every workspace configuration, its
+    RMS and 95th percentile). Raises `PlanFileError`, `UnreachableRegionError`,
+    `BudgetTooSmallError`.
+    """
+    plan = load_plan(plan) if isinstance(plan, (str, Path)) else plan
+    robot = Robot.load(plan.robot)
+    if tuple(robot.model.joint_names) != tuple(plan.joints):
+        raise PlanFileError(
+            f"plan: joints {list(plan.joints)} are not the robot's {list(robot.model.joint_names)}"
+        )
+    scene = scene_of(robot, plan.camera, plan.target, plan.floor_z)
+    limits = FeasibilityLimits(**plan.checks) if limits is None else limits
+    q, t, sweeps = views(plan)
+    m = correct_toward(scene, limits, plan.taught, q)[1] == 1.0
+    if m.sum() < MIN_POSES:
+        raise BudgetTooSmallError(
+            f"plan: {int(m.sum())} of its {len(q)} frames pass the feasibility checks; at least {MIN_POSES} are needed"
+        )
+    return evaluate_views(
+        scene, q[m], t[m], workspace(robot, scene, region), sweeps=sweeps, sigma_px=sigma_px
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class PlanResult:
+    """What `plan` made: the `plan`, its `evaluation`, the `greedy` baseline's
+    evaluation at the same budget (when run), the candidate `counts` (first
+    failing check per draw), and `timings` (s)."""
+
+    plan: CapturePlan
+    evaluation: PlanEvaluation
+    greedy: PlanEvaluation | None = None
+    counts: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+
+
+#: Taught poses of the shipped robots (commanded, rad): the UR5e's zero (the
+#: demo's), a Panda pose inside its limits with the flange facing sideways.
+TAUGHT = {
+    "ur5e": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    "panda": (0.0, -0.3, 0.0, -2.0, 0.0, 1.7, 0.785),
+}
+
+
+def _taught(robot: Robot, taught) -> np.ndarray:
+    n = robot.model.num_joints
+    if taught is None:
+        taught = TAUGHT.get(
+            Path(robot.source).stem if robot.source not in TAUGHT else robot.source, np.zeros(n)
+        )
+    q0 = np.asarray(taught, np.float64).reshape(-1)
+    if q0.shape != (n,):
+        raise PlanError(
+            f"taught pose: expected {n} joint values ({list(robot.model.joint_names)}), got {q0.size}"
+        )
+    return q0
+
+
+def _check_taught(scene, limits, q0, checker) -> None:
+    _, frac, why = correct_toward(scene, limits, q0, q0[None], checker)
+    if frac[0] != 1.0:
+        raise CameraViewError(
+            f"taught pose {np.round(q0, 4).tolist()}: fails the {why[0]!r} check; the camera must see the target "
+            "at the taught pose (move the camera, or teach another pose)"
+        )
+
+
+def _budget(scene: PlanScene, frames: int, sweeps: bool) -> None:
+    need = int(design(scene, sweeps).candidates.sum())
+    rows = 2 * scene.points.shape[0] * frames
+    if frames < MIN_POSES or rows < need:
+        raise BudgetTooSmallError(
+            f"--frames {frames}: too few to identify anything: a pose plan needs at least {MIN_POSES} frames, and "
+            f"{frames} frames of {scene.points.shape[0]} corners give {rows} equations for up to {need} unknowns"
+        )
+
+
+def _pick(cands: np.ndarray, frames: int, rng: np.random.Generator) -> np.ndarray:
+    idx = rng.choice(len(cands), frames, replace=len(cands) < frames)
+    q = cands[idx]
+    if len(cands) < frames:  # repeated candidates would move together: part them
+        q = q + rng.normal(0.0, 0.01, q.shape)
+    return q
+
+
+def _finish(scene, limits, q0, q, checker) -> tuple[np.ndarray, list[Correction]]:
+    """Correct toward the taught pose (or drop), order into a tour, drop poses whose move collides."""
+    qn, frac, why = correct_toward(scene, limits, q0, q, checker)
+    corrections = [
+        Correction(0, i, "moved" if f > 0 else "dropped", why[i], float(f))
+        for i, f in enumerate(frac)
+        if f < 1.0
+    ]
+    keep = np.flatnonzero(frac > 0)
+    order = keep[order_poses(q0, qn[keep])]
+    out, here = [], np.asarray(q0, np.float64)
+    for i in order:
+        ok = path_clear(scene, limits, here, qn[i])
+        if ok and checker is not None:
+            s = np.linspace(0.0, 1.0, 10)[1:-1, None]
+            ok = all(r is None for r in checker(here + s * (qn[i] - here), path=True))
+        if not ok:
+            corrections.append(Correction(0, int(i), "dropped", "path_collision", 0.0))
+            continue
+        out.append(qn[i])
+        here = qn[i]
+    return np.asarray(out).reshape(-1, q0.size), corrections
+
+
+def _choose(
+    scene, limits, q0, cands, frames, configs, *, method, starts, steps, sigma_px, seed, checker, timings
+):
+    """The frames by `method` from the feasible candidates; returns (poses, corrections, evaluation, greedy eval)."""
+    rng = np.random.default_rng(seed)
+    n = min(frames, len(cands))
+    probe = evaluate_views(scene, _pick(cands, frames, rng), np.arange(frames, dtype=float), configs, sweeps=False,
+                           sigma_px=sigma_px)  # fmt: skip
+    idx = np.flatnonzero(probe.free)
+    t0 = time.perf_counter()
+    if method == "greedy":
+        B = view_blocks(scene, jnp.asarray(cands), idx)
+        sel = np.asarray(greedy_d_optimal(B, n))
+        tries = [cands[sel] if n == frames else _pick(cands[sel], frames, rng)]
+    else:
+        M = ee_gram(ee_jacobians(scene, jnp.asarray(configs)), idx, design(scene, False).layout.size)
+        q_init = np.stack([_pick(cands, frames, rng) for _ in range(starts)])
+        qf, _ = descend(scene, limits, M, idx, jnp.asarray(q_init), sigma_px=sigma_px, steps=steps)
+        tries = list(np.asarray(qf))
+    timings[f"{method}_s"] = time.perf_counter() - t0
+    best = None
+    for q in tries:
+        poses, corrections = _finish(scene, limits, q0, q, checker)
+        if len(poses) < MIN_POSES:
+            continue
+        ev = evaluate_views(
+            scene, poses, np.arange(len(poses), dtype=float), configs, sweeps=False, sigma_px=sigma_px
+        )
+        if best is None or ev.ee_rms_with_held < best[2].ee_rms_with_held:
+            best = (poses, corrections, ev)
+    if best is None:
+        raise CameraViewError(
+            "no start of the optimiser kept 3 feasible poses; widen the limits or move the camera"
+        )
+    return best
+
+
+def plan(
+    robot: str = "ur5e",
+    *,
+    camera: PlanCamera | None = None,
+    target: PlanTarget | None = None,
+    taught=None,
+    frames: int = 240,
+    eye_in_hand: bool = False,
+    distance: float | None = None,
+    resolution: tuple[int, int] = (1280, 960),
+    floor_z: float | None = -0.6,
+    region=None,
+    limits: FeasibilityLimits | None = None,
+    sigma_px: float = DEFAULT_SIGMA_PX,
+    method: str = "gradient",
+    starts: int = 3,
+    steps: int = 150,
+    candidates: int = 2000,
+    amplitude_deg: float = 60.0,
+    goal_mm: float | None = None,
+    greedy_baseline: bool = False,
+    seed: int = 0,
+    checker=None,
+    checker_factory=None,
+    log=None,
+) -> PlanResult:
+    """Plan a pose-based capture of `frames` stop-and-shoot frames (see the module docstring).
+
+    **Arguments:**
+    - `robot`: a shipped robot or a URDF file; `taught`: the taught pose
+      (default `TAUGHT[robot]`, else zeros).
+    - `camera`, `target`: given, or the demo's layout at the taught pose
+      (`default_layout`: `resolution`, `distance` (0.9 m; 0.6 m eye-in-hand),
+      `eye_in_hand`).
+    - `floor_z`: the floor's height (m, base frame; `None`: no floor).
+    - `region`: `(lo, hi)` box (m, base frame) where the EE accuracy matters.
+    - `limits`: `FeasibilityLimits`; `sigma_px`: the detector's corner noise.
+    - `method`: `"gradient"` (descent from `starts` random feasible subsets,
+      `steps` Adam steps) or `"greedy"` (D-optimal selection); `candidates`
+      random draws within `amplitude_deg` of the taught pose.
+    - `goal_mm`: regenerate with wider candidates (x1.5, twice at most) while
+      the predicted EE RMS is above it (seed 002's loop).
+    - `greedy_baseline`: also run the greedy selection at the same budget.
+    - `checker`: a further check of configurations, `checker(q (V, joints),
+      path=False) -> [None or reason]`; or `checker_factory(draft plan) ->
+      checker` (`jaxcal.sim.plan.MujocoChecker`: MuJoCo's contacts and lines of
+      sight on the plan's own layout).
+    - `log`: a callable taking a line of progress text.
+
+    **Returns:** a `PlanResult`. Raises `CameraViewError`, `BudgetTooSmallError`,
+    `UnreachableRegionError`, `PlanError`.
+    """
+    say = log if log is not None else (lambda text: None)
+    if method not in ("gradient", "greedy"):
+        raise PlanError(f"method must be 'gradient' or 'greedy', got {method!r}")
+    timings, t_start = {}, time.perf_counter()
+    rob = Robot.load(robot)
+    q0 = _taught(rob, taught)
+    if camera is None or target is None:
+        dist = distance if distance is not None else (0.6 if eye_in_hand else 0.9)
+        c, t = default_layout(rob.model, q0, resolution=resolution, distance=dist, eye_in_hand=eye_in_hand)
+        camera, target = camera or c, target or t
+    scene = scene_of(rob, camera, target, floor_z, where="plan")
+    limits = FeasibilityLimits() if limits is None else limits
+    if checker_factory is not None:
+        draft = CapturePlan(
+            robot, tuple(rob.model.joint_names), camera, target, q0, (PoseSet(q0[None]),), floor_z
+        )
+        checker = checker_factory(draft)
+    _budget(scene, frames, sweeps=False)
+    _check_taught(scene, limits, q0, checker)
+    configs = workspace(rob, scene, region)
+    amplitude = np.radians(amplitude_deg)
+    best, greedy = None, None
+    for attempt in range(3 if goal_mm is not None else 1):
+        t0 = time.perf_counter()
+        say(
+            f"candidates: {candidates} random poses within {np.degrees(amplitude):.0f} deg of the taught pose"
+        )
+        cands, counts = candidate_poses(
+            scene, limits, q0, candidates, amplitude, jax.random.key(seed + attempt), checker
+        )
+        timings["candidates_s"] = time.perf_counter() - t0
+        if len(cands) == 0:
+            raise CameraViewError(
+                f"the camera sees the target in none of {candidates} poses about the taught pose (first failing "
+                f"check: {', '.join(f'{k} {v}' for k, v in counts.items() if k in CHECKS)})"
+            )
+        say(
+            f"{len(cands)} feasible ({counts['passed']} as drawn, {counts['moved']} moved toward the taught pose)"
+        )
+        got = _choose(scene, limits, q0, cands, frames, configs, method=method, starts=starts, steps=steps,
+                      sigma_px=sigma_px, seed=seed + attempt, checker=checker, timings=timings)  # fmt: skip
+        if best is None or got[2].ee_rms_with_held < best[2].ee_rms_with_held:
+            best = got
+        if goal_mm is None or 1e3 * best[2].ee_rms_with_held <= goal_mm:
+            break
+        amplitude *= 1.5
+        say(f"predicted EE RMS {1e3 * best[2].ee_rms:.3f} mm > goal {goal_mm} mm: regenerating wider")
+    if greedy_baseline and method == "gradient":
+        greedy = _choose(scene, limits, q0, cands, frames, configs, method="greedy", starts=1, steps=0,
+                         sigma_px=sigma_px, seed=seed, checker=checker, timings=timings)[2]  # fmt: skip
+    poses, corrections, ev = best
+    timings["plan_s"] = time.perf_counter() - t_start
+    result = CapturePlan(
+        robot=robot,
+        joints=tuple(rob.model.joint_names),
+        camera=camera,
+        target=target,
+        taught=q0,
+        segments=(PoseSet(poses),),
+        floor_z=floor_z,
+        checks=limits.to_dict(),
+        corrections=tuple(corrections),
+        prediction=ev.summary()
+        | {"method": method, "workspace": "region" if region is not None else "random"},
+        description=f"{len(poses)} stop-and-shoot poses planned by jaxcal plan ({method})",
+    )
+    return PlanResult(result, ev, greedy, counts, timings)
+
+
+def with_prediction(plan_: CapturePlan, evaluation: PlanEvaluation) -> CapturePlan:
+    """`plan_` with `evaluation`'s summary as its `prediction`."""
+    return replace(plan_, prediction=evaluation.summary())
+
+
+def sweep_plan(
+    robot: str = "ur5e",
+    *,
+    frames_per_joint: int = 40,
+    range_deg: float = 80.0,
+    fps: float = 30.0,
+    camera: PlanCamera | None = None,
+    target: PlanTarget | None = None,
+    resolution: tuple[int, int] = (1280, 960),
+    distance: float = 0.9,
+    eye_in_hand: bool = False,
+    floor_z: float | None = -0.6,
+) -> CapturePlan:
+    """The seed method's capture as a plan: each joint in turn sweeps `range_deg`
+    centred on zero in `frames_per_joint` frames over `frames_per_joint / fps`
+    seconds, the others at zero (`jaxcal demo`: 40 frames, 80 deg, 1280x960;
+    `jaxcal simulate`'s defaults: 30 frames, 40 deg, 640x480), filmed by the
+    demo's camera unless `camera` / `target` are given."""
+    rob = Robot.load(robot)
+    n = rob.model.num_joints
+    if camera is None or target is None:
+        c, t = default_layout(
+            rob.model, np.zeros(n), resolution=resolution, distance=distance, eye_in_hand=eye_in_hand
+        )
+        camera, target = camera or c, target or t
+    half = 0.5 * np.radians(range_deg)
+    speed = 2.0 * half * fps / frames_per_joint
+    segments = tuple(
+        Sweep(joint=j, home=np.zeros(n), start=-half, end=half, frames=frames_per_joint, speed=speed)
+        for j in rob.model.joint_names
+    )
+    return CapturePlan(
+        robot=robot,
+        joints=tuple(rob.model.joint_names),
+        camera=camera,
+        target=target,
+        taught=np.zeros(n),
+        segments=segments,
+        floor_z=floor_z,
+        checks=FeasibilityLimits().to_dict(),
+        description=f"{frames_per_joint} frames per {range_deg:g}-degree sweep of every joint from zero",
+    )

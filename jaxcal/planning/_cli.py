@@ -1,0 +1,178 @@
+"""`jaxcal plan`: its arguments, its run and its tables (`jaxcal.cli` adds the MuJoCo checker).
+
+- `jaxcal plan --robot ur5e [--camera CAMERA_YAML] [--target TARGET_JSON] --frames 240 --out plan.json`
+  plans a pose-based capture and writes it (nothing is written on any error).
+- `jaxcal plan --evaluate plan.json [--region x0,y0,z0,x1,y1,z1] [--plot ee.png] [--json out.json]`
+  pre-evaluates a plan: per-parameter standard deviations, what it leaves
+  unidentifiable, the predicted EE error over the workspace.
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from ..errors import OutputError, PlanError
+from ..io._files import write_text_atomic
+from ._api import Robot, evaluate_plan, plan, scene_of, views, workspace
+from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation
+from ._inputs import parse_pose, parse_region, read_camera, read_target
+from ._plan import load_plan, save_plan
+from ._report import parameter_rows, plot_evaluation
+from ._scene import FeasibilityLimits
+
+
+def add_plan_parser(sub, func) -> None:
+    """The `plan` subcommand's arguments (`func` runs it)."""
+    p = sub.add_parser(
+        "plan",
+        help="plan, check and pre-evaluate a calibration capture before any image is taken (docs/plan.md)",
+        description="Plan a pose-based calibration capture, or pre-evaluate a plan (--evaluate). Exit codes: 0 done; "
+        "2 refused input (unreachable region, a camera that sees nothing, too small a budget, a malformed plan).",
+    )
+    p.add_argument("--evaluate", metavar="PLAN", help="pre-evaluate this plan file instead of planning")
+    p.add_argument("--robot", default="ur5e", help="shipped robot (ur5e, panda) or a URDF file")
+    p.add_argument("--camera", help="camera YAML (camera_matrix, image size, T_base_cam or T_flange_cam); "
+                   "default: the demo's camera at the taught pose")  # fmt: skip
+    p.add_argument(
+        "--target", help="target JSON (spec, link, T_link_target); default: the demo's plate (board)"
+    )
+    p.add_argument(
+        "--eye-in-hand", action="store_true", help="default layout: camera on the flange, board in the world"
+    )
+    p.add_argument(
+        "--resolution", type=_resolution, default=(1280, 960), help="WxH pixels of the default camera"
+    )
+    p.add_argument(
+        "--distance", type=float, help="default camera to target distance, m (0.9; eye-in-hand 0.6)"
+    )
+    p.add_argument("--taught", help="taught pose q1,q2,... (rad; default the robot's)")
+    p.add_argument("--frames", type=int, default=240, help="frames (stop-and-shoot poses)")
+    p.add_argument("--out", help="the plan file to write (refused if it exists, unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="replace --out")
+    p.add_argument("--region", help="x0,y0,z0,x1,y1,z1: box (m, base frame) where EE accuracy matters")
+    p.add_argument("--sigma-px", type=float, default=DEFAULT_SIGMA_PX, help="detector corner noise, px")
+    p.add_argument("--method", choices=("gradient", "greedy"), default="gradient")
+    p.add_argument("--baseline", action="store_true", help="also run the greedy D-optimal baseline")
+    p.add_argument("--starts", type=int, default=3, help="gradient starts")
+    p.add_argument("--steps", type=int, default=150, help="gradient steps")
+    p.add_argument("--candidates", type=int, default=2000, help="random poses drawn about the taught pose")
+    p.add_argument(
+        "--amplitude-deg", type=float, default=60.0, help="candidates within this of the taught pose"
+    )
+    p.add_argument("--goal-mm", type=float, help="regenerate wider while the predicted EE RMS is above this")
+    p.add_argument("--floor-z", type=float, default=-0.6, help="floor height, m (base frame)")
+    p.add_argument("--view-angle-deg", type=float, default=60.0, help="largest plate view angle")
+    p.add_argument("--no-mujoco", action="store_true", help="skip MuJoCo's contact and line-of-sight checks")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--plot", help="evaluation: write the EE sigma plot (PNG) here")
+    p.add_argument("--json", help="evaluation: write the figures (JSON) here")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=func)
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution must look like 1280x960, got {text!r}") from None
+    return w, h
+
+
+def _free(path, overwrite: bool, what: str) -> Path | None:
+    if path is None:
+        return None
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise OutputError(f"{what} {path}: exists (pass --overwrite to replace it)")
+    if path.is_dir():
+        raise OutputError(f"{what} {path}: is a directory")
+    if not path.parent.is_dir():
+        raise OutputError(f"{what} {path}: directory {path.parent} does not exist")
+    return path
+
+
+def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
+    t = Table(title=title)
+    t.add_column("")
+    t.add_column("predicted", justify="right")
+    t.add_row("frames / corners", f"{ev.frames} / {ev.corners}")
+    t.add_row("EE RMS (1-sigma) mm", f"{1e3 * ev.ee_rms:.4f}")
+    t.add_row("EE p95 mm", f"{1e3 * ev.ee_p95:.4f}")
+    t.add_row("pixel noise px", f"{ev.sigma_px:g}")
+    t.add_row("free parameters", f"{int(ev.free.sum())} ({len(ev.held)} held: redundant with others)")
+    t.add_row("left unidentifiable", ", ".join(ev.unidentifiable) or "nothing")
+    if ev.unidentifiable:
+        t.add_row("EE RMS with their prior mm", f"{1e3 * ev.ee_rms_with_held:.4f}")
+    console.print(t)
+    s = Table(title="Largest predicted parameter standard deviations")
+    s.add_column("parameter")
+    s.add_column("1-sigma", justify="right")
+    for name, text in parameter_rows(ev, top=8):
+        s.add_row(name, text)
+    console.print(s)
+
+
+def run_evaluate(args, console: Console) -> int:
+    plot, out_json = _free(args.plot, True, "--plot"), _free(args.json, True, "--json")
+    p = load_plan(args.evaluate)
+    region = None if args.region is None else parse_region(args.region)
+    ev = evaluate_plan(p, region=region, sigma_px=args.sigma_px)
+    evaluation_table(console, ev, f"{args.evaluate}: pre-evaluation ({len(views(p)[0])} planned frames)")
+    if plot is not None:
+        robot = Robot.load(p.robot)
+        scene = scene_of(robot, p.camera, p.target, p.floor_z)
+        plot_evaluation(ev, scene, workspace(robot, scene, region), plot)
+        console.print(f"wrote {plot}")
+    if out_json is not None:
+        figures = ev.summary() | {"std": {n: float(s) for n, s, f in zip(ev.names, ev.std, ev.free) if f}}
+        write_text_atomic(out_json, json.dumps(figures, indent=1))
+        console.print(f"wrote {out_json}")
+    return 0
+
+
+def run_plan(args, console: Console, checker_factory=None) -> int:
+    """`jaxcal plan`; `checker_factory(plan) -> checker` adds MuJoCo's checks."""
+    if args.evaluate:
+        return run_evaluate(args, console)
+    if args.out is None:
+        raise PlanError("jaxcal plan: give --out PLAN.json (or --evaluate PLAN.json)")
+    out = _free(args.out, args.overwrite, "--out")
+    robot = Robot.load(args.robot)
+    flange = robot.model.link_names[-1]
+    taught = None if args.taught is None else parse_pose(args.taught, robot.model.num_joints)
+    camera = None if args.camera is None else read_camera(args.camera, flange, args.resolution)
+    target = None if args.target is None else read_target(args.target)
+    eye_in_hand = args.eye_in_hand or (camera is not None and camera.mount != "world")
+    region = None if args.region is None else parse_region(args.region)
+    limits = FeasibilityLimits(view_angle_deg=args.view_angle_deg)
+    factory = None if args.no_mujoco else checker_factory
+    t0 = time.perf_counter()
+    res = plan(
+        args.robot, camera=camera, target=target, taught=taught, frames=args.frames, eye_in_hand=eye_in_hand,
+        distance=args.distance, resolution=args.resolution, floor_z=args.floor_z, region=region, limits=limits,
+        sigma_px=args.sigma_px, method=args.method, starts=args.starts, steps=args.steps,
+        candidates=args.candidates, amplitude_deg=args.amplitude_deg, goal_mm=args.goal_mm,
+        greedy_baseline=args.baseline, seed=args.seed, checker_factory=factory,
+        log=None if args.quiet else (lambda text: console.print(f"[dim]{text}[/dim]")),
+    )  # fmt: skip
+    evaluation_table(
+        console, res.evaluation, f"Planned: {res.plan.frames} stop-and-shoot poses ({args.method})"
+    )
+    if res.greedy is not None:
+        console.print(
+            f"greedy D-optimal baseline at the same budget: EE RMS {1e3 * res.greedy.ee_rms:.4f} mm"
+        )
+    moved = sum(c.action == "moved" for c in res.plan.corrections)
+    dropped = [c for c in res.plan.corrections if c.action == "dropped"]
+    console.print(
+        f"feasibility: {moved} poses moved toward the taught pose, {len(dropped)} dropped"
+        + (f" ({', '.join(sorted({c.reason for c in dropped}))})" if dropped else "")
+        + f"; candidates' first failures: {res.counts}"
+    )
+    save_plan(res.plan, out)
+    console.print(f"wrote {out} ({time.perf_counter() - t0:.1f} s)")
+    return 0

@@ -1,0 +1,341 @@
+"""Pre-evaluation of a capture plan: the Fisher information of the refinement that will solve it.
+
+The calibration of a capture ends with `jaxcal._refine.refine`: every detected
+corner's reprojection error minimised over the correction vector $x$ (the
+layout of `jaxcal._correction.ParameterLayout`). Before any image exists, the
+corners of a plan's frames are predicted at the nominal robot; with
+$J = \\partial \\hat u / \\partial x$ the Jacobian of the very residuals the
+refinement solves (`reprojection_residuals`), over the parameters it will
+free (`identifiable_mask`, with the capture kind's candidates and threshold),
+and i.i.d. Gaussian pixel noise $\\sigma$, the Cramer-Rao bound is
+
+$$\\Sigma = \\sigma^2 (J^T J)^{-1}.$$
+
+The end-effector point $p_c(x)$ (the target's origin in the camera frame; the
+camera's in the board frame eye-in-hand: the validation's point) at workspace
+configuration $c$ then has covariance $G_c \\Sigma G_c^T$, $G_c = \\partial p_c /
+\\partial x$, and the predicted EE RMS over the workspace sample is
+
+$$e^2 = \\frac{1}{C} \\sum_c \\mathrm{tr}(G_c \\Sigma G_c^T) = \\sigma^2\\,
+\\mathrm{tr}\\big((J^T J)^{-1} M\\big),\\qquad M = \\frac{1}{C}\\sum_c G_c^T G_c,$$
+
+a smooth function of the frames' joint values: the planner's objective
+(`ee_mean_square`). Parameters the plan leaves unidentifiable are held at
+nominal by the refinement; their names are reported.
+"""
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Bool, Float
+
+from .._correction import ParameterLayout
+from .._refine import CornerData, RefineProblem, identifiable_mask, zero_params
+from .._reprojection import reprojection_residuals
+from .._uncertainty import tool_points
+from ..stages.kinds import CaptureKind, Motion
+from ._scene import PlanScene, frame_geometry
+
+#: Corner noise of the detector on rendered images (px, per coordinate): the
+#: inlier RMS of the refinement of `jaxcal demo`'s capture (1280x960, 0.9 m).
+DEFAULT_SIGMA_PX = 0.045
+
+
+@dataclass(frozen=True)
+class Design:
+    """What the refinement will do with a plan: its capture kind, the candidate
+    mask over the flattened `RefineParams` and the identifiability threshold."""
+
+    kind: CaptureKind
+    layout: ParameterLayout
+    candidates: np.ndarray
+    tol: float
+
+
+def design(scene: PlanScene, sweeps: bool) -> Design:
+    """The refinement's set-up for a plan of single-joint sweeps (`sweeps`) or of
+    poses / free motion, with an encoder log and known intrinsics (as
+    `jaxcal simulate` writes): rates free; the clock offset free with sweeps
+    (it is estimated from the arcs), held for poses."""
+    segments = (("j", 0.0, 1.0),) if sweeps else ((None, 0.0, 1.0),)
+    kind = CaptureKind.of(
+        camera_on_flange=scene.eye_in_hand, segments=segments, encoders=True, link_targets=False
+    )
+    lay = ParameterLayout.of(scene.nominal, 1, eye_in_hand=scene.eye_in_hand)
+    cand = lay.candidates(rates=True, clock=kind.motion is Motion.SWEEPS, intrinsics=False)
+    return Design(kind, lay, cand, kind.identifiability_tol)
+
+
+def corner_problem(
+    scene: PlanScene,
+    q: Float[Array, "V joints"],
+    t: Float[Array, " V"],
+    visible: Bool[Array, "V N"] | None = None,
+) -> RefineProblem:
+    """The refinement's problem for frames at commanded configurations `q` taken at
+    controller times `t` (strictly increasing): every corner predicted at the
+    nominal robot (so the residuals are zero), `visible` corners only (default all).
+    Pure in `q`: the encoder log is the frames' configurations themselves."""
+    V, N = q.shape[0], scene.points.shape[0]
+    pixels = jax.vmap(lambda qq: frame_geometry(scene, qq).pixels)(q)
+    data = CornerData(
+        points=jnp.broadcast_to(scene.points, (V, N, 3)),
+        pixels=pixels,
+        mask=jnp.ones((V, N), bool) if visible is None else jnp.asarray(visible),
+        target=jnp.zeros(V, int),
+        frame=jnp.arange(V),
+        t_cam=t,
+        enc_t=t,
+        enc_q=q,
+        drift_ppm=jnp.zeros(()),
+    )
+    return RefineProblem(
+        nominal=scene.nominal,
+        T_flange_marker0=scene.T_mount[None],
+        T_cam_base0=scene.T_fixed,
+        K0=scene.K,
+        dist0=scene.dist,
+        offset0_s=jnp.zeros(()),
+        data=data,
+        eye_in_hand=scene.eye_in_hand,
+    )
+
+
+def free_jacobian(problem: RefineProblem, free_idx: np.ndarray) -> Float[Array, "rows f"]:
+    """$\\partial r / \\partial x_{free}$ of the refinement's residuals at the nominal robot."""
+    flat, unravel = ravel_pytree(zero_params(problem.nominal.num_joints, 1))
+    return jax.jacfwd(
+        lambda x: reprojection_residuals(unravel(flat.at[free_idx].set(x)), problem).reshape(-1)
+    )(flat[free_idx])
+
+
+def ee_jacobians(scene: PlanScene, configs: Float[Array, "C joints"]) -> Float[Array, "C 3 n"]:
+    """$G_c = \\partial p_c / \\partial x$ of the end-effector point at every workspace
+    configuration, over the axis-fit prefix of the layout (camera, origins, zero
+    offsets, mount): the other groups do not move the point."""
+    p0 = zero_params(scene.nominal.num_joints, 1)
+    flat, unravel = ravel_pytree((p0.cam, p0.correction))
+
+    def points(x):
+        cam, corr = unravel(x)
+        return tool_points(scene.nominal, scene.T_fixed, scene.T_mount[None], cam, corr, configs)
+
+    return jax.jacfwd(points)(flat)
+
+
+def ee_gram(G: Float[Array, "C 3 n"], free_idx: np.ndarray, size: int) -> Float[Array, "f f"]:
+    """$M = \\frac1C \\sum_c G_c^T G_c$ restricted to the free parameters (zero rows
+    for groups beyond the axis-fit prefix)."""
+    n = G.shape[-1]
+    full = jnp.zeros((size, size)).at[:n, :n].set(jnp.einsum("cia,cib->ab", G, G) / G.shape[0])
+    return full[np.ix_(free_idx, free_idx)]
+
+
+def ee_mean_square(
+    J: Float[Array, "rows f"], M: Float[Array, "f f"], sigma_px: float, ridge: float = 1e-9
+) -> Float[Array, ""]:
+    """Predicted mean-square EE error $\\sigma^2 \\mathrm{tr}((J^TJ)^{-1} M)$ (m^2), by
+    Cholesky of the Jacobi-scaled information (a relative `ridge` keeps it finite
+    on a degenerate plan)."""
+    F = J.T @ J
+    d = jnp.sqrt(jnp.maximum(jnp.diag(F), 1e-300))
+    Fs = F / d[:, None] / d[None, :] + ridge * jnp.eye(F.shape[0])
+    Ms = M / d[:, None] / d[None, :]
+    L = jnp.linalg.cholesky(Fs)
+    X = jax.scipy.linalg.cho_solve((L, True), Ms)
+    return sigma_px**2 * jnp.trace(X)
+
+
+@dataclass(frozen=True, eq=False)
+class PlanEvaluation:
+    """The pre-evaluation of a plan (NumPy arrays).
+
+    - `names`: the flattened `RefineParams` names; `candidates`, `free`: what the
+      refinement would estimate and what the plan lets it identify; `std`: the
+      predicted 1-sigma of every free parameter (zero where held).
+    - `ee_sigma`: per workspace configuration the predicted 1-sigma EE position
+      error (m); `ee_rms`, `ee_p95` (m) over them.
+    - `held_effect`: per held candidate, the EE RMS (m) its prior deviation
+      (`PRIOR`) leaves after the free parameters absorb what they can: zero for
+      a redundant parameter (a reparametrisation of the others), not for one
+      the plan fails to identify.
+    - `ratio_interval`: the 5 % and 95 % quantiles of one capture's measured EE
+      RMS over `ee_rms` under the Gaussian model: the mean-square EE error is
+      $\\delta^T M \\delta = \\sum_i \\lambda_i z_i^2$ with $\\delta \\sim N(0, \\Sigma)$,
+      $\\lambda = \\mathrm{eig}(\\Sigma^{1/2} M \\Sigma^{1/2})$; `effective_dof`
+      $= (\\sum \\lambda)^2 / \\sum \\lambda^2$: with few, one capture's figure
+      scatters widely about the prediction.
+    - `sigma_px`: the pixel noise assumed; `frames`, `corners`: what was used.
+    - `singular_values`: of the column-normalised information (free parameters).
+    """
+
+    names: tuple[str, ...]
+    candidates: np.ndarray
+    free: np.ndarray
+    std: np.ndarray
+    ee_sigma: np.ndarray
+    ee_rms: float
+    ee_p95: float
+    held_effect: dict
+    sigma_px: float
+    frames: int
+    corners: int
+    singular_values: np.ndarray
+    ratio_interval: tuple[float, float] = (np.nan, np.nan)
+    effective_dof: float = np.nan
+
+    @property
+    def held(self) -> list[str]:
+        """Candidates the refinement would hold at nominal (dependent on others for this plan)."""
+        return [n for n, c, f in zip(self.names, self.candidates, self.free) if c and not f]
+
+    @property
+    def unidentifiable(self) -> list[str]:
+        """Held candidates that matter: their prior deviation moves the end effector by more
+        than `MATTERS` after the free parameters absorb what they can."""
+        return [n for n, e in self.held_effect.items() if e > MATTERS]
+
+    @property
+    def ee_rms_with_held(self) -> float:
+        """The predicted EE RMS with the held parameters' prior effect added in quadrature (m)."""
+        return float(np.sqrt(self.ee_rms**2 + sum(e**2 for e in self.held_effect.values())))
+
+    def summary(self) -> dict:
+        """Plain-Python figures (mm)."""
+        return {
+            "ee_rms_mm": 1e3 * float(self.ee_rms),
+            "ee_p95_mm": 1e3 * float(self.ee_p95),
+            "sigma_px": self.sigma_px,
+            "frames": self.frames,
+            "corners": self.corners,
+            "free_parameters": int(self.free.sum()),
+            "held_redundant": [n for n in self.held if n not in self.unidentifiable],
+            "unidentifiable": self.unidentifiable,
+            "ee_rms_mm_with_held": 1e3 * self.ee_rms_with_held,
+            "ratio_interval_90": list(self.ratio_interval),
+            "effective_dof": self.effective_dof,
+        }
+
+
+def prior_scales(layout: ParameterLayout) -> np.ndarray:
+    """How far each parameter may sit from nominal before calibration (1 sigma, SI
+    units): the perturbations `jaxcal simulate` draws (joint origins 1 mm and
+    0.2 deg, zero offsets 0.5 deg, mounts and the camera 2 mm and 1 deg, ratios
+    1 %); used only to weigh what held parameters leave behind."""
+    out = np.zeros(layout.size)
+    pose = lambda mm, deg: np.r_[np.full(3, 1e-3 * mm), np.full(3, np.radians(deg))]  # noqa: E731
+    out[layout.index("cam")] = pose(2.0, 1.0)
+    out[layout.index("origin")] = np.tile(pose(1.0, 0.2), len(layout.joints))
+    out[layout.index("zero")] = np.radians(0.5)
+    out[layout.index("tool")] = np.tile(pose(2.0, 1.0), layout.num_markers)
+    out[layout.index("rate")] = 0.01
+    out[layout.index("clock")] = 1.0
+    return out
+
+
+#: A held parameter whose prior deviation moves the end effector by more than this (m RMS) matters.
+MATTERS = 1e-6
+
+
+def evaluate_views(
+    scene: PlanScene,
+    q: np.ndarray,
+    t: np.ndarray,
+    configs: np.ndarray,
+    *,
+    sweeps: bool,
+    sigma_px: float = DEFAULT_SIGMA_PX,
+    visible: np.ndarray | None = None,
+) -> PlanEvaluation:
+    """Pre-evaluate frames at commanded configurations `q (V, joints)`, controller
+    times `t (V,)` (increasing), over the workspace `configs (C, joints)`.
+
+    **Arguments:** the scene; the frames; the workspace sample; `sweeps`: the
+    refinement of single-joint sweeps (else of poses); `sigma_px`: the corner
+    noise (px per coordinate); `visible (V, N)`: the corners detected (default all).
+
+    **Returns:** a `PlanEvaluation`.
+    """
+    d = design(scene, sweeps)
+    vis = None if visible is None else jnp.asarray(visible)
+    problem = corner_problem(scene, jnp.asarray(q), jnp.asarray(t), vis)
+    p0 = zero_params(scene.nominal.num_joints, 1)
+    free, _ = _identifiable(problem, p0, jnp.asarray(d.candidates), tol=d.tol)
+    free = np.asarray(free)
+    names = tuple(d.layout.names())
+    cand_idx = np.flatnonzero(d.candidates)
+    in_free = free[cand_idx]
+    J, G = _jacobians(problem, cand_idx, scene, jnp.asarray(configs))
+    J, G = np.asarray(J), np.asarray(G)
+    corners = int(np.asarray(problem.data.mask).sum())
+    n = len(names)
+    std = np.zeros(n)
+    Gc = np.zeros((len(configs), 3, cand_idx.size))  # the EE Jacobian over the candidates
+    axis = cand_idx < G.shape[-1]
+    Gc[:, :, axis] = G[:, :, cand_idx[axis]]
+    Jf, Gf = J[:, in_free], Gc[:, :, in_free]
+    if not in_free.any():
+        ee = np.full(len(configs), np.inf)
+        return PlanEvaluation(names, d.candidates, free, std, ee, np.inf, np.inf, {}, float(sigma_px), len(q), corners,
+                              np.zeros(0))  # fmt: skip
+    scale = np.linalg.norm(Jf, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    Js = Jf / scale
+    U, sv, Vt = np.linalg.svd(Js, full_matrices=False)
+    keep = sv > 1e-12 * sv[0]
+    pinv = (
+        (Vt[keep].T / sv[keep]) @ U[:, keep].T / scale[:, None]
+    )  # (f, rows): least squares on the free columns
+    cov_f = sigma_px**2 * (pinv @ pinv.T)
+    std[np.flatnonzero(free)] = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
+    ee = np.sqrt(np.maximum(np.einsum("cia,ab,cib->c", Gf, cov_f, Gf), 0.0))
+    interval, dof = ratio_spread(cov_f, np.einsum("cia,cib->ab", Gf, Gf) / len(configs))
+    prior = prior_scales(d.layout)
+    held = {}
+    for k in np.flatnonzero(~in_free):
+        delta = -pinv @ J[:, k]  # the free parameters absorbing a unit of parameter k
+        e = Gc[:, :, k] + Gf @ delta
+        held[names[cand_idx[k]]] = float(prior[cand_idx[k]] * np.sqrt(np.mean(np.sum(e**2, axis=-1))))
+    return PlanEvaluation(
+        names=names,
+        candidates=d.candidates,
+        free=free,
+        std=std,
+        ee_sigma=ee,
+        ee_rms=float(np.sqrt(np.mean(ee**2))),
+        ee_p95=float(np.percentile(ee, 95)),
+        held_effect=held,
+        sigma_px=float(sigma_px),
+        frames=int(len(q)),
+        corners=corners,
+        singular_values=sv,
+        ratio_interval=interval,
+        effective_dof=dof,
+    )
+
+
+def ratio_spread(cov: np.ndarray, M: np.ndarray, draws: int = 20000) -> tuple[tuple[float, float], float]:
+    """The 90 % interval of one capture's EE RMS over its prediction, and the
+    effective number of independent error directions (see `PlanEvaluation`)."""
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    half = V * np.sqrt(np.maximum(w, 0.0))
+    lam = np.maximum(np.linalg.eigvalsh(half.T @ M @ half), 0.0)
+    if lam.sum() <= 0:
+        return (np.nan, np.nan), np.nan
+    z = np.random.default_rng(0).standard_normal((draws, lam.size))
+    r = np.sqrt((z**2 @ lam) / lam.sum())
+    lo, hi = np.percentile(r, [5.0, 95.0])
+    return (float(lo), float(hi)), float(lam.sum() ** 2 / np.sum(lam**2))
+
+
+_identifiable = jax.jit(identifiable_mask, static_argnames="tol")
+
+
+@eqx.filter_jit
+def _jacobians(problem, cand_idx, scene, configs):
+    """The refinement's Jacobian over the candidates, and the EE Jacobians."""
+    return free_jacobian(problem, cand_idx), ee_jacobians(scene, configs)

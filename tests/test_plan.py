@@ -1,0 +1,274 @@
+"""Capture planning (`jaxcal.plan`, `jaxcal.evaluate_plan`, `jaxcal plan`, `simulate --plan`).
+
+Small cases: the Fisher information against the refinement's own Cramer-Rao
+bound, its gradient against finite differences, the feasibility checks'
+named reasons and seed 002's correction, the JAX collision capsules against
+MuJoCo's contacts, the greedy selection against brute force, plan files
+(round trip, unknown fields, wrong types), the refused inputs (exit code 2,
+nothing written), and one small rendered eye-in-hand plan end to end.
+"""
+
+import json
+from itertools import combinations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcal
+from jaxcal._refine import fisher_std, identifiable_mask, zero_params
+from jaxcal._uncertainty import random_configurations
+from jaxcal.cli import main
+from jaxcal.errors import BudgetTooSmallError, CameraViewError, PlanFileError, UnreachableRegionError
+from jaxcal.planning import (
+    CHECKS,
+    CapturePlan,
+    FeasibilityLimits,
+    PoseSet,
+    Robot,
+    default_layout,
+    evaluate_views,
+    load_plan,
+    plan_from_dict,
+    plan_to_dict,
+    save_plan,
+    scene_of,
+    sweep_plan,
+)
+from jaxcal.planning._evaluate import (
+    corner_problem,
+    design,
+    ee_gram,
+    ee_jacobians,
+    ee_mean_square,
+    free_jacobian,
+)
+from jaxcal.planning._optimise import all_margins, correct_toward, greedy_d_optimal, view_blocks
+
+#: Twelve poses about the UR5e's zero that the demo's camera sees well (rad).
+POSES = np.radians(
+    [
+        [10, -15, 20, -10, 15, 30],
+        [-15, 10, -20, 15, -10, -30],
+        [20, 5, 10, 20, -20, 60],
+        [-20, -5, -10, -20, 20, -60],
+        [5, 20, -25, 5, 25, 0],
+        [-5, -20, 25, -5, -25, 90],
+        [25, -10, 5, -25, 10, -90],
+        [-25, 10, -5, 25, -15, 45],
+        [0, 15, 15, -15, 5, -45],
+        [15, -20, -15, 10, -5, 120],
+        [-10, 0, 30, 0, 10, -120],
+        [30, 10, -30, -5, 0, 15],
+    ]
+)
+
+
+@pytest.fixture(scope="module")
+def ur5e():
+    robot = Robot.load("ur5e")
+    camera, target = default_layout(robot.model, np.zeros(6))
+    return robot, camera, target, scene_of(robot, camera, target, -0.6)
+
+
+def _plan(ur5e, poses=POSES) -> CapturePlan:
+    robot, camera, target, _ = ur5e
+    return CapturePlan(
+        "ur5e", tuple(robot.model.joint_names), camera, target, np.zeros(6), (PoseSet(poses),), -0.6
+    )
+
+
+def test_default_layout_is_the_demos(ur5e):
+    from jaxcal.sim.simulate import SimConfig, _scene_layout
+
+    robot, camera, target, _ = ur5e
+    for eye_in_hand, distance in ((False, 0.9), (True, 0.6)):
+        cfg = SimConfig(resolution=(1280, 960), eye_in_hand=eye_in_hand, camera_distance=distance)
+        plates, _, cams, _ = _scene_layout(robot.model, robot.model, cfg, np.random.default_rng(0))
+        c, t = default_layout(robot.model, np.zeros(6), distance=distance, eye_in_hand=eye_in_hand)
+        assert np.allclose(c.T_mount_cam, cams[0].T_mount_cam, atol=1e-12) and c.mount == cams[0].mount
+        assert np.allclose(c.K, cams[0].K) and np.allclose(
+            t.T_link_target, plates[0].T_link_target, atol=1e-12
+        )
+        assert t.spec == plates[0].target and t.link == plates[0].link
+
+
+def test_fisher_information_is_the_refinements_cramer_rao_bound(ur5e):
+    *_, scene = ur5e
+    t = np.arange(len(POSES), dtype=float)
+    configs = np.asarray(random_configurations(jax.random.key(0), 200, 6))
+    ev = evaluate_views(scene, POSES, t, configs, sweeps=False, sigma_px=0.05)
+    problem = corner_problem(scene, jnp.asarray(POSES), jnp.asarray(t))
+    d = design(scene, False)
+    free, _ = identifiable_mask(problem, zero_params(6, 1), jnp.asarray(d.candidates), tol=d.tol)
+    assert np.array_equal(np.asarray(free), ev.free) and ev.free.sum() == 36
+    oracle = np.asarray(fisher_std(problem, zero_params(6, 1), np.asarray(free), 0.05))
+    assert np.allclose(ev.std, oracle, rtol=1e-6, atol=1e-15)
+    # The same EE figure through the planner's objective (Cholesky, Jacobi-scaled, no SVD).
+    idx = np.flatnonzero(ev.free)
+    M = ee_gram(ee_jacobians(scene, jnp.asarray(configs)), idx, d.layout.size)
+    ms = ee_mean_square(free_jacobian(problem, idx), M, 0.05)
+    assert np.isclose(np.sqrt(float(ms)), ev.ee_rms, rtol=1e-4)  # the ridge of 1e-9
+    # Held parameters here are exact reparametrisations: no EE effect left.
+    assert len(ev.held) == 24 and ev.unidentifiable == [] and max(ev.held_effect.values()) < 1e-12
+    lo, hi = ev.ratio_interval
+    assert 0.2 < lo < 1.0 < hi < 2.5 and ev.effective_dof >= 1.0
+
+
+def test_the_objective_gradient_matches_finite_differences(ur5e):
+    *_, scene = ur5e
+    configs = random_configurations(jax.random.key(0), 100, 6)
+    q = jnp.asarray(POSES)
+    t = jnp.arange(len(POSES), dtype=float)
+    idx = np.flatnonzero(evaluate_views(scene, POSES, np.asarray(t), np.asarray(configs), sweeps=False).free)
+    M = ee_gram(ee_jacobians(scene, configs), idx, design(scene, False).layout.size)
+
+    def f(q):
+        return jnp.log(ee_mean_square(free_jacobian(corner_problem(scene, q, t), idx), M, 0.05))
+
+    g = jax.grad(f)(q)
+    h = 1e-6
+    for v, j in ((0, 1), (3, 4), (7, 5), (11, 2)):
+        e = jnp.zeros_like(q).at[v, j].set(h)
+        fd = (f(q + e) - f(q - e)) / (2 * h)
+        assert np.isclose(float(g[v, j]), float(fd), rtol=1e-4, atol=1e-7)
+
+
+def test_feasibility_names_the_failing_check_and_corrects_toward_the_taught_pose(ur5e):
+    robot, _, _, scene = ur5e
+    lim = FeasibilityLimits()
+    bad = np.array(
+        [
+            [0.0, 0.0, 0.0, 0.0, 0.0, 7.0],  # beyond the URDF limit of 2 pi
+            [0.0, 0.0, 0.0, 0.0, np.radians(80), 0.0],  # the plate turned away: 80 deg view angle
+            [0.0, np.radians(-60), 0.0, 0.0, 0.0, 0.0],  # the plate lifted out of the image
+            [0.0, np.radians(90), 0.0, 0.0, 0.0, 0.0],  # the arm through the floor
+        ]
+    )
+    m = np.asarray(all_margins(scene, lim, jnp.asarray(bad)))
+    first = [CHECKS[int(np.argmax(row <= 0))] for row in m]
+    assert first[:3] == ["joint_limits", "view_angle", "in_image"] and first[3] == "scene_collision"
+    q, frac, why = correct_toward(scene, lim, np.zeros(6), bad)
+    assert why == first
+    assert np.all((frac > 0) & (frac < 1))  # each moved part of the way back, then passed
+    assert np.all(np.asarray(all_margins(scene, lim, jnp.asarray(q))) > 0)
+    assert np.allclose(q, frac[:, None] * bad)  # along the line to the taught pose (zero)
+    fixed, _, _ = correct_toward(scene, lim, np.zeros(6), POSES)
+    again, frac_ok, why_ok = correct_toward(
+        scene, lim, np.zeros(6), fixed
+    )  # feasible frames stay as they are
+    assert np.all(frac_ok == 1.0) and why_ok == [None] * len(POSES) and np.array_equal(again, fixed)
+
+
+def test_capsules_are_conservative_against_mujoco_contacts(ur5e):
+    from jaxcal.sim.plan import MujocoChecker
+
+    robot, _, _, scene = ur5e
+    q = np.asarray(jax.random.uniform(jax.random.key(3), (300, 6), minval=-np.pi, maxval=np.pi))
+    m = np.asarray(all_margins(scene, FeasibilityLimits(clearance=0.0), jnp.asarray(q)))
+    jax_hits = (m[:, CHECKS.index("self_collision")] <= 0) | (m[:, CHECKS.index("scene_collision")] <= 0)
+    mj_hits = np.array([r is not None for r in MujocoChecker(_plan(ur5e))(q, path=True)])
+    assert mj_hits.sum() > 50  # the sample does collide
+    assert not np.any(mj_hits & ~jax_hits)  # whatever MuJoCo finds, the capsules found
+    assert (jax_hits & ~mj_hits).mean() < 0.1  # and not much more
+
+
+def test_greedy_selection_matches_brute_force_for_two_frames(ur5e):
+    *_, scene = ur5e
+    ev = evaluate_views(scene, POSES, np.arange(12.0), np.zeros((1, 6)), sweeps=False)
+    idx = np.flatnonzero(ev.free)[:10]  # a few parameters: two frames identify them
+    B = np.asarray(view_blocks(scene, jnp.asarray(POSES[:6]), idx))
+    s = np.sqrt(np.einsum("mrf,mrf->f", B, B) / len(B))
+    Bs = B / s
+    prior = 1e-6 * B.shape[1] * np.eye(len(idx))
+    first = max(range(6), key=lambda v: np.linalg.slogdet(prior + Bs[v].T @ Bs[v])[1])
+    sel = np.asarray(greedy_d_optimal(jnp.asarray(B), 2))
+    assert sel[0] == first
+    second = max((v for v in range(6) if v != first),
+                 key=lambda v: np.linalg.slogdet(prior + Bs[first].T @ Bs[first] + Bs[v].T @ Bs[v])[1])  # fmt: skip
+    assert sel[1] == second
+    best_pair = max(combinations(range(6), 2),
+                    key=lambda p: np.linalg.slogdet(prior + sum(Bs[v].T @ Bs[v] for v in p))[1])  # fmt: skip
+    assert set(sel) == set(best_pair)
+
+
+def test_plan_files_round_trip_and_refuse_unknown_fields_and_wrong_types(ur5e, tmp_path):
+    p = _plan(ur5e)
+    path = save_plan(p, tmp_path / "plan.json")
+    back = load_plan(path)
+    assert plan_to_dict(back) == plan_to_dict(p)
+    q, t, seg = back.views()
+    assert np.array_equal(q, POSES) and np.all(np.diff(t) > 0) and np.all(seg == 0)
+    d = plan_to_dict(p)
+    d["segments"][0]["pose"] = d["segments"][0]["poses"][0]
+    with pytest.raises(PlanFileError, match=r"segments\[0\]: unknown field 'pose'"):
+        plan_from_dict(d)
+    d = plan_to_dict(p)
+    d["camera"]["width"] = "wide"
+    with pytest.raises(Exception, match=r"camera.width: expected an integer"):
+        plan_from_dict(d)
+    d = plan_to_dict(p)
+    d["segments"][0]["poses"][3] = [0.0] * 5
+    (tmp_path / "bad.json").write_text(json.dumps(d))
+    with pytest.raises(PlanFileError, match=r"bad.json: segments\[0\].poses"):
+        load_plan(tmp_path / "bad.json")
+
+
+def test_sweep_plans_film_what_the_simulator_films():
+    from jaxcal.sim.motion import joint_sweeps
+
+    p = sweep_plan("ur5e", frames_per_joint=10, range_deg=60.0)
+    q, t, seg = p.views()
+    m = p.motion()
+    traj = joint_sweeps(p.joints, 60.0, sweep_s=10 / 30.0)
+    assert [s[0] for s in m.segments] == list(p.joints) and len(q) == 60
+    for k in range(6):  # the same configurations at the same place in each sweep
+        a = q[seg == k]
+        s0 = traj.segments[k]
+        b = traj(s0.start + (s0.end - s0.start) / 10 * (np.arange(10) + 0.5))
+        assert np.allclose(a, b, atol=1e-12)
+
+
+def test_bad_input_is_refused_with_exit_code_2_and_nothing_written(ur5e, tmp_path, capsys):
+    out = tmp_path / "plan.json"
+    assert main(["plan", "--frames", "1", "--out", str(out), "--no-mujoco"]) == 2
+    assert "too few to identify anything" in capsys.readouterr().err and not out.exists()
+    assert main(["plan", "--region", "3,3,3,4,4,4", "--frames", "24", "--out", str(out), "--no-mujoco"]) == 2
+    assert "give a region the arm can reach" in capsys.readouterr().err and not out.exists()
+    bad = plan_to_dict(_plan(ur5e))
+    bad["segments"][0]["speed_rad"] = 1.0
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    assert main(["plan", "--evaluate", str(tmp_path / "bad.json"), "--json", str(out)]) == 2
+    assert "unknown field 'speed_rad'" in capsys.readouterr().err and not out.exists()
+    robot, camera, target, _ = ur5e
+    away = camera.T_mount_cam.copy()
+    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turned round: looks away from the arm
+    blind = type(camera)(camera.name, camera.width, camera.height, camera.K, camera.distortion, "world", away)
+    with pytest.raises(CameraViewError, match="taught pose"):
+        jaxcal.plan("ur5e", camera=blind, target=target, frames=24)
+    with pytest.raises(BudgetTooSmallError):
+        jaxcal.plan("ur5e", frames=2)
+    with pytest.raises(UnreachableRegionError):
+        jaxcal.evaluate_plan(_plan(ur5e), region=([2.0, 2.0, 2.0], [3.0, 3.0, 3.0]))
+
+
+@pytest.mark.slow
+def test_an_eye_in_hand_plan_is_rendered_and_calibrated(tmp_path):
+    """Pose-based eye-in-hand (item 2): planned, rendered, calibrated from the nominal robot."""
+    from jaxcal.sim.plan import MujocoChecker, render_plan
+
+    res = jaxcal.plan("ur5e", eye_in_hand=True, frames=40, steps=10, candidates=300, resolution=(640, 480),
+                      checker_factory=MujocoChecker)  # fmt: skip
+    p = res.plan
+    assert p.eye_in_hand and p.frames >= 38 and res.evaluation.unidentifiable == []
+    ds = render_plan(p, tmp_path / "ds", seed=2, progress=False)
+    meta = json.loads((ds / "metadata.json").read_text())
+    assert meta["x_plan"] == "plan.json" and plan_to_dict(load_plan(ds / "plan.json")) == plan_to_dict(p)
+    assert all(m["joint"] is None and m["x_plan_kind"] == "poses" for m in meta["motion"])
+    r = jaxcal.calibrate(ds, progress=False, workers=1)
+    v = r.validation
+    assert r.kind.eye_in_hand and not r.kind.has_arcs and r.status == "ok"
+    assert r.frames["target_found"] >= 0.95 * r.frames["images"]
+    predicted = 1e3 * res.evaluation.ee_rms
+    assert v["ee_rms_mm_before"] > 3.0 and v["ee_rms_mm_after"] < 3.0 * predicted
