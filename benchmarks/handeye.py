@@ -335,7 +335,7 @@ DISTORTION = (-0.08, 0.05, 0.0005, -0.0003, 0.0)
 
 
 def captures_part(captures: int, frames: int, seed: int) -> dict:
-    from jaxcal.cli import SIM_TARGETS
+    from jaxcal.cli._handeye import SIM_TARGETS
     from jaxcal.markers import TargetSpec
     from jaxcal.sim.handeye import HandEyeSimConfig, simulate_hand_eye  # MuJoCo: imported when needed
 

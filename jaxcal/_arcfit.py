@@ -49,7 +49,7 @@ from ._geometry import (
     matmul,
     so3_exp,
 )
-from ._robust import MIN_DOF, check_loss, robust_scale, round_plan, sample_weights
+from ._robust import MIN_DOF, check_loss, irls_rounds, robust_scale, round_plan, sample_weights
 from ._schur import block_covariance, block_least_squares, block_leverage
 
 _DEG = np.pi / 180.0
@@ -188,20 +188,11 @@ def fit_arc(
         e, h = _sample_stats(params, ref, data, free, mask_f)
         return sample_weights(e, h, mask, k=k, loss=loss, c=c, reject=reject_, hard=hard)[0]
 
-    def body(carry, hard):
-        params, steps, ok = carry
-        w = weights_at(params, hard)
-        new, result, n = solve(params, ref, data, free, w, rtol=rtol, atol=atol, max_steps=max_steps)
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new)]))
-        new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, params)
-        good = result == optx.RESULTS.successful
-        return (new, steps + n, ok & good), (w, result, n)
+    def solve_with(params, w):
+        return solve(params, ref, data, free, w, rtol=rtol, atol=atol, max_steps=max_steps)
 
-    (params, steps, ok), (ws, results, round_steps) = jax.lax.scan(
-        body, (params0, jnp.asarray(0), jnp.asarray(True)), jnp.asarray(hard_flags)
-    )
-    first_bad = jnp.argmax(results != optx.RESULTS.successful)
-    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
+    out = irls_rounds(solve_with, weights_at, params0, hard_flags)
+    params, steps, ok, result = out.value, out.num_steps, out.ok, out.result
     if throw:
         params = eqx.error_if(params, ~ok, "fit_arc: a Levenberg-Marquardt solve did not converge")
     params = jax.tree.map(lambda x, f: x * f, params, free)
@@ -213,9 +204,9 @@ def fit_arc(
         result,
         steps,
         scale_covariance,
-        weights=ws[-1],
-        round_results=results,
-        round_steps=round_steps,
+        weights=out.weights,
+        round_results=out.round_results,
+        round_steps=out.round_steps,
     )
 
 

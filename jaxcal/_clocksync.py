@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._arcdata import ArcData
 from ._arcmodel import arc_residuals, free_mask, initialise_arc
-from ._robust import check_loss, round_plan, sample_weights
+from ._robust import check_loss, irls_rounds, round_plan, sample_weights
 
 _MS = 1e-3
 
@@ -170,24 +170,14 @@ def fit_clock_offset(
 
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
-    def body(carry, hard):
-        y, steps, ok = carry
-        w = weights_at(y, hard)
+    def solve(y, w):
         sol = optx.least_squares(residuals, solver, y, w, max_steps=max_steps, throw=False)
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(sol.value)]))
-        y_new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), sol.value, y)
-        good = sol.result == optx.RESULTS.successful
-        return (y_new, steps + sol.stats["num_steps"], ok & good), (w, sol.result, sol.stats["num_steps"])
+        return sol.value, sol.result, sol.stats["num_steps"]
 
-    y0 = (params0, jnp.zeros(()))
-    (y, steps, ok), (ws, results, round_steps) = jax.lax.scan(
-        body, (y0, jnp.asarray(0), jnp.asarray(True)), jnp.asarray(hard_flags)
-    )
-    first_bad = jnp.argmax(results != optx.RESULTS.successful)
-    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
+    out = irls_rounds(solve, weights_at, (params0, jnp.zeros(())), hard_flags)
+    y, ok, w = out.value, out.ok, out.weights
     if throw:
         y = eqx.error_if(y, ~ok, "fit_clock_offset: a Levenberg-Marquardt solve did not converge")
-    w = ws[-1]
     J, cov = jacobian_and_cov(y, w)
     r = residuals(y, w)
     n = jnp.sum((J @ cov) * J)  # the parameters the data determine (trace of the hat matrix)
@@ -198,12 +188,12 @@ def fit_clock_offset(
     return ClockFit(
         offset_s=offset0_s + _MS * y[1],
         std_s=_MS * jnp.sqrt(jnp.maximum(var_ms, 0.0)),
-        result=result,
-        num_steps=steps,
+        result=out.result,
+        num_steps=out.num_steps,
         residual_rms=jnp.sqrt(jnp.sum(r**2) / jnp.maximum(n_obs, 1.0)),
         sample_residuals=jnp.where(mask, e, 0.0),
         weights=w,
         inlier=(w > 0) & mask,
-        round_results=results,
-        round_steps=round_steps,
+        round_results=out.round_results,
+        round_steps=out.round_steps,
     )

@@ -65,7 +65,7 @@ from ._reprojection import projected_corners as projected_corners
 from ._reprojection import reprojection_residuals as reprojection_residuals
 from ._reprojection import sweep_corner_data as sweep_corner_data
 from ._reprojection import target_poses as target_poses
-from ._robust import check_loss, loss_weights, robust_scale, round_plan
+from ._robust import Rounds, check_loss, irls_rounds, loss_weights, robust_scale, round_plan
 
 _MS = 1e-3
 #: Median of the norm of a 2-D standard normal vector (Rayleigh), $\\sqrt{2 \\ln 2}$.
@@ -270,10 +270,15 @@ def refine(
     # well conditioned, and lineax's default QR forms the thin Q, ~500 ms a
     # step for 3000 x 40 on a CPU against 0.2 ms for the Cholesky of J^T J.
     options = _lsq.LMOptions(rtol, atol, max_steps, normal_cholesky=True)
-    y, steps, ok, w, results, round_steps = _rounds(
-        fn, jnp.zeros_like(x0), mask, loss, rounds, c, reject, options
+    out = _rounds(fn, jnp.zeros_like(x0), mask, loss, rounds, c, reject, options)
+    y, steps, ok, w, result, round_steps = (
+        out.value,
+        out.num_steps,
+        out.ok,
+        out.weights,
+        out.result,
+        out.round_steps,
     )
-    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[-1], results))
     x = x0 + scale * y
     params = unravel(flat0.at[idx].set(x))
 
@@ -359,10 +364,10 @@ def _checked(problem: RefineProblem, params0: RefineParams, free, loss):
     return flat0, unravel, free, idx
 
 
-def _rounds(fn, y0, mask, loss, rounds, c, reject, options):
+def _rounds(fn, y0, mask, loss, rounds, c, reject, options) -> Rounds:
     """The robust solves, one `lax.scan`: `rounds` IRLS solves (weights from each
     solution's corner residual norms in robust sigmas), then with `reject` a
-    final solve on the inliers. `(y, steps, ok, last weights, results, steps per round)`."""
+    final solve on the inliers (`irls_rounds`)."""
     mask_f = mask.astype(y0.dtype)
     robust = loss is not None
     final_hard = robust and reject is not None
@@ -376,18 +381,11 @@ def _rounds(fn, y0, mask, loss, rounds, c, reject, options):
         inl = (e / s < (reject if reject is not None else jnp.inf)) if final_hard else jnp.ones_like(mask)
         return jnp.where(hard, inl.astype(e.dtype), soft) * mask_f
 
-    def body(carry, hard):
-        y, steps, ok = carry
-        w = weights_at(y, hard)
+    def solve(y, w):
         sol = _lsq.solve(fn, y, w, options)
-        good = sol.result == optx.RESULTS.successful
-        y_new = jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, y)
-        return (y_new, steps + sol.stats["num_steps"], ok & good), (w, sol.result, sol.stats["num_steps"])
+        return sol.value, sol.result, sol.stats["num_steps"]
 
-    (y, steps, ok), (ws, results, round_steps) = jax.lax.scan(
-        body, (y0, jnp.asarray(0), jnp.asarray(True)), hard_flags
-    )
-    return y, steps, ok, ws[-1], results, round_steps
+    return irls_rounds(solve, weights_at, y0, hard_flags)
 
 
 def fisher_std(

@@ -26,11 +26,15 @@ $\\sqrt{2 \\ln 2}$ for $\\nu = 2$). `reject = 3.7` then rejects a clean
 sample with probability $e^{-3.7^2/2} = 1.1 \\times 10^{-3}$ whatever $k$.
 """
 
+from collections.abc import Callable
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 from jax.scipy.special import gammainc, gammaincc, gammaln
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int, PyTree
 
 LOSSES = ("cauchy", "huber", None)
 #: Degrees of freedom are clipped to at least this (tiny problems, where a
@@ -140,3 +144,48 @@ def round_plan(loss: str | None, rounds: int, reject) -> np.ndarray:
     if rounds < 1:
         raise ValueError(f"rounds must be at least 1 with a robust loss, got {rounds}")
     return np.array([False] * rounds + ([True] if reject is not None else []))
+
+
+class Rounds(NamedTuple):
+    """What `irls_rounds` returns: the last round's `value`, every round's steps
+    summed (`num_steps`), whether every solve converged (`ok`), the last round's
+    `weights`, `result` (`successful`, else the first failing round's code),
+    and each round's `round_results` and `round_steps`."""
+
+    value: PyTree
+    num_steps: Int[Array, ""]
+    ok: Bool[Array, ""]
+    weights: PyTree
+    result: optx.RESULTS
+    round_results: optx.RESULTS
+    round_steps: Int[Array, " rounds"]
+
+
+def irls_rounds(
+    solve: Callable[[PyTree, PyTree], tuple[PyTree, optx.RESULTS, Int[Array, ""]]],
+    weights_at: Callable[[PyTree, Bool[Array, ""]], PyTree],
+    y0: PyTree,
+    hard_flags: np.ndarray,
+) -> Rounds:
+    """Iteratively reweighted least squares as one `lax.scan` (one compiled solver).
+
+    Round $i$ takes the weights `weights_at(y, hard_flags[i])` of the previous
+    solution `y` (soft IRLS weights, or with `hard` the 0/1 inlier weights; see
+    `round_plan`) and solves with them: `solve(y, w) -> (y_new, result, steps)`.
+    A round whose solution is not finite keeps the previous one.
+    """
+
+    def body(carry, hard):
+        y, steps, ok = carry
+        w = weights_at(y, hard)
+        new, result, n = solve(y, w)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new)]))
+        new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, y)
+        return (new, steps + n, ok & (result == optx.RESULTS.successful)), (w, result, n)
+
+    (y, steps, ok), (ws, results, round_steps) = jax.lax.scan(
+        body, (y0, jnp.asarray(0), jnp.asarray(True)), jnp.asarray(hard_flags)
+    )
+    first_bad = jnp.argmax(results != optx.RESULTS.successful)
+    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
+    return Rounds(y, steps, ok, jax.tree.map(lambda w: w[-1], ws), result, results, round_steps)

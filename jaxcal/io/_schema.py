@@ -9,7 +9,7 @@ in the words of `docs/dataset.md`, and nothing here can raise anything but
 
 import json
 import math
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
@@ -192,3 +192,13 @@ def names(x, loc: Loc, *, unique: bool = True) -> list[str]:
         dup = sorted({n for n in out if out.count(n) > 1})
         raise loc.fail(f"names must be distinct, {', '.join(map(repr, dup))} repeated")
     return out
+
+
+def relative_path(text: str, loc: Loc) -> str:
+    """A path relative to the dataset directory that stays inside it."""
+    if "\\" in text or "\x00" in text:
+        raise loc.expected("a relative path with '/' separators", text)
+    p = PurePosixPath(text)
+    if p.is_absolute() or PureWindowsPath(text).drive or ".." in p.parts or not p.parts:
+        raise loc.expected("a path relative to the dataset directory that stays inside it", text)
+    return text

@@ -406,13 +406,7 @@ def simulate(
                 rows["frame"].append(int(f))
                 rows["timestamp"].append(float(stamps[f]))
                 rows["file"].append(rel)
-                T_wc = T_world(cam.mount, f) @ cam.T_mount_cam
-                T_cw = np.linalg.inv(T_wc)
-                poses, visible = {}, {}
-                for plate in plates_true:
-                    T = T_cw @ T_world(plate.link, f) @ plate.T_link_target
-                    poses[plate.target.name] = T
-                    visible[plate.target.name] = _visible(plate.target, T, cam)
+                poses, visible = _seen_targets(cam, plates_true, lambda link: T_world(link, f))
                 truth_frames.append(
                     {
                         "row": len(rows["file"]) - 1,
@@ -443,6 +437,14 @@ def simulate(
             truth | {"dropped_frames": np.flatnonzero(~keep).tolist(), "frames": truth_frames},
         )
     return out
+
+
+def _seen_targets(cam, plates, T_world) -> tuple[dict, dict]:
+    """Each plate's true pose in camera `cam` and whether it is fully in view
+    (`T_world(link)`: the link's world pose in this frame)."""
+    T_cw = np.linalg.inv(T_world(cam.mount) @ cam.T_mount_cam)
+    poses = {p.target.name: T_cw @ T_world(p.link) @ p.T_link_target for p in plates}
+    return poses, {p.target.name: _visible(p.target, poses[p.target.name], cam) for p in plates}
 
 
 def _layouts(nominal, true, config: SimConfig, rng, layout=None):

@@ -1,0 +1,283 @@
+"""`jaxcal calibrate` and `jaxcal demo`: run the pipeline, print its tables, write its files."""
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from ..io._files import check_output_dir, marked_directory, output_lock
+from ..pipeline import calibrate
+from ..report import write_outputs
+from ..robots import load_robot
+from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, positive_int
+
+
+def _calibration_tables(console, result) -> None:
+    t = Table(title=f"Joint sweeps (camera {result.camera})")
+    for col in (
+        "joint",
+        "frames",
+        "pos RMS mm",
+        "rot RMS deg",
+        "ratio nominal",
+        "ratio est",
+        "std",
+        "solver",
+    ):
+        t.add_column(col, justify="right")
+    v = result.validation
+    if v is not None:
+        t.add_column("ratio true", justify="right")
+        t.add_column("axis err deg", justify="right")
+    for k, a in enumerate(result.arcs):
+        row = [
+            a["joint"],
+            str(a["frames"]),
+            f"{a['position_rms_mm']:.3f}",
+            f"{a['rotation_rms_deg']:.3f}",
+            f"{a['ratio_nominal']:.3f}",
+            "n/a" if a["ratio"] is None else f"{a['ratio']:.3f}",
+            "n/a" if a["ratio_std"] is None else f"{a['ratio_std']:.3f}",
+            f"{a['solver']['result']} ({a['solver']['steps']})",
+        ]
+        if v is not None:
+            e = v["parameter_errors"][a["joint"]]
+            row += [f"{v['true_ratios'][k]:.3f}", f"{e['axis_direction_deg']:.3f}"]
+        t.add_row(*row)
+    console.print(t)
+    T, sd = result.T_cam_base, result.std_cam
+    if result.eye_in_hand:
+        Tf = result.T_flange_target[0]
+        console.print(
+            f"eye-in-hand: T_flange_cam t = {np.round(Tf[:3, 3] * 1e3, 2).tolist()} mm; the board "
+            f"{result.board} relative to the base:"
+        )
+    console.print(
+        f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'}: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
+        f"(std {np.round(sd[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(sd[3:]), 4).tolist()} deg)"
+    )
+    errs = (v or {}).get("other_cameras", {})
+    for oc in result.other_cameras:
+        To, so = oc["T_cam_base"], oc["std_cam"]
+        line = (
+            f"T_cam_base of {oc['camera']} ({oc['views']} views): t = {np.round(To[:3, 3] * 1e3, 2).tolist()} mm "
+            f"(std {np.round(so[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(so[3:]), 4).tolist()} deg)"
+        )
+        if oc["camera"] in errs:
+            e = errs[oc["camera"]]
+            line += (
+                f"; pose relative to {result.camera} off the truth by {e['refined']['trans_mm']:.3f} mm, "
+                f"{e['refined']['rot_deg']:.4f} deg (PnP start {e['start']['trans_mm']:.3f} mm)"
+            )
+        console.print(line)
+    c = result.clock
+    console.print(
+        f"clock offset: {1e3 * c['offset_s']:.2f} ms"
+        + (f" (estimated, std {1e3 * c['std_s']:.2f} ms)" if c["estimated"] else " (from the metadata)")
+    )
+    console.print(
+        f"held at nominal (the camera cannot see them): {len(result.frozen)} parameters, see report.md"
+    )
+    if v is not None:
+        t = Table(title=f"Before / after, against the truth ({v['ee_point']}, 1000 random configurations)")
+        t.add_column("")
+        t.add_column("nominal model", justify="right")
+        refined = bool(v.get("refined"))
+        if refined:
+            t.add_column("two-stage", justify="right")
+        t.add_column("refined" if refined else "calibrated", justify="right")
+
+        def row(label, before, key):
+            cells = [label, before] + ([f"{v[key + '_two_stage']:.3f}"] if refined else [])
+            t.add_row(*cells, f"{v[key + '_after']:.3f}")
+
+        row("EE RMS mm", f"{v['ee_rms_mm_before']:.3f}", "ee_rms_mm")
+        row("EE max mm", f"{v['ee_max_mm_before']:.3f}", "ee_max_mm")
+        pad = [""] if refined else []
+        ce = v["T_cam_base_error"]
+        t.add_row(
+            f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'} error",
+            "",
+            *pad,
+            f"{ce['trans_mm']:.3f} mm, {ce['rot_deg']:.4f} deg",
+        )
+        ratio = [
+            abs(e["ratio_percent"]) for e in v["parameter_errors"].values() if e["ratio_percent"] is not None
+        ]
+        if ratio:
+            t.add_row("max ratio error %", "", *pad, f"{max(ratio):.4f}")
+        if v.get("clock_offset_error_ms") is not None and c["estimated"]:
+            t.add_row("clock offset error ms", "", *pad, f"{v['clock_offset_error_ms']:.3f}")
+        console.print(t)
+    r = result.refinement
+    if r is not None:
+        console.print(
+            f"refinement: {r['corners']} corners in {r['frames']} frames, {r['free_parameters']} parameters, "
+            f"inlier RMS {r['inlier_rms_px']:.3f} px (sigma {r['sigma_px']:.3f} px), "
+            f"{r['outlier_corners']} outlier corners, {r['solver']['result']} ({r['solver']['steps']} steps)"
+        )
+    for w in result.warnings:
+        console.print(f"[yellow]note:[/yellow] {w}")
+
+
+#: Exit codes of `jaxcal calibrate` / `demo` by result status (2: bad input, before any result).
+EXIT_CODES = {"ok": 0, "failed": 1, "suspect": 3}
+
+
+def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
+    t0 = time.perf_counter()
+    result = calibrate(
+        dataset,
+        camera=args.camera,
+        workers=args.workers,
+        progress=not args.quiet,
+        estimate_clock=True if args.estimate_clock else None,
+        trust_clock=args.trust_clock,
+        refine_intrinsics=args.refine_intrinsics,
+        refine=not args.no_refine,
+        other_cameras=not args.single_camera,
+        log=lambda text: console.print(f"[dim]{text}[/dim]"),
+    )
+    _calibration_tables(console, result)
+    code = EXIT_CODES[result.status]
+    for reason in result.reasons:
+        console.print(f"[red]{result.status}:[/red] {reason}")
+    if args.strict and code != 0:
+        console.print(f"[red]--strict: the calibration is {result.status}; nothing written[/red]")
+        return code
+    write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked)
+    console.print(
+        f"wrote {out}/: result.json, calibrated.urdf, "
+        + "".join(f"camera_{c}.yaml, " for c in [result.camera] + [c["camera"] for c in result.other_cameras])
+        + "report.md "
+        f"({time.perf_counter() - t0:.1f} s)"
+    )
+    if code:
+        console.print(
+            f"[red]calibration {result.status.upper()}: see the reasons above and result.json 'status'[/red]"
+        )
+    return code
+
+
+def cmd_calibrate(args) -> int:
+
+    out = Path(args.out)
+    # Before any work: --out may not hold or overlap the dataset, and --overwrite replaces
+    # only a result jaxcal wrote; the lock makes a second run on the same --out fail at once.
+    checked = check_output_dir(
+        out, inputs=[args.dataset], overwrite=args.overwrite, kind="result", what="--out"
+    )
+    with output_lock(out, what="--out"):
+        console = Console(width=max(Console().width, 132))
+        return _run_calibration(console, args.dataset, out, args, overwrite=args.overwrite, checked=checked)
+
+
+def cmd_demo(args) -> int:
+    if args.eye_in_hand and args.cameras != 1:
+        print(
+            "jaxcal: error: --eye-in-hand films with one camera (on the flange); drop --cameras",
+            file=sys.stderr,
+        )
+        return 2
+    if args.eye_in_hand and args.markers_on_links:
+        print("jaxcal: error: choose one of --eye-in-hand and --markers-on-links", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    # The demo directory (absent, empty or an earlier demo's) holds dataset/ and result/,
+    # each replaced atomically; anything else there is refused before any work.
+    with marked_directory(out, kind="demo", what="--out"):
+        return _demo(out, args)
+
+
+def _demo(out: Path, args) -> int:
+    from ..sim.simulate import SimConfig, simulate
+
+    console = Console(width=max(Console().width, 132))
+    console.rule("[bold]jaxcal demo: a perturbed UR5e, rendered, calibrated from its images")
+    sweep = (
+        args.sweep_deg if args.sweep_deg is not None else (EYE_IN_HAND_SWEEP if args.eye_in_hand else 80.0)
+    )
+    config = SimConfig(
+        robot="ur5e",
+        seed=args.seed,
+        resolution=args.resolution,
+        frames_per_joint=args.frames_per_joint,
+        range_deg=sweep,
+        clock_offset_ms=40.0,
+        clock_known=False,
+        cameras=args.cameras,
+        eye_in_hand=args.eye_in_hand,
+        camera_distance=EYE_IN_HAND_BOARD_M if args.eye_in_hand else 0.9,
+        markers_on_links=args.markers_on_links,
+    )
+    trajectory = None
+    what = f"{args.frames_per_joint} frames per {fmt_degrees(sweep)}-degree sweep" + (
+        "" if np.ndim(sweep) == 0 else "s"
+    )
+    if args.markers_on_links:
+        from ..sim.motion import random_motion
+
+        names = load_robot("ur5e").joint_names
+        seconds = args.frames_per_joint * len(names) / config.fps
+        trajectory = random_motion(names, seconds, LINKS_AMPLITUDE_DEG, seed=args.seed)
+        what = (
+            f"every joint at once, +-{LINKS_AMPLITUDE_DEG:g} deg, {seconds:g} s at {config.fps:g} fps, "
+            "a plate on every link"
+        )
+    t0 = time.perf_counter()
+    dataset = simulate(
+        config, out / "dataset", trajectory=trajectory, overwrite=True, progress=not args.quiet
+    )
+    console.print(
+        f"rendered {dataset} ({args.resolution[0]}x{args.resolution[1]}, {what}, "
+        + ("camera on the flange, board in the world, " if args.eye_in_hand else "")
+        + f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
+    )
+    return _run_calibration(console, dataset, out / "result", args, overwrite=True)
+
+
+def add_calibrate_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--camera", help="fixed camera of the two-stage fit (default: the first)")
+    p.add_argument(
+        "--single-camera",
+        action="store_true",
+        help="refine with --camera's images only (by default every fixed camera joins the refinement, "
+        "each with its own T_cam_base)",
+    )
+    p.add_argument(
+        "--workers", type=positive_int, help="processes for marker detection, >= 1 (default: all cores)"
+    )
+    p.add_argument(
+        "--estimate-clock",
+        action="store_true",
+        help="estimate the clock offset (the default whenever there is an encoder log)",
+    )
+    p.add_argument(
+        "--trust-clock",
+        action="store_true",
+        help="use metadata.json's clock offset as it is (by default it is checked against the estimate, "
+        "which is used)",
+    )
+    p.add_argument(
+        "--refine-intrinsics",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="free the camera's intrinsics in the refinement (default: when metadata.json has no K and "
+        "they are self-calibrated from the sweep images)",
+    )
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="write nothing and exit 3 (1 if a solver failed) when a plausibility check fails",
+    )
+    p.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="stop at the two-stage result (arc + axis fits); by default every corner's reprojection "
+        "error is then minimised over all parameters",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -1,0 +1,196 @@
+"""`jaxcal handeye` and `jaxcal simulate-handeye`."""
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from .._handeye_capture import calibrate_hand_eye_capture
+from ..io._files import check_output_dir, output_lock
+from ..io.handeye_results import static_transform_args, write_hand_eye_outputs
+from ..markers import TargetSpec
+from ._common import resolution
+
+# --------------------------------------------------------------------------- hand-eye
+
+#: Targets `jaxcal simulate-handeye --target` renders (sizes for 640x480 at about 0.5 m).
+SIM_TARGETS = {
+    "chessboard": dict(kind="chessboard", squares=(8, 7), square_length=0.025, margin=0.02),
+    "circles": dict(kind="circles", squares=(7, 6), square_length=0.03, marker_length=0.015, margin=0.02),
+    "acircles": dict(kind="acircles", squares=(4, 11), square_length=0.02, marker_length=0.013, margin=0.02),
+    "charuco": dict(kind="charuco", squares=(7, 5), square_length=0.03, marker_length=0.022, margin=0.02),
+    "aruco_grid": dict(
+        kind="aruco_grid", squares=(4, 3), square_length=0.05, marker_length=0.04, margin=0.02
+    ),
+    "apriltag": dict(
+        kind="aruco_grid",
+        dictionary="DICT_APRILTAG_36h11",
+        squares=(4, 3),
+        square_length=0.05,
+        marker_length=0.04,
+        margin=0.02,
+    ),
+}
+
+
+def cmd_handeye(args) -> int:
+    """`jaxcal handeye CAPTURE --out DIR`: exit 0 (ok), 3 (suspect, see result.json), 2 (refused input)."""
+
+    out = Path(args.out)
+    checked = check_output_dir(
+        out, inputs=[args.capture], overwrite=args.overwrite, kind="result", what="--out"
+    )
+    with output_lock(out, what="--out"):
+        return _handeye(args, out, checked)
+
+
+def _handeye(args, out: Path, checked) -> int:
+    console = Console(width=max(Console().width, 120))
+    robot = (
+        None
+        if args.robot_sigma_mm is None
+        else (1e-3 * args.robot_sigma_mm, np.radians(args.robot_sigma_deg))
+    )
+    t0 = time.perf_counter()
+    run = calibrate_hand_eye_capture(
+        args.capture,
+        robot_sigma_translation=None if robot is None else robot[0],
+        robot_sigma_rotation=None if robot is None else robot[1],
+        sigma_px=args.sigma_px,
+        folds=args.folds,
+        max_steps=args.max_steps,
+        workers=args.workers,
+        progress=not args.quiet,
+        log=lambda text: console.print(f"[dim]{text}[/dim]"),
+    )
+    write_hand_eye_outputs(run, out, overwrite=args.overwrite, checked=checked)
+    r = run.result
+    cap = run.capture
+    what = "T_ee_cam (camera on the flange)" if cap.eye_in_hand else "T_base_cam (fixed camera)"
+    for c, cam in enumerate(cap.cameras):
+        T, sd = np.asarray(r.T_robot_cam[c]), np.asarray(r.std_robot_cam[c])
+        console.print(
+            f"camera {cam.name}: {what} t = {np.round(1e3 * T[:3, 3], 2).tolist()} mm, "
+            f"std {1e3 * np.linalg.norm(sd[:3]):.3f} mm / {np.degrees(np.linalg.norm(sd[3:])):.4f} deg"
+            + (
+                f", {run.kfold.folds}-fold spread {1e3 * np.linalg.norm(run.kfold.std_robot_cam[c, :3]):.3f} mm / "
+                f"{np.degrees(np.linalg.norm(run.kfold.std_robot_cam[c, 3:])):.4f} deg"
+                if run.kfold is not None
+                else ""
+            )
+        )
+        console.print(
+            f"  ros2 run tf2_ros static_transform_publisher {static_transform_args(run, c)['ros2']}"
+        )
+        if run.truth_error is not None:
+            console.print(
+                f"  against the truth: {1e3 * run.truth_error[c, 0]:.3f} mm, {np.degrees(run.truth_error[c, 1]):.4f} deg"
+            )
+    console.print(
+        f"reprojection RMS {float(r.pixel_rms):.3f} px (detector {run.observations.sigma_px:.3f} px), "
+        f"{len(run.rejected)} frame(s) rejected of {run.frames}"
+    )
+    for f, why in sorted(run.rejected.items()):
+        console.print(f"  rejected frame {cap.frames[f]}: {why}")
+    for note in run.verdict.notes:
+        console.print(f"[yellow]note:[/yellow] {note}")
+    for reason in run.verdict.reasons:
+        console.print(f"[red]suspect:[/red] {reason}")
+    console.print(
+        f"status [bold]{run.verdict.status}[/bold]; wrote {out}/ (result.json, camera_*.yaml, ros_*.launch.yaml, "
+        f"easy_handeye_*.yaml, report.md) in {time.perf_counter() - t0:.1f} s"
+    )
+    return run.exit_code
+
+
+def cmd_simulate_handeye(args) -> int:
+    from ..sim.handeye import HandEyeSimConfig, simulate_hand_eye
+
+    fields = dict(SIM_TARGETS[args.target])
+    if args.dictionary is not None:
+        fields["dictionary"] = args.dictionary
+    config = HandEyeSimConfig(
+        target=TargetSpec(name="target", **fields),
+        eye_in_hand=args.arrangement == "eye-in-hand",
+        frames=args.frames,
+        seed=args.seed,
+        resolution=args.resolution,
+        distortion=tuple(args.distortion),
+        distance=args.distance,
+        pose_format=args.pose_format,
+        translation_unit=args.translation_unit,
+        rotation_unit=args.rotation_unit,
+        robot_error_fraction=args.robot_error_fraction,
+        robot_error_deg=args.robot_error_deg,
+        robot_error_mm=args.robot_error_mm,
+        intrinsics_known=not args.unknown_intrinsics,
+    )
+    start = time.perf_counter()
+    try:
+        out = simulate_hand_eye(config, args.out, overwrite=args.overwrite)
+    except FileExistsError as e:
+        print(f"jaxcal: error: {e}", file=sys.stderr)
+        return 2
+    print(
+        f"wrote {out}: {args.frames} frames, {args.target}, {args.arrangement} "
+        f"({time.perf_counter() - start:.1f} s)"
+    )
+    return 0
+
+
+def add_handeye_parsers(sub) -> None:
+    p = sub.add_parser(
+        "handeye",
+        help="hand-eye calibration from a capture: images and robot poses (docs/handeye.md)",
+        description="Hand-eye calibration of a capture (docs/handeye.md). Exit codes: 0 ok; 3 the result is "
+        "suspect (reasons in result.json and on screen); 2 the input was refused (bad capture, robot poses "
+        "that do not match the images, too little motion); 1 an unexpected failure.",
+    )
+    p.add_argument("capture", help="capture directory (handeye.json, poses.csv, images/)")
+    p.add_argument("--out", required=True, help="result directory (must be empty or absent)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
+    p.add_argument("--sigma-px", type=float, help="detector noise, px (default: estimated from per-view PnP)")
+    p.add_argument(
+        "--robot-sigma-mm",
+        type=float,
+        help="robot pose noise, mm: each pose gets a correction with this prior",
+    )
+    p.add_argument(
+        "--robot-sigma-deg", type=float, default=0.05, help="robot pose noise, deg (with --robot-sigma-mm)"
+    )
+    p.add_argument("--folds", type=int, default=10, help="k of the k-fold spread (0: skip)")
+    p.add_argument("--max-steps", type=int, default=200, help="Levenberg-Marquardt steps per stage")
+    p.add_argument("--workers", type=int, default=1, help="threads for marker detection")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_handeye)
+    p = sub.add_parser(
+        "simulate-handeye", help="render a hand-eye capture (MuJoCo): a target, a camera, random wrist poses"
+    )
+    p.add_argument("--out", required=True, help="capture directory (must be empty or absent)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
+    p.add_argument("--target", choices=tuple(SIM_TARGETS), default="chessboard")
+    p.add_argument(
+        "--dictionary", help="ArUco/AprilTag dictionary of a marker target (e.g. DICT_APRILTAG_36h11)"
+    )
+    p.add_argument("--arrangement", choices=("eye-in-hand", "eye-to-hand"), default="eye-in-hand")
+    p.add_argument("--frames", type=int, default=16)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resolution", type=resolution, default=(640, 480), help="WxH pixels")
+    p.add_argument("--distance", type=float, default=0.5, help="camera to target, m")
+    p.add_argument(
+        "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
+    )
+    p.add_argument(
+        "--pose-format", choices=("matrix", "xyz_quat", "xyz_rpy", "xyz_rotvec"), default="xyz_quat"
+    )
+    p.add_argument("--translation-unit", choices=("m", "mm"), default="m")
+    p.add_argument("--rotation-unit", choices=("rad", "deg"), default="rad")
+    p.add_argument(
+        "--robot-error-fraction", type=float, default=0.0, help="share of robot poses recorded wrong"
+    )
+    p.add_argument("--robot-error-deg", type=float, default=2.0)
+    p.add_argument("--robot-error-mm", type=float, default=5.0)
+    p.add_argument("--unknown-intrinsics", action="store_true", help="write K = null (self-calibrated)")
+    p.set_defaults(func=cmd_simulate_handeye)

@@ -1,0 +1,298 @@
+"""Reading `metadata.json`: the robot, cameras, targets, encoders, clock and motion fields (`docs/dataset.md`)."""
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError
+from ..markers import KINDS as TARGET_KINDS
+from ..markers import TargetSpec
+from . import _encoders as enc
+from . import _schema as sc
+from ._files import atomic_directory as atomic_directory
+from ._images import MAX_PIXELS
+from ._schema import Loc
+from .urdf import urdf_outline
+
+#: Camera names become file names (`camera_<name>.yaml`).
+CAMERA_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+#: Largest image side (pixels).
+MAX_SIDE = 65535
+#: |clock.drift_ppm| bound (0.1 %: ten times a poor crystal).
+MAX_DRIFT_PPM = 1000.0
+#: `encoders.quantity` values: what the log holds.
+QUANTITIES = ("motor_angle",)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraInfo:
+    """A camera of the dataset. `K` is `None` when the intrinsics are unknown
+    (the front end then self-calibrates). `mount`: `"world"` or a link name."""
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray | None
+    dist: np.ndarray
+    mount: str = "world"
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "width": self.width,
+            "height": self.height,
+            "K": None if self.K is None else np.asarray(self.K).tolist(),
+            "distortion": np.asarray(self.dist).tolist(),
+            "mount": self.mount,
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class TargetInfo:
+    """A marker plate: what is printed (`spec`), the link it rides on (`"world"`
+    when fixed in the scene) and, when known from design, its nominal mount."""
+
+    spec: TargetSpec
+    link: str
+    T_link_target: np.ndarray | None = None
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def to_dict(self) -> dict:
+        d = self.spec.to_dict()
+        d["link"] = self.link
+        d["T_link_target_nominal"] = (
+            None if self.T_link_target is None else np.asarray(self.T_link_target).tolist()
+        )
+        return d
+
+
+# --------------------------------------------------------------------------- reading: metadata.json
+
+
+def read_robot(meta: dict, loc: Loc, root: Path):
+    """`robot`: the URDF path, base and flange links, the joints, and their limits."""
+    robot = sc.obj(meta["robot"], loc, required=("urdf", "joints"), optional=("base_link", "flange_link"))
+    rel = sc.relative_path(sc.string(robot["urdf"], loc.key("urdf")), loc.key("urdf"))
+    urdf = root / rel
+    if not urdf.is_file():
+        raise DatasetError(f"{urdf}: robot file missing (named by {loc.key('urdf')})")
+    joints = sc.names(robot["joints"], loc.key("joints"))
+    try:
+        outline = urdf_outline(urdf)
+    except (OSError, ValueError) as e:
+        raise DatasetError(f"{urdf}: cannot read the robot model: {e}") from None
+    movable = {j: kind for j, kind, _ in outline.parent_joint.values()}
+    for i, name in enumerate(joints):
+        if name not in movable:
+            raise (
+                loc.key("joints")
+                .index(i)
+                .fail(
+                    f"{name!r} is not a joint of {urdf.name} (its movable joints: "
+                    f"{sorted(j for j, k in movable.items() if k != 'fixed')})"
+                )
+            )
+        if movable[name] not in ("revolute", "continuous", "prismatic"):
+            raise (
+                loc.key("joints")
+                .index(i)
+                .fail(
+                    f"joint {name!r} is {movable[name]} in {urdf.name}; expected revolute, continuous or prismatic"
+                )
+            )
+    links = {}
+    for key in ("base_link", "flange_link"):
+        v = robot.get(key)
+        if v is not None and sc.string(v, loc.key(key)) not in outline.links:
+            raise loc.key(key).fail(f"{v!r} is not a link of {urdf.name} (links: {sorted(outline.links)})")
+        links[key] = v
+    if links["flange_link"] is not None:
+        chain, link, seen = [], links["flange_link"], set()
+        while link != links["base_link"] and link in outline.parent_joint and link not in seen:
+            seen.add(link)
+            name, kind, link = outline.parent_joint[link]
+            if kind != "fixed":
+                chain.append(name)
+        if links["base_link"] is not None and link != links["base_link"]:
+            raise loc.key("flange_link").fail(
+                f"{links['flange_link']!r} is not below base_link {links['base_link']!r} in {urdf.name}"
+            )
+        if chain[::-1] != joints:
+            raise loc.key("joints").fail(
+                f"{joints} differ from the movable joints from base to flange in {urdf.name}: {chain[::-1]}"
+            )
+    try:
+        limits = urdf_outline(urdf, joints).limits
+    except ValueError as e:
+        raise DatasetError(f"{urdf}: cannot read the robot model: {e}") from None
+    return urdf, links["base_link"], links["flange_link"], tuple(joints), limits, outline.links
+
+
+def _intrinsics(x, loc: Loc, width: int, height: int) -> np.ndarray:
+    K = sc.array(x, loc, (3, 3))
+    fx, fy = K[0, 0], K[1, 1]
+    if not (fx > 0 and fy > 0):
+        raise loc.fail(f"focal lengths K[0][0], K[1][1] must be positive, got fx = {fx:g}, fy = {fy:g}")
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0:
+        raise loc.fail(
+            f"the entries below the diagonal must be 0, got {[float(K[1, 0]), float(K[2, 0]), float(K[2, 1])]}"
+        )
+    if K[2, 2] != 1:
+        raise loc.fail(f"bottom row must be [0, 0, 1], got {K[2].tolist()}")
+    cx, cy = K[0, 2], K[1, 2]
+    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+        raise loc.fail(
+            f"principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image "
+            "(pixel centres run from 0 to width - 1)"
+        )
+    return K
+
+
+def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
+    cams = meta["cameras"]
+    if not isinstance(cams, list) or not cams:
+        raise loc.expected("a non-empty list of cameras", cams)
+    out = []
+    for i, c in enumerate(cams):
+        w = loc.index(i)
+        sc.obj(c, w, required=("name", "width", "height"), optional=("K", "distortion", "mount"))
+        name = sc.string(c["name"], w.key("name"))
+        if not CAMERA_NAME.fullmatch(name):
+            raise w.key("name").expected("letters, digits, '_', '.' or '-' (it names output files)", name)
+        width = sc.integer(c["width"], w.key("width"), 1, MAX_SIDE)
+        height = sc.integer(c["height"], w.key("height"), 1, MAX_SIDE)
+        if width * height > MAX_PIXELS:
+            raise w.fail(
+                f"{width}x{height} pixels is more than the {MAX_PIXELS / 1e6:.0f} megapixels jaxcal reads"
+            )
+        K = c.get("K")
+        K = None if K is None else _intrinsics(K, w.key("K"), width, height)
+        dist = c.get("distortion", [0.0] * 5)
+        if not isinstance(dist, list) or len(dist) not in (4, 5, 8, 12, 14):
+            raise w.key("distortion").expected("a list of 4, 5, 8, 12 or 14 OpenCV coefficients", dist)
+        dist = sc.array(dist, w.key("distortion"), (None,))
+        mount = sc.string(c.get("mount", "world"), w.key("mount"))
+        if mount != "world" and mount not in links:
+            raise w.key("mount").fail(f"{mount!r} is neither 'world' nor a link of the robot")
+        out.append(CameraInfo(name, width, height, K, dist, mount))
+    names = [c.name for c in out]
+    if len(set(names)) != len(names):
+        raise loc.fail(f"camera names are not unique: {names}")
+    return tuple(out)
+
+
+def read_targets(meta: dict, loc: Loc, links) -> tuple[TargetInfo, ...]:
+    targets = meta["targets"]
+    if not isinstance(targets, list) or not targets:
+        raise loc.expected("a non-empty list of targets", targets)
+    out = []
+    for i, t in enumerate(targets):
+        w = loc.index(i)
+        if not isinstance(t, dict):
+            raise w.expected("a JSON object", t)
+        kind = sc.string(t.get("kind", "charuco"), w.key("kind"), choices=TARGET_KINDS)
+        shape = ("squares", "square_length") if kind == "charuco" else ()
+        sc.obj(
+            t,
+            w,
+            required=("name", "dictionary", "marker_length", "link", *shape),
+            optional=("kind", "first_id", "margin", "T_link_target_nominal")
+            + (() if kind == "charuco" else ("squares", "square_length")),
+        )
+        spec = {
+            "name": sc.string(t["name"], w.key("name")),
+            "kind": kind,
+            "dictionary": sc.string(t["dictionary"], w.key("dictionary")),
+            "marker_length": sc.number(t["marker_length"], w.key("marker_length"), hi=10.0, above=0.0),
+            "first_id": sc.integer(t.get("first_id", 0), w.key("first_id"), 0, 100000),
+            "margin": sc.number(t.get("margin", 0.01), w.key("margin"), 0.0, 10.0),
+        }
+        if kind == "charuco":
+            sq = t["squares"]
+            if not isinstance(sq, list) or len(sq) != 2:
+                raise w.key("squares").expected("[columns, rows]", sq)
+            spec["squares"] = tuple(
+                sc.integer(v, w.key("squares").index(k), 2, 100) for k, v in enumerate(sq)
+            )
+            spec["square_length"] = sc.number(t["square_length"], w.key("square_length"), hi=10.0, above=0.0)
+        link = sc.string(t["link"], w.key("link"))
+        if link != "world" and link not in links:
+            raise w.key("link").fail(f"{link!r} is neither 'world' nor a link of the robot")
+        T = t.get("T_link_target_nominal")
+        T = None if T is None else sc.pose(T, w.key("T_link_target_nominal"))
+        try:
+            target = TargetSpec(**spec)
+        except ValueError as e:
+            raise w.fail(str(e)) from None
+        out.append(TargetInfo(target, link, T))
+    names = [t.name for t in out]
+    if len(set(names)) != len(names):
+        raise loc.fail(f"target names are not unique: {names}")
+    return tuple(out)
+
+
+def read_encoder_meta(meta: dict, loc: Loc) -> dict | None:
+    e = meta.get("encoders")
+    if e is None:
+        return None
+    sc.obj(e, loc, optional=("file", "quantity", "unit", "rate_hz", "counts_per_rev"))
+    out = {
+        "file": sc.relative_path(sc.string(e.get("file", "encoders.csv"), loc.key("file")), loc.key("file")),
+        "quantity": sc.string(e.get("quantity", "motor_angle"), loc.key("quantity"), choices=QUANTITIES),
+        "unit": sc.string(e.get("unit", "rad"), loc.key("unit"), choices=enc.UNITS),
+        "rate_hz": None,
+        "counts_per_rev": None,
+    }
+    if e.get("rate_hz") is not None:
+        out["rate_hz"] = sc.number(e["rate_hz"], loc.key("rate_hz"), hi=1e6, above=0.0)
+    if e.get("counts_per_rev") is not None:
+        out["counts_per_rev"] = sc.integer(e["counts_per_rev"], loc.key("counts_per_rev"), 1, 2**48)
+    if out["unit"] == "counts" and out["counts_per_rev"] is None:
+        raise loc.fail("unit 'counts' needs counts_per_rev (encoder counts per motor revolution)")
+    return out
+
+
+def read_clock(meta: dict, loc: Loc) -> tuple[float | None, float]:
+    clock = meta.get("clock")
+    if clock is None:
+        return None, 0.0
+    sc.obj(clock, loc, optional=("offset_s", "drift_ppm"))
+    offset = clock.get("offset_s")
+    offset = None if offset is None else sc.number(offset, loc.key("offset_s"))
+    drift = clock.get("drift_ppm")
+    drift = 0.0 if drift is None else sc.number(drift, loc.key("drift_ppm"), -MAX_DRIFT_PPM, MAX_DRIFT_PPM)
+    return offset, drift
+
+
+def read_motion(meta: dict, loc: Loc, joints: tuple[str, ...]) -> tuple:
+    motion = meta.get("motion")
+    if motion is None:
+        return (), ()
+    if not isinstance(motion, list):
+        raise loc.expected("a list of segments {joint, start, end}", motion)
+    out, homes = [], []
+    for i, s in enumerate(motion):
+        w = loc.index(i)
+        sc.obj(s, w, required=("joint", "start", "end"), optional=("home",))
+        joint = s["joint"]
+        if joint is not None:
+            sc.string(joint, w.key("joint"))
+            if joint not in joints:
+                raise w.key("joint").fail(f"unknown joint {joint!r}; the robot's joints are {list(joints)}")
+        start = sc.number(s["start"], w.key("start"))
+        end = sc.number(s["end"], w.key("end"))
+        if not end > start:
+            raise w.fail(f"end ({end:g}) must be after start ({start:g})")
+        home = None
+        if s.get("home") is not None:
+            home = sc.array(s["home"], w.key("home"), (len(joints),))
+            if joint is not None:
+                home[joints.index(joint)] = 0.0  # the sweeping joint's own entry is its encoder zero
+        out.append((joint, start, end))
+        homes.append(home)
+    return tuple(out), tuple(homes)

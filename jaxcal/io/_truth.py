@@ -1,0 +1,109 @@
+"""Reading `truth.json`, the ground truth a synthetic dataset carries."""
+
+from pathlib import Path
+
+import numpy as np
+
+from . import _schema as sc
+from ._files import atomic_directory as atomic_directory
+from ._logs import MAX_FRAME_INDEX
+from ._metadata import MAX_DRIFT_PPM
+from ._schema import Loc
+
+# --------------------------------------------------------------------------- reading: truth.json
+
+
+def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:
+    truth = sc.read_json(path, "truth file")
+    loc = Loc(path)
+    sc.obj(truth, loc, required=("model", "cameras", "targets", "clock"),
+           optional=("T_world_base", "dropped_frames", "frames"))  # fmt: skip
+    n = len(joints)
+    m = loc.key("model")
+    model = sc.obj(
+        truth["model"],
+        m,
+        required=("joint_names", "joint_types", "link_names", "T_parent_joint", "axis", "zero_offset",
+                  "reduction_ratio", "T_last_flange"),
+    )  # fmt: skip
+    if sc.names(model["joint_names"], m.key("joint_names")) != list(joints):
+        raise m.key("joint_names").fail(f"{model['joint_names']} differ from robot.joints {list(joints)}")
+    types = model["joint_types"]
+    if not isinstance(types, list) or len(types) != n:
+        raise m.key("joint_types").expected(f"a list of {n} joint types", types)
+    for i, v in enumerate(types):
+        sc.string(v, m.key("joint_types").index(i), choices=("revolute", "prismatic"))
+    link_names = sc.names(model["link_names"], m.key("link_names"), unique=False)
+    if len(link_names) != n + 2:
+        raise m.key("link_names").expected(f"{n + 2} names (base, {n} joint child links, flange)", link_names)
+    T = sc.array(model["T_parent_joint"], m.key("T_parent_joint"), (n, 4, 4))
+    for i in range(n):
+        sc.pose(T[i].tolist(), m.key("T_parent_joint").index(i))
+    axis = sc.array(model["axis"], m.key("axis"), (n, 3))
+    if not np.allclose(np.linalg.norm(axis, axis=1), 1.0, rtol=0.0, atol=1e-6):
+        raise m.key("axis").fail("every axis must be a unit vector")
+    sc.array(model["zero_offset"], m.key("zero_offset"), (n,))
+    ratio = sc.array(model["reduction_ratio"], m.key("reduction_ratio"), (n,))
+    if np.any(ratio == 0):
+        raise m.key("reduction_ratio").fail(f"reduction ratios must be non-zero, got {ratio.tolist()}")
+    sc.pose(model["T_last_flange"], m.key("T_last_flange"))
+    if "T_world_base" in truth:
+        sc.pose(truth["T_world_base"], loc.key("T_world_base"))
+    cam_names, target_names = [c.name for c in cameras], [t.name for t in targets]
+    cams = truth["cameras"]
+    if not isinstance(cams, dict):
+        raise loc.key("cameras").expected("an object keyed by camera name", cams)
+    for name, c in cams.items():
+        w = loc.key("cameras").key(name)
+        if name not in cam_names:
+            raise w.fail(f"{name!r} is not a camera of the metadata {cam_names}")
+        sc.obj(c, w, required=("mount", "T_mount_cam"), optional=("T_cam_base",))
+        sc.string(c["mount"], w.key("mount"))
+        sc.pose(c["T_mount_cam"], w.key("T_mount_cam"))
+        if "T_cam_base" in c:
+            sc.pose(c["T_cam_base"], w.key("T_cam_base"))
+    tgts = truth["targets"]
+    if not isinstance(tgts, dict):
+        raise loc.key("targets").expected("an object keyed by target name", tgts)
+    for name, t in tgts.items():
+        w = loc.key("targets").key(name)
+        if name not in target_names:
+            raise w.fail(f"{name!r} is not a target of the metadata {target_names}")
+        sc.obj(t, w, required=("link", "T_link_target"))
+        sc.string(t["link"], w.key("link"))
+        sc.pose(t["T_link_target"], w.key("T_link_target"))
+    w = loc.key("clock")
+    clock = sc.obj(truth["clock"], w, required=("offset_s",), optional=("drift_ppm", "jitter_ms"))
+    sc.number(clock["offset_s"], w.key("offset_s"))
+    sc.number(clock.get("drift_ppm", 0.0), w.key("drift_ppm"), -MAX_DRIFT_PPM, MAX_DRIFT_PPM)
+    sc.number(clock.get("jitter_ms", 0.0), w.key("jitter_ms"), 0.0)
+    dropped = truth.get("dropped_frames", [])
+    if not isinstance(dropped, list):
+        raise loc.key("dropped_frames").expected("a list of capture indices", dropped)
+    for i, v in enumerate(dropped):
+        sc.integer(v, loc.key("dropped_frames").index(i), 0, MAX_FRAME_INDEX)
+    frames = truth.get("frames", [])
+    if not isinstance(frames, list):
+        raise loc.key("frames").expected("a list with one entry per row of frames.csv", frames)
+    for i, f in enumerate(frames):
+        w = loc.key("frames").index(i)
+        sc.obj(f, w, required=("row", "camera", "frame", "t", "theta", "q", "T_cam_target", "visible"))
+        sc.integer(f["row"], w.key("row"), 0, n_rows - 1)
+        sc.string(f["camera"], w.key("camera"), choices=cam_names)
+        sc.integer(f["frame"], w.key("frame"), 0, MAX_FRAME_INDEX)
+        sc.number(f["t"], w.key("t"))
+        sc.array(f["theta"], w.key("theta"), (n,))
+        sc.array(f["q"], w.key("q"), (n,))
+        for key, check in (("T_cam_target", sc.pose), ("visible", None)):
+            d = f[key]
+            if not isinstance(d, dict):
+                raise w.key(key).expected("an object keyed by target name", d)
+            for name, v in d.items():
+                if name not in target_names:
+                    raise w.key(key).key(name).fail(f"{name!r} is not a target of the metadata")
+                if check is None:
+                    if not isinstance(v, bool):
+                        raise w.key(key).key(name).expected("true or false", v)
+                else:
+                    check(v, w.key(key).key(name))
+    return truth
