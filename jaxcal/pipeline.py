@@ -32,6 +32,7 @@ def calibrate(
     trust_clock: bool = False,
     refine_intrinsics: bool | None = None,
     limits: Limits | None = None,
+    arc_loss: str | None = "cauchy",
     strict: bool = False,
     log=None,
 ) -> CalibrationResult:
@@ -57,6 +58,10 @@ def calibrate(
     - `refine`: after the two-stage fit, minimise the reprojection error of
       every detected corner over all parameters (`jaxcal._refine`); `False`
       stops at the two-stage result.
+    - `arc_loss`: the robust loss of the arc fits and the clock fit
+      (`"cauchy"`, `"huber"` or `None` for plain least squares): samples far
+      off their arc are down-weighted, then rejected and named in the result
+      (`arcs[j]["outliers"]`) before the inlier solve that gives the std.
     - `limits`: the plausibility checks' limits (`jaxcal.stages.Limits`); a
       result that fails one has `status == "suspect"` and its `reasons`.
     - `strict`: raise `SuspectResultError` instead of returning a suspect or
@@ -84,6 +89,7 @@ def calibrate(
         trust_clock=trust_clock,
         refine_intrinsics=refine_intrinsics,
         limits=stages.Limits() if limits is None else limits,
+        arc_loss=arc_loss,
     )
     setup = stages.setup(dataset, options)
     obs = stages.observe(setup, options)

@@ -140,6 +140,7 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         refine_intrinsics=args.refine_intrinsics,
         refine=not args.no_refine,
         other_cameras=not args.single_camera,
+        arc_loss=None if args.arc_loss == "none" else args.arc_loss,
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
     )
     _calibration_tables(console, result)
@@ -279,5 +280,11 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="stop at the two-stage result (arc + axis fits); by default every corner's reprojection "
         "error is then minimised over all parameters",
+    )
+    p.add_argument(
+        "--arc-loss",
+        choices=("cauchy", "huber", "none"),
+        default="cauchy",
+        help="robust loss of the arc and clock fits; rejected frames are named in result.json (default: cauchy)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")

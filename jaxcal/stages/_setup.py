@@ -10,6 +10,7 @@ import numpy as np
 
 from .._kinematics import KinematicModel
 from .._links import arm_targets
+from .._robust import LOSSES
 from ..errors import CalibrationError
 from ..io.dataset import CameraInfo, Dataset, TargetInfo, load_dataset
 from .kinds import CaptureKind
@@ -31,6 +32,7 @@ class Options:
     trust_clock: bool = False
     refine_intrinsics: bool | None = None
     limits: Limits = Limits()
+    arc_loss: str | None = "cauchy"
 
     def say(self, text: str) -> None:
         if self.log is not None:
@@ -136,6 +138,8 @@ def setup(dataset, options: Options) -> Setup:
     """Load `dataset` (a path or a `Dataset`) and resolve the capture kind,
     the camera, the targets and the further cameras (see `Setup`)."""
     t0 = time.perf_counter()
+    if options.arc_loss not in LOSSES:
+        raise CalibrationError(f"arc_loss must be one of {LOSSES}, got {options.arc_loss!r}")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     nominal = ds.load_model()
     if tuple(nominal.joint_names) != tuple(ds.joint_names):

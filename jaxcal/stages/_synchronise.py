@@ -209,10 +209,10 @@ class _Timeline:
         return sw, counts, joint, t_ctrl, q, inside
 
 
-def _clock_from_sweeps(sweeps: Sweeps, log_q, offset0: float, drift_ppm: float):
+def _clock_from_sweeps(sweeps: Sweeps, log_q, offset0: float, drift_ppm: float, loss: str | None):
     """All joints' arc fits with one shared offset."""
     enc_t, enc_q = pad_log(*log_q, bucket(len(log_q[0])))
-    return _programs.clock_fit()(
+    return _programs.clock_fit(loss)(
         sweeps.arc_data(),
         jnp.asarray(sweeps.t_cam),
         jnp.asarray(enc_t),
@@ -222,7 +222,9 @@ def _clock_from_sweeps(sweeps: Sweeps, log_q, offset0: float, drift_ppm: float):
     )
 
 
-def _clock_from_first_link(setup: Setup, obs: CameraObservations, sel, log_q, offset0: float):
+def _clock_from_first_link(
+    setup: Setup, obs: CameraObservations, sel, log_q, offset0: float, loss: str | None
+):
     """The first joint's child-link plate moves with that joint alone: its arc,
     against the encoder log, gives the offset (before anything is undone)."""
     ds = setup.dataset
@@ -236,7 +238,7 @@ def _clock_from_first_link(setup: Setup, obs: CameraObservations, sel, log_q, of
     d1 = make_arc_data(pad(P1, 0.0), pad(O1, np.eye(3)), None, mask, covariances=pad(C1, np.eye(6)))
     t1 = pad(obs.t_cam[sel][k1], obs.t_cam[sel][k1][-1])
     enc_t, enc_q = pad_log(log_q[0], log_q[1][:, :1], bucket(len(log_q[0])))
-    return _programs.clock_fit()(
+    return _programs.clock_fit(loss)(
         jax.tree.map(lambda x: x[None], d1),
         jnp.asarray(t1)[None],
         jnp.asarray(enc_t),
@@ -341,14 +343,14 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
                 "estimating the camera-controller clock offset (the first joint's arc, its link's plate)"
             )
             sel = np.flatnonzero(inside & obs.primary.found)
-            cf = _clock_from_first_link(setup, obs.primary, sel, log_q, offset0)
+            cf = _clock_from_first_link(setup, obs.primary, sel, log_q, offset0, options.arc_loss)
     else:
         sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(offset0)
         if estimate:
             options.say(
                 "estimating the camera-controller clock offset (arc fits of all joints with a shared offset)"
             )
-            cf = _clock_from_sweeps(sweeps, log_q, offset0, ds.clock_drift_ppm)
+            cf = _clock_from_sweeps(sweeps, log_q, offset0, ds.clock_drift_ppm, options.arc_loss)
     if estimate:
         if not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s)):
             raise CalibrationError(f"{ds.root}: the clock-offset fit failed ({cf.result})")

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._arcfit import validate_arc_data
+from .._arcfit import arc_outliers, validate_arc_data
 from .._axisfit import AxisFitParams, AxisFitResult, register_lines
 from .._buckets import bucket
 from .._correction import ParameterLayout, physical_parameters, zero_correction
@@ -59,7 +59,7 @@ class TwoStage:
     timings: dict
 
 
-def _sequential(setup: Setup, obs: Observations, sync: Sync):
+def _sequential(setup: Setup, obs: Observations, sync: Sync, loss: str | None):
     """Markers on every link: the sweeps and arcs of the sequential procedure."""
     p = obs.primary
     sel = np.flatnonzero(sync.inside & p.found)
@@ -67,7 +67,7 @@ def _sequential(setup: Setup, obs: Observations, sync: Sync):
     F = bucket(sel.size)
     Ps, Os, Cs, mk, arc_list = sequential_sweeps(
         p.rows[sel], [p.poses[i] for i in sel], setup.targets, setup.per_joint, sync.q[sel], p.t_cam[sel],
-        _programs.arc_fit(), frames=F,
+        _programs.arc_fit(loss), frames=F,
     )  # fmt: skip
     pad = F - sel.size
     rows = np.concatenate([p.rows[sel], np.full(pad, -1)])
@@ -161,8 +161,39 @@ def _start_mounts(setup: Setup, arcs, homes):
     return jnp.einsum("ab,mbc->mac", pose_inverse(T_cf), arcs.T_cam_marker0[0])
 
 
-def arc_rows(setup: Setup, arcs) -> list[dict]:
-    """Per-joint arc summaries (frames, RMS, axis, ratio with its std, solver)."""
+def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> list[dict]:
+    """The samples joint `j`'s robust arc fit rejected: target, frame and camera time."""
+    frames = setup.dataset.frames
+    rows = []
+    for m, f in arc_outliers(jax.tree.map(lambda x: x[j], arcs), sweeps.mask[j]):
+        row = int(sweeps.rows[j, f])
+        rows.append(
+            {
+                "target": setup.targets[m].name if m < len(setup.targets) else str(m),
+                "frame": int(frames["frame"][row]),
+                "timestamp_s": float(frames["timestamp"][row]),
+                "residual": float(arcs.sample_residuals[j, m, f]),
+            }
+        )
+    return rows
+
+
+def _outlier_notes(rows: list[dict]) -> tuple[str, ...]:
+    """One note per joint whose robust arc fit rejected samples, naming their frames."""
+    notes = []
+    for a in rows:
+        frames = sorted({o["frame"] for o in a["outliers"]})
+        if frames:
+            shown = ", ".join(map(str, frames[:8])) + (
+                f" and {len(frames) - 8} more" if len(frames) > 8 else ""
+            )
+            notes.append(f"joint {a['joint']!r}: the robust arc fit rejected {len(frames)} frame(s): {shown}")
+    return tuple(notes)
+
+
+def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> list[dict]:
+    """Per-joint arc summaries (frames, RMS, axis, ratio with its std, solver,
+    the samples a robust fit rejected and the noise scale it saw)."""
     nominal_ratio = np.asarray(setup.nominal.reduction_ratio)
     ok = np.asarray(arcs.result == optx.RESULTS.successful)
     has = bool(arcs.has_encoder)
@@ -185,6 +216,8 @@ def arc_rows(setup: Setup, arcs) -> list[dict]:
                 else None,
                 "ratio_identifiable": has,
                 "solver": {"result": "successful" if ok[j] else "failed", "steps": int(arcs.num_steps[j])},
+                "robust_scale": float(arcs.robust_scale[j]),
+                "outliers": arc_outlier_rows(setup, sweeps, arcs, j),
             }
         )
     return rows
@@ -203,14 +236,14 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         options.say(
             f"sequential arc fits of {nominal.num_joints} joints (markers on every link, earlier joints undone)"
         )
-        sweeps, counts, arcs, link_rows = _sequential(setup, obs, sync)
+        sweeps, counts, arcs, link_rows = _sequential(setup, obs, sync, options.arc_loss)
         _check_sweeps(setup, sweeps, counts, sweeps.arc_data())
     else:
         sweeps, counts = sync.sweeps, sync.counts
         data = sweeps.arc_data()
         _check_sweeps(setup, sweeps, counts, data)
         options.say(f"arc fits of {nominal.num_joints} joints (one vmapped solve)")
-        arcs = _programs.arc_fits()(data)
+        arcs = _programs.arc_fits(options.arc_loss)(data)
     jax.block_until_ready(arcs)
     timings["arc_fit_s"] = time.perf_counter() - t0
 
@@ -230,11 +263,12 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         fit.cov, free, [t.name for t in setup.fit_targets],
     )  # fmt: skip
     ok_arc = np.asarray(arcs.result == optx.RESULTS.successful)
+    rows = arc_rows(setup, arcs, sweeps)
     notes = (
         ()
         if arcs.has_encoder
         else ("no encoder log: reduction ratios are not identifiable (images alone give the axes)",)
-    )
+    ) + _outlier_notes(rows)
     return TwoStage(
         sweeps=sweeps,
         counts=counts,
@@ -243,7 +277,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         layout=layout,
         parameters=parameters,
         frozen=[n for n, f in zip(names, free) if not f],
-        arc_rows=arc_rows(setup, arcs),
+        arc_rows=rows,
         solver={
             "success": bool(ok_arc.all() and bool(fit.result == optx.RESULTS.successful)),
             "arc_fits_ok": ok_arc.tolist(),

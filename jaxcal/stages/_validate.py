@@ -63,7 +63,7 @@ def _pose_error(dT) -> dict:
     return {"trans_mm": float(np.linalg.norm(dT[:3, 3]) * 1e3), "rot_deg": _rot_deg(dT[:3, :3])}
 
 
-def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true):
+def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true, loss):
     """The estimator's gauge for the fixed frame: the same axis fit on (nearly)
     exact sweeps of the truth, with the same parameters frozen. The sweeps have
     the dataset's shapes, so the arc and axis fits reuse their compiled code."""
@@ -83,7 +83,7 @@ def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true
         use_encoders=bool(two.arcs.has_encoder),
         home=home,
     )
-    arcs_exact = _programs.arc_fits()(exact)
+    arcs_exact = _programs.arc_fits(loss)(exact)
     return _programs.axis_fit(setup.kind.axis_fit_uses_poses)(
         nominal, arcs_exact, mounts0, fit.free, home
     ).T_cam_base
@@ -163,7 +163,11 @@ def validate(
     )
     # The estimator's gauge: the axis fit's frozen parameters (a pose-based capture has no axis fit,
     # and the refinement holds joint 1's frame at nominal, as the truth does).
-    T_gauge = _gauge(setup, sync, two, true, T_cb_true, mounts_true) if setup.kind.has_arcs else T_cb_true
+    T_gauge = (
+        _gauge(setup, sync, two, true, T_cb_true, mounts_true, options.arc_loss)
+        if setup.kind.has_arcs
+        else T_cb_true
+    )
     dT = np.asarray(pose_inverse(T_gauge) @ fit.T_cam_base)
     dT_raw = np.asarray(pose_inverse(T_cb_true) @ fit.T_cam_base)
     ratio_err = np.asarray(s["ratio_err_percent"])
