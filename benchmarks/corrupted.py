@@ -13,36 +13,16 @@ Acceptance (issue 13): corrupted / clean EE RMS at most 1.5 in both stages.
 
 import argparse
 import json
-import shutil
 import sys
 import tempfile
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 import jaxcal
 from jaxcal.io._files import write_text_atomic
+from jaxcal.sim.faults import shear_copy
 from jaxcal.sim.simulate import SimConfig, simulate
-
-
-def corrupt(src: Path, dst: Path, fraction: float, shear: float, seed: int) -> list[str]:
-    """Copy the dataset and shear `fraction` of its images about the plate's image centre."""
-    shutil.copytree(src, dst)
-    truth = json.loads((dst / "truth.json").read_text())
-    meta = json.loads((dst / "metadata.json").read_text())
-    K = np.asarray(meta["cameras"][0]["K"])
-    files = [line.split(",")[3] for line in (dst / "frames.csv").read_text().splitlines()[1:]]
-    rng = np.random.default_rng(seed)
-    rows = rng.choice(len(files), size=max(1, int(round(fraction * len(files)))), replace=False)
-    for r in sorted(rows):
-        T = np.asarray(next(iter(truth["frames"][r]["T_cam_target"].values())))
-        c = K @ T[:3, 3]
-        cx, cy = c[:2] / c[2]
-        image = cv2.imread(str(dst / files[r]), cv2.IMREAD_UNCHANGED)
-        A = np.array([[1.0, shear, -shear * cy], [0.0, 1.0, 0.0]])
-        cv2.imwrite(str(dst / files[r]), cv2.warpAffine(image, A, image.shape[1::-1], flags=cv2.INTER_LINEAR))
-    return sorted(files[r] for r in rows)
 
 
 def ee(result) -> dict:
@@ -75,7 +55,7 @@ def main(argv=None) -> int:
             )  # fmt: skip
             clean = simulate(config, tmp / f"clean{seed}", progress=False)
             bad = tmp / f"bad{seed}"
-            sheared = corrupt(clean, bad, args.fraction, args.shear, seed)
+            sheared = shear_copy(clean, bad, fraction=args.fraction, shear=args.shear, seed=seed)
             a = ee(jaxcal.calibrate(clean, progress=False))
             b = ee(jaxcal.calibrate(bad, progress=False))
             row = {

@@ -306,6 +306,19 @@ def _joints_section(result) -> list[str]:
             f"{a['ratio_nominal']:.4f} | {_fmt(a['ratio'], '.4f')} | {_fmt(a['ratio_std'], '.4f')} | "
             f"{a['solver']['result']} ({a['solver']['steps']} steps) |"
         )
+    rejected = [(a["joint"], o) for a in result.arcs for o in a.get("outliers", [])]
+    if rejected:
+        lines += [
+            "",
+            "Samples the robust arc fits rejected (whitened residual in noise units):",
+            "",
+            "| joint | target | frame | time s | residual |",
+            "| --- | --- | ---: | ---: | ---: |",
+        ]
+        lines += [
+            f"| {j} | {o['target']} | {o['frame']} | {o['timestamp_s']:.3f} | {o['residual']:.1f} |"
+            for j, o in rejected
+        ]
     lines += [
         "",
         "## Parameters (nominal, estimate, standard deviation)",

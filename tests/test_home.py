@@ -7,12 +7,12 @@ takes every view at its own configuration.
 """
 
 import json
-import shutil
 
 import numpy as np
 import pytest
 
 from jaxcal.pipeline import calibrate
+from jaxcal.sim.faults import shear_copy
 from jaxcal.sim.simulate import SimConfig, simulate
 
 pytestmark = pytest.mark.slow
@@ -42,8 +42,13 @@ def test_sweeps_from_a_home_configuration(dataset):
 
 
 def test_without_encoders_the_metadata_gives_the_home(dataset, tmp_path):
+    """Also the robust arc fit without encoders (angles eliminated by blocks): one
+    image sheared mid-sweep is rejected and named, the answer stays right."""
     ds = tmp_path / "copy"
-    shutil.copytree(dataset, ds)
+    frames = (dataset / "frames.csv").read_text().splitlines()[1:]
+    row = 2 * CONFIG.frames_per_joint + CONFIG.frames_per_joint // 2  # joint 3, mid-sweep
+    (sheared,) = shear_copy(dataset, ds, rows=[row], shear=0.08)
+    frame = int(frames[row].split(",")[1])
     (ds / "encoders.csv").unlink()
     meta = json.loads((ds / "metadata.json").read_text())
     meta["encoders"] = None
@@ -52,3 +57,7 @@ def test_without_encoders_the_metadata_gives_the_home(dataset, tmp_path):
     v = r.validation
     assert r.axis_fit.residual_rms < 3.0
     assert v["ee_rms_mm_after"] < 0.5 * v["ee_rms_mm_before"]
+    rejected = {o["frame"] for o in r.arcs[2]["outliers"]}
+    assert frame in rejected, (sheared, r.arcs[2]["outliers"])
+    assert sum(len(a["outliers"]) for a in r.arcs) <= 3  # the sheared frame, at most a couple of others
+    assert any("rejected" in w and str(frame) in w for w in r.warnings)
