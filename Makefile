@@ -32,11 +32,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP) gl
 	$(PY) -m jaxcal demo
 
-# Two worker processes (one per core on CI's two), tests handed out one by one:
-# compilation is mostly single-threaded, and balancing the two workers beats
-# keeping files whole (a module fixture may then be built on both).
+# Two worker processes (one per core on CI's two): compilation is mostly
+# single-threaded. Tests are handed out one by one, except the modules whose
+# module fixtures render or calibrate (tests/conftest.py, WHOLE_MODULES), which
+# stay whole on one worker so their fixtures are built once.
 test: $(STAMP) gl
-	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist load
+	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadgroup
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

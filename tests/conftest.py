@@ -1,3 +1,4 @@
+import gc
 import os
 from pathlib import Path
 
@@ -22,6 +23,44 @@ jax.config.update("jax_compilation_cache_dir", str(CACHE_DIR))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Drop every compiled program after each module. XLA's CPU executables each
+    hold a few memory mappings, and a worker that compiles ~15,000 programs
+    reaches the kernel's `vm.max_map_count` (65530): the next compile then
+    aborts or segfaults. Later modules reload what they share from the
+    persistent cache."""
+    yield
+    jax.clear_caches()
+    gc.collect()
+
+
 @pytest.fixture
 def key():
     return jax.random.key(0)
+
+
+#: Modules whose module-scoped fixtures render a capture or run a whole
+#: calibration: under `--dist loadgroup` (make test) each runs on one worker,
+#: so the fixture is built once rather than on both.
+WHOLE_MODULES = {
+    "test_axisfit",
+    "test_calibrate",
+    "test_eye_in_hand",
+    "test_handeye",
+    "test_handeye_capture",
+    "test_home",
+    "test_links",
+    "test_plan",
+    "test_poses",
+    "test_refine",
+    "test_sim",
+    "test_vision",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        module = item.module.__name__.rpartition(".")[-1] if item.module else ""
+        if module in WHOLE_MODULES:
+            item.add_marker(pytest.mark.xdist_group(module))
