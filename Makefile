@@ -33,11 +33,14 @@ demo: $(STAMP) gl
 	$(PY) -m jaxcal demo
 
 # Two worker processes (one per core on CI's two): compilation is mostly
-# single-threaded. Tests are handed out one by one, except the modules whose
-# module fixtures render or calibrate (tests/conftest.py, WHOLE_MODULES), which
-# stay whole on one worker so their fixtures are built once.
+# single-threaded. Each test file stays whole on one worker (--dist loadfile), so
+# module fixtures that render or calibrate are built once and a file's tests
+# share their compiled programs in memory; the files are small against the
+# total (the largest about a seventh), so the two workers still balance.
+# (--dist loadgroup would be finer, but pytest-xdist 3.8 tags its groups through
+# `item._nodeid`, which pytest 9 no longer reads: the groups silently split.)
 test: $(STAMP) gl
-	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadgroup
+	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

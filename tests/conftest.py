@@ -39,28 +39,3 @@ def _release_compiled_programs():
 def key():
     return jax.random.key(0)
 
-
-#: Modules whose module-scoped fixtures render a capture or run a whole
-#: calibration: under `--dist loadgroup` (make test) each runs on one worker,
-#: so the fixture is built once rather than on both.
-WHOLE_MODULES = {
-    "test_axisfit",
-    "test_calibrate",
-    "test_eye_in_hand",
-    "test_handeye",
-    "test_handeye_capture",
-    "test_home",
-    "test_links",
-    "test_plan",
-    "test_poses",
-    "test_refine",
-    "test_sim",
-    "test_vision",
-}
-
-
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        module = item.module.__name__.rpartition(".")[-1] if item.module else ""
-        if module in WHOLE_MODULES:
-            item.add_marker(pytest.mark.xdist_group(module))

@@ -12,10 +12,13 @@ import hashlib
 import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import CACHE_DIR
 
 from jaxcal.cli import main
 from jaxcal.io.dataset import DatasetError
@@ -354,17 +357,17 @@ def test_a_mis_sized_board_is_suspect_and_strict_writes_nothing(dataset, tmp_pat
             marker_length=m["targets"][0]["marker_length"] / 1.1,
         ),
     )
-    r = calibrate(ds, progress=False, workers=1, refine=False)
-    assert r.status == "suspect"
-    board = [c for c in r.verdict.checks if c["check"] == "board_scale"][0]
-    assert 7.0 < board["value"] < 13.0, board  # measured: the axes 91 % as far apart as nominal
-    assert any("printed size" in reason for reason in r.reasons), r.reasons
     out = tmp_path / "res"
     args = ["calibrate", str(ds), "--out", str(out), "--quiet", "--workers", "1", "--no-refine"]
-    assert main([*args, "--strict"]) == 3
-    assert not out.exists() and "nothing written" in capsys.readouterr().out
     assert main(args) == 3
-    assert json.loads((out / "result.json").read_text())["status"] == "suspect"
+    r = json.loads((out / "result.json").read_text())
+    assert r["status"] == "suspect"
+    board = [c for c in r["checks"] if c["check"] == "board_scale"][0]
+    assert 7.0 < board["value"] < 13.0, board  # measured: the axes 91 % as far apart as nominal
+    assert any("printed size" in reason for reason in r["reasons"]), r["reasons"]
+    strict = tmp_path / "strict"
+    assert main([*args[:3], str(strict), *args[4:], "--strict"]) == 3
+    assert not strict.exists() and "nothing written" in capsys.readouterr().out
 
 
 @pytest.mark.slow
@@ -377,5 +380,21 @@ def test_a_wrong_clock_offset_is_caught(dataset, tmp_path):
     assert abs(r.clock["offset_s"] - 0.040) < 1e-3 and r.clock["given_s"] == 0.0
     assert any("clock.offset_s is 0.000 ms but the sweeps say 40" in w for w in r.warnings), r.warnings
     assert r.status == "ok", r.reasons
-    trusted = calibrate(ds, progress=False, workers=1, refine=False, trust_clock=True)
-    assert trusted.clock["offset_s"] == 0.0 and trusted.status == "suspect", trusted.reasons
+    # Trusting it, in a process where MuJoCo cannot be imported: calibrating
+    # needs no simulator and no OpenGL (issue 14).
+    code = f"""
+import json, sys
+sys.modules["mujoco"] = None  # `import mujoco` now raises ImportError
+import jax
+jax.config.update("jax_compilation_cache_dir", {str(CACHE_DIR)!r})
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+import jaxcal
+r = jaxcal.calibrate({str(ds)!r}, progress=False, workers=1, refine=False, trust_clock=True)
+sim = sorted(m for m in sys.modules if m.startswith("jaxcal.sim") or m == "jaxcal.cli")
+print(json.dumps({{"offset_s": r.clock["offset_s"], "status": r.status, "reasons": r.reasons, "sim": sim}}))
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    trusted = json.loads(run.stdout.strip().splitlines()[-1])
+    assert trusted["offset_s"] == 0.0 and trusted["status"] == "suspect", trusted["reasons"]
+    assert trusted["sim"] == []
