@@ -77,6 +77,9 @@ parameters per block; all functions pure, jittable and vmappable):
   Jacobians by $\\sqrt{w}$).
 - `block_covariance(J_g, J_l, *, g_mask=None, l_mask=None) -> BlockCovariance`:
   the blocks above (zero for frozen parameters).
+- `full_covariance(J_g, J_l, *, g_mask=None, l_mask=None) -> (n, n)`: all of
+  $(J^TJ)^{+}$, $n = n_g + Bp$, ordered $(g, l_1, \\dots, l_B)$, local
+  cross-blocks included.
 - `block_leverage(J_g, J_l, cov) -> (B, m)`: the diagonal of the hat matrix
   $J\\Sigma J^T$ (sums to the number of identifiable parameters).
 """
@@ -243,6 +246,7 @@ def block_least_squares(
     max_steps: int = 256,
     g_mask: Bool[Array, " n_g"] | None = None,
     l_mask: Bool[Array, "B p"] | None = None,
+    residuals: Callable[[Array, Array, Any], Array] | None = None,
 ) -> BlockSolution:
     """Levenberg-Marquardt on block-structured residuals (see the module docstring).
 
@@ -254,6 +258,10 @@ def block_least_squares(
       and on the residuals).
     - `max_steps`: iterations before `nonlinear_max_steps_reached` (at least 1).
     - `g_mask`, `l_mask`: which parameters are free (default all).
+    - `residuals`: optionally `(g, l, args) -> r (B, m)`, the residuals alone
+      (what `linearise` returns first): then each iteration evaluates them at
+      the trial point and linearises only where the step is accepted
+      (`lax.cond`; under `vmap` both branches run). The iterates are the same.
 
     **Returns:** a `BlockSolution`.
     """
@@ -291,7 +299,10 @@ def block_least_squares(
     )
 
     def body(s: _State) -> _State:
-        r_e, Jg_e, Jl_e = lin(s.g_eval, s.l_eval)
+        if residuals is None:
+            r_e, Jg_e, Jl_e = lin(s.g_eval, s.l_eval)
+        else:
+            r_e = residuals(s.g_eval, s.l_eval, args)
         dg, dl = s.g_eval - s.g, s.l_eval - s.l
         # Trust-region test (optimistix's ClassicalTrustRegion), with J, r at the accepted point.
         pred_r = s.r + jnp.einsum("bmi,i->bm", s.Jg, dg) + jnp.einsum("bmj,bj->bm", s.Jl, dl)
@@ -307,6 +318,8 @@ def block_least_squares(
             )
             < 1
         ) & (_max_ratio(r_e - s.r, r_e, rtol, atol) < 1)
+        if residuals is not None:  # the Jacobian at accepted points only
+            Jg_e, Jl_e = jax.lax.cond(accept, lambda: lin(s.g_eval, s.l_eval)[1:], lambda: (s.Jg, s.Jl))
         g = jnp.where(accept, s.g_eval, s.g)
         l = jnp.where(accept, s.l_eval, s.l)
         r = jnp.where(accept, r_e, s.r)
@@ -357,21 +370,8 @@ def _psd_pinv(S: Float[Array, "n n"]) -> Float[Array, "n n"]:
     return (B * inv_w[None, :]) @ B.T
 
 
-def block_covariance(
-    jac_g: Float[Array, "B m n_g"],
-    jac_l: Float[Array, "B m p"],
-    *,
-    g_mask: Bool[Array, " n_g"] | None = None,
-    l_mask: Bool[Array, "B p"] | None = None,
-) -> BlockCovariance:
-    """The blocks of $(J^TJ)^{+}$ without forming it (see the module docstring).
-
-    **Arguments:** the Jacobian blocks at the solution (e.g. a `BlockSolution`'s
-    `jac_g`, `jac_l`; weighted, whitened); `g_mask`, `l_mask`: free parameters
-    (frozen ones get zero rows and columns).
-
-    **Returns:** a `BlockCovariance` (unscaled: multiply by the residual variance).
-    """
+def _covariance_parts(jac_g, jac_l, g_mask, l_mask):
+    """$S^{+}$ (masked), $Y_b = U_b^{+}W_b^T$, $U_b^{+}$ and the masks as floats."""
     n_g, p = jac_g.shape[-1], jac_l.shape[-1]
     gm = jnp.ones(n_g) if g_mask is None else jnp.asarray(g_mask, jac_g.dtype)
     lm = jnp.ones(jac_l.shape[:1] + (p,)) if l_mask is None else jnp.asarray(l_mask, jac_l.dtype)
@@ -388,11 +388,55 @@ def block_covariance(
     Y, Uinv = X[..., :n_g], X[..., n_g:]
     S = H - jnp.einsum("bij,bjk->ik", W, Y)
     C = _psd_pinv(0.5 * (S + S.T)) * gm[:, None] * gm[None, :]
+    return C, Y, Uinv, gm, lm
+
+
+def block_covariance(
+    jac_g: Float[Array, "B m n_g"],
+    jac_l: Float[Array, "B m p"],
+    *,
+    g_mask: Bool[Array, " n_g"] | None = None,
+    l_mask: Bool[Array, "B p"] | None = None,
+) -> BlockCovariance:
+    """The blocks of $(J^TJ)^{+}$ without forming it (see the module docstring).
+
+    **Arguments:** the Jacobian blocks at the solution (e.g. a `BlockSolution`'s
+    `jac_g`, `jac_l`; weighted, whitened); `g_mask`, `l_mask`: free parameters
+    (frozen ones get zero rows and columns).
+
+    **Returns:** a `BlockCovariance` (unscaled: multiply by the residual variance).
+    """
+    C, Y, Uinv, _, lm = _covariance_parts(jac_g, jac_l, g_mask, l_mask)
     gl = -jnp.einsum("ij,bkj->bik", C, Y)  # -S^{-1} W_b U_b^{-1} = -(U_b^{-1} W_b^T S^{-1})^T
     ll = Uinv + jnp.einsum("bij,jk,blk->bil", Y, C, Y)
     gl = gl * lm[:, None, :]
     ll = ll * lm[:, :, None] * lm[:, None, :]
     return BlockCovariance(gg=C, gl=gl, ll=ll)
+
+
+def full_covariance(
+    jac_g: Float[Array, "B m n_g"],
+    jac_l: Float[Array, "B m p"],
+    *,
+    g_mask: Bool[Array, " n_g"] | None = None,
+    l_mask: Bool[Array, "B p"] | None = None,
+) -> Float[Array, "n n"]:
+    """All of $(J^TJ)^{+}$, $n = n_g + Bp$, parameters ordered $(g, l_1, \\dots, l_B)$.
+
+    The blocks of `block_covariance` and the cross-covariances of different
+    local blocks, $\\Sigma_{l_b l_c} = Y_b S^{-1} Y_c^T$ ($b \\ne c$,
+    $Y_b = U_b^{-1}W_b^T$): with $Y$ the $Bp \\times n_g$ stack,
+    $\\Sigma_{ll} = \\mathrm{blockdiag}(U_b^{-1}) + Y S^{-1} Y^T$. $O((Bp)^2 n_g)$
+    after the one $n_g \\times n_g$ decomposition: no $n \\times n$ factorisation.
+    """
+    C, Y, Uinv, _, lm = _covariance_parts(jac_g, jac_l, g_mask, l_mask)
+    B, p, n_g = Y.shape
+    Yf = (Y * lm[..., None]).reshape(B * p, n_g)
+    Uinv = Uinv * lm[:, :, None] * lm[:, None, :]
+    diag = jnp.einsum("bc,bij->bicj", jnp.eye(B, dtype=Uinv.dtype), Uinv).reshape(B * p, B * p)
+    gl = -C @ Yf.T
+    ll = diag + Yf @ C @ Yf.T
+    return jnp.block([[C, gl], [gl.T, ll]])
 
 
 def block_leverage(

@@ -13,6 +13,7 @@ from jaxcal._schur import (
     block_covariance,
     block_least_squares,
     block_leverage,
+    full_covariance,
     jacobian_by_jvp,
 )
 
@@ -111,6 +112,9 @@ def test_covariance_and_leverage_equal_the_dense_inverse(masked):
     np.testing.assert_allclose(cov.ll, blocks, atol=1e-10 * scale)
     cross = dense[:n_g, n_g:].reshape(n_g, B, p).transpose(1, 0, 2)
     np.testing.assert_allclose(cov.gl, cross, atol=1e-10 * scale)
+    # All of it, local cross-blocks included.
+    full = full_covariance(sol.jac_g, sol.jac_l, g_mask=g_mask, l_mask=l_mask)
+    np.testing.assert_allclose(full, dense, atol=1e-10 * scale)
     # Leverages: the hat matrix's diagonal, summing to the number of free parameters.
     Jm = np.asarray(sol.jac_g) * g_mask, np.asarray(sol.jac_l) * l_mask[:, None, :]
     h = block_leverage(*Jm, cov)
@@ -174,3 +178,14 @@ def test_vmap_equals_loop_and_has_no_unordered_decompositions():
         one = jax.jit(solve_and_cov)(g, l, a)
         assert tree_allclose(one, jax.tree.map(lambda x, i=i: x[i], batched), atol=1e-10)
     assert concurrent_decompositions(jax.vmap(solve_and_cov), g0, l0, args) == []
+
+
+def test_residuals_only_at_rejected_steps_take_the_same_steps():
+    """With `residuals`, rejected trial points skip the linearisation: same iterates."""
+    args, g0, l0 = _problem(7, p=3)
+    kw = dict(rtol=1e-8, atol=1e-8, max_steps=100)
+    a = jax.jit(lambda g, l, x: block_least_squares(LIN, g, l, x, **kw))(g0, l0, args)
+    b = jax.jit(lambda g, l, x: block_least_squares(LIN, g, l, x, residuals=_model, **kw))(g0, l0, args)
+    assert int(a.num_steps) == int(b.num_steps)
+    np.testing.assert_allclose(b.g, a.g, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.l, a.l, rtol=0, atol=1e-12)
