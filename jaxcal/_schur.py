@@ -212,7 +212,10 @@ def _damped_step(r, Jg, Jl, lam):
     S = H + lam * jnp.eye(n_g) - jnp.einsum("bij,bjk->ik", W, Y)
     S = 0.5 * (S + S.T)
     rhs = -eg + jnp.einsum("bij,bj->i", W, z)
-    dg = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(S, lower=True), rhs)
+    d = 1.0 / jnp.sqrt(jnp.diagonal(S))  # Jacobi scaling: S's diagonal is at least lambda > 0
+    dg = d * jax.scipy.linalg.cho_solve(
+        jax.scipy.linalg.cho_factor(S * d[:, None] * d[None, :], lower=True), d * rhs
+    )
     dl = -z - jnp.einsum("bjk,k->bj", Y, dg)
     return dg, dl
 
@@ -246,7 +249,6 @@ def block_least_squares(
     max_steps: int = 256,
     g_mask: Bool[Array, " n_g"] | None = None,
     l_mask: Bool[Array, "B p"] | None = None,
-    residuals: Callable[[Array, Array, Any], Array] | None = None,
 ) -> BlockSolution:
     """Levenberg-Marquardt on block-structured residuals (see the module docstring).
 
@@ -258,10 +260,6 @@ def block_least_squares(
       and on the residuals).
     - `max_steps`: iterations before `nonlinear_max_steps_reached` (at least 1).
     - `g_mask`, `l_mask`: which parameters are free (default all).
-    - `residuals`: optionally `(g, l, args) -> r (B, m)`, the residuals alone
-      (what `linearise` returns first): then each iteration evaluates them at
-      the trial point and linearises only where the step is accepted
-      (`lax.cond`; under `vmap` both branches run). The iterates are the same.
 
     **Returns:** a `BlockSolution`.
     """
@@ -299,10 +297,7 @@ def block_least_squares(
     )
 
     def body(s: _State) -> _State:
-        if residuals is None:
-            r_e, Jg_e, Jl_e = lin(s.g_eval, s.l_eval)
-        else:
-            r_e = residuals(s.g_eval, s.l_eval, args)
+        r_e, Jg_e, Jl_e = lin(s.g_eval, s.l_eval)
         dg, dl = s.g_eval - s.g, s.l_eval - s.l
         # Trust-region test (optimistix's ClassicalTrustRegion), with J, r at the accepted point.
         pred_r = s.r + jnp.einsum("bmi,i->bm", s.Jg, dg) + jnp.einsum("bmj,bj->bm", s.Jl, dl)
@@ -318,8 +313,6 @@ def block_least_squares(
             )
             < 1
         ) & (_max_ratio(r_e - s.r, r_e, rtol, atol) < 1)
-        if residuals is not None:  # the Jacobian at accepted points only
-            Jg_e, Jl_e = jax.lax.cond(accept, lambda: lin(s.g_eval, s.l_eval)[1:], lambda: (s.Jg, s.Jl))
         g = jnp.where(accept, s.g_eval, s.g)
         l = jnp.where(accept, s.l_eval, s.l)
         r = jnp.where(accept, r_e, s.r)

@@ -132,13 +132,10 @@ def linearise(g, l, args):
     return r_frames, J[..., :n_g], J[..., n_g:]
 
 
-
 def solve_by_blocks(params0: HandEyeParams, args, rtol, atol, max_steps):
     """Levenberg-Marquardt on `robust_residuals` by blocks. **Returns:** `(params, result, num_steps)`."""
     g0, l0 = split(params0)
-    sol = block_least_squares(
-        linearise, g0, l0, args, rtol=rtol, atol=atol, max_steps=max_steps, residuals=frame_residuals
-    )
+    sol = block_least_squares(linearise, g0, l0, args, rtol=rtol, atol=atol, max_steps=max_steps)
     return join(sol.g, sol.l), sol.result, sol.num_steps
 
 
