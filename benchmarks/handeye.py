@@ -34,6 +34,16 @@ Two parts, every method given the same data:
    poses. Also reported: jaxcal's std, its k-fold spread, and the normalised
    error (error / std) over the captures.
 
+4. `speed`: one solve's wall time after compilation (the fastest of 15) on
+   synthetic corners (a 7x5 board of 3 cm squares, 600 px focal length,
+   0.1 px noise): `noisy_robot_pixels_ms`, 30 robot poses seen by 2 cameras
+   with robot poses off by 1 mm / 1 mrad and `robot_sigma` given (a 6-DOF
+   correction per pose, solved by blocks, `jaxcal._handeye.blocks`), with the
+   dense optimistix solve over every correction (`by_blocks=False`) timed
+   beside it (`noisy_robot_pixels_dense_ms`, fastest of 3) and the largest
+   difference of their answers; `pixels_ms_50`: exact robot poses, 50 poses,
+   one camera.
+
 Errors are those of the camera's pose on the robot (`T_gripper_cam` in part
 1, `T_base_cam` in part 2): rotation (deg) and translation (mm), mean over
 trials (and RMS: `rot_deg_rms`, `trans_mm_rms`). `time_ms` is the median
@@ -47,6 +57,7 @@ How to run (from the repository root)::
     .venv/bin/python benchmarks/handeye.py --json results/handeye.json
     .venv/bin/python benchmarks/handeye.py --quick
     .venv/bin/python benchmarks/handeye.py --parts captures --json results/handeye_captures.json
+    .venv/bin/python benchmarks/handeye.py --parts speed
 
 The JSON holds `methods` (per method `rot_deg`, `trans_mm`, `time_ms`) and
 `jaxcal_rot_ratio_vs_best_opencv`, `jaxcal_trans_ratio_vs_best_opencv` (jaxcal's
@@ -413,6 +424,74 @@ def captures_part(captures: int, frames: int, seed: int) -> dict:
 # --------------------------------------------------------------------------- main
 
 
+def synthetic_pixels(seed: int, frames: int, cameras: int, *, noise_px=0.1, robot=None):
+    """Corners of a 7x5 board (3 cm) seen by `cameras` (a stereo pair's offsets) at
+    `frames` random robot poses, eye-to-hand; `robot` = (m, rad): robot poses
+    reported that far off, and `robot_sigma` set to it. **Returns:** the data and the truth."""
+    rng = np.random.default_rng(seed)
+    board = np.concatenate(
+        [np.stack(np.meshgrid(np.arange(7), np.arange(5)), -1).reshape(-1, 2) * 0.03, np.zeros((35, 1))],
+        axis=1,
+    )
+    K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
+    X0 = pose([0.4, -0.3, 0.2], [0.1, -0.05, 0.9])
+    X = np.stack([X0, pose([0.0, 0.12, 0.02], [-0.12, 0.0, 0.01]) @ X0])[:cameras]
+    Y = pose([0.3, -0.2, 0.1], [0.02, 0.03, 0.1])
+    centre = pose([0.0, 0.0, 0.0], -board.mean(0))
+    A0 = [
+        pose(rng.normal(0.0, 0.3, 3), [*rng.normal(0.0, 0.04, 2), 0.75 + rng.normal(0.0, 0.05)]) @ centre
+        for _ in range(frames)
+    ]
+    B = np.stack([np.linalg.inv(X[0]) @ A @ np.linalg.inv(Y) for A in A0])
+    A = np.einsum("cij,fjk,kl->cfil", X, B, Y)
+    p = np.einsum("cfij,pj->cfpi", A[..., :3, :3], board) + A[..., None, :3, 3]
+    uv = np.einsum("ij,cfpj->cfpi", K, p)
+    uv = uv[..., :2] / uv[..., 2:] + rng.normal(0.0, noise_px, uv.shape[:-1] + (2,))
+    kw = {}
+    if robot is not None:
+        B = np.stack([T @ pose(rng.normal(0.0, robot[1], 3), rng.normal(0.0, robot[0], 3)) for T in B])
+        kw = dict(robot_sigma_translation=robot[0], robot_sigma_rotation=robot[1])
+    data = he.make_hand_eye_pixels(B, uv, np.broadcast_to(K, (cameras, 3, 3)), board, sigma_px=noise_px, **kw)
+    return data, X, Y
+
+
+def speed_part(seed: int, dense: bool) -> dict:
+    """Solve times after compilation: noisy robot poses (blocks, and the dense reference) and 50 exact poses."""
+    out = {}
+    noisy, X, _ = synthetic_pixels(seed, 30, 2, robot=(1e-3, 1e-3))
+    exact, X1, _ = synthetic_pixels(seed + 1, 50, 1)
+    runs = [("noisy_robot_pixels", noisy, True, 15), ("pixels_50", exact, True, 15)]
+    if dense:
+        runs.append(("noisy_robot_pixels_dense", noisy, False, 3))
+    results = {}
+    for name, data, blocks, repeats in runs:
+        solve = jax.jit(functools.partial(he.calibrate_hand_eye, by_blocks=blocks))
+        first = time.perf_counter()
+        jax.block_until_ready(solve(data))
+        first = 1e3 * (time.perf_counter() - first)
+        results[name], ms = timed(solve, data, repeats=repeats)
+        out[f"{name}_ms"] = ms
+        out[f"{name}_compile_ms"] = first - ms
+        r = results[name]
+        out[f"{name}_steps"] = np.asarray(r.stage_steps).tolist()
+        out[f"{name}_result"] = str(r.result)
+        truth = X if name.startswith("noisy") else X1
+        rot, trans = errors(np.asarray(r.T_cam_robot[0]), truth[0])
+        out[f"{name}_cam_error"] = dict(rot_deg=rot, trans_mm=trans)
+    if dense:
+        a, b = results["noisy_robot_pixels"], results["noisy_robot_pixels_dense"]
+        out["blocks_vs_dense_max_abs_diff"] = {
+            k: float(np.max(np.abs(np.asarray(getattr(a, k)) - np.asarray(getattr(b, k)))))
+            for k in ("T_cam_robot", "T_robot_board", "T_base_ee", "std_cam_robot")
+        }
+    out["problems"] = {
+        "noisy_robot_pixels": "30 poses x 2 cameras x 35 corners, 0.1 px, robot poses off by 1 mm / 1 mrad "
+        "(robot_sigma given: 180 corrections + 18 global unknowns)",
+        "pixels_50": "50 poses x 1 camera x 35 corners, 0.1 px, exact robot poses (12 unknowns)",
+    }
+    return out
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--json", type=Path, help="write the results here (atomically)")
@@ -422,11 +501,14 @@ def main(argv=None) -> dict:
     p.add_argument("--captures", type=int, default=3, help="rendered captures per target and arrangement")
     p.add_argument("--capture-frames", type=int, default=16, help="frames per rendered capture")
     p.add_argument(
-        "--parts", default="protocol,rendered,captures", help="comma-separated: protocol, rendered, captures"
+        "--parts",
+        default="protocol,rendered,captures,speed",
+        help="comma-separated: protocol, rendered, captures, speed",
     )
     p.add_argument(
         "--quick", action="store_true", help="a smoke run: 3 trials, 10 poses, 12 frames, 1 capture"
     )
+    p.add_argument("--no-dense", action="store_true", help="speed: skip the dense reference solve")
     a = p.parse_args(argv)
     parts = set(a.parts.split(","))
     counts, scales = ((10,), (1.0,)) if a.quick else ((10, 20), (0.5, 1.0, 2.0))
@@ -450,6 +532,14 @@ def main(argv=None) -> dict:
     if "captures" in parts:
         print("Rendered captures through jaxcal's hand-eye pipeline:", flush=True)
         result["captures"] = captures_part(1 if a.quick else a.captures, a.capture_frames, a.seed)
+    if "speed" in parts:
+        print("Solve times (synthetic corners):", flush=True)
+        speed = speed_part(a.seed, not a.no_dense)
+        result.update(
+            noisy_robot_pixels_ms=speed["noisy_robot_pixels_ms"],
+            pixels_ms_50=speed["pixels_50_ms"],
+            speed=speed,
+        )
     result.update(
         {
             "data": {

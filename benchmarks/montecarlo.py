@@ -23,14 +23,26 @@ noise, encoders and orientations).
   It is timed on a subset (`--scipy-trials`), scaled to `--trials`, and
   scored with jaxcal's `score`.
 
+- Devices (`--device-counts 1,4`): the same `monte_carlo` call sharded over
+  1, 4, ... devices, each count in a fresh process (JAX reads the device count
+  at start). On the CPU the devices are forced
+  (`XLA_FLAGS=--xla_force_host_platform_device_count`), twice as many as the
+  mesh uses so that jaxlib's LAPACK kernels keep free pool threads (see
+  `jaxcal._montecarlo.default_devices`); on a GPU host, the GPUs. Each entry
+  of `device_scaling` holds `devices`, `trials_per_s` (best of `--repeats`
+  after the compiling call), `compile_s`, and the largest difference of any
+  trial's `ee_rms_mm` from the one-device run (`max_abs_diff_ee_rms_mm`).
+
 How to run (from the repository root)::
 
     .venv/bin/python benchmarks/montecarlo.py --trials 200 --scipy-trials 10 --json results/montecarlo.json
     .venv/bin/python benchmarks/montecarlo.py --quick      # smoke run
+    .venv/bin/python benchmarks/montecarlo.py --scaling-only --trials 64 --device-counts 1,4
 
 The JSON (printed, and written atomically with `--json`) holds `trials`,
 `jaxcal_s`, `compile_s`, `scipy_s`, `speedup`, `success_rate`,
-`ee_rms_mm_median`, `scipy_ee_rms_mm_median`, `device`, `notes`, and
+`ee_rms_mm_median`, `scipy_ee_rms_mm_median`, `device`, `devices` and
+`trials_per_s` (the main run's mesh and rate), `device_scaling`, `notes`, and
 details (SciPy's time per stage, solver steps on both sides).
 """
 
@@ -38,6 +50,8 @@ import argparse
 import json
 import os
 import platform
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from typing import NamedTuple
@@ -78,6 +92,7 @@ from jaxcal._montecarlo import (
     score,
     summarize,
     synthesize_sweeps,
+    trial_mesh,
 )
 from jaxcal.robots import load_robot
 
@@ -380,6 +395,8 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
         ee_rms_mm_median=summary["ee_rms_mm_median"],
         scipy_ee_rms_mm_median=float(np.median(scipy_ee)),
         device=jax.devices()[0].platform,
+        devices=trial_mesh().size,
+        trials_per_s=trials / run_s,
         scipy_measured_trials=n_scipy,
         scipy_per_trial_s=scipy_t / n_scipy,
         jaxcal_per_trial_ms=1e3 * run_s / trials,
@@ -442,6 +459,53 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
     )
 
 
+def scaling_worker(devices: int, trials: int, repeats: int, seed: int, frames: int) -> dict:
+    """One device count's timing (run in a process started by `device_scaling`)."""
+    setup = default_setup(load_robot("ur5e"), plan=SweepPlan(frames=frames))
+    key, mesh = jax.random.key(seed), jax.devices()[:devices]
+    t0 = time.perf_counter()
+    result = jax.block_until_ready(monte_carlo(setup, key, trials, devices=mesh))
+    first_s = time.perf_counter() - t0
+    run_s = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = jax.block_until_ready(monte_carlo(setup, key, trials, devices=mesh))
+        run_s = min(run_s, time.perf_counter() - t0)
+    return dict(
+        devices=len(mesh),
+        platform=mesh[0].platform,
+        visible_devices=jax.device_count(),
+        trials=trials,
+        trials_per_s=trials / run_s,
+        run_s=run_s,
+        compile_s=first_s - run_s,
+        success_rate=float(np.mean(np.asarray(result.success))),
+        ee_rms_mm=np.asarray(result.ee_rms_mm).tolist(),
+    )
+
+
+def device_scaling(counts: list[int], trials: int, repeats: int, seed: int, frames: int) -> list[dict]:
+    """`scaling_worker` for every device count, each in a fresh process; on a
+    CPU-only host with forced devices (twice the count: spare pool threads)."""
+    out = []
+    for n in counts:
+        env = dict(os.environ)
+        if jax.devices()[0].platform == "cpu":
+            env["XLA_FLAGS"] = (
+                env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={2 * n if n > 1 else 1}"
+            ).strip()
+        args = ["--scaling-worker", str(n), "--trials", str(trials), "--repeats", str(repeats)]
+        args += ["--seed", str(seed), "--frames", str(frames)]
+        proc = subprocess.run(
+            [sys.executable, __file__, *args], env=env, capture_output=True, text=True, check=True
+        )
+        out.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    ref = np.asarray(out[0]["ee_rms_mm"])
+    for entry in out:
+        entry["max_abs_diff_ee_rms_mm"] = float(np.max(np.abs(np.asarray(entry.pop("ee_rms_mm")) - ref)))
+    return out
+
+
 def _new_stats() -> dict:
     return dict(arc_nfev=[], arc_njev=[], axis_nfev=[], axis_njev=[], ok=[])
 
@@ -464,10 +528,30 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="a small smoke run")
     parser.add_argument("--json", metavar="OUT", help="also write the JSON here")
+    parser.add_argument(
+        "--device-counts", default="1,4", help="devices of device_scaling, comma-separated ('' to skip)"
+    )
+    parser.add_argument("--scaling-only", action="store_true", help="only device_scaling (no SciPy)")
+    parser.add_argument("--scaling-worker", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.scaling_worker:
+        print(
+            json.dumps(scaling_worker(args.scaling_worker, args.trials, args.repeats, args.seed, args.frames))
+        )
+        return
     if args.quick:
         args.trials, args.scipy_trials, args.repeats = 8, 2, 1
-    result = run(args.trials, args.scipy_trials, args.repeats, args.seed, args.frames)
+    counts = [int(c) for c in args.device_counts.split(",") if c.strip()]
+    result = (
+        {} if args.scaling_only else run(args.trials, args.scipy_trials, args.repeats, args.seed, args.frames)
+    )
+    if counts:
+        scaling = device_scaling(counts, args.trials, args.repeats, args.seed, args.frames)
+        result["device_scaling"] = scaling
+        result["device_scaling_note"] = (
+            f"{os.cpu_count()} cores; on the CPU each count runs on twice as many forced host devices "
+            "(spare intra-op pool threads for jaxlib's LAPACK kernels), in its own process"
+        )
     if args.json:
         write_json(result, args.json)
     print(json.dumps(result, indent=2))

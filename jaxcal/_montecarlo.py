@@ -16,12 +16,15 @@ like with like.
 """
 
 import functools
+import os
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._arcdata import ArcData, make_arc_data
@@ -343,15 +346,104 @@ def dynamic_setup(setup: MonteCarloSetup) -> MonteCarloSetup:
 CPU_CHUNK = 250
 
 
-def monte_carlo(
-    setup: MonteCarloSetup, key: PRNGKeyArray, trials: int, *, chunk: int | None = None
-) -> TrialResult:
-    """Run `trials` seeded trials in one jitted call: `vmap(run_trial)` over
-    chunks of at most `chunk` trials, the chunks one after another (`lax.map`).
+#: The name of `trial_mesh`'s one axis: trials are split over it.
+TRIALS_AXIS = "trials"
 
-    `chunk` defaults to `CPU_CHUNK` on the CPU and to all trials at once on an
-    accelerator; the trials and their results do not depend on it (trial `i`
-    uses key `split(key, trials)[i]`).
+
+def default_devices() -> list:
+    """The devices `monte_carlo` shards over by default: `jax.devices()` (every
+    device of every process), except on the CPU, where each process keeps at
+    most half its intra-op thread pool's size.
+
+    Why the CPU limit: XLA runs each CPU device's program on a thread of one
+    shared pool of $\\max(\\text{cores}, \\text{devices})$ threads, and jaxlib's
+    batched LAPACK kernels block their thread until chunks they schedule on the
+    same pool are done (`jaxcal._linalg`). When every pool thread runs a device
+    program waiting in such a kernel, nothing runs the chunks: with
+    `--xla_force_host_platform_device_count=4` on a two-core machine (a pool of
+    four), the four-device trial hangs. Half the pool always leaves threads free.
+    """
+    devices = jax.devices()
+    if devices[0].platform != "cpu":
+        return devices
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    keep = max(1, max(cores, jax.local_device_count()) // 2)
+    taken: dict[int, int] = {}
+    out = []
+    for d in devices:
+        taken[d.process_index] = taken.get(d.process_index, 0) + 1
+        if taken[d.process_index] <= keep:
+            out.append(d)
+    return out
+
+
+def trial_mesh(devices=None) -> Mesh:
+    """A one-dimensional device mesh over the axis `TRIALS_AXIS` (default devices:
+    `default_devices()`)."""
+    devices = default_devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("trial_mesh: no devices")
+    return Mesh(np.asarray(devices), (TRIALS_AXIS,))
+
+
+def monte_carlo(
+    setup: MonteCarloSetup,
+    key: PRNGKeyArray,
+    trials: int,
+    *,
+    chunk: int | None = None,
+    devices=None,
+) -> TrialResult:
+    """Run `trials` seeded trials in one jitted call, sharded over devices.
+
+    **Layout** (`map_over_devices`). With $D$ devices (`devices`, default
+    `default_devices()`: every GPU of every host, or part of the CPU's), the trial
+    keys `split(key, trials)` are padded to $D\\lceil N/D\\rceil$ by repeating the
+    first ones, reshaped to $(D, \\lceil N/D\\rceil)$ and laid along a
+    one-dimensional mesh (`trial_mesh`, axis `"trials"`): device $d$ runs its
+    row as `vmap(run_trial)` over chunks of at most `chunk` trials, the chunks
+    one after another (`lax.map`). The padded trials are dropped before the
+    results are gathered (replicated on every device, so every process of a
+    multi-host run can read them): summaries never see them.
+
+    **Communication.** None between trials, except that every solver loop is one
+    `while` over the whole batch: each iteration all-reduces its "any trial left?"
+    flag (a scalar), so the devices step together until the slowest trial of
+    any device is done, as the trials of one chunk already do. (`jax.shard_map`
+    would drop even that, but lineax 0.1's structure checks reject the manual
+    axes' shardings inside it.)
+
+    **Reproducibility.** Trial `i` uses key `split(key, trials)[i]` whatever the
+    devices and the chunk, so one CPU, four GPUs or a pod return the same trials
+    to round-off (vector widths differ; `tests/test_montecarlo.py` checks four
+    CPU devices against one to 1e-12).
+
+    `chunk` defaults to `CPU_CHUNK` on the CPU and to each device's share on an
+    accelerator.
+
+    **Several hosts.** Start the same script on every host, and initialise JAX's
+    distributed runtime before anything else touches JAX; `jax.devices()` then
+    lists every host's devices and the one call shards over all of them:
+
+    ```python
+    import os
+
+    import jax
+
+    jax.distributed.initialize(  # arguments can be omitted on SLURM, Cloud TPU, Open MPI
+        coordinator_address="10.0.0.1:1234", num_processes=2, process_id=int(os.environ["RANK"])
+    )
+    jax.config.update("jax_enable_x64", True)
+    import jaxcal
+    from jaxcal._montecarlo import default_setup, summarize
+
+    setup = default_setup(jaxcal.robots.load_robot("ur5e"))
+    result = jaxcal.monte_carlo(setup, jax.random.key(0), 100_000)  # every host's GPUs
+    if jax.process_index() == 0:
+        print(summarize(result))
+    ```
+
+    Every process must pass the same `setup`, `key` and `trials`.
 
     **Returns:** a `TrialResult` with a leading `(trials,)` axis. Trials whose
     solvers failed have `success == False` (and their codes in
@@ -359,21 +451,49 @@ def monte_carlo(
     """
     if trials < 1:
         raise ValueError(f"monte_carlo: trials must be at least 1, got {trials}")
+    mesh = trial_mesh(devices)
+    per_device = -(-trials // mesh.size)
     if chunk is None:
-        chunk = CPU_CHUNK if jax.default_backend() == "cpu" else trials
+        chunk = CPU_CHUNK if mesh.devices.flat[0].platform == "cpu" else per_device
     if chunk < 1:
         raise ValueError(f"monte_carlo: chunk must be at least 1, got {chunk}")
     setup = dynamic_setup(setup)
-    free = _free_mask_jit(setup)
-    return _batched_trials(setup, jax.random.split(key, trials), free, chunk)
+    # A host value (uncommitted): jit places it on the mesh, on every process.
+    free = np.asarray(_free_mask_jit(setup))
+    return _sharded_trials(setup, key, free, trials=trials, chunk=min(chunk, per_device), mesh=mesh)
 
 
 _free_mask_jit = jax.jit(nominal_free_mask)
 
 
-@functools.partial(jax.jit, static_argnames="chunk")
-def _batched_trials(setup, keys, free, chunk):
-    return map_in_chunks(lambda k: run_trial(setup, k, free), keys, chunk)
+@functools.partial(jax.jit, static_argnames=("trials", "chunk", "mesh"))
+def _sharded_trials(setup, key, free, *, trials: int, chunk: int, mesh: Mesh):
+    keys = jax.random.split(key, trials)
+    return map_over_devices(lambda k: run_trial(setup, k, free), keys, mesh, chunk)
+
+
+def map_over_devices(fn, xs, mesh: Mesh, chunk: int):
+    """`vmap(fn)(xs)` with the leading axis of `xs` split over `mesh`'s devices
+    (under `jit`).
+
+    The $n$ entries are padded to $D\\lceil n/D\\rceil$ with copies of the first
+    ones, reshaped to $(D, \\lceil n/D\\rceil)$ and constrained to the sharding
+    `P(TRIALS_AXIS)`, so XLA's partitioner gives device $d$ row $d$; each row
+    runs `map_in_chunks(fn, row, chunk)`. The results drop the padding and are
+    constrained to be replicated (gathered on every device).
+    """
+    n = jax.tree.leaves(xs)[0].shape[0]
+    rows = mesh.size
+    per = -(-n // rows)
+    idx = jnp.arange(rows * per) % n
+    xs = jax.tree.map(lambda x: x[idx].reshape((rows, per) + x.shape[1:]), xs)
+    xs = jax.lax.with_sharding_constraint(xs, NamedSharding(mesh, P(TRIALS_AXIS)))
+    out = jax.vmap(lambda row: map_in_chunks(fn, row, chunk))(xs)
+    everywhere = NamedSharding(mesh, P())
+    return jax.tree.map(
+        lambda y: jax.lax.with_sharding_constraint(y.reshape((rows * per,) + y.shape[2:])[:n], everywhere),
+        out,
+    )
 
 
 def map_in_chunks(fn, xs, chunk: int):

@@ -77,6 +77,9 @@ parameters per block; all functions pure, jittable and vmappable):
   Jacobians by $\\sqrt{w}$).
 - `block_covariance(J_g, J_l, *, g_mask=None, l_mask=None) -> BlockCovariance`:
   the blocks above (zero for frozen parameters).
+- `full_covariance(J_g, J_l, *, g_mask=None, l_mask=None) -> (n, n)`: all of
+  $(J^TJ)^{+}$, $n = n_g + Bp$, ordered $(g, l_1, \\dots, l_B)$, local
+  cross-blocks included.
 - `block_leverage(J_g, J_l, cov) -> (B, m)`: the diagonal of the hat matrix
   $J\\Sigma J^T$ (sums to the number of identifiable parameters).
 """
@@ -209,7 +212,10 @@ def _damped_step(r, Jg, Jl, lam):
     S = H + lam * jnp.eye(n_g) - jnp.einsum("bij,bjk->ik", W, Y)
     S = 0.5 * (S + S.T)
     rhs = -eg + jnp.einsum("bij,bj->i", W, z)
-    dg = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(S, lower=True), rhs)
+    d = 1.0 / jnp.sqrt(jnp.diagonal(S))  # Jacobi scaling: S's diagonal is at least lambda > 0
+    dg = d * jax.scipy.linalg.cho_solve(
+        jax.scipy.linalg.cho_factor(S * d[:, None] * d[None, :], lower=True), d * rhs
+    )
     dl = -z - jnp.einsum("bjk,k->bj", Y, dg)
     return dg, dl
 
@@ -357,21 +363,8 @@ def _psd_pinv(S: Float[Array, "n n"]) -> Float[Array, "n n"]:
     return (B * inv_w[None, :]) @ B.T
 
 
-def block_covariance(
-    jac_g: Float[Array, "B m n_g"],
-    jac_l: Float[Array, "B m p"],
-    *,
-    g_mask: Bool[Array, " n_g"] | None = None,
-    l_mask: Bool[Array, "B p"] | None = None,
-) -> BlockCovariance:
-    """The blocks of $(J^TJ)^{+}$ without forming it (see the module docstring).
-
-    **Arguments:** the Jacobian blocks at the solution (e.g. a `BlockSolution`'s
-    `jac_g`, `jac_l`; weighted, whitened); `g_mask`, `l_mask`: free parameters
-    (frozen ones get zero rows and columns).
-
-    **Returns:** a `BlockCovariance` (unscaled: multiply by the residual variance).
-    """
+def _covariance_parts(jac_g, jac_l, g_mask, l_mask):
+    """$S^{+}$ (masked), $Y_b = U_b^{+}W_b^T$, $U_b^{+}$ and the masks as floats."""
     n_g, p = jac_g.shape[-1], jac_l.shape[-1]
     gm = jnp.ones(n_g) if g_mask is None else jnp.asarray(g_mask, jac_g.dtype)
     lm = jnp.ones(jac_l.shape[:1] + (p,)) if l_mask is None else jnp.asarray(l_mask, jac_l.dtype)
@@ -388,11 +381,55 @@ def block_covariance(
     Y, Uinv = X[..., :n_g], X[..., n_g:]
     S = H - jnp.einsum("bij,bjk->ik", W, Y)
     C = _psd_pinv(0.5 * (S + S.T)) * gm[:, None] * gm[None, :]
+    return C, Y, Uinv, gm, lm
+
+
+def block_covariance(
+    jac_g: Float[Array, "B m n_g"],
+    jac_l: Float[Array, "B m p"],
+    *,
+    g_mask: Bool[Array, " n_g"] | None = None,
+    l_mask: Bool[Array, "B p"] | None = None,
+) -> BlockCovariance:
+    """The blocks of $(J^TJ)^{+}$ without forming it (see the module docstring).
+
+    **Arguments:** the Jacobian blocks at the solution (e.g. a `BlockSolution`'s
+    `jac_g`, `jac_l`; weighted, whitened); `g_mask`, `l_mask`: free parameters
+    (frozen ones get zero rows and columns).
+
+    **Returns:** a `BlockCovariance` (unscaled: multiply by the residual variance).
+    """
+    C, Y, Uinv, _, lm = _covariance_parts(jac_g, jac_l, g_mask, l_mask)
     gl = -jnp.einsum("ij,bkj->bik", C, Y)  # -S^{-1} W_b U_b^{-1} = -(U_b^{-1} W_b^T S^{-1})^T
     ll = Uinv + jnp.einsum("bij,jk,blk->bil", Y, C, Y)
     gl = gl * lm[:, None, :]
     ll = ll * lm[:, :, None] * lm[:, None, :]
     return BlockCovariance(gg=C, gl=gl, ll=ll)
+
+
+def full_covariance(
+    jac_g: Float[Array, "B m n_g"],
+    jac_l: Float[Array, "B m p"],
+    *,
+    g_mask: Bool[Array, " n_g"] | None = None,
+    l_mask: Bool[Array, "B p"] | None = None,
+) -> Float[Array, "n n"]:
+    """All of $(J^TJ)^{+}$, $n = n_g + Bp$, parameters ordered $(g, l_1, \\dots, l_B)$.
+
+    The blocks of `block_covariance` and the cross-covariances of different
+    local blocks, $\\Sigma_{l_b l_c} = Y_b S^{-1} Y_c^T$ ($b \\ne c$,
+    $Y_b = U_b^{-1}W_b^T$): with $Y$ the $Bp \\times n_g$ stack,
+    $\\Sigma_{ll} = \\mathrm{blockdiag}(U_b^{-1}) + Y S^{-1} Y^T$. $O((Bp)^2 n_g)$
+    after the one $n_g \\times n_g$ decomposition: no $n \\times n$ factorisation.
+    """
+    C, Y, Uinv, _, lm = _covariance_parts(jac_g, jac_l, g_mask, l_mask)
+    B, p, n_g = Y.shape
+    Yf = (Y * lm[..., None]).reshape(B * p, n_g)
+    Uinv = Uinv * lm[:, :, None] * lm[:, None, :]
+    diag = jnp.einsum("bc,bij->bicj", jnp.eye(B, dtype=Uinv.dtype), Uinv).reshape(B * p, B * p)
+    gl = -C @ Yf.T
+    ll = diag + Yf @ C @ Yf.T
+    return jnp.block([[C, gl], [gl.T, ll]])
 
 
 def block_leverage(

@@ -1,6 +1,11 @@
 """Monte Carlo entry point: one jit call over seeded trials (vmapped chunks)."""
 
 import dataclasses
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -23,6 +28,7 @@ from jaxcal._montecarlo import (
     trial_sweeps,
 )
 
+ROOT = Path(__file__).resolve().parents[1]
 SETUP = ur5e_setup(frames=24)
 TRIALS = 8  # one batch shape for every test here (and test_cli): one compilation
 
@@ -123,3 +129,66 @@ def test_bad_trial_counts():
         monte_carlo(SETUP, jax.random.key(0), 0)
     with pytest.raises(ValueError, match="chunk must be at least 1"):
         monte_carlo(SETUP, jax.random.key(0), 4, chunk=0)
+
+
+# Eight forced CPU devices, a mesh over four (or three): a pool of eight threads
+# leaves jaxlib's LAPACK chunks threads to run on (see `default_devices`).
+_SHARDED = """
+import os, sys
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=8 --xla_backend_optimization_level=0"
+import jax
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_compilation_cache_dir", sys.argv[2])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+import numpy as np
+import optimistix as optx
+sys.path.insert(0, sys.argv[3])
+from helpers import ur5e_setup
+from jaxcal._montecarlo import default_devices, map_over_devices, monte_carlo, trial_mesh
+
+assert jax.device_count() == 8 and len(default_devices()) >= 4
+res = monte_carlo(ur5e_setup(frames=24), jax.random.key(1), 8, devices=jax.devices()[:4])
+assert len(res.ee_rms_mm.sharding.device_set) == 4 and res.ee_rms_mm.sharding.is_fully_replicated
+# Padding: 10 entries over 3 devices (12 rows), chunks of 3.
+xs = jax.random.normal(jax.random.key(2), (10, 3))
+mesh = trial_mesh(jax.devices()[:3])
+ys = jax.jit(lambda x: map_over_devices(lambda v: {"s": v.sum(), "x": 2 * v}, x, mesh, 3))(xs)
+np.savez(sys.argv[1], ys_s=np.asarray(ys["s"]), ys_x=np.asarray(ys["x"]), xs=np.asarray(xs),
+         **{k: np.asarray(getattr(res, k)) for k in ("ee_rms_mm", "cam_trans_mm", "cam_rot_deg",
+            "axis_dir_deg", "axis_pos_mm", "ratio_err_percent", "success")},
+         arc_ok=np.asarray(res.arc_result == optx.RESULTS.successful),
+         axis_ok=np.asarray(res.axis_result == optx.RESULTS.successful))
+"""
+
+
+def test_sharded_over_four_devices_equals_one_device(tmp_path):
+    """The same trials on four (forced CPU) devices as on one, to round-off;
+    uneven sharding pads and drops the padding."""
+    out = tmp_path / "sharded.npz"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    cache = jax.config.jax_compilation_cache_dir or str(tmp_path / "cache")
+    proc = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(_SHARDED), str(out), cache, str(ROOT / "tests")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    got = np.load(out)
+    np.testing.assert_allclose(got["ys_s"], got["xs"].sum(-1), rtol=1e-14)
+    np.testing.assert_array_equal(got["ys_x"], 2 * got["xs"])
+    one = monte_carlo(SETUP, jax.random.key(1), TRIALS)  # test_noisy_trials_improve's program
+    np.testing.assert_array_equal(got["success"], np.asarray(one.success))
+    np.testing.assert_array_equal(got["arc_ok"], np.asarray(one.arc_result == optx.RESULTS.successful))
+    np.testing.assert_array_equal(got["axis_ok"], np.asarray(one.axis_result == optx.RESULTS.successful))
+    for name in (
+        "ee_rms_mm",
+        "cam_trans_mm",
+        "cam_rot_deg",
+        "axis_dir_deg",
+        "axis_pos_mm",
+        "ratio_err_percent",
+    ):
+        np.testing.assert_allclose(got[name], np.asarray(getattr(one, name)), rtol=0, atol=1e-12)

@@ -13,6 +13,7 @@ from jaxcal._schur import (
     block_covariance,
     block_least_squares,
     block_leverage,
+    full_covariance,
     jacobian_by_jvp,
 )
 
@@ -111,6 +112,9 @@ def test_covariance_and_leverage_equal_the_dense_inverse(masked):
     np.testing.assert_allclose(cov.ll, blocks, atol=1e-10 * scale)
     cross = dense[:n_g, n_g:].reshape(n_g, B, p).transpose(1, 0, 2)
     np.testing.assert_allclose(cov.gl, cross, atol=1e-10 * scale)
+    # All of it, local cross-blocks included.
+    full = full_covariance(sol.jac_g, sol.jac_l, g_mask=g_mask, l_mask=l_mask)
+    np.testing.assert_allclose(full, dense, atol=1e-10 * scale)
     # Leverages: the hat matrix's diagonal, summing to the number of free parameters.
     Jm = np.asarray(sol.jac_g) * g_mask, np.asarray(sol.jac_l) * l_mask[:, None, :]
     h = block_leverage(*Jm, cov)

@@ -207,9 +207,13 @@ def robust_residuals(params, args):
     ref, data, loss_scale, robust = args
     r, prior = hand_eye_residuals(params, (ref, data))
     n = jnp.maximum(group_sizes(ref, data), 1.0)
-    x = jnp.sum(r**2, axis=-1) / n
-    b2 = loss_scale**2
+    w = cauchy_weight(jnp.sum(r**2, axis=-1) / n, loss_scale**2)
+    return r * jnp.where(robust, w, 1.0)[..., None], prior
+
+
+def cauchy_weight(x, b2):
+    """$\\sqrt{\\rho(s)/s} = \\sqrt{b^2\\log(1 + x/b^2)/x}$ of a group with mean square $x$
+    (its series $1 - x/(2b^2)$ near zero)."""
     small = x < 1e-12
     safe_x = jnp.where(small, 1.0, x)
-    w = jnp.where(small, 1.0 - x / (2.0 * b2), jnp.sqrt(b2 * jnp.log1p(safe_x / b2) / safe_x))
-    return r * jnp.where(robust, w, 1.0)[..., None], prior
+    return jnp.where(small, 1.0 - x / (2.0 * b2), jnp.sqrt(b2 * jnp.log1p(safe_x / b2) / safe_x))

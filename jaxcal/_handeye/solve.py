@@ -10,6 +10,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import pose_inverse
 from .._linalg import after
+from .blocks import block_bread, solve_by_blocks
 from .closed import initialise_hand_eye
 from .common import least_squares, pose_error
 from .data import HandEyeData, HandEyePixels, HandEyePoses
@@ -145,6 +146,7 @@ def calibrate_hand_eye(
     max_steps: int = 200,
     throw: bool = False,
     scale_covariance: bool = True,
+    by_blocks: bool = True,
 ) -> HandEyeResult:
     """Hand-eye calibration (eye-to-hand or eye-in-hand, one or more cameras); pure, jittable, vmappable.
 
@@ -170,6 +172,10 @@ def calibrate_hand_eye(
       when the residuals are larger than the stated noise, the stated noise
       was optimistic and the covariance grows with them; when smaller, the
       stated noise is kept (a small residual may be luck or overfitting).
+    - `by_blocks`: pixels with noisy robot poses: solve and take the covariance
+      by the Schur complement over the per-pose corrections (`blocks`; the same
+      optimum, linear in the frames); False: dense Levenberg-Marquardt over all
+      unknowns (optimistix), the reference. No effect on other data.
 
     **Returns:** a `HandEyeResult`.
     """
@@ -182,25 +188,29 @@ def calibrate_hand_eye(
         robot=None if data.robot_sigma is None or isinstance(data, HandEyePoses) else jnp.zeros((F, 6)),
     )
     observed = jnp.any(data.mask, axis=-1) if isinstance(data, HandEyePixels) else data.mask
+    blocks = by_blocks and params0.robot is not None  # pixels with per-pose robot corrections
 
     def stage(carry, robust):
         # One Levenberg-Marquardt, traced once and run per stage: robust (Cauchy)
         # then plain on the groups the robust stage kept.
         params, active = carry
         ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
-        sol = least_squares(
-            robust_residuals, params, (ref, data, loss_scale, robust), rtol, atol, max_steps, False
-        )
-        rms = _group_rms(sol.value, ref, data)
+        args = (ref, data, loss_scale, robust)
+        if blocks:
+            value, code, steps = solve_by_blocks(params, args, rtol, atol, max_steps)
+        else:
+            sol = least_squares(robust_residuals, params, args, rtol, atol, max_steps, False)
+            value, code, steps = sol.value, sol.result, sol.stats["num_steps"]
+        rms = _group_rms(value, ref, data)
         scale = jnp.maximum(jnp.nanmedian(rms), min_outlier_scale)
         reject = robust & active & (rms > outlier_threshold * scale)
-        if sol.value.robot is not None:
+        if value.robot is not None:
             # A robot pose far outside its stated noise is absorbed by its correction
             # (the pixels then fit): reject the frame on the correction's size.
-            p = jnp.where(jnp.any(active, axis=0), _prior_rms(sol.value, data), jnp.nan)
+            p = jnp.where(jnp.any(active, axis=0), _prior_rms(value, data), jnp.nan)
             p_scale = jnp.maximum(jnp.nanmedian(p), 1.0)
             reject = reject | (robust & active & (p > outlier_threshold * p_scale)[None])
-        return (sol.value, active & ~reject), (sol.result, sol.stats["num_steps"])
+        return (value, active & ~reject), (code, steps)
 
     # `reject_outliers` is traced, so both settings share one compiled solver; when False
     # the first stage is plain too and the second starts from its optimum.
@@ -216,7 +226,7 @@ def calibrate_hand_eye(
     X0_kept, Y0_kept = initialise_hand_eye(after(eqx.tree_at(lambda d: d.mask, data, kept), params))
     params = after(params, X0_kept, Y0_kept)
     ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
-    out = _summarise(params, ref, data, observed & ~active, scale_covariance)
+    out = _summarise(params, ref, data, observed & ~active, scale_covariance, blocks)
     return eqx.tree_at(
         lambda r: (
             r.result,
@@ -243,30 +253,39 @@ def _group_rms(params, ref, data) -> Float[Array, "cameras frames"]:
     return jnp.where(n > 0, jnp.sqrt(jnp.sum(r**2, axis=-1) / jnp.maximum(n, 1.0)), jnp.nan)
 
 
-def _frame_robust_covariance(J, r, bread, ref, data) -> Float[Array, "n n"]:
-    """The cluster-robust (sandwich) covariance with one cluster per frame.
-
-    $B \\big(\\sum_f g_f g_f^T\\big) B \\cdot G/(G-1)$, $g_f = J_f^T r_f$ the
-    gradient of frame $f$'s residuals (all cameras and its robot prior),
-    $B = (J^T J)^{-1}$, $G$ the frames kept. Unlike $s^2 B$ it does not assume
-    the errors independent within a frame: a frame's corners share its robot
-    pose error and the detector's view-dependent bias, which move the whole
-    view together (the model's $\\sigma$ sees them only as a little extra
-    pixel noise). Same expectation as $B$ when the noise model holds.
-    """
+def _frame_gradients(J, r, ref, data) -> Float[Array, "frames n"]:
+    """$g_f = J_f^T r_f$: the gradient of frame $f$'s residuals (all cameras and its robot prior)."""
     C, F = ref.active.shape
     per_group = 2 * data.mask.shape[-1] if isinstance(data, HandEyePixels) else 6
     n_obs, n = C * F * per_group, J.shape[1]
     g = jnp.einsum("cfkn,cfk->fn", J[:n_obs].reshape(C, F, per_group, n), r[:n_obs].reshape(C, F, per_group))
     if r.shape[0] > n_obs:  # the robot corrections' prior, one block per frame
         g = g + jnp.einsum("fkn,fk->fn", J[n_obs:].reshape(F, 6, n), r[n_obs:].reshape(F, 6))
+    return g
+
+
+def _frame_robust_covariance(g, bread, ref) -> Float[Array, "n n"]:
+    """The cluster-robust (sandwich) covariance with one cluster per frame.
+
+    $B \\big(\\sum_f g_f g_f^T\\big) B \\cdot G/(G-1)$, $g_f = J_f^T r_f$ the
+    gradient of frame $f$'s residuals (all cameras and its robot prior;
+    `_frame_gradients`, or `blocks.block_bread`), $B = (J^T J)^{-1}$, $G$ the
+    frames kept. Unlike $s^2 B$ it does not assume
+    the errors independent within a frame: a frame's corners share its robot
+    pose error and the detector's view-dependent bias, which move the whole
+    view together (the model's $\\sigma$ sees them only as a little extra
+    pixel noise). Same expectation as $B$ when the noise model holds.
+    """
     kept = jnp.sum(jnp.any(ref.active, axis=0))
     meat = g.T @ g * kept / jnp.maximum(kept - 1.0, 1.0)
     return bread @ meat @ bread
 
 
-def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
-    """The result at `params`: covariance, standard deviations, residual statistics (solver fields left None)."""
+def _bread(params, ref, data, blocks: bool):
+    """$(J^TJ)^{+}$ of the plain residuals at `params`, the per-frame gradients and $\\|r\\|^2$:
+    by blocks (`blocks.block_bread`) or from the dense Jacobian."""
+    if blocks:
+        return block_bread(params, ref, data)
     flat, unravel = ravel_pytree(params)
 
     def flat_res(x):
@@ -276,12 +295,19 @@ def _summarise(params, ref, data, rejected, scale_covariance) -> HandEyeResult:
     J = jax.jacfwd(flat_res)(flat)
     r_all = flat_res(flat)
     bread = jnp.linalg.pinv(J.T @ J, hermitian=True)
+    return bread, _frame_gradients(J, r_all, ref, data), jnp.sum(r_all**2)
+
+
+def _summarise(params, ref, data, rejected, scale_covariance, blocks=False) -> HandEyeResult:
+    """The result at `params`: covariance, standard deviations, residual statistics (solver fields left None)."""
+    flat, unravel = ravel_pytree(params)
+    bread, grads, ssr = _bread(params, ref, data, blocks)
     n_obs = jnp.sum(group_sizes(ref, data))
     n_prior = 0 if params.robot is None else params.robot.size
     dof = jnp.maximum(n_obs + n_prior - flat.size, 1.0)
-    variance_factor = jnp.sum(r_all**2) / dof
+    variance_factor = ssr / dof
     cov = bread * jnp.maximum(variance_factor, 1.0) if scale_covariance else bread
-    cov_frames = _frame_robust_covariance(J, r_all, bread, ref, data)
+    cov_frames = _frame_robust_covariance(grads, bread, ref)
 
     X, Y = transforms(params, ref)
     Xi = jax.vmap(pose_inverse)(X)
