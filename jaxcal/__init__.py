@@ -16,7 +16,9 @@ _enable_compilation_cache()
 from . import vision as vision  # noqa: E402
 from ._arcdata import ArcData as ArcData  # noqa: E402
 from ._arcdata import make_arc_data as make_arc_data  # noqa: E402
+from ._arcdata import stack_sweeps as stack_sweeps  # noqa: E402
 from ._arcfit import ArcFitResult as ArcFitResult  # noqa: E402
+from ._arcfit import arc_outliers as arc_outliers  # noqa: E402
 from ._arcfit import fit_arc as fit_arc  # noqa: E402
 from ._arcfit import validate_arc_data as validate_arc_data  # noqa: E402
 from ._axisfit import AxisFitResult as AxisFitResult  # noqa: E402
