@@ -22,6 +22,7 @@ from conftest import CACHE_DIR
 
 from jaxcal.cli import main
 from jaxcal.io.dataset import DatasetError
+from jaxcal.io.ros import read_easy_handeye, read_static_transform
 from jaxcal.pipeline import CalibrationError, calibrate
 from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
@@ -115,6 +116,9 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
             "result.json",
             "calibrated.urdf",
             "camera_cam0.yaml",
+            "ros_cam0.launch.yaml",
+            "ros_cam0.txt",
+            "easy_handeye_cam0.yaml",
             "report.md",
             "arcs.png",
             "residuals.png",
@@ -147,6 +151,15 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     assert np.allclose(fs.getNode("T_cam_base_std").mat().ravel(), result.std_cam)
     fs.release()
     assert r["other_cameras"] == [] and result.other_cameras == []
+    # The camera in the base link for ROS: parsed back, the calibrated pose (issue 16 item 7).
+    T_base_cam = np.linalg.inv(np.asarray(result.T_cam_base))
+    for f in ("ros_cam0.launch.yaml", "ros_cam0.txt"):
+        T, parent, child = read_static_transform(out / f)
+        np.testing.assert_allclose(T, T_base_cam, atol=1e-9)
+        assert (parent, child) == (result.model.link_names[0], "cam0")
+    easy = read_easy_handeye(out / "easy_handeye_cam0.yaml")
+    np.testing.assert_allclose(easy["T"], T_base_cam, atol=1e-9)
+    assert not easy["eye_on_hand"] and easy["tracking_marker_frame"] == result.targets[0]
     report = (out / "report.md").read_text()
     assert "EE RMS" in report and "![" in report
 

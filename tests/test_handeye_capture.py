@@ -26,6 +26,7 @@ from jaxcal.io.handeye import (
     quaternion_to_matrix,
     write_hand_eye_description,
 )
+from jaxcal.io.ros import read_easy_handeye, read_static_transform
 from jaxcal.markers import TargetSpec
 from jaxcal.vision import Detection, hand_eye_from_detections
 
@@ -475,9 +476,15 @@ def test_rendered_capture_calibrates_through_the_command(tmp_path, capsys, targe
     fs = cv2.FileStorage(str(out / "camera_cam0.yaml"), cv2.FILE_STORAGE_READ)
     np.testing.assert_allclose(fs.getNode("T_robot_cam").mat(), cam["T_robot_cam"]["matrix"])
     fs.release()
-    easy = (out / "easy_handeye_cam0.yaml").read_text()
-    assert f"eye_on_hand: {'true' if eye_in_hand else 'false'}" in easy and "  qw: " in easy
-    assert "static_transform_publisher" in (out / "ros_cam0.launch.yaml").read_text()
+    # The ROS files parse back to the same pose (round trip, issue 16 item 7).
+    T = np.asarray(cam["T_robot_cam"]["matrix"])
+    easy = read_easy_handeye(out / "easy_handeye_cam0.yaml")
+    assert easy["eye_on_hand"] == eye_in_hand and easy["tracking_base_frame"] == cam["child_frame"]
+    np.testing.assert_allclose(easy["T"], T, atol=1e-9)
+    for f in ("ros_cam0.launch.yaml", "ros_cam0.txt"):
+        T_ros, parent, child = read_static_transform(out / f)
+        np.testing.assert_allclose(T_ros, T, atol=1e-9)
+        assert (parent, child) == (cam["parent_frame"], cam["child_frame"])
     assert "status **ok**" in (out / "report.md").read_text()
 
 

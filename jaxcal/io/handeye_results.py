@@ -21,6 +21,7 @@ import jax
 import numpy as np
 import optimistix as optx
 
+from . import ros
 from ._files import atomic_directory
 from .handeye import matrix_to_quaternion
 
@@ -198,54 +199,25 @@ def write_opencv_yaml(path: Path, run, c: int) -> None:
 
 
 def static_transform_args(run, c: int) -> dict:
-    """The `static_transform_publisher` argument lines of camera `c`'s pose (ROS 2 named, ROS 1 positional)."""
-    parent, child = camera_frames(run, c)
-    T = np.asarray(run.result.T_robot_cam[c])
-    t, q = T[:3, 3], matrix_to_quaternion(T[:3, :3])
-    v = [f"{x:.9g}" for x in (*t, *q)]
-    ros2 = (
-        f"--x {v[0]} --y {v[1]} --z {v[2]} --qx {v[3]} --qy {v[4]} --qz {v[5]} --qw {v[6]} "
-        f"--frame-id {parent} --child-frame-id {child}"
-    )
-    return {"ros2": ros2, "ros1": " ".join(v) + f" {parent} {child}", "parent": parent, "child": child}
+    """The `static_transform_publisher` argument lines of camera `c`'s pose (see `jaxcal.io.ros`)."""
+    return ros.static_transform_args(run.result.T_robot_cam[c], *camera_frames(run, c))
 
 
 def write_ros(folder: Path, run, c: int) -> None:
-    name = run.capture.cameras[c].name
-    a = static_transform_args(run, c)
-    launch = (
-        f"# jaxcal hand-eye calibration ({run.capture.arrangement}, status {run.verdict.status}):\n"
-        f"# the pose of {a['child']} in {a['parent']}.  Run: ros2 launch ros_{name}.launch.yaml\n"
-        "launch:\n"
-        "- node:\n"
-        "    pkg: tf2_ros\n"
-        "    exec: static_transform_publisher\n"
-        f"    name: jaxcal_handeye_{name}\n"
-        f'    args: "{a["ros2"]}"\n'
+    """Camera `c`'s pose as a ROS static transform and as easy_handeye's YAML."""
+    cap, name = run.capture, run.capture.cameras[c].name
+    T = run.result.T_robot_cam[c]
+    comment = f"jaxcal hand-eye calibration ({cap.arrangement}, status {run.verdict.status})"
+    ros.write_static_transform(folder, name, T, *camera_frames(run, c), comment)
+    ros.write_easy_handeye(
+        folder / f"easy_handeye_{name}.yaml",
+        T,
+        eye_on_hand=cap.eye_in_hand,
+        base_frame=cap.base_frame,
+        effector_frame=cap.ee_frame,
+        camera_frame=cap.cameras[c].frame_id,
+        marker_frame=cap.target_frame,
     )
-    (folder / f"ros_{name}.launch.yaml").write_text(launch)
-    (folder / f"ros_{name}.txt").write_text(
-        f"ros2 run tf2_ros static_transform_publisher {a['ros2']}\n"
-        f"rosrun tf2_ros static_transform_publisher {a['ros1']}\n"
-    )
-
-
-def write_easy_handeye(path: Path, run, c: int) -> None:
-    """easy_handeye's calibration YAML: `eye_on_hand`, the four frames, `transformation` (x y z qx qy qz qw)."""
-    cap = run.capture
-    T = np.asarray(run.result.T_robot_cam[c])
-    q = matrix_to_quaternion(T[:3, :3])
-    lines = [
-        f"eye_on_hand: {'true' if cap.eye_in_hand else 'false'}",
-        f"robot_base_frame: {cap.base_frame}",
-        f"robot_effector_frame: {cap.ee_frame}",
-        f"tracking_base_frame: {cap.cameras[c].frame_id}",
-        f"tracking_marker_frame: {cap.target_frame}",
-        "transformation:",
-        *(f"  {k}: {v:.12g}" for k, v in zip(("x", "y", "z"), T[:3, 3])),
-        *(f"  {k}: {v:.12g}" for k, v in zip(("qx", "qy", "qz", "qw"), q)),
-    ]
-    path.write_text("\n".join(lines) + "\n")
 
 
 # --------------------------------------------------------------------------- report
@@ -378,7 +350,6 @@ def write_hand_eye_outputs(run, out, *, overwrite: bool = False, checked=None) -
         for c, cam in enumerate(run.capture.cameras):
             write_opencv_yaml(tmp / f"camera_{cam.name}.yaml", run, c)
             write_ros(tmp, run, c)
-            write_easy_handeye(tmp / f"easy_handeye_{cam.name}.yaml", run, c)
         plot_residuals(run).savefig(tmp / "residuals.png", dpi=110)
         (tmp / "report.md").write_text(report_markdown(summary))
     return Path(out)
