@@ -51,16 +51,7 @@ class EncoderGlitch:
 
 def _read_csv(path: Path, what: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
     """Header and `(line number, cells)` rows of a CSV file; blank lines are skipped."""
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: {what} missing") from None
-    except OSError as e:
-        raise DatasetError(f"{path}: cannot read the {what} ({e.strerror})") from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise DatasetError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    text = sc.read_text(path, what)
     reader = csv.reader(io.StringIO(text, newline=""))
     rows = []
     try:

@@ -54,8 +54,9 @@ class Loc:
         return self.fail(f"expected {what}, got {show(value)}")
 
 
-def read_json(path: Path, what: str) -> object:
-    """Parse the JSON file `path`; every failure is a `DatasetError` naming it."""
+def read_text(path: Path, what: str) -> str:
+    """The UTF-8 text of `path` (a BOM dropped); a missing or unreadable file, or
+    one that is not UTF-8, is a `DatasetError` naming it and what it is."""
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
@@ -63,9 +64,14 @@ def read_json(path: Path, what: str) -> object:
     except OSError as e:
         raise DatasetError(f"{path}: cannot read the {what} ({e.strerror})") from None
     try:
-        text = raw.decode("utf-8-sig")
+        return raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise DatasetError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+
+
+def read_json(path: Path, what: str) -> object:
+    """Parse the JSON file `path`; every failure is a `DatasetError` naming it."""
+    text = read_text(path, what)
     try:
         return json.loads(text, parse_constant=_no_constant)
     except json.JSONDecodeError as e:
