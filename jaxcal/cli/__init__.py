@@ -1,8 +1,9 @@
-"""Command line: `jaxcal demo | calibrate | simulate | montecarlo | handeye | simulate-handeye`.
+"""Command line: `jaxcal demo | calibrate | import-bag | simulate | montecarlo | handeye | simulate-handeye`.
 
 - `demo`: render a perturbed UR5e filming a ChArUco plate (MuJoCo), calibrate
   it from the images, print a before/after table, write the report.
-- `calibrate DATASET --out DIR`: images -> calibrated robot, camera pose, report.
+- `calibrate DATASET --out DIR`: images -> calibrated robot, camera pose, report (DATASET may be a ROS bag).
+- `import-bag BAG --out DIR`: a ROS 1 / ROS 2 bag -> a dataset directory.
 - `simulate`: render a synthetic dataset (see docs/dataset.md).
 - `montecarlo`: vmapped sensitivity study on analytic marker poses.
 - `handeye CAPTURE --out DIR`: classic hand-eye from a folder of images and robot poses.
@@ -17,6 +18,7 @@ from ..planning._cli import add_plan_parser
 from ._calibrate import add_calibrate_args, cmd_calibrate, cmd_demo
 from ._common import EYE_IN_HAND_SWEEP, add_study_args, degrees, fmt_degrees, home, resolution
 from ._handeye import add_handeye_parsers
+from ._rosbag import add_bag_args, cmd_import_bag
 from ._simulate import cmd_plan, cmd_simulate
 from ._study import cmd_montecarlo
 
@@ -52,7 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     add_calibrate_args(p)
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
-    p.add_argument("dataset", help="dataset directory")
+    p.add_argument(
+        "dataset", help="dataset directory, or a ROS bag (with --images, --joints, --robot, --target)"
+    )
     p.add_argument(
         "--out",
         required=True,
@@ -60,7 +64,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--overwrite", action="store_true", help="replace a result directory jaxcal wrote")
     add_calibrate_args(p)
+    add_bag_args(p, required=False)
     p.set_defaults(func=cmd_calibrate)
+    p = sub.add_parser(
+        "import-bag", help="convert a ROS 1 / ROS 2 bag into a dataset directory (docs/dataset.md)"
+    )
+    p.add_argument("bag", help="ROS 1 .bag file, or ROS 2 bag directory (sqlite3 or MCAP)")
+    p.add_argument("--out", required=True, help="dataset directory (absent or empty)")
+    p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
+    add_bag_args(p, required=True)
+    p.set_defaults(func=cmd_import_bag)
     p = sub.add_parser("montecarlo", help="vmapped Monte Carlo sensitivity study (analytic marker poses)")
     add_study_args(p, trials=1000)
     p.add_argument("--json", help="write the summary here (atomically)")

@@ -14,6 +14,7 @@ from ..pipeline import calibrate
 from ..report import write_outputs
 from ..robots import load_robot
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, positive_int
+from ._rosbag import dataset_of
 
 
 def _calibration_tables(console, result) -> None:
@@ -173,7 +174,8 @@ def cmd_calibrate(args) -> int:
     )
     with output_lock(out, what="--out"):
         console = Console(width=max(Console().width, 132))
-        return _run_calibration(console, args.dataset, out, args, overwrite=args.overwrite, checked=checked)
+        with dataset_of(args, say=lambda text: console.print(f"[dim]{text}[/dim]")) as dataset:
+            return _run_calibration(console, dataset, out, args, overwrite=args.overwrite, checked=checked)
 
 
 def cmd_demo(args) -> int:
