@@ -10,6 +10,7 @@ import numpy as np
 
 from .io._files import atomic_directory
 from .io.dataset import write_json
+from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.urdf import save_urdf
 
 
@@ -345,7 +346,10 @@ def _frames_section(result) -> list[str]:
 
 def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=None) -> Path:
     """Write `result` into directory `out` (atomically): `result.json`,
-    `calibrated.urdf`, `camera_<name>.yaml`, `report.md` and its PNG plots.
+    `calibrated.urdf`, `camera_<name>.yaml`, the camera's pose for ROS
+    (`ros_<name>.launch.yaml`, `ros_<name>.txt`, `easy_handeye_<name>.yaml`),
+    for a UR arm `ur_calibration.yaml` (`jaxcal.io.robot_files`), `report.md`
+    and its PNG plots.
 
     `out` may not be, contain or lie inside the dataset or any of `inputs`
     (default: the result's dataset); an existing non-empty `out` is replaced
@@ -377,6 +381,9 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
                 c["K"],
                 c["distortion"],
             )
+        write_ros_camera_files(tmp, result)
+        if is_ur(result.model):
+            (tmp / "ur_calibration.yaml").write_text(ur_kinematics_text(result.model, result.nominal)[0])
         figs = _plots(result, tmp)
         (tmp / "report.md").write_text(_markdown(result, figs))
     return out

@@ -10,6 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from ..io._files import check_output_dir, marked_directory, output_lock
+from ..io.robot_files import is_ur
 from ..pipeline import calibrate
 from ..report import write_outputs
 from ..robots import load_robot
@@ -154,6 +155,8 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
     console.print(
         f"wrote {out}/: result.json, calibrated.urdf, "
         + "".join(f"camera_{c}.yaml, " for c in [result.camera] + [c["camera"] for c in result.other_cameras])
+        + f"ros_{result.camera}.launch.yaml, ros_{result.camera}.txt, easy_handeye_{result.camera}.yaml, "
+        + ("ur_calibration.yaml, " if is_ur(result.model) else "")
         + "report.md "
         f"({time.perf_counter() - t0:.1f} s)"
     )

@@ -197,12 +197,12 @@ def write_opencv_yaml(path: Path, run, c: int) -> None:
         fs.release()
 
 
-def static_transform_args(run, c: int) -> dict:
-    """The `static_transform_publisher` argument lines of camera `c`'s pose (ROS 2 named, ROS 1 positional)."""
-    parent, child = camera_frames(run, c)
-    T = np.asarray(run.result.T_robot_cam[c])
+def static_transform_lines(T, parent: str, child: str) -> dict:
+    """The `static_transform_publisher` argument lines of the pose `T` (4x4: `child` in `parent`):
+    `ros2` (named arguments), `ros1` (positional: x y z qx qy qz qw parent child), `parent`, `child`."""
+    T = np.asarray(T, np.float64)
     t, q = T[:3, 3], matrix_to_quaternion(T[:3, :3])
-    v = [f"{x:.9g}" for x in (*t, *q)]
+    v = [f"{x:.17g}" for x in (*t, *q)]
     ros2 = (
         f"--x {v[0]} --y {v[1]} --z {v[2]} --qx {v[3]} --qy {v[4]} --qz {v[5]} --qw {v[6]} "
         f"--frame-id {parent} --child-frame-id {child}"
@@ -210,42 +210,70 @@ def static_transform_args(run, c: int) -> dict:
     return {"ros2": ros2, "ros1": " ".join(v) + f" {parent} {child}", "parent": parent, "child": child}
 
 
-def write_ros(folder: Path, run, c: int) -> None:
-    name = run.capture.cameras[c].name
-    a = static_transform_args(run, c)
-    launch = (
-        f"# jaxcal hand-eye calibration ({run.capture.arrangement}, status {run.verdict.status}):\n"
-        f"# the pose of {a['child']} in {a['parent']}.  Run: ros2 launch ros_{name}.launch.yaml\n"
+def static_transform_args(run, c: int) -> dict:
+    """The `static_transform_publisher` argument lines of camera `c`'s pose (ROS 2 named, ROS 1 positional)."""
+    parent, child = camera_frames(run, c)
+    return static_transform_lines(run.result.T_robot_cam[c], parent, child)
+
+
+def ros_launch_text(args: dict, node: str, comment: str) -> str:
+    """A ROS 2 launch file (YAML) running one tf2_ros static_transform_publisher with `args`
+    (from `static_transform_lines`)."""
+    return (
+        f"# {comment}:\n"
+        f"# the pose of {args['child']} in {args['parent']}.  Run: ros2 launch <this file>\n"
         "launch:\n"
         "- node:\n"
         "    pkg: tf2_ros\n"
         "    exec: static_transform_publisher\n"
-        f"    name: jaxcal_handeye_{name}\n"
-        f'    args: "{a["ros2"]}"\n'
+        f"    name: {node}\n"
+        f'    args: "{args["ros2"]}"\n'
     )
-    (folder / f"ros_{name}.launch.yaml").write_text(launch)
+
+
+def write_ros(folder: Path, run, c: int) -> None:
+    name = run.capture.cameras[c].name
+    a = static_transform_args(run, c)
+    comment = f"jaxcal hand-eye calibration ({run.capture.arrangement}, status {run.verdict.status})"
+    (folder / f"ros_{name}.launch.yaml").write_text(ros_launch_text(a, f"jaxcal_handeye_{name}", comment))
     (folder / f"ros_{name}.txt").write_text(
         f"ros2 run tf2_ros static_transform_publisher {a['ros2']}\n"
         f"rosrun tf2_ros static_transform_publisher {a['ros1']}\n"
     )
 
 
+def easy_handeye_text(
+    T, *, eye_on_hand: bool, base_frame: str, effector_frame: str, tracking_base_frame: str, marker_frame: str
+) -> str:
+    """easy_handeye's calibration YAML: `eye_on_hand`, the four frames, `transformation` (x y z qx qy qz qw)
+    of `T` (the camera in the effector frame when eye-on-hand, else in the base frame)."""
+    T = np.asarray(T, np.float64)
+    q = matrix_to_quaternion(T[:3, :3])
+    lines = [
+        f"eye_on_hand: {'true' if eye_on_hand else 'false'}",
+        f"robot_base_frame: {base_frame}",
+        f"robot_effector_frame: {effector_frame}",
+        f"tracking_base_frame: {tracking_base_frame}",
+        f"tracking_marker_frame: {marker_frame}",
+        "transformation:",
+        *(f"  {k}: {v!r}" for k, v in zip(("x", "y", "z"), T[:3, 3].tolist())),
+        *(f"  {k}: {v!r}" for k, v in zip(("qx", "qy", "qz", "qw"), q.tolist())),
+    ]
+    return "\n".join(lines) + "\n"
+
+
 def write_easy_handeye(path: Path, run, c: int) -> None:
     """easy_handeye's calibration YAML: `eye_on_hand`, the four frames, `transformation` (x y z qx qy qz qw)."""
     cap = run.capture
-    T = np.asarray(run.result.T_robot_cam[c])
-    q = matrix_to_quaternion(T[:3, :3])
-    lines = [
-        f"eye_on_hand: {'true' if cap.eye_in_hand else 'false'}",
-        f"robot_base_frame: {cap.base_frame}",
-        f"robot_effector_frame: {cap.ee_frame}",
-        f"tracking_base_frame: {cap.cameras[c].frame_id}",
-        f"tracking_marker_frame: {cap.target_frame}",
-        "transformation:",
-        *(f"  {k}: {v:.12g}" for k, v in zip(("x", "y", "z"), T[:3, 3])),
-        *(f"  {k}: {v:.12g}" for k, v in zip(("qx", "qy", "qz", "qw"), q)),
-    ]
-    path.write_text("\n".join(lines) + "\n")
+    text = easy_handeye_text(
+        run.result.T_robot_cam[c],
+        eye_on_hand=cap.eye_in_hand,
+        base_frame=cap.base_frame,
+        effector_frame=cap.ee_frame,
+        tracking_base_frame=cap.cameras[c].frame_id,
+        marker_frame=cap.target_frame,
+    )
+    path.write_text(text)
 
 
 # --------------------------------------------------------------------------- report
