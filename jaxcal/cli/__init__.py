@@ -23,7 +23,30 @@ from ._simulate import cmd_plan, cmd_simulate
 from ._study import cmd_montecarlo
 
 
-def main(argv: list[str] | None = None) -> int:
+class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """argparse's defaults formatter, except where the help already says its default in words."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if "default" in text.lower() or action.default is argparse.SUPPRESS:
+            return text
+        return super()._get_help_string(action)
+
+
+def show_defaults(parser: argparse.ArgumentParser) -> None:
+    """Every subcommand's `--help` shows every option's default (`DefaultsFormatter`)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                sub.formatter_class = DefaultsFormatter
+                for a in sub._actions:
+                    if a.help is None and a.option_strings:  # an option nobody described: its name shows
+                        a.help = a.dest.replace("_", " ")
+                show_defaults(sub)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `jaxcal` argument parser with every subcommand."""
     parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser(
@@ -132,7 +155,12 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=cmd_simulate)
     add_handeye_parsers(sub)
     add_plan_parser(sub, cmd_plan)
-    args = parser.parse_args(argv)
+    show_defaults(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     enable_compilation_cache()
     try:
         return args.func(args)
