@@ -1,9 +1,10 @@
-"""Command line: `jaxcal demo | calibrate | import-bag | simulate | montecarlo | handeye | simulate-handeye`.
+"""Command line: `jaxcal demo | calibrate | import-bag | inspect | simulate | montecarlo | handeye | simulate-handeye`.
 
 - `demo`: render a perturbed UR5e filming a ChArUco plate (MuJoCo), calibrate
   it from the images, print a before/after table, write the report.
 - `calibrate DATASET --out DIR`: images -> calibrated robot, camera pose, report (DATASET may be a ROS bag).
 - `import-bag BAG --out DIR`: a ROS 1 / ROS 2 bag -> a dataset directory.
+- `inspect DATASET|BAG`: what a capture holds (cameras, sweeps, clocks, detections, capture kind).
 - `simulate`: render a synthetic dataset (see docs/dataset.md).
 - `montecarlo`: vmapped sensitivity study on analytic marker poses.
 - `handeye CAPTURE --out DIR`: classic hand-eye from a folder of images and robot poses.
@@ -18,6 +19,7 @@ from ..planning._cli import add_plan_parser
 from ._calibrate import add_calibrate_args, cmd_calibrate, cmd_demo
 from ._common import EYE_IN_HAND_SWEEP, add_study_args, degrees, fmt_degrees, home, resolution
 from ._handeye import add_handeye_parsers
+from ._inspect import add_inspect_parser
 from ._rosbag import add_bag_args, cmd_import_bag
 from ._simulate import cmd_plan, cmd_simulate
 from ._study import cmd_montecarlo
@@ -28,7 +30,7 @@ class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
     def _get_help_string(self, action):
         text = action.help or ""
-        if "default" in text.lower() or action.default is argparse.SUPPRESS:
+        if "default" in text.lower() or action.default is argparse.SUPPRESS or action.required:
             return text
         return super()._get_help_string(action)
 
@@ -153,6 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--plan", help="render exactly this capture plan (docs/plan.md): its camera, target and motion"
     )
     p.set_defaults(func=cmd_simulate)
+    add_inspect_parser(sub)
     add_handeye_parsers(sub)
     add_plan_parser(sub, cmd_plan)
     show_defaults(parser)
