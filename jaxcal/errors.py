@@ -93,3 +93,27 @@ class CameraViewError(PlanError):
 
 class BudgetTooSmallError(PlanError):
     """Too few frames to identify anything (or fewer than the plan's structure needs)."""
+
+
+class BagError(DatasetError):
+    """A ROS bag cannot be turned into a dataset (the message names the bag, topic and message)."""
+
+
+class BagTopicError(BagError):
+    """A topic asked for is not in the bag (the message lists the bag's topics with their types)."""
+
+
+class BagMessageTypeError(BagError):
+    """A topic holds messages of another type than the one asked for."""
+
+
+class BagJointError(BagError):
+    """The joint states' names do not match the robot file's actuated joints."""
+
+
+class BagTimeError(BagError):
+    """Images and joint states do not overlap in time (or a topic has too few messages)."""
+
+
+class BagEncodingError(BagError):
+    """An image encoding, compression or camera model that jaxcal does not read."""

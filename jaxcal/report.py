@@ -8,10 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._geometry import pose_inverse
-from .io import ros
 from .io._files import atomic_directory
 from .io.dataset import write_json
+from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.urdf import save_urdf
 
 
@@ -360,7 +359,10 @@ def _frames_section(result) -> list[str]:
 
 def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=None) -> Path:
     """Write `result` into directory `out` (atomically): `result.json`,
-    `calibrated.urdf`, `camera_<name>.yaml`, `report.md` and its PNG plots.
+    `calibrated.urdf`, `camera_<name>.yaml`, the camera's pose for ROS
+    (`ros_<name>.launch.yaml`, `ros_<name>.txt`, `easy_handeye_<name>.yaml`),
+    for a UR arm `ur_calibration.yaml` (`jaxcal.io.robot_files`), `report.md`
+    and its PNG plots.
 
     `out` may not be, contain or lie inside the dataset or any of `inputs`
     (default: the result's dataset); an existing non-empty `out` is replaced
@@ -392,28 +394,9 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
                 c["K"],
                 c["distortion"],
             )
-        _ros_files(result, tmp)
+        write_ros_camera_files(tmp, result)
+        if is_ur(result.model):
+            (tmp / "ur_calibration.yaml").write_text(ur_kinematics_text(result.model, result.nominal)[0])
         figs = _plots(result, tmp)
         (tmp / "report.md").write_text(_markdown(result, figs))
     return out
-
-
-def _ros_files(result, folder: Path) -> None:
-    """Each camera's pose for ROS (`jaxcal.io.ros`): a static transform and
-    easy_handeye's YAML. Eye-to-hand: the camera in the base link; eye-in-hand:
-    in the flange link. The camera's frame is named after the camera."""
-    base, flange = result.model.link_names[0], result.model.link_names[-1]
-    comment = f"jaxcal calibration of {result.dataset} (status {result.status})"
-    poses = [
-        (result.camera, result.T_flange_target[0] if result.eye_in_hand else pose_inverse(result.T_cam_base))
-    ]
-    poses += [(c["camera"], pose_inverse(c["T_cam_base"])) for c in result.other_cameras]
-    marker = result.board if result.eye_in_hand else result.targets[0]
-    for name, T in poses:
-        parent = flange if result.eye_in_hand else base
-        T = np.asarray(T, np.float64)
-        ros.write_static_transform(folder, name, T, parent, name, comment)
-        ros.write_easy_handeye(
-            folder / f"easy_handeye_{name}.yaml", T, eye_on_hand=result.eye_in_hand, base_frame=base,
-            effector_frame=flange, camera_frame=name, marker_frame=str(marker),
-        )  # fmt: skip

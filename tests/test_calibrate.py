@@ -106,6 +106,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     import jax
 
     from jaxcal import forward_kinematics
+    from jaxcal.io.robot_files import is_ur
     from jaxcal.io.urdf import load_urdf
 
     out = write_outputs(result, tmp_path / "res")
@@ -124,6 +125,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
             "residuals.png",
             "ee_error.png",
         ]
+        + (["ur_calibration.yaml"] if is_ur(result.model) else [])
     )
     r = json.loads((out / "result.json").read_text())
     for key in ("T_cam_base", "parameters", "reduction_ratios", "identifiability", "arcs", "frames", "clock",

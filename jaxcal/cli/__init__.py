@@ -1,8 +1,10 @@
-"""Command line: `jaxcal demo | calibrate | simulate | montecarlo | handeye | simulate-handeye`.
+"""Command line: `jaxcal demo | calibrate | import-bag | inspect | simulate | montecarlo | handeye | simulate-handeye`.
 
 - `demo`: render a perturbed UR5e filming a ChArUco plate (MuJoCo), calibrate
   it from the images, print a before/after table, write the report.
-- `calibrate DATASET --out DIR`: images -> calibrated robot, camera pose, report.
+- `calibrate DATASET --out DIR`: images -> calibrated robot, camera pose, report (DATASET may be a ROS bag).
+- `import-bag BAG --out DIR`: a ROS 1 / ROS 2 bag -> a dataset directory.
+- `inspect DATASET|BAG`: what a capture holds (cameras, sweeps, clocks, detections, capture kind).
 - `simulate`: render a synthetic dataset (see docs/dataset.md).
 - `montecarlo`: vmapped sensitivity study on analytic marker poses.
 - `handeye CAPTURE --out DIR`: classic hand-eye from a folder of images and robot poses.
@@ -17,11 +19,36 @@ from ..planning._cli import add_plan_parser
 from ._calibrate import add_calibrate_args, cmd_calibrate, cmd_demo
 from ._common import EYE_IN_HAND_SWEEP, add_study_args, degrees, fmt_degrees, home, resolution
 from ._handeye import add_handeye_parsers
+from ._inspect import add_inspect_parser
+from ._rosbag import add_bag_args, cmd_import_bag
 from ._simulate import cmd_plan, cmd_simulate
 from ._study import cmd_montecarlo
 
 
-def main(argv: list[str] | None = None) -> int:
+class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """argparse's defaults formatter, except where the help already says its default in words."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if "default" in text.lower() or action.default is argparse.SUPPRESS or action.required:
+            return text
+        return super()._get_help_string(action)
+
+
+def show_defaults(parser: argparse.ArgumentParser) -> None:
+    """Every subcommand's `--help` shows every option's default (`DefaultsFormatter`)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                sub.formatter_class = DefaultsFormatter
+                for a in sub._actions:
+                    if a.help is None and a.option_strings:  # an option nobody described: its name shows
+                        a.help = a.dest.replace("_", " ")
+                show_defaults(sub)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `jaxcal` argument parser with every subcommand."""
     parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser(
@@ -52,7 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     add_calibrate_args(p)
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
-    p.add_argument("dataset", help="dataset directory")
+    p.add_argument(
+        "dataset", help="dataset directory, or a ROS bag (with --images, --joints, --robot, --target)"
+    )
     p.add_argument(
         "--out",
         required=True,
@@ -60,7 +89,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--overwrite", action="store_true", help="replace a result directory jaxcal wrote")
     add_calibrate_args(p)
+    add_bag_args(p, required=False)
     p.set_defaults(func=cmd_calibrate)
+    p = sub.add_parser(
+        "import-bag", help="convert a ROS 1 / ROS 2 bag into a dataset directory (docs/dataset.md)"
+    )
+    p.add_argument("bag", help="ROS 1 .bag file, or ROS 2 bag directory (sqlite3 or MCAP)")
+    p.add_argument("--out", required=True, help="dataset directory (absent or empty)")
+    p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
+    add_bag_args(p, required=True)
+    p.set_defaults(func=cmd_import_bag)
     p = sub.add_parser("montecarlo", help="vmapped Monte Carlo sensitivity study (analytic marker poses)")
     add_study_args(p, trials=1000)
     p.add_argument("--json", help="write the summary here (atomically)")
@@ -117,9 +155,15 @@ def main(argv: list[str] | None = None) -> int:
         "--plan", help="render exactly this capture plan (docs/plan.md): its camera, target and motion"
     )
     p.set_defaults(func=cmd_simulate)
+    add_inspect_parser(sub)
     add_handeye_parsers(sub)
     add_plan_parser(sub, cmd_plan)
-    args = parser.parse_args(argv)
+    show_defaults(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     enable_compilation_cache()
     try:
         return args.func(args)

@@ -10,10 +10,12 @@ from rich.console import Console
 from rich.table import Table
 
 from ..io._files import check_output_dir, marked_directory, output_lock
+from ..io.robot_files import is_ur
 from ..pipeline import calibrate
 from ..report import write_outputs
 from ..robots import load_robot
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, positive_int
+from ._rosbag import dataset_of
 
 
 def _calibration_tables(console, result) -> None:
@@ -154,6 +156,8 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
     console.print(
         f"wrote {out}/: result.json, calibrated.urdf, "
         + "".join(f"camera_{c}.yaml, " for c in [result.camera] + [c["camera"] for c in result.other_cameras])
+        + f"ros_{result.camera}.launch.yaml, ros_{result.camera}.txt, easy_handeye_{result.camera}.yaml, "
+        + ("ur_calibration.yaml, " if is_ur(result.model) else "")
         + "report.md "
         f"({time.perf_counter() - t0:.1f} s)"
     )
@@ -174,7 +178,8 @@ def cmd_calibrate(args) -> int:
     )
     with output_lock(out, what="--out"):
         console = Console(width=max(Console().width, 132))
-        return _run_calibration(console, args.dataset, out, args, overwrite=args.overwrite, checked=checked)
+        with dataset_of(args, say=lambda text: console.print(f"[dim]{text}[/dim]")) as dataset:
+            return _run_calibration(console, dataset, out, args, overwrite=args.overwrite, checked=checked)
 
 
 def cmd_demo(args) -> int:

@@ -1,0 +1,34 @@
+"""`jaxcal inspect DATASET|BAG`: what a capture holds, in seconds (jaxcal.inspection)."""
+
+import json
+
+from ..inspection import format_inspection, inspect_dataset
+from ..io.rosbag import bag_topics, is_bag, open_bag
+from ._common import positive_int
+from ._rosbag import add_bag_args, dataset_of
+
+
+def add_inspect_parser(sub) -> None:
+    p = sub.add_parser("inspect", help="what a dataset or ROS bag holds: cameras, sweeps, clocks, detections")
+    p.add_argument("dataset", help="dataset directory or ROS bag (a bag without --images etc.: its topics)")
+    p.add_argument("--sample", type=positive_int, default=5, help="frames per camera tried for detection")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_bag_args(p, required=False)
+    p.set_defaults(func=cmd_inspect)
+
+
+def cmd_inspect(args) -> int:
+    if is_bag(args.dataset):
+        with open_bag(args.dataset) as reader:
+            topics = bag_topics(reader)
+        print(f"{args.dataset}: ROS bag, topics:")
+        for topic, (msgtype, count) in sorted(topics.items()):
+            print(f"  {topic}  {msgtype}  ({count} messages)")
+        if not (args.images and args.joints and args.robot and args.target):
+            print("give --images, --joints, --robot and --target (and --camera-info) to inspect its capture")
+            return 0
+    with dataset_of(args) as dataset:
+        summary = inspect_dataset(dataset, sample=args.sample)
+    summary["dataset"] = str(args.dataset)
+    print(json.dumps(summary, indent=1) if args.json else format_inspection(summary))
+    return 0

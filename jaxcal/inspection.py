@@ -1,0 +1,164 @@
+"""`jaxcal inspect`: what a capture holds, in seconds, before a calibration is started.
+
+`inspect_dataset(path)` loads a dataset (every check of `load_dataset`) and
+summarises it without any fit: the cameras (image size, whether K is given,
+mount), the motion segments (from the metadata, else found in the encoder
+log as `import-bag` does) with the frames of each camera in each and the
+range each sweep covers in the encoder log, the overlap of the camera and
+controller clocks, the detection rate of every target on a small sample of
+frames, and the capture kind `jaxcal calibrate` will resolve.
+"""
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .io._rosmsgs import find_segments
+from .io.dataset import Dataset, load_dataset
+from .stages.kinds import CaptureKind
+from .vision import detect
+
+
+def _segments(ds: Dataset, q) -> tuple[list, str]:
+    if ds.segments:
+        return list(ds.segments), "metadata.json"
+    if q is None:
+        return [], "none (no 'motion' and no encoder log)"
+    found, _ = find_segments(ds.encoder_t, q, ds.joint_names)
+    return [
+        (s["joint"], s["start"], s["end"]) for s in found
+    ], "found in the encoder log (not in metadata.json)"
+
+
+def _sweeps(ds: Dataset, q, segments, offset: float) -> list[dict]:
+    out = []
+    for joint, start, end in segments:
+        row = {"joint": joint, "start_s": start, "end_s": end, "frames": {}}
+        for cam in ds.cameras:
+            t = ds.frames["timestamp"][ds.frames["camera"] == cam.name] - offset
+            row["frames"][cam.name] = int(np.count_nonzero((t >= start) & (t <= end)))
+        if q is not None and joint is not None:
+            j = ds.joint_names.index(joint)
+            inside = (ds.encoder_t >= start) & (ds.encoder_t <= end)
+            if inside.any():
+                v = np.degrees(q[inside, j])
+                row["range_deg"] = [float(v.min()), float(v.max())]
+        out.append(row)
+    return out
+
+
+def _detection_sample(ds: Dataset, sample: int) -> dict:
+    """Per camera: the sampled rows (evenly spread) and, per target, in how many a detection came back."""
+    out = {}
+    for cam in ds.cameras:
+        rows = np.flatnonzero(ds.frames["camera"] == cam.name)
+        pick = rows[np.unique(np.linspace(0, len(rows) - 1, min(sample, len(rows))).round().astype(int))]
+        found = dict.fromkeys((t.name for t in ds.targets), 0)
+        for i in pick:
+            image = cv2.imread(str(ds.image_path(i)), cv2.IMREAD_UNCHANGED)
+            for t in ds.targets:
+                d = detect(image, t.spec, K=cam.K, dist=None if cam.K is None else cam.dist)
+                found[t.name] += d is not None
+        out[cam.name] = {"frames": int(len(pick)), "found": found}
+    return out
+
+
+def inspect_dataset(path, *, sample: int = 5) -> dict:
+    """A summary of the dataset at `path` (see the module docstring) as a JSON-ready dict."""
+    t0 = time.perf_counter()
+    ds = load_dataset(path)
+    model = ds.load_model()
+    ratio = np.asarray(model.reduction_ratio, np.float64)
+    q = None if ds.encoder_t is None else ds.encoder_motor / ratio
+    segments, source = _segments(ds, q)
+    offset = 0.0 if ds.clock_offset_s is None else ds.clock_offset_s
+    cam_t = ds.frames["timestamp"] - offset
+    clock = {"offset_s": ds.clock_offset_s, "camera_s": [float(cam_t.min()), float(cam_t.max())]}
+    if ds.encoder_t is not None:
+        lo, hi = max(cam_t.min(), ds.encoder_t[0]), min(cam_t.max(), ds.encoder_t[-1])
+        clock["encoders_s"] = [float(ds.encoder_t[0]), float(ds.encoder_t[-1])]
+        clock["overlap_s"] = float(max(0.0, hi - lo))
+        clock["frames_outside_log"] = int(
+            np.count_nonzero((cam_t < ds.encoder_t[0]) | (cam_t > ds.encoder_t[-1]))
+        )
+    flange = model.link_names[-1]
+    fixed = [c for c in ds.cameras if c.mount == "world"]
+    cam = (fixed or list(ds.cameras))[0]
+    kind = CaptureKind.of(
+        camera_on_flange=cam.mount == flange,
+        segments=tuple(segments),
+        encoders=ds.encoder_t is not None,
+        link_targets=any(t.link not in (flange, "world") for t in ds.targets),
+    )
+    return {
+        "dataset": str(Path(path)),
+        "robot": {"urdf": ds.robot_urdf.name, "joints": list(ds.joint_names)},
+        "cameras": [
+            {
+                "name": c.name,
+                "size": [c.width, c.height],
+                "K_given": c.K is not None,
+                "mount": c.mount,
+                "frames": int(np.count_nonzero(ds.frames["camera"] == c.name)),
+            }
+            for c in ds.cameras
+        ],
+        "targets": [{"name": t.name, "kind": t.spec.kind, "link": t.link} for t in ds.targets],
+        "encoders": None
+        if ds.encoder_t is None
+        else {
+            "samples": int(len(ds.encoder_t)),
+            "unit": ds.encoder_unit,
+            "glitches": len(ds.encoder_glitches),
+        },
+        "segments_from": source,
+        "segments": _sweeps(ds, q, segments, offset),
+        "clock": clock,
+        "detection_sample": _detection_sample(ds, sample),
+        "kind": kind.describe(),
+        "camera_of_the_fit": cam.name,
+        "notes": list(ds.notes),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def format_inspection(s: dict) -> str:
+    """`inspect_dataset`'s summary as text for the console."""
+    lines = [f"{s['dataset']}: {s['robot']['urdf']}, joints {', '.join(s['robot']['joints'])}"]
+    for c in s["cameras"]:
+        lines.append(
+            f"camera {c['name']}: {c['size'][0]}x{c['size'][1]}, {c['frames']} frames, mount {c['mount']}, "
+            + ("K given" if c["K_given"] else "K null (self-calibrated from the images)")
+        )
+    lines.append("targets: " + ", ".join(f"{t['name']} ({t['kind']} on {t['link']})" for t in s["targets"]))
+    e = s["encoders"]
+    lines.append(
+        "encoder log: none"
+        if e is None
+        else f"encoder log: {e['samples']} samples ({e['unit']}), {e['glitches']} glitches removed"
+    )
+    lines.append(f"motion segments ({s['segments_from']}):")
+    for g in s["segments"]:
+        rng = f", sweeps {g['range_deg'][0]:.1f} .. {g['range_deg'][1]:.1f} deg" if "range_deg" in g else ""
+        frames = ", ".join(f"{k} {v}" for k, v in g["frames"].items())
+        lines.append(
+            f"  {g['joint'] or 'all joints (poses)'}: {g['start_s']:.3f}-{g['end_s']:.3f} s, frames {frames}{rng}"
+        )
+    c = s["clock"]
+    given = "unknown (estimated by calibrate)" if c["offset_s"] is None else f"{1e3 * c['offset_s']:.3f} ms"
+    line = f"clocks: offset {given}; camera {c['camera_s'][0]:.3f}-{c['camera_s'][1]:.3f} s"
+    if "encoders_s" in c:
+        line += (
+            f", encoders {c['encoders_s'][0]:.3f}-{c['encoders_s'][1]:.3f} s, overlap {c['overlap_s']:.3f} s, "
+            f"{c['frames_outside_log']} frames outside the log"
+        )
+    lines.append(line)
+    for cam, d in s["detection_sample"].items():
+        found = ", ".join(f"{t} {n}/{d['frames']}" for t, n in d["found"].items())
+        lines.append(f"detection on {d['frames']} sample frames of {cam}: {found}")
+    lines.append(f"capture kind: {s['kind']} (camera {s['camera_of_the_fit']})")
+    lines += [f"note: {n}" for n in s["notes"]]
+    lines.append(f"({s['seconds']:.1f} s)")
+    return "\n".join(lines)
