@@ -6,7 +6,6 @@ residuals with their closed-form Jacobian, and the closed-form start
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.custom_derivatives import SymbolicZero
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
@@ -25,6 +24,7 @@ from ._geometry import (
     so3_right_jacobian_inv,
 )
 from ._linalg import after, nearest_rotation
+from ._lsq import instantiate
 
 
 class ArcParams(eqx.Module):
@@ -213,26 +213,17 @@ def _arc_residuals_autodiff(params: ArcParams, args: tuple[ArcReference, ArcData
     return arc_terms(params, ref, data, jacobian=False)[0]
 
 
-def _instantiate(t):
-    """Materialise a symbolic zero tangent (`float0` for integer and boolean inputs)."""
-    if not isinstance(t, SymbolicZero):
-        return t
-    if t.dtype == jax.dtypes.float0:
-        return np.zeros(t.shape, jax.dtypes.float0)
-    return jnp.zeros(t.shape, t.dtype)
-
-
 def _arc_residuals_jvp(primals, tangents):
     params, args = primals
     t_params, t_args = tangents
     is_zero = lambda x: isinstance(x, SymbolicZero)
     if not all(is_zero(t) for t in jax.tree.leaves(t_args, is_leaf=is_zero)):
         # Derivatives with respect to the data (e.g. implicit differentiation of a fit): autodiff.
-        inst = lambda tree: jax.tree.map(_instantiate, tree, is_leaf=is_zero)
+        inst = lambda tree: jax.tree.map(instantiate, tree, is_leaf=is_zero)
         return jax.jvp(_arc_residuals_autodiff, (params, args), (inst(t_params), inst(t_args)))
     ref, data = args
     r, D = arc_terms(params, ref, data, jacobian=True)
-    t = jax.tree.map(_instantiate, t_params, is_leaf=is_zero)
+    t = jax.tree.map(instantiate, t_params, is_leaf=is_zero)
     if data.encoder is None:
         # Without encoders the assembled Jacobian has a column per frame, (markers *
         # frames * k) x frames: contract the local derivatives instead (each residual
