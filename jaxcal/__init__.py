@@ -24,7 +24,14 @@ from ._arcfit import validate_arc_data as validate_arc_data  # noqa: E402
 from ._axisfit import AxisFitResult as AxisFitResult  # noqa: E402
 from ._axisfit import fit_axes as fit_axes  # noqa: E402
 from ._axisfit import parameter_names as parameter_names  # noqa: E402
+from ._correction import CalibratedModel as CalibratedModel  # noqa: E402
+from ._correction import Estimate as Estimate  # noqa: E402
 from ._correction import KinematicCorrection as KinematicCorrection  # noqa: E402
+from ._correction import parameters_to_model as parameters_to_model  # noqa: E402
+from ._dh import DHTable as DHTable  # noqa: E402
+from ._dh import dh_table as dh_table  # noqa: E402
+from ._dh import table_forward_kinematics as table_forward_kinematics  # noqa: E402
+from ._dh import table_to_model as table_to_model  # noqa: E402
 from ._handeye import HandEyePixels as HandEyePixels  # noqa: E402
 from ._handeye import HandEyePoses as HandEyePoses  # noqa: E402
 from ._handeye import HandEyeResult as HandEyeResult  # noqa: E402
@@ -76,6 +83,8 @@ from ._montecarlo import fit_sweeps as fit_sweeps  # noqa: E402
 from ._montecarlo import monte_carlo as monte_carlo  # noqa: E402
 from ._montecarlo import summarize as summarize  # noqa: E402
 from ._montecarlo import synthesize_sweeps as synthesize_sweeps  # noqa: E402
+from ._tables import PhysicalTable as PhysicalTable  # noqa: E402
+from ._tables import physical_table as physical_table  # noqa: E402
 from ._tooloffset import AlignmentResult as AlignmentResult  # noqa: E402
 from ._tooloffset import CircleFit as CircleFit  # noqa: E402
 from ._tooloffset import OffsetEstimate as OffsetEstimate  # noqa: E402
@@ -100,6 +109,8 @@ from .errors import SuspectResultError as SuspectResultError  # noqa: E402
 from .errors import TooFewPosesError as TooFewPosesError  # noqa: E402
 from .errors import ToolOffsetInputError as ToolOffsetInputError  # noqa: E402
 from .errors import VisionError as VisionError  # noqa: E402
+from .io.dh_tables import dh_table_model as dh_table_model  # noqa: E402
+from .io.dh_tables import read_dh_table as read_dh_table  # noqa: E402
 from .io.handeye import HandEyeCapture as HandEyeCapture  # noqa: E402
 from .io.handeye import load_hand_eye_capture as load_hand_eye_capture  # noqa: E402
 from .io.handeye_results import write_hand_eye_outputs as write_hand_eye_outputs  # noqa: E402

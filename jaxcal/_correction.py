@@ -23,8 +23,11 @@ gives the names (in an eye-in-hand capture the fixed frame is the board's,
 priority order of the identifiability search and the candidate masks;
 `apply_correction` maps a correction onto a model; `physical_parameters`
 maps the vector to the quantities a user reads (joint origins as xyz/rpy,
-zero offsets, the camera pose, mounts) with their covariance. No other
-module does index arithmetic on the vector.
+zero offsets, the camera pose, mounts) with their covariance. An `Estimate`
+holds one solver's vector with its covariance, free mask and references, and
+`parameters_to_model` maps any vector of that layout back to the calibrated
+model, camera pose and mounts (`jaxcal._tables` builds the tables a user
+reads on it). No other module does index arithmetic on the vector.
 """
 
 from dataclasses import dataclass
@@ -34,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from ._geometry import matmul, matrix_to_rpy, se3_exp, so3_log
 from ._kinematics import KinematicModel
@@ -196,6 +199,23 @@ class ParameterLayout:
             names += [f"{c}.T_cam_base.{p}" for p in POSE_NAMES]
         return names + list(self.angles)
 
+    def split(self, x: Float[Array, " n"]) -> tuple[Float[Array, "6"], KinematicCorrection, Array | None]:
+        """`(cam, correction, rate)` of a flattened vector: an axis fit's
+        (`axis_size` long; `rate` is then None) or a refinement's (`size`)."""
+        n, M = len(self.joints), self.num_markers
+        if x.shape not in ((self.axis_size,), (self.size,)):
+            raise ValueError(
+                f"parameter vector has shape {x.shape}; this layout's is ({self.axis_size},) "
+                f"(axis fit) or ({self.size},) (refinement)"
+            )
+        corr = KinematicCorrection(
+            origin=x[self.index("origin")].reshape(n, 6),
+            zero_offset=x[self.index("zero")],
+            tool=x[self.index("tool")].reshape(M, 6),
+        )
+        rate = x[self.index("rate")] if x.shape[0] == self.size else None
+        return x[self.index("cam")], corr, rate
+
     # ------------------------------------------------------------------ masks
 
     def priority(self, *, refine: bool = True) -> np.ndarray:
@@ -277,8 +297,9 @@ def physical_values(
 
 
 @jax.jit
-def _physical_at(nominal, mounts0, T_cam_base0, cam, correction):
-    """`physical_values` at the estimate and at zero, and its Jacobian, as one compiled call."""
+def physical_jacobian(nominal, mounts0, T_cam_base0, cam, correction):
+    """`physical_values` at the estimate and at zero, and its Jacobian wrt the
+    flattened `(cam, correction)` (the axis-fit vector), as one compiled call."""
     flat, unravel = ravel_pytree((cam, correction))
 
     def f(x):
@@ -313,7 +334,7 @@ def physical_parameters(
     """
     est, nom, G = (
         np.asarray(a)
-        for a in _physical_at(
+        for a in physical_jacobian(
             nominal, jnp.asarray(T_flange_marker0), jnp.asarray(T_cam_base0), cam, correction
         )
     )
@@ -331,3 +352,77 @@ def physical_parameters(
         }
         for i, (n, u, g) in enumerate(physical_names(layout, mount_names))
     ]
+
+
+# --------------------------------------------------------------------------- estimates
+
+
+class Estimate(eqx.Module):
+    """One calibration solve's estimate, with everything needed to read it.
+
+    - `x`, `cov`, `free`: the flattened vector (`layout.names()` order: the
+      axis fit's `axis_size`, or the refinement's `size`), its covariance
+      (zero rows and columns where frozen) and which entries were estimated.
+    - `nominal`, `T_flange_marker0`, `T_cam_base0`: what the corrections are
+      relative to (`apply_correction`; $T_{cam,base} = T_0 \\exp(\\xi_{cam})$).
+    - `reduction_ratio`: the ratios of a vector without rates (the arc fits');
+      a refinement's vector carries them as rates, $\\rho = \\rho_{nom} / r$.
+    - `layout`, `mount_names`: the vector's layout and the mounts' names.
+    """
+
+    x: Float[Array, " n"]
+    cov: Float[Array, "n n"]
+    free: Bool[Array, " n"]
+    nominal: KinematicModel
+    T_flange_marker0: Float[Array, "markers 4 4"]
+    T_cam_base0: Float[Array, "4 4"]
+    reduction_ratio: Float[Array, " joints"]
+    layout: ParameterLayout = eqx.field(static=True)
+    mount_names: tuple[str, ...] = eqx.field(static=True)
+
+    def __check_init__(self):
+        n = self.x.shape[0]
+        if n not in (self.layout.axis_size, self.layout.size):
+            raise ValueError(
+                f"Estimate: a vector of {n} does not fit the layout ({self.layout.axis_size} or {self.layout.size})"
+            )
+        if self.cov.shape != (n, n) or self.free.shape != (n,):
+            raise ValueError(f"Estimate: cov {self.cov.shape} and free {self.free.shape} must fit x ({n},)")
+        if len(self.mount_names) != self.layout.num_markers:
+            raise ValueError(
+                f"Estimate: {len(self.mount_names)} mount names for {self.layout.num_markers} mounts"
+            )
+
+
+class CalibratedModel(eqx.Module):
+    """The calibrated arm a parameter vector stands for.
+
+    - `model`: the corrected `KinematicModel` (its reduction ratios the
+      estimate's, `T_flange_tool` the first mount).
+    - `T_cam_base`: the fixed frame's pose ($T_{board,base}$ eye-in-hand).
+    - `T_flange_marker`: every mount (eye-in-hand, the one mount is $T_{flange,cam}$).
+    """
+
+    model: KinematicModel
+    T_cam_base: Float[Array, "4 4"]
+    T_flange_marker: Float[Array, "markers 4 4"]
+
+
+def parameters_to_model(estimate: Estimate, x: Float[Array, " n"] | None = None) -> CalibratedModel:
+    """The calibrated model, fixed-frame pose and mounts at parameter vector `x`.
+
+    $T_{parent,joint} = T^{nom}_{parent,joint}\\exp(\\xi_j)$, $\\delta = \\delta_{nom} +
+    \\Delta\\delta$, $T_{flange,marker} = T^0_{flange,marker}\\exp(\\xi_m)$,
+    $T_{cam,base} = T_0\\exp(\\xi_{cam})$, and with a refinement's vector the
+    ratios $\\rho_{nom} / r$. Pure: differentiate it, or vmap it over samples of `x`.
+
+    **Arguments:** `estimate`; `x` a vector of its layout (default `estimate.x`).
+    """
+    x = estimate.x if x is None else jnp.asarray(x)
+    cam, corr, rate = estimate.layout.split(x)
+    model, mounts = apply_correction(estimate.nominal, estimate.T_flange_marker0, corr)
+    ratio = estimate.reduction_ratio if rate is None else estimate.nominal.reduction_ratio / rate
+    model = eqx.tree_at(lambda m: (m.reduction_ratio, m.T_flange_tool), model, (ratio, mounts[0]))
+    return CalibratedModel(
+        model=model, T_cam_base=estimate.T_cam_base0 @ se3_exp(cam), T_flange_marker=mounts
+    )

@@ -8,8 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ._kinematics import REVOLUTE
+from ._tables import PhysicalTable, base_flange_std, physical_table
 from .io._files import atomic_directory
 from .io.dataset import write_json
+from .io.dh_tables import dh_table_json
 from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.urdf import save_urdf
 
@@ -161,7 +164,58 @@ def _fmt(x, spec=".3f") -> str:
     return "n/a" if x is None else format(x, spec)
 
 
-def _markdown(result, figs) -> str:
+def dh_tables(result) -> dict[str, PhysicalTable]:
+    """The calibrated arm's DH and MDH tables with their standard deviations
+    (`jaxcal.physical_table`); empty when a joint is prismatic or the result
+    holds no estimate."""
+    if result.estimate is None or any(k != REVOLUTE for k in result.model.joint_types):
+        return {}
+    return {c: physical_table(result, c) for c in ("dh", "mdh")}
+
+
+def dh_table_document(result, table: PhysicalTable) -> dict:
+    """The `calibrated_{dh,mdh}.json` payload of one of `dh_tables`."""
+    return dh_table_json(
+        table.table,
+        robot=Path(result.robot_urdf).stem,
+        base_link=result.model.link_names[0],
+        flange_link=result.model.link_names[-1],
+        std=table.std_table,
+        base_flange_std={k: v.tolist() for k, v in base_flange_std(table).items()},
+        nominal=table.nominal_table,
+        reduction_ratio=result.model.reduction_ratio,
+        source=f"jaxcal calibrate of {result.dataset} (status {result.status}): the calibrated model's "
+        "table; frames and the parallel-axis rule as in jaxcal._dh, std propagated from the estimate's covariance",
+    )
+
+
+def _dh_section(tables: dict[str, PhysicalTable]) -> list[str]:
+    if "dh" not in tables:
+        return []
+    t = tables["dh"]
+    tab, nom, sd = t.table, t.nominal_table, t.std_table
+    lines = [
+        "## DH table (standard DH, calibrated; `calibrated_dh.json`, MDH in `calibrated_mdh.json`)",
+        "",
+        "$A_i = R_z(\\theta_i + q_i) T_z(d_i) T_x(a_i) R_x(\\alpha_i) R_y(\\beta_i)$; the base and flange "
+        "transforms are in the files. Rows marked *parallel* join axes within 10 degrees of parallel: "
+        "there $d$ is ill-conditioned, so it is held at 0 and Hayati's $\\beta$ is estimated instead.",
+        "",
+        "| joint | theta deg | d mm | a mm | alpha deg | beta deg | row |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
+    deg, mm = np.degrees, lambda v: 1e3 * np.asarray(v)
+    conv = {"theta": deg, "d": mm, "a": mm, "alpha": deg, "beta": deg}
+    for i, j in enumerate(tab.joint_names):
+        cells = []
+        for c, f in conv.items():
+            e, n, s_ = (float(f(getattr(x, c)[i])) for x in (tab, nom, sd))
+            cells.append(f"{e:.3f} ± {s_:.3f} (nom {n:.3f})")
+        lines.append(f"| {j} | " + " | ".join(cells) + f" | {'parallel' if tab.parallel[i] else ''} |")
+    return lines + [""]
+
+
+def _markdown(result, figs, tables=None) -> str:
     r = result.to_json()
     lines = [
         f"# jaxcal calibration of `{result.dataset}`",
@@ -173,7 +227,7 @@ def _markdown(result, figs) -> str:
     if result.reasons:
         lines += ["## Why the result is " + result.status, ""] + [f"- {r}" for r in result.reasons] + [""]
     lines += _truth_section(result) + _refinement_section(result) + _camera_section(result, r)
-    lines += _joints_section(result) + _frames_section(result)
+    lines += _joints_section(result) + _dh_section(tables or {}) + _frames_section(result)
     lines += ["## Plots", ""]
     for name, caption in figs:
         lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]
@@ -361,8 +415,10 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
     """Write `result` into directory `out` (atomically): `result.json`,
     `calibrated.urdf`, `camera_<name>.yaml`, the camera's pose for ROS
     (`ros_<name>.launch.yaml`, `ros_<name>.txt`, `easy_handeye_<name>.yaml`),
-    for a UR arm `ur_calibration.yaml` (`jaxcal.io.robot_files`), `report.md`
-    and its PNG plots.
+    for a UR arm `ur_calibration.yaml` (`jaxcal.io.robot_files`), for a
+    revolute arm the calibrated DH and MDH tables with their standard
+    deviations (`calibrated_dh.json`, `calibrated_mdh.json`: `jaxcal.io.dh_tables`),
+    `report.md` and its PNG plots.
 
     `out` may not be, contain or lie inside the dataset or any of `inputs`
     (default: the result's dataset); an existing non-empty `out` is replaced
@@ -397,6 +453,9 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
         write_ros_camera_files(tmp, result)
         if is_ur(result.model):
             (tmp / "ur_calibration.yaml").write_text(ur_kinematics_text(result.model, result.nominal)[0])
+        tables = dh_tables(result)
+        for convention, table in tables.items():
+            write_json(tmp / f"calibrated_{convention}.json", dh_table_document(result, table))
         figs = _plots(result, tmp)
-        (tmp / "report.md").write_text(_markdown(result, figs))
+        (tmp / "report.md").write_text(_markdown(result, figs, tables))
     return out

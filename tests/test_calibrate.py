@@ -105,7 +105,8 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     import cv2
     import jax
 
-    from jaxcal import forward_kinematics
+    from jaxcal import dh_table_model, forward_kinematics, physical_table, read_dh_table
+    from jaxcal._dh import table_values
     from jaxcal.io.robot_files import is_ur
     from jaxcal.io.urdf import load_urdf
 
@@ -124,6 +125,8 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
             "arcs.png",
             "residuals.png",
             "ee_error.png",
+            "calibrated_dh.json",
+            "calibrated_mdh.json",
         ]
         + (["ur_calibration.yaml"] if is_ur(result.model) else [])
     )
@@ -164,6 +167,18 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     assert not easy["eye_on_hand"] and easy["tracking_marker_frame"] == result.targets[0]
     report = (out / "report.md").read_text()
     assert "EE RMS" in report and "![" in report
+    # The DH / MDH tables parse back to the result's tables and to its model (issue 16 items 6, 7d).
+    assert "## DH table" in report and "parallel" in report
+    for convention in ("dh", "mdh"):
+        table = physical_table(result, convention)
+        read, doc = read_dh_table(out / f"calibrated_{convention}.json")
+        np.testing.assert_allclose(table_values(read), table.estimate, atol=1e-9)
+        np.testing.assert_allclose(doc["std"]["d"], table.std_table.d, atol=1e-12)
+        model = dh_table_model(out / f"calibrated_{convention}.json")
+        for qi in q:
+            a = np.asarray(forward_kinematics(model, qi)[-1])
+            np.testing.assert_allclose(a, np.asarray(forward_kinematics(result.model, qi)[-1]), atol=1e-9)
+        np.testing.assert_allclose(model.reduction_ratio, result.model.reduction_ratio, rtol=1e-12)
 
 
 @pytest.mark.slow

@@ -158,6 +158,7 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         + "".join(f"camera_{c}.yaml, " for c in [result.camera] + [c["camera"] for c in result.other_cameras])
         + f"ros_{result.camera}.launch.yaml, ros_{result.camera}.txt, easy_handeye_{result.camera}.yaml, "
         + ("ur_calibration.yaml, " if is_ur(result.model) else "")
+        + ("calibrated_dh.json, calibrated_mdh.json, " if (out / "calibrated_dh.json").is_file() else "")
         + "report.md "
         f"({time.perf_counter() - t0:.1f} s)"
     )

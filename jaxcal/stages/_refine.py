@@ -19,10 +19,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.flatten_util import ravel_pytree
 
 from .._buckets import bucket, pad_log
 from .._clocksync import controller_time
-from .._correction import INTRINSIC_NAMES, ParameterLayout, physical_parameters
+from .._correction import INTRINSIC_NAMES, Estimate, ParameterLayout, physical_parameters
 from .._geometry import so3_log
 from .._links import average_pose, start_mounts
 from .._refine import OtherCameras, RefineParams, RefineProblem, make_corner_data, summarize_refinement
@@ -53,6 +54,7 @@ class Refined:
     - `intrinsics`: the first camera's refined `K`, `distortion`, their std
       and the coefficients held (None when the intrinsics were held fixed).
     - `other_cameras`: per further camera its refined pose, std, views, start and intrinsics.
+    - `estimate`: the refinement's whole vector with its covariance and references.
     """
 
     fit: object = None
@@ -68,6 +70,7 @@ class Refined:
     other_cameras: list = field(default_factory=list)
     warnings: tuple[str, ...] = ()
     timings: dict = field(default_factory=dict)
+    estimate: Estimate | None = None
 
 
 def dist5(dist) -> np.ndarray | None:
@@ -396,6 +399,17 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         references=(np.asarray(problem.T_cam_base0), np.asarray(problem.T_flange_marker0)),
         other_cameras=others,
         warnings=tuple(warnings),
+        estimate=Estimate(
+            x=ravel_pytree(res.params)[0],
+            cov=jnp.asarray(res.cov),
+            free=jnp.asarray(free),
+            nominal=nominal,
+            T_flange_marker0=jnp.asarray(problem.T_flange_marker0),
+            T_cam_base0=jnp.asarray(problem.T_cam_base0),
+            reduction_ratio=jnp.asarray(res.model.reduction_ratio),
+            layout=layout,
+            mount_names=tuple(mount_names),
+        ),
     )
 
 

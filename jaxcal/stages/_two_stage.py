@@ -13,11 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.flatten_util import ravel_pytree
 
 from .._arcfit import arc_outliers, validate_arc_data
 from .._axisfit import AxisFitParams, AxisFitResult, register_lines
 from .._buckets import bucket
-from .._correction import ParameterLayout, physical_parameters, zero_correction
+from .._correction import Estimate, ParameterLayout, physical_parameters, zero_correction
 from .._geometry import pose_inverse
 from .._handeye import check_motion_diversity, solve_axzb
 from .._kinematics import forward_kinematics
@@ -43,6 +44,8 @@ class TwoStage:
     - `arc_rows`: per-joint summaries for reports; `solver`: success flags.
     - `link_rows`: markers on every link, the two-stage camera's rows inside
       the encoder log with a pose (the refinement's start mounts use them).
+    - `estimate`: the axis fit's vector with its covariance and references
+      (`jaxcal.parameters_to_model`, `jaxcal.physical_table`).
     """
 
     sweeps: Sweeps
@@ -57,6 +60,7 @@ class TwoStage:
     notes: tuple[str, ...]
     link_rows: np.ndarray | None
     timings: dict
+    estimate: Estimate | None = None
 
 
 def _sequential(setup: Setup, obs: Observations, sync: Sync, loss: str | None):
@@ -288,6 +292,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         notes=notes,
         link_rows=link_rows,
         timings=timings,
+        estimate=fit_estimate(layout, setup, fit, [t.name for t in setup.fit_targets]),
     )
 
 
@@ -314,6 +319,22 @@ def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Two
         notes=(),
         link_rows=None,
         timings={"hand_eye_start_s": time.perf_counter() - t0},
+        estimate=fit_estimate(layout, setup, fit, [t.name for t in setup.targets]),
+    )
+
+
+def fit_estimate(layout: ParameterLayout, setup: Setup, fit, mount_names: list[str]) -> Estimate:
+    """The axis fit's (or the pose-based start's) `Estimate`."""
+    return Estimate(
+        x=ravel_pytree(fit.params)[0],
+        cov=jnp.asarray(fit.cov),
+        free=jnp.asarray(fit.free),
+        nominal=setup.nominal,
+        T_flange_marker0=jnp.asarray(fit.T_flange_marker0),
+        T_cam_base0=jnp.asarray(fit.T_cam_base0),
+        reduction_ratio=jnp.asarray(fit.model.reduction_ratio),
+        layout=layout,
+        mount_names=tuple(mount_names),
     )
 
 

@@ -45,6 +45,10 @@ class CalibrationResult:
     - `verdict`: the plausibility checks (`status`, `reasons`: see
       `jaxcal.stages.verdict`).
     - `kind`: the capture kind (`jaxcal.stages.kinds.CaptureKind`).
+    - `estimate`: the final solve's parameter vector, covariance, free mask and
+      references (`jaxcal.Estimate`): `jaxcal.parameters_to_model` maps a
+      vector to the model, `jaxcal.physical_table` gives the URDF, DH and MDH
+      tables with their covariance.
     - `eye_in_hand`: the camera rides on the flange and films `board`, fixed
       in the world. The fields keep their eye-to-hand names with the roles
       swapped: `T_cam_base` holds $T_{board,base}$ and `T_flange_target[0]`
@@ -81,6 +85,7 @@ class CalibrationResult:
     other_cameras: list = field(default_factory=list)
     board: str | None = None
     verdict: Verdict | None = None
+    estimate: object = None
 
     @property
     def status(self) -> str:
@@ -260,4 +265,5 @@ def assemble(
         other_cameras=refined.other_cameras if ran else [],
         board=None if setup.board is None else setup.board.name,
         verdict=verdict,
+        estimate=refined.estimate if ran else two.estimate,
     )
