@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._geometry import make_pose, matrix_to_rpy, pose_inverse, safe_norm
+from ._geometry import make_pose, matmul, matrix_to_rpy, pose_inverse, safe_norm
 from ._kinematics import REVOLUTE, KinematicModel, forward_kinematics, joint_axes, make_model
 
 #: Consecutive axes closer than this (degrees) get Hayati's parallel-axis row.
@@ -103,34 +103,35 @@ class DHTable(eqx.Module):
 # --------------------------------------------------------------------------- link transforms
 
 
-def _rot(axis: int, angle):
+def _rx(angle) -> Float[Array, "3 3"]:
     c, s = jnp.cos(angle), jnp.sin(angle)
-    one, zero = jnp.ones_like(c), jnp.zeros_like(c)
-    rows = {
-        0: [[one, zero, zero], [zero, c, -s], [zero, s, c]],
-        1: [[c, zero, s], [zero, one, zero], [-s, zero, c]],
-        2: [[c, -s, zero], [s, c, zero], [zero, zero, one]],
-    }[axis]
-    return make_pose(jnp.stack([jnp.stack(r) for r in rows]), jnp.zeros(3, dtype=c.dtype))
+    return jnp.stack([1.0, 0.0, 0.0, 0.0, c, -s, 0.0, s, c]).reshape(3, 3)
 
 
-def _trans(axis: int, length):
-    return make_pose(jnp.eye(3, dtype=jnp.result_type(length, float)), jnp.zeros(3).at[axis].set(length))
+def _ry(angle) -> Float[Array, "3 3"]:
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([c, 0.0, s, 0.0, 1.0, 0.0, -s, 0.0, c]).reshape(3, 3)
 
 
 def link_transform(convention: str, theta, d, a, alpha, beta) -> Float[Array, "4 4"]:
     """One row's transform: DH $R_z(\\theta)T_z(d)T_x(a)R_x(\\alpha)R_y(\\beta)$,
-    MDH $R_x(\\alpha)T_x(a)R_y(\\beta)R_z(\\theta)T_z(d)$ (with the joint's $q$ in $\\theta$)."""
+    MDH $R_x(\\alpha)T_x(a)R_y(\\beta)R_z(\\theta)T_z(d)$ (with the joint's $q$ in $\\theta$).
+    Written out (one 4x4 and a $R_y$) to keep the compiled programs small."""
+    ct, st, ca, sa = jnp.cos(theta), jnp.sin(theta), jnp.cos(alpha), jnp.sin(alpha)
+    zero, one = jnp.zeros_like(ct), jnp.ones_like(ct)
     if convention == "dh":
-        parts = (_rot(2, theta), _trans(2, d), _trans(0, a), _rot(0, alpha), _rot(1, beta))
-    elif convention == "mdh":
-        parts = (_rot(0, alpha), _trans(0, a), _rot(1, beta), _rot(2, theta), _trans(2, d))
-    else:
-        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
-    T = parts[0]
-    for P in parts[1:]:
-        T = T @ P
-    return T
+        rows = [
+            [ct, -st * ca, st * sa, a * ct],
+            [st, ct * ca, -ct * sa, a * st],
+            [zero, sa, ca, d + zero],
+        ]
+        T = jnp.stack([jnp.stack(r) for r in rows] + [jnp.stack([zero, zero, zero, one])])
+        return T.at[:3, :3].set(T[:3, :3] @ _ry(beta))
+    if convention == "mdh":
+        R = _rx(alpha) @ _ry(beta) @ jnp.stack([ct, -st, zero, st, ct, zero, zero, zero, one]).reshape(3, 3)
+        t = jnp.stack([a + zero, zero, zero]) + R[:, 2] * d
+        return make_pose(R, t)
+    raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
 
 
 def table_frames(table: DHTable, q: Float[Array, " joints"] | None = None) -> Float[Array, "frames 4 4"]:
@@ -168,13 +169,13 @@ def table_to_model(
     zero = jnp.zeros(())
     for i in range(n):
         if table.convention == "dh":
-            origins.append(carry @ _rot(2, table.theta[i]))
+            origins.append(carry @ link_transform("dh", table.theta[i], zero, zero, zero, zero))
             carry = link_transform("dh", zero, table.d[i], table.a[i], table.alpha[i], table.beta[i])
         else:
             origins.append(
                 carry @ link_transform("mdh", table.theta[i], zero, table.a[i], table.alpha[i], table.beta[i])
             )
-            carry = _trans(2, table.d[i])
+            carry = link_transform("mdh", zero, table.d[i], zero, zero, zero)
     return make_model(
         jnp.stack(origins),
         np.tile([0.0, 0.0, 1.0], (n, 1)),
@@ -243,7 +244,7 @@ def _hayati_row(frame, line, hint):
     wx, wy, wz = jnp.dot(w, u), jnp.dot(w, y), jnp.dot(w, z)
     alpha = jnp.arctan2(-wy, wz)
     beta = jnp.arctan2(wx, jnp.sqrt(wy * wy + wz * wz))
-    R = jnp.stack([u, y, z], axis=1) @ _rot(0, alpha)[:3, :3] @ _rot(1, beta)[:3, :3]
+    R = jnp.stack([u, y, z], axis=1) @ _rx(alpha) @ _ry(beta)
     row = (_angle_about(x, u, z), jnp.zeros_like(wx), jnp.dot(v, u), alpha, beta)
     return row, (R[:, 0], R[:, 2], on)
 
@@ -268,11 +269,11 @@ def parallel_pairs(model: KinematicModel, tol_deg: float = PARALLEL_TOL_DEG) -> 
     return tuple(bool(s < np.sin(np.radians(tol_deg))) for s in sines) + (False,)
 
 
-def _hints(model: KinematicModel, reference: DHTable | None):
-    """x-axis hints of frames 0..n-1: the reference table's frames, else the model's links."""
+def _hints(frames: Float[Array, "links 4 4"], reference: DHTable | None):
+    """x-axis hints of frames 0..n-1: the reference table's frames, else the model's
+    links (`frames`: its forward kinematics at zero)."""
     if reference is not None:
         return table_frames(reference)[:-2, :3, 0]
-    frames = forward_kinematics(model, jnp.zeros(model.num_joints))
     return jnp.concatenate([jnp.eye(3)[None, :, 0], frames[1:-2, :3, 0]])
 
 
@@ -309,10 +310,11 @@ def dh_table(
     parallel = tuple(bool(p) for p in parallel)
     if len(parallel) != n:
         raise ValueError(f"dh_table: {n} joints but {len(parallel)} parallel flags")
-    q0 = jnp.zeros(n)
-    points, dirs = joint_axes(model, q0)
-    T_base_flange = forward_kinematics(model, q0)[-1]
-    hints = _hints(model, reference)
+    frames = forward_kinematics(model, jnp.zeros(n))
+    T_joint = matmul(frames[:-2], model.T_parent_joint)  # joint frames at q = 0 (as `joint_axes`)
+    points, dirs = T_joint[:, :3, 3], jnp.einsum("jab,jb->ja", T_joint[:, :3, :3], model.axis)
+    T_base_flange = frames[-1]
+    hints = _hints(frames, reference)
     z0 = dirs[0]
     frame = (_orthogonal(hints[0], z0, jnp.eye(3)[1]), z0, points[0] - jnp.dot(points[0], z0) * z0)
     T_base = _pose(frame)
