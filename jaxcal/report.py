@@ -11,6 +11,7 @@ import numpy as np
 from .io._files import atomic_directory
 from .io.dataset import write_json
 from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
+from .io.ros import write_static_transform
 from .io.urdf import save_urdf
 
 
@@ -166,7 +167,8 @@ def _markdown(result, figs) -> str:
     lines = [
         f"# jaxcal calibration of `{result.dataset}`",
         "",
-        f"Camera `{result.camera}`, target(s) {', '.join(f'`{t}`' for t in result.targets)}; "
+        f"{'Device' if result.kind.device else 'Camera'} `{result.camera}`, "
+        f"{'point' if result.kind.device else 'target(s)'} {', '.join(f'`{t}`' for t in result.targets)}; "
         f"solvers: {'all successful' if result.ok else '**FAILED**'}; status **{result.status}**.",
         "",
     ]
@@ -198,7 +200,7 @@ def _truth_section(result) -> list[str]:
             f"| EE RMS (mm) | {v['ee_rms_mm_before']:.3f} |{two_rms} {v['ee_rms_mm_after']:.3f} |",
             f"| EE max (mm) | {v['ee_max_mm_before']:.3f} |{two_max} {v['ee_max_mm_after']:.3f} |",
             "",
-            f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'} error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
+            f"{result.kind.fixed_frame} error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
             f"raw {c['raw_trans_mm']:.3f} mm, {c['raw_rot_deg']:.4f} deg).",
             "",
         ]
@@ -247,10 +249,10 @@ def _refinement_section(result) -> list[str]:
 
 def _camera_section(result, r) -> list[str]:
     v = result.validation
-    fixed = "T_board_base" if result.eye_in_hand else "T_cam_base"
+    fixed = result.kind.fixed_frame
     T = r[fixed]
     lines = [
-        "## Camera pose",
+        "## Device pose" if result.kind.device else "## Camera pose",
         "",
         *(
             [
@@ -303,7 +305,7 @@ def _joints_section(result) -> list[str]:
     ]
     for a in result.arcs:
         lines.append(
-            f"| {a['joint']} | {a['frames']} | {a['position_rms_mm']:.3f} | {a['rotation_rms_deg']:.4f} | "
+            f"| {a['joint']} | {a['frames']} | {a['position_rms_mm']:.3f} | {_fmt(a['rotation_rms_deg'], '.4f')} | "
             f"{a['ratio_nominal']:.4f} | {_fmt(a['ratio'], '.4f')} | {_fmt(a['ratio_std'], '.4f')} | "
             f"{a['solver']['result']} ({a['solver']['steps']} steps) |"
         )
@@ -376,27 +378,62 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
     with atomic_directory(out, overwrite=overwrite, inputs=inputs, kind="result", checked=checked) as tmp:
         write_json(tmp / "result.json", result.to_json())
         save_urdf(result.model, tmp / "calibrated.urdf", source=result.robot_urdf)
-        _camera_yaml(
-            tmp / f"camera_{result.camera}.yaml",
-            result.camera,
-            result.T_cam_base,
-            result.std_cam,
-            result.intrinsics["K"],
-            result.intrinsics["distortion"],
-            T_flange_cam=result.T_flange_target[0] if result.eye_in_hand else None,
-        )
-        for c in result.other_cameras:
-            _camera_yaml(
-                tmp / f"camera_{c['camera']}.yaml",
-                c["camera"],
-                c["T_cam_base"],
-                c["std_cam"],
-                c["K"],
-                c["distortion"],
-            )
-        write_ros_camera_files(tmp, result)
+        if result.kind.device:
+            _device_files(tmp, result)
+        else:
+            _camera_files(tmp, result)
         if is_ur(result.model):
             (tmp / "ur_calibration.yaml").write_text(ur_kinematics_text(result.model, result.nominal)[0])
         figs = _plots(result, tmp)
         (tmp / "report.md").write_text(_markdown(result, figs))
     return out
+
+
+def output_files(result) -> list[str]:
+    """The files `write_outputs` writes besides `report.md` and its plots."""
+    names = ["result.json", "calibrated.urdf"]
+    if result.kind.device:
+        if result.kind.fixed_frame_free:
+            names += [f"ros_{result.camera}.launch.yaml", f"ros_{result.camera}.txt"]
+    else:
+        cams = [result.camera] + [c["camera"] for c in result.other_cameras]
+        names += [f"camera_{c}.yaml" for c in cams]
+        names += [
+            f"ros_{result.camera}.launch.yaml",
+            f"ros_{result.camera}.txt",
+            f"easy_handeye_{result.camera}.yaml",
+        ]
+    return names + (["ur_calibration.yaml"] if is_ur(result.model) else [])
+
+
+def _device_files(tmp: Path, result) -> None:
+    """A measuring device's pose in the base link as a ROS static transform (not with `device_is_base`)."""
+    if result.kind.fixed_frame_free:
+        write_static_transform(
+            tmp, result.camera, np.linalg.inv(np.asarray(result.T_cam_base, np.float64)),
+            result.model.link_names[0], result.camera,
+            f"jaxcal calibration ({result.kind.describe()}, status {result.status})",
+        )  # fmt: skip
+
+
+def _camera_files(tmp: Path, result) -> None:
+    """Each camera's OpenCV YAML and its pose for ROS."""
+    _camera_yaml(
+        tmp / f"camera_{result.camera}.yaml",
+        result.camera,
+        result.T_cam_base,
+        result.std_cam,
+        result.intrinsics["K"],
+        result.intrinsics["distortion"],
+        T_flange_cam=result.T_flange_target[0] if result.eye_in_hand else None,
+    )
+    for c in result.other_cameras:
+        _camera_yaml(
+            tmp / f"camera_{c['camera']}.yaml",
+            c["camera"],
+            c["T_cam_base"],
+            c["std_cam"],
+            c["K"],
+            c["distortion"],
+        )
+    write_ros_camera_files(tmp, result)
