@@ -262,8 +262,8 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     options.say("axis fit: kinematic parameters and camera-to-base")
     mounts0 = _start_mounts(setup, arcs, sync.homes)
     home = None if sync.homes is None else jnp.asarray(sync.homes)
-    fit = _programs.axis_fit(kind.axis_fit_uses_poses, kind.fixed_frame_free)(
-        nominal, arcs, mounts0, None, home
+    fit = _programs.axis_fit(kind.axis_fit_uses_poses)(
+        nominal, arcs, mounts0, None, home, kind.fixed_frame_free
     )
     jax.block_until_ready(fit)
     timings["axis_fit_s"] = time.perf_counter() - t0

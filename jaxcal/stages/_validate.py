@@ -84,8 +84,8 @@ def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true
         home=home,
     )
     arcs_exact = _programs.arc_fits(loss)(exact)
-    return _programs.axis_fit(setup.kind.axis_fit_uses_poses, setup.kind.fixed_frame_free)(
-        nominal, arcs_exact, mounts0, fit.free, home
+    return _programs.axis_fit(setup.kind.axis_fit_uses_poses)(
+        nominal, arcs_exact, mounts0, fit.free, home, setup.kind.fixed_frame_free
     ).T_cam_base
 
 
