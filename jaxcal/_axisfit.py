@@ -353,7 +353,11 @@ def register_lines(
 
 
 def identifiable_mask(
-    problem: AxisFitProblem, params: AxisFitParams, *, tol: float = 1e-7
+    problem: AxisFitProblem,
+    params: AxisFitParams,
+    *,
+    tol: float = 1e-7,
+    candidates: Bool[Array, " n"] | None = None,
 ) -> tuple[Bool[Array, " n"], Float[Array, " n"]]:
     """Which parameters the measurements determine, by greedy column selection.
 
@@ -361,14 +365,16 @@ def identifiable_mask(
     priority order of `ParameterLayout.priority`; a column is kept when its component
     orthogonal to the span of the kept ones is above `tol` (a
     column-pivoted, rank-revealing Gram-Schmidt QR with a fixed pivot
-    order). Pure and vmappable.
+    order). Pure and vmappable. `candidates`: the parameters that may be
+    freed at all (default all; e.g. the fixed frame's block held where its
+    pose is known).
 
     **Returns:** `(free, independence)` over the flattened parameters; the
     independence is each column's relative distance from the kept span.
     """
     _, J = axis_jacobian(params, problem)
     layout = ParameterLayout.of(problem.nominal, problem.T_flange_marker0.shape[0])
-    return _lsq.independent_columns(J, layout.priority(refine=False), tol=tol)
+    return _lsq.independent_columns(J, layout.priority(refine=False), tol=tol, candidates=candidates)
 
 
 class AxisFitResult(eqx.Module):
@@ -417,6 +423,7 @@ def fit_axes(
     use_poses: bool | None = None,
     free: Bool[Array, " n"] | None = None,
     home: Float[Array, "joints joints"] | None = None,
+    candidates: Bool[Array, " n"] | None = None,
     rtol: float = 1e-8,
     atol: float = 3e-2,
     max_steps: int = 100,
@@ -440,6 +447,8 @@ def fit_axes(
     - `home`: per joint sweep (row `j`), the commanded configuration the
       other joints held while joint `j` swept, entry `j` zero (its encoder
       zero); default: every sweep from the zero configuration.
+    - `candidates`: without `free`, the parameters the identifiability search
+      may free (default all): e.g. `T_cam_base` held at a known `T_cam_base0`.
 
     **Returns:** an `AxisFitResult`.
     """
@@ -480,7 +489,7 @@ def fit_axes(
     params0 = AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(n, n_markers))
     flat0, unravel = ravel_pytree(params0)
     if free is None:
-        keep, indep = identifiable_mask(problem, params0)
+        keep, indep = identifiable_mask(problem, params0, candidates=candidates)
     else:
         keep = jnp.asarray(free, bool)
         if keep.shape != flat0.shape:

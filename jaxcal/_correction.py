@@ -103,6 +103,8 @@ class ParameterLayout:
     - `angles`: names of the per-view joint angles (refinement without encoders).
     - `eye_in_hand`: the camera rides on the flange: the fixed frame is the
       board's (`T_board_base`) and the one mount is the camera's.
+    - `fixed_name`: the fixed frame's name where it is neither (an external
+      measuring device's `T_device_base`).
     """
 
     joints: tuple[str, ...]
@@ -110,6 +112,7 @@ class ParameterLayout:
     other_cameras: tuple[str, ...] = ()
     angles: tuple[str, ...] = ()
     eye_in_hand: bool = False
+    fixed_name: str | None = None
 
     @classmethod
     def of(cls, model: KinematicModel, num_markers: int = 1, **kwargs) -> "ParameterLayout":
@@ -173,7 +176,9 @@ class ParameterLayout:
 
     @property
     def fixed_frame(self) -> str:
-        """The frame the robot is located in: the camera's or, eye-in-hand, the board's."""
+        """The frame the robot is located in: the camera's or, eye-in-hand, the board's (or `fixed_name`)."""
+        if self.fixed_name is not None:
+            return self.fixed_name
         return "T_board_base" if self.eye_in_hand else "T_cam_base"
 
     def mount_labels(self) -> list[str]:

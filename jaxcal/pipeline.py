@@ -4,7 +4,8 @@ A short orchestrator over the stages of `jaxcal.stages` (see
 `docs/architecture.md`): setup (the dataset, the capture kind, cameras and
 targets) -> observe (intrinsics, detection, PnP with covariance) ->
 synchronise (clock offset, frames on the controller clock, sweeps) ->
-two-stage (arc fits, axis fit) -> refine (every corner) -> validate
+two-stage (arc fits, axis fit) -> refine (every corner; not for a measuring
+device's samples) -> validate
 (synthetic datasets) -> the result. The command line (`jaxcal calibrate`,
 `jaxcal demo`) and the Python API share this one code path.
 """
@@ -33,6 +34,7 @@ def calibrate(
     refine_intrinsics: bool | None = None,
     limits: Limits | None = None,
     arc_loss: str | None = "cauchy",
+    device_is_base: bool = False,
     strict: bool = False,
     log=None,
 ) -> CalibrationResult:
@@ -62,6 +64,12 @@ def calibrate(
       (`"cauchy"`, `"huber"` or `None` for plain least squares): samples far
       off their arc are down-weighted, then rejected and named in the result
       (`arcs[j]["outliers"]`) before the inlier solve that gives the std.
+    - `device_is_base`: tracker data only (a `device` in the metadata): the
+      device frame is the robot's base frame (the controller's own logged
+      tool point, or a tracker registered to the base), so `T_device_base`
+      is the identity and not estimated; the base height d1 and joint 1's
+      origin become identifiable. Without it `T_device_base` is estimated
+      (it takes `T_cam_base`'s place) and they are held at nominal.
     - `limits`: the plausibility checks' limits (`jaxcal.stages.Limits`); a
       result that fails one has `status == "suspect"` and its `reasons`.
     - `strict`: raise `SuspectResultError` instead of returning a suspect or
@@ -90,12 +98,14 @@ def calibrate(
         refine_intrinsics=refine_intrinsics,
         limits=stages.Limits() if limits is None else limits,
         arc_loss=arc_loss,
+        device_is_base=device_is_base,
     )
     setup = stages.setup(dataset, options)
     obs = stages.observe(setup, options)
     sync = stages.synchronise(setup, obs, options)
     two = stages.two_stage(setup, obs, sync, options)
-    refined = stages.refine(setup, obs, sync, two, options) if refine else None
+    # Tracker data have no corners: the two-stage fit is the result (see `stages.TWO_STAGE_IS_FINAL`).
+    refined = stages.refine(setup, obs, sync, two, options) if refine and setup.kind.refines_corners else None
     verdict = stages.verdict(setup, obs, sync, two, refined, options.limits)
     if strict and verdict.status != "ok":
         raise SuspectResultError(

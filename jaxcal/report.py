@@ -14,6 +14,7 @@ from .io._files import atomic_directory
 from .io.dataset import write_json
 from .io.dh_tables import dh_table_json
 from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
+from .io.ros import write_static_transform
 from .io.urdf import save_urdf
 
 
@@ -168,9 +169,14 @@ def dh_tables(result) -> dict[str, PhysicalTable]:
     """The calibrated arm's DH and MDH tables with their standard deviations
     (`jaxcal.physical_table`); empty when a joint is prismatic or the result
     holds no estimate."""
-    if result.estimate is None or any(k != REVOLUTE for k in result.model.joint_types):
+    if not has_dh_tables(result):
         return {}
     return {c: physical_table(result, c) for c in ("dh", "mdh")}
+
+
+def has_dh_tables(result) -> bool:
+    """Whether `write_outputs` writes DH and MDH tables: an all-revolute arm and an estimate."""
+    return result.estimate is not None and all(k == REVOLUTE for k in result.model.joint_types)
 
 
 def dh_table_document(result, table: PhysicalTable) -> dict:
@@ -220,7 +226,8 @@ def _markdown(result, figs, tables=None) -> str:
     lines = [
         f"# jaxcal calibration of `{result.dataset}`",
         "",
-        f"Camera `{result.camera}`, target(s) {', '.join(f'`{t}`' for t in result.targets)}; "
+        f"{'Device' if result.kind.device else 'Camera'} `{result.camera}`, "
+        f"{'point' if result.kind.device else 'target(s)'} {', '.join(f'`{t}`' for t in result.targets)}; "
         f"solvers: {'all successful' if result.ok else '**FAILED**'}; status **{result.status}**.",
         "",
     ]
@@ -252,7 +259,7 @@ def _truth_section(result) -> list[str]:
             f"| EE RMS (mm) | {v['ee_rms_mm_before']:.3f} |{two_rms} {v['ee_rms_mm_after']:.3f} |",
             f"| EE max (mm) | {v['ee_max_mm_before']:.3f} |{two_max} {v['ee_max_mm_after']:.3f} |",
             "",
-            f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'} error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
+            f"{result.kind.fixed_frame} error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
             f"raw {c['raw_trans_mm']:.3f} mm, {c['raw_rot_deg']:.4f} deg).",
             "",
         ]
@@ -301,10 +308,10 @@ def _refinement_section(result) -> list[str]:
 
 def _camera_section(result, r) -> list[str]:
     v = result.validation
-    fixed = "T_board_base" if result.eye_in_hand else "T_cam_base"
+    fixed = result.kind.fixed_frame
     T = r[fixed]
     lines = [
-        "## Camera pose",
+        "## Device pose" if result.kind.device else "## Camera pose",
         "",
         *(
             [
@@ -357,7 +364,7 @@ def _joints_section(result) -> list[str]:
     ]
     for a in result.arcs:
         lines.append(
-            f"| {a['joint']} | {a['frames']} | {a['position_rms_mm']:.3f} | {a['rotation_rms_deg']:.4f} | "
+            f"| {a['joint']} | {a['frames']} | {a['position_rms_mm']:.3f} | {_fmt(a['rotation_rms_deg'], '.4f')} | "
             f"{a['ratio_nominal']:.4f} | {_fmt(a['ratio'], '.4f')} | {_fmt(a['ratio_std'], '.4f')} | "
             f"{a['solver']['result']} ({a['solver']['steps']} steps) |"
         )
@@ -432,25 +439,10 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
     with atomic_directory(out, overwrite=overwrite, inputs=inputs, kind="result", checked=checked) as tmp:
         write_json(tmp / "result.json", result.to_json())
         save_urdf(result.model, tmp / "calibrated.urdf", source=result.robot_urdf)
-        _camera_yaml(
-            tmp / f"camera_{result.camera}.yaml",
-            result.camera,
-            result.T_cam_base,
-            result.std_cam,
-            result.intrinsics["K"],
-            result.intrinsics["distortion"],
-            T_flange_cam=result.T_flange_target[0] if result.eye_in_hand else None,
-        )
-        for c in result.other_cameras:
-            _camera_yaml(
-                tmp / f"camera_{c['camera']}.yaml",
-                c["camera"],
-                c["T_cam_base"],
-                c["std_cam"],
-                c["K"],
-                c["distortion"],
-            )
-        write_ros_camera_files(tmp, result)
+        if result.kind.device:
+            _device_files(tmp, result)
+        else:
+            _camera_files(tmp, result)
         if is_ur(result.model):
             (tmp / "ur_calibration.yaml").write_text(ur_kinematics_text(result.model, result.nominal)[0])
         tables = dh_tables(result)
@@ -459,3 +451,54 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
         figs = _plots(result, tmp)
         (tmp / "report.md").write_text(_markdown(result, figs, tables))
     return out
+
+
+def output_files(result) -> list[str]:
+    """The files `write_outputs` writes besides `report.md` and its plots."""
+    names = ["result.json", "calibrated.urdf"]
+    if result.kind.device:
+        if result.kind.fixed_frame_free:
+            names += [f"ros_{result.camera}.launch.yaml", f"ros_{result.camera}.txt"]
+    else:
+        cams = [result.camera] + [c["camera"] for c in result.other_cameras]
+        names += [f"camera_{c}.yaml" for c in cams]
+        names += [
+            f"ros_{result.camera}.launch.yaml",
+            f"ros_{result.camera}.txt",
+            f"easy_handeye_{result.camera}.yaml",
+        ]
+    names += ["ur_calibration.yaml"] if is_ur(result.model) else []
+    return names + (["calibrated_dh.json", "calibrated_mdh.json"] if has_dh_tables(result) else [])
+
+
+def _device_files(tmp: Path, result) -> None:
+    """A measuring device's pose in the base link as a ROS static transform (not with `device_is_base`)."""
+    if result.kind.fixed_frame_free:
+        write_static_transform(
+            tmp, result.camera, np.linalg.inv(np.asarray(result.T_cam_base, np.float64)),
+            result.model.link_names[0], result.camera,
+            f"jaxcal calibration ({result.kind.describe()}, status {result.status})",
+        )  # fmt: skip
+
+
+def _camera_files(tmp: Path, result) -> None:
+    """Each camera's OpenCV YAML and its pose for ROS."""
+    _camera_yaml(
+        tmp / f"camera_{result.camera}.yaml",
+        result.camera,
+        result.T_cam_base,
+        result.std_cam,
+        result.intrinsics["K"],
+        result.intrinsics["distortion"],
+        T_flange_cam=result.T_flange_target[0] if result.eye_in_hand else None,
+    )
+    for c in result.other_cameras:
+        _camera_yaml(
+            tmp / f"camera_{c['camera']}.yaml",
+            c["camera"],
+            c["T_cam_base"],
+            c["std_cam"],
+            c["K"],
+            c["distortion"],
+        )
+    write_ros_camera_files(tmp, result)

@@ -47,6 +47,91 @@ def show_defaults(parser: argparse.ArgumentParser) -> None:
                 show_defaults(sub)
 
 
+def _add_simulate_parser(sub) -> None:
+    """`jaxcal simulate`: a rendered dataset, a capture plan, or tracker sweeps."""
+    p = sub.add_parser(
+        "simulate", help="render a perturbed arm's calibration dataset (MuJoCo) into a directory"
+    )
+    p.add_argument(
+        "--kind",
+        choices=("images", "tracker"),
+        default="images",
+        help="images: rendered camera frames (MuJoCo); tracker: laser-tracker samples of a point on the flange "
+        "(docs/dataset.md, tracker data; no rendering)",
+    )
+    p.add_argument(
+        "--robot",
+        default=None,
+        help="shipped robot (ur5e, ur3, panda) or a URDF file (default ur5e; tracker ur3)",
+    )
+    p.add_argument("--out", required=True, help="dataset directory (must be empty or absent)")
+    p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
+    p.add_argument("--seed", type=int, default=0)
+    # The defaults film the demo's capture (EE RMS 0.19 mm refined; the former 640x480, 30 frames per
+    # 40-degree sweep gave 1.2 mm): see docs/plan.md, and `--plan` for a planned capture (0.04 mm).
+    p.add_argument("--resolution", type=resolution, default=(1280, 960), help="WxH pixels")
+    p.add_argument("--frames-per-joint", type=int, default=40)
+    p.add_argument(
+        "--sweep-deg",
+        type=degrees,
+        default=None,
+        help="angle each joint sweeps (deg), one or one per joint (default 80; tracker 120)",
+    )
+    p.add_argument(
+        "--home-deg",
+        type=home,
+        default=None,
+        help="the configuration every sweep starts from and the others hold, one angle per joint "
+        "(deg, e.g. 0,-20,30,-15,20,0; default zero; tracker 0,0,-90,0,90,0)",
+    )
+    p.add_argument("--samples-per-joint", type=int, default=300, help="tracker: samples per joint sweep")
+    p.add_argument(
+        "--noise-um", type=float, default=10.0, help="tracker: position noise, 1-sigma per axis (um)"
+    )
+    p.add_argument(
+        "--bad-fraction",
+        type=float,
+        default=0.02,
+        help="tracker: bad samples (0.3-0.5 mm off) at the sweep ends",
+    )
+    p.add_argument(
+        "--device-is-base", action="store_true", help="tracker: the device frame is the robot's base frame"
+    )
+    p.add_argument(
+        "--orientation", action="store_true", help="tracker: also measure an orientation (6-DoF probe)"
+    )
+    p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
+    p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
+    p.add_argument("--cameras", type=int, default=1, help="fixed cameras (eye-to-hand)")
+    p.add_argument("--eye-in-hand", action="store_true", help="camera on the flange, board in the world")
+    p.add_argument("--markers-on-links", action="store_true", help="a plate on every link too")
+    p.add_argument(
+        "--random-motion",
+        type=float,
+        metavar="SECONDS",
+        help="move every joint at once through random waypoints for this long, filmed throughout "
+        "(default: joint-by-joint sweeps); calibrated with --markers-on-links",
+    )
+    p.add_argument(
+        "--motion-amplitude-deg", type=float, default=25.0, help="random motion range, +- about zero"
+    )
+    p.add_argument("--clock-offset-ms", type=float, default=0.0, help="camera clock minus controller clock")
+    p.add_argument("--clock-drift-ppm", type=float, default=0.0)
+    p.add_argument("--clock-jitter-ms", type=float, default=0.0)
+    p.add_argument("--unknown-clock-offset", action="store_true", help="leave the offset out of the metadata")
+    p.add_argument("--drop-rate", type=float, default=0.0, help="probability that a frame is lost")
+    p.add_argument("--no-encoders", action="store_true", help="write no encoder log")
+    p.add_argument("--grayscale", action="store_true", help="write single-channel PNGs")
+    p.add_argument(
+        "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--plan", help="render exactly this capture plan (docs/plan.md): its camera, target and motion"
+    )
+    p.set_defaults(func=cmd_simulate)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `jaxcal` argument parser with every subcommand."""
     parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
@@ -88,6 +173,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="result directory: absent or empty, never the dataset, inside it or around it",
     )
     p.add_argument("--overwrite", action="store_true", help="replace a result directory jaxcal wrote")
+    p.add_argument(
+        "--device-is-base",
+        action="store_true",
+        help="tracker data: the measuring device's frame is the robot's base frame (T_device_base = identity, "
+        "not estimated; makes the base height d1 identifiable)",
+    )
     add_calibrate_args(p)
     add_bag_args(p, required=False)
     p.set_defaults(func=cmd_calibrate)
@@ -104,57 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write the summary here (atomically)")
     p.add_argument("--detail", action="store_true", help="first show one trial in detail")
     p.set_defaults(func=cmd_montecarlo)
-    p = sub.add_parser(
-        "simulate", help="render a perturbed arm's calibration dataset (MuJoCo) into a directory"
-    )
-    p.add_argument("--robot", default="ur5e", help="shipped robot (ur5e, panda) or a URDF file")
-    p.add_argument("--out", required=True, help="dataset directory (must be empty or absent)")
-    p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
-    p.add_argument("--seed", type=int, default=0)
-    # The defaults film the demo's capture (EE RMS 0.19 mm refined; the former 640x480, 30 frames per
-    # 40-degree sweep gave 1.2 mm): see docs/plan.md, and `--plan` for a planned capture (0.04 mm).
-    p.add_argument("--resolution", type=resolution, default=(1280, 960), help="WxH pixels")
-    p.add_argument("--frames-per-joint", type=int, default=40)
-    p.add_argument(
-        "--sweep-deg", type=degrees, default=80.0, help="angle each joint sweeps (deg), one or one per joint"
-    )
-    p.add_argument(
-        "--home-deg",
-        type=home,
-        default=None,
-        help="the configuration every sweep starts from and the others hold, one angle per joint "
-        "(deg, e.g. 0,-20,30,-15,20,0; default zero)",
-    )
-    p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
-    p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
-    p.add_argument("--cameras", type=int, default=1, help="fixed cameras (eye-to-hand)")
-    p.add_argument("--eye-in-hand", action="store_true", help="camera on the flange, board in the world")
-    p.add_argument("--markers-on-links", action="store_true", help="a plate on every link too")
-    p.add_argument(
-        "--random-motion",
-        type=float,
-        metavar="SECONDS",
-        help="move every joint at once through random waypoints for this long, filmed throughout "
-        "(default: joint-by-joint sweeps); calibrated with --markers-on-links",
-    )
-    p.add_argument(
-        "--motion-amplitude-deg", type=float, default=25.0, help="random motion range, +- about zero"
-    )
-    p.add_argument("--clock-offset-ms", type=float, default=0.0, help="camera clock minus controller clock")
-    p.add_argument("--clock-drift-ppm", type=float, default=0.0)
-    p.add_argument("--clock-jitter-ms", type=float, default=0.0)
-    p.add_argument("--unknown-clock-offset", action="store_true", help="leave the offset out of the metadata")
-    p.add_argument("--drop-rate", type=float, default=0.0, help="probability that a frame is lost")
-    p.add_argument("--no-encoders", action="store_true", help="write no encoder log")
-    p.add_argument("--grayscale", action="store_true", help="write single-channel PNGs")
-    p.add_argument(
-        "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
-    )
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument(
-        "--plan", help="render exactly this capture plan (docs/plan.md): its camera, target and motion"
-    )
-    p.set_defaults(func=cmd_simulate)
+    _add_simulate_parser(sub)
     add_inspect_parser(sub)
     add_handeye_parsers(sub)
     add_plan_parser(sub, cmd_plan)

@@ -10,16 +10,15 @@ from rich.console import Console
 from rich.table import Table
 
 from ..io._files import check_output_dir, marked_directory, output_lock
-from ..io.robot_files import is_ur
 from ..pipeline import calibrate
-from ..report import write_outputs
+from ..report import output_files, write_outputs
 from ..robots import load_robot
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, positive_int
 from ._rosbag import dataset_of
 
 
 def _calibration_tables(console, result) -> None:
-    t = Table(title=f"Joint sweeps (camera {result.camera})")
+    t = Table(title=f"Joint sweeps ({'device' if result.kind.device else 'camera'} {result.camera})")
     for col in (
         "joint",
         "frames",
@@ -40,7 +39,7 @@ def _calibration_tables(console, result) -> None:
             a["joint"],
             str(a["frames"]),
             f"{a['position_rms_mm']:.3f}",
-            f"{a['rotation_rms_deg']:.3f}",
+            "n/a" if a["rotation_rms_deg"] is None else f"{a['rotation_rms_deg']:.3f}",
             f"{a['ratio_nominal']:.3f}",
             "n/a" if a["ratio"] is None else f"{a['ratio']:.3f}",
             "n/a" if a["ratio_std"] is None else f"{a['ratio_std']:.3f}",
@@ -59,7 +58,7 @@ def _calibration_tables(console, result) -> None:
             f"{result.board} relative to the base:"
         )
     console.print(
-        f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'}: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
+        f"{result.kind.fixed_frame}: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
         f"(std {np.round(sd[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(sd[3:]), 4).tolist()} deg)"
     )
     errs = (v or {}).get("other_cameras", {})
@@ -82,7 +81,8 @@ def _calibration_tables(console, result) -> None:
         + (f" (estimated, std {1e3 * c['std_s']:.2f} ms)" if c["estimated"] else " (from the metadata)")
     )
     console.print(
-        f"held at nominal (the camera cannot see them): {len(result.frozen)} parameters, see report.md"
+        f"held at nominal (the {'device' if result.kind.device else 'camera'} cannot see them): "
+        f"{len(result.frozen)} parameters, see report.md"
     )
     if v is not None:
         t = Table(title=f"Before / after, against the truth ({v['ee_point']}, 1000 random configurations)")
@@ -102,7 +102,7 @@ def _calibration_tables(console, result) -> None:
         pad = [""] if refined else []
         ce = v["T_cam_base_error"]
         t.add_row(
-            f"{'T_board_base' if result.eye_in_hand else 'T_cam_base'} error",
+            f"{result.kind.fixed_frame} error",
             "",
             *pad,
             f"{ce['trans_mm']:.3f} mm, {ce['rot_deg']:.4f} deg",
@@ -143,6 +143,7 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         refine=not args.no_refine,
         other_cameras=not args.single_camera,
         arc_loss=None if args.arc_loss == "none" else args.arc_loss,
+        device_is_base=getattr(args, "device_is_base", False),
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
     )
     _calibration_tables(console, result)
@@ -154,13 +155,7 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         return code
     write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked)
     console.print(
-        f"wrote {out}/: result.json, calibrated.urdf, "
-        + "".join(f"camera_{c}.yaml, " for c in [result.camera] + [c["camera"] for c in result.other_cameras])
-        + f"ros_{result.camera}.launch.yaml, ros_{result.camera}.txt, easy_handeye_{result.camera}.yaml, "
-        + ("ur_calibration.yaml, " if is_ur(result.model) else "")
-        + ("calibrated_dh.json, calibrated_mdh.json, " if (out / "calibrated_dh.json").is_file() else "")
-        + "report.md "
-        f"({time.perf_counter() - t0:.1f} s)"
+        f"wrote {out}/: {', '.join(output_files(result))}, report.md ({time.perf_counter() - t0:.1f} s)"
     )
     if code:
         console.print(

@@ -16,6 +16,10 @@ def cmd_simulate(args) -> int:
 
     if args.plan is not None:
         return _simulate_plan(args)
+    if args.kind == "tracker":
+        return _simulate_tracker(args)
+    args.robot = args.robot or "ur5e"
+    args.sweep_deg = 80.0 if args.sweep_deg is None else args.sweep_deg
     robot_file = [args.robot] if Path(args.robot).exists() else []
     check_output_dir(args.out, inputs=robot_file, overwrite=args.overwrite, kind="dataset", what="--out")
 
@@ -94,5 +98,39 @@ def _simulate_plan(args) -> int:
     print(
         f"wrote {out}: {len(ds.frames['file'])} images of plan {args.plan} ({p.frames} frames), targets fully in "
         f"view in {visible} ({time.perf_counter() - start:.1f} s)"
+    )
+    return 0
+
+
+def _simulate_tracker(args) -> int:
+    """`jaxcal simulate --kind tracker`: laser-tracker sweeps of a perturbed arm (no rendering)."""
+    from ..sim.tracker import TrackerSimConfig, simulate_tracker
+
+    robot = args.robot or "ur3"
+    check_output_dir(
+        args.out, inputs=[robot] if Path(robot).exists() else [], overwrite=args.overwrite, kind="dataset",
+        what="--out",
+    )  # fmt: skip
+    given = {
+        "home_deg": args.home_deg,
+        "range_deg": args.sweep_deg,
+    }
+    config = TrackerSimConfig(
+        robot=robot,
+        seed=args.seed,
+        samples_per_joint=args.samples_per_joint,
+        noise_um=args.noise_um,
+        bad_fraction=args.bad_fraction,
+        device_is_base=args.device_is_base,
+        orientation=args.orientation,
+        **{k: v for k, v in given.items() if v is not None},
+    )
+    start = time.perf_counter()
+    with output_lock(args.out, what="--out"):
+        out = simulate_tracker(config, args.out, overwrite=args.overwrite)
+    ds = load_dataset(out)
+    print(
+        f"wrote {out}: {len(ds.samples.sample)} tracker samples of {len(ds.joint_names)} joint sweeps, "
+        f"{len(ds.truth['bad_samples'])} bad ({time.perf_counter() - start:.1f} s)"
     )
     return 0

@@ -49,7 +49,7 @@ class EncoderGlitch:
 # --------------------------------------------------------------------------- reading: files
 
 
-def _read_csv(path: Path, what: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
+def read_csv(path: Path, what: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
     """Header and `(line number, cells)` rows of a CSV file; blank lines are skipped."""
     text = sc.read_text(path, what)
     reader = csv.reader(io.StringIO(text, newline=""))
@@ -80,7 +80,7 @@ def _float(text: str, where: str) -> float:
 
 def read_frames(root: Path, cameras: tuple[CameraInfo, ...], meta_loc: Loc) -> dict:
     path = root / "frames.csv"
-    header, rows = _read_csv(path, "frames table")
+    header, rows = read_csv(path, "frames table")
     if header != ["camera", "frame", "timestamp", "file"]:
         raise DatasetError(
             f"{path} line 1: header must be camera,frame,timestamp,file, got {','.join(header)}"
@@ -185,7 +185,7 @@ def _encoder_table(
     path: Path, what: str, joints: tuple[str, ...]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The encoder file's timestamps (T,), logged values (T, joints) and line numbers (T,)."""
-    header, rows = _read_csv(path, what)
+    header, rows = read_csv(path, what)
     if not header or header[0] != "timestamp":
         raise DatasetError(f"{path} line 1: the header must start with 'timestamp', got {','.join(header)!r}")
     if tuple(header[1:]) != joints:

@@ -17,7 +17,7 @@ def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:
     truth = sc.read_json(path, "truth file")
     loc = Loc(path)
     sc.obj(truth, loc, required=("model", "cameras", "targets", "clock"),
-           optional=("T_world_base", "dropped_frames", "frames"))  # fmt: skip
+           optional=("T_world_base", "dropped_frames", "frames", "bad_samples"))  # fmt: skip
     n = len(joints)
     m = loc.key("model")
     model = sc.obj(
@@ -82,6 +82,11 @@ def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:
         raise loc.key("dropped_frames").expected("a list of capture indices", dropped)
     for i, v in enumerate(dropped):
         sc.integer(v, loc.key("dropped_frames").index(i), 0, MAX_FRAME_INDEX)
+    bad = truth.get("bad_samples", [])
+    if not isinstance(bad, list):
+        raise loc.key("bad_samples").expected("a list of sample indices (tracker data)", bad)
+    for i, v in enumerate(bad):
+        sc.integer(v, loc.key("bad_samples").index(i), 0, MAX_FRAME_INDEX)
     frames = truth.get("frames", [])
     if not isinstance(frames, list):
         raise loc.key("frames").expected("a list with one entry per row of frames.csv", frames)

@@ -10,6 +10,12 @@ DATASET/
   truth.json        synthetic datasets only: true model, camera and target poses, clock
 ```
 
+A tracker dataset (an external measuring device: laser tracker, motion
+capture, the controller's logged tool point) has a `device` field instead of
+`cameras` and `targets`, and a samples table (`samples.csv`: per sample a
+3-D point, optionally an orientation, its noise and the joint positions)
+instead of `frames.csv` and images (`jaxcal.io._tracker`).
+
 `load_dataset` checks every field of every file before any work (types,
 ranges, image sizes from the file headers, timestamps, encoder units against
 the URDF joint limits, encoder glitches) and raises `DatasetError` (a
@@ -35,6 +41,10 @@ from ._metadata import CameraInfo as CameraInfo
 from ._metadata import TargetInfo as TargetInfo
 from ._metadata import read_cameras, read_clock, read_encoder_meta, read_motion, read_robot, read_targets
 from ._schema import Loc
+from ._tracker import DeviceInfo as DeviceInfo
+from ._tracker import PointTarget as PointTarget
+from ._tracker import TrackerSamples as TrackerSamples
+from ._tracker import read_device, read_samples, sample_frames
 from ._truth import read_truth
 from .urdf import load_urdf
 
@@ -46,6 +56,8 @@ SCHEMA_VERSION = 1
 META_REQUIRED = ("schema", "schema_version", "robot", "cameras", "targets")
 META_OPTIONAL = ("description", "encoders", "clock", "motion")
 META_IGNORED = ("simulation",)
+#: ... and those of a tracker dataset (`device` in place of `cameras` and `targets`).
+TRACKER_REQUIRED = ("schema", "schema_version", "robot", "device")
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,6 +81,10 @@ class Dataset:
     - `encoder_glitches`: the `EncoderGlitch`es found and removed at load.
     - `notes`: human-readable remarks from loading (glitches removed, fields
       not used) for the calibration to report.
+    - `device`, `samples`: a tracker dataset's measuring device (`DeviceInfo`)
+      and its samples (`TrackerSamples`); `cameras` and `targets` are then
+      empty and `frames` has one row per sample (the device's name in the
+      `camera` column, the sample index in `frame`, `file` naming the line).
     """
 
     root: Path
@@ -91,6 +107,14 @@ class Dataset:
     encoder_unit: str | None = None
     encoder_glitches: tuple[EncoderGlitch, ...] = ()
     notes: tuple[str, ...] = ()
+    device: DeviceInfo | None = None
+    samples: TrackerSamples | None = None
+
+    @property
+    def point(self) -> PointTarget | None:
+        """A tracker dataset's measured point, in a target's role."""
+        d = self.device
+        return None if d is None else PointTarget(d.point, d.link, d.T_link_point)
 
     def camera(self, name: str) -> CameraInfo:
         for c in self.cameras:
@@ -181,21 +205,40 @@ def load_dataset(path) -> Dataset:
         raise DatasetError(
             f"{meta_path}: unknown schema_version {sc.show(version)}; this jaxcal reads version {SCHEMA_VERSION}"
         )
-    sc.obj(meta, loc, required=META_REQUIRED, optional=META_OPTIONAL, ignored=META_IGNORED)
+    tracker = isinstance(meta, dict) and "device" in meta
+    sc.obj(
+        meta,
+        loc,
+        required=TRACKER_REQUIRED if tracker else META_REQUIRED,
+        optional=META_OPTIONAL,
+        ignored=META_IGNORED,
+    )
     if "description" in meta:
         sc.string(meta["description"], loc.key("description"), allow_empty=True)
     urdf, base_link, flange_link, joints, limits, links = read_robot(meta, loc.key("robot"), root)
-    cameras = read_cameras(meta, loc.key("cameras"), links)
-    targets = read_targets(meta, loc.key("targets"), links)
+    device = samples = None
+    if tracker:
+        device = read_device(meta, loc.key("device"), links)
+        cameras, targets = (), ()
+    else:
+        cameras = read_cameras(meta, loc.key("cameras"), links)
+        targets = read_targets(meta, loc.key("targets"), links)
     emeta = read_encoder_meta(meta, loc.key("encoders"))
     offset, drift = read_clock(meta, loc.key("clock"))
     segments, homes = read_motion(meta, loc.key("motion"), joints)
     notes = []
     truth_path = root / "truth.json"
-    frames = read_frames(root, cameras, loc)
+    if tracker:
+        samples = read_samples(root, device, joints, limits, loc)
+        frames = sample_frames(device, samples)
+    else:
+        frames = read_frames(root, cameras, loc)
     truth = None
     if truth_path.exists():
-        truth = read_truth(truth_path, joints, cameras, targets, len(frames["file"]))
+        named = (
+            ((device,), (PointTarget(device.point, device.link, None),)) if tracker else (cameras, targets)
+        )
+        truth = read_truth(truth_path, joints, *named, len(frames["file"]))
     enc_t = enc_m = None
     glitches = ()
     if emeta is not None:
@@ -224,4 +267,6 @@ def load_dataset(path) -> Dataset:
         encoder_unit=None if emeta is None else emeta["unit"],
         encoder_glitches=glitches,
         notes=tuple(notes),
+        device=device,
+        samples=samples,
     )

@@ -35,6 +35,13 @@ def result_to_json(result) -> dict:
             "T_board_base": fixed,
             "T_flange_cam": result.T_flange_target[0].tolist(),
         }
+    elif result.kind.device:
+        poses = {
+            "device": result.camera,
+            "device_is_base": bool(result.kind.device_is_base),
+            "T_device_base": fixed,
+            "T_flange_point": result.T_flange_target[0].tolist(),
+        }
     else:
         poses = {"T_cam_base": fixed, "T_flange_target": result.T_flange_target.tolist()}
     return {
@@ -54,8 +61,9 @@ def result_to_json(result) -> dict:
         "identifiability": {
             "estimated": sum(bool(p["free"]) for p in result.parameters if p["group"] == "correction"),
             "frozen": result.frozen,
-            "note": "frozen parameters cannot be seen by a camera watching joint axes "
-            "(they trade off against others or against T_cam_base); they are held at nominal",
+            "note": f"frozen parameters cannot be seen by a {'device' if result.kind.device else 'camera'} "
+            f"watching joint axes (they trade off against others or against {result.kind.fixed_frame}); "
+            "they are held at nominal",
         },
         "arcs": result.arcs,
         "frames": result.frames,

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import CalibrationError
 from ..io.dataset import CameraInfo, Dataset, TargetInfo
-from ..vision import calibrate_intrinsics, detect_frames, estimate_pose
+from ..vision import PoseEstimate, calibrate_intrinsics, detect_frames, estimate_pose
 from ._setup import Options, Setup
 
 
@@ -26,6 +26,8 @@ class CameraObservations:
     - `dropped`: rows whose PnP reprojection error is far above the rest
       (`pnp_outliers`): their poses are left out (their corners still go to
       the refinement, whose robust loss weighs them).
+    - `has_orientation`: the poses carry a measured orientation (False for a
+      device measuring a point: only `T_cam_target[:3, 3]` and `cov[:3, :3]` count).
     """
 
     camera: CameraInfo
@@ -37,6 +39,7 @@ class CameraObservations:
     dist: np.ndarray | None
     intrinsics: dict
     dropped: tuple = ()
+    has_orientation: bool = True
 
     @property
     def found(self) -> np.ndarray:
@@ -158,11 +161,39 @@ def observe_camera(
     )
 
 
+def observe_device(setup: Setup) -> CameraObservations:
+    """A measuring device's samples as poses of its point, in the device frame:
+    the position (identity rotation when no orientation was measured) and the
+    sample's isotropic covariance (`TrackerSamples.covariances`)."""
+    ds = setup.dataset
+    s, name = ds.samples, setup.targets[0].name
+    cov = s.covariances()
+    k = cov.shape[-1]
+    poses = []
+    for i in range(len(s.sample)):
+        T = np.eye(4)
+        T[:3, 3] = s.position[i]
+        if s.orientation is not None:
+            T[:3, :3] = s.orientation[i]
+        C = np.eye(6)
+        C[:k, :k] = cov[i]
+        poses.append({name: PoseEstimate(T, C, 0.0, 1, 0.0)})
+    rows = np.arange(len(s.sample))
+    return CameraObservations(
+        setup.camera, rows, [{} for _ in rows], poses, ds.frames["timestamp"], np.eye(3), None,
+        {"source": f"none ({ds.device.kind.replace('_', ' ')} samples, no images)"},
+        has_orientation=s.orientation is not None,
+    )  # fmt: skip
+
+
 def observe(setup: Setup, options: Options) -> Observations:
     """Observe the two-stage camera (and, for the refinement, every further
-    camera): a `CalibrationError` when no target is found at all."""
+    camera): a `CalibrationError` when no target is found at all. A measuring
+    device's samples are its observations as they are (`observe_device`)."""
     ds = setup.dataset
     t0 = time.perf_counter()
+    if not setup.kind.images:
+        return Observations(observe_device(setup), (), {"observe_s": time.perf_counter() - t0})
     primary = observe_camera(ds, setup.camera, setup.targets, options, invert=setup.kind.inverts_poses)
     if not primary.found.any():
         raise CalibrationError(

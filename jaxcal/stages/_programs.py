@@ -12,9 +12,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._arcfit import fit_arc
-from .._axisfit import fit_axes
+from .._axisfit import fit_axes, register_lines
 from .._buckets import bucket
 from .._clocksync import fit_clock_offset
+from .._correction import ParameterLayout
 from .._kinematics import forward_kinematics
 from .._refine import identifiable_mask, refine
 from .._uncertainty import ee_sigma, random_configurations
@@ -50,10 +51,21 @@ def arc_fit(loss: str | None):
 
 @functools.cache
 def axis_fit(use_poses: bool):
-    """`fit_axes(nominal, arcs, T_flange_marker=mount, free=free, home=home)`."""
+    """`fit_axes(nominal, arcs, T_flange_marker=mount, free=free, home=home)`.
+    Without `fixed_frame_free` (an argument, so both cases share the program)
+    the fixed frame is the base frame: `T_cam_base` is the identity and its
+    block is no candidate of the identifiability search."""
 
-    def axis_fit(nominal, arcs, mount, free=None, home=None):
-        return fit_axes(nominal, arcs, T_flange_marker=mount, use_poses=use_poses, free=free, home=home)
+    def axis_fit(nominal, arcs, mount, free=None, home=None, fixed_frame_free=True):
+        T0 = jnp.where(fixed_frame_free, register_lines(nominal, arcs, home), jnp.eye(4))
+        layout = ParameterLayout.sized(nominal.num_joints, mount.shape[0])
+        cand = jnp.asarray(fixed_frame_free) | ~jnp.asarray(
+            np.isin(np.arange(layout.axis_size), layout.index("cam"))
+        )
+        return fit_axes(
+            nominal, arcs, T_flange_marker=mount, T_cam_base0=T0, use_poses=use_poses, free=free, home=home,
+            candidates=cand,
+        )  # fmt: skip
 
     return jax.jit(axis_fit)
 

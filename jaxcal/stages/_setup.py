@@ -33,6 +33,7 @@ class Options:
     refine_intrinsics: bool | None = None
     limits: Limits = Limits()
     arc_loss: str | None = "cauchy"
+    device_is_base: bool = False
 
     def say(self, text: str) -> None:
         if self.log is not None:
@@ -134,6 +135,51 @@ def _eye_in_hand_target(ds: Dataset, camera: CameraInfo, flange: str) -> tuple[T
     return board, TargetInfo(dataclasses.replace(board.spec, name=camera.name), flange, None)
 
 
+#: Why tracker data stop at the two-stage fit (a note in the result).
+TWO_STAGE_IS_FINAL = (
+    "tracker data: no corners to reproject, so the two-stage fit is the result. For single-joint sweeps it "
+    "is, to first order, the maximum-likelihood point fit: each sweep's arc parameters (axis line, rate, zero "
+    "position) summarise its samples, and the axis fit weighs them by their covariance; a refinement over "
+    "every sample with the full forward kinematics would fit the same model to the same information"
+)
+
+
+def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: float) -> Setup:
+    """A tracker dataset: the device in the camera's role, its point in the target's."""
+    flange = nominal.link_names[-1]
+    point = ds.point
+    if point.link != flange:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: device.link is {point.link!r}; the joint-sweep method measures a "
+            f"point on the flange link {flange!r}"
+        )
+    if ds.segments and all(j is None for j, _, _ in ds.segments):
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: tracker data are calibrated from single-joint sweeps; every motion "
+            "segment has joint null"
+        )
+    kind = CaptureKind.of(
+        camera_on_flange=False,
+        segments=ds.segments,
+        encoders=ds.encoder_t is not None or ds.samples.q is not None,
+        link_targets=False,
+        device=True,
+        device_is_base=options.device_is_base,
+    )
+    device = CameraInfo(ds.device.name, 1, 1, None, np.zeros(5), "world")
+    notes = [TWO_STAGE_IS_FINAL] if options.refine else []
+    if options.device_is_base:
+        notes.append(
+            f"device_is_base: {ds.device.name!r}'s frame is the robot's base frame (T_device_base = identity, "
+            "not estimated): the base height d1 and joint 1's origin become identifiable"
+        )
+    return Setup(
+        dataset=ds, nominal=nominal, kind=kind, camera=device, targets=(point,), board=None,
+        target_link=None, per_joint=None, extra_cameras=(), notes=tuple(notes),
+        timings={"load_s": time.perf_counter() - t0},
+    )  # fmt: skip
+
+
 def setup(dataset, options: Options) -> Setup:
     """Load `dataset` (a path or a `Dataset`) and resolve the capture kind,
     the camera, the targets and the further cameras (see `Setup`)."""
@@ -146,6 +192,13 @@ def setup(dataset, options: Options) -> Setup:
         raise CalibrationError(
             f"{ds.root / 'metadata.json'}: robot.joints {list(ds.joint_names)} differ from the chain in "
             f"{ds.robot_urdf} ({list(nominal.joint_names)})"
+        )
+    if ds.device is not None:
+        return _device_setup(ds, nominal, options, t0)
+    if options.device_is_base:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: device_is_base applies to tracker data (a 'device' in the metadata); "
+            "this dataset is filmed by cameras, whose pose is estimated"
         )
     flange = nominal.link_names[-1]
     cam = _choose_camera(ds, options.camera, flange)

@@ -37,15 +37,16 @@ class Sweeps:
 
     - `rows`: per joint, the dataset's frame-table rows used, `(joints, frames)`
       padded with -1.
-    - `positions` (m), `orientations`, `covariances` (of position and camera-frame
-      rotation vector), `mask` `(joints, markers, frames, ...)`.
+    - `positions` (m), `orientations` (None for measured points), `covariances`
+      (of position and camera-frame rotation vector; position only without
+      orientations), `mask` `(joints, markers, frames, ...)`.
     - `t_cam`: camera-clock stamps `(joints, frames)`; `encoder`: commanded joint
       positions interpolated at them (rad) or None.
     """
 
     rows: np.ndarray
     positions: np.ndarray
-    orientations: np.ndarray
+    orientations: np.ndarray | None
     covariances: np.ndarray
     mask: np.ndarray
     t_cam: np.ndarray
@@ -109,10 +110,13 @@ def interpolate(t, enc_t, enc_q) -> np.ndarray:
 def assign_frames(ds: Dataset, t_ctrl: np.ndarray, q: np.ndarray | None, num_joints: int) -> np.ndarray:
     """Which joint sweeps in each frame (index, or -1 for none).
 
-    From the metadata's motion segments when present; otherwise from the
-    encoder log: the one joint more than `MOVING_DEG` from zero while every
-    other stays within `AT_ZERO_DEG`.
+    From a tracker table's `joint` column when it names joints; else from the
+    metadata's motion segments when present; otherwise from the encoder log
+    (or the table's joint positions): the one joint more than `MOVING_DEG`
+    from zero while every other stays within `AT_ZERO_DEG`.
     """
+    if ds.samples is not None and ds.samples.has_joint:
+        return ds.samples.joint.copy()
     index = {name: j for j, name in enumerate(ds.joint_names)}
     joint = np.full(len(t_ctrl), -1)
     if ds.segments:
@@ -142,10 +146,11 @@ def build_sweeps(ds: Dataset, obs: CameraObservations, targets, joint_of_row, q_
     per_joint = [np.flatnonzero((joint_of_row == j) & found) for j in range(num_joints)]
     F = bucket(max(len(k) for k in per_joint))  # similar captures share the compiled fits
     J = num_joints
+    k = 6 if obs.has_orientation else 3
     R = np.full((J, F), -1)
     P = np.zeros((J, M, F, 3))
     O = np.broadcast_to(np.eye(3), (J, M, F, 3, 3)).copy()
-    C = np.broadcast_to(np.eye(6), (J, M, F, 6, 6)).copy()
+    C = np.broadcast_to(np.eye(k), (J, M, F, k, k)).copy()
     mask = np.zeros((J, M, F), bool)
     T = np.zeros((J, F))
     E = None if q_at_row is None else np.zeros((J, F))
@@ -162,10 +167,10 @@ def build_sweeps(ds: Dataset, obs: CameraObservations, targets, joint_of_row, q_
                     continue
                 P[j, m, f] = est.T_cam_target[:3, 3]
                 O[j, m, f] = est.T_cam_target[:3, :3]
-                C[j, m, f] = est.cov
+                C[j, m, f] = est.cov[:k, :k]
                 mask[j, m, f] = True
     counts = {ds.joint_names[j]: int(len(idx)) for j, idx in enumerate(per_joint)}
-    return Sweeps(R, P, O, C, mask, T, E), counts
+    return Sweeps(R, P, O if obs.has_orientation else None, C, mask, T, E), counts
 
 
 def usable(ds: Dataset, t_ctrl: np.ndarray, log_q) -> tuple[np.ndarray, np.ndarray]:
@@ -188,6 +193,8 @@ class _Timeline:
         """`(t_ctrl, q, inside)` of every row at `offset_s`."""
         ds, obs = self.setup.dataset, self.obs
         t_ctrl = controller_time(obs.t_cam, offset_s, ds.clock_drift_ppm)
+        if ds.samples is not None and ds.samples.q is not None:  # a tracker table with joint positions
+            return t_ctrl, ds.samples.q[obs.rows], np.ones(len(t_ctrl), bool)
         if self.log_q is None:
             return t_ctrl, None, np.ones(len(t_ctrl), bool)
         enc_t, enc_q = self.log_q
@@ -328,7 +335,8 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     offset0 = 0.0 if offset is None else offset
     clock = {"offset_s": offset0, "std_s": None, "estimated": False, "drift_ppm": ds.clock_drift_ppm}
     notes = list(ds.notes)
-    if offset is None and not estimate:
+    per_sample_q = ds.samples is not None and ds.samples.q is not None  # no clock relation needed
+    if offset is None and not estimate and not per_sample_q:
         notes.append(
             "clock offset unknown and not estimated: 0 assumed"
             + ("" if setup.kind.has_arcs else " (harmless when the arm stands still in every image)")

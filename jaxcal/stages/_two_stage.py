@@ -154,13 +154,14 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data) -> None:
 
 def _start_mounts(setup: Setup, arcs, homes):
     """The fit targets' nominal mounts; where one is unknown, every mount from
-    the measured zero pose and the registered camera pose."""
+    the measured zero pose and the registered camera pose (the identity when
+    the fixed frame is the base frame)."""
     mounts0 = [t.T_link_target for t in setup.fit_targets]
     if all(m is not None for m in mounts0):
         return jnp.asarray(np.stack(mounts0))
     nominal = setup.nominal
     home = None if homes is None else jnp.asarray(homes)
-    T0 = register_lines(nominal, arcs, home)
+    T0 = register_lines(nominal, arcs, home) if setup.kind.fixed_frame_free else jnp.eye(4)
     T_cf = T0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints) if home is None else home[0])[-1]
     return jnp.einsum("ab,mbc->mac", pose_inverse(T_cf), arcs.T_cam_marker0[0])
 
@@ -178,6 +179,11 @@ def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> list[dict]:
                 "timestamp_s": float(frames["timestamp"][row]),
                 "residual": float(arcs.sample_residuals[j, m, f]),
             }
+            | (
+                {"sample": int(frames["frame"][row]), "line": frames["file"][row]}
+                if setup.kind.device
+                else {}
+            )
         )
     return rows
 
@@ -191,7 +197,10 @@ def _outlier_notes(rows: list[dict]) -> tuple[str, ...]:
             shown = ", ".join(map(str, frames[:8])) + (
                 f" and {len(frames) - 8} more" if len(frames) > 8 else ""
             )
-            notes.append(f"joint {a['joint']!r}: the robust arc fit rejected {len(frames)} frame(s): {shown}")
+            what = "sample" if "sample" in a["outliers"][0] else "frame"
+            notes.append(
+                f"joint {a['joint']!r}: the robust arc fit rejected {len(frames)} {what}(s): {shown}"
+            )
     return tuple(notes)
 
 
@@ -209,7 +218,9 @@ def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> list[dict]:
                 "joint": name,
                 "frames": int(arcs.num_frames[j]),
                 "position_rms_mm": float(arcs.position_rms[j]) * 1e3,
-                "rotation_rms_deg": float(np.degrees(arcs.rotation_rms[j])),
+                "rotation_rms_deg": float(np.degrees(arcs.rotation_rms[j]))
+                if np.isfinite(arcs.rotation_rms[j])
+                else None,  # points measured without an orientation
                 "residual_rms": float(arcs.residual_rms[j]),
                 "direction_cam": np.asarray(arcs.direction[j]).tolist(),
                 "point_cam_m": np.asarray(arcs.point[j]).tolist(),
@@ -255,11 +266,15 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     options.say("axis fit: kinematic parameters and camera-to-base")
     mounts0 = _start_mounts(setup, arcs, sync.homes)
     home = None if sync.homes is None else jnp.asarray(sync.homes)
-    fit = _programs.axis_fit(kind.axis_fit_uses_poses)(nominal, arcs, mounts0, None, home)
+    fit = _programs.axis_fit(kind.axis_fit_uses_poses)(
+        nominal, arcs, mounts0, None, home, kind.fixed_frame_free
+    )
     jax.block_until_ready(fit)
     timings["axis_fit_s"] = time.perf_counter() - t0
 
-    layout = ParameterLayout.of(nominal, len(setup.fit_targets), eye_in_hand=kind.eye_in_hand)
+    layout = ParameterLayout.of(
+        nominal, len(setup.fit_targets), eye_in_hand=kind.eye_in_hand, fixed_name=kind.fixed_frame
+    )
     names = layout.names(refine=False)
     free = np.asarray(fit.free)
     parameters = physical_parameters(

@@ -85,7 +85,7 @@ def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true
     )
     arcs_exact = _programs.arc_fits(loss)(exact)
     return _programs.axis_fit(setup.kind.axis_fit_uses_poses)(
-        nominal, arcs_exact, mounts0, fit.free, home
+        nominal, arcs_exact, mounts0, fit.free, home, setup.kind.fixed_frame_free
     ).T_cam_base
 
 
@@ -176,7 +176,7 @@ def validate(
         "configurations": CONFIGURATIONS,
         "ee_point": "camera origin, board frame"
         if setup.board is not None
-        else "target origin, camera frame",
+        else ("measured point, device frame" if setup.kind.device else "target origin, camera frame"),
         "ee_rms_mm_before": rms(err["before"]),
         "ee_max_mm_before": float(err["before"].max()),
         "ee_rms_mm_after": rms(err["after"]),

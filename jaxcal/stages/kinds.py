@@ -4,17 +4,20 @@ A capture is resolved once, by `CaptureKind.of`, into three independent
 choices, and every difference between kinds is a property here; the stages
 ask the kind, they do not test flags of their own.
 
-| property                | eye-to-hand sweeps | eye-in-hand sweeps | markers on every link | poses        | no encoder log |
-| ----------------------- | ------------------ | ------------------ | --------------------- | ------------ | -------------- |
-| `fixed_frame`           | `T_cam_base`       | `T_board_base`     | `T_cam_base`          | (its mount)  | (its mount)    |
-| `inverts_poses`         | no                 | yes                | no                    | eye-in-hand  |                |
-| `has_arcs`              | yes                | yes                | yes                   | no           |                |
-| `sequential`            | no                 | no                 | yes                   | no           |                |
-| `axis_fit_uses_poses`   | yes                | yes                | no                    | (no fit)     | no             |
-| `refines_other_cameras` | yes                | no                 | no                    | eye-to-hand  | no             |
-| `keeps_two_stage_gauge` | yes                | yes                | no                    | no           | no             |
-| `identifiability_tol`   | 1e-6               | 1e-6               | 1e-3                  | 1e-3         | 1e-3           |
-| `per_view_angles`       | no                 | no                 | no                    | no           | yes            |
+| property                | eye-to-hand sweeps | eye-in-hand sweeps | markers on every link | poses        | no encoder log | tracker sweeps  |
+| ----------------------- | ------------------ | ------------------ | --------------------- | ------------ | -------------- | --------------- |
+| `fixed_frame`           | `T_cam_base`       | `T_board_base`     | `T_cam_base`          | (its mount)  | (its mount)    | `T_device_base` |
+| `fixed_frame_free`      | yes                | yes                | yes                   | yes          |                | not with `device_is_base` |
+| `images`                | yes                | yes                | yes                   | yes          |                | no (samples)    |
+| `inverts_poses`         | no                 | yes                | no                    | eye-in-hand  |                | no              |
+| `has_arcs`              | yes                | yes                | yes                   | no           |                | yes             |
+| `sequential`            | no                 | no                 | yes                   | no           |                | no              |
+| `axis_fit_uses_poses`   | yes                | yes                | no                    | (no fit)     | no             | yes             |
+| `refines_corners`       | yes                | yes                | yes                   | yes          |                | no (no corners) |
+| `refines_other_cameras` | yes                | no                 | no                    | eye-to-hand  | no             | no              |
+| `keeps_two_stage_gauge` | yes                | yes                | no                    | no           | no             | yes             |
+| `identifiability_tol`   | 1e-6               | 1e-6               | 1e-3                  | 1e-3         | 1e-3           | 1e-6            |
+| `per_view_angles`       | no                 | no                 | no                    | no           | yes            | no              |
 
 - **Eye-to-hand, single-joint sweeps** (the seed method): fixed cameras film
   targets on the flange while one joint turns at a time.
@@ -32,6 +35,14 @@ ask the kind, they do not test flags of their own.
 - **No encoder log**: the arcs are fitted with per-frame angles (ratios are
   not identifiable), and the refinement makes each view's joint angle an
   unknown.
+- **Tracker sweeps** (`Mount.DEVICE`): an external measuring device (laser
+  tracker, motion capture, the controller's logged tool point) gives a 3-D
+  point (and optionally an orientation) per sample in its own frame: the
+  samples are the arcs' marker positions, the device pose `T_device_base`
+  plays `T_cam_base`'s role, or, with `device_is_base`, is the identity
+  (the device frame is the base frame, which makes the base height d1
+  identifiable). No corners: the two-stage fit is the result (see
+  `jaxcal.stages.refine` for why a point refinement would add nothing).
 """
 
 import enum
@@ -52,6 +63,7 @@ class Mount(enum.Enum):
 
     EYE_TO_HAND = "eye_to_hand"
     EYE_IN_HAND = "eye_in_hand"
+    DEVICE = "device"
 
 
 class Motion(enum.Enum):
@@ -69,15 +81,27 @@ class CaptureKind:
     mount: Mount
     motion: Motion
     encoders: bool
+    device_is_base: bool = False
 
     @classmethod
     def of(
-        cls, *, camera_on_flange: bool, segments: tuple, encoders: bool, link_targets: bool
+        cls,
+        *,
+        camera_on_flange: bool,
+        segments: tuple,
+        encoders: bool,
+        link_targets: bool,
+        device: bool = False,
+        device_is_base: bool = False,
     ) -> "CaptureKind":
-        """The kind of a dataset: the camera's mount, and, when every motion
+        """The kind of a dataset: the camera's mount (`device`: an external
+        measuring device, always single-joint sweeps), and, when every motion
         segment has `joint: null` (arbitrary motion), markers on every link if
         targets ride on links other than the flange (`link_targets`), else
-        poses of the flange target."""
+        poses of the flange target. `device_is_base`: the device frame is the
+        robot's base frame (tracker data only)."""
+        if device:
+            return cls(Mount.DEVICE, Motion.SWEEPS, encoders, device_is_base)
         arbitrary = bool(segments) and all(j is None for j, _, _ in segments)
         if not arbitrary:
             motion = Motion.SWEEPS
@@ -92,9 +116,31 @@ class CaptureKind:
         return self.mount is Mount.EYE_IN_HAND
 
     @property
+    def device(self) -> bool:
+        """An external measuring device's samples (no images)."""
+        return self.mount is Mount.DEVICE
+
+    @property
     def fixed_frame(self) -> str:
         """Name of the frame the robot base is located in."""
-        return "T_board_base" if self.eye_in_hand else "T_cam_base"
+        return {Mount.EYE_IN_HAND: "T_board_base", Mount.DEVICE: "T_device_base"}.get(
+            self.mount, "T_cam_base"
+        )
+
+    @property
+    def fixed_frame_free(self) -> bool:
+        """The fixed frame's pose is an unknown (with `device_is_base` it is the identity)."""
+        return not self.device_is_base
+
+    @property
+    def images(self) -> bool:
+        """Observations come from images (detection and PnP), not from a device's samples."""
+        return not self.device
+
+    @property
+    def refines_corners(self) -> bool:
+        """The reprojection refinement applies (there are corners to reproject)."""
+        return self.images
 
     @property
     def inverts_poses(self) -> bool:
@@ -143,11 +189,17 @@ class CaptureKind:
 
     @property
     def label(self) -> str:
-        """`eye_to_hand` / `eye_in_hand` (the `setup` field of `result.json`)."""
+        """`eye_to_hand` / `eye_in_hand` / `device` (the `setup` field of `result.json`)."""
         return self.mount.value
 
     def describe(self) -> str:
-        parts = [self.mount.value.replace("_", "-")]
+        if self.device:
+            parts = [
+                "external measuring device"
+                + (" (its frame is the base frame)" if self.device_is_base else "")
+            ]
+        else:
+            parts = [self.mount.value.replace("_", "-")]
         parts.append(
             {
                 Motion.SWEEPS: "single-joint sweeps",
@@ -155,5 +207,7 @@ class CaptureKind:
                 Motion.POSES: "poses of the flange target",
             }[self.motion]
         )
-        parts.append("encoder log" if self.encoders else "no encoder log")
+        parts.append(
+            ("joint positions" if self.device else "encoder log") if self.encoders else "no encoder log"
+        )
         return ", ".join(parts)

@@ -53,6 +53,10 @@ class CalibrationResult:
       in the world. The fields keep their eye-to-hand names with the roles
       swapped: `T_cam_base` holds $T_{board,base}$ and `T_flange_target[0]`
       holds $T_{flange,cam}$ (`result.json` names them so).
+    - Tracker data (`kind.device`): `camera` is the device's name,
+      `T_cam_base` holds $T_{device,base}$ (the identity with
+      `device_is_base`) and `T_flange_target[0]` the measured point's mount
+      (`result.json`: `T_device_base`, `T_flange_point`); `frames` counts samples.
     """
 
     dataset: Path
@@ -134,7 +138,7 @@ def frames_summary(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -
         "used_per_joint": two.counts,
         "dropped_capture_indices": dropped_capture_indices(setup.dataset, setup.camera.name),
         "pnp_outliers": [int(r) for r, _, _ in obs.primary.dropped],
-    }
+    } | ({"samples": int(len(obs.primary.rows))} if setup.kind.device else {})
 
 
 def _arcs(two: TwoStage, refined: Refined | None) -> list:
