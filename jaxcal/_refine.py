@@ -393,8 +393,13 @@ def fisher_std(
 ) -> Float[Array, " n"]:
     """Cramer-Rao bound: standard deviations from the Fisher information at
     `params` under i.i.d. Gaussian pixel noise `sigma_px` (zero where frozen)."""
+    return _fisher_std(problem, params, jnp.asarray(np.flatnonzero(np.asarray(free, bool))), sigma_px)
+
+
+@jax.jit
+def _fisher_std(problem, params, idx, sigma_px):
+    """`fisher_std` as one compiled program (the free indices are data, their count the shape)."""
     flat, unravel = ravel_pytree(params)
-    idx = np.flatnonzero(np.asarray(free, bool))
     J = jax.jacfwd(lambda x: reprojection_residuals(unravel(flat.at[idx].set(x)), problem).reshape(-1))(
         flat[idx]
     )

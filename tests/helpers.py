@@ -1,5 +1,7 @@
 """Shared test helpers: tree comparison and a catalogue of synthetic problems."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,8 +21,10 @@ def tree_allclose(a, b, *, atol=1e-12, rtol=0.0) -> bool:
     )
 
 
+@functools.partial(jax.jit, static_argnames=("frames", "markers"))
 def arc_problem(key, *, frames=40, markers=1, span=1.2, rate=1.01, sigma_p=0.0, sigma_r=0.0):
-    """A random joint sweep: truth (V, Q, rate) and noisy marker poses."""
+    """A random joint sweep: truth (V, Q, rate) and noisy marker poses (one
+    compiled program per shape: op by op it would compile each of its ~40 ops)."""
     k = jax.random.split(key, 7)
     V = normalize(jax.random.normal(k[0], (3,)))
     Q = 0.3 * jax.random.normal(k[1], (3,)) + jnp.array([0.0, 0.0, 1.0])

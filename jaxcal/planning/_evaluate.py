@@ -70,6 +70,7 @@ def design(scene: PlanScene, sweeps: bool) -> Design:
     return Design(kind, lay, cand, kind.identifiability_tol)
 
 
+@eqx.filter_jit
 def corner_problem(
     scene: PlanScene,
     q: Float[Array, "V joints"],
@@ -105,6 +106,7 @@ def corner_problem(
     )
 
 
+@eqx.filter_jit
 def free_jacobian(problem: RefineProblem, free_idx: np.ndarray) -> Float[Array, "rows f"]:
     """$\\partial r / \\partial x_{free}$ of the refinement's residuals at the nominal robot."""
     flat, unravel = ravel_pytree(zero_params(problem.nominal.num_joints, 1))
@@ -113,6 +115,7 @@ def free_jacobian(problem: RefineProblem, free_idx: np.ndarray) -> Float[Array, 
     )(flat[free_idx])
 
 
+@eqx.filter_jit
 def ee_jacobians(scene: PlanScene, configs: Float[Array, "C joints"]) -> Float[Array, "C 3 n"]:
     """$G_c = \\partial p_c / \\partial x$ of the end-effector point at every workspace
     configuration, over the axis-fit prefix of the layout (camera, origins, zero
