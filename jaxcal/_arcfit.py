@@ -49,8 +49,15 @@ from ._geometry import (
     matmul,
     so3_exp,
 )
-from ._robust import MIN_DOF, check_loss, irls_rounds, robust_scale, round_plan, sample_weights
-from ._schur import block_covariance, block_least_squares, block_leverage
+from ._robust import (
+    check_loss,
+    deletion_residuals,
+    irls_rounds_reweighted,
+    robust_scale,
+    round_plan,
+    sample_weights,
+)
+from ._schur import block_covariance, block_least_squares
 
 _DEG = np.pi / 180.0
 
@@ -82,9 +89,9 @@ class ArcFitResult(eqx.Module):
       observation mask without a robust loss; 1 for inliers and 0 for rejected
       samples after the inlier solve); `inlier`: observed samples the final
       solve used; `robust_scale`: the noise scale its residuals show (median
-      over the samples it used of $\\|We\\|/m(\\nu)$, $m(\\nu)$ the median of
-      $\\chi_\\nu$, $\\nu$ the sample's degrees of freedom; about 1 when the
-      noise model is honest; see `jaxcal._robust`).
+      over the samples it used of $d/m(\\nu)$, $d$ the deletion residual,
+      $m(\\nu)$ the median of $\\chi_\\nu$, $\\nu$ the sample's degrees of
+      freedom; about 1 when the noise model is honest; see `jaxcal._robust`).
     - `num_frames`: observed frames.
     """
 
@@ -142,11 +149,17 @@ def fit_arc(
     when `scale_covariance` (set it False when the given noise model is trusted).
 
     Robust loss (iteratively reweighted least squares, as `jaxcal._refine.refine`):
-    each (marker, frame) sample's whitened residual norm $e$ is put in robust
-    sigmas, $z = e/s$ with $s$ the median of $e/m(\\nu)$ ($m(\\nu)$ the median
-    of $\\chi_\\nu$, $\\nu = k - h$ the sample's degrees of freedom, $k = 3$ or
-    6, $h$ its leverage: a frame's own angle takes one), mapped to the 2-D
-    radius with the same tail probability (`jaxcal._robust`), and weighted
+    each (marker, frame) sample is judged by its deletion residual $d$, the
+    residual it would have if the fit (with the weights it was solved with)
+    had not used it, $d^2 = r^T[(I - wG)(I + (1 - w)G)]^{+} r$ with
+    $G = J_i C J_i^T$ from the covariance's per-sample blocks (for $w = 1$,
+    $r^T(I - H_{ii})^{-1}r$): a sample at a sweep's end, which decides the
+    angle scale and pulls the fit towards itself, cannot hide behind its own
+    small residual. $d$ is put in robust sigmas, $z = d/s$ with $s$ the median
+    of $d/m(\\nu)$ ($m(\\nu)$ the median of $\\chi_\\nu$, $\\nu = k$ less the
+    directions the sample alone determines, $k = 3$ or 6: a one-marker
+    frame's own angle takes one), mapped to the 2-D radius with the same tail
+    probability (`jaxcal._robust`), and weighted
     (Cauchy $1/(1 + (z/c)^2)$, Huber $\\min(1, c/z)$); `rounds` solves with
     the weights of the previous solution, then one least-squares solve on the
     inliers ($z <$ `reject`, weight 1; others 0), whose Jacobian gives the
@@ -178,20 +191,19 @@ def fit_arc(
     free = free_mask(params0, data, ref)
     mask = data.mask
     mask_f = mask.astype(params0.line.dtype)
-    k = data.sqrt_info.shape[-1]
     reject_ = jnp.inf if reject is None else reject
     solve = _solve_dense if data.encoder is not None else _solve_blocks
 
-    def weights_at(params, hard):
+    def weights_at(params, w, hard):
         if loss is None:
             return mask_f
-        e, h = _sample_stats(params, ref, data, free, mask_f)
-        return sample_weights(e, h, mask, k=k, loss=loss, c=c, reject=reject_, hard=hard)[0]
+        d, nu = _deletion_stats(params, ref, data, free, w)
+        return sample_weights(d, nu, mask, loss=loss, c=c, reject=reject_, hard=hard)[0]
 
     def solve_with(params, w):
         return solve(params, ref, data, free, w, rtol=rtol, atol=atol, max_steps=max_steps)
 
-    out = irls_rounds(solve_with, weights_at, params0, hard_flags)
+    out = irls_rounds_reweighted(solve_with, weights_at, params0, mask_f, hard_flags)
     params, steps, ok, result = out.value, out.num_steps, out.ok, out.result
     if throw:
         params = eqx.error_if(params, ~ok, "fit_arc: a Levenberg-Marquardt solve did not converge")
@@ -287,9 +299,14 @@ def _solve_blocks(params, ref, data, free, w, *, rtol, atol, max_steps):
 
 
 def _covariance(params, ref, data, free, w):
-    """Unscaled covariance blocks and each sample's leverage, with weights `w`.
+    """Unscaled covariance blocks under weights `w`, and each sample's block $G_i = J_i C J_i^T$.
 
-    **Returns:** `(cov_line_rate (5, 5), cov_meas (k, k), leverage (markers, frames))`.
+    $C = (J^T W J)^{+}$ over the free parameters, $J_i$ the sample's unweighted
+    (whitened) Jacobian block: $w_i G_i$ is its block of the hat matrix, whose
+    trace is its leverage (see `jaxcal._robust.deletion_residuals`). Only
+    per-sample blocks are formed: memory stays linear in the frames.
+
+    **Returns:** `(cov_line_rate (5, 5), cov_meas, G (markers, frames, k, k))`.
     """
     M, F = data.mask.shape
     k = data.sqrt_info.shape[-1]
@@ -298,30 +315,43 @@ def _covariance(params, ref, data, free, w):
     if data.encoder is None:
         g, l = _to_blocks(params, data)
         g_mask, l_mask = _to_blocks(free, data)
-        _, Jg, Jl = _arc_blocks(g, l, (ref, data, sw))
-        cov = block_covariance(Jg, Jl, g_mask=g_mask > 0, l_mask=l_mask > 0)
-        h = block_leverage(Jg * g_mask, Jl * l_mask[:, None, :], cov).reshape(F, M, k).sum(-1).T
+        _, Jg, Jl = _arc_blocks(g, l, (ref, data, jnp.ones_like(sw)))
+        Jg, Jl = Jg * g_mask, Jl * l_mask[:, None, :]
+        sw_rows = jnp.repeat(sw.T, k, axis=1)[..., None]  # block rows are (marker, component)
+        cov = block_covariance(Jg * sw_rows, Jl * sw_rows, g_mask=g_mask > 0, l_mask=l_mask > 0)
+        A = Jg.reshape(F, M, k, -1)
+        B = Jl.reshape(F, M, k, -1)
+        cross = jnp.einsum("fmai,fij,fmbj->fmab", A, cov.gl, B)
+        G = (
+            jnp.einsum("fmai,ij,fmbj->fmab", A, cov.gg, A)
+            + cross
+            + jnp.swapaxes(cross, -1, -2)
+            + jnp.einsum("fmai,fij,fmbj->fmab", B, cov.ll, B)
+        )
         cov_lr = jnp.zeros((5, 5), g.dtype).at[:4, :4].set(cov.gg[:4, :4])
-        return cov_lr, cov.gg, h
+        return cov_lr, cov.gg, jnp.swapaxes(G, 0, 1)
     flat, unravel = ravel_pytree(params)
     free_flat, _ = ravel_pytree(free)
     _, D = arc_terms(params, ref, data, jacobian=True)
-    J = flat_jacobian(D * sw[..., None, None], ref, data) * free_flat[None, :]
+    J = flat_jacobian(D, ref, data) * free_flat[None, :]
+    Jw = J * jnp.repeat(sw.reshape(-1), k)[:, None]
     # Pseudo-inverse restricted to the free parameters (absent ones have zero columns).
     cov = (
-        jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - free_flat), hermitian=True)
+        jnp.linalg.pinv(Jw.T @ Jw + jnp.diag(1.0 - free_flat), hermitian=True)
         * free_flat[:, None]
         * free_flat[None, :]
     )
-    h = jnp.sum((J @ cov) * J, axis=-1).reshape(M, F, k).sum(-1)
+    Jb = J.reshape(M, F, k, -1)
+    G = jnp.einsum("mfai,mfbi->mfab", Jb @ cov, Jb)
     cov_p = unravel_cov(cov, unravel, flat, has_rot)
-    return cov_p["line_rate"], cov_p["meas"], h
+    return cov_p["line_rate"], cov_p["meas"], G
 
 
-def _sample_stats(params, ref, data, free, w):
-    """Each sample's whitened residual norm and leverage (with design weights `w`), `(markers, frames)` each."""
-    e = jnp.linalg.norm(arc_residuals(params, (ref, data)), axis=-1)
-    return e, _covariance(params, ref, data, free, w)[2]
+def _deletion_stats(params, ref, data, free, w):
+    """Each sample's deletion residual norm and degrees of freedom, `(markers, frames)` each,
+    for a fit solved with weights `w` (`jaxcal._robust.deletion_residuals`)."""
+    r = arc_residuals(params, (ref, data))
+    return deletion_residuals(r, _covariance(params, ref, data, free, w)[2], w, data.mask)
 
 
 def _summarise(
@@ -348,9 +378,10 @@ def _summarise(
     has_enc = data.encoder is not None
     has_rot = data.orientations is not None
     k = data.sqrt_info.shape[-1]
-    cov_lr, meas_cov, h = _covariance(params, ref, data, free, w)
+    cov_lr, meas_cov, hat = _covariance(params, ref, data, free, w)
     r = arc_residuals(params, (ref, data))
     e = jnp.linalg.norm(r, axis=-1)
+    h = w * jnp.trace(hat, axis1=-2, axis2=-1)  # leverages
     n_obs = k * jnp.sum(w)
     ssr = jnp.sum(w * e**2)
     # Degrees of freedom: observations less the parameters the data determine,
@@ -391,7 +422,7 @@ def _summarise(
     meas = jnp.concatenate(
         [params.line, params.p0.reshape(-1)] + ([params.r0.reshape(-1)] if has_rot else [])
     )
-    nu = jnp.clip(k - h, MIN_DOF, float(k))
+    d, nu = deletion_residuals(r, hat, w, mask)
     return ArcFitResult(
         direction=V,
         point=Q_c,
@@ -414,7 +445,7 @@ def _summarise(
         sample_residuals=jnp.where(mask, e, 0.0),
         weights=w,
         inlier=used,
-        robust_scale=robust_scale(e, nu, used),
+        robust_scale=robust_scale(d, nu, used),
         round_results=round_results,
         round_steps=jnp.asarray(round_steps),
         has_encoder=has_enc,

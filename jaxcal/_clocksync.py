@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._arcdata import ArcData
 from ._arcmodel import arc_residuals, free_mask, initialise_arc
-from ._robust import check_loss, irls_rounds, round_plan, sample_weights
+from ._robust import check_loss, deletion_residuals, irls_rounds_reweighted, round_plan, sample_weights
 
 _MS = 1e-3
 
@@ -80,6 +80,21 @@ def _with_encoder(data: ArcData, encoder: Float[Array, " frames"]) -> ArcData:
     return eqx.tree_at(lambda d: d.encoder, data, encoder, is_leaf=lambda x: x is None)
 
 
+def _free_pinv(J: Float[Array, "m n"], free: Float[Array, " n"]) -> Float[Array, "n n"]:
+    """$(J^TJ)^{+}$ restricted to the `free` parameters (frozen ones get zero rows and columns)."""
+    cov = jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - free), hermitian=True)
+    return cov * free[:, None] * free[None, :]
+
+
+def _deletion(J, cov, r, w, mask):
+    """Deletion residuals (`jaxcal._robust`) of the `(joints, markers, frames)` samples
+    from the unweighted Jacobian `J` and the weighted fit's covariance `cov`:
+    per sample $G_i = J_i C J_i^T$, a $k \\times k$ block."""
+    Jb = J.reshape(r.shape + (-1,))
+    hat = jnp.einsum("...ai,...bi->...ab", Jb @ cov, Jb)
+    return deletion_residuals(r, hat, w, mask)
+
+
 def fit_clock_offset(
     data: ArcData,
     t_cam: Float[Array, "joints frames"],
@@ -106,9 +121,10 @@ def fit_clock_offset(
     `offset0_s`.
 
     With a robust `loss`, the rounds of `jaxcal._arcfit.fit_arc`: IRLS
-    solves weighting each (joint, marker, frame) sample by its whitened
-    residual norm in robust sigmas (one scale per joint, degrees of freedom
-    from the sample's leverage in the joint problem), then a least-squares
+    solves weighting each (joint, marker, frame) sample by its deletion
+    residual in robust sigmas (the residual it would have if the joint
+    problem, offset included, had not used it; `jaxcal._robust`; one scale
+    per joint), then a least-squares
     solve on the inliers whose Jacobian gives $\\delta$'s standard deviation.
     A corrupted frame otherwise pulls the offset, which every joint shares.
 
@@ -151,22 +167,21 @@ def fit_clock_offset(
     free_flat = ravel_pytree((free, jnp.ones(())))[0]
 
     def jacobian_and_cov(y, w):
-        """The weighted Jacobian and the unscaled $(J^TJ)^{+}$ over the free parameters."""
+        """The weighted Jacobian and the unscaled $(J^T W J)^{+}$ over the free parameters."""
         flat, unravel = ravel_pytree(y)
         J = jax.jacfwd(lambda x: residuals(unravel(x), w).reshape(-1))(flat) * free_flat
-        cov = jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - free_flat), hermitian=True)
-        return J, cov * free_flat[:, None] * free_flat[None, :]
+        return J, _free_pinv(J, free_flat)
 
-    def weights_at(y, hard):
+    def weights_at(y, w, hard):
         if loss is None:
             return mask_f
-        J, cov = jacobian_and_cov(y, mask_f)
-        h = jnp.sum((J @ cov) * J, axis=-1).reshape(mask.shape + (k,)).sum(-1)
-        e = jnp.linalg.norm(residuals(y, mask_f), axis=-1)
-        weigh = lambda e_j, h_j, m_j: sample_weights(  # noqa: E731
-            e_j, h_j, m_j, k=k, loss=loss, c=c, reject=reject_, hard=hard
+        J, _ = jacobian_and_cov(y, mask_f)  # unweighted (the mask is 0 or 1)
+        cov = _free_pinv(J * jnp.repeat(jnp.sqrt(w).reshape(-1), k)[:, None], free_flat)
+        d, nu = _deletion(J, cov, residuals(y, mask_f), w, mask)
+        weigh = lambda d_j, nu_j, m_j: sample_weights(  # noqa: E731
+            d_j, nu_j, m_j, loss=loss, c=c, reject=reject_, hard=hard
         )[0]
-        return jax.vmap(weigh)(e, h, mask)  # one noise scale per joint
+        return jax.vmap(weigh)(d, nu, mask)  # one noise scale per joint
 
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
@@ -174,7 +189,7 @@ def fit_clock_offset(
         sol = optx.least_squares(residuals, solver, y, w, max_steps=max_steps, throw=False)
         return sol.value, sol.result, sol.stats["num_steps"]
 
-    out = irls_rounds(solve, weights_at, (params0, jnp.zeros(())), hard_flags)
+    out = irls_rounds_reweighted(solve, weights_at, (params0, jnp.zeros(())), mask_f, hard_flags)
     y, ok, w = out.value, out.ok, out.weights
     if throw:
         y = eqx.error_if(y, ~ok, "fit_clock_offset: a Levenberg-Marquardt solve did not converge")

@@ -4,23 +4,37 @@ The refinement down-weights each corner by the norm of its 2-vector pixel
 residual, in robust sigmas, against thresholds `c` and `reject` that are
 radii of the 2-D (Rayleigh) distribution. A sample with a $k$-vector
 residual (an arc-fit frame: position, or position and rotation, $k = 3$ or
-6) has a norm distributed as $\\sigma\\chi_\\nu$, with $\\nu = k - h$ its
-degrees of freedom left by the fit: $h = \\mathrm{tr}\\,H_{ii}$, the
-sample's leverage (the trace of its diagonal block of the hat matrix
-$J(J^TJ)^{-1}J^T$; the leverages sum to the number of parameters). A
-per-frame unknown shared by no other sample, such as the joint angle of a
-one-marker sweep without encoders, takes one degree of freedom of each
-sample ($\\nu \\approx 2$ for positions only): the plain $\\chi_3$ would put
-the threshold 25 % too low and reject eight times too many clean samples.
+6) is judged by its **deletion residual**: the residual it would have if the
+fit had not used it. With $r_i$ its whitened residual, $J_i$ its Jacobian
+block, $w_i$ its weight in the fit and $C = (J^T W J)^{+}$ the fit's unscaled
+covariance, let $G_i = J_i C J_i^T$ ($k \\times k$; $w_i G_i$ is the sample's
+block of the hat matrix, its trace the leverage). Removing the sample from the
+linearised fit moves its prediction to $r_{(i)} = (I - w_i G_i)^{-1} r_i$,
+whose variance is $\\sigma^2 (I + G_{(i)})$, $G_{(i)} = G_i (I - w_i G_i)^{-1}$;
+so
+
+$$d_i^2 = r_i^T \\big[(I - w_i G_i)(I + (1 - w_i) G_i)\\big]^{+} r_i$$
+
+is $\\sigma^2 \\chi^2_\\nu$ for a clean sample, exactly in the linear Gaussian
+model, with $\\nu$ the rank of the bracket: $k$, less one for each direction
+the sample alone determines (the joint angle of a one-marker frame without
+encoders). For $w_i = 1$ this is the externally studentised residual
+$r_i^T (I - H_{ii})^{-1} r_i$; for an excluded sample ($w_i = 0$),
+$r_i^T (I + G_i)^{-1} r_i$, its prediction error against the predictive
+variance. A sample with high leverage (a sweep's end, which decides the
+arc's angle scale) pulls the fit towards itself and keeps its own residual
+small (masking); its deletion residual does not. Only the per-sample blocks
+$G_i$ are formed (never the $N \\times N$ hat matrix), so the cost stays
+linear in the samples.
 
 So that `c` and `reject` mean what they mean in the refinement, each norm is
 mapped to the Rayleigh radius with the same tail probability,
 
-$$z^{eq} = \\sqrt{-2 \\ln Q\\big(\\tfrac{\\nu}{2}, \\tfrac{z^2}{2}\\big)}, \\qquad z = e / s,$$
+$$z^{eq} = \\sqrt{-2 \\ln Q\\big(\\tfrac{\\nu}{2}, \\tfrac{z^2}{2}\\big)}, \\qquad z = d / s,$$
 
 with $Q$ the regularised upper incomplete gamma function ($\\chi^2_\\nu$'s
 survival function is $Q(\\nu/2, x/2)$; for $\\nu = 2$, $z^{eq} = z$), and
-the scale $s$ is the median over the samples of $e_i / m(\\nu_i)$, with
+the scale $s$ is the median over the samples of $d_i / m(\\nu_i)$, with
 $m(\\nu)$ the median of $\\chi_\\nu$ (the refinement's Rayleigh median
 $\\sqrt{2 \\ln 2}$ for $\\nu = 2$). `reject = 3.7` then rejects a clean
 sample with probability $e^{-3.7^2/2} = 1.1 \\times 10^{-3}$ whatever $k$.
@@ -35,6 +49,8 @@ import numpy as np
 import optimistix as optx
 from jax.scipy.special import gammainc, gammaincc, gammaln
 from jaxtyping import Array, Bool, Float, Int, PyTree
+
+from ._schur import small_cholesky_solve
 
 LOSSES = ("cauchy", "huber", None)
 #: Degrees of freedom are clipped to at least this (tiny problems, where a
@@ -103,22 +119,67 @@ def robust_scale(
     return jnp.maximum(jnp.nanmedian(jnp.where(mask, u, jnp.nan)), 1e-9)
 
 
+#: A direction of a sample's residual whose deletion variance is more than
+#: 1 / `DELETION_TOL` times its fitted one (the sample decides it almost alone)
+#: carries no outlier information and is left out of the deletion residual
+#: (it would mostly amplify the solver's convergence error).
+DELETION_TOL = 1e-3
+
+
+def deletion_residuals(
+    r: Float[Array, "*samples k"],
+    G: Float[Array, "*samples k k"],
+    w: Float[Array, "*samples"],
+    mask: Bool[Array, "*samples"],
+) -> tuple[Float[Array, "*samples"], Float[Array, "*samples"]]:
+    """Each sample's deletion residual norm $d_i$ and its degrees of freedom (see the module docstring).
+
+    $d_i^2 = r_i^T M_i^{+} r_i$ with $M_i = (I - w_i G_i)(I + (1 - w_i) G_i)$,
+    symmetric positive semi-definite (a polynomial in $G_i$, whose eigenvalues
+    $g$ lie in $[0, 1/w_i]$), solved by an unrolled Cholesky factorisation
+    (elementwise over the samples: no LAPACK call, linear in their number);
+    a pivot at or under `DELETION_TOL` drops its direction, and $\\nu$ is $k$
+    less the directions dropped (at least `MIN_DOF`).
+
+    **Arguments:**
+    - `r`: whitened residuals; `G`: $J_i C J_i^T$ with $J_i$ the sample's
+      (unweighted, whitened) Jacobian block and $C = (J^T W J)^{+}$ the fit's
+      unscaled covariance under the weights `w` it was solved with; `mask`:
+      observed samples.
+
+    **Returns:** `(d, nu)`, 0 and `k` where unobserved; constants for
+    differentiation (IRLS holds weights fixed).
+    """
+    r, G, w = jax.lax.stop_gradient((r, G, w))
+    k = r.shape[-1]
+    eye = jnp.broadcast_to(jnp.eye(k, dtype=r.dtype), G.shape)
+    wG = w[..., None, None] * G
+    M = (eye - wG) @ (eye + G - wG)
+    M = 0.5 * (M + jnp.swapaxes(M, -1, -2))
+    M = jnp.where(mask[..., None, None], M, eye)
+    # One factorisation for M^+ r and M^+ M, whose trace is the rank (the pivots kept).
+    X = small_cholesky_solve(M, jnp.concatenate([r[..., None], M], axis=-1), DELETION_TOL)
+    d2 = jnp.maximum(jnp.sum(r * X[..., 0], axis=-1), 0.0)
+    nu = jnp.clip(jnp.trace(X[..., 1:], axis1=-2, axis2=-1), MIN_DOF, float(k))
+    return jnp.where(mask, jnp.sqrt(d2), 0.0), jnp.where(mask, nu, float(k))
+
+
 def sample_weights(
     e: Float[Array, "*samples"],
-    leverage: Float[Array, "*samples"],
+    nu: Float[Array, "*samples"],
     mask: Bool[Array, "*samples"],
     *,
-    k: int,
     loss: str | None,
     c: float | Float[Array, ""],
     reject: float | Float[Array, ""],
     hard: Bool[Array, ""] | bool,
 ) -> tuple[Float[Array, "*samples"], Float[Array, "*samples"], Float[Array, ""]]:
-    """IRLS weights of samples with whitened residual norms `e` ($k$-vectors).
+    """IRLS weights of samples with residual norms `e` of `nu` degrees of freedom.
 
     **Arguments:**
-    - `e`: each sample's whitened residual norm; `leverage`: its leverage
-      $h$ (so $\\nu = k - h$, clipped to `[MIN_DOF, k]`); `mask`: observed samples.
+    - `e`: each sample's residual norm, $\\sigma\\chi_\\nu$ when clean (a
+      deletion residual, `deletion_residuals`); `nu`: its degrees of freedom
+      (clipped to `[MIN_DOF, inf)`); `mask`: observed samples.
     - `loss`, `c`: the soft weights; `reject`, `hard`: where `hard`, the
       weights are 1 within `reject` and 0 beyond (the inlier solve).
 
@@ -126,8 +187,8 @@ def sample_weights(
     sample's Rayleigh-equivalent radius in robust sigmas, and the scale.
     All three are constants for differentiation (IRLS holds weights fixed).
     """
-    e, leverage = jax.lax.stop_gradient((e, leverage))
-    nu = jnp.clip(k - leverage, MIN_DOF, float(k))
+    e, nu = jax.lax.stop_gradient((e, nu))
+    nu = jnp.maximum(nu, MIN_DOF)
     s = robust_scale(e, nu, mask)
     z = jnp.where(mask, rayleigh_equivalent(e / s, nu), 0.0)
     soft = loss_weights(z, loss, c)
@@ -189,3 +250,22 @@ def irls_rounds(
     first_bad = jnp.argmax(results != optx.RESULTS.successful)
     result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
     return Rounds(y, steps, ok, jax.tree.map(lambda w: w[-1], ws), result, results, round_steps)
+
+
+def irls_rounds_reweighted(
+    solve: Callable[[PyTree, PyTree], tuple[PyTree, optx.RESULTS, Int[Array, ""]]],
+    weights_at: Callable[[PyTree, PyTree, Bool[Array, ""]], PyTree],
+    y0: PyTree,
+    w0: PyTree,
+    hard_flags: np.ndarray,
+) -> Rounds:
+    """`irls_rounds` whose `weights_at(y, w, hard)` also sees the weights `w`
+    that `y` was solved with (`w0` for the start `y0`): what a deletion
+    residual needs (`deletion_residuals`)."""
+
+    def solve_(yw, w):
+        new, result, n = solve(yw[0], w)
+        return (new, w), result, n
+
+    out = irls_rounds(solve_, lambda yw, hard: weights_at(yw[0], yw[1], hard), (y0, w0), hard_flags)
+    return out._replace(value=out.value[0])

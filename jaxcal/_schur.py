@@ -156,9 +156,7 @@ def jacobian_by_jvp(fn: Callable[[Array, Array, Any], Array]) -> Linearise:
     return linearise
 
 
-def _small_cholesky_solve(
-    V: Float[Array, "*B p p"], R: Float[Array, "*B p c"], tol
-) -> Float[Array, "*B p c"]:
+def small_cholesky_solve(V: Float[Array, "*B p p"], R: Float[Array, "*B p c"], tol) -> Float[Array, "*B p c"]:
     """$V^{+} R$ for symmetric positive semi-definite `V`, by an unrolled Cholesky factorisation.
 
     Elementwise over the leading axes (no LAPACK call). A pivot at or under
@@ -207,7 +205,7 @@ def _damped_step(r, Jg, Jl, lam):
     n_g, p = Jg.shape[-1], Jl.shape[-1]
     V = U + lam * jnp.eye(p)
     # One solve for both right-hand sides: V^{-1} [W^T | eps_b].
-    X = _small_cholesky_solve(V, jnp.concatenate([jnp.swapaxes(W, -1, -2), el[..., None]], axis=-1), 0.0)
+    X = small_cholesky_solve(V, jnp.concatenate([jnp.swapaxes(W, -1, -2), el[..., None]], axis=-1), 0.0)
     Y, z = X[..., :n_g], X[..., n_g]
     S = H + lam * jnp.eye(n_g) - jnp.einsum("bij,bjk->ik", W, Y)
     S = 0.5 * (S + S.T)
@@ -377,7 +375,7 @@ def _covariance_parts(jac_g, jac_l, g_mask, l_mask):
     tol = jnp.maximum(tol, jnp.finfo(U.dtype).tiny)
     # U^{+} [W^T | I]: the eliminated blocks and their own inverses, in one solve.
     rhs = jnp.concatenate([jnp.swapaxes(W, -1, -2), jnp.broadcast_to(jnp.eye(p), U.shape)], axis=-1)
-    X = _small_cholesky_solve(U, rhs, tol)
+    X = small_cholesky_solve(U, rhs, tol)
     Y, Uinv = X[..., :n_g], X[..., n_g:]
     S = H - jnp.einsum("bij,bjk->ik", W, Y)
     C = _psd_pinv(0.5 * (S + S.T)) * gm[:, None] * gm[None, :]

@@ -19,7 +19,7 @@ from jaxcal._arcmodel import (
     line_from_params,
     line_to_params,
 )
-from jaxcal._geometry import so3_exp, so3_log
+from jaxcal._geometry import normalize, so3_exp, so3_log
 from jaxcal._linalg import concurrent_decompositions
 
 fit = jax.jit(fit_arc)
@@ -409,6 +409,49 @@ def test_robust_fit_rejects_corrupted_frames(encoder, orientations, frames):
     # The residuals of the rejected samples are large, the noise scale about one.
     assert np.all(np.asarray(robust.sample_residuals)[bad & ~inlier] > 3.0)
     assert 0.8 < float(np.median(robust.robust_scale)) < 1.25
+
+
+def _far_end_sweeps(seed, n, *, extra, frames=40):
+    """`n` seeded one-marker sweeps with encoders: `frames - 1` frames over 0.2 rad
+    and the last at 1.2 rad (the frames between lost), which decides the rate
+    almost alone; that frame is turned `extra` rad further about the axis than its
+    encoder says (positions and orientations alike, a consistent wrong angle)."""
+
+    def one(key):
+        k = jax.random.split(key, 6)
+        V = normalize(jax.random.normal(k[0], (3,)))
+        Q = 0.3 * jax.random.normal(k[1], (3,)) + jnp.array([0.0, 0.0, 1.0])
+        p0 = Q + 0.2 * jax.random.normal(k[2], (1, 3))
+        O0 = jax.vmap(so3_exp)(jax.random.normal(k[3], (1, 3)))
+        alpha = jnp.concatenate([jnp.linspace(-0.2, 0.0, frames - 1), jnp.array([1.2])])
+        R = jax.vmap(lambda a: so3_exp(V * a))(1.01 * alpha + jnp.zeros(frames).at[-1].set(extra))
+        P = Q + jnp.einsum("fab,mb->mfa", R, p0 - Q) + 1e-4 * jax.random.normal(k[4], (1, frames, 3))
+        dR = jax.vmap(jax.vmap(so3_exp))(1e-3 * jax.random.normal(k[5], (1, frames, 3)))
+        return make_arc_data(P, jnp.einsum("mfab,fbc,mcd->mfad", dR, R, O0), alpha)
+
+    return jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(seed), n))
+
+
+def test_robust_fit_unmasks_a_high_leverage_outlier():
+    """An outlier at the end of a sweep that decides the rate pulls the fit onto
+    itself: its least-squares residual is no larger than the clean frames' (masked),
+    but its deletion residual (`jaxcal._robust`) is, so the robust fit names it in
+    every trial and recovers the rate with honest standard deviations. Seeded
+    trials, the shapes of `test_robust_fit_rejects_corrupted_frames` (its compiled fits)."""
+    data = _far_end_sweeps(7, 48, extra=0.02)
+    plain = jax.jit(jax.vmap(fit_arc))(data)
+    robust = jax.jit(jax.vmap(lambda d: fit_arc(d, loss="cauchy")))(data)
+    e = np.asarray(plain.sample_residuals[:, 0])
+    assert np.mean(e[:, -1] < e[:, :-1].max(axis=1)) > 0.75  # masked
+    inlier = np.asarray(robust.inlier[:, 0])
+    assert not inlier[:, -1].any()  # named in every trial
+    assert np.sum(~inlier[:, :-1]) <= 5  # of 48 x 39 clean frames
+    np.testing.assert_array_equal(
+        arc_outliers(jax.tree.map(lambda x: x[0], robust), data.mask[0])[-1], [0, 39]
+    )
+    z = lambda r: (np.asarray(r.rate) - 1.01) / np.sqrt(np.asarray(r.rate_var))  # noqa: E731
+    assert 0.7 < np.sqrt(np.mean(z(robust) ** 2)) < 1.4
+    assert np.sqrt(np.mean(z(plain) ** 2)) > 5.0  # least squares follows the outlier
 
 
 def test_robust_fit_reports_every_round():

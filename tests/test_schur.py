@@ -9,12 +9,12 @@ from helpers import tree_allclose
 
 from jaxcal._linalg import concurrent_decompositions
 from jaxcal._schur import (
-    _small_cholesky_solve,
     block_covariance,
     block_least_squares,
     block_leverage,
     full_covariance,
     jacobian_by_jvp,
+    small_cholesky_solve,
 )
 
 
@@ -134,13 +134,13 @@ def test_unobserved_blocks_get_zero_variance():
     np.testing.assert_allclose(cov.gg, frozen.gg, rtol=1e-12)
 
 
-def test_small_cholesky_solve():
+def testsmall_cholesky_solve():
     rng = np.random.default_rng(6)
     X = rng.normal(size=(7, 5, 5))
     V = X @ np.swapaxes(X, -1, -2) + 0.1 * np.eye(5)
     R = rng.normal(size=(7, 5, 3))
     np.testing.assert_allclose(
-        _small_cholesky_solve(jnp.asarray(V), jnp.asarray(R), 0.0), np.linalg.solve(V, R), rtol=1e-10
+        small_cholesky_solve(jnp.asarray(V), jnp.asarray(R), 0.0), np.linalg.solve(V, R), rtol=1e-10
     )
     # A zero row and column: the pseudo-inverse (the direction is dropped).
     V[:, 2, :] = V[:, :, 2] = 0.0
@@ -148,7 +148,7 @@ def test_small_cholesky_solve():
     expect = np.zeros_like(R)
     expect[:, keep] = np.linalg.solve(V[:, keep][:, :, keep], R[:, keep])
     np.testing.assert_allclose(
-        _small_cholesky_solve(jnp.asarray(V), jnp.asarray(R), 1e-12), expect, rtol=1e-10
+        small_cholesky_solve(jnp.asarray(V), jnp.asarray(R), 1e-12), expect, rtol=1e-10
     )
 
 
