@@ -6,7 +6,8 @@ mount), the motion segments (from the metadata, else found in the encoder
 log as `import-bag` does) with the frames of each camera in each and the
 range each sweep covers in the encoder log, the overlap of the camera and
 controller clocks, the detection rate of every target on a small sample of
-frames, and the capture kind `jaxcal calibrate` will resolve.
+frames, and the capture kind `jaxcal calibrate` will resolve. For a tracker
+dataset: the device and, per joint, its samples, time span and range.
 """
 
 import time
@@ -65,10 +66,75 @@ def _detection_sample(ds: Dataset, sample: int) -> dict:
     return out
 
 
+def _tracker_summary(ds: Dataset, path, t0: float) -> dict:
+    """`inspect_dataset` for a tracker dataset: the device, and per joint its
+    samples, their time span and the range the joint covers (when the table
+    gives joint positions)."""
+    d, s = ds.device, ds.samples
+    joints = []
+    for j, name in enumerate(ds.joint_names):
+        rows = s.joint == j
+        row = {"joint": name, "samples": int(np.count_nonzero(rows))}
+        if rows.any():
+            row["time_s"] = [float(s.timestamp[rows].min()), float(s.timestamp[rows].max())]
+            if s.q is not None:
+                v = np.degrees(s.q[rows, j])
+                row["range_deg"] = [float(v.min()), float(v.max())]
+        joints.append(row)
+    kind = CaptureKind.of(
+        camera_on_flange=False,
+        segments=ds.segments,
+        encoders=ds.encoder_t is not None or s.q is not None,
+        link_targets=False,
+        device=True,
+    )
+    return {
+        "dataset": str(Path(path)),
+        "robot": {"urdf": ds.robot_urdf.name, "joints": list(ds.joint_names)},
+        "device": {
+            "name": d.name,
+            "kind": d.kind,
+            "file": d.file,
+            "point": d.point,
+            "link": d.link,
+            "samples": int(len(s.sample)),
+            "orientations": s.orientation is not None,
+            "joint_positions": s.q is not None,
+        },
+        "joints": joints,
+        "unassigned_samples": int(np.count_nonzero(s.joint < 0)),
+        "kind": kind.describe(),
+        "notes": list(ds.notes),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _format_tracker(s: dict) -> str:
+    d = s["device"]
+    lines = [
+        f"{s['dataset']}: {s['robot']['urdf']}, joints {', '.join(s['robot']['joints'])}",
+        f"device {d['name']} ({d['kind']}): {d['samples']} samples in {d['file']} of point {d['point']} on "
+        f"{d['link']}; " + ("orientations" if d["orientations"] else "positions only")
+        + (", joint positions given" if d["joint_positions"] else ", no joint positions"),
+    ]  # fmt: skip
+    for g in s["joints"]:
+        span = f", {g['time_s'][0]:.3f}-{g['time_s'][1]:.3f} s" if "time_s" in g else ""
+        rng = f", sweeps {g['range_deg'][0]:.1f} .. {g['range_deg'][1]:.1f} deg" if "range_deg" in g else ""
+        lines.append(f"  {g['joint']}: {g['samples']} samples{span}{rng}")
+    if s["unassigned_samples"]:
+        lines.append(f"  {s['unassigned_samples']} samples name no joint")
+    lines.append(f"capture kind: {s['kind']}")
+    lines += [f"note: {n}" for n in s["notes"]]
+    lines.append(f"({s['seconds']:.1f} s)")
+    return "\n".join(lines)
+
+
 def inspect_dataset(path, *, sample: int = 5) -> dict:
     """A summary of the dataset at `path` (see the module docstring) as a JSON-ready dict."""
     t0 = time.perf_counter()
     ds = load_dataset(path)
+    if ds.device is not None:
+        return _tracker_summary(ds, path, t0)
     model = ds.load_model()
     ratio = np.asarray(model.reduction_ratio, np.float64)
     q = None if ds.encoder_t is None else ds.encoder_motor / ratio
@@ -126,6 +192,8 @@ def inspect_dataset(path, *, sample: int = 5) -> dict:
 
 def format_inspection(s: dict) -> str:
     """`inspect_dataset`'s summary as text for the console."""
+    if "device" in s:
+        return _format_tracker(s)
     lines = [f"{s['dataset']}: {s['robot']['urdf']}, joints {', '.join(s['robot']['joints'])}"]
     for c in s["cameras"]:
         lines.append(

@@ -258,3 +258,18 @@ def test_orientation_columns(small):
     _edit(small, 3, "qw", "0.9")
     with pytest.raises(DatasetError, match="samples.csv line 3: quaternion .* norm"):
         load_dataset(small)
+
+
+def test_inspect_describes_a_tracker_dataset(captures, capsys):
+    """`jaxcal inspect` on tracker data: the device, and per joint its samples and the range swept."""
+    root = captures[False][0]
+    assert main(["inspect", str(root)]) == 0
+    text = capsys.readouterr().out
+    assert "samples in samples.csv" in text and "external measuring device" in text
+    assert main(["inspect", str(root), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    counts = [g["samples"] for g in s["joints"]]
+    assert counts == [300] * 6 and s["device"]["samples"] == 1800 and s["unassigned_samples"] == 0
+    for g in s["joints"]:
+        lo, hi = g["range_deg"]
+        assert 110.0 < hi - lo < 130.0  # the simulator's +-60 deg sweeps
