@@ -65,7 +65,8 @@ def read_csv(path: Path, what: str) -> tuple[list[str], list[tuple[int, list[str
     return rows[0][1], rows[1:]
 
 
-def _float(text: str, where: str) -> float:
+def parse_number(text: str, where: str) -> float:
+    """A finite number from a CSV cell, else a `DatasetError` naming `where`."""
     try:
         v = float(text)
     except ValueError:
@@ -113,7 +114,7 @@ def read_frames(root: Path, cameras: tuple[CameraInfo, ...], meta_loc: Loc) -> d
                 f"{w}: camera {name!r} frame {frame} is already on line {seen_frame[name, frame]}"
             )
         seen_frame[name, frame] = line
-        t = _float(t_text, f"{w} column 'timestamp'")
+        t = parse_number(t_text, f"{w} column 'timestamp'")
         sc.relative_path(file, Loc(path, f"line {line} column 'file'"))
         if file in seen_file:
             raise DatasetError(f"{w}: file {file!r} is already named on line {seen_file[file]}")
@@ -204,7 +205,7 @@ def _encoder_table(
     if values is None or not np.all(np.isfinite(values)):  # find the cell, name it
         for line, row in rows:
             for c, text in enumerate(row):
-                _float(text, f"{path} line {line} column {header[c]!r}")
+                parse_number(text, f"{path} line {line} column {header[c]!r}")
     lines = np.array([line for line, _ in rows])
     t = values[:, 0]
     bad = np.flatnonzero(np.diff(t) <= 0)

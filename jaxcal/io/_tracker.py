@@ -7,7 +7,6 @@ frame, with its noise. No images, no PnP: the samples go to the arc fits as
 marker positions (and orientations when present).
 """
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from ..errors import DatasetError
 from . import _encoders as enc
 from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
-from ._logs import MAX_FRAME_INDEX, read_csv
+from ._logs import MAX_FRAME_INDEX, parse_number, read_csv
 from ._metadata import CAMERA_NAME
 from ._schema import Loc
 
@@ -165,16 +164,6 @@ def _columns(header: list[str], path: Path, joints: tuple[str, ...]) -> dict:
     }
 
 
-def _number(text: str, where: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise DatasetError(f"{where}: {text!r} is not a number") from None
-    if not math.isfinite(v):
-        raise DatasetError(f"{where}: value is {text} (NaN/inf not allowed)")
-    return v
-
-
 def _quaternions(rows: np.ndarray, lines, path: Path) -> np.ndarray:
     """Unit quaternions `(x, y, z, w)` per row -> rotation matrices, a norm off 1 named by its line."""
     norm = np.linalg.norm(rows, axis=1)
@@ -257,7 +246,7 @@ def read_samples(root: Path, device: DeviceInfo, joints: tuple[str, ...], limits
             joint[r] = index[name]
         for c, cell in enumerate(cells):
             if c != 2:
-                values[r, c] = _number(cell, f"{w} column {header[c]!r}")
+                values[r, c] = parse_number(cell, f"{w} column {header[c]!r}")
     for c, what in ((0, "sample indices"), (1, "timestamps")):
         bad = np.flatnonzero(np.diff(values[:, c]) <= 0)
         if bad.size:
