@@ -1,5 +1,6 @@
 """Levenberg-Marquardt by blocks (`jaxcal._schur`): against optimistix's dense solve."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -176,5 +177,12 @@ def test_vmap_equals_loop_and_has_no_unordered_decompositions():
     batched = jax.jit(jax.vmap(solve_and_cov))(g0, l0, args)
     for i, (a, g, l) in enumerate(problems):
         one = jax.jit(solve_and_cov)(g, l, a)
-        assert tree_allclose(one, jax.tree.map(lambda x, i=i: x[i], batched), atol=1e-10)
+        row = jax.tree.map(lambda x, i=i: x[i], batched)
+        # Batched reductions round differently, so a convergence test may pass
+        # one step earlier or later (jax 0.10: 12 steps against 11); the
+        # solutions agree all the same.
+        assert abs(int(one[0].num_steps) - int(row[0].num_steps)) <= 1
+        steps = lambda sol: sol.num_steps  # noqa: E731
+        one, row = (eqx.tree_at(lambda t: steps(t[0]), t, 0) for t in (one, row))
+        assert tree_allclose(one, row, atol=1e-10)
     assert concurrent_decompositions(jax.vmap(solve_and_cov), g0, l0, args) == []
