@@ -4,6 +4,12 @@ import importlib.metadata
 
 import jax as _jax
 
+from ._xla import configure_xla as _configure_xla
+
+# XLA compiler defaults for jaxcal's programs (before any backend starts; opt
+# out: JAXCAL_XLA_DEFAULTS=0; see jaxcal._xla).
+_configure_xla()
+
 # Calibration maths needs float64 (sub-millimetre over metre-scale arms);
 # importing jaxcal turns it on for the whole process.
 _jax.config.update("jax_enable_x64", True)
