@@ -31,6 +31,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
+from . import _lsq
 from ._arcdata import MIN_FRAMES, MIN_SWEEP_DEG, ArcData
 from ._arcmodel import (
     ArcParams,
@@ -230,8 +231,7 @@ def _solve_dense(params, ref, data, free, w, *, rtol, atol, max_steps):
         p = jax.tree.map(lambda x, f: x * f, p, free)
         return arc_residuals(p, (ref_, data_)) * sw[..., None]
 
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(fn, solver, params, (ref, data, jnp.sqrt(w)), max_steps=max_steps, throw=False)
+    sol = _lsq.solve(fn, params, (ref, data, jnp.sqrt(w)), _lsq.LMOptions(rtol, atol, max_steps))
     return sol.value, sol.result, sol.stats["num_steps"]
 
 

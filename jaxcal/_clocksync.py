@@ -25,6 +25,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
+from . import _lsq
 from ._arcdata import ArcData
 from ._arcmodel import arc_residuals, free_mask, initialise_arc
 from ._robust import check_loss, deletion_residuals, irls_rounds_reweighted, round_plan, sample_weights
@@ -183,10 +184,10 @@ def fit_clock_offset(
         )[0]
         return jax.vmap(weigh)(d, nu, mask)  # one noise scale per joint
 
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    options = _lsq.LMOptions(rtol, atol, max_steps)
 
     def solve(y, w):
-        sol = optx.least_squares(residuals, solver, y, w, max_steps=max_steps, throw=False)
+        sol = _lsq.solve(residuals, y, w, options)
         return sol.value, sol.result, sol.stats["num_steps"]
 
     out = irls_rounds_reweighted(solve, weights_at, (params0, jnp.zeros(())), mask_f, hard_flags)

@@ -33,7 +33,9 @@ $n_g \\times n_g$ system by one LAPACK Cholesky: each step has one
 decomposition, so batched programs stay free of unordered decompositions
 (`jaxcal._linalg`).
 
-**Iteration.** Exactly optimistix's `LevenbergMarquardt` (0.1): damping
+**Iteration.** Exactly `jaxcal._lsq`'s Levenberg-Marquardt (optimistix's
+0.1, whose trust region also takes a step that passes the termination test,
+`jaxcal._lsq.ConvergedStepTrustRegion`): damping
 $\\lambda = 1/\\Delta$ on every parameter with the trust-region size $\\Delta$
 starting at 1; a step is accepted when the actual decrease of
 $\\tfrac12\\|r\\|^2$ is at least 0.01 of the Gauss-Newton prediction
@@ -44,7 +46,7 @@ $\\max_i |\\Delta y_i| / (a_{tol} + r_{tol}|y_i|) < 1$ and
 $\\max_j |\\Delta r_j| / (a_{tol} + r_{tol}|r_j|) < 1$
 (`optimistix`'s Cauchy termination with the max norm, over $g$ and $l$
 together). On the same problem it takes the same steps as
-`optx.least_squares(fn, optx.LevenbergMarquardt(rtol, atol), ...)` up to
+`jaxcal._lsq.solve(fn, y0, args, LMOptions(rtol, atol))` up to
 floating-point round-off (the normal equations here, QR there). The status
 is `optx.RESULTS.successful` or `optx.RESULTS.nonlinear_max_steps_reached`.
 Unlike optimistix there is no implicit adjoint: the solution is not meant to
@@ -301,16 +303,20 @@ def block_least_squares(
         pred_r = s.r + jnp.einsum("bmi,i->bm", s.Jg, dg) + jnp.einsum("bmj,bj->bm", s.Jl, dl)
         predicted = 0.5 * (jnp.sum(pred_r**2) - jnp.sum(s.r**2))
         actual = 0.5 * jnp.sum(r_e**2) - 0.5 * jnp.sum(s.r**2)
-        accept = (actual <= _LOW_CUTOFF * predicted) | s.first
         good = (actual < _HIGH_CUTOFF * predicted) & (predicted < 0) & ~s.first
-        mul = jnp.where(accept, jnp.where(good, _HIGH_CONSTANT, 1.0), _LOW_CONSTANT)
-        step_size = mul * s.step_size
         converged = (
             _max_ratio(
                 jnp.concatenate([dg, dl.ravel()]), jnp.concatenate([s.g_eval, s.l_eval.ravel()]), rtol, atol
             )
             < 1
         ) & (_max_ratio(r_e - s.r, r_e, rtol, atol) < 1)
+        # As `jaxcal._lsq.ConvergedStepTrustRegion`: a step that passes the
+        # termination test is taken whatever its cost change (no stall at the optimum).
+        classical = (actual <= _LOW_CUTOFF * predicted) | s.first
+        take = converged & ~classical & ~s.first
+        accept = classical | take
+        mul = jnp.where(classical, jnp.where(good, _HIGH_CONSTANT, 1.0), jnp.where(take, 1.0, _LOW_CONSTANT))
+        step_size = mul * s.step_size
         g = jnp.where(accept, s.g_eval, s.g)
         l = jnp.where(accept, s.l_eval, s.l)
         r = jnp.where(accept, r_e, s.r)

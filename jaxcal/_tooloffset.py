@@ -32,6 +32,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from . import _lsq
 from ._geometry import normalize, orthonormal_basis, safe_norm
 from .errors import ToolOffsetInputError
 
@@ -128,14 +129,7 @@ def fit_circle(
     P = _as_3d(jnp.where(w[:, None] > 0, points, 0.0))
     c0, n0, r0 = _kasa(P, w, planar)
     params0 = _CircleParams(centre=c0, tilt=jnp.zeros(2), radius=r0)
-    sol = optx.least_squares(
-        _circle_residuals,
-        optx.LevenbergMarquardt(rtol=rtol, atol=atol),
-        params0,
-        (P, w, n0, planar),
-        max_steps=max_steps,
-        throw=False,
-    )
+    sol = _lsq.solve(_circle_residuals, params0, (P, w, n0, planar), _lsq.LMOptions(rtol, atol, max_steps))
     p = sol.value
     n = n0 if planar else normalize(n0 + orthonormal_basis(n0) @ p.tilt)
     r = _circle_residuals(p, (P, w, n0, planar))

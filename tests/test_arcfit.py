@@ -9,6 +9,7 @@ import pytest
 from helpers import arc_data, arc_problem, corrupt_frames, tree_allclose
 from jax.flatten_util import ravel_pytree
 
+from jaxcal import _lsq
 from jaxcal._arcdata import make_arc_data, stack_sweeps
 from jaxcal._arcfit import arc_outliers, fit_arc, validate_arc_data
 from jaxcal._arcmodel import (
@@ -236,7 +237,7 @@ def _plain_fit(data, *, rtol=1e-8, atol=3e-2, max_steps=50):
         return arc_residuals(jax.tree.map(lambda x, f: x * f, p, free), args)
 
     sol = optx.least_squares(
-        fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), params0, (ref, data), max_steps=max_steps
+        fn, _lsq.LMOptions(rtol, atol).solver(), params0, (ref, data), max_steps=max_steps
     )
     params = jax.tree.map(lambda x, f: x * f, sol.value, free)
     flat, unravel = ravel_pytree(params)

