@@ -23,7 +23,9 @@ from jaxcal._axisfit import fit_axes, parameter_names
 from jaxcal._geometry import make_pose, matmul, so3_exp
 from jaxcal._kinematics import PerturbationScales, anchor_base, forward_kinematics, joint_axes, perturb_model
 from jaxcal._linemodel import initialise_line, line_residuals, line_terms
-from jaxcal.io.urdf import load_urdf, save_urdf
+from jaxcal._montecarlo import default_setup
+from jaxcal._uncertainty import joint_travel, on_travel, random_configurations
+from jaxcal.io.urdf import load_urdf, save_urdf, urdf_outline
 from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
 
@@ -189,6 +191,23 @@ def test_prismatic_sweep_errors(scara):
         validate_arc_data(short, "COBRA.j3")
     with pytest.raises(ValueError, match="4 joint types for 3 sweeps"):
         fit_joint_sweeps(jax.tree.map(lambda x: x[:3], scara[3]), NOMINAL.joint_types)
+
+
+def test_prismatic_joints_where_unsupported_and_in_random_configurations():
+    with pytest.raises(ValueError, match=r"monte_carlo: .*prismatic joints \['joint3'\]"):
+        jaxcal.monte_carlo(default_setup(NOMINAL), jax.random.key(0), 1)
+    with pytest.raises(ValueError, match=r"prismatic joints \['joint3'\]"):
+        jaxcal.dh_table(NOMINAL)
+    # The validation's sample: revolute columns over [-pi, pi] as they were, the quill
+    # within its URDF stroke (or +-0.1 m without limits), uniformly.
+    limits = urdf_outline(jaxcal.robots.robot_path("scara"), NOMINAL.joint_names).limits
+    q = random_configurations(jax.random.key(0), 2000, 4)
+    for lim, (lo, hi) in ((limits, (-0.105, 0.105)), (None, (-0.1, 0.1))):
+        travel = joint_travel(NOMINAL, lim)
+        np.testing.assert_array_equal(travel[[0, 1, 3]], [[-np.pi, np.pi]] * 3)
+        qt = np.asarray(on_travel(NOMINAL, q, travel))
+        np.testing.assert_array_equal(qt[:, [0, 1, 3]], np.asarray(q)[:, [0, 1, 3]])
+        assert lo <= qt[:, J3].min() < lo + 0.01 and hi - 0.01 < qt[:, J3].max() <= hi
 
 
 def test_scara_urdf_in_and_out(tmp_path):
