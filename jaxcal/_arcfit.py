@@ -23,6 +23,10 @@ covariance whitens its residuals without linearisation error in the
 parameterisation.
 """
 
+import functools
+from collections.abc import Callable
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -50,6 +54,8 @@ from ._geometry import (
     matmul,
     so3_exp,
 )
+from ._kinematics import PRISMATIC, REVOLUTE
+from ._linemodel import MIN_TRAVEL_MM, initialise_line, line_free_mask, line_residuals, line_terms
 from ._robust import (
     check_loss,
     deletion_residuals,
@@ -61,6 +67,18 @@ from ._robust import (
 from ._schur import block_covariance, block_least_squares
 
 _DEG = np.pi / 180.0
+
+
+class _Model(NamedTuple):
+    """A sweep's model: its whitened residuals `residuals(params, (ref, data))`
+    and their local derivatives `terms(params, ref, data, jacobian=...)`."""
+
+    residuals: Callable
+    terms: Callable
+
+
+_ARC = _Model(arc_residuals, arc_terms)
+_LINE = _Model(line_residuals, line_terms)
 
 
 class ArcFitResult(eqx.Module):
@@ -187,18 +205,29 @@ def fit_arc(
     **Returns:** an `ArcFitResult`.
     """
     check_loss(loss)
-    hard_flags = round_plan(loss, rounds, reject)
     params0, ref = initialise_arc(data)
-    free = free_mask(params0, data, ref)
+    solve = functools.partial(_solve_dense, model=_ARC) if data.encoder is not None else _solve_blocks
+    return _fit(
+        _ARC, solve, params0, ref, free_mask(params0, data, ref), data,
+        loss=loss, c=c, reject=reject, rounds=rounds, rtol=rtol, atol=atol, max_steps=max_steps,
+        throw=throw, scale_covariance=scale_covariance, name="fit_arc",
+    )  # fmt: skip
+
+
+def _fit(
+    model, solve, params0, ref, free, data, *, loss, c, reject, rounds, rtol, atol, max_steps, throw,
+    scale_covariance, name,
+) -> ArcFitResult:  # fmt: skip
+    """The IRLS rounds and the summary shared by `fit_arc` and `fit_line`."""
+    hard_flags = round_plan(loss, rounds, reject)
     mask = data.mask
     mask_f = mask.astype(params0.line.dtype)
     reject_ = jnp.inf if reject is None else reject
-    solve = _solve_dense if data.encoder is not None else _solve_blocks
 
     def weights_at(params, w, hard):
         if loss is None:
             return mask_f
-        d, nu = _deletion_stats(params, ref, data, free, w)
+        d, nu = _deletion_stats(model, params, ref, data, free, w)
         return sample_weights(d, nu, mask, loss=loss, c=c, reject=reject_, hard=hard)[0]
 
     def solve_with(params, w):
@@ -207,9 +236,10 @@ def fit_arc(
     out = irls_rounds_reweighted(solve_with, weights_at, params0, mask_f, hard_flags)
     params, steps, ok, result = out.value, out.num_steps, out.ok, out.result
     if throw:
-        params = eqx.error_if(params, ~ok, "fit_arc: a Levenberg-Marquardt solve did not converge")
+        params = eqx.error_if(params, ~ok, f"{name}: a Levenberg-Marquardt solve did not converge")
     params = jax.tree.map(lambda x, f: x * f, params, free)
     return _summarise(
+        model,
         params,
         ref,
         data,
@@ -223,13 +253,85 @@ def fit_arc(
     )
 
 
-def _solve_dense(params, ref, data, free, w, *, rtol, atol, max_steps):
+def fit_line(
+    data: ArcData,
+    *,
+    loss: str | None = None,
+    c: float = 3.0,
+    reject: float | None = 3.7,
+    rounds: int = 3,
+    rtol: float = 1e-8,
+    atol: float = 3e-2,
+    max_steps: int = 50,
+    throw: bool = False,
+    scale_covariance: bool = True,
+) -> ArcFitResult:
+    """Fit one prismatic joint's direction and scale to a sweep; pure, jittable and vmappable.
+
+    The prismatic counterpart of `fit_arc` (the model is in `jaxcal._linemodel`):
+    the markers translate by $V\\,s\\,q_t$ and keep their orientation. Closed-form
+    start (a linear regression of position on encoder position), then
+    optimistix's Levenberg-Marquardt on the whitened residuals, with the same
+    robust rounds, covariance and arguments as `fit_arc`.
+
+    Encoders are required: without them the travel of every frame is an
+    unknown and the scale $s$ (m per commanded m) is not observable.
+
+    **Returns:** an `ArcFitResult` of the same structure as `fit_arc`'s (so
+    sweeps of both kinds stack): `direction` $V$ (the way the encoder counts
+    up), `rate` the scale $s$ (`rate_var` its variance), `angles` the travel
+    $s\\,q_t$ (m), `T_cam_marker0` the marker poses at encoder zero, `point`
+    NaN (a translation has no axis position; `cov`'s point rows are zero), and
+    in `meas` the line position $(w_1, w_2)$ zero with unit variance in
+    `meas_cov`, uncorrelated: a placeholder the axis fit ignores.
+    """
+    if data.encoder is None:
+        raise ValueError(
+            "fit_line: a prismatic sweep needs encoder positions: without them the scale "
+            "(travel per commanded travel) is not observable"
+        )
+    check_loss(loss)
+    params0, ref = initialise_line(data)
+    res = _fit(
+        _LINE, functools.partial(_solve_dense, model=_LINE), params0, ref, line_free_mask(params0, data), data,
+        loss=loss, c=c, reject=reject, rounds=rounds, rtol=rtol, atol=atol, max_steps=max_steps,
+        throw=throw, scale_covariance=scale_covariance, name="fit_line",
+    )  # fmt: skip
+    eye_w = jnp.zeros(res.meas.shape[0]).at[2:4].set(1.0)
+    return eqx.tree_at(
+        lambda r: (r.point, r.meas_cov), res, (jnp.full(3, jnp.nan), res.meas_cov + jnp.diag(eye_w))
+    )
+
+
+def fit_joint_sweeps(data: ArcData, joint_types: tuple[str, ...], **kwargs) -> ArcFitResult:
+    """Every joint's sweep fitted by its kind, stacked in joint order: `fit_arc`
+    (vmapped) for the revolute joints, `fit_line` for the prismatic ones.
+
+    **Arguments:** `data` stacked over joints (`stack_sweeps`); `joint_types`
+    (static) one per joint; `kwargs` go to both fits.
+    """
+    kinds = tuple(joint_types)
+    if len(kinds) != data.mask.shape[0]:
+        raise ValueError(f"fit_joint_sweeps: {len(kinds)} joint types for {data.mask.shape[0]} sweeps")
+    rev = [j for j, k in enumerate(kinds) if k == REVOLUTE]
+    pri = [j for j, k in enumerate(kinds) if k == PRISMATIC]
+    if not pri:
+        return jax.vmap(lambda d: fit_arc(d, **kwargs))(data)
+    take = lambda idx: jax.tree.map(lambda x: x[np.asarray(idx)], data)  # noqa: E731
+    parts = [jax.vmap(lambda d: fit_line(d, **kwargs))(take(pri))]
+    if rev:
+        parts.insert(0, jax.vmap(lambda d: fit_arc(d, **kwargs))(take(rev)))
+    order = np.argsort(np.asarray(rev + pri))
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs)[order], *parts)
+
+
+def _solve_dense(params, ref, data, free, w, *, rtol, atol, max_steps, model):
     """optimistix's Levenberg-Marquardt on the weighted residuals (with encoders: few unknowns)."""
 
     def fn(p, args):
         ref_, data_, sw = args
         p = jax.tree.map(lambda x, f: x * f, p, free)
-        return arc_residuals(p, (ref_, data_)) * sw[..., None]
+        return model.residuals(p, (ref_, data_)) * sw[..., None]
 
     sol = _lsq.solve(fn, params, (ref, data, jnp.sqrt(w)), _lsq.LMOptions(rtol, atol, max_steps))
     return sol.value, sol.result, sol.stats["num_steps"]
@@ -298,7 +400,7 @@ def _solve_blocks(params, ref, data, free, w, *, rtol, atol, max_steps):
     return _from_blocks(sol.g, sol.l, ref, data), sol.result, sol.num_steps
 
 
-def _covariance(params, ref, data, free, w):
+def _covariance(model, params, ref, data, free, w):
     """Unscaled covariance blocks under weights `w`, and each sample's block $G_i = J_i C J_i^T$.
 
     $C = (J^T W J)^{+}$ over the free parameters, $J_i$ the sample's unweighted
@@ -332,7 +434,7 @@ def _covariance(params, ref, data, free, w):
         return cov_lr, cov.gg, jnp.swapaxes(G, 0, 1)
     flat, unravel = ravel_pytree(params)
     free_flat, _ = ravel_pytree(free)
-    _, D = arc_terms(params, ref, data, jacobian=True)
+    _, D = model.terms(params, ref, data, jacobian=True)
     J = flat_jacobian(D, ref, data) * free_flat[None, :]
     Jw = J * jnp.repeat(sw.reshape(-1), k)[:, None]
     # Pseudo-inverse restricted to the free parameters (absent ones have zero columns).
@@ -347,14 +449,15 @@ def _covariance(params, ref, data, free, w):
     return cov_p["line_rate"], cov_p["meas"], G
 
 
-def _deletion_stats(params, ref, data, free, w):
+def _deletion_stats(model, params, ref, data, free, w):
     """Each sample's deletion residual norm and degrees of freedom, `(markers, frames)` each,
     for a fit solved with weights `w` (`jaxcal._robust.deletion_residuals`)."""
-    r = arc_residuals(params, (ref, data))
-    return deletion_residuals(r, _covariance(params, ref, data, free, w)[2], w, data.mask)
+    r = model.residuals(params, (ref, data))
+    return deletion_residuals(r, _covariance(model, params, ref, data, free, w)[2], w, data.mask)
 
 
 def _summarise(
+    model,
     params,
     ref,
     data,
@@ -378,8 +481,8 @@ def _summarise(
     has_enc = data.encoder is not None
     has_rot = data.orientations is not None
     k = data.sqrt_info.shape[-1]
-    cov_lr, meas_cov, hat = _covariance(params, ref, data, free, w)
-    r = arc_residuals(params, (ref, data))
+    cov_lr, meas_cov, hat = _covariance(model, params, ref, data, free, w)
+    r = model.residuals(params, (ref, data))
     e = jnp.linalg.norm(r, axis=-1)
     h = w * jnp.trace(hat, axis1=-2, axis2=-1)  # leverages
     n_obs = k * jnp.sum(w)
@@ -412,7 +515,7 @@ def _summarise(
     used = (w > 0) & mask
     used_w = used.astype(jnp.float64)
     n_used = jnp.maximum(jnp.sum(used_w), 1)
-    raw = _raw_errors(params, ref, data)
+    raw = _raw_errors(model, params, ref, data)
     pos_rms = jnp.sqrt(jnp.sum(jnp.sum(raw[..., :3] ** 2, -1) * used_w) / n_used)
     rot_rms = (
         jnp.sqrt(jnp.sum(jnp.sum(raw[..., 3:] ** 2, -1) * used_w) / n_used)
@@ -463,11 +566,11 @@ def unravel_cov(cov, unravel, flat, has_rot: bool) -> dict:
     return {"line_rate": cov[jnp.ix_(lr_i, lr_i)], "meas": cov[jnp.ix_(meas_i, meas_i)]}
 
 
-def _raw_errors(params, ref, data):
+def _raw_errors(model, params, ref, data):
     """Unwhitened (position, rotation) errors, by setting W to identity."""
     k = data.sqrt_info.shape[-1]
     eye = jnp.broadcast_to(jnp.eye(k), data.sqrt_info.shape)
-    return arc_residuals(params, (ref, eqx.tree_at(lambda d: d.sqrt_info, data, eye)))
+    return model.residuals(params, (ref, eqx.tree_at(lambda d: d.sqrt_info, data, eye)))
 
 
 def arc_outliers(res: ArcFitResult, mask: Bool[Array, "markers frames"]) -> np.ndarray:
@@ -481,12 +584,19 @@ def arc_outliers(res: ArcFitResult, mask: Bool[Array, "markers frames"]) -> np.n
 # --------------------------------------------------------------------------- input checks
 
 
-def validate_arc_data(data: ArcData, joint: str) -> None:
+def validate_arc_data(data: ArcData, joint: str, kind: str = REVOLUTE) -> None:
     """Raise a `ValueError` naming `joint` if the sweep cannot give an axis.
 
     Checks shapes, NaN/inf in observed entries, at least `MIN_FRAMES`
-    observed frames, and a sweep of at least `MIN_SWEEP_DEG` degrees.
+    observed frames, and a sweep of at least `MIN_SWEEP_DEG` degrees; a
+    prismatic joint's sweep (`kind`) needs encoder positions and a travel of
+    at least `MIN_TRAVEL_MM` (`fit_line`).
     """
+    if kind == PRISMATIC and data.encoder is None:
+        raise ValueError(
+            f"joint {joint!r}: a prismatic joint's sweep needs encoder positions: from images alone "
+            "its direction is seen but not its scale (travel per commanded travel)"
+        )
     P = np.asarray(data.positions)
     mask = np.asarray(data.mask)
     if P.ndim != 3 or P.shape[-1] != 3:
@@ -520,6 +630,14 @@ def validate_arc_data(data: ArcData, joint: str) -> None:
     n_frames = int(mask.any(axis=0).sum())
     if n_frames < MIN_FRAMES:
         raise ValueError(f"joint {joint!r}: only {n_frames} valid frames, at least {MIN_FRAMES} are needed")
+    if kind == PRISMATIC:
+        enc = np.asarray(data.encoder)[mask.any(axis=0)]
+        travel = float(enc.max() - enc.min()) * 1e3
+        if travel < MIN_TRAVEL_MM:
+            raise ValueError(
+                f"joint {joint!r}: the prismatic sweep travels {travel:.2f} mm, at least {MIN_TRAVEL_MM:g} are needed"
+            )
+        return
     span = sweep_span_deg(data)
     if span < MIN_SWEEP_DEG:
         raise ValueError(

@@ -29,6 +29,7 @@ import itertools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
@@ -39,7 +40,7 @@ from ._arcmodel import line_to_params
 from ._correction import KinematicCorrection as KinematicCorrection  # re-exported
 from ._correction import ParameterLayout, apply_correction, zero_correction
 from ._geometry import make_pose, matmul, pose_inverse, se3_exp, skew, so3_log, so3_right_jacobian_inv
-from ._kinematics import REVOLUTE, KinematicModel, forward_kinematics, joint_axes, joint_motion
+from ._kinematics import PRISMATIC, REVOLUTE, KinematicModel, forward_kinematics, joint_axes, joint_motion
 from ._linalg import after, nearest_rotation
 
 
@@ -76,6 +77,15 @@ def _meas_dim(arcs: ArcFitResult, use_poses: bool) -> int:
     return arcs.meas.shape[-1] if use_poses else 4
 
 
+def measured_rows(model: KinematicModel, k: int) -> np.ndarray:
+    """Which of every sweep's `k` residuals are measured, `(joints, k)` (static):
+    all but a prismatic joint's line position $(w_1, w_2)$ (a translation has
+    no axis position; `jaxcal._arcfit.fit_line`), which are zeroed."""
+    keep = np.ones((model.num_joints, k))
+    keep[[j for j, t in enumerate(model.joint_types) if t == PRISMATIC], 2:4] = 0.0
+    return keep
+
+
 def _axis_residuals_autodiff(params: AxisFitParams, problem: AxisFitProblem) -> Float[Array, "joints k"]:
     """`axis_residuals` written with the model's own `joint_axes` and `forward_kinematics`,
     differentiated by JAX (the reference the closed-form Jacobian is tested against)."""
@@ -108,7 +118,7 @@ def _axis_residuals_autodiff(params: AxisFitParams, problem: AxisFitProblem) -> 
             )(arcs.O_ref, T_cam_marker)  # (J, M, 3)
             parts.append(r_m.reshape(n, -1))
         pred = jnp.concatenate(parts, axis=-1)
-    e = pred - arcs.meas[:, :k]
+    e = (pred - arcs.meas[:, :k]) * measured_rows(model, k)
     return jnp.einsum("jab,jb->ja", problem.sqrt_info, e)
 
 
@@ -230,7 +240,8 @@ def _axis_terms(
             A = jnp.einsum("jmba,jmbc->jmac", arcs.O_ref, T_cm_j[..., :3, :3])  # O_ref^T R, (J, M, 3, 3)
             r_m = so3_log(A)
             pred.append(r_m.reshape(n, 3 * M))
-    e = jnp.concatenate(pred, axis=-1) - arcs.meas[:, :k]
+    keep = measured_rows(nominal, k)
+    e = (jnp.concatenate(pred, axis=-1) - arcs.meas[:, :k]) * keep
     W = problem.sqrt_info
     r = jnp.einsum("jab,jb->ja", W, e)
     if not jacobian:
@@ -256,7 +267,7 @@ def _axis_terms(
                     n, 3 * M, -1
                 )
             )
-    D = jnp.concatenate(jac, axis=1)  # (J, k, n_params)
+    D = jnp.concatenate(jac, axis=1) * keep[..., None]  # (J, k, n_params)
     return r, jnp.einsum("jab,jbp->jap", W, D)
 
 
@@ -318,27 +329,41 @@ def register_lines(
     known; without, every sign pattern is tried and the best kept), then the
     translation by linear least squares on the line offsets,
     $(I - d d^T)(R q + t - Q) = 0$ per joint; each axis at its sweep's `home`.
+    When every axis is parallel (a SCARA), the rotation about them comes from
+    the lines' offsets as well; a prismatic joint gives its direction only.
     """
     points, dirs = model_axes(nominal, home)
     D = arcs.direction
     w = 1.0 / jnp.maximum(jnp.trace(arcs.cov[:, :3, :3], axis1=-2, axis2=-1), 1e-16)
     w = w / jnp.max(w)
+    # A prismatic joint's line has a direction but no position (`fit_line`: NaN point).
+    has_point = jnp.asarray([t == REVOLUTE for t in nominal.joint_types])
+    w_pos = jnp.where(has_point, w, 0.0)
+    Q = jnp.where(has_point[:, None], arcs.point, 0.0)
+    # All axes parallel (a SCARA): the directions leave the rotation about them free,
+    # and the lines' offsets across the common direction fix it (2-D Procrustes of the
+    # centred line points, in units of 10 cm). Other arms: H is the directions' alone.
+    parallel = jnp.max(jnp.linalg.norm(jnp.cross(D, D[0]), axis=-1)) < 0.02
+    centred = lambda x: x - jnp.sum(w_pos[:, None] * x, 0) / jnp.maximum(jnp.sum(w_pos), 1e-300)  # noqa: E731
+    y = centred(Q - jnp.outer(Q @ D[0], D[0]))
+    x = centred(points - jnp.outer(points @ dirs[0], dirs[0]))
+    H_pos = jnp.where(parallel, jnp.einsum("j,ja,jb->ab", w_pos, y, x) / 0.1**2, 0.0)
 
     def register(signs):
-        H = jnp.einsum("j,ja,jb->ab", w * signs, D, dirs)  # sum w s D d^T
+        H = jnp.einsum("j,ja,jb->ab", w * signs, D, dirs) + H_pos  # sum w s D d^T
         R = nearest_rotation(H)
         dirs_c = dirs @ R.T
         Pj = jnp.eye(3) - dirs_c[:, :, None] * dirs_c[:, None, :]  # (J, 3, 3)
-        rhs = jnp.einsum("jab,jb->ja", Pj, arcs.point - points @ R.T)
-        A = (Pj * w[:, None, None]).reshape(-1, 3)
-        t = jnp.linalg.lstsq(A, (rhs * w[:, None]).reshape(-1))[0]
+        rhs = jnp.einsum("jab,jb->ja", Pj, Q - points @ R.T)
+        A = (Pj * w_pos[:, None, None]).reshape(-1, 3)
+        t = jnp.linalg.lstsq(A, (rhs * w_pos[:, None]).reshape(-1))[0]
         # Directions (rad^2) and line offsets (in units of 10 cm) together: when the
         # axes span only a plane (a UR arm at zero), a half turn maps every line
         # onto a line with the opposite sign, and only the offsets tell them apart.
-        pos = jnp.einsum("jab,jb->ja", Pj, points @ R.T + t - arcs.point)
+        pos = jnp.einsum("jab,jb->ja", Pj, points @ R.T + t - Q)
         cost = (
             jnp.sum(w * jnp.sum((signs[:, None] * D - dirs_c) ** 2, -1))
-            + jnp.sum(w * jnp.sum(pos**2, -1)) / 0.1**2
+            + jnp.sum(w_pos * jnp.sum(pos**2, -1)) / 0.1**2
         )
         return make_pose(R, t), cost
 

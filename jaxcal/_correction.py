@@ -40,7 +40,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
 from ._geometry import matmul, matrix_to_rpy, se3_exp, so3_log
-from ._kinematics import KinematicModel
+from ._kinematics import REVOLUTE, KinematicModel
 
 #: Names of a pose twist's components, `(v, w)`.
 POSE_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -261,13 +261,20 @@ class ParameterLayout:
 # --------------------------------------------------------------------------- physical parameters
 
 
-def physical_names(layout: ParameterLayout, mount_names: list[str]) -> list[tuple[str, str, str]]:
-    """`(name, unit, group)` of every row of `physical_parameters`."""
+def physical_names(
+    layout: ParameterLayout, mount_names: list[str], joint_types: tuple[str, ...] | None = None
+) -> list[tuple[str, str, str]]:
+    """`(name, unit, group)` of every row of `physical_parameters` (a zero
+    offset in m for a prismatic joint of `joint_types`, else rad)."""
     pose = [("x", "m"), ("y", "m"), ("z", "m"), ("roll", "rad"), ("pitch", "rad"), ("yaw", "rad")]
+    types = (REVOLUTE,) * len(layout.joints) if joint_types is None else joint_types
     rows = []
     for j in layout.joints:
         rows += [(f"{j}.origin.{a}", u, "correction") for a, u in pose]
-    rows += [(f"{j}.zero_offset", "rad", "correction") for j in layout.joints]
+    rows += [
+        (f"{j}.zero_offset", "rad" if t == REVOLUTE else "m", "correction")
+        for j, t in zip(layout.joints, types)
+    ]
     rows += [(f"{layout.fixed_frame}.{a}", "m", "camera") for a in "xyz"]
     rows += [(f"{layout.fixed_frame}.rot_{a}", "rad", "camera") for a in "xyz"]
     for t in mount_names:
@@ -355,7 +362,7 @@ def physical_parameters(
             "std": float(std[i]),
             "free": bool(moves[i]),
         }
-        for i, (n, u, g) in enumerate(physical_names(layout, mount_names))
+        for i, (n, u, g) in enumerate(physical_names(layout, mount_names, nominal.joint_types))
     ]
 
 

@@ -28,11 +28,12 @@ from jax.sharding import PartitionSpec as P
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._arcdata import ArcData, make_arc_data
-from ._arcfit import ArcFitResult, fit_arc
+from ._arcfit import ArcFitResult, fit_arc, fit_joint_sweeps
 from ._arcmodel import line_to_params
 from ._axisfit import fit_axes
 from ._geometry import make_pose, matmul, se3_exp, so3_exp, so3_log
 from ._kinematics import (
+    REVOLUTE,
     KinematicModel,
     PerturbationScales,
     anchor_base,
@@ -121,8 +122,9 @@ def synthesize_sweeps(
 def fit_sweeps(
     nominal: KinematicModel, data: ArcData, *, free=None, max_steps: int = 100, **axis_kwargs
 ) -> tuple:
-    """Arc fits of every joint (vmapped) followed by the axis fit."""
-    arcs = jax.vmap(lambda d: fit_arc(d, scale_covariance=False, max_steps=max_steps))(data)
+    """Arc fits of every joint (vmapped; a prismatic joint's sweep by its line
+    fit, `jaxcal._arcfit.fit_joint_sweeps`) followed by the axis fit."""
+    arcs = fit_joint_sweeps(data, nominal.joint_types, scale_covariance=False, max_steps=max_steps)
     return arcs, fit_axes(nominal, arcs, free=free, max_steps=max_steps, **axis_kwargs)
 
 
@@ -262,10 +264,22 @@ def exact_arcs(
     )
 
 
+def check_revolute(model: KinematicModel, what: str) -> None:
+    """Raise a `ValueError` naming `model`'s prismatic joints: a study's sweeps
+    (`SweepPlan.range_deg`), exact arcs and validation configurations are angles."""
+    prismatic = [n for n, k in zip(model.joint_names, model.joint_types) if k != REVOLUTE]
+    if prismatic:
+        raise ValueError(
+            f"{what}: Monte Carlo studies sweep and score revolute joints only; "
+            f"prismatic joints {prismatic} are not supported"
+        )
+
+
 def run_trial(
     setup: MonteCarloSetup, key: PRNGKeyArray, free: Bool[Array, " n"] | None = None
 ) -> TrialResult:
-    """One Monte Carlo trial (pure; vmap over `key`)."""
+    """One Monte Carlo trial (pure; vmap over `key`). Revolute arms only."""
+    check_revolute(setup.nominal, "run_trial")
     k_truth, k_noise, k_val = jax.random.split(key, 3)
     true, T_cam_base, T_flange_marker = draw_trial_truth(setup, k_truth)
     data = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise)
@@ -451,6 +465,7 @@ def monte_carlo(
     """
     if trials < 1:
         raise ValueError(f"monte_carlo: trials must be at least 1, got {trials}")
+    check_revolute(setup.nominal, "monte_carlo")
     mesh = trial_mesh(devices)
     per_device = -(-trials // mesh.size)
     if chunk is None:

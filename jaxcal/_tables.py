@@ -147,7 +147,9 @@ def physical_table(source, convention: str = "urdf") -> PhysicalTable:
             np.asarray(a)
             for a in physical_jacobian(est.nominal, est.T_flange_marker0, est.T_cam_base0, cam, corr)
         )
-        names, units, groups = zip(*physical_names(est.layout, list(est.mount_names)))
+        names, units, groups = zip(
+            *physical_names(est.layout, list(est.mount_names), est.nominal.joint_types)
+        )
         return _table(names, units, groups, nom, value, G, est, convention)
     reference, table, G = dh_jacobian(est, parallel_pairs(est.nominal))
     nom, value, G = np.asarray(table_values(reference)), np.asarray(table_values(table)), np.asarray(G)

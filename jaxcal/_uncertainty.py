@@ -11,12 +11,17 @@ end-effector uncertainty the data support (to first order).
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._correction import KinematicCorrection, apply_correction
 from ._geometry import se3_exp
-from ._kinematics import KinematicModel, forward_kinematics
+from ._kinematics import REVOLUTE, KinematicModel, forward_kinematics
+
+#: A prismatic joint's travel either side of zero in the random configurations
+#: when its URDF gives no limits (m).
+PRISMATIC_TRAVEL_M = 0.1
 
 
 def tool_points(
@@ -58,3 +63,27 @@ def ee_sigma(
 def random_configurations(key: PRNGKeyArray, n: int, joints: int) -> Float[Array, "n joints"]:
     """`n` configurations uniform in $[-\\pi, \\pi]$ per joint (the validation's sample)."""
     return jax.random.uniform(key, (n, joints), minval=-jnp.pi, maxval=jnp.pi)
+
+
+def joint_travel(model: KinematicModel, limits: dict | None = None) -> np.ndarray:
+    """Every joint's range in the random configurations, `(joints, 2)`: $[-\\pi, \\pi]$
+    for a revolute joint; a prismatic joint's URDF limits (`limits`: joint name
+    -> `jaxcal.io.urdf.JointLimits`), else $\\pm$`PRISMATIC_TRAVEL_M` (m)."""
+    travel = np.tile([-np.pi, np.pi], (model.num_joints, 1))
+    for j, (name, kind) in enumerate(zip(model.joint_names, model.joint_types)):
+        if kind != REVOLUTE:
+            lim = (limits or {}).get(name)
+            lo, hi = (None, None) if lim is None else (lim.lower, lim.upper)
+            travel[j] = (-PRISMATIC_TRAVEL_M if lo is None else lo, PRISMATIC_TRAVEL_M if hi is None else hi)
+    return travel
+
+
+def on_travel(model: KinematicModel, q: Float[Array, "n joints"], travel) -> Float[Array, "n joints"]:
+    """`random_configurations`' sample with each prismatic joint's column mapped
+    from $[-\\pi, \\pi]$ onto its `travel` (`joint_travel`): metres, not metres as
+    if they were radians. Revolute columns are returned as they are."""
+    prismatic = np.asarray([k != REVOLUTE for k in model.joint_types])
+    if not prismatic.any():
+        return q
+    lo, hi = travel[:, 0], travel[:, 1]
+    return jnp.where(prismatic, lo + (q + jnp.pi) / (2.0 * jnp.pi) * (hi - lo), q)

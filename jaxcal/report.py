@@ -28,6 +28,15 @@ def arc_geometry(result, j: int) -> dict:
     Q = np.asarray(result.arc_fit.point[j])
     mask = result.sweeps.mask[j, 0]
     P = result.sweeps.positions[j, 0][mask]
+    if not np.all(np.isfinite(Q)):
+        # A prismatic joint (`fit_line`): `u` along the travel, `v` across it, about the
+        # positions' centroid; no radius; the lateral deviation as the radial residual.
+        d = P - P.mean(0)
+        h = d @ V
+        lateral = d - h[:, None] * V
+        e1 = np.linalg.svd(lateral, full_matrices=False)[2][0] if len(P) > 1 else np.cross(V, [1.0, 0, 0])
+        v = 1e3 * lateral @ e1
+        return {"u": 1e3 * h, "v": v, "radius": float("nan"), "radial": v, "axial": np.zeros_like(v)}
     d = P - Q
     h = d @ V
     inplane = d - h[:, None] * V
@@ -56,6 +65,11 @@ def plot_arcs(result):
     for j, name in enumerate(names):
         ax = axes[j // cols][j % cols]
         g = arc_geometry(result, j)
+        if not np.isfinite(g["radius"]):  # a prismatic joint: its travel, no arc
+            ax.plot(g["u"], g["v"], ".", ms=4, color="tab:red", label="marker (PnP)")
+            ax.set_title(f"{name}: travel {np.ptp(g['u']):.1f} mm (lateral x1)", fontsize=9)
+            ax.set_xlabel("mm along the fitted direction", fontsize=8)
+            continue
         t = np.linspace(0, 2 * np.pi, 400)
         ax.plot(
             g["radius"] * np.cos(t),
@@ -368,6 +382,13 @@ def _joints_section(result) -> list[str]:
             f"{a['ratio_nominal']:.4f} | {_fmt(a['ratio'], '.4f')} | {_fmt(a['ratio_std'], '.4f')} | "
             f"{a['solver']['result']} ({a['solver']['steps']} steps) |"
         )
+    for a in result.arcs:
+        if "scale" in a:
+            lines += [
+                "",
+                f"{a['joint']} is prismatic: its ratio is in motor rad per m; the scale (true travel per "
+                f"commanded travel) is {a['scale']:.6f} +- {a['scale_std']:.6f} over {a['travel_mm']:.1f} mm.",
+            ]
     rejected = [(a["joint"], o) for a in result.arcs for o in a.get("outliers", [])]
     if rejected:
         lines += [

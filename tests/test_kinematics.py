@@ -103,7 +103,7 @@ def test_published_flange_positions_at_zero():
 
 
 def test_unknown_names():
-    with pytest.raises(ValueError, match=r"unknown robot 'kuka'.*\['panda', 'ur3', 'ur5e'\]"):
+    with pytest.raises(ValueError, match=r"unknown robot 'kuka'.*\['panda', 'scara', 'ur3', 'ur5e'\]"):
         load_robot("kuka")
     with pytest.raises(ValueError, match=r"unknown DH table 'ur5e'.*'ur5e_dh'"):
         dh_model("ur5e")

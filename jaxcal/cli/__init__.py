@@ -78,6 +78,12 @@ def _add_simulate_parser(sub) -> None:
         help="angle each joint sweeps (deg), one or one per joint (default 80; tracker 120)",
     )
     p.add_argument(
+        "--sweep-mm",
+        type=float,
+        default=100.0,
+        help="travel each prismatic joint sweeps (mm, rendered datasets)",
+    )
+    p.add_argument(
         "--home-deg",
         type=home,
         default=None,

@@ -29,6 +29,7 @@ def cmd_simulate(args) -> int:
         resolution=args.resolution,
         frames_per_joint=args.frames_per_joint,
         range_deg=args.sweep_deg,
+        range_mm=args.sweep_mm,
         home_deg=args.home_deg,
         markers=args.markers,
         dictionary=args.dictionary,

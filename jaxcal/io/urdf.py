@@ -559,7 +559,8 @@ def _minimal_tree(model: KinematicModel, arrays: dict[str, np.ndarray], robot_na
         ET.SubElement(el, "child", link=links[i + 1])
         _set_origin(el, xyz[i], rpy[i])
         ET.SubElement(el, "axis", xyz=_fmt(arrays["axis"][i]))
-        ET.SubElement(el, "limit", lower=repr(-math.pi), upper=repr(math.pi), effort="0.0", velocity="0.0")
+        lim = math.pi if kind == REVOLUTE else 1.0  # rad, or m for a prismatic joint
+        ET.SubElement(el, "limit", lower=repr(-lim), upper=repr(lim), effort="0.0", velocity="0.0")
         ET.SubElement(el, "calibration", rising=repr(float(arrays["zero_offset"][i])))
     if not flange_is_link:
         fixed_name = f"{links[-1]}_joint"
@@ -594,7 +595,7 @@ def save_urdf(model: KinematicModel, path, *, source=None) -> None:
     origin cannot be written back one joint at a time.
 
     Without `source`, a minimal URDF: links without geometry, the joints with
-    origins, axes, limits of $\\pm\\pi$, calibration, a fixed joint to the
+    origins, axes, limits of $\\pm\\pi$ (a prismatic joint: $\\pm 1$ m), calibration, a fixed joint to the
     flange, and one transmission per joint.
 
     `load_urdf` of the written file gives back the model to 1e-12 (floats are

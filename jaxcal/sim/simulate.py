@@ -48,6 +48,8 @@ class SimConfig:
     `mount_mm`, `mount_deg` for the marker plate (or eye-in-hand camera)
     mount and the camera placement. `grayscale` writes 8-bit single-channel
     PNGs (what a machine-vision camera gives; a third of the size).
+    A sweep turns a revolute joint through `range_deg` and moves a prismatic
+    one through `range_mm` (its entry of `range_deg` is ignored).
     """
 
     robot: str = "ur5e"
@@ -66,6 +68,7 @@ class SimConfig:
     markers_on_links: bool = False
     frames_per_joint: int = 30
     range_deg: float | tuple[float, ...] = 40.0
+    range_mm: float = 100.0
     home_deg: tuple[float, ...] | None = None
     fps: float = 30.0
     clock_offset_ms: float = 0.0
@@ -168,6 +171,16 @@ def nominal_robot(robot: str):
         if not path.is_file():
             raise ValueError(f"robot {robot!r} is neither a shipped robot ({shipped()}) nor a file")
     return load_urdf(path), path
+
+
+def sweep_ranges(nominal, config: SimConfig) -> np.ndarray:
+    """Every joint's sweep as `joint_sweeps` takes it (degrees, turned into
+    radians there): `range_deg`, and for a prismatic joint `range_mm` in the
+    same units (its metres as if they were radians)."""
+    ranges = np.broadcast_to(np.asarray(config.range_deg, np.float64), (nominal.num_joints,)).copy()
+    prismatic = np.asarray([t == "prismatic" for t in nominal.joint_types])
+    ranges[prismatic] = np.degrees(config.range_mm * 1e-3)
+    return ranges
 
 
 def draw_truth(nominal, config: SimConfig):
@@ -355,7 +368,7 @@ def simulate(
     if sweeps:
         home = None if config.home_deg is None else np.radians(config.home_deg)
         trajectory = joint_sweeps(
-            names, config.range_deg, sweep_s=config.frames_per_joint / config.fps, home=home
+            names, sweep_ranges(nominal, config), sweep_s=config.frames_per_joint / config.fps, home=home
         )
     elif trajectory.q.shape[1] != len(names):
         raise ValueError(f"trajectory has {trajectory.q.shape[1]} joints, the robot {len(names)}")

@@ -11,14 +11,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arcfit import fit_arc
+from .._arcfit import fit_arc, fit_joint_sweeps
 from .._axisfit import fit_axes, register_lines
 from .._buckets import bucket
 from .._clocksync import fit_clock_offset
 from .._correction import ParameterLayout
 from .._kinematics import forward_kinematics
 from .._refine import identifiable_mask, refine
-from .._uncertainty import ee_sigma, random_configurations
+from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
 #: The arc and clock fits' inlier threshold (robust sigmas of the deletion
 #: residual, as a 2-D radius; see `jaxcal._robust`). PnP's covariance is
@@ -31,11 +31,12 @@ ARC_REJECT = 6.0
 
 
 @functools.cache
-def arc_fits(loss: str | None):
-    """Every joint's arc fit at once: `jax.vmap(fit_arc)` over stacked `ArcData`."""
+def arc_fits(loss: str | None, joint_types: tuple[str, ...]):
+    """Every joint's fit at once over stacked `ArcData`: `jax.vmap(fit_arc)`, a
+    prismatic joint's by `fit_line` (`jaxcal._arcfit.fit_joint_sweeps`)."""
 
     def arc_fits(data):
-        return jax.vmap(lambda d: fit_arc(d, loss=loss, reject=ARC_REJECT, max_steps=100))(data)
+        return fit_joint_sweeps(data, joint_types, loss=loss, reject=ARC_REJECT, max_steps=100)
 
     return jax.jit(arc_fits)
 
@@ -121,8 +122,8 @@ def chains(T_cam_base, model, q) -> np.ndarray:
 
 @functools.cache
 def _ee_sigma():
-    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, key):
-        q = random_configurations(key, EE_CONFIGURATIONS, nominal.num_joints)
+    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, key, travel):
+        q = on_travel(nominal, random_configurations(key, EE_CONFIGURATIONS, nominal.num_joints), travel)
         return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q)
 
     return jax.jit(ee_sigma_program)
@@ -132,11 +133,12 @@ def _ee_sigma():
 EE_CONFIGURATIONS = 1000
 
 
-def end_effector_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov) -> np.ndarray:
-    """Per configuration (1000, seed 0: the validation's sample) the 1-sigma tool-point uncertainty (m)."""
+def end_effector_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, limits=None) -> np.ndarray:
+    """Per configuration (1000, seed 0: the validation's sample) the 1-sigma tool-point
+    uncertainty (m); a prismatic joint within its URDF `limits` (`joint_travel`)."""
     return np.asarray(
         _ee_sigma()(
             nominal, jnp.asarray(T_cam_base0), jnp.asarray(mounts0), cam, correction, jnp.asarray(cov),
-            jax.random.key(0),
+            jax.random.key(0), jnp.asarray(joint_travel(nominal, limits)),
         )
     )  # fmt: skip

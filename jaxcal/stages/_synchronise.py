@@ -16,6 +16,7 @@ import optimistix as optx
 from .._arcdata import make_arc_data
 from .._buckets import bucket, pad_log
 from .._clocksync import controller_time
+from .._kinematics import PRISMATIC
 from .._links import link_poses
 from ..errors import CalibrationError
 from ..io.dataset import Dataset
@@ -216,12 +217,25 @@ class _Timeline:
         return sw, counts, joint, t_ctrl, q, inside
 
 
-def _clock_from_sweeps(sweeps: Sweeps, log_q, offset0: float, drift_ppm: float, loss: str | None):
-    """All joints' arc fits with one shared offset."""
+def _clock_from_sweeps(
+    sweeps: Sweeps, log_q, offset0: float, drift_ppm: float, loss: str | None, joint_types=None
+):
+    """All revolute joints' arc fits with one shared offset (a prismatic joint's
+    sweep is no arc: it is left out)."""
     enc_t, enc_q = pad_log(*log_q, bucket(len(log_q[0])))
+    data, t_cam = sweeps.arc_data(), np.asarray(sweeps.t_cam)
+    if joint_types is not None and PRISMATIC in joint_types:
+        rev = np.asarray([j for j, t in enumerate(joint_types) if t != PRISMATIC], dtype=int)
+        if rev.size == 0:
+            raise CalibrationError(
+                "the clock offset is fitted on the revolute joints' arcs, and every joint is prismatic: "
+                "give the offset (clock.offset_s in metadata.json)"
+            )
+        data = jax.tree.map(lambda x: x[rev], data)
+        t_cam, enc_q = t_cam[rev], np.asarray(enc_q)[:, rev]
     return _programs.clock_fit(loss)(
-        sweeps.arc_data(),
-        jnp.asarray(sweeps.t_cam),
+        data,
+        jnp.asarray(t_cam),
         jnp.asarray(enc_t),
         jnp.asarray(enc_q),
         offset0,
@@ -235,6 +249,11 @@ def _clock_from_first_link(
     """The first joint's child-link plate moves with that joint alone: its arc,
     against the encoder log, gives the offset (before anything is undone)."""
     ds = setup.dataset
+    if setup.nominal.joint_types[0] == PRISMATIC:
+        raise CalibrationError(
+            f"{ds.root}: joint {ds.joint_names[0]!r} is prismatic: the clock offset from the first link's "
+            "plate needs an arc; give the offset (clock.offset_s in metadata.json)"
+        )
     try:
         P1, O1, C1, k1 = link_poses([obs.poses[i] for i in sel], setup.targets, setup.per_joint[0])
     except ValueError as e:
@@ -358,7 +377,9 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
             options.say(
                 "estimating the camera-controller clock offset (arc fits of all joints with a shared offset)"
             )
-            cf = _clock_from_sweeps(sweeps, log_q, offset0, ds.clock_drift_ppm, options.arc_loss)
+            cf = _clock_from_sweeps(
+                sweeps, log_q, offset0, ds.clock_drift_ppm, options.arc_loss, nominal.joint_types
+            )
     if estimate:
         if not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s)):
             raise CalibrationError(f"{ds.root}: the clock-offset fit failed ({cf.result})")

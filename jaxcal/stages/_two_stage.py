@@ -21,7 +21,7 @@ from .._buckets import bucket
 from .._correction import Estimate, ParameterLayout, physical_parameters, zero_correction
 from .._geometry import pose_inverse
 from .._handeye import check_motion_diversity, solve_axzb
-from .._kinematics import forward_kinematics
+from .._kinematics import PRISMATIC, forward_kinematics
 from .._links import average_pose, sequential_sweeps
 from ..errors import CalibrationError
 from . import _programs
@@ -147,7 +147,7 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data) -> None:
                 "joint sweeps alone"
             )
         try:
-            validate_arc_data(jax.tree.map(lambda x, j=j: x[j], data), name)
+            validate_arc_data(jax.tree.map(lambda x, j=j: x[j], data), name, setup.nominal.joint_types[j])
         except ValueError as e:
             raise CalibrationError(f"{ds.root}: {e}") from None
 
@@ -213,9 +213,11 @@ def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> list[dict]:
     rows = []
     for j, name in enumerate(setup.dataset.joint_names):
         rate = float(arcs.rate[j])
+        prismatic = setup.nominal.joint_types[j] == PRISMATIC
         rows.append(
             {
                 "joint": name,
+                "type": setup.nominal.joint_types[j],
                 "frames": int(arcs.num_frames[j]),
                 "position_rms_mm": float(arcs.position_rms[j]) * 1e3,
                 "rotation_rms_deg": float(np.degrees(arcs.rotation_rms[j]))
@@ -223,13 +225,28 @@ def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> list[dict]:
                 else None,  # points measured without an orientation
                 "residual_rms": float(arcs.residual_rms[j]),
                 "direction_cam": np.asarray(arcs.direction[j]).tolist(),
-                "point_cam_m": np.asarray(arcs.point[j]).tolist(),
+                # A translation has no axis position (`fit_line`).
+                "point_cam_m": None if prismatic else np.asarray(arcs.point[j]).tolist(),
                 "ratio_nominal": float(nominal_ratio[j]),
                 "ratio": float(nominal_ratio[j] / rate) if has else None,
                 "ratio_std": float(nominal_ratio[j] * np.sqrt(max(float(arcs.rate_var[j]), 0.0)) / rate**2)
                 if has
                 else None,
                 "ratio_identifiable": has,
+                # Prismatic: the ratio is motor rad per m; the scale is the true travel per
+                # commanded travel (nominal ratio / true ratio), 1 for a datasheet screw.
+                **(
+                    {
+                        "ratio_unit": "rad/m",
+                        "scale": rate,
+                        "scale_std": float(np.sqrt(max(float(arcs.rate_var[j]), 0.0))),
+                        "travel_mm": float(
+                            1e3 * np.ptp(np.asarray(arcs.angles[j])[np.asarray(sweeps.mask[j]).any(0)])
+                        ),
+                    }
+                    if prismatic
+                    else {}
+                ),
                 "solver": {"result": "successful" if ok[j] else "failed", "steps": int(arcs.num_steps[j])},
                 "robust_scale": float(arcs.robust_scale[j]),
                 "outliers": arc_outlier_rows(setup, sweeps, arcs, j),
@@ -248,6 +265,12 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     t0 = time.perf_counter()
     link_rows = None
     if kind.sequential:
+        prismatic = [n for n, t in zip(nominal.joint_names, nominal.joint_types) if t == PRISMATIC]
+        if prismatic:
+            raise CalibrationError(
+                f"{setup.dataset.root}: markers on every link are calibrated joint by joint with arcs; "
+                f"prismatic joints {prismatic} need single-joint sweeps"
+            )
         options.say(
             f"sequential arc fits of {nominal.num_joints} joints (markers on every link, earlier joints undone)"
         )
@@ -258,7 +281,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         data = sweeps.arc_data()
         _check_sweeps(setup, sweeps, counts, data)
         options.say(f"arc fits of {nominal.num_joints} joints (one vmapped solve)")
-        arcs = _programs.arc_fits(options.arc_loss)(data)
+        arcs = _programs.arc_fits(options.arc_loss, nominal.joint_types)(data)
     jax.block_until_ready(arcs)
     timings["arc_fit_s"] = time.perf_counter() - t0
 

@@ -14,9 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._geometry import pose_inverse, so3_log
-from .._kinematics import forward_kinematics
+from .._kinematics import REVOLUTE, forward_kinematics
 from .._montecarlo import NoiseModel, SweepPlan, synthesize_sweeps
 from .._scoring import score
+from .._uncertainty import joint_travel, on_travel
 from ..io.model_json import model_from_json
 from . import _programs
 from ._refine import Refined
@@ -83,7 +84,7 @@ def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true
         use_encoders=bool(two.arcs.has_encoder),
         home=home,
     )
-    arcs_exact = _programs.arc_fits(loss)(exact)
+    arcs_exact = _programs.arc_fits(loss, nominal.joint_types)(exact)
     return _programs.axis_fit(setup.kind.axis_fit_uses_poses)(
         nominal, arcs_exact, mounts0, fit.free, home, setup.kind.fixed_frame_free
     ).T_cam_base
@@ -145,8 +146,12 @@ def validate(
     true = model_from_json(truth["model"])
     res = refined.fit if refined is not None else None
     fit = res if res is not None else two_fit
-    q_val = jax.random.uniform(
-        jax.random.key(SEED), (CONFIGURATIONS, nominal.num_joints), minval=-np.pi, maxval=np.pi
+    q_val = on_travel(
+        nominal,
+        jax.random.uniform(
+            jax.random.key(SEED), (CONFIGURATIONS, nominal.num_joints), minval=-np.pi, maxval=np.pi
+        ),
+        joint_travel(nominal, setup.dataset.joint_limits),
     )
     s = jax.jit(score)(fit, true, T_cb_true, mounts_true, nominal, q_val)
     err = _ee_errors(
@@ -191,13 +196,21 @@ def validate(
             "raw_rot_deg": _rot_deg(dT_raw[:3, :3]),
         },
         "parameter_errors": {
-            j: {
-                "axis_direction_deg": float(s["axis_dir_deg"][k]),
-                "axis_position_mm": float(s["axis_pos_mm"][k]),
-                "ratio_percent": None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
-                "zero_offset_deg": float(np.degrees(fit.model.zero_offset[k] - true.zero_offset[k])),
-            }
-            for k, j in enumerate(nominal.joint_names)
+            j: (
+                {
+                    "axis_direction_deg": float(s["axis_dir_deg"][k]),
+                    "axis_position_mm": float(s["axis_pos_mm"][k]),
+                    "ratio_percent": None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
+                    "zero_offset_deg": float(np.degrees(fit.model.zero_offset[k] - true.zero_offset[k])),
+                }
+                if kind == REVOLUTE
+                else {  # a prismatic joint: a direction (no axis position), the scale's error, mm
+                    "axis_direction_deg": float(s["axis_dir_deg"][k]),
+                    "ratio_percent": None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
+                    "zero_offset_mm": float(1e3 * (fit.model.zero_offset[k] - true.zero_offset[k])),
+                }
+            )
+            for k, (j, kind) in enumerate(zip(nominal.joint_names, nominal.joint_types))
         },
         "true_ratios": np.asarray(true.reduction_ratio).tolist(),
         "true_clock_offset_s": truth.get("clock", {}).get("offset_s"),

@@ -51,6 +51,8 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
     names = nominal.joint_names
     pairs = []
     for i in range(nominal.num_joints - 1):
+        if not np.all(np.isfinite(p_meas[i : i + 2])):  # a prismatic joint's line has no position
+            continue
         nom = float(line_distance(p_nom[i], d_nom[i], p_nom[i + 1], d_nom[i + 1]))
         if nom < 0.05:
             continue
@@ -99,7 +101,15 @@ def _corrections(c: _Checks, parameters: list, limits: Limits, measured_mounts: 
             f"{owner}.deg", deg, lim_deg, f"{owner} turned {deg:.2f} deg from nominal (limit {lim_deg:g} deg)"
         )
     for name, p in rows.items():
-        if name.endswith(".zero_offset"):
+        if name.endswith(".zero_offset") and p["unit"] == "m":  # a prismatic joint's, against the origins'
+            mm = 1e3 * abs(p["estimate"] - p["nominal"])
+            c.add(
+                name,
+                mm,
+                limits.origin_mm,
+                f"{name} moved {mm:.1f} mm from nominal (limit {limits.origin_mm:g} mm)",
+            )
+        elif name.endswith(".zero_offset"):
             deg = float(np.degrees(abs(_wrap(p["estimate"] - p["nominal"]))))
             c.add(
                 name,
@@ -123,7 +133,7 @@ def _ee_sigma_mm(setup: Setup, two: TwoStage, refined: Refined | None) -> float:
         res, n = refined.fit, refined.layout.axis_size
         refs, cam, corr = refined.references, res.params.cam, res.params.correction
         cov = np.asarray(res.cov)[:n, :n]
-    sigma = _programs.end_effector_sigma(setup.nominal, *refs, cam, corr, cov)
+    sigma = _programs.end_effector_sigma(setup.nominal, *refs, cam, corr, cov, setup.dataset.joint_limits)
     return float(1e3 * np.sqrt(np.mean(sigma**2)))
 
 

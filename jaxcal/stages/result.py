@@ -180,6 +180,8 @@ def _ratio_table(setup: Setup, two: TwoStage, refined: Refined | None, arcs: lis
                 "estimate": a["ratio"],
                 "std": a["ratio_std"],
                 "identifiable": a["ratio_identifiable"],
+                # A prismatic joint: motor rad per m, and the scale (true per commanded travel).
+                **{k: a[k] for k in ("ratio_unit", "scale", "scale_std") if k in a},
             }
             for a in arcs
         }
