@@ -8,6 +8,7 @@ and `tests/test_stages.py` hold its figures.
 """
 
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +26,7 @@ from jaxcal._kinematics import PerturbationScales, anchor_base, forward_kinemati
 from jaxcal._linemodel import initialise_line, line_residuals, line_terms
 from jaxcal._montecarlo import default_setup
 from jaxcal._uncertainty import joint_travel, on_travel, random_configurations
+from jaxcal.errors import DatasetError
 from jaxcal.io.urdf import load_urdf, save_urdf, urdf_outline
 from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
@@ -274,3 +276,12 @@ def test_rendered_scara_calibration(tmp_path):
     saved = json.loads((out / "result.json").read_text())
     assert saved["reduction_ratios"]["joint3"]["ratio_unit"] == "rad/m"
     assert "joint3 is prismatic" in (out / "report.md").read_text()
+    # The same dataset with its encoder log declared in degrees: an angle unit on a
+    # column that holds metres is refused, naming the field and the joint.
+    bad = tmp_path / "deg"
+    shutil.copytree(ds, bad)
+    meta = json.loads((bad / "metadata.json").read_text())
+    meta["encoders"]["unit"] = "deg"
+    (bad / "metadata.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"encoders\.unit.*'deg'.*\['joint3'\] are prismatic"):
+        jaxcal.calibrate(bad, progress=False, workers=1)

@@ -265,6 +265,12 @@ def read_encoders(root: Path, emeta: dict, loc: Loc, joints: tuple[str, ...], li
     """
     path = root / emeta["file"]
     t, raw, lines = _encoder_table(path, f"encoder log (named by {loc.key('file')})", joints)
+    prismatic = [j for j in joints if limits[j].joint_type == "prismatic"]
+    if prismatic and emeta["unit"] != "rad":
+        raise DatasetError(
+            f"{loc.key('unit')} is {emeta['unit']!r}, an angle unit, but joint(s) {prismatic} are prismatic: "
+            f"their columns of {path.name} hold metres; log every joint in SI units (rad and m) with unit 'rad'"
+        )
     factor = enc.to_radians(emeta["unit"], emeta["counts_per_rev"])
     q = raw * factor / np.array([limits[j].reduction_ratio for j in joints])
     glitches, jumps, drop = _glitches(t, q, lines, joints, limits)
