@@ -58,6 +58,12 @@ class Robot:
         if not path.is_file():
             raise PlanError(f"robot {robot!r} is neither a shipped robot ({shipped()}) nor a URDF file")
         model = load_urdf(path)
+        prismatic = [j for j, kind in zip(model.joint_names, model.joint_types) if kind != "revolute"]
+        if prismatic:
+            raise PlanError(
+                f"robot {robot!r}: capture planning handles revolute joints only, and {prismatic} are "
+                "prismatic; plan the sweeps by hand (jaxcal simulate --sweep-mm renders them)"
+            )
         limits = urdf_outline(path, model.joint_names).limits
         lower = np.array([-np.inf if limits[j].lower is None else limits[j].lower for j in model.joint_names])
         upper = np.array([np.inf if limits[j].upper is None else limits[j].upper for j in model.joint_names])

@@ -34,7 +34,9 @@ def add_plan_parser(sub, func) -> None:
         "2 refused input (unreachable region, a camera that sees nothing, too small a budget, a malformed plan).",
     )
     p.add_argument("--evaluate", metavar="PLAN", help="pre-evaluate this plan file instead of planning")
-    p.add_argument("--robot", default="ur5e", help="shipped robot (ur5e, panda) or a URDF file")
+    p.add_argument(
+        "--robot", default="ur5e", help="shipped robot (ur5e, panda; revolute joints only) or a URDF file"
+    )
     p.add_argument("--camera", help="camera YAML (camera_matrix, image size, T_base_cam or T_flange_cam); "
                    "default: the demo's camera at the taught pose")  # fmt: skip
     p.add_argument(
