@@ -58,26 +58,31 @@ def key():
     return jax.random.key(0)
 
 
-#: The slowest files first (measured on a fresh clone: notebooks ~200 s, links,
-#: plan, calibrate, eye-in-hand ~80-140 s each), so that under `make test`'s
-#: `--dist loadfile` the two workers end together on the short files instead of
-#: one worker finishing the notebooks alone.
+#: The slowest files first, so that under `make test`'s `--dist loadfile` the two
+#: workers end together on the short files instead of one worker finishing a
+#: big file alone. Measured 2026-11-25 on a fresh clone (CPU s of the worker;
+#: the notebooks' kernels ~270 s wall): arcfit 244, calibrate 242, axisfit 191,
+#: prismatic ~120, refine 119, montecarlo 116, links 100, plan 98, home 97,
+#: handeye_capture 93, handeye 89, tracker, eye_in_hand, clocksync, cli, poses ~40-55.
 SLOW_FIRST = (
     "test_notebooks",
-    "test_plan",
-    "test_links",
-    "test_calibrate",
-    "test_eye_in_hand",
-    "test_handeye_capture",
-    "test_axisfit",
-    "test_refine",
     "test_arcfit",
+    "test_calibrate",
+    "test_axisfit",
+    "test_prismatic",
+    "test_refine",
     "test_montecarlo",
+    "test_links",
+    "test_plan",
     "test_home",
+    "test_handeye_capture",
     "test_handeye",
+    "test_tracker",
+    "test_eye_in_hand",
     "test_clocksync",
     "test_cli",
     "test_poses",
+    "test_dh",
 )
 
 
