@@ -33,6 +33,23 @@ def _segments(ds: Dataset, q) -> tuple[list, str]:
     ], "found in the encoder log (not in metadata.json)"
 
 
+def _joint_range(ds: Dataset, joint: str, values) -> dict:
+    """The range one joint covers: `range_mm` for a prismatic joint (m in the
+    log), `range_deg` for a revolute one."""
+    v = np.asarray(values)
+    if ds.joint_limits[joint].joint_type == "prismatic":
+        return {"range_mm": [1e3 * float(v.min()), 1e3 * float(v.max())]}
+    return {"range_deg": [float(np.degrees(v.min())), float(np.degrees(v.max()))]}
+
+
+def _format_range(g: dict) -> str:
+    if "range_mm" in g:
+        return f", travels {g['range_mm'][0]:.1f} .. {g['range_mm'][1]:.1f} mm"
+    if "range_deg" in g:
+        return f", sweeps {g['range_deg'][0]:.1f} .. {g['range_deg'][1]:.1f} deg"
+    return ""
+
+
 def _sweeps(ds: Dataset, q, segments, offset: float) -> list[dict]:
     out = []
     for joint, start, end in segments:
@@ -44,8 +61,7 @@ def _sweeps(ds: Dataset, q, segments, offset: float) -> list[dict]:
             j = ds.joint_names.index(joint)
             inside = (ds.encoder_t >= start) & (ds.encoder_t <= end)
             if inside.any():
-                v = np.degrees(q[inside, j])
-                row["range_deg"] = [float(v.min()), float(v.max())]
+                row |= _joint_range(ds, joint, q[inside, j])
         out.append(row)
     return out
 
@@ -78,8 +94,7 @@ def _tracker_summary(ds: Dataset, path, t0: float) -> dict:
         if rows.any():
             row["time_s"] = [float(s.timestamp[rows].min()), float(s.timestamp[rows].max())]
             if s.q is not None:
-                v = np.degrees(s.q[rows, j])
-                row["range_deg"] = [float(v.min()), float(v.max())]
+                row |= _joint_range(ds, name, s.q[rows, j])
         joints.append(row)
     kind = CaptureKind.of(
         camera_on_flange=False,
@@ -119,7 +134,7 @@ def _format_tracker(s: dict) -> str:
     ]  # fmt: skip
     for g in s["joints"]:
         span = f", {g['time_s'][0]:.3f}-{g['time_s'][1]:.3f} s" if "time_s" in g else ""
-        rng = f", sweeps {g['range_deg'][0]:.1f} .. {g['range_deg'][1]:.1f} deg" if "range_deg" in g else ""
+        rng = _format_range(g)
         lines.append(f"  {g['joint']}: {g['samples']} samples{span}{rng}")
     if s["unassigned_samples"]:
         lines.append(f"  {s['unassigned_samples']} samples name no joint")
@@ -209,7 +224,7 @@ def format_inspection(s: dict) -> str:
     )
     lines.append(f"motion segments ({s['segments_from']}):")
     for g in s["segments"]:
-        rng = f", sweeps {g['range_deg'][0]:.1f} .. {g['range_deg'][1]:.1f} deg" if "range_deg" in g else ""
+        rng = _format_range(g)
         frames = ", ".join(f"{k} {v}" for k, v in g["frames"].items())
         lines.append(
             f"  {g['joint'] or 'all joints (poses)'}: {g['start_s']:.3f}-{g['end_s']:.3f} s, frames {frames}{rng}"

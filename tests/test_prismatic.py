@@ -27,6 +27,7 @@ from jaxcal._linemodel import initialise_line, line_residuals, line_terms
 from jaxcal._montecarlo import default_setup
 from jaxcal._uncertainty import joint_travel, on_travel, random_configurations
 from jaxcal.errors import DatasetError
+from jaxcal.inspection import format_inspection, inspect_dataset
 from jaxcal.io.urdf import load_urdf, save_urdf, urdf_outline
 from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
@@ -246,6 +247,9 @@ def test_rendered_scara_calibration(tmp_path):
         clock_offset_ms=20.0, clock_known=False,
     )  # fmt: skip
     ds = simulate(config, tmp_path / "scara", progress=False)
+    # `jaxcal inspect` gives the quill's travel in mm (the log holds metres), the arms' sweeps in degrees.
+    text = format_inspection(inspect_dataset(ds, sample=2))
+    assert "joint3: " in text and "travels -75.0 .. 75.0 mm" in text and "sweeps -15.0 .. 15.0 deg" in text
     r = jaxcal.calibrate(ds, progress=False, workers=1)
     v = r.validation
     # Measured over 1000 configurations, the quill within its URDF stroke: 4.13 mm nominal,

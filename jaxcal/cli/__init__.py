@@ -62,7 +62,7 @@ def _add_simulate_parser(sub) -> None:
     p.add_argument(
         "--robot",
         default=None,
-        help="shipped robot (ur5e, ur3, panda) or a URDF file (default ur5e; tracker ur3)",
+        help="shipped robot (ur5e, ur3, panda, scara) or a URDF file (default ur5e; tracker ur3)",
     )
     p.add_argument("--out", required=True, help="dataset directory (must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
