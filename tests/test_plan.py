@@ -116,6 +116,13 @@ def test_fisher_information_is_the_refinements_cramer_rao_bound(ur5e):
     assert len(ev.held) == 24 and ev.unidentifiable == [] and max(ev.held_effect.values()) < 1e-12
     lo, hi = ev.ratio_interval
     assert 0.2 < lo < 1.0 < hi < 2.5 and ev.effective_dof >= 1.0
+    # The percentile and band probability read the distribution the interval came from.
+    assert abs(ev.ratio_percentile(lo * ev.ee_rms) - 0.05) < 0.002
+    assert abs(ev.ratio_percentile(hi * ev.ee_rms) - 0.95) < 0.002
+    assert abs(ev.outside_probability(lo, hi) - 0.10) < 0.003
+    assert ev.ratio_percentile(0.0) == 0.0 and ev.ratio_percentile(1e3) == 1.0
+    # Its mean square is the prediction's: E[sum(lam z^2)] = ee_rms^2.
+    assert np.isclose(ev.error_eigenvalues.sum(), ev.ee_rms**2, rtol=1e-6)
 
 
 def test_the_objective_gradient_matches_finite_differences(ur5e):

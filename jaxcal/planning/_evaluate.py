@@ -24,7 +24,7 @@ a smooth function of the frames' joint values: the planner's objective
 nominal by the refinement; their names are reported.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import equinox as eqx
 import jax
@@ -171,7 +171,10 @@ class PlanEvaluation:
       $\\delta^T M \\delta = \\sum_i \\lambda_i z_i^2$ with $\\delta \\sim N(0, \\Sigma)$,
       $\\lambda = \\mathrm{eig}(\\Sigma^{1/2} M \\Sigma^{1/2})$; `effective_dof`
       $= (\\sum \\lambda)^2 / \\sum \\lambda^2$: with few, one capture's figure
-      scatters widely about the prediction.
+      scatters widely about the prediction. `error_eigenvalues`: that $\\lambda$
+      (m^2); `ratio_percentile` and `outside_probability` read the same
+      distribution: where one capture's measured/predicted ratio falls in it,
+      and how often a capture lands outside a band of ratios when the model is exact.
     - `sigma_px`: the pixel noise assumed; `frames`, `corners`: what was used.
     - `singular_values`: of the column-normalised information (free parameters).
     """
@@ -190,6 +193,28 @@ class PlanEvaluation:
     singular_values: np.ndarray
     ratio_interval: tuple[float, float] = (np.nan, np.nan)
     effective_dof: float = np.nan
+    error_eigenvalues: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def _ratio_draws(self) -> np.ndarray:
+        """Draws of one capture's EE RMS over `ee_rms` under the Gaussian model
+        (`RATIO_DRAWS`, seed 0: the same draws every call)."""
+        lam = np.maximum(np.asarray(self.error_eigenvalues, np.float64), 0.0)
+        if lam.size == 0 or lam.sum() <= 0:
+            raise ValueError("this evaluation has no error distribution (nothing identifiable)")
+        z = np.random.default_rng(0).standard_normal((RATIO_DRAWS, lam.size))
+        return np.sqrt((z**2 @ lam) / lam.sum())
+
+    def ratio_percentile(self, measured_rms: float) -> float:
+        """The probability that one capture's EE RMS comes out at most `measured_rms`
+        (m) when the prediction's model is exact: uniform over captures for an
+        honest prediction; near 0 or 1, a capture the model does not explain."""
+        return float(np.mean(self._ratio_draws() <= measured_rms / self.ee_rms))
+
+    def outside_probability(self, lo: float = 0.6, hi: float = 1.5) -> float:
+        """The probability that one capture's measured/predicted EE RMS falls outside
+        `[lo, hi]` when the prediction's model is exact."""
+        r = self._ratio_draws()
+        return float(np.mean((r < lo) | (r > hi)))
 
     @property
     def held(self) -> list[str]:
@@ -221,6 +246,9 @@ class PlanEvaluation:
             "ee_rms_mm_with_held": 1e3 * self.ee_rms_with_held,
             "ratio_interval_90": list(self.ratio_interval),
             "effective_dof": self.effective_dof,
+            "outside_0.6_1.5_probability": self.outside_probability()
+            if self.error_eigenvalues.size
+            else None,
         }
 
 
@@ -239,6 +267,10 @@ def prior_scales(layout: ParameterLayout) -> np.ndarray:
     out[layout.index("clock")] = 1.0
     return out
 
+
+#: Draws of the Gaussian model behind `PlanEvaluation.ratio_percentile` and
+#: `outside_probability` (their Monte Carlo error: about 0.003).
+RATIO_DRAWS = 20_000
 
 #: A held parameter whose prior deviation moves the end effector by more than this (m RMS) matters.
 MATTERS = 1e-6
@@ -296,7 +328,7 @@ def evaluate_views(
     cov_f = sigma_px**2 * (pinv @ pinv.T)
     std[np.flatnonzero(free)] = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
     ee = np.sqrt(np.maximum(np.einsum("cia,ab,cib->c", Gf, cov_f, Gf), 0.0))
-    interval, dof = ratio_spread(cov_f, np.einsum("cia,cib->ab", Gf, Gf) / len(configs))
+    interval, dof, lam = ratio_spread(cov_f, np.einsum("cia,cib->ab", Gf, Gf) / len(configs))
     prior = prior_scales(d.layout)
     held = {}
     for k in np.flatnonzero(~in_free):
@@ -318,21 +350,25 @@ def evaluate_views(
         singular_values=sv,
         ratio_interval=interval,
         effective_dof=dof,
+        error_eigenvalues=lam,
     )
 
 
-def ratio_spread(cov: np.ndarray, M: np.ndarray, draws: int = 20000) -> tuple[tuple[float, float], float]:
-    """The 90 % interval of one capture's EE RMS over its prediction, and the
-    effective number of independent error directions (see `PlanEvaluation`)."""
+def ratio_spread(
+    cov: np.ndarray, M: np.ndarray, draws: int = 20000
+) -> tuple[tuple[float, float], float, np.ndarray]:
+    """The 90 % interval of one capture's EE RMS over its prediction, the
+    effective number of independent error directions, and the eigenvalues
+    $\\lambda$ of the mean-square EE error (see `PlanEvaluation`)."""
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     half = V * np.sqrt(np.maximum(w, 0.0))
     lam = np.maximum(np.linalg.eigvalsh(half.T @ M @ half), 0.0)
     if lam.sum() <= 0:
-        return (np.nan, np.nan), np.nan
+        return (np.nan, np.nan), np.nan, lam
     z = np.random.default_rng(0).standard_normal((draws, lam.size))
     r = np.sqrt((z**2 @ lam) / lam.sum())
     lo, hi = np.percentile(r, [5.0, 95.0])
-    return (float(lo), float(hi)), float(lam.sum() ** 2 / np.sum(lam**2))
+    return (float(lo), float(hi)), float(lam.sum() ** 2 / np.sum(lam**2)), lam
 
 
 _identifiable = jax.jit(identifiable_mask, static_argnames="tol")

@@ -55,6 +55,8 @@ class Refined:
       and the coefficients held (None when the intrinsics were held fixed).
     - `other_cameras`: per further camera its refined pose, std, views, start and intrinsics.
     - `estimate`: the refinement's whole vector with its covariance and references.
+    - `problem`: the `RefineProblem` solved (its corners, encoder log and
+      references), for analyses at the solution (`reprojection_residuals`).
     """
 
     fit: object = None
@@ -71,6 +73,7 @@ class Refined:
     warnings: tuple[str, ...] = ()
     timings: dict = field(default_factory=dict)
     estimate: Estimate | None = None
+    problem: RefineProblem | None = None
 
 
 def dist5(dist) -> np.ndarray | None:
@@ -444,7 +447,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     res = _programs.refinement(free)(problem, params0)
     jax.block_until_ready(res)
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
-    return dataclasses.replace(out, timings={"refine_s": time.perf_counter() - t0})
+    return dataclasses.replace(out, problem=problem, timings={"refine_s": time.perf_counter() - t0})
 
 
 def succeeded(refined: Refined) -> bool:
