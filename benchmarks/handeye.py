@@ -42,7 +42,8 @@ Two parts, every method given the same data:
    dense optimistix solve over every correction (`by_blocks=False`) timed
    beside it (`noisy_robot_pixels_dense_ms`, fastest of 3) and the largest
    difference of their answers; `pixels_ms_50`: exact robot poses, 50 poses,
-   one camera.
+   one camera, on the closed-form Jacobian (`jaxcal._handeye.jacobian`), with
+   the autodiff solve beside it (`pixels_50_autodiff_ms`) and their difference.
 
 Errors are those of the camera's pose on the robot (`T_gripper_cam` in part
 1, `T_base_cam` in part 2): rotation (deg) and translation (mm), mean over
@@ -460,12 +461,13 @@ def speed_part(seed: int, dense: bool) -> dict:
     out = {}
     noisy, X, _ = synthetic_pixels(seed, 30, 2, robot=(1e-3, 1e-3))
     exact, X1, _ = synthetic_pixels(seed + 1, 50, 1)
-    runs = [("noisy_robot_pixels", noisy, True, 15), ("pixels_50", exact, True, 15)]
+    runs = [("noisy_robot_pixels", noisy, {}, 15), ("pixels_50", exact, {}, 15)]
     if dense:
-        runs.append(("noisy_robot_pixels_dense", noisy, False, 3))
+        runs.append(("noisy_robot_pixels_dense", noisy, {"by_blocks": False}, 3))
+        runs.append(("pixels_50_autodiff", exact, {"closed_form_jacobian": False}, 15))
     results = {}
-    for name, data, blocks, repeats in runs:
-        solve = jax.jit(functools.partial(he.calibrate_hand_eye, by_blocks=blocks))
+    for name, data, options, repeats in runs:
+        solve = jax.jit(functools.partial(he.calibrate_hand_eye, **options))
         first = time.perf_counter()
         jax.block_until_ready(solve(data))
         first = 1e3 * (time.perf_counter() - first)
@@ -483,6 +485,11 @@ def speed_part(seed: int, dense: bool) -> dict:
         out["blocks_vs_dense_max_abs_diff"] = {
             k: float(np.max(np.abs(np.asarray(getattr(a, k)) - np.asarray(getattr(b, k)))))
             for k in ("T_cam_robot", "T_robot_board", "T_base_ee", "std_cam_robot")
+        }
+        a, b = results["pixels_50"], results["pixels_50_autodiff"]
+        out["closed_form_vs_autodiff_max_abs_diff"] = {
+            k: float(np.max(np.abs(np.asarray(getattr(a, k)) - np.asarray(getattr(b, k)))))
+            for k in ("T_cam_robot", "T_robot_board", "std_cam_robot")
         }
     out["problems"] = {
         "noisy_robot_pixels": "30 poses x 2 cameras x 35 corners, 0.1 px, robot poses off by 1 mm / 1 mrad "

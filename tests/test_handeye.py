@@ -7,10 +7,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
+from jax.flatten_util import ravel_pytree
 
 from jaxcal import _handeye as he
 from jaxcal._handeye import blocks
-from jaxcal._handeye.model import HandEyeParams, HandEyeReference
+from jaxcal._handeye.jacobian import pixel_terms
+from jaxcal._handeye.model import HandEyeParams, HandEyeReference, robust_residuals
 from jaxcal._linalg import concurrent_decompositions
 
 # --------------------------------------------------------------------------- synthetic problems
@@ -241,6 +243,48 @@ def test_noisy_robot_pixels_by_blocks_equal_the_dense_solve():
             np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-8 * scale)
         for name in ("std_cam_robot", "std_robot_board", "variance_factor", "robot_rms", "group_rms"):
             np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-8, atol=1e-14)
+
+
+_calibrate_autodiff = jax.jit(lambda data: he.calibrate_hand_eye(data, closed_form_jacobian=False))
+
+
+def test_closed_form_pixel_jacobian_equals_autodiff(eye_to_hand):
+    """The hand-written Jacobian of the robust pixel residuals (exact robot poses)
+    against autodiff away from the optimum, robust and plain, and the solve on it
+    against the solve on autodiff's: the same optimum, covariance and summary."""
+    T_base_ee, uv, X, Y = eye_to_hand
+    rng = np.random.default_rng(3)
+    bad = T_base_ee.copy()
+    bad[2] = bad[2] @ _pose([0.0, np.radians(2.0), 0.0], [0.005, 0.0, 0.0])  # a group the loss down-weights
+    mask = rng.random(uv.shape[:3]) > 0.2
+    data = he.make_hand_eye_pixels(bad, uv + rng.normal(0.0, 0.2, uv.shape), K, BOARD, mask, sigma_px=0.2)
+    X0, Y0 = jax.jit(he.initialise_hand_eye)(data)
+    active = jnp.ones(data.mask.shape[:2], bool).at[1, 5].set(False)
+    ref = HandEyeReference(X0=X0, Y0=Y0, active=active)
+    params = HandEyeParams(
+        cam_robot=jnp.asarray(rng.normal(0.0, 0.02, (2, 6))), robot_board=jnp.asarray(rng.normal(0.0, 0.02, 6)),
+        robot=None,
+    )  # fmt: skip
+    flat, unravel = ravel_pytree(params)
+    for robust in (True, False):
+        args = (ref, data, 2.0, jnp.asarray(robust))
+        r, J = jax.jit(pixel_terms)(params, args)
+        auto = jax.jit(jax.jacfwd(lambda x, a=args: robust_residuals(unravel(x), a)[0]))(flat)
+        np.testing.assert_allclose(
+            r, robust_residuals(params, args)[0], rtol=0, atol=1e-12 * float(jnp.abs(r).max())
+        )
+        np.testing.assert_allclose(J, auto, rtol=0, atol=1e-9 * float(jnp.abs(auto).max()))
+        assert float(jnp.abs(J[1, 5]).max()) == 0.0 and float(jnp.abs(auto).max()) > 10.0
+    a, b = _calibrate(data), _calibrate_autodiff(data)
+    assert _succeeded(a) and _succeeded(b) and a.rejected_frames().tolist() == [2]
+    np.testing.assert_array_equal(a.rejected, b.rejected)
+    for name in ("T_cam_robot", "T_robot_board"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-8)
+    for name in ("cov", "cov_frames"):
+        scale = float(np.max(np.abs(getattr(b, name))))
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-8 * scale)
+    for name in ("std_cam_robot", "std_robot_board", "variance_factor", "group_rms"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-8, atol=1e-14)
 
 
 def test_block_linearisation_equals_forward_mode():

@@ -1,0 +1,109 @@
+"""The closed-form Jacobian of the pixel residuals with exact robot poses.
+
+With $X_c = X_{0,c} \\exp(\\xi_c)$ and $Y = Y_0 \\exp(\\eta)$ a board corner
+$b$ (homogeneous) is seen by camera $c$ at robot pose $f$ at
+$p = X_c B_f Y b$, so
+
+$$\\frac{\\partial p}{\\partial \\xi_{c,k}} = X_{0,c}\\,
+\\frac{\\partial \\exp(\\xi_c)}{\\partial \\xi_{c,k}}\\, B_f Y b,\\qquad
+\\frac{\\partial p}{\\partial \\eta_k} = X_c B_f Y_0\\,
+\\frac{\\partial \\exp(\\eta)}{\\partial \\eta_k}\\, b,$$
+
+the derivatives of the exponential being one 6-vector's autodiff each (cheap:
+they do not grow with the corners). The pinhole
+$u = (f_x x + s y + c_x, f_y y + c_y)$, $(x, y) = (p_1, p_2)/p_3$ adds
+$\\partial u / \\partial p$, and the robust loss of a (camera, frame) group
+$r \\mapsto w(\\bar s)\\,r$, $\\bar s = \\|r\\|^2/n$, adds
+$w J + r\\, w'(\\bar s)\\,(2/n)\\, r^T J$.
+
+Levenberg-Marquardt forms this Jacobian every step: for 50 poses of 35
+corners, autodiff's twelve tangents through the whole chain cost 13 times
+the residuals, these few products about twice (`benchmarks/handeye.py
+--parts speed`). `tests/test_handeye.py` checks it against autodiff.
+"""
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._geometry import matmul, se3_exp
+from .._lsq import closed_form_jvp
+from .model import cauchy_weight, group_sizes, robot_motion, robust_residuals
+
+_d_exp = jax.jacfwd(se3_exp)  # (4, 4, 6) at one twist
+
+
+def pixel_terms(params, args) -> tuple[Float[Array, "cameras frames k"], Float[Array, "cameras frames k n"]]:
+    """`robust_residuals`' observation residuals (pixels, exact robot poses: `params.robot`
+    is None) and their Jacobian over the flattened `(cam_robot, robot_board)`."""
+    ref, data, loss_scale, robust = args
+    C, F, P = data.mask.shape
+    EX, dEX = jax.vmap(se3_exp)(params.cam_robot), jax.vmap(_d_exp)(params.cam_robot)
+    EY, dEY = se3_exp(params.robot_board), _d_exp(params.robot_board)
+    X, Y = matmul(ref.X0, EX), ref.Y0 @ EY
+    B = robot_motion(data.T_base_ee, data.eye_in_hand)
+    b = jnp.concatenate([data.board_points, jnp.ones((P, 1), data.board_points.dtype)], axis=-1)
+    BY = matmul(B, Y[None])
+    # Small contractions as unrolled multiply-adds (`matmul_unrolled`): XLA's CPU backend
+    # fuses them into one elementwise loop, where batched `dot_general`s and reductions
+    # over these tiny axes are several times slower.
+    q = jnp.einsum("fij,pj->fpi", BY, b)  # (F, P, 4): the corners X acts on
+    XB = matmul(X[:, None], B[None])  # (C, F, 4, 4)
+    p = jnp.einsum("cfij,pj->cfpi", XB[..., :3, :], jnp.einsum("ij,pj->pi", Y, b))  # (C, F, P, 3)
+    MX = jnp.einsum("cij,cjlk->cilk", ref.X0[:, :3, :], dEX)[:, None, None]  # (C, 1, 1, 3, 4, 6)
+    dp_x = sum(MX[..., l, :] * q[None, :, :, None, l, None] for l in range(4))  # (C, F, P, 3, 6)
+    NY = jnp.einsum("cfij,jlk->cfilk", matmul(XB, ref.Y0[None, None])[..., :3, :], dEY)[:, :, None]
+    dp_y = sum(NY[..., l, :] * b[None, None, :, None, l, None] for l in range(4))  # (C, F, P, 3, 6)
+
+    # The pinhole, as `model._observation_residuals` computes it (depth clamped at 1 nm).
+    z = p[..., 2]
+    front = z > 1e-9
+    z = jnp.where(front, z, 1e-9)
+    x, y = p[..., 0] / z, p[..., 1] / z
+    K = data.K[:, None, None]
+    fx, s, fy = K[..., 0, 0], K[..., 0, 1], K[..., 1, 1]
+    uv = jnp.stack([fx * x + s * y + K[..., 0, 2], fy * y + K[..., 1, 2]], axis=-1)
+    dz = jnp.where(front, 1.0, 0.0) / z
+    zero = jnp.zeros_like(z)
+    D = jnp.stack(
+        [
+            jnp.stack([fx / z, s / z, -(fx * x + s * y) * dz], axis=-1),
+            jnp.stack([zero, fy / z, -fy * y * dz], axis=-1),
+        ],
+        axis=-2,
+    )  # (C, F, P, 2, 3)
+    m = (data.mask & ref.active[..., None])[..., None]
+    e = jnp.where(m, (uv - jnp.where(m, data.pixels, 0.0)) / data.sigma_px, 0.0)
+    white = jnp.where(m, 1.0 / data.sigma_px, 0.0)[..., None]
+    J_x = sum(D[..., j, None] * dp_x[..., None, j, :] for j in range(3)) * white  # (C, F, P, 2, 6)
+    J_y = sum(D[..., j, None] * dp_y[..., None, j, :] for j in range(3)) * white
+    one_hot = jnp.eye(C, dtype=J_x.dtype)[:, None, None, None, :, None]  # camera c's own columns
+    J_x = (J_x[..., None, :] * one_hot).reshape(C, F, P, 2, 6 * C)
+    J = jnp.concatenate([J_x, J_y], axis=-1).reshape(C, F, 2 * P, 6 * C + 6)
+    r = e.reshape(C, F, 2 * P)
+
+    # The robust loss per group (`model.robust_residuals`).
+    n = jnp.maximum(group_sizes(ref, data), 1.0)
+    mean_sq = jnp.sum(r**2, axis=-1) / n
+    b2 = loss_scale**2
+    w = cauchy_weight(mean_sq, b2)
+    dw = jax.vmap(jax.grad(cauchy_weight), (0, None))(mean_sq.reshape(-1), b2).reshape(mean_sq.shape)
+    w = jnp.where(robust, w, 1.0)
+    dw = jnp.where(robust, dw, 0.0)
+    g = jnp.sum(r[..., None] * J, axis=-2)
+    J_robust = w[..., None, None] * J + r[..., None] * (2.0 * dw / n)[..., None, None] * g[:, :, None, :]
+    return r * w[..., None], J_robust
+
+
+def _robust_observations(params, args):
+    return robust_residuals(params, args)[0]
+
+
+#: `robust_residuals`' observation part (pixels, exact robot poses) with the
+#: Jacobian of `pixel_terms` (autodiff where the data are differentiated).
+robust_pixel_residuals = closed_form_jvp(_robust_observations, pixel_terms, _robust_observations)
+
+
+def robust_pixel_pair(params, args):
+    """`robust_residuals` (pixels, exact robot poses) with the closed-form Jacobian: `(residuals, None)`."""
+    return robust_pixel_residuals(params, args), None
