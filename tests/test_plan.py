@@ -267,6 +267,28 @@ def test_bad_input_is_refused_with_exit_code_2_and_nothing_written(ur5e, tmp_pat
 
 
 @pytest.mark.slow
+def test_cli_evaluates_a_plan_file_with_the_spread_of_one_capture(ur5e, tmp_path, capsys):
+    plan_path, out, png = tmp_path / "plan.json", tmp_path / "prediction.json", tmp_path / "ee.png"
+    save_plan(_plan(ur5e), plan_path)
+    before = plan_path.read_bytes()
+    assert main(["plan", "--evaluate", str(plan_path), "--json", str(out), "--plot", str(png)]) == 0
+    assert plan_path.read_bytes() == before and png.stat().st_size > 10_000
+    text = capsys.readouterr().out
+    figures = json.loads(out.read_text())
+    ev = jaxcal.evaluate_plan(_plan(ur5e))
+    assert (
+        figures["ee_rms_mm"] == pytest.approx(1e3 * ev.ee_rms, rel=1e-9) and figures["unidentifiable"] == []
+    )
+    lo, hi = figures["one_capture_ee_rms_mm_90"]
+    median = figures["one_capture_ee_rms_mm_median"]
+    # The median capture comes out below the RMS (the distribution is skewed to small errors).
+    assert lo < median < figures["ee_rms_mm"] < hi
+    assert median == pytest.approx(1e3 * ev.ee_rms * ev.ratio_quantile(0.5))
+    assert abs(ev.ratio_percentile(1e-3 * median) - 0.5) < 0.002
+    assert "one capture's EE RMS mm" in text and f"{median:.4f} median" in text
+    assert 0.1 < figures["outside_0.6_1.5_probability"] < 0.4
+
+
 def test_an_eye_in_hand_plan_is_rendered_and_calibrated(tmp_path):
     """Pose-based eye-in-hand (item 2): planned, rendered, calibrated from the nominal robot."""
     from jaxcal.sim.plan import MujocoChecker, render_plan

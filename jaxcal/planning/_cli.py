@@ -12,6 +12,7 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
@@ -104,6 +105,10 @@ def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
     t.add_row("frames / corners", f"{ev.frames} / {ev.corners}")
     t.add_row("EE RMS (1-sigma) mm", f"{1e3 * ev.ee_rms:.4f}")
     t.add_row("EE p95 mm", f"{1e3 * ev.ee_p95:.4f}")
+    if ev.error_eigenvalues.size and np.isfinite(ev.ee_rms):
+        lo, hi = (1e3 * ev.ee_rms * r for r in ev.ratio_interval)
+        med = 1e3 * ev.ee_rms * ev.ratio_quantile(0.5)
+        t.add_row("one capture's EE RMS mm", f"{med:.4f} median, {lo:.4f} .. {hi:.4f} (90 %)")
     t.add_row("pixel noise px", f"{ev.sigma_px:g}")
     t.add_row("free parameters", f"{int(ev.free.sum())} ({len(ev.held)} held: redundant with others)")
     t.add_row("left unidentifiable", ", ".join(ev.unidentifiable) or "nothing")

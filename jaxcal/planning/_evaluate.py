@@ -210,6 +210,10 @@ class PlanEvaluation:
         honest prediction; near 0 or 1, a capture the model does not explain."""
         return float(np.mean(self._ratio_draws() <= measured_rms / self.ee_rms))
 
+    def ratio_quantile(self, probability: float) -> float:
+        """One capture's EE RMS over `ee_rms` at `probability` (0.5: the median capture)."""
+        return float(np.quantile(self._ratio_draws(), probability))
+
     def outside_probability(self, lo: float = 0.6, hi: float = 1.5) -> float:
         """The probability that one capture's measured/predicted EE RMS falls outside
         `[lo, hi]` when the prediction's model is exact."""
@@ -234,6 +238,7 @@ class PlanEvaluation:
 
     def summary(self) -> dict:
         """Plain-Python figures (mm)."""
+        spread = bool(self.error_eigenvalues.size) and np.isfinite(self.ee_rms)
         return {
             "ee_rms_mm": 1e3 * float(self.ee_rms),
             "ee_p95_mm": 1e3 * float(self.ee_p95),
@@ -246,8 +251,11 @@ class PlanEvaluation:
             "ee_rms_mm_with_held": 1e3 * self.ee_rms_with_held,
             "ratio_interval_90": list(self.ratio_interval),
             "effective_dof": self.effective_dof,
-            "outside_0.6_1.5_probability": self.outside_probability()
-            if self.error_eigenvalues.size
+            "outside_0.6_1.5_probability": self.outside_probability() if spread else None,
+            # One capture's EE RMS: its median and 90 % interval under the same model.
+            "one_capture_ee_rms_mm_median": 1e3 * self.ee_rms * self.ratio_quantile(0.5) if spread else None,
+            "one_capture_ee_rms_mm_90": [1e3 * self.ee_rms * r for r in self.ratio_interval]
+            if spread
             else None,
         }
 
