@@ -35,11 +35,10 @@ from jaxtyping import Array, Float
 from .._schur import block_least_squares, full_covariance, jacobian_by_jvp
 from .model import (
     HandEyeParams,
-    cauchy_weight,
-    group_sizes,
     hand_eye_residuals,
     predicted_board_poses,
     robust_residuals,
+    robust_weighting,
 )
 
 
@@ -113,17 +112,10 @@ def linearise(g, l, args):
     dv = K[..., 1, 1] * dyn
     m = data.mask & ref.active[..., None]
     dr = jnp.where(m[..., None], jnp.stack([du, dv], -1) / data.sigma_px, 0.0)  # (n, C, F, P, 2)
-    dr = dr.reshape(dr.shape[:3] + (-1,))  # (n, C, F, k)
+    dr = jnp.moveaxis(dr.reshape(dr.shape[:3] + (-1,)), 0, -1)  # (C, F, k, n)
     r, prior = hand_eye_residuals(join(g, l), (ref, data))  # (C, F, k), (F, 6)
-    n_grp = jnp.maximum(group_sizes(ref, data), 1.0)
-    wt, dwt = jax.jvp(
-        lambda x: cauchy_weight(x, loss_scale**2), (jnp.sum(r**2, -1) / n_grp,), (jnp.ones(r.shape[:2]),)
-    )
-    wt, dwt = jnp.where(robust, wt, 1.0), jnp.where(robust, dwt, 0.0)
-    proj = jnp.einsum("cfk,ncfk->ncf", r, dr)
-    dr = wt[..., None] * dr + (2.0 * dwt / n_grp * proj)[..., None] * r
-    r_frames = jnp.concatenate([jnp.swapaxes(r * wt[..., None], 0, 1).reshape(F, -1), prior], axis=-1)
-    J = jnp.moveaxis(dr, 0, -1)  # (C, F, k, n)
+    r, J = robust_weighting(r, dr, ref, data, loss_scale, robust)
+    r_frames = jnp.concatenate([jnp.swapaxes(r, 0, 1).reshape(F, -1), prior], axis=-1)
     J = jnp.swapaxes(J, 0, 1).reshape(F, -1, n_g + p)  # (F, C k, n)
     J_prior = jnp.concatenate(
         [jnp.zeros((F, p, n_g)), jnp.broadcast_to(jnp.diag(1.0 / data.robot_sigma), (F, p, p))], axis=-1

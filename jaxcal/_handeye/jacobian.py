@@ -28,7 +28,7 @@ from jaxtyping import Array, Float
 
 from .._geometry import matmul, se3_exp
 from .._lsq import closed_form_jvp
-from .model import cauchy_weight, group_sizes, robot_motion, robust_residuals
+from .model import robot_motion, robust_residuals, robust_weighting
 
 _d_exp = jax.jacfwd(se3_exp)  # (4, 4, 6) at one twist
 
@@ -80,19 +80,8 @@ def pixel_terms(params, args) -> tuple[Float[Array, "cameras frames k"], Float[A
     one_hot = jnp.eye(C, dtype=J_x.dtype)[:, None, None, None, :, None]  # camera c's own columns
     J_x = (J_x[..., None, :] * one_hot).reshape(C, F, P, 2, 6 * C)
     J = jnp.concatenate([J_x, J_y], axis=-1).reshape(C, F, 2 * P, 6 * C + 6)
-    r = e.reshape(C, F, 2 * P)
 
-    # The robust loss per group (`model.robust_residuals`).
-    n = jnp.maximum(group_sizes(ref, data), 1.0)
-    mean_sq = jnp.sum(r**2, axis=-1) / n
-    b2 = loss_scale**2
-    w = cauchy_weight(mean_sq, b2)
-    dw = jax.vmap(jax.grad(cauchy_weight), (0, None))(mean_sq.reshape(-1), b2).reshape(mean_sq.shape)
-    w = jnp.where(robust, w, 1.0)
-    dw = jnp.where(robust, dw, 0.0)
-    g = jnp.sum(r[..., None] * J, axis=-2)
-    J_robust = w[..., None, None] * J + r[..., None] * (2.0 * dw / n)[..., None, None] * g[:, :, None, :]
-    return r * w[..., None], J_robust
+    return robust_weighting(e.reshape(C, F, 2 * P), J, ref, data, loss_scale, robust)
 
 
 def _robust_observations(params, args):

@@ -211,6 +211,21 @@ def robust_residuals(params, args):
     return r * jnp.where(robust, w, 1.0)[..., None], prior
 
 
+def robust_weighting(r, dr, ref, data, loss_scale, robust):
+    """The robust loss on grouped residuals `r (cameras, frames, k)` and their
+    derivatives `dr (cameras, frames, k, n)`: $(w r,\\ w\\,\\dot r + (2 w'(x)/n)
+    (r \\cdot \\dot r)\\, r)$, $w$ the Cauchy weight of each group's mean square
+    $x = \\|r\\|^2/n$ (`robust_residuals`); weight 1 where not `robust`."""
+    n = jnp.maximum(group_sizes(ref, data), 1.0)
+    w, dw = jax.jvp(
+        lambda x: cauchy_weight(x, loss_scale**2), (jnp.sum(r**2, -1) / n,), (jnp.ones(r.shape[:2]),)
+    )
+    w, dw = jnp.where(robust, w, 1.0), jnp.where(robust, dw, 0.0)
+    proj = jnp.sum(r[..., None] * dr, axis=-2)  # (cameras, frames, n)
+    through_w = (2.0 * dw / n)[..., None, None] * r[..., None] * proj[:, :, None, :]
+    return r * w[..., None], w[..., None, None] * dr + through_w
+
+
 def cauchy_weight(x, b2):
     """$\\sqrt{\\rho(s)/s} = \\sqrt{b^2\\log(1 + x/b^2)/x}$ of a group with mean square $x$
     (its series $1 - x/(2b^2)$ near zero)."""
