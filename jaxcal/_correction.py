@@ -39,6 +39,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
+from ._cache import quick_jit
 from ._geometry import matmul, matrix_to_rpy, se3_exp, so3_log
 from ._kinematics import REVOLUTE, KinematicModel
 
@@ -308,7 +309,7 @@ def physical_values(
     )
 
 
-@jax.jit
+@quick_jit
 def physical_jacobian(nominal, mounts0, T_cam_base0, cam, correction):
     """`physical_values` at the estimate and at zero, and its Jacobian wrt the
     flattened `(cam, correction)` (the axis-fit vector), as one compiled call."""

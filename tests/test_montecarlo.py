@@ -1,6 +1,7 @@
 """Monte Carlo entry point: one jit call over seeded trials (vmapped chunks)."""
 
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -16,17 +17,20 @@ from helpers import ur5e_setup
 from jaxcal._arcfit import fit_arc
 from jaxcal._linalg import concurrent_decompositions
 from jaxcal._montecarlo import (
+    CPU_CHUNK,
     NoiseModel,
     _free_mask_jit,
+    _sharded_trials,
     draw_trial_truth,
     dynamic_setup,
     exact_arcs,
     map_in_chunks,
     monte_carlo,
-    run_trial,
     summarize,
+    trial_mesh,
     trial_sweeps,
 )
+from jaxcal.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 SETUP = ur5e_setup(frames=24)
@@ -97,15 +101,38 @@ def test_exact_arcs_equal_noise_free_arc_fits():
     np.testing.assert_allclose(exact.T_cam_marker0, arcs.T_cam_marker0, rtol=0, atol=1e-8)
 
 
+def _trial_program(setup, trials: int = TRIALS):
+    """`monte_carlo(setup, key, trials)`'s own compiled program, as a function of
+    the key: checking it reuses the trace the tests here already made."""
+    mesh = trial_mesh(None)
+    setup = dynamic_setup(setup)
+    free = np.asarray(_free_mask_jit(setup))
+    chunk = min(CPU_CHUNK, -(-trials // mesh.size))
+    return lambda key: _sharded_trials(setup, key, free, trials=trials, chunk=chunk, mesh=mesh)
+
+
 def test_batched_trials_keep_lapack_calls_ordered():
     """No two LAPACK calls of a vmapped trial can run side by side: on a
     two-core machine that deadlocks jaxlib's CPU thread pool (see jaxcal._linalg).
     With and without encoders (different arc and axis fit paths)."""
     for setup in (SETUP, dataclasses.replace(SETUP, use_encoders=False)):
-        setup = dynamic_setup(setup)
-        free = _free_mask_jit(setup)
-        keys = jax.random.split(jax.random.key(0), 2)
-        assert concurrent_decompositions(jax.vmap(lambda k, s=setup: run_trial(s, k, free)), keys) == []
+        assert concurrent_decompositions(_trial_program(setup), jax.random.key(0)) == []
+
+
+@pytest.mark.slow
+def test_montecarlo_detail_and_json(tmp_path, capsys):
+    """`jaxcal montecarlo`: the detailed trial's tables, then the summary written
+    atomically. Here, not in test_cli.py: the command's trials are `SETUP`'s
+    program, which this file's tests have traced and compiled already."""
+    out = tmp_path / "sub" / "mc.json"
+    assert main(["montecarlo", "--detail", "--trials", "8", "--frames", "24", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "Before / after" in text and "Identifiability" in text
+    assert "shoulder_pan_joint.zero_offset" in text  # named as held at nominal
+    summary = json.loads(out.read_text())
+    assert summary["trials"] == 8 and summary["success_rate"] == 1.0
+    assert summary["ee_rms_mm_median"] < 1.0
+    assert [p.name for p in out.parent.iterdir()] == ["mc.json"]  # no temp files left
 
 
 def test_chunks_give_the_same_results_as_one_batch():

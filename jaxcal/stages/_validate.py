@@ -5,14 +5,15 @@ refined), the camera pose in the estimator's gauge, per-joint axis, ratio
 and zero-offset errors, the clock offset and the further cameras' poses.
 """
 
+import functools
 import time
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._cache import quick_jit
 from .._geometry import pose_inverse, so3_log
 from .._kinematics import REVOLUTE, forward_kinematics
 from .._montecarlo import NoiseModel, SweepPlan, synthesize_sweeps
@@ -64,43 +65,58 @@ def _pose_error(dT) -> dict:
     return {"trans_mm": float(np.linalg.norm(dT[:3, 3]) * 1e3), "rot_deg": _rot_deg(dT[:3, :3])}
 
 
+@functools.cache
+def _exact_sweeps(frames: int, use_encoders: bool):
+    """The truth's sweeps of 40 degrees, `frames` per sweep, with near-zero noise:
+    what the gauge's arc and axis fits see."""
+
+    def exact_sweeps(true, T_cam_base, mounts, nominal_ratio, home):
+        plan = SweepPlan(range_deg=40.0, frames=frames)
+        tiny = NoiseModel(position_mm=1e-3, orientation_deg=1e-4, encoder_deg=0.0)
+        return synthesize_sweeps(
+            true, T_cam_base, mounts, plan, tiny, jax.random.key(1),
+            nominal_ratio=nominal_ratio, use_encoders=use_encoders, home=home,
+        )  # fmt: skip
+
+    return quick_jit(exact_sweeps)
+
+
+@quick_jit
+def _score(fit, true, T_cam_base_true, mounts_true, nominal, travel, fits: dict):
+    """At the validation's configurations (`CONFIGURATIONS`, seed `SEED`, within
+    each joint's travel): `score`, and per configuration the marker position
+    error (mm) of each `(model, T_cam_base, mount)` in `fits`; one compiled call."""
+    q = jax.random.uniform(
+        jax.random.key(SEED), (CONFIGURATIONS, nominal.num_joints), minval=-np.pi, maxval=np.pi
+    )
+    q = on_travel(nominal, q, travel)
+
+    def marker(model, T_cb, mount):
+        return (T_cb @ jax.vmap(lambda qq: forward_kinematics(model, qq)[-1])(q) @ mount)[:, :3, 3]
+
+    tru = marker(true, T_cam_base_true, mounts_true[0])
+    errors = {k: 1e3 * jnp.linalg.norm(marker(*f) - tru, axis=-1) for k, f in fits.items()}
+    return errors, score(fit, true, T_cam_base_true, mounts_true, nominal, q)
+
+
 def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true, loss):
     """The estimator's gauge for the fixed frame: the same axis fit on (nearly)
     exact sweeps of the truth, with the same parameters frozen. The sweeps have
     the dataset's shapes, so the arc and axis fits reuse their compiled code."""
     nominal, fit = setup.nominal, two.fit
-    plan = SweepPlan(range_deg=40.0, frames=two.sweeps.mask.shape[-1])
-    tiny = NoiseModel(position_mm=1e-3, orientation_deg=1e-4, encoder_deg=0.0)
     mounts0 = fit.T_flange_marker0
     home = None if sync.homes is None else jnp.asarray(sync.homes)
-    exact = eqx.filter_jit(synthesize_sweeps)(
+    exact = _exact_sweeps(two.sweeps.mask.shape[-1], bool(two.arcs.has_encoder))(
         true,
         T_cb_true,
         mounts_true[: mounts0.shape[0]],  # the axis fit's markers (the flange's, first)
-        plan,
-        tiny,
-        jax.random.key(1),
-        nominal_ratio=nominal.reduction_ratio,
-        use_encoders=bool(two.arcs.has_encoder),
-        home=home,
+        nominal.reduction_ratio,
+        home,
     )
     arcs_exact = _programs.arc_fits(loss, nominal.joint_types)(exact)
     return _programs.axis_fit(setup.kind.axis_fit_uses_poses)(
         nominal, arcs_exact, mounts0, fit.free, home, setup.kind.fixed_frame_free
     ).T_cam_base
-
-
-def _ee_errors(nominal, true, T_cb_true, mount_true, fits: dict, q_val) -> dict:
-    """Per configuration, the marker position error (mm) of each model in `fits`."""
-
-    def marker(model, T_cb, mount):
-        return (T_cb @ jax.vmap(lambda qq: forward_kinematics(model, qq)[-1])(q_val) @ mount)[:, :3, 3]
-
-    tru = marker(true, T_cb_true, mount_true)
-    return {
-        k: np.asarray(jnp.linalg.norm(marker(model, T_cb, mount) - tru, axis=-1)) * 1e3
-        for k, (model, T_cb, mount) in fits.items()
-    }
 
 
 def other_camera_errors(truth: dict, camera: str, T_two_stage, T_refined, others: list) -> dict:
@@ -146,26 +162,14 @@ def validate(
     true = model_from_json(truth["model"])
     res = refined.fit if refined is not None else None
     fit = res if res is not None else two_fit
-    q_val = on_travel(
-        nominal,
-        jax.random.uniform(
-            jax.random.key(SEED), (CONFIGURATIONS, nominal.num_joints), minval=-np.pi, maxval=np.pi
-        ),
-        joint_travel(nominal, setup.dataset.joint_limits),
-    )
-    s = jax.jit(score)(fit, true, T_cb_true, mounts_true, nominal, q_val)
-    err = _ee_errors(
-        nominal,
-        true,
-        T_cb_true,
-        mounts_true[0],
-        {
-            "before": (nominal, fit.T_cam_base, fit.T_flange_marker[0]),
-            "two_stage": (two_fit.model, two_fit.T_cam_base, two_fit.T_flange_marker[0]),
-            "after": (fit.model, fit.T_cam_base, fit.T_flange_marker[0]),
-        },
-        q_val,
-    )
+    fits = {
+        "before": (nominal, fit.T_cam_base, fit.T_flange_marker[0]),
+        "two_stage": (two_fit.model, two_fit.T_cam_base, two_fit.T_flange_marker[0]),
+        "after": (fit.model, fit.T_cam_base, fit.T_flange_marker[0]),
+    }
+    travel = joint_travel(nominal, setup.dataset.joint_limits)
+    err, s = _score(fit, true, T_cb_true, mounts_true, nominal, travel, fits)
+    err = {k: np.asarray(v) for k, v in err.items()}
     # The estimator's gauge: the axis fit's frozen parameters (a pose-based capture has no axis fit,
     # and the refinement holds joint 1's frame at nominal, as the truth does).
     T_gauge = (
