@@ -24,6 +24,7 @@ numerically by a rank-revealing, column-pivoted Gram-Schmidt of the
 whitened Jacobian in a fixed priority order, and they are held at nominal.
 """
 
+import functools
 import itertools
 
 import equinox as eqx
@@ -191,6 +192,8 @@ def _chain(params: AxisFitParams, problem: AxisFitProblem, q, jacobian: bool):
     return frames, T_cm, jnp.concatenate([S_cam, S_origin, S_zero, S_tool], axis=1)
 
 
+# Nested jit, traced once per signature (see `_arcmodel.arc_terms`).
+@functools.partial(jax.jit, static_argnames="jacobian")
 def _axis_terms(
     params: AxisFitParams, problem: AxisFitProblem, *, jacobian: bool
 ) -> tuple[Float[Array, "joints k"], Float[Array, "joints k n"] | None]:

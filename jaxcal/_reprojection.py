@@ -285,6 +285,8 @@ def joint_positions(params: RefineParams, problem: RefineProblem) -> Float[Array
     return q * params.rate
 
 
+# Nested jit, traced once per signature (see `_arcmodel.arc_terms`).
+@jax.jit
 def chain(
     params: RefineParams, problem: RefineProblem
 ) -> tuple[Float[Array, "views 3 3"], Float[Array, "views 3"]]:
