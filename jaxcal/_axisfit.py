@@ -442,6 +442,22 @@ class AxisFitResult(eqx.Module):
     T_flange_marker0: Float[Array, "markers 4 4"]
 
 
+def _free_mask(problem: AxisFitProblem, params0: AxisFitParams, free, candidates, search):
+    """`fit_axes`' mask of estimated parameters and the search's independence
+    ratios (NaN where the mask was given)."""
+    if free is None:
+        return identifiable_mask(problem, params0, candidates=candidates)
+    size = ravel_pytree(params0)[0].shape
+    keep = jnp.asarray(free, bool)
+    if keep.shape != size:
+        raise ValueError(f"free mask has shape {keep.shape}, expected {size} (see parameter_names)")
+    indep = jnp.full(size, jnp.nan)
+    if search is None:
+        return keep, indep
+    found, found_indep = identifiable_mask(problem, params0, candidates=candidates)
+    return jnp.where(search, found, keep), jnp.where(search, found_indep, indep)
+
+
 def fit_axes(
     nominal: KinematicModel,
     arcs: ArcFitResult,
@@ -452,6 +468,7 @@ def fit_axes(
     free: Bool[Array, " n"] | None = None,
     home: Float[Array, "joints joints"] | None = None,
     candidates: Bool[Array, " n"] | None = None,
+    search: Bool[Array, ""] | None = None,
     rtol: float = 1e-8,
     atol: float = 3e-2,
     max_steps: int = 100,
@@ -477,6 +494,9 @@ def fit_axes(
       zero); default: every sweep from the zero configuration.
     - `candidates`: without `free`, the parameters the identifiability search
       may free (default all): e.g. `T_cam_base` held at a known `T_cam_base0`.
+    - `search`: with `free`, a (traced) switch: where true the search's mask
+      replaces `free`. One compiled program then serves a fit that searches
+      and one that reuses its mask (the search runs in both).
 
     **Returns:** an `AxisFitResult`.
     """
@@ -516,15 +536,7 @@ def fit_axes(
     n = nominal.num_joints
     params0 = AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(n, n_markers))
     flat0, unravel = ravel_pytree(params0)
-    if free is None:
-        keep, indep = identifiable_mask(problem, params0, candidates=candidates)
-    else:
-        keep = jnp.asarray(free, bool)
-        if keep.shape != flat0.shape:
-            raise ValueError(
-                f"free mask has shape {keep.shape}, expected {flat0.shape} (see parameter_names)"
-            )
-        indep = jnp.full(flat0.shape, jnp.nan)
+    keep, indep = _free_mask(problem, params0, free, candidates, search)
     keep_f = keep.astype(flat0.dtype)
 
     def fn(x, problem):

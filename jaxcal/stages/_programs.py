@@ -56,12 +56,14 @@ def arc_fit(loss: str | None):
 
 @functools.cache
 def axis_fit(use_poses: bool):
-    """`fit_axes(nominal, arcs, T_flange_marker=mount, free=free, home=home)`.
-    Without `fixed_frame_free` (an argument, so both cases share the program)
-    the fixed frame is the base frame: `T_cam_base` is the identity and its
-    block is no candidate of the identifiability search."""
+    """`fit_axes(nominal, arcs, T_flange_marker=mount, free=free, home=home)`;
+    `free=None` searches the identifiable parameters. The search and a given
+    mask (the validation's gauge reuses the fit's) share one program: `free`
+    enters as an array with a traced switch. Without `fixed_frame_free` (an
+    argument too) the fixed frame is the base frame: `T_cam_base` is the
+    identity and its block is no candidate of the identifiability search."""
 
-    def axis_fit(nominal, arcs, mount, free=None, home=None, fixed_frame_free=True):
+    def program(nominal, arcs, mount, free, search, home, fixed_frame_free):
         T0 = jnp.where(fixed_frame_free, register_lines(nominal, arcs, home), jnp.eye(4))
         layout = ParameterLayout.sized(nominal.num_joints, mount.shape[0])
         cand = jnp.asarray(fixed_frame_free) | ~jnp.asarray(
@@ -69,10 +71,18 @@ def axis_fit(use_poses: bool):
         )
         return fit_axes(
             nominal, arcs, T_flange_marker=mount, T_cam_base0=T0, use_poses=use_poses, free=free, home=home,
-            candidates=cand,
+            candidates=cand, search=search,
         )  # fmt: skip
 
-    return quick_jit(axis_fit)
+    program = quick_jit(program)
+
+    def axis_fit(nominal, arcs, mount, free=None, home=None, fixed_frame_free=True):
+        layout = ParameterLayout.sized(nominal.num_joints, mount.shape[0])
+        search = free is None
+        free = jnp.ones(layout.axis_size, bool) if search else jnp.asarray(free, bool)
+        return program(nominal, arcs, mount, free, search, home, fixed_frame_free)
+
+    return axis_fit
 
 
 @functools.cache

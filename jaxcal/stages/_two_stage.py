@@ -140,6 +140,7 @@ def _pose_start(setup: Setup, obs: Observations, sync: Sync):
 
 def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data) -> None:
     ds = setup.dataset
+    data = jax.device_get(data)  # host arrays: slicing them per joint compiles nothing
     for j, name in enumerate(ds.joint_names):
         if counts[name] == 0:
             raise CalibrationError(
@@ -169,6 +170,7 @@ def _start_mounts(setup: Setup, arcs, homes):
 def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> list[dict]:
     """The samples joint `j`'s robust arc fit rejected: target, frame and camera time."""
     frames = setup.dataset.frames
+    arcs = jax.device_get(arcs)
     rows = []
     for m, f in arc_outliers(jax.tree.map(lambda x: x[j], arcs), sweeps.mask[j]):
         row = int(sweeps.rows[j, f])
@@ -207,6 +209,7 @@ def _outlier_notes(rows: list[dict]) -> tuple[str, ...]:
 def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> list[dict]:
     """Per-joint arc summaries (frames, RMS, axis, ratio with its std, solver,
     the samples a robust fit rejected and the noise scale it saw)."""
+    arcs = jax.device_get(arcs)  # host arrays: per-joint indexing compiles nothing
     nominal_ratio = np.asarray(setup.nominal.reduction_ratio)
     ok = np.asarray(arcs.result == optx.RESULTS.successful)
     has = bool(arcs.has_encoder)
