@@ -71,6 +71,8 @@ def _wedge_vee(M):
     )
 
 
+# Nested jit, traced once per signature (see `jaxcal._arcmodel.arc_terms`).
+@jax.jit
 def linearise(g, l, args):
     """`frame_residuals` and its Jacobian blocks, by the chain rule through the board poses.
 

@@ -34,6 +34,8 @@ from .model import robot_motion, robust_residuals, robust_weighting
 _d_exp = jax.jacfwd(se3_exp)  # (4, 4, 6) at one twist
 
 
+# Nested jit, traced once per signature (see `jaxcal._arcmodel.arc_terms`).
+@jax.jit
 def pixel_terms(params, args) -> tuple[Float[Array, "cameras frames k"], Float[Array, "cameras frames k n"]]:
     """`robust_residuals`' observation residuals (pixels, exact robot poses: `params.robot`
     is None) and their Jacobian over the flattened `(cam_robot, robot_board)`."""

@@ -57,6 +57,8 @@ def transforms(params: HandEyeParams, ref: HandEyeReference):
     return X, Y
 
 
+# Nested jit, traced once per signature (see `jaxcal._arcmodel.arc_terms`).
+@jax.jit
 def predicted_board_poses(params: HandEyeParams, ref: HandEyeReference, data: HandEyeData):
     """$T^{cam_c}_{board}(f) = X_c B_f Y$, `(cameras, frames, 4, 4)`."""
     X, Y = transforms(params, ref)
@@ -179,6 +181,8 @@ def _prior_residuals(params, data):
     return None if params.robot is None else params.robot / data.robot_sigma
 
 
+# Nested jit, traced once per signature (see `jaxcal._arcmodel.arc_terms`).
+@jax.jit
 def hand_eye_residuals(params: HandEyeParams, args: tuple[HandEyeReference, HandEyeData]):
     """Whitened residuals: observations `(cameras, frames, k)` and the robot prior `(frames, 6)` or None.
 
@@ -195,6 +199,8 @@ def group_sizes(ref, data) -> Float[Array, "cameras frames"]:
     return 6.0 * (data.mask & ref.active)
 
 
+# Nested jit, traced once per signature (see `jaxcal._arcmodel.arc_terms`).
+@jax.jit
 def robust_residuals(params, args):
     """Cauchy loss per (camera, frame) group where `robust`, as residuals: $r\\sqrt{\\rho(s)/s}$.
 
