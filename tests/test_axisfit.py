@@ -245,6 +245,31 @@ def test_autodiff_matches_finite_differences(sweeps):
     np.testing.assert_allclose(Jf, fd, rtol=1e-4, atol=1e-5 * np.abs(Jf).max())
 
 
+def test_the_stage_program_searches_or_takes_a_mask_in_one_compiled_program(sweeps, free):
+    """`stages._programs.axis_fit`: without a mask it searches the identifiable
+    parameters; a given mask is used as it is (the validation's gauge reuses the
+    fit's); both run one compiled program (`fit_axes(search=)` is traced)."""
+    from jaxcal.stages import _programs
+
+    arcs, _ = sweeps
+    axis_fit = _programs.axis_fit(True)
+    mount = SETUP.T_flange_marker
+    searched = axis_fit(NOMINAL, arcs, mount)
+    np.testing.assert_array_equal(searched.free, free)  # the nominal geometry's mask
+    assert np.isfinite(np.asarray(searched.independence)).sum() > 6
+    given = axis_fit(NOMINAL, arcs, mount, searched.free)
+    np.testing.assert_array_equal(given.free, searched.free)
+    assert np.all(np.isnan(np.asarray(given.independence)))
+    np.testing.assert_allclose(given.T_cam_base, searched.T_cam_base, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(given.model.T_parent_joint, searched.model.T_parent_joint, rtol=0, atol=1e-12)
+    fewer = np.asarray(searched.free).copy()
+    fewer[np.flatnonzero(fewer)[6]] = False  # one more parameter held: the first after the camera's
+    held = axis_fit(NOMINAL, arcs, mount, fewer)
+    np.testing.assert_array_equal(held.free, fewer)
+    assert float(held.residual_rms) > float(searched.residual_rms)
+    assert axis_fit.program._cache_size() == 1
+
+
 # (encoders without the marker poses runs the lines-only residuals of (False, False) on other arcs)
 #: A home configuration for every sweep (UR5e's [0, -90, 90, -90, -90, 0] deg family), own entry zero.
 HOME = jnp.asarray(np.radians([0.0, -60.0, 70.0, -40.0, 30.0, 20.0])) * (1.0 - jnp.eye(6))

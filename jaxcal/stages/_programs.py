@@ -82,6 +82,7 @@ def axis_fit(use_poses: bool):
         free = jnp.ones(layout.axis_size, bool) if search else jnp.asarray(free, bool)
         return program(nominal, arcs, mount, free, search, home, fixed_frame_free)
 
+    axis_fit.program = program  # the compiled program both cases share
     return axis_fit
 
 
