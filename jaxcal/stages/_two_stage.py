@@ -168,9 +168,9 @@ def _start_mounts(setup: Setup, arcs, homes):
 
 
 def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> list[dict]:
-    """The samples joint `j`'s robust arc fit rejected: target, frame and camera time."""
+    """The samples joint `j`'s robust arc fit rejected: target, frame and camera time
+    (`arcs` as host arrays, as `arc_rows` passes them)."""
     frames = setup.dataset.frames
-    arcs = jax.device_get(arcs)
     rows = []
     for m, f in arc_outliers(jax.tree.map(lambda x: x[j], arcs), sweeps.mask[j]):
         row = int(sweeps.rows[j, f])
