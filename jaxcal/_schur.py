@@ -6,7 +6,10 @@ $l_b \\in \\mathbb{R}^{p}$, one block per residual group: group $b$'s
 residuals $r_b \\in \\mathbb{R}^{m}$ depend on $g$ and on its own $l_b$ only
 (an arc fit without encoders: $g$ the axis and marker zero poses, $l_b$ the
 joint angle of frame $b$, $p = 1$; a hand-eye calibration with per-pose robot
-corrections: $p = 6$).
+corrections: $p = 6$). With $p = 0$ it is plain Levenberg-Marquardt on the
+normal equations of $g$ (the hand-eye pixel solve with exact robot poses: a
+dozen unknowns, thousands of residuals, where this loop's few operations per
+step beat optimistix's general one).
 
 **Normal equations by blocks.** With $A_b = \\partial r_b/\\partial g$
 ($m \\times n_g$) and $C_b = \\partial r_b/\\partial l_b$ ($m \\times p$), the
@@ -203,19 +206,25 @@ def _normal_blocks(r, Jg, Jl):
 
 def _damped_step(r, Jg, Jl, lam):
     """$(\\delta_g, \\delta_l)$ solving $(J^TJ + \\lambda I)\\delta = -J^Tr$ by the Schur complement."""
-    H, W, U, eg, el = _normal_blocks(r, Jg, Jl)
     n_g, p = Jg.shape[-1], Jl.shape[-1]
-    V = U + lam * jnp.eye(p)
-    # One solve for both right-hand sides: V^{-1} [W^T | eps_b].
-    X = small_cholesky_solve(V, jnp.concatenate([jnp.swapaxes(W, -1, -2), el[..., None]], axis=-1), 0.0)
-    Y, z = X[..., :n_g], X[..., n_g]
-    S = H + lam * jnp.eye(n_g) - jnp.einsum("bij,bjk->ik", W, Y)
-    S = 0.5 * (S + S.T)
-    rhs = -eg + jnp.einsum("bij,bj->i", W, z)
+    if p == 0:  # no local unknowns: the plain normal equations
+        H = jnp.einsum("bmi,bmj->ij", Jg, Jg)
+        S, rhs = H + lam * jnp.eye(n_g), -jnp.einsum("bmi,bm->i", Jg, r)
+    else:
+        H, W, U, eg, el = _normal_blocks(r, Jg, Jl)
+        V = U + lam * jnp.eye(p)
+        # One solve for both right-hand sides: V^{-1} [W^T | eps_b].
+        X = small_cholesky_solve(V, jnp.concatenate([jnp.swapaxes(W, -1, -2), el[..., None]], axis=-1), 0.0)
+        Y, z = X[..., :n_g], X[..., n_g]
+        S = H + lam * jnp.eye(n_g) - jnp.einsum("bij,bjk->ik", W, Y)
+        S = 0.5 * (S + S.T)
+        rhs = -eg + jnp.einsum("bij,bj->i", W, z)
     d = 1.0 / jnp.sqrt(jnp.diagonal(S))  # Jacobi scaling: S's diagonal is at least lambda > 0
     dg = d * jax.scipy.linalg.cho_solve(
         jax.scipy.linalg.cho_factor(S * d[:, None] * d[None, :], lower=True), d * rhs
     )
+    if p == 0:
+        return dg, jnp.zeros(Jl.shape[:1] + (0,), dg.dtype)
     dl = -z - jnp.einsum("bjk,k->bj", Y, dg)
     return dg, dl
 

@@ -251,7 +251,8 @@ _calibrate_autodiff = jax.jit(lambda data: he.calibrate_hand_eye(data, closed_fo
 def test_closed_form_pixel_jacobian_equals_autodiff(eye_to_hand):
     """The hand-written Jacobian of the robust pixel residuals (exact robot poses)
     against autodiff away from the optimum, robust and plain, and the solve on it
-    against the solve on autodiff's: the same optimum, covariance and summary."""
+    (`jacobian.solve_pixels`) against optimistix's on autodiff's: the same steps,
+    optimum, covariance and summary."""
     T_base_ee, uv, X, Y = eye_to_hand
     rng = np.random.default_rng(3)
     bad = T_base_ee.copy()
@@ -278,6 +279,8 @@ def test_closed_form_pixel_jacobian_equals_autodiff(eye_to_hand):
     a, b = _calibrate(data), _calibrate_autodiff(data)
     assert _succeeded(a) and _succeeded(b) and a.rejected_frames().tolist() == [2]
     np.testing.assert_array_equal(a.rejected, b.rejected)
+    # `solve_pixels` runs optimistix's iteration on the normal equations: the same steps.
+    np.testing.assert_array_equal(a.stage_steps, b.stage_steps)
     for name in ("T_cam_robot", "T_robot_board"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-8)
     for name in ("cov", "cov_frames"):

@@ -127,21 +127,23 @@ def linearise(g, l, args):
 
 
 def solve_by_blocks(params0: HandEyeParams, args, rtol, atol, max_steps):
-    """Levenberg-Marquardt on `robust_residuals` by blocks. **Returns:** `(params, result, num_steps)`."""
+    """Levenberg-Marquardt on `robust_residuals` by blocks. **Returns:** `(params, result,
+    num_steps, (r, J_g, J_l))`, the last its linearisation at `params` (`linearise`'s)."""
     g0, l0 = split(params0)
     sol = block_least_squares(linearise, g0, l0, args, rtol=rtol, atol=atol, max_steps=max_steps)
-    return join(sol.g, sol.l), sol.result, sol.num_steps
+    return join(sol.g, sol.l), sol.result, sol.num_steps, (sol.residuals, sol.jac_g, sol.jac_l)
 
 
-def block_bread(params: HandEyeParams, ref, data):
-    """The plain residuals' $(J^TJ)^{+}$, the per-frame gradients and $\\|r\\|^2$ at `params`.
+def block_bread(params: HandEyeParams, ref, data, lin=None):
+    """The plain residuals' $(J^TJ)^{+}$, the per-frame gradients and $\\|r\\|^2$ at `params`;
+    `lin`: their `linearise` at `params`, where the solver has it.
 
     **Returns:** `(bread (n, n), grads (frames, n), ssr)`, parameters in
     `ravel_pytree(params)` order.
     """
     g, l = split(params)
     args = (ref, data, jnp.asarray(1.0), jnp.asarray(False))
-    r, Jg, Jl = linearise(g, l, args)
+    r, Jg, Jl = linearise(g, l, args) if lin is None else lin
     bread = full_covariance(Jg, Jl)
     F = l.shape[0]
     grad_g = jnp.einsum("fmi,fm->fi", Jg, r)

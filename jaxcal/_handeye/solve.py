@@ -14,7 +14,7 @@ from .blocks import block_bread, solve_by_blocks
 from .closed import initialise_hand_eye
 from .common import least_squares, pose_error
 from .data import HandEyeData, HandEyePixels, HandEyePoses
-from .jacobian import pixel_terms, robust_pixel_pair
+from .jacobian import pixel_terms, solve_pixels
 from .model import (
     HandEyeParams,
     HandEyeReference,
@@ -203,12 +203,14 @@ def calibrate_hand_eye(
         params, active = carry
         ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
         args = (ref, data, loss_scale, robust)
+        # `lin`: the linearisation at the returned parameters, where the solver has one.
         if blocks:
-            value, code, steps = solve_by_blocks(params, args, rtol, atol, max_steps)
+            value, code, steps, lin = solve_by_blocks(params, args, rtol, atol, max_steps)
+        elif closed:
+            value, code, steps, lin = solve_pixels(params, args, rtol, atol, max_steps)
         else:
-            fn = robust_pixel_pair if closed else robust_residuals
-            sol = least_squares(fn, params, args, rtol, atol, max_steps, False)
-            value, code, steps = sol.value, sol.result, sol.stats["num_steps"]
+            sol = least_squares(robust_residuals, params, args, rtol, atol, max_steps, False)
+            value, code, steps, lin = sol.value, sol.result, sol.stats["num_steps"], None
         rms = _group_rms(value, ref, data)
         scale = jnp.maximum(jnp.nanmedian(rms), min_outlier_scale)
         reject = robust & active & (rms > outlier_threshold * scale)
@@ -218,12 +220,14 @@ def calibrate_hand_eye(
             p = jnp.where(jnp.any(active, axis=0), _prior_rms(value, data), jnp.nan)
             p_scale = jnp.maximum(jnp.nanmedian(p), 1.0)
             reject = reject | (robust & active & (p > outlier_threshold * p_scale)[None])
-        return (value, active & ~reject), (code, steps)
+        return (value, active & ~reject), (code, steps, lin)
 
     # `reject_outliers` is traced, so both settings share one compiled solver; when False
     # the first stage is plain too and the second starts from its optimum.
     stages = jnp.stack([jnp.asarray(reject_outliers, bool), jnp.asarray(False)])
-    (params, active), (results, steps) = jax.lax.scan(stage, (params0, observed), stages)
+    (params, active), (results, steps, lins) = jax.lax.scan(stage, (params0, observed), stages)
+    # The last stage is plain and its groups are the summary's: its linearisation is the summary's.
+    lin = jax.tree.map(lambda x: x[1], lins)
     first, last = (jax.tree.map(lambda x, i=i: x[i], results) for i in (0, 1))
     result = optx.RESULTS.where(first == optx.RESULTS.successful, last, first)
     if throw:
@@ -237,9 +241,9 @@ def calibrate_hand_eye(
         lambda: initialise_hand_eye(after(eqx.tree_at(lambda d: d.mask, data, kept), params)),
         lambda: (X0, Y0),
     )
-    params = after(params, X0_kept, Y0_kept)
+    params, lin = after((params, lin), X0_kept, Y0_kept)
     ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
-    out = _summarise(params, ref, data, observed & ~active, scale_covariance, blocks, closed)
+    out = _summarise(params, ref, data, observed & ~active, scale_covariance, blocks, closed, lin)
     return eqx.tree_at(
         lambda r: (
             r.result,
@@ -294,11 +298,12 @@ def _frame_robust_covariance(g, bread, ref) -> Float[Array, "n n"]:
     return bread @ meat @ bread
 
 
-def _bread(params, ref, data, blocks: bool, closed: bool = False):
+def _bread(params, ref, data, blocks: bool, closed: bool = False, lin=None):
     """$(J^TJ)^{+}$ of the plain residuals at `params`, the per-frame gradients and $\\|r\\|^2$:
-    by blocks (`blocks.block_bread`) or from the dense Jacobian (closed form with `closed`)."""
+    by blocks (`blocks.block_bread`) or from the dense Jacobian (closed form with `closed`);
+    from `lin`, the solver's plain linearisation at `params`, where given."""
     if blocks:
-        return block_bread(params, ref, data)
+        return block_bread(params, ref, data, lin)
     flat, unravel = ravel_pytree(params)
 
     def flat_res(x):
@@ -306,7 +311,7 @@ def _bread(params, ref, data, blocks: bool, closed: bool = False):
         return jnp.concatenate([r.reshape(-1)] + ([] if prior is None else [prior.reshape(-1)]))
 
     if closed:
-        r_all, J = pixel_terms(params, (ref, data, 1.0, False))
+        r_all, J = pixel_terms(params, (ref, data, 1.0, False)) if lin is None else lin
         r_all, J = r_all.reshape(-1), J.reshape(r_all.size, flat.size)
     else:
         J = jax.jacfwd(flat_res)(flat)
@@ -315,10 +320,13 @@ def _bread(params, ref, data, blocks: bool, closed: bool = False):
     return bread, _frame_gradients(J, r_all, ref, data), jnp.sum(r_all**2)
 
 
-def _summarise(params, ref, data, rejected, scale_covariance, blocks=False, closed=False) -> HandEyeResult:
-    """The result at `params`: covariance, standard deviations, residual statistics (solver fields left None)."""
+def _summarise(
+    params, ref, data, rejected, scale_covariance, blocks=False, closed=False, lin=None
+) -> HandEyeResult:
+    """The result at `params`: covariance, standard deviations, residual statistics (solver
+    fields left None); `lin`: the solver's plain linearisation at `params` (see `_bread`)."""
     flat, unravel = ravel_pytree(params)
-    bread, grads, ssr = _bread(params, ref, data, blocks, closed)
+    bread, grads, ssr = _bread(params, ref, data, blocks, closed, lin)
     n_obs = jnp.sum(group_sizes(ref, data))
     n_prior = 0 if params.robot is None else params.robot.size
     dof = jnp.maximum(n_obs + n_prior - flat.size, 1.0)
