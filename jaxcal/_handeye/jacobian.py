@@ -90,7 +90,9 @@ def pixel_terms(params, args) -> tuple[Float[Array, "cameras frames k"], Float[A
 def _linearise(g, l, args):
     """`pixel_terms` as `jaxcal._schur` takes it: one block per (camera, frame), no local unknowns."""
     C = g.shape[0] // 6 - 1
-    r, J = pixel_terms(HandEyeParams(cam_robot=g[: 6 * C].reshape(C, 6), robot_board=g[6 * C :], robot=None), args)
+    r, J = pixel_terms(
+        HandEyeParams(cam_robot=g[: 6 * C].reshape(C, 6), robot_board=g[6 * C :], robot=None), args
+    )
     B, k = C * r.shape[1], r.shape[-1]
     return r.reshape(B, k), J.reshape(B, k, J.shape[-1]), jnp.zeros((B, k, 0), r.dtype)
 
