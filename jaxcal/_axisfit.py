@@ -374,8 +374,10 @@ def register_lines(
     if arcs.has_encoder:
         T, _ = register(jnp.ones(n))
         return T
-    patterns = jnp.array(list(itertools.product([1.0, -1.0], repeat=n - 1)))
-    patterns = jnp.concatenate([jnp.ones((patterns.shape[0], 1)), patterns], axis=1)
+    # Every joint's sign, the first's too: without encoders an arc's direction sign is
+    # arbitrary (`initialise_arc`), and holding the first at + forced a half turn whenever
+    # its arc came out reversed (the offsets then fit a mirrored arm exactly).
+    patterns = jnp.array(list(itertools.product([1.0, -1.0], repeat=n)))
     Ts, costs = jax.vmap(register)(patterns)
     return Ts[jnp.argmin(costs)]
 
