@@ -7,6 +7,7 @@ small-angle branches are Taylor series selected with `jnp.where`, with the
 argument of the unused branch replaced so that no NaN leaks into gradients.
 """
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -73,6 +74,10 @@ def matvec_unrolled(A: Float[Array, "... n k"], x: Float[Array, "... k"]) -> Flo
     return out
 
 
+# Nested jit (see `jaxcal._arcmodel.arc_terms`): a program traces the exponential
+# once per signature, not at each of its dozens of uses (a Monte Carlo trial's
+# tracing: 6.1-6.7 -> 4.9 s; the same values).
+@jax.jit
 def so3_exp(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
     """Rodrigues' formula $\\exp([w]_\\times)$ for a rotation vector `w` (rad)."""
     theta_sq = jnp.dot(w, w)
@@ -169,6 +174,8 @@ def pose_inverse(T: Float[Array, "4 4"]) -> Float[Array, "4 4"]:
     return make_pose(R.T, -R.T @ t)
 
 
+# Nested jit, as `so3_exp`.
+@jax.jit
 def se3_exp(xi: Float[Array, "6"]) -> Float[Array, "4 4"]:
     """Exponential map of a twist `xi = (v, w)` (translation first, m and rad).
 
