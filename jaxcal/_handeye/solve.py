@@ -203,14 +203,7 @@ def calibrate_hand_eye(
         params, active = carry
         ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
         args = (ref, data, loss_scale, robust)
-        # `lin`: the linearisation at the returned parameters, where the solver has one.
-        if blocks:
-            value, code, steps, lin = solve_by_blocks(params, args, rtol, atol, max_steps)
-        elif closed:
-            value, code, steps, lin = solve_pixels(params, args, rtol, atol, max_steps)
-        else:
-            sol = least_squares(robust_residuals, params, args, rtol, atol, max_steps, False)
-            value, code, steps, lin = sol.value, sol.result, sol.stats["num_steps"], None
+        value, code, steps, lin = _solve(params, args, blocks, closed, rtol, atol, max_steps)
         rms = _group_rms(value, ref, data)
         scale = jnp.maximum(jnp.nanmedian(rms), min_outlier_scale)
         reject = robust & active & (rms > outlier_threshold * scale)
@@ -257,6 +250,19 @@ def calibrate_hand_eye(
         (result, jnp.sum(steps), results, steps, X0_kept, Y0_kept),
         is_leaf=lambda x: x is None,
     )
+
+
+def _solve(params, args, blocks: bool, closed: bool, rtol, atol, max_steps):
+    """One Levenberg-Marquardt stage: by blocks (noisy robot poses), on the closed-form
+    Jacobian (pixels, exact robot poses) or optimistix's on autodiff's. **Returns:**
+    `(params, result, num_steps, lin)`, `lin` the solver's linearisation at `params`
+    where it has one (None for optimistix's)."""
+    if blocks:
+        return solve_by_blocks(params, args, rtol, atol, max_steps)
+    if closed:
+        return solve_pixels(params, args, rtol, atol, max_steps)
+    sol = least_squares(robust_residuals, params, args, rtol, atol, max_steps, False)
+    return sol.value, sol.result, sol.stats["num_steps"], None
 
 
 def _prior_rms(params, data) -> Float[Array, " frames"]:
