@@ -428,3 +428,51 @@ print(json.dumps({{"offset_s": r.clock["offset_s"], "status": r.status, "reasons
     trusted = json.loads(run.stdout.strip().splitlines()[-1])
     assert trusted["offset_s"] == 0.0 and trusted["status"] == "suspect", trusted["reasons"]
     assert trusted["sim"] == []
+
+
+def test_the_two_stage_programs_compile_while_the_clock_fit_runs():
+    """`_programs.compile_two_stage_ahead` traces, lowers and compiles the arc fits'
+    and the axis fit's programs on its own thread (the Huber loss: a program no
+    other test makes, so it is fresh here), and the stages' calls then neither
+    trace, lower nor compile: the same compiled programs, reached without waiting."""
+    import threading
+
+    import jax
+    import optimistix as optx
+    from helpers import ur5e_setup
+    from jax._src import dispatch, monitoring
+
+    from jaxcal._montecarlo import trial_sweeps
+    from jaxcal.stages import _programs
+
+    setup = ur5e_setup(frames=24)
+    data = jax.jit(lambda k: trial_sweeps(setup, setup.nominal, setup.T_cam_base, setup.T_flange_marker, k))(
+        jax.random.key(0)
+    )
+    stages_ = (
+        dispatch.JAXPR_TRACE_EVENT,
+        dispatch.JAXPR_TO_MLIR_MODULE_EVENT,
+        dispatch.BACKEND_COMPILE_EVENT,
+    )
+    events = []
+
+    def listen(event, duration, **kw):
+        if event in stages_ and any(n in kw.get("fun_name", "") for n in ("arc_fits", "program")):
+            events.append((kw["fun_name"], event, threading.current_thread().name))
+
+    monitoring.register_event_duration_secs_listener(listen)
+    try:
+        _programs.compile_two_stage_ahead("huber", setup.nominal, data, 1, True, True)
+        _programs.wait_ahead()
+        ahead = list(events)
+        events.clear()
+        arcs = _programs.arc_fits("huber", setup.nominal.joint_types)(data)
+        fit = _programs.axis_fit(True)(setup.nominal, arcs, setup.T_flange_marker, None, None, True)
+        jax.block_until_ready(fit)
+    finally:
+        monitoring.unregister_event_duration_listener(listen)
+    assert ("arc_fits", dispatch.JAXPR_TRACE_EVENT, "jaxcal compile ahead") in ahead
+    assert events == []  # nothing left to do on the calling thread
+    assert bool(fit.result == optx.RESULTS.successful) and bool(
+        np.all(arcs.result == optx.RESULTS.successful)
+    )

@@ -7,7 +7,9 @@ passes (`jaxcal._cache.quick_jit`: the cold `calibrate` 81 -> 56 s); JAX's
 persistent cache (`jaxcal._cache`) keeps them across processes.
 """
 
+import atexit
 import functools
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -84,6 +86,55 @@ def axis_fit(use_poses: bool):
 
     axis_fit.program = program  # the compiled program both cases share
     return axis_fit
+
+
+#: Programs compiling on background threads (`compile_two_stage_ahead`), by key.
+_AHEAD: dict[tuple, threading.Thread] = {}
+
+
+def compile_two_stage_ahead(
+    loss, nominal, data, n_mounts: int, use_poses: bool, fixed_frame_free: bool, home: bool = False
+):
+    """Trace, lower and compile the arc fits' and the axis fit's programs for sweeps
+    shaped as `data` on a background thread, while the clock fit runs: XLA compiles
+    without Python's lock, so on two cores the two stages' compiles overlap the clock
+    fit's (a cold `jaxcal calibrate data/ur5e_sweeps`: see the README). The stages
+    then find them compiled (`wait_ahead` first: never two compiles of one program).
+    `home`: the sweeps start from a home (`Sync.homes` is not None). Shapes the
+    stages end up calling with differently (frames moving between size buckets at
+    the fitted offset) only cost the wasted compile."""
+    key = ("two_stage", loss, nominal.joint_types, use_poses)
+    if key in _AHEAD:
+        return
+    arcs_program = arc_fits(loss, nominal.joint_types)
+    axis_program = axis_fit(use_poses).program
+    layout = ParameterLayout.sized(nominal.num_joints, n_mounts)
+
+    def run():
+        try:
+            arcs_program.lower(data).compile()
+            arcs = jax.eval_shape(arcs_program, data)
+            mounts = jax.ShapeDtypeStruct((n_mounts, 4, 4), jnp.float64)
+            free = jax.ShapeDtypeStruct((layout.axis_size,), jnp.bool_)
+            homes = jax.ShapeDtypeStruct((nominal.num_joints,) * 2, jnp.float64) if home else None
+            axis_program.lower(nominal, arcs, mounts, free, True, homes, fixed_frame_free).compile()
+        except Exception:  # noqa: BLE001 - the stage's own call reports it, with its context
+            pass
+
+    thread = threading.Thread(target=run, name="jaxcal compile ahead", daemon=True)
+    _AHEAD[key] = thread
+    thread.start()
+
+
+def wait_ahead() -> None:
+    """Wait for the programs `compile_two_stage_ahead` is compiling."""
+    while _AHEAD:
+        _AHEAD.pop(next(iter(_AHEAD))).join()
+
+
+# A calibration that fails before its arc fits leaves its compile running: the process
+# waits for it at exit rather than tearing XLA down under it.
+atexit.register(wait_ahead)
 
 
 @functools.cache

@@ -329,6 +329,19 @@ def _compare_clock(ds: Dataset, given: float, clock: dict) -> list[str]:
     ]
 
 
+def _compile_ahead(setup: Setup, options: Options, sweeps: Sweeps, joint, q, inside) -> None:
+    """The two-stage fit's programs for these sweeps, compiled while the clock fit runs
+    (`_programs.compile_two_stage_ahead`; its shapes at the start offset)."""
+    try:
+        home = sweep_homes(setup.dataset, joint, q, inside) is not None
+    except CalibrationError:  # at the start offset: the fitted one decides
+        home = False
+    _programs.compile_two_stage_ahead(
+        options.arc_loss, setup.nominal, sweeps.arc_data(), len(setup.fit_targets),
+        setup.kind.axis_fit_uses_poses, setup.kind.fixed_frame_free, home,
+    )  # fmt: skip
+
+
 def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     """Place the frames on the controller clock (see `Sync`), estimating the
     clock offset whenever there is an encoder log (a given offset that
@@ -377,6 +390,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
             options.say(
                 "estimating the camera-controller clock offset (arc fits of all joints with a shared offset)"
             )
+            _compile_ahead(setup, options, sweeps, joint, q, inside)
             cf = _clock_from_sweeps(
                 sweeps, log_q, offset0, ds.clock_drift_ppm, options.arc_loss, nominal.joint_types
             )

@@ -284,6 +284,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         data = sweeps.arc_data()
         _check_sweeps(setup, sweeps, counts, data)
         options.say(f"arc fits of {nominal.num_joints} joints (one vmapped solve)")
+        _programs.wait_ahead()
         arcs = _programs.arc_fits(options.arc_loss, nominal.joint_types)(data)
     jax.block_until_ready(arcs)
     timings["arc_fit_s"] = time.perf_counter() - t0
