@@ -4,6 +4,7 @@ directory beside the destination and is renamed into place, so a failure
 leaves nothing partial behind.
 """
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -457,7 +458,13 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
     """
     out = Path(out)
     inputs = (result.dataset,) if inputs is None else tuple(inputs)
-    with atomic_directory(out, overwrite=overwrite, inputs=inputs, kind="result", checked=checked) as tmp:
+    with (
+        atomic_directory(out, overwrite=overwrite, inputs=inputs, kind="result", checked=checked) as tmp,
+        ThreadPoolExecutor(1, thread_name_prefix="jaxcal tables") as pool,
+    ):
+        # The DH tables compile their Jacobian (seconds, mostly without Python's lock):
+        # on a thread of their own while the other files and the plots are written.
+        tables_pending = pool.submit(dh_tables, result)
         write_json(tmp / "result.json", result.to_json())
         save_urdf(result.model, tmp / "calibrated.urdf", source=result.robot_urdf)
         if result.kind.device:
@@ -466,10 +473,10 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
             _camera_files(tmp, result)
         if is_ur(result.model):
             (tmp / "ur_calibration.yaml").write_text(ur_kinematics_text(result.model, result.nominal)[0])
-        tables = dh_tables(result)
+        figs = _plots(result, tmp)
+        tables = tables_pending.result()
         for convention, table in tables.items():
             write_json(tmp / f"calibrated_{convention}.json", dh_table_document(result, table))
-        figs = _plots(result, tmp)
         (tmp / "report.md").write_text(_markdown(result, figs, tables))
     return out
 
