@@ -6,7 +6,10 @@ cache directory, so nothing compiled before counts:
 1. `cold_calibrate_s`: wall time of `jaxcal.calibrate(data/ur5e_sweeps)`
    (detection, clock, arcs, axes, refinement, validation), with the time
    JAX spent tracing, lowering and compiling (`compile_s`, from JAX's own
-   monitoring events) and its share per jitted entry point.
+   monitoring events) and its share per jitted entry point. The two-stage fit's
+   programs compile on a background thread while the clock fit compiles and runs
+   (`jaxcal.stages._programs.compile_two_stage_ahead`), so on two cores the JAX
+   time can exceed the wall time.
 2. `second_dataset_compile_s`: in the same process, a second dataset with
    other frame counts (the first with every third frame of two sweeps
    dropped): the compilation it still needs. With size buckets it reuses the
