@@ -104,7 +104,7 @@ def solve_pixels(params0: HandEyeParams, args, rtol, atol, max_steps):
 
     `jaxcal._schur`'s loop without local unknowns: optimistix's iteration (the
     same steps and optimum as `jaxcal._lsq.solve` on these residuals, to
-    round-off; `tests/test_handeye.py`) on the $n \times n$ normal equations,
+    round-off; `tests/test_handeye.py`) on the $n \\times n$ normal equations,
     with a fraction of its per-step operations: the 50-pose solve's robust
     stage took 5.0 ms through optimistix and 3.6 ms here, 9 steps each."""
     C = params0.cam_robot.shape[0]
