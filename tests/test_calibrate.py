@@ -14,18 +14,25 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
+import jax
 import numpy as np
+import optimistix as optx
 import pytest
 from conftest import CACHE_DIR
+from helpers import ur5e_setup
+from jax._src import dispatch, monitoring
 
+from jaxcal._montecarlo import trial_sweeps
 from jaxcal.cli import main
 from jaxcal.io.dataset import DatasetError
 from jaxcal.io.ros import read_easy_handeye, read_static_transform
 from jaxcal.pipeline import CalibrationError, calibrate
 from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
+from jaxcal.stages import _programs
 
 CONFIG = SimConfig(
     robot="ur5e",
@@ -435,16 +442,6 @@ def test_the_two_stage_programs_compile_while_the_clock_fit_runs():
     and the axis fit's programs on its own thread (the Huber loss: a program no
     other test makes, so it is fresh here), and the stages' calls then neither
     trace, lower nor compile: the same compiled programs, reached without waiting."""
-    import threading
-
-    import jax
-    import optimistix as optx
-    from helpers import ur5e_setup
-    from jax._src import dispatch, monitoring
-
-    from jaxcal._montecarlo import trial_sweeps
-    from jaxcal.stages import _programs
-
     setup = ur5e_setup(frames=24)
     data = jax.jit(lambda k: trial_sweeps(setup, setup.nominal, setup.T_cam_base, setup.T_flange_marker, k))(
         jax.random.key(0)

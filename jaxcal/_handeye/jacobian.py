@@ -29,6 +29,7 @@ from jaxtyping import Array, Float
 
 from .._geometry import matmul, se3_exp
 from .._schur import block_least_squares
+from .blocks import join, split
 from .model import HandEyeParams, robot_motion, robust_weighting
 
 _d_exp = jax.jacfwd(se3_exp)  # (4, 4, 6) at one twist
@@ -89,11 +90,8 @@ def pixel_terms(params, args) -> tuple[Float[Array, "cameras frames k"], Float[A
 
 def _linearise(g, l, args):
     """`pixel_terms` as `jaxcal._schur` takes it: one block per (camera, frame), no local unknowns."""
-    C = g.shape[0] // 6 - 1
-    r, J = pixel_terms(
-        HandEyeParams(cam_robot=g[: 6 * C].reshape(C, 6), robot_board=g[6 * C :], robot=None), args
-    )
-    B, k = C * r.shape[1], r.shape[-1]
+    r, J = pixel_terms(join(g, None), args)
+    B, k = r.shape[0] * r.shape[1], r.shape[-1]
     return r.reshape(B, k), J.reshape(B, k, J.shape[-1]), jnp.zeros((B, k, 0), r.dtype)
 
 
@@ -107,10 +105,9 @@ def solve_pixels(params0: HandEyeParams, args, rtol, atol, max_steps):
     round-off; `tests/test_handeye.py`) on the $n \\times n$ normal equations,
     with a fraction of its per-step operations: the 50-pose solve's robust
     stage took 5.0 ms through optimistix and 3.6 ms here, 9 steps each."""
-    C = params0.cam_robot.shape[0]
-    g0 = jnp.concatenate([params0.cam_robot.reshape(-1), params0.robot_board])
-    l0 = jnp.zeros((C * args[1].mask.shape[1], 0), g0.dtype)
+    g0, _ = split(params0)
+    C, F = args[1].mask.shape[:2]
+    l0 = jnp.zeros((C * F, 0), g0.dtype)
     sol = block_least_squares(_linearise, g0, l0, args, rtol=rtol, atol=atol, max_steps=max_steps)
-    params = HandEyeParams(cam_robot=sol.g[: 6 * C].reshape(C, 6), robot_board=sol.g[6 * C :], robot=None)
     r, J = sol.residuals, sol.jac_g
-    return params, sol.result, sol.num_steps, (r.reshape(C, -1, r.shape[-1]), J.reshape(C, -1, *J.shape[-2:]))
+    return join(sol.g, None), sol.result, sol.num_steps, (r.reshape(C, F, -1), J.reshape(C, F, *J.shape[-2:]))
