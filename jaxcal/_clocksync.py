@@ -187,7 +187,7 @@ def fit_clock_offset(
     options = _lsq.LMOptions(rtol, atol, max_steps)
 
     def solve(y, w):
-        sol = _lsq.solve(residuals, y, w, options)
+        sol = _lsq.solve_normal(residuals, y, w, options)
         return sol.value, sol.result, sol.stats["num_steps"]
 
     out = irls_rounds_reweighted(solve, weights_at, (params0, jnp.zeros(())), mask_f, hard_flags)

@@ -7,6 +7,10 @@ parameters the data cannot see. This module writes each of those once:
 
 - `solve`: optimistix's Levenberg-Marquardt with jaxcal's options (`LMOptions`),
   returning optimistix's own `Solution` (its `result` codes, its `num_steps`).
+- `solve_normal`: the same iteration on the normal equations by
+  `jaxcal._schur`'s lean loop, for the large one-off programs (the
+  refinement, the clock fit, the hand-eye pose solves) whose compile time a
+  user waits for: a smaller program, the same steps and optimum.
 - `freeze`: parameters held at their start value (a pytree or flat mask).
 - `independent_columns`: the greedy, column-pivoted Gram-Schmidt of a
   Jacobian in a fixed priority order (which parameters are identifiable).
@@ -34,6 +38,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ._linalg import gauss_newton_covariance
+from ._schur import block_least_squares
 
 #: Every vmapped program jaxcal runs, by import path: each must keep its
 #: decompositions ordered (`jaxcal._linalg.concurrent_decompositions` returns
@@ -114,6 +119,44 @@ def solve(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> optx.Solut
     return optx.least_squares(
         fn, options.solver(), y0, args, max_steps=options.max_steps, throw=options.throw
     )
+
+
+def solve_normal(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> optx.Solution:
+    """`solve`'s Levenberg-Marquardt iteration on the normal equations $(J^TJ + \\lambda I)\\delta = -J^Tr$
+    (Jacobi-scaled Cholesky), by `jaxcal._schur.block_least_squares` with one block and no local
+    unknowns, the Jacobian by forward mode over the flattened parameters.
+
+    Optimistix's trust region and termination test (`ConvergedStepTrustRegion`), so the same
+    steps and the same optimum as `solve` up to round-off (`tests/test_schur.py`), in a program
+    that traces in half the time and compiles ~20 % faster than optimistix's general one: the
+    refinement of `data/ur5e_sweeps` took 4.9 s to trace, lower and compile through `solve`
+    and 3.6 s here. For tall, well-conditioned (whitened, scaled) Jacobians, where
+    `normal_cholesky` is the right linear solve anyway. **Returns:** an `optx.Solution`
+    (`value`, `result`, `stats["num_steps"]`) like `solve`'s.
+    """
+    flat0, unravel = ravel_pytree(y0)
+
+    def linearise(x, _, a):
+        f = lambda z: ravel_pytree(fn(unravel(z), a))[0]  # noqa: E731
+        r, J = f(x), jax.jacfwd(f)(x)
+        return r[None], J[None], jnp.zeros((1, r.shape[0], 0), x.dtype)
+
+    sol = block_least_squares(
+        linearise,
+        flat0,
+        jnp.zeros((1, 0), flat0.dtype),
+        args,
+        rtol=options.rtol,
+        atol=options.atol,
+        max_steps=options.max_steps,
+    )
+    value = unravel(sol.g)
+    if options.throw:
+        value = eqx.error_if(
+            value, sol.result != optx.RESULTS.successful, "Levenberg-Marquardt did not converge"
+        )
+    stats = {"num_steps": sol.num_steps, "max_steps": options.max_steps}
+    return optx.Solution(value=value, result=sol.result, aux=None, stats=stats, state=None)
 
 
 def freeze(tree: PyTree, free: PyTree) -> PyTree:

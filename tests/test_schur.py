@@ -76,6 +76,23 @@ def test_takes_optimistix_steps(p):
         np.testing.assert_allclose(ours.residuals, _model(ours.g, ours.l, args), atol=1e-12)
 
 
+def test_solve_normal_takes_optimistix_steps_on_a_pytree():
+    """`_lsq.solve_normal` (one block, no local unknowns, on the flattened pytree)
+    iterates as `_lsq.solve`, optimistix's Levenberg-Marquardt, and a step cap is
+    reported with optimistix's code."""
+    args, g0, l0 = _problem(7, p=2)
+    fn = lambda y, a: _model(y[0], y[1], a)  # noqa: E731
+    for rtol, atol in [(1e-6, 1e-6), (1e-3, 1e-3)]:
+        options = _lsq.LMOptions(rtol, atol, 100, normal_cholesky=True)
+        ours = jax.jit(lambda y, a: _lsq.solve_normal(fn, y, a, options))((g0, l0), args)
+        ref = _lsq.solve(fn, (g0, l0), args, options)
+        assert ours.result == optx.RESULTS.successful
+        assert int(ours.stats["num_steps"]) == int(ref.stats["num_steps"]) > 3
+        assert tree_allclose(ours.value, ref.value, rtol=1e-9, atol=1e-10)
+    capped = _lsq.solve_normal(fn, (g0, l0), args, _lsq.LMOptions(1e-6, 1e-6, 2))
+    assert capped.result == optx.RESULTS.nonlinear_max_steps_reached and int(capped.stats["num_steps"]) == 2
+
+
 def test_jacobian_by_jvp_equals_the_dense_jacobian():
     args, g0, l0 = _problem(3, p=3)
     r, Jg, Jl = LIN(g0, l0, args)
