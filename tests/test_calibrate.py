@@ -439,7 +439,7 @@ print(json.dumps({{"offset_s": r.clock["offset_s"], "status": r.status, "reasons
 
 def test_the_two_stage_programs_compile_while_the_clock_fit_runs():
     """`_programs.compile_two_stage_ahead` traces, lowers and compiles the arc fits'
-    and the axis fit's programs on its own thread (the Huber loss: a program no
+    and the axis fit's programs on threads of their own (the Huber loss: a program no
     other test makes, so it is fresh here), and the stages' calls then neither
     trace, lower nor compile: the same compiled programs, reached without waiting."""
     setup = ur5e_setup(frames=24)
@@ -469,6 +469,8 @@ def test_the_two_stage_programs_compile_while_the_clock_fit_runs():
     finally:
         monitoring.unregister_event_duration_listener(listen)
     assert ("arc_fits", dispatch.JAXPR_TRACE_EVENT, "jaxcal compile ahead") in ahead
+    for name in ("jit(arc_fits)", "jit(program)"):  # each on a thread of its own, in parallel
+        assert (name, dispatch.BACKEND_COMPILE_EVENT, "jaxcal compile ahead") in ahead
     assert events == []  # nothing left to do on the calling thread
     assert bool(fit.result == optx.RESULTS.successful) and bool(
         np.all(arcs.result == optx.RESULTS.successful)

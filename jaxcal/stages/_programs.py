@@ -96,7 +96,7 @@ def compile_two_stage_ahead(
     loss, nominal, data, n_mounts: int, use_poses: bool, fixed_frame_free: bool, home: bool = False
 ):
     """Trace, lower and compile the arc fits' and the axis fit's programs for sweeps
-    shaped as `data` on a background thread, while the clock fit runs: XLA compiles
+    shaped as `data` on background threads (one each), while the clock fit runs: XLA compiles
     without Python's lock, so on two cores the two stages' compiles overlap the clock
     fit's (a cold `jaxcal calibrate data/ur5e_sweeps`: see the README). The stages
     then find them compiled (`wait_ahead` first: never two compiles of one program).
@@ -104,31 +104,44 @@ def compile_two_stage_ahead(
     stages end up calling with differently (frames moving between size buckets at
     the fitted offset) only cost the wasted compile."""
     key = ("two_stage", loss, nominal.joint_types, use_poses)
-    if key in _AHEAD:
+    if key + (0,) in _AHEAD:
         return
     arcs_program = arc_fits(loss, nominal.joint_types)
     axis_program = axis_fit(use_poses).program
     layout = ParameterLayout.sized(nominal.num_joints, n_mounts)
 
-    def run():
-        try:
-            arcs_program.lower(data).compile()
-            arcs = jax.eval_shape(arcs_program, data)
-            mounts = jax.ShapeDtypeStruct((n_mounts, 4, 4), jnp.float64)
-            free = jax.ShapeDtypeStruct((layout.axis_size,), jnp.bool_)
-            homes = jax.ShapeDtypeStruct((nominal.num_joints,) * 2, jnp.float64) if home else None
-            axis_program.lower(nominal, arcs, mounts, free, True, homes, fixed_frame_free).compile()
-        except Exception:  # noqa: BLE001 - the stage's own call reports it, with its context
-            pass
+    def compile_axes(arcs):
+        mounts = jax.ShapeDtypeStruct((n_mounts, 4, 4), jnp.float64)
+        free = jax.ShapeDtypeStruct((layout.axis_size,), jnp.bool_)
+        homes = jax.ShapeDtypeStruct((nominal.num_joints,) * 2, jnp.float64) if home else None
+        axis_program.lower(nominal, arcs, mounts, free, True, homes, fixed_frame_free).compile()
 
-    thread = threading.Thread(target=run, name="jaxcal compile ahead", daemon=True)
+    def compile_both():
+        traced = arcs_program.trace(data)
+        # The axis fit's program on a thread of its own once the arcs' shapes are known:
+        # with the clock fit's, three compiles share the two cores.
+        _start(key + (1,), compile_axes, traced.out_info)
+        traced.lower().compile()
+
+    _start(key + (0,), compile_both)
+
+
+def _start(key, job, *args) -> None:
+    thread = threading.Thread(target=_quietly, args=(job, *args), name="jaxcal compile ahead", daemon=True)
     _AHEAD[key] = thread
     thread.start()
 
 
+def _quietly(job, *args) -> None:
+    try:
+        job(*args)
+    except Exception:  # noqa: BLE001 - the stage's own call reports it, with its context
+        pass
+
+
 def wait_ahead() -> None:
     """Wait for the programs `compile_two_stage_ahead` is compiling."""
-    while _AHEAD:
+    while _AHEAD:  # a thread may start another before it ends: join in start order
         _AHEAD.pop(next(iter(_AHEAD))).join()
 
 
