@@ -117,13 +117,14 @@ def test_exact_recovery_from_a_home_configuration(free):
         model, T_cam_base, mounts, SETUP.plan, NoiseModel(0.0, 0.0, 0.0), jax.random.key(5),
         nominal_ratio=NOMINAL.reduction_ratio, home=HOME,
     )  # fmt: skip
-    fit = jax.jit(lambda d: fit_axes(NOMINAL, jax.vmap(fit_arc)(d), free=free, home=HOME))(data)
+    arcs = jax.jit(jax.vmap(fit_arc))(data)  # one arc program for both axis fits
+    fit = jax.jit(lambda a: fit_axes(NOMINAL, a, free=free, home=HOME))(arcs)
     assert fit.result == optx.RESULTS.successful
     np.testing.assert_allclose(fit.model.T_parent_joint, model.T_parent_joint, atol=1e-8)
     np.testing.assert_allclose(fit.T_cam_base, T_cam_base, atol=1e-8)
     np.testing.assert_allclose(fit.T_flange_marker, mounts, atol=1e-8)
     # Treating the same sweeps as if they started from zero is wrong by far.
-    wrong = jax.jit(lambda d: fit_axes(NOMINAL, jax.vmap(fit_arc)(d), free=free))(data)
+    wrong = jax.jit(lambda a: fit_axes(NOMINAL, a, free=free))(arcs)
     assert float(wrong.residual_rms) > 1e3 * max(float(fit.residual_rms), 1e-6)
 
 
@@ -153,12 +154,21 @@ def test_exact_recovery_without_encoders(free):
     np.testing.assert_allclose(fit.T_cam_base, T_cam_base, atol=1e-8)
 
 
-def test_noisy_covariance_is_honest(free):
+#: The seeded noisy trials two tests share (one compiled batch).
+NOISY = NoiseModel(position_mm=0.1, orientation_deg=0.05)
+
+
+@pytest.fixture(scope="module")
+def noisy_batch(free):
+    keys = jax.random.split(jax.random.key(3), 60)
+    fits, truths = jax.jit(jax.vmap(lambda k: _trial(k, free, NOISY)))(keys)
+    return keys, fits, truths
+
+
+def test_noisy_covariance_is_honest(noisy_batch):
     """Over seeded trials the identifiable parameters' errors follow the
     reported covariance: mean chi-square per parameter within 0.8 - 1.25."""
-    keys = jax.random.split(jax.random.key(3), 60)
-    noise = NoiseModel(position_mm=0.1, orientation_deg=0.05)
-    fits, truths = jax.jit(jax.vmap(lambda k: _trial(k, free, noise)))(keys)
+    keys, fits, truths = noisy_batch
     assert np.all(np.asarray(fits.result == optx.RESULTS.successful))
     chi2 = []
     for i in range(keys.shape[0]):
@@ -187,12 +197,11 @@ def test_noisy_covariance_is_honest(free):
     assert 0.8 < float(np.mean(chi2)) < 1.25
 
 
-def test_jit_equals_vmap_equals_loop(free):
-    keys = jax.random.split(jax.random.key(4), 2)
-    noise = NoiseModel()
-    batched, _ = jax.jit(jax.vmap(lambda k: _trial(k, free, noise)))(keys)
+def test_jit_equals_vmap_equals_loop(free, noisy_batch):
+    """The vmapped batch of the covariance test against single jitted trials."""
+    keys, batched, _ = noisy_batch
     for i in range(2):
-        single, _ = trial(keys[i], free, noise)
+        single, _ = trial(keys[i], free, NOISY)
         assert tree_allclose(single.T_cam_base, batched.T_cam_base[i], atol=1e-10)
         assert tree_allclose(single.model.T_parent_joint, batched.model.T_parent_joint[i], atol=1e-10)
 
@@ -276,6 +285,10 @@ def test_the_stage_program_searches_or_takes_a_mask_in_one_compiled_program(swee
 HOME = jnp.asarray(np.radians([0.0, -60.0, 70.0, -40.0, 30.0, 20.0])) * (1.0 - jnp.eye(6))
 
 
+#: The arc fits the Jacobian checks start from (one program for the cases with encoders).
+_fit_arcs_unscaled = jax.jit(jax.vmap(lambda d: fit_arc(d, scale_covariance=False)))
+
+
 @pytest.mark.parametrize(
     ("use_encoders", "use_poses", "home"), [(True, True, False), (False, False, False), (True, True, True)]
 )
@@ -294,7 +307,7 @@ def test_closed_form_jacobian_matches_autodiff(use_encoders, use_poses, home):
         nominal_ratio=NOMINAL.reduction_ratio,
         use_encoders=use_encoders,
     )
-    arcs = jax.jit(jax.vmap(lambda d: fit_arc(d, scale_covariance=False)))(data)
+    arcs = _fit_arcs_unscaled(data)
     k = 4 if not use_poses else arcs.meas.shape[-1]
     problem = AxisFitProblem(
         nominal=NOMINAL,
