@@ -130,8 +130,9 @@ def solve_normal(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> opt
     steps and the same optimum as `solve` up to round-off (`tests/test_schur.py`), in a program
     that traces in half the time and compiles ~20 % faster than optimistix's general one: the
     refinement of `data/ur5e_sweeps` took 4.9 s to trace, lower and compile through `solve`
-    and 3.6 s here. For tall, well-conditioned (whitened, scaled) Jacobians, where
-    `normal_cholesky` is the right linear solve anyway. **Returns:** an `optx.Solution`
+    and 3.6 s here. For tall, well-conditioned (whitened, scaled) Jacobians, where the
+    normal equations are the right linear solve anyway (`options.normal_cholesky` is
+    implied). **Returns:** an `optx.Solution`
     (`value`, `result`, `stats["num_steps"]`) like `solve`'s.
     """
     flat0, unravel = ravel_pytree(y0)
