@@ -43,7 +43,9 @@ def matmul(A: Float[Array, "... n k"], B: Float[Array, "... k m"]) -> Float[Arra
     """Batched product of small matrices as broadcast-and-sum.
 
     For 3x3 and 4x4 blocks XLA fuses this into the surrounding elementwise
-    code, where a batched `dot_general` is several times slower on CPU.
+    code, where a batched `dot_general` is several times slower on CPU. Under
+    batched forward-mode products (`vmap` of `jvp`) the reduction can instead
+    become one slow fused reduction: `matmul_unrolled` there (measure).
     """
     return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
 
@@ -80,14 +82,26 @@ def matvec_unrolled(A: Float[Array, "... n k"], x: Float[Array, "... k"]) -> Flo
 @jax.jit
 def so3_exp(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
     """Rodrigues' formula $\\exp([w]_\\times)$ for a rotation vector `w` (rad)."""
-    theta_sq = jnp.dot(w, w)
+    theta_sq = _norm_sq(w)
     small = theta_sq < _SMALL**2
     safe_sq = jnp.where(small, 1.0, theta_sq)
     theta = jnp.sqrt(safe_sq)
     a = jnp.where(small, 1.0 - theta_sq / 6.0, jnp.sin(theta) / theta)
     b = jnp.where(small, 0.5 - theta_sq / 24.0, (1.0 - jnp.cos(theta)) / safe_sq)
-    K = skew(w)
-    return jnp.eye(3, dtype=w.dtype) + a * K + b * (K @ K)
+    return a * skew(w) + _skew_sq_plus(w, theta_sq, b, 1.0)
+
+
+def _norm_sq(w: Float[Array, "3"]) -> Float[Array, ""]:
+    # Elementwise, as `_skew_sq_plus`: no reduction for XLA to fuse.
+    return w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+
+
+def _skew_sq_plus(w: Float[Array, "3"], theta_sq, b, c) -> Float[Array, "3 3"]:
+    """$b\\,[w]_\\times^2 + c I$ by $[w]_\\times^2 = ww^T - \\|w\\|^2 I$: elementwise, where
+    `K @ K` is a batched 3x3 product under `vmap`, which XLA's CPU backend (jaxlib 0.10) fuses
+    into a slow reduction: the noisy-robot hand-eye solve's robot corrections spent ~0.1 ms a
+    step there."""
+    return b * (w[:, None] * w[None, :]) + (c - b * theta_sq) * jnp.eye(3, dtype=w.dtype)
 
 
 def so3_log(R: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
@@ -183,15 +197,14 @@ def se3_exp(xi: Float[Array, "6"]) -> Float[Array, "4 4"]:
     Jacobian $V(w)$ applied to `v`.
     """
     v, w = xi[:3], xi[3:]
-    theta_sq = jnp.dot(w, w)
+    theta_sq = _norm_sq(w)
     small = theta_sq < _SMALL**2
     safe_sq = jnp.where(small, 1.0, theta_sq)
     theta = jnp.sqrt(safe_sq)
     b = jnp.where(small, 0.5 - theta_sq / 24.0, (1.0 - jnp.cos(theta)) / safe_sq)
     c = jnp.where(small, 1.0 / 6.0 - theta_sq / 120.0, (theta - jnp.sin(theta)) / (safe_sq * theta))
-    K = skew(w)
-    V = jnp.eye(3, dtype=xi.dtype) + b * K + c * (K @ K)
-    return make_pose(so3_exp(w), V @ v)
+    V = b * skew(w) + _skew_sq_plus(w, theta_sq, c, 1.0)
+    return make_pose(so3_exp(w), V[:, 0] * v[0] + V[:, 1] * v[1] + V[:, 2] * v[2])
 
 
 def se3_log(T: Float[Array, "4 4"]) -> Float[Array, "6"]:

@@ -38,7 +38,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ._linalg import gauss_newton_covariance
-from ._schur import block_least_squares
+from ._schur import NormalEquations, normal_least_squares
 
 #: Every vmapped program jaxcal runs, by import path: each must keep its
 #: decompositions ordered (`jaxcal._linalg.concurrent_decompositions` returns
@@ -123,8 +123,9 @@ def solve(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> optx.Solut
 
 def solve_normal(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> optx.Solution:
     """`solve`'s Levenberg-Marquardt iteration on the normal equations $(J^TJ + \\lambda I)\\delta = -J^Tr$
-    (Jacobi-scaled Cholesky), by `jaxcal._schur.block_least_squares` with one block and no local
-    unknowns, the Jacobian by forward mode over the flattened parameters.
+    (Jacobi-scaled Cholesky), by `jaxcal._schur.normal_least_squares`: the Jacobian by forward
+    mode over the flattened parameters, reduced at once to $J^TJ$ and $J^Tr$ (the loop keeps
+    no Jacobian).
 
     Optimistix's trust region and termination test (`ConvergedStepTrustRegion`), so the same
     steps and the same optimum as `solve` up to round-off (`tests/test_schur.py`), in a program
@@ -137,21 +138,15 @@ def solve_normal(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> opt
     """
     flat0, unravel = ravel_pytree(y0)
 
-    def linearise(x, _, a):
+    def normal(x, a):
         f = lambda z: ravel_pytree(fn(unravel(z), a))[0]  # noqa: E731
         r, J = f(x), jax.jacfwd(f)(x)
-        return r[None], J[None], jnp.zeros((1, r.shape[0], 0), x.dtype)
+        return r, NormalEquations(H=J.T @ J, e=J.T @ r)
 
-    sol = block_least_squares(
-        linearise,
-        flat0,
-        jnp.zeros((1, 0), flat0.dtype),
-        args,
-        rtol=options.rtol,
-        atol=options.atol,
-        max_steps=options.max_steps,
+    sol = normal_least_squares(
+        normal, flat0, args, rtol=options.rtol, atol=options.atol, max_steps=options.max_steps
     )
-    value = unravel(sol.g)
+    value = unravel(sol.x)
     if options.throw:
         value = eqx.error_if(
             value, sol.result != optx.RESULTS.successful, "Levenberg-Marquardt did not converge"

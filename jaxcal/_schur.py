@@ -80,6 +80,13 @@ parameters per block; all functions pure, jittable and vmappable):
   masks (bool, same shapes) freeze parameters at their start (default: all
   free). Weights (IRLS) belong in `linearise` (scale $r_b$ and both
   Jacobians by $\\sqrt{w}$).
+- `normal_least_squares(normal, x0, args, *, rtol, atol, max_steps) ->
+  NormalSolution`: the same iteration with no local unknowns on normal
+  equations the model forms itself, `normal(x, args) -> (r, NormalEquations(H,
+  e, aux))`: the loop keeps $J^TJ$ and $J^Tr$ (predicted decrease
+  $e^T\\delta + \\tfrac12\\delta^TH\\delta$), not the Jacobian, so a model
+  reduces its Jacobian however is cheapest (`jaxcal._lsq.solve_normal`, the
+  hand-eye pixel solve).
 - `block_covariance(J_g, J_l, *, g_mask=None, l_mask=None) -> BlockCovariance`:
   the blocks above (zero for frozen parameters).
 - `full_covariance(J_g, J_l, *, g_mask=None, l_mask=None) -> (n, n)`: all of
@@ -204,29 +211,30 @@ def _normal_blocks(r, Jg, Jl):
     return H, W, U, eg, el
 
 
+def _scaled_cholesky_solve(S: Float[Array, "n n"], rhs: Float[Array, " n"]) -> Float[Array, " n"]:
+    """$S^{-1}$ rhs for a positive definite `S` by a Jacobi-scaled Cholesky factorisation."""
+    d = 1.0 / jnp.sqrt(jnp.diagonal(S))  # S's diagonal is at least the damping lambda > 0
+    return d * jax.scipy.linalg.cho_solve(
+        jax.scipy.linalg.cho_factor(S * d[:, None] * d[None, :], lower=True), d * rhs
+    )
+
+
 def _damped_step(r, Jg, Jl, lam):
     """$(\\delta_g, \\delta_l)$ solving $(J^TJ + \\lambda I)\\delta = -J^Tr$ by the Schur complement."""
     n_g, p = Jg.shape[-1], Jl.shape[-1]
     if p == 0:  # no local unknowns: the plain normal equations
         H = jnp.einsum("bmi,bmj->ij", Jg, Jg)
-        S, rhs = H + lam * jnp.eye(n_g), -jnp.einsum("bmi,bm->i", Jg, r)
-    else:
-        H, W, U, eg, el = _normal_blocks(r, Jg, Jl)
-        V = U + lam * jnp.eye(p)
-        # One solve for both right-hand sides: V^{-1} [W^T | eps_b].
-        X = small_cholesky_solve(V, jnp.concatenate([jnp.swapaxes(W, -1, -2), el[..., None]], axis=-1), 0.0)
-        Y, z = X[..., :n_g], X[..., n_g]
-        S = H + lam * jnp.eye(n_g) - jnp.einsum("bij,bjk->ik", W, Y)
-        S = 0.5 * (S + S.T)
-        rhs = -eg + jnp.einsum("bij,bj->i", W, z)
-    d = 1.0 / jnp.sqrt(jnp.diagonal(S))  # Jacobi scaling: S's diagonal is at least lambda > 0
-    dg = d * jax.scipy.linalg.cho_solve(
-        jax.scipy.linalg.cho_factor(S * d[:, None] * d[None, :], lower=True), d * rhs
-    )
-    if p == 0:
-        return dg, jnp.zeros(Jl.shape[:1] + (0,), dg.dtype)
-    dl = -z - jnp.einsum("bjk,k->bj", Y, dg)
-    return dg, dl
+        return _scaled_cholesky_solve(H + lam * jnp.eye(n_g), -jnp.einsum("bmi,bm->i", Jg, r)), jnp.zeros(
+            Jl.shape[:1] + (0,), Jg.dtype
+        )
+    H, W, U, eg, el = _normal_blocks(r, Jg, Jl)
+    V = U + lam * jnp.eye(p)
+    # One solve for both right-hand sides: V^{-1} [W^T | eps_b].
+    X = small_cholesky_solve(V, jnp.concatenate([jnp.swapaxes(W, -1, -2), el[..., None]], axis=-1), 0.0)
+    Y, z = X[..., :n_g], X[..., n_g]
+    S = H + lam * jnp.eye(n_g) - jnp.einsum("bij,bjk->ik", W, Y)
+    dg = _scaled_cholesky_solve(0.5 * (S + S.T), -eg + jnp.einsum("bij,bj->i", W, z))
+    return dg, -z - jnp.einsum("bjk,k->bj", Y, dg)
 
 
 def _max_ratio(diff, ref, rtol, atol):
@@ -234,17 +242,87 @@ def _max_ratio(diff, ref, rtol, atol):
 
 
 class _State(eqx.Module):
-    g: Array
-    l: Array
-    g_eval: Array
-    l_eval: Array
-    r: Array
-    Jg: Array
-    Jl: Array
+    y: Any  # the last accepted iterate
+    y_eval: Any  # where the next evaluation is
+    r: Array  # residuals at `y`
+    model: Any  # the linear model of the residuals at `y`
     step_size: Array
     first: Array
     terminate: Array
     num_steps: Array
+
+
+def _levenberg_marquardt(evaluate, predict, step, y0, *, rtol, atol, max_steps):
+    """optimistix's Levenberg-Marquardt iteration (the module docstring) over a linear model.
+
+    `evaluate(y) -> (r, model)`: the residuals at `y` and whatever linear model of
+    them the step needs (the Jacobian blocks, or the normal equations);
+    `predict(model, r, dy)`: the model's change of $\\tfrac12\\|r\\|^2$ for the step
+    `dy`; `step(model, r, lam) -> dy`: the damped Gauss-Newton step. `y` is a
+    pytree of arrays. **Returns:** `(y, result, num_steps, r, model)` at the last
+    accepted iterate.
+    """
+    r_struct, model_struct = jax.eval_shape(evaluate, y0)
+    zeros = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
+    dtype = jax.tree.leaves(y0)[0].dtype
+    tiny = jnp.finfo(dtype).eps
+    state = _State(
+        y=y0,
+        y_eval=y0,
+        # optimistix starts from zero residuals and Jacobian: the first evaluation is always accepted.
+        r=zeros(r_struct),
+        model=zeros(model_struct),
+        step_size=jnp.asarray(1.0, dtype),
+        first=jnp.asarray(True),
+        terminate=jnp.asarray(False),
+        num_steps=jnp.asarray(0),
+    )
+
+    def body(s: _State) -> _State:
+        r_e, model_e = evaluate(s.y_eval)
+        dy = jax.tree.map(jnp.subtract, s.y_eval, s.y)
+        # Trust-region test (optimistix's ClassicalTrustRegion), with the model at the accepted point.
+        predicted = predict(s.model, s.r, dy)
+        actual = 0.5 * jnp.sum(r_e**2) - 0.5 * jnp.sum(s.r**2)
+        good = (actual < _HIGH_CUTOFF * predicted) & (predicted < 0) & ~s.first
+        y_ratio = jnp.max(
+            jnp.stack(
+                [_max_ratio(d, y, rtol, atol) for d, y in zip(jax.tree.leaves(dy), jax.tree.leaves(s.y_eval))]
+            )
+        )
+        converged = (y_ratio < 1) & (_max_ratio(r_e - s.r, r_e, rtol, atol) < 1)
+        # As `jaxcal._lsq.ConvergedStepTrustRegion`: a step that passes the
+        # termination test is taken whatever its cost change (no stall at the optimum).
+        classical = (actual <= _LOW_CUTOFF * predicted) | s.first
+        take = converged & ~classical & ~s.first
+        accept = classical | take
+        mul = jnp.where(classical, jnp.where(good, _HIGH_CONSTANT, 1.0), jnp.where(take, 1.0, _LOW_CONSTANT))
+        step_size = mul * s.step_size
+        y, r, model = jax.tree.map(
+            lambda new, old: jnp.where(accept, new, old), (s.y_eval, r_e, model_e), (s.y, s.r, s.model)
+        )
+        lam = jnp.where(
+            step_size > tiny, 1.0 / jnp.where(step_size > tiny, step_size, 1.0), jnp.finfo(dtype).max
+        )
+        return _State(
+            y=y,
+            y_eval=jax.tree.map(jnp.add, y, step(model, r, lam)),
+            r=r,
+            model=model,
+            step_size=step_size,
+            first=jnp.asarray(False),
+            terminate=accept & converged,
+            num_steps=s.num_steps + 1,
+        )
+
+    def cond(s: _State):
+        return ~s.terminate & (s.num_steps < max_steps)
+
+    s = jax.lax.while_loop(cond, body, state)
+    result = optx.RESULTS.where(
+        s.terminate, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached
+    )
+    return s.y, result, s.num_steps, s.r, s.model
 
 
 def block_least_squares(
@@ -283,82 +361,88 @@ def block_least_squares(
     gm = jnp.ones(g0.shape, g0.dtype) if g_mask is None else jnp.asarray(g_mask, g0.dtype)
     lm = jnp.ones(l0.shape, l0.dtype) if l_mask is None else jnp.asarray(l_mask, l0.dtype)
 
-    def lin(g, l):
-        r, Jg, Jl = linearise(g, l, args)
-        return r, Jg * gm, Jl * lm[:, None, :]
+    def evaluate(y):
+        r, Jg, Jl = linearise(*y, args)
+        return r, (Jg * gm, Jl * lm[:, None, :])
 
-    r_struct, Jg_struct, Jl_struct = jax.eval_shape(lin, g0, l0)
-    zeros = lambda s: jnp.zeros(s.shape, s.dtype)  # noqa: E731
-    tiny = jnp.finfo(g0.dtype).eps
-    state = _State(
-        g=g0,
-        l=l0,
-        g_eval=g0,
-        l_eval=l0,
-        # optimistix starts from zero residuals and Jacobian: the first evaluation is always accepted.
-        r=zeros(r_struct),
-        Jg=zeros(Jg_struct),
-        Jl=zeros(Jl_struct),
-        step_size=jnp.asarray(1.0, g0.dtype),
-        first=jnp.asarray(True),
-        terminate=jnp.asarray(False),
-        num_steps=jnp.asarray(0),
+    def predict(model, r, dy):
+        (Jg, Jl), (dg, dl) = model, dy
+        pred_r = r + jnp.einsum("bmi,i->bm", Jg, dg) + jnp.einsum("bmj,bj->bm", Jl, dl)
+        return 0.5 * (jnp.sum(pred_r**2) - jnp.sum(r**2))
+
+    (g, l), result, num_steps, r, (Jg, Jl) = _levenberg_marquardt(
+        evaluate,
+        predict,
+        lambda model, r, lam: _damped_step(r, *model, lam),
+        (g0, l0),
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
     )
+    return BlockSolution(g=g, l=l, result=result, num_steps=num_steps, residuals=r, jac_g=Jg, jac_l=Jl)
 
-    def body(s: _State) -> _State:
-        r_e, Jg_e, Jl_e = lin(s.g_eval, s.l_eval)
-        dg, dl = s.g_eval - s.g, s.l_eval - s.l
-        # Trust-region test (optimistix's ClassicalTrustRegion), with J, r at the accepted point.
-        pred_r = s.r + jnp.einsum("bmi,i->bm", s.Jg, dg) + jnp.einsum("bmj,bj->bm", s.Jl, dl)
-        predicted = 0.5 * (jnp.sum(pred_r**2) - jnp.sum(s.r**2))
-        actual = 0.5 * jnp.sum(r_e**2) - 0.5 * jnp.sum(s.r**2)
-        good = (actual < _HIGH_CUTOFF * predicted) & (predicted < 0) & ~s.first
-        converged = (
-            _max_ratio(
-                jnp.concatenate([dg, dl.ravel()]), jnp.concatenate([s.g_eval, s.l_eval.ravel()]), rtol, atol
-            )
-            < 1
-        ) & (_max_ratio(r_e - s.r, r_e, rtol, atol) < 1)
-        # As `jaxcal._lsq.ConvergedStepTrustRegion`: a step that passes the
-        # termination test is taken whatever its cost change (no stall at the optimum).
-        classical = (actual <= _LOW_CUTOFF * predicted) | s.first
-        take = converged & ~classical & ~s.first
-        accept = classical | take
-        mul = jnp.where(classical, jnp.where(good, _HIGH_CONSTANT, 1.0), jnp.where(take, 1.0, _LOW_CONSTANT))
-        step_size = mul * s.step_size
-        g = jnp.where(accept, s.g_eval, s.g)
-        l = jnp.where(accept, s.l_eval, s.l)
-        r = jnp.where(accept, r_e, s.r)
-        Jg = jnp.where(accept, Jg_e, s.Jg)
-        Jl = jnp.where(accept, Jl_e, s.Jl)
-        lam = jnp.where(
-            step_size > tiny, 1.0 / jnp.where(step_size > tiny, step_size, 1.0), jnp.finfo(g0.dtype).max
-        )
-        step_g, step_l = _damped_step(r, Jg, Jl, lam)
-        return _State(
-            g=g,
-            l=l,
-            g_eval=g + step_g,
-            l_eval=l + step_l,
-            r=r,
-            Jg=Jg,
-            Jl=Jl,
-            step_size=step_size,
-            first=jnp.asarray(False),
-            terminate=accept & converged,
-            num_steps=s.num_steps + 1,
-        )
 
-    def cond(s: _State):
-        return ~s.terminate & (s.num_steps < max_steps)
+class NormalEquations(eqx.Module):
+    """A linearisation reduced to its normal equations: $H = J^TJ$ `(n, n)`, $e = J^Tr$ `(n,)`,
+    and `aux`, whatever else the model keeps of the same point (a pytree of arrays, e.g. per-group
+    gradients for a cluster-robust covariance; None)."""
 
-    s = jax.lax.while_loop(cond, body, state)
-    result = optx.RESULTS.where(
-        s.terminate, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached
+    H: Float[Array, "n n"]
+    e: Float[Array, " n"]
+    aux: Any = None
+
+
+class NormalSolution(eqx.Module):
+    """A solved `normal_least_squares` problem: `x` `(n,)` (the last accepted iterate),
+    `result`, `num_steps` (as `BlockSolution`'s), and the residuals and `NormalEquations`
+    at `x`."""
+
+    x: Float[Array, " n"]
+    result: optx.RESULTS
+    num_steps: Int[Array, ""]
+    residuals: Array
+    normal: NormalEquations
+
+
+def normal_least_squares(
+    normal: Callable[[Array, Any], tuple[Array, NormalEquations]],
+    x0: Float[Array, " n"],
+    args: Any = None,
+    *,
+    rtol: float,
+    atol: float,
+    max_steps: int = 256,
+) -> NormalSolution:
+    """`block_least_squares`' iteration without local unknowns, on the normal equations the model forms.
+
+    `normal(x, args) -> (r, NormalEquations)`: the residuals (any shape) and
+    $J^TJ$, $J^Tr$ at `x`. The loop keeps only these $n \\times n$ terms (not
+    the Jacobian): the predicted decrease is $e^T\\delta + \\tfrac12\\delta^TH\\delta$,
+    mathematically the same as from $J$, and a model may reduce its Jacobian
+    to them however is cheapest (by groups, with a robust loss's rank-one
+    terms; `jaxcal._handeye.jacobian`). Same steps as `block_least_squares`
+    with $p = 0$ to round-off.
+    **Returns:** a `NormalSolution`.
+    """
+    if max_steps < 1:
+        raise ValueError(f"normal_least_squares: max_steps must be at least 1, got {max_steps}")
+    x0 = jnp.asarray(x0)
+    if x0.ndim != 1:
+        raise ValueError(f"normal_least_squares: x0 must be (n,), got {x0.shape}")
+
+    def evaluate(x):
+        return normal(x, args)
+
+    def predict(ne, r, dx):
+        return jnp.dot(ne.e, dx) + 0.5 * jnp.dot(dx, ne.H @ dx)
+
+    def step(ne, r, lam):
+        return _scaled_cholesky_solve(ne.H + lam * jnp.eye(x0.shape[0], dtype=x0.dtype), -ne.e)
+
+    x, result, num_steps, r, ne = _levenberg_marquardt(
+        evaluate, predict, step, x0, rtol=rtol, atol=atol, max_steps=max_steps
     )
-    return BlockSolution(
-        g=s.g, l=s.l, result=result, num_steps=s.num_steps, residuals=s.r, jac_g=s.Jg, jac_l=s.Jl
-    )
+    return NormalSolution(x=x, result=result, num_steps=num_steps, residuals=r, normal=ne)
 
 
 def _psd_pinv(S: Float[Array, "n n"]) -> Float[Array, "n n"]:

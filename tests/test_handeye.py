@@ -11,7 +11,7 @@ from jax.flatten_util import ravel_pytree
 
 from jaxcal import _handeye as he
 from jaxcal._handeye import blocks
-from jaxcal._handeye.jacobian import pixel_terms
+from jaxcal._handeye.jacobian import pixel_normal, pixel_terms
 from jaxcal._handeye.model import HandEyeParams, HandEyeReference, robust_residuals
 from jaxcal._linalg import concurrent_decompositions
 
@@ -276,6 +276,15 @@ def test_closed_form_pixel_jacobian_equals_autodiff(eye_to_hand):
         )
         np.testing.assert_allclose(J, auto, rtol=0, atol=1e-9 * float(jnp.abs(auto).max()))
         assert float(jnp.abs(J[1, 5]).max()) == 0.0 and float(jnp.abs(auto).max()) > 10.0
+        # The solver's normal equations, formed group by group with the loss's rank-one terms.
+        r_n, normal = pixel_normal(params, args)
+        np.testing.assert_allclose(r_n, r, rtol=0, atol=1e-12 * float(jnp.abs(r).max()))
+        Jf = np.asarray(J).reshape(-1, J.shape[-1])
+        H = Jf.T @ Jf
+        np.testing.assert_allclose(normal.H, H, rtol=0, atol=1e-10 * np.abs(H).max())
+        G = np.einsum("cfkn,cfk->cfn", J, r)
+        np.testing.assert_allclose(normal.aux, G, rtol=0, atol=1e-10 * np.abs(G).max())
+        np.testing.assert_allclose(normal.e, G.sum((0, 1)), rtol=0, atol=1e-10 * np.abs(G).max())
     a, b = _calibrate(data), _calibrate_autodiff(data)
     assert _succeeded(a) and _succeeded(b) and a.rejected_frames().tolist() == [2]
     np.testing.assert_array_equal(a.rejected, b.rejected)

@@ -16,11 +16,14 @@ $\\partial u / \\partial p$, and the robust loss of a (camera, frame) group
 $r \\mapsto w(\\bar s)\\,r$, $\\bar s = \\|r\\|^2/n$, adds
 $w J + r\\, w'(\\bar s)\\,(2/n)\\, r^T J$.
 
-Levenberg-Marquardt forms this Jacobian every step (`solve_pixels`). For 50
-poses of 35 corners the whole solve takes 0.6-0.8 of its time on autodiff's
-Jacobian (`benchmarks/handeye.py --parts speed`); on arrays this small most of
-what is left is XLA's per-operation overhead. `tests/test_handeye.py` checks it
-against autodiff.
+Levenberg-Marquardt forms this Jacobian every step (`solve_pixels`) and reduces
+it at once to the 12 x 12 normal equations (`pixel_normal`), the robust loss
+applied there by its rank-one terms per group: the loop never holds, weights or
+copies the 3,500 x 12 Jacobian, whose passes (and XLA's slow fused reductions
+over them) were most of a step. For 50 poses of 35 corners a step costs about
+0.16 ms of Jacobian and $J^TJ$ and the whole solve 4.0-4.5 ms, against 9.7 ms on
+autodiff's Jacobian through optimistix (`benchmarks/handeye.py --parts speed`).
+`tests/test_handeye.py` checks both against autodiff.
 """
 
 import jax
@@ -28,9 +31,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._geometry import matmul, se3_exp
-from .._schur import block_least_squares
+from .._schur import NormalEquations, normal_least_squares
 from .blocks import join, split
-from .model import HandEyeParams, robot_motion, robust_weighting
+from .model import HandEyeParams, robot_motion, robust_factors, robust_weighting
 
 _d_exp = jax.jacfwd(se3_exp)  # (4, 4, 6) at one twist
 
@@ -41,6 +44,12 @@ def pixel_terms(params, args) -> tuple[Float[Array, "cameras frames k"], Float[A
     """`robust_residuals`' observation residuals (pixels, exact robot poses: `params.robot`
     is None) and their Jacobian over the flattened `(cam_robot, robot_board)`."""
     ref, data, loss_scale, robust = args
+    return robust_weighting(*_plain_terms(params, ref, data), ref, data, loss_scale, robust)
+
+
+def _plain_terms(params, ref, data):
+    """The whitened residuals `(cameras, frames, k)` and their Jacobian `(cameras, frames, k, n)`
+    before the robust loss."""
     C, F, P = data.mask.shape
     EX, dEX = jax.vmap(se3_exp)(params.cam_robot), jax.vmap(_d_exp)(params.cam_robot)
     EY, dEY = se3_exp(params.robot_board), _d_exp(params.robot_board)
@@ -83,31 +92,44 @@ def pixel_terms(params, args) -> tuple[Float[Array, "cameras frames k"], Float[A
     J_y = sum(D[..., j, None] * dp_y[..., None, j, :] for j in range(3)) * white
     one_hot = jnp.eye(C, dtype=J_x.dtype)[:, None, None, None, :, None]  # camera c's own columns
     J_x = (J_x[..., None, :] * one_hot).reshape(C, F, P, 2, 6 * C)
-    J = jnp.concatenate([J_x, J_y], axis=-1).reshape(C, F, 2 * P, 6 * C + 6)
-
-    return robust_weighting(e.reshape(C, F, 2 * P), J, ref, data, loss_scale, robust)
+    return e.reshape(C, F, 2 * P), jnp.concatenate([J_x, J_y], axis=-1).reshape(C, F, 2 * P, 6 * C + 6)
 
 
-def _linearise(g, l, args):
-    """`pixel_terms` as `jaxcal._schur` takes it: one block per (camera, frame), no local unknowns."""
-    r, J = pixel_terms(join(g, None), args)
-    B, k = r.shape[0] * r.shape[1], r.shape[-1]
-    return r.reshape(B, k), J.reshape(B, k, J.shape[-1]), jnp.zeros((B, k, 0), r.dtype)
+# Nested jit, traced once per signature (see `jaxcal._arcmodel.arc_terms`).
+@jax.jit
+def pixel_normal(params, args) -> tuple[Float[Array, "cameras frames k"], NormalEquations]:
+    """`pixel_terms` reduced to the normal equations, group by group: the robust residuals
+    $\\tilde r = w r$, $J^TJ$ and $J^T\\tilde r$ of their Jacobian
+    $\\tilde J = wJ + c\\,r\\,p^T$ ($p = J^Tr$ per group, `model.robust_factors`), and
+    `aux`, each (camera, frame) group's gradient $\\tilde J^T\\tilde r$ `(cameras, frames, n)`.
+
+    Per group $\\tilde J^T\\tilde J = w^2 J^TJ + (2wc + c^2\\|r\\|^2)\\,pp^T$ and
+    $\\tilde J^T\\tilde r = (w^2 + wc\\|r\\|^2)\\,p$: the robust loss costs
+    $n \\times n$ terms per group instead of a pass over the whole Jacobian.
+    """
+    ref, data, loss_scale, robust = args
+    r, J = _plain_terms(params, ref, data)
+    w, c = robust_factors(r, ref, data, loss_scale, robust)
+    s = jnp.sum(r**2, axis=-1)
+    p = jnp.einsum("cfkn,cfk->cfn", J, r)
+    G = (w**2 + w * c * s)[..., None] * p
+    H = jnp.einsum("cfkn,cfkm,cf->nm", J, J, w**2) + jnp.einsum("cfn,cfm,cf->nm", p, p, (2.0 * w + c * s) * c)
+    return r * w[..., None], NormalEquations(H=H, e=jnp.sum(G, axis=(0, 1)), aux=G)
 
 
 def solve_pixels(params0: HandEyeParams, args, rtol, atol, max_steps):
     """Levenberg-Marquardt on `robust_residuals` (pixels, exact robot poses) with the
-    closed-form Jacobian. **Returns:** `(params, result, num_steps, (r, J))`, the last
-    `pixel_terms` at `params`.
+    closed-form Jacobian. **Returns:** `(params, result, num_steps, (r, H, G))`, the last
+    `pixel_normal` at `params` (its residuals, $J^TJ$ and the groups' gradients).
 
-    `jaxcal._schur`'s loop without local unknowns: optimistix's iteration (the
-    same steps and optimum as `jaxcal._lsq.solve` on these residuals, to
-    round-off; `tests/test_handeye.py`) on the $n \\times n$ normal equations,
-    with a fraction of its per-step operations: the 50-pose solve's robust
-    stage took 5.0 ms through optimistix and 3.6 ms here, 9 steps each."""
+    `jaxcal._schur.normal_least_squares`: optimistix's iteration (the same steps and
+    optimum as `jaxcal._lsq.solve` on these residuals, to round-off;
+    `tests/test_handeye.py`) on the $n \\times n$ normal equations that
+    `pixel_normal` forms, with a fraction of its per-step operations: the 50-pose
+    solve's robust stage took 5.0 ms through optimistix, 3.3 ms on the Jacobian and
+    2.x ms here, 9 steps each."""
     g0, _ = split(params0)
-    C, F = args[1].mask.shape[:2]
-    l0 = jnp.zeros((C * F, 0), g0.dtype)
-    sol = block_least_squares(_linearise, g0, l0, args, rtol=rtol, atol=atol, max_steps=max_steps)
-    r, J = sol.residuals, sol.jac_g
-    return join(sol.g, None), sol.result, sol.num_steps, (r.reshape(C, F, -1), J.reshape(C, F, *J.shape[-2:]))
+    sol = normal_least_squares(
+        lambda g, a: pixel_normal(join(g, None), a), g0, args, rtol=rtol, atol=atol, max_steps=max_steps
+    )
+    return join(sol.x, None), sol.result, sol.num_steps, (sol.residuals, sol.normal.H, sol.normal.aux)

@@ -14,7 +14,7 @@ from .blocks import block_bread, solve_by_blocks
 from .closed import initialise_hand_eye
 from .common import least_squares, pose_error
 from .data import HandEyeData, HandEyePixels, HandEyePoses
-from .jacobian import pixel_terms, solve_pixels
+from .jacobian import pixel_normal, solve_pixels
 from .model import (
     HandEyeParams,
     HandEyeReference,
@@ -316,12 +316,14 @@ def _bread(params, ref, data, blocks: bool, closed: bool = False, lin=None):
         r, prior = hand_eye_residuals(unravel(x), (ref, data))
         return jnp.concatenate([r.reshape(-1)] + ([] if prior is None else [prior.reshape(-1)]))
 
-    if closed:
-        r_all, J = pixel_terms(params, (ref, data, 1.0, False)) if lin is None else lin
-        r_all, J = r_all.reshape(-1), J.reshape(r_all.size, flat.size)
-    else:
-        J = jax.jacfwd(flat_res)(flat)
-        r_all = flat_res(flat)
+    if closed:  # the normal equations and each group's gradient (`jacobian.pixel_normal`)
+        if lin is None:
+            r_all, normal = pixel_normal(params, (ref, data, 1.0, False))
+            lin = r_all, normal.H, normal.aux
+        r_all, H, G = lin
+        return jnp.linalg.pinv(H, hermitian=True), jnp.sum(G, axis=0), jnp.sum(r_all**2)
+    J = jax.jacfwd(flat_res)(flat)
+    r_all = flat_res(flat)
     bread = jnp.linalg.pinv(J.T @ J, hermitian=True)
     return bread, _frame_gradients(J, r_all, ref, data), jnp.sum(r_all**2)
 
