@@ -66,7 +66,7 @@ from arcfit import arc_residuals_np, flat_params, jax_jacobian, unflatten_params
 from jax.flatten_util import ravel_pytree
 from scipy.optimize import least_squares
 
-from jaxcal._arcfit import _summarise
+from jaxcal._arcfit import _ARC, _summarise
 from jaxcal._arcmodel import free_mask, initialise_arc
 from jaxcal._axisfit import (
     AxisFitParams,
@@ -168,7 +168,7 @@ def make_axis_stage(nominal: KinematicModel, free: np.ndarray, n_markers: int) -
         def one(x, ref, data):
             params = unflatten_params(x, data.positions.shape[0])
             mask = free_mask(params, data, ref)
-            return _summarise(params, ref, data, mask, optx.RESULTS.successful, jnp.asarray(0), False)
+            return _summarise(_ARC, params, ref, data, mask, optx.RESULTS.successful, jnp.asarray(0), False)
 
         return problem_of(jax.vmap(one)(x_arcs, ref, data))
 
