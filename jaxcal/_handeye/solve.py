@@ -256,7 +256,8 @@ def _solve(params, args, blocks: bool, closed: bool, rtol, atol, max_steps):
     """One Levenberg-Marquardt stage: by blocks (noisy robot poses), on the closed-form
     Jacobian (pixels, exact robot poses) or optimistix's on autodiff's. **Returns:**
     `(params, result, num_steps, lin)`, `lin` the solver's linearisation at `params`
-    where it has one (None for optimistix's)."""
+    where it has one: the Jacobian blocks `(r, J_g, J_l)` by blocks, the normal equations
+    `(r, J^T J, per-group gradients)` on the closed form, None for optimistix's."""
     if blocks:
         return solve_by_blocks(params, args, rtol, atol, max_steps)
     if closed:
@@ -306,22 +307,23 @@ def _frame_robust_covariance(g, bread, ref) -> Float[Array, "n n"]:
 
 def _bread(params, ref, data, blocks: bool, closed: bool = False, lin=None):
     """$(J^TJ)^{+}$ of the plain residuals at `params`, the per-frame gradients and $\\|r\\|^2$:
-    by blocks (`blocks.block_bread`) or from the dense Jacobian (closed form with `closed`);
-    from `lin`, the solver's plain linearisation at `params`, where given."""
+    by blocks (`blocks.block_bread`), from the closed form's normal equations
+    (`jacobian.pixel_normal`) or from autodiff's dense Jacobian; from `lin`, the solver's
+    plain linearisation at `params`, where given (see `_solve`)."""
     if blocks:
         return block_bread(params, ref, data, lin)
-    flat, unravel = ravel_pytree(params)
-
-    def flat_res(x):
-        r, prior = hand_eye_residuals(unravel(x), (ref, data))
-        return jnp.concatenate([r.reshape(-1)] + ([] if prior is None else [prior.reshape(-1)]))
-
     if closed:  # the normal equations and each group's gradient (`jacobian.pixel_normal`)
         if lin is None:
             r_all, normal = pixel_normal(params, (ref, data, 1.0, False))
             lin = r_all, normal.H, normal.aux
         r_all, H, G = lin
         return jnp.linalg.pinv(H, hermitian=True), jnp.sum(G, axis=0), jnp.sum(r_all**2)
+    flat, unravel = ravel_pytree(params)
+
+    def flat_res(x):
+        r, prior = hand_eye_residuals(unravel(x), (ref, data))
+        return jnp.concatenate([r.reshape(-1)] + ([] if prior is None else [prior.reshape(-1)]))
+
     J = jax.jacfwd(flat_res)(flat)
     r_all = flat_res(flat)
     bread = jnp.linalg.pinv(J.T @ J, hermitian=True)
