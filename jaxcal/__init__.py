@@ -105,8 +105,10 @@ from .errors import DatasetError as DatasetError  # noqa: E402
 from .errors import DegenerateMotionError as DegenerateMotionError  # noqa: E402
 from .errors import HandEyeInputError as HandEyeInputError  # noqa: E402
 from .errors import InconsistentPosesError as InconsistentPosesError  # noqa: E402
+from .errors import IntrinsicsError as IntrinsicsError  # noqa: E402
 from .errors import JaxcalError as JaxcalError  # noqa: E402
 from .errors import LengthMismatchError as LengthMismatchError  # noqa: E402
+from .errors import NoiseLevelError as NoiseLevelError  # noqa: E402
 from .errors import NonFiniteError as NonFiniteError  # noqa: E402
 from .errors import NotARotationError as NotARotationError  # noqa: E402
 from .errors import NotPositiveDefiniteError as NotPositiveDefiniteError  # noqa: E402

@@ -67,11 +67,19 @@ class ToolOffsetInputError(JaxcalError):
 
 class InconsistentPosesError(HandEyeInputError):
     """Robot poses and images disagree: the relative rotation angles between frames differ
-    (poses in the wrong order, a wrong unit or quaternion order, another capture's poses)."""
+    (poses in the wrong order, a wrong unit, another capture's poses)."""
 
 
 class NotPositiveDefiniteError(HandEyeInputError):
     """A covariance matrix that is not symmetric positive definite (the message names camera and frame)."""
+
+
+class IntrinsicsError(HandEyeInputError):
+    """A camera matrix that is not a pinhole's (a negative focal length, a transposed matrix; names the camera)."""
+
+
+class NoiseLevelError(HandEyeInputError):
+    """A noise level (sigma) that is not finite and positive (names the argument)."""
 
 
 class PlanError(JaxcalError):

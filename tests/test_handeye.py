@@ -549,6 +549,45 @@ def test_bad_pixel_input():
     # Every frame but one rotates about the same axis: too little diversity even though 4 poses.
     with pytest.raises(he.DegenerateMotionError, match="non-parallel"):
         he.make_hand_eye_pixels(_one_axis(4, axis=(1.0, 0.0, 0.0)), uv, K, BOARD)
+    # Camera matrices that are not a pinhole's: a negative focal length would turn the camera round.
+    flipped = K.copy()
+    flipped[0, 0] = flipped[1, 1] = -600.0
+    with pytest.raises(he.IntrinsicsError, match="camera 0: focal lengths must be positive"):
+        he.make_hand_eye_pixels(T_base_ee, uv, flipped, BOARD)
+    with pytest.raises(he.IntrinsicsError, match="camera 1: .*transposed"):
+        he.make_hand_eye_pixels(T_base_ee, uv, np.stack([K, K.T]), BOARD)
+    with pytest.raises(he.NonFiniteError, match="K of camera 0"):
+        he.make_hand_eye_pixels(T_base_ee, uv, np.where(np.eye(3) > 0, np.nan, K), BOARD)
+    with pytest.raises(he.ShapeError, match=r"K must have shape \(3, 3\) or \(cameras, 3, 3\), got \(3, 4\)"):
+        he.make_hand_eye_pixels(T_base_ee, uv, np.c_[K, np.zeros(3)], BOARD)
+    # Noise levels must be finite and positive.
+    for sigma in (0.0, -0.2, np.nan):
+        with pytest.raises(he.NoiseLevelError, match="sigma_px must be finite and positive"):
+            he.make_hand_eye_pixels(T_base_ee, uv, K, BOARD, sigma_px=sigma)
+    with pytest.raises(he.NoiseLevelError, match="robot_sigma_translation and robot_sigma_rotation"):
+        he.make_hand_eye_pixels(
+            T_base_ee, uv, K, BOARD, robot_sigma_translation=-1e-3, robot_sigma_rotation=1e-3
+        )
+
+
+def test_a_view_of_one_row_of_corners_stays_out_of_the_closed_form_start(eye_to_hand):
+    """A view whose corners lie on one line (one row of the board) has no homography: it is
+    left out of the closed-form start (which it would wreck) and of the rotation-angle check,
+    and its corners still count in the solve."""
+    T_base_ee, uv, X, Y = eye_to_hand
+    mask = np.ones(uv.shape[:3], bool)
+    mask[0, 3] = False
+    mask[0, 3, :5] = True  # the board's first row of five corners only
+    data = he.make_hand_eye_pixels(T_base_ee, uv, K, BOARD, mask=mask)
+    _, ok = jax.jit(he.board_poses_from_pixels)(data)
+    assert not bool(ok[0, 3]) and bool(np.asarray(ok).sum() == ok.size - 1)
+    X0, Y0 = jax.jit(he.initialise_hand_eye)(data)
+    np.testing.assert_allclose(X0, X, atol=1e-9)
+    np.testing.assert_allclose(Y0, Y, atol=1e-9)
+    r = _calibrate(data)
+    assert _succeeded(r) and int(r.num_rejected) == 0
+    np.testing.assert_allclose(r.T_cam_base, X, atol=1e-9)
+    assert float(r.group_rms[0, 3]) < 1e-6  # its five corners were solved with the rest
 
 
 # --------------------------------------------------------------------------- TCP touch

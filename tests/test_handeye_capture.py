@@ -488,6 +488,21 @@ def test_rendered_capture_calibrates_through_the_command(tmp_path, capsys, targe
     assert "status **ok**" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow
+def test_self_calibrated_intrinsics_make_the_result_suspect(tmp_path, capsys):
+    """A capture without K (`"K": null`): the intrinsics are calibrated from the same 16 images,
+    whose focal-length error moves the camera by millimetres that neither the standard deviations
+    nor the k-fold spread see (both hold K exact). The result is suspect (exit 3), saying why."""
+    capture = _render(tmp_path / "capture", "chessboard", False, seed=5, intrinsics_known=False)
+    assert main(["handeye", str(capture), "--out", str(tmp_path / "out"), "--quiet"]) == 3
+    s = json.loads((tmp_path / "out" / "result.json").read_text())
+    cam = s["cameras"]["cam0"]
+    assert cam["intrinsics"]["source"] == "self-calibrated" and s["status"] == "suspect"
+    assert any("self-calibrated" in r and "separate intrinsics calibration" in r for r in s["reasons"])
+    # What the reason is about: the error is many times the stated uncertainty.
+    assert cam["truth_error"]["translation_mm"] > 10.0 * max(cam["std"]["translation_mm"])
+
+
 @pytest.fixture(scope="module")
 def corrupted_capture(tmp_path_factory):
     """A rendered eye-in-hand chessboard capture, clean and with 10% of its robot poses off by 2 deg / 5 mm."""

@@ -48,7 +48,9 @@ $X = X_0 \\exp(\\xi)$ with $\\xi = (v, w)$ (translation first, m and rad).
 from ..errors import DegenerateMotionError as DegenerateMotionError
 from ..errors import HandEyeInputError as HandEyeInputError
 from ..errors import InconsistentPosesError as InconsistentPosesError
+from ..errors import IntrinsicsError as IntrinsicsError
 from ..errors import LengthMismatchError as LengthMismatchError
+from ..errors import NoiseLevelError as NoiseLevelError
 from ..errors import NonFiniteError as NonFiniteError
 from ..errors import NotARotationError as NotARotationError
 from ..errors import NotPositiveDefiniteError as NotPositiveDefiniteError

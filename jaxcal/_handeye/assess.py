@@ -194,7 +194,9 @@ def assess_hand_eye(
             sigma = float(result.pixel_rms) / max(ratio, 1e-300)
             reasons.append(
                 f"the reprojection RMS, {float(result.pixel_rms):.3g} px, is {ratio:.1f} times the detector's "
-                f"noise ({sigma:.3g} px): the robot poses and the images do not fit one hand-eye transform"
+                f"noise ({sigma:.3g} px): the robot poses and the images do not fit one hand-eye transform "
+                "(check the poses' frames and units and, for quaternions, the component order, xyzw or wxyz: "
+                "a reordered quaternion keeps every relative rotation angle, so the input check cannot see it)"
             )
         else:
             reasons.append(

@@ -2,13 +2,76 @@
 
 import numpy as np
 
-from ..errors import DegenerateMotionError, NonFiniteError, NotARotationError, ShapeError
+from ..errors import (
+    DegenerateMotionError,
+    IntrinsicsError,
+    NoiseLevelError,
+    NonFiniteError,
+    NotARotationError,
+    ShapeError,
+)
 
 MIN_POSES = 3
 MIN_ROTATION_DEG = 5.0
 MIN_AXIS_SEPARATION_DEG = 5.0
 MIN_POINTS_PER_VIEW = 4
+#: A view's corners must span the board's plane: the smaller principal spread of
+#: their plane coordinates at least this fraction of the larger. Corners on one
+#: line (one row of a partly hidden board) leave its homography, and so the
+#: view's closed-form pose, undetermined.
+MIN_VIEW_SPREAD_RATIO = 1e-3
 _ROTATION_TOL = 1e-6
+
+
+def plane_coordinates(points: np.ndarray) -> np.ndarray:
+    """Coordinates `(points, 2)` of (nearly) coplanar board points in their best-fit plane."""
+    d = points - points.mean(0)
+    _, V = np.linalg.eigh(d.T @ d)
+    return d @ V[:, [2, 1]]
+
+
+def spanning_views(ab, mask, xp=np):
+    """Which views have at least `MIN_POINTS_PER_VIEW` corners spanning the plane.
+
+    `ab` `(points, 2)`: the board points' coordinates in the board's plane;
+    `mask` `(..., points)`. NumPy or, with `xp=jax.numpy`, traceable: the 2 x 2
+    spread of each view's corners and its eigenvalues in closed form.
+    """
+    w = mask.astype(ab.dtype)
+    n = xp.maximum(w.sum(-1), 1.0)
+    m = (w[..., None] * ab).sum(-2) / n[..., None]
+    d = ab - m[..., None, :]
+    sxx, syy, sxy = (
+        (w * d[..., 0] ** 2).sum(-1),
+        (w * d[..., 1] ** 2).sum(-1),
+        (w * d[..., 0] * d[..., 1]).sum(-1),
+    )
+    half, disc = 0.5 * (sxx + syy), xp.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)
+    return (mask.sum(-1) >= MIN_POINTS_PER_VIEW) & (half - disc > MIN_VIEW_SPREAD_RATIO**2 * (half + disc))
+
+
+def check_intrinsics(K: np.ndarray) -> None:
+    """Refuse camera matrices that are not `[[fx, s, cx], [0, fy, cy], [0, 0, 1]]` with
+    finite entries and positive focal lengths (`K` `(cameras, 3, 3)`), naming the camera."""
+    for c, Kc in enumerate(np.asarray(K, float)):
+        if not np.all(np.isfinite(Kc)):
+            raise NonFiniteError(f"K of camera {c}: non-finite entries {Kc.tolist()}")
+        if Kc[0, 0] <= 0 or Kc[1, 1] <= 0:
+            raise IntrinsicsError(
+                f"K of camera {c}: focal lengths must be positive (px), got fx = {Kc[0, 0]:g}, fy = {Kc[1, 1]:g}"
+            )
+        if Kc[1, 0] != 0 or Kc[2, 0] != 0 or Kc[2, 1] != 0 or abs(Kc[2, 2] - 1.0) > 1e-12:
+            raise IntrinsicsError(
+                f"K of camera {c}: must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (is it transposed?), "
+                f"got {Kc.tolist()}"
+            )
+
+
+def check_sigma(name: str, value) -> None:
+    """Refuse a noise level (or levels) that is not finite and positive, naming it."""
+    v = np.asarray(value, float)
+    if not (np.all(np.isfinite(v)) and np.all(v > 0)):
+        raise NoiseLevelError(f"{name} must be finite and positive, got {v.tolist()}")
 
 
 def _so3_log_np(R: np.ndarray) -> np.ndarray:

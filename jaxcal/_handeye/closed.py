@@ -6,7 +6,7 @@ from jaxtyping import Array, Bool, Float
 
 from .._geometry import make_pose, pose_inverse
 from .._linalg import nearest_rotation
-from .checks import MIN_POINTS_PER_VIEW
+from .checks import spanning_views
 from .data import HandEyeData, HandEyePixels
 from .model import robot_motion
 
@@ -59,7 +59,8 @@ def _homography_pose(uv, w, K, ab, T_board_plane):
 def board_poses_from_pixels(
     data: HandEyePixels,
 ) -> tuple[Float[Array, "cameras frames 4 4"], Bool[Array, "cameras frames"]]:
-    """Per-view board poses by homography (closed form), and which views had enough corners."""
+    """Per-view board poses by homography (closed form), and which views had enough corners
+    spanning the board (`checks.spanning_views`)."""
     T_bp, ab = _plane_frame(data.board_points)
     w = data.mask.astype(jnp.float64)
     uv = jnp.where(data.mask[..., None], data.pixels, 0.0)
@@ -67,7 +68,7 @@ def board_poses_from_pixels(
         lambda uv_c, w_c, K: jax.vmap(lambda u, ww: _homography_pose(u, ww, K, ab, T_bp))(uv_c, w_c)
     )
     A = pose(uv, w, data.K)
-    ok = jnp.sum(data.mask, axis=-1) >= MIN_POINTS_PER_VIEW
+    ok = spanning_views(ab, data.mask, xp=jnp)  # corners on one line leave the homography free
     return jnp.where(ok[..., None, None], A, jnp.eye(4)), ok
 
 

@@ -8,9 +8,11 @@ $$\\angle(R_{A_f}^T R_{A_g}) = \\angle(R_{B_f}^T R_{B_g})$$
 
 for every pair, whatever $X$ and $Y$, in both arrangements ($B_f$ or its
 inverse: the angle of $R^T$ is that of $R$). A capture whose robot poses do
-not belong to its images (shuffled, another capture's, a wrong unit or
-quaternion order) breaks this for most pairs and is refused; a few bad robot
-poses break it for their own pairs only and are named.
+not belong to its images (shuffled, another capture's, a wrong unit) breaks
+this for most pairs and is refused; a few bad robot poses break it for their
+own pairs only and are named. (A quaternion read in the wrong component order
+keeps every relative angle: $|q_f \\cdot q_g|$ does not change when the four
+components are permuted alike; the solve's residuals show it instead.)
 
 Board poses come from the measured poses, or from the pixels by a planar
 homography (Zhang's decomposition, as `closed.board_poses_from_pixels`, in
@@ -22,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InconsistentPosesError
+from .checks import plane_coordinates, spanning_views
 
 #: Pairs whose camera and robot rotation angles differ by more than this disagree (deg).
 CONSISTENCY_TOL_DEG = 2.0
@@ -47,11 +50,12 @@ def homography_rotations(pixels, mask, K, board_points) -> tuple[np.ndarray, np.
     `(points, 3)` m, (nearly) coplanar.
 
     **Returns:** `(R_cam_board (cameras, frames, 3, 3), ok (cameras, frames))`,
-    `ok` where a view has at least 4 corners (identity elsewhere).
+    `ok` where a view has at least 4 corners not on one line (`checks.spanning_views`;
+    identity elsewhere).
     """
     px, mask, K = np.asarray(pixels, float), np.asarray(mask, bool), np.asarray(K, float)
     C, F = mask.shape[:2]
-    ok = mask.sum(-1) >= 4
+    ok = spanning_views(plane_coordinates(np.asarray(board_points, float)), mask)
     R = np.broadcast_to(np.eye(3), (C, F, 3, 3)).copy()
     c, f = np.nonzero(ok)
     if len(c):

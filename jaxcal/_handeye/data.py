@@ -13,7 +13,16 @@ from ..errors import (
     ShapeError,
     TooFewPosesError,
 )
-from .checks import MIN_POINTS_PER_VIEW, MIN_POSES, check_motion_diversity, check_rotations
+from .checks import (
+    MIN_POINTS_PER_VIEW,
+    MIN_POSES,
+    check_intrinsics,
+    check_motion_diversity,
+    check_rotations,
+    check_sigma,
+    plane_coordinates,
+    spanning_views,
+)
 from .consistency import (
     CONSISTENCY_TOL_DEG,
     MotionConsistency,
@@ -129,6 +138,8 @@ def make_hand_eye_pixels(
         raise ShapeError(
             f"pixels must have shape (frames, points, 2) or (cameras, frames, points, 2), got {px.shape}"
         )
+    if K.shape[-2:] != (3, 3) or K.ndim not in (2, 3):
+        raise ShapeError(f"K must have shape (3, 3) or (cameras, 3, 3), got {K.shape}")
     if K.ndim == 2:
         K = np.broadcast_to(K, (px.shape[0], 3, 3))
     mask = np.all(np.isfinite(px), axis=-1) if mask is None else np.asarray(mask, bool)
@@ -230,6 +241,8 @@ def validate_hand_eye(
             raise ShapeError(f"mask has shape {mask.shape}, pixels imply {px.shape[:3]}")
         if np.shape(data.K) != (C, 3, 3):
             raise ShapeError(f"K has shape {np.shape(data.K)}, expected {(C, 3, 3)} for {C} cameras")
+        check_intrinsics(np.asarray(data.K))
+        check_sigma("sigma_px", data.sigma_px)
         if np.shape(data.board_points) != (P, 3):
             raise ShapeError(f"board_points has shape {np.shape(data.board_points)}, pixels imply {(P, 3)}")
         if not np.all(np.isfinite(np.asarray(data.board_points))):
@@ -238,8 +251,8 @@ def validate_hand_eye(
         if bad.any():
             c, f, p = (int(k) for k in np.argwhere(bad)[0])
             raise NonFiniteError(f"pixels: non-finite detected corner at camera {c}, frame {f}, point {p}")
-        views = mask.sum(-1) >= MIN_POINTS_PER_VIEW
-        what = f"frames with at least {MIN_POINTS_PER_VIEW} detected corners"
+        views = spanning_views(plane_coordinates(np.asarray(data.board_points)), mask)
+        what = f"frames with at least {MIN_POINTS_PER_VIEW} detected corners not on one line"
         rotations = lambda: homography_rotations(px, mask, data.K, data.board_points)[0]
     else:
         A, mask = np.asarray(data.T_cam_board), np.asarray(data.mask)
@@ -252,12 +265,15 @@ def validate_hand_eye(
             raise ShapeError(f"mask has shape {mask.shape}, T_cam_board implies {(C, F)}")
         # Index messages by (camera, frame): unmeasured poses are replaced by the identity.
         check_rotations(np.where(mask[..., None, None], A, np.eye(4)), "T_cam_board")
+        check_sigma("sigma_translation and sigma_rotation", data.sigma)
         if data.cov is not None:
             _check_covariances(np.asarray(data.cov), mask)
         views = mask
         what = "frames with a measured board pose"
         rotations = lambda: A[..., :3, :3]
     check_rotations(T, "T_base_ee")
+    if data.robot_sigma is not None:
+        check_sigma("robot_sigma_translation and robot_sigma_rotation", data.robot_sigma)
     unseen = np.flatnonzero(~views.any(1))
     if unseen.size:
         raise TooFewPosesError(f"camera {unseen[0]} has no usable view ({what}); its pose cannot be solved")

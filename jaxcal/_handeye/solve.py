@@ -54,7 +54,8 @@ class HandEyeResult(eqx.Module):
       of the stated noise (about 1 when the noise model is honest).
     - `T_base_ee`: the robot poses used (corrected when `robot_sigma` was given).
     - `robot_rms` `(frames,)`: whitened RMS of each frame's robot correction,
-      $\\|\\delta_f / \\sigma_{robot}\\| / \\sqrt 6$ (NaN for exact robot poses).
+      $\\|\\delta_f / \\sigma_{robot}\\| / \\sqrt 6$ (NaN for exact robot poses and for
+      frames no kept view saw).
     - `residual_rms`: RMS of the whitened observation residuals over the kept
       groups (about 1 when the noise model is honest); `pixel_rms` (px, NaN for
       pose data).
@@ -377,7 +378,10 @@ def _summarise(
     robot_rms = (
         jnp.full(F, jnp.nan)
         if delta is None
-        else jnp.sqrt(jnp.mean((delta / data.robot_sigma) ** 2, axis=-1))
+        # NaN for a frame no camera's kept view saw (rejected): its correction is just the prior's zero.
+        else jnp.where(
+            jnp.any(ref.active, axis=0), jnp.sqrt(jnp.mean((delta / data.robot_sigma) ** 2, axis=-1)), jnp.nan
+        )
     )
     return HandEyeResult(
         T_cam_robot=X,
