@@ -67,6 +67,10 @@ def aruco_dictionary(name: str):
     return cv2.aruco.getPredefinedDictionary(code)
 
 
+#: A target length above this (m) is taken for millimetres given as metres and refused.
+MAX_LENGTH_M = 2.0
+
+
 @dataclass(frozen=True)
 class TargetSpec:
     """What is printed on one plate. Lengths in metres.
@@ -99,6 +103,12 @@ class TargetSpec:
             raise ValueError(f"{where}: kind must be one of {KINDS}, got {self.kind!r}")
         if not (self.marker_length > 0 and self.margin >= 0):
             raise ValueError(f"{where}: marker_length must be > 0 and margin >= 0")
+        for name in ("square_length", "marker_length", "margin"):
+            if getattr(self, name) > MAX_LENGTH_M:
+                raise ValueError(
+                    f"{where}: {name} = {getattr(self, name):g} m; lengths are in metres "
+                    f"(millimetres given? {getattr(self, name):g} mm = {getattr(self, name) / 1e3:g} m)"
+                )
         if self.kind == "aruco":
             cols, rows = 1, 1
         else:

@@ -380,6 +380,10 @@ def _set(row, i, value):
         ),
         (lambda r, m: (r / "images" / "cam0" / "f2.png").unlink(), r"no image for frame\(s\) \['f2'\]"),
         (lambda r, m: m.update(schema_version=7), r"unknown schema_version 7"),
+        (
+            lambda r, m: m["target"].update(square_length=30),
+            r"target 'board': square_length = 30 m; lengths are in metres \(millimetres given\?",
+        ),
     ],
 )
 def test_bad_captures_name_file_field_and_value(tmp_path, breakage, match):
