@@ -60,7 +60,8 @@ def check_intrinsics(K: np.ndarray) -> None:
             raise IntrinsicsError(
                 f"K of camera {c}: focal lengths must be positive (px), got fx = {Kc[0, 0]:g}, fy = {Kc[1, 1]:g}"
             )
-        if Kc[1, 0] != 0 or Kc[2, 0] != 0 or Kc[2, 1] != 0 or abs(Kc[2, 2] - 1.0) > 1e-12:
+        tol = 1e-9 * max(abs(Kc[0, 0]), abs(Kc[1, 1]))  # round-off of a K read from text
+        if max(abs(Kc[1, 0]), abs(Kc[2, 0]), abs(Kc[2, 1])) > tol or abs(Kc[2, 2] - 1.0) > 1e-9:
             raise IntrinsicsError(
                 f"K of camera {c}: must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (is it transposed?), "
                 f"got {Kc.tolist()}"
