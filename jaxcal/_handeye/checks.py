@@ -1,4 +1,4 @@
-"""Input checks shared by the hand-eye and TCP-touch data (NumPy, outside jit)."""
+"""Input checks shared by the hand-eye and TCP-touch data (NumPy, outside jit; `spanning_views` also traces)."""
 
 import numpy as np
 
