@@ -23,11 +23,13 @@ MIN_VIEW_SPREAD_RATIO = 1e-3
 _ROTATION_TOL = 1e-6
 
 
-def plane_coordinates(points: np.ndarray) -> np.ndarray:
-    """Coordinates `(points, 2)` of (nearly) coplanar board points in their best-fit plane."""
+def plane_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(R_board_plane (3, 3), ab (points, 2))`: the best-fit plane of (nearly) coplanar board
+    points (z along its normal) and the points' coordinates in it, about their centroid."""
     d = points - points.mean(0)
     _, V = np.linalg.eigh(d.T @ d)
-    return d @ V[:, [2, 1]]
+    U = np.stack([V[:, 2], V[:, 1], np.cross(V[:, 2], V[:, 1])], axis=1)
+    return U, d @ U[:, :2]
 
 
 def spanning_views(ab, mask, xp=np):

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InconsistentPosesError
-from .checks import plane_coordinates, spanning_views
+from .checks import plane_frame, spanning_views
 
 #: Pairs whose camera and robot rotation angles differ by more than this disagree (deg).
 CONSISTENCY_TOL_DEG = 2.0
@@ -55,20 +55,18 @@ def homography_rotations(pixels, mask, K, board_points) -> tuple[np.ndarray, np.
     """
     px, mask, K = np.asarray(pixels, float), np.asarray(mask, bool), np.asarray(K, float)
     C, F = mask.shape[:2]
-    ok = spanning_views(plane_coordinates(np.asarray(board_points, float)), mask)
+    U, ab = plane_frame(np.asarray(board_points, float))
+    ok = spanning_views(ab, mask)
     R = np.broadcast_to(np.eye(3), (C, F, 3, 3)).copy()
     c, f = np.nonzero(ok)
     if len(c):
-        R[c, f] = _homography_rotations(px[c, f], mask[c, f], K[c], np.asarray(board_points, float))
+        R[c, f] = _homography_rotations(px[c, f], mask[c, f], K[c], U, ab)
     return R, ok
 
 
-def _homography_rotations(px, mask, K, P) -> np.ndarray:
-    """`(views, 3, 3)` for views with at least 4 points: `px` `(views, points, 2)`, `K` `(views, 3, 3)`."""
-    c = P.mean(0)
-    _, V = np.linalg.eigh((P - c).T @ (P - c))
-    U = np.stack([V[:, 2], V[:, 1], np.cross(V[:, 2], V[:, 1])], axis=1)  # R_board_plane
-    ab = (P - c) @ U[:, :2]
+def _homography_rotations(px, mask, K, U, ab) -> np.ndarray:
+    """`(views, 3, 3)` for views with at least 4 points: `px` `(views, points, 2)`, `K` `(views, 3, 3)`,
+    `U`, `ab`: `checks.plane_frame` of the board points."""
     y = (px[..., 1] - K[:, None, 1, 2]) / K[:, None, 1, 1]
     x = (px[..., 0] - K[:, None, 0, 2] - K[:, None, 0, 1] * y) / K[:, None, 0, 0]
     w = mask.astype(float)

