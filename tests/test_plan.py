@@ -121,6 +121,14 @@ def test_fisher_information_is_the_refinements_cramer_rao_bound(ur5e):
     assert abs(ev.ratio_percentile(hi * ev.ee_rms) - 0.95) < 0.002
     assert abs(ev.outside_probability(lo, hi) - 0.10) < 0.003
     assert ev.ratio_percentile(0.0) == 0.0 and ev.ratio_percentile(1e3) == 1.0
+    # No rescaled prediction keeps more of one capture's ratio inside a band than the best scale:
+    # scanning scales by brute force finds the same optimum, and it is at least the RMS's own.
+    best, scale = ev.best_band_probability(0.6, 1.5)
+    scan = [1.0 - ev.outside_probability(0.6 * c, 1.5 * c) for c in np.linspace(0.5, 1.5, 201)]
+    assert abs(best - max(scan)) < 0.002 and best >= 1.0 - ev.outside_probability(0.6, 1.5) - 1e-12
+    inside = 1.0 - ev.outside_probability(0.6 * scale, 1.5 * scale)
+    assert abs(inside - best) < 2e-4  # round-off may move the two draws on its ends
+    assert 0.5 < scale < 1.2 and best < 0.999
     # Its mean square is the prediction's: E[sum(lam z^2)] = ee_rms^2.
     assert np.isclose(ev.error_eigenvalues.sum(), ev.ee_rms**2, rtol=1e-6)
 

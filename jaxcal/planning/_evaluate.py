@@ -172,9 +172,11 @@ class PlanEvaluation:
       $\\lambda = \\mathrm{eig}(\\Sigma^{1/2} M \\Sigma^{1/2})$; `effective_dof`
       $= (\\sum \\lambda)^2 / \\sum \\lambda^2$: with few, one capture's figure
       scatters widely about the prediction. `error_eigenvalues`: that $\\lambda$
-      (m^2); `ratio_percentile` and `outside_probability` read the same
-      distribution: where one capture's measured/predicted ratio falls in it,
-      and how often a capture lands outside a band of ratios when the model is exact.
+      (m^2); `ratio_percentile`, `outside_probability` and
+      `best_band_probability` read the same distribution: where one capture's
+      measured/predicted ratio falls in it, how often a capture lands outside a
+      band of ratios when the model is exact, and the most any rescaled
+      prediction could keep inside that band.
     - `sigma_px`: the pixel noise assumed; `frames`, `corners`: what was used.
     - `singular_values`: of the column-normalised information (free parameters).
     """
@@ -219,6 +221,20 @@ class PlanEvaluation:
         `[lo, hi]` when the prediction's model is exact."""
         r = self._ratio_draws()
         return float(np.mean((r < lo) | (r > hi)))
+
+    def best_band_probability(self, lo: float = 0.6, hi: float = 1.5) -> tuple[float, float]:
+        """The most probability any point prediction can put inside `[lo, hi]`.
+
+        Returns `(probability, scale)`: with the model exact, the prediction
+        `scale * ee_rms` has one capture's measured/predicted ratio inside
+        `[lo, hi]` with `probability`, and no other scale does better. It bounds
+        what a band criterion can ask of single captures of this design,
+        whatever the predictor: one capture's own scatter leaves the rest outside.
+        """
+        r = np.sort(self._ratio_draws())
+        inside = np.searchsorted(r, (hi / lo) * r, side="right") - np.arange(r.size)
+        best = int(np.argmax(inside))
+        return float(inside[best] / r.size), float(r[best] / lo)
 
     @property
     def held(self) -> list[str]:
