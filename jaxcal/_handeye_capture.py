@@ -28,8 +28,8 @@ from ._handeye import (
     kfold_spread,
     pose_difference,
 )
-from .errors import CalibrationError
-from .io.handeye import HandEyeCapture, load_hand_eye_capture
+from .errors import CalibrationError, HandEyeInputError
+from .io.handeye import HandEyeCapture, load_hand_eye_capture, matrix_to_quaternion, quaternion_to_matrix
 from .vision import HandEyeObservations, calibrate_intrinsics, detect_frames, hand_eye_from_detections
 
 #: Outlier threshold of `calibrate_hand_eye` (times the median group RMS); reported with rejections.
@@ -146,6 +146,63 @@ def _truth_error(capture, result) -> "np.ndarray | None":
     return np.stack([np.linalg.norm(e[:, :3], axis=1), np.linalg.norm(e[:, 3:], axis=1)], axis=1)
 
 
+#: Whitened residual RMS above which the poses and images are taken not to fit (`assess_hand_eye`'s
+#: `max_residual_ratio`) and `_diagnose_misfit` tries the common misreadings of the input.
+MISFIT_RATIO = 3.0
+
+
+def _misreadings(capture: HandEyeCapture) -> list[tuple[str, np.ndarray, bool]]:
+    """The input mistakes that keep every relative rotation angle, so that the input check
+    passes and only the fit can see them: `(what to fix, T_base_ee, eye_in_hand)` each."""
+    T = np.asarray(capture.T_base_ee, np.float64)
+    other = "eye_to_hand" if capture.eye_in_hand else "eye_in_hand"
+    out = [
+        (
+            f"handeye.json field 'arrangement' is {other!r} (or the poses are inverted: poses.csv must hold "
+            "the flange in the base frame, T_base_ee, not T_ee_base)",
+            T,
+            not capture.eye_in_hand,
+        )
+    ]
+    if capture.pose_format == "xyz_quat":
+        q = np.stack([matrix_to_quaternion(R) for R in T[:, :3, :3]])  # as read: x, y, z, w
+        for shift, holds in ((-1, "w, x, y, z"), (1, "y, z, w, x")):
+            R = quaternion_to_matrix(np.roll(q, shift, axis=-1))
+            Ta = T.copy()
+            Ta[:, :3, :3] = R
+            out.append(
+                (
+                    f"the columns that poses.csv's header names qx, qy, qz, qw hold {holds} (label the "
+                    "columns in the order the values are written)",
+                    Ta,
+                    capture.eye_in_hand,
+                )
+            )
+    return out
+
+
+def _diagnose_misfit(capture: HandEyeCapture, observe: Callable, result, solve: Callable) -> str | None:
+    """When the poses and images do not fit one hand-eye transform, re-solve under each common
+    misreading of the input (`_misreadings`; `observe(T_base_ee, eye_in_hand)` builds the data)
+    and name the one that fits, if one does: an arrangement swapped or poses inverted, a
+    quaternion's components in another order. Same compiled solver: the arrangement is data
+    and the shapes are the bucket's."""
+    given = float(result.residual_rms)
+    for fix, T, eye_in_hand in _misreadings(capture):
+        try:
+            alt = observe(T, eye_in_hand)
+        except HandEyeInputError:
+            continue
+        r = jax.tree.map(np.asarray, solve(alt.data, True))
+        ratio = float(r.residual_rms)
+        if np.isfinite(ratio) and ratio <= MISFIT_RATIO and ratio < 0.1 * given:
+            return (
+                f"the data fit if {fix}: reprojection RMS {float(r.pixel_rms):.3g} px that way against "
+                f"{float(result.pixel_rms):.3g} px as given"
+            )
+    return None
+
+
 def calibrate_hand_eye_capture(
     capture,
     *,
@@ -206,18 +263,22 @@ def calibrate_hand_eye_capture(
             )
     t0 = time.perf_counter()
     intrinsics = _intrinsics(capture, detections, log)
-    observations = hand_eye_from_detections(
-        detections,
-        target,
-        capture.T_base_ee,
-        np.stack([i.K for i in intrinsics]),
-        _distortions([i.dist for i in intrinsics]),
-        eye_in_hand=capture.eye_in_hand,
-        sigma_px=sigma_px,
-        frame_names=capture.frames,
-        robot_sigma_translation=robot_sigma_translation,
-        robot_sigma_rotation=robot_sigma_rotation,
-    )
+
+    def observe(T_base_ee, eye_in_hand: bool, sigma_px: float | None) -> HandEyeObservations:
+        return hand_eye_from_detections(
+            detections,
+            target,
+            T_base_ee,
+            np.stack([i.K for i in intrinsics]),
+            _distortions([i.dist for i in intrinsics]),
+            eye_in_hand=eye_in_hand,
+            sigma_px=sigma_px,
+            frame_names=capture.frames,
+            robot_sigma_translation=robot_sigma_translation,
+            robot_sigma_rotation=robot_sigma_rotation,
+        )
+
+    observations = observe(capture.T_base_ee, capture.eye_in_hand, sigma_px)
     seconds["prepare"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     solve = hand_eye_solver(max_steps)
@@ -235,6 +296,15 @@ def calibrate_hand_eye_capture(
         camera_names=[f"camera {c.name}" for c in capture.cameras],
         max_steps=max_steps,
     )
+    if float(result.residual_rms) > MISFIT_RATIO:
+        t0 = time.perf_counter()
+        found = _diagnose_misfit(
+            capture, lambda T, eih: observe(T, eih, observations.sigma_px), result, solve
+        )
+        seconds["diagnose"] = time.perf_counter() - t0
+        if found:
+            log(f"the poses fit the images once read differently: {found}")
+            verdict = replace(verdict, reasons=verdict.reasons + (found,))
     guessed = [c.name for c, k in zip(capture.cameras, intrinsics) if k.source == "self-calibrated"]
     if guessed:
         # The solve, its standard deviations and the k-fold spread all hold K exact: a focal length

@@ -553,6 +553,47 @@ def test_shuffled_capture_is_refused_by_the_command(corrupted_capture, tmp_path,
     assert not (tmp_path / "out").exists()
 
 
+def _rewrite_poses(path, fn):
+    with open(path / "poses.csv", newline="") as f:
+        rows = list(csv.reader(f))
+    with open(path / "poses.csv", "w", newline="") as f:
+        csv.writer(f).writerows([rows[0]] + [fn(rows[0], r) for r in rows[1:]])
+
+
+@pytest.mark.slow
+def test_a_misread_capture_is_named_with_its_fix(corrupted_capture, tmp_path):
+    """Two mistakes the input check cannot see (every relative rotation angle is kept): the
+    arrangement swapped, and quaternions written w, x, y, z under a qx, qy, qz, qw header. Each
+    is suspect with a reason naming the field to fix, and read that way it fits as the clean
+    capture does; the clean capture gets no such reason."""
+    clean, _ = corrupted_capture
+    r = jaxcal.calibrate_hand_eye_capture(clean, folds=0)
+    assert r.verdict.ok and not any("the data fit if" in x for x in r.verdict.reasons)
+    swapped = tmp_path / "swapped"
+    shutil.copytree(clean, swapped)
+    meta = json.loads((swapped / "handeye.json").read_text())
+    assert meta["arrangement"] == "eye_in_hand"
+    (swapped / "handeye.json").write_text(json.dumps(meta | {"arrangement": "eye_to_hand"}))
+    wxyz = tmp_path / "wxyz"
+    shutil.copytree(clean, wxyz)
+
+    def as_wxyz(header, row):
+        i = [header.index(c) for c in ("qx", "qy", "qz", "qw")]
+        out = list(row)
+        for j, v in zip(i, [row[i[3]], row[i[0]], row[i[1]], row[i[2]]]):
+            out[j] = v
+        return out
+
+    _rewrite_poses(wxyz, as_wxyz)
+    for capture, names in ((swapped, "field 'arrangement' is 'eye_in_hand'"), (wxyz, "hold w, x, y, z")):
+        bad = jaxcal.calibrate_hand_eye_capture(capture, folds=0)
+        assert bad.verdict.status == "suspect" and float(bad.result.pixel_rms) > 100 * float(r.result.pixel_rms)
+        found = [x for x in bad.verdict.reasons if "the data fit if" in x]
+        assert len(found) == 1 and names in found[0], bad.verdict.reasons
+        rms = float(found[0].split("reprojection RMS ")[1].split(" px")[0])
+        assert abs(rms - float(r.result.pixel_rms)) < 0.05 * float(r.result.pixel_rms)
+
+
 def test_pose_rows_columns():
     T = _pose([0.1, 0.2, 0.3], [1.0, 2.0, 3.0])[None]
     assert pose_rows(T, "xyz_quat", "mm")[0][:3] == [1000.0, 2000.0, 3000.0]

@@ -82,6 +82,7 @@ class HandEyeCapture:
     - `images`: per camera, per frame, the image path.
     - `base_frame`, `ee_frame`, `target_frame`: frame names for the ROS outputs.
     - `truth`: the parsed `truth.json` of a synthetic capture, else `None`.
+    - `pose_format`: the pose table's `poses.format` (`POSE_COLUMNS`).
     """
 
     root: Path
@@ -96,6 +97,7 @@ class HandEyeCapture:
     target_frame: str = "calibration_target"
     description: str = ""
     truth: dict | None = field(default=None)
+    pose_format: str = "matrix"
 
     @property
     def arrangement(self) -> str:
@@ -446,6 +448,7 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
         target_frame=_name(names, "target", "calibration_target", f"{where}: frames"),
         description=str(meta.get("description", "")),
         truth=truth,
+        pose_format=str(poses["format"]),
     )
 
 
