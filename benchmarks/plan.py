@@ -246,6 +246,13 @@ def summarise(args, plans, pred, evs, runs, extra) -> dict:
         "predictions": pred,
         "prediction_ratios": ratios,
         "ratios_within_0.6_1.5": int(sum(0.6 <= r["ratio"] <= 1.5 for r in ratios)),
+        # Against each design's own 90 % interval of one capture's ratio: an honest prediction
+        # has about 90 % of the pairs inside.
+        "ratios_within_90_interval": int(
+            sum(
+                lo <= r["ratio"] <= hi for r in ratios for lo, hi in [pred[r["capture"]]["ratio_interval_90"]]
+            )
+        ),
         # With the prediction's own model exact, how likely every pair is inside x0.6-1.5:
         # one capture's ratio scatters (`ratio_interval_90`), so this is the bound on that criterion.
         "all_pairs_inside_probability_if_exact": float(
