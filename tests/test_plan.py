@@ -9,8 +9,14 @@ nothing written), and one small rendered eye-in-hand plan end to end.
 """
 
 import json
+import os
+import re
+import shutil
+from dataclasses import replace
 from itertools import combinations
+from pathlib import Path
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,6 +37,7 @@ from jaxcal.planning import (
     evaluate_views,
     load_plan,
     plan_from_dict,
+    plan_robot,
     plan_to_dict,
     save_plan,
     scene_of,
@@ -44,7 +51,9 @@ from jaxcal.planning._evaluate import (
     ee_mean_square,
     free_jacobian,
 )
+from jaxcal.planning._inputs import read_camera
 from jaxcal.planning._optimise import all_margins, correct_toward, greedy_d_optimal, view_blocks
+from jaxcal.robots import robot_path
 
 #: Twelve poses about the UR5e's zero that the demo's camera sees well (rad).
 POSES = np.radians(
@@ -272,6 +281,150 @@ def test_bad_input_is_refused_with_exit_code_2_and_nothing_written(ur5e, tmp_pat
         jaxcal.evaluate_plan(_plan(ur5e), region=([2.0, 2.0, 2.0], [3.0, 3.0, 3.0]))
     assert main(["plan", "--robot", "scara", "--frames", "24", "--out", str(out), "--no-mujoco"]) == 2
     assert "['joint3'] are prismatic" in capsys.readouterr().err and not out.exists()
+
+
+CAMERA_YAML = """camera_name: side
+camera_matrix: [[1400, 0, 959.5], [0, 1400, 539.5], [0, 0, 1]]
+distortion_coefficients: {rows: 1, cols: 5, data: [-0.05, 0.01, 0, 0, 0]}
+image_width: 1920
+image_height: 1080
+T_base_cam: [[1, 0, 0, 0.1], [0, 1, 0, 0.2], [0, 0, 1, 0.3], [0, 0, 0, 1]]
+"""
+
+
+def test_camera_files_plain_yaml_ros_or_opencv_every_field_checked(tmp_path):
+    """A camera file as a user writes it (plain YAML lists, ROS camera_info's {rows, cols, data})
+    reads as OpenCV's own format does; a value the plan file would refuse is refused here,
+    naming the file and the field (a traceback or a plan written and refused later, before)."""
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(CAMERA_YAML)
+    cam = read_camera(plain, "flange")
+    fs = cv2.FileStorage(str(tmp_path / "cv.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array([[1400, 0, 959.5], [0, 1400, 539.5], [0, 0, 1]]))
+    fs.write("distortion_coefficients", np.array([[-0.05, 0.01, 0, 0, 0]]))
+    fs.write("T_base_cam", np.array([[1, 0, 0, 0.1], [0, 1, 0, 0.2], [0, 0, 1, 0.3], [0, 0, 0, 1.0]]))
+    fs.write("image_width", 1920)
+    fs.write("image_height", 1080)
+    fs.write("camera_name", "side")
+    fs.release()
+    opencv = read_camera(tmp_path / "cv.yaml", "flange")
+    assert cam.mount == opencv.mount == "world" and (cam.width, cam.height) == (1920, 1080)
+    assert np.array_equal(cam.K, opencv.K) and np.array_equal(cam.distortion, opencv.distortion)
+    assert np.array_equal(cam.T_mount_cam, opencv.T_mount_cam) and cam.distortion[0] == -0.05
+    bad = {
+        "camera_matrix: [[1400, 0, 959.5], [0, 1400, 539.5], [0, 0, 0]]": "'camera_matrix': expected a pinhole",
+        "camera_matrix: [1400, 0, 959.5, 0, 1400, 539.5, 0, 0, 1]": "'camera_matrix': expected a 3x3 matrix",
+        "camera_matrix: [[-1400, 0, 959.5], [0, 1400, 539.5], [0, 0, 1]]": "fx, fy > 0",
+        "image_width: wide": "'image_width': expected a whole number of pixels, got 'wide'",
+        "image_width: 1920.7": "'image_width': expected a whole number",
+        "image_width: 0": "'image_width': expected 1 to 65535",
+        "T_flange_cam: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]": "give one camera pose",
+        "T_base_cam: [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]": "'T_base_cam': not a rigid",
+        "distortion_coefficients: [0, 0, 0, 0, 0, 0, 0, 0]": "expected 5 numbers",
+        "camera_matrix: [[1400, 0, 959.5], [0, 1400, .nan], [0, 0, 1]]": "not finite",
+    }
+    for i, (line, match) in enumerate(bad.items()):
+        key = line.split(":")[0]
+        text = (
+            "\n".join(x for x in CAMERA_YAML.splitlines() if not x.startswith(key + ":")) + "\n" + line + "\n"
+        )
+        path = tmp_path / f"bad{i}.yaml"
+        path.write_text(text)
+        with pytest.raises(PlanFileError, match=re.escape(match)) as e:
+            read_camera(path, "flange")
+        assert str(path) in str(e.value)
+    (tmp_path / "prose.yaml").write_text("This is: not: a camera\n")
+    (tmp_path / "broken.yaml").write_text("%YAML:1.0\ncamera_matrix: [[1, 2], oops\n")
+    for name in ("prose.yaml", "broken.yaml"):
+        with pytest.raises(PlanFileError, match=name):
+            read_camera(tmp_path / name, "flange")
+
+
+def test_plan_command_never_writes_over_inputs_or_existing_files(ur5e, tmp_path, capsys):
+    """`--evaluate P --json P` replaced the plan, `--plot` any file, and `plan --overwrite --out`
+    its own camera or target file; each is now exit 2 with the input unchanged. A plan's joint
+    values outside the robot's limits are refused (they were evaluated and rendered), and a
+    URDF path in a plan is read relative to the plan file."""
+    plan_path, other = tmp_path / "plan.json", tmp_path / "notes.txt"
+    save_plan(_plan(ur5e), plan_path)
+    other.write_text("keep me")
+    before = plan_path.read_bytes()
+    for argv in (
+        ["--json", str(plan_path)],
+        ["--plot", str(plan_path), "--overwrite"],
+        ["--plot", str(other)],
+        ["--out", str(tmp_path / "new.json")],
+    ):
+        assert main(["plan", "--evaluate", str(plan_path), *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert "never writes over its inputs" in err or "exists" in err or "--out writes a new plan" in err
+    assert plan_path.read_bytes() == before and other.read_text() == "keep me"
+    assert not (tmp_path / "new.json").exists()
+    camera = tmp_path / "camera.yaml"
+    camera.write_text(CAMERA_YAML)
+    cam_before = camera.read_bytes()
+    argv = [
+        "plan",
+        "--camera",
+        str(camera),
+        "--frames",
+        "24",
+        "--no-mujoco",
+        "--overwrite",
+        "--out",
+        str(camera),
+    ]
+    assert main(argv) == 2 and "never writes over its inputs" in capsys.readouterr().err
+    assert camera.read_bytes() == cam_before
+    argv = [
+        "plan",
+        "--camera",
+        str(camera),
+        "--eye-in-hand",
+        "--frames",
+        "24",
+        "--out",
+        str(tmp_path / "e.json"),
+    ]
+    assert main(argv) == 2 and "places a fixed camera" in capsys.readouterr().err
+    # Joint values outside the limits: a pose, and the taught pose.
+    d = plan_to_dict(_plan(ur5e))
+    d["segments"][0]["poses"][4][1] = 7.5
+    (tmp_path / "outside.json").write_text(json.dumps(d))
+    assert main(["plan", "--evaluate", str(tmp_path / "outside.json")]) == 2
+    err = capsys.readouterr().err
+    assert (
+        "outside.json: segments[0] frame 4: joint shoulder_lift_joint = 7.5000 rad is outside its limits"
+        in err
+    )
+    with pytest.raises(PlanFileError, match=r"taught: joint wrist_3_joint"):
+        jaxcal.evaluate_plan(replace(_plan(ur5e), taught=np.array([0, 0, 0, 0, 0, 9.0])))
+    # A URDF given by a relative path: the plan records it relative to itself and reads it so.
+    sub = tmp_path / "plans"
+    sub.mkdir()
+    urdf = tmp_path / "arm.urdf"
+    shutil.copy(robot_path("ur5e"), urdf)
+    saved = save_plan(replace(_plan(ur5e), robot=os.path.relpath(urdf)), sub / "p.json")
+    assert json.loads(saved.read_text())["robot"] == "../arm.urdf"
+    assert Path(load_plan(saved).robot) == urdf.resolve()
+    assert plan_robot(load_plan(saved)).model.num_joints == 6
+
+
+def test_simulate_plan_refuses_options_the_plan_fixes(ur5e, tmp_path, capsys):
+    plan_path = save_plan(_plan(ur5e), tmp_path / "plan.json")
+    argv = ["simulate", "--plan", str(plan_path), "--robot", "panda", "--resolution", "640x480"]
+    assert main([*argv, "--out", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert "--robot, --resolution cannot change a plan" in err and not (tmp_path / "ds").exists()
+
+
+def test_negative_numbers_start_a_region_or_a_taught_pose():
+    from jaxcal.cli import _join_negative_lists
+
+    argv = ["plan", "--region", "-0.5,-0.5,0,0.5,0.5,0.5", "--taught", "-1.2,0,0,0,0,0", "--frames", "-5"]
+    assert _join_negative_lists(argv) == [
+        "plan", "--region=-0.5,-0.5,0,0.5,0.5,0.5", "--taught=-1.2,0,0,0,0,0", "--frames", "-5"
+    ]  # fmt: skip
 
 
 @pytest.mark.slow

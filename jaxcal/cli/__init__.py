@@ -12,6 +12,7 @@
 """
 
 import argparse
+import re
 import sys
 
 from .._cache import enable_compilation_cache
@@ -209,7 +210,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Options whose value is a comma-separated list of numbers that may start with a minus.
+NUMBER_LISTS = ("--region", "--taught", "--home-deg", "--sweep-deg")
+_NEGATIVE_LIST = re.compile(r"^-\.?\d[\d.eE+-]*(,[-+]?[\d.eE+-]+)*$")
+
+
+def _join_negative_lists(argv: list[str]) -> list[str]:
+    """`--region -0.5,...` as `--region=-0.5,...`: argparse takes a value that starts
+    with a minus for an option of its own."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in NUMBER_LISTS and i + 1 < len(argv) and _NEGATIVE_LIST.match(argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = _join_negative_lists(sys.argv[1:] if argv is None else list(argv))
     args = build_parser().parse_args(argv)
     enable_compilation_cache()
     try:

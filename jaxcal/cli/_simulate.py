@@ -5,9 +5,10 @@ from pathlib import Path
 
 from rich.console import Console
 
+from ..errors import PlanError
 from ..io._files import check_output_dir, output_lock
 from ..io.dataset import load_dataset
-from ..planning import load_plan
+from ..planning import load_plan, plan_robot
 from ..planning._cli import run_plan
 
 
@@ -78,12 +79,29 @@ def cmd_plan(args) -> int:
     return run_plan(args, Console(width=max(Console().width, 120)), MujocoChecker)
 
 
+#: The `jaxcal simulate` options that go with `--plan`; any other is refused.
+PLAN_OPTIONS = ("plan", "out", "overwrite", "seed", "quiet", "grayscale", "func", "command")
+
+
 def _simulate_plan(args) -> int:
     """`jaxcal simulate --plan PLAN --out DIR`: render exactly the plan."""
     from ..sim.plan import render_plan
+    from . import build_parser
 
+    defaults = vars(build_parser().parse_args(["simulate", "--out", args.out]))
+    conflicting = [
+        "--" + k.replace("_", "-")
+        for k, v in vars(args).items()
+        if k not in PLAN_OPTIONS and k in defaults and v != defaults[k]
+    ]
+    if conflicting:
+        raise PlanError(
+            f"jaxcal simulate --plan {args.plan}: {', '.join(conflicting)} cannot change a plan (its robot, "
+            "camera, target and motion are the plan's); drop them or edit the plan"
+        )
     check_output_dir(args.out, inputs=[args.plan], overwrite=args.overwrite, kind="dataset", what="--out")
     p = load_plan(args.plan)
+    plan_robot(p, args.plan)  # its joints and limits, the error naming the file
     start = time.perf_counter()
     with output_lock(args.out, what="--out"):
         out = render_plan(

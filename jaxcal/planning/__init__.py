@@ -11,6 +11,7 @@ from ._api import PlanResult as PlanResult
 from ._api import Robot as Robot
 from ._api import evaluate_plan as evaluate_plan
 from ._api import plan as plan
+from ._api import plan_robot as plan_robot
 from ._api import scene_of as scene_of
 from ._api import sweep_plan as sweep_plan
 from ._api import workspace as workspace

@@ -135,6 +135,29 @@ def _points(scene, T_base, corr, q):
     return tool_points(scene.nominal, T_base, scene.T_mount[None], jnp.zeros(6), corr, q)
 
 
+def plan_robot(plan: CapturePlan, where: str = "plan") -> Robot:
+    """The plan's robot, checked against the plan: the same joints, and every commanded
+    configuration (the taught pose and every frame) inside the robot's joint limits
+    (`PlanFileError` naming the segment, frame and joint)."""
+    robot = Robot.load(plan.robot)
+    if tuple(robot.model.joint_names) != tuple(plan.joints):
+        raise PlanFileError(
+            f"{where}: joints {list(plan.joints)} are not robot {plan.robot!r}'s {list(robot.model.joint_names)}"
+        )
+    q, _, segment = plan.views()
+    q = np.concatenate([np.asarray(plan.taught, np.float64)[None], q])
+    outside = (q < robot.lower - 1e-9) | (q > robot.upper + 1e-9)
+    if outside.any():
+        i, j = (int(k[0]) for k in np.nonzero(outside))
+        s = int(segment[i - 1]) if i else -1
+        what = "taught" if i == 0 else f"segments[{s}] frame {int(np.sum(segment[: i - 1] == s))}"
+        raise PlanFileError(
+            f"{where}: {what}: joint {plan.joints[j]} = {q[i, j]:.4f} rad is outside its limits "
+            f"[{robot.lower[j]:.4f}, {robot.upper[j]:.4f}] (robot {plan.robot!r})"
+        )
+    return robot
+
+
 def views(plan: CapturePlan) -> tuple[np.ndarray, np.ndarray, bool]:
     """The frames of `plan`: configurations, times and whether it is a plan of sweeps."""
     q, t, _ = plan.views()
@@ -164,13 +187,10 @@ def evaluate_plan(
     RMS and 95th percentile). Raises `PlanFileError`, `UnreachableRegionError`,
     `BudgetTooSmallError`.
     """
+    where = str(plan) if isinstance(plan, (str, Path)) else "plan"
     plan = load_plan(plan) if isinstance(plan, (str, Path)) else plan
-    robot = Robot.load(plan.robot)
-    if tuple(robot.model.joint_names) != tuple(plan.joints):
-        raise PlanFileError(
-            f"plan: joints {list(plan.joints)} are not the robot's {list(robot.model.joint_names)}"
-        )
-    scene = scene_of(robot, plan.camera, plan.target, plan.floor_z)
+    robot = plan_robot(plan, where)
+    scene = scene_of(robot, plan.camera, plan.target, plan.floor_z, where)
     limits = FeasibilityLimits(**plan.checks) if limits is None else limits
     q, t, sweeps = views(plan)
     m = correct_toward(scene, limits, plan.taught, q)[1] == 1.0

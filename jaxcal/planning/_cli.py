@@ -16,7 +16,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from ..errors import OutputError, PlanError
+from ..errors import OutputError, PlanError, PlanFileError
 from ..io._files import write_text_atomic
 from ._api import Robot, evaluate_plan, plan, scene_of, views, workspace
 from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation
@@ -55,7 +55,9 @@ def add_plan_parser(sub, func) -> None:
     p.add_argument("--taught", help="taught pose q1,q2,... (rad; default the robot's)")
     p.add_argument("--frames", type=int, default=240, help="frames (stop-and-shoot poses)")
     p.add_argument("--out", help="the plan file to write (refused if it exists, unless --overwrite)")
-    p.add_argument("--overwrite", action="store_true", help="replace --out")
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace --out, --plot and --json (never an input)"
+    )
     p.add_argument("--region", help="x0,y0,z0,x1,y1,z1: box (m, base frame) where EE accuracy matters")
     p.add_argument("--sigma-px", type=float, default=DEFAULT_SIGMA_PX, help="detector corner noise, px")
     p.add_argument("--method", choices=("gradient", "greedy"), default="gradient")
@@ -71,8 +73,8 @@ def add_plan_parser(sub, func) -> None:
     p.add_argument("--view-angle-deg", type=float, default=60.0, help="largest plate view angle")
     p.add_argument("--no-mujoco", action="store_true", help="skip MuJoCo's contact and line-of-sight checks")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--plot", help="evaluation: write the EE sigma plot (PNG) here")
-    p.add_argument("--json", help="evaluation: write the figures (JSON) here")
+    p.add_argument("--plot", help="write the plan's predicted EE sigma plot (PNG) here")
+    p.add_argument("--json", help="write the plan's predicted figures (JSON) here")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=func)
 
@@ -85,10 +87,18 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _free(path, overwrite: bool, what: str) -> Path | None:
+def _free(path, overwrite: bool, what: str, inputs=()) -> Path | None:
+    """An output path that may be written: refused if it is one of the `inputs` (whatever
+    `--overwrite` says: jaxcal never writes over what it reads), if it exists without
+    `--overwrite`, or if it is a directory or its folder is missing."""
     if path is None:
         return None
     path = Path(path)
+    for given in inputs:
+        if given is not None and Path(given).exists() and path.exists() and path.samefile(given):
+            raise OutputError(
+                f"{what} {path}: is an input of this command; jaxcal never writes over its inputs"
+            )
     if path.exists() and not overwrite:
         raise OutputError(f"{what} {path}: exists (pass --overwrite to replace it)")
     if path.is_dir():
@@ -96,6 +106,20 @@ def _free(path, overwrite: bool, what: str) -> Path | None:
     if not path.parent.is_dir():
         raise OutputError(f"{what} {path}: directory {path.parent} does not exist")
     return path
+
+
+def _outputs(args, inputs) -> tuple[Path | None, Path | None]:
+    """`--plot` and `--json`, checked (`_free`) and distinct from each other and from `--out`."""
+    plot = _free(args.plot, args.overwrite, "--plot", inputs)
+    out_json = _free(args.json, args.overwrite, "--json", inputs)
+    named = [
+        (w, Path(p).resolve()) for w, p in (("--out", args.out), ("--plot", plot), ("--json", out_json)) if p
+    ]
+    for i, (w, p) in enumerate(named):
+        for w2, p2 in named[i + 1 :]:
+            if p == p2:
+                raise OutputError(f"{w} and {w2}: the same file {p}")
+    return plot, out_json
 
 
 def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
@@ -110,7 +134,12 @@ def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
         med = 1e3 * ev.ee_rms * ev.ratio_quantile(0.5)
         t.add_row("one capture's EE RMS mm", f"{med:.4f} median, {lo:.4f} .. {hi:.4f} (90 %)")
     t.add_row("pixel noise px", f"{ev.sigma_px:g}")
-    t.add_row("free parameters", f"{int(ev.free.sum())} ({len(ev.held)} held: redundant with others)")
+    unidentifiable = len(ev.unidentifiable)
+    t.add_row(
+        "free parameters",
+        f"{int(ev.free.sum())} ({len(ev.held)} held: {len(ev.held) - unidentifiable} redundant with others"
+        + (f", {unidentifiable} unidentifiable)" if unidentifiable else ")"),
+    )
     t.add_row("left unidentifiable", ", ".join(ev.unidentifiable) or "nothing")
     if ev.unidentifiable:
         t.add_row("EE RMS with their prior mm", f"{1e3 * ev.ee_rms_with_held:.4f}")
@@ -123,21 +152,37 @@ def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
     console.print(s)
 
 
-def run_evaluate(args, console: Console) -> int:
-    plot, out_json = _free(args.plot, True, "--plot"), _free(args.json, True, "--json")
-    p = load_plan(args.evaluate)
-    region = None if args.region is None else parse_region(args.region)
-    ev = evaluate_plan(p, region=region, sigma_px=args.sigma_px)
-    evaluation_table(console, ev, f"{args.evaluate}: pre-evaluation ({len(views(p)[0])} planned frames)")
+def _write_evaluation(console: Console, ev: PlanEvaluation, p, region, plot, out_json) -> None:
     if plot is not None:
         robot = Robot.load(p.robot)
         scene = scene_of(robot, p.camera, p.target, p.floor_z)
         plot_evaluation(ev, scene, workspace(robot, scene, region), plot)
         console.print(f"wrote {plot}")
     if out_json is not None:
-        figures = ev.summary() | {"std": {n: float(s) for n, s, f in zip(ev.names, ev.std, ev.free) if f}}
+        figures = ev.summary() | {
+            "region": None if region is None else [list(map(float, region[0])), list(map(float, region[1]))],
+            # SI: m (tx, ty, tz), rad (rx, ry, rz, zero offsets), a fraction (rates); and as the table shows them.
+            "std": {n: float(s) for n, s, f in zip(ev.names, ev.std, ev.free) if f},
+            "std_text": dict(parameter_rows(ev)),
+        }
         write_text_atomic(out_json, json.dumps(figures, indent=1))
         console.print(f"wrote {out_json}")
+
+
+def run_evaluate(args, console: Console) -> int:
+    if args.out is not None:
+        raise PlanError(
+            "jaxcal plan --evaluate: --out writes a new plan; to keep the figures give --json (and --plot)"
+        )
+    plot, out_json = _outputs(args, [args.evaluate])
+    p = load_plan(args.evaluate)
+    region = None if args.region is None else parse_region(args.region)
+    ev = evaluate_plan(args.evaluate, region=region, sigma_px=args.sigma_px)
+    where = "over the region" if region is not None else "over the workspace"
+    evaluation_table(
+        console, ev, f"{args.evaluate}: pre-evaluation ({len(views(p)[0])} planned frames, EE {where})"
+    )
+    _write_evaluation(console, ev, p, region, plot, out_json)
     return 0
 
 
@@ -147,12 +192,19 @@ def run_plan(args, console: Console, checker_factory=None) -> int:
         return run_evaluate(args, console)
     if args.out is None:
         raise PlanError("jaxcal plan: give --out PLAN.json (or --evaluate PLAN.json)")
-    out = _free(args.out, args.overwrite, "--out")
+    inputs = [args.camera, args.target, args.robot if Path(args.robot).is_file() else None]
+    out = _free(args.out, args.overwrite, "--out", inputs)
+    plot, out_json = _outputs(args, inputs)
     robot = Robot.load(args.robot)
     flange = robot.model.link_names[-1]
     taught = None if args.taught is None else parse_pose(args.taught, robot.model.num_joints)
     camera = None if args.camera is None else read_camera(args.camera, flange, args.resolution)
     target = None if args.target is None else read_target(args.target)
+    if args.eye_in_hand and camera is not None and camera.mount == "world":
+        raise PlanFileError(
+            f"--eye-in-hand: camera file {args.camera} places a fixed camera (T_base_cam / T_cam_base); "
+            "give T_flange_cam for a camera on the flange, or drop --eye-in-hand"
+        )
     eye_in_hand = args.eye_in_hand or (camera is not None and camera.mount != "world")
     region = None if args.region is None else parse_region(args.region)
     limits = FeasibilityLimits(view_angle_deg=args.view_angle_deg)
@@ -182,4 +234,5 @@ def run_plan(args, console: Console, checker_factory=None) -> int:
     )
     save_plan(res.plan, out)
     console.print(f"wrote {out} ({time.perf_counter() - t0:.1f} s)")
+    _write_evaluation(console, res.evaluation, res.plan, region, plot, out_json)
     return 0

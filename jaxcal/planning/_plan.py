@@ -22,6 +22,7 @@ naming the file and the field.
 """
 
 import json
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from ..errors import DatasetError, PlanFileError
 from ..io._files import write_text_atomic
 from ..io._schema import Loc, array, integer, names, number, obj, pose, read_json, string
 from ..markers import TargetSpec
+from ..robots import shipped
 
 SCHEMA = "jaxcal.plan"
 SCHEMA_VERSION = 1
@@ -321,19 +323,28 @@ def plan_to_dict(plan: CapturePlan) -> dict:
 
 
 def save_plan(plan: CapturePlan, path) -> Path:
-    """Write `plan` as JSON to `path`, atomically."""
+    """Write `plan` as JSON to `path`, atomically. A robot given as a URDF file is
+    recorded relative to the plan file's folder, as `load_plan` reads it."""
     path = Path(path)
+    robot = Path(plan.robot)
+    if plan.robot not in shipped() and robot.is_file():
+        plan = replace(plan, robot=os.path.relpath(robot.resolve(), path.resolve().parent))
     write_text_atomic(path, json.dumps(plan_to_dict(plan), indent=1) + "\n")
     return path
 
 
 def load_plan(path) -> CapturePlan:
-    """Read and check a plan file (`docs/plan.md`); a `PlanFileError` names the field at fault."""
+    """Read and check a plan file (`docs/plan.md`); a `PlanFileError` names the field at fault.
+    A relative URDF path in `robot` is read relative to the plan file's folder."""
     path = Path(path)
     try:
-        return plan_from_dict(read_json(path, "plan file"), path)
+        plan = plan_from_dict(read_json(path, "plan file"), path)
     except DatasetError as e:
         raise PlanFileError(str(e)) from None
+    robot = Path(plan.robot)
+    if plan.robot not in shipped() and not robot.is_absolute() and (path.parent / robot).is_file():
+        plan = replace(plan, robot=str((path.parent / robot).resolve()))
+    return plan
 
 
 #: The checks' names and limits a plan may record (`jaxcal.planning.FeasibilityLimits`).

@@ -20,31 +20,41 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PlanError
-from ..planning import ALWAYS, CapturePlan, PoseSet, Robot, plan_to_dict
+from ..planning import ALWAYS, CapturePlan, PoseSet, Robot, plan_robot, plan_to_dict
 from .motion import Segment, Trajectory
 from .scene import CameraSpec, PlateSpec, build_scene, mujoco
 from .simulate import SimConfig, nominal_robot, simulate
 
 
-def fovy_of(camera) -> float:
-    """MuJoCo's vertical field of view (deg) for a plan camera; refuses intrinsics
-    MuJoCo cannot render (non-square pixels, an off-centre principal point)."""
+def fovy_of(camera, exact: bool = True) -> float:
+    """MuJoCo's vertical field of view (deg) for a plan camera. MuJoCo renders square
+    pixels about the image centre: with `exact` (rendering) other intrinsics are refused;
+    without (the contact and line-of-sight checks, which need only the camera's place),
+    the field of view of `fy` is used."""
     K = np.asarray(camera.K)
     w, h = camera.width, camera.height
-    if abs(K[0, 0] - K[1, 1]) > 1e-6 * K[0, 0] or abs(K[0, 1]) > 1e-12:
-        raise PlanError(f"camera {camera.name!r}: MuJoCo renders square pixels only (fx = fy, no skew)")
-    if abs(K[0, 2] - 0.5 * (w - 1)) > 1e-6 or abs(K[1, 2] - 0.5 * (h - 1)) > 1e-6:
+    hint = (
+        "; planning and --evaluate work with any camera, only `jaxcal simulate --plan` renders through "
+        "MuJoCo's pinhole"
+    )
+    if exact and (abs(K[0, 0] - K[1, 1]) > 1e-6 * K[0, 0] or abs(K[0, 1]) > 1e-12):
+        raise PlanError(
+            f"camera {camera.name!r}: MuJoCo renders square pixels only (fx = fy, no skew), the plan has fx "
+            f"{K[0, 0]}, fy {K[1, 1]}{hint}"
+        )
+    if exact and (abs(K[0, 2] - 0.5 * (w - 1)) > 1e-6 or abs(K[1, 2] - 0.5 * (h - 1)) > 1e-6):
         raise PlanError(
             f"camera {camera.name!r}: MuJoCo renders the principal point at the image centre "
-            f"({0.5 * (w - 1)}, {0.5 * (h - 1)}), the plan has ({K[0, 2]}, {K[1, 2]})"
+            f"({0.5 * (w - 1)}, {0.5 * (h - 1)}), the plan has ({K[0, 2]}, {K[1, 2]}){hint}"
         )
     return float(np.degrees(2.0 * np.arctan(0.5 * h / K[1, 1])))
 
 
-def plan_layout(plan: CapturePlan) -> tuple[list, list]:
-    """The plan's target and camera as the renderer's `PlateSpec` / `CameraSpec`."""
+def plan_layout(plan: CapturePlan, exact: bool = True) -> tuple[list, list]:
+    """The plan's target and camera as the renderer's `PlateSpec` / `CameraSpec`
+    (`exact`: see `fovy_of`)."""
     cam, tgt = plan.camera, plan.target
-    camera = CameraSpec(cam.name, cam.width, cam.height, fovy_of(cam), np.asarray(cam.T_mount_cam), cam.mount,
+    camera = CameraSpec(cam.name, cam.width, cam.height, fovy_of(cam, exact), np.asarray(cam.T_mount_cam), cam.mount,
                         tuple(np.asarray(cam.distortion, float)))  # fmt: skip
     return [PlateSpec(tgt.spec, tgt.link, np.asarray(tgt.T_link_target))], [camera]
 
@@ -60,7 +70,7 @@ class MujocoChecker:
     def __init__(self, plan: CapturePlan, *, margin: float = 0.005):
         model, _ = nominal_robot(plan.robot)
         self.nominal, self.robot = model, plan.robot
-        plates, cameras = plan_layout(plan)
+        plates, cameras = plan_layout(plan, exact=False)  # contacts and rays: the camera's place only
         floor = plan.floor_z
         self.scene = build_scene(model, plates=plates, cameras=cameras, floor_z=floor)
         spec = self.scene.spec
@@ -160,8 +170,10 @@ def render_plan(
     arm, mounts and noise; further `SimConfig` fields in `config` (e.g.
     `grayscale=True`, `encoder_rate_hz`).
 
-    **Returns:** the dataset path.
+    **Returns:** the dataset path. Raises `PlanFileError` for a plan its robot
+    cannot carry out (other joints, a configuration outside the joint limits).
     """
+    plan_robot(plan)
     cfg = SimConfig(
         robot=plan.robot,
         seed=seed,
