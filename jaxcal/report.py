@@ -125,7 +125,8 @@ def plot_ee_errors(result):
     ax.hist(before, bins=bins, alpha=0.7, label=f"nominal model (RMS {np.sqrt(np.mean(before**2)):.2f} mm)")
     two = result.ee_errors.get("two_stage") if result.refinement is not None else None
     if two is not None:
-        ax.hist(two, bins=bins, alpha=0.6, label=f"two-stage (RMS {np.sqrt(np.mean(two**2)):.3f} mm)")
+        start = "two-stage" if result.kind.has_arcs else "closed-form start"
+        ax.hist(two, bins=bins, alpha=0.6, label=f"{start} (RMS {np.sqrt(np.mean(two**2)):.3f} mm)")
     label = "refined" if two is not None else "calibrated"
     ax.hist(after, bins=bins, alpha=0.7, label=f"{label} (RMS {np.sqrt(np.mean(after**2)):.3f} mm)")
     ax.set_xscale("log")
@@ -264,7 +265,7 @@ def _truth_section(result) -> list[str]:
         refined = bool(v.get("refined"))
         head, two_rms, two_max = "", "", ""
         if refined:
-            head = " two-stage |"
+            head = " two-stage |" if result.kind.has_arcs else " start (closed form) |"
             two_rms, two_max = (f" {v['ee_rms_mm_two_stage']:.3f} |", f" {v['ee_max_mm_two_stage']:.3f} |")
         lines += [
             "## Against the truth (synthetic dataset)",

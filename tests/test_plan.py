@@ -468,3 +468,12 @@ def test_an_eye_in_hand_plan_is_rendered_and_calibrated(tmp_path):
     assert r.frames["target_found"] >= 0.95 * r.frames["images"]
     predicted = 1e3 * res.evaluation.ee_rms
     assert v["ee_rms_mm_before"] > 3.0 and v["ee_rms_mm_after"] < 3.0 * predicted
+    # Its tables: no empty sweeps table, and the middle column is what it is, the closed-form start.
+    from rich.console import Console
+
+    from jaxcal.cli._calibrate import _calibration_tables
+
+    console = Console(record=True, width=160)
+    _calibration_tables(console, r)
+    text = console.export_text()
+    assert "Joint sweeps" not in text and "start (closed form)" in text and "two-stage" not in text

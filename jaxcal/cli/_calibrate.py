@@ -18,6 +18,12 @@ from ._rosbag import dataset_of
 
 
 def _calibration_tables(console, result) -> None:
+    if result.arcs:
+        _sweeps_table(console, result)
+    _result_tables(console, result)
+
+
+def _sweeps_table(console, result) -> None:
     t = Table(title=f"Joint sweeps ({'device' if result.kind.device else 'camera'} {result.camera})")
     for col in (
         "joint",
@@ -50,6 +56,10 @@ def _calibration_tables(console, result) -> None:
             row += [f"{v['true_ratios'][k]:.3f}", f"{e['axis_direction_deg']:.3f}"]
         t.add_row(*row)
     console.print(t)
+
+
+def _result_tables(console, result) -> None:
+    v = result.validation
     T, sd = result.T_cam_base, result.std_cam
     if result.eye_in_hand:
         Tf = result.T_flange_target[0]
@@ -90,7 +100,8 @@ def _calibration_tables(console, result) -> None:
         t.add_column("nominal model", justify="right")
         refined = bool(v.get("refined"))
         if refined:
-            t.add_column("two-stage", justify="right")
+            # Without sweeps the refinement starts from the nominal robot and a closed-form camera pose.
+            t.add_column("two-stage" if result.kind.has_arcs else "start (closed form)", justify="right")
         t.add_column("refined" if refined else "calibrated", justify="right")
 
         def row(label, before, key):

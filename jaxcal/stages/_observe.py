@@ -216,7 +216,8 @@ def observe(setup: Setup, options: Options) -> Observations:
         if o.dropped:
             files = [f"{ds.frames['file'][r]} ({name}, {rms:.2f} px)" for r, name, rms in o.dropped[:10]]
             notes.append(
-                f"camera {o.camera.name!r}: {len(o.dropped)} pose(s) left out of the arc fits, their PnP "
+                f"camera {o.camera.name!r}: {len(o.dropped)} pose(s) left out of the "
+                f"{'arc fits' if setup.kind.has_arcs else 'closed-form start'}, their PnP "
                 f"reprojection error far above the rest: {', '.join(files)}"
                 + (" ..." if len(o.dropped) > 10 else "")
             )
