@@ -364,7 +364,17 @@ class TargetSpec:
             raise ValueError(f"{where}: unknown fields {sorted(unknown)}; known fields are {sorted(known)}")
         d = dict(d)
         if "squares" in d:
-            d["squares"] = tuple(int(s) for s in d["squares"])
+            sq = d["squares"]
+            if (
+                not isinstance(sq, (list, tuple))
+                or len(sq) != 2
+                or not all(
+                    isinstance(s, (int, float)) and not isinstance(s, bool) and float(s).is_integer()
+                    for s in sq
+                )
+            ):
+                raise ValueError(f"{where}: squares: expected two whole numbers [columns, rows], got {sq!r}")
+            d["squares"] = tuple(int(s) for s in sq)
         try:
             return cls(**d)
         except TypeError as e:

@@ -233,6 +233,16 @@ def test_plan_files_round_trip_and_refuse_unknown_fields_and_wrong_types(ur5e, t
     with pytest.raises(PlanFileError, match=r"segments\[0\]: unknown field 'pose'"):
         plan_from_dict(d)
     d = plan_to_dict(p)
+    d["segments"][0]["pose"] = d["segments"][0].pop("poses")  # a typo: missing and unknown, both said
+    with pytest.raises(PlanFileError, match=r"segments\[0\]: missing field 'poses' \(unknown field 'pose'\)"):
+        plan_from_dict(d)
+    d = plan_to_dict(p)
+    d["target"]["spec"]["squares"] = [5]
+    with pytest.raises(
+        PlanFileError, match=r"squares: expected two whole numbers \[columns, rows\], got \[5\]"
+    ):
+        plan_from_dict(d)
+    d = plan_to_dict(p)
     d["camera"]["width"] = "wide"
     with pytest.raises(Exception, match=r"camera.width: expected an integer"):
         plan_from_dict(d)

@@ -91,11 +91,17 @@ def obj(x, loc: Loc, required=(), optional=(), ignored=()) -> dict:
     nothing else (keys in `ignored`, or starting with `x_`, are allowed and not read)."""
     if not isinstance(x, dict):
         raise loc.expected("a JSON object", x)
-    for k in required:
-        if k not in x:
-            raise loc.fail(f"missing field {k!r}")
     known = set(required) | set(optional) | set(ignored)
     unknown = sorted(k for k in x if k not in known and not k.startswith("x_"))
+    for k in required:
+        if k not in x:
+            # A misspelt field is both missing and unknown: say both, so the typo shows.
+            also = (
+                f" (unknown field{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))})"
+                if unknown
+                else ""
+            )
+            raise loc.fail(f"missing field {k!r}{also}")
     if unknown:
         raise loc.fail(
             f"unknown field{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}; known fields are "

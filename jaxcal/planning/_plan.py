@@ -454,7 +454,10 @@ def _plan_from_dict(x, loc: Loc) -> CapturePlan:
             "the camera and the target cannot both be fixed in the world (one rides on the flange)"
         )
     if camera.mount != "world" and target.link != "world":
-        raise loc.fail("a camera on the arm films a target fixed in the world (target.link 'world')")
+        raise loc.fail(
+            f"camera.mount {camera.mount!r} puts the camera on the arm, so the target must be fixed in the "
+            f"world (target.link 'world'), got target.link {target.link!r}"
+        )
     segs = x["segments"]
     if not isinstance(segs, list) or not segs:
         raise loc.key("segments").expected("a non-empty list of segments", segs)
