@@ -51,7 +51,7 @@ from jaxcal.planning._evaluate import (
     ee_mean_square,
     free_jacobian,
 )
-from jaxcal.planning._inputs import read_camera
+from jaxcal.planning._inputs import parse_region, read_camera
 from jaxcal.planning._optimise import all_margins, correct_toward, greedy_d_optimal, view_blocks
 from jaxcal.robots import robot_path
 
@@ -331,6 +331,7 @@ def test_camera_files_plain_yaml_ros_or_opencv_every_field_checked(tmp_path):
         "T_flange_cam: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]": "give one camera pose",
         "T_base_cam: [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]": "'T_base_cam': not a rigid",
         "distortion_coefficients: [0, 0, 0, 0, 0, 0, 0, 0]": "expected 5 numbers",
+        "T_base_cam: [[1, 0, 0, 100], [0, 1, 0, 200], [0, 0, 1, 300], [0, 0, 0, 1]]": "millimetres given as metres",
         "camera_matrix: [[1400, 0, 959.5], [0, 1400, .nan], [0, 0, 1]]": "not finite",
     }
     for i, (line, match) in enumerate(bad.items()):
@@ -429,6 +430,10 @@ def test_simulate_plan_refuses_options_the_plan_fixes(ur5e, tmp_path, capsys):
 
 
 def test_negative_numbers_start_a_region_or_a_taught_pose():
+    with pytest.raises(PlanFileError, match="millimetres"):
+        parse_region("-500,-500,0,500,500,500")
+    lo, hi = parse_region("0.5,0.5,0.5,-0.5,-0.5,0")
+    assert np.array_equal(lo, [-0.5, -0.5, 0.0]) and np.array_equal(hi, [0.5, 0.5, 0.5])
     from jaxcal.cli import _join_negative_lists
 
     argv = ["plan", "--region", "-0.5,-0.5,0,0.5,0.5,0.5", "--taught", "-1.2,0,0,0,0,0", "--frames", "-5"]

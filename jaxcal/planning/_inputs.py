@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import DatasetError, PlanFileError
 from ..io._schema import Loc, read_json
-from ._plan import PlanCamera, PlanTarget, target_from_dict
+from ._plan import MAX_PLACEMENT_M, PlanCamera, PlanTarget, check_placement, target_from_dict
 
 #: The camera file's fields `read_camera` reads.
 CAMERA_FIELDS = (
@@ -168,6 +168,7 @@ def read_camera(path, flange: str, resolution: tuple[int, int] | None = None) ->
         raise PlanFileError(
             f"{path}: field {given[0]!r}: not a rigid transform (rotation and [0, 0, 0, 1] last row)"
         )
+    check_placement(T, f"{path}: field {given[0]!r}")
     mount = flange if given[0] == "T_flange_cam" else "world"
     if given[0] == "T_cam_base":
         T = np.linalg.inv(T)
@@ -194,6 +195,10 @@ def parse_region(text: str) -> tuple[np.ndarray, np.ndarray]:
         raise PlanFileError(f"--region: expected x0,y0,z0,x1,y1,z1 in metres, got {text!r}") from None
     if v.shape != (6,) or not np.all(np.isfinite(v)):
         raise PlanFileError(f"--region: expected six numbers x0,y0,z0,x1,y1,z1, got {text!r}")
+    if np.max(np.abs(v)) > MAX_PLACEMENT_M:
+        raise PlanFileError(
+            f"--region: {text!r} reaches {np.max(np.abs(v)):.0f} m; it is in metres (millimetres?)"
+        )
     return np.minimum(v[:3], v[3:]), np.maximum(v[:3], v[3:])
 
 

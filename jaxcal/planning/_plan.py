@@ -397,6 +397,21 @@ def _segment(x, loc: Loc, joints: tuple[str, ...]):
     return FreeMotion(times=times, waypoints=wp, frames=integer(x["frames"], loc.key("frames"), 2, 100000))
 
 
+#: Farthest a camera or a target may be placed (m): more is millimetres read as metres.
+MAX_PLACEMENT_M = 20.0
+
+
+def check_placement(T: np.ndarray, loc) -> np.ndarray:
+    """`T` (4x4, m) unless its translation is beyond `MAX_PLACEMENT_M`: millimetres given as metres."""
+    d = float(np.linalg.norm(T[:3, 3]))
+    if d > MAX_PLACEMENT_M:
+        raise PlanFileError(
+            f"{loc}: translation {np.round(T[:3, 3], 3).tolist()} is {d:.0f} m away; lengths are in metres "
+            "(millimetres given as metres?)"
+        )
+    return T
+
+
 def _camera(x, loc: Loc) -> PlanCamera:
     obj(x, loc, required=("width", "height", "K", "mount", "T_mount_cam"), optional=("name", "distortion"))
     w = integer(x["width"], loc.key("width"), 1, 65535)
@@ -414,7 +429,7 @@ def _camera(x, loc: Loc) -> PlanCamera:
         K=K,
         distortion=dist,
         mount=string(x["mount"], loc.key("mount")),
-        T_mount_cam=pose(x["T_mount_cam"], loc.key("T_mount_cam")),
+        T_mount_cam=check_placement(pose(x["T_mount_cam"], loc.key("T_mount_cam")), loc.key("T_mount_cam")),
     )
 
 
@@ -425,9 +440,8 @@ def target_from_dict(x, loc: Loc) -> PlanTarget:
                                     where=str(loc.key("spec")))  # fmt: skip
     except (TypeError, ValueError) as e:
         raise PlanFileError(str(e) if str(loc.file) in str(e) else f"{loc.key('spec')}: {e}") from None
-    return PlanTarget(
-        spec, string(x["link"], loc.key("link")), pose(x["T_link_target"], loc.key("T_link_target"))
-    )
+    T = check_placement(pose(x["T_link_target"], loc.key("T_link_target")), loc.key("T_link_target"))
+    return PlanTarget(spec, string(x["link"], loc.key("link")), T)
 
 
 def plan_from_dict(x, path="plan") -> CapturePlan:
