@@ -35,7 +35,7 @@ from ._optimise import (
     view_blocks,
 )
 from ._plan import CapturePlan, Correction, PlanCamera, PlanTarget, PoseSet, Sweep, load_plan
-from ._scene import CHECKS, FeasibilityLimits, PlanScene, make_scene, plate_box
+from ._scene import CHECKS, FeasibilityLimits, PlanScene, explain, make_scene, plate_box
 
 #: Workspace configurations of the EE prediction (the validation's sample: 1000, seed 0).
 WORKSPACE = 1000
@@ -241,10 +241,13 @@ def _taught(robot: Robot, taught) -> np.ndarray:
 def _check_taught(scene, limits, q0, checker) -> None:
     _, frac, why = correct_toward(scene, limits, q0, q0[None], checker)
     if frac[0] != 1.0:
-        raise CameraViewError(
-            f"taught pose {np.round(q0, 4).tolist()}: fails the {why[0]!r} check; the camera must see the target "
-            "at the taught pose (move the camera, or teach another pose)"
+        detail = explain(scene, limits, q0) or f"fails the {why[0]!r} check"  # None: MuJoCo's verdict alone
+        hint = (
+            "the camera must see the target at the taught pose (move the camera, or teach another pose)"
+            if why[0] in ("distance", "view_angle", "in_image", "corner_spacing", "occlusion")
+            else "teach another pose" + (", or check --floor-z" if why[0] == "scene_collision" else "")
         )
+        raise CameraViewError(f"taught pose {np.round(q0, 4).tolist()}: {detail}; {hint}")
 
 
 def _budget(scene: PlanScene, frames: int, sweeps: bool) -> None:

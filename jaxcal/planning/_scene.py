@@ -14,7 +14,7 @@ passes (the checks of `CHECKS`):
 | ---------------- | ---------------------------------------------------------------------------- | ---- |
 | `joint_limits`   | distance of every joint to its URDF limits, less `joint_margin`              | rad  |
 | `self_collision` | clearance between capsules of bodies that are not parent and child, less `clearance` | m |
-| `scene_collision`| height of every moving capsule above the floor, less `clearance`              | m    |
+| `scene_collision`| height above the floor of every capsule end the joints can lower (`floor_checked`), less `clearance` | m |
 | `in_image`       | distance of every corner to the image border, less `margin_px`               | px   |
 | `occlusion`      | clearance between the line of sight to every corner and the arm               | m    |
 | `view_angle`     | $\\cos\\alpha - \\cos\\alpha_{max}$, $\\alpha$ between the plate normal and the line of sight | 1 |
@@ -28,10 +28,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import pose_inverse, safe_norm
-from .._kinematics import KinematicModel, forward_kinematics
+from .._kinematics import REVOLUTE, KinematicModel, forward_kinematics
 from .._reprojection import project
 
 #: The named checks of a frame, in the order a rejection reports the first failure.
@@ -112,7 +112,9 @@ class PlanScene(eqx.Module):
     - `points` `(N, 3)`: the target's corners (target frame); `edges` `(E, 2)`:
       pairs of neighbouring corners; `normal`: the printed face's normal (target frame).
     - `capsules`, `pairs` `(P, 2)` (capsules that may collide), `occluders`
-      (capsules that may hide the target), `floor_z` (m, `-inf` for none).
+      (capsules that may hide the target), `floor_z` (m, `-inf` for none),
+      `floor_check` `(c, 2)`: which capsule ends (`a`, `b`) the joints can move
+      up or down (`floor_checked`), the ends checked against the floor.
     - `eye_in_hand`: the camera rides on the flange (static).
     """
 
@@ -131,6 +133,7 @@ class PlanScene(eqx.Module):
     pairs: Int[Array, "P 2"]
     occluders: Int[Array, " O"]
     floor_z: Float[Array, ""]
+    floor_check: Bool[Array, "c 2"]
     eye_in_hand: bool = eqx.field(static=True, default=False)
 
 
@@ -319,9 +322,7 @@ def margins(scene: PlanScene, limits: FeasibilityLimits, q: Float[Array, " joint
     i, j = scene.pairs[:, 0], scene.pairs[:, 1]
     dist = jax.vmap(segment_distance)(a[i], b[i], a[j], b[j]) - rad[i] - rad[j]
     out["self_collision"] = jnp.min(dist, initial=jnp.inf) - limits.clearance
-    moving = scene.capsules.body > 0
-    low = jnp.minimum(a[:, 2], b[:, 2]) - rad - scene.floor_z
-    out["scene_collision"] = jnp.min(jnp.where(moving, low, jnp.inf)) - limits.clearance
+    out["scene_collision"] = jnp.min(_floor_heights(scene, a, b), initial=jnp.inf) - limits.clearance
     centre = g.T_cam_target[:3, :3] @ jnp.mean(scene.points, 0) + g.T_cam_target[:3, 3]
     d = safe_norm(centre)
     out["distance"] = jnp.minimum(d - limits.min_distance, limits.max_distance - d)
@@ -343,6 +344,144 @@ def margins(scene: PlanScene, limits: FeasibilityLimits, q: Float[Array, " joint
     seen = jax.vmap(lambda p: jax.vmap(lambda s, t: segment_distance(g.camera_base, p, s, t))(oa, ob))(end)
     out["occlusion"] = jnp.min(seen - orad[None, :])
     return out
+
+
+#: Tolerance of "on the joint axis" (m) and "parallel / perpendicular to the floor normal" (of unit
+#: vectors): a calibrated URDF's tilts of a few 1e-4 rad still keep heights to a fraction of a mm.
+_FLOOR_TOL = 1e-3
+
+
+def _heights_kept(model: KinematicModel) -> np.ndarray:
+    """`(joints,)` bool: entry `j` whether joints `0..j` all keep heights (see `floor_checked`)."""
+    n = model.num_joints
+    F = np.asarray(forward_kinematics(model, jnp.zeros(n)), np.float64)
+    axes = np.asarray(model.axis, np.float64)
+    keeps = np.zeros(n, bool)
+    for j in range(n):
+        axis = F[j + 1][:3, :3] @ axes[j] / np.linalg.norm(axes[j])
+        # A revolute axis along the floor normal (base z): its sine to it is small; a slide across it: its cosine.
+        off = float(np.hypot(axis[0], axis[1])) if model.joint_types[j] == REVOLUTE else abs(float(axis[2]))
+        own = off < _FLOOR_TOL
+        keeps[j] = own and (j == 0 or keeps[j - 1])
+    return keeps
+
+
+def floor_fixed_links(model: KinematicModel) -> tuple[str, ...]:
+    """The links whose height above the floor no joint can change: the base, and
+    each joint's child link while every joint up to it keeps heights (turns about
+    the floor normal, or slides across it; see `floor_checked`). A floor contact
+    of theirs is the robot's mounting, not something a pose could avoid."""
+    keeps = _heights_kept(model)
+    names = model.link_names
+    fixed = [names[0]] + [names[j + 1] for j in range(model.num_joints) if keeps[j]]
+    if keeps.all():  # the flange is rigid on the last link
+        fixed.append(names[-1])
+    return tuple(dict.fromkeys(fixed))
+
+
+def floor_checked(model: KinematicModel, capsules: Capsules, T_mount) -> np.ndarray:
+    """Which capsule ends the joints can move up or down: those checked against the floor.
+
+    The floor is the plane $z$ = `floor_z` of the base frame. A joint *keeps
+    heights* when it turns about an axis parallel to the floor normal or slides
+    along one perpendicular to it: it moves every point in a horizontal plane and
+    keeps vertical axes vertical and horizontal ones horizontal. So when joints
+    $0 \\dots j$ all keep heights at one configuration, they do at every
+    configuration, and no motion of theirs changes the height of a point fixed to
+    the child link of joint $j$ (the base, a shoulder turning about a vertical
+    axis, or bodies on a gantry's horizontal slides). A capsule end that lies on
+    the axis of the revolute joint that moves its body is not moved by that joint
+    either: it counts as a point of the parent body.
+
+    Such ends keep the height they have at the taught pose, whatever the plan:
+    where a robot bolted to its table has them below the table top (the base's
+    column, the drum of a vertical first joint), no pose could clear them, and
+    counting them would reject every pose. They are left out; every other end is
+    checked (a capsule's lowest point is one of its ends less the radius).
+
+    **Arguments:** the nominal robot; its `Capsules` (`arm_capsules`); `T_mount`
+    `(4, 4)`: the payload body's pose on the flange.
+
+    **Returns:** `(c, 2)` bool, for ends `a` and `b` of each capsule.
+    """
+    n = model.num_joints
+    T_p = np.asarray(model.T_parent_joint, np.float64)
+    axes = np.asarray(model.axis, np.float64)
+    axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    keeps = _heights_kept(model)
+    T_last, T_mount = np.asarray(model.T_last_flange, np.float64), np.asarray(T_mount, np.float64)
+
+    def checked(body: int, p: np.ndarray) -> bool:
+        p = np.append(p, 1.0)
+        if body == n + 2:  # the payload, rigid on the flange
+            body, p = n + 1, T_mount @ p
+        if body == n + 1:  # the flange, rigid on the last link
+            body, p = n, T_last @ p
+        while body > 0 and model.joint_types[body - 1] == REVOLUTE:
+            if np.linalg.norm(np.cross(p[:3], axes[body - 1])) > _FLOOR_TOL:
+                break  # off the axis of the joint that moves this body
+            body, p = body - 1, T_p[body - 1] @ p
+        return not (body == 0 or keeps[body - 1])
+
+    bodies, a, b = (np.asarray(x) for x in (capsules.body, capsules.a, capsules.b))
+    return np.array([[checked(int(k), pa), checked(int(k), pb)] for k, pa, pb in zip(bodies, a, b)])
+
+
+def _floor_heights(scene: PlanScene, a, b) -> Float[Array, " e"]:
+    """Height above the floor (m) of the lowest point at each checked capsule end
+    (`scene.floor_check`), from the ends `a`, `b` `(c, 3)` in the base frame."""
+    z = jnp.stack([a[:, 2], b[:, 2]], axis=1) - scene.capsules.radius[:, None] - scene.floor_z
+    return jnp.where(scene.floor_check, z, jnp.inf).reshape(-1)
+
+
+def _body_name(scene: PlanScene, body: int) -> str:
+    names = scene.nominal.link_names
+    if body < len(names):
+        return f"link {names[body]!r}"
+    return "the camera on the flange" if scene.eye_in_hand else "the plate on the flange"
+
+
+def explain(scene: PlanScene, limits: FeasibilityLimits, q) -> str | None:
+    """Why configuration `q` fails: the first failing check of `CHECKS` and, for the
+    joint limits and the collisions, which joint or bodies, and by how much
+    (e.g. "scene_collision: link 'wrist_3_link' reaches 0.052 m below the floor at
+    z = 0 m (a clearance of 0.01 m is required)"). `None` when `q` passes."""
+    q = jnp.asarray(q, jnp.float64)
+    m = {k: float(v) for k, v in margins(scene, limits, q).items()}
+    failed = [k for k in CHECKS if not m[k] > 0.0]
+    if not failed:
+        return None
+    check = failed[0]
+    g = frame_geometry(scene, q)
+    a, b = _capsules_in_base(scene, g.bodies)
+    body = np.asarray(scene.capsules.body)
+    if check == "scene_collision":
+        h = np.asarray(_floor_heights(scene, a, b))
+        i = int(np.argmin(h)) // 2
+        z, floor = float(h.min()), float(scene.floor_z)
+        where = f"reaches {abs(z):.3g} m below" if z < 0 else f"is only {z:.3g} m above"
+        return (
+            f"scene_collision: {_body_name(scene, int(body[i]))} {where} the floor at z = {floor:g} m "
+            f"(a clearance of {limits.clearance:g} m is required)"
+        )
+    if check == "self_collision":
+        d = np.asarray(pair_clearances(scene, q))
+        i, j = np.asarray(scene.pairs)[int(np.argmin(d))]
+        gap = float(d.min())
+        how = f"overlap by {-gap:.3g} m" if gap < 0 else f"are only {gap:.3g} m apart"
+        return (
+            f"self_collision: {_body_name(scene, int(body[i]))} and {_body_name(scene, int(body[j]))} {how} "
+            f"(a clearance of {limits.clearance:g} m is required)"
+        )
+    if check == "joint_limits":
+        qn = np.asarray(q)
+        lo, hi = np.asarray(scene.lower), np.asarray(scene.upper)
+        k = int(np.argmin(np.minimum(qn - lo, hi - qn)))
+        return (
+            f"joint_limits: joint {scene.nominal.joint_names[k]!r} at {qn[k]:.4g} rad is not inside its "
+            f"limits [{lo[k]:.4g}, {hi[k]:.4g}] rad by {limits.joint_margin:g} rad"
+        )
+    return f"{check}: margin {m[check]:.3g} (see jaxcal.planning's CHECKS)"
 
 
 def penalty(
@@ -390,6 +529,7 @@ def make_scene(
         pairs=jnp.asarray(collision_pairs(np.asarray(caps.body), nominal.num_joints)),
         occluders=jnp.asarray(np.flatnonzero(occ)),
         floor_z=jnp.asarray(-np.inf if floor_z is None else float(floor_z)),
+        floor_check=jnp.asarray(floor_checked(nominal, caps, T_mount)),
         eye_in_hand=eye_in_hand,
     )
     keep = ~always_touching(scene)

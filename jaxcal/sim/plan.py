@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import PlanError
 from ..planning import ALWAYS, CapturePlan, PoseSet, Robot, plan_robot, plan_to_dict
+from ..planning._scene import floor_fixed_links
 from .motion import Segment, Trajectory
 from .scene import CameraSpec, PlateSpec, build_scene, mujoco
 from .simulate import SimConfig, nominal_robot, simulate
@@ -80,7 +81,9 @@ class MujocoChecker:
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
         self.qpos = np.array([self.model.joint(n).qposadr[0] for n in model.joint_names], dtype=int)
-        self.excluded = self._structural(model)
+        # The floor against links no joint can lower (the base, a shoulder turning about the vertical)
+        # is the robot's mounting, as in jaxcal.planning's floor check.
+        self.excluded = self._structural(model) + [("world", n) for n in floor_fixed_links(model)[1:]]
         for a, b in self.excluded:
             spec.add_exclude(bodyname1=a, bodyname2=b)
         self.model = spec.compile()
