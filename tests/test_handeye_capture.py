@@ -587,7 +587,9 @@ def test_a_misread_capture_is_named_with_its_fix(corrupted_capture, tmp_path):
     _rewrite_poses(wxyz, as_wxyz)
     for capture, names in ((swapped, "field 'arrangement' is 'eye_in_hand'"), (wxyz, "hold w, x, y, z")):
         bad = jaxcal.calibrate_hand_eye_capture(capture, folds=0)
-        assert bad.verdict.status == "suspect" and float(bad.result.pixel_rms) > 100 * float(r.result.pixel_rms)
+        assert bad.verdict.status == "suspect" and float(bad.result.pixel_rms) > 100 * float(
+            r.result.pixel_rms
+        )
         found = [x for x in bad.verdict.reasons if "the data fit if" in x]
         assert len(found) == 1 and names in found[0], bad.verdict.reasons
         rms = float(found[0].split("reprojection RMS ")[1].split(" px")[0])
