@@ -203,6 +203,34 @@ def _diagnose_misfit(capture: HandEyeCapture, observe: Callable, result, solve: 
     return None
 
 
+def _input_hints(verdict, capture, intrinsics, observe, result, solve, log) -> HandEyeVerdict:
+    """The verdict with what the input itself explains: the misreading that fits when the
+    poses and images do not (`_diagnose_misfit`), and intrinsics self-calibrated from the
+    capture, which make any result suspect."""
+    if float(result.residual_rms) > MISFIT_RATIO:
+        found = _diagnose_misfit(capture, observe, result, solve)
+        if found:
+            log(f"the poses fit the images once read differently: {found}")
+            verdict = replace(verdict, reasons=verdict.reasons + (found,))
+    guessed = [c.name for c, k in zip(capture.cameras, intrinsics) if k.source == "self-calibrated"]
+    if guessed:
+        # The solve, its standard deviations and the k-fold spread all hold K exact: a focal length
+        # calibrated from the same few views moves the camera along its axis unseen (a rendered
+        # 16-frame capture: 6.7-7.2 mm off with 0.1 mm std and k-fold spread). Not trustworthy as is.
+        verdict = replace(
+            verdict,
+            status="suspect",
+            reasons=verdict.reasons
+            + (
+                f"camera {', '.join(guessed)}: intrinsics self-calibrated from these images; the standard "
+                "deviations and the k-fold spread hold K exact and leave out its error, which can dominate "
+                "(a rendered 16-frame capture: 7 mm off against 0.1 mm std); give K from a separate intrinsics "
+                "calibration",
+            ),
+        )
+    return verdict
+
+
 def calibrate_hand_eye_capture(
     capture,
     *,
@@ -296,31 +324,17 @@ def calibrate_hand_eye_capture(
         camera_names=[f"camera {c.name}" for c in capture.cameras],
         max_steps=max_steps,
     )
-    if float(result.residual_rms) > MISFIT_RATIO:
-        t0 = time.perf_counter()
-        found = _diagnose_misfit(
-            capture, lambda T, eih: observe(T, eih, observations.sigma_px), result, solve
-        )
-        seconds["diagnose"] = time.perf_counter() - t0
-        if found:
-            log(f"the poses fit the images once read differently: {found}")
-            verdict = replace(verdict, reasons=verdict.reasons + (found,))
-    guessed = [c.name for c, k in zip(capture.cameras, intrinsics) if k.source == "self-calibrated"]
-    if guessed:
-        # The solve, its standard deviations and the k-fold spread all hold K exact: a focal length
-        # calibrated from the same few views moves the camera along its axis unseen (a rendered
-        # 16-frame capture: 6.7-7.2 mm off with 0.1 mm std and k-fold spread). Not trustworthy as is.
-        verdict = replace(
-            verdict,
-            status="suspect",
-            reasons=verdict.reasons
-            + (
-                f"camera {', '.join(guessed)}: intrinsics self-calibrated from these images; the standard "
-                "deviations and the k-fold spread hold K exact and leave out its error, which can dominate "
-                "(a rendered 16-frame capture: 7 mm off against 0.1 mm std); give K from a separate intrinsics "
-                "calibration",
-            ),
-        )
+    t0 = time.perf_counter()
+    verdict = _input_hints(
+        verdict,
+        capture,
+        intrinsics,
+        lambda T, eih: observe(T, eih, observations.sigma_px),
+        result,
+        solve,
+        log,
+    )
+    seconds["hints"] = time.perf_counter() - t0
     return HandEyeRun(
         capture=capture,
         intrinsics=intrinsics,

@@ -136,7 +136,7 @@ def _add_simulate_parser(sub) -> None:
     p.add_argument(
         "--plan", help="render exactly this capture plan (docs/plan.md): its camera, target and motion"
     )
-    p.set_defaults(func=cmd_simulate)
+    p.set_defaults(func=cmd_simulate, parser=p)  # `--plan` refuses the options set away from their defaults
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -80,19 +80,17 @@ def cmd_plan(args) -> int:
 
 
 #: The `jaxcal simulate` options that go with `--plan`; any other is refused.
-PLAN_OPTIONS = ("plan", "out", "overwrite", "seed", "quiet", "grayscale", "func", "command")
+PLAN_OPTIONS = ("plan", "out", "overwrite", "seed", "quiet", "grayscale", "func", "command", "parser")
 
 
 def _simulate_plan(args) -> int:
     """`jaxcal simulate --plan PLAN --out DIR`: render exactly the plan."""
     from ..sim.plan import render_plan
-    from . import build_parser
 
-    defaults = vars(build_parser().parse_args(["simulate", "--out", args.out]))
     conflicting = [
         "--" + k.replace("_", "-")
         for k, v in vars(args).items()
-        if k not in PLAN_OPTIONS and k in defaults and v != defaults[k]
+        if k not in PLAN_OPTIONS and v != args.parser.get_default(k)
     ]
     if conflicting:
         raise PlanError(

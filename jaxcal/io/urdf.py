@@ -38,6 +38,7 @@ from .._kinematics import (
     origins_xyz_rpy,
 )
 from ._files import write_text_atomic
+from ._urdf_checks import check_joint_element, check_joint_links, limit_range, limit_value
 
 _MOVABLE = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC}
 _UNSUPPORTED = ("floating", "planar")
@@ -145,114 +146,15 @@ class UrdfOutline:
     limits: dict
 
 
-def _limit_value(joint: ET.Element, attr: str, path: Path) -> float | None:
-    el = joint.find("limit")
-    text = None if el is None else el.get(attr)
-    if text is None:
-        return None
-    try:
-        v = float(text)
-    except ValueError:
-        raise ValueError(
-            f"URDF file {str(path)!r}: joint {joint.get('name')!r} has a non-numeric limit {attr}={text!r}"
-        ) from None
-    if not math.isfinite(v):
-        raise ValueError(f"URDF file {str(path)!r}: joint {joint.get('name')!r} has limit {attr}={text!r}")
-    return v
-
-
-def _floats(el: ET.Element | None, attr: str, default: str, joint: str, path: Path) -> np.ndarray:
-    """The three numbers of attribute `attr` of `el` (`default` when `el` or the attribute
-    is absent); ValueError naming the file and the joint unless there are three finite numbers."""
-    if el is None:
-        el = ET.Element("?")  # the defaults are valid: this name never shows
-    text = el.get(attr, default)
-    where = f"URDF file {str(path)!r}: joint {joint!r}: <{el.tag} {attr}={text!r}>"
-    try:
-        values = np.array([float(v) for v in text.split()], dtype=np.float64)
-    except ValueError:
-        raise ValueError(f"{where} is not numeric") from None
-    if values.shape != (3,):
-        raise ValueError(f"{where} must hold 3 numbers, it has {values.size}")
-    if not np.all(np.isfinite(values)):
-        raise ValueError(f"{where} is not finite")
-    return values
-
-
-def _limit_range(joint: ET.Element, path: Path) -> tuple[float, float]:
-    """`<limit lower upper>` of `joint`, each 0 where absent (the URDF specification's default)."""
-    lower, upper = _limit_value(joint, "lower", path), _limit_value(joint, "upper", path)
-    return (0.0 if lower is None else lower), (0.0 if upper is None else upper)
-
-
-def _check_joint_element(el: ET.Element, path: Path) -> None:
-    """Refuse a `<joint>` whose numbers cannot describe a robot, naming the file and the joint.
-
-    Every joint: a finite `<origin xyz rpy>`. A revolute, continuous or prismatic
-    joint: a finite, non-zero `<axis xyz>`. A revolute or prismatic joint: a
-    `<limit>` element (the URDF specification requires one) with finite `lower <
-    upper`; both unset (0, the specification's default, which would lock the
-    joint) is read as no range stated, as many files mean it. A continuous joint's
-    `<limit>` may omit `lower` and `upper`; the values it gives must be finite.
-    """
-    name, kind = el.get("name"), el.get("type")
-    where = f"URDF file {str(path)!r}: joint {name!r}"
-    origin = el.find("origin")
-    _floats(origin, "xyz", "0 0 0", name, path)
-    _floats(origin, "rpy", "0 0 0", name, path)
-    if kind not in _MOVABLE:
-        return
-    axis = _floats(el.find("axis"), "xyz", "1 0 0", name, path)
-    if not np.linalg.norm(axis) > 0.0:
-        raise ValueError(
-            f"{where} has a zero or invalid axis {axis.tolist()}; a movable joint needs a direction"
-        )
-    limit = el.find("limit")
-    for attr in ("lower", "upper", "velocity"):
-        _limit_value(el, attr, path)  # numeric and finite where given
-    if kind == "continuous":
-        return
-    if limit is None:
-        raise ValueError(
-            f"{where} is {kind} but has no <limit> element; the URDF specification requires "
-            f'<limit lower=".." upper=".." effort=".." velocity=".."/> for revolute and prismatic '
-            'joints (a joint that turns without limits is type="continuous")'
-        )
-    lower, upper = _limit_range(el, path)
-    if lower == upper == 0.0:
-        return  # lower and upper unset (effort and velocity only): no range stated, read as unlimited
-    if not lower < upper:
-        given = " ".join(f"{a}={limit.get(a)!r}" for a in ("lower", "upper") if limit.get(a) is not None)
-        raise ValueError(
-            f"{where} has <limit {given or 'without lower and upper'}>: the {kind} joint's range "
-            f"[{lower:g}, {upper:g}] is empty (lower must be below upper; each defaults to 0)"
-        )
-
-
-def _check_joint_links(root: ET.Element, path: Path) -> None:
-    """Every `<joint>` has a name, a parent and a child, and both are `<link>`s of the file."""
-    links = {el.get("name") for el in root.findall("link")}
-    for el in root.findall("joint"):
-        name, parent, child = el.get("name"), el.find("parent"), el.find("child")
-        if not name or parent is None or child is None:
-            raise ValueError(f"URDF file {str(path)!r}: a <joint> lacks a name, parent or child")
-        for role, ref in (("parent", parent), ("child", child)):
-            if ref.get("link") not in links:
-                raise ValueError(
-                    f"URDF file {str(path)!r}: joint {name!r} names {role} link {ref.get('link')!r}, "
-                    "which is not a <link> of the file"
-                )
-
-
 def urdf_outline(path, joint_names=()) -> UrdfOutline:
     """Links, joints and the limits of `joint_names` of a URDF file, from its XML alone
     (fast: no model, no yourdfpy). Raises `ValueError` naming the file for a missing
     or malformed file, a joint naming a link that does not exist, a name in
     `joint_names` that is not a movable joint, or one of those joints that fails
-    `_check_joint_element` (no `<limit>`, lower >= upper, a non-finite value)."""
+    `check_joint_element` (no `<limit>`, lower >= upper, a non-finite value)."""
     path = Path(path)
     root = _parse_xml(path).getroot()
-    _check_joint_links(root, path)
+    check_joint_links(root, path)
     links = frozenset(el.get("name") for el in root.findall("link") if el.get("name"))
     parent_joint, elements = {}, {}
     for el in root.findall("joint"):
@@ -269,11 +171,11 @@ def urdf_outline(path, joint_names=()) -> UrdfOutline:
         kind = el.get("type")
         if kind not in _MOVABLE:
             raise ValueError(f"URDF file {str(path)!r}: joint {name!r} is {kind}, not a movable joint")
-        _check_joint_element(el, path)
-        lower, upper = (None, None) if kind == "continuous" else _limit_range(el, path)
+        check_joint_element(el, path)
+        lower, upper = (None, None) if kind == "continuous" else limit_range(el, path)
         if lower == upper == 0.0:
-            lower = upper = None  # no range stated (see `_check_joint_element`)
-        velocity = _limit_value(el, "velocity", path)
+            lower = upper = None  # no range stated (see `check_joint_element`)
+        velocity = limit_value(el, "velocity", path)
         limits[name] = JointLimits(
             kind,
             lower,
@@ -387,11 +289,11 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
     between the links, no movable joint, or a chain joint that is unsupported
     (floating, planar, mimic) or malformed (a non-finite origin, a zero or
     non-finite axis; a revolute or prismatic joint without `<limit>` or with
-    lower >= upper: see `_check_joint_element`).
+    lower >= upper: see `check_joint_element`).
     """
     path = Path(path)
     root = _parse_xml(path).getroot()
-    _check_joint_links(root, path)  # before yourdfpy, which fails on a missing link with a bare list error
+    check_joint_links(root, path)  # before yourdfpy, which fails on a missing link with a bare list error
     urdf = _load_yourdfpy(path)
     joints, base_link, tip_link = _chain(urdf, path, base_link, tip_link)
     transmissions = _transmissions_by_joint(root)
@@ -401,7 +303,7 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
     pending = np.eye(4)
     for joint in joints:
         _check_joint(joint, path)
-        _check_joint_element(elements[joint.name], path)
+        check_joint_element(elements[joint.name], path)
         if joint.type == "fixed":
             pending = pending @ _origin(joint)
             continue
@@ -569,7 +471,7 @@ def _model_arrays(model: KinematicModel) -> dict[str, np.ndarray]:
 def _fill_from_source(model: KinematicModel, arrays: dict[str, np.ndarray], source: Path) -> ET.ElementTree:
     tree = _parse_xml(source)
     root = tree.getroot()
-    _check_joint_links(root, source)
+    check_joint_links(root, source)
     urdf = _load_yourdfpy(source)
     joints, _, _ = _chain(urdf, source, model.link_names[0], model.link_names[-1])
     movable = [j for j in joints if j.type != "fixed"]
