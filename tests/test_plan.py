@@ -289,6 +289,8 @@ def test_bad_input_is_refused_with_exit_code_2_and_nothing_written(ur5e, tmp_pat
         jaxcal.plan("ur5e", frames=2)
     with pytest.raises(UnreachableRegionError):
         jaxcal.evaluate_plan(_plan(ur5e), region=([2.0, 2.0, 2.0], [3.0, 3.0, 3.0]))
+    with pytest.raises(UnreachableRegionError, match="wholly below the floor at z = -0.6 m"):
+        jaxcal.evaluate_plan(_plan(ur5e), region=([-0.5, -0.5, -0.9], [0.5, 0.5, -0.7]))
     assert main(["plan", "--robot", "scara", "--frames", "24", "--out", str(out), "--no-mujoco"]) == 2
     assert "['joint3'] are prismatic" in capsys.readouterr().err and not out.exists()
 

@@ -114,6 +114,12 @@ def workspace(robot: Robot, scene: PlanScene, region=None, key=None) -> np.ndarr
         raise UnreachableRegionError(
             f"region: the box's upper corner {hi.tolist()} must exceed its lower {lo.tolist()}"
         )
+    floor = float(scene.floor_z)
+    if hi[2] <= floor:
+        raise UnreachableRegionError(
+            f"region [{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] (m, base frame): "
+            f"it lies wholly below the floor at z = {floor:g} m; give a region above it"
+        )
     a, b = np.maximum(robot.lower, -np.pi), np.minimum(robot.upper, np.pi)
     key = jax.random.key(0) if key is None else key
     q = np.asarray(jax.random.uniform(key, (200_000, n), minval=a, maxval=b))

@@ -156,7 +156,13 @@ def _write_evaluation(console: Console, ev: PlanEvaluation, p, region, plot, out
     if plot is not None:
         robot = Robot.load(p.robot)
         scene = scene_of(robot, p.camera, p.target, p.floor_z)
-        plot_evaluation(ev, scene, workspace(robot, scene, region), plot)
+        where = (
+            "the workspace"
+            if region is None
+            else f"the region {region[0].tolist()} .. {region[1].tolist()} m"
+        )
+        title = f"{ev.frames} frames, sigma {ev.sigma_px:g} px: predicted EE error over {where}"
+        plot_evaluation(ev, scene, workspace(robot, scene, region), plot, title)
         console.print(f"wrote {plot}")
     if out_json is not None:
         figures = ev.summary() | {

@@ -49,9 +49,9 @@ def plot_evaluation(ev: PlanEvaluation, scene: PlanScene, configs, path, title: 
     s = 1e3 * np.asarray(ev.ee_sigma)
     fig = Figure(figsize=(15, 4.6), layout="constrained")  # no pyplot: no global state, any backend
     ax = fig.subplots(1, 3)
-    vmax = float(np.percentile(s, 99))
+    vmin, vmax = (float(v) for v in np.percentile(s, [1, 99]))  # the spread, not the distance from 0
     for a, (i, j), lab in zip(ax[:2], ((0, 1), (0, 2)), (("x m", "y m"), ("x m", "z m"))):
-        sc = a.scatter(p[:, i], p[:, j], c=s, s=6, cmap="viridis", vmin=0.0, vmax=vmax)
+        sc = a.scatter(p[:, i], p[:, j], c=s, s=6, cmap="viridis", vmin=vmin, vmax=vmax)
         a.set_xlabel(lab[0])
         a.set_ylabel(lab[1])
         a.set_aspect("equal")
