@@ -114,23 +114,22 @@ def workspace(robot: Robot, scene: PlanScene, region=None, key=None) -> np.ndarr
         raise UnreachableRegionError(
             f"region: the box's upper corner {hi.tolist()} must exceed its lower {lo.tolist()}"
         )
+    box = f"region [{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] (m, base frame)"
     floor = float(scene.floor_z)
     if hi[2] <= floor:
         raise UnreachableRegionError(
-            f"region [{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] (m, base frame): "
-            f"it lies wholly below the floor at z = {floor:g} m; give a region above it"
+            f"{box}: it lies wholly below the floor at z = {floor:g} m; give a region above it"
         )
     a, b = np.maximum(robot.lower, -np.pi), np.minimum(robot.upper, np.pi)
     key = jax.random.key(0) if key is None else key
     q = np.asarray(jax.random.uniform(key, (200_000, n), minval=a, maxval=b))
     corr = zero_correction(n, 1)
-    T_base = np.eye(4) if not scene.eye_in_hand else np.eye(4)
+    T_base = np.eye(4)
     p = np.asarray(_points(scene, T_base, corr, jnp.asarray(q)))
     inside = np.all((p >= lo) & (p <= hi), axis=1)
     if inside.sum() < 10:
         raise UnreachableRegionError(
-            f"region [{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] (m, base frame): "
-            f"the {'camera' if scene.eye_in_hand else 'target'} reaches it in {int(inside.sum())} of {len(q)} "
+            f"{box}: the {'camera' if scene.eye_in_hand else 'target'} reaches it in {int(inside.sum())} of {len(q)} "
             "random configurations within the joint limits; give a region the arm can reach"
         )
     return q[inside][:WORKSPACE]
