@@ -105,7 +105,7 @@ def _tracker_summary(ds: Dataset, path, t0: float) -> dict:
     )
     return {
         "dataset": str(Path(path)),
-        "robot": {"urdf": ds.robot_urdf.name, "joints": list(ds.joint_names)},
+        "robot": _robot(ds),
         "device": {
             "name": d.name,
             "kind": d.kind,
@@ -124,10 +124,16 @@ def _tracker_summary(ds: Dataset, path, t0: float) -> dict:
     }
 
 
+def _robot(ds: Dataset) -> dict:
+    """The summary's robot: its file (under `urdf` or `table`, and as `file`) and joints."""
+    kind = "table" if ds.robot_is_table else "urdf"
+    return {kind: ds.robot_urdf.name, "file": ds.robot_urdf.name, "joints": list(ds.joint_names)}
+
+
 def _format_tracker(s: dict) -> str:
     d = s["device"]
     lines = [
-        f"{s['dataset']}: {s['robot']['urdf']}, joints {', '.join(s['robot']['joints'])}",
+        f"{s['dataset']}: {s['robot']['file']}, joints {', '.join(s['robot']['joints'])}",
         f"device {d['name']} ({d['kind']}): {d['samples']} samples in {d['file']} of point {d['point']} on "
         f"{d['link']}; " + ("orientations" if d["orientations"] else "positions only")
         + (", joint positions given" if d["joint_positions"] else ", no joint positions"),
@@ -175,7 +181,7 @@ def inspect_dataset(path, *, sample: int = 5) -> dict:
     )
     return {
         "dataset": str(Path(path)),
-        "robot": {"urdf": ds.robot_urdf.name, "joints": list(ds.joint_names)},
+        "robot": _robot(ds),
         "cameras": [
             {
                 "name": c.name,
@@ -209,7 +215,7 @@ def format_inspection(s: dict) -> str:
     """`inspect_dataset`'s summary as text for the console."""
     if "device" in s:
         return _format_tracker(s)
-    lines = [f"{s['dataset']}: {s['robot']['urdf']}, joints {', '.join(s['robot']['joints'])}"]
+    lines = [f"{s['dataset']}: {s['robot']['file']}, joints {', '.join(s['robot']['joints'])}"]
     for c in s["cameras"]:
         lines.append(
             f"camera {c['name']}: {c['size'][0]}x{c['size'][1]}, {c['frames']} frames, mount {c['mount']}, "

@@ -13,7 +13,7 @@ from ._kinematics import REVOLUTE
 from ._tables import PhysicalTable, base_flange_std, physical_table
 from .io._files import atomic_directory
 from .io.dataset import write_json
-from .io.dh_tables import dh_table_json
+from .io.dh_tables import dh_table_json, is_table_file
 from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.ros import write_static_transform
 from .io.urdf import save_urdf
@@ -467,7 +467,9 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
         # on a thread of their own while the other files and the plots are written.
         tables_pending = pool.submit(dh_tables, result)
         write_json(tmp / "result.json", result.to_json())
-        save_urdf(result.model, tmp / "calibrated.urdf", source=result.robot_urdf)
+        # A dataset whose robot is a DH/MDH table has no URDF to copy: a minimal one from the model.
+        source = None if is_table_file(result.robot_urdf) else result.robot_urdf
+        save_urdf(result.model, tmp / "calibrated.urdf", source=source)
         if result.kind.device:
             _device_files(tmp, result)
         else:

@@ -14,6 +14,7 @@ from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
 from ._images import MAX_PIXELS
 from ._schema import Loc
+from .dh_tables import TABLE_SUFFIXES, read_table_file
 from .urdf import urdf_outline
 
 #: Camera names become file names (`camera_<name>.yaml`).
@@ -75,8 +76,18 @@ class TargetInfo:
 
 
 def read_robot(meta: dict, loc: Loc, root: Path):
-    """`robot`: the URDF path, base and flange links, the joints, and their limits."""
-    robot = sc.obj(meta["robot"], loc, required=("urdf", "joints"), optional=("base_link", "flange_link"))
+    """`robot`: the robot file (a URDF, or a DH/MDH table), base and flange links, the joints, and their limits."""
+    robot = sc.obj(
+        meta["robot"], loc, required=("joints",), optional=("urdf", "table", "base_link", "flange_link")
+    )
+    given = [k for k in ("urdf", "table") if k in robot]
+    if len(given) != 1:
+        raise loc.fail(
+            "give exactly one of 'urdf' (a URDF file) and 'table' (a DH/MDH table file, .json or .yaml), "
+            f"got {'both' if given else 'neither'}"
+        )
+    if given == ["table"]:
+        return _read_table_robot(robot, loc, root)
     rel = sc.relative_path(sc.string(robot["urdf"], loc.key("urdf")), loc.key("urdf"))
     urdf = root / rel
     if not urdf.is_file():
@@ -131,6 +142,32 @@ def read_robot(meta: dict, loc: Loc, root: Path):
     except ValueError as e:
         raise DatasetError(f"{urdf}: cannot read the robot model: {e}") from None
     return urdf, links["base_link"], links["flange_link"], tuple(joints), limits, outline.links
+
+
+def _read_table_robot(robot: dict, loc: Loc, root: Path):
+    """`read_robot` for `robot.table`: the joints are the table's, in its order; `base_link` and
+    `flange_link`, if given, its own; the limits are the table's `lower` / `upper` / `velocity`."""
+    where = loc.key("table")
+    rel = sc.relative_path(sc.string(robot["table"], where), where)
+    path = root / rel
+    if path.suffix.lower() not in TABLE_SUFFIXES:
+        raise where.fail(f"{rel!r} is not a table file (it must end in {', '.join(TABLE_SUFFIXES)})")
+    if not path.is_file():
+        raise DatasetError(f"{path}: robot file missing (named by {where})")
+    t = read_table_file(path)
+    joints = sc.names(robot["joints"], loc.key("joints"))
+    if tuple(joints) != t.table.joint_names:
+        raise loc.key("joints").fail(
+            f"{joints} differ from the joints of {path.name}, base to flange: {list(t.table.joint_names)}"
+        )
+    n = len(joints)
+    children = t.link_names or tuple(f"{path.stem}_link{i + 1}" for i in range(n))
+    links = frozenset((t.base_link, *children, t.flange_link))
+    for key, own in (("base_link", t.base_link), ("flange_link", t.flange_link)):
+        v = robot.get(key)
+        if v is not None and sc.string(v, loc.key(key)) != own:
+            raise loc.key(key).fail(f"{v!r} is not the {key} of {path.name} ({own!r})")
+    return path, t.base_link, t.flange_link, tuple(joints), t.joint_limits(), links
 
 
 def _intrinsics(x, loc: Loc, width: int, height: int) -> np.ndarray:

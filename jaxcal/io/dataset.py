@@ -3,7 +3,8 @@
 ```
 DATASET/
   metadata.json     schema + version, robot file, cameras, targets, encoders, clock, motion segments
-  robot.urdf        the nominal robot (the file metadata["robot"]["urdf"] names)
+  robot.urdf        the nominal robot (the file metadata["robot"]["urdf"] names; or a
+                    DH/MDH table, robot_dh.json, that metadata["robot"]["table"] names)
   frames.csv        camera,frame,timestamp,file        (camera clock, s)
   encoders.csv      timestamp,<joint 1>,...,<joint n>  (controller clock, s; motor angles, encoders.unit)
   images/<camera>/<frame>.png
@@ -46,6 +47,7 @@ from ._tracker import PointTarget as PointTarget
 from ._tracker import TrackerSamples as TrackerSamples
 from ._tracker import read_device, read_samples, sample_frames
 from ._truth import read_truth
+from .dh_tables import dh_table_model, is_table_file
 from .urdf import load_urdf
 
 SCHEMA = "jaxcal.dataset"
@@ -74,8 +76,11 @@ class Dataset:
       `segment_homes`: per segment the commanded configuration the other joints
       held (rad; the sweeping joint's entry zero), or None when not given.
     - `truth`: the parsed `truth.json` of a synthetic dataset, else `None`.
+    - `robot_urdf`: the robot file: the URDF `metadata.robot.urdf` names, or the
+      DH/MDH table `metadata.robot.table` names (then `robot_is_table`).
     - `joint_limits`: joint name -> `jaxcal.io.urdf.JointLimits` (URDF type,
-      position and velocity limits, nominal reduction ratio).
+      position and velocity limits, nominal reduction ratio; a table's
+      `lower` / `upper` / `velocity`, `None` where it has none).
     - `encoder_unit`: the unit the encoder file was written in (`None`
       without a log).
     - `encoder_glitches`: the `EncoderGlitch`es found and removed at load.
@@ -134,9 +139,16 @@ class Dataset:
             hit |= (t >= g.t_start) & (t <= g.t_end)
         return hit
 
+    @property
+    def robot_is_table(self) -> bool:
+        """Whether the robot file (`robot_urdf`) is a DH/MDH table (`metadata.robot.table`), not a URDF."""
+        return is_table_file(self.robot_urdf) and "table" in self.metadata.get("robot", {})
+
     def load_model(self):
-        """The nominal `KinematicModel` from the dataset's robot file."""
+        """The nominal `KinematicModel` from the dataset's robot file (its URDF, or its DH/MDH table)."""
         try:
+            if self.robot_is_table:
+                return dh_table_model(self.robot_urdf)
             return load_urdf(self.robot_urdf, self.base_link, self.flange_link)
         except (OSError, ValueError) as e:
             raise DatasetError(f"{self.robot_urdf}: cannot load the robot model: {e}") from e
