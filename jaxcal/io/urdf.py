@@ -339,6 +339,51 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
     )
 
 
+def urdf_inertials(
+    path, base_link: str | None = None, tip_link: str | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The masses (kg, (joints,)) and centres of mass (m, (joints, 3)) of the links
+    that move with each movable joint of `load_urdf(path, base_link, tip_link)`'s chain,
+    each centre in that joint's child link frame (the model's link frame).
+
+    A link's `<inertial>` (its `<origin>` is the centre of mass) is lumped with
+    those of the links hanging from it by fixed joints (a flange, a tool
+    frame): $m = \\sum_k m_k$, $c = \\sum_k m_k\\,T_{link,k}\\,c_k / m$. A link
+    without one weighs 0 (its centre is then the link origin). Raises
+    `ValueError` naming the file when no link of the chain has a mass.
+    """
+    path = Path(path)
+    root = _parse_xml(path).getroot()
+    check_joint_links(root, path)
+    urdf = _load_yourdfpy(path)
+    joints, _, _ = _chain(urdf, path, base_link, tip_link)
+    links = {link.name: link for link in urdf.robot.links}
+    fixed_children: dict[str, list] = {}
+    for j in urdf.robot.joints:
+        if j.type == "fixed":
+            fixed_children.setdefault(j.parent, []).append(j)
+    masses, coms = [], []
+    for joint in (j for j in joints if j.type != "fixed"):
+        m_sum, moment, stack, seen = 0.0, np.zeros(3), [(joint.child, np.eye(4))], set()
+        while stack:
+            name, T = stack.pop()
+            if name in seen:
+                continue
+            seen.add(name)
+            inertial = links[name].inertial
+            if inertial is not None and inertial.mass:
+                c = np.eye(4) if inertial.origin is None else np.asarray(inertial.origin, np.float64)
+                m_sum += float(inertial.mass)
+                moment += float(inertial.mass) * (T @ c)[:3, 3]
+            stack += [(f.child, T @ _origin(f)) for f in fixed_children.get(name, [])]
+        masses.append(m_sum)
+        coms.append(moment / m_sum if m_sum > 0 else np.zeros(3))
+    masses = np.asarray(masses)
+    if not masses.any() or not np.all(np.isfinite(masses)):
+        raise ValueError(f"URDF file {str(path)!r} gives no link masses (no <inertial> on the chain's links)")
+    return masses, np.stack(coms)
+
+
 # --------------------------------------------------------------------------- writing
 
 
