@@ -125,3 +125,8 @@ class BagTimeError(BagError):
 
 class BagEncodingError(BagError):
     """An image encoding, compression or camera model that jaxcal does not read."""
+
+
+class CsvImportError(DatasetError):
+    """A CSV table cannot be turned into a dataset (`jaxcal import-csv`): the message names the file,
+    the column and the line."""

@@ -4,6 +4,7 @@
   it from the images, print a before/after table, write the report.
 - `calibrate DATASET --out DIR`: images -> calibrated robot, camera pose, report (DATASET may be a ROS bag).
 - `import-bag BAG --out DIR`: a ROS 1 / ROS 2 bag -> a dataset directory.
+- `import-csv CSV --out DIR`: a table of joint positions and measured points -> a tracker dataset.
 - `inspect DATASET|BAG`: what a capture holds (cameras, sweeps, clocks, detections, capture kind).
 - `simulate`: render a synthetic dataset (see docs/dataset.md).
 - `montecarlo`: vmapped sensitivity study on analytic marker poses.
@@ -20,6 +21,7 @@ from ..planning._cli import add_plan_parser
 from ._calibrate import add_calibrate_args, cmd_calibrate, cmd_demo
 from ._common import EYE_IN_HAND_SWEEP, add_study_args, degrees, fmt_degrees, home, resolution
 from ._handeye import add_handeye_parsers
+from ._import_csv import add_import_csv_parser
 from ._inspect import add_inspect_parser
 from ._rosbag import add_bag_args, cmd_import_bag
 from ._simulate import cmd_plan, cmd_simulate
@@ -204,6 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_montecarlo)
     _add_simulate_parser(sub)
     add_inspect_parser(sub)
+    add_import_csv_parser(sub)
     add_handeye_parsers(sub)
     add_plan_parser(sub, cmd_plan)
     show_defaults(parser)
@@ -211,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus.
-NUMBER_LISTS = ("--region", "--taught", "--home-deg", "--sweep-deg")
+NUMBER_LISTS = ("--region", "--taught", "--home-deg", "--sweep-deg", "--point-mm")
 _NEGATIVE_LIST = re.compile(r"^-\.?\d[\d.eE+-]*(,[-+]?[\d.eE+-]+)*$")
 
 

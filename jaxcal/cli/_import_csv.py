@@ -1,0 +1,131 @@
+"""`jaxcal import-csv CSV`: a table of joint positions and measured points into a tracker dataset
+(jaxcal.io.csv_import; docs/dataset.md, "Importing a CSV")."""
+
+import argparse
+import math
+from pathlib import Path
+
+from ..io._tracker import DEVICE_KINDS
+from ..io.csv_import import ANGLE_UNITS, LENGTH_UNITS, import_csv
+from ..robots import ROBOTS_DIR, shipped
+
+
+def _columns(count: int | None):
+    """An argparse type: comma-separated column specs (`a,b+c,d`), `count` of them."""
+
+    def parse(text: str) -> list[str]:
+        cols = [c.strip() for c in text.split(",")]
+        if any(not c for c in cols) or (count is not None and len(cols) != count):
+            n = f"{count} " if count else ""
+            raise argparse.ArgumentTypeError(f"expected {n}comma-separated column names, got {text!r}")
+        return cols
+
+    return parse
+
+
+def _point(text: str) -> list[float]:
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 3:
+        raise argparse.ArgumentTypeError(f"expected x,y,z (mm), got {text!r}")
+    return v
+
+
+def _robot_file(name: str) -> Path:
+    """A robot file, or the file of a shipped robot's name (`ur5e`, `ur5_dh`)."""
+    if Path(name).is_file():
+        return Path(name)
+    tables = shipped("*_dh.json", ".json") + shipped("*_mdh.json", ".json")
+    if name in shipped():
+        return ROBOTS_DIR / f"{name}.urdf"
+    if name in tables:
+        return ROBOTS_DIR / f"{name}.json"
+    raise ValueError(
+        f"--robot {name!r} is neither a file nor a shipped robot ({shipped()}) or table ({tables})"
+    )
+
+
+def add_import_csv_parser(sub) -> None:
+    p = sub.add_parser(
+        "import-csv",
+        help="convert a CSV of joint positions and measured points (laser tracker, motion capture) into a "
+        "tracker dataset (docs/dataset.md, 'Importing a CSV')",
+    )
+    p.add_argument("csv", help="the CSV table: a header line, one row per pose")
+    p.add_argument(
+        "--robot", required=True, help="URDF or DH/MDH table file, or a shipped name (ur5e, ur5_dh)"
+    )
+    p.add_argument("--out", required=True, help="dataset directory (absent or empty)")
+    p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
+    p.add_argument(
+        "--joints",
+        required=True,
+        type=_columns(None),
+        help="the joint position columns, one per robot joint in the robot's order (COL,COL,...)",
+    )
+    p.add_argument(
+        "--joint-unit", required=True, choices=sorted(ANGLE_UNITS), help="unit of the joint columns"
+    )
+    p.add_argument(
+        "--xyz",
+        required=True,
+        type=_columns(3),
+        help="the measured point's x,y,z columns in the device frame; a column may be a sum (x_t+x_dif)",
+    )
+    p.add_argument(
+        "--length-unit",
+        required=True,
+        choices=sorted(LENGTH_UNITS),
+        help="unit of the x,y,z (and prismatic) columns",
+    )
+    p.add_argument("--sigma-mm", required=True, type=float, help="position noise, 1-sigma per axis (mm)")
+    p.add_argument(
+        "--point-mm", type=_point, help="the point's offset on --link, x,y,z (mm; default unknown)"
+    )
+    p.add_argument(
+        "--orientation",
+        type=_columns(4),
+        help="the orientation's quaternion columns, qx,qy,qz,qw (scalar last)",
+    )
+    p.add_argument(
+        "--sigma-deg", type=float, help="orientation noise, 1-sigma (deg; required with --orientation)"
+    )
+    p.add_argument("--time", help="a timestamp column (s, strictly increasing; default: the row index)")
+    p.add_argument("--device-name", default="tracker", help="the device's name (names its frame)")
+    p.add_argument("--device-kind", default="laser_tracker", choices=DEVICE_KINDS)
+    p.add_argument("--point-name", default="point", help="the measured point's name (smr, probe)")
+    p.add_argument("--link", help="the link the point rides on (default: the robot's flange)")
+    p.add_argument("--description", help="the dataset's description")
+    p.set_defaults(func=cmd_import_csv)
+
+
+def cmd_import_csv(args) -> int:
+    if args.orientation and args.sigma_deg is None:
+        raise ValueError("--orientation needs --sigma-deg (the orientation noise)")
+    r = import_csv(
+        args.csv,
+        args.out,
+        robot=_robot_file(args.robot),
+        joints=args.joints,
+        joint_unit=args.joint_unit,
+        xyz=args.xyz,
+        length_unit=args.length_unit,
+        sigma_m=args.sigma_mm * 1e-3,
+        point_m=None if args.point_mm is None else [v * 1e-3 for v in args.point_mm],
+        orientation=args.orientation,
+        sigma_rad=None if args.sigma_deg is None else math.radians(args.sigma_deg),
+        time=args.time,
+        device_name=args.device_name,
+        device_kind=args.device_kind,
+        point_name=args.point_name,
+        link=args.link,
+        description=args.description,
+        overwrite=args.overwrite,
+    )
+    print(
+        f"wrote {r.path}: {r.samples} samples; after the best rigid alignment the points lie "
+        f"{r.rms_from_nominal_m * 1e3:.3g} mm RMS from the nominal robot's (reach {r.reach_m:.3g} m)"
+    )
+    return 0

@@ -1,0 +1,511 @@
+"""CSV in: a table of joint positions and measured points -> a tracker dataset (`docs/dataset.md`).
+
+`import_csv` turns one row per stop-and-shoot pose (the commanded joint
+positions and the point a laser tracker, motion capture or the controller
+measured there, optionally an orientation) into the tracker format: every
+`joint` cell empty (all joints move between poses), one `joint: null` motion
+segment, joint positions in rad, points in m. A position may be the sum of
+columns (`x_t+x_dif`: nominal plus deviation), so published tables need no
+preprocessing.
+
+Every unit is stated by the caller (`joint_unit` rad or deg, `length_unit`
+m or mm): nothing is guessed. Before anything is written the table is checked
+against the robot, and every refusal (`CsvImportError`) names the CSV file,
+the column and the line:
+
+- every named column exists (a sum names the part that does not), every cell
+  is a finite number, timestamps (`time`) increase strictly;
+- joint positions lie within the robot's limits widened as at load
+  (`_encoders.margin`; a DH table gives none: one turn each way): degrees
+  declared as radians are 57 times too large;
+- the points spread like the nominal robot's for the same joints (RMS about
+  their centroid, within a factor `SPREAD_FACTOR`): millimetres declared as
+  metres spread 1000 times too wide, metres declared as millimetres 1000
+  times too narrow;
+- no point lies further from the points' median than the arm spans
+  ($2 (1.1 R + 0.1)$ m, $R$ = `reach_m`): the device frame is unknown, so
+  the check does not depend on it;
+- after the best rigid alignment of the points onto the nominal ones
+  (Kabsch, trimmed), each lies within `ALIGN_TOL_M` + 5 % of the reach of
+  its nominal (another `UNKNOWN_POINT_M` when the point's mount is not
+  given): a wrong cell, rows out of order, joint columns swapped;
+- quaternions have unit norm, and the angle between consecutive measured
+  orientations matches the nominal one within `ANGLE_TOL_DEG`.
+
+The output is written atomically (`atomic_directory`, kind `dataset`, never
+over an input) and checked with `load_dataset` before it is renamed into place.
+"""
+
+import hashlib
+import math
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._kinematics import KinematicModel, forward_kinematics
+from ..errors import CsvImportError, DatasetError
+from . import _encoders as enc
+from ._files import atomic_directory, check_output_dir
+from ._logs import parse_number, read_csv
+from ._tracker import DEVICE_KINDS, MAX_COORDINATE_M, QUATERNION_TOL
+from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_json
+from .dh_tables import dh_table_model, is_table_file, read_table_file
+from .urdf import load_urdf, urdf_outline
+
+#: `joint_unit` choices, to rad; `length_unit` choices, units per metre (a division keeps
+#: 0.432471963 from 432.471963 mm, where a product by 1e-3 adds round-off digits).
+ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+LENGTH_UNITS = {"m": 1.0, "mm": 1000.0}
+#: The measured points' RMS spread may differ from the nominal robot's by this factor
+#: (a unit mistake is a factor 1000); compared only where the nominal spread exceeds
+#: `MIN_SPREAD_M`.
+SPREAD_FACTOR = 5.0
+MIN_SPREAD_M = 0.01
+#: Largest distance of a point from its nominal after the rigid alignment: this + 5 % of the reach (m).
+ALIGN_TOL_M = 0.05
+#: ... plus this when the point's mount on the link is not given (the link's origin stands in).
+UNKNOWN_POINT_M = 0.5
+#: Largest difference between the measured and nominal angle of consecutive orientations (deg).
+ANGLE_TOL_DEG = 5.0
+#: The joint range assumed for a DH/MDH table without `lower` / `upper` (rad, each way): one turn,
+#: the range of UR's joints and wider than most arms'.
+TABLE_RANGE = 2.0 * math.pi
+#: Largest point mount offset (m): further is millimetres given as metres.
+MAX_POINT_M = 2.0
+
+
+@dataclass(frozen=True)
+class CsvImport:
+    """What `import_csv` wrote: the dataset, its sample count, the robot's reach bound (m)
+    and the points' RMS distance from the nominal robot's after the rigid alignment (m)."""
+
+    path: Path
+    samples: int
+    reach_m: float
+    rms_from_nominal_m: float
+
+
+@dataclass(frozen=True)
+class _Table:
+    """The CSV's values in SI units: `q` (N, joints), `P` (N, 3), `quat` (N, 4) or None, `t` (N,), `lines`."""
+
+    q: np.ndarray
+    P: np.ndarray
+    quat: np.ndarray | None
+    t: np.ndarray
+    lines: np.ndarray
+
+
+# --------------------------------------------------------------------------- the robot
+
+
+def robot_model(robot) -> tuple[KinematicModel, dict, str, dict]:
+    """The nominal model of a URDF or DH/MDH table file, its joint limits, and the metadata's `robot` object.
+
+    **Returns:** `(model, limits, file name in the dataset, robot object)`: `limits`
+    maps joint names to `JointLimits`: the URDF's, or the table's `lower` /
+    `upper` (a table without them: one turn each way, `TABLE_RANGE`).
+    """
+    robot = Path(robot)
+    try:
+        if is_table_file(robot):
+            t = read_table_file(robot)
+            name, key = f"robot_{t.table.convention}{robot.suffix.lower()}", "table"
+            model = dh_table_model(robot, Path(name).stem)
+            limits = t.joint_limits()
+            if t.lower is None:
+                limits = {j: replace(v, lower=-TABLE_RANGE, upper=TABLE_RANGE) for j, v in limits.items()}
+        else:
+            name, key = "robot.urdf", "urdf"
+            model = load_urdf(robot)
+            limits = urdf_outline(robot, tuple(model.joint_names)).limits
+    except (OSError, ValueError) as e:
+        raise DatasetError(f"{robot}: cannot load the robot model: {e}") from e
+    obj = {
+        key: name,
+        "base_link": model.link_names[0],
+        "flange_link": model.link_names[-1],
+        "joints": list(model.joint_names),
+    }
+    return model, limits, name, obj
+
+
+def reach_m(model: KinematicModel, limits: dict, point_m) -> float:
+    """An upper bound of the point's distance from joint 1's origin: the chain's link lengths,
+    the prismatic joints' travel and the point's offset summed (triangle inequality), m."""
+    T = np.asarray(model.T_parent_joint)
+    r = np.linalg.norm(T[1:, :3, 3], axis=1).sum() + np.linalg.norm(np.asarray(model.T_last_flange)[:3, 3])
+    for name, kind in zip(model.joint_names, model.joint_types):
+        lim = limits[name]
+        if kind == "prismatic":
+            r += max(abs(lim.lower or 0.0), abs(lim.upper or 0.0), 1.0 if lim.lower is None else 0.0)
+    return float(r + np.linalg.norm(point_m if point_m is not None else np.zeros(3)))
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _column(spec: str, index: dict, path: Path, option: str) -> list[int]:
+    """The CSV columns a spec names (`name` or `a+b`), by index."""
+    parts = [s.strip() for s in spec.split("+")]
+    if not spec.strip() or any(not p for p in parts):
+        raise CsvImportError(f"{path}: {option} {spec!r}: an empty column name")
+    for p in parts:
+        if p not in index:
+            raise CsvImportError(
+                f"{path} line 1: no column {p!r} (named by {option} {spec!r}); the header has {list(index)}"
+            )
+    return [index[p] for p in parts]
+
+
+def _number(text: str, where: str) -> float:
+    try:
+        return parse_number(text, where)
+    except DatasetError as e:
+        raise CsvImportError(str(e)) from None
+
+
+def _read(path: Path, specs: dict) -> tuple[dict, np.ndarray]:
+    """Per spec (label -> (option, spec)) the summed values (N,), and the line numbers."""
+    try:
+        header, rows = read_csv(path, "CSV table")
+    except DatasetError as e:
+        raise CsvImportError(str(e)) from None
+    header = [h.strip() for h in header]
+    index = {h: i for i, h in enumerate(header)}
+    if len(index) != len(header):
+        raise CsvImportError(f"{path} line 1: a column name is repeated: {header}")
+    cols = {label: _column(spec, index, path, option) for label, (option, spec) in specs.items()}
+    used = [c for idx in cols.values() for c in idx]
+    twice = sorted({header[c] for c in used if used.count(c) > 1})
+    if twice:
+        raise CsvImportError(
+            f"{path}: column(s) {twice} named twice (in --joints, --xyz, --orientation, --time)"
+        )
+    if len(rows) < 2:
+        raise CsvImportError(f"{path}: {len(rows)} data row(s); a dataset needs at least 2")
+    out = {label: np.zeros(len(rows)) for label in cols}
+    for r, (line, cells) in enumerate(rows):
+        if len(cells) != len(header):
+            raise CsvImportError(
+                f"{path} line {line}: expected {len(header)} cells (the header's), got {len(cells)}"
+            )
+        for label, idx in cols.items():
+            out[label][r] = sum(_number(cells[c], f"{path} line {line} column {header[c]!r}") for c in idx)
+    return out, np.array([line for line, _ in rows])
+
+
+def _check_limits(path: Path, q: np.ndarray, unit: str, specs, model: KinematicModel, limits: dict, lines):
+    """Joint positions (rad or m) within the limits widened as at load; a unit that would fit is named."""
+    for j, (name, kind) in enumerate(zip(model.joint_names, model.joint_types)):
+        lim, col = limits[name], q[:, j]
+        lin = "m" if kind == "prismatic" else "rad"
+        if lim.lower is None or lim.upper is None:
+            lo, hi, what = -enc.ABSURD[kind], enc.ABSURD[kind], f"beyond {enc.ABSURD[kind]:g} {lin}, absurd"
+        else:
+            m = enc.margin(kind, lim.lower, lim.upper)
+            lo, hi = lim.lower - m, lim.upper + m
+            what = f"outside the joint's limits [{lim.lower:.4g}, {lim.upper:.4g}] {lin} widened by {m:.3g} {lin}"
+        bad = np.flatnonzero((col < lo) | (col > hi))
+        if not bad.size:
+            continue
+        k = bad[0]
+        hint = "check the column and the robot file"
+        if kind != "prismatic":
+            other = "deg" if unit == "rad" else "rad"
+            alt = col / ANGLE_UNITS[unit] * ANGLE_UNITS[other]
+            if np.all((alt >= lo) & (alt <= hi)):
+                hint = f"the values look like {'degrees' if other == 'deg' else 'radians'}: --joint-unit {other}?"
+        raise CsvImportError(
+            f"{path} line {lines[k]} column {specs[j]!r} ({name}, --joint-unit {unit}): {col[k]:.6g} {lin} is "
+            f"{what} ({bad.size} of {len(col)} rows); {hint}"
+        )
+
+
+def _read_table(
+    path: Path, *, joints, joint_unit, xyz, length_unit, orientation, time, model, limits
+) -> _Table:
+    """The CSV's columns in SI units, each checked for numbers, time order, joint limits and unit quaternions."""
+    specs = {f"q{j}": ("--joints", s) for j, s in enumerate(joints)}
+    specs |= {f"p{i}": ("--xyz", s) for i, s in enumerate(xyz)}
+    specs |= {f"o{i}": ("--orientation", s) for i, s in enumerate(orientation or ())}
+    if time is not None:
+        specs["t"] = ("--time", time)
+    v, lines = _read(path, specs)
+    lin = np.array(
+        [
+            LENGTH_UNITS[length_unit] if k == "prismatic" else ANGLE_UNITS[joint_unit]
+            for k in model.joint_types
+        ]
+    )
+    q = np.stack([v[f"q{j}"] for j in range(len(joints))], axis=1) * lin
+    _check_limits(path, q, joint_unit, list(joints), model, limits, lines)
+    t = np.arange(len(lines), dtype=np.float64) if time is None else v["t"]
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        k = bad[0] + 1
+        raise CsvImportError(
+            f"{path} line {lines[k]} column {time!r} (--time): {t[k]!r} s is not after line {lines[k - 1]}'s "
+            f"{t[k - 1]!r}; timestamps must increase strictly"
+        )
+    quat = None
+    if orientation:
+        quat = np.stack([v[f"o{i}"] for i in range(4)], axis=1)
+        norm = np.linalg.norm(quat, axis=1)
+        bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_TOL)
+        if bad.size:
+            raise CsvImportError(
+                f"{path} line {lines[bad[0]]} columns {list(orientation)} (--orientation qx,qy,qz,qw): norm "
+                f"{norm[bad[0]]:.6g}; expected a unit quaternion (within {QUATERNION_TOL:g})"
+            )
+    P = np.stack([v[f"p{i}"] for i in range(3)], axis=1) / LENGTH_UNITS[length_unit]
+    return _Table(q=q, P=P, quat=quat, t=t, lines=lines)
+
+
+# --------------------------------------------------------------------------- plausibility
+
+
+def _rigid_alignment(P: np.ndarray, Q: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nominal points `Q` moved rigidly onto the measured `P` (Kabsch, least squares), and per row
+    the distance between them; fitted again twice on the rows within max(tol, 3 x median) so that a
+    few wild rows cannot skew it. **Returns:** `(Q moved (N, 3), distances (N,), rotation R)`, the
+    move being `(Q - mean) @ R.T + mean'`."""
+    keep = np.ones(len(P), bool)
+    for _ in range(3):
+        mp, mq = P[keep].mean(0), Q[keep].mean(0)
+        U, _, Vt = np.linalg.svd((Q[keep] - mq).T @ (P[keep] - mp))
+        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+        moved = (Q - mq) @ R.T + mp
+        r = np.linalg.norm(P - moved, axis=1)
+        keep = r <= max(tol, 3.0 * np.median(r))
+    return moved, r, R
+
+
+def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str, robot: tuple) -> float:
+    """The points against the nominal robot's: spread (units), coordinates, reach, rigid alignment.
+
+    `robot`: `(origin of joint 1 in the base frame (3,), reach bound (m), alignment tolerance (m))`.
+    **Returns:** the points' RMS distance from the aligned nominal ones (m).
+    """
+    P, lines, cols = table.P, table.lines, f"columns {list(xyz)} (--xyz, --length-unit {unit})"
+    origin, reach, tol = robot
+    s_m = np.sqrt(((P - P.mean(0)) ** 2).sum(1).mean())
+    s_n = np.sqrt(((nominal - nominal.mean(0)) ** 2).sum(1).mean())
+    if s_n > MIN_SPREAD_M and not s_n / SPREAD_FACTOR <= s_m <= s_n * SPREAD_FACTOR:
+        far = int(np.argmax(np.linalg.norm(P - P.mean(0), axis=1)))
+        other = "mm" if unit == "m" else "m"
+        raise CsvImportError(
+            f"{path} {cols}, lines {lines[0]}-{lines[-1]}: the points spread {s_m:.4g} m (RMS about their "
+            f"centroid; line {lines[far]} lies furthest out), the robot's nominal points for the same joints "
+            f"{s_n:.4g} m, and it reaches {reach:.3g} m: a factor {s_m / s_n:.3g}; are the lengths in "
+            f"{'millimetres' if other == 'mm' else 'metres'} (--length-unit {other})?"
+        )
+    bad = np.flatnonzero(np.abs(P).max(axis=1) > MAX_COORDINATE_M)
+    if bad.size:
+        raise CsvImportError(
+            f"{path} line {lines[bad[0]]} {cols}: a coordinate of {P[bad[0]].tolist()} m lies beyond "
+            f"{MAX_COORDINATE_M:g} m of the device"
+        )
+    moved, r, R = _rigid_alignment(P, nominal, tol)
+    base = nominal + (P - moved) @ R  # the measured points in the base frame (the alignment undone)
+    d = np.linalg.norm(base - origin, axis=1)
+    limit = 1.1 * reach + 0.1
+    for bad, why in (
+        (np.flatnonzero(d > limit), "beyond the robot's reach"),
+        (np.flatnonzero(r > tol), "too far from where the nominal robot puts it"),
+    ):
+        if bad.size:
+            k = bad[np.argmax(r[bad])]
+            c = int(np.argmax(np.abs(P[k] - moved[k])))
+            raise CsvImportError(
+                f"{path} line {lines[k]} column {xyz[c]!r} ({cols}): the point lies {why}: {r[k]:.4g} m from its "
+                f"nominal after the best rigid alignment of all points (tolerance {tol:.3g} m), {d[k]:.4g} m "
+                f"from joint 1's origin (reach {reach:.3g} m, limit 1.1 x reach + 0.1 m = {limit:.3g} m); "
+                f"{bad.size} of {len(P)} rows; check that row's cells (column {xyz[c]!r} is off by "
+                f"{P[k, c] - moved[k, c]:+.4g} m), the joint columns' order and the point's offset"
+            )
+    return float(np.sqrt(np.mean(r**2)))
+
+
+def _check_orientations(path: Path, table: _Table, R_nom: np.ndarray, orientation):
+    """The angle between consecutive measured orientations against the nominal one (frame-free)."""
+    q = table.quat / np.linalg.norm(table.quat, axis=1, keepdims=True)
+    measured = 2.0 * np.arccos(np.clip(np.abs((q[1:] * q[:-1]).sum(1)), 0.0, 1.0))
+    rel = np.einsum("nji,njk->nik", R_nom[:-1], R_nom[1:])
+    nominal = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    diff = np.degrees(np.abs(measured - nominal))
+    bad = np.flatnonzero(diff > ANGLE_TOL_DEG)
+    if bad.size:
+        k = bad[0] + 1
+        raise CsvImportError(
+            f"{path} line {table.lines[k]} columns {list(orientation)} (--orientation qx,qy,qz,qw): the "
+            f"orientation turned {np.degrees(measured[k - 1]):.3g} deg since line {table.lines[k - 1]}, the "
+            f"nominal robot's {np.degrees(nominal[k - 1]):.3g} deg (tolerance {ANGLE_TOL_DEG:g} deg)"
+        )
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _write_samples(path: Path, table: _Table, joint_names) -> None:
+    quat = table.quat if table.quat is not None else np.zeros((len(table.t), 0))
+    head = ["sample", "timestamp", "joint", "x", "y", "z"] + (
+        ["qx", "qy", "qz", "qw"] if quat.shape[1] else []
+    )
+    lines = [",".join(head + list(joint_names))]
+    for i in range(len(table.t)):
+        nums = [*table.P[i], *quat[i], *table.q[i]]
+        lines.append(",".join([str(i), repr(float(table.t[i])), "", *(repr(float(v)) for v in nums)]))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _translation(p: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = p
+    return T
+
+
+def _check_arguments(*, joint_unit, length_unit, device_kind, sigma_m, xyz, orientation, sigma_rad, point_m):
+    """`import_csv`'s units, noise, column counts and point offset: the offset as an array (3,) or None."""
+    for name, value, units in (
+        ("joint_unit", joint_unit, ANGLE_UNITS),
+        ("length_unit", length_unit, LENGTH_UNITS),
+    ):
+        if value not in units:
+            raise ValueError(
+                f"{name} must be one of {sorted(units)} (no default: state the unit), got {value!r}"
+            )
+    if device_kind not in DEVICE_KINDS:
+        raise ValueError(f"device_kind must be one of {DEVICE_KINDS}, got {device_kind!r}")
+    if not (isinstance(sigma_m, (int, float)) and 0.0 < sigma_m <= 1.0):
+        raise ValueError(f"sigma_m (the position noise, m) must be in (0, 1], got {sigma_m!r}")
+    if len(xyz) != 3 or (orientation is not None and len(orientation) != 4):
+        raise ValueError("xyz names 3 columns and orientation 4 (qx, qy, qz, qw)")
+    if orientation is not None and not (isinstance(sigma_rad, (int, float)) and 0.0 < sigma_rad <= 1.0):
+        raise ValueError(f"an orientation needs sigma_rad (its noise, rad) in (0, 1], got {sigma_rad!r}")
+    point = None if point_m is None else np.asarray(point_m, np.float64)
+    if point is not None and (point.shape != (3,) or not np.all(np.isfinite(point))):
+        raise ValueError(f"point_m must be 3 finite numbers (m), got {point_m!r}")
+    if point is not None and np.linalg.norm(point) > MAX_POINT_M:
+        raise ValueError(
+            f"point_m {point.tolist()} lies more than {MAX_POINT_M:g} m from the link: millimetres?"
+        )
+    return point
+
+
+def import_csv(
+    csv,
+    out,
+    *,
+    robot,
+    joints: Sequence[str],
+    joint_unit: str,
+    xyz: Sequence[str],
+    length_unit: str,
+    sigma_m: float,
+    point_m=None,
+    orientation: Sequence[str] | None = None,
+    sigma_rad: float | None = None,
+    time: str | None = None,
+    device_name: str = "tracker",
+    device_kind: str = "laser_tracker",
+    point_name: str = "point",
+    link: str | None = None,
+    description: str | None = None,
+    overwrite: bool = False,
+) -> CsvImport:
+    """Convert the CSV table `csv` into the tracker dataset `out` (see the module docstring).
+
+    **Arguments:**
+    - `robot`: a URDF file (copied as `robot.urdf`) or a DH/MDH table
+      (`jaxcal.io.dh_tables`, copied as `robot_dh.json` / `robot_mdh.json`).
+    - `joints`: one column spec per robot joint, in the robot's joint order;
+      `joint_unit`: `"rad"` or `"deg"` (a prismatic joint's in `length_unit`).
+    - `xyz`: three column specs, the point in the device frame; `length_unit`: `"m"` or `"mm"`.
+      A spec is a column name or a sum of them (`"x_t+x_dif"`).
+    - `sigma_m`: the position noise, 1-sigma per axis (m).
+    - `point_m`: the point's offset on `link` (m, 3), or None when unknown.
+    - `orientation`: four column specs `qx, qy, qz, qw` (scalar last) or None;
+      `sigma_rad`: their noise (required with them).
+    - `time`: a column of timestamps (s, strictly increasing), else the row index.
+    - `device_name`, `device_kind`, `point_name`: the metadata's `device` fields.
+    - `link`: the link the point rides on (default the robot's flange).
+    - `overwrite`: replace a dataset jaxcal wrote at `out`.
+
+    **Returns:** a `CsvImport`. Raises `CsvImportError` naming the CSV file,
+    the column and the line; `DatasetError` for the robot; `OutputError` for `out`.
+    """
+    csv, robot_file = Path(csv), Path(robot)
+    checked = check_output_dir(
+        out, inputs=[csv, robot_file], overwrite=overwrite, kind="dataset", what="--out"
+    )
+    point = _check_arguments(
+        joint_unit=joint_unit, length_unit=length_unit, device_kind=device_kind, sigma_m=sigma_m, xyz=xyz,
+        orientation=orientation, sigma_rad=sigma_rad, point_m=point_m,
+    )  # fmt: skip
+    model, limits, robot_name, robot_obj = robot_model(robot_file)
+    if len(joints) != len(model.joint_names):
+        raise ValueError(
+            f"{len(joints)} joint column(s) {list(joints)} for the {len(model.joint_names)} joints of {robot_file}: "
+            f"name one column per joint, in the robot's order {list(model.joint_names)}"
+        )
+    link = link or model.link_names[-1]
+    if link not in model.link_names:
+        raise ValueError(
+            f"link {link!r} is not a link of the chain of {robot_file}: {list(model.link_names)}"
+        )
+    table = _read_table(
+        csv, joints=joints, joint_unit=joint_unit, xyz=xyz, length_unit=length_unit,
+        orientation=orientation, time=time, model=model, limits=limits,
+    )  # fmt: skip
+    frames = np.asarray(jax.vmap(forward_kinematics, in_axes=(None, 0))(model, jnp.asarray(table.q)))
+    T_link = frames[:, list(model.link_names).index(link)]
+    nominal = T_link[:, :3, 3] + T_link[:, :3, :3] @ (point if point is not None else np.zeros(3))
+    reach = reach_m(model, limits, point)
+    tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
+    origin = np.asarray(model.T_parent_joint)[0, :3, 3]
+    rms = _check_points(csv, table, nominal, xyz, length_unit, (origin, reach, tol))
+    if orientation is not None:
+        _check_orientations(csv, table, T_link[:, :3, :3], orientation)
+    device = {
+        "name": device_name,
+        "kind": device_kind,
+        "file": "samples.csv",
+        "link": link,
+        "point": point_name,
+        "T_link_point_nominal": None if point is None else _translation(point),
+        "sigma_m": float(sigma_m),
+        "sigma_rad": None if orientation is None else float(sigma_rad),
+    }
+    meta = {
+        "schema": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "description": description or f"imported from the CSV table {csv.name} by jaxcal import-csv",
+        "robot": robot_obj,
+        "device": device,
+        "motion": [{"joint": None, "start": float(table.t[0]), "end": float(table.t[-1])}],
+        "x_csv": {
+            "file": csv.name,
+            "sha256": hashlib.sha256(csv.read_bytes()).hexdigest(),
+            "joints": dict(zip(model.joint_names, joints)),
+            "joint_unit": joint_unit,
+            "xyz": list(xyz),
+            "length_unit": length_unit,
+            "orientation": None if orientation is None else list(orientation),
+            "time": time,
+            "rows": len(table.t),
+        },
+    }
+    with atomic_directory(
+        out, overwrite=overwrite, inputs=[csv, robot_file], kind="dataset", what="--out", checked=checked
+    ) as tmp:
+        shutil.copyfile(robot_file, tmp / robot_name)
+        _write_samples(tmp / "samples.csv", table, model.joint_names)
+        write_json(tmp / "metadata.json", meta)
+        load_dataset(tmp)  # the format's every check, before the rename
+    return CsvImport(Path(out), len(table.t), reach, rms)
