@@ -13,11 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bagwriter import COMPRESSED, INFO, JOINTS, write_bag
 
 from jaxcal._kinematics import forward_kinematics, joint_axes
 from jaxcal.errors import DatasetError
 from jaxcal.io.dataset import load_dataset
 from jaxcal.io.dh_tables import read_table_file
+from jaxcal.io.rosbag import import_bag
 from jaxcal.io.urdf import save_urdf
 from jaxcal.robots import ROBOTS_DIR, link_inertials, load_robot, load_robot_file, robot_file
 
@@ -328,3 +330,19 @@ def test_yaml_tables_read_like_json(tmp_path):
     path.write_text("a: [1, 2\n")
     with pytest.raises(DatasetError, match="panda.yaml.*cannot be read"):
         read_table_file(path)
+
+
+def test_a_ros_bag_imports_with_a_table_as_its_robot(tmp_path):
+    bag = write_bag(SWEEPS, tmp_path / "small", rows=np.arange(0, 144, 24))
+    doc = json.loads((ROBOTS_DIR / "ur5e_dh.json").read_text())
+    table = _write(tmp_path / "ur5e.json", dict(doc, reduction_ratio=[101.0] * 6))
+    import_bag(
+        bag, tmp_path / "ds", images=COMPRESSED, joints=JOINTS, camera_info=INFO, robot=table,
+        targets=SWEEPS / "metadata.json",
+    )  # fmt: skip
+    ds = load_dataset(tmp_path / "ds")
+    assert ds.robot_is_table and ds.metadata["robot"]["table"] == "robot_dh.json"
+    assert ds.joint_limits["elbow_joint"].reduction_ratio == 101.0 and ds.joint_names == tuple(UR_JOINTS)
+    src = load_dataset(SWEEPS)
+    t = src.encoder_t[(src.encoder_t >= ds.encoder_t[0]) & (src.encoder_t <= ds.encoder_t[-1])]
+    assert len(ds.encoder_t) > 0.5 * len(t)  # the joint log came through, in motor angles

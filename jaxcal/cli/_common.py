@@ -26,7 +26,11 @@ def positive_int(text: str) -> int:
 
 
 def add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
-    p.add_argument("--robot", default="ur5e", help="shipped robot: ur5e or panda")
+    p.add_argument(
+        "--robot",
+        default="ur5e",
+        help="shipped robot (ur5e, panda, ur10e, iiwa14, ...: data/robots), a URDF or a DH/MDH table file",
+    )
     p.add_argument("--trials", type=int, default=trials)
     p.add_argument(
         "--chunk",

@@ -20,7 +20,9 @@ def add_bag_args(p: argparse.ArgumentParser, *, required: bool) -> None:
     p.add_argument(
         "--camera-info", help="sensor_msgs/CameraInfo topic (default: none, K null: self-calibration)"
     )
-    p.add_argument("--robot", required=required, help="the robot's URDF file" + need)
+    p.add_argument(
+        "--robot", required=required, help="the robot's URDF file, or its DH/MDH table (.json/.yaml)" + need
+    )
     p.add_argument(
         "--target",
         required=required,

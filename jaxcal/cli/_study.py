@@ -11,7 +11,7 @@ from rich.table import Table
 
 from .. import _montecarlo as mc
 from .._axisfit import parameter_names
-from ..robots import load_robot
+from ..robots import load_robot_file
 from ._common import write_json_atomic
 
 
@@ -20,7 +20,7 @@ def _setup(args):
         position_mm=args.noise_mm, orientation_deg=args.noise_deg, encoder_deg=args.encoder_noise_deg
     )
     plan = mc.SweepPlan(range_deg=args.sweep_deg, frames=args.frames)
-    return mc.default_setup(load_robot(args.robot), noise=noise, plan=plan)
+    return mc.default_setup(load_robot_file(args.robot), noise=noise, plan=plan)
 
 
 def _detailed_trial(setup, key, free):

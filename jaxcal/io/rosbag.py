@@ -61,6 +61,7 @@ from ._rosmsgs import (
     stamp_ns,
 )
 from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_encoders, write_frames, write_json
+from .dh_tables import dh_table_model, is_table_file, read_table_file
 from .urdf import load_urdf, urdf_outline
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -250,6 +251,24 @@ def _camera(reader, bag: Path, topic: str | None, size, camera: str, mount: str)
     return cam
 
 
+def _robot_model(robot: Path, base_link, flange_link):
+    """The robot file's model, its movable joints, the chain's reduction ratios, and the
+    metadata key and file name it is copied under (`urdf`, `robot.urdf`, or `table`, `robot_dh.json`)."""
+    try:
+        if is_table_file(robot):
+            model = dh_table_model(robot)
+            t = read_table_file(robot)
+            ratio = np.ones(model.num_joints) if t.reduction_ratio is None else t.reduction_ratio
+            return model, set(model.joint_names), ratio, "table", f"robot_dh{robot.suffix.lower()}"
+        model = load_urdf(robot, base_link, flange_link)
+        outline = urdf_outline(robot, tuple(model.joint_names))
+    except (OSError, ValueError) as e:
+        raise DatasetError(f"{robot}: cannot load the robot model: {e}") from e
+    movable = {j for j, kind, _ in outline.parent_joint.values() if kind != "fixed"}
+    ratio = np.array([outline.limits[j].reduction_ratio for j in model.joint_names])
+    return model, movable, ratio, "urdf", "robot.urdf"
+
+
 def import_bag(
     bag,
     out,
@@ -270,8 +289,9 @@ def import_bag(
 
     **Arguments:**
     - `images`, `joints`, `camera_info`: topic names (CameraInfo optional).
-    - `robot`: the URDF file (copied as `robot.urdf`); `base_link`,
-      `flange_link`: the chain's ends (default: its root and its one leaf).
+    - `robot`: the URDF file (copied as `robot.urdf`), or a DH/MDH table file
+      (copied as `robot_dh.json` / `.yaml`, named by `robot.table`); `base_link`,
+      `flange_link`: the chain's ends (default: its root and its one leaf; a table's own).
     - `targets`: a JSON file (`read_targets`) or a list of target objects.
     - `camera`, `mount`: the camera's name and mount (`"world"` or a link).
     - `segments`: how motion segments are found in the joint log.
@@ -283,14 +303,8 @@ def import_bag(
     """
     bag, robot = Path(bag), Path(robot)
     target_list = read_targets(targets) if isinstance(targets, (str, Path)) else list(targets)
-    try:
-        model = load_urdf(robot, base_link, flange_link)
-        chain = tuple(model.joint_names)
-        outline = urdf_outline(robot, chain)
-    except (OSError, ValueError) as e:
-        raise DatasetError(f"{robot}: cannot load the robot model: {e}") from e
-    movable = {j for j, kind, _ in outline.parent_joint.values() if kind != "fixed"}
-    ratio = np.array([outline.limits[j].reduction_ratio for j in chain])
+    model, movable, ratio, robot_key, robot_name = _robot_model(robot, base_link, flange_link)
+    chain = tuple(model.joint_names)
     inputs = [bag, robot] + ([targets] if isinstance(targets, (str, Path)) else [])
     with (
         open_bag(bag) as reader,
@@ -312,7 +326,7 @@ def import_bag(
         t_enc = (enc_ns - epoch) * 1e-9
         motion, more = find_segments(t_enc, q, chain, segments or SegmentOptions())
         notes += more
-        shutil.copyfile(robot, tmp / "robot.urdf")
+        shutil.copyfile(robot, tmp / robot_name)
         write_frames(
             tmp / "frames.csv",
             [camera] * len(rows),
@@ -326,7 +340,7 @@ def import_bag(
             "schema_version": SCHEMA_VERSION,
             "description": f"imported from the ROS bag {bag.name} by jaxcal import-bag",
             "robot": {
-                "urdf": "robot.urdf",
+                robot_key: robot_name,
                 "base_link": model.link_names[0],
                 "flange_link": model.link_names[-1],
                 "joints": list(chain),
