@@ -18,6 +18,7 @@ import numpy as np
 
 from .io._rosmsgs import find_segments
 from .io.dataset import Dataset, load_dataset
+from .stages._setup import device_kind
 from .stages.kinds import CaptureKind
 from .vision import detect
 
@@ -87,22 +88,17 @@ def _tracker_summary(ds: Dataset, path, t0: float) -> dict:
     samples, their time span and the range the joint covers (when the table
     gives joint positions)."""
     d, s = ds.device, ds.samples
+    kind = device_kind(ds)
     joints = []
     for j, name in enumerate(ds.joint_names):
-        rows = s.joint == j
+        # Stop-and-shoot poses: every sample moves every joint; sweeps: the joint's own samples.
+        rows = np.ones(len(s.sample), bool) if kind.fits_points else s.joint == j
         row = {"joint": name, "samples": int(np.count_nonzero(rows))}
         if rows.any():
             row["time_s"] = [float(s.timestamp[rows].min()), float(s.timestamp[rows].max())]
             if s.q is not None:
                 row |= _joint_range(ds, name, s.q[rows, j])
         joints.append(row)
-    kind = CaptureKind.of(
-        camera_on_flange=False,
-        segments=ds.segments,
-        encoders=ds.encoder_t is not None or s.q is not None,
-        link_targets=False,
-        device=True,
-    )
     return {
         "dataset": str(Path(path)),
         "robot": _robot(ds),
@@ -117,7 +113,7 @@ def _tracker_summary(ds: Dataset, path, t0: float) -> dict:
             "joint_positions": s.q is not None,
         },
         "joints": joints,
-        "unassigned_samples": int(np.count_nonzero(s.joint < 0)),
+        "unassigned_samples": 0 if kind.fits_points else int(np.count_nonzero(s.joint < 0)),
         "kind": kind.describe(),
         "notes": list(ds.notes),
         "seconds": time.perf_counter() - t0,

@@ -35,6 +35,8 @@ def calibrate(
     limits: Limits | None = None,
     arc_loss: str | None = "cauchy",
     device_is_base: bool = False,
+    terms: tuple[str, ...] = (),
+    cv_folds: int = 5,
     strict: bool = False,
     log=None,
 ) -> CalibrationResult:
@@ -70,6 +72,13 @@ def calibrate(
       is the identity and not estimated; the base height d1 and joint 1's
       origin become identifiable. Without it `T_device_base` is estimated
       (it takes `T_cam_base`'s place) and they are held at nominal.
+    - `terms`: stop-and-shoot tracker data only: non-geometric terms to try
+      after the geometric fit (`"compliance"`: joint compliance under gravity,
+      from the robot file's link masses; `"harmonic1"`, `"harmonic2"`: a
+      joint's once- and twice-per-turn transmission error), each kept only
+      when `cv_folds`-fold cross-validation on the samples improves.
+    - `cv_folds`: folds of that cross-validation (also reported for the
+      geometric model; 0 skips it, and then no term can be tried).
     - `limits`: the plausibility checks' limits (`jaxcal.stages.Limits`); a
       result that fails one has `status == "suspect"` and its `reasons`.
     - `strict`: raise `SuspectResultError` instead of returning a suspect or
@@ -99,6 +108,8 @@ def calibrate(
         limits=stages.Limits() if limits is None else limits,
         arc_loss=arc_loss,
         device_is_base=device_is_base,
+        terms=tuple(terms),
+        cv_folds=int(cv_folds),
     )
     setup = stages.setup(dataset, options)
     obs = stages.observe(setup, options)

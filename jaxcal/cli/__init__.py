@@ -6,6 +6,7 @@
 - `import-bag BAG --out DIR`: a ROS 1 / ROS 2 bag -> a dataset directory.
 - `import-csv CSV --out DIR`: a table of joint positions and measured points -> a tracker dataset.
 - `inspect DATASET|BAG`: what a capture holds (cameras, sweeps, clocks, detections, capture kind).
+- `verify RESULT DATASET`: a stop-and-shoot calibration against samples it was not fitted on.
 - `simulate`: render a synthetic dataset (see docs/dataset.md).
 - `montecarlo`: vmapped sensitivity study on analytic marker poses.
 - `handeye CAPTURE --out DIR`: classic hand-eye from a folder of images and robot poses.
@@ -26,6 +27,7 @@ from ._inspect import add_inspect_parser
 from ._rosbag import add_bag_args, cmd_import_bag
 from ._simulate import cmd_plan, cmd_simulate
 from ._study import cmd_montecarlo
+from ._verify import add_verify_parser
 
 
 class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -207,6 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate_parser(sub)
     add_inspect_parser(sub)
     add_import_csv_parser(sub)
+    add_verify_parser(sub)
     add_handeye_parsers(sub)
     add_plan_parser(sub, cmd_plan)
     show_defaults(parser)

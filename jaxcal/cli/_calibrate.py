@@ -10,6 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from ..io._files import check_output_dir, marked_directory, output_lock
+from .._pointfit import TERMS
 from ..pipeline import calibrate
 from ..report import output_files, write_outputs
 from ..robots import load_robot
@@ -17,7 +18,36 @@ from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG
 from ._rosbag import dataset_of
 
 
+def _terms(text: str) -> tuple[str, ...]:
+    names = tuple(t.strip() for t in text.split(",") if t.strip())
+    unknown = [t for t in names if t not in TERMS]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown terms {unknown}; known: {', '.join(TERMS)}")
+    return names
+
+
+def _point_fit_table(console, result) -> None:
+    pf = result.point_fit
+    t = Table(title=f"Point fit ({result.frames['used_per_joint']['poses']} stop-and-shoot samples)")
+    for col in ("model", "free parameters", "CV mean mm", "CV RMS mm", "CV max mm", "kept"):
+        t.add_column(col, justify="left" if col == "model" else "right")
+    for m in pf.models:
+        cv = [f"{m[k]:.4f}" if k in m else "-" for k in ("cv_mean_mm", "cv_rms_mm", "cv_max_mm")]
+        t.add_row("+".join(["geometric", *m["terms"]]), str(m["free"]), *cv, "yes" if m["kept"] else "")
+    console.print(t)
+    r = pf.residual_mm
+    console.print(
+        f"fitted residual {r['mean']:.4f} mm mean, {r['rms']:.4f} mm RMS, {r['max']:.4f} mm max; "
+        f"held at nominal: {len(pf.held)} parameters"
+    )
+    for row in pf.term_rows:
+        if row["free"]:
+            console.print(f"  {row['name']} = {row['estimate']:.6g} +- {row['std']:.2g}")
+
+
 def _calibration_tables(console, result) -> None:
+    if result.point_fit is not None:
+        _point_fit_table(console, result)
     if result.arcs:
         _sweeps_table(console, result)
     _result_tables(console, result)
@@ -155,6 +185,8 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         other_cameras=not args.single_camera,
         arc_loss=None if args.arc_loss == "none" else args.arc_loss,
         device_is_base=getattr(args, "device_is_base", False),
+        terms=args.terms,
+        cv_folds=args.cv_folds,
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
     )
     _calibration_tables(console, result)
@@ -298,5 +330,20 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         choices=("cauchy", "huber", "none"),
         default="cauchy",
         help="robust loss of the arc and clock fits; rejected frames are named in result.json (default: cauchy)",
+    )
+    p.add_argument(
+        "--terms",
+        type=_terms,
+        default=(),
+        help="stop-and-shoot tracker data: non-geometric terms to try, comma-separated: compliance (joint "
+        "compliance under gravity, from the robot file's link masses), harmonic1, harmonic2 (a joint's "
+        "once/twice-per-turn transmission error); each kept only if cross-validation improves (default none)",
+    )
+    p.add_argument(
+        "--cv-folds",
+        type=int,
+        default=5,
+        help="stop-and-shoot tracker data: folds of the cross-validation that gates --terms and is reported "
+        "(0: none)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -85,4 +85,32 @@ def result_to_json(result) -> dict:
         "warnings": result.warnings,
         "checks": [] if result.verdict is None else list(result.verdict.checks),
         "model": model_to_json(result.model),
+        **({"point_fit": point_fit_json(result.point_fit)} if result.point_fit is not None else {}),
+    }
+
+
+def point_fit_json(pf) -> dict:
+    """The `point_fit` block: what `jaxcal verify` needs to predict any pose's point with
+    the calibrated model (the nominal model, the references, the parameter vector with its
+    covariance and the non-geometric terms), and the models cross-validation compared."""
+    fit, prob = pf.fit, pf.problem
+    return {
+        "terms": list(pf.layout.terms),
+        "term_rows": pf.term_rows,
+        "models": list(pf.models),
+        "cv_folds": pf.folds,
+        "residual_mm": pf.residual_mm,
+        "samples": int(np.sum(pf.used)),
+        "held": list(pf.held),
+        "names": pf.layout.names(),
+        "x": np.asarray(fit.x).tolist(),
+        "free": np.asarray(fit.free).astype(bool).tolist(),
+        "covariance": np.asarray(fit.cov).tolist(),
+        "residual_variance_factor": float(fit.sigma2),
+        "sigma_m": float(np.median(np.asarray(prob.data.sigma)[pf.used])),
+        "T_device_base0": np.asarray(prob.T_dev_base0).tolist(),
+        "T_flange_point0": np.asarray(prob.T_flange_point0).tolist(),
+        "masses": np.asarray(prob.data.masses).tolist(),
+        "coms": np.asarray(prob.data.coms).tolist(),
+        "nominal_model": model_to_json(prob.nominal),
     }

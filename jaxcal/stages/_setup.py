@@ -13,7 +13,7 @@ from .._links import arm_targets
 from .._robust import LOSSES
 from ..errors import CalibrationError
 from ..io.dataset import CameraInfo, Dataset, TargetInfo, load_dataset
-from .kinds import CaptureKind
+from .kinds import CaptureKind, device_poses, single_joint_share
 from .limits import Limits
 
 
@@ -34,6 +34,8 @@ class Options:
     limits: Limits = Limits()
     arc_loss: str | None = "cauchy"
     device_is_base: bool = False
+    terms: tuple[str, ...] = ()
+    cv_folds: int = 5
 
     def say(self, text: str) -> None:
         if self.log is not None:
@@ -144,6 +146,21 @@ TWO_STAGE_IS_FINAL = (
 )
 
 
+def device_kind(ds: Dataset, device_is_base: bool = False) -> CaptureKind:
+    """The capture kind of a tracker dataset: single-joint sweeps, or stop-and-shoot poses
+    (`kinds.device_poses`)."""
+    s = ds.samples
+    return CaptureKind.of(
+        camera_on_flange=False,
+        segments=ds.segments,
+        encoders=ds.encoder_t is not None or s.q is not None,
+        link_targets=False,
+        device=True,
+        device_is_base=device_is_base,
+        device_poses=device_poses(ds.segments, s.has_joint, single_joint_share(s.q)),
+    )
+
+
 def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: float) -> Setup:
     """A tracker dataset: the device in the camera's role, its point in the target's."""
     flange = nominal.link_names[-1]
@@ -153,21 +170,15 @@ def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: fl
             f"{ds.root / 'metadata.json'}: device.link is {point.link!r}; the joint-sweep method measures a "
             f"point on the flange link {flange!r}"
         )
-    if ds.segments and all(j is None for j, _, _ in ds.segments):
+    kind = device_kind(ds, options.device_is_base)
+    if kind.fits_points and ds.samples.q is None:
         raise CalibrationError(
-            f"{ds.root / 'metadata.json'}: tracker data are calibrated from single-joint sweeps; every motion "
-            "segment has joint null"
+            f"{ds.root / ds.device.file}: stop-and-shoot samples (no 'joint' cell names a sweeping joint"
+            + (", every motion segment has joint null" if ds.segments else "")
+            + ") need the joint positions of every sample: add a column per robot.joints entry"
         )
-    kind = CaptureKind.of(
-        camera_on_flange=False,
-        segments=ds.segments,
-        encoders=ds.encoder_t is not None or ds.samples.q is not None,
-        link_targets=False,
-        device=True,
-        device_is_base=options.device_is_base,
-    )
     device = CameraInfo(ds.device.name, 1, 1, None, np.zeros(5), "world")
-    notes = [TWO_STAGE_IS_FINAL] if options.refine else []
+    notes = [TWO_STAGE_IS_FINAL] if options.refine and not kind.fits_points else []
     if options.device_is_base:
         notes.append(
             f"device_is_base: {ds.device.name!r}'s frame is the robot's base frame (T_device_base = identity, "

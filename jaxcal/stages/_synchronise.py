@@ -23,13 +23,9 @@ from ..io.dataset import Dataset
 from . import _programs
 from ._observe import CameraObservations, Observations
 from ._setup import Options, Setup
-from .kinds import Motion
+from .kinds import AT_ZERO_DEG, MOVING_DEG, Motion
 
 _DEG = np.pi / 180.0
-#: A joint counts as "at zero" (not the one sweeping) within this angle.
-AT_ZERO_DEG = 0.05
-#: The sweeping joint must be at least this far from zero for encoder-based assignment.
-MOVING_DEG = 0.5
 
 
 @dataclass(frozen=True, eq=False)

@@ -26,6 +26,7 @@ from .._links import average_pose, sequential_sweeps
 from ..errors import CalibrationError
 from . import _programs
 from ._observe import Observations
+from ._points import axis_result, fit_point_samples, parameters_of
 from ._setup import Options, Setup
 from ._synchronise import Sweeps, Sync
 
@@ -46,6 +47,8 @@ class TwoStage:
       the encoder log with a pose (the refinement's start mounts use them).
     - `estimate`: the axis fit's vector with its covariance and references
       (`jaxcal.parameters_to_model`, `jaxcal.physical_table`).
+    - `points`: stop-and-shoot tracker data, the `PointFit` (`fit` is then its
+      geometric part; its terms, cross-validation and held parameters are here).
     """
 
     sweeps: Sweeps
@@ -61,6 +64,7 @@ class TwoStage:
     link_rows: np.ndarray | None
     timings: dict
     estimate: Estimate | None = None
+    points: object = None
 
 
 def _sequential(setup: Setup, obs: Observations, sync: Sync, loss: str | None):
@@ -262,6 +266,8 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     """Arc fits, then the axis fit (see `TwoStage`); for a pose-based capture,
     the nominal robot and a closed-form hand-eye start."""
     nominal, kind = setup.nominal, setup.kind
+    if kind.fits_points:
+        return _points(setup, obs, sync, options)
     if not kind.has_arcs:
         return _poses(setup, obs, sync, options)
     timings = {}
@@ -362,6 +368,48 @@ def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Two
         link_rows=None,
         timings={"hand_eye_start_s": time.perf_counter() - t0},
         estimate=fit_estimate(layout, setup, fit, [t.name for t in setup.targets]),
+    )
+
+
+def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> TwoStage:
+    """The two-stage record of stop-and-shoot tracker data: the point fit (`stages._points`)."""
+    pf = fit_point_samples(setup, obs, sync, options)
+    fit = axis_result(pf, setup.nominal)
+    layout = pf.layout.base
+    kept = [m for m in pf.models if m["kept"]][0]
+    notes = [
+        f"point fit on {int(pf.used.sum())} samples: {int(np.sum(pf.fit.free))} parameters free"
+        + (f", non-geometric terms {list(pf.layout.terms)}" if pf.layout.terms else "")
+        + f"; fitted residual {pf.residual_mm['rms']:.4f} mm RMS"
+        + (f", {pf.folds}-fold cross-validation {kept['cv_mean_mm']:.4f} mm mean" if pf.folds else "")
+    ]
+    notes += [
+        f"{'+'.join(m['terms'])}: cross-validation {m['cv_mean_mm']:.4f} mm mean, not better than "
+        f"{'+'.join(kept['terms']) or 'the geometric model'}: left out"
+        for m in pf.models
+        if m["terms"] and not m["kept"]
+    ]
+    return TwoStage(
+        sweeps=None,
+        counts={"poses": int(pf.used.sum())},
+        arcs=None,
+        fit=fit,
+        layout=layout,
+        parameters=parameters_of(pf, setup, fit),
+        frozen=list(pf.held),
+        arc_rows=[],
+        solver={
+            "success": bool(fit.result == optx.RESULTS.successful),
+            "arc_fits_ok": [],
+            "axis_fit": "not run (stop-and-shoot samples: point fit)",
+            "point_fit": result_name(fit.result),
+            "point_fit_steps": int(fit.num_steps),
+        },
+        notes=tuple(notes),
+        link_rows=None,
+        timings=pf.timings,
+        estimate=fit_estimate(layout, setup, fit, [setup.targets[0].name]),
+        points=pf,
     )
 
 

@@ -4,20 +4,21 @@ A capture is resolved once, by `CaptureKind.of`, into three independent
 choices, and every difference between kinds is a property here; the stages
 ask the kind, they do not test flags of their own.
 
-| property                | eye-to-hand sweeps | eye-in-hand sweeps | markers on every link | poses        | no encoder log | tracker sweeps  |
-| ----------------------- | ------------------ | ------------------ | --------------------- | ------------ | -------------- | --------------- |
-| `fixed_frame`           | `T_cam_base`       | `T_board_base`     | `T_cam_base`          | (its mount)  | (its mount)    | `T_device_base` |
-| `fixed_frame_free`      | yes                | yes                | yes                   | yes          |                | not with `device_is_base` |
-| `images`                | yes                | yes                | yes                   | yes          |                | no (samples)    |
-| `inverts_poses`         | no                 | yes                | no                    | eye-in-hand  |                | no              |
-| `has_arcs`              | yes                | yes                | yes                   | no           |                | yes             |
-| `sequential`            | no                 | no                 | yes                   | no           |                | no              |
-| `axis_fit_uses_poses`   | yes                | yes                | no                    | (no fit)     | no             | yes             |
-| `refines_corners`       | yes                | yes                | yes                   | yes          |                | no (no corners) |
-| `refines_other_cameras` | yes                | no                 | no                    | eye-to-hand  | no             | no              |
-| `keeps_two_stage_gauge` | yes                | yes                | no                    | no           | no             | yes             |
-| `identifiability_tol`   | 1e-6               | 1e-6               | 1e-3                  | 1e-3         | 1e-3           | 1e-6            |
-| `per_view_angles`       | no                 | no                 | no                    | no           | yes            | no              |
+| property                | eye-to-hand sweeps | eye-in-hand sweeps | markers on every link | poses        | no encoder log | tracker sweeps  | tracker poses   |
+| ----------------------- | ------------------ | ------------------ | --------------------- | ------------ | -------------- | --------------- | --------------- |
+| `fixed_frame`           | `T_cam_base`       | `T_board_base`     | `T_cam_base`          | (its mount)  | (its mount)    | `T_device_base` | `T_device_base` |
+| `fixed_frame_free`      | yes                | yes                | yes                   | yes          |                | not with `device_is_base` | not with `device_is_base` |
+| `images`                | yes                | yes                | yes                   | yes          |                | no (samples)    | no (samples)    |
+| `inverts_poses`         | no                 | yes                | no                    | eye-in-hand  |                | no              | no              |
+| `has_arcs`              | yes                | yes                | yes                   | no           |                | yes             | no              |
+| `fits_points`           | no                 | no                 | no                    | no           |                | no              | yes             |
+| `sequential`            | no                 | no                 | yes                   | no           |                | no              | no              |
+| `axis_fit_uses_poses`   | yes                | yes                | no                    | (no fit)     | no             | yes             | (no fit)        |
+| `refines_corners`       | yes                | yes                | yes                   | yes          |                | no (no corners) | no (no corners) |
+| `refines_other_cameras` | yes                | no                 | no                    | eye-to-hand  | no             | no              | no              |
+| `keeps_two_stage_gauge` | yes                | yes                | no                    | no           | no             | yes             | no              |
+| `identifiability_tol`   | 1e-6               | 1e-6               | 1e-3                  | 1e-3         | 1e-3           | 1e-6            | 1e-3            |
+| `per_view_angles`       | no                 | no                 | no                    | no           | yes            | no              | no              |
 
 - **Eye-to-hand, single-joint sweeps** (the seed method): fixed cameras film
   targets on the flange while one joint turns at a time.
@@ -43,10 +44,19 @@ ask the kind, they do not test flags of their own.
   (the device frame is the base frame, which makes the base height d1
   identifiable). No corners: the two-stage fit is the result (see
   `jaxcal.stages.refine` for why a point refinement would add nothing).
+- **Tracker poses** (`Mount.DEVICE`, `Motion.POSES`): the most common
+  calibration in the field, stop-and-shoot poses where every joint moves
+  between samples. No arcs: the point samples are fitted directly to the
+  forward kinematics (`jaxcal._pointfit`, the residual model of point
+  samples), which gives the kinematic corrections, the device frame and the
+  point's mount, and, gated by cross-validation, joint compliance and
+  transmission harmonics.
 """
 
 import enum
 from dataclasses import dataclass
+
+import numpy as np
 
 #: Independence threshold of the refinement's identifiability search when the
 #: corners alone decide the gauge (no encoders, or markers on every link): a
@@ -56,6 +66,10 @@ from dataclasses import dataclass
 STRICT_TOL = 1e-3
 #: ... and otherwise.
 DEFAULT_TOL = 1e-6
+#: A joint counts as "at zero" (not the one sweeping) within this angle.
+AT_ZERO_DEG = 0.05
+#: The sweeping joint must be at least this far from zero for encoder-based assignment.
+MOVING_DEG = 0.5
 
 
 class Mount(enum.Enum):
@@ -93,15 +107,18 @@ class CaptureKind:
         link_targets: bool,
         device: bool = False,
         device_is_base: bool = False,
+        device_poses: bool = False,
     ) -> "CaptureKind":
         """The kind of a dataset: the camera's mount (`device`: an external
-        measuring device, always single-joint sweeps), and, when every motion
-        segment has `joint: null` (arbitrary motion), markers on every link if
-        targets ride on links other than the flange (`link_targets`), else
-        poses of the flange target. `device_is_base`: the device frame is the
-        robot's base frame (tracker data only)."""
+        measuring device, whose samples are single-joint sweeps or, with
+        `device_poses`, stop-and-shoot poses: see `device_poses`), and, when
+        every motion segment has `joint: null` (arbitrary motion), markers on
+        every link if targets ride on links other than the flange
+        (`link_targets`), else poses of the flange target. `device_is_base`:
+        the device frame is the robot's base frame (tracker data only)."""
         if device:
-            return cls(Mount.DEVICE, Motion.SWEEPS, encoders, device_is_base)
+            motion = Motion.POSES if device_poses else Motion.SWEEPS
+            return cls(Mount.DEVICE, motion, encoders, device_is_base)
         arbitrary = bool(segments) and all(j is None for j, _, _ in segments)
         if not arbitrary:
             motion = Motion.SWEEPS
@@ -151,6 +168,12 @@ class CaptureKind:
     def has_arcs(self) -> bool:
         """Joint axes come from arc fits (sweeps, or the sequential procedure)."""
         return self.motion is not Motion.POSES
+
+    @property
+    def fits_points(self) -> bool:
+        """The device's samples are fitted directly to the forward kinematics
+        (stop-and-shoot poses: `jaxcal._pointfit`), not through arcs."""
+        return self.device and self.motion is Motion.POSES
 
     @property
     def sequential(self) -> bool:
@@ -204,10 +227,40 @@ class CaptureKind:
             {
                 Motion.SWEEPS: "single-joint sweeps",
                 Motion.FREE: "markers on every link, free motion",
-                Motion.POSES: "poses of the flange target",
+                Motion.POSES: "stop-and-shoot poses" if self.device else "poses of the flange target",
             }[self.motion]
         )
         parts.append(
             ("joint positions" if self.device else "encoder log") if self.encoders else "no encoder log"
         )
         return ", ".join(parts)
+
+
+#: A tracker table's samples are single-joint sweeps (from zero) when at least
+#: this share of them has one joint away from zero and the others at zero.
+SWEEP_SHARE = 0.5
+
+
+def single_joint_share(q: np.ndarray | None) -> float | None:
+    """The share of configurations `q (N, joints)` with exactly one joint more than
+    `MOVING_DEG` from zero and every other within `AT_ZERO_DEG` (None without `q`)."""
+    if q is None or len(q) == 0:
+        return None
+    away = np.abs(q) > np.radians(MOVING_DEG)
+    still = np.abs(q) < np.radians(AT_ZERO_DEG)
+    one = (away.sum(axis=1) == 1) & ((away | still).all(axis=1))
+    return float(one.mean())
+
+
+def device_poses(segments: tuple, has_joint: bool, single_joint_share: float | None) -> bool:
+    """Whether a measuring device's samples are stop-and-shoot poses rather
+    than single-joint sweeps: no sample names its sweeping joint, and either
+    every motion segment has `joint: null`, or there are no segments and
+    fewer than `SWEEP_SHARE` of the samples look like a sweep from zero
+    (`single_joint_share`, from the table's joint positions; None without
+    them: sweeps, which then need segments or an encoder log)."""
+    if has_joint:
+        return False
+    if segments:
+        return all(j is None for j, _, _ in segments)
+    return single_joint_share is not None and single_joint_share < SWEEP_SHARE

@@ -57,6 +57,9 @@ class CalibrationResult:
       `T_cam_base` holds $T_{device,base}$ (the identity with
       `device_is_base`) and `T_flange_target[0]` the measured point's mount
       (`result.json`: `T_device_base`, `T_flange_point`); `frames` counts samples.
+    - `point_fit`: stop-and-shoot tracker data, the `stages._points.PointFit`
+      (its non-geometric terms, cross-validation, held parameters and the
+      problem `jaxcal verify` predicts with; `result.json`'s `point_fit`).
     """
 
     dataset: Path
@@ -90,6 +93,7 @@ class CalibrationResult:
     board: str | None = None
     verdict: Verdict | None = None
     estimate: object = None
+    point_fit: object = None
 
     @property
     def status(self) -> str:
@@ -272,4 +276,5 @@ def assemble(
         board=None if setup.board is None else setup.board.name,
         verdict=verdict,
         estimate=refined.estimate if ran else two.estimate,
+        point_fit=two.points,
     )

@@ -1,0 +1,75 @@
+"""`jaxcal verify RESULT DATASET`: a stop-and-shoot calibration against held-out samples (jaxcal.verification)."""
+
+import json
+import tempfile
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from ..errors import OutputError
+from ..io._files import write_text_atomic
+from ..verification import plot_verification, verify
+
+
+def add_verify_parser(sub) -> None:
+    p = sub.add_parser(
+        "verify",
+        help="a stop-and-shoot calibration's result against tracker samples it was not fitted on",
+    )
+    p.add_argument("result", help="the directory jaxcal calibrate wrote (or its result.json)")
+    p.add_argument("dataset", help="a tracker dataset of the same robot and device")
+    p.add_argument("--cv", type=int, default=0, help="also K-fold cross-validate on DATASET (K >= 2; 0: no)")
+    p.add_argument("--json", help="write the per-sample figures here (atomically)")
+    p.add_argument("--plot", help="write a PNG: error per sample and histogram")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--plot file")
+    p.set_defaults(func=cmd_verify)
+
+
+def _check_output(path: str | None, inputs: list[str], overwrite: bool, what: str) -> None:
+    if path is None:
+        return
+    p = Path(path).resolve()
+    for i in inputs:
+        q = Path(i).resolve()
+        if p == q or q in p.parents or (q.is_dir() and p.is_relative_to(q)):
+            raise OutputError(f"{what} {path}: it lies in an input ({i}); choose another path")
+    if p.exists() and not overwrite:
+        raise OutputError(f"{what} {path} exists; give --overwrite to replace it")
+
+
+def cmd_verify(args) -> int:
+    inputs = [args.result, args.dataset]
+    _check_output(args.json, inputs, args.overwrite, "--json")
+    _check_output(args.plot, inputs, args.overwrite, "--plot")
+    if args.cv == 1 or args.cv < 0:
+        raise ValueError(f"--cv {args.cv}: give K >= 2 folds, or 0 for none")
+    v = verify(args.result, args.dataset, cv=args.cv)
+    s = v.summary
+    console = Console(width=max(Console().width, 110))
+    t = Table(title=f"jaxcal verify: {s['samples']} samples of {v.dataset}")
+    for col in ("model", "mean mm", "RMS mm", "max mm"):
+        t.add_column(col, justify="left" if col == "model" else "right")
+    for label, key in (("nominal", "nominal_mm"), ("calibrated", "calibrated_mm")):
+        t.add_row(label, *(f"{s[key][k]:.4f}" for k in ("mean", "rms", "max")))
+    if v.cv is not None:
+        t.add_row(f"{v.cv['folds']}-fold CV on this dataset", *(f"{v.cv[k]:.4f}" for k in ("mean", "rms", "max")))
+    console.print(t)
+    console.print(
+        f"predicted RMS {s['predicted_rms_mm']:.4f} mm (parameters alone {s['parameter_part_rms_mm']:.4f} mm): "
+        f"measured / predicted {s['measured_over_predicted']:.2f}; "
+        f"{100 * s['inside_95_bound']:.0f} % of the samples inside their predicted 95 % bound"
+    )
+    for n in v.notes:
+        console.print(f"[yellow]note:[/yellow] {n}")
+    if args.json:
+        write_text_atomic(args.json, json.dumps(v.to_json(), indent=1))
+        console.print(f"wrote {args.json}")
+    if args.plot:
+        dest = Path(args.plot)
+        with tempfile.TemporaryDirectory(dir=dest.parent) as tmp:
+            tmp_png = Path(tmp) / dest.name
+            plot_verification(v, tmp_png)
+            tmp_png.replace(dest)
+        console.print(f"wrote {args.plot}")
+    return 0
