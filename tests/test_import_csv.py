@@ -177,6 +177,15 @@ def test_metres_declared_as_millimetres_are_refused(tmp_path, table):
         _import(csv, tmp_path / "ds")
 
 
+def test_radians_declared_as_degrees_are_refused(tmp_path, table):
+    header, rows = table
+    rows = rows.copy()
+    rows[:, 1:7] = np.radians(rows[:, 1:7])  # within every limit as degrees, so the points tell
+    csv = _write(tmp_path / "poses.csv", header, rows)
+    with pytest.raises(CsvImportError, match=r"'X\+dX'.*lines 2-41.*no length unit fits.*--joint-unit"):
+        _import(csv, tmp_path / "ds")
+
+
 def test_arguments_are_checked(tmp_path, table):
     csv = _write(tmp_path / "poses.csv", *table)
     with pytest.raises(ValueError, match="5 joint column"):

@@ -3,11 +3,10 @@
 
 import argparse
 import math
-from pathlib import Path
 
 from ..io._tracker import DEVICE_KINDS
 from ..io.csv_import import ANGLE_UNITS, LENGTH_UNITS, import_csv
-from ..robots import ROBOTS_DIR, shipped
+from ..robots import robot_file
 
 
 def _columns(count: int | None):
@@ -33,20 +32,6 @@ def _point(text: str) -> list[float]:
     return v
 
 
-def _robot_file(name: str) -> Path:
-    """A robot file, or the file of a shipped robot's name (`ur5e`, `ur5_dh`)."""
-    if Path(name).is_file():
-        return Path(name)
-    tables = shipped("*_dh.json", ".json") + shipped("*_mdh.json", ".json")
-    if name in shipped():
-        return ROBOTS_DIR / f"{name}.urdf"
-    if name in tables:
-        return ROBOTS_DIR / f"{name}.json"
-    raise ValueError(
-        f"--robot {name!r} is neither a file nor a shipped robot ({shipped()}) or table ({tables})"
-    )
-
-
 def add_import_csv_parser(sub) -> None:
     p = sub.add_parser(
         "import-csv",
@@ -55,7 +40,9 @@ def add_import_csv_parser(sub) -> None:
     )
     p.add_argument("csv", help="the CSV table: a header line, one row per pose")
     p.add_argument(
-        "--robot", required=True, help="URDF or DH/MDH table file, or a shipped name (ur5e, ur5_dh)"
+        "--robot",
+        required=True,
+        help="URDF or DH/MDH table file, or a shipped name (ur5e, ur5_dh, ur10e: data/robots)",
     )
     p.add_argument("--out", required=True, help="dataset directory (absent or empty)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
@@ -107,7 +94,7 @@ def cmd_import_csv(args) -> int:
     r = import_csv(
         args.csv,
         args.out,
-        robot=_robot_file(args.robot),
+        robot=robot_file(args.robot),
         joints=args.joints,
         joint_unit=args.joint_unit,
         xyz=args.xyz,

@@ -296,14 +296,19 @@ def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str
     origin, reach, tol = robot
     s_m = np.sqrt(((P - P.mean(0)) ** 2).sum(1).mean())
     s_n = np.sqrt(((nominal - nominal.mean(0)) ** 2).sum(1).mean())
-    if s_n > MIN_SPREAD_M and not s_n / SPREAD_FACTOR <= s_m <= s_n * SPREAD_FACTOR:
+    if s_n > MIN_SPREAD_M and not 1 / SPREAD_FACTOR <= s_m / s_n <= SPREAD_FACTOR:
         far = int(np.argmax(np.linalg.norm(P - P.mean(0), axis=1)))
         other = "mm" if unit == "m" else "m"
+        if 1 / SPREAD_FACTOR <= s_m / s_n * LENGTH_UNITS[unit] / LENGTH_UNITS[other] <= SPREAD_FACTOR:
+            hint = (
+                f"are the lengths in {'millimetres' if other == 'mm' else 'metres'} (--length-unit {other})?"
+            )
+        else:
+            hint = "no length unit fits: check the joint columns (their unit, --joint-unit, and order)"
         raise CsvImportError(
             f"{path} {cols}, lines {lines[0]}-{lines[-1]}: the points spread {s_m:.4g} m (RMS about their "
             f"centroid; line {lines[far]} lies furthest out), the robot's nominal points for the same joints "
-            f"{s_n:.4g} m, and it reaches {reach:.3g} m: a factor {s_m / s_n:.3g}; are the lengths in "
-            f"{'millimetres' if other == 'mm' else 'metres'} (--length-unit {other})?"
+            f"{s_n:.4g} m, and it reaches {reach:.3g} m: a factor {s_m / s_n:.3g}; {hint}"
         )
     bad = np.flatnonzero(np.abs(P).max(axis=1) > MAX_COORDINATE_M)
     if bad.size:
