@@ -200,6 +200,61 @@ def independent_columns(
     return keep, indep
 
 
+def independent_columns_normal(
+    H: Float[Array, "n n"],
+    order: np.ndarray,
+    *,
+    tol: float,
+    candidates: Bool[Array, " n"] | None = None,
+) -> tuple[Bool[Array, " n"], Float[Array, " n"]]:
+    """`independent_columns` from the normal matrix $H = J^TJ$ alone: the same
+    greedy selection on the Gram matrix of the normalised columns, $O(n^2)$ a
+    column instead of $O(mn)$. A column's squared distance from the kept span
+    is $G_{jj} - \|Q^T G_{:j}\|^2$ (the basis kept as coefficients $Q$ of the
+    columns), so distances under about $10^{-7}$ lose their digits: for the
+    thresholds of `jaxcal.stages.kinds.STRICT_TOL`, not `DEFAULT_TOL`."""
+    d = jnp.sqrt(jnp.maximum(jnp.diag(H), 0.0))
+    inv = jnp.where(d > 0, 1.0 / jnp.where(d > 0, d, 1.0), 0.0)
+    G = H * inv[:, None] * inv[None, :]
+    n = H.shape[0]
+    cand = jnp.ones(n, bool) if candidates is None else jnp.asarray(candidates, bool)
+    order = jnp.asarray(order)
+
+    def body(i, carry):
+        Q, keep, indep, count = carry
+        j = order[i]
+        p = Q.T @ G[:, j]  # inner products of the basis with column j
+        r = jnp.sqrt(jnp.maximum(G[j, j] - p @ p, 0.0))
+        ok = (r > tol) & (d[j] > 0) & cand[j]
+        q = (jnp.zeros(n, H.dtype).at[j].set(1.0) - Q @ p) / jnp.where(ok, r, 1.0)
+        Q = jnp.where(ok, Q.at[:, count].set(q), Q)
+        return Q, keep.at[j].set(ok), indep.at[j].set(r), count + ok
+
+    init = (jnp.zeros((n, n), H.dtype), jnp.zeros(n, bool), jnp.zeros(n, H.dtype), jnp.asarray(0))
+    _, keep, indep, _ = jax.lax.fori_loop(0, n, body, init)
+    return keep, indep
+
+
+def covariance_normal(
+    H: Float[Array, "n n"], free: Bool[Array, " n"], sigma2: Float[Array, ""] | float = 1.0
+) -> Float[Array, "n n"]:
+    """`covariance` from the normal matrix $H = J^TJ$: $\sigma^2 (DHD)^{+}$ scaled back
+    ($D$ the inverse column norms of the free columns; frozen ones get zero rows and
+    columns), the pseudo-inverse cut where `gauss_newton_covariance` cuts (singular
+    values of the scaled $J$ under $\sqrt{10 n \epsilon}$ of the largest)."""
+    f = jnp.asarray(free, H.dtype)
+    H = H * f[:, None] * f[None, :]
+    d = jnp.sqrt(jnp.maximum(jnp.diag(H), 0.0))
+    inv = jnp.where(d > 0, 1.0 / jnp.where(d > 0, d, 1.0), 0.0)
+    w, V = jnp.linalg.eigh(H * inv[:, None] * inv[None, :])
+    sv = jnp.sqrt(jnp.maximum(w, 0.0))
+    rtol = float(np.sqrt(10 * H.shape[0] * np.finfo(np.dtype(H.dtype)).eps))
+    keep = sv > rtol * jnp.max(sv)
+    inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
+    A = V * inv[:, None]
+    return sigma2 * (A * inv_w[None, :]) @ A.T
+
+
 def residual_variance(r: Float[Array, "..."], n_obs, n_free) -> Float[Array, ""]:
     """$\\hat\\sigma^2 = \\|r\\|^2 / \\max(m - n, 1)$ of whitened residuals."""
     return jnp.sum(r**2) / jnp.maximum(n_obs - n_free, 1.0)

@@ -136,7 +136,7 @@ def gravity_torques(model: KinematicModel, q, masses, coms) -> Float[Array, " jo
     return jnp.einsum("ja,jka,jk->j", z, moment, down.astype(q.dtype))
 
 
-def _basis(terms: tuple[str, ...], model: KinematicModel, q, masses, coms) -> Float[Array, "samples joints k"]:
+def term_basis(terms: tuple[str, ...], model: KinematicModel, q, masses, coms) -> Float[Array, "samples joints k"]:
     """The terms' basis at every sample's commanded pose `q` `(samples, joints)`, on the nominal model."""
     cols = []
     for t in terms:
@@ -181,7 +181,7 @@ def _chain(x, problem: "PointProblem"):
     mount = problem.T_flange_point0 @ se3_exp(corr.tool[0])
     theta = d.q + nominal.zero_offset + corr.zero_offset
     if layout.terms:
-        theta = theta + jnp.sum(e[None] * _basis(layout.terms, nominal, d.q, d.masses, d.coms), axis=2)
+        theta = theta + jnp.sum(e[None] * term_basis(layout.terms, nominal, d.q, d.masses, d.coms), axis=2)
     S = theta.shape[0]
     R = jnp.broadcast_to(T_db[:3, :3], (S, 3, 3))
     t = jnp.broadcast_to(T_db[:3, 3], (S, 3))
@@ -245,7 +245,7 @@ def point_jacobian(x: Float[Array, " n"], problem: "PointProblem") -> Float[Arra
     J_tool = jnp.einsum("sab,bc,ck->sak", R_f, problem.T_flange_point0[:3, :3], dT[:3, 3, :])
     blocks = [J_cam, J_origin, J_zero, J_tool]
     if layout.terms:
-        b = _basis(layout.terms, problem.nominal, d.q, d.masses, d.coms)  # (s, joints, k)
+        b = term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms)  # (s, joints, k)
         start = 0
         for t in layout.terms:
             m = TERMS[t]
@@ -329,9 +329,9 @@ def fit_points(
     """
     layout = problem.layout
     x0 = jnp.zeros(layout.size)
-    J0 = _residuals_terms(x0, problem)[1]
     if free is None:
-        keep, indep = _lsq.independent_columns(J0, layout.priority(), tol=tol, candidates=candidates)
+        _, J0 = _residuals_terms(x0, problem)
+        keep, indep = _lsq.independent_columns_normal(J0.T @ J0, layout.priority(), tol=tol, candidates=candidates)
     else:
         keep, indep = jnp.asarray(free, bool), jnp.full(layout.size, jnp.nan)
     kf = keep.astype(x0.dtype)
@@ -345,10 +345,10 @@ def fit_points(
         normal, x0, problem, rtol=options.rtol, atol=options.atol, max_steps=options.max_steps
     )
     x = sol.x * kf
-    r, J = _residuals_terms(x, problem)
+    r = sol.residuals  # and `sol.normal`: the normal equations at `x`, frozen columns zero
     n_obs = 3 * jnp.sum(problem.data.mask)
     sigma2 = _lsq.residual_variance(r, n_obs, jnp.sum(keep))
-    cov, _, _ = _lsq.covariance(J, keep, sigma2)
+    cov = _lsq.covariance_normal(sol.normal.H, keep, sigma2)
     sigma = problem.data.sigma
     dist2 = jnp.sum((r.reshape(-1, 3) * sigma[:, None]) ** 2, axis=1)
     rms = jnp.sqrt(jnp.sum(jnp.where(problem.data.mask, dist2, 0.0)) / jnp.sum(problem.data.mask))

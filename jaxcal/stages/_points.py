@@ -30,6 +30,7 @@ from .._correction import ParameterLayout, apply_correction, physical_parameters
 from .._geometry import se3_exp
 from .._kinematics import KinematicModel
 from .._pointfit import (
+    TERMS,
     PointData,
     PointFitResult,
     PointLayout,
@@ -39,14 +40,21 @@ from .._pointfit import (
     fold_masks,
     predict,
     start_frame,
+    term_basis,
 )
 from ..errors import CalibrationError
+from ..robots import link_inertials
 from ._observe import Observations
 from ._setup import Options, Setup
 from ._synchronise import Sync
 
 #: A term is kept when it lowers the cross-validated mean error by more than this share.
 CV_GAIN = 0.005
+#: A non-geometric coefficient stays free only when the data pin its effect on the joint
+#: angle (its std times the RMS of its basis over the samples) to this (rad): a
+#: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
+#: only to more than that is not identified (e.g. wrist 3's, when the point sits on its axis).
+TERM_STD_RAD = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,8 +137,48 @@ def _fit(problem: PointProblem, cand, tol):
 
 
 @jax.jit
+def _refit(problem: PointProblem, cand, free):
+    return fit_points(problem, cand, tol=0.0, free=free)
+
+
+def term_effect_std(problem: PointProblem, fit: PointFitResult) -> np.ndarray:
+    """Per non-geometric coefficient, its std times the RMS of its basis over the
+    fitted samples: how well the data pin its effect on the joint angle (rad)."""
+    layout, d = problem.layout, problem.data
+    k = layout.base.axis_size
+    b = np.asarray(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms))[np.asarray(d.mask)]
+    rms = np.sqrt(np.mean(b**2, axis=0))  # (joints, k): family-major below
+    cols, start = [], 0
+    for t in layout.terms:
+        m = TERMS[t]
+        cols.append(rms[:, start : start + m].reshape(-1))
+        start += m
+    scale = np.concatenate(cols) if cols else np.zeros(0)
+    return np.asarray(fit.std)[k:] * scale
+
+
+@jax.jit
 def _cv(problem: PointProblem, cand, free, train):
     return cross_validate(problem, cand, free, train)
+
+
+def _hold_implausible_terms(problem: PointProblem, cand, fit: PointFitResult) -> PointFitResult:
+    """Hold at zero, and refit without, the non-geometric coefficients the data do not
+    pin (`TERM_STD_RAD`) and the compliances that come out negative (a joint does not
+    yield against gravity: such a term is absorbing something else), one round at a time."""
+    layout = problem.layout
+    k = layout.base.axis_size
+    compliance = np.array(["compliance" in n for n in layout.term_names()], bool)
+    for _ in range(len(layout.term_names())):
+        free = np.asarray(fit.free).copy()
+        terms_free = free[k:]
+        loose = terms_free & (term_effect_std(problem, fit) > TERM_STD_RAD)
+        negative = terms_free & compliance & (np.asarray(fit.x)[k:] < 0)
+        if not (loose | negative).any():
+            break
+        free[k:] &= ~(loose | negative)
+        fit = jax.device_get(_refit(problem, jnp.asarray(cand), jnp.asarray(free)))
+    return fit
 
 
 def _cv_row(problem, cand, fit, train) -> dict:
@@ -140,8 +188,6 @@ def _cv_row(problem, cand, fit, train) -> dict:
 
 
 def _inertials(setup: Setup):
-    from ..robots import link_inertials  # the io edge: the robot file's masses
-
     try:
         return link_inertials(setup.dataset.robot_urdf)
     except (ValueError, KeyError) as e:
@@ -178,6 +224,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         problem = point_problem(nominal, layout, q, y, s.sigma_m, used, T0, Tp0, inertials)
         cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free)
         fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol))
+        fit = _hold_implausible_terms(problem, cand, fit)
         row = {"terms": list(terms), "free": int(np.sum(fit.free))}
         if train is not None:
             row |= _cv_row(problem, cand, fit, train & used[None])
