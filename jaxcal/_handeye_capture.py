@@ -20,13 +20,19 @@ import numpy as np
 
 from ._cache import enable_compilation_cache
 from ._handeye import (
+    ROBOT_SIGMA_OPTIONS,
+    ROBOT_SIGMA_START,
     HandEyeResult,
     HandEyeVerdict,
     KFoldSpread,
     assess_hand_eye,
     calibrate_hand_eye,
+    describe_robot_noise,
+    implausible_robot_noise,
     kfold_spread,
     pose_difference,
+    robot_correction_rms,
+    robot_noise,
 )
 from .errors import CalibrationError, HandEyeInputError
 from .io.handeye import HandEyeCapture, load_hand_eye_capture, matrix_to_quaternion, quaternion_to_matrix
@@ -38,11 +44,16 @@ OUTLIER_THRESHOLD = 3.0
 
 @lru_cache(maxsize=4)
 def hand_eye_solver(max_steps: int = 200) -> Callable:
-    """`jax.jit(calibrate_hand_eye)` at `max_steps` as `solve(data, reject_outliers)`, one per value
-    (shapes are bucketed by the caller; `reject_outliers` is traced, so both share the program)."""
+    """`jax.jit(calibrate_hand_eye)` at `max_steps` as `solve(data, reject_outliers, estimate_robot_noise)`,
+    one per value (shapes are bucketed by the caller; both flags are traced, so every setting shares
+    the program of its data: with noisy robot poses, estimated or given, one program)."""
     return jax.jit(
-        lambda data, reject: calibrate_hand_eye(
-            data, reject_outliers=reject, max_steps=max_steps, outlier_threshold=OUTLIER_THRESHOLD
+        lambda data, reject, estimate: calibrate_hand_eye(
+            data,
+            reject_outliers=reject,
+            estimate_robot_noise=estimate,
+            max_steps=max_steps,
+            outlier_threshold=OUTLIER_THRESHOLD,
         )
     )
 
@@ -181,7 +192,26 @@ def _misreadings(capture: HandEyeCapture) -> list[tuple[str, np.ndarray, bool]]:
     return out
 
 
-def _diagnose_misfit(capture: HandEyeCapture, observe: Callable, result, solve: Callable) -> str | None:
+def _misfit(result) -> bool:
+    """The poses and images do not fit: the reprojection RMS is over `MISFIT_RATIO` times the
+    detector's noise, the robot noise estimated to absorb it is beyond any robot's, or (robot
+    noise given) the robot corrections are over `MISFIT_RATIO` times it."""
+    given = result.robot_sigma is not None and not bool(np.all(np.asarray(result.robot_sigma_estimated)))
+    return (
+        float(result.residual_rms) > MISFIT_RATIO
+        or implausible_robot_noise(result)
+        or (given and robot_correction_rms(result) > MISFIT_RATIO)
+    )
+
+
+def _fits(result) -> bool:
+    ratio = float(result.residual_rms)
+    return np.isfinite(ratio) and ratio <= MISFIT_RATIO and not implausible_robot_noise(result)
+
+
+def _diagnose_misfit(
+    capture: HandEyeCapture, observe: Callable, result, solve: Callable, estimate: bool
+) -> str | None:
     """When the poses and images do not fit one hand-eye transform, re-solve under each common
     misreading of the input (`_misreadings`; `observe(T_base_ee, eye_in_hand)` builds the data)
     and name the one that fits, if one does: an arrangement swapped or poses inverted, a
@@ -193,22 +223,57 @@ def _diagnose_misfit(capture: HandEyeCapture, observe: Callable, result, solve: 
             alt = observe(T, eye_in_hand)
         except HandEyeInputError:
             continue
-        r = jax.tree.map(np.asarray, solve(alt.data, True))
-        ratio = float(r.residual_rms)
-        if np.isfinite(ratio) and ratio <= MISFIT_RATIO and ratio < 0.1 * given:
+        r = jax.tree.map(np.asarray, solve(alt.data, True, estimate))
+        if _fits(r) and (float(r.residual_rms) < 0.1 * given or implausible_robot_noise(result)):
+            noise = (
+                f"; {describe_robot_noise(r)} that way against {describe_robot_noise(result)}"
+                if estimate
+                else ""
+            )
             return (
                 f"the data fit if {fix}: reprojection RMS {float(r.pixel_rms):.3g} px that way against "
-                f"{float(result.pixel_rms):.3g} px as given"
+                f"{float(result.pixel_rms):.3g} px as given{noise}"
             )
     return None
 
 
-def _input_hints(verdict, capture, intrinsics, observe, result, solve, log) -> HandEyeVerdict:
-    """The verdict with what the input itself explains: the misreading that fits when the
-    poses and images do not (`_diagnose_misfit`), and intrinsics self-calibrated from the
-    capture, which make any result suspect."""
-    if float(result.residual_rms) > MISFIT_RATIO:
-        found = _diagnose_misfit(capture, observe, result, solve)
+def _robot_noise_hint(verdict, data, result, solve, log) -> HandEyeVerdict:
+    """With the robot noise given and a poor fit (a misfit, or frames rejected): re-solve with the
+    noise estimated (the same compiled program) and, when that fits, say that the robot poses are
+    noisier than given, by how much, and which options set it."""
+    if result.robot_sigma is None or bool(np.all(np.asarray(result.robot_sigma_estimated))):
+        return verdict
+    rejected = int(np.asarray(result.rejected).any(0).sum())
+    if not (_misfit(result) or rejected):
+        return verdict
+    r = jax.tree.map(np.asarray, solve(data, True, True))
+    kept = int(np.asarray(r.rejected).any(0).sum())
+    if not _fits(r) or (kept >= max(rejected, 1) and not _misfit(result)):
+        return verdict
+    given, est = robot_noise(result), robot_noise(r)
+    if est[0] <= given[0] and est[1] <= given[1]:
+        return verdict
+    text = (
+        f"the robot poses are noisier than given ({given[0]:.3g} mm / {given[1]:.3g} deg per axis): "
+        f"estimated from the data, {est[0]:.3g} mm / {est[1]:.3g} deg, with which the reprojection RMS is "
+        f"{float(r.pixel_rms):.3g} px ({float(result.pixel_rms):.3g} px as given) and {kept} frame(s) are "
+        f"rejected ({rejected} as given); leave {ROBOT_SIGMA_OPTIONS} out to use the estimate"
+    )
+    log(text)
+    if _misfit(result):
+        return replace(verdict, reasons=verdict.reasons + (text,))
+    return replace(verdict, notes=verdict.notes + (text,))
+
+
+def _input_hints(verdict, capture, intrinsics, observe, data, result, solve, log) -> HandEyeVerdict:
+    """The verdict with what the input itself explains: robot poses noisier than given
+    (`_robot_noise_hint`), the misreading that fits when the poses and images do not
+    (`_diagnose_misfit`), and intrinsics self-calibrated from the capture, which make any
+    result suspect."""
+    estimate = bool(np.all(np.asarray(result.robot_sigma_estimated)))
+    verdict = _robot_noise_hint(verdict, data, result, solve, log)
+    if _misfit(result):
+        found = _diagnose_misfit(capture, observe, result, solve, estimate)
         if found:
             log(f"the poses fit the images once read differently: {found}")
             verdict = replace(verdict, reasons=verdict.reasons + (found,))
@@ -231,11 +296,28 @@ def _input_hints(verdict, capture, intrinsics, observe, result, solve, log) -> H
     return verdict
 
 
+def _detect(capture: HandEyeCapture, workers, progress) -> list:
+    """`detect_frames` of the capture's target, per camera (with its K and distortion where given)."""
+    return [
+        detect_frames(
+            paths,
+            [capture.target],
+            K=cam.K,
+            dist=cam.dist if cam.K is not None else None,
+            workers=workers,
+            progress=progress,
+            pool="thread",
+        )
+        for cam, paths in zip(capture.cameras, capture.images)
+    ]
+
+
 def calibrate_hand_eye_capture(
     capture,
     *,
     robot_sigma_translation: float | None = None,
     robot_sigma_rotation: float | None = None,
+    estimate_robot_noise: bool = True,
     sigma_px: float | None = None,
     folds: int = 10,
     max_steps: int = 200,
@@ -248,7 +330,9 @@ def calibrate_hand_eye_capture(
     **Arguments:**
     - `capture`: a capture directory (`jaxcal.io.handeye` format) or a loaded `HandEyeCapture`.
     - `robot_sigma_translation` (m), `robot_sigma_rotation` (rad): robot pose
-      noise (each pose then gets a correction with that prior); None: exact.
+      noise (each pose then gets a correction with that prior), used as given;
+      None (both): estimated from the data (`calibrate_hand_eye`'s
+      `estimate_robot_noise`), or with `estimate_robot_noise=False` exact poses.
     - `sigma_px`: the detector's pixel noise; None: estimated from PnP's residuals.
     - `folds`: k of the k-fold spread (0: skip it).
     - `max_steps`: Levenberg-Marquardt steps per stage.
@@ -267,19 +351,7 @@ def calibrate_hand_eye_capture(
     if not isinstance(capture, HandEyeCapture):
         capture = load_hand_eye_capture(capture)
     target = capture.target
-    detections = []
-    for cam, paths in zip(capture.cameras, capture.images):
-        detections.append(
-            detect_frames(
-                paths,
-                [target],
-                K=cam.K,
-                dist=cam.dist if cam.K is not None else None,
-                workers=workers,
-                progress=progress,
-                pool="thread",
-            )
-        )
+    detections = _detect(capture, workers, progress)
     detected = np.array([[target.name in d for d in dets] for dets in detections])
     seconds["detect"] = time.perf_counter() - t0
     for cam, row in zip(capture.cameras, detected):
@@ -291,6 +363,9 @@ def calibrate_hand_eye_capture(
             )
     t0 = time.perf_counter()
     intrinsics = _intrinsics(capture, detections, log)
+    estimate = estimate_robot_noise and robot_sigma_translation is None and robot_sigma_rotation is None
+    if estimate:  # the estimate's start (and the noisy-pose solve's structure)
+        robot_sigma_translation, robot_sigma_rotation = ROBOT_SIGMA_START
 
     def observe(T_base_ee, eye_in_hand: bool, sigma_px: float | None) -> HandEyeObservations:
         return hand_eye_from_detections(
@@ -310,11 +385,17 @@ def calibrate_hand_eye_capture(
     seconds["prepare"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     solve = hand_eye_solver(max_steps)
-    result = jax.tree.map(np.asarray, solve(observations.data, True))
+    result = jax.tree.map(np.asarray, solve(observations.data, True, estimate))
     seconds["solve"] = time.perf_counter() - t0
+    log(describe_robot_noise(result))
     t0 = time.perf_counter()
-    # The folds leave the rejected groups out already: plain solves, same compiled program.
-    kfold = kfold_spread(lambda d: solve(d, False), observations.data, result, folds=folds) if folds else None
+    # The folds leave the rejected groups out already: plain solves (the robot noise estimated
+    # again in each, as the whole estimator is being replicated), same compiled program.
+    kfold = (
+        kfold_spread(lambda d: solve(d, False, estimate), observations.data, result, folds=folds)
+        if folds
+        else None
+    )
     seconds["kfold"] = time.perf_counter() - t0
     verdict = assess_hand_eye(
         result,
@@ -330,6 +411,7 @@ def calibrate_hand_eye_capture(
         capture,
         intrinsics,
         lambda T, eih: observe(T, eih, observations.sigma_px),
+        observations.data,
         result,
         solve,
         log,

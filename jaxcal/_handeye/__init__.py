@@ -26,8 +26,8 @@ Modules, by role: `data` (measurements, `make_*`, `validate_hand_eye`), `checks`
 (rotations, motion diversity), `model` (parameters and residuals), `closed`
 (closed-form start), `solve` (`calibrate_hand_eye`, `HandEyeResult`), `touch`
 (TCP touch), `common` (the pose error and the LM call), `consistency` (robot
-against camera rotation angles, before solving), `assess` (k-fold spread and
-verdicts, after).
+against camera rotation angles, before solving), `noise` (the robot pose noise
+estimated as a variance component), `assess` (k-fold spread and verdicts, after).
 
 Pipeline (all pure, jittable and vmappable):
 1. Closed-form start. Board poses from pixels by a planar homography (Zhang's
@@ -56,11 +56,18 @@ from ..errors import NotARotationError as NotARotationError
 from ..errors import NotPositiveDefiniteError as NotPositiveDefiniteError
 from ..errors import ShapeError as ShapeError
 from ..errors import TooFewPosesError as TooFewPosesError
+from .assess import MAX_ROBOT_SIGMA_DEG as MAX_ROBOT_SIGMA_DEG
+from .assess import MAX_ROBOT_SIGMA_M as MAX_ROBOT_SIGMA_M
+from .assess import ROBOT_SIGMA_OPTIONS as ROBOT_SIGMA_OPTIONS
 from .assess import HandEyeVerdict as HandEyeVerdict
 from .assess import KFoldSpread as KFoldSpread
 from .assess import assess_hand_eye as assess_hand_eye
+from .assess import describe_robot_noise as describe_robot_noise
+from .assess import implausible_robot_noise as implausible_robot_noise
 from .assess import kfold_spread as kfold_spread
 from .assess import pose_difference as pose_difference
+from .assess import robot_correction_rms as robot_correction_rms
+from .assess import robot_noise as robot_noise
 from .assess import std_ratio as std_ratio
 from .checks import MIN_AXIS_SEPARATION_DEG as MIN_AXIS_SEPARATION_DEG
 from .checks import MIN_POINTS_PER_VIEW as MIN_POINTS_PER_VIEW
@@ -88,6 +95,8 @@ from .model import HandEyeParams as HandEyeParams
 from .model import HandEyeReference as HandEyeReference
 from .model import hand_eye_residuals as hand_eye_residuals
 from .model import predicted_board_poses as predicted_board_poses
+from .noise import ROBOT_SIGMA_START as ROBOT_SIGMA_START
+from .noise import robot_noise_update as robot_noise_update
 from .solve import HandEyeResult as HandEyeResult
 from .solve import calibrate_hand_eye as calibrate_hand_eye
 from .touch import TouchData as TouchData

@@ -152,6 +152,83 @@ def std_ratio(kfold: KFoldSpread, result: HandEyeResult) -> np.ndarray:
     )
 
 
+#: Estimated robot pose noise (per axis) beyond which the poses are taken not to be these images'
+#: poses as read: a robot, even uncalibrated, is not this far off (m, deg).
+MAX_ROBOT_SIGMA_M = 5e-3
+MAX_ROBOT_SIGMA_DEG = 0.5
+#: Options of `jaxcal handeye` that set the robot pose noise, for messages.
+ROBOT_SIGMA_OPTIONS = "--robot-sigma-mm/--robot-sigma-deg"
+
+
+def robot_noise(result: HandEyeResult) -> "tuple[float, float] | None":
+    """`(translation mm, rotation deg)` per axis of the robot pose noise `result` used, or None (exact poses)."""
+    if result.robot_sigma is None:
+        return None
+    s = np.asarray(result.robot_sigma)
+    return float(1e3 * s[0]), float(np.degrees(s[3]))
+
+
+def describe_robot_noise(result: HandEyeResult) -> str:
+    """One phrase: the robot pose noise and where it came from (for messages and the console)."""
+    noise = robot_noise(result)
+    if noise is None:
+        return "robot poses taken as exact"
+    how = "estimated from the data" if bool(np.all(np.asarray(result.robot_sigma_estimated))) else "as given"
+    return f"robot pose noise {noise[0]:.3g} mm / {noise[1]:.3g} deg per axis ({how})"
+
+
+def implausible_robot_noise(
+    result: HandEyeResult,
+    max_translation_m: float = MAX_ROBOT_SIGMA_M,
+    max_rotation_deg: float = MAX_ROBOT_SIGMA_DEG,
+) -> bool:
+    """Whether the robot noise was estimated and came out beyond any robot's (`MAX_ROBOT_SIGMA_*`):
+    the corrections then absorb a misfit that is not noise (poses misread, not these images')."""
+    noise = robot_noise(result)
+    if noise is None or not bool(np.all(np.asarray(result.robot_sigma_estimated))):
+        return False
+    return noise[0] > 1e3 * max_translation_m or noise[1] > max_rotation_deg
+
+
+def robot_correction_rms(result: HandEyeResult) -> float:
+    """RMS over the kept frames of the robot corrections in units of the robot noise
+    (`HandEyeResult.robot_rms`; at most about 1 when the noise is right), NaN for exact poses."""
+    p = np.asarray(result.robot_rms, float)
+    p = p[np.isfinite(p)]
+    return float(np.sqrt(np.mean(p**2))) if p.size else float("nan")
+
+
+def _misfit_reason(result: HandEyeResult, ratio: float) -> str:
+    """Why the reprojection RMS is `ratio` times the detector's noise, by how the robot noise was set."""
+    sigma = float(result.pixel_rms) / max(ratio, 1e-300)
+    head = (
+        f"the reprojection RMS, {float(result.pixel_rms):.3g} px, is {ratio:.1f} times the detector's "
+        f"noise ({sigma:.3g} px) with the {describe_robot_noise(result)}: "
+    )
+    misreadings = (
+        "check the poses' frames and units and, for quaternions, the component order, xyzw or wxyz: "
+        "a reordered quaternion keeps every relative rotation angle, so the input check cannot see it"
+    )
+    if result.robot_sigma is None:
+        return head + (
+            "real robots' poses are noisy; estimate their noise from the data (`jaxcal handeye` without "
+            f"{ROBOT_SIGMA_OPTIONS}, `calibrate_hand_eye(..., estimate_robot_noise=True)`) or give it; "
+            "else the robot poses and the images do not fit one hand-eye transform (" + misreadings + ")"
+        )
+    if bool(np.all(np.asarray(result.robot_sigma_estimated))):
+        return head + (
+            "robot pose noise, estimated, does not explain it: the images do not fit one hand-eye "
+            "transform and one rigid target (check the intrinsics, the target's dimensions and "
+            "flatness, the camera's mount) or the poses are misread (" + misreadings + ")"
+        )
+    return head + (
+        f"the robot poses may be noisier than given: leave {ROBOT_SIGMA_OPTIONS} out to estimate it from "
+        "the data; else the robot poses and the images do not fit one hand-eye transform ("
+        + misreadings
+        + ")"
+    )
+
+
 def assess_hand_eye(
     result: HandEyeResult,
     *,
@@ -164,6 +241,8 @@ def assess_hand_eye(
     max_start_rotation_deg: float = 5.0,
     max_start_translation_m: float = 0.05,
     max_rejected_fraction: float = 0.3,
+    max_robot_sigma_m: float = MAX_ROBOT_SIGMA_M,
+    max_robot_sigma_deg: float = MAX_ROBOT_SIGMA_DEG,
 ) -> HandEyeVerdict:
     """Plausibility checks of a hand-eye result (call outside jit).
 
@@ -173,7 +252,14 @@ def assess_hand_eye(
     stated detector noise); a camera ends further than
     `max_start_rotation_deg` / `max_start_translation_m` from the closed-form
     start (the solve went where the data's closed form does not lead); or more
-    than `max_rejected_fraction` of the observed frames were rejected.
+    than `max_rejected_fraction` of the observed frames were rejected; or the
+    robot pose noise was estimated beyond `max_robot_sigma_m` /
+    `max_robot_sigma_deg` per axis (the corrections absorbed a misfit that is no
+    robot's error); or, with the robot noise given, the robot corrections'
+    RMS in its units (`robot_correction_rms`) exceeds `max_residual_ratio`
+    (the poses are noisier than given). The reason for a poor fit says how the robot noise was set:
+    taken exact or given (then it may be the robot's noise, and the way to
+    estimate it is named) or estimated (then it is not).
     Notes: frames the rotation-angle pre-check found inconsistent, rejected
     frames, and a k-fold spread that differs from the reported std by more
     than 2x (either way).
@@ -189,15 +275,23 @@ def assess_hand_eye(
                 f"the {name} solve did not converge: {_message(code_i)} after {int(steps[i])} steps{cap}"
             )
     ratio = float(result.residual_rms)
+    if implausible_robot_noise(result, max_robot_sigma_m, max_robot_sigma_deg):
+        reasons.append(
+            f"the robot poses are off the images' by {describe_robot_noise(result)}, more than any robot's "
+            f"pose error (limits {1e3 * max_robot_sigma_m:g} mm, {max_robot_sigma_deg:g} deg): the poses are "
+            "not these images' as read (check the arrangement, that the poses are the flange in the base "
+            "frame and not inverted, the quaternion component order, the rotation unit)"
+        )
+    estimated = bool(np.all(np.asarray(result.robot_sigma_estimated)))
+    if not estimated and robot_correction_rms(result) > max_residual_ratio:
+        reasons.append(
+            f"the robot poses needed corrections of {robot_correction_rms(result):.1f} times the "
+            f"{describe_robot_noise(result)} (RMS over the frames; about 1 expected): their noise is larger "
+            f"than that; leave {ROBOT_SIGMA_OPTIONS} out to estimate it from the data"
+        )
     if ratio > max_residual_ratio:
         if np.isfinite(float(result.pixel_rms)):
-            sigma = float(result.pixel_rms) / max(ratio, 1e-300)
-            reasons.append(
-                f"the reprojection RMS, {float(result.pixel_rms):.3g} px, is {ratio:.1f} times the detector's "
-                f"noise ({sigma:.3g} px): the robot poses and the images do not fit one hand-eye transform "
-                "(check the poses' frames and units and, for quaternions, the component order, xyzw or wxyz: "
-                "a reordered quaternion keeps every relative rotation angle, so the input check cannot see it)"
-            )
+            reasons.append(_misfit_reason(result, ratio))
         else:
             reasons.append(
                 f"the whitened pose-error RMS is {ratio:.1f} (about 1 expected): the robot poses and the "

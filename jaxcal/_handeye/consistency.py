@@ -8,11 +8,14 @@ $$\\angle(R_{A_f}^T R_{A_g}) = \\angle(R_{B_f}^T R_{B_g})$$
 
 for every pair, whatever $X$ and $Y$, in both arrangements ($B_f$ or its
 inverse: the angle of $R^T$ is that of $R$). A capture whose robot poses do
-not belong to its images (shuffled, another capture's, a wrong unit) breaks
+not belong to its images (shuffled, another capture's, rotations misread) breaks
 this for most pairs and is refused; a few bad robot poses break it for their
 own pairs only and are named. (A quaternion read in the wrong component order
 keeps every relative angle: $|q_f \\cdot q_g|$ does not change when the four
-components are permuted alike; the solve's residuals show it instead.)
+components are permuted alike; nor do the translations enter; the solve's
+residuals show those instead. A wrong unit of the translations therefore
+cannot fire this check, a wrong unit or convention of the rotations can:
+`REFUSAL_ADVICE`.)
 
 Board poses come from the measured poses, or from the pixels by a planar
 homography (Zhang's decomposition, as `closed.board_poses_from_pixels`, in
@@ -26,6 +29,21 @@ import numpy as np
 from ..errors import InconsistentPosesError
 from .checks import plane_frame, spanning_views
 
+#: What can make most relative rotation angles disagree, and so what to check. Only the
+#: rotations enter the check, and only through relative angles: the pairing of poses with
+#: images, and how the rotation columns are read. The translation unit, a quaternion's
+#: component order, inverted (T_ee_base) or transposed rotations and a swapped arrangement
+#: keep every angle (conjugation, transposition and a common permutation of a unit
+#: quaternion's components leave $|q_f \cdot q_g|$ and $\mathrm{tr}(R_f^T R_g)$ as they
+#: are), so they cannot trigger it and are not named.
+REFUSAL_ADVICE = (
+    "Check that the robot poses are paired with the right images (one row per image, in the images' "
+    "order, none missing or extra, each recorded with the robot at rest where the image was taken) and "
+    "that their rotations are read as written: the rotation unit (rad or deg), the Euler-angle convention "
+    "(xyz_rpy is R = Rz Ry Rx, fixed axes) and the format itself (a rotation vector is not roll, pitch, "
+    "yaw). The translation unit, the quaternion component order and inverted poses cannot cause this: "
+    "they keep every relative rotation angle"
+)
 #: Pairs whose camera and robot rotation angles differ by more than this disagree (deg).
 CONSISTENCY_TOL_DEG = 2.0
 #: Relative rotations smaller than this on both sides say little (their angle is noise): skipped (deg).
@@ -190,7 +208,6 @@ def check_motion_consistency(
             f"robot poses and images disagree: for {100 * mc.disagreeing_fraction:.0f}% of the pairs of frames "
             f"the robot's relative rotation angle differs from the camera's by more than {tolerance_deg:g} deg "
             f"(mean {mc.mean_error_deg:.1f} deg), whatever the hand-eye transform; frames {_names(bad, frame_names)} "
-            "disagree with most others. Check that the robot poses are listed in the images' order, their "
-            "units (m or mm, rad or deg) and quaternion order, and that they are the flange poses in the base frame"
+            f"disagree with most others. {REFUSAL_ADVICE}"
         )
     return mc

@@ -26,6 +26,7 @@ from .model import (
     transforms,
     with_whitening,
 )
+from .noise import ROBOT_SIGMA_START, robot_sigma6, solve_estimating_noise
 
 
 class HandEyeResult(eqx.Module):
@@ -53,6 +54,12 @@ class HandEyeResult(eqx.Module):
     - `variance_factor`: $\\|r\\|^2 / (m - n)$, the residual variance in units
       of the stated noise (about 1 when the noise model is honest).
     - `T_base_ee`: the robot poses used (corrected when `robot_sigma` was given).
+    - `robot_sigma` `(6,)`: the robot pose noise the solve used, (translation m x3,
+      rotation rad x3): as given, or estimated (`robot_sigma_estimated`, see
+      `noise`); None for exact robot poses. `robot_dof` `(2,)`: the redundancies
+      $(r_t, r_r)$ of its translation and rotation priors (the degrees of
+      freedom an estimate rests on: relative standard error about $1/\\sqrt{2r}$);
+      None for exact robot poses.
     - `robot_rms` `(frames,)`: whitened RMS of each frame's robot correction,
       $\\|\\delta_f / \\sigma_{robot}\\| / \\sqrt 6$ (NaN for exact robot poses and for
       frames no kept view saw).
@@ -79,6 +86,9 @@ class HandEyeResult(eqx.Module):
     cov_frames: Float[Array, "n n"]
     variance_factor: Float[Array, ""]
     T_base_ee: Float[Array, "frames 4 4"]
+    robot_sigma: Float[Array, "6"] | None
+    robot_sigma_estimated: Bool[Array, ""]
+    robot_dof: Float[Array, "2"] | None
     robot_rms: Float[Array, " frames"]
     residual_rms: Float[Array, ""]
     pixel_rms: Float[Array, ""]
@@ -150,6 +160,7 @@ def calibrate_hand_eye(
     scale_covariance: bool = True,
     by_blocks: bool = True,
     closed_form_jacobian: bool = True,
+    estimate_robot_noise: bool | Bool[Array, ""] = False,
 ) -> HandEyeResult:
     """Hand-eye calibration (eye-to-hand or eye-in-hand, one or more cameras); pure, jittable, vmappable.
 
@@ -183,9 +194,15 @@ def calibrate_hand_eye(
       and the covariance on the hand-written Jacobian (`jacobian.pixel_terms`,
       the same optimum at a fraction of autodiff's cost); False: autodiff, the
       reference. No effect on other data.
+    - `estimate_robot_noise` (pixels; may be traced): estimate the robot pose noise,
+      translation and rotation apart, as a variance component (`noise`), from
+      `data.robot_sigma` (None: 1 mm, 0.1 deg); rejection, covariance and `robot_rms`
+      use the estimate. False: the robot noise as given (None: exact poses).
 
     **Returns:** a `HandEyeResult`.
     """
+    data = _estimation_start(data, estimate_robot_noise, by_blocks)
+    estimate = jnp.asarray(estimate_robot_noise, bool)
     X0, Y0 = initialise_hand_eye(data)
     C, F = data.mask.shape[:2]
     params0 = HandEyeParams(
@@ -198,28 +215,17 @@ def calibrate_hand_eye(
     blocks = by_blocks and params0.robot is not None  # pixels with per-pose robot corrections
     closed = closed_form_jacobian and isinstance(data, HandEyePixels) and params0.robot is None
 
-    def stage(carry, robust):
-        # One Levenberg-Marquardt, traced once and run per stage: robust (Cauchy)
-        # then plain on the groups the robust stage kept.
-        params, active = carry
-        ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
-        args = (ref, data, loss_scale, robust)
-        value, code, steps, lin = _solve(params, args, blocks, closed, rtol, atol, max_steps)
-        rms = _group_rms(value, ref, data)
-        scale = jnp.maximum(jnp.nanmedian(rms), min_outlier_scale)
-        reject = robust & active & (rms > outlier_threshold * scale)
-        if value.robot is not None:
-            # A robot pose far outside its stated noise is absorbed by its correction
-            # (the pixels then fit): reject the frame on the correction's size.
-            p = jnp.where(jnp.any(active, axis=0), _prior_rms(value, data), jnp.nan)
-            p_scale = jnp.maximum(jnp.nanmedian(p), 1.0)
-            reject = reject | (robust & active & (p > outlier_threshold * p_scale)[None])
-        return (value, active & ~reject), (code, steps, lin)
-
-    # `reject_outliers` is traced, so both settings share one compiled solver; when False
-    # the first stage is plain too and the second starts from its optimum.
-    stages = jnp.stack([jnp.asarray(reject_outliers, bool), jnp.asarray(False)])
-    (params, active), (results, steps, lins) = jax.lax.scan(stage, (params0, observed), stages)
+    (params, active, sigma), (results, steps, lins, dofs) = _run_stages(
+        data,
+        params0,
+        observed,
+        (X0, Y0),
+        jnp.asarray(reject_outliers, bool),
+        estimate,
+        (blocks, closed),
+        (loss_scale, rtol, atol, max_steps, outlier_threshold, min_outlier_scale),
+    )
+    data = _with_robot_sigma(data, sigma)
     # The last stage is plain and its groups are the summary's: its linearisation is the summary's.
     lin = jax.tree.map(lambda x: x[1], lins)
     first, last = (jax.tree.map(lambda x, i=i: x[i], results) for i in (0, 1))
@@ -246,11 +252,92 @@ def calibrate_hand_eye(
             r.stage_steps,
             r.T_cam_robot_start,
             r.T_robot_board_start,
+            r.robot_sigma_estimated,
+            r.robot_dof,
         ),
         out,
-        (result, jnp.sum(steps), results, steps, X0_kept, Y0_kept),
+        (result, jnp.sum(steps), results, steps, X0_kept, Y0_kept, estimate & blocks, _last(dofs)),
         is_leaf=lambda x: x is None,
     )
+
+
+def _estimation_start(data, estimate_robot_noise, by_blocks: bool):
+    """`data` with a start for the robot noise estimate where it has none; refuses what cannot be estimated."""
+    if estimate_robot_noise is False:
+        return data
+    if isinstance(data, HandEyePoses) or not by_blocks:
+        raise ValueError(
+            "estimate_robot_noise: the robot noise is estimated from pixels (HandEyePixels), by blocks only"
+        )
+    if data.robot_sigma is not None:
+        return data
+    start = robot_sigma6(*ROBOT_SIGMA_START).astype(data.pixels.dtype)
+    return eqx.tree_at(lambda d: d.robot_sigma, data, start, is_leaf=lambda x: x is None)
+
+
+def _run_stages(data, params0, observed, start, reject_outliers, estimate, paths, options):
+    """The two Levenberg-Marquardt stages of `calibrate_hand_eye` (a `lax.scan`): robust, with
+    rejection, then plain on the groups kept; with robot corrections, each re-run while the robot
+    noise is estimated. `start` `(X0, Y0)`; `paths` `(blocks, closed)` (see `_solve`); `options`
+    `(loss_scale, rtol, atol, max_steps, outlier_threshold, min_outlier_scale)`.
+
+    **Returns:** `((params, active, robot_sigma), (results, steps, lins, dofs))`, per stage.
+    """
+    X0, Y0 = start
+    blocks, closed = paths
+    loss_scale, rtol, atol, max_steps, outlier_threshold, min_outlier_scale = options
+
+    def solve_at(params, active, robust, d):
+        ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), d)
+        return _solve(params, (ref, d, loss_scale, robust), blocks, closed, rtol, atol, max_steps)
+
+    def stage(carry, robust):
+        # One Levenberg-Marquardt, traced once and run per stage: robust (Cauchy)
+        # then plain on the groups the robust stage kept; with noisy robot poses,
+        # re-run while the robot noise is estimated (`noise.solve_estimating_noise`).
+        params, active, sigma = carry
+        if blocks:
+            value, code, steps, lin, sigma, dof = solve_estimating_noise(
+                lambda p, s: solve_at(p, active, robust, _with_robot_sigma(data, s)),
+                params,
+                sigma,
+                jnp.any(active, axis=0),
+                robust,
+                estimate,
+            )
+        else:
+            value, code, steps, lin = solve_at(params, active, robust, data)
+            dof = None
+        d = _with_robot_sigma(data, sigma)
+        ref = with_whitening(value, HandEyeReference(X0=X0, Y0=Y0, active=active), d)
+        rms = _group_rms(value, ref, d)
+        scale = jnp.maximum(jnp.nanmedian(rms), min_outlier_scale)
+        reject = robust & active & (rms > outlier_threshold * scale)
+        if value.robot is not None:
+            # A robot pose far outside its stated noise is absorbed by its correction
+            # (the pixels then fit): reject the frame on the correction's size.
+            p = jnp.where(jnp.any(active, axis=0), _prior_rms(value, d), jnp.nan)
+            p_scale = jnp.maximum(jnp.nanmedian(p), 1.0)
+            reject = reject | (robust & active & (p > outlier_threshold * p_scale)[None])
+        return (value, active & ~reject, sigma), (code, steps, lin, dof)
+
+    # `reject_outliers` is traced, so both settings share one compiled solver; when False
+    # the first stage is plain too and the second starts from its optimum.
+    stages = jnp.stack([reject_outliers, jnp.asarray(False)])
+    carry0 = (params0, observed, data.robot_sigma)
+    return jax.lax.scan(stage, carry0, stages)
+
+
+def _last(stacked):
+    """The plain stage's entry of a per-stage output (None stays None)."""
+    return None if stacked is None else stacked[1]
+
+
+def _with_robot_sigma(data, sigma):
+    """`data` with the robot noise `sigma` (unchanged when None: exact robot poses)."""
+    if sigma is None:
+        return data
+    return eqx.tree_at(lambda d: d.robot_sigma, data, sigma)
 
 
 def _solve(params, args, blocks: bool, closed: bool, rtol, atol, max_steps):
@@ -391,6 +478,9 @@ def _summarise(
         cov_frames=cov_frames,
         variance_factor=variance_factor,
         T_base_ee=corrected_robot(data.T_base_ee, delta),
+        robot_sigma=data.robot_sigma,
+        robot_sigma_estimated=jnp.asarray(False),
+        robot_dof=None,
         robot_rms=robot_rms,
         residual_rms=jnp.sqrt(ssr_obs / jnp.maximum(n_obs, 1.0)),
         pixel_rms=jnp.sqrt(ssr_obs / jnp.maximum(n_obs, 1.0)) * data.sigma_px

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
+from .._handeye import ROBOT_SIGMA_OPTIONS, describe_robot_noise
 from .._handeye_capture import calibrate_hand_eye_capture
 from ..io._files import check_output_dir, output_lock
 from ..io.handeye_results import static_transform_args, write_hand_eye_outputs
@@ -38,6 +39,12 @@ SIM_TARGETS = {
 def cmd_handeye(args) -> int:
     """`jaxcal handeye CAPTURE --out DIR`: exit 0 (ok), 3 (suspect, see result.json), 2 (refused input)."""
 
+    if args.robot_sigma_mm is None and args.robot_sigma_deg is not None:
+        print(
+            "jaxcal: error: --robot-sigma-deg needs --robot-sigma-mm (or leave both out to estimate the robot noise)",
+            file=sys.stderr,
+        )
+        return 2
     out = Path(args.out)
     checked = check_output_dir(
         out, inputs=[args.capture], overwrite=args.overwrite, kind="result", what="--out"
@@ -48,10 +55,14 @@ def cmd_handeye(args) -> int:
 
 def _handeye(args, out: Path, checked) -> int:
     console = Console(width=max(Console().width, 120))
+    # Neither given: the robot pose noise is estimated from the data.
     robot = (
         None
         if args.robot_sigma_mm is None
-        else (1e-3 * args.robot_sigma_mm, np.radians(args.robot_sigma_deg))
+        else (
+            1e-3 * args.robot_sigma_mm,
+            np.radians(0.05 if args.robot_sigma_deg is None else args.robot_sigma_deg),
+        )
     )
     t0 = time.perf_counter()
     run = calibrate_hand_eye_capture(
@@ -92,6 +103,15 @@ def _handeye(args, out: Path, checked) -> int:
         f"reprojection RMS {float(r.pixel_rms):.3f} px (detector {run.observations.sigma_px:.3f} px), "
         f"{len(run.rejected)} frame(s) rejected of {run.frames}"
     )
+    console.print(
+        describe_robot_noise(r)
+        + (
+            f", from {np.asarray(r.robot_dof)[0]:.0f} / {np.asarray(r.robot_dof)[1]:.0f} degrees of freedom "
+            f"(set it with {ROBOT_SIGMA_OPTIONS})"
+            if bool(np.all(np.asarray(r.robot_sigma_estimated)))
+            else ""
+        )
+    )
     for f, why in sorted(run.rejected.items()):
         console.print(f"  rejected frame {cap.frames[f]}: {why}")
     for note in run.verdict.notes:
@@ -125,6 +145,8 @@ def cmd_simulate_handeye(args) -> int:
         robot_error_fraction=args.robot_error_fraction,
         robot_error_deg=args.robot_error_deg,
         robot_error_mm=args.robot_error_mm,
+        robot_noise_mm=args.robot_noise_mm,
+        robot_noise_deg=args.robot_noise_deg,
         intrinsics_known=not args.unknown_intrinsics,
     )
     start = time.perf_counter()
@@ -155,10 +177,13 @@ def add_handeye_parsers(sub) -> None:
     p.add_argument(
         "--robot-sigma-mm",
         type=float,
-        help="robot pose noise, mm: each pose gets a correction with this prior",
+        help="robot pose noise per axis, mm: each pose gets a correction with this prior "
+        "(default: estimated from the data, with --robot-sigma-deg)",
     )
     p.add_argument(
-        "--robot-sigma-deg", type=float, default=0.05, help="robot pose noise, deg (with --robot-sigma-mm)"
+        "--robot-sigma-deg",
+        type=float,
+        help="robot pose noise per axis, deg (with --robot-sigma-mm; 0.05 when only that is given)",
     )
     p.add_argument("--folds", type=int, default=10, help="k of the k-fold spread (0: skip)")
     p.add_argument("--max-steps", type=int, default=200, help="Levenberg-Marquardt steps per stage")
@@ -192,5 +217,17 @@ def add_handeye_parsers(sub) -> None:
     )
     p.add_argument("--robot-error-deg", type=float, default=2.0)
     p.add_argument("--robot-error-mm", type=float, default=5.0)
+    p.add_argument(
+        "--robot-noise-mm",
+        type=float,
+        default=0.0,
+        help="robot pose noise on every recorded pose, mm per axis",
+    )
+    p.add_argument(
+        "--robot-noise-deg",
+        type=float,
+        default=0.0,
+        help="robot pose noise on every recorded pose, deg per axis",
+    )
     p.add_argument("--unknown-intrinsics", action="store_true", help="write K = null (self-calibrated)")
     p.set_defaults(func=cmd_simulate_handeye)

@@ -142,6 +142,7 @@ def hand_eye_summary(run) -> dict:
             for f, why in sorted(run.rejected.items())
         ],
         "frames": frames,
+        "robot_noise": _robot_noise(r),
         "consistency": {
             "tolerance_deg": mc.tolerance_deg,
             "disagreeing_fraction": mc.disagreeing_fraction,
@@ -173,6 +174,19 @@ def hand_eye_summary(run) -> dict:
             "padded_frames": int(np.shape(r.T_base_ee)[0]),
         },
         "seconds": run.seconds,
+    }
+
+
+def _robot_noise(r) -> "dict | None":
+    """Per axis, the robot pose noise the solve used: estimated from the data or given; None: exact poses."""
+    if r.robot_sigma is None:
+        return None
+    noise = np.asarray(r.robot_sigma)
+    return {
+        "estimated": bool(np.all(np.asarray(r.robot_sigma_estimated))),
+        "translation_mm": float(1e3 * noise[0]),
+        "rotation_deg": float(np.degrees(noise[3])),
+        "dof": None if r.robot_dof is None else np.asarray(r.robot_dof, float).tolist(),
     }
 
 
@@ -320,6 +334,14 @@ def report_markdown(summary: dict) -> str:
         "",
         f"Solver: {stages}; reprojection RMS {_fmt(sv['pixel_rms_px'])} px against the detector's "
         f"{_fmt(sv['sigma_px'])} px (variance factor {_fmt(sv['variance_factor'], 2)}); {sv['frames']} frames.",
+        "",
+        "Robot pose noise: "
+        + (
+            "exact poses."
+            if s["robot_noise"] is None
+            else f"{_fmt(s['robot_noise']['translation_mm'])} mm / {_fmt(s['robot_noise']['rotation_deg'], 4)} deg "
+            f"per axis ({'estimated from the data' if s['robot_noise']['estimated'] else 'as given'})."
+        ),
         "",
         f"Rotation-angle check: {100 * s['consistency']['disagreeing_fraction']:.0f}% of frame pairs differ by more "
         f"than {s['consistency']['tolerance_deg']:g} deg (median {_fmt(s['consistency']['median_difference_deg'])} deg).",

@@ -135,6 +135,10 @@ class HandEyeSimConfig:
     - `robot_error_fraction`: this share of the frames gets its recorded robot
       pose off by `robot_error_deg` (about a random axis) and `robot_error_mm`
       (in a random direction), in the flange frame; the truth lists them.
+    - `robot_noise_mm`, `robot_noise_deg`: every recorded robot pose is off by
+      Gaussian noise of this standard deviation per axis, in the base frame
+      (translation $t + v$, rotation $\\exp(w) R$, the convention of the
+      solver's robot corrections): a real robot's pose error.
     - `intrinsics_known`: write K and the distortion (else `null`: self-calibrated).
     """
 
@@ -156,6 +160,8 @@ class HandEyeSimConfig:
     robot_error_fraction: float = 0.0
     robot_error_deg: float = 2.0
     robot_error_mm: float = 5.0
+    robot_noise_mm: float = 0.0
+    robot_noise_deg: float = 0.0
     intrinsics_known: bool = True
 
 
@@ -169,6 +175,10 @@ CAMERA_DIRECTION_EYE_TO_HAND = np.array([-0.05, -0.8, 0.6]) / np.linalg.norm([-0
 
 def _turn(axis, angle) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(axis, np.float64) / np.linalg.norm(axis) * angle)[0]
+
+
+def _turn_by(rotvec) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(rotvec, np.float64))[0]
 
 
 def _tilted(n: np.ndarray, rng, tilt_deg: float) -> np.ndarray:
@@ -269,6 +279,10 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
     T_recorded = T_true.copy()
     for f in bad:
         T_recorded[f] = _perturb(T_true[f], rng, config.robot_error_deg, config.robot_error_mm)
+    if config.robot_noise_mm > 0 or config.robot_noise_deg > 0:
+        for T in T_recorded:
+            T[:3, :3] = _turn_by(rng.normal(0.0, np.radians(config.robot_noise_deg), 3)) @ T[:3, :3]
+            T[:3, 3] += rng.normal(0.0, 1e-3 * config.robot_noise_mm, 3)
     names = [f"{i:04d}" for i in range(config.frames)]
     scene = _mocap_scene(plate, cam)
     with atomic_directory(out, overwrite=overwrite, kind="dataset") as tmp:
@@ -311,6 +325,7 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
             "T_base_ee": T_true.tolist(),
             "corrupted_frames": [names[f] for f in bad],
             "robot_error": {"deg": config.robot_error_deg, "mm": config.robot_error_mm},
+            "robot_noise": {"deg": config.robot_noise_deg, "mm": config.robot_noise_mm},
             "config": {k: v for k, v in asdict(config).items() if k != "target"},
         }
         (tmp / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
