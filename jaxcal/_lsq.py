@@ -210,7 +210,7 @@ def independent_columns_normal(
     """`independent_columns` from the normal matrix $H = J^TJ$ alone: the same
     greedy selection on the Gram matrix of the normalised columns, $O(n^2)$ a
     column instead of $O(mn)$. A column's squared distance from the kept span
-    is $G_{jj} - \|Q^T G_{:j}\|^2$ (the basis kept as coefficients $Q$ of the
+    is $G_{jj} - \\|Q^T G_{:j}\\|^2$ (the basis kept as coefficients $Q$ of the
     columns), so distances under about $10^{-7}$ lose their digits: for the
     thresholds of `jaxcal.stages.kinds.STRICT_TOL`, not `DEFAULT_TOL`."""
     d = jnp.sqrt(jnp.maximum(jnp.diag(H), 0.0))

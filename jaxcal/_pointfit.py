@@ -146,7 +146,7 @@ def term_basis(terms: tuple[str, ...], model: KinematicModel, q, masses, coms) -
         else:
             k = 1.0 if t == "harmonic1" else 2.0
             cols += [jnp.sin(k * q)[..., None], jnp.cos(k * q)[..., None]]
-    return jnp.concatenate(cols, axis=-1)
+    return jnp.concatenate(cols, axis=-1) if cols else jnp.zeros((*q.shape, 0), q.dtype)
 
 
 class PointProblem(eqx.Module):

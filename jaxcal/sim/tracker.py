@@ -1,5 +1,6 @@
-"""`simulate_tracker`: single-joint sweeps of a perturbed arm measured by a
-laser tracker (a retro-reflector on the flange), written as a tracker dataset.
+"""`simulate_tracker`: single-joint sweeps (or stop-and-shoot poses) of a
+perturbed arm measured by a laser tracker (a retro-reflector on the flange),
+written as a tracker dataset.
 
 Pure NumPy / JAX, no rendering. The nominal robot is perturbed into the true
 one as `jaxcal simulate` does (joint origins, axis tilts, zero offsets; joint
@@ -8,9 +9,13 @@ then defines it); the reflector's true mount deviates from its design
 position. Each joint sweeps alone about a home configuration; every sample is
 the reflector's position in the device frame with isotropic Gaussian noise,
 and a fraction of bad samples (a beam break, a reflector bumped) at the
-sweep ends sits 0.3-0.5 mm off. The table gives the controller's joint
-positions (no encoder log, no clock). Everything the calibration should
-recover goes to `truth.json` (its `bad_samples` lists the bad ones).
+sweep ends sits 0.3-0.5 mm off. With `poses`, the arm instead stops at that
+many random configurations inside its joint limits (every joint moves between
+samples), and with `compliance` each joint yields under gravity by its
+compliance times the gravity torque of the links it carries (the robot file's
+masses). The table gives the controller's joint positions (no encoder log, no
+clock). Everything the calibration should recover goes to `truth.json` (its
+`bad_samples` lists the bad ones, `compliance_rad_per_kNm` the compliances).
 """
 
 import csv
@@ -27,8 +32,10 @@ from .._kinematics import PerturbationScales, anchor_base, forward_kinematics, p
 from ..io._files import atomic_directory
 from ..io.dataset import SCHEMA, SCHEMA_VERSION, write_json
 from ..io.model_json import model_to_json
-from ..io.urdf import load_urdf, save_urdf
-from ..robots import robot_path, shipped
+from ..io.dh_tables import is_table_file, read_table_file
+from ..io.urdf import save_urdf, urdf_outline
+from .._pointfit import gravity_torques
+from ..robots import link_inertials, load_robot_file, robot_file
 
 #: UR3 home of the acceptance case (deg): elbow at -90, wrist 2 at 90.
 UR3_HOME_DEG = (0.0, 0.0, -90.0, 0.0, 90.0, 0.0)
@@ -52,6 +59,10 @@ class TrackerSimConfig:
     - `origin_mm`, `origin_deg`, `axis_tilt_deg`, `zero_offset_deg`: the
       arm's perturbation (as `jaxcal simulate`; no ratio error: the table
       gives joint positions).
+    - `poses`: when positive, that many stop-and-shoot poses drawn uniformly
+      within the joint limits (capped at `pose_range_deg` about zero) in place
+      of the sweeps; `bad_fraction` of them, at random, are displaced.
+    - `compliance`: per joint, rad per kN m of gravity torque (or None: rigid).
     """
 
     robot: str = "ur3"
@@ -73,8 +84,15 @@ class TrackerSimConfig:
     origin_deg: float = 0.2
     axis_tilt_deg: float = 0.2
     zero_offset_deg: float = 0.5
+    poses: int = 0
+    pose_range_deg: float = 170.0
+    compliance: tuple[float, ...] | None = None
 
     def check(self, joints: int) -> None:
+        if self.compliance is not None and len(self.compliance) != joints:
+            raise ValueError(f"compliance has {len(self.compliance)} values for a robot with {joints} joints")
+        if self.poses < 0 or 0 < self.poses < 10:
+            raise ValueError(f"poses must be 0 (sweeps) or at least 10, got {self.poses}")
         if self.samples_per_joint < 10:
             raise ValueError(f"samples_per_joint must be at least 10, got {self.samples_per_joint}")
         if not 0.0 <= self.bad_fraction < 0.5:
@@ -119,17 +137,34 @@ def sweep_commands(names, config: TrackerSimConfig) -> tuple[np.ndarray, np.ndar
     return np.concatenate(qs), np.concatenate(joints)
 
 
+def pose_commands(limits: np.ndarray, config: TrackerSimConfig, rng: np.random.Generator) -> np.ndarray:
+    """`(poses, joints)` random configurations inside `limits` `(joints, 2)` (rad), capped at `pose_range_deg`."""
+    cap = np.radians(config.pose_range_deg)
+    lo, hi = np.maximum(limits[:, 0], -cap), np.minimum(limits[:, 1], cap)
+    return lo + (hi - lo) * rng.uniform(size=(config.poses, len(limits)))
+
+
 def bad_samples(config: TrackerSimConfig, joints: int) -> np.ndarray:
-    """Indices of the bad samples: per sweep `bad_fraction` of them, half at each end."""
+    """Indices of the bad samples: per sweep `bad_fraction` of them, half at each end
+    (stop-and-shoot poses: `bad_fraction` of them, spread evenly)."""
+    if config.poses:
+        k = round(config.bad_fraction * config.poses)
+        return np.unique(np.linspace(0, config.poses - 1, k + 2).round().astype(int)[1:-1]) if k else np.zeros(0, int)
     k = round(config.bad_fraction * config.samples_per_joint)
     first, last = (k + 1) // 2, k // 2
     per = np.r_[np.arange(first), config.samples_per_joint - 1 - np.arange(last)].astype(int)
     return np.sort(np.concatenate([j * config.samples_per_joint + per for j in range(joints)]))
 
 
-def _measure(config, true, T_device_base, T_flange_point, q, rng):
-    """The device's samples: positions (and orientations) with noise, bad samples displaced."""
-    flange = np.asarray(jax.vmap(lambda qq: forward_kinematics(true, qq)[-1])(jnp.asarray(q)))
+def _measure(config, true, T_device_base, T_flange_point, q, rng, inertials=None):
+    """The device's samples: positions (and orientations) with noise, bad samples displaced;
+    with `config.compliance`, at the joint angles gravity bends the arm to."""
+    q_true = np.asarray(q, np.float64)
+    if config.compliance is not None:
+        masses, coms = (jnp.asarray(a) for a in inertials)
+        tau = np.asarray(jax.vmap(lambda qq: gravity_torques(true, qq, masses, coms))(jnp.asarray(q_true)))
+        q_true = q_true + 1e-3 * tau * np.asarray(config.compliance)
+    flange = np.asarray(jax.vmap(lambda qq: forward_kinematics(true, qq)[-1])(jnp.asarray(q_true)))
     T = T_device_base @ flange @ T_flange_point
     P = T[:, :3, 3] + 1e-6 * config.noise_um * rng.standard_normal((len(q), 3))
     bad = bad_samples(config, true.num_joints)
@@ -160,6 +195,15 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
     return out * (1 if out[3] >= 0 else -1)
 
 
+def _limits(urdf: Path, nominal) -> np.ndarray:
+    """`(joints, 2)` joint limits of the robot file (rad; +-pi where it gives none)."""
+    lim = read_table_file(urdf).joint_limits() if is_table_file(urdf) else urdf_outline(urdf, nominal.joint_names).limits
+    return np.array(
+        [(-np.pi, np.pi) if lim[n].lower is None else (lim[n].lower, lim[n].upper) for n in nominal.joint_names],
+        np.float64,
+    )
+
+
 def write_samples(path: Path, names, q, joint, P, O, rate_hz: float) -> None:
     """`samples.csv`: sample, timestamp, joint, x, y, z[, qx, qy, qz, qw], the joint positions."""
     with open(path, "w", newline="") as f:
@@ -182,7 +226,7 @@ def write_samples(path: Path, names, q, joint, P, O, rate_hz: float) -> None:
                 [
                     i,
                     repr(i / rate_hz),
-                    names[joint[i]],
+                    names[joint[i]] if joint[i] >= 0 else "",
                     *(repr(float(v)) for v in P[i]),
                     *quat,
                     *(repr(float(v)) for v in q[i]),
@@ -194,10 +238,9 @@ def simulate_tracker(config: TrackerSimConfig, out, *, overwrite: bool = False) 
     """Write `config`'s tracker dataset into directory `out` (atomically; the
     rules of `jaxcal.io._files.check_output_dir`, marker kind `"dataset"`).
     Returns the dataset path."""
-    urdf = robot_path(config.robot) if config.robot in shipped() else Path(config.robot)
-    if not urdf.is_file():
-        raise ValueError(f"robot {config.robot!r} is neither a shipped robot ({shipped()}) nor a file")
-    nominal = load_urdf(urdf)
+    urdf = robot_file(config.robot)  # a URDF or a DH/MDH table
+    table = is_table_file(urdf)
+    nominal = load_robot_file(urdf)
     names = list(nominal.joint_names)
     config.check(len(names))
     scales = PerturbationScales(
@@ -213,14 +256,21 @@ def simulate_tracker(config: TrackerSimConfig, out, *, overwrite: bool = False) 
     T_point_nominal[:3, 3] = 1e-3 * np.asarray(config.point_mm, np.float64)
     T_point_true = T_point_nominal.copy()
     T_point_true[:3, 3] += 1e-3 * config.point_error_mm * rng.standard_normal(3)
-    q, joint = sweep_commands(names, config)
-    P, O, bad = _measure(config, true, T_device_base, T_point_true, q, rng)
+    if config.poses:
+        q = pose_commands(_limits(urdf, nominal), config, rng)
+        joint = np.full(len(q), -1)
+    else:
+        q, joint = sweep_commands(names, config)
+    inertials = link_inertials(urdf) if config.compliance is not None else None
+    P, O, bad = _measure(config, true, T_device_base, T_point_true, q, rng, inertials)
     device = "tracker"
+    robot_name = f"robot{urdf.suffix}" if table else "robot.urdf"
     meta = {
         "schema": SCHEMA,
         "schema_version": SCHEMA_VERSION,
-        "description": f"synthetic {config.robot} tracker sweeps written by jaxcal simulate (seed {config.seed})",
-        "robot": {"urdf": "robot.urdf", "base_link": nominal.link_names[0],
+        "description": f"synthetic {config.robot} tracker {'poses' if config.poses else 'sweeps'} written by "
+        f"jaxcal simulate (seed {config.seed})",
+        "robot": {("table" if table else "urdf"): robot_name, "base_link": nominal.link_names[0],
                   "flange_link": nominal.link_names[-1], "joints": names},
         "device": {
             "name": device, "kind": "laser_tracker", "file": "samples.csv", "link": nominal.link_names[-1],
@@ -242,11 +292,12 @@ def simulate_tracker(config: TrackerSimConfig, out, *, overwrite: bool = False) 
         "targets": {"smr": {"link": nominal.link_names[-1], "T_link_target": T_point_true}},
         "clock": {"offset_s": 0.0},
         "bad_samples": bad.tolist(),
+        "compliance_rad_per_kNm": None if config.compliance is None else list(config.compliance),
     }
     with atomic_directory(Path(out), overwrite=overwrite, kind="dataset", what="--out") as tmp:
-        shutil.copyfile(urdf, tmp / "robot.urdf")
+        shutil.copyfile(urdf, tmp / robot_name)
         write_json(tmp / "metadata.json", meta)
         write_samples(tmp / "samples.csv", names, q, joint, P, O, config.rate_hz)
         write_json(tmp / "truth.json", truth)
-        save_urdf(true, tmp / "truth.urdf", source=urdf)
+        save_urdf(true, tmp / "truth.urdf", source=None if table else urdf)
     return Path(out)

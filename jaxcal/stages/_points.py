@@ -55,6 +55,9 @@ CV_GAIN = 0.005
 #: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
 #: only to more than that is not identified (e.g. wrist 3's, when the point sits on its axis).
 TERM_STD_RAD = 1e-3
+#: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
+#: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
+TERM_FLOOR = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,11 +144,9 @@ def _refit(problem: PointProblem, cand, free):
     return fit_points(problem, cand, tol=0.0, free=free)
 
 
-def term_effect_std(problem: PointProblem, fit: PointFitResult) -> np.ndarray:
-    """Per non-geometric coefficient, its std times the RMS of its basis over the
-    fitted samples: how well the data pin its effect on the joint angle (rad)."""
+def term_scale(problem: PointProblem) -> np.ndarray:
+    """Per non-geometric coefficient (`PointLayout` order), the RMS of its basis over the fitted samples."""
     layout, d = problem.layout, problem.data
-    k = layout.base.axis_size
     b = np.asarray(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms))[np.asarray(d.mask)]
     rms = np.sqrt(np.mean(b**2, axis=0))  # (joints, k): family-major below
     cols, start = [], 0
@@ -153,8 +154,13 @@ def term_effect_std(problem: PointProblem, fit: PointFitResult) -> np.ndarray:
         m = TERMS[t]
         cols.append(rms[:, start : start + m].reshape(-1))
         start += m
-    scale = np.concatenate(cols) if cols else np.zeros(0)
-    return np.asarray(fit.std)[k:] * scale
+    return np.concatenate(cols) if cols else np.zeros(0)
+
+
+def term_effect_std(problem: PointProblem, fit: PointFitResult) -> np.ndarray:
+    """Per non-geometric coefficient, its std times the RMS of its basis over the
+    fitted samples: how well the data pin its effect on the joint angle (rad)."""
+    return np.asarray(fit.std)[problem.layout.base.axis_size :] * term_scale(problem)
 
 
 @jax.jit
@@ -223,6 +229,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         layout = PointLayout(base, terms)
         problem = point_problem(nominal, layout, q, y, s.sigma_m, used, T0, Tp0, inertials)
         cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free)
+        cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol))
         fit = _hold_implausible_terms(problem, cand, fit)
         row = {"terms": list(terms), "free": int(np.sum(fit.free))}

@@ -119,6 +119,33 @@ def _corrections(c: _Checks, parameters: list, limits: Limits, measured_mounts: 
             )
 
 
+def _uncertainties(c: _Checks, parameters: list, limits: Limits) -> None:
+    """A free joint origin or zero offset whose standard deviation is a third of its
+    plausible correction or more: the data barely see it, and its value is not to be
+    read (the tool point may still be fine; a parameter table is not)."""
+    worst: dict[str, tuple[float, float, str]] = {}
+    for p in parameters:
+        if p["group"] != "correction" or not p.get("free") or p.get("std") is None:
+            continue
+        owner, _, what = p["name"].rpartition(".")
+        if p["unit"] == "m":
+            ratio, shown = 1e3 * p["std"] / (limits.origin_mm / 3), f"{1e3 * p['std']:.2f} mm"
+        elif what == "zero_offset":
+            ratio, shown = np.degrees(p["std"]) / (limits.zero_offset_deg / 3), f"{np.degrees(p['std']):.3f} deg"
+        else:
+            ratio, shown = np.degrees(p["std"]) / (limits.origin_deg / 3), f"{np.degrees(p['std']):.3f} deg"
+        if ratio > worst.get(owner, (0.0,))[0]:
+            worst[owner] = (float(ratio), float(ratio), f"{p['name']} +- {shown}")
+    for owner, (ratio, _, text) in worst.items():
+        c.add(
+            f"{owner}.std",
+            ratio,
+            1.0,
+            f"{text}: freed but barely determined (a third of its plausible correction or more); the capture "
+            "does not pin it: hold it (a tighter identifiability tolerance) or add poses that move it",
+        )
+
+
 def _ee_sigma_mm(setup: Setup, two: TwoStage, refined: Refined | None) -> float:
     """RMS over random configurations of the propagated 1-sigma tool-point uncertainty (mm)."""
     if refined is None:
@@ -222,6 +249,7 @@ def verdict(
     if setup.kind.sequential:
         measured |= {t.name for t in setup.targets}  # link mounts start from PnP
     _corrections(c, refined.parameters if ran else two.parameters, limits, measured)
+    _uncertainties(c, refined.parameters if ran else two.parameters, limits)
     _ratios(c, setup, two, refined if ran else None, limits)
     if setup.kind.has_arcs:
         _axes(c, setup, two, limits)
