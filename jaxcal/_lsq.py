@@ -238,10 +238,10 @@ def independent_columns_normal(
 def covariance_normal(
     H: Float[Array, "n n"], free: Bool[Array, " n"], sigma2: Float[Array, ""] | float = 1.0
 ) -> Float[Array, "n n"]:
-    """`covariance` from the normal matrix $H = J^TJ$: $\sigma^2 (DHD)^{+}$ scaled back
+    """`covariance` from the normal matrix $H = J^TJ$: $\\sigma^2 (DHD)^{+}$ scaled back
     ($D$ the inverse column norms of the free columns; frozen ones get zero rows and
     columns), the pseudo-inverse cut where `gauss_newton_covariance` cuts (singular
-    values of the scaled $J$ under $\sqrt{10 n \epsilon}$ of the largest)."""
+    values of the scaled $J$ under $\\sqrt{10 n \\epsilon}$ of the largest)."""
     f = jnp.asarray(free, H.dtype)
     H = H * f[:, None] * f[None, :]
     d = jnp.sqrt(jnp.maximum(jnp.diag(H), 0.0))
