@@ -47,6 +47,7 @@ BATCHED_ENTRY_POINTS = (
     "jaxcal._arcfit.fit_arc",
     "jaxcal._axisfit.fit_axes",
     "jaxcal._montecarlo.run_trial",
+    "jaxcal._pointfit.cross_validate",
     "jaxcal._refine.refine",
     "jaxcal.calibrate_hand_eye",
 )

@@ -43,8 +43,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _lsq
 from ._axisfit import AxisFitParams
-from ._correction import ParameterLayout, apply_correction, zero_correction
-from ._geometry import pose_inverse, se3_exp, skew
+from ._correction import ParameterLayout
+from ._geometry import se3_exp, skew, so3_log
 from ._kinematics import KinematicModel, forward_kinematics
 from ._schur import NormalEquations, normal_least_squares
 
@@ -52,16 +52,21 @@ from ._schur import NormalEquations, normal_least_squares
 TERMS = {"compliance": 1, "harmonic1": 2, "harmonic2": 2}
 #: Standard gravity (m/s^2), along the base frame's -z.
 GRAVITY = 9.80665
+#: The point fit's Levenberg-Marquardt settings: steps below a micro-sigma (whitened
+#: residuals), so the answer does not depend on where the solve started.
+LM_OPTIONS = _lsq.LMOptions(rtol=1e-10, atol=1e-6)
 
 
 @dataclass(frozen=True)
 class PointLayout:
     """The point fit's flattened vector: the axis fit's (`ParameterLayout`)
     followed by the coefficients of the non-geometric `terms`, joint-major
-    within each family."""
+    within each family. `orientation`: the samples also measure the point
+    frame's orientation (a 6-DoF probe, a motion-capture body, a PnP pose)."""
 
     base: ParameterLayout
     terms: tuple[str, ...] = ()
+    orientation: bool = False
 
     def __post_init__(self):
         unknown = [t for t in self.terms if t not in TERMS]
@@ -78,7 +83,11 @@ class PointLayout:
         return self.base.axis_size + len(self.base.joints) * self.num_terms
 
     def term_names(self) -> list[str]:
-        suffix = {"compliance": ("rad_per_kNm",), "harmonic1": ("sin1", "cos1"), "harmonic2": ("sin2", "cos2")}
+        suffix = {
+            "compliance": ("rad_per_kNm",),
+            "harmonic1": ("sin1", "cos1"),
+            "harmonic2": ("sin2", "cos2"),
+        }
         return [f"{j}.{t}.{s}" for t in self.terms for j in self.base.joints for s in suffix[t]]
 
     def names(self) -> list[str]:
@@ -111,6 +120,9 @@ class PointData(eqx.Module):
     - `mask`: samples in the fit.
     - `masses`, `coms`: per joint's child link its mass (kg) and centre of mass
       in that link's frame (m); zeros when no compliance term is fitted.
+    - `R`, `sigma_rad`: with orientations, the measured rotation of the point's
+      frame in the device frame `(samples, 3, 3)` and its 1-sigma per axis (rad);
+      identities and ones otherwise.
     """
 
     q: Float[Array, "samples joints"]
@@ -119,6 +131,8 @@ class PointData(eqx.Module):
     mask: Bool[Array, " samples"]
     masses: Float[Array, " joints"]
     coms: Float[Array, "joints 3"]
+    R: Float[Array, "samples 3 3"]
+    sigma_rad: Float[Array, " samples"]
 
 
 def gravity_torques(model: KinematicModel, q, masses, coms) -> Float[Array, " joints"]:
@@ -136,7 +150,9 @@ def gravity_torques(model: KinematicModel, q, masses, coms) -> Float[Array, " jo
     return jnp.einsum("ja,jka,jk->j", z, moment, down.astype(q.dtype))
 
 
-def term_basis(terms: tuple[str, ...], model: KinematicModel, q, masses, coms) -> Float[Array, "samples joints k"]:
+def term_basis(
+    terms: tuple[str, ...], model: KinematicModel, q, masses, coms
+) -> Float[Array, "samples joints k"]:
     """The terms' basis at every sample's commanded pose `q` `(samples, joints)`, on the nominal model."""
     cols = []
     for t in terms:
@@ -211,6 +227,22 @@ def predict(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, "sam
     return _chain(x, problem)[0]
 
 
+def predict_rotation(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, "samples 3 3"]:
+    """The model's rotation of the point's frame in the device frame for every sample."""
+    params, _ = problem.layout.split(x)
+    mount = problem.T_flange_point0 @ se3_exp(params.correction.tool[0])
+    R_f = _chain(x, problem)[1][6]
+    return R_f @ mount[:3, :3]
+
+
+def _rotation_residuals(x, problem) -> Float[Array, " m"]:
+    """Whitened rotation residuals $\\log(R_i^T \\hat R_i) / \\sigma_{rad,i}$, zero for masked samples."""
+    d = problem.data
+    e = jax.vmap(so3_log)(jnp.einsum("sba,sbc->sac", d.R, predict_rotation(x, problem)))
+    w = jnp.where(d.mask, 1.0 / d.sigma_rad, 0.0)
+    return (e * w[:, None]).reshape(-1)
+
+
 def _dexp(xi: Float[Array, "6"]) -> Float[Array, "4 4 6"]:
     return jax.jacfwd(se3_exp)(xi)
 
@@ -249,7 +281,9 @@ def point_jacobian(x: Float[Array, " n"], problem: "PointProblem") -> Float[Arra
         start = 0
         for t in layout.terms:
             m = TERMS[t]
-            blocks.append(jnp.einsum("sja,sjk->sajk", J_angle, b[:, :, start : start + m]).reshape(S, 3, n * m))
+            blocks.append(
+                jnp.einsum("sja,sjk->sajk", J_angle, b[:, :, start : start + m]).reshape(S, 3, n * m)
+            )
             start += m
     return jnp.concatenate(blocks, axis=2)
 
@@ -260,20 +294,31 @@ def _weights(problem) -> Float[Array, " samples"]:
 
 
 def _residuals_primal(x, problem):
-    return ((predict(x, problem) - problem.data.y) * _weights(problem)[:, None]).reshape(-1)
+    r = ((predict(x, problem) - problem.data.y) * _weights(problem)[:, None]).reshape(-1)
+    if problem.layout.orientation:
+        r = jnp.concatenate([r, _rotation_residuals(x, problem)])
+    return r
 
 
 def _residuals_terms(x, problem):
+    """The whitened residuals and their Jacobian: the positions' in closed form, the
+    orientations' (when measured) by forward-mode autodiff."""
     w = _weights(problem)
-    r = (predict(x, problem) - problem.data.y) * w[:, None]
-    J = point_jacobian(x, problem) * w[:, None, None]
-    return r.reshape(-1), J.reshape(-1, x.shape[0])
+    r = ((predict(x, problem) - problem.data.y) * w[:, None]).reshape(-1)
+    J = (point_jacobian(x, problem) * w[:, None, None]).reshape(-1, x.shape[0])
+    if problem.layout.orientation:
+        r = jnp.concatenate([r, _rotation_residuals(x, problem)])
+        J = jnp.concatenate([J, jax.jacfwd(_rotation_residuals)(x, problem)])
+    return r, J
 
 
 def _residuals_autodiff(x, problem):
     d = problem.data
     r = (predict(x, problem) - d.y) / d.sigma[:, None]
-    return jnp.where(d.mask[:, None], r, 0.0).reshape(-1)
+    r = jnp.where(d.mask[:, None], r, 0.0).reshape(-1)
+    if problem.layout.orientation:
+        r = jnp.concatenate([r, _rotation_residuals(x, problem)])
+    return r
 
 
 #: Whitened residuals $(\\hat y_i - y_i) / \\sigma_i$, zero for masked samples, flattened,
@@ -311,7 +356,7 @@ def fit_points(
     *,
     tol: float,
     free: Bool[Array, " n"] | None = None,
-    options: _lsq.LMOptions = _lsq.LMOptions(rtol=1e-10, atol=1e-6),
+    options: _lsq.LMOptions | None = None,
 ) -> PointFitResult:
     """Solve the point fit; pure, jittable and vmappable (over `problem.data.mask` for folds).
 
@@ -323,15 +368,19 @@ def fit_points(
       column's distance from the span of those kept before it, columns
       normalised; see `_lsq.independent_columns`).
     - `free`: a given mask instead of the search.
+    - `options`: the Levenberg-Marquardt settings (default `LM_OPTIONS`).
 
     **Returns:** a `PointFitResult`; the covariance is
     $\\hat\\sigma^2 (J^TJ)^{-1}$ over the free columns.
     """
     layout = problem.layout
+    options = LM_OPTIONS if options is None else options
     x0 = jnp.zeros(layout.size)
     if free is None:
         _, J0 = _residuals_terms(x0, problem)
-        keep, indep = _lsq.independent_columns_normal(J0.T @ J0, layout.priority(), tol=tol, candidates=candidates)
+        keep, indep = _lsq.independent_columns_normal(
+            J0.T @ J0, layout.priority(), tol=tol, candidates=candidates
+        )
     else:
         keep, indep = jnp.asarray(free, bool), jnp.full(layout.size, jnp.nan)
     kf = keep.astype(x0.dtype)
@@ -346,11 +395,11 @@ def fit_points(
     )
     x = sol.x * kf
     r = sol.residuals  # and `sol.normal`: the normal equations at `x`, frozen columns zero
-    n_obs = 3 * jnp.sum(problem.data.mask)
+    n_obs = (6 if problem.layout.orientation else 3) * jnp.sum(problem.data.mask)
     sigma2 = _lsq.residual_variance(r, n_obs, jnp.sum(keep))
     cov = _lsq.covariance_normal(sol.normal.H, keep, sigma2)
     sigma = problem.data.sigma
-    dist2 = jnp.sum((r.reshape(-1, 3) * sigma[:, None]) ** 2, axis=1)
+    dist2 = jnp.sum((r[: 3 * sigma.shape[0]].reshape(-1, 3) * sigma[:, None]) ** 2, axis=1)
     rms = jnp.sqrt(jnp.sum(jnp.where(problem.data.mask, dist2, 0.0)) / jnp.sum(problem.data.mask))
     return PointFitResult(
         x=x,
@@ -384,14 +433,15 @@ def fold_masks(num: int, folds: int, seed: int = 0) -> np.ndarray:
     return ~test
 
 
-def cross_validate(problem: PointProblem, candidates, free, train: Bool[Array, "folds samples"], options=None):
+def cross_validate(
+    problem: PointProblem, candidates, free, train: Bool[Array, "folds samples"], options=None
+):
     """K-fold cross-validation: per fold, the fit on the training samples with
     the mask of free parameters `free` (fixed, so folds are comparable), and
     the distances of the held-out samples from their prediction (m).
 
     **Returns:** `(distances (folds, samples), test mask (folds, samples))`.
     """
-    options = _lsq.LMOptions(rtol=1e-10, atol=1e-6) if options is None else options
     base = problem.data.mask
 
     def one(tr):
@@ -415,22 +465,11 @@ def kabsch(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return T
 
 
-def start_frame(nominal: KinematicModel, q: np.ndarray, y: np.ndarray, T_flange_point0: np.ndarray) -> np.ndarray:
+def start_frame(
+    nominal: KinematicModel, q: np.ndarray, y: np.ndarray, T_flange_point0: np.ndarray
+) -> np.ndarray:
     """A start for $T_{dev,base}$: the rigid registration of the nominal model's
     points onto the measured ones (Kabsch)."""
     T = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q)))
     p = np.einsum("nab,b->na", T, np.asarray(T_flange_point0)[:, 3])[:, :3]
     return kabsch(p, y)
-
-
-def axis_params(x, layout: PointLayout) -> AxisFitParams:
-    """The axis-fit part of a point fit's vector."""
-    return layout.split(x)[0]
-
-
-def inverse_mount(T: Float[Array, "4 4"]) -> Float[Array, "4 4"]:
-    return pose_inverse(T)
-
-
-def zero_params(model: KinematicModel) -> AxisFitParams:
-    return AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(model.num_joints, 1))

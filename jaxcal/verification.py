@@ -21,9 +21,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._pointfit import PointLayout, cross_validate, fold_masks, predict, prediction_std
 from ._correction import ParameterLayout
-from .errors import CalibrationError, DatasetError
+from ._pointfit import PointLayout, cross_validate, fold_masks, predict, prediction_std
+from .errors import DatasetError
 from .io.dataset import Dataset, load_dataset
 from .io.model_json import model_from_json
 from .stages._points import point_problem
@@ -82,7 +82,9 @@ def read_point_result(path) -> tuple[dict, Path]:
     try:
         doc = json.loads(file.read_text())
     except FileNotFoundError:
-        raise DatasetError(f"{file}: no such result (give a directory jaxcal calibrate wrote, or its result.json)") from None
+        raise DatasetError(
+            f"{file}: no such result (give a directory jaxcal calibrate wrote, or its result.json)"
+        ) from None
     except json.JSONDecodeError as e:
         raise DatasetError(f"{file}: not JSON ({e})") from None
     if doc.get("schema") != "jaxcal.result":
@@ -99,7 +101,9 @@ def _problem_for(doc: dict, file: Path, ds: Dataset, used=None):
     pf = doc["point_fit"]
     nominal = model_from_json(pf["nominal_model"])
     if ds.samples is None:
-        raise DatasetError(f"{ds.root / 'metadata.json'}: not a tracker dataset (no 'device'): nothing to verify")
+        raise DatasetError(
+            f"{ds.root / 'metadata.json'}: not a tracker dataset (no 'device'): nothing to verify"
+        )
     if tuple(ds.joint_names) != tuple(nominal.joint_names):
         raise DatasetError(
             f"{ds.root / 'metadata.json'}: robot.joints {list(ds.joint_names)} differ from the calibrated robot's "
@@ -193,8 +197,22 @@ def plot_verification(v: Verification, path) -> None:
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [2, 1]})
     k = np.arange(len(v.errors_mm))
-    a.plot(k, v.nominal_mm, "o", ms=3, color="0.6", label=f"nominal (mean {v.summary['nominal_mm']['mean']:.3f} mm)")
-    a.plot(k, v.errors_mm, "o", ms=3, color="C0", label=f"calibrated (mean {v.summary['calibrated_mm']['mean']:.3f} mm)")
+    a.plot(
+        k,
+        v.nominal_mm,
+        "o",
+        ms=3,
+        color="0.6",
+        label=f"nominal (mean {v.summary['nominal_mm']['mean']:.3f} mm)",
+    )
+    a.plot(
+        k,
+        v.errors_mm,
+        "o",
+        ms=3,
+        color="C0",
+        label=f"calibrated (mean {v.summary['calibrated_mm']['mean']:.3f} mm)",
+    )
     a.plot(k, CHI3_95 / np.sqrt(3.0) * v.predicted_mm, "_", color="C3", label="predicted 95 % bound")
     a.set_yscale("log")
     a.set_xlabel("sample")

@@ -177,6 +177,7 @@ GUARDS = {
     "jaxcal._axisfit.fit_axes": "test_montecarlo.py::test_batched_trials_keep_lapack_calls_ordered",
     "jaxcal._montecarlo.run_trial": "test_montecarlo.py::test_batched_trials_keep_lapack_calls_ordered",
     "jaxcal._refine.refine": "test_refine.py::test_batched_refinement_keeps_lapack_calls_ordered",
+    "jaxcal._pointfit.cross_validate": "test_pointfit.py::test_cross_validation_keeps_lapack_calls_ordered",
     "jaxcal.calibrate_hand_eye": "test_handeye.py::test_batched_solves_keep_lapack_calls_ordered",
 }
 

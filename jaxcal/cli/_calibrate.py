@@ -9,8 +9,8 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from ..io._files import check_output_dir, marked_directory, output_lock
 from .._pointfit import TERMS
+from ..io._files import check_output_dir, marked_directory, output_lock
 from ..pipeline import calibrate
 from ..report import output_files, write_outputs
 from ..robots import load_robot

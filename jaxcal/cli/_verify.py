@@ -53,7 +53,9 @@ def cmd_verify(args) -> int:
     for label, key in (("nominal", "nominal_mm"), ("calibrated", "calibrated_mm")):
         t.add_row(label, *(f"{s[key][k]:.4f}" for k in ("mean", "rms", "max")))
     if v.cv is not None:
-        t.add_row(f"{v.cv['folds']}-fold CV on this dataset", *(f"{v.cv[k]:.4f}" for k in ("mean", "rms", "max")))
+        t.add_row(
+            f"{v.cv['folds']}-fold CV on this dataset", *(f"{v.cv[k]:.4f}" for k in ("mean", "rms", "max"))
+        )
     console.print(t)
     console.print(
         f"predicted RMS {s['predicted_rms_mm']:.4f} mm (parameters alone {s['parameter_part_rms_mm']:.4f} mm): "

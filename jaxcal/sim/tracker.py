@@ -29,12 +29,12 @@ import numpy as np
 
 from .._geometry import so3_exp
 from .._kinematics import PerturbationScales, anchor_base, forward_kinematics, perturb_model
+from .._pointfit import gravity_torques
 from ..io._files import atomic_directory
 from ..io.dataset import SCHEMA, SCHEMA_VERSION, write_json
-from ..io.model_json import model_to_json
 from ..io.dh_tables import is_table_file, read_table_file
+from ..io.model_json import model_to_json
 from ..io.urdf import save_urdf, urdf_outline
-from .._pointfit import gravity_torques
 from ..robots import link_inertials, load_robot_file, robot_file
 
 #: UR3 home of the acceptance case (deg): elbow at -90, wrist 2 at 90.
@@ -149,7 +149,11 @@ def bad_samples(config: TrackerSimConfig, joints: int) -> np.ndarray:
     (stop-and-shoot poses: `bad_fraction` of them, spread evenly)."""
     if config.poses:
         k = round(config.bad_fraction * config.poses)
-        return np.unique(np.linspace(0, config.poses - 1, k + 2).round().astype(int)[1:-1]) if k else np.zeros(0, int)
+        return (
+            np.unique(np.linspace(0, config.poses - 1, k + 2).round().astype(int)[1:-1])
+            if k
+            else np.zeros(0, int)
+        )
     k = round(config.bad_fraction * config.samples_per_joint)
     first, last = (k + 1) // 2, k // 2
     per = np.r_[np.arange(first), config.samples_per_joint - 1 - np.arange(last)].astype(int)
@@ -197,9 +201,16 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
 
 def _limits(urdf: Path, nominal) -> np.ndarray:
     """`(joints, 2)` joint limits of the robot file (rad; +-pi where it gives none)."""
-    lim = read_table_file(urdf).joint_limits() if is_table_file(urdf) else urdf_outline(urdf, nominal.joint_names).limits
+    lim = (
+        read_table_file(urdf).joint_limits()
+        if is_table_file(urdf)
+        else urdf_outline(urdf, nominal.joint_names).limits
+    )
     return np.array(
-        [(-np.pi, np.pi) if lim[n].lower is None else (lim[n].lower, lim[n].upper) for n in nominal.joint_names],
+        [
+            (-np.pi, np.pi) if lim[n].lower is None else (lim[n].lower, lim[n].upper)
+            for n in nominal.joint_names
+        ],
         np.float64,
     )
 

@@ -28,7 +28,7 @@ import optimistix as optx
 from .._axisfit import AxisFitResult
 from .._correction import ParameterLayout, apply_correction, physical_parameters
 from .._geometry import se3_exp
-from .._kinematics import KinematicModel
+from .._kinematics import KinematicModel, forward_kinematics
 from .._pointfit import (
     TERMS,
     PointData,
@@ -107,10 +107,16 @@ def point_problem(
     T_dev_base0: np.ndarray,
     T_flange_point0: np.ndarray,
     inertials: tuple[np.ndarray, np.ndarray] | None = None,
+    R: np.ndarray | None = None,
+    sigma_rad: np.ndarray | None = None,
 ) -> PointProblem:
-    """A `PointProblem` from NumPy arrays (`inertials`: masses and centres of mass, for compliance)."""
+    """A `PointProblem` from NumPy arrays (`inertials`: masses and centres of mass, for
+    compliance; `R`, `sigma_rad`: measured orientations, when `layout.orientation`)."""
     n = nominal.num_joints
+    S = len(q)
     masses, coms = (np.zeros(n), np.zeros((n, 3))) if inertials is None else inertials
+    if layout.orientation and (R is None or sigma_rad is None):
+        raise ValueError("a layout with orientations needs R and sigma_rad")
     data = PointData(
         q=jnp.asarray(q, jnp.float64),
         y=jnp.asarray(y, jnp.float64),
@@ -118,6 +124,8 @@ def point_problem(
         mask=jnp.asarray(used, bool),
         masses=jnp.asarray(masses, jnp.float64),
         coms=jnp.asarray(coms, jnp.float64),
+        R=jnp.asarray(np.broadcast_to(np.eye(3), (S, 3, 3)) if R is None else R, jnp.float64),
+        sigma_rad=jnp.asarray(np.ones(S) if sigma_rad is None else sigma_rad, jnp.float64),
     )
     return PointProblem(nominal, jnp.asarray(T_dev_base0), jnp.asarray(T_flange_point0), data, layout)
 
@@ -190,7 +198,11 @@ def _hold_implausible_terms(problem: PointProblem, cand, fit: PointFitResult) ->
 def _cv_row(problem, cand, fit, train) -> dict:
     dist, test = (np.asarray(a) for a in _cv(problem, cand, fit.free, jnp.asarray(train)))
     d = 1e3 * dist[test]
-    return {"cv_mean_mm": float(d.mean()), "cv_rms_mm": float(np.sqrt(np.mean(d**2))), "cv_max_mm": float(d.max())}
+    return {
+        "cv_mean_mm": float(d.mean()),
+        "cv_rms_mm": float(np.sqrt(np.mean(d**2))),
+        "cv_max_mm": float(d.max()),
+    }
 
 
 def _inertials(setup: Setup):
@@ -200,6 +212,18 @@ def _inertials(setup: Setup):
         raise CalibrationError(
             f"{setup.dataset.robot_urdf}: joint compliance needs every link's mass and centre of mass: {e}"
         ) from None
+
+
+def _orient_start(nominal, q, R, Tp0, T0) -> np.ndarray:
+    """With measured orientations, the start's rotation from them (the mean of
+    $R_i (R_{flange,i} R_{mount})^T$), its translation re-fitted to the points."""
+    F = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q)))
+    M = np.einsum("sab,sbc->sac", R, np.swapaxes(F[:, :3, :3] @ Tp0[:3, :3], 1, 2)).sum(0)
+    U, _, Vt = np.linalg.svd(M)
+    Rdb = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    T = T0.copy()
+    T[:3, :3] = Rdb
+    return T
 
 
 def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Options) -> PointFit:
@@ -219,16 +243,22 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     Tp0 = np.eye(4) if point.T_link_target is None else np.asarray(point.T_link_target, np.float64)
     q, y = np.asarray(sync.q, np.float64), np.asarray(s.position, np.float64)
     T0 = np.eye(4) if kind.device_is_base else start_frame(nominal, q[used], y[used], Tp0)
+    if s.orientation is not None and not kind.device_is_base:
+        T0 = _orient_start(nominal, q[used], s.orientation[used], Tp0, T0)
     base = ParameterLayout.of(nominal, 1, fixed_name=kind.fixed_frame)
     inertials = _inertials(setup) if "compliance" in options.terms else None
     tol = kind.identifiability_tol
     folds = options.cv_folds
     train = fold_masks(len(used), folds) if folds else None
 
+    orientation = s.orientation is not None
+
     def attempt(terms):
-        layout = PointLayout(base, terms)
-        problem = point_problem(nominal, layout, q, y, s.sigma_m, used, T0, Tp0, inertials)
-        cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free)
+        layout = PointLayout(base, terms, orientation)
+        problem = point_problem(
+            nominal, layout, q, y, s.sigma_m, used, T0, Tp0, inertials, s.orientation, s.sigma_rad
+        )
+        cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free, orientation=orientation)
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol))
         fit = _hold_implausible_terms(problem, cand, fit)
@@ -243,7 +273,9 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     models = [best[4]]
     for term in options.terms:
         if train is None:
-            raise CalibrationError("non-geometric terms are kept only when cross-validation improves: cv_folds >= 2")
+            raise CalibrationError(
+                "non-geometric terms are kept only when cross-validation improves: cv_folds >= 2"
+            )
         options.say(f"point fit: trying {term} (kept only if {folds}-fold cross-validation improves)")
         trial = attempt((*best[0].terms, term))
         gain = trial[4]["cv_mean_mm"] < (1.0 - CV_GAIN) * best[4]["cv_mean_mm"]

@@ -131,7 +131,10 @@ def _uncertainties(c: _Checks, parameters: list, limits: Limits) -> None:
         if p["unit"] == "m":
             ratio, shown = 1e3 * p["std"] / (limits.origin_mm / 3), f"{1e3 * p['std']:.2f} mm"
         elif what == "zero_offset":
-            ratio, shown = np.degrees(p["std"]) / (limits.zero_offset_deg / 3), f"{np.degrees(p['std']):.3f} deg"
+            ratio, shown = (
+                np.degrees(p["std"]) / (limits.zero_offset_deg / 3),
+                f"{np.degrees(p['std']):.3f} deg",
+            )
         else:
             ratio, shown = np.degrees(p["std"]) / (limits.origin_deg / 3), f"{np.degrees(p['std']):.3f} deg"
         if ratio > worst.get(owner, (0.0,))[0]:
