@@ -217,3 +217,24 @@ def test_verify_refuses_data_of_another_robot_or_kind(ur5_real, panda, tmp_path)
         verify(camera, "data/ur5_tracker/test")
     with pytest.raises(DatasetError, match="not a tracker dataset"):
         verify(ur5_real, "data/ur5e_sweeps")
+
+
+def test_sweeps_and_poses_mixed_in_one_table_fit_every_sample(ur5, tmp_path):
+    """A table whose `joint` cells name sweeping joints for some samples and leave the
+    others empty, joint positions given for all: the point fit takes every sample."""
+    path, alone = ur5
+    mixed = tmp_path / "mixed"
+    shutil.copytree(path, mixed)
+    lines = (mixed / "samples.csv").read_text().splitlines()
+    header, rows = lines[0], lines[1:]
+    joints = header.split(",")[6:]
+    sweep = []
+    for line in rows[:40]:  # the first 40 poses re-labelled as wrist 1 "sweep" samples
+        cells = line.split(",")
+        cells[2] = joints[3]
+        sweep.append(",".join(cells))
+    (mixed / "samples.csv").write_text("\n".join([header, *sweep, *rows[40:]]) + "\n")
+    assert "stop-and-shoot poses" in inspect_dataset(mixed, sample=1)["kind"]
+    r = jaxcal.calibrate(mixed, cv_folds=0)
+    assert r.point_fit is not None and int(r.point_fit.used.sum()) == 200
+    np.testing.assert_allclose(r.point_fit.fit.x, alone.point_fit.fit.x, atol=1e-12)

@@ -157,7 +157,9 @@ def device_kind(ds: Dataset, device_is_base: bool = False) -> CaptureKind:
         link_targets=False,
         device=True,
         device_is_base=device_is_base,
-        device_poses=device_poses(ds.segments, s.has_joint, single_joint_share(s.q)),
+        device_poses=device_poses(
+            ds.segments, s.has_joint, single_joint_share(s.q), int(np.count_nonzero(s.joint < 0))
+        ),
     )
 
 

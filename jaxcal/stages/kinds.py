@@ -252,15 +252,19 @@ def single_joint_share(q: np.ndarray | None) -> float | None:
     return float(one.mean())
 
 
-def device_poses(segments: tuple, has_joint: bool, single_joint_share: float | None) -> bool:
-    """Whether a measuring device's samples are stop-and-shoot poses rather
-    than single-joint sweeps: no sample names its sweeping joint, and either
-    every motion segment has `joint: null`, or there are no segments and
-    fewer than `SWEEP_SHARE` of the samples look like a sweep from zero
-    (`single_joint_share`, from the table's joint positions; None without
-    them: sweeps, which then need segments or an encoder log)."""
+def device_poses(
+    segments: tuple, has_joint: bool, single_joint_share: float | None, unassigned: int = 0
+) -> bool:
+    """Whether a measuring device's samples are fitted as stop-and-shoot poses rather
+    than as single-joint sweeps: no sample names its sweeping joint, and either every
+    motion segment has `joint: null`, or there are no segments and fewer than
+    `SWEEP_SHARE` of the samples look like a sweep from zero (`single_joint_share`,
+    from the table's joint positions; None without them: sweeps, which then need
+    segments or an encoder log). A table that names sweeping joints for some samples
+    and leaves others empty (`unassigned` of them) mixes sweeps and poses: with the
+    joint positions given, the point fit takes every sample at once."""
     if has_joint:
-        return False
+        return unassigned > 0 and single_joint_share is not None
     if segments:
         return all(j is None for j, _, _ in segments)
     return single_joint_share is not None and single_joint_share < SWEEP_SHARE
