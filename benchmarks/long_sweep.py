@@ -30,6 +30,7 @@ How to run (from the repository root; it starts one process per row)::
 
     .venv/bin/python benchmarks/long_sweep.py --json results/long_sweep.json
     .venv/bin/python benchmarks/long_sweep.py --quick          # smoke run
+    .venv/bin/python benchmarks/long_sweep.py --smoke          # smallest run, one process (the tests)
 
 The JSON holds `rows` (one dict per row, the fields above plus `samples`,
 `frames`, `orientations`, `loss`, `num_steps`, ratios `speedup_vs_scipy`
@@ -299,6 +300,11 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed fits per row (the median is kept)")
     parser.add_argument("--scipy-max", type=int, default=10000, help="largest sweep SciPy is timed on")
     parser.add_argument("--quick", action="store_true", help="a small smoke run")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="the smallest run (the tests'): one row of 50 samples, one process",
+    )
     parser.add_argument("--json", metavar="OUT", help="also write the JSON here")
     parser.add_argument("--row", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -310,13 +316,15 @@ def main(argv=None) -> None:
     repeats = 1 if args.quick else args.repeats
     specs = [dict(frames=n, orientations=False, loss=None) for n in sizes]
     specs += [dict(frames=370, orientations=True, loss=None)]
-    if not args.quick:
+    if args.smoke:
+        specs, repeats, args.scipy_max = [dict(frames=50, orientations=False, loss=None)], 1, 50
+    elif not args.quick:
         specs += [dict(frames=n, orientations=False, loss="cauchy") for n in (370, max(sizes))]
         specs += [dict(frames=0, orientations=False, loss=None, six=True)]
     rows = []
     for spec in specs:
         spec = dict(six=False, repeats=repeats, scipy_max=args.scipy_max) | spec
-        row = _child(spec, timeout=3600)
+        row = run_row(**spec) if args.smoke else _child(spec, timeout=3600)
         print(json.dumps(row), file=sys.stderr)
         rows.append(row)
     result = dict(

@@ -7,6 +7,11 @@ reflections on), measured
 in the same run. Also the end-to-end `simulate` rate (render + PNG write).
 
     python benchmarks/render.py --json results/render.json
+
+The JSON holds `frames`, `backend` and, per resolution under `resolutions`,
+`jaxcal_fps`, `mujoco_default_fps`, `speedup` and
+`simulate_fps_incl_png_and_setup`. Smallest run (the tests'):
+`--frames 4 --resolutions 160x120`.
 """
 
 import argparse
@@ -32,19 +37,22 @@ def _fps(scene, camera: str, frames: int, theta) -> float:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--frames", type=int, default=60, help="rendered frames per measurement")
+    parser.add_argument(
+        "--resolutions", nargs="+", default=["640x480", "1280x960"], help="image sizes WxH to measure"
+    )
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args(argv)
 
     from jaxcal.sim import build_scene
-    from jaxcal.sim.simulate import SimConfig, _nominal, _scene_layout, draw_truth, simulate
+    from jaxcal.sim.simulate import SimConfig, draw_truth, nominal_robot, scene_layout, simulate
 
     results = {"frames": args.frames, "backend": os.environ.get("MUJOCO_GL"), "resolutions": {}}
-    for w, h in [(640, 480), (1280, 960)]:
+    for w, h in (tuple(int(v) for v in r.split("x")) for r in args.resolutions):
         config = SimConfig(resolution=(w, h))
-        nominal, _ = _nominal(config.robot)
+        nominal, _ = nominal_robot(config.robot)
         true = draw_truth(nominal, config)
-        _, plates, _, cameras = _scene_layout(nominal, true, config, np.random.default_rng(0))
+        _, plates, _, cameras = scene_layout(nominal, true, config, np.random.default_rng(0))
         theta = np.zeros((30, nominal.num_joints))
         theta[:, 1] = np.deg2rad(np.linspace(-20, 20, 30))
         with build_scene(true, plates=plates, cameras=cameras, floor_z=-0.6) as scene:

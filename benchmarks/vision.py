@@ -20,6 +20,7 @@ one pose fewer where IPPE fails on 4 oblique corners (jaxcal falls back to
 SQPnP).
 
     python benchmarks/vision.py --json results/vision.json
+    python benchmarks/vision.py --dataset data/ur5e_sweeps --frames 4 --repeat 1 --json OUT  # smallest (the tests')
 """
 
 import argparse
@@ -74,6 +75,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", help="a dataset directory (default: render one into a temp dir)")
     parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--frames", type=int, help="time only the first N frames of the first camera")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args(argv)
 
@@ -91,7 +93,7 @@ def main(argv=None) -> int:
         cam, spec = ds.cameras[0], ds.targets[0].spec
         paths = [
             ds.image_path(i) for i in range(len(ds.frames["file"])) if ds.frames["camera"][i] == cam.name
-        ]
+        ][: args.frames]
         K, dist = cam.K, cam.dist
         cores = os.cpu_count() or 1
         contenders = {

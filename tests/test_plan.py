@@ -89,12 +89,12 @@ def _plan(ur5e, poses=POSES) -> CapturePlan:
 
 
 def test_default_layout_is_the_demos(ur5e):
-    from jaxcal.sim.simulate import SimConfig, _scene_layout
+    from jaxcal.sim.simulate import SimConfig, scene_layout
 
     robot, camera, target, _ = ur5e
     for eye_in_hand, distance in ((False, 0.9), (True, 0.6)):
         cfg = SimConfig(resolution=(1280, 960), eye_in_hand=eye_in_hand, camera_distance=distance)
-        plates, _, cams, _ = _scene_layout(robot.model, robot.model, cfg, np.random.default_rng(0))
+        plates, _, cams, _ = scene_layout(robot.model, robot.model, cfg, np.random.default_rng(0))
         c, t = default_layout(robot.model, np.zeros(6), distance=distance, eye_in_hand=eye_in_hand)
         assert np.allclose(c.T_mount_cam, cams[0].T_mount_cam, atol=1e-12) and c.mount == cams[0].mount
         assert np.allclose(c.K, cams[0].K) and np.allclose(

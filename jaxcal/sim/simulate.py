@@ -224,8 +224,17 @@ def _target_spec(
     )
 
 
-def _scene_layout(nominal, true, config: SimConfig, rng):
-    """Nominal and true plates and cameras, placed from the zero configuration (or `home_deg`)."""
+def scene_layout(nominal, true, config: SimConfig, rng):
+    """The scene `simulate` films: nominal and true plates and cameras, placed
+    from the zero configuration (or `config.home_deg`).
+
+    **Arguments:** `nominal` and `true` (`KinematicModel`s, e.g. from
+    `nominal_robot` and `draw_truth`), `config` (`SimConfig`), `rng` (a NumPy
+    `Generator`: the true mounts' jitter).
+
+    **Returns:** `(plates_nominal, plates_true, cameras_nominal, cameras_true)`,
+    lists of `PlateSpec` and `CameraSpec` (`build_scene` takes the true ones).
+    """
     links = nominal.link_names
     w, h = config.resolution
     n = nominal.num_joints
@@ -465,7 +474,7 @@ def _layouts(nominal, true, config: SimConfig, rng, layout=None):
     (plates, cameras)` as designed (a capture plan's), the true plate mounts (and
     a flange camera's pose) deviating from the design as always."""
     if layout is None:
-        return _scene_layout(nominal, true, config, rng)
+        return scene_layout(nominal, true, config, rng)
     plates_nominal, cameras_nominal = (list(x) for x in layout)
     plates_true, cameras_true = _true_layout(plates_nominal, cameras_nominal, config, rng)
     return plates_nominal, plates_true, cameras_nominal, cameras_true
