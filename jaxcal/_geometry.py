@@ -77,8 +77,8 @@ def matvec_unrolled(A: Float[Array, "... n k"], x: Float[Array, "... k"]) -> Flo
 
 
 # Nested jit (see `jaxcal._arcmodel.arc_terms`): a program traces the exponential
-# once per signature, not at each of its dozens of uses (a Monte Carlo trial's
-# tracing: 6.1-6.7 -> 4.9 s; the same values).
+# once per signature, not at each of its dozens of uses (a Monte Carlo trial traces
+# about a fifth faster; the same values).
 @jax.jit
 def so3_exp(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
     """Rodrigues' formula $\\exp([w]_\\times)$ for a rotation vector `w` (rad)."""
@@ -99,8 +99,8 @@ def _norm_sq(w: Float[Array, "3"]) -> Float[Array, ""]:
 def _skew_sq_plus(w: Float[Array, "3"], theta_sq, b, c) -> Float[Array, "3 3"]:
     """$b\\,[w]_\\times^2 + c I$ by $[w]_\\times^2 = ww^T - \\|w\\|^2 I$: elementwise, where
     `K @ K` is a batched 3x3 product under `vmap`, which XLA's CPU backend (jaxlib 0.10) fuses
-    into a slow reduction: the noisy-robot hand-eye solve's robot corrections spent ~0.1 ms a
-    step there."""
+    into a slow reduction, a noticeable share of the noisy-robot hand-eye solve's step
+    (docs/performance.md, Hand-eye)."""
     return b * (w[:, None] * w[None, :]) + (c - b * theta_sq) * jnp.eye(3, dtype=w.dtype)
 
 

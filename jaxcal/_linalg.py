@@ -8,7 +8,7 @@ concurrently on that same pool. When as many chunked kernels run at once as
 the pool has threads (two, on a two-core machine), every pool thread waits for
 chunks that no thread is free to run: the process hangs with no CPU use. That
 is what stalled `vmap`-ed refinements in CI (an SVD and a pseudo-inverse's
-eigh side by side; stacks in the 2026-11-23 note).
+eigh side by side).
 
 There is no runtime switch for it (the pool size and the executor's
 sequential mode are compile-time constants in jaxlib 0.10), so jaxcal keeps

@@ -130,9 +130,9 @@ def solve_normal(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> opt
 
     Optimistix's trust region and termination test (`ConvergedStepTrustRegion`), so the same
     steps and the same optimum as `solve` up to round-off (`tests/test_schur.py`), in a program
-    that traces in half the time and compiles ~20 % faster than optimistix's general one: the
-    refinement of `data/ur5e_sweeps` took 4.9 s to trace, lower and compile through `solve`
-    and 3.6 s here. For tall, well-conditioned (whitened, scaled) Jacobians, where the
+    that traces in about half the time and compiles faster than optimistix's general one
+    (`benchmarks/compile.py`; docs/performance.md). For tall, well-conditioned (whitened,
+    scaled) Jacobians, where the
     normal equations are the right linear solve anyway (`options.normal_cholesky` is
     implied). **Returns:** an `optx.Solution`
     (`value`, `result`, `stats["num_steps"]`) like `solve`'s.

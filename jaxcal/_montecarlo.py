@@ -365,8 +365,8 @@ def dynamic_setup(setup: MonteCarloSetup) -> MonteCarloSetup:
 
 #: Default trials per vmapped chunk on the CPU. Under `vmap` every solver
 #: loop runs as many steps as the slowest problem of its batch, so one
-#: straggler costs the whole batch its steps; chunks bound that cost (seed 0,
-#: 1000 UR5e trials: 19.9 s as one batch, see benchmarks/montecarlo.py).
+#: straggler costs the whole batch its steps; chunks bound that cost (one batch
+#: of 1000 UR5e trials took over twice as long: docs/performance.md, Monte Carlo).
 CPU_CHUNK = 250
 
 

@@ -100,7 +100,7 @@ def dh_values(estimate: Estimate, reference: DHTable, x: Float[Array, " n"]) -> 
 
 
 # Runs once per exported result: compiled without XLA's optimisation passes
-# (the CLI's DH export: 3.9 -> 1.9 s of compilation).
+# (the CLI's DH export compiles in half the time).
 @functools.partial(quick_jit, static_argnames="parallel")
 def dh_jacobian(estimate: Estimate, parallel: tuple[bool, ...]):
     """The nominal and calibrated DH tables and the Jacobian of `dh_values` at

@@ -4,10 +4,10 @@ jaxcal's solvers are long straight-line programs of small dense algebra
 (3x3 rotations, 6x6 blocks, Cholesky of a few dozen unknowns) inside
 `while` loops. XLA's newer CPU fusion emitters (on by default since
 jaxlib 0.5) spend most of the compile on them for nothing: with
-`--xla_cpu_use_fusion_emitters=false` the arc fit compiles in half the time
-(11.5 -> 6 s) and runs no slower, and a cold `jaxcal calibrate
-data/ur5e_sweeps` takes 131 s of CPU instead of 172 s, to the same digits
-(measured on jaxlib 0.10.2; benchmarks/compile.py).
+`--xla_cpu_use_fusion_emitters=false` the arc fit compiles in about half the
+time and runs no slower, and a cold `jaxcal calibrate data/ur5e_sweeps` takes
+a quarter less CPU, to the same digits (`benchmarks/compile.py`; the figures
+are in docs/performance.md).
 
 XLA aborts the whole process on a flag it does not know, so the flag is
 only added when the installed jaxlib carries it (its name is in the shared

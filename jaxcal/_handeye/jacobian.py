@@ -20,9 +20,9 @@ Levenberg-Marquardt forms this Jacobian every step (`solve_pixels`) and reduces
 it at once to the 12 x 12 normal equations (`pixel_normal`), the robust loss
 applied there by its rank-one terms per group: the loop never holds, weights or
 copies the 3,500 x 12 Jacobian, whose passes (and XLA's slow fused reductions
-over them) were most of a step. For 50 poses of 35 corners a step costs about
-0.16 ms of Jacobian and $J^TJ$ and the whole solve 4.0-4.5 ms, against 9.7 ms on
-autodiff's Jacobian through optimistix (`benchmarks/handeye.py --parts speed`).
+over them) were most of a step. The solve takes about half the time of autodiff's
+Jacobian through optimistix (`benchmarks/handeye.py --parts speed`; the figures
+are in docs/performance.md).
 `tests/test_handeye.py` checks both against autodiff.
 """
 
@@ -58,8 +58,8 @@ def _plain_terms(params, ref, data):
     b = jnp.concatenate([data.board_points, jnp.ones((P, 1), data.board_points.dtype)], axis=-1)
     BY = matmul(B, Y[None])
     # The contractions over the 4-vectors and the 3x6 blocks as unrolled multiply-adds (as
-    # `matmul_unrolled`); measured, no faster nor slower than `einsum` here, and 2x faster
-    # than broadcast-and-sum reductions.
+    # `matmul_unrolled`): as fast as `einsum` here, and faster than broadcast-and-sum
+    # reductions.
     q = jnp.einsum("fij,pj->fpi", BY, b)  # (F, P, 4): the corners X acts on
     XB = matmul(X[:, None], B[None])  # (C, F, 4, 4)
     p = jnp.einsum("cfij,pj->cfpi", XB[..., :3, :], jnp.einsum("ij,pj->pi", Y, b))  # (C, F, P, 3)
@@ -125,9 +125,8 @@ def solve_pixels(params0: HandEyeParams, args, rtol, atol, max_steps):
     `jaxcal._schur.normal_least_squares`: optimistix's iteration (the same steps and
     optimum as `jaxcal._lsq.solve` on these residuals, to round-off;
     `tests/test_handeye.py`) on the $n \\times n$ normal equations that
-    `pixel_normal` forms, with a fraction of its per-step operations: the 50-pose
-    solve's robust stage took 5.0 ms through optimistix, 3.3 ms on the Jacobian and
-    2.1 ms here, 9 steps each."""
+    `pixel_normal` forms, with a fraction of its per-step operations: the same steps in
+    less than half optimistix's time (docs/performance.md, Hand-eye)."""
     g0, _ = split(params0)
     sol = normal_least_squares(
         lambda g, a: pixel_normal(join(g, None), a), g0, args, rtol=rtol, atol=atol, max_steps=max_steps
