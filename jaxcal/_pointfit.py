@@ -44,6 +44,8 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _lsq
 from ._axisfit import AxisFitParams
 from ._correction import ParameterLayout
+from ._geometry import matmul_unrolled as mm
+from ._geometry import matvec_unrolled as mv
 from ._geometry import se3_exp, skew, so3_log
 from ._kinematics import KinematicModel, forward_kinematics
 from ._schur import NormalEquations, normal_least_squares
@@ -201,25 +203,28 @@ def _chain(x, problem: "PointProblem"):
     S = theta.shape[0]
     R = jnp.broadcast_to(T_db[:3, :3], (S, 3, 3))
     t = jnp.broadcast_to(T_db[:3, 3], (S, 3))
-    A_R, A_t, W_R, W_t = [], [], [], []
+    A_R, A_t, W_R, W_t, rot = [], [], [], [], []
+    # Products of 3x3 blocks over the samples as unrolled multiply-adds: XLA's CPU backend
+    # fuses them into elementwise loops, where batched `dot_general`s are several times slower.
     for j in range(nominal.num_joints):
         O = nominal.T_parent_joint[j]
-        t = t + R @ O[:3, 3]
-        R = R @ O[:3, :3]
+        t = t + mv(R, O[:3, 3])
+        R = mm(R, O[:3, :3])
         A_R.append(R)
         A_t.append(t)
-        t = t + R @ E[j, :3, 3]
-        R = R @ E[j, :3, :3] @ _rotations(nominal.axis[j], theta[:, j])
+        t = t + mv(R, E[j, :3, 3])
+        rot.append(_rotations(nominal.axis[j], theta[:, j]))
+        R = mm(mm(R, E[j, :3, :3]), rot[-1])
         W_R.append(R)
         W_t.append(t)
     F = nominal.T_last_flange
-    t_f = t + R @ F[:3, 3]
-    R_f = R @ F[:3, :3]
-    y = t_f + R_f @ mount[:3, 3]
+    t_f = t + mv(R, F[:3, 3])
+    R_f = mm(R, F[:3, :3])
+    y = t_f + mv(R_f, mount[:3, 3])
     W_R, W_t = jnp.stack(W_R, 1), jnp.stack(W_t, 1)  # (s, joints, ...)
-    s_link = jnp.einsum("sjba,sjb->sja", W_R, y[:, None, :] - W_t)
-    omega = jnp.einsum("sjab,jb->sja", W_R, nominal.axis)
-    return y, (jnp.stack(A_R, 1), jnp.stack(A_t, 1), s_link, omega, W_t, T_db, R_f, t_f, E, theta)
+    s_link = mv(jnp.swapaxes(W_R, -1, -2), y[:, None, :] - W_t)
+    omega = mv(W_R, nominal.axis[None])
+    return y, (jnp.stack(A_R, 1), jnp.stack(A_t, 1), s_link, omega, W_t, T_db, R_f, t_f, E, jnp.stack(rot, 1))
 
 
 def predict(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, "samples 3"]:
@@ -247,7 +252,7 @@ def _dexp(xi: Float[Array, "6"]) -> Float[Array, "4 4 6"]:
     return jax.jacfwd(se3_exp)(xi)
 
 
-def point_jacobian(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, "samples 3 n"]:
+def point_jacobian(x: Float[Array, " n"], problem: "PointProblem", chain=None) -> Float[Array, "samples 3 n"]:
     """$\\partial \\hat y_i / \\partial x$ in closed form (tested against autodiff):
 
     - joint $j$'s origin twist: $A_j\\, \\partial\\exp(\\xi_j) \\, R_j(\\theta_j) s_j$, with $A_j$
@@ -255,26 +260,30 @@ def point_jacobian(x: Float[Array, " n"], problem: "PointProblem") -> Float[Arra
     - zero offset and every joint-angle term: $\\omega_j \\times (\\hat y - o_j)$ (times the term's basis);
     - the fixed frame: $T_0\\, \\partial\\exp(\\xi_{cam})\\, T_{dev,base}^{-1} \\hat y$;
     - the mount: $R_{flange}\\, \\partial \\exp(\\xi_{tool}) \\mathbf{0}$ on the nominal mount.
+
+    `chain`: `_chain(x, problem)` when the caller has it already.
     """
     layout, d = problem.layout, problem.data
-    params, e = layout.split(x)
+    params, _ = layout.split(x)
     corr = params.correction
-    y, (A_R, A_t, s_link, omega, W_t, T_db, R_f, _t_f, E, theta) = _chain(x, problem)
+    y, (A_R, _A_t, s_link, omega, W_t, T_db, R_f, _t_f, _E, rot) = (
+        _chain(x, problem) if chain is None else chain
+    )
     n = problem.nominal.num_joints
     S = y.shape[0]
-    rot = jax.vmap(lambda a, th: _rotations(a, th), in_axes=(0, 1), out_axes=1)(problem.nominal.axis, theta)
-    c_link = jnp.einsum("sjab,sjb->sja", rot, s_link)  # R_j s_j, in the corrected origin frame
+    c_link = mv(rot, s_link)  # R_j s_j, in the corrected origin frame
     dE = jax.vmap(_dexp)(corr.origin)  # (joints, 4, 4, 6)
-    g = jnp.einsum("jabk,sjb->sjak", dE[:, :3, :3, :], c_link) + dE[None, :, :3, 3, :]
-    J_origin = jnp.einsum("sjab,sjbk->sajk", A_R, g).reshape(S, 3, 6 * n)
+    # g[s, j, :, k] = dE_j[:3, :3, k] c_link[s, j] + dE_j[:3, 3, k], as multiply-adds over b
+    g = dE[None, :, :3, 3, :] + sum(dE[None, :, :3, b, :] * c_link[:, :, None, b, None] for b in range(3))
+    J_origin = jnp.swapaxes(mm(A_R, g), 1, 2).reshape(S, 3, 6 * n)
     J_angle = jnp.cross(omega, y[:, None, :] - W_t)  # (s, joints, 3): d y / d theta_j
     J_zero = jnp.swapaxes(J_angle, 1, 2)
     dC = _dexp(params.cam)
-    base_pt = jnp.einsum("ba,sb->sa", T_db[:3, :3], y - T_db[:3, 3])  # T_db^-1 y
-    gc = jnp.einsum("abk,sb->sak", dC[:3, :3, :], base_pt) + dC[None, :3, 3, :]
-    J_cam = jnp.einsum("ab,sbk->sak", problem.T_dev_base0[:3, :3], gc)
+    base_pt = mv(T_db[:3, :3].T, y - T_db[:3, 3])  # T_db^-1 y
+    gc = dC[None, :3, 3, :] + sum(dC[None, :3, b, :] * base_pt[:, None, b, None] for b in range(3))
+    J_cam = mm(problem.T_dev_base0[:3, :3], gc)
     dT = _dexp(corr.tool[0])
-    J_tool = jnp.einsum("sab,bc,ck->sak", R_f, problem.T_flange_point0[:3, :3], dT[:3, 3, :])
+    J_tool = mm(R_f, (problem.T_flange_point0[:3, :3] @ dT[:3, 3, :])[None])
     blocks = [J_cam, J_origin, J_zero, J_tool]
     if layout.terms:
         b = term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms)  # (s, joints, k)
@@ -304,8 +313,9 @@ def _residuals_terms(x, problem):
     """The whitened residuals and their Jacobian: the positions' in closed form, the
     orientations' (when measured) by forward-mode autodiff."""
     w = _weights(problem)
-    r = ((predict(x, problem) - problem.data.y) * w[:, None]).reshape(-1)
-    J = (point_jacobian(x, problem) * w[:, None, None]).reshape(-1, x.shape[0])
+    chain = _chain(x, problem)
+    r = ((chain[0] - problem.data.y) * w[:, None]).reshape(-1)
+    J = (point_jacobian(x, problem, chain) * w[:, None, None]).reshape(-1, x.shape[0])
     if problem.layout.orientation:
         r = jnp.concatenate([r, _rotation_residuals(x, problem)])
         J = jnp.concatenate([J, jax.jacfwd(_rotation_residuals)(x, problem)])
