@@ -35,43 +35,37 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     import jax
-    import jax.numpy as jnp
-    from jax.flatten_util import ravel_pytree
 
-    from jaxcal._axisfit import apply_correction
-    from jaxcal._geometry import se3_exp
-    from jaxcal._kinematics import forward_kinematics
-    from jaxcal.pipeline import calibrate
+    import jaxcal
 
-    r = calibrate(args.dataset, progress=False)
+    r = jaxcal.calibrate(args.dataset, progress=False)
     if r.refine_fit is None or r.validation is None:
         print(
             f"{args.dataset}: needs a refined calibration of a synthetic dataset (truth.json)",
             file=sys.stderr,
         )
         return 2
-    res, nominal = r.refine_fit, r.nominal
-    flat, unravel = ravel_pytree(res.params)
-    # The refinement's fixed references, recovered from its result.
-    T_cb0 = jnp.asarray(res.T_cam_base) @ jnp.linalg.inv(se3_exp(res.params.cam))
-    mounts0 = jnp.asarray(res.T_flange_marker) @ jnp.linalg.inv(jax.vmap(se3_exp)(res.params.correction.tool))
-    # The validation's configurations (pipeline._validation, seed 0).
-    q = jax.random.uniform(jax.random.key(0), (1000, nominal.num_joints), minval=-np.pi, maxval=np.pi)
+    est = r.estimate  # the refinement's vector, covariance and references
+    # The validation's configurations (stages._validate, seed 0).
+    q = jax.random.uniform(jax.random.key(0), (1000, est.nominal.num_joints), minval=-np.pi, maxval=np.pi)
 
     def ee(x):
-        p = unravel(x)
-        model, mounts = apply_correction(nominal, mounts0, p.correction)
-        T = T_cb0 @ se3_exp(p.cam)
-        return jax.vmap(lambda qq: (T @ forward_kinematics(model, qq)[-1] @ mounts[0])[:3, 3])(q)
+        c = jaxcal.parameters_to_model(est, x)
 
-    J = np.asarray(jax.jit(jax.jacfwd(ee))(flat))
-    predicted = float(np.sqrt(np.einsum("cia,ab,cib->c", J, np.asarray(res.cov), J).mean()))
+        def fk(qq):
+            T = c.T_cam_base @ jaxcal.forward_kinematics(c.model, qq)[-1] @ c.T_flange_marker[0]
+            return T[:3, 3]
+
+        return jax.vmap(fk)(q)
+
+    J = np.asarray(jax.jit(jax.jacfwd(ee))(est.x))
+    predicted = float(np.sqrt(np.einsum("cia,ab,cib->c", J, np.asarray(est.cov), J).mean()))
     out = {
         "dataset": str(Path(args.dataset)),
         "ee_rms_mm_measured": r.validation["ee_rms_mm_after"],
         "ee_rms_mm_predicted_1sigma": 1e3 * predicted,
         "ee_rms_mm_two_stage": r.validation["ee_rms_mm_two_stage"],
-        "free_parameters": int(np.asarray(res.free).sum()),
+        "free_parameters": int(np.asarray(est.free).sum()),
     }
     print(json.dumps(out, indent=2))
     if args.json:
