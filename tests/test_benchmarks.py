@@ -1,0 +1,110 @@
+"""Every script in benchmarks/ runs at its smallest size and writes the JSON keys it promises.
+
+A smoke test, not a measurement: each benchmark runs in a subprocess (as a user
+runs it), with the suite's compilation cache, so a refactor that breaks a
+benchmark's imports or calls fails here rather than in a user's hands. The
+figures themselves are in docs/performance.md. Written by others and checked
+elsewhere: `real_tracker.py`, `startup.py` (and `_scipy_tracker.py`, a module).
+`plan.py` plans four designs and renders and calibrates a dozen captures even
+at its smallest settings (minutes): only its imports and options are checked.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import CACHE_DIR
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "benchmarks"
+
+#: name -> (smallest arguments, keys the JSON promises). `{out}` is the JSON path.
+CASES = {
+    "arcfit": (
+        ["--problems", "4", "--scipy-problems", "2", "--repeats", "1", "--frames", "10"],
+        [
+            "n_problems",
+            "frames",
+            "jaxcal_s",
+            "compile_s",
+            "scipy_s",
+            "speedup",
+            "scipy_jac_s",
+            "max_abs_diff",
+        ],
+    ),
+    "long_sweep": (["--smoke"], ["rows", "device", "versions", "notes"]),
+    "render": (
+        ["--frames", "2", "--resolutions", "160x120"],
+        ["frames", "backend", "resolutions"],
+    ),
+    "vision": (
+        ["--dataset", "data/ur5e_sweeps", "--frames", "3", "--repeat", "1"],
+        ["frames", "poses", "overhead_pct", "pool_speedup", "median_s"],
+    ),
+    "handeye": (
+        ["--quick", "--parts", "protocol,speed", "--no-dense"],
+        ["methods", "cramer_rao", "noisy_robot_pixels_ms", "pixels_ms_50", "speed"],
+    ),
+    "efficiency": (
+        ["--trials", "2", "--frames", "5"],
+        ["trials", "max_ratio_to_crlb", "median_ratio_to_crlb", "per_parameter", "compile_s", "run_s"],
+    ),
+    "montecarlo": (
+        ["--trials", "4", "--scipy-trials", "1", "--repeats", "1", "--frames", "10", "--device-counts", ""],
+        ["trials", "jaxcal_s", "compile_s", "scipy_s", "speedup", "success_rate", "ee_rms_mm_median"],
+    ),
+    "ee_uncertainty": (["data/ur5e_sweeps"], ["dataset", "ee_rms_mm_measured", "free_parameters"]),
+    "prediction_check": (
+        ["data/ur5e_sweeps", "--flips", "3"],
+        ["machine", "flips", "datasets", "seed_correlation"],
+    ),
+    "corrupted": (
+        ["--seeds", "0", "--resolution", "640x480", "--frames-per-joint", "12"],
+        ["fraction", "seeds", "max_ratio_two_stage", "max_ratio_refined"],
+    ),
+    "compile": (
+        ["--workers", "1", "--cache", str(CACHE_DIR)],
+        ["cold_calibrate_s", "cold_jax_compile_s", "second_dataset_compile_s", "first", "second"],
+    ),
+}
+
+#: Over ~20 s each even with a warm compilation cache (they calibrate a dataset or compile a
+#: whole Monte Carlo trial / refinement): marked slow, 4-6 minutes together on a shared 2-core machine.
+SLOW = {"compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "prediction_check"}
+
+#: Not smoke-run here (see the module docstring).
+NOT_RUN = {"real_tracker", "startup", "plan"}
+
+
+def _run(args: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(CACHE_DIR), PYTHONPATH=str(ROOT))
+    return subprocess.run(
+        [sys.executable, *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_every_benchmark_is_covered():
+    scripts = {p.stem for p in BENCH.glob("*.py") if not p.stem.startswith("_")}
+    assert scripts - NOT_RUN == set(CASES)
+
+
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in sorted(CASES)]
+)
+def test_benchmark_runs_at_its_smallest_size(name, tmp_path):
+    args, keys = CASES[name]
+    out = tmp_path / f"{name}.json"
+    proc = _run([str(BENCH / f"{name}.py"), *args, "--json", str(out)])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert set(keys) <= set(result), sorted(set(keys) - set(result))
+
+
+def test_plan_benchmark_parses_its_options():
+    proc = _run([str(BENCH / "plan.py"), "--help"], timeout=60)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "--candidates" in proc.stdout
