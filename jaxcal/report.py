@@ -14,6 +14,7 @@ from ._tables import PhysicalTable, base_flange_std, physical_table
 from .io._files import atomic_directory
 from .io.dataset import write_json
 from .io.dh_tables import dh_table_json, is_table_file
+from .io.result import ESTIMATE_FILE, write_estimate
 from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.ros import write_static_transform
 from .io.urdf import save_urdf
@@ -443,7 +444,8 @@ def _frames_section(result) -> list[str]:
 
 def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=None) -> Path:
     """Write `result` into directory `out` (atomically): `result.json`,
-    `calibrated.urdf`, `camera_<name>.yaml`, the camera's pose for ROS
+    `calibrated.urdf`, `estimate.npz` (the final solve's vector, covariance and
+    references: `jaxcal.io.result.write_estimate`), `camera_<name>.yaml`, the camera's pose for ROS
     (`ros_<name>.launch.yaml`, `ros_<name>.txt`, `easy_handeye_<name>.yaml`),
     for a UR arm `ur_calibration.yaml` (`jaxcal.io.robot_files`), for a
     revolute arm the calibrated DH and MDH tables with their standard
@@ -467,6 +469,8 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
         # on a thread of their own while the other files and the plots are written.
         tables_pending = pool.submit(dh_tables, result)
         write_json(tmp / "result.json", result.to_json())
+        if result.estimate is not None:
+            write_estimate(tmp / ESTIMATE_FILE, result.estimate)
         # A dataset whose robot is a DH/MDH table has no URDF to copy: a minimal one from the model.
         source = None if is_table_file(result.robot_urdf) else result.robot_urdf
         save_urdf(result.model, tmp / "calibrated.urdf", source=source)
@@ -486,7 +490,7 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
 
 def output_files(result) -> list[str]:
     """The files `write_outputs` writes besides `report.md` and its plots."""
-    names = ["result.json", "calibrated.urdf"]
+    names = ["result.json", "calibrated.urdf"] + ([ESTIMATE_FILE] if result.estimate is not None else [])
     if result.kind.device:
         if result.kind.fixed_frame_free:
             names += [f"ros_{result.camera}.launch.yaml", f"ros_{result.camera}.txt"]

@@ -1,9 +1,14 @@
 """`result.json`: a calibration result as plain JSON (schema `jaxcal.result`, version 1)."""
 
+import json
+
 import cv2
+import jax.numpy as jnp
 import numpy as np
 
-from .model_json import model_to_json
+from .._correction import Estimate, ParameterLayout
+from ..errors import DatasetError
+from .model_json import model_from_json, model_to_json
 
 
 def quaternion_xyzw(R) -> np.ndarray:
@@ -114,3 +119,64 @@ def point_fit_json(pf) -> dict:
         "coms": np.asarray(prob.data.coms).tolist(),
         "nominal_model": model_to_json(prob.nominal),
     }
+
+
+#: The file beside `result.json` holding the final solve's `Estimate` (vector, covariance, references).
+ESTIMATE_FILE = "estimate.npz"
+
+
+def write_estimate(path, estimate) -> None:
+    """Write an `Estimate` (`jaxcal._correction`) as an uncompressed `.npz` of plain
+    arrays (no pickles): the vector, its covariance and free mask, the references the
+    corrections are relative to, the nominal model as JSON and the layout's fields.
+    `jaxcal certify` and `jaxcal check` read it back with `read_estimate`."""
+    lay = estimate.layout
+    with open(path, "wb") as f:
+        np.savez(
+            f,
+            x=np.asarray(estimate.x),
+            cov=np.asarray(estimate.cov),
+            free=np.asarray(estimate.free, bool),
+            names=np.asarray(lay.names(refine=len(estimate.x) == lay.size), str),
+            T_flange_marker0=np.asarray(estimate.T_flange_marker0),
+            T_cam_base0=np.asarray(estimate.T_cam_base0),
+            reduction_ratio=np.asarray(estimate.reduction_ratio),
+            nominal_model=np.asarray(json.dumps(model_to_json(estimate.nominal))),
+            joints=np.asarray(lay.joints, str),
+            num_markers=np.asarray(lay.num_markers),
+            other_cameras=np.asarray(lay.other_cameras, str),
+            angles=np.asarray(lay.angles, str),
+            eye_in_hand=np.asarray(lay.eye_in_hand),
+            fixed_name=np.asarray("" if lay.fixed_name is None else lay.fixed_name),
+            mount_names=np.asarray(estimate.mount_names, str),
+        )
+
+
+def read_estimate(path) -> Estimate:
+    """The `Estimate` `write_estimate` wrote (raises `DatasetError` naming the file when it is not one)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = {k: z[k] for k in z.files}
+        layout = ParameterLayout(
+            tuple(str(s) for s in d["joints"]),
+            int(d["num_markers"]),
+            other_cameras=tuple(str(s) for s in d["other_cameras"]),
+            angles=tuple(str(s) for s in d["angles"]),
+            eye_in_hand=bool(d["eye_in_hand"]),
+            fixed_name=str(d["fixed_name"]) or None,
+        )
+        return Estimate(
+            x=jnp.asarray(d["x"], jnp.float64),
+            cov=jnp.asarray(d["cov"], jnp.float64),
+            free=jnp.asarray(d["free"], bool),
+            nominal=model_from_json(json.loads(str(d["nominal_model"]))),
+            T_flange_marker0=jnp.asarray(d["T_flange_marker0"], jnp.float64),
+            T_cam_base0=jnp.asarray(d["T_cam_base0"], jnp.float64),
+            reduction_ratio=jnp.asarray(d["reduction_ratio"], jnp.float64),
+            layout=layout,
+            mount_names=tuple(str(s) for s in d["mount_names"]),
+        )
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no such file") from None
+    except (KeyError, ValueError, OSError) as e:
+        raise DatasetError(f"{path}: not an estimate jaxcal wrote ({e})") from None
