@@ -7,6 +7,8 @@
 - `import-csv CSV --out DIR`: a table of joint positions and measured points -> a tracker dataset.
 - `inspect DATASET|BAG`: what a capture holds (cameras, sweeps, clocks, detections, capture kind).
 - `verify RESULT DATASET`: a stop-and-shoot calibration against samples it was not fitted on.
+- `certify RESULT`: the tool-point accuracy a calibration supports over a task region.
+- `check RESULT CAPTURE`: a short later capture against a calibration: drift detected or not (exit 3).
 - `simulate`: render a synthetic dataset (see docs/dataset.md).
 - `montecarlo`: vmapped sensitivity study on analytic marker poses.
 - `handeye CAPTURE --out DIR`: classic hand-eye from a folder of images and robot poses.
@@ -20,6 +22,7 @@ import sys
 from .._cache import enable_compilation_cache
 from ..planning._cli import add_plan_parser
 from ._calibrate import add_calibrate_args, cmd_calibrate, cmd_demo
+from ._certify import add_certify_parsers
 from ._common import EYE_IN_HAND_SWEEP, add_study_args, degrees, fmt_degrees, home, resolution
 from ._handeye import add_handeye_parsers
 from ._import_csv import add_import_csv_parser
@@ -210,6 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_inspect_parser(sub)
     add_import_csv_parser(sub)
     add_verify_parser(sub)
+    add_certify_parsers(sub)
     add_handeye_parsers(sub)
     add_plan_parser(sub, cmd_plan)
     show_defaults(parser)

@@ -1,0 +1,154 @@
+"""`jaxcal certify RESULT` (jaxcal.certification) and `jaxcal check RESULT CAPTURE` (jaxcal.drift)."""
+
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from ..certification import certify, plot_certificate, read_poses, read_result
+from ..drift import check
+from ..errors import OutputError
+from ..io._files import write_text_atomic
+
+
+def _check_output(path: str | None, inputs: list[str], overwrite: bool, what: str) -> None:
+    if path is None:
+        return
+    p = Path(path).resolve()
+    for i in inputs:
+        q = Path(i).resolve()
+        if p == q or q in p.parents or (q.is_dir() and p.is_relative_to(q)):
+            raise OutputError(f"{what} {path}: it lies in an input ({i}); choose another path")
+    if p.exists() and not overwrite:
+        raise OutputError(f"{what} {path} exists; give --overwrite to replace it")
+
+
+def _floats(text: str, n: int | None = None) -> list[float]:
+    try:
+        v = [float(s) for s in text.replace(" ", "").split(",") if s]
+    except ValueError:
+        raise ValueError(f"{text!r}: give comma-separated numbers") from None
+    if n is not None and len(v) != n:
+        raise ValueError(f"{text!r}: give {n} comma-separated numbers, got {len(v)}")
+    return v
+
+
+def _joint_box(text: str) -> np.ndarray:
+    """`lo:hi,lo:hi,...` per joint (deg for every joint; a prismatic joint's in mm)."""
+    try:
+        rows = [[float(a) for a in part.split(":")] for part in text.replace(" ", "").split(",")]
+    except ValueError:
+        raise ValueError(f"--joint-box {text!r}: give lo:hi per joint, comma-separated (deg)") from None
+    if any(len(r) != 2 for r in rows):
+        raise ValueError(f"--joint-box {text!r}: give lo:hi per joint, comma-separated (deg)")
+    return np.radians(np.asarray(rows, np.float64))
+
+
+def add_certify_parsers(sub) -> None:
+    p = sub.add_parser(
+        "certify",
+        help="the tool-point accuracy a calibration supports over a task region (mean, 95 %%, worst pose, map)",
+    )
+    p.add_argument("result", help="the directory jaxcal calibrate wrote (or its result.json)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--region", help="Cartesian box x0,y0,z0,x1,y1,z1 (m, base frame) the tool point works in")
+    g.add_argument("--joint-box", help="joint ranges lo:hi,lo:hi,... (deg), one per joint")
+    g.add_argument(
+        "--poses", help="CSV of configurations: a header naming the joints, or one column per joint"
+    )
+    p.add_argument("--degrees", action="store_true", help="--poses are in degrees (else rad)")
+    p.add_argument("--samples", type=int, default=1000, help="configurations drawn in a box")
+    p.add_argument("--seed", type=int, default=0, help="seed of the configurations drawn")
+    p.add_argument(
+        "--frame",
+        choices=("fixed", "base"),
+        default="fixed",
+        help="the error in the camera's / device's frame, or in the base frame (its uncertainty left out)",
+    )
+    p.add_argument("--json", help="write the certificate here, every pose included (atomically)")
+    p.add_argument("--plot", help="write a PNG map of the region's 95 %% bounds")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--plot file")
+    p.set_defaults(func=cmd_certify)
+    p = sub.add_parser(
+        "check",
+        help="a short later capture against a calibration: has the device moved? (exit 3 when it has)",
+    )
+    p.add_argument("result", help="the directory jaxcal calibrate wrote (or its result.json)")
+    p.add_argument("capture", help="a short tracker capture of the same robot, device and point")
+    p.add_argument("--joint-offsets", action="store_true", help="also free the joints' zero offsets")
+    p.add_argument("--json", help="write the check's figures here (atomically)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
+    p.set_defaults(func=cmd_check)
+
+
+def _write_plot(c, path: str) -> None:
+    dest = Path(path)
+    with tempfile.TemporaryDirectory(dir=dest.parent) as tmp:
+        tmp_png = Path(tmp) / dest.name
+        plot_certificate(c, tmp_png)
+        tmp_png.replace(dest)
+
+
+def cmd_certify(args) -> int:
+    for opt, what in ((args.json, "--json"), (args.plot, "--plot")):
+        _check_output(opt, [args.result], args.overwrite, what)
+    region = _floats(args.region, 6) if args.region else None
+    jb = _joint_box(args.joint_box) if args.joint_box else None
+    poses = None
+    if args.poses:
+        names = read_result(args.result)[0]["model"]["joint_names"]
+        poses = read_poses(args.poses, names, degrees=args.degrees)
+    c = certify(
+        args.result,
+        region=region,
+        joint_box=jb,
+        poses=poses,
+        samples=args.samples,
+        frame=args.frame,
+        seed=args.seed,
+    )
+    s = c.summary
+    console = Console(width=max(Console().width, 110))
+    console.print(
+        f"jaxcal certify: {c.kind} result {c.result}, region {c.region['kind']} ({s['poses']} poses), "
+        f"tool point in the {c.frame} frame"
+    )
+    console.print(
+        f"predicted error: mean {s['mean_mm']:.4f} mm, RMS {s['rms_mm']:.4f} mm, 95 % of the region within "
+        f"{s['p95_mm']:.4f} mm; worst pose: 95 % bound {s['max_bound95_mm']:.4f} mm at q = "
+        f"[{', '.join(f'{np.degrees(v):.1f}' for v in s['worst']['q'])}] deg"
+    )
+    e = c.extrapolation
+    if e is not None:
+        console.print(
+            f"calibrated workspace: {100 * e['share_of_poses_outside_joint_ranges']:.0f} % of the poses outside its "
+            f"joint ranges (up to {np.degrees(e['max_joint_excess']):.1f} deg), predicted error "
+            f"{e['error_ratio']:.2f}x that over the calibrated configurations ({e['calibrated_rms_mm']:.4f} mm RMS)"
+        )
+    for w in c.caveats:
+        console.print(f"[yellow]caveat:[/yellow] {w}")
+    for n in c.notes:
+        console.print(f"[yellow]note:[/yellow] {n}")
+    if args.json:
+        write_text_atomic(args.json, json.dumps(c.to_json(), indent=1))
+        console.print(f"wrote {args.json}")
+    if args.plot:
+        _write_plot(c, args.plot)
+        console.print(f"wrote {args.plot}")
+    return 0
+
+
+def cmd_check(args) -> int:
+    _check_output(args.json, [args.result, args.capture], args.overwrite, "--json")
+    c = check(args.result, args.capture, joint_offsets=args.joint_offsets)
+    console = Console(width=max(Console().width, 110))
+    colour = "red" if c.detected else "green"
+    console.print(f"jaxcal check: {c.samples} samples of {c.capture} against {c.result}")
+    console.print(f"[{colour}]{c.message}[/{colour}]")
+    console.print(f"next: {c.advice}")
+    if args.json:
+        write_text_atomic(args.json, json.dumps(c.to_json(), indent=1))
+        console.print(f"wrote {args.json}")
+    return c.exit_code

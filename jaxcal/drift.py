@@ -1,0 +1,346 @@
+"""`jaxcal check RESULT CAPTURE`: has the set-up drifted since the calibration?
+
+A short capture taken later (a few tracker samples at known configurations
+$q_i$) is fitted against the calibrated model $\\hat x$ with only what can
+drift free: the measuring device's pose, as a twist $\\varepsilon = (v, \\omega)$
+with $T_{base,dev}' = T_{base,dev} \\exp(\\varepsilon)$ (the device moved by $v$,
+in its own frame, and turned by $\\omega$), and optionally the joints' zero
+offsets $\\delta q$:
+
+$$ y_i = \\exp(-\\varepsilon)\\, \\big(\\hat y_i + Z_i\\, \\delta q\\big) + n_i, $$
+
+$\\hat y_i$ the calibrated prediction, $Z_i = \\partial y_i / \\partial q$. Without drift
+the residuals $y_i - \\hat y_i$ are the capture's noise plus the calibration's own
+error, jointly Gaussian with covariance
+
+$$ R = \\mathrm{diag}(s_i^2 I_3) + J \\Sigma J^T, $$
+
+$s_i^2 = \\hat\\sigma^2 \\sigma_i^2$ the per-sample scatter the fit showed (as `jaxcal
+verify` uses it), $J = \\partial \\hat y / \\partial x$ and $\\Sigma$ the calibration's
+covariance. The drift $\\theta = (\\varepsilon, \\delta q)$ is estimated by
+Gauss-Newton on the residuals whitened by $R$, so that $\\hat\\theta \\sim N(\\theta,
+C)$, $C = (A^T R^{-1} A)^{-1}$, $A = \\partial y / \\partial \\theta$, and the test is
+
+$$ T = \\hat\\theta^T C^{-1} \\hat\\theta \\sim \\chi^2_k \\text{ without drift}, \\qquad
+   \\text{drift detected when } T > \\chi^2_{k}(1 - \\alpha). $$
+
+Against a drift $\\theta$ its power is $P(\\chi'^2_k(\\lambda) > \\chi^2_k(1-\\alpha))$,
+$\\lambda = \\theta^T C^{-1} \\theta$ (non-central chi-square). The smallest device
+translation detected with 95 % power along the worst direction is
+$\\sqrt{\\lambda^* / \\mu_{min}}$, $\\mu_{min}$ the least eigenvalue of the translation
+block of $C^{-1}$ and $\\lambda^*$ the non-centrality of 95 % power; likewise the
+rotation. After the drift fit the whitened residuals' sum of squares is
+$\\chi^2_{3S-k}$ when a rigid motion (and the offsets) explain the change: a large
+value says something else changed (the robot, the point's mount).
+"""
+
+import json
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import optimize, stats
+
+from ._correction import ParameterLayout
+from ._geometry import se3_exp
+from ._pointfit import PointLayout, point_jacobian, predict
+from .certification import read_result
+from .errors import DatasetError
+from .io.dataset import Dataset, load_dataset
+from .io.model_json import model_from_json
+from .stages._points import point_problem
+
+#: The test's false-alarm probability, and the power the detectable change is quoted at.
+ALPHA, POWER = 0.05, 0.95
+#: Gauss-Newton steps of the drift fit (it converges in two or three; these are for safety).
+GN_STEPS = 8
+#: Exit status of `jaxcal check` when drift is detected.
+EXIT_DRIFT = 3
+
+
+@dataclass(frozen=True, eq=False)
+class DriftReference:
+    """What a calibration predicts for a check capture's configurations (device frame, m).
+
+    - `y_hat` `(S, 3)`: the calibrated prediction; `Z` `(S, 3, joints)`: its derivative
+      with respect to the joint angles; `R` `(3S, 3S)`: the residuals' covariance
+      without drift (the capture's scatter plus the calibration's error).
+    """
+
+    y_hat: np.ndarray
+    Z: np.ndarray
+    R: np.ndarray
+    joint_names: tuple[str, ...]
+    T_device_base: np.ndarray
+
+
+def reference(doc: dict, q: np.ndarray, sigma: np.ndarray) -> DriftReference:
+    """The `DriftReference` of a stop-and-shoot result's `point_fit` block at configurations `q`
+    `(S, joints)` measured with per-axis noise `sigma` `(S,)` (m)."""
+    pf = doc["point_fit"]
+    nominal = model_from_json(pf["nominal_model"])
+    layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name="T_device_base"), tuple(pf["terms"]))
+    x = jnp.asarray(pf["x"], jnp.float64)
+    S = len(q)
+    problem = point_problem(
+        nominal, layout, np.asarray(q, np.float64), np.zeros((S, 3)), np.ones(S), np.ones(S, bool),
+        np.asarray(pf["T_device_base0"]), np.asarray(pf["T_flange_point0"]),
+        (np.asarray(pf["masses"]), np.asarray(pf["coms"])),
+    )  # fmt: skip
+    J = np.asarray(point_jacobian(x, problem))  # (S, 3, n)
+    Z = J[:, :, layout.base.index("zero")]
+    Jf = J.reshape(3 * S, -1)
+    scatter = float(pf["residual_variance_factor"]) * np.repeat(np.asarray(sigma, np.float64) ** 2, 3)
+    R = np.diag(scatter) + Jf @ np.asarray(pf["covariance"]) @ Jf.T
+    T_db = np.asarray(jnp.asarray(pf["T_device_base0"]) @ se3_exp(x[layout.base.index("cam")]))
+    return DriftReference(np.asarray(predict(x, problem)), Z, R, tuple(nominal.joint_names), T_db)
+
+
+def _model(theta, y_hat, Z):
+    y = y_hat + jnp.einsum("saj,j->sa", Z, theta[6:])
+    T = jnp.linalg.inv(se3_exp(theta[:6]))
+    return y @ T[:3, :3].T + T[:3, 3]
+
+
+@partial(jax.jit, static_argnames="offsets")
+def fit_drift(y, y_hat, Z, W, *, offsets: bool):
+    """Gauss-Newton on the whitened residuals $W (y - f(\\theta))$ ($W^T W = R^{-1}$).
+
+    **Returns:** `(theta, C, T, rss)`: the drift (6, or 6 + joints with `offsets`),
+    its covariance, the test statistic and the whitened residual sum of squares after it."""
+    k = 6 + (Z.shape[2] if offsets else 0)
+    Zk = Z if offsets else Z[:, :, :0]
+
+    def res(theta):
+        return W @ (y - _model(theta, y_hat, Zk)).reshape(-1)
+
+    def step(theta, _):
+        r, A = res(theta), jax.jacfwd(res)(theta)
+        return theta + jnp.linalg.solve(A.T @ A, -A.T @ r), None
+
+    theta, _ = jax.lax.scan(step, jnp.zeros(k), None, length=GN_STEPS)
+    A = jax.jacfwd(res)(theta)
+    info = A.T @ A
+    C = jnp.linalg.inv(info)
+    r = res(theta)
+    return theta, C, theta @ info @ theta, r @ r
+
+
+def whitening(R: np.ndarray) -> np.ndarray:
+    """$W = L^{-1}$ with $R = L L^T$."""
+    L = np.linalg.cholesky(R)
+    return np.linalg.solve(L, np.eye(len(R)))
+
+
+def power(lam, dof: int, alpha: float = ALPHA):
+    """The test's power against a drift of non-centrality `lam` (non-central chi-square)."""
+    return stats.ncx2.sf(stats.chi2.ppf(1 - alpha, dof), dof, lam)
+
+
+def noncentrality_for_power(dof: int, p: float = POWER, alpha: float = ALPHA) -> float:
+    """$\\lambda^*$ with `power(lambda*) = p`."""
+    return float(optimize.brentq(lambda lam: power(lam, dof, alpha) - p, 1e-9, 1e4))
+
+
+def detectable(C: np.ndarray, alpha: float = ALPHA, p: float = POWER) -> dict:
+    """The smallest translation (mm) and rotation (deg) detected with power `p` along
+    their worst and best directions (see the module docstring)."""
+    k = len(C)
+    lam = noncentrality_for_power(k, p, alpha)
+    P = np.linalg.inv(C)
+    mu_t = np.linalg.eigvalsh(P[:3, :3])
+    mu_r = np.linalg.eigvalsh(P[3:6, 3:6])
+    return {
+        "noncentrality": lam,
+        "translation_mm_worst": float(1e3 * np.sqrt(lam / mu_t[0])),
+        "translation_mm_best": float(1e3 * np.sqrt(lam / mu_t[-1])),
+        "rotation_deg_worst": float(np.degrees(np.sqrt(lam / mu_r[0]))),
+        "rotation_deg_best": float(np.degrees(np.sqrt(lam / mu_r[-1]))),
+    }
+
+
+def _size_and_std(v: np.ndarray, C: np.ndarray) -> tuple[float, float]:
+    """$|v|$ and its standard deviation along $v$ (first order; the largest std at $v = 0$)."""
+    n = float(np.linalg.norm(v))
+    if n == 0:
+        return 0.0, float(np.sqrt(np.linalg.eigvalsh(C)[-1]))
+    u = v / n
+    return n, float(np.sqrt(u @ C @ u))
+
+
+@dataclass(frozen=True, eq=False)
+class DriftCheck:
+    """What `check` found (see the module docstring; lengths in mm, angles in deg).
+
+    - `theta`, `cov`: the drift $(v, \\omega[, \\delta q])$ (m, rad) and its covariance.
+    - `statistic`, `dof`, `threshold`, `p_value`, `detected`: the chi-square test.
+    - `translation_mm`, `rotation_deg`: the device's motion, each `(size, std)`.
+    - `joint_offsets_deg`: per joint `(estimate, std)` when fitted, else None.
+    - `detectable`: `detectable(cov)`; `residual`: the fit's whitened sum of squares,
+      its degrees of freedom and p-value.
+    - `T_device_base`: the calibrated device pose moved by the estimated drift.
+    - `message`, `advice`: what to tell the user.
+    """
+
+    result: str
+    capture: str
+    samples: int
+    theta: np.ndarray
+    cov: np.ndarray
+    statistic: float
+    dof: int
+    threshold: float
+    p_value: float
+    detected: bool
+    translation_mm: tuple[float, float]
+    rotation_deg: tuple[float, float]
+    joint_offsets_deg: dict | None
+    detectable: dict
+    residual: dict
+    T_device_base: np.ndarray
+    message: str
+    advice: str
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_DRIFT if self.detected else 0
+
+    def to_json(self) -> dict:
+        return {
+            "schema": "jaxcal.drift_check",
+            "schema_version": 1,
+            "result": self.result,
+            "capture": self.capture,
+            "samples": self.samples,
+            "detected": self.detected,
+            "statistic": self.statistic,
+            "dof": self.dof,
+            "threshold": self.threshold,
+            "p_value": self.p_value,
+            "alpha": ALPHA,
+            "translation_mm": {"size": self.translation_mm[0], "std": self.translation_mm[1]},
+            "rotation_deg": {"size": self.rotation_deg[0], "std": self.rotation_deg[1]},
+            "device_translation_m": self.theta[:3].tolist(),
+            "device_rotation_rad": self.theta[3:6].tolist(),
+            "covariance": self.cov.tolist(),
+            "joint_offsets_deg": self.joint_offsets_deg,
+            "detectable": self.detectable,
+            "residual": self.residual,
+            "T_device_base_now": self.T_device_base.tolist(),
+            "message": self.message,
+            "advice": self.advice,
+        }
+
+
+def check_samples(
+    ref: DriftReference, y: np.ndarray, *, joint_offsets: bool = False, names=("", "")
+) -> DriftCheck:
+    """The drift check of measured points `y` `(S, 3)` (device frame, m) against `ref`."""
+    S = len(y)
+    k = 6 + (len(ref.joint_names) if joint_offsets else 0)
+    if 3 * S <= k:
+        raise ValueError(f"a check of {k} drift unknowns needs more than {k // 3} samples, got {S}")
+    W = whitening(ref.R)
+    theta, C, T, rss = (
+        np.asarray(a)
+        for a in fit_drift(jnp.asarray(y), ref.y_hat, ref.Z, jnp.asarray(W), offsets=joint_offsets)
+    )
+    T, rss = float(T), float(rss)
+    thr = float(stats.chi2.ppf(1 - ALPHA, k))
+    detected = T > thr
+    tr, rot = _size_and_std(theta[:3], C[:3, :3]), _size_and_std(theta[3:6], C[3:6, 3:6])
+    tr_mm, rot_deg = (1e3 * tr[0], 1e3 * tr[1]), (float(np.degrees(rot[0])), float(np.degrees(rot[1])))
+    offs = None
+    if joint_offsets:
+        sd = np.sqrt(np.diag(C)[6:])
+        offs = {
+            j: (float(np.degrees(e)), float(np.degrees(s))) for j, e, s in zip(ref.joint_names, theta[6:], sd)
+        }
+    det = detectable(C)
+    dof_r = 3 * S - k
+    residual = {"sum_of_squares": rss, "dof": dof_r, "p_value": float(stats.chi2.sf(rss, dof_r))}
+    T_base_dev = np.linalg.inv(ref.T_device_base) @ np.asarray(se3_exp(jnp.asarray(theta[:6])))
+    stat = f"chi2 {T:.1f} on {k} dof, threshold {thr:.1f}, p = {stats.chi2.sf(T, k):.3g}"
+    if detected:
+        message = f"the device moved by {tr_mm[0]:.3f} +- {tr_mm[1]:.3f} mm, {rot_deg[0]:.4f} +- {rot_deg[1]:.4f} deg ({stat})"
+        if offs:
+            big = {j: v for j, v in offs.items() if abs(v[0]) > 2 * v[1]}
+            if big:
+                message += "; joint offsets changed: " + ", ".join(
+                    f"{j} {v[0]:+.4f} +- {v[1]:.4f} deg" for j, v in big.items()
+                )
+        advice = (
+            "re-register the device (the JSON's T_device_base_now is the calibrated pose moved by the drift) "
+            "or calibrate again; if the robot itself changed (joint offsets, a crash), calibrate again"
+        )
+    else:
+        message = (
+            f"no drift detected ({stat}); a change of {det['translation_mm_worst']:.3f} mm (worst direction; "
+            f"{det['translation_mm_best']:.3f} mm best) or {det['rotation_deg_worst']:.4f} deg would have been "
+            f"detected with {100 * POWER:.0f} % power at {100 * ALPHA:.0f} % false alarms"
+        )
+        advice = "nothing to do; for a finer check, measure more poses spread over the workspace"
+    if residual["p_value"] < 1e-3:
+        advice += (
+            f"; the residuals after the fit are too large for a rigid move (chi2 {rss:.0f} on {dof_r} dof): "
+            "something else changed (the robot, the point's mount, the samples' noise): calibrate again"
+        )
+    return DriftCheck(
+        result=names[0], capture=names[1], samples=S, theta=theta, cov=C, statistic=T, dof=k, threshold=thr,
+        p_value=float(stats.chi2.sf(T, k)), detected=bool(detected), translation_mm=tr_mm, rotation_deg=rot_deg,
+        joint_offsets_deg=offs, detectable=det, residual=residual, T_device_base=np.linalg.inv(T_base_dev),
+        message=message, advice=advice,
+    )  # fmt: skip
+
+
+def _matching_capture(doc: dict, file: Path, ds: Dataset) -> None:
+    """Refuse a capture of another robot, device or measured point, naming the file."""
+    meta = ds.root / "metadata.json"
+    if ds.samples is None:
+        raise DatasetError(
+            f"{meta}: a camera capture, but {file} calibrated {doc.get('device') or 'a device'!r} from "
+            "tracker samples: check it with samples of the same device"
+        )
+    names = doc["point_fit"]["nominal_model"]["joint_names"]
+    if tuple(ds.joint_names) != tuple(names):
+        raise DatasetError(
+            f"{meta}: robot.joints {list(ds.joint_names)} differ from the calibrated robot's {names} ({file}): "
+            "another robot?"
+        )
+    if doc.get("device") not in (None, ds.device.name):
+        raise DatasetError(
+            f"{meta}: device {ds.device.name!r}, but {file} calibrated device {doc.get('device')!r}: another device"
+        )
+    if doc.get("targets") and ds.device.point not in doc["targets"]:
+        raise DatasetError(
+            f"{meta}: measured point {ds.device.point!r}, but {file} calibrated {doc['targets']}: another target"
+        )
+    if ds.samples.q is None:
+        raise DatasetError(f"{ds.root / ds.device.file}: a check needs every sample's joint positions")
+
+
+def check(result, capture, *, joint_offsets: bool = False) -> DriftCheck:
+    """Check the stop-and-shoot calibration `result` (a directory or its `result.json`)
+    against a later tracker `capture` (a path or a loaded `Dataset`); `joint_offsets`:
+    also free the joints' zero offsets. Raises `DatasetError` naming the file when
+    the capture is not one of the calibrated robot, device and point."""
+    doc, file = read_result(result)
+    if "point_fit" not in doc:
+        raise DatasetError(
+            f"{file}: jaxcal check handles stop-and-shoot tracker results ('point_fit') so far; "
+            f"this one is {doc.get('capture', 'another kind')!r}"
+        )
+    ds = capture if isinstance(capture, Dataset) else load_dataset(capture)
+    _matching_capture(doc, file, ds)
+    s = ds.samples
+    ref = reference(doc, s.q, s.sigma_m)
+    return check_samples(
+        ref, np.asarray(s.position, np.float64), joint_offsets=joint_offsets, names=(str(file), str(ds.root))
+    )
+
+
+def drift_json(c: DriftCheck) -> str:
+    return json.dumps(c.to_json(), indent=1)
