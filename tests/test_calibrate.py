@@ -189,6 +189,17 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
 
 
 @pytest.mark.slow
+def test_self_calibrated_intrinsics_without_refinement_are_suspect(dataset, tmp_path):
+    """`K: null` with `--no-refine` (issue 32's battery: 42x the error, status ok): the two-stage
+    result inherits the self-calibration's error, and the verdict says so and what to change."""
+    ds = _copy(dataset, tmp_path)
+    _edit_json(ds / "metadata.json", lambda m: m["cameras"][0].update(K=None))
+    r = calibrate(ds, progress=False, workers=1, refine=False)
+    assert r.status == "suspect"
+    assert any("self-calibrated" in s and "drop --no-refine" in s for s in r.reasons), r.reasons
+
+
+@pytest.mark.slow
 def test_without_encoders_ratios_are_not_identifiable(dataset, tmp_path):
     ds = _copy(dataset, tmp_path)
     (ds / "encoders.csv").unlink()

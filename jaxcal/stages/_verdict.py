@@ -266,6 +266,18 @@ def verdict(
         f"the data pin the tool point only to {sigma:.2f} mm (1-sigma RMS over random configurations, limit "
         f"{limits.ee_sigma_mm:g} mm): too little motion, too few frames, or intrinsics the capture cannot fix",
     )
+    self_calibrated = [o.camera.name for o in (obs.primary, *obs.others) if "rms_px" in o.intrinsics]
+    if self_calibrated and not ran:
+        # Intrinsics fitted to the sweep images alone trade off against the camera's pose and
+        # the link lengths; only the refinement frees them with the robot (`refine_intrinsics`).
+        c.add(
+            "self_calibrated_without_refinement",
+            1.0,
+            0.0,
+            f"camera(s) {self_calibrated}: intrinsics self-calibrated from the sweep images and not refined with "
+            "the robot (the refinement did not run): the two-stage result inherits their error, often tens of "
+            "millimetres; run the refinement (drop --no-refine) or give K and the distortion in metadata.json",
+        )
     for o in (obs.primary, *obs.others):
         if "rms_px" in o.intrinsics:
             c.add(
