@@ -47,4 +47,6 @@ def enable_compilation_cache() -> None:
         return
     cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "jaxcal" / "xla"
     jax.config.update("jax_compilation_cache_dir", str(cache))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    # Every program, however quick to compile: a warm run otherwise compiles its ~100
+    # small eager operations again in every process.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

@@ -39,7 +39,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
-from ._cache import quick_jit
+from ._exported import stored_jit
 from ._geometry import matmul, matrix_to_rpy, se3_exp, so3_log
 from ._kinematics import REVOLUTE, KinematicModel
 
@@ -309,7 +309,6 @@ def physical_values(
     )
 
 
-@quick_jit
 def physical_jacobian(nominal, mounts0, T_cam_base0, cam, correction):
     """`physical_values` at the estimate and at zero, and its Jacobian wrt the
     flattened `(cam, correction)` (the axis-fit vector), as one compiled call."""
@@ -320,6 +319,9 @@ def physical_jacobian(nominal, mounts0, T_cam_base0, cam, correction):
         return physical_values(nominal, mounts0, T_cam_base0, c, corr)
 
     return f(flat), f(jnp.zeros_like(flat)), jax.jacfwd(f)(flat)
+
+
+physical_jacobian = stored_jit(physical_jacobian, "physical_jacobian")
 
 
 def physical_parameters(

@@ -262,7 +262,7 @@ def test_the_stage_program_searches_or_takes_a_mask_in_one_compiled_program(swee
 
     arcs, _ = sweeps
     axis_fit = _programs.axis_fit(True)
-    compiled = axis_fit.program._cache_size()  # other files' calibrations may have added some
+    compiled = axis_fit.program.cache_size()  # other files' calibrations may have added some
     mount = SETUP.T_flange_marker
     searched = axis_fit(NOMINAL, arcs, mount)
     np.testing.assert_array_equal(searched.free, free)  # the nominal geometry's mask
@@ -277,7 +277,7 @@ def test_the_stage_program_searches_or_takes_a_mask_in_one_compiled_program(swee
     held = axis_fit(NOMINAL, arcs, mount, fewer)
     np.testing.assert_array_equal(held.free, fewer)
     assert float(held.residual_rms) > float(searched.residual_rms)
-    assert axis_fit.program._cache_size() <= compiled + 1  # three calls, one program
+    assert axis_fit.program.cache_size() <= compiled + 1  # three calls, one program
 
 
 # (encoders without the marker poses runs the lines-only residuals of (False, False) on other arcs)

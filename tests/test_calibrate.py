@@ -465,7 +465,7 @@ def test_the_two_stage_programs_compile_while_the_clock_fit_runs():
     events = []
 
     def listen(event, duration, **kw):
-        if event in stages_ and any(n in kw.get("fun_name", "") for n in ("arc_fits", "program")):
+        if event in stages_ and any(n in kw.get("fun_name", "") for n in ("arc_fits", "axis_fit")):
             events.append((kw["fun_name"], event, threading.current_thread().name))
 
     monitoring.register_event_duration_secs_listener(listen)
@@ -480,7 +480,7 @@ def test_the_two_stage_programs_compile_while_the_clock_fit_runs():
     finally:
         monitoring.unregister_event_duration_listener(listen)
     assert ("arc_fits", dispatch.JAXPR_TRACE_EVENT, "jaxcal compile ahead") in ahead
-    for name in ("jit(arc_fits)", "jit(program)"):  # each on a thread of its own, in parallel
+    for name in ("jit(arc_fits)", "jit(axis_fit)"):  # each on a thread of its own, in parallel
         assert (name, dispatch.BACKEND_COMPILE_EVENT, "jaxcal compile ahead") in ahead
     assert events == []  # nothing left to do on the calling thread
     assert bool(fit.result == optx.RESULTS.successful) and bool(

@@ -3,8 +3,9 @@
 Each is a `jax.jit` of a pure solver; what changes between datasets (the
 numbers) are arguments, what decides shapes and control flow is static. Each
 runs a few times per calibration, so each compiles without XLA's optimisation
-passes (`jaxcal._cache.quick_jit`: the cold `calibrate` 81 -> 56 s); JAX's
-persistent cache (`jaxcal._cache`) keeps them across processes.
+passes (`jaxcal._cache.QUICK_COMPILE`). Each is a `jaxcal._exported.stored_jit`:
+its traced program is stored beside JAX's persistent cache (`jaxcal._cache`),
+which keeps its executable, so a second process neither traces nor compiles it.
 """
 
 import atexit
@@ -18,9 +19,9 @@ import numpy as np
 from .._arcfit import fit_arc, fit_joint_sweeps
 from .._axisfit import fit_axes, register_lines
 from .._buckets import bucket
-from .._cache import quick_jit
 from .._clocksync import fit_clock_offset
 from .._correction import ParameterLayout
+from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._refine import identifiable_mask, refine
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
@@ -43,7 +44,7 @@ def arc_fits(loss: str | None, joint_types: tuple[str, ...]):
     def arc_fits(data):
         return fit_joint_sweeps(data, joint_types, loss=loss, reject=ARC_REJECT, max_steps=100)
 
-    return quick_jit(arc_fits)
+    return stored_jit(arc_fits, "arc_fits", (loss, joint_types, ARC_REJECT))
 
 
 @functools.cache
@@ -53,7 +54,7 @@ def arc_fit(loss: str | None):
     def arc_fit(data):
         return fit_arc(data, loss=loss, reject=ARC_REJECT, max_steps=100)
 
-    return quick_jit(arc_fit)
+    return stored_jit(arc_fit, "arc_fit", (loss, ARC_REJECT))
 
 
 @functools.cache
@@ -76,7 +77,7 @@ def axis_fit(use_poses: bool):
             candidates=cand, search=search,
         )  # fmt: skip
 
-    program = quick_jit(program)
+    program = stored_jit(program, "axis_fit", (use_poses,))
 
     def axis_fit(nominal, arcs, mount, free=None, home=None, fixed_frame_free=True):
         layout = ParameterLayout.sized(nominal.num_joints, mount.shape[0])
@@ -114,14 +115,14 @@ def compile_two_stage_ahead(
         mounts = jax.ShapeDtypeStruct((n_mounts, 4, 4), jnp.float64)
         free = jax.ShapeDtypeStruct((layout.axis_size,), jnp.bool_)
         homes = jax.ShapeDtypeStruct((nominal.num_joints,) * 2, jnp.float64) if home else None
-        axis_program.lower(nominal, arcs, mounts, free, True, homes, fixed_frame_free).compile()
+        axis_program.compile(nominal, arcs, mounts, free, True, homes, fixed_frame_free)
 
     def compile_both():
-        traced = arcs_program.trace(data)
+        arcs = arcs_program.out_info(data)
         # The axis fit's program on a thread of its own once the arcs' shapes are known:
         # with the clock fit's, three compiles share the two cores.
-        _start(key + (1,), compile_axes, traced.out_info)
-        traced.lower().compile()
+        _start(key + (1,), compile_axes, arcs)
+        arcs_program.compile(data)
 
     _start(key + (0,), compile_both)
 
@@ -159,7 +160,7 @@ def clock_fit(loss: str | None):
             data, t_cam, enc_t, enc_q, offset0_s=offset0_s, drift_ppm=drift_ppm, loss=loss
         )
 
-    return quick_jit(clock_fit)
+    return stored_jit(clock_fit, "clock_fit", (loss,))
 
 
 @functools.cache
@@ -167,7 +168,7 @@ def _refinement(free: tuple):
     def refinement(problem, params0):
         return refine(problem, params0, np.asarray(free))
 
-    return quick_jit(refinement)
+    return stored_jit(refinement, "refinement", (free,))
 
 
 def refinement(free: np.ndarray):
@@ -178,7 +179,7 @@ def refinement(free: np.ndarray):
 @functools.cache
 def identifiable():
     """The refinement's `identifiable_mask(problem, params, candidates, tol=...)`."""
-    return quick_jit(identifiable_mask)
+    return stored_jit(identifiable_mask, "identifiable")
 
 
 @functools.cache
@@ -186,7 +187,7 @@ def _chains():
     def chains(T_cam_base, model, q):
         return T_cam_base @ jax.vmap(lambda qq: forward_kinematics(model, qq))(q)
 
-    return quick_jit(chains)
+    return stored_jit(chains, "chains")
 
 
 def chains(T_cam_base, model, q) -> np.ndarray:
@@ -200,11 +201,12 @@ def chains(T_cam_base, model, q) -> np.ndarray:
 
 @functools.cache
 def _ee_sigma():
-    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, key, travel):
+    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, travel):
+        key = jax.random.key(0)
         q = on_travel(nominal, random_configurations(key, EE_CONFIGURATIONS, nominal.num_joints), travel)
         return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q)
 
-    return quick_jit(ee_sigma_program)
+    return stored_jit(ee_sigma_program, "ee_sigma", (EE_CONFIGURATIONS,))
 
 
 #: Configurations (seed 0) of the end-effector uncertainty.
@@ -217,6 +219,6 @@ def end_effector_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, limi
     return np.asarray(
         _ee_sigma()(
             nominal, jnp.asarray(T_cam_base0), jnp.asarray(mounts0), cam, correction, jnp.asarray(cov),
-            jax.random.key(0), jnp.asarray(joint_travel(nominal, limits)),
+            jnp.asarray(joint_travel(nominal, limits)),
         )
     )  # fmt: skip

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._cache import quick_jit
+from .._exported import stored_jit
 from .._geometry import pose_inverse, so3_log
 from .._kinematics import REVOLUTE, forward_kinematics
 from .._montecarlo import NoiseModel, SweepPlan, synthesize_sweeps
@@ -78,10 +78,9 @@ def _exact_sweeps(frames: int, use_encoders: bool):
             nominal_ratio=nominal_ratio, use_encoders=use_encoders, home=home,
         )  # fmt: skip
 
-    return quick_jit(exact_sweeps)
+    return stored_jit(exact_sweeps, "exact_sweeps", (frames, use_encoders))
 
 
-@quick_jit
 def _score(fit, true, T_cam_base_true, mounts_true, nominal, travel, fits: dict):
     """At the validation's configurations (`CONFIGURATIONS`, seed `SEED`, within
     each joint's travel): `score`, and per configuration the marker position
@@ -97,6 +96,9 @@ def _score(fit, true, T_cam_base_true, mounts_true, nominal, travel, fits: dict)
     tru = marker(true, T_cam_base_true, mounts_true[0])
     errors = {k: 1e3 * jnp.linalg.norm(marker(*f) - tru, axis=-1) for k, f in fits.items()}
     return errors, score(fit, true, T_cam_base_true, mounts_true, nominal, q)
+
+
+_score = stored_jit(_score, "validation_score")
 
 
 def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true, loss):

@@ -1,0 +1,295 @@
+"""Traced programs kept on disk beside the compile cache, so that a second process
+reloads them instead of tracing them again.
+
+JAX's persistent cache (`jaxcal._cache`) keeps compiled executables, but it finds
+one by hashing the lowered program: every process still traces and lowers each
+solver before it can look the executable up, and for jaxcal's big stage programs
+that costs far more than running them. `stored_jit(fun, name, static)` is a
+`jax.jit` whose traced program is a `jax.export.Exported`, serialised once per
+argument shapes (the size buckets of `jaxcal._buckets` keep those few) into
+`<compile cache>/jaxcal-programs/`. A later process deserialises it and calls it
+through `jax.jit(exported.call)`, whose lowering is a copy of the stored module
+and whose executable comes from the persistent cache. A process with no entry
+exports the program first and calls it the same way, so the numbers do not depend
+on whether the program was reloaded.
+
+An entry is used only when everything that decides the program matches: the
+program's name and static configuration, the argument tree and avals, jaxcal's
+version and a digest of its source files, the versions of JAX, jaxlib and the
+libraries that trace into it (equinox, optimistix, lineax, NumPy), `XLA_FLAGS`,
+the x64 flag and the backend. Each file carries that key and a SHA-256 of its
+payload, checked before anything is deserialised; an entry that is stale,
+truncated, corrupted or written for another key is ignored and rebuilt (written
+atomically). The entries, like the compile cache's executables, are trusted
+only as far as the user's own cache directory is.
+
+Without a cache directory (`JAXCAL_NO_CACHE=1`) nothing is written and every
+process exports its programs in memory.
+"""
+
+import functools
+import hashlib
+import importlib.metadata
+import json
+import os
+import pickle
+import re
+import tempfile
+import threading
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ._cache import QUICK_COMPILE
+
+#: Folder (inside JAX's compile-cache directory) of the stored programs.
+FOLDER = "jaxcal-programs"
+#: First bytes of an entry; a new layout gets a new magic.
+MAGIC = b"JAXCAL-EXPORTED-1\n"
+#: Libraries whose code is traced into the programs.
+_TRACED_LIBRARIES = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")
+#: Custom calls bound to this process's Python objects: a program holding one is never stored.
+_PROCESS_BOUND = re.compile(rb"callback", re.IGNORECASE)
+
+
+@functools.cache
+def _source_digest() -> str:
+    """SHA-256 of jaxcal's Python sources: a program traced from other code is another program."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _version(name: str) -> str:
+    try:
+        return importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        return "none"
+
+
+@functools.cache
+def _environment() -> dict:
+    return {
+        "jaxcal": _version("jaxcal"),
+        "jaxcal_source": _source_digest(),
+        **{lib: _version(lib) for lib in _TRACED_LIBRARIES},
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+    }
+
+
+def _environment_now() -> dict:
+    return {
+        **_environment(),
+        "x64": bool(jax.config.jax_enable_x64),
+        "backend": jax.default_backend(),
+        "compiler_options": sorted((k, str(v)) for k, v in QUICK_COMPILE.items()),
+    }
+
+
+def programs_dir() -> Path | None:
+    """Where stored programs go: beside JAX's compile cache, or `None` when it is off."""
+    cache = jax.config.jax_compilation_cache_dir
+    return Path(cache) / FOLDER if cache else None
+
+
+def _aval(x) -> tuple:
+    """`(shape, dtype)` of an array, a `jax.ShapeDtypeStruct` or an aval."""
+    a = x if isinstance(x, (jax.ShapeDtypeStruct, jax.core.ShapedArray)) else jax.typeof(x)
+    return tuple(int(d) for d in a.shape), a.dtype
+
+
+def _strong(x):
+    """`x` with a strong type: a Python scalar or weakly typed array as a NumPy array of
+    its dtype. Programs are keyed and traced on strong types, so that an integer output
+    fed back in (weak in JAX) finds the same program."""
+    if isinstance(x, jax.ShapeDtypeStruct):
+        return jax.ShapeDtypeStruct(x.shape, x.dtype)
+    a = jax.typeof(x)
+    return np.asarray(x, a.dtype) if getattr(a, "weak_type", False) else x
+
+
+def _flatten(args, kwargs):
+    leaves, in_tree = jax.tree.flatten((args, kwargs))
+    leaves = [_strong(x) for x in leaves]
+    return leaves, in_tree, [_aval(x) for x in leaves]
+
+
+class _Entry:
+    """One program for one argument tree and shapes: the exported module, the jitted call and
+    the output tree."""
+
+    def __init__(self, name: str, exported, out_tree):
+        self.exported = exported
+        self.out_tree = out_tree
+
+        def call(*leaves):
+            return exported.call(*leaves)
+
+        call.__name__ = call.__qualname__ = name  # what JAX's logs and events name it
+        self.jitted = jax.jit(call, compiler_options=QUICK_COMPILE)
+        self._compiled = None
+        self._lock = threading.Lock()
+
+    def compiled(self):
+        """The executable: lowered and compiled (or read from JAX's persistent cache) once."""
+        with self._lock:
+            if self._compiled is None:
+                specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.exported.in_avals]
+                self._compiled = self.jitted.lower(*specs).compile()
+            return self._compiled
+
+    def out_info(self):
+        specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.exported.out_avals]
+        return jax.tree.unflatten(self.out_tree, specs)
+
+
+class StoredProgram:
+    """A `jax.jit` of `fun` whose traced programs persist across processes (module docstring).
+
+    Every argument leaf is traced (as `jax.jit` without static arguments); what
+    else decides the program (closure values, the function's configuration) must
+    be in `static`, which names the entry with `name`.
+    """
+
+    def __init__(self, fun, name: str, static=()):
+        self.fun = fun
+        self.name = name
+        self.static = repr(static)
+        self._entries: dict = {}
+        self._lock = threading.Lock()
+        functools.update_wrapper(self, fun)
+
+    def __call__(self, *args, **kwargs):
+        leaves, in_tree, avals = _flatten(args, kwargs)
+        entry = self._entry(in_tree, avals)
+        return jax.tree.unflatten(entry.out_tree, entry.compiled()(*leaves))
+
+    def out_info(self, *args, **kwargs):
+        """The output's shapes and dtypes (a pytree of `jax.ShapeDtypeStruct`), without running it."""
+        _, in_tree, avals = _flatten(args, kwargs)
+        return self._entry(in_tree, avals).out_info()
+
+    def compile(self, *args, **kwargs) -> None:
+        """Load or export, lower and compile the program for these arguments (arrays or
+        `jax.ShapeDtypeStruct`s), so that a call with such arguments finds it compiled."""
+        _, in_tree, avals = _flatten(args, kwargs)
+        self._entry(in_tree, avals).compiled()
+
+    def cache_size(self) -> int:
+        """How many programs (argument trees and shapes) this process holds."""
+        return len(self._entries)
+
+    # ------------------------------------------------------------------ entries
+
+    def _key(self, in_tree, avals) -> dict:
+        return {
+            "name": self.name,
+            "static": self.static,
+            "in_tree": str(in_tree),
+            "avals": [[list(s), str(d)] for s, d in avals],
+            **_environment_now(),
+        }
+
+    def _entry(self, in_tree, avals) -> _Entry:
+        memo = (in_tree, tuple(avals))
+        with self._lock:
+            entry = self._entries.get(memo)
+            if entry is None:
+                entry = self._entries[memo] = self._load_or_export(in_tree, avals)
+            return entry
+
+    def _load_or_export(self, in_tree, avals) -> _Entry:
+        key = self._key(in_tree, avals)
+        text = json.dumps(key, sort_keys=True).encode()
+        folder = programs_dir()
+        path = None
+        if folder is not None:
+            path = folder / f"{self.name}-{hashlib.sha256(text).hexdigest()[:40]}.jaxexport"
+            entry = _read(path, self.name, text, avals)
+            if entry is not None:
+                return entry
+        exported, out_tree = self._export(in_tree, avals)
+        if path is not None:
+            _write(path, text, exported, out_tree)
+        return _Entry(self.name, exported, out_tree)
+
+    def _export(self, in_tree, avals):
+        out_trees = []
+
+        def flat(*leaves):
+            args, kwargs = jax.tree.unflatten(in_tree, leaves)
+            out, tree = jax.tree.flatten(self.fun(*args, **kwargs))
+            out_trees.append(tree)
+            return out
+
+        flat.__name__ = self.name
+        specs = [jax.ShapeDtypeStruct(s, d) for s, d in avals]
+        # Entries are keyed by the exact jaxlib, so its own (unstable) custom calls are safe.
+        exported = jax.export.export(
+            jax.jit(flat), disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")]
+        )(*specs)
+        return exported, out_trees[-1]
+
+
+def stored_jit(fun, name: str, static=()) -> StoredProgram:
+    """`StoredProgram(fun, name, static)`: `jaxcal._cache.quick_jit(fun)` whose traced
+    programs are stored beside the compile cache (module docstring)."""
+    return StoredProgram(fun, name, static)
+
+
+# ---------------------------------------------------------------------- files
+
+
+def _read(path: Path, name: str, key: bytes, avals) -> _Entry | None:
+    """The entry at `path` if it is whole and written for exactly `key`, else `None`."""
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        if not blob.startswith(MAGIC):
+            return None
+        body = blob[len(MAGIC) :]
+        head_len = int.from_bytes(body[:8], "little")
+        head = json.loads(body[8 : 8 + head_len])
+        payload = body[8 + head_len :]
+        if head.get("key") != key.decode() or head.get("sha256") != hashlib.sha256(payload).hexdigest():
+            return None
+        tree_len = int(head["tree_bytes"])
+        out_tree = jax.tree.structure(pickle.loads(payload[:tree_len]))
+        exported = jax.export.deserialize(bytearray(payload[tree_len:]))
+        if [_aval(a) for a in exported.in_avals] != list(avals) or len(
+            exported.out_avals
+        ) != out_tree.num_leaves:
+            return None
+        return _Entry(name, exported, out_tree)
+    except Exception:  # noqa: BLE001 - any damage means: rebuild it
+        return None
+
+
+def _write(path: Path, key: bytes, exported, out_tree) -> None:
+    """Store an entry atomically; a program that cannot be stored is simply not stored."""
+    try:
+        if _PROCESS_BOUND.search(exported.mlir_module_serialized):
+            return
+        skeleton = pickle.dumps(jax.tree.unflatten(out_tree, list(range(out_tree.num_leaves))))
+        if jax.tree.structure(pickle.loads(skeleton)) != out_tree:
+            return
+        payload = skeleton + bytes(exported.serialize())
+        head = json.dumps(
+            {"key": key.decode(), "sha256": hashlib.sha256(payload).hexdigest(), "tree_bytes": len(skeleton)}
+        ).encode()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(MAGIC + len(head).to_bytes(8, "little") + head + payload)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    except Exception:  # noqa: BLE001 - a read-only or full cache only costs the next process a trace
+        return
