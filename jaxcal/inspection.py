@@ -43,11 +43,11 @@ def _joint_range(ds: Dataset, joint: str, values) -> dict:
     return {"range_deg": [float(np.degrees(v.min())), float(np.degrees(v.max()))]}
 
 
-def _format_range(g: dict) -> str:
+def _format_range(g: dict, verb: str = "sweeps") -> str:
     if "range_mm" in g:
         return f", travels {g['range_mm'][0]:.1f} .. {g['range_mm'][1]:.1f} mm"
     if "range_deg" in g:
-        return f", sweeps {g['range_deg'][0]:.1f} .. {g['range_deg'][1]:.1f} deg"
+        return f", {verb} {g['range_deg'][0]:.1f} .. {g['range_deg'][1]:.1f} deg"
     return ""
 
 
@@ -134,9 +134,10 @@ def _format_tracker(s: dict) -> str:
         f"{d['link']}; " + ("orientations" if d["orientations"] else "positions only")
         + (", joint positions given" if d["joint_positions"] else ", no joint positions"),
     ]  # fmt: skip
+    poses = "stop-and-shoot" in s["kind"]
     for g in s["joints"]:
         span = f", {g['time_s'][0]:.3f}-{g['time_s'][1]:.3f} s" if "time_s" in g else ""
-        rng = _format_range(g)
+        rng = _format_range(g, "stands at" if poses else "sweeps")
         lines.append(f"  {g['joint']}: {g['samples']} samples{span}{rng}")
     if s["unassigned_samples"]:
         lines.append(f"  {s['unassigned_samples']} samples name no joint")
