@@ -116,10 +116,11 @@ def _result_tables(console, result) -> None:
             )
         console.print(line)
     c = result.clock
-    console.print(
-        f"clock offset: {1e3 * c['offset_s']:.2f} ms"
-        + (f" (estimated, std {1e3 * c['std_s']:.2f} ms)" if c["estimated"] else " (from the metadata)")
-    )
+    if result.kind.images or c["estimated"]:  # tracker samples carry their own joint positions: no clock
+        console.print(
+            f"clock offset: {1e3 * c['offset_s']:.2f} ms"
+            + (f" (estimated, std {1e3 * c['std_s']:.2f} ms)" if c["estimated"] else " (from the metadata)")
+        )
     console.print(
         f"held at nominal (the {'device' if result.kind.device else 'camera'} cannot see them): "
         f"{len(result.frozen)} parameters, see report.md"
