@@ -1,0 +1,142 @@
+"""Is `jaxcal certify` honest? Its 95 % bounds against the true errors of simulated calibrations.
+
+Per design and seed: simulate a capture with a known truth, calibrate it, write
+the result, certify it over `--configs` random configurations (the joints'
+whole travel, the fixed frame), and compare with the true error at those
+configurations (the calibrated tool point against the true one, both in the
+fixed frame: the device's or the camera's):
+
+- `certificate_coverage`: per design, the share of configurations whose true
+  error lies within its certified 95 % bound, over all seeds (and per seed);
+- `certificate_ratios`: per design and seed, the measured over predicted RMS;
+- `certificate_tightness`: per design, the median over seeds of the certified
+  region 95 % bound over the measured 95th percentile of the true errors.
+
+Designs: `tracker_poses` (stop-and-shoot tracker samples, no rendering) and,
+with `--camera RESULT ...`, rendered camera calibrations already written (each
+result directory's dataset must hold `truth.json`). Usage:
+
+    python benchmarks/certify.py --seeds 5 --json results/certify.json [--camera DIR ...]
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxcal
+from jaxcal.certification import certify
+from jaxcal.io._files import write_text_atomic
+from jaxcal.io.model_json import model_from_json
+from jaxcal.report import write_outputs
+from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
+
+
+def true_points(truth: dict, fixed: str, target: str, q: np.ndarray) -> np.ndarray:
+    """The true tool point in the fixed frame at every configuration (m)."""
+    model = model_from_json(truth["model"])
+    T = np.asarray(truth["cameras"][fixed]["T_cam_base"])
+    p = np.asarray(truth["targets"][target]["T_link_target"])
+    F = np.asarray(jax.vmap(lambda qq: jaxcal.forward_kinematics(model, qq)[-1])(jnp.asarray(q)))
+    return np.einsum("ab,nbc,cd->nad", T, F, p)[:, :3, 3]
+
+
+def score(res: Path, configs: int, seed: int) -> dict:
+    """Certify `res` and score it against its dataset's truth."""
+    doc = json.loads((res / "result.json").read_text())
+    truth = json.loads((Path(doc["dataset"]) / "truth.json").read_text())
+    fixed = doc["T_device_base" if "T_device_base" in doc else "T_cam_base"]["matrix"]
+    t0 = time.perf_counter()
+    c = certify(res, samples=configs, seed=seed)
+    seconds = time.perf_counter() - t0
+    T = np.asarray(fixed)
+    y_cal = c.points @ T[:3, :3].T + T[:3, 3]
+    y_true = true_points(truth, doc["camera"], doc["targets"][0], c.q)
+    err = 1e3 * np.linalg.norm(y_cal - y_true, axis=1)
+    return {
+        "result": str(res),
+        "coverage": float(np.mean(err <= c.bound95_mm)),
+        "measured_rms_mm": float(np.sqrt(np.mean(err**2))),
+        "predicted_rms_mm": c.summary["rms_mm"],
+        "ratio": float(np.sqrt(np.mean(err**2)) / c.summary["rms_mm"]),
+        "certified_p95_mm": c.summary["p95_mm"],
+        "measured_p95_mm": float(np.quantile(err, 0.95)),
+        "tightness": float(c.summary["p95_mm"] / np.quantile(err, 0.95)),
+        "caveats": list(c.caveats),
+        "certify_s": seconds,
+        "inside": err <= c.bound95_mm,
+    }
+
+
+def tracker_results(seeds: int, poses: int, root: Path) -> list[Path]:
+    out = []
+    for s in range(seeds):
+        cfg = TrackerSimConfig(
+            robot="ur5e", seed=100 + s, poses=poses, noise_um=10.0, bad_fraction=0.0, home_deg=None
+        )
+        ds = simulate_tracker(cfg, root / f"ds{s}")
+        out.append(write_outputs(jaxcal.calibrate(ds, cv_folds=0, progress=False), root / f"res{s}"))
+    return out
+
+
+def summarise(rows: list[dict]) -> dict:
+    return {
+        "coverage": float(np.mean(np.concatenate([r["inside"] for r in rows]))),
+        "ratios": [r["ratio"] for r in rows],
+        "tightness": float(np.median([r["tightness"] for r in rows])),
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, default=5, help="tracker calibrations")
+    p.add_argument("--poses", type=int, default=60, help="stop-and-shoot samples per tracker calibration")
+    p.add_argument("--configs", type=int, default=1000, help="random test configurations per calibration")
+    p.add_argument("--camera", nargs="*", default=[], type=Path, help="rendered camera results (truth.json)")
+    p.add_argument("--json", required=True, type=Path)
+    args = p.parse_args(argv)
+    designs = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        rows = [
+            score(r, args.configs, k)
+            for k, r in enumerate(tracker_results(args.seeds, args.poses, Path(tmp)))
+        ]
+        designs["tracker_poses"] = rows
+        print(f"tracker: {args.seeds} calibrations in {time.perf_counter() - t0:.0f} s", flush=True)
+    if args.camera:
+        designs["camera"] = [score(r, args.configs, k) for k, r in enumerate(args.camera)]
+    out = {
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
+        "configs": args.configs,
+        "certificate_coverage": {},
+        "certificate_ratios": {},
+        "certificate_tightness": {},
+        "designs": {},
+    }
+    for name, rows in designs.items():
+        s = summarise(rows)
+        out["certificate_coverage"][name] = s["coverage"]
+        out["certificate_ratios"][name] = s["ratios"]
+        out["certificate_tightness"][name] = s["tightness"]
+        out["designs"][name] = [{k: v for k, v in r.items() if k != "inside"} for r in rows]
+        print(
+            f"{name}: coverage {s['coverage']:.3f}, measured/predicted RMS "
+            f"{', '.join(f'{x:.2f}' for x in s['ratios'])}, tightness (median) {s['tightness']:.2f}",
+            flush=True,
+        )
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(args.json, json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
