@@ -48,7 +48,7 @@ def calibrate(
       adds every other fixed camera (`other_cameras=False`: only this one):
       one robot model, one `T_cam_base` per camera, all cameras on the
       dataset's one clock.
-    - `workers`: processes for detection (default all cores).
+    - `workers`: threads for detection (default all cores).
     - `estimate_clock`: estimate the camera-controller clock offset (default:
       when the metadata leaves it null).
     - `trust_clock`: use the metadata's clock offset as it is (by default the

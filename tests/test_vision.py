@@ -210,8 +210,8 @@ def test_process_pool_equals_in_process(tmp_path, board_views, marker_view):
     targets = [BOARD, MARKER]
     here = detect_frames(paths, targets, K=CAMERA.K, dist=CAMERA.dist, workers=1, progress=False)
     assert [sorted(d) for d in here[:5]] == [["board"], ["board"], ["board"], ["marker"], ["board"]]
-    pooled = detect_frames(paths, targets, K=CAMERA.K, dist=CAMERA.dist, workers=2, progress=False)
-    threads = detect_frames(paths, targets, K=CAMERA.K, dist=CAMERA.dist, workers=2, pool="thread")
+    pooled = detect_frames(paths, targets, K=CAMERA.K, dist=CAMERA.dist, workers=2, pool="process")
+    threads = detect_frames(paths, targets, K=CAMERA.K, dist=CAMERA.dist, workers=2, progress=False)
     assert pooled == here and threads == here
 
 

@@ -295,7 +295,7 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         "each with its own T_cam_base)",
     )
     p.add_argument(
-        "--workers", type=positive_int, help="processes for marker detection, >= 1 (default: all cores)"
+        "--workers", type=positive_int, help="threads for marker detection, >= 1 (default: all cores)"
     )
     p.add_argument(
         "--estimate-clock",

@@ -6,7 +6,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from matplotlib.figure import Figure
 
 from .._correction import zero_correction
 from .._uncertainty import tool_points
@@ -47,6 +46,8 @@ def plot_evaluation(ev: PlanEvaluation, scene: PlanScene, configs, path, title: 
     points coloured by their sigma (mm), and its histogram; written to `path` (PNG)."""
     p = workspace_points(scene, configs)
     s = 1e3 * np.asarray(ev.ee_sigma)
+    from matplotlib.figure import Figure  # only when a report is drawn: importing jaxcal stays light
+
     fig = Figure(figsize=(15, 4.6), layout="constrained")  # no pyplot: no global state, any backend
     ax = fig.subplots(1, 3)
     vmin, vmax = (float(v) for v in np.percentile(s, [1, 99]))  # the spread, not the distance from 0

@@ -18,8 +18,8 @@ from ..markers import GRID_KINDS, TargetSpec, aruco_dictionary
 # Fewest features that still fix a pose: 4 ChArUco corners, or the 4 corners of a marker.
 MIN_POINTS = 4
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
-# Below this many images per worker, a process pool costs more (worker start-up,
-# ~2 s) than it saves (~10 ms per 640x480 image).
+# Below this many images per worker, another worker costs more than it saves (a
+# process's start-up, or OpenCV's own threads already busy inside one detector).
 _POOL_MIN_PER_WORKER = 32
 
 
@@ -331,8 +331,8 @@ def _detect_chunk(paths: list, targets: tuple, K, dist) -> list:
 @lru_cache(maxsize=1)
 def _process_context():
     """`forkserver`, its server preloaded with this module: the server starts (and
-    imports jaxcal, ~2 s) once per process, then every worker is a cheap fork of
-    it. Never a plain fork of the caller, which may be running JAX's threads."""
+    imports jaxcal) once per process, then every worker is a cheap fork of it.
+    Never a plain fork of the caller, which may be running JAX's threads."""
     import multiprocessing
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
@@ -340,6 +340,19 @@ def _process_context():
     context = get_context("forkserver")
     context.set_forkserver_preload([__name__])
     return context
+
+
+def _stop(executor, futures) -> None:
+    """An interrupted or failed run: drop the chunks not started and end the workers now
+    (a process pool's workers are terminated, so that Ctrl-C leaves no child process)."""
+    for f in futures:
+        f.cancel()
+    processes = list((getattr(executor, "_processes", None) or {}).values())
+    executor.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        proc.terminate()
+    for proc in processes:
+        proc.join(timeout=5)
 
 
 def _init_worker() -> None:
@@ -354,18 +367,20 @@ def detect_frames(
     dist=None,
     workers: int | None = None,
     progress: bool = True,
-    pool: str = "process",
+    pool: str = "thread",
 ) -> list[dict[str, Detection]]:
     """Detect every target in every image file.
 
     Images are read with `cv2.imread(..., IMREAD_GRAYSCALE)`. Long lists are
-    spread over a pool of `workers`. The process pool uses the `forkserver`
-    context (`spawn` where there is none): the caller may be running JAX,
-    which must not be forked. A script that calls this at import time
-    therefore needs the usual `if __name__ == "__main__":` guard. The first
-    pool of a process pays about 2 s to start the server (it imports
-    jaxcal), which is why short lists run here. `pool="thread"` uses threads
-    instead (OpenCV releases the GIL while it detects): no start-up cost.
+    spread over a pool of `workers` threads: OpenCV releases Python's lock
+    while it reads and detects, so threads run in parallel without starting a
+    process, whatever the start method, from any script (no `__main__` guard
+    needed). `pool="process"` uses processes instead (the `forkserver`
+    context, `spawn` where there is none: the caller may be running JAX, which
+    must not be forked); its first pool starts a server that imports jaxcal,
+    and a script that calls it at import time needs the usual
+    `if __name__ == "__main__":` guard. An interrupted run (Ctrl-C) or a
+    failed image ends the pool's workers before the exception propagates.
 
     **Arguments:**
 
@@ -373,9 +388,9 @@ def detect_frames(
     - `targets`: the targets to look for (distinct `name`s).
     - `K`, `dist`: the camera's intrinsics, if known (see `detect`).
     - `workers`: `None`: every core, fewer for short lists (at least
-      32 images per worker); `1`: in this process; `k > 1`: exactly k.
+      32 images per worker); `1`: in the calling thread; `k > 1`: exactly k.
     - `progress`: show a rich progress bar.
-    - `pool`: `"process"` or `"thread"`.
+    - `pool`: `"thread"` (default) or `"process"`.
 
     **Returns:** one dict per path, in the order of `paths`: target name ->
     `Detection`, only for the targets found.
@@ -415,16 +430,16 @@ def detect_frames(
         if pool == "process":
             executor = ProcessPoolExecutor(workers, mp_context=_process_context(), initializer=_init_worker)
         else:
-            executor = ThreadPoolExecutor(workers)
-        with executor:
+            executor = ThreadPoolExecutor(workers, thread_name_prefix="jaxcal detect")
+        futures = []
+        try:
             futures = [executor.submit(_detect_chunk, c, targets, K, dist) for c in chunks]
-            try:
-                for future, chunk in zip(futures, chunks):
-                    results.extend(future.result())
-                    if bar is not None:
-                        bar.advance(task, len(chunk))
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
+            for future, chunk in zip(futures, chunks):
+                results.extend(future.result())
+                if bar is not None:
+                    bar.advance(task, len(chunk))
+        except BaseException:
+            _stop(executor, futures)
+            raise
+        executor.shutdown()
     return results
