@@ -81,12 +81,7 @@ def _environment() -> dict:
 
 
 def _environment_now() -> dict:
-    return {
-        **_environment(),
-        "x64": bool(jax.config.jax_enable_x64),
-        "backend": jax.default_backend(),
-        "compiler_options": sorted((k, str(v)) for k, v in QUICK_COMPILE.items()),
-    }
+    return {**_environment(), "x64": bool(jax.config.jax_enable_x64), "backend": jax.default_backend()}
 
 
 def programs_dir() -> Path | None:
@@ -121,7 +116,7 @@ class _Entry:
     """One program for one argument tree and shapes: the exported module, the jitted call and
     the output tree."""
 
-    def __init__(self, name: str, exported, out_tree):
+    def __init__(self, name: str, exported, out_tree, compiler_options):
         self.exported = exported
         self.out_tree = out_tree
 
@@ -129,7 +124,7 @@ class _Entry:
             return exported.call(*leaves)
 
         call.__name__ = call.__qualname__ = name  # what JAX's logs and events name it
-        self.jitted = jax.jit(call, compiler_options=QUICK_COMPILE)
+        self.jitted = jax.jit(call, compiler_options=compiler_options)
         self._compiled = None
         self._lock = threading.Lock()
 
@@ -151,13 +146,15 @@ class StoredProgram:
 
     Every argument leaf is traced (as `jax.jit` without static arguments); what
     else decides the program (closure values, the function's configuration) must
-    be in `static`, which names the entry with `name`.
+    be in `static`, which names the entry with `name`. `compiler_options`: XLA's,
+    as `jax.jit`'s (default `QUICK_COMPILE`; `None` for XLA's defaults).
     """
 
-    def __init__(self, fun, name: str, static=()):
+    def __init__(self, fun, name: str, static=(), compiler_options=QUICK_COMPILE):
         self.fun = fun
         self.name = name
         self.static = repr(static)
+        self.compiler_options = None if compiler_options is None else dict(compiler_options)
         self._entries: dict = {}
         self._lock = threading.Lock()
         functools.update_wrapper(self, fun)
@@ -190,6 +187,7 @@ class StoredProgram:
             "static": self.static,
             "in_tree": str(in_tree),
             "avals": [[list(s), str(d)] for s, d in avals],
+            "compiler_options": sorted((k, str(v)) for k, v in (self.compiler_options or {}).items()),
             **_environment_now(),
         }
 
@@ -208,13 +206,13 @@ class StoredProgram:
         path = None
         if folder is not None:
             path = folder / f"{self.name}-{hashlib.sha256(text).hexdigest()[:40]}.jaxexport"
-            entry = _read(path, self.name, text, avals)
+            entry = _read(path, self, text, avals)
             if entry is not None:
                 return entry
         exported, out_tree = self._export(in_tree, avals)
         if path is not None:
             _write(path, text, exported, out_tree)
-        return _Entry(self.name, exported, out_tree)
+        return _Entry(self.name, exported, out_tree, self.compiler_options)
 
     def _export(self, in_tree, avals):
         out_trees = []
@@ -234,16 +232,17 @@ class StoredProgram:
         return exported, out_trees[-1]
 
 
-def stored_jit(fun, name: str, static=()) -> StoredProgram:
-    """`StoredProgram(fun, name, static)`: `jaxcal._cache.quick_jit(fun)` whose traced
-    programs are stored beside the compile cache (module docstring)."""
-    return StoredProgram(fun, name, static)
+def stored_jit(fun, name: str, static=(), compiler_options=QUICK_COMPILE) -> StoredProgram:
+    """`StoredProgram(fun, name, static, compiler_options)`: by default
+    `jaxcal._cache.quick_jit(fun)`, whose traced programs are stored beside the
+    compile cache (module docstring)."""
+    return StoredProgram(fun, name, static, compiler_options)
 
 
 # ---------------------------------------------------------------------- files
 
 
-def _read(path: Path, name: str, key: bytes, avals) -> _Entry | None:
+def _read(path: Path, program: StoredProgram, key: bytes, avals) -> _Entry | None:
     """The entry at `path` if it is whole and written for exactly `key`, else `None`."""
     try:
         blob = path.read_bytes()
@@ -265,7 +264,7 @@ def _read(path: Path, name: str, key: bytes, avals) -> _Entry | None:
             exported.out_avals
         ) != out_tree.num_leaves:
             return None
-        return _Entry(name, exported, out_tree)
+        return _Entry(program.name, exported, out_tree, program.compiler_options)
     except Exception:  # noqa: BLE001 - any damage means: rebuild it
         return None
 

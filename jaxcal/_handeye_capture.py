@@ -19,6 +19,7 @@ import jax
 import numpy as np
 
 from ._cache import enable_compilation_cache
+from ._exported import stored_jit
 from ._handeye import (
     ROBOT_SIGMA_OPTIONS,
     ROBOT_SIGMA_START,
@@ -47,15 +48,18 @@ def hand_eye_solver(max_steps: int = 200) -> Callable:
     """`jax.jit(calibrate_hand_eye)` at `max_steps` as `solve(data, reject_outliers, estimate_robot_noise)`,
     one per value (shapes are bucketed by the caller; both flags are traced, so every setting shares
     the program of its data: with noisy robot poses, estimated or given, one program)."""
-    return jax.jit(
-        lambda data, reject, estimate: calibrate_hand_eye(
+
+    def hand_eye(data, reject, estimate):
+        return calibrate_hand_eye(
             data,
             reject_outliers=reject,
             estimate_robot_noise=estimate,
             max_steps=max_steps,
             outlier_threshold=OUTLIER_THRESHOLD,
         )
-    )
+
+    # Runs many times per process (k-fold, bootstrap): XLA's optimisations pay for themselves.
+    return stored_jit(hand_eye, "hand_eye", (max_steps, OUTLIER_THRESHOLD), compiler_options=None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -321,7 +325,7 @@ def calibrate_hand_eye_capture(
     sigma_px: float | None = None,
     folds: int = 10,
     max_steps: int = 200,
-    workers: int | None = 1,
+    workers: int | None = None,
     progress: bool = False,
     log: Callable[[str], None] = lambda text: None,
 ) -> HandEyeRun:

@@ -187,7 +187,9 @@ def add_handeye_parsers(sub) -> None:
     )
     p.add_argument("--folds", type=int, default=10, help="k of the k-fold spread (0: skip)")
     p.add_argument("--max-steps", type=int, default=200, help="Levenberg-Marquardt steps per stage")
-    p.add_argument("--workers", type=int, default=1, help="threads for marker detection")
+    p.add_argument(
+        "--workers", type=int, default=None, help="threads for marker detection (default: all cores)"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_handeye)
     p = sub.add_parser(

@@ -18,9 +18,10 @@ from ..markers import GRID_KINDS, TargetSpec, aruco_dictionary
 # Fewest features that still fix a pose: 4 ChArUco corners, or the 4 corners of a marker.
 MIN_POINTS = 4
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
-# Below this many images per worker, another worker costs more than it saves (a
-# process's start-up, or OpenCV's own threads already busy inside one detector).
+# Below this many images per worker, another worker costs more than it saves: a
+# process's start-up; for threads, their chunks' hand-over.
 _POOL_MIN_PER_WORKER = 32
+_THREAD_MIN_PER_WORKER = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -388,7 +389,8 @@ def detect_frames(
     - `targets`: the targets to look for (distinct `name`s).
     - `K`, `dist`: the camera's intrinsics, if known (see `detect`).
     - `workers`: `None`: every core, fewer for short lists (at least
-      32 images per worker); `1`: in the calling thread; `k > 1`: exactly k.
+      4 images per thread, 32 per process); `1`: in the calling thread;
+      `k > 1`: exactly k.
     - `progress`: show a rich progress bar.
     - `pool`: `"thread"` (default) or `"process"`.
 
@@ -411,7 +413,8 @@ def detect_frames(
     K = None if K is None else np.asarray(K, np.float64)
     dist = None if dist is None else np.asarray(dist, np.float64)
     if workers is None:
-        workers = min(os.cpu_count() or 1, max(1, len(paths) // _POOL_MIN_PER_WORKER))
+        per_worker = _POOL_MIN_PER_WORKER if pool == "process" else _THREAD_MIN_PER_WORKER
+        workers = min(os.cpu_count() or 1, max(1, len(paths) // per_worker))
     elif int(workers) < 1:
         raise VisionError(f"workers must be >= 1, got {workers}")
     workers = max(1, min(int(workers), len(paths)))
