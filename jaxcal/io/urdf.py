@@ -23,10 +23,13 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 import numpy as np
-import yourdfpy
+
+if TYPE_CHECKING:
+    import yourdfpy
 
 from .._geometry import matrix_to_rpy, rpy_to_matrix
 from .._kinematics import (
@@ -186,7 +189,9 @@ def urdf_outline(path, joint_names=()) -> UrdfOutline:
     return UrdfOutline(links, parent_joint, limits)
 
 
-def _load_yourdfpy(path: Path) -> yourdfpy.URDF:
+def _load_yourdfpy(path: Path) -> "yourdfpy.URDF":
+    import yourdfpy  # (trimesh, scipy, shapely: a second's import) only when a URDF is read
+
     try:
         # A zero joint axis makes yourdfpy's scene graph divide by zero; load_urdf rejects it itself.
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -213,7 +218,7 @@ def _leaves_with_motion(children: dict[str, list], base: str) -> list[str]:
 
 
 def _chain(
-    urdf: yourdfpy.URDF, path: Path, base_link: str | None, tip_link: str | None
+    urdf: "yourdfpy.URDF", path: Path, base_link: str | None, tip_link: str | None
 ) -> tuple[list, str, str]:
     """The joints from `base_link` to `tip_link` (base first), and the two link names."""
     links = {link.name for link in urdf.robot.links}

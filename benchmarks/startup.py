@@ -1,0 +1,158 @@
+"""Start-up of jaxcal's commands: what a user waits for from the shell (issue 35).
+
+Every figure is the wall time of a fresh process, the median of `--repeats`
+(default 3), each run with `XDG_CACHE_HOME` pointing at a cache of this
+benchmark's own (so that nothing else's cache counts, and the cold runs start
+from an empty one):
+
+- `import_s`: `python -c "import jaxcal"`.
+- `cold_cli_s`: `jaxcal calibrate data/ur5e_sweeps --out DIR` with an empty
+  cache (JAX's compiled executables and jaxcal's stored programs); each
+  repeat empties it first.
+- `warm_cli_s`: the same command again, the cache warm.
+- `inprocess_second_s`: `jaxcal.calibrate(data/ur5e_sweeps)` called a second
+  time in one process (the work itself), warm cache, measured in the same run
+  as `warm_cli_s`.
+- `handeye_warm_cli_s`: `jaxcal handeye CAPTURE --out DIR` on a 16-frame
+  eye-in-hand capture (rendered once by `jaxcal simulate-handeye`, MuJoCo),
+  warm cache; `null` where it cannot render.
+- `ee_rms_mm_after_cold`, `ee_rms_mm_after_warm`: the validation's end-effector
+  RMS after calibration of the first cold and the first warm run (equal to
+  round-off).
+
+    python benchmarks/startup.py --json results/startup.json [--repeats 3] [--no-cold]
+
+The JSON also holds every repeat (`runs`), `load` (the 1-minute load average
+before each figure: on a shared machine the figures are only comparable back
+to back) and `machine`.
+"""
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATASET = ROOT / "data" / "ur5e_sweeps"
+JAXCAL = [sys.executable, "-m", "jaxcal"]
+
+INPROCESS = r"""
+import json, sys, time
+import jaxcal
+jaxcal.calibrate(sys.argv[1], progress=False)
+t0 = time.perf_counter()
+jaxcal.calibrate(sys.argv[1], progress=False)
+print(json.dumps({"second_s": time.perf_counter() - t0}))
+"""
+
+
+def _load() -> float:
+    return os.getloadavg()[0]
+
+
+def _run(cmd: list[str], env: dict) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(cmd, env=env, check=True, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    return time.perf_counter() - t0
+
+
+def _calibrate(env: dict, out: Path) -> tuple[float, float]:
+    """Wall time of one `jaxcal calibrate` and its result's `ee_rms_mm_after`."""
+    shutil.rmtree(out, ignore_errors=True)
+    wall = _run([*JAXCAL, "calibrate", str(DATASET), "--out", str(out), "--quiet"], env)
+    result = json.loads((out / "result.json").read_text())
+    return wall, result["validation"]["ee_rms_mm_after"]
+
+
+def _figure(name: str, runs: list[float], report: dict) -> None:
+    report["runs"][name] = runs
+    report[name] = statistics.median(runs)
+    print(f"{name}: {report[name]:.2f} s (runs {', '.join(f'{r:.2f}' for r in runs)})", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", help="write the figures here")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--no-cold", action="store_true", help="skip the cold runs (about a minute each)")
+    args = parser.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="jaxcal-startup-"))
+    env = {**os.environ, "XDG_CACHE_HOME": str(work / "cache")}
+    for var in ("JAX_COMPILATION_CACHE_DIR", "JAXCAL_NO_CACHE"):
+        env.pop(var, None)
+    report: dict = {
+        "runs": {},
+        "load": {},
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+    }
+    try:
+        report["load"]["import_s"] = _load()
+        _figure(
+            "import_s",
+            [_run([sys.executable, "-c", "import jaxcal"], env) for _ in range(args.repeats)],
+            report,
+        )
+        cold, ee_cold = [], None
+        for _ in range(1 if args.no_cold else args.repeats):
+            shutil.rmtree(work / "cache", ignore_errors=True)
+            report["load"].setdefault("cold_cli_s", _load())
+            wall, ee = _calibrate(env, work / "out")
+            cold.append(wall)
+            ee_cold = ee if ee_cold is None else ee_cold
+        if not args.no_cold:
+            _figure("cold_cli_s", cold, report)
+        report["ee_rms_mm_after_cold"] = ee_cold
+        report["load"]["warm_cli_s"] = _load()
+        warm = [_calibrate(env, work / "out") for _ in range(args.repeats)]
+        _figure("warm_cli_s", [w for w, _ in warm], report)
+        report["ee_rms_mm_after_warm"] = warm[0][1]
+        seconds = []
+        for _ in range(args.repeats):
+            run = subprocess.run(
+                [sys.executable, "-c", INPROCESS, str(DATASET)], env=env, cwd=ROOT, check=True,
+                capture_output=True, text=True,
+            )  # fmt: skip
+            seconds.append(json.loads(run.stdout.strip().splitlines()[-1])["second_s"])
+        _figure("inprocess_second_s", seconds, report)
+        _handeye(env, work, args.repeats, report)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    print(
+        f"ee_rms_mm_after: cold {report['ee_rms_mm_after_cold']!r}, warm {report['ee_rms_mm_after_warm']!r}"
+    )
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+
+
+def _handeye(env: dict, work: Path, repeats: int, report: dict) -> None:
+    """`handeye_warm_cli_s` on a rendered 16-frame capture (None where rendering fails)."""
+    capture = work / "handeye"
+    try:
+        subprocess.run(
+            [*JAXCAL, "simulate-handeye", "--out", str(capture), "--frames", "16"], env=env, cwd=ROOT,
+            check=True, capture_output=True,
+        )  # fmt: skip
+    except subprocess.CalledProcessError as e:
+        print(f"handeye: no capture ({e.stderr.decode()[-300:]})", file=sys.stderr)
+        report["handeye_warm_cli_s"] = None
+        return
+    runs = []
+    for k in range(repeats + 1):  # the first fills the cache
+        out = work / f"handeye_out{k}"
+        wall = _run([*JAXCAL, "handeye", str(capture), "--out", str(out)], env)
+        if k:
+            runs.append(wall)
+    report["load"]["handeye_warm_cli_s"] = _load()
+    _figure("handeye_warm_cli_s", runs, report)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,230 @@
+"""Start-up (issue 35): stored programs reloaded and never trusted when damaged or
+foreign, `import jaxcal` light, detection without the `__main__` trap, Ctrl-C
+leaving no child process."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxcal import _exported
+
+ROOT = Path(__file__).resolve().parents[1]
+DATASET = ROOT / "data" / "ur5e_sweeps"
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """Stored programs in a folder of the test's own."""
+    monkeypatch.setattr(_exported, "programs_dir", lambda: tmp_path)
+    return tmp_path
+
+
+def _program(traces: list):
+    def solve(x, flag):
+        traces.append(1)  # runs only while the program is traced
+        y = jnp.where(flag, x @ x.T + jnp.eye(x.shape[0]), x)
+        return {"chol": jnp.linalg.cholesky(y), "sum": (y.sum(), jnp.zeros(2, jnp.int32))}
+
+    return _exported.stored_jit(solve, "test_solve", static=("v1",))
+
+
+def _entry(store: Path) -> Path:
+    (path,) = store.glob("test_solve-*.jaxexport")
+    return path
+
+
+def _rewrite_key(path: Path, change) -> None:
+    """Rewrite an entry's key (and its checksum, so that only the key is wrong)."""
+    blob = path.read_bytes()[len(_exported.MAGIC) :]
+    n = int.from_bytes(blob[:8], "little")
+    head = json.loads(blob[8 : 8 + n])
+    key = json.loads(head["key"])
+    change(key)
+    head["key"] = json.dumps(key, sort_keys=True)
+    text = json.dumps(head).encode()
+    path.write_bytes(_exported.MAGIC + len(text).to_bytes(8, "little") + text + blob[8 + n :])
+
+
+def test_a_stored_program_is_reloaded_without_tracing(store):
+    x = jnp.arange(9.0).reshape(3, 3)
+    traces: list = []
+    first = _program(traces)(x, True)
+    assert len(traces) == 1 and _entry(store).is_file()
+    again = _program(traces)(x, True)  # a new program object: what a second process sees
+    assert len(traces) == 1  # read from the store, not traced
+    assert jax.tree.structure(again) == jax.tree.structure(first)
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == b.dtype
+    _program(traces)(jnp.ones((4, 4)), False)  # other shapes: another entry
+    assert len(traces) == 2 and len(list(store.glob("test_solve-*"))) == 2
+
+
+@pytest.mark.parametrize(
+    "damage",
+    ["flipped byte", "truncated", "empty", "other jax version", "other source", "other program's key"],
+)
+def test_a_damaged_or_foreign_entry_is_ignored_and_rebuilt(store, damage):
+    x = jnp.arange(9.0).reshape(3, 3)
+    traces: list = []
+    expected = _program(traces)(x, True)
+    path = _entry(store)
+    blob = path.read_bytes()
+    if damage == "flipped byte":
+        path.write_bytes(blob[:-100] + bytes([blob[-100] ^ 0xFF]) + blob[-99:])
+    elif damage == "truncated":
+        path.write_bytes(blob[: len(blob) // 2])
+    elif damage == "empty":
+        path.write_bytes(b"")
+    elif damage == "other jax version":
+        _rewrite_key(path, lambda k: k.update(jax="0.0.1"))
+    elif damage == "other source":
+        _rewrite_key(path, lambda k: k.update(jaxcal_source="0" * 64))
+    else:
+        _rewrite_key(path, lambda k: k.update(static="'v0'"))
+    result = _program(traces)(x, True)
+    assert len(traces) == 2  # not trusted: traced again
+    for a, b in zip(jax.tree.leaves(expected), jax.tree.leaves(result)):
+        np.testing.assert_array_equal(a, b)
+    _program(traces)(x, True)  # ... and rebuilt: the next process reads it
+    assert len(traces) == 2
+
+
+def test_the_key_names_what_decides_the_program(store):
+    """Versions of jaxcal (and its sources), JAX, jaxlib and the traced libraries, the
+    XLA flags, x64, the backend, the compiler options, the static configuration,
+    the argument tree and shapes."""
+    program = _program([])
+    leaves, tree = jax.tree.flatten(((jnp.ones((2, 2)), True), {}))
+    key = program._key(tree, [_exported._aval(x) for x in leaves])
+    for field in (
+        "jaxcal", "jaxcal_source", "jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy",
+        "xla_flags", "x64", "backend", "compiler_options", "static", "in_tree", "avals",
+    ):  # fmt: skip
+        assert field in key, field
+
+
+def _run_script(tmp_path: Path, source: str, timeout: float = 900) -> subprocess.CompletedProcess:
+    script = tmp_path / "script.py"
+    script.write_text(textwrap.dedent(source))
+    return subprocess.run(
+        [sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_import_jaxcal_loads_no_heavy_library(tmp_path):
+    run = _run_script(
+        tmp_path,
+        """
+        import sys
+        import jaxcal
+        heavy = ("cv2", "matplotlib", "rosbags", "mujoco", "yourdfpy", "trimesh", "scipy", "optimistix")
+        print(sorted(m for m in heavy if m in sys.modules))
+        print(jaxcal.fit_arc.__module__, jaxcal.vision.detect.__module__)
+        """,
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.splitlines() == ["[]", "jaxcal._arcfit jaxcal.vision._detect"]
+
+
+@pytest.mark.parametrize("method", ["spawn", "forkserver"])
+def test_a_script_without_the_main_guard_detects_in_parallel(tmp_path, method):
+    """Detection needs no `if __name__ == "__main__":`, whatever the start method."""
+    run = _run_script(
+        tmp_path,
+        f"""
+        import multiprocessing
+        multiprocessing.set_start_method({method!r}, force=True)
+        import jaxcal
+        from jaxcal.io.dataset import load_dataset
+        ds = load_dataset({str(DATASET)!r})
+        paths = [ds.image_path(i) for i in range(40)]
+        found = jaxcal.vision.detect_frames(paths, [ds.targets[0].spec], workers=2, progress=False)
+        print(sum(len(f) for f in found), len(multiprocessing.active_children()))
+        """,
+    )
+    assert run.returncode == 0, run.stderr
+    detected, children = map(int, run.stdout.split())
+    assert detected >= 20 and children == 0
+
+
+@pytest.mark.slow
+def test_a_script_without_the_main_guard_calibrates(tmp_path):
+    run = _run_script(
+        tmp_path,
+        f"""
+        import multiprocessing
+        multiprocessing.set_start_method("spawn", force=True)
+        import jaxcal
+        result = jaxcal.calibrate({str(DATASET)!r}, progress=False)
+        print(result.status, result.validation["ee_rms_mm_after"])
+        """,
+    )
+    assert run.returncode == 0, run.stderr
+    status, ee = run.stdout.split()
+    assert status == "ok" and float(ee) < 1.0
+
+
+def _group_members(pgid: int) -> list[int]:
+    members = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid:  # field 5 of /proc/PID/stat: the process group
+            members.append(int(stat.parent.name))
+    return members
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.parametrize("pool", ["thread", "process"])
+def test_ctrl_c_during_detection_leaves_no_child_process(tmp_path, pool):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) during a
+    long detection: the run stops at once with KeyboardInterrupt and no process of
+    its group is left."""
+    script = tmp_path / "detect.py"
+    script.write_text(
+        textwrap.dedent(f"""
+        import jaxcal
+        from jaxcal.io.dataset import load_dataset
+        ds = load_dataset({str(DATASET)!r})
+        paths = [ds.image_path(i % 144) for i in range(144 * 40)]
+        print("detecting", flush=True)
+        jaxcal.vision.detect_frames(paths, [ds.targets[0].spec], workers=2, progress=False, pool={pool!r})
+        """)
+    )
+    proc = subprocess.Popen(
+        [sys.executable, str(script)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        assert proc.stdout.readline().strip() == "detecting"
+        time.sleep(3.0)  # well into the detection (and, for processes, the pool started)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode != 0
+    # Threads: the interrupt itself. Processes: the workers, interrupted too, may break the
+    # pool before the caller's own KeyboardInterrupt is raised.
+    assert (
+        "KeyboardInterrupt" in err
+        if pool == "thread"
+        else ("KeyboardInterrupt" in err or "BrokenProcessPool" in err)
+    )
+    deadline = time.monotonic() + 10.0  # a forkserver notices its parent's end on its own
+    while _group_members(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _group_members(proc.pid) == []
