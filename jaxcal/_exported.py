@@ -158,6 +158,7 @@ class StoredProgram:
         self._entries: dict = {}
         self._lock = threading.Lock()
         functools.update_wrapper(self, fun)
+        _register_with_jax(self)
 
     def __call__(self, *args, **kwargs):
         leaves, in_tree, avals = _flatten(args, kwargs)
@@ -178,6 +179,18 @@ class StoredProgram:
     def cache_size(self) -> int:
         """How many programs (argument trees and shapes) this process holds."""
         return len(self._entries)
+
+    def cache_clear(self) -> None:
+        """Drop this process's executables (`jax.clear_caches()` calls it); the stored
+        programs stay on disk and are read again when next called."""
+        with self._lock:
+            self._entries.clear()
+
+    def cache_info(self) -> str:
+        return f"{self.name}: {len(self._entries)} programs"
+
+    def cache_keys(self) -> list:
+        return list(self._entries)
 
     # ------------------------------------------------------------------ entries
 
@@ -230,6 +243,17 @@ class StoredProgram:
             jax.jit(flat), disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")]
         )(*specs)
         return exported, out_trees[-1]
+
+
+def _register_with_jax(program: StoredProgram) -> None:
+    """Let `jax.clear_caches()` drop `program`'s executables, as it drops `jax.jit`'s
+    (JAX's registry is private: without it they live as long as the program)."""
+    try:
+        from jax._src import util
+
+        util.register_cache(program, f"jaxcal stored program {program.name}")
+    except (ImportError, AttributeError):
+        pass
 
 
 def stored_jit(fun, name: str, static=(), compiler_options=QUICK_COMPILE) -> StoredProgram:

@@ -228,3 +228,14 @@ def test_ctrl_c_during_detection_leaves_no_child_process(tmp_path, pool):
     while _group_members(proc.pid) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert _group_members(proc.pid) == []
+
+
+def test_clear_caches_drops_the_executables_not_the_stored_programs(store):
+    traces: list = []
+    program = _program(traces)
+    program(jnp.eye(3), True)
+    assert program.cache_size() == 1
+    jax.clear_caches()
+    assert program.cache_size() == 0
+    program(jnp.eye(3), True)  # read again from the store
+    assert len(traces) == 1
