@@ -55,6 +55,10 @@ def show_defaults(parser: argparse.ArgumentParser) -> None:
                 show_defaults(sub)
 
 
+#: `jaxcal simulate --camera` (the names of `jaxcal.sim.camera.PRESETS`, which the CLI imports only to render).
+CAMERAS = ("ideal", "global-shutter", "rolling-shutter")
+
+
 def _add_simulate_parser(sub) -> None:
     """`jaxcal simulate`: a rendered dataset, a capture plan, or tracker sweeps."""
     p = sub.add_parser(
@@ -138,6 +142,13 @@ def _add_simulate_parser(sub) -> None:
     p.add_argument("--grayscale", action="store_true", help="write single-channel PNGs")
     p.add_argument(
         "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
+    )
+    p.add_argument(
+        "--camera",
+        choices=CAMERAS,
+        default="ideal",
+        help="the camera model (jaxcal.sim.camera): exposure, rolling shutter, sensor noise, JPEG; "
+        "'ideal' takes each frame at one instant, noise-free",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(

@@ -45,6 +45,7 @@ def cmd_simulate(args) -> int:
         grayscale=args.grayscale,
         encoders=not args.no_encoders,
         distortion=tuple(args.distortion),
+        camera=args.camera,
     )
     trajectory = None
     if args.random_motion is not None:

@@ -23,6 +23,10 @@ CAMERA_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 MAX_SIDE = 65535
 #: |clock.drift_ppm| bound (0.1 %: ten times a poor crystal).
 MAX_DRIFT_PPM = 1000.0
+#: `cameras[].stamp` values: what a frame's timestamp marks in its (first row's) exposure.
+STAMPS = ("start", "middle", "end")
+#: Longest `cameras[].exposure_s` and readout (`line_delay_s` times the height), s.
+MAX_EXPOSURE_S = 10.0
 #: `encoders.quantity` values: what the log holds.
 QUANTITIES = ("motor_angle",)
 
@@ -30,7 +34,10 @@ QUANTITIES = ("motor_angle",)
 @dataclass(frozen=True, eq=False)
 class CameraInfo:
     """A camera of the dataset. `K` is `None` when the intrinsics are unknown
-    (the front end then self-calibrates). `mount`: `"world"` or a link name."""
+    (the front end then self-calibrates). `mount`: `"world"` or a link name.
+    `exposure_s`, `line_delay_s` (rolling shutter: seconds from one row to the
+    next) and `stamp` (what a frame's timestamp marks: `"start"`, `"middle"` or
+    `"end"` of the first row's exposure): `None` when not given."""
 
     name: str
     width: int
@@ -38,8 +45,12 @@ class CameraInfo:
     K: np.ndarray | None
     dist: np.ndarray
     mount: str = "world"
+    exposure_s: float | None = None
+    line_delay_s: float | None = None
+    stamp: str | None = None
 
     def to_dict(self) -> dict:
+        optional = {"exposure_s": self.exposure_s, "line_delay_s": self.line_delay_s, "stamp": self.stamp}
         return {
             "name": self.name,
             "width": self.width,
@@ -47,7 +58,7 @@ class CameraInfo:
             "K": None if self.K is None else np.asarray(self.K).tolist(),
             "distortion": np.asarray(self.dist).tolist(),
             "mount": self.mount,
-        }
+        } | {k: v for k, v in optional.items() if v is not None}
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,7 +208,12 @@ def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
     out = []
     for i, c in enumerate(cams):
         w = loc.index(i)
-        sc.obj(c, w, required=("name", "width", "height"), optional=("K", "distortion", "mount"))
+        sc.obj(
+            c,
+            w,
+            required=("name", "width", "height"),
+            optional=("K", "distortion", "mount", "exposure_s", "line_delay_s", "stamp"),
+        )
         name = sc.string(c["name"], w.key("name"))
         if not CAMERA_NAME.fullmatch(name):
             raise w.key("name").expected("letters, digits, '_', '.' or '-' (it names output files)", name)
@@ -216,11 +232,29 @@ def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
         mount = sc.string(c.get("mount", "world"), w.key("mount"))
         if mount != "world" and mount not in links:
             raise w.key("mount").fail(f"{mount!r} is neither 'world' nor a link of the robot")
-        out.append(CameraInfo(name, width, height, K, dist, mount))
+        out.append(CameraInfo(name, width, height, K, dist, mount, **_exposure(c, w, height)))
     names = [c.name for c in out]
     if len(set(names)) != len(names):
         raise loc.fail(f"camera names are not unique: {names}")
     return tuple(out)
+
+
+def _exposure(c: dict, loc: Loc, height: int) -> dict:
+    """A camera's optional `exposure_s`, `line_delay_s` and `stamp` (each `None` when absent or null)."""
+    out = {"exposure_s": None, "line_delay_s": None, "stamp": None}
+    if c.get("exposure_s") is not None:
+        out["exposure_s"] = sc.number(c["exposure_s"], loc.key("exposure_s"), 0.0, MAX_EXPOSURE_S)
+    if c.get("line_delay_s") is not None:
+        delay = sc.number(c["line_delay_s"], loc.key("line_delay_s"), 0.0, MAX_EXPOSURE_S)
+        if delay * height > MAX_EXPOSURE_S:
+            raise loc.key("line_delay_s").fail(
+                f"{delay:g} s per row reads the {height} rows out in {delay * height:g} s, "
+                f"more than {MAX_EXPOSURE_S:g} s (it is seconds per row, not per frame)"
+            )
+        out["line_delay_s"] = delay
+    if c.get("stamp") is not None:
+        out["stamp"] = sc.string(c["stamp"], loc.key("stamp"), choices=STAMPS)
+    return out
 
 
 def read_targets(meta: dict, loc: Loc, links) -> tuple[TargetInfo, ...]:

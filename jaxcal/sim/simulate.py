@@ -12,6 +12,7 @@ calibration should recover is written to `truth.json` beside the images.
 
 import shutil
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -34,6 +35,7 @@ from ..io.model_json import model_to_json
 from ..io.urdf import load_urdf, save_urdf
 from ..markers import TargetSpec
 from ..robots import robot_path, shipped
+from .camera import CameraModel, camera_model
 from .motion import ClockModel, EncoderModel, encoder_stream, joint_sweeps, true_angles
 from .motion import frame_times as frame_times_of
 from .scene import CameraSpec, PlateSpec, build_scene
@@ -50,6 +52,9 @@ class SimConfig:
     PNGs (what a machine-vision camera gives; a third of the size).
     A sweep turns a revolute joint through `range_deg` and moves a prismatic
     one through `range_mm` (its entry of `range_deg` is ignored).
+    `camera`: how the cameras expose and degrade their frames, a preset's
+    name (`jaxcal.sim.camera.PRESETS`) or a `CameraModel`; `ideal` (one
+    instant, noise-free) by default.
     """
 
     robot: str = "ur5e"
@@ -88,6 +93,7 @@ class SimConfig:
     mount_mm: float = 2.0
     mount_deg: float = 1.0
     link_plates: tuple = field(default=(), repr=False)
+    camera: str | CameraModel = "ideal"
 
     def check(self) -> None:
         w, h = self.resolution
@@ -103,6 +109,14 @@ class SimConfig:
             raise ValueError(f"drop_rate must be in [0, 1), got {self.drop_rate}")
         if self.markers not in ("charuco", "aruco"):
             raise ValueError(f"markers must be 'charuco' or 'aruco', got {self.markers!r}")
+        if camera_model(self.camera).distortion is not None and any(self.distortion):
+            raise ValueError("give the lens distortion once: in the camera model or in `distortion`")
+
+    def with_lens(self) -> "SimConfig":
+        """This config, checked, with the camera model's lens distortion (if it has one) as `distortion`."""
+        self.check()
+        lens = camera_model(self.camera).distortion
+        return self if lens is None else replace(self, distortion=tuple(float(x) for x in lens))
 
 
 # --------------------------------------------------------------------------- geometry helpers
@@ -364,7 +378,8 @@ def simulate(
     wrote (see `jaxcal.io._files.check_output_dir`); `out` gets the `.jaxcal`
     marker of kind `"dataset"`. Returns the dataset path.
     """
-    config.check()
+    config = config.with_lens()  # checked
+    optics = camera_model(config.camera)
     out = Path(out)
     nominal, urdf_path = nominal_robot(config.robot)
     true = draw_truth(nominal, config)
@@ -382,11 +397,7 @@ def simulate(
     elif trajectory.q.shape[1] != len(names):
         raise ValueError(f"trajectory has {trajectory.q.shape[1]} joints, the robot {len(names)}")
     clock = ClockModel(
-        fps=config.fps,
-        offset_ms=config.clock_offset_ms,
-        drift_ppm=config.clock_drift_ppm,
-        jitter_ms=config.clock_jitter_ms,
-        drop_rate=config.drop_rate,
+        config.fps, config.clock_offset_ms, config.clock_drift_ppm, config.clock_jitter_ms, config.drop_rate
     )
     encoder = EncoderModel(rate_hz=config.encoder_rate_hz, noise_counts=config.encoder_noise_counts)
     enc_t, enc_motor = encoder_stream(trajectory, nominal_ratio, encoder, rng)
@@ -396,7 +407,12 @@ def simulate(
         else np.asarray(frame_times, np.float64)
     )
     keep = rng.random(len(t_frames)) >= clock.drop_rate
-    theta = true_angles(trajectory, t_frames, nominal_ratio, true.reduction_ratio, true.zero_offset)
+    angles_at = partial(
+        true_angles, trajectory, nominal_ratio=nominal_ratio, true_ratio=true.reduction_ratio,
+        true_zero_offset=true.zero_offset,
+    )  # fmt: skip
+    theta = angles_at(t_frames)
+    noise_rng = np.random.default_rng([config.seed, 1])  # the camera's own draws: the capture stays the same
     q_true = theta - np.asarray(true.zero_offset)
     link_poses = np.asarray(jax.device_get(jax.vmap(forward_kinematics, in_axes=(None, 0))(true, q_true)))
     stamps = clock.stamp(t_frames, rng)
@@ -418,12 +434,10 @@ def simulate(
         with bar as p:
             task = p.add_task("render", total=len(todo)) if p is not None else None
             for f, cam in todo:
-                scene.set_angles(theta[f])
-                image = scene.render(cam.name)
+                render_at = _renderer_at(scene, cam.name, t_frames[f], theta[f], angles_at)
+                image = optics.capture(render_at, t_frames[f], cam.height, noise_rng, config.grayscale)
                 rel = f"images/{cam.name}/{f:06d}.png"
-                code = cv2.COLOR_RGB2GRAY if config.grayscale else cv2.COLOR_RGB2BGR
-                if not cv2.imwrite(str(tmp / rel), cv2.cvtColor(image, code)):
-                    raise OSError(f"could not write {tmp / rel}")
+                _write_image(tmp / rel, image)
                 rows["camera"].append(cam.name)
                 rows["frame"].append(int(f))
                 rows["timestamp"].append(float(stamps[f]))
@@ -451,7 +465,7 @@ def simulate(
             write_encoders(tmp / "encoders.csv", enc_t, enc_motor, names)
         for name, text in (notes or {}).get("files", {}).items():
             (tmp / name).write_text(text)
-        meta = _metadata(config, nominal, cameras_nominal, plates_nominal, encoder, trajectory, notes)
+        meta = _metadata(config, nominal, cameras_nominal, plates_nominal, encoder, trajectory, notes, optics)
         write_json(tmp / "metadata.json", meta)
         truth = _truth(config, true, cameras_true, plates_true)
         write_json(
@@ -459,6 +473,23 @@ def simulate(
             truth | {"dropped_frames": np.flatnonzero(~keep).tolist(), "frames": truth_frames},
         )
     return out
+
+
+def _renderer_at(scene, camera: str, t_frame: float, theta_frame, angles_at):
+    """`render_at(t)`: `camera`'s render with the arm where it stands at controller time `t`
+    (the frame's own angles at its own time, exactly as without a camera model)."""
+
+    def render_at(t: float) -> np.ndarray:
+        scene.set_angles(theta_frame if t == t_frame else angles_at(t))
+        return scene.render(camera)
+
+    return render_at
+
+
+def _write_image(path: Path, image: np.ndarray) -> None:
+    """An RGB (H, W, 3) or grey (H, W) uint8 image as a PNG."""
+    if not cv2.imwrite(str(path), image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"could not write {path}")
 
 
 def _seen_targets(cam, plates, T_world) -> tuple[dict, dict]:
@@ -481,13 +512,15 @@ def _layouts(nominal, true, config: SimConfig, rng, layout=None):
 
 
 def _metadata(
-    config: SimConfig, nominal, cameras_nominal, plates_nominal, encoder, trajectory, notes=None
+    config: SimConfig, nominal, cameras_nominal, plates_nominal, encoder, trajectory, notes=None, optics=None
 ) -> dict:
     """`metadata.json` of a rendered dataset: what a user would know (the nominal robot and cameras).
     A plan's `notes`: `metadata` (keys added at the top), `segments` (one dict per
     recorded segment, added to its `motion` entry); `files` are written by `simulate`."""
+    optics = camera_model(config.camera) if optics is None else optics
     cameras_meta = [
-        CameraInfo(c.name, c.width, c.height, c.K, c.dist, c.mount).to_dict() for c in cameras_nominal
+        CameraInfo(c.name, c.width, c.height, c.K, c.dist, c.mount, **optics.metadata(c.height)).to_dict()
+        for c in cameras_nominal
     ]
     targets_meta = [TargetInfo(p.target, p.link, p.T_link_target).to_dict() for p in plates_nominal]
     return {
