@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._cache import quick_jit
 from ._correction import Estimate, parameters_to_model, physical_jacobian, physical_names
 from ._dh import COLUMNS, DHTable, dh_table, parallel_pairs, table_value_names, table_values, to_mdh
+from ._exported import stored_jit
 
 #: Conventions of `physical_table`.
 TABLE_CONVENTIONS = ("urdf", "dh", "mdh")
@@ -99,16 +99,23 @@ def dh_values(estimate: Estimate, reference: DHTable, x: Float[Array, " n"]) -> 
     return table_values(dh_table(parameters_to_model(estimate, x).model, "dh", reference=reference))
 
 
-# Runs once per exported result: compiled without XLA's optimisation passes
-# (the CLI's DH export compiles in half the time).
-@functools.partial(quick_jit, static_argnames="parallel")
 def dh_jacobian(estimate: Estimate, parallel: tuple[bool, ...]):
     """The nominal and calibrated DH tables and the Jacobian of `dh_values` at
     the estimate, as one compiled call (MDH follows by `mdh_from_dh_values`)."""
-    reference = dh_table(estimate.nominal, "dh", parallel=parallel)
-    table = dh_table(parameters_to_model(estimate).model, "dh", reference=reference)
-    G = jax.jacfwd(lambda x: dh_values(estimate, reference, x))(estimate.x)
-    return reference, table, G
+    return _dh_program(tuple(bool(p) for p in parallel))(estimate)
+
+
+# Runs once per exported result: compiled without XLA's optimisation passes (the CLI's
+# DH export compiles in half the time), its traced program stored (`jaxcal._exported`).
+@functools.cache
+def _dh_program(parallel: tuple[bool, ...]):
+    def dh_jacobian(estimate: Estimate):
+        reference = dh_table(estimate.nominal, "dh", parallel=parallel)
+        table = dh_table(parameters_to_model(estimate).model, "dh", reference=reference)
+        G = jax.jacfwd(lambda x: dh_values(estimate, reference, x))(estimate.x)
+        return reference, table, G
+
+    return stored_jit(dh_jacobian, "dh_jacobian", (parallel,))
 
 
 def mdh_from_dh_values(num_joints: int) -> np.ndarray:
