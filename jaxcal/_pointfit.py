@@ -54,9 +54,9 @@ from ._schur import NormalEquations, normal_least_squares
 TERMS = {"compliance": 1, "harmonic1": 2, "harmonic2": 2}
 #: Standard gravity (m/s^2), along the base frame's -z.
 GRAVITY = 9.80665
-#: The point fit's Levenberg-Marquardt settings: steps below a micro-sigma (whitened
-#: residuals), so the answer does not depend on where the solve started.
-LM_OPTIONS = _lsq.LMOptions(rtol=1e-10, atol=1e-6)
+#: The point fit's Levenberg-Marquardt settings: it stops at steps below a thousandth of a
+#: standard deviation (whitened residuals), far inside the answer's own uncertainty.
+LM_OPTIONS = _lsq.LMOptions(rtol=1e-8, atol=1e-3)
 
 
 @dataclass(frozen=True)
