@@ -341,7 +341,9 @@ def extrapolation(
     excess = np.maximum(np.maximum(lo - q, q - hi), 0.0)  # (C, joints)
     per_joint = excess.max(0)
     inside = ws[np.random.default_rng(1).permutation(len(ws))[:1000]]
-    inside_rms = float(np.sqrt(np.mean(np.trace(pred.covariances(inside, frame), axis1=1, axis2=2))))
+    # The same prediction as the region's (the parameters' covariance and the unexplained scatter).
+    inside_var = np.trace(pred.covariances(inside, frame), axis1=1, axis2=2) + 3.0 * pred.scatter_var
+    inside_rms = float(np.sqrt(np.mean(inside_var)))
     region_rms = float(np.sqrt(np.mean(rms_m**2)))
     ws_points = pred.base_points(inside)
     try:
