@@ -45,13 +45,18 @@ import numpy as np
 from scipy import optimize, stats
 
 from ._correction import ParameterLayout
+from ._drift_camera import camera_reference
+from ._drift_camera import fit as fit_camera
 from ._geometry import se3_exp
 from ._pointfit import PointLayout, point_jacobian, predict
+from ._reprojection import make_corner_data
 from .certification import read_result
 from .errors import DatasetError
 from .io.dataset import Dataset, load_dataset
 from .io.model_json import model_from_json
+from .io.result import ESTIMATE_FILE, read_estimate
 from .stages._points import point_problem
+from .vision import detect_frames
 
 #: The test's false-alarm probability, and the power the detectable change is quoted at.
 ALPHA, POWER = 0.05, 0.95
@@ -181,7 +186,9 @@ class DriftCheck:
     - `joint_offsets_deg`: per joint `(estimate, std)` when fitted, else None.
     - `detectable`: `detectable(cov)`; `residual`: the fit's whitened sum of squares,
       its degrees of freedom and p-value.
-    - `T_device_base`: the calibrated device pose moved by the estimated drift.
+    - `T_device_base`: the calibrated fixed pose moved by the estimated drift (`frame`
+      names it: `T_device_base`, `T_cam_base`, eye-in-hand `T_flange_cam`); `what`
+      moved: `"device"` or `"camera"`.
     - `message`, `advice`: what to tell the user.
     """
 
@@ -203,6 +210,8 @@ class DriftCheck:
     T_device_base: np.ndarray
     message: str
     advice: str
+    what: str = "device"
+    frame: str = "T_device_base"
 
     @property
     def exit_code(self) -> int:
@@ -229,7 +238,8 @@ class DriftCheck:
             "joint_offsets_deg": self.joint_offsets_deg,
             "detectable": self.detectable,
             "residual": self.residual,
-            "T_device_base_now": self.T_device_base.tolist(),
+            "moved": self.what,
+            f"{self.frame}_now": self.T_device_base.tolist(),
             "message": self.message,
             "advice": self.advice,
         }
@@ -248,7 +258,33 @@ def check_samples(
         np.asarray(a)
         for a in fit_drift(jnp.asarray(y), ref.y_hat, ref.Z, jnp.asarray(W), offsets=joint_offsets)
     )
-    T, rss = float(T), float(rss)
+    T_base_dev = np.linalg.inv(ref.T_device_base) @ np.asarray(se3_exp(jnp.asarray(theta[:6])))
+    return verdict(
+        theta, C, float(T), float(rss), 3 * S - k, samples=S, joint_names=ref.joint_names,
+        T_now=np.linalg.inv(T_base_dev), names=names,
+    )  # fmt: skip
+
+
+def verdict(
+    theta: np.ndarray,
+    C: np.ndarray,
+    T: float,
+    rss: float,
+    dof_r: int,
+    *,
+    samples: int,
+    joint_names,
+    T_now: np.ndarray,
+    names=("", ""),
+    what: str = "device",
+    frame: str = "T_device_base",
+) -> DriftCheck:
+    """The test of a fitted drift `theta` `(6[+joints])` with covariance `C`, statistic
+    `T` and whitened residual sum of squares `rss` on `dof_r` degrees of freedom: the
+    `DriftCheck` (`what` moved: its `frame` now is `T_now`). Shared by the tracker and the
+    camera checks."""
+    k = len(theta)
+    joint_offsets = k > 6
     thr = float(stats.chi2.ppf(1 - ALPHA, k))
     detected = T > thr
     tr, rot = _size_and_std(theta[:3], C[:3, :3]), _size_and_std(theta[3:6], C[3:6, 3:6])
@@ -257,15 +293,13 @@ def check_samples(
     if joint_offsets:
         sd = np.sqrt(np.diag(C)[6:])
         offs = {
-            j: (float(np.degrees(e)), float(np.degrees(s))) for j, e, s in zip(ref.joint_names, theta[6:], sd)
+            j: (float(np.degrees(e)), float(np.degrees(s))) for j, e, s in zip(joint_names, theta[6:], sd)
         }
     det = detectable(C)
-    dof_r = 3 * S - k
     residual = {"sum_of_squares": rss, "dof": dof_r, "p_value": float(stats.chi2.sf(rss, dof_r))}
-    T_base_dev = np.linalg.inv(ref.T_device_base) @ np.asarray(se3_exp(jnp.asarray(theta[:6])))
     stat = f"chi2 {T:.1f} on {k} dof, threshold {thr:.1f}, p = {stats.chi2.sf(T, k):.3g}"
     if detected:
-        message = f"the device moved by {tr_mm[0]:.3f} +- {tr_mm[1]:.3f} mm, {rot_deg[0]:.4f} +- {rot_deg[1]:.4f} deg ({stat})"
+        message = f"the {what} moved by {tr_mm[0]:.3f} +- {tr_mm[1]:.3f} mm, {rot_deg[0]:.4f} +- {rot_deg[1]:.4f} deg ({stat})"
         if offs:
             big = {j: v for j, v in offs.items() if abs(v[0]) > 2 * v[1]}
             if big:
@@ -273,7 +307,7 @@ def check_samples(
                     f"{j} {v[0]:+.4f} +- {v[1]:.4f} deg" for j, v in big.items()
                 )
         advice = (
-            "re-register the device (the JSON's T_device_base_now is the calibrated pose moved by the drift) "
+            f"re-register the {what} (the JSON's {frame}_now is the calibrated pose moved by the drift) "
             "or calibrate again; if the robot itself changed (joint offsets, a crash), calibrate again"
         )
     else:
@@ -283,16 +317,17 @@ def check_samples(
             f"detected with {100 * POWER:.0f} % power at {100 * ALPHA:.0f} % false alarms"
         )
         advice = "nothing to do; for a finer check, measure more poses spread over the workspace"
-    if residual["p_value"] < 1e-3:
+    if residual["p_value"] < 1e-3 and rss > 2.0 * dof_r:
         advice += (
             f"; the residuals after the fit are too large for a rigid move (chi2 {rss:.0f} on {dof_r} dof): "
-            "something else changed (the robot, the point's mount, the samples' noise): calibrate again"
+            f"something else changed (the robot, the {'point' if what == 'device' else 'target'}'s mount, "
+            "the noise): calibrate again"
         )
     return DriftCheck(
-        result=names[0], capture=names[1], samples=S, theta=theta, cov=C, statistic=T, dof=k, threshold=thr,
+        result=names[0], capture=names[1], samples=samples, theta=theta, cov=C, statistic=T, dof=k, threshold=thr,
         p_value=float(stats.chi2.sf(T, k)), detected=bool(detected), translation_mm=tr_mm, rotation_deg=rot_deg,
-        joint_offsets_deg=offs, detectable=det, residual=residual, T_device_base=np.linalg.inv(T_base_dev),
-        message=message, advice=advice,
+        joint_offsets_deg=offs, detectable=det, residual=residual, T_device_base=np.asarray(T_now),
+        message=message, advice=advice, what=what, frame=frame,
     )  # fmt: skip
 
 
@@ -322,18 +357,191 @@ def _matching_capture(doc: dict, file: Path, ds: Dataset) -> None:
         raise DatasetError(f"{ds.root / ds.device.file}: a check needs every sample's joint positions")
 
 
-def check(result, capture, *, joint_offsets: bool = False) -> DriftCheck:
-    """Check the stop-and-shoot calibration `result` (a directory or its `result.json`)
-    against a later tracker `capture` (a path or a loaded `Dataset`); `joint_offsets`:
-    also free the joints' zero offsets. Raises `DatasetError` naming the file when
-    the capture is not one of the calibrated robot, device and point."""
-    doc, file = read_result(result)
-    if "point_fit" not in doc:
+#: A capture's nominal joint origins this far (m) from the calibrated robot's: another robot.
+ROBOT_TOLERANCE_M = 0.01
+
+
+def _robot_gap(a, b) -> float:
+    """The largest distance between two models' joint origins (m); inf for other joint types."""
+    if tuple(a.joint_types) != tuple(b.joint_types):
+        return float("inf")
+    d = np.asarray(a.T_parent_joint)[:, :3, 3] - np.asarray(b.T_parent_joint)[:, :3, 3]
+    return float(np.max(np.linalg.norm(d, axis=1)))
+
+
+def _matching_camera(doc: dict, file: Path, ds: Dataset, est) -> tuple:
+    """Refuse a capture of another robot, camera or target, naming the file. **Returns:**
+    `(camera, targets)`: the capture's `CameraInfo` and the `TargetInfo`s the result calibrated."""
+    meta = ds.root / "metadata.json"
+    if ds.samples is not None:
         raise DatasetError(
-            f"{file}: jaxcal check handles stop-and-shoot tracker results ('point_fit') so far; "
-            f"this one is {doc.get('capture', 'another kind')!r}"
+            f"{meta}: tracker samples, but {file} calibrated camera {doc.get('camera')!r}: check it with images"
         )
+    names = tuple(est.nominal.joint_names)
+    if tuple(ds.joint_names) != names:
+        raise DatasetError(
+            f"{meta}: robot.joints {list(ds.joint_names)} differ from the calibrated robot's {list(names)} "
+            f"({file}): another robot?"
+        )
+    gap = _robot_gap(ds.load_model(), est.nominal)
+    if gap > ROBOT_TOLERANCE_M:
+        raise DatasetError(
+            f"{ds.robot_urdf}: its joint origins are up to {1e3 * gap:.0f} mm from those of the robot {file} "
+            "calibrated: another robot?"
+        )
+    try:
+        camera = ds.camera(doc["camera"])
+    except KeyError:
+        raise DatasetError(
+            f"{meta}: no camera {doc['camera']!r} ({file} calibrated it; the capture has "
+            f"{[c.name for c in ds.cameras]}): another camera"
+        ) from None
+    K_cal = np.asarray(_intrinsics(doc)[0])
+    if camera.K is not None and not np.allclose(camera.K, K_cal, rtol=1e-3, atol=0.05):
+        raise DatasetError(
+            f"{meta}: camera {camera.name!r} intrinsics K differ from those {file} calibrated with: another camera"
+        )
+    cal = _calibration_dataset(doc)
+    sizes = {} if cal is None else {c.name: (c.width, c.height) for c in cal.cameras}
+    size = sizes.get(camera.name)
+    cx, cy = K_cal[0, 2], K_cal[1, 2]
+    off_centre = (
+        abs(cx - (camera.width - 1) / 2) > 0.25 * camera.width
+        or abs(cy - (camera.height - 1) / 2) > 0.25 * camera.height
+    )
+    if (size is not None and size != (camera.width, camera.height)) or off_centre:
+        raise DatasetError(
+            f"{meta}: camera {camera.name!r} is {camera.width}x{camera.height}, but {file} calibrated "
+            f"{'x'.join(map(str, size)) if size else f'one with its principal point at ({cx:.1f}, {cy:.1f})'}: "
+            "another camera (or resolution)"
+        )
+    wanted = [doc["board"]] if est.layout.eye_in_hand else list(doc.get("targets") or [])
+    by_name = {t.name: t for t in ds.targets}
+    missing = [t for t in wanted if t not in by_name]
+    if missing or not wanted:
+        raise DatasetError(
+            f"{meta}: targets {sorted(by_name)}, but {file} calibrated {wanted}: another target"
+        )
+    specs = {} if cal is None else {t.name: t.spec.to_dict() for t in cal.targets}
+    for t in wanted:
+        if t in specs and by_name[t].spec.to_dict() != specs[t]:
+            raise DatasetError(f"{meta}: target {t!r} is not the one {file} calibrated (its pattern differs)")
+    if ds.encoder_t is None:
+        raise DatasetError(f"{meta}: a camera check needs the encoder log (every image's joint positions)")
+    return camera, [by_name[t] for t in wanted]
+
+
+def _calibration_dataset(doc: dict) -> Dataset | None:
+    """The calibration's dataset (its cameras' sizes, its targets' patterns), or None when it cannot be read."""
+    try:
+        return load_dataset(doc["dataset"])
+    except (DatasetError, OSError, KeyError, ValueError):
+        return None
+
+
+def _intrinsics(doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`(K, dist, K0, dist0)`: the calibrated intrinsics and the start the refinement's
+    increments are relative to."""
+    i = doc["intrinsics"]
+    K, d = np.asarray(i["K"], np.float64), np.zeros(5)
+    d[: min(5, len(i["distortion"]))] = np.asarray(i["distortion"], np.float64).ravel()[:5]
+    K0, d0 = np.asarray(i.get("K_start", i["K"]), np.float64), np.zeros(5)
+    ds = np.asarray(i.get("distortion_start", i["distortion"]), np.float64).ravel()
+    d0[: min(5, len(ds))] = ds[:5]
+    return K, d, K0, d0
+
+
+def camera_corners(ds: Dataset, camera, targets, mount_index, K, dist, *, workers=None):
+    """Detect `targets` in `camera`'s images of `ds`: the `CornerData` (joint positions
+    from the encoder log at the images' stamps) and the number of corners; `mount_index`:
+    target name -> its mount in the estimate."""
+    rows = np.flatnonzero(ds.frames["camera"] == camera.name)
+    if rows.size == 0:
+        raise DatasetError(f"{ds.root / 'frames.csv'}: no images of camera {camera.name!r}")
+    paths = [ds.image_path(int(i)) for i in rows]
+    dets = detect_frames(paths, [t.spec for t in targets], K=K, dist=dist, workers=workers, progress=False)
+    pts, pix, tgt, frm, tc = [], [], [], [], []
+    for i, det in zip(rows, dets):
+        for t in targets:
+            d = det.get(t.name)
+            if d is None or len(d.ids) < 4:
+                continue
+            pts.append(np.asarray(t.spec.points(), np.float64)[d.ids])
+            pix.append(d.pixels)
+            tgt.append(mount_index[t.name])
+            frm.append(int(i))
+            tc.append(float(ds.frames["timestamp"][i]))
+    if len(pts) < 2:
+        raise DatasetError(f"{ds.root}: the targets were found in {len(pts)} image(s): a check needs a few")
+    return pts, pix, np.array(tgt), np.array(frm), np.array(tc)
+
+
+def camera_check(
+    doc: dict, file: Path, ds: Dataset, *, joint_offsets: bool = False, workers=None
+) -> DriftCheck:
+    """The drift check of a camera result `doc` (its `estimate.npz` beside `file`) on the
+    image capture `ds` (`jaxcal._drift_camera`)."""
+    path = file.parent / ESTIMATE_FILE
+    if not path.is_file():
+        raise DatasetError(
+            f"{path}: missing: the check of a camera calibration needs the covariance jaxcal calibrate "
+            "writes there (since this version): calibrate the dataset again"
+        )
+    est = read_estimate(path)
+    if est.layout.angles or "sigma_px" not in (doc.get("refinement") or {}):
+        raise DatasetError(f"{file}: the check needs a refined calibration with an encoder log")
+    camera, targets = _matching_camera(doc, file, ds, est)
+    K, dist, K0, dist0 = _intrinsics(doc)
+    mounts = {t.name: (0 if est.layout.eye_in_hand else est.mount_names.index(t.name)) for t in targets}
+    pts, pix, tgt, frm, tc = camera_corners(ds, camera, targets, mounts, K, dist, workers=workers)
+    enc_q = np.asarray(ds.encoder_motor, np.float64) / np.asarray(est.nominal.reduction_ratio)
+    offset = ds.clock_offset_s if ds.clock_offset_s is not None else float(doc["clock"]["offset_s"])
+    t_ctrl = (tc - offset) / (1.0 + 1e-6 * ds.clock_drift_ppm)
+    inside = (t_ctrl >= ds.encoder_t[0]) & (t_ctrl <= ds.encoder_t[-1]) & ~ds.in_encoder_glitch(t_ctrl)
+    keep = np.flatnonzero(inside)
+    if len(keep) < 2:
+        raise DatasetError(f"{ds.root}: {len(keep)} image(s) inside the encoder log: a check needs a few")
+    data = make_corner_data(
+        [pts[i] for i in keep], [pix[i] for i in keep], tgt[keep], frm[keep], tc[keep],
+        ds.encoder_t, enc_q, ds.clock_drift_ppm,
+    )  # fmt: skip
+    corners = int(sum(len(pts[i]) for i in keep))
+    ref = camera_reference(est, data, K0, dist0, offset, float(doc["refinement"]["sigma_px"]), corners)
+    theta, C, T, rss = fit_camera(ref, joint_offsets=joint_offsets)
+    dof_r = 2 * corners - len(theta)
+    # The capture's own corner scatter, where larger than the calibration's (other views,
+    # lighting): the drift's covariance scaled by it, as the calibration's is by its sigma^2.
+    inflation = max(1.0, rss / dof_r)
+    C, T = C * inflation, T / inflation
+    eps = np.asarray(se3_exp(jnp.asarray(theta[:6])))
+    if est.layout.eye_in_hand:
+        T_now, frame = ref.T_fixed @ eps, "T_flange_cam"
+    else:
+        T_now, frame = np.linalg.inv(eps) @ ref.T_fixed, "T_cam_base"
+    c = verdict(
+        theta, C, T, rss, dof_r, samples=len(keep), joint_names=ref.joint_names,
+        T_now=T_now, names=(str(file), str(ds.root)), what="camera", frame=frame,
+    )  # fmt: skip
+    c.residual["scatter_inflation"] = inflation
+    return c
+
+
+def check(result, capture, *, joint_offsets: bool = False, workers=None) -> DriftCheck:
+    """Check the calibration `result` (a directory or its `result.json`) against a later
+    `capture` (a path or a loaded `Dataset`): tracker samples against a stop-and-shoot
+    tracker result, images against a camera result (its `estimate.npz`); `joint_offsets`:
+    also free the joints' zero offsets; `workers`: the image detection's threads. Raises
+    `DatasetError` naming the file when the capture is not one of the calibrated robot,
+    device or camera and target."""
+    doc, file = read_result(result)
     ds = capture if isinstance(capture, Dataset) else load_dataset(capture)
+    if "point_fit" not in doc:
+        if doc.get("setup", "").startswith("tracker") or "T_device_base" in doc:
+            raise DatasetError(
+                f"{file}: jaxcal check handles stop-and-shoot tracker results ('point_fit') and camera results; "
+                f"this one is {doc.get('capture', 'another kind')!r}"
+            )
+        return camera_check(doc, file, ds, joint_offsets=joint_offsets, workers=workers)
     _matching_capture(doc, file, ds)
     s = ds.samples
     ref = reference(doc, s.q, s.sigma_m)

@@ -159,7 +159,7 @@ def test_check_refuses_a_capture_of_another_robot_device_or_kind(tracker, tmp_pa
         check(res, panda)
     with pytest.raises(DatasetError, match="a camera capture"):
         check(res, "data/ur5e_sweeps")
-    with pytest.raises(DatasetError, match="point_fit"):
+    with pytest.raises(DatasetError, match="estimate.npz: missing"):
         check(_camera_result(tmp_path), later)
 
 

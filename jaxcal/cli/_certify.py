@@ -73,11 +73,16 @@ def add_certify_parsers(sub) -> None:
     p.set_defaults(func=cmd_certify)
     p = sub.add_parser(
         "check",
-        help="a short later capture against a calibration: has the device moved? (exit 3 when it has)",
+        help="a short later capture against a calibration: has the device or camera moved? (exit 3 when it has)",
     )
     p.add_argument("result", help="the directory jaxcal calibrate wrote (or its result.json)")
-    p.add_argument("capture", help="a short tracker capture of the same robot, device and point")
+    p.add_argument(
+        "capture",
+        help="a short capture of the same robot: tracker samples of the same device and point, or a few images "
+        "(~10, at known joint positions: an encoder log) of the calibrated camera and target",
+    )
     p.add_argument("--joint-offsets", action="store_true", help="also free the joints' zero offsets")
+    p.add_argument("--workers", type=int, help="threads detecting the images (default: every core)")
     p.add_argument("--json", help="write the check's figures here (atomically)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.set_defaults(func=cmd_check)
@@ -142,10 +147,11 @@ def cmd_certify(args) -> int:
 
 def cmd_check(args) -> int:
     _check_output(args.json, [args.result, args.capture], args.overwrite, "--json")
-    c = check(args.result, args.capture, joint_offsets=args.joint_offsets)
+    c = check(args.result, args.capture, joint_offsets=args.joint_offsets, workers=args.workers)
     console = Console(width=max(Console().width, 110))
     colour = "red" if c.detected else "green"
-    console.print(f"jaxcal check: {c.samples} samples of {c.capture} against {c.result}")
+    unit = "images" if c.what == "camera" else "samples"
+    console.print(f"jaxcal check: {c.samples} {unit} of {c.capture} against {c.result}")
     console.print(f"[{colour}]{c.message}[/{colour}]")
     console.print(f"next: {c.advice}")
     if args.json:

@@ -1,0 +1,173 @@
+"""The drift fit of a camera check capture (`jaxcal check` on a camera result; `jaxcal.drift`).
+
+A few images of the plate taken later at known joint positions (the encoder
+log) are predicted by the calibrated refinement model $\\hat x$ (its `estimate.npz`)
+with the camera moved by a twist $\\varepsilon = (v, \\omega)$ in its own frame:
+$T_{cam,target}' = \\exp(-\\varepsilon)\\, T_{cam,target}(q_v; \\hat x + P\\,\\delta q)$,
+which is $T_{cam,base}' = \\exp(-\\varepsilon) T_{cam,base}$ eye-to-hand and the camera
+mount $T_{flange,cam}' = T_{flange,cam} \\exp(\\varepsilon)$ eye-in-hand; $\\delta q$ the
+joints' zero offsets, optional. The corners' residuals $r(\\theta)$ (px) without
+drift are the detector's noise plus the calibration's own error,
+
+$$ R = \\sigma^2 I + J \\Sigma J^T = \\sigma^2 (I + B B^T), \\qquad B = J L / \\sigma, $$
+
+$\\sigma$ the refinement's corner noise (`refinement.sigma_px`), $J = \\partial r /
+\\partial x$ and $\\Sigma = L L^T$ the calibration's covariance (its single-camera
+prefix: the first camera's pose, the robot, the mounts, rates, clock and
+intrinsics). With the thin SVD $B = U S V^T$ the whitening is $W = \\sigma^{-1}
+(I + U (\\mathrm{diag}((1 + s^2)^{-1/2}) - 1) U^T)$ ($W^T W = R^{-1}$), applied in
+$O(m n)$. Gauss-Newton on $W r(\\theta)$ gives $\\hat\\theta$, its covariance $C$ and
+the statistic $T = \\hat\\theta^T C^{-1} \\hat\\theta$; `jaxcal.drift` tests it.
+"""
+
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ._correction import Estimate, zero_correction
+from ._geometry import se3_exp
+from ._reprojection import CornerData, RefineParams, RefineProblem, camera_matrix, chain, project
+
+#: Gauss-Newton steps of the drift fit (it converges in two or three).
+GN_STEPS = 6
+#: The single-camera groups of the refinement vector (a prefix: `others` and `angles` follow).
+PREFIX_GROUPS = ("cam", "origin", "zero", "tool", "rate", "clock", "intr")
+
+
+@dataclass(frozen=True, eq=False)
+class CameraReference:
+    """What a camera calibration predicts for a check capture's corners.
+
+    - `problem`: the capture's corners against the calibration's references;
+      `x`: the calibration's single-camera vector (the clock increment folded
+      into `problem.offset0_s`); `zero`: `(joints, n)` the zero offsets' selector.
+    - `U`, `d`, `sigma_px`: the whitening (see the module docstring).
+    - `corners`, `views`: what the capture gave; `joint_names`; `T_fixed`: the
+      calibrated pose the drift moves (`T_cam_base`, or eye-in-hand `T_flange_cam`).
+    """
+
+    problem: RefineProblem
+    x: jnp.ndarray
+    zero: jnp.ndarray
+    U: jnp.ndarray
+    d: jnp.ndarray
+    sigma_px: float
+    corners: int
+    views: int
+    joint_names: tuple[str, ...]
+    T_fixed: np.ndarray
+    eye_in_hand: bool
+
+
+def _template(n: int, markers: int) -> RefineParams:
+    return RefineParams(
+        cam=jnp.zeros(6),
+        correction=zero_correction(n, markers),
+        rate=jnp.ones(n),
+        clock_ms=jnp.zeros(()),
+        intrinsics=jnp.zeros(9),
+    )
+
+
+def _residuals(x, eps, problem: RefineProblem):
+    """Reprojected minus detected corners (px), flattened, zero on padding."""
+    n = problem.nominal.num_joints
+    _, unravel = ravel_pytree(_template(n, problem.T_flange_marker0.shape[0]))
+    params = unravel(x)
+    R, t = chain(params, problem)
+    X = jnp.einsum("vab,vkb->vka", R, problem.data.points) + t[:, None, :]
+    T = se3_exp(-eps)
+    X = X @ T[:3, :3].T + T[:3, 3]
+    K, dist = camera_matrix(params, problem)
+    r = project(K, dist, X) - problem.data.pixels
+    return jnp.where(problem.data.mask[..., None], r, 0.0).reshape(-1)
+
+
+@jax.jit
+def residual_jacobian(x, problem: RefineProblem):
+    """`(r, J)`: the residuals at the calibration and their derivative by its vector."""
+    f = partial(_residuals, eps=jnp.zeros(6), problem=problem)
+    return f(x), jax.jacfwd(f)(x)
+
+
+def _whiten(v, U, d, sigma):
+    return (v + U @ (d * (U.T @ v))) / sigma
+
+
+@partial(jax.jit, static_argnames="offsets")
+def fit_camera_drift(ref_x, zero, U, d, sigma, problem: RefineProblem, *, offsets: bool):
+    """Gauss-Newton on the whitened residuals. **Returns:** `(theta, C, T, rss)` as
+    `jaxcal.drift.fit_drift` (theta: the camera's twist, then the zero offsets with `offsets`)."""
+    k = 6 + (zero.shape[0] if offsets else 0)
+
+    def res(theta):
+        x = ref_x + (theta[6:] @ zero if offsets else 0.0)
+        return _whiten(_residuals(x, theta[:6], problem), U, d, sigma)
+
+    def step(theta, _):
+        r, A = res(theta), jax.jacfwd(res)(theta)
+        return theta + jnp.linalg.solve(A.T @ A, -A.T @ r), None
+
+    theta, _ = jax.lax.scan(step, jnp.zeros(k), None, length=GN_STEPS)
+    A = jax.jacfwd(res)(theta)
+    info = A.T @ A
+    r = res(theta)
+    return theta, jnp.linalg.inv(info), theta @ info @ theta, r @ r
+
+
+def camera_reference(
+    est: Estimate, data: CornerData, K0, dist0, offset0_s: float, sigma_px: float, num_corners: int
+) -> CameraReference:
+    """The `CameraReference` of a calibration `est` for the check corners `data`
+    (`K0`, `dist0`: the intrinsics `est`'s increments are relative to; `offset0_s`:
+    the check capture's clock offset, s)."""
+    lay = est.layout
+    idx = np.concatenate([lay.index(g) for g in PREFIX_GROUPS])
+    if not np.array_equal(idx, np.arange(len(idx))):
+        raise ValueError("the refinement vector's single-camera groups are not its prefix")
+    if est.x.shape[0] != lay.size:
+        raise ValueError("the estimate is not a refinement's (no intrinsics, rates or clock)")
+    x = np.asarray(est.x, np.float64)[: len(idx)].copy()
+    x[lay.index("clock")] = 0.0  # the check capture's own clock offset is offset0_s
+    cov = np.asarray(est.cov, np.float64)[: len(idx), : len(idx)]
+    problem = RefineProblem(
+        nominal=est.nominal,
+        T_flange_marker0=jnp.asarray(est.T_flange_marker0),
+        T_cam_base0=jnp.asarray(est.T_cam_base0),
+        K0=jnp.asarray(K0, jnp.float64),
+        dist0=jnp.asarray(dist0, jnp.float64),
+        offset0_s=jnp.asarray(float(offset0_s)),
+        data=data,
+        eye_in_hand=lay.eye_in_hand,
+    )
+    _, J = (np.asarray(a) for a in residual_jacobian(jnp.asarray(x), problem))
+    lam, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    keep = lam > lam.max() * 1e-14 if lam.max() > 0 else np.zeros(len(lam), bool)
+    B = J @ (V[:, keep] * np.sqrt(lam[keep])) / sigma_px
+    U, s, _ = np.linalg.svd(B, full_matrices=False)
+    zero = np.zeros((len(lay.joints), len(idx)))
+    zero[np.arange(len(lay.joints)), lay.index("zero")] = 1.0
+    cam = np.asarray(est.T_cam_base0) @ np.asarray(se3_exp(jnp.asarray(x[lay.index("cam")])))
+    if lay.eye_in_hand:
+        tool = np.asarray(se3_exp(jnp.asarray(x[lay.index("tool")[:6]])))
+        T_fixed = np.asarray(est.T_flange_marker0)[0] @ tool
+    else:
+        T_fixed = cam
+    return CameraReference(
+        problem=problem, x=jnp.asarray(x), zero=jnp.asarray(zero), U=jnp.asarray(U),
+        d=jnp.asarray(1.0 / np.sqrt(1.0 + s**2) - 1.0), sigma_px=float(sigma_px), corners=int(num_corners),
+        views=int(data.points.shape[0]), joint_names=tuple(lay.joints), T_fixed=T_fixed,
+        eye_in_hand=lay.eye_in_hand,
+    )  # fmt: skip
+
+
+def fit(ref: CameraReference, *, joint_offsets: bool) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The drift fit of `ref` (`fit_camera_drift`): `(theta, C, T, rss)` as NumPy."""
+    theta, C, T, rss = fit_camera_drift(
+        ref.x, ref.zero, ref.U, ref.d, ref.sigma_px, ref.problem, offsets=joint_offsets
+    )
+    return np.asarray(theta), np.asarray(C), float(T), float(rss)
