@@ -232,8 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus.
-NUMBER_LISTS = ("--region", "--taught", "--home-deg", "--sweep-deg", "--point-mm")
-_NEGATIVE_LIST = re.compile(r"^-\.?\d[\d.eE+-]*(,[-+]?[\d.eE+-]+)*$")
+NUMBER_LISTS = ("--region", "--taught", "--home-deg", "--sweep-deg", "--point-mm", "--joint-box")
+_NEGATIVE_LIST = re.compile(r"^-\.?\d[\d.eE+:-]*(,[-+]?[\d.eE+:-]+)*$")
 
 
 def _join_negative_lists(argv: list[str]) -> list[str]:
