@@ -40,6 +40,20 @@ def controller_time(
     return (t_cam - offset_s) / (1.0 + 1e-6 * drift_ppm)
 
 
+#: Where a frame's stamp sits in its exposure (`metadata.json` `cameras[].stamp`): the fraction of the exposure before it.
+STAMP_FRACTION = {"start": 0.0, "middle": 0.5, "end": 1.0}
+
+
+def exposure_middle(t_cam, exposure_s: float | None, stamp: str | None):
+    """The camera-clock time of the middle of the exposure of frames stamped `t_cam`:
+    $t_{cam} + (1/2 - f)\\,E$ for exposure $E$ and a stamp a fraction $f$ into it
+    (`STAMP_FRACTION`). Unchanged when the exposure or the stamp's meaning is unknown
+    (`None`): the stamp is then taken for the middle."""
+    if exposure_s is None or stamp is None:
+        return t_cam
+    return t_cam + (0.5 - STAMP_FRACTION[stamp]) * exposure_s
+
+
 def interpolate_encoders(
     t: Float[Array, "..."], enc_t: Float[Array, " T"], enc_q: Float[Array, " T"]
 ) -> Float[Array, "..."]:

@@ -4,10 +4,15 @@ standard deviation, and the dataset metadata it writes."""
 
 import json
 
+import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from test_clocksync import OFFSET_S as CLOCK_OFFSET_S
+from test_clocksync import _sweeps as clock_sweeps
 
+from jaxcal._clocksync import exposure_middle, fit_clock_offset
 from jaxcal.cli import CAMERAS
 from jaxcal.errors import DatasetError
 from jaxcal.io._metadata import CameraInfo, read_cameras
@@ -181,3 +186,36 @@ def test_simulate_writes_the_camera_into_the_metadata(tmp_path):
         json.loads((tmp_path / "ds" / "metadata.json").read_text())["simulation"]["camera"]
         == "rolling-shutter"
     )
+
+
+# --------------------------------------------------------------------------- the estimator: exposure middles
+
+
+def test_exposure_middle_of_the_stamps():
+    t = np.array([1.0, 2.0])
+    assert np.allclose(exposure_middle(t, 0.01, "start"), t + 0.005)
+    assert np.allclose(exposure_middle(t, 0.01, "middle"), t)
+    assert np.allclose(exposure_middle(t, 0.01, "end"), t - 0.005)
+    assert exposure_middle(t, None, "start") is t and exposure_middle(t, 0.01, None) is t
+
+
+def test_clock_offset_from_start_stamped_frames_is_the_exposure_middles():
+    """Analytic sweeps whose frames are exposed around `t_mid` but stamped at their exposure's
+    start: moved to their exposure's middle, the frames give the offset of the exact middles
+    (the fit's own noise aside, within its standard deviation of the truth); the bare stamps
+    give one half an exposure early."""
+    data, t_mid, enc_t, enc_q, _ = clock_sweeps(0)
+    exposure = 0.012
+    stamps = np.asarray(t_mid) - 0.5 * exposure
+
+    solve = jax.jit(lambda t: fit_clock_offset(data, t, enc_t, enc_q))
+
+    def fit(t_cam):
+        return solve(jnp.asarray(t_cam))
+
+    exact = fit(t_mid)
+    assert abs(float(exact.offset_s) - CLOCK_OFFSET_S) < 3.0 * float(exact.std_s)
+    middles = float(fit(exposure_middle(stamps, exposure, "start")).offset_s)
+    assert abs(middles - float(exact.offset_s)) < 1e-7
+    bare = float(fit(stamps).offset_s)
+    assert abs(bare - (float(exact.offset_s) - 0.5 * exposure)) < 1e-5

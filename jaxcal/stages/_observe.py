@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._clocksync import exposure_middle
 from ..errors import CalibrationError
 from ..io.dataset import CameraInfo, Dataset, TargetInfo
 from ..vision import PoseEstimate, calibrate_intrinsics, detect_frames, estimate_pose
@@ -17,7 +18,9 @@ from ._setup import Options, Setup
 class CameraObservations:
     """One camera's frames.
 
-    - `rows`: the frame-table rows of this camera; `t_cam`: their camera-clock stamps (s).
+    - `rows`: the frame-table rows of this camera; `t_cam`: their camera-clock
+      times (s), each frame's exposure middle when the metadata says where the
+      stamp sits in the exposure (`frame_times`), else its stamp.
     - `detections`: per row, target name -> `jaxcal.vision.Detection`.
     - `poses`: per row, target name -> `PoseEstimate` (targets not found, or
       without a pose, are absent). For an eye-in-hand camera, the camera's
@@ -157,8 +160,14 @@ def observe_camera(
         poses = [{k: p.inverse() for k, p in d.items()} for d in poses]
     dropped = tuple((int(rows[i]), name, rms) for i, bad in outliers.items() for name, rms in bad.items())
     return CameraObservations(
-        camera, rows, dets, poses, ds.frames["timestamp"][rows], np.asarray(K), dist, intrinsics, dropped
+        camera, rows, dets, poses, frame_times(ds, camera, rows), np.asarray(K), dist, intrinsics, dropped
     )
+
+
+def frame_times(ds: Dataset, camera: CameraInfo, rows) -> np.ndarray:
+    """Camera-clock times of `camera`'s frames `rows`: the middle of each frame's exposure when the
+    metadata gives the camera's `exposure_s` and `stamp`, else the stamps as they are."""
+    return np.asarray(exposure_middle(ds.frames["timestamp"][rows], camera.exposure_s, camera.stamp))
 
 
 def observe_device(setup: Setup) -> CameraObservations:
