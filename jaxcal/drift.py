@@ -476,11 +476,25 @@ def camera_corners(ds: Dataset, camera, targets, mount_index, K, dist, *, worker
     return pts, pix, np.array(tgt), np.array(frm), np.array(tc)
 
 
-def camera_check(
-    doc: dict, file: Path, ds: Dataset, *, joint_offsets: bool = False, workers=None
-) -> DriftCheck:
-    """The drift check of a camera result `doc` (its `estimate.npz` beside `file`) on the
-    image capture `ds` (`jaxcal._drift_camera`)."""
+@dataclass(frozen=True, eq=False)
+class CameraCapture:
+    """A camera check capture read against a camera result: the result (`doc`, its
+    `file`, its `Estimate`), the capture `ds` and its detected corners: per view the
+    target points `(n, 3)`, pixels `(n, 2)`, and `(views,)` mount index, dataset row, stamp."""
+
+    doc: dict
+    file: Path
+    est: object
+    ds: Dataset
+    points: list
+    pixels: list
+    target: np.ndarray
+    row: np.ndarray
+    t_cam: np.ndarray
+
+
+def camera_capture(doc: dict, file: Path, ds: Dataset, *, workers=None) -> CameraCapture:
+    """Check that `ds` matches the camera result `doc` (`file`) and detect its corners."""
     path = file.parent / ESTIMATE_FILE
     if not path.is_file():
         raise DatasetError(
@@ -491,9 +505,27 @@ def camera_check(
     if est.layout.angles or "sigma_px" not in (doc.get("refinement") or {}):
         raise DatasetError(f"{file}: the check needs a refined calibration with an encoder log")
     camera, targets = _matching_camera(doc, file, ds, est)
-    K, dist, K0, dist0 = _intrinsics(doc)
+    K, dist, _, _ = _intrinsics(doc)
     mounts = {t.name: (0 if est.layout.eye_in_hand else est.mount_names.index(t.name)) for t in targets}
-    pts, pix, tgt, frm, tc = camera_corners(ds, camera, targets, mounts, K, dist, workers=workers)
+    return CameraCapture(
+        doc, file, est, ds, *camera_corners(ds, camera, targets, mounts, K, dist, workers=workers)
+    )
+
+
+def check_camera(
+    cap: CameraCapture, *, joint_offsets: bool = False, pixels: list | None = None
+) -> DriftCheck:
+    """The drift check of a `CameraCapture` (`jaxcal._drift_camera`); `pixels`: per view
+    other detections in place of the capture's (a benchmark's shifted copies)."""
+    doc, est, ds = cap.doc, cap.est, cap.ds
+    pts, pix, tgt, frm, tc = (
+        cap.points,
+        cap.pixels if pixels is None else pixels,
+        cap.target,
+        cap.row,
+        cap.t_cam,
+    )
+    _, _, K0, dist0 = _intrinsics(doc)
     enc_q = np.asarray(ds.encoder_motor, np.float64) / np.asarray(est.nominal.reduction_ratio)
     offset = ds.clock_offset_s if ds.clock_offset_s is not None else float(doc["clock"]["offset_s"])
     t_ctrl = (tc - offset) / (1.0 + 1e-6 * ds.clock_drift_ppm)
@@ -520,7 +552,7 @@ def camera_check(
         T_now, frame = np.linalg.inv(eps) @ ref.T_fixed, "T_cam_base"
     c = verdict(
         theta, C, T, rss, dof_r, samples=len(keep), joint_names=ref.joint_names,
-        T_now=T_now, names=(str(file), str(ds.root)), what="camera", frame=frame,
+        T_now=T_now, names=(str(cap.file), str(ds.root)), what="camera", frame=frame,
     )  # fmt: skip
     c.residual["scatter_inflation"] = inflation
     return c
@@ -541,7 +573,7 @@ def check(result, capture, *, joint_offsets: bool = False, workers=None) -> Drif
                 f"{file}: jaxcal check handles stop-and-shoot tracker results ('point_fit') and camera results; "
                 f"this one is {doc.get('capture', 'another kind')!r}"
             )
-        return camera_check(doc, file, ds, joint_offsets=joint_offsets, workers=workers)
+        return check_camera(camera_capture(doc, file, ds, workers=workers), joint_offsets=joint_offsets)
     _matching_capture(doc, file, ds)
     s = ds.samples
     ref = reference(doc, s.q, s.sigma_m)

@@ -2,69 +2,27 @@
 
 The calibration is the scene's truth written as a result (`result.json` and
 `estimate.npz`: the true arm as nominal, zero correction, a small covariance),
-so that the test needs no calibration run; the check captures are ten rendered
-stop-and-shoot images (640x480; the plate is too small to detect at 320x240) of the same scene, the camera unmoved and moved
-by 1 mm and 0.2 deg.
+so that the test needs no calibration run (`jaxcal.sim.drift.truth_result`); the
+check captures are ten rendered stop-and-shoot images (640x480: the plate is too
+small to detect at 320x240) of the same scene, the camera unmoved and moved by
+1 mm and 0.2 deg; eye-to-hand and eye-in-hand (the camera on the flange moved).
 """
 
 import json
 import shutil
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal._correction import Estimate, ParameterLayout
 from jaxcal.cli import main
 from jaxcal.drift import check
 from jaxcal.errors import DatasetError
-from jaxcal.io.dataset import load_dataset
-from jaxcal.io.result import write_estimate
 from jaxcal.robots import robot_path
-from jaxcal.sim.drift import random_poses, render_check_capture
-from jaxcal.sim.simulate import SimConfig, draw_truth, nominal_robot, scene_layout
+from jaxcal.sim.drift import random_poses, render_check_capture, truth_result
+from jaxcal.sim.simulate import SimConfig
 
 CONFIG = SimConfig(resolution=(640, 480), seed=3)
 MOVE = (1e-3 * np.array([0.6, 0.6, -0.53]), np.radians(0.2) * np.array([0.0, 0.6, 0.8]))
-
-
-def _truth_result(path, capture) -> None:
-    """The scene's truth as a camera calibration result with a small covariance."""
-    nominal, _ = nominal_robot(CONFIG.robot)
-    true = draw_truth(nominal, CONFIG)
-    # simulate's scene: the true plate mount is the design jittered (seeded), a world camera as designed.
-    plates, plates_true, cams, _ = scene_layout(nominal, true, CONFIG, np.random.default_rng(CONFIG.seed))
-    layout = ParameterLayout.of(true, 1)
-    n = layout.size
-    x = np.zeros(n)
-    x[layout.index("rate")] = 1.0
-    sd = np.zeros(n)
-    # A good calibration's: 20 um / 0.001 deg on the camera, 10 um / 10 urad on the arm.
-    scales = {"cam": 2e-5, "origin": 1e-5, "zero": 1e-5, "tool": 1e-5, "rate": 2e-6, "clock": 0.01}
-    for g, s in scales.items():
-        sd[layout.index(g)] = s
-    sd[layout.index("intr")[:4]] = 0.02
-    mount = plates_true[0].T_link_target
-    est = Estimate(
-        x=jnp.asarray(x), cov=jnp.asarray(np.diag(sd**2)), free=jnp.asarray(sd > 0), nominal=true,
-        T_flange_marker0=jnp.asarray(mount)[None], T_cam_base0=jnp.asarray(np.linalg.inv(cams[0].T_mount_cam)),
-        reduction_ratio=jnp.asarray(true.reduction_ratio), layout=layout, mount_names=(plates[0].target.name,),
-    )  # fmt: skip
-    path.mkdir()
-    write_estimate(path / "estimate.npz", est)
-    cam = load_dataset(capture).cameras[0]
-    doc = {
-        "schema": "jaxcal.result",
-        "dataset": str(capture),
-        "setup": "eye_to_hand",
-        "capture": "eye-to-hand, single-joint sweeps, encoder log",
-        "camera": cam.name,
-        "targets": [plates[0].target.name],
-        "intrinsics": {"source": "metadata", "K": np.asarray(cam.K).tolist(), "distortion": [0.0] * 5},
-        "clock": {"offset_s": 0.0},
-        "refinement": {"sigma_px": 0.05},
-    }
-    (path / "result.json").write_text(json.dumps(doc))
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +31,7 @@ def captures(tmp_path_factory):
     q = random_poses(6, 10, 10.0, seed=1)
     still = render_check_capture(CONFIG, root / "still", q)
     moved = render_check_capture(CONFIG, root / "moved", q, move=MOVE)
-    _truth_result(root / "result", still)
+    truth_result(CONFIG, still, root / "result")
     return root / "result", still, moved
 
 
@@ -129,3 +87,17 @@ def test_check_refuses_a_capture_of_another_camera_target_or_robot(captures, tmp
 
     with pytest.raises(DatasetError, match="robot.urdf: its joint origins.*another robot"):
         check(res, variant("ur3", ur3))
+
+
+@pytest.mark.slow
+def test_eye_in_hand_a_moved_camera_mount_is_detected(tmp_path):
+    cfg = SimConfig(resolution=(640, 480), seed=3, eye_in_hand=True)
+    q = random_poses(6, 10, 10.0, seed=1)
+    still = render_check_capture(cfg, tmp_path / "still", q)
+    moved = render_check_capture(cfg, tmp_path / "moved", q, move=MOVE)
+    res = truth_result(cfg, still, tmp_path / "result")
+    c0, c1 = check(res, still), check(res, moved)
+    assert not c0.detected and c1.detected and c1.to_json()["T_flange_cam_now"]
+    # The mount's own jitter turns the move's direction (D^-1 E D): its size is kept.
+    assert abs(c1.translation_mm[0] - 1e3 * np.linalg.norm(MOVE[0])) < 4 * c1.translation_mm[1] + 0.02
+    assert abs(c1.rotation_deg[0] - 0.2) < 4 * c1.rotation_deg[1] + 0.002

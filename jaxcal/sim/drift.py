@@ -2,13 +2,22 @@
 stop-and-shoot images of the scene `jaxcal simulate` films with the same `SimConfig`
 (same seed: the same true arm, plate and camera), the camera moved by a twist."""
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
+from .._correction import Estimate, ParameterLayout
+from ..io.dataset import load_dataset
+from ..io.result import write_estimate
 from .motion import Segment, Trajectory
 from .simulate import SimConfig, draw_truth, nominal_robot, scene_layout, simulate
+
+#: `truth_result`'s standard deviations: a good calibration's (20 um / 0.001 deg on the
+#: camera, 10 um or urad on the arm and mounts, 0.02 px on the focal lengths and centre).
+GOOD_CALIBRATION = {"cam": 2e-5, "origin": 1e-5, "zero": 1e-5, "tool": 1e-5, "rate": 2e-6, "clock": 0.01}
 
 
 def twist_matrix(v, w) -> np.ndarray:
@@ -61,3 +70,56 @@ def render_check_capture(
         config, Path(out), trajectory=trajectory, frame_times=shots, layout=(plates_nominal, moved),
         progress=progress,
     )  # fmt: skip
+
+
+def truth_result(config: SimConfig, capture, out, *, scales=None, sigma_px: float = 0.05) -> Path:
+    """The scene's truth written as a camera calibration result (`result.json` and
+    `estimate.npz` in `out`): the true arm as the nominal model, zero correction, a
+    diagonal covariance of `scales` (per parameter group, default `GOOD_CALIBRATION`;
+    0.02 px on the intrinsics), corner noise `sigma_px`; `capture`: a dataset of the
+    scene (its camera's intrinsics). For checks without a calibration run."""
+    nominal, _ = nominal_robot(config.robot)
+    true = draw_truth(nominal, config)
+    plates, plates_true, cams, cams_true = scene_layout(
+        nominal, true, config, np.random.default_rng(config.seed)
+    )
+    eih = config.eye_in_hand
+    layout = ParameterLayout.of(true, 1, eye_in_hand=eih)
+    x = np.zeros(layout.size)
+    x[layout.index("rate")] = 1.0
+    sd = np.zeros(layout.size)
+    for g, v in (scales or GOOD_CALIBRATION).items():
+        sd[layout.index(g)] = v
+    sd[layout.index("intr")[:4]] = 0.02
+    if eih:  # the fixed frame is the board's, the mount the camera's (on the flange)
+        T_fixed, mount = np.linalg.inv(plates_true[0].T_link_target), cams_true[0].T_mount_cam
+    else:
+        T_fixed, mount = np.linalg.inv(cams[0].T_mount_cam), plates_true[0].T_link_target
+    cam = load_dataset(capture).cameras[0]
+    est = Estimate(
+        x=jnp.asarray(x), cov=jnp.asarray(np.diag(sd**2)), free=jnp.asarray(sd > 0), nominal=true,
+        T_flange_marker0=jnp.asarray(mount)[None], T_cam_base0=jnp.asarray(T_fixed),
+        reduction_ratio=jnp.asarray(true.reduction_ratio), layout=layout,
+        mount_names=(cam.name if eih else plates[0].target.name,),
+    )  # fmt: skip
+    out = Path(out)
+    out.mkdir(parents=True)
+    write_estimate(out / "estimate.npz", est)
+    doc = {
+        "schema": "jaxcal.result",
+        "dataset": str(capture),
+        "setup": "eye_in_hand" if eih else "eye_to_hand",
+        "capture": f"{'eye-in-hand' if eih else 'eye-to-hand'}, the truth (jaxcal.sim.drift.truth_result)",
+        "camera": cam.name,
+        "targets": [plates[0].target.name],
+        **({"board": plates[0].target.name} if eih else {}),
+        "intrinsics": {
+            "source": "metadata",
+            "K": np.asarray(cam.K).tolist(),
+            "distortion": np.asarray(cam.dist, float).ravel()[:5].tolist(),
+        },
+        "clock": {"offset_s": 0.0},
+        "refinement": {"sigma_px": float(sigma_px)},
+    }
+    (out / "result.json").write_text(json.dumps(doc))
+    return out
