@@ -23,6 +23,7 @@ the statistic $T = \\hat\\theta^T C^{-1} \\hat\\theta$; `jaxcal.drift` tests it.
 from dataclasses import dataclass
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -117,6 +118,24 @@ def fit_camera_drift(ref_x, zero, U, d, sigma, problem: RefineProblem, *, offset
     info = A.T @ A
     r = res(theta)
     return theta, jnp.linalg.inv(info), theta @ info @ theta, r @ r
+
+
+def pad_corners(data: CornerData, corners: int) -> CornerData:
+    """`data` with every view padded to `corners` entries (masked out), so that captures of
+    one target share the compiled check whatever the detector found."""
+    extra = corners - data.points.shape[1]
+    if extra <= 0:
+        return data
+    V = data.points.shape[0]
+    return eqx.tree_at(
+        lambda d: (d.points, d.pixels, d.mask),
+        data,
+        (
+            jnp.concatenate([data.points, jnp.zeros((V, extra, 3))], axis=1),
+            jnp.concatenate([data.pixels, jnp.zeros((V, extra, 2))], axis=1),
+            jnp.concatenate([data.mask, jnp.zeros((V, extra), bool)], axis=1),
+        ),
+    )
 
 
 def camera_reference(

@@ -44,8 +44,9 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import optimize, stats
 
+from ._buckets import bucket, pad_log
 from ._correction import ParameterLayout
-from ._drift_camera import camera_reference
+from ._drift_camera import camera_reference, pad_corners
 from ._drift_camera import fit as fit_camera
 from ._geometry import se3_exp
 from ._pointfit import PointLayout, point_jacobian, predict
@@ -480,7 +481,8 @@ def camera_corners(ds: Dataset, camera, targets, mount_index, K, dist, *, worker
 class CameraCapture:
     """A camera check capture read against a camera result: the result (`doc`, its
     `file`, its `Estimate`), the capture `ds` and its detected corners: per view the
-    target points `(n, 3)`, pixels `(n, 2)`, and `(views,)` mount index, dataset row, stamp."""
+    target points `(n, 3)`, pixels `(n, 2)`, and `(views,)` mount index, dataset row, stamp;
+    `max_points`: the most corners a view can have (the targets' patterns)."""
 
     doc: dict
     file: Path
@@ -491,6 +493,7 @@ class CameraCapture:
     target: np.ndarray
     row: np.ndarray
     t_cam: np.ndarray
+    max_points: int
 
 
 def camera_capture(doc: dict, file: Path, ds: Dataset, *, workers=None) -> CameraCapture:
@@ -507,9 +510,8 @@ def camera_capture(doc: dict, file: Path, ds: Dataset, *, workers=None) -> Camer
     camera, targets = _matching_camera(doc, file, ds, est)
     K, dist, _, _ = _intrinsics(doc)
     mounts = {t.name: (0 if est.layout.eye_in_hand else est.mount_names.index(t.name)) for t in targets}
-    return CameraCapture(
-        doc, file, est, ds, *camera_corners(ds, camera, targets, mounts, K, dist, workers=workers)
-    )
+    corners = camera_corners(ds, camera, targets, mounts, K, dist, workers=workers)
+    return CameraCapture(doc, file, est, ds, *corners, max(len(t.spec.points()) for t in targets))
 
 
 def check_camera(
@@ -533,10 +535,12 @@ def check_camera(
     keep = np.flatnonzero(inside)
     if len(keep) < 2:
         raise DatasetError(f"{ds.root}: {len(keep)} image(s) inside the encoder log: a check needs a few")
+    # Padded (views, corners per view, log) so that check captures share the compiled fit.
     data = make_corner_data(
         [pts[i] for i in keep], [pix[i] for i in keep], tgt[keep], frm[keep], tc[keep],
-        ds.encoder_t, enc_q, ds.clock_drift_ppm,
+        *pad_log(ds.encoder_t, enc_q, bucket(len(ds.encoder_t))), ds.clock_drift_ppm, views=bucket(len(keep)),
     )  # fmt: skip
+    data = pad_corners(data, cap.max_points)
     corners = int(sum(len(pts[i]) for i in keep))
     ref = camera_reference(est, data, K0, dist0, offset, float(doc["refinement"]["sigma_px"]), corners)
     theta, C, T, rss = fit_camera(ref, joint_offsets=joint_offsets)
