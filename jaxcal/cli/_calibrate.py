@@ -1,6 +1,7 @@
 """`jaxcal calibrate` and `jaxcal demo`: run the pipeline, print its tables, write its files."""
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -10,10 +11,12 @@ from rich.console import Console
 from rich.table import Table
 
 from .._pointfit import TERMS
-from ..io._files import check_output_dir, marked_directory, output_lock
+from ..certification import certify
+from ..io._files import check_output_dir, marked_directory, output_lock, write_text_atomic
 from ..pipeline import calibrate
-from ..report import output_files, write_outputs
+from ..report import certificate_section, output_files, write_outputs
 from ..robots import load_robot
+from ._certify import print_certificate, region_of
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, positive_int
 from ._rosbag import dataset_of
 
@@ -198,14 +201,31 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         console.print(f"[red]--strict: the calibration is {result.status}; nothing written[/red]")
         return code
     write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked)
+    extra = _certificate(console, out, args)
     console.print(
-        f"wrote {out}/: {', '.join(output_files(result))}, report.md ({time.perf_counter() - t0:.1f} s)"
+        f"wrote {out}/: {', '.join(output_files(result) + extra)}, report.md ({time.perf_counter() - t0:.1f} s)"
     )
     if code:
         console.print(
             f"[red]calibration {result.status.upper()}: see the reasons above and result.json 'status'[/red]"
         )
     return code
+
+
+def _certificate(console, out: Path, args) -> list[str]:
+    """With `--region` / `--joint-box`: the accuracy certificate over it, on the console, in
+    `report.md` and `certificate.json` (the files written)."""
+    where = region_of(args)
+    if where["region"] is None and where["joint_box"] is None:
+        return []
+    c = certify(out, **where)
+    print_certificate(console, c)
+    write_text_atomic(out / "certificate.json", json.dumps(c.to_json(), indent=1))
+    report = out / "report.md"
+    text = report.read_text()
+    head, sep, tail = text.partition("\n## Plots")
+    write_text_atomic(report, head + "\n".join(certificate_section(c)) + sep + tail)
+    return ["certificate.json"]
 
 
 def cmd_calibrate(args) -> int:
@@ -347,4 +367,11 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         help="stop-and-shoot tracker data: folds of the cross-validation that gates --terms and is reported "
         "(0: none)",
     )
+    g = p.add_mutually_exclusive_group()
+    g.add_argument(
+        "--region",
+        help="also certify the accuracy over this Cartesian box x0,y0,z0,x1,y1,z1 (m, base frame): "
+        "report.md, the console and certificate.json (as jaxcal certify)",
+    )
+    g.add_argument("--joint-box", help="also certify over these joint ranges lo:hi,lo:hi,... (deg)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

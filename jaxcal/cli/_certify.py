@@ -96,26 +96,9 @@ def _write_plot(c, path: str) -> None:
         tmp_png.replace(dest)
 
 
-def cmd_certify(args) -> int:
-    for opt, what in ((args.json, "--json"), (args.plot, "--plot")):
-        _check_output(opt, [args.result], args.overwrite, what)
-    region = _floats(args.region, 6) if args.region else None
-    jb = _joint_box(args.joint_box) if args.joint_box else None
-    poses = None
-    if args.poses:
-        names = read_result(args.result)[0]["model"]["joint_names"]
-        poses = read_poses(args.poses, names, degrees=args.degrees)
-    c = certify(
-        args.result,
-        region=region,
-        joint_box=jb,
-        poses=poses,
-        samples=args.samples,
-        frame=args.frame,
-        seed=args.seed,
-    )
+def print_certificate(console, c) -> None:
+    """The certificate's summary, extrapolation, caveats and notes on the console."""
     s = c.summary
-    console = Console(width=max(Console().width, 110))
     console.print(
         f"jaxcal certify: {c.kind} result {c.result}, region {c.region['kind']} ({s['poses']} poses), "
         f"tool point in the {c.frame} frame"
@@ -136,6 +119,34 @@ def cmd_certify(args) -> int:
         console.print(f"[yellow]caveat:[/yellow] {w}")
     for n in c.notes:
         console.print(f"[yellow]note:[/yellow] {n}")
+
+
+def region_of(args) -> dict:
+    """`certify`'s region keywords from `--region` / `--joint-box` (either may be absent)."""
+    return {
+        "region": _floats(args.region, 6) if getattr(args, "region", None) else None,
+        "joint_box": _joint_box(args.joint_box) if getattr(args, "joint_box", None) else None,
+    }
+
+
+def cmd_certify(args) -> int:
+    for opt, what in ((args.json, "--json"), (args.plot, "--plot")):
+        _check_output(opt, [args.result], args.overwrite, what)
+    where = region_of(args)
+    poses = None
+    if args.poses:
+        names = read_result(args.result)[0]["model"]["joint_names"]
+        poses = read_poses(args.poses, names, degrees=args.degrees)
+    c = certify(
+        args.result,
+        **where,
+        poses=poses,
+        samples=args.samples,
+        frame=args.frame,
+        seed=args.seed,
+    )
+    console = Console(width=max(Console().width, 110))
+    print_certificate(console, c)
     if args.json:
         write_text_atomic(args.json, json.dumps(c.to_json(), indent=1))
         console.print(f"wrote {args.json}")
