@@ -74,18 +74,39 @@ def _template(n: int, markers: int) -> RefineParams:
     )
 
 
-def _residuals(x, eps, problem: RefineProblem):
-    """Reprojected minus detected corners (px), flattened, zero on padding."""
+def _camera_points(x, eps, problem: RefineProblem):
+    """The corners in the (moved) camera frame `(V, P, 3)` and the calibrated intrinsics."""
     n = problem.nominal.num_joints
     _, unravel = ravel_pytree(_template(n, problem.T_flange_marker0.shape[0]))
     params = unravel(x)
     R, t = chain(params, problem)
     X = jnp.einsum("vab,vkb->vka", R, problem.data.points) + t[:, None, :]
     T = se3_exp(-eps)
-    X = X @ T[:3, :3].T + T[:3, 3]
-    K, dist = camera_matrix(params, problem)
+    return X @ T[:3, :3].T + T[:3, 3], camera_matrix(params, problem)
+
+
+def _residuals(x, eps, problem: RefineProblem):
+    """Reprojected minus detected corners (px), flattened, zero on padding."""
+    X, (K, dist) = _camera_points(x, eps, problem)
     r = project(K, dist, X) - problem.data.pixels
     return jnp.where(problem.data.mask[..., None], r, 0.0).reshape(-1)
+
+
+@jax.jit
+def view_jacobians(x, problem: RefineProblem):
+    """Per view of `problem` (its pixels ignored): the corners' predicted pixels `(V, P, 2)`,
+    their camera-frame positions `(V, P, 3)` (m), and their derivatives `(V, 2P, 6)` by the camera's twist and
+    `(V, 2P, n)` by the calibration's vector (for planning a check capture)."""
+    X, (K, dist) = _camera_points(x, jnp.zeros(6), problem)
+    V = X.shape[0]
+
+    def pix(xx, eps):
+        Y, (KK, dd) = _camera_points(xx, eps, problem)
+        return project(KK, dd, Y).reshape(V, -1)
+
+    A = jax.jacfwd(pix, argnums=1)(x, jnp.zeros(6))
+    J = jax.jacfwd(pix, argnums=0)(x, jnp.zeros(6))
+    return project(K, dist, X), X, A, J
 
 
 @jax.jit

@@ -397,7 +397,7 @@ def _matching_camera(doc: dict, file: Path, ds: Dataset, est) -> tuple:
             f"{meta}: no camera {doc['camera']!r} ({file} calibrated it; the capture has "
             f"{[c.name for c in ds.cameras]}): another camera"
         ) from None
-    K_cal = np.asarray(_intrinsics(doc)[0])
+    K_cal = np.asarray(result_intrinsics(doc)[0])
     if camera.K is not None and not np.allclose(camera.K, K_cal, rtol=1e-3, atol=0.05):
         raise DatasetError(
             f"{meta}: camera {camera.name!r} intrinsics K differ from those {file} calibrated with: another camera"
@@ -440,7 +440,7 @@ def _calibration_dataset(doc: dict) -> Dataset | None:
         return None
 
 
-def _intrinsics(doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def result_intrinsics(doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """`(K, dist, K0, dist0)`: the calibrated intrinsics and the start the refinement's
     increments are relative to."""
     i = doc["intrinsics"]
@@ -508,7 +508,7 @@ def camera_capture(doc: dict, file: Path, ds: Dataset, *, workers=None) -> Camer
     if est.layout.angles or "sigma_px" not in (doc.get("refinement") or {}):
         raise DatasetError(f"{file}: the check needs a refined calibration with an encoder log")
     camera, targets = _matching_camera(doc, file, ds, est)
-    K, dist, _, _ = _intrinsics(doc)
+    K, dist, _, _ = result_intrinsics(doc)
     mounts = {t.name: (0 if est.layout.eye_in_hand else est.mount_names.index(t.name)) for t in targets}
     corners = camera_corners(ds, camera, targets, mounts, K, dist, workers=workers)
     return CameraCapture(doc, file, est, ds, *corners, max(len(t.spec.points()) for t in targets))
@@ -527,7 +527,7 @@ def check_camera(
         cap.row,
         cap.t_cam,
     )
-    _, _, K0, dist0 = _intrinsics(doc)
+    _, _, K0, dist0 = result_intrinsics(doc)
     enc_q = np.asarray(ds.encoder_motor, np.float64) / np.asarray(est.nominal.reduction_ratio)
     offset = ds.clock_offset_s if ds.clock_offset_s is not None else float(doc["clock"]["offset_s"])
     t_ctrl = (tc - offset) / (1.0 + 1e-6 * ds.clock_drift_ppm)

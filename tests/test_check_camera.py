@@ -17,6 +17,7 @@ import pytest
 from jaxcal.cli import main
 from jaxcal.drift import check
 from jaxcal.errors import DatasetError
+from jaxcal.planning._check import plan_check
 from jaxcal.robots import robot_path
 from jaxcal.sim.drift import random_poses, render_check_capture, truth_result
 from jaxcal.sim.simulate import SimConfig
@@ -101,3 +102,17 @@ def test_eye_in_hand_a_moved_camera_mount_is_detected(tmp_path):
     # The mount's own jitter turns the move's direction (D^-1 E D): its size is kept.
     assert abs(c1.translation_mm[0] - 1e3 * np.linalg.norm(MOVE[0])) < 4 * c1.translation_mm[1] + 0.02
     assert abs(c1.rotation_deg[0] - 0.2) < 4 * c1.rotation_deg[1] + 0.002
+
+
+@pytest.mark.slow
+def test_plan_check_proposes_poses_better_than_random(captures, tmp_path):
+    res, _, _ = captures
+    out = tmp_path / "poses.csv"
+    argv = ["plan", "--check", str(res), "--budget", "4", "--candidates", "150", "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0].split(",")[0] == "shoulder_pan_joint" and len(lines) == 5
+    cp = plan_check(res, 4, candidates=150)
+    worst = [s["translation_mm_worst"] for s in cp.steps]
+    assert all(b <= a + 1e-9 for a, b in zip(worst, worst[1:]))
+    assert worst[-1] <= cp.random["translation_mm_worst"]
