@@ -19,6 +19,22 @@ noise; each is checked against the calibration (`jaxcal.drift.check_samples`).
 - `check_s`: one check after compilation (fit and test).
 
 Usage: python benchmarks/drift.py --seeds 3 --trials 100 --json results/drift.json
+
+`--camera`: the same keys for camera check captures. Per seed a rendered
+eye-to-hand calibration (`--resolution`, `--frames` per joint, calibrated by
+`jaxcal.calibrate`), then `--trials` rendered check captures of 10
+stop-and-shoot images at random configurations (+-10 deg about the sweeps'
+home; the 5-pose figures from their first five), each detected and checked
+unmoved (`false_alarm_rate`). The moved captures are the same detections
+shifted by the change the move makes to each corner's true projection (from
+`truth.json`): the detector's own error kept, one rendering per trial instead
+of one per shift (`drift_power_by_mm` along random directions, `_by_deg`,
+`estimate_within_2sigma`, `detectable_mm_10_images` along each trial's worst
+direction). `check_s`: `jaxcal.drift.check` of 10 rendered images at 1280x960
+(detection included) after a first call, against the scene's truth written as
+a result (`jaxcal.sim.drift.truth_result`), median of 3.
+
+Usage: python benchmarks/drift.py --camera --seeds 2 --trials 25 --json results/drift_camera.json
 """
 
 import argparse
@@ -35,10 +51,14 @@ import numpy as np
 
 import jaxcal
 from jaxcal._geometry import se3_exp
-from jaxcal.drift import check_samples, detectable, reference
+from jaxcal._reprojection import project
+from jaxcal.certification import read_result
+from jaxcal.drift import camera_capture, check, check_camera, check_samples, detectable, reference
 from jaxcal.io._files import write_text_atomic
 from jaxcal.io.dataset import load_dataset
 from jaxcal.report import write_outputs
+from jaxcal.sim.drift import random_poses, render_check_capture, truth_result, twist_matrix
+from jaxcal.sim.simulate import SimConfig, simulate
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -106,6 +126,141 @@ def one_seed(res: Path, sizes, trials: int, sigma: float, rng) -> dict:
     return out
 
 
+CAM_MM = (0.1, 0.2, 0.5, 1.0, 2.0)
+CAM_DEG = (0.02, 0.05, 0.1, 0.2, 0.5)
+
+
+def _shifted(cap, truth: dict, K, dist, E: np.ndarray, views: int) -> list:
+    """The capture's detections moved by the change the camera move `E` (its frame) makes
+    to each corner's true projection (the detector's own error kept), first `views` views."""
+    rows = {f["row"]: f for f in truth["frames"]}
+    name = cap.doc["targets"][0]
+    Ei = np.linalg.inv(E)
+    out = []
+    for pts, pix, row in zip(cap.points[:views], cap.pixels[:views], cap.row[:views]):
+        T = np.asarray(rows[int(row)]["T_cam_target"][name])
+        X = pts @ T[:3, :3].T + T[:3, 3]
+        Xm = X @ Ei[:3, :3].T + Ei[:3, 3]
+        out.append(pix + np.asarray(project(K, dist, jnp.asarray(Xm)) - project(K, dist, jnp.asarray(X))))
+    return out
+
+
+def _subset(cap, views: int):
+    return type(cap)(
+        cap.doc, cap.file, cap.est, cap.ds, cap.points[:views], cap.pixels[:views], cap.target[:views],
+        cap.row[:views], cap.t_cam[:views], cap.max_points,
+    )  # fmt: skip
+
+
+def camera_trial(cap, truth, K, dist, rng) -> dict:
+    """One rendered check capture: per size (10 images, 5) the unmoved check, the shifted ones."""
+    out = {}
+    for n in (10, 5):
+        c = _subset(cap, n)
+        c0 = check_camera(c)
+        row = {
+            "false": c0.detected,
+            "bound": c0.detectable["translation_mm_worst"],
+            "mm": {},
+            "deg": {},
+            "within": [],
+        }
+        for m in CAM_MM:
+            v = 1e-3 * m * _unit(rng)
+            d = check_camera(c, pixels=_shifted(c, truth, K, dist, twist_matrix(v, np.zeros(3)), n))
+            row["mm"][m] = d.detected
+            if d.detected:
+                row["within"].append(abs(d.translation_mm[0] - m) <= 2.0 * d.translation_mm[1])
+        for a in CAM_DEG:
+            E = twist_matrix(np.zeros(3), np.radians(a) * _unit(rng))
+            row["deg"][a] = check_camera(c, pixels=_shifted(c, truth, K, dist, E, n)).detected
+        P = np.linalg.inv(c0.cov)
+        u = np.linalg.eigh(P[:3, :3])[1][:, 0]
+        grid = np.linspace(0.25, 2.5, 10) * row["bound"]
+        row["worst"] = {
+            float(g): check_camera(
+                c, pixels=_shifted(c, truth, K, dist, twist_matrix(1e-3 * g * u, np.zeros(3)), n)
+            ).detected
+            for g in grid
+        }
+        out[n] = row
+    return out
+
+
+def _camera_check_s(tmp: Path) -> float:
+    cfg = SimConfig(resolution=(1280, 960), seed=7)
+    cap = render_check_capture(cfg, tmp / "hires", random_poses(6, 10, 10.0, seed=7))
+    res = truth_result(cfg, cap, tmp / "hires_result")
+    check(res, cap)
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        check(res, cap)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def camera_main(args) -> int:
+    rng = np.random.default_rng(0)
+    w, h = (int(v) for v in args.resolution.split("x"))
+    trials = {10: [], 5: []}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for s in range(args.seeds):
+            cfg = SimConfig(resolution=(w, h), seed=300 + s, frames_per_joint=args.frames, range_deg=80.0)
+            ds = simulate(cfg, tmp / f"cal{s}", progress=False)
+            res = write_outputs(jaxcal.calibrate(ds, progress=False), tmp / f"res{s}")
+            doc, file = read_result(res)
+            for t in range(args.trials):
+                q = random_poses(6, 10, 10.0, seed=1000 * s + t)
+                root = render_check_capture(cfg, tmp / f"chk{s}_{t}", q)
+                ds_c = load_dataset(root)
+                truth = json.loads((root / "truth.json").read_text())
+                cam = ds_c.cameras[0]
+                K, dist = jnp.asarray(cam.K), jnp.asarray(np.asarray(cam.dist, float)[:5])
+                cap = camera_capture(doc, file, ds_c)
+                for n, row in camera_trial(cap, truth, K, dist, rng).items():
+                    trials[n].append(row)
+            print(f"seed {s}: done", flush=True)
+        check_s = _camera_check_s(tmp)
+    out = {
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
+        "data": f"rendered UR5e eye-to-hand calibrations ({w}x{h}, {args.frames} frames per joint, 80 deg "
+        "sweeps) and rendered 10-image stop-and-shoot check captures; moved captures: the detections shifted "
+        "by the move's change of the true projections",
+        "seeds": args.seeds,
+        "trials_per_seed": args.trials,
+        "false_alarm_rate": float(np.mean([r["false"] for r in trials[10]])),
+        "false_alarm_rate_5_images": float(np.mean([r["false"] for r in trials[5]])),
+        "false_alarm_trials": len(trials[10]),
+        "drift_power_by_mm": {
+            n: {m: float(np.mean([r["mm"][m] for r in rows])) for m in CAM_MM} for n, rows in trials.items()
+        },
+        "drift_power_by_deg": {
+            n: {a: float(np.mean([r["deg"][a] for r in rows])) for a in CAM_DEG} for n, rows in trials.items()
+        },
+        "estimate_within_2sigma": {
+            n: float(np.mean(sum((r["within"] for r in rows), []) or [np.nan])) for n, rows in trials.items()
+        },
+        "detectable_mm_bound": {n: float(np.mean([r["bound"] for r in rows])) for n, rows in trials.items()},
+        "check_s": check_s,
+        "check_s_setting": "10 images at 1280x960, detection included, after compilation (median of 3)",
+    }
+    for n, rows in trials.items():
+        # Sizes relative to each trial's own bound: the smallest multiple detected in 95 % of trials.
+        rel = sorted({round(g / r["bound"], 6) for r in rows for g in r["worst"]})
+        rate = [
+            np.mean([[v for g, v in r["worst"].items() if abs(g / r["bound"] - k) < 1e-6][0] for r in rows])
+            for k in rel
+        ]
+        ok = [k for k, p in zip(rel, rate) if p >= 0.95]
+        out[f"detectable_mm_{n}_images"] = float(ok[0] * out["detectable_mm_bound"][n]) if ok else None
+    print(json.dumps(out, indent=1), flush=True)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(args.json, json.dumps(out, indent=2))
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=3, help="calibrations")
@@ -114,7 +269,14 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", default="5,10", help="samples per check capture")
     p.add_argument("--noise-um", type=float, default=10.0)
     p.add_argument("--json", required=True, type=Path)
+    p.add_argument(
+        "--camera", action="store_true", help="camera check captures (rendered) instead of tracker"
+    )
+    p.add_argument("--resolution", default="640x480", help="--camera: the calibration's and checks' images")
+    p.add_argument("--frames", type=int, default=20, help="--camera: calibration frames per joint")
     args = p.parse_args(argv)
+    if args.camera:
+        return camera_main(args)
     sizes = [int(s) for s in args.sizes.split(",")]
     rng = np.random.default_rng(0)
     rows = []
