@@ -8,7 +8,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint format bench clean gl
+.PHONY: demo test test-bench lint format bench clean gl
 
 # Headless OpenGL for MuJoCo (EGL + Mesa; OSMesa as the fallback).
 GL_PACKAGES := libegl1 libgl1-mesa-dri
@@ -40,7 +40,11 @@ demo: $(STAMP) gl
 # (--dist loadgroup would be finer, but pytest-xdist 3.8 tags its groups through
 # `item._nodeid`, which pytest 9 no longer reads: the groups silently split.)
 test: $(STAMP) gl
-	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile
+	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile -m "not bench"
+
+# The benchmarks' longer smoke runs (tests/test_benchmarks.py, marked bench): minutes each.
+test-bench: $(STAMP) gl
+	$(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile -m bench
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

@@ -84,7 +84,12 @@ print(json.dumps({"cold_fit_s": t2 - t1, "setup_s": t1 - t0, "fit_ms": 1e3 * flo
 
 def _jaxcal(*args: str, env=None) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "jaxcal", *args], cwd=ROOT, capture_output=True, text=True, env=env, check=False
+        [sys.executable, "-m", "jaxcal", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env=env,
+        check=False,
     )
 
 
@@ -99,7 +104,9 @@ def cli_models(workdir: Path) -> dict:
         if p.returncode != 0:
             raise RuntimeError(f"jaxcal calibrate ({name}) exited {p.returncode}:\n{p.stdout}\n{p.stderr}")
         verdict = workdir / f"{name}_verify.json"
-        p = _jaxcal("verify", str(result), str(TEST), "--json", str(verdict), "--plot", str(workdir / f"{name}.png"))
+        p = _jaxcal(
+            "verify", str(result), str(TEST), "--json", str(verdict), "--plot", str(workdir / f"{name}.png")
+        )
         if p.returncode != 0:
             raise RuntimeError(f"jaxcal verify ({name}) exited {p.returncode}:\n{p.stdout}\n{p.stderr}")
         doc = json.loads((result / "result.json").read_text())
@@ -128,7 +135,12 @@ def jaxcal_timing() -> dict:
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache)
         p = subprocess.run(
-            [sys.executable, "-c", COLD, str(GRID)], cwd=ROOT, capture_output=True, text=True, env=env, check=True
+            [sys.executable, "-c", COLD, str(GRID)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            env=env,
+            check=True,
         )
     return json.loads(p.stdout.strip().splitlines()[-1])
 

@@ -3,10 +3,14 @@
 A smoke test, not a measurement: each benchmark runs in a subprocess (as a user
 runs it), with the suite's compilation cache, so a refactor that breaks a
 benchmark's imports or calls fails here rather than in a user's hands. The
-figures themselves are in docs/performance.md. Written by others and checked
-elsewhere: `real_tracker.py`, `startup.py` (and `_scipy_tracker.py`, a module).
-`plan.py` plans four designs and renders and calibrates a dozen captures even
-at its smallest settings (minutes): only its imports and options are checked.
+figures themselves are in docs/performance.md. Not run here, minutes even at their
+smallest: `real_tracker.py` (three calibrations of the real UR5; its pipeline is
+`tests/test_pointfit.py`'s), `startup.py` (fresh processes, cold caches), `realism.py`,
+`certify.py`, `drift.py` (many rendered or simulated calibrations; their pieces are in
+`tests/test_camera_model.py`, `test_certify.py`, `test_check_camera.py`), and `plan.py`, which
+plans four designs and renders and calibrates a dozen captures: only its imports and options
+are checked. The smoke runs over ~20 s each are marked `bench`: `make test-bench` runs them,
+`make test` (and CI) leaves them out to keep the suite near ten minutes.
 """
 
 import json
@@ -73,11 +77,11 @@ CASES = {
 }
 
 #: Over ~20 s each even with a warm compilation cache (they calibrate a dataset or compile a
-#: whole Monte Carlo trial / refinement): marked slow, 4-6 minutes together on a shared 2-core machine.
+#: whole Monte Carlo trial / refinement): marked `bench`, 4-6 minutes together on a 2-core machine.
 SLOW = {"compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "prediction_check"}
 
 #: Not smoke-run here (see the module docstring).
-NOT_RUN = {"real_tracker", "startup", "plan"}
+NOT_RUN = {"real_tracker", "startup", "plan", "realism", "certify", "drift"}
 
 
 def _run(args: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
@@ -93,7 +97,7 @@ def test_every_benchmark_is_covered():
 
 
 @pytest.mark.parametrize(
-    "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in sorted(CASES)]
+    "name", [pytest.param(n, marks=pytest.mark.bench) if n in SLOW else n for n in sorted(CASES)]
 )
 def test_benchmark_runs_at_its_smallest_size(name, tmp_path):
     args, keys = CASES[name]

@@ -123,6 +123,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
         [
             ".jaxcal",
             "result.json",
+            "estimate.npz",
             "calibrated.urdf",
             "camera_cam0.yaml",
             "ros_cam0.launch.yaml",
