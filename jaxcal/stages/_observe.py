@@ -51,10 +51,42 @@ class CameraObservations:
 
 
 @dataclass(frozen=True, eq=False)
+class SampleObservations:
+    """A measuring device's samples (tracker data, `Mount.DEVICE`): no images, so no
+    detections and no intrinsics, only the measured point per sample.
+
+    - `camera`: the device (`jaxcal.io.dataset.DeviceInfo`), in the role a camera has
+      for images: the source of the observations, named in the outputs.
+    - `rows`, `t_cam`: the sample rows and their device-clock stamps (s).
+    - `poses`: per sample, the point's pose in the device frame (`PoseEstimate`: the
+      position, the orientation when measured, else the identity, and the covariance;
+      only `T_cam_target[:3, 3]` and `cov[:3, :3]` count without orientations).
+    - `has_orientation`: the samples carry a measured orientation.
+    """
+
+    camera: object
+    rows: np.ndarray
+    poses: list
+    t_cam: np.ndarray
+    has_orientation: bool
+    dropped: tuple = ()
+
+    @property
+    def found(self) -> np.ndarray:
+        """Every sample holds its point."""
+        return np.ones(len(self.rows), bool)
+
+    @property
+    def intrinsics(self) -> dict:
+        """What `result.json` says of intrinsics: there are none."""
+        return {"source": f"none ({self.camera.kind.replace('_', ' ')} samples, no images)"}
+
+
+@dataclass(frozen=True, eq=False)
 class Observations:
     """The two-stage camera's observations and the further cameras' (for the refinement)."""
 
-    primary: CameraObservations
+    primary: CameraObservations | SampleObservations
     others: tuple[CameraObservations, ...]
     timings: dict
     notes: tuple[str, ...] = ()
@@ -170,7 +202,7 @@ def frame_times(ds: Dataset, camera: CameraInfo, rows) -> np.ndarray:
     return np.asarray(exposure_middle(ds.frames["timestamp"][rows], camera.exposure_s, camera.stamp))
 
 
-def observe_device(setup: Setup) -> CameraObservations:
+def observe_device(setup: Setup) -> SampleObservations:
     """A measuring device's samples as poses of its point, in the device frame:
     the position (identity rotation when no orientation was measured) and the
     sample's isotropic covariance (`TrackerSamples.covariances`)."""
@@ -188,11 +220,7 @@ def observe_device(setup: Setup) -> CameraObservations:
         C[:k, :k] = cov[i]
         poses.append({name: PoseEstimate(T, C, 0.0, 1, 0.0)})
     rows = np.arange(len(s.sample))
-    return CameraObservations(
-        setup.camera, rows, [{} for _ in rows], poses, ds.frames["timestamp"], np.eye(3), None,
-        {"source": f"none ({ds.device.kind.replace('_', ' ')} samples, no images)"},
-        has_orientation=s.orientation is not None,
-    )  # fmt: skip
+    return SampleObservations(setup.camera, rows, poses, ds.frames["timestamp"], s.orientation is not None)
 
 
 def observe(setup: Setup, options: Options) -> Observations:

@@ -12,7 +12,7 @@ from .._kinematics import KinematicModel
 from .._links import arm_targets
 from .._robust import LOSSES
 from ..errors import CalibrationError
-from ..io.dataset import CameraInfo, Dataset, TargetInfo, load_dataset
+from ..io.dataset import CameraInfo, Dataset, DeviceInfo, TargetInfo, load_dataset
 from .kinds import CaptureKind, device_poses, single_joint_share
 from .limits import Limits
 
@@ -48,7 +48,8 @@ class Setup:
 
     - `dataset`, `nominal`: the loaded dataset and its nominal robot.
     - `kind`: the `CaptureKind`.
-    - `camera`: the camera of the two-stage fit; `extra_cameras`: further
+    - `camera`: the camera of the two-stage fit (for tracker data the measuring
+      device, `DeviceInfo`: the observations' source); `extra_cameras`: further
       fixed cameras the refinement adds.
     - `targets`: the targets the fits use, in mount order (eye-to-hand: those on
       the flange; eye-in-hand: the board's pattern named after the camera,
@@ -63,7 +64,7 @@ class Setup:
     dataset: Dataset
     nominal: KinematicModel
     kind: CaptureKind
-    camera: CameraInfo
+    camera: CameraInfo | DeviceInfo
     targets: tuple[TargetInfo, ...]
     board: TargetInfo | None
     target_link: np.ndarray | None
@@ -179,7 +180,6 @@ def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: fl
             + (", every motion segment has joint null" if ds.segments else "")
             + ") need the joint positions of every sample: add a column per robot.joints entry"
         )
-    device = CameraInfo(ds.device.name, 1, 1, None, np.zeros(5), "world")
     notes = [TWO_STAGE_IS_FINAL] if options.refine and not kind.fits_points else []
     if options.device_is_base:
         notes.append(
@@ -187,7 +187,7 @@ def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: fl
             "not estimated): the base height d1 and joint 1's origin become identifiable"
         )
     return Setup(
-        dataset=ds, nominal=nominal, kind=kind, camera=device, targets=(point,), board=None,
+        dataset=ds, nominal=nominal, kind=kind, camera=ds.device, targets=(point,), board=None,
         target_link=None, per_joint=None, extra_cameras=(), notes=tuple(notes),
         timings={"load_s": time.perf_counter() - t0},
     )  # fmt: skip
