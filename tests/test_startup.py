@@ -199,7 +199,7 @@ def test_ctrl_c_during_detection_leaves_no_child_process(tmp_path, pool):
         import jaxcal
         from jaxcal.io.dataset import load_dataset
         ds = load_dataset({str(DATASET)!r})
-        paths = [ds.image_path(i % 144) for i in range(144 * 40)]
+        paths = [ds.image_path(i % 144) for i in range(144 * 1000)]  # minutes: still running at the Ctrl-C
         print("detecting", flush=True)
         jaxcal.vision.detect_frames(paths, [ds.targets[0].spec], workers=2, progress=False, pool={pool!r})
         """)
