@@ -196,6 +196,10 @@ def test_ctrl_c_during_detection_leaves_no_child_process(tmp_path, pool):
     script = tmp_path / "detect.py"
     script.write_text(
         textwrap.dedent(f"""
+        import signal
+        # As a terminal's shell starts it: pytest-xdist's workers ignore SIGINT, and a child
+        # inherits an ignored SIGINT (Python then installs no KeyboardInterrupt handler).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         import jaxcal
         from jaxcal.io.dataset import load_dataset
         ds = load_dataset({str(DATASET)!r})
@@ -216,6 +220,7 @@ def test_ctrl_c_during_detection_leaves_no_child_process(tmp_path, pool):
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()  # reap it and close its pipes
     assert proc.returncode != 0
     # Threads: the interrupt itself. Processes: the workers, interrupted too, may break the
     # pool before the caller's own KeyboardInterrupt is raised.
