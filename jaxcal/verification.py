@@ -13,7 +13,6 @@ the predicted RMS (about 1 when the calibration's uncertainty is honest).
 data: each sample predicted by a fit that did not see it).
 """
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import numpy as np
 
 from ._correction import ParameterLayout
 from ._pointfit import PointLayout, cross_validate, fold_masks, predict, prediction_std
+from .certification import read_result
 from .errors import DatasetError
 from .io.dataset import Dataset, load_dataset
 from .io.model_json import model_from_json
@@ -77,18 +77,7 @@ def _stats(d: np.ndarray) -> dict:
 
 def read_point_result(path) -> tuple[dict, Path]:
     """`result.json` (a result directory or the file) with its `point_fit` block, checked."""
-    p = Path(path)
-    file = p / "result.json" if p.is_dir() else p
-    try:
-        doc = json.loads(file.read_text())
-    except FileNotFoundError:
-        raise DatasetError(
-            f"{file}: no such result (give a directory jaxcal calibrate wrote, or its result.json)"
-        ) from None
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"{file}: not JSON ({e})") from None
-    if doc.get("schema") != "jaxcal.result":
-        raise DatasetError(f"{file}: schema is {doc.get('schema')!r}, expected 'jaxcal.result'")
+    doc, file = read_result(path)
     if "point_fit" not in doc:
         raise DatasetError(
             f"{file}: no 'point_fit' block: verify checks results of stop-and-shoot tracker data "

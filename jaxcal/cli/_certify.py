@@ -13,7 +13,8 @@ from ..errors import OutputError
 from ..io._files import write_text_atomic
 
 
-def _check_output(path: str | None, inputs: list[str], overwrite: bool, what: str) -> None:
+def check_output(path: str | None, inputs: list[str], overwrite: bool, what: str) -> None:
+    """Refuse an output file that lies in an input, or exists without `overwrite`."""
     if path is None:
         return
     p = Path(path).resolve()
@@ -131,7 +132,7 @@ def region_of(args) -> dict:
 
 def cmd_certify(args) -> int:
     for opt, what in ((args.json, "--json"), (args.plot, "--plot")):
-        _check_output(opt, [args.result], args.overwrite, what)
+        check_output(opt, [args.result], args.overwrite, what)
     where = region_of(args)
     poses = None
     if args.poses:
@@ -157,7 +158,7 @@ def cmd_certify(args) -> int:
 
 
 def cmd_check(args) -> int:
-    _check_output(args.json, [args.result, args.capture], args.overwrite, "--json")
+    check_output(args.json, [args.result, args.capture], args.overwrite, "--json")
     c = check(args.result, args.capture, joint_offsets=args.joint_offsets, workers=args.workers)
     console = Console(width=max(Console().width, 110))
     colour = "red" if c.detected else "green"

@@ -7,9 +7,9 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from ..errors import OutputError
 from ..io._files import write_text_atomic
 from ..verification import plot_verification, verify
+from ._certify import check_output
 
 
 def add_verify_parser(sub) -> None:
@@ -26,22 +26,10 @@ def add_verify_parser(sub) -> None:
     p.set_defaults(func=cmd_verify)
 
 
-def _check_output(path: str | None, inputs: list[str], overwrite: bool, what: str) -> None:
-    if path is None:
-        return
-    p = Path(path).resolve()
-    for i in inputs:
-        q = Path(i).resolve()
-        if p == q or q in p.parents or (q.is_dir() and p.is_relative_to(q)):
-            raise OutputError(f"{what} {path}: it lies in an input ({i}); choose another path")
-    if p.exists() and not overwrite:
-        raise OutputError(f"{what} {path} exists; give --overwrite to replace it")
-
-
 def cmd_verify(args) -> int:
     inputs = [args.result, args.dataset]
-    _check_output(args.json, inputs, args.overwrite, "--json")
-    _check_output(args.plot, inputs, args.overwrite, "--plot")
+    check_output(args.json, inputs, args.overwrite, "--json")
+    check_output(args.plot, inputs, args.overwrite, "--plot")
     if args.cv == 1 or args.cv < 0:
         raise ValueError(f"--cv {args.cv}: give K >= 2 folds, or 0 for none")
     v = verify(args.result, args.dataset, cv=args.cv)
