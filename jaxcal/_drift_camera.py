@@ -35,6 +35,22 @@ from ._reprojection import CornerData, RefineParams, RefineProblem, camera_matri
 
 #: Gauss-Newton steps of the drift fit (it converges in two or three).
 GN_STEPS = 6
+
+
+def gauss_newton(res, k: int, steps: int = GN_STEPS):
+    """`steps` Gauss-Newton steps from zero on the residuals `res(theta)` of `k` drift
+    parameters (a nearly linear problem: the calibrated model holds everything else);
+    **returns** `(theta, J^T J, r)` at the last iterate."""
+
+    def step(theta, _):
+        r, A = res(theta), jax.jacfwd(res)(theta)
+        return theta + jnp.linalg.solve(A.T @ A, -A.T @ r), None
+
+    theta, _ = jax.lax.scan(step, jnp.zeros(k), None, length=steps)
+    A = jax.jacfwd(res)(theta)
+    return theta, A.T @ A, res(theta)
+
+
 #: The single-camera groups of the refinement vector (a prefix: `others` and `angles` follow).
 PREFIX_GROUPS = ("cam", "origin", "zero", "tool", "rate", "clock", "intr")
 
@@ -130,14 +146,7 @@ def fit_camera_drift(ref_x, zero, U, d, sigma, problem: RefineProblem, *, offset
         x = ref_x + (theta[6:] @ zero if offsets else 0.0)
         return _whiten(_residuals(x, theta[:6], problem), U, d, sigma)
 
-    def step(theta, _):
-        r, A = res(theta), jax.jacfwd(res)(theta)
-        return theta + jnp.linalg.solve(A.T @ A, -A.T @ r), None
-
-    theta, _ = jax.lax.scan(step, jnp.zeros(k), None, length=GN_STEPS)
-    A = jax.jacfwd(res)(theta)
-    info = A.T @ A
-    r = res(theta)
+    theta, info, r = gauss_newton(res, k)
     return theta, jnp.linalg.inv(info), theta @ info @ theta, r @ r
 
 

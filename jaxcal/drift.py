@@ -46,7 +46,7 @@ from scipy import optimize, stats
 
 from ._buckets import bucket, pad_log
 from ._correction import ParameterLayout
-from ._drift_camera import camera_reference, pad_corners
+from ._drift_camera import camera_reference, gauss_newton, pad_corners
 from ._drift_camera import fit as fit_camera
 from ._geometry import se3_exp
 from ._pointfit import PointLayout, point_jacobian, predict
@@ -123,15 +123,8 @@ def fit_drift(y, y_hat, Z, W, *, offsets: bool):
     def res(theta):
         return W @ (y - _model(theta, y_hat, Zk)).reshape(-1)
 
-    def step(theta, _):
-        r, A = res(theta), jax.jacfwd(res)(theta)
-        return theta + jnp.linalg.solve(A.T @ A, -A.T @ r), None
-
-    theta, _ = jax.lax.scan(step, jnp.zeros(k), None, length=GN_STEPS)
-    A = jax.jacfwd(res)(theta)
-    info = A.T @ A
+    theta, info, r = gauss_newton(res, k, GN_STEPS)
     C = jnp.linalg.inv(info)
-    r = res(theta)
     return theta, C, theta @ info @ theta, r @ r
 
 
