@@ -15,6 +15,7 @@ here, once, in `ravel_pytree` order of `AxisFitParams` / `RefineParams`:
 | `intr`   | 9           | refinement: increments of $(f_x, f_y, c_x, c_y, k_1, k_2, p_1, p_2, k_3)$ |
 | `others` | 6 per camera| refinement: twist on each further fixed camera's pose             |
 | `angles` | 1 per view  | refinement without encoders: the sweeping joint's angle per view  |
+| `line_delay` | 1 per camera | refinement, rolling shutters: line-delay increment (us per row) |
 
 The axis fit's vector is the first four groups; the refinement's extends it,
 so an axis-fit vector is a prefix of a refinement vector. `ParameterLayout`
@@ -48,13 +49,13 @@ POSE_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 #: Names of the intrinsic increments, in `RefineParams.intrinsics` order.
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: Parameter groups in flattened order.
-GROUPS = ("cam", "origin", "zero", "tool", "rate", "clock", "intr", "others", "angles")
+GROUPS = ("cam", "origin", "zero", "tool", "rate", "clock", "intr", "others", "angles", "line_delay")
 #: The axis fit's groups (a prefix of `GROUPS`).
 AXIS_GROUPS = GROUPS[:4]
 #: Column order of the identifiability search: a column dependent on earlier
 #: ones is frozen, so earlier groups are preferred (the cameras, the mounts,
 #: the zero offsets, then the joint origins from base to tip, then the rest).
-PRIORITY = ("cam", "others", "tool", "zero", "origin", "rate", "clock", "intr", "angles")
+PRIORITY = ("cam", "others", "tool", "zero", "origin", "rate", "clock", "line_delay", "intr", "angles")
 
 
 class KinematicCorrection(eqx.Module):
@@ -102,6 +103,8 @@ class ParameterLayout:
     - `num_markers`: marker mounts solved for (on the flange, or on links).
     - `other_cameras`: names of further fixed cameras (refinement only).
     - `angles`: names of the per-view joint angles (refinement without encoders).
+    - `line_delays`: with rolling-shutter cameras, every camera's name (the
+      first, then `other_cameras`), one line delay each (refinement only).
     - `eye_in_hand`: the camera rides on the flange: the fixed frame is the
       board's (`T_board_base`) and the one mount is the camera's.
     - `fixed_name`: the fixed frame's name where it is neither (an external
@@ -113,6 +116,7 @@ class ParameterLayout:
     other_cameras: tuple[str, ...] = ()
     angles: tuple[str, ...] = ()
     eye_in_hand: bool = False
+    line_delays: tuple[str, ...] = ()
     fixed_name: str | None = None
 
     @classmethod
@@ -133,6 +137,7 @@ class ParameterLayout:
             "intr": len(INTRINSIC_NAMES),
             "others": 6 * len(self.other_cameras),
             "angles": len(self.angles),
+            "line_delay": len(self.line_delays),
         }
 
     def index(self, group: str) -> np.ndarray:
@@ -203,7 +208,7 @@ class ParameterLayout:
         names += [f"intrinsics.{k}" for k in INTRINSIC_NAMES]
         for c in self.other_cameras:
             names += [f"{c}.T_cam_base.{p}" for p in POSE_NAMES]
-        return names + list(self.angles)
+        return names + list(self.angles) + [f"{c}.line_delay_us" for c in self.line_delays]
 
     def split(self, x: Float[Array, " n"]) -> tuple[Float[Array, "6"], KinematicCorrection, Array | None]:
         """`(cam, correction, rate)` of a flattened vector: an axis fit's
@@ -229,14 +234,17 @@ class ParameterLayout:
         groups = PRIORITY if refine else [g for g in PRIORITY if g in AXIS_GROUPS]
         return np.concatenate([self.index(g) for g in groups])
 
-    def candidates(self, *, rates: bool = True, clock: bool = False, intrinsics: bool = False) -> np.ndarray:
+    def candidates(
+        self, *, rates: bool = True, clock: bool = False, intrinsics: bool = False, line_delay=False
+    ) -> np.ndarray:
         """Candidate mask of the refinement: pose and kinematic corrections
         (every camera's pose and every per-view angle included), and the
-        optional groups."""
+        optional groups (`line_delay`: one bool, or one per camera of `line_delays`)."""
         free = np.ones(self.size, bool)
         free[self.index("rate")] = rates
         free[self.index("clock")] = clock
         free[self.index("intr")] = intrinsics
+        free[self.index("line_delay")] = line_delay
         return free
 
     def axis_columns(self, group: str) -> np.ndarray:

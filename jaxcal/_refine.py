@@ -58,11 +58,13 @@ from ._reprojection import camera_matrix as camera_matrix
 from ._reprojection import camera_poses as camera_poses
 from ._reprojection import grid_points as grid_points
 from ._reprojection import joint_positions as joint_positions
+from ._reprojection import line_delays as line_delays
 from ._reprojection import make_corner_data as make_corner_data
 from ._reprojection import num_other_cameras
 from ._reprojection import project as project
 from ._reprojection import projected_corners as projected_corners
 from ._reprojection import reprojection_residuals as reprojection_residuals
+from ._reprojection import rolling as rolling
 from ._reprojection import sweep_corner_data as sweep_corner_data
 from ._reprojection import target_poses as target_poses
 from ._robust import Rounds, check_loss, irls_rounds, loss_weights, robust_scale, round_plan
@@ -103,12 +105,14 @@ def layout(problem: RefineProblem, params: RefineParams) -> ParameterLayout:
     """The `ParameterLayout` of a refinement (names of the further cameras and
     the per-view angles are placeholders: only the sizes matter here)."""
     n_angles = 0 if params.angles is None else params.angles.shape[0]
+    n_delays = 0 if params.line_delay_us is None else params.line_delay_us.shape[0]
     return ParameterLayout.of(
         problem.nominal,
         problem.T_flange_marker0.shape[0],
         other_cameras=tuple(f"camera{c + 1}" for c in range(num_other_cameras(problem))),
         angles=tuple(f"view{v}" for v in range(n_angles)),
         eye_in_hand=problem.eye_in_hand,
+        line_delays=tuple(f"camera{c}" for c in range(n_delays)),
     )
 
 
@@ -185,6 +189,8 @@ class RefineResult(eqx.Module):
       `weights`: the last IRLS weights; `inlier`: corners used by the final solve.
     - `result`, `num_steps`: optimistix's result of the final solve and the
       steps of all rounds; `rounds_ok`: every round's solve succeeded.
+    - `line_delay_s`: with rolling shutters, every camera's line delay (s per
+      row); `None` without.
     """
 
     params: RefineParams
@@ -209,6 +215,7 @@ class RefineResult(eqx.Module):
     num_steps: Int[Array, ""]
     rounds_ok: Bool[Array, ""]
     round_steps: Int[Array, " rounds"]
+    line_delay_s: Float[Array, " cameras"] | None = None
 
 
 def refine(
@@ -327,6 +334,7 @@ def refine(
         num_steps=steps,
         rounds_ok=ok,
         round_steps=round_steps,
+        line_delay_s=line_delays(params, problem) if rolling(problem) else None,
     )
 
 
@@ -346,6 +354,11 @@ def _checked(problem: RefineProblem, params0: RefineParams, free, loss):
         )
     if problem.eye_in_hand and (several or problem.T_flange_marker0.shape[0] != 1):
         raise ValueError("refine: eye-in-hand takes one camera (the one mount) and no further cameras")
+    if (params0.line_delay_us is not None) != rolling(problem):
+        raise ValueError(
+            "refine: a rolling shutter needs data.row, problem.line_delay0_s and params0.line_delay_us "
+            "(one per camera); a global shutter none of them"
+        )
     if several != (params0.other_cams is not None) or (several and problem.data.camera is None):
         raise ValueError(
             "refine: with other_cameras, params0.other_cams (one twist per further camera) and "

@@ -15,6 +15,15 @@ over the nominal ratio) interpolated at controller time, $r$ the rate
 residual is $\\hat u_{vk} - u_{vk}$ (px) for every corner of every view:
 padded arrays with a mask, vmapped over views. `jaxcal._refine` solves it.
 
+A rolling-shutter camera (line delay $\\ell_c$, s per row) reads its rows
+out one after the other: corner $k$ of view $v$, detected at row $y_{vk}$
+(px, 0 at the top: the row the frame's time refers to), is seen at
+$t_{cam,v} + y_{vk}\\,\\ell_c$, and predicted at the joint angles of that
+instant, $q_{vk} = r \\odot q_{log}\\big((t_{cam,v} + y_{vk}\\ell_c -
+\\delta)/(1+\\epsilon)\\big)$, each corner through its own chain
+(`CornerData.row`, `RefineProblem.line_delay0_s`, `RefineParams.line_delay_us`).
+Without rows every corner of a view is seen at $t_{cam,v}$ (a global shutter).
+
 This module holds the data (`CornerData`, `RefineProblem`), the unknowns
 (`RefineParams`, laid out by `jaxcal._correction.ParameterLayout`) and the
 pure functions of the model; no solver.
@@ -51,6 +60,9 @@ class RefineParams(eqx.Module):
       (rad, commanded coordinates: the zero offset is added), the other joints
       at their commanded zero (`CornerData.sweep_joint`); `None` with an
       encoder log. After `other_cams` in the flattened order.
+    - `line_delay_us`: with rolling-shutter cameras (`CornerData.row`), each
+      camera's line-delay increment over `RefineProblem.line_delay0_s` (us per
+      row), `(cameras,)`; `None` without. Last in the flattened order.
     """
 
     cam: Float[Array, "6"]
@@ -60,6 +72,7 @@ class RefineParams(eqx.Module):
     intrinsics: Float[Array, "9"]
     other_cams: Float[Array, "others 6"] | None = None
     angles: Float[Array, " views"] | None = None
+    line_delay_us: Float[Array, " cameras"] | None = None
 
 
 class CornerData(eqx.Module):
@@ -82,6 +95,9 @@ class CornerData(eqx.Module):
     - `sweep_joint`: without encoders, which joint sweeps alone in each view
       (the others at zero); with `RefineParams.angles` the encoder log is
       not used.
+    - `row`: with a rolling shutter, each corner's image row (px, 0 at the top
+      row, the one `t_cam` refers to), `(views, corners)`; `None`: every corner
+      at its view's `t_cam`.
     """
 
     points: Float[Array, "views corners 3"]
@@ -96,6 +112,7 @@ class CornerData(eqx.Module):
     camera: Int[Array, " views"] | None = None
     sweep_joint: Int[Array, " views"] | None = None
     sweep_home: Float[Array, "views joints"] | None = None
+    row: Float[Array, "views corners"] | None = None
 
 
 class OtherCameras(eqx.Module):
@@ -124,6 +141,9 @@ class RefineProblem(eqx.Module):
     of joint `i`, `joints + 1` the flange); its mount in
     `T_flange_marker0` / `correction.tool` is then relative to that link.
     `None`: every target on the flange.
+
+    `line_delay0_s`: with `data.row`, every camera's line delay at the start
+    (s per row; the first camera, then `other_cameras`), `(cameras,)`.
     """
 
     nominal: KinematicModel
@@ -136,6 +156,7 @@ class RefineProblem(eqx.Module):
     other_cameras: OtherCameras | None = None
     eye_in_hand: bool = eqx.field(static=True, default=False)
     target_link: Int[Array, " markers"] | None = None
+    line_delay0_s: Float[Array, " cameras"] | None = None
 
 
 def make_corner_data(
@@ -151,6 +172,7 @@ def make_corner_data(
     sweep_joint: np.ndarray | None = None,
     views: int | None = None,
     sweep_home: np.ndarray | None = None,
+    row: list | None = None,
 ) -> CornerData:
     """Pad per-view corner lists into a `CornerData` (NumPy in, arrays out).
 
@@ -160,7 +182,8 @@ def make_corner_data(
     `camera` `(views,)` (see `CornerData`; default all 0); `sweep_joint`
     `(views,)` for a refinement without encoders; `views`: pad to this many
     views (masked out; frame -1, the first view's stamp), so that captures of
-    similar size share the compiled refinement.
+    similar size share the compiled refinement; `row[v]` `(n_v,)`: with a
+    rolling shutter, each corner's image row (px; usually `pixels[v][:, 1]`).
     """
     V = len(points)
     if V == 0:
@@ -179,7 +202,10 @@ def make_corner_data(
     P = max(len(p) for p in points)
     X = np.zeros((V, P, 3))
     U = np.zeros((V, P, 2))
+    Y = np.zeros((V, P))
     m = np.zeros((V, P), bool)
+    if row is not None and len(row) != V:
+        raise ValueError(f"make_corner_data: {V} point sets but {len(row)} row sets")
     for v, (x, u) in enumerate(zip(points, pixels)):
         x = np.asarray(x, np.float64).reshape(-1, 3)
         u = np.asarray(u, np.float64).reshape(-1, 2)
@@ -192,6 +218,14 @@ def make_corner_data(
         X[v, : len(x)] = x
         U[v, : len(u)] = u
         m[v, : len(x)] = True
+        if row is not None:
+            y = np.asarray(row[v], np.float64).reshape(-1)
+            if len(y) != len(x) or not np.all(np.isfinite(y)):
+                raise ValueError(
+                    f"make_corner_data: view {v} (frame {frame[v]}) has {len(x)} points but "
+                    f"{len(y)} rows, or non-finite rows"
+                )
+            Y[v, : len(y)] = y
     pad = 0 if views is None else int(views) - V
     if pad < 0:
         raise ValueError(f"make_corner_data: {V} views do not fit in {views}")
@@ -201,6 +235,7 @@ def make_corner_data(
         return np.concatenate([a, np.full((pad,) + a.shape[1:], fill, dtype)])
 
     X, U, m = padded(X, 0.0, np.float64), padded(U, 0.0, np.float64), padded(m, False, bool)
+    Y = None if row is None else padded(Y, 0.0, np.float64)
     camera = None if camera is None else padded(camera, 0, np.int64)
     sweep_joint = None if sweep_joint is None else padded(sweep_joint, 0, np.int64)
     sweep_home = None if sweep_home is None else padded(sweep_home, 0.0, np.float64)
@@ -217,6 +252,7 @@ def make_corner_data(
         camera=None if camera is None else jnp.asarray(np.asarray(camera, np.int64)),
         sweep_joint=None if sweep_joint is None else jnp.asarray(np.asarray(sweep_joint, np.int64)),
         sweep_home=None if sweep_home is None else jnp.asarray(sweep_home),
+        row=None if Y is None else jnp.asarray(Y),
     )
 
 
@@ -270,19 +306,46 @@ def camera_matrix(
     return K, problem.dist0 + d[4:]
 
 
-def joint_positions(params: RefineParams, problem: RefineProblem) -> Float[Array, "views joints"]:
+def line_delays(params: RefineParams, problem: RefineProblem) -> Float[Array, " cameras"]:
+    """Every camera's line delay at `params` (s per row): `line_delay0_s` plus the increments."""
+    ell = problem.line_delay0_s
+    return ell if params.line_delay_us is None else ell + 1e-6 * params.line_delay_us
+
+
+def corner_times(params: RefineParams, problem: RefineProblem) -> Float[Array, "views corners"]:
+    """Every corner's camera-clock time (s): its view's `t_cam` plus its row times its
+    camera's line delay, $t_{cam,v} + y_{vk}\\,\\ell_c$ (`CornerData.row` needed)."""
+    data = problem.data
+    if data.row is None or problem.line_delay0_s is None:
+        raise ValueError("corner_times: needs data.row and problem.line_delay0_s (a rolling shutter)")
+    ell = line_delays(params, problem)
+    ell_v = ell[0] if data.camera is None else ell[data.camera]
+    return data.t_cam[:, None] + data.row * ell_v[..., None]
+
+
+def joint_positions(
+    params: RefineParams, problem: RefineProblem, *, per_corner: bool = False
+) -> Float[Array, "views joints"] | Float[Array, "views corners joints"]:
     """Commanded joint positions of every view, $r \\odot q_{log}(t_{ctrl})$ (rad);
     without encoders (`params.angles`), the sweeping joint at its unknown
-    angle and the others at its sweep's home (`CornerData.sweep_home`, zero by default)."""
+    angle and the others at its sweep's home (`CornerData.sweep_home`, zero by default).
+    With `per_corner` (a rolling shutter), every corner's at its own time
+    (`corner_times`), `(views, corners, joints)`."""
     data = problem.data
     if params.angles is not None:
         n = problem.nominal.num_joints
         q = jax.nn.one_hot(data.sweep_joint, n, dtype=params.angles.dtype) * params.angles[:, None]
         return q if data.sweep_home is None else q + data.sweep_home
     offset = problem.offset0_s + _MS * params.clock_ms
-    t = controller_time(data.t_cam, offset, data.drift_ppm)
-    q = jax.vmap(lambda qj: interpolate_encoders(t, data.enc_t, qj), out_axes=1)(data.enc_q.T)
+    t_cam = corner_times(params, problem) if per_corner else data.t_cam
+    t = controller_time(t_cam, offset, data.drift_ppm)
+    q = jax.vmap(lambda qj: interpolate_encoders(t, data.enc_t, qj), out_axes=-1)(data.enc_q.T)
     return q * params.rate
+
+
+def rolling(problem: RefineProblem) -> bool:
+    """The corners are seen row by row (`CornerData.row` and line delays given)."""
+    return problem.data.row is not None and problem.line_delay0_s is not None
 
 
 # Nested jit, traced once per signature (see `_arcmodel.arc_terms`).
@@ -299,8 +362,15 @@ def chain(
     thirds of the compile time of its Jacobian against the 4x4 chain (the
     tests check both agree).
     """
+    return _chain_at(params, problem, joint_positions(params, problem))
+
+
+def _chain_at(
+    params: RefineParams, problem: RefineProblem, q: Float[Array, "views joints"]
+) -> tuple[Float[Array, "views 3 3"], Float[Array, "views 3"]]:
+    """`chain` at the commanded joint positions `q` of every view."""
     model, mounts = apply_correction(problem.nominal, problem.T_flange_marker0, params.correction)
-    theta = joint_positions(params, problem) + model.zero_offset  # (V, J)
+    theta = q + model.zero_offset  # (V, J)
     V = theta.shape[0]
     if problem.other_cameras is None or problem.data.camera is None:
         T_cb = problem.T_cam_base0 @ se3_exp(params.cam)
@@ -346,10 +416,24 @@ def target_poses(params: RefineParams, problem: RefineProblem) -> Float[Array, "
     return jnp.concatenate([jnp.concatenate([R, t[..., None]], axis=-1), bottom], axis=-2)
 
 
+@jax.jit
+def corner_chain(
+    params: RefineParams, problem: RefineProblem
+) -> tuple[Float[Array, "views corners 3 3"], Float[Array, "views corners 3"]]:
+    """`chain` of every corner at its own time (a rolling shutter, `rolling(problem)`)."""
+    q = joint_positions(params, problem, per_corner=True)  # (V, P, J)
+    return jax.vmap(lambda qk: _chain_at(params, problem, qk), in_axes=1, out_axes=1)(q)
+
+
 def projected_corners(params: RefineParams, problem: RefineProblem) -> Float[Array, "views corners 2"]:
-    """Every corner reprojected at `params` (px), padding included."""
-    R, t = chain(params, problem)
-    X = jnp.einsum("vab,vkb->vka", R, problem.data.points) + t[:, None, :]
+    """Every corner reprojected at `params` (px), padding included; with a rolling
+    shutter each corner through the chain at its own time (`corner_chain`)."""
+    if rolling(problem):
+        R, t = corner_chain(params, problem)
+        X = jnp.einsum("vkab,vkb->vka", R, problem.data.points) + t
+    else:
+        R, t = chain(params, problem)
+        X = jnp.einsum("vab,vkb->vka", R, problem.data.points) + t[:, None, :]
     K, dist = camera_matrix(params, problem)
     if problem.other_cameras is None or problem.data.camera is None:
         return project(K, dist, X)

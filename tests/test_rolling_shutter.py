@@ -1,0 +1,155 @@
+"""Rolling shutter in the refinement, on analytic corners (no rendering).
+
+The sweeps and UR5e of `tests/test_refine.py`; each corner is seen at its
+view's time plus its row times the line delay, $t_{cam,v} + y_{vk}\\,\\ell$,
+so the corners of one view come from different joint angles. The truth's
+corners are generated self-consistently (a corner's row is where it is seen
+at its own row's time: a fixed point, reached by iteration).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+from jax.flatten_util import ravel_pytree
+
+from jaxcal._correction import ParameterLayout
+from jaxcal._montecarlo import default_setup
+from jaxcal._refine import (
+    RefineProblem,
+    grid_points,
+    identifiable_mask,
+    projected_corners,
+    refine,
+    sweep_corner_data,
+    zero_params,
+)
+from jaxcal._reprojection import corner_times, joint_positions, rolling
+from jaxcal.robots import load_robot
+
+NOMINAL = load_robot("ur5e")
+SETUP = default_setup(NOMINAL)
+N = NOMINAL.num_joints
+#: 20 ms top-to-bottom over 960 rows.
+DELAY_S = 0.02 / 960
+
+
+def _problem(row: bool, delay0_s: float = 0.0, dt: float = 0.05) -> RefineProblem:
+    data = sweep_corner_data(grid_points(), N, 8, 60.0, dt=dt)
+    problem = RefineProblem(
+        nominal=NOMINAL,
+        T_flange_marker0=SETUP.T_flange_marker,
+        T_cam_base0=SETUP.T_cam_base,
+        K0=jnp.array([[1000.0, 0, 640], [0, 1000, 480], [0, 0, 1]]),
+        dist0=jnp.array([-0.05, 0.02, 0.0005, -0.0003, 0.0]),
+        offset0_s=jnp.zeros(()),
+        data=data,
+    )
+    if not row:
+        return problem
+    problem = eqx.tree_at(
+        lambda p: (p.data.row, p.line_delay0_s),
+        problem,
+        (jnp.zeros(data.mask.shape), jnp.array([delay0_s])),
+        is_leaf=lambda x: x is None,
+    )
+    return problem
+
+
+def _params(row: bool, line_delay_us: float = 0.0):
+    p = zero_params(N, 1)
+    if row:
+        p = eqx.tree_at(lambda q: q.line_delay_us, p, jnp.array([line_delay_us]), is_leaf=lambda x: x is None)
+    return p
+
+
+def _seen(params, problem, iterations: int = 8) -> RefineProblem:
+    """`problem` with the corners where a rolling shutter sees them at `params`: each
+    corner's row is the row of its own prediction (fixed-point iteration) and the
+    pixels are that prediction."""
+    for _ in range(iterations):
+        u = projected_corners(params, problem)
+        problem = eqx.tree_at(lambda p: (p.data.row, p.data.pixels), problem, (u[..., 1], u))
+    return problem
+
+
+def test_corner_time_is_the_frame_time_plus_row_times_delay():
+    problem = _problem(True, DELAY_S)
+    rows = jnp.asarray(np.random.default_rng(0).uniform(0, 960, problem.data.mask.shape))
+    problem = eqx.tree_at(lambda p: p.data.row, problem, rows)
+    t = corner_times(_params(True, 1.5), problem)
+    expected = problem.data.t_cam[:, None] + rows * (DELAY_S + 1.5e-6)
+    np.testing.assert_array_equal(np.asarray(t), np.asarray(expected))
+    # Each corner's joint angles are the encoder log at its own time: on these
+    # constant-speed ramps, the view's angles plus the speed times the row's delay.
+    q_view = np.asarray(joint_positions(_params(True), problem))
+    q_corner = np.asarray(joint_positions(_params(True), problem, per_corner=True))
+    speed = np.radians(60.0) / 7 / 0.05  # rad/s of the sweeping joint
+    inner = (np.arange(len(q_view)) % 8 > 0) & (np.arange(len(q_view)) % 8 < 7)  # away from sweep ends
+    lag = (q_corner - q_view[:, None, :])[inner]
+    moving = np.abs(np.diff(q_view, axis=0)).max(axis=0) > 0
+    ramp = np.abs(lag).max(axis=-1)
+    np.testing.assert_allclose(ramp, speed * np.asarray(rows)[inner] * DELAY_S, rtol=1e-9)
+    assert moving.all()
+
+
+def test_zero_line_delay_predicts_the_global_shutter():
+    """A rolling-shutter model with a zero line delay is the global shutter's (the
+    pipeline never builds it: a camera with `line_delay_s` 0 or absent has no rows)."""
+    glob, roll = _problem(False), _problem(True, 0.0)
+    roll = eqx.tree_at(lambda p: p.data.row, roll, jnp.full(roll.data.mask.shape, 300.0))
+    assert not rolling(glob) and rolling(roll)
+    u_g = projected_corners(_params(False), glob)
+    u_r = projected_corners(_params(True), roll)
+    np.testing.assert_allclose(np.asarray(u_r), np.asarray(u_g), atol=1e-9)
+
+
+@pytest.mark.parametrize("given", [True, False])
+def test_refinement_recovers_the_line_delay(given):
+    """Noise-free corners of a rolling-shutter capture: with the delay given the
+    refinement recovers every parameter exactly; estimated (from zero) it recovers
+    the delay too. Ignoring it (a global-shutter model) leaves pixels of error."""
+    delay0 = DELAY_S if given else 0.0
+    problem = _problem(True, delay0)
+    p0 = _params(True)
+    flat0, unravel = ravel_pytree(p0)
+    layout = ParameterLayout.of(NOMINAL, 1, line_delays=("cam0",))
+    cand = layout.candidates(rates=True, line_delay=not given)
+    rng = np.random.default_rng(1)
+    g = layout.indices()
+    scale = np.zeros(flat0.size)
+    scale[g["cam"]] = 5e-3
+    scale[g["origin"]] = np.tile([1e-3] * 3 + [2e-3] * 3, N)
+    scale[g["zero"]] = 3e-3
+    scale[g["tool"]] = np.tile([1e-3] * 3 + [5e-3] * 3, 1)
+    scale[g["rate"]] = 0.01
+    free, _ = jax.jit(identifiable_mask)(_seen(p0, problem, 1), p0, cand)  # rows where the corners are
+    free = np.asarray(free)
+    assert free[g["line_delay"]].all() != given
+    x_true = np.asarray(flat0) + scale * rng.standard_normal(flat0.size) * free
+    x_true[g["line_delay"]] = 1e6 * (DELAY_S - delay0)
+    truth = unravel(jnp.asarray(x_true))
+    seen = _seen(truth, problem)
+    # The fixed point: every corner's row is where its own time puts it.
+    np.testing.assert_allclose(
+        np.asarray(seen.data.row), np.asarray(projected_corners(truth, seen))[..., 1], atol=1e-9
+    )
+    start = unravel(jnp.asarray(np.asarray(flat0) + 0.5 * (x_true - np.asarray(flat0)) * free))
+    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(seen, start)
+    assert res.result == optx.RESULTS.successful
+    err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - x_true)
+    names = layout.names()
+    # Corners whose times straddle an encoder sample see a kink of the interpolated
+    # log, so Levenberg-Marquardt stops within a micro-pixel of the exact fit rather
+    # than at round-off: 1e-6 (m, rad) is a thousandth of the tests' corrections.
+    assert float(res.residual_rms_px) < 1e-5
+    err[g["line_delay"]] = 0.0  # us, checked relatively below
+    assert err.max() < 1e-6, names[int(np.argmax(err))]
+    assert abs(float(res.line_delay_s[0]) - DELAY_S) < 1e-4 * DELAY_S
+    # The same corners predicted without the line delay are pixels off.
+    x_none = x_true.copy()
+    x_none[g["line_delay"]] = -1e6 * delay0
+    off = np.asarray(projected_corners(unravel(jnp.asarray(x_none)), seen) - seen.data.pixels)
+    assert np.sqrt(np.mean(off[np.asarray(seen.data.mask)] ** 2)) > 1.0
