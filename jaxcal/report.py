@@ -243,8 +243,8 @@ def _markdown(result, figs, tables=None) -> str:
     lines = [
         f"# jaxcal calibration of `{result.dataset}`",
         "",
-        f"{'Device' if result.kind.device else 'Camera'} `{result.camera}`, "
-        f"{'point' if result.kind.device else 'target(s)'} {', '.join(f'`{t}`' for t in result.targets)}; "
+        f"{result.kind.sensor.capitalize()} `{result.camera}`, "
+        f"{result.kind.targets_label} {', '.join(f'`{t}`' for t in result.targets)}; "
         f"solvers: {'all successful' if result.ok else '**FAILED**'}; status **{result.status}**.",
         "",
     ]
@@ -328,7 +328,7 @@ def _camera_section(result, r) -> list[str]:
     fixed = result.kind.fixed_frame
     T = r[fixed]
     lines = [
-        "## Device pose" if result.kind.device else "## Camera pose",
+        f"## {result.kind.sensor.capitalize()} pose",
         "",
         *(
             [
@@ -474,7 +474,7 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
         # A dataset whose robot is a DH/MDH table has no URDF to copy: a minimal one from the model.
         source = None if is_table_file(result.robot_urdf) else result.robot_urdf
         save_urdf(result.model, tmp / "calibrated.urdf", source=source)
-        if result.kind.device:
+        if not result.kind.images:
             _device_files(tmp, result)
         else:
             _camera_files(tmp, result)
@@ -519,7 +519,7 @@ def certificate_section(c) -> list[str]:
 def output_files(result) -> list[str]:
     """The files `write_outputs` writes besides `report.md` and its plots."""
     names = ["result.json", "calibrated.urdf"] + ([ESTIMATE_FILE] if result.estimate is not None else [])
-    if result.kind.device:
+    if not result.kind.images:
         if result.kind.fixed_frame_free:
             names += [f"ros_{result.camera}.launch.yaml", f"ros_{result.camera}.txt"]
     else:

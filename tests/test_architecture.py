@@ -10,12 +10,22 @@
 - No private name (`_x`) is imported from another module; private modules
   (`jaxcal._arcfit`) are imported for their public names.
 - Rooms stay small: no function over 120 lines, no module over 700.
+- Capture modes are resolved once: outside `jaxcal/stages/kinds.py` no code
+  reads a capture kind's mode (`kind.device`, `kind.eye_in_hand`,
+  `kind.encoders`, `kind.device_is_base`, `kind.mount`, `kind.motion`) or
+  names a `Motion.X` / `Mount.X` member; it asks a named `CaptureKind`
+  property (docs/architecture.md, "Capture kinds").
 """
 
 import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "jaxcal"
+#: A capture kind's mode fields, and the enums of its modes (`jaxcal.stages.kinds`).
+MODE_FIELDS = {"device", "eye_in_hand", "encoders", "device_is_base", "mount", "motion"}
+MODE_ENUMS = {"Motion", "Mount"}
+#: `module: reason` for a module that may still test a mode outside kinds.py (none today).
+MODE_TEST_EXCEPTIONS: dict[str, str] = {}
 #: Modules that may render (import the simulator / MuJoCo).
 RENDERING = ("jaxcal.sim", "jaxcal.cli", "jaxcal.__main__")
 
@@ -157,3 +167,37 @@ def test_functions_and_modules_stay_small():
             if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.end_lineno - n.lineno + 1 > 120:
                 long_functions.append(f"{name}.{n.name} ({n.end_lineno - n.lineno + 1} lines)")
     assert long_functions == [] and long_modules == []
+
+
+def _mode_tests(tree: ast.Module) -> list[str]:
+    """Reads of a capture kind's mode (`x.kind.motion`, `kind.encoders`) and `Motion.X` / `Mount.X`."""
+    found = []
+    for n in ast.walk(tree):
+        if not isinstance(n, ast.Attribute):
+            continue
+        on_kind = (isinstance(n.value, ast.Name) and n.value.id == "kind") or (
+            isinstance(n.value, ast.Attribute) and n.value.attr == "kind"
+        )
+        member = isinstance(n.value, ast.Name) and n.value.id in MODE_ENUMS and n.attr.isupper()
+        if (on_kind and n.attr in MODE_FIELDS) or member:
+            found.append(f"{n.lineno} {ast.unparse(n)}")
+    return found
+
+
+def test_the_mode_test_finder_finds_them():
+    src = "if setup.kind.motion is Motion.SWEEPS or kind.eye_in_hand:\n    x = kind.has_arcs\n"
+    assert sorted(_mode_tests(ast.parse(src))) == [
+        "1 Motion.SWEEPS",
+        "1 kind.eye_in_hand",
+        "1 setup.kind.motion",
+    ]
+
+
+def test_capture_modes_are_tested_only_in_kinds():
+    found = [
+        f"{name}:{site}"
+        for name, tree in MODULES.items()
+        if name != "jaxcal.stages.kinds" and name not in MODE_TEST_EXCEPTIONS
+        for site in _mode_tests(tree)
+    ]
+    assert found == [], "ask a named CaptureKind property (jaxcal/stages/kinds.py) instead"

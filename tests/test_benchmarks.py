@@ -41,6 +41,17 @@ CASES = {
         ],
     ),
     "long_sweep": (["--smoke"], ["rows", "device", "versions", "notes"]),
+    "codebase_counts": (
+        ["--brief"],
+        [
+            "record_fields",
+            "bag_fields",
+            "string_key_reads",
+            "mode_tests",
+            "long_functions",
+            "covariance_sites",
+        ],
+    ),
     "render": (
         ["--frames", "2", "--resolutions", "160x120"],
         ["frames", "backend", "resolutions"],

@@ -57,7 +57,7 @@ def _calibration_tables(console, result) -> None:
 
 
 def _sweeps_table(console, result) -> None:
-    t = Table(title=f"Joint sweeps ({'device' if result.kind.device else 'camera'} {result.camera})")
+    t = Table(title=f"Joint sweeps ({result.kind.sensor} {result.camera})")
     for col in (
         "joint",
         "frames",
@@ -125,7 +125,7 @@ def _result_tables(console, result) -> None:
             + (f" (estimated, std {1e3 * c['std_s']:.2f} ms)" if c["estimated"] else " (from the metadata)")
         )
     console.print(
-        f"held at nominal (the {'device' if result.kind.device else 'camera'} cannot see them): "
+        f"held at nominal (the {result.kind.sensor} cannot see them): "
         f"{len(result.frozen)} parameters, see report.md"
     )
     if v is not None:

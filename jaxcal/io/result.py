@@ -40,10 +40,10 @@ def result_to_json(result) -> dict:
             "T_board_base": fixed,
             "T_flange_cam": result.T_flange_target[0].tolist(),
         }
-    elif result.kind.device:
+    elif not result.kind.images:
         poses = {
             "device": result.camera,
-            "device_is_base": bool(result.kind.device_is_base),
+            "device_is_base": not result.kind.fixed_frame_free,
             "T_device_base": fixed,
             "T_flange_point": result.T_flange_target[0].tolist(),
         }
@@ -66,7 +66,7 @@ def result_to_json(result) -> dict:
         "identifiability": {
             "estimated": sum(bool(p["free"]) for p in result.parameters if p["group"] == "correction"),
             "frozen": result.frozen,
-            "note": f"frozen parameters cannot be seen by a {'device' if result.kind.device else 'camera'} "
+            "note": f"frozen parameters cannot be seen by a {result.kind.sensor} "
             f"watching joint axes (they trade off against others or against {result.kind.fixed_frame}); "
             "they are held at nominal",
         },

@@ -37,7 +37,7 @@ from .._correction import ParameterLayout
 from .._refine import CornerData, RefineProblem, identifiable_mask, zero_params
 from .._reprojection import reprojection_residuals
 from .._uncertainty import tool_points
-from ..stages.kinds import CaptureKind, Motion
+from ..stages.kinds import CaptureKind
 from ._scene import PlanScene, frame_geometry
 
 #: Corner noise of the detector on rendered images (px, per coordinate): the
@@ -66,7 +66,7 @@ def design(scene: PlanScene, sweeps: bool) -> Design:
         camera_on_flange=scene.eye_in_hand, segments=segments, encoders=True, link_targets=False
     )
     lay = ParameterLayout.of(scene.nominal, 1, eye_in_hand=scene.eye_in_hand)
-    cand = lay.candidates(rates=True, clock=kind.motion is Motion.SWEEPS, intrinsics=False)
+    cand = lay.candidates(rates=True, clock=kind.single_joint_sweeps, intrinsics=False)
     return Design(kind, lay, cand, kind.identifiability_tol)
 
 

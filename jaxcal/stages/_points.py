@@ -242,8 +242,8 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     point = setup.targets[0]
     Tp0 = np.eye(4) if point.T_link_target is None else np.asarray(point.T_link_target, np.float64)
     q, y = np.asarray(sync.q, np.float64), np.asarray(s.position, np.float64)
-    T0 = np.eye(4) if kind.device_is_base else start_frame(nominal, q[used], y[used], Tp0)
-    if s.orientation is not None and not kind.device_is_base:
+    T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(nominal, q[used], y[used], Tp0)
+    if s.orientation is not None and kind.fixed_frame_free:
         T0 = _orient_start(nominal, q[used], s.orientation[used], Tp0, T0)
     base = ParameterLayout.of(nominal, 1, fixed_name=kind.fixed_frame)
     inertials = _inertials(setup) if "compliance" in options.terms else None

@@ -151,11 +151,9 @@ class _Corners:
 
 def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Corners:
     ds, kind = setup.dataset, setup.kind
-    no_encoders = not kind.encoders
+    no_encoders = kind.per_view_angles
     offset = sync.clock["offset_s"]
-    rate0 = (
-        jnp.asarray(two.arcs.rate) if kind.encoders and kind.has_arcs else jnp.ones(setup.nominal.num_joints)
-    )
+    rate0 = jnp.asarray(two.arcs.rate) if kind.rates_from_arcs else jnp.ones(setup.nominal.num_joints)
     pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in setup.targets}
     out = _Corners(used=[obs.primary])
     for v in (obs.primary, *obs.others):
@@ -223,7 +221,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
     """The `RefineProblem`, its start, the layout and the candidate mask."""
     kind, nominal, fit = setup.kind, setup.nominal, two.fit
     n, M = nominal.num_joints, len(setup.targets)
-    if kind.encoders:
+    if not kind.per_view_angles:
         log_q = pad_log(*sync.log_q, bucket(len(sync.log_q[0])))
     else:
         log_q = (np.array([-np.inf, np.inf]), np.zeros((2, n)))  # not read: each view's angle is an unknown
@@ -258,13 +256,13 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         other_cameras=OtherCameras(*(jnp.asarray(np.stack(a)) for a in zip(*corners.others)))
         if corners.others
         else None,
-        eye_in_hand=kind.eye_in_hand,
+        eye_in_hand=kind.inverts_poses,
         target_link=jnp.asarray(setup.target_link) if kind.sequential else None,
     )
     params0 = RefineParams(
         cam=fit.params.cam,
         correction=correction,
-        rate=jnp.asarray(two.arcs.rate) if kind.encoders and kind.has_arcs else jnp.ones(n),
+        rate=jnp.asarray(two.arcs.rate) if kind.rates_from_arcs else jnp.ones(n),
         clock_ms=jnp.zeros(()),
         intrinsics=jnp.zeros(9),
         other_cams=jnp.zeros((len(corners.others), 6)) if corners.others else None,
@@ -280,15 +278,14 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         params0 = eqx.tree_at(lambda p: p.angles, params0, jnp.asarray(a0), is_leaf=lambda x: x is None)
         angle_names = [f"frame{f}.{nominal.joint_names[j]}" for f, j in zip(corners.frame, corners.sweep)]
         angle_names += [f"{PADDING}{k}" for k in range(bucket(V) - V)]
-    layout = ParameterLayout.of(
+    layout = kind.layout(
         nominal,
         M,
         other_cameras=tuple(v.camera.name for v in corners.used[1:]),
         angles=tuple(angle_names),
-        eye_in_hand=kind.eye_in_hand,
     )
     cand = layout.candidates(
-        rates=kind.encoders, clock=bool(sync.clock["estimated"]), intrinsics=frees_intrinsics(obs, options)
+        rates=kind.fits_rates, clock=bool(sync.clock["estimated"]), intrinsics=frees_intrinsics(obs, options)
     )
     if kind.keeps_two_stage_gauge:
         cand[: layout.axis_size] &= np.asarray(fit.free)
@@ -308,7 +305,7 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         np.asarray(res.cov)[:n_ax, :n_ax], free[:n_ax], mount_names,
     )  # fmt: skip
     ratios = None
-    if kind.encoders:
+    if kind.fits_rates:
         rate, nominal_ratio = np.asarray(res.params.rate), np.asarray(nominal.reduction_ratio)
         i_rate = layout.index("rate")
         ratios = [

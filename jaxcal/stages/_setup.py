@@ -225,17 +225,14 @@ def setup(dataset, options: Options) -> Setup:
     notes = []
     board = target_link = per_joint = None
     extra: list[CameraInfo] = []
+    if kind.unsupported:
+        raise CalibrationError(f"{ds.root}: {kind.unsupported}")
     if not kind.has_arcs:
-        if not kind.encoders:
-            raise CalibrationError(
-                f"{ds.root}: a pose-based capture (arbitrary motion, no plate on the links) needs the encoder log: "
-                "each image's joint positions come from it"
-            )
         notes.append(
             "pose-based capture (arbitrary motion, no plate on the links): the refinement starts from the nominal "
             "robot and a closed-form hand-eye estimate of the camera and the mount"
         )
-    if kind.eye_in_hand:
+    if kind.fixed_board:
         board, target = _eye_in_hand_target(ds, cam, flange)
         targets = (target,)
         others = [t.name for t in ds.targets if t.name != board.name]
@@ -247,11 +244,6 @@ def setup(dataset, options: Options) -> Setup:
         except ValueError as e:
             raise CalibrationError(f"{ds.root / 'metadata.json'}: {e}") from None
         targets, per_joint = tuple(arm), tuple(per_joint)
-        if not kind.encoders:
-            raise CalibrationError(
-                f"{ds.root}: arbitrary motion (no single-joint 'motion' segment) needs the encoder log: the "
-                "sequential method undoes each joint's rotation with its encoder angle"
-            )
         notes.append(
             "arbitrary motion, markers on every link: sequential initialisation (each joint's axis from its "
             "child link's marker, the earlier joints undone with their encoders), then the refinement over all "
@@ -271,7 +263,7 @@ def setup(dataset, options: Options) -> Setup:
             )
         )
     ignored = [t.name for t in ds.targets if t.link != flange]
-    if ignored and not kind.eye_in_hand and not kind.sequential and kind.has_arcs:
+    if ignored and kind.flange_targets_only:
         notes.append(f"targets not on the flange are not used by the two-stage method: {ignored}")
     if extra and not kind.refines_other_cameras:
         notes.append(

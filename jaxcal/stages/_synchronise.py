@@ -23,7 +23,7 @@ from ..io.dataset import Dataset
 from . import _programs
 from ._observe import CameraObservations, Observations
 from ._setup import Options, Setup
-from .kinds import AT_ZERO_DEG, MOVING_DEG, Motion
+from .kinds import AT_ZERO_DEG, MOVING_DEG
 
 _DEG = np.pi / 180.0
 
@@ -371,7 +371,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
         )
     line = _Timeline(setup, obs.primary, log_q)
     sweeps = counts = None
-    if setup.kind.motion is not Motion.SWEEPS:
+    if not setup.kind.single_joint_sweeps:
         t_ctrl, q, inside = line.at(offset0)
         joint = np.full(len(t_ctrl), -1)
         if estimate:
@@ -397,11 +397,11 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
         if offset is not None:
             clock["given_s"] = offset
             notes += _compare_clock(ds, offset, clock)
-        if setup.kind.motion is not Motion.SWEEPS:
+        if not setup.kind.single_joint_sweeps:
             t_ctrl, q, inside = line.at(clock["offset_s"])
         else:
             sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(clock["offset_s"])
-    homes = sweep_homes(ds, joint, q, inside) if setup.kind.motion is Motion.SWEEPS else None
+    homes = sweep_homes(ds, joint, q, inside) if setup.kind.single_joint_sweeps else None
     if homes is not None:
         notes.append(
             "sweeps from a home configuration other than zero: "

@@ -187,7 +187,7 @@ def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> list[dict]:
             }
             | (
                 {"sample": int(frames["frame"][row]), "line": frames["file"][row]}
-                if setup.kind.device
+                if not setup.kind.images
                 else {}
             )
         )
@@ -305,9 +305,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     jax.block_until_ready(fit)
     timings["axis_fit_s"] = time.perf_counter() - t0
 
-    layout = ParameterLayout.of(
-        nominal, len(setup.fit_targets), eye_in_hand=kind.eye_in_hand, fixed_name=kind.fixed_frame
-    )
+    layout = kind.layout(nominal, len(setup.fit_targets))
     names = layout.names(refine=False)
     free = np.asarray(fit.free)
     parameters = physical_parameters(
@@ -349,7 +347,7 @@ def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Two
     t0 = time.perf_counter()
     options.say("pose-based capture: closed-form hand-eye start (camera and mount) from the nominal robot")
     fit, poses = _pose_start(setup, obs, sync)
-    layout = ParameterLayout.of(setup.nominal, len(setup.targets), eye_in_hand=setup.kind.eye_in_hand)
+    layout = setup.kind.layout(setup.nominal, len(setup.targets))
     parameters = physical_parameters(
         layout, setup.nominal, fit.T_flange_marker0, fit.T_cam_base0, fit.params.cam, fit.params.correction,
         fit.cov, np.asarray(fit.free), [t.name for t in setup.targets],

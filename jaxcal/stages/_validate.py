@@ -185,9 +185,7 @@ def validate(
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
     out = {
         "configurations": CONFIGURATIONS,
-        "ee_point": "camera origin, board frame"
-        if setup.board is not None
-        else ("measured point, device frame" if setup.kind.device else "target origin, camera frame"),
+        "ee_point": setup.kind.ee_point,
         "ee_rms_mm_before": rms(err["before"]),
         "ee_max_mm_before": float(err["before"].max()),
         "ee_rms_mm_after": rms(err["after"]),

@@ -19,6 +19,15 @@ ask the kind, they do not test flags of their own.
 | `keeps_two_stage_gauge` | yes                | yes                | no                    | no           | no             | yes             | no              |
 | `identifiability_tol`   | 1e-6               | 1e-6               | 1e-3                  | 1e-3         | 1e-3           | 1e-6            | 1e-3            |
 | `per_view_angles`       | no                 | no                 | no                    | no           | yes            | no              | no              |
+| `single_joint_sweeps`   | yes                | yes                | no                    | no           |                | yes             | no              |
+| `fits_rates`            | yes                | yes                | yes                   | yes          | no             | yes             | yes             |
+| `rates_from_arcs`       | yes                | yes                | yes                   | no           | no             | yes             | no              |
+| `fixed_board`           | no                 | yes                | no                    | eye-in-hand  |                | no              | no              |
+| `flange_targets_only`   | yes                | no                 | no                    | no           |                | yes             | no              |
+| `unsupported`           |                    |                    | without encoders      | without encoders |            |                 |                 |
+| `sensor`                | camera             | camera             | camera                | camera       |                | device          | device          |
+| `targets_label`         | target(s)          | target(s)          | target(s)             | target(s)    |                | point           | point           |
+| `ee_point`              | target origin, camera frame | camera origin, board frame | (eye-to-hand's) | (its mount's) |  | measured point, device frame | measured point, device frame |
 
 - **Eye-to-hand, single-joint sweeps** (the seed method): fixed cameras film
   targets on the flange while one joint turns at a time.
@@ -57,6 +66,9 @@ import enum
 from dataclasses import dataclass
 
 import numpy as np
+
+from .._correction import ParameterLayout
+from .._kinematics import KinematicModel
 
 #: Independence threshold of the refinement's identifiability search when the
 #: corners alone decide the gauge (no encoders, or markers on every link): a
@@ -209,6 +221,77 @@ class CaptureKind:
     def per_view_angles(self) -> bool:
         """Without an encoder log each view's joint angle is an unknown of the refinement."""
         return not self.encoders
+
+    @property
+    def single_joint_sweeps(self) -> bool:
+        """One joint turns at a time: frames are assigned to sweeps, whose arcs also
+        show the clock offset (else each frame's angles are read at its time)."""
+        return self.motion is Motion.SWEEPS
+
+    @property
+    def fits_rates(self) -> bool:
+        """The encoder rates (reduction ratios) are unknowns of the refinement: an
+        encoder log gives each view's angle up to them."""
+        return self.encoders
+
+    @property
+    def rates_from_arcs(self) -> bool:
+        """The refinement starts the encoder rates from the arc fits (else at one)."""
+        return self.encoders and self.has_arcs
+
+    @property
+    def fixed_board(self) -> bool:
+        """The camera films a board fixed in the world; the fits' target is the
+        board's pattern riding on the flange (`Setup.board`)."""
+        return self.mount is Mount.EYE_IN_HAND
+
+    @property
+    def flange_targets_only(self) -> bool:
+        """The two-stage arcs come from the flange's targets alone (a target on
+        another link is not used, and said so)."""
+        return self.mount is not Mount.EYE_IN_HAND and self.motion is Motion.SWEEPS
+
+    @property
+    def unsupported(self) -> str | None:
+        """Why a capture of this kind cannot be calibrated (None when it can)."""
+        if self.encoders or self.device:
+            return None
+        if self.motion is Motion.POSES:
+            return (
+                "a pose-based capture (arbitrary motion, no plate on the links) needs the encoder log: "
+                "each image's joint positions come from it"
+            )
+        if self.motion is Motion.FREE:
+            return (
+                "arbitrary motion (no single-joint 'motion' segment) needs the encoder log: the "
+                "sequential method undoes each joint's rotation with its encoder angle"
+            )
+        return None
+
+    @property
+    def sensor(self) -> str:
+        """What observes the robot, in words: `camera` or `device`."""
+        return "device" if self.device else "camera"
+
+    @property
+    def targets_label(self) -> str:
+        """What the sensor observes on the robot, in words."""
+        return "point" if self.device else "target(s)"
+
+    @property
+    def ee_point(self) -> str:
+        """The point whose error the validation reports, and its frame, in words."""
+        return {
+            Mount.EYE_IN_HAND: "camera origin, board frame",
+            Mount.DEVICE: "measured point, device frame",
+        }.get(self.mount, "target origin, camera frame")
+
+    def layout(self, model: KinematicModel, num_markers: int = 1, **kwargs) -> ParameterLayout:
+        """The correction vector's layout for this kind (the fixed frame's name,
+        eye-in-hand names); `kwargs` as `ParameterLayout`'s."""
+        return ParameterLayout.of(
+            model, num_markers, eye_in_hand=self.eye_in_hand, fixed_name=self.fixed_frame, **kwargs
+        )
 
     @property
     def label(self) -> str:

@@ -16,7 +16,6 @@ from ._synchronise import Sweeps, Sync
 from ._two_stage import TwoStage, result_name
 from ._validate import Validation
 from ._verdict import Verdict
-from .kinds import Motion
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,7 +106,7 @@ class CalibrationResult:
 
     @property
     def eye_in_hand(self) -> bool:
-        return bool(self.kind.eye_in_hand)
+        return self.kind.fixed_board
 
     @property
     def ok(self) -> bool:
@@ -137,12 +136,12 @@ def frames_summary(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -
         "outside_encoder_log": int((~inside & ~sync.glitched).sum()),
         "in_encoder_glitch": int(sync.glitched.sum()),
         "not_in_a_sweep": 0
-        if setup.kind.motion is not Motion.SWEEPS
+        if not setup.kind.single_joint_sweeps
         else int(((joint < 0) & inside & found).sum()),
         "used_per_joint": two.counts,
         "dropped_capture_indices": dropped_capture_indices(setup.dataset, setup.camera.name),
         "pnp_outliers": [int(r) for r, _, _ in obs.primary.dropped],
-    } | ({"samples": int(len(obs.primary.rows))} if setup.kind.device else {})
+    } | ({"samples": int(len(obs.primary.rows))} if not setup.kind.images else {})
 
 
 def _arcs(two: TwoStage, refined: Refined | None) -> list:
