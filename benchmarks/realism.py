@@ -17,9 +17,15 @@ Cases (the issue's that the simulator supports so far): `ideal`; `noise`
 metadata); `distortion_unknown` (the same images, the metadata says none);
 `exposure_10ms` (8 sub-frames, stamped mid-exposure); `rolling_shutter_given`
 (20 ms top-to-bottom readout, stamped at the first row, the line delay in the
-metadata: the estimator does not use it yet); `combined` (the noise, JPEG 90,
+metadata: the estimator does not use it yet); `camera_mix` (the noise, JPEG 90,
 5 ms exposure stamped mid-exposure, the distortion given); and the presets
 `global_shutter` and `rolling_shutter` (`jaxcal simulate --camera`).
+The arm's cases (`jaxcal.sim.arm`, ideal camera): `compliance` (the
+`realistic` arm's gravity compliance alone), `backlash` (its lost motion, 1
+arcmin per joint), `encoder_quantisation` (a coarse motor encoder, 1024 counts
+per motor turn: a 256-line quadrature encoder), `encoder_latency` (joint
+states stamped 2 ms late); `combined`: the `global-shutter` camera and the
+`realistic` arm (`jaxcal simulate --camera global-shutter --arm realistic`).
 
 With `--workdir`, the rendered captures are kept and reused (rendering is
 deterministic per case).
@@ -37,6 +43,7 @@ from pathlib import Path
 import jaxcal
 from jaxcal.errors import JaxcalError
 from jaxcal.io._files import write_text_atomic
+from jaxcal.sim.arm import ARM_PRESETS, ArmModel
 from jaxcal.sim.camera import PRESETS, CameraModel
 from jaxcal.sim.simulate import SimConfig, simulate
 
@@ -44,7 +51,17 @@ from jaxcal.sim.simulate import SimConfig, simulate
 LENS = (-0.12, 0.05, 0.0, 0.0, 0.0)
 NOISE = {"gain_dn": 0.094, "read_noise_dn": 2.0}
 
-#: Case name -> (camera model, the metadata's distortion replaced by zeros).
+REALISTIC_ARM = ARM_PRESETS["realistic"]
+#: The arm's cases: each effect of the realistic arm alone (a coarse encoder for quantisation).
+ARMS = {
+    "compliance": ArmModel(name="compliance", compliance=REALISTIC_ARM.compliance),
+    "backlash": ArmModel(name="backlash", backlash_deg=REALISTIC_ARM.backlash_deg),
+    "encoder_quantisation": ArmModel(name="encoder_quantisation", counts_per_rev=1024),
+    "encoder_latency": ArmModel(name="encoder_latency", latency_s=REALISTIC_ARM.latency_s),
+    "combined": REALISTIC_ARM,
+}
+
+#: Case name -> (camera model, the metadata's distortion replaced by zeros); the arm is `ARMS[name]` or ideal.
 CASES = {
     "ideal": (CameraModel(), False),
     "noise": (CameraModel(name="noise", **NOISE), False),
@@ -54,14 +71,19 @@ CASES = {
     "distortion_unknown": (CameraModel(name="distortion", distortion=LENS), True),
     "exposure_10ms": (CameraModel(name="exposure_10ms", exposure_s=0.01, subframes=8), False),
     "rolling_shutter_given": (CameraModel(name="rolling_20ms", readout_s=0.02, stamp="start"), False),
-    "combined": (
+    "camera_mix": (
         CameraModel(
-            name="combined", exposure_s=0.005, subframes=4, jpeg_quality=90, distortion=LENS, **NOISE
+            name="camera_mix", exposure_s=0.005, subframes=4, jpeg_quality=90, distortion=LENS, **NOISE
         ),
         False,
     ),
     "global_shutter": (PRESETS["global-shutter"], False),
     "rolling_shutter": (PRESETS["rolling-shutter"], False),
+    "compliance": (CameraModel(), False),
+    "backlash": (CameraModel(), False),
+    "encoder_quantisation": (CameraModel(), False),
+    "encoder_latency": (CameraModel(), False),
+    "combined": (PRESETS["global-shutter"], False),
 }
 
 
@@ -79,7 +101,7 @@ def capture(case: str, config: SimConfig, workdir: Path) -> Path:
             cam["distortion"] = [0.0] * len(cam["distortion"])
         (out / "metadata.json").write_text(json.dumps(meta, indent=2))
         return out
-    return simulate(replace(config, camera=camera), out, progress=False)
+    return simulate(replace(config, camera=camera, arm=ARMS.get(case, "ideal")), out, progress=False)
 
 
 def run_case(dataset: Path) -> dict:

@@ -57,6 +57,8 @@ def show_defaults(parser: argparse.ArgumentParser) -> None:
 
 #: `jaxcal simulate --camera` (the names of `jaxcal.sim.camera.PRESETS`, which the CLI imports only to render).
 CAMERAS = ("ideal", "global-shutter", "rolling-shutter")
+#: `jaxcal simulate --arm` (the names of `jaxcal.sim.arm.ARM_PRESETS`).
+ARMS = ("ideal", "realistic")
 
 
 def _add_simulate_parser(sub) -> None:
@@ -149,6 +151,13 @@ def _add_simulate_parser(sub) -> None:
         default="ideal",
         help="the camera model (jaxcal.sim.camera): exposure, rolling shutter, sensor noise, JPEG; "
         "'ideal' takes each frame at one instant, noise-free",
+    )
+    p.add_argument(
+        "--arm",
+        choices=ARMS,
+        default="ideal",
+        help="the arm model (jaxcal.sim.arm): gravity compliance, backlash, encoder counts and latency; "
+        "'ideal' is rigid with fine, prompt encoders",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(

@@ -46,6 +46,7 @@ def cmd_simulate(args) -> int:
         encoders=not args.no_encoders,
         distortion=tuple(args.distortion),
         camera=args.camera,
+        arm=args.arm,
     )
     trajectory = None
     if args.random_motion is not None:
@@ -81,7 +82,9 @@ def cmd_plan(args) -> int:
 
 
 #: The `jaxcal simulate` options that go with `--plan`; any other is refused.
-PLAN_OPTIONS = ("plan", "out", "overwrite", "seed", "quiet", "grayscale", "func", "command", "parser")
+PLAN_OPTIONS = (
+    "plan", "out", "overwrite", "seed", "quiet", "grayscale", "camera", "arm", "func", "command", "parser",
+)  # fmt: skip
 
 
 def _simulate_plan(args) -> int:
@@ -110,6 +113,8 @@ def _simulate_plan(args) -> int:
             overwrite=args.overwrite,
             progress=not args.quiet,
             grayscale=args.grayscale,
+            camera=args.camera,
+            arm=args.arm,
         )
     ds = load_dataset(out)
     visible = sum(all(f["visible"].values()) for f in ds.truth["frames"])

@@ -17,7 +17,7 @@ def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:
     truth = sc.read_json(path, "truth file")
     loc = Loc(path)
     sc.obj(truth, loc, required=("model", "cameras", "targets", "clock"),
-           optional=("T_world_base", "dropped_frames", "frames", "bad_samples", "compliance_rad_per_kNm"))  # fmt: skip
+           optional=("T_world_base", "dropped_frames", "frames", "bad_samples", "compliance_rad_per_kNm", "arm"))  # fmt: skip
     n = len(joints)
     m = loc.key("model")
     model = sc.obj(

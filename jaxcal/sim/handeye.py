@@ -348,7 +348,8 @@ class _MocapScene(Scene):
 def _mocap_scene(plate: PlateSpec, cam: CameraSpec) -> _MocapScene:
     spec = mujoco.MjSpec()
     spec.modelname = "jaxcal_handeye"
-    spec.visual.global_.offwidth, spec.visual.global_.offheight = cam.width, cam.height
+    spec.visual.global_.offwidth = cam.supersample * cam.width
+    spec.visual.global_.offheight = cam.supersample * cam.height
     spec.visual.headlight.ambient = [0.45, 0.45, 0.45]
     spec.visual.headlight.diffuse = [0.5, 0.5, 0.5]
     spec.visual.quality.shadowsize = 0

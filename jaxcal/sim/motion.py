@@ -114,11 +114,13 @@ def free_motion(times, q) -> Trajectory:
 
 @dataclass(frozen=True)
 class EncoderModel:
-    """Motor encoders: sampling rate (Hz), counts per motor revolution, noise (counts)."""
+    """Motor encoders: sampling rate (Hz), counts per motor revolution, noise (counts), and
+    latency (s: each reading stamped that much after the instant it measures)."""
 
     rate_hz: float = 500.0
     counts_per_rev: int = 2**17
     noise_counts: float = 0.5
+    latency_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -145,9 +147,10 @@ class ClockModel:
 def encoder_stream(
     trajectory: Trajectory, nominal_ratio, encoder: EncoderModel, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Motor encoder log: timestamps (T,) on the controller clock and motor angles (T, joints), rad."""
+    """Motor encoder log: timestamps (T,) on the controller clock and motor angles (T, joints), rad
+    (the reading stamped $t$ measures the motor at $t$ - `encoder.latency_s`)."""
     t = np.arange(0.0, trajectory.duration + 0.5 / encoder.rate_hz, 1.0 / encoder.rate_hz)
-    motor = trajectory(t) * np.asarray(nominal_ratio, np.float64)
+    motor = trajectory(t - encoder.latency_s) * np.asarray(nominal_ratio, np.float64)
     step = 2.0 * np.pi / encoder.counts_per_rev
     counts = motor / step + encoder.noise_counts * rng.standard_normal(motor.shape)
     return t, np.round(counts) * step

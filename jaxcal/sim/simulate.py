@@ -34,9 +34,10 @@ from ..io.dataset import (
 from ..io.model_json import model_to_json
 from ..io.urdf import load_urdf, save_urdf
 from ..markers import TargetSpec
-from ..robots import robot_path, shipped
+from ..robots import link_inertials, robot_path, shipped
+from .arm import ArmModel, ArmMotion, arm_model
 from .camera import CameraModel, camera_model
-from .motion import ClockModel, EncoderModel, encoder_stream, joint_sweeps, true_angles
+from .motion import ClockModel, encoder_stream, joint_sweeps, true_angles
 from .motion import frame_times as frame_times_of
 from .scene import CameraSpec, PlateSpec, build_scene
 
@@ -54,7 +55,11 @@ class SimConfig:
     one through `range_mm` (its entry of `range_deg` is ignored).
     `camera`: how the cameras expose and degrade their frames, a preset's
     name (`jaxcal.sim.camera.PRESETS`) or a `CameraModel`; `ideal` (one
-    instant, noise-free) by default.
+    instant, noise-free) by default. `arm`: how the arm deviates from a rigid
+    one with perfect encoders (gravity compliance, backlash, encoder counts and
+    latency), a preset's name (`jaxcal.sim.arm.ARM_PRESETS`) or an `ArmModel`;
+    `ideal` (rigid) by default. `encoder_noise_counts`: the encoders' noise in
+    counts of the ideal arm's encoder (2^17 per motor turn; `ArmModel.encoder`).
     """
 
     robot: str = "ur5e"
@@ -94,6 +99,7 @@ class SimConfig:
     mount_deg: float = 1.0
     link_plates: tuple = field(default=(), repr=False)
     camera: str | CameraModel = "ideal"
+    arm: str | ArmModel = "ideal"
 
     def check(self) -> None:
         w, h = self.resolution
@@ -111,6 +117,7 @@ class SimConfig:
             raise ValueError(f"markers must be 'charuco' or 'aruco', got {self.markers!r}")
         if camera_model(self.camera).distortion is not None and any(self.distortion):
             raise ValueError("give the lens distortion once: in the camera model or in `distortion`")
+        arm_model(self.arm)
 
     def with_lens(self) -> "SimConfig":
         """This config, checked, with the camera model's lens distortion (if it has one) as `distortion`."""
@@ -399,7 +406,8 @@ def simulate(
     clock = ClockModel(
         config.fps, config.clock_offset_ms, config.clock_drift_ppm, config.clock_jitter_ms, config.drop_rate
     )
-    encoder = EncoderModel(rate_hz=config.encoder_rate_hz, noise_counts=config.encoder_noise_counts)
+    arm = arm_model(config.arm)
+    encoder = arm.encoder(config.encoder_rate_hz, config.encoder_noise_counts)
     enc_t, enc_motor = encoder_stream(trajectory, nominal_ratio, encoder, rng)
     t_frames = (
         np.concatenate(frame_times_of(trajectory, config.frames_per_joint if sweeps else None, clock))
@@ -407,10 +415,7 @@ def simulate(
         else np.asarray(frame_times, np.float64)
     )
     keep = rng.random(len(t_frames)) >= clock.drop_rate
-    angles_at = partial(
-        true_angles, trajectory, nominal_ratio=nominal_ratio, true_ratio=true.reduction_ratio,
-        true_zero_offset=true.zero_offset,
-    )  # fmt: skip
+    angles_at = _angles_at(arm, trajectory, nominal_ratio, true, urdf_path)
     theta = angles_at(t_frames)
     noise_rng = np.random.default_rng([config.seed, 1])  # the camera's own draws: the capture stays the same
     q_true = theta - np.asarray(true.zero_offset)
@@ -467,12 +472,26 @@ def simulate(
             (tmp / name).write_text(text)
         meta = _metadata(config, nominal, cameras_nominal, plates_nominal, encoder, trajectory, notes, optics)
         write_json(tmp / "metadata.json", meta)
-        truth = _truth(config, true, cameras_true, plates_true)
+        truth = _truth(config, true, cameras_true, plates_true) | (
+            {} if arm == ArmModel() else {"arm": arm.metadata()}
+        )
         write_json(
             tmp / "truth.json",
             truth | {"dropped_frames": np.flatnonzero(~keep).tolist(), "frames": truth_frames},
         )
     return out
+
+
+def _angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path):
+    """`angles_at(t)`: the true arm's joint angles at controller times `t` (rigid, or
+    `jaxcal.sim.arm.ArmMotion` with the robot file's masses for compliance)."""
+    if arm.rigid:
+        return partial(
+            true_angles, trajectory, nominal_ratio=nominal_ratio, true_ratio=true.reduction_ratio,
+            true_zero_offset=true.zero_offset,
+        )  # fmt: skip
+    inertials = link_inertials(urdf_path) if arm.compliance is not None else None
+    return ArmMotion(arm, trajectory, nominal_ratio, true, inertials).angles
 
 
 def _renderer_at(scene, camera: str, t_frame: float, theta_frame, angles_at):
