@@ -76,6 +76,33 @@ def matvec_unrolled(A: Float[Array, "... n k"], x: Float[Array, "... k"]) -> Flo
     return out
 
 
+def matmul_lanes(A: Float[Array, "n k s"], B: Float[Array, "k m s"]) -> Float[Array, "n m s"]:
+    """Small matrix products with the batch *last* (`(n, k, S)`, or `(n, k, 1)` for one
+    matrix broadcast over the batch), as `k` multiply-adds over `S`-long lanes.
+
+    The layout of a residual Jacobian assembled for its normal equations: every
+    elementwise operation runs over contiguous samples, and $J^TJ$ contracts
+    the minor axis, where XLA's CPU backend is fastest.
+    """
+    out = A[:, 0, None] * B[None, 0]
+    for j in range(1, A.shape[1]):
+        out = out + A[:, j, None] * B[None, j]
+    return out
+
+
+def matvec_lanes(A: Float[Array, "n k s"], x: Float[Array, "k s"]) -> Float[Array, "n s"]:
+    """Small matrix-vector products with the batch last (see `matmul_lanes`)."""
+    out = A[:, 0] * x[0]
+    for j in range(1, A.shape[1]):
+        out = out + A[:, j] * x[j]
+    return out
+
+
+def cross_lanes(a: Float[Array, "3 s"], b: Float[Array, "3 s"]) -> Float[Array, "3 s"]:
+    """Cross products with the batch last (see `matmul_lanes`)."""
+    return jnp.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 # Nested jit (see `jaxcal._arcmodel.arc_terms`): a program traces the exponential
 # once per signature, not at each of its dozens of uses (a Monte Carlo trial traces
 # about a fifth faster; the same values).

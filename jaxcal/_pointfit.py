@@ -44,9 +44,9 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _lsq
 from ._axisfit import AxisFitParams
 from ._correction import ParameterLayout
-from ._geometry import matmul_unrolled as mm
-from ._geometry import matvec_unrolled as mv
-from ._geometry import se3_exp, skew, so3_log
+from ._geometry import cross_lanes, se3_exp, skew, so3_log
+from ._geometry import matmul_lanes as mml
+from ._geometry import matvec_lanes as mvl
 from ._kinematics import KinematicModel, forward_kinematics
 from ._schur import NormalEquations, normal_least_squares
 
@@ -57,6 +57,9 @@ GRAVITY = 9.80665
 #: The point fit's Levenberg-Marquardt settings: it stops at steps below a thousandth of a
 #: standard deviation (whitened residuals), far inside the answer's own uncertainty.
 LM_OPTIONS = _lsq.LMOptions(rtol=1e-8, atol=1e-3)
+#: ... or once its next step would move the estimate by less than a hundredth of a
+#: standard deviation (`normal_least_squares`' `settled`): one evaluation fewer.
+SETTLED = 1e-2
 
 
 @dataclass(frozen=True)
@@ -177,67 +180,77 @@ class PointProblem(eqx.Module):
     layout: PointLayout = eqx.field(static=True)
 
 
-def _rotations(axis: Float[Array, "3"], theta: Float[Array, " s"]) -> Float[Array, "s 3 3"]:
-    """Rodrigues' rotations about one unit `axis` by many angles."""
-    K = skew(axis)
-    s, c = jnp.sin(theta)[:, None, None], jnp.cos(theta)[:, None, None]
-    return jnp.eye(3) + s * K + (1.0 - c) * (K @ K)
+def _rotations(
+    axis: Float[Array, "joints 3"], theta: Float[Array, "joints s"]
+) -> Float[Array, "joints 3 3 s"]:
+    """Rodrigues' rotations about each joint's unit axis by its angles, the samples last."""
+    K = jax.vmap(skew)(axis)
+    M = jnp.stack([jnp.broadcast_to(jnp.eye(3), K.shape), K, K @ K], axis=-1)  # (joints, 3, 3, 3)
+    # One contraction over (1, sin, 1 - cos): written as broadcast multiply-adds, XLA's
+    # CPU loop would evaluate the sine and cosine once per matrix entry.
+    basis = jnp.stack([jnp.ones_like(theta), jnp.sin(theta), 1.0 - jnp.cos(theta)], axis=1)
+    return jnp.einsum("jabk,jks->jabs", M, basis)
 
 
-def _chain(x, problem: "PointProblem"):
-    """The forward pass of every sample at once: the fitted points `(s, 3)` and
-    what their Jacobian needs: per joint the pose before its origin
-    correction `A_j` and the point in its child link `s_j`, the joint's axis
-    direction and a point on it (device frame), the device pose and the
-    flange poses."""
+class _Chain(eqx.Module):
+    """The forward pass of every sample at once, the samples last (`matmul_lanes`'
+    layout): the fitted points `y` `(3, s)` and what their Jacobian needs, in the
+    device frame: per joint $j$ the rotation of its corrected origin frame `RE`
+    `(joints, 3, 3, s)`, that frame's origin `W_t` and the joint's axis `omega`
+    `(joints, 3, s)`; the device pose `T_db`; the point frame's rotation `R_p` `(3, 3, s)`."""
+
+    y: Float[Array, "3 s"]
+    RE: Float[Array, "joints 3 3 s"]
+    W_t: Float[Array, "joints 3 s"]
+    omega: Float[Array, "joints 3 s"]
+    T_db: Float[Array, "4 4"]
+    R_p: Float[Array, "3 3 s"]
+
+
+def _chain(x, problem: "PointProblem") -> _Chain:
+    """The forward pass of every sample (see `_Chain`)."""
     layout, d = problem.layout, problem.data
     params, e = layout.split(x)
     corr = params.correction
     nominal = problem.nominal
-    E = jax.vmap(se3_exp)(corr.origin)
+    # Each joint's nominal origin times its correction, one constant transform per joint.
+    OE = nominal.T_parent_joint @ jax.vmap(se3_exp)(corr.origin)
     T_db = problem.T_dev_base0 @ se3_exp(params.cam)
     mount = problem.T_flange_point0 @ se3_exp(corr.tool[0])
     theta = d.q + nominal.zero_offset + corr.zero_offset
     if layout.terms:
         theta = theta + jnp.sum(e[None] * term_basis(layout.terms, nominal, d.q, d.masses, d.coms), axis=2)
+    rot = _rotations(nominal.axis, theta.T)
     S = theta.shape[0]
-    R = jnp.broadcast_to(T_db[:3, :3], (S, 3, 3))
-    t = jnp.broadcast_to(T_db[:3, 3], (S, 3))
-    A_R, A_t, W_R, W_t, rot = [], [], [], [], []
-    # Products of 3x3 blocks over the samples as unrolled multiply-adds: XLA's CPU backend
-    # fuses them into elementwise loops, where batched `dot_general`s are several times slower.
+    R = jnp.broadcast_to(T_db[:3, :3, None], (3, 3, S))
+    t = jnp.broadcast_to(T_db[:3, 3, None], (3, S))
+    RE, W_t = [], []
     for j in range(nominal.num_joints):
-        O = nominal.T_parent_joint[j]
-        t = t + mv(R, O[:3, 3])
-        R = mm(R, O[:3, :3])
-        A_R.append(R)
-        A_t.append(t)
-        t = t + mv(R, E[j, :3, 3])
-        rot.append(_rotations(nominal.axis[j], theta[:, j]))
-        R = mm(mm(R, E[j, :3, :3]), rot[-1])
-        W_R.append(R)
+        t = t + mvl(R, OE[j, :3, 3, None])
+        R = mml(R, OE[j, :3, :3, None])
+        RE.append(R)
         W_t.append(t)
-    F = nominal.T_last_flange
-    t_f = t + mv(R, F[:3, 3])
-    R_f = mm(R, F[:3, :3])
-    y = t_f + mv(R_f, mount[:3, 3])
-    W_R, W_t = jnp.stack(W_R, 1), jnp.stack(W_t, 1)  # (s, joints, ...)
-    s_link = mv(jnp.swapaxes(W_R, -1, -2), y[:, None, :] - W_t)
-    omega = mv(W_R, nominal.axis[None])
-    return y, (jnp.stack(A_R, 1), jnp.stack(A_t, 1), s_link, omega, W_t, T_db, R_f, t_f, E, jnp.stack(rot, 1))
+        R = mml(R, rot[j])
+    RE = jnp.stack(RE)
+    F = nominal.T_last_flange @ mount
+    return _Chain(
+        y=t + mvl(R, F[:3, 3, None]),
+        RE=RE,
+        W_t=jnp.stack(W_t),
+        omega=jnp.sum(RE * nominal.axis[:, None, :, None], axis=2),  # a joint's rotation keeps its axis
+        T_db=T_db,
+        R_p=mml(R, F[:3, :3, None]),
+    )
 
 
 def predict(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, "samples 3"]:
     """The model's points in the device frame for every sample (m)."""
-    return _chain(x, problem)[0]
+    return _chain(x, problem).y.T
 
 
 def predict_rotation(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, "samples 3 3"]:
     """The model's rotation of the point's frame in the device frame for every sample."""
-    params, _ = problem.layout.split(x)
-    mount = problem.T_flange_point0 @ se3_exp(params.correction.tool[0])
-    R_f = _chain(x, problem)[1][6]
-    return R_f @ mount[:3, :3]
+    return jnp.moveaxis(_chain(x, problem).R_p, -1, 0)
 
 
 def _rotation_residuals(x, problem) -> Float[Array, " m"]:
@@ -248,53 +261,74 @@ def _rotation_residuals(x, problem) -> Float[Array, " m"]:
     return (e * w[:, None]).reshape(-1)
 
 
-def _dexp(xi: Float[Array, "6"]) -> Float[Array, "4 4 6"]:
-    return jax.jacfwd(se3_exp)(xi)
+def _twist_jacobian(xi: Float[Array, "6"]) -> Float[Array, "6 6"]:
+    """$D(\\xi)$: the body twist $(\\rho, \\omega)$ that a change of the twist
+    coordinates `xi` applies, $\\exp(\\xi + \\delta) \\approx \\exp(\\xi)\\exp(D\\delta)$
+    (the identity at $\\xi = 0$)."""
+    E = se3_exp(xi)
+    G = jnp.einsum("ba,bck->ack", E[:3, :3], jax.jacfwd(se3_exp)(xi)[:3])  # R^T dE: (3, 4, 6)
+    return jnp.concatenate([G[:, 3, :], jnp.stack([G[2, 1], G[0, 2], G[1, 0]])])
 
 
-def point_jacobian(x: Float[Array, " n"], problem: "PointProblem", chain=None) -> Float[Array, "samples 3 n"]:
-    """$\\partial \\hat y_i / \\partial x$ in closed form (tested against autodiff):
+def _twist_columns(R: Float[Array, "... 3 3 s"], v: Float[Array, "... 3 s"]) -> Float[Array, "... 6 3 s"]:
+    """The motion of a point at `v` from a frame's origin, per unit body twist
+    $(\\rho, \\omega)$ of the frame (rotation `R`): $R\\rho + (R\\omega) \\times v$; one
+    column per twist coordinate, `(..., 6, 3, s)`."""
+    Rc = jnp.swapaxes(R, -3, -2)  # (..., column, row, s)
+    v = v[..., None, :, :]
+    cross = jnp.stack(
+        [
+            Rc[..., 1, :] * v[..., 2, :] - Rc[..., 2, :] * v[..., 1, :],
+            Rc[..., 2, :] * v[..., 0, :] - Rc[..., 0, :] * v[..., 2, :],
+            Rc[..., 0, :] * v[..., 1, :] - Rc[..., 1, :] * v[..., 0, :],
+        ],
+        axis=-2,
+    )
+    return jnp.concatenate([Rc, cross], axis=-3)
 
-    - joint $j$'s origin twist: $A_j\\, \\partial\\exp(\\xi_j) \\, R_j(\\theta_j) s_j$, with $A_j$
-      the pose up to its nominal origin and $s_j$ the point in joint $j$'s child link;
-    - zero offset and every joint-angle term: $\\omega_j \\times (\\hat y - o_j)$ (times the term's basis);
-    - the fixed frame: $T_0\\, \\partial\\exp(\\xi_{cam})\\, T_{dev,base}^{-1} \\hat y$;
-    - the mount: $R_{flange}\\, \\partial \\exp(\\xi_{tool}) \\mathbf{0}$ on the nominal mount.
 
-    `chain`: `_chain(x, problem)` when the caller has it already.
-    """
-    layout, d = problem.layout, problem.data
+def _jacobian_factors(x, problem: "PointProblem", c: _Chain):
+    """$J = N C$: `N` `(n, 3, s)`, the points' motion per unit body twist of each
+    frame (and per radian of each joint-angle column), samples last, and `C`
+    `(n, n)`, the block-diagonal map from the twist coordinates to body twists
+    (`_twist_jacobian`; the identity elsewhere). `N`'s normal matrix then costs one
+    product, and $J^TJ = C^T N N^T C$."""
+    layout = problem.layout
     params, _ = layout.split(x)
     corr = params.correction
-    y, (A_R, _A_t, s_link, omega, W_t, T_db, R_f, _t_f, _E, rot) = (
-        _chain(x, problem) if chain is None else chain
-    )
     n = problem.nominal.num_joints
-    S = y.shape[0]
-    c_link = mv(rot, s_link)  # R_j s_j, in the corrected origin frame
-    dE = jax.vmap(_dexp)(corr.origin)  # (joints, 4, 4, 6)
-    # g[s, j, :, k] = dE_j[:3, :3, k] c_link[s, j] + dE_j[:3, 3, k], as multiply-adds over b
-    g = dE[None, :, :3, 3, :] + sum(dE[None, :, :3, b, :] * c_link[:, :, None, b, None] for b in range(3))
-    J_origin = jnp.swapaxes(mm(A_R, g), 1, 2).reshape(S, 3, 6 * n)
-    J_angle = jnp.cross(omega, y[:, None, :] - W_t)  # (s, joints, 3): d y / d theta_j
-    J_zero = jnp.swapaxes(J_angle, 1, 2)
-    dC = _dexp(params.cam)
-    base_pt = mv(T_db[:3, :3].T, y - T_db[:3, 3])  # T_db^-1 y
-    gc = dC[None, :3, 3, :] + sum(dC[None, :3, b, :] * base_pt[:, None, b, None] for b in range(3))
-    J_cam = mm(problem.T_dev_base0[:3, :3], gc)
-    dT = _dexp(corr.tool[0])
-    J_tool = mm(R_f, (problem.T_flange_point0[:3, :3] @ dT[:3, 3, :])[None])
-    blocks = [J_cam, J_origin, J_zero, J_tool]
+    S = c.y.shape[1]
+    v = c.y[None] - c.W_t  # (joints, 3, s): from each corrected origin to the point
+    J_angle = cross_lanes(c.omega.swapaxes(0, 1), v.swapaxes(0, 1)).swapaxes(0, 1)  # (joints, 3, s)
+    T_db = jnp.broadcast_to(c.T_db[:3, :3, None], (3, 3, S))
+    blocks = [
+        _twist_columns(T_db, c.y - c.T_db[:3, 3, None]),
+        _twist_columns(c.RE, v).reshape(6 * n, 3, S),
+        J_angle,
+        jnp.concatenate([jnp.swapaxes(c.R_p, 0, 1), jnp.zeros((3, 3, S), c.y.dtype)]),
+    ]
     if layout.terms:
-        b = term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms)  # (s, joints, k)
+        d = problem.data
+        b = jnp.moveaxis(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms), 0, -1)
         start = 0
         for t in layout.terms:
             m = TERMS[t]
-            blocks.append(
-                jnp.einsum("sja,sjk->sajk", J_angle, b[:, :, start : start + m]).reshape(S, 3, n * m)
-            )
+            # (joints, k, 3, s), joint-major within the family as `PointLayout`
+            blocks.append((J_angle[:, None] * b[:, start : start + m, None, :]).reshape(n * m, 3, S))
             start += m
-    return jnp.concatenate(blocks, axis=2)
+    twists = [_twist_jacobian(params.cam), *jax.vmap(_twist_jacobian)(corr.origin)]
+    eye = [jnp.eye(k, dtype=x.dtype) for k in (n, layout.size - 12 - 7 * n) if k]
+    C = jax.scipy.linalg.block_diag(*twists, eye[0], _twist_jacobian(corr.tool[0]), *eye[1:])
+    return jnp.concatenate(blocks, axis=0), C
+
+
+def point_jacobian(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, "samples 3 n"]:
+    """$\\partial \\hat y_i / \\partial x$ in closed form (tested against autodiff): a
+    frame's twist moves the point by $R\\rho + (R\\omega) \\times v$ (`_twist_columns`: the
+    device frame, each corrected joint origin, the point's mount), a joint angle by
+    $\\omega_j \\times (\\hat y - o_j)$ (zero offsets, and every joint-angle term times its basis)."""
+    N, C = _jacobian_factors(x, problem, _chain(x, problem))
+    return jnp.einsum("kas,ki->sai", N, C)
 
 
 def _weights(problem) -> Float[Array, " samples"]:
@@ -309,15 +343,30 @@ def _residuals_primal(x, problem):
     return r
 
 
-def _residuals_terms(x, problem):
-    """The whitened residuals and their Jacobian: the positions' in closed form, the
-    orientations' (when measured) by forward-mode autodiff."""
+def _normal(x, problem, keep) -> tuple[Array, NormalEquations]:
+    """The whitened residuals (positions `(3, s)`-ordered, then the orientations')
+    and their normal equations over the columns `keep` (the others zero): the
+    positions' from `_jacobian_factors`, the orientations' (when measured) by
+    forward-mode autodiff."""
     w = _weights(problem)
-    chain = _chain(x, problem)
-    r = ((chain[0] - problem.data.y) * w[:, None]).reshape(-1)
-    J = (point_jacobian(x, problem, chain) * w[:, None, None]).reshape(-1, x.shape[0])
+    c = _chain(x, problem)
+    r = ((c.y - problem.data.y.T) * w).reshape(-1)
+    N, C = _jacobian_factors(x, problem, c)
+    N = (N * w).reshape(x.shape[0], -1)
+    C = C * keep[None, :]
+    H, e = C.T @ (N @ N.T) @ C, C.T @ (N @ r)
     if problem.layout.orientation:
-        r = jnp.concatenate([r, _rotation_residuals(x, problem)])
+        rr = _rotation_residuals(x, problem)
+        Jr = jax.jacfwd(_rotation_residuals)(x, problem) * keep[None, :]
+        r, H, e = jnp.concatenate([r, rr]), H + Jr.T @ Jr, e + Jr.T @ rr
+    return r, NormalEquations(H=H, e=e)
+
+
+def _residuals_terms(x, problem):
+    """The whitened residuals and their Jacobian in `_residuals_primal`'s order."""
+    r = _residuals_primal(x, problem)
+    J = (point_jacobian(x, problem) * _weights(problem)[:, None, None]).reshape(-1, x.shape[0])
+    if problem.layout.orientation:
         J = jnp.concatenate([J, jax.jacfwd(_rotation_residuals)(x, problem)])
     return r, J
 
@@ -386,22 +435,30 @@ def fit_points(
     layout = problem.layout
     options = LM_OPTIONS if options is None else options
     x0 = jnp.zeros(layout.size)
+    first = None
     if free is None:
-        _, J0 = _residuals_terms(x0, problem)
+        r0, ne0 = _normal(x0, problem, jnp.ones(layout.size, x0.dtype))
         keep, indep = _lsq.independent_columns_normal(
-            J0.T @ J0, layout.priority(), tol=tol, candidates=candidates
+            ne0.H, layout.priority(), tol=tol, candidates=candidates
         )
     else:
         keep, indep = jnp.asarray(free, bool), jnp.full(layout.size, jnp.nan)
     kf = keep.astype(x0.dtype)
+    if free is None:  # the search's linearisation is the solver's first, over the kept columns
+        first = (r0, NormalEquations(H=ne0.H * kf[:, None] * kf[None, :], e=ne0.e * kf))
 
     def normal(x, p):
-        r, J = _residuals_terms(x * kf, p)
-        J = J * kf[None, :]
-        return r, NormalEquations(H=J.T @ J, e=J.T @ r)
+        return _normal(x * kf, p, kf)
 
     sol = normal_least_squares(
-        normal, x0, problem, rtol=options.rtol, atol=options.atol, max_steps=options.max_steps
+        normal,
+        x0,
+        problem,
+        rtol=options.rtol,
+        atol=options.atol,
+        max_steps=options.max_steps,
+        first=first,
+        settled=SETTLED,
     )
     x = sol.x * kf
     r = sol.residuals  # and `sol.normal`: the normal equations at `x`, frozen columns zero
@@ -409,7 +466,7 @@ def fit_points(
     sigma2 = _lsq.residual_variance(r, n_obs, jnp.sum(keep))
     cov = _lsq.covariance_normal(sol.normal.H, keep, sigma2)
     sigma = problem.data.sigma
-    dist2 = jnp.sum((r[: 3 * sigma.shape[0]].reshape(-1, 3) * sigma[:, None]) ** 2, axis=1)
+    dist2 = jnp.sum((r[: 3 * sigma.shape[0]].reshape(3, -1) * sigma) ** 2, axis=0)
     rms = jnp.sqrt(jnp.sum(jnp.where(problem.data.mask, dist2, 0.0)) / jnp.sum(problem.data.mask))
     return PointFitResult(
         x=x,

@@ -252,15 +252,20 @@ class _State(eqx.Module):
     num_steps: Array
 
 
-def _levenberg_marquardt(evaluate, predict, step, y0, *, rtol, atol, max_steps):
+def _levenberg_marquardt(evaluate, predict, step, y0, *, rtol, atol, max_steps, first=None, settled=None):
     """optimistix's Levenberg-Marquardt iteration (the module docstring) over a linear model.
 
     `evaluate(y) -> (r, model)`: the residuals at `y` and whatever linear model of
     them the step needs (the Jacobian blocks, or the normal equations);
     `predict(model, r, dy)`: the model's change of $\\tfrac12\\|r\\|^2$ for the step
     `dy`; `step(model, r, lam) -> dy`: the damped Gauss-Newton step. `y` is a
-    pytree of arrays. **Returns:** `(y, result, num_steps, r, model)` at the last
-    accepted iterate.
+    pytree of arrays. `first`: `evaluate(y0)` when the caller has it already (the
+    first iteration then costs no evaluation; the same iterates). `settled`: also
+    stop at an accepted point whose next step the model predicts to lower the cost
+    by less than $\\tfrac12 \\text{settled}^2 \\hat\\sigma^2$ ($\\hat\\sigma^2$ the mean
+    squared residual there): a step that moves the estimate by less than
+    `settled` standard deviations, not worth an evaluation. **Returns:**
+    `(y, result, num_steps, r, model)` at the last accepted iterate.
     """
     r_struct, model_struct = jax.eval_shape(evaluate, y0)
     zeros = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
@@ -304,15 +309,33 @@ def _levenberg_marquardt(evaluate, predict, step, y0, *, rtol, atol, max_steps):
         lam = jnp.where(
             step_size > tiny, 1.0 / jnp.where(step_size > tiny, step_size, 1.0), jnp.finfo(dtype).max
         )
+        dy_next = step(model, r, lam)
+        terminate = accept & converged
+        if settled is not None:
+            small = -predict(model, r, dy_next) <= 0.5 * settled**2 * jnp.mean(r**2)
+            terminate = terminate | (accept & ~s.first & small)
         return _State(
             y=y,
-            y_eval=jax.tree.map(jnp.add, y, step(model, r, lam)),
+            y_eval=jax.tree.map(jnp.add, y, dy_next),
             r=r,
             model=model,
             step_size=step_size,
             first=jnp.asarray(False),
-            terminate=accept & converged,
+            terminate=terminate,
             num_steps=s.num_steps + 1,
+        )
+
+    if first is not None:  # the first iteration, which always accepts its evaluation
+        r0, model0 = first
+        state = _State(
+            y=y0,
+            y_eval=jax.tree.map(jnp.add, y0, step(model0, r0, jnp.asarray(1.0, dtype))),
+            r=r0,
+            model=model0,
+            step_size=jnp.asarray(1.0, dtype),
+            first=jnp.asarray(False),
+            terminate=_max_ratio(r0, r0, rtol, atol) < 1,
+            num_steps=jnp.asarray(1),
         )
 
     def cond(s: _State):
@@ -412,6 +435,8 @@ def normal_least_squares(
     rtol: float,
     atol: float,
     max_steps: int = 256,
+    first: tuple[Array, NormalEquations] | None = None,
+    settled: float | None = None,
 ) -> NormalSolution:
     """`block_least_squares`' iteration without local unknowns, on the normal equations the model forms.
 
@@ -421,7 +446,9 @@ def normal_least_squares(
     mathematically the same as from $J$, and a model may reduce its Jacobian
     to them however is cheapest (by groups, with a robust loss's rank-one
     terms; `jaxcal._handeye.jacobian`). Same steps as `block_least_squares`
-    with $p = 0$ to round-off.
+    with $p = 0$ to round-off. `first`: `normal(x0, args)` when the caller has
+    formed it already (e.g. for an identifiability search at the start);
+    `settled`: see `_levenberg_marquardt`.
     **Returns:** a `NormalSolution`.
     """
     if max_steps < 1:
@@ -440,7 +467,7 @@ def normal_least_squares(
         return _scaled_cholesky_solve(ne.H + lam * jnp.eye(x0.shape[0], dtype=x0.dtype), -ne.e)
 
     x, result, num_steps, r, ne = _levenberg_marquardt(
-        evaluate, predict, step, x0, rtol=rtol, atol=atol, max_steps=max_steps
+        evaluate, predict, step, x0, rtol=rtol, atol=atol, max_steps=max_steps, first=first, settled=settled
     )
     return NormalSolution(x=x, result=result, num_steps=num_steps, residuals=r, normal=ne)
 

@@ -1,5 +1,6 @@
 """`jaxcal certify RESULT` (jaxcal.certification) and `jaxcal check RESULT CAPTURE` (jaxcal.drift)."""
 
+import importlib
 import json
 import tempfile
 from pathlib import Path
@@ -8,9 +9,14 @@ import numpy as np
 from rich.console import Console
 
 from ..certification import certify, plot_certificate, read_poses, read_result
-from ..drift import check
 from ..errors import OutputError
 from ..io._files import write_text_atomic
+
+
+def check(*args, **kwargs):
+    """`jaxcal.drift.check`, imported when `jaxcal check` runs: `jaxcal calibrate` imports
+    this module for its certificate, and `jaxcal.drift` (SciPy's statistics) is not light."""
+    return importlib.import_module("jaxcal.drift").check(*args, **kwargs)
 
 
 def check_output(path: str | None, inputs: list[str], overwrite: bool, what: str) -> None:
