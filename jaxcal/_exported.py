@@ -23,10 +23,18 @@ truncated, corrupted or written for another key is ignored and rebuilt (written
 atomically). The entries, like the compile cache's executables, are trusted
 only as far as the user's own cache directory is.
 
+A run's programs are called one after another, and each first call waits for
+its entry and its executable to be read (XLA's part without Python's lock).
+`warm_start(tag)` reads ahead, on a background thread, the entries the last run
+with the same tag called, in the order it called them, while the run does its
+other work; a call takes an entry read ahead only when its own key is the
+file's (and its compiler options the same), so the results never depend on it.
+
 Without a cache directory (`JAXCAL_NO_CACHE=1`) nothing is written and every
 process exports its programs in memory.
 """
 
+import contextlib
 import functools
 import hashlib
 import importlib.metadata
@@ -36,6 +44,7 @@ import pickle
 import re
 import tempfile
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -116,9 +125,12 @@ class _Entry:
     """One program for one argument tree and shapes: the exported module, the jitted call and
     the output tree."""
 
-    def __init__(self, name: str, exported, out_tree, compiler_options):
+    def __init__(self, name: str, exported, out_tree, compiler_options, file: str | None = None):
+        self.name = name
         self.exported = exported
         self.out_tree = out_tree
+        self.compiler_options = compiler_options
+        self.file = file  # the entry's file name in `programs_dir()`, when stored
 
         def call(*leaves):
             return exported.call(*leaves)
@@ -210,7 +222,10 @@ class StoredProgram:
             entry = self._entries.get(memo)
             if entry is None:
                 entry = self._entries[memo] = self._load_or_export(in_tree, avals)
-            return entry
+        if _RECORDING and entry.file is not None:
+            for used in _RECORDING:
+                used.setdefault(entry.file, entry)
+        return entry
 
     def _load_or_export(self, in_tree, avals) -> _Entry:
         key = self._key(in_tree, avals)
@@ -219,13 +234,13 @@ class StoredProgram:
         path = None
         if folder is not None:
             path = folder / f"{self.name}-{hashlib.sha256(text).hexdigest()[:40]}.jaxexport"
-            entry = _read(path, self, text, avals)
+            entry = _take_ahead(path.name, text, self) or _read(path, self, text, avals)
             if entry is not None:
                 return entry
         exported, out_tree = self._export(in_tree, avals)
         if path is not None:
             _write(path, text, exported, out_tree)
-        return _Entry(self.name, exported, out_tree, self.compiler_options)
+        return _Entry(self.name, exported, out_tree, self.compiler_options, path and path.name)
 
     def _export(self, in_tree, avals):
         out_trees = []
@@ -266,8 +281,9 @@ def stored_jit(fun, name: str, static=(), compiler_options=QUICK_COMPILE) -> Sto
 # ---------------------------------------------------------------------- files
 
 
-def _read(path: Path, program: StoredProgram, key: bytes, avals) -> _Entry | None:
-    """The entry at `path` if it is whole and written for exactly `key`, else `None`."""
+def _read_file(path: Path, key: bytes | None = None):
+    """`(key, exported, out_tree)` of the entry at `path` if it is whole (and written for
+    `key` when given), else `None`."""
     try:
         blob = path.read_bytes()
     except OSError:
@@ -279,18 +295,26 @@ def _read(path: Path, program: StoredProgram, key: bytes, avals) -> _Entry | Non
         head_len = int.from_bytes(body[:8], "little")
         head = json.loads(body[8 : 8 + head_len])
         payload = body[8 + head_len :]
-        if head.get("key") != key.decode() or head.get("sha256") != hashlib.sha256(payload).hexdigest():
+        if key is not None and head.get("key") != key.decode():
+            return None
+        if head.get("sha256") != hashlib.sha256(payload).hexdigest():
             return None
         tree_len = int(head["tree_bytes"])
         out_tree = jax.tree.structure(pickle.loads(payload[:tree_len]))
         exported = jax.export.deserialize(bytearray(payload[tree_len:]))
-        if [_aval(a) for a in exported.in_avals] != list(avals) or len(
-            exported.out_avals
-        ) != out_tree.num_leaves:
+        if len(exported.out_avals) != out_tree.num_leaves:
             return None
-        return _Entry(program.name, exported, out_tree, program.compiler_options)
+        return head["key"], exported, out_tree
     except Exception:  # noqa: BLE001 - any damage means: rebuild it
         return None
+
+
+def _read(path: Path, program: StoredProgram, key: bytes, avals) -> _Entry | None:
+    """The entry at `path` if it is whole and written for exactly `key`, else `None`."""
+    found = _read_file(path, key)
+    if found is None or [_aval(a) for a in found[1].in_avals] != list(avals):
+        return None
+    return _Entry(program.name, found[1], found[2], program.compiler_options, path.name)
 
 
 def _write(path: Path, key: bytes, exported, out_tree) -> None:
@@ -315,4 +339,98 @@ def _write(path: Path, key: bytes, exported, out_tree) -> None:
             Path(tmp).unlink(missing_ok=True)
             raise
     except Exception:  # noqa: BLE001 - a read-only or full cache only costs the next process a trace
+        return
+
+
+# ---------------------------------------------------------------------- reading ahead
+
+#: Entries read ahead by `warm_start`, by file name: futures of `(key, _Entry)` or `None`.
+_AHEAD: dict[str, Future] = {}
+_AHEAD_LOCK = threading.Lock()
+#: The entries each running `warm_start` has seen called, by file name, in call order.
+_RECORDING: list[dict] = []
+
+
+def _take_ahead(file: str, key: bytes, program: StoredProgram) -> _Entry | None:
+    """The entry `file` read ahead, if it was written for exactly `key` and is compiled with
+    `program`'s options; `None` (read it here) when it was not read ahead or not yet begun."""
+    with _AHEAD_LOCK:
+        future = _AHEAD.pop(file, None)
+    if future is None or future.cancel():
+        return None
+    try:
+        found = future.result()
+    except Exception:  # noqa: BLE001 - read it again on this thread
+        return None
+    if found is None or found[0] != key.decode() or found[1].compiler_options != program.compiler_options:
+        return None
+    return found[1]
+
+
+def _read_ahead(path: Path, name: str, compiler_options) -> tuple[str, _Entry] | None:
+    found = _read_file(path)
+    if found is None:
+        return None
+    entry = _Entry(name, found[1], found[2], compiler_options, path.name)
+    entry.compiled()
+    return found[0], entry
+
+
+def _manifest(folder: Path, tag: str) -> Path:
+    text = json.dumps([tag, _environment_now()], sort_keys=True).encode()
+    return folder / f"run-{hashlib.sha256(text).hexdigest()[:40]}.json"
+
+
+@contextlib.contextmanager
+def warm_start(tag: str):
+    """Within the block, read ahead the entries the last block with this `tag` called (on
+    one background thread, in the order they were called); when the block ends without an
+    error, record the entries it called for the next (module docstring)."""
+    folder = programs_dir()
+    if folder is None:
+        yield
+        return
+    manifest = _manifest(folder, tag)
+    try:
+        before = json.loads(manifest.read_text())
+        files = [(str(e["program"]), str(e["file"]), e["compiler_options"]) for e in before]
+    except (OSError, ValueError, KeyError, TypeError):
+        before, files = None, []
+    used: dict = {}
+    pool = ThreadPoolExecutor(1, thread_name_prefix="jaxcal programs ahead")
+    mine = []
+    with _AHEAD_LOCK:
+        for name, file, options in files:
+            if file not in _AHEAD and "/" not in file and os.sep not in file:
+                _AHEAD[file] = pool.submit(_read_ahead, folder / file, name, options)
+                mine.append(file)
+    _RECORDING.append(used)
+    try:
+        yield
+    finally:
+        _RECORDING.remove(used)
+        with _AHEAD_LOCK:
+            for file in mine:
+                future = _AHEAD.pop(file, None)
+                if future is not None:
+                    future.cancel()
+        pool.shutdown(wait=False, cancel_futures=True)
+    after = [
+        {"program": e.name, "file": file, "compiler_options": e.compiler_options} for file, e in used.items()
+    ]
+    if after and after != before:
+        _write_manifest(manifest, after)
+
+
+def _write_manifest(path: Path, entries: list) -> None:
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w") as f:
+                json.dump(entries, f)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    except OSError:  # a read-only cache only costs the next run its head start
         return

@@ -14,12 +14,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
+from pathlib import Path
 
 import jax
 import numpy as np
 
 from ._cache import enable_compilation_cache
-from ._exported import stored_jit
+from ._exported import stored_jit, warm_start
 from ._handeye import (
     ROBOT_SIGMA_OPTIONS,
     ROBOT_SIGMA_START,
@@ -350,6 +351,18 @@ def calibrate_hand_eye_capture(
     not match the images), `CalibrationError` (no view of the target at all).
     """
     enable_compilation_cache()
+    # The solver the last run on this capture called is read while this one loads and detects.
+    with warm_start(f"handeye {Path(getattr(capture, 'root', capture)).resolve()}"):
+        return _calibrate_capture(
+            capture, robot_sigma_translation, robot_sigma_rotation, estimate_robot_noise, sigma_px, folds,
+            max_steps, workers, progress, log,
+        )  # fmt: skip
+
+
+def _calibrate_capture(
+    capture, robot_sigma_translation, robot_sigma_rotation, estimate_robot_noise, sigma_px, folds, max_steps,
+    workers, progress, log,
+) -> HandEyeRun:  # fmt: skip
     seconds = {}
     t0 = time.perf_counter()
     if not isinstance(capture, HandEyeCapture):

@@ -34,6 +34,7 @@ how far its points leave the hull, and how much larger the predicted error is
 there than over the calibration's own configurations.
 """
 
+import importlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,7 +43,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from scipy.spatial import ConvexHull, QhullError
 
 from ._correction import ParameterLayout, apply_correction, parameters_to_model
 from ._geometry import se3_exp
@@ -329,6 +329,12 @@ def read_poses(path, joint_names, *, degrees: bool = False) -> np.ndarray:
 # --------------------------------------------------------------------------- the certificate
 
 
+def _scipy_spatial():
+    """`scipy.spatial` (Qhull), imported when a certificate first needs its hull: `jaxcal
+    calibrate` imports this module for `--region` and should not pay for it otherwise."""
+    return importlib.import_module("scipy.spatial")
+
+
 def extrapolation(
     pred: Predictor, q: np.ndarray, points: np.ndarray, rms_m: np.ndarray, frame: str
 ) -> dict | None:
@@ -346,10 +352,11 @@ def extrapolation(
     inside_rms = float(np.sqrt(np.mean(inside_var)))
     region_rms = float(np.sqrt(np.mean(rms_m**2)))
     ws_points = pred.base_points(inside)
+    spatial = _scipy_spatial()
     try:
-        hull = ConvexHull(ws_points)
+        hull = spatial.ConvexHull(ws_points)
         out = np.max(points @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)
-    except QhullError:  # the calibration's points are flat (e.g. one joint swept)
+    except spatial.QhullError:  # the calibration's points are flat (e.g. one joint swept)
         out = np.full(len(points), np.nan)
     return {
         "calibrated_joint_range": [[float(a), float(b)] for a, b in zip(lo, hi)],

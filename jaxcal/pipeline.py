@@ -11,9 +11,11 @@ device's samples) -> validate
 """
 
 import time
+from pathlib import Path
 
 from . import stages
 from ._cache import enable_compilation_cache
+from ._exported import warm_start
 from .errors import CalibrationError as CalibrationError  # re-exported
 from .errors import SuspectResultError
 from .stages import CalibrationResult as CalibrationResult  # re-exported
@@ -111,18 +113,29 @@ def calibrate(
         terms=tuple(terms),
         cv_folds=int(cv_folds),
     )
+    # The programs the last calibration of this dataset called are read while it loads and detects.
+    root = getattr(dataset, "root", dataset)
+    with warm_start(f"calibrate {Path(root).resolve()}"):
+        return _stages(dataset, options, strict, t_start)
+
+
+def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult:
     setup = stages.setup(dataset, options)
     obs = stages.observe(setup, options)
     sync = stages.synchronise(setup, obs, options)
     two = stages.two_stage(setup, obs, sync, options)
     # Tracker data have no corners: the two-stage fit is the result (see `stages.TWO_STAGE_IS_FINAL`).
-    refined = stages.refine(setup, obs, sync, two, options) if refine and setup.kind.refines_corners else None
+    refined = (
+        stages.refine(setup, obs, sync, two, options)
+        if options.refine and setup.kind.refines_corners
+        else None
+    )
     verdict = stages.verdict(setup, obs, sync, two, refined, options.limits)
     if strict and verdict.status != "ok":
         raise SuspectResultError(
             f"{setup.root}: the calibration is {verdict.status}: " + "; ".join(verdict.reasons)
         )
     validation = None
-    if validate and setup.dataset.truth is not None:
+    if options.validate and setup.dataset.truth is not None:
         validation = stages.validate(setup, sync, two, refined, options)
     return stages.assemble(setup, obs, sync, two, refined, verdict, validation, t_start)

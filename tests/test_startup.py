@@ -244,3 +244,55 @@ def test_clear_caches_drops_the_executables_not_the_stored_programs(store):
     assert program.cache_size() == 0
     program(jnp.eye(3), True)  # read again from the store
     assert len(traces) == 1
+
+
+def test_warm_start_reads_the_last_runs_programs_ahead(store):
+    """A run records the entries it called; the next run with the tag reads them ahead and
+    its calls take them (the same results); another tag reads nothing ahead."""
+    x = jnp.arange(9.0).reshape(3, 3)
+    traces: list = []
+    with _exported.warm_start("run a"):
+        first = _program(traces)(x, True)
+    (manifest,) = store.glob("run-*.json")
+    assert [e["program"] for e in json.loads(manifest.read_text())] == ["test_solve"]
+    taken = []
+    take = _exported._take_ahead
+
+    def spy(file, key, program):
+        entry = take(file, key, program)
+        taken.append(entry is not None)
+        return entry
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(_exported, "_take_ahead", spy)
+        with _exported.warm_start("run a"):
+            while _exported._AHEAD and not next(iter(_exported._AHEAD.values())).done():
+                time.sleep(0.01)
+            again = _program(traces)(x, True)
+        with _exported.warm_start("run b"):
+            assert not _exported._AHEAD
+            _program(traces)(x, True)
+    assert taken == [True, False] and len(traces) == 1
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("damage", ["not json", "a path outside", "a damaged entry"])
+def test_warm_start_ignores_a_damaged_manifest_or_entry(store, damage):
+    x = jnp.arange(9.0).reshape(3, 3)
+    traces: list = []
+    with _exported.warm_start("run"):
+        expected = _program(traces)(x, True)
+    (manifest,) = store.glob("run-*.json")
+    if damage == "not json":
+        manifest.write_text("{")
+    elif damage == "a path outside":
+        manifest.write_text(json.dumps([{"program": "test_solve", "file": "../x", "compiler_options": None}]))
+    else:
+        path = _entry(store)
+        path.write_bytes(path.read_bytes()[:-10])
+    with _exported.warm_start("run"):
+        result = _program(traces)(x, True)
+    assert len(traces) == (2 if damage == "a damaged entry" else 1)
+    for a, b in zip(jax.tree.leaves(expected), jax.tree.leaves(result)):
+        np.testing.assert_array_equal(a, b)

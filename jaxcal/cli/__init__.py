@@ -16,21 +16,12 @@
 """
 
 import argparse
+import importlib
 import re
 import sys
 
 from .._cache import enable_compilation_cache
-from ..planning._cli import add_plan_parser
-from ._calibrate import add_calibrate_args, cmd_calibrate, cmd_demo
-from ._certify import add_certify_parsers
 from ._common import EYE_IN_HAND_SWEEP, add_study_args, degrees, fmt_degrees, home, resolution
-from ._handeye import add_handeye_parsers
-from ._import_csv import add_import_csv_parser
-from ._inspect import add_inspect_parser
-from ._rosbag import add_bag_args, cmd_import_bag
-from ._simulate import cmd_plan, cmd_simulate
-from ._study import cmd_montecarlo
-from ._verify import add_verify_parser
 
 
 class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -59,6 +50,12 @@ def show_defaults(parser: argparse.ArgumentParser) -> None:
 CAMERAS = ("ideal", "global-shutter", "rolling-shutter")
 #: `jaxcal simulate --arm` (the names of `jaxcal.sim.arm.ARM_PRESETS`).
 ARMS = ("ideal", "realistic")
+
+
+def _module(name: str):
+    """A subcommand's module (`._calibrate`), imported when its parser is built: a command
+    imports only what it runs (`build_parser`), not every other command's libraries."""
+    return importlib.import_module(name, __package__)
 
 
 def _add_simulate_parser(sub) -> None:
@@ -163,13 +160,14 @@ def _add_simulate_parser(sub) -> None:
     p.add_argument(
         "--plan", help="render exactly this capture plan (docs/plan.md): its camera, target and motion"
     )
-    p.set_defaults(func=cmd_simulate, parser=p)  # `--plan` refuses the options set away from their defaults
+    p.set_defaults(
+        func=_module("._simulate").cmd_simulate, parser=p
+    )  # `--plan` refuses the options set away from their defaults
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The `jaxcal` argument parser with every subcommand."""
-    parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+def _add_calibration_parsers(sub) -> None:
+    """`jaxcal demo` and `jaxcal calibrate`."""
+    calibrate, rosbag = _module("._calibrate"), _module("._rosbag")
     p = sub.add_parser(
         "demo", help="render a perturbed UR5e, calibrate it from the images, show before/after"
     )
@@ -195,8 +193,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="a plate on every link, every joint moving at once (random waypoints, as many frames as the "
         "sweeps would take); sequential initialisation, then the refinement",
     )
-    add_calibrate_args(p)
-    p.set_defaults(func=cmd_demo)
+    calibrate.add_calibrate_args(p)
+    p.set_defaults(func=calibrate.cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
     p.add_argument(
         "dataset", help="dataset directory, or a ROS bag (with --images, --joints, --robot, --target)"
@@ -213,31 +211,63 @@ def build_parser() -> argparse.ArgumentParser:
         help="tracker data: the measuring device's frame is the robot's base frame (T_device_base = identity, "
         "not estimated; makes the base height d1 identifiable)",
     )
-    add_calibrate_args(p)
-    add_bag_args(p, required=False)
-    p.set_defaults(func=cmd_calibrate)
+    calibrate.add_calibrate_args(p)
+    rosbag.add_bag_args(p, required=False)
+    p.set_defaults(func=calibrate.cmd_calibrate)
+
+
+def _add_import_bag_parser(sub) -> None:
+    rosbag = _module("._rosbag")
     p = sub.add_parser(
         "import-bag", help="convert a ROS 1 / ROS 2 bag into a dataset directory (docs/dataset.md)"
     )
     p.add_argument("bag", help="ROS 1 .bag file, or ROS 2 bag directory (sqlite3 or MCAP)")
     p.add_argument("--out", required=True, help="dataset directory (absent or empty)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
-    add_bag_args(p, required=True)
-    p.set_defaults(func=cmd_import_bag)
+    rosbag.add_bag_args(p, required=True)
+    p.set_defaults(func=rosbag.cmd_import_bag)
+
+
+def _add_montecarlo_parser(sub) -> None:
     p = sub.add_parser("montecarlo", help="vmapped Monte Carlo sensitivity study (analytic marker poses)")
     add_study_args(p, trials=1000)
     p.add_argument("--json", help="write the summary here (atomically)")
     p.add_argument("--detail", action="store_true", help="first show one trial in detail")
-    p.set_defaults(func=cmd_montecarlo)
-    _add_simulate_parser(sub)
-    add_inspect_parser(sub)
-    add_import_csv_parser(sub)
-    add_verify_parser(sub)
-    add_certify_parsers(sub)
-    add_handeye_parsers(sub)
-    add_plan_parser(sub, cmd_plan)
+    p.set_defaults(func=_module("._study").cmd_montecarlo)
+
+
+#: The subcommands in `--help`'s order, by the function adding their parsers.
+GROUPS = (
+    (("demo", "calibrate"), _add_calibration_parsers),
+    (("import-bag",), _add_import_bag_parser),
+    (("montecarlo",), _add_montecarlo_parser),
+    (("simulate",), _add_simulate_parser),
+    (("inspect",), lambda sub: _module("._inspect").add_inspect_parser(sub)),
+    (("import-csv",), lambda sub: _module("._import_csv").add_import_csv_parser(sub)),
+    (("verify",), lambda sub: _module("._verify").add_verify_parser(sub)),
+    (("certify", "check"), lambda sub: _module("._certify").add_certify_parsers(sub)),
+    (("handeye", "simulate-handeye"), lambda sub: _module("._handeye").add_handeye_parsers(sub)),
+    (("plan",), lambda sub: _module("..planning._cli").add_plan_parser(sub, _module("._simulate").cmd_plan)),
+)
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The `jaxcal` argument parser: with every subcommand, or with only `command`'s
+    (and those sharing its module, `GROUPS`), so that a run imports only the
+    modules of the command it runs."""
+    parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    known = any(command in names for names, _ in GROUPS)
+    for names, add in GROUPS:
+        if not known or command in names:
+            add(sub)
     show_defaults(parser)
     return parser
+
+
+def _command(argv: list[str]) -> str | None:
+    """The subcommand `argv` names: its first word that is not an option."""
+    return next((a for a in argv if not a.startswith("-")), None)
 
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus.
@@ -261,7 +291,7 @@ def _join_negative_lists(argv: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     argv = _join_negative_lists(sys.argv[1:] if argv is None else list(argv))
-    args = build_parser().parse_args(argv)
+    args = build_parser(_command(argv)).parse_args(argv)
     enable_compilation_cache()
     try:
         return args.func(args)
