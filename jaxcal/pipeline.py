@@ -11,6 +11,7 @@ device's samples) -> validate
 """
 
 import time
+import warnings
 from pathlib import Path
 
 from . import stages
@@ -28,11 +29,10 @@ def calibrate(
     camera: str | None = None,
     workers: int | None = None,
     progress: bool = True,
-    estimate_clock: bool | None = None,
+    clock: str = "auto",
     validate: bool = True,
     refine: bool = True,
     other_cameras: bool = True,
-    trust_clock: bool = False,
     refine_intrinsics: bool | None = None,
     limits: Limits | None = None,
     arc_loss: str | None = "cauchy",
@@ -41,6 +41,8 @@ def calibrate(
     cv_folds: int = 5,
     strict: bool = False,
     log=None,
+    estimate_clock: bool | None = None,
+    trust_clock: bool | None = None,
 ) -> CalibrationResult:
     """Calibrate the robot and camera of `dataset` (a path or a loaded `Dataset`).
 
@@ -51,11 +53,13 @@ def calibrate(
       one robot model, one `T_cam_base` per camera, all cameras on the
       dataset's one clock.
     - `workers`: threads for detection (default all cores).
-    - `estimate_clock`: estimate the camera-controller clock offset (default:
-      when the metadata leaves it null).
-    - `trust_clock`: use the metadata's clock offset as it is (by default the
-      offset is estimated whenever there is an encoder log, and a given one
-      that disagrees is a warning).
+    - `clock`: the camera-controller clock offset. `"auto"` (default):
+      estimated whenever there is an encoder log and moving joints, a
+      metadata offset that disagrees is a warning, otherwise the metadata's;
+      `"estimate"`: estimated, an error when it cannot be; `"given"`: the
+      metadata's offset as it is (estimated only when the metadata has none).
+      (`estimate_clock=True` and `trust_clock=True` are the old spellings of
+      `"estimate"` and `"given"`: deprecated, they still work for one release.)
     - `refine_intrinsics`: free the first camera's intrinsics in the
       refinement (focal lengths, principal point and the distortion the data
       support; default: when they were self-calibrated because the metadata
@@ -100,12 +104,11 @@ def calibrate(
         camera=camera,
         workers=workers,
         progress=progress,
-        estimate_clock=estimate_clock,
+        clock=_clock_mode(clock, estimate_clock, trust_clock),
         validate=validate,
         refine=refine,
         other_cameras=other_cameras,
         log=log,
-        trust_clock=trust_clock,
         refine_intrinsics=refine_intrinsics,
         limits=stages.Limits() if limits is None else limits,
         arc_loss=arc_loss,
@@ -117,6 +120,27 @@ def calibrate(
     root = getattr(dataset, "root", dataset)
     with warm_start(f"calibrate {Path(root).resolve()}"):
         return _stages(dataset, options, strict, t_start)
+
+
+def _clock_mode(clock: str, estimate_clock: bool | None, trust_clock: bool | None) -> str:
+    """`calibrate`'s `clock`, from it or from the deprecated flags it replaces."""
+    if clock not in stages.CLOCK_MODES:
+        raise ValueError(f"clock must be one of {', '.join(map(repr, stages.CLOCK_MODES))}, got {clock!r}")
+    old = {"estimate_clock": estimate_clock, "trust_clock": trust_clock}
+    given = {k: v for k, v in old.items() if v is not None}
+    if not given:
+        return clock
+    warnings.warn(
+        f"calibrate({', '.join(given)}=...) is deprecated: use clock='estimate' (estimate_clock=True) "
+        "or clock='given' (trust_clock=True)",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    if estimate_clock and trust_clock:
+        raise ValueError("estimate_clock=True and trust_clock=True contradict each other")
+    if clock != "auto" and (estimate_clock or trust_clock):
+        raise ValueError(f"give the clock mode once: clock={clock!r} and {', '.join(given)}")
+    return "estimate" if estimate_clock else "given" if trust_clock else clock
 
 
 def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult:

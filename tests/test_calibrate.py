@@ -438,7 +438,7 @@ import jax
 jax.config.update("jax_compilation_cache_dir", {str(CACHE_DIR)!r})
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 import jaxcal
-r = jaxcal.calibrate({str(ds)!r}, progress=False, workers=1, refine=False, trust_clock=True)
+r = jaxcal.calibrate({str(ds)!r}, progress=False, workers=1, refine=False, clock="given")
 sim = sorted(m for m in sys.modules if m.startswith("jaxcal.sim") or m == "jaxcal.cli")
 print(json.dumps({{"offset_s": r.clock["offset_s"], "status": r.status, "reasons": r.reasons, "sim": sim}}))
 """

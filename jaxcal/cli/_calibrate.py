@@ -12,10 +12,12 @@ from rich.table import Table
 
 from .._pointfit import TERMS
 from ..certification import certify
+from ..errors import CalibrationError
 from ..io._files import check_output_dir, marked_directory, output_lock, write_text_atomic
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, write_outputs
 from ..robots import load_robot
+from ..stages import CLOCK_MODES
 from ._certify import print_certificate, region_of
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, positive_int
 from ._rosbag import dataset_of
@@ -175,6 +177,20 @@ def _result_tables(console, result) -> None:
 EXIT_CODES = {"ok": 0, "failed": 1, "suspect": 3}
 
 
+def _clock_arg(console, args) -> str:
+    """`--clock`, or the deprecated flag it replaced (with a note saying so)."""
+    old = [
+        f for f, on in (("--estimate-clock", args.estimate_clock), ("--trust-clock", args.trust_clock)) if on
+    ]
+    if not old:
+        return args.clock
+    if len(old) > 1 or args.clock != "auto":
+        raise CalibrationError(f"give the clock mode once: --clock {args.clock} and {' '.join(old)}")
+    mode = "estimate" if args.estimate_clock else "given"
+    console.print(f"[yellow]note:[/yellow] {old[0]} is deprecated: use --clock {mode}")
+    return mode
+
+
 def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
     t0 = time.perf_counter()
     result = calibrate(
@@ -182,8 +198,7 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
         camera=args.camera,
         workers=args.workers,
         progress=not args.quiet,
-        estimate_clock=True if args.estimate_clock else None,
-        trust_clock=args.trust_clock,
+        clock=_clock_arg(console, args),
         refine_intrinsics=args.refine_intrinsics,
         refine=not args.no_refine,
         other_cameras=not args.single_camera,
@@ -318,16 +333,16 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         "--workers", type=positive_int, help="threads for marker detection, >= 1 (default: all cores)"
     )
     p.add_argument(
-        "--estimate-clock",
-        action="store_true",
-        help="estimate the clock offset (the default whenever there is an encoder log)",
+        "--clock",
+        choices=CLOCK_MODES,
+        default="auto",
+        help="the camera-controller clock offset: auto (default) estimates it whenever there is an encoder "
+        "log and moving joints, and a metadata offset that disagrees is a warning; estimate: always, an "
+        "error when it cannot be; given: metadata.json's offset as it is",
     )
-    p.add_argument(
-        "--trust-clock",
-        action="store_true",
-        help="use metadata.json's clock offset as it is (by default it is checked against the estimate, "
-        "which is used)",
-    )
+    # The flags --clock replaced, kept for one release (they say so when used).
+    p.add_argument("--estimate-clock", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--trust-clock", action="store_true", help=argparse.SUPPRESS)
     p.add_argument(
         "--refine-intrinsics",
         action=argparse.BooleanOptionalAction,

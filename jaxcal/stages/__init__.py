@@ -13,6 +13,7 @@ from ._observe import Observations as Observations
 from ._observe import observe as observe
 from ._refine import Refined as Refined
 from ._refine import refine as refine
+from ._setup import CLOCK_MODES as CLOCK_MODES
 from ._setup import TWO_STAGE_IS_FINAL as TWO_STAGE_IS_FINAL
 from ._setup import Options as Options
 from ._setup import Setup as Setup

@@ -16,6 +16,9 @@ from ..io.dataset import CameraInfo, Dataset, DeviceInfo, TargetInfo, load_datas
 from .kinds import CaptureKind, device_poses, single_joint_share
 from .limits import Limits
 
+#: `Options.clock`: estimate the clock offset where possible, always, or take the metadata's.
+CLOCK_MODES = ("auto", "estimate", "given")
+
 
 @dataclass(frozen=True)
 class Options:
@@ -24,12 +27,11 @@ class Options:
     camera: str | None = None
     workers: int | None = None
     progress: bool = True
-    estimate_clock: bool | None = None
+    clock: str = "auto"
     validate: bool = True
     refine: bool = True
     other_cameras: bool = True
     log: Callable[[str], None] | None = None
-    trust_clock: bool = False
     refine_intrinsics: bool | None = None
     limits: Limits = Limits()
     arc_loss: str | None = "cauchy"

@@ -341,12 +341,12 @@ def _compile_ahead(setup: Setup, options: Options, sweeps: Sweeps, joint, q, ins
 def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     """Place the frames on the controller clock (see `Sync`), estimating the
     clock offset whenever there is an encoder log (a given offset that
-    disagrees is a warning; `options.trust_clock` keeps the given one)."""
+    disagrees is a warning; `options.clock`: `"estimate"` always, `"given"` keeps the given one)."""
     t0 = time.perf_counter()
     ds, nominal = setup.dataset, setup.nominal
     log_q = commanded_positions(ds, nominal)
     offset = ds.clock_offset_s
-    estimate = options.estimate_clock
+    estimate = True if options.clock == "estimate" else None
     if estimate and not setup.kind.has_arcs:
         raise CalibrationError(
             f"{ds.root}: the clock offset of a pose-based capture cannot be estimated (it comes from the arcs of "
@@ -357,7 +357,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     if estimate is None:
         # The estimate is cheap and accurate to microseconds: made whenever an encoder
         # log exists, and used unless the caller trusts the metadata's offset.
-        estimate = log_q is not None and (offset is None or not options.trust_clock)
+        estimate = log_q is not None and (offset is None or options.clock != "given")
     if estimate and log_q is None:
         raise CalibrationError(f"{ds.root}: the clock offset cannot be estimated without an encoder log")
     offset0 = 0.0 if offset is None else offset
