@@ -34,12 +34,16 @@ direction). `check_s`: `jaxcal.drift.check` of 10 rendered images at 1280x960
 (detection included) after a first call, against the scene's truth written as
 a result (`jaxcal.sim.drift.truth_result`), median of 3.
 
-Usage: python benchmarks/drift.py --camera --seeds 2 --trials 25 --json results/drift_camera.json
+Usage: python benchmarks/drift.py --camera --seeds 5 --trials 20 --json results/drift_camera.json
 """
 
 import argparse
 import json
 import os
+
+# The checks' small dense linear algebra (SVDs of a few hundred rows) is slowed tenfold by
+# OpenBLAS's threads on a shared 2-core machine: one thread (set before NumPy loads).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import platform
 import sys
 import tempfile
@@ -50,10 +54,19 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxcal
+from jaxcal._drift_camera import view_jacobians
 from jaxcal._geometry import se3_exp
 from jaxcal._reprojection import project
 from jaxcal.certification import read_result
-from jaxcal.drift import camera_capture, check, check_camera, check_samples, detectable, reference
+from jaxcal.drift import (
+    camera_capture,
+    camera_check_reference,
+    check,
+    check_camera,
+    check_samples,
+    detectable,
+    reference,
+)
 from jaxcal.io._files import write_text_atomic
 from jaxcal.io.dataset import load_dataset
 from jaxcal.report import write_outputs
@@ -128,6 +141,8 @@ def one_seed(res: Path, sizes, trials: int, sigma: float, rng) -> dict:
 
 CAM_MM = (0.1, 0.2, 0.5, 1.0, 2.0)
 CAM_DEG = (0.02, 0.05, 0.1, 0.2, 0.5)
+#: Multiples of each trial's bound scanned along its worst direction (`detectable_mm_*_images`).
+CAM_GRID = (0.9, 1.0, 1.1, 1.2, 1.35, 1.5)
 
 
 def _shifted(cap, truth: dict, K, dist, E: np.ndarray, views: int) -> list:
@@ -145,6 +160,36 @@ def _shifted(cap, truth: dict, K, dist, E: np.ndarray, views: int) -> list:
     return out
 
 
+def _true_pixels(cap, truth: dict, K, dist, views: int) -> list:
+    """Per view (the first `views`) the true projections of the detected corners (`truth.json`)."""
+    rows = {f["row"]: f for f in truth["frames"]}
+    name = cap.doc["targets"][0]
+    out = []
+    for pts, row in zip(cap.points[:views], cap.row[:views]):
+        T = np.asarray(rows[int(row)]["T_cam_target"][name])
+        out.append(np.asarray(project(K, dist, jnp.asarray(pts @ T[:3, :3].T + T[:3, 3]))))
+    return out
+
+
+def calibration_error_ratio(cap, truth: dict, K, dist, views: int) -> float:
+    """The calibration's own error as a check of `views` images sees it, over the variance its
+    covariance predicts: $u^T C_d^{-1} u / 6$, $u$ the camera twist fitted (least squares) to the
+    true projections, which only the calibration's error moves, and $C_d = P J \\Sigma J^T P^T$ its
+    covariance from the calibration's ($P$ the fit's map). About 1 on average over calibrations
+    when their covariance is honest; `jaxcal._drift_camera.CALIBRATION_COVARIANCE_FACTOR`."""
+    c = _subset(cap, views)
+    ref, _ = camera_check_reference(c, pixels=_true_pixels(c, truth, K, dist, views))
+    pix, _, A, J = (np.asarray(a) for a in view_jacobians(ref.x, ref.problem))
+    m = np.repeat(np.asarray(ref.problem.data.mask), 2, axis=1).reshape(-1)
+    r = (pix - np.asarray(ref.problem.data.pixels)).reshape(-1)[m]
+    A, J = A.reshape(-1, 6)[m], J.reshape(-1, J.shape[-1])[m]
+    P = np.linalg.solve(A.T @ A, A.T)
+    u = -P @ r
+    n = J.shape[1]
+    Cd = P @ J @ np.asarray(cap.est.cov, np.float64)[:n, :n] @ J.T @ P.T
+    return float(u @ np.linalg.solve(Cd, u) / 6)
+
+
 def _subset(cap, views: int):
     return type(cap)(
         cap.doc, cap.file, cap.est, cap.ds, cap.points[:views], cap.pixels[:views], cap.target[:views],
@@ -154,7 +199,7 @@ def _subset(cap, views: int):
 
 def camera_trial(cap, truth, K, dist, rng) -> dict:
     """One rendered check capture: per size (10 images, 5) the unmoved check, the shifted ones."""
-    out = {}
+    out = {"calibration_error_ratio": calibration_error_ratio(cap, truth, K, dist, 10)}
     for n in (10, 5):
         c = _subset(cap, n)
         c0 = check_camera(c)
@@ -174,9 +219,11 @@ def camera_trial(cap, truth, K, dist, rng) -> dict:
         for a in CAM_DEG:
             E = twist_matrix(np.zeros(3), np.radians(a) * _unit(rng))
             row["deg"][a] = check_camera(c, pixels=_shifted(c, truth, K, dist, E, n)).detected
+        row["nu"] = c0.residual["noise_variance_factor"]
+        row["statistic"] = c0.statistic / c0.threshold
         P = np.linalg.inv(c0.cov)
         u = np.linalg.eigh(P[:3, :3])[1][:, 0]
-        grid = np.linspace(0.25, 2.5, 10) * row["bound"]
+        grid = np.asarray(CAM_GRID) * row["bound"]
         row["worst"] = {
             float(g): check_camera(
                 c, pixels=_shifted(c, truth, K, dist, twist_matrix(1e-3 * g * u, np.zeros(3)), n)
@@ -204,9 +251,10 @@ def camera_main(args) -> int:
     rng = np.random.default_rng(0)
     w, h = (int(v) for v in args.resolution.split("x"))
     trials = {10: [], 5: []}
+    ratios = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        for s in range(args.seeds):
+        for s in range(args.first_seed, args.first_seed + args.seeds):
             cfg = SimConfig(resolution=(w, h), seed=300 + s, frames_per_joint=args.frames, range_deg=80.0)
             ds = simulate(cfg, tmp / f"cal{s}", progress=False)
             res = write_outputs(jaxcal.calibrate(ds, progress=False), tmp / f"res{s}")
@@ -219,7 +267,9 @@ def camera_main(args) -> int:
                 cam = ds_c.cameras[0]
                 K, dist = jnp.asarray(cam.K), jnp.asarray(np.asarray(cam.dist, float)[:5])
                 cap = camera_capture(doc, file, ds_c)
-                for n, row in camera_trial(cap, truth, K, dist, rng).items():
+                result = camera_trial(cap, truth, K, dist, rng)
+                ratios.append((s, result.pop("calibration_error_ratio")))
+                for n, row in result.items():
                     trials[n].append(row)
             print(f"seed {s}: done", flush=True)
         check_s = _camera_check_s(tmp)
@@ -229,10 +279,20 @@ def camera_main(args) -> int:
         "sweeps) and rendered 10-image stop-and-shoot check captures; moved captures: the detections shifted "
         "by the move's change of the true projections",
         "seeds": args.seeds,
+        "first_seed": 300 + args.first_seed,
         "trials_per_seed": args.trials,
         "false_alarm_rate": float(np.mean([r["false"] for r in trials[10]])),
         "false_alarm_rate_5_images": float(np.mean([r["false"] for r in trials[5]])),
         "false_alarm_trials": len(trials[10]),
+        "statistic_over_threshold_mean": {
+            n: float(np.mean([r["statistic"] for r in rows])) for n, rows in trials.items()
+        },
+        "noise_variance_factor_mean": float(np.mean([r["nu"] for r in trials[10]])),
+        "calibration_error_ratio": float(np.mean([v for _, v in ratios])),
+        "calibration_error_ratio_by_seed": {
+            str(300 + s): float(np.mean([v for k, v in ratios if k == s]))
+            for s in sorted({k for k, _ in ratios})
+        },
         "drift_power_by_mm": {
             n: {m: float(np.mean([r["mm"][m] for r in rows])) for m in CAM_MM} for n, rows in trials.items()
         },
@@ -255,6 +315,7 @@ def camera_main(args) -> int:
         ]
         ok = [k for k, p in zip(rel, rate) if p >= 0.95]
         out[f"detectable_mm_{n}_images"] = float(ok[0] * out["detectable_mm_bound"][n]) if ok else None
+        out[f"power_at_bound_multiples_{n}_images"] = {float(k): float(p) for k, p in zip(rel, rate)}
     print(json.dumps(out, indent=1), flush=True)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(args.json, json.dumps(out, indent=2))
@@ -274,6 +335,12 @@ def main(argv=None) -> int:
     )
     p.add_argument("--resolution", default="640x480", help="--camera: the calibration's and checks' images")
     p.add_argument("--frames", type=int, default=20, help="--camera: calibration frames per joint")
+    p.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="--camera: the first calibration's seed (300 + this); its check captures' seeds follow from it",
+    )
     args = p.parse_args(argv)
     if args.camera:
         return camera_main(args)

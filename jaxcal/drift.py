@@ -35,7 +35,7 @@ value says something else changed (the robot, the point's mount).
 """
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
@@ -46,13 +46,14 @@ from scipy import optimize, stats
 
 from ._buckets import bucket, pad_log
 from ._correction import ParameterLayout
-from ._drift_camera import camera_reference, gauss_newton, pad_corners
+from ._drift_camera import CameraReference, camera_reference, gauss_newton, pad_corners
 from ._drift_camera import fit as fit_camera
 from ._geometry import se3_exp
 from ._pointfit import PointLayout, point_jacobian, predict
 from ._reprojection import make_corner_data
 from .certification import read_result
 from .errors import DatasetError
+from .handeye_check import HandEyeCheckFit, fit_hand_eye_check, read_hand_eye_result
 from .io.dataset import Dataset, load_dataset
 from .io.model_json import model_from_json
 from .io.result import ESTIMATE_FILE, read_estimate
@@ -134,21 +135,43 @@ def whitening(R: np.ndarray) -> np.ndarray:
     return np.linalg.solve(L, np.eye(len(R)))
 
 
-def power(lam, dof: int, alpha: float = ALPHA):
-    """The test's power against a drift of non-centrality `lam` (non-central chi-square)."""
-    return stats.ncx2.sf(stats.chi2.ppf(1 - alpha, dof), dof, lam)
+def power(lam, dof: int, alpha: float = ALPHA, dof_noise: int | None = None):
+    """The test's power against a drift of non-centrality `lam`: non-central chi-square, or
+    with `dof_noise` (the noise scale estimated on that many degrees of freedom) non-central F."""
+    if dof_noise is None:
+        return stats.ncx2.sf(stats.chi2.ppf(1 - alpha, dof), dof, lam)
+    x = stats.f.ppf(1 - alpha, dof, dof_noise)
+    # SciPy's non-central F is wrong at a non-centrality of exactly zero: the central F there.
+    return np.where(
+        np.asarray(lam) > 0,
+        stats.ncf.sf(x, dof, dof_noise, np.maximum(lam, 1e-300)),
+        stats.f.sf(x, dof, dof_noise),
+    )
 
 
-def noncentrality_for_power(dof: int, p: float = POWER, alpha: float = ALPHA) -> float:
+def threshold(dof: int, alpha: float = ALPHA, dof_noise: int | None = None) -> float:
+    """The level-`alpha` threshold of $T$: $\\chi^2_{k}(1 - \\alpha)$, or $k F_{k, n}(1 - \\alpha)$."""
+    if dof_noise is None:
+        return float(stats.chi2.ppf(1 - alpha, dof))
+    return float(dof * stats.f.ppf(1 - alpha, dof, dof_noise))
+
+
+def p_value(T: float, dof: int, dof_noise: int | None = None) -> float:
+    return float(stats.chi2.sf(T, dof) if dof_noise is None else stats.f.sf(T / dof, dof, dof_noise))
+
+
+def noncentrality_for_power(
+    dof: int, p: float = POWER, alpha: float = ALPHA, dof_noise: int | None = None
+) -> float:
     """$\\lambda^*$ with `power(lambda*) = p`."""
-    return float(optimize.brentq(lambda lam: power(lam, dof, alpha) - p, 1e-9, 1e4))
+    return float(optimize.brentq(lambda lam: power(lam, dof, alpha, dof_noise) - p, 1e-9, 1e4))
 
 
-def detectable(C: np.ndarray, alpha: float = ALPHA, p: float = POWER) -> dict:
+def detectable(C: np.ndarray, alpha: float = ALPHA, p: float = POWER, dof_noise: int | None = None) -> dict:
     """The smallest translation (mm) and rotation (deg) detected with power `p` along
     their worst and best directions (see the module docstring)."""
     k = len(C)
-    lam = noncentrality_for_power(k, p, alpha)
+    lam = noncentrality_for_power(k, p, alpha, dof_noise)
     P = np.linalg.inv(C)
     mu_t = np.linalg.eigvalsh(P[:3, :3])
     mu_r = np.linalg.eigvalsh(P[3:6, 3:6])
@@ -206,6 +229,7 @@ class DriftCheck:
     advice: str
     what: str = "device"
     frame: str = "T_device_base"
+    dof_noise: int | None = None
 
     @property
     def exit_code(self) -> int:
@@ -224,6 +248,8 @@ class DriftCheck:
             "threshold": self.threshold,
             "p_value": self.p_value,
             "alpha": ALPHA,
+            "test": "chi2" if self.dof_noise is None else "F",
+            "dof_noise": self.dof_noise,
             "translation_mm": {"size": self.translation_mm[0], "std": self.translation_mm[1]},
             "rotation_deg": {"size": self.rotation_deg[0], "std": self.rotation_deg[1]},
             "device_translation_m": self.theta[:3].tolist(),
@@ -272,14 +298,16 @@ def verdict(
     names=("", ""),
     what: str = "device",
     frame: str = "T_device_base",
+    dof_noise: int | None = None,
 ) -> DriftCheck:
     """The test of a fitted drift `theta` `(6[+joints])` with covariance `C`, statistic
     `T` and whitened residual sum of squares `rss` on `dof_r` degrees of freedom: the
     `DriftCheck` (`what` moved: its `frame` now is `T_now`). Shared by the tracker and the
-    camera checks."""
+    camera checks; `dof_noise`: the degrees of freedom the noise scale was estimated on
+    (the test then uses Fisher's F, see `jaxcal._drift_camera`), None when it is known."""
     k = len(theta)
     joint_offsets = k > 6
-    thr = float(stats.chi2.ppf(1 - ALPHA, k))
+    thr = threshold(k, ALPHA, dof_noise)
     detected = T > thr
     tr, rot = _size_and_std(theta[:3], C[:3, :3]), _size_and_std(theta[3:6], C[3:6, 3:6])
     tr_mm, rot_deg = (1e3 * tr[0], 1e3 * tr[1]), (float(np.degrees(rot[0])), float(np.degrees(rot[1])))
@@ -289,9 +317,10 @@ def verdict(
         offs = {
             j: (float(np.degrees(e)), float(np.degrees(s))) for j, e, s in zip(joint_names, theta[6:], sd)
         }
-    det = detectable(C)
+    det = detectable(C, dof_noise=dof_noise)
     residual = {"sum_of_squares": rss, "dof": dof_r, "p_value": float(stats.chi2.sf(rss, dof_r))}
-    stat = f"chi2 {T:.1f} on {k} dof, threshold {thr:.1f}, p = {stats.chi2.sf(T, k):.3g}"
+    law = f"chi2 on {k} dof" if dof_noise is None else f"{k} F({k}, {dof_noise})"
+    stat = f"T {T:.1f}, threshold {thr:.1f} ({law}), p = {p_value(T, k, dof_noise):.3g}"
     if detected:
         message = f"the {what} moved by {tr_mm[0]:.3f} +- {tr_mm[1]:.3f} mm, {rot_deg[0]:.4f} +- {rot_deg[1]:.4f} deg ({stat})"
         if offs:
@@ -319,9 +348,9 @@ def verdict(
         )
     return DriftCheck(
         result=names[0], capture=names[1], samples=samples, theta=theta, cov=C, statistic=T, dof=k, threshold=thr,
-        p_value=float(stats.chi2.sf(T, k)), detected=bool(detected), translation_mm=tr_mm, rotation_deg=rot_deg,
+        p_value=p_value(T, k, dof_noise), detected=bool(detected), translation_mm=tr_mm, rotation_deg=rot_deg,
         joint_offsets_deg=offs, detectable=det, residual=residual, T_device_base=np.asarray(T_now),
-        message=message, advice=advice, what=what, frame=frame,
+        message=message, advice=advice, what=what, frame=frame, dof_noise=dof_noise,
     )  # fmt: skip
 
 
@@ -507,11 +536,10 @@ def camera_capture(doc: dict, file: Path, ds: Dataset, *, workers=None) -> Camer
     return CameraCapture(doc, file, est, ds, *corners, max(len(t.spec.points()) for t in targets))
 
 
-def check_camera(
-    cap: CameraCapture, *, joint_offsets: bool = False, pixels: list | None = None
-) -> DriftCheck:
-    """The drift check of a `CameraCapture` (`jaxcal._drift_camera`); `pixels`: per view
-    other detections in place of the capture's (a benchmark's shifted copies)."""
+def camera_check_reference(cap: CameraCapture, pixels: list | None = None) -> tuple[CameraReference, int]:
+    """The `CameraReference` of a `CameraCapture` (its views inside the encoder log, padded so
+    that check captures share the compiled fit) and the number of views kept; `pixels`: per
+    view other detections in place of the capture's (a benchmark's shifted copies)."""
     doc, est, ds = cap.doc, cap.est, cap.ds
     pts, pix, tgt, frm, tc = (
         cap.points,
@@ -528,40 +556,87 @@ def check_camera(
     keep = np.flatnonzero(inside)
     if len(keep) < 2:
         raise DatasetError(f"{ds.root}: {len(keep)} image(s) inside the encoder log: a check needs a few")
-    # Padded (views, corners per view, log) so that check captures share the compiled fit.
     data = make_corner_data(
         [pts[i] for i in keep], [pix[i] for i in keep], tgt[keep], frm[keep], tc[keep],
         *pad_log(ds.encoder_t, enc_q, bucket(len(ds.encoder_t))), ds.clock_drift_ppm, views=bucket(len(keep)),
     )  # fmt: skip
     data = pad_corners(data, cap.max_points)
     corners = int(sum(len(pts[i]) for i in keep))
-    ref = camera_reference(est, data, K0, dist0, offset, float(doc["refinement"]["sigma_px"]), corners)
-    theta, C, T, rss = fit_camera(ref, joint_offsets=joint_offsets)
+    sigma = float(doc["refinement"]["sigma_px"])
+    return camera_reference(est, data, K0, dist0, offset, sigma, corners), len(keep)
+
+
+def check_camera(
+    cap: CameraCapture, *, joint_offsets: bool = False, pixels: list | None = None
+) -> DriftCheck:
+    """The drift check of a `CameraCapture` (`jaxcal._drift_camera`); `pixels`: per view
+    other detections in place of the capture's (a benchmark's shifted copies)."""
+    est, ds = cap.est, cap.ds
+    ref, views = camera_check_reference(cap, pixels)
+    corners = ref.corners
+    theta, C, T, rss, nu = fit_camera(ref, joint_offsets=joint_offsets)
     dof_r = 2 * corners - len(theta)
-    # The capture's own corner scatter, where larger than the calibration's (other views,
-    # lighting): the drift's covariance scaled by it, as the calibration's is by its sigma^2.
-    inflation = max(1.0, rss / dof_r)
-    C, T = C * inflation, T / inflation
     eps = np.asarray(se3_exp(jnp.asarray(theta[:6])))
     if est.layout.eye_in_hand:
         T_now, frame = ref.T_fixed @ eps, "T_flange_cam"
     else:
         T_now, frame = np.linalg.inv(eps) @ ref.T_fixed, "T_cam_base"
     c = verdict(
-        theta, C, T, rss, dof_r, samples=len(keep), joint_names=ref.joint_names,
-        T_now=T_now, names=(str(cap.file), str(ds.root)), what="camera", frame=frame,
+        theta, C, T, rss, dof_r, samples=views, joint_names=ref.joint_names,
+        T_now=T_now, names=(str(cap.file), str(ds.root)), what="camera", frame=frame, dof_noise=dof_r,
     )  # fmt: skip
-    c.residual["scatter_inflation"] = inflation
+    return _noise_note(c, nu, ref.factor)
+
+
+#: A check's corner noise variance this many times the calibration's: something other than a move changed.
+NOISE_ALARM = 4.0
+
+
+def _noise_note(c: DriftCheck, nu: float, factor: float) -> DriftCheck:
+    """`c` with the check's estimated noise variance factor in its residual block (and advice when large)."""
+    c.residual.update(noise_variance_factor=nu, calibration_covariance_factor=factor)
+    if nu > NOISE_ALARM:
+        return replace(
+            c,
+            advice=c.advice
+            + f"; the check images' corners scatter {np.sqrt(nu):.1f}x the calibration's noise: "
+            "something else changed (focus, light, the target, the robot): look at the images, or calibrate again",
+        )
     return c
+
+
+def hand_eye_verdict(f: HandEyeCheckFit, names=("", "")) -> DriftCheck:
+    """The test of a hand-eye drift fit (`jaxcal.handeye_check`; its noise scale estimated, as
+    the camera check's)."""
+    c = verdict(
+        f.theta, f.C, f.T, f.rss, f.dof, samples=f.views, joint_names=(), T_now=f.T_now, names=names,
+        what="camera", frame=f.frame, dof_noise=f.dof,
+    )  # fmt: skip
+    return _noise_note(c, f.nu, 1.0)
+
+
+def check_hand_eye(doc: dict, file: Path, capture, *, workers=None) -> DriftCheck:
+    """The drift check of a `jaxcal handeye` result against a later capture of the same kind
+    (`jaxcal.handeye_check`): the camera's pose the only unknown."""
+    f = fit_hand_eye_check(doc, file, capture, workers=workers)
+    return hand_eye_verdict(f, (str(file), str(getattr(capture, "root", capture))))
 
 
 def check(result, capture, *, joint_offsets: bool = False, workers=None) -> DriftCheck:
     """Check the calibration `result` (a directory or its `result.json`) against a later
     `capture` (a path or a loaded `Dataset`): tracker samples against a stop-and-shoot
-    tracker result, images against a camera result (its `estimate.npz`); `joint_offsets`:
-    also free the joints' zero offsets; `workers`: the image detection's threads. Raises
-    `DatasetError` naming the file when the capture is not one of the calibrated robot,
-    device or camera and target."""
+    tracker result, images against a camera result (its `estimate.npz`), a hand-eye capture
+    against a `jaxcal handeye` result (`jaxcal.handeye_check`); `joint_offsets`: also free the
+    joints' zero offsets (not for hand-eye results: the robot's poses are given); `workers`:
+    the image detection's threads. Raises `DatasetError` naming the file when the capture is
+    not one of the calibrated robot, device or camera and target."""
+    hand_eye = read_hand_eye_result(result)
+    if hand_eye is not None:
+        if joint_offsets:
+            raise DatasetError(
+                f"{hand_eye[1]}: a hand-eye result has no joint offsets to free (--joint-offsets)"
+            )
+        return check_hand_eye(*hand_eye, capture, workers=workers)
     doc, file = read_result(result)
     ds = capture if isinstance(capture, Dataset) else load_dataset(capture)
     if "point_fit" not in doc:

@@ -82,11 +82,14 @@ def add_certify_parsers(sub) -> None:
         "check",
         help="a short later capture against a calibration: has the device or camera moved? (exit 3 when it has)",
     )
-    p.add_argument("result", help="the directory jaxcal calibrate wrote (or its result.json)")
+    p.add_argument(
+        "result", help="the directory jaxcal calibrate (or jaxcal handeye) wrote, or its result.json"
+    )
     p.add_argument(
         "capture",
         help="a short capture of the same robot: tracker samples of the same device and point, or a few images "
-        "(~10, at known joint positions: an encoder log) of the calibrated camera and target",
+        "(~10, at known joint positions: an encoder log) of the calibrated camera and target; for a hand-eye "
+        "result, a hand-eye capture (handeye.json, poses.csv, images) of the same camera and target",
     )
     p.add_argument("--joint-offsets", action="store_true", help="also free the joints' zero offsets")
     p.add_argument("--workers", type=int, help="threads detecting the images (default: every core)")

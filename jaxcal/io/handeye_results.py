@@ -25,6 +25,9 @@ from . import ros
 from ._files import atomic_directory
 from .handeye import matrix_to_quaternion
 
+#: `result.json`'s schema for a `jaxcal handeye` result (what `jaxcal check` recognises).
+HANDEYE_RESULT_SCHEMA = "jaxcal.handeye_result"
+
 
 def _code(code) -> str:
     if bool(code == optx.RESULTS.successful):
@@ -58,44 +61,53 @@ def camera_frames(run, c: int) -> tuple[str, str]:
     return (cap.ee_frame if cap.eye_in_hand else cap.base_frame), cap.cameras[c].frame_id
 
 
+def _camera_entry(run, c: int) -> dict:
+    """Camera `c`'s block of `result.json`: its pose with std and k-fold spread, intrinsics, size,
+    what `jaxcal check` needs, and the error against the truth when known."""
+    cap, r = run.capture, run.result
+    cam = cap.cameras[c]
+    parent, child = camera_frames(run, c)
+    entry = {
+        "parent_frame": parent,
+        "child_frame": child,
+        "T_robot_cam": _transform(r.T_robot_cam[c]),
+        "T_cam_robot": np.asarray(r.T_cam_robot[c]).tolist(),
+        "std": _std(r.std_robot_cam[c]),
+        "intrinsics": {
+            "K": np.asarray(run.intrinsics[c].K).tolist(),
+            "distortion": np.asarray(run.intrinsics[c].dist).tolist(),
+            "source": run.intrinsics[c].source,
+            "rms_px": run.intrinsics[c].rms_px,
+        },
+        "views": int(run.detected[c].sum()),
+        "width": cam.width,
+        "height": cam.height,
+        "check": _check_block(r, c, len(cap.cameras)),
+    }
+    if run.kfold is not None:
+        entry["kfold_std"] = _std(run.kfold.std_robot_cam[c])
+        t = np.linalg.norm(run.kfold.std_robot_cam[c, :3]) / max(
+            np.linalg.norm(r.std_robot_cam[c, :3]), 1e-300
+        )
+        w = np.linalg.norm(run.kfold.std_robot_cam[c, 3:]) / max(
+            np.linalg.norm(r.std_robot_cam[c, 3:]), 1e-300
+        )
+        entry["kfold_over_std"] = {"translation": float(t), "rotation": float(w)}
+    if run.truth_error is not None:
+        entry["truth_error"] = {
+            "translation_mm": float(1e3 * run.truth_error[c, 0]),
+            "rotation_deg": float(np.degrees(run.truth_error[c, 1])),
+        }
+    return entry
+
+
 def hand_eye_summary(run) -> dict:
     """Everything `result.json` holds: status, transforms with std and k-fold spread, per-frame residuals,
     rejected frames with reasons, the consistency check, the solver's stages, and the truth when known."""
     cap, r, obs = run.capture, run.result, run.observations
     F = obs.frames
     sigma = obs.sigma_px
-    cams = {}
-    for c, cam in enumerate(cap.cameras):
-        parent, child = camera_frames(run, c)
-        entry = {
-            "parent_frame": parent,
-            "child_frame": child,
-            "T_robot_cam": _transform(r.T_robot_cam[c]),
-            "T_cam_robot": np.asarray(r.T_cam_robot[c]).tolist(),
-            "std": _std(r.std_robot_cam[c]),
-            "intrinsics": {
-                "K": np.asarray(run.intrinsics[c].K).tolist(),
-                "distortion": np.asarray(run.intrinsics[c].dist).tolist(),
-                "source": run.intrinsics[c].source,
-                "rms_px": run.intrinsics[c].rms_px,
-            },
-            "views": int(run.detected[c].sum()),
-        }
-        if run.kfold is not None:
-            entry["kfold_std"] = _std(run.kfold.std_robot_cam[c])
-            t = np.linalg.norm(run.kfold.std_robot_cam[c, :3]) / max(
-                np.linalg.norm(r.std_robot_cam[c, :3]), 1e-300
-            )
-            w = np.linalg.norm(run.kfold.std_robot_cam[c, 3:]) / max(
-                np.linalg.norm(r.std_robot_cam[c, 3:]), 1e-300
-            )
-            entry["kfold_over_std"] = {"translation": float(t), "rotation": float(w)}
-        if run.truth_error is not None:
-            entry["truth_error"] = {
-                "translation_mm": float(1e3 * run.truth_error[c, 0]),
-                "rotation_deg": float(np.degrees(run.truth_error[c, 1])),
-            }
-        cams[cam.name] = entry
+    cams = {cam.name: _camera_entry(run, c) for c, cam in enumerate(cap.cameras)}
     frames = []
     rms = np.asarray(r.group_rms)[:, :F] * sigma
     robot_rms = np.asarray(r.robot_rms)[:F]
@@ -116,6 +128,8 @@ def hand_eye_summary(run) -> dict:
         )
     mc = obs.consistency
     return {
+        "schema": HANDEYE_RESULT_SCHEMA,
+        "schema_version": 1,
         "status": run.verdict.status,
         "reasons": list(run.verdict.reasons),
         "notes": list(run.verdict.notes),
@@ -174,6 +188,20 @@ def hand_eye_summary(run) -> dict:
             "padded_frames": int(np.shape(r.T_base_ee)[0]),
         },
         "seconds": run.seconds,
+    }
+
+
+def _check_block(r, c: int, cameras: int) -> dict:
+    """What `jaxcal check` needs of camera `c`: the joint covariance of the camera's and the
+    target's tangent deltas ($X = \\hat X \\exp(\\xi_X)$, $Y = \\hat Y \\exp(\\xi_Y)$, 12 x 12), from
+    the solve's model and its frame-robust (cluster) covariance."""
+    idx = np.r_[6 * c : 6 * c + 6, 6 * cameras : 6 * cameras + 6]
+    block = lambda m: np.asarray(m)[np.ix_(idx, idx)].tolist()  # noqa: E731
+    return {
+        "parameters": "T_cam_robot = T_cam_robot_hat exp(xi_cam), T_robot_target = T_robot_target_hat exp(xi_target); "
+        "xi = (translation m, rotation rad)",
+        "covariance": block(r.cov),
+        "covariance_frames": block(r.cov_frames),
     }
 
 

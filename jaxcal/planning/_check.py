@@ -1,8 +1,8 @@
 """`jaxcal plan --check RESULT --budget N`: the few poses that make a camera drift check most sensitive.
 
 The check (`jaxcal.drift`, `jaxcal._drift_camera`) fits the camera's twist
-$\\theta$ with the calibration's error $x = \\hat x + L z$ ($\\Sigma = L L^T$, $z \\sim
-N(0, I)$) a nuisance. Per view $v$ of a candidate pose, with $A_v = \\partial r_v /
+$\\theta$ with the calibration's error $x = \\hat x + L z$ ($\\kappa \\Sigma = L L^T$, $z \\sim
+N(0, I)$, $\\kappa$ as the check takes it) a nuisance. Per view $v$ of a candidate pose, with $A_v = \\partial r_v /
 \\partial\\theta$ and $G_v = \\partial r_v / \\partial x \\, L$ (px), the information on
 $\\theta$ of a set $S$ of views is the Schur complement
 
@@ -137,7 +137,8 @@ def plan_check(result, budget: int = 10, *, candidates: int = 400, seed: int = 0
             f"{file}: {len(keep)} of {candidates} random configurations of the calibrated joint ranges show the "
             f"whole target: too few for {budget} poses (draw more: --candidates)"
         )
-    cov = np.asarray(est.cov, np.float64)[: J.shape[-1], : J.shape[-1]]
+    # The calibration's covariance as the check uses it (kappa, see `jaxcal._drift_camera`).
+    cov = ref.factor * np.asarray(est.cov, np.float64)[: J.shape[-1], : J.shape[-1]]
     lam, V = np.linalg.eigh(0.5 * (cov + cov.T))
     ok = lam > max(lam.max(), 0.0) * 1e-14
     L = V[:, ok] * np.sqrt(lam[ok])

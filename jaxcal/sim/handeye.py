@@ -24,6 +24,7 @@ from ..io._files import atomic_directory
 from ..io.handeye import HandEyeCamera, write_hand_eye_description
 from ..markers import TargetSpec
 from ..robots import load_robot
+from .drift import twist_matrix
 from .scene import CameraSpec, PlateSpec, Scene, add_plate, build_scene
 from .simulate import facing_mount, look_at
 
@@ -140,6 +141,9 @@ class HandEyeSimConfig:
       (translation $t + v$, rotation $\\exp(w) R$, the convention of the
       solver's robot corrections): a real robot's pose error.
     - `intrinsics_known`: write K and the distortion (else `null`: self-calibrated).
+    - `camera_move`: `(v (m), omega (rad))`, the camera moved by this twist in its own
+      frame after the views were placed (a check capture of a moved camera, `jaxcal check`):
+      eye-in-hand $T_{ee,cam} \\exp(\\varepsilon)$, eye-to-hand $T_{base,cam} \\exp(\\varepsilon)$.
     """
 
     target: TargetSpec = field(
@@ -163,6 +167,7 @@ class HandEyeSimConfig:
     robot_noise_mm: float = 0.0
     robot_noise_deg: float = 0.0
     intrinsics_known: bool = True
+    camera_move: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
 
 #: Ground truth of the simulated rigs (flange frame / base frame, m, rad).
@@ -266,8 +271,12 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
     T_base_board = facing_mount(spec, (0.0, 0.0, 1.0), BOARD_CENTRE_EYE_IN_HAND, up=(1.0, 0.0, 0.0))
     probe = CameraSpec("cam0", width, height, config.fovy_deg, np.eye(4), "world", tuple(config.distortion))
     T_true, T_base_cam = _views(config, rng, probe.K, T_ee_board, T_base_board)
+    move = twist_matrix(*config.camera_move)
+    T_ee_cam = T_EE_CAM @ move
+    if T_base_cam is not None:
+        T_base_cam = T_base_cam @ move
     if config.eye_in_hand:
-        cam = CameraSpec("cam0", width, height, config.fovy_deg, T_EE_CAM, "flange", tuple(config.distortion))
+        cam = CameraSpec("cam0", width, height, config.fovy_deg, T_ee_cam, "flange", tuple(config.distortion))
         plate = PlateSpec(spec, "world", T_base_board)
     else:
         cam = CameraSpec(
@@ -319,7 +328,7 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
         )
         truth = {
             "arrangement": "eye_in_hand" if config.eye_in_hand else "eye_to_hand",
-            "T_robot_cam": {cam.name: (T_EE_CAM if config.eye_in_hand else T_base_cam).tolist()},
+            "T_robot_cam": {cam.name: (T_ee_cam if config.eye_in_hand else T_base_cam).tolist()},
             "T_robot_board": (T_base_board if config.eye_in_hand else T_ee_board).tolist(),
             "K": {cam.name: cam.K.tolist()},
             "T_base_ee": T_true.tolist(),

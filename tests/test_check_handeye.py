@@ -1,0 +1,205 @@
+"""`jaxcal check` of a hand-eye result (jaxcal.handeye_check, jaxcal._drift_handeye).
+
+On analytic corners: a fixed camera (or one on the flange) sees a chessboard at a few
+recorded robot poses; the corners carry pixel noise, every pose the robot's noise and the
+calibration its own error, drawn from the covariances the check's $R$ is built from. Then the
+false-alarm rate at zero drift and the power against a move of known non-centrality match
+the chi-square laws, and a detected move is estimated within its covariance. One small
+rendered end-to-end run (`jaxcal handeye`, then `jaxcal check` of a later capture with and
+without a moved camera; exit 0 / 3) and refusals of a capture of another camera or target.
+"""
+
+import json
+import shutil
+from dataclasses import replace
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from jaxcal._drift_handeye import HandEyeCheckData
+from jaxcal._geometry import se3_exp
+from jaxcal._handeye.model import corrected_robot
+from jaxcal.cli import main
+from jaxcal.drift import check, hand_eye_verdict, power, threshold
+from jaxcal.errors import DatasetError
+from jaxcal.handeye_check import fit_check, larger_covariance
+from jaxcal.markers import TargetSpec
+from jaxcal.sim.handeye import HandEyeSimConfig, simulate_hand_eye
+
+BOARD = TargetSpec("chessboard", squares=(6, 5), square_length=0.03, name="board")
+K = np.array([[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
+SIGMA_PX = 0.1
+ROBOT = np.r_[np.full(3, 2e-4), np.full(3, np.radians(0.01))]
+
+
+def _exp(xi) -> np.ndarray:
+    return np.asarray(se3_exp(jnp.asarray(xi, jnp.float64)))
+
+
+def _rig(rng, frames=6):
+    """Eye-to-hand: `X` = T_cam_base, `Y` = T_ee_board, the true flange poses and a covariance."""
+    X = _exp([0.1, -0.2, 0.9, 2.0, 0.3, -0.2])
+    Y = _exp([0.0, 0.0, 0.05, 0.0, 0.0, 0.3])
+    centre = np.asarray(BOARD.points()).mean(0)
+    B = []
+    for _ in range(frames):  # the board 0.6 m in front of the camera, tilted up to 25 deg
+        w = rng.uniform(-1, 1, 3) * np.radians(25)
+        A = _exp(np.r_[rng.uniform(-0.05, 0.05, 2), 0.6, w]) @ _exp(np.r_[-centre, 0, 0, 0])
+        B.append(np.linalg.inv(X) @ A @ np.linalg.inv(Y))
+    G = rng.normal(0.0, 1.0, (12, 12)) * np.r_[np.full(3, 5e-5), np.full(3, 1e-4)].repeat(2)[:, None]
+    return X, Y, np.stack(B), G @ G.T / 12
+
+
+def _capture(rng, X, Y, B, cov, eps=(0.0,) * 6) -> HandEyeCheckData:
+    """Corners of a capture at the true poses `B` with the camera moved by `eps`; the recorded
+    poses carry the robot's noise, and the calibration's `X`, `Y` its error, drawn from `cov`."""
+    xi = np.linalg.cholesky(cov) @ rng.standard_normal(12)
+    X_true, Y_true = X @ _exp(-xi[:6]), Y @ _exp(-xi[6:])  # the calibration is off by xi
+    delta = ROBOT * rng.standard_normal((len(B), 6))
+    recorded = np.asarray(corrected_robot(jnp.asarray(B), jnp.asarray(delta)))
+    P = np.asarray(BOARD.points(), np.float64)
+    pix = []
+    for Bf in B:
+        A = _exp(-np.asarray(eps)) @ X_true @ Bf @ Y_true
+        p = P @ A[:3, :3].T + A[:3, 3]
+        pix.append(p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2])
+    pix = np.stack(pix) + SIGMA_PX * rng.standard_normal((len(B), len(P), 2))
+    return HandEyeCheckData(
+        T_base_ee=jnp.asarray(recorded), pixels=jnp.asarray(pix), mask=jnp.ones(pix.shape[:2], bool),
+        K=jnp.asarray(K), board_points=jnp.asarray(P), eye_in_hand=jnp.asarray(False),
+    )  # fmt: skip
+
+
+def _verdict(data, X, Y, cov):
+    return hand_eye_verdict(fit_check(data, X, Y, cov, ROBOT, SIGMA_PX, eye_in_hand=False))
+
+
+def test_hand_eye_false_alarms_and_power_match_the_chi_square_laws():
+    rng = np.random.default_rng(0)
+    X, Y, B, cov = _rig(rng)
+    trials = 200
+    null = [_verdict(_capture(rng, X, Y, B, cov), X, Y, cov) for _ in range(trials)]
+    alarms = np.mean([c.detected for c in null])
+    assert 0.015 <= alarms <= 0.095, alarms  # 5 % +- 2.9 binomial sigma
+    # The statistic's law: its mean is the degrees of freedom (6 +- 3 standard errors).
+    assert abs(np.mean([c.statistic for c in null]) - 6.0) < 3 * np.sqrt(12.0 / trials)
+    # A move along the worst translation direction at the size of 50 % power, and the closed form.
+    P = np.linalg.inv(null[0].cov)
+    mu, U = np.linalg.eigh(P[:3, :3])
+    lam = 8.0
+    eps = np.r_[np.sqrt(lam / mu[0]) * U[:, 0], 0.0, 0.0, 0.0]
+    moved = [_verdict(_capture(rng, X, Y, B, cov, eps), X, Y, cov) for _ in range(150)]
+    hits = np.mean([c.detected for c in moved])
+    assert abs(hits - float(power(lam, 6))) < 0.1, (hits, power(lam, 6))
+    # Detected moves are estimated within their covariance (chi-square of the error).
+    z2 = [(c.theta - eps) @ np.linalg.solve(c.cov, c.theta - eps) for c in moved if c.detected]
+    assert np.mean(np.array(z2) < stats.chi2.ppf(0.95, 6)) > 0.85
+
+
+def test_a_larger_move_is_reported_with_the_camera_pose_now():
+    rng = np.random.default_rng(1)
+    X, Y, B, cov = _rig(rng)
+    eps = np.r_[1e-3, -5e-4, 2e-4, 0.0, np.radians(0.05), 0.0]
+    c = _verdict(_capture(rng, X, Y, B, cov, eps), X, Y, cov)
+    assert c.detected and c.exit_code == 3 and "the camera moved by" in c.message
+    assert abs(c.translation_mm[0] - 1e3 * np.linalg.norm(eps[:3])) < 4 * c.translation_mm[1]
+    # T_base_cam now: the calibrated one moved by the twist in the camera's frame.
+    T_now = c.to_json()["T_base_cam_now"]
+    assert np.allclose(T_now, np.linalg.inv(X) @ _exp(eps), atol=5 * np.sqrt(np.max(np.diag(c.cov))))
+
+
+def test_larger_covariance_takes_the_larger_along_every_direction():
+    rng = np.random.default_rng(2)
+    a = (lambda G: G @ G.T)(rng.normal(size=(5, 5)))
+    b = (lambda G: G @ G.T)(rng.normal(size=(5, 5)))
+    m = larger_covariance(a, b)
+    assert np.all(np.linalg.eigvalsh(m - a) > -1e-9) and np.all(np.linalg.eigvalsh(m - b) > -1e-9)
+    assert np.allclose(larger_covariance(a, 0.5 * a), a)
+    assert np.allclose(larger_covariance(a, 2.0 * a), 2.0 * a)
+
+
+# --------------------------------------------------------------------------- rendered, end to end
+
+CONFIG = HandEyeSimConfig(frames=16, seed=5, resolution=(320, 240), eye_in_hand=False)
+MOVE = ((1e-3, -1e-3, 0.5e-3), (0.0, np.radians(0.15), np.radians(0.1)))
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """A rendered eye-to-hand calibration (`jaxcal handeye`, 16 frames at 320x240) and two
+    six-frame check captures of the same rig at other poses: the camera unmoved, and moved."""
+    root = tmp_path_factory.mktemp("check_handeye")
+    capture = simulate_hand_eye(CONFIG, root / "capture")
+    assert main(["handeye", str(capture), "--out", str(root / "result"), "--folds", "0", "--quiet"]) in (0, 3)
+    still = simulate_hand_eye(replace(CONFIG, frames=6, seed=11), root / "still")
+    moved = simulate_hand_eye(replace(CONFIG, frames=6, seed=11, camera_move=MOVE), root / "moved")
+    return root / "result", still, moved
+
+
+@pytest.mark.slow
+def test_a_moved_hand_eye_camera_is_detected_and_an_unmoved_one_is_not(rendered, tmp_path):
+    res, still, moved = rendered
+    doc = json.loads((res / "result.json").read_text())
+    assert (
+        doc["schema"] == "jaxcal.handeye_result" and len(doc["cameras"]["cam0"]["check"]["covariance"]) == 12
+    )
+    c0 = check(res, still)
+    assert not c0.detected and c0.exit_code == 0 and c0.what == "camera" and c0.samples == 6
+    out = tmp_path / "drift.json"
+    assert main(["check", str(res), str(moved), "--json", str(out), "--workers", "1"]) == 3
+    d = json.loads(out.read_text())
+    assert d["detected"] and d["test"] == "F" and "T_base_cam_now" in d
+    # The move's size against the truth, within 4 sigma (and the rendering's own bias).
+    size_mm = 1e3 * np.linalg.norm(MOVE[0])
+    assert abs(d["translation_mm"]["size"] - size_mm) < 4 * d["translation_mm"]["std"] + 0.1
+    truth = json.loads((moved / "truth.json").read_text())["T_robot_cam"]["cam0"]
+    assert np.linalg.norm(np.asarray(d["T_base_cam_now"])[:3, 3] - np.asarray(truth)[:3, 3]) < 1e-3
+
+
+@pytest.mark.slow
+def test_hand_eye_check_refuses_another_camera_or_target(rendered, tmp_path):
+    res, still, _ = rendered
+
+    def variant(name, edit):
+        p = tmp_path / name
+        shutil.copytree(still, p)
+        meta = json.loads((p / "handeye.json").read_text())
+        edit(meta)
+        (p / "handeye.json").write_text(json.dumps(meta))
+        return p
+
+    def zoom(meta):
+        meta["cameras"][0]["K"][0][0] *= 1.1
+
+    with pytest.raises(DatasetError, match=r"handeye.json: cameras\[0\].K of 'cam0' differs.*another camera"):
+        check(res, variant("zoomed", zoom))
+
+    def bigger(meta):
+        meta["target"]["square_length"] *= 1.2
+
+    with pytest.raises(DatasetError, match="handeye.json: target .* differs .*another target"):
+        check(res, variant("bigger", bigger))
+
+    def resized(meta):
+        meta["cameras"][0]["width"] *= 2
+
+    with pytest.raises(DatasetError, match="handeye.json: cameras\\[0\\] .* is 640x240.*another camera"):
+        check(res, variant("resized", resized))
+
+    def flipped(meta):
+        meta["arrangement"] = "eye_in_hand"
+
+    with pytest.raises(DatasetError, match="handeye.json: arrangement 'eye_in_hand'"):
+        check(res, variant("flipped", flipped))
+
+
+def test_the_f_law_of_an_estimated_noise_scale():
+    """With the noise scale estimated on n degrees of freedom the threshold is k F(k, n), above
+    the chi-square's and tending to it; the power at zero drift is the false-alarm rate."""
+    k = 6
+    thr = [threshold(k, 0.05, n) for n in (20, 100, 1000, 100000)]
+    assert all(a > b for a, b in zip(thr, thr[1:])) and thr[-1] == pytest.approx(threshold(k), rel=1e-3)
+    assert power(0.0, k, 0.05, 200) == pytest.approx(0.05, abs=1e-9)
+    assert power(8.0, k, 0.05, 200) < power(8.0, k, 0.05)
