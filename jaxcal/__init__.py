@@ -48,6 +48,8 @@ if TYPE_CHECKING:
     from ._correction import parameters_to_model as parameters_to_model
     from ._dh import DHTable as DHTable
     from ._dh import dh_table as dh_table
+    from ._dh import from_dh as from_dh
+    from ._dh import from_mdh as from_mdh
     from ._dh import table_forward_kinematics as table_forward_kinematics
     from ._dh import table_to_model as table_to_model
     from ._handeye import HandEyePixels as HandEyePixels
@@ -83,8 +85,6 @@ if TYPE_CHECKING:
     from ._kinematics import POEModel as POEModel
     from ._kinematics import commanded_from_motor as commanded_from_motor
     from ._kinematics import forward_kinematics as forward_kinematics
-    from ._kinematics import from_dh as from_dh
-    from ._kinematics import from_mdh as from_mdh
     from ._kinematics import joint_angles as joint_angles
     from ._kinematics import joint_axes as joint_axes
     from ._kinematics import make_model as make_model

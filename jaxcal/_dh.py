@@ -186,6 +186,65 @@ def table_to_model(
     )
 
 
+def _columns(a, alpha, d, theta) -> list[np.ndarray]:
+    arrays = [np.asarray(x, dtype=np.float64) for x in (a, alpha, d, theta)]
+    n = arrays[0].shape[0] if arrays[0].ndim == 1 else -1
+    for name, x in zip(("a", "alpha", "d", "theta"), arrays):
+        if x.ndim != 1 or x.shape != (n,):
+            raise ValueError(f"DH table column {name!r} has shape {x.shape}, expected ({max(n, 0)},)")
+    return arrays
+
+
+def _from_columns(convention, a, alpha, d, theta, joint_names, flange, T_base, reduction_ratio, link_names):
+    a, alpha, d, theta = _columns(a, alpha, d, theta)
+    n = a.shape[0]
+    table = DHTable(
+        theta=jnp.asarray(theta),
+        d=jnp.asarray(d),
+        a=jnp.asarray(a),
+        alpha=jnp.asarray(alpha),
+        beta=jnp.zeros(n),
+        T_base=jnp.eye(4) if T_base is None else jnp.asarray(T_base, jnp.float64),
+        T_flange=jnp.eye(4) if flange is None else jnp.asarray(flange, jnp.float64),
+        convention=convention,
+        joint_names=tuple(joint_names),
+        parallel=(False,) * n,
+    )
+    return table_to_model(table, link_names=link_names, reduction_ratio=reduction_ratio)
+
+
+def from_dh(
+    a, alpha, d, theta, *, joint_names: Sequence[str], flange=None, T_base=None, reduction_ratio=None,
+    link_names: Sequence[str] | None = None,
+) -> KinematicModel:  # fmt: skip
+    """A revolute chain from a standard DH table, $T_i = R_z(\\theta_i+q_i) T_z(d_i) T_x(a_i) R_x(\\alpha_i)$
+    (`table_to_model` of that `DHTable`).
+
+    The joint frames are the DH frames: joint 1's origin is `T_base`, joint
+    $k$'s origin is $T_z(d_{k-1})T_x(a_{k-1})R_x(\\alpha_{k-1})$ (with the
+    constant $\\theta_{k-1}$ folded in), and the last row goes into
+    `T_last_flange` (followed by the optional `flange` 4x4).
+
+    **Arguments:** `a` (m), `alpha` (rad), `d` (m), `theta` (rad, constant
+    joint offsets of the table), each of shape `(joints,)`.
+    """
+    return _from_columns("dh", a, alpha, d, theta, joint_names, flange, T_base, reduction_ratio, link_names)
+
+
+def from_mdh(
+    a, alpha, d, theta, *, joint_names: Sequence[str], flange=None, T_base=None, reduction_ratio=None,
+    link_names: Sequence[str] | None = None,
+) -> KinematicModel:  # fmt: skip
+    """A revolute chain from a modified (Craig) DH table, $T_i = R_x(\\alpha_{i-1}) T_x(a_{i-1}) R_z(\\theta_i+q_i) T_z(d_i)$.
+
+    Row $i$ holds $(a_{i-1}, \\alpha_{i-1}, d_i, \\theta_i)$ as in Craig's
+    table; joint $i$'s origin is $R_x(\\alpha_{i-1})T_x(a_{i-1})R_z(\\theta_i)$ and
+    its $T_z(d_i)$ is carried into the next origin (or into `T_last_flange`,
+    followed by `flange`).
+    """
+    return _from_columns("mdh", a, alpha, d, theta, joint_names, flange, T_base, reduction_ratio, link_names)
+
+
 # --------------------------------------------------------------------------- extraction
 
 
