@@ -17,7 +17,9 @@ Cases (the issue's that the simulator supports so far): `ideal`; `noise`
 metadata); `distortion_unknown` (the same images, the metadata says none);
 `exposure_10ms` (8 sub-frames, stamped mid-exposure); `rolling_shutter_given`
 (20 ms top-to-bottom readout, stamped at the first row, the line delay in the
-metadata: the estimator does not use it yet); `camera_mix` (the noise, JPEG 90,
+metadata); `rolling_shutter_estimated` (the same images, `line_delay_s:
+"estimate"`); `rolling_shutter_unknown` (the same images, the line delay
+null: a global shutter assumed); `camera_mix` (the noise, JPEG 90,
 5 ms exposure stamped mid-exposure, the distortion given); and the presets
 `global_shutter` and `rolling_shutter` (`jaxcal simulate --camera`).
 The arm's cases (`jaxcal.sim.arm`, ideal camera): `compliance` (the
@@ -86,13 +88,32 @@ CASES = {
     "combined": (PRESETS["global-shutter"], False),
 }
 
+#: Cases that are another case's images with the metadata's cameras edited: name -> (that case, edit).
+EDITED = {
+    "rolling_shutter_estimated": ("rolling_shutter_given", lambda cam: cam | {"line_delay_s": "estimate"}),
+    "rolling_shutter_unknown": ("rolling_shutter_given", lambda cam: cam | {"line_delay_s": None}),
+}
+
+
+def edited(case: str, config: SimConfig, workdir: Path) -> Path:
+    """An `EDITED` case's dataset: its source case's, the metadata's cameras edited."""
+    source, edit = EDITED[case]
+    out = workdir / case
+    shutil.copytree(capture(source, config, workdir), out)
+    meta = json.loads((out / "metadata.json").read_text())
+    meta["cameras"] = [edit(cam) for cam in meta["cameras"]]
+    (out / "metadata.json").write_text(json.dumps(meta, indent=2))
+    return out
+
 
 def capture(case: str, config: SimConfig, workdir: Path) -> Path:
     """The case's rendered dataset in `workdir` (rendered once; `distortion_unknown` copies `distortion_given`'s)."""
-    camera, hide_lens = CASES[case]
+    camera, hide_lens = CASES.get(case, (None, False))
     out = workdir / case
     if (out / "truth.json").exists():
         return out
+    if case in EDITED:
+        return edited(case, config, workdir)
     if hide_lens:
         given = capture("distortion_given", config, workdir)
         shutil.copytree(given, out)
@@ -121,7 +142,7 @@ def run_case(dataset: Path) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
+    parser.add_argument("--cases", nargs="+", choices=[*CASES, *EDITED], default=[*CASES, *EDITED])
     parser.add_argument("--resolution", default="800x600")
     parser.add_argument("--frames-per-joint", type=int, default=24)
     parser.add_argument("--seed", type=int, default=0)

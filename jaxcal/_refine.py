@@ -479,3 +479,61 @@ def summarize_refinement(
         "condition_number": float(sv[0] / sv[-1]) if sv.size else float("nan"),
         "weak_directions": weak,
     }
+
+
+class ShutterTest(eqx.Module):
+    """The score test of a global-shutter refinement for a rolling shutter (`line_delay_test`).
+
+    - `line_delay_s`: per camera, the line delay (s per row) one Gauss-Newton step
+      from the solution would add, the others' parameters following; `(cameras,)`.
+    - `sigmas`: each delay over its standard deviation (the test's statistic:
+      about a standard normal's size when the shutter is global).
+    """
+
+    line_delay_s: Float[Array, " cameras"]
+    sigmas: Float[Array, " cameras"]
+
+
+def line_delay_test(
+    problem: RefineProblem, res: RefineResult, rows: Float[Array, "views corners"] | None = None
+) -> ShutterTest:
+    """Do a global-shutter refinement's residuals lie along the image rows, as a rolling
+    shutter's would? The score (Lagrange-multiplier) test of a line delay per camera
+    at the solution `res` of `problem` (no line delay modelled).
+
+    Timed at their rows $y$ (`rows`, default the detected ones), the corners'
+    residuals gain $J_\\ell \\ell$ for line delays $\\ell$: each corner's image
+    velocity $\\partial u / \\partial t$ times its row. With the final weights, the
+    residuals $r$ and the free parameters' Jacobian $J$ (whose normal matrix's
+    inverse is `res.cov` over $\\hat\\sigma^2$), the delay one Gauss-Newton step
+    gives and its covariance are $\\hat\\ell = -D^{-1} J_\\ell^T r$ and
+    $\\hat\\sigma^2 D^{-1}$, with $D = J_\\ell^T J_\\ell - J_\\ell^T J\\,(J^TJ)^{-1} J^T J_\\ell$
+    (the part of $J_\\ell$ the other parameters cannot absorb: a delay common to
+    a view's corners is the clock's). One forward and one reverse pass of the
+    global-shutter model; pure.
+    """
+    C = 1 + num_other_cameras(problem)
+    y = problem.data.pixels[..., 1] if rows is None else rows
+    flat, unravel = ravel_pytree(res.params)
+
+    def at_times(t_cam):
+        timed = eqx.tree_at(lambda p: p.data.t_cam, problem, t_cam)
+        return reprojection_residuals(res.params, timed, res.weights)
+
+    t_cam = problem.data.t_cam
+    r, velocity = jax.jvp(at_times, (t_cam,), (jnp.ones_like(t_cam),))  # (V, P, 2), px and px/s
+    camera = jnp.zeros_like(problem.data.target) if problem.data.camera is None else problem.data.camera
+    per_camera = jax.nn.one_hot(camera, C, dtype=r.dtype)  # (V, C)
+    J_ell = 1e-6 * jnp.einsum("vkd,vk,vc->vkdc", velocity, y, per_camera).reshape(-1, C)  # per us per row
+    _, pullback = jax.vjp(
+        lambda x: reprojection_residuals(unravel(x), problem, res.weights).reshape(-1), flat
+    )
+    G = jax.vmap(lambda col: pullback(col)[0], in_axes=1, out_axes=1)(J_ell)  # J^T J_ell, (n, C)
+    sigma2 = jnp.maximum(res.sigma_px**2, 1e-30)
+    D = J_ell.T @ J_ell - G.T @ (res.cov / sigma2) @ G
+    D_inv = jnp.linalg.pinv(D, hermitian=True)
+    ell_us = -D_inv @ (J_ell.T @ r.reshape(-1))
+    std_us = jnp.sqrt(jnp.maximum(jnp.diag(D_inv), 0.0) * sigma2)
+    return ShutterTest(
+        line_delay_s=1e-6 * ell_us, sigmas=jnp.abs(ell_us) / jnp.where(std_us > 0, std_us, 1.0)
+    )

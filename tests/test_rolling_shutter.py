@@ -7,6 +7,9 @@ corners are generated self-consistently (a corner's row is where it is seen
 at its own row's time: a fixed point, reached by iteration).
 """
 
+import dataclasses
+import json
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -21,13 +24,20 @@ from jaxcal._refine import (
     RefineProblem,
     grid_points,
     identifiable_mask,
+    line_delay_test,
     projected_corners,
     refine,
     sweep_corner_data,
     zero_params,
 )
 from jaxcal._reprojection import corner_times, joint_positions, rolling
+from jaxcal.errors import DatasetError
+from jaxcal.io._metadata import CameraInfo, read_cameras
+from jaxcal.io._schema import Loc
 from jaxcal.robots import load_robot
+from jaxcal.stages._observe import pose_times
+from jaxcal.stages._refine import rolling_shutter
+from jaxcal.stages.limits import Limits
 
 NOMINAL = load_robot("ur5e")
 SETUP = default_setup(NOMINAL)
@@ -153,3 +163,49 @@ def test_refinement_recovers_the_line_delay(given):
     x_none[g["line_delay"]] = -1e6 * delay0
     off = np.asarray(projected_corners(unravel(jnp.asarray(x_none)), seen) - seen.data.pixels)
     assert np.sqrt(np.mean(off[np.asarray(seen.data.mask)] ** 2)) > 1.0
+
+
+def test_global_shutter_refinement_flags_the_rows():
+    """The score test of a global-shutter refinement (`line_delay_test`): on a rolling
+    shutter's corners it finds the line delay (the other parameters absorb none of
+    the within-view skew) far beyond its noise; on a global shutter's it stays
+    within a few sigmas."""
+    rolling_problem = _problem(True, DELAY_S)
+    truth = _params(True)
+    seen = _seen(truth, rolling_problem)
+    rng = np.random.default_rng(2)
+    noise = 0.1 * rng.standard_normal(seen.data.pixels.shape)
+    p0 = zero_params(N, 1)
+    free = np.asarray(ParameterLayout.of(NOMINAL, 1).candidates(rates=True, clock=True))
+    free, _ = jax.jit(identifiable_mask)(_problem(False), p0, free)
+    free = np.asarray(free)
+    out = {}
+    for name, pixels in (("rolling", seen.data.pixels), ("global", projected_corners(p0, _problem(False)))):
+        glob = eqx.tree_at(lambda p: p.data.pixels, _problem(False), pixels + noise)
+        res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(glob, p0)
+        out[name] = line_delay_test(glob, res)
+    # A first-order step from a biased fit: within a tenth of the truth.
+    assert abs(float(out["rolling"].line_delay_s[0]) / DELAY_S - 1.0) < 0.1
+    assert float(out["rolling"].sigmas[0]) > 2 * Limits().shutter_sigmas
+    assert float(out["global"].sigmas[0]) < 4.0
+
+
+def test_pose_times_and_the_metadata():
+    t = np.array([1.0, 2.0, 3.0])
+    det = [{"a": _Det(np.array([[0.0, 10.0], [0.0, 30.0]]))}, {}, {"a": _Det(np.array([[5.0, 100.0]]))}]
+    assert pose_times(t, det, None) is t and pose_times(t, det, 0.0) is t  # a global shutter: untouched
+    np.testing.assert_allclose(pose_times(t, det, 1e-4), [1.0 + 20 * 1e-4, 2.0, 3.0 + 100 * 1e-4], rtol=1e-15)
+    info = CameraInfo("cam0", 64, 48, None, np.zeros(5), estimate_line_delay=True)
+    d = json.loads(json.dumps(info.to_dict()))
+    assert d["line_delay_s"] == "estimate"
+    (back,) = read_cameras({"cameras": [d]}, Loc("metadata.json", "cameras"), ())
+    assert back.estimate_line_delay and back.line_delay_s is None
+    assert rolling_shutter(back) and not rolling_shutter(dataclasses.replace(back, estimate_line_delay=False))
+    assert not rolling_shutter(dataclasses.replace(back, estimate_line_delay=False, line_delay_s=0.0))
+    with pytest.raises(DatasetError, match="line_delay_s"):
+        read_cameras({"cameras": [d | {"line_delay_s": "auto"}]}, Loc("m", "cameras"), ())
+
+
+class _Det:
+    def __init__(self, pixels):
+        self.pixels = pixels

@@ -37,7 +37,9 @@ class CameraInfo:
     (the front end then self-calibrates). `mount`: `"world"` or a link name.
     `exposure_s`, `line_delay_s` (rolling shutter: seconds from one row to the
     next) and `stamp` (what a frame's timestamp marks: `"start"`, `"middle"` or
-    `"end"` of the first row's exposure): `None` when not given."""
+    `"end"` of the first row's exposure): `None` when not given.
+    `estimate_line_delay`: `line_delay_s` is `"estimate"` in the metadata (the
+    refinement estimates it; `line_delay_s` is then `None`)."""
 
     name: str
     width: int
@@ -48,9 +50,11 @@ class CameraInfo:
     exposure_s: float | None = None
     line_delay_s: float | None = None
     stamp: str | None = None
+    estimate_line_delay: bool = False
 
     def to_dict(self) -> dict:
-        optional = {"exposure_s": self.exposure_s, "line_delay_s": self.line_delay_s, "stamp": self.stamp}
+        delay = "estimate" if self.estimate_line_delay else self.line_delay_s
+        optional = {"exposure_s": self.exposure_s, "line_delay_s": delay, "stamp": self.stamp}
         return {
             "name": self.name,
             "width": self.width,
@@ -240,11 +244,14 @@ def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
 
 
 def _exposure(c: dict, loc: Loc, height: int) -> dict:
-    """A camera's optional `exposure_s`, `line_delay_s` and `stamp` (each `None` when absent or null)."""
+    """A camera's optional `exposure_s`, `line_delay_s` and `stamp` (each `None` when absent or null;
+    `line_delay_s` `"estimate"`: `estimate_line_delay`)."""
     out = {"exposure_s": None, "line_delay_s": None, "stamp": None}
     if c.get("exposure_s") is not None:
         out["exposure_s"] = sc.number(c["exposure_s"], loc.key("exposure_s"), 0.0, MAX_EXPOSURE_S)
-    if c.get("line_delay_s") is not None:
+    if c.get("line_delay_s") == "estimate":
+        out["estimate_line_delay"] = True
+    elif c.get("line_delay_s") is not None:
         delay = sc.number(c["line_delay_s"], loc.key("line_delay_s"), 0.0, MAX_EXPOSURE_S)
         if delay * height > MAX_EXPOSURE_S:
             raise loc.key("line_delay_s").fail(

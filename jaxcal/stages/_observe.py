@@ -31,6 +31,10 @@ class CameraObservations:
       the refinement, whose robust loss weighs them).
     - `has_orientation`: the poses carry a measured orientation (False for a
       device measuring a point: only `T_cam_target[:3, 3]` and `cov[:3, :3]` count).
+    - `t_first_row`: with a rolling shutter of known line delay, each frame's
+      first-row time (its exposure middle); `t_cam` then holds the time of its
+      poses, the first row's plus the mean row of its detected corners times the
+      line delay (`pose_times`). `None` otherwise (every row at `t_cam`).
     """
 
     camera: CameraInfo
@@ -43,6 +47,12 @@ class CameraObservations:
     intrinsics: dict
     dropped: tuple = ()
     has_orientation: bool = True
+    t_first_row: np.ndarray | None = None
+
+    @property
+    def frame_times(self) -> np.ndarray:
+        """Each frame's first-row time (s, camera clock): the time its corner rows are counted from."""
+        return self.t_cam if self.t_first_row is None else self.t_first_row
 
     @property
     def found(self) -> np.ndarray:
@@ -191,15 +201,37 @@ def observe_camera(
     if invert:
         poses = [{k: p.inverse() for k, p in d.items()} for d in poses]
     dropped = tuple((int(rows[i]), name, rms) for i, bad in outliers.items() for name, rms in bad.items())
+    t_frame = frame_times(ds, camera, rows)
+    t_poses = pose_times(t_frame, dets, camera.line_delay_s)
     return CameraObservations(
-        camera, rows, dets, poses, frame_times(ds, camera, rows), np.asarray(K), dist, intrinsics, dropped
-    )
+        camera, rows, dets, poses, t_poses, np.asarray(K), dist, intrinsics, dropped,
+        t_first_row=None if t_poses is t_frame else t_frame,
+    )  # fmt: skip
 
 
 def frame_times(ds: Dataset, camera: CameraInfo, rows) -> np.ndarray:
     """Camera-clock times of `camera`'s frames `rows`: the middle of each frame's exposure when the
     metadata gives the camera's `exposure_s` and `stamp`, else the stamps as they are."""
     return np.asarray(exposure_middle(ds.frames["timestamp"][rows], camera.exposure_s, camera.stamp))
+
+
+def pose_times(t_frame: np.ndarray, detections: list, line_delay_s: float | None) -> np.ndarray:
+    """The times the frames' poses refer to under a rolling shutter: each frame's
+    first-row time plus the mean row of its detected corners (every target's) times
+    the line delay, $t + \\bar y\\,\\ell$. `t_frame` itself (the same array) when
+    the line delay is unknown or zero: a global shutter.
+
+    A pose from corners spread over rows is the plate's at about its mean row's
+    time; the refinement times every corner at its own row (`jaxcal._reprojection`)."""
+    if not line_delay_s:
+        return t_frame
+    rows = np.array(
+        [
+            np.mean(np.concatenate([d.pixels[:, 1] for d in det.values()])) if det else 0.0
+            for det in detections
+        ]
+    )
+    return np.asarray(t_frame, np.float64) + rows * line_delay_s
 
 
 def observe_device(setup: Setup) -> SampleObservations:

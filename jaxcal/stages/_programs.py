@@ -23,7 +23,7 @@ from .._clocksync import fit_clock_offset
 from .._correction import ParameterLayout
 from .._exported import stored_jit
 from .._kinematics import forward_kinematics
-from .._refine import identifiable_mask, refine
+from .._refine import identifiable_mask, line_delay_test, refine
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
 #: The arc and clock fits' inlier threshold (robust sigmas of the deletion
@@ -174,6 +174,12 @@ def _refinement(free: tuple):
 def refinement(free: np.ndarray):
     """`refine(problem, params0, free)` for a concrete `free` mask (static)."""
     return _refinement(tuple(bool(f) for f in np.asarray(free)))
+
+
+@functools.cache
+def shutter_test():
+    """`line_delay_test(problem, res)`: the rolling-shutter score test of a global-shutter refinement."""
+    return stored_jit(line_delay_test, "line_delay_test")
 
 
 @functools.cache

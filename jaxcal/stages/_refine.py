@@ -26,7 +26,13 @@ from .._clocksync import controller_time
 from .._correction import INTRINSIC_NAMES, Estimate, ParameterLayout, physical_parameters
 from .._geometry import so3_log
 from .._links import average_pose, start_mounts
-from .._refine import OtherCameras, RefineParams, RefineProblem, make_corner_data, summarize_refinement
+from .._refine import (
+    OtherCameras,
+    RefineParams,
+    RefineProblem,
+    make_corner_data,
+    summarize_refinement,
+)
 from . import _programs
 from ._observe import CameraObservations, Observations
 from ._setup import Options, Setup
@@ -57,6 +63,11 @@ class Refined:
     - `estimate`: the refinement's whole vector with its covariance and references.
     - `problem`: the `RefineProblem` solved (its corners, encoder log and
       references), for analyses at the solution (`reprojection_residuals`).
+    - `line_delays`: with a rolling shutter, per camera its line delay (s per
+      row), std (None when given), whether it was estimated, and the readout
+      (the delay times the image height, s).
+    - `shutter_test`: without one, per camera the rolling shutter its residuals
+      point to (`shutter_test`); None when not tested.
     """
 
     fit: object = None
@@ -74,6 +85,8 @@ class Refined:
     timings: dict = field(default_factory=dict)
     estimate: Estimate | None = None
     problem: RefineProblem | None = None
+    line_delays: list = field(default_factory=list)
+    shutter_test: list | None = None
 
 
 def dist5(dist) -> np.ndarray | None:
@@ -141,6 +154,7 @@ class _Corners:
     target: list = field(default_factory=list)
     frame: list = field(default_factory=list)
     t_cam: list = field(default_factory=list)
+    row: list = field(default_factory=list)  # each corner's image row (px)
     camera: list = field(default_factory=list)
     sweep: list = field(default_factory=list)
     pnp: list = field(default_factory=list)
@@ -155,6 +169,7 @@ def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Cor
     offset = sync.clock["offset_s"]
     rate0 = jnp.asarray(two.arcs.rate) if kind.rates_from_arcs else jnp.ones(setup.nominal.num_joints)
     pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in setup.targets}
+    rolling = any(rolling_shutter(v.camera) for v in (obs.primary, *obs.others))
     out = _Corners(used=[obs.primary])
     for v in (obs.primary, *obs.others):
         t_ctrl = controller_time(v.t_cam, offset, ds.clock_drift_ppm)
@@ -195,9 +210,26 @@ def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Cor
                 out.pixels.append(dt.pixels)
                 out.target.append(m)
                 out.frame.append(int(v.rows[i]))
-                out.t_cam.append(float(v.t_cam[i]))
+                out.t_cam.append(float(v.frame_times[i]) if rolling else float(v.t_cam[i]))
+                out.row.append(dt.pixels[:, 1])
                 out.camera.append(c)
     return out
+
+
+def rolling_shutter(camera) -> bool:
+    """The camera reads its rows out one after the other, with its line delay given
+    (above zero) or to be estimated (`line_delay_s: "estimate"` in the metadata)."""
+    return bool(getattr(camera, "line_delay_s", None)) or bool(getattr(camera, "estimate_line_delay", False))
+
+
+def _line_delays(corners: _Corners) -> tuple[np.ndarray, np.ndarray] | None:
+    """Every used camera's start line delay (s per row; 0 when estimated or a global
+    shutter) and which are estimated; `None` when no camera has a rolling shutter."""
+    cams = [v.camera for v in corners.used]
+    if not any(rolling_shutter(c) for c in cams):
+        return None
+    start = np.array([float(getattr(c, "line_delay_s", None) or 0.0) for c in cams])
+    return start, np.array([bool(getattr(c, "estimate_line_delay", False)) for c in cams])
 
 
 def _link_mounts(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> np.ndarray:
@@ -226,6 +258,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
     else:
         log_q = (np.array([-np.inf, np.inf]), np.zeros((2, n)))  # not read: each view's angle is an unknown
     V = len(corners.points)
+    delays = _line_delays(corners)
     data = make_corner_data(
         corners.points,
         corners.pixels,
@@ -240,6 +273,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         sweep_home=np.asarray(sync.homes)[corners.sweep]
         if kind.per_view_angles and sync.homes is not None
         else None,
+        row=None if delays is None else corners.row,
     )
     correction, mounts0 = fit.params.correction, fit.T_flange_marker0
     if kind.sequential:
@@ -258,6 +292,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         else None,
         eye_in_hand=kind.inverts_poses,
         target_link=jnp.asarray(setup.target_link) if kind.sequential else None,
+        line_delay0_s=None if delays is None else jnp.asarray(delays[0]),
     )
     params0 = RefineParams(
         cam=fit.params.cam,
@@ -267,6 +302,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         intrinsics=jnp.zeros(9),
         other_cams=jnp.zeros((len(corners.others), 6)) if corners.others else None,
         angles=None,
+        line_delay_us=None if delays is None else jnp.zeros(len(delays[0])),
     )
     angle_names = []
     if kind.per_view_angles:
@@ -283,9 +319,13 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         M,
         other_cameras=tuple(v.camera.name for v in corners.used[1:]),
         angles=tuple(angle_names),
+        line_delays=() if delays is None else tuple(v.camera.name for v in corners.used),
     )
     cand = layout.candidates(
-        rates=kind.fits_rates, clock=bool(sync.clock["estimated"]), intrinsics=frees_intrinsics(obs, options)
+        rates=kind.fits_rates,
+        clock=bool(sync.clock["estimated"]),
+        intrinsics=frees_intrinsics(obs, options),
+        line_delay=False if delays is None else delays[1],
     )
     if kind.keeps_two_stage_gauge:
         cand[: layout.axis_size] &= np.asarray(fit.free)
@@ -413,6 +453,28 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
     )
 
 
+def _delay_rows(corners: _Corners, res, layout: ParameterLayout, free) -> list:
+    """Per used camera with a rolling-shutter model, its line delay (s per row), std,
+    whether it was estimated and its readout (s): the `line_delay` rows of the summary."""
+    if res.line_delay_s is None:
+        return []
+    std, idx = np.asarray(res.std), layout.index("line_delay")
+    rows = []
+    for c, v in enumerate(corners.used):
+        delay = float(res.line_delay_s[c])
+        est = bool(free[idx[c]])
+        rows.append(
+            {
+                "camera": v.camera.name,
+                "line_delay_s": delay,
+                "std_s": float(1e-6 * std[idx[c]]) if est else None,
+                "estimated": est,
+                "readout_s": delay * v.camera.height,
+            }
+        )
+    return rows
+
+
 def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: Options) -> Refined:
     """Refine the two-stage result on every corner (see the module docstring)."""
     t0 = time.perf_counter()
@@ -444,7 +506,36 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     res = _programs.refinement(free)(problem, params0)
     jax.block_until_ready(res)
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
-    return dataclasses.replace(out, problem=problem, timings={"refine_s": time.perf_counter() - t0})
+    delays = _delay_rows(corners, res, layout, free)
+    if delays:
+        out.summary["line_delay"] = delays
+    timings = {"refine_s": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    test = shutter_test(setup, corners, problem, res)
+    if test is not None:
+        out.summary["rolling_shutter_test"] = test
+        timings["shutter_test_s"] = time.perf_counter() - t0
+    return dataclasses.replace(out, problem=problem, line_delays=delays, shutter_test=test, timings=timings)
+
+
+def shutter_test(setup: Setup, corners: _Corners, problem: RefineProblem, res) -> list | None:
+    """Per camera, the rolling shutter the residuals of a global-shutter refinement
+    point to (`jaxcal._refine.line_delay_test`): the line delay (s per row), the
+    readout it implies (times the image height, s) and its size in standard
+    deviations. `None` when a line delay was modelled, or without an encoder log
+    (each view's angle is then an unknown of its own)."""
+    if problem.line_delay0_s is not None or setup.kind.per_view_angles:
+        return None
+    test = jax.device_get(_programs.shutter_test()(problem, res))
+    return [
+        {
+            "camera": v.camera.name,
+            "line_delay_s": float(test.line_delay_s[c]),
+            "readout_s": float(test.line_delay_s[c]) * v.camera.height,
+            "sigmas": float(test.sigmas[c]),
+        }
+        for c, v in enumerate(corners.used)
+    ]
 
 
 def succeeded(refined: Refined) -> bool:

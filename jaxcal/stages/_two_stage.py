@@ -25,6 +25,7 @@ from .._kinematics import PRISMATIC, forward_kinematics
 from .._links import average_pose, sequential_sweeps
 from ..errors import CalibrationError
 from . import _programs
+from ._blur import lost_to_blur
 from ._observe import Observations
 from ._points import axis_result, fit_point_samples, parameters_of
 from ._setup import Options, Setup
@@ -142,7 +143,9 @@ def _pose_start(setup: Setup, obs: Observations, sync: Sync):
     return fit, len(frames)
 
 
-def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data) -> None:
+def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data, obs=None, sync=None) -> None:
+    """Every joint's sweep can make an arc; a `CalibrationError` names the joint (and motion
+    blur when the sweep lost its fast frames: `_blur.lost_to_blur`, given `obs` and `sync`)."""
     ds = setup.dataset
     data = jax.device_get(data)  # host arrays: slicing them per joint compiles nothing
     for j, name in enumerate(ds.joint_names):
@@ -154,7 +157,8 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data) -> None:
         try:
             validate_arc_data(jax.tree.map(lambda x, j=j: x[j], data), name, setup.nominal.joint_types[j])
         except ValueError as e:
-            raise CalibrationError(f"{ds.root}: {e}") from None
+            cause = "" if obs is None else lost_to_blur(setup, obs, sync, j)
+            raise CalibrationError(f"{ds.root}: {e}" + (f": {cause}" if cause else "")) from None
 
 
 def _start_mounts(setup: Setup, arcs, homes):
@@ -288,7 +292,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     else:
         sweeps, counts = sync.sweeps, sync.counts
         data = sweeps.arc_data()
-        _check_sweeps(setup, sweeps, counts, data)
+        _check_sweeps(setup, sweeps, counts, data, obs.primary, sync)
         options.say(f"arc fits of {nominal.num_joints} joints (one vmapped solve)")
         _programs.wait_ahead()
         arcs = _programs.arc_fits(options.arc_loss, nominal.joint_types)(data)

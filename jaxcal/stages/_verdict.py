@@ -242,6 +242,24 @@ def _refinement(c: _Checks, refined: Refined, limits: Limits) -> None:
     )
 
 
+def _shutter(c: _Checks, refined: Refined, limits: Limits) -> None:
+    """The residuals of a global-shutter refinement against a rolling shutter's
+    pattern (`_refine.shutter_test`): an offset growing down the image rows with the
+    marker's image speed, which the clock offset (one time for every row) cannot absorb."""
+    for t in refined.shutter_test or ():
+        big = abs(t["readout_s"]) >= limits.readout_s
+        c.add(
+            f"{t['camera']}.rolling_shutter_sigmas",
+            t["sigmas"] if big else 0.0,
+            limits.shutter_sigmas,
+            f"camera {t['camera']!r}: the residuals shift along the image rows with the joints' speed, as a rolling "
+            f"shutter's do: its rows read out over about {1e3 * t['readout_s']:.1f} ms ({1e6 * t['line_delay_s']:.1f} "
+            f"us per row, {t['sigmas']:.0f} sigmas) and the calibration timed every row at the frame's stamp; give "
+            'cameras[].line_delay_s in metadata.json (the readout over the image height) or "estimate", or sweep '
+            "slower, or film the poses standing still (stop-and-shoot)",
+        )
+
+
 def verdict(
     setup: Setup, obs: Observations, sync: Sync, two: TwoStage, refined: Refined | None, limits: Limits
 ) -> Verdict:
@@ -258,6 +276,7 @@ def verdict(
         _axes(c, setup, two, limits)
     if ran:
         _refinement(c, refined, limits)
+        _shutter(c, refined, limits)
     sigma = _ee_sigma_mm(setup, two, refined if ran else None)
     c.add(
         "ee_sigma_mm",

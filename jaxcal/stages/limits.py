@@ -22,6 +22,10 @@ class Limits:
     - `sigma_px`, `outlier_fraction`: the refinement's pixel noise and the
       share of corners it rejects.
     - `intrinsics_rms_px`: a self-calibration's reprojection RMS.
+    - `shutter_sigmas`, `readout_s`: a global-shutter refinement whose residuals
+      point to a rolling shutter's line delay by more than `shutter_sigmas`
+      standard deviations and a readout (the delay times the image height) of
+      at least `readout_s` (the score test of `jaxcal._refine.line_delay_test`).
     - `ee_sigma_mm`: the tool point's 1-sigma uncertainty the covariance
       implies (RMS over random configurations): above it, the capture does
       not determine the robot well enough to trust it.
@@ -39,4 +43,6 @@ class Limits:
     sigma_px: float = 2.0
     outlier_fraction: float = 0.2
     intrinsics_rms_px: float = 1.0
+    shutter_sigmas: float = 10.0
+    readout_s: float = 1e-3
     ee_sigma_mm: float = 3.0

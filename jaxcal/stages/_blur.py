@@ -1,0 +1,87 @@
+"""Why a sweep lost its frames: motion blur, told from where the target was lost.
+
+A target that smears across more than a few pixels during the exposure is
+no longer found (its markers' bits and corners blur together). A sweep
+accelerates from rest, so blur loses the frames where the joint turns
+fastest and keeps the slow ones near the ends: when the lost frames are the
+fast ones, blur is the cause, and the exposure times the target's image
+speed says by how much. The image speed comes from the frames where the
+target was found: how far its corners moved per radian of the joint,
+times the joint's speed from the encoder log.
+"""
+
+import numpy as np
+
+from ._observe import CameraObservations
+from ._setup import Setup
+from ._synchronise import Sync
+
+#: The lost frames are the fast ones when their median joint speed is this many times the found ones'.
+FASTER = 1.5
+#: A sweep has lost frames worth explaining when at least this share of them lost the target.
+LOST_SHARE = 0.3
+
+
+def joint_speed(sync: Sync, joint: int, rows: np.ndarray) -> np.ndarray | None:
+    """The joint's speed (rad/s) at the frames `rows`, from the encoder log; None without one."""
+    if sync.log_q is None:
+        return None
+    enc_t, enc_q = sync.log_q
+    rate = np.gradient(enc_q[:, joint], enc_t)
+    return np.abs(np.interp(sync.t_ctrl[rows], enc_t, rate))
+
+
+def image_rate(obs: CameraObservations, sync: Sync, joint: int, rows: np.ndarray) -> float | None:
+    """How far the target's corners move in the image per radian of the joint (px/rad): the
+    median over consecutive found frames of the centroid's displacement over the angle turned."""
+    centroids, angles = [], []
+    for i in rows:
+        det = obs.detections[i]
+        if det and sync.q is not None:
+            d = next(iter(det.values()))
+            centroids.append(d.pixels.mean(axis=0))
+            angles.append(sync.q[i, joint])
+    if len(centroids) < 2:
+        return None
+    c, a = np.asarray(centroids), np.asarray(angles)
+    dq = np.abs(np.diff(a))
+    keep = dq > np.radians(0.5)
+    if not keep.any():
+        return None
+    return float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1)[keep] / dq[keep]))
+
+
+def lost_to_blur(setup: Setup, obs: CameraObservations, sync: Sync, joint: int) -> str:
+    """Why joint `joint`'s sweep lost its target, when it is motion blur: a sentence naming
+    the lost frames, the joint's speed there, the blur the exposure implies and what to
+    change; "" when the target was not lost mostly in the sweep's fast frames."""
+    rows = np.flatnonzero(np.asarray(sync.joint) == joint)
+    if rows.size == 0:
+        return ""
+    found = np.array([bool(obs.detections[i]) for i in rows])
+    lost = ~found
+    speed = joint_speed(sync, joint, rows)
+    if speed is None or lost.sum() < max(2, LOST_SHARE * rows.size):
+        return ""
+    fast = float(np.median(speed[lost]))
+    slow = float(np.median(speed[found])) if found.any() else 0.0
+    if fast < FASTER * slow or fast <= 0.0:
+        return ""
+    text = (
+        f"the target was lost in {int(lost.sum())} of the sweep's {rows.size} frames, the fast ones "
+        f"(the joint turns at {np.degrees(fast):.0f} deg/s there, {np.degrees(slow):.0f} deg/s where it was found)"
+    )
+    exposure = getattr(obs.camera, "exposure_s", None)
+    rate = image_rate(obs, sync, joint, rows)
+    if exposure and rate is not None:
+        text += (
+            f": with the {1e3 * exposure:g} ms exposure the target smears by about {exposure * fast * rate:.0f} px "
+            f"there ({exposure * slow * rate:.1f} px where it was found): motion blur"
+        )
+    else:
+        text += ": motion blur, most likely (the metadata gives no exposure_s to tell by how much)"
+    return (
+        text
+        + "; shorten the exposure (a smear under a pixel or two keeps the corners), sweep slower, or film "
+        "the poses standing still (stop-and-shoot)"
+    )
