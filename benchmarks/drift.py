@@ -35,6 +35,13 @@ direction). `check_s`: `jaxcal.drift.check` of 10 rendered images at 1280x960
 a result (`jaxcal.sim.drift.truth_result`), median of 3.
 
 Usage: python benchmarks/drift.py --camera --seeds 5 --trials 20 --json results/drift_camera.json
+
+`--handeye`: `jaxcal handeye` results (rendered, 16 frames, eye-to-hand and eye-in-hand
+in turn) checked against rendered 6-frame captures of the same rig at other robot poses,
+unmoved (`false_alarm_rate`) and moved 1 mm (`power_1mm`, `estimate_within_2sigma_1mm`);
+`detectable_mm_bound` of the unmoved checks.
+
+Usage: python benchmarks/drift.py --handeye --seeds 4 --trials 10 --json results/drift_handeye.json
 """
 
 import argparse
@@ -48,6 +55,7 @@ import platform
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -71,6 +79,7 @@ from jaxcal.io._files import write_text_atomic
 from jaxcal.io.dataset import load_dataset
 from jaxcal.report import write_outputs
 from jaxcal.sim.drift import random_poses, render_check_capture, truth_result, twist_matrix
+from jaxcal.sim.handeye import HandEyeSimConfig, simulate_hand_eye
 from jaxcal.sim.simulate import SimConfig, simulate
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
 
@@ -322,6 +331,63 @@ def camera_main(args) -> int:
     return 0
 
 
+def handeye_main(args) -> int:
+    """`--handeye`: rendered `jaxcal handeye` calibrations (eye-to-hand and eye-in-hand in turn,
+    16 frames) and per trial two 6-frame check captures of the same rig at other robot poses,
+    the camera unmoved and moved by 1 mm along a random direction (rendered)."""
+    rng = np.random.default_rng(1)
+    w, h = (int(v) for v in args.resolution.split("x"))
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for s in range(args.seeds):
+            cfg = HandEyeSimConfig(frames=16, seed=400 + s, resolution=(w, h), eye_in_hand=bool(s % 2))
+            run = jaxcal.calibrate_hand_eye_capture(simulate_hand_eye(cfg, tmp / f"cal{s}"), folds=0)
+            res = jaxcal.write_hand_eye_outputs(run, tmp / f"res{s}")
+            for t in range(args.trials):
+                chk = replace(cfg, frames=6, seed=1000 * (s + 1) + t)
+                c0 = check(res, simulate_hand_eye(chk, tmp / f"still{s}_{t}"))
+                v = 1e-3 * _unit(rng)
+                c1 = check(
+                    res, simulate_hand_eye(replace(chk, camera_move=(v, (0, 0, 0))), tmp / f"moved{s}_{t}")
+                )
+                rows.append(
+                    {
+                        "eye_in_hand": cfg.eye_in_hand,
+                        "false": c0.detected,
+                        "bound": c0.detectable["translation_mm_worst"],
+                        "nu": c0.residual["noise_variance_factor"],
+                        "hit": c1.detected,
+                        "within": abs(c1.translation_mm[0] - 1.0) <= 2.0 * c1.translation_mm[1],
+                    }
+                )
+            print(f"seed {s}: done", flush=True)
+    out = {
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
+        "data": f"rendered hand-eye calibrations ({w}x{h}, 16 frames, chessboard 8x7, eye-to-hand and eye-in-hand in "
+        "turn) and rendered 6-frame check captures of the same rig, unmoved and moved 1 mm",
+        "seeds": args.seeds,
+        "trials_per_seed": args.trials,
+        "false_alarm_rate": float(np.mean([r["false"] for r in rows])),
+        "power_1mm": float(np.mean([r["hit"] for r in rows])),
+        "estimate_within_2sigma_1mm": float(np.mean([r["within"] for r in rows if r["hit"]] or [np.nan])),
+        "detectable_mm_bound": float(np.mean([r["bound"] for r in rows])),
+        "noise_variance_factor_mean": float(np.mean([r["nu"] for r in rows])),
+        "by_arrangement": {
+            k: {
+                "false_alarm_rate": float(np.mean([r["false"] for r in rows if r["eye_in_hand"] == e])),
+                "detectable_mm_bound": float(np.mean([r["bound"] for r in rows if r["eye_in_hand"] == e])),
+            }
+            for k, e in (("eye_to_hand", False), ("eye_in_hand", True))
+            if any(r["eye_in_hand"] == e for r in rows)
+        },
+    }
+    print(json.dumps(out, indent=1), flush=True)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(args.json, json.dumps(out, indent=2))
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=3, help="calibrations")
@@ -333,7 +399,12 @@ def main(argv=None) -> int:
     p.add_argument(
         "--camera", action="store_true", help="camera check captures (rendered) instead of tracker"
     )
-    p.add_argument("--resolution", default="640x480", help="--camera: the calibration's and checks' images")
+    p.add_argument(
+        "--handeye", action="store_true", help="hand-eye results (jaxcal handeye) and rendered check captures"
+    )
+    p.add_argument(
+        "--resolution", default="640x480", help="--camera, --handeye: the calibration's and checks' images"
+    )
     p.add_argument("--frames", type=int, default=20, help="--camera: calibration frames per joint")
     p.add_argument(
         "--first-seed",
@@ -344,6 +415,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.camera:
         return camera_main(args)
+    if args.handeye:
+        return handeye_main(args)
     sizes = [int(s) for s in args.sizes.split(",")]
     rng = np.random.default_rng(0)
     rows = []

@@ -337,7 +337,9 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
             "robot_noise": {"deg": config.robot_noise_deg, "mm": config.robot_noise_mm},
             "config": {k: v for k, v in asdict(config).items() if k != "target"},
         }
-        (tmp / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+        (tmp / "truth.json").write_text(
+            json.dumps(truth, indent=1, default=lambda a: np.asarray(a).tolist()) + "\n"
+        )
     return Path(out)
 
 
