@@ -4,6 +4,8 @@ directory beside the destination and is renamed into place, so a failure
 leaves nothing partial behind.
 """
 
+import importlib
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -54,6 +56,27 @@ def arc_geometry(result, j: int) -> dict:
     }
 
 
+def _margins(fig, *, left: float, right: float, bottom: float, top: float, **space) -> None:
+    """`fig.subplots_adjust` with the margins in inches (the same room at any figure size)."""
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h, **space)
+
+
+def warm_up_plots() -> threading.Thread:
+    """Import matplotlib and load its fonts on a background thread (started, returned), so
+    that a command which plots at its end finds them ready: `jaxcal calibrate` starts it
+    while it calibrates (mostly waiting on XLA, without Python's lock)."""
+    thread = threading.Thread(target=_load_matplotlib, name="jaxcal plots warm-up")
+    thread.start()
+    return thread
+
+
+def _load_matplotlib() -> None:
+    for name in ("matplotlib.figure", "matplotlib.backends.backend_agg", "matplotlib.font_manager"):
+        module = importlib.import_module(name)
+    module.fontManager.findfont("DejaVu Sans")
+
+
 def plot_arcs(result):
     """Every joint's marker positions in its fitted arc's plane, with the fitted
     circle (a matplotlib `Figure`, made without pyplot: no global state, any backend)."""
@@ -93,7 +116,8 @@ def plot_arcs(result):
             ax.legend(fontsize=7)
     for k in range(len(names), rows * cols):
         axes[k // cols][k % cols].axis("off")
-    fig.tight_layout()
+    # Fixed margins (inches) rather than `tight_layout`, which draws the figure once more to measure it.
+    _margins(fig, left=0.55, right=0.15, bottom=0.45, top=0.3, wspace=0.3, hspace=0.45)
     return fig
 
 
@@ -108,7 +132,7 @@ def plot_residuals(result):
     ax[0].set_title("radial residual (mm)", fontsize=9)
     ax[1].hist(np.concatenate([g["axial"] for g in geometry]), bins=30, color="tab:orange")
     ax[1].set_title("along-axis residual (mm)", fontsize=9)
-    fig.tight_layout()
+    _margins(fig, left=0.45, right=0.15, bottom=0.35, top=0.3, wspace=0.2)
     return fig
 
 
@@ -133,7 +157,7 @@ def plot_ee_errors(result):
     ax.set_xscale("log")
     ax.set_xlabel(f"end-effector position error (mm), {len(before)} random configurations")
     ax.legend(fontsize=8)
-    fig.tight_layout()
+    _margins(fig, left=0.55, right=0.15, bottom=0.5, top=0.15)
     return fig
 
 

@@ -10,12 +10,13 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from .._exported import warm_start
 from .._pointfit import TERMS
 from ..certification import certify
 from ..errors import CalibrationError
 from ..io._files import check_output_dir, marked_directory, output_lock, write_text_atomic
 from ..pipeline import calibrate
-from ..report import certificate_section, output_files, write_outputs
+from ..report import certificate_section, output_files, warm_up_plots, write_outputs
 from ..robots import load_robot
 from ..stages import CLOCK_MODES
 from ._certify import print_certificate, region_of
@@ -192,6 +193,16 @@ def _clock_arg(console, args) -> str:
 
 
 def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
+    # While it calibrates: matplotlib loads, and the programs the last run on this dataset called
+    # (the outputs' DH tables' too) are read ahead (`jaxcal._exported.warm_start`).
+    plots = warm_up_plots()
+    with warm_start(f"jaxcal calibrate {Path(dataset).resolve()}"):
+        code = _calibrate_and_write(console, dataset, out, args, overwrite=overwrite, checked=checked)
+    plots.join()
+    return code
+
+
+def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
     t0 = time.perf_counter()
     result = calibrate(
         dataset,

@@ -12,6 +12,7 @@ from .._handeye_capture import calibrate_hand_eye_capture
 from ..io._files import check_output_dir, output_lock
 from ..io.handeye_results import static_transform_args, write_hand_eye_outputs
 from ..markers import TargetSpec
+from ..report import warm_up_plots
 from ._common import resolution
 
 # --------------------------------------------------------------------------- hand-eye
@@ -50,7 +51,10 @@ def cmd_handeye(args) -> int:
         out, inputs=[args.capture], overwrite=args.overwrite, kind="result", what="--out"
     )
     with output_lock(out, what="--out"):
-        return _handeye(args, out, checked)
+        plots = warm_up_plots()  # matplotlib loads while the capture is calibrated
+        code = _handeye(args, out, checked)
+        plots.join()
+        return code
 
 
 def _handeye(args, out: Path, checked) -> int:
