@@ -9,6 +9,7 @@ at its own row's time: a fixed point, reached by iteration).
 
 import dataclasses
 import json
+from types import SimpleNamespace
 
 import equinox as eqx
 import jax
@@ -35,6 +36,7 @@ from jaxcal.errors import DatasetError
 from jaxcal.io._metadata import CameraInfo, read_cameras
 from jaxcal.io._schema import Loc
 from jaxcal.robots import load_robot
+from jaxcal.stages._blur import lost_to_blur
 from jaxcal.stages._observe import pose_times
 from jaxcal.stages._refine import rolling_shutter
 from jaxcal.stages.limits import Limits
@@ -209,3 +211,35 @@ def test_pose_times_and_the_metadata():
 class _Det:
     def __init__(self, pixels):
         self.pixels = pixels
+
+
+def _sweep(found_when):
+    """One joint sweeping 80 deg in 2 s on a raised cosine (fastest mid-sweep), 24 frames,
+    the target's corners moving 1000 px per radian; found where `found_when(speed)`."""
+    enc_t = np.linspace(0.0, 2.0, 1001)
+    q = np.radians(80.0) * 0.5 * (1.0 - np.cos(np.pi * enc_t / 2.0))
+    t = np.linspace(0.02, 1.98, 24)
+    qf = np.interp(t, enc_t, q)
+    speed = np.interp(t, enc_t, np.gradient(q, enc_t))
+    dets = [
+        {"plate": _Det(np.array([[1000.0 * a, 50.0]]))} if found_when(s) else {} for a, s in zip(qf, speed)
+    ]
+    sync = SimpleNamespace(joint=np.zeros(24, int), log_q=(enc_t, q[:, None]), t_ctrl=t, q=qf[:, None])
+    obs = SimpleNamespace(detections=dets, camera=SimpleNamespace(exposure_s=0.01))
+    return obs, sync, speed
+
+
+def test_a_sweep_that_lost_its_fast_frames_names_motion_blur():
+    obs, sync, speed = _sweep(lambda s: s < 0.5)
+    text = lost_to_blur(None, obs, sync, 0)
+    assert text.startswith("motion blur:") and "shorten the exposure" in text
+    lost = speed >= 0.5
+    assert f"lost in {lost.sum()} of the sweep's 24 frames" in text
+    # The smear: exposure x the fastest lost frame's speed x 1000 px/rad (the found frames' own rate).
+    assert f"by up to {0.01 * speed[lost].max() * 1000.0:.0f} px" in text
+    # Frames lost where the joint is slow, or a smear under two pixels, or none lost: not blur.
+    assert lost_to_blur(None, *_sweep(lambda s: s > 0.3)[:2], 0) == ""
+    obs, sync, _ = _sweep(lambda s: s < 0.5)
+    obs.camera.exposure_s = 1e-3
+    assert lost_to_blur(None, obs, sync, 0) == ""
+    assert lost_to_blur(None, *_sweep(lambda s: True)[:2], 0) == ""

@@ -18,6 +18,8 @@ from ._synchronise import Sync
 
 #: The lost frames are the fast ones when their median joint speed is this many times the found ones'.
 FASTER = 1.5
+#: With the exposure known, a smear under this many pixels does not lose a target (px).
+SMEAR_PX = 2.0
 #: A sweep has lost frames worth explaining when at least this share of them lost the target.
 LOST_SHARE = 0.3
 
@@ -68,18 +70,22 @@ def lost_to_blur(setup: Setup, obs: CameraObservations, sync: Sync, joint: int) 
     if fast < FASTER * slow or fast <= 0.0:
         return ""
     text = (
-        f"the target was lost in {int(lost.sum())} of the sweep's {rows.size} frames, the fast ones "
-        f"(the joint turns at {np.degrees(fast):.0f} deg/s there, {np.degrees(slow):.0f} deg/s where it was found)"
+        f"motion blur, most likely: the target was lost in {int(lost.sum())} of the sweep's {rows.size} frames, "
+        f"the fast ones (the joint turns at {np.degrees(fast):.0f} deg/s there, {np.degrees(slow):.0f} deg/s where "
+        "it was found)"
     )
     exposure = getattr(obs.camera, "exposure_s", None)
     rate = image_rate(obs, sync, joint, rows)
     if exposure and rate is not None:
-        text += (
-            f": with the {1e3 * exposure:g} ms exposure the target smears by about {exposure * fast * rate:.0f} px "
-            f"there ({exposure * slow * rate:.1f} px where it was found): motion blur"
+        top = float(np.max(speed[lost]))
+        if exposure * top * rate < SMEAR_PX:
+            return ""
+        text = text.replace("motion blur, most likely", "motion blur") + (
+            f"; with the {1e3 * exposure:g} ms exposure the target smears by up to {exposure * top * rate:.0f} px "
+            f"there ({exposure * slow * rate:.1f} px where it was found)"
         )
-    else:
-        text += ": motion blur, most likely (the metadata gives no exposure_s to tell by how much)"
+    elif not exposure:
+        text += " (the metadata gives no exposure_s to tell the smear)"
     return (
         text
         + "; shorten the exposure (a smear under a pixel or two keeps the corners), sweep slower, or film "

@@ -158,7 +158,9 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data, obs=None, sy
             validate_arc_data(jax.tree.map(lambda x, j=j: x[j], data), name, setup.nominal.joint_types[j])
         except ValueError as e:
             cause = "" if obs is None else lost_to_blur(setup, obs, sync, j)
-            raise CalibrationError(f"{ds.root}: {e}" + (f": {cause}" if cause else "")) from None
+            if cause:  # the cause first, what it did after
+                e = f"joint {name!r}: {cause} ({str(e).removeprefix(f'joint {name!r}: ')})"
+            raise CalibrationError(f"{ds.root}: {e}") from None
 
 
 def _start_mounts(setup: Setup, arcs, homes):
