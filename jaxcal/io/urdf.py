@@ -42,6 +42,7 @@ from .._kinematics import (
 )
 from ._files import write_text_atomic
 from ._urdf_checks import check_joint_element, check_joint_links, limit_range, limit_value
+from ._urdf_tree import read_tree
 
 _MOVABLE = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC}
 _UNSUPPORTED = ("floating", "planar")
@@ -217,14 +218,13 @@ def _leaves_with_motion(children: dict[str, list], base: str) -> list[str]:
     return sorted(leaves)
 
 
-def _chain(
-    urdf: "yourdfpy.URDF", path: Path, base_link: str | None, tip_link: str | None
-) -> tuple[list, str, str]:
-    """The joints from `base_link` to `tip_link` (base first), and the two link names."""
-    links = {link.name for link in urdf.robot.links}
-    parent_joint = {j.child: j for j in urdf.robot.joints}
+def _chain(robot, path: Path, base_link: str | None, tip_link: str | None) -> tuple[list, str, str]:
+    """The joints from `base_link` to `tip_link` (base first), and the two link names, of
+    `robot` (a `_Tree`, or yourdfpy's `URDF.robot`)."""
+    links = {link.name for link in robot.links}
+    parent_joint = {j.child: j for j in robot.joints}
     children: dict[str, list] = {}
-    for j in urdf.robot.joints:
+    for j in robot.joints:
         children.setdefault(j.parent, []).append(j)
     if base_link is None:
         roots = sorted(links - set(parent_joint))
@@ -298,9 +298,8 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
     """
     path = Path(path)
     root = _parse_xml(path).getroot()
-    check_joint_links(root, path)  # before yourdfpy, which fails on a missing link with a bare list error
-    urdf = _load_yourdfpy(path)
-    joints, base_link, tip_link = _chain(urdf, path, base_link, tip_link)
+    check_joint_links(root, path)
+    joints, base_link, tip_link = _chain(read_tree(root, path), path, base_link, tip_link)
     transmissions = _transmissions_by_joint(root)
     elements = {el.get("name"): el for el in root.findall("joint")}
 
@@ -324,8 +323,7 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
         types.append(_MOVABLE[joint.type])
         names.append(joint.name)
         child_links.append(joint.child)
-        rising = None if joint.calibration is None else joint.calibration.rising
-        offsets.append(0.0 if rising is None else float(rising))
+        offsets.append(0.0 if joint.rising is None else joint.rising)
         ratios.append(_reduction_ratio(joint.name, transmissions, path))
     if not names:
         raise ValueError(
@@ -361,7 +359,7 @@ def urdf_inertials(
     root = _parse_xml(path).getroot()
     check_joint_links(root, path)
     urdf = _load_yourdfpy(path)
-    joints, _, _ = _chain(urdf, path, base_link, tip_link)
+    joints, _, _ = _chain(urdf.robot, path, base_link, tip_link)
     links = {link.name: link for link in urdf.robot.links}
     fixed_children: dict[str, list] = {}
     for j in urdf.robot.joints:
@@ -522,8 +520,7 @@ def _fill_from_source(model: KinematicModel, arrays: dict[str, np.ndarray], sour
     tree = _parse_xml(source)
     root = tree.getroot()
     check_joint_links(root, source)
-    urdf = _load_yourdfpy(source)
-    joints, _, _ = _chain(urdf, source, model.link_names[0], model.link_names[-1])
+    joints, _, _ = _chain(read_tree(root, source), source, model.link_names[0], model.link_names[-1])
     movable = [j for j in joints if j.type != "fixed"]
     for j in joints:
         _check_joint(j, source)
