@@ -408,7 +408,7 @@ def warm_start(tag: str):
     try:
         yield
     finally:
-        _RECORDING.remove(used)
+        _RECORDING[:] = [u for u in _RECORDING if u is not used]  # by identity: nested runs record alike
         with _AHEAD_LOCK:
             for file in mine:
                 future = _AHEAD.pop(file, None)

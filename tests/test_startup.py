@@ -296,3 +296,16 @@ def test_warm_start_ignores_a_damaged_manifest_or_entry(store, damage):
     assert len(traces) == (2 if damage == "a damaged entry" else 1)
     for a, b in zip(jax.tree.leaves(expected), jax.tree.leaves(result)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_nested_warm_starts_record_their_own_runs(store):
+    """A command's warm start around the library's (`jaxcal calibrate`: calibrate and outputs)."""
+    x = jnp.arange(9.0).reshape(3, 3)
+    traces: list = []
+    with _exported.warm_start("outer"):
+        with _exported.warm_start("inner"):
+            _program(traces)(x, True)
+        _program(traces)(jnp.ones((4, 4)), False)
+    assert not _exported._RECORDING
+    runs = sorted(len(json.loads(p.read_text())) for p in store.glob("run-*.json"))
+    assert runs == [1, 2]
