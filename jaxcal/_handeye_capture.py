@@ -36,8 +36,9 @@ from ._handeye import (
     robot_correction_rms,
     robot_noise,
 )
+from ._npgeom import matrix_to_quaternion, quaternion_to_matrix
 from .errors import CalibrationError, HandEyeInputError
-from .io.handeye import HandEyeCapture, load_hand_eye_capture, matrix_to_quaternion, quaternion_to_matrix
+from .io.handeye import HandEyeCapture, load_hand_eye_capture
 from .vision import HandEyeObservations, calibrate_intrinsics, detect_frames, hand_eye_from_detections
 
 #: Outlier threshold of `calibrate_hand_eye` (times the median group RMS); reported with rejections.

@@ -22,13 +22,7 @@ after the other; the maths is the arc fit's.
 import numpy as np
 
 from ._arcdata import make_arc_data
-
-
-def _rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotations about the unit `axis` by `angle` `(F,)` -> `(F, 3, 3)`."""
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+from ._npgeom import axis_rotation
 
 
 def undo_joint(P, O, C, direction, point, angle):
@@ -39,7 +33,7 @@ def undo_joint(P, O, C, direction, point, angle):
     covariances `C` `(F, 6, 6)`; the axis `direction` $V$ (unit) and `point`
     $Q$; the joint's turn `angle` $\\theta$ `(F,)` in each frame (rad).
     """
-    R = _rotation(np.asarray(direction) / np.linalg.norm(direction), -np.asarray(angle))
+    R = axis_rotation(np.asarray(direction) / np.linalg.norm(direction), -np.asarray(angle))
     Q = np.asarray(point)
     P2 = Q + np.einsum("fab,fb->fa", R, P - Q)
     O2 = R @ O

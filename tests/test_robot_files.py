@@ -10,7 +10,7 @@ import pytest
 from ruamel.yaml import YAML
 
 from jaxcal._kinematics import PerturbationScales, forward_kinematics, perturb_model
-from jaxcal.io.handeye import quaternion_to_matrix
+from jaxcal._npgeom import quaternion_to_matrix
 from jaxcal.io.robot_files import is_ur, origin_of, ur_fk, ur_kinematics_text, write_ros_camera_files
 from jaxcal.robots import load_robot
 

@@ -45,6 +45,7 @@ Every pose is optimised as a 6-vector tangent delta about its start,
 $X = X_0 \\exp(\\xi)$ with $\\xi = (v, w)$ (translation first, m and rad).
 """
 
+from .._npgeom import rotation_angle as rotation_angle
 from ..errors import DegenerateMotionError as DegenerateMotionError
 from ..errors import HandEyeInputError as HandEyeInputError
 from ..errors import InconsistentPosesError as InconsistentPosesError
@@ -81,7 +82,6 @@ from .closed import solve_axzb as solve_axzb
 from .consistency import MotionConsistency as MotionConsistency
 from .consistency import check_motion_consistency as check_motion_consistency
 from .consistency import motion_consistency as motion_consistency
-from .consistency import rotation_angle as rotation_angle
 from .data import FRAME_BUCKETS as FRAME_BUCKETS
 from .data import HandEyeData as HandEyeData
 from .data import HandEyePixels as HandEyePixels

@@ -17,7 +17,8 @@ import jax
 import numpy as np
 import optimistix as optx
 
-from .consistency import MotionConsistency, rotation_angle
+from .._npgeom import rotation_angle
+from .consistency import MotionConsistency
 from .data import HandEyeData, HandEyePixels
 from .solve import HandEyeResult
 

@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from .._npgeom import so3_log
 from ..errors import (
     DegenerateMotionError,
     IntrinsicsError,
@@ -77,25 +78,6 @@ def check_sigma(name: str, value) -> None:
         raise NoiseLevelError(f"{name} must be finite and positive, got {v.tolist()}")
 
 
-def _so3_log_np(R: np.ndarray) -> np.ndarray:
-    s = 0.5 * np.stack(
-        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
-    )
-    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
-    sn = np.linalg.norm(s, axis=-1)
-    theta = np.arctan2(sn, c)
-    # Near pi the antisymmetric part vanishes: take the axis from R + I instead.
-    near_pi = (sn < 1e-6) & (c < 0)
-    scale = np.where(sn < 1e-12, 1.0, theta / np.where(sn < 1e-12, 1.0, sn))
-    w = scale[..., None] * s
-    if np.any(near_pi):
-        B = (R[near_pi] + np.eye(3)) / 2.0
-        col = np.argmax(np.linalg.norm(B, axis=-2), axis=-1)
-        axis = B[np.arange(len(col)), :, col]
-        w[near_pi] = np.pi * axis / np.linalg.norm(axis, axis=-1, keepdims=True)
-    return w
-
-
 def _at(i: int, shape: tuple) -> tuple[int, ...]:
     """The index tuple of flat index `i` (plain ints, for messages)."""
     return tuple(int(k) for k in np.unravel_index(i, shape))
@@ -144,7 +126,7 @@ def check_motion_diversity(T_base_ee, name: str = "robot poses") -> None:
     n = R.shape[0]
     i, j = np.triu_indices(n, 1)
     rel = np.swapaxes(R[i], -1, -2) @ R[j]
-    w = _so3_log_np(rel)
+    w = so3_log(rel)
     ang = np.degrees(np.linalg.norm(w, axis=-1))
     big = ang >= MIN_ROTATION_DEG
     if not big.any():

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._npgeom import rotation_angle
 from ..errors import InconsistentPosesError
 from .checks import plane_frame, spanning_views
 
@@ -48,16 +49,6 @@ REFUSAL_ADVICE = (
 CONSISTENCY_TOL_DEG = 2.0
 #: Relative rotations smaller than this on both sides say little (their angle is noise): skipped (deg).
 MIN_PAIR_ANGLE_DEG = 1.0
-
-
-def rotation_angle(R: np.ndarray) -> np.ndarray:
-    """Rotation angle of `(..., 3, 3)` rotations (rad), accurate near 0 and pi."""
-    s = 0.5 * np.linalg.norm(
-        np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
-        axis=-1,
-    )
-    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
-    return np.arctan2(s, c)
 
 
 def homography_rotations(pixels, mask, K, board_points) -> tuple[np.ndarray, np.ndarray]:

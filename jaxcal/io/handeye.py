@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._npgeom import matrix_to_quaternion, quaternion_to_matrix, rotvec_to_matrix
 from ..errors import DatasetError
 from ..markers import TargetSpec
 
@@ -107,38 +108,6 @@ class HandEyeCapture:
 # --------------------------------------------------------------------------- rotations (NumPy)
 
 
-def quaternion_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
-    """Rotation matrices `(..., 3, 3)` of unit quaternions `(..., 4)` in (x, y, z, w) order."""
-    x, y, z, w = np.moveaxis(np.asarray(q_xyzw, np.float64), -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), `w >= 0`, of a rotation matrix (3, 3) (Shepperd's method)."""
-    R = np.asarray(R, np.float64)
-    t = np.trace(R)
-    diag = np.diag(R)
-    k = int(np.argmax([t, *diag]))
-    if k == 0:
-        s = 2.0 * math.sqrt(1.0 + t)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    else:
-        i = k - 1
-        j, m = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + R[i, i] - R[j, j] - R[m, m])
-        q = [0.0, 0.0, 0.0, (R[m, j] - R[j, m]) / s]
-        q[i], q[j], q[m] = 0.25 * s, (R[j, i] + R[i, j]) / s, (R[m, i] + R[i, m]) / s
-    q = np.asarray(q)
-    return q if q[3] >= 0 else -q
-
-
 def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
     """$R_z(yaw) R_y(pitch) R_x(roll)$ (ROS/URDF fixed axes), `(..., 3)` rad -> `(..., 3, 3)`."""
     r, p, y = np.moveaxis(np.asarray(rpy, np.float64), -1, 0)
@@ -160,20 +129,6 @@ def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
     roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
     yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
     return np.stack([roll, pitch, yaw], -1)
-
-
-def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula, `(..., 3)` rad -> `(..., 3, 3)`."""
-    w = np.asarray(w, np.float64)
-    theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    Kx = np.zeros(w.shape[:-1] + (3, 3))
-    Kx[..., 0, 1], Kx[..., 0, 2], Kx[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    Kx = Kx - np.swapaxes(Kx, -1, -2)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    return np.eye(3) + a * Kx + b * (Kx @ Kx)
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:

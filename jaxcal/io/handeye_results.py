@@ -21,9 +21,9 @@ import jax
 import numpy as np
 import optimistix as optx
 
+from .._npgeom import matrix_to_quaternion
 from . import ros
 from ._files import atomic_directory
-from .handeye import matrix_to_quaternion
 
 #: `result.json`'s schema for a `jaxcal handeye` result (what `jaxcal check` recognises).
 HANDEYE_RESULT_SCHEMA = "jaxcal.handeye_result"

@@ -2,21 +2,13 @@
 
 import json
 
-import cv2
 import jax.numpy as jnp
 import numpy as np
 
 from .._correction import Estimate, ParameterLayout
+from .._npgeom import matrix_to_quaternion
 from ..errors import DatasetError
 from .model_json import model_from_json, model_to_json
-
-
-def quaternion_xyzw(R) -> np.ndarray:
-    """The unit quaternion `(x, y, z, w)` of a rotation matrix."""
-    rvec = cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
-    angle = np.linalg.norm(rvec)
-    axis = rvec / angle if angle > 0 else np.array([1.0, 0.0, 0.0])
-    return np.r_[np.sin(angle / 2) * axis, np.cos(angle / 2)]
 
 
 def pose_json(T, std) -> dict:
@@ -25,7 +17,7 @@ def pose_json(T, std) -> dict:
     return {
         "matrix": T.tolist(),
         "xyz_m": T[:3, 3].tolist(),
-        "quaternion_xyzw": quaternion_xyzw(T[:3, :3]).tolist(),
+        "quaternion_xyzw": matrix_to_quaternion(T[:3, :3]).tolist(),
         "std_xyz_mm": (1e3 * std[:3]).tolist(),
         "std_rot_deg": np.degrees(std[3:]).tolist(),
     }

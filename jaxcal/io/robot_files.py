@@ -55,6 +55,7 @@ import numpy as np
 
 from .._geometry import matrix_to_rpy, rpy_to_matrix, so3_exp
 from .._kinematics import KinematicModel
+from .._npgeom import pose
 from . import ros
 
 #: ur_description's joint names and the file's segment names, base to flange.
@@ -91,14 +92,8 @@ def _align(a: np.ndarray) -> np.ndarray:
     return np.asarray(so3_exp(jnp.asarray(w / s * np.arctan2(s, c))))
 
 
-def _pose(R, t=(0.0, 0.0, 0.0)) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
-
-
 def _tz(s: float) -> np.ndarray:
-    return _pose(np.eye(3), (0.0, 0.0, s))
+    return pose(np.eye(3), (0.0, 0.0, s))
 
 
 def ur_origins(model: KinematicModel, nominal: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
@@ -110,10 +105,10 @@ def ur_origins(model: KinematicModel, nominal: KinematicModel) -> tuple[np.ndarr
     n = len(T)
     A = [np.eye(3)] + [_align(a) for a in axis]
     E = [
-        _pose(A[i].T) @ T[i] @ _pose(np.asarray(so3_exp(jnp.asarray(axis[i] * delta[i])))) @ _pose(A[i + 1])
+        pose(A[i].T) @ T[i] @ pose(np.asarray(so3_exp(jnp.asarray(axis[i] * delta[i])))) @ pose(A[i + 1])
         for i in range(n)
     ]
-    F = _pose(A[n].T) @ np.asarray(model.T_last_flange, np.float64)
+    F = pose(A[n].T) @ np.asarray(model.T_last_flange, np.float64)
     nom_axis = np.asarray(nominal.axis, np.float64)
     nom_R = np.asarray(nominal.T_parent_joint, np.float64)[:, :3, :3]
     for i in range(n):  # slide frame i along its axis: E_i <- E_i Tz(s), E_{i+1} <- Tz(-s) E_{i+1}
@@ -133,7 +128,7 @@ def ur_origins(model: KinematicModel, nominal: KinematicModel) -> tuple[np.ndarr
             E[i + 1] = _tz(-s) @ E[i + 1]
     base = nom_R[0]
     if np.abs(base - np.eye(3)).max() > 1e-9:
-        E[0] = _pose(base.T) @ E[0]
+        E[0] = pose(base.T) @ E[0]
     return np.stack(E), F
 
 
@@ -167,14 +162,14 @@ def ur_fk(origins, q, T_tool0=None) -> np.ndarray:
     T = np.eye(4)
     for Ei, qi in zip(origins, q):
         c, s = np.cos(qi), np.sin(qi)
-        T = T @ Ei @ _pose(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
+        T = T @ Ei @ pose(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
     return T if T_tool0 is None else T @ T_tool0
 
 
 def origin_of(entry: dict) -> np.ndarray:
     """4x4 of a UR file entry `{x, y, z, roll, pitch, yaw}` (a URDF `<origin xyz rpy>`)."""
     R = np.asarray(rpy_to_matrix(jnp.asarray([entry["roll"], entry["pitch"], entry["yaw"]], jnp.float64)))
-    return _pose(R, [entry["x"], entry["y"], entry["z"]])
+    return pose(R, [entry["x"], entry["y"], entry["z"]])
 
 
 # --------------------------------------------------------------------------- the camera for ROS

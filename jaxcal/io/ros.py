@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .handeye import matrix_to_quaternion, quaternion_to_matrix
+from .._npgeom import matrix_to_quaternion, quaternion_to_matrix
 
 
 def static_transform_args(T_parent_child, parent: str, child: str) -> dict:

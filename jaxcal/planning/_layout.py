@@ -14,6 +14,7 @@ import jax
 import numpy as np
 
 from .._kinematics import KinematicModel, forward_kinematics
+from .._npgeom import axis_rotation
 from ..markers import TargetSpec
 from ._plan import PlanCamera, PlanTarget
 
@@ -31,12 +32,6 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
     T[:3, 3] = eye
     return T
-
-
-def _rot(axis, angle) -> np.ndarray:
-    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
 def facing_mount(spec: TargetSpec, normal, centre, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -119,6 +114,6 @@ def default_layout(
         view = np.cos(np.deg2rad(50.0)) * normal + np.sin(np.deg2rad(50.0)) * away
     d = view
     if np.linalg.norm(horiz) > 0.5:
-        d = _rot(np.cross(d, (0.0, 0.0, 1.0)), np.deg2rad(-15.0)) @ d
+        d = axis_rotation(np.cross(d, (0.0, 0.0, 1.0)), np.deg2rad(-15.0)) @ d
     T_wc = look_at(centre + distance * d, centre)
     return PlanCamera("cam0", w, h, K, np.zeros(5), "world", T_wc), PlanTarget(spec, flange, T_mount)

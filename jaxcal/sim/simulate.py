@@ -20,6 +20,7 @@ import jax
 import numpy as np
 
 from .._kinematics import PerturbationScales, anchor_base, forward_kinematics, perturb_model
+from .._npgeom import axis_rotation
 from .._progress import progress as progress_bar
 from ..io.dataset import (
     SCHEMA,
@@ -144,18 +145,12 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return T
 
 
-def _rot(axis, angle) -> np.ndarray:
-    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
 def _jitter(T, rng, mm, deg) -> np.ndarray:
     w = np.deg2rad(deg) * rng.standard_normal(3)
     angle = np.linalg.norm(w)
     dT = np.eye(4)
     if angle > 0:
-        dT[:3, :3] = _rot(w, angle)
+        dT[:3, :3] = axis_rotation(w, angle)
     dT[:3, 3] = 1e-3 * mm * rng.standard_normal(3)
     return np.asarray(T) @ dT
 
@@ -295,9 +290,9 @@ def scene_layout(nominal, true, config: SimConfig, rng):
             extent = np.max(np.linalg.norm(pts - aim, axis=1))
             distance = max(distance, extent / np.tan(0.42 * np.deg2rad(config.fovy_deg)))
         for k, yaw in enumerate(yaws):
-            d = _rot((0.0, 0.0, 1.0), np.deg2rad(yaw)) @ view
+            d = axis_rotation((0.0, 0.0, 1.0), np.deg2rad(yaw)) @ view
             if np.linalg.norm(horiz) > 0.5:  # look slightly down at a plate that faces sideways
-                d = _rot(np.cross(d, (0.0, 0.0, 1.0)), np.deg2rad(-15.0)) @ d
+                d = axis_rotation(np.cross(d, (0.0, 0.0, 1.0)), np.deg2rad(-15.0)) @ d
             eye = aim + distance * d
             T_wc = look_at(eye, aim)
             cameras.append(

@@ -29,6 +29,7 @@ import numpy as np
 
 from .._geometry import so3_exp
 from .._kinematics import PerturbationScales, anchor_base, forward_kinematics, perturb_model
+from .._npgeom import matrix_to_quaternion
 from .._pointfit import gravity_torques
 from ..io._files import atomic_directory
 from ..io.dataset import SCHEMA, SCHEMA_VERSION, write_json
@@ -182,23 +183,6 @@ def _measure(config, true, T_device_base, T_flange_point, q, rng, inertials=None
     return P, O, bad
 
 
-def _quaternion(R: np.ndarray) -> np.ndarray:
-    """`(x, y, z, w)` of a rotation matrix (Shepperd's method, w >= 0)."""
-    w = np.sqrt(max(1.0 + np.trace(R), 0.0)) / 2
-    if w > 0.1:
-        v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
-        return np.r_[v, w]
-    i = int(np.argmax(np.diag(R)))
-    j, k = (i + 1) % 3, (i + 2) % 3
-    x = np.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 0.0)) / 2
-    out = np.zeros(4)
-    out[i] = x
-    out[j] = (R[j, i] + R[i, j]) / (4 * x)
-    out[k] = (R[k, i] + R[i, k]) / (4 * x)
-    out[3] = (R[k, j] - R[j, k]) / (4 * x)
-    return out * (1 if out[3] >= 0 else -1)
-
-
 def _limits(urdf: Path, nominal) -> np.ndarray:
     """`(joints, 2)` joint limits of the robot file (rad; +-pi where it gives none)."""
     lim = (
@@ -232,7 +216,7 @@ def write_samples(path: Path, names, q, joint, P, O, rate_hz: float) -> None:
             ]
         )
         for i in range(len(q)):
-            quat = [] if O is None else [repr(float(v)) for v in _quaternion(O[i])]
+            quat = [] if O is None else [repr(float(v)) for v in matrix_to_quaternion(O[i])]
             w.writerow(
                 [
                     i,

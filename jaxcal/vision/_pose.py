@@ -5,6 +5,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .._npgeom import skew
 from ..markers import TargetSpec
 from ._detect import MIN_POINTS, Detection, VisionError, target_points
 
@@ -49,22 +50,9 @@ class PoseEstimate:
         T[:3, 3] = -O.T @ P
         A = np.zeros((6, 6))
         A[:3, :3] = -O.T
-        A[:3, 3:] = -O.T @ _skew(P[None])[0]
+        A[:3, 3:] = -O.T @ skew(P[None])[0]
         A[3:, 3:] = -O.T
         return PoseEstimate(T, A @ self.cov @ A.T, self.rms_px, self.n_points, self.sigma_px)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(n, 3) -> (n, 3, 3) cross-product matrices."""
-    z = np.zeros(len(v))
-    return np.stack(
-        [
-            np.stack([z, -v[:, 2], v[:, 1]], axis=-1),
-            np.stack([v[:, 2], z, -v[:, 0]], axis=-1),
-            np.stack([-v[:, 1], v[:, 0], z], axis=-1),
-        ],
-        axis=-2,
-    )
 
 
 def pose_jacobian(points: np.ndarray, T_cam_target: np.ndarray, K, dist) -> tuple[np.ndarray, np.ndarray]:
@@ -86,7 +74,7 @@ def pose_jacobian(points: np.ndarray, T_cam_target: np.ndarray, K, dist) -> tupl
     rvec = cv2.Rodrigues(R)[0]
     pixels, jac = cv2.projectPoints(points, rvec, t, np.asarray(K, np.float64), _dist(dist))
     Jt = jac[:, 3:6].reshape(-1, 2, 3)
-    Jw = -np.einsum("nij,njk->nik", Jt, _skew(points @ R.T))
+    Jw = -np.einsum("nij,njk->nik", Jt, skew(points @ R.T))
     J = np.concatenate([Jt, Jw], axis=2).reshape(-1, 6)
     return pixels.reshape(-1, 2), J
 

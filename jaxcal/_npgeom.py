@@ -1,0 +1,116 @@
+"""Rotations and poses in NumPy, for what runs outside compiled programs: file I/O,
+simulation, scene layout and checks of results (the compiled maths has its JAX
+twins in `jaxcal._geometry`).
+
+Conventions as everywhere in jaxcal: rotation vectors in rad, quaternions in
+(x, y, z, w) order with $w \\ge 0$, 4x4 homogeneous poses.
+"""
+
+import math
+
+import numpy as np
+
+
+def skew(v) -> np.ndarray:
+    """Cross-product matrices: `(..., 3)` -> `(..., 3, 3)`, $[v]_\\times u = v \\times u$."""
+    v = np.asarray(v, np.float64)
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+
+
+def axis_rotation(axis, angle) -> np.ndarray:
+    """Rodrigues' rotations about `axis` (normalised here) by `angle` (rad, a scalar
+    or `(...)`): `(3, 3)` or `(..., 3, 3)`."""
+    axis = np.asarray(axis, np.float64)
+    K = skew(axis / np.linalg.norm(axis))
+    angle = np.asarray(angle, np.float64)
+    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
+    return np.eye(3) + s * K + ((1 - c) * K) @ K
+
+
+def rotvec_to_matrix(w) -> np.ndarray:
+    """Rodrigues' formula for rotation vectors, `(..., 3)` rad -> `(..., 3, 3)`."""
+    w = np.asarray(w, np.float64)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    Kx = skew(w)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * Kx + b * (Kx @ Kx)
+
+
+def rotation_angle(R) -> np.ndarray:
+    """Rotation angle of `(..., 3, 3)` rotations (rad), accurate near 0 and pi."""
+    R = np.asarray(R, np.float64)
+    s = 0.5 * np.linalg.norm(_antisymmetric(R), axis=-1)
+    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(s, c)
+
+
+def _antisymmetric(R: np.ndarray) -> np.ndarray:
+    """$(R_{32} - R_{23}, R_{13} - R_{31}, R_{21} - R_{12})$, `(..., 3)`."""
+    return np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+
+
+def so3_log(R) -> np.ndarray:
+    """Rotation vectors of `(..., 3, 3)` rotations (rad), `(..., 3)`; near pi, where
+    the antisymmetric part vanishes, the axis comes from $R + I$."""
+    R = np.asarray(R, np.float64)
+    s = 0.5 * _antisymmetric(R)
+    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    sn = np.linalg.norm(s, axis=-1)
+    theta = np.arctan2(sn, c)
+    near_pi = (sn < 1e-6) & (c < 0)
+    scale = np.where(sn < 1e-12, 1.0, theta / np.where(sn < 1e-12, 1.0, sn))
+    w = scale[..., None] * s
+    if np.any(near_pi):
+        B = (R[near_pi] + np.eye(3)) / 2.0
+        col = np.argmax(np.linalg.norm(B, axis=-2), axis=-1)
+        axis = B[np.arange(len(col)), :, col]
+        w[near_pi] = np.pi * axis / np.linalg.norm(axis, axis=-1, keepdims=True)
+    return w
+
+
+def quaternion_to_matrix(q_xyzw) -> np.ndarray:
+    """Rotation matrices `(..., 3, 3)` of unit quaternions `(..., 4)` in (x, y, z, w) order."""
+    x, y, z, w = np.moveaxis(np.asarray(q_xyzw, np.float64), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quaternion(R) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), `w >= 0`, of a rotation matrix (3, 3) (Shepperd's method)."""
+    R = np.asarray(R, np.float64)
+    t = np.trace(R)
+    diag = np.diag(R)
+    k = int(np.argmax([t, *diag]))
+    if k == 0:
+        s = 2.0 * math.sqrt(1.0 + t)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    else:
+        i = k - 1
+        j, m = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(1.0 + R[i, i] - R[j, j] - R[m, m])
+        q = [0.0, 0.0, 0.0, (R[m, j] - R[j, m]) / s]
+        q[i], q[j], q[m] = 0.25 * s, (R[j, i] + R[i, j]) / s, (R[m, i] + R[i, m]) / s
+    q = np.asarray(q)
+    return q if q[3] >= 0 else -q
+
+
+def pose(R=None, t=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """The 4x4 pose of a rotation `R` (identity when None) and translation `t`."""
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, np.float64).ravel()
+    return T
