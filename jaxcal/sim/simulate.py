@@ -35,6 +35,8 @@ from ..io.dataset import (
 from ..io.model_json import model_to_json
 from ..io.urdf import load_urdf, save_urdf
 from ..markers import TargetSpec
+from ..planning._layout import facing_mount as facing_mount
+from ..planning._layout import look_at as look_at
 from ..robots import link_inertials, robot_path, shipped
 from .arm import ArmModel, ArmMotion, arm_model
 from .camera import CameraModel, camera_model
@@ -130,21 +132,6 @@ class SimConfig:
 # --------------------------------------------------------------------------- geometry helpers
 
 
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """`T_world_cam` (OpenCV axes) of a camera at `eye` looking at `target`."""
-    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-6:
-        x = np.cross(z, (0.0, 1.0, 0.0))
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    T[:3, 3] = eye
-    return T
-
-
 def _jitter(T, rng, mm, deg) -> np.ndarray:
     w = np.deg2rad(deg) * rng.standard_normal(3)
     angle = np.linalg.norm(w)
@@ -153,26 +140,6 @@ def _jitter(T, rng, mm, deg) -> np.ndarray:
         dT[:3, :3] = axis_rotation(w, angle)
     dT[:3, 3] = 1e-3 * mm * rng.standard_normal(3)
     return np.asarray(T) @ dT
-
-
-def facing_mount(spec: TargetSpec, normal, centre, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """`T_link_target` putting `spec`'s printed face at `centre`, facing `normal`,
-    upright for a viewer whose up is `up` (all in the link frame)."""
-    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
-    up = np.asarray(up, np.float64)
-    d = -(up - np.dot(up, n) * n)
-    if np.linalg.norm(d) < 1e-6:
-        d = np.cross(n, (1.0, 0.0, 0.0))
-    d /= np.linalg.norm(d)
-    r = np.cross(n, d)  # a viewer looking along -n: right = down x forward
-    _, right, down = spec.pattern_extent()
-    R = np.stack([r, d, n], axis=1) @ np.stack([right, down, spec.front_normal()], axis=1).T
-    top_left, _, _ = spec.pattern_extent()
-    w, h = spec.pattern_size
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.asarray(centre, np.float64) - R @ (top_left + 0.5 * w * right + 0.5 * h * down)
-    return T
 
 
 # --------------------------------------------------------------------------- the run
