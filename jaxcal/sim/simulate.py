@@ -122,6 +122,17 @@ class SimConfig:
             raise ValueError("give the lens distortion once: in the camera model or in `distortion`")
         arm_model(self.arm)
 
+    @property
+    def scales(self) -> PerturbationScales:
+        """The arm's perturbation scales (`perturb_model`'s), from this config's fields."""
+        return PerturbationScales(
+            origin_mm=self.origin_mm,
+            origin_deg=self.origin_deg,
+            axis_tilt_deg=self.axis_tilt_deg,
+            zero_offset_deg=self.zero_offset_deg,
+            ratio_percent=self.ratio_percent,
+        )
+
     def with_lens(self) -> "SimConfig":
         """This config, checked, with the camera model's lens distortion (if it has one) as `distortion`."""
         self.check()
@@ -168,14 +179,7 @@ def sweep_ranges(nominal, config: SimConfig) -> np.ndarray:
 
 def draw_truth(nominal, config: SimConfig):
     """The true arm: `nominal` perturbed with `config`'s scales (seeded), joint 1's frame kept."""
-    scales = PerturbationScales(
-        origin_mm=config.origin_mm,
-        origin_deg=config.origin_deg,
-        axis_tilt_deg=config.axis_tilt_deg,
-        zero_offset_deg=config.zero_offset_deg,
-        ratio_percent=config.ratio_percent,
-    )
-    true = perturb_model(nominal, jax.random.key(config.seed), scales)
+    true = perturb_model(nominal, jax.random.key(config.seed), config.scales)
     return anchor_base(true, nominal)
 
 

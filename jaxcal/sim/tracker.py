@@ -89,6 +89,17 @@ class TrackerSimConfig:
     pose_range_deg: float = 170.0
     compliance: tuple[float, ...] | None = None
 
+    @property
+    def scales(self) -> PerturbationScales:
+        """The arm's perturbation scales (`perturb_model`'s); the tracker sees no reduction ratios."""
+        return PerturbationScales(
+            origin_mm=self.origin_mm,
+            origin_deg=self.origin_deg,
+            axis_tilt_deg=self.axis_tilt_deg,
+            zero_offset_deg=self.zero_offset_deg,
+            ratio_percent=0.0,
+        )
+
     def check(self, joints: int) -> None:
         if self.compliance is not None and len(self.compliance) != joints:
             raise ValueError(f"compliance has {len(self.compliance)} values for a robot with {joints} joints")
@@ -238,11 +249,7 @@ def simulate_tracker(config: TrackerSimConfig, out, *, overwrite: bool = False) 
     nominal = load_robot_file(urdf)
     names = list(nominal.joint_names)
     config.check(len(names))
-    scales = PerturbationScales(
-        origin_mm=config.origin_mm, origin_deg=config.origin_deg, axis_tilt_deg=config.axis_tilt_deg,
-        zero_offset_deg=config.zero_offset_deg, ratio_percent=0.0,
-    )  # fmt: skip
-    true = perturb_model(nominal, jax.random.key(config.seed), scales)
+    true = perturb_model(nominal, jax.random.key(config.seed), config.scales)
     if not config.device_is_base:
         true = anchor_base(true, nominal)  # the device pose absorbs joint 1's frame
     rng = np.random.default_rng(config.seed)
