@@ -11,11 +11,13 @@ from helpers import tree_allclose
 from jaxcal import _lsq
 from jaxcal._linalg import concurrent_decompositions
 from jaxcal._schur import (
+    NormalEquations,
     block_covariance,
     block_least_squares,
     block_leverage,
     full_covariance,
     jacobian_by_jvp,
+    normal_least_squares,
     small_cholesky_solve,
 )
 
@@ -204,3 +206,41 @@ def test_vmap_equals_loop_and_has_no_unordered_decompositions():
         one, row = (eqx.tree_at(lambda t: steps(t[0]), t, 0) for t in (one, row))
         assert tree_allclose(one, row, atol=1e-10)
     assert concurrent_decompositions(jax.vmap(solve_and_cov), g0, l0, args) == []
+
+
+def _exp_normal(x, args):
+    """Normal equations of a small nonlinear fit: $r_i = a e^{b t_i} + c - y_i$."""
+    t, y = args
+    f = lambda z: z[0] * jnp.exp(z[1] * t) + z[2] - y  # noqa: E731
+    r, J = f(x), jax.jacfwd(f)(x)
+    return r, NormalEquations(H=J.T @ J, e=J.T @ r)
+
+
+def _exp_problem():
+    rng = np.random.default_rng(4)
+    t = jnp.linspace(0.0, 2.0, 60)
+    y = 1.5 * jnp.exp(-0.8 * t) + 0.2 + 0.01 * rng.normal(size=60)
+    return jnp.array([1.0, -0.5, 0.0]), (t, y)
+
+
+def test_normal_least_squares_with_the_first_linearisation_given_takes_the_same_steps():
+    x0, args = _exp_problem()
+    kw = dict(rtol=1e-10, atol=1e-10, max_steps=50)
+    plain = normal_least_squares(_exp_normal, x0, args, **kw)
+    given = normal_least_squares(_exp_normal, x0, args, first=_exp_normal(x0, args), **kw)
+    assert plain.result == optx.RESULTS.successful and int(given.num_steps) == int(plain.num_steps)
+    np.testing.assert_allclose(given.x, plain.x, rtol=0, atol=1e-14)
+
+
+def test_a_settled_solve_stops_within_a_hundredth_of_a_standard_deviation():
+    """`settled`: one evaluation fewer here, and the answer within 0.01 sigma of the
+    converged one in the covariance's metric."""
+    x0, args = _exp_problem()
+    kw = dict(rtol=0.0, atol=1e-12, max_steps=50)
+    full = normal_least_squares(_exp_normal, x0, args, **kw)
+    early = normal_least_squares(_exp_normal, x0, args, settled=1e-2, **kw)
+    assert int(early.num_steps) < int(full.num_steps)
+    r = full.residuals
+    cov = jnp.linalg.inv(full.normal.H) * jnp.mean(r**2)
+    d = early.x - full.x
+    assert float(d @ jnp.linalg.solve(cov, d)) < 1e-4
