@@ -304,6 +304,46 @@ def axis_jacobian(
     return r, J.reshape(-1, J.shape[-1])
 
 
+def axis_problem(
+    nominal: KinematicModel,
+    arcs: ArcFitResult,
+    T_flange_marker0: Float[Array, "markers 4 4"],
+    T_cam_base0: Float[Array, "4 4"],
+    home: Float[Array, "joints joints"] | None = None,
+) -> AxisFitProblem:
+    """The `AxisFitProblem` `fit_axes` solved, rebuilt from its references (an
+    `AxisFitResult`'s `T_flange_marker0`, `T_cam_base0`), the marker poses used
+    when the arcs had encoders; `home` as `fit_axes` takes it (None: zeros)."""
+    use_poses = bool(arcs.has_encoder)
+    k = _meas_dim(arcs, use_poses)
+    n = nominal.num_joints
+    return AxisFitProblem(
+        nominal=nominal,
+        T_flange_marker0=T_flange_marker0,
+        T_cam_base0=T_cam_base0,
+        arcs=arcs,
+        sqrt_info=jax.vmap(_whitening)(arcs.meas_cov[:, :k, :k]),
+        use_poses=use_poses,
+        home=jnp.zeros((n, n)) if home is None else jnp.asarray(home, jnp.float64),
+    )
+
+
+def home_jacobian(params: AxisFitParams, problem: AxisFitProblem) -> Float[Array, "joints*k joints joints"]:
+    """$\\partial r / \\partial h$: the whitened residuals' derivative with respect to each
+    sweep's home configuration (row `j` of `problem.home`, rad), by autodiff of the
+    reference residuals: how a joint standing elsewhere than commanded during a sweep
+    (gravity sag, backlash) moves the axes the fit compares."""
+    n = problem.nominal.num_joints
+    home = jnp.zeros((n, n)) if problem.home is None else problem.home
+
+    def residuals(h):
+        return _axis_residuals_autodiff(
+            params, eqx.tree_at(lambda p: p.home, problem, h, is_leaf=lambda x: x is None)
+        )
+
+    return jax.jacfwd(residuals)(home).reshape(-1, n, n)
+
+
 def _whitening(cov: Float[Array, "k k"]) -> Float[Array, "k k"]:
     """$W$ with $W^T W = \\Sigma^{-1}$ (inverse Cholesky factor), regularised."""
     k = cov.shape[0]

@@ -5,6 +5,7 @@ readings sit within half a count of the motor (stamped `latency_s` late), and
 `simulate` films the arm where the model puts it."""
 
 import json
+from dataclasses import replace
 
 import jax
 import numpy as np
@@ -122,3 +123,29 @@ def test_simulate_films_the_arm_where_the_model_puts_it(tmp_path):
     # Within the lost motion's half width plus the largest gravity deflection (0.05 rad/kNm x < 150 N m).
     assert np.all(np.abs(dtheta) <= np.radians(0.1) + 0.05 * 0.15 + 1e-12)
     assert np.max(np.abs(dtheta[:, 1])) > np.radians(0.1)  # the shoulder sags beyond the play
+
+
+# --------------------------------------------------------------------------- the verdict's arm check
+
+
+@pytest.mark.slow
+def test_verdict_flags_an_arm_that_sags(tmp_path):
+    """The same sweeps of a rigid arm and of one whose joints yield 0.1 rad per kN m (three
+    times a UR5's shoulder): the rigid one's axes show no gravity pattern (F of order 1, the
+    F law's mean), the sagging one's are flagged with gravity sag and backlash named, and
+    the compliance the axes fit at the shoulder or elbow has the truth's sign and order."""
+    from jaxcal import calibrate
+
+    config = SimConfig(resolution=(640, 480), frames_per_joint=12, range_deg=80.0, grayscale=True)
+    rigid = calibrate(simulate(config, tmp_path / "rigid", progress=False), progress=False, refine=False)
+    sag = ArmModel(name="sag", compliance=(0.1, 0.1, 0.1, 0.2))
+    bent = calibrate(
+        simulate(replace(config, arm=sag), tmp_path / "sag", progress=False), progress=False, refine=False
+    )
+    F_rigid, F_bent = ({c["check"]: c for c in r.verdict.checks}["arm_gravity_F"] for r in (rigid, bent))
+    assert F_rigid["passed"] and F_rigid["value"] < 5.0, F_rigid
+    assert not F_bent["passed"] and bent.status == "suspect", F_bent
+    reason = next(r for r in bent.reasons if "gravity" in r)
+    assert "backlash" in reason and "compliance" in reason
+    c_hat = float(reason.split("apparent compliance of ")[1].split(" ")[0])
+    assert 0.02 < c_hat < 0.5

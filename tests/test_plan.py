@@ -429,6 +429,20 @@ def test_simulate_plan_refuses_options_the_plan_fixes(ur5e, tmp_path, capsys):
     assert main([*argv, "--out", str(tmp_path / "ds")]) == 2
     err = capsys.readouterr().err
     assert "--robot, --resolution cannot change a plan" in err and not (tmp_path / "ds").exists()
+    # The camera and arm models are the capture's, not the plan's: they go with it.
+    argv = [
+        "simulate",
+        "--plan",
+        str(plan_path),
+        "--camera",
+        "global-shutter",
+        "--arm",
+        "realistic",
+        "--robot",
+        "panda",
+    ]
+    assert main([*argv, "--out", str(tmp_path / "ds")]) == 2
+    assert "--robot cannot change a plan" in capsys.readouterr().err
 
 
 def test_negative_numbers_start_a_region_or_a_taught_pose():

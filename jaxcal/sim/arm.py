@@ -14,7 +14,9 @@ $\\theta_0 = q\\,\\rho_{nom}/\\rho_{true} + \\delta$. Between motor and link:
   band. The commanded legs of a `Trajectory` are monotone (smooth steps between
   waypoints), so the operator is exact from its state at the waypoints:
   $\\theta_b(t) = \\mathrm{clip}(\\theta_b(t_i),\\ \\theta_0(t) - b/2,\\ \\theta_0(t) + b/2)$ on
-  the leg from waypoint $t_i$.
+  the leg from waypoint $t_i$. A gear that gravity preloads stays against
+  one flank whichever way it turns; that is not modelled here, so the lost
+  motion of loaded joints (a shoulder, an elbow) is a pessimistic case.
 - **gravity compliance** (`compliance`, rad per kN m per joint, $c_j$): the
   joint yields by $c_j\\,\\tau_j$, with $\\tau_j$ the gravity torque about its
   axis from the robot file's link masses and centres of mass

@@ -20,9 +20,10 @@ rendered `SUPERSAMPLE` times finer, warped there (each fine pixel of the
 distorted image takes the ideal image's value where the lens maps it from,
 interpolated bilinearly), and averaged over each pixel's area. Warping the
 image at its own resolution instead interpolates the renderer's already
-sampled edges a fraction of a pixel off the grid, and biases the corners a
-detector finds by a few hundredths of a pixel in a pattern that follows the
-distortion, which the calibration reads as geometry (docs/performance.md).
+sampled edges a fraction of a pixel off its grid: the corners a detector finds
+then err alike in neighbouring frames (the error follows the distortion map's
+sub-pixel phase, not the noise), which the calibration reads as geometry
+(measured in docs/performance.md, "Lens distortion given").
 """
 
 from dataclasses import dataclass, field

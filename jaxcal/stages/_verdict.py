@@ -17,6 +17,7 @@ import numpy as np
 from .._geometry import line_distance
 from .._kinematics import joint_axes
 from . import _programs
+from ._armcheck import arm_check
 from ._observe import Observations
 from ._refine import Refined, succeeded
 from ._setup import Setup
@@ -279,6 +280,7 @@ def verdict(
     skewed = ran and bool(refined.line_delays)
     if setup.kind.has_arcs:
         _axes(c, setup, two, limits, residuals=not skewed)
+        arm_check(c, setup, sync, two, limits)
     if ran:
         _refinement(c, refined, limits)
         _shutter(c, refined, limits)
