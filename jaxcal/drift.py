@@ -606,12 +606,13 @@ def _noise_note(c: DriftCheck, nu: float, factor: float) -> DriftCheck:
 
 
 def hand_eye_verdict(f: HandEyeCheckFit, names=("", "")) -> DriftCheck:
-    """The test of a hand-eye drift fit (`jaxcal.handeye_check`; its noise scale estimated, as
-    the camera check's)."""
+    """The test of a hand-eye drift fit (`jaxcal.handeye_check`; its noise and per-view
+    components estimated: Fisher's F on `f.dof_noise` degrees of freedom)."""
     c = verdict(
         f.theta, f.C, f.T, f.rss, f.dof, samples=f.views, joint_names=(), T_now=f.T_now, names=names,
-        what="camera", frame=f.frame, dof_noise=f.dof,
+        what="camera", frame=f.frame, dof_noise=f.dof_noise,
     )  # fmt: skip
+    c.residual.update(view_sigma_mm=1e3 * f.view_sigma[0], view_sigma_deg=float(np.degrees(f.view_sigma[1])))
     return _noise_note(c, f.nu, 1.0)
 
 

@@ -16,8 +16,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from ._drift_camera import NOISE_ROUNDS
-from ._drift_handeye import HandEyeCheckData, fit_handeye_drift
+from ._drift_handeye import HandEyeCheckData, covariance_terms, fit_handeye_drift, variance_components
 from ._geometry import se3_exp
 from .errors import DatasetError
 from .io.handeye import HandEyeCapture, load_hand_eye_capture
@@ -41,7 +40,9 @@ class HandEyeCheckFit:
     its covariance `C`, the statistic `T`, the whitened residual sum of squares `rss` on
     `dof` degrees of freedom, `views` used; `T_now` the camera's pose moved by the drift,
     named `frame` (`T_base_cam` or `T_ee_cam`); `camera`: its name; `nu`: the check's corner
-    noise variance in units of the calibration's (estimated, as the camera check's)."""
+    noise variance in units of the calibration's, `view_sigma`: each view's coherent pose error
+    (m, rad per axis), both estimated (`jaxcal._drift_handeye.variance_components`), on
+    `dof_noise` degrees of freedom."""
 
     theta: np.ndarray
     C: np.ndarray
@@ -53,6 +54,8 @@ class HandEyeCheckFit:
     frame: str
     camera: str
     nu: float = 1.0
+    view_sigma: tuple[float, float] = (0.0, 0.0)
+    dof_noise: int | None = None
 
 
 def larger_covariance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -179,17 +182,20 @@ def fit_check(
     ($T_{robot,target}$) with covariance `cov` `(12, 12)`, robot pose noise `robot_sigma` `(6,)`
     (m, rad) and corner noise `sigma_px` (see `jaxcal._drift_handeye`)."""
     corners = int(np.asarray(data.mask).sum())
-    dof = 2 * corners - 6
-    args = [jnp.asarray(a, jnp.float64) for a in (X, Y, cov, robot_sigma)]
-    nu = 1.0
-    for _ in range(NOISE_ROUNDS):  # the noise scale's fixed point (see `jaxcal._drift_camera`)
-        theta, C, T, rss = (np.asarray(a) for a in fit_handeye_drift(*args, sigma_px * np.sqrt(nu), data))
-        nu *= float(rss) / dof
-    nu /= float(rss) / dof
+    views = int(np.asarray(data.mask).any(-1).sum()) if views is None else views
+    X, Y = jnp.asarray(X, jnp.float64), jnp.asarray(Y, jnp.float64)
+    terms = covariance_terms(X, Y, jnp.asarray(cov, jnp.float64), jnp.asarray(robot_sigma, jnp.float64), data)
+    R, s = variance_components(*terms, sigma_px)
+    theta, C, T, rss = (np.asarray(a) for a in fit_handeye_drift(X, Y, R, data))
+    nu, view = float(s[0]) / sigma_px**2, (float(np.sqrt(s[1])), float(np.sqrt(s[2])))
     T_now = np.linalg.inv(np.asarray(X)) @ np.asarray(se3_exp(jnp.asarray(theta)))
     frame = "T_ee_cam" if eye_in_hand else "T_base_cam"
-    views = int(np.asarray(data.mask).any(-1).sum()) if views is None else views
-    return HandEyeCheckFit(theta, C, float(T), float(rss), dof, views, T_now, frame, camera, nu)
+    # The per-view components rest on the views' 6 (views - 1) redundant pose coordinates: the F
+    # test's denominator degrees of freedom (the corners' 2 m - 6 are many more).
+    return HandEyeCheckFit(
+        theta, C, float(T), float(rss), 2 * corners - 6, views, np.asarray(T_now), frame, camera, nu, view,
+        6 * (views - 1),
+    )  # fmt: skip
 
 
 def fit_hand_eye_check(doc: dict, file: Path, capture, *, workers=None) -> HandEyeCheckFit:
