@@ -9,6 +9,7 @@ end-effector RMS against the truth, the verdict's `status` (`ok`, `suspect`,
 or `refused` when the calibration raises) and its `reasons`.
 
     python benchmarks/realism.py --json results/realism.json [--workdir DIR] [--cases ideal noise ...]
+        [--detection-errors]
         [--resolution 800x600] [--frames-per-joint 24]
 
 Cases (the issue's that the simulator supports so far): `ideal`; `noise`
@@ -29,6 +30,12 @@ per motor turn: a 256-line quadrature encoder), `encoder_latency` (joint
 states stamped 2 ms late); `combined`: the `global-shutter` camera and the
 `realistic` arm (`jaxcal simulate --camera global-shutter --arm realistic`).
 
+With `--detection-errors`, each case also reports its detected corners against the
+truth projected through the simulated lens (`detection`: `rms_px`, the `mean_px`
+shift, `corner_fixed_rms_px`, the RMS of each corner's mean error over the frames
+that saw it, and `frame_correlation`, the correlation of a corner's errors in
+consecutive frames: independent errors give about 0).
+
 With `--workdir`, the rendered captures are kept and reused (rendering is
 deterministic per case).
 """
@@ -42,12 +49,17 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 import jaxcal
 from jaxcal.errors import JaxcalError
 from jaxcal.io._files import write_text_atomic
+from jaxcal.io.dataset import load_dataset
 from jaxcal.sim.arm import ARM_PRESETS, ArmModel
 from jaxcal.sim.camera import PRESETS, CameraModel
 from jaxcal.sim.simulate import SimConfig, simulate
+from jaxcal.vision import detect_frames
 
 #: The issue's lens: barrel distortion of a wide-angle lens.
 LENS = (-0.12, 0.05, 0.0, 0.0, 0.0)
@@ -130,6 +142,40 @@ def capture(case: str, config: SimConfig, workdir: Path) -> Path:
     return simulate(replace(config, camera=camera, arm=ARMS.get(case, "ideal")), out, progress=False)
 
 
+def detection_errors(dataset: Path) -> dict:
+    """The first camera's detections of the first target against the truth projected through the
+    simulated lens (see the module docstring)."""
+    ds = load_dataset(dataset)
+    cam, target = ds.cameras[0], ds.targets[0]
+    meta = json.loads((dataset / "metadata.json").read_text())
+    lens = np.asarray(meta["simulation"]["distortion"], np.float64)
+    frames = [f for f in ds.truth["frames"] if f["camera"] == cam.name]
+    paths = [ds.image_path(f["row"]) for f in frames]
+    dets = detect_frames(paths, [target.spec], K=cam.K, dist=cam.dist, progress=False)
+    points = target.spec.points()
+    errors = {}  # (corner id, frame) -> error (px)
+    for f, det in zip(frames, dets):
+        d = det.get(target.name)
+        if d is None:
+            continue
+        T = np.asarray(f["T_cam_target"][target.name], np.float64)
+        proj = cv2.projectPoints(points[d.ids], cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], cam.K, lens)[0][:, 0]
+        errors.update({(int(i), int(f["frame"])): e for i, e in zip(d.ids, d.pixels - proj)})
+    e = np.array(list(errors.values()))
+    ids = np.array([i for i, _ in errors])
+    fixed = np.array([e[ids == i].mean(axis=0) for i in ids])
+    pairs = [(v, errors[(i, k + 1)]) for (i, k), v in errors.items() if (i, k + 1) in errors]
+    num = sum(float(a @ b) for a, b in pairs)
+    den = sum(0.5 * float(a @ a + b @ b) for a, b in pairs)
+    return {
+        "corners": len(e),
+        "rms_px": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))),
+        "mean_px": e.mean(axis=0).tolist(),
+        "corner_fixed_rms_px": float(np.sqrt(np.mean(np.sum(fixed**2, axis=1)))),
+        "frame_correlation": num / den if den else None,
+    }
+
+
 def run_case(dataset: Path) -> dict:
     """Calibrate `dataset` with the defaults: EE RMS of both stages, the verdict and its reasons."""
     try:
@@ -153,6 +199,11 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", help="write the figures here")
     parser.add_argument("--workdir", help="keep the rendered captures here and reuse them")
+    parser.add_argument(
+        "--detection-errors",
+        action="store_true",
+        help="also the detected corners against the projected truth",
+    )
     args = parser.parse_args(argv)
     w, h = (int(x) for x in args.resolution.split("x"))
     config = SimConfig(
@@ -171,6 +222,8 @@ def main(argv=None) -> int:
                 "render_s": rendered - start,
                 "calibrate_s": time.perf_counter() - rendered,
             }
+            if args.detection_errors:
+                cases[case]["detection"] = detection_errors(dataset)
             print(json.dumps({case: cases[case]}), flush=True)
     ideal = cases.get("ideal")
     if ideal and ideal["refined_mm"]:
