@@ -24,13 +24,16 @@ from an empty one):
 
 The JSON also holds every repeat (`runs`), `load` (the 1-minute load average
 before each figure: on a shared machine the figures are only comparable back
-to back) and `machine`.
+to back), `cpu_s` (the median CPU time, user + system, of each shell figure's
+processes: less sensitive to other users of the machine than the wall time)
+and `machine`.
 """
 
 import argparse
 import json
 import os
 import platform
+import resource
 import shutil
 import statistics
 import subprocess
@@ -57,10 +60,22 @@ def _load() -> float:
     return os.getloadavg()[0]
 
 
+#: CPU seconds (user + system) of each finished `_run`, in order.
+CPU: list[float] = []
+
+
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
 def _run(cmd: list[str], env: dict) -> float:
-    t0 = time.perf_counter()
+    """Wall time of `cmd`; its CPU time goes to `CPU`."""
+    c0, t0 = _children_cpu(), time.perf_counter()
     subprocess.run(cmd, env=env, check=True, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    return time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    CPU.append(_children_cpu() - c0)
+    return wall
 
 
 def _calibrate(env: dict, out: Path) -> tuple[float, float]:
@@ -71,10 +86,14 @@ def _calibrate(env: dict, out: Path) -> tuple[float, float]:
     return wall, result["validation"]["ee_rms_mm_after"]
 
 
-def _figure(name: str, runs: list[float], report: dict) -> None:
+def _figure(name: str, runs: list[float], report: dict, cpu: list[float] | None = None) -> None:
     report["runs"][name] = runs
     report[name] = statistics.median(runs)
-    print(f"{name}: {report[name]:.2f} s (runs {', '.join(f'{r:.2f}' for r in runs)})", flush=True)
+    line = f"{name}: {report[name]:.2f} s (runs {', '.join(f'{r:.2f}' for r in runs)})"
+    if cpu:
+        report["cpu_s"][name] = statistics.median(cpu)
+        line += f", CPU {report['cpu_s'][name]:.2f} s"
+    print(line, flush=True)
 
 
 def main() -> None:
@@ -90,6 +109,7 @@ def main() -> None:
     report: dict = {
         "runs": {},
         "load": {},
+        "cpu_s": {},
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
     }
     try:
@@ -98,6 +118,7 @@ def main() -> None:
             "import_s",
             [_run([sys.executable, "-c", "import jaxcal"], env) for _ in range(args.repeats)],
             report,
+            CPU[-args.repeats :],
         )
         cold, ee_cold = [], None
         for _ in range(1 if args.no_cold else args.repeats):
@@ -107,11 +128,11 @@ def main() -> None:
             cold.append(wall)
             ee_cold = ee if ee_cold is None else ee_cold
         if not args.no_cold:
-            _figure("cold_cli_s", cold, report)
+            _figure("cold_cli_s", cold, report, CPU[-len(cold) :])
         report["ee_rms_mm_after_cold"] = ee_cold
         report["load"]["warm_cli_s"] = _load()
         warm = [_calibrate(env, work / "out") for _ in range(args.repeats)]
-        _figure("warm_cli_s", [w for w, _ in warm], report)
+        _figure("warm_cli_s", [w for w, _ in warm], report, CPU[-len(warm) :])
         report["ee_rms_mm_after_warm"] = warm[0][1]
         seconds = []
         for _ in range(args.repeats):
@@ -151,7 +172,7 @@ def _handeye(env: dict, work: Path, repeats: int, report: dict) -> None:
         if k:
             runs.append(wall)
     report["load"]["handeye_warm_cli_s"] = _load()
-    _figure("handeye_warm_cli_s", runs, report)
+    _figure("handeye_warm_cli_s", runs, report, CPU[-len(runs) :])
 
 
 if __name__ == "__main__":
