@@ -34,6 +34,7 @@ def calibrate(
     refine: bool = True,
     other_cameras: bool = True,
     refine_intrinsics: bool | None = None,
+    estimate_line_delay: bool = False,
     limits: Limits | None = None,
     arc_loss: str | None = "cauchy",
     device_is_base: bool = False,
@@ -64,6 +65,9 @@ def calibrate(
       refinement (focal lengths, principal point and the distortion the data
       support; default: when they were self-calibrated because the metadata
       has no `K`).
+    - `estimate_line_delay`: take every camera whose `line_delay_s` the
+      metadata leaves null for a rolling shutter and estimate its line delay in
+      the refinement (as `line_delay_s: "estimate"` does for one camera).
     - `validate`: with a synthetic dataset's `truth.json`, add the validation block.
     - `refine`: after the two-stage fit, minimise the reprojection error of
       every detected corner over all parameters (`jaxcal._refine`); `False`
@@ -110,6 +114,7 @@ def calibrate(
         other_cameras=other_cameras,
         log=log,
         refine_intrinsics=refine_intrinsics,
+        estimate_line_delay=estimate_line_delay,
         limits=stages.Limits() if limits is None else limits,
         arc_loss=arc_loss,
         device_is_base=device_is_base,

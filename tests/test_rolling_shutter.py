@@ -39,6 +39,7 @@ from jaxcal.robots import load_robot
 from jaxcal.stages._blur import lost_to_blur
 from jaxcal.stages._observe import pose_times
 from jaxcal.stages._refine import rolling_shutter
+from jaxcal.stages._setup import _line_delay_estimated
 from jaxcal.stages.limits import Limits
 
 NOMINAL = load_robot("ur5e")
@@ -243,3 +244,12 @@ def test_a_sweep_that_lost_its_fast_frames_names_motion_blur():
     obs.camera.exposure_s = 1e-3
     assert lost_to_blur(None, obs, sync, 0) == ""
     assert lost_to_blur(None, *_sweep(lambda s: True)[:2], 0) == ""
+
+
+def test_the_option_estimates_only_unknown_line_delays():
+    unknown = CameraInfo("cam0", 64, 48, None, np.zeros(5))
+    given = dataclasses.replace(unknown, line_delay_s=1e-5)
+    glob = dataclasses.replace(unknown, line_delay_s=0.0)
+    assert _line_delay_estimated(unknown).estimate_line_delay
+    assert not _line_delay_estimated(given).estimate_line_delay
+    assert not _line_delay_estimated(glob).estimate_line_delay  # 0: a global shutter, said so

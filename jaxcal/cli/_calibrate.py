@@ -211,6 +211,7 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
         progress=not args.quiet,
         clock=_clock_arg(console, args),
         refine_intrinsics=args.refine_intrinsics,
+        estimate_line_delay=getattr(args, "estimate_line_delay", False),
         refine=not args.no_refine,
         other_cameras=not args.single_camera,
         arc_loss=None if args.arc_loss == "none" else args.arc_loss,
@@ -360,6 +361,12 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         default=None,
         help="free the camera's intrinsics in the refinement (default: when metadata.json has no K and "
         "they are self-calibrated from the sweep images)",
+    )
+    p.add_argument(
+        "--estimate-line-delay",
+        action="store_true",
+        help="take cameras whose line_delay_s metadata.json leaves null for rolling shutters and estimate their "
+        'line delay in the refinement (as line_delay_s: "estimate")',
     )
     p.add_argument(
         "--strict",

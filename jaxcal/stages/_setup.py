@@ -33,6 +33,7 @@ class Options:
     other_cameras: bool = True
     log: Callable[[str], None] | None = None
     refine_intrinsics: bool | None = None
+    estimate_line_delay: bool = False
     limits: Limits = Limits()
     arc_loss: str | None = "cauchy"
     device_is_base: bool = False
@@ -195,6 +196,14 @@ def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: fl
     )  # fmt: skip
 
 
+def _line_delay_estimated(camera: CameraInfo) -> CameraInfo:
+    """`Options.estimate_line_delay`: a camera whose line delay the metadata leaves null is
+    taken for a rolling shutter whose delay the refinement estimates."""
+    if camera.line_delay_s is None and not camera.estimate_line_delay:
+        return dataclasses.replace(camera, estimate_line_delay=True)
+    return camera
+
+
 def setup(dataset, options: Options) -> Setup:
     """Load `dataset` (a path or a `Dataset`) and resolve the capture kind,
     the camera, the targets and the further cameras (see `Setup`)."""
@@ -272,6 +281,8 @@ def setup(dataset, options: Options) -> Setup:
             f"no encoder log: the refinement uses camera {cam.name!r} only (not {[c.name for c in extra]})"
         )
         extra = []
+    if options.estimate_line_delay:
+        cam, extra = _line_delay_estimated(cam), [_line_delay_estimated(c) for c in extra]
     return Setup(
         dataset=ds,
         nominal=nominal,
