@@ -19,7 +19,7 @@ import optimistix as optx
 import pytest
 from jax.flatten_util import ravel_pytree
 
-from jaxcal._correction import ParameterLayout
+from jaxcal._correction import Estimate, ParameterLayout
 from jaxcal._montecarlo import default_setup
 from jaxcal._refine import (
     RefineProblem,
@@ -35,6 +35,7 @@ from jaxcal._reprojection import corner_times, joint_positions, rolling
 from jaxcal.errors import DatasetError
 from jaxcal.io._metadata import CameraInfo, read_cameras
 from jaxcal.io._schema import Loc
+from jaxcal.io.result import read_estimate, write_estimate
 from jaxcal.robots import load_robot
 from jaxcal.stages._blur import lost_to_blur
 from jaxcal.stages._observe import pose_times
@@ -253,3 +254,24 @@ def test_the_option_estimates_only_unknown_line_delays():
     assert _line_delay_estimated(unknown).estimate_line_delay
     assert not _line_delay_estimated(given).estimate_line_delay
     assert not _line_delay_estimated(glob).estimate_line_delay  # 0: a global shutter, said so
+
+
+def test_estimate_file_keeps_the_line_delays(tmp_path):
+    """`estimate.npz` holds the layout's line delays (a refinement's vector ends with them)."""
+    layout = ParameterLayout.of(NOMINAL, 1, line_delays=("cam0",))
+    n = layout.size
+    est = Estimate(
+        x=jnp.arange(n, dtype=jnp.float64),
+        cov=jnp.eye(n),
+        free=jnp.ones(n, bool),
+        nominal=NOMINAL,
+        T_flange_marker0=SETUP.T_flange_marker,
+        T_cam_base0=SETUP.T_cam_base,
+        reduction_ratio=NOMINAL.reduction_ratio,
+        layout=layout,
+        mount_names=("plate0",),
+    )
+    write_estimate(tmp_path / "estimate.npz", est)
+    back = read_estimate(tmp_path / "estimate.npz")
+    assert back.layout == layout and back.layout.names()[-1] == "cam0.line_delay_us"
+    np.testing.assert_array_equal(np.asarray(back.x), np.asarray(est.x))

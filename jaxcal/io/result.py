@@ -138,6 +138,7 @@ def write_estimate(path, estimate) -> None:
             num_markers=np.asarray(lay.num_markers),
             other_cameras=np.asarray(lay.other_cameras, str),
             angles=np.asarray(lay.angles, str),
+            line_delays=np.asarray(lay.line_delays, str),
             eye_in_hand=np.asarray(lay.eye_in_hand),
             fixed_name=np.asarray("" if lay.fixed_name is None else lay.fixed_name),
             mount_names=np.asarray(estimate.mount_names, str),
@@ -154,6 +155,7 @@ def read_estimate(path) -> Estimate:
             int(d["num_markers"]),
             other_cameras=tuple(str(s) for s in d["other_cameras"]),
             angles=tuple(str(s) for s in d["angles"]),
+            line_delays=tuple(str(s) for s in d.get("line_delays", ())),  # absent before rolling shutters
             eye_in_hand=bool(d["eye_in_hand"]),
             fixed_name=str(d["fixed_name"]) or None,
         )
