@@ -1,5 +1,9 @@
 import gc
+import json
 import os
+import resource
+import time
+from collections import Counter
 from pathlib import Path
 
 # The suite is compile-bound: LLVM at -O0 compiles XLA's CPU programs about a
@@ -95,3 +99,34 @@ def pytest_collection_modifyitems(config, items):
         return SLOW_FIRST.index(module) if module in SLOW_FIRST else len(SLOW_FIRST)
 
     items.sort(key=rank)  # stable: a file's tests keep their order
+
+
+#: Per test file, the CPU seconds its tests took (the worker's threads and the
+#: subprocesses it waited for), summed over the session: `JAXCAL_TEST_CPU=FILE`
+#: appends one JSON line per worker to FILE. On a shared 2-core machine wall
+#: times (`--durations`) vary several-fold with the load; CPU time does not, and
+#: the suite is CPU-bound, so its wall time is about the total over two.
+_CPU: Counter = Counter()
+
+
+def _cpu_now() -> float:
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    start = _cpu_now()
+    yield
+    _CPU[item.path.name] += _cpu_now() - start
+
+
+def pytest_sessionfinish(session):
+    out = os.environ.get("JAXCAL_TEST_CPU")
+    if out and _CPU:
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(out, "a") as f:
+            f.write(
+                json.dumps({"worker": worker, "cpu_s": {k: round(v, 1) for k, v in _CPU.most_common()}})
+                + "\n"
+            )
