@@ -111,14 +111,14 @@ class ArmModel:
         scale = self.counts_per_rev / ArmModel.counts_per_rev
         return EncoderModel(rate_hz, int(self.counts_per_rev), noise_counts * scale, self.latency_s)
 
-    def metadata(self) -> dict:
-        """What `truth.json` records of the arm (`arm`)."""
+    def metadata(self, joint_types) -> dict:
+        """What `truth.json` records of the arm (`arm`), per joint of `joint_types`."""
         return {
             "name": self.name,
             "compliance_rad_per_kNm": None
             if self.compliance is None
-            else list(np.atleast_1d(self.compliance)),
-            "backlash_deg": list(np.atleast_1d(self.backlash_deg)),
+            else self.per_joint("compliance", joint_types).tolist(),
+            "backlash_deg": self.per_joint("backlash_deg", joint_types).tolist(),
             "counts_per_rev": int(self.counts_per_rev),
             "latency_s": self.latency_s,
         }

@@ -439,7 +439,7 @@ def simulate(
         meta = _metadata(config, nominal, cameras_nominal, plates_nominal, encoder, trajectory, notes, optics)
         write_json(tmp / "metadata.json", meta)
         truth = _truth(config, true, cameras_true, plates_true) | (
-            {} if arm == ArmModel() else {"arm": arm.metadata()}
+            {} if arm == ArmModel() else {"arm": arm.metadata(true.joint_types)}
         )
         write_json(
             tmp / "truth.json",
