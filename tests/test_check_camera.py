@@ -5,7 +5,9 @@ The calibration is the scene's truth written as a result (`result.json` and
 so that the test needs no calibration run (`jaxcal.sim.drift.truth_result`); the
 check captures are ten rendered stop-and-shoot images (640x480: the plate is too
 small to detect at 320x240) of the same scene, the camera unmoved and moved by
-1 mm and 0.2 deg; eye-to-hand and eye-in-hand (the camera on the flange moved).
+1 mm and 0.2 deg; eye-to-hand and eye-in-hand (the camera on the flange moved). The
+statistics on analytic corners: the rendered capture's detections replaced by the model's
+prediction with a drawn calibration error and corner noise, against the F laws.
 """
 
 import json
@@ -14,9 +16,12 @@ import shutil
 import numpy as np
 import pytest
 
+from jaxcal._drift_camera import view_jacobians
+from jaxcal.certification import read_result
 from jaxcal.cli import main
-from jaxcal.drift import check
+from jaxcal.drift import camera_capture, camera_check_reference, check, check_camera, power
 from jaxcal.errors import DatasetError
+from jaxcal.io.dataset import load_dataset
 from jaxcal.planning._check import plan_check
 from jaxcal.robots import robot_path
 from jaxcal.sim.drift import random_poses, render_check_capture, truth_result
@@ -116,3 +121,37 @@ def test_plan_check_proposes_poses_better_than_random(captures, tmp_path):
     worst = [s["translation_mm_worst"] for s in cp.steps]
     assert all(b <= a + 1e-9 for a, b in zip(worst, worst[1:]))
     assert worst[-1] <= cp.random["translation_mm_worst"]
+
+
+@pytest.mark.slow
+def test_camera_check_statistics_on_analytic_corners(captures):
+    """The rendered capture's corners replaced by the calibrated model's prediction plus a
+    calibration error drawn from kappa Sigma and corner noise 1.5x the calibration's variance
+    (the check estimates it), with and without a move of known non-centrality: the false alarms
+    and the power match Fisher's F laws the test uses."""
+    res, still, _ = captures
+    doc, file = read_result(res)
+    cap = camera_capture(doc, file, load_dataset(still))
+    ref, views = camera_check_reference(cap)
+    pix, _, A, J = (np.asarray(a) for a in view_jacobians(ref.x, ref.problem))
+    n = J.shape[-1]
+    lam, V = np.linalg.eigh(np.asarray(cap.est.cov)[:n, :n])
+    L = V * np.sqrt(np.maximum(lam, 0.0) * ref.factor)
+    sigma = np.sqrt(1.5) * ref.sigma_px
+    rng = np.random.default_rng(0)
+    counts = [len(p) for p in cap.points[:views]]
+
+    def draw(eps):
+        d = (J @ (L @ rng.standard_normal(n)) + A @ eps).reshape(pix.shape)
+        return [pix[i, :k] + d[i, :k] + sigma * rng.standard_normal((k, 2)) for i, k in enumerate(counts)]
+
+    trials = 200
+    null = [check_camera(cap, pixels=draw(np.zeros(6))) for _ in range(trials)]
+    assert 0.015 <= np.mean([c.detected for c in null]) <= 0.095  # 5 % +- 2.9 binomial sigma
+    assert abs(np.mean([c.residual["noise_variance_factor"] for c in null]) - 1.5) < 0.1
+    P = np.linalg.inv(null[0].cov)
+    mu, U = np.linalg.eigh(P[:3, :3])
+    eps = np.r_[np.sqrt(8.0 / mu[0]) * U[:, 0], 0.0, 0.0, 0.0]
+    hits = np.mean([check_camera(cap, pixels=draw(eps)).detected for _ in range(150)])
+    expected = float(power(8.0, 6, 0.05, null[0].dof_noise))
+    assert abs(hits - expected) < 0.12, (hits, expected)
