@@ -14,9 +14,12 @@ fixed frame: the device's or the camera's):
 
 Designs: `tracker_poses` (stop-and-shoot tracker samples, no rendering) and,
 with `--camera RESULT ...`, rendered camera calibrations already written (each
-result directory's dataset must hold `truth.json`). Usage:
+result directory's dataset must hold `truth.json`), and with `--render demo_sweeps
+planned`, rendered here (`rendered_results`). Usage:
 
     python benchmarks/certify.py --seeds 5 --json results/certify.json [--camera DIR ...]
+    python benchmarks/certify.py --seeds 5 --render demo_sweeps planned --render-seeds 5 \
+        --json results/certify.json
 """
 
 import argparse
@@ -87,6 +90,38 @@ def tracker_results(seeds: int, poses: int, root: Path) -> list[Path]:
     return out
 
 
+def rendered_results(seeds: int, root: Path, designs: list[str]) -> dict[str, list[Path]]:
+    """Rendered camera captures calibrated here, `seeds` per design: `demo_sweeps` (the
+    demo's: 1280x960, 40 frames per 80-degree sweep, clock not given) and `planned`
+    (`jaxcal.plan`'s 240 stop-and-shoot poses for the UR5e, as `benchmarks/plan.py`,
+    rendered by `render_plan`); the seed draws the true arm, mounts and noise."""
+    from plan import CONFIGS  # benchmarks/plan.py: the demo's capture
+
+    from jaxcal.sim.plan import MujocoChecker, render_plan
+    from jaxcal.sim.simulate import simulate
+
+    makers = {}
+    if "demo_sweeps" in designs:
+        makers["demo_sweeps"] = lambda d, s: simulate(CONFIGS["demo"](s), d, overwrite=True, progress=False)
+    if "planned" in designs:
+        t0 = time.perf_counter()
+        plan = jaxcal.plan(
+            "ur5e", seed=0, checker_factory=MujocoChecker, frames=240, steps=150, starts=3, candidates=2000
+        ).plan
+        print(f"planned {plan.frames} poses in {time.perf_counter() - t0:.0f} s", flush=True)
+        makers["planned"] = lambda d, s: render_plan(plan, d, seed=s, overwrite=True, progress=False)
+    out = {}
+    for name, make in makers.items():
+        out[name] = []
+        for s in range(seeds):
+            t0 = time.perf_counter()
+            ds = make(root / f"{name}_ds{s}", s)
+            res = write_outputs(jaxcal.calibrate(ds, progress=False), root / f"{name}_res{s}")
+            print(f"{name} seed {s}: rendered and calibrated in {time.perf_counter() - t0:.0f} s", flush=True)
+            out[name].append(res)
+    return out
+
+
 def summarise(rows: list[dict]) -> dict:
     return {
         "coverage": float(np.mean(np.concatenate([r["inside"] for r in rows]))),
@@ -101,6 +136,15 @@ def main(argv=None) -> int:
     p.add_argument("--poses", type=int, default=60, help="stop-and-shoot samples per tracker calibration")
     p.add_argument("--configs", type=int, default=1000, help="random test configurations per calibration")
     p.add_argument("--camera", nargs="*", default=[], type=Path, help="rendered camera results (truth.json)")
+    p.add_argument(
+        "--render",
+        nargs="*",
+        default=[],
+        choices=["demo_sweeps", "planned"],
+        help="render and calibrate these camera designs here, --render-seeds each",
+    )
+    p.add_argument("--render-seeds", type=int, default=5, help="seeds per rendered design")
+    p.add_argument("--workdir", type=Path, help="keep the rendered captures and results here")
     p.add_argument("--json", required=True, type=Path)
     args = p.parse_args(argv)
     designs = {}
@@ -114,6 +158,11 @@ def main(argv=None) -> int:
         print(f"tracker: {args.seeds} calibrations in {time.perf_counter() - t0:.0f} s", flush=True)
     if args.camera:
         designs["camera"] = [score(r, args.configs, k) for k, r in enumerate(args.camera)]
+    if args.render:
+        with tempfile.TemporaryDirectory() as tmp:
+            work = args.workdir or Path(tmp)
+            for name, results in rendered_results(args.render_seeds, work, args.render).items():
+                designs[name] = [score(r, args.configs, k) for k, r in enumerate(results)]
     out = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
         "configs": args.configs,
