@@ -30,13 +30,13 @@ import numpy as np
 from .._geometry import so3_exp
 from .._kinematics import PerturbationScales, anchor_base, forward_kinematics, perturb_model
 from .._npgeom import matrix_to_quaternion
-from .._pointfit import gravity_torques
 from ..io._files import atomic_directory
 from ..io.dataset import SCHEMA, SCHEMA_VERSION, write_json
 from ..io.dh_tables import is_table_file, read_table_file
 from ..io.model_json import model_to_json
 from ..io.urdf import save_urdf, urdf_outline
 from ..robots import link_inertials, load_robot_file, robot_file
+from .arm import gravity_deflection
 
 #: UR3 home of the acceptance case (deg): elbow at -90, wrist 2 at 90.
 UR3_HOME_DEG = (0.0, 0.0, -90.0, 0.0, 90.0, 0.0)
@@ -177,9 +177,7 @@ def _measure(config, true, T_device_base, T_flange_point, q, rng, inertials=None
     with `config.compliance`, at the joint angles gravity bends the arm to."""
     q_true = np.asarray(q, np.float64)
     if config.compliance is not None:
-        masses, coms = (jnp.asarray(a) for a in inertials)
-        tau = np.asarray(jax.vmap(lambda qq: gravity_torques(true, qq, masses, coms))(jnp.asarray(q_true)))
-        q_true = q_true + 1e-3 * tau * np.asarray(config.compliance)
+        q_true = q_true + gravity_deflection(true, q_true, 0.0, config.compliance, inertials)
     flange = np.asarray(jax.vmap(lambda qq: forward_kinematics(true, qq)[-1])(jnp.asarray(q_true)))
     T = T_device_base @ flange @ T_flange_point
     P = T[:, :3, 3] + 1e-6 * config.noise_um * rng.standard_normal((len(q), 3))
