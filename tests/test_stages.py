@@ -29,6 +29,7 @@ from jaxcal._lsq import closed_form_jvp, covariance, independent_columns
 from jaxcal.errors import CalibrationError
 from jaxcal.io.dataset import load_dataset
 from jaxcal.robots import load_robot
+from jaxcal.stages import kinds
 from jaxcal.stages._synchronise import assign_frames, usable
 from jaxcal.stages._verdict import axis_spacing_ratio
 from jaxcal.stages.kinds import Motion, Mount
@@ -88,6 +89,59 @@ def test_setup_resolves_the_capture_kind(tmp_path, edit, mount, motion, encoders
     if mount is Mount.EYE_IN_HAND:
         # The board's pattern, named after the camera, rides on the flange in the fits.
         assert s.board.name == "plate0" and s.targets[0].name == "cam0" and s.targets[0].link == "flange"
+
+
+#: The columns of the table in `jaxcal.stages.kinds`'s docstring: the kinds each stands for.
+KIND_COLUMNS = {
+    "eye-to-hand sweeps": [(Mount.EYE_TO_HAND, Motion.SWEEPS, True)],
+    "eye-in-hand sweeps": [(Mount.EYE_IN_HAND, Motion.SWEEPS, True)],
+    "markers on every link": [(Mount.EYE_TO_HAND, Motion.FREE, True)],
+    "poses": [(Mount.EYE_TO_HAND, Motion.POSES, True), (Mount.EYE_IN_HAND, Motion.POSES, True)],
+    "no encoder log": [(m, Motion.SWEEPS, False) for m in (Mount.EYE_TO_HAND, Mount.EYE_IN_HAND)],
+    "tracker sweeps": [(Mount.DEVICE, Motion.SWEEPS, True)],
+    "tracker poses": [(Mount.DEVICE, Motion.POSES, True)],
+}
+
+
+def test_every_yes_and_no_of_the_kinds_table_is_what_the_property_answers():
+    """The table in `kinds.py` is the contract the stages read: each cell that says `yes`,
+    `no`, a mount (`eye-in-hand`: yes for that mount, no for the other) or a value is checked."""
+    rows = [
+        [c.strip().strip("`") for c in line.strip().strip("|").split("|")]
+        for line in kinds.__doc__.splitlines()
+        if line.startswith("| ")
+    ]
+    header, body = rows[0], rows[2:]  # the second row is the rule under the header
+    assert set(header[1:]) == set(KIND_COLUMNS)
+    checked = 0
+    for name, *cells in body:
+        for column, cell in zip(header[1:], cells):
+            for mount, motion, encoders in KIND_COLUMNS[column]:
+                value = getattr(kinds.CaptureKind(mount, motion, encoders), name)
+                if cell in ("yes", "no"):
+                    expected = cell == "yes"
+                elif cell in ("eye-in-hand", "eye-to-hand"):
+                    expected = mount.value == cell.replace("-", "_")
+                elif (
+                    cell in ("camera", "device", "point", "target(s)")
+                    or cell.startswith("T_")
+                    or "frame," in cell
+                ):
+                    expected = cell
+                elif cell.replace(".", "").replace("e-", "").isdigit():
+                    expected = float(cell)
+                else:
+                    continue  # "(its mount)", "(no fit)", "not with device_is_base", blank: prose
+                assert value == expected, (name, column, mount, cell, value)
+                checked += 1
+    assert checked > 100
+
+
+def test_a_capture_the_method_cannot_calibrate_says_why():
+    no_log = [kinds.CaptureKind(Mount.EYE_TO_HAND, m, False) for m in (Motion.POSES, Motion.FREE)]
+    assert "pose-based capture" in no_log[0].unsupported and "sequential method" in no_log[1].unsupported
+    assert kinds.CaptureKind(Mount.EYE_TO_HAND, Motion.SWEEPS, False).unsupported is None
+    assert kinds.CaptureKind(Mount.DEVICE, Motion.POSES, False).unsupported is None
 
 
 def test_setup_adds_further_fixed_cameras_only_where_the_kind_refines_them(tmp_path):
