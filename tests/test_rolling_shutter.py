@@ -37,7 +37,7 @@ from jaxcal.io._metadata import CameraInfo, read_cameras
 from jaxcal.io._schema import Loc
 from jaxcal.io.result import read_estimate, write_estimate
 from jaxcal.robots import load_robot
-from jaxcal.stages._blur import lost_to_blur
+from jaxcal.stages._blur import blur_notes, lost_to_blur
 from jaxcal.stages._observe import pose_times
 from jaxcal.stages._refine import rolling_shutter
 from jaxcal.stages._setup import _line_delay_estimated
@@ -275,3 +275,10 @@ def test_estimate_file_keeps_the_line_delays(tmp_path):
     back = read_estimate(tmp_path / "estimate.npz")
     assert back.layout == layout and back.layout.names()[-1] == "cam0.line_delay_us"
     np.testing.assert_array_equal(np.asarray(back.x), np.asarray(est.x))
+
+
+def test_blur_notes_name_the_joint():
+    setup = SimpleNamespace(dataset=SimpleNamespace(joint_names=("j0",)))
+    (note,) = blur_notes(setup, *_sweep(lambda s: s < 0.5)[:2])
+    assert note.startswith("joint 'j0': motion blur:")
+    assert blur_notes(setup, *_sweep(lambda s: True)[:2]) == ()

@@ -91,3 +91,14 @@ def lost_to_blur(setup: Setup, obs: CameraObservations, sync: Sync, joint: int) 
         + "; shorten the exposure (a smear under a pixel or two keeps the corners), sweep slower, or film "
         "the poses standing still (stop-and-shoot)"
     )
+
+
+def blur_notes(setup: Setup, obs: CameraObservations, sync: Sync) -> tuple[str, ...]:
+    """A note per joint whose sweep lost its fast frames to motion blur (`lost_to_blur`) but
+    kept enough for its arc: blur costs frames, not accuracy, so the result stands with fewer."""
+    names = setup.dataset.joint_names
+    return tuple(
+        f"joint {names[j]!r}: {cause}"
+        for j in range(len(names))
+        if (cause := lost_to_blur(setup, obs, sync, j))
+    )

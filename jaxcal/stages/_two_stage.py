@@ -25,7 +25,7 @@ from .._kinematics import PRISMATIC, forward_kinematics
 from .._links import average_pose, sequential_sweeps
 from ..errors import CalibrationError
 from . import _programs
-from ._blur import lost_to_blur
+from ._blur import blur_notes, lost_to_blur
 from ._observe import Observations
 from ._points import axis_result, fit_point_samples, parameters_of
 from ._setup import Options, Setup
@@ -325,6 +325,8 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         if arcs.has_encoder
         else ("no encoder log: reduction ratios are not identifiable (images alone give the axes)",)
     ) + _outlier_notes(rows)
+    if not setup.kind.sequential:
+        notes += blur_notes(setup, obs.primary, sync)
     return TwoStage(
         sweeps=sweeps,
         counts=counts,
