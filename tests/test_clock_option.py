@@ -11,7 +11,11 @@ from jaxcal.pipeline import _clock_mode
 def test_clock_modes_pass_through_without_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert [_clock_mode(m, None, None) for m in ("auto", "estimate", "given")] == ["auto", "estimate", "given"]
+        assert [_clock_mode(m, None, None) for m in ("auto", "estimate", "given")] == [
+            "auto",
+            "estimate",
+            "given",
+        ]
 
 
 @pytest.mark.parametrize(
@@ -28,7 +32,10 @@ def test_contradictions_and_unknown_modes_are_refused():
         _clock_mode("sometimes", None, None)
     with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match="contradict"):
         _clock_mode("auto", True, True)
-    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match="clock='given' and estimate_clock"):
+    with (
+        pytest.warns(DeprecationWarning),
+        pytest.raises(ValueError, match="clock='given' and estimate_clock"),
+    ):
         _clock_mode("given", True, None)
 
 

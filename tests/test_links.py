@@ -83,7 +83,8 @@ def test_arbitrary_motion_needs_a_plate_on_every_link(dataset, tmp_path):
 
 
 def test_undo_joint_inverts_a_turn_about_the_axis():
-    from jaxcal._links import _rotation, undo_joint
+    from jaxcal._links import undo_joint
+    from jaxcal._npgeom import axis_rotation as _rotation
 
     rng = np.random.default_rng(2)
     V = rng.normal(size=3)
