@@ -58,7 +58,7 @@ def lost_to_blur(setup: Setup, obs: CameraObservations, sync: Sync, joint: int) 
     the lost frames, the joint's speed there, the blur the exposure implies and what to
     change; "" when the target was not lost mostly in the sweep's fast frames."""
     rows = np.flatnonzero(np.asarray(sync.joint) == joint)
-    if rows.size == 0 or not isinstance(obs, CameraObservations):  # a device's samples do not blur
+    if rows.size == 0 or getattr(obs, "detections", None) is None:  # a device's samples do not blur
         return ""
     found = np.array([bool(obs.detections[i]) for i in rows])
     lost = ~found
