@@ -245,6 +245,12 @@ class PerturbationScales(eqx.Module):
     tool_mm: float = 0.0
     tool_deg: float = 0.0
 
+    @classmethod
+    def of(cls, config, **overrides) -> "PerturbationScales":
+        """The scales a simulator's config names in fields of the same names (`overrides` win)."""
+        names = ("origin_mm", "origin_deg", "axis_tilt_deg", "zero_offset_deg", "ratio_percent")
+        return cls(**({k: getattr(config, k) for k in names if hasattr(config, k)} | overrides))
+
 
 def _tilt(axis: Float[Array, "3"], key: PRNGKeyArray, sigma_rad) -> Float[Array, "3"]:
     w = sigma_rad * jax.random.normal(key, (3,), dtype=axis.dtype)

@@ -125,13 +125,7 @@ class SimConfig:
     @property
     def scales(self) -> PerturbationScales:
         """The arm's perturbation scales (`perturb_model`'s), from this config's fields."""
-        return PerturbationScales(
-            origin_mm=self.origin_mm,
-            origin_deg=self.origin_deg,
-            axis_tilt_deg=self.axis_tilt_deg,
-            zero_offset_deg=self.zero_offset_deg,
-            ratio_percent=self.ratio_percent,
-        )
+        return PerturbationScales.of(self)
 
     def with_lens(self) -> "SimConfig":
         """This config, checked, with the camera model's lens distortion (if it has one) as `distortion`."""

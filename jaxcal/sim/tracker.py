@@ -92,13 +92,7 @@ class TrackerSimConfig:
     @property
     def scales(self) -> PerturbationScales:
         """The arm's perturbation scales (`perturb_model`'s); the tracker sees no reduction ratios."""
-        return PerturbationScales(
-            origin_mm=self.origin_mm,
-            origin_deg=self.origin_deg,
-            axis_tilt_deg=self.axis_tilt_deg,
-            zero_offset_deg=self.zero_offset_deg,
-            ratio_percent=0.0,
-        )
+        return PerturbationScales.of(self, ratio_percent=0.0)
 
     def check(self, joints: int) -> None:
         if self.compliance is not None and len(self.compliance) != joints:
