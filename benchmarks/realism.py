@@ -29,6 +29,9 @@ arcmin per joint), `encoder_quantisation` (a coarse motor encoder, 1024 counts
 per motor turn: a 256-line quadrature encoder), `encoder_latency` (joint
 states stamped 2 ms late); `combined`: the `global-shutter` camera and the
 `realistic` arm (`jaxcal simulate --camera global-shutter --arm realistic`).
+`encoder_50hz`: the ideal capture with its encoder log at 50 Hz instead of
+500 Hz (the issue's battery case: the log read between its samples while the
+sweeps accelerate).
 
 With `--detection-errors`, each case also reports its detected corners against the
 truth projected through the simulated lens (`detection`: `rms_px`, the `mean_px`
@@ -105,6 +108,9 @@ CASES = {
     "combined": (PRESETS["global-shutter"], False),
 }
 
+#: Cases that change the capture's configuration itself: name -> `SimConfig` fields (camera and arm ideal).
+CONFIGS = {"encoder_50hz": {"encoder_rate_hz": 50.0}}
+
 #: Cases that are another case's images with the metadata's cameras edited: name -> (that case, edit).
 EDITED = {
     "rolling_shutter_estimated": ("rolling_shutter_given", lambda cam: cam | {"line_delay_s": "estimate"}),
@@ -125,7 +131,7 @@ def edited(case: str, config: SimConfig, workdir: Path) -> Path:
 
 def capture(case: str, config: SimConfig, workdir: Path) -> Path:
     """The case's rendered dataset in `workdir` (rendered once; `distortion_unknown` copies `distortion_given`'s)."""
-    camera, hide_lens = CASES.get(case, (None, False))
+    camera, hide_lens = CASES.get(case, (CameraModel(), False))
     out = workdir / case
     if (out / "truth.json").exists():
         return out
@@ -139,7 +145,8 @@ def capture(case: str, config: SimConfig, workdir: Path) -> Path:
             cam["distortion"] = [0.0] * len(cam["distortion"])
         (out / "metadata.json").write_text(json.dumps(meta, indent=2))
         return out
-    return simulate(replace(config, camera=camera, arm=ARMS.get(case, "ideal")), out, progress=False)
+    config = replace(config, camera=camera, arm=ARMS.get(case, "ideal"), **CONFIGS.get(case, {}))
+    return simulate(config, out, progress=False)
 
 
 def detection_errors(dataset: Path) -> dict:
@@ -193,7 +200,9 @@ def run_case(dataset: Path) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="+", choices=[*CASES, *EDITED], default=[*CASES, *EDITED])
+    parser.add_argument(
+        "--cases", nargs="+", choices=[*CASES, *EDITED, *CONFIGS], default=[*CASES, *EDITED, *CONFIGS]
+    )
     parser.add_argument("--resolution", default="800x600")
     parser.add_argument("--frames-per-joint", type=int, default=24)
     parser.add_argument("--seed", type=int, default=0)

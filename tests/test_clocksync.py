@@ -11,8 +11,15 @@ from jax.flatten_util import ravel_pytree
 from jaxcal import _lsq
 from jaxcal._arcdata import make_arc_data
 from jaxcal._arcmodel import arc_residuals, free_mask, initialise_arc
-from jaxcal._clocksync import _with_encoder, controller_time, fit_clock_offset, interpolate_encoders
+from jaxcal._clocksync import (
+    LINEAR_UP_TO_S,
+    _with_encoder,
+    controller_time,
+    fit_clock_offset,
+    interpolate_encoders,
+)
 from jaxcal._geometry import normalize, so3_exp
+from jaxcal.stages._synchronise import interpolate
 
 OFFSET_S = 0.037
 SIGMA_P, SIGMA_R = 1e-4, 1e-3
@@ -137,3 +144,48 @@ def test_robust_options_are_checked():
     data, t_cam, enc_t, enc_q, _ = _sweeps(2, frames=10)
     with pytest.raises(ValueError, match="loss must be one of"):
         fit_clock_offset(data, t_cam, enc_t, enc_q, loss="tukey")
+
+
+def test_encoder_interpolation_error_follows_from_the_sampling():
+    """A 50 Hz log of a cosine sweep (80 deg in 0.8 s, the rendered captures' sweep) read
+    at 2001 instants: the cubic Hermite interpolation stays within its bound
+    $h^3 \\max|\\dddot q|/24 + h^4 \\max|q^{(4)}|/384$ (`interpolate_encoders`), 2.7e-4 deg
+    here, where the linear one errs by up to $h^2 \\max|\\ddot q|/8 = 0.031$ deg; it passes
+    through every sample, its derivative in t is the sweep's rate to the next order, and a
+    500 Hz log (segments up to `LINEAR_UP_TO_S`) is read linearly, as `jnp.interp` reads it."""
+    A, T = np.radians(80.0), 0.8  # rad, s
+    w = np.pi / T
+    q = lambda t: A * (0.5 - 0.5 * np.cos(w * np.clip(t, 0.0, T)))  # noqa: E731
+    # |q''| <= A w^2 / 2, |q'''| <= A w^3 / 2, |q''''| <= A w^4 / 2 inside the sweep.
+    t = np.linspace(0.0, T, 2001)
+    h = 0.02
+    enc_t = np.arange(-0.1, T + 0.1 + h / 2, h)
+    enc_q = q(enc_t)
+    cubic = np.asarray(interpolate_encoders(jnp.asarray(t), jnp.asarray(enc_t), jnp.asarray(enc_q)))
+    bound = h**3 * A * w**3 / 2 / 24 + h**4 * A * w**4 / 2 / 384
+    # The sweep starts and stops with a jump in acceleration (rest -> cosine): within one
+    # sample of it the slope's parabola straddles the jump, and the error is the
+    # acceleration's, h^2 |q''| / 8 at most; the bound holds one sample away from the ends.
+    inner = (t > h) & (t < T - h)
+    assert np.max(np.abs(cubic - q(t))[inner]) <= bound
+    assert np.max(np.abs(cubic - q(t))) <= h**2 * A * w**2 / 2 / 8
+    linear = np.interp(t, enc_t, enc_q)
+    assert np.max(np.abs(linear - q(t))[inner]) > 10 * bound  # what the cubic removes
+    np.testing.assert_allclose(
+        interpolate_encoders(jnp.asarray(enc_t), jnp.asarray(enc_t), jnp.asarray(enc_q)), enc_q, atol=1e-15
+    )
+    # The stage's NumPy reading is the same, joint by joint.
+    np.testing.assert_allclose(
+        interpolate(t, enc_t, np.stack([enc_q, -enc_q], 1)), np.stack([cubic, -cubic], 1)
+    )
+    fast_t = np.arange(-0.1, T + 0.1, 0.002)
+    assert 0.002 <= LINEAR_UP_TO_S
+    np.testing.assert_array_equal(
+        interpolate_encoders(jnp.asarray(t), jnp.asarray(fast_t), jnp.asarray(q(fast_t))),
+        jnp.interp(jnp.asarray(t), jnp.asarray(fast_t), jnp.asarray(q(fast_t))),
+    )
+    # The rate: the derivative in t of the 50 Hz interpolation, against the sweep's.
+    rate = jax.vmap(jax.grad(lambda s: interpolate_encoders(s, jnp.asarray(enc_t), jnp.asarray(q(enc_t)))))
+    # Differentiating the cubic costs one order of h: the rate errs by O(h^2 |q'''|).
+    err = np.abs(np.asarray(rate(jnp.asarray(t))) - A * w / 2 * np.sin(w * t))[inner]
+    assert np.max(err) <= h**2 * A * w**3 / 2 / 4

@@ -15,7 +15,7 @@ import optimistix as optx
 
 from .._arcdata import make_arc_data
 from .._buckets import bucket, pad_log
-from .._clocksync import controller_time
+from .._clocksync import LINEAR_UP_TO_S, controller_time, interpolate_encoders
 from .._kinematics import PRISMATIC
 from .._links import link_poses
 from ..errors import CalibrationError
@@ -100,8 +100,18 @@ def commanded_positions(ds: Dataset, nominal) -> tuple[np.ndarray, np.ndarray] |
 
 
 def interpolate(t, enc_t, enc_q) -> np.ndarray:
-    """The log `enc_q (T, joints)` linearly interpolated at controller times `t` (NumPy)."""
-    return np.stack([np.interp(t, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])], axis=-1)
+    """The log `enc_q (T, joints)` interpolated at controller times `t` as the clock fit and
+    the refinement read it (`jaxcal._clocksync.interpolate_encoders`), `t.shape + (joints,)`."""
+    t, enc_t, enc_q = (np.asarray(x, np.float64) for x in (t, enc_t, enc_q))
+    q = np.stack([np.interp(t, enc_t, enc_q[:, j]) for j in range(enc_q.shape[1])], axis=-1)
+    if enc_t.size < 2:
+        return q
+    i = np.clip(np.searchsorted(enc_t, t, side="right") - 1, 0, enc_t.size - 2)
+    long = np.diff(enc_t)[i] > LINEAR_UP_TO_S
+    if np.any(long):  # a slow log's long segments: the cubic
+        cubic = jax.vmap(interpolate_encoders, in_axes=(None, None, 1), out_axes=-1)(t, enc_t, enc_q)
+        q = np.where(long[..., None], np.asarray(cubic), q)
+    return q
 
 
 def assign_frames(ds: Dataset, t_ctrl: np.ndarray, q: np.ndarray | None, num_joints: int) -> np.ndarray:
