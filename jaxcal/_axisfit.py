@@ -310,11 +310,14 @@ def axis_problem(
     T_flange_marker0: Float[Array, "markers 4 4"],
     T_cam_base0: Float[Array, "4 4"],
     home: Float[Array, "joints joints"] | None = None,
+    use_poses: bool | None = None,
 ) -> AxisFitProblem:
     """The `AxisFitProblem` `fit_axes` solved, rebuilt from its references (an
     `AxisFitResult`'s `T_flange_marker0`, `T_cam_base0`), the marker poses used
-    when the arcs had encoders; `home` as `fit_axes` takes it (None: zeros)."""
-    use_poses = bool(arcs.has_encoder)
+    when the arcs had encoders; `home` as `fit_axes` takes it (None: zeros).
+    `use_poses` (None: `arcs.has_encoder`, which must then be concrete) lets a
+    traced caller say it."""
+    use_poses = bool(arcs.has_encoder) if use_poses is None else use_poses
     k = _meas_dim(arcs, use_poses)
     n = nominal.num_joints
     return AxisFitProblem(

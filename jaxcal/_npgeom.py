@@ -114,3 +114,27 @@ def pose(R=None, t=(0.0, 0.0, 0.0)) -> np.ndarray:
         T[:3, :3] = R
     T[:3, 3] = np.asarray(t, np.float64).ravel()
     return T
+
+
+def pose_inverse(T) -> np.ndarray:
+    """The inverse of `(..., 4, 4)` rigid poses: $[R^T, -R^T t]$."""
+    T = np.asarray(T, np.float64)
+    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = R_t
+    out[..., :3, 3] = -np.einsum("...ab,...b->...a", R_t, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def line_distance(p1, d1, p2, d2) -> float:
+    """Smallest distance between two lines (point, unit direction): along their common
+    normal, or for (near-)parallel lines the distance of `p2` from line 1 (as
+    `jaxcal._geometry.line_distance`)."""
+    p1, d1, p2, d2 = (np.asarray(a, np.float64) for a in (p1, d1, p2, d2))
+    n = np.cross(d1, d2)
+    n_norm = float(np.linalg.norm(n))
+    dp = p2 - p1
+    if n_norm < 1e-9:
+        return float(np.linalg.norm(dp - np.dot(dp, d1) * d1))
+    return abs(float(np.dot(dp, n))) / n_norm

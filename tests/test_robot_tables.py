@@ -9,14 +9,17 @@ evaluations.
 import json
 import math
 import shutil
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yourdfpy
 from bagwriter import COMPRESSED, INFO, JOINTS, write_bag
 
 from jaxcal._kinematics import forward_kinematics, joint_axes
 from jaxcal.errors import DatasetError
+from jaxcal.io._urdf_tree import read_tree
 from jaxcal.io.dataset import load_dataset
 from jaxcal.io.dh_tables import read_table_file
 from jaxcal.io.rosbag import import_bag
@@ -346,3 +349,22 @@ def test_a_ros_bag_imports_with_a_table_as_its_robot(tmp_path):
     src = load_dataset(SWEEPS)
     t = src.encoder_t[(src.encoder_t >= ds.encoder_t[0]) & (src.encoder_t <= ds.encoder_t[-1])]
     assert len(ds.encoder_t) > 0.5 * len(t)  # the joint log came through, in motor angles
+
+
+def test_urdf_inertials_read_as_yourdfpy_reads_them():
+    """`urdf_inertials` reads `<inertial>` with the standard library; yourdfpy (the design's
+    URDF reader) is the judge: each link's mass and centre-of-mass origin, for every shipped URDF."""
+    for path in sorted(ROBOTS_DIR.glob("*.urdf")):
+        ours = {link.name: link.inertial for link in read_tree(ET.parse(path).getroot(), path).links}
+        theirs = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False).robot.links
+        assert len(theirs) == len(ours), path.name
+        for link in theirs:
+            mine = ours[link.name]
+            if link.inertial is None:
+                assert mine is None, (path.name, link.name)
+                continue
+            assert mine.mass == (link.inertial.mass or 0.0), (path.name, link.name)
+            origin = np.eye(4) if link.inertial.origin is None else link.inertial.origin
+            got = np.eye(4) if mine.origin is None else mine.origin
+            # Both compose the same rpy formula in float64: equal to a few ulps.
+            np.testing.assert_allclose(got, origin, atol=1e-15, err_msg=f"{path.name}: {link.name}")

@@ -1,5 +1,6 @@
-"""A URDF's links and joints read with the standard library, as yourdfpy reads them
-(`jaxcal.io.urdf.load_urdf`'s chain; yourdfpy imports trimesh, a second of start-up)."""
+"""A URDF's links (with their inertials) and joints read with the standard library, as
+yourdfpy reads them (`jaxcal.io.urdf.load_urdf`'s chain, `urdf_inertials`' masses; yourdfpy
+imports trimesh, a second of start-up)."""
 
 import math
 import xml.etree.ElementTree as ET
@@ -24,8 +25,17 @@ class Joint:
 
 
 @dataclass(frozen=True)
+class Inertial:
+    """A `<link>`'s `<inertial>`: its mass (kg) and the pose of its centre of mass (`<origin>`)."""
+
+    mass: float
+    origin: np.ndarray | None  # (4, 4), None without <origin>
+
+
+@dataclass(frozen=True)
 class Link:
     name: str
+    inertial: Inertial | None = None
 
 
 @dataclass(frozen=True)
@@ -51,17 +61,30 @@ def origin_matrix(xyz: list[float], rpy: list[float]) -> np.ndarray:
     )
 
 
+def _origin(el: ET.Element | None) -> np.ndarray | None:
+    """An `<origin xyz rpy>` element's matrix (None without one)."""
+    if el is None:
+        return None
+    xyz = [float(v) for v in el.get("xyz", "0 0 0").split()]
+    rpy = [float(v) for v in el.get("rpy", "0 0 0").split()]
+    return origin_matrix(xyz, rpy)
+
+
+def _inertial(link: ET.Element) -> Inertial | None:
+    el = link.find("inertial")
+    if el is None:
+        return None
+    mass = el.find("mass")
+    return Inertial(0.0 if mass is None else float(mass.get("value", "0")), _origin(el.find("origin")))
+
+
 def read_tree(root: ET.Element, path: Path) -> Tree:
     """The links and joints of a URDF (after `check_joint_links`), without yourdfpy: a joint's
     origin and axis as yourdfpy parses them (defaults: identity, `1 0 0`)."""
     try:
         joints = []
         for el in root.findall("joint"):
-            origin = el.find("origin")
-            if origin is not None:
-                xyz = [float(v) for v in origin.get("xyz", "0 0 0").split()]
-                rpy = [float(v) for v in origin.get("rpy", "0 0 0").split()]
-                origin = origin_matrix(xyz, rpy)
+            origin = _origin(el.find("origin"))
             axis, calibration = el.find("axis"), el.find("calibration")
             xyz_axis = "1 0 0" if axis is None else axis.get("xyz", "1 0 0")
             joints.append(
@@ -78,6 +101,7 @@ def read_tree(root: ET.Element, path: Path) -> Tree:
                     else float(calibration.get("rising")),
                 )
             )
-        return Tree([Link(el.attrib["name"]) for el in root.findall("link")], joints)
+        links = [Link(el.attrib["name"], _inertial(el)) for el in root.findall("link")]
+        return Tree(links, joints)
     except (KeyError, AttributeError, TypeError, ValueError, IndexError) as e:
         raise ValueError(f"URDF file {str(path)!r} could not be read: {e!r}") from None

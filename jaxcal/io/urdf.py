@@ -1,6 +1,7 @@
 """Read a serial chain from a URDF file, and write a calibrated chain back.
 
-Impure edge: files, XML and yourdfpy. Never jitted; returns `KinematicModel`s.
+Impure edge: files and XML (read with the standard library, as yourdfpy reads them:
+`jaxcal.io._urdf_tree`). Never jitted; returns `KinematicModel`s.
 
 How a URDF maps onto a `KinematicModel`:
 
@@ -23,13 +24,9 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 import numpy as np
-
-if TYPE_CHECKING:
-    import yourdfpy
 
 from .._geometry import matrix_to_rpy, rpy_to_matrix
 from .._kinematics import (
@@ -190,18 +187,6 @@ def urdf_outline(path, joint_names=()) -> UrdfOutline:
     return UrdfOutline(links, parent_joint, limits)
 
 
-def _load_yourdfpy(path: Path) -> "yourdfpy.URDF":
-    import yourdfpy  # (trimesh, scipy, shapely: a second's import) only when a URDF is read
-
-    try:
-        # A zero joint axis makes yourdfpy's scene graph divide by zero; load_urdf rejects it itself.
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=False)
-    except (KeyError, AttributeError, TypeError, ValueError) as e:
-        # yourdfpy reports missing attributes/elements as raw Python errors.
-        raise ValueError(f"URDF file {str(path)!r} could not be read by yourdfpy: {e!r}") from None
-
-
 def _leaves_with_motion(children: dict[str, list], base: str) -> list[str]:
     """Leaf links below `base` whose path from `base` crosses a non-fixed joint."""
     leaves, stack, seen = [], [(base, False)], set()
@@ -220,7 +205,7 @@ def _leaves_with_motion(children: dict[str, list], base: str) -> list[str]:
 
 def _chain(robot, path: Path, base_link: str | None, tip_link: str | None) -> tuple[list, str, str]:
     """The joints from `base_link` to `tip_link` (base first), and the two link names, of
-    `robot` (a `_Tree`, or yourdfpy's `URDF.robot`)."""
+    `robot` (a `jaxcal.io._urdf_tree.Tree`)."""
     links = {link.name for link in robot.links}
     parent_joint = {j.child: j for j in robot.joints}
     children: dict[str, list] = {}
@@ -358,11 +343,11 @@ def urdf_inertials(
     path = Path(path)
     root = _parse_xml(path).getroot()
     check_joint_links(root, path)
-    urdf = _load_yourdfpy(path)
-    joints, _, _ = _chain(urdf.robot, path, base_link, tip_link)
-    links = {link.name: link for link in urdf.robot.links}
+    tree = read_tree(root, path)
+    joints, _, _ = _chain(tree, path, base_link, tip_link)
+    links = {link.name: link for link in tree.links}
     fixed_children: dict[str, list] = {}
-    for j in urdf.robot.joints:
+    for j in tree.joints:
         if j.type == "fixed":
             fixed_children.setdefault(j.parent, []).append(j)
     masses, coms = [], []

@@ -28,54 +28,60 @@ $\\hat c$, backlash (which also shifts resting joints between sweeps) and what
 to change.
 """
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from .._axisfit import AxisFitProblem, axis_jacobian, axis_problem, home_jacobian
-from .._pointfit import gravity_torques
+from .._buckets import bucket
 from ..robots import link_inertials
+from . import _programs
 
 
-def sweep_torques(setup, sync) -> np.ndarray | None:
-    """`(joints, joints)`: row `j`, each joint's mean gravity torque (N m) over the frames
-    of joint `j`'s sweep; None without the frames' positions, a sweep or the robot's masses."""
+def _sweep_weights(setup, sync) -> tuple[np.ndarray, np.ndarray] | None:
+    """The frames' commanded positions `q` padded to a bucket, and `weights` whose column `j`
+    averages over joint `j`'s sweep (`_programs.arm_score`); None without the frames'
+    positions or with a sweep that has none."""
     if sync.q is None or sync.sweeps is None:
+        return None
+    q, joint = np.asarray(sync.q, np.float64), np.asarray(sync.joint)
+    inside = np.asarray(sync.inside, bool) & np.all(np.isfinite(q), axis=1) & (joint >= 0)
+    n = setup.nominal.num_joints
+    counts = np.array([np.sum(inside & (joint == j)) for j in range(n)])
+    if np.any(counts == 0):
+        return None
+    size = bucket(int(inside.sum()))
+    padded, weights = np.zeros((size, n)), np.zeros((size, n))
+    padded[: inside.sum()] = q[inside]
+    weights[np.arange(inside.sum()), joint[inside]] = 1.0 / counts[joint[inside]]
+    return padded, weights
+
+
+def gravity_score(setup, sync, two) -> tuple[float, int, int, np.ndarray, np.ndarray] | None:
+    """`(F, m, dof, c_hat, tau)` of the module docstring's test (c_hat in rad per kN m; `tau`
+    row `j`, each joint's mean gravity torque (N m) over joint `j`'s sweep), or None where
+    it does not apply (no sweeps with encoders, no masses, no gravity torque that varies)."""
+    arcs, fit = two.arcs, two.fit
+    sweeps = _sweep_weights(setup, sync)
+    if sweeps is None or not bool(arcs.has_encoder):
         return None
     try:
         masses, coms = link_inertials(setup.dataset.robot_urdf)
     except (ValueError, KeyError, OSError):
         return None
-    q, joint = np.asarray(sync.q, np.float64), np.asarray(sync.joint)
-    inside = np.asarray(sync.inside, bool) & np.all(np.isfinite(q), axis=1)
     n = setup.nominal.num_joints
-    if any(not np.any(inside & (joint == j)) for j in range(n)):
-        return None
-    tau = np.asarray(
-        jax.vmap(gravity_torques, in_axes=(None, 0, None, None))(
-            setup.nominal, jnp.asarray(q[inside]), jnp.asarray(masses), jnp.asarray(coms)
+    home = np.zeros((n, n)) if sync.homes is None else np.asarray(sync.homes, np.float64)
+    r, J, Jc, tau = (
+        np.asarray(a)
+        for a in _programs.arm_score(True)(
+            setup.nominal,
+            arcs,
+            fit.T_flange_marker0,
+            fit.T_cam_base0,
+            home,
+            fit.params,
+            *sweeps,
+            masses,
+            coms,
         )
     )
-    return np.stack([tau[joint[inside] == j].mean(axis=0) for j in range(n)])
-
-
-@eqx.filter_jit
-def _score_terms(params, problem: AxisFitProblem, D):
-    """The axis fit's whitened residuals, their Jacobian in the parameters and in the compliances."""
-    r, J = axis_jacobian(params, problem)
-    return r.ravel(), J, jnp.einsum("rjk,jk->rk", home_jacobian(params, problem), D)
-
-
-def gravity_score(setup, sync, two) -> tuple[float, int, int, np.ndarray] | None:
-    """`(F, m, dof, c_hat)` of the module docstring's test (c_hat in rad per kN m), or None
-    where it does not apply (no sweeps with encoders, no masses, no gravity torque that varies)."""
-    tau = sweep_torques(setup, sync)
-    arcs, fit = two.arcs, two.fit
-    if tau is None or not bool(arcs.has_encoder):
-        return None
-    problem = axis_problem(setup.nominal, arcs, fit.T_flange_marker0, fit.T_cam_base0, sync.homes)
-    r, J, Jc = (np.asarray(a) for a in _score_terms(fit.params, problem, jnp.asarray(1e-3 * tau)))
     J = J[:, np.asarray(fit.free)]
     Q = np.linalg.qr(J)[0]
     A, rp = Jc - Q @ (Q.T @ Jc), r - Q @ (Q.T @ r)
@@ -87,7 +93,7 @@ def gravity_score(setup, sync, two) -> tuple[float, int, int, np.ndarray] | None
     proj = U[:, keep].T @ rp
     drop = float(proj @ proj)
     F = (drop / m) / max(float(rp @ rp) - drop, 1e-300) * dof
-    return F, m, dof, -(Vt[keep].T @ (proj / s[keep]))
+    return F, m, dof, -(Vt[keep].T @ (proj / s[keep])), tau
 
 
 def arm_check(c, setup, sync, two, limits) -> None:
@@ -95,8 +101,7 @@ def arm_check(c, setup, sync, two, limits) -> None:
     got = gravity_score(setup, sync, two)
     if got is None:
         return
-    F, m, dof, c_hat = got
-    tau = sweep_torques(setup, sync)
+    F, m, dof, c_hat, tau = got
     span = tau.max(axis=0) - tau.min(axis=0)
     j = int(np.argmax(np.abs(c_hat) * span))
     joint = setup.nominal.joint_names[j]

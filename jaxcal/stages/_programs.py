@@ -16,13 +16,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._arcdata import make_arc_data
 from .._arcfit import fit_arc, fit_joint_sweeps
-from .._axisfit import fit_axes, register_lines
+from .._axisfit import axis_jacobian, axis_problem, fit_axes, home_jacobian, register_lines
 from .._buckets import bucket
 from .._clocksync import fit_clock_offset
 from .._correction import ParameterLayout
 from .._exported import stored_jit
 from .._kinematics import forward_kinematics
+from .._pointfit import gravity_torques
 from .._refine import identifiable_mask, line_delay_test, refine
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
@@ -186,6 +188,45 @@ def shutter_test():
 def identifiable():
     """The refinement's `identifiable_mask(problem, params, candidates, tol=...)`."""
     return stored_jit(identifiable_mask, "identifiable")
+
+
+def _stacked_arc_data(positions, orientations, covariances, mask, encoder):
+    if encoder is None:
+        return jax.vmap(lambda P, O, C, m: make_arc_data(P, O, None, m, covariances=C))(
+            positions, orientations, covariances, mask
+        )
+    return jax.vmap(lambda P, O, C, m, e: make_arc_data(P, O, e, m, covariances=C))(
+        positions, orientations, covariances, mask, encoder
+    )
+
+
+@functools.cache
+def _arc_data():
+    return stored_jit(_stacked_arc_data, "arc_data")
+
+
+def arc_data(positions, orientations, covariances, mask, encoder):
+    """Stacked `ArcData` of sweeps (joints leading; `jaxcal._arcdata.make_arc_data` of
+    each): one program rather than an eager operation per step of the whitening."""
+    return _arc_data()(positions, orientations, covariances, mask, encoder)
+
+
+@functools.cache
+def arm_score(use_poses: bool):
+    """The arm-rigidity score test's terms (`jaxcal.stages._armcheck`) in one program:
+    `(r, J, Jc, tau)`, the axis fit's whitened residuals at `params`, their Jacobian in the
+    parameters and in the compliances, and each sweep's mean gravity torques `tau (joints,
+    joints)`, the mean over the frames `q (frames, joints)` with `weights (frames, joints)`
+    (column `j`: `1/count` on sweep `j`'s frames, 0 elsewhere and on padding)."""
+
+    def arm_score(nominal, arcs, mount, T_cam_base0, home, params, q, weights, masses, coms):
+        problem = axis_problem(nominal, arcs, mount, T_cam_base0, home, use_poses=use_poses)
+        tau = weights.T @ jax.vmap(gravity_torques, in_axes=(None, 0, None, None))(nominal, q, masses, coms)
+        r, J = axis_jacobian(params, problem)
+        Jc = jnp.einsum("rjk,jk->rk", home_jacobian(params, problem), 1e-3 * tau)
+        return r.ravel(), J, Jc, tau
+
+    return stored_jit(arm_score, "arm_score", (use_poses,))
 
 
 @functools.cache

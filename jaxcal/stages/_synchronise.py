@@ -50,12 +50,15 @@ class Sweeps:
     encoder: np.ndarray | None
 
     def arc_data(self):
-        """Stacked `ArcData` (joints leading) for `jax.vmap(fit_arc)`."""
-        enc = self.encoder
-        return jax.vmap(
-            lambda P, O, C, m, e: make_arc_data(P, O, e, m, covariances=C),
-            in_axes=(0, 0, 0, 0, None if enc is None else 0),
-        )(self.positions, self.orientations, self.covariances, self.mask, enc)
+        """Stacked `ArcData` (joints leading) for `jax.vmap(fit_arc)`: one compiled program
+        (`_programs.arc_data`), built once per `Sweeps`."""
+        data = self.__dict__.get("_arc_data")
+        if data is None:
+            data = _programs.arc_data(
+                self.positions, self.orientations, self.covariances, self.mask, self.encoder
+            )
+            object.__setattr__(self, "_arc_data", data)
+        return data
 
 
 @dataclass(frozen=True, eq=False)

@@ -14,9 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._exported import stored_jit
-from .._geometry import pose_inverse, so3_log
 from .._kinematics import REVOLUTE, forward_kinematics
 from .._montecarlo import NoiseModel, SweepPlan, synthesize_sweeps
+from .._npgeom import pose_inverse, so3_log
 from .._scoring import score
 from .._uncertainty import joint_travel, on_travel
 from ..io.model_json import model_from_json
@@ -58,7 +58,7 @@ def _truth_poses(setup: Setup, truth: dict):
 
 
 def _rot_deg(R) -> float:
-    return float(np.degrees(np.linalg.norm(np.asarray(so3_log(jnp.asarray(R))))))
+    return float(np.degrees(np.linalg.norm(so3_log(R))))
 
 
 def _pose_error(dT) -> dict:
@@ -179,8 +179,8 @@ def validate(
         if setup.kind.has_arcs
         else T_cb_true
     )
-    dT = np.asarray(pose_inverse(T_gauge) @ fit.T_cam_base)
-    dT_raw = np.asarray(pose_inverse(T_cb_true) @ fit.T_cam_base)
+    dT = pose_inverse(T_gauge) @ np.asarray(fit.T_cam_base)
+    dT_raw = pose_inverse(T_cb_true) @ np.asarray(fit.T_cam_base)
     ratio_err = np.asarray(s["ratio_err_percent"])
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
     out = {
@@ -221,7 +221,7 @@ def validate(
     }
     if res is not None:
         out["T_cam_base_error_two_stage"] = _pose_error(
-            np.asarray(pose_inverse(T_gauge) @ two_fit.T_cam_base)
+            pose_inverse(T_gauge) @ np.asarray(two_fit.T_cam_base)
         )
     offset_s = refined.clock["offset_s"] if refined is not None and refined.clock else sync.clock["offset_s"]
     true_offset = out["true_clock_offset_s"]

@@ -12,10 +12,11 @@ makes it `"failed"`.
 
 from dataclasses import dataclass, field
 
+import jax
 import numpy as np
 
-from .._geometry import line_distance
 from .._kinematics import joint_axes
+from .._npgeom import line_distance
 from . import _programs
 from ._armcheck import arm_check
 from ._observe import Observations
@@ -40,6 +41,10 @@ def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
+#: One compiled program, not a few dozen eager operations, per process.
+_joint_axes = jax.jit(joint_axes)
+
+
 def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float, float]]]:
     """How far apart consecutive joint axes are measured, over the nominal
     robot's spacing: the median ratio over pairs at least 5 cm apart (near
@@ -47,7 +52,7 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
     skew ones by the common normal), and the pairs `(joints, measured,
     nominal)` (m)."""
     nominal = setup.nominal
-    p_nom, d_nom = (np.asarray(a) for a in joint_axes(nominal, np.zeros(nominal.num_joints)))
+    p_nom, d_nom = (np.asarray(a) for a in _joint_axes(nominal, np.zeros(nominal.num_joints)))
     p_meas, d_meas = np.asarray(arcs.point), np.asarray(arcs.direction)
     names = nominal.joint_names
     pairs = []
