@@ -37,7 +37,7 @@ from jaxcal.io._metadata import CameraInfo, read_cameras
 from jaxcal.io._schema import Loc
 from jaxcal.io.result import read_estimate, write_estimate
 from jaxcal.robots import load_robot
-from jaxcal.stages._blur import blur_notes, lost_to_blur
+from jaxcal.stages._blur import SUSPECT_SHARE, blur_notes, blur_rows, lost_to_blur
 from jaxcal.stages._observe import pose_times
 from jaxcal.stages._refine import rolling_shutter
 from jaxcal.stages._setup import _line_delay_estimated
@@ -101,7 +101,10 @@ def test_corner_time_is_the_frame_time_plus_row_times_delay():
     q_view = np.asarray(joint_positions(_params(True), problem))
     q_corner = np.asarray(joint_positions(_params(True), problem, per_corner=True))
     speed = np.radians(60.0) / 7 / 0.05  # rad/s of the sweeping joint
-    inner = (np.arange(len(q_view)) % 8 > 0) & (np.arange(len(q_view)) % 8 < 7)  # away from sweep ends
+    # Away from the sweeps' ends: the log's samples are 50 ms apart, read by cubic segments
+    # (`interpolate_encoders`) with three-point slopes, which are the ramp's speed except at a
+    # sweep's first and last samples (their neighbours jump to the next sweep): views 1 to 5.
+    inner = (np.arange(len(q_view)) % 8 > 0) & (np.arange(len(q_view)) % 8 < 6)
     lag = (q_corner - q_view[:, None, :])[inner]
     moving = np.abs(np.diff(q_view, axis=0)).max(axis=0) > 0
     ramp = np.abs(lag).max(axis=-1)
@@ -282,3 +285,21 @@ def test_blur_notes_name_the_joint():
     (note,) = blur_notes(setup, *_sweep(lambda s: s < 0.5)[:2])
     assert note.startswith("joint 'j0': motion blur:")
     assert blur_notes(setup, *_sweep(lambda s: True)[:2]) == ()
+
+
+def test_a_sweep_that_lost_most_of_its_frames_to_blur_is_suspect():
+    """The verdict's row: the share of the sweep's frames blur lost, against `SUSPECT_SHARE`
+    (half: an arc's precision goes as the square root of its frames). Found below 0.5 rad/s,
+    the raised cosine of `_sweep` (peak 1.1 rad/s) keeps its 8 slow end frames; found below 0.9,
+    it keeps 14 of 24."""
+    setup = SimpleNamespace(dataset=SimpleNamespace(joint_names=("j0",)))
+    ((name, share, limit, reason),) = blur_rows(setup, *_sweep(lambda s: s < 0.5)[:2])
+    speed = _sweep(lambda s: True)[2]
+    kept = int(np.sum(speed < 0.5))
+    assert name == "j0.blur_lost_share" and limit == SUSPECT_SHARE
+    assert share == pytest.approx(1.0 - kept / 24, abs=1e-15) and share > limit
+    assert reason.startswith("joint 'j0': motion blur:")
+    assert f"its arc rests on the {kept} slow frames left" in reason and reason.endswith("(stop-and-shoot)")
+    ((_, share, _, _),) = blur_rows(setup, *_sweep(lambda s: s < 0.9)[:2])
+    assert share == pytest.approx(1.0 - np.sum(speed < 0.9) / 24, abs=1e-15) and share <= SUSPECT_SHARE
+    assert blur_rows(setup, *_sweep(lambda s: True)[:2]) == ()

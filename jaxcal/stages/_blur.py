@@ -22,6 +22,10 @@ FASTER = 1.5
 SMEAR_PX = 2.0
 #: A sweep has lost frames worth explaining when at least this share of them lost the target.
 LOST_SHARE = 0.3
+#: A sweep that lost more than this share of its frames to blur makes the result suspect: an arc's
+#: precision goes as the square root of its frames, so more than half lost costs over sqrt(2), and
+#: the frames left bunch at the sweep's slow ends.
+SUSPECT_SHARE = 0.5
 
 
 def joint_speed(sync: Sync, joint: int, rows: np.ndarray) -> np.ndarray | None:
@@ -95,10 +99,40 @@ def lost_to_blur(setup: Setup, obs: CameraObservations, sync: Sync, joint: int) 
 
 def blur_notes(setup: Setup, obs: CameraObservations, sync: Sync) -> tuple[str, ...]:
     """A note per joint whose sweep lost its fast frames to motion blur (`lost_to_blur`) but
-    kept enough for its arc: blur costs frames, not accuracy, so the result stands with fewer."""
+    kept enough for its arc (the verdict's `blur_rows` weigh what the loss costs)."""
     names = setup.dataset.joint_names
     return tuple(
         f"joint {names[j]!r}: {cause}"
         for j in range(len(names))
         if (cause := lost_to_blur(setup, obs, sync, j))
     )
+
+
+def blur_rows(setup: Setup, obs: CameraObservations, sync: Sync) -> tuple[tuple[str, float, float, str], ...]:
+    """The verdict's rows `(name, value, limit, reason)` for the sweeps that lost their fast
+    frames to motion blur (`lost_to_blur`): the share of the sweep's frames lost, against
+    `SUSPECT_SHARE`; the reason names the blur, the frames the arc rests on and what to change."""
+    names = setup.dataset.joint_names
+    rows = []
+    for j in range(len(names)):
+        cause = lost_to_blur(setup, obs, sync, j)
+        if not cause:
+            continue
+        frames = np.flatnonzero(np.asarray(sync.joint) == j)
+        kept = sum(bool(obs.detections[i]) for i in frames)
+        share = 1.0 - kept / frames.size
+        rows.append(
+            (
+                f"{names[j]}.blur_lost_share",
+                share,
+                SUSPECT_SHARE,
+                f"joint {names[j]!r}: "
+                + cause.replace(
+                    "; shorten the exposure",
+                    f"; its arc rests on the {kept} slow frames left, so the result is less accurate than the "
+                    "corners' noise says; shorten the exposure",
+                    1,
+                ),
+            )
+        )
+    return tuple(rows)

@@ -19,6 +19,7 @@ from .._kinematics import joint_axes
 from .._npgeom import line_distance
 from . import _programs
 from ._armcheck import arm_check
+from ._blur import blur_rows
 from ._observe import Observations
 from ._refine import Refined, succeeded
 from ._setup import Setup
@@ -286,6 +287,8 @@ def verdict(
     if setup.kind.has_arcs:
         _axes(c, setup, two, limits, residuals=not skewed)
         arm_check(c, setup, sync, two, limits)
+        for row in blur_rows(setup, obs.primary, sync):  # sweeps that lost most of their frames to blur
+            c.add(*row)
     if ran:
         _refinement(c, refined, limits)
         _shutter(c, refined, limits)
