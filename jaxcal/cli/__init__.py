@@ -193,6 +193,18 @@ def _add_calibration_parsers(sub) -> None:
         help="a plate on every link, every joint moving at once (random waypoints, as many frames as the "
         "sweeps would take); sequential initialisation, then the refinement",
     )
+    p.add_argument(  # `--camera` names the two-stage fit's camera here (`add_calibrate_args`)
+        "--camera-model",
+        choices=CAMERAS,
+        default="ideal",
+        help="the camera model, as `jaxcal simulate --camera` (e.g. global-shutter: 2 ms exposure, sensor noise)",
+    )
+    p.add_argument(
+        "--arm",
+        choices=ARMS,
+        default="ideal",
+        help="the arm model, as `jaxcal simulate --arm` (realistic: gravity compliance, backlash, encoder counts)",
+    )
     calibrate.add_calibrate_args(p)
     p.set_defaults(func=calibrate.cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")

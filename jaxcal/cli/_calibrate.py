@@ -306,6 +306,8 @@ def _demo(out: Path, args) -> int:
         eye_in_hand=args.eye_in_hand,
         camera_distance=EYE_IN_HAND_BOARD_M if args.eye_in_hand else 0.9,
         markers_on_links=args.markers_on_links,
+        camera=args.camera_model,
+        arm=args.arm,
     )
     trajectory = None
     what = f"{args.frames_per_joint} frames per {fmt_degrees(sweep)}-degree sweep" + (
