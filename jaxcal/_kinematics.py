@@ -104,12 +104,13 @@ def make_model(
         if link_names is not None
         else ("base",) + tuple(f"link{i + 1}" for i in range(n)) + ("flange",)
     )
-    eye = jnp.eye(4, dtype=jnp.float64)
+    # Defaults made in NumPy and moved over: no compiled program per default in a fresh process.
+    eye = jnp.asarray(np.eye(4))
     return KinematicModel(
         T_parent_joint=T_parent_joint,
         axis=axis,
-        zero_offset=jnp.zeros(n) if zero_offset is None else jnp.asarray(zero_offset, jnp.float64),
-        reduction_ratio=jnp.ones(n) if reduction_ratio is None else jnp.asarray(reduction_ratio, jnp.float64),
+        zero_offset=jnp.asarray(np.zeros(n) if zero_offset is None else zero_offset, jnp.float64),
+        reduction_ratio=jnp.asarray(np.ones(n) if reduction_ratio is None else reduction_ratio, jnp.float64),
         T_last_flange=eye if T_last_flange is None else jnp.asarray(T_last_flange, jnp.float64),
         T_flange_tool=eye if T_flange_tool is None else jnp.asarray(T_flange_tool, jnp.float64),
         joint_types=joint_types,
@@ -181,8 +182,18 @@ def joint_axes(
 def origins_xyz_rpy(model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
     """Joint origins as URDF `xyz` (m) and `rpy` (rad), shape `(joints, 3)` each."""
     T = np.asarray(model.T_parent_joint)
-    rpy = np.stack([np.asarray(matrix_to_rpy(jnp.asarray(Ti[:3, :3]))) for Ti in T])
-    return T[:, :3, 3].copy(), rpy
+    return T[:, :3, 3].copy(), rotations_to_rpy(T[:, :3, :3])
+
+
+#: `matrix_to_rpy` of a stack: one compiled program, not an eager operation per step and matrix.
+_matrices_to_rpy = jax.jit(jax.vmap(matrix_to_rpy))
+
+
+def rotations_to_rpy(R) -> np.ndarray:
+    """URDF roll-pitch-yaw (`jaxcal._geometry.matrix_to_rpy`) of `(n, 3, 3)` rotations, `(n, 3)`
+    (of one `(3, 3)`, `(3,)`), by one compiled call: for host code that writes files."""
+    R = np.asarray(R, np.float64)
+    return np.asarray(_matrices_to_rpy(jnp.asarray(R.reshape(-1, 3, 3)))).reshape(R.shape[:-2] + (3,))
 
 
 def origin_from_xyz_rpy(xyz, rpy) -> Float[Array, "4 4"]:

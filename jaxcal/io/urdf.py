@@ -25,21 +25,19 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
-from .._geometry import matrix_to_rpy, rpy_to_matrix
 from .._kinematics import (
     PRISMATIC,
     REVOLUTE,
     KinematicModel,
     make_model,
-    origin_from_xyz_rpy,
     origins_xyz_rpy,
+    rotations_to_rpy,
 )
 from ._files import write_text_atomic
 from ._urdf_checks import check_joint_element, check_joint_links, limit_range, limit_value
-from ._urdf_tree import read_tree
+from ._urdf_tree import origin_matrix, read_tree
 
 _MOVABLE = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC}
 _UNSUPPORTED = ("floating", "planar")
@@ -381,7 +379,7 @@ def _fmt(values) -> str:
 
 
 def _rpy_error(R: np.ndarray, rpy: np.ndarray) -> float:
-    return float(np.abs(np.asarray(rpy_to_matrix(jnp.asarray(rpy))) - R).max())
+    return float(np.abs(origin_matrix((0.0, 0.0, 0.0), rpy)[:3, :3] - R).max())
 
 
 def _rpy_exact(R: np.ndarray, rpy: np.ndarray) -> np.ndarray:
@@ -409,7 +407,7 @@ def _rpy_exact(R: np.ndarray, rpy: np.ndarray) -> np.ndarray:
 def _checked_rpy(T: np.ndarray, xyz: np.ndarray, rpy: np.ndarray, what: str) -> np.ndarray:
     """`rpy` repaired at gimbal lock and checked to reproduce `T` to 1e-12."""
     rpy = _rpy_exact(T[:3, :3], np.asarray(rpy, dtype=np.float64))
-    back = np.asarray(origin_from_xyz_rpy(xyz, rpy))
+    back = origin_matrix(xyz, rpy)
     if not np.abs(back - T).max() <= 1e-12:
         raise ValueError(f"save_urdf: {what} is not a rigid transform and cannot be written as xyz/rpy:\n{T}")
     return rpy
@@ -438,7 +436,7 @@ def _joint_origins(model: KinematicModel, arrays: dict[str, np.ndarray]) -> tupl
 
 def _flange_origin(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xyz = T[:3, 3].copy()
-    rpy = np.asarray(matrix_to_rpy(jnp.asarray(T[:3, :3])))
+    rpy = rotations_to_rpy(T[:3, :3])
     return xyz, _checked_rpy(T, xyz, rpy, "T_last_flange")
 
 
