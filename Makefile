@@ -39,14 +39,16 @@ demo: $(STAMP) gl
 # total (the largest about a seventh), so the two workers still balance.
 # (--dist loadgroup would be finer, but pytest-xdist 3.8 tags its groups through
 # `item._nodeid`, which pytest 9 no longer reads: the groups silently split.)
+# --no-loadscope-reorder keeps the files in tests/conftest.py's order, slowest
+# first (pytest-xdist otherwise queues them by their number of tests).
 # One BLAS thread per worker: two workers on two cores already fill the machine, and
 # OpenBLAS's spinning threads only steal from the other worker.
 test: $(STAMP) gl
-	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile -m "not bench"
+	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile --no-loadscope-reorder -m "not bench"
 
 # The benchmarks' longer smoke runs (tests/test_benchmarks.py, marked bench): minutes each.
 test-bench: $(STAMP) gl
-	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile -m bench
+	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile --no-loadscope-reorder -m bench
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

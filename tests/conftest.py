@@ -26,9 +26,20 @@ select_backend()  # before anything imports mujoco: headless EGL (or OSMesa) for
 jax.config.update("jax_enable_x64", True)
 # Compiled programs are cached on disk, so a second run of the suite (and the
 # notebook kernels it starts) skips XLA compilation.
-CACHE_DIR = Path(__file__).resolve().parents[1] / ".cache" / "jax"
+# `JAXCAL_TEST_CACHE=DIR` points it elsewhere (an empty directory measures a fresh
+# clone's cold run).
+CACHE_DIR = Path(
+    os.environ.get("JAXCAL_TEST_CACHE") or Path(__file__).resolve().parents[1] / ".cache" / "jax"
+)
 jax.config.update("jax_compilation_cache_dir", str(CACHE_DIR))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+# Both xdist workers share it, and so does every process a test starts (scripts,
+# the CLI, notebook kernels, benchmarks) through the environment: otherwise a
+# script's `import jaxcal` compiles into the user's `~/.cache/jaxcal/xla`, cold on a
+# fresh machine (the demo calibration in a subprocess: 50 CPU s cold, 22 s on the
+# programs the suite had stored).
+os.environ["JAX_COMPILATION_CACHE_DIR"] = str(CACHE_DIR)
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "1.0"
 
 
 #: Memory mappings a worker may hold at the end of a test file before its
@@ -67,28 +78,43 @@ def key():
 
 #: The slowest files first, so that under `make test`'s `--dist loadfile` the two
 #: workers end together on the short files instead of one worker finishing a
-#: big file alone. Measured 2026-11-25 on a fresh clone (CPU s of the worker;
-#: the notebooks' kernels ~270 s wall): arcfit 244, calibrate 242, axisfit 191,
-#: prismatic ~120, refine 119, montecarlo 116, links 100, plan 98, home 97,
-#: handeye_capture 93, handeye 89, tracker, eye_in_hand, clocksync, cli, poses ~40-55.
+#: big file alone. The order holds only with `--no-loadscope-reorder` (Makefile):
+#: pytest-xdist otherwise queues the files by their number of tests, which put
+#: the notebooks (3 tests, minutes) near the end. CPU seconds per file from
+#: `JAXCAL_TEST_CPU` on a fresh clone (2026-11-26, the session's figures for plan,
+#: links, prismatic, check_handeye): arcfit 180, handeye_capture 172, calibrate
+#: 162, notebooks 126 (their kernels), plan 99, montecarlo 92, axisfit 92,
+#: check_camera 87, links 75, home 66, prismatic 64, handeye 56, check_handeye 54,
+#: eye_in_hand 53, refine 53, pointfit 52, startup 37, then 28 and less.
 SLOW_FIRST = (
     "test_notebooks",
     "test_arcfit",
-    "test_calibrate",
-    "test_axisfit",
-    "test_prismatic",
-    "test_refine",
-    "test_montecarlo",
-    "test_links",
-    "test_plan",
-    "test_home",
     "test_handeye_capture",
+    "test_calibrate",
+    "test_plan",
+    "test_montecarlo",
+    "test_axisfit",
+    "test_check_camera",
+    "test_links",
+    "test_home",
+    "test_prismatic",
     "test_handeye",
-    "test_tracker",
+    "test_check_handeye",
     "test_eye_in_hand",
-    "test_clocksync",
-    "test_cli",
+    "test_refine",
+    "test_pointfit",
+    "test_startup",
+    "test_rolling_shutter",
     "test_poses",
+    "test_certify",
+    "test_clocksync",
+    "test_benchmarks",
+    "test_schur",
+    "test_tracker",
+    "test_sim",
+    "test_inputs",
+    "test_arm_model",
+    "test_robust",
     "test_dh",
 )
 
@@ -107,6 +133,8 @@ def pytest_collection_modifyitems(config, items):
 #: times (`--durations`) vary several-fold with the load; CPU time does not, and
 #: the suite is CPU-bound, so its wall time is about the total over two.
 _CPU: Counter = Counter()
+#: ... and per test (its node id), the 25 costliest kept in the same JSON line.
+_CPU_TEST: Counter = Counter()
 
 
 def _cpu_now() -> float:
@@ -118,7 +146,9 @@ def _cpu_now() -> float:
 def pytest_runtest_protocol(item, nextitem):
     start = _cpu_now()
     yield
-    _CPU[item.path.name] += _cpu_now() - start
+    spent = _cpu_now() - start
+    _CPU[item.path.name] += spent
+    _CPU_TEST[item.nodeid] += spent
 
 
 def pytest_sessionfinish(session):
@@ -127,6 +157,12 @@ def pytest_sessionfinish(session):
         worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
         with open(out, "a") as f:
             f.write(
-                json.dumps({"worker": worker, "cpu_s": {k: round(v, 1) for k, v in _CPU.most_common()}})
+                json.dumps(
+                    {
+                        "worker": worker,
+                        "cpu_s": {k: round(v, 1) for k, v in _CPU.most_common()},
+                        "slowest_tests": {k: round(v, 1) for k, v in _CPU_TEST.most_common(25)},
+                    }
+                )
                 + "\n"
             )

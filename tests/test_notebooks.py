@@ -14,8 +14,10 @@ NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.i
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
 def test_notebook_executes(path, monkeypatch, tmp_path):
-    # The kernel shares the suite's compilation cache and draws into a file backend.
+    # The kernel shares the suite's compilation cache, draws into a file backend and runs
+    # each notebook at its smallest size (the notebook reads JAXCAL_NOTEBOOK_SMALL).
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(CACHE_DIR))
+    monkeypatch.setenv("JAXCAL_NOTEBOOK_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
     nb = nbformat.read(path, as_version=4)
     NotebookClient(
