@@ -17,6 +17,8 @@ parameters the data cannot see. This module writes each of those once:
 - `covariance`: $\\hat\\sigma^2 (J^T J)^+$ over the free parameters, from one
   SVD (`jaxcal._linalg.gauss_newton_covariance`, safe to batch on a CPU),
   with the residual-variance scaling $\\hat\\sigma^2 = \\|r\\|^2 / (m - n)$.
+- `cluster_covariance`: the cluster-robust (sandwich) covariance
+  $B (\\sum_g J_g^T r_g r_g^T J_g) B$ of errors shared within clusters (a view's corners).
 - `closed_form_jvp`: a residual function whose derivative with respect to
   its parameters is a hand-written Jacobian (checked against autodiff in the
   tests) and with respect to the data is autodiff.
@@ -318,3 +320,69 @@ def closed_form_jvp(
     f.defjvp(jvp, symbolic_zeros=True)
     f.__doc__ = primal.__doc__
     return f
+
+
+def cluster_covariance(
+    bread: Float[Array, "n n"], scores: Float[Array, "views n"], n_obs=None
+) -> Float[Array, "n n"]:
+    """The cluster-robust (sandwich) covariance of a least-squares solve: pure, jittable.
+
+    $\\Sigma_{cl} = c\\, B \\big(\\sum_g s_g s_g^T\\big) B$, $B = (J^TJ)^+$ the solve's
+    bread (its Gauss-Newton covariance over $\\hat\\sigma^2$, `covariance` with
+    `sigma2=1`), $s_g = J_g^T r_g$ the gradient of cluster $g$'s residuals at the
+    solution, and the small-sample factor $c = \\frac{G}{G-1}\\frac{N-1}{N-K}$ ($G$
+    clusters with a non-zero gradient, $N$ observations, $K$ free parameters: the CR1
+    correction, Cameron and Miller 2015, section VI.A). Unlike $\\hat\\sigma^2 B$ it does
+    not take the errors within a cluster to be independent: errors shared by a view's
+    corners (the detector's view-coherent shift, a pose error) enter through
+    $s_g s_g^T$ at their size, where $\\hat\\sigma^2 B$ sees them as a little extra noise
+    per corner. With independent errors of variance $\\sigma^2$ its expectation is
+    $\\sigma^2 B$. What the solution absorbs of an error common to many clusters leaves
+    no trace in the residuals, so no residual-based covariance sees it.
+
+    **Arguments:** `bread` `(n, n)` (zero rows and columns where frozen); `scores`
+    `(clusters, n)`, per cluster $J_g^Tr_g$ (all-zero rows, e.g. padding, are not
+    clusters); `n_obs`: $N$ (default: no $(N-1)/(N-K)$ factor).
+
+    **Returns:** `(n, n)`.
+    """
+    s = jnp.asarray(scores)
+    G = jnp.sum(jnp.any(s != 0.0, axis=1))
+    K = jnp.sum(jnp.diag(bread) > 0)
+    c = G / jnp.maximum(G - 1.0, 1.0)
+    if n_obs is not None:
+        c = c * (n_obs - 1.0) / jnp.maximum(n_obs - K, 1.0)
+    return c * (bread @ (s.T @ s) @ bread)
+
+
+def larger_covariance(
+    J: Float[Array, "m n"],
+    sv: Float[Array, " n"],
+    Vt: Float[Array, "n n"],
+    sigma2: Float[Array, ""],
+    other: Float[Array, "n n"],
+    margin: Float[Array, ""] | float = 0.0,
+) -> Float[Array, "n n"]:
+    """The model's covariance $\\hat\\sigma^2 (J^TJ)^+$, replaced by `other` along the
+    directions where `other` is larger by more than the factor $1 +$ `margin`: pure, jittable.
+
+    With $(J^TJ)^+ = LL^T$ from `covariance`'s SVD of the column-scaled `J` (`sv`, `Vt`:
+    $L = DVS^{-1}$) and $L^+\\,\\mathrm{other}\\,L^{+T} / \\hat\\sigma^2 = Q\\Lambda Q^T$ (one
+    `eigh`, after the SVD), it is $\\hat\\sigma^2 LQ\\,\\mathrm{diag}(\\lambda')\\,Q^TL^T$,
+    $\\lambda' = \\lambda$ where $\\lambda > 1 +$ `margin`, else 1 (the generalised
+    eigenvalues of `other` against the model's). A `margin` of twice a sandwich's
+    sampling spread ($2\\sqrt{2/G}$ for $G$ clusters) keeps the model's covariance where the
+    errors are independent and the sandwich only scatters about it. Directions the SVD
+    cut as unidentifiable stay out, as in `covariance`.
+    """
+    n = J.shape[1]
+    rtol = float(np.sqrt(10 * n * np.finfo(np.dtype(J.dtype)).eps))
+    norms = jnp.linalg.norm(J, axis=0)
+    scale = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 0.0)
+    keep = sv > rtol * sv[0]
+    L = (Vt.T * scale[:, None]) * jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0)[None, :]
+    L_pinv = jnp.where(keep, sv, 0.0)[:, None] * Vt * norms[None, :]
+    lam, Q = jnp.linalg.eigh(L_pinv @ other @ L_pinv.T / jnp.maximum(sigma2, 1e-300))
+    ratio = jnp.where(lam > 1.0 + margin, lam, 1.0)
+    LQ = L @ Q
+    return sigma2 * (LQ * ratio[None, :]) @ LQ.T

@@ -179,7 +179,12 @@ class RefineResult(eqx.Module):
       `T_cam_base` (the first camera), `T_cam_bases` (every camera,
       `(cameras, 4, 4)`), `T_flange_marker`, `K`, `dist`, `offset_s` (s).
     - `std`, `cov`: standard deviations and covariance of the flattened
-      parameters (`refine_parameter_names` order; zero where frozen).
+      parameters (`refine_parameter_names` order; zero where frozen): the
+      model's covariance `cov_model`, or along the directions where it is
+      larger beyond its sampling spread, the cluster-robust covariance with one
+      cluster per view (`jaxcal._lsq.cluster_covariance`, `larger_covariance`),
+      which does not take a view's corner errors to be independent (a robot
+      pose error or the detector's bias moves a view's corners together).
     - `free`: the parameters estimated (the others held at their start).
     - `singular_values`, `singular_vectors` (rows): SVD of the
       column-normalised inlier Jacobian of the free parameters at the
@@ -191,6 +196,8 @@ class RefineResult(eqx.Module):
       steps of all rounds; `rounds_ok`: every round's solve succeeded.
     - `line_delay_s`: with rolling shutters, every camera's line delay (s per
       row); `None` without.
+    - `cov_model`: the model's covariance $\\hat\\sigma^2 (J^TJ)^+$ (corner errors
+      independent), beside `cov`.
     """
 
     params: RefineParams
@@ -216,6 +223,7 @@ class RefineResult(eqx.Module):
     rounds_ok: Bool[Array, ""]
     round_steps: Int[Array, " rounds"]
     line_delay_s: Float[Array, " cameras"] | None = None
+    cov_model: Float[Array, "n n"] | None = None
 
 
 def refine(
@@ -294,11 +302,7 @@ def refine(
     # Uncertainty: Jacobian of the (weighted) residuals at the solution.
     J = jax.jacfwd(lambda xx: residual_x(xx, w))(x)
     r = residual_x(x, w)
-    sigma2 = _lsq.residual_variance(r, 2.0 * jnp.sum(w), idx.size)
-    # One SVD for the covariance and the identifiability report (see _linalg).
-    cov_f, sv, Vt = _lsq.covariance(J, sigma2=sigma2)
-    n = flat0.shape[0]
-    cov = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(cov_f)
+    cov, cov_model, sigma2, sv, Vt = _covariances(J, r, w, idx, flat0.shape[0])
     used = w > 0
     raw = jnp.where(mask[..., None], projected_corners(params, problem) - problem.data.pixels, 0.0)
     inl_rms = jnp.sqrt(
@@ -335,7 +339,25 @@ def refine(
         rounds_ok=ok,
         round_steps=round_steps,
         line_delay_s=line_delays(params, problem) if rolling(problem) else None,
+        cov_model=cov_model,
     )
+
+
+def _covariances(J, r, w, idx, n):
+    """`(cov, cov_model, sigma2, sv, Vt)` of the final solve (see `RefineResult`): the model's
+    $\\hat\\sigma^2 (J^TJ)^+$ and the covariance it becomes where the views' sandwich is larger
+    than it beyond its own spread; one SVD (see `_linalg`) and one small `eigh` after it."""
+    sigma2 = _lsq.residual_variance(r, 2.0 * jnp.sum(w), idx.size)
+    bread, sv, Vt = _lsq.covariance(J)
+    V = w.shape[0]
+    # Per view the gradient J_v^T r_v of its corners: one cluster each (padded views: zero).
+    scores = jnp.einsum("vkn,vk->vn", J.reshape(V, -1, idx.size), r.reshape(V, -1))
+    robust = _lsq.cluster_covariance(bread, scores, n_obs=2.0 * jnp.sum(w > 0))
+    views = jnp.maximum(jnp.sum(jnp.any(scores != 0.0, axis=1)), 2.0)
+    cov_f = _lsq.larger_covariance(J, sv, Vt, sigma2, robust, 2.0 * jnp.sqrt(2.0 / views))
+    cov = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(cov_f)
+    cov_model = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(sigma2 * bread)
+    return cov, cov_model, sigma2, sv, Vt
 
 
 def _checked(problem: RefineProblem, params0: RefineParams, free, loss):
@@ -505,7 +527,7 @@ def line_delay_test(
     residuals gain $J_\\ell \\ell$ for line delays $\\ell$: each corner's image
     velocity $\\partial u / \\partial t$ times its row. With the final weights, the
     residuals $r$ and the free parameters' Jacobian $J$ (whose normal matrix's
-    inverse is `res.cov` over $\\hat\\sigma^2$), the delay one Gauss-Newton step
+    inverse is `res.cov_model` over $\\hat\\sigma^2$), the delay one Gauss-Newton step
     gives and its covariance are $\\hat\\ell = -D^{-1} J_\\ell^T r$ and
     $\\hat\\sigma^2 D^{-1}$, with $D = J_\\ell^T J_\\ell - J_\\ell^T J\\,(J^TJ)^{-1} J^T J_\\ell$
     (the part of $J_\\ell$ the other parameters cannot absorb: a delay common to
@@ -530,7 +552,7 @@ def line_delay_test(
     )
     G = jax.vmap(lambda col: pullback(col)[0], in_axes=1, out_axes=1)(J_ell)  # J^T J_ell, (n, C)
     sigma2 = jnp.maximum(res.sigma_px**2, 1e-30)
-    D = J_ell.T @ J_ell - G.T @ (res.cov / sigma2) @ G
+    D = J_ell.T @ J_ell - G.T @ (res.cov_model / sigma2) @ G
     D_inv = jnp.linalg.pinv(D, hermitian=True)
     ell_us = -D_inv @ (J_ell.T @ r.reshape(-1))
     std_us = jnp.sqrt(jnp.maximum(jnp.diag(D_inv), 0.0) * sigma2)
