@@ -19,7 +19,7 @@ planned`, rendered here (`rendered_results`). Usage:
 
     python benchmarks/certify.py --seeds 5 --json results/certify.json [--camera DIR ...]
     python benchmarks/certify.py --seeds 5 --render demo_sweeps planned --render-seeds 5 \
-        --json results/certify.json
+        --json results/certify.json [--workdir DIR [--reuse]]
 """
 
 import argparse
@@ -90,33 +90,50 @@ def tracker_results(seeds: int, poses: int, root: Path) -> list[Path]:
     return out
 
 
-def rendered_results(seeds: int, root: Path, designs: list[str]) -> dict[str, list[Path]]:
+def rendered_results(
+    seeds: int, root: Path, designs: list[str], reuse: bool = False
+) -> dict[str, list[Path]]:
     """Rendered camera captures calibrated here, `seeds` per design: `demo_sweeps` (the
     demo's: 1280x960, 40 frames per 80-degree sweep, clock not given) and `planned`
     (`jaxcal.plan`'s 240 stop-and-shoot poses for the UR5e, as `benchmarks/plan.py`,
-    rendered by `render_plan`); the seed draws the true arm, mounts and noise."""
+    rendered by `render_plan`); the seed draws the true arm, mounts and noise. With
+    `reuse`, a capture already rendered in `root` (`<design>_ds<seed>/truth.json`) is
+    calibrated again instead of rendered (and planned)."""
     from plan import CONFIGS  # benchmarks/plan.py: the demo's capture
 
     from jaxcal.sim.plan import MujocoChecker, render_plan
     from jaxcal.sim.simulate import simulate
 
+    plans = []
+
+    def planned(d, s):
+        if not plans:
+            t0 = time.perf_counter()
+            plans.append(
+                jaxcal.plan(
+                    "ur5e", seed=0, checker_factory=MujocoChecker, frames=240, steps=150, starts=3,
+                    candidates=2000,
+                ).plan
+            )  # fmt: skip
+            print(f"planned {plans[0].frames} poses in {time.perf_counter() - t0:.0f} s", flush=True)
+        return render_plan(plans[0], d, seed=s, overwrite=True, progress=False)
+
     makers = {}
     if "demo_sweeps" in designs:
         makers["demo_sweeps"] = lambda d, s: simulate(CONFIGS["demo"](s), d, overwrite=True, progress=False)
     if "planned" in designs:
-        t0 = time.perf_counter()
-        plan = jaxcal.plan(
-            "ur5e", seed=0, checker_factory=MujocoChecker, frames=240, steps=150, starts=3, candidates=2000
-        ).plan
-        print(f"planned {plan.frames} poses in {time.perf_counter() - t0:.0f} s", flush=True)
-        makers["planned"] = lambda d, s: render_plan(plan, d, seed=s, overwrite=True, progress=False)
+        makers["planned"] = planned
     out = {}
     for name, make in makers.items():
         out[name] = []
         for s in range(seeds):
             t0 = time.perf_counter()
-            ds = make(root / f"{name}_ds{s}", s)
-            res = write_outputs(jaxcal.calibrate(ds, progress=False), root / f"{name}_res{s}")
+            ds = root / f"{name}_ds{s}"
+            if not (reuse and (ds / "truth.json").exists()):
+                ds = make(ds, s)
+            res = write_outputs(
+                jaxcal.calibrate(ds, progress=False), root / f"{name}_res{s}", overwrite=reuse
+            )
             print(f"{name} seed {s}: rendered and calibrated in {time.perf_counter() - t0:.0f} s", flush=True)
             out[name].append(res)
     return out
@@ -145,6 +162,11 @@ def main(argv=None) -> int:
     )
     p.add_argument("--render-seeds", type=int, default=5, help="seeds per rendered design")
     p.add_argument("--workdir", type=Path, help="keep the rendered captures and results here")
+    p.add_argument(
+        "--reuse",
+        action="store_true",
+        help="with --workdir: calibrate the captures already rendered there again (no rendering)",
+    )
     p.add_argument("--json", required=True, type=Path)
     args = p.parse_args(argv)
     designs = {}
@@ -161,7 +183,7 @@ def main(argv=None) -> int:
     if args.render:
         with tempfile.TemporaryDirectory() as tmp:
             work = args.workdir or Path(tmp)
-            for name, results in rendered_results(args.render_seeds, work, args.render).items():
+            for name, results in rendered_results(args.render_seeds, work, args.render, args.reuse).items():
                 designs[name] = [score(r, args.configs, k) for k, r in enumerate(results)]
     out = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
