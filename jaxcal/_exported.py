@@ -25,7 +25,7 @@ only as far as the user's own cache directory is.
 
 A run's programs are called one after another, and each first call waits for
 its entry and its executable to be read (XLA's part without Python's lock).
-`warm_start(tag)` reads ahead, on a background thread, the entries the last run
+`warm_start(tag)` reads ahead, on background threads, the entries the last run
 with the same tag called, in the order it called them, while the run does its
 other work; a call takes an entry read ahead only when its own key is the
 file's (and its compiler options the same), so the results never depend on it.
@@ -344,6 +344,9 @@ def _write(path: Path, key: bytes, exported, out_tree) -> None:
 
 # ---------------------------------------------------------------------- reading ahead
 
+#: Threads that read entries ahead: XLA reads an executable without Python's lock, so a
+#: second one keeps both cores busy while the run waits for the first program it needs.
+AHEAD_THREADS = min(2, os.cpu_count() or 1)
 #: Entries read ahead by `warm_start`, by file name: futures of `(key, _Entry)` or `None`.
 _AHEAD: dict[str, Future] = {}
 _AHEAD_LOCK = threading.Lock()
@@ -384,8 +387,8 @@ def _manifest(folder: Path, tag: str) -> Path:
 @contextlib.contextmanager
 def warm_start(tag: str):
     """Within the block, read ahead the entries the last block with this `tag` called (on
-    one background thread, in the order they were called); when the block ends without an
-    error, record the entries it called for the next (module docstring)."""
+    `AHEAD_THREADS` background threads, in the order they were called); when the block ends
+    without an error, record the entries it called for the next (module docstring)."""
     folder = programs_dir()
     if folder is None:
         yield
@@ -397,7 +400,7 @@ def warm_start(tag: str):
     except (OSError, ValueError, KeyError, TypeError):
         before, files = None, []
     used: dict = {}
-    pool = ThreadPoolExecutor(1, thread_name_prefix="jaxcal programs ahead")
+    pool = ThreadPoolExecutor(AHEAD_THREADS, thread_name_prefix="jaxcal programs ahead")
     mine = []
     with _AHEAD_LOCK:
         for name, file, options in files:
