@@ -4,7 +4,7 @@ Read from the source alone (no import of jaxcal), each count with the places it
 found so that a figure can be checked by eye:
 
 - `record_fields`: fields of the stage and result records (the public
-  dataclasses and NamedTuples of `jaxcal/stages/`, less the configuration
+  dataclasses and NamedTuples of `jaxcal/stages/` and `jaxcal/records.py`, less the configuration
   records `Options`, `Limits` and `CaptureKind`), and `bag_fields`, those typed
   `dict`, `list`, `object` or `Any` (with or without `| None`), per record.
 - `string_key_reads`: subscripts by a string constant read in `jaxcal/`
@@ -36,6 +36,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxcal"
 KINDS = PACKAGE / "stages" / "kinds.py"
+#: The typed rows and blocks the stages' records hold (`jaxcal.records`).
+RECORDS = PACKAGE / "records.py"
 #: The least-squares kit: a covariance computed here is the one route.
 KIT = (PACKAGE / "_lsq.py", PACKAGE / "_linalg.py")
 BAG_TYPES = {"dict", "list", "object", "Any", "Dict", "List", "Mapping"}
@@ -91,7 +93,7 @@ def _is_record(cls: ast.ClassDef) -> bool:
 def record_fields() -> dict:
     """Per public record of `jaxcal/stages/`: its fields and the bag-typed ones."""
     records = {}
-    for p in _files(PACKAGE / "stages"):
+    for p in [*_files(PACKAGE / "stages"), *([RECORDS] if RECORDS.is_file() else [])]:
         for cls in ast.walk(_parse(p)):
             if (
                 not (isinstance(cls, ast.ClassDef) and _is_record(cls))

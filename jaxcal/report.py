@@ -8,6 +8,7 @@ import importlib
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -16,13 +17,26 @@ from ._tables import PhysicalTable, base_flange_std, physical_table
 from .io._files import atomic_directory
 from .io.dataset import write_json
 from .io.dh_tables import dh_table_json, is_table_file
-from .io.result import ESTIMATE_FILE, write_estimate
+from .io.result import ESTIMATE_FILE, pose_figures, write_estimate
 from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.ros import write_static_transform
 from .io.urdf import save_urdf
+from .records import PoseFigures
+from .summary import clock_line, joints_table, refinement_line, truth_table
 
 
-def arc_geometry(result, j: int) -> dict:
+class ArcGeometry(NamedTuple):
+    """A joint's marker positions in its fitted arc's plane (mm; see `arc_geometry`)."""
+
+    u: np.ndarray
+    v: np.ndarray
+    #: The arc's radius (nan for a prismatic joint's line).
+    radius: float
+    radial: np.ndarray
+    axial: np.ndarray
+
+
+def arc_geometry(result, j: int) -> ArcGeometry:
     """Joint `j`'s measured marker positions in its fitted arc's plane.
 
     **Returns:** `u`, `v` (mm, in-plane, about the fitted axis point), `radius`
@@ -40,20 +54,20 @@ def arc_geometry(result, j: int) -> dict:
         lateral = d - h[:, None] * V
         e1 = np.linalg.svd(lateral, full_matrices=False)[2][0] if len(P) > 1 else np.cross(V, [1.0, 0, 0])
         v = 1e3 * lateral @ e1
-        return {"u": 1e3 * h, "v": v, "radius": float("nan"), "radial": v, "axial": np.zeros_like(v)}
+        return ArcGeometry(u=1e3 * h, v=v, radius=float("nan"), radial=v, axial=np.zeros_like(v))
     d = P - Q
     h = d @ V
     inplane = d - h[:, None] * V
     e1 = inplane[0] / np.linalg.norm(inplane[0])
     e2 = np.cross(V, e1)
     rho = np.linalg.norm(inplane, axis=1)
-    return {
-        "u": 1e3 * inplane @ e1,
-        "v": 1e3 * inplane @ e2,
-        "radius": 1e3 * rho.mean(),
-        "radial": 1e3 * (rho - rho.mean()),
-        "axial": 1e3 * (h - h.mean()),
-    }
+    return ArcGeometry(
+        u=1e3 * inplane @ e1,
+        v=1e3 * inplane @ e2,
+        radius=1e3 * rho.mean(),
+        radial=1e3 * (rho - rho.mean()),
+        axial=1e3 * (h - h.mean()),
+    )
 
 
 def _margins(fig, *, left: float, right: float, bottom: float, top: float, **space) -> None:
@@ -82,7 +96,7 @@ def plot_arcs(result):
     circle (a matplotlib `Figure`, made without pyplot: no global state, any backend)."""
     from matplotlib.figure import Figure
 
-    names = [a["joint"] for a in result.arcs]
+    names = [a.joint for a in result.arcs]
     cols = min(3, len(names))
     rows = int(np.ceil(len(names) / cols))
     fig = Figure(figsize=(4 * cols, 3.6 * rows))
@@ -90,27 +104,27 @@ def plot_arcs(result):
     for j, name in enumerate(names):
         ax = axes[j // cols][j % cols]
         g = arc_geometry(result, j)
-        if not np.isfinite(g["radius"]):  # a prismatic joint: its travel, no arc
-            ax.plot(g["u"], g["v"], ".", ms=4, color="tab:red", label="marker (PnP)")
-            ax.set_title(f"{name}: travel {np.ptp(g['u']):.1f} mm (lateral x1)", fontsize=9)
+        if not np.isfinite(g.radius):  # a prismatic joint: its travel, no arc
+            ax.plot(g.u, g.v, ".", ms=4, color="tab:red", label="marker (PnP)")
+            ax.set_title(f"{name}: travel {np.ptp(g.u):.1f} mm (lateral x1)", fontsize=9)
             ax.set_xlabel("mm along the fitted direction", fontsize=8)
             continue
         t = np.linspace(0, 2 * np.pi, 400)
         ax.plot(
-            g["radius"] * np.cos(t),
-            g["radius"] * np.sin(t),
+            g.radius * np.cos(t),
+            g.radius * np.sin(t),
             "-",
             lw=0.8,
             color="tab:blue",
             label="fitted arc",
         )
-        ax.plot(g["u"], g["v"], ".", ms=4, color="tab:red", label="marker (PnP)")
+        ax.plot(g.u, g.v, ".", ms=4, color="tab:red", label="marker (PnP)")
         ax.plot([0], [0], "+", color="k")
-        span = max(np.ptp(g["u"]), np.ptp(g["v"]), 20.0)
-        ax.set_xlim(g["u"].mean() - 0.7 * span, g["u"].mean() + 0.7 * span)
-        ax.set_ylim(g["v"].mean() - 0.7 * span, g["v"].mean() + 0.7 * span)
+        span = max(np.ptp(g.u), np.ptp(g.v), 20.0)
+        ax.set_xlim(g.u.mean() - 0.7 * span, g.u.mean() + 0.7 * span)
+        ax.set_ylim(g.v.mean() - 0.7 * span, g.v.mean() + 0.7 * span)
         ax.set_aspect("equal")
-        ax.set_title(f"{name}: r = {g['radius']:.1f} mm", fontsize=9)
+        ax.set_title(f"{name}: r = {g.radius:.1f} mm", fontsize=9)
         ax.set_xlabel("mm (in the arc's plane)", fontsize=8)
         if j == 0:
             ax.legend(fontsize=7)
@@ -128,9 +142,9 @@ def plot_residuals(result):
     geometry = [arc_geometry(result, j) for j in range(len(result.arcs))]
     fig = Figure(figsize=(9, 3.4))
     ax = fig.subplots(1, 2)
-    ax[0].hist(np.concatenate([g["radial"] for g in geometry]), bins=30, color="tab:blue")
+    ax[0].hist(np.concatenate([g.radial for g in geometry]), bins=30, color="tab:blue")
     ax[0].set_title("radial residual (mm)", fontsize=9)
-    ax[1].hist(np.concatenate([g["axial"] for g in geometry]), bins=30, color="tab:orange")
+    ax[1].hist(np.concatenate([g.axial for g in geometry]), bins=30, color="tab:orange")
     ax[1].set_title("along-axis residual (mm)", fontsize=9)
     _margins(fig, left=0.45, right=0.15, bottom=0.35, top=0.3, wspace=0.2)
     return fig
@@ -143,12 +157,12 @@ def plot_ee_errors(result):
 
     if result.ee_errors is None:
         return None
-    before, after = result.ee_errors["before"], result.ee_errors["after"]
+    before, after = result.ee_errors.before, result.ee_errors.after
     fig = Figure(figsize=(7, 3.6))
     ax = fig.subplots()
     bins = np.logspace(np.log10(max(min(after.min(), before.min()), 1e-3)), np.log10(before.max() * 1.1), 50)
     ax.hist(before, bins=bins, alpha=0.7, label=f"nominal model (RMS {np.sqrt(np.mean(before**2)):.2f} mm)")
-    two = result.ee_errors.get("two_stage") if result.refinement is not None else None
+    two = result.ee_errors.two_stage if result.refinement is not None else None
     if two is not None:
         start = "two-stage" if result.kind.has_arcs else "closed-form start"
         ax.hist(two, bins=bins, alpha=0.6, label=f"{start} (RMS {np.sqrt(np.mean(two**2)):.3f} mm)")
@@ -200,10 +214,6 @@ def _camera_yaml(path: Path, name: str, T_cam_base, std, K, dist, *, T_flange_ca
         fs.write("distortion_coefficients", np.asarray(dist, np.float64).reshape(1, -1))
     finally:
         fs.release()
-
-
-def _fmt(x, spec=".3f") -> str:
-    return "n/a" if x is None else format(x, spec)
 
 
 def dh_tables(result) -> dict[str, PhysicalTable]:
@@ -263,7 +273,6 @@ def _dh_section(tables: dict[str, PhysicalTable]) -> list[str]:
 
 
 def _markdown(result, figs, tables=None) -> str:
-    r = result.to_json()
     lines = [
         f"# jaxcal calibration of `{result.dataset}`",
         "",
@@ -274,7 +283,7 @@ def _markdown(result, figs, tables=None) -> str:
     ]
     if result.reasons:
         lines += ["## Why the result is " + result.status, ""] + [f"- {r}" for r in result.reasons] + [""]
-    lines += _truth_section(result) + _refinement_section(result) + _camera_section(result, r)
+    lines += _truth_section(result) + _refinement_section(result) + _camera_section(result)
     lines += _joints_section(result) + _dh_section(tables or {}) + _frames_section(result)
     lines += ["## Plots", ""]
     for name, caption in figs:
@@ -283,74 +292,70 @@ def _markdown(result, figs, tables=None) -> str:
 
 
 def _truth_section(result) -> list[str]:
-    lines = []
-    v = result.validation
-    if v is not None:
-        c = v["T_cam_base_error"]
-        refined = bool(v.get("refined"))
-        head, two_rms, two_max = "", "", ""
-        if refined:
-            head = " two-stage |" if result.kind.has_arcs else " start (closed form) |"
-            two_rms, two_max = (f" {v['ee_rms_mm_two_stage']:.3f} |", f" {v['ee_max_mm_two_stage']:.3f} |")
-        lines += [
-            "## Against the truth (synthetic dataset)",
-            "",
-            f"| | nominal model |{head} {'refined' if refined else 'calibrated'} |",
-            "| --- | ---: |" + (" ---: |" if refined else "") + " ---: |",
-            f"| EE RMS (mm) | {v['ee_rms_mm_before']:.3f} |{two_rms} {v['ee_rms_mm_after']:.3f} |",
-            f"| EE max (mm) | {v['ee_max_mm_before']:.3f} |{two_max} {v['ee_max_mm_after']:.3f} |",
-            "",
-            f"{result.kind.fixed_frame} error: {c['trans_mm']:.3f} mm, {c['rot_deg']:.4f} deg (in the estimator's gauge; "
-            f"raw {c['raw_trans_mm']:.3f} mm, {c['raw_rot_deg']:.4f} deg).",
-            "",
-        ]
-    return lines
+    table = truth_table(result)
+    if table is None:
+        return []
+    c = result.validation.T_cam_base_error
+    return [
+        "## Against the truth (synthetic dataset)",
+        "",
+        *table.markdown(),
+        "",
+        f"{result.kind.fixed_frame} error in the estimator's gauge: the truth seen through the same frozen "
+        f"parameters (raw {c.raw_trans_mm:.3f} mm, {c.raw_rot_deg:.4f} deg).",
+        "",
+    ]
 
 
 def _refinement_section(result) -> list[str]:
-    lines = []
     v = result.validation
     ref = result.refinement
-    if ref is not None:
+    if ref is None:
+        return []
+    lines = [
+        "## Refinement (reprojection of every corner)",
+        "",
+        refinement_line(result),
+        "",
+        "Frames whose corners stay outliers: "
+        + (", ".join(str(f) for f in ref.outlier_frames) if ref.outlier_frames else "none"),
+        "",
+        "Correlations above 0.95: "
+        + (
+            "; ".join(f"{p.a} / {p.b} ({p.rho:+.3f})" for p in ref.correlations)
+            if ref.correlations
+            else "none"
+        ),
+        "",
+        "Unidentifiable directions at the solution: "
+        + (
+            "; ".join(", ".join(r.name for r in w.parameters) for w in ref.weak_directions)
+            if ref.weak_directions
+            else "none beyond the parameters held at nominal"
+        ),
+        "",
+    ]
+    if v is not None and v.T_cam_base_error_two_stage is not None:
+        c2 = v.T_cam_base_error_two_stage
         lines += [
-            "## Refinement (reprojection of every corner)",
-            "",
-            f"{ref['corners']} corners in {ref['frames']} frames, {ref['free_parameters']} parameters; "
-            f"{ref['loss']}; solver {ref['solver']['result']} ({ref['solver']['steps']} steps). "
-            f"Inlier RMS {ref['inlier_rms_px']:.3f} px, pixel sigma {ref['sigma_px']:.3f} px, "
-            f"{ref['outlier_corners']} outlier corners; condition number {ref['condition_number']:.3g}.",
-            "",
-            "Frames whose corners stay outliers: "
-            + (", ".join(str(f) for f in ref["outlier_frames"]) if ref["outlier_frames"] else "none"),
-            "",
-            "Correlations above 0.95: "
-            + (
-                "; ".join(f"{p['a']} / {p['b']} ({p['rho']:+.3f})" for p in ref["correlations"])
-                if ref["correlations"]
-                else "none"
-            ),
-            "",
-            "Unidentifiable directions at the solution: "
-            + (
-                "; ".join(", ".join(w["parameters"]) for w in ref["weak_directions"])
-                if ref["weak_directions"]
-                else "none beyond the parameters held at nominal"
-            ),
+            f"Two-stage {'T_board_base' if result.eye_in_hand else 'T_cam_base'} error: "
+            f"{c2.trans_mm:.3f} mm, {c2.rot_deg:.4f} deg.",
             "",
         ]
-        if v is not None and "T_cam_base_error_two_stage" in v:
-            c2 = v["T_cam_base_error_two_stage"]
-            lines += [
-                f"Two-stage {'T_board_base' if result.eye_in_hand else 'T_cam_base'} error: {c2['trans_mm']:.3f} mm, {c2['rot_deg']:.4f} deg.",
-                "",
-            ]
     return lines
 
 
-def _camera_section(result, r) -> list[str]:
+def _pose_line(T: PoseFigures) -> str:
+    return (
+        f"translation {np.round(T.xyz_m * 1e3, 3).tolist()} mm "
+        f"(std {np.round(T.std_xyz_mm, 3).tolist()} mm, {np.round(T.std_rot_deg, 4).tolist()} deg)"
+    )
+
+
+def _camera_section(result) -> list[str]:
     v = result.validation
     fixed = result.kind.fixed_frame
-    T = r[fixed]
+    T = pose_figures(result.T_cam_base, result.std_cam)
     lines = [
         f"## {result.kind.sensor.capitalize()} pose",
         "",
@@ -364,59 +369,36 @@ def _camera_section(result, r) -> list[str]:
             if result.eye_in_hand
             else []
         ),
-        f"{fixed} translation {np.round(np.asarray(T['xyz_m']) * 1e3, 3).tolist()} mm "
-        f"(std {np.round(T['std_xyz_mm'], 3).tolist()} mm, {np.round(T['std_rot_deg'], 4).tolist()} deg); "
-        f"quaternion (xyzw) {np.round(T['quaternion_xyzw'], 6).tolist()}.",
+        f"{fixed} {_pose_line(T)}; quaternion (xyzw) {np.round(T.quaternion_xyzw, 6).tolist()}.",
         "",
     ]
-    errs = (v or {}).get("other_cameras", {})
-    for c in r.get("other_cameras", []):
-        Tc = c["T_cam_base"]
+    errs = {e.camera: e for e in (v.other_cameras or ())} if v is not None else {}
+    for c in result.other_cameras:
         line = (
-            f"Camera {c['camera']} ({c['views']} views, refined with the robot): T_cam_base translation "
-            f"{np.round(np.asarray(Tc['xyz_m']) * 1e3, 3).tolist()} mm (std "
-            f"{np.round(Tc['std_xyz_mm'], 3).tolist()} mm, {np.round(Tc['std_rot_deg'], 4).tolist()} deg)."
+            f"Camera {c.camera} ({c.views} views, refined with the robot): T_cam_base "
+            f"{_pose_line(pose_figures(c.T_cam_base, c.std_cam))}."
         )
-        if c["camera"] in errs:
-            e = errs[c["camera"]]
+        if c.camera in errs:
+            e = errs[c.camera]
             line += (
-                f" Pose relative to {result.camera} vs the truth: {e['refined']['trans_mm']:.3f} mm, "
-                f"{e['refined']['rot_deg']:.4f} deg (start from PnP: {e['start']['trans_mm']:.3f} mm, "
-                f"{e['start']['rot_deg']:.4f} deg)."
+                f" Pose relative to {result.camera} vs the truth: {e.refined.trans_mm:.3f} mm, "
+                f"{e.refined.rot_deg:.4f} deg (start from PnP: {e.start.trans_mm:.3f} mm, "
+                f"{e.start.rot_deg:.4f} deg)."
             )
         lines += [line, ""]
-    return lines + [
-        f"Clock offset: {1e3 * result.clock['offset_s']:.2f} ms"
-        + (
-            f" (estimated, std {1e3 * result.clock['std_s']:.2f} ms)"
-            if result.clock["estimated"]
-            else " (given)"
-        ),
-        "",
-    ]
+    return lines + [clock_line(result), ""]
 
 
 def _joints_section(result) -> list[str]:
-    lines = [
-        "## Joints",
-        "",
-        "| joint | frames | pos RMS mm | rot RMS deg | ratio nominal | ratio | std | solver |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
-    ]
+    lines = ["## Joints", "", *joints_table(result).markdown()]
     for a in result.arcs:
-        lines.append(
-            f"| {a['joint']} | {a['frames']} | {a['position_rms_mm']:.3f} | {_fmt(a['rotation_rms_deg'], '.4f')} | "
-            f"{a['ratio_nominal']:.4f} | {_fmt(a['ratio'], '.4f')} | {_fmt(a['ratio_std'], '.4f')} | "
-            f"{a['solver']['result']} ({a['solver']['steps']} steps) |"
-        )
-    for a in result.arcs:
-        if "scale" in a:
+        if a.scale is not None:
             lines += [
                 "",
-                f"{a['joint']} is prismatic: its ratio is in motor rad per m; the scale (true travel per "
-                f"commanded travel) is {a['scale']:.6f} +- {a['scale_std']:.6f} over {a['travel_mm']:.1f} mm.",
+                f"{a.joint} is prismatic: its ratio is in motor rad per m; the scale (true travel per "
+                f"commanded travel) is {a.scale:.6f} +- {a.scale_std:.6f} over {a.travel_mm:.1f} mm.",
             ]
-    rejected = [(a["joint"], o) for a in result.arcs for o in a.get("outliers", [])]
+    rejected = [(a.joint, o) for a in result.arcs for o in a.outliers]
     if rejected:
         lines += [
             "",
@@ -426,8 +408,7 @@ def _joints_section(result) -> list[str]:
             "| --- | --- | ---: | ---: | ---: |",
         ]
         lines += [
-            f"| {j} | {o['target']} | {o['frame']} | {o['timestamp_s']:.3f} | {o['residual']:.1f} |"
-            for j, o in rejected
+            f"| {j} | {o.target} | {o.frame} | {o.timestamp_s:.3f} | {o.residual:.1f} |" for j, o in rejected
         ]
     lines += [
         "",
@@ -438,8 +419,8 @@ def _joints_section(result) -> list[str]:
     ]
     for p in result.parameters:
         lines.append(
-            f"| {p['name']} | {p['unit']} | {p['nominal']:.6f} | {p['estimate']:.6f} | {p['std']:.2e} | "
-            f"{'yes' if p['free'] else 'held at nominal'} |"
+            f"| {p.name} | {p.unit} | {p.nominal:.6f} | {p.estimate:.6f} | {p.std:.2e} | "
+            f"{'yes' if p.free else 'held at nominal'} |"
         )
     lines += [
         "",
@@ -456,9 +437,9 @@ def _frames_section(result) -> list[str]:
     lines = [
         "## Frames",
         "",
-        f"{f['images']} images; target found in {f['target_found']}; {f['no_target']} without a target, "
-        f"{f['outside_encoder_log']} outside the encoder log, {f['not_in_a_sweep']} in no single-joint sweep; "
-        f"dropped capture indices: {len(f['dropped_capture_indices'])}.",
+        f"{f.images} images; target found in {f.target_found}; {f.no_target} without a target, "
+        f"{f.outside_encoder_log} outside the encoder log, {f.not_in_a_sweep} in no single-joint sweep; "
+        f"dropped capture indices: {len(f.dropped_capture_indices)}.",
         "",
     ]
     if result.warnings:
@@ -547,7 +528,7 @@ def output_files(result) -> list[str]:
         if result.kind.fixed_frame_free:
             names += [f"ros_{result.camera}.launch.yaml", f"ros_{result.camera}.txt"]
     else:
-        cams = [result.camera] + [c["camera"] for c in result.other_cameras]
+        cams = [result.camera] + [c.camera for c in result.other_cameras]
         names += [f"camera_{c}.yaml" for c in cams]
         names += [
             f"ros_{result.camera}.launch.yaml",
@@ -575,17 +556,17 @@ def _camera_files(tmp: Path, result) -> None:
         result.camera,
         result.T_cam_base,
         result.std_cam,
-        result.intrinsics["K"],
-        result.intrinsics["distortion"],
+        result.intrinsics.K,
+        result.intrinsics.distortion,
         T_flange_cam=result.T_flange_target[0] if result.eye_in_hand else None,
     )
     for c in result.other_cameras:
         _camera_yaml(
-            tmp / f"camera_{c['camera']}.yaml",
-            c["camera"],
-            c["T_cam_base"],
-            c["std_cam"],
-            c["K"],
-            c["distortion"],
+            tmp / f"camera_{c.camera}.yaml",
+            c.camera,
+            c.T_cam_base,
+            c.std_cam,
+            c.K,
+            c.distortion,
         )
     write_ros_camera_files(tmp, result)

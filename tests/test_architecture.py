@@ -10,6 +10,9 @@
 - No private name (`_x`) is imported from another module; private modules
   (`jaxcal._arcfit`) are imported for their public names.
 - Rooms stay small: no function over 120 lines, no module over 700.
+- Results are typed: no field of a stage or result record (the dataclasses of
+  `jaxcal/stages/` and `jaxcal/records.py`) is a `dict`, `list`, `object` or
+  `Any`, except the free-form ones allowed below with their reason.
 - Capture modes are resolved once: outside `jaxcal/stages/kinds.py` no code
   reads a capture kind's mode (`kind.device`, `kind.eye_in_hand`,
   `kind.encoders`, `kind.device_is_base`, `kind.mount`, `kind.motion`) or
@@ -26,6 +29,28 @@ MODE_FIELDS = {"device", "eye_in_hand", "encoders", "device_is_base", "mount", "
 MODE_ENUMS = {"Motion", "Mount"}
 #: `module: reason` for a module that may still test a mode outside kinds.py (none today).
 MODE_TEST_EXCEPTIONS: dict[str, str] = {}
+#: Record fields that may stay free-form, with the reason.
+FREE_FORM_FIELDS = {
+    "timings": "seconds per timed step (`detect_s`, `refine_s`, ..., `total_s`): the steps differ by capture "
+    "kind and change with the stages; a `dict[str, float]` that no code branches on",
+}
+#: `Record.field: reason` for bag fields of the stages' inputs not typed yet (the results are).
+UNTYPED_FIELDS = {
+    "CameraObservations.detections": "per frame the detector's corners by target (read by the refinement's corner "
+    "collection only): not typed yet",
+    "CameraObservations.poses": "per frame the PnP `Pose`s by target: not typed yet",
+    "CameraObservations.intrinsics": "the result's `Intrinsics` is built from it in `stages.result`: not typed yet",
+    "SampleObservations.camera": "the tracker's metadata record (`io._tracker`): not typed yet",
+    "SampleObservations.poses": "per sample the measured point as a `Pose`: not typed yet",
+    "Sync.clock": "built in stages/_synchronise.py (issue 32 at work there); the result's `Clock` is typed",
+    "Sync.counts": "built in stages/_synchronise.py (issue 32 at work there); `TwoStage.counts` is typed",
+    "Sync.timings": "stages/_synchronise.py (issue 32 at work there): to become `dict[str, float]`",
+    "Verdict.checks": "rows `{check, value, limit, passed}` built in stages/_verdict.py (its compiled checks at "
+    "work there): not typed yet",
+}
+#: Configuration records (not results) and where the records live.
+CONFIG_RECORDS = {"Options", "Limits", "CaptureKind"}
+BAG_TYPES = {"dict", "list", "object", "Any", "Dict", "List", "Mapping"}
 #: Modules that may render (import the simulator / MuJoCo).
 RENDERING = ("jaxcal.sim", "jaxcal.cli", "jaxcal.__main__")
 
@@ -201,3 +226,59 @@ def test_capture_modes_are_tested_only_in_kinds():
         for site in _mode_tests(tree)
     ]
     assert found == [], "ask a named CaptureKind property (jaxcal/stages/kinds.py) instead"
+
+
+def _annotation_names(node) -> set[str]:
+    """Every type name in an annotation (`tuple[dict, ...] | None` -> tuple, dict, None)."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        return _annotation_names(ast.parse(node.value, mode="eval").body)
+    return {n.id for n in ast.walk(node) if isinstance(n, ast.Name)} | {
+        n.attr for n in ast.walk(node) if isinstance(n, ast.Attribute)
+    }
+
+
+def _record_bag_fields(tree: ast.Module) -> list[str]:
+    """`Record.field: annotation` of every dict/list/object/Any-typed field of the public records."""
+    found = []
+    for cls in ast.walk(tree):
+        if not isinstance(cls, ast.ClassDef) or cls.name.startswith("_") or cls.name in CONFIG_RECORDS:
+            continue
+        deco = {ast.unparse(d).split("(")[0].split(".")[-1] for d in cls.decorator_list}
+        bases = {ast.unparse(b).split(".")[-1] for b in cls.bases}
+        if "dataclass" not in deco and "NamedTuple" not in bases:
+            continue
+        for n in cls.body:
+            if isinstance(n, ast.AnnAssign) and isinstance(n.target, ast.Name):
+                if "ClassVar" not in ast.unparse(n.annotation) and BAG_TYPES & _annotation_names(
+                    n.annotation
+                ):
+                    found.append(f"{cls.name}.{n.target.id}: {ast.unparse(n.annotation)}")
+    return found
+
+
+def test_the_record_field_finder_finds_bags():
+    src = (
+        "@dataclass(frozen=True)\nclass R:\n    a: dict\n    b: tuple[dict, ...] | None\n    c: Any = None\n"
+        "    d: tuple[Named, ...] = ()\n    e: np.ndarray\n"
+    )
+    assert _record_bag_fields(ast.parse(src)) == ["R.a: dict", "R.b: tuple[dict, ...] | None", "R.c: Any"]
+
+
+def test_result_records_are_typed():
+    modules = {n: t for n, t in MODULES.items() if n.startswith("jaxcal.stages.") or n == "jaxcal.records"}
+    found = []
+    for tree in modules.values():
+        for site in _record_bag_fields(tree):
+            name, annotation = site.split(": ", 1)
+            if name in UNTYPED_FIELDS:
+                continue
+            if name.split(".")[1] in FREE_FORM_FIELDS and annotation == "dict[str, float]":
+                continue
+            found.append(site)
+    assert found == [], "give the field a typed record (jaxcal/records.py), or a reason in FREE_FORM_FIELDS"
+    stale = [
+        f
+        for f in UNTYPED_FIELDS
+        if not any(f"{f}:" in s for t in modules.values() for s in _record_bag_fields(t))
+    ]
+    assert stale == [], "typed now: remove from UNTYPED_FIELDS"

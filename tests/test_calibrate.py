@@ -28,8 +28,10 @@ from jax._src import dispatch, monitoring
 from jaxcal._montecarlo import trial_sweeps
 from jaxcal.cli import main
 from jaxcal.io.dataset import DatasetError
+from jaxcal.io.result import read_result
 from jaxcal.io.ros import read_easy_handeye, read_static_transform
 from jaxcal.pipeline import CalibrationError, calibrate
+from jaxcal.records import plain
 from jaxcal.report import write_outputs
 from jaxcal.sim.simulate import SimConfig, simulate
 from jaxcal.stages import _programs
@@ -163,7 +165,12 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
     assert np.allclose(fs.getNode("T_cam_base").mat(), result.T_cam_base)
     assert np.allclose(fs.getNode("T_cam_base_std").mat().ravel(), result.std_cam)
     fs.release()
-    assert r["other_cameras"] == [] and result.other_cameras == []
+    assert r["other_cameras"] == [] and result.other_cameras == ()
+    # The file reads back as the result's typed records (`jaxcal.io.result.read_result`).
+    back = read_result(out / "result.json")
+    for name in ("clock", "frames", "intrinsics", "solver", "refinement", "validation", "arcs", "parameters"):
+        assert plain(getattr(back, name)) == plain(getattr(result, name)), name
+    assert plain(back.ratios) == plain(result.ratios) and back.frozen == result.frozen
     # The camera in the base link for ROS: parsed back, the calibrated pose (issue 16 item 7).
     T_base_cam = np.linalg.inv(np.asarray(result.T_cam_base))
     for f in ("ros_cam0.launch.yaml", "ros_cam0.txt"):

@@ -19,6 +19,7 @@ from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
 from ..robots import load_robot
 from ..stages import CLOCK_MODES
+from ..summary import TextTable, clock_line, fmt, joints_table, refinement_line, truth_table
 from ._certify import print_certificate, region_of
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, positive_int
 from ._rosbag import dataset_of
@@ -34,21 +35,21 @@ def _terms(text: str) -> tuple[str, ...]:
 
 def _point_fit_table(console, result) -> None:
     pf = result.point_fit
-    t = Table(title=f"Point fit ({result.frames['used_per_joint']['poses']} stop-and-shoot samples)")
+    t = Table(title=f"Point fit ({result.frames.used('poses')} stop-and-shoot samples)")
     for col in ("model", "free parameters", "CV mean mm", "CV RMS mm", "CV max mm", "kept"):
         t.add_column(col, justify="left" if col == "model" else "right")
     for m in pf.models:
-        cv = [f"{m[k]:.4f}" if k in m else "-" for k in ("cv_mean_mm", "cv_rms_mm", "cv_max_mm")]
-        t.add_row("+".join(["geometric", *m["terms"]]), str(m["free"]), *cv, "yes" if m["kept"] else "")
+        cv = [fmt(x, ".4f") if x is not None else "-" for x in (m.cv_mean_mm, m.cv_rms_mm, m.cv_max_mm)]
+        t.add_row("+".join(["geometric", *m.terms]), str(m.free), *cv, "yes" if m.kept else "")
     console.print(t)
     r = pf.residual_mm
     console.print(
-        f"fitted residual {r['mean']:.4f} mm mean, {r['rms']:.4f} mm RMS, {r['max']:.4f} mm max; "
+        f"fitted residual {r.mean:.4f} mm mean, {r.rms:.4f} mm RMS, {r.max:.4f} mm max; "
         f"held at nominal: {len(pf.held)} parameters"
     )
     for row in pf.term_rows:
-        if row["free"]:
-            console.print(f"  {row['name']} = {row['estimate']:.6g} +- {row['std']:.2g}")
+        if row.free:
+            console.print(f"  {row.name} = {row.estimate:.6g} +- {row.std:.2g}")
 
 
 def _calibration_tables(console, result) -> None:
@@ -59,39 +60,17 @@ def _calibration_tables(console, result) -> None:
     _result_tables(console, result)
 
 
-def _sweeps_table(console, result) -> None:
-    t = Table(title=f"Joint sweeps ({result.kind.sensor} {result.camera})")
-    for col in (
-        "joint",
-        "frames",
-        "pos RMS mm",
-        "rot RMS deg",
-        "ratio nominal",
-        "ratio est",
-        "std",
-        "solver",
-    ):
-        t.add_column(col, justify="right")
-    v = result.validation
-    if v is not None:
-        t.add_column("ratio true", justify="right")
-        t.add_column("axis err deg", justify="right")
-    for k, a in enumerate(result.arcs):
-        row = [
-            a["joint"],
-            str(a["frames"]),
-            f"{a['position_rms_mm']:.3f}",
-            "n/a" if a["rotation_rms_deg"] is None else f"{a['rotation_rms_deg']:.3f}",
-            f"{a['ratio_nominal']:.3f}",
-            "n/a" if a["ratio"] is None else f"{a['ratio']:.3f}",
-            "n/a" if a["ratio_std"] is None else f"{a['ratio_std']:.3f}",
-            f"{a['solver']['result']} ({a['solver']['steps']})",
-        ]
-        if v is not None:
-            e = v["parameter_errors"][a["joint"]]
-            row += [f"{v['true_ratios'][k]:.3f}", f"{e['axis_direction_deg']:.3f}"]
+def _rich(table: TextTable) -> Table:
+    t = Table(title=table.title)
+    for k, col in enumerate(table.header):
+        t.add_column(col, justify="left" if k == 0 else "right")
+    for row in table.rows:
         t.add_row(*row)
-    console.print(t)
+    return t
+
+
+def _sweeps_table(console, result) -> None:
+    console.print(_rich(joints_table(result)))
 
 
 def _result_tables(console, result) -> None:
@@ -107,69 +86,31 @@ def _result_tables(console, result) -> None:
         f"{result.kind.fixed_frame}: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
         f"(std {np.round(sd[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(sd[3:]), 4).tolist()} deg)"
     )
-    errs = (v or {}).get("other_cameras", {})
+    errs = {e.camera: e for e in (v.other_cameras or ())} if v is not None else {}
     for oc in result.other_cameras:
-        To, so = oc["T_cam_base"], oc["std_cam"]
+        To, so = oc.T_cam_base, oc.std_cam
         line = (
-            f"T_cam_base of {oc['camera']} ({oc['views']} views): t = {np.round(To[:3, 3] * 1e3, 2).tolist()} mm "
+            f"T_cam_base of {oc.camera} ({oc.views} views): t = {np.round(To[:3, 3] * 1e3, 2).tolist()} mm "
             f"(std {np.round(so[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(so[3:]), 4).tolist()} deg)"
         )
-        if oc["camera"] in errs:
-            e = errs[oc["camera"]]
+        if oc.camera in errs:
+            e = errs[oc.camera]
             line += (
-                f"; pose relative to {result.camera} off the truth by {e['refined']['trans_mm']:.3f} mm, "
-                f"{e['refined']['rot_deg']:.4f} deg (PnP start {e['start']['trans_mm']:.3f} mm)"
+                f"; pose relative to {result.camera} off the truth by {e.refined.trans_mm:.3f} mm, "
+                f"{e.refined.rot_deg:.4f} deg (PnP start {e.start.trans_mm:.3f} mm)"
             )
         console.print(line)
-    c = result.clock
-    if result.kind.images or c["estimated"]:  # tracker samples carry their own joint positions: no clock
-        console.print(
-            f"clock offset: {1e3 * c['offset_s']:.2f} ms"
-            + (f" (estimated, std {1e3 * c['std_s']:.2f} ms)" if c["estimated"] else " (from the metadata)")
-        )
+    if result.kind.images or result.clock.estimated:  # tracker samples carry their own joint positions
+        console.print(clock_line(result))
     console.print(
         f"held at nominal (the {result.kind.sensor} cannot see them): "
         f"{len(result.frozen)} parameters, see report.md"
     )
-    if v is not None:
-        t = Table(title=f"Before / after, against the truth ({v['ee_point']}, 1000 random configurations)")
-        t.add_column("")
-        t.add_column("nominal model", justify="right")
-        refined = bool(v.get("refined"))
-        if refined:
-            # Without sweeps the refinement starts from the nominal robot and a closed-form camera pose.
-            t.add_column("two-stage" if result.kind.has_arcs else "start (closed form)", justify="right")
-        t.add_column("refined" if refined else "calibrated", justify="right")
-
-        def row(label, before, key):
-            cells = [label, before] + ([f"{v[key + '_two_stage']:.3f}"] if refined else [])
-            t.add_row(*cells, f"{v[key + '_after']:.3f}")
-
-        row("EE RMS mm", f"{v['ee_rms_mm_before']:.3f}", "ee_rms_mm")
-        row("EE max mm", f"{v['ee_max_mm_before']:.3f}", "ee_max_mm")
-        pad = [""] if refined else []
-        ce = v["T_cam_base_error"]
-        t.add_row(
-            f"{result.kind.fixed_frame} error",
-            "",
-            *pad,
-            f"{ce['trans_mm']:.3f} mm, {ce['rot_deg']:.4f} deg",
-        )
-        ratio = [
-            abs(e["ratio_percent"]) for e in v["parameter_errors"].values() if e["ratio_percent"] is not None
-        ]
-        if ratio:
-            t.add_row("max ratio error %", "", *pad, f"{max(ratio):.4f}")
-        if v.get("clock_offset_error_ms") is not None and c["estimated"]:
-            t.add_row("clock offset error ms", "", *pad, f"{v['clock_offset_error_ms']:.3f}")
-        console.print(t)
-    r = result.refinement
-    if r is not None:
-        console.print(
-            f"refinement: {r['corners']} corners in {r['frames']} frames, {r['free_parameters']} parameters, "
-            f"inlier RMS {r['inlier_rms_px']:.3f} px (sigma {r['sigma_px']:.3f} px), "
-            f"{r['outlier_corners']} outlier corners, {r['solver']['result']} ({r['solver']['steps']} steps)"
-        )
+    table = truth_table(result)
+    if table is not None:
+        console.print(_rich(table))
+    if result.refinement is not None:
+        console.print(f"refinement: {refinement_line(result)}")
     for w in result.warnings:
         console.print(f"[yellow]note:[/yellow] {w}")
 

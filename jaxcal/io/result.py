@@ -1,4 +1,9 @@
-"""`result.json`: a calibration result as plain JSON (schema `jaxcal.result`, version 1)."""
+"""`result.json`: a calibration result as plain JSON (schema `jaxcal.result`, version 1).
+
+The only module that knows the file's keys: `result_to_json` writes a
+`CalibrationResult`'s typed records (`jaxcal.records`; a block's keys are its
+record's field names), `read_result` reads them back as a `ResultFile`.
+"""
 
 import json
 
@@ -8,19 +13,39 @@ import numpy as np
 from .._correction import Estimate, ParameterLayout
 from .._npgeom import matrix_to_quaternion
 from ..errors import DatasetError
+from ..records import (
+    ArcRow,
+    Clock,
+    FrameCounts,
+    Intrinsics,
+    ParameterRow,
+    PoseFigures,
+    RatioRow,
+    RefinementSummary,
+    ResultFile,
+    SolverInfo,
+    ValidationReport,
+    from_plain,
+    plain,
+)
 from .model_json import model_from_json, model_to_json
+
+
+def pose_figures(T, std) -> PoseFigures:
+    """A pose with its 1-sigma twist `(tx, ty, tz, rx, ry, rz)` (m, rad) as `result.json` gives it."""
+    T, std = np.asarray(T, np.float64), np.asarray(std, np.float64)
+    return PoseFigures(
+        matrix=T,
+        xyz_m=T[:3, 3],
+        quaternion_xyzw=np.asarray(matrix_to_quaternion(T[:3, :3])),
+        std_xyz_mm=1e3 * std[:3],
+        std_rot_deg=np.degrees(std[3:]),
+    )
 
 
 def pose_json(T, std) -> dict:
     """A pose with its 1-sigma twist `(tx, ty, tz, rx, ry, rz)` (m, rad) as JSON."""
-    T, std = np.asarray(T), np.asarray(std)
-    return {
-        "matrix": T.tolist(),
-        "xyz_m": T[:3, 3].tolist(),
-        "quaternion_xyzw": matrix_to_quaternion(T[:3, :3]).tolist(),
-        "std_xyz_mm": (1e3 * std[:3]).tolist(),
-        "std_rot_deg": np.degrees(std[3:]).tolist(),
-    }
+    return plain(pose_figures(T, std))
 
 
 def result_to_json(result) -> dict:
@@ -48,42 +73,80 @@ def result_to_json(result) -> dict:
         "setup": result.kind.label,
         "capture": result.kind.describe(),
         "camera": result.camera,
-        "targets": result.targets,
+        "targets": list(result.targets),
         "ok": result.ok,
         "status": result.status,
         "reasons": list(result.reasons),
         **poses,
-        "reduction_ratios": result.ratios,
-        "parameters": result.parameters,
+        "reduction_ratios": {
+            r.joint: {k: v for k, v in plain(r).items() if k != "joint"} for r in result.ratios
+        },
+        "parameters": plain(result.parameters),
         "identifiability": {
-            "estimated": sum(bool(p["free"]) for p in result.parameters if p["group"] == "correction"),
-            "frozen": result.frozen,
+            "estimated": sum(p.free for p in result.parameters if p.group == "correction"),
+            "frozen": list(result.frozen),
             "note": f"frozen parameters cannot be seen by a {result.kind.sensor} "
             f"watching joint axes (they trade off against others or against {result.kind.fixed_frame}); "
             "they are held at nominal",
         },
-        "arcs": result.arcs,
-        "frames": result.frames,
-        "clock": result.clock,
-        "intrinsics": result.intrinsics,
-        "solver": result.solver,
-        "timings_s": result.timings,
-        "refinement": result.refinement,
+        "arcs": plain(result.arcs),
+        "frames": plain(result.frames),
+        "clock": plain(result.clock),
+        "intrinsics": plain(result.intrinsics),
+        "solver": plain(result.solver),
+        "timings_s": dict(result.timings),
+        "refinement": plain(result.refinement),
         "other_cameras": [
             {
-                "camera": c["camera"],
-                "views": c["views"],
-                "T_cam_base": pose_json(c["T_cam_base"], c["std_cam"]),
-                "T_cam_base_start": np.asarray(c["T_cam_base_start"]).tolist(),
+                "camera": c.camera,
+                "views": c.views,
+                "T_cam_base": pose_json(c.T_cam_base, c.std_cam),
+                "T_cam_base_start": np.asarray(c.T_cam_base_start).tolist(),
             }
             for c in result.other_cameras
         ],
-        "validation": result.validation,
-        "warnings": result.warnings,
+        "validation": plain(result.validation),
+        "warnings": list(result.warnings),
         "checks": [] if result.verdict is None else list(result.verdict.checks),
         "model": model_to_json(result.model),
         **({"point_fit": point_fit_json(result.point_fit)} if result.point_fit is not None else {}),
     }
+
+
+def result_from_json(payload: dict) -> ResultFile:
+    """The typed blocks of a `result.json` payload (`result_to_json`'s inverse for them)."""
+    block = lambda cls, key: None if payload.get(key) is None else from_plain(cls, payload[key])  # noqa: E731
+    return ResultFile(
+        status=payload["status"],
+        reasons=tuple(payload["reasons"]),
+        ratios=tuple(from_plain(RatioRow, {"joint": j, **r}) for j, r in payload["reduction_ratios"].items()),
+        parameters=tuple(from_plain(ParameterRow, p) for p in payload["parameters"]),
+        frozen=tuple(payload["identifiability"]["frozen"]),
+        arcs=tuple(from_plain(ArcRow, a) for a in payload["arcs"]),
+        frames=block(FrameCounts, "frames"),
+        clock=block(Clock, "clock"),
+        intrinsics=block(Intrinsics, "intrinsics"),
+        solver=block(SolverInfo, "solver"),
+        refinement=block(RefinementSummary, "refinement"),
+        validation=block(ValidationReport, "validation"),
+        warnings=tuple(payload["warnings"]),
+        timings=dict(payload["timings_s"]),
+    )
+
+
+def read_result(path) -> ResultFile:
+    """The typed blocks of the `result.json` at `path` (raises `DatasetError` naming the file
+    when it is missing or not one jaxcal wrote)."""
+    try:
+        with open(path) as f:
+            payload = json.load(f)
+        if payload.get("schema") != "jaxcal.result":
+            raise ValueError("no jaxcal.result schema")
+        return result_from_json(payload)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no such file") from None
+    except (KeyError, TypeError, ValueError) as e:
+        raise DatasetError(f"{path}: not a result.json jaxcal wrote ({e})") from None
 
 
 def point_fit_json(pf) -> dict:
@@ -93,10 +156,10 @@ def point_fit_json(pf) -> dict:
     fit, prob = pf.fit, pf.problem
     return {
         "terms": list(pf.layout.terms),
-        "term_rows": pf.term_rows,
-        "models": list(pf.models),
+        "term_rows": plain(pf.term_rows),
+        "models": plain(pf.models),
         "cv_folds": pf.folds,
-        "residual_mm": pf.residual_mm,
+        "residual_mm": plain(pf.residual_mm),
         "samples": int(np.sum(pf.used)),
         "held": list(pf.held),
         "names": pf.layout.names(),

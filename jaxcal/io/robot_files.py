@@ -191,7 +191,7 @@ def write_ros_camera_files(folder: Path, result) -> list[str]:
     T, parent, child = camera_transform(result)
     poses = [(child, parent, T)]
     poses += [
-        (c["camera"], parent, np.linalg.inv(np.asarray(c["T_cam_base"], np.float64)))
+        (c.camera, parent, np.linalg.inv(np.asarray(c.T_cam_base, np.float64)))
         for c in getattr(result, "other_cameras", [])
     ]
     links = result.model.link_names

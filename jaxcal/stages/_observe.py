@@ -98,7 +98,8 @@ class Observations:
 
     primary: CameraObservations | SampleObservations
     others: tuple[CameraObservations, ...]
-    timings: dict
+    #: Seconds per step: free-form.
+    timings: dict[str, float]
     notes: tuple[str, ...] = ()
 
 

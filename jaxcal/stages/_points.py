@@ -43,6 +43,7 @@ from .._pointfit import (
     term_basis,
 )
 from ..errors import CalibrationError
+from ..records import ModelRow, ResidualStats, TermRow
 from ..robots import link_inertials
 from ._observe import Observations
 from ._setup import Options, Setup
@@ -80,21 +81,22 @@ class PointFit:
     layout: PointLayout
     candidates: np.ndarray
     held: tuple[str, ...]
-    models: tuple[dict, ...]
+    models: tuple[ModelRow, ...]
     folds: int
-    residual_mm: dict
+    residual_mm: ResidualStats
     used: np.ndarray
-    timings: dict = field(default_factory=dict)
+    #: Seconds per step (`point_fit_s`): free-form.
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
-    def term_rows(self) -> list[dict]:
+    def term_rows(self) -> tuple[TermRow, ...]:
         """The non-geometric coefficients: `name`, `estimate`, `std`, `free`."""
         k = self.layout.base.axis_size
         x, std, free = (np.asarray(a) for a in (self.fit.x, self.fit.std, self.fit.free))
-        return [
-            {"name": n, "estimate": float(x[i]), "std": float(std[i]), "free": bool(free[i])}
+        return tuple(
+            TermRow(name=n, estimate=float(x[i]), std=float(std[i]), free=bool(free[i]))
             for i, n in enumerate(self.layout.term_names(), start=k)
-        ]
+        )
 
 
 def point_problem(
@@ -296,13 +298,11 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         layout=layout,
         candidates=cand,
         held=held,
-        models=tuple(models),
+        models=tuple(ModelRow(**{**m, "terms": tuple(m["terms"])}) for m in models),
         folds=folds,
-        residual_mm={
-            "mean": float(dist.mean()),
-            "rms": float(np.sqrt(np.mean(dist**2))),
-            "max": float(dist.max()),
-        },
+        residual_mm=ResidualStats(
+            mean=float(dist.mean()), rms=float(np.sqrt(np.mean(dist**2))), max=float(dist.max())
+        ),
         used=used,
         timings={"point_fit_s": time.perf_counter() - t0},
     )

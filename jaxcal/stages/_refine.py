@@ -30,8 +30,27 @@ from .._refine import (
     OtherCameras,
     RefineParams,
     RefineProblem,
+    RefineResult,
     make_corner_data,
     summarize_refinement,
+)
+from ..records import (
+    ClockEstimate,
+    Correlation,
+    JointAngles,
+    LineDelay,
+    Named,
+    OtherCamera,
+    ParameterRow,
+    RefinedIntrinsics,
+    RefinementSummary,
+    ShutterTest,
+    SolveOutcome,
+    TwoStageStart,
+    ViewAngle,
+    WeakDirection,
+    named_rows,
+    parameter_rows,
 )
 from . import _programs
 from ._observe import CameraObservations, Observations
@@ -70,23 +89,26 @@ class Refined:
       point to (`shutter_test`); None when not tested.
     """
 
-    fit: object = None
+    fit: RefineResult | None = None
     layout: ParameterLayout | None = None
-    names: list = field(default_factory=list)
-    summary: dict | None = None
-    parameters: list | None = None
-    frozen: list | None = None
-    ratios: list | None = None
-    clock: dict | None = None
-    intrinsics: dict | None = None
-    references: tuple | None = None
-    other_cameras: list = field(default_factory=list)
+    names: tuple[str, ...] = ()
+    summary: RefinementSummary | None = None
+    parameters: tuple[ParameterRow, ...] | None = None
+    frozen: tuple[str, ...] | None = None
+    #: Per joint `(ratio, std)`.
+    ratios: tuple[tuple[float, float], ...] | None = None
+    clock: ClockEstimate | None = None
+    intrinsics: RefinedIntrinsics | None = None
+    #: `(T_cam_base0, T_flange_marker0)`.
+    references: tuple[np.ndarray, np.ndarray] | None = None
+    other_cameras: tuple[OtherCamera, ...] = ()
     warnings: tuple[str, ...] = ()
-    timings: dict = field(default_factory=dict)
+    #: Seconds per step (`refine_s`, `shutter_test_s`): free-form.
+    timings: dict[str, float] = field(default_factory=dict)
     estimate: Estimate | None = None
     problem: RefineProblem | None = None
-    line_delays: list = field(default_factory=list)
-    shutter_test: list | None = None
+    line_delays: tuple[LineDelay, ...] = ()
+    shutter_test: tuple[ShutterTest, ...] | None = None
 
 
 def dist5(dist) -> np.ndarray | None:
@@ -348,22 +370,22 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
     if kind.fits_rates:
         rate, nominal_ratio = np.asarray(res.params.rate), np.asarray(nominal.reduction_ratio)
         i_rate = layout.index("rate")
-        ratios = [
+        ratios = tuple(
             (float(nominal_ratio[j] / rate[j]), float(nominal_ratio[j] * std[i_rate[j]] / rate[j] ** 2))
             for j in range(nominal.num_joints)
-        ]
+        )
     intrinsics = None
     i_intr = layout.index("intr")
     if free[i_intr].any():
-        intrinsics = {
-            "K": np.asarray(res.K).tolist(),
-            "distortion": np.asarray(res.dist).tolist(),
-            "std": {n: float(std[i]) for n, i in zip(INTRINSIC_NAMES, i_intr) if free[i]},
-            "held": [n for n, i in zip(INTRINSIC_NAMES, i_intr) if not free[i]],
-        }
+        intrinsics = RefinedIntrinsics(
+            K=np.asarray(res.K),
+            distortion=np.asarray(res.dist),
+            std=tuple(Named(n, float(std[i])) for n, i in zip(INTRINSIC_NAMES, i_intr) if free[i]),
+            held=tuple(n for n, i in zip(INTRINSIC_NAMES, i_intr) if not free[i]),
+        )
     clock = None
     if sync.clock["estimated"]:
-        clock = {"offset_s": float(res.offset_s), "std_s": float(1e-3 * std[layout.index("clock")[0]])}
+        clock = ClockEstimate(float(res.offset_s), float(1e-3 * std[layout.index("clock")[0]]))
     frame = corners.frame
     summary.update(
         views=len(frame),
@@ -379,7 +401,7 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
             "std_cam": np.asarray(two.fit.std[:6]).tolist(),
             "T_flange_target": np.asarray(two.fit.T_flange_marker).tolist(),
             "clock_offset_s": sync.clock["offset_s"],
-            "ratios": {a["joint"]: a["ratio"] for a in two.arc_rows},
+            "ratios": {a.joint: a.ratio for a in two.arc_rows},
         },
         loss=LOSS,
     )
@@ -410,15 +432,15 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         k = layout.index("others")[6 * (c - 1)]
         T0, K, d5 = corners.others[c - 1]
         others.append(
-            {
-                "camera": v.camera.name,
-                "T_cam_base": T_all[c],
-                "std_cam": std[k : k + 6],
-                "views": summary["views_per_camera"][v.camera.name],
-                "T_cam_base_start": np.asarray(T0),
-                "K": K,
-                "distortion": d5,
-            }
+            OtherCamera(
+                camera=v.camera.name,
+                T_cam_base=T_all[c],
+                std_cam=std[k : k + 6],
+                views=summary["views_per_camera"][v.camera.name],
+                T_cam_base_start=np.asarray(T0),
+                K=np.asarray(K),
+                distortion=np.asarray(d5),
+            )
         )
     warnings = list(corners.warnings)
     if summary["outlier_frames"]:
@@ -429,15 +451,15 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
     return Refined(
         fit=jax.device_get(res),
         layout=layout,
-        names=names,
-        summary=summary,
-        parameters=parameters,
-        frozen=[nm for nm, f in zip(names[:n_ax], free[:n_ax]) if not f],
+        names=tuple(names),
+        summary=summary_record(summary),
+        parameters=parameter_rows(parameters),
+        frozen=tuple(nm for nm, f in zip(names[:n_ax], free[:n_ax]) if not f),
         ratios=ratios,
         clock=clock,
         intrinsics=intrinsics,
         references=(np.asarray(problem.T_cam_base0), np.asarray(problem.T_flange_marker0)),
-        other_cameras=others,
+        other_cameras=tuple(others),
         warnings=tuple(warnings),
         estimate=Estimate(
             x=ravel_pytree(res.params)[0],
@@ -453,26 +475,26 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
     )
 
 
-def _delay_rows(corners: _Corners, res, layout: ParameterLayout, free) -> list:
+def _delay_rows(corners: _Corners, res, layout: ParameterLayout, free) -> tuple[LineDelay, ...]:
     """Per used camera with a rolling-shutter model, its line delay (s per row), std,
     whether it was estimated and its readout (s): the `line_delay` rows of the summary."""
     if res.line_delay_s is None:
-        return []
+        return ()
     std, idx = np.asarray(res.std), layout.index("line_delay")
     rows = []
     for c, v in enumerate(corners.used):
         delay = float(res.line_delay_s[c])
         est = bool(free[idx[c]])
         rows.append(
-            {
-                "camera": v.camera.name,
-                "line_delay_s": delay,
-                "std_s": float(1e-6 * std[idx[c]]) if est else None,
-                "estimated": est,
-                "readout_s": delay * v.camera.height,
-            }
+            LineDelay(
+                camera=v.camera.name,
+                line_delay_s=delay,
+                std_s=float(1e-6 * std[idx[c]]) if est else None,
+                estimated=est,
+                readout_s=delay * v.camera.height,
+            )
         )
-    return rows
+    return tuple(rows)
 
 
 def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: Options) -> Refined:
@@ -507,18 +529,20 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     jax.block_until_ready(res)
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
     delays = _delay_rows(corners, res, layout, free)
-    if delays:
-        out.summary["line_delay"] = delays
     timings = {"refine_s": time.perf_counter() - t0}
     t0 = time.perf_counter()
     test = shutter_test(setup, corners, problem, res)
     if test is not None:
-        out.summary["rolling_shutter_test"] = test
         timings["shutter_test_s"] = time.perf_counter() - t0
-    return dataclasses.replace(out, problem=problem, line_delays=delays, shutter_test=test, timings=timings)
+    summary = dataclasses.replace(out.summary, line_delay=delays or None, rolling_shutter_test=test)
+    return dataclasses.replace(
+        out, summary=summary, problem=problem, line_delays=delays, shutter_test=test, timings=timings
+    )
 
 
-def shutter_test(setup: Setup, corners: _Corners, problem: RefineProblem, res) -> list | None:
+def shutter_test(
+    setup: Setup, corners: _Corners, problem: RefineProblem, res
+) -> tuple[ShutterTest, ...] | None:
     """Per camera, the rolling shutter the residuals of a global-shutter refinement
     point to (`jaxcal._refine.line_delay_test`): the line delay (s per row), the
     readout it implies (times the image height, s) and its size in standard
@@ -527,15 +551,56 @@ def shutter_test(setup: Setup, corners: _Corners, problem: RefineProblem, res) -
     if problem.line_delay0_s is not None or setup.kind.per_view_angles:
         return None
     test = jax.device_get(_programs.shutter_test()(problem, res))
-    return [
-        {
-            "camera": v.camera.name,
-            "line_delay_s": float(test.line_delay_s[c]),
-            "readout_s": float(test.line_delay_s[c]) * v.camera.height,
-            "sigmas": float(test.sigmas[c]),
-        }
+    return tuple(
+        ShutterTest(
+            camera=v.camera.name,
+            line_delay_s=float(test.line_delay_s[c]),
+            readout_s=float(test.line_delay_s[c]) * v.camera.height,
+            sigmas=float(test.sigmas[c]),
+        )
         for c, v in enumerate(corners.used)
-    ]
+    )
+
+
+def summary_record(s: dict) -> RefinementSummary:
+    """The refinement's summary (`jaxcal._refine.summarize_refinement` and the stage's
+    figures, as a dict) as its typed record."""
+    extra = set(s) - {f.name for f in dataclasses.fields(RefinementSummary)}
+    if extra:  # a figure the summary gained must become a field, not vanish from result.json
+        raise ValueError(f"refinement summary keys without a RefinementSummary field: {sorted(extra)}")
+    two, angles = s["two_stage"], s.get("joint_angles")
+    return RefinementSummary(
+        solver=SolveOutcome(**s["solver"]),
+        sigma_px=s["sigma_px"],
+        inlier_rms_px=s["inlier_rms_px"],
+        corners=s["corners"],
+        outlier_corners=s["outlier_corners"],
+        outlier_frames=tuple(s["outlier_frames"]),
+        correlations=tuple(Correlation(**c) for c in s["correlations"]),
+        condition_number=s["condition_number"],
+        weak_directions=tuple(
+            WeakDirection(w["singular_value_ratio"], named_rows(w["parameters"]))
+            for w in s["weak_directions"]
+        ),
+        views=s["views"],
+        frames=s["frames"],
+        free_parameters=s["free_parameters"],
+        held_at_start=tuple(s["held_at_start"]),
+        frozen_beyond_two_stage=tuple(s["frozen_beyond_two_stage"]),
+        std=named_rows(s["std"]),
+        two_stage=TwoStageStart(
+            T_cam_base=np.asarray(two["T_cam_base"]),
+            std_cam=np.asarray(two["std_cam"]),
+            T_flange_target=np.asarray(two["T_flange_target"]),
+            clock_offset_s=two["clock_offset_s"],
+            ratios=named_rows(two["ratios"]),
+        ),
+        loss=s["loss"],
+        joint_angles=None
+        if angles is None
+        else JointAngles(angles["note"], tuple(ViewAngle(**v) for v in angles["views"])),
+        views_per_camera=named_rows(s["views_per_camera"]),
+    )
 
 
 def succeeded(refined: Refined) -> bool:

@@ -74,7 +74,8 @@ class Setup:
     per_joint: tuple | None
     extra_cameras: tuple[CameraInfo, ...]
     notes: tuple[str, ...]
-    timings: dict
+    #: Seconds per step: free-form.
+    timings: dict[str, float]
 
     @property
     def root(self):

@@ -15,7 +15,7 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
-from .._arcfit import arc_outliers, validate_arc_data
+from .._arcfit import ArcFitResult, arc_outliers, validate_arc_data
 from .._axisfit import AxisFitParams, AxisFitResult, register_lines
 from .._buckets import bucket
 from .._correction import Estimate, ParameterLayout, physical_parameters, zero_correction
@@ -24,10 +24,20 @@ from .._handeye import check_motion_diversity, solve_axzb
 from .._kinematics import PRISMATIC, forward_kinematics
 from .._links import average_pose, sequential_sweeps
 from ..errors import CalibrationError
+from ..records import (
+    ArcOutlier,
+    ArcRow,
+    Named,
+    ParameterRow,
+    SolveOutcome,
+    SolverInfo,
+    named_rows,
+    parameter_rows,
+)
 from . import _programs
 from ._blur import blur_notes, lost_to_blur
 from ._observe import Observations
-from ._points import axis_result, fit_point_samples, parameters_of
+from ._points import PointFit, axis_result, fit_point_samples, parameters_of
 from ._setup import Options, Setup
 from ._synchronise import Sweeps, Sync
 
@@ -52,20 +62,22 @@ class TwoStage:
       geometric part; its terms, cross-validation and held parameters are here).
     """
 
-    sweeps: Sweeps
-    counts: dict
-    arcs: object
-    fit: object
+    sweeps: Sweeps | None
+    #: Per joint the frames its arc fit used (`poses` for a pose-based capture).
+    counts: tuple[Named, ...]
+    arcs: ArcFitResult | None
+    fit: AxisFitResult
     layout: ParameterLayout
-    parameters: list
-    frozen: list
-    arc_rows: list
-    solver: dict
+    parameters: tuple[ParameterRow, ...]
+    frozen: tuple[str, ...]
+    arc_rows: tuple[ArcRow, ...]
+    solver: SolverInfo
     notes: tuple[str, ...]
     link_rows: np.ndarray | None
-    timings: dict
+    #: Seconds per step (`arc_fit_s`, `axis_fit_s`, ...): free-form.
+    timings: dict[str, float]
     estimate: Estimate | None = None
-    points: object = None
+    points: PointFit | None = None
 
 
 def _sequential(setup: Setup, obs: Observations, sync: Sync, loss: str | None):
@@ -177,7 +189,7 @@ def _start_mounts(setup: Setup, arcs, homes):
     return jnp.einsum("ab,mbc->mac", pose_inverse(T_cf), arcs.T_cam_marker0[0])
 
 
-def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> list[dict]:
+def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> tuple[ArcOutlier, ...]:
     """The samples joint `j`'s robust arc fit rejected: target, frame and camera time
     (`arcs` as host arrays, as `arc_rows` passes them)."""
     frames = setup.dataset.frames
@@ -185,38 +197,33 @@ def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> list[dict]:
     for m, f in arc_outliers(jax.tree.map(lambda x: x[j], arcs), sweeps.mask[j]):
         row = int(sweeps.rows[j, f])
         rows.append(
-            {
-                "target": setup.targets[m].name if m < len(setup.targets) else str(m),
-                "frame": int(frames["frame"][row]),
-                "timestamp_s": float(frames["timestamp"][row]),
-                "residual": float(arcs.sample_residuals[j, m, f]),
-            }
-            | (
-                {"sample": int(frames["frame"][row]), "line": frames["file"][row]}
-                if not setup.kind.images
-                else {}
+            ArcOutlier(
+                target=setup.targets[m].name if m < len(setup.targets) else str(m),
+                frame=int(frames["frame"][row]),
+                timestamp_s=float(frames["timestamp"][row]),
+                residual=float(arcs.sample_residuals[j, m, f]),
+                sample=None if setup.kind.images else int(frames["frame"][row]),
+                line=None if setup.kind.images else frames["file"][row],
             )
         )
-    return rows
+    return tuple(rows)
 
 
-def _outlier_notes(rows: list[dict]) -> tuple[str, ...]:
+def _outlier_notes(rows: tuple[ArcRow, ...]) -> tuple[str, ...]:
     """One note per joint whose robust arc fit rejected samples, naming their frames."""
     notes = []
     for a in rows:
-        frames = sorted({o["frame"] for o in a["outliers"]})
+        frames = sorted({o.frame for o in a.outliers})
         if frames:
             shown = ", ".join(map(str, frames[:8])) + (
                 f" and {len(frames) - 8} more" if len(frames) > 8 else ""
             )
-            what = "sample" if "sample" in a["outliers"][0] else "frame"
-            notes.append(
-                f"joint {a['joint']!r}: the robust arc fit rejected {len(frames)} {what}(s): {shown}"
-            )
+            what = "sample" if a.outliers[0].sample is not None else "frame"
+            notes.append(f"joint {a.joint!r}: the robust arc fit rejected {len(frames)} {what}(s): {shown}")
     return tuple(notes)
 
 
-def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> list[dict]:
+def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> tuple[ArcRow, ...]:
     """Per-joint arc summaries (frames, RMS, axis, ratio with its std, solver,
     the samples a robust fit rejected and the noise scale it saw)."""
     arcs = jax.device_get(arcs)  # host arrays: per-joint indexing compiles nothing
@@ -227,43 +234,36 @@ def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> list[dict]:
     for j, name in enumerate(setup.dataset.joint_names):
         rate = float(arcs.rate[j])
         prismatic = setup.nominal.joint_types[j] == PRISMATIC
+        var = max(float(arcs.rate_var[j]), 0.0)
         rows.append(
-            {
-                "joint": name,
-                "type": setup.nominal.joint_types[j],
-                "frames": int(arcs.num_frames[j]),
-                "position_rms_mm": float(arcs.position_rms[j]) * 1e3,
-                "rotation_rms_deg": float(np.degrees(arcs.rotation_rms[j]))
+            ArcRow(
+                joint=name,
+                type=setup.nominal.joint_types[j],
+                frames=int(arcs.num_frames[j]),
+                position_rms_mm=float(arcs.position_rms[j]) * 1e3,
+                rotation_rms_deg=float(np.degrees(arcs.rotation_rms[j]))
                 if np.isfinite(arcs.rotation_rms[j])
                 else None,  # points measured without an orientation
-                "residual_rms": float(arcs.residual_rms[j]),
-                "direction_cam": np.asarray(arcs.direction[j]).tolist(),
+                residual_rms=float(arcs.residual_rms[j]),
+                direction_cam=tuple(np.asarray(arcs.direction[j]).tolist()),
                 # A translation has no axis position (`fit_line`).
-                "point_cam_m": None if prismatic else np.asarray(arcs.point[j]).tolist(),
-                "ratio_nominal": float(nominal_ratio[j]),
-                "ratio": float(nominal_ratio[j] / rate) if has else None,
-                "ratio_std": float(nominal_ratio[j] * np.sqrt(max(float(arcs.rate_var[j]), 0.0)) / rate**2)
-                if has
-                else None,
-                "ratio_identifiable": has,
+                point_cam_m=None if prismatic else tuple(np.asarray(arcs.point[j]).tolist()),
+                ratio_nominal=float(nominal_ratio[j]),
+                ratio=float(nominal_ratio[j] / rate) if has else None,
+                ratio_std=float(nominal_ratio[j] * np.sqrt(var) / rate**2) if has else None,
+                ratio_identifiable=has,
                 # Prismatic: the ratio is motor rad per m; the scale is the true travel per
                 # commanded travel (nominal ratio / true ratio), 1 for a datasheet screw.
-                **(
-                    {
-                        "ratio_unit": "rad/m",
-                        "scale": rate,
-                        "scale_std": float(np.sqrt(max(float(arcs.rate_var[j]), 0.0))),
-                        "travel_mm": float(
-                            1e3 * np.ptp(np.asarray(arcs.angles[j])[np.asarray(sweeps.mask[j]).any(0)])
-                        ),
-                    }
-                    if prismatic
-                    else {}
-                ),
-                "solver": {"result": "successful" if ok[j] else "failed", "steps": int(arcs.num_steps[j])},
-                "robust_scale": float(arcs.robust_scale[j]),
-                "outliers": arc_outlier_rows(setup, sweeps, arcs, j),
-            }
+                ratio_unit="rad/m" if prismatic else None,
+                scale=rate if prismatic else None,
+                scale_std=float(np.sqrt(var)) if prismatic else None,
+                travel_mm=float(1e3 * np.ptp(np.asarray(arcs.angles[j])[np.asarray(sweeps.mask[j]).any(0)]))
+                if prismatic
+                else None,
+                solver=SolveOutcome("successful" if ok[j] else "failed", int(arcs.num_steps[j])),
+                robust_scale=float(arcs.robust_scale[j]),
+                outliers=arc_outlier_rows(setup, sweeps, arcs, j),
+            )
         )
     return rows
 
@@ -329,20 +329,20 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         notes += blur_notes(setup, obs.primary, sync)
     return TwoStage(
         sweeps=sweeps,
-        counts=counts,
+        counts=named_rows(counts),
         arcs=arcs,
         fit=fit,
         layout=layout,
-        parameters=parameters,
-        frozen=[n for n, f in zip(names, free) if not f],
+        parameters=parameter_rows(parameters),
+        frozen=tuple(n for n, f in zip(names, free) if not f),
         arc_rows=rows,
-        solver={
-            "success": bool(ok_arc.all() and bool(fit.result == optx.RESULTS.successful)),
-            "arc_fits_ok": ok_arc.tolist(),
-            "axis_fit": result_name(fit.result),
-            "axis_fit_steps": int(fit.num_steps),
-            "axis_fit_residual_rms": float(fit.residual_rms),
-        },
+        solver=SolverInfo(
+            success=bool(ok_arc.all() and bool(fit.result == optx.RESULTS.successful)),
+            arc_fits_ok=tuple(ok_arc.tolist()),
+            axis_fit=result_name(fit.result),
+            axis_fit_steps=int(fit.num_steps),
+            axis_fit_residual_rms=float(fit.residual_rms),
+        ),
         notes=notes,
         link_rows=link_rows,
         timings=timings,
@@ -362,14 +362,14 @@ def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Two
     )  # fmt: skip
     return TwoStage(
         sweeps=None,
-        counts={"poses": poses},
+        counts=(Named("poses", poses),),
         arcs=None,
         fit=fit,
         layout=layout,
-        parameters=parameters,
-        frozen=[],
-        arc_rows=[],
-        solver={"success": True, "arc_fits_ok": [], "axis_fit": "not run (pose-based capture)"},
+        parameters=parameter_rows(parameters),
+        frozen=(),
+        arc_rows=(),
+        solver=SolverInfo(success=True, arc_fits_ok=(), axis_fit="not run (pose-based capture)"),
         notes=(),
         link_rows=None,
         timings={"hand_eye_start_s": time.perf_counter() - t0},
@@ -382,35 +382,35 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
     pf = fit_point_samples(setup, obs, sync, options)
     fit = axis_result(pf, setup.nominal)
     layout = pf.layout.base
-    kept = [m for m in pf.models if m["kept"]][0]
+    kept = [m for m in pf.models if m.kept][0]
     notes = [
         f"point fit on {int(pf.used.sum())} samples: {int(np.sum(pf.fit.free))} parameters free"
         + (f", non-geometric terms {list(pf.layout.terms)}" if pf.layout.terms else "")
-        + f"; fitted residual {pf.residual_mm['rms']:.4f} mm RMS"
-        + (f", {pf.folds}-fold cross-validation {kept['cv_mean_mm']:.4f} mm mean" if pf.folds else "")
+        + f"; fitted residual {pf.residual_mm.rms:.4f} mm RMS"
+        + (f", {pf.folds}-fold cross-validation {kept.cv_mean_mm:.4f} mm mean" if pf.folds else "")
     ]
     notes += [
-        f"{'+'.join(m['terms'])}: cross-validation {m['cv_mean_mm']:.4f} mm mean, not better than "
-        f"{'+'.join(kept['terms']) or 'the geometric model'}: left out"
+        f"{'+'.join(m.terms)}: cross-validation {m.cv_mean_mm:.4f} mm mean, not better than "
+        f"{'+'.join(kept.terms) or 'the geometric model'}: left out"
         for m in pf.models
-        if m["terms"] and not m["kept"]
+        if m.terms and not m.kept
     ]
     return TwoStage(
         sweeps=None,
-        counts={"poses": int(pf.used.sum())},
+        counts=(Named("poses", int(pf.used.sum())),),
         arcs=None,
         fit=fit,
         layout=layout,
-        parameters=parameters_of(pf, setup, fit),
-        frozen=list(pf.held),
-        arc_rows=[],
-        solver={
-            "success": bool(fit.result == optx.RESULTS.successful),
-            "arc_fits_ok": [],
-            "axis_fit": "not run (stop-and-shoot samples: point fit)",
-            "point_fit": result_name(fit.result),
-            "point_fit_steps": int(fit.num_steps),
-        },
+        parameters=parameter_rows(parameters_of(pf, setup, fit)),
+        frozen=tuple(pf.held),
+        arc_rows=(),
+        solver=SolverInfo(
+            success=bool(fit.result == optx.RESULTS.successful),
+            arc_fits_ok=(),
+            axis_fit="not run (stop-and-shoot samples: point fit)",
+            point_fit=result_name(fit.result),
+            point_fit_steps=int(fit.num_steps),
+        ),
         notes=tuple(notes),
         link_rows=None,
         timings=pf.timings,

@@ -5,6 +5,7 @@ refined), the camera pose in the estimator's gauge, per-joint axis, ratio
 and zero-offset errors, the clock offset and the further cameras' poses.
 """
 
+import dataclasses
 import functools
 import time
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ from .._npgeom import pose_inverse, so3_log
 from .._scoring import score
 from .._uncertainty import joint_travel, on_travel
 from ..io.model_json import model_from_json
+from ..records import CameraPoseError, EEErrors, JointError, OtherCamera, PoseError, ValidationReport
 from . import _programs
 from ._refine import Refined
 from ._setup import Options, Setup
@@ -36,9 +38,10 @@ class Validation:
     """`report`: the `validation` block of `result.json`; `ee_errors`: per
     configuration the EE error (mm) `before` (nominal model), `two_stage`, `after`."""
 
-    report: dict
-    ee_errors: dict
-    timings: dict
+    report: ValidationReport
+    ee_errors: EEErrors
+    #: Seconds per step (`validation_s`): free-form.
+    timings: dict[str, float]
 
 
 def _truth_poses(setup: Setup, truth: dict):
@@ -61,8 +64,8 @@ def _rot_deg(R) -> float:
     return float(np.degrees(np.linalg.norm(so3_log(R))))
 
 
-def _pose_error(dT) -> dict:
-    return {"trans_mm": float(np.linalg.norm(dT[:3, 3]) * 1e3), "rot_deg": _rot_deg(dT[:3, :3])}
+def _pose_error(dT) -> PoseError:
+    return PoseError(trans_mm=float(np.linalg.norm(dT[:3, 3]) * 1e3), rot_deg=_rot_deg(dT[:3, :3]))
 
 
 @functools.cache
@@ -121,32 +124,53 @@ def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true
     ).T_cam_base
 
 
-def other_camera_errors(truth: dict, camera: str, T_two_stage, T_refined, others: list) -> dict:
+def other_camera_errors(
+    truth: dict, camera: str, T_two_stage, T_refined, others: tuple[OtherCamera, ...]
+) -> tuple[CameraPoseError, ...]:
     """Each further camera's pose relative to the first, against the truth
     (gauge-free: the base frame cancels), at the start (relative to the
     two-stage first camera, the gauge it was computed in) and refined."""
     cams = truth.get("cameras", {})
     if "T_cam_base" not in cams.get(camera, {}):
-        return {}
+        return ()
     T0_true = np.asarray(cams[camera]["T_cam_base"])
-    out = {}
+    out = []
     for c in others:
-        if "T_cam_base" not in cams.get(c["camera"], {}):
+        if "T_cam_base" not in cams.get(c.camera, {}):
             continue
-        rel_true = np.asarray(cams[c["camera"]]["T_cam_base"]) @ np.linalg.inv(T0_true)
+        rel_true = np.asarray(cams[c.camera]["T_cam_base"]) @ np.linalg.inv(T0_true)
         row = {}
         for key, T, T0 in (
-            ("start", c["T_cam_base_start"], T_two_stage),
-            ("refined", c["T_cam_base"], T_refined),
+            ("start", c.T_cam_base_start, T_two_stage),
+            ("refined", c.T_cam_base, T_refined),
         ):
             D = np.linalg.inv(rel_true) @ (np.asarray(T) @ np.linalg.inv(np.asarray(T0)))
             cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-            row[key] = {
-                "trans_mm": float(1e3 * np.linalg.norm(D[:3, 3])),
-                "rot_deg": float(np.degrees(np.arccos(cos))),
-            }
-        out[c["camera"]] = row
-    return out
+            row[key] = PoseError(
+                trans_mm=float(1e3 * np.linalg.norm(D[:3, 3])), rot_deg=float(np.degrees(np.arccos(cos)))
+            )
+        out.append(CameraPoseError(camera=c.camera, **row))
+    return tuple(out)
+
+
+def _joint_errors(nominal, true, model, s) -> tuple[JointError, ...]:
+    """Per joint its axis, ratio and zero-offset errors against the truth (`score`'s figures `s`);
+    a prismatic joint has a direction (no axis position), the scale's error and mm."""
+    ratio_err = np.asarray(s["ratio_err_percent"])
+    rows = []
+    for k, (j, kind) in enumerate(zip(nominal.joint_names, nominal.joint_types)):
+        dz = float(model.zero_offset[k] - true.zero_offset[k])
+        rows.append(
+            JointError(
+                joint=j,
+                axis_direction_deg=float(s["axis_dir_deg"][k]),
+                axis_position_mm=float(s["axis_pos_mm"][k]) if kind == REVOLUTE else None,
+                ratio_percent=None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
+                zero_offset_deg=float(np.degrees(dz)) if kind == REVOLUTE else None,
+                zero_offset_mm=None if kind == REVOLUTE else 1e3 * dz,
+            )
+        )
+    return tuple(rows)
 
 
 def validate(
@@ -181,53 +205,36 @@ def validate(
     )
     dT = pose_inverse(T_gauge) @ np.asarray(fit.T_cam_base)
     dT_raw = pose_inverse(T_cb_true) @ np.asarray(fit.T_cam_base)
-    ratio_err = np.asarray(s["ratio_err_percent"])
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
-    out = {
-        "configurations": CONFIGURATIONS,
-        "ee_point": setup.kind.ee_point,
-        "ee_rms_mm_before": rms(err["before"]),
-        "ee_max_mm_before": float(err["before"].max()),
-        "ee_rms_mm_after": rms(err["after"]),
-        "ee_max_mm_after": float(err["after"].max()),
-        "ee_rms_mm_two_stage": rms(err["two_stage"]),
-        "ee_max_mm_two_stage": float(err["two_stage"].max()),
-        "refined": res is not None,
-        "T_cam_base_error": {
-            **_pose_error(dT),
-            "gauge": "the truth seen through the same frozen parameters (the same fit on exact sweeps)",
-            "raw_trans_mm": float(np.linalg.norm(dT_raw[:3, 3]) * 1e3),
-            "raw_rot_deg": _rot_deg(dT_raw[:3, :3]),
-        },
-        "parameter_errors": {
-            j: (
-                {
-                    "axis_direction_deg": float(s["axis_dir_deg"][k]),
-                    "axis_position_mm": float(s["axis_pos_mm"][k]),
-                    "ratio_percent": None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
-                    "zero_offset_deg": float(np.degrees(fit.model.zero_offset[k] - true.zero_offset[k])),
-                }
-                if kind == REVOLUTE
-                else {  # a prismatic joint: a direction (no axis position), the scale's error, mm
-                    "axis_direction_deg": float(s["axis_dir_deg"][k]),
-                    "ratio_percent": None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
-                    "zero_offset_mm": float(1e3 * (fit.model.zero_offset[k] - true.zero_offset[k])),
-                }
-            )
-            for k, (j, kind) in enumerate(zip(nominal.joint_names, nominal.joint_types))
-        },
-        "true_ratios": np.asarray(true.reduction_ratio).tolist(),
-        "true_clock_offset_s": truth.get("clock", {}).get("offset_s"),
-    }
-    if res is not None:
-        out["T_cam_base_error_two_stage"] = _pose_error(
-            pose_inverse(T_gauge) @ np.asarray(two_fit.T_cam_base)
-        )
-    offset_s = refined.clock["offset_s"] if refined is not None and refined.clock else sync.clock["offset_s"]
-    true_offset = out["true_clock_offset_s"]
-    out["clock_offset_error_ms"] = None if true_offset is None else 1e3 * (offset_s - true_offset)
-    if refined is not None and refined.other_cameras:
-        out["other_cameras"] = other_camera_errors(
+    offset_s = refined.clock.offset_s if refined is not None and refined.clock else sync.clock["offset_s"]
+    true_offset = truth.get("clock", {}).get("offset_s")
+    out = ValidationReport(
+        configurations=CONFIGURATIONS,
+        ee_point=setup.kind.ee_point,
+        ee_rms_mm_before=rms(err["before"]),
+        ee_max_mm_before=float(err["before"].max()),
+        ee_rms_mm_after=rms(err["after"]),
+        ee_max_mm_after=float(err["after"].max()),
+        ee_rms_mm_two_stage=rms(err["two_stage"]),
+        ee_max_mm_two_stage=float(err["two_stage"].max()),
+        refined=res is not None,
+        T_cam_base_error=dataclasses.replace(
+            _pose_error(dT),
+            gauge="the truth seen through the same frozen parameters (the same fit on exact sweeps)",
+            raw_trans_mm=float(np.linalg.norm(dT_raw[:3, 3]) * 1e3),
+            raw_rot_deg=_rot_deg(dT_raw[:3, :3]),
+        ),
+        parameter_errors=_joint_errors(nominal, true, fit.model, s),
+        true_ratios=tuple(np.asarray(true.reduction_ratio).tolist()),
+        true_clock_offset_s=true_offset,
+        T_cam_base_error_two_stage=None
+        if res is None
+        else _pose_error(pose_inverse(T_gauge) @ np.asarray(two_fit.T_cam_base)),
+        clock_offset_error_ms=None if true_offset is None else 1e3 * (offset_s - true_offset),
+        other_cameras=other_camera_errors(
             truth, setup.camera.name, two_fit.T_cam_base, res.T_cam_base, refined.other_cameras
         )
-    return Validation(out, err, {"validation_s": time.perf_counter() - t0})
+        if refined is not None and refined.other_cameras
+        else None,
+    )
+    return Validation(out, EEErrors(**err), {"validation_s": time.perf_counter() - t0})

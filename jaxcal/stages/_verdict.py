@@ -17,6 +17,7 @@ import numpy as np
 
 from .._kinematics import joint_axes
 from .._npgeom import line_distance
+from ..records import ParameterRow
 from . import _programs
 from ._armcheck import arm_check
 from ._blur import blur_rows
@@ -85,15 +86,17 @@ class _Checks:
             self.reasons.append(message)
 
 
-def _corrections(c: _Checks, parameters: list, limits: Limits, measured_mounts: set) -> None:
+def _corrections(
+    c: _Checks, parameters: tuple[ParameterRow, ...], limits: Limits, measured_mounts: set
+) -> None:
     """Joint origins, zero offsets and mounts against their nominal values."""
-    rows = {p["name"]: p for p in parameters}
+    rows = {p.name: p for p in parameters}
     groups: dict[str, dict] = {}
     for p in parameters:
-        if p["group"] not in ("correction", "mount") or p["name"].endswith(".zero_offset"):
+        if p.group not in ("correction", "mount") or p.name.endswith(".zero_offset"):
             continue
-        owner, _, what = p["name"].rpartition(".")
-        groups.setdefault(owner, {})[what] = p["estimate"] - p["nominal"]
+        owner, _, what = p.name.rpartition(".")
+        groups.setdefault(owner, {})[what] = p.estimate - p.nominal
     for owner, d in groups.items():
         mount = owner.endswith(".mount")
         if mount and owner.rpartition(".")[0] in measured_mounts:
@@ -108,8 +111,8 @@ def _corrections(c: _Checks, parameters: list, limits: Limits, measured_mounts: 
             f"{owner}.deg", deg, lim_deg, f"{owner} turned {deg:.2f} deg from nominal (limit {lim_deg:g} deg)"
         )
     for name, p in rows.items():
-        if name.endswith(".zero_offset") and p["unit"] == "m":  # a prismatic joint's, against the origins'
-            mm = 1e3 * abs(p["estimate"] - p["nominal"])
+        if name.endswith(".zero_offset") and p.unit == "m":  # a prismatic joint's, against the origins'
+            mm = 1e3 * abs(p.estimate - p.nominal)
             c.add(
                 name,
                 mm,
@@ -117,7 +120,7 @@ def _corrections(c: _Checks, parameters: list, limits: Limits, measured_mounts: 
                 f"{name} moved {mm:.1f} mm from nominal (limit {limits.origin_mm:g} mm)",
             )
         elif name.endswith(".zero_offset"):
-            deg = float(np.degrees(abs(_wrap(p["estimate"] - p["nominal"]))))
+            deg = float(np.degrees(abs(_wrap(p.estimate - p.nominal))))
             c.add(
                 name,
                 deg,
@@ -126,26 +129,26 @@ def _corrections(c: _Checks, parameters: list, limits: Limits, measured_mounts: 
             )
 
 
-def _uncertainties(c: _Checks, parameters: list, limits: Limits) -> None:
+def _uncertainties(c: _Checks, parameters: tuple[ParameterRow, ...], limits: Limits) -> None:
     """A free joint origin or zero offset whose standard deviation is a third of its
     plausible correction or more: the data barely see it, and its value is not to be
     read (the tool point may still be fine; a parameter table is not)."""
     worst: dict[str, tuple[float, float, str]] = {}
     for p in parameters:
-        if p["group"] != "correction" or not p.get("free") or p.get("std") is None:
+        if p.group != "correction" or not p.free or p.std is None:
             continue
-        owner, _, what = p["name"].rpartition(".")
-        if p["unit"] == "m":
-            ratio, shown = 1e3 * p["std"] / (limits.origin_mm / 3), f"{1e3 * p['std']:.2f} mm"
+        owner, _, what = p.name.rpartition(".")
+        if p.unit == "m":
+            ratio, shown = 1e3 * p.std / (limits.origin_mm / 3), f"{1e3 * p.std:.2f} mm"
         elif what == "zero_offset":
             ratio, shown = (
-                np.degrees(p["std"]) / (limits.zero_offset_deg / 3),
-                f"{np.degrees(p['std']):.3f} deg",
+                np.degrees(p.std) / (limits.zero_offset_deg / 3),
+                f"{np.degrees(p.std):.3f} deg",
             )
         else:
-            ratio, shown = np.degrees(p["std"]) / (limits.origin_deg / 3), f"{np.degrees(p['std']):.3f} deg"
+            ratio, shown = np.degrees(p.std) / (limits.origin_deg / 3), f"{np.degrees(p.std):.3f} deg"
         if ratio > worst.get(owner, (0.0,))[0]:
-            worst[owner] = (float(ratio), float(ratio), f"{p['name']} +- {shown}")
+            worst[owner] = (float(ratio), float(ratio), f"{p.name} +- {shown}")
     for owner, (ratio, _, text) in worst.items():
         c.add(
             f"{owner}.std",
@@ -180,7 +183,7 @@ def _ratios(c: _Checks, setup: Setup, two: TwoStage, refined: Refined | None, li
     if refined is not None and refined.ratios is not None:
         ratios = [r for r, _ in refined.ratios]
     else:
-        ratios = [a["ratio"] for a in two.arc_rows] or [None] * len(nominal)
+        ratios = [a.ratio for a in two.arc_rows] or [None] * len(nominal)
     for joint, nom, ratio in zip(setup.nominal.joint_names, nominal, ratios):
         if ratio is None:
             continue
@@ -199,10 +202,10 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, residuals: bo
     the fits' residuals when not `residuals`: poses of a rolling shutter's skewed plates)."""
     for a in two.arc_rows if residuals else ():
         c.add(
-            f"{a['joint']}.arc_residual",
-            a["residual_rms"],
+            f"{a.joint}.arc_residual",
+            a.residual_rms,
             limits.arc_residual,
-            f"{a['joint']}: the arc fit's whitened residual RMS is {a['residual_rms']:.2f} (expected about 1): "
+            f"{a.joint}: the arc fit's whitened residual RMS is {a.residual_rms:.2f} (expected about 1): "
             "its poses do not lie on one arc (wrong clock, encoder or frames?)",
         )
     rms = float(two.fit.residual_rms) if residuals else 0.0
@@ -237,11 +240,11 @@ def _refinement(c: _Checks, refined: Refined, limits: Limits) -> None:
     s = refined.summary
     c.add(
         "sigma_px",
-        s["sigma_px"],
+        s.sigma_px,
         limits.sigma_px,
-        f"the refinement's pixel noise is {s['sigma_px']:.2f} px (limit {limits.sigma_px:g} px)",
+        f"the refinement's pixel noise is {s.sigma_px:.2f} px (limit {limits.sigma_px:g} px)",
     )
-    frac = s["outlier_corners"] / max(s["corners"], 1)
+    frac = s.outlier_corners / max(s.corners, 1)
     c.add(
         "outlier_fraction",
         frac,
@@ -255,14 +258,14 @@ def _shutter(c: _Checks, refined: Refined, limits: Limits) -> None:
     pattern (`_refine.shutter_test`): an offset growing down the image rows with the
     marker's image speed, which the clock offset (one time for every row) cannot absorb."""
     for t in refined.shutter_test or ():
-        big = abs(t["readout_s"]) >= limits.readout_s
+        big = abs(t.readout_s) >= limits.readout_s
         c.add(
-            f"{t['camera']}.rolling_shutter_sigmas",
-            t["sigmas"] if big else 0.0,
+            f"{t.camera}.rolling_shutter_sigmas",
+            t.sigmas if big else 0.0,
             limits.shutter_sigmas,
-            f"camera {t['camera']!r}: the residuals shift along the image rows with the joints' speed, as a rolling "
-            f"shutter's do: its rows read out over about {1e3 * t['readout_s']:.1f} ms ({1e6 * t['line_delay_s']:.1f} "
-            f"us per row, {t['sigmas']:.0f} sigmas) and the calibration timed every row at the frame's stamp; give "
+            f"camera {t.camera!r}: the residuals shift along the image rows with the joints' speed, as a rolling "
+            f"shutter's do: its rows read out over about {1e3 * t.readout_s:.1f} ms ({1e6 * t.line_delay_s:.1f} "
+            f"us per row, {t.sigmas:.0f} sigmas) and the calibration timed every row at the frame's stamp; give "
             'cameras[].line_delay_s in metadata.json (the readout over the image height) or "estimate", or sweep '
             "slower, or film the poses standing still (stop-and-shoot)",
         )
@@ -321,7 +324,7 @@ def verdict(
                 f"camera {o.camera.name!r}: self-calibrated intrinsics reproject at {o.intrinsics['rms_px']:.2f} px "
                 f"(limit {limits.intrinsics_rms_px:g} px)",
             )
-    failed = not two.solver["success"] or (ran and not succeeded(refined))
+    failed = not two.solver.success or (ran and not succeeded(refined))
     status = "failed" if failed else ("suspect" if c.reasons else "ok")
     reasons = list(c.reasons)
     if failed:

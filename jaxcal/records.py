@@ -1,0 +1,620 @@
+"""The typed rows and blocks of a `CalibrationResult` (`jaxcal.stages.result`).
+
+Each block of `result.json` that used to be a dict is a frozen dataclass here,
+every field typed and documented, so that a renamed field fails in the editor
+and in `tests/test_architecture.py`, not in a user's report.
+
+A field's name is its `result.json` key (`jaxcal.io.result` writes and reads
+the file; only the blocks whose JSON shape differs from the record, such as
+`reduction_ratios` keyed by joint, are mapped there). Two field markers
+decide the JSON shape:
+
+- `optional()`: a key written only when the value is not None (`given_s` when
+  the metadata gave a clock offset, the refined figures when the refinement ran);
+- `named()`: a tuple of `Named` rows written as a `{name: value}` object
+  (per-joint counts, per-parameter std).
+
+Every record is also a read-only mapping of its JSON block (`result.clock["offset_s"]`,
+`for k in result.validation`), so that notebooks written against the dict
+results keep working; new code reads attributes (`result.clock.offset_s`).
+
+This module imports nothing from jaxcal: the stages build the records and the
+`io` layer writes them, both from below it in the import graph.
+"""
+
+import types
+import typing
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field, fields, is_dataclass
+
+import numpy as np
+
+#: Field metadata: the key is left out of the JSON block when the value is None.
+OPTIONAL = "optional"
+#: Field metadata: a tuple of `Named` rows written as a `{name: value}` object.
+NAMED = "named"
+#: Field metadata: a tuple of rows written as `{row.<key>: the row less its key}`.
+KEYED = "keyed"
+
+
+def optional(default=None):
+    """A field whose key is written only when its value is not None."""
+    return field(default=default, metadata={OPTIONAL: True})
+
+
+def named(*, is_optional: bool = False):
+    """A field of `Named` rows, written as one `{name: value}` object (None when optional)."""
+    return field(default=None if is_optional else (), metadata={NAMED: True, OPTIONAL: is_optional})
+
+
+def keyed(key: str, *, is_optional: bool = False):
+    """A field of rows written as one object keyed by each row's field `key` (per joint, per camera)."""
+    return field(default=None if is_optional else (), metadata={KEYED: key, OPTIONAL: is_optional})
+
+
+def row_of(rows, key: str, value: str):
+    """The row of `rows` whose field `key` is `value` (KeyError when none is)."""
+    for r in rows:
+        if getattr(r, key) == value:
+            return r
+    raise KeyError(value)
+
+
+def plain(x):
+    """A record, row or value as plain JSON types (dicts, lists, floats, ints, str, bool, None)."""
+    if isinstance(x, Record):
+        return {k: x[k] for k in x}
+    if isinstance(x, (tuple, list)):
+        return [plain(e) for e in x]
+    if isinstance(x, dict):
+        return {k: plain(v) for k, v in x.items()}
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def _decode(tp, value):
+    """`value` (plain JSON) as type `tp`: records, tuples of them, arrays, optionals."""
+    if value is None:
+        return None
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        return _decode(inner[0], value) if len(inner) == 1 else value
+    if origin is tuple:
+        return tuple(_decode(args[0], v) for v in value)
+    if tp is np.ndarray:
+        return np.asarray(value, np.float64)
+    if isinstance(tp, type) and is_dataclass(tp):
+        return from_plain(tp, value)
+    return value
+
+
+def _row_type(tp):
+    """The row type of `tuple[Row, ...]` or `tuple[Row, ...] | None`."""
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        tp = next(a for a in typing.get_args(tp) if a is not type(None))
+    return typing.get_args(tp)[0]
+
+
+def from_plain(cls, data: Mapping):
+    """The record of type `cls` whose JSON block (`plain`) is `data`: the inverse of `plain`."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in fields(cls):
+        if f.name not in data:
+            continue
+        v, tp = data[f.name], hints[f.name]
+        if f.metadata.get(NAMED) and v is not None:
+            v = tuple(Named(str(k), x) for k, x in v.items())
+        elif f.metadata.get(KEYED) and v is not None:
+            row = _row_type(tp)
+            v = tuple(from_plain(row, {f.metadata[KEYED]: k, **x}) for k, x in v.items())
+        else:
+            v = _decode(tp, v)
+        kwargs[f.name] = v
+    return cls(**kwargs)
+
+
+class Record(Mapping):
+    """A frozen result record that also reads as its JSON block (see the module docstring)."""
+
+    def _keys(self) -> list[str]:
+        return [
+            f.name
+            for f in fields(self)  # type: ignore[arg-type]
+            if not (f.metadata.get(OPTIONAL) and getattr(self, f.name) is None)
+        ]
+
+    def __getitem__(self, key: str):
+        for f in fields(self):  # type: ignore[arg-type]
+            if f.name == key:
+                v = getattr(self, key)
+                if f.metadata.get(NAMED) and v is not None:
+                    return {row.name: plain(row.value) for row in v}
+                if f.metadata.get(KEYED) and v is not None:
+                    k = f.metadata[KEYED]
+                    return {getattr(row, k): {n: row[n] for n in row if n != k} for row in v}
+                if f.metadata.get(OPTIONAL) and v is None:
+                    break
+                return plain(v)
+        raise KeyError(key)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._keys())
+
+    def __len__(self) -> int:
+        return len(self._keys())
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+@dataclass(frozen=True, eq=False)
+class Named(Record):
+    """One entry of a `{name: value}` block: a joint's count, a parameter's std."""
+
+    name: str
+    #: The number under that name (an int for counts).
+    value: float
+
+
+def named_rows(d: Mapping | None) -> tuple[Named, ...] | None:
+    """`Named` rows from a `{name: value}` mapping (None stays None)."""
+    return None if d is None else tuple(Named(str(k), plain(v)) for k, v in d.items())
+
+
+@dataclass(frozen=True, eq=False)
+class Clock(Record):
+    """The camera-controller clock offset (controller time = camera time + offset)."""
+
+    #: The offset used (s): the refined one when the refinement estimated it.
+    offset_s: float
+    #: Its 1-sigma std (s); None when it was not estimated.
+    std_s: float | None
+    #: Whether the data estimated it (else the metadata's offset, or 0, was used).
+    estimated: bool
+    #: The camera clock's rate error against the controller's (ppm, from the metadata).
+    drift_ppm: float
+    #: The metadata's offset (s) when one was given and the estimate replaced it.
+    given_s: float | None = optional()
+    #: The two-stage (arc-fit) offset and std (s) when the refinement refined the offset.
+    offset_s_two_stage: float | None = optional()
+    std_s_two_stage: float | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class FrameCounts(Record):
+    """How the two-stage camera's frames (or a device's samples) were used."""
+
+    images: int
+    target_found: int
+    no_target: int
+    #: Frames outside the encoder log's time span, and inside one of its glitches.
+    outside_encoder_log: int
+    in_encoder_glitch: int
+    #: Frames with a target, inside the log, in no single-joint sweep.
+    not_in_a_sweep: int
+    #: Per joint the frames its arc fit used (`poses` for a pose-based capture).
+    used_per_joint: tuple[Named, ...] = named()
+    #: Capture indices missing between the camera's first and last frame.
+    dropped_capture_indices: tuple[int, ...] = ()
+    #: Frame rows whose PnP pose was an outlier (left out).
+    pnp_outliers: tuple[int, ...] = ()
+    #: Tracker data: the device's samples.
+    samples: int | None = optional()
+
+    def used(self, joint: str) -> int:
+        """The frames (or samples) `joint`'s fit used (`"poses"` for a pose-based capture)."""
+        return int(next(int(r.value) for r in self.used_per_joint if r.name == joint))
+
+
+@dataclass(frozen=True, eq=False)
+class SolverInfo(Record):
+    """The solvers' outcomes (optimistix result names and step counts)."""
+
+    #: Every solver converged.
+    success: bool
+    #: Per joint whether its arc fit converged (empty without arcs).
+    arc_fits_ok: tuple[bool, ...]
+    #: The axis fit's result name, or why it did not run.
+    axis_fit: str
+    axis_fit_steps: int | None = optional()
+    axis_fit_residual_rms: float | None = optional()
+    #: Stop-and-shoot tracker data: the point fit's result and steps.
+    point_fit: str | None = optional()
+    point_fit_steps: int | None = optional()
+    #: The refinement's result, steps and whether every robust round converged (when it ran).
+    refinement: str | None = optional()
+    refinement_steps: int | None = optional()
+    refinement_rounds_ok: bool | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class RatioRow(Record):
+    """One joint's reduction ratio (motor rad per joint rad; per m for a prismatic joint)."""
+
+    joint: str
+    nominal: float
+    #: None when the capture cannot see it (no encoder log, no refinement).
+    estimate: float | None
+    std: float | None
+    identifiable: bool
+    #: A prismatic joint: the ratio's unit, and the scale (true per commanded travel) with its std.
+    ratio_unit: str | None = optional()
+    scale: float | None = optional()
+    scale_std: float | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class ParameterRow(Record):
+    """One physical parameter (`jaxcal._correction.physical_parameters`)."""
+
+    #: `joint.origin.tx`, `T_cam_base.rx`, `marker.mount.tz`, `joint.rate`...
+    name: str
+    #: `m`, `rad`, `1` ...
+    unit: str
+    #: Its group in the correction vector (`correction`, `camera`, `mount`, ...).
+    group: str
+    nominal: float
+    estimate: float
+    std: float
+    #: Whether the data estimated it (else held at nominal).
+    free: bool
+
+
+def parameter_rows(rows) -> tuple[ParameterRow, ...]:
+    """`ParameterRow`s from `physical_parameters`' rows (rows already typed pass through)."""
+    return tuple(r if isinstance(r, ParameterRow) else ParameterRow(**r) for r in rows)
+
+
+@dataclass(frozen=True, eq=False)
+class Intrinsics(Record):
+    """The first camera's intrinsics: given, self-calibrated, or refined with the robot."""
+
+    #: `metadata`, `self-calibrated (ChArUco)`, or `none (...)` for tracker data.
+    source: str
+    #: Self-calibration's reprojection RMS (px).
+    rms_px: float | None = optional()
+    #: The camera matrix (3, 3) and OpenCV distortion coefficients (None for tracker data).
+    K: np.ndarray | None = optional()
+    distortion: np.ndarray | None = optional()
+    #: When the refinement freed them: True, the std per freed coefficient, those held,
+    #: and the start values.
+    refined: bool | None = optional()
+    std: tuple[Named, ...] | None = named(is_optional=True)
+    held_in_refinement: tuple[str, ...] | None = optional()
+    K_start: np.ndarray | None = optional()
+    distortion_start: np.ndarray | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class SolveOutcome(Record):
+    """One solve's optimistix result name (`successful`, ...) and its step count."""
+
+    result: str
+    steps: int
+
+
+@dataclass(frozen=True, eq=False)
+class ArcOutlier(Record):
+    """A sample a robust arc fit rejected."""
+
+    #: The target (marker) and the frame (capture index) it was seen in, at camera time `timestamp_s`.
+    target: str
+    frame: int
+    timestamp_s: float
+    #: Its whitened residual, in noise units.
+    residual: float
+    #: Tracker data: the sample's index and its line in the samples file.
+    sample: int | None = optional()
+    line: str | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class ArcRow(Record):
+    """One joint's arc fit (the first error function): its fit, axis and ratio."""
+
+    joint: str
+    #: `revolute` or `prismatic`.
+    type: str
+    frames: int
+    position_rms_mm: float
+    #: None for points measured without an orientation.
+    rotation_rms_deg: float | None
+    #: Whitened residual RMS (noise units).
+    residual_rms: float
+    #: The axis direction and a point on it (m; None for a prismatic joint), camera frame.
+    direction_cam: tuple[float, ...]
+    point_cam_m: tuple[float, ...] | None
+    ratio_nominal: float
+    #: Reduction ratio and std (None without an encoder log); refined when the refinement ran.
+    ratio: float | None
+    ratio_std: float | None
+    ratio_identifiable: bool
+    #: A prismatic joint: `rad/m`, the scale (true per commanded travel), its std, the travel (mm).
+    ratio_unit: str | None = optional()
+    scale: float | None = optional()
+    scale_std: float | None = optional()
+    travel_mm: float | None = optional()
+    solver: SolveOutcome | None = None
+    #: The robust fit's noise scale, and the samples it rejected.
+    robust_scale: float | None = None
+    outliers: tuple[ArcOutlier, ...] = ()
+    #: When the refinement refined the ratios: the arc fit's ratio and std.
+    ratio_two_stage: float | None = optional()
+    ratio_std_two_stage: float | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class PoseError(Record):
+    """A pose's error against the truth: translation (mm) and rotation (deg)."""
+
+    trans_mm: float
+    rot_deg: float
+    #: What the truth was compared in, and the error without that gauge.
+    gauge: str | None = optional()
+    raw_trans_mm: float | None = optional()
+    raw_rot_deg: float | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class JointError(Record):
+    """One joint's calibrated parameters against the truth."""
+
+    joint: str
+    axis_direction_deg: float
+    #: A revolute joint's axis position error (mm).
+    axis_position_mm: float | None = optional()
+    #: The reduction ratio's error (%), None when it was not estimated.
+    ratio_percent: float | None = None
+    #: The zero offset's error: deg (revolute) or mm (prismatic).
+    zero_offset_deg: float | None = optional()
+    zero_offset_mm: float | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class CameraPoseError(Record):
+    """A further camera's pose relative to the first against the truth, at the start and refined."""
+
+    camera: str
+    start: PoseError
+    refined: PoseError
+
+
+@dataclass(frozen=True, eq=False)
+class ValidationReport(Record):
+    """A synthetic dataset's calibration against its `truth.json` (`result.json`'s `validation`)."""
+
+    #: Random configurations of the end-effector comparison, and the point compared.
+    configurations: int
+    ee_point: str
+    #: End-effector error RMS and max (mm): nominal model, calibrated, two-stage.
+    ee_rms_mm_before: float
+    ee_max_mm_before: float
+    ee_rms_mm_after: float
+    ee_max_mm_after: float
+    ee_rms_mm_two_stage: float
+    ee_max_mm_two_stage: float
+    #: Whether "after" is the refinement's.
+    refined: bool
+    T_cam_base_error: PoseError
+    parameter_errors: tuple[JointError, ...] = keyed("joint")
+    true_ratios: tuple[float, ...] = ()
+    true_clock_offset_s: float | None = None
+    T_cam_base_error_two_stage: PoseError | None = optional()
+    #: The clock offset's error (ms), None when the truth has none.
+    clock_offset_error_ms: float | None = None
+    other_cameras: tuple[CameraPoseError, ...] | None = keyed("camera", is_optional=True)
+
+
+@dataclass(frozen=True, eq=False)
+class EEErrors(Record):
+    """Per validation configuration the end-effector error (mm) of each model."""
+
+    before: np.ndarray
+    two_stage: np.ndarray
+    after: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Correlation(Record):
+    """Two refined parameters correlated beyond 0.95."""
+
+    a: str
+    b: str
+    rho: float
+
+
+@dataclass(frozen=True, eq=False)
+class WeakDirection(Record):
+    """A direction of the parameters the corners barely see: its singular value
+    against the largest, and the parameters it moves most (their weights)."""
+
+    singular_value_ratio: float
+    parameters: tuple[Named, ...] = named()
+
+
+@dataclass(frozen=True, eq=False)
+class TwoStageStart(Record):
+    """The two-stage figures the refinement started from."""
+
+    T_cam_base: np.ndarray
+    std_cam: np.ndarray
+    T_flange_target: np.ndarray
+    clock_offset_s: float
+    #: Per joint the arc fit's reduction ratio (None without an encoder log).
+    ratios: tuple[Named, ...] = named()
+
+
+@dataclass(frozen=True, eq=False)
+class ViewAngle(Record):
+    """Without an encoder log: one sweep view's joint angle, estimated from its image."""
+
+    frame: int
+    joint: str
+    angle_deg: float
+    std_deg: float
+
+
+@dataclass(frozen=True, eq=False)
+class JointAngles(Record):
+    """The per-view joint angles of a capture without an encoder log."""
+
+    note: str
+    views: tuple[ViewAngle, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class LineDelay(Record):
+    """A rolling-shutter camera's line delay (s per row), as given or estimated."""
+
+    camera: str
+    line_delay_s: float
+    #: Its std (s; None when given).
+    std_s: float | None
+    estimated: bool
+    #: The delay times the image height (s).
+    readout_s: float
+
+
+@dataclass(frozen=True, eq=False)
+class ShutterTest(Record):
+    """The rolling shutter a global-shutter refinement's residuals point to (a score test)."""
+
+    camera: str
+    line_delay_s: float
+    readout_s: float
+    #: The delay's size in its standard deviations.
+    sigmas: float
+
+
+@dataclass(frozen=True, eq=False)
+class RefinementSummary(Record):
+    """The reprojection refinement (`result.json`'s `refinement`)."""
+
+    solver: SolveOutcome
+    #: The robust pixel noise scale and the inliers' RMS (px).
+    sigma_px: float
+    inlier_rms_px: float
+    corners: int
+    outlier_corners: int
+    #: Frames whose corners stay outliers.
+    outlier_frames: tuple[int, ...]
+    correlations: tuple[Correlation, ...]
+    condition_number: float
+    weak_directions: tuple[WeakDirection, ...]
+    views: int
+    frames: int
+    free_parameters: int
+    #: Parameters held at the start (not identifiable), and those the refinement froze beyond the two-stage's.
+    held_at_start: tuple[str, ...]
+    frozen_beyond_two_stage: tuple[str, ...]
+    #: Per free parameter its std (SI units; the clock offset in ms).
+    std: tuple[Named, ...] = named()
+    two_stage: TwoStageStart | None = None
+    #: The robust loss, in words.
+    loss: str = ""
+    joint_angles: JointAngles | None = optional()
+    views_per_camera: tuple[Named, ...] = named()
+    line_delay: tuple[LineDelay, ...] | None = optional()
+    rolling_shutter_test: tuple[ShutterTest, ...] | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class ClockEstimate(Record):
+    """The refined clock offset and its std (s)."""
+
+    offset_s: float
+    std_s: float
+
+
+@dataclass(frozen=True, eq=False)
+class RefinedIntrinsics(Record):
+    """The first camera's intrinsics refined with the robot: K, distortion, the std of
+    each freed coefficient and the coefficients held."""
+
+    K: np.ndarray
+    distortion: np.ndarray
+    std: tuple[Named, ...] = named()
+    held: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class OtherCamera(Record):
+    """A further fixed camera refined with the robot: its pose with std, views, start and intrinsics."""
+
+    camera: str
+    T_cam_base: np.ndarray
+    #: 1-sigma twist (m, rad).
+    std_cam: np.ndarray
+    views: int
+    T_cam_base_start: np.ndarray
+    K: np.ndarray
+    distortion: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class ModelRow(Record):
+    """One model a stop-and-shoot point fit tried: its non-geometric terms, free
+    parameters, cross-validated distances (mm, when cross-validation ran) and whether it was kept."""
+
+    terms: tuple[str, ...]
+    free: int
+    cv_mean_mm: float | None = optional()
+    cv_rms_mm: float | None = optional()
+    cv_max_mm: float | None = optional()
+    kept: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class ResidualStats(Record):
+    """Mean, RMS and max of a set of distances (mm)."""
+
+    mean: float
+    rms: float
+    max: float
+
+
+@dataclass(frozen=True, eq=False)
+class TermRow(Record):
+    """A non-geometric coefficient of the point fit: its estimate, std and whether it was free."""
+
+    name: str
+    estimate: float
+    std: float
+    free: bool
+
+
+@dataclass(frozen=True, eq=False)
+class ResultFile:
+    """The typed blocks of a `result.json`, read back (`jaxcal.io.result.read_result`)."""
+
+    #: `ok`, `suspect` or `failed`, and why.
+    status: str
+    reasons: tuple[str, ...]
+    ratios: tuple[RatioRow, ...]
+    parameters: tuple[ParameterRow, ...]
+    frozen: tuple[str, ...]
+    arcs: tuple[ArcRow, ...]
+    frames: FrameCounts
+    clock: Clock
+    intrinsics: Intrinsics
+    solver: SolverInfo
+    refinement: RefinementSummary | None
+    validation: ValidationReport | None
+    warnings: tuple[str, ...]
+    #: Seconds per step: free-form.
+    timings: dict[str, float]
+
+
+@dataclass(frozen=True, eq=False)
+class PoseFigures(Record):
+    """A pose as `result.json` gives it: the matrix, translation, quaternion and 1-sigma std."""
+
+    matrix: np.ndarray
+    xyz_m: np.ndarray
+    quaternion_xyzw: np.ndarray
+    std_xyz_mm: np.ndarray
+    std_rot_deg: np.ndarray
