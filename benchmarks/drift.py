@@ -21,8 +21,8 @@ noise; each is checked against the calibration (`jaxcal.drift.check_samples`).
 Usage: python benchmarks/drift.py --seeds 3 --trials 100 --json results/drift.json
 
 `--camera`: the same keys for camera check captures. Per seed a rendered
-eye-to-hand calibration (`--resolution`, `--frames` per joint, calibrated by
-`jaxcal.calibrate`), then `--trials` rendered check captures of 10
+eye-to-hand calibration (`--resolution`, `--frames` per joint, or with `--demo-camera`
+`jaxcal demo`'s capture, calibrated by `jaxcal.calibrate`), then `--trials` rendered check captures of 10
 stop-and-shoot images at random configurations (+-10 deg about the sweeps'
 home; the 5-pose figures from their first five), each detected and checked
 unmoved (`false_alarm_rate`). The moved captures are the same detections
@@ -35,6 +35,8 @@ direction). `check_s`: `jaxcal.drift.check` of 10 rendered images at 1280x960
 a result (`jaxcal.sim.drift.truth_result`), median of 3.
 
 Usage: python benchmarks/drift.py --camera --seeds 5 --trials 20 --json results/drift_camera.json
+       python benchmarks/drift.py --camera --demo-camera --seeds 5 --trials 20 \\
+           --json results/drift_camera_demo.json [--workdir DIR]
 
 `--handeye`: `jaxcal handeye` results (rendered, 16 frames, eye-to-hand and eye-in-hand
 in turn) checked against rendered 6-frame captures of the same rig at other robot poses,
@@ -256,17 +258,37 @@ def _camera_check_s(tmp: Path) -> float:
     return float(np.median(times))
 
 
+def _calibration_config(args, s: int) -> SimConfig:
+    """The calibration capture of seed `s`: `jaxcal demo`'s with `--demo-camera` (its seed `s`,
+    as `benchmarks/certify.py`'s `demo_sweeps`), else `--resolution` and `--frames` (seed 300 + s)."""
+    if args.demo_camera:
+        from plan import CONFIGS  # benchmarks/plan.py: the demo's capture
+
+        return CONFIGS["demo"](s)
+    w, h = (int(v) for v in args.resolution.split("x"))
+    return SimConfig(resolution=(w, h), seed=300 + s, frames_per_joint=args.frames, range_deg=80.0)
+
+
+def _calibrated(args, cfg: SimConfig, s: int, tmp: Path) -> Path:
+    """The calibration of seed `s`, rendered and calibrated in `tmp`, or with `--workdir` the one
+    kept there (`cal<s>`, `res<s>`: calibrated again when only the capture is there)."""
+    root = args.workdir or tmp
+    cal, res = root / f"cal{s}", root / f"res{s}"
+    if args.workdir is not None and (res / "result.json").exists():
+        return res
+    ds = cal if (cal / "truth.json").exists() else simulate(cfg, cal, progress=False)
+    return write_outputs(jaxcal.calibrate(ds, progress=False), res, overwrite=True)
+
+
 def camera_main(args) -> int:
     rng = np.random.default_rng(0)
-    w, h = (int(v) for v in args.resolution.split("x"))
     trials = {10: [], 5: []}
     ratios = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for s in range(args.first_seed, args.first_seed + args.seeds):
-            cfg = SimConfig(resolution=(w, h), seed=300 + s, frames_per_joint=args.frames, range_deg=80.0)
-            ds = simulate(cfg, tmp / f"cal{s}", progress=False)
-            res = write_outputs(jaxcal.calibrate(ds, progress=False), tmp / f"res{s}")
+            cfg = _calibration_config(args, s)
+            res = _calibrated(args, cfg, s, tmp)
             doc, file = read_result(res)
             for t in range(args.trials):
                 q = random_poses(6, 10, 10.0, seed=1000 * s + t)
@@ -282,13 +304,19 @@ def camera_main(args) -> int:
                     trials[n].append(row)
             print(f"seed {s}: done", flush=True)
         check_s = _camera_check_s(tmp)
+    w, h = cfg.resolution
+    design = (
+        f"the demo's capture: {w}x{h}, {cfg.frames_per_joint} frames per joint, clock not given"
+        if args.demo_camera
+        else f"{w}x{h}, {args.frames} frames per joint"
+    )
     out = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
-        "data": f"rendered UR5e eye-to-hand calibrations ({w}x{h}, {args.frames} frames per joint, 80 deg "
+        "data": f"rendered UR5e eye-to-hand calibrations ({design}, 80 deg "
         "sweeps) and rendered 10-image stop-and-shoot check captures; moved captures: the detections shifted "
         "by the move's change of the true projections",
         "seeds": args.seeds,
-        "first_seed": 300 + args.first_seed,
+        "first_seed": (0 if args.demo_camera else 300) + args.first_seed,
         "trials_per_seed": args.trials,
         "false_alarm_rate": float(np.mean([r["false"] for r in trials[10]])),
         "false_alarm_rate_5_images": float(np.mean([r["false"] for r in trials[5]])),
@@ -299,7 +327,7 @@ def camera_main(args) -> int:
         "noise_variance_factor_mean": float(np.mean([r["nu"] for r in trials[10]])),
         "calibration_error_ratio": float(np.mean([v for _, v in ratios])),
         "calibration_error_ratio_by_seed": {
-            str(300 + s): float(np.mean([v for k, v in ratios if k == s]))
+            str((0 if args.demo_camera else 300) + s): float(np.mean([v for k, v in ratios if k == s]))
             for s in sorted({k for k, _ in ratios})
         },
         "drift_power_by_mm": {
@@ -410,7 +438,19 @@ def main(argv=None) -> int:
         "--first-seed",
         type=int,
         default=0,
-        help="--camera: the first calibration's seed (300 + this); its check captures' seeds follow from it",
+        help="--camera: the first calibration's seed (300 + this; with --demo-camera this); its check "
+        "captures' seeds follow from it",
+    )
+    p.add_argument(
+        "--demo-camera",
+        action="store_true",
+        help="--camera: calibrate `jaxcal demo`'s capture (1280x960, 40 frames per 80-degree sweep, clock not "
+        "given; benchmarks/certify.py's demo_sweeps) instead of --resolution and --frames",
+    )
+    p.add_argument(
+        "--workdir",
+        type=Path,
+        help="--camera: keep the calibrations here (cal<seed>, res<seed>) and reuse those already there",
     )
     args = p.parse_args(argv)
     if args.camera:

@@ -64,8 +64,9 @@ BOX_CHUNK, BOX_MAX_DRAWS = 20_000, 1_000_000
 #: The caveat of a capture of stop-and-shoot camera views (a planned capture).
 COHERENT_VIEWS = (
     "a capture of camera views at stops (e.g. a planned capture): the detector's errors can add up "
-    "coherently across its views, which the i.i.d. corner-noise model does not describe; on rendered "
-    "planned captures one seed in three came out about 2.5x its prediction (docs/certify.md)"
+    "coherently across its views; the covariance takes in what each view's residuals show of them, "
+    "not what the solution absorbs, and on rendered planned captures one seed in five came out "
+    "about 2.2x its prediction (docs/certify.md)"
 )
 SELF_CALIBRATED = (
     "the intrinsics were self-calibrated from the same images: their errors are in the covariance only "
