@@ -1,9 +1,11 @@
 """`jaxcal inspect DATASET|BAG`: what a capture holds, in seconds (jaxcal.inspection)."""
 
+import dataclasses
 import json
 
 from ..inspection import format_inspection, inspect_dataset
 from ..io.rosbag import bag_topics, is_bag, open_bag
+from ..records import plain
 from ._common import positive_int
 from ._rosbag import add_bag_args, dataset_of
 
@@ -29,6 +31,6 @@ def cmd_inspect(args) -> int:
             return 0
     with dataset_of(args) as dataset:
         summary = inspect_dataset(dataset, sample=args.sample)
-    summary["dataset"] = str(args.dataset)
-    print(json.dumps(summary, indent=1) if args.json else format_inspection(summary))
+    summary = dataclasses.replace(summary, dataset=str(args.dataset))  # the bag, not its temporary dataset
+    print(json.dumps(plain(summary), indent=1) if args.json else format_inspection(summary))
     return 0
