@@ -442,7 +442,29 @@ def test_simulate_plan_refuses_options_the_plan_fixes(ur5e, tmp_path, capsys):
         "panda",
     ]
     assert main([*argv, "--out", str(tmp_path / "ds")]) == 2
-    assert "--robot cannot change a plan" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--robot cannot change a plan" in err and "is now `jaxcal simulate-plan PLAN`" in err
+    # The command that replaces `simulate --plan`: the same refusal, by the same policy.
+    assert main(["simulate-plan", str(plan_path), "--resolution=640x480", "--out", str(tmp_path / "ds")]) == 2
+    assert f"jaxcal simulate-plan {plan_path}: --resolution cannot change a plan" in capsys.readouterr().err
+    assert not (tmp_path / "ds").exists()
+
+
+def test_simulate_kinds_are_commands_and_the_old_spellings_still_work(tmp_path, capsys):
+    """`simulate --kind tracker` is `simulate-tracker` (one release more, with a warning); an
+    image option given to tracker data is refused by name, not ignored."""
+    assert (
+        main(["simulate", "--kind", "tracker", "--out", str(tmp_path / "a"), "--samples-per-joint", "20"])
+        == 0
+    )
+    err = capsys.readouterr().err
+    assert "`simulate --kind tracker` is now `jaxcal simulate-tracker`" in err
+    assert main(["simulate-tracker", "--out", str(tmp_path / "b"), "--samples-per-joint", "20"]) == 0
+    # The same command, the same seed: the same samples.
+    assert (tmp_path / "a" / "samples.csv").read_bytes() == (tmp_path / "b" / "samples.csv").read_bytes()
+    assert main(["simulate-tracker", "--out", str(tmp_path / "c"), "--resolution", "640x480"]) == 2
+    assert "--resolution: not options of tracker data" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
 
 
 def test_negative_numbers_start_a_region_or_a_taught_pose():

@@ -147,9 +147,9 @@ def test_device_is_base_on_a_camera_dataset_is_refused():
 
 
 def test_cli_end_to_end(captures, tmp_path):
-    """`jaxcal simulate --kind tracker` and `jaxcal calibrate --device-is-base` (no truth.json: no validation)."""
+    """`jaxcal simulate-tracker` and `jaxcal calibrate --device-is-base` (no truth.json: no validation)."""
     ds = tmp_path / "ds"
-    assert main(["simulate", "--kind", "tracker", "--out", str(ds), "--seed", "5", "--device-is-base"]) == 0
+    assert main(["simulate-tracker", "--out", str(ds), "--seed", "5", "--device-is-base"]) == 0
     data = tmp_path / "data"
     shutil.copytree(ds, data)
     (data / "truth.json").unlink()

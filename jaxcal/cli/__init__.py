@@ -1,4 +1,4 @@
-"""Command line: `jaxcal demo | calibrate | import-bag | inspect | simulate | montecarlo | handeye | simulate-handeye`.
+"""Command line: `jaxcal demo | calibrate | import-bag | inspect | simulate[-tracker|-plan] | plan | handeye | ...`.
 
 - `demo`: render a perturbed UR5e filming a ChArUco plate (MuJoCo), calibrate
   it from the images, print a before/after table, write the report.
@@ -9,7 +9,8 @@
 - `verify RESULT DATASET`: a stop-and-shoot calibration against samples it was not fitted on.
 - `certify RESULT`: the tool-point accuracy a calibration supports over a task region.
 - `check RESULT CAPTURE`: a short later capture against a calibration: drift detected or not (exit 3).
-- `simulate`: render a synthetic dataset (see docs/dataset.md).
+- `simulate`: render a synthetic camera dataset (see docs/dataset.md); `simulate-tracker`:
+  laser-tracker sweeps; `simulate-plan PLAN`: render exactly a capture plan.
 - `montecarlo`: vmapped sensitivity study on analytic marker poses.
 - `handeye CAPTURE --out DIR`: classic hand-eye from a folder of images and robot poses.
 - `simulate-handeye`: render a hand-eye capture (see docs/handeye.md).
@@ -58,64 +59,37 @@ def _module(name: str):
     return importlib.import_module(name, __package__)
 
 
-def _add_simulate_parser(sub) -> None:
-    """`jaxcal simulate`: a rendered dataset, a capture plan, or tracker sweeps."""
-    p = sub.add_parser(
-        "simulate", help="render a perturbed arm's calibration dataset (MuJoCo) into a directory"
-    )
-    p.add_argument(
-        "--kind",
-        choices=("images", "tracker"),
-        default="images",
-        help="images: rendered camera frames (MuJoCo); tracker: laser-tracker samples of a point on the flange "
-        "(docs/dataset.md, tracker data; no rendering)",
-    )
-    p.add_argument(
-        "--robot",
-        default=None,
-        help="shipped robot (ur5e, ur3, panda, scara) or a URDF file (default ur5e; tracker ur3)",
-    )
+def _add_simulate_common(p, *, robot_help: str | None) -> None:
+    """The options every `jaxcal simulate*` command takes."""
+    if robot_help is not None:
+        p.add_argument("--robot", default=None, help=robot_help)
     p.add_argument("--out", required=True, help="dataset directory (must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
     p.add_argument("--seed", type=int, default=0)
+
+
+def _add_simulate_parser(sub) -> None:
+    """`jaxcal simulate`: a rendered camera dataset (MuJoCo)."""
+    p = sub.add_parser(
+        "simulate", help="render a perturbed arm's calibration dataset (MuJoCo) into a directory"
+    )
+    _add_simulate_common(
+        p, robot_help="shipped robot (ur5e, ur3, panda, scara) or a URDF file (default ur5e)"
+    )
     # The defaults film the demo's capture (EE RMS 0.19 mm refined; the former 640x480, 30 frames per
-    # 40-degree sweep gave 1.2 mm): see docs/plan.md, and `--plan` for a planned capture (0.04 mm).
+    # 40-degree sweep gave 1.2 mm): see docs/plan.md, and `simulate-plan` for a planned capture (0.04 mm).
     p.add_argument("--resolution", type=resolution, default=(1280, 960), help="WxH pixels")
     p.add_argument("--frames-per-joint", type=int, default=40)
     p.add_argument(
-        "--sweep-deg",
-        type=degrees,
-        default=None,
-        help="angle each joint sweeps (deg), one or one per joint (default 80; tracker 120)",
+        "--sweep-deg", type=degrees, default=80.0, help="angle each joint sweeps (deg), one or one per joint"
     )
-    p.add_argument(
-        "--sweep-mm",
-        type=float,
-        default=100.0,
-        help="travel each prismatic joint sweeps (mm, rendered datasets)",
-    )
+    p.add_argument("--sweep-mm", type=float, default=100.0, help="travel each prismatic joint sweeps (mm)")
     p.add_argument(
         "--home-deg",
         type=home,
         default=None,
         help="the configuration every sweep starts from and the others hold, one angle per joint "
-        "(deg, e.g. 0,-20,30,-15,20,0; default zero; tracker 0,0,-90,0,90,0)",
-    )
-    p.add_argument("--samples-per-joint", type=int, default=300, help="tracker: samples per joint sweep")
-    p.add_argument(
-        "--noise-um", type=float, default=10.0, help="tracker: position noise, 1-sigma per axis (um)"
-    )
-    p.add_argument(
-        "--bad-fraction",
-        type=float,
-        default=0.02,
-        help="tracker: bad samples (0.3-0.5 mm off) at the sweep ends",
-    )
-    p.add_argument(
-        "--device-is-base", action="store_true", help="tracker: the device frame is the robot's base frame"
-    )
-    p.add_argument(
-        "--orientation", action="store_true", help="tracker: also measure an orientation (6-DoF probe)"
+        "(deg, e.g. 0,-20,30,-15,20,0; default zero)",
     )
     p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
     p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
@@ -138,10 +112,17 @@ def _add_simulate_parser(sub) -> None:
     p.add_argument("--unknown-clock-offset", action="store_true", help="leave the offset out of the metadata")
     p.add_argument("--drop-rate", type=float, default=0.0, help="probability that a frame is lost")
     p.add_argument("--no-encoders", action="store_true", help="write no encoder log")
-    p.add_argument("--grayscale", action="store_true", help="write single-channel PNGs")
     p.add_argument(
         "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
     )
+    _add_capture_models(p)
+    p.set_defaults(func=_module("._simulate").cmd_simulate)
+
+
+def _add_capture_models(p) -> None:
+    """The camera and arm models and the image options a rendered capture takes (`simulate`,
+    `simulate-plan`)."""
+    p.add_argument("--grayscale", action="store_true", help="write single-channel PNGs")
     p.add_argument(
         "--camera",
         choices=CAMERAS,
@@ -157,12 +138,55 @@ def _add_simulate_parser(sub) -> None:
         "'ideal' is rigid with fine, prompt encoders",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_simulate_tracker_parser(sub) -> None:
+    """`jaxcal simulate-tracker`: laser-tracker sweeps of a point on the flange (no rendering)."""
+    p = sub.add_parser(
+        "simulate-tracker",
+        help="laser-tracker samples of a perturbed arm's flange point, joint by joint (docs/dataset.md; "
+        "no rendering)",
+    )
+    _add_simulate_common(p, robot_help="shipped robot (ur5e, ur3, panda, scara) or a URDF file (default ur3)")
     p.add_argument(
-        "--plan", help="render exactly this capture plan (docs/plan.md): its camera, target and motion"
+        "--sweep-deg", type=degrees, default=None, help="angle each joint sweeps (deg; default 120)"
+    )
+    p.add_argument(
+        "--home-deg",
+        type=home,
+        default=None,
+        help="the configuration every sweep starts from (deg, one per joint; default 0,0,-90,0,90,0)",
+    )
+    p.add_argument("--samples-per-joint", type=int, default=300, help="samples per joint sweep")
+    p.add_argument("--noise-um", type=float, default=10.0, help="position noise, 1-sigma per axis (um)")
+    p.add_argument(
+        "--bad-fraction", type=float, default=0.02, help="bad samples (0.3-0.5 mm off) at the sweep ends"
+    )
+    p.add_argument("--device-is-base", action="store_true", help="the device frame is the robot's base frame")
+    p.add_argument("--orientation", action="store_true", help="also measure an orientation (6-DoF probe)")
+    p.add_argument(
+        "--quiet", action="store_true", help="print only the summary line (there is no progress bar)"
     )
     p.set_defaults(
-        func=_module("._simulate").cmd_simulate, parser=p
-    )  # `--plan` refuses the options set away from their defaults
+        func=_module("._simulate").cmd_simulate_tracker,
+        foreign="{options}: not options of tracker data, which have no images or cameras (jaxcal simulate "
+        "renders those)",
+    )
+
+
+def _add_simulate_plan_parser(sub) -> None:
+    """`jaxcal simulate-plan PLAN`: render exactly a capture plan."""
+    p = sub.add_parser(
+        "simulate-plan", help="render exactly a capture plan (docs/plan.md): its camera, target and motion"
+    )
+    p.add_argument("plan", help="the plan file (`jaxcal plan --out`)")
+    _add_simulate_common(p, robot_help=None)
+    _add_capture_models(p)
+    p.set_defaults(
+        func=_module("._simulate").cmd_simulate_plan,
+        foreign="{options} cannot change a plan (its robot, camera, target and motion are the plan's); drop "
+        "them or edit the plan",
+    )
 
 
 def _add_calibration_parsers(sub) -> None:
@@ -254,6 +278,8 @@ GROUPS = (
     (("import-bag",), _add_import_bag_parser),
     (("montecarlo",), _add_montecarlo_parser),
     (("simulate",), _add_simulate_parser),
+    (("simulate-tracker",), _add_simulate_tracker_parser),
+    (("simulate-plan",), _add_simulate_plan_parser),
     (("inspect",), lambda sub: _module("._inspect").add_inspect_parser(sub)),
     (("import-csv",), lambda sub: _module("._import_csv").add_import_csv_parser(sub)),
     (("verify",), lambda sub: _module("._verify").add_verify_parser(sub)),
@@ -301,9 +327,57 @@ def _join_negative_lists(argv: list[str]) -> list[str]:
     return out
 
 
+def _deprecated_simulate(argv: list[str]) -> list[str]:
+    """`jaxcal simulate --kind tracker ...` and `jaxcal simulate --plan PLAN ...` (one release more,
+    with a warning) as the commands that replace them: `simulate-tracker`, `simulate-plan PLAN`."""
+    if _command(argv) != "simulate":
+        return argv
+    i = argv.index("simulate")
+    head, rest = argv[:i], argv[i + 1 :]
+    kind, plan, kept, k = None, None, [], 0
+    while k < len(rest):
+        a = rest[k]
+        name, eq, value = a.partition("=")
+        if name in ("--kind", "--plan"):
+            if not eq:
+                k += 1
+                value = rest[k] if k < len(rest) else ""
+            kind, plan = (value, plan) if name == "--kind" else (kind, value)
+        else:
+            kept.append(a)
+        k += 1
+    if plan is not None:
+        print("jaxcal: warning: `simulate --plan PLAN` is now `jaxcal simulate-plan PLAN`", file=sys.stderr)
+        return [*head, "simulate-plan", plan, *kept]
+    if kind == "tracker":
+        print("jaxcal: warning: `simulate --kind tracker` is now `jaxcal simulate-tracker`", file=sys.stderr)
+        return [*head, "simulate-tracker", *kept]
+    if kind is not None and kind != "images":
+        return argv  # argparse names the bad value
+    return argv if kind is None else [*head, "simulate", *kept]
+
+
+def _refusal(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str | None:
+    """The one policy for options another command takes: named and refused (exit 2), with the
+    command's reason (its `foreign` default, a template of `{options}`) where it has one."""
+    if not unknown:
+        return None
+    options = [a.split("=")[0] for a in unknown if a.startswith("-")]
+    reason = getattr(args, "foreign", None)
+    if reason is None or not options:
+        parser.error("unrecognized arguments: " + " ".join(unknown))
+    what = f"jaxcal {args.command}" + (f" {args.plan}" if getattr(args, "plan", None) else "")
+    return f"{what}: " + reason.format(options=", ".join(options))
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = _join_negative_lists(sys.argv[1:] if argv is None else list(argv))
-    args = build_parser(_command(argv)).parse_args(argv)
+    argv = _deprecated_simulate(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
+    parser = build_parser(_command(argv))
+    args, unknown = parser.parse_known_args(argv)
+    refusal = _refusal(parser, args, unknown)
+    if refusal is not None:
+        print(refusal, file=sys.stderr)
+        return 2
     enable_compilation_cache()
     try:
         return args.func(args)

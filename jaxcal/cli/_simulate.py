@@ -1,11 +1,10 @@
-"""`jaxcal simulate` (a rendered dataset, or exactly a capture plan) and `jaxcal plan`."""
+"""`jaxcal simulate` (a rendered dataset), `simulate-tracker`, `simulate-plan` and `jaxcal plan`."""
 
 import time
 from pathlib import Path
 
 from rich.console import Console
 
-from ..errors import PlanError
 from ..io._files import check_output_dir, output_lock
 from ..io.dataset import load_dataset
 from ..planning import load_plan, plan_robot
@@ -13,14 +12,10 @@ from ..planning._cli import run_plan
 
 
 def cmd_simulate(args) -> int:
+    """`jaxcal simulate`: a rendered camera dataset."""
     from ..sim.simulate import SimConfig, simulate
 
-    if args.plan is not None:
-        return _simulate_plan(args)
-    if args.kind == "tracker":
-        return _simulate_tracker(args)
     args.robot = args.robot or "ur5e"
-    args.sweep_deg = 80.0 if args.sweep_deg is None else args.sweep_deg
     robot_file = [args.robot] if Path(args.robot).exists() else []
     check_output_dir(args.out, inputs=robot_file, overwrite=args.overwrite, kind="dataset", what="--out")
 
@@ -81,26 +76,11 @@ def cmd_plan(args) -> int:
     return run_plan(args, Console(width=max(Console().width, 120)), MujocoChecker)
 
 
-#: The `jaxcal simulate` options that go with `--plan`; any other is refused.
-PLAN_OPTIONS = (
-    "plan", "out", "overwrite", "seed", "quiet", "grayscale", "camera", "arm", "func", "command", "parser",
-)  # fmt: skip
-
-
-def _simulate_plan(args) -> int:
-    """`jaxcal simulate --plan PLAN --out DIR`: render exactly the plan."""
+def cmd_simulate_plan(args) -> int:
+    """`jaxcal simulate-plan PLAN --out DIR`: render exactly the plan (options the plan fixes are
+    refused by the command line, `jaxcal.cli._refusal`)."""
     from ..sim.plan import render_plan
 
-    conflicting = [
-        "--" + k.replace("_", "-")
-        for k, v in vars(args).items()
-        if k not in PLAN_OPTIONS and v != args.parser.get_default(k)
-    ]
-    if conflicting:
-        raise PlanError(
-            f"jaxcal simulate --plan {args.plan}: {', '.join(conflicting)} cannot change a plan (its robot, "
-            "camera, target and motion are the plan's); drop them or edit the plan"
-        )
     check_output_dir(args.out, inputs=[args.plan], overwrite=args.overwrite, kind="dataset", what="--out")
     p = load_plan(args.plan)
     plan_robot(p, args.plan)  # its joints and limits, the error naming the file
@@ -125,8 +105,8 @@ def _simulate_plan(args) -> int:
     return 0
 
 
-def _simulate_tracker(args) -> int:
-    """`jaxcal simulate --kind tracker`: laser-tracker sweeps of a perturbed arm (no rendering)."""
+def cmd_simulate_tracker(args) -> int:
+    """`jaxcal simulate-tracker`: laser-tracker sweeps of a perturbed arm (no rendering)."""
     from ..sim.tracker import TrackerSimConfig, simulate_tracker
 
     robot = args.robot or "ur3"

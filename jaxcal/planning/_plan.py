@@ -15,7 +15,7 @@ from, and a list of segments:
 
 `CapturePlan.motion()` turns the plan into a timed path (waypoints joined by
 smooth steps, zero velocity at each waypoint), the recorded stretches and the
-frame times, which `jaxcal simulate --plan` renders and `jaxcal.evaluate_plan`
+frame times, which `jaxcal simulate-plan` renders and `jaxcal.evaluate_plan`
 pre-evaluates. `save_plan` / `load_plan` write and read the JSON file
 (`docs/plan.md`); every field is checked and every error is a `PlanFileError`
 naming the file and the field.

@@ -8,7 +8,7 @@
   to a target corner (`mujoco.mj_ray`) hits another geom first. Passed as the
   `checker` of `jaxcal.plan`, it is the last word on what the pure-JAX capsules
   of `jaxcal.planning` approximate.
-- `render_plan`: `jaxcal simulate --plan`: the plan's exact motion and frames,
+- `render_plan`: `jaxcal simulate-plan`: the plan's exact motion and frames,
   filmed by its camera; `metadata.json` records the plan (`plan.json` in the
   dataset, `x_plan` at the top, `x_plan_segment` / `x_plan_kind` per motion
   segment), so a calibration knows what was planned.
@@ -35,7 +35,7 @@ def fovy_of(camera, exact: bool = True) -> float:
     K = np.asarray(camera.K)
     w, h = camera.width, camera.height
     hint = (
-        "; planning and --evaluate work with any camera, only `jaxcal simulate --plan` renders through "
+        "; planning and --evaluate work with any camera, only `jaxcal simulate-plan` renders through "
         "MuJoCo's pinhole"
     )
     if exact and (abs(K[0, 0] - K[1, 1]) > 1e-6 * K[0, 0] or abs(K[0, 1]) > 1e-12):
@@ -166,7 +166,7 @@ def plan_trajectory(plan: CapturePlan) -> tuple[Trajectory, np.ndarray, list]:
 def render_plan(
     plan: CapturePlan, out, *, seed: int = 0, overwrite: bool = False, progress: bool = True, **config
 ) -> Path:
-    """Render exactly `plan` (`jaxcal simulate --plan`): the perturbed arm (seeded as
+    """Render exactly `plan` (`jaxcal simulate-plan`): the perturbed arm (seeded as
     `jaxcal simulate`'s) moves along the plan and the plan's camera takes its frames.
 
     **Arguments:** the plan; the dataset directory `out`; `seed` of the true
