@@ -152,11 +152,13 @@ def run_row(
         lengths = [237, 262, 301, 330, 355, 370]
         datas = [make_sweep(n, orientations=orientations, seed=i)[1] for i, n in enumerate(lengths)]
         data = stack_sweeps(datas)
-        fn = jax.jit(jax.vmap(lambda d: fit_arc(d, loss=loss)))
+        fn = jax.jit(
+            jax.vmap(lambda d: fit_arc(d, robust=None if loss is None else jaxcal.RobustOptions(loss)))
+        )
         samples = sum(lengths)
     else:
         truth, data = make_sweep(frames, orientations=orientations)
-        fn = jax.jit(lambda d: fit_arc(d, loss=loss))
+        fn = jax.jit(lambda d: fit_arc(d, robust=None if loss is None else jaxcal.RobustOptions(loss)))
         samples = frames
     jax.block_until_ready(data)
     base = _rss_mb()

@@ -92,6 +92,7 @@ if TYPE_CHECKING:
     from ._kinematics import poe_forward_kinematics as poe_forward_kinematics
     from ._kinematics import to_poe as to_poe
     from ._kinematics import tool_pose as tool_pose
+    from ._lsq import LMOptions as LMOptions
     from ._montecarlo import MonteCarloSetup as MonteCarloSetup
     from ._montecarlo import NoiseModel as NoiseModel
     from ._montecarlo import SweepPlan as SweepPlan
@@ -101,6 +102,7 @@ if TYPE_CHECKING:
     from ._montecarlo import monte_carlo as monte_carlo
     from ._montecarlo import summarize as summarize
     from ._montecarlo import synthesize_sweeps as synthesize_sweeps
+    from ._options import RobustOptions as RobustOptions
     from ._tables import PhysicalTable as PhysicalTable
     from ._tables import physical_table as physical_table
     from ._tooloffset import AlignmentResult as AlignmentResult

@@ -56,8 +56,9 @@ from ._geometry import (
 )
 from ._kinematics import PRISMATIC, REVOLUTE
 from ._linemodel import MIN_TRAVEL_MM, initialise_line, line_free_mask, line_residuals, line_terms
+from ._lsq import LMOptions
+from ._options import RobustOptions, fit_options, robust_terms
 from ._robust import (
-    check_loss,
     deletion_residuals,
     irls_rounds_reweighted,
     robust_scale,
@@ -143,19 +144,18 @@ class ArcFitResult(eqx.Module):
 
 # --------------------------------------------------------------------------- solve
 
+#: `fit_arc`'s and `fit_line`'s solver settings: whitened residuals, so `atol` in noise units.
+ARC_OPTIONS = LMOptions(rtol=1e-8, atol=3e-2, max_steps=50)
+
 
 def fit_arc(
     data: ArcData,
     *,
-    loss: str | None = None,
-    c: float = 3.0,
-    reject: float | None = 3.7,
-    rounds: int = 3,
-    rtol: float = 1e-8,
-    atol: float = 3e-2,
-    max_steps: int = 50,
+    robust: RobustOptions | None = None,
+    options: LMOptions = ARC_OPTIONS,
     throw: bool = False,
     scale_covariance: bool = True,
+    **deprecated,
 ) -> ArcFitResult:
     """Fit one joint's axis (and rate) to a sweep; pure, jittable and vmappable.
 
@@ -189,27 +189,31 @@ def fit_arc(
 
     **Arguments:**
     - `data`: an `ArcData` (see `make_arc_data`; `stack_sweeps` for several).
-    - `loss`: `"cauchy"`, `"huber"` or `None` (plain least squares, one solve).
-    - `c`: the loss constant, `reject`: the inlier threshold (`None`: no
-      inlier solve), both as 2-D radii in robust sigmas (a clean sample is
-      rejected with probability $e^{-reject^2/2}$, 0.1 % at 3.7); `rounds`:
-      IRLS solves before the inlier solve. Ignored without a loss.
-    - `rtol`, `atol`, `max_steps`, `throw`: the solver's (optimistix's rules;
-      `max_steps` per round). The residuals are whitened, so `atol` is in
+    - `robust`: a `RobustOptions` (`loss` `"cauchy"` or `"huber"`; `c` the loss
+      constant and `reject` the inlier threshold (`None`: no inlier solve),
+      both as 2-D radii in robust sigmas: a clean sample is rejected with
+      probability $e^{-reject^2/2}$, 0.1 % at 3.7; `rounds` IRLS solves before
+      the inlier solve), or `None`: plain least squares, one solve.
+    - `options`: the solver's `LMOptions` (`rtol`, `atol`, `max_steps` per
+      round; optimistix's rules). The residuals are whitened, so `atol` is in
       units of the noise: the solver stops when a step moves every
       prediction by less than `atol` standard deviations (Gauss-Newton then
       leaves the iterate ~`atol**2` from the optimum; tighter tolerances only
       chase float64 round-off in the loss). `throw`: raise (through
       `eqx.error_if`) when a round does not converge.
+    - `deprecated`: the keywords `loss`, `c`, `reject`, `rounds`, `rtol`,
+      `atol`, `max_steps` of the previous release (`jaxcal._options.fit_options`).
 
     **Returns:** an `ArcFitResult`.
     """
-    check_loss(loss)
+    options, robust = fit_options("fit_arc", options, robust, deprecated)
+    loss, c, reject, rounds = robust_terms(robust)
     params0, ref = initialise_arc(data)
     solve = functools.partial(_solve_dense, model=_ARC) if data.encoder is not None else _solve_blocks
     return _fit(
         _ARC, solve, params0, ref, free_mask(params0, data, ref), data,
-        loss=loss, c=c, reject=reject, rounds=rounds, rtol=rtol, atol=atol, max_steps=max_steps,
+        loss=loss, c=c, reject=reject, rounds=rounds, rtol=options.rtol, atol=options.atol,
+        max_steps=options.max_steps,
         throw=throw, scale_covariance=scale_covariance, name="fit_arc",
     )  # fmt: skip
 
@@ -256,15 +260,11 @@ def _fit(
 def fit_line(
     data: ArcData,
     *,
-    loss: str | None = None,
-    c: float = 3.0,
-    reject: float | None = 3.7,
-    rounds: int = 3,
-    rtol: float = 1e-8,
-    atol: float = 3e-2,
-    max_steps: int = 50,
+    robust: RobustOptions | None = None,
+    options: LMOptions = ARC_OPTIONS,
     throw: bool = False,
     scale_covariance: bool = True,
+    **deprecated,
 ) -> ArcFitResult:
     """Fit one prismatic joint's direction and scale to a sweep; pure, jittable and vmappable.
 
@@ -290,11 +290,13 @@ def fit_line(
             "fit_line: a prismatic sweep needs encoder positions: without them the scale "
             "(travel per commanded travel) is not observable"
         )
-    check_loss(loss)
+    options, robust = fit_options("fit_line", options, robust, deprecated)
+    loss, c, reject, rounds = robust_terms(robust)
     params0, ref = initialise_line(data)
     res = _fit(
         _LINE, functools.partial(_solve_dense, model=_LINE), params0, ref, line_free_mask(params0, data), data,
-        loss=loss, c=c, reject=reject, rounds=rounds, rtol=rtol, atol=atol, max_steps=max_steps,
+        loss=loss, c=c, reject=reject, rounds=rounds, rtol=options.rtol, atol=options.atol,
+        max_steps=options.max_steps,
         throw=throw, scale_covariance=scale_covariance, name="fit_line",
     )  # fmt: skip
     eye_w = jnp.zeros(res.meas.shape[0]).at[2:4].set(1.0)

@@ -43,6 +43,8 @@ from ._correction import ParameterLayout, apply_correction, zero_correction
 from ._geometry import make_pose, matmul, pose_inverse, se3_exp, skew, so3_log, so3_right_jacobian_inv
 from ._kinematics import PRISMATIC, REVOLUTE, KinematicModel, forward_kinematics, joint_axes, joint_motion
 from ._linalg import after, nearest_rotation
+from ._lsq import LMOptions
+from ._options import fit_options
 
 
 class AxisFitParams(eqx.Module):
@@ -503,6 +505,10 @@ def _free_mask(problem: AxisFitProblem, params0: AxisFitParams, free, candidates
     return jnp.where(search, found, keep), jnp.where(search, found_indep, indep)
 
 
+#: `fit_axes`'s solver settings (whitened residuals: `atol` in noise units).
+AXIS_OPTIONS = LMOptions(rtol=1e-8, atol=3e-2, max_steps=100)
+
+
 def fit_axes(
     nominal: KinematicModel,
     arcs: ArcFitResult,
@@ -514,10 +520,9 @@ def fit_axes(
     home: Float[Array, "joints joints"] | None = None,
     candidates: Bool[Array, " n"] | None = None,
     search: Bool[Array, ""] | None = None,
-    rtol: float = 1e-8,
-    atol: float = 3e-2,
-    max_steps: int = 100,
+    options: LMOptions = AXIS_OPTIONS,
     throw: bool = False,
+    **deprecated,
 ) -> AxisFitResult:
     """Solve the axis-to-kinematics problem; pure, jittable and vmappable.
 
@@ -542,9 +547,14 @@ def fit_axes(
     - `search`: with `free`, a (traced) switch: where true the search's mask
       replaces `free`. One compiled program then serves a fit that searches
       and one that reuses its mask (the search runs in both).
+    - `options`: the solver's `LMOptions` (whitened residuals: `atol` in noise
+      units); `throw`: raise when the solve does not converge (optimistix's).
+    - `deprecated`: the keywords `rtol`, `atol`, `max_steps` of the previous
+      release (`jaxcal._options.fit_options`).
 
     **Returns:** an `AxisFitResult`.
     """
+    options, _ = fit_options("fit_axes", options, None, deprecated, robust_fit=False)
     n_axes = arcs.direction.shape[0] if arcs.direction.ndim == 2 else 0
     if arcs.direction.ndim != 2 or n_axes != nominal.num_joints:
         raise ValueError(
@@ -587,7 +597,9 @@ def fit_axes(
     def fn(x, problem):
         return axis_residuals(unravel(x * keep_f), problem)
 
-    sol = _lsq.solve(fn, flat0, problem, _lsq.LMOptions(rtol, atol, max_steps, throw))
+    sol = _lsq.solve(
+        fn, flat0, problem, LMOptions(options.rtol, options.atol, options.max_steps, throw or options.throw)
+    )
     x = sol.value * keep_f
     params = unravel(x)
     r, J = axis_jacobian(params, problem)

@@ -28,7 +28,9 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _lsq
 from ._arcdata import ArcData
 from ._arcmodel import arc_residuals, free_mask, initialise_arc
-from ._robust import check_loss, deletion_residuals, irls_rounds_reweighted, round_plan, sample_weights
+from ._lsq import LMOptions
+from ._options import RobustOptions, fit_options, robust_terms
+from ._robust import deletion_residuals, irls_rounds_reweighted, round_plan, sample_weights
 
 _MS = 1e-3
 
@@ -150,6 +152,10 @@ def _deletion(J, cov, r, w, mask):
     return deletion_residuals(r, hat, w, mask)
 
 
+#: `fit_clock_offset`'s solver settings (whitened residuals: `atol` in noise units).
+CLOCK_OPTIONS = LMOptions(rtol=1e-8, atol=1e-2, max_steps=100)
+
+
 def fit_clock_offset(
     data: ArcData,
     t_cam: Float[Array, "joints frames"],
@@ -158,14 +164,10 @@ def fit_clock_offset(
     *,
     offset0_s: float = 0.0,
     drift_ppm: float = 0.0,
-    loss: str | None = None,
-    c: float = 3.0,
-    reject: float | None = 3.7,
-    rounds: int = 3,
-    rtol: float = 1e-8,
-    atol: float = 1e-2,
-    max_steps: int = 100,
+    robust: RobustOptions | None = None,
+    options: LMOptions = CLOCK_OPTIONS,
     throw: bool = False,
+    **deprecated,
 ) -> ClockFit:
     """Estimate the camera-controller clock offset from the joint sweeps; pure and jittable.
 
@@ -191,12 +193,16 @@ def fit_clock_offset(
     - `enc_t` (s, controller clock), `enc_q`: the encoder log as commanded
       joint positions (`motor / nominal ratio`, rad), `(T, joints)`.
     - `offset0_s`: a start for $\\delta$ (s); `drift_ppm`: the known drift.
-    - `loss`, `c`, `reject`, `rounds`: as `fit_arc` (default: plain least squares).
-    - `rtol`, `atol`, `max_steps` (per round), `throw`: the solver's.
+    - `robust`: a `RobustOptions`, as `fit_arc`'s (default `None`: plain least squares).
+    - `options`: the solver's `LMOptions` (`max_steps` per round); `throw`: raise
+      (`eqx.error_if`) when a round does not converge.
+    - `deprecated`: the keywords `loss`, `c`, `reject`, `rounds`, `rtol`, `atol`,
+      `max_steps` of the previous release (`jaxcal._options.fit_options`).
 
     **Returns:** a `ClockFit`.
     """
-    check_loss(loss)
+    options, robust = fit_options("fit_clock_offset", options, robust, deprecated)
+    loss, c, reject, rounds = robust_terms(robust)
     hard_flags = round_plan(loss, rounds, reject)
     reject_ = jnp.inf if reject is None else reject
 
@@ -237,8 +243,6 @@ def fit_clock_offset(
             d_j, nu_j, m_j, loss=loss, c=c, reject=reject_, hard=hard
         )[0]
         return jax.vmap(weigh)(d, nu, mask)  # one noise scale per joint
-
-    options = _lsq.LMOptions(rtol, atol, max_steps)
 
     def solve(y, w):
         sol = _lsq.solve_normal(residuals, y, w, options)

@@ -36,6 +36,7 @@ from ._handeye import (
     robot_correction_rms,
     robot_noise,
 )
+from ._handeye.solve import HAND_EYE_OPTIONS
 from ._npgeom import matrix_to_quaternion, quaternion_to_matrix
 from .errors import CalibrationError, HandEyeInputError
 from .io.handeye import HandEyeCapture, load_hand_eye_capture
@@ -56,7 +57,7 @@ def hand_eye_solver(max_steps: int = 200) -> Callable:
             data,
             reject_outliers=reject,
             estimate_robot_noise=estimate,
-            max_steps=max_steps,
+            options=replace(HAND_EYE_OPTIONS, max_steps=max_steps),
             outlier_threshold=OUTLIER_THRESHOLD,
         )
 

@@ -17,6 +17,7 @@ like with like.
 
 import functools
 import os
+from dataclasses import replace
 
 import equinox as eqx
 import jax
@@ -28,9 +29,9 @@ from jax.sharding import PartitionSpec as P
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._arcdata import ArcData, make_arc_data
-from ._arcfit import ArcFitResult, fit_arc, fit_joint_sweeps
+from ._arcfit import ARC_OPTIONS, ArcFitResult, fit_arc, fit_joint_sweeps
 from ._arcmodel import line_to_params
-from ._axisfit import fit_axes
+from ._axisfit import AXIS_OPTIONS, fit_axes
 from ._geometry import make_pose, matmul, se3_exp, so3_exp, so3_log
 from ._kinematics import (
     REVOLUTE,
@@ -124,8 +125,12 @@ def fit_sweeps(
 ) -> tuple:
     """Arc fits of every joint (vmapped; a prismatic joint's sweep by its line
     fit, `jaxcal._arcfit.fit_joint_sweeps`) followed by the axis fit."""
-    arcs = fit_joint_sweeps(data, nominal.joint_types, scale_covariance=False, max_steps=max_steps)
-    return arcs, fit_axes(nominal, arcs, free=free, max_steps=max_steps, **axis_kwargs)
+    arcs = fit_joint_sweeps(
+        data, nominal.joint_types, scale_covariance=False, options=replace(ARC_OPTIONS, max_steps=max_steps)
+    )
+    return arcs, fit_axes(
+        nominal, arcs, free=free, options=replace(AXIS_OPTIONS, max_steps=max_steps), **axis_kwargs
+    )
 
 
 class TrialResult(eqx.Module):
@@ -290,10 +295,18 @@ def run_trial(
     # measurements, whose T_cam_base is what a perfect calibration returns. Both
     # axis fits run as one vmap (one trace, one compile).
     if setup.use_encoders:
-        arcs = jax.vmap(lambda d: fit_arc(d, scale_covariance=False, max_steps=setup.max_steps))(data)
+        arcs = jax.vmap(
+            lambda d: fit_arc(
+                d, scale_covariance=False, options=replace(ARC_OPTIONS, max_steps=setup.max_steps)
+            )
+        )(data)
         exact = exact_arcs(arcs, true, T_cam_base, T_flange_marker, setup.nominal.reduction_ratio)
         both = jax.tree.map(lambda a, b: jnp.stack([a, b]), arcs, exact)
-        fit2 = jax.vmap(lambda a: fit_axes(setup.nominal, a, free=free, max_steps=setup.max_steps))(both)
+        fit2 = jax.vmap(
+            lambda a: fit_axes(
+                setup.nominal, a, free=free, options=replace(AXIS_OPTIONS, max_steps=setup.max_steps)
+            )
+        )(both)
     else:
         # Without encoders the zero poses are not at q = 0: fit noise-free sweeps instead.
         exact = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise, NoiseModel(0.0, 0.0, 0.0))

@@ -34,6 +34,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _lsq
 from ._geometry import normalize, orthonormal_basis, safe_norm
+from ._lsq import LMOptions
+from ._options import fit_options
 from .errors import ToolOffsetInputError
 
 MIN_POINTS = 3
@@ -103,13 +105,16 @@ def _circle_residuals(params: _CircleParams, args):
     return res * w[:, None]
 
 
+#: `fit_circle`'s solver settings (residuals in the points' unit).
+CIRCLE_OPTIONS = LMOptions(rtol=1e-10, atol=1e-10, max_steps=50)
+
+
 def fit_circle(
     points: Float[Array, "n d"],
     mask: Bool[Array, " n"] | None = None,
     *,
-    rtol: float = 1e-10,
-    atol: float = 1e-10,
-    max_steps: int = 50,
+    options: LMOptions = CIRCLE_OPTIONS,
+    **deprecated,
 ) -> CircleFit:
     """Fit a circle to 2D points (pixels, in the image plane) or 3D points (a circle in space).
 
@@ -120,16 +125,19 @@ def fit_circle(
 
     **Arguments:**
     - `points`: `(n, 2)` or `(n, 3)`; rows where `mask` is False are ignored.
-    - `rtol`, `atol`, `max_steps`: optimistix's.
+    - `options`: the solver's `LMOptions` (the residuals are in the points'
+      unit, not whitened: tight tolerances); `deprecated`: the keywords
+      `rtol`, `atol`, `max_steps` of the previous release.
 
     **Returns:** a `CircleFit` (centre in the points' dimension).
     """
+    options, _ = fit_options("fit_circle", options, None, deprecated, robust_fit=False)
     planar = points.shape[-1] == 2
     w = jnp.ones(points.shape[0]) if mask is None else mask.astype(points.dtype)
     P = _as_3d(jnp.where(w[:, None] > 0, points, 0.0))
     c0, n0, r0 = _kasa(P, w, planar)
     params0 = _CircleParams(centre=c0, tilt=jnp.zeros(2), radius=r0)
-    sol = _lsq.solve(_circle_residuals, params0, (P, w, n0, planar), _lsq.LMOptions(rtol, atol, max_steps))
+    sol = _lsq.solve(_circle_residuals, params0, (P, w, n0, planar), options)
     p = sol.value
     n = n0 if planar else normalize(n0 + orthonormal_basis(n0) @ p.tilt)
     r = _circle_residuals(p, (P, w, n0, planar))

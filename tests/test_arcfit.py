@@ -22,6 +22,8 @@ from jaxcal._arcmodel import (
 )
 from jaxcal._geometry import normalize, so3_exp, so3_log
 from jaxcal._linalg import concurrent_decompositions
+from jaxcal._lsq import LMOptions
+from jaxcal._options import RobustOptions
 
 fit = jax.jit(fit_arc)
 
@@ -172,7 +174,7 @@ def test_line_coordinates_round_trip():
 
 def test_max_steps_reports_optimistix_code():
     _, data = arc_data(jax.random.key(8), noisy=True)
-    res = jax.jit(lambda d: fit_arc(d, max_steps=1))(data)
+    res = jax.jit(lambda d: fit_arc(d, options=LMOptions(max_steps=1)))(data)
     assert res.result == optx.RESULTS.nonlinear_max_steps_reached
 
 
@@ -315,7 +317,7 @@ def test_long_sweep_without_encoders_by_blocks_matches_the_dense_solve():
     """300 frames, positions only, no encoder: the case that needed gigabytes
     through the dense Jacobian; tight tolerances, both converge to the optimum."""
     _, data = arc_data(jax.random.key(22), noisy=True, encoder=False, orientations=False, frames=300)
-    res = jax.jit(lambda d: fit_arc(d, rtol=1e-10, atol=1e-6))(data)
+    res = jax.jit(lambda d: fit_arc(d, options=LMOptions(rtol=1e-10, atol=1e-6, max_steps=50)))(data)
     ref = jax.jit(lambda d: _plain_fit(d, rtol=1e-10, atol=1e-6))(data)
     np.testing.assert_allclose(res.meas, ref["meas"], rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(res.angles, ref["angles"], rtol=1e-8, atol=1e-12)
@@ -378,7 +380,7 @@ def test_robust_fit_rejects_corrupted_frames(encoder, orientations, frames):
         30 + frames, n, encoder=encoder, orientations=orientations, frames=frames
     )
     plain = jax.jit(jax.vmap(fit_arc))
-    robust = jax.jit(jax.vmap(lambda d: fit_arc(d, loss="cauchy")))(dirty)
+    robust = jax.jit(jax.vmap(lambda d: fit_arc(d, robust=RobustOptions("cauchy"))))(dirty)
     assert np.all(np.asarray(robust.result == optx.RESULTS.successful))
     e_clean = _line_errors(plain(clean), truth, encoder)
     e_robust = _line_errors(robust, truth, encoder)
@@ -441,7 +443,7 @@ def test_robust_fit_unmasks_a_high_leverage_outlier():
     trials, the shapes of `test_robust_fit_rejects_corrupted_frames` (its compiled fits)."""
     data = _far_end_sweeps(7, 48, extra=0.02)
     plain = jax.jit(jax.vmap(fit_arc))(data)
-    robust = jax.jit(jax.vmap(lambda d: fit_arc(d, loss="cauchy")))(data)
+    robust = jax.jit(jax.vmap(lambda d: fit_arc(d, robust=RobustOptions("cauchy"))))(data)
     e = np.asarray(plain.sample_residuals[:, 0])
     assert np.mean(e[:, -1] < e[:, :-1].max(axis=1)) > 0.75  # masked
     inlier = np.asarray(robust.inlier[:, 0])
@@ -461,21 +463,23 @@ def test_robust_fit_reports_every_round():
     every round converges; a round that runs out of steps is reported."""
     _, _, dirty, bad, _ = _corrupted_trials(40, 1, encoder=False, orientations=True, frames=40)
     data = jax.tree.map(lambda x: x[0], dirty)
-    res = jax.jit(lambda d: fit_arc(d, loss="huber"))(data)
+    res = jax.jit(lambda d: fit_arc(d, robust=RobustOptions("huber")))(data)
     ok = np.asarray(res.round_results == optx.RESULTS.successful)
     assert ok.shape == (4,) and np.all(ok) and res.round_steps.shape == (4,)
     assert int(res.num_steps) == int(np.sum(res.round_steps))
     np.testing.assert_array_equal(~np.asarray(res.inlier), bad[0])
     np.testing.assert_array_equal(arc_outliers(res, data.mask), np.argwhere(bad[0]))
-    more = jax.jit(lambda d: fit_arc(d, loss="huber", max_steps=500))(data)
+    more = jax.jit(lambda d: fit_arc(d, robust=RobustOptions("huber"), options=LMOptions(max_steps=500)))(
+        data
+    )
     np.testing.assert_array_equal(more.inlier, res.inlier)
     np.testing.assert_allclose(more.meas, res.meas, rtol=1e-12)
-    short = jax.jit(lambda d: fit_arc(d, loss="huber", max_steps=1))(data)
+    short = jax.jit(lambda d: fit_arc(d, robust=RobustOptions("huber"), options=LMOptions(max_steps=1)))(data)
     assert short.result == optx.RESULTS.nonlinear_max_steps_reached
     assert np.all(np.asarray(short.round_results == optx.RESULTS.nonlinear_max_steps_reached))
     assert np.all(np.asarray(short.round_steps) == 1)
     # Without the inlier solve: the soft rounds only.
-    soft = jax.jit(lambda d: fit_arc(d, loss="cauchy", reject=None, rounds=2))(data)
+    soft = jax.jit(lambda d: fit_arc(d, robust=RobustOptions("cauchy", reject=None, rounds=2)))(data)
     assert soft.round_steps.shape == (2,)
     assert np.all(np.asarray(soft.weights)[bad[0]] < 0.1) and np.all(np.asarray(soft.weights)[~bad[0]] > 0.3)
 
@@ -483,9 +487,9 @@ def test_robust_fit_reports_every_round():
 def test_robust_options_are_checked():
     data = _good()
     with pytest.raises(ValueError, match="loss must be one of"):
-        fit_arc(data, loss="l1")
+        fit_arc(data, robust=RobustOptions("l1"))
     with pytest.raises(ValueError, match="rounds must be at least 1"):
-        fit_arc(data, loss="cauchy", rounds=0)
+        fit_arc(data, robust=RobustOptions("cauchy", rounds=0))
 
 
 @pytest.mark.parametrize("encoder", [True, False])
@@ -493,7 +497,9 @@ def test_batched_fits_have_no_unordered_decompositions(encoder):
     """The vmapped robust fit (leverages, solves, covariance) keeps its LAPACK calls ordered (`_linalg`)."""
     keys = jax.random.split(jax.random.key(23), 3)
     _, datas = jax.vmap(lambda k: arc_data(k, noisy=True, encoder=encoder, frames=12))(keys)
-    assert concurrent_decompositions(jax.vmap(lambda d: fit_arc(d, loss="cauchy")), datas) == []
+    assert (
+        concurrent_decompositions(jax.vmap(lambda d: fit_arc(d, robust=RobustOptions("cauchy"))), datas) == []
+    )
     assert concurrent_decompositions(jax.vmap(fit_arc), datas) == []
 
 

@@ -23,6 +23,7 @@ from jaxcal._axisfit import (
     register_lines,
 )
 from jaxcal._geometry import pose_inverse, se3_exp, se3_log
+from jaxcal._lsq import LMOptions
 from jaxcal._montecarlo import NoiseModel, nominal_free_mask, synthesize_sweeps
 
 SETUP = ur5e_setup(frames=24)
@@ -348,7 +349,7 @@ def test_closed_form_jacobian_matches_autodiff(use_encoders, use_poses, home):
 
 def test_max_steps_reports_optimistix_code(sweeps, free):
     arcs, _ = sweeps
-    fit = jax.jit(lambda a: fit_axes(NOMINAL, a, free=free, max_steps=1))(arcs)
+    fit = jax.jit(lambda a: fit_axes(NOMINAL, a, free=free, options=LMOptions(max_steps=1)))(arcs)
     assert fit.result == optx.RESULTS.nonlinear_max_steps_reached
 
 

@@ -19,6 +19,7 @@ from jaxcal._clocksync import (
     interpolate_encoders,
 )
 from jaxcal._geometry import normalize, so3_exp
+from jaxcal._options import RobustOptions
 from jaxcal.stages._synchronise import interpolate
 
 OFFSET_S = 0.037
@@ -125,7 +126,11 @@ def test_robust_fit_recovers_the_offset_from_corrupted_frames():
     enc_t, enc_q = runs[0][2], runs[0][3]
     bad = np.stack([r[4] for r in runs])
     fit = lambda loss: jax.jit(  # noqa: E731
-        jax.vmap(lambda d, t: fit_clock_offset(d, t, enc_t, enc_q, loss=loss))
+        jax.vmap(
+            lambda d, t: fit_clock_offset(
+                d, t, enc_t, enc_q, robust=None if loss is None else RobustOptions(loss)
+            )
+        )
     )(data, t_cam)
     robust, plain = fit("cauchy"), fit(None)
     assert np.all(np.asarray(robust.result == optx.RESULTS.successful))
@@ -143,7 +148,7 @@ def test_robust_fit_recovers_the_offset_from_corrupted_frames():
 def test_robust_options_are_checked():
     data, t_cam, enc_t, enc_q, _ = _sweeps(2, frames=10)
     with pytest.raises(ValueError, match="loss must be one of"):
-        fit_clock_offset(data, t_cam, enc_t, enc_q, loss="tukey")
+        fit_clock_offset(data, t_cam, enc_t, enc_q, robust=RobustOptions("tukey"))
 
 
 def test_encoder_interpolation_error_follows_from_the_sampling():

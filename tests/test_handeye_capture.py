@@ -235,7 +235,7 @@ def test_rejection_with_robot_noise_does_not_depend_on_max_steps(robot_noise_dat
     """Robot noise on: each stage reports its own result and steps; once converged, the frames
     rejected (the two 2 deg / 5 mm robot errors) are the same whatever the cap."""
     data, T_ee_cam = robot_noise_data
-    r = eqx.filter_jit(jaxcal.calibrate_hand_eye)(data, max_steps=max_steps)
+    r = eqx.filter_jit(jaxcal.calibrate_hand_eye)(data, options=jaxcal.LMOptions(1e-8, 1e-6, max_steps))
     stages = [
         bool(jax.tree.map(lambda x, i=i: x[i], r.stage_result) == optx.RESULTS.successful) for i in (0, 1)
     ]
@@ -246,7 +246,9 @@ def test_rejection_with_robot_noise_does_not_depend_on_max_steps(robot_noise_dat
 
 def test_a_stage_at_its_step_cap_is_suspect(robot_noise_data):
     data, _ = robot_noise_data
-    r = jax.tree.map(np.asarray, eqx.filter_jit(jaxcal.calibrate_hand_eye)(data, max_steps=3))
+    r = jax.tree.map(
+        np.asarray, eqx.filter_jit(jaxcal.calibrate_hand_eye)(data, options=jaxcal.LMOptions(1e-8, 1e-6, 3))
+    )
     assert not bool(r.result == optx.RESULTS.successful)
     v = jaxcal.assess_hand_eye(r, max_steps=3)
     assert v.status == "suspect"

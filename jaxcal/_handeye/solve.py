@@ -10,6 +10,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import pose_inverse
 from .._linalg import after
+from .._lsq import LMOptions
+from .._options import fit_options
 from .blocks import block_bread, solve_by_blocks
 from .closed import initialise_hand_eye
 from .common import least_squares, pose_error
@@ -146,6 +148,10 @@ class HandEyeResult(eqx.Module):
         return np.flatnonzero(np.asarray(self.rejected).any(axis=0))
 
 
+#: `calibrate_hand_eye`'s solver settings (per stage).
+HAND_EYE_OPTIONS = LMOptions(rtol=1e-8, atol=1e-6, max_steps=200)
+
+
 def calibrate_hand_eye(
     data: HandEyeData,
     *,
@@ -153,14 +159,13 @@ def calibrate_hand_eye(
     outlier_threshold: float = 3.0,
     min_outlier_scale: float = 0.1,
     loss_scale: float = 2.0,
-    rtol: float = 1e-8,
-    atol: float = 1e-6,
-    max_steps: int = 200,
+    options: LMOptions = HAND_EYE_OPTIONS,
     throw: bool = False,
     scale_covariance: bool = True,
     by_blocks: bool = True,
     closed_form_jacobian: bool = True,
     estimate_robot_noise: bool | Bool[Array, ""] = False,
+    **deprecated,
 ) -> HandEyeResult:
     """Hand-eye calibration (eye-to-hand or eye-in-hand, one or more cameras); pure, jittable, vmappable.
 
@@ -180,8 +185,8 @@ def calibrate_hand_eye(
       Which are rejected depends on the robust stage's optimum only: once it
       has converged, not on `max_steps`.
     - `loss_scale`: Cauchy scale $b$ (whitened units) of the robust solve.
-    - `rtol`, `atol`, `max_steps` (per stage), `throw`: optimistix's (tolerances on the
-      tangent deltas in m/rad and on the whitened residuals).
+    - `options`: the solver's `LMOptions` (`max_steps` per stage; tolerances on the
+      tangent deltas in m/rad and on the whitened residuals); `throw`: optimistix's.
     - `scale_covariance`: multiply the covariance by $\\max(1, \\|r\\|^2/(m - n))$:
       when the residuals are larger than the stated noise, the stated noise
       was optimistic and the covariance grows with them; when smaller, the
@@ -199,8 +204,12 @@ def calibrate_hand_eye(
       `data.robot_sigma` (None: 1 mm, 0.1 deg); rejection, covariance and `robot_rms`
       use the estimate. False: the robot noise as given (None: exact poses).
 
+    - `deprecated`: the keywords `rtol`, `atol`, `max_steps` of the previous release.
+
     **Returns:** a `HandEyeResult`.
     """
+    options, _ = fit_options("calibrate_hand_eye", options, None, deprecated, robust_fit=False)
+    rtol, atol, max_steps = options.rtol, options.atol, options.max_steps
     data = _estimation_start(data, estimate_robot_noise, by_blocks)
     estimate = jnp.asarray(estimate_robot_noise, bool)
     X0, Y0 = initialise_hand_eye(data)

@@ -10,6 +10,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import make_pose, se3_exp
 from .._linalg import nearest_rotation
+from .._lsq import LMOptions
+from .._options import fit_options
 from ..errors import DegenerateMotionError, LengthMismatchError, NonFiniteError, ShapeError, TooFewPosesError
 from .checks import check_motion_diversity, check_rotations
 from .common import least_squares, pose_error
@@ -223,24 +225,32 @@ def touch_residuals(params: TouchParams, args) -> Float[Array, "points 3"]:
     return jnp.where(data.mask[:, None], (q_cam[:, :3] - q_tcp) / data.sigma, 0.0)
 
 
+#: `calibrate_touch`'s solver settings.
+TOUCH_OPTIONS = LMOptions(rtol=1e-8, atol=1e-6, max_steps=50)
+
+
 def calibrate_touch(
     data: TouchData,
     *,
-    rtol: float = 1e-8,
-    atol: float = 1e-6,
-    max_steps: int = 50,
+    options: LMOptions = TOUCH_OPTIONS,
     throw: bool = False,
     scale_covariance: bool = True,
+    **deprecated,
 ) -> TouchResult:
     """TCP-touch hand-eye calibration (seed 5), eye-to-hand or eye-in-hand; pure and jittable.
 
     Closed-form start (`initialise_touch`), then Levenberg-Marquardt on
     `touch_residuals` over $X = X_0 \\exp(\\xi)$ and, when `data.tcp` is None,
     the TCP offset. Covariance from the Jacobian as in `calibrate_hand_eye`.
+    `options`: the solver's `LMOptions`; `throw`: optimistix's; `deprecated`: the
+    keywords `rtol`, `atol`, `max_steps` of the previous release.
     """
+    options, _ = fit_options("calibrate_touch", options, None, deprecated, robust_fit=False)
     X0, tcp0 = initialise_touch(data)
     params0 = TouchParams(robot_cam=jnp.zeros(6), tcp=None if data.tcp is not None else tcp0)
-    sol = least_squares(touch_residuals, params0, (X0, data), rtol, atol, max_steps, throw)
+    sol = least_squares(
+        touch_residuals, params0, (X0, data), options.rtol, options.atol, options.max_steps, throw
+    )
     params = sol.value
     flat, unravel = ravel_pytree(params)
     J = jax.jacfwd(lambda x: touch_residuals(unravel(x), (X0, data)).reshape(-1))(flat)

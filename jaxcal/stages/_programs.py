@@ -11,19 +11,21 @@ which keeps its executable, so a second process neither traces nor compiles it.
 import atexit
 import functools
 import threading
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._arcdata import make_arc_data
-from .._arcfit import fit_arc, fit_joint_sweeps
+from .._arcfit import ARC_OPTIONS, fit_arc, fit_joint_sweeps
 from .._axisfit import axis_jacobian, axis_problem, fit_axes, home_jacobian, register_lines
 from .._buckets import bucket
 from .._clocksync import fit_clock_offset
 from .._correction import ParameterLayout
 from .._exported import stored_jit
 from .._kinematics import forward_kinematics
+from .._options import RobustOptions
 from .._pointfit import gravity_torques
 from .._refine import identifiable_mask, line_delay_test, refine
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
@@ -36,6 +38,12 @@ from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurati
 #: in 144 goes and 13 of 14 sheared images (10 %) do. With the deletion residual:
 #: 0.538 mm clean; `benchmarks/corrupted.py` ratios at most 1.39.
 ARC_REJECT = 6.0
+#: The arc fits' solver settings (`fit_arc`'s with twice its steps).
+ARC_LM = replace(ARC_OPTIONS, max_steps=100)
+
+
+def _arc_robust(loss: str | None) -> RobustOptions | None:
+    return None if loss is None else RobustOptions(loss, reject=ARC_REJECT)
 
 
 @functools.cache
@@ -44,7 +52,7 @@ def arc_fits(loss: str | None, joint_types: tuple[str, ...]):
     prismatic joint's by `fit_line` (`jaxcal._arcfit.fit_joint_sweeps`)."""
 
     def arc_fits(data):
-        return fit_joint_sweeps(data, joint_types, loss=loss, reject=ARC_REJECT, max_steps=100)
+        return fit_joint_sweeps(data, joint_types, robust=_arc_robust(loss), options=ARC_LM)
 
     return stored_jit(arc_fits, "arc_fits", (loss, joint_types, ARC_REJECT))
 
@@ -54,7 +62,7 @@ def arc_fit(loss: str | None):
     """One joint's arc fit (the sequential procedure fits joint after joint)."""
 
     def arc_fit(data):
-        return fit_arc(data, loss=loss, reject=ARC_REJECT, max_steps=100)
+        return fit_arc(data, robust=_arc_robust(loss), options=ARC_LM)
 
     return stored_jit(arc_fit, "arc_fit", (loss, ARC_REJECT))
 
@@ -155,11 +163,12 @@ atexit.register(wait_ahead)
 
 @functools.cache
 def clock_fit(loss: str | None):
-    """`fit_clock_offset(data, t_cam, enc_t, enc_q, offset0_s, drift_ppm, loss=loss)`."""
+    """`fit_clock_offset(data, t_cam, enc_t, enc_q, offset0_s, drift_ppm)` with `loss`."""
+    robust = None if loss is None else RobustOptions(loss)
 
     def clock_fit(data, t_cam, enc_t, enc_q, offset0_s, drift_ppm):
         return fit_clock_offset(
-            data, t_cam, enc_t, enc_q, offset0_s=offset0_s, drift_ppm=drift_ppm, loss=loss
+            data, t_cam, enc_t, enc_q, offset0_s=offset0_s, drift_ppm=drift_ppm, robust=robust
         )
 
     return stored_jit(clock_fit, "clock_fit", (loss,))
