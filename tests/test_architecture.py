@@ -39,7 +39,6 @@ UNTYPED_FIELDS = {
     "CameraObservations.detections": "per frame the detector's corners by target (read by the refinement's corner "
     "collection only): not typed yet",
     "CameraObservations.poses": "per frame the PnP `Pose`s by target: not typed yet",
-    "CameraObservations.intrinsics": "the result's `Intrinsics` is built from it in `stages.result`: not typed yet",
     "SampleObservations.camera": "the tracker's metadata record (`io._tracker`): not typed yet",
     "SampleObservations.poses": "per sample the measured point as a `Pose`: not typed yet",
     "Sync.clock": "built in stages/_synchronise.py (issue 32 at work there); the result's `Clock` is typed",

@@ -10,6 +10,7 @@ import numpy as np
 from .._clocksync import exposure_middle
 from ..errors import CalibrationError
 from ..io.dataset import CameraInfo, Dataset, TargetInfo
+from ..records import Intrinsics
 from ..vision import PoseEstimate, calibrate_intrinsics, detect_frames, estimate_pose
 from ._setup import Options, Setup
 
@@ -44,7 +45,7 @@ class CameraObservations:
     t_cam: np.ndarray
     K: np.ndarray
     dist: np.ndarray | None
-    intrinsics: dict
+    intrinsics: Intrinsics
     dropped: tuple = ()
     has_orientation: bool = True
     t_first_row: np.ndarray | None = None
@@ -87,9 +88,9 @@ class SampleObservations:
         return np.ones(len(self.rows), bool)
 
     @property
-    def intrinsics(self) -> dict:
+    def intrinsics(self) -> Intrinsics:
         """What `result.json` says of intrinsics: there are none."""
-        return {"source": f"none ({self.camera.kind.replace('_', ' ')} samples, no images)"}
+        return Intrinsics(source=f"none ({self.camera.kind.replace('_', ' ')} samples, no images)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,7 +184,7 @@ def observe_camera(
     poses are the camera's in the target frame."""
     rows = camera_rows(ds, camera.name)
     K, dist = camera.K, camera.dist
-    intrinsics = {"source": "metadata"}
+    source, rms_px = "metadata", None
     if K is None:
         options.say(
             f"camera {camera.name}: no intrinsics in the metadata, self-calibrating from the ChArUco frames"
@@ -191,8 +192,8 @@ def observe_camera(
         K, dist, rms = self_calibrate(
             ds, camera, targets, rows, workers=options.workers, progress=options.progress
         )
-        intrinsics = {"source": "self-calibrated (ChArUco)", "rms_px": float(rms)}
-    intrinsics.update({"K": np.asarray(K).tolist(), "distortion": np.asarray(dist).tolist()})
+        source, rms_px = "self-calibrated (ChArUco)", float(rms)
+    intrinsics = Intrinsics(source, rms_px=rms_px, K=np.asarray(K), distortion=np.asarray(dist))
     options.say(
         f"detecting {', '.join(t.name for t in targets)} in {len(rows)} frames of camera {camera.name}"
     )

@@ -268,7 +268,7 @@ def frees_intrinsics(obs: Observations, options: Options) -> bool:
     they bias the robot) or when the caller asks (`refine_intrinsics`)."""
     if options.refine_intrinsics is not None:
         return bool(options.refine_intrinsics)
-    return obs.primary.intrinsics["source"] != "metadata"
+    return obs.primary.intrinsics.source != "metadata"
 
 
 def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners: _Corners, K, d5, options):

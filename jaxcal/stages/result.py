@@ -186,13 +186,7 @@ def _arcs(two: TwoStage, refined: Refined | None) -> tuple[ArcRow, ...]:
 
 def _intrinsics(obs: Observations, refined: Refined | None) -> Intrinsics:
     """The first camera's intrinsics: refined when the refinement freed them (the start beside them)."""
-    start = obs.primary.intrinsics
-    given = Intrinsics(
-        source=start["source"],
-        rms_px=start.get("rms_px"),
-        K=None if "K" not in start else np.asarray(start["K"]),
-        distortion=None if "distortion" not in start else np.asarray(start["distortion"]),
-    )
+    given = obs.primary.intrinsics
     if refined is None or refined.intrinsics is None:
         return given
     return dataclasses.replace(
