@@ -142,9 +142,11 @@ def plot_residuals(result):
     geometry = [arc_geometry(result, j) for j in range(len(result.arcs))]
     fig = Figure(figsize=(9, 3.4))
     ax = fig.subplots(1, 2)
-    ax[0].hist(np.concatenate([g.radial for g in geometry]), bins=30, color="tab:blue")
+    ax[0].hist(np.concatenate([g.radial for g in geometry]), bins=30, color="tab:blue", histtype="stepfilled")
     ax[0].set_title("radial residual (mm)", fontsize=9)
-    ax[1].hist(np.concatenate([g.axial for g in geometry]), bins=30, color="tab:orange")
+    ax[1].hist(
+        np.concatenate([g.axial for g in geometry]), bins=30, color="tab:orange", histtype="stepfilled"
+    )
     ax[1].set_title("along-axis residual (mm)", fontsize=9)
     _margins(fig, left=0.45, right=0.15, bottom=0.35, top=0.3, wspace=0.2)
     return fig
@@ -161,13 +163,31 @@ def plot_ee_errors(result):
     fig = Figure(figsize=(7, 3.6))
     ax = fig.subplots()
     bins = np.logspace(np.log10(max(min(after.min(), before.min()), 1e-3)), np.log10(before.max() * 1.1), 50)
-    ax.hist(before, bins=bins, alpha=0.7, label=f"nominal model (RMS {np.sqrt(np.mean(before**2)):.2f} mm)")
+    ax.hist(
+        before,
+        bins=bins,
+        histtype="stepfilled",
+        alpha=0.7,
+        label=f"nominal model (RMS {np.sqrt(np.mean(before**2)):.2f} mm)",
+    )
     two = result.ee_errors.two_stage if result.refinement is not None else None
     if two is not None:
         start = "two-stage" if result.kind.has_arcs else "closed-form start"
-        ax.hist(two, bins=bins, alpha=0.6, label=f"{start} (RMS {np.sqrt(np.mean(two**2)):.3f} mm)")
+        ax.hist(
+            two,
+            bins=bins,
+            histtype="stepfilled",
+            alpha=0.6,
+            label=f"{start} (RMS {np.sqrt(np.mean(two**2)):.3f} mm)",
+        )
     label = "refined" if two is not None else "calibrated"
-    ax.hist(after, bins=bins, alpha=0.7, label=f"{label} (RMS {np.sqrt(np.mean(after**2)):.3f} mm)")
+    ax.hist(
+        after,
+        bins=bins,
+        histtype="stepfilled",
+        alpha=0.7,
+        label=f"{label} (RMS {np.sqrt(np.mean(after**2)):.3f} mm)",
+    )
     ax.set_xscale("log")
     ax.set_xlabel(f"end-effector position error (mm), {len(before)} random configurations")
     ax.legend(fontsize=8)
