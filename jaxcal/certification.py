@@ -45,6 +45,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ._correction import ParameterLayout, apply_correction, parameters_to_model
+from ._exported import stored_jit
 from ._geometry import se3_exp
 from ._kinematics import KinematicModel, forward_kinematics
 from ._pointfit import PointLayout, point_jacobian, predict
@@ -187,7 +188,6 @@ def tracker_predictor(doc: dict, file: Path) -> Predictor:
     )
 
 
-@jax.jit
 def _tool_covariances(estimate, x, cov, q):
     k = estimate.layout.axis_size
     prefix, unravel = ravel_pytree(estimate.layout.split(x[:k])[:2])
@@ -200,9 +200,16 @@ def _tool_covariances(estimate, x, cov, q):
     return jnp.einsum("cai,ij,cbj->cab", G, cov, G)
 
 
-@jax.jit
 def _base_points(model: KinematicModel, mount, q):
     return jax.vmap(lambda qq: (forward_kinematics(model, qq)[-1] @ mount)[:3, 3])(q)
+
+
+# Stored programs (`jaxcal._exported`): a second `jaxcal certify` neither traces nor compiles them.
+# The two that run over every configuration of a region keep XLA's optimisations (they run
+# about three times faster so; compiled once per cache).
+_tool_covariances = stored_jit(_tool_covariances, "tool_covariances", compiler_options=None)
+_base_points = stored_jit(_base_points, "base_points", compiler_options=None)
+_calibrated_model = stored_jit(lambda estimate: parameters_to_model(estimate), "calibrated_model")
 
 
 def camera_predictor(doc: dict, file: Path) -> Predictor:
@@ -217,7 +224,7 @@ def camera_predictor(doc: dict, file: Path) -> Predictor:
     k = est.layout.axis_size
     cov = np.asarray(est.cov, np.float64)[:k, :k]
     cam = est.layout.index("cam")
-    calibrated = parameters_to_model(est)
+    calibrated = _calibrated_model(est)
 
     def covariances(q, frame="fixed"):
         c = cov.copy()

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
+from .._exported import warm_start
 from ..certification import certify, plot_certificate, read_poses, read_result
 from ..errors import OutputError
 from ..io._files import write_text_atomic
@@ -147,14 +148,9 @@ def cmd_certify(args) -> int:
     if args.poses:
         names = read_result(args.result)[0]["model"]["joint_names"]
         poses = read_poses(args.poses, names, degrees=args.degrees)
-    c = certify(
-        args.result,
-        **where,
-        poses=poses,
-        samples=args.samples,
-        frame=args.frame,
-        seed=args.seed,
-    )
+    # The programs the last certificate of this result called are read while this one starts.
+    with warm_start(f"jaxcal certify {Path(args.result).resolve()}"):
+        c = certify(args.result, **where, poses=poses, samples=args.samples, frame=args.frame, seed=args.seed)
     console = Console(width=max(Console().width, 110))
     print_certificate(console, c)
     if args.json:
