@@ -78,8 +78,6 @@ if TYPE_CHECKING:
     from ._handeye import touch_residuals as touch_residuals
     from ._handeye import validate_hand_eye as validate_hand_eye
     from ._handeye import validate_touch as validate_touch
-    from ._handeye_capture import HandEyeRun as HandEyeRun
-    from ._handeye_capture import calibrate_hand_eye_capture as calibrate_hand_eye_capture
     from ._kinematics import KinematicModel as KinematicModel
     from ._kinematics import PerturbationScales as PerturbationScales
     from ._kinematics import POEModel as POEModel
@@ -131,6 +129,8 @@ if TYPE_CHECKING:
     from .errors import TooFewPosesError as TooFewPosesError
     from .errors import ToolOffsetInputError as ToolOffsetInputError
     from .errors import VisionError as VisionError
+    from .handeye import HandEyeRun as HandEyeRun
+    from .handeye import calibrate_hand_eye_capture as calibrate_hand_eye_capture
     from .io.dh_tables import dh_table_model as dh_table_model
     from .io.dh_tables import read_dh_table as read_dh_table
     from .io.handeye import HandEyeCapture as HandEyeCapture

@@ -8,7 +8,7 @@ import numpy as np
 from rich.console import Console
 
 from .._handeye import ROBOT_SIGMA_OPTIONS, describe_robot_noise
-from .._handeye_capture import calibrate_hand_eye_capture
+from ..handeye import calibrate_hand_eye_capture
 from ..io._files import check_output_dir, output_lock
 from ..io.handeye_results import static_transform_args, write_hand_eye_outputs
 from ..markers import TargetSpec

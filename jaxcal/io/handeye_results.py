@@ -75,7 +75,7 @@ def _camera_entry(run, c: int) -> dict:
         "std": _std(r.std_robot_cam[c]),
         "intrinsics": {
             "K": np.asarray(run.intrinsics[c].K).tolist(),
-            "distortion": np.asarray(run.intrinsics[c].dist).tolist(),
+            "distortion": np.asarray(run.intrinsics[c].distortion).tolist(),
             "source": run.intrinsics[c].source,
             "rms_px": run.intrinsics[c].rms_px,
         },
@@ -232,7 +232,7 @@ def write_opencv_yaml(path: Path, run, c: int) -> None:
         fs.write("T_robot_cam", np.asarray(run.result.T_robot_cam[c], np.float64))
         fs.write("std_robot_cam", np.asarray(run.result.std_robot_cam[c], np.float64).reshape(1, 6))
         fs.write("K", np.asarray(run.intrinsics[c].K, np.float64))
-        fs.write("distortion", np.asarray(run.intrinsics[c].dist, np.float64).reshape(1, -1))
+        fs.write("distortion", np.asarray(run.intrinsics[c].distortion, np.float64).reshape(1, -1))
         fs.write("image_width", run.capture.cameras[c].width)
         fs.write("image_height", run.capture.cameras[c].height)
         fs.write("status", run.verdict.status)

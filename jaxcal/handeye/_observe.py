@@ -1,0 +1,145 @@
+"""Hand-eye's first two steps: load the capture, then observe it (detect the target, the
+intrinsics given or self-calibrated, PnP and the hand-eye data with its input checks)."""
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .._handeye import ROBOT_SIGMA_START
+from ..errors import CalibrationError
+from ..io.handeye import HandEyeCapture, load_hand_eye_capture
+from ..records import Intrinsics
+from ..vision import HandEyeObservations, calibrate_intrinsics, detect_frames, hand_eye_from_detections
+
+
+def load(capture) -> HandEyeCapture:
+    """The capture: a loaded `HandEyeCapture` as is, or a directory read by `load_hand_eye_capture`."""
+    return capture if isinstance(capture, HandEyeCapture) else load_hand_eye_capture(capture)
+
+
+def detect(capture: HandEyeCapture, workers, progress, log) -> tuple[tuple, np.ndarray]:
+    """`detect_frames` of the capture's target per camera (with its K and distortion where given):
+    the detections `[camera][frame]` and `detected` `(cameras, frames)`.
+
+    **Raises:** `CalibrationError` when a camera sees the target in no image."""
+    target = capture.target
+    detections = tuple(
+        detect_frames(
+            paths,
+            [target],
+            K=cam.K,
+            dist=cam.dist if cam.K is not None else None,
+            workers=workers,
+            progress=progress,
+            pool="thread",
+        )
+        for cam, paths in zip(capture.cameras, capture.images)
+    )
+    detected = np.array([[target.name in d for d in dets] for dets in detections])
+    for cam, row in zip(capture.cameras, detected):
+        log(f"camera {cam.name}: {target.kind} found in {int(row.sum())} of {len(row)} images")
+        if not row.any():
+            raise CalibrationError(
+                f"{capture.root}: target {target.name!r} ({target.kind}) not found in any image of camera "
+                f"{cam.name!r}; check handeye.json field 'target'"
+            )
+    return detections, detected
+
+
+def camera_intrinsics(capture: HandEyeCapture, detections, log) -> tuple[Intrinsics, ...]:
+    """Each camera's `Intrinsics`: `"given"` (the capture's K and distortion) or `"self-calibrated"`
+    from its views of the target (then `rms_px` is OpenCV's calibration RMS)."""
+    out = []
+    for cam, dets in zip(capture.cameras, detections):
+        if cam.K is not None:
+            out.append(Intrinsics(source="given", K=np.asarray(cam.K), distortion=np.asarray(cam.dist)))
+            continue
+        views = [d.get(capture.target.name) for d in dets]
+        K, dist, rms = calibrate_intrinsics(views, capture.target, (cam.width, cam.height))
+        log(
+            f"camera {cam.name}: intrinsics self-calibrated from {sum(v is not None for v in views)} views ({rms:.3f} px RMS)"
+        )
+        out.append(Intrinsics(source="self-calibrated", rms_px=float(rms), K=K, distortion=dist))
+    return tuple(out)
+
+
+def distortions(dists) -> np.ndarray:
+    """Every camera's OpenCV coefficients zero-padded to the longest, `(cameras, n)`."""
+    n = max(len(d) for d in dists)
+    return np.stack([np.pad(np.asarray(d, np.float64), (0, n - len(d))) for d in dists])
+
+
+@dataclass(frozen=True, eq=False)
+class Observed:
+    """What `observe` saw of a capture.
+
+    - `capture`; `detections` `[camera][frame]` (`detect_frames`'s dicts), `detected` `(cameras, frames)`.
+    - `intrinsics`: per camera, given or self-calibrated.
+    - `observations`: the hand-eye data `hand_eye_from_detections` built (PnP, checks, padding).
+    - `estimate_noise`: whether the solve estimates the robot pose noise; `robot_sigma`
+      `(translation m, rotation rad)` given, its start when estimated, or `(None, None)`: exact poses.
+    - `seconds`: `detect` (loading included) and `prepare`.
+    """
+
+    capture: HandEyeCapture
+    detections: tuple
+    detected: np.ndarray
+    intrinsics: tuple[Intrinsics, ...]
+    observations: HandEyeObservations
+    estimate_noise: bool
+    robot_sigma: tuple[float | None, float | None]
+    seconds: dict[str, float]
+
+    def reobserve(self, T_base_ee, eye_in_hand: bool) -> HandEyeObservations:
+        """The same detections and intrinsics with other robot poses or arrangement (a misreading
+        of the input), at the pixel noise observed."""
+        return _observations(self, T_base_ee, eye_in_hand, self.observations.sigma_px)
+
+
+def _observations(observed, T_base_ee, eye_in_hand: bool, sigma_px) -> HandEyeObservations:
+    capture, intrinsics = observed.capture, observed.intrinsics
+    return hand_eye_from_detections(
+        observed.detections,
+        capture.target,
+        T_base_ee,
+        np.stack([i.K for i in intrinsics]),
+        distortions([i.distortion for i in intrinsics]),
+        eye_in_hand=eye_in_hand,
+        sigma_px=sigma_px,
+        frame_names=capture.frames,
+        robot_sigma_translation=observed.robot_sigma[0],
+        robot_sigma_rotation=observed.robot_sigma[1],
+    )
+
+
+def observe(
+    capture,
+    *,
+    robot_sigma_translation: float | None,
+    robot_sigma_rotation: float | None,
+    estimate_robot_noise: bool,
+    sigma_px: float | None,
+    workers,
+    progress: bool,
+    log: Callable[[str], None],
+) -> Observed:
+    """Load (`load`), detect (`detect`), the intrinsics (`camera_intrinsics`) and the hand-eye
+    data with its input checks (`hand_eye_from_detections`; see `calibrate_hand_eye_capture`
+    for the arguments). With `estimate_robot_noise` and neither sigma given, the robot noise is
+    estimated, from `ROBOT_SIGMA_START`."""
+    t0 = time.perf_counter()
+    capture = load(capture)
+    detections, detected = detect(capture, workers, progress, log)
+    seconds = {"detect": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    intrinsics = camera_intrinsics(capture, detections, log)
+    estimate = estimate_robot_noise and robot_sigma_translation is None and robot_sigma_rotation is None
+    sigma = ROBOT_SIGMA_START if estimate else (robot_sigma_translation, robot_sigma_rotation)
+    observed = Observed(capture, detections, detected, intrinsics, None, estimate, tuple(sigma), seconds)
+    observed = replace(
+        observed, observations=_observations(observed, capture.T_base_ee, capture.eye_in_hand, sigma_px)
+    )
+    seconds["prepare"] = time.perf_counter() - t0
+    return observed

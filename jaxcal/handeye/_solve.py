@@ -1,0 +1,90 @@
+"""Hand-eye's solve step: the compiled solver of `calibrate_hand_eye`, its solve of the observed
+data, the k-fold spread and the rejected frames with their reasons."""
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from functools import lru_cache
+
+import jax
+import numpy as np
+
+from .._exported import stored_jit
+from .._handeye import HandEyeResult, KFoldSpread, calibrate_hand_eye, describe_robot_noise, kfold_spread
+from .._handeye.solve import HAND_EYE_OPTIONS
+from ._observe import Observed
+
+#: Outlier threshold of `calibrate_hand_eye` (times the median group RMS); reported with rejections.
+OUTLIER_THRESHOLD = 3.0
+
+
+@lru_cache(maxsize=4)
+def hand_eye_solver(max_steps: int = 200) -> Callable:
+    """`jax.jit(calibrate_hand_eye)` at `max_steps` as `solve(data, reject_outliers, estimate_robot_noise)`,
+    one per value (shapes are bucketed by the caller; both flags are traced, so every setting shares
+    the program of its data: with noisy robot poses, estimated or given, one program)."""
+
+    def hand_eye(data, reject, estimate):
+        return calibrate_hand_eye(
+            data,
+            reject_outliers=reject,
+            estimate_robot_noise=estimate,
+            options=replace(HAND_EYE_OPTIONS, max_steps=max_steps),
+            outlier_threshold=OUTLIER_THRESHOLD,
+        )
+
+    # Runs many times per process (k-fold, bootstrap): XLA's optimisations pay for themselves.
+    return stored_jit(hand_eye, "hand_eye", (max_steps, OUTLIER_THRESHOLD), compiler_options=None)
+
+
+def rejection_reasons(result, observations, threshold: float) -> dict[int, str]:
+    """`{frame: reason}` for every rejected frame, from the final per-view RMS."""
+    rejected = np.asarray(result.rejected)
+    rms = np.asarray(result.group_rms) * observations.sigma_px
+    kept = np.where(rejected, np.nan, rms)
+    median = float(np.nanmedian(kept)) if np.isfinite(kept).any() else float("nan")
+    out = {}
+    for f in np.flatnonzero(rejected.any(0)):
+        cams = np.flatnonzero(rejected[:, f])
+        worst = float(np.nanmax(rms[cams, f]))
+        out[int(f)] = (
+            f"reprojection RMS {worst:.3g} px against a median of {median:.3g} px over the kept views "
+            f"(rejected above {threshold:g}x the median); its robot pose does not fit the others"
+        )
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Solved:
+    """The solve of the observed data.
+
+    - `result`: the `HandEyeResult` (NumPy leaves; padded frames beyond the observed frames).
+    - `kfold`: the k-fold spread, or None when no folds were asked for.
+    - `rejected`: `{frame index: reason}` of the frames the solve rejected.
+    - `solver`: the compiled solver (`hand_eye_solver`), for the verdict's re-solves.
+    - `seconds`: `solve`, `kfold`.
+    """
+
+    result: HandEyeResult
+    kfold: KFoldSpread | None
+    rejected: dict[int, str]
+    solver: Callable
+    seconds: dict[str, float]
+
+
+def solve(observed: Observed, *, folds: int, max_steps: int, log: Callable[[str], None]) -> Solved:
+    """`calibrate_hand_eye` on the observed data (outliers rejected, the robot noise estimated when
+    `observed.estimate_noise`), then the spread over `folds` folds of frames (0: none)."""
+    data, estimate = observed.observations.data, observed.estimate_noise
+    t0 = time.perf_counter()
+    solver = hand_eye_solver(max_steps)
+    result = jax.tree.map(np.asarray, solver(data, True, estimate))
+    seconds = {"solve": time.perf_counter() - t0}
+    log(describe_robot_noise(result))
+    t0 = time.perf_counter()
+    # The folds leave the rejected groups out already: plain solves (the robot noise estimated
+    # again in each, as the whole estimator is being replicated), same compiled program.
+    kfold = kfold_spread(lambda d: solver(d, False, estimate), data, result, folds=folds) if folds else None
+    seconds["kfold"] = time.perf_counter() - t0
+    rejected = rejection_reasons(result, observed.observations, OUTLIER_THRESHOLD)
+    return Solved(result, kfold, rejected, solver, seconds)
