@@ -13,6 +13,11 @@
 - Results are typed: no field of a stage or result record (the dataclasses of
   `jaxcal/stages/` and `jaxcal/records.py`) is a `dict`, `list`, `object` or
   `Any`, except the free-form ones allowed below with their reason.
+- The numeric core (`jaxcal._*` modules and packages) imports only the core,
+  `jaxcal.errors` and `jaxcal.records`: no edge (files, OpenCV) and no product.
+- A product package keeps its steps to itself: no module outside
+  `jaxcal/handeye/` imports its private modules (`jaxcal.handeye._observe`,
+  ...); other code uses what `jaxcal.handeye` exports.
 - Capture modes are resolved once: outside `jaxcal/stages/kinds.py` no code
   reads a capture kind's mode (`kind.device`, `kind.eye_in_hand`,
   `kind.encoders`, `kind.device_is_base`, `kind.mount`, `kind.motion`) or
@@ -179,6 +184,40 @@ def test_calibration_modules_never_reach_the_simulator_or_mujoco():
             if d.startswith(("jaxcal.sim", "jaxcal.cli", "mujoco")) or d == "jaxcal.sim":
                 bad.append(f"{m} -> {d}")
     assert bad == []
+
+
+#: What the numeric core may import besides itself.
+CORE_MAY_IMPORT = ("jaxcal.errors", "jaxcal.records")
+#: Product packages whose private modules only the package itself imports.
+PRODUCT_PACKAGES = ("jaxcal.handeye",)
+
+
+def _is_core(name: str) -> bool:
+    parts = name.split(".")
+    return len(parts) > 1 and parts[0] == "jaxcal" and parts[1].startswith("_") and parts[1] != "__main__"
+
+
+def test_the_core_imports_no_edge_and_no_product():
+    found = [
+        f"{m} -> {d}"
+        for m, deps in _graph().items()
+        if _is_core(m)
+        for d in sorted(deps)
+        if d.startswith("jaxcal.") and not _is_core(d) and d not in CORE_MAY_IMPORT
+    ]
+    assert found == [], "the numeric core is pure: move the impure part to an edge or a product package"
+
+
+def test_product_packages_keep_their_steps_private():
+    found = [
+        f"{m} -> {d}"
+        for m, deps in _graph().items()
+        for pkg in PRODUCT_PACKAGES
+        if not (m == pkg or m.startswith(pkg + "."))
+        for d in sorted(deps)
+        if d.startswith(pkg + "._")
+    ]
+    assert found == [], "import what the package exports (its __init__), not its private modules"
 
 
 def test_functions_and_modules_stay_small():
