@@ -271,9 +271,11 @@ def parameter_rows(rows) -> tuple[ParameterRow, ...]:
 
 @dataclass(frozen=True, eq=False)
 class Intrinsics(Record):
-    """The first camera's intrinsics: given, self-calibrated, or refined with the robot."""
+    """A camera's intrinsics: given, self-calibrated, or refined with the robot (the calibration's
+    first camera; each camera of a hand-eye capture, `jaxcal.handeye`)."""
 
-    #: `metadata`, `self-calibrated (ChArUco)`, or `none (...)` for tracker data.
+    #: `metadata`, `self-calibrated (ChArUco)`, or `none (...)` for tracker data; hand-eye:
+    #: `given` or `self-calibrated`.
     source: str
     #: Self-calibration's reprojection RMS (px).
     rms_px: float | None = optional()

@@ -15,6 +15,7 @@ import numpy as np
 from ._kinematics import REVOLUTE
 from ._tables import PhysicalTable, base_flange_std, physical_table
 from .io._files import atomic_directory
+from .io.camera_yaml import intrinsics_fields, pose_fields, write_camera_yaml
 from .io.dataset import write_json
 from .io.dh_tables import dh_table_json, is_table_file
 from .io.result import ESTIMATE_FILE, pose_figures, write_estimate
@@ -213,27 +214,18 @@ def _plots(result, out: Path) -> list[tuple[str, str]]:
 
 
 def _camera_yaml(path: Path, name: str, T_cam_base, std, K, dist, *, T_flange_cam=None) -> None:
-    """OpenCV YAML of one camera: intrinsics and its pose. With `T_flange_cam`
-    (eye-in-hand) the pose is the camera's on the flange, and `T_cam_base`
+    """OpenCV YAML of one camera (`jaxcal.io.camera_yaml`): intrinsics and its pose. With
+    `T_flange_cam` (eye-in-hand) the pose is the camera's on the flange, and `T_cam_base`
     holds the board's $T_{board,base}$ (written under that name)."""
-    import cv2
-
-    fixed = "T_cam_base" if T_flange_cam is None else "T_board_base"
-    inverse = "T_base_cam" if T_flange_cam is None else "T_base_board"
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    try:
-        fs.write("camera_name", name)
-        if T_flange_cam is not None:
-            fs.write("T_flange_cam", np.asarray(T_flange_cam, np.float64))
-            fs.write("T_cam_flange", np.linalg.inv(T_flange_cam))
-        fs.write(fixed, np.asarray(T_cam_base, np.float64))
-        fs.write(inverse, np.linalg.inv(T_cam_base))
-        # 1-sigma of the right-multiplied twist T = T0 @ exp(xi): tx ty tz (m), rx ry rz (rad).
-        fs.write(f"{fixed}_std", np.asarray(std, np.float64).reshape(1, -1))
-        fs.write("camera_matrix", np.asarray(K, np.float64))
-        fs.write("distortion_coefficients", np.asarray(dist, np.float64).reshape(1, -1))
-    finally:
-        fs.release()
+    fields = [("camera_name", name)]
+    if T_flange_cam is not None:
+        fields += pose_fields("T_flange_cam", T_flange_cam, inverse="T_cam_flange")
+    fixed, inverse = (
+        ("T_cam_base", "T_base_cam") if T_flange_cam is None else ("T_board_base", "T_base_board")
+    )
+    # 1-sigma of the right-multiplied twist T = T0 @ exp(xi): tx ty tz (m), rx ry rz (rad).
+    fields += pose_fields(fixed, T_cam_base, std, inverse=inverse)
+    write_camera_yaml(path, fields + intrinsics_fields(K, dist))
 
 
 def dh_tables(result) -> dict[str, PhysicalTable]:

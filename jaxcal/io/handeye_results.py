@@ -16,7 +16,6 @@ The directory is written atomically (`jaxcal.io._files.atomic_directory`).
 import json
 from pathlib import Path
 
-import cv2
 import jax
 import numpy as np
 import optimistix as optx
@@ -24,6 +23,7 @@ import optimistix as optx
 from .._npgeom import matrix_to_quaternion
 from . import ros
 from ._files import atomic_directory
+from .camera_yaml import intrinsics_fields, pose_fields, write_camera_yaml
 
 #: `result.json`'s schema for a `jaxcal handeye` result (what `jaxcal check` recognises).
 HANDEYE_RESULT_SCHEMA = "jaxcal.handeye_result"
@@ -222,22 +222,17 @@ def _robot_noise(r) -> "dict | None":
 
 
 def write_opencv_yaml(path: Path, run, c: int) -> None:
-    """OpenCV FileStorage YAML: `T_robot_cam` (4x4), `K`, `distortion`, `std` (6: m, rad) and the frames."""
+    """OpenCV FileStorage YAML (`jaxcal.io.camera_yaml`): `T_robot_cam` (4x4), `K`, `distortion`,
+    `std` (6: m, rad) and the frames."""
     parent, child = camera_frames(run, c)
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    try:
-        fs.write("arrangement", run.capture.arrangement)
-        fs.write("parent_frame", parent)
-        fs.write("child_frame", child)
-        fs.write("T_robot_cam", np.asarray(run.result.T_robot_cam[c], np.float64))
-        fs.write("std_robot_cam", np.asarray(run.result.std_robot_cam[c], np.float64).reshape(1, 6))
-        fs.write("K", np.asarray(run.intrinsics[c].K, np.float64))
-        fs.write("distortion", np.asarray(run.intrinsics[c].distortion, np.float64).reshape(1, -1))
-        fs.write("image_width", run.capture.cameras[c].width)
-        fs.write("image_height", run.capture.cameras[c].height)
-        fs.write("status", run.verdict.status)
-    finally:
-        fs.release()
+    cam, intrinsics = run.capture.cameras[c], run.intrinsics[c]
+    fields = [("arrangement", run.capture.arrangement), ("parent_frame", parent), ("child_frame", child)]
+    fields += pose_fields(
+        "T_robot_cam", run.result.T_robot_cam[c], run.result.std_robot_cam[c], std_key="std_robot_cam"
+    )
+    fields += intrinsics_fields(intrinsics.K, intrinsics.distortion, keys=("K", "distortion"))
+    fields += [("image_width", cam.width), ("image_height", cam.height), ("status", run.verdict.status)]
+    write_camera_yaml(path, fields)
 
 
 def static_transform_args(run, c: int) -> dict:
