@@ -411,7 +411,7 @@ def _write_capture(root, fmt="xyz_quat", unit="m", rot_unit="rad", frames=4, ima
     rng = np.random.default_rng(8)
     T = np.stack([_pose(rng.normal(0.0, 0.5, 3), rng.normal(0.0, 0.3, 3)) for _ in range(frames)])
     names = [f"f{i}" for i in range(frames)]
-    cams = [HandEyeCamera("cam0", 64, 48, K, DIST, "cam0_optical_frame")]
+    cams = [HandEyeCamera("cam0", 640, 480, K, DIST, "cam0_optical_frame")]  # K is a 640x480 camera's
     root.mkdir(parents=True, exist_ok=True)
     write_hand_eye_description(
         root,
@@ -490,6 +490,12 @@ def _set(row, i, value):
         (
             lambda r, m: m["cameras"][0].update(distortion=[0.1, 0.2, 0.3]),
             r"camera 'cam0' field 'distortion'",
+        ),
+        (  # the camera block is checked as the dataset's is (jaxcal.io._schema)
+            lambda r, m: m["cameras"][0].update(
+                K=[[600.0, 0.0, 9000.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]]
+            ),
+            r"camera 'cam0' field 'K': principal point \(9000, 240\) lies outside",
         ),
         (lambda r, m: (r / "images" / "cam0" / "f2.png").unlink(), r"no image for frame\(s\) \['f2'\]"),
         (lambda r, m: m.update(schema_version=7), r"unknown schema_version 7"),

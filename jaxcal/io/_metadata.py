@@ -185,26 +185,6 @@ def _read_table_robot(robot: dict, loc: Loc, root: Path):
     return path, t.base_link, t.flange_link, tuple(joints), t.joint_limits(), links
 
 
-def _intrinsics(x, loc: Loc, width: int, height: int) -> np.ndarray:
-    K = sc.array(x, loc, (3, 3))
-    fx, fy = K[0, 0], K[1, 1]
-    if not (fx > 0 and fy > 0):
-        raise loc.fail(f"focal lengths K[0][0], K[1][1] must be positive, got fx = {fx:g}, fy = {fy:g}")
-    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0:
-        raise loc.fail(
-            f"the entries below the diagonal must be 0, got {[float(K[1, 0]), float(K[2, 0]), float(K[2, 1])]}"
-        )
-    if K[2, 2] != 1:
-        raise loc.fail(f"bottom row must be [0, 0, 1], got {K[2].tolist()}")
-    cx, cy = K[0, 2], K[1, 2]
-    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
-        raise loc.fail(
-            f"principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image "
-            "(pixel centres run from 0 to width - 1)"
-        )
-    return K
-
-
 def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
     cams = meta["cameras"]
     if not isinstance(cams, list) or not cams:
@@ -228,11 +208,8 @@ def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
                 f"{width}x{height} pixels is more than the {MAX_PIXELS / 1e6:.0f} megapixels jaxcal reads"
             )
         K = c.get("K")
-        K = None if K is None else _intrinsics(K, w.key("K"), width, height)
-        dist = c.get("distortion", [0.0] * 5)
-        if not isinstance(dist, list) or len(dist) not in (4, 5, 8, 12, 14):
-            raise w.key("distortion").expected("a list of 4, 5, 8, 12 or 14 OpenCV coefficients", dist)
-        dist = sc.array(dist, w.key("distortion"), (None,))
+        K = None if K is None else sc.camera_matrix(K, w.key("K"), width, height)
+        dist = sc.distortion(c.get("distortion", [0.0] * 5), w.key("distortion"))
         mount = sc.string(c.get("mount", "world"), w.key("mount"))
         if mount != "world" and mount not in links:
             raise w.key("mount").fail(f"{mount!r} is neither 'world' nor a link of the robot")

@@ -195,6 +195,39 @@ def pose(x, loc: Loc) -> np.ndarray:
     return T
 
 
+#: The lengths of OpenCV's distortion models (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]]).
+DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+
+
+def camera_matrix(x, loc: Loc, width: int, height: int) -> np.ndarray:
+    """A camera matrix `[[fx, s, cx], [0, fy, cy], [0, 0, 1]]` (px): focal lengths positive,
+    the principal point inside the `width` x `height` image."""
+    K = array(x, loc, (3, 3))
+    fx, fy = K[0, 0], K[1, 1]
+    if not (fx > 0 and fy > 0):
+        raise loc.fail(f"focal lengths K[0][0], K[1][1] must be positive, got fx = {fx:g}, fy = {fy:g}")
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0:
+        raise loc.fail(
+            f"the entries below the diagonal must be 0, got {[float(K[1, 0]), float(K[2, 0]), float(K[2, 1])]}"
+        )
+    if K[2, 2] != 1:
+        raise loc.fail(f"bottom row must be [0, 0, 1], got {K[2].tolist()}")
+    cx, cy = K[0, 2], K[1, 2]
+    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+        raise loc.fail(
+            f"principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image "
+            "(pixel centres run from 0 to width - 1)"
+        )
+    return K
+
+
+def distortion(x, loc: Loc) -> np.ndarray:
+    """OpenCV distortion coefficients: a list of 4, 5, 8, 12 or 14 finite numbers."""
+    if not isinstance(x, list) or len(x) not in DISTORTION_LENGTHS:
+        raise loc.expected("a list of 4, 5, 8, 12 or 14 OpenCV coefficients", x)
+    return array(x, loc, (None,))
+
+
 def names(x, loc: Loc, *, unique: bool = True) -> list[str]:
     """A non-empty list of non-empty strings (distinct when `unique`)."""
     if not isinstance(x, list) or not x:

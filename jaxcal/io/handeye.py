@@ -34,6 +34,7 @@ import numpy as np
 from .._npgeom import matrix_to_quaternion, quaternion_to_matrix, rotvec_to_matrix
 from ..errors import DatasetError
 from ..markers import TargetSpec
+from . import _schema as sc
 
 SCHEMA = "jaxcal.handeye"
 SCHEMA_VERSION = 1
@@ -156,18 +157,6 @@ def _choice(d: dict, key: str, allowed, where: str) -> str:
     return value
 
 
-def _matrix(x, shape, where: str) -> np.ndarray:
-    try:
-        a = np.asarray(x, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DatasetError(f"{where}: not a numeric array, got {x!r}") from None
-    if a.shape != shape:
-        raise DatasetError(f"{where}: expected shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise DatasetError(f"{where}: contains NaN or inf")
-    return a
-
-
 def _positive_int(d: dict, key: str, where: str) -> int:
     value = _require(d, key, where)
     if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
@@ -187,22 +176,16 @@ def _cameras(meta: dict, where: str) -> tuple[HandEyeCamera, ...]:
             raise DatasetError(f"{w}: field 'name' must be a non-empty string without '/', got {name!r}")
         w = f"{where}: camera {name!r}"
         width, height = _positive_int(c, "width", w), _positive_int(c, "height", w)
+        # The camera block's checks are the dataset's (`jaxcal.io._schema`), named as this file names them.
         K = c.get("K")
-        if K is not None:
-            K = _matrix(K, (3, 3), f"{w} field 'K'")
-            if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0.0, 0.0, 1.0]) and K[1, 0] == 0):
-                raise DatasetError(
-                    f"{w} field 'K': expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0"
-                )
-        dist = c.get("distortion", [0.0] * 5)
-        try:
-            dist = np.asarray(dist, np.float64).ravel()
-        except (TypeError, ValueError):
-            raise DatasetError(f"{w} field 'distortion': not numeric, got {dist!r}") from None
-        if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
-            raise DatasetError(
-                f"{w} field 'distortion': expected 4, 5, 8, 12 or 14 finite OpenCV coefficients, got {dist.size}"
-            )
+        K = (
+            None
+            if K is None
+            else sc.camera_matrix(K, sc.Loc(where, f"camera {name!r} field 'K'"), width, height)
+        )
+        dist = sc.distortion(
+            c.get("distortion", [0.0] * 5), sc.Loc(where, f"camera {name!r} field 'distortion'")
+        )
         frame_id = c.get("frame_id", f"{name}_optical_frame")
         if not isinstance(frame_id, str) or not frame_id:
             raise DatasetError(f"{w} field 'frame_id': must be a non-empty string, got {frame_id!r}")
