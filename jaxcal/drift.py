@@ -34,6 +34,7 @@ $\\chi^2_{3S-k}$ when a rigid motion (and the offsets) explain the change: a lar
 value says something else changed (the robot, the point's mount).
 """
 
+import importlib
 import json
 from dataclasses import dataclass, replace
 from functools import partial
@@ -42,7 +43,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import optimize, stats
 
 from ._buckets import bucket, pad_log
 from ._correction import ParameterLayout
@@ -59,6 +59,13 @@ from .io.model_json import model_from_json
 from .io.result import ESTIMATE_FILE, read_estimate
 from .stages._points import point_problem
 from .vision import detect_frames
+
+
+def _stats():
+    """`scipy.stats`, imported when a test first needs it: `jaxcal plan` and `jaxcal
+    calibrate` import this module and should not pay a second for it."""
+    return importlib.import_module("scipy.stats")
+
 
 #: The test's false-alarm probability, and the power the detectable change is quoted at.
 ALPHA, POWER = 0.05, 0.95
@@ -138,6 +145,7 @@ def whitening(R: np.ndarray) -> np.ndarray:
 def power(lam, dof: int, alpha: float = ALPHA, dof_noise: int | None = None):
     """The test's power against a drift of non-centrality `lam`: non-central chi-square, or
     with `dof_noise` (the noise scale estimated on that many degrees of freedom) non-central F."""
+    stats = _stats()
     if dof_noise is None:
         return stats.ncx2.sf(stats.chi2.ppf(1 - alpha, dof), dof, lam)
     x = stats.f.ppf(1 - alpha, dof, dof_noise)
@@ -151,12 +159,14 @@ def power(lam, dof: int, alpha: float = ALPHA, dof_noise: int | None = None):
 
 def threshold(dof: int, alpha: float = ALPHA, dof_noise: int | None = None) -> float:
     """The level-`alpha` threshold of $T$: $\\chi^2_{k}(1 - \\alpha)$, or $k F_{k, n}(1 - \\alpha)$."""
+    stats = _stats()
     if dof_noise is None:
         return float(stats.chi2.ppf(1 - alpha, dof))
     return float(dof * stats.f.ppf(1 - alpha, dof, dof_noise))
 
 
 def p_value(T: float, dof: int, dof_noise: int | None = None) -> float:
+    stats = _stats()
     return float(stats.chi2.sf(T, dof) if dof_noise is None else stats.f.sf(T / dof, dof, dof_noise))
 
 
@@ -164,7 +174,11 @@ def noncentrality_for_power(
     dof: int, p: float = POWER, alpha: float = ALPHA, dof_noise: int | None = None
 ) -> float:
     """$\\lambda^*$ with `power(lambda*) = p`."""
-    return float(optimize.brentq(lambda lam: power(lam, dof, alpha, dof_noise) - p, 1e-9, 1e4))
+    return float(
+        importlib.import_module("scipy.optimize").brentq(
+            lambda lam: power(lam, dof, alpha, dof_noise) - p, 1e-9, 1e4
+        )
+    )
 
 
 def detectable(C: np.ndarray, alpha: float = ALPHA, p: float = POWER, dof_noise: int | None = None) -> dict:
@@ -318,7 +332,7 @@ def verdict(
             j: (float(np.degrees(e)), float(np.degrees(s))) for j, e, s in zip(joint_names, theta[6:], sd)
         }
     det = detectable(C, dof_noise=dof_noise)
-    residual = {"sum_of_squares": rss, "dof": dof_r, "p_value": float(stats.chi2.sf(rss, dof_r))}
+    residual = {"sum_of_squares": rss, "dof": dof_r, "p_value": float(_stats().chi2.sf(rss, dof_r))}
     law = f"chi2 on {k} dof" if dof_noise is None else f"{k} F({k}, {dof_noise})"
     stat = f"T {T:.1f}, threshold {thr:.1f} ({law}), p = {p_value(T, k, dof_noise):.3g}"
     if detected:
