@@ -399,31 +399,19 @@ def plan(
     scene = scene_of(rob, camera, target, floor_z, where="plan")
     limits = FeasibilityLimits() if limits is None else limits
     if checker_factory is not None:
-        draft = CapturePlan(
-            robot, tuple(rob.model.joint_names), camera, target, q0, (PoseSet(q0[None]),), floor_z
+        checker = checker_factory(
+            CapturePlan(
+                robot, tuple(rob.model.joint_names), camera, target, q0, (PoseSet(q0[None]),), floor_z
+            )
         )
-        checker = checker_factory(draft)
     _budget(scene, frames, sweeps=False)
     _check_taught(scene, limits, q0, checker)
     configs = workspace(rob, scene, region)
     amplitude = np.radians(amplitude_deg)
     best, greedy = None, None
     for attempt in range(3 if goal_mm is not None else 1):
-        t0 = time.perf_counter()
-        say(
-            f"candidates: {candidates} random poses within {np.degrees(amplitude):.0f} deg of the taught pose"
-        )
-        cands, counts = candidate_poses(
-            scene, limits, q0, candidates, amplitude, jax.random.key(seed + attempt), checker
-        )
-        timings["candidates_s"] = time.perf_counter() - t0
-        if len(cands) == 0:
-            raise CameraViewError(
-                f"the camera sees the target in none of {candidates} poses about the taught pose (first failing "
-                f"check: {', '.join(f'{k} {v}' for k, v in counts.items() if k in CHECKS)})"
-            )
-        say(
-            f"{len(cands)} feasible ({counts['passed']} as drawn, {counts['moved']} moved toward the taught pose)"
+        cands, counts = _feasible_candidates(
+            scene, limits, q0, candidates, amplitude, seed + attempt, checker, say, timings
         )
         got = _choose(scene, limits, q0, cands, frames, configs, method=method, starts=starts, steps=steps,
                       sigma_px=sigma_px, seed=seed + attempt, checker=checker, timings=timings)  # fmt: skip
@@ -439,20 +427,31 @@ def plan(
     poses, corrections, ev = best
     timings["plan_s"] = time.perf_counter() - t_start
     result = CapturePlan(
-        robot=robot,
-        joints=tuple(rob.model.joint_names),
-        camera=camera,
-        target=target,
-        taught=q0,
-        segments=(PoseSet(poses),),
-        floor_z=floor_z,
-        checks=limits.to_dict(),
-        corrections=tuple(corrections),
-        prediction=ev.summary()
-        | {"method": method, "workspace": "region" if region is not None else "random"},
+        robot, tuple(rob.model.joint_names), camera, target, q0, (PoseSet(poses),), floor_z,
+        checks=limits.to_dict(), corrections=tuple(corrections),
+        prediction=ev.summary() | {"method": method, "workspace": "region" if region is not None else "random"},
         description=f"{len(poses)} stop-and-shoot poses planned by jaxcal plan ({method})",
-    )
+    )  # fmt: skip
     return PlanResult(result, ev, greedy, counts, timings)
+
+
+def _feasible_candidates(
+    scene, limits, q0, candidates: int, amplitude: float, seed: int, checker, say, timings: dict
+):
+    """`candidate_poses` about the taught pose (said and timed); `CameraViewError` when none is feasible."""
+    t0 = time.perf_counter()
+    say(f"candidates: {candidates} random poses within {np.degrees(amplitude):.0f} deg of the taught pose")
+    cands, counts = candidate_poses(scene, limits, q0, candidates, amplitude, jax.random.key(seed), checker)
+    timings["candidates_s"] = time.perf_counter() - t0
+    if len(cands) == 0:
+        raise CameraViewError(
+            f"the camera sees the target in none of {candidates} poses about the taught pose (first failing "
+            f"check: {', '.join(f'{k} {v}' for k, v in counts.items() if k in CHECKS)})"
+        )
+    say(
+        f"{len(cands)} feasible ({counts['passed']} as drawn, {counts['moved']} moved toward the taught pose)"
+    )
+    return cands, counts
 
 
 def with_prediction(plan_: CapturePlan, evaluation: PlanEvaluation) -> CapturePlan:

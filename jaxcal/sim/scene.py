@@ -315,6 +315,21 @@ def build_scene(
     if len(set(names)) != len(names):
         raise ValueError(f"camera and target names must be unique, got {names}")
 
+    spec = _environment(cameras, floor_z, shadows)
+    bodies = _arm(spec.worldbody, model, T_world_base, link_radius)
+
+    for i, plate in enumerate(plates):
+        add_plate(spec, bodies[plate.link], plate, i)
+    for cam in cameras:
+        T = np.asarray(cam.T_mount_cam, np.float64)
+        bodies[cam.mount].add_camera(
+            name=cam.name, pos=T[:3, 3], quat=mujoco_quat(T[:3, :3] @ _CV_FROM_MJ), fovy=float(cam.fovy_deg)
+        )
+    return Scene(spec, plates, cameras, links, joints)
+
+
+def _environment(cameras, floor_z: float | None, shadows: bool) -> "mujoco.MjSpec":
+    """A scene's spec with its off-screen buffer, light, sky and floor (`build_scene`)."""
     spec = mujoco.MjSpec()
     spec.modelname = "jaxcal_scene"
     width = max(c.supersample * c.width for c in cameras) if cameras else 640
@@ -345,7 +360,12 @@ def build_scene(
             conaffinity=0,
         )
     world.add_light(pos=[0.0, 0.0, 3.0], dir=[0.0, 0.0, -1.0], diffuse=[0.5, 0.5, 0.5], castshadow=shadows)
+    return spec
 
+
+def _arm(world, model, T_world_base, link_radius: float) -> dict:
+    """The arm's bodies under `world` (base, links, flange), by link name (and `"world"`)."""
+    links, joints = tuple(model.link_names), tuple(model.joint_names)
     T_parent_joint = np.asarray(model.T_parent_joint, np.float64)
     axes = np.asarray(model.axis, np.float64)
     T_last_flange = np.asarray(model.T_last_flange, np.float64)
@@ -384,12 +404,4 @@ def build_scene(
     )
     bodies[links[-1]] = flange
     bodies["world"] = world
-
-    for i, plate in enumerate(plates):
-        add_plate(spec, bodies[plate.link], plate, i)
-    for cam in cameras:
-        T = np.asarray(cam.T_mount_cam, np.float64)
-        bodies[cam.mount].add_camera(
-            name=cam.name, pos=T[:3, 3], quat=mujoco_quat(T[:3, :3] @ _CV_FROM_MJ), fovy=float(cam.fovy_deg)
-        )
-    return Scene(spec, plates, cameras, links, joints)
+    return bodies

@@ -354,27 +354,10 @@ def simulate(
     plates_nominal, plates_true, cameras_nominal, cameras_true = _layouts(nominal, true, config, rng, layout)
     names = nominal.joint_names
     nominal_ratio = np.asarray(nominal.reduction_ratio)
-
-    sweeps = trajectory is None
-    if sweeps:
-        home = None if config.home_deg is None else np.radians(config.home_deg)
-        trajectory = joint_sweeps(
-            names, sweep_ranges(nominal, config), sweep_s=config.frames_per_joint / config.fps, home=home
-        )
-    elif trajectory.q.shape[1] != len(names):
-        raise ValueError(f"trajectory has {trajectory.q.shape[1]} joints, the robot {len(names)}")
-    clock = ClockModel(
-        config.fps, config.clock_offset_ms, config.clock_drift_ppm, config.clock_jitter_ms, config.drop_rate
-    )
     arm = arm_model(config.arm)
-    encoder = arm.encoder(config.encoder_rate_hz, config.encoder_noise_counts)
-    enc_t, enc_motor = encoder_stream(trajectory, nominal_ratio, encoder, rng)
-    t_frames = (
-        np.concatenate(frame_times_of(trajectory, config.frames_per_joint if sweeps else None, clock))
-        if frame_times is None
-        else np.asarray(frame_times, np.float64)
+    trajectory, clock, encoder, (enc_t, enc_motor), t_frames, keep = _motion(
+        config, nominal, arm, trajectory, frame_times, rng
     )
-    keep = rng.random(len(t_frames)) >= clock.drop_rate
     angles_at = _angles_at(arm, trajectory, nominal_ratio, true, urdf_path)
     theta = angles_at(t_frames)
     noise_rng = np.random.default_rng([config.seed, 1])  # the camera's own draws: the capture stays the same
@@ -440,6 +423,34 @@ def simulate(
             truth | {"dropped_frames": np.flatnonzero(~keep).tolist(), "frames": truth_frames},
         )
     return out
+
+
+def _motion(config: SimConfig, nominal, arm: ArmModel, trajectory, frame_times, rng):
+    """The capture's motion and its records: `(trajectory, clock, encoder, (enc_t, enc_motor),
+    t_frames, keep)`, the commanded trajectory (default: joint-by-joint sweeps), the camera
+    clock, the encoder model and its log, the frames' controller times and which frames are
+    kept (drawn from `rng` in this order: the log's noise, then the dropped frames)."""
+    names = nominal.joint_names
+    sweeps = trajectory is None
+    if sweeps:
+        home = None if config.home_deg is None else np.radians(config.home_deg)
+        trajectory = joint_sweeps(
+            names, sweep_ranges(nominal, config), sweep_s=config.frames_per_joint / config.fps, home=home
+        )
+    elif trajectory.q.shape[1] != len(names):
+        raise ValueError(f"trajectory has {trajectory.q.shape[1]} joints, the robot {len(names)}")
+    clock = ClockModel(
+        config.fps, config.clock_offset_ms, config.clock_drift_ppm, config.clock_jitter_ms, config.drop_rate
+    )
+    encoder = arm.encoder(config.encoder_rate_hz, config.encoder_noise_counts)
+    log = encoder_stream(trajectory, np.asarray(nominal.reduction_ratio), encoder, rng)
+    t_frames = (
+        np.concatenate(frame_times_of(trajectory, config.frames_per_joint if sweeps else None, clock))
+        if frame_times is None
+        else np.asarray(frame_times, np.float64)
+    )
+    keep = rng.random(len(t_frames)) >= clock.drop_rate
+    return trajectory, clock, encoder, log, t_frames, keep
 
 
 def _angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path):

@@ -406,42 +406,13 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         loss=LOSS,
     )
     if kind.per_view_angles:
-        g0 = layout.index("angles")[0]
-        a = np.asarray(res.params.angles)
-        summary["joint_angles"] = {
-            "note": "no encoder log: each sweep frame's joint angle was estimated from the images "
-            "(commanded coordinates; the other joints at zero); reduction ratios are not identifiable",
-            "views": [
-                {
-                    "frame": int(f),
-                    "joint": nominal.joint_names[j],
-                    "angle_deg": float(np.degrees(a[k])),
-                    "std_deg": float(np.degrees(std[g0 + k])),
-                }
-                for k, (f, j) in enumerate(zip(frame, corners.sweep))
-            ],
-        }
+        summary["joint_angles"] = _joint_angles(nominal, corners, res, layout, std)
         summary["std"] = {nm: sd for nm, sd in summary["std"].items() if nm not in set(layout.angles)}
     cams_v = np.zeros(len(frame), int) if not corners.others else np.array(corners.camera)
     summary["views_per_camera"] = {
         v.camera.name: int((cams_v == c).sum()) for c, v in enumerate(corners.used)
     }
-    T_all = np.asarray(res.T_cam_bases)
-    others = []
-    for c, v in enumerate(corners.used[1:], start=1):
-        k = layout.index("others")[6 * (c - 1)]
-        T0, K, d5 = corners.others[c - 1]
-        others.append(
-            OtherCamera(
-                camera=v.camera.name,
-                T_cam_base=T_all[c],
-                std_cam=std[k : k + 6],
-                views=summary["views_per_camera"][v.camera.name],
-                T_cam_base_start=np.asarray(T0),
-                K=np.asarray(K),
-                distortion=np.asarray(d5),
-            )
-        )
+    others = _other_cameras(corners, res, layout, std, summary["views_per_camera"])
     warnings = list(corners.warnings)
     if summary["outlier_frames"]:
         warnings.append(
@@ -473,6 +444,46 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
             mount_names=tuple(mount_names),
         ),
     )
+
+
+def _joint_angles(nominal, corners: _Corners, res, layout: ParameterLayout, std) -> dict:
+    """Without an encoder log: every sweep frame's joint angle estimated from the images."""
+    g0 = layout.index("angles")[0]
+    a = np.asarray(res.params.angles)
+    return {
+        "note": "no encoder log: each sweep frame's joint angle was estimated from the images "
+        "(commanded coordinates; the other joints at zero); reduction ratios are not identifiable",
+        "views": [
+            {
+                "frame": int(f),
+                "joint": nominal.joint_names[j],
+                "angle_deg": float(np.degrees(a[k])),
+                "std_deg": float(np.degrees(std[g0 + k])),
+            }
+            for k, (f, j) in enumerate(zip(corners.frame, corners.sweep))
+        ],
+    }
+
+
+def _other_cameras(corners: _Corners, res, layout: ParameterLayout, std, views: dict) -> list[OtherCamera]:
+    """Every fixed camera the refinement added beside the first: its pose, std and start."""
+    T_all = np.asarray(res.T_cam_bases)
+    others = []
+    for c, v in enumerate(corners.used[1:], start=1):
+        k = layout.index("others")[6 * (c - 1)]
+        T0, K, d5 = corners.others[c - 1]
+        others.append(
+            OtherCamera(
+                camera=v.camera.name,
+                T_cam_base=T_all[c],
+                std_cam=std[k : k + 6],
+                views=views[v.camera.name],
+                T_cam_base_start=np.asarray(T0),
+                K=np.asarray(K),
+                distortion=np.asarray(d5),
+            )
+        )
+    return others
 
 
 def _delay_rows(corners: _Corners, res, layout: ParameterLayout, free) -> tuple[LineDelay, ...]:
