@@ -151,6 +151,22 @@ class Record(Mapping):
     __hash__ = None  # type: ignore[assignment]
 
 
+@dataclass(frozen=True)
+class Judgement:
+    """What both products' verdicts say first (`jaxcal.stages.Verdict`, `jaxcal.HandEyeVerdict`):
+    `status` (`ok`, `suspect`, or for the calibration `failed`) and the `reasons` it is not ok
+    (empty when ok). Each verdict adds its own: the calibration its checks with value and limit,
+    hand-eye its notes."""
+
+    status: str
+    reasons: tuple[str, ...]
+
+    @property
+    def ok(self) -> bool:
+        """Whether the status is `ok`."""
+        return self.status == "ok"
+
+
 @dataclass(frozen=True, eq=False)
 class Named(Record):
     """One entry of a `{name: value}` block: a joint's count, a parameter's std."""

@@ -18,6 +18,7 @@ import numpy as np
 import optimistix as optx
 
 from .._npgeom import rotation_angle
+from ..records import Judgement
 from .consistency import MotionConsistency
 from .data import HandEyeData, HandEyePixels
 from .solve import HandEyeResult
@@ -109,8 +110,8 @@ def kfold_spread(
 
 
 @dataclass(frozen=True)
-class HandEyeVerdict:
-    """Whether a hand-eye result can be trusted.
+class HandEyeVerdict(Judgement):
+    """Whether a hand-eye result can be trusted (the calibration's verdict's shape, `Judgement`).
 
     - `status`: `"ok"` or `"suspect"`.
     - `reasons`: why it is suspect (empty when ok).
@@ -118,13 +119,7 @@ class HandEyeVerdict:
       (inconsistent or rejected frames, the k-fold spread against the std).
     """
 
-    status: str
-    reasons: tuple[str, ...]
     notes: tuple[str, ...]
-
-    @property
-    def ok(self) -> bool:
-        return self.status == "ok"
 
 
 def _message(code) -> str:

@@ -17,7 +17,7 @@ import numpy as np
 
 from .._kinematics import joint_axes
 from .._npgeom import line_distance
-from ..records import ParameterRow
+from ..records import Judgement, ParameterRow
 from . import _programs
 from ._armcheck import arm_check
 from ._blur import blur_rows
@@ -30,12 +30,10 @@ from .limits import Limits
 
 
 @dataclass(frozen=True)
-class Verdict:
-    """`status` (`ok`, `suspect` or `failed`), the failed checks' `reasons`,
-    and every check with its value and limit (`checks`)."""
+class Verdict(Judgement):
+    """`status` (`ok`, `suspect` or `failed`), the failed checks' `reasons` (`Judgement`, the
+    shape hand-eye's verdict shares), and every check with its value and limit (`checks`)."""
 
-    status: str
-    reasons: tuple[str, ...]
     checks: tuple[dict, ...] = field(default_factory=tuple)
 
 
