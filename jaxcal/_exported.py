@@ -344,9 +344,10 @@ def _write(path: Path, key: bytes, exported, out_tree) -> None:
 
 # ---------------------------------------------------------------------- reading ahead
 
-#: Threads that read entries ahead: XLA reads an executable without Python's lock, so a
-#: second one keeps both cores busy while the run waits for the first program it needs.
-AHEAD_THREADS = min(2, os.cpu_count() or 1)
+#: Threads that read entries ahead. XLA reads an executable without Python's lock, but a
+#: second thread bought nothing measurable on two cores (warm `jaxcal calibrate
+#: data/ur5e_sweeps`, alternating runs: docs/performance.md), so one keeps it simple.
+AHEAD_THREADS = 1
 #: Entries read ahead by `warm_start`, by file name: futures of `(key, _Entry)` or `None`.
 _AHEAD: dict[str, Future] = {}
 _AHEAD_LOCK = threading.Lock()
