@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxcal"
 KINDS = PACKAGE / "stages" / "kinds.py"
 #: The typed rows and blocks the stages' records hold (`jaxcal.records`).
-RECORDS = PACKAGE / "records.py"
+RECORDS = sorted(PACKAGE.glob("records*.py"))  # records.py and records_<topic>.py
 #: The least-squares kit: a covariance computed here is the one route.
 KIT = (PACKAGE / "_lsq.py", PACKAGE / "_linalg.py")
 BAG_TYPES = {"dict", "list", "object", "Any", "Dict", "List", "Mapping"}
@@ -93,7 +93,7 @@ def _is_record(cls: ast.ClassDef) -> bool:
 def record_fields() -> dict:
     """Per public record of `jaxcal/stages/`: its fields and the bag-typed ones."""
     records = {}
-    for p in [*_files(PACKAGE / "stages"), *([RECORDS] if RECORDS.is_file() else [])]:
+    for p in [*_files(PACKAGE / "stages"), *RECORDS]:
         for cls in ast.walk(_parse(p)):
             if (
                 not (isinstance(cls, ast.ClassDef) and _is_record(cls))
