@@ -9,7 +9,9 @@ found so that a figure can be checked by eye:
   `dict`, `list`, `object` or `Any` (with or without `| None`), per record.
 - `string_key_reads`: subscripts by a string constant read in `jaxcal/`
   (`v["trans_mm"]`, not stores), and `string_key_gets`: `.get("key", ...)` calls,
-  per file.
+  per file. The reads are also split: `string_key_reads_io`, those in `jaxcal/io/`
+  (the file-format readers, where a JSON key belongs), and `string_key_reads_elsewhere`,
+  results read through dicts (the figure that should go to zero).
 - `mode_tests`: capture-mode tests outside `jaxcal/stages/kinds.py`: a read of
   `.device`, `.eye_in_hand`, `.encoders`, `.device_is_base`, `.mount` or
   `.motion` on a capture kind (an expression ending in `kind`), or a `Motion.X` /
@@ -36,6 +38,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxcal"
 KINDS = PACKAGE / "stages" / "kinds.py"
+#: The file-format readers and writers: a string key read here is a file's key.
+IO = PACKAGE / "io"
 #: The typed rows and blocks the stages' records hold (`jaxcal.records`).
 RECORDS = sorted(PACKAGE.glob("records*.py"))  # records.py and records_<topic>.py
 #: The least-squares kit: a covariance computed here is the one route.
@@ -141,6 +145,11 @@ def string_keys() -> tuple[dict, dict]:
     return reads, gets
 
 
+def _in_io(rel: str) -> bool:
+    """Whether the file `rel` (relative to the repository) is one of `jaxcal/io/`'s."""
+    return (ROOT / rel).is_relative_to(IO)
+
+
 def _ends_in_kind(node: ast.expr) -> bool:
     return (isinstance(node, ast.Name) and node.id == "kind") or (
         isinstance(node, ast.Attribute) and node.attr == "kind"
@@ -227,6 +236,8 @@ def counts() -> dict:
         "record_fields": sum(r["fields"] for r in records.values()),
         "bag_fields": sum(len(r["bag_fields"]) for r in records.values()),
         "string_key_reads": sum(reads.values()),
+        "string_key_reads_io": sum(n for f, n in reads.items() if _in_io(f)),
+        "string_key_reads_elsewhere": sum(n for f, n in reads.items() if not _in_io(f)),
         "string_key_gets": sum(gets.values()),
         "mode_tests": len(modes),
         "mode_test_files": len({m.split(":")[0] for m in modes}),

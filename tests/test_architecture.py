@@ -40,18 +40,7 @@ FREE_FORM_FIELDS = {
     "kind and change with the stages; a `dict[str, float]` that no code branches on",
 }
 #: `Record.field: reason` for bag fields of the stages' inputs not typed yet (the results are).
-UNTYPED_FIELDS = {
-    "CameraObservations.detections": "per frame the detector's corners by target (read by the refinement's corner "
-    "collection only): not typed yet",
-    "CameraObservations.poses": "per frame the PnP `Pose`s by target: not typed yet",
-    "SampleObservations.camera": "the tracker's metadata record (`io._tracker`): not typed yet",
-    "SampleObservations.poses": "per sample the measured point as a `Pose`: not typed yet",
-    "Sync.clock": "built in stages/_synchronise.py (issue 32 at work there); the result's `Clock` is typed",
-    "Sync.counts": "built in stages/_synchronise.py (issue 32 at work there); `TwoStage.counts` is typed",
-    "Sync.timings": "stages/_synchronise.py (issue 32 at work there): to become `dict[str, float]`",
-    "Verdict.checks": "rows `{check, value, limit, passed}` built in stages/_verdict.py (its compiled checks at "
-    "work there): not typed yet",
-}
+UNTYPED_FIELDS: dict[str, str] = {}
 #: Configuration records (not results) and where the records live.
 CONFIG_RECORDS = {"Options", "Limits", "CaptureKind"}
 BAG_TYPES = {"dict", "list", "object", "Any", "Dict", "List", "Mapping"}

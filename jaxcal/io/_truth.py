@@ -1,16 +1,47 @@
 """Reading `truth.json`, the ground truth a synthetic dataset carries."""
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .._kinematics import KinematicModel
 from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
 from ._logs import MAX_FRAME_INDEX
 from ._metadata import MAX_DRIFT_PPM
 from ._schema import Loc
+from .model_json import model_from_json
 
 # --------------------------------------------------------------------------- reading: truth.json
+
+
+@dataclass(frozen=True, eq=False)
+class TruePoses:
+    """What a `truth.json` (as `read_truth` returns it) says of the frames a calibration
+    estimates, as arrays: per camera its pose in the base frame (when given) and on its mount,
+    per target its pose on its link, the base in the world and the clock offset."""
+
+    T_cam_base: dict[str, np.ndarray]
+    T_mount_cam: dict[str, np.ndarray]
+    T_link_target: dict[str, np.ndarray]
+    T_world_base: np.ndarray
+    clock_offset_s: float | None
+    #: The true kinematic model.
+    model: KinematicModel
+
+
+def true_poses(truth: dict) -> TruePoses:
+    """The frames of a checked `truth` (`read_truth`'s) as a `TruePoses`."""
+    cams, tgts = truth.get("cameras", {}), truth.get("targets", {})
+    return TruePoses(
+        T_cam_base={n: np.asarray(c["T_cam_base"]) for n, c in cams.items() if "T_cam_base" in c},
+        T_mount_cam={n: np.asarray(c["T_mount_cam"]) for n, c in cams.items() if "T_mount_cam" in c},
+        T_link_target={n: np.asarray(t["T_link_target"]) for n, t in tgts.items()},
+        T_world_base=np.asarray(truth.get("T_world_base", np.eye(4))),
+        clock_offset_s=truth.get("clock", {}).get("offset_s"),
+        model=model_from_json(truth["model"]),
+    )
 
 
 def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:

@@ -107,7 +107,7 @@ def result_to_json(result) -> dict:
         ],
         "validation": plain(result.validation),
         "warnings": list(result.warnings),
-        "checks": [] if result.verdict is None else list(result.verdict.checks),
+        "checks": [] if result.verdict is None else plain(result.verdict.checks),
         "model": model_to_json(result.model),
         **({"point_fit": point_fit_json(result.point_fit)} if result.point_fit is not None else {}),
     }

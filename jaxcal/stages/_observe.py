@@ -9,9 +9,10 @@ import numpy as np
 
 from .._clocksync import exposure_middle
 from ..errors import CalibrationError
-from ..io.dataset import CameraInfo, Dataset, TargetInfo
+from ..io.dataset import CameraInfo, Dataset, DeviceInfo, TargetInfo
 from ..records import Intrinsics
-from ..vision import PoseEstimate, calibrate_intrinsics, detect_frames, estimate_pose
+from ..records_stages import ByTarget
+from ..vision import Detection, PoseEstimate, calibrate_intrinsics, detect_frames, estimate_pose
 from ._setup import Options, Setup
 
 
@@ -22,8 +23,8 @@ class CameraObservations:
     - `rows`: the frame-table rows of this camera; `t_cam`: their camera-clock
       times (s), each frame's exposure middle when the metadata says where the
       stamp sits in the exposure (`frame_times`), else its stamp.
-    - `detections`: per row, target name -> `jaxcal.vision.Detection`.
-    - `poses`: per row, target name -> `PoseEstimate` (targets not found, or
+    - `detections`: per row, the `jaxcal.vision.Detection` of each target found (`ByTarget`).
+    - `poses`: per row, the `PoseEstimate` of each target (`ByTarget`; targets not found, or
       without a pose, are absent). For an eye-in-hand camera, the camera's
       pose in the board frame (the inverted PnP pose, covariance carried).
     - `K`, `dist`: the intrinsics used; `intrinsics`: where they came from.
@@ -40,8 +41,8 @@ class CameraObservations:
 
     camera: CameraInfo
     rows: np.ndarray
-    detections: list
-    poses: list
+    detections: tuple[ByTarget[Detection], ...]
+    poses: tuple[ByTarget[PoseEstimate], ...]
     t_cam: np.ndarray
     K: np.ndarray
     dist: np.ndarray | None
@@ -69,15 +70,15 @@ class SampleObservations:
     - `camera`: the device (`jaxcal.io.dataset.DeviceInfo`), in the role a camera has
       for images: the source of the observations, named in the outputs.
     - `rows`, `t_cam`: the sample rows and their device-clock stamps (s).
-    - `poses`: per sample, the point's pose in the device frame (`PoseEstimate`: the
-      position, the orientation when measured, else the identity, and the covariance;
+    - `poses`: per sample, the point's pose in the device frame (`ByTarget` of the one
+      point's `PoseEstimate`: the position, the orientation when measured, else the identity, and the covariance;
       only `T_cam_target[:3, 3]` and `cov[:3, :3]` count without orientations).
     - `has_orientation`: the samples carry a measured orientation.
     """
 
-    camera: object
+    camera: DeviceInfo
     rows: np.ndarray
-    poses: list
+    poses: tuple[ByTarget[PoseEstimate], ...]
     t_cam: np.ndarray
     has_orientation: bool
     dropped: tuple = ()
@@ -206,7 +207,8 @@ def observe_camera(
     t_frame = frame_times(ds, camera, rows)
     t_poses = pose_times(t_frame, dets, camera.line_delay_s)
     return CameraObservations(
-        camera, rows, dets, poses, t_poses, np.asarray(K), dist, intrinsics, dropped,
+        camera, rows, tuple(map(ByTarget.of, dets)), tuple(map(ByTarget.of, poses)), t_poses, np.asarray(K),
+        dist, intrinsics, dropped,
         t_first_row=None if t_poses is t_frame else t_frame,
     )  # fmt: skip
 
@@ -252,9 +254,11 @@ def observe_device(setup: Setup) -> SampleObservations:
             T[:3, :3] = s.orientation[i]
         C = np.eye(6)
         C[:k, :k] = cov[i]
-        poses.append({name: PoseEstimate(T, C, 0.0, 1, 0.0)})
+        poses.append(ByTarget((name,), (PoseEstimate(T, C, 0.0, 1, 0.0),)))
     rows = np.arange(len(s.sample))
-    return SampleObservations(setup.camera, rows, poses, ds.frames["timestamp"], s.orientation is not None)
+    return SampleObservations(
+        setup.camera, rows, tuple(poses), ds.frames["timestamp"], s.orientation is not None
+    )
 
 
 def observe(setup: Setup, options: Options) -> Observations:

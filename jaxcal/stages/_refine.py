@@ -36,7 +36,6 @@ from .._refine import (
 )
 from ..records import (
     ClockEstimate,
-    Correlation,
     JointAngles,
     LineDelay,
     Named,
@@ -45,11 +44,9 @@ from ..records import (
     RefinedIntrinsics,
     RefinementSummary,
     ShutterTest,
-    SolveOutcome,
     TwoStageStart,
     ViewAngle,
-    WeakDirection,
-    named_rows,
+    from_plain,
     parameter_rows,
 )
 from . import _programs
@@ -188,7 +185,7 @@ class _Corners:
 def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Corners:
     ds, kind = setup.dataset, setup.kind
     no_encoders = kind.per_view_angles
-    offset = sync.clock["offset_s"]
+    offset = sync.clock.offset_s
     rate0 = jnp.asarray(two.arcs.rate) if kind.rates_from_arcs else jnp.ones(setup.nominal.num_joints)
     pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in setup.targets}
     rolling = any(rolling_shutter(v.camera) for v in (obs.primary, *obs.others))
@@ -307,7 +304,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         T_cam_base0=jnp.asarray(fit.T_cam_base0),
         K0=jnp.asarray(K, jnp.float64),
         dist0=jnp.asarray(d5),
-        offset0_s=jnp.asarray(sync.clock["offset_s"]),
+        offset0_s=jnp.asarray(sync.clock.offset_s),
         data=data,
         other_cameras=OtherCameras(*(jnp.asarray(np.stack(a)) for a in zip(*corners.others)))
         if corners.others
@@ -345,7 +342,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
     )
     cand = layout.candidates(
         rates=kind.fits_rates,
-        clock=bool(sync.clock["estimated"]),
+        clock=bool(sync.clock.estimated),
         intrinsics=frees_intrinsics(obs, options),
         line_delay=False if delays is None else delays[1],
     )
@@ -384,46 +381,51 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
             held=tuple(n for n, i in zip(INTRINSIC_NAMES, i_intr) if not free[i]),
         )
     clock = None
-    if sync.clock["estimated"]:
+    if sync.clock.estimated:
         clock = ClockEstimate(float(res.offset_s), float(1e-3 * std[layout.index("clock")[0]]))
     frame = corners.frame
-    summary.update(
-        views=len(frame),
-        frames=len(set(frame)),
-        free_parameters=int(free.sum()),
-        held_at_start=[nm for nm, f in zip(names, free) if not f and not nm.startswith(PADDING)],
-        frozen_beyond_two_stage=[
-            nm for nm, c, f in zip(names, cand, free) if c and not f and not nm.startswith(PADDING)
-        ],
-        std={nm: float(std[i]) for i, nm in enumerate(names) if free[i]},
-        two_stage={
-            "T_cam_base": np.asarray(two.fit.T_cam_base).tolist(),
-            "std_cam": np.asarray(two.fit.std[:6]).tolist(),
-            "T_flange_target": np.asarray(two.fit.T_flange_marker).tolist(),
-            "clock_offset_s": sync.clock["offset_s"],
-            "ratios": {a.joint: a.ratio for a in two.arc_rows},
-        },
-        loss=LOSS,
-    )
+    free_std = {nm: float(std[i]) for i, nm in enumerate(names) if free[i]}
+    angles = None
     if kind.per_view_angles:
-        summary["joint_angles"] = _joint_angles(nominal, corners, res, layout, std)
-        summary["std"] = {nm: sd for nm, sd in summary["std"].items() if nm not in set(layout.angles)}
+        angles = _joint_angles(nominal, corners, res, layout, std)
+        free_std = {nm: sd for nm, sd in free_std.items() if nm not in set(layout.angles)}
     cams_v = np.zeros(len(frame), int) if not corners.others else np.array(corners.camera)
-    summary["views_per_camera"] = {
-        v.camera.name: int((cams_v == c).sum()) for c, v in enumerate(corners.used)
-    }
-    others = _other_cameras(corners, res, layout, std, summary["views_per_camera"])
+    views = {v.camera.name: int((cams_v == c).sum()) for c, v in enumerate(corners.used)}
+    summary = summary_record(
+        {
+            **summary,
+            "views": len(frame),
+            "frames": len(set(frame)),
+            "free_parameters": int(free.sum()),
+            "held_at_start": [nm for nm, f in zip(names, free) if not f and not nm.startswith(PADDING)],
+            "frozen_beyond_two_stage": [
+                nm for nm, c, f in zip(names, cand, free) if c and not f and not nm.startswith(PADDING)
+            ],
+            "std": free_std,
+            "loss": LOSS,
+            "views_per_camera": views,
+        },
+        two_stage=TwoStageStart(
+            T_cam_base=np.asarray(two.fit.T_cam_base, np.float64),
+            std_cam=np.asarray(two.fit.std[:6], np.float64),
+            T_flange_target=np.asarray(two.fit.T_flange_marker, np.float64),
+            clock_offset_s=sync.clock.offset_s,
+            ratios=tuple(Named(a.joint, a.ratio) for a in two.arc_rows),
+        ),
+        joint_angles=angles,
+    )
+    others = _other_cameras(corners, res, layout, std, views)
     warnings = list(corners.warnings)
-    if summary["outlier_frames"]:
+    if summary.outlier_frames:
         warnings.append(
-            f"refinement: {len(summary['outlier_frames'])} frame(s) whose corners stay outliers: "
-            f"{summary['outlier_frames'][:20]}"
+            f"refinement: {len(summary.outlier_frames)} frame(s) whose corners stay outliers: "
+            f"{list(summary.outlier_frames[:20])}"
         )
     return Refined(
         fit=jax.device_get(res),
         layout=layout,
         names=tuple(names),
-        summary=summary_record(summary),
+        summary=summary,
         parameters=parameter_rows(parameters),
         frozen=tuple(nm for nm, f in zip(names[:n_ax], free[:n_ax]) if not f),
         ratios=ratios,
@@ -446,23 +448,23 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
     )
 
 
-def _joint_angles(nominal, corners: _Corners, res, layout: ParameterLayout, std) -> dict:
+def _joint_angles(nominal, corners: _Corners, res, layout: ParameterLayout, std) -> JointAngles:
     """Without an encoder log: every sweep frame's joint angle estimated from the images."""
     g0 = layout.index("angles")[0]
     a = np.asarray(res.params.angles)
-    return {
-        "note": "no encoder log: each sweep frame's joint angle was estimated from the images "
+    return JointAngles(
+        note="no encoder log: each sweep frame's joint angle was estimated from the images "
         "(commanded coordinates; the other joints at zero); reduction ratios are not identifiable",
-        "views": [
-            {
-                "frame": int(f),
-                "joint": nominal.joint_names[j],
-                "angle_deg": float(np.degrees(a[k])),
-                "std_deg": float(np.degrees(std[g0 + k])),
-            }
+        views=tuple(
+            ViewAngle(
+                frame=int(f),
+                joint=nominal.joint_names[j],
+                angle_deg=float(np.degrees(a[k])),
+                std_deg=float(np.degrees(std[g0 + k])),
+            )
             for k, (f, j) in enumerate(zip(corners.frame, corners.sweep))
-        ],
-    }
+        ),
+    )
 
 
 def _other_cameras(corners: _Corners, res, layout: ParameterLayout, std, views: dict) -> list[OtherCamera]:
@@ -573,45 +575,14 @@ def shutter_test(
     )
 
 
-def summary_record(s: dict) -> RefinementSummary:
-    """The refinement's summary (`jaxcal._refine.summarize_refinement` and the stage's
-    figures, as a dict) as its typed record."""
-    extra = set(s) - {f.name for f in dataclasses.fields(RefinementSummary)}
+def summary_record(figures: dict, **typed) -> RefinementSummary:
+    """The refinement's summary as its typed record: `figures`, the plain figures of
+    `jaxcal._refine.summarize_refinement` and the stage's (decoded by `records.from_plain`),
+    and the fields already typed (`two_stage`, `joint_angles`)."""
+    extra = set(figures) - {f.name for f in dataclasses.fields(RefinementSummary)}
     if extra:  # a figure the summary gained must become a field, not vanish from result.json
         raise ValueError(f"refinement summary keys without a RefinementSummary field: {sorted(extra)}")
-    two, angles = s["two_stage"], s.get("joint_angles")
-    return RefinementSummary(
-        solver=SolveOutcome(**s["solver"]),
-        sigma_px=s["sigma_px"],
-        inlier_rms_px=s["inlier_rms_px"],
-        corners=s["corners"],
-        outlier_corners=s["outlier_corners"],
-        outlier_frames=tuple(s["outlier_frames"]),
-        correlations=tuple(Correlation(**c) for c in s["correlations"]),
-        condition_number=s["condition_number"],
-        weak_directions=tuple(
-            WeakDirection(w["singular_value_ratio"], named_rows(w["parameters"]))
-            for w in s["weak_directions"]
-        ),
-        views=s["views"],
-        frames=s["frames"],
-        free_parameters=s["free_parameters"],
-        held_at_start=tuple(s["held_at_start"]),
-        frozen_beyond_two_stage=tuple(s["frozen_beyond_two_stage"]),
-        std=named_rows(s["std"]),
-        two_stage=TwoStageStart(
-            T_cam_base=np.asarray(two["T_cam_base"]),
-            std_cam=np.asarray(two["std_cam"]),
-            T_flange_target=np.asarray(two["T_flange_target"]),
-            clock_offset_s=two["clock_offset_s"],
-            ratios=named_rows(two["ratios"]),
-        ),
-        loss=s["loss"],
-        joint_angles=None
-        if angles is None
-        else JointAngles(angles["note"], tuple(ViewAngle(**v) for v in angles["views"])),
-        views_per_camera=named_rows(s["views_per_camera"]),
-    )
+    return dataclasses.replace(from_plain(RefinementSummary, figures), **typed)
 
 
 def succeeded(refined: Refined) -> bool:

@@ -5,6 +5,7 @@ frame; for single-joint sweeps, the padded per-joint sweeps the arc fits take.
 The clock relation lives in `jaxcal._clocksync.controller_time`.
 """
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -20,6 +21,7 @@ from .._kinematics import PRISMATIC
 from .._links import link_poses
 from ..errors import CalibrationError
 from ..io.dataset import Dataset
+from ..records import Clock, Named
 from . import _programs
 from ._observe import CameraObservations, Observations
 from ._setup import Options, Setup
@@ -65,7 +67,8 @@ class Sweeps:
 class Sync:
     """The clock and the frames placed on the controller's time line.
 
-    - `clock`: `offset_s`, `std_s`, `estimated`, `drift_ppm`.
+    - `clock`: the offset used, its std, whether it was estimated, the drift and the
+      metadata's offset when the estimate replaced it (`Clock`, no two-stage figures yet).
     - `log_q`: the encoder log as commanded joint positions `(t (T,), q (T, joints))`, or None.
     - `t_ctrl`, `q`, `inside`: per row of the two-stage camera, the controller
       time, the interpolated commanded positions (None without a log) and
@@ -80,7 +83,7 @@ class Sync:
       started from zero.
     """
 
-    clock: dict
+    clock: Clock
     log_q: tuple[np.ndarray, np.ndarray] | None
     t_ctrl: np.ndarray
     q: np.ndarray | None
@@ -88,10 +91,12 @@ class Sync:
     glitched: np.ndarray
     joint: np.ndarray
     sweeps: Sweeps | None
-    counts: dict | None
+    #: Per joint the frames of its sweep.
+    counts: tuple[Named, ...] | None
     homes: np.ndarray | None
     notes: tuple[str, ...]
-    timings: dict
+    #: Seconds per step (`sync_s`): free-form.
+    timings: dict[str, float]
 
 
 def commanded_positions(ds: Dataset, nominal) -> tuple[np.ndarray, np.ndarray] | None:
@@ -179,7 +184,7 @@ def build_sweeps(ds: Dataset, obs: CameraObservations, targets, joint_of_row, q_
                 O[j, m, f] = est.T_cam_target[:3, :3]
                 C[j, m, f] = est.cov[:k, :k]
                 mask[j, m, f] = True
-    counts = {ds.joint_names[j]: int(len(idx)) for j, idx in enumerate(per_joint)}
+    counts = tuple(Named(ds.joint_names[j], int(len(idx))) for j, idx in enumerate(per_joint))
     return Sweeps(R, P, O if obs.has_orientation else None, C, mask, T, E), counts
 
 
@@ -326,14 +331,14 @@ def sweep_homes(
 CLOCK_SIGMAS = 5.0
 
 
-def _compare_clock(ds: Dataset, given: float, clock: dict) -> list[str]:
+def _compare_clock(ds: Dataset, given: float, clock: Clock) -> list[str]:
     """A warning when the metadata's offset is not what the sweeps say."""
-    diff = given - clock["offset_s"]
-    if abs(diff) <= max(CLOCK_SIGMAS * clock["std_s"], 0.5e-3):
+    diff = given - clock.offset_s
+    if abs(diff) <= max(CLOCK_SIGMAS * clock.std_s, 0.5e-3):
         return []
     return [
         f"{ds.root / 'metadata.json'}: clock.offset_s is {1e3 * given:.3f} ms but the sweeps say "
-        f"{1e3 * clock['offset_s']:.3f} +- {1e3 * clock['std_s']:.3f} ms ({1e3 * diff:+.3f} ms apart); "
+        f"{1e3 * clock.offset_s:.3f} +- {1e3 * clock.std_s:.3f} ms ({1e3 * diff:+.3f} ms apart); "
         "using the estimate (pass --trust-clock to use the metadata's)"
     ]
 
@@ -374,7 +379,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     if estimate and log_q is None:
         raise CalibrationError(f"{ds.root}: the clock offset cannot be estimated without an encoder log")
     offset0 = 0.0 if offset is None else offset
-    clock = {"offset_s": offset0, "std_s": None, "estimated": False, "drift_ppm": ds.clock_drift_ppm}
+    clock = Clock(offset_s=offset0, std_s=None, estimated=False, drift_ppm=ds.clock_drift_ppm)
     notes = list(ds.notes)
     per_sample_q = ds.samples is not None and ds.samples.q is not None  # no clock relation needed
     if offset is None and not estimate and not per_sample_q:
@@ -406,14 +411,15 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     if estimate:
         if not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s)):
             raise CalibrationError(f"{ds.root}: the clock-offset fit failed ({cf.result})")
-        clock.update(offset_s=float(cf.offset_s), std_s=float(cf.std_s), estimated=True)
+        clock = dataclasses.replace(
+            clock, offset_s=float(cf.offset_s), std_s=float(cf.std_s), estimated=True, given_s=offset
+        )
         if offset is not None:
-            clock["given_s"] = offset
             notes += _compare_clock(ds, offset, clock)
         if not setup.kind.single_joint_sweeps:
-            t_ctrl, q, inside = line.at(clock["offset_s"])
+            t_ctrl, q, inside = line.at(clock.offset_s)
         else:
-            sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(clock["offset_s"])
+            sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(clock.offset_s)
     homes = sweep_homes(ds, joint, q, inside) if setup.kind.single_joint_sweeps else None
     if homes is not None:
         notes.append(

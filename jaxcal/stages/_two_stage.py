@@ -31,7 +31,6 @@ from ..records import (
     ParameterRow,
     SolveOutcome,
     SolverInfo,
-    named_rows,
     parameter_rows,
 )
 from . import _programs
@@ -97,7 +96,7 @@ def _sequential(setup: Setup, obs: Observations, sync: Sync, loss: str | None):
     sweeps = Sweeps(
         np.where(mk[:, 0], rows[None], -1), Ps, Os, Cs, mk, np.broadcast_to(t_cam, (n, F)).copy(), q.T.copy()
     )
-    counts = {name: int(mk[j, 0].sum()) for j, name in enumerate(setup.dataset.joint_names)}
+    counts = tuple(Named(name, int(mk[j, 0].sum())) for j, name in enumerate(setup.dataset.joint_names))
     return sweeps, counts, jax.tree.map(lambda *a: jnp.stack(a), *arc_list), sel
 
 
@@ -155,13 +154,14 @@ def _pose_start(setup: Setup, obs: Observations, sync: Sync):
     return fit, len(frames)
 
 
-def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: dict, data, obs=None, sync=None) -> None:
+def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: tuple[Named, ...], data, obs=None, sync=None) -> None:
     """Every joint's sweep can make an arc; a `CalibrationError` names the joint (and motion
     blur when the sweep lost its fast frames: `_blur.lost_to_blur`, given `obs` and `sync`)."""
     ds = setup.dataset
     data = jax.device_get(data)  # host arrays: slicing them per joint compiles nothing
+    used = {r.name: r.value for r in counts}
     for j, name in enumerate(ds.joint_names):
-        if counts[name] == 0:
+        if used[name] == 0:
             raise CalibrationError(
                 f"{ds.root}: joint {name!r}: no frame of camera {setup.camera.name!r} shows a target while this "
                 "joint sweeps alone"
@@ -329,7 +329,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         notes += blur_notes(setup, obs.primary, sync)
     return TwoStage(
         sweeps=sweeps,
-        counts=named_rows(counts),
+        counts=counts,
         arcs=arcs,
         fit=fit,
         layout=layout,

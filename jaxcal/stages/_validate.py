@@ -20,7 +20,7 @@ from .._montecarlo import NoiseModel, SweepPlan, synthesize_sweeps
 from .._npgeom import pose_inverse, so3_log
 from .._scoring import score
 from .._uncertainty import joint_travel, on_travel
-from ..io.model_json import model_from_json
+from ..io.dataset import TruePoses, true_poses
 from ..records import CameraPoseError, EEErrors, JointError, OtherCamera, PoseError, ValidationReport
 from . import _programs
 from ._refine import Refined
@@ -44,20 +44,19 @@ class Validation:
     timings: dict[str, float]
 
 
-def _truth_poses(setup: Setup, truth: dict):
+def _truth_poses(setup: Setup, truth: TruePoses):
     """The true fixed frame and mounts in the fits' roles, or None when the truth lacks them."""
-    cam_truth = truth["cameras"].get(setup.camera.name, {})
+    cam = setup.camera.name
     if setup.board is not None:
         board = setup.board.name
-        if "T_mount_cam" not in cam_truth or board not in truth["targets"]:
+        if cam not in truth.T_mount_cam or board not in truth.T_link_target:
             return None
-        T_world_board = np.asarray(truth["targets"][board]["T_link_target"])
-        T_cb = np.linalg.inv(T_world_board) @ np.asarray(truth.get("T_world_base", np.eye(4)))
-        return jnp.asarray(T_cb), jnp.asarray(cam_truth["T_mount_cam"])[None]
-    if "T_cam_base" not in cam_truth:
+        T_cb = np.linalg.inv(truth.T_link_target[board]) @ truth.T_world_base
+        return jnp.asarray(T_cb), jnp.asarray(truth.T_mount_cam[cam])[None]
+    if cam not in truth.T_cam_base:
         return None
-    mounts = jnp.stack([jnp.asarray(truth["targets"][t.name]["T_link_target"]) for t in setup.targets])
-    return jnp.asarray(cam_truth["T_cam_base"]), mounts
+    mounts = jnp.stack([jnp.asarray(truth.T_link_target[t.name]) for t in setup.targets])
+    return jnp.asarray(truth.T_cam_base[cam]), mounts
 
 
 def _rot_deg(R) -> float:
@@ -125,20 +124,19 @@ def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true
 
 
 def other_camera_errors(
-    truth: dict, camera: str, T_two_stage, T_refined, others: tuple[OtherCamera, ...]
+    truth: TruePoses, camera: str, T_two_stage, T_refined, others: tuple[OtherCamera, ...]
 ) -> tuple[CameraPoseError, ...]:
     """Each further camera's pose relative to the first, against the truth
     (gauge-free: the base frame cancels), at the start (relative to the
     two-stage first camera, the gauge it was computed in) and refined."""
-    cams = truth.get("cameras", {})
-    if "T_cam_base" not in cams.get(camera, {}):
+    if camera not in truth.T_cam_base:
         return ()
-    T0_true = np.asarray(cams[camera]["T_cam_base"])
+    T0_true = truth.T_cam_base[camera]
     out = []
     for c in others:
-        if "T_cam_base" not in cams.get(c.camera, {}):
+        if c.camera not in truth.T_cam_base:
             continue
-        rel_true = np.asarray(cams[c.camera]["T_cam_base"]) @ np.linalg.inv(T0_true)
+        rel_true = truth.T_cam_base[c.camera] @ np.linalg.inv(T0_true)
         row = {}
         for key, T, T0 in (
             ("start", c.T_cam_base_start, T_two_stage),
@@ -178,14 +176,14 @@ def validate(
 ) -> Validation | None:
     """Errors against `truth.json` (None when the truth lacks the poses to compare)."""
     t0 = time.perf_counter()
-    truth = setup.dataset.truth
+    truth = true_poses(setup.dataset.truth)
     poses = _truth_poses(setup, truth)
     if poses is None:
         return None
     options.say(f"validating against truth.json ({CONFIGURATIONS} random configurations)")
     T_cb_true, mounts_true = poses
     nominal, two_fit = setup.nominal, two.fit
-    true = model_from_json(truth["model"])
+    true = truth.model
     res = refined.fit if refined is not None else None
     fit = res if res is not None else two_fit
     fits = {
@@ -195,7 +193,7 @@ def validate(
     }
     travel = joint_travel(nominal, setup.dataset.joint_limits)
     err, s = _score(fit, true, T_cb_true, mounts_true, nominal, travel, fits)
-    err = {k: np.asarray(v) for k, v in err.items()}
+    ee = EEErrors(**{k: np.asarray(v) for k, v in err.items()})
     # The estimator's gauge: the axis fit's frozen parameters (a pose-based capture has no axis fit,
     # and the refinement holds joint 1's frame at nominal, as the truth does).
     T_gauge = (
@@ -206,17 +204,17 @@ def validate(
     dT = pose_inverse(T_gauge) @ np.asarray(fit.T_cam_base)
     dT_raw = pose_inverse(T_cb_true) @ np.asarray(fit.T_cam_base)
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
-    offset_s = refined.clock.offset_s if refined is not None and refined.clock else sync.clock["offset_s"]
-    true_offset = truth.get("clock", {}).get("offset_s")
+    offset_s = refined.clock.offset_s if refined is not None and refined.clock else sync.clock.offset_s
+    true_offset = truth.clock_offset_s
     out = ValidationReport(
         configurations=CONFIGURATIONS,
         ee_point=setup.kind.ee_point,
-        ee_rms_mm_before=rms(err["before"]),
-        ee_max_mm_before=float(err["before"].max()),
-        ee_rms_mm_after=rms(err["after"]),
-        ee_max_mm_after=float(err["after"].max()),
-        ee_rms_mm_two_stage=rms(err["two_stage"]),
-        ee_max_mm_two_stage=float(err["two_stage"].max()),
+        ee_rms_mm_before=rms(ee.before),
+        ee_max_mm_before=float(ee.before.max()),
+        ee_rms_mm_after=rms(ee.after),
+        ee_max_mm_after=float(ee.after.max()),
+        ee_rms_mm_two_stage=rms(ee.two_stage),
+        ee_max_mm_two_stage=float(ee.two_stage.max()),
         refined=res is not None,
         T_cam_base_error=dataclasses.replace(
             _pose_error(dT),
@@ -237,4 +235,4 @@ def validate(
         if refined is not None and refined.other_cameras
         else None,
     )
-    return Validation(out, EEErrors(**err), {"validation_s": time.perf_counter() - t0})
+    return Validation(out, ee, {"validation_s": time.perf_counter() - t0})

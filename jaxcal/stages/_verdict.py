@@ -18,6 +18,7 @@ import numpy as np
 from .._kinematics import joint_axes
 from .._npgeom import line_distance
 from ..records import Judgement, ParameterRow
+from ..records_stages import Check
 from . import _programs
 from ._armcheck import arm_check
 from ._blur import blur_rows
@@ -34,7 +35,7 @@ class Verdict(Judgement):
     """`status` (`ok`, `suspect` or `failed`), the failed checks' `reasons` (`Judgement`, the
     shape hand-eye's verdict shares), and every check with its value and limit (`checks`)."""
 
-    checks: tuple[dict, ...] = field(default_factory=tuple)
+    checks: tuple[Check, ...] = field(default_factory=tuple)
 
 
 def _wrap(a):
@@ -79,7 +80,7 @@ class _Checks:
 
     def add(self, name: str, value: float, limit: float, message: str) -> None:
         ok = bool(np.isfinite(value) and value <= limit)
-        self.rows.append({"check": name, "value": float(value), "limit": float(limit), "passed": ok})
+        self.rows.append(Check(name, float(value), float(limit), ok))
         if not ok:
             self.reasons.append(message)
 

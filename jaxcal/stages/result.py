@@ -233,14 +233,7 @@ def _ratio_table(setup: Setup, refined: Refined | None, arcs: tuple[ArcRow, ...]
 
 def _clock(sync: Sync, refined: Refined | None) -> Clock:
     """The clock offset: the refined one in front when the refinement estimated it."""
-    c = sync.clock
-    clock = Clock(
-        offset_s=c["offset_s"],
-        std_s=c["std_s"],
-        estimated=c["estimated"],
-        drift_ppm=c["drift_ppm"],
-        given_s=c.get("given_s"),
-    )
+    clock = sync.clock
     if refined is None or refined.clock is None:
         return clock
     return dataclasses.replace(
