@@ -137,6 +137,29 @@ _CPU: Counter = Counter()
 _CPU_TEST: Counter = Counter()
 
 
+#: ... and per file, the seconds JAX reported spending in tracing, lowering and
+#: XLA compilation, and in reading compiled programs from the persistent cache
+#: (`jax.monitoring` events): where a file's time goes, without a profiler.
+_JAX_S: dict[str, Counter] = {}
+_CURRENT = ["-"]
+_JAX_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "compile",
+    "/jax/compilation_cache/cache_retrieval_time_sec": "cache_read",
+}
+
+
+def _on_jax_duration(event: str, duration: float, **_) -> None:
+    kind = _JAX_EVENTS.get(event)
+    if kind is not None:
+        _JAX_S.setdefault(_CURRENT[0], Counter())[kind] += duration
+
+
+if os.environ.get("JAXCAL_TEST_CPU"):
+    jax.monitoring.register_event_duration_secs_listener(_on_jax_duration)
+
+
 def _cpu_now() -> float:
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.process_time() + children.ru_utime + children.ru_stime
@@ -145,6 +168,7 @@ def _cpu_now() -> float:
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     start = _cpu_now()
+    _CURRENT[0] = item.path.name
     yield
     spent = _cpu_now() - start
     _CPU[item.path.name] += spent
@@ -162,6 +186,7 @@ def pytest_sessionfinish(session):
                         "worker": worker,
                         "cpu_s": {k: round(v, 1) for k, v in _CPU.most_common()},
                         "slowest_tests": {k: round(v, 1) for k, v in _CPU_TEST.most_common(25)},
+                        "jax_s": {f: {k: round(v, 1) for k, v in c.items()} for f, c in _JAX_S.items()},
                     }
                 )
                 + "\n"
