@@ -6,6 +6,15 @@ never imports MuJoCo; `jaxcal.sim.plan` adds the MuJoCo contact and
 line-of-sight checks and renders a plan.
 """
 
+from ..io.plan import CapturePlan as CapturePlan
+from ..io.plan import Correction as Correction
+from ..io.plan import FreeMotion as FreeMotion
+from ..io.plan import PlanCamera as PlanCamera
+from ..io.plan import PlanTarget as PlanTarget
+from ..io.plan import PoseSet as PoseSet
+from ..io.plan import Sweep as Sweep
+from ..io.plan import plan_from_dict as plan_from_dict
+from ..io.plan import plan_to_dict as plan_to_dict
 from ._api import TAUGHT as TAUGHT
 from ._api import PlanResult as PlanResult
 from ._api import Robot as Robot
@@ -19,16 +28,7 @@ from ._evaluate import DEFAULT_SIGMA_PX as DEFAULT_SIGMA_PX
 from ._evaluate import PlanEvaluation as PlanEvaluation
 from ._evaluate import evaluate_views as evaluate_views
 from ._layout import default_layout as default_layout
-from ._plan import CapturePlan as CapturePlan
-from ._plan import Correction as Correction
-from ._plan import FreeMotion as FreeMotion
-from ._plan import PlanCamera as PlanCamera
-from ._plan import PlanTarget as PlanTarget
-from ._plan import PoseSet as PoseSet
-from ._plan import Sweep as Sweep
 from ._plan import load_plan as load_plan
-from ._plan import plan_from_dict as plan_from_dict
-from ._plan import plan_to_dict as plan_to_dict
 from ._plan import save_plan as save_plan
 from ._report import plot_evaluation as plot_evaluation
 from ._scene import ALWAYS as ALWAYS

@@ -21,6 +21,7 @@ import numpy as np
 from .._correction import zero_correction
 from .._uncertainty import random_configurations, tool_points
 from ..errors import BudgetTooSmallError, CameraViewError, PlanError, PlanFileError, UnreachableRegionError
+from ..io.plan import CapturePlan, Correction, PlanCamera, PlanTarget, PoseSet, Sweep
 from ..io.urdf import load_urdf, urdf_outline
 from ..robots import robot_path, shipped
 from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation, design, ee_gram, ee_jacobians, evaluate_views
@@ -34,7 +35,7 @@ from ._optimise import (
     path_clear,
     view_blocks,
 )
-from ._plan import CapturePlan, Correction, PlanCamera, PlanTarget, PoseSet, Sweep, load_plan
+from ._plan import load_plan
 from ._scene import CHECKS, FeasibilityLimits, PlanScene, explain, make_scene, plate_box
 
 #: Workspace configurations of the EE prediction (the validation's sample: 1000, seed 0).

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import DatasetError, PlanFileError
 from ..io._schema import Loc, read_json
-from ._plan import MAX_PLACEMENT_M, PlanCamera, PlanTarget, check_placement, target_from_dict
+from ..io.plan import MAX_PLACEMENT_M, PlanCamera, PlanTarget, check_placement, target_from_dict
 
 #: The camera file's fields `read_camera` reads.
 CAMERA_FIELDS = (

@@ -15,8 +15,8 @@ import numpy as np
 
 from .._kinematics import KinematicModel, forward_kinematics
 from .._npgeom import axis_rotation
+from ..io.plan import PlanCamera, PlanTarget
 from ..markers import TargetSpec
-from ._plan import PlanCamera, PlanTarget
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
