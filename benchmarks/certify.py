@@ -74,6 +74,7 @@ def score(res: Path, configs: int, seed: int) -> dict:
         "measured_p95_mm": float(np.quantile(err, 0.95)),
         "tightness": float(c.summary["p95_mm"] / np.quantile(err, 0.95)),
         "caveats": list(c.caveats),
+        "covariance_model": doc.get("covariance_model"),  # None: written before the key
         "certify_s": seconds,
         "inside": err <= c.bound95_mm,
     }

@@ -145,6 +145,7 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
                 "timings_s", "solver", "validation", "refinement"):  # fmt: skip
         assert key in r
     assert r["validation"]["ee_rms_mm_after"] == pytest.approx(result.validation["ee_rms_mm_after"])
+    assert r["covariance_model"] == "view_robust"  # the refinement's (jaxcal.io.result.COVARIANCE_MODELS)
     assert np.allclose(r["T_cam_base"]["matrix"], result.T_cam_base)
     # Every parameter has nominal, estimate, std; frozen ones did not move.
     for p in r["parameters"]:
@@ -251,6 +252,7 @@ def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
     )
     r_two, r_ref = (json.loads((d / "result.json").read_text()) for d in (two, out))
     assert r_two["refinement"] is None and r_ref["refinement"] is not None
+    assert (r_two["covariance_model"], r_ref["covariance_model"]) == ("two_stage", "view_robust")
     assert r_two["validation"]["ee_rms_mm_after"] == pytest.approx(r_ref["validation"]["ee_rms_mm_two_stage"])
     # The demo, filmed by two fixed cameras: the two-stage fit from the first,
     # the refinement over both (one robot, one T_cam_base each).

@@ -48,6 +48,25 @@ def pose_json(T, std) -> dict:
     return plain(pose_figures(T, std))
 
 
+#: `result.json`'s `covariance_model`: which covariance the parameters' std, `estimate.npz`
+#: (and so `jaxcal certify`) carry.
+COVARIANCE_MODELS = {
+    "view_robust": "the refinement's: the model's sigma^2 (J^T J)^+ (corner errors independent), "
+    "replaced along the directions where the per-view cluster (sandwich, CR1) covariance is larger "
+    "by more than its sampling spread 2 sqrt(2/G) (jaxcal._refine, jaxcal._lsq.larger_covariance)",
+    "model": "the point fit's sigma^2 (J^T J)^+, sigma^2 its residual variance factor "
+    "(tracker samples independent)",
+    "two_stage": "the two-stage fit's (no refinement ran)",
+}
+
+
+def covariance_model(result) -> str:
+    """The `COVARIANCE_MODELS` key of a `CalibrationResult`'s covariance."""
+    if result.refinement is not None:
+        return "view_robust"
+    return "model" if result.point_fit is not None else "two_stage"
+
+
 def result_to_json(result) -> dict:
     """The `result.json` payload of a `CalibrationResult` (plain Python types)."""
     fixed = pose_json(result.T_cam_base, result.std_cam)
@@ -96,6 +115,7 @@ def result_to_json(result) -> dict:
         "solver": plain(result.solver),
         "timings_s": dict(result.timings),
         "refinement": plain(result.refinement),
+        "covariance_model": covariance_model(result),
         "other_cameras": [
             {
                 "camera": c.camera,
