@@ -182,7 +182,7 @@ def _sweeps(ds: Dataset, q, segments, offset: float) -> tuple[SegmentSummary, ..
     for joint, start, end in segments:
         frames = []
         for cam in ds.cameras:
-            t = ds.frames["timestamp"][ds.frames["camera"] == cam.name] - offset
+            t = ds.frames.timestamp[ds.frames.camera == cam.name] - offset
             frames.append(Named(cam.name, int(np.count_nonzero((t >= start) & (t <= end)))))
         rng = {}
         if q is not None and joint is not None:
@@ -198,7 +198,7 @@ def _detection_sample(ds: Dataset, sample: int) -> tuple[DetectionSample, ...]:
     """Per camera: the sampled rows (evenly spread) and, per target, in how many a detection came back."""
     out = []
     for cam in ds.cameras:
-        rows = np.flatnonzero(ds.frames["camera"] == cam.name)
+        rows = np.flatnonzero(ds.frames.camera == cam.name)
         pick = rows[np.unique(np.linspace(0, len(rows) - 1, min(sample, len(rows))).round().astype(int))]
         found = dict.fromkeys((t.name for t in ds.targets), 0)
         for i in pick:
@@ -296,7 +296,7 @@ def inspect_dataset(path, *, sample: int = 5) -> Inspection | TrackerInspection:
     q = None if ds.encoder_t is None else ds.encoder_motor / ratio
     segments, source = _segments(ds, q)
     offset = 0.0 if ds.clock_offset_s is None else ds.clock_offset_s
-    cam_t = ds.frames["timestamp"] - offset
+    cam_t = ds.frames.timestamp - offset
     clock = ClockSummary(ds.clock_offset_s, (float(cam_t.min()), float(cam_t.max())))
     if ds.encoder_t is not None:
         lo, hi = max(cam_t.min(), ds.encoder_t[0]), min(cam_t.max(), ds.encoder_t[-1])
@@ -324,7 +324,7 @@ def inspect_dataset(path, *, sample: int = 5) -> Inspection | TrackerInspection:
                 size=(c.width, c.height),
                 K_given=c.K is not None,
                 mount=c.mount,
-                frames=int(np.count_nonzero(ds.frames["camera"] == c.name)),
+                frames=int(np.count_nonzero(ds.frames.camera == c.name)),
             )
             for c in ds.cameras
         ),

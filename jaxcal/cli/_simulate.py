@@ -59,7 +59,7 @@ def cmd_simulate(args) -> int:
     ds = load_dataset(out)
     visible = sum(all(f["visible"].values()) for f in ds.truth["frames"])
     print(
-        f"wrote {out}: {len(ds.frames['file'])} images from {len(ds.cameras)} camera(s), "
+        f"wrote {out}: {len(ds.frames.file)} images from {len(ds.cameras)} camera(s), "
         f"{len(ds.truth['dropped_frames'])} dropped, targets fully in view in {visible} "
         f"({time.perf_counter() - start:.1f} s)"
     )
@@ -99,7 +99,7 @@ def cmd_simulate_plan(args) -> int:
     ds = load_dataset(out)
     visible = sum(all(f["visible"].values()) for f in ds.truth["frames"])
     print(
-        f"wrote {out}: {len(ds.frames['file'])} images of plan {args.plan} ({p.frames} frames), targets fully in "
+        f"wrote {out}: {len(ds.frames.file)} images of plan {args.plan} ({p.frames} frames), targets fully in "
         f"view in {visible} ({time.perf_counter() - start:.1f} s)"
     )
     return 0

@@ -3,7 +3,8 @@
 import csv
 import io
 import math
-from dataclasses import dataclass
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -79,7 +80,30 @@ def parse_number(text: str, where: str) -> float:
 # --------------------------------------------------------------------------- reading: frames.csv
 
 
-def read_frames(root: Path, cameras: tuple[CameraInfo, ...], meta_loc: Loc) -> dict:
+@dataclass(frozen=True, eq=False)
+class FrameTable(Mapping):
+    """The frame table (`frames.csv`, or a tracker's samples), one entry per row: the
+    camera's name (str), its capture index, its camera-clock timestamp (s) and the image
+    file. It also reads as the `{column: array}` mapping it used to be (`frames.file`)."""
+
+    camera: np.ndarray
+    frame: np.ndarray
+    timestamp: np.ndarray
+    file: np.ndarray
+
+    def __getitem__(self, column: str) -> np.ndarray:
+        if column not in self.__dataclass_fields__:
+            raise KeyError(column)
+        return getattr(self, column)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(f.name for f in fields(self))
+
+    def __len__(self) -> int:
+        return len(fields(self))
+
+
+def read_frames(root: Path, cameras: tuple[CameraInfo, ...], meta_loc: Loc) -> FrameTable:
     path = root / "frames.csv"
     header, rows = read_csv(path, "frames table")
     if header != ["camera", "frame", "timestamp", "file"]:
@@ -124,36 +148,36 @@ def read_frames(root: Path, cameras: tuple[CameraInfo, ...], meta_loc: Loc) -> d
         ts.append(t)
         files.append(file)
         lines.append(line)
-    frames = {
-        "camera": np.array(cam),
-        "frame": np.array(idx, dtype=np.int64),
-        "timestamp": np.array(ts, dtype=np.float64),
-        "file": np.array(files),
-    }
+    frames = FrameTable(
+        camera=np.array(cam),
+        frame=np.array(idx, dtype=np.int64),
+        timestamp=np.array(ts, dtype=np.float64),
+        file=np.array(files),
+    )
     lines = np.array(lines)
     for name in cams:
-        rows_c = np.flatnonzero(frames["camera"] == name)
+        rows_c = np.flatnonzero(frames.camera == name)
         if rows_c.size == 0:
             continue
-        f_c = frames["frame"][rows_c]
+        f_c = frames.frame[rows_c]
         span = int(f_c.max() - f_c.min())
         bound = FRAME_SPAN_FACTOR * rows_c.size + FRAME_SPAN_SLACK
         if span > bound:
             worst = rows_c[np.argmax(np.abs(f_c - np.median(f_c)))]
             raise DatasetError(
-                f"{path} line {lines[worst]}: camera {name!r} frame {frames['frame'][worst]}: its frame indices "
+                f"{path} line {lines[worst]}: camera {name!r} frame {frames.frame[worst]}: its frame indices "
                 f"span {span}, more than {FRAME_SPAN_FACTOR} x its {rows_c.size} rows + {FRAME_SPAN_SLACK} "
                 "(a capture index far off the others)"
             )
         order = rows_c[np.argsort(f_c, kind="stable")]
-        t_c = frames["timestamp"][order]
+        t_c = frames.timestamp[order]
         bad = np.flatnonzero(np.diff(t_c) <= 0)
         if bad.size:
             a, b = order[bad[0]], order[bad[0] + 1]
             raise DatasetError(
-                f"{path} lines {lines[a]} and {lines[b]}: camera {name!r} frame {frames['frame'][a]} has timestamp "
-                f"{float(frames['timestamp'][a])!r} and the later frame {frames['frame'][b]} has "
-                f"{float(frames['timestamp'][b])!r}; timestamps must increase strictly with the frame index"
+                f"{path} lines {lines[a]} and {lines[b]}: camera {name!r} frame {frames.frame[a]} has timestamp "
+                f"{float(frames.timestamp[a])!r} and the later frame {frames.frame[b]} has "
+                f"{float(frames.timestamp[b])!r}; timestamps must increase strictly with the frame index"
             )
     _check_images(root, path, frames, lines, cameras, meta_loc)
     return frames
@@ -163,7 +187,7 @@ def _check_images(root: Path, path: Path, frames: dict, lines, cameras, meta_loc
     """Every image exists, is an image, and has its camera's size (from the file header)."""
     index = {c.name: i for i, c in enumerate(cameras)}
     wrong: dict[str, list] = {}
-    for k, (name, file) in enumerate(zip(frames["camera"].tolist(), frames["file"].tolist())):
+    for k, (name, file) in enumerate(zip(frames.camera.tolist(), frames.file.tolist())):
         size = image_size(root / file, f"{path} line {lines[k]}: {file}")
         cam = cameras[index[name]]
         if size != (cam.width, cam.height):
@@ -171,10 +195,10 @@ def _check_images(root: Path, path: Path, frames: dict, lines, cameras, meta_loc
     for name, bad in wrong.items():
         k, (w, h) = bad[0]
         cam = cameras[index[name]]
-        total = int(np.sum(frames["camera"] == name))
+        total = int(np.sum(frames.camera == name))
         more = f"; so are {len(bad) - 1} more of its {total} images" if len(bad) > 1 else ""
         raise DatasetError(
-            f"{path} line {lines[k]}: {frames['file'][k]} is {w}x{h} pixels, but {meta_loc.key('cameras')}"
+            f"{path} line {lines[k]}: {frames.file[k]} is {w}x{h} pixels, but {meta_loc.key('cameras')}"
             f"[{index[name]}] ({name!r}) says {cam.width}x{cam.height}{more}"
         )
 

@@ -16,7 +16,7 @@ from ..errors import DatasetError
 from . import _encoders as enc
 from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
-from ._logs import MAX_FRAME_INDEX, parse_number, read_csv
+from ._logs import MAX_FRAME_INDEX, FrameTable, parse_number, read_csv
 from ._metadata import CAMERA_NAME
 from ._schema import Loc
 
@@ -285,12 +285,12 @@ def read_samples(root: Path, device: DeviceInfo, joints: tuple[str, ...], limits
     )
 
 
-def sample_frames(device: DeviceInfo, samples: TrackerSamples) -> dict:
+def sample_frames(device: DeviceInfo, samples: TrackerSamples) -> FrameTable:
     """The frame table of a tracker dataset: one row per sample, the device in the camera's column."""
     n = len(samples.sample)
-    return {
-        "camera": np.full(n, device.name),
-        "frame": samples.sample.copy(),
-        "timestamp": samples.timestamp.copy(),
-        "file": np.array([f"{device.file} line {int(line)}" for line in samples.lines]),
-    }
+    return FrameTable(
+        camera=np.full(n, device.name),
+        frame=samples.sample.copy(),
+        timestamp=samples.timestamp.copy(),
+        file=np.array([f"{device.file} line {int(line)}" for line in samples.lines]),
+    )

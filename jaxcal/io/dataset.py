@@ -37,6 +37,7 @@ from ..errors import DatasetError
 from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
 from ._logs import EncoderGlitch as EncoderGlitch
+from ._logs import FrameTable as FrameTable
 from ._logs import read_encoders, read_frames
 from ._metadata import CameraInfo as CameraInfo
 from ._metadata import TargetInfo as TargetInfo
@@ -68,7 +69,7 @@ TRACKER_REQUIRED = ("schema", "schema_version", "robot", "device")
 class Dataset:
     """A dataset read from disk and checked (see the module docstring for the layout).
 
-    - `frames`: dict of arrays `camera` (str), `frame` (int), `timestamp`
+    - `frames`: the `FrameTable`, arrays `camera` (str), `frame` (int), `timestamp`
       (camera clock, s), `file` (path relative to `root`), one entry per image.
     - `encoder_t` (T,) controller clock, s; `encoder_motor` (T, joints) motor
       angles in radians, whatever `encoders.unit` the file used; the rows of
@@ -102,7 +103,7 @@ class Dataset:
     cameras: tuple[CameraInfo, ...]
     targets: tuple[TargetInfo, ...]
     joint_names: tuple[str, ...]
-    frames: dict
+    frames: FrameTable
     encoder_t: np.ndarray | None
     encoder_motor: np.ndarray | None
     clock_offset_s: float | None
@@ -130,7 +131,7 @@ class Dataset:
         raise KeyError(name)
 
     def image_path(self, i: int) -> Path:
-        return self.root / self.frames["file"][i]
+        return self.root / self.frames.file[i]
 
     def in_encoder_glitch(self, t_controller) -> np.ndarray:
         """Which controller-clock times fall inside an encoder glitch's interval
@@ -252,7 +253,7 @@ def load_dataset(path) -> Dataset:
         named = (
             ((device,), (PointTarget(device.point, device.link, None),)) if tracker else (cameras, targets)
         )
-        truth = read_truth(truth_path, joints, *named, len(frames["file"]))
+        truth = read_truth(truth_path, joints, *named, len(frames.file))
     enc_t = enc_m = None
     glitches = ()
     if emeta is not None:

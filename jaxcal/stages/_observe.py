@@ -130,7 +130,7 @@ def pnp_outliers(poses: list) -> dict[int, dict]:
 
 def camera_rows(ds: Dataset, camera: str) -> np.ndarray:
     """The frame-table rows of `camera`."""
-    rows = np.flatnonzero(ds.frames["camera"] == camera)
+    rows = np.flatnonzero(ds.frames.camera == camera)
     if rows.size == 0:
         raise CalibrationError(f"{ds.root / 'frames.csv'}: no frames for camera {camera!r}")
     return rows
@@ -216,7 +216,7 @@ def observe_camera(
 def frame_times(ds: Dataset, camera: CameraInfo, rows) -> np.ndarray:
     """Camera-clock times of `camera`'s frames `rows`: the middle of each frame's exposure when the
     metadata gives the camera's `exposure_s` and `stamp`, else the stamps as they are."""
-    return np.asarray(exposure_middle(ds.frames["timestamp"][rows], camera.exposure_s, camera.stamp))
+    return np.asarray(exposure_middle(ds.frames.timestamp[rows], camera.exposure_s, camera.stamp))
 
 
 def pose_times(t_frame: np.ndarray, detections: list, line_delay_s: float | None) -> np.ndarray:
@@ -257,7 +257,7 @@ def observe_device(setup: Setup) -> SampleObservations:
         poses.append(ByTarget((name,), (PoseEstimate(T, C, 0.0, 1, 0.0),)))
     rows = np.arange(len(s.sample))
     return SampleObservations(
-        setup.camera, rows, tuple(poses), ds.frames["timestamp"], s.orientation is not None
+        setup.camera, rows, tuple(poses), ds.frames.timestamp, s.orientation is not None
     )
 
 
@@ -289,7 +289,7 @@ def observe(setup: Setup, options: Options) -> Observations:
     notes = []
     for o in (primary, *others):
         if o.dropped:
-            files = [f"{ds.frames['file'][r]} ({name}, {rms:.2f} px)" for r, name, rms in o.dropped[:10]]
+            files = [f"{ds.frames.file[r]} ({name}, {rms:.2f} px)" for r, name, rms in o.dropped[:10]]
             notes.append(
                 f"camera {o.camera.name!r}: {len(o.dropped)} pose(s) left out of the "
                 f"{'arc fits' if setup.kind.has_arcs else 'closed-form start'}, their PnP "

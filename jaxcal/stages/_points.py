@@ -16,6 +16,7 @@ result holds the point fit's geometric part, so the verdict, the tables and
 the outputs are those of every other kind.
 """
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -264,15 +265,14 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol))
         fit = _hold_implausible_terms(problem, cand, fit)
-        row = {"terms": list(terms), "free": int(np.sum(fit.free))}
+        row = ModelRow(terms=tuple(terms), free=int(np.sum(fit.free)))
         if train is not None:
-            row |= _cv_row(problem, cand, fit, train & used[None])
+            row = dataclasses.replace(row, **_cv_row(problem, cand, fit, train & used[None]))
         return layout, problem, cand, fit, row
 
     options.say(f"point fit: {n_used} stop-and-shoot samples, forward kinematics of every sample")
     best = attempt(())
-    best[4]["kept"] = True
-    models = [best[4]]
+    models, kept = [best[4]], 0
     for term in options.terms:
         if train is None:
             raise CalibrationError(
@@ -280,12 +280,9 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
             )
         options.say(f"point fit: trying {term} (kept only if {folds}-fold cross-validation improves)")
         trial = attempt((*best[0].terms, term))
-        gain = trial[4]["cv_mean_mm"] < (1.0 - CV_GAIN) * best[4]["cv_mean_mm"]
-        trial[4]["kept"] = bool(gain)
         models.append(trial[4])
-        if gain:
-            best[4]["kept"] = False
-            best = trial
+        if trial[4].cv_mean_mm < (1.0 - CV_GAIN) * best[4].cv_mean_mm:
+            best, kept = trial, len(models) - 1
     layout, problem, cand, fit, _ = best
     if not bool(fit.result == optx.RESULTS.successful):
         options.say("point fit: the solver did not converge")
@@ -298,7 +295,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         layout=layout,
         candidates=cand,
         held=held,
-        models=tuple(ModelRow(**{**m, "terms": tuple(m["terms"])}) for m in models),
+        models=tuple(dataclasses.replace(m, kept=k == kept) for k, m in enumerate(models)),
         folds=folds,
         residual_mm=ResidualStats(
             mean=float(dist.mean()), rms=float(np.sqrt(np.mean(dist**2))), max=float(dist.max())

@@ -199,11 +199,11 @@ def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> tuple[ArcOut
         rows.append(
             ArcOutlier(
                 target=setup.targets[m].name if m < len(setup.targets) else str(m),
-                frame=int(frames["frame"][row]),
-                timestamp_s=float(frames["timestamp"][row]),
+                frame=int(frames.frame[row]),
+                timestamp_s=float(frames.timestamp[row]),
                 residual=float(arcs.sample_residuals[j, m, f]),
-                sample=None if setup.kind.images else int(frames["frame"][row]),
-                line=None if setup.kind.images else frames["file"][row],
+                sample=None if setup.kind.images else int(frames.frame[row]),
+                line=None if setup.kind.images else frames.file[row],
             )
         )
     return tuple(rows)

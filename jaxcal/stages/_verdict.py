@@ -302,7 +302,7 @@ def verdict(
         f"the data pin the tool point only to {sigma:.2f} mm (1-sigma RMS over random configurations, limit "
         f"{limits.ee_sigma_mm:g} mm): too little motion, too few frames, or intrinsics the capture cannot fix",
     )
-    self_calibrated = [o.camera.name for o in (obs.primary, *obs.others) if "rms_px" in o.intrinsics]
+    self_calibrated = [o.camera.name for o in (obs.primary, *obs.others) if o.intrinsics.rms_px is not None]
     if self_calibrated and not ran:
         # Intrinsics fitted to the sweep images alone trade off against the camera's pose and
         # the link lengths; only the refinement frees them with the robot (`refine_intrinsics`).
@@ -315,12 +315,13 @@ def verdict(
             "millimetres; run the refinement (drop --no-refine) or give K and the distortion in metadata.json",
         )
     for o in (obs.primary, *obs.others):
-        if "rms_px" in o.intrinsics:
+        rms_px = o.intrinsics.rms_px
+        if rms_px is not None:
             c.add(
                 f"{o.camera.name}.intrinsics_rms_px",
-                o.intrinsics["rms_px"],
+                rms_px,
                 limits.intrinsics_rms_px,
-                f"camera {o.camera.name!r}: self-calibrated intrinsics reproject at {o.intrinsics['rms_px']:.2f} px "
+                f"camera {o.camera.name!r}: self-calibrated intrinsics reproject at {rms_px:.2f} px "
                 f"(limit {limits.intrinsics_rms_px:g} px)",
             )
     failed = not two.solver.success or (ran and not succeeded(refined))

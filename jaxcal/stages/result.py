@@ -148,7 +148,7 @@ class CalibrationResult:
 
 def dropped_capture_indices(ds: Dataset, camera: str) -> list:
     """Capture indices missing between a camera's first and last frame."""
-    idx = np.sort(ds.frames["frame"][ds.frames["camera"] == camera])
+    idx = np.sort(ds.frames.frame[ds.frames.camera == camera])
     if idx.size == 0:
         return []
     return sorted(set(range(int(idx[0]), int(idx[-1]) + 1)) - set(int(i) for i in idx))
