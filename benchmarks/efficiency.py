@@ -48,6 +48,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 import jaxcal  # noqa: F401  (float64)
+from jaxcal import RobustOptions
 from jaxcal._arcdata import make_arc_data
 from jaxcal._arcfit import fit_arc
 from jaxcal._axisfit import fit_axes
@@ -146,7 +147,7 @@ def run(trials: int, sigma: float, frames: int, range_deg: float, seed: int) -> 
             clock_ms=jnp.zeros(()),
             intrinsics=jnp.zeros(9),
         )
-        res = refine(prob, start, free, c=c, reject=reject)
+        res = refine(prob, start, free, robust=RobustOptions(c=c, reject=reject))
         ok2 = jnp.all(arcs.result == optx.RESULTS.successful) & (fit.result == optx.RESULTS.successful)
         return ravel_pytree(start)[0], ok2, ravel_pytree(res.params)[0], res.result == optx.RESULTS.successful
 

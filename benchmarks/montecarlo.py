@@ -47,6 +47,7 @@ details (SciPy's time per stage, solver steps on both sides).
 """
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -81,6 +82,7 @@ from jaxcal._axisfit import (
 from jaxcal._geometry import pose_inverse, se3_exp
 from jaxcal._kinematics import KinematicModel, forward_kinematics
 from jaxcal._montecarlo import (
+    SWEEP_OPTIONS,
     SweepPlan,
     _free_mask_jit,
     default_setup,
@@ -373,9 +375,10 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
 
     # jaxcal's own solver steps on the same noisy sweeps (not part of any timing).
     noisy = inputs["data"]
-    arcs, axes = jax.jit(
-        jax.vmap(lambda d: fit_sweeps(dyn.nominal, d, free=free, max_steps=setup.max_steps))
-    )(noisy)
+    sweep_options = dataclasses.replace(SWEEP_OPTIONS, max_steps=setup.max_steps)
+    arcs, axes = jax.jit(jax.vmap(lambda d: fit_sweeps(dyn.nominal, d, free=free, options=sweep_options)))(
+        noisy
+    )
     cam_diff_mm = 1e3 * np.max(
         np.abs(np.asarray(axes.T_cam_base)[:, :3, 3] - np.asarray(fit.T_cam_base)[:, :3, 3])
     )

@@ -440,11 +440,7 @@ def _covariance(model, params, ref, data, free, w):
     J = flat_jacobian(D, ref, data) * free_flat[None, :]
     Jw = J * jnp.repeat(sw.reshape(-1), k)[:, None]
     # Pseudo-inverse restricted to the free parameters (absent ones have zero columns).
-    cov = (
-        jnp.linalg.pinv(Jw.T @ Jw + jnp.diag(1.0 - free_flat), hermitian=True)
-        * free_flat[:, None]
-        * free_flat[None, :]
-    )
+    cov = _lsq.normal_pinv(Jw.T @ Jw, free_flat)
     Jb = J.reshape(M, F, k, -1)
     G = jnp.einsum("mfai,mfbi->mfab", Jb @ cov, Jb)
     cov_p = unravel_cov(cov, unravel, flat, has_rot)

@@ -561,21 +561,9 @@ def fit_axes(
             f"{n_axes} measured axes for a model with {nominal.num_joints} joints: "
             "stack one arc fit per joint, in joint order"
         )
-    n_markers = arcs.T_cam_marker0.shape[1]
     if use_poses is None:
         use_poses = arcs.has_encoder
-    if home is not None:
-        home = jnp.asarray(home, jnp.float64)
-        if home.shape != (nominal.num_joints, nominal.num_joints):
-            raise ValueError(f"home has shape {home.shape}, expected one configuration per joint sweep")
-    if T_cam_base0 is None:
-        T_cam_base0 = register_lines(nominal, arcs, home)
-    if T_flange_marker is None:
-        # Marker at the first sweep's encoder zero, seen by that sweep: T_flange_marker =
-        # (T_cam_base T_base_flange(home_0))^-1 T_cam_marker0.
-        q0 = jnp.zeros(nominal.num_joints) if home is None else home[0]
-        T_cam_flange = T_cam_base0 @ forward_kinematics(nominal, q0)[-1]
-        T_flange_marker = jnp.einsum("ab,mbc->mac", pose_inverse(T_cam_flange), arcs.T_cam_marker0[0])
+    home, T_cam_base0, T_flange_marker = _references(nominal, arcs, home, T_cam_base0, T_flange_marker)
     k = _meas_dim(arcs, use_poses)
     # After the registration's SVDs: LAPACK calls never run side by side (see _linalg).
     W = jax.vmap(_whitening)(after(arcs.meas_cov[:, :k, :k], T_cam_base0))
@@ -589,7 +577,7 @@ def fit_axes(
         home=home,
     )
     n = nominal.num_joints
-    params0 = AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(n, n_markers))
+    params0 = AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(n, arcs.T_cam_marker0.shape[1]))
     flat0, unravel = ravel_pytree(params0)
     keep, indep = _free_mask(problem, params0, free, candidates, search)
     keep_f = keep.astype(flat0.dtype)
@@ -600,18 +588,41 @@ def fit_axes(
     sol = _lsq.solve(
         fn, flat0, problem, LMOptions(options.rtol, options.atol, options.max_steps, throw or options.throw)
     )
-    x = sol.value * keep_f
-    params = unravel(x)
+    return _axis_result(problem, unravel(sol.value * keep_f), keep, indep, sol)
+
+
+def _references(nominal: KinematicModel, arcs: ArcFitResult, home, T_cam_base0, T_flange_marker):
+    """`fit_axes`'s references, `(home, T_cam_base0, T_flange_marker)`: the sweeps' home
+    configurations checked, the camera pose by `register_lines` and the marker mounts from
+    the first sweep's encoder zero, where not given."""
+    if home is not None:
+        home = jnp.asarray(home, jnp.float64)
+        if home.shape != (nominal.num_joints, nominal.num_joints):
+            raise ValueError(f"home has shape {home.shape}, expected one configuration per joint sweep")
+    if T_cam_base0 is None:
+        T_cam_base0 = register_lines(nominal, arcs, home)
+    if T_flange_marker is None:
+        # Marker at the first sweep's encoder zero, seen by that sweep: T_flange_marker =
+        # (T_cam_base T_base_flange(home_0))^-1 T_cam_marker0.
+        q0 = jnp.zeros(nominal.num_joints) if home is None else home[0]
+        T_cam_flange = T_cam_base0 @ forward_kinematics(nominal, q0)[-1]
+        T_flange_marker = jnp.einsum("ab,mbc->mac", pose_inverse(T_cam_flange), arcs.T_cam_marker0[0])
+    return home, T_cam_base0, T_flange_marker
+
+
+def _axis_result(problem: AxisFitProblem, params: AxisFitParams, keep, indep, sol) -> AxisFitResult:
+    """The `AxisFitResult` at the solution `params` of the solve `sol` over the parameters
+    `keep` (frozen ones: zero columns, zero variance; one SVD, see `_linalg`)."""
+    nominal, arcs = problem.nominal, problem.arcs
     r, J = axis_jacobian(params, problem)
-    # Frozen parameters: zero columns, zero variance; one SVD (see _linalg).
     cov, sv, _ = _lsq.covariance(J, keep)
-    model, mounts = apply_correction(nominal, T_flange_marker, params.correction)
+    model, mounts = apply_correction(nominal, problem.T_flange_marker0, params.correction)
     if arcs.has_encoder:
         model = eqx.tree_at(lambda m: m.reduction_ratio, model, nominal.reduction_ratio / arcs.rate)
     return AxisFitResult(
         model=eqx.tree_at(lambda m: m.T_flange_tool, model, mounts[0]),
         T_flange_marker=mounts,
-        T_cam_base=T_cam_base0 @ se3_exp(params.cam),
+        T_cam_base=problem.T_cam_base0 @ se3_exp(params.cam),
         params=params,
         std=jnp.sqrt(jnp.maximum(jnp.diag(cov), 0.0)),
         cov=cov,
@@ -621,6 +632,6 @@ def fit_axes(
         num_steps=sol.stats["num_steps"],
         residual_rms=jnp.sqrt(jnp.mean(r**2)),
         singular_values=sv,
-        T_cam_base0=T_cam_base0,
-        T_flange_marker0=T_flange_marker,
+        T_cam_base0=problem.T_cam_base0,
+        T_flange_marker0=problem.T_flange_marker0,
     )

@@ -137,12 +137,6 @@ def _with_encoder(data: ArcData, encoder: Float[Array, " frames"]) -> ArcData:
     return eqx.tree_at(lambda d: d.encoder, data, encoder, is_leaf=lambda x: x is None)
 
 
-def _free_pinv(J: Float[Array, "m n"], free: Float[Array, " n"]) -> Float[Array, "n n"]:
-    """$(J^TJ)^{+}$ restricted to the `free` parameters (frozen ones get zero rows and columns)."""
-    cov = jnp.linalg.pinv(J.T @ J + jnp.diag(1.0 - free), hermitian=True)
-    return cov * free[:, None] * free[None, :]
-
-
 def _deletion(J, cov, r, w, mask):
     """Deletion residuals (`jaxcal._robust`) of the `(joints, markers, frames)` samples
     from the unweighted Jacobian `J` and the weighted fit's covariance `cov`:
@@ -204,41 +198,26 @@ def fit_clock_offset(
     options, robust = fit_options("fit_clock_offset", options, robust, deprecated)
     loss, c, reject, rounds = robust_terms(robust)
     hard_flags = round_plan(loss, rounds, reject)
-    reject_ = jnp.inf if reject is None else reject
-
-    def encoders(offset_s):
-        t = controller_time(t_cam, offset_s, drift_ppm)
-        return jax.vmap(interpolate_encoders, in_axes=(0, None, 1))(t, enc_t, enc_q)
-
-    enc0 = encoders(offset0_s)
-    data0 = jax.vmap(_with_encoder)(data, enc0)
-    params0, refs = jax.vmap(initialise_arc)(data0)
-    free = jax.vmap(free_mask)(params0, data0, refs)
+    residuals, params0, free = _joint_problem(data, t_cam, enc_t, enc_q, offset0_s, drift_ppm)
     mask = data.mask
     mask_f = mask.astype(jnp.float64)
     k = data.sqrt_info.shape[-1]
-
-    def residuals(y, w):
-        arc_params, offset_ms = y
-        arc_params = jax.tree.map(lambda x, f: x * f, arc_params, free)
-        d = jax.vmap(_with_encoder)(data, encoders(offset0_s + _MS * offset_ms))
-        r = jax.vmap(lambda p, r, dj: arc_residuals(p, (r, dj)))(arc_params, refs, d)
-        return r * jnp.sqrt(w)[..., None]
-
     free_flat = ravel_pytree((free, jnp.ones(())))[0]
 
     def jacobian_and_cov(y, w):
         """The weighted Jacobian and the unscaled $(J^T W J)^{+}$ over the free parameters."""
         flat, unravel = ravel_pytree(y)
         J = jax.jacfwd(lambda x: residuals(unravel(x), w).reshape(-1))(flat) * free_flat
-        return J, _free_pinv(J, free_flat)
+        return J, _lsq.normal_pinv(J.T @ J, free_flat)
 
     def weights_at(y, w, hard):
         if loss is None:
             return mask_f
         J, _ = jacobian_and_cov(y, mask_f)  # unweighted (the mask is 0 or 1)
-        cov = _free_pinv(J * jnp.repeat(jnp.sqrt(w).reshape(-1), k)[:, None], free_flat)
+        Jw = J * jnp.repeat(jnp.sqrt(w).reshape(-1), k)[:, None]
+        cov = _lsq.normal_pinv(Jw.T @ Jw, free_flat)
         d, nu = _deletion(J, cov, residuals(y, mask_f), w, mask)
+        reject_ = jnp.inf if reject is None else reject
         weigh = lambda d_j, nu_j, m_j: sample_weights(  # noqa: E731
             d_j, nu_j, m_j, loss=loss, c=c, reject=reject_, hard=hard
         )[0]
@@ -249,10 +228,43 @@ def fit_clock_offset(
         return sol.value, sol.result, sol.stats["num_steps"]
 
     out = irls_rounds_reweighted(solve, weights_at, (params0, jnp.zeros(())), mask_f, hard_flags)
-    y, ok, w = out.value, out.ok, out.weights
+    y = out.value
     if throw:
-        y = eqx.error_if(y, ~ok, "fit_clock_offset: a Levenberg-Marquardt solve did not converge")
-    J, cov = jacobian_and_cov(y, w)
+        y = eqx.error_if(y, ~out.ok, "fit_clock_offset: a Levenberg-Marquardt solve did not converge")
+    return _clock_fit(y, out, jacobian_and_cov(y, out.weights), residuals, mask_f, data, offset0_s)
+
+
+def _joint_problem(data: ArcData, t_cam, enc_t, enc_q, offset0_s, drift_ppm):
+    """Every joint's arc problem with the clock offset an unknown: `(residuals, start, free)`,
+    `residuals((arc_params, offset_ms), w)` the arc residuals (weights `w`) with the encoder
+    angles interpolated at the offset, the start each joint's closed form at `offset0_s`
+    and `free` its arc parameters' mask."""
+
+    def encoders(offset_s):
+        t = controller_time(t_cam, offset_s, drift_ppm)
+        return jax.vmap(interpolate_encoders, in_axes=(0, None, 1))(t, enc_t, enc_q)
+
+    enc0 = encoders(offset0_s)
+    data0 = jax.vmap(_with_encoder)(data, enc0)
+    params0, refs = jax.vmap(initialise_arc)(data0)
+    free = jax.vmap(free_mask)(params0, data0, refs)
+
+    def residuals(y, w):
+        arc_params, offset_ms = y
+        arc_params = jax.tree.map(lambda x, f: x * f, arc_params, free)
+        d = jax.vmap(_with_encoder)(data, encoders(offset0_s + _MS * offset_ms))
+        r = jax.vmap(lambda p, r, dj: arc_residuals(p, (r, dj)))(arc_params, refs, d)
+        return r * jnp.sqrt(w)[..., None]
+
+    return residuals, params0, free
+
+
+def _clock_fit(y, out, jac_cov, residuals, mask_f, data: ArcData, offset0_s) -> ClockFit:
+    """The `ClockFit` at the last round's solution `y` (of the rounds `out`), from its
+    weighted Jacobian and covariance `jac_cov` (`mask_f`: the samples' 0/1 weights): the offset's standard deviation scaled by the
+    residual variance over the parameters the data determine (the hat matrix's trace)."""
+    J, cov = jac_cov
+    w, mask, k = out.weights, data.mask, data.sqrt_info.shape[-1]
     r = residuals(y, w)
     n = jnp.sum((J @ cov) * J)  # the parameters the data determine (trace of the hat matrix)
     n_obs = jnp.sum(w) * k

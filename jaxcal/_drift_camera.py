@@ -48,6 +48,7 @@ from jax.flatten_util import ravel_pytree
 
 from ._correction import Estimate, zero_correction
 from ._geometry import se3_exp
+from ._lsq import normal_inverse
 from ._reprojection import CornerData, RefineParams, RefineProblem, camera_matrix, chain, project
 
 #: Gauss-Newton steps of the drift fit (it converges in two or three).
@@ -171,7 +172,7 @@ def fit_camera_drift(ref_x, zero, U, d, sigma, problem: RefineProblem, *, offset
         return _whiten(_residuals(x, theta[:6], problem), U, d, sigma)
 
     theta, info, r = gauss_newton(res, k)
-    return theta, jnp.linalg.inv(info), theta @ info @ theta, r @ r
+    return theta, normal_inverse(info), theta @ info @ theta, r @ r
 
 
 def pad_corners(data: CornerData, corners: int) -> CornerData:

@@ -37,6 +37,7 @@ from ._drift_camera import gauss_newton
 from ._geometry import se3_exp
 from ._handeye.data import HandEyePixels
 from ._handeye.model import HandEyeParams, HandEyeReference, predicted_board_poses
+from ._lsq import normal_inverse
 
 
 class HandEyeCheckData(eqx.Module):
@@ -143,4 +144,4 @@ def fit_handeye_drift(X, Y, R, data: HandEyeCheckData):
         return jax.scipy.linalg.solve_triangular(L, r, lower=True)
 
     theta, info, r = gauss_newton(res, 6)
-    return theta, jnp.linalg.inv(info), theta @ info @ theta, r @ r
+    return theta, normal_inverse(info), theta @ info @ theta, r @ r

@@ -17,6 +17,9 @@ parameters the data cannot see. This module writes each of those once:
 - `covariance`: $\\hat\\sigma^2 (J^T J)^+$ over the free parameters, from one
   SVD (`jaxcal._linalg.gauss_newton_covariance`, safe to batch on a CPU),
   with the residual-variance scaling $\\hat\\sigma^2 = \\|r\\|^2 / (m - n)$.
+- `normal_pinv`, `normal_inverse`: $\\sigma^2 H^{+}$ (over the free parameters) and
+  $\\sigma^2 H^{-1}$ of a normal matrix a solver hands over (`normal_inverse` also for
+  NumPy): every covariance jaxcal computes goes through this module.
 - `cluster_covariance`: the cluster-robust (sandwich) covariance
   $B (\\sum_g J_g^T r_g r_g^T J_g) B$ of errors shared within clusters (a view's corners).
 - `closed_form_jvp`: a residual function whose derivative with respect to
@@ -256,6 +259,32 @@ def covariance_normal(
     inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
     A = V * inv[:, None]
     return sigma2 * (A * inv_w[None, :]) @ A.T
+
+
+def normal_pinv(
+    H: Float[Array, "n n"], free: Float[Array, " n"] | None = None, sigma2: Float[Array, ""] | float = 1.0
+) -> Float[Array, "n n"]:
+    """The covariance $\\sigma^2 H^{+}$ of a normal matrix $H = J^TJ$ that may be singular, by a
+    Hermitian pseudo-inverse (`jnp.linalg.pinv`'s cut: eigenvalues under $10 n \\epsilon$ of the
+    largest): pure, jittable. With `free` (1 free, 0 frozen), the inverse over the free
+    parameters only: $(H + \\mathrm{diag}(1 - f))^{+}$ with the frozen rows and columns then
+    zeroed, so a frozen (zero) column neither enters the cut nor takes a variance. Unlike
+    `covariance`, no column scaling: for normal matrices whose columns share one unit (whitened,
+    m and rad of one pose) or whose solver hands over $H$ rather than $J$."""
+    if free is None:
+        cov = jnp.linalg.pinv(H, hermitian=True)
+    else:
+        cov = jnp.linalg.pinv(H + jnp.diag(1.0 - free), hermitian=True) * free[:, None] * free[None, :]
+    return cov if isinstance(sigma2, float) and sigma2 == 1.0 else sigma2 * cov
+
+
+def normal_inverse(H, sigma2=1.0):
+    """The covariance $\\sigma^2 H^{-1}$ of a full-rank normal matrix $H = J^TJ$ (a Gauss-Newton
+    fit of a few well-determined parameters: a pose, a drift twist): NumPy in, NumPy out
+    (`np.linalg.inv`, for the host-side fits), JAX otherwise (jittable). The caller has
+    checked the rank (or a singular $H$ is a bug there): no cut, unlike `normal_pinv`."""
+    inv = np.linalg.inv(H) if isinstance(H, np.ndarray) else jnp.linalg.inv(H)
+    return inv if isinstance(sigma2, float) and sigma2 == 1.0 else sigma2 * inv
 
 
 def residual_variance(r: Float[Array, "..."], n_obs, n_free) -> Float[Array, ""]:

@@ -42,6 +42,8 @@ from ._kinematics import (
     joint_axes,
     perturb_model,
 )
+from ._lsq import LMOptions
+from ._options import LM_KEYWORDS, fit_options
 from ._scoring import score as score  # re-exported
 
 _MM = 1e-3
@@ -120,17 +122,22 @@ def synthesize_sweeps(
     )(pos, rot, alpha)
 
 
+#: `fit_sweeps`' solver settings, the arc fits' and the axis fit's alike: their tolerances
+#: (`ARC_OPTIONS`, `AXIS_OPTIONS`: whitened residuals) with up to 100 steps each.
+SWEEP_OPTIONS = replace(AXIS_OPTIONS, max_steps=100)
+
+
 def fit_sweeps(
-    nominal: KinematicModel, data: ArcData, *, free=None, max_steps: int = 100, **axis_kwargs
+    nominal: KinematicModel, data: ArcData, *, free=None, options: LMOptions = SWEEP_OPTIONS, **axis_kwargs
 ) -> tuple:
     """Arc fits of every joint (vmapped; a prismatic joint's sweep by its line
-    fit, `jaxcal._arcfit.fit_joint_sweeps`) followed by the axis fit."""
-    arcs = fit_joint_sweeps(
-        data, nominal.joint_types, scale_covariance=False, options=replace(ARC_OPTIONS, max_steps=max_steps)
-    )
-    return arcs, fit_axes(
-        nominal, arcs, free=free, options=replace(AXIS_OPTIONS, max_steps=max_steps), **axis_kwargs
-    )
+    fit, `jaxcal._arcfit.fit_joint_sweeps`) followed by the axis fit, each solve with
+    `options`; `axis_kwargs` go to `fit_axes`. The keywords `rtol`, `atol`, `max_steps`
+    of the previous release still work (`jaxcal._options.fit_options`)."""
+    old = {k: axis_kwargs.pop(k) for k in LM_KEYWORDS if k in axis_kwargs}
+    options, _ = fit_options("fit_sweeps", options, None, old, robust_fit=False)
+    arcs = fit_joint_sweeps(data, nominal.joint_types, scale_covariance=False, options=options)
+    return arcs, fit_axes(nominal, arcs, free=free, options=options, **axis_kwargs)
 
 
 class TrialResult(eqx.Module):
@@ -311,9 +318,11 @@ def run_trial(
         # Without encoders the zero poses are not at q = 0: fit noise-free sweeps instead.
         exact = trial_sweeps(setup, true, T_cam_base, T_flange_marker, k_noise, NoiseModel(0.0, 0.0, 0.0))
         both = jax.tree.map(lambda a, b: jnp.stack([a, b]), data, exact)
-        arcs2, fit2 = jax.vmap(lambda d: fit_sweeps(setup.nominal, d, free=free, max_steps=setup.max_steps))(
-            both
-        )
+        arcs2, fit2 = jax.vmap(
+            lambda d: fit_sweeps(
+                setup.nominal, d, free=free, options=replace(SWEEP_OPTIONS, max_steps=setup.max_steps)
+            )
+        )(both)
         arcs = jax.tree.map(lambda x: x[0], arcs2)
     fit, fit_exact = jax.tree.map(lambda x: x[0], fit2), jax.tree.map(lambda x: x[1], fit2)
     q_val = jax.random.uniform(

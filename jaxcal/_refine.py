@@ -48,6 +48,8 @@ from ._correction import INTRINSIC_NAMES as INTRINSIC_NAMES  # re-exported
 from ._correction import KinematicCorrection, ParameterLayout, apply_correction, zero_correction
 from ._geometry import se3_exp
 from ._kinematics import KinematicModel
+from ._lsq import LMOptions
+from ._options import RobustOptions, fit_options, robust_terms
 from ._reprojection import (  # re-exported: the model the refinement solves
     CornerData as CornerData,
 )
@@ -226,28 +228,31 @@ class RefineResult(eqx.Module):
     cov_model: Float[Array, "n n"] | None = None
 
 
+#: `refine`'s solver settings, on the scaled variables: every start Jacobian column has
+#: norm `1e4`, so a unit of a solver variable moves the residuals by `1e-4` px.
+REFINE_OPTIONS = LMOptions(rtol=1e-7, atol=1e-7, max_steps=50)
+#: `refine`'s robust loss: three Cauchy rounds at 3 robust sigmas, then the inliers within 3.7.
+REFINE_ROBUST = RobustOptions(loss="cauchy", c=3.0, reject=3.7, rounds=3)
+
+
 def refine(
     problem: RefineProblem,
     params0: RefineParams,
     free: np.ndarray,
     *,
-    loss: str | None = "cauchy",
-    rounds: int = 3,
-    c: float = 3.0,
-    reject: float | None = 3.7,
-    rtol: float = 1e-7,
-    atol: float = 1e-7,
-    max_steps: int = 50,
+    options: LMOptions = REFINE_OPTIONS,
+    robust: RobustOptions | None = REFINE_ROBUST,
+    **deprecated,
 ) -> RefineResult:
     """Minimise the reprojection error of every corner; pure, jittable, vmappable.
 
     Levenberg-Marquardt (optimistix's iteration on the normal equations,
     `jaxcal._lsq.solve_normal`; forward-mode Jacobian over the free
     parameters only) on `reprojection_residuals`, Jacobi-scaled at the start.
-    With a robust `loss`, `rounds` IRLS solves (weights from each solution's
-    corner residual norms in robust sigmas, constant `c`), then, with `reject`,
-    a final solve on the corners within `reject` sigmas (weight 1, others 0):
-    the maximum-likelihood estimate on the inliers. All rounds are one
+    With a `robust` loss, `robust.rounds` IRLS solves (weights from each solution's
+    corner residual norms in robust sigmas, constant `robust.c`), then, with
+    `robust.reject`, a final solve on the corners within `reject` sigmas (weight 1,
+    others 0): the maximum-likelihood estimate on the inliers. All rounds are one
     `lax.scan`, so the solver compiles once.
 
     **Arguments:**
@@ -256,17 +261,19 @@ def refine(
     - `free`: concrete bool mask over the flattened `RefineParams`
       (`refine_parameter_names`), e.g. from `identifiable_mask`; static, so
       vmap over problems with one mask.
-    - `loss`: `"cauchy"`, `"huber"` or `None` (plain least squares, one solve).
-    - `c`: the loss constant in robust sigmas; `reject`: the inlier threshold of
-      the final solve (robust sigmas; `None`: no final solve). Both may be
-      traced: `c = reject = inf` with a robust loss is plain least squares
-      with the same compiled code.
-    - `rtol`, `atol`: optimistix's tolerances, on the scaled variables
+    - `options`: the solver's `LMOptions`, its tolerances on the scaled variables
       (every start Jacobian column has norm `1e4`, i.e. a unit of the solver
       variable moves the residual by `1e-4` px).
+    - `robust`: the `RobustOptions` (`None`: plain least squares, one solve). Its
+      `c` and `reject` may be traced: `c = reject = inf` with a robust loss is plain
+      least squares with the same compiled code.
+    - `deprecated`: the keywords `loss`, `rounds`, `c`, `reject`, `rtol`, `atol`,
+      `max_steps` of the previous release (`jaxcal._options.fit_options`).
 
     **Returns:** a `RefineResult`.
     """
+    options, robust = fit_options("refine", options, robust, deprecated)
+    loss, c, reject, rounds = robust_terms(robust)
     flat0, unravel, free, idx = _checked(problem, params0, free, loss)
     mask = problem.data.mask
     mask_f = mask.astype(flat0.dtype)
@@ -275,9 +282,7 @@ def refine(
         return reprojection_residuals(unravel(flat0.at[idx].set(x_free)), problem, w).reshape(-1)
 
     x0 = flat0[idx]
-    J0 = jax.jacfwd(lambda x: residual_x(x, mask_f))(x0)
-    col = jnp.linalg.norm(J0, axis=0)
-    scale = _COLUMN_NORM / jnp.where(col > 0, col, 1.0)
+    scale = _jacobi_scale(residual_x, x0, mask_f)
 
     def fn(y, w):
         return residual_x(x0 + scale * y, w)
@@ -286,23 +291,29 @@ def refine(
     # tall and well conditioned, and lineax's default QR forms the thin Q, orders of
     # magnitude slower a step for thousands of rows than the Cholesky of J^T J; the lean
     # loop takes optimistix's steps in a program that compiles sooner (docs/performance.md).
-    options = _lsq.LMOptions(rtol, atol, max_steps)
     out = _rounds(fn, jnp.zeros_like(x0), mask, loss, rounds, c, reject, options)
-    y, steps, ok, w, result, round_steps = (
-        out.value,
-        out.num_steps,
-        out.ok,
-        out.weights,
-        out.result,
-        out.round_steps,
-    )
-    x = x0 + scale * y
+    x = x0 + scale * out.value
     params = unravel(flat0.at[idx].set(x))
-
     # Uncertainty: Jacobian of the (weighted) residuals at the solution.
-    J = jax.jacfwd(lambda xx: residual_x(xx, w))(x)
-    r = residual_x(x, w)
-    cov, cov_model, sigma2, sv, Vt = _covariances(J, r, w, idx, flat0.shape[0])
+    J = jax.jacfwd(lambda xx: residual_x(xx, out.weights))(x)
+    r = residual_x(x, out.weights)
+    return _result(problem, params, free, out, _covariances(J, r, out.weights, idx, flat0.shape[0]))
+
+
+def _jacobi_scale(residual_x, x0, mask_f):
+    """The solver's variable scales: each free parameter's step that moves the start
+    residuals (corner weights `mask_f`) by `_COLUMN_NORM` (Jacobi scaling of the start Jacobian)."""
+    J0 = jax.jacfwd(lambda x: residual_x(x, mask_f))(x0)
+    col = jnp.linalg.norm(J0, axis=0)
+    return _COLUMN_NORM / jnp.where(col > 0, col, 1.0)
+
+
+def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, covs) -> RefineResult:
+    """The `RefineResult` at the solution `params` of the rounds `out`, with the final
+    solve's covariances `covs` (`_covariances`): the model and mounts the corrections
+    give, the camera, the residuals and the inliers' RMS."""
+    cov, cov_model, sigma2, sv, Vt = covs
+    mask, w = problem.data.mask, out.weights
     used = w > 0
     raw = jnp.where(mask[..., None], projected_corners(params, problem) - problem.data.pixels, 0.0)
     inl_rms = jnp.sqrt(
@@ -334,10 +345,10 @@ def refine(
         residuals=raw,
         weights=w,
         inlier=used & mask,
-        result=result,
-        num_steps=steps,
-        rounds_ok=ok,
-        round_steps=round_steps,
+        result=out.result,
+        num_steps=out.num_steps,
+        rounds_ok=out.ok,
+        round_steps=out.round_steps,
         line_delay_s=line_delays(params, problem) if rolling(problem) else None,
         cov_model=cov_model,
     )
@@ -440,7 +451,7 @@ def _fisher_std(problem, params, idx, sigma_px):
     J = jax.jacfwd(lambda x: reprojection_residuals(unravel(flat.at[idx].set(x)), problem).reshape(-1))(
         flat[idx]
     )
-    cov = sigma_px**2 * jnp.linalg.inv(J.T @ J)
+    cov = _lsq.normal_inverse(J.T @ J, sigma_px**2)
     return jnp.zeros(flat.shape).at[idx].set(jnp.sqrt(jnp.diag(cov)))
 
 

@@ -3,6 +3,7 @@ they replaced still work for one release, with a `DeprecationWarning`, and give 
 same result bit for bit (the same values reach the same compiled solver)."""
 
 import warnings
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +14,11 @@ from helpers import arc_problem, corrupt_frames
 import jaxcal
 from jaxcal import LMOptions, RobustOptions
 from jaxcal._arcdata import make_arc_data
+from jaxcal._arcfit import ARC_OPTIONS
+from jaxcal._axisfit import AXIS_OPTIONS
+from jaxcal._montecarlo import SWEEP_OPTIONS
 from jaxcal._options import fit_options
+from jaxcal._refine import REFINE_OPTIONS, REFINE_ROBUST
 from jaxcal._tooloffset import fit_circle
 
 
@@ -99,3 +104,11 @@ def test_old_keywords_of_the_plain_fits_warn_and_agree():
         old = fit_circle(points, max_steps=20)
     _same(new, old)
     np.testing.assert_allclose(np.asarray(new.centre), [0.3, -0.2], atol=1e-9)  # exact points
+
+
+def test_the_sweeps_and_the_refinement_keep_their_defaults():
+    """`fit_sweeps`' one `options` is what both of its fits had (the arc and axis fits'
+    tolerances, 100 steps each); `refine`'s objects hold the keywords' old defaults."""
+    assert SWEEP_OPTIONS == replace(ARC_OPTIONS, max_steps=100) == replace(AXIS_OPTIONS, max_steps=100)
+    assert REFINE_OPTIONS == LMOptions(rtol=1e-7, atol=1e-7, max_steps=50)
+    assert REFINE_ROBUST == RobustOptions("cauchy", c=3.0, reject=3.7, rounds=3)

@@ -17,6 +17,7 @@ import optimistix as optx
 import pytest
 from jax.flatten_util import ravel_pytree
 
+from jaxcal import LMOptions, RobustOptions
 from jaxcal._axisfit import apply_correction
 from jaxcal._correction import ParameterLayout
 from jaxcal._geometry import make_pose, se3_exp, so3_exp
@@ -95,7 +96,7 @@ def solve(free):
 
     def one(pixels, start, c, reject):
         problem = eqx.tree_at(lambda p: p.data.pixels, PROBLEM, pixels)
-        return refine(problem, start, free, c=c, reject=reject)
+        return refine(problem, start, free, robust=RobustOptions(c=c, reject=reject))
 
     return jax.jit(jax.vmap(one, in_axes=(0, None, None, None)))
 
@@ -134,7 +135,7 @@ def _assert_exact_recovery(problem, flat0, unravel, x_true, free, names):
     x_true = jnp.asarray(x_true)
     problem = eqx.tree_at(lambda p: p.data.pixels, problem, projected_corners(unravel(x_true), problem))
     start = unravel(jnp.asarray(flat0) + 0.5 * (x_true - jnp.asarray(flat0)) * free)
-    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(problem, start)
+    res = jax.jit(lambda pb, s: refine(pb, s, free, robust=None))(problem, start)
     assert res.result == optx.RESULTS.successful
     err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - np.asarray(x_true))
     assert err.max() < 1e-8, names[int(np.argmax(err))]
@@ -239,11 +240,27 @@ def test_robust_loss_resists_misdetections(solve, clean_run, truth, free):
     assert report["solver"]["result"] == "successful"
 
 
+def test_old_keywords_warn_and_trace_the_same_program(free):
+    """`loss=None` (and the other keywords of the previous release) map onto the objects
+    with a warning, and trace the very program the objects do: the same compiled shapes
+    (one round without a loss, whatever `rounds`) and so the same numbers."""
+
+    def program(**kw):
+        return str(jax.make_jaxpr(lambda pb, s: refine(pb, s, free, **kw))(PROBLEM, P0))
+
+    with pytest.warns(DeprecationWarning, match="robust=RobustOptions"):
+        old = program(loss=None, rounds=5, reject=2.0)
+    assert old == program(robust=None)
+    with pytest.warns(DeprecationWarning, match="options=LMOptions"):
+        old = program(c=2.0, max_steps=20)
+    assert old == program(robust=RobustOptions(c=2.0), options=LMOptions(rtol=1e-7, atol=1e-7, max_steps=20))
+
+
 def test_bad_arguments(free):
     with pytest.raises(ValueError, match="free mask has shape"):
         refine(PROBLEM, P0, free[:-1])
     with pytest.raises(ValueError, match="loss must be one of"):
-        refine(PROBLEM, P0, free, loss="tukey")
+        refine(PROBLEM, P0, free, robust=RobustOptions(loss="tukey"))
     with pytest.raises(ValueError, match="no free parameter"):
         refine(PROBLEM, P0, np.zeros_like(free))
 

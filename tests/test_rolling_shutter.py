@@ -154,7 +154,7 @@ def test_refinement_recovers_the_line_delay(given):
         np.asarray(seen.data.row), np.asarray(projected_corners(truth, seen))[..., 1], atol=1e-9
     )
     start = unravel(jnp.asarray(np.asarray(flat0) + 0.5 * (x_true - np.asarray(flat0)) * free))
-    res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(seen, start)
+    res = jax.jit(lambda pb, s: refine(pb, s, free, robust=None))(seen, start)
     assert res.result == optx.RESULTS.successful
     err = np.abs(np.asarray(ravel_pytree(res.params)[0]) - x_true)
     names = layout.names()
@@ -189,7 +189,7 @@ def test_global_shutter_refinement_flags_the_rows():
     out = {}
     for name, pixels in (("rolling", seen.data.pixels), ("global", projected_corners(p0, _problem(False)))):
         glob = eqx.tree_at(lambda p: p.data.pixels, _problem(False), pixels + noise)
-        res = jax.jit(lambda pb, s: refine(pb, s, free, loss=None))(glob, p0)
+        res = jax.jit(lambda pb, s: refine(pb, s, free, robust=None))(glob, p0)
         out[name] = line_delay_test(glob, res)
     # A first-order step from a biased fit: within a tenth of the truth.
     assert abs(float(out["rolling"].line_delay_s[0]) / DELAY_S - 1.0) < 0.1

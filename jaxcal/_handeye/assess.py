@@ -260,8 +260,25 @@ def assess_hand_eye(
     frames, and a k-fold spread that differs from the reported std by more
     than 2x (either way).
     """
-    reasons, notes = [], []
     cams = camera_names or [f"camera {c}" for c in range(np.shape(result.T_robot_cam)[0])]
+    reasons = _solver_reasons(result, max_steps)
+    reasons += _fit_reasons(result, max_residual_ratio, max_robot_sigma_m, max_robot_sigma_deg)
+    reasons += _start_reasons(result, cams, max_start_rotation_deg, max_start_translation_m)
+    rejection, notes = _rejection(result, max_rejected_fraction, frame_names)
+    reasons += rejection
+    if consistency is not None and consistency.inconsistent.any():
+        notes.append(
+            f"frames {_labels(consistency.inconsistent_frames(), frame_names)}: the robot's rotation between "
+            f"them and most other frames differs from the camera's by more than {consistency.tolerance_deg:g} deg"
+        )
+    if kfold is not None:
+        notes += _kfold_notes(kfold, result, cams)
+    return HandEyeVerdict("suspect" if reasons else "ok", tuple(reasons), tuple(notes))
+
+
+def _solver_reasons(result: HandEyeResult, max_steps: int | None) -> list[str]:
+    """A reason per Levenberg-Marquardt stage that did not converge (its code and steps)."""
+    reasons = []
     steps = np.asarray(result.stage_steps)
     for i, name in enumerate(STAGES):
         code_i = jax.tree.map(lambda x, i=i: x[i], result.stage_result)
@@ -270,22 +287,31 @@ def assess_hand_eye(
             reasons.append(
                 f"the {name} solve did not converge: {_message(code_i)} after {int(steps[i])} steps{cap}"
             )
+    return reasons
+
+
+def _fit_reasons(
+    result: HandEyeResult, max_ratio: float, max_sigma_m: float, max_sigma_deg: float
+) -> list[str]:
+    """Reasons the data do not fit the model: a robot noise estimate beyond any robot's,
+    robot corrections beyond the noise given, residuals beyond `max_ratio` times the noise."""
+    reasons = []
     ratio = float(result.residual_rms)
-    if implausible_robot_noise(result, max_robot_sigma_m, max_robot_sigma_deg):
+    if implausible_robot_noise(result, max_sigma_m, max_sigma_deg):
         reasons.append(
             f"the robot poses are off the images' by {describe_robot_noise(result)}, more than any robot's "
-            f"pose error (limits {1e3 * max_robot_sigma_m:g} mm, {max_robot_sigma_deg:g} deg): the poses are "
+            f"pose error (limits {1e3 * max_sigma_m:g} mm, {max_sigma_deg:g} deg): the poses are "
             "not these images' as read (check the arrangement, that the poses are the flange in the base "
             "frame and not inverted, the quaternion component order, the rotation unit)"
         )
     estimated = bool(np.all(np.asarray(result.robot_sigma_estimated)))
-    if not estimated and robot_correction_rms(result) > max_residual_ratio:
+    if not estimated and robot_correction_rms(result) > max_ratio:
         reasons.append(
             f"the robot poses needed corrections of {robot_correction_rms(result):.1f} times the "
             f"{describe_robot_noise(result)} (RMS over the frames; about 1 expected): their noise is larger "
             f"than that; leave {ROBOT_SIGMA_OPTIONS} out to estimate it from the data"
         )
-    if ratio > max_residual_ratio:
+    if ratio > max_ratio:
         if np.isfinite(float(result.pixel_rms)):
             reasons.append(_misfit_reason(result, ratio))
         else:
@@ -293,41 +319,55 @@ def assess_hand_eye(
                 f"the whitened pose-error RMS is {ratio:.1f} (about 1 expected): the robot poses and the "
                 "board poses do not fit one hand-eye transform"
             )
+    return reasons
+
+
+def _start_reasons(
+    result: HandEyeResult, cams, max_rotation_deg: float, max_translation_m: float
+) -> list[str]:
+    """A reason per camera whose pose ended beyond the limits from the closed-form start."""
+    reasons = []
     X, X0 = np.asarray(result.T_robot_cam), np.linalg.inv(np.asarray(result.T_cam_robot_start))
     for c, name in enumerate(cams):
         rot = np.degrees(rotation_angle(X[c, :3, :3] @ X0[c, :3, :3].T))
         trans = np.linalg.norm(X[c, :3, 3] - X0[c, :3, 3])
-        if rot > max_start_rotation_deg or trans > max_start_translation_m:
+        if rot > max_rotation_deg or trans > max_translation_m:
             reasons.append(
                 f"{name}'s pose ended {rot:.1f} deg and {1e3 * trans:.0f} mm from the closed-form start "
-                f"(limits {max_start_rotation_deg:g} deg, {1e3 * max_start_translation_m:.0f} mm)"
+                f"(limits {max_rotation_deg:g} deg, {1e3 * max_translation_m:.0f} mm)"
             )
+    return reasons
+
+
+def _rejection(result: HandEyeResult, max_fraction: float, frame_names) -> tuple[list[str], list[str]]:
+    """`(reasons, notes)` of the frames rejected as outliers: a reason beyond `max_fraction`
+    of the observed frames, else a note naming them."""
     rejected = np.asarray(result.rejected).any(0)
     observed = rejected | np.isfinite(np.asarray(result.group_rms)).any(0)
     n_obs = max(int(observed.sum()), 1)
-    if rejected.sum() > max_rejected_fraction * n_obs:
-        reasons.append(
+    if rejected.sum() > max_fraction * n_obs:
+        return [
             f"{int(rejected.sum())} of {n_obs} frames were rejected as outliers "
-            f"(more than {100 * max_rejected_fraction:.0f}%)"
-        )
-    elif rejected.any():
-        notes.append(f"rejected as outliers: frames {_labels(np.flatnonzero(rejected), frame_names)}")
-    if consistency is not None and consistency.inconsistent.any():
-        notes.append(
-            f"frames {_labels(consistency.inconsistent_frames(), frame_names)}: the robot's rotation between "
-            f"them and most other frames differs from the camera's by more than {consistency.tolerance_deg:g} deg"
-        )
-    if kfold is not None:
-        r = std_ratio(kfold, result)
-        for c, name in enumerate(cams):
-            for k, what in enumerate(("translation", "rotation")):
-                if not 0.5 <= r[c, k] <= 2.0:
-                    notes.append(
-                        f"{name} {what}: the {kfold.folds}-fold spread is {r[c, k]:.2f} times the reported std; "
-                        + (
-                            "the std is optimistic (unmodelled errors): trust the k-fold spread"
-                            if r[c, k] > 2.0
-                            else "the std is conservative"
-                        )
+            f"(more than {100 * max_fraction:.0f}%)"
+        ], []
+    if rejected.any():
+        return [], [f"rejected as outliers: frames {_labels(np.flatnonzero(rejected), frame_names)}"]
+    return [], []
+
+
+def _kfold_notes(kfold: "KFoldSpread", result: HandEyeResult, cams) -> list[str]:
+    """A note per camera and component whose k-fold spread is off the reported std by over 2x."""
+    notes = []
+    r = std_ratio(kfold, result)
+    for c, name in enumerate(cams):
+        for k, what in enumerate(("translation", "rotation")):
+            if not 0.5 <= r[c, k] <= 2.0:
+                notes.append(
+                    f"{name} {what}: the {kfold.folds}-fold spread is {r[c, k]:.2f} times the reported std; "
+                    + (
+                        "the std is optimistic (unmodelled errors): trust the k-fold spread"
+                        if r[c, k] > 2.0
+                        else "the std is conservative"
                     )
-    return HandEyeVerdict("suspect" if reasons else "ok", tuple(reasons), tuple(notes))
+                )
+    return notes

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._lsq import LMOptions
 from .._schur import block_least_squares, full_covariance, jacobian_by_jvp
 from .model import (
     HandEyeParams,
@@ -126,11 +127,13 @@ def linearise(g, l, args):
     return r_frames, J[..., :n_g], J[..., n_g:]
 
 
-def solve_by_blocks(params0: HandEyeParams, args, rtol, atol, max_steps):
+def solve_by_blocks(params0: HandEyeParams, args, options: LMOptions):
     """Levenberg-Marquardt on `robust_residuals` by blocks. **Returns:** `(params, result,
     num_steps, (r, J_g, J_l))`, the last its linearisation at `params` (`linearise`'s)."""
     g0, l0 = split(params0)
-    sol = block_least_squares(linearise, g0, l0, args, rtol=rtol, atol=atol, max_steps=max_steps)
+    sol = block_least_squares(
+        linearise, g0, l0, args, rtol=options.rtol, atol=options.atol, max_steps=options.max_steps
+    )
     return join(sol.g, sol.l), sol.result, sol.num_steps, (sol.residuals, sol.jac_g, sol.jac_l)
 
 

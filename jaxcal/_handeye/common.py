@@ -13,10 +13,9 @@ def pose_error(T: Float[Array, "4 4"], T_hat: Float[Array, "4 4"]) -> Float[Arra
     return jnp.concatenate([T[:3, 3] - T_hat[:3, 3], so3_log(T[:3, :3] @ T_hat[:3, :3].T)])
 
 
-def least_squares(fn, params0, args, rtol, atol, max_steps, throw) -> optx.Solution:
-    """Levenberg-Marquardt at `(rtol, atol)` on the normal equations (`jaxcal._lsq.solve_normal`):
+def least_squares(fn, params0, args, options: _lsq.LMOptions) -> optx.Solution:
+    """Levenberg-Marquardt with `options` on the normal equations (`jaxcal._lsq.solve_normal`):
     the Jacobians are tall (thousands of corner rows, a dozen unknowns) and whitened, and
     lineax's default QR forms the thin Q every step, which the Cholesky of $J^T J$ avoids for
     the same answer to round-off."""
-    options = _lsq.LMOptions(rtol=rtol, atol=atol, max_steps=max_steps, throw=throw)
     return _lsq.solve_normal(fn, params0, args, options)

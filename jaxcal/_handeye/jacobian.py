@@ -31,6 +31,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._geometry import matmul, se3_exp
+from .._lsq import LMOptions
 from .._schur import NormalEquations, normal_least_squares
 from .blocks import join, split
 from .model import HandEyeParams, robot_motion, robust_factors, robust_weighting
@@ -117,7 +118,7 @@ def pixel_normal(params, args) -> tuple[Float[Array, "cameras frames k"], Normal
     return r * w[..., None], NormalEquations(H=H, e=jnp.sum(G, axis=(0, 1)), aux=G)
 
 
-def solve_pixels(params0: HandEyeParams, args, rtol, atol, max_steps):
+def solve_pixels(params0: HandEyeParams, args, options: LMOptions):
     """Levenberg-Marquardt on `robust_residuals` (pixels, exact robot poses) with the
     closed-form Jacobian. **Returns:** `(params, result, num_steps, (r, H, G))`, the last
     `pixel_normal` at `params` (its residuals, $J^TJ$ and the groups' gradients).
@@ -129,6 +130,11 @@ def solve_pixels(params0: HandEyeParams, args, rtol, atol, max_steps):
     less than half optimistix's time (docs/performance.md, Hand-eye)."""
     g0, _ = split(params0)
     sol = normal_least_squares(
-        lambda g, a: pixel_normal(join(g, None), a), g0, args, rtol=rtol, atol=atol, max_steps=max_steps
+        lambda g, a: pixel_normal(join(g, None), a),
+        g0,
+        args,
+        rtol=options.rtol,
+        atol=options.atol,
+        max_steps=options.max_steps,
     )
     return join(sol.x, None), sol.result, sol.num_steps, (sol.residuals, sol.normal.H, sol.normal.aux)

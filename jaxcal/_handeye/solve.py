@@ -1,5 +1,7 @@
 """The hand-eye solve: robust then plain Levenberg-Marquardt, outlier rejection, covariance."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -10,7 +12,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import pose_inverse
 from .._linalg import after
-from .._lsq import LMOptions
+from .._lsq import LMOptions, normal_pinv
 from .._options import fit_options
 from .blocks import block_bread, solve_by_blocks
 from .closed import initialise_hand_eye
@@ -209,17 +211,10 @@ def calibrate_hand_eye(
     **Returns:** a `HandEyeResult`.
     """
     options, _ = fit_options("calibrate_hand_eye", options, None, deprecated, robust_fit=False)
-    rtol, atol, max_steps = options.rtol, options.atol, options.max_steps
     data = _estimation_start(data, estimate_robot_noise, by_blocks)
     estimate = jnp.asarray(estimate_robot_noise, bool)
     X0, Y0 = initialise_hand_eye(data)
-    C, F = data.mask.shape[:2]
-    params0 = HandEyeParams(
-        cam_robot=jnp.zeros((C, 6)),
-        robot_board=jnp.zeros(6),
-        # Pose data: noisy robot poses are marginalised (`model.pose_error_covariance`); pixels: solved for.
-        robot=None if data.robot_sigma is None or isinstance(data, HandEyePoses) else jnp.zeros((F, 6)),
-    )
+    params0 = _unknowns(data)
     observed = jnp.any(data.mask, axis=-1) if isinstance(data, HandEyePixels) else data.mask
     blocks = by_blocks and params0.robot is not None  # pixels with per-pose robot corrections
     closed = closed_form_jacobian and isinstance(data, HandEyePixels) and params0.robot is None
@@ -232,24 +227,15 @@ def calibrate_hand_eye(
         jnp.asarray(reject_outliers, bool),
         estimate,
         (blocks, closed),
-        (loss_scale, rtol, atol, max_steps, outlier_threshold, min_outlier_scale),
+        (loss_scale, options, outlier_threshold, min_outlier_scale),
     )
     data = _with_robot_sigma(data, sigma)
     # The last stage is plain and its groups are the summary's: its linearisation is the summary's.
     lin = jax.tree.map(lambda x: x[1], lins)
-    first, last = (jax.tree.map(lambda x, i=i: x[i], results) for i in (0, 1))
-    result = optx.RESULTS.where(first == optx.RESULTS.successful, last, first)
+    result = _first_failure(results)
     if throw:
         params = result.error_if(params, result != optx.RESULTS.successful)
-    # The closed form again on the kept groups only: what the verdict compares the optimum with
-    # (the first start also saw the outliers). Ordered after the solve, and before the summary.
-    # With nothing rejected the kept groups are all the data: the first start, not computed again.
-    kept = data.mask & (active[..., None] if isinstance(data, HandEyePixels) else active)
-    X0_kept, Y0_kept = jax.lax.cond(
-        jnp.any(observed & ~active),
-        lambda: initialise_hand_eye(after(eqx.tree_at(lambda d: d.mask, data, kept), params)),
-        lambda: (X0, Y0),
-    )
+    X0_kept, Y0_kept = _kept_start(data, observed, active, params, (X0, Y0))
     params, lin = after((params, lin), X0_kept, Y0_kept)
     ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), data)
     out = _summarise(params, ref, data, observed & ~active, scale_covariance, blocks, closed, lin)
@@ -267,6 +253,37 @@ def calibrate_hand_eye(
         out,
         (result, jnp.sum(steps), results, steps, X0_kept, Y0_kept, estimate & blocks, _last(dofs)),
         is_leaf=lambda x: x is None,
+    )
+
+
+def _first_failure(results: optx.RESULTS) -> optx.RESULTS:
+    """The solve's code from the stages' `(2,)` codes: the first unsuccessful one's, else successful."""
+    first, last = (jax.tree.map(lambda x, i=i: x[i], results) for i in (0, 1))
+    return optx.RESULTS.where(first == optx.RESULTS.successful, last, first)
+
+
+def _unknowns(data: HandEyeData) -> HandEyeParams:
+    """The solve's unknowns at zero: each camera's and the board's twist, and (pixels with
+    noisy robot poses) one correction per robot pose; for pose data the noisy robot poses
+    are marginalised instead (`model.pose_error_covariance`)."""
+    C, F = data.mask.shape[:2]
+    return HandEyeParams(
+        cam_robot=jnp.zeros((C, 6)),
+        robot_board=jnp.zeros(6),
+        robot=None if data.robot_sigma is None or isinstance(data, HandEyePoses) else jnp.zeros((F, 6)),
+    )
+
+
+def _kept_start(data, observed, active, params, start):
+    """The closed form again on the kept groups only: what the verdict compares the optimum
+    with (the first start also saw the outliers); ordered after the solve `params`. With
+    nothing rejected the kept groups are all the data: the first `start`, not computed again."""
+    X0, Y0 = start
+    kept = data.mask & (active[..., None] if isinstance(data, HandEyePixels) else active)
+    return jax.lax.cond(
+        jnp.any(observed & ~active),
+        lambda: initialise_hand_eye(after(eqx.tree_at(lambda d: d.mask, data, kept), params)),
+        lambda: (X0, Y0),
     )
 
 
@@ -288,17 +305,17 @@ def _run_stages(data, params0, observed, start, reject_outliers, estimate, paths
     """The two Levenberg-Marquardt stages of `calibrate_hand_eye` (a `lax.scan`): robust, with
     rejection, then plain on the groups kept; with robot corrections, each re-run while the robot
     noise is estimated. `start` `(X0, Y0)`; `paths` `(blocks, closed)` (see `_solve`); `options`
-    `(loss_scale, rtol, atol, max_steps, outlier_threshold, min_outlier_scale)`.
+    `(loss_scale, LMOptions, outlier_threshold, min_outlier_scale)`.
 
     **Returns:** `((params, active, robot_sigma), (results, steps, lins, dofs))`, per stage.
     """
     X0, Y0 = start
     blocks, closed = paths
-    loss_scale, rtol, atol, max_steps, outlier_threshold, min_outlier_scale = options
+    loss_scale, lm, outlier_threshold, min_outlier_scale = options
 
     def solve_at(params, active, robust, d):
         ref = with_whitening(params, HandEyeReference(X0=X0, Y0=Y0, active=active), d)
-        return _solve(params, (ref, d, loss_scale, robust), blocks, closed, rtol, atol, max_steps)
+        return _solve(params, (ref, d, loss_scale, robust), blocks, closed, lm)
 
     def stage(carry, robust):
         # One Levenberg-Marquardt, traced once and run per stage: robust (Cauchy)
@@ -349,17 +366,17 @@ def _with_robot_sigma(data, sigma):
     return eqx.tree_at(lambda d: d.robot_sigma, data, sigma)
 
 
-def _solve(params, args, blocks: bool, closed: bool, rtol, atol, max_steps):
+def _solve(params, args, blocks: bool, closed: bool, options: LMOptions):
     """One Levenberg-Marquardt stage: by blocks (noisy robot poses), on the closed-form
     Jacobian (pixels, exact robot poses) or optimistix's on autodiff's. **Returns:**
     `(params, result, num_steps, lin)`, `lin` the solver's linearisation at `params`
     where it has one: the Jacobian blocks `(r, J_g, J_l)` by blocks, the normal equations
     `(r, J^T J, per-group gradients)` on the closed form, None for optimistix's."""
     if blocks:
-        return solve_by_blocks(params, args, rtol, atol, max_steps)
+        return solve_by_blocks(params, args, options)
     if closed:
-        return solve_pixels(params, args, rtol, atol, max_steps)
-    sol = least_squares(robust_residuals, params, args, rtol, atol, max_steps, False)
+        return solve_pixels(params, args, options)
+    sol = least_squares(robust_residuals, params, args, dataclasses.replace(options, throw=False))
     return sol.value, sol.result, sol.stats["num_steps"], None
 
 
@@ -411,7 +428,7 @@ def _bread(params, ref, data, blocks: bool, closed: bool = False, lin=None):
         return block_bread(params, ref, data, lin)
     if closed:  # the solver's normal equations and each group's gradient (`jacobian.pixel_normal`)
         r_all, H, G = lin
-        return jnp.linalg.pinv(H, hermitian=True), jnp.sum(G, axis=0), jnp.sum(r_all**2)
+        return normal_pinv(H), jnp.sum(G, axis=0), jnp.sum(r_all**2)
     flat, unravel = ravel_pytree(params)
 
     def flat_res(x):
@@ -420,7 +437,7 @@ def _bread(params, ref, data, blocks: bool, closed: bool = False, lin=None):
 
     J = jax.jacfwd(flat_res)(flat)
     r_all = flat_res(flat)
-    bread = jnp.linalg.pinv(J.T @ J, hermitian=True)
+    bread = normal_pinv(J.T @ J)
     return bread, _frame_gradients(J, r_all, ref, data), jnp.sum(r_all**2)
 
 

@@ -1,5 +1,7 @@
 """TCP-touch hand-eye calibration (seed 5): camera-measured points touched by the tool centre point."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -10,7 +12,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import make_pose, se3_exp
 from .._linalg import nearest_rotation
-from .._lsq import LMOptions
+from .._lsq import LMOptions, normal_pinv, residual_variance
 from .._options import fit_options
 from ..errors import DegenerateMotionError, LengthMismatchError, NonFiniteError, ShapeError, TooFewPosesError
 from .checks import check_motion_diversity, check_rotations
@@ -248,17 +250,15 @@ def calibrate_touch(
     options, _ = fit_options("calibrate_touch", options, None, deprecated, robust_fit=False)
     X0, tcp0 = initialise_touch(data)
     params0 = TouchParams(robot_cam=jnp.zeros(6), tcp=None if data.tcp is not None else tcp0)
-    sol = least_squares(
-        touch_residuals, params0, (X0, data), options.rtol, options.atol, options.max_steps, throw
-    )
+    options = dataclasses.replace(options, throw=throw or options.throw)
+    sol = least_squares(touch_residuals, params0, (X0, data), options)
     params = sol.value
     flat, unravel = ravel_pytree(params)
     J = jax.jacfwd(lambda x: touch_residuals(unravel(x), (X0, data)).reshape(-1))(flat)
     r = touch_residuals(params, (X0, data))
-    cov = jnp.linalg.pinv(J.T @ J, hermitian=True)
-    n_obs = 3.0 * jnp.sum(data.mask)
+    cov = normal_pinv(J.T @ J)
     if scale_covariance:
-        cov = cov * (jnp.sum(r**2) / jnp.maximum(n_obs - flat.size, 1.0))
+        cov = cov * residual_variance(r, 3.0 * jnp.sum(data.mask), flat.size)
     X = X0 @ se3_exp(params.robot_cam)
 
     def errors(x):

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._drift_camera import camera_reference, view_jacobians
+from .._lsq import normal_inverse
 from .._reprojection import make_corner_data
 from ..certification import read_result
 from ..drift import detectable, result_intrinsics
@@ -153,7 +154,7 @@ def plan_check(result, budget: int = 10, *, candidates: int = 400, seed: int = 0
         return (sa - sb @ np.linalg.solve(s2 * np.eye(r) + sg, sb.T)) / s2
 
     def figures(idx) -> dict:
-        d = detectable(np.linalg.inv(info(a[idx].sum(0), b[idx].sum(0), g[idx].sum(0))))
+        d = detectable(normal_inverse(info(a[idx].sum(0), b[idx].sum(0), g[idx].sum(0))))
         return {k: d[k] for k in ("translation_mm_worst", "rotation_deg_worst", "translation_mm_best")}
 
     chosen, steps = [], []

@@ -131,6 +131,34 @@ def _undistort(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarra
     return out.reshape(-1, 2)
 
 
+def _views(det, target: TargetSpec, T: np.ndarray, K: np.ndarray, dist: np.ndarray):
+    """Every camera's views: PnP (`estimate_pose`), the turn of a symmetric target that agrees
+    with the robot's motion (`_resolve_turns`, then PnP again on the turned ids) and the
+    undistorted pixels. **Returns:** `(pixels (cameras, frames, points, 2)` (NaN where unseen),
+    `poses` per camera and frame (None where unseen or PnP failed), `turned` `(camera, frame,
+    deg)`, `sigmas` each view's pixel-noise estimate`)`."""
+    C, F = len(det), T.shape[0]
+    pixels = np.full((C, F, len(target_points(target)), 2), np.nan)
+    poses, turned, sigmas = [], [], []
+    perms = target.rotations()
+    for c in range(C):
+        row = [None if d is None else estimate_pose(d, target, K[c], dist[c]) for d in det[c]]
+        turns = _resolve_turns(row, T, target)
+        for f, d in enumerate(det[c]):
+            if d is None or row[f] is None:
+                row[f] = None
+                continue
+            ids = d.ids
+            if turns[f]:
+                ids = perms[turns[f]][ids]
+                row[f] = estimate_pose(Detection(ids, d.pixels), target, K[c], dist[c])
+                turned.append((c, f, target.rotation_angle(perms[turns[f]])))
+            pixels[c, f, ids] = _undistort(d.pixels, K[c], dist[c])
+            sigmas.append(_view_sigma(row[f]))
+        poses.append(tuple(row))
+    return pixels, poses, turned, sigmas
+
+
 def hand_eye_from_detections(
     detections,
     target: TargetSpec,
@@ -196,25 +224,7 @@ def hand_eye_from_detections(
         )
     names = tuple(str(n) for n in frame_names) if frame_names is not None else tuple(str(f) for f in range(F))
     points = target_points(target)
-    P = len(points)
-    pixels = np.full((C, F, P, 2), np.nan)
-    poses, turned, sigmas = [], [], []
-    perms = target.rotations()
-    for c in range(C):
-        row = [None if d is None else estimate_pose(d, target, K[c], dist[c]) for d in det[c]]
-        turns = _resolve_turns(row, T, target)
-        for f, d in enumerate(det[c]):
-            if d is None or row[f] is None:
-                row[f] = None
-                continue
-            ids = d.ids
-            if turns[f]:
-                ids = perms[turns[f]][ids]
-                row[f] = estimate_pose(Detection(ids, d.pixels), target, K[c], dist[c])
-                turned.append((c, f, target.rotation_angle(perms[turns[f]])))
-            pixels[c, f, ids] = _undistort(d.pixels, K[c], dist[c])
-            sigmas.append(_view_sigma(row[f]))
-        poses.append(tuple(row))
+    pixels, poses, turned, sigmas = _views(det, target, T, K, dist)
     if sigma_px is None:
         sigma_px = max(float(np.median(sigmas)), MIN_SIGMA_PX) if sigmas else 1.0
     data = make_hand_eye_pixels(

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .._lsq import normal_inverse
 from .._npgeom import skew
 from ..markers import TargetSpec
 from ._detect import MIN_POINTS, Detection, VisionError, target_points
@@ -165,6 +166,6 @@ def estimate_pose(
     JtJ = J.T @ J
     if not np.all(np.isfinite(JtJ)) or np.linalg.cond(JtJ) > 1e14:
         return None
-    cov = sigma**2 * np.linalg.inv(JtJ)
+    cov = normal_inverse(JtJ, sigma**2)
     cov = 0.5 * (cov + cov.T)
     return PoseEstimate(T_cam_target=T, cov=cov, rms_px=rms, n_points=n, sigma_px=sigma)
