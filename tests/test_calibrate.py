@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import numpy as np
@@ -28,7 +29,7 @@ from jax._src import dispatch, monitoring
 from jaxcal._montecarlo import trial_sweeps
 from jaxcal.cli import main
 from jaxcal.io.dataset import DatasetError
-from jaxcal.io.result import read_result
+from jaxcal.io.result import COVARIANCE_MODELS, covariance_model, read_result
 from jaxcal.io.ros import read_easy_handeye, read_static_transform
 from jaxcal.pipeline import CalibrationError, calibrate
 from jaxcal.records import plain
@@ -198,6 +199,16 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
 
 
 @pytest.mark.slow
+def test_covariance_model_names_the_covariance_a_result_carries():
+    """`result.json`'s `covariance_model`: the refinement's view-robust covariance when it ran,
+    else a tracker point fit's model covariance, else the two-stage fit's."""
+    refined = SimpleNamespace(refinement=object(), point_fit=None)
+    point_fit = SimpleNamespace(refinement=None, point_fit=object())
+    two_stage = SimpleNamespace(refinement=None, point_fit=None)
+    names = [covariance_model(r) for r in (refined, point_fit, two_stage)]
+    assert names == ["view_robust", "model", "two_stage"] and set(names) == set(COVARIANCE_MODELS)
+
+
 def test_self_calibrated_intrinsics_without_refinement_are_suspect(dataset, tmp_path):
     """`K: null` with `--no-refine` (issue 32's battery: 42x the error, status ok): the two-stage
     result inherits the self-calibration's error, and the verdict says so and what to change."""
