@@ -13,7 +13,6 @@ the predicted RMS (about 1 when the calibration's uncertainty is honest).
 data: each sample predicted by a fit that did not see it).
 """
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import jax
@@ -22,73 +21,35 @@ import numpy as np
 
 from ._correction import ParameterLayout
 from ._pointfit import PointLayout, cross_validate, fold_masks, predict, prediction_std
-from .certification import read_result
 from .errors import DatasetError
+from .io.checks import read_calibration
 from .io.dataset import Dataset, load_dataset
-from .io.model_json import model_from_json
+from .records import ResidualStats
+from .records_check import CalibrationReference, CrossValidation, Verification, VerificationSummary
 from .stages._points import point_problem
 
 #: The 95 % quantile of the distance of an isotropic 3-D Gaussian, in per-axis sigmas ($\sqrt{\chi^2_3(0.95)}$).
 CHI3_95 = 2.7954834829151074
 
 
-@dataclass(frozen=True)
-class Verification:
-    """What `verify` found (distances in mm).
-
-    - `errors_mm`, `nominal_mm`: per sample, the distance of the measured point
-      from the calibrated and from the nominal prediction.
-    - `predicted_mm`: per sample, the RMS distance the calibration predicts
-      (parameter covariance and the fit's residual scatter).
-    - `summary`: mean, RMS and max of both, the predicted RMS, measured over
-      predicted, and the share inside the predicted 95 % bound.
-    - `cv`: with `cv=K`, the K-fold cross-validation's mean, RMS and max.
-    """
-
-    result: str
-    dataset: str
-    samples: np.ndarray
-    errors_mm: np.ndarray
-    nominal_mm: np.ndarray
-    predicted_mm: np.ndarray
-    summary: dict
-    cv: dict | None = None
-    notes: list = field(default_factory=list)
-
-    def to_json(self) -> dict:
-        return {
-            "schema": "jaxcal.verification",
-            "schema_version": 1,
-            "result": self.result,
-            "dataset": self.dataset,
-            "summary": self.summary,
-            "cv": self.cv,
-            "notes": self.notes,
-            "samples": [
-                {"sample": int(s), "error_mm": float(e), "nominal_mm": float(n), "predicted_rms_mm": float(p)}
-                for s, e, n, p in zip(self.samples, self.errors_mm, self.nominal_mm, self.predicted_mm)
-            ],
-        }
+def _stats(d: np.ndarray) -> ResidualStats:
+    return ResidualStats(mean=float(d.mean()), rms=float(np.sqrt(np.mean(d**2))), max=float(d.max()))
 
 
-def _stats(d: np.ndarray) -> dict:
-    return {"mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d**2))), "max": float(d.max())}
-
-
-def read_point_result(path) -> tuple[dict, Path]:
-    """`result.json` (a result directory or the file) with its `point_fit` block, checked."""
-    doc, file = read_result(path)
-    if "point_fit" not in doc:
+def read_point_result(path) -> CalibrationReference:
+    """`result.json` (a result directory or the file) with its point fit, checked."""
+    ref = read_calibration(path)
+    if ref.point_fit is None:
         raise DatasetError(
-            f"{file}: no 'point_fit' block: verify checks results of stop-and-shoot tracker data "
-            f"(this one is {doc.get('capture', 'another kind')!r})"
+            f"{ref.file}: no 'point_fit' block: verify checks results of stop-and-shoot tracker data "
+            f"(this one is {ref.capture or 'another kind'!r})"
         )
-    return doc, file
+    return ref
 
 
-def _problem_for(doc: dict, file: Path, ds: Dataset, used=None):
-    pf = doc["point_fit"]
-    nominal = model_from_json(pf["nominal_model"])
+def _problem_for(ref: CalibrationReference, ds: Dataset, used=None):
+    pf, file = ref.point_fit, ref.file
+    nominal = pf.nominal
     if ds.samples is None:
         raise DatasetError(
             f"{ds.root / 'metadata.json'}: not a tracker dataset (no 'device'): nothing to verify"
@@ -98,23 +59,22 @@ def _problem_for(doc: dict, file: Path, ds: Dataset, used=None):
             f"{ds.root / 'metadata.json'}: robot.joints {list(ds.joint_names)} differ from the calibrated robot's "
             f"{list(nominal.joint_names)} ({file}): another robot?"
         )
-    if doc.get("device") not in (None, ds.device.name):
+    if ref.device not in (None, ds.device.name):
         raise DatasetError(
             f"{ds.root / 'metadata.json'}: device {ds.device.name!r}, but {file} calibrated device "
-            f"{doc.get('device')!r}: its frame is another"
+            f"{ref.device!r}: its frame is another"
         )
     if ds.samples.q is None:
         raise DatasetError(f"{ds.root / ds.device.file}: verify needs every sample's joint positions")
     fixed = "T_device_base"
-    layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name=fixed), tuple(pf["terms"]))
-    if len(pf["x"]) != layout.size:
-        raise DatasetError(f"{file}: point_fit.x has {len(pf['x'])} entries, its layout {layout.size}")
+    layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name=fixed), pf.terms)
+    if len(pf.x) != layout.size:
+        raise DatasetError(f"{file}: point_fit.x has {len(pf.x)} entries, its layout {layout.size}")
     s = ds.samples
     used = np.ones(len(s.sample), bool) if used is None else used
     problem = point_problem(
         nominal, layout, s.q, s.position, s.sigma_m, used,
-        np.asarray(pf["T_device_base0"]), np.asarray(pf["T_flange_point0"]),
-        (np.asarray(pf["masses"]), np.asarray(pf["coms"])),
+        pf.T_device_base0, pf.T_flange_point0, (pf.masses, pf.coms),
     )  # fmt: skip
     return problem, layout, nominal
 
@@ -124,48 +84,49 @@ def verify(result, dataset, *, cv: int = 0) -> Verification:
     `result.json`) against the tracker `dataset` (a path or a loaded `Dataset`);
     `cv`: also run K-fold cross-validation on `dataset` (see the module docstring).
     Raises `DatasetError` naming the file when the two do not belong together."""
-    doc, file = read_point_result(result)
+    ref = read_point_result(result)
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
-    problem, layout, _ = _problem_for(doc, file, ds)
-    pf = doc["point_fit"]
-    x = jnp.asarray(pf["x"], jnp.float64)
-    cov = jnp.asarray(pf["covariance"], jnp.float64)
+    problem, layout, _ = _problem_for(ref, ds)
+    pf = ref.point_fit
+    x = jnp.asarray(pf.x, jnp.float64)
+    cov = jnp.asarray(pf.covariance, jnp.float64)
     y = np.asarray(ds.samples.position)
     err = 1e3 * np.linalg.norm(np.asarray(predict(x, problem)) - y, axis=1)
     nominal = 1e3 * np.linalg.norm(np.asarray(predict(jnp.zeros_like(x), problem)) - y, axis=1)
     param = np.asarray(prediction_std(x, cov, problem))  # per-axis RMS, m
-    scatter2 = float(pf["residual_variance_factor"]) * np.asarray(ds.samples.sigma_m) ** 2
+    scatter2 = pf.residual_variance_factor * np.asarray(ds.samples.sigma_m) ** 2
     per_axis = np.sqrt(param**2 + scatter2)
     predicted = 1e3 * np.sqrt(3.0) * per_axis
     inside = err <= 1e3 * CHI3_95 * per_axis
     meas_rms = float(np.sqrt(np.mean(err**2)))
     pred_rms = float(np.sqrt(np.mean(predicted**2)))
-    summary = {
-        "samples": int(len(err)),
-        "calibrated_mm": _stats(err),
-        "nominal_mm": _stats(nominal),
-        "predicted_rms_mm": pred_rms,
-        "measured_over_predicted": meas_rms / pred_rms,
-        "inside_95_bound": float(np.mean(inside)),
-        "parameter_part_rms_mm": float(1e3 * np.sqrt(3 * np.mean(param**2))),
-    }
+    summary = VerificationSummary(
+        samples=int(len(err)),
+        calibrated_mm=_stats(err),
+        nominal_mm=_stats(nominal),
+        predicted_rms_mm=pred_rms,
+        measured_over_predicted=meas_rms / pred_rms,
+        inside_95_bound=float(np.mean(inside)),
+        parameter_part_rms_mm=float(1e3 * np.sqrt(3 * np.mean(param**2))),
+    )
     notes = []
-    if summary["inside_95_bound"] < 0.9:
+    if summary.inside_95_bound < 0.9:
         notes.append(
-            f"only {100 * summary['inside_95_bound']:.0f} % of the samples lie inside their predicted 95 % bound: "
+            f"only {100 * summary.inside_95_bound:.0f} % of the samples lie inside their predicted 95 % bound: "
             "the calibration is worse here than it claims (poses outside the calibrated workspace, a changed "
             "set-up, or drift since)"
         )
     cv_block = None
     if cv:
-        cv_problem, _, _ = _problem_for(doc, file, ds)
-        free = jnp.asarray(pf["free"], bool)
+        cv_problem, _, _ = _problem_for(ref, ds)
+        free = jnp.asarray(pf.free, bool)
         train = jnp.asarray(fold_masks(len(y), cv))
         dist, test = jax.jit(cross_validate)(cv_problem, free, free, train)
         d = 1e3 * np.asarray(dist)[np.asarray(test)]
-        cv_block = {"folds": int(cv), **_stats(d)}
+        s = _stats(d)
+        cv_block = CrossValidation(folds=int(cv), mean=s.mean, rms=s.rms, max=s.max)
     return Verification(
-        result=str(file),
+        result=str(ref.file),
         dataset=str(ds.root),
         samples=np.asarray(ds.samples.sample),
         errors_mm=err,
@@ -173,7 +134,7 @@ def verify(result, dataset, *, cv: int = 0) -> Verification:
         predicted_mm=predicted,
         summary=summary,
         cv=cv_block,
-        notes=notes,
+        notes=tuple(notes),
     )
 
 
@@ -192,7 +153,7 @@ def plot_verification(v: Verification, path) -> None:
         "o",
         ms=3,
         color="0.6",
-        label=f"nominal (mean {v.summary['nominal_mm']['mean']:.3f} mm)",
+        label=f"nominal (mean {v.summary.nominal_mm.mean:.3f} mm)",
     )
     a.plot(
         k,
@@ -200,7 +161,7 @@ def plot_verification(v: Verification, path) -> None:
         "o",
         ms=3,
         color="C0",
-        label=f"calibrated (mean {v.summary['calibrated_mm']['mean']:.3f} mm)",
+        label=f"calibrated (mean {v.summary.calibrated_mm.mean:.3f} mm)",
     )
     a.plot(k, CHI3_95 / np.sqrt(3.0) * v.predicted_mm, "_", color="C3", label="predicted 95 % bound")
     a.set_yscale("log")

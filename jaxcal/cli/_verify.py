@@ -8,6 +8,7 @@ from rich.console import Console
 from rich.table import Table
 
 from ..io._files import write_text_atomic
+from ..io.checks import verification_json
 from ..verification import plot_verification, verify
 from ._certify import check_output
 
@@ -35,25 +36,25 @@ def cmd_verify(args) -> int:
     v = verify(args.result, args.dataset, cv=args.cv)
     s = v.summary
     console = Console(width=max(Console().width, 110))
-    t = Table(title=f"jaxcal verify: {s['samples']} samples of {v.dataset}")
+    t = Table(title=f"jaxcal verify: {s.samples} samples of {v.dataset}")
     for col in ("model", "mean mm", "RMS mm", "max mm"):
         t.add_column(col, justify="left" if col == "model" else "right")
-    for label, key in (("nominal", "nominal_mm"), ("calibrated", "calibrated_mm")):
-        t.add_row(label, *(f"{s[key][k]:.4f}" for k in ("mean", "rms", "max")))
+    for label, r in (("nominal", s.nominal_mm), ("calibrated", s.calibrated_mm)):
+        t.add_row(label, *(f"{x:.4f}" for x in (r.mean, r.rms, r.max)))
     if v.cv is not None:
         t.add_row(
-            f"{v.cv['folds']}-fold CV on this dataset", *(f"{v.cv[k]:.4f}" for k in ("mean", "rms", "max"))
+            f"{v.cv.folds}-fold CV on this dataset", *(f"{x:.4f}" for x in (v.cv.mean, v.cv.rms, v.cv.max))
         )
     console.print(t)
     console.print(
-        f"predicted RMS {s['predicted_rms_mm']:.4f} mm (parameters alone {s['parameter_part_rms_mm']:.4f} mm): "
-        f"measured / predicted {s['measured_over_predicted']:.2f}; "
-        f"{100 * s['inside_95_bound']:.0f} % of the samples inside their predicted 95 % bound"
+        f"predicted RMS {s.predicted_rms_mm:.4f} mm (parameters alone {s.parameter_part_rms_mm:.4f} mm): "
+        f"measured / predicted {s.measured_over_predicted:.2f}; "
+        f"{100 * s.inside_95_bound:.0f} % of the samples inside their predicted 95 % bound"
     )
     for n in v.notes:
         console.print(f"[yellow]note:[/yellow] {n}")
     if args.json:
-        write_text_atomic(args.json, json.dumps(v.to_json(), indent=1))
+        write_text_atomic(args.json, json.dumps(verification_json(v), indent=1))
         console.print(f"wrote {args.json}")
     if args.plot:
         dest = Path(args.plot)
