@@ -35,8 +35,7 @@ there than over the calibration's own configurations.
 """
 
 import importlib
-import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import jax
@@ -51,9 +50,18 @@ from ._kinematics import KinematicModel, forward_kinematics
 from ._pointfit import PointLayout, point_jacobian, predict
 from ._uncertainty import joint_travel, tool_points
 from .errors import DatasetError
+from .io.checks import read_calibration, read_result_json
 from .io.dataset import load_dataset
-from .io.model_json import model_from_json
 from .io.result import ESTIMATE_FILE, read_estimate
+from .records import Named
+from .records_check import (
+    CalibrationReference,
+    Certificate,
+    CertificateSummary,
+    Extrapolation,
+    Region,
+    WorstPose,
+)
 from .stages._points import point_problem
 
 #: Draws of the 3-D standard normal used for the quantiles of $|e_q|$ (fixed seed: repeatable).
@@ -102,27 +110,18 @@ class Predictor:
 
 
 def read_result(path) -> tuple[dict, Path]:
-    """`result.json` (a result directory or the file), checked to be a jaxcal result."""
-    p = Path(path)
-    file = p / "result.json" if p.is_dir() else p
-    try:
-        doc = json.loads(file.read_text())
-    except FileNotFoundError:
-        raise DatasetError(
-            f"{file}: no such result (give a directory jaxcal calibrate wrote, or its result.json)"
-        ) from None
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"{file}: not JSON ({e})") from None
-    if doc.get("schema") != "jaxcal.result":
-        raise DatasetError(f"{file}: schema is {doc.get('schema')!r}, expected 'jaxcal.result'")
-    return doc, file
+    """`result.json` (a result directory or the file) as plain JSON, checked to be a jaxcal result
+    (`jaxcal.io.checks.read_result_json`; the products read its typed `read_calibration`)."""
+    return read_result_json(path)
 
 
-def _workspace(doc: dict, ratio: np.ndarray) -> tuple[np.ndarray | None, str | None, dict]:
+def _workspace(ref: CalibrationReference, ratio: np.ndarray) -> tuple[np.ndarray | None, str | None, dict]:
     """The calibration dataset's configurations (tracker samples, or the encoder log as
     joint positions), a note when they cannot be read, and its joint limits."""
     try:
-        ds = load_dataset(doc["dataset"])
+        if ref.dataset is None:
+            raise KeyError("dataset")
+        ds = load_dataset(ref.dataset)
     except (DatasetError, OSError, KeyError, ValueError) as e:
         return None, f"the calibration's dataset could not be read ({e}): extrapolation not assessed", {}
     if ds.samples is not None and ds.samples.q is not None:
@@ -139,19 +138,19 @@ def _point_covariances(x, cov, problem):
     return jnp.einsum("sai,ij,sbj->sab", J, cov, J)
 
 
-def tracker_predictor(doc: dict, file: Path) -> Predictor:
-    """The `Predictor` of a stop-and-shoot result's `point_fit` block."""
-    pf = doc["point_fit"]
-    nominal = model_from_json(pf["nominal_model"])
-    layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name="T_device_base"), tuple(pf["terms"]))
-    if len(pf["x"]) != layout.size:
-        raise DatasetError(f"{file}: point_fit.x has {len(pf['x'])} entries, its layout {layout.size}")
-    x = jnp.asarray(pf["x"], jnp.float64)
-    cov = np.asarray(pf["covariance"], np.float64)
+def tracker_predictor(ref: CalibrationReference) -> Predictor:
+    """The `Predictor` of a stop-and-shoot result's point fit."""
+    pf, file = ref.point_fit, ref.file
+    nominal = pf.nominal
+    layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name="T_device_base"), pf.terms)
+    if len(pf.x) != layout.size:
+        raise DatasetError(f"{file}: point_fit.x has {len(pf.x)} entries, its layout {layout.size}")
+    x = jnp.asarray(pf.x, jnp.float64)
+    cov = np.asarray(pf.covariance, np.float64)
     cam = layout.base.index("cam")
-    T0, Tp0 = np.asarray(pf["T_device_base0"]), np.asarray(pf["T_flange_point0"])
+    T0, Tp0 = pf.T_device_base0, pf.T_flange_point0
     T_db = np.asarray(T0 @ se3_exp(x[cam]))
-    inertials = (np.asarray(pf["masses"]), np.asarray(pf["coms"]))
+    inertials = (pf.masses, pf.coms)
 
     def problem(q):
         n = len(q)
@@ -172,8 +171,8 @@ def tracker_predictor(doc: dict, file: Path) -> Predictor:
 
     params, _ = layout.split(x)
     model, _ = apply_correction(nominal, jnp.asarray(Tp0)[None], params.correction)
-    ws, note, limits = _workspace(doc, np.ones(nominal.num_joints))
-    scatter = max(float(pf["residual_variance_factor"]) - 1.0, 0.0) * float(pf["sigma_m"]) ** 2
+    ws, note, limits = _workspace(ref, np.ones(nominal.num_joints))
+    scatter = max(pf.residual_variance_factor - 1.0, 0.0) * pf.sigma_m**2
     return Predictor(
         kind="tracker",
         result=str(file),
@@ -212,8 +211,9 @@ _base_points = stored_jit(_base_points, "base_points", compiler_options=None)
 _calibrated_model = stored_jit(lambda estimate: parameters_to_model(estimate), "calibrated_model")
 
 
-def camera_predictor(doc: dict, file: Path) -> Predictor:
+def camera_predictor(ref: CalibrationReference) -> Predictor:
     """The `Predictor` of a camera result (its `estimate.npz`, written beside `result.json`)."""
+    file = ref.file
     path = file.parent / ESTIMATE_FILE
     if not path.is_file():
         raise DatasetError(
@@ -236,11 +236,11 @@ def camera_predictor(doc: dict, file: Path) -> Predictor:
     def base_points(q):
         return np.asarray(_base_points(calibrated.model, calibrated.T_flange_marker[0], jnp.asarray(q)))
 
-    ws, note, limits = _workspace(doc, np.asarray(est.reduction_ratio))
+    ws, note, limits = _workspace(ref, np.asarray(est.reduction_ratio))
     caveats = []
-    if str(doc.get("intrinsics", {}).get("source", "")).startswith("self-calibrated"):
+    if ref.intrinsics is not None and ref.intrinsics.source.startswith("self-calibrated"):
         caveats.append(SELF_CALIBRATED)
-    if "poses" in str(doc.get("capture", "")):
+    if "poses" in (ref.capture or ""):
         caveats.append(COHERENT_VIEWS)
     return Predictor(
         kind="camera",
@@ -259,14 +259,14 @@ def camera_predictor(doc: dict, file: Path) -> Predictor:
 
 def load_predictor(result) -> Predictor:
     """The `Predictor` of a result directory (or its `result.json`): tracker or camera."""
-    doc, file = read_result(result)
-    if "point_fit" in doc:
-        return tracker_predictor(doc, file)
-    if doc.get("setup", "").startswith("tracker") or "T_device_base" in doc:
+    ref = read_calibration(result)
+    if ref.point_fit is not None:
+        return tracker_predictor(ref)
+    if ref.tracker:
         raise DatasetError(
-            f"{file}: a tracker result without a 'point_fit' block (sweeps): not supported yet"
+            f"{ref.file}: a tracker result without a 'point_fit' block (sweeps): not supported yet"
         )
-    return camera_predictor(doc, file)
+    return camera_predictor(ref)
 
 
 def norm_quantiles(
@@ -345,7 +345,7 @@ def _scipy_spatial():
 
 def extrapolation(
     pred: Predictor, q: np.ndarray, points: np.ndarray, rms_m: np.ndarray, frame: str
-) -> dict | None:
+) -> Extrapolation | None:
     """How far the region leaves the calibrated workspace (see the module docstring), or None
     when the calibration's configurations are unknown."""
     ws = pred.workspace
@@ -366,67 +366,19 @@ def extrapolation(
         out = np.max(points @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)
     except spatial.QhullError:  # the calibration's points are flat (e.g. one joint swept)
         out = np.full(len(points), np.nan)
-    return {
-        "calibrated_joint_range": [[float(a), float(b)] for a, b in zip(lo, hi)],
-        "joint_excess": {j: float(e) for j, e in zip(pred.joint_names, per_joint)},
-        "share_of_poses_outside_joint_ranges": float(np.mean(np.any(excess > JOINT_TOLERANCE, axis=1))),
-        "max_joint_excess": float(per_joint.max()),
-        "share_of_points_outside_hull": float(np.mean(out > 0)) if np.all(np.isfinite(out)) else None,
-        "max_distance_outside_hull_mm": float(1e3 * max(np.nanmax(out), 0.0))
+    return Extrapolation(
+        calibrated_joint_range=tuple((float(a), float(b)) for a, b in zip(lo, hi)),
+        joint_excess=tuple(Named(j, float(e)) for j, e in zip(pred.joint_names, per_joint)),
+        share_of_poses_outside_joint_ranges=float(np.mean(np.any(excess > JOINT_TOLERANCE, axis=1))),
+        max_joint_excess=float(per_joint.max()),
+        share_of_points_outside_hull=float(np.mean(out > 0)) if np.all(np.isfinite(out)) else None,
+        max_distance_outside_hull_mm=float(1e3 * max(np.nanmax(out), 0.0))
         if np.any(np.isfinite(out))
         else None,
-        "calibrated_rms_mm": 1e3 * inside_rms,
-        "error_ratio": region_rms / inside_rms if inside_rms > 0 else None,
-        "extrapolated": bool(per_joint.max() > JOINT_TOLERANCE or np.nanmax(np.r_[out, -1.0]) > 0.01),
-    }
-
-
-@dataclass(frozen=True, eq=False)
-class Certificate:
-    """A certificate (distances in mm; see the module docstring).
-
-    - `q`: the region's configurations `(C, joints)`; `points`: the calibrated tool
-      point there, base frame (m); `rms_mm`, `bound95_mm`: per pose the predicted
-      RMS error and its 95 % bound.
-    - `summary`: `poses`, `mean_mm`, `rms_mm`, `p95_mm` (the region's 95th percentile),
-      `max_bound95_mm`, `worst` (the pose of the largest bound: index, q, point).
-    - `extrapolation`: `extrapolation`'s dict, or None; `caveats`, `notes`.
-    """
-
-    result: str
-    kind: str
-    frame: str
-    region: dict
-    joint_names: tuple[str, ...]
-    q: np.ndarray
-    points: np.ndarray
-    rms_mm: np.ndarray
-    bound95_mm: np.ndarray
-    summary: dict
-    extrapolation: dict | None
-    caveats: tuple[str, ...] = ()
-    notes: tuple[str, ...] = field(default_factory=tuple)
-
-    def to_json(self, *, poses: bool = True) -> dict:
-        out = {
-            "schema": "jaxcal.certificate",
-            "schema_version": 1,
-            "result": self.result,
-            "kind": self.kind,
-            "frame": self.frame,
-            "region": self.region,
-            "summary": self.summary,
-            "extrapolation": self.extrapolation,
-            "caveats": list(self.caveats),
-            "notes": list(self.notes),
-        }
-        if poses:
-            out["joint_names"] = list(self.joint_names)
-            out["poses"] = [
-                {"q": a.tolist(), "point_m": p.tolist(), "rms_mm": float(r), "bound95_mm": float(b)}
-                for a, p, r, b in zip(self.q, self.points, self.rms_mm, self.bound95_mm)
-            ]
-        return out
+        calibrated_rms_mm=1e3 * inside_rms,
+        error_ratio=region_rms / inside_rms if inside_rms > 0 else None,
+        extrapolated=bool(per_joint.max() > JOINT_TOLERANCE or np.nanmax(np.r_[out, -1.0]) > 0.01),
+    )
 
 
 def certify(
@@ -460,43 +412,40 @@ def certify(
     notes = list(pred.notes)
     if region is not None:
         q, drawn = box_configurations(pred, region, samples, seed)
-        desc = {"kind": "cartesian_box", "box_m": np.asarray(region, float).tolist(), "drawn": drawn}
+        desc = Region("cartesian_box", box_m=tuple(np.asarray(region, float).tolist()), drawn=drawn)
         if len(q) < samples:
             notes.append(f"only {len(q)} of {drawn} random configurations put the tool point in the box")
     elif poses is not None:
         q = np.asarray(poses, np.float64)
         if q.ndim != 2 or q.shape[1] != len(pred.joint_names):
             raise ValueError(f"poses: shape {q.shape}, expected (configurations, {len(pred.joint_names)})")
-        desc = {"kind": "poses"}
+        desc = Region("poses")
     else:
         box = pred.travel if joint_box is None else joint_box
         q = joint_box_configurations(pred, box, samples, seed)
-        desc = {"kind": "joint_box", "ranges": np.asarray(box, float).tolist()}
+        desc = Region("joint_box", ranges=tuple(tuple(r) for r in np.asarray(box, float).tolist()))
     cov = pred.covariances(q, frame) + pred.scatter_var * np.eye(3)
     b95, draws = norm_quantiles(cov)
     rms = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     points = pred.base_points(q)
     w = int(np.argmax(b95))
-    summary = {
-        "poses": int(len(q)),
-        "mean_mm": float(1e3 * rms.mean()),
-        "rms_mm": float(1e3 * np.sqrt(np.mean(rms**2))),
-        "p95_mm": float(1e3 * np.quantile(draws, 0.95)),
-        "max_bound95_mm": float(1e3 * b95[w]),
-        "unexplained_scatter_mm": float(1e3 * np.sqrt(3 * pred.scatter_var)),
-        "worst": {
-            "index": w,
-            "q": q[w].tolist(),
-            "point_m": points[w].tolist(),
-            "rms_mm": float(1e3 * rms[w]),
-        },
-    }
+    summary = CertificateSummary(
+        poses=int(len(q)),
+        mean_mm=float(1e3 * rms.mean()),
+        rms_mm=float(1e3 * np.sqrt(np.mean(rms**2))),
+        p95_mm=float(1e3 * np.quantile(draws, 0.95)),
+        max_bound95_mm=float(1e3 * b95[w]),
+        unexplained_scatter_mm=float(1e3 * np.sqrt(3 * pred.scatter_var)),
+        worst=WorstPose(
+            index=w, q=tuple(q[w].tolist()), point_m=tuple(points[w].tolist()), rms_mm=float(1e3 * rms[w])
+        ),
+    )
     ext = extrapolation(pred, q, points, rms, frame)
-    if ext is not None and ext["extrapolated"]:
+    if ext is not None and ext.extrapolated:
         notes.append(
-            f"the region leaves the calibrated workspace: joints up to {np.degrees(ext['max_joint_excess']):.1f} deg "
-            f"beyond the calibrated ranges ({100 * ext['share_of_poses_outside_joint_ranges']:.0f} % of its poses), "
-            f"predicted error {ext['error_ratio']:.2f}x that over the calibrated configurations: extrapolation, "
+            f"the region leaves the calibrated workspace: joints up to {np.degrees(ext.max_joint_excess):.1f} deg "
+            f"beyond the calibrated ranges ({100 * ext.share_of_poses_outside_joint_ranges:.0f} % of its poses), "
+            f"predicted error {ext.error_ratio:.2f}x that over the calibrated configurations: extrapolation, "
             "the first-order prediction is all that supports it"
         )
     return Certificate(
@@ -531,12 +480,12 @@ def plot_certificate(c: Certificate, path, workspace_points: np.ndarray | None =
     fig.colorbar(sc, ax=axes[1], label="95 % bound (mm)")
     axes[2].hist(c.bound95_mm, bins=30, color="C0")
     s = c.summary
-    axes[2].axvline(s["p95_mm"], color="C3", label=f"region 95th percentile {s['p95_mm']:.3f} mm")
+    axes[2].axvline(s.p95_mm, color="C3", label=f"region 95th percentile {s.p95_mm:.3f} mm")
     axes[2].set_xlabel("per-pose 95 % bound (mm)")
     axes[2].set_ylabel("poses")
     axes[2].legend(fontsize=8)
     fig.suptitle(
-        f"jaxcal certify ({c.kind}, {c.frame} frame): mean {s['mean_mm']:.3f} mm, 95 % {s['p95_mm']:.3f} mm"
+        f"jaxcal certify ({c.kind}, {c.frame} frame): mean {s.mean_mm:.3f} mm, 95 % {s.p95_mm:.3f} mm"
     )
     fig.tight_layout()
     fig.savefig(path, dpi=110)

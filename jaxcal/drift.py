@@ -36,6 +36,7 @@ value says something else changed (the robot, the point's mount).
 
 import importlib
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
@@ -51,12 +52,20 @@ from ._drift_camera import fit as fit_camera
 from ._geometry import se3_exp
 from ._pointfit import PointLayout, point_jacobian, predict
 from ._reprojection import make_corner_data
-from .certification import read_result
 from .errors import DatasetError
-from .handeye_check import HandEyeCheckFit, fit_hand_eye_check, read_hand_eye_result
+from .handeye_check import HandEyeCheckFit, fit_hand_eye_check
+from .io.checks import calibration_reference, drift_check_json, read_calibration, read_hand_eye_reference
 from .io.dataset import Dataset, load_dataset
-from .io.model_json import model_from_json
 from .io.result import ESTIMATE_FILE, read_estimate
+from .records_check import EXIT_DRIFT as EXIT_DRIFT
+from .records_check import (
+    CalibrationReference,
+    Detectable,
+    DriftCheck,
+    DriftResidual,
+    HandEyeReference,
+    JointOffset,
+)
 from .stages._points import point_problem
 from .vision import detect_frames
 
@@ -71,8 +80,6 @@ def _stats():
 ALPHA, POWER = 0.05, 0.95
 #: Gauss-Newton steps of the drift fit (it converges in two or three; these are for safety).
 GN_STEPS = 8
-#: Exit status of `jaxcal check` when drift is detected.
-EXIT_DRIFT = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,26 +98,30 @@ class DriftReference:
     T_device_base: np.ndarray
 
 
-def reference(doc: dict, q: np.ndarray, sigma: np.ndarray) -> DriftReference:
-    """The `DriftReference` of a stop-and-shoot result's `point_fit` block at configurations `q`
-    `(S, joints)` measured with per-axis noise `sigma` `(S,)` (m)."""
-    pf = doc["point_fit"]
-    nominal = model_from_json(pf["nominal_model"])
-    layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name="T_device_base"), tuple(pf["terms"]))
-    x = jnp.asarray(pf["x"], jnp.float64)
+def as_reference(result, file="result.json") -> CalibrationReference:
+    """`result` as a `CalibrationReference`: one already, or a `result.json` payload read from `file`."""
+    return calibration_reference(result, file) if isinstance(result, Mapping) else result
+
+
+def reference(result, q: np.ndarray, sigma: np.ndarray) -> DriftReference:
+    """The `DriftReference` of a stop-and-shoot result's point fit (a `CalibrationReference`, or
+    its `result.json` payload) at configurations `q` `(S, joints)` measured with per-axis noise
+    `sigma` `(S,)` (m)."""
+    pf = as_reference(result).point_fit
+    layout = PointLayout(ParameterLayout.of(pf.nominal, 1, fixed_name="T_device_base"), pf.terms)
+    x = jnp.asarray(pf.x, jnp.float64)
     S = len(q)
     problem = point_problem(
-        nominal, layout, np.asarray(q, np.float64), np.zeros((S, 3)), np.ones(S), np.ones(S, bool),
-        np.asarray(pf["T_device_base0"]), np.asarray(pf["T_flange_point0"]),
-        (np.asarray(pf["masses"]), np.asarray(pf["coms"])),
+        pf.nominal, layout, np.asarray(q, np.float64), np.zeros((S, 3)), np.ones(S), np.ones(S, bool),
+        pf.T_device_base0, pf.T_flange_point0, (pf.masses, pf.coms),
     )  # fmt: skip
     J = np.asarray(point_jacobian(x, problem))  # (S, 3, n)
     Z = J[:, :, layout.base.index("zero")]
     Jf = J.reshape(3 * S, -1)
-    scatter = float(pf["residual_variance_factor"]) * np.repeat(np.asarray(sigma, np.float64) ** 2, 3)
-    R = np.diag(scatter) + Jf @ np.asarray(pf["covariance"]) @ Jf.T
-    T_db = np.asarray(jnp.asarray(pf["T_device_base0"]) @ se3_exp(x[layout.base.index("cam")]))
-    return DriftReference(np.asarray(predict(x, problem)), Z, R, tuple(nominal.joint_names), T_db)
+    scatter = pf.residual_variance_factor * np.repeat(np.asarray(sigma, np.float64) ** 2, 3)
+    R = np.diag(scatter) + Jf @ pf.covariance @ Jf.T
+    T_db = np.asarray(jnp.asarray(pf.T_device_base0) @ se3_exp(x[layout.base.index("cam")]))
+    return DriftReference(np.asarray(predict(x, problem)), Z, R, tuple(pf.nominal.joint_names), T_db)
 
 
 def _model(theta, y_hat, Z):
@@ -181,7 +192,9 @@ def noncentrality_for_power(
     )
 
 
-def detectable(C: np.ndarray, alpha: float = ALPHA, p: float = POWER, dof_noise: int | None = None) -> dict:
+def detectable(
+    C: np.ndarray, alpha: float = ALPHA, p: float = POWER, dof_noise: int | None = None
+) -> Detectable:
     """The smallest translation (mm) and rotation (deg) detected with power `p` along
     their worst and best directions (see the module docstring)."""
     k = len(C)
@@ -189,13 +202,13 @@ def detectable(C: np.ndarray, alpha: float = ALPHA, p: float = POWER, dof_noise:
     P = np.linalg.inv(C)
     mu_t = np.linalg.eigvalsh(P[:3, :3])
     mu_r = np.linalg.eigvalsh(P[3:6, 3:6])
-    return {
-        "noncentrality": lam,
-        "translation_mm_worst": float(1e3 * np.sqrt(lam / mu_t[0])),
-        "translation_mm_best": float(1e3 * np.sqrt(lam / mu_t[-1])),
-        "rotation_deg_worst": float(np.degrees(np.sqrt(lam / mu_r[0]))),
-        "rotation_deg_best": float(np.degrees(np.sqrt(lam / mu_r[-1]))),
-    }
+    return Detectable(
+        noncentrality=lam,
+        translation_mm_worst=float(1e3 * np.sqrt(lam / mu_t[0])),
+        translation_mm_best=float(1e3 * np.sqrt(lam / mu_t[-1])),
+        rotation_deg_worst=float(np.degrees(np.sqrt(lam / mu_r[0]))),
+        rotation_deg_best=float(np.degrees(np.sqrt(lam / mu_r[-1]))),
+    )
 
 
 def _size_and_std(v: np.ndarray, C: np.ndarray) -> tuple[float, float]:
@@ -205,78 +218,6 @@ def _size_and_std(v: np.ndarray, C: np.ndarray) -> tuple[float, float]:
         return 0.0, float(np.sqrt(np.linalg.eigvalsh(C)[-1]))
     u = v / n
     return n, float(np.sqrt(u @ C @ u))
-
-
-@dataclass(frozen=True, eq=False)
-class DriftCheck:
-    """What `check` found (see the module docstring; lengths in mm, angles in deg).
-
-    - `theta`, `cov`: the drift $(v, \\omega[, \\delta q])$ (m, rad) and its covariance.
-    - `statistic`, `dof`, `threshold`, `p_value`, `detected`: the chi-square test.
-    - `translation_mm`, `rotation_deg`: the device's motion, each `(size, std)`.
-    - `joint_offsets_deg`: per joint `(estimate, std)` when fitted, else None.
-    - `detectable`: `detectable(cov)`; `residual`: the fit's whitened sum of squares,
-      its degrees of freedom and p-value.
-    - `T_device_base`: the calibrated fixed pose moved by the estimated drift (`frame`
-      names it: `T_device_base`, `T_cam_base`, eye-in-hand `T_flange_cam`); `what`
-      moved: `"device"` or `"camera"`.
-    - `message`, `advice`: what to tell the user.
-    """
-
-    result: str
-    capture: str
-    samples: int
-    theta: np.ndarray
-    cov: np.ndarray
-    statistic: float
-    dof: int
-    threshold: float
-    p_value: float
-    detected: bool
-    translation_mm: tuple[float, float]
-    rotation_deg: tuple[float, float]
-    joint_offsets_deg: dict | None
-    detectable: dict
-    residual: dict
-    T_device_base: np.ndarray
-    message: str
-    advice: str
-    what: str = "device"
-    frame: str = "T_device_base"
-    dof_noise: int | None = None
-
-    @property
-    def exit_code(self) -> int:
-        return EXIT_DRIFT if self.detected else 0
-
-    def to_json(self) -> dict:
-        return {
-            "schema": "jaxcal.drift_check",
-            "schema_version": 1,
-            "result": self.result,
-            "capture": self.capture,
-            "samples": self.samples,
-            "detected": self.detected,
-            "statistic": self.statistic,
-            "dof": self.dof,
-            "threshold": self.threshold,
-            "p_value": self.p_value,
-            "alpha": ALPHA,
-            "test": "chi2" if self.dof_noise is None else "F",
-            "dof_noise": self.dof_noise,
-            "translation_mm": {"size": self.translation_mm[0], "std": self.translation_mm[1]},
-            "rotation_deg": {"size": self.rotation_deg[0], "std": self.rotation_deg[1]},
-            "device_translation_m": self.theta[:3].tolist(),
-            "device_rotation_rad": self.theta[3:6].tolist(),
-            "covariance": self.cov.tolist(),
-            "joint_offsets_deg": self.joint_offsets_deg,
-            "detectable": self.detectable,
-            "residual": self.residual,
-            "moved": self.what,
-            f"{self.frame}_now": self.T_device_base.tolist(),
-            "message": self.message,
-            "advice": self.advice,
-        }
 
 
 def check_samples(
@@ -328,20 +269,21 @@ def verdict(
     offs = None
     if joint_offsets:
         sd = np.sqrt(np.diag(C)[6:])
-        offs = {
-            j: (float(np.degrees(e)), float(np.degrees(s))) for j, e, s in zip(joint_names, theta[6:], sd)
-        }
+        offs = tuple(
+            JointOffset(j, float(np.degrees(e)), float(np.degrees(s)))
+            for j, e, s in zip(joint_names, theta[6:], sd)
+        )
     det = detectable(C, dof_noise=dof_noise)
-    residual = {"sum_of_squares": rss, "dof": dof_r, "p_value": float(_stats().chi2.sf(rss, dof_r))}
+    residual = DriftResidual(sum_of_squares=rss, dof=dof_r, p_value=float(_stats().chi2.sf(rss, dof_r)))
     law = f"chi2 on {k} dof" if dof_noise is None else f"{k} F({k}, {dof_noise})"
     stat = f"T {T:.1f}, threshold {thr:.1f} ({law}), p = {p_value(T, k, dof_noise):.3g}"
     if detected:
         message = f"the {what} moved by {tr_mm[0]:.3f} +- {tr_mm[1]:.3f} mm, {rot_deg[0]:.4f} +- {rot_deg[1]:.4f} deg ({stat})"
         if offs:
-            big = {j: v for j, v in offs.items() if abs(v[0]) > 2 * v[1]}
+            big = [o for o in offs if abs(o.estimate_deg) > 2 * o.std_deg]
             if big:
                 message += "; joint offsets changed: " + ", ".join(
-                    f"{j} {v[0]:+.4f} +- {v[1]:.4f} deg" for j, v in big.items()
+                    f"{o.joint} {o.estimate_deg:+.4f} +- {o.std_deg:.4f} deg" for o in big
                 )
         advice = (
             f"re-register the {what} (the JSON's {frame}_now is the calibrated pose moved by the drift) "
@@ -349,12 +291,12 @@ def verdict(
         )
     else:
         message = (
-            f"no drift detected ({stat}); a change of {det['translation_mm_worst']:.3f} mm (worst direction; "
-            f"{det['translation_mm_best']:.3f} mm best) or {det['rotation_deg_worst']:.4f} deg would have been "
+            f"no drift detected ({stat}); a change of {det.translation_mm_worst:.3f} mm (worst direction; "
+            f"{det.translation_mm_best:.3f} mm best) or {det.rotation_deg_worst:.4f} deg would have been "
             f"detected with {100 * POWER:.0f} % power at {100 * ALPHA:.0f} % false alarms"
         )
         advice = "nothing to do; for a finer check, measure more poses spread over the workspace"
-    if residual["p_value"] < 1e-3 and rss > 2.0 * dof_r:
+    if residual.p_value < 1e-3 and rss > 2.0 * dof_r:
         advice += (
             f"; the residuals after the fit are too large for a rigid move (chi2 {rss:.0f} on {dof_r} dof): "
             f"something else changed (the robot, the {'point' if what == 'device' else 'target'}'s mount, "
@@ -364,31 +306,31 @@ def verdict(
         result=names[0], capture=names[1], samples=samples, theta=theta, cov=C, statistic=T, dof=k, threshold=thr,
         p_value=p_value(T, k, dof_noise), detected=bool(detected), translation_mm=tr_mm, rotation_deg=rot_deg,
         joint_offsets_deg=offs, detectable=det, residual=residual, T_device_base=np.asarray(T_now),
-        message=message, advice=advice, what=what, frame=frame, dof_noise=dof_noise,
+        message=message, advice=advice, alpha=ALPHA, what=what, frame=frame, dof_noise=dof_noise,
     )  # fmt: skip
 
 
-def _matching_capture(doc: dict, file: Path, ds: Dataset) -> None:
+def _matching_capture(ref: CalibrationReference, ds: Dataset) -> None:
     """Refuse a capture of another robot, device or measured point, naming the file."""
-    meta = ds.root / "metadata.json"
+    meta, file = ds.root / "metadata.json", ref.file
     if ds.samples is None:
         raise DatasetError(
-            f"{meta}: a camera capture, but {file} calibrated {doc.get('device') or 'a device'!r} from "
+            f"{meta}: a camera capture, but {file} calibrated {ref.device or 'a device'!r} from "
             "tracker samples: check it with samples of the same device"
         )
-    names = doc["point_fit"]["nominal_model"]["joint_names"]
+    names = list(ref.point_fit.nominal.joint_names)
     if tuple(ds.joint_names) != tuple(names):
         raise DatasetError(
             f"{meta}: robot.joints {list(ds.joint_names)} differ from the calibrated robot's {names} ({file}): "
             "another robot?"
         )
-    if doc.get("device") not in (None, ds.device.name):
+    if ref.device not in (None, ds.device.name):
         raise DatasetError(
-            f"{meta}: device {ds.device.name!r}, but {file} calibrated device {doc.get('device')!r}: another device"
+            f"{meta}: device {ds.device.name!r}, but {file} calibrated device {ref.device!r}: another device"
         )
-    if doc.get("targets") and ds.device.point not in doc["targets"]:
+    if ref.targets and ds.device.point not in ref.targets:
         raise DatasetError(
-            f"{meta}: measured point {ds.device.point!r}, but {file} calibrated {doc['targets']}: another target"
+            f"{meta}: measured point {ds.device.point!r}, but {file} calibrated {list(ref.targets)}: another target"
         )
     if ds.samples.q is None:
         raise DatasetError(f"{ds.root / ds.device.file}: a check needs every sample's joint positions")
@@ -406,13 +348,13 @@ def _robot_gap(a, b) -> float:
     return float(np.max(np.linalg.norm(d, axis=1)))
 
 
-def _matching_camera(doc: dict, file: Path, ds: Dataset, est) -> tuple:
+def _matching_camera(ref: CalibrationReference, ds: Dataset, est) -> tuple:
     """Refuse a capture of another robot, camera or target, naming the file. **Returns:**
     `(camera, targets)`: the capture's `CameraInfo` and the `TargetInfo`s the result calibrated."""
-    meta = ds.root / "metadata.json"
+    meta, file = ds.root / "metadata.json", ref.file
     if ds.samples is not None:
         raise DatasetError(
-            f"{meta}: tracker samples, but {file} calibrated camera {doc.get('camera')!r}: check it with images"
+            f"{meta}: tracker samples, but {file} calibrated camera {ref.camera!r}: check it with images"
         )
     names = tuple(est.nominal.joint_names)
     if tuple(ds.joint_names) != names:
@@ -427,18 +369,18 @@ def _matching_camera(doc: dict, file: Path, ds: Dataset, est) -> tuple:
             "calibrated: another robot?"
         )
     try:
-        camera = ds.camera(doc["camera"])
+        camera = ds.camera(ref.camera)
     except KeyError:
         raise DatasetError(
-            f"{meta}: no camera {doc['camera']!r} ({file} calibrated it; the capture has "
+            f"{meta}: no camera {ref.camera!r} ({file} calibrated it; the capture has "
             f"{[c.name for c in ds.cameras]}): another camera"
         ) from None
-    K_cal = np.asarray(result_intrinsics(doc)[0])
+    K_cal = np.asarray(result_intrinsics(ref)[0])
     if camera.K is not None and not np.allclose(camera.K, K_cal, rtol=1e-3, atol=0.05):
         raise DatasetError(
             f"{meta}: camera {camera.name!r} intrinsics K differ from those {file} calibrated with: another camera"
         )
-    cal = _calibration_dataset(doc)
+    cal = _calibration_dataset(ref)
     sizes = {} if cal is None else {c.name: (c.width, c.height) for c in cal.cameras}
     size = sizes.get(camera.name)
     cx, cy = K_cal[0, 2], K_cal[1, 2]
@@ -452,7 +394,7 @@ def _matching_camera(doc: dict, file: Path, ds: Dataset, est) -> tuple:
             f"{'x'.join(map(str, size)) if size else f'one with its principal point at ({cx:.1f}, {cy:.1f})'}: "
             "another camera (or resolution)"
         )
-    wanted = [doc["board"]] if est.layout.eye_in_hand else list(doc.get("targets") or [])
+    wanted = [ref.board] if est.layout.eye_in_hand else list(ref.targets)
     by_name = {t.name: t for t in ds.targets}
     missing = [t for t in wanted if t not in by_name]
     if missing or not wanted:
@@ -468,22 +410,28 @@ def _matching_camera(doc: dict, file: Path, ds: Dataset, est) -> tuple:
     return camera, [by_name[t] for t in wanted]
 
 
-def _calibration_dataset(doc: dict) -> Dataset | None:
+def _calibration_dataset(ref: CalibrationReference) -> Dataset | None:
     """The calibration's dataset (its cameras' sizes, its targets' patterns), or None when it cannot be read."""
+    if ref.dataset is None:
+        return None
     try:
-        return load_dataset(doc["dataset"])
+        return load_dataset(ref.dataset)
     except (DatasetError, OSError, KeyError, ValueError):
         return None
 
 
-def result_intrinsics(doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """`(K, dist, K0, dist0)`: the calibrated intrinsics and the start the refinement's
-    increments are relative to."""
-    i = doc["intrinsics"]
-    K, d = np.asarray(i["K"], np.float64), np.zeros(5)
-    d[: min(5, len(i["distortion"]))] = np.asarray(i["distortion"], np.float64).ravel()[:5]
-    K0, d0 = np.asarray(i.get("K_start", i["K"]), np.float64), np.zeros(5)
-    ds = np.asarray(i.get("distortion_start", i["distortion"]), np.float64).ravel()
+def result_intrinsics(result) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`(K, dist, K0, dist0)` of a camera result (a `CalibrationReference`, or its `result.json`
+    payload): the calibrated intrinsics and the start the refinement's increments are relative to."""
+    ref = as_reference(result)
+    i = ref.intrinsics
+    if i is None or i.K is None or i.distortion is None:
+        raise DatasetError(f"{ref.file}: no camera intrinsics (K, distortion)")
+    K, d = np.asarray(i.K, np.float64), np.zeros(5)
+    dist = np.asarray(i.distortion, np.float64).ravel()
+    d[: min(5, len(dist))] = dist[:5]
+    K0, d0 = np.asarray(i.K if i.K_start is None else i.K_start, np.float64), np.zeros(5)
+    ds = np.asarray(i.distortion if i.distortion_start is None else i.distortion_start, np.float64).ravel()
     d0[: min(5, len(ds))] = ds[:5]
     return K, d, K0, d0
 
@@ -515,12 +463,12 @@ def camera_corners(ds: Dataset, camera, targets, mount_index, K, dist, *, worker
 
 @dataclass(frozen=True, eq=False)
 class CameraCapture:
-    """A camera check capture read against a camera result: the result (`doc`, its
+    """A camera check capture read against a camera result: the result (`reference`, its
     `file`, its `Estimate`), the capture `ds` and its detected corners: per view the
     target points `(n, 3)`, pixels `(n, 2)`, and `(views,)` mount index, dataset row, stamp;
     `max_points`: the most corners a view can have (the targets' patterns)."""
 
-    doc: dict
+    reference: CalibrationReference
     file: Path
     est: object
     ds: Dataset
@@ -532,8 +480,10 @@ class CameraCapture:
     max_points: int
 
 
-def camera_capture(doc: dict, file: Path, ds: Dataset, *, workers=None) -> CameraCapture:
-    """Check that `ds` matches the camera result `doc` (`file`) and detect its corners."""
+def camera_capture(result, file: Path, ds: Dataset, *, workers=None) -> CameraCapture:
+    """Check that `ds` matches the camera result (a `CalibrationReference`, or the `result.json`
+    payload read from `file`) and detect its corners."""
+    ref = as_reference(result, file)
     path = file.parent / ESTIMATE_FILE
     if not path.is_file():
         raise DatasetError(
@@ -541,20 +491,20 @@ def camera_capture(doc: dict, file: Path, ds: Dataset, *, workers=None) -> Camer
             "writes there (since this version): calibrate the dataset again"
         )
     est = read_estimate(path)
-    if est.layout.angles or "sigma_px" not in (doc.get("refinement") or {}):
+    if est.layout.angles or ref.sigma_px is None:
         raise DatasetError(f"{file}: the check needs a refined calibration with an encoder log")
-    camera, targets = _matching_camera(doc, file, ds, est)
-    K, dist, _, _ = result_intrinsics(doc)
+    camera, targets = _matching_camera(ref, ds, est)
+    K, dist, _, _ = result_intrinsics(ref)
     mounts = {t.name: (0 if est.layout.eye_in_hand else est.mount_names.index(t.name)) for t in targets}
     corners = camera_corners(ds, camera, targets, mounts, K, dist, workers=workers)
-    return CameraCapture(doc, file, est, ds, *corners, max(len(t.spec.points()) for t in targets))
+    return CameraCapture(ref, file, est, ds, *corners, max(len(t.spec.points()) for t in targets))
 
 
 def camera_check_reference(cap: CameraCapture, pixels: list | None = None) -> tuple[CameraReference, int]:
     """The `CameraReference` of a `CameraCapture` (its views inside the encoder log, padded so
     that check captures share the compiled fit) and the number of views kept; `pixels`: per
     view other detections in place of the capture's (a benchmark's shifted copies)."""
-    doc, est, ds = cap.doc, cap.est, cap.ds
+    ref, est, ds = cap.reference, cap.est, cap.ds
     pts, pix, tgt, frm, tc = (
         cap.points,
         cap.pixels if pixels is None else pixels,
@@ -562,9 +512,9 @@ def camera_check_reference(cap: CameraCapture, pixels: list | None = None) -> tu
         cap.row,
         cap.t_cam,
     )
-    _, _, K0, dist0 = result_intrinsics(doc)
+    _, _, K0, dist0 = result_intrinsics(ref)
     enc_q = np.asarray(ds.encoder_motor, np.float64) / np.asarray(est.nominal.reduction_ratio)
-    offset = ds.clock_offset_s if ds.clock_offset_s is not None else float(doc["clock"]["offset_s"])
+    offset = ds.clock_offset_s if ds.clock_offset_s is not None else ref.clock_offset_s
     t_ctrl = (tc - offset) / (1.0 + 1e-6 * ds.clock_drift_ppm)
     inside = (t_ctrl >= ds.encoder_t[0]) & (t_ctrl <= ds.encoder_t[-1]) & ~ds.in_encoder_glitch(t_ctrl)
     keep = np.flatnonzero(inside)
@@ -576,7 +526,7 @@ def camera_check_reference(cap: CameraCapture, pixels: list | None = None) -> tu
     )  # fmt: skip
     data = pad_corners(data, cap.max_points)
     corners = int(sum(len(pts[i]) for i in keep))
-    sigma = float(doc["refinement"]["sigma_px"])
+    sigma = ref.sigma_px
     return camera_reference(est, data, K0, dist0, offset, sigma, corners), len(keep)
 
 
@@ -608,7 +558,9 @@ NOISE_ALARM = 4.0
 
 def _noise_note(c: DriftCheck, nu: float, factor: float) -> DriftCheck:
     """`c` with the check's estimated noise variance factor in its residual block (and advice when large)."""
-    c.residual.update(noise_variance_factor=nu, calibration_covariance_factor=factor)
+    c = replace(
+        c, residual=replace(c.residual, noise_variance_factor=nu, calibration_covariance_factor=factor)
+    )
     if nu > NOISE_ALARM:
         return replace(
             c,
@@ -626,15 +578,17 @@ def hand_eye_verdict(f: HandEyeCheckFit, names=("", "")) -> DriftCheck:
         f.theta, f.C, f.T, f.rss, f.dof, samples=f.views, joint_names=(), T_now=f.T_now, names=names,
         what="camera", frame=f.frame, dof_noise=f.dof_noise,
     )  # fmt: skip
-    c.residual.update(view_sigma_mm=1e3 * f.view_sigma[0], view_sigma_deg=float(np.degrees(f.view_sigma[1])))
-    return _noise_note(c, f.nu, 1.0)
+    view = replace(
+        c.residual, view_sigma_mm=1e3 * f.view_sigma[0], view_sigma_deg=float(np.degrees(f.view_sigma[1]))
+    )
+    return _noise_note(replace(c, residual=view), f.nu, 1.0)
 
 
-def check_hand_eye(doc: dict, file: Path, capture, *, workers=None) -> DriftCheck:
-    """The drift check of a `jaxcal handeye` result against a later capture of the same kind
-    (`jaxcal.handeye_check`): the camera's pose the only unknown."""
-    f = fit_hand_eye_check(doc, file, capture, workers=workers)
-    return hand_eye_verdict(f, (str(file), str(getattr(capture, "root", capture))))
+def check_hand_eye(ref: HandEyeReference, capture, *, workers=None) -> DriftCheck:
+    """The drift check of a `jaxcal handeye` result (`jaxcal.io.checks.read_hand_eye_reference`)
+    against a later capture of the same kind (`jaxcal.handeye_check`): the camera's pose the only unknown."""
+    f = fit_hand_eye_check(ref, capture, workers=workers)
+    return hand_eye_verdict(f, (str(ref.file), str(getattr(capture, "root", capture))))
 
 
 def check(result, capture, *, joint_offsets: bool = False, workers=None) -> DriftCheck:
@@ -645,29 +599,31 @@ def check(result, capture, *, joint_offsets: bool = False, workers=None) -> Drif
     joints' zero offsets (not for hand-eye results: the robot's poses are given); `workers`:
     the image detection's threads. Raises `DatasetError` naming the file when the capture is
     not one of the calibrated robot, device or camera and target."""
-    hand_eye = read_hand_eye_result(result)
+    hand_eye = read_hand_eye_reference(result)
     if hand_eye is not None:
         if joint_offsets:
             raise DatasetError(
-                f"{hand_eye[1]}: a hand-eye result has no joint offsets to free (--joint-offsets)"
+                f"{hand_eye.file}: a hand-eye result has no joint offsets to free (--joint-offsets)"
             )
-        return check_hand_eye(*hand_eye, capture, workers=workers)
-    doc, file = read_result(result)
+        return check_hand_eye(hand_eye, capture, workers=workers)
+    cal = read_calibration(result)
+    file = cal.file
     ds = capture if isinstance(capture, Dataset) else load_dataset(capture)
-    if "point_fit" not in doc:
-        if doc.get("setup", "").startswith("tracker") or "T_device_base" in doc:
+    if cal.point_fit is None:
+        if cal.tracker:
             raise DatasetError(
                 f"{file}: jaxcal check handles stop-and-shoot tracker results ('point_fit') and camera results; "
-                f"this one is {doc.get('capture', 'another kind')!r}"
+                f"this one is {cal.capture or 'another kind'!r}"
             )
-        return check_camera(camera_capture(doc, file, ds, workers=workers), joint_offsets=joint_offsets)
-    _matching_capture(doc, file, ds)
+        return check_camera(camera_capture(cal, file, ds, workers=workers), joint_offsets=joint_offsets)
+    _matching_capture(cal, ds)
     s = ds.samples
-    ref = reference(doc, s.q, s.sigma_m)
+    ref = reference(cal, s.q, s.sigma_m)
     return check_samples(
         ref, np.asarray(s.position, np.float64), joint_offsets=joint_offsets, names=(str(file), str(ds.root))
     )
 
 
 def drift_json(c: DriftCheck) -> str:
-    return json.dumps(c.to_json(), indent=1)
+    """The `jaxcal check --json` file's text (`jaxcal.io.checks.drift_check_json`)."""
+    return json.dumps(drift_check_json(c), indent=1)

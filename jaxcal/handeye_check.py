@@ -9,9 +9,7 @@ frame, eye-in-hand on the flange. `jaxcal.drift.check` turns the fit into the ve
 other checks give.
 """
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -19,19 +17,14 @@ import numpy as np
 from ._drift_handeye import HandEyeCheckData, covariance_terms, fit_handeye_drift, variance_components
 from ._geometry import se3_exp
 from .errors import DatasetError
+from .io.checks import is_hand_eye_result as is_hand_eye_result
+from .io.checks import read_hand_eye_reference
 from .io.handeye import HandEyeCapture, load_hand_eye_capture
-from .io.handeye_results import HANDEYE_RESULT_SCHEMA
+from .records_check import HandEyeCameraReference, HandEyeReference
 from .vision import detect_frames, hand_eye_from_detections
 
 #: Intrinsics closer than this to the calibrated ones are the same camera's (K: relative, px).
 K_RTOL, K_ATOL = 1e-3, 0.05
-
-
-def is_hand_eye_result(doc: dict) -> bool:
-    """A `jaxcal handeye` `result.json` (new or old: old ones lack the schema and the check block)."""
-    return doc.get("schema") == HANDEYE_RESULT_SCHEMA or (
-        "schema" not in doc and "arrangement" in doc and "cameras" in doc
-    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,45 +69,44 @@ def _refuse(cond: bool, message: str) -> None:
         raise DatasetError(message)
 
 
-def _matching(doc: dict, file: Path, cap: HandEyeCapture) -> tuple[str, dict]:
+def _matching(ref: HandEyeReference, cap: HandEyeCapture) -> HandEyeCameraReference:
     """Refuse a check capture of another arrangement, camera (name, size, intrinsics) or target,
-    naming the field. **Returns:** the camera's name and its entry in `result.json`."""
-    meta = cap.root / "handeye.json"
+    naming the field. **Returns:** the calibrated camera."""
+    meta, file = cap.root / "handeye.json", ref.file
     _refuse(
-        cap.arrangement != doc["arrangement"],
-        f"{meta}: arrangement {cap.arrangement!r}, but {file} calibrated {doc['arrangement']!r}",
+        cap.arrangement != ref.arrangement,
+        f"{meta}: arrangement {cap.arrangement!r}, but {file} calibrated {ref.arrangement!r}",
     )
     names = [c.name for c in cap.cameras]
     _refuse(
         len(cap.cameras) != 1,
         f"{meta}: cameras {names}: a check fits one camera at a time (give a capture of one of "
-        f"{sorted(doc['cameras'])})",
+        f"{sorted(ref.camera_names)})",
     )
     cam = cap.cameras[0]
-    entry = doc["cameras"].get(cam.name)
+    entry = ref.camera(cam.name)
     _refuse(
         entry is None,
-        f"{meta}: camera {cam.name!r}, but {file} calibrated {sorted(doc['cameras'])}: another camera",
+        f"{meta}: camera {cam.name!r}, but {file} calibrated {sorted(ref.camera_names)}: another camera",
     )
     _refuse(
-        "check" not in entry,
+        entry.covariance is None,
         f"{file}: written before jaxcal check could read hand-eye results (no cameras.{cam.name}.check): "
         "run jaxcal handeye on the calibration capture again",
     )
-    size = (entry["width"], entry["height"])
+    size = (entry.width, entry.height)
     _refuse(
-        (cam.width, cam.height) != tuple(size),
+        (cam.width, cam.height) != size,
         f"{meta}: cameras[0] ({cam.name!r}) is {cam.width}x{cam.height}, but {file} calibrated it at "
         f"{size[0]}x{size[1]}: another camera (or resolution)",
     )
-    K_cal = np.asarray(entry["intrinsics"]["K"], np.float64)
     if cam.K is not None:
         _refuse(
-            not np.allclose(cam.K, K_cal, rtol=K_RTOL, atol=K_ATOL),
+            not np.allclose(cam.K, entry.K, rtol=K_RTOL, atol=K_ATOL),
             f"{meta}: cameras[0].K of {cam.name!r} differs from the K {file} calibrated with: another camera",
         )
         d_cal = np.zeros(14)
-        d_cal[: len(entry["intrinsics"]["distortion"])] = entry["intrinsics"]["distortion"]
+        d_cal[: len(entry.distortion)] = entry.distortion
         d = np.zeros(14)
         d[: len(cam.dist)] = np.asarray(cam.dist, np.float64).ravel()
         _refuse(
@@ -122,21 +114,22 @@ def _matching(doc: dict, file: Path, cap: HandEyeCapture) -> tuple[str, dict]:
             f"{meta}: cameras[0].distortion of {cam.name!r} differs from the one {file} calibrated with: another "
             "camera (or lens)",
         )
-    calibrated = doc["target"]["spec"]
+    calibrated = ref.target.to_dict()
     _refuse(
         cap.target.to_dict() != calibrated,
         f"{meta}: target {cap.target.to_dict()} differs from the {calibrated} {file} calibrated: another target",
     )
-    return cam.name, entry
+    return entry
 
 
-def check_data(doc: dict, file: Path, capture, *, workers=None) -> tuple[HandEyeCheckData, str, dict, int]:
-    """Read and detect a hand-eye check capture against `doc`: the `HandEyeCheckData`, the
-    camera's name and `result.json` entry, and the number of views that showed the target."""
+def check_data(
+    ref: HandEyeReference, capture, *, workers=None
+) -> tuple[HandEyeCheckData, HandEyeCameraReference, int]:
+    """Read and detect a hand-eye check capture against the result `ref`: the `HandEyeCheckData`,
+    the calibrated camera, and the number of views that showed the target."""
     cap = capture if isinstance(capture, HandEyeCapture) else load_hand_eye_capture(capture)
-    name, entry = _matching(doc, file, cap)
-    K = np.asarray(entry["intrinsics"]["K"], np.float64)
-    dist = np.asarray(entry["intrinsics"]["distortion"], np.float64)
+    entry = _matching(ref, cap)
+    name, K, dist = entry.name, entry.K, entry.distortion
     dets = detect_frames(
         list(cap.images[0]), [cap.target], K=K, dist=dist, workers=workers, progress=False, pool="thread"
     )
@@ -155,15 +148,15 @@ def check_data(doc: dict, file: Path, capture, *, workers=None) -> tuple[HandEye
         mask=jnp.asarray(d.mask[0]), K=jnp.asarray(K), board_points=jnp.asarray(d.board_points),
         eye_in_hand=jnp.asarray(cap.eye_in_hand),
     )  # fmt: skip
-    return data, name, entry, len(seen)
+    return data, entry, len(seen)
 
 
-def robot_sigma(doc: dict) -> np.ndarray:
+def robot_sigma(ref: HandEyeReference) -> np.ndarray:
     """The robot pose noise the calibration used (or estimated), `(6,)` m and rad; zero for exact poses."""
-    rn = doc.get("robot_noise")
-    if not rn:
+    if ref.robot_noise is None:
         return np.zeros(6)
-    return np.r_[np.full(3, 1e-3 * rn["translation_mm"]), np.full(3, np.radians(rn["rotation_deg"]))]
+    mm, deg = ref.robot_noise
+    return np.r_[np.full(3, 1e-3 * mm), np.full(3, np.radians(deg))]
 
 
 def fit_check(
@@ -198,26 +191,19 @@ def fit_check(
     )  # fmt: skip
 
 
-def fit_hand_eye_check(doc: dict, file: Path, capture, *, workers=None) -> HandEyeCheckFit:
+def fit_hand_eye_check(ref: HandEyeReference, capture, *, workers=None) -> HandEyeCheckFit:
     """The drift fit of a hand-eye check `capture` (a directory or a `HandEyeCapture`) against the
-    result `doc` read from `file`; raises `DatasetError` naming the field when they do not match."""
-    data, name, entry, views = check_data(doc, file, capture, workers=workers)
-    chk = entry["check"]
+    result `ref` (`read_hand_eye_result`); raises `DatasetError` naming the field when they do not match."""
+    data, entry, views = check_data(ref, capture, workers=workers)
     return fit_check(
-        data, np.asarray(entry["T_cam_robot"], np.float64), np.asarray(doc["target"]["T_robot_target"]["matrix"]),
-        larger_covariance(np.asarray(chk["covariance"]), np.asarray(chk["covariance_frames"])),
-        robot_sigma(doc), float(doc["solver"]["sigma_px"]), eye_in_hand=doc["arrangement"] == "eye_in_hand",
-        camera=name, views=views,
+        data, entry.T_cam_robot, ref.T_robot_target,
+        larger_covariance(entry.covariance, entry.covariance_frames),
+        robot_sigma(ref), ref.sigma_px, eye_in_hand=ref.eye_in_hand, camera=entry.name, views=views,
     )  # fmt: skip
 
 
-def read_hand_eye_result(path) -> "tuple[dict, Path] | None":
-    """`(doc, file)` when `path` (a result directory or its `result.json`) is a `jaxcal handeye`
-    result, else None (a calibration result, or nothing readable: `read_result` says why)."""
-    p = Path(path)
-    file = p / "result.json" if p.is_dir() else p
-    try:
-        doc = json.loads(file.read_text())
-    except (OSError, ValueError):
-        return None
-    return (doc, file) if isinstance(doc, dict) and is_hand_eye_result(doc) else None
+def read_hand_eye_result(path) -> HandEyeReference | None:
+    """The `HandEyeReference` when `path` (a result directory or its `result.json`) is a `jaxcal
+    handeye` result, else None (a calibration result, or nothing readable: `jaxcal.io.checks.read_calibration`
+    says why)."""
+    return read_hand_eye_reference(path)

@@ -24,6 +24,7 @@ from jaxcal.certification import certify, norm_quantiles
 from jaxcal.cli import main
 from jaxcal.drift import DriftReference, check, check_samples, detectable, power
 from jaxcal.errors import DatasetError
+from jaxcal.io.checks import drift_check_from_json, drift_check_json, product_json, read_product
 from jaxcal.io.model_json import model_from_json
 from jaxcal.report import write_outputs
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
@@ -74,6 +75,13 @@ def test_the_estimated_drift_is_within_its_sigma_and_offsets_are_optional():
     assert np.sum(z**2) < stats.chi2.ppf(0.999, 6)
     c = check_samples(ref, _draw(ref, rng), joint_offsets=True)
     assert c.dof == 12 and len(c.joint_offsets_deg) == 6
+    # Its JSON (the offsets as {joint: [deg, std]}) reads back as the record and writes again unchanged.
+    text = json.dumps(drift_check_json(c), indent=1)
+    back = drift_check_from_json(json.loads(text))
+    assert json.dumps(drift_check_json(back), indent=1) == text
+    assert back.joint_offsets_deg[2].joint == "j2" and np.allclose(
+        back.theta, c.theta, rtol=1e-12, atol=1e-18
+    )
     with pytest.raises(ValueError, match="samples"):
         check_samples(ref, _draw(ref, rng)[:2])
 
@@ -142,6 +150,14 @@ def test_end_to_end_certify_and_check_a_tracker_calibration(tracker, tmp_path):
     d = check(res, moved)
     assert d.detected and abs(d.translation_mm[0] - 0.3) < 3 * d.translation_mm[1] + 0.02
     assert main(["check", str(res), str(moved)]) == 3
+    assert main(["verify", str(res), str(later), "--cv", "2", "--json", str(tmp_path / "v.json")]) == 0
+    # Each file reads back as its typed record (`jaxcal.io.checks`) and writes again byte for byte.
+    for name, schema in (("c.json", "certificate"), ("d.json", "drift_check"), ("v.json", "verification")):
+        text = (tmp_path / name).read_text()
+        assert json.loads(text)["schema"] == f"jaxcal.{schema}"
+        assert json.dumps(product_json(read_product(tmp_path / name)), indent=1) == text
+    v = read_product(tmp_path / "v.json")
+    assert v.cv.folds == 2 and v.summary.samples == len(v.samples) == 10
 
 
 def test_check_refuses_a_capture_of_another_robot_device_or_kind(tracker, tmp_path):
@@ -180,5 +196,10 @@ def test_calibrate_with_a_joint_box_certifies_it(tracker, tmp_path):
     assert "## Accuracy certificate" in report and report.index("## Accuracy certificate") < report.index(
         "## Plots"
     )
-    doc = json.loads((out / "certificate.json").read_text())
+    text = (out / "certificate.json").read_text()
+    doc = json.loads(text)
     assert doc["region"]["kind"] == "joint_box" and doc["summary"]["p95_mm"] > 0
+    c = read_product(out / "certificate.json")
+    assert np.allclose(c.region.ranges, np.radians([[-30.0, 30.0]] * 6), rtol=1e-15)
+    assert c.summary.p95_mm == doc["summary"]["p95_mm"] and c.q.shape == (c.summary.poses, 6)
+    assert json.dumps(product_json(c), indent=1) == text

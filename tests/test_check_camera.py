@@ -21,6 +21,7 @@ from jaxcal.certification import read_result
 from jaxcal.cli import main
 from jaxcal.drift import camera_capture, camera_check_reference, check, check_camera, power
 from jaxcal.errors import DatasetError
+from jaxcal.io.checks import drift_check_json, product_json, read_product
 from jaxcal.io.dataset import load_dataset
 from jaxcal.planning._check import plan_check
 from jaxcal.robots import robot_path
@@ -58,6 +59,9 @@ def test_a_moved_camera_is_detected_and_an_unmoved_one_is_not(captures, tmp_path
     assert main(["check", str(res), str(moved), "--json", str(out), "--workers", "1"]) == 3
     doc = json.loads(out.read_text())
     assert doc["detected"] and doc["moved"] == "camera" and "T_cam_base_now" in doc
+    back = read_product(out)  # the typed record, written again byte for byte
+    assert back.residual.noise_variance_factor == doc["residual"]["noise_variance_factor"]
+    assert json.dumps(product_json(back), indent=1) == out.read_text()
 
 
 @pytest.mark.slow
@@ -103,7 +107,7 @@ def test_eye_in_hand_a_moved_camera_mount_is_detected(tmp_path):
     moved = render_check_capture(cfg, tmp_path / "moved", q, move=MOVE)
     res = truth_result(cfg, still, tmp_path / "result")
     c0, c1 = check(res, still), check(res, moved)
-    assert not c0.detected and c1.detected and c1.to_json()["T_flange_cam_now"]
+    assert not c0.detected and c1.detected and drift_check_json(c1)["T_flange_cam_now"]
     # The mount's own jitter turns the move's direction (D^-1 E D): its size is kept.
     assert abs(c1.translation_mm[0] - 1e3 * np.linalg.norm(MOVE[0])) < 4 * c1.translation_mm[1] + 0.02
     assert abs(c1.rotation_deg[0] - 0.2) < 4 * c1.rotation_deg[1] + 0.002

@@ -25,6 +25,7 @@ from jaxcal.cli import main
 from jaxcal.drift import check, hand_eye_verdict, power, threshold
 from jaxcal.errors import DatasetError
 from jaxcal.handeye_check import fit_check, larger_covariance
+from jaxcal.io.checks import drift_check_json, product_json, read_product
 from jaxcal.markers import TargetSpec
 from jaxcal.sim.handeye import HandEyeSimConfig, simulate_hand_eye
 
@@ -107,7 +108,7 @@ def test_a_larger_move_is_reported_with_the_camera_pose_now():
     assert c.detected and c.exit_code == 3 and "the camera moved by" in c.message
     assert abs(c.translation_mm[0] - 1e3 * np.linalg.norm(eps[:3])) < 4 * c.translation_mm[1]
     # T_base_cam now: the calibrated one moved by the twist in the camera's frame.
-    T_now = c.to_json()["T_base_cam_now"]
+    T_now = drift_check_json(c)["T_base_cam_now"]
     assert np.allclose(T_now, np.linalg.inv(X) @ _exp(eps), atol=5 * np.sqrt(np.max(np.diag(c.cov))))
 
 
@@ -152,6 +153,9 @@ def test_a_moved_hand_eye_camera_is_detected_and_an_unmoved_one_is_not(rendered,
     assert main(["check", str(res), str(moved), "--json", str(out), "--workers", "1"]) == 3
     d = json.loads(out.read_text())
     assert d["detected"] and d["test"] == "F" and "T_base_cam_now" in d
+    back = read_product(out)  # the typed record, written again byte for byte
+    assert back.frame == "T_base_cam" and back.residual.view_sigma_mm == d["residual"]["view_sigma_mm"]
+    assert json.dumps(product_json(back), indent=1) == out.read_text()
     # The move's size against the truth, within 4 sigma (and the rendering's own bias).
     size_mm = 1e3 * np.linalg.norm(MOVE[0])
     assert abs(d["translation_mm"]["size"] - size_mm) < 4 * d["translation_mm"]["std"] + 0.1

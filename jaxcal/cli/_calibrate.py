@@ -15,6 +15,7 @@ from .._pointfit import TERMS
 from ..certification import certify
 from ..errors import CalibrationError
 from ..io._files import check_output_dir, marked_directory, output_lock, write_text_atomic
+from ..io.checks import certificate_json
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
 from ..robots import load_robot
@@ -188,7 +189,7 @@ def _certificate(console, out: Path, args) -> list[str]:
         return []
     c = certify(out, **where)
     print_certificate(console, c)
-    write_text_atomic(out / "certificate.json", json.dumps(c.to_json(), indent=1))
+    write_text_atomic(out / "certificate.json", json.dumps(certificate_json(c), indent=1))
     report = out / "report.md"
     text = report.read_text()
     head, sep, tail = text.partition("\n## Plots")

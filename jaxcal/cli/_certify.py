@@ -9,9 +9,10 @@ import numpy as np
 from rich.console import Console
 
 from .._exported import warm_start
-from ..certification import certify, plot_certificate, read_poses, read_result
+from ..certification import certify, plot_certificate, read_poses
 from ..errors import OutputError
 from ..io._files import write_text_atomic
+from ..io.checks import certificate_json, drift_check_json, read_calibration
 
 
 def check(*args, **kwargs):
@@ -111,20 +112,20 @@ def print_certificate(console, c) -> None:
     """The certificate's summary, extrapolation, caveats and notes on the console."""
     s = c.summary
     console.print(
-        f"jaxcal certify: {c.kind} result {c.result}, region {c.region['kind']} ({s['poses']} poses), "
+        f"jaxcal certify: {c.kind} result {c.result}, region {c.region.kind} ({s.poses} poses), "
         f"tool point in the {c.frame} frame"
     )
     console.print(
-        f"predicted error: mean {s['mean_mm']:.4f} mm, RMS {s['rms_mm']:.4f} mm, 95 % of the region within "
-        f"{s['p95_mm']:.4f} mm; worst pose: 95 % bound {s['max_bound95_mm']:.4f} mm at q = "
-        f"[{', '.join(f'{np.degrees(v):.1f}' for v in s['worst']['q'])}] deg"
+        f"predicted error: mean {s.mean_mm:.4f} mm, RMS {s.rms_mm:.4f} mm, 95 % of the region within "
+        f"{s.p95_mm:.4f} mm; worst pose: 95 % bound {s.max_bound95_mm:.4f} mm at q = "
+        f"[{', '.join(f'{np.degrees(v):.1f}' for v in s.worst.q)}] deg"
     )
     e = c.extrapolation
     if e is not None:
         console.print(
-            f"calibrated workspace: {100 * e['share_of_poses_outside_joint_ranges']:.0f} % of the poses outside its "
-            f"joint ranges (up to {np.degrees(e['max_joint_excess']):.1f} deg), predicted error "
-            f"{e['error_ratio']:.2f}x that over the calibrated configurations ({e['calibrated_rms_mm']:.4f} mm RMS)"
+            f"calibrated workspace: {100 * e.share_of_poses_outside_joint_ranges:.0f} % of the poses outside its "
+            f"joint ranges (up to {np.degrees(e.max_joint_excess):.1f} deg), predicted error "
+            f"{e.error_ratio:.2f}x that over the calibrated configurations ({e.calibrated_rms_mm:.4f} mm RMS)"
         )
     for w in c.caveats:
         console.print(f"[yellow]caveat:[/yellow] {w}")
@@ -146,7 +147,7 @@ def cmd_certify(args) -> int:
     where = region_of(args)
     poses = None
     if args.poses:
-        names = read_result(args.result)[0]["model"]["joint_names"]
+        names = read_calibration(args.result).joint_names
         poses = read_poses(args.poses, names, degrees=args.degrees)
     # The programs the last certificate of this result called are read while this one starts.
     with warm_start(f"jaxcal certify {Path(args.result).resolve()}"):
@@ -154,7 +155,7 @@ def cmd_certify(args) -> int:
     console = Console(width=max(Console().width, 110))
     print_certificate(console, c)
     if args.json:
-        write_text_atomic(args.json, json.dumps(c.to_json(), indent=1))
+        write_text_atomic(args.json, json.dumps(certificate_json(c), indent=1))
         console.print(f"wrote {args.json}")
     if args.plot:
         _write_plot(c, args.plot)
@@ -172,6 +173,6 @@ def cmd_check(args) -> int:
     console.print(f"[{colour}]{c.message}[/{colour}]")
     console.print(f"next: {c.advice}")
     if args.json:
-        write_text_atomic(args.json, json.dumps(c.to_json(), indent=1))
+        write_text_atomic(args.json, json.dumps(drift_check_json(c), indent=1))
         console.print(f"wrote {args.json}")
     return c.exit_code
