@@ -19,7 +19,7 @@ planned`, rendered here (`rendered_results`). Usage:
 
     python benchmarks/certify.py --seeds 5 --json results/certify.json [--camera DIR ...]
     python benchmarks/certify.py --seeds 5 --render demo_sweeps planned --render-seeds 5 \
-        --json results/certify.json [--workdir DIR [--reuse]]
+        --json results/certify.json [--workdir DIR [--reuse]] [--first-seed 5 --plan DIR/planned_ds0/plan.json]
 """
 
 import argparse
@@ -92,20 +92,21 @@ def tracker_results(seeds: int, poses: int, root: Path) -> list[Path]:
 
 
 def rendered_results(
-    seeds: int, root: Path, designs: list[str], reuse: bool = False
+    seeds: int, root: Path, designs: list[str], reuse: bool = False, first_seed: int = 0, plan=None
 ) -> dict[str, list[Path]]:
-    """Rendered camera captures calibrated here, `seeds` per design: `demo_sweeps` (the
-    demo's: 1280x960, 40 frames per 80-degree sweep, clock not given) and `planned`
-    (`jaxcal.plan`'s 240 stop-and-shoot poses for the UR5e, as `benchmarks/plan.py`,
-    rendered by `render_plan`); the seed draws the true arm, mounts and noise. With
-    `reuse`, a capture already rendered in `root` (`<design>_ds<seed>/truth.json`) is
-    calibrated again instead of rendered (and planned)."""
+    """Rendered camera captures calibrated here, `seeds` per design from `first_seed`:
+    `demo_sweeps` (the demo's: 1280x960, 40 frames per 80-degree sweep, clock not given)
+    and `planned` (`jaxcal.plan`'s 240 stop-and-shoot poses for the UR5e, as
+    `benchmarks/plan.py`, rendered by `render_plan`; or the plan file `plan`, e.g. the
+    `plan.json` an earlier run's captures hold); the seed draws the true arm, mounts and
+    noise. With `reuse`, a capture already rendered in `root` (`<design>_ds<seed>/truth.json`)
+    is calibrated again instead of rendered (and planned)."""
     from plan import CONFIGS  # benchmarks/plan.py: the demo's capture
 
     from jaxcal.sim.plan import MujocoChecker, render_plan
     from jaxcal.sim.simulate import simulate
 
-    plans = []
+    plans = [] if plan is None else [jaxcal.load_plan(plan)]
 
     def planned(d, s):
         if not plans:
@@ -127,7 +128,7 @@ def rendered_results(
     out = {}
     for name, make in makers.items():
         out[name] = []
-        for s in range(seeds):
+        for s in range(first_seed, first_seed + seeds):
             t0 = time.perf_counter()
             ds = root / f"{name}_ds{s}"
             if not (reuse and (ds / "truth.json").exists()):
@@ -162,6 +163,12 @@ def main(argv=None) -> int:
         help="render and calibrate these camera designs here, --render-seeds each",
     )
     p.add_argument("--render-seeds", type=int, default=5, help="seeds per rendered design")
+    p.add_argument("--first-seed", type=int, default=0, help="the first rendered seed")
+    p.add_argument(
+        "--plan",
+        type=Path,
+        help="the planned design's plan file (e.g. an earlier capture's plan.json): not planned again",
+    )
     p.add_argument("--workdir", type=Path, help="keep the rendered captures and results here")
     p.add_argument(
         "--reuse",
@@ -184,8 +191,11 @@ def main(argv=None) -> int:
     if args.render:
         with tempfile.TemporaryDirectory() as tmp:
             work = args.workdir or Path(tmp)
-            for name, results in rendered_results(args.render_seeds, work, args.render, args.reuse).items():
-                designs[name] = [score(r, args.configs, k) for k, r in enumerate(results)]
+            rendered = rendered_results(
+                args.render_seeds, work, args.render, args.reuse, args.first_seed, args.plan
+            )
+            for name, results in rendered.items():
+                designs[name] = [score(r, args.configs, args.first_seed + k) for k, r in enumerate(results)]
     out = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
         "configs": args.configs,
