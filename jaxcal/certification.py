@@ -74,7 +74,7 @@ BOX_CHUNK, BOX_MAX_DRAWS = 20_000, 1_000_000
 COHERENT_VIEWS = (
     "a capture of camera views at stops (e.g. a planned capture): the detector's errors can add up "
     "coherently across its views; the covariance takes in what each view's residuals show of them, "
-    "not what the solution absorbs, and on rendered planned captures one seed in five came out "
+    "not what the solution absorbs, and on rendered planned captures one seed in ten came out "
     "about 2.2x its prediction (docs/certify.md)"
 )
 SELF_CALIBRATED = (
@@ -94,6 +94,7 @@ class Predictor:
     - `model`: the calibrated model; `travel`: `(joints, 2)` the joints' travel.
     - `workspace`: the calibration's configurations `(S, joints)`, or None.
     - `caveats`, `notes`: what the certificate states beside its figures.
+    - `covariance_model`: the result's `covariance_model` (None: written before the key).
     """
 
     kind: str
@@ -107,6 +108,7 @@ class Predictor:
     workspace: np.ndarray | None
     caveats: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
+    covariance_model: str | None = None
 
 
 def read_result(path) -> tuple[dict, Path]:
@@ -184,6 +186,7 @@ def tracker_predictor(ref: CalibrationReference) -> Predictor:
         travel=joint_travel(nominal, limits),
         workspace=ws,
         notes=() if note is None else (note,),
+        covariance_model=ref.covariance_model,
     )
 
 
@@ -254,6 +257,7 @@ def camera_predictor(ref: CalibrationReference) -> Predictor:
         workspace=ws,
         caveats=tuple(caveats),
         notes=() if note is None else (note,),
+        covariance_model=ref.covariance_model,
     )
 
 
@@ -451,7 +455,7 @@ def certify(
     return Certificate(
         result=pred.result, kind=pred.kind, frame=frame, region=desc, joint_names=pred.joint_names, q=q,
         points=points, rms_mm=1e3 * rms, bound95_mm=1e3 * b95, summary=summary, extrapolation=ext,
-        caveats=pred.caveats, notes=tuple(notes),
+        caveats=pred.caveats, notes=tuple(notes), covariance_model=pred.covariance_model,
     )  # fmt: skip
 
 

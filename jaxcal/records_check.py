@@ -82,6 +82,8 @@ class CalibrationReference:
     sigma_px: float | None = None
     #: A stop-and-shoot result's point fit.
     point_fit: PointFitModel | None = None
+    #: Which covariance the result carries (`jaxcal.io.result.COVARIANCE_MODELS`; None: written before).
+    covariance_model: str | None = None
 
     @property
     def tracker(self) -> bool:
@@ -292,6 +294,8 @@ class Certificate:
       RMS error and its 95 % bound.
     - `summary`: over the region; `extrapolation`: None when the calibration's
       configurations are unknown; `caveats`, `notes`.
+    - `covariance_model`: the calibration's covariance it propagated
+      (`jaxcal.io.result.COVARIANCE_MODELS`; None for results written before the key).
     """
 
     result: str
@@ -307,6 +311,7 @@ class Certificate:
     extrapolation: Extrapolation | None
     caveats: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
+    covariance_model: str | None = None
 
 
 # --------------------------------------------------------------------------- jaxcal verify

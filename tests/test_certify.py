@@ -126,6 +126,7 @@ def test_end_to_end_certify_and_check_a_tracker_calibration(tracker, tmp_path):
     truth = json.loads((ds / "truth.json").read_text())
     c = certify(res, samples=300)
     assert c.extrapolation is not None and c.summary["poses"] == 300
+    assert c.covariance_model == "model"  # the point fit's, as result.json names it
     # The certified bound against the true errors at the same configurations.
     true = model_from_json(truth["model"])
     T_db = np.asarray(truth["cameras"]["tracker"]["T_cam_base"])
@@ -143,7 +144,8 @@ def test_end_to_end_certify_and_check_a_tracker_calibration(tracker, tmp_path):
         )
         == 0
     )
-    assert json.loads((tmp_path / "c.json").read_text())["schema"] == "jaxcal.certificate"
+    cj = json.loads((tmp_path / "c.json").read_text())
+    assert (cj["schema"], cj["covariance_model"]) == ("jaxcal.certificate", "model")
     # A later capture of the same set-up passes; the device moved by 0.3 mm is found.
     assert main(["check", str(res), str(later), "--json", str(tmp_path / "d.json")]) == 0
     moved = _moved(later, tmp_path / "moved", np.r_[3e-4, 0.0, 0.0, 0.0, 0.0, 0.0])

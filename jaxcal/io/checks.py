@@ -104,6 +104,7 @@ def calibration_reference(doc: Mapping, file) -> CalibrationReference:
             clock_offset_s=None if clock is None else float(clock["offset_s"]),
             sigma_px=None if "sigma_px" not in refinement else float(refinement["sigma_px"]),
             point_fit=point_fit_model(doc["point_fit"]) if "point_fit" in doc else None,
+            covariance_model=doc.get("covariance_model"),
         )
     except (KeyError, TypeError, ValueError) as e:
         raise DatasetError(f"{file}: not a result.json jaxcal wrote ({type(e).__name__}: {e})") from None
@@ -237,6 +238,7 @@ def certificate_json(c: Certificate, *, poses: bool = True) -> dict:
         "result": c.result,
         "kind": c.kind,
         "frame": c.frame,
+        "covariance_model": c.covariance_model,
         "region": plain(c.region),
         "summary": plain(c.summary),
         "extrapolation": plain(c.extrapolation),
@@ -264,7 +266,7 @@ def certificate_from_json(d: Mapping) -> Certificate:
         points=column("point_m", (len(poses), 3)), rms_mm=column("rms_mm", (len(poses),)),
         bound95_mm=column("bound95_mm", (len(poses),)), summary=from_plain(CertificateSummary, d["summary"]),
         extrapolation=None if d["extrapolation"] is None else from_plain(Extrapolation, d["extrapolation"]),
-        caveats=tuple(d["caveats"]), notes=tuple(d["notes"]),
+        caveats=tuple(d["caveats"]), notes=tuple(d["notes"]), covariance_model=d.get("covariance_model"),
     )  # fmt: skip
 
 
