@@ -506,27 +506,27 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
 
 
 def certificate_section(c) -> list[str]:
-    """`report.md`'s section of an accuracy certificate (`jaxcal.certification.Certificate`)."""
+    """`report.md`'s section of an accuracy certificate (`jaxcal.records_check.Certificate`)."""
     s, e = c.summary, c.extrapolation
-    worst = ", ".join(f"{np.degrees(v):.1f}" for v in s["worst"]["q"])
+    worst = ", ".join(f"{np.degrees(v):.1f}" for v in s.worst.q)
     lines = [
         "## Accuracy certificate",
         "",
-        f"The tool point's predicted error over the task region ({c.region['kind'].replace('_', ' ')}, "
-        f"{s['poses']} poses, {c.frame} frame), from the calibration's covariance (`jaxcal certify`; "
+        f"The tool point's predicted error over the task region ({c.region.kind.replace('_', ' ')}, "
+        f"{s.poses} poses, {c.frame} frame), from the calibration's covariance (`jaxcal certify`; "
         "`certificate.json` holds every pose):",
         "",
         "| mean | RMS | 95 % of the region within | worst pose's 95 % bound |",
         "| --- | --- | --- | --- |",
-        f"| {s['mean_mm']:.4f} mm | {s['rms_mm']:.4f} mm | {s['p95_mm']:.4f} mm | "
-        f"{s['max_bound95_mm']:.4f} mm at q = [{worst}] deg |",
+        f"| {s.mean_mm:.4f} mm | {s.rms_mm:.4f} mm | {s.p95_mm:.4f} mm | "
+        f"{s.max_bound95_mm:.4f} mm at q = [{worst}] deg |",
         "",
     ]
     if e is not None:
         lines += [
-            f"Calibrated workspace: {100 * e['share_of_poses_outside_joint_ranges']:.0f} % of the region's poses "
-            f"outside its joint ranges (up to {np.degrees(e['max_joint_excess']):.1f} deg); predicted error "
-            f"{e['error_ratio']:.2f}x that over the calibrated configurations.",
+            f"Calibrated workspace: {100 * e.share_of_poses_outside_joint_ranges:.0f} % of the region's poses "
+            f"outside its joint ranges (up to {np.degrees(e.max_joint_excess):.1f} deg); predicted error "
+            f"{e.error_ratio:.2f}x that over the calibrated configurations.",
             "",
         ]
     lines += [f"- caveat: {w}" for w in c.caveats] + [f"- note: {n}" for n in c.notes]
