@@ -153,13 +153,15 @@ def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult
     obs = stages.observe(setup, options)
     sync = stages.synchronise(setup, obs, options)
     two = stages.two_stage(setup, obs, sync, options)
+    # The verdict's arm-rigidity test needs only the two-stage fit: it runs beside the refinement.
+    arm_score = stages.start_arm_score(setup, sync, two) if setup.kind.has_arcs else None
     # Tracker data have no corners: the two-stage fit is the result (see `stages.TWO_STAGE_IS_FINAL`).
     refined = (
         stages.refine(setup, obs, sync, two, options)
         if options.refine and setup.kind.refines_corners
         else None
     )
-    verdict = stages.verdict(setup, obs, sync, two, refined, options.limits)
+    verdict = stages.verdict(setup, obs, sync, two, refined, options.limits, arm_score)
     if strict and verdict.status != "ok":
         raise SuspectResultError(
             f"{setup.root}: the calibration is {verdict.status}: " + "; ".join(verdict.reasons)

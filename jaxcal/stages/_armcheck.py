@@ -28,6 +28,8 @@ $\\hat c$, backlash (which also shifts resting joints between sweeps) and what
 to change.
 """
 
+from concurrent.futures import Future
+
 import numpy as np
 
 from .._buckets import bucket
@@ -96,9 +98,17 @@ def gravity_score(setup, sync, two) -> tuple[float, int, int, np.ndarray, np.nda
     return F, m, dof, -(Vt[keep].T @ (proj / s[keep])), tau
 
 
-def arm_check(c, setup, sync, two, limits) -> None:
-    """Add the `arm_gravity_F` check to the verdict's checks `c` (see the module docstring)."""
-    got = gravity_score(setup, sync, two)
+def start_arm_score(setup, sync, two) -> Future:
+    """`gravity_score(setup, sync, two)` on a thread of its own (`_programs.run_ahead`): it
+    needs only the two-stage fit, so its program compiles (or loads) and runs while the
+    refinement does; hand the `Future` to `verdict(..., arm_score=...)`."""
+    return _programs.run_ahead("arm check", gravity_score, setup, sync, two)
+
+
+def arm_check(c, setup, sync, two, limits, score: Future | None = None) -> None:
+    """Add the `arm_gravity_F` check to the verdict's checks `c` (see the module docstring);
+    `score`: `gravity_score(setup, sync, two)` started ahead (`_programs.run_ahead`), if it was."""
+    got = gravity_score(setup, sync, two) if score is None else score.result()
     if got is None:
         return
     F, m, dof, c_hat, tau = got

@@ -11,6 +11,7 @@ which keeps its executable, so a second process neither traces nor compiles it.
 import atexit
 import functools
 import threading
+from concurrent.futures import Future
 from dataclasses import replace
 
 import jax
@@ -148,6 +149,25 @@ def _quietly(job, *args) -> None:
         job(*args)
     except Exception:  # noqa: BLE001 - the stage's own call reports it, with its context
         pass
+
+
+def run_ahead(name: str, job, *args) -> Future:
+    """`job(*args)` on a thread of its own, its result (or exception) in the returned
+    `Future`: a check whose program compiles (cold) or loads (warm) and runs while the
+    main thread goes on with the next stage, on the second core. The process waits for
+    it at exit (`wait_ahead`), as for the compiles ahead."""
+    future: Future = Future()
+
+    def run() -> None:
+        try:
+            future.set_result(job(*args))
+        except BaseException as e:  # noqa: BLE001 - handed to whoever asks for the result
+            future.set_exception(e)
+
+    thread = threading.Thread(target=run, name=f"jaxcal {name}", daemon=True)
+    _AHEAD[(name, id(future))] = thread
+    thread.start()
+    return future
 
 
 def wait_ahead() -> None:

@@ -10,6 +10,7 @@ your own to `jaxcal.calibrate(limits=...)`). A result that fails one is
 makes it `"failed"`.
 """
 
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import jax
@@ -271,9 +272,16 @@ def _shutter(c: _Checks, refined: Refined, limits: Limits) -> None:
 
 
 def verdict(
-    setup: Setup, obs: Observations, sync: Sync, two: TwoStage, refined: Refined | None, limits: Limits
+    setup: Setup,
+    obs: Observations,
+    sync: Sync,
+    two: TwoStage,
+    refined: Refined | None,
+    limits: Limits,
+    arm_score: Future | None = None,
 ) -> Verdict:
-    """Check the result (see the module docstring)."""
+    """Check the result (see the module docstring). `arm_score`: the arm-rigidity test's
+    score started ahead (`stages.start_arm_score`), if it was."""
     c = _Checks()
     ran = refined is not None and refined.fit is not None
     measured = {t.name for t in setup.fit_targets if t.T_link_target is None}
@@ -288,7 +296,7 @@ def verdict(
     skewed = ran and bool(refined.line_delays)
     if setup.kind.has_arcs:
         _axes(c, setup, two, limits, residuals=not skewed)
-        arm_check(c, setup, sync, two, limits)
+        arm_check(c, setup, sync, two, limits, arm_score)
         for row in blur_rows(setup, obs.primary, sync):  # sweeps that lost most of their frames to blur
             c.add(*row)
     if ran:
