@@ -161,12 +161,16 @@ def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult
         if options.refine and setup.kind.refines_corners
         else None
     )
+    # The validation against the truth needs no verdict: it runs beside it, on the second core.
+    validation = (
+        stages.run_ahead("validation", stages.validate, setup, sync, two, refined, options)
+        if options.validate and setup.dataset.truth is not None
+        else None
+    )
     verdict = stages.verdict(setup, obs, sync, two, refined, options.limits, arm_score)
     if strict and verdict.status != "ok":
         raise SuspectResultError(
             f"{setup.root}: the calibration is {verdict.status}: " + "; ".join(verdict.reasons)
         )
-    validation = None
-    if options.validate and setup.dataset.truth is not None:
-        validation = stages.validate(setup, sync, two, refined, options)
+    validation = None if validation is None else validation.result()
     return stages.assemble(setup, obs, sync, two, refined, verdict, validation, t_start)

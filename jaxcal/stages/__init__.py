@@ -12,6 +12,7 @@ difference between kinds is one of its properties.
 from ._armcheck import start_arm_score as start_arm_score
 from ._observe import Observations as Observations
 from ._observe import observe as observe
+from ._programs import run_ahead as run_ahead
 from ._refine import Refined as Refined
 from ._refine import refine as refine
 from ._setup import CLOCK_MODES as CLOCK_MODES
