@@ -370,7 +370,7 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
     scores = jax.jit(
         jax.vmap(lambda f, t, T, M, q, g: score(f, t, T, M, dyn.nominal, q, g)),
     )(fit, inputs["true"], inputs["T_cam_base"], inputs["T_flange_marker"], q_val, fit_exact.T_cam_base)
-    scipy_ee = np.asarray(scores["ee_rms_mm"])
+    scipy_ee = np.asarray(scores.ee_rms_mm)
     jax_ee = np.asarray(result.ee_rms_mm)[:n_scipy]
 
     # jaxcal's own solver steps on the same noisy sweeps (not part of any timing).

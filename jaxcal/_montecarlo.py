@@ -335,14 +335,14 @@ def run_trial(
         # the gauge (held at nominal): the truth in that gauge is the exact fit. The
         # ratios are not estimated (NaN).
         s = score(fit, fit_exact.model, fit_exact.T_cam_base, fit_exact.T_flange_marker, setup.nominal, q_val)
-        s = dict(s, ratio_err_percent=jnp.full_like(s["ratio_err_percent"], jnp.nan))
+        s = s._replace(ratio_err_percent=jnp.full_like(s.ratio_err_percent, jnp.nan))
     success = (
         jnp.all(arcs.result == optx.RESULTS.successful)
         & (fit.result == optx.RESULTS.successful)
         & jnp.all(jnp.isfinite(fit.T_cam_base))
-        & jnp.isfinite(s["ee_rms_mm"])
+        & jnp.isfinite(s.ee_rms_mm)
     )
-    return TrialResult(**s, arc_result=arcs.result, axis_result=fit.result, success=success)
+    return TrialResult(**s._asdict(), arc_result=arcs.result, axis_result=fit.result, success=success)
 
 
 def nominal_free_mask(setup: MonteCarloSetup) -> Bool[Array, " n"]:

@@ -6,6 +6,8 @@ camera-pose errors are measured against the truth seen through the same
 gauge when one is given.
 """
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -18,6 +20,21 @@ _MM = 1e-3
 _DEG = jnp.pi / 180.0
 
 
+class Score(NamedTuple):
+    """Errors of a calibration against the truth (`score`; the figures of
+    `jaxcal._montecarlo.TrialResult`, which documents them). A pytree: `score` runs
+    under `jit` and `vmap`, batched fields get a leading axis."""
+
+    ee_rms_mm: Float[Array, ""]
+    ee_max_mm: Float[Array, ""]
+    ee_rms_mm_nominal: Float[Array, ""]
+    cam_rot_deg: Float[Array, ""]
+    cam_trans_mm: Float[Array, ""]
+    axis_dir_deg: Float[Array, " joints"]
+    axis_pos_mm: Float[Array, " joints"]
+    ratio_err_percent: Float[Array, " joints"]
+
+
 def score(
     fit: AxisFitResult,
     true: KinematicModel,
@@ -26,7 +43,7 @@ def score(
     nominal: KinematicModel,
     q_val: Float[Array, "n joints"],
     T_cam_base_gauge: Float[Array, "4 4"] | None = None,
-) -> dict:
+) -> Score:
     """Errors of a calibration against the truth (see `jaxcal._montecarlo.TrialResult`)."""
 
     def marker_in_cam(model, T_cb, mount, q):
@@ -54,7 +71,7 @@ def score(
     dp = p_e - p_t
     # Distance of the true axis point from the estimated line (lines nearly parallel).
     pos = jnp.linalg.norm(dp - jnp.sum(dp * d_e, -1, keepdims=True) * d_e, axis=-1)
-    return dict(
+    return Score(
         ee_rms_mm=jnp.sqrt(jnp.mean(err**2)),
         ee_max_mm=jnp.max(err),
         ee_rms_mm_nominal=jnp.sqrt(jnp.mean(err_nom**2)),

@@ -440,7 +440,7 @@ def camera_corners(ds: Dataset, camera, targets, mount_index, K, dist, *, worker
     """Detect `targets` in `camera`'s images of `ds`: the `CornerData` (joint positions
     from the encoder log at the images' stamps) and the number of corners; `mount_index`:
     target name -> its mount in the estimate."""
-    rows = np.flatnonzero(ds.frames["camera"] == camera.name)
+    rows = np.flatnonzero(ds.frames.camera == camera.name)
     if rows.size == 0:
         raise DatasetError(f"{ds.root / 'frames.csv'}: no images of camera {camera.name!r}")
     paths = [ds.image_path(int(i)) for i in rows]
@@ -455,7 +455,7 @@ def camera_corners(ds: Dataset, camera, targets, mount_index, K, dist, *, worker
             pix.append(d.pixels)
             tgt.append(mount_index[t.name])
             frm.append(int(i))
-            tc.append(float(ds.frames["timestamp"][i]))
+            tc.append(float(ds.frames.timestamp[i]))
     if len(pts) < 2:
         raise DatasetError(f"{ds.root}: the targets were found in {len(pts)} image(s): a check needs a few")
     return pts, pix, np.array(tgt), np.array(frm), np.array(tc)

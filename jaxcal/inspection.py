@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .io._rosmsgs import find_segments
+from .io._rosmsgs import find_segments, segment_tuples
 from .io.dataset import Dataset, load_dataset
 from .records import Named, Record, keyed, named, optional
 from .stages._setup import device_kind
@@ -155,9 +155,7 @@ def _segments(ds: Dataset, q) -> tuple[list, str]:
     if q is None:
         return [], "none (no 'motion' and no encoder log)"
     found, _ = find_segments(ds.encoder_t, q, ds.joint_names)
-    return [
-        (s["joint"], s["start"], s["end"]) for s in found
-    ], "found in the encoder log (not in metadata.json)"
+    return segment_tuples(found), "found in the encoder log (not in metadata.json)"
 
 
 def _joint_range(ds: Dataset, joint: str, values) -> dict[str, tuple[float, float]]:

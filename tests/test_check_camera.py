@@ -122,9 +122,9 @@ def test_plan_check_proposes_poses_better_than_random(captures, tmp_path):
     lines = out.read_text().splitlines()
     assert lines[0].split(",")[0] == "shoulder_pan_joint" and len(lines) == 5
     cp = plan_check(res, 4, candidates=150)
-    worst = [s["translation_mm_worst"] for s in cp.steps]
+    worst = [s.translation_mm_worst for s in cp.steps]
     assert all(b <= a + 1e-9 for a, b in zip(worst, worst[1:]))
-    assert worst[-1] <= cp.random["translation_mm_worst"]
+    assert worst[-1] <= cp.random.translation_mm_worst
 
 
 @pytest.mark.slow

@@ -27,6 +27,7 @@ from jaxcal._refine import fisher_std, identifiable_mask, zero_params
 from jaxcal._uncertainty import random_configurations
 from jaxcal.cli import main
 from jaxcal.errors import BudgetTooSmallError, CameraViewError, PlanFileError, UnreachableRegionError
+from jaxcal.io.plan_inputs import parse_region, read_camera
 from jaxcal.planning import (
     CHECKS,
     CapturePlan,
@@ -51,7 +52,6 @@ from jaxcal.planning._evaluate import (
     ee_mean_square,
     free_jacobian,
 )
-from jaxcal.planning._inputs import parse_region, read_camera
 from jaxcal.planning._optimise import all_margins, correct_toward, greedy_d_optimal, view_blocks
 from jaxcal.robots import robot_path
 

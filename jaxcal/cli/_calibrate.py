@@ -185,7 +185,7 @@ def _certificate(console, out: Path, args) -> list[str]:
     """With `--region` / `--joint-box`: the accuracy certificate over it, on the console, in
     `report.md` and `certificate.json` (the files written)."""
     where = region_of(args)
-    if where["region"] is None and where["joint_box"] is None:
+    if all(v is None for v in where.values()):
         return []
     c = certify(out, **where)
     print_certificate(console, c)

@@ -10,7 +10,7 @@ from rich.console import Console
 from .._handeye import ROBOT_SIGMA_OPTIONS, describe_robot_noise
 from ..handeye import calibrate_hand_eye_capture
 from ..io._files import check_output_dir, output_lock
-from ..io.handeye_results import static_transform_args, write_hand_eye_outputs
+from ..io.handeye_results import ros2_static_transform_args, write_hand_eye_outputs
 from ..markers import TargetSpec
 from ..report import warm_up_plots
 from ._common import resolution
@@ -96,9 +96,7 @@ def _handeye(args, out: Path, checked) -> int:
                 else ""
             )
         )
-        console.print(
-            f"  ros2 run tf2_ros static_transform_publisher {static_transform_args(run, c)['ros2']}"
-        )
+        console.print(f"  ros2 run tf2_ros static_transform_publisher {ros2_static_transform_args(run, c)}")
         if run.truth_error is not None:
             console.print(
                 f"  against the truth: {1e3 * run.truth_error[c, 0]:.3f} mm, {np.degrees(run.truth_error[c, 1]):.4f} deg"

@@ -6,7 +6,7 @@ from pathlib import Path
 from rich.console import Console
 
 from ..io._files import check_output_dir, output_lock
-from ..io.dataset import load_dataset
+from ..io.dataset import load_dataset, true_poses
 from ..planning import load_plan, plan_robot
 from ..planning._cli import run_plan
 
@@ -57,10 +57,11 @@ def cmd_simulate(args) -> int:
         )
 
     ds = load_dataset(out)
-    visible = sum(all(f["visible"].values()) for f in ds.truth["frames"])
+    truth = true_poses(ds.truth)
+    visible = sum(all(v.values()) for v in truth.visible)
     print(
         f"wrote {out}: {len(ds.frames.file)} images from {len(ds.cameras)} camera(s), "
-        f"{len(ds.truth['dropped_frames'])} dropped, targets fully in view in {visible} "
+        f"{len(truth.dropped_frames)} dropped, targets fully in view in {visible} "
         f"({time.perf_counter() - start:.1f} s)"
     )
     return 0
@@ -97,7 +98,7 @@ def cmd_simulate_plan(args) -> int:
             arm=args.arm,
         )
     ds = load_dataset(out)
-    visible = sum(all(f["visible"].values()) for f in ds.truth["frames"])
+    visible = sum(all(v.values()) for v in true_poses(ds.truth).visible)
     print(
         f"wrote {out}: {len(ds.frames.file)} images of plan {args.plan} ({p.frames} frames), targets fully in "
         f"view in {visible} ({time.perf_counter() - start:.1f} s)"
@@ -134,6 +135,6 @@ def cmd_simulate_tracker(args) -> int:
     ds = load_dataset(out)
     print(
         f"wrote {out}: {len(ds.samples.sample)} tracker samples of {len(ds.joint_names)} joint sweeps, "
-        f"{len(ds.truth['bad_samples'])} bad ({time.perf_counter() - start:.1f} s)"
+        f"{len(true_poses(ds.truth).bad_samples)} bad ({time.perf_counter() - start:.1f} s)"
     )
     return 0

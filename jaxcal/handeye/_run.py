@@ -10,7 +10,7 @@ import numpy as np
 from .._cache import enable_compilation_cache
 from .._exported import warm_start
 from .._handeye import HandEyeResult, HandEyeVerdict, KFoldSpread, pose_difference
-from ..io.handeye import HandEyeCapture
+from ..io.handeye import HandEyeCapture, true_T_robot_cam
 from ..records import Intrinsics
 from ..vision import HandEyeObservations
 from ._observe import observe
@@ -62,9 +62,10 @@ class HandEyeRun:
 
 def truth_error(capture: HandEyeCapture, result) -> "np.ndarray | None":
     """Synthetic captures: per camera `(translation m, rotation rad)` of `T_robot_cam` against the truth."""
-    if not capture.truth or "T_robot_cam" not in capture.truth:
+    true = true_T_robot_cam(capture)
+    if true is None:
         return None
-    X = np.stack([np.asarray(capture.truth["T_robot_cam"][c.name]) for c in capture.cameras])
+    X = np.stack([true[c.name] for c in capture.cameras])
     e = pose_difference(np.asarray(result.T_robot_cam), X)
     return np.stack([np.linalg.norm(e[:, :3], axis=1), np.linalg.norm(e[:, 3:], axis=1)], axis=1)
 

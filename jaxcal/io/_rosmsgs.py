@@ -148,6 +148,11 @@ def _runs(code: np.ndarray) -> list[tuple[int, int, int]]:
     return [(int(code[s]), int(s), int(e)) for s, e in zip(edges[:-1], edges[1:])]
 
 
+def segment_tuples(segments: list[dict]) -> list[tuple]:
+    """`find_segments`' `motion` entries as a dataset's segments: `(joint or None, start, end)`."""
+    return [(s["joint"], s["start"], s["end"]) for s in segments]
+
+
 def find_segments(
     t, q, joint_names, options: SegmentOptions = SegmentOptions()
 ) -> tuple[list[dict], list[str]]:

@@ -29,6 +29,13 @@ class TruePoses:
     clock_offset_s: float | None
     #: The true kinematic model.
     model: KinematicModel
+    #: Per entry of the truth's `frames` (a rendered dataset's, one per row of `frames.csv`):
+    #: each target's pose in the camera, and whether it is wholly in view.
+    T_cam_target: tuple[dict[str, np.ndarray], ...] = ()
+    visible: tuple[dict[str, bool], ...] = ()
+    #: The capture indices dropped (images) and the bad tracker samples' indices.
+    dropped_frames: tuple[int, ...] = ()
+    bad_samples: tuple[int, ...] = ()
 
 
 def true_poses(truth: dict) -> TruePoses:
@@ -41,6 +48,12 @@ def true_poses(truth: dict) -> TruePoses:
         T_world_base=np.asarray(truth.get("T_world_base", np.eye(4))),
         clock_offset_s=truth.get("clock", {}).get("offset_s"),
         model=model_from_json(truth["model"]),
+        T_cam_target=tuple(
+            {n: np.asarray(T) for n, T in f["T_cam_target"].items()} for f in truth.get("frames", ())
+        ),
+        visible=tuple(dict(f["visible"]) for f in truth.get("frames", ())),
+        dropped_frames=tuple(truth.get("dropped_frames", ())),
+        bad_samples=tuple(truth.get("bad_samples", ())),
     )
 
 

@@ -390,6 +390,13 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
     )
 
 
+def true_T_robot_cam(capture: HandEyeCapture) -> dict[str, np.ndarray] | None:
+    """A synthetic capture's true `T_robot_cam` per camera (its `truth.json`), else None."""
+    if not capture.truth or "T_robot_cam" not in capture.truth:
+        return None
+    return {name: np.asarray(T) for name, T in capture.truth["T_robot_cam"].items()}
+
+
 # --------------------------------------------------------------------------- writing
 
 

@@ -240,6 +240,11 @@ def static_transform_args(run, c: int) -> dict:
     return ros.static_transform_args(run.result.T_robot_cam[c], *camera_frames(run, c))
 
 
+def ros2_static_transform_args(run, c: int) -> str:
+    """ROS 2's `static_transform_publisher` arguments (named flags) of camera `c`'s pose."""
+    return static_transform_args(run, c)["ros2"]
+
+
 def write_ros(folder: Path, run, c: int) -> None:
     """Camera `c`'s pose as a ROS static transform and as easy_handeye's YAML."""
     cap, name = run.capture, run.capture.cameras[c].name

@@ -19,7 +19,7 @@ the calibrated model puts every corner of the target in the image (a
 margin), in front of the camera and facing it within `VIEW_ANGLE_DEG`.
 """
 
-from dataclasses import dataclass
+from dataclasses import asdict, astuple, dataclass
 
 import numpy as np
 
@@ -30,11 +30,23 @@ from ..certification import read_result
 from ..drift import detectable, result_intrinsics
 from ..errors import DatasetError, PlanError
 from ..io._files import write_text_atomic
+from ..io.checks import calibration_reference
 from ..io.dataset import load_dataset
 from ..io.result import ESTIMATE_FILE, read_estimate
 
 #: The plate's largest angle to the line of sight (deg), and the image margin (px).
 VIEW_ANGLE_DEG, MARGIN_PX = 60.0, 10.0
+
+
+@dataclass(frozen=True)
+class CheckFigures:
+    """What a check's poses let it detect (`detectable(C)`, 95 % power): the
+    camera's translation (mm) along its worst and best directions and its
+    rotation (deg) along the worst."""
+
+    translation_mm_worst: float
+    rotation_deg_worst: float
+    translation_mm_best: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,8 +62,8 @@ class CheckPlan:
     result: str
     joint_names: tuple[str, ...]
     q: np.ndarray
-    steps: list
-    random: dict
+    steps: tuple[CheckFigures, ...]
+    random: CheckFigures
     candidates: int
     visible: int
     sigma_px: float
@@ -63,8 +75,8 @@ class CheckPlan:
             "result": self.result,
             "joint_names": list(self.joint_names),
             "q_rad": self.q.tolist(),
-            "steps": self.steps,
-            "random": self.random,
+            "steps": [asdict(s) for s in self.steps],
+            "random": asdict(self.random),
             "candidates": self.candidates,
             "visible": self.visible,
             "sigma_px": self.sigma_px,
@@ -81,20 +93,23 @@ def _inputs(result):
             f"{path}: missing: plan --check needs the calibration's covariance (calibrate again)"
         )
     est = read_estimate(path)
+    ref = calibration_reference(doc, file)
     try:
-        ds = load_dataset(doc["dataset"])
+        if ref.dataset is None:
+            raise KeyError("dataset")
+        ds = load_dataset(ref.dataset)
     except (DatasetError, OSError, KeyError) as e:
         raise DatasetError(
             f"{file}: plan --check reads the calibration's dataset (camera, target): {e}"
         ) from None
     if ds.encoder_t is None:
         raise DatasetError(f"{ds.root}: plan --check needs the calibration's encoder log (its joint ranges)")
-    name = doc["board"] if est.layout.eye_in_hand else doc["targets"][0]
+    name = ref.board if est.layout.eye_in_hand else ref.targets[0]
     target = next(t for t in ds.targets if t.name == name)
-    return doc, file, est, ds, ds.camera(doc["camera"]), target
+    return doc, ref, est, ds, ds.camera(ref.camera), target
 
 
-def _candidates(doc, est, ds, camera, target, count: int, seed: int):
+def _candidates(doc, calibration, est, ds, camera, target, count: int, seed: int):
     """Candidate configurations and, for the visible ones, their per-view `(A, G)` and the problem."""
     q_log = np.asarray(ds.encoder_motor, np.float64) / np.asarray(est.nominal.reduction_ratio)
     lo, hi = q_log.min(0), q_log.max(0)
@@ -105,7 +120,11 @@ def _candidates(doc, est, ds, camera, target, count: int, seed: int):
         [pts] * count, [np.zeros((len(pts), 2))] * count, np.zeros(count, int), np.arange(count), t, t, q
     )
     _, _, K0, dist0 = result_intrinsics(doc)
-    sigma = float(doc["refinement"]["sigma_px"])
+    if calibration.sigma_px is None:
+        raise DatasetError(
+            f"{calibration.file}: plan --check needs the refinement's sigma_px (calibrate again)"
+        )
+    sigma = calibration.sigma_px
     ref = camera_reference(est, data, K0, dist0, 0.0, sigma, count * len(pts))
     pix, X, A, J = (np.asarray(a) for a in view_jacobians(ref.x, ref.problem))
     inside = (
@@ -130,8 +149,9 @@ def _facing(X: np.ndarray) -> np.ndarray:
 def plan_check(result, budget: int = 10, *, candidates: int = 400, seed: int = 0) -> CheckPlan:
     """Greedy selection of `budget` poses for a drift check of the camera result `result`
     (see the module docstring). Raises `PlanError` / `DatasetError` naming the file."""
-    doc, file, est, ds, camera, target = _inputs(result)
-    q, inside, A, J, ref = _candidates(doc, est, ds, camera, target, candidates, seed)
+    doc, calibration, est, ds, camera, target = _inputs(result)
+    file = calibration.file
+    q, inside, A, J, ref = _candidates(doc, calibration, est, ds, camera, target, candidates, seed)
     keep = np.flatnonzero(inside)
     if len(keep) < budget:
         raise PlanError(
@@ -153,9 +173,9 @@ def plan_check(result, budget: int = 10, *, candidates: int = 400, seed: int = 0
     def info(sa, sb, sg):
         return (sa - sb @ np.linalg.solve(s2 * np.eye(r) + sg, sb.T)) / s2
 
-    def figures(idx) -> dict:
+    def figures(idx) -> CheckFigures:
         d = detectable(normal_inverse(info(a[idx].sum(0), b[idx].sum(0), g[idx].sum(0))))
-        return {k: d[k] for k in ("translation_mm_worst", "rotation_deg_worst", "translation_mm_best")}
+        return CheckFigures(d.translation_mm_worst, d.rotation_deg_worst, d.translation_mm_best)
 
     chosen, steps = [], []
     sa, sb, sg = np.zeros((6, 6)), np.zeros((6, r)), np.zeros((r, r))
@@ -174,9 +194,9 @@ def plan_check(result, budget: int = 10, *, candidates: int = 400, seed: int = 0
         steps.append(figures(chosen))
     rng = np.random.default_rng(seed + 1)
     draws = [figures(rng.choice(len(keep), budget, replace=False)) for _ in range(20)]
-    random = {k: float(np.median([d[k] for d in draws])) for k in draws[0]}
+    random = CheckFigures(*(float(np.median(column)) for column in zip(*(astuple(d) for d in draws))))
     return CheckPlan(
-        result=str(file), joint_names=tuple(est.nominal.joint_names), q=q[keep[chosen]], steps=steps,
+        result=str(file), joint_names=tuple(est.nominal.joint_names), q=q[keep[chosen]], steps=tuple(steps),
         random=random, candidates=candidates, visible=len(keep), sigma_px=ref.sigma_px,
     )  # fmt: skip
 

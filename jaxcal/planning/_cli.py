@@ -18,10 +18,10 @@ from rich.table import Table
 
 from ..errors import OutputError, PlanError, PlanFileError
 from ..io._files import write_text_atomic
+from ..io.plan_inputs import parse_pose, parse_region, read_camera, read_target
 from ._api import Robot, evaluate_plan, plan, scene_of, views, workspace
 from ._check import plan_check, write_poses
 from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation
-from ._inputs import parse_pose, parse_region, read_camera, read_target
 from ._plan import load_plan, save_plan
 from ._report import parameter_rows, plot_evaluation
 from ._scene import FeasibilityLimits
@@ -211,15 +211,15 @@ def run_check_plan(args, console: Console) -> int:
     for k, (q, st) in enumerate(zip(cp.q, cp.steps)):
         table.add_row(
             str(k + 1), *(f"{np.degrees(v):.1f}" for v in q),
-            f"{st['translation_mm_worst']:.3f}", f"{st['rotation_deg_worst']:.4f}",
+            f"{st.translation_mm_worst:.3f}", f"{st.rotation_deg_worst:.4f}",
         )  # fmt: skip
     console.print(table)
     last = cp.steps[-1]
     console.print(
-        f"with these {args.budget} poses a camera move of {last['translation_mm_worst']:.3f} mm (worst direction) or "
-        f"{last['rotation_deg_worst']:.4f} deg is detected with 95 % power; {args.budget} random poses of the "
-        f"calibrated joint ranges showing the target: {cp.random['translation_mm_worst']:.3f} mm, "
-        f"{cp.random['rotation_deg_worst']:.4f} deg (median of 20 draws; {cp.visible} of {cp.candidates} "
+        f"with these {args.budget} poses a camera move of {last.translation_mm_worst:.3f} mm (worst direction) or "
+        f"{last.rotation_deg_worst:.4f} deg is detected with 95 % power; {args.budget} random poses of the "
+        f"calibrated joint ranges showing the target: {cp.random.translation_mm_worst:.3f} mm, "
+        f"{cp.random.rotation_deg_worst:.4f} deg (median of 20 draws; {cp.visible} of {cp.candidates} "
         f"candidates show the whole target at {cp.sigma_px:.3f} px corner noise). Joint angles in deg; "
         "no collision check: try the poses slowly"
     )

@@ -6,13 +6,14 @@ image centre: the plate still decodes, but its corners move by up to ~10 px
 gives a confidently wrong marker pose. The source dataset is never modified.
 """
 
-import json
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from ..io.dataset import load_dataset, true_poses
 
 
 def shear_copy(
@@ -37,15 +38,15 @@ def shear_copy(
     if (rows is None) == (fraction is None):
         raise ValueError("shear_copy: give rows or fraction")
     shutil.copytree(src, dst)
-    truth = json.loads((dst / "truth.json").read_text())
-    meta = json.loads((dst / "metadata.json").read_text())
-    K = np.asarray(meta["cameras"][0]["K"])
-    files = [line.split(",")[3] for line in (dst / "frames.csv").read_text().splitlines()[1:]]
+    ds = load_dataset(dst)
+    truth = true_poses(ds.truth)
+    K = np.asarray(ds.cameras[0].K)
+    files = [str(f) for f in ds.frames.file]
     if rows is None:
         rng = np.random.default_rng(seed)
         rows = rng.choice(len(files), size=max(1, int(round(fraction * len(files)))), replace=False)
     for r in sorted(int(r) for r in rows):
-        T = np.asarray(next(iter(truth["frames"][r]["T_cam_target"].values())))
+        T = np.asarray(next(iter(truth.T_cam_target[r].values())))
         c = K @ T[:3, 3]
         cy = c[1] / c[2]
         image = cv2.imread(str(dst / files[r]), cv2.IMREAD_UNCHANGED)

@@ -372,7 +372,7 @@ def simulate(
     scene = build_scene(
         true, plates=plates_true, cameras=cameras_true, floor_z=None if config.eye_in_hand else -0.6
     )
-    rows = {"camera": [], "frame": [], "timestamp": [], "file": []}
+    row_camera, row_frame, row_stamp, row_file = [], [], [], []  # frames.csv's columns
     truth_frames = []
     todo = [(f, c) for f in np.flatnonzero(keep) for c in cameras_true]
     with atomic_directory(out, overwrite=overwrite, inputs=(urdf_path,), kind="dataset") as tmp, scene:
@@ -386,14 +386,14 @@ def simulate(
                 image = optics.capture(render_at, t_frames[f], cam.height, noise_rng, config.grayscale)
                 rel = f"images/{cam.name}/{f:06d}.png"
                 _write_image(tmp / rel, image)
-                rows["camera"].append(cam.name)
-                rows["frame"].append(int(f))
-                rows["timestamp"].append(float(stamps[f]))
-                rows["file"].append(rel)
+                row_camera.append(cam.name)
+                row_frame.append(int(f))
+                row_stamp.append(float(stamps[f]))
+                row_file.append(rel)
                 poses, visible = _seen_targets(cam, plates_true, lambda link: T_world(link, f))
                 truth_frames.append(
                     {
-                        "row": len(rows["file"]) - 1,
+                        "row": len(row_file) - 1,
                         "camera": cam.name,
                         "frame": int(f),
                         "t": float(t_frames[f]),
@@ -408,7 +408,7 @@ def simulate(
 
         shutil.copyfile(urdf_path, tmp / "robot.urdf")
         save_urdf(true, tmp / "truth.urdf", source=urdf_path)
-        write_frames(tmp / "frames.csv", rows["camera"], rows["frame"], rows["timestamp"], rows["file"])
+        write_frames(tmp / "frames.csv", row_camera, row_frame, row_stamp, row_file)
         if config.encoders:
             write_encoders(tmp / "encoders.csv", enc_t, enc_motor, names)
         for name, text in (notes or {}).get("files", {}).items():

@@ -154,15 +154,15 @@ def other_camera_errors(
 def _joint_errors(nominal, true, model, s) -> tuple[JointError, ...]:
     """Per joint its axis, ratio and zero-offset errors against the truth (`score`'s figures `s`);
     a prismatic joint has a direction (no axis position), the scale's error and mm."""
-    ratio_err = np.asarray(s["ratio_err_percent"])
+    ratio_err = np.asarray(s.ratio_err_percent)
     rows = []
     for k, (j, kind) in enumerate(zip(nominal.joint_names, nominal.joint_types)):
         dz = float(model.zero_offset[k] - true.zero_offset[k])
         rows.append(
             JointError(
                 joint=j,
-                axis_direction_deg=float(s["axis_dir_deg"][k]),
-                axis_position_mm=float(s["axis_pos_mm"][k]) if kind == REVOLUTE else None,
+                axis_direction_deg=float(s.axis_dir_deg[k]),
+                axis_position_mm=float(s.axis_pos_mm[k]) if kind == REVOLUTE else None,
                 ratio_percent=None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
                 zero_offset_deg=float(np.degrees(dz)) if kind == REVOLUTE else None,
                 zero_offset_mm=None if kind == REVOLUTE else 1e3 * dz,

@@ -56,7 +56,7 @@ class HandEyeObservations:
     turned: tuple[tuple[int, int, int], ...]
 
 
-def _per_camera(detections, target: TargetSpec) -> list[list["Detection | None"]]:
+def _per_camera(detections, target: TargetSpec) -> list[list[Detection | None]]:
     """Detections as [camera][frame]; one camera's list may be given bare, and
     `detect_frames` dicts (target name -> Detection) are read for `target`."""
     seq = list(detections)

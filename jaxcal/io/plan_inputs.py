@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 
 from ..errors import DatasetError, PlanFileError
-from ..io._schema import Loc, read_json
-from ..io.plan import MAX_PLACEMENT_M, PlanCamera, PlanTarget, check_placement, target_from_dict
+from ._schema import Loc, read_json
+from .plan import MAX_PLACEMENT_M, PlanCamera, PlanTarget, check_placement, target_from_dict
 
 #: The camera file's fields `read_camera` reads.
 CAMERA_FIELDS = (
