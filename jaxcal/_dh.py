@@ -318,11 +318,15 @@ def _end_row(frame, T_flange):
     return (_angle_about(x, xe, z), d, zero, zero, zero), (xe, z, o + d * z)
 
 
+#: `joint_axes` as one compiled program for host callers (an eager call is a program per step).
+_joint_axes = jax.jit(joint_axes)
+
+
 def parallel_pairs(model: KinematicModel, tol_deg: float = PARALLEL_TOL_DEG) -> tuple[bool, ...]:
     """Per DH row $i$ ($< n$), whether axes $i$ and $i+1$ are within `tol_deg` of
     parallel (or antiparallel) at the zero configuration; the last row is False.
     Needs concrete numbers (call it outside `jit` / `jacfwd`)."""
-    _, dirs = joint_axes(model, jnp.zeros(model.num_joints))
+    _, dirs = _joint_axes(model, np.zeros(model.num_joints))
     dirs = np.asarray(dirs)
     sines = np.linalg.norm(np.cross(dirs[:-1], dirs[1:]), axis=1)
     return tuple(bool(s < np.sin(np.radians(tol_deg))) for s in sines) + (False,)

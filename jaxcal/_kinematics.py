@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from ._device import to_device
 from ._geometry import make_pose, matmul, matrix_to_rpy, normalize, rpy_to_matrix, se3_exp, so3_exp
 
 REVOLUTE = "revolute"
@@ -91,7 +92,7 @@ def make_model(
     if np.any(~np.isfinite(norms) | (norms < 1e-12)):
         j = int(np.flatnonzero(~np.isfinite(norms) | (norms < 1e-12))[0])
         raise ValueError(f"joint {tuple(joint_names)[j]!r}: axis {axis[j].tolist()} is zero or not finite")
-    axis = jnp.asarray(axis / norms[:, None])
+    axis = to_device(axis / norms[:, None])
     for name, value in (("zero_offset", zero_offset), ("reduction_ratio", reduction_ratio)):
         if value is not None and np.shape(value) != (n,):
             raise ValueError(f"{name} must have shape ({n},), got {np.shape(value)}")
@@ -105,7 +106,7 @@ def make_model(
         else ("base",) + tuple(f"link{i + 1}" for i in range(n)) + ("flange",)
     )
     # Defaults made in NumPy and moved over: no compiled program per default in a fresh process.
-    eye = jnp.asarray(np.eye(4))
+    eye = to_device(np.eye(4))
     return KinematicModel(
         T_parent_joint=T_parent_joint,
         axis=axis,
@@ -193,7 +194,7 @@ def rotations_to_rpy(R) -> np.ndarray:
     """URDF roll-pitch-yaw (`jaxcal._geometry.matrix_to_rpy`) of `(n, 3, 3)` rotations, `(n, 3)`
     (of one `(3, 3)`, `(3,)`), by one compiled call: for host code that writes files."""
     R = np.asarray(R, np.float64)
-    return np.asarray(_matrices_to_rpy(jnp.asarray(R.reshape(-1, 3, 3)))).reshape(R.shape[:-2] + (3,))
+    return np.asarray(_matrices_to_rpy(to_device(R.reshape(-1, 3, 3)))).reshape(R.shape[:-2] + (3,))
 
 
 def origin_from_xyz_rpy(xyz, rpy) -> Float[Array, "4 4"]:

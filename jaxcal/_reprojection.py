@@ -37,6 +37,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._clocksync import controller_time, interpolate_encoders
 from ._correction import KinematicCorrection, apply_correction
+from ._device import to_device
 from ._geometry import se3_exp, skew
 from ._kinematics import REVOLUTE, KinematicModel
 
@@ -240,19 +241,19 @@ def make_corner_data(
     sweep_joint = None if sweep_joint is None else padded(sweep_joint, 0, np.int64)
     sweep_home = None if sweep_home is None else padded(sweep_home, 0.0, np.float64)
     return CornerData(
-        points=jnp.asarray(X),
-        pixels=jnp.asarray(U),
-        mask=jnp.asarray(m),
-        target=jnp.asarray(padded(target, 0, np.int64)),
-        frame=jnp.asarray(padded(frame, -1, np.int64)),
-        t_cam=jnp.asarray(padded(t_cam, float(np.asarray(t_cam)[0]), np.float64)),
-        enc_t=jnp.asarray(enc_t),
-        enc_q=jnp.asarray(enc_q),
+        points=to_device(X),
+        pixels=to_device(U),
+        mask=to_device(m),
+        target=to_device(padded(target, 0, np.int64)),
+        frame=to_device(padded(frame, -1, np.int64)),
+        t_cam=to_device(padded(t_cam, float(np.asarray(t_cam)[0]), np.float64)),
+        enc_t=to_device(enc_t),
+        enc_q=to_device(enc_q),
         drift_ppm=jnp.asarray(float(drift_ppm)),
-        camera=None if camera is None else jnp.asarray(np.asarray(camera, np.int64)),
-        sweep_joint=None if sweep_joint is None else jnp.asarray(np.asarray(sweep_joint, np.int64)),
-        sweep_home=None if sweep_home is None else jnp.asarray(sweep_home),
-        row=None if Y is None else jnp.asarray(Y),
+        camera=None if camera is None else to_device(camera, np.int64),
+        sweep_joint=None if sweep_joint is None else to_device(sweep_joint, np.int64),
+        sweep_home=None if sweep_home is None else to_device(sweep_home),
+        row=None if Y is None else to_device(Y),
     )
 
 

@@ -15,11 +15,11 @@ from dataclasses import dataclass, replace
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from ._correction import Estimate, parameters_to_model, physical_jacobian, physical_names
+from ._device import to_device
 from ._dh import COLUMNS, DHTable, dh_table, parallel_pairs, table_value_names, table_values, to_mdh
 from ._exported import stored_jit
 
@@ -80,14 +80,14 @@ def estimate_prefix(estimate: Estimate) -> Estimate:
         if x.shape[0] == layout.size
         else np.asarray(estimate.reduction_ratio)
     )
-    return Estimate(
-        x=estimate.x[:n],
-        cov=estimate.cov[:n, :n],
-        free=estimate.free[:n],
+    return Estimate(  # cut on the host: no eager JAX program per slice
+        x=to_device(np.asarray(estimate.x)[:n]),
+        cov=to_device(np.asarray(estimate.cov)[:n, :n]),
+        free=to_device(np.asarray(estimate.free)[:n]),
         nominal=estimate.nominal,
         T_flange_marker0=estimate.T_flange_marker0,
         T_cam_base0=estimate.T_cam_base0,
-        reduction_ratio=jnp.asarray(ratio),
+        reduction_ratio=to_device(ratio),
         layout=layout,
         mount_names=estimate.mount_names,
     )
@@ -100,8 +100,9 @@ def dh_values(estimate: Estimate, reference: DHTable, x: Float[Array, " n"]) -> 
 
 
 def dh_jacobian(estimate: Estimate, parallel: tuple[bool, ...]):
-    """The nominal and calibrated DH tables and the Jacobian of `dh_values` at
-    the estimate, as one compiled call (MDH follows by `mdh_from_dh_values`)."""
+    """The nominal and calibrated DH tables, the Jacobian of `dh_values` at the estimate,
+    and both tables' `table_values` (nominal, calibrated), as one compiled call (MDH
+    follows by `mdh_from_dh_values`)."""
     return _dh_program(tuple(bool(p) for p in parallel))(estimate)
 
 
@@ -113,7 +114,7 @@ def _dh_program(parallel: tuple[bool, ...]):
         reference = dh_table(estimate.nominal, "dh", parallel=parallel)
         table = dh_table(parameters_to_model(estimate).model, "dh", reference=reference)
         G = jax.jacfwd(lambda x: dh_values(estimate, reference, x))(estimate.x)
-        return reference, table, G
+        return reference, table, G, table_values(reference), table_values(table)
 
     return stored_jit(dh_jacobian, "dh_jacobian", (parallel,))
 
@@ -169,8 +170,8 @@ def physical_table(source, convention: str = "urdf") -> PhysicalTable:
             *physical_names(est.layout, list(est.mount_names), est.nominal.joint_types)
         )
         return _table(names, units, groups, nom, value, G, est, convention)
-    reference, table, G = dh_jacobian(est, parallel_pairs(est.nominal))
-    nom, value, G = np.asarray(table_values(reference)), np.asarray(table_values(table)), np.asarray(G)
+    reference, table, G, nom, value = dh_jacobian(est, parallel_pairs(est.nominal))
+    nom, value, G = np.asarray(nom), np.asarray(value), np.asarray(G)
     if convention == "mdh":
         P = mdh_from_dh_values(est.nominal.num_joints)
         reference, table, nom, value, G = to_mdh(reference), to_mdh(table), P @ nom, P @ value, P @ G
@@ -192,9 +193,9 @@ def _table(names, units, groups, nom, value, G, est: Estimate, convention: str) 
 def _std_table(reference: DHTable, std: np.ndarray) -> DHTable:
     """A `DHTable` whose columns hold the standard deviations (base/flange left as identity)."""
     n = len(reference.joint_names)
-    cols = jnp.asarray(std[: 5 * n].reshape(n, 5).T)
+    cols = np.asarray(std[: 5 * n].reshape(n, 5).T)
     return eqx.tree_at(
-        lambda t: (t.theta, t.d, t.a, t.alpha, t.beta), reference, tuple(cols[k] for k in range(5))
+        lambda t: (t.theta, t.d, t.a, t.alpha, t.beta), reference, tuple(to_device(cols[k]) for k in range(5))
     )
 
 

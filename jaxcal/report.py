@@ -278,7 +278,7 @@ def _dh_section(tables: dict[str, PhysicalTable]) -> list[str]:
     for i, j in enumerate(tab.joint_names):
         cells = []
         for c, f in conv.items():
-            e, n, s_ = (float(f(getattr(x, c)[i])) for x in (tab, nom, sd))
+            e, n, s_ = (float(f(np.asarray(getattr(x, c))[i])) for x in (tab, nom, sd))
             cells.append(f"{e:.3f} ± {s_:.3f} (nom {n:.3f})")
         lines.append(f"| {j} | " + " | ".join(cells) + f" | {'parallel' if tab.parallel[i] else ''} |")
     return lines + [""]

@@ -53,8 +53,9 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from .._geometry import matrix_to_rpy, rpy_to_matrix, so3_exp
-from .._kinematics import KinematicModel
+from .._device import to_device
+from .._geometry import rpy_to_matrix, so3_exp
+from .._kinematics import KinematicModel, rotations_to_rpy
 from .._npgeom import pose
 from . import ros
 
@@ -89,7 +90,7 @@ def _align(a: np.ndarray) -> np.ndarray:
     s, c = np.linalg.norm(w), float(z @ a)
     if s < 1e-15:
         return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    return np.asarray(so3_exp(jnp.asarray(w / s * np.arctan2(s, c))))
+    return np.asarray(so3_exp(to_device(w / s * np.arctan2(s, c))))
 
 
 def _tz(s: float) -> np.ndarray:
@@ -105,7 +106,7 @@ def ur_origins(model: KinematicModel, nominal: KinematicModel) -> tuple[np.ndarr
     n = len(T)
     A = [np.eye(3)] + [_align(a) for a in axis]
     E = [
-        pose(A[i].T) @ T[i] @ pose(np.asarray(so3_exp(jnp.asarray(axis[i] * delta[i])))) @ pose(A[i + 1])
+        pose(A[i].T) @ T[i] @ pose(np.asarray(so3_exp(to_device(axis[i] * delta[i])))) @ pose(A[i + 1])
         for i in range(n)
     ]
     F = pose(A[n].T) @ np.asarray(model.T_last_flange, np.float64)
@@ -139,7 +140,7 @@ def ur_kinematics_text(model: KinematicModel, nominal: KinematicModel) -> tuple[
     E, C = ur_origins(model, nominal)
     body = []
     for (_, seg), Ti in zip(UR_JOINTS, E):
-        rpy = np.asarray(matrix_to_rpy(jnp.asarray(Ti[:3, :3])))
+        rpy = rotations_to_rpy(Ti[:3, :3])
         body.append(f"  {seg}:")
         body += [f"    {k}: {float(v)!r}" for k, v in zip(("x", "y", "z"), Ti[:3, 3])]
         body += [f"    {k}: {float(v)!r}" for k, v in zip(("roll", "pitch", "yaw"), rpy)]

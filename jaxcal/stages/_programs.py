@@ -24,6 +24,7 @@ from .._axisfit import axis_jacobian, axis_problem, fit_axes, home_jacobian, reg
 from .._buckets import bucket
 from .._clocksync import fit_clock_offset
 from .._correction import ParameterLayout
+from .._device import to_device
 from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
@@ -294,7 +295,7 @@ def end_effector_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, limi
     uncertainty (m); a prismatic joint within its URDF `limits` (`joint_travel`)."""
     return np.asarray(
         _ee_sigma()(
-            nominal, jnp.asarray(T_cam_base0), jnp.asarray(mounts0), cam, correction, jnp.asarray(cov),
-            jnp.asarray(joint_travel(nominal, limits)),
+            nominal, to_device(T_cam_base0), to_device(mounts0), cam, correction, to_device(cov),
+            to_device(joint_travel(nominal, limits)),
         )
     )  # fmt: skip

@@ -24,6 +24,7 @@ from jax.flatten_util import ravel_pytree
 from .._buckets import bucket, pad_log
 from .._clocksync import controller_time
 from .._correction import INTRINSIC_NAMES, Estimate, ParameterLayout, physical_parameters
+from .._device import to_device
 from .._geometry import so3_log
 from .._links import average_pose, start_mounts
 from .._refine import (
@@ -303,7 +304,7 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         T_flange_marker0=jnp.asarray(mounts0),
         T_cam_base0=jnp.asarray(fit.T_cam_base0),
         K0=jnp.asarray(K, jnp.float64),
-        dist0=jnp.asarray(d5),
+        dist0=to_device(d5),
         offset0_s=jnp.asarray(sync.clock.offset_s),
         data=data,
         other_cameras=OtherCameras(*(jnp.asarray(np.stack(a)) for a in zip(*corners.others)))
@@ -407,7 +408,7 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         },
         two_stage=TwoStageStart(
             T_cam_base=np.asarray(two.fit.T_cam_base, np.float64),
-            std_cam=np.asarray(two.fit.std[:6], np.float64),
+            std_cam=np.asarray(two.fit.std, np.float64)[:6],
             T_flange_target=np.asarray(two.fit.T_flange_marker, np.float64),
             clock_offset_s=sync.clock.offset_s,
             ratios=tuple(Named(a.joint, a.ratio) for a in two.arc_rows),
@@ -436,8 +437,8 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         warnings=tuple(warnings),
         estimate=Estimate(
             x=ravel_pytree(res.params)[0],
-            cov=jnp.asarray(res.cov),
-            free=jnp.asarray(free),
+            cov=to_device(res.cov),
+            free=to_device(free),
             nominal=nominal,
             T_flange_marker0=jnp.asarray(problem.T_flange_marker0),
             T_cam_base0=jnp.asarray(problem.T_cam_base0),

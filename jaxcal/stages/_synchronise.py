@@ -17,6 +17,7 @@ import optimistix as optx
 from .._arcdata import make_arc_data
 from .._buckets import bucket, pad_log
 from .._clocksync import LINEAR_UP_TO_S, controller_time, interpolate_encoders
+from .._device import to_device
 from .._kinematics import PRISMATIC
 from .._links import link_poses
 from ..errors import CalibrationError
@@ -249,9 +250,9 @@ def _clock_from_sweeps(
         t_cam, enc_q = t_cam[rev], np.asarray(enc_q)[:, rev]
     return _programs.clock_fit(loss)(
         data,
-        jnp.asarray(t_cam),
-        jnp.asarray(enc_t),
-        jnp.asarray(enc_q),
+        to_device(t_cam),
+        to_device(enc_t),
+        to_device(enc_q),
         offset0,
         drift_ppm,
     )

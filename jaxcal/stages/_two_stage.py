@@ -19,6 +19,7 @@ from .._arcfit import ArcFitResult, arc_outliers, validate_arc_data
 from .._axisfit import AxisFitParams, AxisFitResult, register_lines
 from .._buckets import bucket
 from .._correction import Estimate, ParameterLayout, physical_parameters, zero_correction
+from .._device import to_device
 from .._geometry import pose_inverse
 from .._handeye import check_motion_diversity, solve_axzb
 from .._kinematics import PRISMATIC, forward_kinematics
@@ -181,9 +182,9 @@ def _start_mounts(setup: Setup, arcs, homes):
     the fixed frame is the base frame)."""
     mounts0 = [t.T_link_target for t in setup.fit_targets]
     if all(m is not None for m in mounts0):
-        return jnp.asarray(np.stack(mounts0))
+        return to_device(np.stack(mounts0))
     nominal = setup.nominal
-    home = None if homes is None else jnp.asarray(homes)
+    home = None if homes is None else to_device(homes)
     T0 = register_lines(nominal, arcs, home) if setup.kind.fixed_frame_free else jnp.eye(4)
     T_cf = T0 @ forward_kinematics(nominal, jnp.zeros(nominal.num_joints) if home is None else home[0])[-1]
     return jnp.einsum("ab,mbc->mac", pose_inverse(T_cf), arcs.T_cam_marker0[0])
