@@ -1,10 +1,10 @@
 """Hand-eye measurements: image features (`HandEyePixels`) or board poses (`HandEyePoses`), built and checked."""
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .._device import to_device
 from ..errors import (
     HandEyeInputError,
     LengthMismatchError,
@@ -89,9 +89,7 @@ HandEyeData = HandEyePixels | HandEyePoses
 
 
 def _sigma6(translation, rotation) -> Float[Array, "6"]:
-    return jnp.concatenate(
-        [jnp.full(3, translation, dtype=jnp.float64), jnp.full(3, rotation, dtype=jnp.float64)]
-    )
+    return to_device(np.r_[np.full(3, translation, np.float64), np.full(3, rotation, np.float64)])
 
 
 def _robot_sigma(translation, rotation):
@@ -128,7 +126,7 @@ def make_hand_eye_pixels(
     - `validate`: run `validate_hand_eye` (raises `ValueError` on bad input).
     - `frame_names`: labels of the frames for its messages (default: indices).
     """
-    T = jnp.asarray(np.asarray(T_base_ee, dtype=np.float64))
+    T = to_device(np.asarray(T_base_ee, dtype=np.float64))
     px = np.asarray(pixels, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
     if px.ndim == 3:
@@ -145,13 +143,13 @@ def make_hand_eye_pixels(
     mask = np.all(np.isfinite(px), axis=-1) if mask is None else np.asarray(mask, bool)
     data = HandEyePixels(
         T_base_ee=T,
-        pixels=jnp.asarray(px),
-        mask=jnp.asarray(mask),
-        K=jnp.asarray(K),
-        board_points=jnp.asarray(np.asarray(board_points, dtype=np.float64)),
-        sigma_px=jnp.asarray(sigma_px, jnp.float64),
+        pixels=to_device(px),
+        mask=to_device(mask),
+        K=to_device(K),
+        board_points=to_device(np.asarray(board_points, dtype=np.float64)),
+        sigma_px=to_device(sigma_px, np.float64),
         robot_sigma=_robot_sigma(robot_sigma_translation, robot_sigma_rotation),
-        eye_in_hand=jnp.asarray(eye_in_hand, bool),
+        eye_in_hand=to_device(eye_in_hand, bool),
     )
     if validate:
         validate_hand_eye(data, frame_names=frame_names)
@@ -198,13 +196,13 @@ def make_hand_eye_poses(
     if cov is not None:
         cov = _pose_covariances(cov, A.shape[:2], mask, np.asarray(sigma))
     data = HandEyePoses(
-        T_base_ee=jnp.asarray(np.asarray(T_base_ee, dtype=np.float64)),
-        T_cam_board=jnp.asarray(A),
-        mask=jnp.asarray(mask),
+        T_base_ee=to_device(np.asarray(T_base_ee, dtype=np.float64)),
+        T_cam_board=to_device(A),
+        mask=to_device(mask),
         sigma=sigma,
-        cov=None if cov is None else jnp.asarray(cov),
+        cov=None if cov is None else to_device(cov),
         robot_sigma=_robot_sigma(robot_sigma_translation, robot_sigma_rotation),
-        eye_in_hand=jnp.asarray(eye_in_hand, bool),
+        eye_in_hand=to_device(eye_in_hand, bool),
     )
     if validate:
         validate_hand_eye(data, frame_names=frame_names)
@@ -360,11 +358,11 @@ def pad_hand_eye(data: HandEyeData, frames: int | None = None, points: int | Non
         board = np.asarray(data.board_points)
         board = np.concatenate([board, np.broadcast_to(board[:1], (Pp - P, 3))])
         return HandEyePixels(
-            T_base_ee=jnp.asarray(T),
-            pixels=jnp.asarray(px),
-            mask=jnp.asarray(mask),
+            T_base_ee=to_device(T),
+            pixels=to_device(px),
+            mask=to_device(mask),
             K=data.K,
-            board_points=jnp.asarray(board),
+            board_points=to_device(board),
             sigma_px=data.sigma_px,
             robot_sigma=data.robot_sigma,
             eye_in_hand=data.eye_in_hand,
@@ -375,11 +373,11 @@ def pad_hand_eye(data: HandEyeData, frames: int | None = None, points: int | Non
     cov = None
     if data.cov is not None:
         filler = np.broadcast_to(np.diag(np.asarray(data.sigma) ** 2), (C, pad_f, 6, 6))
-        cov = jnp.asarray(np.concatenate([np.asarray(data.cov), filler], axis=1))
+        cov = to_device(np.concatenate([np.asarray(data.cov), filler], axis=1))
     return HandEyePoses(
-        T_base_ee=jnp.asarray(T),
-        T_cam_board=jnp.asarray(A),
-        mask=jnp.asarray(mask),
+        T_base_ee=to_device(T),
+        T_cam_board=to_device(A),
+        mask=to_device(mask),
         sigma=data.sigma,
         cov=cov,
         robot_sigma=data.robot_sigma,
