@@ -44,6 +44,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ._correction import ParameterLayout, apply_correction, parameters_to_model
+from ._device import to_device
 from ._exported import stored_jit
 from ._geometry import se3_exp
 from ._kinematics import KinematicModel, forward_kinematics
@@ -234,10 +235,10 @@ def camera_predictor(ref: CalibrationReference) -> Predictor:
         if frame == "base":
             c[cam, :] = 0.0
             c[:, cam] = 0.0
-        return np.asarray(_tool_covariances(est, est.x, jnp.asarray(c), jnp.asarray(q, jnp.float64)))
+        return np.asarray(_tool_covariances(est, est.x, to_device(c), to_device(q, np.float64)))
 
     def base_points(q):
-        return np.asarray(_base_points(calibrated.model, calibrated.T_flange_marker[0], jnp.asarray(q)))
+        return np.asarray(_base_points(calibrated.model, calibrated.T_flange_marker[0], to_device(q)))
 
     ws, note, limits = _workspace(ref, np.asarray(est.reduction_ratio))
     caveats = []
