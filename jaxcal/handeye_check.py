@@ -178,7 +178,7 @@ def fit_check(
     views = int(np.asarray(data.mask).any(-1).sum()) if views is None else views
     X, Y = jnp.asarray(X, jnp.float64), jnp.asarray(Y, jnp.float64)
     terms = covariance_terms(X, Y, jnp.asarray(cov, jnp.float64), jnp.asarray(robot_sigma, jnp.float64), data)
-    R, s = variance_components(*terms, sigma_px)
+    R, s = variance_components(terms, sigma_px)
     theta, C, T, rss = (np.asarray(a) for a in fit_handeye_drift(X, Y, R, data))
     nu, view = float(s[0]) / sigma_px**2, (float(np.sqrt(s[1])), float(np.sqrt(s[2])))
     T_now = np.linalg.inv(np.asarray(X)) @ np.asarray(se3_exp(jnp.asarray(theta)))

@@ -13,12 +13,14 @@ import json
 import shutil
 from dataclasses import replace
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
 
-from jaxcal._drift_handeye import HandEyeCheckData
+from jaxcal._drift_camera import gauss_newton
+from jaxcal._drift_handeye import COMPONENT_ROUNDS, VIEW_START, HandEyeCheckData, residuals
 from jaxcal._geometry import se3_exp
 from jaxcal._handeye.model import corrected_robot
 from jaxcal.cli import main
@@ -39,11 +41,11 @@ def _exp(xi) -> np.ndarray:
     return np.asarray(se3_exp(jnp.asarray(xi, jnp.float64)))
 
 
-def _rig(rng, frames=6):
+def _rig(rng, frames=6, board=BOARD):
     """Eye-to-hand: `X` = T_cam_base, `Y` = T_ee_board, the true flange poses and a covariance."""
     X = _exp([0.1, -0.2, 0.9, 2.0, 0.3, -0.2])
     Y = _exp([0.0, 0.0, 0.05, 0.0, 0.0, 0.3])
-    centre = np.asarray(BOARD.points()).mean(0)
+    centre = np.asarray(board.points()).mean(0)
     B = []
     for _ in range(frames):  # the board 0.6 m in front of the camera, tilted up to 25 deg
         w = rng.uniform(-1, 1, 3) * np.radians(25)
@@ -53,14 +55,14 @@ def _rig(rng, frames=6):
     return X, Y, np.stack(B), G @ G.T / 12
 
 
-def _capture(rng, X, Y, B, cov, eps=(0.0,) * 6) -> HandEyeCheckData:
+def _capture(rng, X, Y, B, cov, eps=(0.0,) * 6, board=BOARD) -> HandEyeCheckData:
     """Corners of a capture at the true poses `B` with the camera moved by `eps`; the recorded
     poses carry the robot's noise, and the calibration's `X`, `Y` its error, drawn from `cov`."""
     xi = np.linalg.cholesky(cov) @ rng.standard_normal(12)
     X_true, Y_true = X @ _exp(-xi[:6]), Y @ _exp(-xi[6:])  # the calibration is off by xi
     delta = ROBOT * rng.standard_normal((len(B), 6))
     recorded = np.asarray(corrected_robot(jnp.asarray(B), jnp.asarray(delta)))
-    P = np.asarray(BOARD.points(), np.float64)
+    P = np.asarray(board.points(), np.float64)
     pix = []
     for Bf in B:
         A = _exp(-np.asarray(eps)) @ X_true @ Bf @ Y_true
@@ -120,6 +122,74 @@ def test_larger_covariance_takes_the_larger_along_every_direction():
     assert np.all(np.linalg.eigvalsh(m - a) > -1e-9) and np.all(np.linalg.eigvalsh(m - b) > -1e-9)
     assert np.allclose(larger_covariance(a, 0.5 * a), a)
     assert np.allclose(larger_covariance(a, 2.0 * a), 2.0 * a)
+
+
+@jax.jit
+def _dense_fit(X, Y, cov, robot_sigma, sigma_px, data):
+    """The reference: `jaxcal._drift_handeye` before its Woodbury form, every m x m matrix formed
+    ($R$ inverted each round, Cholesky-whitened Gauss-Newton). **Returns:** `(theta, C, T, rss,
+    s, R)`."""
+    F = data.T_base_ee.shape[0]
+    zero6, zero12, zeroF = jnp.zeros(6), jnp.zeros(12), jnp.zeros((F, 6))
+    r0 = residuals(zero6, zero12, zeroF, X, Y, data)
+    A = jax.jacfwd(lambda e: residuals(e, zero12, zeroF, X, Y, data))(zero6)
+    J = jax.jacfwd(lambda xi: residuals(zero6, xi, zeroF, X, Y, data))(zero12)
+    G = jax.jacfwd(lambda d: residuals(zero6, zero12, d, X, Y, data))(zeroF)  # (m, F, 6): every block
+    Gs = G * robot_sigma
+    seen = jnp.repeat(data.mask.reshape(-1), 2).astype(r0.dtype)
+    V_fixed = jnp.einsum("afk,bfk->ab", Gs, Gs) + J @ cov @ J.T + jnp.diag(1.0 - seen)
+    Vs = (jnp.diag(seen), *(jnp.einsum("afk,bfk->ab", g, g) for g in (G[..., :3], G[..., 3:])))
+
+    def step(s, _):
+        Ri = jnp.linalg.inv(s[0] * Vs[0] + s[1] * Vs[1] + s[2] * Vs[2] + V_fixed)
+        RiA = Ri @ A
+        Q = Ri - RiA @ jnp.linalg.solve(A.T @ RiA, RiA.T)
+        Qr = Q @ r0
+        num = jnp.stack([Qr @ V @ Qr for V in Vs])
+        return s * num / jnp.stack([jnp.sum(Q * V) for V in Vs]), None
+
+    s0 = jnp.stack([sigma_px**2, jnp.asarray(VIEW_START**2), jnp.asarray(VIEW_START**2)])
+    s, _ = jax.lax.scan(step, s0, None, length=COMPONENT_ROUNDS)
+    R = s[0] * Vs[0] + s[1] * Vs[1] + s[2] * Vs[2] + V_fixed
+    L = jnp.linalg.cholesky(R)
+
+    def res(eps):
+        return jax.scipy.linalg.solve_triangular(L, residuals(eps, zero12, zeroF, X, Y, data), lower=True)
+
+    theta, info, r = gauss_newton(res, 6)
+    return theta, jnp.linalg.inv(info), theta @ info @ theta, r @ r, s, R
+
+
+BOARD_42 = TargetSpec("chessboard", squares=(8, 7), square_length=0.025, name="board42")
+
+
+@pytest.mark.parametrize(
+    "frames, board, dropped",
+    [(6, BOARD, 0.0), (6, BOARD, 0.15), (16, BOARD_42, 0.0)],
+    ids=["rig", "rig-some-corners-unseen", "16x42"],
+)
+def test_the_woodbury_fit_matches_the_dense_one(frames, board, dropped):
+    """`fit_check` on the factors of $R$ (diagonal + a rank-6 block per view + rank 12) gives the
+    dense fit's theta, C, T, rss and variance components to round-off: a backward-stable solve's
+    error, $\\sqrt{m}\\,\\epsilon\\,\\kappa(R)$, with a factor 10 of slack (m = 240, 1344;
+    $\\kappa(R)$ ~ 1e2-1e3 here, so ~1e-11: a wrong term in $R$ or $Q$ is off by far more)."""
+    rng = np.random.default_rng(3)
+    X, Y, B, cov = _rig(rng, frames, board)
+    data = _capture(rng, X, Y, B, cov, board=board)
+    if dropped:  # undetected corners: zero pixels, masked out
+        mask = np.asarray(data.mask) & (rng.uniform(size=data.mask.shape) > dropped)
+        data = replace(data, mask=jnp.asarray(mask), pixels=jnp.where(mask[..., None], data.pixels, 0.0))
+    f = fit_check(data, X, Y, cov, ROBOT, SIGMA_PX, eye_in_hand=False)
+    theta, C, T, rss, s, R = (np.asarray(a) for a in _dense_fit(X, Y, cov, ROBOT, SIGMA_PX, data))
+    w = np.linalg.eigvalsh(R)
+    tol = 10 * np.sqrt(len(R)) * np.finfo(float).eps * w[-1] / w[0]
+    assert tol < 1e-9, tol
+    sd = np.sqrt(np.diag(C))
+    assert np.all(np.abs(f.theta - theta) <= tol * (np.abs(theta) + sd))
+    assert np.all(np.abs(f.C - C) <= tol * np.outer(sd, sd))
+    assert f.T == pytest.approx(float(T), rel=tol) and f.rss == pytest.approx(float(rss), rel=tol)
+    s_fit = np.r_[f.nu * SIGMA_PX**2, np.square(f.view_sigma)]
+    assert np.allclose(s_fit, s, rtol=tol, atol=0.0), (s_fit, s)
 
 
 # --------------------------------------------------------------------------- rendered, end to end
