@@ -50,6 +50,7 @@ from ._correction import ParameterLayout
 from ._drift_camera import CameraReference, camera_reference, gauss_newton, pad_corners
 from ._drift_camera import fit as fit_camera
 from ._geometry import se3_exp
+from ._lsq import normal_inverse
 from ._pointfit import PointLayout, point_jacobian, predict
 from ._reprojection import make_corner_data
 from .errors import DatasetError
@@ -143,7 +144,7 @@ def fit_drift(y, y_hat, Z, W, *, offsets: bool):
         return W @ (y - _model(theta, y_hat, Zk)).reshape(-1)
 
     theta, info, r = gauss_newton(res, k, GN_STEPS)
-    C = jnp.linalg.inv(info)
+    C = normal_inverse(info)
     return theta, C, theta @ info @ theta, r @ r
 
 
