@@ -7,9 +7,9 @@ figures themselves are in docs/performance.md. Not run here, minutes even at the
 smallest: `real_tracker.py` (three calibrations of the real UR5; its pipeline is
 `tests/test_pointfit.py`'s), `startup.py` (fresh processes, cold caches), `realism.py`,
 `certify.py`, `drift.py` (many rendered or simulated calibrations; their pieces are in
-`tests/test_camera_model.py`, `test_certify.py`, `test_check_camera.py`), and `plan.py`, which
-plans four designs and renders and calibrates a dozen captures: only its imports and options
-are checked. The smoke runs over ~20 s each are marked `bench`: `make test-bench` runs them,
+`tests/test_camera_model.py`, `test_certify.py`, `test_check_camera.py`), `certify_errors.py`
+(it reads `certify.py`'s renders) and `plan.py`, which plans four designs and renders and
+calibrates a dozen captures: of these two only the imports and options are checked. The smoke runs over ~20 s each are marked `bench`: `make test-bench` runs them,
 `make test` (and CI) leaves them out to keep the suite near ten minutes.
 """
 
@@ -92,7 +92,7 @@ CASES = {
 SLOW = {"compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "prediction_check"}
 
 #: Not smoke-run here (see the module docstring).
-NOT_RUN = {"real_tracker", "startup", "plan", "realism", "certify", "drift"}
+NOT_RUN = {"real_tracker", "startup", "plan", "realism", "certify", "certify_errors", "drift"}
 
 
 def _run(args: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
@@ -119,7 +119,8 @@ def test_benchmark_runs_at_its_smallest_size(name, tmp_path):
     assert set(keys) <= set(result), sorted(set(keys) - set(result))
 
 
-def test_plan_benchmark_parses_its_options():
-    proc = _run([str(BENCH / "plan.py"), "--help"], timeout=60)
+@pytest.mark.parametrize(("name", "option"), [("plan", "--candidates"), ("certify_errors", "--workdir")])
+def test_long_benchmarks_parse_their_options(name, option):
+    proc = _run([str(BENCH / f"{name}.py"), "--help"], timeout=60)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "--candidates" in proc.stdout
+    assert option in proc.stdout
