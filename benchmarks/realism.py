@@ -11,6 +11,7 @@ or `refused` when the calibration raises) and its `reasons`.
     python benchmarks/realism.py --json results/realism.json [--workdir DIR] [--cases ideal noise ...]
         [--detection-errors]
         [--resolution 800x600] [--frames-per-joint 24]
+        [--analytic-seeds N [--analytic-cases ...] [--analytic-noise-px 0.054] [--analytic-design DIR]]
 
 Cases (the issue's that the simulator supports so far): `ideal`; `noise`
 (Poisson-Gaussian, 2 DN read noise, about 4 DN at mid-grey); `jpeg80`;
@@ -41,6 +42,24 @@ consecutive frames: independent errors give about 0).
 
 With `--workdir`, the rendered captures are kept and reused (rendering is
 deterministic per case).
+
+With `--analytic-seeds N`, the rolling shutter against the ideal capture on analytic
+corners over N seeds, without rendering (`analytic` in the JSON): the corners of the
+design capture (`--analytic-design`, default `data/ur5e_sweeps`, this benchmark's ideal
+render) are put where the truth puts them (`jaxcal.sim.corners`): at the frame's time
+(`ideal`), or each at its own row's time (the frame's, plus its row times the line delay)
+of a 20 ms readout stamped at the first row, the metadata's line delay given
+(`rolling_shutter_given`) or `"estimate"` (`rolling_shutter_estimated`); the same corners
+as the detector found in the design's images, plus independent Gaussian noise of
+`--analytic-noise-px` per axis (default 0.054 px: the RMS per axis of the detector's errors
+on the ideal render, 0.058 and 0.049 px along x and y), one draw per seed shared by the
+cases. Each seed is then calibrated as `jaxcal.calibrate` does, the observe stage taking
+the corners instead of detecting the images (`jaxcal.stages.observe(..., detections=)`).
+Per case: the medians of the refined and two-stage EE RMS over the seeds and their `ratio`
+(`ratio_two_stage`) to the ideal case's medians, the median of the seeds' own ratios, the
+line delay's error (%) and the clock offset's (ms; the frames' exposure middle, with no
+exposure their first row), and every seed's figures.
+Given `--analytic-seeds`, the rendered cases run only when named with `--cases`.
 """
 
 import argparse
@@ -56,13 +75,17 @@ import cv2
 import numpy as np
 
 import jaxcal
+from jaxcal import stages
 from jaxcal.errors import JaxcalError
 from jaxcal.io._files import write_text_atomic
 from jaxcal.io.dataset import load_dataset
 from jaxcal.sim.arm import ARM_PRESETS, ArmModel
 from jaxcal.sim.camera import PRESETS, CameraModel
+from jaxcal.sim.corners import analytic_detections, capture_truth
 from jaxcal.sim.simulate import SimConfig, simulate
 from jaxcal.vision import detect_frames
+
+ROOT = Path(__file__).resolve().parents[1]
 
 #: The issue's lens: barrel distortion of a wide-angle lens.
 LENS = (-0.12, 0.05, 0.0, 0.0, 0.0)
@@ -183,6 +206,116 @@ def detection_errors(dataset: Path) -> dict:
     }
 
 
+#: The analytic comparison: the rolling shutter's top-to-bottom readout (s), the pixel noise
+#: (px per axis; see the module docstring) and the cases, each an edit of the camera's metadata.
+READOUT_S = 0.02
+ANALYTIC_NOISE_PX = 0.054
+_GLOBAL = {"exposure_s": 0.0, "stamp": "middle", "line_delay_s": 0.0}
+ANALYTIC = {
+    "ideal": lambda cam: cam | _GLOBAL,
+    "rolling_shutter_given": lambda cam: (
+        cam | _GLOBAL | {"stamp": "start", "line_delay_s": READOUT_S / cam["height"]}
+    ),
+    "rolling_shutter_estimated": lambda cam: cam | _GLOBAL | {"stamp": "start", "line_delay_s": "estimate"},
+}
+
+
+def _stages(setup, options, detections) -> dict:
+    """`jaxcal.calibrate`'s stages on `setup` with the observe stage given `detections`: the
+    figures of one analytic seed."""
+    obs = stages.observe(setup, options, detections)
+    sync = stages.synchronise(setup, obs, options)
+    two = stages.two_stage(setup, obs, sync, options)
+    refined = stages.refine(setup, obs, sync, two, options)
+    verdict = stages.verdict(setup, obs, sync, two, refined, options.limits)
+    v = stages.validate(setup, sync, two, refined, options).report
+    delays = refined.line_delays if refined is not None else ()
+    return {
+        "two_stage_mm": v.ee_rms_mm_two_stage,
+        "refined_mm": v.ee_rms_mm_after,
+        "status": verdict.status,
+        "reasons": list(verdict.reasons),
+        "clock_error_ms": v.clock_offset_error_ms,
+        "line_delay_s": delays[0].line_delay_s if delays else None,
+    }
+
+
+def analytic(design: Path, seeds: int, noise_px: float, workdir: Path, cases=tuple(ANALYTIC)) -> dict:
+    """The module docstring's analytic comparison: `{case: {medians, ratios, errors, "seeds": [...]}}`."""
+    ds = load_dataset(design)
+    truth = capture_truth(ds)
+    cam = ds.cameras[0]
+    rows, _ = truth.frames[cam.name]
+    like = detect_frames(
+        [ds.image_path(int(r)) for r in rows],
+        [t.spec for t in ds.targets],
+        K=cam.K,
+        dist=cam.dist,
+        progress=False,
+    )
+    options = stages.Options(progress=False)
+    out = {}
+    for case in cases:
+        root = workdir / "analytic" / case
+        if root.exists():
+            shutil.rmtree(root)
+        shutil.copytree(design, root)
+        meta = json.loads((root / "metadata.json").read_text())
+        meta["cameras"] = [ANALYTIC[case](c) if c["name"] == cam.name else c for c in meta["cameras"]]
+        (root / "metadata.json").write_text(json.dumps(meta, indent=2))
+        setup = stages.setup(root, options)
+        delay = READOUT_S / cam.height if case.startswith("rolling_shutter") else 0.0
+        runs = []
+        for seed in range(seeds):
+            start = time.perf_counter()
+            dets = analytic_detections(
+                truth,
+                cam.name,
+                like=like,
+                line_delay_s=delay,
+                noise_px=noise_px,
+                rng=np.random.default_rng(seed),
+            )
+            row = {"seed": seed} | _stages(setup, options, {cam.name: dets})
+            row["calibrate_s"] = time.perf_counter() - start
+            runs.append(row)
+            print(
+                json.dumps({"analytic": case} | {k: v for k, v in row.items() if k != "reasons"}), flush=True
+            )
+        out[case] = {"line_delay_true_s": delay, "seeds": runs}
+    return _analytic_summary(out)
+
+
+def _analytic_summary(out: dict) -> dict:
+    """Each case's medians over the seeds, the ratios to the ideal case's and the errors of its
+    line delay and clock."""
+    ideal = out.get("ideal")
+
+    def median(case, key):
+        return float(np.median([r[key] for r in out[case]["seeds"]]))
+
+    for case, block in out.items():
+        runs = block["seeds"]
+        block["median_refined_mm"] = median(case, "refined_mm")
+        block["median_two_stage_mm"] = median(case, "two_stage_mm")
+        if ideal is not None:
+            block["ratio"] = block["median_refined_mm"] / median("ideal", "refined_mm")
+            block["ratio_two_stage"] = block["median_two_stage_mm"] / median("ideal", "two_stage_mm")
+            pairs = [r["refined_mm"] / i["refined_mm"] for r, i in zip(runs, ideal["seeds"])]
+            block["median_seed_ratio"] = float(np.median(pairs))
+        clock = np.abs([r["clock_error_ms"] for r in runs])
+        block["median_abs_clock_error_ms"] = float(np.median(clock))
+        block["max_abs_clock_error_ms"] = float(clock.max())
+        if block["line_delay_true_s"]:
+            err = [100.0 * (r["line_delay_s"] / block["line_delay_true_s"] - 1.0) for r in runs]
+            block["line_delay_error_pct"] = float(np.median(err))
+            block["max_abs_line_delay_error_pct"] = float(np.max(np.abs(err)))
+        block["statuses"] = {
+            s: sum(r["status"] == s for r in runs) for s in sorted({r["status"] for r in runs})
+        }
+    return out
+
+
 def run_case(dataset: Path) -> dict:
     """Calibrate `dataset` with the defaults: EE RMS of both stages, the verdict and its reasons."""
     try:
@@ -200,9 +333,16 @@ def run_case(dataset: Path) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", nargs="*", choices=[*CASES, *EDITED, *CONFIGS], default=None)
     parser.add_argument(
-        "--cases", nargs="+", choices=[*CASES, *EDITED, *CONFIGS], default=[*CASES, *EDITED, *CONFIGS]
+        "--analytic-seeds",
+        type=int,
+        default=0,
+        help="the analytic rolling-shutter comparison over this many seeds",
     )
+    parser.add_argument("--analytic-design", default=str(ROOT / "data" / "ur5e_sweeps"))
+    parser.add_argument("--analytic-noise-px", type=float, default=ANALYTIC_NOISE_PX)
+    parser.add_argument("--analytic-cases", nargs="+", choices=list(ANALYTIC), default=list(ANALYTIC))
     parser.add_argument("--resolution", default="800x600")
     parser.add_argument("--frames-per-joint", type=int, default=24)
     parser.add_argument("--seed", type=int, default=0)
@@ -214,6 +354,8 @@ def main(argv=None) -> int:
         help="also the detected corners against the projected truth",
     )
     args = parser.parse_args(argv)
+    if args.cases is None:
+        args.cases = [] if args.analytic_seeds else [*CASES, *EDITED, *CONFIGS]
     w, h = (int(x) for x in args.resolution.split("x"))
     config = SimConfig(
         robot="ur5e", seed=args.seed, resolution=(w, h), frames_per_joint=args.frames_per_joint,
@@ -234,6 +376,14 @@ def main(argv=None) -> int:
             if args.detection_errors:
                 cases[case]["detection"] = detection_errors(dataset)
             print(json.dumps({case: cases[case]}), flush=True)
+        if args.analytic_seeds:
+            found = analytic(
+                Path(args.analytic_design),
+                args.analytic_seeds,
+                args.analytic_noise_px,
+                workdir,
+                args.analytic_cases,
+            )
     ideal = cases.get("ideal")
     if ideal and ideal["refined_mm"]:
         for row in cases.values():
@@ -246,6 +396,10 @@ def main(argv=None) -> int:
         "seed": args.seed,
         "cases": cases,
     }
+    if args.analytic_seeds:
+        out["analytic_design"] = args.analytic_design
+        out["analytic_noise_px"] = args.analytic_noise_px
+        out["analytic"] = found
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         write_text_atomic(Path(args.json), json.dumps(out, indent=2))

@@ -161,6 +161,9 @@ def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult
         if options.refine and setup.kind.refines_corners
         else None
     )
+    # The arm test's last part (the arcs at the refinement's clock), before anything runs beside the verdict.
+    if arm_score is not None:
+        arm_score = stages.finish_arm_score(setup, sync, two, refined, arm_score)
     # The validation against the truth needs no verdict: it runs beside it, on the second core.
     validation = (
         stages.run_ahead("validation", stages.validate, setup, sync, two, refined, options)

@@ -130,22 +130,23 @@ def test_simulate_films_the_arm_where_the_model_puts_it(tmp_path):
 
 @pytest.mark.slow
 def test_verdict_flags_an_arm_that_sags(tmp_path):
-    """The same sweeps of a rigid arm and of one whose joints yield 0.1 rad per kN m (three
-    times a UR5's shoulder): the rigid one's axes show no gravity pattern (F of order 1, the
-    F law's mean), the sagging one's are flagged with gravity sag and backlash named, and
-    the compliance the axes fit at the shoulder or elbow has the truth's sign and order."""
+    """The same rendered sweeps of a rigid arm and of one whose joints yield 0.1 rad per kN m
+    (three times a UR5's shoulder): the rigid one passes both arm rows (F of order 1, the F law's
+    mean; the arcs' clock within its sigmas of the refinement's), the sagging one's arcs put the
+    clock many sigmas off the refinement's (its joints yield along their own sweeps), flagged with
+    gravity sag and backlash named (the analytic corners' version, over seeds:
+    `tests/test_armcheck.py`)."""
     from jaxcal import calibrate
 
     config = SimConfig(resolution=(640, 480), frames_per_joint=12, range_deg=80.0, grayscale=True)
-    rigid = calibrate(simulate(config, tmp_path / "rigid", progress=False), progress=False, refine=False)
+    rigid = calibrate(simulate(config, tmp_path / "rigid", progress=False), progress=False)
     sag = ArmModel(name="sag", compliance=(0.1, 0.1, 0.1, 0.2))
-    bent = calibrate(
-        simulate(replace(config, arm=sag), tmp_path / "sag", progress=False), progress=False, refine=False
-    )
-    F_rigid, F_bent = ({c["check"]: c for c in r.verdict.checks}["arm_gravity_F"] for r in (rigid, bent))
-    assert F_rigid["passed"] and F_rigid["value"] < 5.0, F_rigid
-    assert not F_bent["passed"] and bent.status == "suspect", F_bent
-    reason = next(r for r in bent.reasons if "gravity" in r)
-    assert "backlash" in reason and "compliance" in reason
-    c_hat = float(reason.split("apparent compliance of ")[1].split(" ")[0])
-    assert 0.02 < c_hat < 0.5
+    bent = calibrate(simulate(replace(config, arm=sag), tmp_path / "sag", progress=False), progress=False)
+    rows_rigid, rows_bent = ({c.check: c for c in r.verdict.checks} for r in (rigid, bent))
+    assert rows_rigid["arm_gravity_F"].passed and rows_rigid["arm_gravity_F"].value < 5.0, rows_rigid[
+        "arm_gravity_F"
+    ]
+    assert rows_rigid["arm_clock_z"].passed, rows_rigid["arm_clock_z"]
+    assert not rows_bent["arm_clock_z"].passed and bent.status == "suspect", rows_bent["arm_clock_z"]
+    reason = next(r for r in bent.reasons if "clock" in r and "gravity sag" in r)
+    assert "backlash" in reason and "stop-and-shoot" in reason

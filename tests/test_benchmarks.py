@@ -5,12 +5,13 @@ runs it), with the suite's compilation cache, so a refactor that breaks a
 benchmark's imports or calls fails here rather than in a user's hands. The
 figures themselves are in docs/performance.md. Not run here, minutes even at their
 smallest: `real_tracker.py` (three calibrations of the real UR5; its pipeline is
-`tests/test_pointfit.py`'s), `startup.py` (fresh processes, cold caches), `realism.py`,
+`tests/test_pointfit.py`'s), `startup.py` (fresh processes, cold caches),
 `certify.py`, `drift.py` (many rendered or simulated calibrations; their pieces are in
-`tests/test_camera_model.py`, `test_certify.py`, `test_check_camera.py`), `certify_errors.py`
-(it reads `certify.py`'s renders) and `plan.py`, which plans four designs and renders and
-calibrates a dozen captures: of these two only the imports and options are checked. The smoke runs over ~20 s each are marked `bench`: `make test-bench` runs them,
-`make test` (and CI) leaves them out to keep the suite near ten minutes.
+`tests/test_certify.py`, `test_check_camera.py`), `certify_errors.py` (it reads `certify.py`'s
+renders) and `plan.py`, which plans four designs and renders and calibrates a dozen captures: of
+these two only the imports and options are checked. The smoke runs over ~20 s each are marked
+`bench`: `make test-bench` runs them, `make test` (and CI) leaves them out to keep the suite near
+ten minutes.
 """
 
 import json
@@ -81,6 +82,12 @@ CASES = {
         ["--seeds", "0", "--resolution", "640x480", "--frames-per-joint", "12"],
         ["fraction", "seeds", "max_ratio_two_stage", "max_ratio_refined"],
     ),
+    # Its analytic comparison only (one seed, two cases, no rendering); the rendered cases'
+    # pieces are in `tests/test_camera_model.py`.
+    "realism": (
+        ["--analytic-seeds", "1", "--analytic-cases", "ideal", "rolling_shutter_given"],
+        ["analytic", "analytic_noise_px", "cases"],
+    ),
     "compile": (
         ["--workers", "1", "--cache", str(CACHE_DIR)],
         ["cold_calibrate_s", "cold_jax_compile_s", "second_dataset_compile_s", "first", "second"],
@@ -89,10 +96,12 @@ CASES = {
 
 #: Over ~20 s each even with a warm compilation cache (they calibrate a dataset or compile a
 #: whole Monte Carlo trial / refinement): marked `bench`, 4-6 minutes together on a 2-core machine.
-SLOW = {"compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "prediction_check"}
+SLOW = {
+    "compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "prediction_check", "realism",
+}  # fmt: skip
 
 #: Not smoke-run here (see the module docstring).
-NOT_RUN = {"real_tracker", "startup", "plan", "realism", "certify", "certify_errors", "drift"}
+NOT_RUN = {"real_tracker", "startup", "plan", "certify", "certify_errors", "drift"}
 
 
 def _run(args: list[str], timeout: float = 600) -> subprocess.CompletedProcess:

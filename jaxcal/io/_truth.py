@@ -36,6 +36,50 @@ class TruePoses:
     #: The capture indices dropped (images) and the bad tracker samples' indices.
     dropped_frames: tuple[int, ...] = ()
     bad_samples: tuple[int, ...] = ()
+    #: Per entry of the truth's `frames`: its row of `frames.csv`, its camera, its controller
+    #: time (s; a rendered frame's first row) and the true joint angles then (rad).
+    frame_rows: tuple[int, ...] = ()
+    frame_cameras: tuple[str, ...] = ()
+    frame_t: np.ndarray | None = None
+    frame_theta: np.ndarray | None = None
+    #: Each camera's mount (`world` or a link) and each target's link.
+    camera_mount: dict[str, str] | None = None
+    target_link: dict[str, str] | None = None
+    #: The simulated arm's record (`jaxcal.sim.arm.ArmModel.metadata`), None for the rigid arm.
+    arm: dict | None = None
+
+
+@dataclass(frozen=True)
+class SimulationRecord:
+    """What `metadata.json`'s `simulation` (the configuration `jaxcal simulate` records) says of
+    a joint-sweeps capture's motion and lens: the robot, frames per sweep, frame rate, each
+    sweep's range (deg, or per joint) and a prismatic joint's (mm), the home pose (deg) and the
+    lens's OpenCV distortion."""
+
+    robot: str
+    frames_per_joint: int
+    fps: float
+    range_deg: float | tuple[float, ...]
+    range_mm: float
+    home_deg: tuple[float, ...] | None
+    distortion: tuple[float, ...]
+
+
+def simulation_record(meta: dict) -> SimulationRecord | None:
+    """The `SimulationRecord` of a dataset's metadata, None when it has none (not simulated)."""
+    sim = meta.get("simulation")
+    if not isinstance(sim, dict) or "frames_per_joint" not in sim:
+        return None
+    rng, home = sim.get("range_deg", 40.0), sim.get("home_deg")
+    return SimulationRecord(
+        robot=str(sim.get("robot", "ur5e")),
+        frames_per_joint=int(sim["frames_per_joint"]),
+        fps=float(sim.get("fps", 30.0)),
+        range_deg=tuple(float(x) for x in rng) if isinstance(rng, list) else float(rng),
+        range_mm=float(sim.get("range_mm", 100.0)),
+        home_deg=None if home is None else tuple(float(x) for x in home),
+        distortion=tuple(float(x) for x in sim.get("distortion", (0.0,) * 5)),
+    )
 
 
 def true_poses(truth: dict) -> TruePoses:
@@ -54,6 +98,13 @@ def true_poses(truth: dict) -> TruePoses:
         visible=tuple(dict(f["visible"]) for f in truth.get("frames", ())),
         dropped_frames=tuple(truth.get("dropped_frames", ())),
         bad_samples=tuple(truth.get("bad_samples", ())),
+        frame_rows=tuple(int(f["row"]) for f in truth.get("frames", ())),
+        frame_cameras=tuple(str(f["camera"]) for f in truth.get("frames", ())),
+        frame_t=np.array([f["t"] for f in truth.get("frames", ())], np.float64),
+        frame_theta=np.array([f["theta"] for f in truth.get("frames", ())], np.float64),
+        camera_mount={n: str(c["mount"]) for n, c in cams.items()},
+        target_link={n: str(t["link"]) for n, t in tgts.items()},
+        arm=truth.get("arm"),
     )
 
 

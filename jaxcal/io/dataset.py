@@ -47,8 +47,10 @@ from ._tracker import DeviceInfo as DeviceInfo
 from ._tracker import PointTarget as PointTarget
 from ._tracker import TrackerSamples as TrackerSamples
 from ._tracker import read_device, read_samples, sample_frames
+from ._truth import SimulationRecord as SimulationRecord
 from ._truth import TruePoses as TruePoses
 from ._truth import read_truth
+from ._truth import simulation_record as simulation_record
 from ._truth import true_poses as true_poses
 from .dh_tables import dh_table_model, is_table_file
 from .urdf import load_urdf

@@ -111,6 +111,21 @@ class ArmModel:
         scale = self.counts_per_rev / ArmModel.counts_per_rev
         return EncoderModel(rate_hz, int(self.counts_per_rev), noise_counts * scale, self.latency_s)
 
+    @classmethod
+    def from_metadata(cls, record: dict | None) -> "ArmModel":
+        """The arm `metadata` recorded (`truth.json`'s `arm`: per joint values), or the rigid
+        arm for none."""
+        if not record:
+            return cls()
+        compliance = record.get("compliance_rad_per_kNm")
+        return cls(
+            name=record.get("name", "recorded"),
+            compliance=None if compliance is None else tuple(compliance),
+            backlash_deg=tuple(record.get("backlash_deg") or (0.0,)),
+            counts_per_rev=int(record.get("counts_per_rev", cls.counts_per_rev)),
+            latency_s=float(record.get("latency_s", 0.0)),
+        )
+
     def metadata(self, joint_types) -> dict:
         """What `truth.json` records of the arm (`arm`), per joint of `joint_types`."""
         return {

@@ -358,8 +358,8 @@ def simulate(
     trajectory, clock, encoder, (enc_t, enc_motor), t_frames, keep = _motion(
         config, nominal, arm, trajectory, frame_times, rng
     )
-    angles_at = _angles_at(arm, trajectory, nominal_ratio, true, urdf_path)
-    theta = angles_at(t_frames)
+    angles = angles_at(arm, trajectory, nominal_ratio, true, urdf_path)
+    theta = angles(t_frames)
     noise_rng = np.random.default_rng([config.seed, 1])  # the camera's own draws: the capture stays the same
     q_true = theta - np.asarray(true.zero_offset)
     link_poses = np.asarray(jax.device_get(jax.vmap(forward_kinematics, in_axes=(None, 0))(true, q_true)))
@@ -382,7 +382,7 @@ def simulate(
         with bar as p:
             task = p.add_task("render", total=len(todo)) if p is not None else None
             for f, cam in todo:
-                render_at = _renderer_at(scene, cam.name, t_frames[f], theta[f], angles_at)
+                render_at = _renderer_at(scene, cam.name, t_frames[f], theta[f], angles)
                 image = optics.capture(render_at, t_frames[f], cam.height, noise_rng, config.grayscale)
                 rel = f"images/{cam.name}/{f:06d}.png"
                 _write_image(tmp / rel, image)
@@ -433,10 +433,7 @@ def _motion(config: SimConfig, nominal, arm: ArmModel, trajectory, frame_times, 
     names = nominal.joint_names
     sweeps = trajectory is None
     if sweeps:
-        home = None if config.home_deg is None else np.radians(config.home_deg)
-        trajectory = joint_sweeps(
-            names, sweep_ranges(nominal, config), sweep_s=config.frames_per_joint / config.fps, home=home
-        )
+        trajectory = sweeps_trajectory(nominal, config)
     elif trajectory.q.shape[1] != len(names):
         raise ValueError(f"trajectory has {trajectory.q.shape[1]} joints, the robot {len(names)}")
     clock = ClockModel(
@@ -453,7 +450,20 @@ def _motion(config: SimConfig, nominal, arm: ArmModel, trajectory, frame_times, 
     return trajectory, clock, encoder, log, t_frames, keep
 
 
-def _angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path):
+def sweeps_trajectory(nominal, config: SimConfig):
+    """The commanded motion of `config`'s joint-by-joint sweeps (`simulate`'s default):
+    `config.frames_per_joint` frames at `config.fps` over each sweep, about the zero
+    configuration or `config.home_deg`."""
+    home = None if config.home_deg is None else np.radians(config.home_deg)
+    return joint_sweeps(
+        nominal.joint_names,
+        sweep_ranges(nominal, config),
+        sweep_s=config.frames_per_joint / config.fps,
+        home=home,
+    )
+
+
+def angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path):
     """`angles_at(t)`: the true arm's joint angles at controller times `t` (rigid, or
     `jaxcal.sim.arm.ArmMotion` with the robot file's masses for compliance)."""
     if arm.rigid:

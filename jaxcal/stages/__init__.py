@@ -9,6 +9,7 @@ The capture kind (`kinds.CaptureKind`) is resolved once by `setup`; every
 difference between kinds is one of its properties.
 """
 
+from ._armcheck import finish_arm_score as finish_arm_score
 from ._armcheck import start_arm_score as start_arm_score
 from ._observe import Observations as Observations
 from ._observe import observe as observe

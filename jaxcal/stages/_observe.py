@@ -136,14 +136,22 @@ def camera_rows(ds: Dataset, camera: str) -> np.ndarray:
     return rows
 
 
-def detect_poses(ds: Dataset, rows, targets, K, dist, *, workers=None, progress=True) -> tuple[list, list]:
-    """Detections and PnP poses of `targets` in the frames `rows`.
+def detect_poses(
+    ds: Dataset, rows, targets, K, dist, *, workers=None, progress=True, detections=None
+) -> tuple[list, list]:
+    """Detections and PnP poses of `targets` in the frames `rows`; `detections` (per row a dict
+    target name -> `Detection`) are taken as they are instead of detecting the images.
 
     **Returns:** `(detections, poses)`: per row a dict target name ->
     `Detection`, and per row a dict target name -> `PoseEstimate`.
     """
-    paths = [ds.image_path(int(i)) for i in rows]
-    dets = detect_frames(paths, [t.spec for t in targets], K=K, dist=dist, workers=workers, progress=progress)
+    if detections is None:
+        paths = [ds.image_path(int(i)) for i in rows]
+        dets = detect_frames(
+            paths, [t.spec for t in targets], K=K, dist=dist, workers=workers, progress=progress
+        )
+    else:
+        dets = _given(detections, rows, targets)
     poses = []
     for det in dets:
         p = {}
@@ -157,8 +165,24 @@ def detect_poses(ds: Dataset, rows, targets, K, dist, *, workers=None, progress=
     return dets, poses
 
 
-def self_calibrate(ds: Dataset, camera: CameraInfo, targets, rows, *, workers=None, progress=True):
-    """Intrinsics from the ChArUco frames themselves (the seed's variant); `(K, dist, rms_px)`."""
+def _given(detections, rows, targets) -> list:
+    """Given detections of one camera's `rows` (`observe`'s `detections`), checked: one dict per
+    row, the targets' names only."""
+    dets = [dict(d) for d in detections]
+    if len(dets) != len(rows):
+        raise CalibrationError(f"{len(dets)} frames of detections given for the camera's {len(rows)} frames")
+    names = {t.name for t in targets}
+    unknown = sorted({k for d in dets for k in d} - names)
+    if unknown:
+        raise CalibrationError(f"detections given for unknown targets {unknown} (targets: {sorted(names)})")
+    return dets
+
+
+def self_calibrate(
+    ds: Dataset, camera: CameraInfo, targets, rows, *, workers=None, progress=True, detections=None
+):
+    """Intrinsics from the ChArUco frames themselves (the seed's variant); `(K, dist, rms_px)`.
+    `detections`: the frames' detections given (`observe`'s), else the images are detected."""
     charuco = [t for t in targets if t.spec.kind == "charuco"]
     if not charuco:
         raise CalibrationError(
@@ -166,8 +190,11 @@ def self_calibrate(ds: Dataset, camera: CameraInfo, targets, rows, *, workers=No
             "ChArUco target to self-calibrate them from"
         )
     t = charuco[0]
-    paths = [ds.image_path(int(i)) for i in rows]
-    dets = detect_frames(paths, [t.spec], workers=workers, progress=progress)
+    if detections is None:
+        paths = [ds.image_path(int(i)) for i in rows]
+        dets = detect_frames(paths, [t.spec], workers=workers, progress=progress)
+    else:
+        dets = _given(detections, rows, targets)
     found = [d[t.name] for d in dets if t.name in d]
     return calibrate_intrinsics(found, t.spec, (camera.width, camera.height))
 
@@ -179,10 +206,13 @@ def observe_camera(
     options: Options,
     *,
     invert: bool = False,
+    detections=None,
 ) -> CameraObservations:
     """Intrinsics (from the metadata, else self-calibrated from the ChArUco
     frames), detection and PnP in every frame of `camera`; with `invert`, the
-    poses are the camera's in the target frame."""
+    poses are the camera's in the target frame. `detections`: per frame of the
+    camera (its frame-table rows in order) a dict target name -> `Detection`,
+    taken instead of detecting the images."""
     rows = camera_rows(ds, camera.name)
     K, dist = camera.K, camera.dist
     source, rms_px = "metadata", None
@@ -191,14 +221,23 @@ def observe_camera(
             f"camera {camera.name}: no intrinsics in the metadata, self-calibrating from the ChArUco frames"
         )
         K, dist, rms = self_calibrate(
-            ds, camera, targets, rows, workers=options.workers, progress=options.progress
+            ds,
+            camera,
+            targets,
+            rows,
+            workers=options.workers,
+            progress=options.progress,
+            detections=detections,
         )
         source, rms_px = "self-calibrated (ChArUco)", float(rms)
     intrinsics = Intrinsics(source, rms_px=rms_px, K=np.asarray(K), distortion=np.asarray(dist))
-    options.say(
-        f"detecting {', '.join(t.name for t in targets)} in {len(rows)} frames of camera {camera.name}"
+    if detections is None:
+        options.say(
+            f"detecting {', '.join(t.name for t in targets)} in {len(rows)} frames of camera {camera.name}"
+        )
+    dets, poses = detect_poses(
+        ds, rows, targets, K, dist, workers=options.workers, progress=options.progress, detections=detections
     )
-    dets, poses = detect_poses(ds, rows, targets, K, dist, workers=options.workers, progress=options.progress)
     outliers = pnp_outliers(poses)
     poses = [{k: p for k, p in d.items() if k not in outliers.get(i, {})} for i, d in enumerate(poses)]
     if invert:
@@ -261,15 +300,25 @@ def observe_device(setup: Setup) -> SampleObservations:
     )
 
 
-def observe(setup: Setup, options: Options) -> Observations:
+def observe(setup: Setup, options: Options, detections: dict | None = None) -> Observations:
     """Observe the two-stage camera (and, for the refinement, every further
     camera): a `CalibrationError` when no target is found at all. A measuring
-    device's samples are its observations as they are (`observe_device`)."""
+    device's samples are its observations as they are (`observe_device`).
+
+    `detections`: camera name -> per frame of that camera (its rows of the frame
+    table, in order) a dict target name -> `jaxcal.vision.Detection`, used instead
+    of detecting the camera's images (everything after detection, PnP on, is the
+    same): corners from another detector, or analytic ones (`jaxcal.sim.corners`)
+    for studies of the estimator without rendering."""
+    given = {} if detections is None else dict(detections)
     ds = setup.dataset
     t0 = time.perf_counter()
     if not setup.kind.images:
         return Observations(observe_device(setup), (), {"observe_s": time.perf_counter() - t0})
-    primary = observe_camera(ds, setup.camera, setup.targets, options, invert=setup.kind.inverts_poses)
+    primary = observe_camera(
+        ds, setup.camera, setup.targets, options, invert=setup.kind.inverts_poses,
+        detections=given.get(setup.camera.name),
+    )  # fmt: skip
     if not primary.found.any():
         raise CalibrationError(
             f"{ds.root}: no target was found in any of the {len(primary.rows)} images of camera "
@@ -283,7 +332,7 @@ def observe(setup: Setup, options: Options) -> Observations:
         options.say(
             f"camera {c.name}: detecting {', '.join(t.name for t in setup.targets)} for the refinement"
         )
-        others.append(observe_camera(ds, c, setup.targets, options))
+        others.append(observe_camera(ds, c, setup.targets, options, detections=given.get(c.name)))
     if setup.extra_cameras:
         timings["detect_other_cameras_s"] = time.perf_counter() - t0
     notes = []

@@ -60,6 +60,8 @@ class TwoStage:
       (`jaxcal.parameters_to_model`, `jaxcal.physical_table`).
     - `points`: stop-and-shoot tracker data, the `PointFit` (`fit` is then its
       geometric part; its terms, cross-validation and held parameters are here).
+    - `arc_loss`: the robust loss the arcs were fitted with (`Options.arc_loss`: the
+      verdict's arm check refits them at another clock offset).
     """
 
     sweeps: Sweeps | None
@@ -78,6 +80,7 @@ class TwoStage:
     timings: dict[str, float]
     estimate: Estimate | None = None
     points: PointFit | None = None
+    arc_loss: str | None = "cauchy"
 
 
 def _sequential(setup: Setup, obs: Observations, sync: Sync, loss: str | None):
@@ -348,6 +351,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         link_rows=link_rows,
         timings=timings,
         estimate=fit_estimate(layout, setup, fit, [t.name for t in setup.fit_targets]),
+        arc_loss=options.arc_loss,
     )
 
 

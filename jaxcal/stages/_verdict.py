@@ -281,7 +281,8 @@ def verdict(
     arm_score: Future | None = None,
 ) -> Verdict:
     """Check the result (see the module docstring). `arm_score`: the arm-rigidity test's
-    score started ahead (`stages.start_arm_score`), if it was."""
+    figures (`stages.finish_arm_score`), or its terms started ahead (`stages.start_arm_score`),
+    if either ran."""
     c = _Checks()
     ran = refined is not None and refined.fit is not None
     measured = {t.name for t in setup.fit_targets if t.T_link_target is None}
@@ -296,7 +297,7 @@ def verdict(
     skewed = ran and bool(refined.line_delays)
     if setup.kind.has_arcs:
         _axes(c, setup, two, limits, residuals=not skewed)
-        arm_check(c, setup, sync, two, limits, arm_score)
+        arm_check(c, setup, sync, two, refined, limits, arm_score)
         for row in blur_rows(setup, obs.primary, sync):  # sweeps that lost most of their frames to blur
             c.add(*row)
     if ran:

@@ -26,13 +26,14 @@ class Limits:
       point to a rolling shutter's line delay by more than `shutter_sigmas`
       standard deviations and a readout (the delay times the image height) of
       at least `readout_s` (the score test of `jaxcal._refine.line_delay_test`).
-    - `arm_gravity_F`: the F statistic above which the axes of single-joint
-      sweeps are taken to move with the gravity torques (gravity sag or
-      backlash: an arm that is not rigid; the score test of
-      `jaxcal.stages._armcheck`; 20 is p of about 1e-5 at a UR5e's sizes),
-      where the compliance the axes fit is one of a real arm: positive (a sag)
-      and at least `arm_compliance_rad_per_kNm` (200 kN m/rad; a UR5's
-      shoulder is 32).
+    - `arm_false_alarm`: how often each of the arm checks may flag a rigid
+      arm (`jaxcal.stages._armcheck`, gravity sag or backlash: an arm that is
+      not rigid): the score test of the sweeps' axes moving with the gravity
+      torques is flagged above the F law's quantile at this rate, where the
+      compliance the axes fit is one of a real arm: positive (a sag) and at
+      least `arm_compliance_rad_per_kNm` (200 kN m/rad; a UR5's shoulder is
+      32); the arcs' clock against the refinement's beyond the normal law's
+      two-sided quantile (2.58 at 0.01).
     - `ee_sigma_mm`: the tool point's 1-sigma uncertainty the covariance
       implies (RMS over random configurations): above it, the capture does
       not determine the robot well enough to trust it.
@@ -52,6 +53,6 @@ class Limits:
     intrinsics_rms_px: float = 1.0
     shutter_sigmas: float = 10.0
     readout_s: float = 1e-3
-    arm_gravity_F: float = 20.0
+    arm_false_alarm: float = 0.01
     arm_compliance_rad_per_kNm: float = 0.005
     ee_sigma_mm: float = 3.0
