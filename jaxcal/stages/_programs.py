@@ -153,21 +153,18 @@ def _quietly(job, *args) -> None:
 
 
 def run_ahead(name: str, job, *args) -> Future:
-    """`job(*args)` on a thread of its own, its result (or exception) in the returned
-    `Future`: a check whose program compiles (cold) or loads (warm) and runs while the
-    main thread goes on with the next stage, on the second core. The process waits for
-    it at exit (`wait_ahead`), as for the compiles ahead."""
+    """`job(*args)`, its result (or exception) in the returned `Future`, for a check the
+    pipeline could run beside the next stage. It runs here, inline: two jaxcal programs
+    running at once on XLA:CPU's two-thread pool were seen to deadlock (both pool threads
+    waiting in a batched QR's task split, each on work only the other could run), and
+    the overlap measured no wall-time gain (docs/performance.md, start-up). `name` labels
+    the job for a later, safe overlap."""
+    del name
     future: Future = Future()
-
-    def run() -> None:
-        try:
-            future.set_result(job(*args))
-        except BaseException as e:  # noqa: BLE001 - handed to whoever asks for the result
-            future.set_exception(e)
-
-    thread = threading.Thread(target=run, name=f"jaxcal {name}", daemon=True)
-    _AHEAD[(name, id(future))] = thread
-    thread.start()
+    try:
+        future.set_result(job(*args))
+    except Exception as e:  # noqa: BLE001 - handed to whoever asks for the result, as a thread would
+        future.set_exception(e)
     return future
 
 
