@@ -285,7 +285,12 @@ GROUPS = (
     (("verify",), lambda sub: _module("._verify").add_verify_parser(sub)),
     (("certify", "check"), lambda sub: _module("._certify").add_certify_parsers(sub)),
     (("handeye", "simulate-handeye"), lambda sub: _module("._handeye").add_handeye_parsers(sub)),
-    (("plan",), lambda sub: _module("..planning._cli").add_plan_parser(sub, _module("._simulate").cmd_plan)),
+    (
+        ("plan",),
+        lambda sub: _module("..planning._cli").add_plan_parser(
+            sub, _module("._simulate").cmd_plan, CAMERAS, ARMS
+        ),
+    ),
 )
 
 

@@ -74,7 +74,19 @@ def cmd_plan(args) -> int:
     """`jaxcal plan` (docs/plan.md), with MuJoCo's contact and line-of-sight checks."""
     from ..sim.plan import MujocoChecker
 
-    return run_plan(args, Console(width=max(Console().width, 120)), MujocoChecker)
+    return run_plan(args, Console(width=max(Console().width, 120)), MujocoChecker, capture_models)
+
+
+def capture_models(camera: str | None, arm: str | None):
+    """`jaxcal plan --camera-model / --arm`: the presets' figures for the prediction
+    (`jaxcal.records_capture`), or None for an option not given."""
+    from ..sim.arm import arm_model
+    from ..sim.camera import camera_model
+
+    return (
+        None if camera is None else camera_model(camera).noise_record(),
+        None if arm is None else arm_model(arm).figures(),
+    )
 
 
 def cmd_simulate_plan(args) -> int:

@@ -23,6 +23,7 @@ from .._uncertainty import random_configurations, tool_points
 from ..errors import BudgetTooSmallError, CameraViewError, PlanError, PlanFileError, UnreachableRegionError
 from ..io.plan import CapturePlan, Correction, PlanCamera, PlanTarget, PoseSet, Sweep
 from ..io.urdf import load_urdf, urdf_outline
+from ..records_capture import ArmFigures, CameraNoise
 from ..robots import robot_path, shipped
 from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation, design, ee_gram, ee_jacobians, evaluate_views
 from ._layout import default_layout
@@ -36,6 +37,7 @@ from ._optimise import (
     view_blocks,
 )
 from ._plan import load_plan
+from ._realism import capture_terms
 from ._scene import CHECKS, FeasibilityLimits, PlanScene, explain, make_scene, plate_box
 
 #: Workspace configurations of the EE prediction (the validation's sample: 1000, seed 0).
@@ -177,6 +179,8 @@ def evaluate_plan(
     region=None,
     sigma_px: float = DEFAULT_SIGMA_PX,
     limits: FeasibilityLimits | None = None,
+    camera_model: CameraNoise | None = None,
+    arm: ArmFigures | None = None,
 ) -> PlanEvaluation:
     """Predict, before any capture, what the refinement will make of `plan`.
 
@@ -187,6 +191,11 @@ def evaluate_plan(
     - `sigma_px`: the detector's corner noise (px per coordinate).
     - `limits`: the feasibility limits (default the plan's own `checks`): frames
       that fail them are left out, as the detector would miss them.
+    - `camera_model`, `arm`: the capture's camera and arm (`jaxcal.records_capture`;
+      `jaxcal.sim.camera.PRESETS[name].noise_record()`,
+      `jaxcal.sim.arm.ARM_PRESETS[name].figures()`): the camera's corner noise is
+      added to `sigma_px`, frames it would blur are left out, and the arm's sag,
+      backlash and latency give the EE bias (`jaxcal.planning._realism`).
 
     **Returns:** a `PlanEvaluation` (per-parameter standard deviations, what is
     left unidentifiable, the EE 1-sigma at every workspace configuration, its
@@ -204,9 +213,26 @@ def evaluate_plan(
         raise BudgetTooSmallError(
             f"plan: {int(m.sum())} of its {len(q)} frames pass the feasibility checks; at least {MIN_POSES} are needed"
         )
-    return evaluate_views(
-        scene, q[m], t[m], workspace(robot, scene, region), sweeps=sweeps, sigma_px=sigma_px
+    if camera_model is None and arm is None:
+        return evaluate_views(
+            scene, q[m], t[m], workspace(robot, scene, region), sweeps=sweeps, sigma_px=sigma_px
+        )
+    q, t = q[m], t[m]
+    kept, offsets, joint_std, note = capture_terms(
+        plan, robot.source, scene, q, t, camera_model, arm, design(scene, sweeps).kind.single_joint_sweeps
     )
+    if kept.sum() < MIN_POSES:
+        raise BudgetTooSmallError(f"plan: {note}; fewer than {MIN_POSES} frames are left")
+    added = 0.0 if camera_model is None else float(camera_model.added_sigma_px)
+    ev = evaluate_views(
+        scene, q[kept], t[kept], workspace(robot, scene, region), sweeps=sweeps,
+        sigma_px=float(np.hypot(sigma_px, added)), offsets=offsets, joint_std=joint_std,
+    )  # fmt: skip
+    return replace(
+        ev, camera_model=None if camera_model is None else camera_model.name,
+        arm_model=None if arm is None else arm.name, added_sigma_px=added, camera_note=note,
+        frames_lost_to_blur=int(np.sum(~kept)),
+    )  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)

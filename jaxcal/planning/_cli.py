@@ -5,11 +5,17 @@
 - `jaxcal plan --evaluate plan.json [--region x0,y0,z0,x1,y1,z1] [--plot ee.png] [--json out.json]`
   pre-evaluates a plan: per-parameter standard deviations, what it leaves
   unidentifiable, the predicted EE error over the workspace.
+- Both take `--camera-model PRESET` and `--arm PRESET` (`jaxcal simulate`'s
+  `--camera` and `--arm` presets): the prediction then adds the camera's corner
+  noise and the arm's bias (`jaxcal.planning._realism`). The presets' figures
+  come from the simulator, which this module may not import: `run_plan`'s
+  `capture_models(camera, arm)` gives them (`jaxcal.cli`).
 """
 
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +33,8 @@ from ._report import parameter_rows, plot_evaluation
 from ._scene import FeasibilityLimits
 
 
-def add_plan_parser(sub, func) -> None:
-    """The `plan` subcommand's arguments (`func` runs it)."""
+def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
+    """The `plan` subcommand's arguments (`func` runs it; `cameras`, `arms`: the preset names)."""
     p = sub.add_parser(
         "plan",
         help="plan, check and pre-evaluate a calibration capture before any image is taken (docs/plan.md)",
@@ -68,6 +74,18 @@ def add_plan_parser(sub, func) -> None:
     )
     p.add_argument("--region", help="x0,y0,z0,x1,y1,z1: box (m, base frame) where EE accuracy matters")
     p.add_argument("--sigma-px", type=float, default=DEFAULT_SIGMA_PX, help="detector corner noise, px")
+    p.add_argument(  # `--camera` is the camera file here
+        "--camera-model",
+        choices=cameras,
+        help="the camera model, as `jaxcal simulate --camera`: its corner noise (sensor noise, JPEG) joins "
+        "--sigma-px, and frames it would blur are left out (default: --sigma-px alone)",
+    )
+    p.add_argument(
+        "--arm",
+        choices=arms,
+        help="the arm model, as `jaxcal simulate --arm`: the EE bias its gravity sag, backlash and latency "
+        "leave in the calibration is predicted beside the noise (default: a rigid arm, no bias)",
+    )
     p.add_argument("--method", choices=("gradient", "greedy"), default="gradient")
     p.add_argument("--baseline", action="store_true", help="also run the greedy D-optimal baseline")
     p.add_argument("--starts", type=int, default=3, help="gradient starts")
@@ -142,6 +160,8 @@ def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
         med = 1e3 * ev.ee_rms * ev.ratio_quantile(0.5)
         t.add_row("one capture's EE RMS mm", f"{med:.4f} median, {lo:.4f} .. {hi:.4f} (90 %)")
     t.add_row("pixel noise px", f"{ev.sigma_px:g}")
+    for name, text in model_rows(ev):
+        t.add_row(name, text)
     unidentifiable = len(ev.unidentifiable)
     t.add_row(
         "free parameters",
@@ -160,6 +180,35 @@ def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
     console.print(s)
 
 
+def model_rows(ev: PlanEvaluation) -> list[tuple[str, str]]:
+    """The table's rows on the camera and arm models (none without them): the noise part is the
+    table's EE RMS; the arm's bias and both together follow."""
+    if ev.camera_model is None and ev.arm_model is None:
+        return []
+    rows = []
+    if ev.camera_model is not None:
+        rows.append(
+            ("camera model", f"{ev.camera_model}: corner noise +{ev.added_sigma_px:g} px; {ev.camera_note}")
+        )
+    parts = ", ".join(f"{k} {1e3 * v:.4f}" for k, v in ev.bias_parts.items())
+    rows += [
+        ("arm model", ev.arm_model or "rigid (none given)"),
+        ("EE bias RMS mm (arm)", f"{1e3 * ev.ee_bias_rms:.4f}" + (f" ({parts})" if parts else "")),
+        ("EE RMS noise + bias mm", f"{1e3 * ev.ee_total_rms:.4f} (p95 {1e3 * ev.ee_total_p95:.4f})"),
+    ]
+    return rows
+
+
+def _figures_title(ev: PlanEvaluation) -> str:
+    """The plot title's figures: sigma, or with the models noise, bias and both."""
+    if ev.camera_model is None and ev.arm_model is None:
+        return f"sigma {ev.sigma_px:g} px"
+    return (
+        f"sigma {ev.sigma_px:.4g} px ({ev.camera_model or 'no camera model'}), arm {ev.arm_model or 'rigid'}: "
+        f"EE RMS noise {1e3 * ev.ee_rms:.3f}, bias {1e3 * ev.ee_bias_rms:.3f}, combined {1e3 * ev.ee_total_rms:.3f} mm"
+    )
+
+
 def _write_evaluation(console: Console, ev: PlanEvaluation, p, region, plot, out_json) -> None:
     if plot is not None:
         robot = Robot.load(p.robot)
@@ -169,7 +218,7 @@ def _write_evaluation(console: Console, ev: PlanEvaluation, p, region, plot, out
             if region is None
             else f"the region {region[0].tolist()} .. {region[1].tolist()} m"
         )
-        title = f"{ev.frames} frames, sigma {ev.sigma_px:g} px: predicted EE error over {where}"
+        title = f"{ev.frames} frames, {_figures_title(ev)}: predicted EE error over {where}"
         plot_evaluation(ev, scene, workspace(robot, scene, region), plot, title)
         console.print(f"wrote {plot}")
     if out_json is not None:
@@ -183,7 +232,17 @@ def _write_evaluation(console: Console, ev: PlanEvaluation, p, region, plot, out
         console.print(f"wrote {out_json}")
 
 
-def run_evaluate(args, console: Console) -> int:
+def _models(args, capture_models):
+    """`(CameraNoise | None, ArmFigures | None)` of `--camera-model` and `--arm`."""
+    camera, arm = getattr(args, "camera_model", None), getattr(args, "arm", None)
+    if camera is None and arm is None:
+        return None, None
+    if capture_models is None:
+        raise PlanError("--camera-model and --arm need the simulator's presets (the jaxcal command line)")
+    return capture_models(camera, arm)
+
+
+def run_evaluate(args, console: Console, capture_models=None) -> int:
     if args.out is not None:
         raise PlanError(
             "jaxcal plan --evaluate: --out writes a new plan; to keep the figures give --json (and --plot)"
@@ -191,7 +250,8 @@ def run_evaluate(args, console: Console) -> int:
     plot, out_json = _outputs(args, [args.evaluate])
     p = load_plan(args.evaluate)
     region = None if args.region is None else parse_region(args.region)
-    ev = evaluate_plan(args.evaluate, region=region, sigma_px=args.sigma_px)
+    camera, arm = _models(args, capture_models)
+    ev = evaluate_plan(args.evaluate, region=region, sigma_px=args.sigma_px, camera_model=camera, arm=arm)
     where = "over the region" if region is not None else "over the workspace"
     evaluation_table(
         console, ev, f"{args.evaluate}: pre-evaluation ({len(views(p)[0])} planned frames, EE {where})"
@@ -232,10 +292,11 @@ def run_check_plan(args, console: Console) -> int:
     return 0
 
 
-def run_plan(args, console: Console, checker_factory=None) -> int:
-    """`jaxcal plan`; `checker_factory(plan) -> checker` adds MuJoCo's checks."""
+def run_plan(args, console: Console, checker_factory=None, capture_models=None) -> int:
+    """`jaxcal plan`; `checker_factory(plan) -> checker` adds MuJoCo's checks;
+    `capture_models(camera, arm)`: the records of `--camera-model` / `--arm` presets."""
     if args.evaluate:
-        return run_evaluate(args, console)
+        return run_evaluate(args, console, capture_models)
     if args.check:
         return run_check_plan(args, console)
     if args.out is None:
@@ -255,6 +316,7 @@ def run_plan(args, console: Console, checker_factory=None) -> int:
         )
     eye_in_hand = args.eye_in_hand or (camera is not None and camera.mount != "world")
     region = None if args.region is None else parse_region(args.region)
+    models = _models(args, capture_models)
     limits = FeasibilityLimits(view_angle_deg=args.view_angle_deg)
     factory = None if args.no_mujoco else checker_factory
     t0 = time.perf_counter()
@@ -266,6 +328,13 @@ def run_plan(args, console: Console, checker_factory=None) -> int:
         greedy_baseline=args.baseline, seed=args.seed, checker_factory=factory,
         log=None if args.quiet else (lambda text: console.print(f"[dim]{text}[/dim]")),
     )  # fmt: skip
+    if models != (None, None):  # the optimiser minimised the noise part; the prediction adds the models
+        ev = evaluate_plan(
+            res.plan, region=region, sigma_px=args.sigma_px, camera_model=models[0], arm=models[1]
+        )
+        res = replace(
+            res, plan=replace(res.plan, prediction=res.plan.prediction | ev.summary()), evaluation=ev
+        )
     evaluation_table(
         console, res.evaluation, f"Planned: {res.plan.frames} stop-and-shoot poses ({args.method})"
     )

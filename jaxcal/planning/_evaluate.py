@@ -39,6 +39,7 @@ from .._refine import CornerData, RefineProblem, identifiable_mask, zero_params
 from .._reprojection import reprojection_residuals
 from .._uncertainty import tool_points
 from ..stages.kinds import CaptureKind
+from ._realism import pixel_jacobians, propagate
 from ._scene import PlanScene, frame_geometry
 
 #: Corner noise of the detector on rendered images (px, per coordinate): the
@@ -180,6 +181,14 @@ class PlanEvaluation:
       prediction could keep inside that band.
     - `sigma_px`: the pixel noise assumed; `frames`, `corners`: what was used.
     - `singular_values`: of the column-normalised information (free parameters).
+    - With a camera or arm model (`jaxcal.evaluate_plan(..., camera_model=, arm=)`,
+      `jaxcal.planning._realism`): `camera_model`, `arm_model` (their names);
+      `added_sigma_px` (in `sigma_px` already); `camera_note` (what the camera's
+      exposure and shutter do to the frames); `frames_lost_to_blur`; `ee_bias`:
+      per workspace configuration the norm of the EE bias the arm leaves (m; the
+      noise part `ee_sigma` includes the encoders' quantisation); `bias_parts`:
+      the bias RMS of each cause (m). `ee_bias_rms`, `ee_total_rms` and
+      `ee_total_p95` read them.
     """
 
     names: tuple[str, ...]
@@ -197,6 +206,35 @@ class PlanEvaluation:
     ratio_interval: tuple[float, float] = (np.nan, np.nan)
     effective_dof: float = np.nan
     error_eigenvalues: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    camera_model: str | None = None
+    arm_model: str | None = None
+    added_sigma_px: float = 0.0
+    camera_note: str = ""
+    frames_lost_to_blur: int = 0
+    ee_bias: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    bias_parts: dict = field(default_factory=dict)
+
+    @property
+    def ee_bias_rms(self) -> float:
+        """The RMS over the workspace of the EE bias the arm leaves (m; 0 without an arm model)."""
+        return float(np.sqrt(np.mean(self.ee_bias**2))) if self.ee_bias.size else 0.0
+
+    @property
+    def ee_total(self) -> np.ndarray:
+        """Per workspace configuration the RMS EE error over captures, noise and bias (m):
+        $\\sqrt{\\sigma_c^2 + |b_c|^2}$."""
+        bias = self.ee_bias if self.ee_bias.size else np.zeros_like(self.ee_sigma)
+        return np.sqrt(self.ee_sigma**2 + bias**2)
+
+    @property
+    def ee_total_rms(self) -> float:
+        """The EE RMS over the workspace and over captures, noise and bias together (m)."""
+        return float(np.sqrt(self.ee_rms**2 + self.ee_bias_rms**2))
+
+    @property
+    def ee_total_p95(self) -> float:
+        """The 95th percentile over the workspace of `ee_total` (m)."""
+        return float(np.percentile(self.ee_total, 95))
 
     def _ratio_draws(self) -> np.ndarray:
         """Draws of one capture's EE RMS over `ee_rms` under the Gaussian model
@@ -256,7 +294,7 @@ class PlanEvaluation:
     def summary(self) -> dict:
         """Plain-Python figures (mm)."""
         spread = bool(self.error_eigenvalues.size) and np.isfinite(self.ee_rms)
-        return {
+        out = {
             "ee_rms_mm": 1e3 * float(self.ee_rms),
             "ee_p95_mm": 1e3 * float(self.ee_p95),
             "sigma_px": self.sigma_px,
@@ -275,6 +313,21 @@ class PlanEvaluation:
             if spread
             else None,
         }
+        if self.camera_model is not None or self.arm_model is not None:
+            out |= {
+                "camera_model": self.camera_model,
+                "arm_model": self.arm_model,
+                "added_sigma_px": self.added_sigma_px,
+                "camera_note": self.camera_note,
+                "frames_lost_to_blur": self.frames_lost_to_blur,
+                # The EE error over the workspace: noise (ee_rms_mm), the arm's bias, both (RMS over captures).
+                "ee_noise_rms_mm": 1e3 * float(self.ee_rms),
+                "ee_bias_rms_mm": 1e3 * self.ee_bias_rms,
+                "ee_bias_parts_mm": {k: 1e3 * v for k, v in self.bias_parts.items()},
+                "ee_total_rms_mm": 1e3 * self.ee_total_rms,
+                "ee_total_p95_mm": 1e3 * self.ee_total_p95,
+            }
+        return out
 
 
 def prior_scales(layout: ParameterLayout) -> np.ndarray:
@@ -310,13 +363,19 @@ def evaluate_views(
     sweeps: bool,
     sigma_px: float = DEFAULT_SIGMA_PX,
     visible: np.ndarray | None = None,
+    offsets=(),
+    joint_std: np.ndarray | None = None,
 ) -> PlanEvaluation:
     """Pre-evaluate frames at commanded configurations `q (V, joints)`, controller
     times `t (V,)` (increasing), over the workspace `configs (C, joints)`.
 
     **Arguments:** the scene; the frames; the workspace sample; `sweeps`: the
     refinement of single-joint sweeps (else of poses); `sigma_px`: the corner
-    noise (px per coordinate); `visible (V, N)`: the corners detected (default all).
+    noise (px per coordinate); `visible (V, N)`: the corners detected (default all);
+    `offsets`: `(name, (V, joints))` pairs, where the joints stand against what the
+    encoders read (rad: an arm's sag, backlash), whose EE bias is predicted
+    (`jaxcal.planning._realism.propagate`); `joint_std (joints,)`: the readings'
+    own noise (rad), added to the noise part.
 
     **Returns:** a `PlanEvaluation`.
     """
@@ -352,6 +411,13 @@ def evaluate_views(
         (Vt[keep].T / sv[keep]) @ U[:, keep].T / scale[:, None]
     )  # (f, rows): least squares on the free columns
     cov_f = sigma_px**2 * (pinv @ pinv.T)
+    parts, bias = {}, np.zeros(0)
+    if len(offsets) or joint_std is not None:
+        P = np.asarray(pixel_jacobians(scene, jnp.asarray(q)))
+        mask = np.ones(P.shape[:2], bool) if visible is None else np.asarray(visible, bool)
+        parts, b, cov_q = propagate(pinv, Gf, P, mask, offsets, joint_std)
+        cov_f = cov_f + cov_q
+        bias = np.linalg.norm(b, axis=-1) if len(offsets) else bias
     std[np.flatnonzero(free)] = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
     ee = np.sqrt(np.maximum(np.einsum("cia,ab,cib->c", Gf, cov_f, Gf), 0.0))
     interval, dof, lam = ratio_spread(cov_f, np.einsum("cia,cib->ab", Gf, Gf) / len(configs))
@@ -377,6 +443,8 @@ def evaluate_views(
         ratio_interval=interval,
         effective_dof=dof,
         error_eigenvalues=lam,
+        ee_bias=bias,
+        bias_parts=parts,
     )
 
 

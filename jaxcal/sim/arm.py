@@ -50,7 +50,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._compliance import play as play
 from .._pointfit import gravity_torques
+from ..records_capture import ArmFigures
 from .motion import EncoderModel, Trajectory
 
 
@@ -126,6 +128,14 @@ class ArmModel:
             latency_s=float(record.get("latency_s", 0.0)),
         )
 
+    def figures(self) -> ArmFigures:
+        """The figures a capture plan's prediction takes (`jaxcal.evaluate_plan(..., arm=)`)."""
+        compliance = () if self.compliance is None else tuple(np.atleast_1d(self.compliance).tolist())
+        return ArmFigures(
+            self.name, compliance, tuple(np.atleast_1d(self.backlash_deg).tolist()),
+            int(self.counts_per_rev), float(self.latency_s),
+        )  # fmt: skip
+
     def metadata(self, joint_types) -> dict:
         """What `truth.json` records of the arm (`arm`), per joint of `joint_types`."""
         return {
@@ -137,18 +147,6 @@ class ArmModel:
             "counts_per_rev": int(self.counts_per_rev),
             "latency_s": self.latency_s,
         }
-
-
-def play(x_waypoints, width) -> np.ndarray:
-    """The play operator's state at each waypoint `(K, joints)` of monotone legs between
-    them (`x_waypoints` `(K, joints)`, `width` `(joints,)`), started centred."""
-    x = np.asarray(x_waypoints, np.float64)
-    half = 0.5 * np.asarray(width, np.float64)
-    y = np.empty_like(x)
-    y[0] = x[0]
-    for k in range(1, len(x)):
-        y[k] = np.clip(y[k - 1], x[k] - half, x[k] + half)
-    return y
 
 
 def gravity_deflection(true, theta, zero_offset, compliance, inertials) -> np.ndarray:
