@@ -88,6 +88,11 @@ CASES = {
         ["--analytic-seeds", "1", "--analytic-cases", "ideal", "rolling_shutter_given"],
         ["analytic", "analytic_noise_px", "cases"],
     ),
+    # No sweep designs, one image, one noise draw, a 6-pose plan, one seed.
+    "plan_realism": (
+        ["--no-sweeps", "--seeds", "1", "--noise-step", "72", "--noise-draws", "1", "--poses", "6"],
+        ["machine", "corner_noise", "predictions", "checks"],
+    ),
     "compile": (
         ["--workers", "1", "--cache", str(CACHE_DIR)],
         ["cold_calibrate_s", "cold_jax_compile_s", "second_dataset_compile_s", "first", "second"],
@@ -97,7 +102,8 @@ CASES = {
 #: Over ~20 s each even with a warm compilation cache (they calibrate a dataset or compile a
 #: whole Monte Carlo trial / refinement): marked `bench`, 4-6 minutes together on a 2-core machine.
 SLOW = {
-    "compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "prediction_check", "realism",
+    "compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "plan_realism",
+    "prediction_check", "realism",
 }  # fmt: skip
 
 #: Not smoke-run here (see the module docstring).
