@@ -93,6 +93,8 @@ CASES = {
         ["--no-sweeps", "--seeds", "1", "--noise-step", "72", "--noise-draws", "1", "--poses", "6"],
         ["machine", "corner_noise", "predictions", "checks"],
     ),
+    # One frame per rendered capture (4 captures, 8 image sets), no real images.
+    "chessboard_detect": (["--seeds", "0", "--frames", "1"], ["seeds", "frames", "sets", "pooled"]),
     "compile": (
         ["--workers", "1", "--cache", str(CACHE_DIR)],
         ["cold_calibrate_s", "cold_jax_compile_s", "second_dataset_compile_s", "first", "second"],
@@ -102,7 +104,7 @@ CASES = {
 #: Over ~20 s each even with a warm compilation cache (they calibrate a dataset or compile a
 #: whole Monte Carlo trial / refinement): marked `bench`, 4-6 minutes together on a 2-core machine.
 SLOW = {
-    "compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "plan_realism",
+    "chessboard_detect", "compile", "corrupted", "ee_uncertainty", "efficiency", "handeye", "montecarlo", "plan_realism",
     "prediction_check", "realism",
 }  # fmt: skip
 

@@ -119,7 +119,9 @@ def _projected(capture, f):
 @pytest.mark.parametrize(
     "kind, tol_px",
     [
-        ("chessboard", 0.5),
+        # cornerSubPix on the SB grid: 0.24 px the largest of 16 000 corners in 384 renders (0.65 px
+        # with CALIB_CB_ACCURACY, which this would catch); docs/performance.md, "Chessboard corners".
+        ("chessboard", 0.3),
         ("circles", 0.2),
         ("acircles", 0.2),
         ("charuco", 0.3),

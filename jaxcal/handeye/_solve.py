@@ -7,15 +7,28 @@ from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._exported import stored_jit
-from .._handeye import HandEyeResult, KFoldSpread, calibrate_hand_eye, describe_robot_noise, kfold_spread
+from .._handeye import (
+    HandEyePixels,
+    HandEyeResult,
+    KFoldSpread,
+    calibrate_hand_eye,
+    describe_robot_noise,
+    kfold_spread,
+)
 from .._handeye.solve import HAND_EYE_OPTIONS
 from ._observe import Observed
 
 #: Outlier threshold of `calibrate_hand_eye` (times the median group RMS); reported with rejections.
 OUTLIER_THRESHOLD = 3.0
+#: The least median the threshold multiplies (px): a view is rejected only above `OUTLIER_THRESHOLD`
+#: times this too. Corners refined to a few hundredths of a pixel make the median small enough that a
+#: clean but steep view (0.09 px against a median of 0.028 px, docs/performance.md, "Chessboard
+#: corners") would pass 3x it; a robot pose off by a millimetre moves the corners by pixels.
+MIN_OUTLIER_PX = 0.1
 
 
 @lru_cache(maxsize=4)
@@ -31,10 +44,20 @@ def hand_eye_solver(max_steps: int = 200) -> Callable:
             estimate_robot_noise=estimate,
             options=replace(HAND_EYE_OPTIONS, max_steps=max_steps),
             outlier_threshold=OUTLIER_THRESHOLD,
+            min_outlier_scale=min_outlier_scale(data),
         )
 
     # Runs many times per process (k-fold, bootstrap): XLA's optimisations pay for themselves.
-    return stored_jit(hand_eye, "hand_eye", (max_steps, OUTLIER_THRESHOLD), compiler_options=None)
+    key = (max_steps, OUTLIER_THRESHOLD, MIN_OUTLIER_PX)
+    return stored_jit(hand_eye, "hand_eye", key, compiler_options=None)
+
+
+def min_outlier_scale(data):
+    """`calibrate_hand_eye`'s `min_outlier_scale` (whitened): `MIN_OUTLIER_PX` over the pixel noise
+    (pixels), at least the solver's own 0.1; pose data keep 0.1."""
+    if not isinstance(data, HandEyePixels):
+        return 0.1
+    return jnp.maximum(MIN_OUTLIER_PX / data.sigma_px, 0.1)
 
 
 def rejection_reasons(result, observations, threshold: float) -> dict[int, str]:
@@ -49,7 +72,8 @@ def rejection_reasons(result, observations, threshold: float) -> dict[int, str]:
         worst = float(np.nanmax(rms[cams, f]))
         out[int(f)] = (
             f"reprojection RMS {worst:.3g} px against a median of {median:.3g} px over the kept views "
-            f"(rejected above {threshold:g}x the median); its robot pose does not fit the others"
+            f"(rejected above {threshold:g}x the median, and above {threshold * MIN_OUTLIER_PX:g} px); "
+            "its robot pose does not fit the others"
         )
     return out
 
