@@ -105,22 +105,12 @@ def calibrate(
     enable_compilation_cache()
     t_start = time.perf_counter()
     options = stages.Options(
-        camera=camera,
-        workers=workers,
-        progress=progress,
-        clock=_clock_mode(clock, estimate_clock, trust_clock),
-        validate=validate,
-        refine=refine,
-        other_cameras=other_cameras,
-        log=log,
-        refine_intrinsics=refine_intrinsics,
-        estimate_line_delay=estimate_line_delay,
-        limits=stages.Limits() if limits is None else limits,
-        arc_loss=arc_loss,
-        device_is_base=device_is_base,
-        terms=tuple(terms),
-        cv_folds=int(cv_folds),
-    )
+        camera=camera, workers=workers, progress=progress, clock=_clock_mode(clock, estimate_clock, trust_clock),
+        validate=validate, refine=refine, other_cameras=other_cameras, log=log,
+        refine_intrinsics=refine_intrinsics, estimate_line_delay=estimate_line_delay,
+        limits=stages.Limits() if limits is None else limits, arc_loss=arc_loss, device_is_base=device_is_base,
+        terms=tuple(terms), cv_folds=int(cv_folds),
+    )  # fmt: skip
     # The programs the last calibration of this dataset called are read while it loads and detects.
     root = getattr(dataset, "root", dataset)
     with warm_start(f"calibrate {Path(root).resolve()}"):

@@ -477,6 +477,29 @@ def import_csv(
     rms = _check_points(csv, table, nominal, xyz, length_unit, (origin, reach, tol))
     if orientation is not None:
         _check_orientations(csv, table, T_link[:, :3, :3], orientation)
+    meta = _metadata(
+        csv, table, model, robot_obj, joints=joints, joint_unit=joint_unit, xyz=xyz,
+        length_unit=length_unit, orientation=orientation, time=time, link=link, point=point,
+        device=(device_name, device_kind, point_name), sigma=(sigma_m, sigma_rad), description=description,
+    )  # fmt: skip
+    with atomic_directory(
+        out, overwrite=overwrite, inputs=[csv, robot_file], kind="dataset", what="--out", checked=checked
+    ) as tmp:
+        shutil.copyfile(robot_file, tmp / robot_name)
+        _write_samples(tmp / "samples.csv", table, model.joint_names)
+        write_json(tmp / "metadata.json", meta)
+        load_dataset(tmp)  # the format's every check, before the rename
+    return CsvImport(Path(out), len(table.t), reach, rms)
+
+
+def _metadata(
+    csv: Path, table, model, robot_obj, *, joints, joint_unit, xyz, length_unit, orientation, time, link, point,
+    device, sigma, description,
+) -> dict:  # fmt: skip
+    """The imported dataset's `metadata.json`: the device (`device`: its name, kind and point
+    name; `sigma`: the position and orientation noise) and the CSV's provenance (`x_csv`)."""
+    device_name, device_kind, point_name = device
+    sigma_m, sigma_rad = sigma
     device = {
         "name": device_name,
         "kind": device_kind,
@@ -487,7 +510,7 @@ def import_csv(
         "sigma_m": float(sigma_m),
         "sigma_rad": None if orientation is None else float(sigma_rad),
     }
-    meta = {
+    return {
         "schema": SCHEMA,
         "schema_version": SCHEMA_VERSION,
         "description": description or f"imported from the CSV table {csv.name} by jaxcal import-csv",
@@ -506,11 +529,3 @@ def import_csv(
             "rows": len(table.t),
         },
     }
-    with atomic_directory(
-        out, overwrite=overwrite, inputs=[csv, robot_file], kind="dataset", what="--out", checked=checked
-    ) as tmp:
-        shutil.copyfile(robot_file, tmp / robot_name)
-        _write_samples(tmp / "samples.csv", table, model.joint_names)
-        write_json(tmp / "metadata.json", meta)
-        load_dataset(tmp)  # the format's every check, before the rename
-    return CsvImport(Path(out), len(table.t), reach, rms)
