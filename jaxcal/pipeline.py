@@ -143,7 +143,7 @@ def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult
     obs = stages.observe(setup, options)
     sync = stages.synchronise(setup, obs, options)
     two = stages.two_stage(setup, obs, sync, options)
-    # The verdict's arm-rigidity test needs only the two-stage fit: it runs beside the refinement.
+    # The verdict's arm-rigidity test: its terms need only the two-stage fit (`stages.run_ahead`, inline).
     arm_score = stages.start_arm_score(setup, sync, two) if setup.kind.has_arcs else None
     # Tracker data have no corners: the two-stage fit is the result (see `stages.TWO_STAGE_IS_FINAL`).
     refined = (
@@ -151,10 +151,10 @@ def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult
         if options.refine and setup.kind.refines_corners
         else None
     )
-    # The arm test's last part (the arcs at the refinement's clock), before anything runs beside the verdict.
+    # The arm test's last part: the arcs fitted again at the refinement's clock.
     if arm_score is not None:
         arm_score = stages.finish_arm_score(setup, sync, two, refined, arm_score)
-    # The validation against the truth needs no verdict: it runs beside it, on the second core.
+    # The validation against the truth needs no verdict (`stages.run_ahead`: inline, see its docstring).
     validation = (
         stages.run_ahead("validation", stages.validate, setup, sync, two, refined, options)
         if options.validate and setup.dataset.truth is not None

@@ -39,8 +39,8 @@ uncertainty enters the noise, $\\Sigma = I + \\sigma_t^2 a a^T$ with
 $a = \\partial r / \\partial t$ (central differences over the arcs' own clock
 sigma, two more fits of the arcs), by whitening $r$, $J_p$ and $J_c$ with
 $\\Sigma^{-1/2}$. The terms at the arcs' own offset need only the two-stage fit
-and run beside the refinement (`start_arm_score`); the arcs' three fits again
-follow it, before anything runs beside the verdict (`finish_arm_score`). The limit is
+(`start_arm_score`); the arcs' three fits again follow the refinement
+(`finish_arm_score`). The limit is
 then the F law's quantile at `Limits.arm_false_alarm`, applied where $\\hat c$ at the joint
 whose sag it moves the most is one of a real arm (a sag, at least
 `Limits.arm_compliance_rad_per_kNm`; a rigid arm's axis misfit can correlate
@@ -232,9 +232,8 @@ def gravity_score(setup, sync, two, refined=None, terms: ScoreTerms | None = Non
 
 
 def start_arm_score(setup, sync, two) -> Future:
-    """`score_terms(setup, sync, two)` on a thread of its own (`_programs.run_ahead`): they
-    need only the two-stage fit, so their program compiles (or loads) and runs while the
-    refinement does; hand the `Future` to `finish_arm_score`."""
+    """`score_terms(setup, sync, two)` as a `Future` (`_programs.run_ahead`, which runs it inline):
+    they need only the two-stage fit; hand the `Future` to `finish_arm_score`."""
     return _programs.run_ahead("arm check", score_terms, setup, sync, two)
 
 

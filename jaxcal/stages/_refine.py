@@ -540,8 +540,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.kind.identifiability_tol)
     free = np.asarray(free)
     res = _programs.refinement(free)(problem, params0)
-    # The shutter's score test compiles (or loads) and runs on the second core while the
-    # refinement runs and its outcome is read.
+    # The shutter's score test, in the `Future` the verdict reads (`run_ahead` runs it inline).
     pending = _programs.run_ahead("shutter test", shutter_test, setup, corners, problem, res)
     jax.block_until_ready(res)
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
