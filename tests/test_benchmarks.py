@@ -8,8 +8,10 @@ smallest: `real_tracker.py` (three calibrations of the real UR5; its pipeline is
 `tests/test_pointfit.py`'s), `startup.py` (fresh processes, cold caches),
 `certify.py`, `drift.py` (many rendered or simulated calibrations; their pieces are in
 `tests/test_certify.py`, `test_check_camera.py`), `certify_errors.py` (it reads `certify.py`'s
-renders) and `plan.py`, which plans four designs and renders and calibrates a dozen captures: of
-these two only the imports and options are checked. The smoke runs over ~20 s each are marked
+renders), `noise_weights.py` (it reads `realism.py`'s renders; its pieces are in
+`tests/test_noise_weights.py`) and `plan.py`, which plans four designs and renders and calibrates a
+dozen captures: of `certify_errors.py`, `noise_weights.py` and `plan.py` only the imports and
+options are checked. The smoke runs over ~20 s each are marked
 `bench`: `make test-bench` runs them, `make test` (and CI) leaves them out to keep the suite near
 ten minutes.
 """
@@ -109,7 +111,7 @@ SLOW = {
 }  # fmt: skip
 
 #: Not smoke-run here (see the module docstring).
-NOT_RUN = {"real_tracker", "startup", "plan", "certify", "certify_errors", "drift"}
+NOT_RUN = {"real_tracker", "startup", "plan", "certify", "certify_errors", "drift", "noise_weights"}
 
 
 def _run(args: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
@@ -136,7 +138,10 @@ def test_benchmark_runs_at_its_smallest_size(name, tmp_path):
     assert set(keys) <= set(result), sorted(set(keys) - set(result))
 
 
-@pytest.mark.parametrize(("name", "option"), [("plan", "--candidates"), ("certify_errors", "--workdir")])
+@pytest.mark.parametrize(
+    ("name", "option"),
+    [("plan", "--candidates"), ("certify_errors", "--workdir"), ("noise_weights", "--workdir")],
+)
 def test_long_benchmarks_parse_their_options(name, option):
     proc = _run([str(BENCH / f"{name}.py"), "--help"], timeout=60)
     assert proc.returncode == 0, proc.stderr[-3000:]
