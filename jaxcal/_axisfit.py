@@ -447,7 +447,11 @@ def identifiable_mask(
     **Returns:** `(free, independence)` over the flattened parameters; the
     independence is each column's relative distance from the kept span.
     """
-    _, J = axis_jacobian(params, problem)
+    return _independent(problem, axis_jacobian(params, problem)[1], tol=tol, candidates=candidates)
+
+
+def _independent(problem: AxisFitProblem, J, *, tol: float = 1e-7, candidates=None):
+    """`identifiable_mask` from the Jacobian `J` at the parameters."""
     layout = ParameterLayout.of(problem.nominal, problem.T_flange_marker0.shape[0])
     return _lsq.independent_columns(J, layout.priority(refine=False), tol=tol, candidates=candidates)
 
@@ -489,11 +493,11 @@ class AxisFitResult(eqx.Module):
     T_flange_marker0: Float[Array, "markers 4 4"]
 
 
-def _free_mask(problem: AxisFitProblem, params0: AxisFitParams, free, candidates, search):
+def _free_mask(problem: AxisFitProblem, params0: AxisFitParams, J0, free, candidates, search):
     """`fit_axes`' mask of estimated parameters and the search's independence
-    ratios (NaN where the mask was given)."""
+    ratios (NaN where the mask was given), from the Jacobian `J0` at the start."""
     if free is None:
-        return identifiable_mask(problem, params0, candidates=candidates)
+        return _independent(problem, J0, candidates=candidates)
     size = ravel_pytree(params0)[0].shape
     keep = jnp.asarray(free, bool)
     if keep.shape != size:
@@ -501,7 +505,7 @@ def _free_mask(problem: AxisFitProblem, params0: AxisFitParams, free, candidates
     indep = jnp.full(size, jnp.nan)
     if search is None:
         return keep, indep
-    found, found_indep = identifiable_mask(problem, params0, candidates=candidates)
+    found, found_indep = _independent(problem, J0, candidates=candidates)
     return jnp.where(search, found, keep), jnp.where(search, found_indep, indep)
 
 
@@ -579,16 +583,25 @@ def fit_axes(
     n = nominal.num_joints
     params0 = AxisFitParams(cam=jnp.zeros(6), correction=zero_correction(n, arcs.T_cam_marker0.shape[1]))
     flat0, unravel = ravel_pytree(params0)
-    keep, indep = _free_mask(problem, params0, free, candidates, search)
-    keep_f = keep.astype(flat0.dtype)
+    lm = LMOptions(options.rtol, options.atol, options.max_steps, throw or options.throw)
 
-    def fn(x, problem):
-        return axis_residuals(unravel(x * keep_f), problem)
+    def solve(start):
+        """The solve over the parameters the start's Jacobian `start = (r0, J0)` identifies."""
+        keep, indep = _free_mask(problem, params0, start[1], free, candidates, search)
+        keep_f = keep.astype(flat0.dtype)
 
-    sol = _lsq.solve(
-        fn, flat0, problem, LMOptions(options.rtol, options.atol, options.max_steps, throw or options.throw)
+        def fn(x, problem):
+            return axis_residuals(unravel(x * keep_f), problem)
+
+        sol = _lsq.solve(fn, flat0, problem, lm)
+        return sol.value * keep_f, keep, indep, sol.result, sol.stats["num_steps"]
+
+    # The Jacobian at the start (the identifiability search) and at the solution (the
+    # covariance), one copy of it in the program.
+    _, (x, *solved), final = _lsq.start_and_solution(
+        lambda x: axis_jacobian(unravel(x), problem), flat0, solve
     )
-    return _axis_result(problem, unravel(sol.value * keep_f), keep, indep, sol)
+    return _axis_result(problem, unravel(x), final, *solved)
 
 
 def _references(nominal: KinematicModel, arcs: ArcFitResult, home, T_cam_base0, T_flange_marker):
@@ -610,11 +623,14 @@ def _references(nominal: KinematicModel, arcs: ArcFitResult, home, T_cam_base0, 
     return home, T_cam_base0, T_flange_marker
 
 
-def _axis_result(problem: AxisFitProblem, params: AxisFitParams, keep, indep, sol) -> AxisFitResult:
-    """The `AxisFitResult` at the solution `params` of the solve `sol` over the parameters
-    `keep` (frozen ones: zero columns, zero variance; one SVD, see `_linalg`)."""
+def _axis_result(
+    problem: AxisFitProblem, params: AxisFitParams, rJ, keep, indep, result, num_steps
+) -> AxisFitResult:
+    """The `AxisFitResult` at the solution `params` (`rJ`: its residuals and Jacobian) of the
+    solve (optimistix's `result`, `num_steps`) over the parameters `keep` (frozen ones: zero
+    columns, zero variance; one SVD, see `_linalg`)."""
     nominal, arcs = problem.nominal, problem.arcs
-    r, J = axis_jacobian(params, problem)
+    r, J = rJ
     cov, sv, _ = _lsq.covariance(J, keep)
     model, mounts = apply_correction(nominal, problem.T_flange_marker0, params.correction)
     if arcs.has_encoder:
@@ -628,8 +644,8 @@ def _axis_result(problem: AxisFitProblem, params: AxisFitParams, keep, indep, so
         cov=cov,
         free=keep,
         independence=indep,
-        result=sol.result,
-        num_steps=sol.stats["num_steps"],
+        result=result,
+        num_steps=num_steps,
         residual_rms=jnp.sqrt(jnp.mean(r**2)),
         singular_values=sv,
         T_cam_base0=problem.T_cam_base0,

@@ -204,19 +204,23 @@ def fit_clock_offset(
     k = data.sqrt_info.shape[-1]
     free_flat = ravel_pytree((free, jnp.ones(())))[0]
 
-    def jacobian_and_cov(y, w):
-        """The weighted Jacobian and the unscaled $(J^T W J)^{+}$ over the free parameters."""
+    def unweighted(y):
+        """The residuals (0/1 weights: the mask) and their Jacobian over the free parameters,
+        one forward pass; weights `w` scale their rows by `rows(w)`."""
         flat, unravel = ravel_pytree(y)
-        J = jax.jacfwd(lambda x: residuals(unravel(x), w).reshape(-1))(flat) * free_flat
-        return J, _lsq.normal_pinv(J.T @ J, free_flat)
+        r, J = _lsq.value_and_jacfwd(lambda x: residuals(unravel(x), mask_f).reshape(-1), flat)
+        return r.reshape(mask.shape + (k,)), J * free_flat
+
+    def rows(w):
+        return jnp.repeat(jnp.sqrt(w).reshape(-1), k)
 
     def weights_at(y, w, hard):
         if loss is None:
             return mask_f
-        J, _ = jacobian_and_cov(y, mask_f)  # unweighted (the mask is 0 or 1)
-        Jw = J * jnp.repeat(jnp.sqrt(w).reshape(-1), k)[:, None]
+        r, J = unweighted(y)
+        Jw = J * rows(w)[:, None]
         cov = _lsq.normal_pinv(Jw.T @ Jw, free_flat)
-        d, nu = _deletion(J, cov, residuals(y, mask_f), w, mask)
+        d, nu = _deletion(J, cov, r, w, mask)
         reject_ = jnp.inf if reject is None else reject
         weigh = lambda d_j, nu_j, m_j: sample_weights(  # noqa: E731
             d_j, nu_j, m_j, loss=loss, c=c, reject=reject_, hard=hard
@@ -231,7 +235,9 @@ def fit_clock_offset(
     y = out.value
     if throw:
         y = eqx.error_if(y, ~out.ok, "fit_clock_offset: a Levenberg-Marquardt solve did not converge")
-    return _clock_fit(y, out, jacobian_and_cov(y, out.weights), residuals, mask_f, data, offset0_s)
+    r, J = unweighted(y)
+    J = J * rows(out.weights)[:, None]
+    return _clock_fit(y, out, (J, _lsq.normal_pinv(J.T @ J, free_flat)), r, data, offset0_s)
 
 
 def _joint_problem(data: ArcData, t_cam, enc_t, enc_q, offset0_s, drift_ppm):
@@ -259,18 +265,19 @@ def _joint_problem(data: ArcData, t_cam, enc_t, enc_q, offset0_s, drift_ppm):
     return residuals, params0, free
 
 
-def _clock_fit(y, out, jac_cov, residuals, mask_f, data: ArcData, offset0_s) -> ClockFit:
+def _clock_fit(y, out, jac_cov, raw, data: ArcData, offset0_s) -> ClockFit:
     """The `ClockFit` at the last round's solution `y` (of the rounds `out`), from its
-    weighted Jacobian and covariance `jac_cov` (`mask_f`: the samples' 0/1 weights): the offset's standard deviation scaled by the
-    residual variance over the parameters the data determine (the hat matrix's trace)."""
+    weighted Jacobian and covariance `jac_cov` and its unweighted residuals `raw`: the offset's
+    standard deviation scaled by the residual variance over the parameters the data determine
+    (the hat matrix's trace)."""
     J, cov = jac_cov
     w, mask, k = out.weights, data.mask, data.sqrt_info.shape[-1]
-    r = residuals(y, w)
+    r = raw * jnp.sqrt(w)[..., None]
     n = jnp.sum((J @ cov) * J)  # the parameters the data determine (trace of the hat matrix)
     n_obs = jnp.sum(w) * k
     sigma2 = jnp.sum(r**2) / jnp.maximum(n_obs - n, 1.0)
     var_ms = cov[-1, -1] * sigma2
-    e = jnp.linalg.norm(residuals(y, mask_f), axis=-1)
+    e = jnp.linalg.norm(raw, axis=-1)
     return ClockFit(
         offset_s=offset0_s + _MS * y[1],
         std_s=_MS * jnp.sqrt(jnp.maximum(var_ms, 0.0)),

@@ -148,8 +148,7 @@ def solve_normal(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> opt
     flat0, unravel = ravel_pytree(y0)
 
     def normal(x, a):
-        f = lambda z: ravel_pytree(fn(unravel(z), a))[0]  # noqa: E731
-        r, J = f(x), jax.jacfwd(f)(x)
+        r, J = value_and_jacfwd(lambda z: ravel_pytree(fn(unravel(z), a))[0], x)
         return r, NormalEquations(H=J.T @ J, e=J.T @ r)
 
     sol = normal_least_squares(
@@ -162,6 +161,35 @@ def solve_normal(fn: Callable, y0: PyTree, args: Any, options: LMOptions) -> opt
         )
     stats = {"num_steps": sol.num_steps, "max_steps": options.max_steps}
     return optx.Solution(value=value, result=sol.result, aux=None, stats=stats, state=None)
+
+
+def value_and_jacfwd(f: Callable, x: Array) -> tuple[Array, Array]:
+    """`(f(x), jax.jacfwd(f)(x))` from one forward-mode pass: the residuals are the pass's
+    primal output, not a second evaluation, so a program that needs both traces, lowers
+    and compiles the model once rather than twice."""
+    J, r = jax.jacfwd(lambda z: (lambda y: (y, y))(f(z)), has_aux=True)(x)
+    return r, J
+
+
+def start_and_solution(evaluate: Callable, x0: Array, solve: Callable) -> tuple[Any, Any, Any]:
+    """`(e0, out, e1)`: `e0 = evaluate(x0)`, `out = solve(e0)` (a tuple whose first entry is
+    the solution `x`) and `e1 = evaluate(x)`, with `evaluate` in the program once.
+
+    A solver that needs its model's Jacobian at the start (a scaling, an identifiability
+    search) and at the solution (the covariance) would otherwise hold two copies of it, and a
+    program traces, lowers, compiles and loads in proportion to its size. Here the two
+    evaluations are the two steps of a `lax.scan`; the first also solves (`lax.cond`, whose
+    predicate is the step, so only one branch runs, batched or not)."""
+    blank = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(lambda: solve(evaluate(x0))))
+
+    def step(carry, first):
+        x, out = carry
+        e = evaluate(x)
+        out = jax.lax.cond(first, lambda: solve(e), lambda: out)
+        return (jnp.where(first, out[0], x), out), e
+
+    (_, out), es = jax.lax.scan(step, (x0, blank), jnp.array([True, False]))
+    return jax.tree.map(lambda a: a[0], es), out, jax.tree.map(lambda a: a[1], es)
 
 
 def freeze(tree: PyTree, free: PyTree) -> PyTree:

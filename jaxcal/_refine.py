@@ -282,40 +282,48 @@ def refine(
         return reprojection_residuals(unravel(flat0.at[idx].set(x_free)), problem, w).reshape(-1)
 
     x0 = flat0[idx]
-    scale = _jacobi_scale(residual_x, x0, mask_f)
 
-    def fn(y, w):
-        return residual_x(x0 + scale * y, w)
+    def solve(start):
+        """The rounds from `x0`, Jacobi-scaled by the start's Jacobian `start = (r0, J0)`."""
+        scale = _jacobi_scale(start[1])
 
-    # Normal equations + Cholesky (`solve_normal`): the (Jacobi-scaled) Jacobian is
-    # tall and well conditioned, and lineax's default QR forms the thin Q, orders of
-    # magnitude slower a step for thousands of rows than the Cholesky of J^T J; the lean
-    # loop takes optimistix's steps in a program that compiles sooner (docs/performance.md).
-    out = _rounds(fn, jnp.zeros_like(x0), mask, loss, rounds, c, reject, options)
-    x = x0 + scale * out.value
+        def fn(y, w):
+            return residual_x(x0 + scale * y, w)
+
+        # Normal equations + Cholesky (`solve_normal`): the (Jacobi-scaled) Jacobian is
+        # tall and well conditioned, and lineax's default QR forms the thin Q, orders of
+        # magnitude slower a step for thousands of rows than the Cholesky of J^T J; the lean
+        # loop takes optimistix's steps in a program that compiles sooner (docs/performance.md).
+        out = _rounds(fn, jnp.zeros_like(x0), mask, loss, rounds, c, reject, options)
+        return x0 + scale * out.value, out
+
+    # The unweighted residuals (px, zero on padding) and their Jacobian at the start (for the
+    # scaling) and at the solution (the covariance: the final solve's weights scale its rows,
+    # exactly what weighting inside the pass computes; and the result's residuals).
+    _, (x, out), (raw, J) = _lsq.start_and_solution(
+        lambda xx: _lsq.value_and_jacfwd(lambda z: residual_x(z, mask_f), xx), x0, solve
+    )
     params = unravel(flat0.at[idx].set(x))
-    # Uncertainty: Jacobian of the (weighted) residuals at the solution.
-    J = jax.jacfwd(lambda xx: residual_x(xx, out.weights))(x)
-    r = residual_x(x, out.weights)
-    return _result(problem, params, free, out, _covariances(J, r, out.weights, idx, flat0.shape[0]))
+    sw = jnp.repeat(jnp.sqrt(out.weights).reshape(-1), 2)
+    covs = _covariances(J * sw[:, None], raw * sw, out.weights, idx, flat0.shape[0])
+    return _result(problem, params, free, out, covs, raw.reshape(mask.shape + (2,)))
 
 
-def _jacobi_scale(residual_x, x0, mask_f):
+def _jacobi_scale(J0):
     """The solver's variable scales: each free parameter's step that moves the start
-    residuals (corner weights `mask_f`) by `_COLUMN_NORM` (Jacobi scaling of the start Jacobian)."""
-    J0 = jax.jacfwd(lambda x: residual_x(x, mask_f))(x0)
+    residuals by `_COLUMN_NORM` (Jacobi scaling of the start Jacobian `J0`)."""
     col = jnp.linalg.norm(J0, axis=0)
     return _COLUMN_NORM / jnp.where(col > 0, col, 1.0)
 
 
-def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, covs) -> RefineResult:
+def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, covs, raw) -> RefineResult:
     """The `RefineResult` at the solution `params` of the rounds `out`, with the final
-    solve's covariances `covs` (`_covariances`): the model and mounts the corrections
-    give, the camera, the residuals and the inliers' RMS."""
+    solve's covariances `covs` (`_covariances`) and reprojection residuals `raw` (px, zero
+    on padding): the model and mounts the corrections give, the camera, the residuals and
+    the inliers' RMS."""
     cov, cov_model, sigma2, sv, Vt = covs
     mask, w = problem.data.mask, out.weights
     used = w > 0
-    raw = jnp.where(mask[..., None], projected_corners(params, problem) - problem.data.pixels, 0.0)
     inl_rms = jnp.sqrt(
         jnp.sum(jnp.where(used[..., None], raw**2, 0.0)) / jnp.maximum(2.0 * jnp.sum(used), 1.0)
     )
