@@ -142,6 +142,7 @@ _CPU_TEST: Counter = Counter()
 #: (`jax.monitoring` events): where a file's time goes, without a profiler.
 _JAX_S: dict[str, Counter] = {}
 _CURRENT = ["-"]
+_NODE = ["-"]
 _JAX_EVENTS = {
     "/jax/core/compile/jaxpr_trace_duration": "trace",
     "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
@@ -160,6 +161,49 @@ if os.environ.get("JAXCAL_TEST_CPU"):
     jax.monitoring.register_event_duration_secs_listener(_on_jax_duration)
 
 
+#: `JAXCAL_TEST_COMPILES=FILE`: one JSON line per XLA compile (a persistent-cache
+#: miss): the program's name, its cache key, the seconds and the test. Programs
+#: compiled more than once (by both workers, or again after a cache drop) and
+#: programs compiled at many shapes are what the suite could share.
+def _log_compiles(path: str) -> None:
+    from jax._src import compiler
+
+    write = compiler._compile_and_write_cache
+
+    def logged(backend, computation, devices, options, callbacks, module_name, cache_key):
+        start, wall = time.process_time(), time.monotonic()
+        out = write(backend, computation, devices, options, callbacks, module_name, cache_key)
+        row = {
+            "name": module_name, "key": cache_key[-16:], "cpu_s": round(time.process_time() - start, 3),
+            "wall_s": round(time.monotonic() - wall, 3), "test": _NODE[0], "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
+        }  # fmt: skip
+        with open(path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        return out
+
+    compiler._compile_and_write_cache = logged
+
+    read = compiler._cache_read
+
+    def logged_read(module_name, cache_key, *args):
+        start = time.monotonic()
+        out = read(module_name, cache_key, *args)
+        if out[0] is not None:
+            row = {
+                "read": module_name, "key": cache_key[-16:], "wall_s": round(time.monotonic() - start, 3),
+                "test": _NODE[0], "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
+            }  # fmt: skip
+            with open(path, "a") as f:
+                f.write(json.dumps(row) + "\n")
+        return out
+
+    compiler._cache_read = logged_read
+
+
+if os.environ.get("JAXCAL_TEST_COMPILES"):
+    _log_compiles(os.environ["JAXCAL_TEST_COMPILES"])
+
+
 def _cpu_now() -> float:
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.process_time() + children.ru_utime + children.ru_stime
@@ -169,6 +213,7 @@ def _cpu_now() -> float:
 def pytest_runtest_protocol(item, nextitem):
     start = _cpu_now()
     _CURRENT[0] = item.path.name
+    _NODE[0] = item.nodeid
     yield
     spent = _cpu_now() - start
     _CPU[item.path.name] += spent
