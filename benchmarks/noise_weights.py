@@ -34,6 +34,7 @@ predicted by a line fitted to the sharpness). Run one weighting per process, wit
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -43,6 +44,7 @@ import numpy as np
 
 import jaxcal
 import jaxcal._refine as refine_module
+from jaxcal.errors import JaxcalError
 from jaxcal.io._files import write_text_atomic
 from jaxcal.io.dataset import load_dataset
 from jaxcal.vision import detect_frames
@@ -188,6 +190,8 @@ def weighted_calibration(dataset: Path, rows: list[dict], key: str | None) -> di
     refine_module.reprojection_residuals = residuals
     try:
         result = jaxcal.calibrate(dataset, progress=False)
+    except JaxcalError as e:
+        return {"refined_mm": None, "two_stage_mm": None, "status": "refused", "reasons": [str(e)[:200]]}
     finally:
         refine_module.reprojection_residuals = plain
     v = result.validation
@@ -196,6 +200,63 @@ def weighted_calibration(dataset: Path, rows: list[dict], key: str | None) -> di
         "two_stage_mm": v["ee_rms_mm_two_stage"],
         "status": result.status,
     }
+
+
+def std_gain(rows: list[dict], scale: np.ndarray) -> float:
+    """How much weights `1 / scale^2` per view shrink the standard deviation of a parameter every
+    corner informs alike (a mean), were each view's corner errors independent with its measured
+    RMS: sqrt(var unweighted / var weighted), 1 for equal scales."""
+    n = np.array([r["corners"] for r in rows], np.float64)
+    var = np.array([r["rms_px"] for r in rows]) ** 2 / 2.0
+    w = n / np.asarray(scale) ** 2
+    unweighted = np.sum(n * var) / np.sum(n) ** 2
+    weighted = np.sum(w**2 * var / n) / np.sum(w) ** 2
+    return float(np.sqrt(unweighted / weighted))
+
+
+def consecutive_correlation(rows: list[dict]) -> float:
+    """The correlation of the per-view RMS errors of consecutive frames: near 1 when a view's
+    error size is its pose's (smooth along the sweep), near 0 for independent noise."""
+    frame = np.array([r["frame"] for r in rows])
+    rms = np.array([r["rms_px"] for r in rows])
+    k = np.flatnonzero(np.diff(frame) == 1)
+    return float(np.corrcoef(rms[k], rms[k + 1])[0, 1])
+
+
+#: Smear bins of the summary (px).
+BINS = (0.0, 0.5, 1.0, 2.0, 3.0, np.inf)
+
+
+def smear_bins(rows: list[dict]) -> list[dict]:
+    """The views' RMS errors (2-D, along and across the motion, px) per smear bin (`BINS`)."""
+    smear = np.array([r["smear_px"] for r in rows])
+    out = []
+    for lo, hi in zip(BINS[:-1], BINS[1:]):
+        sel = [r for r, s in zip(rows, smear) if lo <= s < hi]
+        if sel:
+            out.append(
+                {"smear_px": [lo, hi if np.isfinite(hi) else None], "views": len(sel)}
+                | {
+                    k: float(np.sqrt(np.mean([r[k] ** 2 for r in sel])))
+                    for k in ("rms_px", "along_rms_px", "across_rms_px")
+                }
+            )
+    return out
+
+
+def noisier(case: Path, scratch: Path, noise_dn: float, seed: int = 0) -> Path:
+    """A copy of `case` in `scratch` with Gaussian noise of `noise_dn` (DN) added to every image
+    (8 bits, one seeded stream per case); the workdir's capture is left as it is."""
+    out = scratch / case.name
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(case, out)
+    rng = np.random.default_rng(seed)
+    for path in sorted((out / "images").rglob("*.png")):
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        image = np.clip(np.rint(image + rng.normal(0.0, noise_dn, image.shape)), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(path), image)
+    return out
 
 
 def main(argv=None) -> int:
@@ -211,8 +272,21 @@ def main(argv=None) -> int:
         help="calibrate each case with these per-view scales: plain (none), the true per-view RMS "
         "error (an oracle), the error predicted from the corners' sharpness (a line fitted per case)",
     )
+    parser.add_argument(
+        "--added-noise-dn",
+        type=float,
+        default=0.0,
+        help="measure copies of the cases (in --scratch) with this much Gaussian noise added (DN)",
+    )
+    parser.add_argument("--scratch", help="where the noisier copies go (required with --added-noise-dn)")
     args = parser.parse_args(argv)
-    cases = {c: views(Path(args.workdir) / c) for c in args.cases}
+    paths = {c: Path(args.workdir) / c for c in args.cases}
+    if args.added_noise_dn > 0:
+        if not args.scratch:
+            parser.error("--added-noise-dn needs --scratch")
+        Path(args.scratch).mkdir(parents=True, exist_ok=True)
+        paths = {c: noisier(p, Path(args.scratch), args.added_noise_dn) for c, p in paths.items()}
+    cases = {c: views(p) for c, p in paths.items()}
     calibrations = {}
     for c, rows in cases.items():
         if "sharpness" in args.weights:
@@ -222,7 +296,7 @@ def main(argv=None) -> int:
                 r["predicted_px"] = float(max(x, 0.2 * np.median([q["rms_px"] for q in rows])))
         for w in args.weights:
             key = {"plain": None, "rms_px": "rms_px", "sharpness": "predicted_px"}[w]
-            calibrations.setdefault(c, {})[w] = weighted_calibration(Path(args.workdir) / c, rows, key)
+            calibrations.setdefault(c, {})[w] = weighted_calibration(paths[c], rows, key)
             print(json.dumps({c: {w: calibrations[c][w]}}), flush=True)
     model = fit(cases)
     summary = {}
@@ -239,18 +313,28 @@ def main(argv=None) -> int:
             "lag_ms": rows[0]["lag_ms"],
             "line_delay_us": rows[0]["line_delay_us"],
             "scatter_px": float(np.sqrt(np.mean(np.array([r["scatter_px"] for r in rows]) ** 2))),
+            "bins": smear_bins(rows),
+            "oracle_std_gain": std_gain(rows, rms),
+            "consecutive_rms_correlation": consecutive_correlation(rows),
         }
         if smear.std() > 0:
             row["corr_rms_smear"] = float(np.corrcoef(rms, smear)[0, 1])
             row["corr_scatter_smear"] = float(np.corrcoef([r["scatter_px"] for r in rows], smear)[0, 1])
-            if model:
+            if model.get("b", 0.0) > 0 and c in model["s0_px"]:  # else the model is one sigma for all
                 s = np.sqrt(model["s0_px"].get(c, 0.0) ** 2 + (model["b"] * smear) ** 2)
                 row["corr_rms_model"] = float(np.corrcoef(rms, s)[0, 1])
+                row["model_std_gain"] = std_gain(rows, s)
         summary[c] = row
         print(json.dumps({c: row}), flush=True)
     print(json.dumps({"fit": model}), flush=True)
     if args.json:
-        out = {"fit": model, "summary": summary, "calibrations": calibrations, "views": cases}
+        out = {
+            "added_noise_dn": args.added_noise_dn,
+            "fit": model,
+            "summary": summary,
+            "calibrations": calibrations,
+            "views": cases,
+        }
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         write_text_atomic(Path(args.json), json.dumps(out, indent=2))
     return 0

@@ -68,3 +68,11 @@ def test_sharpness_is_one_over_an_edges_width():
     corners = np.array([[20.0, 20.0], [19.0, 10.0]])
     np.testing.assert_allclose(noise_weights.sharpness(step, corners), 0.5, rtol=1e-12)
     np.testing.assert_allclose(noise_weights.sharpness(ramp, corners), 0.25, rtol=1e-12)
+
+
+def test_std_gain_of_per_view_weights():
+    # Two views of one corner each, variances 1 and 4 px^2 per axis: the mean's variance is
+    # (1 + 4) / 4 = 1.25 unweighted and 1 / (1 + 1/4) = 0.8 with inverse-variance weights.
+    rows = [{"corners": 1, "rms_px": np.sqrt(2.0)}, {"corners": 1, "rms_px": np.sqrt(8.0)}]
+    assert noise_weights.std_gain(rows, np.array([1.0, 2.0])) == pytest.approx(np.sqrt(1.25 / 0.8), rel=1e-12)
+    assert noise_weights.std_gain(rows, np.ones(2)) == 1.0  # one sigma for all: the unweighted mean
