@@ -60,6 +60,7 @@ from ._lsq import LMOptions
 from ._options import RobustOptions, fit_options, robust_terms
 from ._robust import (
     deletion_residuals,
+    irls_rounds_evaluated,
     irls_rounds_reweighted,
     robust_scale,
     round_plan,
@@ -229,22 +230,30 @@ def _fit(
     reject_ = jnp.inf if reject is None else reject
 
     def weights_at(params, w, hard):
-        if loss is None:
-            return mask_f
-        d, nu = _deletion_stats(model, params, ref, data, free, w)
-        return sample_weights(d, nu, mask, loss=loss, c=c, reject=reject_, hard=hard)[0]
+        """The next round's weights, and the terms of the fit at `params` under `w`."""
+        terms = _terms(model, params, ref, data, free, w)
+        d, nu = terms[-1]
+        return sample_weights(d, nu, mask, loss=loss, c=c, reject=reject_, hard=hard)[0], terms
 
     def solve_with(params, w):
         return solve(params, ref, data, free, w, rtol=rtol, atol=atol, max_steps=max_steps)
 
-    out = irls_rounds_reweighted(solve_with, weights_at, params0, mask_f, hard_flags)
+    def frozen(params):
+        return jax.tree.map(lambda x, f: x * f, params, free)
+
+    if loss is None:
+        out = irls_rounds_reweighted(solve_with, lambda p, w, hard: mask_f, params0, mask_f, hard_flags)
+        terms = None
+    else:
+        # The rounds' last evaluation, at the solution (frozen entries zero) under its weights,
+        # is the summary's: one copy of the Jacobian in the program.
+        out, terms = irls_rounds_evaluated(solve_with, weights_at, params0, mask_f, hard_flags, frozen)
     params, steps, ok, result = out.value, out.num_steps, out.ok, out.result
     if throw:
         params = eqx.error_if(params, ~ok, f"{name}: a Levenberg-Marquardt solve did not converge")
-    params = jax.tree.map(lambda x, f: x * f, params, free)
     return _summarise(
         model,
-        params,
+        frozen(params),
         ref,
         data,
         free,
@@ -254,6 +263,7 @@ def _fit(
         weights=out.weights,
         round_results=out.round_results,
         round_steps=out.round_steps,
+        terms=terms,
     )
 
 
@@ -447,11 +457,13 @@ def _covariance(model, params, ref, data, free, w):
     return cov_p["line_rate"], cov_p["meas"], G
 
 
-def _deletion_stats(model, params, ref, data, free, w):
-    """Each sample's deletion residual norm and degrees of freedom, `(markers, frames)` each,
-    for a fit solved with weights `w` (`jaxcal._robust.deletion_residuals`)."""
+def _terms(model, params, ref, data, free, w):
+    """The fit's terms at `params` under weights `w`: `(r, (cov_lr, cov_meas, G), (d, nu))`, the
+    residuals, `_covariance`'s blocks and each sample's deletion residual norm and degrees of
+    freedom, `(markers, frames)` each (`jaxcal._robust.deletion_residuals`)."""
     r = model.residuals(params, (ref, data))
-    return deletion_residuals(r, _covariance(model, params, ref, data, free, w)[2], w, data.mask)
+    cov = _covariance(model, params, ref, data, free, w)
+    return r, cov, deletion_residuals(r, cov[2], w, data.mask)
 
 
 def _summarise(
@@ -467,9 +479,11 @@ def _summarise(
     weights=None,
     round_results=None,
     round_steps=None,
+    terms=None,
 ) -> ArcFitResult:
     """The `ArcFitResult` at `params` (frozen entries already zero), the
-    covariance from the Jacobian with `weights` (default: the mask)."""
+    covariance from the Jacobian with `weights` (default: the mask); `terms`: `_terms` there,
+    when the caller has them."""
     mask = data.mask
     mask_w = mask.astype(jnp.float64)
     w = mask_w if weights is None else weights
@@ -479,8 +493,9 @@ def _summarise(
     has_enc = data.encoder is not None
     has_rot = data.orientations is not None
     k = data.sqrt_info.shape[-1]
-    cov_lr, meas_cov, hat = _covariance(model, params, ref, data, free, w)
-    r = model.residuals(params, (ref, data))
+    r, (cov_lr, meas_cov, hat), (d, nu) = (
+        _terms(model, params, ref, data, free, w) if terms is None else terms
+    )
     e = jnp.linalg.norm(r, axis=-1)
     h = w * jnp.trace(hat, axis1=-2, axis2=-1)  # leverages
     n_obs = k * jnp.sum(w)
@@ -523,7 +538,6 @@ def _summarise(
     meas = jnp.concatenate(
         [params.line, params.p0.reshape(-1)] + ([params.r0.reshape(-1)] if has_rot else [])
     )
-    d, nu = deletion_residuals(r, hat, w, mask)
     return ArcFitResult(
         direction=V,
         point=Q_c,

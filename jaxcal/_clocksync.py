@@ -30,7 +30,13 @@ from ._arcdata import ArcData
 from ._arcmodel import arc_residuals, free_mask, initialise_arc
 from ._lsq import LMOptions
 from ._options import RobustOptions, fit_options, robust_terms
-from ._robust import deletion_residuals, irls_rounds_reweighted, round_plan, sample_weights
+from ._robust import (
+    deletion_residuals,
+    irls_rounds_evaluated,
+    irls_rounds_reweighted,
+    round_plan,
+    sample_weights,
+)
 
 _MS = 1e-3
 
@@ -214,30 +220,39 @@ def fit_clock_offset(
     def rows(w):
         return jnp.repeat(jnp.sqrt(w).reshape(-1), k)
 
-    def weights_at(y, w, hard):
-        if loss is None:
-            return mask_f
+    def terms(y, w):
+        """`(r, J, Jw, cov)`: the unweighted residuals at `y` and their Jacobian, it weighted by
+        `w`, and the unscaled $(J^T W J)^{+}$ over the free parameters."""
         r, J = unweighted(y)
         Jw = J * rows(w)[:, None]
-        cov = _lsq.normal_pinv(Jw.T @ Jw, free_flat)
+        return r, J, Jw, _lsq.normal_pinv(Jw.T @ Jw, free_flat)
+
+    def weights_at(y, w, hard):
+        """The next round's weights, and the `terms` at `y` under `w` (less `J`)."""
+        r, J, Jw, cov = terms(y, w)
         d, nu = _deletion(J, cov, r, w, mask)
         reject_ = jnp.inf if reject is None else reject
         weigh = lambda d_j, nu_j, m_j: sample_weights(  # noqa: E731
             d_j, nu_j, m_j, loss=loss, c=c, reject=reject_, hard=hard
         )[0]
-        return jax.vmap(weigh)(d, nu, mask)  # one noise scale per joint
+        return jax.vmap(weigh)(d, nu, mask), (r, Jw, cov)  # one noise scale per joint
 
     def solve(y, w):
         sol = _lsq.solve_normal(residuals, y, w, options)
         return sol.value, sol.result, sol.stats["num_steps"]
 
-    out = irls_rounds_reweighted(solve, weights_at, (params0, jnp.zeros(())), mask_f, hard_flags)
+    y0 = (params0, jnp.zeros(()))
+    if loss is None:
+        out = irls_rounds_reweighted(solve, lambda y, w, hard: mask_f, y0, mask_f, hard_flags)
+        r, _, Jw, cov = terms(out.value, out.weights)
+        last = r, Jw, cov
+    else:  # the rounds' last evaluation, at the solution under its weights: one copy of the Jacobian
+        out, last = irls_rounds_evaluated(solve, weights_at, y0, mask_f, hard_flags)
     y = out.value
     if throw:
         y = eqx.error_if(y, ~out.ok, "fit_clock_offset: a Levenberg-Marquardt solve did not converge")
-    r, J = unweighted(y)
-    J = J * rows(out.weights)[:, None]
-    return _clock_fit(y, out, (J, _lsq.normal_pinv(J.T @ J, free_flat)), r, data, offset0_s)
+    r, Jw, cov = last
+    return _clock_fit(y, out, (Jw, cov), r, data, offset0_s)
 
 
 def _joint_problem(data: ArcData, t_cam, enc_t, enc_q, offset0_s, drift_ppm):

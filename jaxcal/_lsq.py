@@ -42,6 +42,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
+from jax.extend.core import jaxpr_as_fun
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, PyTree
 
@@ -171,6 +172,21 @@ def value_and_jacfwd(f: Callable, x: Array) -> tuple[Array, Array]:
     return r, J
 
 
+def traced(f: Callable, *args) -> tuple[Callable, PyTree]:
+    """`f` traced once at `args` (arrays or `jax.ShapeDtypeStruct`s): `(g, zeros)`, `g(*a)`
+    replaying the trace (the same program as `f(*a)`) and `zeros` an output of `f`'s structure,
+    shapes and dtypes. For a `lax.cond` that either runs `f` or passes values through, and for
+    a loop's carry: the branch replays `f`'s jaxpr rather than running its Python again."""
+    closed, shape = jax.make_jaxpr(f, return_shape=True)(*args)
+    fun = jaxpr_as_fun(closed)
+    tree = jax.tree.structure(shape)
+
+    def g(*a):
+        return jax.tree.unflatten(tree, fun(*jax.tree.leaves(a)))
+
+    return g, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
+
+
 def start_and_solution(evaluate: Callable, x0: Array, solve: Callable) -> tuple[Any, Any, Any]:
     """`(e0, out, e1)`: `e0 = evaluate(x0)`, `out = solve(e0)` (a tuple whose first entry is
     the solution `x`) and `e1 = evaluate(x)`, with `evaluate` in the program once.
@@ -180,15 +196,16 @@ def start_and_solution(evaluate: Callable, x0: Array, solve: Callable) -> tuple[
     program traces, lowers, compiles and loads in proportion to its size. Here the two
     evaluations are the two steps of a `lax.scan`; the first also solves (`lax.cond`, whose
     predicate is the step, so only one branch runs, batched or not)."""
-    blank = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(lambda: solve(evaluate(x0))))
+    evaluate_, e_zeros = traced(evaluate, x0)
+    solve_, out_zeros = traced(solve, e_zeros)
 
     def step(carry, first):
         x, out = carry
-        e = evaluate(x)
-        out = jax.lax.cond(first, lambda: solve(e), lambda: out)
+        e = evaluate_(x)
+        out = jax.lax.cond(first, solve_, lambda _: out, e)
         return (jnp.where(first, out[0], x), out), e
 
-    (_, out), es = jax.lax.scan(step, (x0, blank), jnp.array([True, False]))
+    (_, out), es = jax.lax.scan(step, (x0, out_zeros), jnp.array([True, False]))
     return jax.tree.map(lambda a: a[0], es), out, jax.tree.map(lambda a: a[1], es)
 
 

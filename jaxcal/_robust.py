@@ -50,6 +50,7 @@ import optimistix as optx
 from jax.scipy.special import gammainc, gammaincc, gammaln
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
+from ._lsq import traced
 from ._schur import small_cholesky_solve
 
 LOSSES = ("cauchy", "huber", None)
@@ -269,3 +270,48 @@ def irls_rounds_reweighted(
 
     out = irls_rounds(solve_, lambda yw, hard: weights_at(yw[0], yw[1], hard), (y0, w0), hard_flags)
     return out._replace(value=out.value[0])
+
+
+def irls_rounds_evaluated(
+    solve: Callable[[PyTree, PyTree], tuple[PyTree, optx.RESULTS, Int[Array, ""]]],
+    weights_at: Callable[[PyTree, PyTree, Bool[Array, ""]], tuple[PyTree, PyTree]],
+    y0: PyTree,
+    w0: PyTree,
+    hard_flags: np.ndarray,
+    at_last: Callable[[PyTree], PyTree] = lambda y: y,
+) -> tuple[Rounds, PyTree]:
+    """`irls_rounds_reweighted` whose `weights_at(y, w, hard) -> (weights, aux)` also returns
+    what it computed on the way (residuals, a covariance), and the `aux` of one more
+    evaluation: at `at_last(y)`, `y` the last round's solution, with the weights it was solved
+    with. That is what a summary at the solution needs; here it is a last step of the same
+    scan, which does not solve, so the evaluation is in the program once rather than twice.
+    The rounds and their results are `irls_rounds_reweighted`'s."""
+    weigh, _ = traced(weights_at, y0, w0, jnp.asarray(False))
+    w_zeros = jax.tree.map(jnp.zeros_like, w0)
+    solve_, (_, result0, steps0) = traced(solve, y0, w_zeros)
+    n = len(hard_flags)
+    flags = (jnp.asarray(np.append(hard_flags, False)), jnp.asarray(np.arange(n + 1) < n))
+
+    def body(carry, xs):
+        y, w_prev, steps, ok = carry
+        hard, solving = xs
+        point = jax.tree.map(lambda a, b: jnp.where(solving, a, b), y, at_last(y))
+        w, aux = weigh(point, w_prev, hard)
+
+        def run(y, w):
+            new, result, n = solve_(y, w)
+            finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new)]))
+            return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, y), result, n
+
+        new, result, n = jax.lax.cond(solving, run, lambda y, w: (y, result0, steps0), y, w)
+        w_used = jax.tree.map(lambda a, b: jnp.where(solving, a, b), w, w_prev)
+        ok = ok & (~solving | (result == optx.RESULTS.successful))
+        return (new, w_used, steps + n, ok), (w, result, n, aux)
+
+    init = (y0, w0, jnp.asarray(0), jnp.asarray(True))
+    (y, w, steps, ok), (_, results, round_steps, auxes) = jax.lax.scan(body, init, flags)
+    results, round_steps = jax.tree.map(lambda r: r[:n], (results, round_steps))
+    first_bad = jnp.argmax(results != optx.RESULTS.successful)
+    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
+    rounds = Rounds(y, steps, ok, w, result, results, round_steps)
+    return rounds, jax.tree.map(lambda a: a[-1], auxes)
