@@ -150,12 +150,12 @@ class ScoreTerms:
     refit: Callable[[float], np.ndarray]
 
 
-def score_terms(setup, sync, two) -> ScoreTerms | None:
-    """The test's terms at the arcs' clock (see `ScoreTerms`), or None where it does not apply
-    (no sweeps with encoders, no masses)."""
-    arcs, fit = two.arcs, two.fit
+def _program_args(setup, sync, two) -> Callable | None:
+    """`args(arcs)`: the arm score program's arguments (`_programs.arm_score`) with the arcs
+    `arcs`, or None where the test does not apply (no sweeps with encoders, no masses)."""
+    fit = two.fit
     sweeps = _sweep_weights(setup, sync)
-    if sweeps is None or not bool(arcs.has_encoder):
+    if sweeps is None or not bool(two.arcs.has_encoder):
         return None
     try:
         masses, coms = link_inertials(setup.dataset.robot_urdf)
@@ -164,21 +164,32 @@ def score_terms(setup, sync, two) -> ScoreTerms | None:
     n = setup.nominal.num_joints
     home = np.zeros((n, n)) if sync.homes is None else np.asarray(sync.homes, np.float64)
 
+    def args(arcs):
+        return (
+            setup.nominal,
+            arcs,
+            fit.T_flange_marker0,
+            fit.T_cam_base0,
+            home,
+            fit.params,
+            *sweeps,
+            masses,
+            coms,
+        )
+
+    return args
+
+
+def score_terms(setup, sync, two) -> ScoreTerms | None:
+    """The test's terms at the arcs' clock (see `ScoreTerms`), or None where it does not apply
+    (no sweeps with encoders, no masses)."""
+    arcs, fit = two.arcs, two.fit
+    args = _program_args(setup, sync, two)
+    if args is None:
+        return None
+
     def terms(arcs):
-        return [
-            np.asarray(a)
-            for a in _programs.arm_score(True)(
-                setup.nominal,
-                arcs,
-                fit.T_flange_marker0,
-                fit.T_cam_base0,
-                home,
-                fit.params,
-                *sweeps,
-                masses,
-                coms,
-            )  # fmt: skip
-        ]
+        return [np.asarray(a) for a in _programs.arm_score(True)(*args(arcs))]
 
     def refit(offset_s: float) -> np.ndarray:
         return terms(arcs_at(setup, sync, two, offset_s))[0]
@@ -232,9 +243,14 @@ def gravity_score(setup, sync, two, refined=None, terms: ScoreTerms | None = Non
 
 
 def start_arm_score(setup, sync, two) -> Future:
-    """`score_terms(setup, sync, two)` as a `Future` (`_programs.run_ahead`, which runs it inline):
-    they need only the two-stage fit; hand the `Future` to `finish_arm_score`."""
-    return _programs.run_ahead("arm check", score_terms, setup, sync, two)
+    """`score_terms(setup, sync, two)` as a `Future` to hand to `finish_arm_score`: they need
+    only the two-stage fit. Their program compiles now on a background thread
+    (`_programs.compile_ahead`), beside the refinement's on this one, and runs when the
+    `Future` is first asked for its result, after the refinement: never beside another."""
+    args = _program_args(setup, sync, two)
+    if args is not None:
+        _programs.compile_ahead(_programs.arm_score(True), *args(two.arcs))
+    return _programs.Deferred(score_terms, setup, sync, two)
 
 
 def comparable(refined):

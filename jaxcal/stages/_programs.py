@@ -152,6 +152,32 @@ def _quietly(job, *args) -> None:
         pass
 
 
+def compile_ahead(program, *args) -> None:
+    """Compile (load or export, lower and compile; never run) `program` for `args` on a
+    background thread, so that the call that follows later finds it compiled (a call while it
+    compiles waits for it: `StoredProgram`'s entries compile once). Compiling beside a running
+    program is safe; running two at once is not (`run_ahead`)."""
+    _start(("compile", program.name, len(_AHEAD)), program.compile, *args)
+
+
+class Deferred(Future):
+    """A `Future` whose `job(*args)` runs, here, when its result is first asked for."""
+
+    def __init__(self, job, *args):
+        super().__init__()
+        self._job = (job, args)
+
+    def result(self, timeout=None):
+        if self._job is not None:
+            job, args = self._job
+            self._job = None
+            try:
+                self.set_result(job(*args))
+            except Exception as e:  # noqa: BLE001 - raised below, as a Future does
+                self.set_exception(e)
+        return super().result(timeout)
+
+
 def run_ahead(name: str, job, *args) -> Future:
     """`job(*args)`, its result (or exception) in the returned `Future`, for a check the
     pipeline could run beside the next stage. It runs here, inline: two jaxcal programs
