@@ -309,3 +309,22 @@ def test_nested_warm_starts_record_their_own_runs(store):
     assert not _exported._RECORDING
     runs = sorted(len(json.loads(p.read_text())) for p in store.glob("run-*.json"))
     assert runs == [1, 2]
+
+
+def test_the_command_ends_with_its_code_and_its_output_out(tmp_path):
+    """`python -m jaxcal` (as the `jaxcal` script, `jaxcal.cli.run`) ends the process with
+    `os._exit` once a command returns: its exit code and everything it printed, piped and
+    so block-buffered, must still come out, for a success and for a refusal."""
+    ok = subprocess.run(
+        [sys.executable, "-m", "jaxcal", "inspect", str(DATASET)], capture_output=True, text=True, timeout=300
+    )
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stdout.startswith(f"{DATASET}: robot.urdf") and "camera cam0: 800x600, 144 frames" in ok.stdout
+    assert "encoder log: 7201 samples" in ok.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "jaxcal", "calibrate", str(tmp_path / "none"), "--out", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert bad.returncode == 2
+    assert bad.stderr.strip() == f"jaxcal: error: {tmp_path / 'none'}: dataset directory not found"
+    assert not (tmp_path / "out").exists()

@@ -18,6 +18,8 @@
 
 import argparse
 import importlib
+import logging
+import os
 import re
 import sys
 
@@ -391,5 +393,24 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def run() -> None:
+    """The `jaxcal` command (and `python -m jaxcal`): `main()`, then the process ends as soon
+    as its outputs are out. A command writes and closes everything it writes (atomically)
+    before `main` returns; what Python's shutdown would do next, tearing down JAX's backend
+    and its compiled programs, costs most of a second of a warm `jaxcal calibrate` and saves
+    nothing. A program still compiling ahead (a run that stopped early) is waited for, and
+    JAX's pending effects; an exception (argparse's exit included) ends the process as usual."""
+    code = main()
+    programs = sys.modules.get("jaxcal.stages._programs")
+    if programs is not None:
+        programs.wait_ahead()
+    if "jax" in sys.modules:
+        sys.modules["jax"].effects_barrier()
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
