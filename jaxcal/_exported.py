@@ -44,6 +44,7 @@ import pickle
 import re
 import tempfile
 import threading
+import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -171,6 +172,12 @@ class StoredProgram:
         self._lock = threading.Lock()
         functools.update_wrapper(self, fun)
         _register_with_jax(self)
+        _PROGRAMS.add(self)
+
+    def held_files(self) -> set[str]:
+        """The stored entries (file names) this process holds in memory."""
+        with self._lock:
+            return {e.file for e in self._entries.values() if e.file is not None}
 
     def __call__(self, *args, **kwargs):
         leaves, in_tree, avals = _flatten(args, kwargs)
@@ -348,6 +355,10 @@ def _write(path: Path, key: bytes, exported, out_tree) -> None:
 #: second thread bought nothing measurable on two cores (warm `jaxcal calibrate
 #: data/ur5e_sweeps`, alternating runs: docs/performance.md), so one keeps it simple.
 AHEAD_THREADS = 1
+#: Every stored program of this process: `warm_start` does not read ahead an entry one of them
+#: holds already (a second calibration in one process would load its executables again, only
+#: for them to be dropped).
+_PROGRAMS: "weakref.WeakSet[StoredProgram]" = weakref.WeakSet()
 #: Entries read ahead by `warm_start`, by file name: futures of `(key, _Entry)` or `None`.
 _AHEAD: dict[str, Future] = {}
 _AHEAD_LOCK = threading.Lock()
@@ -403,9 +414,10 @@ def warm_start(tag: str):
     used: dict = {}
     pool = ThreadPoolExecutor(AHEAD_THREADS, thread_name_prefix="jaxcal programs ahead")
     mine = []
+    held = set().union(*(p.held_files() for p in list(_PROGRAMS)))
     with _AHEAD_LOCK:
         for name, file, options in files:
-            if file not in _AHEAD and "/" not in file and os.sep not in file:
+            if file not in _AHEAD and file not in held and "/" not in file and os.sep not in file:
                 _AHEAD[file] = pool.submit(_read_ahead, folder / file, name, options)
                 mine.append(file)
     _RECORDING.append(used)

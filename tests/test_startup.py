@@ -2,6 +2,7 @@
 foreign, `import jaxcal` light, detection without the `__main__` trap, Ctrl-C
 leaving no child process."""
 
+import gc
 import json
 import os
 import signal
@@ -275,6 +276,27 @@ def test_warm_start_reads_the_last_runs_programs_ahead(store):
     assert taken == [True, False] and len(traces) == 1
     for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_warm_start_reads_nothing_ahead_that_the_process_holds(store):
+    """A second run in one process (a notebook's, a test's) finds its programs in memory:
+    reading their executables again would be thrown away (seconds of a second calibration).
+    Once no program holds the entry, it is read ahead again."""
+    x = jnp.arange(9.0).reshape(3, 3)
+    traces: list = []
+    program = _program(traces)
+    with _exported.warm_start("run a"):
+        program(x, True)
+    with _exported.warm_start("run a"):
+        assert not _exported._AHEAD
+        program(x, True)
+    assert len(traces) == 1
+    del program
+    gc.collect()
+    with _exported.warm_start("run a"):
+        assert len(_exported._AHEAD) == 1
+        _program(traces)(x, True)
+    assert len(traces) == 1 and not _exported._AHEAD
 
 
 @pytest.mark.parametrize("damage", ["not json", "a path outside", "a damaged entry"])
