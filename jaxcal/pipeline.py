@@ -143,7 +143,8 @@ def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult
     obs = stages.observe(setup, options)
     sync = stages.synchronise(setup, obs, options)
     two = stages.two_stage(setup, obs, sync, options)
-    # The verdict's arm-rigidity test: its terms need only the two-stage fit (`stages.run_ahead`, inline).
+    # The verdict's arm-rigidity test: its terms need only the two-stage fit; their program compiles
+    # now beside the refinement's and runs after it (`stages.start_arm_score`).
     arm_score = stages.start_arm_score(setup, sync, two) if setup.kind.has_arcs else None
     # Tracker data have no corners: the two-stage fit is the result (see `stages.TWO_STAGE_IS_FINAL`).
     refined = (
