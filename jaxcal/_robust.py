@@ -241,16 +241,26 @@ def irls_rounds(
         y, steps, ok = carry
         w = weights_at(y, hard)
         new, result, n = solve(y, w)
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new)]))
-        new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, y)
-        return (new, steps + n, ok & (result == optx.RESULTS.successful)), (w, result, n)
+        return (_finite_or(new, y), steps + n, ok & (result == optx.RESULTS.successful)), (w, result, n)
 
     (y, steps, ok), (ws, results, round_steps) = jax.lax.scan(
         body, (y0, jnp.asarray(0), jnp.asarray(True)), jnp.asarray(hard_flags)
     )
+    return Rounds(
+        y, steps, ok, jax.tree.map(lambda w: w[-1], ws), _overall(ok, results), results, round_steps
+    )
+
+
+def _finite_or(new: PyTree, y: PyTree) -> PyTree:
+    """A round's solution `new`, or the previous one `y` where `new` is not finite."""
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new)]))
+    return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, y)
+
+
+def _overall(ok, results: optx.RESULTS) -> optx.RESULTS:
+    """`successful` when every round was, else the first failing round's code."""
     first_bad = jnp.argmax(results != optx.RESULTS.successful)
-    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
-    return Rounds(y, steps, ok, jax.tree.map(lambda w: w[-1], ws), result, results, round_steps)
+    return optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
 
 
 def irls_rounds_reweighted(
@@ -286,9 +296,7 @@ def irls_rounds_evaluated(
     with. That is what a summary at the solution needs; here it is a last step of the same
     scan, which does not solve, so the evaluation is in the program once rather than twice.
     The rounds and their results are `irls_rounds_reweighted`'s."""
-    weigh, _ = traced(weights_at, y0, w0, jnp.asarray(False))
-    w_zeros = jax.tree.map(jnp.zeros_like, w0)
-    solve_, (_, result0, steps0) = traced(solve, y0, w_zeros)
+    solve_, (_, result0, steps0) = traced(solve, y0, jax.tree.map(jnp.zeros_like, w0))
     n = len(hard_flags)
     flags = (jnp.asarray(np.append(hard_flags, False)), jnp.asarray(np.arange(n + 1) < n))
 
@@ -296,22 +304,19 @@ def irls_rounds_evaluated(
         y, w_prev, steps, ok = carry
         hard, solving = xs
         point = jax.tree.map(lambda a, b: jnp.where(solving, a, b), y, at_last(y))
-        w, aux = weigh(point, w_prev, hard)
+        w, aux = weights_at(point, w_prev, hard)
 
         def run(y, w):
             new, result, n = solve_(y, w)
-            finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new)]))
-            return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, y), result, n
+            return _finite_or(new, y), result, n
 
         new, result, n = jax.lax.cond(solving, run, lambda y, w: (y, result0, steps0), y, w)
         w_used = jax.tree.map(lambda a, b: jnp.where(solving, a, b), w, w_prev)
         ok = ok & (~solving | (result == optx.RESULTS.successful))
-        return (new, w_used, steps + n, ok), (w, result, n, aux)
+        return (new, w_used, steps + n, ok), (result, n, aux)
 
     init = (y0, w0, jnp.asarray(0), jnp.asarray(True))
-    (y, w, steps, ok), (_, results, round_steps, auxes) = jax.lax.scan(body, init, flags)
+    (y, w, steps, ok), (results, round_steps, auxes) = jax.lax.scan(body, init, flags)
     results, round_steps = jax.tree.map(lambda r: r[:n], (results, round_steps))
-    first_bad = jnp.argmax(results != optx.RESULTS.successful)
-    result = optx.RESULTS.where(ok, optx.RESULTS.successful, jax.tree.map(lambda r: r[first_bad], results))
-    rounds = Rounds(y, steps, ok, w, result, results, round_steps)
+    rounds = Rounds(y, steps, ok, w, _overall(ok, results), results, round_steps)
     return rounds, jax.tree.map(lambda a: a[-1], auxes)
