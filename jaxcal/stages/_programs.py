@@ -10,6 +10,7 @@ which keeps its executable, so a second process neither traces nor compiles it.
 
 import atexit
 import functools
+import itertools
 import threading
 from concurrent.futures import Future
 from dataclasses import replace
@@ -157,7 +158,11 @@ def compile_ahead(program, *args) -> None:
     background thread, so that the call that follows later finds it compiled (a call while it
     compiles waits for it: `StoredProgram`'s entries compile once). Compiling beside a running
     program is safe; running two at once is not (`run_ahead`)."""
-    _start(("compile", program.name, len(_AHEAD)), program.compile, *args)
+    _start(("compile", program.name, next(_COMPILES)), program.compile, *args)
+
+
+#: Numbers `compile_ahead`'s keys apart (`_AHEAD`'s size repeats once `wait_ahead` pops from it).
+_COMPILES = itertools.count()
 
 
 class Deferred(Future):
