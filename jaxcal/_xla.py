@@ -9,7 +9,15 @@ time and runs no slower, and a cold `jaxcal calibrate data/ur5e_sweeps` takes
 a quarter less CPU, to the same digits (`benchmarks/compile.py`; the figures
 are in docs/performance.md).
 
-XLA aborts the whole process on a flag it does not know, so the flag is
+On a machine of a few cores, XLA's split of each program's LLVM module into
+32 parts compiled on its thread pool (`--xla_cpu_parallel_codegen_split_count`)
+costs more than it returns: jaxcal already compiles its stage programs side by
+side, and the split copies the module for each part. With one part a cold
+`calibrate` and the test suite's compiles take less CPU and less wall time on
+2 cores (docs/performance.md); a machine with more than `FEW_CORES` cores keeps
+XLA's split.
+
+XLA aborts the whole process on a flag it does not know, so a flag is
 only added when the installed jaxlib carries it (its name is in the shared
 library), and only when
 
@@ -23,44 +31,62 @@ import mmap
 import os
 from pathlib import Path
 
-#: The flag and its value; see the module docstring.
+#: The flags and their values; see the module docstring.
 FUSION_EMITTERS_OFF = "--xla_cpu_use_fusion_emitters=false"
+ONE_CODEGEN_PART = "--xla_cpu_parallel_codegen_split_count=1"
+#: Up to this many usable cores, `ONE_CODEGEN_PART` is added.
+FEW_CORES = 4
 
 
-def _jaxlib_knows(flag_name: str) -> bool:
-    """Whether a shared library of the installed jaxlib contains `flag_name`
+def _jaxlib_knows(flag_names: list[str]) -> set[str]:
+    """Those of `flag_names` that a shared library of the installed jaxlib contains
     (XLA's flags are registered by name in its binary)."""
     try:
         import jaxlib
     except ImportError:
-        return False
-    needle = flag_name.encode()
+        return set()
+    missing, found = set(flag_names), set()
     for path in Path(jaxlib.__file__).parent.glob("*.so"):
         try:
             if path.stat().st_size < 1 << 20:  # the thin Python-extension stubs
                 continue
             with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
-                if m.find(needle) >= 0:
-                    return True
+                found |= {name for name in missing if m.find(name.encode()) >= 0}
         except (OSError, ValueError):
             continue
-    return False
+        missing -= found
+        if not missing:
+            break
+    return found
 
 
-def configure_xla() -> bool:
+def _cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def defaults() -> list[str]:
+    """jaxcal's XLA flags for this machine (before the checks of `configure_xla`)."""
+    return [FUSION_EMITTERS_OFF] + ([ONE_CODEGEN_PART] if _cores() <= FEW_CORES else [])
+
+
+def configure_xla() -> list[str]:
     """Add jaxcal's XLA defaults to `XLA_FLAGS` where it is safe to; returns
-    whether they were added."""
+    the flags added."""
     if os.environ.get("JAXCAL_XLA_DEFAULTS", "").strip() == "0":
-        return False
-    flags = os.environ.get("XLA_FLAGS", "")
-    name = FUSION_EMITTERS_OFF.split("=")[0].lstrip("-")
-    if name in flags:
-        return False
+        return []
     from jax._src import xla_bridge
 
     if xla_bridge.backends_are_initialized():
-        return False
-    if not _jaxlib_knows(name):
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} {FUSION_EMITTERS_OFF}".strip()
-    return True
+        return []
+    flags = os.environ.get("XLA_FLAGS", "")
+    wanted = {flag.split("=")[0].lstrip("-"): flag for flag in defaults()}
+    wanted = {name: flag for name, flag in wanted.items() if name not in flags}
+    known = _jaxlib_knows(list(wanted)) if wanted else set()
+    added = [flag for name, flag in wanted.items() if name in known]
+    if added:
+        os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
+    return added
