@@ -23,6 +23,16 @@ truncated, corrupted or written for another key is ignored and rebuilt (written
 atomically). The entries, like the compile cache's executables, are trusted
 only as far as the user's own cache directory is.
 
+Beside each entry, the executable XLA compiled from it is kept too (`<entry>.<host>.xla`,
+with `jax.experimental.serialize_executable`): a later process loads it directly,
+without lowering the entry or hashing it for the persistent cache, which on a
+program of tens of thousands of instructions saves about as much as XLA's own
+load. It is named after the entry and a digest of the host's CPU (the machine code
+is the host's), carries a SHA-256 of its payload checked before XLA sees a byte,
+and is used only on a single-device backend; anything else falls back to lowering
+and the persistent cache. It is byte for byte the executable the entry compiles to,
+so the numbers do not depend on it either.
+
 A run's programs are called one after another, and each first call waits for
 its entry and its executable to be read (XLA's part without Python's lock).
 `warm_start(tag)` reads ahead, on background threads, the entries the last run
@@ -41,6 +51,7 @@ import importlib.metadata
 import json
 import os
 import pickle
+import platform
 import re
 import tempfile
 import threading
@@ -57,6 +68,8 @@ from ._cache import QUICK_COMPILE
 FOLDER = "jaxcal-programs"
 #: First bytes of an entry; a new layout gets a new magic.
 MAGIC = b"JAXCAL-EXPORTED-1\n"
+#: First bytes of a compiled executable beside an entry.
+XLA_MAGIC = b"JAXCAL-XLA-1\n"
 #: Libraries whose code is traced into the programs.
 _TRACED_LIBRARIES = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")
 #: Custom calls bound to this process's Python objects: a program holding one is never stored.
@@ -136,18 +149,39 @@ class _Entry:
         def call(*leaves):
             return exported.call(*leaves)
 
-        call.__name__ = call.__qualname__ = name  # what JAX's logs and events name it
+        # What JAX's logs and events name it; a stored entry's program is named after its file
+        # too, so that its first compile is XLA's own and not a copy from JAX's persistent cache
+        # (an executable read from there serialises incompletely: `_write_executable`).
+        call.__name__ = call.__qualname__ = name if file is None else f"{name}_{file.rsplit('-', 1)[-1][:8]}"
         self.jitted = jax.jit(call, compiler_options=compiler_options)
         self._compiled = None
+        self._runtime_ready = False
         self._lock = threading.Lock()
 
     def compiled(self):
-        """The executable: lowered and compiled (or read from JAX's persistent cache) once."""
+        """The executable, once: the one stored beside the entry, else lowered and compiled (or
+        read from JAX's persistent cache) and then stored beside it."""
         with self._lock:
             if self._compiled is None:
-                specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.exported.in_avals]
-                self._compiled = self.jitted.lower(*specs).compile()
+                path = _executable_path(self.file)
+                self._compiled = _read_executable(path, self.exported)
+                self._runtime_ready = self._compiled is None  # lowering readies the runtime
+                if self._compiled is None:
+                    specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.exported.in_avals]
+                    _CACHE_HIT.hit = False
+                    self._compiled = self.jitted.lower(*specs).compile()
+                    if not _CACHE_HIT.hit:
+                        _write_executable(path, self._compiled)
             return self._compiled
+
+    def runnable(self):
+        """The executable, with the runtime ready to run it: what lowering the entry would have
+        done first (`_ready_runtime`) is done before an executable read from disk first runs."""
+        compiled = self.compiled()
+        if not self._runtime_ready:
+            _ready_runtime(self.exported)
+            self._runtime_ready = True
+        return compiled
 
     def out_info(self):
         specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.exported.out_avals]
@@ -182,7 +216,7 @@ class StoredProgram:
     def __call__(self, *args, **kwargs):
         leaves, in_tree, avals = _flatten(args, kwargs)
         entry = self._entry(in_tree, avals)
-        return jax.tree.unflatten(entry.out_tree, entry.compiled()(*leaves))
+        return jax.tree.unflatten(entry.out_tree, entry.runnable()(*leaves))
 
     def out_info(self, *args, **kwargs):
         """The output's shapes and dtypes (a pytree of `jax.ShapeDtypeStruct`), without running it."""
@@ -316,6 +350,19 @@ def _read_file(path: Path, key: bytes | None = None):
         return None
 
 
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file beside it: a reader sees the old file or
+    the new one, never part of one."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 def _read(path: Path, program: StoredProgram, key: bytes, avals) -> _Entry | None:
     """The entry at `path` if it is whole and written for exactly `key`, else `None`."""
     found = _read_file(path, key)
@@ -337,15 +384,100 @@ def _write(path: Path, key: bytes, exported, out_tree) -> None:
             {"key": key.decode(), "sha256": hashlib.sha256(payload).hexdigest(), "tree_bytes": len(skeleton)}
         ).encode()
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(MAGIC + len(head).to_bytes(8, "little") + head + payload)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        _write_atomic(path, MAGIC + len(head).to_bytes(8, "little") + head + payload)
     except Exception:  # noqa: BLE001 - a read-only or full cache only costs the next process a trace
+        return
+
+
+#: Whether this thread's last compile was read from JAX's persistent cache. XLA serialises
+#: such an executable without some of its functions (jaxlib 0.10: "Function ... not found"
+#: when it runs after loading), so only an executable XLA compiled is kept.
+_CACHE_HIT = threading.local()
+
+
+def _note_cache_hit(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _CACHE_HIT.hit = True
+
+
+jax.monitoring.register_event_listener(_note_cache_hit)
+
+
+@functools.cache
+def _host_digest() -> str:
+    """A digest of the host's CPU model and features: a stored executable is machine code for it."""
+    h = hashlib.sha256(f"{platform.machine()}|{platform.processor()}".encode())
+    try:
+        with open("/proc/cpuinfo", "rb") as f:
+            for line in f:
+                if line.split(b":")[0].strip() in (b"model name", b"flags", b"Features", b"CPU part"):
+                    h.update(line)
+                elif not line.strip():  # the first processor's block is enough
+                    break
+    except OSError:
+        pass
+    return h.hexdigest()[:16]
+
+
+def _executable_path(file: str | None) -> Path | None:
+    """Where the executable of the entry `file` is kept on this host (None: not stored, or a
+    backend of several devices, whose executables name their devices)."""
+    folder = programs_dir()
+    if file is None or folder is None or jax.device_count() != 1:
+        return None
+    return folder / f"{file.removesuffix('.jaxexport')}.{_host_digest()}.xla"
+
+
+def _read_executable(path: Path | None, exported):
+    """The executable at `path` if it is whole and takes `exported`'s arguments, else `None`."""
+    if path is None:
+        return None
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        if not blob.startswith(XLA_MAGIC):
+            return None
+        digest, payload = blob[len(XLA_MAGIC) : len(XLA_MAGIC) + 64], blob[len(XLA_MAGIC) + 64 :]
+        if digest.decode() != hashlib.sha256(payload).hexdigest():
+            return None
+        serialized, in_tree, out_tree = pickle.loads(payload)
+        from jax._src.export._export import _ensure_backends_initialized  # noqa: F401 - `_ready_runtime` needs it
+        from jax.experimental import serialize_executable
+
+        compiled = serialize_executable.deserialize_and_load(serialized, in_tree, out_tree)
+        args = jax.tree.leaves(compiled.args_info)
+        if [(tuple(a.shape), a.dtype) for a in args] != [_aval(a) for a in exported.in_avals]:
+            return None
+        return compiled
+    except Exception:  # noqa: BLE001 - any damage means: compile it again
+        return None
+
+
+def _ready_runtime(exported) -> None:
+    """Set up the runtime's kernels that are set up lazily, as lowering `exported` would: on the
+    CPU, jaxlib's LAPACK, whose functions are null until then (the first call would jump to
+    address 0). A CPU program that calls no LAPACK skips it (it imports SciPy's LAPACK
+    wrappers, a third of a second); done where the program first runs, so that a read ahead
+    does not wait for it."""
+    platforms = tuple(exported.platforms)
+    if platforms != ("cpu",) or b"lapack" in exported.mlir_module_serialized:
+        from jax._src.export import _export
+
+        _export._ensure_backends_initialized(platforms)
+
+
+def _write_executable(path: Path | None, compiled) -> None:
+    """Keep `compiled` at `path`, atomically; an executable that cannot be kept is not."""
+    if path is None:
+        return
+    try:
+        from jax.experimental import serialize_executable
+
+        payload = pickle.dumps(serialize_executable.serialize(compiled))
+        _write_atomic(path, XLA_MAGIC + hashlib.sha256(payload).hexdigest().encode() + payload)
+    except Exception:  # noqa: BLE001 - a read-only or full cache, or an executable XLA cannot serialise
         return
 
 
@@ -440,13 +572,6 @@ def warm_start(tag: str):
 
 def _write_manifest(path: Path, entries: list) -> None:
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "w") as f:
-                json.dump(entries, f)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        _write_atomic(path, json.dumps(entries).encode())
     except OSError:  # a read-only cache only costs the next run its head start
         return

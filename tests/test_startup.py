@@ -68,7 +68,7 @@ def test_a_stored_program_is_reloaded_without_tracing(store):
         np.testing.assert_array_equal(a, b)
         assert a.dtype == b.dtype
     _program(traces)(jnp.ones((4, 4)), False)  # other shapes: another entry
-    assert len(traces) == 2 and len(list(store.glob("test_solve-*"))) == 2
+    assert len(traces) == 2 and len(list(store.glob("test_solve-*.jaxexport"))) == 2
 
 
 @pytest.mark.parametrize(
@@ -99,6 +99,96 @@ def test_a_damaged_or_foreign_entry_is_ignored_and_rebuilt(store, damage):
         np.testing.assert_array_equal(a, b)
     _program(traces)(x, True)  # ... and rebuilt: the next process reads it
     assert len(traces) == 2
+
+
+def _executable(store: Path) -> Path:
+    (path,) = store.glob("test_solve-*.xla")
+    return path
+
+
+def _reads(monkeypatch) -> list:
+    """Whether each executable read from beside an entry was used (True) or not (False)."""
+    read, seen = _exported._read_executable, []
+
+    def spy(path, exported):
+        out = read(path, exported)
+        seen.append(out is not None)
+        return out
+
+    monkeypatch.setattr(_exported, "_read_executable", spy)
+    return seen
+
+
+def test_the_executable_is_kept_beside_the_entry_and_loaded(store, monkeypatch):
+    x = jnp.arange(9.0).reshape(3, 3)
+    seen = _reads(monkeypatch)
+    first = _program([])(x, True)
+    assert seen == [False] and _executable(store).name.startswith(_entry(store).stem + ".")
+    again = _program([])(x, True)  # a new program object: loaded, neither traced nor lowered
+    assert seen == [False, True]
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("damage", ["flipped byte", "truncated", "empty", "another layout"])
+def test_a_damaged_executable_is_ignored_and_rebuilt(store, monkeypatch, damage):
+    x = jnp.arange(9.0).reshape(3, 3)
+    expected = _program([])(x, True)
+    path = _executable(store)
+    blob = path.read_bytes()
+    path.write_bytes(
+        {
+            "flipped byte": blob[:-100] + bytes([blob[-100] ^ 0xFF]) + blob[-99:],
+            "truncated": blob[: len(blob) // 2],
+            "empty": b"",
+            "another layout": b"JAXCAL-XLA-0\n" + blob[len(_exported.XLA_MAGIC) :],
+        }[damage]
+    )
+    seen = _reads(monkeypatch)
+    result = _program([])(x, True)
+    for a, b in zip(jax.tree.leaves(expected), jax.tree.leaves(result)):
+        np.testing.assert_array_equal(a, b)
+    _program([])(x, True)  # ... rebuilt: the next process loads it
+    assert seen == [False, True]
+
+
+def test_an_executable_read_from_jaxs_cache_is_not_kept(store, monkeypatch):
+    """XLA serialises an executable it read from JAX's persistent cache without some of its
+    functions: only one XLA compiled is kept."""
+    compile_ = jax.stages.Lowered.compile
+
+    def from_cache(self, *args, **kwargs):
+        out = compile_(self, *args, **kwargs)
+        jax.monitoring.record_event("/jax/compilation_cache/cache_hits")
+        return out
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", from_cache)
+    _program([])(jnp.eye(3), True)
+    assert _entry(store).is_file() and not list(store.glob("*.xla"))
+
+
+def test_a_loaded_executable_runs_lapack_in_a_fresh_process(tmp_path):
+    """A process that runs a loaded executable calling LAPACK before it has lowered anything
+    (jaxlib sets up its LAPACK functions lazily, when a program is lowered: unset, the call
+    jumps to address 0)."""
+    source = """
+        import sys
+        import jax, jax.numpy as jnp
+        import jaxcal
+        from jaxcal import _exported
+        jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+        program = _exported.stored_jit(lambda a: jnp.linalg.cholesky(a @ a.T + jnp.eye(3)), "lapack_check")
+        out = program(jnp.arange(9.0).reshape(3, 3))
+        print(sorted(p.suffix for p in _exported.programs_dir().iterdir()), float(out.sum()))
+    """
+    script = tmp_path / "script.py"
+    script.write_text(textwrap.dedent(source))
+    runs = [
+        subprocess.run([sys.executable, str(script), str(tmp_path / "cache")], capture_output=True, text=True)
+        for _ in range(2)
+    ]
+    assert [r.returncode for r in runs] == [0, 0], runs[1].stderr[-2000:]
+    assert runs[0].stdout == runs[1].stdout and ".xla" in runs[0].stdout
 
 
 def test_the_key_names_what_decides_the_program(store):

@@ -167,6 +167,7 @@ def calibrate_hand_eye(
     by_blocks: bool = True,
     closed_form_jacobian: bool = True,
     estimate_robot_noise: bool | Bool[Array, ""] = False,
+    start: tuple[Float[Array, "cameras 4 4"], Float[Array, "4 4"]] | None = None,
     **deprecated,
 ) -> HandEyeResult:
     """Hand-eye calibration (eye-to-hand or eye-in-hand, one or more cameras); pure, jittable, vmappable.
@@ -205,6 +206,9 @@ def calibrate_hand_eye(
       translation and rotation apart, as a variance component (`noise`), from
       `data.robot_sigma` (None: 1 mm, 0.1 deg); rejection, covariance and `robot_rms`
       use the estimate. False: the robot noise as given (None: exact poses).
+    - `start`: `(T_cam_robot, T_robot_board)` to start from (e.g. the full data's optimum, for
+      re-solves of a subset); None: the closed form (`initialise_hand_eye`). The start is also
+      the result's `T_cam_robot_start`, `T_robot_board_start`.
 
     - `deprecated`: the keywords `rtol`, `atol`, `max_steps` of the previous release.
 
@@ -213,7 +217,7 @@ def calibrate_hand_eye(
     options, _ = fit_options("calibrate_hand_eye", options, None, deprecated, robust_fit=False)
     data = _estimation_start(data, estimate_robot_noise, by_blocks)
     estimate = jnp.asarray(estimate_robot_noise, bool)
-    X0, Y0 = initialise_hand_eye(data)
+    X0, Y0 = initialise_hand_eye(data) if start is None else start
     params0 = _unknowns(data)
     observed = jnp.any(data.mask, axis=-1) if isinstance(data, HandEyePixels) else data.mask
     blocks = by_blocks and params0.robot is not None  # pixels with per-pose robot corrections

@@ -6,6 +6,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +18,7 @@ from .._handeye import (
     KFoldSpread,
     calibrate_hand_eye,
     describe_robot_noise,
+    initialise_hand_eye,
     kfold_spread,
 )
 from .._handeye.solve import HAND_EYE_OPTIONS
@@ -33,11 +35,14 @@ MIN_OUTLIER_PX = 0.1
 
 @lru_cache(maxsize=4)
 def hand_eye_solver(max_steps: int = 200) -> Callable:
-    """`jax.jit(calibrate_hand_eye)` at `max_steps` as `solve(data, reject_outliers, estimate_robot_noise)`,
-    one per value (shapes are bucketed by the caller; both flags are traced, so every setting shares
-    the program of its data: with noisy robot poses, estimated or given, one program)."""
+    """`jax.jit(calibrate_hand_eye)` at `max_steps` as `solve(data, reject_outliers, estimate_robot_noise,
+    start=None)`, one per value (shapes are bucketed by the caller; the flags and the start are traced,
+    so every setting shares the program of its data: with noisy robot poses, estimated or given, one
+    program). `start`: `calibrate_hand_eye`'s, `(T_cam_robot, T_robot_board)` or None (the closed form)."""
 
-    def hand_eye(data, reject, estimate):
+    def hand_eye(data, reject, estimate, start, use_start):
+        # The closed form runs only where no start is given (a branch, not a second program).
+        start = jax.lax.cond(use_start, lambda: start, lambda: initialise_hand_eye(data))
         return calibrate_hand_eye(
             data,
             reject_outliers=reject,
@@ -45,11 +50,22 @@ def hand_eye_solver(max_steps: int = 200) -> Callable:
             options=replace(HAND_EYE_OPTIONS, max_steps=max_steps),
             outlier_threshold=OUTLIER_THRESHOLD,
             min_outlier_scale=min_outlier_scale(data),
+            start=start,
         )
 
     # Runs many times per process (k-fold, bootstrap): XLA's optimisations pay for themselves.
     key = (max_steps, OUTLIER_THRESHOLD, MIN_OUTLIER_PX)
-    return stored_jit(hand_eye, "hand_eye", key, compiler_options=None)
+    program = stored_jit(hand_eye, "hand_eye", key, compiler_options=None)
+
+    def solve(data, reject, estimate, start=None):
+        if start is None:
+            X = np.broadcast_to(np.eye(4), (data.mask.shape[0], 4, 4))
+            return program(data, reject, estimate, (X, np.eye(4)), np.asarray(False))
+        return program(
+            data, reject, estimate, tuple(np.asarray(T, np.float64) for T in start), np.asarray(True)
+        )
+
+    return solve
 
 
 def min_outlier_scale(data):
@@ -76,6 +92,20 @@ def rejection_reasons(result, observations, threshold: float) -> dict[int, str]:
             "its robot pose does not fit the others"
         )
     return out
+
+
+def kfold_from_optimum(
+    solver: Callable, data, result: HandEyeResult, estimate, folds: int
+) -> KFoldSpread | None:
+    """`kfold_spread` of `solver`'s `result` on `data`, each fold starting from the full data's optimum
+    (and its robot noise estimate): a fold is a small step away, a few Levenberg-Marquardt steps
+    instead of a solve from the closed form, to the same optimum within the solver's tolerance.
+    The folds leave the rejected groups out already: plain solves (the robot noise estimated again
+    in each when `estimate`, as the whole estimator is being replicated), same compiled program."""
+    start = (result.T_cam_robot, result.T_robot_board)
+    if estimate:
+        data = eqx.tree_at(lambda d: d.robot_sigma, data, result.robot_sigma)
+    return kfold_spread(lambda d: solver(d, False, estimate, start), data, result, folds=folds)
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,9 +136,7 @@ def solve(observed: Observed, *, folds: int, max_steps: int, log: Callable[[str]
     seconds = {"solve": time.perf_counter() - t0}
     log(describe_robot_noise(result))
     t0 = time.perf_counter()
-    # The folds leave the rejected groups out already: plain solves (the robot noise estimated
-    # again in each, as the whole estimator is being replicated), same compiled program.
-    kfold = kfold_spread(lambda d: solver(d, False, estimate), data, result, folds=folds) if folds else None
+    kfold = kfold_from_optimum(solver, data, result, estimate, folds) if folds else None
     seconds["kfold"] = time.perf_counter() - t0
     rejected = rejection_reasons(result, observed.observations, OUTLIER_THRESHOLD)
     return Solved(result, kfold, rejected, solver, seconds)
