@@ -30,13 +30,16 @@ def store(tmp_path, monkeypatch):
     return tmp_path
 
 
-def _program(traces: list):
+def _program(traces: list, tag: str = ""):
+    """A stored program; `tag` makes it another program (its executable then compiles afresh
+    rather than from JAX's persistent cache, where an earlier test may have put it)."""
+
     def solve(x, flag):
         traces.append(1)  # runs only while the program is traced
         y = jnp.where(flag, x @ x.T + jnp.eye(x.shape[0]), x)
         return {"chol": jnp.linalg.cholesky(y), "sum": (y.sum(), jnp.zeros(2, jnp.int32))}
 
-    return _exported.stored_jit(solve, "test_solve", static=("v1",))
+    return _exported.stored_jit(solve, "test_solve", static=("v1", tag) if tag else ("v1",))
 
 
 def _entry(store: Path) -> Path:
@@ -119,21 +122,33 @@ def _reads(monkeypatch) -> list:
     return seen
 
 
-def test_the_executable_is_kept_beside_the_entry_and_loaded(store, monkeypatch):
+@pytest.fixture
+def fresh_compiles():
+    """JAX's persistent cache keeps nothing new: a program compiled again compiles afresh (only an
+    executable XLA compiled is kept beside its entry)."""
+    before = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1e9)
+    yield
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", before)
+
+
+def test_the_executable_is_kept_beside_the_entry_and_loaded(store, monkeypatch, fresh_compiles, request):
     x = jnp.arange(9.0).reshape(3, 3)
     seen = _reads(monkeypatch)
-    first = _program([])(x, True)
+    first = _program([], request.node.name)(x, True)
     assert seen == [False] and _executable(store).name.startswith(_entry(store).stem + ".")
-    again = _program([])(x, True)  # a new program object: loaded, neither traced nor lowered
+    again = _program([], request.node.name)(
+        x, True
+    )  # a new program object: loaded, neither traced nor lowered
     assert seen == [False, True]
     for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
         np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("damage", ["flipped byte", "truncated", "empty", "another layout"])
-def test_a_damaged_executable_is_ignored_and_rebuilt(store, monkeypatch, damage):
+def test_a_damaged_executable_is_ignored_and_rebuilt(store, monkeypatch, fresh_compiles, request, damage):
     x = jnp.arange(9.0).reshape(3, 3)
-    expected = _program([])(x, True)
+    expected = _program([], request.node.name)(x, True)
     path = _executable(store)
     blob = path.read_bytes()
     path.write_bytes(
@@ -145,10 +160,10 @@ def test_a_damaged_executable_is_ignored_and_rebuilt(store, monkeypatch, damage)
         }[damage]
     )
     seen = _reads(monkeypatch)
-    result = _program([])(x, True)
+    result = _program([], request.node.name)(x, True)
     for a, b in zip(jax.tree.leaves(expected), jax.tree.leaves(result)):
         np.testing.assert_array_equal(a, b)
-    _program([])(x, True)  # ... rebuilt: the next process loads it
+    _program([], request.node.name)(x, True)  # ... rebuilt: the next process loads it
     assert seen == [False, True]
 
 
