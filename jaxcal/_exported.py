@@ -33,6 +33,10 @@ and is used only on a single-device backend; anything else falls back to lowerin
 and the persistent cache. It is byte for byte the executable the entry compiles to,
 so the numbers do not depend on it either.
 
+Every program and executable read is stamped as used (its modification time); the
+folder keeps to `BUDGET_BYTES`, the least recently used files going first, since
+each jaxcal version (each edit of its sources) writes programs of its own.
+
 A run's programs are called one after another, and each first call waits for
 its entry and its executable to be read (XLA's part without Python's lock).
 `warm_start(tag)` reads ahead, on background threads, the entries the last run
@@ -56,6 +60,7 @@ import re
 import tempfile
 import threading
 import weakref
+import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -69,7 +74,10 @@ FOLDER = "jaxcal-programs"
 #: First bytes of an entry; a new layout gets a new magic.
 MAGIC = b"JAXCAL-EXPORTED-1\n"
 #: First bytes of a compiled executable beside an entry.
-XLA_MAGIC = b"JAXCAL-XLA-1\n"
+XLA_MAGIC = b"JAXCAL-XLA-2\n"
+#: Most bytes the stored programs and executables may take; past it the least recently used
+#: files go (a stored program costs only its trace and compile when it is needed again).
+BUDGET_BYTES = 1 << 30
 #: Libraries whose code is traced into the programs.
 _TRACED_LIBRARIES = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")
 #: Custom calls bound to this process's Python objects: a program holding one is never stored.
@@ -325,9 +333,8 @@ def stored_jit(fun, name: str, static=(), compiler_options=QUICK_COMPILE) -> Sto
 def _read_file(path: Path, key: bytes | None = None):
     """`(key, exported, out_tree)` of the entry at `path` if it is whole (and written for
     `key` when given), else `None`."""
-    try:
-        blob = path.read_bytes()
-    except OSError:
+    blob = _read_used(path)
+    if blob is None:
         return None
     try:
         if not blob.startswith(MAGIC):
@@ -348,6 +355,40 @@ def _read_file(path: Path, key: bytes | None = None):
         return head["key"], exported, out_tree
     except Exception:  # noqa: BLE001 - any damage means: rebuild it
         return None
+
+
+def _read_used(path: Path) -> bytes | None:
+    """The bytes at `path` (None if unreadable); its modification time becomes now, the
+    last use `_keep_within_budget` goes by."""
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    with contextlib.suppress(OSError):
+        os.utime(path)
+    return blob
+
+
+def _keep_within_budget(folder: Path, budget: int | None = None) -> None:
+    """Remove the least recently used files of `folder` until it holds at most `budget`
+    bytes (default `BUDGET_BYTES`), down to three quarters of it. Files another process
+    removes first, or holds open, only cost that process a rebuild."""
+    budget = BUDGET_BYTES if budget is None else budget
+    try:
+        files = [
+            (e.stat().st_mtime, e.stat().st_size, Path(e.path)) for e in os.scandir(folder) if e.is_file()
+        ]
+    except OSError:
+        return
+    total = sum(size for _, size, _ in files)
+    if total <= budget:
+        return
+    for _, size, path in sorted(files, key=lambda f: f[0]):
+        if total <= 0.75 * budget:
+            break
+        with contextlib.suppress(OSError):
+            path.unlink()
+            total -= size
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
@@ -385,6 +426,7 @@ def _write(path: Path, key: bytes, exported, out_tree) -> None:
         ).encode()
         path.parent.mkdir(parents=True, exist_ok=True)
         _write_atomic(path, MAGIC + len(head).to_bytes(8, "little") + head + payload)
+        _keep_within_budget(path.parent)
     except Exception:  # noqa: BLE001 - a read-only or full cache only costs the next process a trace
         return
 
@@ -432,9 +474,8 @@ def _read_executable(path: Path | None, exported):
     """The executable at `path` if it is whole and takes `exported`'s arguments, else `None`."""
     if path is None:
         return None
-    try:
-        blob = path.read_bytes()
-    except OSError:
+    blob = _read_used(path)
+    if blob is None:
         return None
     try:
         if not blob.startswith(XLA_MAGIC):
@@ -442,7 +483,7 @@ def _read_executable(path: Path | None, exported):
         digest, payload = blob[len(XLA_MAGIC) : len(XLA_MAGIC) + 64], blob[len(XLA_MAGIC) + 64 :]
         if digest.decode() != hashlib.sha256(payload).hexdigest():
             return None
-        serialized, in_tree, out_tree = pickle.loads(payload)
+        serialized, in_tree, out_tree = pickle.loads(zlib.decompress(payload))
         from jax._src.export._export import _ensure_backends_initialized  # noqa: F401 - `_ready_runtime` needs it
         from jax.experimental import serialize_executable
 
@@ -475,8 +516,10 @@ def _write_executable(path: Path | None, compiled) -> None:
     try:
         from jax.experimental import serialize_executable
 
-        payload = pickle.dumps(serialize_executable.serialize(compiled))
+        # zlib at its fastest: a seventh of the size, 20 ms for a 5 MB executable, 7 ms back.
+        payload = zlib.compress(pickle.dumps(serialize_executable.serialize(compiled)), 1)
         _write_atomic(path, XLA_MAGIC + hashlib.sha256(payload).hexdigest().encode() + payload)
+        _keep_within_budget(path.parent)
     except Exception:  # noqa: BLE001 - a read-only or full cache, or an executable XLA cannot serialise
         return
 

@@ -167,6 +167,19 @@ def test_a_damaged_executable_is_ignored_and_rebuilt(store, monkeypatch, fresh_c
     assert seen == [False, True]
 
 
+def test_the_folder_keeps_to_its_budget_least_recently_used_first(store):
+    now = time.time()
+    for k, age in enumerate([50, 10, 40, 20, 30]):  # seconds since last used
+        path = store / f"f{k}.xla"
+        path.write_bytes(b"x" * 1000)
+        os.utime(path, (now - age, now - age))
+    _exported._keep_within_budget(store, budget=5000)  # within it: nothing goes
+    assert len(list(store.iterdir())) == 5
+    assert _exported._read_used(store / "f0.xla") == b"x" * 1000  # used now: the newest
+    _exported._keep_within_budget(store, budget=4000)  # over it: down to 3000 bytes
+    assert sorted(p.name for p in store.iterdir()) == ["f0.xla", "f1.xla", "f3.xla"]
+
+
 def test_an_executable_read_from_jaxs_cache_is_not_kept(store, monkeypatch):
     """XLA serialises an executable it read from JAX's persistent cache without some of its
     functions: only one XLA compiled is kept."""
