@@ -4,9 +4,13 @@
   or MuJoCo, directly or through another jaxcal module, and the module
   import graph has no cycles.
 - Imports are at the top of a module (what depends on what is visible
-  there); the one exception is the command line importing the simulator for
-  the commands that render (`demo`, `simulate`), so that `jaxcal calibrate`
-  runs where MuJoCo or OpenGL is missing.
+  there), with two exceptions. The command line imports what a command runs
+  when it runs: the simulator for the commands that render (`demo`,
+  `simulate`), so that `jaxcal calibrate` runs where MuJoCo or OpenGL is
+  missing, and a command's work once it has begun to read its programs ahead
+  (`jaxcal._exported.warm_start`), so that the import and the load overlap;
+  these imports are edges of the graph below like any other. And `jaxcal.io`
+  re-exports the URDF reader on first use.
 - No private name (`_x`) is imported from another module; private modules
   (`jaxcal._arcfit`) are imported for their public names.
 - Rooms stay small: no function over 120 lines, no module over 700.
@@ -100,12 +104,25 @@ def _imports(module: str, tree: ast.Module, *, top_level: bool):
                     yield node.lineno, target, rest
 
 
+#: Modules that may import jaxcal modules inside functions (module docstring): the command line,
+#: and `jaxcal.io`'s lazy re-export of the URDF reader.
+LOCAL_IMPORTS = {"jaxcal.io": ("jaxcal.io.urdf",)}
+
+
+def _local_import_allowed(name: str, target: str) -> bool:
+    return name.startswith("jaxcal.cli") or target in LOCAL_IMPORTS.get(name, ())
+
+
 def _graph() -> dict[str, set[str]]:
+    """Each module's imports: at its top, and the function-local ones allowed (edges all the same)."""
     graph = {}
     for name, tree in MODULES.items():
         deps = set()
         for _, target, _ in _imports(name, tree, top_level=True):
             deps.add(target)
+        for _, target, _ in _imports(name, tree, top_level=False):
+            if _local_import_allowed(name, target):
+                deps.add(target)
         graph[name] = deps
     return graph
 
@@ -114,11 +131,8 @@ def test_no_function_local_imports_of_jaxcal_modules():
     found = []
     for name, tree in MODULES.items():
         for line, target, _ in _imports(name, tree, top_level=False):
-            if not target.startswith("jaxcal"):
-                continue
-            if name.startswith("jaxcal.cli") and target.startswith("jaxcal.sim"):
-                continue
-            found.append(f"{name}:{line} imports {target}")
+            if target.startswith("jaxcal") and not _local_import_allowed(name, target):
+                found.append(f"{name}:{line} imports {target}")
     assert found == []
 
 

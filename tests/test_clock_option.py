@@ -47,3 +47,10 @@ def test_the_command_line_offers_clock_and_hides_the_old_flags():
     args = p.parse_args(["calibrate", "DATA", "--out", "OUT", "--trust-clock"])
     assert args.trust_clock and args.clock == "auto"
     assert p.parse_args(["calibrate", "DATA", "--out", "OUT", "--clock", "given"]).clock == "given"
+
+
+def test_the_command_lines_clock_modes_are_the_stages():
+    from jaxcal import stages
+    from jaxcal.cli._common import CLOCK_MODES
+
+    assert CLOCK_MODES == stages.CLOCK_MODES

@@ -524,7 +524,7 @@ def test_an_eye_in_hand_plan_is_rendered_and_calibrated(tmp_path):
     # Its tables: no empty sweeps table, and the middle column is what it is, the closed-form start.
     from rich.console import Console
 
-    from jaxcal.cli._calibrate import _calibration_tables
+    from jaxcal.cli._calibrate_run import _calibration_tables
 
     console = Console(record=True, width=160)
     _calibration_tables(console, r)

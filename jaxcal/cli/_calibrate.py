@@ -1,200 +1,24 @@
-"""`jaxcal calibrate` and `jaxcal demo`: run the pipeline, print its tables, write its files."""
+"""`jaxcal calibrate` and `jaxcal demo`: their options and entry points. The work (`._calibrate_run`)
+is imported once the command has begun to read its programs ahead, so that the modules' import and
+the programs' load overlap."""
 
 import argparse
-import json
 import sys
-import time
 from pathlib import Path
 
-import numpy as np
-from rich.console import Console
-from rich.table import Table
-
 from .._exported import warm_start
-from .._pointfit import TERMS
-from ..certification import certify
-from ..errors import CalibrationError
-from ..io._files import check_output_dir, marked_directory, output_lock, write_text_atomic
-from ..io.checks import certificate_json
-from ..pipeline import calibrate
-from ..report import certificate_section, output_files, warm_up_plots, write_outputs
-from ..robots import load_robot
-from ..stages import CLOCK_MODES
-from ..summary import TextTable, clock_line, fmt, joints_table, refinement_line, truth_table
-from ._certify import print_certificate, region_of
-from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, positive_int
-from ._rosbag import dataset_of
+from ..io._files import check_output_dir, marked_directory, output_lock
+from ._common import CLOCK_MODES, positive_int
 
 
 def _terms(text: str) -> tuple[str, ...]:
+    from .._pointfit import TERMS
+
     names = tuple(t.strip() for t in text.split(",") if t.strip())
     unknown = [t for t in names if t not in TERMS]
     if unknown:
         raise argparse.ArgumentTypeError(f"unknown terms {unknown}; known: {', '.join(TERMS)}")
     return names
-
-
-def _point_fit_table(console, result) -> None:
-    pf = result.point_fit
-    t = Table(title=f"Point fit ({result.frames.used('poses')} stop-and-shoot samples)")
-    for col in ("model", "free parameters", "CV mean mm", "CV RMS mm", "CV max mm", "kept"):
-        t.add_column(col, justify="left" if col == "model" else "right")
-    for m in pf.models:
-        cv = [fmt(x, ".4f") if x is not None else "-" for x in (m.cv_mean_mm, m.cv_rms_mm, m.cv_max_mm)]
-        t.add_row("+".join(["geometric", *m.terms]), str(m.free), *cv, "yes" if m.kept else "")
-    console.print(t)
-    r = pf.residual_mm
-    console.print(
-        f"fitted residual {r.mean:.4f} mm mean, {r.rms:.4f} mm RMS, {r.max:.4f} mm max; "
-        f"held at nominal: {len(pf.held)} parameters"
-    )
-    for row in pf.term_rows:
-        if row.free:
-            console.print(f"  {row.name} = {row.estimate:.6g} +- {row.std:.2g}")
-
-
-def _calibration_tables(console, result) -> None:
-    if result.point_fit is not None:
-        _point_fit_table(console, result)
-    if result.arcs:
-        _sweeps_table(console, result)
-    _result_tables(console, result)
-
-
-def _rich(table: TextTable) -> Table:
-    t = Table(title=table.title)
-    for k, col in enumerate(table.header):
-        t.add_column(col, justify="left" if k == 0 else "right")
-    for row in table.rows:
-        t.add_row(*row)
-    return t
-
-
-def _sweeps_table(console, result) -> None:
-    console.print(_rich(joints_table(result)))
-
-
-def _result_tables(console, result) -> None:
-    v = result.validation
-    T, sd = result.T_cam_base, result.std_cam
-    if result.eye_in_hand:
-        Tf = result.T_flange_target[0]
-        console.print(
-            f"eye-in-hand: T_flange_cam t = {np.round(Tf[:3, 3] * 1e3, 2).tolist()} mm; the board "
-            f"{result.board} relative to the base:"
-        )
-    console.print(
-        f"{result.kind.fixed_frame}: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
-        f"(std {np.round(sd[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(sd[3:]), 4).tolist()} deg)"
-    )
-    errs = {e.camera: e for e in (v.other_cameras or ())} if v is not None else {}
-    for oc in result.other_cameras:
-        To, so = oc.T_cam_base, oc.std_cam
-        line = (
-            f"T_cam_base of {oc.camera} ({oc.views} views): t = {np.round(To[:3, 3] * 1e3, 2).tolist()} mm "
-            f"(std {np.round(so[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(so[3:]), 4).tolist()} deg)"
-        )
-        if oc.camera in errs:
-            e = errs[oc.camera]
-            line += (
-                f"; pose relative to {result.camera} off the truth by {e.refined.trans_mm:.3f} mm, "
-                f"{e.refined.rot_deg:.4f} deg (PnP start {e.start.trans_mm:.3f} mm)"
-            )
-        console.print(line)
-    if result.kind.images or result.clock.estimated:  # tracker samples carry their own joint positions
-        console.print(clock_line(result))
-    console.print(
-        f"held at nominal (the {result.kind.sensor} cannot see them): "
-        f"{len(result.frozen)} parameters, see report.md"
-    )
-    table = truth_table(result)
-    if table is not None:
-        console.print(_rich(table))
-    if result.refinement is not None:
-        console.print(f"refinement: {refinement_line(result)}")
-    for w in result.warnings:
-        console.print(f"[yellow]note:[/yellow] {w}")
-
-
-#: Exit codes of `jaxcal calibrate` / `demo` by result status (2: bad input, before any result).
-EXIT_CODES = {"ok": 0, "failed": 1, "suspect": 3}
-
-
-def _clock_arg(console, args) -> str:
-    """`--clock`, or the deprecated flag it replaced (with a note saying so)."""
-    old = [
-        f for f, on in (("--estimate-clock", args.estimate_clock), ("--trust-clock", args.trust_clock)) if on
-    ]
-    if not old:
-        return args.clock
-    if len(old) > 1 or args.clock != "auto":
-        raise CalibrationError(f"give the clock mode once: --clock {args.clock} and {' '.join(old)}")
-    mode = "estimate" if args.estimate_clock else "given"
-    console.print(f"[yellow]note:[/yellow] {old[0]} is deprecated: use --clock {mode}")
-    return mode
-
-
-def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
-    # While it calibrates: matplotlib loads, and the programs the last run on this dataset called
-    # (the outputs' DH tables' too) are read ahead (`jaxcal._exported.warm_start`).
-    plots = warm_up_plots()
-    with warm_start(f"jaxcal calibrate {Path(dataset).resolve()}"):
-        code = _calibrate_and_write(console, dataset, out, args, overwrite=overwrite, checked=checked)
-    plots.join()
-    return code
-
-
-def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
-    t0 = time.perf_counter()
-    result = calibrate(
-        dataset,
-        camera=args.camera,
-        workers=args.workers,
-        progress=not args.quiet,
-        clock=_clock_arg(console, args),
-        refine_intrinsics=args.refine_intrinsics,
-        estimate_line_delay=getattr(args, "estimate_line_delay", False),
-        refine=not args.no_refine,
-        other_cameras=not args.single_camera,
-        arc_loss=None if args.arc_loss == "none" else args.arc_loss,
-        device_is_base=getattr(args, "device_is_base", False),
-        terms=args.terms,
-        cv_folds=args.cv_folds,
-        log=lambda text: console.print(f"[dim]{text}[/dim]"),
-    )
-    _calibration_tables(console, result)
-    code = EXIT_CODES[result.status]
-    for reason in result.reasons:
-        console.print(f"[red]{result.status}:[/red] {reason}")
-    if args.strict and code != 0:
-        console.print(f"[red]--strict: the calibration is {result.status}; nothing written[/red]")
-        return code
-    write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked)
-    extra = _certificate(console, out, args)
-    console.print(
-        f"wrote {out}/: {', '.join(output_files(result) + extra)}, report.md ({time.perf_counter() - t0:.1f} s)"
-    )
-    if code:
-        console.print(
-            f"[red]calibration {result.status.upper()}: see the reasons above and result.json 'status'[/red]"
-        )
-    return code
-
-
-def _certificate(console, out: Path, args) -> list[str]:
-    """With `--region` / `--joint-box`: the accuracy certificate over it, on the console, in
-    `report.md` and `certificate.json` (the files written)."""
-    where = region_of(args)
-    if all(v is None for v in where.values()):
-        return []
-    c = certify(out, **where)
-    print_certificate(console, c)
-    write_text_atomic(out / "certificate.json", json.dumps(certificate_json(c), indent=1))
-    report = out / "report.md"
-    text = report.read_text()
-    head, sep, tail = text.partition("\n## Plots")
-    write_text_atomic(report, head + "\n".join(certificate_section(c)) + sep + tail)
-    return ["certificate.json"]
 
 
 def cmd_calibrate(args) -> int:
@@ -205,10 +29,12 @@ def cmd_calibrate(args) -> int:
     checked = check_output_dir(
         out, inputs=[args.dataset], overwrite=args.overwrite, kind="result", what="--out"
     )
-    with output_lock(out, what="--out"):
-        console = Console(width=max(Console().width, 132))
-        with dataset_of(args, say=lambda text: console.print(f"[dim]{text}[/dim]")) as dataset:
-            return _run_calibration(console, dataset, out, args, overwrite=args.overwrite, checked=checked)
+    # The programs the last run on DATASET called are read ahead from here on, while the
+    # calibration's modules are imported and the images detected (`jaxcal._exported.warm_start`).
+    with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {Path(args.dataset).resolve()}"):
+        from ._calibrate_run import calibrate_dataset
+
+        return calibrate_dataset(args, out, checked)
 
 
 def cmd_demo(args) -> int:
@@ -225,56 +51,9 @@ def cmd_demo(args) -> int:
     # The demo directory (absent, empty or an earlier demo's) holds dataset/ and result/,
     # each replaced atomically; anything else there is refused before any work.
     with marked_directory(out, kind="demo", what="--out"):
-        return _demo(out, args)
+        from ._calibrate_run import demo
 
-
-def _demo(out: Path, args) -> int:
-    from ..sim.simulate import SimConfig, simulate
-
-    console = Console(width=max(Console().width, 132))
-    console.rule("[bold]jaxcal demo: a perturbed UR5e, rendered, calibrated from its images")
-    sweep = (
-        args.sweep_deg if args.sweep_deg is not None else (EYE_IN_HAND_SWEEP if args.eye_in_hand else 80.0)
-    )
-    config = SimConfig(
-        robot="ur5e",
-        seed=args.seed,
-        resolution=args.resolution,
-        frames_per_joint=args.frames_per_joint,
-        range_deg=sweep,
-        clock_offset_ms=40.0,
-        clock_known=False,
-        cameras=args.cameras,
-        eye_in_hand=args.eye_in_hand,
-        camera_distance=EYE_IN_HAND_BOARD_M if args.eye_in_hand else 0.9,
-        markers_on_links=args.markers_on_links,
-        camera=args.camera_model,
-        arm=args.arm,
-    )
-    trajectory = None
-    what = f"{args.frames_per_joint} frames per {fmt_degrees(sweep)}-degree sweep" + (
-        "" if np.ndim(sweep) == 0 else "s"
-    )
-    if args.markers_on_links:
-        from ..sim.motion import random_motion
-
-        names = load_robot("ur5e").joint_names
-        seconds = args.frames_per_joint * len(names) / config.fps
-        trajectory = random_motion(names, seconds, LINKS_AMPLITUDE_DEG, seed=args.seed)
-        what = (
-            f"every joint at once, +-{LINKS_AMPLITUDE_DEG:g} deg, {seconds:g} s at {config.fps:g} fps, "
-            "a plate on every link"
-        )
-    t0 = time.perf_counter()
-    dataset = simulate(
-        config, out / "dataset", trajectory=trajectory, overwrite=True, progress=not args.quiet
-    )
-    console.print(
-        f"rendered {dataset} ({args.resolution[0]}x{args.resolution[1]}, {what}, "
-        + ("camera on the flange, board in the world, " if args.eye_in_hand else "")
-        + f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
-    )
-    return _run_calibration(console, dataset, out / "result", args, overwrite=True)
+        return demo(out, args)
 
 
 def add_calibrate_args(p: argparse.ArgumentParser) -> None:

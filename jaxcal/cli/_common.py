@@ -90,3 +90,6 @@ EYE_IN_HAND_SWEEP = (40.0, 40.0, 40.0, 40.0, 40.0, 300.0)
 EYE_IN_HAND_BOARD_M = 0.6
 #: The markers-on-every-link demo's random motion, +- about zero.
 LINKS_AMPLITUDE_DEG = 25.0
+#: `--clock`'s choices: `jaxcal.stages.CLOCK_MODES`, here so that building the parser imports no
+#: stage (tests/test_clock_option.py checks that the two agree).
+CLOCK_MODES = ("auto", "estimate", "given")

@@ -5,14 +5,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from rich.console import Console
 
-from .._handeye import ROBOT_SIGMA_OPTIONS, describe_robot_noise
-from ..handeye import calibrate_hand_eye_capture
+from .._exported import warm_start
 from ..io._files import check_output_dir, output_lock
-from ..io.handeye_results import ros2_static_transform_args, write_hand_eye_outputs
-from ..markers import TargetSpec
-from ..report import warm_up_plots
 from ._common import resolution
 
 # --------------------------------------------------------------------------- hand-eye
@@ -50,7 +45,11 @@ def cmd_handeye(args) -> int:
     checked = check_output_dir(
         out, inputs=[args.capture], overwrite=args.overwrite, kind="result", what="--out"
     )
-    with output_lock(out, what="--out"):
+    # The solver the last run on this capture called is read from the first moment the capture is
+    # known, while the calibration's modules are imported and the images detected.
+    with output_lock(out, what="--out"), warm_start(f"jaxcal handeye {Path(args.capture).resolve()}"):
+        from ..report import warm_up_plots
+
         plots = warm_up_plots()  # matplotlib loads while the capture is calibrated
         code = _handeye(args, out, checked)
         plots.join()
@@ -58,6 +57,12 @@ def cmd_handeye(args) -> int:
 
 
 def _handeye(args, out: Path, checked) -> int:
+    from rich.console import Console
+
+    from .._handeye import ROBOT_SIGMA_OPTIONS, describe_robot_noise
+    from ..handeye import calibrate_hand_eye_capture
+    from ..io.handeye_results import ros2_static_transform_args, write_hand_eye_outputs
+
     console = Console(width=max(Console().width, 120))
     # Neither given: the robot pose noise is estimated from the data.
     robot = (
@@ -128,6 +133,7 @@ def _handeye(args, out: Path, checked) -> int:
 
 
 def cmd_simulate_handeye(args) -> int:
+    from ..markers import TargetSpec
     from ..sim.handeye import HandEyeSimConfig, simulate_hand_eye
 
     fields = dict(SIM_TARGETS[args.target])

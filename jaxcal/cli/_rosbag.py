@@ -7,7 +7,6 @@ from pathlib import Path
 
 from ..errors import BagError
 from ..io._rosmsgs import SegmentOptions
-from ..io.rosbag import import_bag, is_bag
 
 
 def add_bag_args(p: argparse.ArgumentParser, *, required: bool) -> None:
@@ -48,6 +47,8 @@ def _import(args, bag, out, *, overwrite: bool):
     ]
     if missing:
         raise BagError(f"{bag} is a ROS bag: give {', '.join(missing)}")
+    from ..io.rosbag import import_bag
+
     return import_bag(
         bag,
         out,
@@ -77,6 +78,8 @@ def cmd_import_bag(args) -> int:
 def dataset_of(args, say=print):
     """The dataset `calibrate` runs on: DATASET itself, or a ROS bag imported into a temporary dataset
     (removed at the end)."""
+    from ..io.rosbag import is_bag
+
     if not is_bag(args.dataset):
         yield args.dataset
         return
