@@ -135,10 +135,15 @@ def _workspace(ref: CalibrationReference, ratio: np.ndarray) -> tuple[np.ndarray
     return None, f"{ds.root}: no joint positions: extrapolation not assessed", ds.joint_limits
 
 
-@jax.jit
 def _point_covariances(x, cov, problem):
     J = point_jacobian(x, problem)
     return jnp.einsum("sai,ij,sbj->sab", J, cov, J)
+
+
+# The tracker predictor's programs, stored (a later `jaxcal certify` reloads them) and with XLA's
+# optimisations (they sweep a whole region), as the camera predictor's below.
+_point_covariances = stored_jit(_point_covariances, "point_covariances", compiler_options=None)
+_tracker_points = stored_jit(predict, "tracker_points", compiler_options=None)
 
 
 def tracker_predictor(ref: CalibrationReference) -> Predictor:
@@ -169,7 +174,7 @@ def tracker_predictor(ref: CalibrationReference) -> Predictor:
         return np.asarray(_point_covariances(x, jnp.asarray(c), problem(np.asarray(q))))
 
     def base_points(q):
-        y = np.asarray(predict(x, problem(np.asarray(q))))
+        y = np.asarray(_tracker_points(x, problem(np.asarray(q))))
         return (y - T_db[:3, 3]) @ T_db[:3, :3]
 
     params, _ = layout.split(x)

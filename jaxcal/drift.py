@@ -41,7 +41,6 @@ from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -49,6 +48,7 @@ from ._buckets import bucket, pad_log
 from ._correction import ParameterLayout
 from ._drift_camera import CameraReference, camera_reference, gauss_newton, pad_corners
 from ._drift_camera import fit as fit_camera
+from ._exported import stored_jit
 from ._geometry import se3_exp
 from ._lsq import normal_inverse
 from ._pointfit import PointLayout, point_jacobian, predict
@@ -116,13 +116,21 @@ def reference(result, q: np.ndarray, sigma: np.ndarray) -> DriftReference:
         pf.nominal, layout, np.asarray(q, np.float64), np.zeros((S, 3)), np.ones(S), np.ones(S, bool),
         pf.T_device_base0, pf.T_flange_point0, (pf.masses, pf.coms),
     )  # fmt: skip
-    J = np.asarray(point_jacobian(x, problem))  # (S, 3, n)
+    J, y_hat = (np.asarray(a) for a in _REFERENCE(x, problem))  # (S, 3, n), (S, 3)
     Z = J[:, :, layout.base.index("zero")]
     Jf = J.reshape(3 * S, -1)
     scatter = pf.residual_variance_factor * np.repeat(np.asarray(sigma, np.float64) ** 2, 3)
     R = np.diag(scatter) + Jf @ pf.covariance @ Jf.T
     T_db = np.asarray(jnp.asarray(pf.T_device_base0) @ se3_exp(x[layout.base.index("cam")]))
-    return DriftReference(np.asarray(predict(x, problem)), Z, R, tuple(pf.nominal.joint_names), T_db)
+    return DriftReference(y_hat, Z, R, tuple(pf.nominal.joint_names), T_db)
+
+
+def _reference_arrays(x, problem):
+    return point_jacobian(x, problem), predict(x, problem)
+
+
+#: `reference`'s model algebra, one stored program (a later `jaxcal check` reloads it).
+_REFERENCE = stored_jit(_reference_arrays, "drift_reference")
 
 
 def _model(theta, y_hat, Z):
@@ -131,12 +139,15 @@ def _model(theta, y_hat, Z):
     return y @ T[:3, :3].T + T[:3, 3]
 
 
-@partial(jax.jit, static_argnames="offsets")
 def fit_drift(y, y_hat, Z, W, *, offsets: bool):
     """Gauss-Newton on the whitened residuals $W (y - f(\\theta))$ ($W^T W = R^{-1}$).
 
     **Returns:** `(theta, C, T, rss)`: the drift (6, or 6 + joints with `offsets`),
     its covariance, the test statistic and the whitened residual sum of squares after it."""
+    return _FIT_DRIFT[bool(offsets)](y, y_hat, Z, W)
+
+
+def _fit_drift(y, y_hat, Z, W, *, offsets: bool):
     k = 6 + (Z.shape[2] if offsets else 0)
     Zk = Z if offsets else Z[:, :, :0]
 
@@ -146,6 +157,13 @@ def fit_drift(y, y_hat, Z, W, *, offsets: bool):
     theta, info, r = gauss_newton(res, k, GN_STEPS)
     C = normal_inverse(info)
     return theta, C, theta @ info @ theta, r @ r
+
+
+#: `fit_drift`'s two programs (with and without the joint offsets), stored.
+_FIT_DRIFT = {
+    offsets: stored_jit(partial(_fit_drift, offsets=offsets), "fit_drift", static=(offsets,))
+    for offsets in (False, True)
+}
 
 
 def whitening(R: np.ndarray) -> np.ndarray:
