@@ -33,7 +33,7 @@ intrinsics). Two scales complete it:
 
 With the thin SVD $B = U S V^T$ the whitening is $W = (\\nu\\sigma^2)^{-1/2} (I + U
 (\\mathrm{diag}((1 + \\kappa s^2/\\nu)^{-1/2}) - 1) U^T)$ ($W^T W = R^{-1}$), applied in
-$O(m n)$. Gauss-Newton on $W r(\\theta)$ gives $\\hat\\theta$, its covariance $C$ and
+$O(m n)$. Levenberg-Marquardt on $W r(\\theta)$ gives $\\hat\\theta$, its covariance $C$ and
 the statistic $T = \\hat\\theta^T C^{-1} \\hat\\theta$; `jaxcal.drift` tests it.
 """
 
@@ -51,20 +51,38 @@ from ._geometry import se3_exp
 from ._lsq import normal_inverse
 from ._reprojection import CornerData, RefineParams, RefineProblem, camera_matrix, chain, project
 
-#: Gauss-Newton steps of the drift fit (it converges in two or three).
+#: Gauss-Newton steps of the hand-eye drift fit (`jaxcal._drift_handeye`: the camera's pose
+#: alone, a well-conditioned problem; it converges in two or three).
 GN_STEPS = 6
+#: Steps of `drift_least_squares` (a refused step costs one; a check of the pose alone converges
+#: in three or four, one that frees the joints' zero offsets may take twenty).
+LM_STEPS = 30
+#: Its starting damping, relative to the normal matrix's diagonal.
+LM_DAMPING = 1e-3
 
 
-def gauss_newton(res, k: int, steps: int = GN_STEPS):
-    """`steps` Gauss-Newton steps from zero on the residuals `res(theta)` of `k` drift
-    parameters (a nearly linear problem: the calibrated model holds everything else);
-    **returns** `(theta, J^T J, r)` at the last iterate."""
+def drift_least_squares(res, k: int, steps: int = LM_STEPS):
+    """Levenberg-Marquardt from zero on the residuals `res(theta)` of `k` drift parameters, for
+    `steps` steps: a step that does not lower the sum of squares is refused and the damping
+    raised tenfold, an accepted one lowers it tenfold. (Undamped Gauss-Newton diverged on checks
+    that free the joints' zero offsets: the device's or camera's rotation about the base's
+    vertical and the first joint's offset are nearly one direction, the first full step
+    overshot by about a radian, and where a fixed number of steps ended depended on the
+    arithmetic.) **Returns** `(theta, J^T J, r)` at the last iterate."""
 
-    def step(theta, _):
+    def step(carry, _):
+        theta, lam = carry
         r, A = res(theta), jax.jacfwd(res)(theta)
-        return theta + jnp.linalg.solve(A.T @ A, -A.T @ r), None
+        H = A.T @ A
+        D = jnp.maximum(jnp.diag(H), 1e-12 * jnp.max(jnp.diag(H)))
+        trial = theta + jnp.linalg.solve(H + lam * jnp.diag(D), -(A.T @ r))
+        r_trial = res(trial)
+        better = r_trial @ r_trial < r @ r
+        lam = jnp.clip(jnp.where(better, lam / 10.0, lam * 10.0), 1e-15, 1e15)
+        return (jnp.where(better, trial, theta), lam), None
 
-    theta, _ = jax.lax.scan(step, jnp.zeros(k), None, length=steps)
+    start = (jnp.zeros(k), jnp.asarray(LM_DAMPING, jnp.result_type(float)))
+    (theta, _), _ = jax.lax.scan(step, start, None, length=steps)
     A = jax.jacfwd(res)(theta)
     return theta, A.T @ A, res(theta)
 
@@ -163,7 +181,7 @@ def _whiten(v, U, d, sigma):
 
 @partial(jax.jit, static_argnames="offsets")
 def fit_camera_drift(ref_x, zero, U, d, sigma, problem: RefineProblem, *, offsets: bool):
-    """Gauss-Newton on the whitened residuals. **Returns:** `(theta, C, T, rss)` as
+    """Levenberg-Marquardt on the whitened residuals. **Returns:** `(theta, C, T, rss)` as
     `jaxcal.drift.fit_drift` (theta: the camera's twist, then the zero offsets with `offsets`)."""
     k = 6 + (zero.shape[0] if offsets else 0)
 
@@ -171,7 +189,7 @@ def fit_camera_drift(ref_x, zero, U, d, sigma, problem: RefineProblem, *, offset
         x = ref_x + (theta[6:] @ zero if offsets else 0.0)
         return _whiten(_residuals(x, theta[:6], problem), U, d, sigma)
 
-    theta, info, r = gauss_newton(res, k)
+    theta, info, r = drift_least_squares(res, k)
     return theta, normal_inverse(info), theta @ info @ theta, r @ r
 
 

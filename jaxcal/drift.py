@@ -18,7 +18,7 @@ $$ R = \\mathrm{diag}(s_i^2 I_3) + J \\Sigma J^T, $$
 $s_i^2 = \\hat\\sigma^2 \\sigma_i^2$ the per-sample scatter the fit showed (as `jaxcal
 verify` uses it), $J = \\partial \\hat y / \\partial x$ and $\\Sigma$ the calibration's
 covariance. The drift $\\theta = (\\varepsilon, \\delta q)$ is estimated by
-Gauss-Newton on the residuals whitened by $R$, so that $\\hat\\theta \\sim N(\\theta,
+Levenberg-Marquardt on the residuals whitened by $R$, so that $\\hat\\theta \\sim N(\\theta,
 C)$, $C = (A^T R^{-1} A)^{-1}$, $A = \\partial y / \\partial \\theta$, and the test is
 
 $$ T = \\hat\\theta^T C^{-1} \\hat\\theta \\sim \\chi^2_k \\text{ without drift}, \\qquad
@@ -46,7 +46,7 @@ import numpy as np
 
 from ._buckets import bucket, pad_log
 from ._correction import ParameterLayout
-from ._drift_camera import CameraReference, camera_reference, gauss_newton, pad_corners
+from ._drift_camera import CameraReference, camera_reference, drift_least_squares, pad_corners
 from ._drift_camera import fit as fit_camera
 from ._exported import stored_jit
 from ._geometry import se3_exp
@@ -79,8 +79,6 @@ def _stats():
 
 #: The test's false-alarm probability, and the power the detectable change is quoted at.
 ALPHA, POWER = 0.05, 0.95
-#: Gauss-Newton steps of the drift fit (it converges in two or three; these are for safety).
-GN_STEPS = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,7 +138,7 @@ def _model(theta, y_hat, Z):
 
 
 def fit_drift(y, y_hat, Z, W, *, offsets: bool):
-    """Gauss-Newton on the whitened residuals $W (y - f(\\theta))$ ($W^T W = R^{-1}$).
+    """Levenberg-Marquardt (`jaxcal._drift_camera.drift_least_squares`) on the whitened residuals $W (y - f(\\theta))$ ($W^T W = R^{-1}$).
 
     **Returns:** `(theta, C, T, rss)`: the drift (6, or 6 + joints with `offsets`),
     its covariance, the test statistic and the whitened residual sum of squares after it."""
@@ -154,7 +152,7 @@ def _fit_drift(y, y_hat, Z, W, *, offsets: bool):
     def res(theta):
         return W @ (y - _model(theta, y_hat, Zk)).reshape(-1)
 
-    theta, info, r = gauss_newton(res, k, GN_STEPS)
+    theta, info, r = drift_least_squares(res, k)
     C = normal_inverse(info)
     return theta, C, theta @ info @ theta, r @ r
 

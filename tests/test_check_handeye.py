@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jaxcal._drift_camera import gauss_newton
+from jaxcal._drift_camera import GN_STEPS
 from jaxcal._drift_handeye import COMPONENT_ROUNDS, VIEW_START, HandEyeCheckData, residuals
 from jaxcal._geometry import se3_exp
 from jaxcal._handeye.model import corrected_robot
@@ -156,7 +156,13 @@ def _dense_fit(X, Y, cov, robot_sigma, sigma_px, data):
     def res(eps):
         return jax.scipy.linalg.solve_triangular(L, residuals(eps, zero12, zeroF, X, Y, data), lower=True)
 
-    theta, info, r = gauss_newton(res, 6)
+    def step(theta, _):  # `fit_handeye_drift`'s Gauss-Newton, on the dense whitened residuals
+        A = jax.jacfwd(res)(theta)
+        return theta + jnp.linalg.solve(A.T @ A, -A.T @ res(theta)), None
+
+    theta, _ = jax.lax.scan(step, jnp.zeros(6), None, length=GN_STEPS)
+    A = jax.jacfwd(res)(theta)
+    info, r = A.T @ A, res(theta)
     return theta, jnp.linalg.inv(info), theta @ info @ theta, r @ r, s, R
 
 
