@@ -54,35 +54,44 @@ from ._reprojection import CornerData, RefineParams, RefineProblem, camera_matri
 #: Gauss-Newton steps of the hand-eye drift fit (`jaxcal._drift_handeye`: the camera's pose
 #: alone, a well-conditioned problem; it converges in two or three).
 GN_STEPS = 6
-#: Steps of `drift_least_squares` (a refused step costs one; a check of the pose alone converges
-#: in three or four, one that frees the joints' zero offsets may take twenty).
-LM_STEPS = 30
-#: Its starting damping, relative to the normal matrix's diagonal.
+#: Most steps of `drift_least_squares` (a check of the pose alone converges in three or four, one
+#: that frees the joints' zero offsets may take twenty) ...
+LM_STEPS = 40
+#: ... its starting damping, relative to the normal matrix's diagonal, and when it stops: a step
+#: that lowers the sum of squares by less than `LM_RTOL` of it, or `LM_REFUSED` refused in a row.
 LM_DAMPING = 1e-3
+LM_RTOL = 1e-12
+LM_REFUSED = 4
 
 
 def drift_least_squares(res, k: int, steps: int = LM_STEPS):
     """Levenberg-Marquardt from zero on the residuals `res(theta)` of `k` drift parameters, for
-    `steps` steps: a step that does not lower the sum of squares is refused and the damping
-    raised tenfold, an accepted one lowers it tenfold. (Undamped Gauss-Newton diverged on checks
-    that free the joints' zero offsets: the device's or camera's rotation about the base's
+    at most `steps` steps: a step that does not lower the sum of squares is refused and the
+    damping raised tenfold, an accepted one lowers it tenfold. (Undamped Gauss-Newton diverged on
+    checks that free the joints' zero offsets: the device's or camera's rotation about the base's
     vertical and the first joint's offset are nearly one direction, the first full step
     overshot by about a radian, and where a fixed number of steps ended depended on the
     arithmetic.) **Returns** `(theta, J^T J, r)` at the last iterate."""
 
-    def step(carry, _):
-        theta, lam = carry
+    def step(carry):
+        theta, lam, n, refused, _ = carry
         r, A = res(theta), jax.jacfwd(res)(theta)
         H = A.T @ A
         D = jnp.maximum(jnp.diag(H), 1e-12 * jnp.max(jnp.diag(H)))
         trial = theta + jnp.linalg.solve(H + lam * jnp.diag(D), -(A.T @ r))
         r_trial = res(trial)
-        better = r_trial @ r_trial < r @ r
+        ss, ss_trial = r @ r, r_trial @ r_trial
+        better = ss_trial < ss
+        refused = jnp.where(better, 0, refused + 1)
+        done = (better & (ss - ss_trial <= LM_RTOL * ss)) | (refused >= LM_REFUSED)
         lam = jnp.clip(jnp.where(better, lam / 10.0, lam * 10.0), 1e-15, 1e15)
-        return (jnp.where(better, trial, theta), lam), None
+        return jnp.where(better, trial, theta), lam, n + 1, refused, done
 
-    start = (jnp.zeros(k), jnp.asarray(LM_DAMPING, jnp.result_type(float)))
-    (theta, _), _ = jax.lax.scan(step, start, None, length=steps)
+    def going(carry):
+        return (carry[2] < steps) & ~carry[4]
+
+    start = (jnp.zeros(k), jnp.asarray(LM_DAMPING, jnp.result_type(float)), 0, 0, False)
+    theta = jax.lax.while_loop(going, step, start)[0]
     A = jax.jacfwd(res)(theta)
     return theta, A.T @ A, res(theta)
 
