@@ -30,8 +30,10 @@ program of tens of thousands of instructions saves about as much as XLA's own
 load. It is named after the entry and a digest of the host's CPU (the machine code
 is the host's), carries a SHA-256 of its payload checked before XLA sees a byte,
 and is used only on a single-device backend; anything else falls back to lowering
-and the persistent cache. It is byte for byte the executable the entry compiles to,
-so the numbers do not depend on it either.
+and the persistent cache. An executable kept here is not also written to the
+persistent cache (it would be serialised twice), so a missing or damaged one is
+compiled again. It is byte for byte the executable the entry compiles to, so the
+numbers do not depend on it either.
 
 Every program and executable read is stamped as used (its modification time); the
 folder keeps to `BUDGET_BYTES`, the least recently used files going first, since
@@ -177,7 +179,8 @@ class _Entry:
                 if self._compiled is None:
                     specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.exported.in_avals]
                     _CACHE_HIT.hit = False
-                    self._compiled = self.jitted.lower(*specs).compile()
+                    with _kept_here(path):
+                        self._compiled = self.jitted.lower(*specs).compile()
                     if not _CACHE_HIT.hit:
                         _write_executable(path, self._compiled)
             return self._compiled
@@ -468,6 +471,19 @@ def _executable_path(file: str | None) -> Path | None:
     if file is None or folder is None or jax.device_count() != 1:
         return None
     return folder / f"{file.removesuffix('.jaxexport')}.{_host_digest()}.xla"
+
+
+def _kept_here(path: Path | None):
+    """While compiling an executable that is kept at `path`: JAX's persistent cache is read but
+    not written, so the executable is not serialised and compressed a second time for a copy
+    that only a process without `path` would read (a cold `jaxcal calibrate` writes each of
+    its big programs once). Without `path` (no cache, several devices) the cache writes as
+    usual."""
+    if path is None:
+        return contextlib.nullcontext()
+    from jax._src import config
+
+    return config.persistent_cache_min_compile_time_secs(float("inf"))
 
 
 def _read_executable(path: Path | None, exported):

@@ -195,6 +195,32 @@ def test_an_executable_read_from_jaxs_cache_is_not_kept(store, monkeypatch):
     assert _entry(store).is_file() and not list(store.glob("*.xla"))
 
 
+@pytest.mark.parametrize("kept", [True, False])
+def test_a_kept_executable_is_not_written_to_jaxs_cache_too(tmp_path, monkeypatch, request, kept):
+    """An executable kept beside its entry is serialised once, not a second time into JAX's
+    persistent cache; without a folder for the stored programs JAX's cache keeps it as usual."""
+    from jax._src import compilation_cache
+
+    monkeypatch.setattr(_exported, "programs_dir", lambda: tmp_path if kept else None)
+    put, names = compilation_cache.put_executable_and_time, []
+
+    def spy(cache_key, module_name, *args, **kwargs):
+        names.append(module_name)
+        return put(cache_key, module_name, *args, **kwargs)
+
+    monkeypatch.setattr(compilation_cache, "put_executable_and_time", spy)
+    before = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # every compile is written
+    salt = time.time_ns() % 1_000_003  # a program no earlier run put in JAX's cache
+    program = _exported.stored_jit(lambda x: x * salt + 1.0, "test_kept", static=(request.node.name, salt))
+    try:
+        program(jnp.eye(3))
+    finally:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", before)
+    written = [n for n in names if n.startswith("jit_test_kept")]
+    assert (len(written), len(list(tmp_path.glob("*.xla")))) == ((0, 1) if kept else (1, 0)), names
+
+
 def test_a_loaded_executable_runs_lapack_in_a_fresh_process(tmp_path):
     """A process that runs a loaded executable calling LAPACK before it has lowered anything
     (jaxlib sets up its LAPACK functions lazily, when a program is lowered: unset, the call
