@@ -99,6 +99,15 @@ class TargetSpec:
 
     def __post_init__(self):
         where = f"target {self.name!r}"
+        try:  # JSON gives a list: the target is hashed (detector caches), so it holds a tuple
+            squares = tuple(int(n) for n in self.squares)
+        except (TypeError, ValueError):
+            squares = ()
+        if len(squares) != 2 or list(squares) != list(self.squares):
+            raise ValueError(
+                f"{where}: squares must be two whole numbers (columns, rows), got {self.squares!r}"
+            )
+        object.__setattr__(self, "squares", squares)
         if self.kind not in KINDS:
             raise ValueError(f"{where}: kind must be one of {KINDS}, got {self.kind!r}")
         if not (self.marker_length > 0 and self.margin >= 0):

@@ -440,6 +440,9 @@ def _joints_section(result) -> list[str]:
         "",
         "Held at nominal (the camera cannot see them): " + ", ".join(result.frozen),
         "",
+        "These are the estimator's corrections: `origin.tx` .. `origin.rz` move and turn a joint's frame "
+        "(a twist, m and rad), where the table above gives the frame's resulting URDF origin (`x` .. `yaw`).",
+        "",
     ]
     return lines
 

@@ -54,7 +54,7 @@ HARD_MAPPINGS = 50_000
 def _mappings() -> int:
     try:
         with open("/proc/self/maps", "rb") as f:
-            return sum(1 for _ in f)
+            return f.read().count(b"\n")  # after every test: no Python loop over ~30,000 lines
     except OSError:  # not Linux
         return 0
 

@@ -272,6 +272,7 @@ def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
     assert main([*demo, "--quiet", "--workers", "1"]) == 0
     text = capsys.readouterr().out
     assert "Before / after" in text and "EE RMS mm" in text and "T_cam_base of cam1" in text
+    assert "calibration ok" in text  # the verdict is said, not only its exit code
     res = tmp_path / "demo" / "result"
     assert (res / "report.md").is_file() and "Camera cam1" in (res / "report.md").read_text()
     r = json.loads((res / "result.json").read_text())

@@ -24,6 +24,7 @@ from jaxcal.certification import certify, norm_quantiles
 from jaxcal.cli import main
 from jaxcal.drift import DriftReference, check, check_samples, detectable, power
 from jaxcal.errors import DatasetError
+from jaxcal.io._files import check_output_dir
 from jaxcal.io.checks import drift_check_from_json, drift_check_json, product_json, read_product
 from jaxcal.io.model_json import model_from_json
 from jaxcal.report import write_outputs
@@ -205,3 +206,6 @@ def test_calibrate_with_a_joint_box_certifies_it(tracker, tmp_path):
     assert np.allclose(c.region.ranges, np.radians([[-30.0, 30.0]] * 6), rtol=1e-15)
     assert c.summary.p95_mm == doc["summary"]["p95_mm"] and c.q.shape == (c.summary.poses, 6)
     assert json.dumps(product_json(c), indent=1) == text
+    # certificate.json joins the result's files: --overwrite may replace them all.
+    assert "certificate.json" in json.loads((out / ".jaxcal").read_text())["files"]
+    assert check_output_dir(out, overwrite=True, kind="result").replaces is not None

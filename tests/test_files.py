@@ -189,6 +189,28 @@ def test_overwrite_replaces_only_a_directory_jaxcal_wrote_of_the_same_kind(tmp_p
     assert check_output_dir(tmp_path / "empty", kind="result").replaces is None
 
 
+def test_overwrite_never_deletes_a_file_added_to_a_result(tmp_path):
+    """A result jaxcal wrote lists its files in its marker: a file the user put there since is
+    named and kept, and --overwrite refused until it is moved out."""
+    dest = tmp_path / "out"
+    with atomic_directory(dest, kind="result") as tmp:
+        (tmp / "result.json").write_text("{}")
+        (tmp / "plots").mkdir()
+        (tmp / "plots" / "a.png").write_bytes(b"png")
+    assert json.loads((dest / MARKER).read_text())["files"] == ["plots/a.png", "result.json"]
+    (dest / "plots" / "my_notes.txt").write_text("keep me")
+    with pytest.raises(
+        OutputError, match=r"jaxcal did not write there \(plots/my_notes.txt\).*Move them out"
+    ):
+        with atomic_directory(dest, overwrite=True, kind="result") as tmp:
+            (tmp / "result.json").write_text("{}")
+    assert (dest / "plots" / "my_notes.txt").read_text() == "keep me"
+    (dest / "plots" / "my_notes.txt").unlink()  # moved out: replaced as before
+    with atomic_directory(dest, overwrite=True, kind="result") as tmp:
+        (tmp / "result.json").write_text('{"new": 1}')
+    assert json.loads((dest / "result.json").read_text()) == {"new": 1}
+
+
 # --------------------------------------------------------------------------- races
 
 

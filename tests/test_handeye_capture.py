@@ -14,6 +14,7 @@ import pytest
 
 import jaxcal
 from jaxcal import _handeye as he
+from jaxcal._handeye.consistency import homography_rotations
 from jaxcal._linalg import concurrent_decompositions
 from jaxcal.cli import main
 from jaxcal.errors import DatasetError
@@ -118,6 +119,33 @@ def test_symmetric_target_is_resolved_by_the_robot():
     assert sorted(f for _, f, _ in obs.turned) == turned and {a for *_, a in obs.turned} == {180}
     r = jax.jit(jaxcal.calibrate_hand_eye)(obs.data)
     np.testing.assert_allclose(r.T_ee_cam[0], T_ee_cam, atol=1e-7)
+
+
+def test_a_single_marker_passes_the_pose_check_and_solves_exactly():
+    """One square marker (4 corners, the smallest target): its homography is the null vector of an
+    8 x 9 system, and the pose check's rotations are exact (a reduced SVD once left the null vector
+    out and refused every single-marker capture as "robot poses and images disagree")."""
+    tag = TargetSpec("aruco", dictionary="DICT_APRILTAG_36h11", marker_length=0.048, first_id=10, name="tag")
+    rng = np.random.default_rng(4)
+    T_base_ee, A, T_ee_cam, Y = eye_in_hand_views(rng, tag, 8)
+    uv = project(tag, A)
+    R, ok = homography_rotations(uv[None], np.ones(uv.shape[:2], bool)[None], K[None], tag.points())
+    assert ok.all()
+    np.testing.assert_allclose(R[0], A[:, :3, :3], atol=1e-9)
+    ids = np.arange(tag.num_points)
+    obs = hand_eye_from_detections([Detection(ids, p) for p in uv], tag, T_base_ee, K, eye_in_hand=True)
+    r = jax.jit(jaxcal.calibrate_hand_eye)(obs.data)
+    np.testing.assert_allclose(r.T_ee_cam[0], T_ee_cam, atol=1e-7)
+
+
+def test_a_target_read_from_json_takes_lists():
+    """`squares` as JSON gives it (a list) is a tuple in the target: it hashes and detects."""
+    target = TargetSpec("chessboard", squares=[8, 7], square_length=0.025)
+    assert target.squares == (8, 7) and hash(target) == hash(
+        TargetSpec("chessboard", squares=(8, 7), square_length=0.025)
+    )
+    with pytest.raises(ValueError, match="squares must be two whole numbers"):
+        TargetSpec("chessboard", squares=[8, 7, 1], square_length=0.025)
 
 
 def test_shuffled_robot_poses_are_refused_naming_frames():
@@ -620,6 +648,8 @@ def test_rendered_capture_calibrates_through_the_command(tmp_path, capsys, targe
     )
     assert s["status"] == "ok" and s["rejected_frames"] == [] and s["reasons"] == []
     assert cam["truth_error"]["translation_mm"] < 0.5 and cam["truth_error"]["rotation_deg"] < 0.1
+    # Rendered robot poses are exact: the noise estimate rests on almost nothing, and says so.
+    assert "the estimate is only an upper bound" in " ".join(capsys.readouterr().out.split())
     assert (
         0.5 <= cam["kfold_over_std"]["translation"] <= 2.0 and 0.5 <= cam["kfold_over_std"]["rotation"] <= 2.0
     )

@@ -258,3 +258,22 @@ def test_shipped_test_set_is_what_the_script_writes(tmp_path):
         point_m=[0.0, 0.09e-3, 31.0e-3],
     )
     assert (tmp_path / "test" / "samples.csv").read_text() == (here / "test" / "samples.csv").read_text()
+
+
+def test_commanded_points_are_noted_measured_ones_are_not(tmp_path):
+    """The real UR5 table holds both the commanded (nominal) points x_t and the measured ones
+    x_t + x_dif: importing the commanded ones as if measured is noted, the measured ones are not."""
+    here = ROOT / "data" / "ur5_tracker"
+    spec = json.loads((here / "test" / "metadata.json").read_text())["x_csv"]
+    kw = dict(
+        robot=ROBOTS_DIR / "ur5_dh.json", joints=list(spec["joints"].values()), joint_unit=spec["joint_unit"],
+        length_unit=spec["length_unit"], sigma_m=2e-5, point_m=[0.0, 0.09e-3, 31.0e-3],
+    )  # fmt: skip
+    source = here / "source" / spec["file"]
+    commanded = import_csv(source, tmp_path / "commanded", xyz=["x_t", "y_t", "z_t"], **kw)
+    assert commanded.rms_from_nominal_m < 4e-5
+    assert (
+        len(commanded.notes) == 1 and "commanded (nominal) points rather than measured" in commanded.notes[0]
+    )
+    measured = import_csv(source, tmp_path / "measured", xyz=spec["xyz"], **kw)
+    assert measured.rms_from_nominal_m > 3e-4 and measured.notes == ()

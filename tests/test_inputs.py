@@ -290,7 +290,13 @@ def test_missing_and_broken_images_are_named(ds, content, words):
         victim.mkdir()
     else:
         victim.write_bytes(content)
-    fails(ds, "frames.csv line 7", *words)
+    fails(ds, "frames.csv line 7", *words, "or delete line 7 of frames.csv")
+    # ... and the advice works: without that row the dataset loads, one frame fewer (a captured
+    # dataset has no truth.json, whose rows would name the deleted frame).
+    (ds / "truth.json").unlink()
+    rows = read_rows(ds / "frames.csv")
+    write_rows(ds / "frames.csv", rows[:6] + rows[7:])
+    assert len(load_dataset(ds).frames.file) == len(rows) - 2
 
 
 def test_jpeg_sizes_come_from_the_frame_header(ds):
@@ -435,7 +441,12 @@ def test_encoder_timestamps_must_increase(ds):
 def test_encoder_table_shape(ds):
     rows = read_rows(ds / "encoders.csv")
     write_rows(ds / "encoders.csv", [rows[0][:-1], *(r[:-1] for r in rows[1:])])
-    fails(ds, "encoders.csv", "expected the robot's joints")
+    fails(
+        ds, "encoders.csv line 1", f"no column for joint(s) [{rows[0][-1]!r}]", "expected the robot's joints"
+    )
+    swapped = [rows[0][0], rows[0][2], rows[0][1], *rows[0][3:]]
+    write_rows(ds / "encoders.csv", [swapped, *rows[1:]])
+    fails(ds, "encoders.csv line 1", "in another order")
     write_rows(ds / "encoders.csv", [rows[0], rows[1], rows[2][:-1], *rows[3:]])
     fails(ds, "encoders.csv line 3", "expected 7 columns, got 6")
     write_rows(ds / "encoders.csv", [rows[0], rows[1]])

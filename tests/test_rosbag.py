@@ -108,9 +108,15 @@ def test_ros1_raw_colour_without_camera_info(source, tmp_path, encoding):
 
 def test_ros1_compressed_with_camera_info(source, tmp_path):
     bag = write_bag(SOURCE, tmp_path / "cap.bag", ros1=True, rows=SUBSET)
-    ds = load_dataset(_import(bag, tmp_path / "ds").path)
+    r = _import(bag, tmp_path / "ds")
+    ds = load_dataset(r.path)
     _check_same(source, ds, SUBSET)
     np.testing.assert_allclose(ds.cameras[0].K, source.cameras[0].K, rtol=0, atol=1e-12)
+    assert not any("--camera-info" in n for n in r.notes)
+    # The same bag without --camera-info: K null, and a note names the topic that was left out.
+    r = _import(bag, tmp_path / "ds_no_info", camera_info=None)
+    assert load_dataset(r.path).cameras[0].K is None
+    assert any(f"give --camera-info {INFO} to use it" in n for n in r.notes), r.notes
 
 
 def test_rgb8_is_written_in_opencv_order():

@@ -101,7 +101,9 @@ def _homography_rotations(px, mask, K, U, ab) -> np.ndarray:
         )
         * np.concatenate([w, w], -1)[..., None]
     )
-    _, _, Vt = np.linalg.svd(rows, full_matrices=False)
+    # All nine right singular vectors: with exactly 4 points (one square marker) the system has
+    # 8 rows, and the homography is the null vector a reduced SVD leaves out.
+    _, _, Vt = np.linalg.svd(rows, full_matrices=True)
     Hn = Vt[:, -1, :].reshape(-1, 3, 3)
     T_img_inv = np.zeros((len(px), 3, 3))
     T_img_inv[:, 0, 0] = T_img_inv[:, 1, 1] = 1.0 / s

@@ -296,11 +296,41 @@ GROUPS = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, whose errors in a subcommand name first the options it does not take, each with
+    the closest one it does (a misspelt `--ouput` is not reported as a missing `--out`)."""
+
+    #: The words being parsed (`main` sets them): argparse's `error` is not given them.
+    argv: tuple[str, ...] = ()
+
+    def unknown_options(self) -> list[str]:
+        words = self.argv[: self.argv.index("--")] if "--" in self.argv else self.argv
+        options = [w.split("=")[0] for w in words if w.startswith("-") and not _NUMBER.match(w)]
+        return [o for o in dict.fromkeys(options) if o not in self._option_string_actions]
+
+    def error(self, message):
+        unknown = self.unknown_options() if " " in self.prog else []  # a subcommand's parser
+        if unknown:
+            import difflib
+
+            known = [o for o in self._option_string_actions if o.startswith("--")]
+            named = []
+            for o in unknown:
+                close = difflib.get_close_matches(o, known, n=1, cutoff=0.6)
+                named.append(o + (f" (did you mean {close[0]}?)" if close else ""))
+            first = f"{self.prog} takes no option {', '.join(named)}; see {self.prog} --help"
+            message = first if message.startswith("unrecognized arguments") else f"{first}. Also: {message}"
+        super().error(message)
+
+
+_NUMBER = re.compile(r"^-\d+$|^-\d*\.\d+(e[-+]?\d+)?$", re.IGNORECASE)
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The `jaxcal` argument parser: with every subcommand, or with only `command`'s
     (and those sharing its module, `GROUPS`), so that a run imports only the
     modules of the command it runs."""
-    parser = argparse.ArgumentParser(prog="jaxcal", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="jaxcal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     known = any(command in names for names, _ in GROUPS)
     for names, add in GROUPS:
@@ -372,7 +402,8 @@ def _refusal(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str |
     options = [a.split("=")[0] for a in unknown if a.startswith("-")]
     reason = getattr(args, "foreign", None)
     if reason is None or not options:
-        parser.error("unrecognized arguments: " + " ".join(unknown))
+        subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        subparsers.choices[args.command].error("unrecognized arguments: " + " ".join(unknown))
     what = f"jaxcal {args.command}" + (f" {args.plan}" if getattr(args, "plan", None) else "")
     return f"{what}: " + reason.format(options=", ".join(options))
 
@@ -380,6 +411,7 @@ def _refusal(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str |
 def main(argv: list[str] | None = None) -> int:
     argv = _deprecated_simulate(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     parser = build_parser(_command(argv))
+    _Parser.argv = tuple(argv)
     args, unknown = parser.parse_known_args(argv)
     refusal = _refusal(parser, args, unknown)
     if refusal is not None:

@@ -13,7 +13,7 @@ from rich.table import Table
 from .._exported import warm_start
 from ..certification import certify
 from ..errors import CalibrationError
-from ..io._files import write_text_atomic
+from ..io._files import note_written, write_text_atomic
 from ..io.checks import certificate_json
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
@@ -174,6 +174,8 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
         console.print(
             f"[red]calibration {result.status.upper()}: see the reasons above and result.json 'status'[/red]"
         )
+    else:
+        console.print("[green]calibration ok[/green]: every check passed (result.json 'status')")
     return code
 
 
@@ -186,6 +188,7 @@ def _certificate(console, out: Path, args) -> list[str]:
     c = certify(out, **where)
     print_certificate(console, c)
     write_text_atomic(out / "certificate.json", json.dumps(certificate_json(c), indent=1))
+    note_written(out, "certificate.json")
     report = out / "report.md"
     text = report.read_text()
     head, sep, tail = text.partition("\n## Plots")

@@ -32,6 +32,20 @@ SIM_TARGETS = {
 }
 
 
+def _robot_noise_support(r) -> str:
+    """How many residual degrees of freedom (translation / rotation) the estimated robot noise
+    rests on; under 2 the poses fit the images exactly and the figure is only a bound."""
+    from .._handeye import ROBOT_SIGMA_OPTIONS
+
+    if not bool(np.all(np.asarray(r.robot_sigma_estimated))):
+        return ""
+    t, w = (float(d) for d in np.asarray(r.robot_dof)[:2])
+    text = f", from {t:.0f} / {w:.0f} degrees of freedom (translation / rotation)"
+    if min(t, w) < 2.0:
+        text += ": the robot poses fit the images nearly exactly, so the estimate is only an upper bound"
+    return text + f" (set it with {ROBOT_SIGMA_OPTIONS})"
+
+
 def cmd_handeye(args) -> int:
     """`jaxcal handeye CAPTURE --out DIR`: exit 0 (ok), 3 (suspect, see result.json), 2 (refused input)."""
 
@@ -59,7 +73,7 @@ def cmd_handeye(args) -> int:
 def _handeye(args, out: Path, checked) -> int:
     from rich.console import Console
 
-    from .._handeye import ROBOT_SIGMA_OPTIONS, describe_robot_noise
+    from .._handeye import describe_robot_noise
     from ..handeye import calibrate_hand_eye_capture
     from ..io.handeye_results import ros2_static_transform_args, write_hand_eye_outputs
 
@@ -110,15 +124,7 @@ def _handeye(args, out: Path, checked) -> int:
         f"reprojection RMS {float(r.pixel_rms):.3f} px (detector {run.observations.sigma_px:.3f} px), "
         f"{len(run.rejected)} frame(s) rejected of {run.frames}"
     )
-    console.print(
-        describe_robot_noise(r)
-        + (
-            f", from {np.asarray(r.robot_dof)[0]:.0f} / {np.asarray(r.robot_dof)[1]:.0f} degrees of freedom "
-            f"(set it with {ROBOT_SIGMA_OPTIONS})"
-            if bool(np.all(np.asarray(r.robot_sigma_estimated)))
-            else ""
-        )
-    )
+    console.print(describe_robot_noise(r) + _robot_noise_support(r))
     for f, why in sorted(run.rejected.items()):
         console.print(f"  rejected frame {cap.frames[f]}: {why}")
     for note in run.verdict.notes:

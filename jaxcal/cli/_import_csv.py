@@ -115,4 +115,6 @@ def cmd_import_csv(args) -> int:
         f"wrote {r.path}: {r.samples} samples; after the best rigid alignment the points lie "
         f"{r.rms_from_nominal_m * 1e3:.3g} mm RMS from the nominal robot's (reach {r.reach_m:.3g} m)"
     )
+    for note in r.notes:
+        print(f"note: {note}")
     return 0

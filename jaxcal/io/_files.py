@@ -88,12 +88,36 @@ def _version() -> str:
         return "0.0.0"
 
 
-def write_marker(directory, kind: str) -> None:
-    """Write the `.jaxcal` marker (JSON: tool, kind, version) into `directory`."""
+def _files_in(directory: Path) -> list[str]:
+    """Every file under `directory` but the marker, as sorted relative POSIX paths."""
+    return sorted(
+        p.relative_to(directory).as_posix()
+        for p in directory.rglob("*")
+        if not p.is_dir() and p.name != MARKER
+    )
+
+
+def write_marker(directory, kind: str, *, complete: bool = False) -> None:
+    """Write the `.jaxcal` marker (JSON: tool, kind, version) into `directory`; `complete`: the
+    directory is whole, and the marker lists its files (`--overwrite` then refuses to delete a file
+    added since)."""
     if kind not in KINDS:
         raise ValueError(f"unknown output kind {kind!r}; expected one of {KINDS}")
     payload = {"tool": "jaxcal", "kind": kind, "version": _version()}
+    if complete:
+        payload["files"] = _files_in(Path(directory))
     (Path(directory) / MARKER).write_text(json.dumps(payload) + "\n")
+
+
+def note_written(directory, *names: str) -> None:
+    """Add files jaxcal wrote into a finished output `directory` (after its atomic commit) to the
+    marker's list, so that `--overwrite` may replace them."""
+    directory = Path(directory)
+    marker = read_marker(directory)
+    if marker is None or not isinstance(marker.get("files"), list):
+        return
+    marker["files"] = sorted(set(marker["files"]) | set(names))
+    write_text_atomic(directory / MARKER, json.dumps(marker) + "\n")
 
 
 def read_marker(directory) -> dict | None:
@@ -193,6 +217,15 @@ def check_output_dir(out, *, inputs=(), overwrite: bool = False, kind: str, what
                     f"{label}: holds a jaxcal {marker['kind']}, not a {kind}; --overwrite replaces only a "
                     f"{kind}. Delete it yourself or choose another {what}"
                 )
+            if isinstance(marker.get("files"), list):
+                added = sorted(set(_files_in(out)) - set(marker["files"]))
+                if added:
+                    more = f" and {len(added) - 5} more" if len(added) > 5 else ""
+                    raise OutputError(
+                        f"{label}: holds file(s) jaxcal did not write there ({', '.join(added[:5])}{more}); "
+                        "--overwrite would delete them. Move them out (or delete them yourself), or choose "
+                        f"another {what}"
+                    )
             st = out.lstat()
             replaces = (st.st_dev, st.st_ino)
     parent = resolved.parent
@@ -431,7 +464,7 @@ def atomic_directory(
         tmp = make_temp_dir(parent, dest.name)
         try:
             yield tmp
-            write_marker(tmp, kind)
+            write_marker(tmp, kind, complete=True)
             _commit(tmp, parent / dest.name, replaces, label)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)

@@ -188,7 +188,13 @@ def _check_images(root: Path, path: Path, frames: dict, lines, cameras, meta_loc
     index = {c.name: i for i, c in enumerate(cameras)}
     wrong: dict[str, list] = {}
     for k, (name, file) in enumerate(zip(frames.camera.tolist(), frames.file.tolist())):
-        size = image_size(root / file, f"{path} line {lines[k]}: {file}")
+        try:
+            size = image_size(root / file, f"{path} line {lines[k]}: {file}")
+        except DatasetError as e:  # say what to do: a capture is not lost to one bad image
+            raise DatasetError(
+                f"{e}; restore the file, or delete line {lines[k]} of {path.name} (a copy of the dataset) "
+                "to calibrate without that frame"
+            ) from None
         cam = cameras[index[name]]
         if size != (cam.width, cam.height):
             wrong.setdefault(name, []).append((k, size))
@@ -215,8 +221,13 @@ def _encoder_table(
         raise DatasetError(f"{path} line 1: the header must start with 'timestamp', got {','.join(header)!r}")
     if tuple(header[1:]) != joints:
         unknown = [h for h in header[1:] if h not in joints]
-        detail = f"unknown joint names {unknown}" if unknown else f"columns {header[1:]}"
-        raise DatasetError(f"{path}: {detail}; expected the robot's joints {list(joints)}")
+        missing = [j for j in joints if j not in header[1:]]
+        parts = [f"no column for joint(s) {missing}"] if missing else []
+        parts += [f"unknown joint names {unknown}"] if unknown else []
+        detail = "; ".join(parts) or f"columns {header[1:]} in another order or repeated"
+        raise DatasetError(
+            f"{path} line 1: {detail}; expected the robot's joints {list(joints)}, in that order"
+        )
     if len(rows) < 2:
         raise DatasetError(f"{path}: fewer than 2 encoder readings")
     for line, row in rows:

@@ -70,6 +70,9 @@ MIN_SPREAD_M = 0.01
 ALIGN_TOL_M = 0.05
 #: ... plus this when the point's mount on the link is not given (the link's origin stands in).
 UNKNOWN_POINT_M = 0.5
+#: Points closer to the nominal robot than this many times their stated noise are noted: a real
+#: arm's points are millimetres off its datasheet, a table's commanded points are not.
+NOMINAL_LIKE = 2.0
 #: Largest difference between the measured and nominal angle of consecutive orientations (deg).
 ANGLE_TOL_DEG = 5.0
 #: The joint range assumed for a DH/MDH table without `lower` / `upper` (rad, each way): one turn,
@@ -82,12 +85,14 @@ MAX_POINT_M = 2.0
 @dataclass(frozen=True)
 class CsvImport:
     """What `import_csv` wrote: the dataset, its sample count, the robot's reach bound (m)
-    and the points' RMS distance from the nominal robot's after the rigid alignment (m)."""
+    and the points' RMS distance from the nominal robot's after the rigid alignment (m); `notes`:
+    what looks odd but is not refused."""
 
     path: Path
     samples: int
     reach_m: float
     rms_from_nominal_m: float
+    notes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -489,7 +494,15 @@ def import_csv(
         _write_samples(tmp / "samples.csv", table, model.joint_names)
         write_json(tmp / "metadata.json", meta)
         load_dataset(tmp)  # the format's every check, before the rename
-    return CsvImport(Path(out), len(table.t), reach, rms)
+    notes = []
+    if rms < NOMINAL_LIKE * sigma_m:
+        notes.append(
+            f"the points lie only {rms * 1e3:.3g} mm RMS from the nominal robot's, within {NOMINAL_LIKE:g}x their "
+            f"stated noise ({sigma_m * 1e3:.3g} mm): are {xyz} the commanded (nominal) points rather than "
+            "measured ones? A real arm is typically 0.5-5 mm off its datasheet, and a calibration on these "
+            "points learns nothing"
+        )
+    return CsvImport(Path(out), len(table.t), reach, rms, tuple(notes))
 
 
 def _metadata(

@@ -251,6 +251,18 @@ def _camera(reader, bag: Path, topic: str | None, size, camera: str, mount: str)
     return cam
 
 
+def _unused_camera_info(reader, bag: Path) -> list[str]:
+    """A note naming the bag's CameraInfo topics when `--camera-info` was not given (K is then
+    null: self-calibrated, and a result without the refinement is suspect)."""
+    topics = sorted({c.topic for c in reader.connections if c.msgtype == INFO_TYPE})
+    if not topics:
+        return []
+    return [
+        f"no --camera-info given, so the camera's K is null (self-calibrated from the images); {bag.name} "
+        f"has sensor_msgs/CameraInfo on {', '.join(topics)}: give --camera-info {topics[0]} to use it"
+    ]
+
+
 def _robot_model(robot: Path, base_link, flange_link):
     """The robot file's model, its movable joints, the chain's reduction ratios, and the
     metadata key and file name it is copied under (`urdf`, `robot.urdf`, or `table`, `robot_dh.json`)."""
@@ -322,6 +334,8 @@ def import_bag(
                 f"joint states ({joints}, {enc_ns[0] * 1e-9:.3f}-{enc_ns[-1] * 1e-9:.3f} s) do not overlap in time"
             )
         cam = _camera(reader, bag, camera_info, size, camera, mount)
+        if camera_info is None:
+            notes += _unused_camera_info(reader, bag)
         epoch = (min(int(img_ns[0]), int(enc_ns[0])) // 1_000_000_000) * 1_000_000_000
         t_enc = (enc_ns - epoch) * 1e-9
         motion, more = find_segments(t_enc, q, chain, segments or SegmentOptions())

@@ -344,10 +344,14 @@ def run_plan(args, console: Console, checker_factory=None, capture_models=None) 
         )
     moved = sum(c.action == "moved" for c in res.plan.corrections)
     dropped = [c for c in res.plan.corrections if c.action == "dropped"]
+    fails = dict(res.counts)
+    drawn = {k: fails.pop(k, 0) for k in ("passed", "moved", "dropped")}
     console.print(
-        f"feasibility: {moved} poses moved toward the taught pose, {len(dropped)} dropped"
+        f"the plan's poses: {moved} moved toward the taught pose, {len(dropped)} dropped"
         + (f" ({', '.join(sorted({c.reason for c in dropped}))})" if dropped else "")
-        + f"; candidates' first failures: {res.counts}"
+        + f"; of the {sum(drawn.values())} random candidates it chose from: {drawn['passed']} feasible as "
+        f"drawn, {drawn['moved']} moved toward the taught pose, {drawn['dropped']} dropped"
+        + (f" (first failing checks: {', '.join(f'{k} {v}' for k, v in fails.items())})" if fails else "")
     )
     save_plan(res.plan, out)
     console.print(f"wrote {out} ({time.perf_counter() - t0:.1f} s)")

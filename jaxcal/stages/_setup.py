@@ -187,7 +187,7 @@ def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: fl
     notes = [TWO_STAGE_IS_FINAL] if options.refine and not kind.fits_points else []
     if options.device_is_base:
         notes.append(
-            f"device_is_base: {ds.device.name!r}'s frame is the robot's base frame (T_device_base = identity, "
+            f"device_is_base: the frame of {ds.device.name!r} is the robot's base frame (T_device_base = identity, "
             "not estimated): the base height d1 and joint 1's origin become identifiable"
         )
     return Setup(
