@@ -300,3 +300,22 @@ def test_buckets_grow_by_at_most_half_and_logs_pad_without_changing_interpolatio
     probe = np.linspace(-1.0, 5.0, 97)
     for j in range(2):
         np.testing.assert_array_equal(np.interp(probe, tp, qp[:, j]), np.interp(probe, t, q[:, j]))
+
+
+def test_a_joint_origin_far_past_its_limit_asks_for_the_robot_model():
+    """A joint origin a few mm past its limit is a worn or bent arm; tens of mm (the UR5's data
+    calibrated as a UR5e) is the wrong model, and the reason says so."""
+    from jaxcal.records import ParameterRow
+    from jaxcal.stages._verdict import WRONG_MODEL_FACTOR, _Checks, _corrections
+    from jaxcal.stages.limits import Limits
+
+    limits = Limits()
+    for mm, asks in ((1.5 * limits.origin_mm, False), (1.01 * WRONG_MODEL_FACTOR * limits.origin_mm, True)):
+        rows = tuple(
+            ParameterRow(f"shoulder_pan_joint.origin.{k}", "m", "correction", 0.0, v, 1e-5, True)
+            for k, v in (("x", mm * 1e-3), ("y", 0.0), ("z", 0.0))
+        )
+        c = _Checks()
+        _corrections(c, rows, limits, set())
+        (reason,) = c.reasons
+        assert "moved" in reason and ("is the robot model" in reason) == asks, reason

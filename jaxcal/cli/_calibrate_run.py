@@ -62,6 +62,17 @@ def _rich(table: TextTable) -> Table:
 
 def _sweeps_table(console, result) -> None:
     console.print(_rich(joints_table(result)))
+    f = result.frames
+    lost = {
+        "without a target (out of view, turned away or blurred)": f.no_target,
+        "outside the encoder log": f.outside_encoder_log,
+        "in no single-joint sweep": f.not_in_a_sweep,
+    }
+    if any(lost.values()):  # why a joint's row counts fewer frames than it was filmed in
+        console.print(
+            f"frames: {f.images} images, the target found in {f.target_found}; "
+            + ", ".join(f"{n} {why}" for why, n in lost.items() if n)
+        )
 
 
 def _result_tables(console, result) -> None:

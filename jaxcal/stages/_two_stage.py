@@ -395,8 +395,8 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
         + (f", {pf.folds}-fold cross-validation {kept.cv_mean_mm:.4f} mm mean" if pf.folds else "")
     ]
     notes += [
-        f"{'+'.join(m.terms)}: cross-validation {m.cv_mean_mm:.4f} mm mean, not better than "
-        f"{'+'.join(kept.terms) or 'the geometric model'}: left out"
+        f"the model with {'+'.join(m.terms)} only: cross-validation {m.cv_mean_mm:.4f} mm mean, not better than "
+        f"the kept {'+'.join(kept.terms) or 'geometric model'}: not kept"
         for m in pf.models
         if m.terms and not m.kept
     ]

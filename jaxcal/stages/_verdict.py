@@ -86,6 +86,10 @@ class _Checks:
             self.reasons.append(message)
 
 
+#: A joint origin this many times past its limit suggests the wrong robot model, not a worn arm.
+WRONG_MODEL_FACTOR = 5.0
+
+
 def _corrections(
     c: _Checks, parameters: tuple[ParameterRow, ...], limits: Limits, measured_mounts: set
 ) -> None:
@@ -106,7 +110,13 @@ def _corrections(
         lim_mm, lim_deg = (
             (limits.mount_mm, limits.mount_deg) if mount else (limits.origin_mm, limits.origin_deg)
         )
-        c.add(f"{owner}.mm", mm, lim_mm, f"{owner} moved {mm:.1f} mm from nominal (limit {lim_mm:g} mm)")
+        far = (
+            "; far beyond how much a real arm differs from its datasheet: is the robot model (URDF or DH "
+            "table) this arm's?"
+            if not mount and mm > WRONG_MODEL_FACTOR * lim_mm
+            else ""
+        )
+        c.add(f"{owner}.mm", mm, lim_mm, f"{owner} moved {mm:.1f} mm from nominal (limit {lim_mm:g} mm){far}")
         c.add(
             f"{owner}.deg", deg, lim_deg, f"{owner} turned {deg:.2f} deg from nominal (limit {lim_deg:g} deg)"
         )
