@@ -121,7 +121,11 @@ def cmd_montecarlo(args) -> int:
     result = mc.monte_carlo(setup, jax.random.key(args.seed), args.trials, chunk=args.chunk)
     jax.block_until_ready(result)
     summary = mc.summarize(result) | {"seconds": time.perf_counter() - t0}
-    _summary_table(console, summary, f"Monte Carlo: {args.trials} trials in one jit call")
+    _summary_table(
+        console,
+        summary,
+        f"Monte Carlo: {args.trials} trials in one jit call ('seconds' includes compiling it, unless cached)",
+    )
     if args.json:
         write_json_atomic(Path(args.json), summary)
     rate = float(np.asarray(result.success).mean())  # summary's success_rate
