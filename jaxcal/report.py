@@ -313,8 +313,8 @@ def _truth_section(result) -> list[str]:
         "",
         *table.markdown(),
         "",
-        f"{result.kind.fixed_frame} error in the estimator's gauge: the truth seen through the same frozen "
-        f"parameters (raw {c.raw_trans_mm:.3f} mm, {c.raw_rot_deg:.4f} deg).",
+        f"{result.kind.fixed_frame} error in the estimator's gauge ({c.gauge}); against the truth's own "
+        f"pose: {c.raw_trans_mm:.3f} mm, {c.raw_rot_deg:.4f} deg.",
         "",
     ]
 

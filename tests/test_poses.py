@@ -7,6 +7,7 @@ estimate of the camera and the mount, and decides what the corners can identify.
 
 import json
 
+import numpy as np
 import pytest
 
 from jaxcal.cli import main
@@ -14,6 +15,7 @@ from jaxcal.pipeline import CalibrationError, calibrate
 from jaxcal.robots import load_robot
 from jaxcal.sim.motion import random_motion
 from jaxcal.sim.simulate import SimConfig, simulate
+from jaxcal.stages._validate import POSE_GAUGE
 
 pytestmark = pytest.mark.slow
 
@@ -36,6 +38,10 @@ def test_poses_calibrate_from_the_nominal_robot_and_a_hand_eye_start(dataset, tm
     # The start is the nominal robot; the corners give the calibrated one.
     assert v["ee_rms_mm_before"] > 4.0 and v["ee_rms_mm_after"] < 0.5 * v["ee_rms_mm_before"]
     assert v["T_cam_base_error"]["trans_mm"] < 3.0 and v["T_cam_base_error"]["rot_deg"] < 0.3
+    # A pose capture's gauge: the estimator's parameters fitted to the truth, the held ones held.
+    assert v["T_cam_base_error"]["gauge"] == POSE_GAUGE
+    std_mm = np.linalg.norm(r["T_cam_base"]["std_xyz_mm"])
+    assert v["T_cam_base_error"]["trans_mm"] < 4.0 * std_mm  # in the gauge, the std is honest
     ratio = [abs(e["ratio_percent"]) for e in v["parameter_errors"].values()]
     assert max(ratio) < 1.0  # perturbed by ~1 %: every joint moved far enough to see it
     assert r["status"] == "ok" and not (out / "arcs.png").exists() and (out / "ee_error.png").exists()

@@ -319,3 +319,40 @@ def test_a_joint_origin_far_past_its_limit_asks_for_the_robot_model():
         _corrections(c, rows, limits, set())
         (reason,) = c.reasons
         assert "moved" in reason and ("is the robot model" in reason) == asks, reason
+
+
+def test_a_pose_captures_gauge_moves_the_fixed_frame_by_the_truths_held_perturbations():
+    """A truth that differs from the nominal UR5e only by 1 mm of joint 2's origin along joint 1's
+    axis (`shoulder_lift_joint.origin.ty`, which a pose capture's refinement holds at nominal):
+    the estimator can only move its base frame 1 mm along that axis instead, and the gauge fit
+    finds exactly that (so a perfect estimate scores zero, not 1 mm). A truth off in a parameter
+    the estimator frees leaves the gauge at the truth's own pose."""
+    from jaxcal._correction import apply_correction, zero_correction
+    from jaxcal._uncertainty import joint_travel
+    from jaxcal.stages._validate import _pose_gauge
+
+    nominal = load_robot("ur5e")
+    n = nominal.num_joints
+    corr = zero_correction(n, 1)
+    corr = type(corr)(origin=corr.origin.at[1, 1].set(1e-3), zero_offset=corr.zero_offset, tool=corr.tool)
+    true, _ = apply_correction(nominal, np.eye(4)[None], corr)
+    T_cb = np.array([[1.0, 0, 0, 0.9], [0, 0.26, -0.97, 0.2], [0, 0.97, 0.26, 1.1], [0, 0, 0, 1.0]])
+    T_cb[:3, :3] = np.linalg.qr(T_cb[:3, :3])[0] * np.sign(np.diag(np.linalg.qr(T_cb[:3, :3])[1]))
+    mount = np.eye(4)
+    mount[:3, 3] = [0.0, 0.05, 0.1]
+    free = np.ones(7 * n + 12, bool)
+    free[6:12] = False  # joint 1's origin
+    free[6 + 6 * n] = False  # and its zero offset: the base frame is the camera's to place
+    travel = joint_travel(nominal)
+    held = free.copy()
+    held[12 + 1] = held[12 + 4] = held[12 + 5] = False  # shoulder_lift_joint.origin.ty, ry, rz
+    dT = np.linalg.inv(T_cb) @ np.asarray(_pose_gauge(nominal, true, held, T_cb, mount, travel))
+    np.testing.assert_allclose(np.abs(dT[:3, 3]), [0.0, 0.0, 1e-3], atol=1e-9)  # 1 mm along joint 1's axis
+    np.testing.assert_allclose(dT[:3, :3], np.eye(3), atol=1e-9)
+    # A truth off in a parameter the estimator frees (elbow_joint.origin.tx): the gauge is its own pose.
+    corr = type(corr)(
+        origin=corr.origin.at[1, 1].set(0.0).at[2, 0].set(1e-3), zero_offset=corr.zero_offset, tool=corr.tool
+    )
+    true, _ = apply_correction(nominal, np.eye(4)[None], corr)
+    dT = np.linalg.inv(T_cb) @ np.asarray(_pose_gauge(nominal, true, held, T_cb, mount, travel))
+    np.testing.assert_allclose(dT, np.eye(4), atol=1e-9)
