@@ -34,7 +34,12 @@ Two parts, every method given the same data:
    poses. Also reported: jaxcal's std, its k-fold spread, and the normalised
    error (error / std) over the captures.
 
-4. `speed`: one solve's wall time after compilation (the fastest of 15) on
+4. `real`: ViSP's real Franka captures (`data/visp_handeye`: eye-in-hand on a chessboard,
+   eye-to-hand on one AprilTag, 8 frames each): jaxcal's whole pipeline, and OpenCV's five
+   `calibrateHandEye` methods on the same detections' PnP poses, each against ViSP's own solver's
+   published answer (no ground truth), with jaxcal's reported std beside it.
+
+5. `speed`: one solve's wall time after compilation (the fastest of 15) on
    synthetic corners (a 7x5 board of 3 cm squares, 600 px focal length,
    0.1 px noise): `noisy_robot_pixels_ms`, 30 robot poses seen by 2 cameras
    with robot poses off by 1 mm / 1 mrad and `robot_sigma` given (a 6-DOF
@@ -59,6 +64,7 @@ How to run (from the repository root)::
     .venv/bin/python benchmarks/handeye.py --quick
     .venv/bin/python benchmarks/handeye.py --parts captures --json results/handeye_captures.json
     .venv/bin/python benchmarks/handeye.py --parts speed
+    .venv/bin/python benchmarks/handeye.py --parts real --json results/handeye_real.json
 
 The JSON holds `methods` (per method `rot_deg`, `trans_mm`, `time_ms`) and
 `jaxcal_rot_ratio_vs_best_opencv`, `jaxcal_trans_ratio_vs_best_opencv` (jaxcal's
@@ -422,6 +428,49 @@ def captures_part(captures: int, frames: int, seed: int) -> dict:
     return out
 
 
+def real_part() -> dict:
+    """ViSP's real Franka captures (`data/visp_handeye`): jaxcal's whole pipeline and OpenCV's
+    methods on the same detections' PnP poses, each against ViSP's published answer (no ground
+    truth: 8 frames; what agrees within jaxcal's reported std)."""
+    root = Path(__file__).resolve().parents[1] / "data" / "visp_handeye"
+    reference = json.loads((root / "reference.json").read_text())
+    out = {}
+    for capture, key in (("eye_in_hand", "T_ee_cam"), ("eye_to_hand", "T_base_cam")):
+        v = reference[capture][key]
+        ref = pose(v[3:], v[:3])
+        run, ms = timed(jaxcal.calibrate_hand_eye_capture, root / capture)
+        rot, trans = errors(run.T_robot_cam[0], ref)
+        std = np.asarray(run.result.std_robot_cam[0])
+        seen = [f for f, p in enumerate(run.observations.poses[0]) if p is not None]
+        T_cb = np.stack([run.observations.poses[0][f].T_cam_target for f in seen])
+        T_be = run.capture.T_base_ee[seen]
+        grip = T_be if capture == "eye_in_hand" else np.linalg.inv(T_be)
+        opencv = {
+            name: dict(zip(("rot_deg", "trans_mm"), errors(T, ref)))
+            for name, (T, _) in opencv_solves(grip, T_cb).items()
+        }
+        out[capture] = {
+            "status": run.verdict.status,
+            "frames": int(run.frames),
+            "rejected": len(run.rejected),
+            "pixel_rms": float(run.result.pixel_rms),
+            "jaxcal_vs_visp": {"rot_deg": rot, "trans_mm": trans},
+            "jaxcal_std": {
+                "rot_deg": float(np.degrees(np.linalg.norm(std[3:]))),
+                "trans_mm": float(1e3 * np.linalg.norm(std[:3])),
+            },
+            "opencv_vs_visp": opencv,
+            "seconds": run.seconds,
+        }
+        print(
+            f"  {capture}: jaxcal {trans:.2f} mm {rot:.3f} deg from ViSP ({run.verdict.status}; std "
+            f"{out[capture]['jaxcal_std']['trans_mm']:.2f} mm {out[capture]['jaxcal_std']['rot_deg']:.3f} deg) | "
+            + ", ".join(f"{k} {e['trans_mm']:.2f} mm {e['rot_deg']:.3f} deg" for k, e in opencv.items()),
+            flush=True,
+        )
+    return out
+
+
 # --------------------------------------------------------------------------- main
 
 
@@ -509,8 +558,8 @@ def main(argv=None) -> dict:
     p.add_argument("--capture-frames", type=int, default=16, help="frames per rendered capture")
     p.add_argument(
         "--parts",
-        default="protocol,rendered,captures,speed",
-        help="comma-separated: protocol, rendered, captures, speed",
+        default="protocol,rendered,captures,real,speed",
+        help="comma-separated: protocol, rendered, captures, real, speed",
     )
     p.add_argument(
         "--quick", action="store_true", help="a smoke run: 3 trials, 10 poses, 12 frames, 1 capture"
@@ -539,6 +588,9 @@ def main(argv=None) -> dict:
     if "captures" in parts:
         print("Rendered captures through jaxcal's hand-eye pipeline:", flush=True)
         result["captures"] = captures_part(1 if a.quick else a.captures, a.capture_frames, a.seed)
+    if "real" in parts:
+        print("Real captures (ViSP's Franka, data/visp_handeye) against ViSP's answer:", flush=True)
+        result["real"] = real_part()
     if "speed" in parts:
         print("Solve times (synthetic corners):", flush=True)
         speed = speed_part(a.seed, not a.no_dense)

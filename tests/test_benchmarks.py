@@ -64,8 +64,8 @@ CASES = {
         ["frames", "poses", "overhead_pct", "pool_speedup", "median_s"],
     ),
     "handeye": (
-        ["--quick", "--parts", "protocol,speed", "--no-dense"],
-        ["methods", "cramer_rao", "noisy_robot_pixels_ms", "pixels_ms_50", "speed"],
+        ["--quick", "--parts", "protocol,real,speed", "--no-dense"],
+        ["methods", "cramer_rao", "noisy_robot_pixels_ms", "pixels_ms_50", "speed", "real"],
     ),
     "efficiency": (
         ["--trials", "2", "--frames", "5"],
