@@ -146,8 +146,8 @@ def _pose_gauge(nominal, true, free, T_cb_true, mount_true, travel):
     fixed frame, the joint origins and zero offsets it freed, the first mount) fitted to the
     truth's marker poses at the validation's configurations, those it held at nominal held
     there too. The truth's perturbations of the held parameters then move the fitted fixed frame
-    as they moved the estimate, and nothing else does (Gauss-Newton from the truth, 8 steps:
-    the fit is exact where only the gauge differs)."""
+    as they moved the estimate, and nothing else does (Gauss-Newton from the nominal robot at the
+    true fixed frame and mount, `GAUGE_STEPS` steps: the fit is exact where only the gauge differs)."""
     n = nominal.num_joints
     q = on_travel(
         nominal,
