@@ -300,8 +300,13 @@ class _Parser(argparse.ArgumentParser):
     """argparse, whose errors in a subcommand name first the options it does not take, each with
     the closest one it does (a misspelt `--ouput` is not reported as a missing `--out`)."""
 
-    #: The words being parsed (`main` sets them): argparse's `error` is not given them.
+    #: The words this parser was last given (a subcommand's parser gets the words after its
+    #: name): argparse's `error` is not given them.
     argv: tuple[str, ...] = ()
+
+    def parse_known_args(self, args=None, namespace=None):
+        self.argv = tuple(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
 
     def unknown_options(self) -> list[str]:
         words = self.argv[: self.argv.index("--")] if "--" in self.argv else self.argv
@@ -411,7 +416,6 @@ def _refusal(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str |
 def main(argv: list[str] | None = None) -> int:
     argv = _deprecated_simulate(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     parser = build_parser(_command(argv))
-    _Parser.argv = tuple(argv)
     args, unknown = parser.parse_known_args(argv)
     refusal = _refusal(parser, args, unknown)
     if refusal is not None:
