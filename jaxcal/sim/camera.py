@@ -12,7 +12,8 @@ exposure, taken at `subframes` evenly spaced instants (the midpoints of equal
 slices). Without a rolling shutter those instants are rendered exactly; with
 one, the scene is rendered every `step_s` seconds across the whole readout and
 each row's instants are linearly interpolated in time between the two
-renders around them (one render per `step_s`, not one per row).
+renders around them (one render per `step_s`, not one per row; each render
+draws only the band of rows exposed near its instant, `Scene.render(camera, rows)`).
 
 Then, in order: defocus (a Gaussian blur of `defocus_px` pixels' standard
 deviation), grey conversion for a monochrome capture, Poisson-Gaussian
@@ -140,20 +141,28 @@ class CameraModel:
     ):
         """The delivered 8-bit image (`height` rows) of the frame stamped `t_stamp` (controller seconds).
 
-        `render_at(t)`: the renderer's RGB uint8 image (H, W, 3) at instant `t`;
-        returns (H, W) for `grayscale`, else RGB (H, W, 3)."""
+        `render_at(t, rows)`: the renderer's RGB uint8 image at instant `t`, its rows
+        `rows = (first, stop)` (`(stop - first, W, 3)`) or all of them for `rows=None`
+        (`(H, W, 3)`); under a rolling shutter each instant is rendered only for the
+        rows exposed near it. Returns (H, W) for `grayscale`, else RGB (H, W, 3)."""
         if self.instantaneous:
-            image = render_at(t_stamp)
+            image = render_at(t_stamp, None)
             return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if grayscale else image
         times, weights = self.schedule(t_stamp, height)
         acc = None
         for k, t in enumerate(times):
             w = weights[:, k]
-            if not np.any(w > 0.0):
+            exposed = np.flatnonzero(w > 0.0)
+            if exposed.size == 0:
                 continue
-            image = render_at(float(t)).astype(np.float32)
-            acc = np.zeros(image.shape, np.float32) if acc is None else acc
-            acc += w.astype(np.float32)[:, None, None] * image
+            if weights.shape[0] == 1:  # a global shutter: every row at once
+                band, rows = render_at(float(t), None).astype(np.float32), slice(None)
+            else:  # the rows exposed around instant t: one band (a row's instants increase down the image)
+                first, stop = int(exposed[0]), int(exposed[-1]) + 1
+                band, rows = render_at(float(t), (first, stop)).astype(np.float32), slice(first, stop)
+            if acc is None:
+                acc = np.zeros((height, *band.shape[1:]), np.float32)
+            acc[rows] += w[rows].astype(np.float32)[:, None, None] * band
         return self.degrade(acc, rng, grayscale)
 
     def degrade(self, image, rng: np.random.Generator, grayscale: bool = False) -> np.ndarray:

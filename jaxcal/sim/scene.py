@@ -172,10 +172,26 @@ class Scene:
             self._undistort_maps[cam.name] = (ideal[..., 0].copy(), ideal[..., 1].copy())
         return self._undistort_maps[cam.name]
 
-    def render(self, camera: str) -> np.ndarray:
+    def render(self, camera: str, rows: tuple[int, int] | None = None) -> np.ndarray:
+        """Camera `camera`'s RGB image (H, W, 3), or only its rows `rows = (first, stop)`.
+
+        A band of rows of a camera without lens distortion is rendered on its own: the
+        frustum's top and bottom are moved to the band's edges and a viewport of its
+        height is drawn (square pixels keep the horizontal extent), which a rolling
+        shutter's many renders per frame need. It equals the full image's rows to the
+        rasteriser's rounding."""
         cam = self.cameras[camera]
         r = self._renderer(cam)
         r.update_scene(self.data, camera=camera)
+        if rows is not None:
+            first, stop = int(rows[0]), int(rows[1])
+            if not 0 <= first < stop <= cam.height:
+                raise ValueError(f"rows {rows} are not a band of camera {camera!r}'s {cam.height} rows")
+            if cam.supersample == 1 and (first, stop) != (0, cam.height):
+                band = _render_band(r, first, stop, cam.height)
+                if band is not None:
+                    return band
+            return self.render(camera)[first:stop]
         image = r.render()
         if np.any(cam.dist != 0):
             mx, my = self._distortion_map(cam)
@@ -193,6 +209,31 @@ class Scene:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _render_band(r, first: int, stop: int, height: int) -> np.ndarray | None:
+    """Rows `first:stop` of the `height`-row image of renderer `r` (its scene updated),
+    drawn alone; `None` where the renderer does not expose its GL contexts."""
+    context, gl = getattr(r, "_mjr_context", None), getattr(r, "_gl_context", None)
+    if context is None:
+        return None
+    if gl is not None:
+        gl.make_current()
+    scene = r.scene
+    rows = stop - first
+    saved = [(c.frustum_bottom, c.frustum_top) for c in scene.camera]
+    try:
+        for c, (bottom, top) in zip(scene.camera, saved):
+            pitch = (top - bottom) / height  # a row's height on the near plane
+            c.frustum_top, c.frustum_bottom = top - first * pitch, top - stop * pitch
+        rect = mujoco.MjrRect(0, 0, r.width, rows)
+        mujoco.mjr_render(rect, scene, context)
+        band = np.empty((rows, r.width, 3), np.uint8)
+        mujoco.mjr_readPixels(band, None, rect, context)
+    finally:
+        for c, (bottom, top) in zip(scene.camera, saved):
+            c.frustum_bottom, c.frustum_top = bottom, top
+    return band[::-1]  # OpenGL's rows run bottom-up
 
 
 # --------------------------------------------------------------------------- building

@@ -476,12 +476,13 @@ def angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path):
 
 
 def _renderer_at(scene, camera: str, t_frame: float, theta_frame, angles_at):
-    """`render_at(t)`: `camera`'s render with the arm where it stands at controller time `t`
-    (the frame's own angles at its own time, exactly as without a camera model)."""
+    """`render_at(t, rows)`: `camera`'s render (its rows `rows`, or all for `None`) with the
+    arm where it stands at controller time `t` (the frame's own angles at its own time,
+    exactly as without a camera model)."""
 
-    def render_at(t: float) -> np.ndarray:
+    def render_at(t: float, rows=None) -> np.ndarray:
         scene.set_angles(theta_frame if t == t_frame else angles_at(t))
-        return scene.render(camera)
+        return scene.render(camera, rows)
 
     return render_at
 
