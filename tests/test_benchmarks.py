@@ -146,3 +146,31 @@ def test_long_benchmarks_parse_their_options(name, option):
     proc = _run([str(BENCH / f"{name}.py"), "--help"], timeout=60)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert option in proc.stdout
+
+
+def test_realism_summarises_rendered_seeds_by_their_medians():
+    """`benchmarks/realism.py --seeds N`: per case the seeds' figures, medians, the ratio of
+    medians to the ideal case's and the median of the seeds' own ratios; a refused seed
+    (no figure) leaves its medians undefined instead of dropping it."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        from realism import over_seeds
+    finally:
+        sys.path.remove(str(BENCH))
+
+    def row(refined, two_stage, status="ok"):
+        return {"refined_mm": refined, "two_stage_mm": two_stage, "status": status}
+
+    per_seed = {
+        0: {"ideal": row(1.0, 2.0), "rs": row(1.5, 9.0), "gone": row(None, None, "refused")},
+        1: {"ideal": row(0.5, 1.0), "rs": row(0.4, 8.0), "gone": row(0.6, 1.0)},
+        2: {"ideal": row(0.8, 1.5), "rs": row(1.0, 7.0, "suspect"), "gone": row(0.7, 1.0)},
+    }
+    out = over_seeds(per_seed)
+    rs = out["rs"]
+    assert rs["refined_mm"] == [1.5, 0.4, 1.0] and rs["status"] == ["ok", "ok", "suspect"]
+    assert rs["median_refined_mm"] == 1.0 and rs["median_two_stage_mm"] == 8.0
+    assert rs["refined_ratio_of_medians"] == pytest.approx(1.0 / 0.8)
+    assert rs["median_refined_ratio"] == pytest.approx(1.25)  # of 1.5, 0.8, 1.25
+    assert out["ideal"]["refined_ratio_of_medians"] == 1.0
+    assert out["gone"]["median_refined_mm"] is None and out["gone"]["median_refined_ratio"] is None
