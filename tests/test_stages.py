@@ -219,6 +219,42 @@ def test_the_axes_spacing_measures_a_mis_sized_target():
         assert ratio == pytest.approx(scale, rel=1e-9) and len(pairs) == 2  # the two long parallel pairs
 
 
+def test_a_rolling_shutters_spacing_is_judged_on_the_refined_robot():
+    """With the line delay estimated the two-stage arcs know nothing of the rolling shutter
+    and bend (a render's axes at 56 % of the nominal spacing: `suspect` for a target of the
+    wrong size, on a result as good as the ideal capture's); once the refinement timed every
+    corner at its row the spacing is the refined robot's, which a mis-sized target still scales."""
+    from types import SimpleNamespace
+
+    import equinox as eqx
+
+    from jaxcal.stages._verdict import _axes, _Checks
+    from jaxcal.stages.limits import Limits
+
+    s = stages.setup(DATA, OPTIONS)
+    p, d = (np.asarray(a) for a in joint_axes(s.nominal, jnp.zeros(6)))
+    two = SimpleNamespace(arc_rows=(), fit=SimpleNamespace(residual_rms=1.0), arcs=_Arcs(0.56 * p, d))
+
+    def board(refined):
+        c = _Checks()
+        _axes(c, s, two, Limits(), residuals=refined is None, refined=refined)
+        (row,) = [r for r in c.rows if r.check == "board_scale"]
+        return row, c.reasons
+
+    row, reasons = board(None)
+    assert not row.passed and "measured through the target are 56.0 %" in reasons[0]
+    for scale, passed in ((1.0, True), (1.1, False)):
+        # Every length of the robot times `scale` (a target printed 10 % larger than stated).
+        T = s.nominal.T_parent_joint
+        model = eqx.tree_at(lambda m: m.T_parent_joint, s.nominal, T.at[:, :3, 3].multiply(scale))
+        row, reasons = board(SimpleNamespace(fit=SimpleNamespace(model=model)))
+        assert row.passed == passed and row.value == pytest.approx(100 * abs(scale - 1), abs=1e-9)
+        assert (
+            passed
+            or "the refined robot's joint axes (every corner timed at its row) are 110.0 %" in reasons[0]
+        )
+
+
 # --------------------------------------------------------------------------- parameter layout and least squares
 
 

@@ -12,11 +12,12 @@ makes it `"failed"`.
 
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import jax
 import numpy as np
 
-from .._kinematics import joint_axes
+from .._kinematics import PRISMATIC, joint_axes
 from .._npgeom import line_distance
 from ..records import Judgement, ParameterRow
 from ..records_stages import Check
@@ -207,9 +208,19 @@ def _ratios(c: _Checks, setup: Setup, two: TwoStage, refined: Refined | None, li
         )
 
 
-def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, residuals: bool = True) -> None:
+def _axes(
+    c: _Checks,
+    setup: Setup,
+    two: TwoStage,
+    limits: Limits,
+    residuals: bool = True,
+    refined: Refined | None = None,
+) -> None:
     """The arc fits, the axis fit, and the axes' spacing against the nominal robot's (without
-    the fits' residuals when not `residuals`: poses of a rolling shutter's skewed plates)."""
+    the fits' residuals when not `residuals`: poses of a rolling shutter's skewed plates).
+    The spacing is the arcs' (the axes measured through the target), or with `refined` the
+    refined robot's: a rolling shutter's skewed plates bend the arcs, not the refinement,
+    which timed every corner at its row; a target printed at another size scales both."""
     for a in two.arc_rows if residuals else ():
         c.add(
             f"{a.joint}.arc_residual",
@@ -226,7 +237,15 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, residuals: bo
         f"the axis fit's whitened residual RMS is {rms:.3g} (expected about 1): the measured axes do not fit the "
         "nominal robot's structure",
     )
-    scale, pairs = axis_spacing_ratio(setup, two.arcs)
+    if refined is None:
+        scale, pairs = axis_spacing_ratio(setup, two.arcs)
+        seen = "the joint axes measured through the target are"
+    else:
+        model = refined.fit.model
+        point, direction = (np.asarray(a) for a in _joint_axes(model, np.zeros(model.num_joints)))
+        point = np.where(np.asarray(model.joint_types)[:, None] == PRISMATIC, np.nan, point)
+        scale, pairs = axis_spacing_ratio(setup, SimpleNamespace(point=point, direction=direction))
+        seen = "the refined robot's joint axes (every corner timed at its row) are"
     if not pairs:
         return
     pct = 100.0 * abs(scale - 1.0)
@@ -240,7 +259,7 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, residuals: bo
         "board_scale",
         pct,
         limits.board_scale_percent,
-        f"the joint axes measured through the target are {100 * scale:.1f} % of the nominal robot's spacing "
+        f"{seen} {100 * scale:.1f} % of the nominal robot's spacing "
         f"({', '.join(f'{n} {1e3 * m:.1f} vs {1e3 * nm:.1f} mm' for n, m, nm in pairs)}): is the target's "
         f"printed size the one in metadata.json{hint}?",
     )
@@ -306,7 +325,7 @@ def verdict(
     # result when the refinement timed every corner at its row.
     skewed = ran and bool(refined.line_delays)
     if setup.kind.has_arcs:
-        _axes(c, setup, two, limits, residuals=not skewed)
+        _axes(c, setup, two, limits, residuals=not skewed, refined=refined if skewed else None)
         arm_check(c, setup, sync, two, refined, limits, arm_score)
         for row in blur_rows(setup, obs.primary, sync):  # sweeps that lost most of their frames to blur
             c.add(*row)
