@@ -332,17 +332,23 @@ def run_case(dataset: Path) -> dict:
     except JaxcalError as e:
         return {"two_stage_mm": None, "refined_mm": None, "status": "refused", "reasons": [str(e)]}
     v = result.validation
+    delays = (result.refinement.line_delay or ()) if result.refinement is not None else ()
     return {
         "two_stage_mm": v["ee_rms_mm_two_stage"],
         "refined_mm": v["ee_rms_mm_after"],
         "status": result.status,
         "reasons": list(result.reasons),
+        "clock_error_ms": v["clock_offset_error_ms"],
+        "line_delay_s": delays[0].line_delay_s if delays else None,
+        "line_delay_estimated": bool(delays and delays[0].estimated),
     }
 
 
-def over_seeds(per_seed: dict) -> dict:
-    """Per case: the seeds' figures and statuses, their medians, and the refined ratio of
-    medians and median of ratios to the ideal case (`None` where a seed was refused)."""
+def over_seeds(per_seed: dict, height: int = 600) -> dict:
+    """Per case: the seeds' figures and statuses, their medians, the refined ratio of
+    medians and median of ratios to the ideal case (`None` where a seed was refused), the
+    largest clock error and, where the line delay was estimated, its errors against the
+    rendered camera's (`height` rows)."""
     out = {}
     for case in next(iter(per_seed.values())):
         rows = [cases[case] for cases in per_seed.values()]
@@ -354,6 +360,15 @@ def over_seeds(per_seed: dict) -> dict:
             "median_refined_mm": _median(refined),
             "median_two_stage_mm": _median([r["two_stage_mm"] for r in rows]),
         }
+        clock = [r.get("clock_error_ms") for r in rows]
+        if all(c is not None for c in clock):
+            row["max_abs_clock_error_ms"] = float(np.max(np.abs(clock)))
+        if all(r.get("line_delay_estimated") for r in rows):
+            camera = CASES[EDITED[case][0] if case in EDITED else case][0]
+            true = camera.line_delay(height)
+            err = [100.0 * (r["line_delay_s"] / true - 1.0) for r in rows]
+            row["line_delay_true_s"], row["line_delay_error_pct"] = true, err
+            row["max_abs_line_delay_error_pct"] = float(np.max(np.abs(err)))
         if all("ideal" in cases for cases in per_seed.values()):
             ideal = [cases["ideal"]["refined_mm"] for cases in per_seed.values()]
             if row["median_refined_mm"] is not None and _median(ideal):
@@ -449,7 +464,7 @@ def main(argv=None) -> int:
     }
     if args.seeds > 1:
         out["seeds"] = {str(seed): cases for seed, cases in per_seed.items()}
-        out["over_seeds"] = over_seeds(per_seed)
+        out["over_seeds"] = over_seeds(per_seed, h)
     if args.analytic_seeds:
         out["analytic_design"] = args.analytic_design
         out["analytic_noise_px"] = args.analytic_noise_px

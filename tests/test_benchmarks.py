@@ -22,6 +22,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import CACHE_DIR
 
@@ -166,8 +167,20 @@ def test_realism_summarises_rendered_seeds_by_their_medians():
         1: {"ideal": row(0.5, 1.0), "rs": row(0.4, 8.0), "gone": row(0.6, 1.0)},
         2: {"ideal": row(0.8, 1.5), "rs": row(1.0, 7.0, "suspect"), "gone": row(0.7, 1.0)},
     }
-    out = over_seeds(per_seed)
+    for cases in per_seed.values():  # the clock's error everywhere; the line delay estimated
+        for name, row_ in cases.items():
+            row_["clock_error_ms"] = -0.02 if name == "rs" else 0.01
+        cases["rolling_shutter_estimated"] = dict(cases["rs"], line_delay_estimated=True)
+    true = 0.02 / 600  # the rendered case's 20 ms readout over 600 rows
+    for k, cases in enumerate(per_seed.values()):
+        cases["rolling_shutter_estimated"]["line_delay_s"] = true * (1.0 + 0.01 * k)
+    out = over_seeds(per_seed, height=600)
     rs = out["rs"]
+    assert rs["max_abs_clock_error_ms"] == 0.02 and "line_delay_error_pct" not in rs
+    est = out["rolling_shutter_estimated"]
+    assert est["line_delay_true_s"] == true
+    np.testing.assert_allclose(est["line_delay_error_pct"], [0.0, 1.0, 2.0], atol=1e-9)
+    assert est["max_abs_line_delay_error_pct"] == pytest.approx(2.0)
     assert rs["refined_mm"] == [1.5, 0.4, 1.0] and rs["status"] == ["ok", "ok", "suspect"]
     assert rs["median_refined_mm"] == 1.0 and rs["median_two_stage_mm"] == 8.0
     assert rs["refined_ratio_of_medians"] == pytest.approx(1.0 / 0.8)
