@@ -110,7 +110,7 @@ def test_jit_equals_vmap_equals_loop():
 @pytest.mark.parametrize("encoder", [True, False])
 def test_autodiff_matches_finite_differences(encoder):
     _, data = arc_data(jax.random.key(6), noisy=True, encoder=encoder, frames=8)
-    params, ref = initialise_arc(data)
+    params, ref = jax.jit(initialise_arc)(data)  # one program (op by op: ~150 small ones)
     params = jax.tree.map(lambda x: x + 1e-3, params)  # away from the solution
     flat, unravel = jax.flatten_util.ravel_pytree(params)
 
@@ -137,7 +137,7 @@ def test_closed_form_jacobian_matches_autodiff(encoder, orientations):
     mask[0, 3] = mask[1, 6] = False
     P = np.where(mask[..., None], np.asarray(P), np.nan)
     data = make_arc_data(P, O if orientations else None, alpha if encoder else None, mask)
-    params, ref = initialise_arc(data)
+    params, ref = jax.jit(initialise_arc)(data)
     params = jax.tree.map(lambda x: x + 1e-2, params)
     flat, unravel = jax.flatten_util.ravel_pytree(params)
 

@@ -109,8 +109,8 @@ def test_point_jacobian_matches_autodiff(ur5):
     _, r = ur5
     problem = r.point_fit.problem
     x = 1e-2 * jax.random.normal(jax.random.key(0), (r.point_fit.layout.size,))
-    closed = point_jacobian(x, problem)
-    auto = jax.jacfwd(lambda z: predict(z, problem))(x)
+    closed = jax.jit(point_jacobian)(x, problem)  # each one program (op by op: ~150 small ones)
+    auto = jax.jit(jax.jacfwd(predict))(x, problem)
     np.testing.assert_allclose(closed, auto, atol=1e-12 * float(jnp.max(jnp.abs(auto))))
 
 
