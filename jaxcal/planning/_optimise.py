@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
+from .._buckets import bucket
 from ._evaluate import corner_problem, ee_mean_square, free_jacobian
 from ._scene import CHECKS, FeasibilityLimits, PlanScene, margins, penalty
 
@@ -58,12 +59,14 @@ def correct_toward(
     out = q.copy()
     reason: list = [None] * V
     todo = np.ones(V, bool)
+    size = bucket(V)  # every fraction's frames padded to one size: one compiled check, not one per count
     for s in FRACTIONS:
         if not todo.any():
             break
         idx = np.flatnonzero(todo)
         qs = q0 + s * (q[idx] - q0)
-        m = np.asarray(all_margins(scene, limits, jnp.asarray(qs)))
+        padded = np.concatenate([qs, np.broadcast_to(q0, (size - len(qs), q0.size))])
+        m = np.asarray(all_margins(scene, limits, jnp.asarray(padded)))[: len(qs)]
         ok = np.all(m > 0, axis=1)
         why = [CHECKS[int(np.argmax(row <= 0))] if not k else None for row, k in zip(m, ok)]
         if extra is not None and ok.any():
