@@ -237,7 +237,7 @@ def test_a_rolling_shutters_spacing_is_judged_on_the_refined_robot():
 
     def board(refined):
         c = _Checks()
-        _axes(c, s, two, Limits(), residuals=refined is None, refined=refined)
+        _axes(c, s, two, Limits(), refined)
         (row,) = [r for r in c.rows if r.check == "board_scale"]
         return row, c.reasons
 

@@ -208,19 +208,13 @@ def _ratios(c: _Checks, setup: Setup, two: TwoStage, refined: Refined | None, li
         )
 
 
-def _axes(
-    c: _Checks,
-    setup: Setup,
-    two: TwoStage,
-    limits: Limits,
-    residuals: bool = True,
-    refined: Refined | None = None,
-) -> None:
-    """The arc fits, the axis fit, and the axes' spacing against the nominal robot's (without
-    the fits' residuals when not `residuals`: poses of a rolling shutter's skewed plates).
-    The spacing is the arcs' (the axes measured through the target), or with `refined` the
-    refined robot's: a rolling shutter's skewed plates bend the arcs, not the refinement,
-    which timed every corner at its row; a target printed at another size scales both."""
+def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, timed_rows: Refined | None = None) -> None:
+    """The arc fits, the axis fit, and the axes' spacing against the nominal robot's.
+    With `timed_rows`, a refinement that timed every corner of a rolling shutter at its row,
+    the fits' residuals are left out (PnP's one-instant poses of the skewed plates bend the
+    arcs) and the spacing is the refined robot's, which a target printed at another size
+    still scales; otherwise the arcs' (the axes measured through the target)."""
+    residuals = timed_rows is None
     for a in two.arc_rows if residuals else ():
         c.add(
             f"{a.joint}.arc_residual",
@@ -237,11 +231,11 @@ def _axes(
         f"the axis fit's whitened residual RMS is {rms:.3g} (expected about 1): the measured axes do not fit the "
         "nominal robot's structure",
     )
-    if refined is None:
+    if timed_rows is None:
         scale, pairs = axis_spacing_ratio(setup, two.arcs)
         seen = "the joint axes measured through the target are"
     else:
-        model = refined.fit.model
+        model = timed_rows.fit.model
         point, direction = (np.asarray(a) for a in _joint_axes(model, np.zeros(model.num_joints)))
         point = np.where(np.asarray(model.joint_types)[:, None] == PRISMATIC, np.nan, point)
         scale, pairs = axis_spacing_ratio(setup, SimpleNamespace(point=point, direction=direction))
@@ -325,7 +319,7 @@ def verdict(
     # result when the refinement timed every corner at its row.
     skewed = ran and bool(refined.line_delays)
     if setup.kind.has_arcs:
-        _axes(c, setup, two, limits, residuals=not skewed, refined=refined if skewed else None)
+        _axes(c, setup, two, limits, refined if skewed else None)
         arm_check(c, setup, sync, two, refined, limits, arm_score)
         for row in blur_rows(setup, obs.primary, sync):  # sweeps that lost most of their frames to blur
             c.add(*row)
