@@ -162,10 +162,12 @@ def test_lens_distortion_is_applied_to_the_image():
     assert np.sqrt(np.mean(np.sum((found - undistorted_model) ** 2, axis=1))) > 2.0  # it did distort
 
 
-def _lens_corner_errors(dist, positions):
+def _lens_corner_errors(dist, positions, detect=None):
     """Detected ChArUco corners minus the truth projected through the lens (px), the board
-    at each of `positions` (camera frame, m) across a 640x480 image."""
-    from jaxcal.vision import detect
+    at each of `positions` (camera frame, m) across a 640x480 image (`detect`: the detector,
+    default `jaxcal.vision.detect`)."""
+    if detect is None:
+        from jaxcal.vision import detect
 
     camera = CameraSpec("cam", 640, 480, T_mount_cam=np.eye(4), distortion=tuple(dist))
     errors = []
@@ -195,6 +197,28 @@ def test_lens_distortion_warp_leaves_the_corners_unbiased():
     bound = 3.0 * np.sqrt(np.mean(ideal**2)) / np.sqrt(len(lensed))
     assert np.all(np.abs(lensed.mean(axis=0)) < bound)
     assert np.sqrt(np.mean(np.sum(lensed**2, axis=1))) < 1.2 * np.sqrt(np.mean(np.sum(ideal**2, axis=1)))
+
+
+def test_a_lens_is_undistorted_before_the_corners_are_refined():
+    """With the lens given, `detect` finds the corners on the image undistorted onto a pinhole
+    canvas and maps them back: the refinement then sees straight edges through each corner.
+    Under a strong barrel lens its errors against the truth are smaller than those of the
+    same detector on the distorted image (measured: 0.074 against 0.089 px RMS)."""
+    from jaxcal.vision._detect import _camera_key, _detect_in, _grey
+
+    lens = np.array([-0.3, 0.1, 0.0, 0.0, 0.0])
+    positions = [(x, y, 0.75) for x in (-0.25, 0.25) for y in (-0.15, 0.15)]
+
+    def as_distorted(image, target, K, dist):
+        return _detect_in(_grey(image), target, *_camera_key(K, dist))
+
+    undistorted = _lens_corner_errors(lens, positions)
+    distorted = _lens_corner_errors(
+        lens, positions, detect=lambda im, t, K, dist: as_distorted(im, t, K, dist)
+    )
+    assert len(undistorted) == len(distorted)  # every corner still found
+    rms = lambda e: np.sqrt(np.mean(np.sum(e**2, axis=1)))  # noqa: E731
+    assert rms(undistorted) < 0.95 * rms(distorted) and abs(undistorted.mean(axis=0)).max() < 0.02
 
 
 def test_no_backend_error_names_the_packages():

@@ -164,6 +164,13 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
     """
     grey = _grey(image)
     K_key, dist_key = _camera_key(K, dist)
+    if dist_key is not None and any(dist_key):
+        return _detect_rectified(grey, target, K_key, dist_key)
+    return _detect_in(grey, target, K_key, dist_key)
+
+
+def _detect_in(grey: np.ndarray, target: TargetSpec, K_key: tuple | None, dist_key: tuple | None):
+    """`detect` on the image as it is (`K_key`, `dist_key`: `_camera_key`'s)."""
     if target.kind in GRID_KINDS:
         return _detect_grid(grey, target)
     detector = _detector(target, K_key, dist_key, threading.get_ident())
@@ -189,6 +196,45 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
             grey, np.ascontiguousarray(pixels), (half, half), (-1, -1), _SUBPIX_CRITERIA
         )
     return Detection(ids, pixels)
+
+
+#: The rectified canvas's margin on each side, as a share of the image's size: a barrel
+#: lens's periphery lands outside the original frame once undistorted.
+RECTIFY_MARGIN = 0.15
+
+
+@lru_cache(maxsize=8)
+def _rectify_maps(K: tuple, dist: tuple, shape: tuple) -> tuple:
+    """`(map_x, map_y, K_rect)`: OpenCV's maps from a margin-padded pinhole canvas with the
+    camera's focal lengths (`K_rect`) to the distorted image of `shape` (H, W)."""
+    h, w = shape
+    mx, my = int(round(RECTIFY_MARGIN * w)), int(round(RECTIFY_MARGIN * h))
+    K = np.asarray(K, np.float64).reshape(3, 3)
+    K_rect = K.copy()
+    K_rect[0, 2] += mx
+    K_rect[1, 2] += my
+    map_x, map_y = cv2.initUndistortRectifyMap(
+        K, np.asarray(dist, np.float64), None, K_rect, (w + 2 * mx, h + 2 * my), cv2.CV_32FC1
+    )
+    return map_x, map_y, K_rect
+
+
+def _detect_rectified(grey: np.ndarray, target: TargetSpec, K: tuple, dist: tuple) -> "Detection | None":
+    """`target` found in the image undistorted onto a pinhole canvas, its features mapped
+    back through the lens. A lens bends a square's edges through each corner, and the
+    sub-pixel refinement, which takes them for straight lines, errs by amounts that change
+    slowly as a corner crosses the image: errors that agree from one frame to the next of a
+    sweep and bias its fit (docs/performance.md, "The other camera cases over the same seeds").
+    On the canvas the edges are straight again."""
+    map_x, map_y, K_rect = _rectify_maps(K, dist, grey.shape)
+    canvas = cv2.remap(grey, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=128)
+    found = _detect_in(canvas, target, *_camera_key(K_rect, None))
+    if found is None:
+        return None
+    rays = np.c_[found.pixels, np.ones(len(found.pixels))] @ np.linalg.inv(K_rect).T
+    K_mat = np.asarray(K, np.float64).reshape(3, 3)
+    pixels = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K_mat, np.asarray(dist))[0]
+    return Detection(found.ids, pixels.reshape(-1, 2))
 
 
 def _detect_marker_grid(grey: np.ndarray, target: TargetSpec, detector) -> "Detection | None":
