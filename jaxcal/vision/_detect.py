@@ -150,7 +150,9 @@ def detect(image: np.ndarray, target: TargetSpec, *, K=None, dist=None) -> "Dete
     `findChessboardCornersSB` (exhaustive) and `cornerSubPix` (`_refine_chessboard`); circle grids:
     `findCirclesGrid`; both find the whole grid or nothing, and their ids are
     then fixed so that the target frame does not depend on how the board
-    lies in the image (`_orient_grid`).
+    lies in the image (`_orient_grid`). With non-zero `dist`, all of this runs on
+    the image undistorted onto a padded pinhole canvas and the features are mapped
+    back through the lens (`_detect_rectified`).
 
     **Arguments:**
 
