@@ -133,7 +133,7 @@ def pytest_collection_modifyitems(config, items):
 #: times (`--durations`) vary several-fold with the load; CPU time does not, and
 #: the suite is CPU-bound, so its wall time is about the total over two.
 _CPU: Counter = Counter()
-#: ... and per test (its node id), the 25 costliest kept in the same JSON line.
+#: ... and per test (its node id), the 150 costliest kept in the same JSON line.
 _CPU_TEST: Counter = Counter()
 
 
@@ -230,7 +230,7 @@ def pytest_sessionfinish(session):
                     {
                         "worker": worker,
                         "cpu_s": {k: round(v, 1) for k, v in _CPU.most_common()},
-                        "slowest_tests": {k: round(v, 1) for k, v in _CPU_TEST.most_common(25)},
+                        "slowest_tests": {k: round(v, 1) for k, v in _CPU_TEST.most_common(150)},
                         "jax_s": {f: {k: round(v, 1) for k, v in c.items()} for f, c in _JAX_S.items()},
                     }
                 )
