@@ -221,6 +221,39 @@ def test_a_lens_is_undistorted_before_the_corners_are_refined():
     assert rms(undistorted) < 0.95 * rms(distorted) and abs(undistorted.mean(axis=0)).max() < 0.02
 
 
+@pytest.mark.parametrize(
+    "lens", [[-0.35, 0.1, 0.0, 0.0, -0.005], [-0.4, 0.12, 0.001, -0.002, 0.0], [-0.12, 0.05, 0, 0, 0]]
+)
+def test_the_undistorted_canvas_holds_every_pixel_of_the_image(lens):
+    """The pinhole canvas the corners are found on is as large as the lens needs: every
+    pixel of the distorted image, undistorted, lands on it (a fixed 15 % margin lost the
+    periphery of the first two lenses); a mild lens gets a small canvas. The lenses bend
+    monotonically out to the image's corners, so every pixel has a ray."""
+    from jaxcal.vision._detect import _rectify_maps
+
+    K = np.array([[600.0, 0.0, 401.0], [0.0, 600.0, 297.0], [0.0, 0.0, 1.0]])
+    dist = np.array(lens)
+    h, w = 600, 800
+    map_x, map_y, K_rect = _rectify_maps(tuple(K.ravel()), tuple(dist), (h, w))
+    H, W = map_x.shape
+    u, v = np.meshgrid(np.linspace(0, w - 1, 41), np.linspace(0, h - 1, 31))
+    pixels = np.c_[u.ravel(), v.ravel()].reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    on_canvas = cv2.undistortPointsIter(pixels, K, dist, None, K_rect, criteria).reshape(-1, 2)
+    rays = np.c_[on_canvas, np.ones(len(on_canvas))] @ np.linalg.inv(K_rect).T
+    again = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
+    assert np.abs(again - pixels).max() < 1e-6  # converged: each pixel's ray is found
+    assert on_canvas.min() >= 0.0 and np.all(on_canvas.max(axis=0) <= [W - 1, H - 1])
+    # The maps invert it: the canvas point of each pixel samples that pixel.
+    x, y = np.round(on_canvas).astype(int).T
+    back = np.c_[map_x[y, x], map_y[y, x]]
+    assert np.abs(back - pixels.reshape(-1, 2)).max() < 2.0
+    if lens[0] == -0.12:
+        assert W < 1.1 * w and H < 1.1 * h
+    else:
+        assert W > 1.4 * w and H > 1.4 * h
+
+
 def test_no_backend_error_names_the_packages():
     message = str(no_backend_error(RuntimeError("no display")))
     assert "libegl1" in message and "libosmesa6" in message and "MUJOCO_GL" in message

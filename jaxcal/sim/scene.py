@@ -179,7 +179,8 @@ class Scene:
         frustum's top and bottom are moved to the band's edges and a viewport of its
         height is drawn (square pixels keep the horizontal extent), which a rolling
         shutter's many renders per frame need. It equals the full image's rows to the
-        rasteriser's rounding."""
+        rasteriser's rounding. With distortion (or where the renderer hides its GL
+        contexts) the full image is drawn and sliced."""
         cam = self.cameras[camera]
         r = self._renderer(cam)
         r.update_scene(self.data, camera=camera)
@@ -191,13 +192,12 @@ class Scene:
                 band = _render_band(r, first, stop, cam.height)
                 if band is not None:
                     return band
-            return self.render(camera)[first:stop]
         image = r.render()
-        if np.any(cam.dist != 0):
+        if cam.supersample > 1:
             mx, my = self._distortion_map(cam)
             image = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
-        return image
+        return image if rows is None else image[first:stop]
 
     def close(self) -> None:
         for r in self._renderers.values():

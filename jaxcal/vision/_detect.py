@@ -200,9 +200,36 @@ def _detect_in(grey: np.ndarray, target: TargetSpec, K_key: tuple | None, dist_k
     return Detection(ids, pixels)
 
 
-#: The rectified canvas's margin on each side, as a share of the image's size: a barrel
-#: lens's periphery lands outside the original frame once undistorted.
-RECTIFY_MARGIN = 0.15
+#: The most the rectified canvas may add on each side, as a share of the image's size: a
+#: barrel lens's periphery lands outside the original frame once undistorted, by as much
+#: as the lens bends it; a wider reach would be a fisheye, which this model does not fit.
+RECTIFY_MARGIN_MAX = 0.5
+
+
+def _rectify_margins(K: np.ndarray, dist: np.ndarray, shape: tuple) -> tuple[int, int]:
+    """`(mx, my)`, the pixels to add on each side of an (H, W) image's pinhole canvas so that
+    every pixel of the distorted image lands on it once undistorted: the overhang of the
+    undistorted image border, plus two pixels, capped at `RECTIFY_MARGIN_MAX`. Border points
+    the inverse lens model does not reach (beyond the fold of a strong barrel polynomial)
+    are left out."""
+    h, w = shape
+    s = np.linspace(0.0, 1.0, 65)
+    border = np.concatenate([
+        np.c_[s * (w - 1), np.zeros_like(s)], np.c_[s * (w - 1), np.full_like(s, h - 1)],
+        np.c_[np.zeros_like(s), s * (h - 1)], np.c_[np.full_like(s, w - 1), s * (h - 1)],
+    ])  # fmt: skip
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    flat = cv2.undistortPointsIter(border.reshape(-1, 1, 2), K, dist, None, K, criteria).reshape(-1, 2)
+    rays = np.c_[flat, np.ones(len(flat))] @ np.linalg.inv(K).T
+    back = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    flat = flat[np.linalg.norm(back - border, axis=1) < 0.05]
+    if not len(flat):
+        return int(RECTIFY_MARGIN_MAX * w), int(RECTIFY_MARGIN_MAX * h)
+    over_x = max(0.0, -flat[:, 0].min(), flat[:, 0].max() - (w - 1))
+    over_y = max(0.0, -flat[:, 1].min(), flat[:, 1].max() - (h - 1))
+    mx = min(int(np.ceil(over_x)) + 2, int(RECTIFY_MARGIN_MAX * w))
+    my = min(int(np.ceil(over_y)) + 2, int(RECTIFY_MARGIN_MAX * h))
+    return mx, my
 
 
 @lru_cache(maxsize=8)
@@ -210,14 +237,13 @@ def _rectify_maps(K: tuple, dist: tuple, shape: tuple) -> tuple:
     """`(map_x, map_y, K_rect)`: OpenCV's maps from a margin-padded pinhole canvas with the
     camera's focal lengths (`K_rect`) to the distorted image of `shape` (H, W)."""
     h, w = shape
-    mx, my = int(round(RECTIFY_MARGIN * w)), int(round(RECTIFY_MARGIN * h))
     K = np.asarray(K, np.float64).reshape(3, 3)
+    dist = np.asarray(dist, np.float64)
+    mx, my = _rectify_margins(K, dist, shape)
     K_rect = K.copy()
     K_rect[0, 2] += mx
     K_rect[1, 2] += my
-    map_x, map_y = cv2.initUndistortRectifyMap(
-        K, np.asarray(dist, np.float64), None, K_rect, (w + 2 * mx, h + 2 * my), cv2.CV_32FC1
-    )
+    map_x, map_y = cv2.initUndistortRectifyMap(K, dist, None, K_rect, (w + 2 * mx, h + 2 * my), cv2.CV_32FC1)
     return map_x, map_y, K_rect
 
 
