@@ -586,6 +586,7 @@ def test_jaxcal_exposes_vision_and_the_cache_opt_out(monkeypatch):
     assert jaxcal.vision.hand_eye_from_detections is jaxcal.hand_eye_from_detections
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     before = jax.config.jax_compilation_cache_dir
+    threshold = jax.config.jax_persistent_cache_min_compile_time_secs
     try:
         jax.config.update("jax_compilation_cache_dir", None)
         monkeypatch.setenv("JAXCAL_NO_CACHE", "1")
@@ -594,8 +595,12 @@ def test_jaxcal_exposes_vision_and_the_cache_opt_out(monkeypatch):
         monkeypatch.setenv("JAXCAL_NO_CACHE", "0")
         cache.enable_compilation_cache()
         assert str(jax.config.jax_compilation_cache_dir).endswith("jaxcal/xla")
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0  # a user's cache keeps every program
     finally:
+        # Both settings back: with the threshold left at 0 every later compile of this
+        # worker was serialised and written to the suite's cache.
         jax.config.update("jax_compilation_cache_dir", before)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
 
 
 # --------------------------------------------------------------------------- rendered captures, end to end
