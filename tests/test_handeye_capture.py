@@ -595,7 +595,8 @@ def test_jaxcal_exposes_vision_and_the_cache_opt_out(monkeypatch):
         monkeypatch.setenv("JAXCAL_NO_CACHE", "0")
         cache.enable_compilation_cache()
         assert str(jax.config.jax_compilation_cache_dir).endswith("jaxcal/xla")
-        assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0  # a user's cache keeps every program
+        # A user's cache keeps every program, however quick to compile.
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
     finally:
         # Both settings back: with the threshold left at 0 every later compile of this
         # worker was serialised and written to the suite's cache.
