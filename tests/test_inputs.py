@@ -176,6 +176,15 @@ def test_metadata_not_json_not_utf8_nan(ds):
         (lambda m: m["targets"][0].update(squares=[5]), ["targets[0].squares", "[columns, rows]"]),
         (lambda m: m["targets"][0].update(square_length="4cm"), ["targets[0].square_length", "'4cm'"]),
         (
+            lambda m: m["targets"][0].update(square_length=40),
+            [
+                "targets[0].square_length",
+                "length in metres",
+                "at most 10",
+                "40 looks like millimetres: 0.04 m?",
+            ],
+        ),
+        (
             lambda m: m["targets"][0].update(marker_length=0.05),
             ["targets[0]", "marker_length < square_length"],
         ),

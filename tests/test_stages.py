@@ -392,3 +392,27 @@ def test_a_pose_captures_gauge_moves_the_fixed_frame_by_the_truths_held_perturba
     true, _ = apply_correction(nominal, np.eye(4)[None], corr)
     dT = np.linalg.inv(T_cb) @ np.asarray(_pose_gauge(nominal, true, held, T_cb, mount, travel))
     np.testing.assert_allclose(dT, np.eye(4), atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("unit", "span_deg", "kind", "named"),
+    [
+        ("deg", 1.16, "revolute", True),  # a log in radians (66 deg) labelled degrees
+        ("deg", 0.05, "revolute", False),  # 3 deg even in radians: too short either way
+        ("deg", 20.0, "revolute", False),  # a sweep: nothing to name
+        ("rad", 1.16, "revolute", False),
+        ("deg", 1.16, "prismatic", False),
+    ],
+)
+def test_a_log_in_radians_labelled_degrees_is_named(unit, span_deg, kind, named):
+    """A sweep too short to fit, from a log whose `encoders.unit` says deg, is named as a log
+    in radians when its values, read as radians, sweep a plausible angle."""
+    from types import SimpleNamespace
+
+    from jaxcal._arcdata import make_arc_data
+    from jaxcal.stages._two_stage import _radians_read_as_degrees
+
+    angle = np.radians(np.linspace(0.0, span_deg, 12))
+    positions = np.stack([np.cos(angle), np.sin(angle), np.zeros(12)], axis=-1)[None]
+    data = jax.device_get(make_arc_data(positions, encoder=angle))
+    assert _radians_read_as_degrees(SimpleNamespace(encoder_unit=unit), data, kind) is named

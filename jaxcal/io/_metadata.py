@@ -263,7 +263,9 @@ def read_targets(meta: dict, loc: Loc, links) -> tuple[TargetInfo, ...]:
             "name": sc.string(t["name"], w.key("name")),
             "kind": kind,
             "dictionary": sc.string(t["dictionary"], w.key("dictionary")),
-            "marker_length": sc.number(t["marker_length"], w.key("marker_length"), hi=10.0, above=0.0),
+            "marker_length": sc.number(
+                t["marker_length"], w.key("marker_length"), hi=10.0, above=0.0, metres=True
+            ),
             "first_id": sc.integer(t.get("first_id", 0), w.key("first_id"), 0, 100000),
             "margin": sc.number(t.get("margin", 0.01), w.key("margin"), 0.0, 10.0),
         }
@@ -274,7 +276,9 @@ def read_targets(meta: dict, loc: Loc, links) -> tuple[TargetInfo, ...]:
             spec["squares"] = tuple(
                 sc.integer(v, w.key("squares").index(k), 2, 100) for k, v in enumerate(sq)
             )
-            spec["square_length"] = sc.number(t["square_length"], w.key("square_length"), hi=10.0, above=0.0)
+            spec["square_length"] = sc.number(
+                t["square_length"], w.key("square_length"), hi=10.0, above=0.0, metres=True
+            )
         link = sc.string(t["link"], w.key("link"))
         if link != "world" and link not in links:
             raise w.key("link").fail(f"{link!r} is neither 'world' nor a link of the robot")

@@ -131,9 +131,17 @@ def integer(x, loc: Loc, lo: int | None = None, hi: int | None = None) -> int:
 
 
 def number(
-    x, loc: Loc, lo: float | None = None, hi: float | None = None, *, above: float | None = None
+    x,
+    loc: Loc,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    above: float | None = None,
+    metres: bool = False,
 ) -> float:
-    """A finite JSON number (not a bool, not a string) in [`lo`, `hi`], or > `above`."""
+    """A finite JSON number (not a bool, not a string) in [`lo`, `hi`], or > `above`.
+    `metres`: a length in metres, so a value too large that fits once read as
+    millimetres is named as such."""
     ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
     if ok and (
         (lo is not None and x < lo) or (hi is not None and x > hi) or (above is not None and x <= above)
@@ -142,7 +150,12 @@ def number(
     if not ok:
         what = _range_words("a finite number", lo, hi)
         if above is not None:
-            what = f"a finite number greater than {above:g}"
+            what = f"a finite number greater than {above:g}" + ("" if hi is None else f" and at most {hi:g}")
+        if metres:
+            what = what.replace("a finite number", "a length in metres", 1)
+            if isinstance(x, int | float) and not isinstance(x, bool) and hi is not None and x > hi:
+                hint = f"{x:g} looks like millimetres: {x / 1000:g} m?"
+                raise loc.fail(f"expected {what}, got {show(x)} ({hint})")
         raise loc.expected(what, x)
     return float(x)
 

@@ -15,7 +15,8 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
-from .._arcfit import ArcFitResult, arc_outliers, validate_arc_data
+from .._arcdata import MIN_SWEEP_DEG
+from .._arcfit import ArcFitResult, arc_outliers, sweep_span_deg, validate_arc_data
 from .._axisfit import AxisFitParams, AxisFitResult, register_lines
 from .._buckets import bucket
 from .._correction import Estimate, ParameterLayout, physical_parameters, zero_correction
@@ -170,13 +171,27 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: tuple[Named, ...], data,
                 f"{ds.root}: joint {name!r}: no frame of camera {setup.camera.name!r} shows a target while this "
                 "joint sweeps alone"
             )
+        data_j = jax.tree.map(lambda x, j=j: x[j], data)
         try:
-            validate_arc_data(jax.tree.map(lambda x, j=j: x[j], data), name, setup.nominal.joint_types[j])
+            validate_arc_data(data_j, name, setup.nominal.joint_types[j])
         except ValueError as e:
             cause = "" if obs is None else lost_to_blur(setup, obs, sync, j)
             if cause:  # the cause first, what it did after
                 e = f"joint {name!r}: {cause} ({str(e).removeprefix(f'joint {name!r}: ')})"
+            elif _radians_read_as_degrees(ds, data_j, setup.nominal.joint_types[j]):
+                e = (
+                    f"{e}; encoders.unit is 'deg', but read as radians the log would sweep "
+                    f"{np.degrees(sweep_span_deg(data_j)):.0f} degrees: is the log in radians?"
+                )
             raise CalibrationError(f"{ds.root}: {e}") from None
+
+
+def _radians_read_as_degrees(ds, data_j, joint_type: str) -> bool:
+    """A revolute sweep too short in the log's `deg` that would be a sweep in radians."""
+    if ds.encoder_unit != "deg" or joint_type != "revolute" or data_j.encoder is None:
+        return False
+    span = sweep_span_deg(data_j)
+    return bool(span < MIN_SWEEP_DEG <= np.degrees(span) <= 720.0)
 
 
 def _start_mounts(setup: Setup, arcs, homes):
