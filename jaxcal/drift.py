@@ -313,11 +313,20 @@ def verdict(
             f"detected with {100 * POWER:.0f} % power at {100 * ALPHA:.0f} % false alarms"
         )
         advice = "nothing to do; for a finer check, measure more poses spread over the workspace"
-    if residual.p_value < 1e-3 and rss > 2.0 * dof_r:
-        advice += (
-            f"; the residuals after the fit are too large for a rigid move (chi2 {rss:.0f} on {dof_r} dof): "
-            f"something else changed (the robot, the {'point' if what == 'device' else 'target'}'s mount, "
-            "the noise): calibrate again"
+    if not residual.fits_rigidly:
+        # The headline is the mismatch: a "move" fitted to data no rigid move explains is no
+        # move of the device (a clock or timestamps off, another robot or mount, a bumped arm).
+        mount = "point" if what == "device" else "target"
+        message = (
+            f"the capture does not fit the calibration with the {what} moved rigidly (chi2 {rss:.0f} on "
+            f"{dof_r} dof, p = {residual.p_value:.2g}): more than the {what}'s pose changed, or the capture "
+            f"does not match the calibration; the best rigid move would be {tr_mm[0]:.3f} mm, "
+            f"{rot_deg[0]:.4f} deg ({stat})"
+        )
+        advice = (
+            f"check that the capture matches the calibration: the same robot and {mount} mount, and (with "
+            "moving joints) its timestamps against the encoder log (`jaxcal inspect CAPTURE` shows the clocks' "
+            "overlap); if it does, something else changed (the robot, the mount, the noise): calibrate again"
         )
     return DriftCheck(
         result=names[0], capture=names[1], samples=samples, theta=theta, cov=C, statistic=T, dof=k, threshold=thr,

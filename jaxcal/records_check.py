@@ -174,6 +174,12 @@ class DriftResidual(Record):
     noise_variance_factor: float | None = optional()
     calibration_covariance_factor: float | None = optional()
 
+    @property
+    def fits_rigidly(self) -> bool:
+        """A rigid move explains the capture: the residuals are not both improbable
+        (p < 0.001) and over twice their degrees of freedom."""
+        return not (self.p_value < 1e-3 and self.sum_of_squares > 2.0 * self.dof)
+
 
 @dataclass(frozen=True, eq=False)
 class DriftCheck:
@@ -218,7 +224,8 @@ class DriftCheck:
 
     @property
     def exit_code(self) -> int:
-        return EXIT_DRIFT if self.detected else 0
+        """`EXIT_DRIFT` when a drift is detected or the capture fits no rigid move of the calibration."""
+        return EXIT_DRIFT if self.detected or not self.residual.fits_rigidly else 0
 
     @property
     def test(self) -> str:

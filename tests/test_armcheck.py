@@ -93,3 +93,27 @@ def test_a_sagging_arm_is_flagged(like):
     reason = next(r for r in flagged[0].reasons if "clock" in r)
     assert "gravity sag" in reason and "backlash" in reason and "stop-and-shoot" in reason
     assert all(v.status == "suspect" for v in flagged)
+
+
+def test_a_camera_clock_ten_seconds_off_is_found(like, tmp_path):
+    """The design's frames stamped 10 s late (another time base, nothing in the metadata): at
+    the zero start offset only a quarter of them fall inside the encoder log and the clock fit
+    alone does not converge; the motion-matching search starts it, the fit lands on the truth,
+    and a note says so."""
+    import csv
+    import shutil
+
+    ds = load_dataset(DESIGN)
+    truth = capture_truth(ds, arm=None)
+    copy = tmp_path / "late"
+    shutil.copytree(DESIGN, copy, ignore=shutil.ignore_patterns("images"))
+    (copy / "images").symlink_to(DESIGN / "images")
+    header, *rows = (copy / "frames.csv").read_text().splitlines()
+    rows = [",".join([c, f, repr(float(t) + 10.0), p]) for c, f, t, p in csv.reader(rows)]
+    (copy / "frames.csv").write_text("\n".join([header, *rows]) + "\n")
+    opt = stages.Options(progress=False)
+    setup = stages.setup(copy, opt)
+    dets = analytic_detections(truth, "cam0", like=like, noise_px=NOISE_PX, rng=np.random.default_rng(0))
+    sync = stages.synchronise(setup, stages.observe(setup, opt, {"cam0": dets}), opt)
+    assert abs(sync.clock.offset_s - (10.0 + ds.truth["clock"]["offset_s"])) < 1e-4
+    assert any("the clock fit started from" in n and "24 %" in n for n in sync.notes)

@@ -356,15 +356,43 @@ def test_sweep_under_five_degrees(dataset, tmp_path):
     _fails(ds, CalibrationError, "wrist_1_joint", "degrees")
 
 
-def test_no_overlap_between_images_and_encoders(dataset, tmp_path):
-    ds = _copy(dataset, tmp_path)
+def _log_later(ds: Path, seconds: float, *, segments: bool) -> None:
+    """The encoder log (and with `segments` the metadata's motion segments, on the same
+    controller clock) stamped `seconds` later."""
     path = ds / "encoders.csv"
     rows = list(csv.reader(path.read_text().splitlines()))
     for r in rows[1:]:
-        r[0] = repr(float(r[0]) + 1000.0)
+        r[0] = repr(float(r[0]) + seconds)
     with path.open("w", newline="") as f:
         csv.writer(f).writerows(rows)
-    _fails(ds, CalibrationError, "no overlap", "encoders.csv")
+    if segments:
+        _edit_json(
+            ds / "metadata.json",
+            lambda m: [s.update(start=s["start"] + seconds, end=s["end"] + seconds) for s in m["motion"]],
+        )
+
+
+def test_motion_segments_outside_the_encoder_log(dataset, tmp_path):
+    """The log stamped 1000 s later and the motion segments not: both are on the controller
+    clock, so no clock offset mends it; refused at load, naming both."""
+    ds = _copy(dataset, tmp_path)
+    _log_later(ds, 1000.0, segments=False)
+    _fails(
+        ds, DatasetError, "motion[0]", "lies outside the encoder log", "encoders.csv", "every other segment"
+    )
+
+
+def test_a_controller_clock_1000_s_off_is_found(dataset, tmp_path):
+    """The controller's log and segments 1000 s later than the camera's stamps, nothing in the
+    metadata: the motion-matching search starts the clock fit there, and the offset is the
+    truth's; told to keep a given zero offset instead, the frames and the log do not overlap."""
+    ds = _copy(dataset, tmp_path)
+    _log_later(ds, 1000.0, segments=True)
+    r = calibrate(ds, progress=False, workers=1, refine=False)
+    assert r.ok and abs(r.clock["offset_s"] - (0.040 - 1000.0)) < 1e-3
+    assert any("the clock fit started from -999.96" in w for w in r.warnings)
+    _edit_json(ds / "metadata.json", lambda m: m.update(clock={"offset_s": 0.0}))
+    _fails(ds, CalibrationError, "no overlap", "encoders.csv", clock="given", refine=False)
 
 
 def test_nan_in_encoder_table(dataset, tmp_path):

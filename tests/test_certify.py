@@ -209,3 +209,25 @@ def test_calibrate_with_a_joint_box_certifies_it(tracker, tmp_path):
     # certificate.json joins the result's files: --overwrite may replace them all.
     assert "certificate.json" in json.loads((out / ".jaxcal").read_text())["files"]
     assert check_output_dir(out, overwrite=True, kind="result").replaces is not None
+
+
+@pytest.mark.parametrize("move_mm", [0.0, 5.0])
+def test_a_capture_no_rigid_move_explains_leads_with_the_mismatch(move_mm):
+    """Residuals far above their degrees of freedom after the rigid fit (a clock off, another
+    mount): with or without a significant "move", the headline says the capture does not fit a
+    rigid move, the advice points at the timestamps and the mount, and the exit code is the
+    drift's; residuals at their degrees of freedom leave the usual verdict."""
+    from jaxcal.drift import verdict
+    from jaxcal.records_check import EXIT_DRIFT
+
+    theta = np.r_[1e-3 * move_mm, 0.0, 0.0, 0.0, 0.0, 0.0]
+    C = np.diag([1e-8] * 3 + [1e-8] * 3)  # 0.1 mm, 0.1 mrad
+    T = float(theta @ np.linalg.solve(C, theta))
+    kw = dict(samples=20, joint_names=("a", "b"), T_now=np.eye(4), what="camera", frame="T_cam_base")
+    bad = verdict(theta, C, T, rss=400.0, dof_r=54, **kw)
+    assert bad.message.startswith("the capture does not fit the calibration with the camera moved rigidly")
+    assert "timestamps against the encoder log" in bad.advice and "target mount" in bad.advice
+    assert not bad.residual.fits_rigidly and bad.exit_code == EXIT_DRIFT
+    good = verdict(theta, C, T, rss=50.0, dof_r=54, **kw)
+    assert good.residual.fits_rigidly and good.exit_code == (EXIT_DRIFT if move_mm else 0)
+    assert good.message.startswith("the camera moved by" if move_mm else "no drift detected")

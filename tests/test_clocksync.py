@@ -194,3 +194,50 @@ def test_encoder_interpolation_error_follows_from_the_sampling():
     # Differentiating the cubic costs one order of h: the rate errs by O(h^2 |q'''|).
     err = np.abs(np.asarray(rate(jnp.asarray(t))) - A * w / 2 * np.sin(w * t))[inner]
     assert np.max(err) <= h**2 * A * w**3 / 2 / 4
+
+
+def _sweeps_capture(offset_s: float, fps: float = 10.0):
+    """Three joints sweeping one after the other (the same 4 s speed profile each, 1 s pauses),
+    logged at 100 Hz from t = 0, and a camera at `fps` stamping each frame `offset_s` later
+    (camera minus controller) from 2 s into the log: `(obs, log_q)` for `coarse_offset`, the
+    camera seeing a plate turn with whichever joint moves."""
+    from types import SimpleNamespace
+
+    from jaxcal._npgeom import axis_rotation
+    from jaxcal.records_stages import ByTarget
+
+    enc_t = np.arange(0.0, 17.0, 0.01)
+    q = np.zeros((len(enc_t), 3))
+    for j in range(3):
+        s = np.clip((enc_t - 1.0 - 5.0 * j) / 4.0, 0.0, 1.0)
+        q[:, j] = np.radians(80.0) * (s - np.sin(2 * np.pi * s) / (2 * np.pi))  # smooth start and stop
+    t_ctrl = np.arange(2.0, 16.0, 1.0 / fps)
+    q_f = np.stack([np.interp(t_ctrl, enc_t, q[:, j]) for j in range(3)], axis=-1)
+    axes = np.eye(3)
+    poses = []
+    for qq in q_f:
+        R = np.eye(3)
+        for j in range(3):
+            R = R @ axis_rotation(axes[j], np.array([qq[j]]))[0]
+        T = np.eye(4)
+        T[:3, :3] = R
+        poses.append(ByTarget.of({"plate": SimpleNamespace(T_cam_target=T)}))
+    obs = SimpleNamespace(
+        has_orientation=True, t_cam=t_ctrl + offset_s, poses=poses, found=np.ones(len(poses), bool)
+    )
+    return obs, (enc_t, q)
+
+
+@pytest.mark.parametrize("offset_s", [0.04, 10.04, -7.5])
+def test_the_coarse_search_finds_a_clock_seconds_off(offset_s):
+    """The clock fit converges only near its start; the motion-matching search finds an offset
+    of seconds (another epoch, a camera's own time base) to within a frame, and not one sweep
+    early or late although every sweep has the same speed profile."""
+    from jaxcal.stages._synchronise import coarse_offset
+
+    obs, log_q = _sweeps_capture(offset_s)
+    found, r = coarse_offset(obs, log_q)
+    assert abs(found - offset_s) < 0.1 and r > 0.9
+    # Positions only (a tracker without orientations): nothing to match, no guess.
+    obs.has_orientation = False
+    assert coarse_offset(obs, log_q) is None

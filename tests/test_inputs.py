@@ -442,6 +442,18 @@ def test_documented_units_and_file_are_read(ds):
     np.testing.assert_allclose(load_dataset(ds).encoder_motor, rad, rtol=0, atol=2 * math.pi / 131072)
 
 
+def test_a_log_cut_short_names_the_segments_it_misses(ds):
+    """The encoder log ends before the last sweep: that segment's frames will have no joint
+    angles, a note naming it (every segment outside the log is a clock mismatch, refused)."""
+    rows = read_rows(ds / "encoders.csv")
+    last = json.loads((ds / "metadata.json").read_text())["motion"][-1]
+    write_rows(ds / "encoders.csv", [rows[0], *(r for r in rows[1:] if float(r[0]) < last["start"] - 0.01)])
+    notes = load_dataset(ds).notes
+    assert any(
+        "motion[5]" in n and "lies outside the encoder log" in n and "no joint angles" in n for n in notes
+    )
+
+
 def test_encoder_timestamps_must_increase(ds):
     edit_encoders(ds, lambda t, m: t.__setitem__(100, t[99]))
     fails(ds, "encoders.csv line 102", "is not after line 101", "timestamps must increase")
@@ -680,6 +692,9 @@ def tiny_dataset(root: Path, frames: int = 6, encoder_rows: int = 400) -> Path:
     shutil.copyfile(SWEEPS / "robot.urdf", root / "robot.urdf")
     meta = json.loads((SWEEPS / "metadata.json").read_text())
     meta["cameras"][0].update(width=40, height=30, K=[[32.0, 0.0, 19.5], [0.0, 32.0, 14.5], [0.0, 0.0, 1.0]])
+    meta["motion"] = (
+        None  # every sweep's segment lies after the log's first rows: refused as a clock mismatch
+    )
     (root / "metadata.json").write_text(json.dumps(meta, indent=1))
     rows = read_rows(SWEEPS / "frames.csv")[: frames + 1]
     (root / "images" / "cam0").mkdir(parents=True)

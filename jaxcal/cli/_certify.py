@@ -167,7 +167,7 @@ def cmd_check(args) -> int:
     check_output(args.json, [args.result, args.capture], args.overwrite, "--json")
     c = check(args.result, args.capture, joint_offsets=args.joint_offsets, workers=args.workers)
     console = Console(width=max(Console().width, 110))
-    colour = "red" if c.detected else "green"
+    colour = "red" if c.exit_code else "green"
     unit = "images" if c.what == "camera" else "samples"
     console.print(f"jaxcal check: {c.samples} {unit} of {c.capture} against {c.result}")
     console.print(f"[{colour}]{c.message}[/{colour}]")

@@ -193,6 +193,28 @@ def write_encoders(path: Path, t, motor, joint_names) -> None:
 # --------------------------------------------------------------------------- load_dataset
 
 
+def _segments_in_log(segments, enc_t: np.ndarray, loc, log: Path) -> list[str]:
+    """The motion segments and the encoder log are both on the controller clock. Every segment
+    outside the log's span says one of them is stamped on another clock (or in other units),
+    which no clock offset can mend: refused. Some outside (a log cut short): a note each, since
+    their frames will have no joint angles."""
+    t0, t1 = float(enc_t[0]), float(enc_t[-1])
+    outside = [
+        (k, name, start, end) for k, (name, start, end) in enumerate(segments) if end < t0 or start > t1
+    ]
+    words = [
+        f"{loc.index(k)}: segment [{start:g}, {end:g}] s ({name or 'poses'}) lies outside the encoder log "
+        f"[{t0:g}, {t1:g}] s ({log})"
+        for k, name, start, end in outside
+    ]
+    if outside and len(outside) == len(segments):
+        raise DatasetError(
+            f"{words[0]}, and so does every other segment; both are on the controller clock: is one of them "
+            "stamped on another?"
+        )
+    return [f"{w}: its frames have no joint angles" for w in words]
+
+
 def load_dataset(path) -> Dataset:
     """Read and check the dataset in directory `path` (nothing is modified).
 
@@ -263,6 +285,8 @@ def load_dataset(path) -> Dataset:
         notes += more
     elif (root / "encoders.csv").exists():
         notes.append(f"{root / 'encoders.csv'} is not used: {loc.key('encoders')} is null")
+    if enc_t is not None:
+        notes += _segments_in_log(segments, enc_t, loc.key("motion"), root / emeta["file"])
     return Dataset(
         root=root,
         metadata=meta,

@@ -232,6 +232,93 @@ class _Timeline:
         return sw, counts, joint, t_ctrl, q, inside
 
 
+#: The coarse clock search's acceptance: the share of the camera's speed variance the log's
+#: speeds explain at the best offset, and the share of the moving frames inside the log there.
+COARSE_MIN_MATCH = 0.6
+COARSE_MIN_INSIDE = 0.5
+
+
+def coarse_offset(obs: CameraObservations, log_q, drift_ppm: float = 0.0) -> tuple[float, float] | None:
+    """`(offset_s, match)`: the camera-minus-controller clock offset at which the speed the
+    camera sees a target turn at (rad/s, between consecutive frames that show it) best matches
+    the arm's joint speed in the encoder log, over every offset that leaves at least
+    `COARSE_MIN_INSIDE` of those frames inside the log. `match` is the share of the camera
+    speeds' variance the log's explain (1 - SSE / SST), weighted in the search by the share
+    inside, since sweeps repeat one speed profile; `None` where it stays below
+    `COARSE_MIN_MATCH` (too few moving frames, or positions only). A start for the
+    clock fit, which converges only within a fraction of a sweep's length: a clock seconds
+    off (another epoch, a camera's own time base) is found here, not there."""
+    if log_q is None or not obs.has_orientation:
+        return None
+    enc_t, enc_q = (np.asarray(a, np.float64) for a in log_q)
+    t_mid, speed = [], []
+    rows = np.flatnonzero(obs.found)
+    gap = 3.0 * np.median(np.diff(obs.t_cam[rows])) if len(rows) > 2 else 0.0
+    for a, b in zip(rows[:-1], rows[1:]):
+        dt = obs.t_cam[b] - obs.t_cam[a]
+        common = [n for n in obs.poses[a] if n in obs.poses[b]]
+        if not common or not 0.0 < dt <= gap:
+            continue
+        R = obs.poses[a][common[0]].T_cam_target[:3, :3].T @ obs.poses[b][common[0]].T_cam_target[:3, :3]
+        t_mid.append(0.5 * (obs.t_cam[a] + obs.t_cam[b]))
+        speed.append(np.arccos(np.clip(0.5 * (np.trace(R) - 1.0), -1.0, 1.0)) / dt)
+    t_mid, speed = np.asarray(t_mid), np.asarray(speed)
+    if len(t_mid) < 10 or np.ptp(speed) == 0.0:
+        return None
+    rate = np.linalg.norm(np.diff(enc_q, axis=0), axis=1) / np.diff(enc_t)
+    t_rate = 0.5 * (enc_t[1:] + enc_t[:-1])
+    step = 0.5 * float(np.median(np.diff(t_mid)))
+    lo, hi = t_mid.min() - enc_t[-1], t_mid.max() - enc_t[0]
+    best = None
+    for offset in np.arange(lo, hi + step, step):
+        t = controller_time(t_mid, offset, drift_ppm)
+        inside = (t >= t_rate[0]) & (t <= t_rate[-1])
+        if inside.mean() < COARSE_MIN_INSIDE:
+            continue
+        x, y = speed[inside], np.interp(t[inside], t_rate, rate)
+        # The share of the camera's speed variance the log's speeds explain, in absolute terms
+        # (both in rad/s): a correlation alone would take a sweep run at half the speed for it.
+        match = 1.0 - float(np.sum((x - y) ** 2) / np.sum((x - x.mean()) ** 2))
+        score = match * inside.mean()  # a sweep's speed profile repeats: the offset that explains every frame
+        if best is None or score > best[2]:
+            best = (float(offset), match, score)
+    return best[:2] if best is not None and best[1] >= COARSE_MIN_MATCH else None
+
+
+#: Below this share of the found frames inside the encoder log at the start offset, the
+#: clock fit starts from `coarse_offset` instead.
+COARSE_BELOW_INSIDE = 0.9
+
+
+def _share_inside(setup: Setup, obs: CameraObservations, log_q, offset_s: float) -> float:
+    """The share of `obs`'s frames with a target that fall inside the encoder log at `offset_s`."""
+    found = obs.found
+    if log_q is None or not found.any():
+        return 1.0
+    t = controller_time(obs.t_cam[found], offset_s, setup.dataset.clock_drift_ppm)
+    return float(usable(setup.dataset, t, log_q)[0].mean())
+
+
+def _clock_failure(setup: Setup, obs: CameraObservations, log_q, offset0: float, coarse) -> str:
+    """Why the clock fit failed, in the words a user can act on: how the frames and the log
+    overlap, and what the motion-matching search found."""
+    enc_t = log_q[0]
+    t = obs.t_cam[obs.found]
+    where = (
+        f"the clock-offset fit did not converge: the frames with a target span [{t.min():.3f}, {t.max():.3f}] s "
+        f"(camera clock) and the encoder log [{enc_t[0]:.3f}, {enc_t[-1]:.3f}] s; at the start offset "
+        f"{offset0:.3f} s, {100 * _share_inside(setup, obs, log_q, offset0):.0f} % of them fall inside the log"
+    )
+    if coarse is None:
+        found = "no offset at which the camera's view of the motion matches the log's speeds was found"
+    else:
+        found = f"the motion matches best at {coarse[0]:.3f} s (match {coarse[1]:.2f}), and the fit failed there too"
+    return (
+        f"{where}; {found}. Check that frames.csv and encoders.csv are stamped in seconds of clocks that run "
+        "together (the same epoch, or a known clock.offset_s in metadata.json), and that the log is of this capture"
+    )
+
+
 def _clock_from_sweeps(
     sweeps: Sweeps, log_q, offset0: float, drift_ppm: float, loss: str | None, joint_types=None
 ):
@@ -357,6 +444,70 @@ def _compile_ahead(setup: Setup, options: Options, sweeps: Sweeps, joint, q, ins
     )  # fmt: skip
 
 
+def _placed(
+    setup: Setup, obs: CameraObservations, options: Options, line: "_Timeline", log_q, start: float, fit=False
+):
+    """`(sweeps, counts, joint, t_ctrl, q, inside)`: the frames placed on the controller clock at
+    offset `start`, and with `fit` the clock fit started there (else `None`)."""
+    ds = setup.dataset
+    if not setup.kind.single_joint_sweeps:
+        t_ctrl, q, inside = line.at(start)
+        cf = None
+        if fit:
+            options.say(
+                "estimating the camera-controller clock offset (the first joint's arc, its link's plate)"
+            )
+            sel = np.flatnonzero(inside & obs.found)
+            cf = _clock_from_first_link(setup, obs, sel, log_q, start, options.arc_loss)
+        return (None, None, np.full(len(t_ctrl), -1), t_ctrl, q, inside), cf
+    sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(start)
+    cf = None
+    if fit:
+        options.say(
+            "estimating the camera-controller clock offset (arc fits of all joints with a shared offset)"
+        )
+        _compile_ahead(setup, options, sweeps, joint, q, inside)
+        cf = _clock_from_sweeps(
+            sweeps, log_q, start, ds.clock_drift_ppm, options.arc_loss, setup.nominal.joint_types
+        )
+    return (sweeps, counts, joint, t_ctrl, q, inside), cf
+
+
+def _fit_clock(
+    setup: Setup, obs: CameraObservations, options: Options, line: "_Timeline", log_q, offset0, offset
+):
+    """`(placed, cf, note)`: the clock fit from `offset0` (the given offset `offset`, or zero),
+    or from `coarse_offset` where too few frames fall inside the log there or the fit fails
+    (`note` then says so), with the frames placed at its start (`_placed`). A fit that fails
+    from both is a `CalibrationError` saying how the frames and the log overlap."""
+    ds = setup.dataset
+
+    def failed(cf) -> bool:
+        return not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s))
+
+    start, coarse = offset0, None
+    if _share_inside(setup, obs, log_q, offset0) < COARSE_BELOW_INSIDE:
+        coarse = coarse_offset(obs, log_q, ds.clock_drift_ppm)
+        start = offset0 if coarse is None else coarse[0]
+    placed, cf = _placed(setup, obs, options, line, log_q, start, fit=True)
+    if failed(cf) and coarse is None:
+        coarse = coarse_offset(obs, log_q, ds.clock_drift_ppm)
+        if coarse is not None and coarse[0] != start:
+            start = coarse[0]
+            placed, cf = _placed(setup, obs, options, line, log_q, start, fit=True)
+    if failed(cf):
+        raise CalibrationError(f"{ds.root}: {_clock_failure(setup, obs, log_q, offset0, coarse)}")
+    note = None
+    if coarse is not None and start == coarse[0]:
+        note = (
+            f"clock offset: from {'the given' if offset is not None else 'a zero'} offset ({offset0:.3f} s) "
+            f"{100 * _share_inside(setup, obs, log_q, offset0):.0f} % of the frames fall inside the encoder log; "
+            f"the clock fit started from {coarse[0]:.3f} s, where the camera's view of the motion matches the "
+            f"log's (match {coarse[1]:.2f})"
+        )
+    return placed, cf, note
+
+
 def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
     """Place the frames on the controller clock (see `Sync`), estimating the
     clock offset whenever there is an encoder log (a given offset that
@@ -389,29 +540,15 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
             + ("" if setup.kind.has_arcs else " (harmless when the arm stands still in every image)")
         )
     line = _Timeline(setup, obs.primary, log_q)
-    sweeps = counts = None
-    if not setup.kind.single_joint_sweeps:
-        t_ctrl, q, inside = line.at(offset0)
-        joint = np.full(len(t_ctrl), -1)
-        if estimate:
-            options.say(
-                "estimating the camera-controller clock offset (the first joint's arc, its link's plate)"
-            )
-            sel = np.flatnonzero(inside & obs.primary.found)
-            cf = _clock_from_first_link(setup, obs.primary, sel, log_q, offset0, options.arc_loss)
+    if not estimate:
+        (sweeps, counts, joint, t_ctrl, q, inside), _ = _placed(
+            setup, obs.primary, options, line, log_q, offset0
+        )
     else:
-        sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(offset0)
-        if estimate:
-            options.say(
-                "estimating the camera-controller clock offset (arc fits of all joints with a shared offset)"
-            )
-            _compile_ahead(setup, options, sweeps, joint, q, inside)
-            cf = _clock_from_sweeps(
-                sweeps, log_q, offset0, ds.clock_drift_ppm, options.arc_loss, nominal.joint_types
-            )
-    if estimate:
-        if not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s)):
-            raise CalibrationError(f"{ds.root}: the clock-offset fit failed ({cf.result})")
+        (sweeps, counts, joint, t_ctrl, q, inside), cf, note = _fit_clock(
+            setup, obs.primary, options, line, log_q, offset0, offset
+        )
+        notes += [note] if note else []
         clock = dataclasses.replace(
             clock, offset_s=float(cf.offset_s), std_s=float(cf.std_s), estimated=True, given_s=offset
         )
