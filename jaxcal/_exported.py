@@ -377,10 +377,16 @@ def _keep_within_budget(folder: Path, budget: int | None = None) -> None:
     bytes (default `BUDGET_BYTES`), down to three quarters of it. Files another process
     removes first, or holds open, only cost that process a rebuild."""
     budget = BUDGET_BYTES if budget is None else budget
+    files = []
     try:
-        files = [
-            (e.stat().st_mtime, e.stat().st_size, Path(e.path)) for e in os.scandir(folder) if e.is_file()
-        ]
+        with os.scandir(folder) as entries:  # closed however the listing ends
+            for e in entries:
+                try:
+                    if e.is_file():
+                        st = e.stat()
+                        files.append((st.st_mtime, st.st_size, Path(e.path)))
+                except OSError:  # removed by another process since the listing: not ours to count
+                    continue
     except OSError:
         return
     total = sum(size for _, size, _ in files)

@@ -180,6 +180,44 @@ def test_the_folder_keeps_to_its_budget_least_recently_used_first(store):
     assert sorted(p.name for p in store.iterdir()) == ["f0.xla", "f1.xla", "f3.xla"]
 
 
+def test_a_file_another_worker_removes_mid_listing_is_skipped(store, monkeypatch):
+    """Two processes share the folder: a file removed between the listing and its `stat`
+    is left out of the count, the rest still kept to the budget, and the listing closed
+    (an unclosed one failed a CI run with a ResourceWarning)."""
+    for k in range(4):
+        (store / f"f{k}.xla").write_bytes(b"x" * 1000)
+    listing, closed = os.scandir, []
+
+    class Gone:  # what the listing returns for a file removed before its stat
+        path = str(store / "gone.xla")
+
+        def is_file(self):
+            return True
+
+        def stat(self):
+            raise FileNotFoundError(self.path)
+
+    class Racing:
+        def __init__(self, folder):
+            self.entries = listing(folder)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            closed.append(True)
+            self.entries.close()
+
+        def __iter__(self):
+            yield Gone()
+            yield from self.entries
+
+    monkeypatch.setattr(_exported.os, "scandir", Racing)
+    _exported._keep_within_budget(store, budget=2500)
+    assert closed == [True]
+    assert len(list(store.iterdir())) == 1  # 4000 bytes counted, down to 1875: three of four go
+
+
 def test_an_executable_read_from_jaxs_cache_is_not_kept(store, monkeypatch):
     """XLA serialises an executable it read from JAX's persistent cache without some of its
     functions: only one XLA compiled is kept."""
