@@ -447,8 +447,8 @@ def _compile_ahead(setup: Setup, options: Options, sweeps: Sweeps, joint, q, ins
 def _placed(
     setup: Setup, obs: CameraObservations, options: Options, line: "_Timeline", log_q, start: float, fit=False
 ):
-    """`(sweeps, counts, joint, t_ctrl, q, inside)`: the frames placed on the controller clock at
-    offset `start`, and with `fit` the clock fit started there (else `None`)."""
+    """`((sweeps, counts, joint, t_ctrl, q, inside), cf)`: the frames placed on the controller
+    clock at offset `start`, and with `fit` the clock fit started there (`cf`, else `None`)."""
     ds = setup.dataset
     if not setup.kind.single_joint_sweeps:
         t_ctrl, q, inside = line.at(start)
