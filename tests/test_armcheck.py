@@ -95,25 +95,45 @@ def test_a_sagging_arm_is_flagged(like):
     assert all(v.status == "suspect" for v in flagged)
 
 
-def test_a_camera_clock_ten_seconds_off_is_found(like, tmp_path):
-    """The design's frames stamped 10 s late (another time base, nothing in the metadata): at
-    the zero start offset only a quarter of them fall inside the encoder log and the clock fit
-    alone does not converge; the motion-matching search starts it, the fit lands on the truth,
-    and a note says so."""
+def _late(like, tmp_path, seconds: float):
+    """`(sync, truth offset)`: the design's analytic corners with every frame stamped `seconds`
+    late, nothing in the metadata, synchronised."""
     import csv
     import shutil
 
     ds = load_dataset(DESIGN)
     truth = capture_truth(ds, arm=None)
-    copy = tmp_path / "late"
+    copy = tmp_path / f"late{seconds:g}"
     shutil.copytree(DESIGN, copy, ignore=shutil.ignore_patterns("images"))
     (copy / "images").symlink_to(DESIGN / "images")
     header, *rows = (copy / "frames.csv").read_text().splitlines()
-    rows = [",".join([c, f, repr(float(t) + 10.0), p]) for c, f, t, p in csv.reader(rows)]
+    rows = [",".join([c, f, repr(float(t) + seconds), p]) for c, f, t, p in csv.reader(rows)]
     (copy / "frames.csv").write_text("\n".join([header, *rows]) + "\n")
     opt = stages.Options(progress=False)
     setup = stages.setup(copy, opt)
     dets = analytic_detections(truth, "cam0", like=like, noise_px=NOISE_PX, rng=np.random.default_rng(0))
-    sync = stages.synchronise(setup, stages.observe(setup, opt, {"cam0": dets}), opt)
-    assert abs(sync.clock.offset_s - (10.0 + ds.truth["clock"]["offset_s"])) < 1e-4
+    return stages.synchronise(setup, stages.observe(setup, opt, {"cam0": dets}), opt), seconds + ds.truth[
+        "clock"
+    ]["offset_s"]
+
+
+def test_a_camera_clock_ten_seconds_off_is_found(like, tmp_path):
+    """The design's frames stamped 10 s late (another time base, nothing in the metadata): at
+    the zero start offset only a quarter of them fall inside the encoder log and the clock fit
+    alone does not converge; the motion-matching search starts it, the fit lands on the truth,
+    and a note says so."""
+    sync, truth = _late(like, tmp_path, 10.0)
+    assert abs(sync.clock.offset_s - truth) < 1e-4
     assert any("the clock fit started from" in n and "24 %" in n for n in sync.notes)
+
+
+def test_a_clock_fit_whose_frames_change_sweeps_is_fitted_again(like, tmp_path, monkeypatch):
+    """Frames stamped 0.3 s late: every frame lies inside the log at the zero start, but 60 of
+    the 144 sit in another sweep's segment there. Fitted once more from the fitted offset, with
+    the frames where it puts them, the clock lands closer to the truth than the single fit."""
+    from jaxcal.stages import _synchronise
+
+    sync, truth = _late(like, tmp_path, 0.3)
+    monkeypatch.setattr(_synchronise, "REASSIGNED_REFIT", 1.0)  # never refit: the old behaviour
+    once, _ = _late(like, tmp_path / "once", 0.3)
+    assert abs(sync.clock.offset_s - truth) < 0.5 * abs(once.clock.offset_s - truth)
