@@ -481,8 +481,8 @@ def _fit_clock(
 ):
     """`(placed, cf, note)`: the clock fit from `offset0` (the given offset `offset`, or zero),
     or from `coarse_offset` where too few frames fall inside the log there or the fit fails
-    (`note` then says so), with the frames placed at its start (`_placed`). A fit that fails
-    from both is a `CalibrationError` saying how the frames and the log overlap."""
+    (`note` then says so), and the frames placed at the fitted offset (`_placed`). A fit that
+    fails from both is a `CalibrationError` saying how the frames and the log overlap."""
     ds = setup.dataset
 
     def failed(cf) -> bool:
@@ -505,12 +505,13 @@ def _fit_clock(
     # stamps 0.3 s late sent 60 of data/ur5e_sweeps' 144 frames to other sweeps and left the
     # two-stage EE error at 2.3 mm, against 0.77 mm refitted; the 40 ms the demo's clock starts
     # off moves 6 frames, and the fit stays as it was).
-    again, _ = _placed(setup, obs, options, line, log_q, float(cf.offset_s))
-    moved = np.mean((again[2] != placed[2]) | (again[5] != placed[5]))
+    fitted, _ = _placed(setup, obs, options, line, log_q, float(cf.offset_s))
+    moved = np.mean((fitted[2] != placed[2]) | (fitted[5] != placed[5]))
     if moved > REASSIGNED_REFIT:
-        placed_2, cf_2 = _placed(setup, obs, options, line, log_q, float(cf.offset_s), fit=True)
+        _, cf_2 = _placed(setup, obs, options, line, log_q, float(cf.offset_s), fit=True)
         if not failed(cf_2):
-            placed, cf = placed_2, cf_2
+            cf = cf_2
+            fitted, _ = _placed(setup, obs, options, line, log_q, float(cf.offset_s))
     note = None
     if coarse is not None and start == coarse[0]:
         note = (
@@ -519,7 +520,7 @@ def _fit_clock(
             f"the clock fit started from {coarse[0]:.3f} s, where the camera's view of the motion matches the "
             f"log's (match {coarse[1]:.2f})"
         )
-    return placed, cf, note
+    return fitted, cf, note
 
 
 def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
@@ -568,10 +569,6 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
         )
         if offset is not None:
             notes += _compare_clock(ds, offset, clock)
-        if not setup.kind.single_joint_sweeps:
-            t_ctrl, q, inside = line.at(clock.offset_s)
-        else:
-            sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(clock.offset_s)
     homes = sweep_homes(ds, joint, q, inside) if setup.kind.single_joint_sweeps else None
     if homes is not None:
         notes.append(
