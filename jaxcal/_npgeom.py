@@ -6,8 +6,6 @@ Conventions as everywhere in jaxcal: rotation vectors in rad, quaternions in
 (x, y, z, w) order with $w \\ge 0$, 4x4 homogeneous poses.
 """
 
-import math
-
 import numpy as np
 
 
@@ -89,22 +87,30 @@ def quaternion_to_matrix(q_xyzw) -> np.ndarray:
 
 
 def matrix_to_quaternion(R) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), `w >= 0`, of a rotation matrix (3, 3) (Shepperd's method)."""
+    """Unit quaternions (x, y, z, w), `w >= 0`, of rotation matrices `(..., 3, 3)` -> `(..., 4)`
+    (Shepperd's method: each from the largest of the trace and the diagonal)."""
     R = np.asarray(R, np.float64)
-    t = np.trace(R)
-    diag = np.diag(R)
-    k = int(np.argmax([t, *diag]))
-    if k == 0:
-        s = 2.0 * math.sqrt(1.0 + t)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    else:
-        i = k - 1
-        j, m = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + R[i, i] - R[j, j] - R[m, m])
-        q = [0.0, 0.0, 0.0, (R[m, j] - R[j, m]) / s]
-        q[i], q[j], q[m] = 0.25 * s, (R[j, i] + R[i, j]) / s, (R[m, i] + R[i, m]) / s
-    q = np.asarray(q)
-    return q if q[3] >= 0 else -q
+    t = np.trace(R, axis1=-2, axis2=-1)
+    k = np.argmax(np.stack([t, R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]], -1), axis=-1)
+    out = np.zeros((*R.shape[:-2], 4))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = 2.0 * np.sqrt(np.maximum(1.0 + t, 0.0))
+        w = [
+            (R[..., 2, 1] - R[..., 1, 2]) / s,
+            (R[..., 0, 2] - R[..., 2, 0]) / s,
+            (R[..., 1, 0] - R[..., 0, 1]) / s,
+        ]
+        cases = [np.stack([*w, 0.25 * s], -1)]
+        for i in range(3):
+            j, m = (i + 1) % 3, (i + 2) % 3
+            s = 2.0 * np.sqrt(np.maximum(1.0 + R[..., i, i] - R[..., j, j] - R[..., m, m], 0.0))
+            q = [None] * 4
+            q[3] = (R[..., m, j] - R[..., j, m]) / s
+            q[i], q[j], q[m] = 0.25 * s, (R[..., j, i] + R[..., i, j]) / s, (R[..., m, i] + R[..., i, m]) / s
+            cases.append(np.stack(q, -1))
+    for c, q in enumerate(cases):
+        out = np.where((k == c)[..., None], q, out)
+    return np.where(out[..., 3:] >= 0, out, -out)
 
 
 def pose(R=None, t=(0.0, 0.0, 0.0)) -> np.ndarray:

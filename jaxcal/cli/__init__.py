@@ -351,7 +351,15 @@ def _command(argv: list[str]) -> str | None:
 
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus.
-NUMBER_LISTS = ("--region", "--taught", "--home-deg", "--sweep-deg", "--point-mm", "--joint-box")
+NUMBER_LISTS = (
+    "--region",
+    "--taught",
+    "--home-deg",
+    "--sweep-deg",
+    "--point-mm",
+    "--point-rotvec-deg",
+    "--joint-box",
+)
 _NEGATIVE_LIST = re.compile(r"^-\.?\d[\d.eE+:-]*(,[-+]?[\d.eE+:-]+)*$")
 
 

@@ -5,7 +5,7 @@ import argparse
 import math
 
 from ..io._tracker import DEVICE_KINDS
-from ..io.csv_import import ANGLE_UNITS, LENGTH_UNITS, import_csv
+from ..io.csv_import import ANGLE_UNITS, LENGTH_UNITS, ORIENTATION_FORMATS, POSE_DIRECTIONS, import_csv
 from ..robots import robot_file
 
 
@@ -22,14 +22,19 @@ def _columns(count: int | None):
     return parse
 
 
-def _point(text: str) -> list[float]:
-    try:
-        v = [float(x) for x in text.split(",")]
-    except ValueError:
-        v = []
-    if len(v) != 3:
-        raise argparse.ArgumentTypeError(f"expected x,y,z (mm), got {text!r}")
-    return v
+def _triple(unit: str):
+    """An argparse type: three comma-separated numbers (`x,y,z`) in `unit`."""
+
+    def parse(text: str) -> list[float]:
+        try:
+            v = [float(x) for x in text.split(",")]
+        except ValueError:
+            v = []
+        if len(v) != 3:
+            raise argparse.ArgumentTypeError(f"expected x,y,z ({unit}), got {text!r}")
+        return v
+
+    return parse
 
 
 def add_import_csv_parser(sub) -> None:
@@ -69,15 +74,36 @@ def add_import_csv_parser(sub) -> None:
     )
     p.add_argument("--sigma-mm", required=True, type=float, help="position noise, 1-sigma per axis (mm)")
     p.add_argument(
-        "--point-mm", type=_point, help="the point's offset on --link, x,y,z (mm; default unknown)"
+        "--point-mm", type=_triple("mm"), help="the point's offset on --link, x,y,z (mm; default unknown)"
+    )
+    p.add_argument(
+        "--point-rotvec-deg",
+        type=_triple("deg"),
+        help="the point frame's rotation on --link, a rotation vector x,y,z (deg; with --point-mm; default "
+        "none), e.g. 0,0,90 for a camera turned a quarter turn about its axis",
     )
     p.add_argument(
         "--orientation",
-        type=_columns(4),
-        help="the orientation's quaternion columns, qx,qy,qz,qw (scalar last)",
+        type=_columns(None),
+        help="the orientation's columns, as many as --orientation-format has (a full pose per row)",
     )
     p.add_argument(
-        "--sigma-deg", type=float, help="orientation noise, 1-sigma (deg; required with --orientation)"
+        "--orientation-format",
+        choices=sorted(ORIENTATION_FORMATS),
+        help="with --orientation: quat-xyzw or quat-wxyz (a unit quaternion, scalar last or first), rotvec-rad "
+        "or rotvec-deg (a rotation vector), matrix (9 columns, row by row: r11,r12,...,r33)",
+    )
+    p.add_argument(
+        "--pose-direction",
+        choices=POSE_DIRECTIONS,
+        help="with --orientation: each row is the point's pose in the device frame (a 6-DoF probe, a mocap "
+        "body, a flange camera's pose in the board's frame), or the device's in the point's (PnP's board "
+        "pose in the camera frame; inverted on import)",
+    )
+    p.add_argument(
+        "--sigma-deg",
+        type=float,
+        help="orientation noise, 1-sigma per axis (deg; required with --orientation)",
     )
     p.add_argument("--time", help="a timestamp column (s, strictly increasing; default: the row index)")
     p.add_argument("--device-name", default="tracker", help="the device's name (names its frame)")
@@ -89,8 +115,22 @@ def add_import_csv_parser(sub) -> None:
 
 
 def cmd_import_csv(args) -> int:
-    if args.orientation and args.sigma_deg is None:
-        raise ValueError("--orientation needs --sigma-deg (the orientation noise)")
+    if args.orientation:
+        missing = [
+            o
+            for o, v in (
+                ("--orientation-format", args.orientation_format),
+                ("--pose-direction", args.pose_direction),
+                ("--sigma-deg", args.sigma_deg),
+            )
+            if v is None
+        ]
+        if missing:
+            raise ValueError(f"--orientation needs {', '.join(missing)} (no defaults: state the convention)")
+    elif args.orientation_format or args.pose_direction:
+        raise ValueError(
+            "--orientation-format and --pose-direction describe --orientation columns: none given"
+        )
     r = import_csv(
         args.csv,
         args.out,
@@ -101,7 +141,12 @@ def cmd_import_csv(args) -> int:
         length_unit=args.length_unit,
         sigma_m=args.sigma_mm * 1e-3,
         point_m=None if args.point_mm is None else [v * 1e-3 for v in args.point_mm],
+        point_rotvec_rad=None
+        if args.point_rotvec_deg is None
+        else [math.radians(v) for v in args.point_rotvec_deg],
         orientation=args.orientation,
+        orientation_format=args.orientation_format,
+        pose_direction=args.pose_direction,
         sigma_rad=None if args.sigma_deg is None else math.radians(args.sigma_deg),
         time=args.time,
         device_name=args.device_name,

@@ -2,14 +2,20 @@
 
 `import_csv` turns one row per stop-and-shoot pose (the commanded joint
 positions and the point a laser tracker, motion capture or the controller
-measured there, optionally an orientation) into the tracker format: every
-`joint` cell empty (all joints move between poses), one `joint: null` motion
-segment, joint positions in rad, points in m. A position may be the sum of
-columns (`x_t+x_dif`: nominal plus deviation), so published tables need no
+measured there, optionally an orientation: a full pose) into the tracker
+format: every `joint` cell empty (all joints move between poses), one
+`joint: null` motion segment, joint positions in rad, points in m,
+orientations as unit quaternions. A position may be the sum of columns
+(`x_t+x_dif`: nominal plus deviation), so published tables need no
 preprocessing.
 
-Every unit is stated by the caller (`joint_unit` rad or deg, `length_unit`
-m or mm): nothing is guessed. Before anything is written the table is checked
+Every unit and convention is stated by the caller (`joint_unit` rad or deg,
+`length_unit` m or mm; with an orientation its `orientation_format`, one of
+`ORIENTATION_FORMATS`, and `pose_direction`, one of `POSE_DIRECTIONS`): nothing
+is guessed. A pose given as the device's in the point's frame (PnP's board in
+the camera) is inverted into the point's in the device frame. The point's mount
+on the link is a translation (`point_m`) and, for a frame turned on its link (a
+camera turned about its axis), a rotation (`point_rotvec_rad`). Before anything is written the table is checked
 against the robot, and every refusal (`CsvImportError`) names the CSV file,
 the column and the line:
 
@@ -29,8 +35,16 @@ the column and the line:
   (Kabsch, trimmed), each lies within `ALIGN_TOL_M` + 5 % of the reach of
   its nominal (another `UNKNOWN_POINT_M` when the point's mount is not
   given): a wrong cell, rows out of order, joint columns swapped;
-- quaternions have unit norm, and the angle between consecutive measured
-  orientations matches the nominal one within `ANGLE_TOL_DEG`.
+- every orientation is a rotation (`_orientations`): a quaternion of unit
+  norm (within `QUATERNION_TOL`), a rotation vector within one turn (else
+  degrees declared as radians), a matrix orthonormal within `MATRIX_TOL` with
+  determinant +1, the row, column and matrix row named;
+- the orientations fit the nominal robot's (`_check_orientations`): after the
+  best rotations of the device frame and of the mount (alternating Procrustes
+  from the points' alignment), each lies within `ANGLE_TOL_DEG`, the device
+  frame they imply is the points' own, and the mount's rotation is the stated
+  one (or the identity) within `MOUNT_TOL_DEG` when the mount is given; a
+  refusal names the format, order or direction under which the rows do fit.
 
 The output is written atomically (`atomic_directory`, kind `dataset`, never
 over an input) and checked with `load_dataset` before it is renamed into place.
@@ -48,6 +62,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._kinematics import KinematicModel, forward_kinematics
+from .._npgeom import (
+    matrix_to_quaternion,
+    pose,
+    quaternion_to_matrix,
+    rotation_angle,
+    rotvec_to_matrix,
+    so3_log,
+)
 from ..errors import CsvImportError, DatasetError
 from . import _encoders as enc
 from ._files import atomic_directory, check_output_dir
@@ -73,13 +95,34 @@ UNKNOWN_POINT_M = 0.5
 #: Points closer to the nominal robot than this many times their stated noise are noted: a real
 #: arm's points are millimetres off its datasheet, a table's commanded points are not.
 NOMINAL_LIKE = 2.0
-#: Largest difference between the measured and nominal angle of consecutive orientations (deg).
-ANGLE_TOL_DEG = 5.0
+#: Largest angle between a measured orientation and the nominal robot's after the best device-frame
+#: and mount rotations (deg). A real arm's joint errors turn the flange by a few degrees (the
+#: simulator's Panda at 0.5 deg zero offsets and 0.2 deg origins: up to 5.1 deg); a quaternion in
+#: the wrong order, an inverted rotation or degrees read as radians by tens of degrees.
+ANGLE_TOL_DEG = 10.0
 #: The joint range assumed for a DH/MDH table without `lower` / `upper` (rad, each way): one turn,
 #: the range of UR's joints and wider than most arms'.
 TABLE_RANGE = 2.0 * math.pi
 #: Largest point mount offset (m): further is millimetres given as metres.
 MAX_POINT_M = 2.0
+#: `orientation_format` choices and their column counts: a unit quaternion (scalar last or
+#: first), a rotation vector (rad or deg), or a rotation matrix row by row (r11, r12, ..., r33).
+ORIENTATION_FORMATS = {"quat-xyzw": 4, "quat-wxyz": 4, "rotvec-rad": 3, "rotvec-deg": 3, "matrix": 9}
+#: `pose_direction` choices: a row is the point's pose in the device frame (a 6-DoF probe, a
+#: motion-capture body, a flange camera's pose in a fixed board's frame), or the device frame's
+#: pose in the point's (PnP's pose of the board in the camera's frame), inverted on import.
+POSE_DIRECTIONS = ("point-in-device", "device-in-point")
+#: A rotation matrix may be off orthonormal by this much (the largest entry of $R R^T - I$); it
+#: is then projected onto the nearest rotation.
+MATRIX_TOL = 1e-3
+#: A rotation vector longer than this (rad) is degrees declared as radians.
+MAX_ROTVEC_RAD = 2.0 * math.pi
+#: The mount's rotation the orientations imply may differ from the stated one (the identity when
+#: none is given) by this much (deg): the verdict's `stages.Limits.mount_deg`, beyond which the
+#: calibration would be called suspect.
+MOUNT_TOL_DEG = 10.0
+#: Rounds of the alternating fit of the device frame's and the mount's rotations.
+ORIENT_ROUNDS = 20
 
 
 @dataclass(frozen=True)
@@ -97,13 +140,16 @@ class CsvImport:
 
 @dataclass(frozen=True)
 class _Table:
-    """The CSV's values in SI units: `q` (N, joints), `P` (N, 3), `quat` (N, 4) or None, `t` (N,), `lines`."""
+    """The CSV's values in SI units: `q` (N, joints), `P` (N, 3) and `R` (N, 3, 3) or None, the
+    point's position and orientation in the device frame, `t` (N,), `lines`; `raw`: the
+    orientation columns as read (N, k), for naming the format a refused table would fit."""
 
     q: np.ndarray
     P: np.ndarray
-    quat: np.ndarray | None
+    R: np.ndarray | None
     t: np.ndarray
     lines: np.ndarray
+    raw: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- the robot
@@ -233,9 +279,10 @@ def _check_limits(path: Path, q: np.ndarray, unit: str, specs, model: KinematicM
 
 
 def _read_table(
-    path: Path, *, joints, joint_unit, xyz, length_unit, orientation, time, model, limits
+    path: Path, *, joints, joint_unit, xyz, length_unit, orientation, time, model, limits, pose_format=None
 ) -> _Table:
-    """The CSV's columns in SI units, each checked for numbers, time order, joint limits and unit quaternions."""
+    """The CSV's columns in SI units, each checked for numbers, time order, joint limits and
+    rotations; `pose_format`: `(orientation_format, pose_direction)` with an orientation."""
     specs = {f"q{j}": ("--joints", s) for j, s in enumerate(joints)}
     specs |= {f"p{i}": ("--xyz", s) for i, s in enumerate(xyz)}
     specs |= {f"o{i}": ("--orientation", s) for i, s in enumerate(orientation or ())}
@@ -258,18 +305,97 @@ def _read_table(
             f"{path} line {lines[k]} column {time!r} (--time): {t[k]!r} s is not after line {lines[k - 1]}'s "
             f"{t[k - 1]!r}; timestamps must increase strictly"
         )
-    quat = None
-    if orientation:
-        quat = np.stack([v[f"o{i}"] for i in range(4)], axis=1)
-        norm = np.linalg.norm(quat, axis=1)
+    P = np.stack([v[f"p{i}"] for i in range(3)], axis=1) / LENGTH_UNITS[length_unit]
+    if not orientation:
+        return _Table(q=q, P=P, R=None, t=t, lines=lines)
+    raw = np.stack([v[f"o{i}"] for i in range(len(orientation))], axis=1)
+    R = _orientations(path, raw, pose_format[0], list(orientation), lines)
+    P, R = _directed(P, R, pose_format[1])
+    return _Table(q=q, P=P, R=R, t=t, lines=lines, raw=raw)
+
+
+# --------------------------------------------------------------------------- orientations
+
+
+def _rotations(raw: np.ndarray, fmt: str) -> np.ndarray:
+    """The rotations `(N, 3, 3)` of orientation columns `raw` `(N, k)` read as `fmt`, unchecked
+    (quaternions normalised, matrices as given)."""
+    if fmt.startswith("quat"):
+        xyzw = raw if fmt == "quat-xyzw" else raw[:, [1, 2, 3, 0]]
+        return quaternion_to_matrix(xyzw / np.linalg.norm(xyzw, axis=1, keepdims=True))
+    if fmt.startswith("rotvec"):
+        return rotvec_to_matrix(raw * (math.pi / 180.0 if fmt == "rotvec-deg" else 1.0))
+    return raw.reshape(-1, 3, 3)
+
+
+def _orientations(path: Path, raw: np.ndarray, fmt: str, cols: list[str], lines) -> np.ndarray:
+    """Orientation columns `raw` `(N, k)` in format `fmt` (`ORIENTATION_FORMATS`) -> rotations
+    `(N, 3, 3)`, each checked to be one: a refusal names the line and the column(s)."""
+    where = f"(--orientation, --orientation-format {fmt})"
+    if fmt.startswith("quat"):
+        norm = np.linalg.norm(raw, axis=1)
         bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_TOL)
         if bad.size:
             raise CsvImportError(
-                f"{path} line {lines[bad[0]]} columns {list(orientation)} (--orientation qx,qy,qz,qw): norm "
-                f"{norm[bad[0]]:.6g}; expected a unit quaternion (within {QUATERNION_TOL:g})"
+                f"{path} line {lines[bad[0]]} columns {cols} {where}: norm {norm[bad[0]]:.6g}; expected a unit "
+                f"quaternion (within {QUATERNION_TOL:g}); {bad.size} of {len(raw)} rows"
             )
-    P = np.stack([v[f"p{i}"] for i in range(3)], axis=1) / LENGTH_UNITS[length_unit]
-    return _Table(q=q, P=P, quat=quat, t=t, lines=lines)
+    elif fmt.startswith("rotvec"):
+        angle = np.linalg.norm(raw, axis=1) * (math.pi / 180.0 if fmt == "rotvec-deg" else 1.0)
+        bad = np.flatnonzero(angle > MAX_ROTVEC_RAD)
+        if bad.size:
+            hint = "; degrees? (--orientation-format rotvec-deg)" if fmt == "rotvec-rad" else ""
+            raise CsvImportError(
+                f"{path} line {lines[bad[0]]} columns {cols} {where}: a rotation vector of {angle[bad[0]]:.4g} rad, "
+                f"more than a turn{hint}"
+            )
+    else:
+        M = raw.reshape(-1, 3, 3)
+        off = np.abs(M @ np.swapaxes(M, 1, 2) - np.eye(3))  # (N, row, row)
+        det = np.linalg.det(M)
+        bad = np.flatnonzero((off.max(axis=(1, 2)) > MATRIX_TOL) | (det < 0))
+        if bad.size:
+            k = bad[0]
+            a = int(np.argmax(off[k].max(axis=1)))
+            what = (
+                f"its determinant is {det[k]:.4g}: a reflection, not a rotation"
+                if det[k] < 0
+                else f"not orthonormal: R R^T - I reaches {off[k].max():.3g} in matrix row {a + 1} (tolerance "
+                f"{MATRIX_TOL:g})"
+            )
+            raise CsvImportError(
+                f"{path} line {lines[k]} columns {cols[3 * a : 3 * a + 3]} (matrix row {a + 1} of --orientation "
+                f"{','.join(cols)}, row by row): {what}; {bad.size} of {len(raw)} rows"
+            )
+        U, _, Vt = np.linalg.svd(M)
+        return U @ Vt  # the nearest rotation (the determinants are positive)
+    return _rotations(raw, fmt)
+
+
+def _directed(P: np.ndarray, R: np.ndarray, direction: str) -> tuple[np.ndarray, np.ndarray]:
+    """The point's position and orientation in the device frame from rows in `direction`
+    (`POSE_DIRECTIONS`): a device-in-point pose $(R, t)$ inverted, $(R^T, -R^T t)$."""
+    if direction == "point-in-device":
+        return P, R
+    Rt = np.swapaxes(R, 1, 2)
+    return -np.einsum("nab,nb->na", Rt, P), Rt
+
+
+def _project(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest `M` (3, 3) (Procrustes)."""
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+def _frame_fit(R: np.ndarray, F: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rotations $A$ (device from base) and $B$ (link to point) with $R_i \\approx A F_i B$ for
+    measured `R` and nominal link rotations `F` `(N, 3, 3)`, by alternating Procrustes from `A`.
+    **Returns:** `(A, B, per-row angle of the misfit (rad))`."""
+    for _ in range(ORIENT_ROUNDS):
+        B = _project(np.einsum("nba,nbc->ac", A @ F, R))
+        A = _project(np.einsum("nab,ncb->ac", R, F @ B))
+    fit = A @ F @ B
+    return A, B, rotation_angle(np.einsum("nba,nbc->nac", fit, R))
 
 
 # --------------------------------------------------------------------------- plausibility
@@ -342,28 +468,93 @@ def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str
     return float(np.sqrt(np.mean(r**2)))
 
 
-def _check_orientations(path: Path, table: _Table, R_nom: np.ndarray, orientation):
-    """The angle between consecutive measured orientations against the nominal one (frame-free)."""
-    q = table.quat / np.linalg.norm(table.quat, axis=1, keepdims=True)
-    measured = 2.0 * np.arccos(np.clip(np.abs((q[1:] * q[:-1]).sum(1)), 0.0, 1.0))
-    rel = np.einsum("nji,njk->nik", R_nom[:-1], R_nom[1:])
-    nominal = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
-    diff = np.degrees(np.abs(measured - nominal))
-    bad = np.flatnonzero(diff > ANGLE_TOL_DEG)
+def _check_orientations(
+    path: Path, table: _Table, F: np.ndarray, A0: np.ndarray | None, mount, spec
+) -> np.ndarray:
+    """The measured orientations against the nominal robot's link rotations `F` `(N, 3, 3)`: each
+    within `ANGLE_TOL_DEG` after the best device-frame and mount rotations (`_frame_fit`, from
+    `A0`, the points' alignment), the device frame within `ANGLE_TOL_DEG` of `A0` (when the
+    point's mount is given; its offset otherwise blurs the points' alignment), and the mount's
+    rotation within `MOUNT_TOL_DEG` of `mount` (None: the mount is not given, the fit measures it).
+    `spec`: `(columns, orientation_format, pose_direction)`. **Returns:** the mount's rotation."""
+    cols, fmt, direction = spec
+    where = f"columns {list(cols)} (--orientation-format {fmt}, --pose-direction {direction})"
+    A, B, angle = _frame_fit(table.R, F, A0)
+    tol = math.radians(ANGLE_TOL_DEG)
+    bad = np.flatnonzero(angle > tol)
     if bad.size:
-        k = bad[0] + 1
+        k = bad[np.argmax(angle[bad])]
         raise CsvImportError(
-            f"{path} line {table.lines[k]} columns {list(orientation)} (--orientation qx,qy,qz,qw): the "
-            f"orientation turned {np.degrees(measured[k - 1]):.3g} deg since line {table.lines[k - 1]}, the "
-            f"nominal robot's {np.degrees(nominal[k - 1]):.3g} deg (tolerance {ANGLE_TOL_DEG:g} deg)"
+            f"{path} line {table.lines[k]} {where}: the orientation lies {math.degrees(angle[k]):.3g} deg from the "
+            f"nominal robot's after the best rotations of the device frame and of the mount fitted to all rows "
+            f"(tolerance {ANGLE_TOL_DEG:g} deg); {bad.size} of {len(angle)} rows; check that row's cells, the "
+            "columns' order and the format"
         )
+    turn = float(rotation_angle(A0.T @ A))
+    if mount is not None and turn > tol:
+        raise CsvImportError(
+            f"{path} {where}: the orientations put the device frame {math.degrees(turn):.3g} deg from where the "
+            f"points put it (tolerance {ANGLE_TOL_DEG:g} deg): are the orientations in the positions' frame?"
+        )
+    if mount is not None and rotation_angle(mount.T @ B) > math.radians(MOUNT_TOL_DEG):
+        w, w0 = (",".join(f"{v:.4g}" for v in np.degrees(so3_log(M))) for M in (B, mount))
+        stated = f"--point-rotvec-deg {w0}" if rotation_angle(mount) > 0 else "none given: not turned"
+        raise CsvImportError(
+            f"{path} {where}: the orientations turn the point's frame {math.degrees(rotation_angle(B)):.3g} deg on "
+            f"its link (rotation vector {w} deg), {math.degrees(rotation_angle(mount.T @ B)):.3g} deg from the "
+            f"stated mount ({stated}; tolerance {MOUNT_TOL_DEG:g} deg, beyond which the calibration is "
+            f"suspect): give the mount's rotation, --point-rotvec-deg {w}"
+        )
+    return B
+
+
+def _check_pose(path: Path, table: _Table, frames: np.ndarray, point, mount, args) -> float:
+    """The points (`_check_points`) and, with them, the orientations (`_check_orientations`) of
+    `table` against the nominal link frames `frames` `(N, 4, 4)`; `point`: the mount's offset
+    (None: unknown), `mount`: its rotation (None: unknown). `args`: `(xyz, length_unit,
+    (origin, reach, tol), orientation spec)`. **Returns:** the points' RMS from the nominal ones (m)."""
+    xyz, unit, robot, spec = args
+    nominal = frames[:, :3, 3] + frames[:, :3, :3] @ (point if point is not None else np.zeros(3))
+    rms = _check_points(path, table, nominal, xyz, unit, robot)
+    if table.R is not None:
+        A0 = _rigid_alignment(table.P, nominal, robot[2])[2]
+        _check_orientations(path, table, frames[:, :3, :3], A0, mount, spec)
+    return rms
+
+
+def _reading_that_fits(path: Path, table: _Table, frames, point, mount, args) -> str | None:
+    """After a refusal: the other reading of the orientation columns (the quaternion's order, the
+    rotation vector's unit, the matrix's order, the pose's direction) under which the table passes
+    every check, as a hint; None when none does."""
+    cols, fmt, direction = args[3]
+    raw, xyz = table.raw, _directed(table.P, table.R, direction)[0]  # the positions as read
+    other = {"quat-xyzw": "quat-wxyz", "quat-wxyz": "quat-xyzw", "rotvec-rad": "rotvec-deg"}
+    other |= {"rotvec-deg": "rotvec-rad", "matrix": "matrix"}
+    flip = {d: e for d, e in zip(POSE_DIRECTIONS, POSE_DIRECTIONS[::-1])}
+    tries = [
+        (f, d, f"--orientation-format {f} --pose-direction {d}" if f != "matrix" or d != direction else "")
+        for f in dict.fromkeys([fmt, other[fmt]])
+        for d in (direction, flip[direction])
+        if (f, d) != (fmt, direction)
+    ]
+    if fmt == "matrix":
+        tries.insert(0, ("matrix-columns", direction, "the matrices column by column (list them row by row)"))
+    for f, d, text in tries:
+        R = _rotations(raw, "matrix").transpose(0, 2, 1) if f == "matrix-columns" else _rotations(raw, f)
+        P, R = _directed(xyz, R, d)
+        try:
+            _check_pose(path, replace(table, P=P, R=R), frames, point, mount, args[:3] + ((cols, f, d),))
+        except CsvImportError:
+            continue
+        return f"the rows fit as {text}"
+    return None
 
 
 # --------------------------------------------------------------------------- writing
 
 
 def _write_samples(path: Path, table: _Table, joint_names) -> None:
-    quat = table.quat if table.quat is not None else np.zeros((len(table.t), 0))
+    quat = np.zeros((len(table.t), 0)) if table.R is None else matrix_to_quaternion(table.R)
     head = ["sample", "timestamp", "joint", "x", "y", "z"] + (
         ["qx", "qy", "qz", "qw"] if quat.shape[1] else []
     )
@@ -374,13 +565,45 @@ def _write_samples(path: Path, table: _Table, joint_names) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def _translation(p: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = p
-    return T
+def _check_orientation_arguments(orientation, orientation_format, pose_direction, sigma_rad, point, rotvec):
+    """An orientation's columns, format, direction and noise; the mount's rotation (3, 3) or None."""
+    if orientation is None:
+        if orientation_format is not None or pose_direction is not None:
+            raise ValueError(
+                "orientation_format and pose_direction describe orientation columns: none are given"
+            )
+    else:
+        if orientation_format not in ORIENTATION_FORMATS:
+            raise ValueError(
+                f"orientation_format must be one of {sorted(ORIENTATION_FORMATS)} (no default: state the "
+                f"convention), got {orientation_format!r}"
+            )
+        k = ORIENTATION_FORMATS[orientation_format]
+        if len(orientation) != k:
+            raise ValueError(
+                f"orientation names {len(orientation)} columns {list(orientation)}; format {orientation_format} "
+                f"has {k}"
+            )
+        if pose_direction not in POSE_DIRECTIONS:
+            raise ValueError(
+                f"pose_direction must be one of {POSE_DIRECTIONS} (no default: state which frame each row's pose "
+                f"is in), got {pose_direction!r}"
+            )
+        if not (isinstance(sigma_rad, (int, float)) and 0.0 < sigma_rad <= 1.0):
+            raise ValueError(f"an orientation needs sigma_rad (its noise, rad) in (0, 1], got {sigma_rad!r}")
+    if rotvec is None:
+        return None if point is None else np.eye(3)
+    w = np.asarray(rotvec, np.float64)
+    if w.shape != (3,) or not np.all(np.isfinite(w)) or np.linalg.norm(w) > MAX_ROTVEC_RAD:
+        raise ValueError(f"point_rotvec_rad must be 3 finite numbers within a turn (rad), got {rotvec!r}")
+    if point is None:
+        raise ValueError(
+            "point_rotvec_rad (the mount's rotation) needs point_m (its offset): a mount is given whole"
+        )
+    return rotvec_to_matrix(w)
 
 
-def _check_arguments(*, joint_unit, length_unit, device_kind, sigma_m, xyz, orientation, sigma_rad, point_m):
+def _check_arguments(*, joint_unit, length_unit, device_kind, sigma_m, xyz, point_m):
     """`import_csv`'s units, noise, column counts and point offset: the offset as an array (3,) or None."""
     for name, value, units in (
         ("joint_unit", joint_unit, ANGLE_UNITS),
@@ -394,10 +617,8 @@ def _check_arguments(*, joint_unit, length_unit, device_kind, sigma_m, xyz, orie
         raise ValueError(f"device_kind must be one of {DEVICE_KINDS}, got {device_kind!r}")
     if not (isinstance(sigma_m, (int, float)) and 0.0 < sigma_m <= 1.0):
         raise ValueError(f"sigma_m (the position noise, m) must be in (0, 1], got {sigma_m!r}")
-    if len(xyz) != 3 or (orientation is not None and len(orientation) != 4):
-        raise ValueError("xyz names 3 columns and orientation 4 (qx, qy, qz, qw)")
-    if orientation is not None and not (isinstance(sigma_rad, (int, float)) and 0.0 < sigma_rad <= 1.0):
-        raise ValueError(f"an orientation needs sigma_rad (its noise, rad) in (0, 1], got {sigma_rad!r}")
+    if len(xyz) != 3:
+        raise ValueError(f"xyz names 3 columns, got {list(xyz)}")
     point = None if point_m is None else np.asarray(point_m, np.float64)
     if point is not None and (point.shape != (3,) or not np.all(np.isfinite(point))):
         raise ValueError(f"point_m must be 3 finite numbers (m), got {point_m!r}")
@@ -419,7 +640,10 @@ def import_csv(
     length_unit: str,
     sigma_m: float,
     point_m=None,
+    point_rotvec_rad=None,
     orientation: Sequence[str] | None = None,
+    orientation_format: str | None = None,
+    pose_direction: str | None = None,
     sigma_rad: float | None = None,
     time: str | None = None,
     device_name: str = "tracker",
@@ -439,9 +663,16 @@ def import_csv(
     - `xyz`: three column specs, the point in the device frame; `length_unit`: `"m"` or `"mm"`.
       A spec is a column name or a sum of them (`"x_t+x_dif"`).
     - `sigma_m`: the position noise, 1-sigma per axis (m).
-    - `point_m`: the point's offset on `link` (m, 3), or None when unknown.
-    - `orientation`: four column specs `qx, qy, qz, qw` (scalar last) or None;
-      `sigma_rad`: their noise (required with them).
+    - `point_m`: the point's offset on `link` (m, 3), or None when unknown;
+      `point_rotvec_rad`: its frame's rotation on `link` (a rotation vector, rad;
+      with `point_m`; None: not turned), e.g. `(0, 0, pi/2)` for a camera turned
+      a quarter turn about its axis.
+    - `orientation`: the orientation's column specs, as many as `orientation_format`
+      has (`ORIENTATION_FORMATS`: `quat-xyzw`, `quat-wxyz`, `rotvec-rad`,
+      `rotvec-deg`, or `matrix`, row by row), or None; `pose_direction`
+      (`POSE_DIRECTIONS`): each row is the point's pose in the device frame, or the
+      device's in the point's (inverted here); `sigma_rad`: the orientation noise,
+      1-sigma per axis (rad). All three are required with an orientation.
     - `time`: a column of timestamps (s, strictly increasing), else the row index.
     - `device_name`, `device_kind`, `point_name`: the metadata's `device` fields.
     - `link`: the link the point rides on (default the robot's flange).
@@ -456,8 +687,11 @@ def import_csv(
     )
     point = _check_arguments(
         joint_unit=joint_unit, length_unit=length_unit, device_kind=device_kind, sigma_m=sigma_m, xyz=xyz,
-        orientation=orientation, sigma_rad=sigma_rad, point_m=point_m,
+        point_m=point_m,
     )  # fmt: skip
+    mount = _check_orientation_arguments(
+        orientation, orientation_format, pose_direction, sigma_rad, point, point_rotvec_rad
+    )
     model, limits, robot_name, robot_obj = robot_model(robot_file)
     if len(joints) != len(model.joint_names):
         raise ValueError(
@@ -472,20 +706,27 @@ def import_csv(
     table = _read_table(
         csv, joints=joints, joint_unit=joint_unit, xyz=xyz, length_unit=length_unit,
         orientation=orientation, time=time, model=model, limits=limits,
+        pose_format=(orientation_format, pose_direction),
     )  # fmt: skip
     frames = np.asarray(jax.vmap(forward_kinematics, in_axes=(None, 0))(model, jnp.asarray(table.q)))
     T_link = frames[:, list(model.link_names).index(link)]
-    nominal = T_link[:, :3, 3] + T_link[:, :3, :3] @ (point if point is not None else np.zeros(3))
     reach = reach_m(model, limits, point)
     tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
     origin = np.asarray(model.T_parent_joint)[0, :3, 3]
-    rms = _check_points(csv, table, nominal, xyz, length_unit, (origin, reach, tol))
-    if orientation is not None:
-        _check_orientations(csv, table, T_link[:, :3, :3], orientation)
+    args = (xyz, length_unit, (origin, reach, tol), (orientation, orientation_format, pose_direction))
+    try:
+        rms = _check_pose(csv, table, T_link, point, mount, args)
+    except CsvImportError as e:
+        hint = None if table.R is None else _reading_that_fits(csv, table, T_link, point, mount, args)
+        if hint is None:
+            raise
+        raise CsvImportError(f"{e}; {hint}") from None
     meta = _metadata(
         csv, table, model, robot_obj, joints=joints, joint_unit=joint_unit, xyz=xyz,
-        length_unit=length_unit, orientation=orientation, time=time, link=link, point=point,
+        length_unit=length_unit, orientation=orientation, time=time, link=link,
+        point=None if point is None else pose(mount, point),
         device=(device_name, device_kind, point_name), sigma=(sigma_m, sigma_rad), description=description,
+        pose_format=(orientation_format, pose_direction),
     )  # fmt: skip
     with atomic_directory(
         out, overwrite=overwrite, inputs=[csv, robot_file], kind="dataset", what="--out", checked=checked
@@ -507,7 +748,7 @@ def import_csv(
 
 def _metadata(
     csv: Path, table, model, robot_obj, *, joints, joint_unit, xyz, length_unit, orientation, time, link, point,
-    device, sigma, description,
+    device, sigma, description, pose_format,
 ) -> dict:  # fmt: skip
     """The imported dataset's `metadata.json`: the device (`device`: its name, kind and point
     name; `sigma`: the position and orientation noise) and the CSV's provenance (`x_csv`)."""
@@ -519,7 +760,7 @@ def _metadata(
         "file": "samples.csv",
         "link": link,
         "point": point_name,
-        "T_link_point_nominal": None if point is None else _translation(point),
+        "T_link_point_nominal": point,
         "sigma_m": float(sigma_m),
         "sigma_rad": None if orientation is None else float(sigma_rad),
     }
@@ -538,6 +779,8 @@ def _metadata(
             "xyz": list(xyz),
             "length_unit": length_unit,
             "orientation": None if orientation is None else list(orientation),
+            "orientation_format": pose_format[0],
+            "pose_direction": pose_format[1],
             "time": time,
             "rows": len(table.t),
         },

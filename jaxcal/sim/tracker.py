@@ -29,7 +29,7 @@ import numpy as np
 
 from .._geometry import so3_exp
 from .._kinematics import PerturbationScales, anchor_base, forward_kinematics, perturb_model
-from .._npgeom import matrix_to_quaternion
+from .._npgeom import matrix_to_quaternion, pose, rotvec_to_matrix
 from ..io._files import atomic_directory
 from ..io.dataset import SCHEMA, SCHEMA_VERSION, write_json
 from ..io.dh_tables import is_table_file, read_table_file
@@ -53,7 +53,11 @@ class TrackerSimConfig:
     - `bad_fraction` of each sweep's samples, half at each end, are
       `bad_mm` (uniform in the range) off in a random direction.
     - `point_mm`: the reflector's nominal position on the flange (mm);
-      `point_error_mm`: the true mount's deviation (1-sigma per axis).
+      `point_error_mm`: the true mount's deviation (1-sigma per axis);
+      `point_rotvec_deg`: the nominal mount's rotation (a rotation vector, deg: a
+      camera on the flange turned about its axis) and `point_error_deg` its true
+      deviation (1-sigma per axis; drawn only when positive, so that other seeds'
+      draws stay as they were).
     - `device_is_base`: the device frame is the base frame (a tracker
       registered to the base, or the controller's own tool point); otherwise
       the tracker stands `device_distance` m from the base, turned at random.
@@ -78,6 +82,8 @@ class TrackerSimConfig:
     bad_mm: tuple[float, float] = (0.3, 0.5)
     point_mm: tuple[float, float, float] = (80.0, 40.0, 60.0)
     point_error_mm: float = 0.5
+    point_rotvec_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    point_error_deg: float = 0.0
     device_is_base: bool = False
     device_distance: float = 2.0
     rate_hz: float = 100.0
@@ -246,10 +252,14 @@ def simulate_tracker(config: TrackerSimConfig, out, *, overwrite: bool = False) 
         true = anchor_base(true, nominal)  # the device pose absorbs joint 1's frame
     rng = np.random.default_rng(config.seed)
     T_device_base = _device_pose(config, rng)
-    T_point_nominal = np.eye(4)
-    T_point_nominal[:3, 3] = 1e-3 * np.asarray(config.point_mm, np.float64)
+    T_point_nominal = pose(
+        rotvec_to_matrix(np.radians(config.point_rotvec_deg)), 1e-3 * np.asarray(config.point_mm)
+    )
     T_point_true = T_point_nominal.copy()
     T_point_true[:3, 3] += 1e-3 * config.point_error_mm * rng.standard_normal(3)
+    if config.point_error_deg > 0:
+        turn = rotvec_to_matrix(np.radians(config.point_error_deg) * rng.standard_normal(3))
+        T_point_true[:3, :3] = T_point_true[:3, :3] @ turn
     if config.poses:
         q = pose_commands(_limits(urdf, nominal), config, rng)
         joint = np.full(len(q), -1)
