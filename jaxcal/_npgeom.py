@@ -113,6 +113,25 @@ def matrix_to_quaternion(R) -> np.ndarray:
     return np.where(out[..., 3:] >= 0, out, -out)
 
 
+def nearest_rotation(M) -> np.ndarray:
+    """The rotation nearest `M` `(3, 3)` in the Frobenius norm (Procrustes, by the SVD)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, np.float64))
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+def fit_sandwich(R, F, A, B=None, rounds: int = 20) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rotations $A$, $B$ with $R_i \\approx A F_i B$ for rotations `R`, `F` `(N, 3, 3)` (a
+    fixed frame's and a mount's, around a chain's link rotations), least squares by alternating
+    Procrustes from `A` (`B` held when given). **Returns:** `(A, B, each row's misfit angle (rad))`."""
+    R, F, A = (np.asarray(a, np.float64) for a in (R, F, A))
+    held = B is not None
+    for _ in range(1 if held else rounds):
+        if not held:
+            B = nearest_rotation(np.einsum("nba,nbc->ac", A @ F, R))
+        A = nearest_rotation(np.einsum("nab,ncb->ac", R, F @ B))
+    return A, B, rotation_angle(np.einsum("nba,nbc->nac", A @ F @ B, R))
+
+
 def pose(R=None, t=(0.0, 0.0, 0.0)) -> np.ndarray:
     """The 4x4 pose of a rotation `R` (identity when None) and translation `t`."""
     T = np.eye(4)

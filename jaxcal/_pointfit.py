@@ -253,6 +253,23 @@ def predict_rotation(x: Float[Array, " n"], problem: "PointProblem") -> Float[Ar
     return jnp.moveaxis(_chain(x, problem).R_p, -1, 0)
 
 
+def rotation_errors(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, " samples"]:
+    """Per sample the angle between the measured orientation and the model's (rad)."""
+    e = jax.vmap(so3_log)(jnp.einsum("sba,sbc->sac", problem.data.R, predict_rotation(x, problem)))
+    return jnp.linalg.norm(e, axis=1)
+
+
+def rotation_jacobian(x: Float[Array, " n"], problem: "PointProblem") -> Float[Array, "samples 3 n"]:
+    """$\\partial \\log(\\hat R_i(x)^T \\hat R_i(x + \\delta)) / \\partial \\delta$: how the parameters turn
+    each sample's predicted orientation, in the point's frame (rad), by forward-mode autodiff."""
+    R0 = jax.lax.stop_gradient(predict_rotation(x, problem))
+
+    def turn(v):
+        return jax.vmap(so3_log)(jnp.einsum("sba,sbc->sac", R0, predict_rotation(v, problem)))
+
+    return jax.jacfwd(turn)(x)
+
+
 def _rotation_residuals(x, problem) -> Float[Array, " m"]:
     """Whitened rotation residuals $\\log(R_i^T \\hat R_i) / \\sigma_{rad,i}$, zero for masked samples."""
     d = problem.data
@@ -505,9 +522,11 @@ def cross_validate(
 ):
     """K-fold cross-validation: per fold, the fit on the training samples with
     the mask of free parameters `free` (fixed, so folds are comparable), and
-    the distances of the held-out samples from their prediction (m).
+    the distances of the held-out samples from their prediction (m) and, with
+    orientations, the angles of their orientations from it (rad).
 
-    **Returns:** `(distances (folds, samples), test mask (folds, samples))`.
+    **Returns:** `(distances (folds, samples), test mask (folds, samples), angles
+    (folds, samples))`, the angles zero without orientations.
     """
     base = problem.data.mask
 
@@ -515,10 +534,11 @@ def cross_validate(
         p = eqx.tree_at(lambda q: q.data.mask, problem, base & tr)
         res = fit_points(p, candidates, tol=0.0, free=free, options=options)
         d = jnp.linalg.norm(predict(res.x, problem) - problem.data.y, axis=1)
-        return d
+        a = rotation_errors(res.x, problem) if problem.layout.orientation else jnp.zeros_like(d)
+        return d, a
 
-    dist = jax.vmap(one)(jnp.asarray(train))
-    return dist, base[None, :] & ~jnp.asarray(train)
+    dist, angle = jax.vmap(one)(jnp.asarray(train))
+    return dist, base[None, :] & ~jnp.asarray(train), angle
 
 
 def kabsch(A: np.ndarray, B: np.ndarray) -> np.ndarray:

@@ -576,7 +576,8 @@ class OtherCamera(Record):
 @dataclass(frozen=True, eq=False)
 class ModelRow(Record):
     """One model a stop-and-shoot point fit tried: its non-geometric terms, free
-    parameters, cross-validated distances (mm, when cross-validation ran) and whether it was kept."""
+    parameters, cross-validated distances (mm, when cross-validation ran) and, with measured
+    orientations, angles (deg), and whether it was kept."""
 
     terms: tuple[str, ...]
     free: int
@@ -584,6 +585,9 @@ class ModelRow(Record):
     cv_rms_mm: float | None = optional()
     cv_max_mm: float | None = optional()
     kept: bool = False
+    cv_mean_deg: float | None = optional()
+    cv_rms_deg: float | None = optional()
+    cv_max_deg: float | None = optional()
 
 
 @dataclass(frozen=True, eq=False)

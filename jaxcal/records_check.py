@@ -28,6 +28,8 @@ from .records import NAMED, Intrinsics, Named, Record, ResidualStats, optional
 
 #: Exit status of `jaxcal check` when drift is detected.
 EXIT_DRIFT = 3
+#: Exit status of `jaxcal verify` when the measured errors lie outside what the calibration predicts.
+EXIT_OUTSIDE_PREDICTION = 3
 
 
 # --------------------------------------------------------------------------- what the products read
@@ -39,7 +41,9 @@ class PointFitModel:
     any configuration: the nominal model, the non-geometric `terms`, the parameter vector `x`
     with its `free` mask and `covariance`, the fit's residual variance factor, the median
     per-axis noise `sigma_m` (m), the references the corrections are relative to and the
-    links' inertials."""
+    links' inertials; with measured orientations (`orientation`) their median per-axis noise
+    `sigma_rad` (rad); the samples fitted (None in results written before the key); whether the
+    dataset gave the point's nominal mount (`mount_given`; else `T_flange_point0` is a start)."""
 
     nominal: KinematicModel
     terms: tuple[str, ...]
@@ -52,6 +56,17 @@ class PointFitModel:
     T_flange_point0: np.ndarray
     masses: np.ndarray
     coms: np.ndarray
+    orientation: bool = False
+    sigma_rad: float | None = None
+    samples: int | None = None
+    mount_given: bool = True
+
+    @property
+    def dof(self) -> int | None:
+        """The fit's residual degrees of freedom (what its variance factor was estimated on)."""
+        if self.samples is None:
+            return None
+        return (6 if self.orientation else 3) * self.samples - int(np.sum(self.free))
 
 
 @dataclass(frozen=True, eq=False)
@@ -326,9 +341,10 @@ class Certificate:
 
 @dataclass(frozen=True, eq=False)
 class VerificationSummary(Record):
-    """A verification over its samples (mm): the calibrated and nominal errors, the predicted
-    RMS, measured over predicted, the share inside the predicted 95 % bound, and the
-    parameters' part of the predicted RMS."""
+    """A verification over its samples (mm): the calibrated and nominal errors (`nominal`: the
+    nominal robot in the calibration's fitted device frame, `jaxcal.verification`), the
+    predicted RMS, measured over predicted, the share inside the predicted 95 % bound, and the
+    parameters' part of the predicted RMS; with orientations the same of the angles (deg)."""
 
     samples: int
     calibrated_mm: ResidualStats
@@ -337,16 +353,52 @@ class VerificationSummary(Record):
     measured_over_predicted: float
     inside_95_bound: float
     parameter_part_rms_mm: float
+    calibrated_deg: ResidualStats | None = optional()
+    nominal_deg: ResidualStats | None = optional()
+    predicted_rms_deg: float | None = optional()
+    measured_over_predicted_deg: float | None = optional()
+    inside_95_bound_deg: float | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class PredictionTest(Record):
+    """Whether a dataset's errors are what the calibration predicts (`jaxcal.verification`): the
+    errors of `samples` samples, `components` each (3 positions, or with orientations 6), whitened
+    by their predicted joint covariance, give the `statistic` (their sum of squares) on `dof`
+    degrees of freedom, F-distributed against the noise scale's `dof_noise` (chi-square when
+    None), its `p_value`, and the whitened measured / predicted RMS `ratio` with its `ratio_limit`;
+    the share of samples whose whitened error lies inside its 95 % bound (`inside`), the least the
+    one-sided binomial test accepts (`inside_limit`) and its `p_inside`. Each test at level `alpha`;
+    the calibration `holds` when neither rejects."""
+
+    samples: int
+    components: int
+    statistic: float
+    dof: int
+    dof_noise: int | None
+    ratio: float
+    ratio_limit: float
+    p_value: float
+    inside: float
+    inside_limit: float
+    p_inside: float
+    alpha: float
+    holds: bool
 
 
 @dataclass(frozen=True, eq=False)
 class CrossValidation(Record):
-    """K-fold cross-validation's distances (mm) on the verified dataset."""
+    """K-fold cross-validation's distances (mm) on the verified dataset, with orientations their
+    angles (deg): the calibration's own folds and observations, so that on its dataset the
+    figures are `jaxcal calibrate`'s."""
 
     folds: int
     mean: float
     rms: float
     max: float
+    mean_deg: float | None = optional()
+    rms_deg: float | None = optional()
+    max_deg: float | None = optional()
 
 
 @dataclass(frozen=True, eq=False)
@@ -357,7 +409,10 @@ class Verification:
       from the calibrated and from the nominal prediction.
     - `predicted_mm`: per sample, the RMS distance the calibration predicts
       (parameter covariance and the fit's residual scatter).
-    - `summary`: over the samples; `cv`: with `cv=K`, the K-fold cross-validation.
+    - `errors_deg`, `nominal_deg`, `predicted_deg`: the same of the orientations' angles
+      (deg) when the calibration fitted orientations and the dataset has them, else None.
+    - `summary`: over the samples; `cv`: with `cv=K`, the K-fold cross-validation;
+      `test`: whether the errors are what the calibration predicts (`exit_code`).
     """
 
     result: str
@@ -369,3 +424,12 @@ class Verification:
     summary: VerificationSummary
     cv: CrossValidation | None = None
     notes: tuple[str, ...] = ()
+    test: PredictionTest | None = None
+    errors_deg: np.ndarray | None = None
+    nominal_deg: np.ndarray | None = None
+    predicted_deg: np.ndarray | None = None
+
+    @property
+    def exit_code(self) -> int:
+        """`EXIT_OUTSIDE_PREDICTION` when the test rejects the calibration's prediction, else 0."""
+        return 0 if self.test is None or self.test.holds else EXIT_OUTSIDE_PREDICTION

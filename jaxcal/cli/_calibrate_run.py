@@ -27,15 +27,25 @@ from ._rosbag import dataset_of
 def _point_fit_table(console, result) -> None:
     pf = result.point_fit
     t = Table(title=f"Point fit ({result.frames.used('poses')} stop-and-shoot samples)")
-    for col in ("model", "free parameters", "CV mean mm", "CV RMS mm", "CV max mm", "kept"):
+    deg = pf.residual_deg is not None
+    cols = ("CV mean mm", "CV RMS mm", "CV max mm") + (
+        ("CV mean deg", "CV RMS deg", "CV max deg") if deg else ()
+    )
+    for col in ("model", "free parameters", *cols, "kept"):
         t.add_column(col, justify="left" if col == "model" else "right")
     for m in pf.models:
-        cv = [fmt(x, ".4f") if x is not None else "-" for x in (m.cv_mean_mm, m.cv_rms_mm, m.cv_max_mm)]
+        values = (m.cv_mean_mm, m.cv_rms_mm, m.cv_max_mm) + (
+            (m.cv_mean_deg, m.cv_rms_deg, m.cv_max_deg) if deg else ()
+        )
+        cv = [fmt(x, ".4f") if x is not None else "-" for x in values]
         t.add_row("+".join(["geometric", *m.terms]), str(m.free), *cv, "yes" if m.kept else "")
     console.print(t)
-    r = pf.residual_mm
+    r, a = pf.residual_mm, pf.residual_deg
+    rotation = (
+        "" if a is None else f"; orientations {a.mean:.4f} deg mean, {a.rms:.4f} deg RMS, {a.max:.4f} deg max"
+    )
     console.print(
-        f"fitted residual {r.mean:.4f} mm mean, {r.rms:.4f} mm RMS, {r.max:.4f} mm max; "
+        f"fitted residual {r.mean:.4f} mm mean, {r.rms:.4f} mm RMS, {r.max:.4f} mm max{rotation}; "
         f"held at nominal: {len(pf.held)} parameters"
     )
     for row in pf.term_rows:

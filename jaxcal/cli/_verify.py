@@ -35,21 +35,46 @@ def cmd_verify(args) -> int:
         raise ValueError(f"--cv {args.cv}: give K >= 2 folds, or 0 for none")
     v = verify(args.result, args.dataset, cv=args.cv)
     s = v.summary
+    deg = s.calibrated_deg is not None
     console = Console(width=max(Console().width, 110))
     t = Table(title=f"jaxcal verify: {s.samples} samples of {v.dataset}")
-    for col in ("model", "mean mm", "RMS mm", "max mm"):
+    cols = ("mean mm", "RMS mm", "max mm") + (("mean deg", "RMS deg", "max deg") if deg else ())
+    for col in ("model", *cols):
         t.add_column(col, justify="left" if col == "model" else "right")
-    for label, r in (("nominal", s.nominal_mm), ("calibrated", s.calibrated_mm)):
-        t.add_row(label, *(f"{x:.4f}" for x in (r.mean, r.rms, r.max)))
-    if v.cv is not None:
+    rows = [
+        ("nominal robot in the fitted device frame", s.nominal_mm, s.nominal_deg),
+        ("calibrated", s.calibrated_mm, s.calibrated_deg),
+    ]
+    for label, r, a in rows:
         t.add_row(
-            f"{v.cv.folds}-fold CV on this dataset", *(f"{x:.4f}" for x in (v.cv.mean, v.cv.rms, v.cv.max))
+            label, *(f"{x:.4f}" for x in (r.mean, r.rms, r.max) + ((a.mean, a.rms, a.max) if deg else ()))
+        )
+    if v.cv is not None:
+        c = v.cv
+        t.add_row(
+            f"{c.folds}-fold CV on this dataset",
+            *(
+                f"{x:.4f}"
+                for x in (c.mean, c.rms, c.max) + ((c.mean_deg, c.rms_deg, c.max_deg) if deg else ())
+            ),
         )
     console.print(t)
     console.print(
         f"predicted RMS {s.predicted_rms_mm:.4f} mm (parameters alone {s.parameter_part_rms_mm:.4f} mm): "
         f"measured / predicted {s.measured_over_predicted:.2f}; "
         f"{100 * s.inside_95_bound:.0f} % of the samples inside their predicted 95 % bound"
+    )
+    if deg:
+        console.print(
+            f"orientations: predicted RMS {s.predicted_rms_deg:.4f} deg, measured / predicted "
+            f"{s.measured_over_predicted_deg:.2f}; {100 * s.inside_95_bound_deg:.0f} % inside their 95 % bound"
+        )
+    test = v.test
+    verdict = "holds on this dataset" if test.holds else "does NOT hold on this dataset (exit 3)"
+    console.print(
+        f"the calibration {verdict}: whitened measured / predicted {test.ratio:.2f} (limit {test.ratio_limit:.2f}, "
+        f"p = {test.p_value:.3g}), {100 * test.inside:.0f} % inside the 95 % bound (at least "
+        f"{100 * test.inside_limit:.0f} %, p = {test.p_inside:.3g}); each test at {100 * test.alpha:g} %"
     )
     for n in v.notes:
         console.print(f"[yellow]note:[/yellow] {n}")
@@ -63,4 +88,4 @@ def cmd_verify(args) -> int:
             plot_verification(v, tmp_png)
             tmp_png.replace(dest)
         console.print(f"wrote {args.plot}")
-    return 0
+    return v.exit_code

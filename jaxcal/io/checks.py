@@ -32,6 +32,7 @@ from ..records_check import (
     HandEyeReference,
     JointOffset,
     PointFitModel,
+    PredictionTest,
     Region,
     Verification,
     VerificationSummary,
@@ -81,6 +82,10 @@ def point_fit_model(pf: Mapping) -> PointFitModel:
         T_flange_point0=np.asarray(pf["T_flange_point0"]),
         masses=np.asarray(pf["masses"]),
         coms=np.asarray(pf["coms"]),
+        orientation=bool(pf.get("orientation", False)),
+        sigma_rad=None if pf.get("sigma_rad") is None else float(pf["sigma_rad"]),
+        samples=None if pf.get("samples") is None else int(pf["samples"]),
+        mount_given=bool(pf.get("mount_given", True)),
     )
 
 
@@ -282,23 +287,37 @@ def verification_json(v: Verification) -> dict:
         "dataset": v.dataset,
         "summary": plain(v.summary),
         "cv": plain(v.cv),
+        "test": plain(v.test),
+        "exit_code": v.exit_code,
         "notes": list(v.notes),
         "samples": [
             {"sample": int(s), "error_mm": float(e), "nominal_mm": float(n), "predicted_rms_mm": float(p)}
-            for s, e, n, p in zip(v.samples, v.errors_mm, v.nominal_mm, v.predicted_mm)
+            | ({} if a is None else {"error_deg": a, "nominal_deg": b, "predicted_rms_deg": c})
+            for s, e, n, p, (a, b, c) in zip(v.samples, v.errors_mm, v.nominal_mm, v.predicted_mm, _angles(v))
         ],
     }
+
+
+def _angles(v: Verification) -> list:
+    """Per sample `(error, nominal, predicted)` angles (deg), or None without orientations."""
+    if v.errors_deg is None:
+        return [(None, None, None)] * len(v.samples)
+    return [tuple(map(float, t)) for t in zip(v.errors_deg, v.nominal_deg, v.predicted_deg)]
 
 
 def verification_from_json(d: Mapping) -> Verification:
     """The `Verification` a `jaxcal verify --json` file holds (`verification_json`'s inverse)."""
     rows = d["samples"]
     column = lambda key, dtype=np.float64: np.asarray([r[key] for r in rows], dtype)  # noqa: E731
+    angles = bool(rows) and "error_deg" in rows[0]
+    deg = lambda key: column(key) if angles else None  # noqa: E731
     return Verification(
         result=d["result"], dataset=d["dataset"], samples=column("sample", np.int64),
         errors_mm=column("error_mm"), nominal_mm=column("nominal_mm"), predicted_mm=column("predicted_rms_mm"),
         summary=from_plain(VerificationSummary, d["summary"]),
         cv=None if d["cv"] is None else from_plain(CrossValidation, d["cv"]), notes=tuple(d["notes"]),
+        test=None if d.get("test") is None else from_plain(PredictionTest, d["test"]),
+        errors_deg=deg("error_deg"), nominal_deg=deg("nominal_deg"), predicted_deg=deg("predicted_rms_deg"),
     )  # fmt: skip
 
 

@@ -63,6 +63,7 @@ import numpy as np
 
 from .._kinematics import KinematicModel, forward_kinematics
 from .._npgeom import (
+    fit_sandwich,
     matrix_to_quaternion,
     pose,
     quaternion_to_matrix,
@@ -381,23 +382,6 @@ def _directed(P: np.ndarray, R: np.ndarray, direction: str) -> tuple[np.ndarray,
     return -np.einsum("nab,nb->na", Rt, P), Rt
 
 
-def _project(M: np.ndarray) -> np.ndarray:
-    """The rotation nearest `M` (3, 3) (Procrustes)."""
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-
-
-def _frame_fit(R: np.ndarray, F: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rotations $A$ (device from base) and $B$ (link to point) with $R_i \\approx A F_i B$ for
-    measured `R` and nominal link rotations `F` `(N, 3, 3)`, by alternating Procrustes from `A`.
-    **Returns:** `(A, B, per-row angle of the misfit (rad))`."""
-    for _ in range(ORIENT_ROUNDS):
-        B = _project(np.einsum("nba,nbc->ac", A @ F, R))
-        A = _project(np.einsum("nab,ncb->ac", R, F @ B))
-    fit = A @ F @ B
-    return A, B, rotation_angle(np.einsum("nba,nbc->nac", fit, R))
-
-
 # --------------------------------------------------------------------------- plausibility
 
 
@@ -472,14 +456,14 @@ def _check_orientations(
     path: Path, table: _Table, F: np.ndarray, A0: np.ndarray | None, mount, spec
 ) -> np.ndarray:
     """The measured orientations against the nominal robot's link rotations `F` `(N, 3, 3)`: each
-    within `ANGLE_TOL_DEG` after the best device-frame and mount rotations (`_frame_fit`, from
+    within `ANGLE_TOL_DEG` after the best device-frame and mount rotations (`_npgeom.fit_sandwich`, from
     `A0`, the points' alignment), the device frame within `ANGLE_TOL_DEG` of `A0` (when the
     point's mount is given; its offset otherwise blurs the points' alignment), and the mount's
     rotation within `MOUNT_TOL_DEG` of `mount` (None: the mount is not given, the fit measures it).
     `spec`: `(columns, orientation_format, pose_direction)`. **Returns:** the mount's rotation."""
     cols, fmt, direction = spec
     where = f"columns {list(cols)} (--orientation-format {fmt}, --pose-direction {direction})"
-    A, B, angle = _frame_fit(table.R, F, A0)
+    A, B, angle = fit_sandwich(table.R, F, A0, rounds=ORIENT_ROUNDS)
     tol = math.radians(ANGLE_TOL_DEG)
     bad = np.flatnonzero(angle > tol)
     if bad.size:

@@ -172,7 +172,9 @@ def read_result(path) -> ResultFile:
 def point_fit_json(pf) -> dict:
     """The `point_fit` block: what `jaxcal verify` needs to predict any pose's point with
     the calibrated model (the nominal model, the references, the parameter vector with its
-    covariance and the non-geometric terms), and the models cross-validation compared."""
+    covariance and the non-geometric terms), and the models cross-validation compared; with
+    measured orientations also `orientation`, their median noise `sigma_rad` and `residual_deg`;
+    `mount_given`: whether the metadata gave the point's nominal mount."""
     fit, prob = pf.fit, pf.problem
     return {
         "terms": list(pf.layout.terms),
@@ -193,6 +195,16 @@ def point_fit_json(pf) -> dict:
         "masses": np.asarray(prob.data.masses).tolist(),
         "coms": np.asarray(prob.data.coms).tolist(),
         "nominal_model": model_to_json(prob.nominal),
+        "mount_given": bool(pf.mount_given),
+        **(
+            {
+                "orientation": True,
+                "sigma_rad": float(np.median(np.asarray(prob.data.sigma_rad)[pf.used])),
+                "residual_deg": plain(pf.residual_deg),
+            }
+            if pf.layout.orientation
+            else {}
+        ),
     }
 
 

@@ -30,6 +30,7 @@ from .._axisfit import AxisFitResult
 from .._correction import ParameterLayout, apply_correction, physical_parameters
 from .._geometry import se3_exp
 from .._kinematics import KinematicModel, forward_kinematics
+from .._npgeom import fit_sandwich, nearest_rotation
 from .._pointfit import (
     TERMS,
     PointData,
@@ -40,6 +41,7 @@ from .._pointfit import (
     fit_points,
     fold_masks,
     predict,
+    rotation_errors,
     start_frame,
     term_basis,
 )
@@ -73,8 +75,10 @@ class PointFit:
     - `models`: per model tried, `{"terms", "free", "cv_mean_mm", "cv_rms_mm", "kept"}`,
       the geometric one first.
     - `folds`: the number of cross-validation folds (0: not run).
-    - `residual_mm`: mean, RMS and max distance of the fitted samples (mm).
+    - `residual_mm`: mean, RMS and max distance of the fitted samples (mm);
+      `residual_deg`: with orientations, their angles from the fitted ones (deg).
     - `used`: the samples in the fit (mask over the table's rows).
+    - `mount_given`: the metadata gives the point's nominal mount (else the fit measures it).
     """
 
     problem: PointProblem
@@ -86,6 +90,8 @@ class PointFit:
     folds: int
     residual_mm: ResidualStats
     used: np.ndarray
+    residual_deg: ResidualStats | None = None
+    mount_given: bool = True
     #: Seconds per step (`point_fit_s`): free-form.
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -198,14 +204,30 @@ def _hold_implausible_terms(problem: PointProblem, cand, fit: PointFitResult) ->
     return fit
 
 
+def fold_train(used: np.ndarray, folds: int) -> np.ndarray:
+    """The training masks `(folds, samples)` of the point fit's K-fold cross-validation over the
+    samples `used`: `jaxcal verify --cv` forms the same."""
+    return fold_masks(len(used), folds) & np.asarray(used, bool)[None]
+
+
+def _stats(d: np.ndarray) -> ResidualStats:
+    return ResidualStats(mean=float(d.mean()), rms=float(np.sqrt(np.mean(d**2))), max=float(d.max()))
+
+
+def cross_validation(problem, cand, free, train) -> tuple[ResidualStats, ResidualStats | None]:
+    """The held-out distances (mm) and, with orientations, angles (deg) of K-fold
+    cross-validation with the free parameters `free` over the training masks `train`."""
+    dist, test, angle = (np.asarray(a) for a in _cv(problem, cand, free, jnp.asarray(train)))
+    deg = _stats(np.degrees(angle[test])) if problem.layout.orientation else None
+    return _stats(1e3 * dist[test]), deg
+
+
 def _cv_row(problem, cand, fit, train) -> dict:
-    dist, test = (np.asarray(a) for a in _cv(problem, cand, fit.free, jnp.asarray(train)))
-    d = 1e3 * dist[test]
-    return {
-        "cv_mean_mm": float(d.mean()),
-        "cv_rms_mm": float(np.sqrt(np.mean(d**2))),
-        "cv_max_mm": float(d.max()),
-    }
+    mm, deg = cross_validation(problem, cand, fit.free, train)
+    row = {"cv_mean_mm": mm.mean, "cv_rms_mm": mm.rms, "cv_max_mm": mm.max}
+    if deg is not None:
+        row |= {"cv_mean_deg": deg.mean, "cv_rms_deg": deg.rms, "cv_max_deg": deg.max}
+    return row
 
 
 def _inertials(setup: Setup):
@@ -217,16 +239,23 @@ def _inertials(setup: Setup):
         ) from None
 
 
-def _orient_start(nominal, q, R, Tp0, T0) -> np.ndarray:
-    """With measured orientations, the start's rotation from them (the mean of
-    $R_i (R_{flange,i} R_{mount})^T$), its translation re-fitted to the points."""
+def _orient_start(nominal, q, y, R, T0, Tp0, *, frame_free: bool, mount_known: bool):
+    """With measured orientations $R_i \\approx R_{db} F_i R_{mount}$ (`F`: the nominal flange's), the
+    starts of the device frame's rotation (when free) and of the mount's (when the metadata gives
+    none) fitted to them (`fit_sandwich`), the device frame's translation then re-fitted to the
+    points `y`. **Returns:** `(T0, Tp0)`."""
     F = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q)))
-    M = np.einsum("sab,sbc->sac", R, np.swapaxes(F[:, :3, :3] @ Tp0[:3, :3], 1, 2)).sum(0)
-    U, _, Vt = np.linalg.svd(M)
-    Rdb = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    T = T0.copy()
-    T[:3, :3] = Rdb
-    return T
+    A, B = T0[:3, :3], Tp0[:3, :3]
+    if frame_free:
+        A, B, _ = fit_sandwich(R, F[:, :3, :3], A, B if mount_known else None)
+    elif not mount_known:
+        B = nearest_rotation(np.einsum("nba,nbc->ac", A @ F[:, :3, :3], R))
+    T, Tp = T0.copy(), Tp0.copy()
+    T[:3, :3], Tp[:3, :3] = A, B
+    if frame_free:
+        p = np.einsum("nab,b->na", F, Tp[:, 3])[:, :3]
+        T[:3, 3] = np.mean(y - p @ A.T, axis=0)
+    return T, Tp
 
 
 def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Options) -> PointFit:
@@ -246,13 +275,16 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     Tp0 = np.eye(4) if point.T_link_target is None else np.asarray(point.T_link_target, np.float64)
     q, y = np.asarray(sync.q, np.float64), np.asarray(s.position, np.float64)
     T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(nominal, q[used], y[used], Tp0)
-    if s.orientation is not None and kind.fixed_frame_free:
-        T0 = _orient_start(nominal, q[used], s.orientation[used], Tp0, T0)
+    if s.orientation is not None:
+        T0, Tp0 = _orient_start(
+            nominal, q[used], y[used], s.orientation[used], T0, Tp0,
+            frame_free=kind.fixed_frame_free, mount_known=point.T_link_target is not None,
+        )  # fmt: skip
     base = ParameterLayout.of(nominal, 1, fixed_name=kind.fixed_frame)
     inertials = _inertials(setup) if "compliance" in options.terms else None
     tol = kind.identifiability_tol
     folds = options.cv_folds
-    train = fold_masks(len(used), folds) if folds else None
+    train = fold_train(used, folds) if folds else None
 
     orientation = s.orientation is not None
 
@@ -267,7 +299,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         fit = _hold_implausible_terms(problem, cand, fit)
         row = ModelRow(terms=tuple(terms), free=int(np.sum(fit.free)))
         if train is not None:
-            row = dataclasses.replace(row, **_cv_row(problem, cand, fit, train & used[None]))
+            row = dataclasses.replace(row, **_cv_row(problem, cand, fit, train))
         return layout, problem, cand, fit, row
 
     options.say(f"point fit: {n_used} stop-and-shoot samples, forward kinematics of every sample")
@@ -287,6 +319,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     if not bool(fit.result == optx.RESULTS.successful):
         options.say("point fit: the solver did not converge")
     dist = 1e3 * np.linalg.norm(np.asarray(predict(fit.x, problem)) - y, axis=1)[used]
+    angle = np.degrees(np.asarray(rotation_errors(fit.x, problem)))[used] if orientation else None
     names = layout.names()
     held = tuple(nm for nm, f, c in zip(names, np.asarray(fit.free), cand) if not f and c)
     return PointFit(
@@ -297,10 +330,10 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         held=held,
         models=tuple(dataclasses.replace(m, kept=k == kept) for k, m in enumerate(models)),
         folds=folds,
-        residual_mm=ResidualStats(
-            mean=float(dist.mean()), rms=float(np.sqrt(np.mean(dist**2))), max=float(dist.max())
-        ),
+        residual_mm=_stats(dist),
         used=used,
+        residual_deg=None if angle is None else _stats(angle),
+        mount_given=point.T_link_target is not None,
         timings={"point_fit_s": time.perf_counter() - t0},
     )
 

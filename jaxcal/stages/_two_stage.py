@@ -407,7 +407,9 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
         f"point fit on {int(pf.used.sum())} samples: {int(np.sum(pf.fit.free))} parameters free"
         + (f", non-geometric terms {list(pf.layout.terms)}" if pf.layout.terms else "")
         + f"; fitted residual {pf.residual_mm.rms:.4f} mm RMS"
+        + ("" if pf.residual_deg is None else f", {pf.residual_deg.rms:.4f} deg RMS")
         + (f", {pf.folds}-fold cross-validation {kept.cv_mean_mm:.4f} mm mean" if pf.folds else "")
+        + (f", {kept.cv_mean_deg:.4f} deg mean" if pf.folds and kept.cv_mean_deg is not None else "")
     ]
     notes += [
         f"the model with {'+'.join(m.terms)} only: cross-validation {m.cv_mean_mm:.4f} mm mean, not better than "
