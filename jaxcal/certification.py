@@ -16,6 +16,13 @@ fixed draws of $z$), and over the region: the mean and RMS, the 95th percentile
 of the error at a random pose of the region (the quantile of the mixture of the
 poses' distributions), and the worst pose.
 
+**Orientations.** A tracker result that fitted measured orientations (a 6-DoF
+probe, a camera on the flange seeing a fixed board) predicts the point frame's
+orientation too: its error, a rotation vector in the point's frame, is
+Gaussian the same way, $G^R_q \\Sigma G^{R\\,T}_q + s_R^2 I_3$
+($s_R^2 = \\max(\\hat\\sigma^2 - 1, 0)\\,\\sigma_{rad}^2$), and the certificate reports
+the same figures of its angle (deg) beside the positions'.
+
 **The point and its frame.** The point is the one the calibration measured:
 the tracker's reflector, the target's origin (the camera's origin
 eye-in-hand), in the fixed frame (`frame="fixed"`: the device's or camera's,
@@ -48,7 +55,7 @@ from ._device import to_device
 from ._exported import stored_jit
 from ._geometry import se3_exp
 from ._kinematics import KinematicModel, forward_kinematics
-from ._pointfit import PointLayout, point_jacobian, predict
+from ._pointfit import PointLayout, point_jacobian, predict, rotation_jacobian
 from ._uncertainty import joint_travel, tool_points
 from .errors import DatasetError
 from .io.checks import read_calibration, read_result_json
@@ -58,6 +65,7 @@ from .records import Named
 from .records_check import (
     CalibrationReference,
     Certificate,
+    CertificateRotation,
     CertificateSummary,
     Extrapolation,
     Region,
@@ -96,6 +104,9 @@ class Predictor:
     - `workspace`: the calibration's configurations `(S, joints)`, or None.
     - `caveats`, `notes`: what the certificate states beside its figures.
     - `covariance_model`: the result's `covariance_model` (None: written before the key).
+    - `rotation_covariances(q, frame)`: `(C, 3, 3)` the point frame's orientation error's
+      covariance (rad^2) and `scatter_var_rad` its unexplained part, for a result that fitted
+      orientations; None otherwise.
     """
 
     kind: str
@@ -110,6 +121,8 @@ class Predictor:
     caveats: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
     covariance_model: str | None = None
+    rotation_covariances: object = None
+    scatter_var_rad: float = 0.0
 
 
 def read_result(path) -> tuple[dict, Path]:
@@ -140,10 +153,16 @@ def _point_covariances(x, cov, problem):
     return jnp.einsum("sai,ij,sbj->sab", J, cov, J)
 
 
+def _rotation_covariances(x, cov, problem):
+    J = rotation_jacobian(x, problem)
+    return jnp.einsum("sai,ij,sbj->sab", J, cov, J)
+
+
 # The tracker predictor's programs, stored (a later `jaxcal certify` reloads them) and with XLA's
 # optimisations (they sweep a whole region), as the camera predictor's below.
 _point_covariances = stored_jit(_point_covariances, "point_covariances", compiler_options=None)
 _tracker_points = stored_jit(predict, "tracker_points", compiler_options=None)
+_rotation_covariances = stored_jit(_rotation_covariances, "rotation_covariances", compiler_options=None)
 
 
 def tracker_predictor(ref: CalibrationReference) -> Predictor:
@@ -166,12 +185,18 @@ def tracker_predictor(ref: CalibrationReference) -> Predictor:
             nominal, layout, q, np.zeros((n, 3)), np.ones(n), np.ones(n, bool), T0, Tp0, inertials
         )
 
-    def covariances(q, frame="fixed"):
+    def in_frame(frame):
         c = cov.copy()
         if frame == "base":
             c[cam, :] = 0.0
             c[:, cam] = 0.0
-        return np.asarray(_point_covariances(x, jnp.asarray(c), problem(np.asarray(q))))
+        return jnp.asarray(c)
+
+    def covariances(q, frame="fixed"):
+        return np.asarray(_point_covariances(x, in_frame(frame), problem(np.asarray(q))))
+
+    def rotation_covariances(q, frame="fixed"):
+        return np.asarray(_rotation_covariances(x, in_frame(frame), problem(np.asarray(q))))
 
     def base_points(q):
         y = np.asarray(_tracker_points(x, problem(np.asarray(q))))
@@ -180,7 +205,8 @@ def tracker_predictor(ref: CalibrationReference) -> Predictor:
     params, _ = layout.split(x)
     model, _ = apply_correction(nominal, jnp.asarray(Tp0)[None], params.correction)
     ws, note, limits = _workspace(ref, np.ones(nominal.num_joints))
-    scatter = max(pf.residual_variance_factor - 1.0, 0.0) * pf.sigma_m**2
+    excess = max(pf.residual_variance_factor - 1.0, 0.0)
+    scatter = excess * pf.sigma_m**2
     return Predictor(
         kind="tracker",
         result=str(file),
@@ -193,6 +219,8 @@ def tracker_predictor(ref: CalibrationReference) -> Predictor:
         workspace=ws,
         notes=() if note is None else (note,),
         covariance_model=ref.covariance_model,
+        rotation_covariances=rotation_covariances if pf.orientation else None,
+        scatter_var_rad=excess * (pf.sigma_rad or 0.0) ** 2,
     )
 
 
@@ -450,6 +478,7 @@ def certify(
             index=w, q=tuple(q[w].tolist()), point_m=tuple(points[w].tolist()), rms_mm=float(1e3 * rms[w])
         ),
     )
+    rotation, rms_deg, b95_deg = _rotation_part(pred, q, frame)
     ext = extrapolation(pred, q, points, rms, frame)
     if ext is not None and ext.extrapolated:
         notes.append(
@@ -462,7 +491,26 @@ def certify(
         result=pred.result, kind=pred.kind, frame=frame, region=desc, joint_names=pred.joint_names, q=q,
         points=points, rms_mm=1e3 * rms, bound95_mm=1e3 * b95, summary=summary, extrapolation=ext,
         caveats=pred.caveats, notes=tuple(notes), covariance_model=pred.covariance_model,
+        rotation=rotation, rms_deg=rms_deg, bound95_deg=b95_deg,
     )  # fmt: skip
+
+
+def _rotation_part(pred: Predictor, q, frame: str):
+    """The certificate's orientation part (`CertificateRotation`, per-pose RMS and 95 % bound,
+    deg), or Nones for a result without orientations."""
+    if pred.rotation_covariances is None:
+        return None, None, None
+    cov = pred.rotation_covariances(q, frame) + pred.scatter_var_rad * np.eye(3)
+    b95, draws = norm_quantiles(cov)
+    rms = np.sqrt(np.trace(cov, axis1=1, axis2=2))
+    rotation = CertificateRotation(
+        mean_deg=float(np.degrees(rms.mean())),
+        rms_deg=float(np.degrees(np.sqrt(np.mean(rms**2)))),
+        p95_deg=float(np.degrees(np.quantile(draws, 0.95))),
+        max_bound95_deg=float(np.degrees(b95.max())),
+        unexplained_scatter_deg=float(np.degrees(np.sqrt(3 * pred.scatter_var_rad))),
+    )
+    return rotation, np.degrees(rms), np.degrees(b95)
 
 
 def plot_certificate(c: Certificate, path, workspace_points: np.ndarray | None = None) -> None:

@@ -32,6 +32,14 @@ block of $C^{-1}$ and $\\lambda^*$ the non-centrality of 95 % power; likewise th
 rotation. After the drift fit the whitened residuals' sum of squares is
 $\\chi^2_{3S-k}$ when a rigid motion (and the offsets) explain the change: a large
 value says something else changed (the robot, the point's mount).
+
+**Orientations.** When the calibration fitted measured orientations and the
+capture has them, each is compared with the calibrated prediction moved by the
+fitted drift ($R_i \\approx \\exp(-\\omega)\\, \\hat R_i \\exp(G^z_i \\delta q)$): their angles
+are reported (deg), and their sum of squares whitened by each sample's predicted
+covariance ($G^R_i \\Sigma G^{R\\,T}_i + \\hat\\sigma^2 \\sigma_{rad,i}^2 I_3$; the drift is
+fitted on the points, so about $\\chi^2_{3S}$) joins the rigid-fit check: a mount
+turned on its link shows there first.
 """
 
 import importlib
@@ -51,13 +59,15 @@ from ._drift_camera import fit as fit_camera
 from ._exported import stored_jit
 from ._geometry import se3_exp
 from ._lsq import normal_inverse
-from ._pointfit import PointLayout, point_jacobian, predict
+from ._npgeom import rotvec_to_matrix, so3_log
+from ._pointfit import PointLayout, point_jacobian, predict, predict_rotation, rotation_jacobian
 from ._reprojection import make_corner_data
 from .errors import DatasetError
 from .handeye_check import HandEyeCheckFit, fit_hand_eye_check
 from .io.checks import calibration_reference, drift_check_json, read_calibration, read_hand_eye_reference
 from .io.dataset import Dataset, load_dataset
 from .io.result import ESTIMATE_FILE, read_estimate
+from .records import ResidualStats
 from .records_check import EXIT_DRIFT as EXIT_DRIFT
 from .records_check import (
     CalibrationReference,
@@ -88,6 +98,9 @@ class DriftReference:
     - `y_hat` `(S, 3)`: the calibrated prediction; `Z` `(S, 3, joints)`: its derivative
       with respect to the joint angles; `R` `(3S, 3S)`: the residuals' covariance
       without drift (the capture's scatter plus the calibration's error).
+    - with orientations, `R_hat` `(S, 3, 3)` the predicted ones, `Gz` `(S, 3, joints)` their
+      turn per zero offset (point frame) and `rot_cov` `(S, 3, 3)` their error's covariance;
+      None otherwise.
     """
 
     y_hat: np.ndarray
@@ -95,6 +108,9 @@ class DriftReference:
     R: np.ndarray
     joint_names: tuple[str, ...]
     T_device_base: np.ndarray
+    R_hat: np.ndarray | None = None
+    Gz: np.ndarray | None = None
+    rot_cov: np.ndarray | None = None
 
 
 def as_reference(result, file="result.json") -> CalibrationReference:
@@ -102,10 +118,12 @@ def as_reference(result, file="result.json") -> CalibrationReference:
     return calibration_reference(result, file) if isinstance(result, Mapping) else result
 
 
-def reference(result, q: np.ndarray, sigma: np.ndarray) -> DriftReference:
+def reference(
+    result, q: np.ndarray, sigma: np.ndarray, sigma_rad: np.ndarray | None = None
+) -> DriftReference:
     """The `DriftReference` of a stop-and-shoot result's point fit (a `CalibrationReference`, or
     its `result.json` payload) at configurations `q` `(S, joints)` measured with per-axis noise
-    `sigma` `(S,)` (m)."""
+    `sigma` `(S,)` (m) and, for orientations when the calibration fitted them, `sigma_rad` (rad)."""
     pf = as_reference(result).point_fit
     layout = PointLayout(ParameterLayout.of(pf.nominal, 1, fixed_name="T_device_base"), pf.terms)
     x = jnp.asarray(pf.x, jnp.float64)
@@ -120,15 +138,26 @@ def reference(result, q: np.ndarray, sigma: np.ndarray) -> DriftReference:
     scatter = pf.residual_variance_factor * np.repeat(np.asarray(sigma, np.float64) ** 2, 3)
     R = np.diag(scatter) + Jf @ pf.covariance @ Jf.T
     T_db = np.asarray(jnp.asarray(pf.T_device_base0) @ se3_exp(x[layout.base.index("cam")]))
-    return DriftReference(y_hat, Z, R, tuple(pf.nominal.joint_names), T_db)
+    ref = DriftReference(y_hat, Z, R, tuple(pf.nominal.joint_names), T_db)
+    if not pf.orientation or sigma_rad is None:
+        return ref
+    R_hat, Gr = (np.asarray(a) for a in _ROTATIONS(x, problem))
+    var = pf.residual_variance_factor * np.asarray(sigma_rad, np.float64) ** 2
+    rot_cov = np.einsum("sai,ij,sbj->sab", Gr, pf.covariance, Gr) + var[:, None, None] * np.eye(3)
+    return replace(ref, R_hat=R_hat, Gz=Gr[:, :, layout.base.index("zero")], rot_cov=rot_cov)
 
 
 def _reference_arrays(x, problem):
     return point_jacobian(x, problem), predict(x, problem)
 
 
-#: `reference`'s model algebra, one stored program (a later `jaxcal check` reloads it).
+def _rotation_arrays(x, problem):
+    return predict_rotation(x, problem), rotation_jacobian(x, problem)
+
+
+#: `reference`'s model algebra, stored programs (a later `jaxcal check` reloads them).
 _REFERENCE = stored_jit(_reference_arrays, "drift_reference")
+_ROTATIONS = stored_jit(_rotation_arrays, "drift_rotations")
 
 
 def _model(theta, y_hat, Z):
@@ -238,9 +267,10 @@ def _size_and_std(v: np.ndarray, C: np.ndarray) -> tuple[float, float]:
 
 
 def check_samples(
-    ref: DriftReference, y: np.ndarray, *, joint_offsets: bool = False, names=("", "")
+    ref: DriftReference, y: np.ndarray, *, joint_offsets: bool = False, names=("", ""), R=None
 ) -> DriftCheck:
-    """The drift check of measured points `y` `(S, 3)` (device frame, m) against `ref`."""
+    """The drift check of measured points `y` `(S, 3)` (device frame, m) against `ref`, and of
+    the measured orientations `R` `(S, 3, 3)` when given and `ref` predicts them."""
     S = len(y)
     k = 6 + (len(ref.joint_names) if joint_offsets else 0)
     if 3 * S <= k:
@@ -251,10 +281,43 @@ def check_samples(
         for a in fit_drift(jnp.asarray(y), ref.y_hat, ref.Z, jnp.asarray(W), offsets=joint_offsets)
     )
     T_base_dev = np.linalg.inv(ref.T_device_base) @ np.asarray(se3_exp(jnp.asarray(theta[:6])))
-    return verdict(
+    c = verdict(
         theta, C, float(T), float(rss), 3 * S - k, samples=S, joint_names=ref.joint_names,
         T_now=np.linalg.inv(T_base_dev), names=names,
     )  # fmt: skip
+    return c if R is None or ref.R_hat is None else _with_orientations(c, ref, np.asarray(R, np.float64))
+
+
+def _with_orientations(c: DriftCheck, ref: DriftReference, R: np.ndarray) -> DriftCheck:
+    """`c` with the orientations' residuals (see the module docstring)."""
+    stats = _stats()
+    theta = np.asarray(c.theta)
+    turn = np.asarray(se3_exp(jnp.asarray(theta[:6])))[:3, :3].T  # the device's rotation, undone
+    offsets = theta[6:] if len(theta) > 6 else np.zeros(ref.Gz.shape[2])
+    R_now = turn @ ref.R_hat @ rotvec_to_matrix(np.einsum("saj,j->sa", ref.Gz, offsets))
+    r = so3_log(np.einsum("sba,sbc->sac", R_now, R))  # (S, 3), the point's frame
+    rss = float(np.einsum("sa,sa->", r, np.linalg.solve(ref.rot_cov, r[..., None])[..., 0]))
+    dof = 3 * len(R)
+    p = float(stats.chi2.sf(rss, dof))
+    angle = np.degrees(np.linalg.norm(r, axis=1))
+    residual = replace(c.residual, rotation_sum_of_squares=rss, rotation_dof=dof, rotation_p_value=p)
+    c = replace(
+        c,
+        residual=residual,
+        rotation_residual_deg=ResidualStats(
+            mean=float(angle.mean()), rms=float(np.sqrt(np.mean(angle**2))), max=float(angle.max())
+        ),
+    )
+    if residual.fits_rigidly or not c.message.startswith(("no drift", f"the {c.what} moved")):
+        return c
+    return replace(
+        c,
+        message=f"{c.message}; but the orientations do not fit the calibration with it (chi2 {rss:.0f} on {dof} "
+        f"dof, p = {p:.2g}; {angle.mean():.3f} deg mean): the point's mount turned, or the orientations are of "
+        "another frame",
+        advice="check the point's mount on its link and the orientations' frame; if the mount changed, calibrate "
+        "again",
+    )
 
 
 def verdict(
@@ -644,10 +707,11 @@ def check(result, capture, *, joint_offsets: bool = False, workers=None) -> Drif
         return check_camera(camera_capture(cal, file, ds, workers=workers), joint_offsets=joint_offsets)
     _matching_capture(cal, ds)
     s = ds.samples
-    ref = reference(cal, s.q, s.sigma_m)
+    ref = reference(cal, s.q, s.sigma_m, s.sigma_rad)
     return check_samples(
-        ref, np.asarray(s.position, np.float64), joint_offsets=joint_offsets, names=(str(file), str(ds.root))
-    )
+        ref, np.asarray(s.position, np.float64), joint_offsets=joint_offsets, names=(str(file), str(ds.root)),
+        R=s.orientation,
+    )  # fmt: skip
 
 
 def drift_json(c: DriftCheck) -> str:

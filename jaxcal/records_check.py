@@ -188,12 +188,19 @@ class DriftResidual(Record):
     view_sigma_deg: float | None = optional()
     noise_variance_factor: float | None = optional()
     calibration_covariance_factor: float | None = optional()
+    #: A tracker capture with orientations: theirs, against the prediction moved by the drift.
+    rotation_sum_of_squares: float | None = optional()
+    rotation_dof: int | None = optional()
+    rotation_p_value: float | None = optional()
 
     @property
     def fits_rigidly(self) -> bool:
-        """A rigid move explains the capture: the residuals are not both improbable
-        (p < 0.001) and over twice their degrees of freedom."""
-        return not (self.p_value < 1e-3 and self.sum_of_squares > 2.0 * self.dof)
+        """A rigid move explains the capture: the residuals (and the orientations') are not both
+        improbable (p < 0.001) and over twice their degrees of freedom."""
+        rot = self.rotation_sum_of_squares
+        return not (self.p_value < 1e-3 and self.sum_of_squares > 2.0 * self.dof) and (
+            rot is None or not (self.rotation_p_value < 1e-3 and rot > 2.0 * self.rotation_dof)
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,7 +214,8 @@ class DriftCheck:
     - `translation_mm`, `rotation_deg`: the device's motion, each `(size, std)`.
     - `joint_offsets_deg`: per joint its offset change when fitted, else None.
     - `detectable`: the smallest change detected with the quoted power; `residual`: the
-      fit's whitened residuals.
+      fit's whitened residuals; `rotation_residual_deg`: with orientations, their angles from
+      the calibrated prediction moved by the drift (deg), else None.
     - `T_device_base`: the calibrated fixed pose moved by the estimated drift (`frame`
       names it: `T_device_base`, `T_cam_base`, eye-in-hand `T_flange_cam`, hand-eye
       `T_base_cam` / `T_ee_cam`); `what` moved: `"device"` or `"camera"`.
@@ -236,6 +244,7 @@ class DriftCheck:
     what: str = "device"
     frame: str = "T_device_base"
     dof_noise: int | None = None
+    rotation_residual_deg: ResidualStats | None = None
 
     @property
     def exit_code(self) -> int:
@@ -308,6 +317,19 @@ class Extrapolation(Record):
 
 
 @dataclass(frozen=True, eq=False)
+class CertificateRotation(Record):
+    """A certificate's orientation part (deg), for a calibration that fitted measured orientations:
+    the mean and RMS of the point frame's predicted per-pose RMS angle error, the region's 95th
+    percentile, the largest per-pose 95 % bound and the unexplained angular scatter in it."""
+
+    mean_deg: float
+    rms_deg: float
+    p95_deg: float
+    max_bound95_deg: float
+    unexplained_scatter_deg: float
+
+
+@dataclass(frozen=True, eq=False)
 class Certificate:
     """A certificate (distances in mm; see `jaxcal.certification`).
 
@@ -318,6 +340,8 @@ class Certificate:
       configurations are unknown; `caveats`, `notes`.
     - `covariance_model`: the calibration's covariance it propagated
       (`jaxcal.io.result.COVARIANCE_MODELS`; None for results written before the key).
+    - `rotation`, `rms_deg`, `bound95_deg`: with measured orientations, the point frame's
+      orientation error over the region and per pose (deg); None otherwise.
     """
 
     result: str
@@ -334,6 +358,9 @@ class Certificate:
     caveats: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
     covariance_model: str | None = None
+    rotation: CertificateRotation | None = None
+    rms_deg: np.ndarray | None = None
+    bound95_deg: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- jaxcal verify

@@ -120,6 +120,12 @@ def print_certificate(console, c) -> None:
         f"{s.p95_mm:.4f} mm; worst pose: 95 % bound {s.max_bound95_mm:.4f} mm at q = "
         f"[{', '.join(f'{np.degrees(v):.1f}' for v in s.worst.q)}] deg"
     )
+    r = c.rotation
+    if r is not None:
+        console.print(
+            f"predicted orientation error: mean {r.mean_deg:.4f} deg, RMS {r.rms_deg:.4f} deg, 95 % of the region "
+            f"within {r.p95_deg:.4f} deg; largest 95 % bound {r.max_bound95_deg:.4f} deg"
+        )
     e = c.extrapolation
     if e is not None:
         console.print(
@@ -171,6 +177,12 @@ def cmd_check(args) -> int:
     unit = "images" if c.what == "camera" else "samples"
     console.print(f"jaxcal check: {c.samples} {unit} of {c.capture} against {c.result}")
     console.print(f"[{colour}]{c.message}[/{colour}]")
+    r = c.rotation_residual_deg
+    if r is not None:
+        console.print(
+            f"orientations against the calibration's prediction (moved by the fitted drift): {r.mean:.4f} deg "
+            f"mean, {r.rms:.4f} deg RMS, {r.max:.4f} deg max"
+        )
     console.print(f"next: {c.advice}")
     if args.json:
         write_text_atomic(args.json, json.dumps(drift_check_json(c), indent=1))

@@ -18,10 +18,11 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..markers import TargetSpec
-from ..records import Intrinsics, from_plain, plain
+from ..records import Intrinsics, ResidualStats, from_plain, plain
 from ..records_check import (
     CalibrationReference,
     Certificate,
+    CertificateRotation,
     CertificateSummary,
     CrossValidation,
     Detectable,
@@ -208,6 +209,11 @@ def drift_check_json(c: DriftCheck) -> dict:
         f"{c.frame}_now": c.T_device_base.tolist(),
         "message": c.message,
         "advice": c.advice,
+        **(
+            {}
+            if c.rotation_residual_deg is None
+            else {"rotation_residual_deg": plain(c.rotation_residual_deg)}
+        ),
     }
 
 
@@ -229,6 +235,8 @@ def drift_check_from_json(d: Mapping) -> DriftCheck:
         detectable=from_plain(Detectable, d["detectable"]), residual=from_plain(DriftResidual, d["residual"]),
         T_device_base=np.asarray(d[f"{frame}_now"], np.float64), message=d["message"], advice=d["advice"],
         alpha=d["alpha"], what=d["moved"], frame=frame, dof_noise=d["dof_noise"],
+        rotation_residual_deg=None if d.get("rotation_residual_deg") is None
+        else from_plain(ResidualStats, d["rotation_residual_deg"]),
     )  # fmt: skip
 
 
@@ -250,11 +258,16 @@ def certificate_json(c: Certificate, *, poses: bool = True) -> dict:
         "caveats": list(c.caveats),
         "notes": list(c.notes),
     }
+    if c.rotation is not None:
+        out["rotation"] = plain(c.rotation)
     if poses:
+        deg = [{}] * len(c.q)
+        if c.rms_deg is not None:
+            deg = [{"rms_deg": float(r), "bound95_deg": float(b)} for r, b in zip(c.rms_deg, c.bound95_deg)]
         out["joint_names"] = list(c.joint_names)
         out["poses"] = [
-            {"q": a.tolist(), "point_m": p.tolist(), "rms_mm": float(r), "bound95_mm": float(b)}
-            for a, p, r, b in zip(c.q, c.points, c.rms_mm, c.bound95_mm)
+            {"q": a.tolist(), "point_m": p.tolist(), "rms_mm": float(r), "bound95_mm": float(b)} | d
+            for a, p, r, b, d in zip(c.q, c.points, c.rms_mm, c.bound95_mm, deg)
         ]
     return out
 
@@ -265,6 +278,7 @@ def certificate_from_json(d: Mapping) -> Certificate:
     poses = d.get("poses", [])
     names = tuple(d.get("joint_names", ()))
     column = lambda key, shape: np.asarray([p[key] for p in poses], np.float64).reshape(shape)  # noqa: E731
+    deg = bool(poses) and "rms_deg" in poses[0]
     return Certificate(
         result=d["result"], kind=d["kind"], frame=d["frame"], region=from_plain(Region, d["region"]),
         joint_names=names, q=column("q", (len(poses), -1) if poses else (0, len(names))),
@@ -272,6 +286,9 @@ def certificate_from_json(d: Mapping) -> Certificate:
         bound95_mm=column("bound95_mm", (len(poses),)), summary=from_plain(CertificateSummary, d["summary"]),
         extrapolation=None if d["extrapolation"] is None else from_plain(Extrapolation, d["extrapolation"]),
         caveats=tuple(d["caveats"]), notes=tuple(d["notes"]), covariance_model=d.get("covariance_model"),
+        rotation=None if d.get("rotation") is None else from_plain(CertificateRotation, d["rotation"]),
+        rms_deg=column("rms_deg", (len(poses),)) if deg else None,
+        bound95_deg=column("bound95_deg", (len(poses),)) if deg else None,
     )  # fmt: skip
 
 
