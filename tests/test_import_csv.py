@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from jaxcal import forward_kinematics
+from jaxcal._npgeom import matrix_to_quaternion, pose, pose_inverse, rotvec_to_matrix, so3_log
 from jaxcal.cli import main
 from jaxcal.errors import CsvImportError, OutputError
 from jaxcal.io.csv_import import import_csv
@@ -88,37 +89,154 @@ def test_round_trip(tmp_path, table, robot):
     assert json.loads((tmp_path / "ds" / ".jaxcal").read_text())["kind"] == "dataset"
 
 
-def test_time_column_orientation_and_duplicate_rows(tmp_path, table):
-    header, rows = table
-    rows = np.vstack([rows, rows[-1:]])  # a pose measured twice: fine
-    t = np.arange(len(rows)) * 2.5 + 100.0
+#: A camera on the flange turned a quarter turn about its axis: the point frame's mount rotation.
+MOUNT_ROTVEC = np.array([0.0, 0.0, np.pi / 2])
+#: The orientation columns of each format.
+ORIENTATION_COLUMNS = {
+    "quat-xyzw": ["qx", "qy", "qz", "qw"],
+    "quat-wxyz": ["qw", "qx", "qy", "qz"],
+    "rotvec-rad": ["rx", "ry", "rz"],
+    "rotvec-deg": ["rx", "ry", "rz"],
+    "matrix": [f"r{i}{j}" for i in range(1, 4) for j in range(1, 4)],
+}
+
+
+def _device_poses(rows, mount_rotvec=MOUNT_ROTVEC):
+    """The point frames' poses in the device frame of `_table` (turned 0.4 rad about z and moved)."""
     frames = np.asarray(
         jax.vmap(forward_kinematics, in_axes=(None, 0))(load_robot("ur5e"), jnp.radians(rows[:, 1:7]))
     )
-    R = frames[:, -1, :3, :3]
-    # The flange's orientation as a unit quaternion (x, y, z, w), in a device frame turned about z.
-    c, s = np.cos(0.2), np.sin(0.2)
-    Rd = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ R
-    w = 0.5 * np.sqrt(np.maximum(1 + np.trace(Rd, axis1=1, axis2=2), 1e-12))
-    quat = np.column_stack(
-        [
-            (Rd[:, 2, 1] - Rd[:, 1, 2]) / (4 * w),
-            (Rd[:, 0, 2] - Rd[:, 2, 0]) / (4 * w),
-            (Rd[:, 1, 0] - Rd[:, 0, 1]) / (4 * w),
-            w,
-        ]
-    )
-    csv = _write(
-        tmp_path / "poses.csv", [*header, "t", "qx", "qy", "qz", "qw"], np.column_stack([rows, t, quat])
-    )
-    _import(csv, tmp_path / "ds", time="t", orientation=["qx", "qy", "qz", "qw"], sigma_rad=1e-4)
+    T = frames[:, -1] @ pose(rotvec_to_matrix(mount_rotvec), POINT_M)
+    c, s = np.cos(0.4), np.sin(0.4)
+    return pose(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]), [1.5, -0.3, 0.2]) @ T
+
+
+def _pose_table(rows, fmt, direction, mount_rotvec=MOUNT_ROTVEC):
+    """`_table`'s rows with the orientation in `fmt`, as a pose in `direction`: header and rows
+    (the device-in-point position in the table's X, Y, Z, mm, with zero deviations)."""
+    T = _device_poses(rows, mount_rotvec)
+    rows = rows.copy()
+    if direction == "device-in-point":
+        T = pose_inverse(T)
+        rows[:, 7:10], rows[:, 10:13] = 1e3 * T[:, :3, 3], 0.0
+    R = T[:, :3, :3]
+    q = matrix_to_quaternion(R)
+    cols = {
+        "quat-xyzw": q,
+        "quat-wxyz": q[:, [3, 0, 1, 2]],
+        "rotvec-rad": so3_log(R),
+        "rotvec-deg": np.degrees(so3_log(R)),
+        "matrix": R.reshape(-1, 9),
+    }[fmt]
+    header, _ = _table()
+    return [*header, *ORIENTATION_COLUMNS[fmt]], np.column_stack([rows, cols])
+
+
+def _import_pose(csv, out, fmt, direction, **kw):
+    args = dict(
+        orientation=ORIENTATION_COLUMNS[fmt], orientation_format=fmt, pose_direction=direction, sigma_rad=1e-4,
+        point_rotvec_rad=MOUNT_ROTVEC,
+    )  # fmt: skip
+    return _import(csv, out, **(args | kw))
+
+
+@pytest.mark.parametrize("direction", ["point-in-device", "device-in-point"])
+@pytest.mark.parametrize("fmt", sorted(ORIENTATION_COLUMNS))
+def test_full_poses_in_every_format_and_direction(tmp_path, table, fmt, direction):
+    """A camera turned a quarter turn on the flange: its pose in the device frame, given as a
+    quaternion (either order), a rotation vector (rad or deg) or a matrix, and either as the
+    camera's pose in the device frame or the device's in the camera's (PnP), imports as the same
+    dataset: the point frame's pose in the device frame and the mount's rotation."""
+    header, rows = _pose_table(table[1], fmt, direction)
+    csv = _write(tmp_path / "poses.csv", header, rows)
+    _import_pose(csv, tmp_path / "ds", fmt, direction)
     ds = load_dataset(tmp_path / "ds")
-    np.testing.assert_allclose(ds.samples.timestamp, t)
-    np.testing.assert_allclose(ds.samples.orientation, Rd, atol=1e-9)
-    shuffled = np.column_stack([rows, t, quat[::-1]])  # orientations of other rows
-    csv = _write(tmp_path / "shuffled.csv", [*header, "t", "qx", "qy", "qz", "qw"], shuffled)
-    with pytest.raises(CsvImportError, match=r"line 3 columns \['qx', 'qy', 'qz', 'qw'\].*turned"):
-        _import(csv, tmp_path / "ds2", time="t", orientation=["qx", "qy", "qz", "qw"], sigma_rad=1e-4)
+    T = _device_poses(table[1])
+    np.testing.assert_allclose(ds.samples.orientation, T[:, :3, :3], atol=1e-9)
+    if direction == "device-in-point":  # the position is the inverse pose's, without the deviations
+        np.testing.assert_allclose(ds.samples.position, T[:, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(
+        ds.device.T_link_point, pose(rotvec_to_matrix(MOUNT_ROTVEC), POINT_M), atol=1e-15
+    )
+    meta = json.loads((tmp_path / "ds" / "metadata.json").read_text())["x_csv"]
+    assert (meta["orientation_format"], meta["pose_direction"]) == (fmt, direction)
+
+
+def _unnormalised(cells):
+    cells[4][-4:] = [repr(float(c) * 1.01) for c in cells[4][-4:]]
+
+
+def _skewed(cells):
+    cells[6][-5] = repr(float(cells[6][-5]) + 0.01)
+
+
+def _reflected(cells):
+    for k in range(-3, 0):
+        cells[2][k] = repr(-float(cells[2][k]))
+
+
+def _other_row(cells):
+    cells[9][-4:] = cells[20][-4:]
+
+
+#: (format, edit, import arguments, the words the message must hold)
+BAD_POSES = [
+    (
+        "quat-xyzw",
+        _unnormalised,
+        {},
+        ["line 6 columns ['qx', 'qy', 'qz', 'qw']", "norm 1.01", "unit quaternion"],
+    ),
+    ("matrix", _skewed, {}, ["line 8 columns ['r21', 'r22', 'r23'] (matrix row 2", "not orthonormal"]),
+    ("matrix", _reflected, {}, ["line 4 columns ['r11', 'r12', 'r13', 'r21'", "a reflection"]),
+    ("rotvec-deg", None, dict(orientation_format="rotvec-rad"), ["more than a turn", "rotvec-deg"]),
+    ("quat-xyzw", _other_row, {}, ["line 11 columns", "deg from the nominal robot's", "1 of 40 rows"]),
+    (
+        "quat-wxyz",
+        None,
+        dict(orientation_format="quat-xyzw"),
+        [
+            "deg from the nominal robot's",
+            "fit as --orientation-format quat-wxyz --pose-direction point-in-device",
+        ],
+    ),
+    (
+        "matrix",
+        None,
+        dict(pose_direction="device-in-point"),
+        ["the point lies", "fit as --orientation-format matrix --pose-direction point-in-device"],
+    ),
+    (
+        "quat-xyzw",
+        None,
+        dict(point_rotvec_rad=None),
+        ["turn the point's frame 90 deg", "none given: not turned", "--point-rotvec-deg 0,0,90"],
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    "fmt, edit, kw, words", BAD_POSES, ids=[f"{b[0]}-{b[1] and b[1].__name__}" for b in BAD_POSES]
+)
+def test_bad_orientations_are_refused_naming_line_columns_and_the_reading_that_fits(
+    tmp_path, table, fmt, edit, kw, words
+):
+    header, rows = _pose_table(table[1], fmt, "point-in-device")
+    csv = _write(tmp_path / "poses.csv", header, rows, edit)
+    with pytest.raises(CsvImportError) as e:
+        _import_pose(csv, tmp_path / "ds", fmt, "point-in-device", **kw)
+    for w in [str(csv), *words]:
+        assert w in str(e.value), str(e.value)
+    assert not (tmp_path / "ds").exists()
+
+
+def test_time_column_and_duplicate_rows(tmp_path, table):
+    header, rows = table
+    rows = np.vstack([rows, rows[-1:]])  # a pose measured twice: fine
+    t = np.arange(len(rows)) * 2.5 + 100.0
+    csv = _write(tmp_path / "poses.csv", [*header, "t"], np.column_stack([rows, t]))
+    _import(csv, tmp_path / "ds", time="t")
+    np.testing.assert_allclose(load_dataset(tmp_path / "ds").samples.timestamp, t)
 
 
 def _nan(cells):
@@ -194,8 +312,23 @@ def test_arguments_are_checked(tmp_path, table):
         _import(csv, tmp_path / "ds", joint_unit="degrees")
     with pytest.raises(ValueError, match="millimetres"):
         _import(csv, tmp_path / "ds", point_m=POINT_M * 1e3)
+    with pytest.raises(ValueError, match="orientation_format must be one of"):
+        _import(csv, tmp_path / "ds", orientation=["j1", "j2", "j3", "j4"], sigma_rad=1e-4)
+    pose_kw = dict(orientation=["j1", "j2", "j3"], orientation_format="rotvec-rad", sigma_rad=1e-4)
+    with pytest.raises(ValueError, match="pose_direction must be one of"):
+        _import(csv, tmp_path / "ds", **pose_kw)
+    with pytest.raises(ValueError, match="format quat-xyzw has 4"):
+        _import(
+            csv,
+            tmp_path / "ds",
+            **pose_kw | dict(orientation_format="quat-xyzw", pose_direction="point-in-device"),
+        )
     with pytest.raises(ValueError, match="sigma_rad"):
-        _import(csv, tmp_path / "ds", orientation=["j1", "j2", "j3", "j4"])
+        _import(csv, tmp_path / "ds", **pose_kw | dict(pose_direction="point-in-device", sigma_rad=None))
+    with pytest.raises(ValueError, match="needs point_m"):
+        _import(csv, tmp_path / "ds", point_m=None, point_rotvec_rad=[0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match="describe orientation columns"):
+        _import(csv, tmp_path / "ds", orientation_format="matrix")
 
 
 def test_outputs_never_overwrite_an_input(tmp_path, table):
@@ -232,6 +365,17 @@ def test_command_line(tmp_path, table, capsys):
     assert "column 'j1'" in capsys.readouterr().err and not (tmp_path / "ds2").exists()
     with pytest.raises(SystemExit):  # no unit, no default
         main([*common, "--out", str(tmp_path / "ds3")])
+    # A full pose per row: the orientation's columns, format and direction, and the mount's rotation.
+    header, rows = _pose_table(table[1], "quat-wxyz", "device-in-point")
+    poses = _write(tmp_path / "pnp.csv", header, rows)
+    common[1] = str(poses)
+    common += ["--joint-unit", "deg", "--orientation", "qw,qx,qy,qz", "--sigma-deg", "0.01"]
+    assert main([*common, "--out", str(tmp_path / "ds4"), "--orientation-format", "quat-wxyz"]) == 2
+    assert "--orientation needs --pose-direction" in capsys.readouterr().err
+    common += ["--orientation-format", "quat-wxyz", "--pose-direction", "device-in-point"]
+    assert main([*common, "--out", str(tmp_path / "ds4"), "--point-rotvec-deg", "0,0,90"]) == 0
+    ds = load_dataset(tmp_path / "ds4")
+    np.testing.assert_allclose(ds.samples.orientation, _device_poses(table[1])[:, :3, :3], atol=1e-9)
 
 
 @pytest.mark.parametrize("name, samples", [("grid", 1000), ("test", 20)])

@@ -120,7 +120,7 @@ def test_cross_validation_keeps_lapack_calls_ordered(ur5):
     train = jnp.asarray(fold_masks(len(pf.used), 3))
     assert concurrent_decompositions(cross_validate, pf.problem, pf.candidates, pf.fit.free, train) == []
     # A fold's fit equals the same fit run alone.
-    dist, test = cross_validate(pf.problem, pf.candidates, pf.fit.free, train)
+    dist, test, _ = cross_validate(pf.problem, pf.candidates, pf.fit.free, train)
     fold = eqx.tree_at(lambda p: p.data.mask, pf.problem, pf.problem.data.mask & train[1])
     alone = fit_points(fold, jnp.asarray(pf.candidates), tol=0.0, free=jnp.asarray(pf.fit.free))
     d1 = np.linalg.norm(np.asarray(predict(alone.x, pf.problem)) - np.asarray(pf.problem.data.y), axis=1)

@@ -358,15 +358,13 @@ def _orientations(path: Path, raw: np.ndarray, fmt: str, cols: list[str], lines)
         if bad.size:
             k = bad[0]
             a = int(np.argmax(off[k].max(axis=1)))
-            what = (
-                f"its determinant is {det[k]:.4g}: a reflection, not a rotation"
-                if det[k] < 0
-                else f"not orthonormal: R R^T - I reaches {off[k].max():.3g} in matrix row {a + 1} (tolerance "
-                f"{MATRIX_TOL:g})"
-            )
+            if det[k] < 0:
+                where, what = cols, f"its determinant is {det[k]:.4g}: a reflection, not a rotation"
+            else:
+                where = f"{cols[3 * a : 3 * a + 3]} (matrix row {a + 1} of --orientation {','.join(cols)}, row by row)"
+                what = f"not orthonormal: R R^T - I reaches {off[k].max():.3g} (tolerance {MATRIX_TOL:g})"
             raise CsvImportError(
-                f"{path} line {lines[k]} columns {cols[3 * a : 3 * a + 3]} (matrix row {a + 1} of --orientation "
-                f"{','.join(cols)}, row by row): {what}; {bad.size} of {len(raw)} rows"
+                f"{path} line {lines[k]} columns {where}: {what}; {bad.size} of {len(raw)} rows"
             )
         U, _, Vt = np.linalg.svd(M)
         return U @ Vt  # the nearest rotation (the determinants are positive)
@@ -481,7 +479,7 @@ def _check_orientations(
             f"points put it (tolerance {ANGLE_TOL_DEG:g} deg): are the orientations in the positions' frame?"
         )
     if mount is not None and rotation_angle(mount.T @ B) > math.radians(MOUNT_TOL_DEG):
-        w, w0 = (",".join(f"{v:.4g}" for v in np.degrees(so3_log(M))) for M in (B, mount))
+        w, w0 = (",".join(f"{round(v, 2) + 0.0:g}" for v in np.degrees(so3_log(M))) for M in (B, mount))
         stated = f"--point-rotvec-deg {w0}" if rotation_angle(mount) > 0 else "none given: not turned"
         raise CsvImportError(
             f"{path} {where}: the orientations turn the point's frame {math.degrees(rotation_angle(B)):.3g} deg on "
