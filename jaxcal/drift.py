@@ -32,14 +32,7 @@ block of $C^{-1}$ and $\\lambda^*$ the non-centrality of 95 % power; likewise th
 rotation. After the drift fit the whitened residuals' sum of squares is
 $\\chi^2_{3S-k}$ when a rigid motion (and the offsets) explain the change: a large
 value says something else changed (the robot, the point's mount).
-
-**Orientations.** When the calibration fitted measured orientations and the
-capture has them, each is compared with the calibrated prediction moved by the
-fitted drift ($R_i \\approx \\exp(-\\omega)\\, \\hat R_i \\exp(G^z_i \\delta q)$): their angles
-are reported (deg), and their sum of squares whitened by each sample's predicted
-covariance ($G^R_i \\Sigma G^{R\\,T}_i + \\hat\\sigma^2 \\sigma_{rad,i}^2 I_3$; the drift is
-fitted on the points, so about $\\chi^2_{3S}$) joins the rigid-fit check: a mount
-turned on its link shows there first.
+Measured orientations join the rigid-fit check: `jaxcal._drift_orientation`.
 """
 
 import importlib
@@ -56,10 +49,10 @@ from ._buckets import bucket, pad_log
 from ._correction import ParameterLayout
 from ._drift_camera import CameraReference, camera_reference, drift_least_squares, pad_corners
 from ._drift_camera import fit as fit_camera
+from ._drift_orientation import orientation_residuals
 from ._exported import stored_jit
 from ._geometry import se3_exp
 from ._lsq import normal_inverse
-from ._npgeom import rotvec_to_matrix, so3_log
 from ._pointfit import PointLayout, point_jacobian, predict, predict_rotation, rotation_jacobian
 from ._reprojection import make_corner_data
 from .errors import DatasetError
@@ -67,7 +60,6 @@ from .handeye_check import HandEyeCheckFit, fit_hand_eye_check
 from .io.checks import calibration_reference, drift_check_json, read_calibration, read_hand_eye_reference
 from .io.dataset import Dataset, load_dataset
 from .io.result import ESTIMATE_FILE, read_estimate
-from .records import ResidualStats
 from .records_check import EXIT_DRIFT as EXIT_DRIFT
 from .records_check import (
     CalibrationReference,
@@ -290,33 +282,17 @@ def check_samples(
 
 def _with_orientations(c: DriftCheck, ref: DriftReference, R: np.ndarray) -> DriftCheck:
     """`c` with the orientations' residuals (see the module docstring)."""
-    stats = _stats()
-    theta = np.asarray(c.theta)
-    turn = np.asarray(se3_exp(jnp.asarray(theta[:6])))[:3, :3].T  # the device's rotation, undone
-    offsets = theta[6:] if len(theta) > 6 else np.zeros(ref.Gz.shape[2])
-    R_now = turn @ ref.R_hat @ rotvec_to_matrix(np.einsum("saj,j->sa", ref.Gz, offsets))
-    r = so3_log(np.einsum("sba,sbc->sac", R_now, R))  # (S, 3), the point's frame
-    rss = float(np.einsum("sa,sa->", r, np.linalg.solve(ref.rot_cov, r[..., None])[..., 0]))
-    dof = 3 * len(R)
-    p = float(stats.chi2.sf(rss, dof))
-    angle = np.degrees(np.linalg.norm(r, axis=1))
+    angles, rss = orientation_residuals(ref.R_hat, ref.Gz, ref.rot_cov, np.asarray(c.theta), R)
+    dof, p = 3 * len(R), float(_stats().chi2.sf(rss, 3 * len(R)))
     residual = replace(c.residual, rotation_sum_of_squares=rss, rotation_dof=dof, rotation_p_value=p)
-    c = replace(
-        c,
-        residual=residual,
-        rotation_residual_deg=ResidualStats(
-            mean=float(angle.mean()), rms=float(np.sqrt(np.mean(angle**2))), max=float(angle.max())
-        ),
-    )
+    c = replace(c, residual=residual, rotation_residual_deg=angles)
     if residual.fits_rigidly or not c.message.startswith(("no drift", f"the {c.what} moved")):
         return c
     return replace(
         c,
-        message=f"{c.message}; but the orientations do not fit the calibration with it (chi2 {rss:.0f} on {dof} "
-        f"dof, p = {p:.2g}; {angle.mean():.3f} deg mean): the point's mount turned, or the orientations are of "
-        "another frame",
-        advice="check the point's mount on its link and the orientations' frame; if the mount changed, calibrate "
-        "again",
+        message=f"{c.message}; but the orientations do not fit it (chi2 {rss:.0f} on {dof} dof, p = {p:.2g}; "
+        f"{angles.mean:.3f} deg mean): the point's mount turned, or the orientations are of another frame",
+        advice="check the point's mount on its link and the orientations' frame; if the mount changed, calibrate again",
     )
 
 
