@@ -2,12 +2,15 @@
 (`jaxcal._pointfit`), its stage (`stages._points`), `jaxcal verify`, and the real
 UR5 measured by a laser tracker (`data/ur5_tracker`, public data).
 
-Simulated captures: 200 random poses inside the joint limits, 10 um noise, a
-perturbed UR5 (DH table) and a Panda (URDF). "Every identifiable parameter
-within 3 sigma" is checked in the fit's own gauge: the same free parameters fitted
-to the noise-free points give the truth of that gauge (residual ~0 when the
-model spans the perturbation), and each free parameter of the noisy fit must lie
-within 3 of its standard deviations of it.
+Simulated captures: random poses inside the joint limits, 10 um noise: a
+perturbed UR5 (DH table, 200 points) and a Panda (URDF) carrying a camera on its
+flange turned a quarter turn about its axis that sees a fixed board (issue 49:
+a full pose per stop, 100 stops and 40 held out, written as PnP gives them and
+brought in by `import-csv`). "Every identifiable parameter within 3 sigma" is
+checked in the fit's own gauge: the same free parameters fitted to the
+noise-free points (and orientations) give the truth of that gauge (residual ~0
+when the model spans the perturbation), and each free parameter of the noisy fit
+must lie within 3 of its standard deviations of it.
 """
 
 import json
@@ -22,14 +25,16 @@ import pytest
 import jaxcal
 from jaxcal._kinematics import forward_kinematics
 from jaxcal._linalg import concurrent_decompositions
+from jaxcal._npgeom import matrix_to_quaternion, pose_inverse, rotation_angle, rotvec_to_matrix
 from jaxcal._pointfit import cross_validate, fit_points, fold_masks, point_jacobian, predict
 from jaxcal.cli import main
 from jaxcal.errors import DatasetError
 from jaxcal.inspection import inspect_dataset
+from jaxcal.io.dataset import load_dataset, write_json
 from jaxcal.io.model_json import model_from_json
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
 from jaxcal.stages._points import _refit
-from jaxcal.verification import verify
+from jaxcal.verification import prediction_test, verify, whiten
 
 #: The UR5's true compliances in the simulation (rad per kN m): shoulder and elbow sag.
 COMPLIANCE = (0.0, 0.05, 0.1, 0.0, 0.0, 0.0)
@@ -49,27 +54,82 @@ def ur5(tmp_path_factory):
     return path, jaxcal.calibrate(path, cv_folds=0)
 
 
+#: The camera on the Panda's flange seeing a fixed board (issue 49): a quarter turn about its axis,
+#: 50 mm off the flange's axis and 60 mm out; its true mount 0.3 deg and 0.5 mm (1 sigma) from that.
+CAMERA = dict(
+    point_mm=(50.0, 0.0, 60.0), point_rotvec_deg=(0.0, 0.0, 90.0), point_error_deg=0.3, orientation=True,
+    noise_deg=0.005, device_distance=1.0,
+)  # fmt: skip
+#: The camera's stops: calibrated on the first, verified on the others.
+STOPS, HELD_OUT = 100, 40
+#: `import-csv` of the camera's PnP table: the board's pose in the camera's frame, a quaternion w first.
+IMPORT = [
+    "--robot", "panda", "--joints", ",".join(f"j{i}" for i in range(1, 8)), "--joint-unit", "deg",
+    "--xyz", "bx,by,bz", "--length-unit", "mm", "--sigma-mm", "0.01", "--orientation", "qw,qx,qy,qz",
+    "--orientation-format", "quat-wxyz", "--pose-direction", "device-in-point", "--sigma-deg", "0.005",
+    "--point-name", "smr",
+]  # fmt: skip
+MOUNT = ["--point-mm", "50,0,60", "--point-rotvec-deg", "0,0,90"]
+
+
+def _pnp_table(path, samples, rows):
+    """Rows `rows` of a simulated capture as PnP writes them: the joints (deg), the board's pose in
+    the camera's frame (mm, a unit quaternion scalar first)."""
+    T = np.zeros((len(samples.q), 4, 4))
+    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = samples.orientation, samples.position, 1.0
+    T = pose_inverse(T)[rows]
+    q = matrix_to_quaternion(T[:, :3, :3])[:, [3, 0, 1, 2]]
+    data = np.column_stack([np.degrees(samples.q[rows]), 1e3 * T[:, :3, 3], q])
+    header = [*(f"j{i}" for i in range(1, 8)), "bx", "by", "bz", "qw", "qx", "qy", "qz"]
+    path.write_text(
+        ",".join(header) + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in data) + "\n"
+    )
+    return path
+
+
 @pytest.fixture(scope="module")
 def panda(tmp_path_factory):
-    path = _simulate(tmp_path_factory, "panda")
-    return path, jaxcal.calibrate(path, cv_folds=0)
+    """The camera on the Panda's flange: its stops simulated, written as PnP tables, imported
+    (`import-csv`, the truth beside), calibrated with 5-fold cross-validation, `result.json` written."""
+    root = tmp_path_factory.mktemp("panda_camera")
+    config = TrackerSimConfig(
+        robot="panda",
+        seed=3,
+        poses=STOPS + HELD_OUT,
+        noise_um=10.0,
+        bad_fraction=0.0,
+        home_deg=None,
+        **CAMERA,
+    )
+    sim = simulate_tracker(config, root / "sim")
+    samples = load_dataset(sim).samples
+    for name, rows in (("poses", slice(0, STOPS)), ("held_out", slice(STOPS, None))):
+        csv = _pnp_table(root / f"{name}.csv", samples, rows)
+        assert main(["import-csv", str(csv), "--out", str(root / name), *IMPORT, *MOUNT]) == 0
+    shutil.copy(sim / "truth.json", root / "poses" / "truth.json")
+    result = jaxcal.calibrate(root / "poses")
+    (root / "result").mkdir()
+    write_json(root / "result" / "result.json", result.to_json())
+    return root / "poses", result
 
 
-def _true_points(path, q):
+def _true_poses(path, q):
+    """The true points and point frames' orientations at configurations `q`, device frame."""
     truth = json.loads((path / "truth.json").read_text())
     model = model_from_json(truth["model"])
     T_db = np.asarray(truth["cameras"]["tracker"]["T_cam_base"])
     T_fp = np.asarray(truth["targets"]["smr"]["T_link_target"])
     F = np.asarray(jax.vmap(lambda qq: forward_kinematics(model, qq)[-1])(jnp.asarray(q)))
-    return np.einsum("ab,sbc,c->sa", T_db, F, T_fp[:, 3])[:, :3]
+    T = np.einsum("ab,sbc,cd->sad", T_db, F, T_fp)
+    return T[:, :3, 3], T[:, :3, :3]
 
 
 def _z_scores(path, result):
     """Per free parameter, the noisy fit's distance from the noise-free fit (same gauge) in its std."""
     pf = result.point_fit
     problem = pf.problem
-    y = _true_points(path, np.asarray(problem.data.q))
-    exact = eqx.tree_at(lambda p: p.data.y, problem, jnp.asarray(y))
+    y, R = _true_poses(path, np.asarray(problem.data.q))
+    exact = eqx.tree_at(lambda p: (p.data.y, p.data.R), problem, (jnp.asarray(y), jnp.asarray(R)))
     ref = _refit(exact, jnp.asarray(pf.candidates), jnp.asarray(pf.fit.free))
     free = np.asarray(pf.fit.free)
     z = (np.asarray(pf.fit.x) - np.asarray(ref.x))[free] / np.asarray(pf.fit.std)[free]
@@ -87,6 +147,67 @@ def test_simulated_poses_recover_every_identifiable_parameter(which, request):
     # The frozen ones are named, and the fit sees the tool point to micrometres.
     assert r.frozen and all(isinstance(n, str) for n in r.frozen)
     assert r.validation["ee_rms_mm_after"] < 0.01 < 1.0 < r.validation["ee_rms_mm_before"]
+
+
+def test_camera_on_flange_poses_go_import_calibrate_verify(panda, tmp_path):
+    """Issue 49's acceptance: the Panda's flange camera, turned a quarter turn about its axis, seeing
+    a fixed board at 100 stops (PnP poses, imported by `import-csv` with the mount's rotation):
+    `calibrate` is `ok` (the mount is not "turned 90 deg"), reports the orientations' residual and
+    cross-validation (deg) beside the points' (mm), and `verify --cv` reports positions and
+    rotations and its cross-validation is `calibrate`'s to the last digit; on the 40 held-out stops
+    the errors are what the calibration predicts (exit 0)."""
+    path, r = panda
+    res = path.parent / "result"
+    assert r.status == "ok" and r.ok, r.reasons
+    pf = r.point_fit
+    truth = json.loads((path / "truth.json").read_text())["targets"]["smr"]["T_link_target"]
+    turn = rotation_angle(np.asarray(r.T_flange_target[0])[:3, :3].T @ np.asarray(truth)[:3, :3])
+    assert rotation_angle(np.asarray(truth)[:3, :3]) > np.radians(89) and np.degrees(turn) < 0.02
+    kept = pf.models[0]
+    assert pf.residual_deg.rms < 2 * np.sqrt(3) * 0.005 and 0.0 < kept.cv_mean_deg < 0.02
+    doc = json.loads((res / "result.json").read_text())["point_fit"]
+    assert doc["orientation"] and doc["residual_deg"]["rms"] == pf.residual_deg.rms
+    out = tmp_path / "v.json"
+    assert main(["verify", str(res), str(path), "--cv", "5", "--json", str(out)]) == 0
+    v = json.loads(out.read_text())
+    cv = v["cv"]
+    assert (cv["mean"], cv["rms"], cv["max"]) == (kept.cv_mean_mm, kept.cv_rms_mm, kept.cv_max_mm)
+    assert (cv["mean_deg"], cv["rms_deg"], cv["max_deg"]) == (
+        kept.cv_mean_deg,
+        kept.cv_rms_deg,
+        kept.cv_max_deg,
+    )
+    assert v["summary"]["calibrated_deg"]["rms"] == pytest.approx(pf.residual_deg.rms, rel=1e-6)
+    assert v["exit_code"] == 0 and len(v["samples"]) == STOPS and "error_deg" in v["samples"][0]
+    # Held out: the calibration holds, and the nominal row is the nominal robot placed in the fitted
+    # device frame with the stated mount, in millimetres and degrees.
+    held = verify(res, path.parent / "held_out")
+    s = held.summary
+    assert held.exit_code == 0 and held.test.holds and held.test.components == 6, held.notes
+    assert 0.6 < s.measured_over_predicted < 1.5 and 0.6 < s.measured_over_predicted_deg < 1.5
+    assert s.calibrated_mm.rms < 0.05 and s.calibrated_deg.rms < 0.02
+    q = load_dataset(path.parent / "held_out").samples
+    nominal = jaxcal.robots.load_robot("panda")
+    F = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q.q)))
+    T = np.asarray(r.T_cam_base) @ F @ np.asarray(r.point_fit.problem.T_flange_point0)
+    np.testing.assert_allclose(
+        held.nominal_mm, 1e3 * np.linalg.norm(T[:, :3, 3] - q.position, axis=1), rtol=1e-9
+    )
+    angle = rotation_angle(np.einsum("sba,sbc->sac", T[:, :3, :3], q.orientation))
+    np.testing.assert_allclose(held.nominal_deg, np.degrees(angle), rtol=1e-6)
+    assert s.nominal_mm.mean > 20 * s.calibrated_mm.mean and s.nominal_deg.mean > 20 * s.calibrated_deg.mean
+
+
+def test_an_unknown_mount_is_started_from_the_orientations(panda, tmp_path):
+    """Without the mount (no --point-mm, no rotation), the fit starts the camera's rotation on the
+    flange from the orientations (`stages._points._orient_start`): a quarter turn found, `ok`."""
+    path, r = panda
+    csv = _pnp_table(tmp_path / "poses.csv", load_dataset(path).samples, slice(None))
+    assert main(["import-csv", str(csv), "--out", str(tmp_path / "ds"), *IMPORT]) == 0
+    unknown = jaxcal.calibrate(tmp_path / "ds", cv_folds=0)
+    assert unknown.status == "ok", unknown.reasons
+    R = np.asarray(unknown.T_flange_target[0])[:3, :3]
+    assert np.degrees(rotation_angle(np.asarray(r.T_flange_target[0])[:3, :3].T @ R)) < 0.01
 
 
 def test_simulated_compliance_is_recovered_and_kept_by_cross_validation(tmp_path_factory):
@@ -277,3 +398,114 @@ def test_sweeps_and_poses_mixed_in_one_table_fit_every_sample(ur5, tmp_path):
     r = jaxcal.calibrate(mixed, cv_folds=0)
     assert r.point_fit is not None and int(r.point_fit.used.sum()) == 200
     np.testing.assert_allclose(r.point_fit.fit.x, alone.point_fit.fit.x, atol=1e-12)
+
+
+def _copy_test_set(dst, edit_table=None, edit_samples=None):
+    """`data/ur5_tracker/test` copied to `dst`, its robot table and samples edited."""
+    shutil.copytree("data/ur5_tracker/test", dst)
+    if edit_table is not None:
+        table = json.loads((dst / "robot_dh.json").read_text())
+        edit_table(table)
+        (dst / "robot_dh.json").write_text(json.dumps(table))
+    if edit_samples is not None:
+        lines = (dst / "samples.csv").read_text().splitlines()
+        (dst / "samples.csv").write_text("\n".join(edit_samples(lines)) + "\n")
+    return dst
+
+
+def test_verify_exits_3_outside_its_prediction_and_2_on_another_robot(ur5_real, tmp_path, capsys):
+    """Issue 49: `verify` exits 0 when the calibration holds, 3 when the errors are outside what it
+    predicts (the real UR5's held-out poses with the tracker moved 141 mm: 0 % inside), 2 for a
+    dataset of another robot with the same joint names (a UR3's table named as a UR5's, compared by
+    kinematics); a dataset of the same robot whose joints are named otherwise is verified."""
+    ur3 = json.loads((jaxcal.robots.ROBOTS_DIR / "ur3_dh.json").read_text())
+    another = _copy_test_set(tmp_path / "ur3", edit_table=lambda t: t.update(a=ur3["a"], d=ur3["d"]))
+    assert main(["verify", str(ur5_real), str(another)]) == 2
+    err = capsys.readouterr().err
+    assert (
+        "robot_dh.json: at the dataset's joint positions its flange lies up to" in err
+        and "another robot" in err
+    )
+
+    def moved(lines):
+        x = lines[0].split(",").index("x")
+        cells = [line.split(",") for line in lines[1:]]
+        return [lines[0], *(",".join(c[:x] + [repr(float(c[x]) + 0.141)] + c[x + 1 :]) for c in cells)]
+
+    assert main(["verify", str(ur5_real), str(_copy_test_set(tmp_path / "moved", edit_samples=moved))]) == 3
+    out = capsys.readouterr().out
+    assert "does NOT hold on this dataset (exit 3)" in out and "0 % inside the 95 % bound" in out
+    names = [f"j{k}" for k in range(1, 7)]
+
+    def rename(lines):
+        return [",".join(["sample", "timestamp", "joint", "x", "y", "z", *names]), *lines[1:]]
+
+    renamed = _copy_test_set(tmp_path / "renamed", lambda t: t.update(joint_names=names), rename)
+    meta = json.loads((renamed / "metadata.json").read_text())
+    meta["robot"]["joints"] = names
+    (renamed / "metadata.json").write_text(json.dumps(meta))
+    v = verify(ur5_real, renamed)
+    assert v.exit_code == 0 and v.summary.calibrated_mm.mean <= 0.1010 and "named otherwise" in v.notes[0]
+
+
+def test_the_prediction_test_is_exact_under_its_model_and_rejects_a_worse_calibration():
+    """`verification.whiten` turns errors with a common parameter part ($D + G C G^T$, $C$ of
+    rank 8 of 10) into independent standard normals; under that model `prediction_test` rejects
+    at its stated rate (two tests at 0.1 %), and errors 1.5 times their prediction are rejected."""
+    rng = np.random.default_rng(0)
+    N, k, n, draws = 30, 6, 10, 2000
+    G = rng.normal(size=(N, k, n))
+    L = rng.normal(size=(n, 8)) * 0.3
+    C, var = L @ L.T, rng.uniform(0.5, 2.0, (N, k))
+    Sigma = np.diag(var.ravel()) + G.reshape(N * k, n) @ C @ G.reshape(N * k, n).T
+    e = rng.multivariate_normal(np.zeros(N * k), Sigma, size=draws).reshape(draws, N, k)
+    z = np.stack([whiten(ei, G, C, var) for ei in e])
+    cov = np.cov(z.reshape(draws, -1).T)
+    assert np.max(np.abs(cov - np.eye(N * k))) < 0.15 and abs(np.mean(np.diag(cov)) - 1) < 0.01
+    rejected = sum(not prediction_test(zi, dof_noise=None).holds for zi in z)
+    assert rejected <= 12  # expected <= 4 (2 x 0.1 % of 2000); P(> 12) < 1e-4
+    worse = sum(not prediction_test(1.5 * zi, dof_noise=None).holds for zi in z[:200])
+    assert worse >= 190
+
+
+def test_certify_and_check_report_the_orientations(panda, tmp_path):
+    """The flange camera's result: `certify` bounds the camera's orientation error (deg) beside its
+    position's, and `check` of the held-out stops reports their orientations (no drift, exit 0);
+    the same stops with the camera turned 0.5 deg on the flange (its positions unchanged) fit no
+    rigid move of the board: exit 3, named."""
+    from jaxcal.certification import certify
+    from jaxcal.drift import check
+    from jaxcal.io.checks import product_json, read_product
+
+    path, r = panda
+    res, held = path.parent / "result", path.parent / "held_out"
+    s = load_dataset(held).samples
+    c = certify(res, poses=s.q)
+    assert c.rotation is not None and c.rms_deg.shape == (HELD_OUT,)
+    assert np.all(c.bound95_deg > c.rms_deg) and 0.0 < c.rotation.max_bound95_deg < 0.02
+    # The parameters' part of the certificate is that of verify's prediction at the same poses.
+    v, s2, var = (
+        verify(res, held),
+        float(r.point_fit.fit.sigma2),
+        3 * np.degrees(np.asarray(s.sigma_rad)) ** 2,
+    )
+    np.testing.assert_allclose(c.rms_deg**2 - max(s2 - 1, 0) * var, v.predicted_deg**2 - s2 * var, rtol=1e-6)
+    file = tmp_path / "c.json"
+    file.write_text(json.dumps(product_json(c)))
+    assert product_json(read_product(file)) == json.loads(file.read_text())
+    d = check(res, held)
+    assert d.exit_code == 0 and d.rotation_residual_deg.rms < 2 * np.sqrt(3) * 0.005
+    turned = tmp_path / "turned"
+    shutil.copytree(held, turned)
+    lines = (turned / "samples.csv").read_text().splitlines()
+    head = lines[0].split(",")
+    cols = [head.index(c) for c in ("qx", "qy", "qz", "qw")]
+    quat = matrix_to_quaternion(s.orientation @ rotvec_to_matrix([0.0, 0.0, np.radians(0.5)]))
+    rows = [line.split(",") for line in lines[1:]]
+    for row, qq in zip(rows, quat):
+        for col, value in zip(cols, qq):
+            row[col] = repr(float(value))
+    (turned / "samples.csv").write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+    d = check(res, turned)
+    assert d.exit_code == 3 and "the orientations do not fit" in d.message, d.message
+    assert not d.detected and 0.4 < d.rotation_residual_deg.mean < 0.6
