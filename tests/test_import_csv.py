@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from jaxcal import forward_kinematics
-from jaxcal._npgeom import matrix_to_quaternion, pose, pose_inverse, rotvec_to_matrix, so3_log
+from jaxcal._npgeom import fit_sandwich, matrix_to_quaternion, pose, pose_inverse, rotvec_to_matrix, so3_log
 from jaxcal.cli import main
 from jaxcal.errors import CsvImportError, OutputError
 from jaxcal.io.csv_import import import_csv
@@ -421,3 +421,22 @@ def test_commanded_points_are_noted_measured_ones_are_not(tmp_path):
     )
     measured = import_csv(source, tmp_path / "measured", xyz=spec["xyz"], **kw)
     assert measured.rms_from_nominal_m > 3e-4 and measured.notes == ()
+
+
+def test_the_two_sided_rotation_fit_recovers_the_device_frame_and_the_mount():
+    """`_npgeom.fit_sandwich` (the check of the orientations, the point fit's start): $R_i = A F_i B$
+    recovered from a start 20 deg off, and with $B$ held in one round; the batched quaternions
+    are the one-matrix ones."""
+    rng = np.random.default_rng(1)
+    F = rotvec_to_matrix(rng.normal(size=(20, 3)))
+    A, B = rotvec_to_matrix([0.3, -1.2, 2.0]), rotvec_to_matrix([0.0, 0.0, np.pi / 2])
+    R = A @ F @ B
+    A0 = A @ rotvec_to_matrix(np.radians(20.0) * np.array([0.6, 0.0, 0.8]))
+    fit_A, fit_B, angle = fit_sandwich(R, F, A0)
+    np.testing.assert_allclose(fit_A, A, atol=1e-9)
+    np.testing.assert_allclose(fit_B, B, atol=1e-9)
+    assert angle.max() < 1e-9
+    np.testing.assert_allclose(fit_sandwich(R, F, A0, B)[0], A, atol=1e-12)
+    q = matrix_to_quaternion(R)
+    np.testing.assert_array_equal(q, np.stack([matrix_to_quaternion(r) for r in R]))
+    assert np.all(q[:, 3] >= 0)

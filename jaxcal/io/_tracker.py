@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._npgeom import quaternion_to_matrix
 from ..errors import DatasetError
 from . import _encoders as enc
 from . import _schema as sc
@@ -174,15 +175,7 @@ def _quaternions(rows: np.ndarray, lines, path: Path) -> np.ndarray:
             f"{path} line {lines[k]}: quaternion (qx, qy, qz, qw) has norm {norm[k]:.6g}; expected a unit "
             f"quaternion (within {QUATERNION_TOL:g})"
         )
-    x, y, z, w = (rows / norm[:, None]).T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
+    return quaternion_to_matrix(rows / norm[:, None])
 
 
 def _sigmas(values, cols, device: DeviceInfo, path: Path, lines, meta_loc: Loc):
