@@ -8,7 +8,10 @@ from pathlib import Path
 
 from .._exported import warm_start
 from ..io._files import check_output_dir, marked_directory, output_lock
-from ._common import CLOCK_MODES, positive_int
+from ._common import CLOCK_MODES, MAX_WORKERS, count
+
+#: `--cv-folds`: the folds' fits are solved at once (one vmap), memory growing with them.
+MAX_CV_FOLDS = 100
 
 
 def _terms(text: str) -> tuple[str, ...]:
@@ -65,7 +68,9 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         "each with its own T_cam_base)",
     )
     p.add_argument(
-        "--workers", type=positive_int, help="threads for marker detection, >= 1 (default: all cores)"
+        "--workers",
+        type=count(1, MAX_WORKERS),
+        help=f"threads for marker detection, 1 to {MAX_WORKERS} (default: all cores)",
     )
     p.add_argument(
         "--clock",
@@ -118,10 +123,10 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--cv-folds",
-        type=int,
+        type=count(0, MAX_CV_FOLDS),
         default=5,
         help="stop-and-shoot tracker data: folds of the cross-validation that gates --terms and is reported "
-        "(0: none)",
+        f"(0: none; at most {MAX_CV_FOLDS}: each fold is a fit, all held at once)",
     )
     g = p.add_mutually_exclusive_group()
     g.add_argument(

@@ -7,6 +7,7 @@ import math
 from ..io._tracker import DEVICE_KINDS
 from ..io.csv_import import ANGLE_UNITS, LENGTH_UNITS, import_csv
 from ..robots import robot_file
+from ._common import finite
 
 
 def _columns(count: int | None):
@@ -27,8 +28,8 @@ def _point(text: str) -> list[float]:
         v = [float(x) for x in text.split(",")]
     except ValueError:
         v = []
-    if len(v) != 3:
-        raise argparse.ArgumentTypeError(f"expected x,y,z (mm), got {text!r}")
+    if len(v) != 3 or not all(math.isfinite(x) for x in v):
+        raise argparse.ArgumentTypeError(f"expected x,y,z (mm, finite), got {text!r}")
     return v
 
 
@@ -67,7 +68,7 @@ def add_import_csv_parser(sub) -> None:
         choices=sorted(LENGTH_UNITS),
         help="unit of the x,y,z (and prismatic) columns",
     )
-    p.add_argument("--sigma-mm", required=True, type=float, help="position noise, 1-sigma per axis (mm)")
+    p.add_argument("--sigma-mm", required=True, type=finite, help="position noise, 1-sigma per axis (mm)")
     p.add_argument(
         "--point-mm", type=_point, help="the point's offset on --link, x,y,z (mm; default unknown)"
     )
@@ -77,7 +78,7 @@ def add_import_csv_parser(sub) -> None:
         help="the orientation's quaternion columns, qx,qy,qz,qw (scalar last)",
     )
     p.add_argument(
-        "--sigma-deg", type=float, help="orientation noise, 1-sigma (deg; required with --orientation)"
+        "--sigma-deg", type=finite, help="orientation noise, 1-sigma (deg; required with --orientation)"
     )
     p.add_argument("--time", help="a timestamp column (s, strictly increasing; default: the row index)")
     p.add_argument("--device-name", default="tracker", help="the device's name (names its frame)")

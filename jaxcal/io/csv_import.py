@@ -51,7 +51,7 @@ from .._kinematics import KinematicModel, forward_kinematics
 from ..errors import CsvImportError, DatasetError
 from . import _encoders as enc
 from ._files import atomic_directory, check_output_dir
-from ._logs import parse_number, read_csv
+from ._logs import read_number_table
 from ._tracker import DEVICE_KINDS, MAX_COORDINATE_M, QUATERNION_TOL
 from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_json
 from .dh_tables import dh_table_model, is_table_file, read_table_file
@@ -80,6 +80,9 @@ ANGLE_TOL_DEG = 5.0
 TABLE_RANGE = 2.0 * math.pi
 #: Largest point mount offset (m): further is millimetres given as metres.
 MAX_POINT_M = 2.0
+#: Rows the forward kinematics and the writer take at a time: the memory an import takes is
+#: bounded by it, the table's own numbers aside (`_logs.read_number_table` streams the reading).
+ROWS_AT_ONCE = 65536
 
 
 @dataclass(frozen=True)
@@ -168,41 +171,35 @@ def _column(spec: str, index: dict, path: Path, option: str) -> list[int]:
     return [index[p] for p in parts]
 
 
-def _number(text: str, where: str) -> float:
-    try:
-        return parse_number(text, where)
-    except DatasetError as e:
-        raise CsvImportError(str(e)) from None
-
-
 def _read(path: Path, specs: dict) -> tuple[dict, np.ndarray]:
-    """Per spec (label -> (option, spec)) the summed values (N,), and the line numbers."""
+    """Per spec (label -> (option, spec)) the summed values (N,), and the line numbers. The
+    table is streamed (`_logs.read_number_table`: blocks of rows, NumPy's parser), only the
+    columns the specs name converted, so that a table of a million rows takes seconds."""
+    cols: dict = {}
+
+    def columns(header: list[str]) -> tuple[list[int], list[int]]:
+        header = [h.strip() for h in header]
+        index = {h: i for i, h in enumerate(header)}
+        if len(index) != len(header):
+            raise CsvImportError(f"{path} line 1: a column name is repeated: {header}")
+        cols.update({label: _column(spec, index, path, option) for label, (option, spec) in specs.items()})
+        used = [c for idx in cols.values() for c in idx]
+        twice = sorted({header[c] for c in used if used.count(c) > 1})
+        if twice:
+            raise CsvImportError(
+                f"{path}: column(s) {twice} named twice (in --joints, --xyz, --orientation, --time)"
+            )
+        return sorted(set(used)), []
+
     try:
-        header, rows = read_csv(path, "CSV table")
+        table = read_number_table(path, "CSV table", columns)
     except DatasetError as e:
         raise CsvImportError(str(e)) from None
-    header = [h.strip() for h in header]
-    index = {h: i for i, h in enumerate(header)}
-    if len(index) != len(header):
-        raise CsvImportError(f"{path} line 1: a column name is repeated: {header}")
-    cols = {label: _column(spec, index, path, option) for label, (option, spec) in specs.items()}
-    used = [c for idx in cols.values() for c in idx]
-    twice = sorted({header[c] for c in used if used.count(c) > 1})
-    if twice:
-        raise CsvImportError(
-            f"{path}: column(s) {twice} named twice (in --joints, --xyz, --orientation, --time)"
-        )
-    if len(rows) < 2:
-        raise CsvImportError(f"{path}: {len(rows)} data row(s); a dataset needs at least 2")
-    out = {label: np.zeros(len(rows)) for label in cols}
-    for r, (line, cells) in enumerate(rows):
-        if len(cells) != len(header):
-            raise CsvImportError(
-                f"{path} line {line}: expected {len(header)} cells (the header's), got {len(cells)}"
-            )
-        for label, idx in cols.items():
-            out[label][r] = sum(_number(cells[c], f"{path} line {line} column {header[c]!r}") for c in idx)
-    return out, np.array([line for line, _ in rows])
+    if len(table.lines) < 2:
+        raise CsvImportError(f"{path}: {len(table.lines)} data row(s); a dataset needs at least 2")
+    at = {c: k for k, c in enumerate(sorted({c for idx in cols.values() for c in idx}))}
+    out = {label: sum(table.values[:, at[c]] for c in idx) for label, idx in cols.items()}
+    return out, table.lines
 
 
 def _check_limits(path: Path, q: np.ndarray, unit: str, specs, model: KinematicModel, limits: dict, lines):
@@ -363,15 +360,41 @@ def _check_orientations(path: Path, table: _Table, R_nom: np.ndarray, orientatio
 
 
 def _write_samples(path: Path, table: _Table, joint_names) -> None:
+    """`samples.csv`, `ROWS_AT_ONCE` rows at a time, every number as Python's `repr` writes it
+    (the shortest text that reads back to the same float)."""
     quat = table.quat if table.quat is not None else np.zeros((len(table.t), 0))
     head = ["sample", "timestamp", "joint", "x", "y", "z"] + (
         ["qx", "qy", "qz", "qw"] if quat.shape[1] else []
     )
-    lines = [",".join(head + list(joint_names))]
-    for i in range(len(table.t)):
-        nums = [*table.P[i], *quat[i], *table.q[i]]
-        lines.append(",".join([str(i), repr(float(table.t[i])), "", *(repr(float(v)) for v in nums)]))
-    path.write_text("\n".join(lines) + "\n")
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(",".join(head + list(joint_names)) + "\n")
+        for s in range(0, len(table.t), ROWS_AT_ONCE):
+            e = min(s + ROWS_AT_ONCE, len(table.t))
+            nums = np.column_stack([table.t[s:e], table.P[s:e], quat[s:e], table.q[s:e]])
+            cols = [map(str, range(s, e)), map(repr, nums[:, 0].tolist()), [""] * (e - s)]
+            cols += [map(repr, nums[:, k].tolist()) for k in range(1, nums.shape[1])]
+            f.write("\n".join(map(",".join, zip(*cols))) + "\n")
+
+
+def _link_frames(model: KinematicModel, q: np.ndarray, link: int) -> np.ndarray:
+    """`(N, 4, 4)` the nominal frame of link `link` at each row's joints, `ROWS_AT_ONCE` rows at a
+    time (the last batch padded to the same size): bounded memory whatever the table's size."""
+    fk = jax.vmap(forward_kinematics, in_axes=(None, 0))
+    if len(q) <= ROWS_AT_ONCE:
+        return np.asarray(fk(model, jnp.asarray(q)))[:, link]
+    batch = jax.jit(lambda m, x: fk(m, x)[:, link])  # one program for every batch
+    out = np.empty((len(q), 4, 4))
+    for s in range(0, len(q), ROWS_AT_ONCE):
+        part = q[s : s + ROWS_AT_ONCE]
+        n = len(part)
+        padded = np.concatenate([part, np.repeat(part[-1:], ROWS_AT_ONCE - n, axis=0)])
+        out[s : s + n] = np.asarray(batch(model, jnp.asarray(padded)))[:n]
+    return out
+
+
+def _sha256(path: Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _translation(p: np.ndarray) -> np.ndarray:
@@ -473,8 +496,7 @@ def import_csv(
         csv, joints=joints, joint_unit=joint_unit, xyz=xyz, length_unit=length_unit,
         orientation=orientation, time=time, model=model, limits=limits,
     )  # fmt: skip
-    frames = np.asarray(jax.vmap(forward_kinematics, in_axes=(None, 0))(model, jnp.asarray(table.q)))
-    T_link = frames[:, list(model.link_names).index(link)]
+    T_link = _link_frames(model, table.q, list(model.link_names).index(link))
     nominal = T_link[:, :3, 3] + T_link[:, :3, :3] @ (point if point is not None else np.zeros(3))
     reach = reach_m(model, limits, point)
     tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
@@ -482,6 +504,7 @@ def import_csv(
     rms = _check_points(csv, table, nominal, xyz, length_unit, (origin, reach, tol))
     if orientation is not None:
         _check_orientations(csv, table, T_link[:, :3, :3], orientation)
+    del T_link, nominal  # a large table's read-back (`load_dataset`) needs the memory
     meta = _metadata(
         csv, table, model, robot_obj, joints=joints, joint_unit=joint_unit, xyz=xyz,
         length_unit=length_unit, orientation=orientation, time=time, link=link, point=point,
@@ -492,6 +515,7 @@ def import_csv(
     ) as tmp:
         shutil.copyfile(robot_file, tmp / robot_name)
         _write_samples(tmp / "samples.csv", table, model.joint_names)
+        samples, table = len(table.t), None  # a large table's read-back (`load_dataset`) needs the memory
         write_json(tmp / "metadata.json", meta)
         load_dataset(tmp)  # the format's every check, before the rename
     notes = []
@@ -502,7 +526,7 @@ def import_csv(
             "measured ones? A real arm is typically 0.5-5 mm off its datasheet, and a calibration on these "
             "points learns nothing"
         )
-    return CsvImport(Path(out), len(table.t), reach, rms, tuple(notes))
+    return CsvImport(Path(out), samples, reach, rms, tuple(notes))
 
 
 def _metadata(
@@ -532,7 +556,7 @@ def _metadata(
         "motion": [{"joint": None, "start": float(table.t[0]), "end": float(table.t[-1])}],
         "x_csv": {
             "file": csv.name,
-            "sha256": hashlib.sha256(csv.read_bytes()).hexdigest(),
+            "sha256": _sha256(csv),
             "joints": dict(zip(model.joint_names, joints)),
             "joint_unit": joint_unit,
             "xyz": list(xyz),

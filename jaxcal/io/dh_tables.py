@@ -33,18 +33,18 @@ masses and centres of mass in that model's link frames, `dh_table_json`
 writes a calibrated table.
 """
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
-from ruamel.yaml import YAML, YAMLError
+from ruamel.yaml import YAMLError
 
 from .._dh import COLUMNS, DHTable, link_transform, table_to_model
 from .._kinematics import KinematicModel
 from ..errors import DatasetError
+from ._schema import load_yaml, loads
 from .urdf import JointLimits
 
 #: What `parallel` means, written into every calibrated table.
@@ -111,11 +111,8 @@ def _document(path: Path) -> dict:
     """The parsed file: YAML for `.yaml` / `.yml`, else JSON; an object, or a `DatasetError`."""
     try:
         text = path.read_text(encoding="utf-8-sig")
-        if path.suffix.lower() in (".yaml", ".yml"):
-            doc = YAML(typ="safe", pure=True).load(text)
-        else:
-            doc = json.loads(text)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, YAMLError) as e:
+        doc = load_yaml(text) if path.suffix.lower() in (".yaml", ".yml") else loads(text)
+    except (OSError, UnicodeDecodeError, ValueError, YAMLError) as e:
         raise DatasetError(f"DH table {str(path)!r} cannot be read: {e}") from None
     if not isinstance(doc, dict):
         raise _fail(path, f"expected an object of fields, got {type(doc).__name__}")

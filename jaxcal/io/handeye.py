@@ -339,8 +339,8 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
     if not meta_path.is_file():
         raise DatasetError(f"{meta_path}: capture description missing (see docs/handeye.md)")
     try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as e:
+        meta = sc.loads(meta_path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as e:
         raise DatasetError(f"{meta_path}: not valid JSON ({e})") from None
     where = str(meta_path)
     if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
@@ -370,8 +370,8 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
     truth = None
     if (root / "truth.json").is_file():
         try:
-            truth = json.loads((root / "truth.json").read_text())
-        except json.JSONDecodeError as e:
+            truth = sc.loads((root / "truth.json").read_text(encoding="utf-8"))
+        except (ValueError, UnicodeDecodeError) as e:
             raise DatasetError(f"{root / 'truth.json'}: not valid JSON ({e})") from None
     return HandEyeCapture(
         root=root,

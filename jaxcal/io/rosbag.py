@@ -33,7 +33,6 @@ only read; the output is written atomically (`atomic_directory`) and checked
 with `load_dataset` before it is renamed into place.
 """
 
-import json
 import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -60,6 +59,7 @@ from ._rosmsgs import (
     find_segments,
     stamp_ns,
 )
+from ._schema import loads
 from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_encoders, write_frames, write_json
 from .dh_tables import dh_table_model, is_table_file, read_table_file
 from .urdf import load_urdf, urdf_outline
@@ -129,7 +129,7 @@ def read_targets(path) -> list[dict]:
     an object with a `targets` list (a dataset's `metadata.json` works). Checked with the dataset."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
         raise DatasetError(f"{path}: cannot read the target file: {e}") from e
     if isinstance(data, dict):
