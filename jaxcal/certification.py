@@ -80,6 +80,8 @@ POSE_CHUNK = 5000
 #: Values of the region's error distribution kept for its 95th percentile: each pose's first
 #: ceil(MIXTURE_VALUES / poses) draws (all `QUANTILE_DRAWS` of them up to 1000 poses).
 MIXTURE_VALUES = 4_000_000
+#: Covariances whose norm quantiles are drawn at once (`norm_quantiles`).
+QUANTILE_CHUNK = 500
 #: The caveat of a capture of stop-and-shoot camera views (a planned capture).
 COHERENT_VIEWS = (
     "a capture of camera views at stops (e.g. a planned capture): the detector's errors can add up "
@@ -293,15 +295,16 @@ def norm_quantiles(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per `(3, 3)` covariance of `cov` `(C, 3, 3)`, the `p` quantile of the norm of
     $e \\sim N(0, \\Sigma)$, and the norms at the first `keep` (default all) of the fixed
-    draws `(C, keep)` (m). Computed `POSE_CHUNK` covariances at a time."""
+    draws `(C, keep)` (m). Computed `QUANTILE_CHUNK` covariances at a time (16 MB of draws)."""
     lam = np.clip(np.linalg.eigvalsh(cov), 0.0, None)
     z2 = np.random.default_rng(0).standard_normal((draws, 3)) ** 2
     keep = draws if keep is None else keep
     quantiles, kept = np.empty(len(lam)), np.empty((len(lam), keep))
-    for s in range(0, len(lam), POSE_CHUNK):
-        d = np.sqrt(lam[s : s + POSE_CHUNK] @ z2.T)
-        quantiles[s : s + POSE_CHUNK] = np.quantile(d, p, axis=1)
-        kept[s : s + POSE_CHUNK] = d[:, :keep]
+    for s in range(0, len(lam), QUANTILE_CHUNK):
+        d = lam[s : s + QUANTILE_CHUNK] @ z2.T
+        np.sqrt(d, out=d)
+        quantiles[s : s + QUANTILE_CHUNK] = np.quantile(d, p, axis=1)
+        kept[s : s + QUANTILE_CHUNK] = d[:, :keep]
     return quantiles, kept
 
 

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from .._exported import warm_start
-from ..io._files import check_output_dir, marked_directory, output_lock
+from ..io._files import check_output_dir, marked_directory, output_lock, resolved
 from ._common import CLOCK_MODES, MAX_WORKERS, count
 
 #: `--cv-folds`: the folds' fits are solved at once (one vmap), memory growing with them.
@@ -34,7 +34,7 @@ def cmd_calibrate(args) -> int:
     )
     # The programs the last run on DATASET called are read ahead from here on, while the
     # calibration's modules are imported and the images detected (`jaxcal._exported.warm_start`).
-    with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {Path(args.dataset).resolve()}"):
+    with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {resolved(args.dataset)}"):
         from ._calibrate_run import calibrate_dataset
 
         return calibrate_dataset(args, out, checked)

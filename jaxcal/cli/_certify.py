@@ -2,14 +2,13 @@
 
 import importlib
 import json
-from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 
 from .._exported import warm_start
 from ..certification import MAX_POSES, certify, plot_certificate, read_poses
-from ..io._files import atomic_file, check_output_file, write_text_atomic
+from ..io._files import atomic_file, check_output_file, resolved, write_text_atomic
 from ..io.checks import certificate_json, drift_check_json, read_calibration
 from ._common import MAX_WORKERS, count, seed
 
@@ -150,7 +149,7 @@ def cmd_certify(args) -> int:
         names = read_calibration(args.result).joint_names
         poses = read_poses(args.poses, names, degrees=args.degrees)
     # The programs the last certificate of this result called are read while this one starts.
-    with warm_start(f"jaxcal certify {Path(args.result).resolve()}"):
+    with warm_start(f"jaxcal certify {resolved(args.result)}"):
         c = certify(args.result, **where, poses=poses, samples=args.samples, frame=args.frame, seed=args.seed)
     console = Console(width=max(Console().width, 110))
     print_certificate(console, c)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from .._exported import warm_start
-from ..io._files import check_output_dir, output_lock
+from ..io._files import check_output_dir, output_lock, resolved
 from ._common import MAX_WORKERS, count, finite, resolution, seed
 
 # --------------------------------------------------------------------------- hand-eye
@@ -64,7 +64,7 @@ def cmd_handeye(args) -> int:
     )
     # The solver the last run on this capture called is read from the first moment the capture is
     # known, while the calibration's modules are imported and the images detected.
-    with output_lock(out, what="--out"), warm_start(f"jaxcal handeye {Path(args.capture).resolve()}"):
+    with output_lock(out, what="--out"), warm_start(f"jaxcal handeye {resolved(args.capture)}"):
         from ..report import warm_up_plots
 
         plots = warm_up_plots()  # matplotlib loads while the capture is calibrated

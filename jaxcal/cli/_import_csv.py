@@ -118,4 +118,6 @@ def cmd_import_csv(args) -> int:
     )
     for note in r.notes:
         print(f"note: {note}")
+    for warning in r.warnings:
+        print(f"warning: {warning}")
     return 0

@@ -98,6 +98,21 @@ def make_temp_dir(parent: Path, name: str) -> Path:
     return tmp
 
 
+#: The robot files jaxcal ships (`jaxcal.robots.ROBOTS_DIR`).
+SHIPPED_ROBOTS = Path(__file__).resolve().parents[2] / "data" / "robots"
+
+
+def shown(path) -> str:
+    """How a message names `path`: a robot file jaxcal ships (the user named it, `ur5_dh`) as
+    `data/robots/ur5_dh.json`, not by the absolute path of the installation; any other path as
+    given."""
+    p = Path(path)
+    try:
+        return (Path("data") / "robots" / p.resolve().relative_to(SHIPPED_ROBOTS)).as_posix()
+    except (ValueError, OSError, RuntimeError):
+        return str(path)
+
+
 def resolved(path, what: str = "", *, error=DatasetError) -> Path:
     """`Path(path).resolve()`, a loop of symbolic links refused by name (`error`, a `JaxcalError`:
     `DatasetError` for an input, `OutputError` for an output) rather than Python's `RuntimeError`

@@ -35,6 +35,7 @@ from ..records_check import (
     Verification,
     VerificationSummary,
 )
+from ._files import resolved
 from ._schema import loads
 from .handeye_results import HANDEYE_RESULT_SCHEMA
 from .model_json import model_from_json
@@ -54,6 +55,7 @@ def read_result_json(path) -> tuple[dict, Path]:
     """`result.json` (a result directory or the file) as plain JSON, checked to be a jaxcal result."""
     p = Path(path)
     file = p / "result.json" if p.is_dir() else p
+    resolved(file)  # a loop of symbolic links is named as one
     try:
         doc = loads(file.read_text())
     except FileNotFoundError:
@@ -62,8 +64,9 @@ def read_result_json(path) -> tuple[dict, Path]:
         ) from None
     except (ValueError, UnicodeDecodeError) as e:
         raise DatasetError(f"{file}: not JSON ({e})") from None
-    if doc.get("schema") != RESULT_SCHEMA:
-        raise DatasetError(f"{file}: schema is {doc.get('schema')!r}, expected {RESULT_SCHEMA!r}")
+    schema = doc.get("schema") if isinstance(doc, dict) else None
+    if schema != RESULT_SCHEMA:
+        raise DatasetError(f"{file}: schema is {schema!r}, expected {RESULT_SCHEMA!r}")
     return doc, file
 
 

@@ -50,8 +50,9 @@ import numpy as np
 from .._kinematics import KinematicModel, forward_kinematics
 from ..errors import CsvImportError, DatasetError
 from . import _encoders as enc
-from ._files import atomic_directory, check_output_dir
+from ._files import atomic_directory, check_output_dir, shown
 from ._logs import read_number_table
+from ._schema import file_name
 from ._tracker import DEVICE_KINDS, MAX_COORDINATE_M, QUATERNION_TOL
 from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_json
 from .dh_tables import dh_table_model, is_table_file, read_table_file
@@ -70,6 +71,9 @@ MIN_SPREAD_M = 0.01
 ALIGN_TOL_M = 0.05
 #: ... plus this when the point's mount on the link is not given (the link's origin stands in).
 UNKNOWN_POINT_M = 0.5
+#: A row further from the nominal robot (after the rigid alignment) than this many times the median
+#: row, and than `FAR_MIN_M`, is warned of: one wrong joint cell puts a point tens of mm off.
+FAR_FACTOR, FAR_MIN_M = 5.0, 0.01
 #: Points closer to the nominal robot than this many times their stated noise are noted: a real
 #: arm's points are millimetres off its datasheet, a table's commanded points are not.
 NOMINAL_LIKE = 2.0
@@ -89,13 +93,15 @@ ROWS_AT_ONCE = 65536
 class CsvImport:
     """What `import_csv` wrote: the dataset, its sample count, the robot's reach bound (m)
     and the points' RMS distance from the nominal robot's after the rigid alignment (m); `notes`:
-    what looks odd but is not refused."""
+    what looks odd but is not refused; `warnings`: what is most likely wrong but not refused (rows
+    far from the nominal robot, `FAR_FACTOR`)."""
 
     path: Path
     samples: int
     reach_m: float
     rms_from_nominal_m: float
     notes: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -133,7 +139,7 @@ def robot_model(robot) -> tuple[KinematicModel, dict, str, dict]:
             model = load_urdf(robot)
             limits = urdf_outline(robot, tuple(model.joint_names)).limits
     except (OSError, ValueError) as e:
-        raise DatasetError(f"{robot}: cannot load the robot model: {e}") from e
+        raise DatasetError(f"{shown(robot)}: cannot load the robot model: {e}") from e
     obj = {
         key: name,
         "base_link": model.link_names[0],
@@ -288,11 +294,11 @@ def _rigid_alignment(P: np.ndarray, Q: np.ndarray, tol: float) -> tuple[np.ndarr
     return moved, r, R
 
 
-def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str, robot: tuple) -> float:
+def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str, robot: tuple) -> np.ndarray:
     """The points against the nominal robot's: spread (units), coordinates, reach, rigid alignment.
 
     `robot`: `(origin of joint 1 in the base frame (3,), reach bound (m), alignment tolerance (m))`.
-    **Returns:** the points' RMS distance from the aligned nominal ones (m).
+    **Returns:** each point's distance from the aligned nominal one (m).
     """
     P, lines, cols = table.P, table.lines, f"columns {list(xyz)} (--xyz, --length-unit {unit})"
     origin, reach, tol = robot
@@ -336,7 +342,25 @@ def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str
                 f"{bad.size} of {len(P)} rows; check that row's cells (column {xyz[c]!r} is off by "
                 f"{P[k, c] - moved[k, c]:+.4g} m), the joint columns' order and the point's offset"
             )
-    return float(np.sqrt(np.mean(r**2)))
+    return r
+
+
+def _far_rows(path: Path, table: _Table, r: np.ndarray) -> list[str]:
+    """A warning for the rows much further from the nominal robot than the others (after the rigid
+    alignment): `FAR_FACTOR` x the median row and at least `FAR_MIN_M`, the worst five named."""
+    limit = max(FAR_MIN_M, FAR_FACTOR * float(np.median(r)))
+    far = np.flatnonzero(r > limit)
+    if not far.size:
+        return []
+    worst = far[np.argsort(-r[far])][:5]
+    rows = ", ".join(f"line {table.lines[k]} ({1e3 * r[k]:.1f} mm)" for k in worst)
+    more = f" and {far.size - len(worst)} more" if far.size > len(worst) else ""
+    return [
+        f"{path}: {far.size} row(s) lie far from where the nominal robot puts them after the best rigid "
+        f"alignment: {rows}{more}, against {1e3 * np.median(r):.2g} mm for the median row. A real arm is "
+        "0.5-5 mm off its datasheet, so such a row most likely holds a wrong cell (a joint mistyped or "
+        "from another pose, a swapped column): check it, and remove or correct it before calibrating"
+    ]
 
 
 def _check_orientations(path: Path, table: _Table, R_nom: np.ndarray, orientation):
@@ -403,8 +427,11 @@ def _translation(p: np.ndarray) -> np.ndarray:
     return T
 
 
-def _check_arguments(*, joint_unit, length_unit, device_kind, sigma_m, xyz, orientation, sigma_rad, point_m):
-    """`import_csv`'s units, noise, column counts and point offset: the offset as an array (3,) or None."""
+def _check_arguments(
+    *, joint_unit, length_unit, device_kind, device_name, sigma_m, xyz, orientation, sigma_rad, point_m
+):
+    """`import_csv`'s units, device, noise, column counts and point offset: the offset as an array (3,)
+    or None."""
     for name, value, units in (
         ("joint_unit", joint_unit, ANGLE_UNITS),
         ("length_unit", length_unit, LENGTH_UNITS),
@@ -415,6 +442,7 @@ def _check_arguments(*, joint_unit, length_unit, device_kind, sigma_m, xyz, orie
             )
     if device_kind not in DEVICE_KINDS:
         raise ValueError(f"device_kind must be one of {DEVICE_KINDS}, got {device_kind!r}")
+    file_name(device_name, "device_name (--device-name)")  # it names output files (ros_<device>.txt)
     if not (isinstance(sigma_m, (int, float)) and 0.0 < sigma_m <= 1.0):
         raise ValueError(f"sigma_m (the position noise, m) must be in (0, 1], got {sigma_m!r}")
     if len(xyz) != 3 or (orientation is not None and len(orientation) != 4):
@@ -478,19 +506,19 @@ def import_csv(
         out, inputs=[csv, robot_file], overwrite=overwrite, kind="dataset", what="--out"
     )
     point = _check_arguments(
-        joint_unit=joint_unit, length_unit=length_unit, device_kind=device_kind, sigma_m=sigma_m, xyz=xyz,
-        orientation=orientation, sigma_rad=sigma_rad, point_m=point_m,
+        joint_unit=joint_unit, length_unit=length_unit, device_kind=device_kind, device_name=device_name,
+        sigma_m=sigma_m, xyz=xyz, orientation=orientation, sigma_rad=sigma_rad, point_m=point_m,
     )  # fmt: skip
     model, limits, robot_name, robot_obj = robot_model(robot_file)
     if len(joints) != len(model.joint_names):
         raise ValueError(
-            f"{len(joints)} joint column(s) {list(joints)} for the {len(model.joint_names)} joints of {robot_file}: "
+            f"{len(joints)} joint column(s) {list(joints)} for the {len(model.joint_names)} joints of {shown(robot_file)}: "
             f"name one column per joint, in the robot's order {list(model.joint_names)}"
         )
     link = link or model.link_names[-1]
     if link not in model.link_names:
         raise ValueError(
-            f"link {link!r} is not a link of the chain of {robot_file}: {list(model.link_names)}"
+            f"link {link!r} is not a link of the chain of {shown(robot_file)}: {list(model.link_names)}"
         )
     table = _read_table(
         csv, joints=joints, joint_unit=joint_unit, xyz=xyz, length_unit=length_unit,
@@ -501,7 +529,8 @@ def import_csv(
     reach = reach_m(model, limits, point)
     tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
     origin = np.asarray(model.T_parent_joint)[0, :3, 3]
-    rms = _check_points(csv, table, nominal, xyz, length_unit, (origin, reach, tol))
+    r = _check_points(csv, table, nominal, xyz, length_unit, (origin, reach, tol))
+    rms, warnings = float(np.sqrt(np.mean(r**2))), _far_rows(csv, table, r)
     if orientation is not None:
         _check_orientations(csv, table, T_link[:, :3, :3], orientation)
     del T_link, nominal  # a large table's read-back (`load_dataset`) needs the memory
@@ -526,7 +555,7 @@ def import_csv(
             "measured ones? A real arm is typically 0.5-5 mm off its datasheet, and a calibration on these "
             "points learns nothing"
         )
-    return CsvImport(Path(out), samples, reach, rms, tuple(notes))
+    return CsvImport(Path(out), samples, reach, rms, tuple(notes), tuple(warnings))
 
 
 def _metadata(
