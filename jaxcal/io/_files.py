@@ -309,10 +309,8 @@ def check_output_file(path, *, inputs=(), overwrite: bool = False, what: str = "
         if given is not None and Path(given).exists():
             source = resolved(given)
             if _is_within(real, source):
-                where = "is" if real == source else "lies inside"
-                raise OutputError(
-                    f"{what} {path}: {where} the input {given}; jaxcal never writes into its inputs"
-                )
+                where = "is the input" if real == source else "lies inside the input"
+                raise OutputError(f"{what} {path}: {where} {given}; jaxcal never writes over its inputs")
     if real.is_dir():
         raise OutputError(f"{what} {path}: is a directory; name a file")
     if path.exists() and not overwrite:

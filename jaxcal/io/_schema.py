@@ -99,11 +99,25 @@ def loads(text: str, **kwargs) -> object:
     return doc
 
 
+#: YAML's quoted scalars and comments, which may hold brackets that nest nothing.
+_YAML_TEXT = re.compile(r'"(?:[^"\\]|\\.)*"|\'(?:[^\']|\'\')*\'|#[^\n]*')
+
+
+def _flow_depth(text: str) -> int:
+    """The deepest nesting of YAML's flow brackets (`[`, `{`) outside quotes and comments."""
+    code = np.frombuffer(_YAML_TEXT.sub("", text).encode("utf-8", "replace"), np.uint8)
+    step = np.isin(code, (ord("["), ord("{"))).astype(np.int64) - np.isin(code, (ord("]"), ord("}")))
+    return int(np.cumsum(step).max(initial=0))
+
+
 def load_yaml(text: str) -> object:
     """Safe YAML (ruamel's pure parser), refused as `loads` refuses (`ValueError`); a
-    malformed document raises ruamel's `YAMLError`."""
+    malformed document raises ruamel's `YAMLError`. Flow brackets nested too deep are refused
+    before parsing (ruamel's scanner takes time growing with the square of their depth)."""
     from ruamel.yaml import YAML  # only where a YAML file is read
 
+    if _flow_depth(text) > MAX_DEPTH:
+        raise ValueError(f"nested more than {MAX_DEPTH} levels deep")
     try:
         doc = YAML(typ="safe", pure=True).load(text)
     except RecursionError:
