@@ -417,3 +417,7 @@ def test_the_term_note_says_better_by_less_than_the_threshold():
         f"0.1000 mm by 0.30 %, less than the {100 * CV_GAIN:g} % a term must gain: not kept"
     )
     assert "not better than the geometric model's 0.1000 mm: not kept" in term_note(worse, models)
+    # A term kept, then extended by the next (the real UR5: compliance, then +harmonic1): no note.
+    better = ModelRow(terms=("compliance",), free=31, cv_mean_mm=0.0964)
+    extended = ModelRow(terms=("compliance", "harmonic1"), free=37, cv_mean_mm=0.0916, kept=True)
+    assert term_note(better, (base, better, extended)) is None

@@ -397,19 +397,22 @@ def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Two
     )
 
 
-def term_note(model, models) -> str:
+def term_note(model, models) -> str | None:
     """Why a model with a non-geometric term was not kept, against the model it was tried
-    against (the one without its last term): no better, or better by less than `CV_GAIN`."""
+    against (the one without its last term): no better, or better by less than `CV_GAIN`;
+    None for a model that was kept and then extended by a later term (the table shows it)."""
     base = next(m for m in models if m.terms == model.terms[:-1])
     name = "+".join(base.terms) or "geometric model"
     head = f"the model with {'+'.join(model.terms)}: cross-validation {model.cv_mean_mm:.4f} mm mean"
-    if model.cv_mean_mm < base.cv_mean_mm:
-        gain = 1.0 - model.cv_mean_mm / base.cv_mean_mm
-        return (
-            f"{head}, better than the {name}'s {base.cv_mean_mm:.4f} mm by {100 * gain:.2f} %, less than the "
-            f"{100 * CV_GAIN:g} % a term must gain: not kept"
-        )
-    return f"{head}, not better than the {name}'s {base.cv_mean_mm:.4f} mm: not kept"
+    if model.cv_mean_mm >= base.cv_mean_mm:
+        return f"{head}, not better than the {name}'s {base.cv_mean_mm:.4f} mm: not kept"
+    gain = 1.0 - model.cv_mean_mm / base.cv_mean_mm
+    if gain > CV_GAIN:
+        return None
+    return (
+        f"{head}, better than the {name}'s {base.cv_mean_mm:.4f} mm by {100 * gain:.2f} %, less than the "
+        f"{100 * CV_GAIN:g} % a term must gain: not kept"
+    )
 
 
 def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> TwoStage:
@@ -424,7 +427,7 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
         + f"; fitted residual {pf.residual_mm.rms:.4f} mm RMS"
         + (f", {pf.folds}-fold cross-validation {kept.cv_mean_mm:.4f} mm mean" if pf.folds else "")
     ]
-    notes += [term_note(m, pf.models) for m in pf.models if m.terms and not m.kept]
+    notes += [n for m in pf.models if m.terms and not m.kept and (n := term_note(m, pf.models))]
     return TwoStage(
         sweeps=None,
         counts=(Named("poses", int(pf.used.sum())),),
