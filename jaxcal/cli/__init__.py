@@ -469,6 +469,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"jaxcal: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # what was being written is gone (`jaxcal.io._files`)
+        if not _interrupt.interrupted():  # not the command line's own handling (`run`): as Python does
+            raise
         return _interrupt.report()
 
 
