@@ -606,7 +606,7 @@ def warm_start(tag: str):
     try:
         before = json.loads(manifest.read_text())
         files = [(str(e["program"]), str(e["file"]), e["compiler_options"]) for e in before]
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):  # damaged: the next run rewrites it
         before, files = None, []
     used: dict = {}
     pool = ThreadPoolExecutor(AHEAD_THREADS, thread_name_prefix="jaxcal programs ahead")

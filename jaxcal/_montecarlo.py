@@ -390,6 +390,14 @@ def dynamic_setup(setup: MonteCarloSetup) -> MonteCarloSetup:
 #: straggler costs the whole batch its steps; chunks bound that cost (one batch
 #: of 1000 UR5e trials took over twice as long: docs/performance.md, Monte Carlo).
 CPU_CHUNK = 250
+#: ... and on an accelerator at most this many (a device's share of the trials at once when
+#: fewer): the chunk sets the memory (a trial's sweeps, fits and Jacobians), and 10,000 at once
+#: ran no faster than chunks of 1000 on an H100 (docs/performance.md, Monte Carlo).
+ACCELERATOR_CHUNK = 10_000
+#: Most trials one `monte_carlo` call runs (the results are held in memory, about 300 bytes a
+#: trial) and most frames per joint sweep (a trial's memory grows with them).
+MAX_TRIALS = 1_000_000
+MAX_FRAMES = 2000
 
 
 #: The name of `trial_mesh`'s one axis: trials are split over it.
@@ -464,8 +472,9 @@ def monte_carlo(
     to round-off (vector widths differ; `tests/test_montecarlo.py` checks four
     CPU devices against one to 1e-12).
 
-    `chunk` defaults to `CPU_CHUNK` on the CPU and to each device's share on an
-    accelerator.
+    `chunk` defaults to `CPU_CHUNK` on the CPU and to each device's share (at most
+    `ACCELERATOR_CHUNK`) on an accelerator. `trials` and the sweeps' frames are bounded
+    (`MAX_TRIALS`, `MAX_FRAMES`): the memory a call takes grows with both.
 
     **Several hosts.** Start the same script on every host, and initialise JAX's
     distributed runtime before anything else touches JAX; `jax.devices()` then
@@ -495,13 +504,18 @@ def monte_carlo(
     solvers failed have `success == False` (and their codes in
     `arc_result` / `axis_result`); they never raise.
     """
-    if trials < 1:
-        raise ValueError(f"monte_carlo: trials must be at least 1, got {trials}")
+    if not 1 <= trials <= MAX_TRIALS:
+        raise ValueError(f"monte_carlo: trials must be from 1 to {MAX_TRIALS:,} (MAX_TRIALS), got {trials}")
+    if not setup.plan.frames <= MAX_FRAMES:
+        raise ValueError(
+            f"monte_carlo: at most {MAX_FRAMES} frames per sweep (MAX_FRAMES), got {setup.plan.frames}"
+        )
     check_revolute(setup.nominal, "monte_carlo")
     mesh = trial_mesh(devices)
     per_device = -(-trials // mesh.size)
     if chunk is None:
-        chunk = CPU_CHUNK if mesh.devices.flat[0].platform == "cpu" else per_device
+        cpu = mesh.devices.flat[0].platform == "cpu"
+        chunk = CPU_CHUNK if cpu else min(per_device, ACCELERATOR_CHUNK)
     if chunk < 1:
         raise ValueError(f"monte_carlo: chunk must be at least 1, got {chunk}")
     setup = dynamic_setup(setup)

@@ -79,6 +79,17 @@ QUANTILE_DRAWS = 4000
 JOINT_TOLERANCE = np.radians(1.0)
 #: Cartesian-box sampling: configurations drawn per round and the most drawn in all.
 BOX_CHUNK, BOX_MAX_DRAWS = 20_000, 1_000_000
+#: Most configurations one certificate takes (`samples`, or the rows of `poses`): its figures
+#: settle long before (docs/certify.md), while its time and its file grow with them.
+MAX_POSES = 100_000
+#: Configurations per chunk of the prediction (covariances, points, quantiles, the hull): the
+#: memory a certificate takes is bounded by it, whatever the region's size.
+POSE_CHUNK = 5000
+#: Values of the region's error distribution kept for its 95th percentile: each pose's first
+#: ceil(MIXTURE_VALUES / poses) draws (all `QUANTILE_DRAWS` of them up to 1000 poses).
+MIXTURE_VALUES = 4_000_000
+#: Covariances whose norm quantiles are drawn at once (`norm_quantiles`).
+QUANTILE_CHUNK = 500
 #: The caveat of a capture of stop-and-shoot camera views (a planned capture).
 COHERENT_VIEWS = (
     "a capture of camera views at stops (e.g. a planned capture): the detector's errors can add up "
@@ -308,14 +319,36 @@ def load_predictor(result) -> Predictor:
 
 
 def norm_quantiles(
-    cov: np.ndarray, p: float = 0.95, draws: int = QUANTILE_DRAWS
+    cov: np.ndarray, p: float = 0.95, draws: int = QUANTILE_DRAWS, keep: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per `(3, 3)` covariance of `cov` `(C, 3, 3)`, the `p` quantile of the norm of
-    $e \\sim N(0, \\Sigma)$, and the norms at the fixed draws `(C, draws)` (m)."""
+    $e \\sim N(0, \\Sigma)$, and the norms at the first `keep` (default all) of the fixed
+    draws `(C, keep)` (m). Computed `QUANTILE_CHUNK` covariances at a time (16 MB of draws)."""
     lam = np.clip(np.linalg.eigvalsh(cov), 0.0, None)
     z2 = np.random.default_rng(0).standard_normal((draws, 3)) ** 2
-    d = np.sqrt(lam @ z2.T)
-    return np.quantile(d, p, axis=1), d
+    keep = draws if keep is None else keep
+    quantiles, kept = np.empty(len(lam)), np.empty((len(lam), keep))
+    for s in range(0, len(lam), QUANTILE_CHUNK):
+        d = lam[s : s + QUANTILE_CHUNK] @ z2.T
+        np.sqrt(d, out=d)
+        quantiles[s : s + QUANTILE_CHUNK] = np.quantile(d, p, axis=1)
+        kept[s : s + QUANTILE_CHUNK] = d[:, :keep]
+    return quantiles, kept
+
+
+def chunked(fn, q: np.ndarray, chunk: int = POSE_CHUNK) -> np.ndarray:
+    """`fn(q)` (one row out per configuration) over chunks of `chunk` configurations, so that
+    its memory is bounded; the last chunk is padded with its last row to the chunk's size (one
+    compiled program for every chunk). Up to one chunk, `fn(q)` itself."""
+    if len(q) <= chunk:
+        return np.asarray(fn(q))
+    out = []
+    for s in range(0, len(q), chunk):
+        part = q[s : s + chunk]
+        n = len(part)
+        padded = np.concatenate([part, np.repeat(part[-1:], chunk - n, axis=0)]) if n < chunk else part
+        out.append(np.asarray(fn(padded))[:n])
+    return np.concatenate(out)
 
 
 # --------------------------------------------------------------------------- regions
@@ -354,22 +387,42 @@ def joint_box_configurations(pred: Predictor, ranges, n: int, seed: int = 0) -> 
 
 def read_poses(path, joint_names, *, degrees: bool = False) -> np.ndarray:
     """A CSV of configurations: a header naming the robot's joints (any order, other
-    columns ignored), or rows of one value per joint in order (rad, or m; `degrees`: deg)."""
-    text = Path(path).read_text().strip().splitlines()
-    if not text:
-        raise DatasetError(f"{path}: empty")
-    head = [c.strip() for c in text[0].split(",")]
-    rows = text[1:] if set(joint_names) <= set(head) else text
-    cols = [head.index(j) for j in joint_names] if rows is not text else list(range(len(joint_names)))
+    columns ignored), or rows of one value per joint in order (rad, or m; `degrees`: deg);
+    read line by line, at most `MAX_POSES` of them."""
+    rows, cols = [], None
     try:
-        q = np.array([[float(r.split(",")[c]) for c in cols] for r in rows if r.strip()], np.float64)
-    except (ValueError, IndexError) as e:
-        raise DatasetError(
-            f"{path}: each row needs one value per joint {list(joint_names)} (or a header naming them): {e}"
-        ) from None
-    if len(q) == 0 or not np.all(np.isfinite(q)):
-        raise DatasetError(f"{path}: no finite configurations")
+        with open(path, encoding="utf-8-sig") as f:
+            for n, line in enumerate(f, start=1):
+                if not line.strip():
+                    continue
+                cells = line.split(",")
+                if cols is None:
+                    head = [c.strip() for c in cells]
+                    cols = list(range(len(joint_names)))
+                    if set(joint_names) <= set(head):
+                        cols = [head.index(j) for j in joint_names]
+                        continue
+                if len(rows) == MAX_POSES:
+                    raise DatasetError(f"{path}: more than {MAX_POSES:,} configurations (at most MAX_POSES)")
+                rows.append(_pose_row(cells, cols, path, n, joint_names))
+    except (OSError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{path}: cannot read the configurations ({e})") from None
+    if not rows:
+        raise DatasetError(f"{path}: no configurations")
+    q = np.asarray(rows, np.float64)
     return np.radians(q) if degrees else q
+
+
+def _pose_row(cells: list[str], cols: list[int], path, line: int, joint_names) -> list[float]:
+    try:
+        row = [float(cells[c]) for c in cols]
+    except (ValueError, IndexError):
+        raise DatasetError(
+            f"{path} line {line}: each row needs one value per joint {list(joint_names)} (or a header naming them)"
+        ) from None
+    if not all(np.isfinite(row)):
+        raise DatasetError(f"{path} line {line}: a value is not finite (NaN or infinite)")
+    return row
 
 
 # --------------------------------------------------------------------------- the certificate
@@ -394,14 +447,15 @@ def extrapolation(
     per_joint = excess.max(0)
     inside = ws[np.random.default_rng(1).permutation(len(ws))[:1000]]
     # The same prediction as the region's (the parameters' covariance and the unexplained scatter).
-    inside_var = np.trace(pred.covariances(inside, frame), axis1=1, axis2=2) + 3.0 * pred.scatter_var
+    inside_var = np.trace(chunked(lambda c: pred.covariances(c, frame), inside), axis1=1, axis2=2)
+    inside_var = inside_var + 3.0 * pred.scatter_var
     inside_rms = float(np.sqrt(np.mean(inside_var)))
     region_rms = float(np.sqrt(np.mean(rms_m**2)))
-    ws_points = pred.base_points(inside)
+    ws_points = chunked(pred.base_points, inside)
     spatial = _scipy_spatial()
     try:
         hull = spatial.ConvexHull(ws_points)
-        out = np.max(points @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)
+        out = chunked(lambda p: np.max(p @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1), points)
     except spatial.QhullError:  # the calibration's points are flat (e.g. one joint swept)
         out = np.full(len(points), np.nan)
     return Extrapolation(
@@ -444,6 +498,8 @@ def certify(
     """
     if frame not in ("fixed", "base"):
         raise ValueError(f"frame must be 'fixed' or 'base', got {frame!r}")
+    if not 1 <= samples <= MAX_POSES:
+        raise ValueError(f"samples: from 1 to {MAX_POSES:,} configurations (MAX_POSES), got {samples}")
     if sum(r is not None for r in (region, joint_box, poses)) > 1:
         raise ValueError("give one region: a Cartesian box, a joint box or a list of poses")
     pred = result if isinstance(result, Predictor) else load_predictor(result)
@@ -457,15 +513,17 @@ def certify(
         q = np.asarray(poses, np.float64)
         if q.ndim != 2 or q.shape[1] != len(pred.joint_names):
             raise ValueError(f"poses: shape {q.shape}, expected (configurations, {len(pred.joint_names)})")
+        if len(q) > MAX_POSES:
+            raise ValueError(f"poses: {len(q):,} configurations, at most {MAX_POSES:,} (MAX_POSES)")
         desc = Region("poses")
     else:
         box = pred.travel if joint_box is None else joint_box
         q = joint_box_configurations(pred, box, samples, seed)
         desc = Region("joint_box", ranges=tuple(tuple(r) for r in np.asarray(box, float).tolist()))
-    cov = pred.covariances(q, frame) + pred.scatter_var * np.eye(3)
-    b95, draws = norm_quantiles(cov)
+    cov = chunked(lambda c: pred.covariances(c, frame), q) + pred.scatter_var * np.eye(3)
+    b95, draws = norm_quantiles(cov, keep=min(QUANTILE_DRAWS, -(-MIXTURE_VALUES // len(q))))
     rms = np.sqrt(np.trace(cov, axis1=1, axis2=2))
-    points = pred.base_points(q)
+    points = chunked(pred.base_points, q)
     w = int(np.argmax(b95))
     summary = CertificateSummary(
         poses=int(len(q)),

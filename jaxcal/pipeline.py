@@ -12,13 +12,13 @@ device's samples) -> validate
 
 import time
 import warnings
-from pathlib import Path
 
 from . import stages
 from ._cache import enable_compilation_cache
 from ._exported import warm_start
 from .errors import CalibrationError as CalibrationError  # re-exported
 from .errors import SuspectResultError
+from .io._files import resolved
 from .stages import CalibrationResult as CalibrationResult  # re-exported
 from .stages import Limits
 
@@ -113,7 +113,7 @@ def calibrate(
     )  # fmt: skip
     # The programs the last calibration of this dataset called are read while it loads and detects.
     root = getattr(dataset, "root", dataset)
-    with warm_start(f"calibrate {Path(root).resolve()}"):
+    with warm_start(f"calibrate {resolved(root)}"):
         return _stages(dataset, options, strict, t_start)
 
 

@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from ._kinematics import KinematicModel
+from .io._files import SHIPPED_ROBOTS
 from .io.dh_tables import dh_table_model, is_table_file, table_inertials
 from .io.urdf import load_urdf, urdf_inertials
 
-ROBOTS_DIR = Path(__file__).resolve().parents[1] / "data" / "robots"
+ROBOTS_DIR = SHIPPED_ROBOTS
 
 
 def shipped(pattern: str = "*.urdf", strip: str = ".urdf") -> list[str]:

@@ -45,6 +45,7 @@ CASES = {
         ],
     ),
     "long_sweep": (["--smoke"], ["rows", "device", "versions", "notes"]),
+    "import_csv": (["--rows", "200"], ["rows", "seconds", "cpu_s", "peak_rss_mib"]),
     "codebase_counts": (
         ["--brief"],
         [

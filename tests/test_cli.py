@@ -42,5 +42,7 @@ def test_an_unknown_option_is_named_with_the_closest_known_one(argv, words, caps
 
 
 def test_a_negative_number_is_a_value_not_an_unknown_option(capsys):
-    assert main(["plan", "--region=-0.5,-0.5,0,0.5,0.5,0.5", "--frames", "-5", "--out", "x.json"]) == 2
-    assert "too few to identify anything" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # the value, refused by --frames' own type (a count)
+        main(["plan", "--region=-0.5,-0.5,0,0.5,0.5,0.5", "--frames", "-5", "--out", "x.json"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "argument --frames: expected a positive integer, got '-5'" in err, err

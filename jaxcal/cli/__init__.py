@@ -23,8 +23,23 @@ import os
 import re
 import sys
 
+from .. import _interrupt
 from .._cache import enable_compilation_cache
-from ._common import EYE_IN_HAND_SWEEP, add_study_args, degrees, fmt_degrees, home, resolution
+from ._common import (
+    EYE_IN_HAND_SWEEP,
+    MAX_CAMERAS,
+    MAX_FRAMES_PER_JOINT,
+    MAX_MOTION_S,
+    MAX_SAMPLES_PER_JOINT,
+    count,
+    degrees,
+    finite,
+    fmt_degrees,
+    home,
+    resolution,
+    seconds,
+    seed,
+)
 
 
 class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -67,7 +82,7 @@ def _add_simulate_common(p, *, robot_help: str | None) -> None:
         p.add_argument("--robot", default=None, help=robot_help)
     p.add_argument("--out", required=True, help="dataset directory (must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
 
 
 def _add_simulate_parser(sub) -> None:
@@ -81,11 +96,16 @@ def _add_simulate_parser(sub) -> None:
     # The defaults film the demo's capture (EE RMS 0.19 mm refined; the former 640x480, 30 frames per
     # 40-degree sweep gave 1.2 mm): see docs/plan.md, and `simulate-plan` for a planned capture (0.04 mm).
     p.add_argument("--resolution", type=resolution, default=(1280, 960), help="WxH pixels")
-    p.add_argument("--frames-per-joint", type=int, default=40)
+    p.add_argument(
+        "--frames-per-joint",
+        type=count(2, MAX_FRAMES_PER_JOINT),
+        default=40,
+        help=f"frames per joint sweep, at most {MAX_FRAMES_PER_JOINT}",
+    )
     p.add_argument(
         "--sweep-deg", type=degrees, default=80.0, help="angle each joint sweeps (deg), one or one per joint"
     )
-    p.add_argument("--sweep-mm", type=float, default=100.0, help="travel each prismatic joint sweeps (mm)")
+    p.add_argument("--sweep-mm", type=finite, default=100.0, help="travel each prismatic joint sweeps (mm)")
     p.add_argument(
         "--home-deg",
         type=home,
@@ -95,27 +115,32 @@ def _add_simulate_parser(sub) -> None:
     )
     p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
     p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
-    p.add_argument("--cameras", type=int, default=1, help="fixed cameras (eye-to-hand)")
+    p.add_argument(
+        "--cameras",
+        type=count(1, MAX_CAMERAS),
+        default=1,
+        help=f"fixed cameras (eye-to-hand), at most {MAX_CAMERAS}",
+    )
     p.add_argument("--eye-in-hand", action="store_true", help="camera on the flange, board in the world")
     p.add_argument("--markers-on-links", action="store_true", help="a plate on every link too")
     p.add_argument(
         "--random-motion",
-        type=float,
+        type=seconds(MAX_MOTION_S),
         metavar="SECONDS",
         help="move every joint at once through random waypoints for this long, filmed throughout "
-        "(default: joint-by-joint sweeps); calibrated with --markers-on-links",
+        f"(at most {MAX_MOTION_S:g} s; default: joint-by-joint sweeps); calibrated with --markers-on-links",
     )
     p.add_argument(
-        "--motion-amplitude-deg", type=float, default=25.0, help="random motion range, +- about zero"
+        "--motion-amplitude-deg", type=finite, default=25.0, help="random motion range, +- about zero"
     )
-    p.add_argument("--clock-offset-ms", type=float, default=0.0, help="camera clock minus controller clock")
-    p.add_argument("--clock-drift-ppm", type=float, default=0.0)
-    p.add_argument("--clock-jitter-ms", type=float, default=0.0)
+    p.add_argument("--clock-offset-ms", type=finite, default=0.0, help="camera clock minus controller clock")
+    p.add_argument("--clock-drift-ppm", type=finite, default=0.0)
+    p.add_argument("--clock-jitter-ms", type=finite, default=0.0)
     p.add_argument("--unknown-clock-offset", action="store_true", help="leave the offset out of the metadata")
-    p.add_argument("--drop-rate", type=float, default=0.0, help="probability that a frame is lost")
+    p.add_argument("--drop-rate", type=finite, default=0.0, help="probability that a frame is lost")
     p.add_argument("--no-encoders", action="store_true", help="write no encoder log")
     p.add_argument(
-        "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
+        "--distortion", type=finite, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
     )
     _add_capture_models(p)
     p.set_defaults(func=_module("._simulate").cmd_simulate)
@@ -159,10 +184,15 @@ def _add_simulate_tracker_parser(sub) -> None:
         default=None,
         help="the configuration every sweep starts from (deg, one per joint; default 0,0,-90,0,90,0)",
     )
-    p.add_argument("--samples-per-joint", type=int, default=300, help="samples per joint sweep")
-    p.add_argument("--noise-um", type=float, default=10.0, help="position noise, 1-sigma per axis (um)")
     p.add_argument(
-        "--bad-fraction", type=float, default=0.02, help="bad samples (0.3-0.5 mm off) at the sweep ends"
+        "--samples-per-joint",
+        type=count(2, MAX_SAMPLES_PER_JOINT),
+        default=300,
+        help=f"samples per joint sweep, at most {MAX_SAMPLES_PER_JOINT:,}",
+    )
+    p.add_argument("--noise-um", type=finite, default=10.0, help="position noise, 1-sigma per axis (um)")
+    p.add_argument(
+        "--bad-fraction", type=finite, default=0.02, help="bad samples (0.3-0.5 mm off) at the sweep ends"
     )
     p.add_argument("--device-is-base", action="store_true", help="the device frame is the robot's base frame")
     p.add_argument("--orientation", action="store_true", help="also measure an orientation (6-DoF probe)")
@@ -198,9 +228,14 @@ def _add_calibration_parsers(sub) -> None:
         "demo", help="render a perturbed UR5e, calibrate it from the images, show before/after"
     )
     p.add_argument("--out", default="jaxcal-demo", help="where the dataset and the results go")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--resolution", type=resolution, default=(1280, 960), help="WxH pixels")
-    p.add_argument("--frames-per-joint", type=int, default=40)
+    p.add_argument(
+        "--frames-per-joint",
+        type=count(2, MAX_FRAMES_PER_JOINT),
+        default=40,
+        help=f"frames per joint sweep, at most {MAX_FRAMES_PER_JOINT}",
+    )
     p.add_argument(
         "--sweep-deg",
         type=degrees,
@@ -209,7 +244,12 @@ def _add_calibration_parsers(sub) -> None:
         + fmt_degrees(EYE_IN_HAND_SWEEP)
         + ")",
     )
-    p.add_argument("--cameras", type=int, default=1, help="fixed cameras filming the arm")
+    p.add_argument(
+        "--cameras",
+        type=count(1, MAX_CAMERAS),
+        default=1,
+        help=f"fixed cameras filming the arm, at most {MAX_CAMERAS}",
+    )
     p.add_argument(
         "--eye-in-hand", action="store_true", help="the camera on the flange, a ChArUco board in the world"
     )
@@ -268,10 +308,11 @@ def _add_import_bag_parser(sub) -> None:
 
 def _add_montecarlo_parser(sub) -> None:
     p = sub.add_parser("montecarlo", help="vmapped Monte Carlo sensitivity study (analytic marker poses)")
-    add_study_args(p, trials=1000)
+    study = _module("._study")
+    study.add_study_args(p, trials=1000)
     p.add_argument("--json", help="write the summary here (atomically)")
     p.add_argument("--detail", action="store_true", help="first show one trial in detail")
-    p.set_defaults(func=_module("._study").cmd_montecarlo)
+    p.set_defaults(func=study.cmd_montecarlo)
 
 
 #: The subcommands in `--help`'s order, by the function adding their parsers.
@@ -435,6 +476,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as e:
         print(f"jaxcal: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # what was being written is gone (`jaxcal.io._files`)
+        if not _interrupt.interrupted():  # not the command line's own handling (`run`): as Python does
+            raise
+        return _interrupt.report()
 
 
 def run() -> None:
@@ -443,13 +488,17 @@ def run() -> None:
     before `main` returns; what Python's shutdown would do next, tearing down JAX's backend
     and its compiled programs, costs most of a second of a warm `jaxcal calibrate` and saves
     nothing. A program still compiling ahead (a run that stopped early) is waited for, and
-    JAX's pending effects; an exception (argparse's exit included) ends the process as usual."""
+    JAX's pending effects; an exception (argparse's exit included) ends the process as usual.
+    Ctrl-C (SIGINT) ends it within `jaxcal._interrupt.STOP_S` seconds, exit 130, leaving nothing
+    behind (`jaxcal._interrupt`): nothing is waited for then."""
+    _interrupt.install()
     code = main()
-    programs = sys.modules.get("jaxcal.stages._programs")
-    if programs is not None:
-        programs.wait_ahead()
-    if "jax" in sys.modules:
-        sys.modules["jax"].effects_barrier()
+    if not _interrupt.interrupted():
+        programs = sys.modules.get("jaxcal.stages._programs")
+        if programs is not None:
+            programs.wait_ahead()
+        if "jax" in sys.modules:
+            sys.modules["jax"].effects_barrier()
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()

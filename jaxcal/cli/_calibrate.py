@@ -7,8 +7,11 @@ import sys
 from pathlib import Path
 
 from .._exported import warm_start
-from ..io._files import check_output_dir, marked_directory, output_lock
-from ._common import CLOCK_MODES, positive_int
+from ..io._files import check_output_dir, marked_directory, output_lock, resolved
+from ._common import CLOCK_MODES, MAX_WORKERS, count
+
+#: `--cv-folds`: the folds' fits are solved at once (one vmap), memory growing with them.
+MAX_CV_FOLDS = 100
 
 
 def _terms(text: str) -> tuple[str, ...]:
@@ -31,7 +34,7 @@ def cmd_calibrate(args) -> int:
     )
     # The programs the last run on DATASET called are read ahead from here on, while the
     # calibration's modules are imported and the images detected (`jaxcal._exported.warm_start`).
-    with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {Path(args.dataset).resolve()}"):
+    with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {resolved(args.dataset)}"):
         from ._calibrate_run import calibrate_dataset
 
         return calibrate_dataset(args, out, checked)
@@ -65,7 +68,9 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         "each with its own T_cam_base)",
     )
     p.add_argument(
-        "--workers", type=positive_int, help="threads for marker detection, >= 1 (default: all cores)"
+        "--workers",
+        type=count(1, MAX_WORKERS),
+        help=f"threads for marker detection, 1 to {MAX_WORKERS} (default: all cores)",
     )
     p.add_argument(
         "--clock",
@@ -118,10 +123,10 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--cv-folds",
-        type=int,
+        type=count(0, MAX_CV_FOLDS),
         default=5,
         help="stop-and-shoot tracker data: folds of the cross-validation that gates --terms and is reported "
-        "(0: none)",
+        f"(0: none; at most {MAX_CV_FOLDS}: each fold is a fit, all held at once)",
     )
     g = p.add_mutually_exclusive_group()
     g.add_argument(

@@ -13,7 +13,7 @@ from rich.table import Table
 from .._exported import warm_start
 from ..certification import certify
 from ..errors import CalibrationError
-from ..io._files import note_written, write_text_atomic
+from ..io._files import note_written, resolved, write_text_atomic
 from ..io.checks import certificate_json
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
@@ -265,5 +265,5 @@ def demo(out: Path, args) -> int:
         + f"clock offset 40 ms, not given to the calibration) in {time.perf_counter() - t0:.1f} s"
     )
     # The programs the last demo with this dataset called are read ahead while it calibrates.
-    with warm_start(f"jaxcal calibrate {Path(dataset).resolve()}"):
+    with warm_start(f"jaxcal calibrate {resolved(dataset)}"):
         return _run_calibration(console, dataset, out / "result", args, overwrite=True)

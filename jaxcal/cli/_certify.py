@@ -2,17 +2,15 @@
 
 import importlib
 import json
-import tempfile
-from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 
 from .._exported import warm_start
-from ..certification import certify, plot_certificate, read_poses
-from ..errors import OutputError
-from ..io._files import write_text_atomic
+from ..certification import MAX_POSES, certify, plot_certificate, read_poses
+from ..io._files import atomic_file, check_output_file, resolved, write_text_atomic
 from ..io.checks import certificate_json, drift_check_json, read_calibration
+from ._common import MAX_WORKERS, count, seed
 
 
 def check(*args, **kwargs):
@@ -22,25 +20,20 @@ def check(*args, **kwargs):
 
 
 def check_output(path: str | None, inputs: list[str], overwrite: bool, what: str) -> None:
-    """Refuse an output file that lies in an input, or exists without `overwrite`."""
-    if path is None:
-        return
-    p = Path(path).resolve()
-    for i in inputs:
-        q = Path(i).resolve()
-        if p == q or q in p.parents or (q.is_dir() and p.is_relative_to(q)):
-            raise OutputError(f"{what} {path}: it lies in an input ({i}); choose another path")
-    if p.exists() and not overwrite:
-        raise OutputError(f"{what} {path} exists; give --overwrite to replace it")
+    """Refuse, before any work, an output file in an input, existing without `overwrite`, or in a
+    folder that does not exist (`jaxcal.io._files.check_output_file`)."""
+    check_output_file(path, inputs=inputs, overwrite=overwrite, what=what)
 
 
 def _floats(text: str, n: int | None = None) -> list[float]:
     try:
         v = [float(s) for s in text.replace(" ", "").split(",") if s]
     except ValueError:
-        raise ValueError(f"{text!r}: give comma-separated numbers") from None
+        raise ValueError(f"--region {text!r}: give comma-separated numbers") from None
     if n is not None and len(v) != n:
-        raise ValueError(f"{text!r}: give {n} comma-separated numbers, got {len(v)}")
+        raise ValueError(f"--region {text!r}: give {n} comma-separated numbers, got {len(v)}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"--region {text!r}: give finite numbers")
     return v
 
 
@@ -50,8 +43,8 @@ def _joint_box(text: str) -> np.ndarray:
         rows = [[float(a) for a in part.split(":")] for part in text.replace(" ", "").split(",")]
     except ValueError:
         raise ValueError(f"--joint-box {text!r}: give lo:hi per joint, comma-separated (deg)") from None
-    if any(len(r) != 2 for r in rows):
-        raise ValueError(f"--joint-box {text!r}: give lo:hi per joint, comma-separated (deg)")
+    if any(len(r) != 2 for r in rows) or not np.all(np.isfinite(rows)):
+        raise ValueError(f"--joint-box {text!r}: give lo:hi per joint, comma-separated (deg, finite)")
     return np.radians(np.asarray(rows, np.float64))
 
 
@@ -68,8 +61,13 @@ def add_certify_parsers(sub) -> None:
         "--poses", help="CSV of configurations: a header naming the joints, or one column per joint"
     )
     p.add_argument("--degrees", action="store_true", help="--poses are in degrees (else rad)")
-    p.add_argument("--samples", type=int, default=1000, help="configurations drawn in a box")
-    p.add_argument("--seed", type=int, default=0, help="seed of the configurations drawn")
+    p.add_argument(
+        "--samples",
+        type=count(1, MAX_POSES),
+        default=1000,
+        help=f"configurations drawn in a box, at most {MAX_POSES:,}",
+    )
+    p.add_argument("--seed", type=seed, default=0, help="seed of the configurations drawn")
     p.add_argument(
         "--frame",
         choices=("fixed", "base"),
@@ -94,18 +92,19 @@ def add_certify_parsers(sub) -> None:
         "result, a hand-eye capture (handeye.json, poses.csv, images) of the same camera and target",
     )
     p.add_argument("--joint-offsets", action="store_true", help="also free the joints' zero offsets")
-    p.add_argument("--workers", type=int, help="threads detecting the images (default: every core)")
+    p.add_argument(
+        "--workers",
+        type=count(1, MAX_WORKERS),
+        help=f"threads detecting the images (default: every core; at most {MAX_WORKERS})",
+    )
     p.add_argument("--json", help="write the check's figures here (atomically)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.set_defaults(func=cmd_check)
 
 
 def _write_plot(c, path: str) -> None:
-    dest = Path(path)
-    with tempfile.TemporaryDirectory(dir=dest.parent) as tmp:
-        tmp_png = Path(tmp) / dest.name
-        plot_certificate(c, tmp_png)
-        tmp_png.replace(dest)
+    with atomic_file(path) as tmp:
+        plot_certificate(c, tmp)
 
 
 def print_certificate(console, c) -> None:
@@ -156,7 +155,7 @@ def cmd_certify(args) -> int:
         names = read_calibration(args.result).joint_names
         poses = read_poses(args.poses, names, degrees=args.degrees)
     # The programs the last certificate of this result called are read while this one starts.
-    with warm_start(f"jaxcal certify {Path(args.result).resolve()}"):
+    with warm_start(f"jaxcal certify {resolved(args.result)}"):
         c = certify(args.result, **where, poses=poses, samples=args.samples, frame=args.frame, seed=args.seed)
     console = Console(width=max(Console().width, 110))
     print_certificate(console, c)

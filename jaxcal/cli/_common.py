@@ -1,56 +1,47 @@
-"""Shared pieces of the command line: argument types and JSON output."""
+"""Shared pieces of the command line: argument types (`finite` and `count`: `jaxcal._argtypes`)."""
 
 import argparse
-import json
-from pathlib import Path
 
 import numpy as np
 
-from ..io._files import write_text_atomic
+from .._argtypes import count as count
+from .._argtypes import finite as finite
+from ..io._images import MAX_PIXELS, MAX_SIDE
+
+#: Bounds of the options that size a simulated capture (work, memory and disk grow with them).
+MAX_CAMERAS = 8
+MAX_FRAMES_PER_JOINT = 2000
+MAX_SAMPLES_PER_JOINT = 100_000
+MAX_MOTION_S = 600.0
+#: `--workers`: threads (or processes) detecting markers.
+MAX_WORKERS = 256
+#: `--seed`: what NumPy's and JAX's generators take.
+seed = count(0, 2**32 - 1)
 
 
-def write_json_atomic(path: Path, payload: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(path, json.dumps(payload, indent=2))
+def seconds(hi: float):
+    """An argparse type: a duration in (0, `hi`] seconds."""
 
+    def parse(text: str) -> float:
+        v = finite(text)
+        if not 0.0 < v <= hi:
+            raise argparse.ArgumentTypeError(f"expected seconds in (0, {hi:g}], got {text!r}")
+        return v
 
-def positive_int(text: str) -> int:
-    """An argparse type: an integer >= 1."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return v
-
-
-def add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
-    p.add_argument(
-        "--robot",
-        default="ur5e",
-        help="shipped robot (ur5e, panda, ur10e, iiwa14, ...: data/robots), a URDF or a DH/MDH table file",
-    )
-    p.add_argument("--trials", type=int, default=trials)
-    p.add_argument(
-        "--chunk",
-        type=int,
-        default=None,
-        help="trials per vmapped chunk (default 250 on the CPU, all at once on a GPU; see monte_carlo)",
-    )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--noise-mm", type=float, default=0.1, help="marker position noise (mm)")
-    p.add_argument("--noise-deg", type=float, default=0.05, help="marker orientation noise (deg)")
-    p.add_argument("--encoder-noise-deg", type=float, default=0.0)
-    p.add_argument("--sweep-deg", type=float, default=60.0, help="angle each joint sweeps (deg)")
-    p.add_argument("--frames", type=int, default=40, help="camera frames per joint sweep")
+    return parse
 
 
 def resolution(text: str) -> tuple[int, int]:
+    """`WxH` pixels, each side from 1 to `MAX_SIDE` and at most `MAX_PIXELS` in all (what the
+    dataset reader takes)."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"resolution must look like 640x480, got {text!r}") from None
+    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE and w * h <= MAX_PIXELS):
+        raise argparse.ArgumentTypeError(
+            f"resolution {text!r}: each side from 1 to {MAX_SIDE} pixels, at most {MAX_PIXELS / 1e6:g} megapixels"
+        )
     return w, h
 
 
@@ -70,10 +61,10 @@ def degrees(text: str) -> float | tuple[float, ...]:
 def home(text: str) -> tuple[float, ...]:
     """One angle per joint, in degrees ("0,-20,30,-15,20,0")."""
     try:
-        return tuple(float(x) for x in text.split(","))
-    except ValueError:
+        return tuple(finite(x) for x in text.split(","))
+    except (ValueError, argparse.ArgumentTypeError):
         raise argparse.ArgumentTypeError(
-            f"home must look like 0,-20,30,-15,20,0 (deg), got {text!r}"
+            f"home must look like 0,-20,30,-15,20,0 (deg, finite), got {text!r}"
         ) from None
 
 

@@ -7,10 +7,13 @@ from pathlib import Path
 import numpy as np
 
 from .._exported import warm_start
-from ..io._files import check_output_dir, output_lock
-from ._common import resolution
+from ..io._files import check_output_dir, output_lock, resolved
+from ._common import MAX_WORKERS, count, finite, resolution, seed
 
 # --------------------------------------------------------------------------- hand-eye
+
+#: Bounds of `handeye --folds` (each fold a solve), `--max-steps` and `simulate-handeye --frames`.
+MAX_FOLDS, MAX_STEPS, MAX_FRAMES = 100, 100_000, 2000
 
 #: Targets `jaxcal simulate-handeye --target` renders (sizes for 640x480 at about 0.5 m).
 SIM_TARGETS = {
@@ -61,7 +64,7 @@ def cmd_handeye(args) -> int:
     )
     # The solver the last run on this capture called is read from the first moment the capture is
     # known, while the calibration's modules are imported and the images detected.
-    with output_lock(out, what="--out"), warm_start(f"jaxcal handeye {Path(args.capture).resolve()}"):
+    with output_lock(out, what="--out"), warm_start(f"jaxcal handeye {resolved(args.capture)}"):
         from ..report import warm_up_plots
 
         plots = warm_up_plots()  # matplotlib loads while the capture is calibrated
@@ -187,22 +190,37 @@ def add_handeye_parsers(sub) -> None:
     p.add_argument("capture", help="capture directory (handeye.json, poses.csv, images/)")
     p.add_argument("--out", required=True, help="result directory (must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
-    p.add_argument("--sigma-px", type=float, help="detector noise, px (default: estimated from per-view PnP)")
+    p.add_argument(
+        "--sigma-px", type=finite, help="detector noise, px (default: estimated from per-view PnP)"
+    )
     p.add_argument(
         "--robot-sigma-mm",
-        type=float,
+        type=finite,
         help="robot pose noise per axis, mm: each pose gets a correction with this prior "
         "(default: estimated from the data, with --robot-sigma-deg)",
     )
     p.add_argument(
         "--robot-sigma-deg",
-        type=float,
+        type=finite,
         help="robot pose noise per axis, deg (with --robot-sigma-mm; 0.05 when only that is given)",
     )
-    p.add_argument("--folds", type=int, default=10, help="k of the k-fold spread (0: skip)")
-    p.add_argument("--max-steps", type=int, default=200, help="Levenberg-Marquardt steps per stage")
     p.add_argument(
-        "--workers", type=int, default=None, help="threads for marker detection (default: all cores)"
+        "--folds",
+        type=count(0, MAX_FOLDS),
+        default=10,
+        help=f"k of the k-fold spread (0: skip; at most {MAX_FOLDS})",
+    )
+    p.add_argument(
+        "--max-steps",
+        type=count(1, MAX_STEPS),
+        default=200,
+        help=f"Levenberg-Marquardt steps per stage, at most {MAX_STEPS:,}",
+    )
+    p.add_argument(
+        "--workers",
+        type=count(1, MAX_WORKERS),
+        default=None,
+        help=f"threads for marker detection (default: all cores; at most {MAX_WORKERS})",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_handeye)
@@ -216,12 +234,14 @@ def add_handeye_parsers(sub) -> None:
         "--dictionary", help="ArUco/AprilTag dictionary of a marker target (e.g. DICT_APRILTAG_36h11)"
     )
     p.add_argument("--arrangement", choices=("eye-in-hand", "eye-to-hand"), default="eye-in-hand")
-    p.add_argument("--frames", type=int, default=16)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--resolution", type=resolution, default=(640, 480), help="WxH pixels")
-    p.add_argument("--distance", type=float, default=0.5, help="camera to target, m")
     p.add_argument(
-        "--distortion", type=float, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
+        "--frames", type=count(3, MAX_FRAMES), default=16, help=f"robot poses, at most {MAX_FRAMES}"
+    )
+    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--resolution", type=resolution, default=(640, 480), help="WxH pixels")
+    p.add_argument("--distance", type=finite, default=0.5, help="camera to target, m")
+    p.add_argument(
+        "--distortion", type=finite, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
     )
     p.add_argument(
         "--pose-format", choices=("matrix", "xyz_quat", "xyz_rpy", "xyz_rotvec"), default="xyz_quat"
@@ -229,19 +249,19 @@ def add_handeye_parsers(sub) -> None:
     p.add_argument("--translation-unit", choices=("m", "mm"), default="m")
     p.add_argument("--rotation-unit", choices=("rad", "deg"), default="rad")
     p.add_argument(
-        "--robot-error-fraction", type=float, default=0.0, help="share of robot poses recorded wrong"
+        "--robot-error-fraction", type=finite, default=0.0, help="share of robot poses recorded wrong"
     )
-    p.add_argument("--robot-error-deg", type=float, default=2.0)
-    p.add_argument("--robot-error-mm", type=float, default=5.0)
+    p.add_argument("--robot-error-deg", type=finite, default=2.0)
+    p.add_argument("--robot-error-mm", type=finite, default=5.0)
     p.add_argument(
         "--robot-noise-mm",
-        type=float,
+        type=finite,
         default=0.0,
         help="robot pose noise on every recorded pose, mm per axis",
     )
     p.add_argument(
         "--robot-noise-deg",
-        type=float,
+        type=finite,
         default=0.0,
         help="robot pose noise on every recorded pose, deg per axis",
     )

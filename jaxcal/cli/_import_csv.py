@@ -7,6 +7,7 @@ import math
 from ..io._tracker import DEVICE_KINDS
 from ..io.csv_import import ANGLE_UNITS, LENGTH_UNITS, ORIENTATION_FORMATS, POSE_DIRECTIONS, import_csv
 from ..robots import robot_file
+from ._common import finite
 
 
 def _columns(count: int | None):
@@ -30,8 +31,8 @@ def _triple(unit: str):
             v = [float(x) for x in text.split(",")]
         except ValueError:
             v = []
-        if len(v) != 3:
-            raise argparse.ArgumentTypeError(f"expected x,y,z ({unit}), got {text!r}")
+        if len(v) != 3 or not all(math.isfinite(x) for x in v):
+            raise argparse.ArgumentTypeError(f"expected x,y,z ({unit}, finite), got {text!r}")
         return v
 
     return parse
@@ -72,7 +73,7 @@ def add_import_csv_parser(sub) -> None:
         choices=sorted(LENGTH_UNITS),
         help="unit of the x,y,z (and prismatic) columns",
     )
-    p.add_argument("--sigma-mm", required=True, type=float, help="position noise, 1-sigma per axis (mm)")
+    p.add_argument("--sigma-mm", required=True, type=finite, help="position noise, 1-sigma per axis (mm)")
     p.add_argument(
         "--point-mm", type=_triple("mm"), help="the point's offset on --link, x,y,z (mm; default unknown)"
     )
@@ -102,7 +103,7 @@ def add_import_csv_parser(sub) -> None:
     )
     p.add_argument(
         "--sigma-deg",
-        type=float,
+        type=finite,
         help="orientation noise, 1-sigma per axis (deg; required with --orientation)",
     )
     p.add_argument("--time", help="a timestamp column (s, strictly increasing; default: the row index)")
@@ -162,4 +163,6 @@ def cmd_import_csv(args) -> int:
     )
     for note in r.notes:
         print(f"note: {note}")
+    for warning in r.warnings:
+        print(f"warning: {warning}")
     return 0

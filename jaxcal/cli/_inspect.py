@@ -6,14 +6,16 @@ import json
 from ..inspection import format_inspection, inspect_dataset
 from ..io.rosbag import bag_topics, is_bag, open_bag
 from ..records import plain
-from ._common import positive_int
+from ._common import count
 from ._rosbag import add_bag_args, dataset_of
 
 
 def add_inspect_parser(sub) -> None:
     p = sub.add_parser("inspect", help="what a dataset or ROS bag holds: cameras, sweeps, clocks, detections")
     p.add_argument("dataset", help="dataset directory or ROS bag (a bag without --images etc.: its topics)")
-    p.add_argument("--sample", type=positive_int, default=5, help="frames per camera tried for detection")
+    p.add_argument(
+        "--sample", type=count(1, 1000), default=5, help="frames per camera tried for detection, at most 1000"
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     add_bag_args(p, required=False)
     p.set_defaults(func=cmd_inspect)

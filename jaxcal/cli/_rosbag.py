@@ -1,12 +1,15 @@
 """`jaxcal import-bag` and the bag options of `jaxcal calibrate BAG`: ROS bags in (jaxcal.io.rosbag)."""
 
 import argparse
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
+from .. import _interrupt
 from ..errors import BagError
 from ..io._rosmsgs import SegmentOptions
+from ._common import finite
 
 
 def add_bag_args(p: argparse.ArgumentParser, *, required: bool) -> None:
@@ -35,7 +38,7 @@ def add_bag_args(p: argparse.ArgumentParser, *, required: bool) -> None:
     p.add_argument("--flange-link", help="the chain's flange link (default: the URDF's one leaf)")
     p.add_argument(
         "--velocity-threshold",
-        type=float,
+        type=finite,
         default=SegmentOptions.velocity_threshold,
         help="a joint moves above this speed (rad/s): motion segments from the joint log",
     )
@@ -83,7 +86,10 @@ def dataset_of(args, say=print):
     if not is_bag(args.dataset):
         yield args.dataset
         return
-    with tempfile.TemporaryDirectory(prefix="jaxcal-bag-") as tmp:
+    with (
+        tempfile.TemporaryDirectory(prefix="jaxcal-bag-") as tmp,
+        _interrupt.partial(lambda: shutil.rmtree(tmp, ignore_errors=True)),
+    ):
         r = _import(args, args.dataset, Path(tmp) / "dataset", overwrite=False)
         say(f"imported {args.dataset}: {r.frames} images, {r.joint_samples} joint states")
         for note in r.notes:

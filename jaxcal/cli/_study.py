@@ -1,7 +1,8 @@
 """`jaxcal montecarlo`: the vmapped sensitivity study and its tables."""
 
+import argparse
+import json
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -11,8 +12,38 @@ from rich.table import Table
 
 from .. import _montecarlo as mc
 from .._axisfit import parameter_names
+from ..io._files import check_output_file, write_text_atomic
 from ..robots import load_robot_file
-from ._common import write_json_atomic
+from ._common import count, finite, seed
+
+
+def add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
+    p.add_argument(
+        "--robot",
+        default="ur5e",
+        help="shipped robot (ur5e, panda, ur10e, iiwa14, ...: data/robots), a URDF or a DH/MDH table file",
+    )
+    p.add_argument(
+        "--trials", type=count(1, mc.MAX_TRIALS), default=trials, help=f"trials, at most {mc.MAX_TRIALS:,}"
+    )
+    p.add_argument(
+        "--chunk",
+        type=count(1, mc.MAX_TRIALS),
+        default=None,
+        help="trials per vmapped chunk: the memory a run takes (default 250 on the CPU, on a GPU all at once "
+        "up to 10,000; see monte_carlo)",
+    )
+    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--noise-mm", type=finite, default=0.1, help="marker position noise (mm)")
+    p.add_argument("--noise-deg", type=finite, default=0.05, help="marker orientation noise (deg)")
+    p.add_argument("--encoder-noise-deg", type=finite, default=0.0)
+    p.add_argument("--sweep-deg", type=finite, default=60.0, help="angle each joint sweeps (deg)")
+    p.add_argument(
+        "--frames",
+        type=count(3, mc.MAX_FRAMES),
+        default=40,
+        help=f"camera frames per joint sweep, at most {mc.MAX_FRAMES}",
+    )
 
 
 def _setup(args):
@@ -106,7 +137,7 @@ def _summary_table(console, summary: dict, title: str):
 
 
 def cmd_montecarlo(args) -> int:
-
+    check_output_file(args.json, overwrite=True, what="--json")
     setup = _setup(args)
     ok = True
     if args.detail:
@@ -127,7 +158,7 @@ def cmd_montecarlo(args) -> int:
         f"Monte Carlo: {args.trials} trials in one jit call ('seconds' includes compiling it, unless cached)",
     )
     if args.json:
-        write_json_atomic(Path(args.json), summary)
+        write_text_atomic(args.json, json.dumps(summary, indent=2))
     rate = float(np.asarray(result.success).mean())  # summary's success_rate
     ok = ok and rate == 1.0 if args.detail else rate > 0
     return 0 if ok else 1

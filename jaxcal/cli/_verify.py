@@ -1,16 +1,16 @@
 """`jaxcal verify RESULT DATASET`: a stop-and-shoot calibration against held-out samples (jaxcal.verification)."""
 
 import json
-import tempfile
-from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
 
-from ..io._files import write_text_atomic
+from ..io._files import atomic_file, write_text_atomic
 from ..io.checks import verification_json
 from ..verification import plot_verification, verify
+from ._calibrate import MAX_CV_FOLDS
 from ._certify import check_output
+from ._common import count
 
 
 def add_verify_parser(sub) -> None:
@@ -20,7 +20,12 @@ def add_verify_parser(sub) -> None:
     )
     p.add_argument("result", help="the directory jaxcal calibrate wrote (or its result.json)")
     p.add_argument("dataset", help="a tracker dataset of the same robot and device")
-    p.add_argument("--cv", type=int, default=0, help="also K-fold cross-validate on DATASET (K >= 2; 0: no)")
+    p.add_argument(
+        "--cv",
+        type=count(0, MAX_CV_FOLDS),
+        default=0,
+        help="also K-fold cross-validate on DATASET (K >= 2; 0: no)",
+    )
     p.add_argument("--json", help="write the per-sample figures here (atomically)")
     p.add_argument("--plot", help="write a PNG: error per sample and histogram")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--plot file")
@@ -82,10 +87,7 @@ def cmd_verify(args) -> int:
         write_text_atomic(args.json, json.dumps(verification_json(v), indent=1))
         console.print(f"wrote {args.json}")
     if args.plot:
-        dest = Path(args.plot)
-        with tempfile.TemporaryDirectory(dir=dest.parent) as tmp:
-            tmp_png = Path(tmp) / dest.name
-            plot_verification(v, tmp_png)
-            tmp_png.replace(dest)
+        with atomic_file(args.plot) as tmp:
+            plot_verification(v, tmp)
         console.print(f"wrote {args.plot}")
     return v.exit_code

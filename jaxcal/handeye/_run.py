@@ -3,13 +3,13 @@ assembles their records into a `HandEyeRun`; `jaxcal.io.handeye_results` writes 
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from .._cache import enable_compilation_cache
 from .._exported import warm_start
 from .._handeye import HandEyeResult, HandEyeVerdict, KFoldSpread, pose_difference
+from ..io._files import resolved
 from ..io.handeye import HandEyeCapture, true_T_robot_cam
 from ..records import Intrinsics
 from ..vision import HandEyeObservations
@@ -109,7 +109,7 @@ def calibrate_hand_eye_capture(
     """
     enable_compilation_cache()
     # The solver the last run on this capture called is read while this one loads and detects.
-    with warm_start(f"handeye {Path(getattr(capture, 'root', capture)).resolve()}"):
+    with warm_start(f"handeye {resolved(getattr(capture, 'root', capture))}"):
         observed = observe(
             capture,
             robot_sigma_translation=robot_sigma_translation,

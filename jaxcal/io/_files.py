@@ -19,6 +19,13 @@ renamed into place (`atomic_directory`):
 - the final rename refuses (Linux `renameat2(RENAME_NOREPLACE)`) a directory
   that appeared at the output during the run; on any failure nothing partial
   is left and an existing output is untouched.
+
+Output files (`--json`, `--plot`, `plan --out`) follow the same rules by
+`check_output_file` before any work, and are written through `atomic_file`.
+Every temporary directory and file, and every lock, is registered with
+`jaxcal._interrupt` while it exists, so that a command the user interrupts
+(Ctrl-C) leaves none of them behind, and nothing is renamed into place after
+the interrupt.
 """
 
 import ctypes
@@ -34,7 +41,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import OutputError
+from .. import _interrupt
+from ..errors import DatasetError, OutputError
+from ._schema import loads
 
 try:
     import fcntl
@@ -53,20 +62,33 @@ def _umask() -> int:
     return mask
 
 
+@contextmanager
+def atomic_file(path):
+    """Yield a new hidden temporary path beside `path`, with its suffix (matplotlib's `savefig`
+    reads the format from it), for the block to write; when the block ends without an error it
+    replaces `path` at once, so that readers see the old file or the new one, never a part. On
+    an error or an interrupt nothing is left."""
+    path = Path(path)
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + path.suffix)
+    os.close(fd)
+    tmp = Path(name)
+    with _interrupt.partial(lambda: tmp.unlink(missing_ok=True)):
+        try:
+            yield tmp
+            os.chmod(tmp, 0o666 & ~_umask())
+            with _interrupt.committing():
+                os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+
 def write_text_atomic(path, text: str) -> None:
     """Write `text` to `path` (UTF-8) so that readers see the old file or the new one, never a part."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def make_temp_dir(parent: Path, name: str) -> Path:
@@ -74,6 +96,38 @@ def make_temp_dir(parent: Path, name: str) -> Path:
     tmp = Path(tempfile.mkdtemp(dir=parent, prefix=f".{name}.", suffix=".tmp"))
     os.chmod(tmp, 0o777 & ~_umask())
     return tmp
+
+
+#: The robot files jaxcal ships (`jaxcal.robots.ROBOTS_DIR`).
+SHIPPED_ROBOTS = Path(__file__).resolve().parents[2] / "data" / "robots"
+
+
+def shown(path) -> str:
+    """How a message names `path`: a robot file jaxcal ships (the user named it, `ur5_dh`) as
+    `data/robots/ur5_dh.json`, not by the absolute path of the installation; any other path as
+    given."""
+    p = Path(path)
+    try:
+        return (Path("data") / "robots" / p.resolve().relative_to(SHIPPED_ROBOTS)).as_posix()
+    except (ValueError, OSError, RuntimeError):
+        return str(path)
+
+
+def resolved(path, what: str = "", *, error=DatasetError) -> Path:
+    """`Path(path).resolve()`, a loop of symbolic links refused by name (`error`, a `JaxcalError`:
+    `DatasetError` for an input, `OutputError` for an output) rather than Python's `RuntimeError`
+    (before 3.13) or `OSError` (ELOOP)."""
+    try:
+        return Path(path).resolve()
+    except RuntimeError:
+        pass
+    except OSError as e:
+        if e.errno != errno.ELOOP:
+            raise
+    label = f"{what} {path}" if what else str(path)
+    raise error(
+        f"{label}: a loop of symbolic links (it never reaches a file or directory); name the file itself"
+    )
 
 
 # --------------------------------------------------------------------------- the marker
@@ -124,7 +178,7 @@ def read_marker(directory) -> dict | None:
     """The `.jaxcal` marker of `directory` (`tool`, `kind`, `version`), or `None`
     when there is none or it is not one jaxcal wrote."""
     try:
-        data = json.loads((Path(directory) / MARKER).read_text(encoding="utf-8"))
+        data = loads((Path(directory) / MARKER).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
     if not isinstance(data, dict) or data.get("tool") != "jaxcal" or data.get("kind") not in KINDS:
@@ -177,18 +231,18 @@ def check_output_dir(out, *, inputs=(), overwrite: bool = False, kind: str, what
     label = f"{what} {out}"
     if out.is_symlink():
         raise OutputError(f"{label}: is a symbolic link; name the directory itself")
-    resolved = out.resolve()
-    if resolved.parent == resolved:
+    real = resolved(out, what, error=OutputError)
+    if real.parent == real:
         raise OutputError(f"{label}: is a filesystem root")
     for inp in inputs:
-        source = Path(inp).resolve()
-        if resolved == source:
+        source = resolved(inp)
+        if real == source:
             raise OutputError(f"{label}: is the input {inp}; jaxcal never writes over its inputs")
-        if _is_within(source, resolved):
+        if _is_within(source, real):
             raise OutputError(
                 f"{label}: contains the input {inp}; replacing it would delete the input. Choose another {what}"
             )
-        if _is_within(resolved, source):
+        if _is_within(real, source):
             raise OutputError(
                 f"{label}: lies inside the input {inp}; jaxcal never writes into its inputs. "
                 f"Choose another {what}"
@@ -228,7 +282,7 @@ def check_output_dir(out, *, inputs=(), overwrite: bool = False, kind: str, what
                     )
             st = out.lstat()
             replaces = (st.st_dev, st.st_ino)
-    parent = resolved.parent
+    parent = real.parent
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
@@ -238,15 +292,48 @@ def check_output_dir(out, *, inputs=(), overwrite: bool = False, kind: str, what
     return OutputDir(out, kind, replaces)
 
 
+def check_output_file(path, *, inputs=(), overwrite: bool = False, what: str = "output file") -> Path | None:
+    """Check, before any work, that the file `path` may be written (`None` passes through).
+
+    Refused, with an `OutputError` naming `what` and `path`: one of the `inputs`, or a file
+    inside one (whatever `overwrite` says: jaxcal never writes into what it reads); an
+    existing file without `overwrite`; a directory; a file whose folder does not exist. An
+    output file's folder is not created (a misspelt folder would appear silently); an
+    output directory's missing parents are (`output_lock`).
+    """
+    if path is None:
+        return None
+    path = Path(path)
+    real = resolved(path, what, error=OutputError)
+    for given in inputs:
+        if given is not None and Path(given).exists():
+            source = resolved(given)
+            if _is_within(real, source):
+                where = "is the input" if real == source else "lies inside the input"
+                raise OutputError(f"{what} {path}: {where} {given}; jaxcal never writes over its inputs")
+    if real.is_dir():
+        raise OutputError(f"{what} {path}: is a directory; name a file")
+    if path.exists() and not overwrite:
+        raise OutputError(f"{what} {path}: exists (pass --overwrite to replace it)")
+    if real.parent.exists() and not real.parent.is_dir():
+        raise OutputError(f"{what} {path}: {path.parent} is not a folder")
+    if not real.parent.is_dir():
+        raise OutputError(
+            f"{what} {path}: the folder {path.parent} does not exist; create it first (jaxcal creates an "
+            "output directory's parents, not an output file's folder)"
+        )
+    return path
+
+
 # --------------------------------------------------------------------------- the lock
 
 _held: dict[str, list] = {}  # lock path -> [fd, depth]: re-entrant within one process
 _held_guard = threading.Lock()
 
 
-def _lock_path(out: Path) -> Path:
-    resolved = out.resolve()
-    return resolved.parent / f".{resolved.name}.lock"
+def _lock_path(out: Path, what: str) -> Path:
+    real = resolved(out, what, error=OutputError)
+    return real.parent / f".{real.name}.lock"
 
 
 def _missing_ancestors(path: Path) -> list[Path]:
@@ -269,7 +356,7 @@ def output_lock(out, *, what: str = "output directory"):
     out = Path(out)
     if out.is_symlink():
         raise OutputError(f"{what} {out}: is a symbolic link; name the directory itself")
-    lock = _lock_path(out)
+    lock = _lock_path(out, what)
     key = str(lock)
     with _held_guard:
         if key in _held:
@@ -293,21 +380,28 @@ def output_lock(out, *, what: str = "output directory"):
     with _held_guard:
         _held[key] = [fd, 1]
     try:
-        yield lock
+        with _interrupt.partial(lambda: _release(fd, lock, out, created)):
+            yield lock
     finally:
         with _held_guard:
             del _held[key]
         try:
-            if fcntl is None or _same_file(fd, lock):
-                lock.unlink(missing_ok=True)
+            _release(fd, lock, out, created)
         finally:
             os.close(fd)
-        if not out.exists():
-            for d in created:  # deepest first
-                try:
-                    d.rmdir()
-                except OSError:
-                    break
+
+
+def _release(fd: int, lock: Path, out: Path, created: list[Path]) -> None:
+    """Remove the lock file (if it is still the one `fd` holds), and the parent directories
+    `output_lock` created when `out` was not made."""
+    if fcntl is None or _same_file(fd, lock):
+        lock.unlink(missing_ok=True)
+    if not out.exists():
+        for d in created:  # deepest first
+            try:
+                d.rmdir()
+            except OSError:
+                break
 
 
 def _same_file(fd: int, path: Path) -> bool:
@@ -460,15 +554,25 @@ def atomic_directory(
             raise OutputError(
                 f"{label}: a different directory is there than when the run started; refusing to replace it"
             )
-        parent = dest.resolve().parent
+        parent = resolved(dest, what, error=OutputError).parent
         tmp = make_temp_dir(parent, dest.name)
-        try:
-            yield tmp
-            write_marker(tmp, kind, complete=True)
-            _commit(tmp, parent / dest.name, replaces, label)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+        with _interrupt.partial(lambda: _remove_tree(tmp)):
+            try:
+                yield tmp
+                write_marker(tmp, kind, complete=True)
+                with _interrupt.committing():
+                    _commit(tmp, parent / dest.name, replaces, label)
+            except BaseException:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+
+
+def _remove_tree(path: Path) -> None:
+    """`shutil.rmtree`, again while the main thread may still be adding to it (an interrupt)."""
+    for _ in range(3):
+        shutil.rmtree(path, ignore_errors=True)
+        if not path.exists():
+            return
 
 
 @contextmanager
@@ -487,11 +591,16 @@ def marked_directory(out, *, kind: str, what: str = "output directory"):
         fresh = read_marker(out) is None
         if fresh:
             write_marker(out, kind)
-        try:
-            yield out
-        except BaseException:
+
+        def unmake() -> None:
             if fresh and [p.name for p in out.iterdir()] == [MARKER]:
                 (out / MARKER).unlink()
                 if created:
                     out.rmdir()
-            raise
+
+        with _interrupt.partial(unmake):
+            try:
+                yield out
+            except BaseException:
+                unmake()
+                raise

@@ -16,6 +16,8 @@ from ..errors import DatasetError
 #: 16000x16000 PNG decodes to 256 MB). 100 megapixels is above any camera a
 #: calibration uses.
 MAX_PIXELS = 100_000_000
+#: Largest image side (pixels).
+MAX_SIDE = 65535
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"

@@ -2,6 +2,7 @@
 
 import csv
 import io
+import itertools
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, fields
@@ -75,6 +76,132 @@ def parse_number(text: str, where: str) -> float:
     if not math.isfinite(v):
         raise DatasetError(f"{where}: value is {text} (NaN/inf not allowed)")
     return v
+
+
+#: Rows of a table parsed at once by `read_number_table`: the text held in memory is bounded by
+#: it, and NumPy's C parser (`np.loadtxt`) converts each block's numbers.
+BLOCK_ROWS = 65536
+
+
+@dataclass(frozen=True, eq=False)
+class NumberTable:
+    """A CSV table read by `read_number_table`: its `header`, each data row's file line number
+    `lines` `(rows,)`, the values of the number columns asked for `(rows, k)` (float64, finite)
+    and the text of the text columns asked for `(rows, m)` (stripped)."""
+
+    header: list[str]
+    lines: np.ndarray
+    values: np.ndarray
+    text: np.ndarray
+
+
+def read_number_table(path: Path, what: str, columns) -> NumberTable:
+    """A CSV table of numbers, streamed: `BLOCK_ROWS` lines at a time, each block's numbers
+    converted by NumPy's C parser, so that a table of millions of rows is read in seconds and in
+    memory proportional to its numbers (a list of rows of cell strings takes ten times more).
+
+    `columns(header) -> (numbers, texts)`: the indices of the columns read as numbers and as
+    text, from the header (it raises for a header it refuses). Blank lines (whitespace and
+    commas only) are skipped; a record is one line. Errors are `DatasetError`s naming the file,
+    the line and the column, as `read_csv` and `parse_number` name them: a missing or unreadable
+    file, text that is not UTF-8, a row whose cells are not the header's count, a cell that is
+    not a number, NaN or infinite; a block that NumPy cannot read is read again cell by cell
+    with Python's `float`, so the numbers accepted are Python's.
+    """
+    try:
+        rows = _count_lines(path)  # the arrays are made once, at their size: no copy at the end
+        f = open(path, encoding="utf-8-sig", newline="")
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: {what} missing") from None
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read the {what} ({e.strerror})") from None
+    try:
+        with f:
+            header, numbers, texts, n, k = None, (), (), 0, 0
+            for line in f:
+                n += 1
+                if line.strip(_BLANK):
+                    header = _cells(line, path, n)
+                    numbers, texts = columns(header)
+                    break
+            if header is None:
+                raise DatasetError(f"{path}: empty (expected a header line)")
+            lines, values = np.zeros(rows, np.int64), np.zeros((rows, len(numbers)))
+            words = np.zeros((rows, len(texts)), "U1")
+            while chunk := list(itertools.islice(f, BLOCK_ROWS)):
+                keep = [i for i, line in enumerate(chunk) if line.strip(_BLANK)]
+                if keep:
+                    text = chunk if len(keep) == len(chunk) else [chunk[i] for i in keep]
+                    b = _number_block(n + 1 + np.asarray(keep), text, header, numbers, texts, path)
+                    if b[2].itemsize > words.itemsize:  # the text as wide as its widest cell
+                        words = words.astype(b[2].dtype)
+                    lines[k : k + len(text)], values[k : k + len(text)], words[k : k + len(text)] = b
+                    k += len(text)
+                n += len(chunk)
+    except UnicodeDecodeError as e:
+        raise DatasetError(f"{path}: not UTF-8 text ({e.reason})") from None
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read the {what} ({e.strerror})") from None
+    return NumberTable(header, lines[:k], values[:k], words[:k])
+
+
+def _count_lines(path: Path) -> int:
+    """The file's line count (a bound of its data rows), read in binary blocks of 1 MiB."""
+    with open(path, "rb") as f:
+        return sum(block.count(b"\n") for block in iter(lambda: f.read(1 << 20), b"")) + 1
+
+
+#: What a blank line holds (skipped, as `read_csv` skips rows of empty cells).
+_BLANK = " \t\r\n,"
+
+
+def _numbers_one_by_one(rows, count: int, header: list[str], numbers, path: Path) -> np.ndarray:
+    out = np.empty((count, len(numbers)))
+    for r, (n, line) in enumerate(rows):
+        cells = _cells(line, path, n)
+        for k, c in enumerate(numbers):
+            out[r, k] = parse_number(cells[c], f"{path} line {n} column {header[c]!r}")
+    return out
+
+
+def _cells(line: str, path: Path, n: int) -> list[str]:
+    try:
+        return next(csv.reader([line]))
+    except csv.Error as e:
+        raise DatasetError(f"{path} line {n}: not CSV ({e})") from None
+
+
+def _number_block(lines: np.ndarray, text: list[str], header: list[str], numbers, texts, path: Path):
+    """`(lines, values, text)` of one block of rows: their line numbers and their text."""
+    quoted = any('"' in line for line in text)
+    if quoted:
+        counts = np.array([len(_cells(line, path, n)) for n, line in zip(lines.tolist(), text)])
+    else:
+        counts = np.array([line.count(",") for line in text]) + 1
+    bad = np.flatnonzero(counts != len(header))
+    if bad.size:
+        k = bad[0]
+        raise DatasetError(
+            f"{path} line {lines[k]}: expected {len(header)} cells (the header's), got {counts[k]}"
+        )
+    kw = dict(delimiter=",", ndmin=2, comments=None, quotechar='"' if quoted else None)
+    values = np.zeros((len(text), 0))
+    if numbers:
+        try:
+            values = np.loadtxt(text, dtype=np.float64, usecols=list(numbers), **kw)
+        except ValueError:  # a cell NumPy does not read: cell by cell, with Python's float and its error
+            values = _numbers_one_by_one(zip(lines.tolist(), text), len(text), header, numbers, path)
+    bad = np.argwhere(~np.isfinite(values))
+    if bad.size:
+        r, k = bad[0]
+        n, line = int(lines[r]), text[r]
+        where = f"{path} line {n} column {header[numbers[k]]!r}"
+        parse_number(_cells(line, path, n)[numbers[k]], where)
+        raise DatasetError(f"{where}: value is {values[r, k]} (NaN/inf not allowed)")
+    words = np.zeros((len(text), 0), str)
+    if texts:
+        words = np.char.strip(np.loadtxt(text, dtype=str, usecols=list(texts), **kw))
+    return lines, values, words
 
 
 # --------------------------------------------------------------------------- reading: frames.csv

@@ -1,6 +1,5 @@
 """Reading `metadata.json`: the robot, cameras, targets, encoders, clock and motion fields (`docs/dataset.md`)."""
 
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,15 +11,11 @@ from ..markers import TargetSpec
 from . import _encoders as enc
 from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
-from ._images import MAX_PIXELS
+from ._images import MAX_PIXELS, MAX_SIDE
 from ._schema import Loc
 from .dh_tables import TABLE_SUFFIXES, read_table_file
 from .urdf import urdf_outline
 
-#: Camera names become file names (`camera_<name>.yaml`).
-CAMERA_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
-#: Largest image side (pixels).
-MAX_SIDE = 65535
 #: |clock.drift_ppm| bound (0.1 %: ten times a poor crystal).
 MAX_DRIFT_PPM = 1000.0
 #: `cameras[].stamp` values: what a frame's timestamp marks in its (first row's) exposure.
@@ -198,9 +193,7 @@ def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
             required=("name", "width", "height"),
             optional=("K", "distortion", "mount", "exposure_s", "line_delay_s", "stamp"),
         )
-        name = sc.string(c["name"], w.key("name"))
-        if not CAMERA_NAME.fullmatch(name):
-            raise w.key("name").expected("letters, digits, '_', '.' or '-' (it names output files)", name)
+        name = sc.file_name(c["name"], w.key("name"))
         width = sc.integer(c["width"], w.key("width"), 1, MAX_SIDE)
         height = sc.integer(c["height"], w.key("height"), 1, MAX_SIDE)
         if width * height > MAX_PIXELS:

@@ -9,6 +9,7 @@ in the words of `docs/dataset.md`, and nothing here can raise anything but
 
 import json
 import math
+import re
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
@@ -69,16 +70,70 @@ def read_text(path: Path, what: str) -> str:
         raise DatasetError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
 
 
+#: Deepest nesting of lists and objects a JSON or YAML input may have (jaxcal's own files
+#: nest under ten levels; Python's parsers recurse once per level).
+MAX_DEPTH = 100
+
+
+def _check_depth(doc) -> None:
+    """A `ValueError` when `doc` nests lists and objects more than `MAX_DEPTH` deep (walked
+    without recursion)."""
+    stack = [(doc, 1)]
+    while stack:
+        x, depth = stack.pop()
+        if isinstance(x, dict | list):
+            if depth > MAX_DEPTH:
+                raise ValueError(f"nested more than {MAX_DEPTH} levels deep")
+            stack.extend((v, depth + 1) for v in (x.values() if isinstance(x, dict) else x))
+
+
+def loads(text: str, **kwargs) -> object:
+    """`json.loads(text, **kwargs)`, a document nested more than `MAX_DEPTH` deep refused as a
+    `ValueError` (not a `RecursionError`, however deep): every JSON input jaxcal reads is parsed
+    here (`read_json`, the DH tables, the targets, the hand-eye capture, the results)."""
+    try:
+        doc = json.loads(text, **kwargs)
+    except RecursionError:
+        raise ValueError(f"nested more than {MAX_DEPTH} levels deep") from None
+    _check_depth(doc)
+    return doc
+
+
+#: YAML's quoted scalars and comments, which may hold brackets that nest nothing.
+_YAML_TEXT = re.compile(r'"(?:[^"\\]|\\.)*"|\'(?:[^\']|\'\')*\'|#[^\n]*')
+
+
+def _flow_depth(text: str) -> int:
+    """The deepest nesting of YAML's flow brackets (`[`, `{`) outside quotes and comments."""
+    code = np.frombuffer(_YAML_TEXT.sub("", text).encode("utf-8", "replace"), np.uint8)
+    step = np.isin(code, (ord("["), ord("{"))).astype(np.int64) - np.isin(code, (ord("]"), ord("}")))
+    return int(np.cumsum(step).max(initial=0))
+
+
+def load_yaml(text: str) -> object:
+    """Safe YAML (ruamel's pure parser), refused as `loads` refuses (`ValueError`); a
+    malformed document raises ruamel's `YAMLError`. Flow brackets nested too deep are refused
+    before parsing (ruamel's scanner takes time growing with the square of their depth)."""
+    from ruamel.yaml import YAML  # only where a YAML file is read
+
+    if _flow_depth(text) > MAX_DEPTH:
+        raise ValueError(f"nested more than {MAX_DEPTH} levels deep")
+    try:
+        doc = YAML(typ="safe", pure=True).load(text)
+    except RecursionError:
+        raise ValueError(f"nested more than {MAX_DEPTH} levels deep") from None
+    _check_depth(doc)
+    return doc
+
+
 def read_json(path: Path, what: str) -> object:
     """Parse the JSON file `path`; every failure is a `DatasetError` naming it."""
     text = read_text(path, what)
     try:
-        return json.loads(text, parse_constant=_no_constant)
+        return loads(text, parse_constant=_no_constant)
     except json.JSONDecodeError as e:
         raise DatasetError(f"{path}: not valid JSON ({e})") from None
-    except RecursionError:
-        raise DatasetError(f"{path}: not valid JSON (nested too deeply)") from None
-    except ValueError as e:  # NaN/Infinity literals, integers too long to convert
+    except ValueError as e:  # NaN/Infinity literals, integers too long to convert, nesting
         raise DatasetError(f"{path}: not valid JSON ({e})") from None
 
 
@@ -250,6 +305,24 @@ def names(x, loc: Loc, *, unique: bool = True) -> list[str]:
         dup = sorted({n for n in out if out.count(n) > 1})
         raise loc.fail(f"names must be distinct, {', '.join(map(repr, dup))} repeated")
     return out
+
+
+#: Names that become file and folder names (`images/<camera>/`, `camera_<name>.yaml`,
+#: `ros_<name>.txt`): a letter or digit, then letters, digits, `_`, `.` or `-`, 64 at most; so
+#: never a path (`/`, `..`), hidden, or a character a file system refuses.
+FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+
+
+def file_name(name, where) -> str:
+    """`name` when it may name a file or folder (`FILE_NAME`), else a `DatasetError` naming
+    `where` (a `Loc`, or an option such as `"--camera-name"`): checked wherever a name from a
+    user becomes part of a path, before anything is written."""
+    if not isinstance(name, str) or not FILE_NAME.fullmatch(name):
+        raise DatasetError(
+            f"{where}: expected letters, digits, '_', '.' or '-' (it names output files), starting with a "
+            f"letter or digit, 64 at most, got {show(name)}"
+        )
+    return name
 
 
 def relative_path(text: str, loc: Loc) -> str:

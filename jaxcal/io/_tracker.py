@@ -17,8 +17,7 @@ from ..errors import DatasetError
 from . import _encoders as enc
 from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
-from ._logs import MAX_FRAME_INDEX, FrameTable, parse_number, read_csv
-from ._metadata import CAMERA_NAME
+from ._logs import MAX_FRAME_INDEX, FrameTable, read_number_table
 from ._schema import Loc
 
 #: `device.kind` values (informative: every kind is calibrated the same way).
@@ -108,9 +107,7 @@ def read_device(meta: dict, loc: Loc, links) -> DeviceInfo:
         required=("name",),
         optional=("kind", "file", "link", "point", "T_link_point_nominal", "sigma_m", "sigma_rad"),
     )
-    name = sc.string(d["name"], loc.key("name"))
-    if not CAMERA_NAME.fullmatch(name):
-        raise loc.key("name").expected("letters, digits, '_', '.' or '-' (it names output files)", name)
+    name = sc.file_name(d["name"], loc.key("name"))
     link = sc.string(d.get("link", "flange"), loc.key("link"))
     if link not in links:
         raise loc.key("link").fail(f"{link!r} is not a link of the robot (links: {sorted(links)})")
@@ -215,31 +212,43 @@ def read_samples(root: Path, device: DeviceInfo, joints: tuple[str, ...], limits
     quaternions, noise (0, 1], and joint positions within their URDF limits.
     """
     path = root / device.file
-    header, rows = read_csv(path, f"samples table (named by {meta_loc.key('device').key('file')})")
-    cols = _columns(header, path, joints)
-    if not rows:
+    found = {}
+
+    def columns(header: list[str]) -> tuple[list[int], list[int]]:
+        found.update(_columns(header, path, joints))
+        return [c for c in range(len(header)) if c != 2], [0, 2]
+
+    t = read_number_table(path, f"samples table (named by {meta_loc.key('device').key('file')})", columns)
+    header, lines, values = t.header, t.lines, t.values
+    if not len(lines):
         raise DatasetError(f"{path}: no samples")
+    # `values` skips column 2 (the joint's name, text): the header's column c > 2 is its c - 1.
+    cols = {
+        k: None if c is None else [i - 1 for i in c] if isinstance(c, list) else c - 1
+        for k, c in found.items()
+    }
+    sample, names = t.text[:, 0], t.text[:, 1]
+    digits = np.char.isdigit(sample) & (np.char.str_len(sample) <= 12)
+    bad = np.flatnonzero(~digits | (values[:, 0] > MAX_FRAME_INDEX))
+    try:
+        sample.astype(np.bytes_)  # ASCII only (`isdigit` takes other scripts' digits too)
+    except UnicodeEncodeError:
+        bad = np.union1d(bad, [r for r, x in enumerate(sample.tolist()) if not x.isascii()]).astype(int)
+    if len(bad):
+        raise DatasetError(
+            f"{path} line {lines[bad[0]]} column 'sample': {str(sample[bad[0]])!r} is not an integer from 0 to "
+            f"{MAX_FRAME_INDEX}"
+        )
     index = {j: k for k, j in enumerate(joints)}
-    lines = np.array([line for line, _ in rows])
-    values = np.zeros((len(rows), len(header)))
-    joint = np.full(len(rows), -1)
-    for r, (line, cells) in enumerate(rows):
-        w = f"{path} line {line}"
-        if len(cells) != len(header):
-            raise DatasetError(f"{w}: expected {len(header)} columns, got {len(cells)}")
-        text = cells[0].strip()
-        if not text.isascii() or not text.isdigit() or len(text) > 12 or int(text) > MAX_FRAME_INDEX:
-            raise DatasetError(f"{w} column 'sample': {text!r} is not an integer from 0 to {MAX_FRAME_INDEX}")
-        name = cells[2].strip()
-        if name:
-            if name not in index:
-                raise DatasetError(
-                    f"{w} column 'joint': unknown joint {name!r}; the robot's joints are {list(joints)}"
-                )
-            joint[r] = index[name]
-        for c, cell in enumerate(cells):
-            if c != 2:
-                values[r, c] = parse_number(cell, f"{w} column {header[c]!r}")
+    joint = np.full(len(lines), -1)
+    for name in set(names.tolist()) - {""}:
+        rows = np.flatnonzero(names == name)
+        if name not in index:
+            raise DatasetError(
+                f"{path} line {lines[rows[0]]} column 'joint': unknown joint {name!r}; the robot's joints are "
+                f"{list(joints)}"
+            )
+        joint[rows] = index[name]
     for c, what in ((0, "sample indices"), (1, "timestamps")):
         bad = np.flatnonzero(np.diff(values[:, c]) <= 0)
         if bad.size:
@@ -248,7 +257,7 @@ def read_samples(root: Path, device: DeviceInfo, joints: tuple[str, ...], limits
                 f"{path} line {lines[k + 1]}: {header[c]} {values[k + 1, c]!r} is not after line {lines[k]}'s "
                 f"{values[k, c]!r}; {what} must increase strictly"
             )
-    P = values[:, 3:6]
+    P = values[:, 2:5]
     far = np.flatnonzero(np.abs(P).max(axis=1) > MAX_COORDINATE_M)
     if far.size:
         raise DatasetError(
@@ -285,5 +294,5 @@ def sample_frames(device: DeviceInfo, samples: TrackerSamples) -> FrameTable:
         camera=np.full(n, device.name),
         frame=samples.sample.copy(),
         timestamp=samples.timestamp.copy(),
-        file=np.array([f"{device.file} line {int(line)}" for line in samples.lines]),
+        file=np.char.add(f"{device.file} line ", samples.lines.astype(str)),
     )

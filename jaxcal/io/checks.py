@@ -10,7 +10,6 @@ The only module that knows their JSON keys (`jaxcal.records_check` holds the rec
   again is the same JSON.
 """
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -38,6 +37,8 @@ from ..records_check import (
     Verification,
     VerificationSummary,
 )
+from ._files import resolved
+from ._schema import loads
 from .handeye_results import HANDEYE_RESULT_SCHEMA
 from .model_json import model_from_json
 
@@ -56,16 +57,18 @@ def read_result_json(path) -> tuple[dict, Path]:
     """`result.json` (a result directory or the file) as plain JSON, checked to be a jaxcal result."""
     p = Path(path)
     file = p / "result.json" if p.is_dir() else p
+    resolved(file)  # a loop of symbolic links is named as one
     try:
-        doc = json.loads(file.read_text())
+        doc = loads(file.read_text())
     except FileNotFoundError:
         raise DatasetError(
             f"{file}: no such result (give a directory jaxcal calibrate wrote, or its result.json)"
         ) from None
-    except json.JSONDecodeError as e:
+    except (ValueError, UnicodeDecodeError) as e:
         raise DatasetError(f"{file}: not JSON ({e})") from None
-    if doc.get("schema") != RESULT_SCHEMA:
-        raise DatasetError(f"{file}: schema is {doc.get('schema')!r}, expected {RESULT_SCHEMA!r}")
+    schema = doc.get("schema") if isinstance(doc, dict) else None
+    if schema != RESULT_SCHEMA:
+        raise DatasetError(f"{file}: schema is {schema!r}, expected {RESULT_SCHEMA!r}")
     return doc, file
 
 
@@ -170,7 +173,7 @@ def read_hand_eye_reference(path) -> HandEyeReference | None:
     p = Path(path)
     file = p / "result.json" if p.is_dir() else p
     try:
-        doc = json.loads(file.read_text())
+        doc = loads(file.read_text())
     except (OSError, ValueError):
         return None
     return hand_eye_reference(doc, file) if isinstance(doc, dict) and is_hand_eye_result(doc) else None
@@ -358,7 +361,7 @@ def read_product(path) -> Certificate | DriftCheck | Verification:
     """The record a `certificate.json`, `jaxcal check --json` or `jaxcal verify --json` file
     holds, by its schema (raises `DatasetError` naming the file when it is none of them)."""
     try:
-        d = json.loads(Path(path).read_text())
+        d = loads(Path(path).read_text())
         _, _, read = PRODUCTS[d.get("schema")]
         return read(d)
     except FileNotFoundError:

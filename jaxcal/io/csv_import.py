@@ -77,8 +77,9 @@ from ._csv_poses import (
     orientations,
     other_readings,
 )
-from ._files import atomic_directory, check_output_dir
-from ._logs import parse_number, read_csv
+from ._files import atomic_directory, check_output_dir, shown
+from ._logs import read_number_table
+from ._schema import file_name
 from ._tracker import DEVICE_KINDS, MAX_COORDINATE_M
 from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_json
 from .dh_tables import dh_table_model, is_table_file, read_table_file
@@ -97,6 +98,9 @@ MIN_SPREAD_M = 0.01
 ALIGN_TOL_M = 0.05
 #: ... plus this when the point's mount on the link is not given (the link's origin stands in).
 UNKNOWN_POINT_M = 0.5
+#: A row further from the nominal robot (after the rigid alignment) than this many times the median
+#: row, and than `FAR_MIN_M`, is warned of: one wrong joint cell puts a point tens of mm off.
+FAR_FACTOR, FAR_MIN_M = 5.0, 0.01
 #: Points closer to the nominal robot than this many times their stated noise are noted: a real
 #: arm's points are millimetres off its datasheet, a table's commanded points are not.
 NOMINAL_LIKE = 2.0
@@ -105,19 +109,24 @@ NOMINAL_LIKE = 2.0
 TABLE_RANGE = 2.0 * math.pi
 #: Largest point mount offset (m): further is millimetres given as metres.
 MAX_POINT_M = 2.0
+#: Rows the forward kinematics and the writer take at a time: the memory an import takes is
+#: bounded by it, the table's own numbers aside (`_logs.read_number_table` streams the reading).
+ROWS_AT_ONCE = 65536
 
 
 @dataclass(frozen=True)
 class CsvImport:
     """What `import_csv` wrote: the dataset, its sample count, the robot's reach bound (m)
     and the points' RMS distance from the nominal robot's after the rigid alignment (m); `notes`:
-    what looks odd but is not refused."""
+    what looks odd but is not refused; `warnings`: what is most likely wrong but not refused (rows
+    far from the nominal robot, `FAR_FACTOR`)."""
 
     path: Path
     samples: int
     reach_m: float
     rms_from_nominal_m: float
     notes: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -158,7 +167,7 @@ def robot_model(robot) -> tuple[KinematicModel, dict, str, dict]:
             model = load_urdf(robot)
             limits = urdf_outline(robot, tuple(model.joint_names)).limits
     except (OSError, ValueError) as e:
-        raise DatasetError(f"{robot}: cannot load the robot model: {e}") from e
+        raise DatasetError(f"{shown(robot)}: cannot load the robot model: {e}") from e
     obj = {
         key: name,
         "base_link": model.link_names[0],
@@ -196,41 +205,35 @@ def _column(spec: str, index: dict, path: Path, option: str) -> list[int]:
     return [index[p] for p in parts]
 
 
-def _number(text: str, where: str) -> float:
-    try:
-        return parse_number(text, where)
-    except DatasetError as e:
-        raise CsvImportError(str(e)) from None
-
-
 def _read(path: Path, specs: dict) -> tuple[dict, np.ndarray]:
-    """Per spec (label -> (option, spec)) the summed values (N,), and the line numbers."""
+    """Per spec (label -> (option, spec)) the summed values (N,), and the line numbers. The
+    table is streamed (`_logs.read_number_table`: blocks of rows, NumPy's parser), only the
+    columns the specs name converted, so that a table of a million rows takes seconds."""
+    cols: dict = {}
+
+    def columns(header: list[str]) -> tuple[list[int], list[int]]:
+        header = [h.strip() for h in header]
+        index = {h: i for i, h in enumerate(header)}
+        if len(index) != len(header):
+            raise CsvImportError(f"{path} line 1: a column name is repeated: {header}")
+        cols.update({label: _column(spec, index, path, option) for label, (option, spec) in specs.items()})
+        used = [c for idx in cols.values() for c in idx]
+        twice = sorted({header[c] for c in used if used.count(c) > 1})
+        if twice:
+            raise CsvImportError(
+                f"{path}: column(s) {twice} named twice (in --joints, --xyz, --orientation, --time)"
+            )
+        return sorted(set(used)), []
+
     try:
-        header, rows = read_csv(path, "CSV table")
+        table = read_number_table(path, "CSV table", columns)
     except DatasetError as e:
         raise CsvImportError(str(e)) from None
-    header = [h.strip() for h in header]
-    index = {h: i for i, h in enumerate(header)}
-    if len(index) != len(header):
-        raise CsvImportError(f"{path} line 1: a column name is repeated: {header}")
-    cols = {label: _column(spec, index, path, option) for label, (option, spec) in specs.items()}
-    used = [c for idx in cols.values() for c in idx]
-    twice = sorted({header[c] for c in used if used.count(c) > 1})
-    if twice:
-        raise CsvImportError(
-            f"{path}: column(s) {twice} named twice (in --joints, --xyz, --orientation, --time)"
-        )
-    if len(rows) < 2:
-        raise CsvImportError(f"{path}: {len(rows)} data row(s); a dataset needs at least 2")
-    out = {label: np.zeros(len(rows)) for label in cols}
-    for r, (line, cells) in enumerate(rows):
-        if len(cells) != len(header):
-            raise CsvImportError(
-                f"{path} line {line}: expected {len(header)} cells (the header's), got {len(cells)}"
-            )
-        for label, idx in cols.items():
-            out[label][r] = sum(_number(cells[c], f"{path} line {line} column {header[c]!r}") for c in idx)
-    return out, np.array([line for line, _ in rows])
+    if len(table.lines) < 2:
+        raise CsvImportError(f"{path}: {len(table.lines)} data row(s); a dataset needs at least 2")
+    at = {c: k for k, c in enumerate(sorted({c for idx in cols.values() for c in idx}))}
+    out = {label: sum(table.values[:, at[c]] for c in idx) for label, idx in cols.items()}
+    return out, table.lines
 
 
 def _check_limits(path: Path, q: np.ndarray, unit: str, specs, model: KinematicModel, limits: dict, lines):
@@ -315,11 +318,11 @@ def _rigid_alignment(P: np.ndarray, Q: np.ndarray, tol: float) -> tuple[np.ndarr
     return moved, r, R
 
 
-def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str, robot: tuple) -> float:
+def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str, robot: tuple) -> np.ndarray:
     """The points against the nominal robot's: spread (units), coordinates, reach, rigid alignment.
 
     `robot`: `(origin of joint 1 in the base frame (3,), reach bound (m), alignment tolerance (m))`.
-    **Returns:** the points' RMS distance from the aligned nominal ones (m).
+    **Returns:** each point's distance from the aligned nominal one (m).
     """
     P, lines, cols = table.P, table.lines, f"columns {list(xyz)} (--xyz, --length-unit {unit})"
     origin, reach, tol = robot
@@ -363,40 +366,86 @@ def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str
                 f"{bad.size} of {len(P)} rows; check that row's cells (column {xyz[c]!r} is off by "
                 f"{P[k, c] - moved[k, c]:+.4g} m), the joint columns' order and the point's offset"
             )
-    return float(np.sqrt(np.mean(r**2)))
+    return r
+
+
+def _far_rows(path: Path, table: _Table, r: np.ndarray) -> list[str]:
+    """A warning for the rows much further from the nominal robot than the others (after the rigid
+    alignment): `FAR_FACTOR` x the median row and at least `FAR_MIN_M`, the worst five named."""
+    limit = max(FAR_MIN_M, FAR_FACTOR * float(np.median(r)))
+    far = np.flatnonzero(r > limit)
+    if not far.size:
+        return []
+    worst = far[np.argsort(-r[far])][:5]
+    rows = ", ".join(f"line {table.lines[k]} ({1e3 * r[k]:.1f} mm)" for k in worst)
+    more = f" and {far.size - len(worst)} more" if far.size > len(worst) else ""
+    return [
+        f"{path}: {far.size} row(s) lie far from where the nominal robot puts them after the best rigid "
+        f"alignment: {rows}{more}, against {1e3 * np.median(r):.2g} mm for the median row. A real arm is "
+        "0.5-5 mm off its datasheet, so such a row most likely holds a wrong cell (a joint mistyped or "
+        "from another pose, a swapped column): check it, and remove or correct it before calibrating"
+    ]
 
 
 def _check_pose(path: Path, table: _Table, frames: np.ndarray, point, mount, args) -> float:
     """The points (`_check_points`) and, with them, the orientations (`_check_orientations`) of
     `table` against the nominal link frames `frames` `(N, 4, 4)`; `point`: the mount's offset
     (None: unknown), `mount`: its rotation (None: unknown). `args`: `(xyz, length_unit,
-    (origin, reach, tol), orientation spec)`. **Returns:** the points' RMS from the nominal ones (m)."""
+    (origin, reach, tol), orientation spec)`. **Returns:** each point's distance from its nominal
+    one after the rigid alignment (m)."""
     xyz, unit, robot, spec = args
     nominal = frames[:, :3, 3] + frames[:, :3, :3] @ (point if point is not None else np.zeros(3))
-    rms = _check_points(path, table, nominal, xyz, unit, robot)
+    r = _check_points(path, table, nominal, xyz, unit, robot)
     if table.R is not None:
         A0 = _rigid_alignment(table.P, nominal, robot[2])[2]
         check_orientations(path, table.R, table.lines, frames[:, :3, :3], A0, mount, spec)
-    return rms
+    return r
 
 
 # --------------------------------------------------------------------------- writing
 
 
 def _write_samples(path: Path, table: _Table, joint_names) -> None:
+    """`samples.csv`, `ROWS_AT_ONCE` rows at a time, every number as Python's `repr` writes it
+    (the shortest text that reads back to the same float)."""
     quat = np.zeros((len(table.t), 0)) if table.R is None else matrix_to_quaternion(table.R)
     head = ["sample", "timestamp", "joint", "x", "y", "z"] + (
         ["qx", "qy", "qz", "qw"] if quat.shape[1] else []
     )
-    lines = [",".join(head + list(joint_names))]
-    for i in range(len(table.t)):
-        nums = [*table.P[i], *quat[i], *table.q[i]]
-        lines.append(",".join([str(i), repr(float(table.t[i])), "", *(repr(float(v)) for v in nums)]))
-    path.write_text("\n".join(lines) + "\n")
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(",".join(head + list(joint_names)) + "\n")
+        for s in range(0, len(table.t), ROWS_AT_ONCE):
+            e = min(s + ROWS_AT_ONCE, len(table.t))
+            nums = np.column_stack([table.t[s:e], table.P[s:e], quat[s:e], table.q[s:e]])
+            cols = [map(str, range(s, e)), map(repr, nums[:, 0].tolist()), [""] * (e - s)]
+            cols += [map(repr, nums[:, k].tolist()) for k in range(1, nums.shape[1])]
+            f.write("\n".join(map(",".join, zip(*cols))) + "\n")
 
 
-def _check_arguments(*, joint_unit, length_unit, device_kind, sigma_m, xyz, point_m):
-    """`import_csv`'s units, noise, column counts and point offset: the offset as an array (3,) or None."""
+def _link_frames(model: KinematicModel, q: np.ndarray, link: int) -> np.ndarray:
+    """`(N, 4, 4)` the nominal frame of link `link` at each row's joints, `ROWS_AT_ONCE` rows at a
+    time (the last batch padded to the same size): bounded memory whatever the table's size."""
+    fk = jax.vmap(forward_kinematics, in_axes=(None, 0))
+    if len(q) <= ROWS_AT_ONCE:
+        return np.asarray(fk(model, jnp.asarray(q)))[:, link]
+    batch = jax.jit(lambda m, x: fk(m, x)[:, link])  # one program for every batch
+    out = np.empty((len(q), 4, 4))
+    for s in range(0, len(q), ROWS_AT_ONCE):
+        part = q[s : s + ROWS_AT_ONCE]
+        n = len(part)
+        padded = np.concatenate([part, np.repeat(part[-1:], ROWS_AT_ONCE - n, axis=0)])
+        out[s : s + n] = np.asarray(batch(model, jnp.asarray(padded)))[:n]
+    return out
+
+
+def _sha256(path: Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def _check_arguments(*, joint_unit, length_unit, device_kind, device_name, sigma_m, xyz, point_m):
+    """`import_csv`'s units, device, noise, column counts and point offset: the offset as an array (3,)
+    or None."""
     for name, value, units in (
         ("joint_unit", joint_unit, ANGLE_UNITS),
         ("length_unit", length_unit, LENGTH_UNITS),
@@ -407,6 +456,7 @@ def _check_arguments(*, joint_unit, length_unit, device_kind, sigma_m, xyz, poin
             )
     if device_kind not in DEVICE_KINDS:
         raise ValueError(f"device_kind must be one of {DEVICE_KINDS}, got {device_kind!r}")
+    file_name(device_name, "device_name (--device-name)")  # it names output files (ros_<device>.txt)
     if not (isinstance(sigma_m, (int, float)) and 0.0 < sigma_m <= 1.0):
         raise ValueError(f"sigma_m (the position noise, m) must be in (0, 1], got {sigma_m!r}")
     if len(xyz) != 3:
@@ -478,8 +528,8 @@ def import_csv(
         out, inputs=[csv, robot_file], overwrite=overwrite, kind="dataset", what="--out"
     )
     point = _check_arguments(
-        joint_unit=joint_unit, length_unit=length_unit, device_kind=device_kind, sigma_m=sigma_m, xyz=xyz,
-        point_m=point_m,
+        joint_unit=joint_unit, length_unit=length_unit, device_kind=device_kind, device_name=device_name,
+        sigma_m=sigma_m, xyz=xyz, point_m=point_m,
     )  # fmt: skip
     mount = check_orientation_arguments(
         orientation, orientation_format, pose_direction, sigma_rad, point, point_rotvec_rad
@@ -487,27 +537,26 @@ def import_csv(
     model, limits, robot_name, robot_obj = robot_model(robot_file)
     if len(joints) != len(model.joint_names):
         raise ValueError(
-            f"{len(joints)} joint column(s) {list(joints)} for the {len(model.joint_names)} joints of {robot_file}: "
+            f"{len(joints)} joint column(s) {list(joints)} for the {len(model.joint_names)} joints of {shown(robot_file)}: "
             f"name one column per joint, in the robot's order {list(model.joint_names)}"
         )
     link = link or model.link_names[-1]
     if link not in model.link_names:
         raise ValueError(
-            f"link {link!r} is not a link of the chain of {robot_file}: {list(model.link_names)}"
+            f"link {link!r} is not a link of the chain of {shown(robot_file)}: {list(model.link_names)}"
         )
     table = _read_table(
         csv, joints=joints, joint_unit=joint_unit, xyz=xyz, length_unit=length_unit,
         orientation=orientation, time=time, model=model, limits=limits,
         pose_format=(orientation_format, pose_direction),
     )  # fmt: skip
-    frames = np.asarray(jax.vmap(forward_kinematics, in_axes=(None, 0))(model, jnp.asarray(table.q)))
-    T_link = frames[:, list(model.link_names).index(link)]
+    T_link = _link_frames(model, table.q, list(model.link_names).index(link))
     reach = reach_m(model, limits, point)
     tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
     origin = np.asarray(model.T_parent_joint)[0, :3, 3]
     args = (xyz, length_unit, (origin, reach, tol), (orientation, orientation_format, pose_direction))
     try:
-        rms = _check_pose(csv, table, T_link, point, mount, args)
+        r = _check_pose(csv, table, T_link, point, mount, args)
     except CsvImportError as e:
         if table.R is None:
             raise
@@ -518,6 +567,8 @@ def import_csv(
                 continue
             raise CsvImportError(f"{e}; the rows fit as {text}") from None
         raise
+    rms, warnings = float(np.sqrt(np.mean(r**2))), _far_rows(csv, table, r)
+    del T_link  # a large table's read-back (`load_dataset`) needs the memory
     meta = _metadata(
         csv, table, model, robot_obj, joints=joints, joint_unit=joint_unit, xyz=xyz,
         length_unit=length_unit, orientation=orientation, time=time, link=link,
@@ -530,6 +581,7 @@ def import_csv(
     ) as tmp:
         shutil.copyfile(robot_file, tmp / robot_name)
         _write_samples(tmp / "samples.csv", table, model.joint_names)
+        samples, table = len(table.t), None  # a large table's read-back (`load_dataset`) needs the memory
         write_json(tmp / "metadata.json", meta)
         load_dataset(tmp)  # the format's every check, before the rename
     notes = []
@@ -540,7 +592,7 @@ def import_csv(
             "measured ones? A real arm is typically 0.5-5 mm off its datasheet, and a calibration on these "
             "points learns nothing"
         )
-    return CsvImport(Path(out), len(table.t), reach, rms, tuple(notes))
+    return CsvImport(Path(out), samples, reach, rms, tuple(notes), tuple(warnings))
 
 
 def _metadata(
@@ -570,7 +622,7 @@ def _metadata(
         "motion": [{"joint": None, "start": float(table.t[0]), "end": float(table.t[-1])}],
         "x_csv": {
             "file": csv.name,
-            "sha256": hashlib.sha256(csv.read_bytes()).hexdigest(),
+            "sha256": _sha256(csv),
             "joints": dict(zip(model.joint_names, joints)),
             "joint_unit": joint_unit,
             "xyz": list(xyz),

@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import DatasetError
 from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
+from ._files import resolved
 from ._logs import EncoderGlitch as EncoderGlitch
 from ._logs import FrameTable as FrameTable
 from ._logs import read_encoders, read_frames
@@ -229,6 +230,7 @@ def load_dataset(path) -> Dataset:
     """
     root = Path(path)
     if not root.is_dir():
+        resolved(root)  # a loop of symbolic links is named as one
         raise DatasetError(f"{root}: dataset directory not found")
     meta_path = root / "metadata.json"
     meta = sc.read_json(meta_path, "metadata file")

@@ -33,18 +33,19 @@ masses and centres of mass in that model's link frames, `dh_table_json`
 writes a calibrated table.
 """
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
-from ruamel.yaml import YAML, YAMLError
+from ruamel.yaml import YAMLError
 
 from .._dh import COLUMNS, DHTable, link_transform, table_to_model
 from .._kinematics import KinematicModel
 from ..errors import DatasetError
+from ._files import shown
+from ._schema import load_yaml, loads
 from .urdf import JointLimits
 
 #: What `parallel` means, written into every calibrated table.
@@ -104,19 +105,16 @@ class TableFile:
 
 
 def _fail(path: Path, message: str) -> DatasetError:
-    return DatasetError(f"DH table {str(path)!r}: {message}")
+    return DatasetError(f"DH table {shown(path)!r}: {message}")
 
 
 def _document(path: Path) -> dict:
     """The parsed file: YAML for `.yaml` / `.yml`, else JSON; an object, or a `DatasetError`."""
     try:
         text = path.read_text(encoding="utf-8-sig")
-        if path.suffix.lower() in (".yaml", ".yml"):
-            doc = YAML(typ="safe", pure=True).load(text)
-        else:
-            doc = json.loads(text)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, YAMLError) as e:
-        raise DatasetError(f"DH table {str(path)!r} cannot be read: {e}") from None
+        doc = load_yaml(text) if path.suffix.lower() in (".yaml", ".yml") else loads(text)
+    except (OSError, UnicodeDecodeError, ValueError, YAMLError) as e:
+        raise DatasetError(f"DH table {shown(path)!r} cannot be read: {e}") from None
     if not isinstance(doc, dict):
         raise _fail(path, f"expected an object of fields, got {type(doc).__name__}")
     return doc
@@ -163,14 +161,14 @@ def read_table_file(path) -> TableFile:
     names = doc.get("joint_names")
     if not isinstance(names, list) or not names or not all(isinstance(j, str) and j for j in names):
         if "joint_names" not in doc:
-            raise DatasetError(f"DH table {str(path)!r} has no field 'joint_names'")
+            raise DatasetError(f"DH table {shown(path)!r} has no field 'joint_names'")
         raise _fail(path, f"field 'joint_names' must be a non-empty list of names, got {names!r}")
     if len(set(names)) != len(names):
         raise _fail(path, f"field 'joint_names' has duplicates: {names}")
     n = len(names)
     for c in ("a", "alpha", "d", "theta", "flange"):
         if c not in doc:
-            raise DatasetError(f"DH table {str(path)!r} has no field {c!r}")
+            raise DatasetError(f"DH table {shown(path)!r} has no field {c!r}")
     cols = {
         c: _numbers(path, c, doc[c] if c != "beta" else doc.get("beta", [0.0] * n), (n,)) for c in COLUMNS
     }
@@ -241,7 +239,7 @@ def _matrix(path: Path, field: str, value) -> jnp.ndarray:
         return jnp.eye(4)
     T = np.asarray(value, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise DatasetError(f"DH table {str(path)!r}: field {field!r} must be a finite 4x4 matrix")
+        raise DatasetError(f"DH table {shown(path)!r}: field {field!r} must be a finite 4x4 matrix")
     return jnp.asarray(T)
 
 

@@ -35,6 +35,7 @@ from .._npgeom import matrix_to_quaternion, quaternion_to_matrix, rotvec_to_matr
 from ..errors import DatasetError
 from ..markers import TargetSpec
 from . import _schema as sc
+from ._files import resolved
 
 SCHEMA = "jaxcal.handeye"
 SCHEMA_VERSION = 1
@@ -171,9 +172,9 @@ def _cameras(meta: dict, where: str) -> tuple[HandEyeCamera, ...]:
     out = []
     for i, c in enumerate(cams):
         w = f"{where}: cameras[{i}]"
-        name = _require(c, "name", w)
-        if not isinstance(name, str) or not name or "/" in name:
-            raise DatasetError(f"{w}: field 'name' must be a non-empty string without '/', got {name!r}")
+        name = sc.file_name(
+            _require(c, "name", w), f"{w}: field 'name'"
+        )  # images/<name>/, camera_<name>.yaml
         w = f"{where}: camera {name!r}"
         width, height = _positive_int(c, "width", w), _positive_int(c, "height", w)
         # The camera block's checks are the dataset's (`jaxcal.io._schema`), named as this file names them.
@@ -334,13 +335,14 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
     """
     root = Path(path)
     if not root.is_dir():
+        resolved(root)  # a loop of symbolic links is named as one
         raise DatasetError(f"{root}: capture directory not found")
     meta_path = root / "handeye.json"
     if not meta_path.is_file():
         raise DatasetError(f"{meta_path}: capture description missing (see docs/handeye.md)")
     try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as e:
+        meta = sc.loads(meta_path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as e:
         raise DatasetError(f"{meta_path}: not valid JSON ({e})") from None
     where = str(meta_path)
     if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
@@ -370,8 +372,8 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
     truth = None
     if (root / "truth.json").is_file():
         try:
-            truth = json.loads((root / "truth.json").read_text())
-        except json.JSONDecodeError as e:
+            truth = sc.loads((root / "truth.json").read_text(encoding="utf-8"))
+        except (ValueError, UnicodeDecodeError) as e:
             raise DatasetError(f"{root / 'truth.json'}: not valid JSON ({e})") from None
     return HandEyeCapture(
         root=root,

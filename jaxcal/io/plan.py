@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import DatasetError, PlanFileError
 from ..markers import TargetSpec
-from ._schema import Loc, array, integer, names, number, obj, pose, string
+from ._schema import Loc, array, file_name, integer, names, number, obj, pose, string
 
 SCHEMA = "jaxcal.plan"
 SCHEMA_VERSION = 1
@@ -393,7 +393,7 @@ def _camera(x, loc: Loc) -> PlanCamera:
         )
     dist = array(x.get("distortion", [0.0] * 5), loc.key("distortion"), (5,))
     return PlanCamera(
-        name=string(x.get("name", "cam0"), loc.key("name")),
+        name=file_name(x.get("name", "cam0"), loc.key("name")),
         width=w,
         height=h,
         K=K,

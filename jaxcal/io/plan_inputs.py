@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..errors import DatasetError, PlanFileError
-from ._schema import Loc, read_json
+from ._schema import Loc, file_name, load_yaml, read_json
 from .plan import MAX_PLACEMENT_M, PlanCamera, PlanTarget, check_placement, target_from_dict
 
 #: The camera file's fields `read_camera` reads.
@@ -67,11 +67,11 @@ def _read_fields(path: Path) -> dict:
         except (cv2.error, SystemError) as e:
             why = e.msg.strip() if isinstance(e, cv2.error) else "unreadable"
             raise PlanFileError(f"{path}: not a camera file OpenCV can read ({why})") from None
-    from ruamel.yaml import YAML, YAMLError
+    from ruamel.yaml import YAMLError
 
     try:
-        fields = YAML(typ="safe", pure=True).load(text)
-    except YAMLError as e:
+        fields = load_yaml(text)
+    except (YAMLError, ValueError) as e:
         raise PlanFileError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(fields, dict):
         raise PlanFileError(
@@ -172,9 +172,10 @@ def read_camera(path, flange: str, resolution: tuple[int, int] | None = None) ->
     mount = flange if given[0] == "T_flange_cam" else "world"
     if given[0] == "T_cam_base":
         T = np.linalg.inv(T)
-    name = fields.get("camera_name", "cam0")
-    if not isinstance(name, str) or not name:
-        raise PlanFileError(f"{path}: field 'camera_name': expected a non-empty string, got {name!r}")
+    try:
+        name = file_name(fields.get("camera_name", "cam0"), f"{path}: field 'camera_name'")
+    except DatasetError as e:
+        raise PlanFileError(str(e)) from None
     return PlanCamera(name, w, h, K, np.zeros(5) if dist is None else dist, mount, T)
 
 

@@ -28,6 +28,7 @@ from ..records import (
     from_plain,
     plain,
 )
+from ._schema import loads
 from .model_json import model_from_json, model_to_json
 
 
@@ -159,7 +160,7 @@ def read_result(path) -> ResultFile:
     when it is missing or not one jaxcal wrote)."""
     try:
         with open(path) as f:
-            payload = json.load(f)
+            payload = loads(f.read())
         if payload.get("schema") != "jaxcal.result":
             raise ValueError("no jaxcal.result schema")
         return result_from_json(payload)
@@ -258,7 +259,7 @@ def read_estimate(path) -> Estimate:
             x=jnp.asarray(d["x"], jnp.float64),
             cov=jnp.asarray(d["cov"], jnp.float64),
             free=jnp.asarray(d["free"], bool),
-            nominal=model_from_json(json.loads(str(d["nominal_model"]))),
+            nominal=model_from_json(loads(str(d["nominal_model"]))),
             T_flange_marker0=jnp.asarray(d["T_flange_marker0"], jnp.float64),
             T_cam_base0=jnp.asarray(d["T_cam_base0"], jnp.float64),
             reduction_ratio=jnp.asarray(d["reduction_ratio"], jnp.float64),

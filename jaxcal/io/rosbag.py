@@ -33,7 +33,6 @@ only read; the output is written atomically (`atomic_directory`) and checked
 with `load_dataset` before it is renamed into place.
 """
 
-import json
 import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -51,7 +50,7 @@ from ..errors import (
     BagTopicError,
     DatasetError,
 )
-from ._files import atomic_directory
+from ._files import atomic_directory, shown
 from ._rosmsgs import (
     SegmentOptions,
     camera_intrinsics,
@@ -60,6 +59,7 @@ from ._rosmsgs import (
     find_segments,
     stamp_ns,
 )
+from ._schema import file_name, loads
 from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_encoders, write_frames, write_json
 from .dh_tables import dh_table_model, is_table_file, read_table_file
 from .urdf import load_urdf, urdf_outline
@@ -129,7 +129,7 @@ def read_targets(path) -> list[dict]:
     an object with a `targets` list (a dataset's `metadata.json` works). Checked with the dataset."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
         raise DatasetError(f"{path}: cannot read the target file: {e}") from e
     if isinstance(data, dict):
@@ -275,7 +275,7 @@ def _robot_model(robot: Path, base_link, flange_link):
         model = load_urdf(robot, base_link, flange_link)
         outline = urdf_outline(robot, tuple(model.joint_names))
     except (OSError, ValueError) as e:
-        raise DatasetError(f"{robot}: cannot load the robot model: {e}") from e
+        raise DatasetError(f"{shown(robot)}: cannot load the robot model: {e}") from e
     movable = {j for j, kind, _ in outline.parent_joint.values() if kind != "fixed"}
     ratio = np.array([outline.limits[j].reduction_ratio for j in model.joint_names])
     return model, movable, ratio, "urdf", "robot.urdf"
@@ -314,6 +314,9 @@ def import_bag(
     checks (nothing is then left at `out`), `OutputError` for `out`.
     """
     bag, robot = Path(bag), Path(robot)
+    file_name(
+        camera, "camera (--camera-name)"
+    )  # it names images/<camera>/: checked before anything is written
     target_list = read_targets(targets) if isinstance(targets, (str, Path)) else list(targets)
     model, movable, ratio, robot_key, robot_name = _robot_model(robot, base_link, flange_link)
     chain = tuple(model.joint_names)

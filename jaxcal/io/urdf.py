@@ -35,7 +35,7 @@ from .._kinematics import (
     origins_xyz_rpy,
     rotations_to_rpy,
 )
-from ._files import write_text_atomic
+from ._files import shown, write_text_atomic
 from ._urdf_checks import check_joint_element, check_joint_links, limit_range, limit_value
 from ._urdf_tree import origin_matrix, read_tree
 
@@ -51,14 +51,16 @@ _IDENTITY_ATOL = 1e-12
 def _parse_xml(path: Path) -> ET.ElementTree:
     """Parse `path` as XML with comments kept; ValueError on a missing file or bad XML."""
     if not path.is_file():
-        raise ValueError(f"URDF file {str(path)!r} does not exist")
+        raise ValueError(f"URDF file {shown(path)!r} does not exist")
     parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
     try:
         tree = ET.parse(path, parser=parser)
     except ET.ParseError as e:
-        raise ValueError(f"URDF file {str(path)!r} is not well-formed XML: {e}") from None
+        raise ValueError(f"URDF file {shown(path)!r} is not well-formed XML: {e}") from None
     if tree.getroot().tag != "robot":
-        raise ValueError(f"URDF file {str(path)!r}: root element is <{tree.getroot().tag}>, expected <robot>")
+        raise ValueError(
+            f"URDF file {shown(path)!r}: root element is <{tree.getroot().tag}>, expected <robot>"
+        )
     return tree
 
 
@@ -84,14 +86,14 @@ def _reduction_ratio(joint: str, transmissions: dict[str, list[ET.Element]], pat
     if len(found) > 1:
         names = [tr.get("name") for tr in found]
         raise ValueError(
-            f"URDF file {str(path)!r}: joint {joint!r} is driven by several transmissions {names}"
+            f"URDF file {shown(path)!r}: joint {joint!r} is driven by several transmissions {names}"
         )
     if not found:
         return 1.0
     tr = found[0]
     if len(tr.findall("joint")) != 1:
         raise ValueError(
-            f"URDF file {str(path)!r}: transmission {tr.get('name')!r} couples several joints; "
+            f"URDF file {shown(path)!r}: transmission {tr.get('name')!r} couples several joints; "
             f"the reduction ratio of joint {joint!r} is ambiguous"
         )
     values = set()
@@ -100,20 +102,20 @@ def _reduction_ratio(joint: str, transmissions: dict[str, list[ET.Element]], pat
             values.add(float((el.text or "").strip()))
         except ValueError:
             raise ValueError(
-                f"URDF file {str(path)!r}: transmission {tr.get('name')!r} has a non-numeric "
+                f"URDF file {shown(path)!r}: transmission {tr.get('name')!r} has a non-numeric "
                 f"mechanicalReduction {el.text!r}"
             ) from None
     if not values:
         return 1.0
     if len(values) > 1:
         raise ValueError(
-            f"URDF file {str(path)!r}: transmission {tr.get('name')!r} gives joint {joint!r} "
+            f"URDF file {shown(path)!r}: transmission {tr.get('name')!r} gives joint {joint!r} "
             f"several reductions {sorted(values)}"
         )
     ratio = values.pop()
     if not math.isfinite(ratio) or ratio == 0.0:
         raise ValueError(
-            f"URDF file {str(path)!r}: transmission {tr.get('name')!r} has invalid reduction {ratio!r}"
+            f"URDF file {shown(path)!r}: transmission {tr.get('name')!r} has invalid reduction {ratio!r}"
         )
     return ratio
 
@@ -166,10 +168,10 @@ def urdf_outline(path, joint_names=()) -> UrdfOutline:
     for name in joint_names:
         el = elements.get(name)
         if el is None:
-            raise ValueError(f"URDF file {str(path)!r} has no joint {name!r}")
+            raise ValueError(f"URDF file {shown(path)!r} has no joint {name!r}")
         kind = el.get("type")
         if kind not in _MOVABLE:
-            raise ValueError(f"URDF file {str(path)!r}: joint {name!r} is {kind}, not a movable joint")
+            raise ValueError(f"URDF file {shown(path)!r}: joint {name!r} is {kind}, not a movable joint")
         check_joint_element(el, path)
         lower, upper = (None, None) if kind == "continuous" else limit_range(el, path)
         if lower == upper == 0.0:
@@ -212,29 +214,31 @@ def _chain(robot, path: Path, base_link: str | None, tip_link: str | None) -> tu
     if base_link is None:
         roots = sorted(links - set(parent_joint))
         if len(roots) != 1:
-            raise ValueError(f"URDF file {str(path)!r}: expected one root link, found {roots}")
+            raise ValueError(f"URDF file {shown(path)!r}: expected one root link, found {roots}")
         base_link = roots[0]
     elif base_link not in links:
         raise ValueError(
-            f"URDF file {str(path)!r}: unknown base link {base_link!r}; links are {sorted(links)}"
+            f"URDF file {shown(path)!r}: unknown base link {base_link!r}; links are {sorted(links)}"
         )
     if tip_link is None:
         leaves = _leaves_with_motion(children, base_link)
         if not leaves:
-            raise ValueError(f"URDF file {str(path)!r}: no movable joint below base link {base_link!r}")
+            raise ValueError(f"URDF file {shown(path)!r}: no movable joint below base link {base_link!r}")
         if len(leaves) > 1:
             raise ValueError(
-                f"URDF file {str(path)!r}: the tree branches below {base_link!r}; pass tip_link, "
+                f"URDF file {shown(path)!r}: the tree branches below {base_link!r}; pass tip_link, "
                 f"one of the leaves {leaves}"
             )
         tip_link = leaves[0]
     elif tip_link not in links:
-        raise ValueError(f"URDF file {str(path)!r}: unknown tip link {tip_link!r}; links are {sorted(links)}")
+        raise ValueError(
+            f"URDF file {shown(path)!r}: unknown tip link {tip_link!r}; links are {sorted(links)}"
+        )
     joints, link = [], tip_link
     while link != base_link:
         if link not in parent_joint or len(joints) > len(parent_joint):
             raise ValueError(
-                f"URDF file {str(path)!r}: no chain of joints from base link {base_link!r} "
+                f"URDF file {shown(path)!r}: no chain of joints from base link {base_link!r} "
                 f"to tip link {tip_link!r}"
             )
         joints.append(parent_joint[link])
@@ -249,13 +253,15 @@ def _origin(joint) -> np.ndarray:
 def _check_joint(joint, path: Path) -> None:
     if joint.type in _UNSUPPORTED:
         raise ValueError(
-            f"URDF file {str(path)!r}: joint {joint.name!r} is {joint.type}; only revolute, "
+            f"URDF file {shown(path)!r}: joint {joint.name!r} is {joint.type}; only revolute, "
             "continuous, prismatic and fixed joints are supported"
         )
     if joint.type != "fixed" and joint.type not in _MOVABLE:
-        raise ValueError(f"URDF file {str(path)!r}: joint {joint.name!r} has unknown type {joint.type!r}")
+        raise ValueError(f"URDF file {shown(path)!r}: joint {joint.name!r} has unknown type {joint.type!r}")
     if joint.mimic is not None:
-        raise ValueError(f"URDF file {str(path)!r}: joint {joint.name!r} mimics another joint (unsupported)")
+        raise ValueError(
+            f"URDF file {shown(path)!r}: joint {joint.name!r} mimics another joint (unsupported)"
+        )
 
 
 def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -> KinematicModel:
@@ -298,7 +304,7 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
         norm = float(np.linalg.norm(axis))
         if not norm > 0.0 or not math.isfinite(norm):
             raise ValueError(
-                f"URDF file {str(path)!r}: joint {joint.name!r} has a zero or invalid axis {axis}"
+                f"URDF file {shown(path)!r}: joint {joint.name!r} has a zero or invalid axis {axis}"
             )
         origins.append(pending @ _origin(joint))
         pending = np.eye(4)
@@ -310,7 +316,7 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
         ratios.append(_reduction_ratio(joint.name, transmissions, path))
     if not names:
         raise ValueError(
-            f"URDF file {str(path)!r}: no movable joint between base link {base_link!r} "
+            f"URDF file {shown(path)!r}: no movable joint between base link {base_link!r} "
             f"and tip link {tip_link!r}"
         )
     return make_model(
@@ -366,7 +372,9 @@ def urdf_inertials(
         coms.append(moment / m_sum if m_sum > 0 else np.zeros(3))
     masses = np.asarray(masses)
     if not masses.any() or not np.all(np.isfinite(masses)):
-        raise ValueError(f"URDF file {str(path)!r} gives no link masses (no <inertial> on the chain's links)")
+        raise ValueError(
+            f"URDF file {shown(path)!r} gives no link masses (no <inertial> on the chain's links)"
+        )
     return masses, np.stack(coms)
 
 
@@ -625,7 +633,7 @@ def save_urdf(model: KinematicModel, path, *, source=None) -> None:
     """
     path = Path(path)
     if not path.parent.is_dir():
-        raise ValueError(f"save_urdf: directory {str(path.parent)!r} of {str(path)!r} does not exist")
+        raise ValueError(f"save_urdf: directory {str(path.parent)!r} of {shown(path)!r} does not exist")
     arrays = _model_arrays(model)
     if source is not None:
         tree = _fill_from_source(model, arrays, Path(source))

@@ -22,8 +22,10 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from .._argtypes import count, finite
 from ..errors import OutputError, PlanError, PlanFileError
-from ..io._files import write_text_atomic
+from ..io._files import check_output_file, resolved, write_text_atomic
+from ..io._images import MAX_PIXELS, MAX_SIDE
 from ..io.plan_inputs import parse_pose, parse_region, read_camera, read_target
 from ._api import Robot, evaluate_plan, plan, scene_of, views, workspace
 from ._check import plan_check, write_poses
@@ -31,6 +33,10 @@ from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation
 from ._plan import load_plan, save_plan
 from ._report import parameter_rows, plot_evaluation
 from ._scene import FeasibilityLimits
+
+#: Bounds of the options that size a plan's work and memory (the candidates' and the frames'
+#: Jacobians are held at once): ten to twenty times their defaults.
+MAX_FRAMES, MAX_CANDIDATES, MAX_STARTS, MAX_STEPS, MAX_BUDGET = 5000, 50_000, 100, 100_000, 1000
 
 
 def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
@@ -48,7 +54,12 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
         help="propose the --budget poses that make jaxcal check of this camera result most sensitive "
         "(--out: a CSV of them; --json: the figures)",
     )
-    p.add_argument("--budget", type=int, default=10, help="--check: the check capture's poses")
+    p.add_argument(
+        "--budget",
+        type=count(1, MAX_BUDGET),
+        default=10,
+        help=f"--check: the check capture's poses (at most {MAX_BUDGET})",
+    )
     p.add_argument(
         "--robot", default="ur5e", help="shipped robot (ur5e, panda; revolute joints only) or a URDF file"
     )
@@ -64,16 +75,21 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
         "--resolution", type=_resolution, default=(1280, 960), help="WxH pixels of the default camera"
     )
     p.add_argument(
-        "--distance", type=float, help="default camera to target distance, m (0.9; eye-in-hand 0.6)"
+        "--distance", type=finite, help="default camera to target distance, m (0.9; eye-in-hand 0.6)"
     )
     p.add_argument("--taught", help="taught pose q1,q2,... (rad; default the robot's)")
-    p.add_argument("--frames", type=int, default=240, help="frames (stop-and-shoot poses)")
+    p.add_argument(
+        "--frames",
+        type=count(1, MAX_FRAMES),
+        default=240,
+        help=f"frames (stop-and-shoot poses), at most {MAX_FRAMES:,}",
+    )
     p.add_argument("--out", help="the plan file to write (refused if it exists, unless --overwrite)")
     p.add_argument(
         "--overwrite", action="store_true", help="replace --out, --plot and --json (never an input)"
     )
     p.add_argument("--region", help="x0,y0,z0,x1,y1,z1: box (m, base frame) where EE accuracy matters")
-    p.add_argument("--sigma-px", type=float, default=DEFAULT_SIGMA_PX, help="detector corner noise, px")
+    p.add_argument("--sigma-px", type=finite, default=DEFAULT_SIGMA_PX, help="detector corner noise, px")
     p.add_argument(  # `--camera` is the camera file here
         "--camera-model",
         choices=cameras,
@@ -88,17 +104,26 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
     )
     p.add_argument("--method", choices=("gradient", "greedy"), default="gradient")
     p.add_argument("--baseline", action="store_true", help="also run the greedy D-optimal baseline")
-    p.add_argument("--starts", type=int, default=3, help="gradient starts")
-    p.add_argument("--steps", type=int, default=150, help="gradient steps")
-    p.add_argument("--candidates", type=int, default=2000, help="random poses drawn about the taught pose")
     p.add_argument(
-        "--amplitude-deg", type=float, default=60.0, help="candidates within this of the taught pose"
+        "--starts", type=count(1, MAX_STARTS), default=3, help=f"gradient starts, at most {MAX_STARTS}"
     )
-    p.add_argument("--goal-mm", type=float, help="regenerate wider while the predicted EE RMS is above this")
-    p.add_argument("--floor-z", type=float, default=-0.6, help="floor height, m (base frame)")
-    p.add_argument("--view-angle-deg", type=float, default=60.0, help="largest plate view angle")
+    p.add_argument(
+        "--steps", type=count(1, MAX_STEPS), default=150, help=f"gradient steps, at most {MAX_STEPS:,}"
+    )
+    p.add_argument(
+        "--candidates",
+        type=count(1, MAX_CANDIDATES),
+        default=2000,
+        help=f"random poses drawn about the taught pose, at most {MAX_CANDIDATES:,}",
+    )
+    p.add_argument(
+        "--amplitude-deg", type=finite, default=60.0, help="candidates within this of the taught pose"
+    )
+    p.add_argument("--goal-mm", type=finite, help="regenerate wider while the predicted EE RMS is above this")
+    p.add_argument("--floor-z", type=finite, default=-0.6, help="floor height, m (base frame)")
+    p.add_argument("--view-angle-deg", type=finite, default=60.0, help="largest plate view angle")
     p.add_argument("--no-mujoco", action="store_true", help="skip MuJoCo's contact and line-of-sight checks")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=count(0, 2**32 - 1), default=0)
     p.add_argument("--plot", help="write the plan's predicted EE sigma plot (PNG) here")
     p.add_argument("--json", help="write the plan's predicted figures (JSON) here")
     p.add_argument("--quiet", action="store_true")
@@ -110,28 +135,18 @@ def _resolution(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"resolution must look like 1280x960, got {text!r}") from None
+    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE and w * h <= MAX_PIXELS):
+        raise argparse.ArgumentTypeError(
+            f"resolution {text!r}: each side from 1 to {MAX_SIDE} pixels, at most {MAX_PIXELS / 1e6:g} megapixels"
+        )
     return w, h
 
 
 def _free(path, overwrite: bool, what: str, inputs=()) -> Path | None:
-    """An output path that may be written: refused if it is one of the `inputs` (whatever
-    `--overwrite` says: jaxcal never writes over what it reads), if it exists without
-    `--overwrite`, or if it is a directory or its folder is missing."""
-    if path is None:
-        return None
-    path = Path(path)
-    for given in inputs:
-        if given is not None and Path(given).exists() and path.exists() and path.samefile(given):
-            raise OutputError(
-                f"{what} {path}: is an input of this command; jaxcal never writes over its inputs"
-            )
-    if path.exists() and not overwrite:
-        raise OutputError(f"{what} {path}: exists (pass --overwrite to replace it)")
-    if path.is_dir():
-        raise OutputError(f"{what} {path}: is a directory")
-    if not path.parent.is_dir():
-        raise OutputError(f"{what} {path}: directory {path.parent} does not exist")
-    return path
+    """An output path that may be written (`jaxcal.io._files.check_output_file`): not an input or
+    inside one (whatever `--overwrite` says), not existing without `--overwrite`, not a
+    directory, in a folder that exists."""
+    return check_output_file(path, inputs=inputs, overwrite=overwrite, what=what)
 
 
 def _outputs(args, inputs) -> tuple[Path | None, Path | None]:
@@ -139,7 +154,9 @@ def _outputs(args, inputs) -> tuple[Path | None, Path | None]:
     plot = _free(args.plot, args.overwrite, "--plot", inputs)
     out_json = _free(args.json, args.overwrite, "--json", inputs)
     named = [
-        (w, Path(p).resolve()) for w, p in (("--out", args.out), ("--plot", plot), ("--json", out_json)) if p
+        (w, resolved(p, w, error=OutputError))
+        for w, p in (("--out", args.out), ("--plot", plot), ("--json", out_json))
+        if p
     ]
     for i, (w, p) in enumerate(named):
         for w2, p2 in named[i + 1 :]:

@@ -10,7 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..errors import DatasetError, PlanFileError
-from ..io._files import write_text_atomic
+from ..io._files import resolved, write_text_atomic
 from ..io._schema import read_json
 from ..io.plan import CapturePlan, plan_from_dict, plan_to_dict
 from ..robots import shipped
@@ -22,7 +22,7 @@ def save_plan(plan: CapturePlan, path) -> Path:
     path = Path(path)
     robot = Path(plan.robot)
     if plan.robot not in shipped() and robot.is_file():
-        plan = replace(plan, robot=os.path.relpath(robot.resolve(), path.resolve().parent))
+        plan = replace(plan, robot=os.path.relpath(resolved(robot), resolved(path).parent))
     write_text_atomic(path, json.dumps(plan_to_dict(plan), indent=1) + "\n")
     return path
 
@@ -37,5 +37,5 @@ def load_plan(path) -> CapturePlan:
         raise PlanFileError(str(e)) from None
     robot = Path(plan.robot)
     if plan.robot not in shipped() and not robot.is_absolute() and (path.parent / robot).is_file():
-        plan = replace(plan, robot=str((path.parent / robot).resolve()))
+        plan = replace(plan, robot=str(resolved(path.parent / robot)))
     return plan

@@ -1,6 +1,5 @@
 """What `jaxcal plan --evaluate` shows: the prediction as rows, and a plot of the EE sigma over the workspace."""
 
-import os
 from pathlib import Path
 
 import jax
@@ -9,6 +8,7 @@ import numpy as np
 
 from .._correction import zero_correction
 from .._uncertainty import tool_points
+from ..io._files import atomic_file
 from ._evaluate import PlanEvaluation
 from ._scene import PlanScene
 
@@ -66,10 +66,6 @@ def plot_evaluation(ev: PlanEvaluation, scene: PlanScene, configs, path, title: 
         title or f"{ev.frames} frames, sigma {ev.sigma_px:g} px: predicted EE error over the workspace"
     )
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    try:
-        fig.savefig(tmp, dpi=90)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
     return path

@@ -25,6 +25,7 @@ from ..io.handeye import HandEyeCamera, write_hand_eye_description
 from ..markers import TargetSpec
 from ..robots import load_robot
 from .drift import twist_matrix
+from .motion import check_finite
 from .scene import CameraSpec, PlateSpec, Scene, add_plate, build_scene
 from .simulate import facing_mount, look_at
 
@@ -264,6 +265,7 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
 
     **Returns:** the capture directory.
     """
+    check_finite(config, "HandEyeSimConfig")
     rng = np.random.default_rng(config.seed)
     spec = config.target
     width, height = config.resolution

@@ -10,9 +10,21 @@ $\\theta = m / \\rho_{true} + \\delta_{true}$; the encoder reports $m$
 (quantised, noisy).
 """
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields
 
 import numpy as np
+
+
+def check_finite(config, what: str) -> None:
+    """Refuse (`ValueError` naming the field) a number of the dataclass `config` that is not
+    finite, alone or in a tuple: a simulation checks its numbers before it writes anything."""
+    for f in fields(config):
+        value = getattr(config, f.name)
+        values = value if isinstance(value, tuple) else (value,)
+        for v in values:
+            if isinstance(v, int | float) and not isinstance(v, bool) and not math.isfinite(v):
+                raise ValueError(f"{what}: {f.name} must be finite, got {value!r}")
 
 
 @dataclass(frozen=True)

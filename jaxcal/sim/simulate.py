@@ -28,6 +28,7 @@ from ..io.dataset import (
     CameraInfo,
     TargetInfo,
     atomic_directory,
+    load_dataset,
     write_encoders,
     write_frames,
     write_json,
@@ -40,7 +41,7 @@ from ..planning._layout import look_at as look_at
 from ..robots import link_inertials, robot_path, shipped
 from .arm import ArmModel, ArmMotion, arm_model
 from .camera import CameraModel, camera_model
-from .motion import ClockModel, encoder_stream, joint_sweeps, true_angles
+from .motion import ClockModel, check_finite, encoder_stream, joint_sweeps, true_angles
 from .motion import frame_times as frame_times_of
 from .scene import CameraSpec, PlateSpec, build_scene
 
@@ -105,6 +106,7 @@ class SimConfig:
     arm: str | ArmModel = "ideal"
 
     def check(self) -> None:
+        check_finite(self, "SimConfig")
         w, h = self.resolution
         if w < 32 or h < 32:
             raise ValueError(f"resolution {w}x{h} is too small (at least 32x32)")
@@ -422,6 +424,7 @@ def simulate(
             tmp / "truth.json",
             truth | {"dropped_frames": np.flatnonzero(~keep).tolist(), "frames": truth_frames},
         )
+        load_dataset(tmp)  # the format's every check, before the rename: nothing unreadable is kept
     return out
 
 

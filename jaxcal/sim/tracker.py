@@ -31,12 +31,13 @@ from .._geometry import so3_exp
 from .._kinematics import PerturbationScales, anchor_base, forward_kinematics, perturb_model
 from .._npgeom import matrix_to_quaternion, pose, rotvec_to_matrix
 from ..io._files import atomic_directory
-from ..io.dataset import SCHEMA, SCHEMA_VERSION, write_json
+from ..io.dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_json
 from ..io.dh_tables import is_table_file, read_table_file
 from ..io.model_json import model_to_json
 from ..io.urdf import save_urdf, urdf_outline
 from ..robots import link_inertials, load_robot_file, robot_file
 from .arm import gravity_deflection
+from .motion import check_finite
 
 #: UR3 home of the acceptance case (deg): elbow at -90, wrist 2 at 90.
 UR3_HOME_DEG = (0.0, 0.0, -90.0, 0.0, 90.0, 0.0)
@@ -101,6 +102,7 @@ class TrackerSimConfig:
         return PerturbationScales.of(self, ratio_percent=0.0)
 
     def check(self, joints: int) -> None:
+        check_finite(self, "TrackerSimConfig")
         if self.compliance is not None and len(self.compliance) != joints:
             raise ValueError(f"compliance has {len(self.compliance)} values for a robot with {joints} joints")
         if self.poses < 0 or 0 < self.poses < 10:
@@ -304,4 +306,5 @@ def simulate_tracker(config: TrackerSimConfig, out, *, overwrite: bool = False) 
         write_samples(tmp / "samples.csv", names, q, joint, P, O, config.rate_hz)
         write_json(tmp / "truth.json", truth)
         save_urdf(true, tmp / "truth.urdf", source=None if table else urdf)
+        load_dataset(tmp)  # the format's every check, before the rename
     return Path(out)

@@ -38,7 +38,7 @@ from ..records import (
 from . import _programs
 from ._blur import blur_notes, lost_to_blur
 from ._observe import Observations
-from ._points import PointFit, axis_result, fit_point_samples, parameters_of
+from ._points import CV_GAIN, PointFit, axis_result, fit_point_samples, parameters_of
 from ._setup import Options, Setup
 from ._synchronise import Sweeps, Sync
 
@@ -397,6 +397,24 @@ def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Two
     )
 
 
+def term_note(model, models) -> str | None:
+    """Why a model with a non-geometric term was not kept, against the model it was tried
+    against (the one without its last term): no better, or better by less than `CV_GAIN`;
+    None for a model that was kept and then extended by a later term (the table shows it)."""
+    base = next(m for m in models if m.terms == model.terms[:-1])
+    name = "+".join(base.terms) or "geometric model"
+    head = f"the model with {'+'.join(model.terms)}: cross-validation {model.cv_mean_mm:.4f} mm mean"
+    if model.cv_mean_mm >= base.cv_mean_mm:
+        return f"{head}, not better than the {name}'s {base.cv_mean_mm:.4f} mm: not kept"
+    gain = 1.0 - model.cv_mean_mm / base.cv_mean_mm
+    if gain > CV_GAIN:
+        return None
+    return (
+        f"{head}, better than the {name}'s {base.cv_mean_mm:.4f} mm by {100 * gain:.2f} %, less than the "
+        f"{100 * CV_GAIN:g} % a term must gain: not kept"
+    )
+
+
 def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> TwoStage:
     """The two-stage record of stop-and-shoot tracker data: the point fit (`stages._points`)."""
     pf = fit_point_samples(setup, obs, sync, options)
@@ -411,12 +429,7 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
         + (f", {pf.folds}-fold cross-validation {kept.cv_mean_mm:.4f} mm mean" if pf.folds else "")
         + (f", {kept.cv_mean_deg:.4f} deg mean" if pf.folds and kept.cv_mean_deg is not None else "")
     ]
-    notes += [
-        f"the model with {'+'.join(m.terms)} only: cross-validation {m.cv_mean_mm:.4f} mm mean, not better than "
-        f"the kept {'+'.join(kept.terms) or 'geometric model'}: not kept"
-        for m in pf.models
-        if m.terms and not m.kept
-    ]
+    notes += [n for m in pf.models if m.terms and not m.kept and (n := term_note(m, pf.models))]
     return TwoStage(
         sweeps=None,
         counts=(Named("poses", int(pf.used.sum())),),

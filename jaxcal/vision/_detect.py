@@ -11,6 +11,7 @@ from multiprocessing import get_context
 import cv2
 import numpy as np
 
+from .. import _interrupt
 from .._progress import progress as progress_bar
 from ..errors import VisionError
 from ..markers import GRID_KINDS, TargetSpec, aruco_dictionary
@@ -447,12 +448,20 @@ def _stop(executor, futures) -> None:
     (a process pool's workers are terminated, so that Ctrl-C leaves no child process)."""
     for f in futures:
         f.cancel()
-    processes = list((getattr(executor, "_processes", None) or {}).values())
-    executor.shutdown(wait=False, cancel_futures=True)
-    for proc in processes:
-        proc.terminate()
+    processes = _terminate(executor, shutdown=True)
     for proc in processes:
         proc.join(timeout=5)
+
+
+def _terminate(executor, shutdown: bool = False) -> list:
+    """Terminate a process pool's workers (a thread pool has none), the executor shut down first
+    when `shutdown`; the workers. Also what `jaxcal._interrupt` runs when it ends the process."""
+    processes = list((getattr(executor, "_processes", None) or {}).values())
+    if shutdown:
+        executor.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        proc.terminate()
+    return processes
 
 
 def _init_worker() -> None:
@@ -535,11 +544,12 @@ def detect_frames(
             executor = ThreadPoolExecutor(workers, thread_name_prefix="jaxcal detect")
         futures = []
         try:
-            futures = [executor.submit(_detect_chunk, c, targets, K, dist) for c in chunks]
-            for future, chunk in zip(futures, chunks):
-                results.extend(future.result())
-                if bar is not None:
-                    bar.advance(task, len(chunk))
+            with _interrupt.partial(lambda: _terminate(executor)):
+                futures = [executor.submit(_detect_chunk, c, targets, K, dist) for c in chunks]
+                for future, chunk in zip(futures, chunks):
+                    results.extend(future.result())
+                    if bar is not None:
+                        bar.advance(task, len(chunk))
         except BaseException:
             _stop(executor, futures)
             raise

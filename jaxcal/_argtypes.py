@@ -1,0 +1,41 @@
+"""The command line's number types, shared by `jaxcal.cli` and `jaxcal.planning` (argparse, no JAX).
+
+Every number an option takes is checked by its type before any work: a float is finite
+(`finite`: `nan` or `inf` never reaches a computation or a file), and a count that sizes
+work or memory lies within a documented bound (`count`), each refused by argparse naming
+the option. `tests/test_escapes.py` holds every option of every command to them.
+"""
+
+import argparse
+import math
+
+
+def finite(text: str) -> float:
+    """An argparse type: a finite number (not `nan`, `inf`)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
+def count(lo: int, hi: int):
+    """An argparse type: an integer from `lo` to `hi` (the bound of an option that sizes work
+    or memory, documented in its help)."""
+
+    words = {0: "a non-negative integer", 1: "a positive integer"}.get(lo, f"an integer >= {lo}")
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = None
+        if v is None or v < lo:
+            raise argparse.ArgumentTypeError(f"expected {words}, got {text!r}")
+        if v > hi:
+            raise argparse.ArgumentTypeError(f"expected {words} of at most {hi:,}, got {text!r}")
+        return v
+
+    return parse
