@@ -402,6 +402,23 @@ def _check_pose(path: Path, table: _Table, frames: np.ndarray, point, mount, arg
     return r
 
 
+def _check_readings(path: Path, table: _Table, frames: np.ndarray, point, mount, args) -> np.ndarray:
+    """`_check_pose`; where it refuses a table with orientations, the error also names another
+    reading of the columns (format, direction) under which the rows would pass."""
+    try:
+        return _check_pose(path, table, frames, point, mount, args)
+    except CsvImportError as e:
+        if table.R is None:
+            raise
+        for P, R, spec, text in other_readings(table.raw, table.P, table.R, args[3]):
+            try:
+                _check_pose(path, replace(table, P=P, R=R), frames, point, mount, args[:3] + (spec,))
+            except CsvImportError:
+                continue
+            raise CsvImportError(f"{e}; the rows fit as {text}") from None
+        raise
+
+
 # --------------------------------------------------------------------------- writing
 
 
@@ -555,18 +572,7 @@ def import_csv(
     tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
     origin = np.asarray(model.T_parent_joint)[0, :3, 3]
     args = (xyz, length_unit, (origin, reach, tol), (orientation, orientation_format, pose_direction))
-    try:
-        r = _check_pose(csv, table, T_link, point, mount, args)
-    except CsvImportError as e:
-        if table.R is None:
-            raise
-        for P, R, spec, text in other_readings(table.raw, table.P, table.R, args[3]):
-            try:
-                _check_pose(csv, replace(table, P=P, R=R), T_link, point, mount, args[:3] + (spec,))
-            except CsvImportError:
-                continue
-            raise CsvImportError(f"{e}; the rows fit as {text}") from None
-        raise
+    r = _check_readings(csv, table, T_link, point, mount, args)
     rms, warnings = float(np.sqrt(np.mean(r**2))), _far_rows(csv, table, r)
     del T_link  # a large table's read-back (`load_dataset`) needs the memory
     meta = _metadata(
