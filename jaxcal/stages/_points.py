@@ -43,6 +43,7 @@ from .._pointfit import (
     start_frame,
     term_basis,
 )
+from .._selection import improves
 from ..errors import CalibrationError
 from ..records import ModelRow, ResidualStats, TermRow
 from ..robots import link_inertials
@@ -50,8 +51,6 @@ from ._observe import Observations
 from ._setup import Options, Setup
 from ._synchronise import Sync
 
-#: A term is kept when it lowers the cross-validated mean error by more than this share.
-CV_GAIN = 0.005
 #: A non-geometric coefficient stays free only when the data pin its effect on the joint
 #: angle (its std times the RMS of its basis over the samples) to this (rad): a
 #: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
@@ -281,7 +280,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         options.say(f"point fit: trying {term} (kept only if {folds}-fold cross-validation improves)")
         trial = attempt((*best[0].terms, term))
         models.append(trial[4])
-        if trial[4].cv_mean_mm < (1.0 - CV_GAIN) * best[4].cv_mean_mm:
+        if improves(trial[4].cv_mean_mm, best[4].cv_mean_mm):  # `jaxcal._selection`'s rule
             best, kept = trial, len(models) - 1
     layout, problem, cand, fit, _ = best
     if not bool(fit.result == optx.RESULTS.successful):
