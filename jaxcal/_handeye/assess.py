@@ -381,8 +381,8 @@ def _held_out_verdict(
             "flange in the base frame and not inverted, the quaternion component order, the rotation unit"
         ], []
     return [], [
-        f"{held_out.figures()}: the robot's poses are noisy at this level, {held_out.noise_text()} (an upper "
-        "bound: the held-out error also holds the fit's own), within a robot's pose error; a result applied to "
+        f"{held_out.figures()}: the robot's poses are noisy at this level, {held_out.noise_text()} (at most: "
+        "the held-out error also holds the fit's own), within a robot's pose error; a result applied to "
         "new robot poses is off by about the held-out error"
     ]
 

@@ -10,8 +10,8 @@ corrections that absorbed it, account for.
 `robot_pixel_scale` turns pixels into the robot's units: the RMS by which a robot pose error
 of 1 mm and 0.1 deg per axis (`noise.ROBOT_SIGMA_START`, a typical robot's absolute error) moves
 these views' corners, so that a held-out error $h$ over the detector's noise $\\sigma$ reads as
-a robot pose noise of about $\\sqrt{h^2 - \\sigma^2}/s$ times that (`HeldOut.level`): an upper
-bound, since the held-out error also holds the fit's own error.
+a robot pose noise of about $\\sqrt{h^2 - \\sigma^2}/s$ times that (`HeldOut.level`): at most,
+since the held-out error also holds the fit's own error.
 """
 
 from dataclasses import dataclass
@@ -106,7 +106,7 @@ class HeldOut:
     @property
     def level(self) -> float:
         """The robot pose noise per axis that the held-out error's excess over the detector's noise
-        reads as, in units of 1 mm and 0.1 deg (`ROBOT_SIGMA_START`): an upper bound."""
+        reads as, in units of 1 mm and 0.1 deg (`ROBOT_SIGMA_START`): at most that."""
         excess = max(self.rms_px**2 - self.sigma_px**2, 0.0)
         return float(np.sqrt(excess) / self.scale_px) if self.scale_px > 0 else float("inf")
 

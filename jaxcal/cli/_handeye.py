@@ -139,9 +139,6 @@ def _handeye(args, out: Path, checked) -> int:
         f"{len(run.rejected)} frame(s) rejected of {run.frames}"
     )
     console.print(describe_robot_noise(r) + _robot_noise_support(r))
-    held = run.noise.fit.held_out
-    if held is not None:
-        console.print(f"held out: {held.figures()}")
     for f, why in sorted(run.rejected.items()):
         console.print(f"  rejected frame {cap.frames[f]}: {why}")
     for note in run.verdict.notes:
