@@ -871,16 +871,18 @@ def test_corrupted_robot_poses_are_flagged(corrupted_capture, robot_noise):
 @pytest.mark.slow
 def test_the_robot_noise_model_asked_for_is_the_one_solved(corrupted_capture):
     """`robot_noise="exact"` and the previous release's `estimate_robot_noise=False` solve with the
-    poses as reported (no corrections: the core's exact-pose optimum, no robot noise recorded), where
+    poses as reported (no corrections: the exact-pose optimum, no robot noise recorded), where
     the flag once reached a traced test and solved with 1 mm / 0.1 deg "as given"; `given` uses the
     noise given; contradictory or incomplete settings are refused before anything is read."""
+    from jaxcal.handeye import hand_eye_solver
     from jaxcal.io.handeye_results import hand_eye_summary
 
     clean, _ = corrupted_capture
     exact = jaxcal.calibrate_hand_eye_capture(clean, robot_noise="exact", folds=0)
     legacy = jaxcal.calibrate_hand_eye_capture(clean, estimate_robot_noise=False, folds=0)
-    core = jax.tree.map(np.asarray, jax.jit(jaxcal.calibrate_hand_eye)(exact.observations.data))
-    assert core.robot_sigma is None
+    # The exact-pose solve of the same data, without rejection (nothing is rejected on this capture).
+    plain = jax.tree.map(np.asarray, hand_eye_solver(200)(exact.observations.data, False, False))
+    assert plain.robot_sigma is None and exact.rejected == {}
     for run in (exact, legacy):
         assert (
             run.result.robot_sigma is None
@@ -888,7 +890,7 @@ def test_the_robot_noise_model_asked_for_is_the_one_solved(corrupted_capture):
             and run.noise.setting.mode == "exact"
         )
         np.testing.assert_array_equal(run.result.T_base_ee, run.observations.data.T_base_ee)  # no corrections
-        np.testing.assert_allclose(run.T_robot_cam, core.T_robot_cam, atol=1e-8)
+        np.testing.assert_allclose(run.T_robot_cam, plain.T_robot_cam, atol=1e-8)
         summary = hand_eye_summary(run)
         assert summary["robot_noise"] is None and summary["robot_noise_model"]["model"] == "exact"
     sigma = (2e-4, np.radians(0.02))
