@@ -8,7 +8,8 @@ kind's tolerance); the rest are held at nominal and named.
 
 Non-geometric terms (`Options.terms`: joint compliance under gravity,
 transmission harmonics) are tried one after another and each is kept only
-when K-fold cross-validation on the samples improves: the fit reports the
+when K-fold cross-validation on the samples improves, by `jaxcal._selection`'s
+rule (the one the hand-eye robot-noise model is chosen by): the fit reports the
 geometric model's cross-validation beside every model tried.
 
 The record is the two-stage one (`TwoStage`, with `points`): its axis-fit
@@ -43,7 +44,7 @@ from .._pointfit import (
     start_frame,
     term_basis,
 )
-from .._selection import improves
+from .._selection import improves_on_samples
 from ..errors import CalibrationError
 from ..records import ModelRow, ResidualStats, TermRow
 from ..robots import link_inertials
@@ -197,14 +198,16 @@ def _hold_implausible_terms(problem: PointProblem, cand, fit: PointFitResult) ->
     return fit
 
 
-def _cv_row(problem, cand, fit, train) -> dict:
+def _cv_row(problem, cand, fit, train) -> tuple[dict, np.ndarray]:
+    """The cross-validated distances' summary (mm) and each held-out sample's distance, in sample order."""
     dist, test = (np.asarray(a) for a in _cv(problem, cand, fit.free, jnp.asarray(train)))
     d = 1e3 * dist[test]
+    per_sample = 1e3 * np.sum(np.where(test, dist, 0.0), axis=0)[test.any(0)]
     return {
         "cv_mean_mm": float(d.mean()),
         "cv_rms_mm": float(np.sqrt(np.mean(d**2))),
         "cv_max_mm": float(d.max()),
-    }
+    }, per_sample
 
 
 def _inertials(setup: Setup):
@@ -264,10 +267,11 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol))
         fit = _hold_implausible_terms(problem, cand, fit)
-        row = ModelRow(terms=tuple(terms), free=int(np.sum(fit.free)))
+        row, held = ModelRow(terms=tuple(terms), free=int(np.sum(fit.free))), None
         if train is not None:
-            row = dataclasses.replace(row, **_cv_row(problem, cand, fit, train & used[None]))
-        return layout, problem, cand, fit, row
+            summary, held = _cv_row(problem, cand, fit, train & used[None])
+            row = dataclasses.replace(row, **summary)
+        return layout, problem, cand, fit, row, held
 
     options.say(f"point fit: {n_used} stop-and-shoot samples, forward kinematics of every sample")
     best = attempt(())
@@ -280,9 +284,10 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         options.say(f"point fit: trying {term} (kept only if {folds}-fold cross-validation improves)")
         trial = attempt((*best[0].terms, term))
         models.append(trial[4])
-        if improves(trial[4].cv_mean_mm, best[4].cv_mean_mm):  # `jaxcal._selection`'s rule
+        # `jaxcal._selection`'s rule: a gain over CV_GAIN, by two standard errors of the paired distances.
+        if improves_on_samples(best[5], trial[5], best[4].cv_mean_mm, trial[4].cv_mean_mm):
             best, kept = trial, len(models) - 1
-    layout, problem, cand, fit, _ = best
+    layout, problem, cand, fit, *_ = best
     if not bool(fit.result == optx.RESULTS.successful):
         options.say("point fit: the solver did not converge")
     dist = 1e3 * np.linalg.norm(np.asarray(predict(fit.x, problem)) - y, axis=1)[used]
