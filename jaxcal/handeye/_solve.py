@@ -151,8 +151,6 @@ def solve(observed: Observed, *, folds: int, max_steps: int, log: Callable[[str]
     )
     seconds = {"solve": time.perf_counter() - t0}
     fit = choice.fit
-    if len(choice.fits) > 1:
-        log(f"robot-noise model {fit.model!r}, {choice.basis}")
-    log(describe_robot_noise(fit.result))
+    log(describe_robot_noise(fit.result))  # the model kept and why: the verdict's note
     rejected = rejection_reasons(fit.result, obs, OUTLIER_THRESHOLD)
     return Solved(fit.result, fit.kfold, rejected, solver, seconds, choice)

@@ -429,7 +429,7 @@ def report_markdown(summary: dict) -> str:
         "",
         "Standard deviations are the norms of the three components (translation in the parent frame, "
         "rotation as a parent-frame rotation vector); the k-fold column is the jackknife spread over "
-        f"{s['kfold']['folds'] if s['kfold'] else 0} folds of frames.",
+        f"{s['kfold']['folds'] if s['kfold'] else 0} folds of consecutive frames.",
         "",
     ]
     for name, c in s["cameras"].items():
