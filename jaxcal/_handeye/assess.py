@@ -351,6 +351,10 @@ def _solver_reasons(result: HandEyeResult, max_steps: int | None) -> list[str]:
     return reasons
 
 
+#: A held-out robot noise level (`HeldOut.level`, units of 1 mm / 0.1 deg) below which the poses read as exact.
+EXACT_LEVEL = 0.1
+
+
 def max_noise_level(
     max_sigma_m: float = MAX_ROBOT_SIGMA_M, max_sigma_deg: float = MAX_ROBOT_SIGMA_DEG
 ) -> float:
@@ -380,6 +384,11 @@ def _held_out_verdict(
             f"{1e3 * max_sigma_m:g} mm, {max_sigma_deg:g} deg): check the arrangement, that the poses are the "
             "flange in the base frame and not inverted, the quaternion component order, the rotation unit"
         ], []
+    if held_out.level < EXACT_LEVEL:
+        return [], [
+            f"{held_out.figures()}: the reported robot poses are as exact as these views resolve (their noise "
+            f"reads as {held_out.noise_text()})"
+        ]
     return [], [
         f"{held_out.figures()}: the robot's poses are noisy at this level, {held_out.noise_text()} (at most: "
         "the held-out error also holds the fit's own), within a robot's pose error; a result applied to "
