@@ -301,6 +301,15 @@ def test_bad_fit_and_far_from_start_are_suspect():
         lambda x: x.T_cam_robot_start, r, r.T_cam_robot_start @ _pose([0.0, 0.2, 0.0], [0.1, 0, 0])
     )
     assert any("from the closed-form start" in x for x in jaxcal.assess_hand_eye(far).reasons)
+    # With frames left out predicted as a robot's noise allows, an exact-pose misfit is that noise (a
+    # note, ok); predicted beyond any robot's, the poses do not belong to these images (suspect).
+    noisy = he.HeldOut(rms_px=1.0, in_sample_px=0.3, sigma_px=0.01, scale_px=1.0, folds=8, frames=16)
+    v = jaxcal.assess_hand_eye(r, held_out=noisy)
+    assert v.status == "ok" and any(
+        "the robot's poses are noisy at this level, about 1 mm" in x for x in v.notes
+    )
+    v = jaxcal.assess_hand_eye(r, held_out=dataclasses.replace(noisy, rms_px=6.0))
+    assert v.status == "suspect" and any("do not belong to these images" in x for x in v.reasons), v.reasons
 
 
 @pytest.mark.slow
