@@ -264,8 +264,11 @@ def robot_noise_data():
 def test_rejection_with_robot_noise_does_not_depend_on_max_steps(robot_noise_data, max_steps):
     """Robot noise on: each stage reports its own result and steps; once converged, the frames
     rejected (the two 2 deg / 5 mm robot errors) are the same whatever the cap."""
+    from jaxcal.handeye import hand_eye_solver
+
     data, T_ee_cam = robot_noise_data
-    r = eqx.filter_jit(jaxcal.calibrate_hand_eye)(data, options=jaxcal.LMOptions(1e-8, 1e-6, max_steps))
+    # `jaxcal handeye`'s compiled solver at this cap (at 200, the rendered 16-frame captures' program).
+    r = hand_eye_solver(max_steps)(data, True, False)
     stages = [
         bool(jax.tree.map(lambda x, i=i: x[i], r.stage_result) == optx.RESULTS.successful) for i in (0, 1)
     ]
@@ -398,7 +401,12 @@ def _noisy_robot_data(seed, frames=24, sigma_px=0.1, noise=ROBOT_NOISE, bad=()):
 
 @pytest.fixture(scope="module")
 def estimating_solver():
-    return jax.jit(lambda d, e: jaxcal.calibrate_hand_eye(d, estimate_robot_noise=e))
+    """`calibrate_hand_eye(data, estimate_robot_noise=e)` as `jaxcal handeye` compiles it (`hand_eye_solver`:
+    the rendered 24-frame capture's program, one compile for both)."""
+    from jaxcal.handeye import hand_eye_solver
+
+    solve = hand_eye_solver(200)
+    return lambda d, e: solve(d, True, e)
 
 
 def test_robot_noise_estimate_is_unbiased_and_its_std_honest(estimating_solver):
@@ -471,14 +479,14 @@ def test_a_poor_fit_names_robot_noise_by_how_it_was_set(estimating_solver):
     assert any("does not explain it" in x for x in v.reasons), v.reasons
 
 
-def test_a_traced_noise_switch_with_exact_poses_is_refused(estimating_solver):
+def test_a_traced_noise_switch_with_exact_poses_is_refused():
     """`estimate_robot_noise` traced with exact robot poses (`robot_sigma` None) once solved with
     1 mm / 0.1 deg "as given" when False: whether to add corrections decides the program, so the
     flag must then be a Python bool, and a traced one is refused (at trace time: nothing compiles)."""
     data, _ = _noisy_robot_data(12)
     exact = eqx.tree_at(lambda d: d.robot_sigma, data, None)
     with pytest.raises(ValueError, match="estimate_robot_noise is traced but data.robot_sigma is None"):
-        estimating_solver(exact, False)
+        jax.jit(lambda d, e: jaxcal.calibrate_hand_eye(d, estimate_robot_noise=e))(exact, False)
 
 
 # --------------------------------------------------------------------------- the robot-noise model, held out
