@@ -20,6 +20,7 @@ what is no robot's noise (a real RealSense capture: 7.0 px held out with the noi
 than 8 frames there is nothing to compare on, and `auto` takes the estimate and says so.
 """
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -206,9 +207,13 @@ def solve_models(
     folds: int,
     sigma_px: float,
     kfold_of: Callable,
+    seconds: dict | None = None,
 ) -> NoiseChoice:
     """Solve with each of `setting.models`, run each one's k-fold over the same frames (those any
-    model kept) with `kfold_of(data, result, estimate, folds, frames)`, and choose (`choose`)."""
+    model kept) with `kfold_of(data, result, estimate, folds, frames)`, and choose (`choose`).
+    `seconds`: filled with the wall time of the solves (`solve`) and of the folds (`kfold`)."""
+    seconds = {} if seconds is None else seconds
+    t0 = time.perf_counter()
     solved = []
     for model in setting.models:
         d, estimate = model_data(data, model, setting.sigma)
@@ -216,10 +221,13 @@ def solve_models(
     observed = np.asarray(data.mask).any(-1)
     kept = np.any([(observed & ~np.asarray(r.rejected)).any(0) for *_, r in solved], axis=0)
     frames = np.flatnonzero(kept)
+    seconds["solve"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     fits = []
     for model, d, estimate, r in solved:
         kf = kfold_of(d, r, estimate, folds, frames) if folds >= 2 and len(frames) >= MIN_FRAMES else None
         fits.append(NoiseModelFit(model, r, kf, held_out(r, kf, d, sigma_px)))
     fits = tuple(fits)
+    seconds["kfold"] = time.perf_counter() - t0
     chosen, basis = choose(fits, setting, folds)
     return NoiseChoice(fits, chosen, setting, basis)

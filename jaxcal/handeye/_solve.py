@@ -1,7 +1,6 @@
 """Hand-eye's solve step: the compiled solver of `calibrate_hand_eye`, its solve of the observed
 data, the k-fold spread and the rejected frames with their reasons."""
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache, partial
@@ -127,7 +126,7 @@ class Solved:
     - `kfold`: its k-fold spread (with the held-out reprojection), or None when no folds were asked for.
     - `rejected`: `{frame index: reason}` of the frames the solve rejected.
     - `solver`: the compiled solver (`hand_eye_solver`), for the verdict's re-solves.
-    - `seconds`: `solve` (every model's solve and k-fold).
+    - `seconds`: `solve` (every model's solve), `kfold` (every model's k-fold).
     - `noise`: the robot-noise models solved and the one kept (`NoiseChoice`).
     """
 
@@ -143,13 +142,12 @@ def solve(observed: Observed, *, folds: int, max_steps: int, log: Callable[[str]
     """`calibrate_hand_eye` on the observed data (outliers rejected) with each robot-noise model
     `observed.noise` asks for, each one's spread over `folds` folds of frames (0: none), and the
     model kept (`_noise.solve_models`)."""
-    t0 = time.perf_counter()
     solver = hand_eye_solver(max_steps)
     obs = observed.observations
+    seconds = {}
     choice = solve_models(
-        solver, obs.data, observed.noise, folds, obs.sigma_px, partial(kfold_from_optimum, solver)
+        solver, obs.data, observed.noise, folds, obs.sigma_px, partial(kfold_from_optimum, solver), seconds
     )
-    seconds = {"solve": time.perf_counter() - t0}
     fit = choice.fit
     log(describe_robot_noise(fit.result))  # the model kept and why: the verdict's note
     rejected = rejection_reasons(fit.result, obs, OUTLIER_THRESHOLD)
