@@ -410,7 +410,8 @@ def _fit_reasons(
             f"(limits {1e3 * max_sigma_m:g} mm, {max_sigma_deg:g} deg) although frames left out read as a "
             "robot's noise (see the notes): the corrections absorb what the model leaves out (intrinsics, "
             "lens distortion, the target's flatness) and move the camera with it; exact poses or a given "
-            "noise may predict new frames better (`--robot-noise auto` compares them on frames left out)"
+            "noise may predict new frames better (`--robot-noise auto` lists each model's held-out error; "
+            "`exact` or `given` takes one)"
         )
     elif implausible_robot_noise(result, max_sigma_m, max_sigma_deg):
         reasons.append(
