@@ -930,6 +930,25 @@ def test_the_robot_noise_model_asked_for_is_the_one_solved(corrupted_capture):
             jaxcal.calibrate_hand_eye_capture(clean, **kw)
 
 
+def test_jaxcal_check_takes_the_held_out_noise_of_an_exact_pose_result():
+    """A result with exact robot poses records no robot noise; `jaxcal check` then takes the noise
+    its frames left out read as (`held_out`), which a later capture's frames carry too."""
+    from jaxcal.io.checks import hand_eye_reference
+
+    doc = {
+        "arrangement": "eye_in_hand",
+        "cameras": {},
+        "target": {"spec": CHESSBOARD.to_dict(), "T_robot_target": {"matrix": np.eye(4).tolist()}},
+        "robot_noise": None,
+        "held_out": {"robot_noise_level": {"translation_mm": 0.8, "rotation_deg": 0.08}},
+        "solver": {"sigma_px": 0.2},
+    }
+    assert hand_eye_reference(doc, "result.json").robot_noise == (0.8, 0.08)
+    assert hand_eye_reference({**doc, "held_out": None}, "result.json").robot_noise is None
+    given = {"translation_mm": 1.0, "rotation_deg": 0.1, "estimated": False}
+    assert hand_eye_reference({**doc, "robot_noise": given}, "result.json").robot_noise == (1.0, 0.1)
+
+
 def test_the_command_refuses_robot_noise_options_that_do_not_go_together(tmp_path, capsys):
     for options, match in (
         (["--robot-noise", "given"], "--robot-noise given needs --robot-sigma-mm"),
