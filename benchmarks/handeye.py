@@ -37,7 +37,8 @@ Two parts, every method given the same data:
 4. `real`: ViSP's real Franka captures (`data/visp_handeye`: eye-in-hand on a chessboard,
    eye-to-hand on one AprilTag, 8 frames each): jaxcal's whole pipeline, and OpenCV's five
    `calibrateHandEye` methods on the same detections' PnP poses, each against ViSP's own solver's
-   published answer (no ground truth), with jaxcal's reported std beside it.
+   published answer (no ground truth), with jaxcal's reported std beside it, and every robot-noise
+   model jaxcal's default compared (held-out reprojection, distance from ViSP's answer).
 
 5. `speed`: one solve's wall time after compilation (the fastest of 15) on
    synthetic corners (a 7x5 board of 3 cm squares, 600 px focal length,
@@ -49,6 +50,15 @@ Two parts, every method given the same data:
    difference of their answers; `pixels_ms_50`: exact robot poses, 50 poses,
    one camera, on the closed-form Jacobian (`jaxcal._handeye.jacobian`), with
    the autodiff solve beside it (`pixels_50_autodiff_ms`) and their difference.
+
+6. `noise` (`--parts noise`, not in the default parts): the default robot-noise model (`auto`: the
+   model that predicts frames left out best, `jaxcal.handeye`) against each fixed model (exact
+   poses, the noise estimated, the true noise given) on rendered eye-in-hand captures whose robot
+   poses are off by 0, 0.1, 1 and 3 mm with 0, 0.01, 0.1 and 0.3 deg per axis, `--noise-seeds`
+   captures of `--noise-frames` frames each: per level the mean held-out reprojection (frames left
+   out in 10 blocks of consecutive frames, predicted from their reported robot poses) and the mean
+   camera-pose error against the truth, and the default's over the better of exact and estimated
+   (`default_over_best_fixed`; accepted at <= 1.05 held out, <= 1.1 pose error).
 
 Errors are those of the camera's pose on the robot (`T_gripper_cam` in part
 1, `T_base_cam` in part 2): rotation (deg) and translation (mm), mean over
@@ -65,6 +75,7 @@ How to run (from the repository root)::
     .venv/bin/python benchmarks/handeye.py --parts captures --json results/handeye_captures.json
     .venv/bin/python benchmarks/handeye.py --parts speed
     .venv/bin/python benchmarks/handeye.py --parts real --json results/handeye_real.json
+    .venv/bin/python benchmarks/handeye.py --parts noise --json results/handeye_noise.json
 
 The JSON holds `methods` (per method `rot_deg`, `trans_mm`, `time_ms`) and
 `jaxcal_rot_ratio_vs_best_opencv`, `jaxcal_trans_ratio_vs_best_opencv` (jaxcal's
@@ -450,6 +461,15 @@ def real_part() -> dict:
             for name, (T, _) in opencv_solves(grip, T_cb).items()
         }
         out[capture] = {
+            "robot_noise_model": run.noise.fit.model,
+            "models": {
+                f.model: {
+                    "held_out_px": None if f.held_out is None else f.held_out.rms_px,
+                    "in_sample_px": float(f.result.pixel_rms),
+                    **dict(zip(("rot_deg", "trans_mm"), errors(np.asarray(f.result.T_robot_cam)[0], ref))),
+                }
+                for f in run.noise.fits
+            },
             "status": run.verdict.status,
             "frames": int(run.frames),
             "rejected": len(run.rejected),
@@ -468,6 +488,119 @@ def real_part() -> dict:
             + ", ".join(f"{k} {e['trans_mm']:.2f} mm {e['rot_deg']:.3f} deg" for k, e in opencv.items()),
             flush=True,
         )
+    return out
+
+
+# --------------------------------------------------------------------------- part 6: robot-noise models
+
+#: Robot pose noise per axis (mm, deg) of the rendered captures of `noise_part`.
+NOISE_LEVELS = ((0.0, 0.0), (0.1, 0.01), (1.0, 0.1), (3.0, 0.3))
+
+
+def _model_row(fit, truth) -> dict:
+    """A robot-noise model's held-out reprojection and pose error against the truth."""
+    rot, trans = errors(np.asarray(fit.result.T_robot_cam)[0], truth)
+    return {
+        "held_out_px": None if fit.held_out is None else fit.held_out.rms_px,
+        "in_sample_px": float(fit.result.pixel_rms),
+        "rot_deg": rot,
+        "trans_mm": trans,
+        "noise": fit.noise,
+        "rejected": int(np.asarray(fit.result.rejected).any(0).sum()),
+    }
+
+
+def _level_summary(rows: list) -> dict:
+    """Means over the seeds per model, and the default against the better of exact and estimate."""
+    models = sorted({m for r in rows for m in r["models"]})
+    mean = {
+        m: {
+            k: float(np.mean([r["models"][m][k] for r in rows if m in r["models"]]))
+            for k in ("held_out_px", "rot_deg", "trans_mm")
+        }
+        for m in models
+    }
+    mean["default"] = {
+        k: float(np.mean([r["default"][k] for r in rows])) for k in ("held_out_px", "rot_deg", "trans_mm")
+    }
+    fixed = [mean[m] for m in ("exact", "estimate")]
+    best = {k: min(f[k] for f in fixed) for k in ("held_out_px", "rot_deg", "trans_mm")}
+    ratio = {k: mean["default"][k] / best[k] for k in best}
+    return {
+        "mean": mean,
+        "default_over_best_fixed": ratio,
+        "chosen": {m: sum(r["chosen"] == m for r in rows) for m in ("estimate", "exact")},
+        "accepted": ratio["held_out_px"] <= 1.05 and ratio["rot_deg"] <= 1.1 and ratio["trans_mm"] <= 1.1,
+    }
+
+
+def noise_part(seeds: int, frames: int, seed: int, levels=NOISE_LEVELS) -> dict:
+    """The default robot-noise model (`auto`) against each fixed one on rendered eye-in-hand captures
+    (640x480 chessboard, lens distortion) whose robot poses are off by Gaussian noise per axis.
+
+    Per capture, `calibrate_hand_eye_capture`'s default run solves with the estimated noise and with
+    exact poses, predicts each one's frames left out (10 folds of consecutive frames, from the reported
+    robot poses) and keeps one; its record holds every model's held-out error and camera pose. A
+    second run takes the true noise as given (`robot_noise="given"`, levels above zero)."""
+    from jaxcal.markers import TargetSpec
+    from jaxcal.sim.handeye import HandEyeSimConfig, simulate_hand_eye  # MuJoCo: imported when needed
+
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for mm, deg in levels:
+            rows = []
+            for k in range(seeds):
+                config = HandEyeSimConfig(
+                    target=TargetSpec("chessboard", squares=(8, 7), square_length=0.025, name="target"),
+                    frames=frames,
+                    seed=seed + 100 * k + 29,
+                    distortion=DISTORTION,
+                    robot_noise_mm=mm,
+                    robot_noise_deg=deg,
+                )
+                path = simulate_hand_eye(config, Path(tmp) / f"noise_{mm}_{k}")
+                run = jaxcal.calibrate_hand_eye_capture(path)
+                truth = np.asarray(run.capture.truth["T_robot_cam"]["cam0"])
+                models = {f.model: _model_row(f, truth) for f in run.noise.fits}
+                if mm > 0:
+                    given = jaxcal.calibrate_hand_eye_capture(
+                        path,
+                        robot_noise="given",
+                        robot_sigma_translation=1e-3 * mm,
+                        robot_sigma_rotation=np.radians(deg),
+                    )
+                    models["given_true"] = _model_row(given.noise.fit, truth)
+                rows.append(
+                    {
+                        "seed": config.seed,
+                        "chosen": run.noise.fit.model,
+                        "default": _model_row(run.noise.fit, truth),
+                        "models": models,
+                        "status": run.verdict.status,
+                    }
+                )
+                print(
+                    f"  {mm:g} mm / {deg:g} deg #{k}: kept {run.noise.fit.model} ({run.verdict.status}) | "
+                    + ", ".join(
+                        f"{m} {v['held_out_px']:.3f} px {v['trans_mm']:.3f} mm {v['rot_deg']:.4f} deg"
+                        for m, v in models.items()
+                    ),
+                    flush=True,
+                )
+            out[f"{mm:g}mm_{deg:g}deg"] = {
+                "robot_noise_mm": mm,
+                "robot_noise_deg": deg,
+                **_level_summary(rows),
+                "captures": rows,
+            }
+    out.update(
+        frames=frames,
+        seeds=seeds,
+        arrangement="eye_in_hand",
+        resolution=[640, 480],
+        distortion=list(DISTORTION),
+    )
+    out["accepted"] = all(v["accepted"] for v in out.values() if isinstance(v, dict) and "accepted" in v)
     return out
 
 
@@ -559,12 +692,16 @@ def main(argv=None) -> dict:
     p.add_argument(
         "--parts",
         default="protocol,rendered,captures,real,speed",
-        help="comma-separated: protocol, rendered, captures, real, speed",
+        help="comma-separated: protocol, rendered, captures, real, speed, noise (noise is not in the default)",
     )
     p.add_argument(
         "--quick", action="store_true", help="a smoke run: 3 trials, 10 poses, 12 frames, 1 capture"
     )
     p.add_argument("--no-dense", action="store_true", help="speed: skip the dense reference solve")
+    p.add_argument(
+        "--noise-seeds", type=int, default=5, help="noise: rendered captures per robot noise level"
+    )
+    p.add_argument("--noise-frames", type=int, default=24, help="noise: frames per rendered capture")
     a = p.parse_args(argv)
     parts = set(a.parts.split(","))
     counts, scales = ((10,), (1.0,)) if a.quick else ((10, 20), (0.5, 1.0, 2.0))
@@ -591,6 +728,10 @@ def main(argv=None) -> dict:
     if "real" in parts:
         print("Real captures (ViSP's Franka, data/visp_handeye) against ViSP's answer:", flush=True)
         result["real"] = real_part()
+    if "noise" in parts:
+        print("Robot-noise models on rendered captures (the default against each fixed model):", flush=True)
+        levels = (NOISE_LEVELS[0], NOISE_LEVELS[2]) if a.quick else NOISE_LEVELS
+        result["noise"] = noise_part(1 if a.quick else a.noise_seeds, a.noise_frames, a.seed, levels)
     if "speed" in parts:
         print("Solve times (synthetic corners):", flush=True)
         speed = speed_part(a.seed, not a.no_dense)

@@ -128,7 +128,8 @@ class HandEyeReference:
     """What `jaxcal check` reads of a `jaxcal handeye` result (`file`): the arrangement
     (`eye_in_hand` or `eye_to_hand`), the cameras, the target with its pose
     $T_{robot,target}$, the robot pose noise the solve used (`(translation mm, rotation
-    deg)` per axis, None for exact poses) and the corner noise `sigma_px`."""
+    deg)` per axis; for exact poses the noise their held-out frames read as, `result.json`'s
+    `held_out`, or None) and the corner noise `sigma_px`."""
 
     file: Path
     arrangement: str

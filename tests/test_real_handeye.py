@@ -64,3 +64,9 @@ def test_real_captures_agree_with_visps_solver(capture, key, tmp_path, capsys):
     # Real poses are not exact: the robot noise is estimated from many degrees of freedom.
     text = " ".join(capsys.readouterr().out.split())  # the console wraps its lines
     assert "degrees of freedom (translation / rotation)" in text and "upper bound" not in text, text
+    # The default kept the estimate: exact poses predict the frames left out 15-17 % better on these
+    # 8 frames, but by 1.1-1.5 standard errors of the per-frame differences (2 needed), and land
+    # 3.4 deg (eye-in-hand) from ViSP's answer and every pose-pair method's.
+    model = r["robot_noise_model"]
+    assert model["model"] == "estimate" and "exact" in [m["model"] for m in model["models"]]
+    assert "not kept" in model["basis"] and r["held_out"]["folds"] == 8

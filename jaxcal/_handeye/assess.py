@@ -21,6 +21,8 @@ from .._npgeom import rotation_angle
 from ..records import Judgement
 from .consistency import MotionConsistency
 from .data import HandEyeData, HandEyePixels
+from .heldout import HeldOut, reprojection_squares
+from .noise import ROBOT_SIGMA_START
 from .solve import HandEyeResult
 
 #: Stage names, in `HandEyeResult.stage_result` order.
@@ -44,16 +46,21 @@ def pose_difference(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class KFoldSpread:
-    """The spread of the transforms over folds of frames (delete-a-group jackknife).
+    """The spread of the transforms over folds of frames (delete-a-group jackknife), and the
+    held-out reprojection of the frames each fold left out.
 
     With $K$ folds and $\\theta_k$ the estimate without fold $k$,
     $\\mathrm{var} = \\frac{K-1}{K} \\sum_k (\\theta_k - \\bar\\theta)^2$ per
     component, which estimates the full-data estimator's variance.
 
-    - `folds`: $K$; `fold_frames`: the frames each fold leaves out.
+    - `folds`: $K$; `fold_frames`: the frames each fold leaves out (consecutive blocks).
     - `std_robot_cam` `(cameras, 6)`, `std_robot_board` `(6,)`: translation (m)
       and rotation (rad), as `HandEyeResult.std_robot_cam`.
     - `converged` `(folds,)`: whether each fold's solve succeeded.
+    - `held_out_squares`, `held_out_coordinates` `(cameras, frames)`: pixels only, each held-out
+      frame's corners predicted from its reported robot pose by the fold that left it out
+      (`heldout.reprojection_squares`: px^2 summed, and the coordinates summed); zeros for frames
+      never held out, None for pose data.
     """
 
     folds: int
@@ -61,6 +68,31 @@ class KFoldSpread:
     std_robot_cam: np.ndarray
     std_robot_board: np.ndarray
     converged: np.ndarray
+    held_out_squares: "np.ndarray | None" = None
+    held_out_coordinates: "np.ndarray | None" = None
+
+    @property
+    def held_out_frames(self) -> np.ndarray:
+        """Indices of the frames held out, in order."""
+        return np.array(sorted(f for fold in self.fold_frames for f in fold), int)
+
+    @property
+    def held_out_rms_px(self) -> float:
+        """RMS per pixel coordinate over every held-out corner (NaN for pose data)."""
+        if self.held_out_squares is None:
+            return float("nan")
+        return float(np.sqrt(self.held_out_squares.sum() / max(self.held_out_coordinates.sum(), 1.0)))
+
+    def frame_squares(self) -> np.ndarray:
+        """Each held-out frame's squared pixel errors, summed over cameras and corners (px^2), in
+        `held_out_frames` order: the per-sample losses of `jaxcal._selection`."""
+        return self.held_out_squares.sum(0)[self.held_out_frames]
+
+
+def fold_blocks(frames, folds: int) -> tuple[tuple[int, ...], ...]:
+    """`frames` (in capture order) dealt into `folds` blocks of consecutive frames, as equal as can be."""
+    frames = np.asarray(frames, int)
+    return tuple(tuple(int(f) for f in block) for block in np.array_split(frames, min(folds, len(frames))))
 
 
 def kfold_spread(
@@ -70,35 +102,50 @@ def kfold_spread(
     *,
     folds: int = 10,
     min_frames: int = 8,
+    frames=None,
 ) -> "KFoldSpread | None":
-    """Re-solve `folds` times, each time without one fold of the kept frames.
+    """Re-solve `folds` times, each time without one block of consecutive frames, and predict
+    the frames left out.
 
-    Frames are dealt to folds in turn (frame $i$ of the kept ones to fold
-    $i \\bmod K$); groups the full solve rejected stay out of every fold.
+    The kept frames (or `frames`) are dealt into $K$ blocks in capture order (`fold_blocks`):
+    consecutive frames share what changes slowly over a capture (the arm's configuration, its
+    temperature), so a block held out is new to the fold, as a user's next frame is. Groups the
+    full solve rejected stay out of every fold's solve; with pixels, every held-out frame's
+    corners are predicted from its reported robot pose (`heldout.reprojection_squares`, the
+    rejected views too: a model that rejects what the others fit pays for it here).
 
     **Arguments:** `solve` the (compiled) solver that gave `result` from
-    `data`; `folds` $K$ (at most the number of kept frames); `min_frames`:
-    below this many kept frames, return `None` (too few to leave any out).
+    `data`; `folds` $K$ (at most the number of frames); `min_frames`:
+    below this many frames, return `None` (too few to leave any out); `frames`: the frames to
+    deal (default: those the full solve kept; several models compared on one capture share them).
 
     **Returns:** a `KFoldSpread`, or `None`.
     """
     rejected = np.asarray(result.rejected)
     mask = np.asarray(data.mask)
-    per_group = mask.any(-1) if isinstance(data, HandEyePixels) else mask
-    kept = np.flatnonzero((per_group & ~rejected).any(0))
-    if len(kept) < max(min_frames, 2):
+    pixels = isinstance(data, HandEyePixels)
+    per_group = mask.any(-1) if pixels else mask
+    if frames is None:
+        frames = np.flatnonzero((per_group & ~rejected).any(0))
+    if len(frames) < max(min_frames, 2):
         return None
-    K = min(folds, len(kept))
-    base = mask & ~(rejected[..., None] if isinstance(data, HandEyePixels) else rejected)
-    fold_frames = tuple(tuple(int(f) for f in kept[k::K]) for k in range(K))
+    base = mask & ~(rejected[..., None] if pixels else rejected)
+    fold_frames = fold_blocks(frames, folds)
+    K = len(fold_frames)
     X, Y, ok = [], [], []
-    for frames in fold_frames:
+    squares, coordinates = np.zeros(per_group.shape), np.zeros(per_group.shape)
+    for block in fold_frames:
         m = base.copy()
-        m[:, list(frames)] = False
+        m[:, list(block)] = False
         r = solve(eqx.tree_at(lambda d: d.mask, data, np.asarray(m)))
         X.append(np.asarray(r.T_robot_cam))
         Y.append(np.asarray(r.T_robot_board))
         ok.append(bool(r.result == optx.RESULTS.successful))
+        if pixels:
+            out = np.zeros(per_group.shape[1], bool)
+            out[list(block)] = True
+            s, n = reprojection_squares(np.asarray(r.T_cam_robot), np.asarray(r.T_robot_board), data, out)
+            squares, coordinates = squares + s, coordinates + n
     X, Y = np.stack(X), np.stack(Y)
     eX = pose_difference(X, np.asarray(result.T_robot_cam)[None])  # (K, C, 6)
     eY = pose_difference(Y, np.asarray(result.T_robot_board)[None])  # (K, 6)
@@ -106,7 +153,8 @@ def kfold_spread(
     def jackknife(e):
         return np.sqrt((K - 1) / K * np.sum((e - e.mean(0)) ** 2, axis=0))
 
-    return KFoldSpread(K, fold_frames, jackknife(eX), jackknife(eY), np.asarray(ok))
+    held = (squares, coordinates) if pixels else (None, None)
+    return KFoldSpread(K, fold_frames, jackknife(eX), jackknife(eY), np.asarray(ok), *held)
 
 
 @dataclass(frozen=True)
@@ -152,8 +200,8 @@ def std_ratio(kfold: KFoldSpread, result: HandEyeResult) -> np.ndarray:
 #: poses as read: a robot, even uncalibrated, is not this far off (m, deg).
 MAX_ROBOT_SIGMA_M = 5e-3
 MAX_ROBOT_SIGMA_DEG = 0.5
-#: Options of `jaxcal handeye` that set the robot pose noise, for messages.
-ROBOT_SIGMA_OPTIONS = "--robot-sigma-mm/--robot-sigma-deg"
+#: The option of `jaxcal handeye` that sets the robot pose noise model, for messages.
+ROBOT_SIGMA_OPTIONS = "--robot-noise exact|estimate|given (given: --robot-sigma-mm/--robot-sigma-deg)"
 
 
 def robot_noise(result: HandEyeResult) -> "tuple[float, float] | None":
@@ -207,8 +255,9 @@ def _misfit_reason(result: HandEyeResult, ratio: float) -> str:
     )
     if result.robot_sigma is None:
         return head + (
-            "real robots' poses are noisy; estimate their noise from the data (`jaxcal handeye` without "
-            f"{ROBOT_SIGMA_OPTIONS}, `calibrate_hand_eye(..., estimate_robot_noise=True)`) or give it; "
+            "real robots' poses are noisy; estimate their noise from the data (`jaxcal handeye --robot-noise "
+            "estimate`, `calibrate_hand_eye(..., estimate_robot_noise=True)`) or give it "
+            f"({ROBOT_SIGMA_OPTIONS}); "
             "else the robot poses and the images do not fit one hand-eye transform (" + misreadings + ")"
         )
     if bool(np.all(np.asarray(result.robot_sigma_estimated))):
@@ -218,10 +267,8 @@ def _misfit_reason(result: HandEyeResult, ratio: float) -> str:
             "flatness, the camera's mount) or the poses are misread (" + misreadings + ")"
         )
     return head + (
-        f"the robot poses may be noisier than given: leave {ROBOT_SIGMA_OPTIONS} out to estimate it from "
-        "the data; else the robot poses and the images do not fit one hand-eye transform ("
-        + misreadings
-        + ")"
+        "the robot poses may be noisier than given: estimate it from the data (`--robot-noise estimate`); "
+        "else the robot poses and the images do not fit one hand-eye transform (" + misreadings + ")"
     )
 
 
@@ -239,6 +286,7 @@ def assess_hand_eye(
     max_rejected_fraction: float = 0.3,
     max_robot_sigma_m: float = MAX_ROBOT_SIGMA_M,
     max_robot_sigma_deg: float = MAX_ROBOT_SIGMA_DEG,
+    held_out: "HeldOut | None" = None,
 ) -> HandEyeVerdict:
     """Plausibility checks of a hand-eye result (call outside jit).
 
@@ -256,16 +304,29 @@ def assess_hand_eye(
     (the poses are noisier than given). The reason for a poor fit says how the robot noise was set:
     taken exact or given (then it may be the robot's noise, and the way to
     estimate it is named) or estimated (then it is not).
+
+    With `held_out` (`heldout.HeldOut`: frames left out, predicted from their reported robot
+    poses) the robot poses' noise is read off the held-out error (`HeldOut.level`), which tells
+    the two apart: beyond `max_robot_sigma_m` / `max_robot_sigma_deg` per axis the poses do not
+    belong to these images as read (suspect); within them the robot's poses are noisy at that
+    level (a note, with the held-out error beside the in-sample one), and an exact-pose fit's
+    residuals above the detector's noise are that noise, not a misfit.
     Notes: frames the rotation-angle pre-check found inconsistent, rejected
     frames, and a k-fold spread that differs from the reported std by more
     than 2x (either way).
     """
     cams = camera_names or [f"camera {c}" for c in range(np.shape(result.T_robot_cam)[0])]
     reasons = _solver_reasons(result, max_steps)
-    reasons += _fit_reasons(result, max_residual_ratio, max_robot_sigma_m, max_robot_sigma_deg)
+    limits = (max_robot_sigma_m, max_robot_sigma_deg)
+    reasons += _fit_reasons(
+        result, max_residual_ratio, *limits, explained=noise_explains_fit(held_out, *limits)
+    )
     reasons += _start_reasons(result, cams, max_start_rotation_deg, max_start_translation_m)
     rejection, notes = _rejection(result, max_rejected_fraction, frame_names)
     reasons += rejection
+    if held_out is not None:
+        held_reasons, held_notes = _held_out_verdict(held_out, *limits)
+        reasons, notes = reasons + held_reasons, notes + held_notes
     if consistency is not None and consistency.inconsistent.any():
         notes.append(
             f"frames {_labels(consistency.inconsistent_frames(), frame_names)}: the robot's rotation between "
@@ -290,14 +351,69 @@ def _solver_reasons(result: HandEyeResult, max_steps: int | None) -> list[str]:
     return reasons
 
 
+#: A held-out robot noise level (`HeldOut.level`, units of 1 mm / 0.1 deg) below which the poses read as exact.
+EXACT_LEVEL = 0.1
+
+
+def max_noise_level(
+    max_sigma_m: float = MAX_ROBOT_SIGMA_M, max_sigma_deg: float = MAX_ROBOT_SIGMA_DEG
+) -> float:
+    """The limits of a robot's pose error in `HeldOut.level`'s units (1 mm and 0.1 deg per axis)."""
+    return min(max_sigma_m / ROBOT_SIGMA_START[0], np.radians(max_sigma_deg) / ROBOT_SIGMA_START[1])
+
+
+def noise_explains_fit(
+    held_out: "HeldOut | None",
+    max_sigma_m: float = MAX_ROBOT_SIGMA_M,
+    max_sigma_deg: float = MAX_ROBOT_SIGMA_DEG,
+) -> bool:
+    """Whether frames left out are predicted as well as a robot's pose noise allows (`HeldOut.level`
+    within the limits): then an exact-pose fit's residuals above the detector's noise are that noise."""
+    return held_out is not None and held_out.level <= max_noise_level(max_sigma_m, max_sigma_deg)
+
+
+def _held_out_verdict(
+    held_out: "HeldOut", max_sigma_m: float, max_sigma_deg: float
+) -> tuple[list[str], list[str]]:
+    """`(reasons, notes)` of the held-out reprojection: the poses do not belong to these images (a
+    reason), or the robot's poses are noisy at the level it reads as (a note)."""
+    if not noise_explains_fit(held_out, max_sigma_m, max_sigma_deg):
+        return [
+            f"the robot poses do not belong to these images as read: {held_out.figures()}, which robot pose "
+            f"errors of {held_out.noise_text()} would explain, more than any robot's (limits "
+            f"{1e3 * max_sigma_m:g} mm, {max_sigma_deg:g} deg): check the arrangement, that the poses are the "
+            "flange in the base frame and not inverted, the quaternion component order, the rotation unit"
+        ], []
+    if held_out.level < EXACT_LEVEL:
+        return [], [
+            f"{held_out.figures()}: the reported robot poses are as exact as these views resolve (their noise "
+            f"reads as {held_out.noise_text()})"
+        ]
+    return [], [
+        f"{held_out.figures()}: the robot's poses are noisy at this level, {held_out.noise_text()} (at most: "
+        "the held-out error also holds the fit's own), within a robot's pose error; a result applied to "
+        "new robot poses is off by about the held-out error"
+    ]
+
+
 def _fit_reasons(
-    result: HandEyeResult, max_ratio: float, max_sigma_m: float, max_sigma_deg: float
+    result: HandEyeResult, max_ratio: float, max_sigma_m: float, max_sigma_deg: float, explained: bool = False
 ) -> list[str]:
     """Reasons the data do not fit the model: a robot noise estimate beyond any robot's,
-    robot corrections beyond the noise given, residuals beyond `max_ratio` times the noise."""
+    robot corrections beyond the noise given, residuals beyond `max_ratio` times the noise
+    (not for exact robot poses when the held-out error reads as a robot's noise: `explained`)."""
     reasons = []
     ratio = float(result.residual_rms)
-    if implausible_robot_noise(result, max_sigma_m, max_sigma_deg):
+    if implausible_robot_noise(result, max_sigma_m, max_sigma_deg) and explained:
+        reasons.append(
+            f"the robot noise estimated, {describe_robot_noise(result)}, is beyond any robot's pose error "
+            f"(limits {1e3 * max_sigma_m:g} mm, {max_sigma_deg:g} deg) although frames left out read as a "
+            "robot's noise (see the notes): the corrections absorb what the model leaves out (intrinsics, "
+            "lens distortion, the target's flatness) and move the camera with it; exact poses or a given "
+            "noise may predict new frames better (`--robot-noise auto` lists each model's held-out error; "
+            "`exact` or `given` takes one)"
+        )
+    elif implausible_robot_noise(result, max_sigma_m, max_sigma_deg):
         reasons.append(
             f"the robot poses are off the images' by {describe_robot_noise(result)}, more than any robot's "
             f"pose error (limits {1e3 * max_sigma_m:g} mm, {max_sigma_deg:g} deg): the poses are "
@@ -309,9 +425,9 @@ def _fit_reasons(
         reasons.append(
             f"the robot poses needed corrections of {robot_correction_rms(result):.1f} times the "
             f"{describe_robot_noise(result)} (RMS over the frames; about 1 expected): their noise is larger "
-            f"than that; leave {ROBOT_SIGMA_OPTIONS} out to estimate it from the data"
+            f"than that; estimate it from the data ({ROBOT_SIGMA_OPTIONS}: estimate)"
         )
-    if ratio > max_ratio:
+    if ratio > max_ratio and not (explained and result.robot_sigma is None):
         if np.isfinite(float(result.pixel_rms)):
             reasons.append(_misfit_reason(result, ratio))
         else:

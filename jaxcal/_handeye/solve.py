@@ -292,8 +292,19 @@ def _kept_start(data, observed, active, params, start):
 
 
 def _estimation_start(data, estimate_robot_noise, by_blocks: bool):
-    """`data` with a start for the robot noise estimate where it has none; refuses what cannot be estimated."""
-    if estimate_robot_noise is False:
+    """`data` with a start for the robot noise estimate where it has none; refuses what cannot be estimated.
+
+    Exact robot poses (`data.robot_sigma` None) have no corrections, so estimating their noise is
+    another program: the flag must then be a Python (or concrete) bool, decided at trace time. A
+    traced flag with exact poses once took 1 mm / 0.1 deg "as given" when False; it is refused."""
+    if isinstance(estimate_robot_noise, jax.core.Tracer):
+        if data.robot_sigma is None:
+            raise ValueError(
+                "estimate_robot_noise is traced but data.robot_sigma is None (exact robot poses): whether "
+                "to add robot corrections decides the program; pass a Python bool, or give data a "
+                "robot_sigma (the estimate's start) to switch the estimate on and off as traced data"
+            )
+    elif not bool(estimate_robot_noise):
         return data
     if isinstance(data, HandEyePoses) or not by_blocks:
         raise ValueError(

@@ -54,7 +54,20 @@ def cmd_handeye(args) -> int:
 
     if args.robot_sigma_mm is None and args.robot_sigma_deg is not None:
         print(
-            "jaxcal: error: --robot-sigma-deg needs --robot-sigma-mm (or leave both out to estimate the robot noise)",
+            "jaxcal: error: --robot-sigma-deg needs --robot-sigma-mm (the robot noise of --robot-noise given)",
+            file=sys.stderr,
+        )
+        return 2
+    if args.robot_noise == "given" and args.robot_sigma_mm is None:
+        print(
+            "jaxcal: error: --robot-noise given needs --robot-sigma-mm (and --robot-sigma-deg)",
+            file=sys.stderr,
+        )
+        return 2
+    if args.robot_noise in ("exact", "estimate") and args.robot_sigma_mm is not None:
+        print(
+            f"jaxcal: error: --robot-noise {args.robot_noise} takes no --robot-sigma-mm/--robot-sigma-deg "
+            "(they are the noise of --robot-noise given, and of auto's given candidate)",
             file=sys.stderr,
         )
         return 2
@@ -81,7 +94,7 @@ def _handeye(args, out: Path, checked) -> int:
     from ..io.handeye_results import ros2_static_transform_args, write_hand_eye_outputs
 
     console = Console(width=max(Console().width, 120))
-    # Neither given: the robot pose noise is estimated from the data.
+    # The sigmas of --robot-noise given (and of auto's given candidate); alone, they mean given.
     robot = (
         None
         if args.robot_sigma_mm is None
@@ -93,6 +106,7 @@ def _handeye(args, out: Path, checked) -> int:
     t0 = time.perf_counter()
     run = calibrate_hand_eye_capture(
         args.capture,
+        robot_noise=args.robot_noise,
         robot_sigma_translation=None if robot is None else robot[0],
         robot_sigma_rotation=None if robot is None else robot[1],
         sigma_px=args.sigma_px,
@@ -194,10 +208,17 @@ def add_handeye_parsers(sub) -> None:
         "--sigma-px", type=finite, help="detector noise, px (default: estimated from per-view PnP)"
     )
     p.add_argument(
+        "--robot-noise",
+        choices=("auto", "exact", "estimate", "given"),
+        default=None,
+        help="model of the robot's reported poses: exact (no corrections), estimate (a correction per pose, "
+        "the noise estimated from the data), given (a correction per pose with --robot-sigma-mm/-deg), or "
+        "auto: the one that predicts frames left out best (default; given alone when --robot-sigma-mm is)",
+    )
+    p.add_argument(
         "--robot-sigma-mm",
         type=finite,
-        help="robot pose noise per axis, mm: each pose gets a correction with this prior "
-        "(default: estimated from the data, with --robot-sigma-deg)",
+        help="robot pose noise per axis, mm, of --robot-noise given: each pose gets a correction with this prior",
     )
     p.add_argument(
         "--robot-sigma-deg",
@@ -208,7 +229,8 @@ def add_handeye_parsers(sub) -> None:
         "--folds",
         type=count(0, MAX_FOLDS),
         default=10,
-        help=f"k of the k-fold spread (0: skip; at most {MAX_FOLDS})",
+        help=f"k of the k-fold spread and of the held-out comparison of --robot-noise auto (0: skip both; "
+        f"auto then estimates the noise; at most {MAX_FOLDS})",
     )
     p.add_argument(
         "--max-steps",

@@ -1,11 +1,12 @@
 """The hand-eye product: a capture on disk calibrated, checked and judged, in named steps.
 
 ```
-load -> observe (detect, intrinsics, PnP, input checks) -> solve (k-fold) -> judge -> HandEyeRun -> outputs
+load -> observe (detect, intrinsics, PnP, input checks) -> solve (each robot-noise model and its
+k-fold, the model kept) -> judge -> HandEyeRun -> outputs
 ```
 
 Each step is a function of the records before it (`_observe.observe` -> `Observed`,
-`_solve.solve` -> `Solved`, `_verdict.judge` -> `HandEyeVerdict`), and
+`_solve.solve` -> `Solved`, with `_noise`'s models and choice, `_verdict.judge` -> `HandEyeVerdict`), and
 `calibrate_hand_eye_capture` calls them in order; `jaxcal.io.handeye_results`
 writes a `HandEyeRun`'s outputs. The numeric solve is the core's
 (`jaxcal._handeye`); this package is the impure product around it (files,

@@ -7,11 +7,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .._handeye import ROBOT_SIGMA_START
 from ..errors import CalibrationError
 from ..io.handeye import HandEyeCapture, load_hand_eye_capture
 from ..records import Intrinsics
 from ..vision import HandEyeObservations, calibrate_intrinsics, detect_frames, hand_eye_from_detections
+from ._noise import RobotNoiseSetting
 
 
 def load(capture) -> HandEyeCapture:
@@ -78,8 +78,8 @@ class Observed:
     - `capture`; `detections` `[camera][frame]` (`detect_frames`'s dicts), `detected` `(cameras, frames)`.
     - `intrinsics`: per camera, given or self-calibrated.
     - `observations`: the hand-eye data `hand_eye_from_detections` built (PnP, checks, padding).
-    - `estimate_noise`: whether the solve estimates the robot pose noise; `robot_sigma`
-      `(translation m, rotation rad)` given, its start when estimated, or `(None, None)`: exact poses.
+    - `noise`: the robot-noise model asked for (`_noise.RobotNoiseSetting`); `observations` hold
+      the robot poses as exact, and the solve gives them each model's noise (`_noise.model_data`).
     - `seconds`: `detect` (loading included) and `prepare`.
     """
 
@@ -88,13 +88,12 @@ class Observed:
     detected: np.ndarray
     intrinsics: tuple[Intrinsics, ...]
     observations: HandEyeObservations
-    estimate_noise: bool
-    robot_sigma: tuple[float | None, float | None]
+    noise: RobotNoiseSetting
     seconds: dict[str, float]
 
     def reobserve(self, T_base_ee, eye_in_hand: bool) -> HandEyeObservations:
         """The same detections and intrinsics with other robot poses or arrangement (a misreading
-        of the input), at the pixel noise observed."""
+        of the input), at the pixel noise observed, the robot poses exact."""
         return _observations(self, T_base_ee, eye_in_hand, self.observations.sigma_px)
 
 
@@ -109,17 +108,13 @@ def _observations(observed, T_base_ee, eye_in_hand: bool, sigma_px) -> HandEyeOb
         eye_in_hand=eye_in_hand,
         sigma_px=sigma_px,
         frame_names=capture.frames,
-        robot_sigma_translation=observed.robot_sigma[0],
-        robot_sigma_rotation=observed.robot_sigma[1],
     )
 
 
 def observe(
     capture,
     *,
-    robot_sigma_translation: float | None,
-    robot_sigma_rotation: float | None,
-    estimate_robot_noise: bool,
+    noise: RobotNoiseSetting,
     sigma_px: float | None,
     workers,
     progress: bool,
@@ -127,17 +122,14 @@ def observe(
 ) -> Observed:
     """Load (`load`), detect (`detect`), the intrinsics (`camera_intrinsics`) and the hand-eye
     data with its input checks (`hand_eye_from_detections`; see `calibrate_hand_eye_capture`
-    for the arguments). With `estimate_robot_noise` and neither sigma given, the robot noise is
-    estimated, from `ROBOT_SIGMA_START`."""
+    for the arguments), the robot poses exact; `noise` is what the solve will make of them."""
     t0 = time.perf_counter()
     capture = load(capture)
     detections, detected = detect(capture, workers, progress, log)
     seconds = {"detect": time.perf_counter() - t0}
     t0 = time.perf_counter()
     intrinsics = camera_intrinsics(capture, detections, log)
-    estimate = estimate_robot_noise and robot_sigma_translation is None and robot_sigma_rotation is None
-    sigma = ROBOT_SIGMA_START if estimate else (robot_sigma_translation, robot_sigma_rotation)
-    observed = Observed(capture, detections, detected, intrinsics, None, estimate, tuple(sigma), seconds)
+    observed = Observed(capture, detections, detected, intrinsics, None, noise, seconds)
     observed = replace(
         observed, observations=_observations(observed, capture.T_base_ee, capture.eye_in_hand, sigma_px)
     )

@@ -13,6 +13,7 @@ from ..io._files import resolved
 from ..io.handeye import HandEyeCapture, true_T_robot_cam
 from ..records import Intrinsics
 from ..vision import HandEyeObservations
+from ._noise import NoiseChoice, robot_noise_setting
 from ._observe import observe
 from ._solve import solve
 from ._verdict import judge
@@ -24,8 +25,9 @@ class HandEyeRun:
 
     - `capture`, `intrinsics` (per camera, `jaxcal.records.Intrinsics`), `detected` `(cameras, frames)`.
     - `observations`: what `hand_eye_from_detections` built (padded data, PnP poses, checks).
-    - `result`: the `HandEyeResult` (NumPy leaves; padded frames beyond
-      `observations.frames`); `kfold`: the k-fold spread or None.
+    - `result`: the `HandEyeResult` of the robot-noise model kept (NumPy leaves; padded frames beyond
+      `observations.frames`); `kfold`: its k-fold spread (with the held-out reprojection) or None.
+    - `noise`: the robot-noise models solved, their held-out reprojection and the one kept.
     - `verdict`: status (`"ok"` / `"suspect"`), reasons and notes.
     - `rejected`: `{frame index: reason}` of the frames the solve rejected.
     - `truth_error`: synthetic captures: per camera the error of
@@ -43,6 +45,7 @@ class HandEyeRun:
     rejected: dict[int, str]
     truth_error: "np.ndarray | None"
     max_steps: int
+    noise: NoiseChoice
     seconds: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -73,9 +76,10 @@ def truth_error(capture: HandEyeCapture, result) -> "np.ndarray | None":
 def calibrate_hand_eye_capture(
     capture,
     *,
+    robot_noise: str | None = None,
     robot_sigma_translation: float | None = None,
     robot_sigma_rotation: float | None = None,
-    estimate_robot_noise: bool = True,
+    estimate_robot_noise: bool | None = None,
     sigma_px: float | None = None,
     folds: int = 10,
     max_steps: int = 200,
@@ -91,30 +95,36 @@ def calibrate_hand_eye_capture(
 
     **Arguments:**
     - `capture`: a capture directory (`jaxcal.io.handeye` format) or a loaded `HandEyeCapture`.
-    - `robot_sigma_translation` (m), `robot_sigma_rotation` (rad): robot pose
-      noise (each pose then gets a correction with that prior), used as given;
-      None (both): estimated from the data (`calibrate_hand_eye`'s
-      `estimate_robot_noise`), or with `estimate_robot_noise=False` exact poses.
+    - `robot_noise`: the model of the robot's reported poses (`jaxcal.handeye._noise`): `"exact"`
+      (no corrections), `"estimate"` (a correction per pose, the noise estimated from the data,
+      `calibrate_hand_eye`'s `estimate_robot_noise`), `"given"` (a correction per pose with the
+      prior `robot_sigma_translation` (m), `robot_sigma_rotation` (rad) per axis), each used exactly
+      as asked; or `"auto"`: the one of them that predicts frames left out best (the estimate unless
+      another is better by `jaxcal._selection`'s rule; needs `folds`, else the estimate). None: `"given"`
+      when the sigmas are given, else `"auto"`.
+    - `estimate_robot_noise`: the previous release's switch, kept: True `"estimate"`, False `"exact"`
+      (`"given"` with the sigmas).
     - `sigma_px`: the detector's pixel noise; None: estimated from PnP's residuals.
-    - `folds`: k of the k-fold spread (0: skip it).
+    - `folds`: k of the k-fold spread and of the held-out comparison (0: skip them).
     - `max_steps`: Levenberg-Marquardt steps per stage.
     - `workers`, `progress`: marker detection (see `jaxcal.vision.detect_frames`).
     - `log`: called with progress messages.
 
     **Returns:** a `HandEyeRun` (`jaxcal.write_hand_eye_outputs` writes it).
 
-    **Raises:** `DatasetError` (the capture), `VisionError` (images, intrinsics),
+    **Raises:** `ValueError` (robot-noise arguments that disagree), `DatasetError` (the capture), `VisionError` (images, intrinsics),
     `HandEyeInputError` (too few views, degenerate motion, robot poses that do
     not match the images), `CalibrationError` (no view of the target at all).
     """
+    noise = robot_noise_setting(
+        robot_noise, robot_sigma_translation, robot_sigma_rotation, estimate_robot_noise
+    )
     enable_compilation_cache()
     # The solver the last run on this capture called is read while this one loads and detects.
     with warm_start(f"handeye {resolved(getattr(capture, 'root', capture))}"):
         observed = observe(
             capture,
-            robot_sigma_translation=robot_sigma_translation,
-            robot_sigma_rotation=robot_sigma_rotation,
-            estimate_robot_noise=estimate_robot_noise,
+            noise=noise,
             sigma_px=sigma_px,
             workers=workers,
             progress=progress,
@@ -133,5 +143,6 @@ def calibrate_hand_eye_capture(
         rejected=solved.rejected,
         truth_error=truth_error(observed.capture, solved.result),
         max_steps=max_steps,
+        noise=solved.noise,
         seconds={**observed.seconds, **solved.seconds, **hint_seconds},
     )

@@ -1,10 +1,9 @@
 """Hand-eye's solve step: the compiled solver of `calibrate_hand_eye`, its solve of the observed
 data, the k-fold spread and the rejected frames with their reasons."""
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from functools import lru_cache
+from functools import lru_cache, partial
 
 import equinox as eqx
 import jax
@@ -22,6 +21,7 @@ from .._handeye import (
     kfold_spread,
 )
 from .._handeye.solve import HAND_EYE_OPTIONS
+from ._noise import MIN_FRAMES, NoiseChoice, solve_models
 from ._observe import Observed
 
 #: Outlier threshold of `calibrate_hand_eye` (times the median group RMS); reported with rejections.
@@ -46,7 +46,8 @@ def hand_eye_solver(max_steps: int = 200) -> Callable:
         return calibrate_hand_eye(
             data,
             reject_outliers=reject,
-            estimate_robot_noise=estimate,
+            # Exact robot poses are their own program (no corrections): nothing to estimate there.
+            estimate_robot_noise=estimate if data.robot_sigma is not None else False,
             options=replace(HAND_EYE_OPTIONS, max_steps=max_steps),
             outlier_threshold=OUTLIER_THRESHOLD,
             min_outlier_scale=min_outlier_scale(data),
@@ -95,28 +96,38 @@ def rejection_reasons(result, observations, threshold: float) -> dict[int, str]:
 
 
 def kfold_from_optimum(
-    solver: Callable, data, result: HandEyeResult, estimate, folds: int
+    solver: Callable, data, result: HandEyeResult, estimate, folds: int, frames=None
 ) -> KFoldSpread | None:
     """`kfold_spread` of `solver`'s `result` on `data`, each fold starting from the full data's optimum
     (and its robot noise estimate): a fold is a small step away, a few Levenberg-Marquardt steps
     instead of a solve from the closed form, to the same optimum within the solver's tolerance.
     The folds leave the rejected groups out already: plain solves (the robot noise estimated again
-    in each when `estimate`, as the whole estimator is being replicated), same compiled program."""
+    in each when `estimate`, as the whole estimator is being replicated), same compiled program.
+    `frames`: the frames to deal into folds (`kfold_spread`'s; default: those `result` kept)."""
     start = (result.T_cam_robot, result.T_robot_board)
     if estimate:
         data = eqx.tree_at(lambda d: d.robot_sigma, data, result.robot_sigma)
-    return kfold_spread(lambda d: solver(d, False, estimate, start), data, result, folds=folds)
+    return kfold_spread(
+        lambda d: solver(d, False, estimate, start),
+        data,
+        result,
+        folds=folds,
+        min_frames=MIN_FRAMES,
+        frames=frames,
+    )
 
 
 @dataclass(frozen=True, eq=False)
 class Solved:
     """The solve of the observed data.
 
-    - `result`: the `HandEyeResult` (NumPy leaves; padded frames beyond the observed frames).
-    - `kfold`: the k-fold spread, or None when no folds were asked for.
+    - `result`: the `HandEyeResult` of the robot-noise model kept (NumPy leaves; padded frames
+      beyond the observed frames).
+    - `kfold`: its k-fold spread (with the held-out reprojection), or None when no folds were asked for.
     - `rejected`: `{frame index: reason}` of the frames the solve rejected.
     - `solver`: the compiled solver (`hand_eye_solver`), for the verdict's re-solves.
-    - `seconds`: `solve`, `kfold`.
+    - `seconds`: `solve` (every model's solve), `kfold` (every model's k-fold).
+    - `noise`: the robot-noise models solved and the one kept (`NoiseChoice`).
     """
 
     result: HandEyeResult
@@ -124,19 +135,20 @@ class Solved:
     rejected: dict[int, str]
     solver: Callable
     seconds: dict[str, float]
+    noise: NoiseChoice
 
 
 def solve(observed: Observed, *, folds: int, max_steps: int, log: Callable[[str], None]) -> Solved:
-    """`calibrate_hand_eye` on the observed data (outliers rejected, the robot noise estimated when
-    `observed.estimate_noise`), then the spread over `folds` folds of frames (0: none)."""
-    data, estimate = observed.observations.data, observed.estimate_noise
-    t0 = time.perf_counter()
+    """`calibrate_hand_eye` on the observed data (outliers rejected) with each robot-noise model
+    `observed.noise` asks for, each one's spread over `folds` folds of frames (0: none), and the
+    model kept (`_noise.solve_models`)."""
     solver = hand_eye_solver(max_steps)
-    result = jax.tree.map(np.asarray, solver(data, True, estimate))
-    seconds = {"solve": time.perf_counter() - t0}
-    log(describe_robot_noise(result))
-    t0 = time.perf_counter()
-    kfold = kfold_from_optimum(solver, data, result, estimate, folds) if folds else None
-    seconds["kfold"] = time.perf_counter() - t0
-    rejected = rejection_reasons(result, observed.observations, OUTLIER_THRESHOLD)
-    return Solved(result, kfold, rejected, solver, seconds)
+    obs = observed.observations
+    seconds = {}
+    choice = solve_models(
+        solver, obs.data, observed.noise, folds, obs.sigma_px, partial(kfold_from_optimum, solver), seconds
+    )
+    fit = choice.fit
+    log(describe_robot_noise(fit.result))  # the model kept and why: the verdict's note
+    rejected = rejection_reasons(fit.result, obs, OUTLIER_THRESHOLD)
+    return Solved(fit.result, fit.kfold, rejected, solver, seconds, choice)

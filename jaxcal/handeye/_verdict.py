@@ -14,12 +14,14 @@ from .._handeye import (
     assess_hand_eye,
     describe_robot_noise,
     implausible_robot_noise,
+    noise_explains_fit,
     robot_correction_rms,
     robot_noise,
 )
 from .._npgeom import matrix_to_quaternion, quaternion_to_matrix
 from ..errors import HandEyeInputError
 from ..io.handeye import HandEyeCapture
+from ._noise import NoiseChoice, model_data
 from ._observe import Observed
 from ._solve import Solved
 
@@ -76,20 +78,21 @@ def fits(result) -> bool:
     return np.isfinite(ratio) and ratio <= MISFIT_RATIO and not implausible_robot_noise(result)
 
 
-def diagnose_misfit(observed: Observed, result, solve: Callable) -> str | None:
+def diagnose_misfit(observed: Observed, result, solve: Callable, model: str) -> str | None:
     """When the poses and images do not fit one hand-eye transform, re-solve under each common
     misreading of the input (`misreadings`; `Observed.reobserve` builds the data) and name the
     one that fits, if one does: an arrangement swapped or poses inverted, a quaternion's
-    components in another order. Same compiled solver: the arrangement is data and the shapes
-    are the bucket's."""
+    components in another order. Each with the robot-noise `model` of `result` (`_noise.MODELS`).
+    Same compiled solver: the arrangement is data and the shapes are the bucket's."""
     given = float(result.residual_rms)
-    estimate = bool(np.all(np.asarray(result.robot_sigma_estimated)))
+    estimate = model == "estimate"
+    sigma = None if model != "given" else tuple(np.asarray(result.robot_sigma)[[0, 3]])
     for fix, T, eye_in_hand in misreadings(observed.capture):
         try:
             alt = observed.reobserve(T, eye_in_hand)
         except HandEyeInputError:
             continue
-        r = jax.tree.map(np.asarray, solve(alt.data, True, estimate))
+        r = jax.tree.map(np.asarray, solve(model_data(alt.data, model, sigma)[0], True, estimate))
         if fits(r) and (float(r.residual_rms) < 0.1 * given or implausible_robot_noise(result)):
             noise = (
                 f"; {describe_robot_noise(r)} that way against {describe_robot_noise(result)}"
@@ -112,7 +115,7 @@ def robot_noise_hint(verdict, data, result, solve, log) -> HandEyeVerdict:
     rejected = int(np.asarray(result.rejected).any(0).sum())
     if not (misfit(result) or rejected):
         return verdict
-    r = jax.tree.map(np.asarray, solve(data, True, True))
+    r = jax.tree.map(np.asarray, solve(model_data(data, "estimate", None)[0], True, True))
     kept = int(np.asarray(r.rejected).any(0).sum())
     if not fits(r) or (kept >= max(rejected, 1) and not misfit(result)):
         return verdict
@@ -123,7 +126,7 @@ def robot_noise_hint(verdict, data, result, solve, log) -> HandEyeVerdict:
         f"the robot poses are noisier than given ({given[0]:.3g} mm / {given[1]:.3g} deg per axis): "
         f"estimated from the data, {est[0]:.3g} mm / {est[1]:.3g} deg, with which the reprojection RMS is "
         f"{float(r.pixel_rms):.3g} px ({float(result.pixel_rms):.3g} px as given) and {kept} frame(s) are "
-        f"rejected ({rejected} as given); leave {ROBOT_SIGMA_OPTIONS} out to use the estimate"
+        f"rejected ({rejected} as given); `--robot-noise estimate` uses the estimate ({ROBOT_SIGMA_OPTIONS})"
     )
     log(text)
     if misfit(result):
@@ -138,8 +141,9 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerd
     result suspect."""
     result, solve = solved.result, solved.solver
     verdict = robot_noise_hint(verdict, observed.observations.data, result, solve, log)
-    if misfit(result):
-        found = diagnose_misfit(observed, result, solve)
+    # An exact-pose fit whose frames left out are predicted as a robot's noise allows is no misfit.
+    if misfit(result) and not (result.robot_sigma is None and noise_explains_fit(solved.noise.fit.held_out)):
+        found = diagnose_misfit(observed, result, solve, solved.noise.fit.model)
         if found:
             log(f"the poses fit the images once read differently: {found}")
             verdict = replace(verdict, reasons=verdict.reasons + (found,))
@@ -162,6 +166,12 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerd
     return verdict
 
 
+def noise_model_note(choice: NoiseChoice) -> str:
+    """What the robot-noise model is and why: asked, chosen by held-out reprojection, or the default."""
+    fit = choice.fit
+    return f"robot-noise model {fit.model!r}, {choice.basis}: {describe_robot_noise(fit.result)}"
+
+
 def judge(
     observed: Observed, solved: Solved, *, max_steps: int, log
 ) -> tuple[HandEyeVerdict, dict[str, float]]:
@@ -175,7 +185,9 @@ def judge(
         frame_names=capture.frames,
         camera_names=[f"camera {c.name}" for c in capture.cameras],
         max_steps=max_steps,
+        held_out=solved.noise.fit.held_out,
     )
+    verdict = replace(verdict, notes=verdict.notes + (noise_model_note(solved.noise),))
     t0 = time.perf_counter()
     verdict = input_hints(verdict, observed, solved, log)
     return verdict, {"hints": time.perf_counter() - t0}

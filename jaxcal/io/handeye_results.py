@@ -157,6 +157,8 @@ def hand_eye_summary(run) -> dict:
         ],
         "frames": frames,
         "robot_noise": _robot_noise(r),
+        "robot_noise_model": _robot_noise_model(run),
+        "held_out": _held_out(run.noise.fit.held_out),
         "consistency": {
             "tolerance_deg": mc.tolerance_deg,
             "disagreeing_fraction": mc.disagreeing_fraction,
@@ -215,6 +217,47 @@ def _robot_noise(r) -> "dict | None":
         "translation_mm": float(1e3 * noise[0]),
         "rotation_deg": float(np.degrees(noise[3])),
         "dof": None if r.robot_dof is None else np.asarray(r.robot_dof, float).tolist(),
+    }
+
+
+def _robot_noise_model(run) -> dict:
+    """The robot-noise model kept, what was asked, why, and every model solved with its held-out
+    reprojection (per camera `T_robot_cam` too, to compare them)."""
+    choice = run.noise
+    return {
+        "model": choice.fit.model,
+        "asked": choice.setting.mode,
+        "basis": choice.basis,
+        "models": [
+            {
+                "model": f.model,
+                "chosen": k == choice.chosen,
+                "robot_noise": _robot_noise(f.result),
+                "held_out_rms_px": None if f.held_out is None else f.held_out.rms_px,
+                "in_sample_rms_px": float(f.result.pixel_rms),
+                "rejected_frames": int(np.asarray(f.result.rejected).any(0).sum()),
+                "T_robot_cam": {
+                    cam.name: _transform(np.asarray(f.result.T_robot_cam)[c])
+                    for c, cam in enumerate(run.capture.cameras)
+                },
+            }
+            for k, f in enumerate(choice.fits)
+        ],
+    }
+
+
+def _held_out(held) -> "dict | None":
+    """The kept model's held-out reprojection beside its in-sample one, and the robot pose noise it reads as."""
+    if held is None:
+        return None
+    return {
+        "rms_px": held.rms_px,
+        "in_sample_rms_px": held.in_sample_px,
+        "sigma_px": held.sigma_px,
+        "folds": held.folds,
+        "frames": held.frames,
+        "px_per_1mm_0.1deg": held.scale_px,
+        "robot_noise_level": dict(zip(("translation_mm", "rotation_deg"), held.noise)),
     }
 
 
@@ -314,6 +357,45 @@ def _fmt(v, digits=3) -> str:
     return f"{v:.{digits}f}"
 
 
+def _model_sentence(m: dict) -> str:
+    return f"model `{m['model']}` (asked: `{m['asked']}`; {m['basis'].split(' (')[0]}), "
+
+
+def _model_table(s: dict) -> list[str]:
+    """The robot-noise models solved, held out against in-sample, and the kept model's held-out figure."""
+    lines = []
+    h = s["held_out"]
+    if h is not None:
+        level = h["robot_noise_level"]
+        lines += [
+            f"Held out ({h['folds']} folds of consecutive frames, {h['frames']} frames, each predicted from its "
+            f"reported robot pose): {_fmt(h['rms_px'])} px RMS against {_fmt(h['in_sample_rms_px'])} px in-sample "
+            f"and the detector's {_fmt(h['sigma_px'])} px; robot pose noise of at most about "
+            f"{_fmt(level['translation_mm'], 2)} mm / {_fmt(level['rotation_deg'], 3)} deg per axis.",
+            "",
+        ]
+    models = s["robot_noise_model"]["models"]
+    if len(models) > 1:
+        lines += [
+            "| robot-noise model | noise per axis | held out (px) | in-sample (px) | rejected frames | kept |"
+        ]
+        lines += ["| --- | --- | --- | --- | --- | --- |"]
+        for m in models:
+            rn = m["robot_noise"]
+            noise = (
+                "exact"
+                if rn is None
+                else f"{_fmt(rn['translation_mm'])} mm / {_fmt(rn['rotation_deg'], 4)} deg"
+            )
+            held = "n/a" if m["held_out_rms_px"] is None else _fmt(m["held_out_rms_px"])
+            lines.append(
+                f"| {m['model']} | {noise} | {held} | {_fmt(m['in_sample_rms_px'])} | {m['rejected_frames']} | "
+                f"{'**yes**' if m['chosen'] else ''} |"
+            )
+        lines.append("")
+    return lines
+
+
 def report_markdown(summary: dict) -> str:
     s = summary
     lines = [
@@ -347,7 +429,7 @@ def report_markdown(summary: dict) -> str:
         "",
         "Standard deviations are the norms of the three components (translation in the parent frame, "
         "rotation as a parent-frame rotation vector); the k-fold column is the jackknife spread over "
-        f"{s['kfold']['folds'] if s['kfold'] else 0} folds of frames.",
+        f"{s['kfold']['folds'] if s['kfold'] else 0} folds of consecutive frames.",
         "",
     ]
     for name, c in s["cameras"].items():
@@ -364,6 +446,7 @@ def report_markdown(summary: dict) -> str:
         f"{_fmt(sv['sigma_px'])} px (variance factor {_fmt(sv['variance_factor'], 2)}); {sv['frames']} frames.",
         "",
         "Robot pose noise: "
+        + _model_sentence(s["robot_noise_model"])
         + (
             "exact poses."
             if s["robot_noise"] is None
@@ -375,6 +458,7 @@ def report_markdown(summary: dict) -> str:
         f"than {s['consistency']['tolerance_deg']:g} deg (median {_fmt(s['consistency']['median_difference_deg'])} deg).",
         "",
     ]
+    lines += _model_table(s)
     if s["rejected_frames"]:
         lines += ["| rejected frame | cameras | reason |", "| --- | --- | --- |"]
         lines += [

@@ -8,7 +8,8 @@ kind's tolerance); the rest are held at nominal and named.
 
 Non-geometric terms (`Options.terms`: joint compliance under gravity,
 transmission harmonics) are tried one after another and each is kept only
-when K-fold cross-validation on the samples improves: the fit reports the
+when K-fold cross-validation on the samples improves, by `jaxcal._selection`'s
+rule (the one the hand-eye robot-noise model is chosen by): the fit reports the
 geometric model's cross-validation beside every model tried.
 
 The record is the two-stage one (`TwoStage`, with `points`): its axis-fit
@@ -45,6 +46,7 @@ from .._pointfit import (
     start_frame,
     term_basis,
 )
+from .._selection import improves_on_samples
 from ..errors import CalibrationError
 from ..records import ModelRow, ResidualStats, TermRow
 from ..robots import link_inertials
@@ -52,8 +54,6 @@ from ._observe import Observations
 from ._setup import Options, Setup
 from ._synchronise import Sync
 
-#: A term is kept when it lowers the cross-validated mean error by more than this share.
-CV_GAIN = 0.005
 #: A non-geometric coefficient stays free only when the data pin its effect on the joint
 #: angle (its std times the RMS of its basis over the samples) to this (rad): a
 #: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
@@ -214,20 +214,28 @@ def _stats(d: np.ndarray) -> ResidualStats:
     return ResidualStats(mean=float(d.mean()), rms=float(np.sqrt(np.mean(d**2))), max=float(d.max()))
 
 
-def cross_validation(problem, cand, free, train) -> tuple[ResidualStats, ResidualStats | None]:
+def _held_out(problem, cand, free, train) -> tuple[ResidualStats, ResidualStats | None, np.ndarray]:
     """The held-out distances (mm) and, with orientations, angles (deg) of K-fold
-    cross-validation with the free parameters `free` over the training masks `train`."""
+    cross-validation with the free parameters `free` over the training masks `train`, and each
+    held-out sample's distance (mm) in sample order."""
     dist, test, angle = (np.asarray(a) for a in _cv(problem, cand, free, jnp.asarray(train)))
     deg = _stats(np.degrees(angle[test])) if problem.layout.orientation else None
-    return _stats(1e3 * dist[test]), deg
+    per_sample = 1e3 * np.sum(np.where(test, dist, 0.0), axis=0)[test.any(0)]
+    return _stats(1e3 * dist[test]), deg, per_sample
 
 
-def _cv_row(problem, cand, fit, train) -> dict:
-    mm, deg = cross_validation(problem, cand, fit.free, train)
+def cross_validation(problem, cand, free, train) -> tuple[ResidualStats, ResidualStats | None]:
+    """`_held_out`'s summaries: what `jaxcal verify --cv` reports."""
+    return _held_out(problem, cand, free, train)[:2]
+
+
+def _cv_row(problem, cand, fit, train) -> tuple[dict, np.ndarray]:
+    """The cross-validated summary of a model's row and each held-out sample's distance (mm)."""
+    mm, deg, per_sample = _held_out(problem, cand, fit.free, train)
     row = {"cv_mean_mm": mm.mean, "cv_rms_mm": mm.rms, "cv_max_mm": mm.max}
     if deg is not None:
         row |= {"cv_mean_deg": deg.mean, "cv_rms_deg": deg.rms, "cv_max_deg": deg.max}
-    return row
+    return row, per_sample
 
 
 def _inertials(setup: Setup):
@@ -297,10 +305,11 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol))
         fit = _hold_implausible_terms(problem, cand, fit)
-        row = ModelRow(terms=tuple(terms), free=int(np.sum(fit.free)))
+        row, held = ModelRow(terms=tuple(terms), free=int(np.sum(fit.free))), None
         if train is not None:
-            row = dataclasses.replace(row, **_cv_row(problem, cand, fit, train))
-        return layout, problem, cand, fit, row
+            summary, held = _cv_row(problem, cand, fit, train)
+            row = dataclasses.replace(row, **summary)
+        return layout, problem, cand, fit, row, held
 
     options.say(f"point fit: {n_used} stop-and-shoot samples, forward kinematics of every sample")
     best = attempt(())
@@ -313,9 +322,10 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         options.say(f"point fit: trying {term} (kept only if {folds}-fold cross-validation improves)")
         trial = attempt((*best[0].terms, term))
         models.append(trial[4])
-        if trial[4].cv_mean_mm < (1.0 - CV_GAIN) * best[4].cv_mean_mm:
+        # `jaxcal._selection`'s rule: a gain over CV_GAIN, by two standard errors of the paired distances.
+        if improves_on_samples(best[5], trial[5], best[4].cv_mean_mm, trial[4].cv_mean_mm):
             best, kept = trial, len(models) - 1
-    layout, problem, cand, fit, _ = best
+    layout, problem, cand, fit, *_ = best
     if not bool(fit.result == optx.RESULTS.successful):
         options.say("point fit: the solver did not converge")
     dist = 1e3 * np.linalg.norm(np.asarray(predict(fit.x, problem)) - y, axis=1)[used]
