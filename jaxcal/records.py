@@ -577,7 +577,9 @@ class OtherCamera(Record):
 class ModelRow(Record):
     """One model a stop-and-shoot point fit tried: its non-geometric terms, free
     parameters, cross-validated distances (mm, when cross-validation ran) and, with measured
-    orientations, angles (deg), and whether it was kept."""
+    orientations, angles (deg), whether it was kept and, for a model with a term, its gain over
+    the model it was tried against in standard errors of the paired held-out distances
+    (`jaxcal._selection.paired_z`)."""
 
     terms: tuple[str, ...]
     free: int
@@ -588,6 +590,7 @@ class ModelRow(Record):
     cv_mean_deg: float | None = optional()
     cv_rms_deg: float | None = optional()
     cv_max_deg: float | None = optional()
+    cv_gain_z: float | None = optional()
 
 
 @dataclass(frozen=True, eq=False)

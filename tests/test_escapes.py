@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from jaxcal import certification
+from jaxcal._selection import CV_GAIN, MIN_Z
 from jaxcal.cli import build_parser, main
 from jaxcal.errors import DatasetError, JaxcalError
 from jaxcal.io import _logs, _schema
@@ -37,7 +38,6 @@ from jaxcal.records import ModelRow
 from jaxcal.robots import ROBOTS_DIR, robot_file
 from jaxcal.sim.simulate import SimConfig
 from jaxcal.sim.tracker import TrackerSimConfig
-from jaxcal.stages._points import CV_GAIN
 from jaxcal.stages._two_stage import term_note
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -421,3 +421,10 @@ def test_the_term_note_says_better_by_less_than_the_threshold():
     better = ModelRow(terms=("compliance",), free=31, cv_mean_mm=0.0964)
     extended = ModelRow(terms=("compliance", "harmonic1"), free=37, cv_mean_mm=0.0916, kept=True)
     assert term_note(better, (base, better, extended)) is None
+    # Better by over CV_GAIN, but not by MIN_Z standard errors of the paired distances (a few samples).
+    unsure = ModelRow(terms=("compliance",), free=31, cv_mean_mm=0.0964, cv_gain_z=1.3)
+    assert term_note(unsure, (base, unsure)) == (
+        "the model with compliance: cross-validation 0.0964 mm mean, better than the geometric model's "
+        f"0.1000 mm by 3.60 %, 1.30 standard errors of the samples' paired differences, fewer than the "
+        f"{MIN_Z:g} a term's gain must stand out by: not kept"
+    )

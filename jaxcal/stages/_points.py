@@ -46,7 +46,7 @@ from .._pointfit import (
     start_frame,
     term_basis,
 )
-from .._selection import improves_on_samples
+from .._selection import improves_on_samples, paired_z
 from ..errors import CalibrationError
 from ..records import ModelRow, ResidualStats, TermRow
 from ..robots import link_inertials
@@ -62,6 +62,9 @@ TERM_STD_RAD = 1e-3
 #: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
 #: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
 TERM_FLOOR = 1e-6
+#: A term's gain in standard errors (`ModelRow.cv_gain_z`) is recorded up to this (a gain without
+#: spread is infinitely many).
+Z_SHOWN = 1e3
 
 
 @dataclass(frozen=True, eq=False)
@@ -321,6 +324,8 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
             )
         options.say(f"point fit: trying {term} (kept only if {folds}-fold cross-validation improves)")
         trial = attempt((*best[0].terms, term))
+        z = min(paired_z(best[5], trial[5]), Z_SHOWN)
+        trial = (*trial[:4], dataclasses.replace(trial[4], cv_gain_z=z), trial[5])
         models.append(trial[4])
         # `jaxcal._selection`'s rule: a gain over CV_GAIN, by two standard errors of the paired distances.
         if improves_on_samples(best[5], trial[5], best[4].cv_mean_mm, trial[4].cv_mean_mm):

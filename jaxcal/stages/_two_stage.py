@@ -25,6 +25,7 @@ from .._geometry import pose_inverse
 from .._handeye import check_motion_diversity, solve_axzb
 from .._kinematics import PRISMATIC, forward_kinematics
 from .._links import average_pose, sequential_sweeps
+from .._selection import CV_GAIN, MIN_Z
 from ..errors import CalibrationError
 from ..records import (
     ArcOutlier,
@@ -38,7 +39,7 @@ from ..records import (
 from . import _programs
 from ._blur import blur_notes, lost_to_blur
 from ._observe import Observations
-from ._points import CV_GAIN, PointFit, axis_result, fit_point_samples, parameters_of
+from ._points import PointFit, axis_result, fit_point_samples, parameters_of
 from ._setup import Options, Setup
 from ._synchronise import Sweeps, Sync
 
@@ -399,7 +400,8 @@ def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Two
 
 def term_note(model, models) -> str | None:
     """Why a model with a non-geometric term was not kept, against the model it was tried
-    against (the one without its last term): no better, or better by less than `CV_GAIN`;
+    against (the one without its last term): no better, better by no more than `CV_GAIN`, or by
+    fewer than `MIN_Z` standard errors of the paired held-out distances (`jaxcal._selection`);
     None for a model that was kept and then extended by a later term (the table shows it)."""
     base = next(m for m in models if m.terms == model.terms[:-1])
     name = "+".join(base.terms) or "geometric model"
@@ -407,12 +409,15 @@ def term_note(model, models) -> str | None:
     if model.cv_mean_mm >= base.cv_mean_mm:
         return f"{head}, not better than the {name}'s {base.cv_mean_mm:.4f} mm: not kept"
     gain = 1.0 - model.cv_mean_mm / base.cv_mean_mm
-    if gain > CV_GAIN:
-        return None
-    return (
-        f"{head}, better than the {name}'s {base.cv_mean_mm:.4f} mm by {100 * gain:.2f} %, less than the "
-        f"{100 * CV_GAIN:g} % a term must gain: not kept"
-    )
+    better = f"{head}, better than the {name}'s {base.cv_mean_mm:.4f} mm by {100 * gain:.2f} %"
+    if gain <= CV_GAIN:
+        return f"{better}, less than the {100 * CV_GAIN:g} % a term must gain: not kept"
+    if model.cv_gain_z is not None and model.cv_gain_z < MIN_Z:
+        return (
+            f"{better}, {model.cv_gain_z:.2f} standard errors of the samples' paired differences, fewer than "
+            f"the {MIN_Z:g} a term's gain must stand out by: not kept"
+        )
+    return None
 
 
 def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> TwoStage:
