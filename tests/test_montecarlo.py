@@ -144,7 +144,7 @@ def test_montecarlo_detail_and_json(tmp_path, capsys):
     """`jaxcal montecarlo`: the detailed trial's tables, then the summary written
     atomically. Here, not in test_cli.py: the command's trials are `SETUP`'s
     program, which this file's tests have traced and compiled already."""
-    out = tmp_path / "sub" / "mc.json"
+    out = tmp_path / "mc.json"
     assert main(["montecarlo", "--detail", "--trials", "8", "--frames", "24", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "Before / after" in text and "Identifiability" in text
@@ -172,7 +172,7 @@ def test_chunks_give_the_same_results_as_one_batch():
 
 
 def test_bad_trial_counts():
-    with pytest.raises(ValueError, match="trials must be at least 1"):
+    with pytest.raises(ValueError, match="trials must be from 1"):
         monte_carlo(SETUP, jax.random.key(0), 0)
     with pytest.raises(ValueError, match="chunk must be at least 1"):
         monte_carlo(SETUP, jax.random.key(0), 4, chunk=0)
