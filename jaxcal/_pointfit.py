@@ -400,22 +400,23 @@ def _residuals_autodiff(x, problem):
 point_residuals = _lsq.closed_form_jvp(_residuals_primal, _residuals_terms, _residuals_autodiff)
 
 
-def _sample_blocks(x, problem, keep) -> tuple[Float[Array, "samples k"], Float[Array, "samples k n"]]:
+def _sample_blocks(x, problem, keep) -> tuple[Float[Array, "k samples"], Float[Array, "n k samples"]]:
     """Each sample's whitened residual $r_i$ and Jacobian block $J_i$ over the columns `keep`
-    (the others zero), without the samples' weights (`k` = 3, or 6 with orientations): what
-    its deletion residual needs (`jaxcal._robust.deletion_residuals`)."""
+    (the others zero), without the samples' weights, the samples last (`matmul_lanes`' layout;
+    `k` = 3, or 6 with orientations): what its deletion residual needs
+    (`jaxcal._robust.deletion_residuals`)."""
     d = problem.data
     unweighted = eqx.tree_at(lambda q: q.data.weight, problem, jnp.ones_like(d.weight))
     w = _weights(unweighted)
     c = _chain(x, unweighted)
-    r = ((c.y - d.y.T) * w).T
     N, C = _jacobian_factors(x, unweighted, c)
-    J = jnp.einsum("kas,ki->sai", N, C * keep[None, :]) * w[:, None, None]
+    n, _, S = N.shape
+    r = (c.y - d.y.T) * w
+    J = ((C * keep[None, :]).T @ N.reshape(n, 3 * S)).reshape(n, 3, S) * w
     if problem.layout.orientation:
-        S = d.q.shape[0]
-        rr = _rotation_residuals(x, unweighted).reshape(S, 3)
-        Jr = jax.jacfwd(_rotation_residuals)(x, unweighted).reshape(S, 3, -1) * keep[None, None, :]
-        r, J = jnp.concatenate([r, rr], axis=1), jnp.concatenate([J, Jr], axis=1)
+        rr = _rotation_residuals(x, unweighted).reshape(S, 3).T
+        Jr = jax.jacfwd(_rotation_residuals)(x, unweighted).reshape(S, 3, n).T * keep[:, None, None]
+        r, J = jnp.concatenate([r, rr]), jnp.concatenate([J, Jr], axis=1)
     return r, J
 
 
@@ -563,12 +564,16 @@ def _deletion(x, keep, problem):
     """Each sample's deletion residual norm and degrees of freedom at `x` under the samples'
     weights (`jaxcal._robust.deletion_residuals`), and the weighted residuals and normal matrix."""
     d = problem.data
-    r, J = _sample_blocks(x, problem, keep.astype(x.dtype))
+    r, J = _sample_blocks(x, problem, keep.astype(x.dtype))  # (k, s), (n, k, s)
     w = jnp.where(d.mask, d.weight, 0.0)
-    H = jnp.einsum("sai,s,saj->ij", J, w, J)
-    G = jnp.einsum("sai,ij,sbj->sab", J, _lsq.covariance_normal(H, keep), J)
-    dist, nu = deletion_residuals(r, G, d.weight, d.mask)
-    return dist, nu, r * jnp.sqrt(w)[:, None], H
+    n, k, S = J.shape
+    Jf = J.reshape(n, k * S)
+    H = (Jf * jnp.tile(w, k)[None, :]) @ Jf.T
+    # G_i = J_i C J_i^T, the samples last: one product and a sum over the parameters.
+    CJ = (_lsq.covariance_normal(H, keep) @ Jf).reshape(n, k, S)
+    G = jnp.moveaxis(jnp.sum(CJ[:, :, None, :] * J[:, None, :, :], axis=0), -1, 0)
+    dist, nu = deletion_residuals(r.T, G, d.weight, d.mask)
+    return dist, nu, (r * jnp.sqrt(w)).T.reshape(-1), H
 
 
 def sample_radii(

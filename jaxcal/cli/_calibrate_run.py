@@ -178,6 +178,7 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
         device_is_base=getattr(args, "device_is_base", False),
         terms=args.terms,
         cv_folds=args.cv_folds,
+        identifiability_tol=args.identifiability_tol,
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
     )
     _calibration_tables(console, result)
