@@ -504,21 +504,8 @@ def fit_points(
     # The search's linearisation is the solver's first, over the kept columns.
     first = (r0, NormalEquations(H=ne0.H * kf[:, None] * kf[None, :], e=ne0.e * kf))
     x, sol = _solve(problem, kf, x0, options, first)
-    nan = jnp.full(problem.data.mask.shape, jnp.nan)
-    return _summary(
-        problem,
-        x,
-        keep,
-        indep,
-        std_alone,
-        sol.residuals,
-        sol.normal.H,
-        problem.data.weight,
-        nan,
-        jnp.asarray(jnp.nan),
-        sol.result,
-        sol.num_steps,
-    )
+    solved = (sol.residuals, sol.normal.H, problem.data.weight)
+    return _summary(problem, x, (keep, indep, std_alone), solved, sol.result, sol.num_steps)
 
 
 def _solve(problem, kf, x, options, first=None):
@@ -534,9 +521,12 @@ def _solve(problem, kf, x, options, first=None):
     return sol.x * kf, sol
 
 
-def _summary(problem, x, keep, indep, std_alone, r, H, w, radius, s, result, steps) -> PointFitResult:
-    """A `PointFitResult` from the solution `x` and its weighted residuals `r`, normal matrix `H`
-    and sample weights `w`: the covariance scaled by the residual variance of the samples fitted."""
+def _summary(problem, x, search, solved, result, steps) -> PointFitResult:
+    """A `PointFitResult` from the solution `x`, the search's `(free, independence, std_alone)` and
+    the solve's weighted residuals, normal matrix and sample weights `solved`: the covariance
+    scaled by the residual variance of the samples fitted (no robust radii: NaN)."""
+    keep, indep, std_alone = search
+    r, H, w = solved
     inlier = problem.data.mask & (w > 0)
     k = 6 if problem.layout.orientation else 3
     sigma2 = _lsq.residual_variance(r, k * jnp.sum(inlier), jnp.sum(keep))
@@ -553,8 +543,8 @@ def _summary(problem, x, keep, indep, std_alone, r, H, w, radius, s, result, ste
         sigma2=sigma2,
         rms_m=rms,
         weights=jnp.where(problem.data.mask, w, 0.0),
-        radius=radius,
-        robust_scale=s,
+        radius=jnp.full(w.shape, jnp.nan),
+        robust_scale=jnp.asarray(jnp.nan),
         result=result,
         num_steps=steps,
     )
@@ -630,20 +620,11 @@ def fit_points_robust(
         solve, weights_at, fit.x, mask.astype(fit.x.dtype), round_plan(loss, rounds, reject)
     )
     result = optx.RESULTS.where(fit.result == optx.RESULTS.successful, out.result, fit.result)
-    return _summary(
-        problem,
-        out.value,
-        keep,
-        fit.independence,
-        fit.std_alone,
-        r,
-        H,
-        prior * out.weights,
-        z,
-        s,
-        result,
-        fit.num_steps + out.num_steps,
+    search = (keep, fit.independence, fit.std_alone)
+    res = _summary(
+        problem, out.value, search, (r, H, prior * out.weights), result, fit.num_steps + out.num_steps
     )
+    return eqx.tree_at(lambda f: (f.radius, f.robust_scale), res, (z, s))
 
 
 def prediction_std(x, cov, problem: PointProblem) -> Float[Array, " samples"]:

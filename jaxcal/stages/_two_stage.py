@@ -228,7 +228,7 @@ def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> tuple[ArcOut
     return tuple(rows)
 
 
-def _listed(items: list[str], shown: int = 8) -> str:
+def listed(items: list[str], shown: int = 8) -> str:
     """The first `shown` of `items`, and how many more."""
     return ", ".join(items[:shown]) + (f" and {len(items) - shown} more" if len(items) > shown else "")
 
@@ -239,7 +239,7 @@ def _outlier_notes(rows: tuple[ArcRow, ...]) -> tuple[str, ...]:
     for a in rows:
         frames = sorted({o.frame for o in a.outliers})
         if frames:
-            shown = _listed(list(map(str, frames)))
+            shown = listed(list(map(str, frames)))
             what = "sample" if a.outliers[0].sample is not None else "frame"
             notes.append(f"joint {a.joint!r}: the robust arc fit rejected {len(frames)} {what}(s): {shown}")
     return tuple(notes)
@@ -416,7 +416,7 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
         notes.append(
             f"{len(pf.repeats)} sample(s) repeat an earlier sample's joint positions, merged into its pose (the mean "
             "of their points) and weighted as one pose: "
-            + _listed([f"sample {r.sample} (= sample {r.of_sample})" for r in pf.repeats])
+            + listed([f"sample {r.sample} (= sample {r.of_sample})" for r in pf.repeats])
         )
     notes += [
         f"the model with {'+'.join(m.terms)} only: cross-validation {m.cv_mean_mm:.4f} mm mean, not better than "

@@ -30,7 +30,7 @@ from ._observe import Observations
 from ._refine import Refined, succeeded
 from ._setup import Setup
 from ._synchronise import Sync
-from ._two_stage import TwoStage, _listed
+from ._two_stage import TwoStage, listed
 from .limits import Limits
 
 
@@ -193,7 +193,7 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
         text = (
             f"the robust point fit rejected {k} of the {pf.poses} poses, measured {far} from the calibrated "
             "model's point (a joint position or a measurement wrong), and left them out of the fit: "
-            + _listed([f"sample {o.sample} ({o.line}, {o.distance_mm:.2f} mm)" for o in pf.outliers])
+            + listed([f"sample {o.sample} ({o.line}, {o.distance_mm:.2f} mm)" for o in pf.outliers])
         )
         if share <= limits.outlier_fraction:
             c.notes.append(text)
