@@ -28,12 +28,12 @@ Their coefficients follow the axis-fit vector in the flattened parameters
 freed only where the geometry cannot already explain it.
 
 **Robust fit.** One wrong sample (a joint cell off by degrees, a reflector
-bumped) would pull every parameter; `fit_points` with a `RobustOptions` runs the
-arc fits' iteratively reweighted rounds (`jaxcal._robust`): each sample is judged
-by its deletion residual, the residual it would have had the fit not used it
-(from the sample's block $G_i = J_i C J_i^T$ of the hat matrix, $k = 3$ or 6
-rows), in robust sigmas of a scale estimated from the data, Cauchy-weighted,
-then one least-squares solve on the inliers gives the estimate and its
+bumped) would pull every parameter. Each sample is judged by its deletion residual,
+the residual it would have had the fit not used it (from the sample's block
+$G_i = J_i C J_i^T$ of the hat matrix, $k = 3$ or 6 rows; `sample_radii`), in robust
+sigmas of a scale estimated from the data (`jaxcal._robust`); `fit_points_robust`
+continues a least-squares fit with the arc fits' iteratively reweighted rounds
+(Cauchy), then one least-squares solve on the inliers gives the estimate and its
 covariance.
 
 Everything here is pure and jittable; `fit_points` is one compiled program
