@@ -465,3 +465,24 @@ def test_the_identifiability_tolerance_is_an_option_and_the_advice_names_it(ur5)
     _uncertainties(c, (dataclasses.replace(row, std=0.1),), Limits(), 1e-3)
     assert len(c.reasons) == 1 and "--identifiability-tol" in c.reasons[0]
     assert "identifiability_tol=" in c.reasons[0] and "now 0.001" in c.reasons[0]
+
+
+def test_the_benchmarks_corrupted_grids_turn_one_joint_cell_per_row(tmp_path):
+    """`benchmarks/real_tracker.py`'s corrupted copies of the UR5 grid: `n` distinct rows, each with
+    one of the first five joints' cells turned by 2-10 deg, nothing else changed (seeded)."""
+    import sys
+
+    sys.path.insert(0, "benchmarks")
+    try:
+        from real_tracker import GRID, corrupt
+    finally:
+        sys.path.remove("benchmarks")
+    turned = corrupt(20, tmp_path / "bad")
+    assert corrupt(20, tmp_path / "again") == turned
+    clean = np.loadtxt(GRID / "samples.csv", delimiter=",", skiprows=1, usecols=range(3, 12))
+    bad = np.loadtxt(tmp_path / "bad" / "samples.csv", delimiter=",", skiprows=1, usecols=range(3, 12))
+    rows, cols = np.nonzero(clean != bad)
+    assert len(set(rows)) == 20 and len(rows) == 20 and set(cols) <= set(range(3, 8))
+    deg = np.degrees(bad[rows, cols] - clean[rows, cols])
+    assert np.all((np.abs(deg) >= 2.0) & (np.abs(deg) <= 10.0))
+    np.testing.assert_allclose(sorted(deg), sorted(t["deg"] for t in turned), rtol=1e-9)
