@@ -531,7 +531,9 @@ def _summary(problem, x, search, solved, result, steps) -> PointFitResult:
     k = 6 if problem.layout.orientation else 3
     sigma2 = _lsq.residual_variance(r, k * jnp.sum(inlier), jnp.sum(keep))
     cov = _lsq.covariance_normal(H, keep, sigma2)
-    dist2 = jnp.sum((predict(x, problem) - problem.data.y) ** 2, axis=1)
+    S = w.shape[0]  # the positions lead `r`, `(3, samples)`-ordered, weighted by the root of `w`
+    unweighted = problem.data.sigma / jnp.sqrt(jnp.where(inlier, w, 1.0))
+    dist2 = jnp.sum((r[: 3 * S].reshape(3, S) * unweighted) ** 2, axis=0)
     rms = jnp.sqrt(jnp.sum(jnp.where(inlier, dist2, 0.0)) / jnp.maximum(jnp.sum(inlier), 1))
     return PointFitResult(
         x=x,
@@ -563,7 +565,7 @@ def _deletion(x, keep, problem):
     CJ = (_lsq.covariance_normal(H, keep) @ Jf).reshape(n, k, S)
     G = jnp.moveaxis(jnp.sum(CJ[:, :, None, :] * J[:, None, :, :], axis=0), -1, 0)
     dist, nu = deletion_residuals(r.T, G, d.weight, d.mask)
-    return dist, nu, (r * jnp.sqrt(w)).T.reshape(-1), H
+    return dist, nu, (r * jnp.sqrt(w)).reshape(-1), H  # positions first, as `_normal`'s
 
 
 def sample_radii(
