@@ -21,10 +21,21 @@ import numpy as np
 import pytest
 
 import jaxcal
-from jaxcal._geometry import se3_exp
+from jaxcal._geometry import se3_exp, so3_exp
 from jaxcal._kinematics import forward_kinematics
 from jaxcal._linalg import concurrent_decompositions
-from jaxcal._pointfit import cross_validate, fit_points, fold_masks, point_jacobian, predict
+from jaxcal._pointfit import (
+    PointLayout,
+    PointProblem,
+    _residuals_autodiff,
+    _sample_blocks,
+    cross_validate,
+    fit_points,
+    fold_masks,
+    point_jacobian,
+    predict,
+    predict_rotation,
+)
 from jaxcal.cli import main
 from jaxcal.errors import CalibrationError, DatasetError
 from jaxcal.inspection import inspect_dataset
@@ -124,6 +135,32 @@ def test_point_jacobian_matches_autodiff(ur5):
     closed = jax.jit(point_jacobian)(x, problem)  # each one program (op by op: ~150 small ones)
     auto = jax.jit(jax.jacfwd(predict))(x, problem)
     np.testing.assert_allclose(closed, auto, atol=1e-12 * float(jnp.max(jnp.abs(auto))))
+
+
+def test_sample_blocks_are_the_residuals_and_their_jacobian(ur5):
+    """The deletion residuals' per-sample blocks $r_i$, $J_i$ (`_sample_blocks`, samples last) against
+    autodiff of the whitened residuals, with measured orientations ($k = 6$) and a column held."""
+    _, r = ur5
+    pf = r.point_fit
+    p0 = pf.problem
+    layout = PointLayout(pf.layout.base, pf.layout.terms, orientation=True)
+    x = 1e-3 * jax.random.normal(jax.random.key(1), (layout.size,))
+    wobble = jax.vmap(so3_exp)(1e-3 * jax.random.normal(jax.random.key(2), (p0.data.q.shape[0], 3)))
+    R = jnp.einsum("sab,sbc->sac", predict_rotation(x, p0), wobble)
+    data = eqx.tree_at(lambda d: (d.R, d.sigma_rad), p0.data, (R, jnp.full(R.shape[0], 1e-3)))
+    problem = PointProblem(p0.nominal, p0.T_dev_base0, p0.T_flange_point0, data, layout)
+    keep = jnp.ones(layout.size).at[7].set(0.0)
+    rb, Jb = jax.jit(_sample_blocks)(x, problem, keep)  # (6, samples), (n, 6, samples)
+    S = R.shape[0]
+    ra = _residuals_autodiff(x, problem).reshape(2, S, 3)
+    Ja = jax.jit(jax.jacfwd(_residuals_autodiff))(x, problem).reshape(2, S, 3, -1) * keep
+    np.testing.assert_allclose(
+        rb.T, jnp.concatenate([ra[0], ra[1]], axis=1), atol=1e-12 * float(jnp.max(abs(ra)))
+    )
+    Ja = jnp.concatenate([Ja[0], Ja[1]], axis=1)  # (samples, 6, n)
+    np.testing.assert_allclose(
+        jnp.moveaxis(Jb, -1, 0).swapaxes(1, 2), Ja, atol=1e-9 * float(jnp.max(abs(Ja)))
+    )
 
 
 def test_cross_validation_keeps_lapack_calls_ordered(ur5):
