@@ -428,8 +428,9 @@ class PointFitResult(eqx.Module):
     - `free`: estimated parameters; the others are held at nominal.
     - `independence`: each column's distance from the span kept before it.
     - `std_alone`: each parameter's 1-sigma were it the only one free (the noise
-      model's, unscaled, at the start): a parameter whose `std_alone` exceeds
-      its plausible magnitude is one the data cannot see (`fit_points`' `scale`).
+      model's, unscaled, at the start; NaN for a given mask of free parameters): a
+      parameter whose `std_alone` exceeds its plausible magnitude is one the data
+      cannot see (`fit_points`' `scale`).
     - `sigma2`: the residual variance factor $\\hat\\sigma^2$ (1 when the noise
       model is exact).
     - `rms_m`: RMS distance between measured and fitted points of the fitted
@@ -490,19 +491,21 @@ def fit_points(
     layout = problem.layout
     options = LM_OPTIONS if options is None else options
     x0 = jnp.zeros(layout.size)
-    r0, ne0 = _normal(x0, problem, jnp.ones(layout.size, x0.dtype))
-    h = jnp.diag(ne0.H)
-    std_alone = jnp.where(h > 0, 1.0 / jnp.sqrt(jnp.where(h > 0, h, 1.0)), jnp.inf)
+    first = None
     if free is None:
+        r0, ne0 = _normal(x0, problem, jnp.ones(layout.size, x0.dtype))
+        h = jnp.diag(ne0.H)
+        std_alone = jnp.where(h > 0, 1.0 / jnp.sqrt(jnp.where(h > 0, h, 1.0)), jnp.inf)
         cand = jnp.asarray(candidates, bool)
         if scale is not None:
             cand = cand & (std_alone <= jnp.asarray(scale))
         keep, indep = _lsq.independent_columns_normal(ne0.H, layout.priority(), tol=tol, candidates=cand)
     else:
         keep, indep = jnp.asarray(free, bool), jnp.full(layout.size, jnp.nan)
+        std_alone = jnp.full(layout.size, jnp.nan)
     kf = keep.astype(x0.dtype)
-    # The search's linearisation is the solver's first, over the kept columns.
-    first = (r0, NormalEquations(H=ne0.H * kf[:, None] * kf[None, :], e=ne0.e * kf))
+    if free is None:  # the search's linearisation is the solver's first, over the kept columns
+        first = (r0, NormalEquations(H=ne0.H * kf[:, None] * kf[None, :], e=ne0.e * kf))
     x, sol = _solve(problem, kf, x0, options, first)
     solved = (sol.residuals, sol.normal.H, problem.data.weight)
     return _summary(problem, x, (keep, indep, std_alone), solved, sol.result, sol.num_steps)

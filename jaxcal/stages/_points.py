@@ -404,11 +404,13 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
 
     def attempt(terms):
         layout, problem, cand, scale, fit = geometric if not terms else fitted(terms, used)
+        # The search's: the refits below take its mask of free parameters as given.
+        unseen = tuple(nm for nm, c, a, sc in zip(layout.names(), cand, fit.std_alone, scale) if c and a > sc)
         fit = _hold_implausible_terms(problem, cand, fit)
         row = ModelRow(terms=tuple(terms), free=int(np.sum(fit.free)))
         if train is not None:
             row = dataclasses.replace(row, **_cv_row(problem, cand, fit, train & used[None]))
-        return layout, problem, cand, scale, fit, row
+        return layout, problem, cand, unseen, fit, row
 
     best = attempt(())
     models, kept = [best[5]], 0
@@ -422,7 +424,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         models.append(trial[5])
         if trial[5].cv_mean_mm < (1.0 - CV_GAIN) * best[5].cv_mean_mm:
             best, kept = trial, len(models) - 1
-    layout, problem, cand, scale, fit, _ = best
+    layout, problem, cand, unseen, fit, _ = best
     if not bool(fit.result == optx.RESULTS.successful):
         options.say("point fit: the solver did not converge")
     dist = 1e3 * np.linalg.norm(np.asarray(predict(fit.x, problem)) - y, axis=1)
@@ -437,7 +439,6 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     names = layout.names()
     free = np.asarray(fit.free)
     held = tuple(nm for nm, f, c in zip(names, free, cand) if not f and c)
-    unseen = tuple(nm for nm, c, a, sc in zip(names, cand, np.asarray(fit.std_alone), scale) if c and a > sc)
     inside = dist[used]
     return PointFit(
         problem=problem,
