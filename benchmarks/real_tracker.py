@@ -20,13 +20,23 @@ the tracker registered to the robot's base (`--device-is-base`).
    `speedup` is the median of the rounds' ratios.
 3. `cold_fit_s`: jaxcal's first fit in a fresh process with an empty compilation
    cache (tracing and compiling included).
+4. Corrupted copies of the grid (issue 49): 1, 5 and 20 of its 1000 rows with one joint cell
+   turned by 2-10 deg (`corrupt`, seeded), each calibrated and verified as in 1 (geometric):
+   `ur5_bad_rows_<n>_test_mean_mm` (the held-out mean), `ur5_bad_rows_<n>_named` (the samples the
+   robust point fit rejected and named) and `_named_correctly` (of them, the corrupted ones).
+
+`fit_ms` times the least-squares fit (identifiability search, solve, covariance), the work
+SciPy's `least_squares` does; `screen_ms` the robust screen `jaxcal calibrate` runs after it
+(every sample's deletion residual, `jaxcal._pointfit.sample_radii`; on clean data the robust
+rounds do not run), `cold_screen_s` its first call.
 
 Run:
 
     .venv/bin/python benchmarks/real_tracker.py --json results/real_tracker.json
 
 The JSON holds the keys named in issue 31 (`ur5_test_mean_mm`, ..., `speedup`,
-`cold_fit_s`) and the per-model detail under `models`.
+`cold_fit_s`), those of issue 49 (`ur5_bad_rows_<n>_...`) and the per-model detail under
+`models` and `bad_rows`.
 """
 
 import argparse
@@ -64,34 +74,42 @@ t0 = time.perf_counter()
 from jaxcal.io.dataset import load_dataset
 from jaxcal._correction import ParameterLayout
 from jaxcal._pointfit import PointLayout
-from jaxcal.stages._points import _fit, candidates, point_problem
+from jaxcal.stages._points import _fit, _radii, candidates, plausible_scale, point_problem
+from jaxcal.stages.limits import Limits
 ds = load_dataset(sys.argv[1])
 nominal, s = ds.load_model(), ds.samples
 layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name="T_device_base"))
 problem = point_problem(nominal, layout, s.q, s.position, s.sigma_m, np.ones(len(s.q), bool), np.eye(4),
                         np.asarray(ds.point.T_link_target))
 cand = candidates(layout, fixed_frame_free=False)
+scale = plausible_scale(layout, nominal, Limits())
 t1 = time.perf_counter()
-res = jax.block_until_ready(_fit(problem, cand, 1e-3))
+res = jax.block_until_ready(_fit(problem, cand, 1e-3, scale))
 t2 = time.perf_counter()
+jax.block_until_ready(_radii(problem, res))
+t3 = time.perf_counter()
 # Warm calls interleaved with SciPy's fits of the same samples, so that both see the
 # same machine load: the speedup is the median of the rounds' ratios.
 sys.path.insert(0, sys.argv[2])
 import _scipy_tracker as ref
 qg, yg = ref.load_samples(sys.argv[1] + "/samples.csv")
-ts, ss, ratios = [], [], []
+ts, ss, ratios, screens = [], [], [], []
 for _ in range(7):
     round_ts = []
     for _ in range(5):
         a = time.perf_counter()
-        jax.block_until_ready(_fit(problem, cand, 1e-3))
+        fit = jax.block_until_ready(_fit(problem, cand, 1e-3, scale))
         round_ts.append(time.perf_counter() - a)
+        a = time.perf_counter()
+        jax.block_until_ready(_radii(problem, fit))
+        screens.append(time.perf_counter() - a)
     s_fit = ref.fit(qg, yg)["fit_s"]
     ts += round_ts
     ss.append(s_fit)
     ratios.append(s_fit / float(np.median(round_ts)))
-print(json.dumps({"cold_fit_s": t2 - t1, "setup_s": t1 - t0, "fit_ms": 1e3 * float(np.median(ts)),
-                  "fit_ms_min": 1e3 * float(min(ts)), "scipy_fit_ms": 1e3 * float(np.median(ss)),
+print(json.dumps({"cold_fit_s": t2 - t1, "cold_screen_s": t3 - t2, "setup_s": t1 - t0,
+                  "fit_ms": 1e3 * float(np.median(ts)), "fit_ms_min": 1e3 * float(min(ts)),
+                  "screen_ms": 1e3 * float(np.median(screens)), "scipy_fit_ms": 1e3 * float(np.median(ss)),
                   "speedup": float(np.median(ratios)), "free": int(np.sum(res.free))}))
 """
 
@@ -144,6 +162,65 @@ def cli_models(workdir: Path) -> dict:
     return out
 
 
+#: Corrupted copies of the grid: this many rows each get one joint cell turned.
+BAD_ROWS = (1, 5, 20)
+#: The joints a corruption turns: the first five. The reflector sits 0.09 mm off the last joint's
+#: axis, so a wrist 3 turned by 10 deg moves it by 16 um, under the scatter of the clean samples
+#: (about 60 um): invisible, and harmless to the calibration.
+BAD_JOINTS = 5
+
+
+def corrupt(n: int, out: Path, seed: int = 49) -> list[dict]:
+    """A copy of the grid in `out` with `n` rows' one joint cell turned by 2-10 deg (either
+    sign; rows, joints and angles drawn with `seed`). Returns what was turned."""
+    import shutil
+
+    rng = np.random.default_rng(seed + n)
+    shutil.copytree(GRID, out)
+    lines = (out / "samples.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    first = header.index("z") + 1  # the joint columns follow x, y, z
+    turned = []
+    for row in sorted(rng.choice(len(lines) - 1, n, replace=False).tolist()):
+        joint = int(rng.integers(BAD_JOINTS))
+        deg = float(rng.uniform(2.0, 10.0) * rng.choice([-1.0, 1.0]))
+        cells = lines[1 + row].split(",")
+        cells[first + joint] = repr(float(cells[first + joint]) + float(np.radians(deg)))
+        lines[1 + row] = ",".join(cells)
+        turned.append({"sample": int(cells[0]), "joint": header[first + joint], "deg": deg})
+    (out / "samples.csv").write_text("\n".join(lines) + "\n")
+    return turned
+
+
+def bad_rows(workdir: Path) -> dict:
+    """Each corrupted copy calibrated (geometric) and verified from the command line."""
+    out = {}
+    for n in BAD_ROWS:
+        data, result = workdir / f"grid_bad_{n}", workdir / f"bad_{n}"
+        turned = corrupt(n, data)
+        p = _jaxcal("calibrate", str(data), "--device-is-base", "--quiet", "--out", str(result))
+        if p.returncode not in (0, 3):
+            raise RuntimeError(
+                f"jaxcal calibrate (bad rows {n}) exited {p.returncode}:\n{p.stdout}\n{p.stderr}"
+            )
+        verdict = workdir / f"bad_{n}_verify.json"
+        p = _jaxcal("verify", str(result), str(TEST), "--json", str(verdict))
+        if p.returncode != 0:
+            raise RuntimeError(f"jaxcal verify (bad rows {n}) exited {p.returncode}:\n{p.stdout}\n{p.stderr}")
+        doc = json.loads((result / "result.json").read_text())
+        named = doc["point_fit"]["outliers"]
+        bad = {t["sample"] for t in turned}
+        out[n] = {
+            "status": doc["status"],
+            "turned": turned,
+            "named": named,
+            "named_correctly": sum(o["sample"] in bad for o in named),
+            "test_mm": json.loads(verdict.read_text())["summary"]["calibrated_mm"],
+            "notes": doc["notes"],
+        }
+    return out
+
+
 def jaxcal_timing() -> dict:
     """The point fit's first call (empty cache) and warm calls, in a fresh process."""
     with tempfile.TemporaryDirectory() as cache:
@@ -184,6 +261,7 @@ def main(argv=None) -> dict:
         work = Path(args.workdir) if args.workdir else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         models = cli_models(work)
+        bad = bad_rows(work)
     timing = jaxcal_timing()
     scipy = scipy_reference()
     geo, comp, best = models["geometric"], models["compliance"], models["best"]
@@ -200,12 +278,18 @@ def main(argv=None) -> dict:
         "thesis_test_mean_mm": THESIS_MEAN_MM,
         "scipy_test_mean_mm": scipy["test_mean_mm"],
         "scipy_minus_jaxcal_test_mean_um": 1e3 * (scipy["test_mean_mm"] - geo["test_mm"]["mean"]),
+        **{f"ur5_bad_rows_{n}_test_mean_mm": b["test_mm"]["mean"] for n, b in bad.items()},
+        **{f"ur5_bad_rows_{n}_named": len(b["named"]) for n, b in bad.items()},
+        **{f"ur5_bad_rows_{n}_named_correctly": b["named_correctly"] for n, b in bad.items()},
         "fit_ms": timing["fit_ms"],
+        "screen_ms": timing["screen_ms"],
         "scipy_fit_ms": timing["scipy_fit_ms"],
         "speedup": timing["speedup"],
         "cold_fit_s": timing["cold_fit_s"],
+        "cold_screen_s": timing["cold_screen_s"],
         "statuses": {k: m["status"] for k, m in models.items()},
         "models": models,
+        "bad_rows": bad,
         "scipy": scipy,
         "timing": timing,
         "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},

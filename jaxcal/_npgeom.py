@@ -163,3 +163,14 @@ def line_distance(p1, d1, p2, d2) -> float:
     if n_norm < 1e-9:
         return float(np.linalg.norm(dp - np.dot(dp, d1) * d1))
     return abs(float(np.dot(dp, n))) / n_norm
+
+
+def kabsch(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """The rigid transform $T$ minimising $\\sum \\|T a_i - b_i\\|^2$ (NumPy; points `(n, 3)`)."""
+    ca, cb = A.mean(0), B.mean(0)
+    U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, cb - R @ ca
+    return T

@@ -27,6 +27,15 @@ Their coefficients follow the axis-fit vector in the flattened parameters
 (`PointLayout`); the identifiability search visits them last, so a term is
 freed only where the geometry cannot already explain it.
 
+**Robust fit.** One wrong sample (a joint cell off by degrees, a reflector
+bumped) would pull every parameter. Each sample is judged by its deletion residual,
+the residual it would have had the fit not used it (from the sample's block
+$G_i = J_i C J_i^T$ of the hat matrix, $k = 3$ or 6 rows; `sample_radii`), in robust
+sigmas of a scale estimated from the data (`jaxcal._robust`); `fit_points_robust`
+continues a least-squares fit with the arc fits' iteratively reweighted rounds
+(Cauchy), then one least-squares solve on the inliers gives the estimate and its
+covariance.
+
 Everything here is pure and jittable; `fit_points` is one compiled program
 for any mask of free parameters and any mask of samples, so K-fold
 cross-validation is a vmap over sample masks (`cross_validate`).
@@ -48,6 +57,8 @@ from ._geometry import cross_lanes, se3_exp, skew, so3_log
 from ._geometry import matmul_lanes as mml
 from ._geometry import matvec_lanes as mvl
 from ._kinematics import KinematicModel, forward_kinematics
+from ._options import RobustOptions, robust_terms
+from ._robust import deletion_residuals, irls_rounds_evaluated, round_plan, sample_weights
 from ._schur import NormalEquations, normal_least_squares
 
 #: Non-geometric term families and their number of coefficients per joint.
@@ -123,6 +134,7 @@ class PointData(eqx.Module):
     - `y`: measured points in the device frame `(samples, 3)` (m).
     - `sigma`: per-axis 1-sigma of each point `(samples,)` (m).
     - `mask`: samples in the fit.
+    - `weight`: each sample's weight in the fit (the robust fit's rounds set it; 1 otherwise).
     - `masses`, `coms`: per joint's child link its mass (kg) and centre of mass
       in that link's frame (m); zeros when no compliance term is fitted.
     - `R`, `sigma_rad`: with orientations, the measured rotation of the point's
@@ -134,6 +146,7 @@ class PointData(eqx.Module):
     y: Float[Array, "samples 3"]
     sigma: Float[Array, " samples"]
     mask: Bool[Array, " samples"]
+    weight: Float[Array, " samples"]
     masses: Float[Array, " joints"]
     coms: Float[Array, "joints 3"]
     R: Float[Array, "samples 3 3"]
@@ -271,10 +284,11 @@ def rotation_jacobian(x: Float[Array, " n"], problem: "PointProblem") -> Float[A
 
 
 def _rotation_residuals(x, problem) -> Float[Array, " m"]:
-    """Whitened rotation residuals $\\log(R_i^T \\hat R_i) / \\sigma_{rad,i}$, zero for masked samples."""
+    """Whitened rotation residuals $\\log(R_i^T \\hat R_i) / \\sigma_{rad,i}$ times the samples'
+    $\\sqrt{w_i}$, zero for masked samples."""
     d = problem.data
     e = jax.vmap(so3_log)(jnp.einsum("sba,sbc->sac", d.R, predict_rotation(x, problem)))
-    w = jnp.where(d.mask, 1.0 / d.sigma_rad, 0.0)
+    w = jnp.where(d.mask, jnp.sqrt(d.weight) / d.sigma_rad, 0.0)
     return (e * w[:, None]).reshape(-1)
 
 
@@ -349,8 +363,9 @@ def point_jacobian(x: Float[Array, " n"], problem: "PointProblem") -> Float[Arra
 
 
 def _weights(problem) -> Float[Array, " samples"]:
+    """$\\sqrt{w_i} / \\sigma_i$: each sample's whitening times its weight's root (0 when masked)."""
     d = problem.data
-    return jnp.where(d.mask, 1.0 / d.sigma, 0.0)
+    return jnp.where(d.mask, jnp.sqrt(d.weight) / d.sigma, 0.0)
 
 
 def _residuals_primal(x, problem):
@@ -390,7 +405,7 @@ def _residuals_terms(x, problem):
 
 def _residuals_autodiff(x, problem):
     d = problem.data
-    r = (predict(x, problem) - d.y) / d.sigma[:, None]
+    r = (predict(x, problem) - d.y) * (jnp.sqrt(d.weight) / d.sigma)[:, None]
     r = jnp.where(d.mask[:, None], r, 0.0).reshape(-1)
     if problem.layout.orientation:
         r = jnp.concatenate([r, _rotation_residuals(x, problem)])
@@ -402,6 +417,26 @@ def _residuals_autodiff(x, problem):
 point_residuals = _lsq.closed_form_jvp(_residuals_primal, _residuals_terms, _residuals_autodiff)
 
 
+def _sample_blocks(x, problem, keep) -> tuple[Float[Array, "k samples"], Float[Array, "n k samples"]]:
+    """Each sample's whitened residual $r_i$ and Jacobian block $J_i$ over the columns `keep`
+    (the others zero), without the samples' weights, the samples last (`matmul_lanes`' layout;
+    `k` = 3, or 6 with orientations): what its deletion residual needs
+    (`jaxcal._robust.deletion_residuals`)."""
+    d = problem.data
+    unweighted = eqx.tree_at(lambda q: q.data.weight, problem, jnp.ones_like(d.weight))
+    w = _weights(unweighted)
+    c = _chain(x, unweighted)
+    N, C = _jacobian_factors(x, unweighted, c)
+    n, _, S = N.shape
+    r = (c.y - d.y.T) * w
+    J = ((C * keep[None, :]).T @ N.reshape(n, 3 * S)).reshape(n, 3, S) * w
+    if problem.layout.orientation:
+        rr = _rotation_residuals(x, unweighted).reshape(S, 3).T
+        Jr = jax.jacfwd(_rotation_residuals)(x, unweighted).reshape(S, 3, n).T * keep[:, None, None]
+        r, J = jnp.concatenate([r, rr]), jnp.concatenate([J, Jr], axis=1)
+    return r, J
+
+
 class PointFitResult(eqx.Module):
     """A point fit's answer.
 
@@ -409,10 +444,21 @@ class PointFitResult(eqx.Module):
       1-sigma and covariance (scaled by the residual variance when `scale`).
     - `free`: estimated parameters; the others are held at nominal.
     - `independence`: each column's distance from the span kept before it.
+    - `std_alone`: each parameter's 1-sigma were it the only one free (the noise
+      model's, unscaled, at the start; NaN for a given mask of free parameters): a
+      parameter whose `std_alone` exceeds its plausible magnitude is one the data
+      cannot see (`fit_points`' `scale`).
     - `sigma2`: the residual variance factor $\\hat\\sigma^2$ (1 when the noise
       model is exact).
-    - `rms_m`: RMS distance between measured and fitted points of the fitted samples (m).
-    - `result`, `num_steps`: optimistix's.
+    - `rms_m`: RMS distance between measured and fitted points of the fitted
+      samples (the inliers of a robust fit) (m).
+    - `weights`: each sample's weight in the last solve: 1 for an inlier, 0 for a
+      sample the robust fit rejected or the mask leaves out.
+    - `radius`: a robust fit's per-sample deletion residual at the solution, as the
+      2-D radius with the same tail probability, in robust sigmas
+      (`jaxcal._robust.sample_weights`; 0 where masked, NaN without a robust loss);
+      `robust_scale`: the noise scale those sigmas are of (whitened units; NaN without).
+    - `result`, `num_steps`: optimistix's (every solve's steps summed).
     """
 
     x: Float[Array, " n"]
@@ -420,8 +466,12 @@ class PointFitResult(eqx.Module):
     cov: Float[Array, "n n"]
     free: Bool[Array, " n"]
     independence: Float[Array, " n"]
+    std_alone: Float[Array, " n"]
     sigma2: Float[Array, ""]
     rms_m: Float[Array, ""]
+    weights: Float[Array, " samples"]
+    radius: Float[Array, " samples"]
+    robust_scale: Float[Array, ""]
     result: optx.RESULTS
     num_steps: Int[Array, ""]
 
@@ -433,11 +483,13 @@ def fit_points(
     tol: float,
     free: Bool[Array, " n"] | None = None,
     options: _lsq.LMOptions | None = None,
+    scale: Float[Array, " n"] | None = None,
 ) -> PointFitResult:
-    """Solve the point fit; pure, jittable and vmappable (over `problem.data.mask` for folds).
+    """Solve the point fit by least squares; pure, jittable and vmappable (over
+    `problem.data.mask` for folds). `fit_points_robust` continues from its answer.
 
     **Arguments:**
-    - `problem`: the `PointProblem`.
+    - `problem`: the `PointProblem` (its samples weighted by `data.weight`).
     - `candidates`: the parameters that may be freed (e.g. the fixed frame held
       when it is the base; the point mount's rotation never shows in a point).
     - `tol`: independence threshold of the identifiability search (each
@@ -445,9 +497,13 @@ def fit_points(
       normalised; see `_lsq.independent_columns`).
     - `free`: a given mask instead of the search.
     - `options`: the Levenberg-Marquardt settings (default `LM_OPTIONS`).
+    - `scale`: each parameter's plausible magnitude (m, rad; `inf`: any): the search
+      does not free a parameter the data cannot see, one that alone would be known
+      no better than that (`std_alone` above it: the zero offset of a joint whose
+      axis runs through the measured point). Ignored with `free`.
 
     **Returns:** a `PointFitResult`; the covariance is
-    $\\hat\\sigma^2 (J^TJ)^{-1}$ over the free columns.
+    $\\hat\\sigma^2 (J^TWJ)^{+}$ over the free columns.
     """
     layout = problem.layout
     options = LM_OPTIONS if options is None else options
@@ -455,47 +511,142 @@ def fit_points(
     first = None
     if free is None:
         r0, ne0 = _normal(x0, problem, jnp.ones(layout.size, x0.dtype))
-        keep, indep = _lsq.independent_columns_normal(
-            ne0.H, layout.priority(), tol=tol, candidates=candidates
-        )
+        h = jnp.diag(ne0.H)
+        std_alone = jnp.where(h > 0, 1.0 / jnp.sqrt(jnp.where(h > 0, h, 1.0)), jnp.inf)
+        cand = jnp.asarray(candidates, bool)
+        if scale is not None:
+            cand = cand & (std_alone <= jnp.asarray(scale))
+        keep, indep = _lsq.independent_columns_normal(ne0.H, layout.priority(), tol=tol, candidates=cand)
     else:
         keep, indep = jnp.asarray(free, bool), jnp.full(layout.size, jnp.nan)
+        std_alone = jnp.full(layout.size, jnp.nan)
     kf = keep.astype(x0.dtype)
     if free is None:  # the search's linearisation is the solver's first, over the kept columns
         first = (r0, NormalEquations(H=ne0.H * kf[:, None] * kf[None, :], e=ne0.e * kf))
+    x, sol = _solve(problem, kf, x0, options, first)
+    solved = (sol.residuals, sol.normal.H, problem.data.weight)
+    return _summary(problem, x, (keep, indep, std_alone), solved, sol.result, sol.num_steps)
+
+
+def _solve(problem, kf, x, options, first=None):
+    """Levenberg-Marquardt from `x` over the columns `kf` (the others held at zero)."""
 
     def normal(x, p):
         return _normal(x * kf, p, kf)
 
+    o = options
     sol = normal_least_squares(
-        normal,
-        x0,
-        problem,
-        rtol=options.rtol,
-        atol=options.atol,
-        max_steps=options.max_steps,
-        first=first,
-        settled=SETTLED,
+        normal, x, problem, rtol=o.rtol, atol=o.atol, max_steps=o.max_steps, first=first, settled=SETTLED
     )
-    x = sol.x * kf
-    r = sol.residuals  # and `sol.normal`: the normal equations at `x`, frozen columns zero
-    n_obs = (6 if problem.layout.orientation else 3) * jnp.sum(problem.data.mask)
-    sigma2 = _lsq.residual_variance(r, n_obs, jnp.sum(keep))
-    cov = _lsq.covariance_normal(sol.normal.H, keep, sigma2)
-    sigma = problem.data.sigma
-    dist2 = jnp.sum((r[: 3 * sigma.shape[0]].reshape(3, -1) * sigma) ** 2, axis=0)
-    rms = jnp.sqrt(jnp.sum(jnp.where(problem.data.mask, dist2, 0.0)) / jnp.sum(problem.data.mask))
+    return sol.x * kf, sol
+
+
+def _summary(problem, x, search, solved, result, steps) -> PointFitResult:
+    """A `PointFitResult` from the solution `x`, the search's `(free, independence, std_alone)` and
+    the solve's weighted residuals, normal matrix and sample weights `solved`: the covariance
+    scaled by the residual variance of the samples fitted (no robust radii: NaN)."""
+    keep, indep, std_alone = search
+    r, H, w = solved
+    inlier = problem.data.mask & (w > 0)
+    k = 6 if problem.layout.orientation else 3
+    sigma2 = _lsq.residual_variance(r, k * jnp.sum(inlier), jnp.sum(keep))
+    cov = _lsq.covariance_normal(H, keep, sigma2)
+    S = w.shape[0]  # the positions lead `r`, `(3, samples)`-ordered, weighted by the root of `w`
+    unweighted = problem.data.sigma / jnp.sqrt(jnp.where(inlier, w, 1.0))
+    dist2 = jnp.sum((r[: 3 * S].reshape(3, S) * unweighted) ** 2, axis=0)
+    rms = jnp.sqrt(jnp.sum(jnp.where(inlier, dist2, 0.0)) / jnp.maximum(jnp.sum(inlier), 1))
     return PointFitResult(
         x=x,
         std=jnp.sqrt(jnp.maximum(jnp.diag(cov), 0.0)),
         cov=cov,
         free=keep,
         independence=indep,
+        std_alone=std_alone,
         sigma2=sigma2,
         rms_m=rms,
-        result=sol.result,
-        num_steps=sol.num_steps,
+        weights=jnp.where(problem.data.mask, w, 0.0),
+        radius=jnp.full(w.shape, jnp.nan),
+        robust_scale=jnp.asarray(jnp.nan),
+        result=result,
+        num_steps=steps,
     )
+
+
+def _deletion(x, keep, problem):
+    """Each sample's deletion residual norm and degrees of freedom at `x` under the samples'
+    weights (`jaxcal._robust.deletion_residuals`), and the weighted residuals and normal matrix."""
+    d = problem.data
+    r, J = _sample_blocks(x, problem, keep.astype(x.dtype))  # (k, s), (n, k, s)
+    w = jnp.where(d.mask, d.weight, 0.0)
+    n, k, S = J.shape
+    Jf = J.reshape(n, k * S)
+    H = (Jf * jnp.tile(w, k)[None, :]) @ Jf.T
+    # G_i = J_i C J_i^T, the samples last: one product and a sum over the parameters.
+    CJ = (_lsq.covariance_normal(H, keep) @ Jf).reshape(n, k, S)
+    G = jnp.moveaxis(jnp.sum(CJ[:, :, None, :] * J[:, None, :, :], axis=0), -1, 0)
+    dist, nu = deletion_residuals(r.T, G, d.weight, d.mask)
+    return dist, nu, (r * jnp.sqrt(w)).reshape(-1), H  # positions first, as `_normal`'s
+
+
+def sample_radii(
+    x: Float[Array, " n"], free: Bool[Array, " n"], problem: PointProblem
+) -> tuple[Float[Array, " samples"], Float[Array, ""]]:
+    """Each sample's deletion residual at `x` (the fit of the parameters `free` under the
+    samples' weights), as the 2-D radius of the same tail probability in robust sigmas,
+    and the scale (`jaxcal._robust.sample_weights`): a clean sample's radius exceeds
+    3.7 with probability $10^{-3}$, a sample the fit leaves out (weight 0) is judged by
+    its prediction error. 0 for masked samples."""
+    d, nu, _, _ = _deletion(x, jnp.asarray(free, bool), problem)
+    _, z, s = sample_weights(d, nu, problem.data.mask, loss=None, c=1.0, reject=jnp.inf, hard=False)
+    return z, s
+
+
+def fit_points_robust(
+    problem: PointProblem,
+    fit: PointFitResult,
+    robust: RobustOptions,
+    options: _lsq.LMOptions | None = None,
+) -> PointFitResult:
+    """The robust point fit, from the least-squares one `fit` (`fit_points`, whose free
+    parameters it keeps): the arc fits' rounds (the module docstring;
+    `jaxcal._robust.irls_rounds_evaluated`), each reweighting the samples by their
+    deletion residuals, Cauchy or Huber (`robust.loss`, `robust.c`), then one solve on the
+    inliers (within `robust.reject` robust sigmas), whose Jacobian gives the covariance.
+    Pure and jittable.
+
+    **Returns:** a `PointFitResult` whose `weights` are the inliers' (1) and the rejected
+    samples' (0), and `radius` each sample's deletion residual in robust sigmas at the
+    solution (`sample_radii`).
+    """
+    options = LM_OPTIONS if options is None else options
+    loss, c, reject, rounds = robust_terms(robust)
+    mask, prior = problem.data.mask, problem.data.weight
+    keep = jnp.asarray(fit.free, bool)
+    kf = keep.astype(fit.x.dtype)
+    reject_ = jnp.inf if reject is None else reject
+
+    def weighted(w):
+        return eqx.tree_at(lambda q: q.data.weight, problem, prior * w)
+
+    def weights_at(x, w, hard):
+        """The next round's weights, and the fit's terms at `x` under the weights `w`."""
+        d, nu, rw, H = _deletion(x, keep, weighted(w))
+        w_next, z, s = sample_weights(d, nu, mask, loss=loss, c=c, reject=reject_, hard=hard)
+        return w_next, (rw, H, z, s)
+
+    def solve(x, w):
+        x_new, sol = _solve(weighted(w), kf, x, options)
+        return x_new, sol.result, sol.num_steps
+
+    out, (r, H, z, s) = irls_rounds_evaluated(
+        solve, weights_at, fit.x, mask.astype(fit.x.dtype), round_plan(loss, rounds, reject)
+    )
+    result = optx.RESULTS.where(fit.result == optx.RESULTS.successful, out.result, fit.result)
+    search = (keep, fit.independence, fit.std_alone)
+    res = _summary(
+        problem, out.value, search, (r, H, prior * out.weights), result, fit.num_steps + out.num_steps
+    )
+    return eqx.tree_at(lambda f: (f.radius, f.robust_scale), res, (z, s))
 
 
 def prediction_std(x, cov, problem: PointProblem) -> Float[Array, " samples"]:
@@ -539,24 +690,3 @@ def cross_validate(
 
     dist, angle = jax.vmap(one)(jnp.asarray(train))
     return dist, base[None, :] & ~jnp.asarray(train), angle
-
-
-def kabsch(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """The rigid transform $T$ minimising $\\sum \\|T a_i - b_i\\|^2$ (NumPy; points `(n, 3)`)."""
-    ca, cb = A.mean(0), B.mean(0)
-    U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, cb - R @ ca
-    return T
-
-
-def start_frame(
-    nominal: KinematicModel, q: np.ndarray, y: np.ndarray, T_flange_point0: np.ndarray
-) -> np.ndarray:
-    """A start for $T_{dev,base}$: the rigid registration of the nominal model's
-    points onto the measured ones (Kabsch)."""
-    T = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q)))
-    p = np.einsum("nab,b->na", T, np.asarray(T_flange_point0)[:, 3])[:, :3]
-    return kabsch(p, y)

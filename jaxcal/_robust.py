@@ -90,10 +90,14 @@ def chi_median(nu: Float[Array, "..."]) -> Float[Array, "..."]:
     """
     a = 0.5 * nu
     x = a * (1.0 - 2.0 / (9.0 * nu)) ** 3
-    for _ in range(4):
+
+    def newton(_, x):
         density = jnp.exp((a - 1.0) * jnp.log(x) - x - gammaln(a))
-        x = jnp.maximum(x - (gammainc(a, x) - 0.5) / density, 1e-3 * x)
-    return jnp.sqrt(2.0 * x)
+        return jnp.maximum(x - (gammainc(a, x) - 0.5) / density, 1e-3 * x)
+
+    # A loop, not four copies: XLA's incomplete gamma function is large, and unrolled it made
+    # this a third of a robust fit's compilation (5.8 against 2.0 s on a loaded 2-core machine).
+    return jnp.sqrt(2.0 * jax.lax.fori_loop(0, 4, newton, x))
 
 
 def rayleigh_equivalent(z: Float[Array, "..."], nu: Float[Array, "..."]) -> Float[Array, "..."]:

@@ -40,6 +40,7 @@ def calibrate(
     device_is_base: bool = False,
     terms: tuple[str, ...] = (),
     cv_folds: int = 5,
+    identifiability_tol: float | None = None,
     strict: bool = False,
     log=None,
     estimate_clock: bool | None = None,
@@ -89,6 +90,13 @@ def calibrate(
       when `cv_folds`-fold cross-validation on the samples improves.
     - `cv_folds`: folds of that cross-validation (also reported for the
       geometric model; 0 skips it, and then no term can be tried).
+    - `identifiability_tol`: the identifiability search's threshold, in (0, 1): a
+      parameter is freed only when its (normalised) Jacobian column lies farther
+      than this from the span of those freed before it, in the search's order;
+      larger holds more. Default: the capture kind's (1e-6 for single-joint sweeps
+      with encoders, 1e-3 otherwise). Whatever it is, a stop-and-shoot parameter
+      the samples cannot see (alone it would be known no better than a third of its
+      plausible correction, `limits`) is held and named.
     - `limits`: the plausibility checks' limits (`jaxcal.stages.Limits`); a
       result that fails one has `status == "suspect"` and its `reasons`.
     - `strict`: raise `SuspectResultError` instead of returning a suspect or
@@ -109,7 +117,7 @@ def calibrate(
         validate=validate, refine=refine, other_cameras=other_cameras, log=log,
         refine_intrinsics=refine_intrinsics, estimate_line_delay=estimate_line_delay,
         limits=stages.Limits() if limits is None else limits, arc_loss=arc_loss, device_is_base=device_is_base,
-        terms=tuple(terms), cv_folds=int(cv_folds),
+        terms=tuple(terms), cv_folds=int(cv_folds), identifiability_tol=identifiability_tol,
     )  # fmt: skip
     # The programs the last calibration of this dataset called are read while it loads and detects.
     root = getattr(dataset, "root", dataset)

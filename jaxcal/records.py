@@ -613,6 +613,29 @@ class TermRow(Record):
 
 
 @dataclass(frozen=True, eq=False)
+class PointOutlier(Record):
+    """A stop-and-shoot sample the robust point fit rejected: the sample (its index and its
+    line in the samples file), its distance from the calibrated model's point (mm), and its
+    deletion residual in robust sigmas (the 2-D radius of the same tail probability;
+    `jaxcal._pointfit.sample_radii`)."""
+
+    sample: int
+    line: str
+    distance_mm: float
+    radius: float
+
+
+@dataclass(frozen=True, eq=False)
+class RepeatedPose(Record):
+    """A stop-and-shoot sample whose joint positions repeat an earlier sample's (`of_sample`):
+    merged into that pose, whose point is the mean of its samples, weighted as one pose."""
+
+    sample: int
+    line: str
+    of_sample: int
+
+
+@dataclass(frozen=True, eq=False)
 class ResultFile:
     """The typed blocks of a `result.json`, read back (`jaxcal.io.result.read_result`)."""
 

@@ -23,7 +23,7 @@ from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.ros import write_static_transform
 from .io.urdf import save_urdf
 from .records import PoseFigures
-from .summary import clock_line, joints_table, refinement_line, truth_table
+from .summary import clock_line, fmt, joints_table, refinement_line, truth_table
 
 
 class ArcGeometry(NamedTuple):
@@ -295,12 +295,63 @@ def _markdown(result, figs, tables=None) -> str:
     ]
     if result.reasons:
         lines += ["## Why the result is " + result.status, ""] + [f"- {r}" for r in result.reasons] + [""]
-    lines += _truth_section(result) + _refinement_section(result) + _camera_section(result)
+    notes = () if result.verdict is None else result.verdict.notes
+    if notes:
+        lines += ["## Noted by the verdict", ""] + [f"- {n}" for n in notes] + [""]
+    lines += (
+        _point_fit_section(result)
+        + _truth_section(result)
+        + _refinement_section(result)
+        + _camera_section(result)
+    )
     lines += _joints_section(result) + _dh_section(tables or {}) + _frames_section(result)
     lines += ["## Plots", ""]
     for name, caption in figs:
         lines += [f"![{caption}]({name})", "", f"*{caption}*", ""]
     return "\n".join(lines)
+
+
+def _point_fit_section(result) -> list[str]:
+    """Stop-and-shoot poses: the models tried, the samples rejected or merged, the unseen parameters."""
+    pf = result.point_fit
+    if pf is None:
+        return []
+    r = pf.residual_mm
+    lines = [
+        "## Point fit (stop-and-shoot poses)",
+        "",
+        f"{pf.poses} distinct poses"
+        + (f" ({len(pf.repeats)} repeated samples merged into them)" if pf.repeats else "")
+        + f", {int(pf.used.sum())} fitted; fitted residual {r.mean:.4f} mm mean, {r.rms:.4f} mm RMS, "
+        f"{r.max:.4f} mm max; the residuals' robust scatter is {pf.robust_scale:.2f} times the samples' sigma.",
+        "",
+        "| model | free parameters | CV mean mm | CV RMS mm | kept |",
+        "| --- | ---: | ---: | ---: | --- |",
+    ]
+    for m in pf.models:
+        cv = [fmt(x, ".4f") if x is not None else "-" for x in (m.cv_mean_mm, m.cv_rms_mm)]
+        lines.append(
+            f"| {'+'.join(['geometric', *m.terms])} | {m.free} | {' | '.join(cv)} | {'yes' if m.kept else ''} |"
+        )
+    if pf.outliers:
+        lines += [
+            "",
+            "Samples the robust point fit rejected (distance from the calibrated model's point; deletion "
+            "residual in robust sigmas):",
+            "",
+            "| sample | line | distance mm | robust sigmas |",
+            "| ---: | --- | ---: | ---: |",
+        ]
+        lines += [f"| {o.sample} | {o.line} | {o.distance_mm:.3f} | {o.radius:.1f} |" for o in pf.outliers]
+    if pf.repeats:
+        shown = ", ".join(f"{p.sample} (= {p.of_sample})" for p in pf.repeats)
+        lines += [
+            "",
+            f"Samples repeating an earlier sample's joint positions, merged into its pose: {shown}.",
+        ]
+    if pf.unseen:
+        lines += ["", f"Held at nominal because the samples cannot see them: {', '.join(pf.unseen)}."]
+    return lines + [""]
 
 
 def _truth_section(result) -> list[str]:
@@ -438,7 +489,7 @@ def _joints_section(result) -> list[str]:
         "",
         "## Identifiability",
         "",
-        "Held at nominal (the camera cannot see them): " + ", ".join(result.frozen),
+        f"Held at nominal (the {result.kind.sensor} cannot see them): " + ", ".join(result.frozen),
         "",
         "These are the estimator's corrections: `origin.tx` .. `origin.rz` move and turn a joint's frame "
         "(a twist, m and rad), where the table above gives the frame's resulting URDF origin (`x` .. `yaw`).",

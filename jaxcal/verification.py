@@ -59,9 +59,9 @@ from ._correction import ParameterLayout, apply_correction
 from ._exported import stored_jit
 from ._geometry import so3_log
 from ._kinematics import KinematicModel, forward_kinematics
+from ._npgeom import kabsch
 from ._pointfit import (
     PointLayout,
-    kabsch,
     point_jacobian,
     predict,
     predict_rotation,

@@ -24,6 +24,16 @@ def _terms(text: str) -> tuple[str, ...]:
     return names
 
 
+def _tolerance(text: str) -> float:
+    try:
+        tol = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 < tol < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {text}")
+    return tol
+
+
 def cmd_calibrate(args) -> int:
 
     out = Path(args.out)
@@ -127,6 +137,15 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         default=5,
         help="stop-and-shoot tracker data: folds of the cross-validation that gates --terms and is reported "
         f"(0: none; at most {MAX_CV_FOLDS}: each fold is a fit, all held at once)",
+    )
+    p.add_argument(
+        "--identifiability-tol",
+        type=_tolerance,
+        default=None,
+        metavar="TOL",
+        help="threshold of the search for the parameters the data determine, in (0, 1): a parameter is freed "
+        "only when its normalised Jacobian column lies farther than TOL from those freed before it; larger "
+        "holds more (default: 1e-6 for single-joint sweeps with encoders, else 1e-3)",
     )
     g = p.add_mutually_exclusive_group()
     g.add_argument(

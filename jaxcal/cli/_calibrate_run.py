@@ -26,7 +26,10 @@ from ._rosbag import dataset_of
 
 def _point_fit_table(console, result) -> None:
     pf = result.point_fit
-    t = Table(title=f"Point fit ({result.frames.used('poses')} stop-and-shoot samples)")
+    fitted = result.frames.used("poses")
+    t = Table(
+        title=f"Point fit ({fitted}{'' if fitted == pf.poses else f' of {pf.poses}'} stop-and-shoot poses)"
+    )
     deg = pf.residual_deg is not None
     cols = ("CV mean mm", "CV RMS mm", "CV max mm") + (
         ("CV mean deg", "CV RMS deg", "CV max deg") if deg else ()
@@ -45,9 +48,17 @@ def _point_fit_table(console, result) -> None:
         "" if a is None else f"; orientations {a.mean:.4f} deg mean, {a.rms:.4f} deg RMS, {a.max:.4f} deg max"
     )
     console.print(
-        f"fitted residual {r.mean:.4f} mm mean, {r.rms:.4f} mm RMS, {r.max:.4f} mm max{rotation}; "
-        f"held at nominal: {len(pf.held)} parameters"
+        f"fitted residual {r.mean:.4f} mm mean, {r.rms:.4f} mm RMS, {r.max:.4f} mm max{rotation} (scatter "
+        f"{pf.robust_scale:.2f} x the samples' sigma); held at nominal: {len(pf.held)} parameters"
+        + (f", {len(pf.unseen)} of them unseen by the samples" if pf.unseen else "")
     )
+    if pf.outliers:
+        console.print(f"rejected by the robust fit ({len(pf.outliers)} of {pf.poses} poses):")
+        for o in pf.outliers:
+            console.print(
+                f"  sample {o.sample} ({o.line}): {o.distance_mm:.3f} mm from the calibrated model, "
+                f"{o.radius:.1f} robust sigmas"
+            )
     for row in pf.term_rows:
         if row.free:
             console.print(f"  {row.name} = {row.estimate:.6g} +- {row.std:.2g}")
@@ -177,12 +188,15 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
         device_is_base=getattr(args, "device_is_base", False),
         terms=args.terms,
         cv_folds=args.cv_folds,
+        identifiability_tol=args.identifiability_tol,
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
     )
     _calibration_tables(console, result)
     code = EXIT_CODES[result.status]
     for reason in result.reasons:
         console.print(f"[red]{result.status}:[/red] {reason}")
+    for note in result.verdict.notes if result.verdict is not None else ():
+        console.print(f"[yellow]verdict note:[/yellow] {note}")
     if args.strict and code != 0:
         console.print(f"[red]--strict: the calibration is {result.status}; nothing written[/red]")
         return code
@@ -196,7 +210,11 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
             f"[red]calibration {result.status.upper()}: see the reasons above and result.json 'status'[/red]"
         )
     else:
-        console.print("[green]calibration ok[/green]: every check passed (result.json 'status')")
+        noted = result.verdict.notes if result.verdict is not None else ()
+        console.print(
+            "[green]calibration ok[/green]: every check passed (result.json 'status')"
+            + (f"; {len(noted)} verdict note(s) above (result.json 'notes')" if noted else "")
+        )
     return code
 
 

@@ -97,6 +97,7 @@ def result_to_json(result) -> dict:
         "ok": result.ok,
         "status": result.status,
         "reasons": list(result.reasons),
+        "notes": [] if result.verdict is None else list(result.verdict.notes),
         **poses,
         "reduction_ratios": {
             r.joint: {k: v for k, v in plain(r).items() if k != "joint"} for r in result.ratios
@@ -184,7 +185,12 @@ def point_fit_json(pf) -> dict:
         "cv_folds": pf.folds,
         "residual_mm": plain(pf.residual_mm),
         "samples": int(np.sum(pf.used)),
+        "poses": pf.poses,
+        "repeats": plain(pf.repeats),
+        "outliers": plain(pf.outliers),
+        "robust_scale": pf.robust_scale,
         "held": list(pf.held),
+        "unseen": list(pf.unseen),
         "names": pf.layout.names(),
         "x": np.asarray(fit.x).tolist(),
         "free": np.asarray(fit.free).astype(bool).tolist(),

@@ -6,6 +6,17 @@ the base) and the point's mount are fitted to every sample at once. Only the
 directions the samples determine are freed (the identifiability search of the
 kind's tolerance); the rest are held at nominal and named.
 
+The samples are judged as poses: rows whose joint positions repeat an earlier
+row's are merged into its pose (the mean of their points, weighted once) and named,
+so copies neither shrink the standard deviations nor count towards the minimum,
+and cross-validation folds hold whole poses. The fit is robust (`POINT_ROBUST`):
+after least squares, a sample whose deletion residual lies beyond the rejection
+radius starts the arc fits' reweighted rounds (`jaxcal._pointfit.fit_points_robust`),
+and the samples they reject are left out of everything after (the models with
+terms, the cross-validation) and named with their distance from the calibrated
+model. A parameter the data cannot see (alone it would be known no better than a
+third of its plausible correction, `Limits`) is held and named, not freed.
+
 Non-geometric terms (`Options.terms`: joint compliance under gravity,
 transmission harmonics) are tried one after another and each is kept only
 when K-fold cross-validation on the samples improves, by `jaxcal._selection`'s
@@ -30,8 +41,9 @@ import optimistix as optx
 from .._axisfit import AxisFitResult
 from .._correction import ParameterLayout, apply_correction, physical_parameters
 from .._geometry import se3_exp
-from .._kinematics import KinematicModel, forward_kinematics
-from .._npgeom import fit_sandwich, nearest_rotation
+from .._kinematics import PRISMATIC, KinematicModel, forward_kinematics
+from .._npgeom import fit_sandwich, kabsch, nearest_rotation
+from .._options import RobustOptions
 from .._pointfit import (
     TERMS,
     PointData,
@@ -40,19 +52,21 @@ from .._pointfit import (
     PointProblem,
     cross_validate,
     fit_points,
+    fit_points_robust,
     fold_masks,
     predict,
     rotation_errors,
-    start_frame,
+    sample_radii,
     term_basis,
 )
 from .._selection import improves_on_samples, paired_z
 from ..errors import CalibrationError
-from ..records import ModelRow, ResidualStats, TermRow
+from ..records import ModelRow, PointOutlier, RepeatedPose, ResidualStats, TermRow
 from ..robots import link_inertials
 from ._observe import Observations
 from ._setup import Options, Setup
 from ._synchronise import Sync
+from .limits import Limits
 
 #: A non-geometric coefficient stays free only when the data pin its effect on the joint
 #: angle (its std times the RMS of its basis over the samples) to this (rad): a
@@ -62,6 +76,17 @@ TERM_STD_RAD = 1e-3
 #: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
 #: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
 TERM_FLOOR = 1e-6
+#: The robust point fit (`jaxcal._pointfit.fit_points_robust`): Cauchy rounds, then the inliers
+#: within 6 robust sigmas (as a 2-D radius), the arc fits' threshold (`_programs.ARC_REJECT`).
+#: A tracker's residuals are the arm's unmodelled errors more than the instrument's noise, with
+#: heavier tails than a normal law's: on the real UR5's 1000 grid poses (`data/ur5_tracker`) the
+#: largest clean sample lies at 4.0 robust sigmas, so 3.7 would reject four real poses, while a
+#: joint cell off by 2 degrees moves the point by millimetres, hundreds of sigmas.
+POINT_ROBUST = RobustOptions("cauchy", reject=6.0)
+#: Joint positions within this of another row's in every joint (rad, or m) are that pose repeated
+#: (a controller logging one stop twice, a table holding a row twice): far under any pose
+#: difference a capture plans, far over a text file's rounding.
+SAME_POSE = 1e-6
 #: A term's gain in standard errors (`ModelRow.cv_gain_z`) is recorded up to this (a gain without
 #: spread is infinitely many).
 Z_SHOWN = 1e3
@@ -80,8 +105,16 @@ class PointFit:
     - `folds`: the number of cross-validation folds (0: not run).
     - `residual_mm`: mean, RMS and max distance of the fitted samples (mm);
       `residual_deg`: with orientations, their angles from the fitted ones (deg).
-    - `used`: the samples in the fit (mask over the table's rows).
+    - `used`: the samples in the fit (mask over the table's rows): one per distinct
+      pose, the robust fit's inliers.
     - `mount_given`: the metadata gives the point's nominal mount (else the fit measures it).
+    - `poses`: the distinct poses (used and rejected).
+    - `repeats`: the samples merged into an earlier sample's pose (`RepeatedPose`).
+    - `outliers`: the samples the robust fit rejected (`PointOutlier`), farthest first.
+    - `robust_scale`: the residuals' robust scale over the noise model's (the
+      deletion residuals' median over its value for clean samples of that noise).
+    - `unseen`: parameters held because the data cannot see them (alone, a third of
+      their plausible correction or more: `PointFitResult.std_alone`).
     """
 
     problem: PointProblem
@@ -93,6 +126,11 @@ class PointFit:
     folds: int
     residual_mm: ResidualStats
     used: np.ndarray
+    poses: int
+    repeats: tuple[RepeatedPose, ...]
+    outliers: tuple[PointOutlier, ...]
+    robust_scale: float
+    unseen: tuple[str, ...]
     residual_deg: ResidualStats | None = None
     mount_given: bool = True
     #: Seconds per step (`point_fit_s`): free-form.
@@ -134,6 +172,7 @@ def point_problem(
         y=jnp.asarray(y, jnp.float64),
         sigma=jnp.asarray(sigma, jnp.float64),
         mask=jnp.asarray(used, bool),
+        weight=jnp.ones(S),
         masses=jnp.asarray(masses, jnp.float64),
         coms=jnp.asarray(coms, jnp.float64),
         R=jnp.asarray(np.broadcast_to(np.eye(3), (S, 3, 3)) if R is None else R, jnp.float64),
@@ -155,8 +194,18 @@ def candidates(layout: PointLayout, *, fixed_frame_free: bool, orientation: bool
 
 
 @jax.jit
-def _fit(problem: PointProblem, cand, tol):
-    return fit_points(problem, cand, tol=tol)
+def _fit(problem: PointProblem, cand, tol, scale=None):
+    return fit_points(problem, cand, tol=tol, scale=scale)
+
+
+@jax.jit
+def _radii(problem: PointProblem, fit: PointFitResult):
+    return sample_radii(fit.x, fit.free, problem)
+
+
+@jax.jit
+def _robust(problem: PointProblem, fit: PointFitResult):
+    return fit_points_robust(problem, fit, POINT_ROBUST)
 
 
 @jax.jit
@@ -210,7 +259,10 @@ def _hold_implausible_terms(problem: PointProblem, cand, fit: PointFitResult) ->
 def fold_train(used: np.ndarray, folds: int) -> np.ndarray:
     """The training masks `(folds, samples)` of the point fit's K-fold cross-validation over the
     samples `used`: `jaxcal verify --cv` forms the same."""
-    return fold_masks(len(used), folds) & np.asarray(used, bool)[None]
+    used = np.asarray(used, bool)
+    train = np.zeros((folds, len(used)), bool)
+    train[:, np.flatnonzero(used)] = fold_masks(int(used.sum()), folds)
+    return train
 
 
 def _stats(d: np.ndarray) -> ResidualStats:
@@ -250,6 +302,16 @@ def _inertials(setup: Setup):
         ) from None
 
 
+def start_frame(
+    nominal: KinematicModel, q: np.ndarray, y: np.ndarray, T_flange_point0: np.ndarray
+) -> np.ndarray:
+    """A start for $T_{dev,base}$: the rigid registration of the nominal model's
+    points onto the measured ones (Kabsch)."""
+    T = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q)))
+    p = np.einsum("nab,b->na", T, np.asarray(T_flange_point0)[:, 3])[:, :3]
+    return kabsch(p, y)
+
+
 def _orient_start(nominal, q, y, R, T0, Tp0, *, frame_free: bool, mount_known: bool):
     """With measured orientations $R_i \\approx R_{db} F_i R_{mount}$ (`F`: the nominal flange's), the
     starts of the device frame's rotation (when free) and of the mount's (when the metadata gives
@@ -269,54 +331,152 @@ def _orient_start(nominal, q, y, R, T0, Tp0, *, frame_free: bool, mount_known: b
     return T, Tp
 
 
+def plausible_scale(layout: PointLayout, nominal: KinematicModel, limits: Limits) -> np.ndarray:
+    """Per parameter (`PointLayout` order) a third of its plausible correction (m, rad), the
+    verdict's measure of a parameter barely determined (`Limits`): a joint origin's, a zero
+    offset's, the point mount's; `inf` for the device frame and the terms (any value)."""
+    base = layout.base
+    scale = np.full(layout.size, np.inf)
+    mm, deg = 1e-3 * limits.origin_mm / 3, np.radians(limits.origin_deg / 3)
+    scale[base.index("origin")] = np.tile([mm] * 3 + [deg] * 3, len(base.joints))
+    scale[base.index("zero")] = [
+        mm if t == PRISMATIC else np.radians(limits.zero_offset_deg / 3) for t in nominal.joint_types
+    ]
+    scale[base.index("tool")] = [1e-3 * limits.mount_mm / 3] * 3 + [np.radians(limits.mount_deg / 3)] * 3
+    return scale
+
+
+def repeated_poses(q: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """Per row of `q` `(samples, joints)` the first used row with the same joint positions
+    (within `SAME_POSE` in every joint; itself for the first), -1 where not `used`."""
+    idx = np.flatnonzero(used)
+    key = np.round(q[idx] / SAME_POSE).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    rep = np.full(len(q), -1)
+    rep[idx] = idx[first[inverse.reshape(-1)]]
+    return rep
+
+
+def _merged(rep: np.ndarray, y: np.ndarray, R: np.ndarray | None):
+    """Each pose's measurement: the mean point of its samples (and the rotation nearest their
+    mean), at the first sample's row."""
+    y = y.copy()
+    R = None if R is None else R.copy()
+    for first in np.unique(rep[rep >= 0]):
+        rows = np.flatnonzero(rep == first)
+        if len(rows) > 1:
+            y[first] = y[rows].mean(axis=0)
+            if R is not None:
+                U, _, Vt = np.linalg.svd(R[rows].sum(axis=0))
+                R[first] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return y, R
+
+
+def _row_name(ds, i: int) -> tuple[int, str]:
+    """A sample's index (the table's `sample` column) and its line in the samples file."""
+    s = ds.samples
+    return int(s.sample[i]), f"{ds.device.file} line {int(s.lines[i])}"
+
+
+def _outliers(ds, dist: np.ndarray, radius: np.ndarray, rejected: np.ndarray) -> tuple[PointOutlier, ...]:
+    """The `rejected` samples (mask) named, with their distance from the calibrated model (mm,
+    `dist`) and their robust radius, farthest first."""
+    rows = (
+        PointOutlier(*_row_name(ds, i), distance_mm=float(dist[i]), radius=float(radius[i]))
+        for i in np.flatnonzero(rejected)
+    )
+    return tuple(sorted(rows, key=lambda o: -o.distance_mm))
+
+
+def _inliers(problem: PointProblem, fit: PointFitResult) -> tuple[np.ndarray, np.ndarray, float]:
+    """The samples the fit keeps: all, when no deletion residual of the least-squares `fit`
+    lies beyond `POINT_ROBUST.reject`; else the robust fit's inliers. Returns them (mask over
+    the rows), every sample's radius in robust sigmas (that fit's) and the scale."""
+    mask = np.asarray(problem.data.mask)
+    z, scale = jax.device_get(_radii(problem, fit))
+    if np.all(z <= POINT_ROBUST.reject):
+        return mask, np.asarray(z), float(scale)
+    robust = jax.device_get(_robust(problem, fit))
+    return mask & (np.asarray(robust.weights) > 0), np.asarray(robust.radius), float(robust.robust_scale)
+
+
 def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Options) -> PointFit:
     """The point fit of a stop-and-shoot capture (see the module docstring)."""
     t0 = time.perf_counter()
     ds, nominal, kind = setup.dataset, setup.nominal, setup.kind
     s = ds.samples
-    used = np.asarray(sync.inside, bool) & np.all(np.isfinite(sync.q), axis=1)
-    n_used = int(used.sum())
     n = nominal.num_joints
-    if n_used < 4 * n:
+    q, y = np.asarray(sync.q, np.float64), np.asarray(s.position, np.float64)
+    valid = np.asarray(sync.inside, bool) & np.all(np.isfinite(q), axis=1)
+    rep = repeated_poses(q, valid)
+    first = valid & (rep == np.arange(len(q)))
+    n_poses = int(first.sum())
+    copies = int(valid.sum()) - n_poses
+    if n_poses < 4 * n:
         raise CalibrationError(
-            f"{ds.root / ds.device.file}: {n_used} stop-and-shoot samples; a {n}-joint arm needs at least "
-            f"{4 * n} (and several times that for a trustworthy result)"
+            f"{ds.root / ds.device.file}: {n_poses} distinct stop-and-shoot poses"
+            + (
+                f" ({int(valid.sum())} samples, {copies} repeating another's joint positions)"
+                if copies
+                else ""
+            )
+            + f"; a {n}-joint arm needs at least {4 * n} (and several times that for a trustworthy result)"
         )
+    y, orient = _merged(rep, y, s.orientation)
+    repeats = tuple(
+        RepeatedPose(*_row_name(ds, i), of_sample=_row_name(ds, rep[i])[0])
+        for i in np.flatnonzero(valid & ~first)
+    )
     point = setup.targets[0]
     Tp0 = np.eye(4) if point.T_link_target is None else np.asarray(point.T_link_target, np.float64)
-    q, y = np.asarray(sync.q, np.float64), np.asarray(s.position, np.float64)
-    T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(nominal, q[used], y[used], Tp0)
-    if s.orientation is not None:
+    T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(nominal, q[first], y[first], Tp0)
+    if orient is not None:
         T0, Tp0 = _orient_start(
-            nominal, q[used], y[used], s.orientation[used], T0, Tp0,
+            nominal, q[first], y[first], orient[first], T0, Tp0,
             frame_free=kind.fixed_frame_free, mount_known=point.T_link_target is not None,
         )  # fmt: skip
     base = ParameterLayout.of(nominal, 1, fixed_name=kind.fixed_frame)
     inertials = _inertials(setup) if "compliance" in options.terms else None
-    tol = kind.identifiability_tol
+    tol = setup.identifiability_tol
     folds = options.cv_folds
-    train = fold_train(used, folds) if folds else None
+    orientation = orient is not None
 
-    orientation = s.orientation is not None
-
-    def attempt(terms):
+    def fitted(terms, used):
         layout = PointLayout(base, terms, orientation)
         problem = point_problem(
-            nominal, layout, q, y, s.sigma_m, used, T0, Tp0, inertials, s.orientation, s.sigma_rad
+            nominal, layout, q, y, s.sigma_m, used, T0, Tp0, inertials, orient, s.sigma_rad
         )
         cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free, orientation=orientation)
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
-        fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol))
+        scale = plausible_scale(layout, nominal, options.limits)
+        fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol, jnp.asarray(scale)))
+        return layout, problem, cand, scale, fit
+
+    options.say(
+        f"point fit: {n_poses} stop-and-shoot poses"
+        + (f" ({copies} repeated samples merged)" if copies else "")
+        + ", forward kinematics of every sample"
+    )
+    geometric = fitted((), first)
+    used, radius, robust_scale = _inliers(geometric[1], geometric[4])
+    if not np.array_equal(used, first):
+        options.say(f"point fit: {n_poses - int(used.sum())} samples rejected; fitted again without them")
+        geometric = fitted((), used)
+    train = fold_train(used, folds) if folds else None
+
+    def attempt(terms):
+        layout, problem, cand, scale, fit = geometric if not terms else fitted(terms, used)
+        # The search's: the refits below take its mask of free parameters as given.
+        unseen = tuple(nm for nm, c, a, sc in zip(layout.names(), cand, fit.std_alone, scale) if c and a > sc)
         fit = _hold_implausible_terms(problem, cand, fit)
         row, held = ModelRow(terms=tuple(terms), free=int(np.sum(fit.free))), None
         if train is not None:
             summary, held = _cv_row(problem, cand, fit, train)
             row = dataclasses.replace(row, **summary)
-        return layout, problem, cand, fit, row, held
+        return layout, problem, cand, unseen, fit, row, held
 
-    options.say(f"point fit: {n_used} stop-and-shoot samples, forward kinematics of every sample")
     best = attempt(())
-    models, kept = [best[4]], 0
+    models, kept = [best[5]], 0
     for term in options.terms:
         if train is None:
             raise CalibrationError(
@@ -324,19 +484,20 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
             )
         options.say(f"point fit: trying {term} (kept only if {folds}-fold cross-validation improves)")
         trial = attempt((*best[0].terms, term))
-        z = min(paired_z(best[5], trial[5]), Z_SHOWN)
-        trial = (*trial[:4], dataclasses.replace(trial[4], cv_gain_z=z), trial[5])
-        models.append(trial[4])
+        z = min(paired_z(best[6], trial[6]), Z_SHOWN)
+        trial = (*trial[:5], dataclasses.replace(trial[5], cv_gain_z=z), trial[6])
+        models.append(trial[5])
         # `jaxcal._selection`'s rule: a gain over CV_GAIN, by two standard errors of the paired distances.
-        if improves_on_samples(best[5], trial[5], best[4].cv_mean_mm, trial[4].cv_mean_mm):
+        if improves_on_samples(best[6], trial[6], best[5].cv_mean_mm, trial[5].cv_mean_mm):
             best, kept = trial, len(models) - 1
-    layout, problem, cand, fit, *_ = best
+    layout, problem, cand, unseen, fit, *_ = best
     if not bool(fit.result == optx.RESULTS.successful):
         options.say("point fit: the solver did not converge")
-    dist = 1e3 * np.linalg.norm(np.asarray(predict(fit.x, problem)) - y, axis=1)[used]
+    dist = 1e3 * np.linalg.norm(np.asarray(predict(fit.x, problem)) - y, axis=1)
     angle = np.degrees(np.asarray(rotation_errors(fit.x, problem)))[used] if orientation else None
     names = layout.names()
-    held = tuple(nm for nm, f, c in zip(names, np.asarray(fit.free), cand) if not f and c)
+    free = np.asarray(fit.free)
+    held = tuple(nm for nm, f, c in zip(names, free, cand) if not f and c)
     return PointFit(
         problem=problem,
         fit=fit,
@@ -345,10 +506,15 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         held=held,
         models=tuple(dataclasses.replace(m, kept=k == kept) for k, m in enumerate(models)),
         folds=folds,
-        residual_mm=_stats(dist),
+        residual_mm=_stats(dist[used]),
         used=used,
         residual_deg=None if angle is None else _stats(angle),
         mount_given=point.T_link_target is not None,
+        poses=n_poses,
+        repeats=repeats,
+        outliers=_outliers(ds, dist, radius, first & ~used),
+        robust_scale=robust_scale,
+        unseen=unseen,
         timings={"point_fit_s": time.perf_counter() - t0},
     )
 

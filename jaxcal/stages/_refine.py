@@ -537,7 +537,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         + (f", {n_cams} cameras" if n_cams > 1 else "")
     )
     problem, params0, layout, cand = _problem(setup, obs, sync, two, corners, obs.primary.K, d5, options)
-    free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.kind.identifiability_tol)
+    free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.identifiability_tol)
     free = np.asarray(free)
     res = _programs.refinement(free)(problem, params0)
     # The shutter's score test, in the `Future` the verdict reads (`run_ahead` runs it inline).

@@ -39,6 +39,7 @@ class Options:
     device_is_base: bool = False
     terms: tuple[str, ...] = ()
     cv_folds: int = 5
+    identifiability_tol: float | None = None
 
     def say(self, text: str) -> None:
         if self.log is not None:
@@ -62,6 +63,8 @@ class Setup:
     - `target_link`, `per_joint`: markers on every link, each target's link
       index and per joint the targets whose poses give its arc.
     - `notes`: what the user should know about how the capture is used.
+    - `identifiability_tol`: the identifiability search's independence threshold
+      (`Options.identifiability_tol`, else the kind's, `CaptureKind.identifiability_tol`).
     """
 
     dataset: Dataset
@@ -76,6 +79,7 @@ class Setup:
     notes: tuple[str, ...]
     #: Seconds per step: free-form.
     timings: dict[str, float]
+    identifiability_tol: float
 
     @property
     def root(self):
@@ -193,7 +197,7 @@ def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: fl
     return Setup(
         dataset=ds, nominal=nominal, kind=kind, camera=ds.device, targets=(point,), board=None,
         target_link=None, per_joint=None, extra_cameras=(), notes=tuple(notes),
-        timings={"load_s": time.perf_counter() - t0},
+        timings={"load_s": time.perf_counter() - t0}, identifiability_tol=_tolerance(options, kind),
     )  # fmt: skip
 
 
@@ -205,12 +209,23 @@ def _line_delay_estimated(camera: CameraInfo) -> CameraInfo:
     return camera
 
 
+def _tolerance(options: Options, kind: CaptureKind) -> float:
+    """The identifiability search's threshold: the caller's, else the capture kind's."""
+    return kind.identifiability_tol if options.identifiability_tol is None else options.identifiability_tol
+
+
 def setup(dataset, options: Options) -> Setup:
     """Load `dataset` (a path or a `Dataset`) and resolve the capture kind,
     the camera, the targets and the further cameras (see `Setup`)."""
     t0 = time.perf_counter()
     if options.arc_loss not in LOSSES:
         raise CalibrationError(f"arc_loss must be one of {LOSSES}, got {options.arc_loss!r}")
+    tol = options.identifiability_tol
+    if tol is not None and not 0.0 < tol < 1.0:
+        raise CalibrationError(
+            f"identifiability_tol must be in (0, 1) (a column's distance from the span of those kept "
+            f"before it, columns normalised), got {tol!r}"
+        )
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     nominal = ds.load_model()
     if tuple(nominal.joint_names) != tuple(ds.joint_names):
@@ -296,4 +311,5 @@ def setup(dataset, options: Options) -> Setup:
         extra_cameras=tuple(extra),
         notes=tuple(notes),
         timings={"load_s": time.perf_counter() - t0},
+        identifiability_tol=_tolerance(options, kind),
     )

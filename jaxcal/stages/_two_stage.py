@@ -229,15 +229,18 @@ def arc_outlier_rows(setup: Setup, sweeps: Sweeps, arcs, j: int) -> tuple[ArcOut
     return tuple(rows)
 
 
+def listed(items: list[str], shown: int = 8) -> str:
+    """The first `shown` of `items`, and how many more."""
+    return ", ".join(items[:shown]) + (f" and {len(items) - shown} more" if len(items) > shown else "")
+
+
 def _outlier_notes(rows: tuple[ArcRow, ...]) -> tuple[str, ...]:
     """One note per joint whose robust arc fit rejected samples, naming their frames."""
     notes = []
     for a in rows:
         frames = sorted({o.frame for o in a.outliers})
         if frames:
-            shown = ", ".join(map(str, frames[:8])) + (
-                f" and {len(frames) - 8} more" if len(frames) > 8 else ""
-            )
+            shown = listed(list(map(str, frames)))
             what = "sample" if a.outliers[0].sample is not None else "frame"
             notes.append(f"joint {a.joint!r}: the robust arc fit rejected {len(frames)} {what}(s): {shown}")
     return tuple(notes)
@@ -427,13 +430,19 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
     layout = pf.layout.base
     kept = [m for m in pf.models if m.kept][0]
     notes = [
-        f"point fit on {int(pf.used.sum())} samples: {int(np.sum(pf.fit.free))} parameters free"
+        f"point fit on {int(pf.used.sum())} poses: {int(np.sum(pf.fit.free))} parameters free"
         + (f", non-geometric terms {list(pf.layout.terms)}" if pf.layout.terms else "")
         + f"; fitted residual {pf.residual_mm.rms:.4f} mm RMS"
         + ("" if pf.residual_deg is None else f", {pf.residual_deg.rms:.4f} deg RMS")
         + (f", {pf.folds}-fold cross-validation {kept.cv_mean_mm:.4f} mm mean" if pf.folds else "")
         + (f", {kept.cv_mean_deg:.4f} deg mean" if pf.folds and kept.cv_mean_deg is not None else "")
     ]
+    if pf.repeats:
+        notes.append(
+            f"{len(pf.repeats)} sample(s) repeat an earlier sample's joint positions, merged into its pose (the mean "
+            "of their points) and weighted as one pose: "
+            + listed([f"sample {r.sample} (= sample {r.of_sample})" for r in pf.repeats])
+        )
     notes += [n for m in pf.models if m.terms and not m.kept and (n := term_note(m, pf.models))]
     return TwoStage(
         sweeps=None,

@@ -7,7 +7,9 @@ every solver converge, are self-calibrated intrinsics plausible. Each check
 here is one of those, with its limit in `Limits` (documented defaults; pass
 your own to `jaxcal.calibrate(limits=...)`). A result that fails one is
 `status: "suspect"` with its reasons (the CLI exits 3); a solver that failed
-makes it `"failed"`.
+makes it `"failed"`. What a user should know of a result that passes (samples
+a robust fit set aside, parameters held because the data cannot see them) is
+in its `notes`.
 """
 
 from concurrent.futures import Future
@@ -28,16 +30,18 @@ from ._observe import Observations
 from ._refine import Refined, succeeded
 from ._setup import Setup
 from ._synchronise import Sync
-from ._two_stage import TwoStage
+from ._two_stage import TwoStage, listed
 from .limits import Limits
 
 
 @dataclass(frozen=True)
 class Verdict(Judgement):
     """`status` (`ok`, `suspect` or `failed`), the failed checks' `reasons` (`Judgement`, the
-    shape hand-eye's verdict shares), and every check with its value and limit (`checks`)."""
+    shape hand-eye's verdict shares), every check with its value and limit (`checks`), and
+    `notes`: what the user should know that does not make the result suspect (as hand-eye's)."""
 
     checks: tuple[Check, ...] = field(default_factory=tuple)
+    notes: tuple[str, ...] = ()
 
 
 def _wrap(a):
@@ -78,13 +82,19 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
 
 class _Checks:
     def __init__(self):
-        self.rows, self.reasons = [], []
+        self.rows, self.reasons, self.notes = [], [], []
 
     def add(self, name: str, value: float, limit: float, message: str) -> None:
         ok = bool(np.isfinite(value) and value <= limit)
         self.rows.append(Check(name, float(value), float(limit), ok))
         if not ok:
             self.reasons.append(message)
+
+    def at_least(self, name: str, value: float, limit: float) -> bool:
+        """A check that `value` is at least `limit` (its reason is the caller's); whether it passed."""
+        ok = bool(np.isfinite(value) and value >= limit)
+        self.rows.append(Check(name, float(value), float(limit), ok))
+        return ok
 
 
 #: A joint origin this many times past its limit suggests the wrong robot model, not a worn arm.
@@ -140,7 +150,7 @@ def _corrections(
             )
 
 
-def _uncertainties(c: _Checks, parameters: tuple[ParameterRow, ...], limits: Limits) -> None:
+def _uncertainties(c: _Checks, parameters: tuple[ParameterRow, ...], limits: Limits, tol: float) -> None:
     """A free joint origin or zero offset whose standard deviation is a third of its
     plausible correction or more: the data barely see it, and its value is not to be
     read (the tool point may still be fine; a parameter table is not)."""
@@ -166,7 +176,59 @@ def _uncertainties(c: _Checks, parameters: tuple[ParameterRow, ...], limits: Lim
             ratio,
             1.0,
             f"{text}: freed but barely determined (a third of its plausible correction or more); the capture "
-            "does not pin it: hold it (a tighter identifiability tolerance) or add poses that move it",
+            f"does not pin it: add poses that move it, or hold it with a larger identifiability tolerance "
+            f"(calibrate --identifiability-tol, Python identifiability_tol=; now {tol:g})",
+        )
+
+
+def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
+    """Stop-and-shoot poses: the samples the robust point fit rejected (a note, or a reason past
+    `limits.outlier_fraction`), the parameters held because the data cannot see them (a note),
+    and every joint's span over the poses (`limits.joint_span_deg`, `joint_span_mm`)."""
+    pf = two.points
+    k, share = len(pf.outliers), len(pf.outliers) / max(pf.poses, 1)
+    if k:
+        d = [o.distance_mm for o in pf.outliers]
+        far = f"{d[0]:.2f} mm" if k == 1 else f"{min(d):.2f}-{max(d):.2f} mm"
+        text = (
+            f"the robust point fit rejected {k} of the {pf.poses} poses, measured {far} from the calibrated "
+            "model's point (a joint position or a measurement wrong), and left them out of the fit: "
+            + listed([f"sample {o.sample} ({o.line}, {o.distance_mm:.2f} mm)" for o in pf.outliers])
+        )
+        if share <= limits.outlier_fraction:
+            c.notes.append(text)
+        else:
+            c.reasons.append(
+                f"{text}; {100 * share:.0f} % of the poses, over the limit of "
+                f"{100 * limits.outlier_fraction:g} %: check the joint positions and the measurements"
+            )
+    c.rows.append(
+        Check("point_fit.rejected_share", share, limits.outlier_fraction, share <= limits.outlier_fraction)
+    )
+    if pf.unseen:
+        c.notes.append(
+            "held at nominal because the samples cannot see them (each moves the measured point so little that, "
+            f"alone, it would be known no better than a third of its plausible correction): {', '.join(pf.unseen)}"
+        )
+    nominal = setup.nominal
+    q = np.asarray(pf.problem.data.q)[pf.used]
+    still = []
+    for j, name in enumerate(nominal.joint_names):
+        prismatic = nominal.joint_types[j] == PRISMATIC
+        span = float(np.ptp(q[:, j])) * (1e3 if prismatic else 180.0 / np.pi)
+        limit = limits.joint_span_mm if prismatic else limits.joint_span_deg
+        unit = "mm" if prismatic else "deg"
+        if not c.at_least(f"{name}.span_{unit}", span, limit):
+            still.append((name, f"{name} ({span:.2f} {unit})"))
+    if still:
+        names = [n for n, _ in still]
+        held = [h for h in pf.held if h.split(".")[0] in names]
+        c.reasons.append(
+            f"joints {', '.join(t for _, t in still)} hardly move over the {int(pf.used.sum())} poses (each needs "
+            f"{limits.joint_span_deg:g} deg, or {limits.joint_span_mm:g} mm): the capture cannot determine their "
+            "zero offsets nor the geometry they carry, so the model holds only at those joint positions; "
+            + (f"held at nominal for want of motion: {', '.join(held)}; " if held else "")
+            + "capture poses that move every joint"
         )
 
 
@@ -312,7 +374,9 @@ def verdict(
     if setup.kind.sequential:
         measured |= {t.name for t in setup.targets}  # link mounts start from PnP
     _corrections(c, refined.parameters if ran else two.parameters, limits, measured)
-    _uncertainties(c, refined.parameters if ran else two.parameters, limits)
+    _uncertainties(c, refined.parameters if ran else two.parameters, limits, setup.identifiability_tol)
+    if two.points is not None:
+        _point_fit(c, setup, two, limits)
     _ratios(c, setup, two, refined if ran else None, limits)
     # A rolling shutter skews each plate (its rows seen at different times), which PnP's
     # one-instant poses cannot hold: the two-stage fits' residuals then say nothing of the
@@ -361,4 +425,4 @@ def verdict(
     reasons = list(c.reasons)
     if failed:
         reasons.insert(0, "a solver did not converge (see result.json 'solver')")
-    return Verdict(status, tuple(reasons), tuple(c.rows))
+    return Verdict(status, tuple(reasons), tuple(c.rows), tuple(c.notes))

@@ -37,6 +37,12 @@ class Limits:
     - `ee_sigma_mm`: the tool point's 1-sigma uncertainty the covariance
       implies (RMS over random configurations): above it, the capture does
       not determine the robot well enough to trust it.
+    - `joint_span_deg`, `joint_span_mm`: stop-and-shoot poses, the least span of
+      each revolute (prismatic) joint's positions over the distinct poses: a joint
+      that stays put leaves its zero offset and the geometry it carries
+      undetermined, whatever the other joints do.
+    - `outlier_fraction` also bounds the share of stop-and-shoot poses the robust
+      point fit rejects.
     """
 
     origin_mm: float = 15.0
@@ -56,3 +62,5 @@ class Limits:
     arm_false_alarm: float = 0.01
     arm_compliance_rad_per_kNm: float = 0.005
     ee_sigma_mm: float = 3.0
+    joint_span_deg: float = 5.0
+    joint_span_mm: float = 10.0
