@@ -38,6 +38,10 @@ Usage: python benchmarks/drift.py --camera --seeds 5 --trials 20 --json results/
        python benchmarks/drift.py --camera --demo-camera --seeds 5 --trials 20 \\
            --json results/drift_camera_demo.json [--workdir DIR]
 
+With `--workdir DIR` the calibrations are kept there and reused (`cal<seed>`, `res<seed>`), and
+with `--demo-camera` those `benchmarks/certify.py --render demo_sweeps --workdir DIR` left there
+(`demo_sweeps_res<seed>`: the same captures) are used.
+
 `--handeye`: `jaxcal handeye` results (rendered, 16 frames, eye-to-hand and eye-in-hand
 in turn) checked against rendered 6-frame captures of the same rig at other robot poses,
 unmoved (`false_alarm_rate`) and moved 1 mm (`power_1mm`, `estimate_within_2sigma_1mm`);
@@ -160,7 +164,7 @@ def _shifted(cap, truth: dict, K, dist, E: np.ndarray, views: int) -> list:
     """The capture's detections moved by the change the camera move `E` (its frame) makes
     to each corner's true projection (the detector's own error kept), first `views` views."""
     rows = {f["row"]: f for f in truth["frames"]}
-    name = cap.doc["targets"][0]
+    name = cap.reference.targets[0]
     Ei = np.linalg.inv(E)
     out = []
     for pts, pix, row in zip(cap.points[:views], cap.pixels[:views], cap.row[:views]):
@@ -174,7 +178,7 @@ def _shifted(cap, truth: dict, K, dist, E: np.ndarray, views: int) -> list:
 def _true_pixels(cap, truth: dict, K, dist, views: int) -> list:
     """Per view (the first `views`) the true projections of the detected corners (`truth.json`)."""
     rows = {f["row"]: f for f in truth["frames"]}
-    name = cap.doc["targets"][0]
+    name = cap.reference.targets[0]
     out = []
     for pts, row in zip(cap.points[:views], cap.row[:views]):
         T = np.asarray(rows[int(row)]["T_cam_target"][name])
@@ -202,10 +206,15 @@ def calibration_error_ratio(cap, truth: dict, K, dist, views: int) -> float:
 
 
 def _subset(cap, views: int):
-    return type(cap)(
-        cap.doc, cap.file, cap.est, cap.ds, cap.points[:views], cap.pixels[:views], cap.target[:views],
-        cap.row[:views], cap.t_cam[:views], cap.max_points,
-    )  # fmt: skip
+    """The capture's first `views` views."""
+    return replace(
+        cap,
+        points=cap.points[:views],
+        pixels=cap.pixels[:views],
+        target=cap.target[:views],
+        row=cap.row[:views],
+        t_cam=cap.t_cam[:views],
+    )
 
 
 def camera_trial(cap, truth, K, dist, rng) -> dict:
@@ -271,11 +280,15 @@ def _calibration_config(args, s: int) -> SimConfig:
 
 def _calibrated(args, cfg: SimConfig, s: int, tmp: Path) -> Path:
     """The calibration of seed `s`, rendered and calibrated in `tmp`, or with `--workdir` the one
-    kept there (`cal<s>`, `res<s>`: calibrated again when only the capture is there)."""
+    kept there (`cal<s>`, `res<s>`: calibrated again when only the capture is there; with
+    `--demo-camera` also `benchmarks/certify.py --render demo_sweeps`'s, `demo_sweeps_res<s>`)."""
     root = args.workdir or tmp
     cal, res = root / f"cal{s}", root / f"res{s}"
-    if args.workdir is not None and (res / "result.json").exists():
-        return res
+    if args.workdir is not None:
+        kept = [res, *([root / f"demo_sweeps_res{s}"] if args.demo_camera else [])]
+        for r in kept:
+            if (r / "result.json").exists():
+                return r
     ds = cal if (cal / "truth.json").exists() else simulate(cfg, cal, progress=False)
     return write_outputs(jaxcal.calibrate(ds, progress=False), res, overwrite=True)
 
@@ -450,7 +463,8 @@ def main(argv=None) -> int:
     p.add_argument(
         "--workdir",
         type=Path,
-        help="--camera: keep the calibrations here (cal<seed>, res<seed>) and reuse those already there",
+        help="--camera: keep the calibrations here (cal<seed>, res<seed>) and reuse those already there (with "
+        "--demo-camera also benchmarks/certify.py --render demo_sweeps --workdir's, demo_sweeps_res<seed>)",
     )
     args = p.parse_args(argv)
     if args.camera:

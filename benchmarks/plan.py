@@ -108,6 +108,8 @@ def make_plans(work: Path, frames: int, args) -> dict:
     if cache.exists():
         return json.loads(cache.read_text())
     kw = dict(frames=frames, steps=args.steps, starts=args.starts, candidates=args.candidates)
+    if args.smoke:
+        kw["resolution"] = (640, 480)
     t0 = time.perf_counter()
     jaxcal.plan("ur5e", seed=100, checker_factory=MujocoChecker, **kw)
     first = time.perf_counter() - t0
@@ -172,6 +174,13 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--starts", type=int, default=3)
     parser.add_argument("--candidates", type=int, default=2000)
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="the tests' smallest captures: the plans at 640x480, the demo's and the former defaults' sweep "
+        "captures at data/ur5e_sweeps' design (800x600, 24 frames per 80-degree sweep); with small "
+        "--frames, --steps, --starts, --candidates and one seed",
+    )
     args = parser.parse_args(argv)
 
     import jaxcal  # noqa: F401  (x64, the compilation cache)
@@ -192,8 +201,9 @@ def main(argv=None) -> int:
             runs["planned"].append(run_capture(work, "planned", seed, lambda d, s=seed: render_plan(
                 planned, d, seed=s, overwrite=True, progress=False)))  # fmt: skip
         for name in ("demo", "default", "ur5e_sweeps"):
-            runs[name].append(run_capture(work, name, seed, lambda d, n=name, s=seed: simulate(
-                CONFIGS[n](s), d, overwrite=True, progress=False)))  # fmt: skip
+            config = CONFIGS["ur5e_sweeps" if args.smoke else name]
+            runs[name].append(run_capture(work, name, seed, lambda d, c=config, s=seed: simulate(
+                c(s), d, overwrite=True, progress=False)))  # fmt: skip
     extra = {}
     for name in ("panda", "eye_in_hand"):
         p = load_plan(work / f"{name}.json")

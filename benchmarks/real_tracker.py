@@ -16,10 +16,10 @@ the tracker registered to the robot's base (`--device-is-base`).
    the same samples: its test error, and the warm fit time of each
    (`fit_ms`: jaxcal's compiled point fit, identifiability search and covariance
    included, median of 35; `scipy_fit_ms`: `least_squares` alone, median of 7),
-   measured in alternating rounds in one process so that both see the same load;
+   measured in alternating rounds (`--rounds`, 7) in one process so that both see the same load;
    `speedup` is the median of the rounds' ratios.
 3. `cold_fit_s`: jaxcal's first fit in a fresh process with an empty compilation
-   cache (tracing and compiling included).
+   cache (tracing and compiling included; with `--cache DIR` that cache, not cold).
 
 Run:
 
@@ -80,7 +80,7 @@ sys.path.insert(0, sys.argv[2])
 import _scipy_tracker as ref
 qg, yg = ref.load_samples(sys.argv[1] + "/samples.csv")
 ts, ss, ratios = [], [], []
-for _ in range(7):
+for _ in range(int(sys.argv[3])):
     round_ts = []
     for _ in range(5):
         a = time.perf_counter()
@@ -144,12 +144,12 @@ def cli_models(workdir: Path) -> dict:
     return out
 
 
-def jaxcal_timing() -> dict:
-    """The point fit's first call (empty cache) and warm calls, in a fresh process."""
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache)
+def jaxcal_timing(rounds: int = 7, cache: str | None = None) -> dict:
+    """The point fit's first call (empty cache, or `cache`) and warm calls, in a fresh process."""
+    with tempfile.TemporaryDirectory() as empty:
+        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache or empty)
         p = subprocess.run(
-            [sys.executable, "-c", COLD, str(GRID), str(ROOT / "benchmarks")],
+            [sys.executable, "-c", COLD, str(GRID), str(ROOT / "benchmarks"), str(rounds)],
             cwd=ROOT,
             capture_output=True,
             text=True,
@@ -179,12 +179,20 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", metavar="OUT", help="also write the JSON here (atomically)")
     parser.add_argument("--workdir", help="keep the results and plots here (default: a temporary directory)")
+    parser.add_argument(
+        "--rounds", type=int, default=7, help="timing rounds (5 jaxcal fits, 1 SciPy fit each)"
+    )
+    parser.add_argument(
+        "--cache",
+        help="the timing process's compilation cache (default: a fresh empty one, the cold measurement; "
+        "the tests give a warm one to check the script runs: cold_fit_s is then not cold)",
+    )
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.workdir) if args.workdir else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         models = cli_models(work)
-    timing = jaxcal_timing()
+    timing = jaxcal_timing(args.rounds, args.cache)
     scipy = scipy_reference()
     geo, comp, best = models["geometric"], models["compliance"], models["best"]
     out = {
