@@ -7,11 +7,14 @@ run is called as its script's `main(args)`, as `python benchmarks/SCRIPT.py ARGS
 and one JSON line per run is appended to `RECORDS.jsonl` when it ends: its `name`, `error` (the
 traceback, or None), `wall_s` and `cpu_s` (this process's and its waited-for children's). The
 runs share the process's imports and compiled programs: a benchmark's smallest size is mostly
-compilation, and runs of one design compile it once.
+compilation, and runs of one design compile it once. `JAXCAL_BENCH_PROFILE=DIR` writes each
+run's `cProfile` statistics to `DIR/<name>.prof` (where a run's time goes).
 """
 
+import cProfile
 import importlib
 import json
+import os
 import resource
 import sys
 import time
@@ -32,8 +35,10 @@ def main(runs: Path, records: Path) -> None:
         print(f"=== {run['name']}: {run['script']}.py {' '.join(run['args'])}", flush=True)
         t0, c0 = time.perf_counter(), _cpu()
         error = None
+        profile = cProfile.Profile() if os.environ.get("JAXCAL_BENCH_PROFILE") else None
         try:
-            code = importlib.import_module(run["script"]).main(list(run["args"]))
+            main = importlib.import_module(run["script"]).main
+            code = main(list(run["args"])) if profile is None else profile.runcall(main, list(run["args"]))
             if isinstance(code, int) and code != 0:
                 error = f"main returned {code}"
         except SystemExit as e:  # argparse's errors, a script's own exit
@@ -41,6 +46,8 @@ def main(runs: Path, records: Path) -> None:
                 error = f"SystemExit({e.code!r})\n{traceback.format_exc()}"
         except Exception:  # reported; the next run goes on
             error = traceback.format_exc()
+        if profile is not None:
+            profile.dump_stats(Path(os.environ["JAXCAL_BENCH_PROFILE"]) / f"{run['name']}.prof")
         record = {
             "name": run["name"],
             "error": error,

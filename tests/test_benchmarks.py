@@ -69,8 +69,8 @@ RUNS = {
     "realism --analytic-seeds": Run(
         "realism",
         "--analytic-seeds 1 --analytic-design data/ur5e_sweeps --analytic-noise-px 0.054 "
-        "--analytic-cases ideal rolling_shutter_given rolling_shutter_estimated",
-        "analytic analytic_noise_px analytic.rolling_shutter_estimated",
+        "--analytic-cases ideal rolling_shutter_given",
+        "analytic analytic_noise_px analytic.rolling_shutter_given",
     ),
     "noise_weights": Run(
         "noise_weights",
@@ -90,21 +90,16 @@ RUNS = {
     ),
     "plan": Run(
         "plan",
-        "--smoke --seeds 1 --item6-seeds 1 --frames 40 --steps 10 --starts 1 --candidates 300 "
+        "--smoke --seeds 1 --item6-seeds 1 --frames 40 --steps 10 --starts 3 --candidates 300 "
         "--workdir {work}/plan",
         "planned_ee_rms_mm demo_ee_rms_mm ratios_within_90_interval issue_pairs_inside_probability_best_scale "
         "gradient_predicted_ee_mm greedy_predicted_ee_mm plan_seconds detected_fraction refinement_vs_two_stage "
         "panda eye_in_hand",
     ),
-    "plan_realism --plan": Run(
+    "plan_realism": Run(
         "plan_realism",
-        "--plan {work}/plan/planned.json --seeds 1 --noise-step 72 --noise-draws 1 --poses 6",
-        "machine corner_noise predictions.plan predictions.demo_sweeps checks",
-    ),
-    "plan_realism --no-sweeps": Run(
-        "plan_realism",
-        "--no-sweeps --seeds 1 --noise-step 72 --noise-draws 1 --poses 6",
-        "machine corner_noise predictions checks",
+        "--plan {work}/plan/planned.json --no-sweeps --seeds 1 --noise-step 72 --noise-draws 1 --poses 6",
+        "machine corner_noise predictions.plan checks.plan",
     ),
     "drift --camera": Run(
         "drift",
@@ -145,10 +140,13 @@ RUNS = {
     "handeye": Run(
         "handeye",
         "--parts protocol,rendered,captures,real,speed --trials 1 --frames 6 --captures 1 --capture-frames 6 "
-        "--seed 0 --no-dense",
-        "methods cramer_rao rendered captures real noisy_robot_pixels_ms pixels_ms_50 speed",
+        "--seed 0",
+        "methods cramer_rao rendered captures real noisy_robot_pixels_ms pixels_ms_50 "
+        "speed.noisy_robot_pixels_dense_ms",
     ),
-    "handeye --quick": Run("handeye", "--quick --parts speed", "speed.noisy_robot_pixels_dense_ms"),
+    "handeye --no-dense": Run(
+        "handeye", "--parts speed --no-dense", "noisy_robot_pixels_ms pixels_ms_50 speed"
+    ),
     "chessboard_detect": Run(
         "chessboard_detect",
         "--seeds 0 --frames 1 --images data/visp_handeye/eye_in_hand/images/cam0 --pattern 9 6",
@@ -198,12 +196,28 @@ RUNS = {
 #: into the run's folder, where the script reuses what it finds (its --workdir).
 REUSED = {"realism": "realism/seed0/ideal", "corrupted": "corrupted/clean0"}
 
-#: Options that only pick a preset size, larger than the runs' own (the runs set the sizes one by one).
-PRESETS = {}
+#: `--quick` presets of sizes larger than the runs', which set the sizes one by one (long_sweep's
+#: runs its rows in child processes, as its full size does; its `--smoke` row runs in-process).
+PRESETS = {
+    "arcfit": ["--quick"],
+    "efficiency": ["--quick"],
+    "long_sweep": ["--quick"],
+    "handeye": ["--quick"],
+}
+#: Options whose value picks what runs, and the values the runs give between them: numbers that
+#: switch a part on (realism's seeds summarised, its analytic comparison) and comma-separated parts.
+#: (Other numbers are sizes and parameters; every other option must be given by a run.)
+MODE_VALUES = {
+    ("realism", "--seeds"): ["2"],
+    ("realism", "--analytic-seeds"): ["1"],
+    ("handeye", "--parts"): ["protocol", "rendered", "captures", "real", "speed"],
+    ("montecarlo", "--device-counts"): ["1", "4"],
+}
 #: Choice options whose choices are not each run: realism's cases are its camera and arm models
-#: (`jaxcal.sim.camera`, `jaxcal.sim.arm`, tests/test_camera_model.py), rendered through the same
-#: code; a run renders one case of each kind the script handles apart (rendered, edited, configured).
-CHOICES_NOT_RUN = {("realism", "--cases")}
+#: (`jaxcal.sim.camera`, `jaxcal.sim.arm`: tests/test_camera_model.py, test_rolling_shutter.py),
+#: rendered and calibrated through one code path (the run renders `ideal`), and its analytic cases
+#: edits of the capture's metadata, calibrated through one other.
+CHOICES_NOT_RUN = {("realism", "--cases"), ("realism", "--analytic-cases")}
 
 
 def _argv(run: Run, work: Path, out: Path) -> list[str]:
@@ -230,17 +244,21 @@ def ran(tmp_path_factory):
             ]
             (work / "runs.json").write_text(json.dumps(runs))
             env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(CACHE_DIR), PYTHONPATH=str(ROOT))
-            proc = subprocess.run(
-                [sys.executable, str(RUNNER), str(work / "runs.json"), str(work / "records.jsonl")],
-                cwd=ROOT, env=env, capture_output=True, text=True, timeout=1200,
-            )  # fmt: skip
+            log = work / "runner.log"
+            with log.open("w") as f:
+                subprocess.run(
+                    [sys.executable, str(RUNNER), str(work / "runs.json"), str(work / "records.jsonl")],
+                    cwd=ROOT,
+                    env=env,
+                    stdout=f,
+                    stderr=subprocess.STDOUT,
+                    check=False,
+                )
             path = work / "records.jsonl"
             records = [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
-            done[process] = (work, {r["name"]: r for r in records}, proc)
-        work, records, proc = done[process]
-        assert name in records, (
-            f"the runner ended before {name}:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}"
-        )
+            done[process] = (work, {r["name"]: r for r in records}, log)
+        work, records, log = done[process]
+        assert name in records, f"the runner ended before {name}:\n{log.read_text()[-4000:]}"
         return records[name], work / f"{name}.json"
 
     return get
@@ -292,24 +310,31 @@ def _parser(script: str) -> argparse.ArgumentParser:
 SCRIPTS = sorted(p.stem for p in BENCH.glob("*.py") if not p.stem.startswith("_"))
 
 
-def test_every_benchmark_and_every_option_of_it_runs():
-    """Every script has a run, every option of it (but `--json`, `--help` and the hidden
-    ones) is given by one of its runs, and every choice of a choice option too."""
+def test_every_benchmark_and_every_mode_of_it_runs():
+    """Every script has a run; every option of it that is not a number (a switch, a file or a
+    folder, a choice: but `--json`, `--help`, the hidden ones and `PRESETS`) is given by one of
+    its runs, every choice of a choice option too, and every value of `MODE_VALUES`."""
     assert {r.script for r in RUNS.values()} == set(SCRIPTS)
     missing = []
     for script in SCRIPTS:
-        given = [tok for r in RUNS.values() if r.script == script for tok in shlex.split(r.args)]
+        argvs = [shlex.split(r.args) for r in RUNS.values() if r.script == script]
+        given = {tok for argv in argvs for tok in argv}
         for action in _parser(script)._actions:
             flags = [s for s in action.option_strings if s.startswith("--")]
             if not flags or action.help == argparse.SUPPRESS or flags[0] in ("--help", "--json"):
                 continue
-            if flags[0] in PRESETS.get(script, ()):
+            if action.type in (int, float) or flags[0] in PRESETS.get(script, ()):
                 continue
-            if not set(action.option_strings) & set(given):
+            if not set(action.option_strings) & given:
                 missing.append(f"{script} {flags[0]}")
             for choice in action.choices or ():
                 if choice not in given and (script, flags[0]) not in CHOICES_NOT_RUN:
                     missing.append(f"{script} {flags[0]} {choice}")
+    for (script, option), values in MODE_VALUES.items():
+        given = set()
+        for argv in (shlex.split(r.args) for r in RUNS.values() if r.script == script):
+            given |= {v for k, tok in enumerate(argv[:-1]) if tok == option for v in argv[k + 1].split(",")}
+        missing += [f"{script} {option} {v}" for v in values if v not in given]
     assert not missing, missing
 
 
@@ -320,9 +345,13 @@ COMMAND = re.compile(r"(?:(?:\S*/)?python3?\s+)?benchmarks/(\w+)\.py\b(.*)")
 def _doc_commands() -> list[tuple[str, str, str, bool]]:
     """(where, script, arguments, whole): every benchmark command of README.md and docs/*.md,
     from code blocks (continuation lines joined, comments dropped) and inline code spans (which
-    may wrap); `whole` when it is a command as typed (starting with `python`), else a mention
-    of its options."""
+    may wrap), and of the Makefile's recipes; `whole` when it is a command as typed (starting
+    with `python`), else a mention of its options."""
     out = []
+    for k, line in enumerate((ROOT / "Makefile").read_text().splitlines()):
+        m = re.search(r"\$\(PY\) benchmarks/(\w+)\.py\b(.*)", line)
+        if m:
+            out.append((f"Makefile:{k + 1}", m.group(1), m.group(2), True))
     for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
         text = path.read_text()
         spans = []
@@ -343,7 +372,7 @@ def _doc_commands() -> list[tuple[str, str, str, bool]]:
 
 
 def test_every_documented_benchmark_command_parses():
-    """Each benchmark command in README.md and docs/*.md parses with its script's own options;
+    """Each benchmark command in README.md, docs/*.md and the Makefile parses with its script's options;
     `[...]` marks optional parts (kept), a lone `...` an elision (dropped). A mention without `python`
     (`benchmarks/drift.py --camera`) names options the script has."""
     commands = _doc_commands()
@@ -373,6 +402,29 @@ def test_every_documented_benchmark_command_parses():
         except ValueError as e:
             bad.append(str(e))
     assert not bad, "\n".join(bad)
+
+
+def test_noise_weights_fits_the_smear_model_over_the_blurred_cases():
+    """`benchmarks/noise_weights.py`'s fit of s_v^2 = s_0^2 + (b smear_v)^2 (per axis): `b` shared,
+    `s_0` per case with a smear; the sharp case and the renderer's artefact left out. (The suite's
+    run has the ideal case alone, no smear.)"""
+    sys.path.insert(0, str(BENCH))
+    try:
+        from noise_weights import fit
+    finally:
+        sys.path.remove(str(BENCH))
+    b, s0 = 0.03, {"exposure_10ms": 0.05, "camera_mix": 0.08}
+
+    def rows(s, smears):
+        return [{"smear_px": m, "rms_px": float(np.sqrt(2.0 * (s**2 + (b * m) ** 2)))} for m in smears]
+
+    cases = {name: rows(s, np.linspace(0.5, 4.0, 8)) for name, s in s0.items()}
+    cases["ideal"] = rows(0.04, np.zeros(8))
+    cases["rolling_shutter"] = rows(0.5, np.linspace(0.5, 4.0, 8))
+    out = fit(cases)
+    assert out["b"] == pytest.approx(b, rel=1e-9) and out["b2"] == pytest.approx(b**2, rel=1e-9)
+    assert out["s0_px"] == pytest.approx(s0, rel=1e-9)
+    assert fit({"ideal": cases["ideal"]}) == {}
 
 
 def test_realism_summarises_rendered_seeds_by_their_medians():
