@@ -179,9 +179,9 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--smoke",
         action="store_true",
-        help="the tests' smallest captures: the UR5e's plans at 640x480, the demo's and the former defaults' sweep "
-        "captures at data/ur5e_sweeps' design (800x600, 24 frames per 80-degree sweep); with small "
-        "--frames, --steps, --starts, --candidates and one seed",
+        help="the tests' smallest captures: the UR5e's plans at 640x480, and data/ur5e_sweeps' design (800x600, "
+        "24 frames per 80-degree sweep) standing for the demo's and the former defaults' sweep captures too; "
+        "with small --frames, --steps, --starts, --candidates and one seed",
     )
     args = parser.parse_args(argv)
 
@@ -202,10 +202,11 @@ def main(argv=None) -> int:
         if seed < args.seeds:
             runs["planned"].append(run_capture(work, "planned", seed, lambda d, s=seed: render_plan(
                 planned, d, seed=s, overwrite=True, progress=False)))  # fmt: skip
-        for name in ("demo", "default", "ur5e_sweeps"):
-            config = CONFIGS["ur5e_sweeps" if args.smoke else name]
-            runs[name].append(run_capture(work, name, seed, lambda d, c=config, s=seed: simulate(
-                c(s), d, overwrite=True, progress=False)))  # fmt: skip
+        for name in ("ur5e_sweeps",) if args.smoke else ("demo", "default", "ur5e_sweeps"):
+            runs[name].append(run_capture(work, name, seed, lambda d, n=name, s=seed: simulate(
+                CONFIGS[n](s), d, overwrite=True, progress=False)))  # fmt: skip
+    if args.smoke:  # one sweep capture stands for the three designs
+        runs["demo"] = runs["default"] = runs["ur5e_sweeps"]
     extra = {}
     for name in ("panda", "eye_in_hand"):
         p = load_plan(work / f"{name}.json")

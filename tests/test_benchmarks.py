@@ -90,7 +90,7 @@ RUNS = {
     ),
     "plan": Run(
         "plan",
-        "--smoke --seeds 1 --item6-seeds 1 --frames 40 --steps 10 --starts 3 --candidates 300 "
+        "--smoke --seeds 1 --item6-seeds 1 --frames 24 --steps 2 --starts 1 --candidates 100 "
         "--workdir {work}/plan",
         "planned_ee_rms_mm demo_ee_rms_mm ratios_within_90_interval issue_pairs_inside_probability_best_scale "
         "gradient_predicted_ee_mm greedy_predicted_ee_mm plan_seconds detected_fraction refinement_vs_two_stage "
