@@ -404,29 +404,6 @@ def test_every_documented_benchmark_command_parses():
     assert not bad, "\n".join(bad)
 
 
-def test_noise_weights_fits_the_smear_model_over_the_blurred_cases():
-    """`benchmarks/noise_weights.py`'s fit of s_v^2 = s_0^2 + (b smear_v)^2 (per axis): `b` shared,
-    `s_0` per case with a smear; the sharp case and the renderer's artefact left out. (The suite's
-    run has the ideal case alone, no smear.)"""
-    sys.path.insert(0, str(BENCH))
-    try:
-        from noise_weights import fit
-    finally:
-        sys.path.remove(str(BENCH))
-    b, s0 = 0.03, {"exposure_10ms": 0.05, "camera_mix": 0.08}
-
-    def rows(s, smears):
-        return [{"smear_px": m, "rms_px": float(np.sqrt(2.0 * (s**2 + (b * m) ** 2)))} for m in smears]
-
-    cases = {name: rows(s, np.linspace(0.5, 4.0, 8)) for name, s in s0.items()}
-    cases["ideal"] = rows(0.04, np.zeros(8))
-    cases["rolling_shutter"] = rows(0.5, np.linspace(0.5, 4.0, 8))
-    out = fit(cases)
-    assert out["b"] == pytest.approx(b, rel=1e-9) and out["b2"] == pytest.approx(b**2, rel=1e-9)
-    assert out["s0_px"] == pytest.approx(s0, rel=1e-9)
-    assert fit({"ideal": cases["ideal"]}) == {}
-
-
 def test_realism_summarises_rendered_seeds_by_their_medians():
     """`benchmarks/realism.py --seeds N`: per case the seeds' figures, medians, the ratio of
     medians to the ideal case's and the median of the seeds' own ratios; a refused seed
