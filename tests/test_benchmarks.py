@@ -98,20 +98,20 @@ RUNS = {
     ),
     "plan_realism": Run(
         "plan_realism",
-        "--plan {work}/plan/planned.json --no-sweeps --seeds 1 --noise-step 72 --noise-draws 1 --poses 6",
+        "--plan {work}/plan/planned.json --no-sweeps --seeds 1 --noise-step 72 --noise-draws 1 --poses 24",
         "machine corner_noise predictions.plan checks.plan",
     ),
     "drift --camera": Run(
         "drift",
-        "--camera --seeds 1 --trials 1 --resolution 800x600 --frames 24 --first-seed 0 --workdir {work}/drift_camera",
+        "--camera --smoke --seeds 1 --trials 1 --frames 24 --first-seed 0 --workdir {work}/drift_camera",
         "false_alarm_rate detectable_mm_10_images detectable_mm_bound drift_power_by_mm drift_power_by_deg "
         "estimate_within_2sigma calibration_error_ratio check_s",
     ),
-    # The demo's capture rendered and calibrated once: certify's `demo_sweeps`, read again by
-    # certify_errors and by drift's --demo-camera; `planned` renders plan.py's plan.
+    # certify's `demo_sweeps` (at --smoke, data/ur5e_sweeps: `REUSED`) is read again by certify_errors
+    # and by drift's --demo-camera; its `planned` renders plan.py's plan.
     "certify": Run(
         "certify",
-        "--seeds 1 --poses 48 --configs 20 --render demo_sweeps planned --render-seeds 1 --first-seed 0 "
+        "--smoke --seeds 1 --poses 48 --configs 20 --render demo_sweeps planned --render-seeds 1 --first-seed 0 "
         "--plan {work}/plan/planned.json --workdir {work}/certify --reuse --camera {work}/drift_camera/res0",
         "certificate_coverage.tracker_poses certificate_coverage.demo_sweeps certificate_coverage.planned "
         "certificate_coverage.camera certificate_ratios certificate_tightness designs",
@@ -129,7 +129,7 @@ RUNS = {
     ),
     "drift --camera --demo-camera": Run(
         "drift",
-        "--camera --demo-camera --seeds 1 --trials 1 --workdir {work}/certify",
+        "--camera --demo-camera --smoke --seeds 1 --trials 1 --workdir {work}/certify",
         "false_alarm_rate detectable_mm_10_images detectable_mm_bound drift_power_by_mm check_s",
     ),
     "drift --handeye": Run(
@@ -194,7 +194,12 @@ RUNS = {
 
 #: Captures a run would render that are `data/ur5e_sweeps` itself (its design and seed): copied
 #: into the run's folder, where the script reuses what it finds (its --workdir).
-REUSED = {"realism": "realism/seed0/ideal", "corrupted": "corrupted/clean0"}
+REUSED = {
+    "realism": "realism/seed0/ideal",
+    "corrupted": "corrupted/clean0",
+    "drift --camera": "drift_camera/cal0",
+    "certify": "certify/demo_sweeps_ds0",
+}
 
 #: `--quick` presets of sizes larger than the runs', which set the sizes one by one (long_sweep's
 #: runs its rows in child processes, as its full size does; its `--smoke` row runs in-process).
