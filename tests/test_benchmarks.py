@@ -137,10 +137,10 @@ RUNS = {
         "--handeye --seeds 1 --trials 1 --resolution 320x240",
         "false_alarm_rate power_1mm estimate_within_2sigma_1mm detectable_mm_bound",
     ),
+    # One capture per target and arrangement at test_handeye_capture.py's 16 frames.
     "handeye": Run(
         "handeye",
-        "--parts protocol,rendered,captures,real,speed --trials 1 --frames 6 --captures 1 --capture-frames 6 "
-        "--seed 0",
+        "--quick --parts protocol,rendered,captures,real,speed --capture-frames 16 --seed 0",
         "methods cramer_rao rendered captures real noisy_robot_pixels_ms pixels_ms_50 "
         "speed.noisy_robot_pixels_dense_ms",
     ),
@@ -166,7 +166,7 @@ RUNS = {
     # test_montecarlo.py's trials (8 over 24 frames, on one device and on four of eight): its programs.
     "montecarlo": Run(
         "montecarlo",
-        "--quick --frames 24 --seed 0 --device-counts ''",
+        "--trials 8 --scipy-trials 1 --repeats 1 --frames 24 --seed 0 --device-counts ''",
         "trials jaxcal_s compile_s scipy_s speedup success_rate ee_rms_mm_median",
     ),
     "montecarlo --scaling-only": Run(
