@@ -203,12 +203,7 @@ REUSED = {
 
 #: `--quick` presets of sizes larger than the runs', which set the sizes one by one (long_sweep's
 #: runs its rows in child processes, as its full size does; its `--smoke` row runs in-process).
-PRESETS = {
-    "arcfit": ["--quick"],
-    "efficiency": ["--quick"],
-    "long_sweep": ["--quick"],
-    "handeye": ["--quick"],
-}
+PRESETS = {name: ["--quick"] for name in ("arcfit", "efficiency", "long_sweep", "montecarlo")}
 #: Options whose value picks what runs, and the values the runs give between them: numbers that
 #: switch a part on (realism's seeds summarised, its analytic comparison) and comma-separated parts.
 #: (Other numbers are sizes and parameters; every other option must be given by a run.)
