@@ -8,7 +8,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-bench lint format bench clean gl
+.PHONY: demo test lint format bench clean gl
 
 # Headless OpenGL for MuJoCo (EGL + Mesa; OSMesa as the fallback).
 GL_PACKAGES := libegl1 libgl1-mesa-dri
@@ -44,11 +44,7 @@ demo: $(STAMP) gl
 # One BLAS thread per worker: two workers on two cores already fill the machine, and
 # OpenBLAS's spinning threads only steal from the other worker.
 test: $(STAMP) gl
-	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile --no-loadscope-reorder -m "not bench"
-
-# The benchmarks' longer smoke runs (tests/test_benchmarks.py, marked bench): minutes each.
-test-bench: $(STAMP) gl
-	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile --no-loadscope-reorder -m bench
+	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile --no-loadscope-reorder
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

@@ -92,7 +92,13 @@ def tracker_results(seeds: int, poses: int, root: Path) -> list[Path]:
 
 
 def rendered_results(
-    seeds: int, root: Path, designs: list[str], reuse: bool = False, first_seed: int = 0, plan=None
+    seeds: int,
+    root: Path,
+    designs: list[str],
+    reuse: bool = False,
+    first_seed: int = 0,
+    plan=None,
+    smoke: bool = False,
 ) -> dict[str, list[Path]]:
     """Rendered camera captures calibrated here, `seeds` per design from `first_seed`:
     `demo_sweeps` (the demo's: 1280x960, 40 frames per 80-degree sweep, clock not given)
@@ -100,7 +106,8 @@ def rendered_results(
     `benchmarks/plan.py`, rendered by `render_plan`; or the plan file `plan`, e.g. the
     `plan.json` an earlier run's captures hold); the seed draws the true arm, mounts and
     noise. With `reuse`, a capture already rendered in `root` (`<design>_ds<seed>/truth.json`)
-    is calibrated again instead of rendered (and planned)."""
+    is calibrated again instead of rendered (and planned). `smoke`: `demo_sweeps` at data/ur5e_sweeps'
+    design (800x600, 24 frames per sweep: seed 0 is data/ur5e_sweeps)."""
     from plan import CONFIGS  # benchmarks/plan.py: the demo's capture
 
     from jaxcal.sim.plan import MujocoChecker, render_plan
@@ -122,7 +129,8 @@ def rendered_results(
 
     makers = {}
     if "demo_sweeps" in designs:
-        makers["demo_sweeps"] = lambda d, s: simulate(CONFIGS["demo"](s), d, overwrite=True, progress=False)
+        demo = CONFIGS["ur5e_sweeps" if smoke else "demo"]
+        makers["demo_sweeps"] = lambda d, s: simulate(demo(s), d, overwrite=True, progress=False)
     if "planned" in designs:
         makers["planned"] = planned
     out = {}
@@ -175,6 +183,12 @@ def main(argv=None) -> int:
         action="store_true",
         help="with --workdir: calibrate the captures already rendered there again (no rendering)",
     )
+    p.add_argument(
+        "--smoke",
+        action="store_true",
+        help="the tests' size: demo_sweeps rendered at data/ur5e_sweeps' design (800x600, 24 frames per "
+        "80-degree sweep; seed 0 is data/ur5e_sweeps, reused with --workdir --reuse) instead of the demo's",
+    )
     p.add_argument("--json", required=True, type=Path)
     args = p.parse_args(argv)
     designs = {}
@@ -192,7 +206,7 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             work = args.workdir or Path(tmp)
             rendered = rendered_results(
-                args.render_seeds, work, args.render, args.reuse, args.first_seed, args.plan
+                args.render_seeds, work, args.render, args.reuse, args.first_seed, args.plan, args.smoke
             )
             for name, results in rendered.items():
                 designs[name] = [score(r, args.configs, args.first_seed + k) for k, r in enumerate(results)]

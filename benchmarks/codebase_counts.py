@@ -259,11 +259,11 @@ def counts() -> dict:
     }
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", help="write the counts here")
     parser.add_argument("--brief", action="store_true", help="print the totals only")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     out = counts()
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -38,6 +38,10 @@ Usage: python benchmarks/drift.py --camera --seeds 5 --trials 20 --json results/
        python benchmarks/drift.py --camera --demo-camera --seeds 5 --trials 20 \\
            --json results/drift_camera_demo.json [--workdir DIR]
 
+With `--workdir DIR` the calibrations are kept there and reused (`cal<seed>`, `res<seed>`), and
+with `--demo-camera` those `benchmarks/certify.py --render demo_sweeps --workdir DIR` left there
+(`demo_sweeps_res<seed>`: the same captures) are used.
+
 `--handeye`: `jaxcal handeye` results (rendered, 16 frames, eye-to-hand and eye-in-hand
 in turn) checked against rendered 6-frame captures of the same rig at other robot poses,
 unmoved (`false_alarm_rate`) and moved 1 mm (`power_1mm`, `estimate_within_2sigma_1mm`);
@@ -160,7 +164,7 @@ def _shifted(cap, truth: dict, K, dist, E: np.ndarray, views: int) -> list:
     """The capture's detections moved by the change the camera move `E` (its frame) makes
     to each corner's true projection (the detector's own error kept), first `views` views."""
     rows = {f["row"]: f for f in truth["frames"]}
-    name = cap.doc["targets"][0]
+    name = cap.reference.targets[0]
     Ei = np.linalg.inv(E)
     out = []
     for pts, pix, row in zip(cap.points[:views], cap.pixels[:views], cap.row[:views]):
@@ -174,7 +178,7 @@ def _shifted(cap, truth: dict, K, dist, E: np.ndarray, views: int) -> list:
 def _true_pixels(cap, truth: dict, K, dist, views: int) -> list:
     """Per view (the first `views`) the true projections of the detected corners (`truth.json`)."""
     rows = {f["row"]: f for f in truth["frames"]}
-    name = cap.doc["targets"][0]
+    name = cap.reference.targets[0]
     out = []
     for pts, row in zip(cap.points[:views], cap.row[:views]):
         T = np.asarray(rows[int(row)]["T_cam_target"][name])
@@ -202,10 +206,15 @@ def calibration_error_ratio(cap, truth: dict, K, dist, views: int) -> float:
 
 
 def _subset(cap, views: int):
-    return type(cap)(
-        cap.doc, cap.file, cap.est, cap.ds, cap.points[:views], cap.pixels[:views], cap.target[:views],
-        cap.row[:views], cap.t_cam[:views], cap.max_points,
-    )  # fmt: skip
+    """The capture's first `views` views."""
+    return replace(
+        cap,
+        points=cap.points[:views],
+        pixels=cap.pixels[:views],
+        target=cap.target[:views],
+        row=cap.row[:views],
+        t_cam=cap.t_cam[:views],
+    )
 
 
 def camera_trial(cap, truth, K, dist, rng) -> dict:
@@ -245,8 +254,8 @@ def camera_trial(cap, truth, K, dist, rng) -> dict:
     return out
 
 
-def _camera_check_s(tmp: Path) -> float:
-    cfg = SimConfig(resolution=(1280, 960), seed=7)
+def _camera_check_s(tmp: Path, resolution=(1280, 960)) -> float:
+    cfg = SimConfig(resolution=resolution, seed=7)
     cap = render_check_capture(cfg, tmp / "hires", random_poses(6, 10, 10.0, seed=7))
     res = truth_result(cfg, cap, tmp / "hires_result")
     check(res, cap)
@@ -258,24 +267,34 @@ def _camera_check_s(tmp: Path) -> float:
     return float(np.median(times))
 
 
+def _seed_offset(args) -> int:
+    """The calibrations' first seed is `--first-seed` plus this."""
+    return 0 if args.demo_camera or args.smoke else 300
+
+
 def _calibration_config(args, s: int) -> SimConfig:
     """The calibration capture of seed `s`: `jaxcal demo`'s with `--demo-camera` (its seed `s`,
-    as `benchmarks/certify.py`'s `demo_sweeps`), else `--resolution` and `--frames` (seed 300 + s)."""
-    if args.demo_camera:
-        from plan import CONFIGS  # benchmarks/plan.py: the demo's capture
+    as `benchmarks/certify.py`'s `demo_sweeps`), else `--resolution` and `--frames` (seed 300 + s);
+    with `--smoke` data/ur5e_sweeps' design (its seed `s`)."""
+    if args.demo_camera or args.smoke:
+        from plan import CONFIGS  # benchmarks/plan.py: the demo's capture, data/ur5e_sweeps' design
 
-        return CONFIGS["demo"](s)
+        return CONFIGS["ur5e_sweeps" if args.smoke else "demo"](s)
     w, h = (int(v) for v in args.resolution.split("x"))
     return SimConfig(resolution=(w, h), seed=300 + s, frames_per_joint=args.frames, range_deg=80.0)
 
 
 def _calibrated(args, cfg: SimConfig, s: int, tmp: Path) -> Path:
     """The calibration of seed `s`, rendered and calibrated in `tmp`, or with `--workdir` the one
-    kept there (`cal<s>`, `res<s>`: calibrated again when only the capture is there)."""
+    kept there (`cal<s>`, `res<s>`: calibrated again when only the capture is there; with
+    `--demo-camera` also `benchmarks/certify.py --render demo_sweeps`'s, `demo_sweeps_res<s>`)."""
     root = args.workdir or tmp
     cal, res = root / f"cal{s}", root / f"res{s}"
-    if args.workdir is not None and (res / "result.json").exists():
-        return res
+    if args.workdir is not None:
+        kept = [res, *([root / f"demo_sweeps_res{s}"] if args.demo_camera else [])]
+        for r in kept:
+            if (r / "result.json").exists():
+                return r
     ds = cal if (cal / "truth.json").exists() else simulate(cfg, cal, progress=False)
     return write_outputs(jaxcal.calibrate(ds, progress=False), res, overwrite=True)
 
@@ -303,20 +322,20 @@ def camera_main(args) -> int:
                 for n, row in result.items():
                     trials[n].append(row)
             print(f"seed {s}: done", flush=True)
-        check_s = _camera_check_s(tmp)
+        check_res = cfg.resolution if args.smoke else (1280, 960)
+        check_s = _camera_check_s(tmp, check_res)
     w, h = cfg.resolution
-    design = (
-        f"the demo's capture: {w}x{h}, {cfg.frames_per_joint} frames per joint, clock not given"
-        if args.demo_camera
-        else f"{w}x{h}, {args.frames} frames per joint"
-    )
+    design = f"{w}x{h}, {cfg.frames_per_joint} frames per joint"
+    if args.smoke or args.demo_camera:
+        what = "data/ur5e_sweeps' design" if args.smoke else "the demo's capture"
+        design = f"{what}: {design}, clock not given"
     out = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
         "data": f"rendered UR5e eye-to-hand calibrations ({design}, 80 deg "
         "sweeps) and rendered 10-image stop-and-shoot check captures; moved captures: the detections shifted "
         "by the move's change of the true projections",
         "seeds": args.seeds,
-        "first_seed": (0 if args.demo_camera else 300) + args.first_seed,
+        "first_seed": _seed_offset(args) + args.first_seed,
         "trials_per_seed": args.trials,
         "false_alarm_rate": float(np.mean([r["false"] for r in trials[10]])),
         "false_alarm_rate_5_images": float(np.mean([r["false"] for r in trials[5]])),
@@ -327,7 +346,7 @@ def camera_main(args) -> int:
         "noise_variance_factor_mean": float(np.mean([r["nu"] for r in trials[10]])),
         "calibration_error_ratio": float(np.mean([v for _, v in ratios])),
         "calibration_error_ratio_by_seed": {
-            str((0 if args.demo_camera else 300) + s): float(np.mean([v for k, v in ratios if k == s]))
+            str(_seed_offset(args) + s): float(np.mean([v for k, v in ratios if k == s]))
             for s in sorted({k for k, _ in ratios})
         },
         "drift_power_by_mm": {
@@ -341,7 +360,8 @@ def camera_main(args) -> int:
         },
         "detectable_mm_bound": {n: float(np.mean([r["bound"] for r in rows])) for n, rows in trials.items()},
         "check_s": check_s,
-        "check_s_setting": "10 images at 1280x960, detection included, after compilation (median of 3)",
+        "check_s_setting": f"10 images at {check_res[0]}x{check_res[1]}, detection included, after compilation "
+        "(median of 3)",
     }
     for n, rows in trials.items():
         # Sizes relative to each trial's own bound: the smallest multiple detected in 95 % of trials.
@@ -450,7 +470,15 @@ def main(argv=None) -> int:
     p.add_argument(
         "--workdir",
         type=Path,
-        help="--camera: keep the calibrations here (cal<seed>, res<seed>) and reuse those already there",
+        help="--camera: keep the calibrations here (cal<seed>, res<seed>) and reuse those already there (with "
+        "--demo-camera also benchmarks/certify.py --render demo_sweeps --workdir's, demo_sweeps_res<seed>)",
+    )
+    p.add_argument(
+        "--smoke",
+        action="store_true",
+        help="--camera: the tests' size: the calibrations of data/ur5e_sweeps' design (800x600, 24 frames per "
+        "80-degree sweep, clock not given; seed 0 is data/ur5e_sweeps, reused as cal0 in --workdir) instead of "
+        "--resolution and --frames or the demo's, and check_s at 800x600",
     )
     args = p.parse_args(argv)
     if args.camera:

@@ -69,12 +69,12 @@ def write_table(path: Path, rows: int, seed: int = 0, chunk: int = 100_000) -> N
             np.savetxt(f, table, delimiter=",", fmt=["%d"] + ["%.10g"] * 12)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rows", type=int, default=1_000_000)
     ap.add_argument("--workdir", help="where the table and the dataset go (default: a temporary folder)")
     ap.add_argument("--json", help="write the figures here")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="jaxcal-import-csv-") as tmp:
         work = Path(args.workdir or tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -110,7 +110,9 @@ def main() -> None:
         }
     print(json.dumps(out, indent=1))
     if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+        from jaxcal.io._files import write_text_atomic
+
+        write_text_atomic(Path(args.json), json.dumps(out, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -108,11 +108,12 @@ def make_plans(work: Path, frames: int, args) -> dict:
     if cache.exists():
         return json.loads(cache.read_text())
     kw = dict(frames=frames, steps=args.steps, starts=args.starts, candidates=args.candidates)
+    small = {"resolution": (640, 480)} if args.smoke else {}  # the UR5e's (the Panda's plate is too small)
     t0 = time.perf_counter()
-    jaxcal.plan("ur5e", seed=100, checker_factory=MujocoChecker, **kw)
+    jaxcal.plan("ur5e", seed=100, checker_factory=MujocoChecker, **kw, **small)
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = jaxcal.plan("ur5e", seed=0, checker_factory=MujocoChecker, greedy_baseline=True, **kw)
+    res = jaxcal.plan("ur5e", seed=0, checker_factory=MujocoChecker, greedy_baseline=True, **kw, **small)
     total = time.perf_counter() - t0
     save_plan(res.plan, work / "planned.json")
     out = {
@@ -125,7 +126,10 @@ def make_plans(work: Path, frames: int, args) -> dict:
         "planned_frames": res.plan.frames,
         "corrections": len(res.plan.corrections),
     }
-    for robot, extra, name in (("panda", {}, "panda"), ("ur5e", {"eye_in_hand": True}, "eye_in_hand")):
+    for robot, extra, name in (
+        ("panda", {}, "panda"),
+        ("ur5e", {"eye_in_hand": True, **small}, "eye_in_hand"),
+    ):
         t0 = time.perf_counter()
         r = jaxcal.plan(robot, seed=0, checker_factory=MujocoChecker, **kw, **extra)
         save_plan(r.plan, work / f"{name}.json")
@@ -172,6 +176,13 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--starts", type=int, default=3)
     parser.add_argument("--candidates", type=int, default=2000)
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="the tests' smallest captures: the UR5e's plans at 640x480, and data/ur5e_sweeps' design (800x600, "
+        "24 frames per 80-degree sweep) standing for the demo's and the former defaults' sweep captures too; "
+        "with small --frames, --steps, --starts, --candidates and one seed",
+    )
     args = parser.parse_args(argv)
 
     import jaxcal  # noqa: F401  (x64, the compilation cache)
@@ -191,9 +202,11 @@ def main(argv=None) -> int:
         if seed < args.seeds:
             runs["planned"].append(run_capture(work, "planned", seed, lambda d, s=seed: render_plan(
                 planned, d, seed=s, overwrite=True, progress=False)))  # fmt: skip
-        for name in ("demo", "default", "ur5e_sweeps"):
+        for name in ("ur5e_sweeps",) if args.smoke else ("demo", "default", "ur5e_sweeps"):
             runs[name].append(run_capture(work, name, seed, lambda d, n=name, s=seed: simulate(
                 CONFIGS[n](s), d, overwrite=True, progress=False)))  # fmt: skip
+    if args.smoke:  # one sweep capture stands for the three designs
+        runs["demo"] = runs["default"] = runs["ur5e_sweeps"]
     extra = {}
     for name in ("panda", "eye_in_hand"):
         p = load_plan(work / f"{name}.json")

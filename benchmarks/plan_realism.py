@@ -192,7 +192,7 @@ def small_plan(poses: int = 24) -> CapturePlan:
     )
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--plan", type=Path, help="a planned capture (jaxcal plan --out) to predict and check"
@@ -205,7 +205,7 @@ def main() -> None:
     parser.add_argument("--noise-draws", type=int, default=8, help="noise draws per image")
     parser.add_argument("--poses", type=int, default=24, help="poses of the small plan")
     parser.add_argument("--no-sweeps", action="store_true", help="leave out the two sweep designs")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     t0, c0 = time.perf_counter(), time.process_time()
     designs = {} if args.plan is None else {"plan": load_plan(args.plan)}
     if not args.no_sweeps:

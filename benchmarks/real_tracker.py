@@ -16,14 +16,15 @@ the tracker registered to the robot's base (`--device-is-base`).
    the same samples: its test error, and the warm fit time of each
    (`fit_ms`: jaxcal's compiled point fit, identifiability search and covariance
    included, median of 35; `scipy_fit_ms`: `least_squares` alone, median of 7),
-   measured in alternating rounds in one process so that both see the same load;
+   measured in alternating rounds (`--rounds`, 7) in one process so that both see the same load;
    `speedup` is the median of the rounds' ratios.
 3. `cold_fit_s`: jaxcal's first fit in a fresh process with an empty compilation
-   cache (tracing and compiling included).
+   cache (tracing and compiling included; with `--cache DIR` that cache, not cold).
 4. Corrupted copies of the grid (issue 49): 1, 5 and 20 of its 1000 rows with one joint cell
    turned by 2-10 deg (`corrupt`, seeded), each calibrated and verified as in 1 (geometric):
    `ur5_bad_rows_<n>_test_mean_mm` (the held-out mean), `ur5_bad_rows_<n>_named` (the samples the
-   robust point fit rejected and named) and `_named_correctly` (of them, the corrupted ones).
+   robust point fit rejected and named) and `_named_correctly` (of them, the corrupted ones);
+   `--bad-rows` chooses the counts.
 
 `fit_ms` times the least-squares fit (identifiability search, solve, covariance), the work
 SciPy's `least_squares` does; `screen_ms` the robust screen `jaxcal calibrate` runs after it
@@ -94,7 +95,7 @@ sys.path.insert(0, sys.argv[2])
 import _scipy_tracker as ref
 qg, yg = ref.load_samples(sys.argv[1] + "/samples.csv")
 ts, ss, ratios, screens = [], [], [], []
-for _ in range(7):
+for _ in range(int(sys.argv[3])):
     round_ts = []
     for _ in range(5):
         a = time.perf_counter()
@@ -192,10 +193,10 @@ def corrupt(n: int, out: Path, seed: int = 49) -> list[dict]:
     return turned
 
 
-def bad_rows(workdir: Path) -> dict:
+def bad_rows(workdir: Path, counts=BAD_ROWS) -> dict:
     """Each corrupted copy calibrated (geometric) and verified from the command line."""
     out = {}
-    for n in BAD_ROWS:
+    for n in counts:
         data, result = workdir / f"grid_bad_{n}", workdir / f"bad_{n}"
         turned = corrupt(n, data)
         p = _jaxcal("calibrate", str(data), "--device-is-base", "--quiet", "--out", str(result))
@@ -221,12 +222,12 @@ def bad_rows(workdir: Path) -> dict:
     return out
 
 
-def jaxcal_timing() -> dict:
-    """The point fit's first call (empty cache) and warm calls, in a fresh process."""
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache)
+def jaxcal_timing(rounds: int = 7, cache: str | None = None) -> dict:
+    """The point fit's first call (empty cache, or `cache`) and warm calls, in a fresh process."""
+    with tempfile.TemporaryDirectory() as empty:
+        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache or empty)
         p = subprocess.run(
-            [sys.executable, "-c", COLD, str(GRID), str(ROOT / "benchmarks")],
+            [sys.executable, "-c", COLD, str(GRID), str(ROOT / "benchmarks"), str(rounds)],
             cwd=ROOT,
             capture_output=True,
             text=True,
@@ -256,13 +257,28 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", metavar="OUT", help="also write the JSON here (atomically)")
     parser.add_argument("--workdir", help="keep the results and plots here (default: a temporary directory)")
+    parser.add_argument(
+        "--rounds", type=int, default=7, help="timing rounds (5 jaxcal fits, 1 SciPy fit each)"
+    )
+    parser.add_argument(
+        "--bad-rows",
+        type=lambda v: tuple(int(x) for x in v.split(",")),
+        default=BAD_ROWS,
+        metavar="N,N,...",
+        help=f"the corrupted copies' numbers of turned rows (default {','.join(map(str, BAD_ROWS))})",
+    )
+    parser.add_argument(
+        "--cache",
+        help="the timing process's compilation cache (default: a fresh empty one, the cold measurement; "
+        "the tests give a warm one to check the script runs: cold_fit_s is then not cold)",
+    )
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.workdir) if args.workdir else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         models = cli_models(work)
-        bad = bad_rows(work)
-    timing = jaxcal_timing()
+        bad = bad_rows(work, args.bad_rows)
+    timing = jaxcal_timing(args.rounds, args.cache)
     scipy = scipy_reference()
     geo, comp, best = models["geometric"], models["compliance"], models["best"]
     out = {

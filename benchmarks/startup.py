@@ -20,7 +20,7 @@ from an empty one):
   RMS after calibration of the first cold and the first warm run (equal to
   round-off).
 
-    python benchmarks/startup.py --json results/startup.json [--repeats 3] [--no-cold]
+    python benchmarks/startup.py --json results/startup.json [--repeats 3] [--no-cold] [--cache DIR]
 
 The JSON also holds every repeat (`runs`), `load` (the 1-minute load average
 before each figure: on a shared machine the figures are only comparable back
@@ -96,16 +96,23 @@ def _figure(name: str, runs: list[float], report: dict, cpu: list[float] | None 
     print(line, flush=True)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", help="write the figures here")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-cold", action="store_true", help="skip the cold runs (about a minute each)")
-    args = parser.parse_args()
+    parser.add_argument(
+        "--cache",
+        help="run on this compilation cache, as it is (no cold runs, nothing emptied: the figures are not "
+        "this benchmark's; the tests give theirs to check the script runs)",
+    )
+    args = parser.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="jaxcal-startup-"))
     env = {**os.environ, "XDG_CACHE_HOME": str(work / "cache")}
     for var in ("JAX_COMPILATION_CACHE_DIR", "JAXCAL_NO_CACHE"):
         env.pop(var, None)
+    if args.cache:
+        env["JAX_COMPILATION_CACHE_DIR"] = args.cache
     report: dict = {
         "runs": {},
         "load": {},
@@ -121,13 +128,13 @@ def main() -> None:
             CPU[-args.repeats :],
         )
         cold, ee_cold = [], None
-        for _ in range(1 if args.no_cold else args.repeats):
+        for _ in range(0 if args.cache else 1 if args.no_cold else args.repeats):
             shutil.rmtree(work / "cache", ignore_errors=True)
             report["load"].setdefault("cold_cli_s", _load())
             wall, ee = _calibrate(env, work / "out")
             cold.append(wall)
             ee_cold = ee if ee_cold is None else ee_cold
-        if not args.no_cold:
+        if cold and not args.no_cold:
             _figure("cold_cli_s", cold, report, CPU[-len(cold) :])
         report["ee_rms_mm_after_cold"] = ee_cold
         report["load"]["warm_cli_s"] = _load()

@@ -76,3 +76,21 @@ def test_std_gain_of_per_view_weights():
     rows = [{"corners": 1, "rms_px": np.sqrt(2.0)}, {"corners": 1, "rms_px": np.sqrt(8.0)}]
     assert noise_weights.std_gain(rows, np.array([1.0, 2.0])) == pytest.approx(np.sqrt(1.25 / 0.8), rel=1e-12)
     assert noise_weights.std_gain(rows, np.ones(2)) == 1.0  # one sigma for all: the unweighted mean
+
+
+def test_the_smear_model_is_fitted_over_the_blurred_cases():
+    """s_v^2 = s_0^2 + (b smear_v)^2 per axis: `b` shared, `s_0` per case with a smear; the sharp
+    case and the renderer's artefact (`ARTEFACTS`) left out, and no fit without a smear (the
+    suite's run of the benchmark has the ideal case alone)."""
+    b, s0 = 0.03, {"exposure_10ms": 0.05, "camera_mix": 0.08}
+
+    def rows(s, smears):
+        return [{"smear_px": m, "rms_px": float(np.sqrt(2.0 * (s**2 + (b * m) ** 2)))} for m in smears]
+
+    cases = {name: rows(s, np.linspace(0.5, 4.0, 8)) for name, s in s0.items()}
+    cases["ideal"] = rows(0.04, np.zeros(8))
+    cases["rolling_shutter"] = rows(0.5, np.linspace(0.5, 4.0, 8))
+    out = noise_weights.fit(cases)
+    assert out["b"] == pytest.approx(b, rel=1e-9) and out["b2"] == pytest.approx(b**2, rel=1e-9)
+    assert out["s0_px"] == pytest.approx(s0, rel=1e-9)
+    assert noise_weights.fit({"ideal": cases["ideal"]}) == {}
