@@ -43,23 +43,16 @@ from .._pointfit import (
     start_frame,
     term_basis,
 )
+from .._terms import approach, signs
 from ..errors import CalibrationError
 from ..records import ModelRow, ResidualStats, TermRow
-from ..robots import link_inertials
 from ._observe import Observations
 from ._setup import Options, Setup
 from ._synchronise import Sync
-
-#: A term is kept when it lowers the cross-validated mean error by more than this share.
-CV_GAIN = 0.005
-#: A non-geometric coefficient stays free only when the data pin its effect on the joint
-#: angle (its std times the RMS of its basis over the samples) to this (rad): a
-#: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
-#: only to more than that is not identified (e.g. wrist 3's, when the point sits on its axis).
-TERM_STD_RAD = 1e-3
-#: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
-#: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
-TERM_FLOOR = 1e-6
+from ._terms import CV_GAIN as CV_GAIN  # the rule every capture's terms are kept by
+from ._terms import TERM_FLOOR as TERM_FLOOR
+from ._terms import TERM_STD_RAD as TERM_STD_RAD
+from ._terms import inertials, resolve
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,7 +107,9 @@ def point_problem(
     sigma_rad: np.ndarray | None = None,
 ) -> PointProblem:
     """A `PointProblem` from NumPy arrays (`inertials`: masses and centres of mass, for
-    compliance; `R`, `sigma_rad`: measured orientations, when `layout.orientation`)."""
+    compliance and backlash's preload, the payload lumped in; `R`, `sigma_rad`: measured
+    orientations, when `layout.orientation`). With a `backlash` term every joint's
+    approach flank follows the samples' order (`jaxcal._terms.approach`)."""
     n = nominal.num_joints
     S = len(q)
     masses, coms = (np.zeros(n), np.zeros((n, 3))) if inertials is None else inertials
@@ -129,6 +124,7 @@ def point_problem(
         coms=jnp.asarray(coms, jnp.float64),
         R=jnp.asarray(np.broadcast_to(np.eye(3), (S, 3, 3)) if R is None else R, jnp.float64),
         sigma_rad=jnp.asarray(np.ones(S) if sigma_rad is None else sigma_rad, jnp.float64),
+        approach=jnp.asarray(approach(q), jnp.float64) if "backlash" in layout.terms else None,
     )
     return PointProblem(nominal, jnp.asarray(T_dev_base0), jnp.asarray(T_flange_point0), data, layout)
 
@@ -158,7 +154,8 @@ def _refit(problem: PointProblem, cand, free):
 def term_scale(problem: PointProblem) -> np.ndarray:
     """Per non-geometric coefficient (`PointLayout` order), the RMS of its basis over the fitted samples."""
     layout, d = problem.layout, problem.data
-    b = np.asarray(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms))[np.asarray(d.mask)]
+    b = np.asarray(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms, d.approach))
+    b = b[np.asarray(d.mask)]
     rms = np.sqrt(np.mean(b**2, axis=0))  # (joints, k): family-major below
     cols, start = [], 0
     for t in layout.terms:
@@ -181,16 +178,17 @@ def _cv(problem: PointProblem, cand, free, train):
 
 def _hold_implausible_terms(problem: PointProblem, cand, fit: PointFitResult) -> PointFitResult:
     """Hold at zero, and refit without, the non-geometric coefficients the data do not
-    pin (`TERM_STD_RAD`) and the compliances that come out negative (a joint does not
-    yield against gravity: such a term is absorbing something else), one round at a time."""
+    pin (`TERM_STD_RAD`) and those whose sign no real arm has (`jaxcal._terms.SIGNS`: a
+    joint does not yield against gravity, nor its link lead its motor; such a term is
+    absorbing something else), one round at a time."""
     layout = problem.layout
     k = layout.base.axis_size
-    compliance = np.array(["compliance" in n for n in layout.term_names()], bool)
+    sign = signs(layout.terms, len(layout.base.joints))
     for _ in range(len(layout.term_names())):
         free = np.asarray(fit.free).copy()
         terms_free = free[k:]
         loose = terms_free & (term_effect_std(problem, fit) > TERM_STD_RAD)
-        negative = terms_free & compliance & (np.asarray(fit.x)[k:] < 0)
+        negative = terms_free & (sign * np.asarray(fit.x)[k:] < 0)
         if not (loose | negative).any():
             break
         free[k:] &= ~(loose | negative)
@@ -206,15 +204,6 @@ def _cv_row(problem, cand, fit, train) -> dict:
         "cv_rms_mm": float(np.sqrt(np.mean(d**2))),
         "cv_max_mm": float(d.max()),
     }
-
-
-def _inertials(setup: Setup):
-    try:
-        return link_inertials(setup.dataset.robot_urdf)
-    except (ValueError, KeyError) as e:
-        raise CalibrationError(
-            f"{setup.dataset.robot_urdf}: joint compliance needs every link's mass and centre of mass: {e}"
-        ) from None
 
 
 def _orient_start(nominal, q, R, Tp0, T0) -> np.ndarray:
@@ -249,7 +238,8 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     if s.orientation is not None and kind.fixed_frame_free:
         T0 = _orient_start(nominal, q[used], s.orientation[used], Tp0, T0)
     base = ParameterLayout.of(nominal, 1, fixed_name=kind.fixed_frame)
-    inertials = _inertials(setup) if "compliance" in options.terms else None
+    terms = resolve(setup, options)
+    masses = inertials(setup) if {"compliance", "backlash"} & set(terms) else None
     tol = kind.identifiability_tol
     folds = options.cv_folds
     train = fold_masks(len(used), folds) if folds else None
@@ -259,7 +249,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     def attempt(terms):
         layout = PointLayout(base, terms, orientation)
         problem = point_problem(
-            nominal, layout, q, y, s.sigma_m, used, T0, Tp0, inertials, s.orientation, s.sigma_rad
+            nominal, layout, q, y, s.sigma_m, used, T0, Tp0, masses, s.orientation, s.sigma_rad
         )
         cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free, orientation=orientation)
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
@@ -273,7 +263,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     options.say(f"point fit: {n_used} stop-and-shoot samples, forward kinematics of every sample")
     best = attempt(())
     models, kept = [best[4]], 0
-    for term in options.terms:
+    for term in terms:
         if train is None:
             raise CalibrationError(
                 "non-geometric terms are kept only when cross-validation improves: cv_folds >= 2"

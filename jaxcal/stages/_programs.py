@@ -29,8 +29,9 @@ from .._device import to_device
 from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
-from .._pointfit import gravity_torques
 from .._refine import identifiable_mask, line_delay_test, refine
+from .._terms import gravity_torques
+from .._terms import term_basis as _term_basis_of
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
 #: The arc and clock fits' inlier threshold (robust sigmas of the deletion
@@ -224,16 +225,16 @@ def clock_fit(loss: str | None):
 
 
 @functools.cache
-def _refinement(free: tuple):
+def _refinement(free: tuple, jacobian: bool):
     def refinement(problem, params0):
-        return refine(problem, params0, np.asarray(free))
+        return refine(problem, params0, np.asarray(free), jacobian=jacobian)
 
-    return stored_jit(refinement, "refinement", (free,))
+    return stored_jit(refinement, "refinement", (free, jacobian) if jacobian else (free,))
 
 
-def refinement(free: np.ndarray):
-    """`refine(problem, params0, free)` for a concrete `free` mask (static)."""
-    return _refinement(tuple(bool(f) for f in np.asarray(free)))
+def refinement(free: np.ndarray, jacobian: bool = False):
+    """`refine(problem, params0, free, jacobian=jacobian)` for a concrete `free` mask (static)."""
+    return _refinement(tuple(bool(f) for f in np.asarray(free)), bool(jacobian))
 
 
 @functools.cache
@@ -285,6 +286,30 @@ def arm_score(use_poses: bool):
         return r.ravel(), J, Jc, tau
 
     return stored_jit(arm_score, "arm_score", (use_poses,))
+
+
+@functools.cache
+def _term_basis(terms: tuple[str, ...]):
+    def term_basis(nominal, q, approach, masses, coms):
+        return _term_basis_of(terms, nominal, q, masses, coms, approach)
+
+    return stored_jit(term_basis, "term_basis", (terms,))
+
+
+def term_basis(terms, nominal, q, approach, masses, coms) -> np.ndarray:
+    """`jaxcal._terms.term_basis` of the families `terms` at commanded positions `q (n, joints)`
+    with approach flanks `approach (n, joints)` (computed on both padded to a bucket), `(n,
+    joints, k)`."""
+    q = np.asarray(q, np.float64)
+    size = bucket(len(q))
+    padded = np.zeros((size, q.shape[1]))
+    flank = np.zeros((size, q.shape[1]))
+    padded[: len(q)], flank[: len(q)] = q, approach
+    out = _term_basis(tuple(terms))(
+        nominal, to_device(padded), to_device(flank), to_device(np.asarray(masses, np.float64)),
+        to_device(np.asarray(coms, np.float64)),
+    )  # fmt: skip
+    return np.array(out)[: len(q)]
 
 
 @functools.cache
