@@ -60,7 +60,19 @@ AXIS_GROUPS = GROUPS[:4]
 #: ones is frozen, so earlier groups are preferred (the cameras, the mounts,
 #: the zero offsets, then the joint origins from base to tip, then the rest; the non-geometric
 #: terms last, so a term is freed only where the geometry cannot already explain it).
-PRIORITY = ("cam", "others", "tool", "zero", "origin", "rate", "clock", "line_delay", "intr", "angles", "terms")
+PRIORITY = (
+    "cam",
+    "others",
+    "tool",
+    "zero",
+    "origin",
+    "rate",
+    "clock",
+    "line_delay",
+    "intr",
+    "angles",
+    "terms",
+)
 
 
 class KinematicCorrection(eqx.Module):

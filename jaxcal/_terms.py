@@ -105,6 +105,17 @@ def family_of(terms: tuple[str, ...], num_joints: int) -> np.ndarray:
     return np.concatenate([np.full(num_joints * TERMS[t], i) for i, t in enumerate(terms)] or [np.zeros(0)])
 
 
+def column_map(terms: tuple[str, ...], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per flattened coefficient (`names` order) its joint and its column in the per-joint basis."""
+    joint, col, start = [], [], 0
+    for t in terms:
+        m = TERMS[t]
+        joint += [j for j in range(n) for _ in range(m)]
+        col += [start + k for _ in range(n) for k in range(m)]
+        start += m
+    return np.array(joint, int), np.array(col, int)
+
+
 def coefficients(terms: tuple[str, ...], x: Float[Array, " k"], num_joints: int) -> Float[Array, "joints m"]:
     """The flattened coefficients `x` (`names` order) as `(joints, per_joint(terms))`, the
     families side by side in basis order."""
@@ -177,7 +188,9 @@ def term_basis(
     nominal `model` (`masses`, `coms`: the links', the payload lumped in, `with_payload`;
     `approach` `(samples, joints)`: the approach rule's flank, `approach`, zero if None)."""
     need_tau = any(t in ("compliance", "backlash") for t in terms)
-    tau = jax.vmap(gravity_torques, in_axes=(None, 0, None, None))(model, q, masses, coms) if need_tau else None
+    tau = (
+        jax.vmap(gravity_torques, in_axes=(None, 0, None, None))(model, q, masses, coms) if need_tau else None
+    )
     cols = []
     for t in terms:
         if t == "compliance":
@@ -225,3 +238,49 @@ def approach_at(t_log, q_log, t, width: float = APPROACH_WIDTH_RAD) -> np.ndarra
     i = np.clip(np.searchsorted(t_log, t, side="right") - 1, 0, len(t_log) - 1)
     half = 0.5 * width
     return (q - np.clip(y[i], q - half, q + half)) / half
+
+
+def _corrections_of(terms_x, model, q, a, masses, coms, terms: tuple[str, ...]):
+    return correction(terms, terms_x, term_basis(terms, model, q, masses, coms, a))
+
+
+_corrections = jax.jit(_corrections_of, static_argnames="terms")
+
+
+def compensate(
+    terms: tuple[str, ...], x, model: KinematicModel, masses, coms, q_target, approach=None, rate=None
+) -> np.ndarray:
+    """The commanded joints that put each joint where the rigid model's `q_target` does.
+
+    The arm stands at $\\rho q + \\delta + \\Delta(q, a)$ where the rigid model puts it at
+    $\\rho q + \\delta$ (`correction`), so the command $q_c$ for a target $q_t$ solves
+    $q_c = q_t - \\Delta(q_c, a) / \\rho$: a fixed point, found by iteration (the terms are
+    milliradians and smooth in $q$: each step shrinks the error by their slope, 1e-3).
+
+    **Arguments:** the kept families `terms` and coefficients `x` (`names` order); the
+    nominal `model` and the links' `masses`, `coms` (payload included) the basis is
+    evaluated on; `q_target` `(..., joints)`; `approach` `(..., joints)`: the flank each
+    joint comes from (+1 from smaller angles, -1 from larger, 0 unknown; default: along
+    the rows of a path `(N, joints)` by `approach`, 0 for one pose); `rate` `(joints,)`:
+    joint turn per commanded turn (default one).
+
+    **Returns:** the commanded joints, shaped as `q_target` (NumPy).
+    """
+    q_t = np.asarray(q_target, np.float64)
+    flat = q_t.reshape(-1, q_t.shape[-1])
+    if approach is None:
+        a = approach(flat) if q_t.ndim > 1 else np.zeros_like(flat)
+    else:
+        a = np.broadcast_to(np.asarray(approach, np.float64), q_t.shape).reshape(flat.shape)
+    r = np.ones(flat.shape[1]) if rate is None else np.asarray(rate, np.float64)
+    x = jnp.asarray(x, jnp.float64)
+    m, c = jnp.asarray(masses, jnp.float64), jnp.asarray(coms, jnp.float64)
+    q_c = flat.copy()
+    for _ in range(COMPENSATION_STEPS):
+        delta = np.asarray(_corrections(x, model, jnp.asarray(q_c), jnp.asarray(a), m, c, terms=tuple(terms)))
+        q_c = flat - delta / r
+    return q_c.reshape(q_t.shape)
+
+
+#: Fixed-point steps of `compensate` (each shrinks the error by the terms' slope in q, ~1e-3).
+COMPENSATION_STEPS = 4

@@ -649,6 +649,8 @@ class ResultFile:
     warnings: tuple[str, ...]
     #: Seconds per step: free-form.
     timings: dict[str, float]
+    #: The non-geometric terms tried, kept and estimated (None when none was tried).
+    terms: TermsSummary | None = None
 
 
 @dataclass(frozen=True, eq=False)

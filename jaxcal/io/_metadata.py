@@ -184,7 +184,9 @@ def read_payload(meta: dict, loc: Loc) -> Payload | None:
     mass = sc.number(p["mass_kg"], loc.key("mass_kg"), 0.0, MAX_PAYLOAD_KG)
     com = sc.array(p["com_m"], loc.key("com_m"), (3,))
     if np.max(np.abs(com)) > 5.0:
-        raise loc.key("com_m").fail(f"{com.tolist()} is over 5 m from the flange: millimetres given as metres?")
+        raise loc.key("com_m").fail(
+            f"{com.tolist()} is over 5 m from the flange: millimetres given as metres?"
+        )
     return Payload(mass, com)
 
 

@@ -30,7 +30,7 @@ from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
 from .._refine import identifiable_mask, line_delay_test, refine
-from .._terms import gravity_torques
+from .._terms import column_map, gravity_torques
 from .._terms import term_basis as _term_basis_of
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
@@ -330,25 +330,38 @@ def chains(T_cam_base, model, q) -> np.ndarray:
 
 
 @functools.cache
-def _ee_sigma():
-    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, travel):
+def _ee_sigma(terms: tuple[str, ...] = ()):
+    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, travel, masses, coms):
         key = jax.random.key(0)
         q = on_travel(nominal, random_configurations(key, EE_CONFIGURATIONS, nominal.num_joints), travel)
-        return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q)
+        if not terms:
+            return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q)
+        # A configuration's approach flank is unknown: either, so the lost motion's whole half-width.
+        basis = _term_basis_of(terms, nominal, q, masses, coms, jnp.ones_like(q))
+        joint, col = column_map(terms, nominal.num_joints)
+        return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q, joint, basis[:, joint, col])
 
-    return stored_jit(ee_sigma_program, "ee_sigma", (EE_CONFIGURATIONS,))
+    return stored_jit(
+        ee_sigma_program, "ee_sigma", (EE_CONFIGURATIONS, terms) if terms else (EE_CONFIGURATIONS,)
+    )
 
 
 #: Configurations (seed 0) of the end-effector uncertainty.
 EE_CONFIGURATIONS = 1000
 
 
-def end_effector_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, limits=None) -> np.ndarray:
+def end_effector_sigma(
+    nominal, T_cam_base0, mounts0, cam, correction, cov, limits=None, terms=None
+) -> np.ndarray:
     """Per configuration (1000, seed 0: the validation's sample) the 1-sigma tool-point
-    uncertainty (m); a prismatic joint within its URDF `limits` (`joint_travel`)."""
+    uncertainty (m); a prismatic joint within its URDF `limits` (`joint_travel`). `terms`:
+    `(families, masses, coms)` of non-geometric terms whose coefficients follow the axis-fit
+    prefix in `cov` (`jaxcal._uncertainty.ee_sigma`)."""
+    families, masses, coms = terms if terms is not None else ((), np.zeros(0), np.zeros(0))
     return np.asarray(
-        _ee_sigma()(
+        _ee_sigma(tuple(families))(
             nominal, to_device(T_cam_base0), to_device(mounts0), cam, correction, to_device(cov),
-            to_device(joint_travel(nominal, limits)),
+            to_device(joint_travel(nominal, limits)), to_device(np.asarray(masses, np.float64)),
+            to_device(np.asarray(coms, np.float64)),
         )
     )  # fmt: skip

@@ -388,12 +388,14 @@ STILL_DEG = 0.5
 
 
 def sweep_homes(
-    ds: Dataset, joint: np.ndarray, q: np.ndarray | None, inside: np.ndarray
+    ds: Dataset, joint: np.ndarray, q: np.ndarray | None, inside: np.ndarray, exact: bool = False
 ) -> np.ndarray | None:
     """Per joint sweep, the configuration the other joints held: the median of
     the encoder log over the sweep's frames (a `CalibrationError` names a joint
     that moved), else the metadata's `home` of the joint's segment, else zero.
-    None when every home is within `AT_ZERO_DEG` of zero (the zero configuration)."""
+    None when every home is within `AT_ZERO_DEG` of zero (the zero configuration),
+    unless `exact` (a log corrected by non-geometric terms: their sub-millidegree
+    offsets are the point)."""
     n = len(ds.joint_names)
     homes = np.zeros((n, n))
     for j in range(n):
@@ -419,7 +421,7 @@ def sweep_homes(
             if given and given[0] is not None:
                 homes[j] = given[0]
         homes[j, j] = 0.0
-    return None if np.degrees(np.abs(homes).max()) < AT_ZERO_DEG else homes
+    return None if np.degrees(np.abs(homes).max()) < AT_ZERO_DEG and not exact else homes
 
 
 #: A given clock offset disagrees with the estimate beyond this many of its std (and 0.5 ms).
@@ -582,8 +584,9 @@ def synchronise(setup: Setup, obs: Observations, options: Options, terms=None) -
         )
         if offset is not None:
             notes += _compare_clock(ds, offset, clock)
-    homes = sweep_homes(ds, joint, q, inside) if setup.kind.single_joint_sweeps else None
-    if homes is not None:
+    corrected = log_q is not commanded
+    homes = sweep_homes(ds, joint, q, inside, corrected) if setup.kind.single_joint_sweeps else None
+    if homes is not None and not corrected:
         notes.append(
             "sweeps from a home configuration other than zero: "
             + "; ".join(

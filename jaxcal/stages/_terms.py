@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._terms import TERMS, approach_at, check_terms, family_of, names, signs, with_payload
+from .._terms import TERMS, approach_at, check_terms, column_map, family_of, names, signs, with_payload
 from ..errors import CalibrationError
 from ..records import ModelRow, TermRow, TermsSummary
 from ..robots import link_inertials
@@ -60,12 +60,13 @@ RCOND = 1e-10
 
 
 def resolve(setup: Setup, options: Options) -> tuple[str, ...]:
-    """The families to try: `options.terms` (`"auto"`: the kind's `default_terms`)."""
+    """The families to try: `options.terms` (`"auto"`: the kind's `default_terms`; `"none"`; a
+    comma-separated string or a sequence of families)."""
     terms = options.terms
     if isinstance(terms, str):
-        if terms != "auto":
-            raise CalibrationError(f"terms must be 'auto' or a list of families {list(TERMS)}, got {terms!r}")
-        return setup.kind.default_terms
+        if terms.strip() == "auto":
+            return setup.kind.default_terms
+        terms = () if terms.strip() == "none" else tuple(t.strip() for t in terms.split(",") if t.strip())
     try:
         return check_terms(terms)
     except ValueError as e:
@@ -136,17 +137,6 @@ def view_basis(terms, nominal, q, a, masses, coms) -> np.ndarray:
     """`jaxcal._terms.term_basis` at commanded positions `q (N, joints)` and approach flanks
     `a`, as one compiled program on `q` padded to a size bucket (NumPy out, `(N, joints, k)`)."""
     return _programs.term_basis(terms, nominal, q, a, masses, coms)
-
-
-def column_map(terms: tuple[str, ...], n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per flattened coefficient (`names` order) its joint and its column in the per-joint basis."""
-    joint, col, start = [], [], 0
-    for t in terms:
-        m = TERMS[t]
-        joint += [j for j in range(n) for _ in range(m)]
-        col += [start + k for _ in range(n) for k in range(m)]
-        start += m
-    return np.array(joint, int), np.array(col, int)
 
 
 def fold_of_views(frames: np.ndarray, t_cam: np.ndarray, real: np.ndarray, folds: int) -> np.ndarray:
