@@ -248,7 +248,7 @@ _corrections = jax.jit(_corrections_of, static_argnames="terms")
 
 
 def compensate(
-    terms: tuple[str, ...], x, model: KinematicModel, masses, coms, q_target, approach=None, rate=None
+    terms: tuple[str, ...], x, model: KinematicModel, masses, coms, q_target, flank=None, rate=None
 ) -> np.ndarray:
     """The commanded joints that put each joint where the rigid model's `q_target` does.
 
@@ -259,7 +259,7 @@ def compensate(
 
     **Arguments:** the kept families `terms` and coefficients `x` (`names` order); the
     nominal `model` and the links' `masses`, `coms` (payload included) the basis is
-    evaluated on; `q_target` `(..., joints)`; `approach` `(..., joints)`: the flank each
+    evaluated on; `q_target` `(..., joints)`; `flank` `(..., joints)`: the flank each
     joint comes from (+1 from smaller angles, -1 from larger, 0 unknown; default: along
     the rows of a path `(N, joints)` by `approach`, 0 for one pose); `rate` `(joints,)`:
     joint turn per commanded turn (default one).
@@ -268,10 +268,10 @@ def compensate(
     """
     q_t = np.asarray(q_target, np.float64)
     flat = q_t.reshape(-1, q_t.shape[-1])
-    if approach is None:
+    if flank is None:
         a = approach(flat) if q_t.ndim > 1 else np.zeros_like(flat)
     else:
-        a = np.broadcast_to(np.asarray(approach, np.float64), q_t.shape).reshape(flat.shape)
+        a = np.broadcast_to(np.asarray(flank, np.float64), q_t.shape).reshape(flat.shape)
     r = np.ones(flat.shape[1]) if rate is None else np.asarray(rate, np.float64)
     x = jnp.asarray(x, jnp.float64)
     m, c = jnp.asarray(masses, jnp.float64), jnp.asarray(coms, jnp.float64)
