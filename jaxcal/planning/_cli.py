@@ -22,6 +22,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from .._terms import check_terms
 from ..errors import OutputError, PlanError, PlanFileError
 from ..io._files import write_text_atomic
 from ..io.plan_inputs import parse_pose, parse_region, read_camera, read_target
@@ -115,8 +116,6 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
 
 
 def _terms_arg(text: str) -> tuple[str, ...]:
-    from .._terms import check_terms
-
     try:
         return check_terms(t.strip() for t in text.split(",") if t.strip())
     except ValueError as e:
