@@ -487,7 +487,8 @@ def plan(
     tm = None
     if terms:
         masses, coms = link_inertials(rob.source)
-        tm = TermModel(jnp.asarray(masses), jnp.asarray(coms), terms)
+        zero = tuple(int(i) for i in design(scene, False).layout.index("zero"))
+        tm = TermModel(jnp.asarray(masses), jnp.asarray(coms), terms, zero)
     best, greedy = None, None
     for attempt in range(3 if goal_mm is not None else 1):
         cands, counts = _feasible_candidates(

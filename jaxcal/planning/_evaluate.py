@@ -71,16 +71,19 @@ class TermInputs:
 
 @eqx.filter_jit
 def term_columns(
-    scene: PlanScene, q: Float[Array, "V joints"], approach, masses, coms, terms: tuple[str, ...]
+    scene: PlanScene, q: Float[Array, "V joints"], approach, masses, coms, terms: tuple[str, ...], angle=None
 ) -> Float[Array, "rows k"]:
     """The terms' columns of the refinement's Jacobian at frames `q`: each frame's corner
-    motion per radian of joint $j$ ($P_v$) times the basis of every coefficient of $j$ (rows in
+    motion per radian of joint $j$ ($P_v$; `angle` `(rows, joints)`, the refinement Jacobian's
+    zero-offset columns, when at hand) times the basis of every coefficient of $j$ (rows in
     `(V, N, 2)` order, coefficients in `jaxcal._terms.names` order)."""
     basis = term_basis(terms, scene.nominal, q, masses, coms, approach)  # (V, joints, m)
-    P = pixel_jacobians(scene, q)  # (V, N, 2, joints)
     joint, col = column_map(terms, scene.nominal.num_joints)
-    cols = P[:, :, :, joint] * basis[:, None, None, joint, col]
-    return cols.reshape(-1, joint.size)
+    V = q.shape[0]
+    if angle is None:
+        angle = jnp.moveaxis(pixel_jacobians(scene, q), -1, 0).reshape(q.shape[1], -1).T  # (rows, joints)
+    per_row = jnp.repeat(basis[:, joint, col], angle.shape[0] // V, axis=0)  # (rows, k)
+    return angle[:, joint] * per_row
 
 
 @dataclass(frozen=True)

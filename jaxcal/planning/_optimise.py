@@ -151,6 +151,8 @@ class TermModel(eqx.Module):
     masses: Float[Array, " joints"]
     coms: Float[Array, "joints 3"]
     terms: tuple[str, ...] = eqx.field(static=True)
+    #: The zero offsets' indices in the flattened `RefineParams` (the joints' angle columns).
+    zero_idx: tuple[int, ...] = eqx.field(static=True, default=())
 
 
 def path_approach(q0, q):
@@ -164,11 +166,15 @@ def objective(scene, limits, M, free_idx, sigma_px, weight, q, terms: TermModel 
     """$\\log e^2(q) + w \\cdot$ mean feasibility penalty (see the module docstring); with
     `terms`, their columns join the information as nuisance parameters (`M` zero there)."""
     V = q.shape[0]
-    J = free_jacobian(corner_problem(scene, q, jnp.arange(V, dtype=q.dtype)), free_idx)
-    if terms is not None:
-        a = path_approach(q[0], q)
-        T = term_columns(scene, q, a, terms.masses, terms.coms, terms.terms)
-        J = jnp.concatenate([J, T], axis=1)
+    problem = corner_problem(scene, q, jnp.arange(V, dtype=q.dtype))
+    if terms is None:
+        J = free_jacobian(problem, free_idx)
+    else:
+        # The joints' angle columns are the zero offsets': one Jacobian for both.
+        f = len(free_idx)
+        J = free_jacobian(problem, jnp.concatenate([jnp.asarray(free_idx), jnp.asarray(terms.zero_idx, int)]))
+        T = term_columns(scene, q, path_approach(q[0], q), terms.masses, terms.coms, terms.terms, J[:, f:])
+        J = jnp.concatenate([J[:, :f], T], axis=1)
         M = jnp.zeros((J.shape[1],) * 2).at[: M.shape[0], : M.shape[1]].set(M)
     pen = jnp.mean(jax.vmap(lambda qq: penalty(scene, limits, qq))(q))
     return jnp.log(ee_mean_square(J, M, sigma_px)) + weight * pen
