@@ -304,15 +304,34 @@ def _compare(lin: _Linear, terms, folds: int, tol: float) -> tuple[list[dict], n
             f"{t}: held-out reprojection error {row['cv_mean_px']:.4f} px mean against {best['cv_mean_px']:.4f} "
             f"({100 * gain:+.1f} %; kept above {100 * CV_GAIN:g} %)"
         )
-        models.append(
-            dict(terms=trial, free=lin.n_geo + len(cols), why=why, kept=bool(gain > CV_GAIN), **row)
-        )
+        models.append(dict(terms=trial, free=lin.n_geo + len(cols), why=why, **row))
         if gain > CV_GAIN:
             best, best_cols = row, cols
             kept.append(t)
-    if not kept:
-        models[0]["kept"] = True
+    best, best_cols, kept = _eliminate(lin, terms, folds, models, best, best_cols, kept)
+    final = next(m for m in reversed(models) if set(m["terms"]) == set(kept) and "cv_mean_px" in m)
+    final["kept"] = True  # the model that stands: the last one scored with the kept families
     return models, best_cols, kept
+
+
+def _eliminate(lin: _Linear, terms, folds: int, models: list[dict], best: dict, best_cols, kept: list[str]):
+    """The backward step after the forward one: a kept family whose model without it is no worse
+    than `CV_GAIN` is dropped again (a family tried early can take part of a later one's
+    pattern: compliance some of a lost motion's), the models' rows updated."""
+    for t in list(kept) if len(kept) > 1 else ():
+        i = terms.index(t)
+        cols = lin.held(best_cols[lin.family[best_cols] != i])
+        row = _scored(lin, cols, folds)
+        loss = row["cv_mean_px"] / best["cv_mean_px"] - 1.0
+        rest = tuple(u for u in kept if u != t)
+        why = (
+            f"{t} left out again: held-out reprojection error {row['cv_mean_px']:.4f} px mean against "
+            f"{best['cv_mean_px']:.4f} with it ({100 * loss:+.1f} %; dropped unless above {100 * CV_GAIN:g} %)"
+        )
+        models.append(dict(terms=rest, free=lin.n_geo + len(cols), why=why, **row))
+        if loss <= CV_GAIN:
+            best, best_cols, kept = row, cols, [u for u in kept if u != t]
+    return best, best_cols, kept
 
 
 def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str, ...], options: Options):
