@@ -68,6 +68,9 @@ GRAVITY = 9.80665
 #: The gravity torque (N m) above which a joint counts as preloaded against one flank (the basis
 #: `tanh(tau / PRELOAD_NM)`): about a gear's friction torque, a few percent of a wrist's load.
 PRELOAD_NM = 1.0
+#: A coefficient whose basis has an RMS over a capture's poses under this is not a candidate of a
+#: fit: the joint carries no gravity load there (compliance, in kN m; e.g. a vertical axis).
+BASIS_FLOOR = 1e-6
 #: The play of the approach rule (rad): a joint's motor must move this far before its link turns
 #: to the other flank. Far above an encoder's noise (micro-radians), below any lost motion worth
 #: modelling (an arc minute is 2.9e-4 rad); only a reversal's first hundred micro-radians see it.

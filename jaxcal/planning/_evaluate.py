@@ -45,7 +45,7 @@ from .._correction import ParameterLayout
 from .._exported import stored_jit
 from .._refine import CornerData, RefineProblem, identifiable_mask, zero_params
 from .._reprojection import reprojection_residuals
-from .._terms import column_map, term_basis
+from .._terms import BASIS_FLOOR, column_map, term_basis
 from .._terms import names as term_names
 from .._uncertainty import tool_points
 from ..stages.kinds import CaptureKind
@@ -84,6 +84,14 @@ def term_columns(
         angle = jnp.moveaxis(pixel_jacobians(scene, q), -1, 0).reshape(q.shape[1], -1).T  # (rows, joints)
     per_row = jnp.repeat(basis[:, joint, col], angle.shape[0] // V, axis=0)  # (rows, k)
     return angle[:, joint] * per_row
+
+
+@eqx.filter_jit
+def basis_rms(q, approach, masses, coms, nominal, terms: tuple[str, ...]):
+    """Each coefficient's basis RMS over the frames `q` (`jaxcal._terms.names` order)."""
+    basis = term_basis(terms, nominal, q, masses, coms, approach)
+    joint, col = column_map(terms, nominal.num_joints)
+    return jnp.sqrt(jnp.mean(basis[:, joint, col] ** 2, axis=0))
 
 
 @dataclass(frozen=True)
@@ -230,7 +238,8 @@ class PlanEvaluation:
       `ee_total_p95` read them.
     - With non-geometric terms (`evaluate_views(..., terms=)`): `terms`, the families
       the refinement fits beside the geometry (the noise part and `ee_bias` are what
-      is left with them); `term_std`: each coefficient's predicted 1-sigma; and
+      is left with them); `term_std`: each candidate coefficient's predicted 1-sigma (one
+      whose basis does not vary over the frames is none, as in the refinement); and
       `ee_bias_rigid`, `bias_parts_rigid`: the arm's bias without them.
     """
 
@@ -483,12 +492,15 @@ def evaluate_views(
             term_columns(scene, jnp.asarray(q), jnp.asarray(terms.approach), jnp.asarray(terms.masses),
                          jnp.asarray(terms.coms), tuple(terms.terms))
         ) * np.repeat(mask.reshape(-1), 2)[:, None]  # fmt: skip
-        aug, sv = least_squares_map(np.concatenate([Jf, T], axis=1))
+        # As the refinement: a coefficient whose basis does not vary over the frames is no candidate.
+        varied = np.asarray(
+            basis_rms(jnp.asarray(q), jnp.asarray(terms.approach), jnp.asarray(terms.masses),
+                      jnp.asarray(terms.coms), scene.nominal, tuple(terms.terms))
+        ) >= BASIS_FLOOR  # fmt: skip
+        aug, sv = least_squares_map(np.concatenate([Jf, T[:, varied]], axis=1))
         pinv, pinv_t = aug[: Jf.shape[1]], aug[Jf.shape[1] :]
-        with_terms = (
-            tuple(terms.terms),
-            dict(zip(term_names(terms.terms, names_of(scene)), sigma_px * np.linalg.norm(pinv_t, axis=1))),
-        )
+        names_t = np.array(term_names(terms.terms, names_of(scene)))[varied]
+        with_terms = (tuple(terms.terms), dict(zip(names_t, sigma_px * np.linalg.norm(pinv_t, axis=1))))
     cov_f = sigma_px**2 * (pinv @ pinv.T)
     parts, bias, parts_rigid, bias_rigid = {}, np.zeros(0), {}, np.zeros(0)
     if len(offsets) or joint_std is not None:

@@ -33,7 +33,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._terms import TERMS, approach_at, check_terms, column_map, family_of, names, signs, with_payload
+from .._terms import (
+    BASIS_FLOOR,
+    TERMS,
+    approach_at,
+    check_terms,
+    column_map,
+    family_of,
+    names,
+    signs,
+    with_payload,
+)
 from ..errors import CalibrationError
 from ..records import ModelRow, TermRow, TermsSummary
 from ..robots import link_inertials
@@ -51,7 +61,7 @@ CV_GAIN = 0.005
 TERM_STD_RAD = 1e-3
 #: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
 #: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
-TERM_FLOOR = 1e-6
+TERM_FLOOR = BASIS_FLOOR
 #: Consecutive frames of the capture left out together by the cross-validation.
 BLOCK_FRAMES = 6
 #: A model's held-out fit solves its normal equations on Jacobi-scaled columns, dropping
