@@ -230,9 +230,11 @@ def test_compensate_puts_each_joint_where_the_rigid_model_does():
 @pytest.mark.slow
 def test_a_sagging_arm_with_lost_motion_is_calibrated_with_its_terms(tmp_path):
     """The realistic arm's sag, lost motion and late encoder stamps on analytic corners of
-    `data/ur5e_sweeps`' design: without terms the result is suspect, naming gravity sag and
-    backlash; by default the lost motion is kept (held-out views improve), the result is ok, its
-    terms are in `result.json` and `compensation.json`, and its tool error is near the rigid arm's."""
+    `data/ur5e_sweeps`' design (without terms: 1.87 mm and suspect, naming gravity sag and backlash,
+    as `tests/test_armcheck.py` checks): by default the lost motion is kept (held-out views improve
+    by 10 %), the arcs and axes fitted again on the corrected log pass the rigidity tests, the result
+    is ok with a tool error within 1.3x the rigid arm's on the same corners (1.00 mm: the issue's
+    bound), and its terms are in `result.json` and `compensation.json`."""
     import json
 
     from jaxcal.io.dataset import load_dataset
@@ -257,11 +259,9 @@ def test_a_sagging_arm_with_lost_motion_is_calibrated_with_its_terms(tmp_path):
             "jaxcal.stages.observe",
             lambda setup, options, detections=None: real(setup, options, {"cam0": dets}),
         )
-        rigid = jaxcal.calibrate(design, progress=False, terms=())
         fit = jaxcal.calibrate(design, progress=False)
-    assert rigid.status == "suspect" and any("gravity sag" in r and "backlash" in r for r in rigid.reasons)
     assert "backlash" in fit.terms.kept and fit.status == "ok", fit.reasons
-    assert fit.validation.ee_rms_mm_after < 0.7 * rigid.validation.ee_rms_mm_after
+    assert fit.validation.ee_rms_mm_after < 1.3 * 1.00
     out = jaxcal.write_outputs(fit, tmp_path / "out")
     saved = json.loads((out / "result.json").read_text())
     assert saved["terms"]["kept"] == list(fit.terms.kept)
