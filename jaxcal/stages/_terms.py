@@ -39,6 +39,7 @@ from .._terms import (
     approach_at,
     check_terms,
     column_map,
+    correction,
     family_of,
     names,
     signs,
@@ -125,22 +126,7 @@ class TermFit:
         basis = view_basis(
             self.terms, nominal, enc_q, approach_at(enc_t, enc_q, enc_t), self.masses, self.coms
         )
-        return correction_of(self.terms, self.x, basis)
-
-
-def correction_of(terms, x, basis) -> np.ndarray:
-    """`jaxcal._terms.correction` in NumPy: $\\Delta = \\sum_k e_{jk} b_{jk}$ `(..., joints)`."""
-    e = _coefficient_matrix(terms, np.asarray(x), basis.shape[-2])
-    return np.sum(e * basis, axis=-1)
-
-
-def _coefficient_matrix(terms, x, n) -> np.ndarray:
-    blocks, start = [], 0
-    for t in terms:
-        m = TERMS[t]
-        blocks.append(x[start : start + n * m].reshape(n, m))
-        start += n * m
-    return np.concatenate(blocks, axis=1) if blocks else np.zeros((n, 0))
+        return np.asarray(correction(self.terms, self.x, basis))
 
 
 def view_basis(terms, nominal, q, a, masses, coms) -> np.ndarray:
