@@ -43,6 +43,11 @@ consecutive frames: independent errors give about 0).
 With `--workdir`, the rendered captures are kept and reused (rendering is
 deterministic per case).
 
+Every case is calibrated with the default non-geometric terms (`terms="auto"`: compliance and
+backlash, each kept only where held-out views say so; `terms_kept` names them); with
+`--without-terms`, every arm case is calibrated again with none (`<case>_without_terms`: the rigid
+model, as before issue 48).
+
 With `--seeds N`, every rendered case is rendered and calibrated for the seeds
 `--seed` ... `--seed + N - 1` (each seed draws another true arm, mounts and
 noise; the cases of one seed share them), and `over_seeds` in the JSON gives
@@ -325,10 +330,11 @@ def _analytic_summary(out: dict) -> dict:
     return out
 
 
-def run_case(dataset: Path) -> dict:
-    """Calibrate `dataset` with the defaults: EE RMS of both stages, the verdict and its reasons."""
+def run_case(dataset: Path, terms="auto") -> dict:
+    """Calibrate `dataset` with the defaults (`terms`: the non-geometric terms to try): EE RMS of both
+    stages, the verdict and its reasons, the terms kept."""
     try:
-        result = jaxcal.calibrate(dataset, progress=False)
+        result = jaxcal.calibrate(dataset, progress=False, terms=terms)
     except JaxcalError as e:
         return {"two_stage_mm": None, "refined_mm": None, "status": "refused", "reasons": [str(e)]}
     v = result.validation
@@ -341,6 +347,9 @@ def run_case(dataset: Path) -> dict:
         "clock_error_ms": v["clock_offset_error_ms"],
         "line_delay_s": delays[0].line_delay_s if delays else None,
         "line_delay_estimated": bool(delays and delays[0].estimated),
+        "terms_kept": [] if result.terms is None else list(result.terms.kept),
+        "terms_why": [] if result.terms is None else [m.why for m in result.terms.models if m.why],
+        "ee_sigma_mm": next((c.value for c in result.verdict.checks if c.check == "ee_sigma_mm"), None),
     }
 
 
@@ -404,6 +413,11 @@ def main(argv=None) -> int:
         "--seeds", type=int, default=1, help="render every case for this many seeds from --seed"
     )
     parser.add_argument("--json", help="write the figures here")
+    parser.add_argument(
+        "--without-terms",
+        action="store_true",
+        help="also calibrate every arm case with no non-geometric term (`<case>_without_terms`)",
+    )
     parser.add_argument("--workdir", help="keep the rendered captures here and reuse them")
     parser.add_argument(
         "--detection-errors",
@@ -441,6 +455,14 @@ def main(argv=None) -> int:
                 print(
                     json.dumps({case: cases[case]} | ({"seed": seed} if args.seeds > 1 else {})), flush=True
                 )
+                if args.without_terms and case in ARMS:
+                    start = time.perf_counter()
+                    rigid = f"{case}_without_terms"
+                    cases[rigid] = run_case(dataset, terms=()) | {"calibrate_s": time.perf_counter() - start}
+                    print(
+                        json.dumps({rigid: cases[rigid]} | ({"seed": seed} if args.seeds > 1 else {})),
+                        flush=True,
+                    )
         if args.analytic_seeds:
             found = analytic(
                 Path(args.analytic_design),

@@ -112,6 +112,7 @@ if TYPE_CHECKING:
     from ._tooloffset import estimate_offset as estimate_offset
     from ._tooloffset import fit_circle as fit_circle
     from ._tooloffset import validate_arc_points as validate_arc_points
+    from .compensation import compensate as compensate
     from .errors import CalibrationError as CalibrationError
     from .errors import DatasetError as DatasetError
     from .errors import DegenerateMotionError as DegenerateMotionError

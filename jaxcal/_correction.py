@@ -16,6 +16,7 @@ here, once, in `ravel_pytree` order of `AxisFitParams` / `RefineParams`:
 | `others` | 6 per camera| refinement: twist on each further fixed camera's pose             |
 | `angles` | 1 per view  | refinement without encoders: the sweeping joint's angle per view  |
 | `line_delay` | 1 per camera | refinement, rolling shutters: line-delay increment (us per row) |
+| `terms`  | per joint, per family | refinement: non-geometric coefficients (`jaxcal._terms`: compliance, backlash, harmonics) |
 
 The axis fit's vector is the first four groups; the refinement's extends it,
 so an axis-fit vector is a prefix of a refinement vector. `ParameterLayout`
@@ -43,19 +44,35 @@ from jaxtyping import Array, Bool, Float
 from ._exported import stored_jit
 from ._geometry import matmul, matrix_to_rpy, se3_exp, so3_log
 from ._kinematics import REVOLUTE, KinematicModel
+from ._terms import check_terms
+from ._terms import names as term_names
+from ._terms import per_joint as terms_per_joint
 
 #: Names of a pose twist's components, `(v, w)`.
 POSE_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 #: Names of the intrinsic increments, in `RefineParams.intrinsics` order.
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: Parameter groups in flattened order.
-GROUPS = ("cam", "origin", "zero", "tool", "rate", "clock", "intr", "others", "angles", "line_delay")
+GROUPS = ("cam", "origin", "zero", "tool", "rate", "clock", "intr", "others", "angles", "line_delay", "terms")
 #: The axis fit's groups (a prefix of `GROUPS`).
 AXIS_GROUPS = GROUPS[:4]
 #: Column order of the identifiability search: a column dependent on earlier
 #: ones is frozen, so earlier groups are preferred (the cameras, the mounts,
-#: the zero offsets, then the joint origins from base to tip, then the rest).
-PRIORITY = ("cam", "others", "tool", "zero", "origin", "rate", "clock", "line_delay", "intr", "angles")
+#: the zero offsets, then the joint origins from base to tip, then the rest; the non-geometric
+#: terms last, so a term is freed only where the geometry cannot already explain it).
+PRIORITY = (
+    "cam",
+    "others",
+    "tool",
+    "zero",
+    "origin",
+    "rate",
+    "clock",
+    "line_delay",
+    "intr",
+    "angles",
+    "terms",
+)
 
 
 class KinematicCorrection(eqx.Module):
@@ -109,6 +126,8 @@ class ParameterLayout:
       board's (`T_board_base`) and the one mount is the camera's.
     - `fixed_name`: the fixed frame's name where it is neither (an external
       measuring device's `T_device_base`).
+    - `terms`: the non-geometric term families of the refinement (`jaxcal._terms`),
+      their coefficients last, family-major and joint-major within a family.
     """
 
     joints: tuple[str, ...]
@@ -118,6 +137,10 @@ class ParameterLayout:
     eye_in_hand: bool = False
     line_delays: tuple[str, ...] = ()
     fixed_name: str | None = None
+    terms: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        check_terms(self.terms)
 
     @classmethod
     def of(cls, model: KinematicModel, num_markers: int = 1, **kwargs) -> "ParameterLayout":
@@ -138,6 +161,7 @@ class ParameterLayout:
             "others": 6 * len(self.other_cameras),
             "angles": len(self.angles),
             "line_delay": len(self.line_delays),
+            "terms": n * terms_per_joint(self.terms),
         }
 
     def index(self, group: str) -> np.ndarray:
@@ -208,7 +232,8 @@ class ParameterLayout:
         names += [f"intrinsics.{k}" for k in INTRINSIC_NAMES]
         for c in self.other_cameras:
             names += [f"{c}.T_cam_base.{p}" for p in POSE_NAMES]
-        return names + list(self.angles) + [f"{c}.line_delay_us" for c in self.line_delays]
+        names += list(self.angles) + [f"{c}.line_delay_us" for c in self.line_delays]
+        return names + term_names(self.terms, self.joints)
 
     def split(self, x: Float[Array, " n"]) -> tuple[Float[Array, "6"], KinematicCorrection, Array | None]:
         """`(cam, correction, rate)` of a flattened vector: an axis fit's
@@ -235,16 +260,24 @@ class ParameterLayout:
         return np.concatenate([self.index(g) for g in groups])
 
     def candidates(
-        self, *, rates: bool = True, clock: bool = False, intrinsics: bool = False, line_delay=False
+        self,
+        *,
+        rates: bool = True,
+        clock: bool = False,
+        intrinsics: bool = False,
+        line_delay=False,
+        terms=False,
     ) -> np.ndarray:
         """Candidate mask of the refinement: pose and kinematic corrections
         (every camera's pose and every per-view angle included), and the
-        optional groups (`line_delay`: one bool, or one per camera of `line_delays`)."""
+        optional groups (`line_delay`: one bool, or one per camera of `line_delays`;
+        `terms`: one bool, or one per coefficient)."""
         free = np.ones(self.size, bool)
         free[self.index("rate")] = rates
         free[self.index("clock")] = clock
         free[self.index("intr")] = intrinsics
         free[self.index("line_delay")] = line_delay
+        free[self.index("terms")] = terms
         return free
 
     def axis_columns(self, group: str) -> np.ndarray:

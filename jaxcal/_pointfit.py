@@ -13,15 +13,11 @@ origin, zero offsets), so the unknowns are exactly the axis fit's vector
 (`ParameterLayout.axis_size`: `cam`, `origin`, `zero`, `tool`), and the
 tables, covariance and outputs of the two-stage fit apply unchanged.
 
-**Non-geometric terms.** $\\delta q_{i,j} = \\sum_k e_{j,k}\\, b_{j,k}(q_i)$: joint
+**Non-geometric terms.** $\\delta q_{i,j} = \\sum_k e_{j,k}\\, b_{j,k}(q_i, a_i)$: joint
 angle errors linear in a few coefficients per joint over a basis of the
-pose. Families (`TERMS`):
-
-- `compliance`: $b_j = \\tau_j(q)$ / (1 kN m), the gravity torque about joint
-  $j$'s axis from the link masses and centres of mass (the joint yields by
-  $c_j \\tau_j$; $e_j$ is then the compliance in rad per kN m).
-- `harmonic1`, `harmonic2`: $\\sin(k q_j), \\cos(k q_j)$, a transmission's
-  once- and twice-per-turn error.
+pose and of how it was approached: `jaxcal._terms`, the one implementation
+every observation shares (`compliance`, `backlash`, `harmonic1`, `harmonic2`;
+the samples' order is the motion the approach rule follows).
 
 Their coefficients follow the axis-fit vector in the flattened parameters
 (`PointLayout`); the identifiability search visits them last, so a term is
@@ -56,15 +52,18 @@ from ._correction import ParameterLayout
 from ._geometry import cross_lanes, se3_exp, skew, so3_log
 from ._geometry import matmul_lanes as mml
 from ._geometry import matvec_lanes as mvl
-from ._kinematics import KinematicModel, forward_kinematics
+from ._kinematics import KinematicModel
 from ._options import RobustOptions, robust_terms
 from ._robust import deletion_residuals, irls_rounds_evaluated, round_plan, sample_weights
 from ._schur import NormalEquations, normal_least_squares
+from ._terms import GRAVITY as GRAVITY  # re-exported: the terms live in `jaxcal._terms`
+from ._terms import TERMS as TERMS
+from ._terms import check_terms, coefficients
+from ._terms import gravity_torques as gravity_torques
+from ._terms import names as term_names
+from ._terms import per_joint as terms_per_joint
+from ._terms import term_basis as term_basis
 
-#: Non-geometric term families and their number of coefficients per joint.
-TERMS = {"compliance": 1, "harmonic1": 2, "harmonic2": 2}
-#: Standard gravity (m/s^2), along the base frame's -z.
-GRAVITY = 9.80665
 #: The point fit's Levenberg-Marquardt settings: it stops at steps below a thousandth of a
 #: standard deviation (whitened residuals), far inside the answer's own uncertainty.
 LM_OPTIONS = _lsq.LMOptions(rtol=1e-8, atol=1e-3)
@@ -85,26 +84,19 @@ class PointLayout:
     orientation: bool = False
 
     def __post_init__(self):
-        unknown = [t for t in self.terms if t not in TERMS]
-        if unknown:
-            raise ValueError(f"unknown non-geometric terms {unknown}; known terms are {sorted(TERMS)}")
+        check_terms(self.terms)
 
     @property
     def num_terms(self) -> int:
         """Coefficients per joint."""
-        return sum(TERMS[t] for t in self.terms)
+        return terms_per_joint(self.terms)
 
     @property
     def size(self) -> int:
         return self.base.axis_size + len(self.base.joints) * self.num_terms
 
     def term_names(self) -> list[str]:
-        suffix = {
-            "compliance": ("rad_per_kNm",),
-            "harmonic1": ("sin1", "cos1"),
-            "harmonic2": ("sin2", "cos2"),
-        }
-        return [f"{j}.{t}.{s}" for t in self.terms for j in self.base.joints for s in suffix[t]]
+        return term_names(self.terms, self.base.joints)
 
     def names(self) -> list[str]:
         return self.base.names(refine=False) + self.term_names()
@@ -113,13 +105,7 @@ class PointLayout:
         """The axis-fit parameters and the per-joint term coefficients `(joints, num_terms)`."""
         k = self.base.axis_size
         cam, corr, _ = self.base.split(x[:k])
-        n = len(self.base.joints)
-        blocks, start = [], k
-        for t in self.terms:
-            m = TERMS[t]
-            blocks.append(x[start : start + n * m].reshape(n, m))
-            start += n * m
-        e = jnp.concatenate(blocks, axis=1) if blocks else jnp.zeros((n, 0), x.dtype)
+        e = coefficients(self.terms, x[k:], len(self.base.joints))
         return AxisFitParams(cam=cam, correction=corr), e
 
     def priority(self) -> np.ndarray:
@@ -140,6 +126,9 @@ class PointData(eqx.Module):
     - `R`, `sigma_rad`: with orientations, the measured rotation of the point's
       frame in the device frame `(samples, 3, 3)` and its 1-sigma per axis (rad);
       identities and ones otherwise.
+    - `approach`: the approach rule's flank of every joint at every sample
+      (`jaxcal._terms.approach` along the samples' order), `(samples, joints)`;
+      None (zeros) without a `backlash` term.
     """
 
     q: Float[Array, "samples joints"]
@@ -151,36 +140,13 @@ class PointData(eqx.Module):
     coms: Float[Array, "joints 3"]
     R: Float[Array, "samples 3 3"]
     sigma_rad: Float[Array, " samples"]
+    approach: Float[Array, "samples joints"] | None = None
 
 
-def gravity_torques(model: KinematicModel, q, masses, coms) -> Float[Array, " joints"]:
-    """$\\tau_j = z_j \\cdot \\sum_{k \\ge j} (c_k - o_j) \\times m_k g$ (N m): the torque
-    gravity (along the base's $-z$) exerts about each joint's axis at `q`."""
-    T = forward_kinematics(model, q)
-    links = T[1:-1]  # each joint's child link
-    c = jnp.einsum("kab,kb->ka", links[:, :3, :3], coms) + links[:, :3, 3]
-    z = jnp.einsum("jab,jb->ja", links[:, :3, :3], model.axis)
-    o = links[:, :3, 3]
-    f = masses[:, None] * jnp.array([0.0, 0.0, -GRAVITY])
-    n = model.num_joints
-    down = jnp.arange(n)[None, :] >= jnp.arange(n)[:, None]  # (j, k): link k rides on joint j
-    moment = jnp.cross(c[None, :, :] - o[:, None, :], f[None, :, :])  # (j, k, 3)
-    return jnp.einsum("ja,jka,jk->j", z, moment, down.astype(q.dtype))
-
-
-def term_basis(
-    terms: tuple[str, ...], model: KinematicModel, q, masses, coms
-) -> Float[Array, "samples joints k"]:
-    """The terms' basis at every sample's commanded pose `q` `(samples, joints)`, on the nominal model."""
-    cols = []
-    for t in terms:
-        if t == "compliance":
-            tau = jax.vmap(gravity_torques, in_axes=(None, 0, None, None))(model, q, masses, coms)
-            cols.append(tau[..., None] / 1000.0)
-        else:
-            k = 1.0 if t == "harmonic1" else 2.0
-            cols += [jnp.sin(k * q)[..., None], jnp.cos(k * q)[..., None]]
-    return jnp.concatenate(cols, axis=-1) if cols else jnp.zeros((*q.shape, 0), q.dtype)
+def _basis(problem: "PointProblem") -> Float[Array, "samples joints k"]:
+    """The problem's term basis (`jaxcal._terms.term_basis`) at its samples."""
+    d = problem.data
+    return term_basis(problem.layout.terms, problem.nominal, d.q, d.masses, d.coms, d.approach)
 
 
 class PointProblem(eqx.Module):
@@ -232,7 +198,7 @@ def _chain(x, problem: "PointProblem") -> _Chain:
     mount = problem.T_flange_point0 @ se3_exp(corr.tool[0])
     theta = d.q + nominal.zero_offset + corr.zero_offset
     if layout.terms:
-        theta = theta + jnp.sum(e[None] * term_basis(layout.terms, nominal, d.q, d.masses, d.coms), axis=2)
+        theta = theta + jnp.sum(e[None] * _basis(problem), axis=2)
     rot = _rotations(nominal.axis, theta.T)
     S = theta.shape[0]
     R = jnp.broadcast_to(T_db[:3, :3, None], (3, 3, S))
@@ -339,8 +305,7 @@ def _jacobian_factors(x, problem: "PointProblem", c: _Chain):
         jnp.concatenate([jnp.swapaxes(c.R_p, 0, 1), jnp.zeros((3, 3, S), c.y.dtype)]),
     ]
     if layout.terms:
-        d = problem.data
-        b = jnp.moveaxis(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms), 0, -1)
+        b = jnp.moveaxis(_basis(problem), 0, -1)
         start = 0
         for t in layout.terms:
             m = TERMS[t]

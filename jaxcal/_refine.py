@@ -70,6 +70,7 @@ from ._reprojection import rolling as rolling
 from ._reprojection import sweep_corner_data as sweep_corner_data
 from ._reprojection import target_poses as target_poses
 from ._robust import Rounds, check_loss, irls_rounds, loss_weights, robust_scale, round_plan
+from ._terms import per_joint as terms_per_joint
 
 _MS = 1e-3
 #: Median of the norm of a 2-D standard normal vector (Rayleigh), $\\sqrt{2 \\ln 2}$.
@@ -115,6 +116,7 @@ def layout(problem: RefineProblem, params: RefineParams) -> ParameterLayout:
         angles=tuple(f"view{v}" for v in range(n_angles)),
         eye_in_hand=problem.eye_in_hand,
         line_delays=tuple(f"camera{c}" for c in range(n_delays)),
+        terms=problem.terms if params.terms is not None else (),
     )
 
 
@@ -200,6 +202,10 @@ class RefineResult(eqx.Module):
       row); `None` without.
     - `cov_model`: the model's covariance $\\hat\\sigma^2 (J^TJ)^+$ (corner errors
       independent), beside `cov`.
+    - `jacobian`, `angle_jacobian`: with `refine(..., jacobian=True)`, the unweighted
+      residuals' (`residuals` flattened) Jacobian at the solution in the free parameters
+      `(rows, free)` and in every joint's angle `(rows, joints)` (a view's joint-angle
+      correction, the non-geometric terms' column times their basis); `None` otherwise.
     """
 
     params: RefineParams
@@ -226,6 +232,8 @@ class RefineResult(eqx.Module):
     round_steps: Int[Array, " rounds"]
     line_delay_s: Float[Array, " cameras"] | None = None
     cov_model: Float[Array, "n n"] | None = None
+    jacobian: Float[Array, "rows f"] | None = None
+    angle_jacobian: Float[Array, "rows joints"] | None = None
 
 
 #: `refine`'s solver settings, on the scaled variables: every start Jacobian column has
@@ -242,6 +250,7 @@ def refine(
     *,
     options: LMOptions = REFINE_OPTIONS,
     robust: RobustOptions | None = REFINE_ROBUST,
+    jacobian: bool = False,
     **deprecated,
 ) -> RefineResult:
     """Minimise the reprojection error of every corner; pure, jittable, vmappable.
@@ -267,6 +276,9 @@ def refine(
     - `robust`: the `RobustOptions` (`None`: plain least squares, one solve). Its
       `c` and `reject` may be traced: `c = reject = inf` with a robust loss is plain
       least squares with the same compiled code.
+    - `jacobian`: also return the Jacobians at the solution (`RefineResult.jacobian`,
+      `angle_jacobian`): what a linearised refit (cross-validation of the non-geometric
+      terms, `jaxcal.stages._terms`) needs.
     - `deprecated`: the keywords `loss`, `rounds`, `c`, `reject`, `rtol`, `atol`,
       `max_steps` of the previous release (`jaxcal._options.fit_options`).
 
@@ -306,7 +318,19 @@ def refine(
     params = unravel(flat0.at[idx].set(x))
     sw = jnp.repeat(jnp.sqrt(out.weights).reshape(-1), 2)
     covs = _covariances(J * sw[:, None], raw * sw, out.weights, idx, flat0.shape[0])
-    return _result(problem, params, free, out, covs, raw.reshape(mask.shape + (2,)))
+    res = _result(problem, params, free, out, covs, raw.reshape(mask.shape + (2,)))
+    if not jacobian:
+        return res
+    flat = flat0.at[idx].set(x)
+    zero = layout(problem, params0).index("zero")
+
+    def shifted(dz):  # every view's joint angles moved by dz: the zero offsets' columns
+        return reprojection_residuals(unravel(flat.at[zero].add(dz)), problem, mask_f).reshape(-1)
+
+    J_angle = jax.jacfwd(shifted)(jnp.zeros(zero.size, flat.dtype))
+    return eqx.tree_at(
+        lambda r: (r.jacobian, r.angle_jacobian), res, (J, J_angle), is_leaf=lambda v: v is None
+    )
 
 
 def _jacobi_scale(J0):
@@ -399,6 +423,18 @@ def _checked(problem: RefineProblem, params0: RefineParams, free, loss):
         raise ValueError(
             "refine: a rolling shutter needs data.row, problem.line_delay0_s and params0.line_delay_us "
             "(one per camera); a global shutter none of them"
+        )
+    if (params0.terms is not None) != (problem.data.term_basis is not None) or (
+        params0.terms is not None
+        and (
+            not problem.terms
+            or params0.terms.shape != (problem.nominal.num_joints * terms_per_joint(problem.terms),)
+            or problem.data.term_basis.shape[-1] != terms_per_joint(problem.terms)
+        )
+    ):
+        raise ValueError(
+            "refine: non-geometric terms need problem.terms, data.term_basis (views, joints, k) and "
+            "params0.terms (joints * k); without terms, none of them"
         )
     if several != (params0.other_cams is not None) or (several and problem.data.camera is None):
         raise ValueError(

@@ -24,6 +24,11 @@ instant, $q_{vk} = r \\odot q_{log}\\big((t_{cam,v} + y_{vk}\\ell_c -
 (`CornerData.row`, `RefineProblem.line_delay0_s`, `RefineParams.line_delay_us`).
 Without rows every corner of a view is seen at $t_{cam,v}$ (a global shutter).
 
+A real arm's joints stand off their rigid angles by the non-geometric terms
+(`jaxcal._terms`): every view's joint angles gain $\\Delta_j = \\sum_k e_{j,k}
+b_{vjk}$, the coefficients `RefineParams.terms` over the view's basis
+(`CornerData.term_basis`, evaluated once at its commanded pose and approach).
+
 This module holds the data (`CornerData`, `RefineProblem`), the unknowns
 (`RefineParams`, laid out by `jaxcal._correction.ParameterLayout`) and the
 pure functions of the model; no solver.
@@ -40,6 +45,7 @@ from ._correction import KinematicCorrection, apply_correction
 from ._device import to_device
 from ._geometry import se3_exp, skew
 from ._kinematics import REVOLUTE, KinematicModel
+from ._terms import correction
 
 _MS = 1e-3
 
@@ -63,7 +69,9 @@ class RefineParams(eqx.Module):
       encoder log. After `other_cams` in the flattened order.
     - `line_delay_us`: with rolling-shutter cameras (`CornerData.row`), each
       camera's line-delay increment over `RefineProblem.line_delay0_s` (us per
-      row), `(cameras,)`; `None` without. Last in the flattened order.
+      row), `(cameras,)`; `None` without. After `angles` in the flattened order.
+    - `terms`: with non-geometric terms (`RefineProblem.terms`), their coefficients
+      (`jaxcal._terms.names` order); `None` without. Last in the flattened order.
     """
 
     cam: Float[Array, "6"]
@@ -74,6 +82,7 @@ class RefineParams(eqx.Module):
     other_cams: Float[Array, "others 6"] | None = None
     angles: Float[Array, " views"] | None = None
     line_delay_us: Float[Array, " cameras"] | None = None
+    terms: Float[Array, " k"] | None = None
 
 
 class CornerData(eqx.Module):
@@ -99,6 +108,9 @@ class CornerData(eqx.Module):
     - `row`: with a rolling shutter, each corner's image row (px, 0 at the top
       row, the one `t_cam` refers to), `(views, corners)`; `None`: every corner
       at its view's `t_cam`.
+    - `term_basis`: with non-geometric terms, each view's basis
+      (`jaxcal._terms.term_basis` at its commanded pose and approach),
+      `(views, joints, k)`; `None` without.
     """
 
     points: Float[Array, "views corners 3"]
@@ -114,6 +126,7 @@ class CornerData(eqx.Module):
     sweep_joint: Int[Array, " views"] | None = None
     sweep_home: Float[Array, "views joints"] | None = None
     row: Float[Array, "views corners"] | None = None
+    term_basis: Float[Array, "views joints k"] | None = None
 
 
 class OtherCameras(eqx.Module):
@@ -145,6 +158,9 @@ class RefineProblem(eqx.Module):
 
     `line_delay0_s`: with `data.row`, every camera's line delay at the start
     (s per row; the first camera, then `other_cameras`), `(cameras,)`.
+
+    `terms`: the non-geometric term families `params.terms` and `data.term_basis`
+    hold (`jaxcal._terms`); `()` without.
     """
 
     nominal: KinematicModel
@@ -158,6 +174,7 @@ class RefineProblem(eqx.Module):
     eye_in_hand: bool = eqx.field(static=True, default=False)
     target_link: Int[Array, " markers"] | None = None
     line_delay0_s: Float[Array, " cameras"] | None = None
+    terms: tuple[str, ...] = eqx.field(static=True, default=())
 
 
 def make_corner_data(
@@ -174,6 +191,7 @@ def make_corner_data(
     views: int | None = None,
     sweep_home: np.ndarray | None = None,
     row: list | None = None,
+    term_basis: np.ndarray | None = None,
 ) -> CornerData:
     """Pad per-view corner lists into a `CornerData` (NumPy in, arrays out).
 
@@ -184,7 +202,8 @@ def make_corner_data(
     `(views,)` for a refinement without encoders; `views`: pad to this many
     views (masked out; frame -1, the first view's stamp), so that captures of
     similar size share the compiled refinement; `row[v]` `(n_v,)`: with a
-    rolling shutter, each corner's image row (px; usually `pixels[v][:, 1]`).
+    rolling shutter, each corner's image row (px; usually `pixels[v][:, 1]`);
+    `term_basis` `(views, joints, k)`: with non-geometric terms, each view's basis.
     """
     V = len(points)
     if V == 0:
@@ -240,6 +259,9 @@ def make_corner_data(
     camera = None if camera is None else padded(camera, 0, np.int64)
     sweep_joint = None if sweep_joint is None else padded(sweep_joint, 0, np.int64)
     sweep_home = None if sweep_home is None else padded(sweep_home, 0.0, np.float64)
+    if term_basis is not None and len(term_basis) != V:
+        raise ValueError(f"make_corner_data: {V} point sets but {len(term_basis)} term bases")
+    term_basis = None if term_basis is None else padded(term_basis, 0.0, np.float64)
     return CornerData(
         points=to_device(X),
         pixels=to_device(U),
@@ -254,6 +276,7 @@ def make_corner_data(
         sweep_joint=None if sweep_joint is None else to_device(sweep_joint, np.int64),
         sweep_home=None if sweep_home is None else to_device(sweep_home),
         row=None if Y is None else to_device(Y),
+        term_basis=None if term_basis is None else to_device(term_basis),
     )
 
 
@@ -372,6 +395,8 @@ def _chain_at(
     """`chain` at the commanded joint positions `q` of every view."""
     model, mounts = apply_correction(problem.nominal, problem.T_flange_marker0, params.correction)
     theta = q + model.zero_offset  # (V, J)
+    if params.terms is not None:
+        theta = theta + correction(problem.terms, params.terms, problem.data.term_basis)
     V = theta.shape[0]
     if problem.other_cameras is None or problem.data.camera is None:
         T_cb = problem.T_cam_base0 @ se3_exp(params.cam)

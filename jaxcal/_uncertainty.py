@@ -46,10 +46,15 @@ def ee_sigma(
     correction: KinematicCorrection,
     cov: Float[Array, "n n"],
     q: Float[Array, "c joints"],
+    term_joint=None,
+    term_basis: Float[Array, "c k"] | None = None,
 ) -> Float[Array, " c"]:
     """Per configuration, the 1-sigma end-effector position uncertainty
     $\\sqrt{\\mathrm{tr}(G_q \\Sigma G_q^T)}$ (m), `cov` over the flattened
-    `(cam, correction)` (the axis-fit prefix of the layout)."""
+    `(cam, correction)` (the axis-fit prefix of the layout), followed, with non-geometric
+    terms (`jaxcal._terms`), by their coefficients: coefficient $k$ turns joint
+    `term_joint[k]` by `term_basis[:, k]` per unit at each configuration, so its column is
+    that joint's angle column (its zero offset's) times its basis."""
     flat, unravel = ravel_pytree((cam, correction))
 
     def points(x):
@@ -57,6 +62,9 @@ def ee_sigma(
         return tool_points(nominal, T_cam_base0, T_flange_marker0, c, corr, q)
 
     G = jax.jacfwd(points)(flat)  # (c, 3, n)
+    if term_basis is not None:
+        zero = 6 + 6 * nominal.num_joints  # the zero offsets' columns in the flattened (cam, correction)
+        G = jnp.concatenate([G, G[:, :, zero + np.asarray(term_joint)] * term_basis[:, None, :]], axis=-1)
     return jnp.sqrt(jnp.maximum(jnp.einsum("cia,ab,cib->c", G, cov, G), 0.0))
 
 

@@ -38,7 +38,7 @@ def calibrate(
     limits: Limits | None = None,
     arc_loss: str | None = "cauchy",
     device_is_base: bool = False,
-    terms: tuple[str, ...] = (),
+    terms: tuple[str, ...] | str = "auto",
     cv_folds: int = 5,
     identifiability_tol: float | None = None,
     strict: bool = False,
@@ -83,13 +83,20 @@ def calibrate(
       is the identity and not estimated; the base height d1 and joint 1's
       origin become identifiable. Without it `T_device_base` is estimated
       (it takes `T_cam_base`'s place) and they are held at nominal.
-    - `terms`: stop-and-shoot tracker data only: non-geometric terms to try
-      after the geometric fit (`"compliance"`: joint compliance under gravity,
-      from the robot file's link masses; `"harmonic1"`, `"harmonic2"`: a
-      joint's once- and twice-per-turn transmission error), each kept only
-      when `cv_folds`-fold cross-validation on the samples improves.
+    - `terms`: non-geometric joint terms to try after the geometric fit, the same
+      names for every capture (`jaxcal._terms`): `"compliance"` (each joint yields
+      under the gravity torque of the links it carries, from the robot file's masses
+      plus the metadata's `robot.payload`), `"backlash"` (lost motion: the link lags
+      its motor's last motion, or rests against the flank gravity preloads it to),
+      `"harmonic1"`, `"harmonic2"` (a joint's once- and twice-per-turn transmission
+      error). Each is kept only when `cv_folds`-fold cross-validation improves: on a
+      camera capture the reprojection error of views left out in blocks of
+      consecutive frames, on stop-and-shoot tracker data the samples' distances.
+      `"auto"` (default): the capture kind's (`CaptureKind.default_terms`:
+      compliance and backlash for camera captures with an encoder log, none for
+      tracker data); `()`: none (the rigid arm).
     - `cv_folds`: folds of that cross-validation (also reported for the
-      geometric model; 0 skips it, and then no term can be tried).
+      geometric model; 0 skips it, and then no term can be kept).
     - `identifiability_tol`: the identifiability search's threshold, in (0, 1): a
       parameter is freed only when its (normalised) Jacobian column lies farther
       than this from the span of those freed before it, in the search's order;
@@ -117,7 +124,8 @@ def calibrate(
         validate=validate, refine=refine, other_cameras=other_cameras, log=log,
         refine_intrinsics=refine_intrinsics, estimate_line_delay=estimate_line_delay,
         limits=stages.Limits() if limits is None else limits, arc_loss=arc_loss, device_is_base=device_is_base,
-        terms=tuple(terms), cv_folds=int(cv_folds), identifiability_tol=identifiability_tol,
+        terms=terms if isinstance(terms, str) else tuple(terms), cv_folds=int(cv_folds),
+        identifiability_tol=identifiability_tol,
     )  # fmt: skip
     # The programs the last calibration of this dataset called are read while it loads and detects.
     root = getattr(dataset, "root", dataset)
@@ -160,6 +168,12 @@ def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult
         if options.refine and setup.kind.refines_corners
         else None
     )
+    if refined is not None and refined.terms is not None and refined.terms.kept and setup.kind.has_arcs:
+        # The non-geometric terms the refinement kept correct the encoder log: the clock fit, the arcs and
+        # the axes again on where the joints stood, so that the verdict tests what the terms leave.
+        sync = stages.synchronise(setup, obs, options, refined.terms)
+        two = stages.two_stage(setup, obs, sync, options)
+        arm_score = stages.start_arm_score(setup, sync, two)
     # The arm test's last part: the arcs fitted again at the refinement's clock.
     if arm_score is not None:
         arm_score = stages.finish_arm_score(setup, sync, two, refined, arm_score)

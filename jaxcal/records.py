@@ -509,6 +509,60 @@ class ShutterTest(Record):
 
 
 @dataclass(frozen=True, eq=False)
+class ModelRow(Record):
+    """One model the cross-validation of the non-geometric terms compared: its terms, free
+    parameters, cross-validated errors (a tracker's point distances in mm and, with measured
+    orientations, angles in deg; a camera's reprojection errors in px; when cross-validation
+    ran), whether it was kept and why."""
+
+    terms: tuple[str, ...]
+    free: int
+    cv_mean_mm: float | None = optional()
+    cv_rms_mm: float | None = optional()
+    cv_max_mm: float | None = optional()
+    kept: bool = False
+    cv_mean_px: float | None = optional()
+    cv_rms_px: float | None = optional()
+    cv_max_px: float | None = optional()
+    #: Why the model was kept or not, in words (camera captures).
+    why: str | None = optional()
+    cv_mean_deg: float | None = optional()
+    cv_rms_deg: float | None = optional()
+    cv_max_deg: float | None = optional()
+    #: A model with a term: its gain over the model it was tried against, in standard errors of
+    #: the paired held-out distances (`jaxcal._selection.paired_z`; tracker samples).
+    cv_gain_z: float | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
+class TermRow(Record):
+    """A non-geometric coefficient (`jaxcal._terms`): its estimate, std and whether it was free."""
+
+    name: str
+    estimate: float
+    std: float
+    free: bool
+
+
+@dataclass(frozen=True, eq=False)
+class TermsSummary(Record):
+    """The non-geometric terms of a calibration (`result.json`'s `terms`): the families tried
+    and kept, the models cross-validation compared (the geometric one first), the kept
+    coefficients with their std, the folds (and, for camera views, the consecutive frames
+    left out together), the payload the gravity torques included, and notes (what was not
+    tried, and why)."""
+
+    tried: tuple[str, ...]
+    kept: tuple[str, ...]
+    models: tuple[ModelRow, ...]
+    coefficients: tuple[TermRow, ...]
+    folds: int
+    block_frames: int | None = optional()
+    payload_kg: float | None = optional()
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
 class RefinementSummary(Record):
     """The reprojection refinement (`result.json`'s `refinement`)."""
 
@@ -574,26 +628,6 @@ class OtherCamera(Record):
 
 
 @dataclass(frozen=True, eq=False)
-class ModelRow(Record):
-    """One model a stop-and-shoot point fit tried: its non-geometric terms, free
-    parameters, cross-validated distances (mm, when cross-validation ran) and, with measured
-    orientations, angles (deg), whether it was kept and, for a model with a term, its gain over
-    the model it was tried against in standard errors of the paired held-out distances
-    (`jaxcal._selection.paired_z`)."""
-
-    terms: tuple[str, ...]
-    free: int
-    cv_mean_mm: float | None = optional()
-    cv_rms_mm: float | None = optional()
-    cv_max_mm: float | None = optional()
-    kept: bool = False
-    cv_mean_deg: float | None = optional()
-    cv_rms_deg: float | None = optional()
-    cv_max_deg: float | None = optional()
-    cv_gain_z: float | None = optional()
-
-
-@dataclass(frozen=True, eq=False)
 class ResidualStats(Record):
     """Mean, RMS and max of a set of distances (mm)."""
 
@@ -603,15 +637,6 @@ class ResidualStats(Record):
 
 
 @dataclass(frozen=True, eq=False)
-class TermRow(Record):
-    """A non-geometric coefficient of the point fit: its estimate, std and whether it was free."""
-
-    name: str
-    estimate: float
-    std: float
-    free: bool
-
-
 @dataclass(frozen=True, eq=False)
 class PointOutlier(Record):
     """A stop-and-shoot sample the robust point fit rejected: the sample (its index and its
@@ -655,6 +680,8 @@ class ResultFile:
     warnings: tuple[str, ...]
     #: Seconds per step: free-form.
     timings: dict[str, float]
+    #: The non-geometric terms tried, kept and estimated (None when none was tried).
+    terms: TermsSummary | None = None
 
 
 @dataclass(frozen=True, eq=False)

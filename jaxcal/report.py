@@ -14,8 +14,10 @@ import numpy as np
 
 from ._kinematics import REVOLUTE
 from ._tables import PhysicalTable, base_flange_std, physical_table
+from .compensation import compensation_of
 from .io._files import atomic_directory
 from .io.camera_yaml import intrinsics_fields, pose_fields, write_camera_yaml
+from .io.compensation import COMPENSATION_FILE, compensation_json
 from .io.dataset import write_json
 from .io.dh_tables import dh_table_json, is_table_file
 from .io.result import ESTIMATE_FILE, pose_figures, write_estimate
@@ -23,7 +25,7 @@ from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.ros import write_static_transform
 from .io.urdf import save_urdf
 from .records import PoseFigures
-from .summary import clock_line, fmt, joints_table, refinement_line, truth_table
+from .summary import clock_line, fmt, joints_table, refinement_line, terms_tables, truth_table
 
 
 class ArcGeometry(NamedTuple):
@@ -302,6 +304,7 @@ def _markdown(result, figs, tables=None) -> str:
         _point_fit_section(result)
         + _truth_section(result)
         + _refinement_section(result)
+        + _terms_section(result)
         + _camera_section(result)
     )
     lines += _joints_section(result) + _dh_section(tables or {}) + _frames_section(result)
@@ -406,6 +409,27 @@ def _refinement_section(result) -> list[str]:
             "",
         ]
     return lines
+
+
+def _terms_section(result) -> list[str]:
+    """The non-geometric terms tried, kept and estimated (`summary.terms_tables`), and notes."""
+    tables = terms_tables(result)
+    if not tables:
+        return (
+            [f"- {n}" for n in result.terms.notes] + [""]
+            if result.terms is not None and result.terms.notes
+            else []
+        )
+    lines = ["## Non-geometric terms", ""]
+    for table in tables:
+        lines += [f"**{table.title}**", "", *table.markdown(), ""]
+    if result.terms.kept:
+        lines += [
+            "The kept terms move each joint off where the rigid model (`calibrated.urdf`) puts it; "
+            "`compensation.json` holds them for the robot side (`jaxcal.compensate`).",
+            "",
+        ]
+    return lines + [f"- {n}" for n in result.terms.notes] + ([""] if result.terms.notes else [])
 
 
 def _pose_line(T: PoseFigures) -> str:
@@ -551,6 +575,9 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
             _camera_files(tmp, result)
         if is_ur(result.model):
             (tmp / "ur_calibration.yaml").write_text(ur_kinematics_text(result.model, result.nominal)[0])
+        comp = compensation_of(result)
+        if comp is not None:
+            write_json(tmp / COMPENSATION_FILE, compensation_json(comp))
         figs = _plots(result, tmp)
         tables = tables_pending.result()
         for convention, table in tables.items():
@@ -602,6 +629,7 @@ def output_files(result) -> list[str]:
             f"easy_handeye_{result.camera}.yaml",
         ]
     names += ["ur_calibration.yaml"] if is_ur(result.model) else []
+    names += [COMPENSATION_FILE] if compensation_of(result) is not None else []
     return names + (["calibrated_dh.json", "calibrated_mdh.json"] if has_dh_tables(result) else [])
 
 

@@ -108,3 +108,38 @@ def refinement_line(result) -> str | None:
         f"Inlier RMS {r.inlier_rms_px:.3f} px, pixel sigma {r.sigma_px:.3f} px, "
         f"{r.outlier_corners} outlier corners; condition number {r.condition_number:.3g}."
     )
+
+
+def terms_tables(result) -> tuple[TextTable, ...]:
+    """The non-geometric terms (`result.terms`): the models cross-validation compared (the
+    geometric one first) with what was kept and why, then the kept coefficients with their
+    std. Empty when no term was tried."""
+    t = result.terms
+    if t is None:
+        return ()
+    px = any(m.cv_mean_px is not None for m in t.models)
+    unit = "px" if px else "mm"
+    rows = []
+    for m in t.models:
+        cv = (m.cv_mean_px, m.cv_rms_px, m.cv_max_px) if px else (m.cv_mean_mm, m.cv_rms_mm, m.cv_max_mm)
+        rows.append(
+            (
+                "+".join(["geometric", *m.terms]),
+                str(m.free),
+                *(fmt(x, ".4f") if x is not None else "-" for x in cv),
+                "yes" if m.kept else "",
+                m.why or "",
+            )
+        )
+    block = f", left out in blocks of {t.block_frames} consecutive frames" if t.block_frames else ""
+    models = TextTable(
+        f"Non-geometric terms: {t.folds}-fold cross-validation{block}; kept: {'+'.join(t.kept) or 'none'}",
+        ("model", "free", f"CV mean {unit}", f"CV RMS {unit}", f"CV max {unit}", "kept", "why"),
+        tuple(rows),
+    )
+    coefficients = TextTable(
+        "Kept non-geometric coefficients (rad per kN m of gravity torque, rad of lost motion or harmonic)",
+        ("coefficient", "estimate", "std"),
+        tuple((c.name, f"{c.estimate:.4g}", f"{c.std:.2g}") for c in t.coefficients if c.free),
+    )
+    return (models, coefficients) if coefficients.rows else (models,)

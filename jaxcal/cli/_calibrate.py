@@ -14,13 +14,16 @@ from ._common import CLOCK_MODES, MAX_WORKERS, count
 MAX_CV_FOLDS = 100
 
 
-def _terms(text: str) -> tuple[str, ...]:
-    from .._pointfit import TERMS
+def terms_arg(text: str) -> tuple[str, ...] | str:
+    """`--terms`: `auto`, `none`, or families comma-separated (`jaxcal._terms.TERMS`)."""
+    from .._terms import TERMS
 
+    if text.strip() in ("auto", "none"):
+        return "auto" if text.strip() == "auto" else ()
     names = tuple(t.strip() for t in text.split(",") if t.strip())
     unknown = [t for t in names if t not in TERMS]
     if unknown:
-        raise argparse.ArgumentTypeError(f"unknown terms {unknown}; known: {', '.join(TERMS)}")
+        raise argparse.ArgumentTypeError(f"unknown terms {unknown}; known: auto, none, {', '.join(TERMS)}")
     return names
 
 
@@ -125,18 +128,21 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--terms",
-        type=_terms,
-        default=(),
-        help="stop-and-shoot tracker data: non-geometric terms to try, comma-separated: compliance (joint "
-        "compliance under gravity, from the robot file's link masses), harmonic1, harmonic2 (a joint's "
-        "once/twice-per-turn transmission error); each kept only if cross-validation improves (default none)",
+        type=terms_arg,
+        default="auto",
+        help="non-geometric joint terms to try, comma-separated, the same names for camera and tracker data: "
+        "compliance (each joint yields under gravity, from the robot file's link masses and the metadata's "
+        "robot.payload), backlash (lost motion: the link lags its motor's last move, or rests where gravity "
+        "preloads it), harmonic1, harmonic2 (a joint's once/twice-per-turn transmission error); each kept only "
+        "if cross-validation improves (camera views left out in blocks of consecutive frames). auto (default): "
+        "compliance,backlash for camera captures with an encoder log, none for tracker data; none: a rigid arm",
     )
     p.add_argument(
         "--cv-folds",
         type=count(0, MAX_CV_FOLDS),
         default=5,
-        help="stop-and-shoot tracker data: folds of the cross-validation that gates --terms and is reported "
-        f"(0: none; at most {MAX_CV_FOLDS}: each fold is a fit, all held at once)",
+        help="folds of the cross-validation that gates --terms and is reported "
+        f"(0: none, and no term is kept; at most {MAX_CV_FOLDS}: each fold is a fit, all held at once)",
     )
     p.add_argument(
         "--identifiability-tol",

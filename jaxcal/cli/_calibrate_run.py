@@ -18,7 +18,7 @@ from ..io.checks import certificate_json
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
 from ..robots import load_robot
-from ..summary import TextTable, clock_line, fmt, joints_table, refinement_line, truth_table
+from ..summary import TextTable, clock_line, fmt, joints_table, refinement_line, terms_tables, truth_table
 from ._certify import print_certificate, region_of
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees
 from ._rosbag import dataset_of
@@ -134,6 +134,11 @@ def _result_tables(console, result) -> None:
         console.print(_rich(table))
     if result.refinement is not None:
         console.print(f"refinement: {refinement_line(result)}")
+    if result.point_fit is None:  # a point fit's terms are in its own table
+        for table in terms_tables(result):
+            console.print(_rich(table))
+        for n in result.terms.notes if result.terms is not None else ():
+            console.print(f"[yellow]note:[/yellow] {n}")
     for w in result.warnings:
         console.print(f"[yellow]note:[/yellow] {w}")
 

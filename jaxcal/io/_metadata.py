@@ -88,7 +88,10 @@ class TargetInfo:
 def read_robot(meta: dict, loc: Loc, root: Path):
     """`robot`: the robot file (a URDF, or a DH/MDH table), base and flange links, the joints, and their limits."""
     robot = sc.obj(
-        meta["robot"], loc, required=("joints",), optional=("urdf", "table", "base_link", "flange_link")
+        meta["robot"],
+        loc,
+        required=("joints",),
+        optional=("urdf", "table", "base_link", "flange_link", "payload"),
     )
     given = [k for k in ("urdf", "table") if k in robot]
     if len(given) != 1:
@@ -152,6 +155,34 @@ def read_robot(meta: dict, loc: Loc, root: Path):
     except ValueError as e:
         raise DatasetError(f"{urdf}: cannot read the robot model: {e}") from None
     return urdf, links["base_link"], links["flange_link"], tuple(joints), limits, outline.links
+
+
+@dataclass(frozen=True, eq=False)
+class Payload:
+    """What the flange carries beyond the robot file's links (the plate, a tool): its mass (kg)
+    and centre of mass in the flange frame (m), `robot.payload` in the metadata."""
+
+    mass_kg: float
+    com_m: np.ndarray
+
+
+#: Heaviest payload `robot.payload.mass_kg` accepts (kg): more than any arm this tool calibrates lifts.
+MAX_PAYLOAD_KG = 1000.0
+
+
+def read_payload(meta: dict, loc: Loc) -> Payload | None:
+    """`robot.payload` (`{"mass_kg": m, "com_m": [x, y, z]}`, the centre in the flange frame), or None."""
+    p = meta["robot"].get("payload") if isinstance(meta.get("robot"), dict) else None
+    if p is None:
+        return None
+    p = sc.obj(p, loc, required=("mass_kg", "com_m"))
+    mass = sc.number(p["mass_kg"], loc.key("mass_kg"), 0.0, MAX_PAYLOAD_KG)
+    com = sc.array(p["com_m"], loc.key("com_m"), (3,))
+    if np.max(np.abs(com)) > 5.0:
+        raise loc.key("com_m").fail(
+            f"{com.tolist()} is over 5 m from the flange: millimetres given as metres?"
+        )
+    return Payload(mass, com)
 
 
 def _read_table_robot(robot: dict, loc: Loc, root: Path):

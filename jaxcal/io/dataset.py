@@ -41,8 +41,17 @@ from ._logs import EncoderGlitch as EncoderGlitch
 from ._logs import FrameTable as FrameTable
 from ._logs import read_encoders, read_frames
 from ._metadata import CameraInfo as CameraInfo
+from ._metadata import Payload as Payload
 from ._metadata import TargetInfo as TargetInfo
-from ._metadata import read_cameras, read_clock, read_encoder_meta, read_motion, read_robot, read_targets
+from ._metadata import (
+    read_cameras,
+    read_clock,
+    read_encoder_meta,
+    read_motion,
+    read_payload,
+    read_robot,
+    read_targets,
+)
 from ._schema import Loc
 from ._tracker import DeviceInfo as DeviceInfo
 from ._tracker import PointTarget as PointTarget
@@ -92,6 +101,8 @@ class Dataset:
     - `encoder_glitches`: the `EncoderGlitch`es found and removed at load.
     - `notes`: human-readable remarks from loading (glitches removed, fields
       not used) for the calibration to report.
+    - `payload`: what the flange carries beyond the robot file's links (`robot.payload`:
+      the plate's or tool's mass and centre; the non-geometric terms' gravity torques add it).
     - `device`, `samples`: a tracker dataset's measuring device (`DeviceInfo`)
       and its samples (`TrackerSamples`); `cameras` and `targets` are then
       empty and `frames` has one row per sample (the device's name in the
@@ -120,6 +131,7 @@ class Dataset:
     notes: tuple[str, ...] = ()
     device: DeviceInfo | None = None
     samples: TrackerSamples | None = None
+    payload: Payload | None = None
 
     @property
     def point(self) -> PointTarget | None:
@@ -257,6 +269,7 @@ def load_dataset(path) -> Dataset:
     if "description" in meta:
         sc.string(meta["description"], loc.key("description"), allow_empty=True)
     urdf, base_link, flange_link, joints, limits, links = read_robot(meta, loc.key("robot"), root)
+    payload = read_payload(meta, loc.key("robot").key("payload"))
     device = samples = None
     if tracker:
         device = read_device(meta, loc.key("device"), links)
@@ -312,4 +325,5 @@ def load_dataset(path) -> Dataset:
         notes=tuple(notes),
         device=device,
         samples=samples,
+        payload=payload,
     )

@@ -24,6 +24,7 @@ from ..records import (
     RefinementSummary,
     ResultFile,
     SolverInfo,
+    TermsSummary,
     ValidationReport,
     from_plain,
     plain,
@@ -132,6 +133,7 @@ def result_to_json(result) -> dict:
         "checks": [] if result.verdict is None else plain(result.verdict.checks),
         "model": model_to_json(result.model),
         **({"point_fit": point_fit_json(result.point_fit)} if result.point_fit is not None else {}),
+        **({"terms": plain(result.terms)} if result.terms is not None else {}),
     }
 
 
@@ -153,6 +155,7 @@ def result_from_json(payload: dict) -> ResultFile:
         validation=block(ValidationReport, "validation"),
         warnings=tuple(payload["warnings"]),
         timings=dict(payload["timings_s"]),
+        terms=block(TermsSummary, "terms"),
     )
 
 
@@ -241,6 +244,7 @@ def write_estimate(path, estimate) -> None:
             other_cameras=np.asarray(lay.other_cameras, str),
             angles=np.asarray(lay.angles, str),
             line_delays=np.asarray(lay.line_delays, str),
+            terms=np.asarray(lay.terms, str),
             eye_in_hand=np.asarray(lay.eye_in_hand),
             fixed_name=np.asarray("" if lay.fixed_name is None else lay.fixed_name),
             mount_names=np.asarray(estimate.mount_names, str),
@@ -258,6 +262,7 @@ def read_estimate(path) -> Estimate:
             other_cameras=tuple(str(s) for s in d["other_cameras"]),
             angles=tuple(str(s) for s in d["angles"]),
             line_delays=tuple(str(s) for s in d.get("line_delays", ())),  # absent before rolling shutters
+            terms=tuple(str(s) for s in d.get("terms", ())),  # absent before the non-geometric terms
             eye_in_hand=bool(d["eye_in_hand"]),
             fixed_name=str(d["fixed_name"]) or None,
         )

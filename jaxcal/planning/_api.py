@@ -19,15 +19,25 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._correction import zero_correction
+from .._terms import approach, approach_at, check_terms
 from .._uncertainty import random_configurations, tool_points
 from ..errors import BudgetTooSmallError, CameraViewError, PlanError, PlanFileError, UnreachableRegionError
 from ..io.plan import CapturePlan, Correction, PlanCamera, PlanTarget, PoseSet, Sweep
 from ..io.urdf import load_urdf, urdf_outline
 from ..records_capture import ArmFigures, CameraNoise
-from ..robots import robot_path, shipped
-from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation, design, ee_gram, ee_jacobians, evaluate_views
+from ..robots import link_inertials, robot_path, shipped
+from ._evaluate import (
+    DEFAULT_SIGMA_PX,
+    PlanEvaluation,
+    TermInputs,
+    design,
+    ee_gram,
+    ee_jacobians,
+    evaluate_views,
+)
 from ._layout import default_layout
 from ._optimise import (
+    TermModel,
     candidate_poses,
     correct_toward,
     descend,
@@ -181,6 +191,7 @@ def evaluate_plan(
     limits: FeasibilityLimits | None = None,
     camera_model: CameraNoise | None = None,
     arm: ArmFigures | None = None,
+    terms: tuple[str, ...] = (),
 ) -> PlanEvaluation:
     """Predict, before any capture, what the refinement will make of `plan`.
 
@@ -196,6 +207,10 @@ def evaluate_plan(
       `jaxcal.sim.arm.ARM_PRESETS[name].figures()`): the camera's corner noise is
       added to `sigma_px`, frames it would blur are left out, and the arm's sag,
       backlash and latency give the EE bias (`jaxcal.planning._realism`).
+    - `terms`: non-geometric terms the refinement fits beside the geometry
+      (`jaxcal._terms`; the calibration's `terms`): the prediction counts what telling
+      them from the geometry costs, and the arm's bias is what they leave (the bias
+      without them beside: `PlanEvaluation.ee_bias_rigid`).
 
     **Returns:** a `PlanEvaluation` (per-parameter standard deviations, what is
     left unidentifiable, the EE 1-sigma at every workspace configuration, its
@@ -215,8 +230,9 @@ def evaluate_plan(
         )
     if camera_model is None and arm is None:
         return evaluate_views(
-            scene, q[m], t[m], workspace(robot, scene, region), sweeps=sweeps, sigma_px=sigma_px
-        )
+            scene, q[m], t[m], workspace(robot, scene, region), sweeps=sweeps, sigma_px=sigma_px,
+            terms=term_inputs(plan, robot, t[m], terms),
+        )  # fmt: skip
     q, t = q[m], t[m]
     kept, offsets, joint_std, note = capture_terms(
         plan, robot.source, scene, q, t, camera_model, arm, design(scene, sweeps).kind.single_joint_sweeps
@@ -227,12 +243,30 @@ def evaluate_plan(
     ev = evaluate_views(
         scene, q[kept], t[kept], workspace(robot, scene, region), sweeps=sweeps,
         sigma_px=float(np.hypot(sigma_px, added)), offsets=offsets, joint_std=joint_std,
+        terms=term_inputs(plan, robot, t[kept], terms),
     )  # fmt: skip
     return replace(
         ev, camera_model=None if camera_model is None else camera_model.name,
         arm_model=None if arm is None else arm.name, added_sigma_px=added, camera_note=note,
         frames_lost_to_blur=int(np.sum(~kept)),
     )  # fmt: skip
+
+
+def term_inputs(plan: CapturePlan, robot: Robot, t: np.ndarray, terms) -> TermInputs | None:
+    """The `TermInputs` of frames at controller times `t` of `plan` (None without `terms`): the
+    robot file's masses and every frame's approach flank along the plan's commanded motion."""
+    terms = check_terms(terms)
+    if not terms:
+        return None
+    masses, coms = link_inertials(robot.source) if {"compliance", "backlash"} & set(terms) else (None, None)
+    n = robot.model.num_joints
+    m = plan.motion()
+    return TermInputs(
+        terms,
+        np.zeros(n) if masses is None else masses,
+        np.zeros((n, 3)) if coms is None else coms,
+        approach_at(m.times, m.q, np.asarray(t, np.float64)),
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -325,9 +359,11 @@ def _finish(scene, limits, q0, q, checker) -> tuple[np.ndarray, list[Correction]
 
 
 def _choose(
-    scene, limits, q0, cands, frames, configs, *, method, starts, steps, sigma_px, seed, checker, timings
-):
-    """The frames by `method` from the feasible candidates; returns (poses, corrections, evaluation, greedy eval)."""
+    scene, limits, q0, cands, frames, configs, *, method, starts, steps, sigma_px, seed, checker, timings,
+    terms=None,
+):  # fmt: skip
+    """The frames by `method` from the feasible candidates; returns (poses, corrections, evaluation, greedy eval).
+    `terms`: a `TermModel` the plan must tell from the geometry (nuisance parameters of the objective)."""
     rng = np.random.default_rng(seed)
     n = min(frames, len(cands))
     probe = evaluate_views(scene, _pick(cands, frames, rng), np.arange(frames, dtype=float), configs, sweeps=False,
@@ -341,7 +377,9 @@ def _choose(
     else:
         M = ee_gram(ee_jacobians(scene, jnp.asarray(configs)), idx, design(scene, False).layout.size)
         q_init = np.stack([_pick(cands, frames, rng) for _ in range(starts)])
-        qf, _ = descend(scene, limits, M, idx, jnp.asarray(q_init), sigma_px=sigma_px, steps=steps)
+        qf, _ = descend(
+            scene, limits, M, idx, jnp.asarray(q_init), sigma_px=sigma_px, steps=steps, terms=terms
+        )
         tries = list(np.asarray(qf))
     timings[f"{method}_s"] = time.perf_counter() - t0
     best = None
@@ -349,9 +387,14 @@ def _choose(
         poses, corrections = _finish(scene, limits, q0, q, checker)
         if len(poses) < MIN_POSES:
             continue
+        flank = None
+        if terms is not None:
+            flank = TermInputs(terms.terms, np.asarray(terms.masses), np.asarray(terms.coms),
+                               approach(np.vstack([q0, poses]))[1:])  # fmt: skip
         ev = evaluate_views(
-            scene, poses, np.arange(len(poses), dtype=float), configs, sweeps=False, sigma_px=sigma_px
-        )
+            scene, poses, np.arange(len(poses), dtype=float), configs, sweeps=False, sigma_px=sigma_px,
+            terms=flank,
+        )  # fmt: skip
         if best is None or ev.ee_rms_with_held < best[2].ee_rms_with_held:
             best = (poses, corrections, ev)
     if best is None:
@@ -386,6 +429,7 @@ def plan(
     checker=None,
     checker_factory=None,
     log=None,
+    terms: tuple[str, ...] = (),
 ) -> PlanResult:
     """Plan a pose-based capture of `frames` stop-and-shoot frames (see the module docstring).
 
@@ -409,6 +453,10 @@ def plan(
       checker` (`jaxcal.sim.plan.MujocoChecker`: MuJoCo's contacts and lines of
       sight on the plan's own layout).
     - `log`: a callable taking a line of progress text.
+    - `terms`: non-geometric terms (`jaxcal._terms`: `compliance`, `backlash`, ...) the
+      capture must tell from the geometry: the objective counts them as nuisance parameters
+      of the refinement, so the plan gains gravity-torque variety and approaches from both
+      sides where the terms would otherwise cost the geometry its accuracy.
 
     **Returns:** a `PlanResult`. Raises `CameraViewError`, `BudgetTooSmallError`,
     `UnreachableRegionError`, `PlanError`.
@@ -435,13 +483,19 @@ def plan(
     _check_taught(scene, limits, q0, checker)
     configs = workspace(rob, scene, region)
     amplitude = np.radians(amplitude_deg)
+    terms = check_terms(terms)
+    tm = None
+    if terms:
+        masses, coms = link_inertials(rob.source)
+        zero = tuple(int(i) for i in design(scene, False).layout.index("zero"))
+        tm = TermModel(jnp.asarray(masses), jnp.asarray(coms), terms, zero)
     best, greedy = None, None
     for attempt in range(3 if goal_mm is not None else 1):
         cands, counts = _feasible_candidates(
             scene, limits, q0, candidates, amplitude, seed + attempt, checker, say, timings
         )
         got = _choose(scene, limits, q0, cands, frames, configs, method=method, starts=starts, steps=steps,
-                      sigma_px=sigma_px, seed=seed + attempt, checker=checker, timings=timings)  # fmt: skip
+                      sigma_px=sigma_px, seed=seed + attempt, checker=checker, timings=timings, terms=tm)  # fmt: skip
         if best is None or got[2].ee_rms_with_held < best[2].ee_rms_with_held:
             best = got
         if goal_mm is None or 1e3 * best[2].ee_rms_with_held <= goal_mm:
@@ -456,7 +510,8 @@ def plan(
     result = CapturePlan(
         robot, tuple(rob.model.joint_names), camera, target, q0, (PoseSet(poses),), floor_z,
         checks=limits.to_dict(), corrections=tuple(corrections),
-        prediction=ev.summary() | {"method": method, "workspace": "region" if region is not None else "random"},
+        prediction=ev.summary() | {"method": method, "workspace": "region" if region is not None else "random"}
+        | ({"planned_for_terms": list(terms)} if terms else {}),
         description=f"{len(poses)} stop-and-shoot poses planned by jaxcal plan ({method})",
     )  # fmt: skip
     return PlanResult(result, ev, greedy, counts, timings)

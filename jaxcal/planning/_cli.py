@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .._argtypes import count, finite
+from .._terms import check_terms
 from ..errors import OutputError, PlanError, PlanFileError
 from ..io._files import check_output_file, resolved, write_text_atomic
 from ..io._images import MAX_PIXELS, MAX_SIDE
@@ -102,6 +103,15 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
         help="the arm model, as `jaxcal simulate --arm`: the EE bias its gravity sag, backlash and latency "
         "leave in the calibration is predicted beside the noise (default: a rigid arm, no bias)",
     )
+    p.add_argument(
+        "--terms",
+        type=_terms_arg,
+        default=(),
+        help="non-geometric joint terms the calibration will fit (as `jaxcal calibrate --terms`: compliance, "
+        "backlash, harmonic1, harmonic2; comma-separated): planning, the poses are chosen so that the terms can "
+        "be told from the geometry (gravity-torque variety, approaches from both sides); --evaluate, the "
+        "prediction counts them and the arm's bias is what they leave, the bias without them beside",
+    )
     p.add_argument("--method", choices=("gradient", "greedy"), default="gradient")
     p.add_argument("--baseline", action="store_true", help="also run the greedy D-optimal baseline")
     p.add_argument(
@@ -128,6 +138,13 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
     p.add_argument("--json", help="write the plan's predicted figures (JSON) here")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=func)
+
+
+def _terms_arg(text: str) -> tuple[str, ...]:
+    try:
+        return check_terms(t.strip() for t in text.split(",") if t.strip())
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -177,6 +194,14 @@ def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
         med = 1e3 * ev.ee_rms * ev.ratio_quantile(0.5)
         t.add_row("one capture's EE RMS mm", f"{med:.4f} median, {lo:.4f} .. {hi:.4f} (90 %)")
     t.add_row("pixel noise px", f"{ev.sigma_px:g}")
+    if ev.terms:
+        worst = sorted((ev.term_std or {}).items(), key=lambda kv: -kv[1])[:3]
+        t.add_row(
+            "non-geometric terms",
+            f"{'+'.join(ev.terms)} fitted beside the geometry (largest std: "
+            + ", ".join(f"{k} {v:.2g}" for k, v in worst)
+            + ")",
+        )
     for name, text in model_rows(ev):
         t.add_row(name, text)
     unidentifiable = len(ev.unidentifiable)
@@ -210,9 +235,24 @@ def model_rows(ev: PlanEvaluation) -> list[tuple[str, str]]:
     parts = ", ".join(f"{k} {1e3 * v:.4f}" for k, v in ev.bias_parts.items())
     rows += [
         ("arm model", ev.arm_model or "rigid (none given)"),
-        ("EE bias RMS mm (arm)", f"{1e3 * ev.ee_bias_rms:.4f}" + (f" ({parts})" if parts else "")),
-        ("EE RMS noise + bias mm", f"{1e3 * ev.ee_total_rms:.4f} (p95 {1e3 * ev.ee_total_p95:.4f})"),
+        (
+            "EE bias RMS mm (arm)" + (f", with {'+'.join(ev.terms)}" if ev.terms else ""),
+            f"{1e3 * ev.ee_bias_rms:.4f}" + (f" ({parts})" if parts else ""),
+        ),
     ]
+    if ev.terms:
+        rigid = ", ".join(f"{k} {1e3 * v:.4f}" for k, v in ev.bias_parts_rigid.items())
+        rows.append(
+            (
+                "EE bias RMS mm without the terms",
+                f"{1e3 * ev.ee_bias_rigid_rms:.4f}" + (f" ({rigid})" if rigid else ""),
+            )
+        )
+    lo, hi = ev.total_interval() if ev.error_eigenvalues.size else (np.nan, np.nan)
+    rows.append(
+        ("EE RMS noise + bias mm", f"{1e3 * ev.ee_total_rms:.4f} (p95 {1e3 * ev.ee_total_p95:.4f}; one capture "
+         f"90 % in {1e3 * lo:.4f} .. {1e3 * hi:.4f})")
+    )  # fmt: skip
     return rows
 
 
@@ -268,7 +308,9 @@ def run_evaluate(args, console: Console, capture_models=None) -> int:
     p = load_plan(args.evaluate)
     region = None if args.region is None else parse_region(args.region)
     camera, arm = _models(args, capture_models)
-    ev = evaluate_plan(args.evaluate, region=region, sigma_px=args.sigma_px, camera_model=camera, arm=arm)
+    ev = evaluate_plan(
+        args.evaluate, region=region, sigma_px=args.sigma_px, camera_model=camera, arm=arm, terms=args.terms
+    )
     where = "over the region" if region is not None else "over the workspace"
     evaluation_table(
         console, ev, f"{args.evaluate}: pre-evaluation ({len(views(p)[0])} planned frames, EE {where})"
@@ -343,12 +385,13 @@ def run_plan(args, console: Console, checker_factory=None, capture_models=None) 
         sigma_px=args.sigma_px, method=args.method, starts=args.starts, steps=args.steps,
         candidates=args.candidates, amplitude_deg=args.amplitude_deg, goal_mm=args.goal_mm,
         greedy_baseline=args.baseline, seed=args.seed, checker_factory=factory,
-        log=None if args.quiet else (lambda text: console.print(f"[dim]{text}[/dim]")),
+        log=None if args.quiet else (lambda text: console.print(f"[dim]{text}[/dim]")), terms=args.terms,
     )  # fmt: skip
     if models != (None, None):  # the optimiser minimised the noise part; the prediction adds the models
         ev = evaluate_plan(
-            res.plan, region=region, sigma_px=args.sigma_px, camera_model=models[0], arm=models[1]
-        )
+            res.plan, region=region, sigma_px=args.sigma_px, camera_model=models[0], arm=models[1],
+            terms=args.terms,
+        )  # fmt: skip
         res = replace(
             res, plan=replace(res.plan, prediction=res.plan.prediction | ev.summary()), evaluation=ev
         )

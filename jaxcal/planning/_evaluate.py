@@ -22,6 +22,14 @@ $$e^2 = \\frac{1}{C} \\sum_c \\mathrm{tr}(G_c \\Sigma G_c^T) = \\sigma^2\\,
 a smooth function of the frames' joint values: the planner's objective
 (`ee_mean_square`). Parameters the plan leaves unidentifiable are held at
 nominal by the refinement; their names are reported.
+
+With non-geometric terms (`TermInputs`: `jaxcal._terms`, as the refinement fits
+them), every frame's joint angles gain $\\Delta_v = \\sum e\\,b(q_v, a_v)$: their
+columns $P_v b$ ($P_v = \\partial u_v / \\partial q_v$) join $J$ as nuisance
+parameters ($M$ is zero for them: the EE point is the rigid model's), so the
+prediction, and the planner's objective, count what telling the terms from the
+geometry costs: a plan with little gravity-torque variety, or whose poses are
+all approached from one side, pays for it in the geometry's variance.
 """
 
 from dataclasses import dataclass, field
@@ -37,6 +45,8 @@ from .._correction import ParameterLayout
 from .._exported import stored_jit
 from .._refine import CornerData, RefineProblem, identifiable_mask, zero_params
 from .._reprojection import reprojection_residuals
+from .._terms import BASIS_FLOOR, column_map, term_basis
+from .._terms import names as term_names
 from .._uncertainty import tool_points
 from ..stages.kinds import CaptureKind
 from ._realism import pixel_jacobians, propagate
@@ -45,6 +55,43 @@ from ._scene import PlanScene, frame_geometry
 #: Corner noise of the detector on rendered images (px, per coordinate): the
 #: inlier RMS of the refinement of `jaxcal demo`'s capture (1280x960, 0.9 m).
 DEFAULT_SIGMA_PX = 0.045
+
+
+@dataclass(frozen=True, eq=False)
+class TermInputs:
+    """The non-geometric terms a prediction counts (`jaxcal._terms`): the families `terms`,
+    the links' `masses` and centres of mass `coms` of the basis, and every frame's approach
+    flank `approach` `(V, joints)` along the plan's motion."""
+
+    terms: tuple[str, ...]
+    masses: np.ndarray
+    coms: np.ndarray
+    approach: np.ndarray
+
+
+@eqx.filter_jit
+def term_columns(
+    scene: PlanScene, q: Float[Array, "V joints"], approach, masses, coms, terms: tuple[str, ...], angle=None
+) -> Float[Array, "rows k"]:
+    """The terms' columns of the refinement's Jacobian at frames `q`: each frame's corner
+    motion per radian of joint $j$ ($P_v$; `angle` `(rows, joints)`, the refinement Jacobian's
+    zero-offset columns, when at hand) times the basis of every coefficient of $j$ (rows in
+    `(V, N, 2)` order, coefficients in `jaxcal._terms.names` order)."""
+    basis = term_basis(terms, scene.nominal, q, masses, coms, approach)  # (V, joints, m)
+    joint, col = column_map(terms, scene.nominal.num_joints)
+    V = q.shape[0]
+    if angle is None:
+        angle = jnp.moveaxis(pixel_jacobians(scene, q), -1, 0).reshape(q.shape[1], -1).T  # (rows, joints)
+    per_row = jnp.repeat(basis[:, joint, col], angle.shape[0] // V, axis=0)  # (rows, k)
+    return angle[:, joint] * per_row
+
+
+@eqx.filter_jit
+def basis_rms(q, approach, masses, coms, nominal, terms: tuple[str, ...]):
+    """Each coefficient's basis RMS over the frames `q` (`jaxcal._terms.names` order)."""
+    basis = term_basis(terms, nominal, q, masses, coms, approach)
+    joint, col = column_map(terms, nominal.num_joints)
+    return jnp.sqrt(jnp.mean(basis[:, joint, col] ** 2, axis=0))
 
 
 @dataclass(frozen=True)
@@ -189,6 +236,11 @@ class PlanEvaluation:
       noise part `ee_sigma` includes the encoders' quantisation); `bias_parts`:
       the bias RMS of each cause (m). `ee_bias_rms`, `ee_total_rms` and
       `ee_total_p95` read them.
+    - With non-geometric terms (`evaluate_views(..., terms=)`): `terms`, the families
+      the refinement fits beside the geometry (the noise part and `ee_bias` are what
+      is left with them); `term_std`: each candidate coefficient's predicted 1-sigma (one
+      whose basis does not vary over the frames is none, as in the refinement); and
+      `ee_bias_rigid`, `bias_parts_rigid`: the arm's bias without them.
     """
 
     names: tuple[str, ...]
@@ -213,11 +265,27 @@ class PlanEvaluation:
     frames_lost_to_blur: int = 0
     ee_bias: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bias_parts: dict = field(default_factory=dict)
+    terms: tuple[str, ...] = ()
+    term_std: dict | None = None
+    ee_bias_rigid: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    bias_parts_rigid: dict = field(default_factory=dict)
 
     @property
     def ee_bias_rms(self) -> float:
         """The RMS over the workspace of the EE bias the arm leaves (m; 0 without an arm model)."""
         return float(np.sqrt(np.mean(self.ee_bias**2))) if self.ee_bias.size else 0.0
+
+    @property
+    def ee_bias_rigid_rms(self) -> float:
+        """The arm's EE bias RMS without the non-geometric terms (m; 0 without terms or an arm)."""
+        return float(np.sqrt(np.mean(self.ee_bias_rigid**2))) if self.ee_bias_rigid.size else 0.0
+
+    def total_interval(self, probability: float = 0.9) -> tuple[float, float]:
+        """The central `probability` interval of one capture's EE RMS, noise and bias (m): the noise
+        part's draws (`ratio_percentile`'s model) with the bias added in quadrature."""
+        r = np.sqrt((self._ratio_draws() * self.ee_rms) ** 2 + self.ee_bias_rms**2)
+        lo, hi = np.quantile(r, [0.5 - probability / 2, 0.5 + probability / 2])
+        return float(lo), float(hi)
 
     @property
     def ee_total(self) -> np.ndarray:
@@ -326,6 +394,17 @@ class PlanEvaluation:
                 "ee_bias_parts_mm": {k: 1e3 * v for k, v in self.bias_parts.items()},
                 "ee_total_rms_mm": 1e3 * self.ee_total_rms,
                 "ee_total_p95_mm": 1e3 * self.ee_total_p95,
+                # One capture's EE RMS, noise and bias: its 90 % interval (the noise part's spread, the bias fixed).
+                "one_capture_total_ee_rms_mm_90": [1e3 * v for v in self.total_interval()]
+                if spread
+                else None,
+            }
+        if self.terms:
+            out |= {
+                "terms": list(self.terms),
+                "term_std": dict(self.term_std or {}),
+                "ee_bias_rms_mm_without_terms": 1e3 * self.ee_bias_rigid_rms,
+                "ee_bias_parts_mm_without_terms": {k: 1e3 * v for k, v in self.bias_parts_rigid.items()},
             }
         return out
 
@@ -365,6 +444,7 @@ def evaluate_views(
     visible: np.ndarray | None = None,
     offsets=(),
     joint_std: np.ndarray | None = None,
+    terms: TermInputs | None = None,
 ) -> PlanEvaluation:
     """Pre-evaluate frames at commanded configurations `q (V, joints)`, controller
     times `t (V,)` (increasing), over the workspace `configs (C, joints)`.
@@ -375,7 +455,9 @@ def evaluate_views(
     `offsets`: `(name, (V, joints))` pairs, where the joints stand against what the
     encoders read (rad: an arm's sag, backlash), whose EE bias is predicted
     (`jaxcal.planning._realism.propagate`); `joint_std (joints,)`: the readings'
-    own noise (rad), added to the noise part.
+    own noise (rad), added to the noise part; `terms`: non-geometric terms the
+    refinement fits beside the geometry (the module docstring): the noise part and
+    the bias are then those left with them, the bias without them beside.
 
     **Returns:** a `PlanEvaluation`.
     """
@@ -402,22 +484,33 @@ def evaluate_views(
         ee = np.full(len(configs), np.inf)
         return PlanEvaluation(names, d.candidates, free, std, ee, np.inf, np.inf, {}, float(sigma_px), len(q), corners,
                               np.zeros(0))  # fmt: skip
-    scale = np.linalg.norm(Jf, axis=0)
-    scale = np.where(scale > 0, scale, 1.0)
-    Js = Jf / scale
-    U, sv, Vt = np.linalg.svd(Js, full_matrices=False)
-    keep = sv > 1e-12 * sv[0]
-    pinv = (
-        (Vt[keep].T / sv[keep]) @ U[:, keep].T / scale[:, None]
-    )  # (f, rows): least squares on the free columns
+    pinv, sv = least_squares_map(Jf)
+    rigid, with_terms = pinv, None
+    mask = np.ones((len(q), scene.points.shape[0]), bool) if visible is None else np.asarray(visible, bool)
+    if terms is not None:
+        T = np.asarray(
+            term_columns(scene, jnp.asarray(q), jnp.asarray(terms.approach), jnp.asarray(terms.masses),
+                         jnp.asarray(terms.coms), tuple(terms.terms))
+        ) * np.repeat(mask.reshape(-1), 2)[:, None]  # fmt: skip
+        # As the refinement: a coefficient whose basis does not vary over the frames is no candidate.
+        varied = np.asarray(
+            basis_rms(jnp.asarray(q), jnp.asarray(terms.approach), jnp.asarray(terms.masses),
+                      jnp.asarray(terms.coms), scene.nominal, tuple(terms.terms))
+        ) >= BASIS_FLOOR  # fmt: skip
+        aug, sv = least_squares_map(np.concatenate([Jf, T[:, varied]], axis=1))
+        pinv, pinv_t = aug[: Jf.shape[1]], aug[Jf.shape[1] :]
+        names_t = np.array(term_names(terms.terms, names_of(scene)))[varied]
+        with_terms = (tuple(terms.terms), dict(zip(names_t, sigma_px * np.linalg.norm(pinv_t, axis=1))))
     cov_f = sigma_px**2 * (pinv @ pinv.T)
-    parts, bias = {}, np.zeros(0)
+    parts, bias, parts_rigid, bias_rigid = {}, np.zeros(0), {}, np.zeros(0)
     if len(offsets) or joint_std is not None:
         P = np.asarray(pixel_jacobians(scene, jnp.asarray(q)))
-        mask = np.ones(P.shape[:2], bool) if visible is None else np.asarray(visible, bool)
         parts, b, cov_q = propagate(pinv, Gf, P, mask, offsets, joint_std)
         cov_f = cov_f + cov_q
         bias = np.linalg.norm(b, axis=-1) if len(offsets) else bias
+        if terms is not None and len(offsets):
+            parts_rigid, b_rigid, _ = propagate(rigid, Gf, P, mask, offsets, None)
+            bias_rigid = np.linalg.norm(b_rigid, axis=-1)
     std[np.flatnonzero(free)] = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
     ee = np.sqrt(np.maximum(np.einsum("cia,ab,cib->c", Gf, cov_f, Gf), 0.0))
     interval, dof, lam = ratio_spread(cov_f, np.einsum("cia,cib->ab", Gf, Gf) / len(configs))
@@ -445,7 +538,25 @@ def evaluate_views(
         error_eigenvalues=lam,
         ee_bias=bias,
         bias_parts=parts,
+        terms=() if with_terms is None else with_terms[0],
+        term_std=None if with_terms is None else with_terms[1],
+        ee_bias_rigid=bias_rigid,
+        bias_parts_rigid=parts_rigid,
     )
+
+
+def names_of(scene: PlanScene) -> tuple[str, ...]:
+    return tuple(scene.nominal.joint_names)
+
+
+def least_squares_map(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(pinv (f, rows), singular values)`: the least-squares map of the columns of `J`
+    (Jacobi-scaled SVD, directions below 1e-12 of the largest dropped)."""
+    scale = np.linalg.norm(J, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    U, sv, Vt = np.linalg.svd(J / scale, full_matrices=False)
+    keep = sv > 1e-12 * sv[0]
+    return (Vt[keep].T / sv[keep]) @ U[:, keep].T / scale[:, None], sv
 
 
 def ratio_spread(

@@ -23,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from .._buckets import bucket
-from ._evaluate import corner_problem, ee_mean_square, free_jacobian
+from ._evaluate import corner_problem, ee_mean_square, free_jacobian, term_columns
 from ._scene import CHECKS, FeasibilityLimits, PlanScene, margins, penalty
 
 #: Fractions of the way from the taught pose a failing frame is tried at, largest first.
@@ -144,10 +144,38 @@ def greedy_d_optimal(B: Float[Array, "M r f"], count: int, prior: float = 1e-6) 
     return jax.lax.fori_loop(0, count, body, init)[2]
 
 
-def objective(scene, limits, M, free_idx, sigma_px, weight, q):
-    """$\\log e^2(q) + w \\cdot$ mean feasibility penalty (see the module docstring)."""
+class TermModel(eqx.Module):
+    """Non-geometric terms the planner counts as nuisance parameters (`jaxcal._terms`): the
+    families and the links' masses and centres of mass of their basis."""
+
+    masses: Float[Array, " joints"]
+    coms: Float[Array, "joints 3"]
+    terms: tuple[str, ...] = eqx.field(static=True)
+    #: The zero offsets' indices in the flattened `RefineParams` (the joints' angle columns).
+    zero_idx: tuple[int, ...] = eqx.field(static=True, default=())
+
+
+def path_approach(q0, q):
+    """Every frame's approach flank along a path from `q0` through the frames `q` in order
+    (the sign of each joint's last move; no gradient)."""
+    prev = jnp.concatenate([q0[None], q[:-1]])
+    return jax.lax.stop_gradient(jnp.sign(q - prev))
+
+
+def objective(scene, limits, M, free_idx, sigma_px, weight, q, terms: TermModel | None = None):
+    """$\\log e^2(q) + w \\cdot$ mean feasibility penalty (see the module docstring); with
+    `terms`, their columns join the information as nuisance parameters (`M` zero there)."""
     V = q.shape[0]
-    J = free_jacobian(corner_problem(scene, q, jnp.arange(V, dtype=q.dtype)), free_idx)
+    problem = corner_problem(scene, q, jnp.arange(V, dtype=q.dtype))
+    if terms is None:
+        J = free_jacobian(problem, free_idx)
+    else:
+        # The joints' angle columns are the zero offsets': one Jacobian for both.
+        f = len(free_idx)
+        J = free_jacobian(problem, jnp.concatenate([jnp.asarray(free_idx), jnp.asarray(terms.zero_idx, int)]))
+        T = term_columns(scene, q, path_approach(q[0], q), terms.masses, terms.coms, terms.terms, J[:, f:])
+        J = jnp.concatenate([J[:, :f], T], axis=1)
+        M = jnp.zeros((J.shape[1],) * 2).at[: M.shape[0], : M.shape[1]].set(M)
     pen = jnp.mean(jax.vmap(lambda qq: penalty(scene, limits, qq))(q))
     return jnp.log(ee_mean_square(J, M, sigma_px)) + weight * pen
 
@@ -164,6 +192,7 @@ def descend(
     steps: int,
     lr: float = 0.02,
     weight: float = 10.0,
+    terms: TermModel | None = None,
 ) -> tuple[Float[Array, "S V joints"], Float[Array, "S steps"]]:
     """Adam ($\\beta = 0.9, 0.999$) on `objective` from every start in `q_init`
     (vmapped), `steps` steps of at most `lr` rad per joint; joint values kept
@@ -172,7 +201,7 @@ def descend(
     **Returns:** the final joint values and each start's objective per step.
     """
     lo, hi = scene.lower + limits.joint_margin, scene.upper - limits.joint_margin
-    vg = jax.value_and_grad(lambda q: objective(scene, limits, M, free_idx, sigma_px, weight, q))
+    vg = jax.value_and_grad(lambda q: objective(scene, limits, M, free_idx, sigma_px, weight, q, terms))
 
     def one(q0):
         def step(carry, k):

@@ -60,22 +60,17 @@ from .._pointfit import (
     term_basis,
 )
 from .._selection import improves_on_samples, paired_z
+from .._terms import approach, signs
 from ..errors import CalibrationError
 from ..records import ModelRow, PointOutlier, RepeatedPose, ResidualStats, TermRow
-from ..robots import link_inertials
 from ._observe import Observations
 from ._setup import Options, Setup
 from ._synchronise import Sync
+from ._terms import TERM_FLOOR as TERM_FLOOR
+from ._terms import TERM_STD_RAD as TERM_STD_RAD
+from ._terms import inertials, resolve
 from .limits import Limits
 
-#: A non-geometric coefficient stays free only when the data pin its effect on the joint
-#: angle (its std times the RMS of its basis over the samples) to this (rad): a
-#: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
-#: only to more than that is not identified (e.g. wrist 3's, when the point sits on its axis).
-TERM_STD_RAD = 1e-3
-#: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
-#: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
-TERM_FLOOR = 1e-6
 #: The robust point fit (`jaxcal._pointfit.fit_points_robust`): Cauchy rounds, then the inliers
 #: within 6 robust sigmas (as a 2-D radius), the arc fits' threshold (`_programs.ARC_REJECT`).
 #: A tracker's residuals are the arm's unmodelled errors more than the instrument's noise, with
@@ -161,7 +156,9 @@ def point_problem(
     sigma_rad: np.ndarray | None = None,
 ) -> PointProblem:
     """A `PointProblem` from NumPy arrays (`inertials`: masses and centres of mass, for
-    compliance; `R`, `sigma_rad`: measured orientations, when `layout.orientation`)."""
+    compliance and backlash's preload, the payload lumped in; `R`, `sigma_rad`: measured
+    orientations, when `layout.orientation`). With a `backlash` term every joint's
+    approach flank follows the samples' order (`jaxcal._terms.approach`)."""
     n = nominal.num_joints
     S = len(q)
     masses, coms = (np.zeros(n), np.zeros((n, 3))) if inertials is None else inertials
@@ -177,6 +174,7 @@ def point_problem(
         coms=jnp.asarray(coms, jnp.float64),
         R=jnp.asarray(np.broadcast_to(np.eye(3), (S, 3, 3)) if R is None else R, jnp.float64),
         sigma_rad=jnp.asarray(np.ones(S) if sigma_rad is None else sigma_rad, jnp.float64),
+        approach=jnp.asarray(approach(q), jnp.float64) if "backlash" in layout.terms else None,
     )
     return PointProblem(nominal, jnp.asarray(T_dev_base0), jnp.asarray(T_flange_point0), data, layout)
 
@@ -216,7 +214,8 @@ def _refit(problem: PointProblem, cand, free):
 def term_scale(problem: PointProblem) -> np.ndarray:
     """Per non-geometric coefficient (`PointLayout` order), the RMS of its basis over the fitted samples."""
     layout, d = problem.layout, problem.data
-    b = np.asarray(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms))[np.asarray(d.mask)]
+    b = np.asarray(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms, d.approach))
+    b = b[np.asarray(d.mask)]
     rms = np.sqrt(np.mean(b**2, axis=0))  # (joints, k): family-major below
     cols, start = [], 0
     for t in layout.terms:
@@ -239,16 +238,17 @@ def _cv(problem: PointProblem, cand, free, train):
 
 def _hold_implausible_terms(problem: PointProblem, cand, fit: PointFitResult) -> PointFitResult:
     """Hold at zero, and refit without, the non-geometric coefficients the data do not
-    pin (`TERM_STD_RAD`) and the compliances that come out negative (a joint does not
-    yield against gravity: such a term is absorbing something else), one round at a time."""
+    pin (`TERM_STD_RAD`) and those whose sign no real arm has (`jaxcal._terms.SIGNS`: a
+    joint does not yield against gravity, nor its link lead its motor; such a term is
+    absorbing something else), one round at a time."""
     layout = problem.layout
     k = layout.base.axis_size
-    compliance = np.array(["compliance" in n for n in layout.term_names()], bool)
+    sign = signs(layout.terms, len(layout.base.joints))
     for _ in range(len(layout.term_names())):
         free = np.asarray(fit.free).copy()
         terms_free = free[k:]
         loose = terms_free & (term_effect_std(problem, fit) > TERM_STD_RAD)
-        negative = terms_free & compliance & (np.asarray(fit.x)[k:] < 0)
+        negative = terms_free & (sign * np.asarray(fit.x)[k:] < 0)
         if not (loose | negative).any():
             break
         free[k:] &= ~(loose | negative)
@@ -291,15 +291,6 @@ def _cv_row(problem, cand, fit, train) -> tuple[dict, np.ndarray]:
     if deg is not None:
         row |= {"cv_mean_deg": deg.mean, "cv_rms_deg": deg.rms, "cv_max_deg": deg.max}
     return row, per_sample
-
-
-def _inertials(setup: Setup):
-    try:
-        return link_inertials(setup.dataset.robot_urdf)
-    except (ValueError, KeyError) as e:
-        raise CalibrationError(
-            f"{setup.dataset.robot_urdf}: joint compliance needs every link's mass and centre of mass: {e}"
-        ) from None
 
 
 def start_frame(
@@ -436,16 +427,15 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
             frame_free=kind.fixed_frame_free, mount_known=point.T_link_target is not None,
         )  # fmt: skip
     base = ParameterLayout.of(nominal, 1, fixed_name=kind.fixed_frame)
-    inertials = _inertials(setup) if "compliance" in options.terms else None
+    terms = resolve(setup, options)
+    masses = inertials(setup) if {"compliance", "backlash"} & set(terms) else None
     tol = setup.identifiability_tol
     folds = options.cv_folds
     orientation = orient is not None
 
     def fitted(terms, used):
         layout = PointLayout(base, terms, orientation)
-        problem = point_problem(
-            nominal, layout, q, y, s.sigma_m, used, T0, Tp0, inertials, orient, s.sigma_rad
-        )
+        problem = point_problem(nominal, layout, q, y, s.sigma_m, used, T0, Tp0, masses, orient, s.sigma_rad)
         cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free, orientation=orientation)
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         scale = plausible_scale(layout, nominal, options.limits)
@@ -477,7 +467,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
 
     best = attempt(())
     models, kept = [best[5]], 0
-    for term in options.terms:
+    for term in terms:
         if train is None:
             raise CalibrationError(
                 "non-geometric terms are kept only when cross-validation improves: cv_folds >= 2"

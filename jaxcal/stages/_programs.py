@@ -29,8 +29,9 @@ from .._device import to_device
 from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
-from .._pointfit import gravity_torques
 from .._refine import identifiable_mask, line_delay_test, refine
+from .._terms import column_map, gravity_torques
+from .._terms import term_basis as _term_basis_of
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
 #: The arc and clock fits' inlier threshold (robust sigmas of the deletion
@@ -224,16 +225,16 @@ def clock_fit(loss: str | None):
 
 
 @functools.cache
-def _refinement(free: tuple):
+def _refinement(free: tuple, jacobian: bool):
     def refinement(problem, params0):
-        return refine(problem, params0, np.asarray(free))
+        return refine(problem, params0, np.asarray(free), jacobian=jacobian)
 
-    return stored_jit(refinement, "refinement", (free,))
+    return stored_jit(refinement, "refinement", (free, jacobian) if jacobian else (free,))
 
 
-def refinement(free: np.ndarray):
-    """`refine(problem, params0, free)` for a concrete `free` mask (static)."""
-    return _refinement(tuple(bool(f) for f in np.asarray(free)))
+def refinement(free: np.ndarray, jacobian: bool = False):
+    """`refine(problem, params0, free, jacobian=jacobian)` for a concrete `free` mask (static)."""
+    return _refinement(tuple(bool(f) for f in np.asarray(free)), bool(jacobian))
 
 
 @functools.cache
@@ -288,6 +289,30 @@ def arm_score(use_poses: bool):
 
 
 @functools.cache
+def _term_basis(terms: tuple[str, ...]):
+    def term_basis(nominal, q, approach, masses, coms):
+        return _term_basis_of(terms, nominal, q, masses, coms, approach)
+
+    return stored_jit(term_basis, "term_basis", (terms,))
+
+
+def term_basis(terms, nominal, q, approach, masses, coms) -> np.ndarray:
+    """`jaxcal._terms.term_basis` of the families `terms` at commanded positions `q (n, joints)`
+    with approach flanks `approach (n, joints)` (computed on both padded to a bucket), `(n,
+    joints, k)`."""
+    q = np.asarray(q, np.float64)
+    size = bucket(len(q))
+    padded = np.zeros((size, q.shape[1]))
+    flank = np.zeros((size, q.shape[1]))
+    padded[: len(q)], flank[: len(q)] = q, approach
+    out = _term_basis(tuple(terms))(
+        nominal, to_device(padded), to_device(flank), to_device(np.asarray(masses, np.float64)),
+        to_device(np.asarray(coms, np.float64)),
+    )  # fmt: skip
+    return np.array(out)[: len(q)]
+
+
+@functools.cache
 def _chains():
     def chains(T_cam_base, model, q):
         return T_cam_base @ jax.vmap(lambda qq: forward_kinematics(model, qq))(q)
@@ -305,25 +330,38 @@ def chains(T_cam_base, model, q) -> np.ndarray:
 
 
 @functools.cache
-def _ee_sigma():
-    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, travel):
+def _ee_sigma(terms: tuple[str, ...] = ()):
+    def ee_sigma_program(nominal, T_cam_base0, mounts0, cam, correction, cov, travel, masses, coms):
         key = jax.random.key(0)
         q = on_travel(nominal, random_configurations(key, EE_CONFIGURATIONS, nominal.num_joints), travel)
-        return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q)
+        if not terms:
+            return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q)
+        # A configuration's approach flank is unknown: either, so the lost motion's whole half-width.
+        basis = _term_basis_of(terms, nominal, q, masses, coms, jnp.ones_like(q))
+        joint, col = column_map(terms, nominal.num_joints)
+        return ee_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, q, joint, basis[:, joint, col])
 
-    return stored_jit(ee_sigma_program, "ee_sigma", (EE_CONFIGURATIONS,))
+    return stored_jit(
+        ee_sigma_program, "ee_sigma", (EE_CONFIGURATIONS, terms) if terms else (EE_CONFIGURATIONS,)
+    )
 
 
 #: Configurations (seed 0) of the end-effector uncertainty.
 EE_CONFIGURATIONS = 1000
 
 
-def end_effector_sigma(nominal, T_cam_base0, mounts0, cam, correction, cov, limits=None) -> np.ndarray:
+def end_effector_sigma(
+    nominal, T_cam_base0, mounts0, cam, correction, cov, limits=None, terms=None
+) -> np.ndarray:
     """Per configuration (1000, seed 0: the validation's sample) the 1-sigma tool-point
-    uncertainty (m); a prismatic joint within its URDF `limits` (`joint_travel`)."""
+    uncertainty (m); a prismatic joint within its URDF `limits` (`joint_travel`). `terms`:
+    `(families, masses, coms)` of non-geometric terms whose coefficients follow the axis-fit
+    prefix in `cov` (`jaxcal._uncertainty.ee_sigma`)."""
+    families, masses, coms = terms if terms is not None else ((), np.zeros(0), np.zeros(0))
     return np.asarray(
-        _ee_sigma()(
+        _ee_sigma(tuple(families))(
             nominal, to_device(T_cam_base0), to_device(mounts0), cam, correction, to_device(cov),
-            to_device(joint_travel(nominal, limits)),
+            to_device(joint_travel(nominal, limits)), to_device(np.asarray(masses, np.float64)),
+            to_device(np.asarray(coms, np.float64)),
         )
     )  # fmt: skip

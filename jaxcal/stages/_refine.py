@@ -8,6 +8,11 @@ gauge; rates are free with encoders, the clock offset when it was
 estimated. Without an encoder log each sweep view's joint angle is one more
 unknown; with markers on every link every target's corners go through its
 own link's chain and the corners decide what is identifiable.
+
+With an encoder log the non-geometric terms (`Options.terms`, by default the
+kind's: joint compliance under gravity and lost motion) are then tried on the
+rigid solution and kept only where held-out views say so (`stages._terms`);
+with one kept, the refinement runs again with its coefficients free.
 """
 
 import dataclasses
@@ -54,6 +59,7 @@ from . import _programs
 from ._observe import CameraObservations, Observations
 from ._setup import Options, Setup
 from ._synchronise import Sync, interpolate, usable
+from ._terms import TermFit, coefficient_rows, not_tried, resolve, select
 from ._two_stage import TwoStage
 
 #: Names of the per-view angles of padding views (never free, never reported).
@@ -85,6 +91,8 @@ class Refined:
       (the delay times the image height, s).
     - `shutter_test`: without one, per camera the rolling shutter its residuals
       point to (`shutter_test`); None when not tested.
+    - `terms`: the non-geometric terms tried (`stages._terms.TermFit`: the kept
+      families and coefficients, and the result's `TermsSummary`); None when none was.
     """
 
     fit: RefineResult | None = None
@@ -107,6 +115,7 @@ class Refined:
     problem: RefineProblem | None = None
     line_delays: tuple[LineDelay, ...] = ()
     shutter_test: tuple[ShutterTest, ...] | None = None
+    terms: TermFit | None = None
 
 
 def dist5(dist) -> np.ndarray | None:
@@ -539,7 +548,16 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     problem, params0, layout, cand = _problem(setup, obs, sync, two, corners, obs.primary.K, d5, options)
     free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.identifiability_tol)
     free = np.asarray(free)
-    res = _programs.refinement(free)(problem, params0)
+    terms = resolve(setup, options)
+    tried = terms if setup.kind.terms_in == "refinement" else ()
+    res = _programs.refinement(free, jacobian=bool(tried))(problem, params0)
+    fit_terms = None
+    if tried:
+        problem, res, layout, cand, free, fit_terms = _with_terms(
+            setup, sync, problem, res, layout, cand, free, tried, options
+        )
+    elif terms:
+        fit_terms = TermFit((), np.zeros(0), None, None, not_tried(terms, "the capture has no encoder log"))
     # The shutter's score test, in the `Future` the verdict reads (`run_ahead` runs it inline).
     pending = _programs.run_ahead("shutter test", shutter_test, setup, corners, problem, res)
     jax.block_until_ready(res)
@@ -552,8 +570,43 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for it, past the refinement
     summary = dataclasses.replace(out.summary, line_delay=delays or None, rolling_shutter_test=test)
     return dataclasses.replace(
-        out, summary=summary, problem=problem, line_delays=delays, shutter_test=test, timings=timings
+        out,
+        summary=summary,
+        problem=problem,
+        line_delays=delays,
+        shutter_test=test,
+        timings=timings,
+        terms=fit_terms,
     )
+
+
+def _with_terms(setup: Setup, sync: Sync, problem, res, layout, cand, free, terms, options: Options):
+    """The non-geometric `terms` tried on the rigid refinement `res` (`stages._terms.select`)
+    and, where a family is kept, the refinement again with its coefficients free: `(problem,
+    res, layout, cand, free, TermFit)` of the refinement that stands (the rigid one's when
+    nothing is kept, its Jacobians dropped)."""
+    options.say(f"refinement: non-geometric terms {list(terms)}, each kept only if held-out views improve")
+    jax.block_until_ready(res)
+    kept, basis, kept_free, summary, inert = select(
+        setup, sync, problem, jax.device_get(res), free, terms, options
+    )
+    res = eqx.tree_at(lambda r: (r.jacobian, r.angle_jacobian), res, (None, None))
+    if not kept:
+        return problem, res, layout, cand, free, TermFit((), np.zeros(0), None, None, summary)
+    options.say(f"refinement: kept {'+'.join(kept)}; refining again with them")
+    problem = dataclasses.replace(
+        problem, terms=kept, data=dataclasses.replace(problem.data, term_basis=to_device(basis))
+    )
+    params = dataclasses.replace(res.params, terms=jnp.zeros(kept_free.size))
+    layout = dataclasses.replace(layout, terms=kept)
+    free = np.concatenate([free, kept_free])
+    cand = np.concatenate([cand, np.ones(kept_free.size, bool)])
+    res = _programs.refinement(free)(problem, params)
+    idx = layout.index("terms")
+    x, std = np.asarray(res.params.terms), np.asarray(res.std)[idx]
+    rows = coefficient_rows(kept, setup.nominal.joint_names, x, std, free[idx])
+    summary = dataclasses.replace(summary, coefficients=rows)
+    return problem, res, layout, cand, free, TermFit(kept, x, *inert, summary)
 
 
 def shutter_test(

@@ -37,7 +37,7 @@ class Options:
     limits: Limits = Limits()
     arc_loss: str | None = "cauchy"
     device_is_base: bool = False
-    terms: tuple[str, ...] = ()
+    terms: tuple[str, ...] | str = "auto"
     cv_folds: int = 5
     identifiability_tol: float | None = None
 

@@ -200,10 +200,13 @@ def usable(ds: Dataset, t_ctrl: np.ndarray, log_q) -> tuple[np.ndarray, np.ndarr
 
 
 class _Timeline:
-    """The two-stage camera's frames placed on the controller clock at a given offset."""
+    """The two-stage camera's frames placed on the controller clock at a given offset: their
+    joint positions from `log_q`, which joint sweeps from `commanded` (the encoder log as
+    logged; `log_q` itself when None)."""
 
-    def __init__(self, setup: Setup, obs: CameraObservations, log_q):
+    def __init__(self, setup: Setup, obs: CameraObservations, log_q, commanded=None):
         self.setup, self.obs, self.log_q = setup, obs, log_q
+        self.commanded = log_q if commanded is None else commanded
 
     def at(self, offset_s: float):
         """`(t_ctrl, q, inside)` of every row at `offset_s`."""
@@ -227,7 +230,8 @@ class _Timeline:
         """`(sweeps, counts, joint, t_ctrl, q, inside)` at `offset_s` (single-joint sweeps)."""
         n = self.setup.nominal.num_joints
         t_ctrl, q, inside = self.at(offset_s)
-        joint = np.where(inside, assign_frames(self.setup.dataset, t_ctrl, q, n), -1)
+        q_cmd = q if self.commanded is self.log_q or q is None else interpolate(t_ctrl, *self.commanded)
+        joint = np.where(inside, assign_frames(self.setup.dataset, t_ctrl, q_cmd, n), -1)
         sw, counts = build_sweeps(self.setup.dataset, self.obs, self.setup.targets, joint, q, n)
         return sw, counts, joint, t_ctrl, q, inside
 
@@ -384,12 +388,14 @@ STILL_DEG = 0.5
 
 
 def sweep_homes(
-    ds: Dataset, joint: np.ndarray, q: np.ndarray | None, inside: np.ndarray
+    ds: Dataset, joint: np.ndarray, q: np.ndarray | None, inside: np.ndarray, exact: bool = False
 ) -> np.ndarray | None:
     """Per joint sweep, the configuration the other joints held: the median of
     the encoder log over the sweep's frames (a `CalibrationError` names a joint
     that moved), else the metadata's `home` of the joint's segment, else zero.
-    None when every home is within `AT_ZERO_DEG` of zero (the zero configuration)."""
+    None when every home is within `AT_ZERO_DEG` of zero (the zero configuration),
+    unless `exact` (a log corrected by non-geometric terms: their sub-millidegree
+    offsets are the point)."""
     n = len(ds.joint_names)
     homes = np.zeros((n, n))
     for j in range(n):
@@ -415,7 +421,7 @@ def sweep_homes(
             if given and given[0] is not None:
                 homes[j] = given[0]
         homes[j, j] = 0.0
-    return None if np.degrees(np.abs(homes).max()) < AT_ZERO_DEG else homes
+    return None if np.degrees(np.abs(homes).max()) < AT_ZERO_DEG and not exact else homes
 
 
 #: A given clock offset disagrees with the estimate beyond this many of its std (and 0.5 ms).
@@ -523,13 +529,22 @@ def _fit_clock(
     return fitted, cf, note
 
 
-def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
+def synchronise(setup: Setup, obs: Observations, options: Options, terms=None) -> Sync:
     """Place the frames on the controller clock (see `Sync`), estimating the
     clock offset whenever there is an encoder log (a given offset that
-    disagrees is a warning; `options.clock`: `"estimate"` always, `"given"` keeps the given one)."""
+    disagrees is a warning; `options.clock`: `"estimate"` always, `"given"` keeps the given one).
+
+    `terms`: non-geometric terms the refinement kept (`stages._terms.TermFit`): the
+    encoder log's joint positions are then corrected by them (`TermFit.log_correction`:
+    where the joints stood, not where the motors were), so that the clock fit, the arcs
+    (a sweep under a changing gravity torque is then a circle at the joint's rate) and
+    the sweeps' homes see the arm the terms describe; which joint sweeps when is still
+    read from the log as logged."""
     t0 = time.perf_counter()
     ds, nominal = setup.dataset, setup.nominal
-    log_q = commanded_positions(ds, nominal)
+    commanded = log_q = commanded_positions(ds, nominal)
+    if terms is not None and terms.kept and log_q is not None:
+        log_q = (log_q[0], log_q[1] + terms.log_correction(nominal, *log_q))
     offset = ds.clock_offset_s
     estimate = True if options.clock == "estimate" else None
     if estimate and not setup.kind.has_arcs:
@@ -554,7 +569,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
             "clock offset unknown and not estimated: 0 assumed"
             + ("" if setup.kind.has_arcs else " (harmless when the arm stands still in every image)")
         )
-    line = _Timeline(setup, obs.primary, log_q)
+    line = _Timeline(setup, obs.primary, log_q, commanded)
     if not estimate:
         (sweeps, counts, joint, t_ctrl, q, inside), _ = _placed(
             setup, obs.primary, options, line, log_q, offset0
@@ -569,8 +584,9 @@ def synchronise(setup: Setup, obs: Observations, options: Options) -> Sync:
         )
         if offset is not None:
             notes += _compare_clock(ds, offset, clock)
-    homes = sweep_homes(ds, joint, q, inside) if setup.kind.single_joint_sweeps else None
-    if homes is not None:
+    corrected = log_q is not commanded
+    homes = sweep_homes(ds, joint, q, inside, corrected) if setup.kind.single_joint_sweeps else None
+    if homes is not None and not corrected:
         notes.append(
             "sweeps from a home configuration other than zero: "
             + "; ".join(

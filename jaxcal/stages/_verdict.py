@@ -233,7 +233,10 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
 
 
 def _ee_sigma_mm(setup: Setup, two: TwoStage, refined: Refined | None) -> float:
-    """RMS over random configurations of the propagated 1-sigma tool-point uncertainty (mm)."""
+    """RMS over random configurations of the propagated 1-sigma tool-point uncertainty (mm); with
+    non-geometric terms kept, of the whole model's (their coefficients' uncertainty turns each
+    joint by its basis there: a compliance the capture pins only near its own gravity torques
+    shows here as the sag it leaves open over the workspace)."""
     if refined is None:
         fit = two.fit
         refs, cam, corr, cov = (
@@ -243,10 +246,15 @@ def _ee_sigma_mm(setup: Setup, two: TwoStage, refined: Refined | None) -> float:
             fit.cov,
         )
     else:
-        res, n = refined.fit, refined.layout.axis_size
+        res, lay = refined.fit, refined.layout
         refs, cam, corr = refined.references, res.params.cam, res.params.correction
-        cov = np.asarray(res.cov)[:n, :n]
-    sigma = _programs.end_effector_sigma(setup.nominal, *refs, cam, corr, cov, setup.dataset.joint_limits)
+        idx = np.concatenate([np.arange(lay.axis_size), lay.index("terms")])  # the kept terms' too
+        cov = np.asarray(res.cov)[np.ix_(idx, idx)]
+    kept = refined.terms if refined is not None and refined.terms is not None and refined.terms.kept else None
+    terms = None if kept is None else (kept.terms, kept.masses, kept.coms)
+    sigma = _programs.end_effector_sigma(
+        setup.nominal, *refs, cam, corr, cov, setup.dataset.joint_limits, terms
+    )
     return float(1e3 * np.sqrt(np.mean(sigma**2)))
 
 

@@ -22,6 +22,8 @@ ask the kind, they do not test flags of their own.
 | `single_joint_sweeps`   | yes                | yes                | no                    | no           |                | yes             | no              |
 | `fits_rates`            | yes                | yes                | yes                   | yes          | no             | yes             | yes             |
 | `rates_from_arcs`       | yes                | yes                | yes                   | no           | no             | yes             | no              |
+| `terms_in`              | refinement         | refinement         | refinement            | refinement   |                | (none)          | point fit       |
+| `default_terms`         | compliance, backlash | compliance, backlash | compliance, backlash | compliance, backlash | | ()          | ()              |
 | `fixed_board`           | no                 | yes                | no                    | eye-in-hand  |                | no              | no              |
 | `flange_targets_only`   | yes                | no                 | no                    | no           |                | yes             | no              |
 | `unsupported`           |                    |                    | without encoders      | without encoders |            |                 |                 |
@@ -238,6 +240,24 @@ class CaptureKind:
     def rates_from_arcs(self) -> bool:
         """The refinement starts the encoder rates from the arc fits (else at one)."""
         return self.encoders and self.has_arcs
+
+    @property
+    def terms_in(self) -> str | None:
+        """Where the non-geometric terms (`jaxcal._terms`) are fitted: `"refinement"` (every
+        corner, each view's basis from the encoder log), `"point fit"` (stop-and-shoot samples)
+        or None (no encoder log to read the poses and their approach from; tracker sweeps,
+        whose two-stage fit is final)."""
+        if self.fits_points:
+            return "point fit"
+        return "refinement" if self.refines_corners and self.encoders else None
+
+    @property
+    def default_terms(self) -> tuple[str, ...]:
+        """The families `terms="auto"` tries: compliance and lost motion where the
+        refinement fits terms (every camera capture with an encoder log: a cobot's
+        sag and backlash are millimetres at the tool); none on tracker data (named
+        with `terms`: the point fit's published figures are the geometric model's)."""
+        return ("compliance", "backlash") if self.terms_in == "refinement" else ()
 
     @property
     def fixed_board(self) -> bool:

@@ -27,6 +27,7 @@ from ..records import (
     RatioRow,
     RefinementSummary,
     SolverInfo,
+    TermsSummary,
     ValidationReport,
 )
 from ._observe import Observations
@@ -34,6 +35,7 @@ from ._points import PointFit
 from ._refine import Refined, succeeded
 from ._setup import Setup
 from ._synchronise import Sweeps, Sync
+from ._terms import TermFit
 from ._two_stage import TwoStage, result_name
 from ._validate import Validation
 from ._verdict import Verdict
@@ -86,6 +88,10 @@ class CalibrationResult:
     - `point_fit`: stop-and-shoot tracker data, the `stages._points.PointFit`
       (its non-geometric terms, cross-validation, held parameters and the
       problem `jaxcal verify` predicts with; `result.json`'s `point_fit`).
+    - `terms`: the non-geometric terms (`jaxcal._terms`) tried, kept (with their
+      coefficients and std) and why (`result.json`'s `terms`), for camera and tracker
+      data alike; `term_fit`: the kept ones with what applying them needs
+      (`jaxcal.compensate`, `compensation.json`). None when none was tried.
     """
 
     dataset: Path
@@ -121,6 +127,8 @@ class CalibrationResult:
     verdict: Verdict | None = None
     estimate: Estimate | None = None
     point_fit: PointFit | None = None
+    terms: TermsSummary | None = None
+    term_fit: TermFit | None = None
 
     @property
     def status(self) -> str:
@@ -319,4 +327,26 @@ def assemble(
         verdict=verdict,
         estimate=refined.estimate if ran else two.estimate,
         point_fit=two.points,
+        **dict(zip(("terms", "term_fit"), _terms(setup, two, refined))),
     )
+
+
+def _terms(setup: Setup, two: TwoStage, refined: Refined | None) -> tuple:
+    """`(TermsSummary, TermFit)` of the terms the refinement or the point fit tried (Nones)."""
+    if refined is not None and refined.terms is not None:
+        return refined.terms.summary, refined.terms
+    pf = two.points
+    if pf is None or len(pf.models) < 2:
+        return None, None
+    k = pf.layout.base.axis_size
+    kept = tuple(pf.layout.terms)
+    d = pf.problem.data
+    summary = TermsSummary(
+        tried=tuple(dict.fromkeys(t for m in pf.models for t in m.terms)),
+        kept=kept,
+        models=pf.models,
+        coefficients=pf.term_rows,
+        folds=pf.folds,
+    )
+    fit = TermFit(kept, np.asarray(pf.fit.x)[k:], np.asarray(d.masses), np.asarray(d.coms), summary)
+    return summary, fit

@@ -1,0 +1,378 @@
+"""The non-geometric terms of a camera capture, kept only where held-out views say so.
+
+A real arm sags under gravity and loses motion in its gears
+(`jaxcal._terms`: every view's joint angles gain $\\Delta_j = \\sum_k e_{j,k} b_{j,k}$,
+the basis from the view's commanded pose and approach). The rigid refinement
+(`stages.refine`) runs first; its Jacobian at the solution, in the free
+parameters and in every joint's angle, gives every term's column (the joint's
+angle column times its basis, per view), so the models are compared without
+another solve:
+
+1. candidates: a term column is tried where its basis varies over the views
+   (`TERM_FLOOR`) and it is independent of the geometry's columns and of the
+   terms' before it (the kind's identifiability tolerance; terms last, so a
+   term is freed only where the geometry cannot already explain it);
+2. the families are tried one after another, as the tracker's point fit does
+   (`stages._points`): each model is fitted to the views by one Gauss-Newton
+   step from the rigid solution (the terms are milliradians: the model is linear
+   there to far below the pixel noise), its coefficients the data do not pin
+   (`TERM_STD_RAD`) or whose sign no arm has (`jaxcal._terms.SIGNS`) held at zero;
+3. cross-validation on the reprojection error: the views are left out in blocks
+   of `BLOCK_FRAMES` consecutive frames of the capture order (so a frame's
+   neighbours, whose detector errors and arm state it shares, are not split
+   between fit and test), the blocks dealt round the `cv_folds` folds; each fold's
+   fit is the same step on the other folds' views, and its held-out corners'
+   reprojection errors are scored. A family is kept when it lowers the mean
+   held-out error by more than `CV_GAIN` (the tracker's rule);
+4. with a family kept, the refinement runs again with the kept columns free
+   (`jaxcal._refine.refine`: the covariance, the summary and every output include
+   them); with none, the rigid refinement stands, unchanged.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._selection import CV_GAIN
+from .._terms import (
+    BASIS_FLOOR,
+    TERMS,
+    approach_at,
+    check_terms,
+    column_map,
+    correction,
+    family_of,
+    names,
+    signs,
+    with_payload,
+)
+from ..errors import CalibrationError
+from ..records import ModelRow, TermRow, TermsSummary
+from ..robots import link_inertials
+from . import _programs
+from ._setup import Options, Setup
+from ._synchronise import interpolate
+
+#: A non-geometric coefficient stays free only when the data pin its effect on the joint
+#: angle (its std times the RMS of its basis over the samples) to this (rad): a
+#: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
+#: only to more than that is not identified (e.g. wrist 3's, when the point sits on its axis).
+TERM_STD_RAD = 1e-3
+#: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
+#: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
+TERM_FLOOR = BASIS_FLOOR
+#: Consecutive frames of the capture left out together by the cross-validation.
+BLOCK_FRAMES = 6
+#: A model's held-out fit solves its normal equations on Jacobi-scaled columns, dropping
+#: directions below this share of the largest singular value (none on an identifiable set).
+RCOND = 1e-10
+
+
+def resolve(setup: Setup, options: Options) -> tuple[str, ...]:
+    """The families to try: `options.terms` (`"auto"`: the kind's `default_terms`; `"none"`; a
+    comma-separated string or a sequence of families)."""
+    terms = options.terms
+    if isinstance(terms, str):
+        if terms.strip() == "auto":
+            return setup.kind.default_terms
+        terms = () if terms.strip() == "none" else tuple(t.strip() for t in terms.split(",") if t.strip())
+    try:
+        return check_terms(terms)
+    except ValueError as e:
+        raise CalibrationError(str(e)) from None
+
+
+def inertials(setup: Setup) -> tuple[np.ndarray, np.ndarray]:
+    """The links' masses and centres of mass from the robot file, the metadata's payload
+    (`robot.payload`) lumped into the last link (`jaxcal._terms.with_payload`)."""
+    ds = setup.dataset
+    try:
+        masses, coms = link_inertials(ds.robot_urdf)
+    except (ValueError, KeyError, OSError) as e:
+        raise CalibrationError(
+            f"{ds.robot_urdf}: joint compliance and lost motion need every link's mass and centre of mass: {e}"
+        ) from None
+    p = ds.payload
+    return with_payload(
+        setup.nominal, masses, coms, 0.0 if p is None else p.mass_kg, (0, 0, 0) if p is None else p.com_m
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class TermFit:
+    """The terms the refinement kept, with what the encoder log's correction needs.
+
+    - `terms`: the kept families; `x`: their coefficients (`jaxcal._terms.names` order; held
+      ones zero); `masses`, `coms`: the inertials of the basis (payload included).
+    - `summary`: the result's `TermsSummary` (the models compared and why).
+    """
+
+    terms: tuple[str, ...]
+    x: np.ndarray
+    masses: np.ndarray
+    coms: np.ndarray
+    summary: TermsSummary
+
+    @property
+    def kept(self) -> bool:
+        return bool(self.terms)
+
+    def log_correction(self, nominal, enc_t, enc_q) -> np.ndarray:
+        """The kept terms' joint-angle correction (rad) at every row of an encoder log
+        `(T, joints)` of commanded positions (the approach rule along the log itself)."""
+        enc_q = np.asarray(enc_q, np.float64)
+        basis = view_basis(
+            self.terms, nominal, enc_q, approach_at(enc_t, enc_q, enc_t), self.masses, self.coms
+        )
+        return np.asarray(correction(self.terms, self.x, basis))
+
+
+def view_basis(terms, nominal, q, a, masses, coms) -> np.ndarray:
+    """`jaxcal._terms.term_basis` at commanded positions `q (N, joints)` and approach flanks
+    `a`, as one compiled program on `q` padded to a size bucket (NumPy out, `(N, joints, k)`)."""
+    return _programs.term_basis(terms, nominal, q, a, masses, coms)
+
+
+def fold_of_views(frames: np.ndarray, t_cam: np.ndarray, real: np.ndarray, folds: int) -> np.ndarray:
+    """Each view's fold (-1 for padding): frames in capture order (their stamps) cut into
+    blocks of `BLOCK_FRAMES`, the blocks dealt round the folds."""
+    out = np.full(len(frames), -1)
+    rows = np.unique(frames[real])
+    first = {f: t_cam[real][frames[real] == f].min() for f in rows}
+    order = sorted(rows, key=lambda f: (first[f], f))
+    block = {f: (i // BLOCK_FRAMES) % folds for i, f in enumerate(order)}
+    out[real] = [block[f] for f in frames[real]]
+    return out
+
+
+@dataclass
+class _Linear:
+    """The rigid solution's residuals and Jacobian (the geometry's free columns, then every
+    term's) for the linearised fits: `A` `(rows, columns)` and `b` `(rows,)` weighted, `scale`
+    the columns' norms, `raw_r`, `raw_J` unweighted, `used` the inlier rows, `fold` each
+    row's fold, `n_geo` the geometry's columns; per term column its `family`, physical
+    `sign` and basis RMS over the views (`b_rms`)."""
+
+    A: np.ndarray
+    b: np.ndarray
+    scale: np.ndarray
+    raw_r: np.ndarray
+    raw_J: np.ndarray
+    used: np.ndarray
+    fold: np.ndarray
+    n_geo: int
+    family: np.ndarray
+    sign: np.ndarray
+    b_rms: np.ndarray
+
+    def columns(self, term_cols) -> np.ndarray:
+        """The geometry's columns and the term columns `term_cols`."""
+        return np.concatenate([np.arange(self.n_geo), self.n_geo + np.asarray(term_cols, int)])
+
+    def fit(self, cols: np.ndarray, train: np.ndarray | None = None) -> np.ndarray:
+        """The Gauss-Newton step of columns `cols` on the rows `train` (all: None), in the
+        columns' own units."""
+        A = self.A[:, cols] if train is None else self.A[train][:, cols]
+        b = self.b if train is None else self.b[train]
+        s = self.scale[cols]
+        return np.linalg.lstsq(A / s, -b, rcond=RCOND)[0] / s
+
+    def held_out(self, term_cols, folds: int) -> np.ndarray:
+        """Per held-out inlier corner (every fold), its reprojection error (px) after the fold's fit."""
+        cols, errs = self.columns(term_cols), []
+        for f in range(folds):
+            test = self.fold == f
+            d = self.fit(cols, ~test & self.used)
+            sel = test & self.used
+            e = self.raw_r[sel] + self.raw_J[sel][:, cols] @ d
+            errs.append(np.sqrt(np.sum(e.reshape(-1, 2) ** 2, axis=1)))
+        return np.concatenate(errs)
+
+    def estimate(self, term_cols) -> tuple[np.ndarray, np.ndarray]:
+        """The term columns' coefficients and std of the all-views fit (the noise from its residuals)."""
+        idx = self.columns(term_cols)
+        d = self.fit(idx)
+        An = self.A[:, idx] / self.scale[idx]
+        resid = self.b + An @ (d * self.scale[idx])
+        n_obs = int(np.count_nonzero(self.used))
+        sigma2 = float(resid @ resid) / max(n_obs - len(idx), 1)
+        cov = sigma2 * np.linalg.pinv(An.T @ An, rcond=RCOND, hermitian=True)
+        std = np.sqrt(np.maximum(np.diag(cov)[self.n_geo :], 0.0)) / self.scale[idx[self.n_geo :]]
+        return d[self.n_geo :], std
+
+    def held(self, term_cols) -> np.ndarray:
+        """The term columns left free once those the views do not pin (`TERM_STD_RAD`) and those
+        of a sign no arm has (`SIGNS`) are held, one round at a time."""
+        cols = np.array(sorted(term_cols), int)
+        while len(cols):
+            x, std = self.estimate(cols)
+            bad = (std * self.b_rms[cols] > TERM_STD_RAD) | (self.sign[cols] * x < 0)
+            if not bad.any():
+                break
+            cols = cols[~bad]
+        return cols
+
+
+def _independent(A: np.ndarray, base: np.ndarray, cand: np.ndarray, tol: float) -> np.ndarray:
+    """Which candidate columns `cand` are independent (distance above `tol`, columns
+    normalised) of the span of the columns `base` and of the candidates kept before them."""
+    norm = np.linalg.norm(A, axis=0)
+    An = A / np.where(norm > 0, norm, 1.0)
+    Q = np.linalg.qr(An[:, base])[0] if len(base) else np.zeros((A.shape[0], 0))
+    keep = []
+    for c in cand:
+        v = An[:, c] - Q @ (Q.T @ An[:, c])
+        dist = float(np.linalg.norm(v))
+        if dist > tol:
+            keep.append(c)
+            Q = np.concatenate([Q, (v / dist)[:, None]], axis=1)
+    return np.array(keep, int)
+
+
+def _linearised(setup: Setup, sync, problem, res, terms, folds: int, masses, coms):
+    """`(_Linear, basis (views, joints, k))`: every view's basis at its commanded pose and
+    approach (the encoder log at the refined clock and rates) and the term columns, each
+    joint's angle column times its basis."""
+    n = setup.nominal.num_joints
+    data = problem.data
+    real = np.asarray(data.frame) >= 0
+    enc_t, enc_q = sync.log_q
+    t_ctrl = (np.asarray(data.t_cam) - float(res.offset_s)) / (1.0 + 1e-6 * setup.dataset.clock_drift_ppm)
+    q = interpolate(t_ctrl, enc_t, enc_q) * np.asarray(res.params.rate)
+    basis = view_basis(terms, setup.nominal, q, approach_at(enc_t, enc_q, t_ctrl), masses, coms)
+    basis[~real] = 0.0
+    joint, col = column_map(terms, n)
+    V, P = np.asarray(data.mask).shape
+    view_of_row = np.repeat(np.arange(V), 2 * P)
+    J_terms = np.asarray(res.angle_jacobian)[:, joint] * basis[view_of_row][:, joint, col]
+    raw_J = np.concatenate([np.asarray(res.jacobian), J_terms], axis=1)
+    raw_r = np.asarray(res.residuals).reshape(-1)
+    w = np.repeat(np.asarray(res.weights).reshape(-1), 2)
+    used = (w > 0) & np.repeat(np.asarray(data.mask).reshape(-1), 2)
+    sw = np.sqrt(np.where(used, w, 0.0))
+    A = raw_J * sw[:, None]
+    scale = np.linalg.norm(A, axis=0)
+    fold = fold_of_views(np.asarray(data.frame), np.asarray(data.t_cam), real, folds)[view_of_row]
+    lin = _Linear(
+        A=A, b=raw_r * sw, scale=np.where(scale > 0, scale, 1.0), raw_r=raw_r, raw_J=raw_J, used=used,
+        fold=fold, n_geo=int(np.asarray(res.jacobian).shape[1]), family=family_of(terms, n),
+        sign=signs(terms, n), b_rms=np.sqrt(np.mean(basis[real][:, joint, col] ** 2, axis=0)),
+    )  # fmt: skip
+    return lin, basis
+
+
+def _scored(lin: _Linear, term_cols, folds: int) -> dict:
+    e = lin.held_out(term_cols, folds)
+    return {
+        "cv_mean_px": float(e.mean()),
+        "cv_rms_px": float(np.sqrt(np.mean(e**2))),
+        "cv_max_px": float(e.max()),
+    }
+
+
+def _compare(lin: _Linear, terms, folds: int, tol: float) -> tuple[list[dict], np.ndarray, list[str]]:
+    """The families tried one after another (the module docstring's steps 1-3): `(models,
+    the kept term columns, the kept families)`."""
+    best_cols = np.zeros(0, int)
+    best = _scored(lin, best_cols, folds)
+    models = [dict(terms=(), free=lin.n_geo, **best)]
+    kept: list[str] = []
+    for i, t in enumerate(terms):
+        trial = (*kept, t)
+        own = np.flatnonzero((lin.family == i) & (lin.b_rms >= TERM_FLOOR))
+        cand = _independent(lin.A, lin.columns(best_cols), lin.n_geo + own, tol) - lin.n_geo
+        cols = lin.held(np.concatenate([best_cols, cand])) if len(cand) else best_cols
+        if not np.any(lin.family[cols] == i):
+            why = (
+                f"{t}: every coefficient held (not pinned to {TERM_STD_RAD:g} rad by the views, or of a sign no arm "
+                "has)"
+                if len(cand)
+                else f"{t}: no coefficient the views tell apart from the geometry (its basis does not vary over "
+                "them, or the geometry explains it)"
+            )
+            models.append(dict(terms=trial, free=lin.n_geo + len(cols), why=why))
+            continue
+        row = _scored(lin, cols, folds)
+        gain = 1.0 - row["cv_mean_px"] / best["cv_mean_px"]
+        why = (
+            f"{t}: held-out reprojection error {row['cv_mean_px']:.4f} px mean against {best['cv_mean_px']:.4f} "
+            f"({100 * gain:+.1f} %; kept above {100 * CV_GAIN:g} %)"
+        )
+        models.append(dict(terms=trial, free=lin.n_geo + len(cols), why=why, **row))
+        if gain > CV_GAIN:
+            best, best_cols = row, cols
+            kept.append(t)
+    best, best_cols, kept = _eliminate(lin, terms, folds, models, best, best_cols, kept)
+    final = next(m for m in reversed(models) if set(m["terms"]) == set(kept) and "cv_mean_px" in m)
+    final["kept"] = True  # the model that stands: the last one scored with the kept families
+    return models, best_cols, kept
+
+
+def _eliminate(lin: _Linear, terms, folds: int, models: list[dict], best: dict, best_cols, kept: list[str]):
+    """The backward step after the forward one: a kept family whose model without it is no worse
+    than `CV_GAIN` is dropped again (a family tried early can take part of a later one's
+    pattern: compliance some of a lost motion's), the models' rows updated."""
+    for t in list(kept) if len(kept) > 1 else ():
+        i = terms.index(t)
+        cols = lin.held(best_cols[lin.family[best_cols] != i])
+        row = _scored(lin, cols, folds)
+        loss = row["cv_mean_px"] / best["cv_mean_px"] - 1.0
+        rest = tuple(u for u in kept if u != t)
+        why = (
+            f"{t} left out again: held-out reprojection error {row['cv_mean_px']:.4f} px mean against "
+            f"{best['cv_mean_px']:.4f} with it ({100 * loss:+.1f} %; dropped unless above {100 * CV_GAIN:g} %)"
+        )
+        models.append(dict(terms=rest, free=lin.n_geo + len(cols), why=why, **row))
+        if loss <= CV_GAIN:
+            best, best_cols, kept = row, cols, [u for u in kept if u != t]
+    return best, best_cols, kept
+
+
+def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str, ...], options: Options):
+    """The cross-validation of the module docstring on the rigid refinement `res` (with its
+    Jacobians, `refine(..., jacobian=True)`) of `problem` with the `free` mask.
+
+    **Returns:** `(kept families, their basis (views, joints, k), the kept coefficients'
+    free mask, the TermsSummary, (masses, coms))`.
+    """
+    folds = int(options.cv_folds)
+    if folds < 2:
+        return (
+            (),
+            None,
+            None,
+            not_tried(terms, "they are kept only when cross-validation improves (cv_folds >= 2)"),
+            None,
+        )
+    masses, coms = inertials(setup)
+    lin, basis = _linearised(setup, sync, problem, res, terms, folds, masses, coms)
+    models, best_cols, kept_families = _compare(lin, terms, folds, setup.kind.identifiability_tol)
+    kept = tuple(t for t in terms if t in kept_families)
+    # The kept families' basis columns and coefficient mask, in the kept layout's order.
+    keep_mask = np.zeros(len(lin.family), bool)
+    keep_mask[best_cols] = True
+    first = np.cumsum([0] + [TERMS[t] for t in terms])
+    basis_cols = [np.arange(first[terms.index(t)], first[terms.index(t) + 1]) for t in kept]
+    kept_free = [keep_mask[lin.family == terms.index(t)] for t in kept]
+    payload = setup.dataset.payload
+    summary = TermsSummary(
+        tried=terms, kept=kept, models=tuple(ModelRow(**m) for m in models), coefficients=(), folds=folds,
+        block_frames=BLOCK_FRAMES, payload_kg=None if payload is None else payload.mass_kg,
+    )  # fmt: skip
+    if not kept:
+        return (), None, None, summary, (masses, coms)
+    return kept, basis[:, :, np.concatenate(basis_cols)], np.concatenate(kept_free), summary, (masses, coms)
+
+
+def coefficient_rows(terms, joints, x, std, free) -> tuple[TermRow, ...]:
+    """The kept coefficients as the result's rows."""
+    return tuple(
+        TermRow(name=nm, estimate=float(v), std=float(s), free=bool(f))
+        for nm, v, s, f in zip(names(terms, joints), x, std, free)
+    )
+
+
+def not_tried(terms: tuple[str, ...], why: str) -> TermsSummary:
+    """A summary of terms asked for but not tried, saying why."""
+    return TermsSummary(tried=(), kept=(), models=(), coefficients=(), folds=0, notes=(f"non-geometric terms "
+                        f"{list(terms)} not tried: {why}",))  # fmt: skip
