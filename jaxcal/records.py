@@ -637,7 +637,6 @@ class ResidualStats(Record):
 
 
 @dataclass(frozen=True, eq=False)
-@dataclass(frozen=True, eq=False)
 class PointOutlier(Record):
     """A stop-and-shoot sample the robust point fit rejected: the sample (its index and its
     line in the samples file), its distance from the calibrated model's point (mm), and its
