@@ -58,7 +58,8 @@ class CameraSpec:
     """A pinhole camera. `T_mount_cam` places it (OpenCV axes) in `mount`'s frame:
     `"world"` for a fixed camera, or a link name (e.g. the flange) for eye-in-hand.
 
-    `distortion`: OpenCV's (k1, k2, p1, p2, k3), applied to the rendered image.
+    `distortion`: OpenCV's (k1, k2, p1, p2, k3), applied to the rendered image,
+    rendered `lens_supersample` times finer for the warp (1: warped at its own resolution).
     """
 
     name: str = "cam0"
@@ -68,6 +69,7 @@ class CameraSpec:
     T_mount_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
     mount: str = "world"
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    lens_supersample: int = SUPERSAMPLE
 
     @property
     def K(self) -> np.ndarray:
@@ -83,8 +85,8 @@ class CameraSpec:
 
     @property
     def supersample(self) -> int:
-        """How much finer the renderer draws this camera (`SUPERSAMPLE` with distortion, else 1)."""
-        return SUPERSAMPLE if np.any(self.dist != 0) else 1
+        """How much finer the renderer draws this camera (`lens_supersample` with distortion, else 1)."""
+        return int(self.lens_supersample) if np.any(self.dist != 0) else 1
 
 
 @dataclass(frozen=True, eq=False)
