@@ -363,7 +363,7 @@ def run_case(dataset: Path) -> dict:
         return {"two_stage_mm": None, "refined_mm": None, "status": "refused", "reasons": [str(e)]}
     v = result.validation
     delays = (result.refinement.line_delay or ()) if result.refinement is not None else ()
-    sigma = next((c.value for c in result.verdict.checks if c.name == "ee_sigma_mm"), None)
+    sigma = next((c.value for c in result.verdict.checks if c.check == "ee_sigma_mm"), None)
     return {
         "two_stage_mm": v["ee_rms_mm_two_stage"],
         "refined_mm": v["ee_rms_mm_after"],
