@@ -86,7 +86,12 @@ class CameraSpec:
     @property
     def supersample(self) -> int:
         """How much finer the renderer draws this camera (`lens_supersample` with distortion, else 1)."""
-        return int(self.lens_supersample) if np.any(self.dist != 0) else 1
+        return int(self.lens_supersample) if self.lens else 1
+
+    @property
+    def lens(self) -> bool:
+        """The rendered image is warped by a lens distortion."""
+        return bool(np.any(self.dist != 0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,15 +195,16 @@ class Scene:
             first, stop = int(rows[0]), int(rows[1])
             if not 0 <= first < stop <= cam.height:
                 raise ValueError(f"rows {rows} are not a band of camera {camera!r}'s {cam.height} rows")
-            if cam.supersample == 1 and (first, stop) != (0, cam.height):
+            if not cam.lens and (first, stop) != (0, cam.height):
                 band = _render_band(r, first, stop, cam.height)
                 if band is not None:
                     return band
         image = r.render()
-        if cam.supersample > 1:
+        if cam.lens:
             mx, my = self._distortion_map(cam)
             image = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+            if cam.supersample > 1:
+                image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         return image if rows is None else image[first:stop]
 
     def close(self) -> None:
