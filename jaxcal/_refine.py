@@ -200,6 +200,9 @@ class RefineResult(eqx.Module):
       row); `None` without.
     - `cov_model`: the model's covariance $\\hat\\sigma^2 (J^TJ)^+$ (corner errors
       independent), beside `cov`.
+    - `view_scores`, `view_information`: per view the final solve's gradient $J_v^Tr_v$ and
+      information $J_v^TJ_v$ over the free parameters (in `free`'s order), for sandwiches
+      that group views (`jaxcal._lsq.hac_covariance`); `None` with per-view angles.
     """
 
     params: RefineParams
@@ -226,6 +229,8 @@ class RefineResult(eqx.Module):
     round_steps: Int[Array, " rounds"]
     line_delay_s: Float[Array, " cameras"] | None = None
     cov_model: Float[Array, "n n"] | None = None
+    view_scores: Float[Array, "views f"] | None = None
+    view_information: Float[Array, "views f f"] | None = None
 
 
 #: `refine`'s solver settings, on the scaled variables: every start Jacobian column has
@@ -305,7 +310,7 @@ def refine(
     )
     params = unravel(flat0.at[idx].set(x))
     sw = jnp.repeat(jnp.sqrt(out.weights).reshape(-1), 2)
-    covs = _covariances(J * sw[:, None], raw * sw, out.weights, idx, flat0.shape[0])
+    covs = _covariances(J * sw[:, None], raw * sw, out.weights, idx, flat0.shape[0], params0.angles is None)
     return _result(problem, params, free, out, covs, raw.reshape(mask.shape + (2,)))
 
 
@@ -321,7 +326,7 @@ def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, cov
     solve's covariances `covs` (`_covariances`) and reprojection residuals `raw` (px, zero
     on padding): the model and mounts the corrections give, the camera, the residuals and
     the inliers' RMS."""
-    cov, cov_model, sigma2, sv, Vt = covs
+    cov, cov_model, sigma2, sv, Vt, scores, information = covs
     mask, w = problem.data.mask, out.weights
     used = w > 0
     inl_rms = jnp.sqrt(
@@ -359,24 +364,29 @@ def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, cov
         round_steps=out.round_steps,
         line_delay_s=line_delays(params, problem) if rolling(problem) else None,
         cov_model=cov_model,
+        view_scores=scores,
+        view_information=information,
     )
 
 
-def _covariances(J, r, w, idx, n):
-    """`(cov, cov_model, sigma2, sv, Vt)` of the final solve (see `RefineResult`): the model's
-    $\\hat\\sigma^2 (J^TJ)^+$ and the covariance it becomes where the views' sandwich is larger
-    than it beyond its own spread; one SVD (see `_linalg`) and one small `eigh` after it."""
+def _covariances(J, r, w, idx, n, per_view: bool = True):
+    """`(cov, cov_model, sigma2, sv, Vt, scores, information)` of the final solve (see
+    `RefineResult`): the model's $\\hat\\sigma^2 (J^TJ)^+$ and the covariance it becomes where the
+    views' sandwich is larger than it beyond its own spread; one SVD (see `_linalg`) and one
+    small `eigh` after it. With `per_view` (static), each view's gradient and information."""
     sigma2 = _lsq.residual_variance(r, 2.0 * jnp.sum(w), idx.size)
     bread, sv, Vt = _lsq.covariance(J)
     V = w.shape[0]
     # Per view the gradient J_v^T r_v of its corners: one cluster each (padded views: zero).
-    scores = jnp.einsum("vkn,vk->vn", J.reshape(V, -1, idx.size), r.reshape(V, -1))
+    Jv = J.reshape(V, -1, idx.size)
+    scores = jnp.einsum("vkn,vk->vn", Jv, r.reshape(V, -1))
     robust = _lsq.cluster_covariance(bread, scores, n_obs=2.0 * jnp.sum(w > 0))
     views = jnp.maximum(jnp.sum(jnp.any(scores != 0.0, axis=1)), 2.0)
     cov_f = _lsq.larger_covariance(J, sv, Vt, sigma2, robust, 2.0 * jnp.sqrt(2.0 / views))
     cov = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(cov_f)
     cov_model = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(sigma2 * bread)
-    return cov, cov_model, sigma2, sv, Vt
+    information = jnp.einsum("vkn,vkm->vnm", Jv, Jv) if per_view else None
+    return cov, cov_model, sigma2, sv, Vt, scores if per_view else None, information
 
 
 def _checked(problem: RefineProblem, params0: RefineParams, free, loss):
@@ -578,3 +588,85 @@ def line_delay_test(
     return ShutterTest(
         line_delay_s=1e-6 * ell_us, sigmas=jnp.abs(ell_us) / jnp.where(std_us > 0, std_us, 1.0)
     )
+
+
+class LensTest(eqx.Module):
+    """The score test of a refinement for radial distortion beyond its lens (`lens_test`).
+
+    - `distortion`: the $(k_1, k_2)$ increments one Gauss-Newton step from the solution
+      would add, the other parameters following; `(2,)`.
+    - `sigmas`: the score statistic $\\hat d^T D \\hat d / \\hat\\sigma^2$ ($\\chi^2$ on two
+      degrees of freedom when the lens is right) as a standard normal's size.
+    """
+
+    distortion: Float[Array, "2"]
+    sigmas: Float[Array, ""]
+
+
+#: The flattened `RefineParams` index of $k_1$ and $k_2$ within the intrinsics' increments.
+_RADIAL = (INTRINSIC_NAMES.index("k1"), INTRINSIC_NAMES.index("k2"))
+
+
+def lens_test(problem: RefineProblem, res: RefineResult) -> LensTest:
+    """Do a refinement's residuals grow with the distance from the first camera's centre, as
+    a radial distortion's would? The score (Lagrange-multiplier) test of $k_1, k_2$ at the
+    solution `res` of `problem`, where they were held (the metadata's lens).
+
+    As `line_delay_test`: with $J_d$ the residuals' derivative along the two coefficients,
+    $D = J_d^TJ_d - J_d^TJ\\,(J^TJ)^{-1}J^TJ_d$ (what the free parameters cannot absorb of them),
+    the step is $\\hat d = -D^{-1}J_d^Tr$ with covariance $\\hat\\sigma^2 D^{-1}$, and the statistic
+    $S = \\hat d^TD\\hat d / \\hat\\sigma^2 \\sim \\chi^2_2$ under a right lens, reported as the
+    standard normal quantile of its p-value (`sigmas`). Pure.
+    """
+    flat, unravel = ravel_pytree(res.params)
+    radial = np.asarray(layout(problem, res.params).index("intr"))[list(_RADIAL)]
+
+    def along(x):
+        return reprojection_residuals(unravel(x), problem, res.weights).reshape(-1)
+
+    E = jnp.zeros((flat.shape[0], 2)).at[radial, np.arange(2)].set(1.0)
+    r = along(flat)
+    J_d = jax.vmap(lambda e: jax.jvp(along, (flat,), (e,))[1], in_axes=1, out_axes=1)(E)
+    _, pullback = jax.vjp(along, flat)
+    G = jax.vmap(lambda col: pullback(col)[0], in_axes=1, out_axes=1)(J_d)
+    sigma2 = jnp.maximum(res.sigma_px**2, 1e-30)
+    D = J_d.T @ J_d - G.T @ (res.cov_model / sigma2) @ G
+    d = -jnp.linalg.pinv(D, hermitian=True) @ (J_d.T @ r)
+    chi2 = jnp.maximum(d @ D @ d / sigma2, 0.0)
+    # chi^2 on 2 dof: p = exp(-S/2); its normal quantile, sqrt(S) beyond a few sigmas' precision.
+    sigmas = jnp.sqrt(2.0) * jax.scipy.special.erfinv(jnp.maximum(1.0 - 2.0 * jnp.exp(-0.5 * chi2), 0.0))
+    sigmas = jnp.where(chi2 > 60.0, jnp.sqrt(jnp.maximum(chi2 - 2.0 * jnp.log(chi2) - 2.0, 0.0)), sigmas)
+    return LensTest(distortion=d, sigmas=sigmas)
+
+
+def residual_correlation(
+    residuals: np.ndarray, used: np.ndarray, pairs: tuple[np.ndarray, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pooled autocorrelation of each corner's residual along the capture (NumPy; outside jit).
+
+    Pairs at lag $k$ are the same corner of the same target and camera in views $k$ frames
+    apart along one run of the capture (`pairs[k - 1]`: rows `(view_a, corner_a, view_b,
+    corner_b)`), both used by the final solve. With the products $p = r_a \\cdot r_b$ of their
+    residuals (px, both coordinates), the lag's correlation is
+    $\\rho_k = \\sum p / \\sqrt{\\sum |r_a|^2 \\sum |r_b|^2}$ and its self-normalised statistic
+    $z_k = \\sum p / \\sqrt{\\sum p^2}$, a standard normal's when the errors are independent
+    (whatever their law or size: the products of independent zero-mean errors are uncorrelated);
+    the $z_k$ of different lags are then independent, so $\\sum_k z_k^2$ is Ljung-Box's $Q$ on $K$
+    degrees of freedom. The fit itself makes neighbouring residuals of one corner slightly
+    anti-correlated ($-\\sigma^2 H_{ab}$, the hat matrix's entry: about the free parameters over
+    the corners), which only makes the one-sided test of errors that repeat conservative.
+
+    **Returns:** `(rho (K,), z (K,), pairs used (K,))`.
+    """
+    r, used = np.asarray(residuals, np.float64), np.asarray(used, bool)
+    rho, z, count = [], [], []
+    for P in pairs:
+        P = np.asarray(P, int).reshape(-1, 4)
+        P = P[used[P[:, 0], P[:, 1]] & used[P[:, 2], P[:, 3]]]
+        a, b = r[P[:, 0], P[:, 1]], r[P[:, 2], P[:, 3]]
+        prod = np.sum(a * b, axis=-1)
+        den = np.sqrt(np.sum(a * a) * np.sum(b * b))
+        rho.append(float(prod.sum() / den) if den > 0 else 0.0)
+        z.append(float(prod.sum() / np.sqrt(np.sum(prod * prod))) if prod.size and np.any(prod) else 0.0)
+        count.append(len(P))
+    return np.asarray(rho), np.asarray(z), np.asarray(count, int)

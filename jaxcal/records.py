@@ -509,6 +509,45 @@ class ShutterTest(Record):
 
 
 @dataclass(frozen=True, eq=False)
+class LensTest(Record):
+    """The radial distortion a refinement's residuals point to, beyond the lens it was given (a
+    score test on $k_1, k_2$; `jaxcal._refine.lens_test`)."""
+
+    camera: str
+    k1: float
+    k2: float
+    #: The radial shift they imply at the image's corner (px).
+    shift_px: float
+    #: Their size in standard deviations (the two-degree-of-freedom score statistic as a normal's).
+    sigmas: float
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorCorrelation(Record):
+    """Whether the refinement's residuals repeat along the capture and between the views of one
+    pose (`jaxcal._refine.residual_correlation`, `view_correlation`; `jaxcal.stages.refine`)."""
+
+    #: Per lag $k = 1..K$ (frames along a run of the capture): the pooled correlation of each
+    #: corner's residual with its own $k$ frames later, its self-normalised $z$, and the pairs.
+    autocorrelation: tuple[float, ...]
+    z: tuple[float, ...]
+    pairs: tuple[int, ...]
+    #: Ljung-Box's $Q = \sum_k z_k^2$ on $K$ degrees of freedom, and its p-value.
+    q_statistic: float
+    dof: int
+    p_value: float
+    #: The one-sided test of errors that repeat, $\sum_k z_k / \sqrt{K}$ (sigmas).
+    sigmas: float
+    #: Between the views of one pose (several cameras or targets in one frame): the score test
+    #: of their shared error (sigmas; None: one view per pose).
+    pose_sigmas: float | None = optional()
+    #: Where either is significant: the kernel (HAC) sandwich's lags (poses along the capture)
+    #: that the covariance now takes where it is larger, and the tool point's 1-sigma before (mm).
+    kernel_lags: int | None = optional()
+    ee_sigma_independent_mm: float | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
 class RefinementSummary(Record):
     """The reprojection refinement (`result.json`'s `refinement`)."""
 
@@ -538,6 +577,8 @@ class RefinementSummary(Record):
     views_per_camera: tuple[Named, ...] = named()
     line_delay: tuple[LineDelay, ...] | None = optional()
     rolling_shutter_test: tuple[ShutterTest, ...] | None = optional()
+    lens_test: LensTest | None = optional()
+    error_correlation: ErrorCorrelation | None = optional()
 
 
 @dataclass(frozen=True, eq=False)

@@ -250,6 +250,23 @@ def test_a_sweep_that_lost_its_fast_frames_names_motion_blur():
     assert lost_to_blur(None, *_sweep(lambda s: True)[:2], 0) == ""
 
 
+def test_a_sweep_fast_throughout_names_motion_blur():
+    """Twice the speed: the target found only in a few fast frames mid-acceleration (where it
+    happened to show well), lost in slow and fast ones alike; with the 10 ms exposure most lost
+    frames smeared it beyond two pixels, so the blur is named; with a 1 ms one (at most 1.1 px)
+    it is not."""
+    obs, sync, speed = _sweep(lambda s: 0.6 < s < 0.75)
+    lost = ~((speed > 0.6) & (speed < 0.75))
+    smeared = lost & (0.01 * speed * 1000.0 > 2.0)
+    assert np.median(speed[lost]) < 1.5 * np.median(speed[~lost])  # not "the fast ones"
+    text = lost_to_blur(None, obs, sync, 0)
+    assert text.startswith(f"motion blur: the target was lost in {lost.sum()} of the sweep's 24 frames, ")
+    assert f"{smeared.sum()} of them while the joint turned at" in text
+    assert f"smears by up to {0.01 * speed[lost].max() * 1000.0:.0f} px" in text
+    obs.camera.exposure_s = 1e-3
+    assert lost_to_blur(None, obs, sync, 0) == ""
+
+
 def test_the_option_estimates_only_unknown_line_delays():
     unknown = CameraInfo("cam0", 64, 48, None, np.zeros(5))
     given = dataclasses.replace(unknown, line_delay_s=1e-5)

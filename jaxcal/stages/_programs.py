@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _lsq
 from .._arcdata import make_arc_data
 from .._arcfit import ARC_OPTIONS, fit_arc, fit_joint_sweeps
 from .._axisfit import axis_jacobian, axis_problem, fit_axes, home_jacobian, register_lines
@@ -30,7 +31,7 @@ from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
 from .._pointfit import gravity_torques
-from .._refine import identifiable_mask, line_delay_test, refine
+from .._refine import identifiable_mask, lens_test, line_delay_test, refine
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
 #: The arc and clock fits' inlier threshold (robust sigmas of the deletion
@@ -236,10 +237,21 @@ def refinement(free: np.ndarray):
     return _refinement(tuple(bool(f) for f in np.asarray(free)))
 
 
+def _score_tests(problem, res):
+    return line_delay_test(problem, res), lens_test(problem, res)
+
+
 @functools.cache
-def shutter_test():
-    """`line_delay_test(problem, res)`: the rolling-shutter score test of a global-shutter refinement."""
-    return stored_jit(line_delay_test, "line_delay_test")
+def score_tests():
+    """`(line_delay_test(problem, res), lens_test(problem, res))`: the rolling-shutter and the lens's
+    score tests of a global-shutter refinement."""
+    return stored_jit(_score_tests, "score_tests")
+
+
+@functools.cache
+def hac_covariance():
+    """`jaxcal._lsq.hac_covariance(bread, scores, information, lags)`, the lags traced."""
+    return jax.jit(_lsq.hac_covariance)
 
 
 @functools.cache

@@ -27,17 +27,21 @@ from .._correction import INTRINSIC_NAMES, Estimate, ParameterLayout, physical_p
 from .._device import to_device
 from .._geometry import so3_log
 from .._links import average_pose, start_mounts
+from .._lsq import larger_covariance_np, newey_west_lags
 from .._refine import (
     OtherCameras,
     RefineParams,
     RefineProblem,
     RefineResult,
     make_corner_data,
+    residual_correlation,
     summarize_refinement,
 )
 from ..records import (
     ClockEstimate,
+    ErrorCorrelation,
     JointAngles,
+    LensTest,
     LineDelay,
     Named,
     OtherCamera,
@@ -59,6 +63,8 @@ from ._two_stage import TwoStage
 #: Names of the per-view angles of padding views (never free, never reported).
 PADDING = "(padding)"
 LOSS = "cauchy IRLS (3 rounds), then least squares on the inliers (3.7 robust sigmas)"
+#: A lag whose own correlation is this many sigmas is one the kernel sandwich spans.
+SIGNIFICANT_LAG_Z = 3.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,7 +90,11 @@ class Refined:
       row), std (None when given), whether it was estimated, and the readout
       (the delay times the image height, s).
     - `shutter_test`: without one, per camera the rolling shutter its residuals
-      point to (`shutter_test`); None when not tested.
+      point to (`score_tests`); None when not tested. `lens_test`: the radial
+      distortion they point to beyond the first camera's given lens.
+    - `error_correlation`: the test of errors that repeat along the capture and
+      between the views of one pose (`error_correlation`), and where it passed,
+      `cov_views`, the covariance its kernel sandwich replaced.
     """
 
     fit: RefineResult | None = None
@@ -107,6 +117,11 @@ class Refined:
     problem: RefineProblem | None = None
     line_delays: tuple[LineDelay, ...] = ()
     shutter_test: tuple[ShutterTest, ...] | None = None
+    lens_test: LensTest | None = None
+    error_correlation: ErrorCorrelation | None = None
+    #: Where the residuals' errors are correlated, the covariance of the free parameters
+    #: the kernel sandwich replaced (the views' sandwich or the model's).
+    cov_views: np.ndarray | None = None
 
 
 def dist5(dist) -> np.ndarray | None:
@@ -175,6 +190,8 @@ class _Corners:
     frame: list = field(default_factory=list)
     t_cam: list = field(default_factory=list)
     row: list = field(default_factory=list)  # each corner's image row (px)
+    ids: list = field(default_factory=list)  # each corner's id on its target
+    pose: list = field(default_factory=list)  # each view's capture index (frames.csv's `frame`)
     camera: list = field(default_factory=list)
     sweep: list = field(default_factory=list)
     pnp: list = field(default_factory=list)
@@ -232,6 +249,8 @@ def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Cor
                 out.frame.append(int(v.rows[i]))
                 out.t_cam.append(float(v.frame_times[i]) if rolling else float(v.t_cam[i]))
                 out.row.append(dt.pixels[:, 1])
+                out.ids.append(np.asarray(dt.ids, int))
+                out.pose.append(int(ds.frames.frame[int(v.rows[i])]))
                 out.camera.append(c)
     return out
 
@@ -540,42 +559,178 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.kind.identifiability_tol)
     free = np.asarray(free)
     res = _programs.refinement(free)(problem, params0)
-    # The shutter's score test, in the `Future` the verdict reads (`run_ahead` runs it inline).
-    pending = _programs.run_ahead("shutter test", shutter_test, setup, corners, problem, res)
+    # The shutter's and the lens's score tests, in the `Future` the verdict reads (`run_ahead`
+    # runs it inline).
+    pending = _programs.run_ahead("score tests", score_tests, setup, corners, problem, res, layout, free)
     jax.block_until_ready(res)
+    res, correlation, cov_views = error_correlation(corners, res, options.limits)
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
     delays = _delay_rows(corners, res, layout, free)
     timings = {"refine_s": time.perf_counter() - t0}
     t0 = time.perf_counter()
-    test = pending.result()
-    if test is not None:
-        timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for it, past the refinement
-    summary = dataclasses.replace(out.summary, line_delay=delays or None, rolling_shutter_test=test)
+    test, lens = pending.result()
+    if test is not None or lens is not None:
+        timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for them, past the refinement
+    summary = dataclasses.replace(
+        out.summary,
+        line_delay=delays or None,
+        rolling_shutter_test=test,
+        lens_test=lens,
+        error_correlation=correlation,
+    )
     return dataclasses.replace(
-        out, summary=summary, problem=problem, line_delays=delays, shutter_test=test, timings=timings
+        out,
+        summary=summary,
+        problem=problem,
+        line_delays=delays,
+        shutter_test=test,
+        lens_test=lens,
+        error_correlation=correlation,
+        cov_views=cov_views,
+        timings=timings,
     )
 
 
-def shutter_test(
-    setup: Setup, corners: _Corners, problem: RefineProblem, res
-) -> tuple[ShutterTest, ...] | None:
-    """Per camera, the rolling shutter the residuals of a global-shutter refinement
-    point to (`jaxcal._refine.line_delay_test`): the line delay (s per row), the
-    readout it implies (times the image height, s) and its size in standard
-    deviations. `None` when a line delay was modelled, or without an encoder log
-    (each view's angle is then an unknown of its own)."""
+def score_tests(
+    setup: Setup, corners: _Corners, problem: RefineProblem, res, layout: ParameterLayout, free
+) -> tuple[tuple[ShutterTest, ...] | None, LensTest | None]:
+    """The score tests of a global-shutter refinement (one program, `_programs.score_tests`).
+
+    Per camera, the rolling shutter its residuals point to (`jaxcal._refine.line_delay_test`):
+    the line delay (s per row), the readout it implies (times the image height, s) and its
+    size in standard deviations. For the first camera, when its radial distortion was held
+    (the metadata's lens), the radial distortion they point to (`jaxcal._refine.lens_test`):
+    $k_1, k_2$, the shift they imply at the image's corner (px) and their size in sigmas.
+    `(None, None)` when a line delay was modelled, or without an encoder log (each view's
+    angle is then an unknown of its own)."""
     if problem.line_delay0_s is not None or setup.kind.per_view_angles:
-        return None
-    test = jax.device_get(_programs.shutter_test()(problem, res))
-    return tuple(
+        return None, None
+    shutter, radial = jax.device_get(_programs.score_tests()(problem, res))
+    tests = tuple(
         ShutterTest(
             camera=v.camera.name,
-            line_delay_s=float(test.line_delay_s[c]),
-            readout_s=float(test.line_delay_s[c]) * v.camera.height,
-            sigmas=float(test.sigmas[c]),
+            line_delay_s=float(shutter.line_delay_s[c]),
+            readout_s=float(shutter.line_delay_s[c]) * v.camera.height,
+            sigmas=float(shutter.sigmas[c]),
         )
         for c, v in enumerate(corners.used)
     )
+    lens = None
+    intr = layout.index("intr")
+    if not any(free[intr[INTRINSIC_NAMES.index(k)]] for k in ("k1", "k2")):
+        cam = corners.used[0].camera
+        K = np.asarray(problem.K0, np.float64)
+        k1, k2 = (float(x) for x in radial.distortion)
+        # The image's corner, normalised: the farthest a corner can be from the principal point.
+        rho2 = max(
+            ((x - K[0, 2]) / K[0, 0]) ** 2 + ((y - K[1, 2]) / K[1, 1]) ** 2
+            for x in (0.0, cam.width - 1.0)
+            for y in (0.0, cam.height - 1.0)
+        )
+        shift = float(np.sqrt(rho2) * K[0, 0] * abs(k1 * rho2 + k2 * rho2**2))
+        lens = LensTest(camera=cam.name, k1=k1, k2=k2, shift_px=shift, sigmas=float(radial.sigmas))
+    return tests, lens
+
+
+#: The correlation test's lags along the capture (frames).
+CORRELATION_LAGS = 4
+
+
+def corner_pairs(corners: _Corners, lags: int = CORRELATION_LAGS) -> tuple[np.ndarray, ...]:
+    """Per lag $k = 1..$`lags`, the same corner of one target and camera in views $k$ frames
+    apart (capture indices) within one run of the capture (at most $k + 1/2$ typical frame
+    intervals apart in time: a sweep, not the next one): rows `(view_a, corner_a, view_b,
+    corner_b)` into the refinement's views and their corner slots."""
+    cam, tgt, pose = (np.asarray(a, int) for a in (corners.camera, corners.target, corners.pose))
+    t = np.asarray(corners.t_cam, np.float64)
+    at = {(c, m, f): v for v, (c, m, f) in enumerate(zip(cam, tgt, pose))}
+    steps = [
+        (t[w] - t[v])
+        for v, (c, m, f) in enumerate(zip(cam, tgt, pose))
+        if (w := at.get((c, m, f + 1))) is not None
+    ]
+    frame_s = float(np.median(steps)) if steps else 0.0
+    out = [[] for _ in range(lags)]
+    for v, (c, m, f) in enumerate(zip(cam, tgt, pose)):
+        for k in range(1, lags + 1):
+            w = at.get((c, m, f + k))
+            if w is None or not abs(t[w] - t[v]) <= (k + 0.5) * frame_s:
+                continue
+            _, a, b = np.intersect1d(corners.ids[v], corners.ids[w], assume_unique=True, return_indices=True)
+            out[k - 1].append(np.stack([np.full(a.size, v), a, np.full(b.size, w), b], axis=1))
+    return tuple(np.concatenate(rows) if rows else np.zeros((0, 4), int) for rows in out)
+
+
+def _by_pose(corners: _Corners, values: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """`values` (per view, first axis) summed over the views of each pose, in capture order,
+    and each pose's views."""
+    pose = np.asarray(corners.pose, int)
+    keys = np.unique(pose)
+    groups = [np.flatnonzero(pose == k) for k in keys]
+    return np.stack([values[g].sum(axis=0) for g in groups]), groups
+
+
+def error_correlation(corners: _Corners, res, limits):
+    """The refinement's residuals tested for errors that repeat along the capture and between
+    the views of one pose, and, where either test passes `limits.correlation_sigmas`, the
+    covariance that accounts for them: `(res, ErrorCorrelation | None, cov_views | None)`,
+    `res` with its covariance replaced (then `cov_views`, the one replaced; else unchanged).
+
+    Along the capture, `jaxcal._refine.residual_correlation` on the pairs of `corner_pairs`: the
+    one-sided test of their $z_k$, $\\sum_k z_k / \\sqrt K$. Between the views of one pose
+    (several cameras or targets at one capture index), the score test of their shared error:
+    $c_{uv} = s_u^T B s_v$ for the views' gradients $s$ and the bread $B = (J^TJ)^+$, summed over
+    the poses' pairs of views over $\\sqrt{\\sum c_{uv}^2}$. The covariance is then the views'
+    (`RefineResult.cov`), or the kernel (HAC) sandwich of the poses along the capture
+    (`jaxcal._lsq.hac_covariance`: one cluster per pose, Newey-West's lags or the test's
+    longest significant lag, whichever is longer) along the directions where that is larger by
+    more than its sampling spread $2\\sqrt{2 / G_{eff}}$ (`jaxcal._lsq.larger_covariance_np`).
+    None without per-view gradients (per-view angles) or pairs."""
+    if res.view_scores is None or not corners.ids:
+        return res, None, None
+    pairs = corner_pairs(corners)
+    if not sum(len(p) for p in pairs):
+        return res, None, None
+    used = np.asarray(res.inlier) & (np.asarray(res.weights) > 0.0)
+    rho, z, count = residual_correlation(np.asarray(res.residuals), used, pairs)
+    lags = len(z)
+    q = float(np.sum(z**2))
+    sigmas = float(np.sum(z) / np.sqrt(lags))
+    free = np.flatnonzero(np.asarray(res.free))
+    V = len(corners.pose)
+    scores = np.asarray(res.view_scores, np.float64)[:V]
+    sigma2 = float(res.sigma_px) ** 2
+    bread = np.asarray(res.cov_model, np.float64)[np.ix_(free, free)] / max(sigma2, 1e-300)
+    _, groups = _by_pose(corners, scores)
+    cross = [scores[u] @ bread @ scores[v] for g in groups for i, u in enumerate(g) for v in g[i + 1 :]]
+    pose_sigmas = (
+        float(np.sum(cross) / np.sqrt(np.sum(np.square(cross)))) if cross and np.any(cross) else None
+    )
+    record = ErrorCorrelation(
+        autocorrelation=tuple(float(x) for x in rho),
+        z=tuple(float(x) for x in z),
+        pairs=tuple(int(x) for x in count),
+        q_statistic=q,
+        dof=lags,
+        p_value=float(jax.scipy.special.gammaincc(0.5 * lags, 0.5 * q)),
+        sigmas=sigmas,
+        pose_sigmas=pose_sigmas,
+    )
+    if max(sigmas, pose_sigmas or 0.0) < limits.correlation_sigmas:
+        return res, record, None
+    significant = [k + 1 for k in range(lags) if z[k] >= SIGNIFICANT_LAG_Z]
+    pose_scores, _ = _by_pose(corners, scores)
+    information, _ = _by_pose(corners, np.asarray(res.view_information, np.float64)[:V])
+    kernel_lags = max(newey_west_lags(len(groups)), max(significant, default=0))
+    hac, g_eff = _programs.hac_covariance()(bread, pose_scores, information, kernel_lags)
+    cov = np.asarray(res.cov, np.float64)
+    before = cov[np.ix_(free, free)]
+    larger = larger_covariance_np(before, np.asarray(hac), 2.0 * np.sqrt(2.0 / max(float(g_eff), 2.0)))
+    cov = cov.copy()
+    cov[np.ix_(free, free)] = larger
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    res = eqx.tree_at(lambda r: (r.cov, r.std), res, (cov, std))
+    return res, dataclasses.replace(record, kernel_lags=kernel_lags), before
 
 
 def summary_record(figures: dict, **typed) -> RefinementSummary:

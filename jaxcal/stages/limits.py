@@ -34,6 +34,15 @@ class Limits:
       least `arm_compliance_rad_per_kNm` (200 kN m/rad; a UR5's shoulder is
       32); the arcs' clock against the refinement's beyond the normal law's
       two-sided quantile (2.58 at 0.01).
+    - `correlation_sigmas`: the refinement's residuals repeat from frame to frame
+      (each corner's along a run of the capture), or are shared by the views of one
+      pose, by more than this many standard deviations (the one-sided tests of
+      `jaxcal.stages._refine.error_correlation`); the covariance then takes the kernel
+      sandwich where larger.
+    - `lens_sigmas`, `lens_px`: a refinement whose residuals point to a radial
+      distortion beyond the given lens by more than `lens_sigmas` standard deviations
+      and a shift of at least `lens_px` at the image's corner (the score test of
+      `jaxcal._refine.lens_test`).
     - `ee_sigma_mm`: the tool point's 1-sigma uncertainty the covariance
       implies (RMS over random configurations): above it, the capture does
       not determine the robot well enough to trust it.
@@ -55,4 +64,7 @@ class Limits:
     readout_s: float = 1e-3
     arm_false_alarm: float = 0.01
     arm_compliance_rad_per_kNm: float = 0.005
+    correlation_sigmas: float = 5.0
+    lens_sigmas: float = 10.0
+    lens_px: float = 0.5
     ee_sigma_mm: float = 3.0
