@@ -38,8 +38,10 @@ ideal camera. Issue 48's correlated detector errors: `lens_remap_1x` (the lens o
 `distortion_given`, in the metadata, warped at the sensor's resolution by a bilinear
 `cv2.remap` after the render, as another renderer or a camera's own undistortion
 forms images), `rolling_shutter_coarse` (a 20 ms rolling shutter rendered in 16-row
-bands, each at its middle row's instant, the line delay in the metadata, at twice the
-capture's speed: the same 24 frames per sweep in 0.4 s, the camera at 60 fps) and
+bands: a render every 16 rows' delay, 0.53 ms, each drawing the band of rows exposed near
+it and the rows between two renders cross-faded, as `rolling_shutter_given` does every
+0.25 ms; the line delay in the metadata; at twice the capture's speed: the same 24 frames
+per sweep in 0.4 s, the camera at 60 fps) and
 `exposure_10ms_fast` (`exposure_10ms` at twice the speed).
 
 Per case `ee_sigma_mm`, the tool point's 1-sigma uncertainty the result claims (the
@@ -155,9 +157,10 @@ CASES = {
     # The lens warped at the sensor's resolution (`cv2.remap`, bilinear), as another renderer's
     # post-process or a camera's own undistortion forms images: corner errors that repeat.
     "lens_remap_1x": (CameraModel(name="lens_remap_1x", distortion=LENS, lens_supersample=1), False),
-    # A 20 ms rolling shutter rendered in 16-row bands (a staircase in time), at twice the speed.
+    # A 20 ms rolling shutter rendered in 16-row bands (a render every 16 rows' delay, 0.53 ms,
+    # the rows between cross-faded), at twice the speed: 2.5 px between renders at 4700 px/s.
     "rolling_shutter_coarse": (
-        CameraModel(name="rolling_20ms_bands", readout_s=0.02, stamp="start", band_rows=16),
+        CameraModel(name="rolling_20ms_bands", readout_s=0.02, stamp="start", step_s=16 * 0.02 / 600),
         False,
     ),
     "exposure_10ms_fast": (CameraModel(name="exposure_10ms", exposure_s=0.01, subframes=8), False),

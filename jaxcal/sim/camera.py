@@ -27,13 +27,10 @@ render with its distortion map, so each row's time is that of the sensor row
 it lands on); `distortion`, when set, is the lens's and replaces
 `SimConfig.distortion`.
 
-Two ways other renderers (or cameras) form images, for the calibration to be
-tested against: `band_rows` renders a rolling shutter in bands of that many rows,
-each band at its middle row's instants (a staircase in time, where the default
-interpolates every row's); `lens_supersample` warps the lens at that many times the
-sensor's resolution (`jaxcal.sim.scene.SUPERSAMPLE` by default; 1: a bilinear remap
-at the sensor's resolution, as a renderer's post-process or a camera's own
-undistortion does, whose corner errors repeat from frame to frame).
+`lens_supersample` warps the lens at that many times the sensor's resolution
+(`jaxcal.sim.scene.SUPERSAMPLE` by default; 1: a bilinear remap at the sensor's
+resolution, as another renderer's post-process or a camera's own undistortion
+forms images, whose corner errors repeat from frame to frame).
 
 The presets (`PRESETS`, `camera_model(name)`), typical values rather than one
 product's measurements:
@@ -73,9 +70,8 @@ class CameraModel:
 
     `readout_s`: the rolling shutter's top-to-bottom readout (the line delay
     is `readout_s / height`; 0: a global shutter). `distortion`: the lens's
-    OpenCV coefficients (None: `SimConfig.distortion`). `band_rows`: a rolling
-    shutter rendered in bands of rows (None: every row's time interpolated);
-    `lens_supersample`: the lens warp's supersampling (None: the renderer's).
+    OpenCV coefficients (None: `SimConfig.distortion`). `lens_supersample`: the
+    lens warp's supersampling (None: the renderer's).
     """
 
     name: str = "ideal"
@@ -89,7 +85,6 @@ class CameraModel:
     defocus_px: float = 0.0
     jpeg_quality: int | None = None
     distortion: tuple[float, ...] | None = None
-    band_rows: int | None = None
     lens_supersample: int | None = None
 
     def check(self) -> None:
@@ -103,10 +98,6 @@ class CameraModel:
             raise ValueError(f"camera {self.name!r}: exposure and readout are at most 1 s")
         if self.subframes < 1 or not self.step_s > 0.0:
             raise ValueError(f"camera {self.name!r}: subframes >= 1 and step_s > 0 are needed")
-        if self.band_rows is not None and (int(self.band_rows) != self.band_rows or self.band_rows < 1):
-            raise ValueError(
-                f"camera {self.name!r}: band_rows must be a whole number >= 1, got {self.band_rows}"
-            )
         if self.lens_supersample is not None and (
             int(self.lens_supersample) != self.lens_supersample or self.lens_supersample < 1
         ):
@@ -145,14 +136,6 @@ class CameraModel:
         delay = self.line_delay(height)
         if delay == 0.0:
             return t0 + offsets, np.full((1, n), 1.0 / n)
-        if self.band_rows is not None:  # each band of rows at its middle row's instants, no interpolation
-            band = np.arange(height) // int(self.band_rows)
-            first = np.arange(band[-1] + 1) * int(self.band_rows)
-            middle = 0.5 * (first + np.minimum(first + int(self.band_rows), height) - 1)
-            times = (t0 + delay * middle[:, None] + offsets[None, :]).ravel()
-            w = np.zeros((height, times.size))
-            w[np.repeat(np.arange(height), n), (band[:, None] * n + np.arange(n)[None, :]).ravel()] = 1.0 / n
-            return times, w
         s = t0 + delay * np.arange(height)[:, None] + offsets[None, :]  # (rows, n) sample instants
         lo, hi = float(s.min()), float(s.max())
         k = max(2, math.ceil((hi - lo) / self.step_s) + 1)

@@ -633,7 +633,7 @@ def score_tests(
 
 
 #: The correlation test's lags along the capture (frames).
-CORRELATION_LAGS = 4
+CORRELATION_LAGS = 8
 
 
 def corner_pairs(corners: _Corners, lags: int = CORRELATION_LAGS) -> tuple[np.ndarray, ...]:
@@ -682,8 +682,8 @@ def error_correlation(corners: _Corners, res, limits):
     $c_{uv} = s_u^T B s_v$ for the views' gradients $s$ and the bread $B = (J^TJ)^+$, summed over
     the poses' pairs of views over $\\sqrt{\\sum c_{uv}^2}$. The covariance is then the views'
     (`RefineResult.cov`), or the kernel (HAC) sandwich of the poses along the capture
-    (`jaxcal._lsq.hac_covariance`: one cluster per pose, Newey-West's lags or the test's
-    longest significant lag, whichever is longer) along the directions where that is larger by
+    (`jaxcal._lsq.hac_covariance`: one cluster per pose, Newey-West's lags or twice the
+    test's longest lag of $z_k \\ge 3$, whichever is longer) along the directions where that is larger by
     more than its sampling spread $2\\sqrt{2 / G_{eff}}$ (`jaxcal._lsq.larger_covariance_np`).
     None without per-view gradients (per-view angles) or pairs."""
     if res.view_scores is None or not corners.ids:
@@ -721,7 +721,10 @@ def error_correlation(corners: _Corners, res, limits):
     significant = [k + 1 for k in range(lags) if z[k] >= SIGNIFICANT_LAG_Z]
     pose_scores, _ = _by_pose(corners, scores)
     information, _ = _by_pose(corners, np.asarray(res.view_information, np.float64)[:V])
-    kernel_lags = max(newey_west_lags(len(groups)), max(significant, default=0))
+    # Bartlett's weights fall linearly to zero at lags + 1: twice the longest lag still
+    # correlated keeps half its weight there (at most a quarter of the poses).
+    reach = min(2 * max(significant, default=0), len(groups) // 4)
+    kernel_lags = max(newey_west_lags(len(groups)), reach)
     hac, g_eff = _programs.hac_covariance()(bread, pose_scores, information, kernel_lags)
     cov = np.asarray(res.cov, np.float64)
     before = cov[np.ix_(free, free)]
