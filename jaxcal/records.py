@@ -541,10 +541,9 @@ class ErrorCorrelation(Record):
     #: Between the views of one pose (several cameras or targets in one frame): the score test
     #: of their shared error (sigmas; None: one view per pose).
     pose_sigmas: float | None = optional()
-    #: Where either is significant: the kernel (HAC) sandwich's lags (poses along the capture)
-    #: that the covariance now takes where it is larger, and the tool point's 1-sigma before (mm).
+    #: Where either is significant: the kernel (HAC) sandwich's lags (poses along the capture),
+    #: which the covariance now takes where it is larger.
     kernel_lags: int | None = optional()
-    ee_sigma_independent_mm: float | None = optional()
 
 
 @dataclass(frozen=True, eq=False)

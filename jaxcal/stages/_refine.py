@@ -563,7 +563,11 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     # runs it inline).
     pending = _programs.run_ahead("score tests", score_tests, setup, corners, problem, res, layout, free)
     jax.block_until_ready(res)
-    res, correlation, cov_views = error_correlation(corners, res, options.limits)
+    correlation, cov_free, cov_views = error_correlation(corners, res, options.limits)
+    if cov_free is not None:  # the kernel sandwich's covariance, where larger than the views'
+        cov = np.array(res.cov, np.float64)
+        cov[np.ix_(*2 * [np.flatnonzero(np.asarray(free))])] = cov_free
+        res = eqx.tree_at(lambda r: (r.cov, r.std), res, (cov, np.sqrt(np.maximum(np.diag(cov), 0.0))))
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
     delays = _delay_rows(corners, res, layout, free)
     timings = {"refine_s": time.perf_counter() - t0}
@@ -673,8 +677,9 @@ def _by_pose(corners: _Corners, values: np.ndarray) -> tuple[np.ndarray, list[np
 def error_correlation(corners: _Corners, res, limits):
     """The refinement's residuals tested for errors that repeat along the capture and between
     the views of one pose, and, where either test passes `limits.correlation_sigmas`, the
-    covariance that accounts for them: `(res, ErrorCorrelation | None, cov_views | None)`,
-    `res` with its covariance replaced (then `cov_views`, the one replaced; else unchanged).
+    covariance that accounts for them: `(ErrorCorrelation | None, cov | None, cov_views | None)`,
+    the free parameters' covariance to take and the one it replaces (`None`, `None`: keep
+    `res.cov`). `res`: the `RefineResult` (read only).
 
     Along the capture, `jaxcal._refine.residual_correlation` on the pairs of `corner_pairs`: the
     one-sided test of their $z_k$, $\\sum_k z_k / \\sqrt K$. Between the views of one pose
@@ -687,10 +692,10 @@ def error_correlation(corners: _Corners, res, limits):
     more than its sampling spread $2\\sqrt{2 / G_{eff}}$ (`jaxcal._lsq.larger_covariance_np`).
     None without per-view gradients (per-view angles) or pairs."""
     if res.view_scores is None or not corners.ids:
-        return res, None, None
+        return None, None, None
     pairs = corner_pairs(corners)
     if not sum(len(p) for p in pairs):
-        return res, None, None
+        return None, None, None
     used = np.asarray(res.inlier) & (np.asarray(res.weights) > 0.0)
     rho, z, count = residual_correlation(np.asarray(res.residuals), used, pairs)
     lags = len(z)
@@ -717,7 +722,7 @@ def error_correlation(corners: _Corners, res, limits):
         pose_sigmas=pose_sigmas,
     )
     if max(sigmas, pose_sigmas or 0.0) < limits.correlation_sigmas:
-        return res, record, None
+        return record, None, None
     significant = [k + 1 for k in range(lags) if z[k] >= SIGNIFICANT_LAG_Z]
     pose_scores, _ = _by_pose(corners, scores)
     information, _ = _by_pose(corners, np.asarray(res.view_information, np.float64)[:V])
@@ -726,14 +731,9 @@ def error_correlation(corners: _Corners, res, limits):
     reach = min(2 * max(significant, default=0), len(groups) // 4)
     kernel_lags = max(newey_west_lags(len(groups)), reach)
     hac, g_eff = _programs.hac_covariance()(bread, pose_scores, information, kernel_lags)
-    cov = np.asarray(res.cov, np.float64)
-    before = cov[np.ix_(free, free)]
+    before = np.asarray(res.cov, np.float64)[np.ix_(free, free)]
     larger = larger_covariance_np(before, np.asarray(hac), 2.0 * np.sqrt(2.0 / max(float(g_eff), 2.0)))
-    cov = cov.copy()
-    cov[np.ix_(free, free)] = larger
-    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    res = eqx.tree_at(lambda r: (r.cov, r.std), res, (cov, std))
-    return res, dataclasses.replace(record, kernel_lags=kernel_lags), before
+    return dataclasses.replace(record, kernel_lags=kernel_lags), larger, before
 
 
 def summary_record(figures: dict, **typed) -> RefinementSummary:
