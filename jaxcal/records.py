@@ -536,7 +536,8 @@ class ErrorCorrelation(Record):
     q_statistic: float
     dof: int
     p_value: float
-    #: The one-sided test of errors that repeat, $\sum_k z_k / \sqrt{K}$ (sigmas).
+    #: The one-sided test of errors that repeat, $\sum_{k \le L} z_k / \sqrt{L}$ over Newey-West's
+    #: $L$ lags (sigmas).
     sigmas: float
     #: Between the views of one pose (several cameras or targets in one frame): the score test
     #: of their shared error (sigmas; None: one view per pose).

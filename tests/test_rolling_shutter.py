@@ -25,6 +25,7 @@ from jaxcal._refine import (
     RefineProblem,
     grid_points,
     identifiable_mask,
+    lens_test,
     line_delay_test,
     projected_corners,
     refine,
@@ -172,11 +173,12 @@ def test_refinement_recovers_the_line_delay(given):
     assert np.sqrt(np.mean(off[np.asarray(seen.data.mask)] ** 2)) > 1.0
 
 
-def test_global_shutter_refinement_flags_the_rows():
-    """The score test of a global-shutter refinement (`line_delay_test`): on a rolling
-    shutter's corners it finds the line delay (the other parameters absorb none of
-    the within-view skew) far beyond its noise; on a global shutter's it stays
-    within a few sigmas."""
+def test_global_shutter_refinement_flags_the_rows_and_the_lens():
+    """The score tests of a global-shutter refinement (`line_delay_test`, `lens_test`): on a
+    rolling shutter's corners the first finds the line delay (the other parameters absorb
+    none of the within-view skew) far beyond its noise; on corners through a stronger lens
+    than the one given the second finds the difference; on a global shutter's through the
+    given lens both stay within a few sigmas."""
     rolling_problem = _problem(True, DELAY_S)
     truth = _params(True)
     seen = _seen(truth, rolling_problem)
@@ -186,15 +188,30 @@ def test_global_shutter_refinement_flags_the_rows():
     free = np.asarray(ParameterLayout.of(NOMINAL, 1).candidates(rates=True, clock=True))
     free, _ = jax.jit(identifiable_mask)(_problem(False), p0, free)
     free = np.asarray(free)
-    out = {}
-    for name, pixels in (("rolling", seen.data.pixels), ("global", projected_corners(p0, _problem(False)))):
+    # A lens whose k1 is 0.02 stronger than the one the refinement is given (held).
+    lens = eqx.tree_at(
+        lambda p: p.dist0, _problem(False), _problem(False).dist0 + jnp.array([-0.02, 0, 0, 0, 0])
+    )
+    cases = (
+        ("rolling", seen.data.pixels),
+        ("global", projected_corners(p0, _problem(False))),
+        ("lens", projected_corners(p0, lens)),
+    )
+    out, radial = {}, {}
+    solve = jax.jit(lambda pb, s: refine(pb, s, free, robust=None))
+    for name, pixels in cases:
         glob = eqx.tree_at(lambda p: p.data.pixels, _problem(False), pixels + noise)
-        res = jax.jit(lambda pb, s: refine(pb, s, free, robust=None))(glob, p0)
-        out[name] = line_delay_test(glob, res)
+        res = solve(glob, p0)
+        out[name], radial[name] = jax.jit(lambda pb, r: (line_delay_test(pb, r), lens_test(pb, r)))(glob, res)
     # A first-order step from a biased fit: within a tenth of the truth.
     assert abs(float(out["rolling"].line_delay_s[0]) / DELAY_S - 1.0) < 0.1
     assert float(out["rolling"].sigmas[0]) > 2 * Limits().shutter_sigmas
     assert float(out["global"].sigmas[0]) < 4.0
+    # The lens's score test: k1 found within 30 % (the robot and k2 absorb some of it), far
+    # past its limit; none on the right lens.
+    assert abs(float(radial["lens"].distortion[0]) / -0.02 - 1.0) < 0.3
+    assert float(radial["lens"].sigmas) > 2 * Limits().lens_sigmas
+    assert float(radial["global"].sigmas) < 4.0
 
 
 def test_pose_times_and_the_metadata():

@@ -681,8 +681,10 @@ def error_correlation(corners: _Corners, res, limits):
     the free parameters' covariance to take and the one it replaces (`None`, `None`: keep
     `res.cov`). `res`: the `RefineResult` (read only).
 
-    Along the capture, `jaxcal._refine.residual_correlation` on the pairs of `corner_pairs`: the
-    one-sided test of their $z_k$, $\\sum_k z_k / \\sqrt K$. Between the views of one pose
+    Along the capture, `jaxcal._refine.residual_correlation` on the pairs of `corner_pairs` (up to
+    `CORRELATION_LAGS`): Ljung-Box's $Q$ over them, and the one-sided test of errors that repeat,
+    $\\sum_{k \\le L} z_k / \\sqrt L$ over Newey-West's $L$ lags for the capture's poses (4 for 100 to
+    420; a correlation that fades beyond them adds only noise to the sum). Between the views of one pose
     (several cameras or targets at one capture index), the score test of their shared error:
     $c_{uv} = s_u^T B s_v$ for the views' gradients $s$ and the bread $B = (J^TJ)^+$, summed over
     the poses' pairs of views over $\\sqrt{\\sum c_{uv}^2}$. The covariance is then the views'
@@ -700,13 +702,14 @@ def error_correlation(corners: _Corners, res, limits):
     rho, z, count = residual_correlation(np.asarray(res.residuals), used, pairs)
     lags = len(z)
     q = float(np.sum(z**2))
-    sigmas = float(np.sum(z) / np.sqrt(lags))
     free = np.flatnonzero(np.asarray(res.free))
     V = len(corners.pose)
     scores = np.asarray(res.view_scores, np.float64)[:V]
     sigma2 = float(res.sigma_px) ** 2
     bread = np.asarray(res.cov_model, np.float64)[np.ix_(free, free)] / max(sigma2, 1e-300)
     _, groups = _by_pose(corners, scores)
+    tested = min(lags, newey_west_lags(len(groups)))  # the one-sided test spans Newey-West's lags
+    sigmas = float(np.sum(z[:tested]) / np.sqrt(tested))
     cross = [scores[u] @ bread @ scores[v] for g in groups for i, u in enumerate(g) for v in g[i + 1 :]]
     pose_sigmas = (
         float(np.sum(cross) / np.sqrt(np.sum(np.square(cross)))) if cross and np.any(cross) else None

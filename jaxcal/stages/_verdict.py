@@ -79,7 +79,7 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
 
 #: The causes a failed check names, in the order its reason leads the others: they explain the
 #: symptoms (corrections out of tolerance, large residuals) that follow them.
-CAUSES = ("rolling_shutter", "lens", "blur", "correlated_errors")
+CAUSES = ("rolling_shutter", "lens", "blur", "arm", "correlated_errors")
 
 
 class _Checks:
@@ -355,12 +355,13 @@ def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limi
         "correlated_errors_sigmas",
         t.sigmas,
         limits.correlation_sigmas,
-        f"the detector's errors repeat from frame to frame: each corner's residual correlates with its own in the "
-        f"next frames of the capture ({lags} at lags 1-{len(t.autocorrelation)}, {t.sigmas:.1f} sigmas), where the "
-        f"noise model takes them as independent{grew}; images resampled at the sensor's resolution (an "
-        "undistortion, a renderer's lens warp or scaling), a rolling shutter read out in bands, or a pattern the "
-        "motion carries along repeat so; give the camera's raw images with its lens in metadata.json, or film "
-        "poses that differ more from frame to frame",
+        f"the residuals repeat from frame to frame: each corner's residual correlates with its own in the next "
+        f"frames of the capture ({lags} at lags 1-{len(t.autocorrelation)}, {t.sigmas:.1f} sigmas), where the noise "
+        f"model takes them as independent{grew}. Correlated detector errors repeat so: images resampled at the "
+        "sensor's resolution (an undistortion, a renderer's lens warp or scaling) or a pattern the motion carries "
+        "along; give the camera's raw images with its lens in metadata.json, or film poses that differ more from "
+        "frame to frame. So do the errors of a motion the model does not hold (an arm that sags or lags its "
+        "motors: see the arm's reasons, if any)",
         cause="correlated_errors",
     )
     if t.pose_sigmas is not None:
