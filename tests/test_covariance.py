@@ -18,7 +18,8 @@ from scipy import stats
 
 from jaxcal._lsq import cluster_covariance, covariance, hac_covariance, larger_covariance, newey_west_lags
 from jaxcal.stages import Limits
-from jaxcal.stages._refine import _Corners, corner_pairs, error_correlation
+from jaxcal.stages._refine import _Corners
+from jaxcal.stages._residual_tests import corner_pairs, error_correlation
 
 K = 3  # parameters
 CHI2_95 = stats.chi2.ppf(0.95, K)

@@ -49,7 +49,7 @@ import mujoco  # noqa: E402
 
 from .arm import ArmModel  # noqa: E402
 from .motion import Trajectory  # noqa: E402
-from .scene import _arm, _pose, mujoco_quat  # noqa: E402
+from .scene import add_arm, mujoco_quat, placement  # noqa: E402
 
 #: Gravity along the base's -z (m/s^2), as `jaxcal._pointfit.gravity_torques` takes it.
 GRAVITY = 9.81
@@ -139,7 +139,7 @@ def _build(arm: ArmModel, true, inertias, plates):
     spec.option.timestep = dyn.timestep_s
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.gravity = [0.0, 0.0, -GRAVITY]
-    bodies = _arm(spec.worldbody, true, None, 0.035)
+    bodies = add_arm(spec.worldbody, true, None, 0.035)
     links = tuple(true.link_names)
     flange = bodies[links[-1]]
     flange.mass, flange.inertia = 1e-6, [1e-9, 1e-9, 1e-9]  # its own inertial is lumped into the last link's
@@ -156,7 +156,7 @@ def _build(arm: ArmModel, true, inertias, plates):
             body.inertia, body.iquat = np.maximum(principal, 1e-9).tolist(), mujoco_quat(axes)
         link_joint = spec.joint(joint)
         link_joint.frictionloss = float(bearing[i])
-        rotor = bodies[links[i]].add_body(name=f"rotor:{joint}", **_pose(T_parent_joint[i]))
+        rotor = bodies[links[i]].add_body(name=f"rotor:{joint}", **placement(T_parent_joint[i]))
         rotor.explicitinertial = True
         rotor.mass, rotor.inertia = 1e-3, [1e-6, 1e-6, 1e-6]
         rotor.add_joint(
@@ -186,7 +186,7 @@ def _build(arm: ArmModel, true, inertias, plates):
         centre, R, inertia = _plate_inertia(plate, dyn.payload_kg)
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, centre
-        payload = bodies[plate.link].add_body(name=f"payload{k}:{plate.target.name}", **_pose(T))
+        payload = bodies[plate.link].add_body(name=f"payload{k}:{plate.target.name}", **placement(T))
         payload.explicitinertial = True
         payload.mass, payload.inertia = float(dyn.payload_kg), inertia.tolist()
     model = spec.compile()

@@ -42,6 +42,7 @@ from .arm import ArmModel, ArmMotion, arm_model
 from .camera import CameraModel, camera_model
 from .motion import ClockModel, encoder_stream, joint_sweeps, true_angles
 from .motion import frame_times as frame_times_of
+from .physics import PhysicsMotion
 from .scene import CameraSpec, PlateSpec, build_scene
 
 
@@ -480,8 +481,6 @@ def arm_motion(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates
     arm with `dynamics`, MuJoCo's physics (`jaxcal.sim.physics.PhysicsMotion`: the robot
     file's inertias, the target `plates` on links as payload), whose encoders read the motors."""
     if arm.dynamics is not None:
-        from .physics import PhysicsMotion
-
         motion = PhysicsMotion(arm, trajectory, nominal_ratio, true, link_inertias(urdf_path), plates)
         return motion.angles, motion.motor
     if arm.rigid:
