@@ -85,12 +85,28 @@ CASES = {
         ["--seeds", "0", "--resolution", "640x480", "--frames-per-joint", "12"],
         ["fraction", "seeds", "max_ratio_two_stage", "max_ratio_refined"],
     ),
-    # Its analytic comparison only (one seed, two cases, no rendering); the rendered cases'
-    # pieces are in `tests/test_camera_model.py`.
+    # Its analytic comparison (one seed, two cases) and issue 48's rendered cases at 320x240, 6
+    # frames per sweep (calibrated or refused; their pieces: `tests/test_camera_model.py`,
+    # `tests/test_arm_model.py`, `tests/test_covariance.py`).
     "realism": (
-        ["--analytic-seeds", "1", "--analytic-cases", "ideal", "rolling_shutter_given"],
+        [
+            "--analytic-seeds",
+            "1",
+            "--analytic-cases",
+            "ideal",
+            "rolling_shutter_given",
+            "--cases",
+            "physics_arm",
+            "lens_remap_1x",
+            "rolling_shutter_coarse",
+            "exposure_10ms_fast",
+            "--resolution",
+            "320x240",
+            "--frames-per-joint",
+            "6",
+        ],
         ["analytic", "analytic_noise_px", "cases"],
-    ),
+    ),  # fmt: skip
     # No sweep designs, one image, one noise draw, a 6-pose plan, one seed.
     "plan_realism": (
         ["--no-sweeps", "--seeds", "1", "--noise-step", "72", "--noise-draws", "1", "--poses", "6"],
