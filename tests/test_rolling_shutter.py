@@ -188,9 +188,10 @@ def test_global_shutter_refinement_flags_the_rows_and_the_lens():
     free = np.asarray(ParameterLayout.of(NOMINAL, 1).candidates(rates=True, clock=True))
     free, _ = jax.jit(identifiable_mask)(_problem(False), p0, free)
     free = np.asarray(free)
-    # A lens whose k1 is 0.02 stronger than the one the refinement is given (held).
+    # A lens whose k1 is 0.1 stronger than the one the refinement is given (held): the plate stays
+    # within 200-300 px of the centre, where that shifts its corners by up to about 2 px.
     lens = eqx.tree_at(
-        lambda p: p.dist0, _problem(False), _problem(False).dist0 + jnp.array([-0.02, 0, 0, 0, 0])
+        lambda p: p.dist0, _problem(False), _problem(False).dist0 + jnp.array([-0.1, 0, 0, 0, 0])
     )
     cases = (
         ("rolling", seen.data.pixels),
@@ -207,10 +208,10 @@ def test_global_shutter_refinement_flags_the_rows_and_the_lens():
     assert abs(float(out["rolling"].line_delay_s[0]) / DELAY_S - 1.0) < 0.1
     assert float(out["rolling"].sigmas[0]) > 2 * Limits().shutter_sigmas
     assert float(out["global"].sigmas[0]) < 4.0
-    # The lens's score test: k1 found within 30 % (the robot and k2 absorb some of it), far
-    # past its limit; none on the right lens.
-    assert abs(float(radial["lens"].distortion[0]) / -0.02 - 1.0) < 0.3
-    assert float(radial["lens"].sigmas) > 2 * Limits().lens_sigmas
+    # The lens's score test: k1 found within 15 % (the robot absorbs some of it; k2, which the
+    # plate's small radii barely see, is not checked), past its limit; none on the right lens.
+    assert abs(float(radial["lens"].distortion[0]) / -0.1 - 1.0) < 0.15
+    assert float(radial["lens"].sigmas) > 1.5 * Limits().lens_sigmas
     assert float(radial["global"].sigmas) < 4.0
 
 
