@@ -96,7 +96,7 @@ class Dynamics:
     link's inertia; the link's bearing has its own friction `bearing_friction_nm`. A position
     servo (MuJoCo's position actuator: $\\tau = k_p(u - \\theta_m) - k_v\\dot\\theta_m$) drives
     each rotor at `servo_hz` natural frequency and `servo_damping` damping ratio against the
-    joint's inertia at the start, with the controller's velocity and gravity feed-forward (the
+    joint's inertia at the zero configuration, with the controller's velocity and gravity feed-forward (the
     command's velocity, the links' gravity and Coriolis torque at the joint). Each target plate
     on a link weighs `payload_kg` at its centre. `timestep_s`: MuJoCo's step (implicit-fast);
     `settle_s`: the arm held at the motion's first pose before it starts. Per-joint values take

@@ -21,7 +21,7 @@ builds it):
   equality constraint).
 - **controller**: a position servo per rotor (MuJoCo's position actuator,
   $\\tau = k_p(u - \\theta_m) - k_v \\dot\\theta_m$, finite gains: `servo_hz` natural
-  frequency and `servo_damping` against the joint's inertia at the first pose),
+  frequency and `servo_damping` against the joint's inertia at the zero configuration),
   its set point $u = \\theta_0 + (k_v \\dot\\theta_0 + \\tau_{ff}) / k_p$: the command
   $\\theta_0 = q\\,\\rho_{nom}/\\rho_{true} + \\delta$ with its velocity, and the
   feed-forward $\\tau_{ff}$ of the links' gravity and Coriolis torques at the joint
