@@ -563,9 +563,15 @@ def line_delay_test(
     a view's corners is the clock's). One forward and one reverse pass of the
     global-shutter model; pure.
     """
+    J_ell, r = _delay_columns(problem, res, rows)
+    return _shutter(J_ell, _pulled(problem, res, J_ell), r, res)
+
+
+def _delay_columns(problem: RefineProblem, res: RefineResult, rows=None):
+    """`(J_ell (N, cameras), r (N,))`: the residuals' derivative along each camera's line delay
+    (per us per row, corners timed at `rows`, default the detected ones) and the residuals."""
     C = 1 + num_other_cameras(problem)
     y = problem.data.pixels[..., 1] if rows is None else rows
-    flat, unravel = ravel_pytree(res.params)
 
     def at_times(t_cam):
         timed = eqx.tree_at(lambda p: p.data.t_cam, problem, t_cam)
@@ -576,15 +582,30 @@ def line_delay_test(
     camera = jnp.zeros_like(problem.data.target) if problem.data.camera is None else problem.data.camera
     per_camera = jax.nn.one_hot(camera, C, dtype=r.dtype)  # (V, C)
     J_ell = 1e-6 * jnp.einsum("vkd,vk,vc->vkdc", velocity, y, per_camera).reshape(-1, C)  # per us per row
+    return J_ell, r.reshape(-1)
+
+
+def _pulled(problem: RefineProblem, res: RefineResult, columns):
+    """$J^T$ `columns` `(n, m)`: the model's reverse pass at the solution, once per column."""
+    flat, unravel = ravel_pytree(res.params)
     _, pullback = jax.vjp(
         lambda x: reprojection_residuals(unravel(x), problem, res.weights).reshape(-1), flat
     )
-    G = jax.vmap(lambda col: pullback(col)[0], in_axes=1, out_axes=1)(J_ell)  # J^T J_ell, (n, C)
+    return jax.vmap(lambda col: pullback(col)[0], in_axes=1, out_axes=1)(columns)
+
+
+def _step(J_x, G, r, res):
+    """The score test's Gauss-Newton step along the columns `J_x` (`G` = $J^TJ_x$): `(step, D)`,
+    $D = J_x^TJ_x - G^T(J^TJ)^{-1}G$, step $= -D^{-1}J_x^Tr$."""
     sigma2 = jnp.maximum(res.sigma_px**2, 1e-30)
-    D = J_ell.T @ J_ell - G.T @ (res.cov_model / sigma2) @ G
-    D_inv = jnp.linalg.pinv(D, hermitian=True)
-    ell_us = -D_inv @ (J_ell.T @ r.reshape(-1))
-    std_us = jnp.sqrt(jnp.maximum(jnp.diag(D_inv), 0.0) * sigma2)
+    D = J_x.T @ J_x - G.T @ (res.cov_model / sigma2) @ G
+    return -jnp.linalg.pinv(D, hermitian=True) @ (J_x.T @ r), D
+
+
+def _shutter(J_ell, G, r, res) -> "ShutterTest":
+    ell_us, D = _step(J_ell, G, r, res)
+    sigma2 = jnp.maximum(res.sigma_px**2, 1e-30)
+    std_us = jnp.sqrt(jnp.maximum(jnp.diag(jnp.linalg.pinv(D, hermitian=True)), 0.0) * sigma2)
     return ShutterTest(
         line_delay_s=1e-6 * ell_us, sigmas=jnp.abs(ell_us) / jnp.where(std_us > 0, std_us, 1.0)
     )
@@ -618,6 +639,24 @@ def lens_test(problem: RefineProblem, res: RefineResult) -> LensTest:
     $S = \\hat d^TD\\hat d / \\hat\\sigma^2 \\sim \\chi^2_2$ under a right lens, reported as the
     standard normal quantile of its p-value (`sigmas`). Pure.
     """
+    J_d, r = _radial_columns(problem, res)
+    return _lens(J_d, _pulled(problem, res, J_d), r, res)
+
+
+def score_tests(
+    problem: RefineProblem, res: RefineResult, rows: Float[Array, "views corners"] | None = None
+) -> tuple[ShutterTest, LensTest]:
+    """`(line_delay_test(problem, res, rows), lens_test(problem, res))` with one reverse pass of
+    the model for both (the stage's program). Pure."""
+    J_ell, r = _delay_columns(problem, res, rows)
+    J_d, _ = _radial_columns(problem, res)
+    G = _pulled(problem, res, jnp.concatenate([J_ell, J_d], axis=1))
+    C = J_ell.shape[1]
+    return _shutter(J_ell, G[:, :C], r, res), _lens(J_d, G[:, C:], r, res)
+
+
+def _radial_columns(problem: RefineProblem, res: RefineResult):
+    """`(J_d (N, 2), r (N,))`: the residuals' derivative along the first camera's $k_1, k_2$."""
     flat, unravel = ravel_pytree(res.params)
     radial = np.asarray(layout(problem, res.params).index("intr"))[list(_RADIAL)]
 
@@ -626,13 +665,12 @@ def lens_test(problem: RefineProblem, res: RefineResult) -> LensTest:
 
     E = jnp.zeros((flat.shape[0], 2)).at[radial, np.arange(2)].set(1.0)
     r = along(flat)
-    J_d = jax.vmap(lambda e: jax.jvp(along, (flat,), (e,))[1], in_axes=1, out_axes=1)(E)
-    _, pullback = jax.vjp(along, flat)
-    G = jax.vmap(lambda col: pullback(col)[0], in_axes=1, out_axes=1)(J_d)
-    sigma2 = jnp.maximum(res.sigma_px**2, 1e-30)
-    D = J_d.T @ J_d - G.T @ (res.cov_model / sigma2) @ G
-    d = -jnp.linalg.pinv(D, hermitian=True) @ (J_d.T @ r)
-    chi2 = jnp.maximum(d @ D @ d / sigma2, 0.0)
+    return jax.vmap(lambda e: jax.jvp(along, (flat,), (e,))[1], in_axes=1, out_axes=1)(E), r
+
+
+def _lens(J_d, G, r, res) -> LensTest:
+    d, D = _step(J_d, G, r, res)
+    chi2 = jnp.maximum(d @ D @ d / jnp.maximum(res.sigma_px**2, 1e-30), 0.0)
     # chi^2 on 2 dof: p = exp(-S/2); its normal quantile, sqrt(S) beyond a few sigmas' precision.
     sigmas = jnp.sqrt(2.0) * jax.scipy.special.erfinv(jnp.maximum(1.0 - 2.0 * jnp.exp(-0.5 * chi2), 0.0))
     sigmas = jnp.where(chi2 > 60.0, jnp.sqrt(jnp.maximum(chi2 - 2.0 * jnp.log(chi2) - 2.0, 0.0)), sigmas)

@@ -31,7 +31,8 @@ from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
 from .._pointfit import gravity_torques
-from .._refine import identifiable_mask, lens_test, line_delay_test, refine
+from .._refine import identifiable_mask, refine
+from .._refine import score_tests as score_tests_of
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
 #: The arc and clock fits' inlier threshold (robust sigmas of the deletion
@@ -237,15 +238,11 @@ def refinement(free: np.ndarray):
     return _refinement(tuple(bool(f) for f in np.asarray(free)))
 
 
-def _score_tests(problem, res):
-    return line_delay_test(problem, res), lens_test(problem, res)
-
-
 @functools.cache
 def score_tests():
-    """`(line_delay_test(problem, res), lens_test(problem, res))`: the rolling-shutter and the lens's
-    score tests of a global-shutter refinement."""
-    return stored_jit(_score_tests, "score_tests")
+    """`jaxcal._refine.score_tests(problem, res)`: the rolling-shutter and the lens's score tests of
+    a global-shutter refinement."""
+    return stored_jit(score_tests_of, "score_tests")
 
 
 @functools.cache
