@@ -200,9 +200,9 @@ class RefineResult(eqx.Module):
       row); `None` without.
     - `cov_model`: the model's covariance $\\hat\\sigma^2 (J^TJ)^+$ (corner errors
       independent), beside `cov`.
-    - `view_scores`, `view_information`: per view the final solve's gradient $J_v^Tr_v$ and
-      information $J_v^TJ_v$ over the free parameters (in `free`'s order), for sandwiches
-      that group views (`jaxcal._lsq.hac_covariance`); `None` with per-view angles.
+    - `view_scores`: per view the final solve's gradient $J_v^Tr_v$ over the free parameters
+      (in `free`'s order), for sandwiches that group views (`jaxcal._lsq.hac_covariance`, with
+      `view_information`); `None` with per-view angles.
     """
 
     params: RefineParams
@@ -230,7 +230,6 @@ class RefineResult(eqx.Module):
     line_delay_s: Float[Array, " cameras"] | None = None
     cov_model: Float[Array, "n n"] | None = None
     view_scores: Float[Array, "views f"] | None = None
-    view_information: Float[Array, "views f f"] | None = None
 
 
 #: `refine`'s solver settings, on the scaled variables: every start Jacobian column has
@@ -326,7 +325,7 @@ def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, cov
     solve's covariances `covs` (`_covariances`) and reprojection residuals `raw` (px, zero
     on padding): the model and mounts the corrections give, the camera, the residuals and
     the inliers' RMS."""
-    cov, cov_model, sigma2, sv, Vt, scores, information = covs
+    cov, cov_model, sigma2, sv, Vt, scores = covs
     mask, w = problem.data.mask, out.weights
     used = w > 0
     inl_rms = jnp.sqrt(
@@ -365,28 +364,42 @@ def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, cov
         line_delay_s=line_delays(params, problem) if rolling(problem) else None,
         cov_model=cov_model,
         view_scores=scores,
-        view_information=information,
     )
 
 
 def _covariances(J, r, w, idx, n, per_view: bool = True):
-    """`(cov, cov_model, sigma2, sv, Vt, scores, information)` of the final solve (see
-    `RefineResult`): the model's $\\hat\\sigma^2 (J^TJ)^+$ and the covariance it becomes where the
-    views' sandwich is larger than it beyond its own spread; one SVD (see `_linalg`) and one
-    small `eigh` after it. With `per_view` (static), each view's gradient and information."""
+    """`(cov, cov_model, sigma2, sv, Vt, scores)` of the final solve (see `RefineResult`): the
+    model's $\\hat\\sigma^2 (J^TJ)^+$ and the covariance it becomes where the views' sandwich is
+    larger than it beyond its own spread; one SVD (see `_linalg`) and one small `eigh` after it.
+    With `per_view` (static), each view's gradient."""
     sigma2 = _lsq.residual_variance(r, 2.0 * jnp.sum(w), idx.size)
     bread, sv, Vt = _lsq.covariance(J)
     V = w.shape[0]
     # Per view the gradient J_v^T r_v of its corners: one cluster each (padded views: zero).
-    Jv = J.reshape(V, -1, idx.size)
-    scores = jnp.einsum("vkn,vk->vn", Jv, r.reshape(V, -1))
+    scores = jnp.einsum("vkn,vk->vn", J.reshape(V, -1, idx.size), r.reshape(V, -1))
     robust = _lsq.cluster_covariance(bread, scores, n_obs=2.0 * jnp.sum(w > 0))
     views = jnp.maximum(jnp.sum(jnp.any(scores != 0.0, axis=1)), 2.0)
     cov_f = _lsq.larger_covariance(J, sv, Vt, sigma2, robust, 2.0 * jnp.sqrt(2.0 / views))
     cov = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(cov_f)
     cov_model = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(sigma2 * bread)
-    information = jnp.einsum("vkn,vkm->vnm", Jv, Jv) if per_view else None
-    return cov, cov_model, sigma2, sv, Vt, scores if per_view else None, information
+    return cov, cov_model, sigma2, sv, Vt, scores if per_view else None
+
+
+def view_information(
+    problem: RefineProblem, res: RefineResult, free: np.ndarray
+) -> Float[Array, "views f f"]:
+    """Per view the final solve's information $J_v^TJ_v$ over the free parameters (`free`, a
+    concrete mask: their order), at the solution with its final weights; pure. What a sandwich
+    that groups views needs beside `RefineResult.view_scores` (`jaxcal._lsq.hac_covariance`)."""
+    flat, unravel = ravel_pytree(res.params)
+    idx = np.flatnonzero(np.asarray(free, bool))
+
+    def residuals(x):
+        return reprojection_residuals(unravel(flat.at[idx].set(x)), problem, res.weights)
+
+    J = jax.jacfwd(residuals)(flat[idx])  # (views, corners, 2, f)
+    J = J.reshape(J.shape[0], -1, idx.size)
+    return jnp.einsum("vkn,vkm->vnm", J, J)
 
 
 def _checked(problem: RefineProblem, params0: RefineParams, free, loss):

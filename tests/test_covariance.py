@@ -295,7 +295,7 @@ def test_errors_that_repeat_along_the_capture_are_found_and_covered():
     spread (1/sqrt(2 * 4 * 300) = 0.02, 4 sigmas) and the sandwich's (G_eff about 60: 35 %)."""
     limits = Limits()
     res, capture, _, B = _corner_capture(300, 4, 0.5, 0.0, seed=20)
-    record, cov, before = error_correlation(capture, res, limits)
+    record, cov, before = error_correlation(capture, res, limits, lambda: res.view_information)
     np.testing.assert_allclose(record.autocorrelation[:3], [0.5, 0.25, 0.125], atol=0.08)
     assert record.pairs == tuple(4 * (300 - k) for k in range(1, 9)) and record.dof == 8
     assert record.sigmas > 8 and record.p_value < 1e-12 and record.pose_sigmas is None
@@ -304,7 +304,7 @@ def test_errors_that_repeat_along_the_capture_are_found_and_covered():
     growth = _relative_eigenvalues(cov, res.cov)
     assert np.all(growth >= 1.0 - 1e-9) and 1.6 < growth.max() < 4.0, growth
     res, capture, _, _ = _corner_capture(300, 4, 0.0, 0.0, seed=21)
-    record, cov, before = error_correlation(capture, res, limits)
+    record, cov, before = error_correlation(capture, res, limits, lambda: res.view_information)
     assert abs(record.sigmas) < 3.0 and cov is None and before is None and record.kernel_lags is None
 
 
@@ -313,10 +313,10 @@ def test_errors_a_poses_views_share_are_found():
     a robot pose error moves both): the score test between a pose's views passes its limit;
     without it, it reads a standard normal."""
     res, capture, _, _ = _corner_capture(400, 4, 0.0, 1.0, seed=22, targets=2)
-    record, cov, _ = error_correlation(capture, res, Limits())
+    record, cov, _ = error_correlation(capture, res, Limits(), lambda: res.view_information)
     assert record.pose_sigmas > Limits().correlation_sigmas and cov is not None
     res, capture, _, _ = _corner_capture(400, 4, 0.0, 0.0, seed=23, targets=2)
-    record, cov, _ = error_correlation(capture, res, Limits())
+    record, cov, _ = error_correlation(capture, res, Limits(), lambda: res.view_information)
     assert abs(record.pose_sigmas) < 3.0 and cov is None
 
 

@@ -30,6 +30,7 @@ from jaxcal._refine import (
     projected_corners,
     refine,
     sweep_corner_data,
+    view_information,
     zero_params,
 )
 from jaxcal._reprojection import corner_times, joint_positions, rolling
@@ -204,6 +205,11 @@ def test_global_shutter_refinement_flags_the_rows_and_the_lens():
         glob = eqx.tree_at(lambda p: p.data.pixels, _problem(False), pixels + noise)
         res = solve(glob, p0)
         out[name], radial[name] = jax.jit(lambda pb, r: (line_delay_test(pb, r), lens_test(pb, r)))(glob, res)
+        if name == "global":  # the views' information adds up to the normal matrix the covariance inverts
+            info = np.asarray(jax.jit(lambda pb, r: view_information(pb, r, free))(glob, res)).sum(axis=0)
+            f = np.flatnonzero(free)
+            bread = np.asarray(res.cov_model)[np.ix_(f, f)] / float(res.sigma_px) ** 2
+            np.testing.assert_allclose(info @ bread, np.eye(f.size), atol=1e-6)
     # A first-order step from a biased fit: within a tenth of the truth.
     assert abs(float(out["rolling"].line_delay_s[0]) / DELAY_S - 1.0) < 0.1
     assert float(out["rolling"].sigmas[0]) > 2 * Limits().shutter_sigmas

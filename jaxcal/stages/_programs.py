@@ -33,6 +33,7 @@ from .._options import RobustOptions
 from .._pointfit import gravity_torques
 from .._refine import identifiable_mask, refine
 from .._refine import score_tests as score_tests_of
+from .._refine import view_information as view_information_of
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
 #: The arc and clock fits' inlier threshold (robust sigmas of the deletion
@@ -243,6 +244,20 @@ def score_tests():
     """`jaxcal._refine.score_tests(problem, res)`: the rolling-shutter and the lens's score tests of
     a global-shutter refinement."""
     return stored_jit(score_tests_of, "score_tests")
+
+
+@functools.cache
+def _view_information(free: tuple[bool, ...]):
+    def view_information_program(problem, res):
+        return view_information_of(problem, res, np.asarray(free))
+
+    return stored_jit(view_information_program, "view_information", (free,))
+
+
+def view_information(free: np.ndarray):
+    """`jaxcal._refine.view_information(problem, res, free)` for a concrete `free` mask (static):
+    compiled only for a capture whose residuals' errors repeat."""
+    return _view_information(tuple(bool(f) for f in np.asarray(free)))
 
 
 @functools.cache

@@ -560,7 +560,9 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     # runs it inline).
     pending = _programs.run_ahead("score tests", score_tests, setup, corners, problem, res, layout, free)
     jax.block_until_ready(res)
-    correlation, cov_free, cov_views = error_correlation(corners, res, options.limits)
+    correlation, cov_free, cov_views = error_correlation(
+        corners, res, options.limits, lambda: _programs.view_information(free)(problem, res)
+    )
     if cov_free is not None:  # the kernel sandwich's covariance, where larger than the views'
         cov = np.array(res.cov, np.float64)
         cov[np.ix_(*2 * [np.flatnonzero(np.asarray(free))])] = cov_free

@@ -102,12 +102,13 @@ def _by_pose(corners, values: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]
     return np.stack([values[g].sum(axis=0) for g in groups]), groups
 
 
-def error_correlation(corners, res, limits):
+def error_correlation(corners, res, limits, information):
     """The refinement's residuals tested for errors that repeat along the capture and between
     the views of one pose, and, where either test passes `limits.correlation_sigmas`, the
     covariance that accounts for them: `(ErrorCorrelation | None, cov | None, cov_views | None)`,
     the free parameters' covariance to take and the one it replaces (`None`, `None`: keep
-    `res.cov`). `res`: the `RefineResult` (read only).
+    `res.cov`). `res`: the `RefineResult` (read only); `information()`: its views' information
+    (`jaxcal._refine.view_information`), asked for only where a test passes.
 
     Along the capture, `jaxcal._refine.residual_correlation` on the pairs of `corner_pairs` (up to
     `CORRELATION_LAGS`): Ljung-Box's $Q$ over them, and the one-sided test of errors that repeat,
@@ -156,12 +157,12 @@ def error_correlation(corners, res, limits):
         return record, None, None
     significant = [k + 1 for k in range(lags) if z[k] >= SIGNIFICANT_LAG_Z]
     pose_scores, _ = _by_pose(corners, scores)
-    information, _ = _by_pose(corners, np.asarray(res.view_information, np.float64)[:V])
+    info, _ = _by_pose(corners, np.asarray(information(), np.float64)[:V])
     # Bartlett's weights fall linearly to zero at lags + 1: twice the longest lag still
     # correlated keeps half its weight there (at most a quarter of the poses).
     reach = min(2 * max(significant, default=0), len(groups) // 4)
     kernel_lags = max(newey_west_lags(len(groups)), reach)
-    hac, g_eff = _programs.hac_covariance()(bread, pose_scores, information, kernel_lags)
+    hac, g_eff = _programs.hac_covariance()(bread, pose_scores, info, kernel_lags)
     before = np.asarray(res.cov, np.float64)[np.ix_(free, free)]
     larger = larger_covariance_np(before, np.asarray(hac), 2.0 * np.sqrt(2.0 / max(float(g_eff), 2.0)))
     return dataclasses.replace(record, kernel_lags=kernel_lags), larger, before
