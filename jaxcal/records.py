@@ -511,7 +511,7 @@ class ShutterTest(Record):
 @dataclass(frozen=True, eq=False)
 class LensTest(Record):
     """The radial distortion a refinement's residuals point to, beyond the lens it was given (a
-    score test on $k_1, k_2$; `jaxcal._refine.lens_test`)."""
+    score test on $k_1, k_2$; `jaxcal._diagnostics.lens_test`)."""
 
     camera: str
     k1: float
@@ -525,7 +525,7 @@ class LensTest(Record):
 @dataclass(frozen=True, eq=False)
 class ErrorCorrelation(Record):
     """Whether the refinement's residuals repeat along the capture and between the views of one
-    pose (`jaxcal._refine.residual_correlation`, `view_correlation`; `jaxcal.stages.refine`)."""
+    pose (`jaxcal._diagnostics.residual_correlation`, `jaxcal.stages._residual_tests`)."""
 
     #: Per lag $k = 1..K$ (frames along a run of the capture): the pooled correlation of each
     #: corner's residual with its own $k$ frames later, its self-normalised $z$, and the pairs.

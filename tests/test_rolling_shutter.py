@@ -20,17 +20,15 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from jaxcal._correction import Estimate, ParameterLayout
+from jaxcal._diagnostics import lens_test, line_delay_test, view_information
 from jaxcal._montecarlo import default_setup
 from jaxcal._refine import (
     RefineProblem,
     grid_points,
     identifiable_mask,
-    lens_test,
-    line_delay_test,
     projected_corners,
     refine,
     sweep_corner_data,
-    view_information,
     zero_params,
 )
 from jaxcal._reprojection import corner_times, joint_positions, rolling

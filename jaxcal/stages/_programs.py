@@ -27,13 +27,13 @@ from .._buckets import bucket
 from .._clocksync import fit_clock_offset
 from .._correction import ParameterLayout
 from .._device import to_device
+from .._diagnostics import score_tests as score_tests_of
+from .._diagnostics import view_information as view_information_of
 from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
 from .._pointfit import gravity_torques
 from .._refine import identifiable_mask, refine
-from .._refine import score_tests as score_tests_of
-from .._refine import view_information as view_information_of
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
 #: The arc and clock fits' inlier threshold (robust sigmas of the deletion
@@ -241,7 +241,7 @@ def refinement(free: np.ndarray):
 
 @functools.cache
 def score_tests():
-    """`jaxcal._refine.score_tests(problem, res)`: the rolling-shutter and the lens's score tests of
+    """`jaxcal._diagnostics.score_tests(problem, res)`: the rolling-shutter and the lens's score tests of
     a global-shutter refinement."""
     return stored_jit(score_tests_of, "score_tests")
 
@@ -255,7 +255,7 @@ def _view_information(free: tuple[bool, ...]):
 
 
 def view_information(free: np.ndarray):
-    """`jaxcal._refine.view_information(problem, res, free)` for a concrete `free` mask (static):
+    """`jaxcal._diagnostics.view_information(problem, res, free)` for a concrete `free` mask (static):
     compiled only for a capture whose residuals' errors repeat."""
     return _view_information(tuple(bool(f) for f in np.asarray(free)))
 

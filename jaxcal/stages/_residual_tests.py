@@ -13,8 +13,9 @@ import jax
 import numpy as np
 
 from .._correction import INTRINSIC_NAMES, ParameterLayout
+from .._diagnostics import residual_correlation
 from .._lsq import larger_covariance_np, newey_west_lags
-from .._refine import RefineProblem, residual_correlation
+from .._refine import RefineProblem
 from ..records import ErrorCorrelation, LensTest, ShutterTest
 from . import _programs
 from ._setup import Setup
@@ -28,10 +29,10 @@ def score_tests(
 ) -> tuple[tuple[ShutterTest, ...] | None, LensTest | None]:
     """The score tests of a global-shutter refinement (one program, `_programs.score_tests`).
 
-    Per camera, the rolling shutter its residuals point to (`jaxcal._refine.line_delay_test`):
+    Per camera, the rolling shutter its residuals point to (`jaxcal._diagnostics.line_delay_test`):
     the line delay (s per row), the readout it implies (times the image height, s) and its
     size in standard deviations. For the first camera, when its radial distortion was held
-    (the metadata's lens), the radial distortion they point to (`jaxcal._refine.lens_test`):
+    (the metadata's lens), the radial distortion they point to (`jaxcal._diagnostics.lens_test`):
     $k_1, k_2$, the shift they imply at the image's corner (px) and their size in sigmas.
     `(None, None)` when a line delay was modelled, or without an encoder log (each view's
     angle is then an unknown of its own)."""
@@ -108,9 +109,9 @@ def error_correlation(corners, res, limits, information):
     covariance that accounts for them: `(ErrorCorrelation | None, cov | None, cov_views | None)`,
     the free parameters' covariance to take and the one it replaces (`None`, `None`: keep
     `res.cov`). `res`: the `RefineResult` (read only); `information()`: its views' information
-    (`jaxcal._refine.view_information`), asked for only where a test passes.
+    (`jaxcal._diagnostics.view_information`), asked for only where a test passes.
 
-    Along the capture, `jaxcal._refine.residual_correlation` on the pairs of `corner_pairs` (up to
+    Along the capture, `jaxcal._diagnostics.residual_correlation` on the pairs of `corner_pairs` (up to
     `CORRELATION_LAGS`): Ljung-Box's $Q$ over them, and the one-sided test of errors that repeat,
     $\\sum_{k \\le L} z_k / \\sqrt L$ over Newey-West's $L$ lags for the capture's poses (4 for 100 to
     420; a correlation that fades beyond them adds only noise to the sum). Between the views of one pose

@@ -312,7 +312,7 @@ def _shutter(c: _Checks, refined: Refined, limits: Limits) -> None:
 
 def _lens(c: _Checks, refined: Refined, limits: Limits) -> None:
     """The residuals against a radial distortion beyond the first camera's given lens
-    (`_refine.lens_test`): a shift growing with the distance from the image's centre."""
+    (`jaxcal._diagnostics.lens_test`): a shift growing with the distance from the image's centre."""
     t = refined.lens_test
     if t is None:
         return

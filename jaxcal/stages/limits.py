@@ -25,7 +25,7 @@ class Limits:
     - `shutter_sigmas`, `readout_s`: a global-shutter refinement whose residuals
       point to a rolling shutter's line delay by more than `shutter_sigmas`
       standard deviations and a readout (the delay times the image height) of
-      at least `readout_s` (the score test of `jaxcal._refine.line_delay_test`).
+      at least `readout_s` (the score test of `jaxcal._diagnostics.line_delay_test`).
     - `arm_false_alarm`: how often each of the arm checks may flag a rigid
       arm (`jaxcal.stages._armcheck`, gravity sag or backlash: an arm that is
       not rigid): the score test of the sweeps' axes moving with the gravity
@@ -42,7 +42,7 @@ class Limits:
     - `lens_sigmas`, `lens_px`: a refinement whose residuals point to a radial
       distortion beyond the given lens by more than `lens_sigmas` standard deviations
       and a shift of at least `lens_px` at the image's corner (the score test of
-      `jaxcal._refine.lens_test`).
+      `jaxcal._diagnostics.lens_test`).
     - `ee_sigma_mm`: the tool point's 1-sigma uncertainty the covariance
       implies (RMS over random configurations): above it, the capture does
       not determine the robot well enough to trust it.
