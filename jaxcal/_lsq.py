@@ -22,6 +22,7 @@ parameters the data cannot see. This module writes each of those once:
   NumPy): every covariance jaxcal computes goes through this module.
 - `cluster_covariance`: the cluster-robust (sandwich) covariance
   $B (\\sum_g J_g^T r_g r_g^T J_g) B$ of errors shared within clusters (a view's corners).
+- `larger_covariance_np`: NumPy, the larger of two covariances along every direction.
 - `hac_covariance`, `newey_west_lags`: the Bartlett-kernel (HAC) sandwich of errors correlated
   between neighbouring clusters (views along the capture), adjusted to be unbiased with
   independent errors, and the rule of thumb for its lags.
@@ -463,6 +464,20 @@ def larger_covariance(
     ratio = jnp.where(lam > 1.0 + margin, lam, 1.0)
     LQ = L @ Q
     return sigma2 * (LQ * ratio[None, :]) @ LQ.T
+
+
+def larger_covariance_np(a: np.ndarray, b: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """NumPy: the covariance that is, along every direction of $a$'s generalised eigenvectors, the
+    larger of `a` and `b` by more than the factor $1 +$ `margin` (else `a`'s): $L Q \\Lambda' Q^T L^T$ with
+    $a = L L^T$, $L^{-1} b L^{-T} = Q \\Lambda Q^T$, $\\lambda' = \\lambda$ where $\\lambda > 1 +$ `margin`,
+    else 1 (`larger_covariance`'s rule on two covariances; $a$'s null space stays out)."""
+    lam, V = np.linalg.eigh(0.5 * (a + a.T))
+    keep = lam > lam.max() * 1e-14
+    L = V[:, keep] * np.sqrt(lam[keep])
+    Li = np.linalg.pinv(L)
+    mu, Q = np.linalg.eigh(Li @ (0.5 * (b + b.T)) @ Li.T)
+    M = L @ Q
+    return M @ np.diag(np.where(mu > 1.0 + margin, mu, 1.0)) @ M.T
 
 
 def newey_west_lags(clusters: int) -> int:

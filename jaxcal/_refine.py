@@ -206,6 +206,9 @@ class RefineResult(eqx.Module):
       residuals' (`residuals` flattened) Jacobian at the solution in the free parameters
       `(rows, free)` and in every joint's angle `(rows, joints)` (a view's joint-angle
       correction, the non-geometric terms' column times their basis); `None` otherwise.
+    - `view_scores`: per view the final solve's gradient $J_v^Tr_v$ over the free parameters
+      (in `free`'s order), for sandwiches that group views (`jaxcal._lsq.hac_covariance`, with
+      `view_information`); `None` with per-view angles.
     """
 
     params: RefineParams
@@ -234,6 +237,7 @@ class RefineResult(eqx.Module):
     cov_model: Float[Array, "n n"] | None = None
     jacobian: Float[Array, "rows f"] | None = None
     angle_jacobian: Float[Array, "rows joints"] | None = None
+    view_scores: Float[Array, "views f"] | None = None
 
 
 #: `refine`'s solver settings, on the scaled variables: every start Jacobian column has
@@ -317,7 +321,7 @@ def refine(
     )
     params = unravel(flat0.at[idx].set(x))
     sw = jnp.repeat(jnp.sqrt(out.weights).reshape(-1), 2)
-    covs = _covariances(J * sw[:, None], raw * sw, out.weights, idx, flat0.shape[0])
+    covs = _covariances(J * sw[:, None], raw * sw, out.weights, idx, flat0.shape[0], params0.angles is None)
     res = _result(problem, params, free, out, covs, raw.reshape(mask.shape + (2,)))
     if not jacobian:
         return res
@@ -345,7 +349,7 @@ def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, cov
     solve's covariances `covs` (`_covariances`) and reprojection residuals `raw` (px, zero
     on padding): the model and mounts the corrections give, the camera, the residuals and
     the inliers' RMS."""
-    cov, cov_model, sigma2, sv, Vt = covs
+    cov, cov_model, sigma2, sv, Vt, scores = covs
     mask, w = problem.data.mask, out.weights
     used = w > 0
     inl_rms = jnp.sqrt(
@@ -383,13 +387,15 @@ def _result(problem: RefineProblem, params: RefineParams, free, out: Rounds, cov
         round_steps=out.round_steps,
         line_delay_s=line_delays(params, problem) if rolling(problem) else None,
         cov_model=cov_model,
+        view_scores=scores,
     )
 
 
-def _covariances(J, r, w, idx, n):
-    """`(cov, cov_model, sigma2, sv, Vt)` of the final solve (see `RefineResult`): the model's
-    $\\hat\\sigma^2 (J^TJ)^+$ and the covariance it becomes where the views' sandwich is larger
-    than it beyond its own spread; one SVD (see `_linalg`) and one small `eigh` after it."""
+def _covariances(J, r, w, idx, n, per_view: bool = True):
+    """`(cov, cov_model, sigma2, sv, Vt, scores)` of the final solve (see `RefineResult`): the
+    model's $\\hat\\sigma^2 (J^TJ)^+$ and the covariance it becomes where the views' sandwich is
+    larger than it beyond its own spread; one SVD (see `_linalg`) and one small `eigh` after it.
+    With `per_view` (static), each view's gradient."""
     sigma2 = _lsq.residual_variance(r, 2.0 * jnp.sum(w), idx.size)
     bread, sv, Vt = _lsq.covariance(J)
     V = w.shape[0]
@@ -400,7 +406,7 @@ def _covariances(J, r, w, idx, n):
     cov_f = _lsq.larger_covariance(J, sv, Vt, sigma2, robust, 2.0 * jnp.sqrt(2.0 / views))
     cov = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(cov_f)
     cov_model = jnp.zeros((n, n)).at[np.ix_(idx, idx)].set(sigma2 * bread)
-    return cov, cov_model, sigma2, sv, Vt
+    return cov, cov_model, sigma2, sv, Vt, scores if per_view else None
 
 
 def _checked(problem: RefineProblem, params0: RefineParams, free, loss):
@@ -556,61 +562,3 @@ def summarize_refinement(
         "condition_number": float(sv[0] / sv[-1]) if sv.size else float("nan"),
         "weak_directions": weak,
     }
-
-
-class ShutterTest(eqx.Module):
-    """The score test of a global-shutter refinement for a rolling shutter (`line_delay_test`).
-
-    - `line_delay_s`: per camera, the line delay (s per row) one Gauss-Newton step
-      from the solution would add, the others' parameters following; `(cameras,)`.
-    - `sigmas`: each delay over its standard deviation (the test's statistic:
-      about a standard normal's size when the shutter is global).
-    """
-
-    line_delay_s: Float[Array, " cameras"]
-    sigmas: Float[Array, " cameras"]
-
-
-def line_delay_test(
-    problem: RefineProblem, res: RefineResult, rows: Float[Array, "views corners"] | None = None
-) -> ShutterTest:
-    """Do a global-shutter refinement's residuals lie along the image rows, as a rolling
-    shutter's would? The score (Lagrange-multiplier) test of a line delay per camera
-    at the solution `res` of `problem` (no line delay modelled).
-
-    Timed at their rows $y$ (`rows`, default the detected ones), the corners'
-    residuals gain $J_\\ell \\ell$ for line delays $\\ell$: each corner's image
-    velocity $\\partial u / \\partial t$ times its row. With the final weights, the
-    residuals $r$ and the free parameters' Jacobian $J$ (whose normal matrix's
-    inverse is `res.cov_model` over $\\hat\\sigma^2$), the delay one Gauss-Newton step
-    gives and its covariance are $\\hat\\ell = -D^{-1} J_\\ell^T r$ and
-    $\\hat\\sigma^2 D^{-1}$, with $D = J_\\ell^T J_\\ell - J_\\ell^T J\\,(J^TJ)^{-1} J^T J_\\ell$
-    (the part of $J_\\ell$ the other parameters cannot absorb: a delay common to
-    a view's corners is the clock's). One forward and one reverse pass of the
-    global-shutter model; pure.
-    """
-    C = 1 + num_other_cameras(problem)
-    y = problem.data.pixels[..., 1] if rows is None else rows
-    flat, unravel = ravel_pytree(res.params)
-
-    def at_times(t_cam):
-        timed = eqx.tree_at(lambda p: p.data.t_cam, problem, t_cam)
-        return reprojection_residuals(res.params, timed, res.weights)
-
-    t_cam = problem.data.t_cam
-    r, velocity = jax.jvp(at_times, (t_cam,), (jnp.ones_like(t_cam),))  # (V, P, 2), px and px/s
-    camera = jnp.zeros_like(problem.data.target) if problem.data.camera is None else problem.data.camera
-    per_camera = jax.nn.one_hot(camera, C, dtype=r.dtype)  # (V, C)
-    J_ell = 1e-6 * jnp.einsum("vkd,vk,vc->vkdc", velocity, y, per_camera).reshape(-1, C)  # per us per row
-    _, pullback = jax.vjp(
-        lambda x: reprojection_residuals(unravel(x), problem, res.weights).reshape(-1), flat
-    )
-    G = jax.vmap(lambda col: pullback(col)[0], in_axes=1, out_axes=1)(J_ell)  # J^T J_ell, (n, C)
-    sigma2 = jnp.maximum(res.sigma_px**2, 1e-30)
-    D = J_ell.T @ J_ell - G.T @ (res.cov_model / sigma2) @ G
-    D_inv = jnp.linalg.pinv(D, hermitian=True)
-    ell_us = -D_inv @ (J_ell.T @ r.reshape(-1))
-    std_us = jnp.sqrt(jnp.maximum(jnp.diag(D_inv), 0.0) * sigma2)
-    return ShutterTest(
-        line_delay_s=1e-6 * ell_us, sigmas=jnp.abs(ell_us) / jnp.where(std_us > 0, std_us, 1.0)
-    )

@@ -16,6 +16,7 @@ import numpy as np
 
 from ._drift_handeye import HandEyeCheckData, covariance_terms, fit_handeye_drift, variance_components
 from ._geometry import se3_exp
+from ._lsq import larger_covariance_np as larger_covariance
 from .errors import DatasetError
 from .io.checks import is_hand_eye_result as is_hand_eye_result
 from .io.checks import read_hand_eye_reference
@@ -49,19 +50,6 @@ class HandEyeCheckFit:
     nu: float = 1.0
     view_sigma: tuple[float, float] = (0.0, 0.0)
     dof_noise: int | None = None
-
-
-def larger_covariance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The covariance that is, along every direction of $a$'s generalised eigenvectors, the larger
-    of `a` and `b`: $L Q \\max(\\Lambda, 1) Q^T L^T$ with $a = L L^T$, $L^{-1} b L^{-T} = Q \\Lambda Q^T$
-    (the model's covariance where the frame-robust one is not larger)."""
-    lam, V = np.linalg.eigh(0.5 * (a + a.T))
-    keep = lam > lam.max() * 1e-14
-    L = V[:, keep] * np.sqrt(lam[keep])
-    Li = np.linalg.pinv(L)
-    mu, Q = np.linalg.eigh(Li @ (0.5 * (b + b.T)) @ Li.T)
-    M = L @ Q
-    return M @ np.diag(np.maximum(mu, 1.0)) @ M.T
 
 
 def _refuse(cond: bool, message: str) -> None:

@@ -22,133 +22,24 @@ This module imports nothing from jaxcal: the stages build the records and the
 `io` layer writes them, both from below it in the import graph.
 """
 
-import types
-import typing
-from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field, fields, is_dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
-#: Field metadata: the key is left out of the JSON block when the value is None.
-OPTIONAL = "optional"
-#: Field metadata: a tuple of `Named` rows written as a `{name: value}` object.
-NAMED = "named"
-#: Field metadata: a tuple of rows written as `{row.<key>: the row less its key}`.
-KEYED = "keyed"
-
-
-def optional(default=None):
-    """A field whose key is written only when its value is not None."""
-    return field(default=default, metadata={OPTIONAL: True})
-
-
-def named(*, is_optional: bool = False):
-    """A field of `Named` rows, written as one `{name: value}` object (None when optional)."""
-    return field(default=None if is_optional else (), metadata={NAMED: True, OPTIONAL: is_optional})
-
-
-def keyed(key: str, *, is_optional: bool = False):
-    """A field of rows written as one object keyed by each row's field `key` (per joint, per camera)."""
-    return field(default=None if is_optional else (), metadata={KEYED: key, OPTIONAL: is_optional})
-
-
-def row_of(rows, key: str, value: str):
-    """The row of `rows` whose field `key` is `value` (KeyError when none is)."""
-    for r in rows:
-        if getattr(r, key) == value:
-            return r
-    raise KeyError(value)
-
-
-def plain(x):
-    """A record, row or value as plain JSON types (dicts, lists, floats, ints, str, bool, None)."""
-    if isinstance(x, Record):
-        return {k: x[k] for k in x}
-    if isinstance(x, (tuple, list)):
-        return [plain(e) for e in x]
-    if isinstance(x, dict):
-        return {k: plain(v) for k, v in x.items()}
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
-
-
-def _decode(tp, value):
-    """`value` (plain JSON) as type `tp`: records, tuples of them, arrays, optionals."""
-    if value is None:
-        return None
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        inner = [a for a in args if a is not type(None)]
-        return _decode(inner[0], value) if len(inner) == 1 else value
-    if origin is tuple:
-        return tuple(_decode(args[0], v) for v in value)
-    if tp is np.ndarray:
-        return np.asarray(value, np.float64)
-    if isinstance(tp, type) and is_dataclass(tp):
-        return from_plain(tp, value)
-    return value
-
-
-def _row_type(tp):
-    """The row type of `tuple[Row, ...]` or `tuple[Row, ...] | None`."""
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        tp = next(a for a in typing.get_args(tp) if a is not type(None))
-    return typing.get_args(tp)[0]
-
-
-def from_plain(cls, data: Mapping):
-    """The record of type `cls` whose JSON block (`plain`) is `data`: the inverse of `plain`."""
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for f in fields(cls):
-        if f.name not in data:
-            continue
-        v, tp = data[f.name], hints[f.name]
-        if f.metadata.get(NAMED) and v is not None:
-            v = tuple(Named(str(k), x) for k, x in v.items())
-        elif f.metadata.get(KEYED) and v is not None:
-            row = _row_type(tp)
-            v = tuple(from_plain(row, {f.metadata[KEYED]: k, **x}) for k, x in v.items())
-        else:
-            v = _decode(tp, v)
-        kwargs[f.name] = v
-    return cls(**kwargs)
-
-
-class Record(Mapping):
-    """A frozen result record that also reads as its JSON block (see the module docstring)."""
-
-    def _keys(self) -> list[str]:
-        return [
-            f.name
-            for f in fields(self)  # type: ignore[arg-type]
-            if not (f.metadata.get(OPTIONAL) and getattr(self, f.name) is None)
-        ]
-
-    def __getitem__(self, key: str):
-        for f in fields(self):  # type: ignore[arg-type]
-            if f.name == key:
-                v = getattr(self, key)
-                if f.metadata.get(NAMED) and v is not None:
-                    return {row.name: plain(row.value) for row in v}
-                if f.metadata.get(KEYED) and v is not None:
-                    k = f.metadata[KEYED]
-                    return {getattr(row, k): {n: row[n] for n in row if n != k} for row in v}
-                if f.metadata.get(OPTIONAL) and v is None:
-                    break
-                return plain(v)
-        raise KeyError(key)
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self._keys())
-
-    def __len__(self) -> int:
-        return len(self._keys())
-
-    __hash__ = None  # type: ignore[assignment]
+from ._records_base import (  # noqa: F401 (re-exported: every record module's vocabulary)
+    KEYED,
+    NAMED,
+    OPTIONAL,
+    Named,
+    Record,
+    from_plain,
+    keyed,
+    named,
+    optional,
+    plain,
+    row_of,
+)
 
 
 @dataclass(frozen=True)
@@ -165,15 +56,6 @@ class Judgement:
     def ok(self) -> bool:
         """Whether the status is `ok`."""
         return self.status == "ok"
-
-
-@dataclass(frozen=True, eq=False)
-class Named(Record):
-    """One entry of a `{name: value}` block: a joint's count, a parameter's std."""
-
-    name: str
-    #: The number under that name (an int for counts).
-    value: float
 
 
 def named_rows(d: Mapping | None) -> tuple[Named, ...] | None:
@@ -563,6 +445,45 @@ class TermsSummary(Record):
 
 
 @dataclass(frozen=True, eq=False)
+class LensTest(Record):
+    """The radial distortion a refinement's residuals point to, beyond the lens it was given (a
+    score test on $k_1, k_2$; `jaxcal._diagnostics.lens_test`)."""
+
+    camera: str
+    k1: float
+    k2: float
+    #: The radial shift they imply at the image's corner (px).
+    shift_px: float
+    #: Their size in standard deviations (the two-degree-of-freedom score statistic as a normal's).
+    sigmas: float
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorCorrelation(Record):
+    """Whether the refinement's residuals repeat along the capture and between the views of one
+    pose (`jaxcal._diagnostics.residual_correlation`, `jaxcal.stages._residual_tests`)."""
+
+    #: Per lag $k = 1..K$ (frames along a run of the capture): the pooled correlation of each
+    #: corner's residual with its own $k$ frames later, its self-normalised $z$, and the pairs.
+    autocorrelation: tuple[float, ...]
+    z: tuple[float, ...]
+    pairs: tuple[int, ...]
+    #: Ljung-Box's $Q = \sum_k z_k^2$ on $K$ degrees of freedom, and its p-value.
+    q_statistic: float
+    dof: int
+    p_value: float
+    #: The one-sided test of errors that repeat, $\sum_{k \le L} z_k / \sqrt{L}$ over Newey-West's
+    #: $L$ lags (sigmas).
+    sigmas: float
+    #: Between the views of one pose (several cameras or targets in one frame): the score test
+    #: of their shared error (sigmas; None: one view per pose).
+    pose_sigmas: float | None = optional()
+    #: Where either is significant: the kernel (HAC) sandwich's lags (poses along the capture),
+    #: which the covariance now takes where it is larger.
+    kernel_lags: int | None = optional()
+
+
+@dataclass(frozen=True, eq=False)
 class RefinementSummary(Record):
     """The reprojection refinement (`result.json`'s `refinement`)."""
 
@@ -592,6 +513,8 @@ class RefinementSummary(Record):
     views_per_camera: tuple[Named, ...] = named()
     line_delay: tuple[LineDelay, ...] | None = optional()
     rolling_shutter_test: tuple[ShutterTest, ...] | None = optional()
+    lens_test: LensTest | None = optional()
+    error_correlation: ErrorCorrelation | None = optional()
 
 
 @dataclass(frozen=True, eq=False)

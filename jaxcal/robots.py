@@ -12,7 +12,7 @@ import numpy as np
 from ._kinematics import KinematicModel
 from .io._files import SHIPPED_ROBOTS
 from .io.dh_tables import dh_table_model, is_table_file, table_inertials
-from .io.urdf import load_urdf, urdf_inertials
+from .io.urdf import load_urdf, urdf_inertials, urdf_inertias
 
 ROBOTS_DIR = SHIPPED_ROBOTS
 
@@ -111,3 +111,20 @@ def link_inertials(path_or_name) -> tuple[np.ndarray, np.ndarray]:
     """
     path = robot_file(path_or_name)
     return table_inertials(path) if is_table_file(path) else urdf_inertials(path)
+
+
+#: A robot table's link, which gives no inertia tensor, as a solid sphere of this radius (m) about its centre.
+TABLE_LINK_RADIUS_M = 0.05
+
+
+def link_inertias(path_or_name) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`link_inertials`' masses and centres of mass, and each link's inertia tensor about its
+    centre of mass in its link frame (kg m^2, `(joints, 3, 3)`): from a URDF its `<inertia>`
+    tensors, lumped as the masses are (`jaxcal.io.urdf.urdf_inertias`); a table gives none,
+    so each of its links is a solid sphere of `TABLE_LINK_RADIUS_M` about its centre."""
+    path = robot_file(path_or_name)
+    if is_table_file(path):
+        masses, coms = table_inertials(path)
+        tensors = 0.4 * masses[:, None, None] * TABLE_LINK_RADIUS_M**2 * np.eye(3)
+        return masses, coms, tensors
+    return urdf_inertias(path)

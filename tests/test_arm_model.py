@@ -15,7 +15,7 @@ from jaxcal._kinematics import forward_kinematics
 from jaxcal.cli import ARMS
 from jaxcal.io.dataset import load_dataset
 from jaxcal.robots import link_inertials, load_robot
-from jaxcal.sim.arm import ARM_PRESETS, ArmModel, ArmMotion, arm_model
+from jaxcal.sim.arm import ARM_PRESETS, ArmModel, ArmMotion, arm_model, gravity_deflection
 from jaxcal.sim.motion import EncoderModel, Trajectory, encoder_stream, free_motion
 from jaxcal.sim.simulate import SimConfig, simulate
 
@@ -153,3 +153,121 @@ def test_verdict_flags_an_arm_that_sags(tmp_path):
     assert not rows_bent["arm_clock_z"].passed and bent.status == "suspect", rows_bent["arm_clock_z"]
     reason = next(r for r in bent.reasons if "clock" in r and "gravity sag" in r)
     assert "backlash" in reason and "stop-and-shoot" in reason
+
+
+# --------------------------------------------------------------------------- the physics arm
+
+
+#: The base's leg of `physics`' motion: held 1 s, then 30 deg in 0.6 s (a raised cosine), held 1 s.
+LEG = (1.0, 0.6, np.radians(30.0))
+#: A pose that loads the shoulder and the elbow (the arm reaching out and down).
+LOADED = np.radians([0.0, -30.0, 40.0, 0.0, 0.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def physics():
+    """MuJoCo's arm (the `physics` preset) at `LOADED`, its base swept by `LEG`."""
+    from jaxcal.robots import link_inertias
+    from jaxcal.sim.physics import PhysicsMotion
+
+    model = load_robot("ur5e")
+    start, span, angle = LEG
+    q = np.stack([LOADED, LOADED, LOADED + [angle, 0, 0, 0, 0, 0], LOADED + [angle, 0, 0, 0, 0, 0]])
+    traj = Trajectory([0.0, start, start + span, start + span + 1.0], q, [])
+    arm = ARM_PRESETS["physics"]
+    return model, arm, traj, PhysicsMotion(arm, traj, model.reduction_ratio, model, link_inertias("ur5e"))
+
+
+def _twist(model, motion, t):
+    """The transmissions' twist at `t`: the links' angles less the motors' (in joint angles)."""
+    return motion.angles(t) - (
+        motion.motor(t) / np.asarray(model.reduction_ratio) + np.asarray(model.zero_offset)
+    )
+
+
+def test_the_physics_arm_sags_by_its_compliance_against_one_flank(physics):
+    """Held still, each joint's transmission carries the gravity torque of what it lifts (MuJoCo's
+    dynamics on the URDF's full inertias, against `jaxcal._pointfit.gravity_torques` on its masses and
+    centres): every joint gravity loads sits $10^{-3} c_j \\tau_j$ from its motor plus half the lost
+    motion, against the flank gravity presses it to; the others within the dead band. Tolerance: the bearing's friction may hold the link anywhere within
+    $F / k$ of that (0.5 N m at 32 kN m/rad: 1.6e-5 rad) and the torque is the formula's at the
+    deflected angles to first order (0.5 %)."""
+    model, arm, _, motion = physics
+    t = LEG[0] - 0.05  # settled before the base moves
+    twist = _twist(model, motion, t)
+    c = arm.per_joint("compliance", model.joint_types)
+    sag = gravity_deflection(model, motion.angles(t), model.zero_offset, c, link_inertials("ur5e"))
+    half = 0.5 * np.radians(arm.per_joint("backlash_deg", model.joint_types))
+    loaded = np.abs(sag) > 1e-6  # every joint but the vertical base and the last wrist
+    assert np.all(loaded[1:5]) and abs(sag[1]) > 1e-3
+    expected = sag + np.sign(sag) * half
+    bearing = 1e-3 * c * arm.dynamics.per_joint("bearing_friction_nm", model.joint_types)
+    assert np.all(np.abs(twist - expected)[loaded] <= bearing[loaded] + 0.005 * np.abs(expected[loaded]))
+    assert np.all(np.abs(twist[~loaded]) <= half[~loaded] + bearing[~loaded] + 1e-5)
+
+
+def test_the_physics_arm_lags_while_it_accelerates(physics):
+    """The base (a vertical axis: no gravity torque) swept: while it accelerates its link trails its
+    motor beyond the dead band, by about the inertial torque over the stiffness (the link's inertia
+    about the axis times the raised cosine's mean acceleration over the leg's first half), leads it
+    while it decelerates, and comes to rest inside its dead band where it stops (no torque presses
+    it to a flank; the ringing of a transmission damped to 0.15 of critical averages out over the
+    halves: within a factor 2). The encoders read the motors, which the servo keeps within a degree of the
+    command."""
+    import mujoco
+
+    model, arm, traj, motion = physics
+    start, span, angle = LEG
+    c = arm.per_joint("compliance", model.joint_types)[0]
+    half = 0.5 * np.radians(arm.per_joint("backlash_deg", model.joint_types)[0])
+    data = mujoco.MjData(motion.model)
+    for j, name in enumerate(model.joint_names):
+        data.qpos[motion.model.jnt_qposadr[motion.model.joint(name).id]] = LOADED[j]
+    mujoco.mj_forward(motion.model, data)
+    M = np.zeros((motion.model.nv, motion.model.nv))
+    mujoco.mj_fullM(motion.model, data, M)
+    dof = motion.model.jnt_dofadr[motion.model.joint(model.joint_names[0]).id]
+    inertia = M[dof, dof]  # the base link's (and all it carries) about its axis, kg m^2
+    accelerating = start + np.linspace(0.05, 0.45, 41) * span
+    decelerating = start + np.linspace(0.55, 0.95, 41) * span
+    mean_acc = np.mean(0.5 * angle * (np.pi / span) ** 2 * np.cos(np.pi * (accelerating - start) / span))
+    lag = 1e-3 * c * inertia * mean_acc  # rad, the mean inertial twist over the first half
+    trail = -np.mean(_twist(model, motion, accelerating)[:, 0])
+    lead = np.mean(_twist(model, motion, decelerating)[:, 0])
+    assert trail > half and lead > half
+    assert 0.5 * lag < trail - half < 2.0 * lag and 0.5 * lag < lead - half < 2.0 * lag
+    bearing = 1e-3 * c * arm.dynamics.per_joint("bearing_friction_nm", model.joint_types)[0]
+    assert abs(_twist(model, motion, start + span + 0.9)[0]) <= half + bearing  # at rest in its dead band
+    t = np.linspace(0.0, traj.duration, 200)
+    ratio = np.asarray(model.reduction_ratio)
+    command = traj(t) * ratio
+    assert 0.0 < np.max(np.abs(motion.motor(t) - command) / ratio) < np.radians(1.0)
+    enc = EncoderModel(rate_hz=500.0, counts_per_rev=2**17, noise_counts=0.0)
+    te, log = encoder_stream(traj, ratio, enc, np.random.default_rng(0), motion.motor)
+    assert np.max(np.abs(log - motion.motor(te))) <= np.pi / 2**17 + 1e-12  # half a count
+
+
+@pytest.mark.slow
+def test_simulate_films_the_physics_arm(tmp_path):
+    """`jaxcal simulate --arm physics` at 64x48: the truth's joint angles are MuJoCo's (the capture's
+    truth rebuilt from its record, the target plate as the payload, reproduces them to 1e-9), the
+    encoders log the motors and the shoulder sags under the plate's weight."""
+    from jaxcal.sim.corners import capture_truth
+
+    config = SimConfig(resolution=(64, 48), frames_per_joint=3, arm="physics", grayscale=True)
+    out = simulate(config, tmp_path / "ds", progress=False)
+    truth = json.loads((out / "truth.json").read_text())
+    recorded = ArmModel.from_metadata(truth["arm"])
+    assert (
+        recorded.name == "physics"
+        and recorded.dynamics.payload_kg == ARM_PRESETS["physics"].dynamics.payload_kg
+    )
+    capture_truth(out)  # raises unless the rebuilt physics reproduces the truth's angles
+    ds = load_dataset(out)
+    theta = np.array([f["theta"] for f in truth["frames"]])
+    t = np.array([f["t"] for f in truth["frames"]])
+    # The motor at a frame's time: the reading stamped the encoders' latency later.
+    late = t + ARM_PRESETS["physics"].latency_s
+    motor = np.stack([np.interp(late, ds.encoder_t, m) for m in ds.encoder_motor.T], axis=1)
+    twist = theta - (motor / np.asarray(load_robot("ur5e").reduction_ratio) + truth["model"]["zero_offset"])
+    assert 1e-3 < np.median(np.abs(twist[:, 1])) < 5e-3  # the shoulder's sag under the arm and plate

@@ -72,6 +72,15 @@ RUNS = {
         "--analytic-cases ideal rolling_shutter_given",
         "analytic analytic_noise_px analytic.rolling_shutter_given",
     ),
+    # Issue 48's rendered cases at 320x240, 6 frames per sweep (calibrated or refused; their pieces:
+    # tests/test_camera_model.py, test_arm_model.py, test_covariance.py).
+    "realism --cases": Run(
+        "realism",
+        "--cases physics_arm lens_remap_1x rolling_shutter_coarse exposure_10ms_fast --resolution 320x240 "
+        "--frames-per-joint 6 --seed 0 --without-terms",
+        "cases.physics_arm cases.physics_arm_without_terms cases.lens_remap_1x cases.rolling_shutter_coarse "
+        "cases.exposure_10ms_fast",
+    ),
     "noise_weights": Run(
         "noise_weights",
         "--workdir {work}/realism/seed0 --cases ideal --weights plain rms_px sharpness "

@@ -200,13 +200,22 @@ def test_outputs_are_complete_and_consistent(result, tmp_path):
 
 @pytest.mark.slow
 def test_covariance_model_names_the_covariance_a_result_carries():
-    """`result.json`'s `covariance_model`: the refinement's view-robust covariance when it ran,
-    else a tracker point fit's model covariance, else the two-stage fit's."""
-    refined = SimpleNamespace(refinement=object(), point_fit=None)
+    """`result.json`'s `covariance_model`: the refinement's view-robust covariance when it ran (the
+    kernel sandwich's where its residuals' errors repeat), else a tracker point fit's model
+    covariance, else the two-stage fit's."""
+    refined = SimpleNamespace(refinement=SimpleNamespace(error_correlation=None), point_fit=None)
+    tested = SimpleNamespace(error_correlation=SimpleNamespace(kernel_lags=None))
+    kernel = SimpleNamespace(error_correlation=SimpleNamespace(kernel_lags=4))
     point_fit = SimpleNamespace(refinement=None, point_fit=object())
     two_stage = SimpleNamespace(refinement=None, point_fit=None)
-    names = [covariance_model(r) for r in (refined, point_fit, two_stage)]
-    assert names == ["view_robust", "model", "two_stage"] and set(names) == set(COVARIANCE_MODELS)
+    cases = (
+        refined,
+        SimpleNamespace(refinement=tested, point_fit=None),
+        SimpleNamespace(refinement=kernel, point_fit=None),
+    )
+    names = [covariance_model(r) for r in (*cases, point_fit, two_stage)]
+    assert names == ["view_robust", "view_robust", "kernel", "model", "two_stage"]
+    assert set(names) == set(COVARIANCE_MODELS)
 
 
 def test_self_calibrated_intrinsics_without_refinement_are_suspect(dataset, tmp_path):

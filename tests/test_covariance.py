@@ -1,5 +1,6 @@
 """The cluster-robust (sandwich) covariances of `jaxcal._lsq` (`cluster_covariance`, the views'
-kernel sandwich `hac_covariance`) on analytic data.
+kernel sandwich `hac_covariance`) on analytic data, and the refinement's test of errors that
+repeat along the capture or between a pose's views (`jaxcal.stages._refine.error_correlation`).
 
 A linear least-squares problem whose observations come in views: every view's
 regressors share a view-level part (as a camera view's corners share the view's
@@ -8,12 +9,17 @@ The 95 % ellipsoid of a covariance covers the true parameters in 95 % of trials 
 the covariance is honest; the plain $s^2 (X^TX)^{-1}$ assumes independent errors.
 """
 
+import types
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
 from jaxcal._lsq import cluster_covariance, covariance, hac_covariance, larger_covariance, newey_west_lags
+from jaxcal.stages import Limits
+from jaxcal.stages._refine import _Corners
+from jaxcal.stages._residual_tests import corner_pairs, error_correlation
 
 K = 3  # parameters
 CHI2_95 = stats.chi2.ppf(0.95, K)
@@ -228,3 +234,102 @@ def test_hac_covariance_matches_the_monte_carlo_covariance_under_ar1_view_errors
     assert np.all(np.abs(mean - mc) < 4.0 * np.sqrt(2.0 / len(d)) + tol + 0.08), (mean, mc)
     model = np.trace(Omega) / len(A) * B  # the per-observation model's covariance (its expectation, about)
     assert _relative_eigenvalues(model, truth).min() < 0.3
+
+
+# --------------------------------------------------------------------------- errors that repeat
+
+
+def _corner_capture(views: int, corners: int, phi: float, shared: float, seed: int, targets: int = 1):
+    """A linear capture of `views` views (`targets` per pose, poses 0.1 s apart) of `corners`
+    corners with two coordinates each: regressors like `_regressors`' (the pose-level part
+    shared by the pose's views), every corner's error an
+    AR(1) along the poses (coefficient `phi`, unit variance), plus a per-pose error of standard
+    deviation `shared` that every view of the pose shares. Returns the refinement's stand-in
+    (`jaxcal.stages._refine.error_correlation` reads it), the views' bookkeeping, the estimate's
+    error and its exact covariance."""
+    rng = np.random.default_rng(seed)
+    poses = views // targets
+    pose_part = np.repeat(
+        rng.standard_normal((poses, 1, 1, K)), targets, axis=0
+    )  # the views of a pose share it
+    X = np.array([1.0, 0.5, -0.5]) + pose_part + 0.3 * rng.standard_normal((views, corners, 2, K))
+    e = np.zeros((poses, targets, corners, 2))
+    e[0] = rng.standard_normal((targets, corners, 2))
+    for p in range(1, poses):
+        e[p] = phi * e[p - 1] + np.sqrt(1.0 - phi**2) * rng.standard_normal((targets, corners, 2))
+    e = (e + shared * rng.standard_normal((poses, 1, 1, 2))).reshape(views, corners, 2)
+    A = X.reshape(-1, K)
+    B = np.linalg.inv(A.T @ A)
+    d = B @ A.T @ e.reshape(-1)
+    r = e - X @ d
+    s2 = float(np.sum(r**2) / (A.shape[0] - K))
+    res = types.SimpleNamespace(
+        residuals=r,
+        weights=np.ones((views, corners)),
+        inlier=np.ones((views, corners), bool),
+        free=np.ones(K, bool),
+        sigma_px=np.sqrt(s2),
+        cov_model=s2 * B,
+        cov=s2 * B,
+        view_scores=np.einsum("vcdk,vcd->vk", X, r),
+        view_information=np.einsum("vcdk,vcdl->vkl", X, X),
+    )
+    pose = np.repeat(np.arange(poses), targets)
+    capture = _Corners(
+        target=list(np.tile(np.arange(targets), poses)),
+        pose=list(pose),
+        t_cam=list(0.1 * pose),
+        ids=[np.arange(corners)] * views,
+        camera=[0] * views,
+    )
+    return res, capture, d, B
+
+
+def test_errors_that_repeat_along_the_capture_are_found_and_covered():
+    """Each corner's error an AR(1) along 300 poses (coefficient 0.5): the residuals' lag-k
+    correlation is about 0.5^k, the one-sided test far past its limit, and the covariance
+    becomes the kernel sandwich's (twice the longest correlated lag, at least Newey-West's),
+    whose variance of the mean-like direction is the AR(1)'s long-run factor (1 + phi) / (1 - phi)
+    = 3 times the model's, less the kernel's truncation; with independent errors the test
+    reads a standard normal and the covariance stays. Tolerances: the lag correlations' sampling
+    spread (1/sqrt(2 * 4 * 300) = 0.02, 4 sigmas) and the sandwich's (G_eff about 60: 35 %)."""
+    limits = Limits()
+    res, capture, _, B = _corner_capture(300, 4, 0.5, 0.0, seed=20)
+    record, cov, before = error_correlation(capture, res, limits, lambda: res.view_information)
+    np.testing.assert_allclose(record.autocorrelation[:3], [0.5, 0.25, 0.125], atol=0.08)
+    assert record.pairs == tuple(4 * (300 - k) for k in range(1, 9)) and record.dof == 8
+    assert record.sigmas > 8 and record.p_value < 1e-12 and record.pose_sigmas is None
+    assert record.kernel_lags >= 2 * 3 and record.kernel_lags >= newey_west_lags(300)
+    np.testing.assert_array_equal(before, res.cov)
+    growth = _relative_eigenvalues(cov, res.cov)
+    assert np.all(growth >= 1.0 - 1e-9) and 1.6 < growth.max() < 4.0, growth
+    res, capture, _, _ = _corner_capture(300, 4, 0.0, 0.0, seed=21)
+    record, cov, before = error_correlation(capture, res, limits, lambda: res.view_information)
+    assert abs(record.sigmas) < 3.0 and cov is None and before is None and record.kernel_lags is None
+
+
+def test_errors_a_poses_views_share_are_found():
+    """Two targets per pose whose corners share a per-pose error as large as their own noise (as
+    a robot pose error moves both): the score test between a pose's views passes its limit;
+    without it, it reads a standard normal."""
+    res, capture, _, _ = _corner_capture(400, 4, 0.0, 1.0, seed=22, targets=2)
+    record, cov, _ = error_correlation(capture, res, Limits(), lambda: res.view_information)
+    assert record.pose_sigmas > Limits().correlation_sigmas and cov is not None
+    res, capture, _, _ = _corner_capture(400, 4, 0.0, 0.0, seed=23, targets=2)
+    record, cov, _ = error_correlation(capture, res, Limits(), lambda: res.view_information)
+    assert abs(record.pose_sigmas) < 3.0 and cov is None
+
+
+def test_corner_pairs_stay_within_a_run_of_the_capture():
+    """Pairs join the same corner id of one camera and target `k` capture indices apart, not
+    across a gap in time (the next sweep) nor between targets; ids matched, not slots."""
+    capture = _Corners(
+        target=[0, 0, 0, 1, 0],
+        pose=[0, 1, 2, 2, 3],
+        t_cam=[0.0, 0.1, 0.2, 0.2, 5.0],
+        ids=[np.array([0, 1, 2]), np.array([1, 2, 5]), np.array([2, 5]), np.array([0, 1]), np.array([2])],
+        camera=[0, 0, 0, 0, 0],
+    )
+    lag1, lag2 = corner_pairs(capture, lags=2)
+    np.testing.assert_array_equal(lag1, [[0, 1, 1, 0], [0, 2, 1, 1], [1, 1, 2, 0], [1, 2, 2, 1]])
+    np.testing.assert_array_equal(lag2, [[0, 2, 2, 0]])

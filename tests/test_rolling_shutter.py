@@ -20,12 +20,12 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from jaxcal._correction import Estimate, ParameterLayout
+from jaxcal._diagnostics import lens_test, line_delay_test, view_information
 from jaxcal._montecarlo import default_setup
 from jaxcal._refine import (
     RefineProblem,
     grid_points,
     identifiable_mask,
-    line_delay_test,
     projected_corners,
     refine,
     sweep_corner_data,
@@ -172,11 +172,12 @@ def test_refinement_recovers_the_line_delay(given):
     assert np.sqrt(np.mean(off[np.asarray(seen.data.mask)] ** 2)) > 1.0
 
 
-def test_global_shutter_refinement_flags_the_rows():
-    """The score test of a global-shutter refinement (`line_delay_test`): on a rolling
-    shutter's corners it finds the line delay (the other parameters absorb none of
-    the within-view skew) far beyond its noise; on a global shutter's it stays
-    within a few sigmas."""
+def test_global_shutter_refinement_flags_the_rows_and_the_lens():
+    """The score tests of a global-shutter refinement (`line_delay_test`, `lens_test`): on a
+    rolling shutter's corners the first finds the line delay (the other parameters absorb
+    none of the within-view skew) far beyond its noise; on corners through a stronger lens
+    than the one given the second finds the difference; on a global shutter's through the
+    given lens both stay within a few sigmas."""
     rolling_problem = _problem(True, DELAY_S)
     truth = _params(True)
     seen = _seen(truth, rolling_problem)
@@ -186,15 +187,36 @@ def test_global_shutter_refinement_flags_the_rows():
     free = np.asarray(ParameterLayout.of(NOMINAL, 1).candidates(rates=True, clock=True))
     free, _ = jax.jit(identifiable_mask)(_problem(False), p0, free)
     free = np.asarray(free)
-    out = {}
-    for name, pixels in (("rolling", seen.data.pixels), ("global", projected_corners(p0, _problem(False)))):
+    # A lens whose k1 is 0.1 stronger than the one the refinement is given (held): the plate stays
+    # within 200-300 px of the centre, where that shifts its corners by up to about 2 px.
+    lens = eqx.tree_at(
+        lambda p: p.dist0, _problem(False), _problem(False).dist0 + jnp.array([-0.1, 0, 0, 0, 0])
+    )
+    cases = (
+        ("rolling", seen.data.pixels),
+        ("global", projected_corners(p0, _problem(False))),
+        ("lens", projected_corners(p0, lens)),
+    )
+    out, radial = {}, {}
+    solve = jax.jit(lambda pb, s: refine(pb, s, free, robust=None))
+    for name, pixels in cases:
         glob = eqx.tree_at(lambda p: p.data.pixels, _problem(False), pixels + noise)
-        res = jax.jit(lambda pb, s: refine(pb, s, free, robust=None))(glob, p0)
-        out[name] = line_delay_test(glob, res)
+        res = solve(glob, p0)
+        out[name], radial[name] = jax.jit(lambda pb, r: (line_delay_test(pb, r), lens_test(pb, r)))(glob, res)
+        if name == "global":  # the views' information adds up to the normal matrix the covariance inverts
+            info = np.asarray(jax.jit(lambda pb, r: view_information(pb, r, free))(glob, res)).sum(axis=0)
+            f = np.flatnonzero(free)
+            bread = np.asarray(res.cov_model)[np.ix_(f, f)] / float(res.sigma_px) ** 2
+            np.testing.assert_allclose(info @ bread, np.eye(f.size), atol=1e-6)
     # A first-order step from a biased fit: within a tenth of the truth.
     assert abs(float(out["rolling"].line_delay_s[0]) / DELAY_S - 1.0) < 0.1
     assert float(out["rolling"].sigmas[0]) > 2 * Limits().shutter_sigmas
     assert float(out["global"].sigmas[0]) < 4.0
+    # The lens's score test: k1 found within 15 % (the robot absorbs some of it; k2, which the
+    # plate's small radii barely see, is not checked), past its limit; none on the right lens.
+    assert abs(float(radial["lens"].distortion[0]) / -0.1 - 1.0) < 0.15
+    assert float(radial["lens"].sigmas) > 1.5 * Limits().lens_sigmas
+    assert float(radial["global"].sigmas) < 4.0
 
 
 def test_pose_times_and_the_metadata():
@@ -248,6 +270,23 @@ def test_a_sweep_that_lost_its_fast_frames_names_motion_blur():
     obs.camera.exposure_s = 1e-3
     assert lost_to_blur(None, obs, sync, 0) == ""
     assert lost_to_blur(None, *_sweep(lambda s: True)[:2], 0) == ""
+
+
+def test_a_sweep_fast_throughout_names_motion_blur():
+    """Twice the speed: the target found only in a few fast frames mid-acceleration (where it
+    happened to show well), lost in slow and fast ones alike; with the 10 ms exposure most lost
+    frames smeared it beyond two pixels, so the blur is named; with a 1 ms one (at most 1.1 px)
+    it is not."""
+    obs, sync, speed = _sweep(lambda s: 0.6 < s < 0.75)
+    lost = ~((speed > 0.6) & (speed < 0.75))
+    smeared = lost & (0.01 * speed * 1000.0 > 2.0)
+    assert np.median(speed[lost]) < 1.5 * np.median(speed[~lost])  # not "the fast ones"
+    text = lost_to_blur(None, obs, sync, 0)
+    assert text.startswith(f"motion blur: the target was lost in {lost.sum()} of the sweep's 24 frames, ")
+    assert f"{smeared.sum()} of them while the joint turned at" in text
+    assert f"smears by up to {0.01 * speed[lost].max() * 1000.0:.0f} px" in text
+    obs.camera.exposure_s = 1e-3
+    assert lost_to_blur(None, obs, sync, 0) == ""
 
 
 def test_the_option_estimates_only_unknown_line_delays():

@@ -31,7 +31,7 @@ from jaxcal.io.dataset import load_dataset
 from jaxcal.robots import load_robot
 from jaxcal.stages import kinds
 from jaxcal.stages._synchronise import assign_frames, usable
-from jaxcal.stages._verdict import axis_spacing_ratio
+from jaxcal.stages._verdict import CAUSES, _Checks, axis_spacing_ratio
 from jaxcal.stages.kinds import Motion, Mount
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "ur5e_sweeps"
@@ -416,3 +416,17 @@ def test_a_log_in_radians_labelled_degrees_is_named(unit, span_deg, kind, named)
     positions = np.stack([np.cos(angle), np.sin(angle), np.zeros(12)], axis=-1)[None]
     data = jax.device_get(make_arc_data(positions, encoder=angle))
     assert _radians_read_as_degrees(SimpleNamespace(encoder_unit=unit), data, kind) is named
+
+
+def test_the_causes_lead_the_reasons():
+    """A failed check naming a cause (a rolling shutter, a lens, blur, errors that repeat) comes
+    before the symptoms it explains, the causes in `CAUSES`' order whatever order they ran in."""
+    c = _Checks()
+    c.add("origin.mm", 60.0, 15.0, "origin moved")
+    c.add("correlated_errors_sigmas", 7.0, 5.0, "errors repeat", cause="correlated_errors")
+    c.add("axis_residual", 1.0, 5.0, "passes")
+    c.add("cam0.rolling_shutter_sigmas", 41.0, 10.0, "rolling shutter", cause="rolling_shutter")
+    c.add("cam0.lens_sigmas", 12.0, 10.0, "lens", cause="lens")
+    assert c.reasons == ["rolling shutter", "lens", "errors repeat", "origin moved"]
+    assert [r.passed for r in c.rows] == [False, False, True, False, False]
+    assert CAUSES == ("rolling_shutter", "lens", "blur", "arm", "correlated_errors")

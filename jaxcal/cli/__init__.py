@@ -67,7 +67,7 @@ def show_defaults(parser: argparse.ArgumentParser) -> None:
 #: `jaxcal simulate --camera` (the names of `jaxcal.sim.camera.PRESETS`, which the CLI imports only to render).
 CAMERAS = ("ideal", "global-shutter", "rolling-shutter")
 #: `jaxcal simulate --arm` (the names of `jaxcal.sim.arm.ARM_PRESETS`).
-ARMS = ("ideal", "realistic")
+ARMS = ("ideal", "realistic", "physics")
 
 
 def _module(name: str):
@@ -162,7 +162,8 @@ def _add_capture_models(p) -> None:
         choices=ARMS,
         default="ideal",
         help="the arm model (jaxcal.sim.arm): gravity compliance, backlash, encoder counts and latency; "
-        "'ideal' is rigid with fine, prompt encoders",
+        "'ideal' is rigid with fine, prompt encoders; 'physics' moves the realistic arm with MuJoCo's dynamics "
+        "(servos, compliant geared joints, the links' inertias, gravity; the encoders on the motors)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -269,7 +270,8 @@ def _add_calibration_parsers(sub) -> None:
         "--arm",
         choices=ARMS,
         default="ideal",
-        help="the arm model, as `jaxcal simulate --arm` (realistic: gravity compliance, backlash, encoder counts)",
+        help="the arm model, as `jaxcal simulate --arm` (realistic: gravity compliance, backlash, encoder counts; "
+        "physics: the same arm under MuJoCo's dynamics)",
     )
     calibrate.add_calibrate_args(p)
     p.set_defaults(func=calibrate.cmd_demo)

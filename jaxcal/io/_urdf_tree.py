@@ -26,10 +26,13 @@ class Joint:
 
 @dataclass(frozen=True)
 class Inertial:
-    """A `<link>`'s `<inertial>`: its mass (kg) and the pose of its centre of mass (`<origin>`)."""
+    """A `<link>`'s `<inertial>`: its mass (kg), the pose of its centre of mass (`<origin>`)
+    and its inertia tensor about the centre of mass in that pose's axes (kg m^2; `None`
+    without an `<inertia>`)."""
 
     mass: float
     origin: np.ndarray | None  # (4, 4), None without <origin>
+    inertia: np.ndarray | None = None  # (3, 3)
 
 
 @dataclass(frozen=True)
@@ -74,8 +77,16 @@ def _inertial(link: ET.Element) -> Inertial | None:
     el = link.find("inertial")
     if el is None:
         return None
-    mass = el.find("mass")
-    return Inertial(0.0 if mass is None else float(mass.get("value", "0")), _origin(el.find("origin")))
+    mass, tensor = el.find("mass"), el.find("inertia")
+    inertia = None
+    if tensor is not None:
+        xx, yy, zz, xy, xz, yz = (
+            float(tensor.get(k, "0")) for k in ("ixx", "iyy", "izz", "ixy", "ixz", "iyz")
+        )
+        inertia = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    return Inertial(
+        0.0 if mass is None else float(mass.get("value", "0")), _origin(el.find("origin")), inertia
+    )
 
 
 def read_tree(root: ET.Element, path: Path) -> Tree:

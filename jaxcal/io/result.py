@@ -56,6 +56,9 @@ COVARIANCE_MODELS = {
     "view_robust": "the refinement's: the model's sigma^2 (J^T J)^+ (corner errors independent), "
     "replaced along the directions where the per-view cluster (sandwich, CR1) covariance is larger "
     "by more than its sampling spread 2 sqrt(2/G) (jaxcal._refine, jaxcal._lsq.larger_covariance)",
+    "kernel": "the refinement's view_robust covariance, replaced along the directions where the kernel "
+    "(HAC) sandwich of the poses along the capture is larger by more than its sampling spread: the residuals' "
+    "errors repeat from frame to frame (refinement.error_correlation; jaxcal.stages._residual_tests)",
     "model": "the point fit's sigma^2 (J^T J)^+, sigma^2 its residual variance factor "
     "(tracker samples independent)",
     "two_stage": "the two-stage fit's (no refinement ran)",
@@ -65,7 +68,8 @@ COVARIANCE_MODELS = {
 def covariance_model(result) -> str:
     """The `COVARIANCE_MODELS` key of a `CalibrationResult`'s covariance."""
     if result.refinement is not None:
-        return "view_robust"
+        correlation = result.refinement.error_correlation
+        return "view_robust" if correlation is None or correlation.kernel_lags is None else "kernel"
     return "model" if result.point_fit is not None else "two_stage"
 
 

@@ -344,6 +344,20 @@ def urdf_inertials(
     without one weighs 0 (its centre is then the link origin). Raises
     `ValueError` naming the file when no link of the chain has a mass.
     """
+    masses, coms, _ = urdf_inertias(path, base_link, tip_link)
+    return masses, coms
+
+
+def urdf_inertias(
+    path, base_link: str | None = None, tip_link: str | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`urdf_inertials`' masses and centres of mass, and each lumped link's inertia tensor
+    about its centre of mass in the link frame (kg m^2, (joints, 3, 3)).
+
+    Each `<inertia>` is turned into the link frame ($R I R^T$, $R$ its `<origin>`'s
+    rotation) and moved to the lumped centre of mass by the parallel-axis theorem,
+    $I + m(|d|^2 E - d d^T)$; a link without an `<inertia>` is a point mass.
+    """
     path = Path(path)
     root = _parse_xml(path).getroot()
     check_joint_links(root, path)
@@ -354,9 +368,9 @@ def urdf_inertials(
     for j in tree.joints:
         if j.type == "fixed":
             fixed_children.setdefault(j.parent, []).append(j)
-    masses, coms = [], []
+    masses, coms, tensors = [], [], []
     for joint in (j for j in joints if j.type != "fixed"):
-        m_sum, moment, stack, seen = 0.0, np.zeros(3), [(joint.child, np.eye(4))], set()
+        parts, stack, seen = [], [(joint.child, np.eye(4))], set()  # (mass, centre, tensor at it)
         while stack:
             name, T = stack.pop()
             if name in seen:
@@ -364,18 +378,25 @@ def urdf_inertials(
             seen.add(name)
             inertial = links[name].inertial
             if inertial is not None and inertial.mass:
-                c = np.eye(4) if inertial.origin is None else np.asarray(inertial.origin, np.float64)
-                m_sum += float(inertial.mass)
-                moment += float(inertial.mass) * (T @ c)[:3, 3]
+                pose = T @ (np.eye(4) if inertial.origin is None else np.asarray(inertial.origin, np.float64))
+                tensor = np.zeros((3, 3)) if inertial.inertia is None else inertial.inertia
+                parts.append((float(inertial.mass), pose[:3, 3], pose[:3, :3] @ tensor @ pose[:3, :3].T))
             stack += [(f.child, T @ _origin(f)) for f in fixed_children.get(name, [])]
+        m_sum = sum(m for m, _, _ in parts)
+        com = sum(m * c for m, c, _ in parts) / m_sum if m_sum > 0 else np.zeros(3)
+        tensor = np.zeros((3, 3))
+        for m, c, inertia in parts:
+            d = c - com
+            tensor += inertia + m * (d @ d * np.eye(3) - np.outer(d, d))
         masses.append(m_sum)
-        coms.append(moment / m_sum if m_sum > 0 else np.zeros(3))
+        coms.append(com)
+        tensors.append(tensor)
     masses = np.asarray(masses)
     if not masses.any() or not np.all(np.isfinite(masses)):
         raise ValueError(
             f"URDF file {shown(path)!r} gives no link masses (no <inertial> on the chain's links)"
         )
-    return masses, np.stack(coms)
+    return masses, np.stack(coms), np.stack(tensors)
 
 
 # --------------------------------------------------------------------------- writing

@@ -101,7 +101,8 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
         "--arm",
         choices=arms,
         help="the arm model, as `jaxcal simulate --arm`: the EE bias its gravity sag, backlash and latency "
-        "leave in the calibration is predicted beside the noise (default: a rigid arm, no bias)",
+        "leave in the calibration is predicted beside the noise (default: a rigid arm, no bias; 'physics' is "
+        "predicted from its compliance and lost motion, as 'realistic')",
     )
     p.add_argument(
         "--terms",

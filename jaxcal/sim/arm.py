@@ -24,6 +24,14 @@ $\\theta_0 = q\\,\\rho_{nom}/\\rho_{true} + \\delta$. Between motor and link:
   evaluated at the unloaded angles (first order: deflections are milliradians):
   $\\theta = \\theta_b + 10^{-3} c_j\\,\\tau_j(\\theta_b)$.
 
+With `dynamics` (a `Dynamics`, the `physics` preset), none of these formulas: MuJoCo's
+physics moves the arm (`jaxcal.sim.physics`): servoed motors behind compliant
+transmissions with a dead band, the links' inertias from the robot file and the
+plate's mass under gravity, stepped through the commanded motion, so that the
+links lag while they accelerate, ring and sag where they stop, and the encoders
+read the motors. `compliance` and `backlash_deg` are then the transmissions'
+stiffness ($1/c_j$) and dead band.
+
 The encoders log the motor angle `counts_per_rev` counts per motor turn
 (quantised, with the simulation's noise in counts), and stamp each reading
 `latency_s` late: the reading stamped $t$ is the motor's angle at
@@ -41,10 +49,13 @@ product's measurements:
   (the strain-wave gear makers' catalogue bound); 2^17 counts per motor turn;
   the joint states stamped 2 ms late (a controller's sample published over the
   network, stamped on arrival).
+- `physics`: the `realistic` arm's compliance, lost motion, encoder and latency,
+  simulated by MuJoCo (`Dynamics()`'s servo, rotors, friction and plate) instead of
+  by the formulas above: an arm the estimator's terms were not written from.
 """
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import jax
 import jax.numpy as jnp
@@ -56,6 +67,74 @@ from ..records_capture import ArmFigures
 from .motion import EncoderModel, Trajectory
 
 
+def _per_joint(value, joint_types) -> np.ndarray:
+    """`value` (one number, or a tuple whose last entry holds for the joints after it) per joint
+    of `joint_types`, `(joints,)`, zeros for prismatic joints (and for None)."""
+    v = np.atleast_1d(np.asarray(0.0 if value is None else value, np.float64))
+    v = np.concatenate([v, np.full(max(0, len(joint_types) - v.size), v[-1])])[: len(joint_types)]
+    return np.where(np.asarray(joint_types) == "revolute", v, 0.0)
+
+
+def _check_values(owner: str, key: str, value, joints: int | None) -> None:
+    """One value, or up to one per joint, finite and >= 0 (a `ValueError` naming `owner`'s `key`)."""
+    v = np.atleast_1d(np.asarray(value, np.float64))
+    if v.ndim != 1 or v.size == 0 or (joints is not None and v.size > joints):
+        raise ValueError(f"{owner}: {key} needs one value or up to one per joint ({joints}), got {value}")
+    if not (np.all(np.isfinite(v)) and np.all(v >= 0.0)):
+        raise ValueError(f"{owner}: {key} must be finite and >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    """How `jaxcal.sim.physics` drives the arm (MuJoCo); typical values of a six-axis cobot of
+    the UR5e's class, not one product's measurements.
+
+    Each joint is a motor-side rotor (a hinge with the reflected rotor inertia `armature_kgm2`,
+    kg m^2 at the joint, and the gear's Coulomb friction `gear_friction_nm`, N m) coupled to its
+    link by the transmission: a spring of the arm's stiffness $1/c_j$ with a dead band of the
+    arm's lost motion, damped to `transmission_damping` of its critical damping against the
+    link's inertia; the link's bearing has its own friction `bearing_friction_nm`. A position
+    servo (MuJoCo's position actuator: $\\tau = k_p(u - \\theta_m) - k_v\\dot\\theta_m$) drives
+    each rotor at `servo_hz` natural frequency and `servo_damping` damping ratio against the
+    joint's inertia at the zero configuration, with the controller's velocity and gravity feed-forward (the
+    command's velocity, the links' gravity and Coriolis torque at the joint). Each target plate
+    on a link weighs `payload_kg` at its centre. `timestep_s`: MuJoCo's step (implicit-fast);
+    `settle_s`: the arm held at the motion's first pose before it starts. Per-joint values take
+    one number or a tuple whose last value holds for the joints after it.
+    """
+
+    servo_hz: float = 10.0
+    servo_damping: float = 0.8
+    armature_kgm2: float | tuple[float, ...] = (1.0, 1.0, 0.5, 0.1)
+    gear_friction_nm: float | tuple[float, ...] = (8.0, 8.0, 5.0, 1.5)
+    bearing_friction_nm: float | tuple[float, ...] = (0.5, 0.5, 0.3, 0.1)
+    transmission_damping: float = 0.15
+    payload_kg: float = 0.35
+    timestep_s: float = 2e-4
+    settle_s: float = 1.0
+
+    def check(self, joints: int | None = None) -> None:
+        for key in ("armature_kgm2", "gear_friction_nm", "bearing_friction_nm"):
+            _check_values("arm dynamics", key, getattr(self, key), joints)
+        for key in ("servo_hz", "servo_damping", "transmission_damping", "payload_kg", "settle_s"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"arm dynamics: {key} must be finite and >= 0, got {value}")
+        if not (self.servo_hz > 0.0 and 0.0 < self.timestep_s <= 1e-3):
+            raise ValueError(
+                f"arm dynamics: servo_hz > 0 and a timestep in (0, 1 ms] are needed, got {self.servo_hz}, "
+                f"{self.timestep_s}"
+            )
+        if not np.all(np.atleast_1d(self.armature_kgm2) > 0.0):
+            raise ValueError(f"arm dynamics: armature_kgm2 must be > 0, got {self.armature_kgm2}")
+
+    def per_joint(self, key: str, joint_types) -> np.ndarray:
+        """`key`'s values for joints of `joint_types` (the last value repeated; a prismatic
+        joint's armature in kg and its frictions in N)."""
+        v = np.atleast_1d(np.asarray(getattr(self, key), np.float64))
+        return np.concatenate([v, np.full(max(0, len(joint_types) - v.size), v[-1])])[: len(joint_types)]
+
+
 @dataclass(frozen=True)
 class ArmModel:
     """How the simulated arm deviates from a rigid one with perfect encoders (see the module docstring).
@@ -65,7 +144,9 @@ class ArmModel:
     every joint or a tuple, whose last value holds for the joints after it (a
     preset's wrists). Prismatic joints neither yield nor lose motion.
     `counts_per_rev`: motor encoder counts per motor turn. `latency_s`: how
-    late the encoder readings are stamped (s).
+    late the encoder readings are stamped (s). `dynamics`: MuJoCo's physics
+    moves the arm (`jaxcal.sim.physics`), `compliance` and `backlash_deg` its
+    transmissions' (None: the formulas of the module docstring).
     """
 
     name: str = "ideal"
@@ -73,19 +154,15 @@ class ArmModel:
     backlash_deg: float | tuple[float, ...] = 0.0
     counts_per_rev: int = 2**17
     latency_s: float = 0.0
+    dynamics: Dynamics | None = None
 
     def check(self, joints: int | None = None) -> None:
         for key in ("compliance", "backlash_deg"):
             value = getattr(self, key)
-            if value is None:
-                continue
-            v = np.atleast_1d(np.asarray(value, np.float64))
-            if v.ndim != 1 or v.size == 0 or (joints is not None and v.size > joints):
-                raise ValueError(
-                    f"arm {self.name!r}: {key} needs one value or up to one per joint ({joints}), got {value}"
-                )
-            if not (np.all(np.isfinite(v)) and np.all(v >= 0.0)):
-                raise ValueError(f"arm {self.name!r}: {key} must be finite and >= 0, got {value}")
+            if value is not None:
+                _check_values(f"arm {self.name!r}", key, value, joints)
+        if self.dynamics is not None:
+            self.dynamics.check(joints)
         if int(self.counts_per_rev) != self.counts_per_rev or self.counts_per_rev < 4:
             raise ValueError(
                 f"arm {self.name!r}: counts_per_rev must be an integer >= 4, got {self.counts_per_rev}"
@@ -95,16 +172,17 @@ class ArmModel:
 
     @property
     def rigid(self) -> bool:
-        """No compliance and no backlash: the joints stand exactly where the command puts them."""
-        return (self.compliance is None or not np.any(self.compliance)) and not np.any(self.backlash_deg)
+        """No compliance, no backlash and no dynamics: the joints stand exactly where the command puts them."""
+        return (
+            (self.compliance is None or not np.any(self.compliance))
+            and not np.any(self.backlash_deg)
+            and self.dynamics is None
+        )
 
     def per_joint(self, key: str, joint_types) -> np.ndarray:
         """`key`'s values for joints of `joint_types`, `(joints,)`: the last value repeated,
         zeros for prismatic joints (and when None)."""
-        value = getattr(self, key)
-        v = np.atleast_1d(np.asarray(0.0 if value is None else value, np.float64))
-        v = np.concatenate([v, np.full(max(0, len(joint_types) - v.size), v[-1])])[: len(joint_types)]
-        return np.where(np.asarray(joint_types) == "revolute", v, 0.0)
+        return _per_joint(getattr(self, key), joint_types)
 
     def encoder(self, rate_hz: float, noise_counts: float) -> EncoderModel:
         """The arm's `EncoderModel` at the simulation's rate; `noise_counts` are counts of the
@@ -119,13 +197,16 @@ class ArmModel:
         arm for none."""
         if not record:
             return cls()
-        compliance = record.get("compliance_rad_per_kNm")
+        compliance, dynamics = record.get("compliance_rad_per_kNm"), record.get("dynamics")
         return cls(
             name=record.get("name", "recorded"),
             compliance=None if compliance is None else tuple(compliance),
             backlash_deg=tuple(record.get("backlash_deg") or (0.0,)),
             counts_per_rev=int(record.get("counts_per_rev", cls.counts_per_rev)),
             latency_s=float(record.get("latency_s", 0.0)),
+            dynamics=None
+            if dynamics is None
+            else Dynamics(**{k: tuple(v) if isinstance(v, list) else v for k, v in dynamics.items()}),
         )
 
     def figures(self) -> ArmFigures:
@@ -146,7 +227,18 @@ class ArmModel:
             "backlash_deg": self.per_joint("backlash_deg", joint_types).tolist(),
             "counts_per_rev": int(self.counts_per_rev),
             "latency_s": self.latency_s,
-        }
+        } | (
+            {}
+            if self.dynamics is None
+            else {
+                "dynamics": {
+                    f.name: self.dynamics.per_joint(f.name, joint_types).tolist()
+                    if isinstance(getattr(self.dynamics, f.name), tuple)
+                    else getattr(self.dynamics, f.name)
+                    for f in fields(self.dynamics)
+                }
+            }
+        )
 
 
 def gravity_deflection(true, theta, zero_offset, compliance, inertials) -> np.ndarray:
@@ -174,6 +266,11 @@ class ArmMotion:
 
     def __init__(self, arm: ArmModel, trajectory: Trajectory, nominal_ratio, true, inertials=None):
         arm.check(trajectory.q.shape[1])
+        if arm.dynamics is not None:
+            raise ValueError(
+                f"arm {arm.name!r}: its joints come from MuJoCo's physics (jaxcal.sim.physics.PhysicsMotion), "
+                "not from the formulas of ArmMotion"
+            )
         self.arm, self.trajectory, self.true = arm, trajectory, true
         self.scale = np.asarray(nominal_ratio, np.float64) / np.asarray(true.reduction_ratio, np.float64)
         self.zero = np.asarray(true.zero_offset, np.float64)
@@ -218,6 +315,7 @@ ARM_PRESETS = {
         latency_s=2e-3,
     ),
 }
+ARM_PRESETS["physics"] = replace(ARM_PRESETS["realistic"], name="physics", dynamics=Dynamics())
 
 
 def arm_model(arm) -> ArmModel:

@@ -27,6 +27,11 @@ render with its distortion map, so each row's time is that of the sensor row
 it lands on); `distortion`, when set, is the lens's and replaces
 `SimConfig.distortion`.
 
+`lens_supersample` warps the lens at that many times the sensor's resolution
+(`jaxcal.sim.scene.SUPERSAMPLE` by default; 1: a bilinear remap at the sensor's
+resolution, as another renderer's post-process or a camera's own undistortion
+forms images, whose corner errors repeat from frame to frame).
+
 The presets (`PRESETS`, `camera_model(name)`), typical values rather than one
 product's measurements:
 
@@ -65,7 +70,8 @@ class CameraModel:
 
     `readout_s`: the rolling shutter's top-to-bottom readout (the line delay
     is `readout_s / height`; 0: a global shutter). `distortion`: the lens's
-    OpenCV coefficients (None: `SimConfig.distortion`).
+    OpenCV coefficients (None: `SimConfig.distortion`). `lens_supersample`: the
+    lens warp's supersampling (None: the renderer's).
     """
 
     name: str = "ideal"
@@ -79,6 +85,7 @@ class CameraModel:
     defocus_px: float = 0.0
     jpeg_quality: int | None = None
     distortion: tuple[float, ...] | None = None
+    lens_supersample: int | None = None
 
     def check(self) -> None:
         if self.stamp not in STAMPS:
@@ -91,6 +98,12 @@ class CameraModel:
             raise ValueError(f"camera {self.name!r}: exposure and readout are at most 1 s")
         if self.subframes < 1 or not self.step_s > 0.0:
             raise ValueError(f"camera {self.name!r}: subframes >= 1 and step_s > 0 are needed")
+        if self.lens_supersample is not None and (
+            int(self.lens_supersample) != self.lens_supersample or self.lens_supersample < 1
+        ):
+            raise ValueError(
+                f"camera {self.name!r}: lens_supersample must be a whole number >= 1, got {self.lens_supersample}"
+            )
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
             raise ValueError(f"camera {self.name!r}: jpeg_quality must be in 1..100, got {self.jpeg_quality}")
 

@@ -38,6 +38,7 @@ from .._kinematics import KinematicModel, forward_kinematics
 from ..io.dataset import load_dataset, simulation_record, true_poses
 from ..vision import Detection
 from .arm import ArmModel
+from .scene import PlateSpec
 from .simulate import SimConfig, angles_at, sweeps_trajectory
 
 #: The fixed point of a corner's row: stop when no row moves more than this (px) ...
@@ -168,8 +169,17 @@ def capture_truth(dataset, arm: ArmModel | None = None) -> CaptureTruth:
     recorded = ArmModel.from_metadata(truth.arm)
     arm = recorded if arm is None else arm
     ratio = np.asarray(nominal.reduction_ratio)
-    angles = angles_at(arm, trajectory, ratio, truth.model, ds.robot_urdf)
-    own = angles if arm == recorded else angles_at(recorded, trajectory, ratio, truth.model, ds.robot_urdf)
+    plates = [  # the payload of a physics arm
+        PlateSpec(tg.spec, truth.target_link[tg.name], np.asarray(truth.T_link_target[tg.name], np.float64))
+        for tg in ds.targets
+        if tg.name in truth.T_link_target
+    ]
+    angles = angles_at(arm, trajectory, ratio, truth.model, ds.robot_urdf, plates)
+    own = (
+        angles
+        if arm == recorded
+        else angles_at(recorded, trajectory, ratio, truth.model, ds.robot_urdf, plates)
+    )
     if len(truth.frame_t) and not np.allclose(own(truth.frame_t), truth.frame_theta, rtol=0.0, atol=1e-9):
         raise ValueError(
             f"{ds.root}: the joint sweeps rebuilt from the simulation's record do not reproduce the truth's "

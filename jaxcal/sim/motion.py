@@ -66,6 +66,16 @@ class Trajectory:
         w = 0.5 * (1.0 - np.cos(np.pi * s))
         return self.q[i] + (self.q[i + 1] - self.q[i]) * w[..., None]
 
+    def velocity(self, t) -> np.ndarray:
+        """The commanded velocity at `t` (rad/s or m/s; zero outside the waypoints' span)."""
+        t = np.asarray(t, np.float64)
+        i = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
+        h = self.times[i + 1] - self.times[i]
+        s = (t - self.times[i]) / h
+        inside = (t >= self.times[0]) & (t <= self.times[-1])
+        rate = np.where(inside, 0.5 * np.pi * np.sin(np.pi * np.clip(s, 0.0, 1.0)) / h, 0.0)
+        return (self.q[i + 1] - self.q[i]) * rate[..., None]
+
 
 def joint_sweeps(
     joint_names, range_deg=40.0, sweep_s: float = 1.5, move_s: float = 0.8, joints=None, home=None
@@ -157,12 +167,17 @@ class ClockModel:
 
 
 def encoder_stream(
-    trajectory: Trajectory, nominal_ratio, encoder: EncoderModel, rng: np.random.Generator
+    trajectory: Trajectory, nominal_ratio, encoder: EncoderModel, rng: np.random.Generator, motor_at=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Motor encoder log: timestamps (T,) on the controller clock and motor angles (T, joints), rad
-    (the reading stamped $t$ measures the motor at $t$ - `encoder.latency_s`)."""
+    (the reading stamped $t$ measures the motor at $t$ - `encoder.latency_s`). `motor_at(t)`: the
+    motor angles at controller times `t`, by default the command's, $q(t)\\,\\rho_{nom}$ (a motor
+    that follows its command exactly)."""
     t = np.arange(0.0, trajectory.duration + 0.5 / encoder.rate_hz, 1.0 / encoder.rate_hz)
-    motor = trajectory(t - encoder.latency_s) * np.asarray(nominal_ratio, np.float64)
+    if motor_at is None:
+        motor = trajectory(t - encoder.latency_s) * np.asarray(nominal_ratio, np.float64)
+    else:
+        motor = np.asarray(motor_at(t - encoder.latency_s), np.float64)
     step = 2.0 * np.pi / encoder.counts_per_rev
     counts = motor / step + encoder.noise_counts * rng.standard_normal(motor.shape)
     return t, np.round(counts) * step

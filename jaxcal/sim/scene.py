@@ -48,7 +48,8 @@ def mujoco_quat(R) -> np.ndarray:
     return q
 
 
-def _pose(T) -> dict:
+def placement(T) -> dict:
+    """A body's `pos` and `quat` keywords (MjSpec) for the pose `T` (4x4) in its parent."""
     T = np.asarray(T, np.float64)
     return {"pos": T[:3, 3].copy(), "quat": mujoco_quat(T[:3, :3])}
 
@@ -58,7 +59,8 @@ class CameraSpec:
     """A pinhole camera. `T_mount_cam` places it (OpenCV axes) in `mount`'s frame:
     `"world"` for a fixed camera, or a link name (e.g. the flange) for eye-in-hand.
 
-    `distortion`: OpenCV's (k1, k2, p1, p2, k3), applied to the rendered image.
+    `distortion`: OpenCV's (k1, k2, p1, p2, k3), applied to the rendered image,
+    rendered `lens_supersample` times finer for the warp (1: warped at its own resolution).
     """
 
     name: str = "cam0"
@@ -68,6 +70,7 @@ class CameraSpec:
     T_mount_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
     mount: str = "world"
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    lens_supersample: int = SUPERSAMPLE
 
     @property
     def K(self) -> np.ndarray:
@@ -83,8 +86,13 @@ class CameraSpec:
 
     @property
     def supersample(self) -> int:
-        """How much finer the renderer draws this camera (`SUPERSAMPLE` with distortion, else 1)."""
-        return SUPERSAMPLE if np.any(self.dist != 0) else 1
+        """How much finer the renderer draws this camera (`lens_supersample` with distortion, else 1)."""
+        return int(self.lens_supersample) if self.lens else 1
+
+    @property
+    def lens(self) -> bool:
+        """The rendered image is warped by a lens distortion."""
+        return bool(np.any(self.dist != 0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,15 +196,16 @@ class Scene:
             first, stop = int(rows[0]), int(rows[1])
             if not 0 <= first < stop <= cam.height:
                 raise ValueError(f"rows {rows} are not a band of camera {camera!r}'s {cam.height} rows")
-            if cam.supersample == 1 and (first, stop) != (0, cam.height):
+            if not cam.lens and (first, stop) != (0, cam.height):
                 band = _render_band(r, first, stop, cam.height)
                 if band is not None:
                     return band
         image = r.render()
-        if cam.supersample > 1:
+        if cam.lens:
             mx, my = self._distortion_map(cam)
             image = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+            if cam.supersample > 1:
+                image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         return image if rows is None else image[first:stop]
 
     def close(self) -> None:
@@ -268,7 +277,7 @@ def add_plate(spec, parent, plate: PlateSpec, index: int) -> None:
         userfacetexcoord=faces.ravel().tolist(),
     )
     mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL
-    body = parent.add_body(name=f"plate:{target.name}", **_pose(plate.T_link_target))
+    body = parent.add_body(name=f"plate:{target.name}", **placement(plate.T_link_target))
     body.explicitinertial = True
     body.mass, body.inertia = 0.05, [1e-5, 1e-5, 1e-5]
     body.add_geom(
@@ -357,7 +366,7 @@ def build_scene(
         raise ValueError(f"camera and target names must be unique, got {names}")
 
     spec = _environment(cameras, floor_z, shadows)
-    bodies = _arm(spec.worldbody, model, T_world_base, link_radius)
+    bodies = add_arm(spec.worldbody, model, T_world_base, link_radius)
 
     for i, plate in enumerate(plates):
         add_plate(spec, bodies[plate.link], plate, i)
@@ -404,20 +413,20 @@ def _environment(cameras, floor_z: float | None, shadows: bool) -> "mujoco.MjSpe
     return spec
 
 
-def _arm(world, model, T_world_base, link_radius: float) -> dict:
+def add_arm(world, model, T_world_base, link_radius: float) -> dict:
     """The arm's bodies under `world` (base, links, flange), by link name (and `"world"`)."""
     links, joints = tuple(model.link_names), tuple(model.joint_names)
     T_parent_joint = np.asarray(model.T_parent_joint, np.float64)
     axes = np.asarray(model.axis, np.float64)
     T_last_flange = np.asarray(model.T_last_flange, np.float64)
     n = len(joints)
-    base = world.add_body(name=links[0], **_pose(np.eye(4) if T_world_base is None else T_world_base))
+    base = world.add_body(name=links[0], **placement(np.eye(4) if T_world_base is None else T_world_base))
     bodies = {links[0]: base}
     grey = [[0.78, 0.78, 0.8, 1.0], [0.62, 0.64, 0.68, 1.0]]
     _add_link_geometry(base, T_parent_joint[0][:3, 3], None, 1.6 * link_radius, grey[1])
     parent = base
     for i in range(n):
-        body = parent.add_body(name=links[i + 1], **_pose(T_parent_joint[i]))
+        body = parent.add_body(name=links[i + 1], **placement(T_parent_joint[i]))
         body.explicitinertial = True
         body.mass, body.inertia = 1.0, [1e-3, 1e-3, 1e-3]
         kind = (
@@ -432,7 +441,7 @@ def _arm(world, model, T_world_base, link_radius: float) -> dict:
         _add_link_geometry(body, child, axes[i], link_radius, grey[i % 2], capsule=i + 1 < n)
         bodies[links[i + 1]] = body
         parent = body
-    flange = parent.add_body(name=links[-1], **_pose(T_last_flange))
+    flange = parent.add_body(name=links[-1], **placement(T_last_flange))
     flange.explicitinertial = True
     flange.mass, flange.inertia = 0.1, [1e-4, 1e-4, 1e-4]
     flange.add_geom(

@@ -38,11 +38,12 @@ from ..io.urdf import load_urdf, save_urdf
 from ..markers import TargetSpec
 from ..planning._layout import facing_mount as facing_mount
 from ..planning._layout import look_at as look_at
-from ..robots import link_inertials, robot_path, shipped
+from ..robots import link_inertials, link_inertias, robot_path, shipped
 from .arm import ArmModel, ArmMotion, arm_model
 from .camera import CameraModel, camera_model
 from .motion import ClockModel, check_finite, encoder_stream, joint_sweeps, true_angles
 from .motion import frame_times as frame_times_of
+from .physics import PhysicsMotion
 from .scene import CameraSpec, PlateSpec, build_scene
 
 
@@ -354,13 +355,15 @@ def simulate(
     true = draw_truth(nominal, config)
     rng = np.random.default_rng(config.seed)
     plates_nominal, plates_true, cameras_nominal, cameras_true = _layouts(nominal, true, config, rng, layout)
+    if optics.lens_supersample is not None:  # the lens warped at the camera model's resolution
+        cameras_true = [replace(c, lens_supersample=int(optics.lens_supersample)) for c in cameras_true]
     names = nominal.joint_names
     nominal_ratio = np.asarray(nominal.reduction_ratio)
     arm = arm_model(config.arm)
-    trajectory, clock, encoder, (enc_t, enc_motor), t_frames, keep = _motion(
-        config, nominal, arm, trajectory, frame_times, rng
-    )
-    angles = angles_at(arm, trajectory, nominal_ratio, true, urdf_path)
+    trajectory, angles, clock, encoder, (enc_t, enc_motor), t_frames, keep = _motion(
+        config, nominal, arm, trajectory, frame_times, rng,
+        lambda traj: arm_motion(arm, traj, nominal_ratio, true, urdf_path, plates_true),
+    )  # fmt: skip
     theta = angles(t_frames)
     noise_rng = np.random.default_rng([config.seed, 1])  # the camera's own draws: the capture stays the same
     q_true = theta - np.asarray(true.zero_offset)
@@ -428,29 +431,32 @@ def simulate(
     return out
 
 
-def _motion(config: SimConfig, nominal, arm: ArmModel, trajectory, frame_times, rng):
-    """The capture's motion and its records: `(trajectory, clock, encoder, (enc_t, enc_motor),
-    t_frames, keep)`, the commanded trajectory (default: joint-by-joint sweeps), the camera
-    clock, the encoder model and its log, the frames' controller times and which frames are
-    kept (drawn from `rng` in this order: the log's noise, then the dropped frames)."""
+def _motion(config: SimConfig, nominal, arm: ArmModel, trajectory, frame_times, rng, motion_of):
+    """The capture's motion and its records: `(trajectory, angles_at, clock, encoder, (enc_t,
+    enc_motor), t_frames, keep)`, the commanded trajectory (default: joint-by-joint sweeps), the
+    true joint angles along it (`motion_of(trajectory)`: `arm_motion`'s pair, whose motor
+    angles, when given, the encoders read), the camera clock, the encoder model and its log,
+    the frames' controller times and which frames are kept (drawn from `rng` in this order:
+    the log's noise, then the dropped frames)."""
     names = nominal.joint_names
     sweeps = trajectory is None
     if sweeps:
         trajectory = sweeps_trajectory(nominal, config)
     elif trajectory.q.shape[1] != len(names):
         raise ValueError(f"trajectory has {trajectory.q.shape[1]} joints, the robot {len(names)}")
+    angles, motor = motion_of(trajectory)
     clock = ClockModel(
         config.fps, config.clock_offset_ms, config.clock_drift_ppm, config.clock_jitter_ms, config.drop_rate
     )
     encoder = arm.encoder(config.encoder_rate_hz, config.encoder_noise_counts)
-    log = encoder_stream(trajectory, np.asarray(nominal.reduction_ratio), encoder, rng)
+    log = encoder_stream(trajectory, np.asarray(nominal.reduction_ratio), encoder, rng, motor)
     t_frames = (
         np.concatenate(frame_times_of(trajectory, config.frames_per_joint if sweeps else None, clock))
         if frame_times is None
         else np.asarray(frame_times, np.float64)
     )
     keep = rng.random(len(t_frames)) >= clock.drop_rate
-    return trajectory, clock, encoder, log, t_frames, keep
+    return trajectory, angles, clock, encoder, log, t_frames, keep
 
 
 def sweeps_trajectory(nominal, config: SimConfig):
@@ -466,16 +472,27 @@ def sweeps_trajectory(nominal, config: SimConfig):
     )
 
 
-def angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path):
-    """`angles_at(t)`: the true arm's joint angles at controller times `t` (rigid, or
-    `jaxcal.sim.arm.ArmMotion` with the robot file's masses for compliance)."""
+def angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates=()):
+    """`angles_at(t)`: the true arm's joint angles at controller times `t` (`arm_motion`'s)."""
+    return arm_motion(arm, trajectory, nominal_ratio, true, urdf_path, plates)[0]
+
+
+def arm_motion(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates=()):
+    """`(angles_at, motor_at)`: the true arm's joint angles at controller times `t` and the
+    motor angles its encoders read there (`None`: the command's, `encoder_stream`'s default).
+    Rigid; `jaxcal.sim.arm.ArmMotion` with the robot file's masses for compliance; or, for an
+    arm with `dynamics`, MuJoCo's physics (`jaxcal.sim.physics.PhysicsMotion`: the robot
+    file's inertias, the target `plates` on links as payload), whose encoders read the motors."""
+    if arm.dynamics is not None:
+        motion = PhysicsMotion(arm, trajectory, nominal_ratio, true, link_inertias(urdf_path), plates)
+        return motion.angles, motion.motor
     if arm.rigid:
         return partial(
             true_angles, trajectory, nominal_ratio=nominal_ratio, true_ratio=true.reduction_ratio,
             true_zero_offset=true.zero_offset,
-        )  # fmt: skip
+        ), None  # fmt: skip
     inertials = link_inertials(urdf_path) if arm.compliance is not None else None
-    return ArmMotion(arm, trajectory, nominal_ratio, true, inertials).angles
+    return ArmMotion(arm, trajectory, nominal_ratio, true, inertials).angles, None
 
 
 def _renderer_at(scene, camera: str, t_frame: float, theta_frame, angles_at):

@@ -376,6 +376,7 @@ def arm_check(c, setup, sync, two, refined, limits, score: ArmScore | Future | N
         f"{setup.dataset.robot_urdf.name}'s masses) and the axes fit an apparent compliance of {got.c_hat[j]:.3g} "
         "rad/kN m there (a UR5's shoulder: 0.031); backlash does too (a resting joint stands where its last move "
         "left it within its lost motion). " + TO_CHANGE,
+        cause="arm",
     )
     if got.clock_z is None:
         return
@@ -390,4 +391,5 @@ def arm_check(c, setup, sync, two, refined, limits, score: ArmScore | Future | N
         "with the sweeps' speed, as they do when a joint yields to a gravity torque that changes along its sweep "
         "(gravity sag) or lags its motor (backlash); the arcs take that for a clock offset, the refinement "
         "absorbs it into the geometry, which then holds only near the capture's poses. " + TO_CHANGE,
+        cause="arm",
     )

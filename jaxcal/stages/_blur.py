@@ -5,7 +5,9 @@ no longer found (its markers' bits and corners blur together). A sweep
 accelerates from rest, so blur loses the frames where the joint turns
 fastest and keeps the slow ones near the ends: when the lost frames are the
 fast ones, blur is the cause, and the exposure times the target's image
-speed says by how much. The image speed comes from the frames where the
+speed says by how much. A sweep fast throughout may keep only a few fast
+frames where the target happened to show well: with the exposure known, blur
+is also named when most lost frames smeared the target beyond a detector. The image speed comes from the frames where the
 target was found: how far its corners moved per radian of the joint,
 times the joint's speed from the encoder log.
 """
@@ -22,6 +24,9 @@ FASTER = 1.5
 SMEAR_PX = 2.0
 #: A sweep has lost frames worth explaining when at least this share of them lost the target.
 LOST_SHARE = 0.3
+#: Blur also explains a sweep's lost frames, fast or not compared with the found ones, when at
+#: least this share of them smeared the target by more than `SMEAR_PX` (a sweep fast throughout).
+SMEARED_SHARE = 0.75
 #: A sweep that lost more than this share of its frames to blur makes the result suspect: an arc's
 #: precision goes as the square root of its frames, so more than half lost costs over sqrt(2), and
 #: the frames left bunch at the sweep's slow ends.
@@ -71,22 +76,37 @@ def lost_to_blur(setup: Setup, obs: CameraObservations, sync: Sync, joint: int) 
         return ""
     fast = float(np.median(speed[lost]))
     slow = float(np.median(speed[found])) if found.any() else 0.0
-    if fast < FASTER * slow or fast <= 0.0:
-        return ""
-    text = (
-        f"motion blur, most likely: the target was lost in {int(lost.sum())} of the sweep's {rows.size} frames, "
-        f"the fast ones (the joint turns at {np.degrees(fast):.0f} deg/s there, {np.degrees(slow):.0f} deg/s where "
-        "it was found)"
-    )
     exposure = getattr(obs.camera, "exposure_s", None)
     rate = image_rate(obs, sync, joint, rows)
-    if exposure and rate is not None:
-        top = float(np.max(speed[lost]))
+    smear = None if not exposure or rate is None else exposure * speed * rate  # px, per frame
+    top = float(np.max(speed[lost]))
+    if fast > 0.0 and fast >= FASTER * slow:  # the lost frames are the fast ones
+        text = (
+            f"motion blur, most likely: the target was lost in {int(lost.sum())} of the sweep's {rows.size} "
+            f"frames, the fast ones (the joint turns at {np.degrees(fast):.0f} deg/s there, "
+            + (
+                f"{np.degrees(slow):.0f} deg/s where it was found)"
+                if found.any()
+                else "and it was found in none)"
+            )
+        )
+    elif smear is not None and np.mean(smear[lost] > SMEAR_PX) >= SMEARED_SHARE:
+        # A sweep so fast that the target smears almost everywhere: the frames it was found in are
+        # fast too, but most of those lost smeared it beyond what a detector keeps.
+        text = (
+            f"motion blur, most likely: the target was lost in {int(lost.sum())} of the sweep's {rows.size} "
+            f"frames, {int(np.sum(smear[lost] > SMEAR_PX))} of them while the joint turned at "
+            f"{np.degrees(float(np.min(speed[lost][smear[lost] > SMEAR_PX]))):.0f}-{np.degrees(top):.0f} deg/s"
+        )
+    else:
+        return ""
+    if smear is not None:
         if exposure * top * rate < SMEAR_PX:
             return ""
+        shown = f"{exposure * slow * rate:.1f} px" if found.any() else "nowhere"
         text = text.replace("motion blur, most likely", "motion blur") + (
             f"; with the {1e3 * exposure:g} ms exposure the target smears by up to {exposure * top * rate:.0f} px "
-            f"there ({exposure * slow * rate:.1f} px where it was found)"
+            f"there (it was found at {shown}{' median' if found.sum() > 1 else ''})"
         )
     elif not exposure:
         text += " (the metadata gives no exposure_s to tell the smear)"

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _lsq
 from .._arcdata import make_arc_data
 from .._arcfit import ARC_OPTIONS, fit_arc, fit_joint_sweeps
 from .._axisfit import axis_jacobian, axis_problem, fit_axes, home_jacobian, register_lines
@@ -26,10 +27,12 @@ from .._buckets import bucket
 from .._clocksync import fit_clock_offset
 from .._correction import ParameterLayout
 from .._device import to_device
+from .._diagnostics import score_tests as score_tests_of
+from .._diagnostics import view_information as view_information_of
 from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
-from .._refine import identifiable_mask, line_delay_test, refine
+from .._refine import identifiable_mask, refine
 from .._terms import column_map, gravity_torques
 from .._terms import term_basis as _term_basis_of
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
@@ -238,9 +241,30 @@ def refinement(free: np.ndarray, jacobian: bool = False):
 
 
 @functools.cache
-def shutter_test():
-    """`line_delay_test(problem, res)`: the rolling-shutter score test of a global-shutter refinement."""
-    return stored_jit(line_delay_test, "line_delay_test")
+def score_tests():
+    """`jaxcal._diagnostics.score_tests(problem, res)`: the rolling-shutter and the lens's score tests of
+    a global-shutter refinement."""
+    return stored_jit(score_tests_of, "score_tests")
+
+
+@functools.cache
+def _view_information(free: tuple[bool, ...]):
+    def view_information_program(problem, res):
+        return view_information_of(problem, res, np.asarray(free))
+
+    return stored_jit(view_information_program, "view_information", (free,))
+
+
+def view_information(free: np.ndarray):
+    """`jaxcal._diagnostics.view_information(problem, res, free)` for a concrete `free` mask (static):
+    compiled only for a capture whose residuals' errors repeat."""
+    return _view_information(tuple(bool(f) for f in np.asarray(free)))
+
+
+@functools.cache
+def hac_covariance():
+    """`jaxcal._lsq.hac_covariance(bread, scores, information, lags)`, the lags traced."""
+    return jax.jit(_lsq.hac_covariance)
 
 
 @functools.cache

@@ -42,7 +42,9 @@ from .._refine import (
 )
 from ..records import (
     ClockEstimate,
+    ErrorCorrelation,
     JointAngles,
+    LensTest,
     LineDelay,
     Named,
     OtherCamera,
@@ -57,6 +59,7 @@ from ..records import (
 )
 from . import _programs
 from ._observe import CameraObservations, Observations
+from ._residual_tests import error_correlation, score_tests
 from ._setup import Options, Setup
 from ._synchronise import Sync, interpolate, usable
 from ._terms import TermFit, coefficient_rows, not_tried, resolve, select
@@ -90,7 +93,11 @@ class Refined:
       row), std (None when given), whether it was estimated, and the readout
       (the delay times the image height, s).
     - `shutter_test`: without one, per camera the rolling shutter its residuals
-      point to (`shutter_test`); None when not tested.
+      point to (`score_tests`); None when not tested. `lens_test`: the radial
+      distortion they point to beyond the first camera's given lens.
+    - `error_correlation`: the test of errors that repeat along the capture and
+      between the views of one pose (`error_correlation`), and where it passed,
+      `cov_views`, the covariance its kernel sandwich replaced.
     - `terms`: the non-geometric terms tried (`stages._terms.TermFit`: the kept
       families and coefficients, and the result's `TermsSummary`); None when none was.
     """
@@ -116,6 +123,11 @@ class Refined:
     line_delays: tuple[LineDelay, ...] = ()
     shutter_test: tuple[ShutterTest, ...] | None = None
     terms: TermFit | None = None
+    lens_test: LensTest | None = None
+    error_correlation: ErrorCorrelation | None = None
+    #: Where the residuals' errors are correlated, the covariance of the free parameters
+    #: the kernel sandwich replaced (the views' sandwich or the model's).
+    cov_views: np.ndarray | None = None
 
 
 def dist5(dist) -> np.ndarray | None:
@@ -184,6 +196,8 @@ class _Corners:
     frame: list = field(default_factory=list)
     t_cam: list = field(default_factory=list)
     row: list = field(default_factory=list)  # each corner's image row (px)
+    ids: list = field(default_factory=list)  # each corner's id on its target
+    pose: list = field(default_factory=list)  # each view's capture index (frames.csv's `frame`)
     camera: list = field(default_factory=list)
     sweep: list = field(default_factory=list)
     pnp: list = field(default_factory=list)
@@ -241,6 +255,8 @@ def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Cor
                 out.frame.append(int(v.rows[i]))
                 out.t_cam.append(float(v.frame_times[i]) if rolling else float(v.t_cam[i]))
                 out.row.append(dt.pixels[:, 1])
+                out.ids.append(np.asarray(dt.ids, int))
+                out.pose.append(int(ds.frames.frame[int(v.rows[i])]))
                 out.camera.append(c)
     return out
 
@@ -558,23 +574,40 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         )
     elif terms:
         fit_terms = TermFit((), np.zeros(0), None, None, not_tried(terms, "the capture has no encoder log"))
-    # The shutter's score test, in the `Future` the verdict reads (`run_ahead` runs it inline).
-    pending = _programs.run_ahead("shutter test", shutter_test, setup, corners, problem, res)
+    # The shutter's and the lens's score tests, in the `Future` the verdict reads (`run_ahead`
+    # runs it inline).
+    pending = _programs.run_ahead("score tests", score_tests, setup, corners, problem, res, layout, free)
     jax.block_until_ready(res)
+    correlation, cov_free, cov_views = error_correlation(
+        corners, res, options.limits, lambda: _programs.view_information(free)(problem, res)
+    )
+    if cov_free is not None:  # the kernel sandwich's covariance, where larger than the views'
+        cov = np.array(res.cov, np.float64)
+        cov[np.ix_(*2 * [np.flatnonzero(np.asarray(free))])] = cov_free
+        res = eqx.tree_at(lambda r: (r.cov, r.std), res, (cov, np.sqrt(np.maximum(np.diag(cov), 0.0))))
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
     delays = _delay_rows(corners, res, layout, free)
     timings = {"refine_s": time.perf_counter() - t0}
     t0 = time.perf_counter()
-    test = pending.result()
-    if test is not None:
-        timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for it, past the refinement
-    summary = dataclasses.replace(out.summary, line_delay=delays or None, rolling_shutter_test=test)
+    test, lens = pending.result()
+    if test is not None or lens is not None:
+        timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for them, past the refinement
+    summary = dataclasses.replace(
+        out.summary,
+        line_delay=delays or None,
+        rolling_shutter_test=test,
+        lens_test=lens,
+        error_correlation=correlation,
+    )
     return dataclasses.replace(
         out,
         summary=summary,
         problem=problem,
         line_delays=delays,
         shutter_test=test,
+        lens_test=lens,
+        error_correlation=correlation,
+        cov_views=cov_views,
         timings=timings,
         terms=fit_terms,
     )
@@ -607,28 +640,6 @@ def _with_terms(setup: Setup, sync: Sync, problem, res, layout, cand, free, term
     rows = coefficient_rows(kept, setup.nominal.joint_names, x, std, free[idx])
     summary = dataclasses.replace(summary, coefficients=rows)
     return problem, res, layout, cand, free, TermFit(kept, x, *inert, summary)
-
-
-def shutter_test(
-    setup: Setup, corners: _Corners, problem: RefineProblem, res
-) -> tuple[ShutterTest, ...] | None:
-    """Per camera, the rolling shutter the residuals of a global-shutter refinement
-    point to (`jaxcal._refine.line_delay_test`): the line delay (s per row), the
-    readout it implies (times the image height, s) and its size in standard
-    deviations. `None` when a line delay was modelled, or without an encoder log
-    (each view's angle is then an unknown of its own)."""
-    if problem.line_delay0_s is not None or setup.kind.per_view_angles:
-        return None
-    test = jax.device_get(_programs.shutter_test()(problem, res))
-    return tuple(
-        ShutterTest(
-            camera=v.camera.name,
-            line_delay_s=float(test.line_delay_s[c]),
-            readout_s=float(test.line_delay_s[c]) * v.camera.height,
-            sigmas=float(test.sigmas[c]),
-        )
-        for c, v in enumerate(corners.used)
-    )
 
 
 def summary_record(figures: dict, **typed) -> RefinementSummary:

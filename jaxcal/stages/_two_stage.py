@@ -168,10 +168,9 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: tuple[Named, ...], data,
     used = {r.name: r.value for r in counts}
     for j, name in enumerate(ds.joint_names):
         if used[name] == 0:
-            raise CalibrationError(
-                f"{ds.root}: joint {name!r}: no frame of camera {setup.camera.name!r} shows a target while this "
-                "joint sweeps alone"
-            )
+            none = f"no frame of camera {setup.camera.name!r} shows a target while this joint sweeps alone"
+            cause = "" if obs is None else lost_to_blur(setup, obs, sync, j)
+            raise CalibrationError(f"{ds.root}: joint {name!r}: " + (f"{cause} ({none})" if cause else none))
         data_j = jax.tree.map(lambda x, j=j: x[j], data)
         try:
             validate_arc_data(data_j, name, setup.nominal.joint_types[j])

@@ -13,9 +13,10 @@ in its `notes`.
 """
 
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -80,15 +81,29 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
     return float(np.median([m / n for _, m, n in pairs])), pairs
 
 
+#: The causes a failed check names, in the order its reason leads the others: they explain the
+#: symptoms (corrections out of tolerance, large residuals) that follow them.
+CAUSES = ("rolling_shutter", "lens", "blur", "arm", "correlated_errors")
+
+
 class _Checks:
     def __init__(self):
-        self.rows, self.reasons, self.notes = [], [], []
+        self.rows, self.symptoms, self.causes, self.notes = [], [], [], []
 
-    def add(self, name: str, value: float, limit: float, message: str) -> None:
+    def add(self, name: str, value: float, limit: float, message: str, cause: str | None = None) -> None:
+        """A check row; a failed one's `message` is a reason, those naming a `cause` (`CAUSES`)
+        first, in `CAUSES`' order."""
         ok = bool(np.isfinite(value) and value <= limit)
         self.rows.append(Check(name, float(value), float(limit), ok))
         if not ok:
-            self.reasons.append(message)
+            if cause is None:
+                self.symptoms.append(message)
+            else:
+                self.causes.append((CAUSES.index(cause), len(self.causes), message))
+
+    @property
+    def reasons(self) -> list[str]:
+        return [m for _, _, m in sorted(self.causes)] + self.symptoms
 
     def at_least(self, name: str, value: float, limit: float) -> bool:
         """A check that `value` is at least `limit` (its reason is the caller's); whether it passed."""
@@ -198,7 +213,7 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
         if share <= limits.outlier_fraction:
             c.notes.append(text)
         else:
-            c.reasons.append(
+            c.symptoms.append(
                 f"{text}; {100 * share:.0f} % of the poses, over the limit of "
                 f"{100 * limits.outlier_fraction:g} %: check the joint positions and the measurements"
             )
@@ -223,7 +238,7 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
     if still:
         names = [n for n, _ in still]
         held = [h for h in pf.held if h.split(".")[0] in names]
-        c.reasons.append(
+        c.symptoms.append(
             f"joints {', '.join(t for _, t in still)} hardly move over the {int(pf.used.sum())} poses (each needs "
             f"{limits.joint_span_deg:g} deg, or {limits.joint_span_mm:g} mm): the capture cannot determine their "
             "zero offsets nor the geometry they carry, so the model holds only at those joint positions; "
@@ -361,6 +376,72 @@ def _shutter(c: _Checks, refined: Refined, limits: Limits) -> None:
             f"us per row, {t.sigmas:.0f} sigmas) and the calibration timed every row at the frame's stamp; give "
             'cameras[].line_delay_s in metadata.json (the readout over the image height) or "estimate", or sweep '
             "slower, or film the poses standing still (stop-and-shoot)",
+            cause="rolling_shutter",
+        )
+
+
+def _lens(c: _Checks, refined: Refined, limits: Limits) -> None:
+    """The residuals against a radial distortion beyond the first camera's given lens
+    (`jaxcal._diagnostics.lens_test`): a shift growing with the distance from the image's centre."""
+    t = refined.lens_test
+    if t is None:
+        return
+    big = t.shift_px >= limits.lens_px
+    c.add(
+        f"{t.camera}.lens_sigmas",
+        t.sigmas if big else 0.0,
+        limits.lens_sigmas,
+        f"camera {t.camera!r}: the residuals grow with the distance from the image's centre, as a lens's radial "
+        f"distortion does ({t.sigmas:.0f} sigmas): a distortion of k1 {t.k1:+.3g}, k2 {t.k2:+.3g} beyond the "
+        f"metadata's would shift the image's corners by {t.shift_px:.1f} px, and the calibration bent the robot to "
+        "fit it; give cameras[].distortion (and K) from the camera's own calibration in metadata.json, or leave "
+        "cameras[].K out to have the intrinsics self-calibrated",
+        cause="lens",
+    )
+
+
+def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limits: Limits) -> None:
+    """The residuals' errors that repeat along the capture or are shared by a pose's views
+    (`stages._refine.error_correlation`): named, with how much the kernel sandwich grew the
+    tool point's uncertainty."""
+    t = refined.error_correlation
+    if t is None:
+        return
+    grew = ""
+    if refined.cov_views is not None:
+        free = np.flatnonzero(np.asarray(refined.fit.free))
+        cov = np.array(refined.fit.cov)
+        cov[np.ix_(free, free)] = refined.cov_views
+        before = _ee_sigma_mm(
+            setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov))
+        )
+        after = _ee_sigma_mm(setup, two, refined)
+        grew = (
+            f"; the covariance now accounts for them (a kernel sandwich over {t.kernel_lags} frames: the tool "
+            f"point's 1-sigma {before:.2f} -> {after:.2f} mm), but the estimate carries their bias"
+        )
+    lags = ", ".join(f"{r:.2f}" for r in t.autocorrelation)
+    c.add(
+        "correlated_errors_sigmas",
+        t.sigmas,
+        limits.correlation_sigmas,
+        f"the residuals repeat from frame to frame: each corner's residual correlates with its own in the next "
+        f"frames of the capture ({lags} at lags 1-{len(t.autocorrelation)}, {t.sigmas:.1f} sigmas), where the noise "
+        f"model takes them as independent{grew}. Correlated detector errors repeat so: images resampled at the "
+        "sensor's resolution (an undistortion, a renderer's lens warp or scaling) or a pattern the motion carries "
+        "along; give the camera's raw images with its lens in metadata.json, or film poses that differ more from "
+        "frame to frame. So do the errors of a motion the model does not hold (an arm that sags or lags its "
+        "motors: see the arm's reasons, if any)",
+        cause="correlated_errors",
+    )
+    if t.pose_sigmas is not None:
+        c.add(
+            "pose_errors_sigmas",
+            t.pose_sigmas,
+            limits.correlation_sigmas,
+            f"the views of one pose share their errors ({t.pose_sigmas:.1f} sigmas: the cameras or targets seen "
+            f"at one capture index err alike, as an error of the robot's pose would make them){grew}",
+            cause="correlated_errors",
         )
 
 
@@ -394,10 +475,12 @@ def verdict(
         _axes(c, setup, two, limits, refined if skewed else None)
         arm_check(c, setup, sync, two, refined, limits, arm_score)
         for row in blur_rows(setup, obs.primary, sync):  # sweeps that lost most of their frames to blur
-            c.add(*row)
+            c.add(*row, cause="blur")
     if ran:
         _refinement(c, refined, limits)
         _shutter(c, refined, limits)
+        _lens(c, refined, limits)
+        _correlation(c, setup, two, refined, limits)
     sigma = _ee_sigma_mm(setup, two, refined if ran else None)
     c.add(
         "ee_sigma_mm",
@@ -429,8 +512,8 @@ def verdict(
                 f"(limit {limits.intrinsics_rms_px:g} px)",
             )
     failed = not two.solver.success or (ran and not succeeded(refined))
-    status = "failed" if failed else ("suspect" if c.reasons else "ok")
-    reasons = list(c.reasons)
+    reasons = c.reasons
+    status = "failed" if failed else ("suspect" if reasons else "ok")
     if failed:
         reasons.insert(0, "a solver did not converge (see result.json 'solver')")
     return Verdict(status, tuple(reasons), tuple(c.rows), tuple(c.notes))

@@ -25,7 +25,7 @@ class Limits:
     - `shutter_sigmas`, `readout_s`: a global-shutter refinement whose residuals
       point to a rolling shutter's line delay by more than `shutter_sigmas`
       standard deviations and a readout (the delay times the image height) of
-      at least `readout_s` (the score test of `jaxcal._refine.line_delay_test`).
+      at least `readout_s` (the score test of `jaxcal._diagnostics.line_delay_test`).
     - `arm_false_alarm`: how often each of the arm checks may flag a rigid
       arm (`jaxcal.stages._armcheck`, gravity sag or backlash: an arm that is
       not rigid): the score test of the sweeps' axes moving with the gravity
@@ -34,6 +34,15 @@ class Limits:
       least `arm_compliance_rad_per_kNm` (200 kN m/rad; a UR5's shoulder is
       32); the arcs' clock against the refinement's beyond the normal law's
       two-sided quantile (2.58 at 0.01).
+    - `correlation_sigmas`: the refinement's residuals repeat from frame to frame
+      (each corner's along a run of the capture), or are shared by the views of one
+      pose, by more than this many standard deviations (the one-sided tests of
+      `jaxcal.stages._refine.error_correlation`); the covariance then takes the kernel
+      sandwich where larger.
+    - `lens_sigmas`, `lens_px`: a refinement whose residuals point to a radial
+      distortion beyond the given lens by more than `lens_sigmas` standard deviations
+      and a shift of at least `lens_px` at the image's corner (the score test of
+      `jaxcal._diagnostics.lens_test`).
     - `ee_sigma_mm`: the tool point's 1-sigma uncertainty the covariance
       implies (RMS over random configurations): above it, the capture does
       not determine the robot well enough to trust it.
@@ -61,6 +70,9 @@ class Limits:
     readout_s: float = 1e-3
     arm_false_alarm: float = 0.01
     arm_compliance_rad_per_kNm: float = 0.005
+    correlation_sigmas: float = 5.0
+    lens_sigmas: float = 10.0
+    lens_px: float = 0.5
     ee_sigma_mm: float = 3.0
     joint_span_deg: float = 5.0
     joint_span_mm: float = 10.0
