@@ -432,7 +432,9 @@ def _median(values) -> float | None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="*", choices=[*CASES, *EDITED, *CONFIGS], default=None)
+    parser.add_argument(
+        "--cases", nargs="*", choices=list(dict.fromkeys([*CASES, *EDITED, *CONFIGS])), default=None
+    )
     parser.add_argument(
         "--analytic-seeds",
         type=int,

@@ -328,10 +328,13 @@ def _point_fit_section(result) -> list[str]:
         + f", {int(pf.used.sum())} fitted; fitted residual {r.mean:.4f} mm mean, {r.rms:.4f} mm RMS, "
         f"{r.max:.4f} mm max; the residuals' robust scatter is {pf.robust_scale:.2f} times the samples' sigma.",
         "",
-        "| model | free parameters | CV mean mm | CV RMS mm | kept |",
-        "| --- | ---: | ---: | ---: | --- |",
     ]
-    for m in pf.models:
+    if result.terms is None:  # with terms tried, the models are the terms section's table
+        lines += [
+            "| model | free parameters | CV mean mm | CV RMS mm | kept |",
+            "| --- | ---: | ---: | ---: | --- |",
+        ]
+    for m in pf.models if result.terms is None else ():
         cv = [fmt(x, ".4f") if x is not None else "-" for x in (m.cv_mean_mm, m.cv_rms_mm)]
         lines.append(
             f"| {'+'.join(['geometric', *m.terms])} | {m.free} | {' | '.join(cv)} | {'yes' if m.kept else ''} |"

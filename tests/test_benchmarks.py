@@ -108,7 +108,7 @@ RUNS = {
     "plan_realism": Run(
         "plan_realism",
         "--plan {work}/plan/planned.json --no-sweeps --seeds 1 --noise-step 72 --noise-draws 1 --poses 24",
-        "machine corner_noise predictions.plan checks.plan",
+        "machine corner_noise predictions checks",
     ),
     "drift --camera": Run(
         "drift",

@@ -264,6 +264,11 @@ def test_rendered_scara_calibration(tmp_path):
     assert v["ee_rms_mm_after"] <= v["ee_rms_mm_two_stage"] < 0.8 * v["ee_rms_mm_before"]
     assert 0.3 * sigma < v["ee_rms_mm_after"] < 2.0 * sigma < 5.0  # the reported uncertainty is honest
     assert r.status == "ok" and r.refinement["solver"]["result"] == "successful"
+    # Ten frames a 30-degree sweep: the board moves 3 deg between frames and its detector errors repeat
+    # a little (the residual test finds it); the kernel sandwich grows the 1-sigma by far less than the
+    # 1.2x that would make the result suspect (`Limits.correlation_growth`), so it is a note.
+    notes = [n for n in r.verdict.notes if "repeat from frame to frame" in n]
+    assert len(notes) == 1 and "within the 1.2x" in notes[0]
     errors = v["parameter_errors"]
     # Measured: every axis direction within 0.06 deg, ratios within 0.15 %.
     assert all(e["axis_direction_deg"] < 0.1 and abs(e["ratio_percent"]) < 0.25 for e in errors.values())

@@ -335,10 +335,11 @@ def _beta_regularized(x: float, a: float, b: float) -> float:
 
 #: What to change when the arm is not rigid (both rows' reasons end with it).
 TO_CHANGE = (
-    "The camera calibration models neither. To change: calibrate the compliance with stop-and-shoot "
+    "The non-geometric terms the calibration kept (result.json 'terms') do not account for it. To change: "
+    "calibrate with `--terms compliance,backlash` on a capture planned for them (`jaxcal plan --terms ...`: "
+    "gravity torques that vary, sweeps approached from both sides), calibrate the compliance with stop-and-shoot "
     "poses (a laser tracker's point fit with `compliance` terms), sweep about a home pose where the gravity "
-    "torques change less, approach every sweep and home pose from the same side, or trust the result only near "
-    "the capture's poses"
+    "torques change less, or trust the result only near the capture's poses"
 )
 
 

@@ -586,7 +586,7 @@ def synchronise(setup: Setup, obs: Observations, options: Options, terms=None) -
             notes += _compare_clock(ds, offset, clock)
     corrected = log_q is not commanded
     homes = sweep_homes(ds, joint, q, inside, corrected) if setup.kind.single_joint_sweeps else None
-    if homes is not None and not corrected:
+    if homes is not None:
         notes.append(
             "sweeps from a home configuration other than zero: "
             + "; ".join(

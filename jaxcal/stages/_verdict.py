@@ -407,7 +407,7 @@ def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limi
     t = refined.error_correlation
     if t is None:
         return
-    grew = ""
+    grew, growth = "", 1.0
     if refined.cov_views is not None:
         free = np.flatnonzero(np.asarray(refined.fit.free))
         cov = np.array(refined.fit.cov)
@@ -416,33 +416,49 @@ def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limi
             setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov))
         )
         after = _ee_sigma_mm(setup, two, refined)
+        growth = after / before if before > 0 else float("inf")
         grew = (
             f"; the covariance now accounts for them (a kernel sandwich over {t.kernel_lags} frames: the tool "
             f"point's 1-sigma {before:.2f} -> {after:.2f} mm), but the estimate carries their bias"
         )
     lags = ", ".join(f"{r:.2f}" for r in t.autocorrelation)
-    c.add(
-        "correlated_errors_sigmas",
-        t.sigmas,
-        limits.correlation_sigmas,
-        f"the residuals repeat from frame to frame: each corner's residual correlates with its own in the next "
-        f"frames of the capture ({lags} at lags 1-{len(t.autocorrelation)}, {t.sigmas:.1f} sigmas), where the noise "
-        f"model takes them as independent{grew}. Correlated detector errors repeat so: images resampled at the "
-        "sensor's resolution (an undistortion, a renderer's lens warp or scaling) or a pattern the motion carries "
-        "along; give the camera's raw images with its lens in metadata.json, or film poses that differ more from "
-        "frame to frame. So do the errors of a motion the model does not hold (an arm that sags or lags its "
-        "motors: see the arm's reasons, if any)",
-        cause="correlated_errors",
-    )
-    if t.pose_sigmas is not None:
-        c.add(
-            "pose_errors_sigmas",
-            t.pose_sigmas,
-            limits.correlation_sigmas,
-            f"the views of one pose share their errors ({t.pose_sigmas:.1f} sigmas: the cameras or targets seen "
-            f"at one capture index err alike, as an error of the robot's pose would make them){grew}",
-            cause="correlated_errors",
+    found = []
+    if t.sigmas > limits.correlation_sigmas:
+        found.append(
+            f"the residuals repeat from frame to frame: each corner's residual correlates with its own in the next "
+            f"frames of the capture ({lags} at lags 1-{len(t.autocorrelation)}, {t.sigmas:.1f} sigmas), where the "
+            f"noise model takes them as independent{grew}. Correlated detector errors repeat so: images resampled "
+            "at the sensor's resolution (an undistortion, a renderer's lens warp or scaling) or a pattern the motion "
+            "carries along; give the camera's raw images with its lens in metadata.json, or film poses that differ "
+            "more from frame to frame. So do the errors of a motion the model does not hold (an arm that sags or "
+            "lags its motors: see the arm's reasons, if any)"
         )
+    if t.pose_sigmas is not None and t.pose_sigmas > limits.correlation_sigmas:
+        found.append(
+            f"the views of one pose share their errors ({t.pose_sigmas:.1f} sigmas: the cameras or targets seen "
+            f"at one capture index err alike, as an error of the robot's pose would make them){grew}"
+        )
+    if t.sigmas <= limits.correlation_sigmas:
+        c.add("correlated_errors_sigmas", t.sigmas, limits.correlation_sigmas, "")
+    if not found:
+        return
+    # Errors that repeat matter when they change the answer's uncertainty (`Limits.correlation_growth`).
+    if growth > limits.correlation_growth:
+        for message in found:
+            c.add(
+                "correlated_errors_growth",
+                growth,
+                limits.correlation_growth,
+                message,
+                cause="correlated_errors",
+            )
+    else:
+        c.add("correlated_errors_growth", growth, limits.correlation_growth, "")  # passes
+        c.notes += [
+            f"{m} (its 1-sigma grew {growth:.2f}x, within the {limits.correlation_growth:g}x that makes a result "
+            "suspect)"
+            for m in found
+        ]
 
 
 def verdict(

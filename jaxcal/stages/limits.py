@@ -38,7 +38,11 @@ class Limits:
       (each corner's along a run of the capture), or are shared by the views of one
       pose, by more than this many standard deviations (the one-sided tests of
       `jaxcal.stages._refine.error_correlation`); the covariance then takes the kernel
-      sandwich where larger.
+      sandwich where larger. Such a result is `suspect` when that sandwich grows the tool
+      point's 1-sigma by more than `correlation_growth` (the errors then matter to the
+      answer); below it the verdict notes the correlation and the result stands, its
+      uncertainty the sandwich's (a capture of small steps between frames, whose detector
+      errors repeat a little, is not refused for it).
     - `lens_sigmas`, `lens_px`: a refinement whose residuals point to a radial
       distortion beyond the given lens by more than `lens_sigmas` standard deviations
       and a shift of at least `lens_px` at the image's corner (the score test of
@@ -71,6 +75,7 @@ class Limits:
     arm_false_alarm: float = 0.01
     arm_compliance_rad_per_kNm: float = 0.005
     correlation_sigmas: float = 5.0
+    correlation_growth: float = 1.2
     lens_sigmas: float = 10.0
     lens_px: float = 0.5
     ee_sigma_mm: float = 3.0
