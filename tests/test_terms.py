@@ -181,19 +181,21 @@ def test_a_family_is_kept_when_held_out_views_improve():
     r = r - G @ np.linalg.lstsq(G, r, rcond=None)[0]
     A = np.concatenate([G, T, U], axis=1)
     fold = np.repeat(np.arange(n_rows // 40) % 5, 40)
+    block = np.repeat(np.arange(n_rows // 40), 40)  # 100 blocks of consecutive frames
     lin = _Linear(
         A=A, b=r, scale=np.linalg.norm(A, axis=0), raw_r=r, raw_J=A, used=np.ones(n_rows, bool), fold=fold,
-        n_geo=6, family=np.array([0, 0, 1, 1]), sign=np.zeros(4, int), b_rms=np.full(4, 1e-3),
+        n_geo=6, family=np.array([0, 0, 1, 1]), sign=np.zeros(4, int), b_rms=np.full(4, 1e-3), block=block,
     )  # fmt: skip
     models, cols, kept = _compare(lin, ("first", "second"), 5, 1e-6)
     assert kept == ["first"] and list(cols) == [0, 1]
     assert models[1]["kept"] and not models[2].get("kept") and "held-out" in models[2]["why"]
+    assert "standard errors over 100 blocks of frames" in models[1]["why"]  # the paired test's figure
     # A family tried first that takes part of a later one's pattern is left out again.
     mimic = 0.7 * T[:, :1] + 0.7 * rng.standard_normal((n_rows, 1))
     A = np.concatenate([G, mimic, T], axis=1)
     lin = _Linear(
         A=A, b=r, scale=np.linalg.norm(A, axis=0), raw_r=r, raw_J=A, used=np.ones(n_rows, bool), fold=fold,
-        n_geo=6, family=np.array([0, 1, 1]), sign=np.zeros(3, int), b_rms=np.full(3, 1e-3),
+        n_geo=6, family=np.array([0, 1, 1]), sign=np.zeros(3, int), b_rms=np.full(3, 1e-3), block=block,
     )  # fmt: skip
     models, cols, kept = _compare(lin, ("mimic", "real"), 5, 1e-6)
     assert kept == ["real"] and list(cols) == [1, 2], [m.get("why") for m in models]
