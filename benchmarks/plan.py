@@ -81,13 +81,16 @@ def _calibrated(dataset: Path) -> dict:
 
 
 def run_capture(work: Path, name: str, seed: int, make) -> dict:
-    """Render (via `make(out)`) and calibrate one capture, cached in `work`."""
+    """Render (via `make(out)`) and calibrate one capture, cached in `work`; a capture already
+    rendered there (`<name>_seed<seed>/truth.json`: `data/ur5e_sweeps` is `ur5e_sweeps_seed0`) is
+    calibrated as it is."""
     cache = work / f"{name}_seed{seed}.json"
     if cache.exists():
         return json.loads(cache.read_text())
     ds = work / f"{name}_seed{seed}"
     t0 = time.perf_counter()
-    make(ds)
+    if not (ds / "truth.json").exists():
+        make(ds)
     out = {"capture": name, "seed": seed, "render_s": time.perf_counter() - t0} | _calibrated(ds)
     cache.write_text(json.dumps(out, indent=1))
     print(

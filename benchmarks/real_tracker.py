@@ -4,8 +4,8 @@ Public data (`data/ur5_tracker`, from pauljac7700/serial_robots_datasets, MIT; s
 `data/README.md`): 1000 grid poses to calibrate on, 20 random poses to test on,
 the tracker registered to the robot's base (`--device-is-base`).
 
-1. From the command line, as a user runs it: `jaxcal calibrate data/ur5_tracker/grid
-   --device-is-base` (geometric model; with `--terms compliance`; with every term
+1. From the command line, as a user runs it (its entry, `jaxcal.cli.main`, called in this
+   process): `jaxcal calibrate data/ur5_tracker/grid --device-is-base` (geometric model; with `--terms compliance`; with every term
    offered, `compliance,harmonic1,harmonic2`, the best model cross-validation keeps),
    then `jaxcal verify RESULT data/ur5_tracker/test` on each: test mean, RMS and max
    (mm), the 5-fold cross-validation on the grid, and the test RMS the calibration
@@ -115,15 +115,22 @@ print(json.dumps({"cold_fit_s": t2 - t1, "cold_screen_s": t3 - t2, "setup_s": t1
 """
 
 
-def _jaxcal(*args: str, env=None) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "jaxcal", *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        env=env,
-        check=False,
-    )
+def _jaxcal(*args: str) -> subprocess.CompletedProcess:
+    """`jaxcal ARGS` through the command line's own entry (`jaxcal.cli.main`) in this process: the
+    same parsing, checks, outputs and exit code, while the runs share one start-up and their
+    compiled programs (one `python -m jaxcal` each costs seconds of importing and tracing)."""
+    import contextlib
+    import io
+
+    from jaxcal.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(list(args))
+        except SystemExit as e:  # argparse's own exit
+            code = e.code if isinstance(e.code, int) else 2
+    return subprocess.CompletedProcess(["jaxcal", *args], code, out.getvalue(), err.getvalue())
 
 
 def cli_models(workdir: Path) -> dict:

@@ -1,14 +1,68 @@
-"""Progress bars for long work (rich), or nothing when disabled."""
+"""Progress for long work: a rich bar on a terminal (or in Jupyter), one line at a time
+in a pipe or a log, nothing when disabled."""
 
 import contextlib
+import sys
+import time
+
+#: In a pipe, a line of progress at most this often (s), besides the first and the last.
+LINE_EVERY_S = 10.0
+
+
+class LineProgress:
+    """What a rich bar shows, as plain lines for a pipe or a log file (where a bar is drawn
+    only when it ends): `description ...` at once, `description: k/N (t s)` at most every
+    `LINE_EVERY_S`, and `description: N/N in t s` at the end. The subset of
+    `rich.progress.Progress` that jaxcal's loops use: `add_task`, `advance`, `update`."""
+
+    def __init__(self, description: str, stream=None):
+        self.description = description
+        self.stream = stream
+        self.tasks: dict[int, list] = {}
+
+    def __enter__(self):
+        self.start = self.last = time.monotonic()
+        self._line(f"{self.description} ...")
+        return self
+
+    def __exit__(self, *exc):
+        if exc[0] is None:
+            for done, total in self.tasks.values():
+                self._line(f"{self.description}: {done}/{total} in {time.monotonic() - self.start:.1f} s")
+        return False
+
+    def add_task(self, name: str, total: int | None = None, **_) -> int:
+        self.tasks[len(self.tasks)] = [0, total]
+        return len(self.tasks) - 1
+
+    def update(self, task: int, *, advance: float = 0, completed: float | None = None, **_) -> None:
+        entry = self.tasks[task]
+        entry[0] = int(completed if completed is not None else entry[0] + advance)
+        now = time.monotonic()
+        if now - self.last >= LINE_EVERY_S:
+            self.last = now
+            self._line(f"{self.description}: {entry[0]}/{entry[1]} ({now - self.start:.0f} s)")
+
+    def advance(self, task: int, advance: float = 1) -> None:
+        self.update(task, advance=advance)
+
+    def _line(self, text: str) -> None:
+        stream = self.stream or sys.stdout
+        print(text, file=stream, flush=True)
 
 
 def progress(enabled: bool, description: str, *, transient: bool = False):
     """A `rich.progress.Progress` with a description, bar, count and time
-    remaining (a context manager; add tasks to it), or a null context
-    yielding `None` when not `enabled`."""
+    remaining (a context manager; add tasks to it) on a terminal or in Jupyter, a
+    `LineProgress` elsewhere (a pipe, a log), or a null context yielding `None` when
+    not `enabled`."""
     if not enabled:
         return contextlib.nullcontext()
+    from rich.console import Console
+
+    console = Console()
+    if not (console.is_terminal or console.is_jupyter):
+        return LineProgress(description)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     return Progress(

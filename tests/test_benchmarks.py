@@ -212,6 +212,7 @@ REUSED = {
     "corrupted": "corrupted/clean0",
     "drift --camera": "drift_camera/cal0",
     "certify": "certify/demo_sweeps_ds0",
+    "plan": "plan/ur5e_sweeps_seed0",
 }
 
 #: `--quick` presets of sizes larger than the runs', which set the sizes one by one (long_sweep's

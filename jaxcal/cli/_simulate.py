@@ -51,6 +51,8 @@ def cmd_simulate(args) -> int:
         names = nominal_robot(args.robot)[0].joint_names
         trajectory = random_motion(names, args.random_motion, args.motion_amplitude_deg, seed=args.seed)
     start = time.perf_counter()
+    if not args.quiet:
+        print(f"simulating a perturbed {config.robot} into {args.out}: building the scene ...", flush=True)
     with output_lock(args.out, what="--out"):
         out = simulate(
             config, args.out, trajectory=trajectory, overwrite=args.overwrite, progress=not args.quiet

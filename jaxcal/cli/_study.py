@@ -148,6 +148,12 @@ def cmd_montecarlo(args) -> int:
         console.print(f"(single trial incl. compilation: {time.perf_counter() - t0:.1f} s)")
     else:
         console = Console(stderr=True)
+    console.print(
+        f"Monte Carlo: {args.trials} trials of {setup.plan.frames} frames per sweep in one compiled call "
+        "(compiling it comes first, the first run only: most of a minute on a few cores) ...",
+        highlight=False,
+        soft_wrap=True,
+    )
     t0 = time.perf_counter()
     result = mc.monte_carlo(setup, jax.random.key(args.seed), args.trials, chunk=args.chunk)
     jax.block_until_ready(result)

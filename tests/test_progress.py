@@ -1,0 +1,77 @@
+"""Progress where no bar can be drawn (a pipe, a log file): a line at once, a line now and
+then, a line at the end; and the long commands announce their work before doing it."""
+
+import os
+import select
+import subprocess
+import sys
+import time
+
+import pytest
+
+from jaxcal import _progress
+
+
+def test_in_a_pipe_progress_is_lines_first_now_and_then_and_last(monkeypatch, capsys):
+    monkeypatch.setattr(_progress, "LINE_EVERY_S", 0.0)  # a line at every step
+    with _progress.progress(True, "rendering 3 images") as bar:
+        assert isinstance(bar, _progress.LineProgress)  # pytest's capture is not a terminal
+        task = bar.add_task("render", total=3)
+        for _ in range(3):
+            bar.advance(task)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "rendering 3 images ..."
+    assert [line.split(" (")[0] for line in lines[1:4]] == [f"rendering 3 images: {k}/3" for k in (1, 2, 3)]
+    assert lines[4].startswith("rendering 3 images: 3/3 in ") and lines[4].endswith(" s")
+    assert len(lines) == 5
+
+
+def test_progress_off_is_silent(capsys):
+    with _progress.progress(False, "x") as bar:
+        assert bar is None
+    assert capsys.readouterr().out == ""
+
+
+def test_an_interrupted_loop_prints_no_last_line(capsys):
+    with pytest.raises(KeyboardInterrupt), _progress.progress(True, "detecting markers in 4 images") as bar:
+        bar.add_task("detect", total=4)
+        raise KeyboardInterrupt
+    assert capsys.readouterr().out.splitlines() == ["detecting markers in 4 images ..."]
+
+
+def _first_line(args: list[str], tmp_path) -> str:
+    """The first line a `jaxcal` command writes to a pipe (stdout and stderr together); the
+    command is then stopped."""
+    p = subprocess.Popen(
+        [sys.executable, "-m", "jaxcal", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        cwd=tmp_path,
+        env=dict(os.environ, COLUMNS="200"),
+    )
+    try:
+        deadline = time.monotonic() + 120.0  # a bound on a hung process, not a timing check
+        while time.monotonic() < deadline:
+            if select.select([p.stdout], [], [], 1.0)[0]:
+                return p.stdout.readline().decode()
+            if p.poll() is not None:
+                return p.stdout.read().decode()
+        return ""
+    finally:
+        p.kill()
+        p.wait()
+        p.stdout.close()
+
+
+@pytest.mark.parametrize(
+    ("args", "first"),
+    [
+        (["montecarlo", "--trials", "4"], "Monte Carlo: 4 trials of "),
+        (["simulate", "--out", "sim", "--resolution", "160x120"], "simulating a perturbed ur5e into sim"),
+    ],
+    ids=["montecarlo", "simulate"],
+)
+def test_long_commands_say_what_they_do_before_doing_it(args, first, tmp_path):
+    """Before compiling (montecarlo: one call that compiles for most of a minute) or building a
+    scene and rendering (simulate), the command's first line says what comes."""
+    assert _first_line(args, tmp_path).startswith(first)
