@@ -3,6 +3,7 @@ in a pipe or a log, nothing when disabled."""
 
 import contextlib
 import sys
+import threading
 import time
 
 #: In a pipe, a line of progress at most this often (s), besides the first and the last.
@@ -68,3 +69,36 @@ def progress(enabled: bool, description: str, *, transient: bool = False):
     return Progress(
         TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=transient
     )
+
+
+@contextlib.contextmanager
+def working(enabled: bool, description: str, *, stream=None):
+    """Around one long call that reports nothing itself (a compile, one jitted batch): on a
+    terminal a rich spinner with `description`; elsewhere a line `description: still working
+    (t s)` every `LINE_EVERY_S` until the call returns, so that a pipe or a log is never
+    silent for long; nothing when not `enabled`."""
+    if not enabled:
+        yield
+        return
+    from rich.console import Console
+
+    console = Console(stderr=stream is sys.stderr)
+    if console.is_terminal:
+        with console.status(description):
+            yield
+        return
+    done = threading.Event()
+    start = time.monotonic()
+
+    def tick():
+        while not done.wait(LINE_EVERY_S):
+            line = f"{description}: still working ({time.monotonic() - start:.0f} s)"
+            print(line, file=stream or sys.stdout, flush=True)
+
+    thread = threading.Thread(target=tick, name="jaxcal progress", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()

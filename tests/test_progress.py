@@ -75,3 +75,26 @@ def test_long_commands_say_what_they_do_before_doing_it(args, first, tmp_path):
     """Before compiling (montecarlo: one call that compiles for most of a minute) or building a
     scene and rendering (simulate), the command's first line says what comes."""
     assert _first_line(args, tmp_path).startswith(first)
+
+
+def test_a_long_call_in_a_pipe_says_it_is_still_working(monkeypatch):
+    """`working`: around one call that reports nothing (a compile), a line every
+    `LINE_EVERY_S` in a pipe, and none after the call returns."""
+    import io
+
+    monkeypatch.setattr(_progress, "LINE_EVERY_S", 0.01)
+    stream = io.StringIO()
+    with _progress.working(True, "Monte Carlo: 4 trials", stream=stream):
+        deadline = time.monotonic() + 60.0
+        while stream.getvalue().count("\n") < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    after = stream.getvalue()
+    time.sleep(0.05)
+    assert stream.getvalue() == after  # the ticker stopped with the call
+    lines = after.splitlines()
+    assert len(lines) >= 2 and all(
+        line.startswith("Monte Carlo: 4 trials: still working (") for line in lines
+    )
+    with _progress.working(False, "x", stream=stream):
+        pass
+    assert stream.getvalue() == after

@@ -2,6 +2,7 @@
 
 import argparse
 import json
+import sys
 import time
 
 import jax
@@ -12,6 +13,7 @@ from rich.table import Table
 
 from .. import _montecarlo as mc
 from .._axisfit import parameter_names
+from .._progress import working
 from ..io._files import check_output_file, write_text_atomic
 from ..robots import load_robot_file
 from ._common import count, finite, seed
@@ -155,8 +157,9 @@ def cmd_montecarlo(args) -> int:
         soft_wrap=True,
     )
     t0 = time.perf_counter()
-    result = mc.monte_carlo(setup, jax.random.key(args.seed), args.trials, chunk=args.chunk)
-    jax.block_until_ready(result)
+    with working(True, f"Monte Carlo: {args.trials} trials", stream=sys.stderr):
+        result = mc.monte_carlo(setup, jax.random.key(args.seed), args.trials, chunk=args.chunk)
+        jax.block_until_ready(result)
     summary = mc.summarize(result) | {"seconds": time.perf_counter() - t0}
     _summary_table(
         console,
