@@ -6,8 +6,9 @@ import sys
 import threading
 import time
 
-#: In a pipe, a line of progress at most this often (s), besides the first and the last.
-LINE_EVERY_S = 10.0
+#: In a pipe, a line of progress at most this often (s), besides the first and the last: no
+#: silence of more than 10 s.
+LINE_EVERY_S = 8.0
 
 
 class LineProgress:
@@ -72,28 +73,33 @@ def progress(enabled: bool, description: str, *, transient: bool = False):
 
 
 @contextlib.contextmanager
-def working(enabled: bool, description: str, *, stream=None):
-    """Around one long call that reports nothing itself (a compile, one jitted batch): on a
-    terminal a rich spinner with `description`; elsewhere a line `description: still working
-    (t s)` every `LINE_EVERY_S` until the call returns, so that a pipe or a log is never
-    silent for long; nothing when not `enabled`."""
+def working(enabled: bool, description: str, *, stream=None, say=None):
+    """Around one long call that reports nothing itself (a compile, one jitted batch): a line
+    `description: still working (t s)` every `LINE_EVERY_S` until the call returns, through
+    `say` (a callable taking a line: the caller's own channel of progress) or, without it, to
+    `stream` (default stdout), where on a terminal a rich spinner stands instead; so a pipe or
+    a log is never silent for long. Nothing when not `enabled`."""
     if not enabled:
         yield
         return
-    from rich.console import Console
+    if say is None:
+        from rich.console import Console
 
-    console = Console(stderr=stream is sys.stderr)
-    if console.is_terminal:
-        with console.status(description):
-            yield
-        return
+        console = Console(stderr=stream is sys.stderr)
+        if console.is_terminal:
+            with console.status(description):
+                yield
+            return
+
+        def say(line):
+            print(line, file=stream or sys.stdout, flush=True)
+
     done = threading.Event()
     start = time.monotonic()
 
     def tick():
         while not done.wait(LINE_EVERY_S):
-            line = f"{description}: still working ({time.monotonic() - start:.0f} s)"
-            print(line, file=stream or sys.stdout, flush=True)
+            say(f"{description}: still working ({time.monotonic() - start:.0f} s)")
 
     thread = threading.Thread(target=tick, name="jaxcal progress", daemon=True)
     thread.start()

@@ -98,3 +98,15 @@ def test_a_long_call_in_a_pipe_says_it_is_still_working(monkeypatch):
     with _progress.working(False, "x", stream=stream):
         pass
     assert stream.getvalue() == after
+
+
+def test_a_long_call_reports_through_the_callers_own_channel(monkeypatch):
+    """`working(say=log)`: the lines go where the caller's progress goes (plan's and handeye's
+    `log`, the calibration's `Options.say`), terminal or not."""
+    monkeypatch.setattr(_progress, "LINE_EVERY_S", 0.01)
+    lines = []
+    with _progress.working(True, "choosing 24 poses", say=lines.append):
+        deadline = time.monotonic() + 60.0
+        while not lines and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert lines and lines[0].startswith("choosing 24 poses: still working (")

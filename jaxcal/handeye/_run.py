@@ -9,6 +9,7 @@ import numpy as np
 from .._cache import enable_compilation_cache
 from .._exported import warm_start
 from .._handeye import HandEyeResult, HandEyeVerdict, KFoldSpread, pose_difference
+from .._progress import working
 from ..io._files import resolved
 from ..io.handeye import HandEyeCapture, true_T_robot_cam
 from ..records import Intrinsics
@@ -130,7 +131,9 @@ def calibrate_hand_eye_capture(
             progress=progress,
             log=log,
         )
-        solved = solve(observed, folds=folds, max_steps=max_steps, log=log)
+        log("solving (the first run on a capture of this size compiles its programs) ...")
+        with working(progress, "solving", say=log):
+            solved = solve(observed, folds=folds, max_steps=max_steps, log=log)
         verdict, hint_seconds = judge(observed, solved, max_steps=max_steps, log=log)
     return HandEyeRun(
         capture=observed.capture,

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._correction import zero_correction
+from .._progress import working
 from .._terms import approach, approach_at, check_terms
 from .._uncertainty import random_configurations, tool_points
 from ..errors import BudgetTooSmallError, CameraViewError, PlanError, PlanFileError, UnreachableRegionError
@@ -494,8 +495,10 @@ def plan(
         cands, counts = _feasible_candidates(
             scene, limits, q0, candidates, amplitude, seed + attempt, checker, say, timings
         )
-        got = _choose(scene, limits, q0, cands, frames, configs, method=method, starts=starts, steps=steps,
-                      sigma_px=sigma_px, seed=seed + attempt, checker=checker, timings=timings, terms=tm)  # fmt: skip
+        say(f"choosing {frames} of {len(cands)} poses ({method}; the first plan compiles its programs)")
+        with working(log is not None, f"choosing {frames} poses", say=say):
+            got = _choose(scene, limits, q0, cands, frames, configs, method=method, starts=starts, steps=steps,
+                          sigma_px=sigma_px, seed=seed + attempt, checker=checker, timings=timings, terms=tm)  # fmt: skip
         if best is None or got[2].ee_rms_with_held < best[2].ee_rms_with_held:
             best = got
         if goal_mm is None or 1e3 * best[2].ee_rms_with_held <= goal_mm:

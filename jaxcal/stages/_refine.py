@@ -32,6 +32,7 @@ from .._correction import INTRINSIC_NAMES, Estimate, ParameterLayout, physical_p
 from .._device import to_device
 from .._geometry import so3_log
 from .._links import average_pose, start_mounts
+from .._progress import working
 from .._refine import (
     OtherCameras,
     RefineParams,
@@ -562,11 +563,12 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         + (f", {n_cams} cameras" if n_cams > 1 else "")
     )
     problem, params0, layout, cand = _problem(setup, obs, sync, two, corners, obs.primary.K, d5, options)
-    free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.identifiability_tol)
-    free = np.asarray(free)
-    terms = resolve(setup, options)
-    tried = terms if setup.kind.terms_in == "refinement" else ()
-    res = _programs.refinement(free, jacobian=bool(tried))(problem, params0)
+    with working(options.log is not None, "refinement", say=options.say):
+        free, _ = _programs.identifiable()(problem, params0, cand, tol=setup.identifiability_tol)
+        free = np.asarray(free)
+        terms = resolve(setup, options)
+        tried = terms if setup.kind.terms_in == "refinement" else ()
+        res = _programs.refinement(free, jacobian=bool(tried))(problem, params0)
     fit_terms = None
     if tried:
         problem, res, layout, cand, free, fit_terms = _with_terms(
