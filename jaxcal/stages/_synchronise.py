@@ -20,6 +20,7 @@ from .._clocksync import LINEAR_UP_TO_S, controller_time, interpolate_encoders
 from .._device import to_device
 from .._kinematics import PRISMATIC
 from .._links import link_poses
+from .._progress import working
 from ..errors import CalibrationError
 from ..io.dataset import Dataset
 from ..records import Clock, Named
@@ -467,7 +468,8 @@ def _placed(
                 "estimating the camera-controller clock offset (the first joint's arc, its link's plate)"
             )
             sel = np.flatnonzero(inside & obs.found)
-            cf = _clock_from_first_link(setup, obs, sel, log_q, start, options.arc_loss)
+            with working(options.log is not None, "clock offset", say=options.say):
+                cf = _clock_from_first_link(setup, obs, sel, log_q, start, options.arc_loss)
         return (None, None, np.full(len(t_ctrl), -1), t_ctrl, q, inside), cf
     sweeps, counts, joint, t_ctrl, q, inside = line.sweeps(start)
     cf = None
@@ -476,9 +478,10 @@ def _placed(
             "estimating the camera-controller clock offset (arc fits of all joints with a shared offset)"
         )
         _compile_ahead(setup, options, sweeps, joint, q, inside)
-        cf = _clock_from_sweeps(
-            sweeps, log_q, start, ds.clock_drift_ppm, options.arc_loss, setup.nominal.joint_types
-        )
+        with working(options.log is not None, "clock offset", say=options.say):
+            cf = _clock_from_sweeps(
+                sweeps, log_q, start, ds.clock_drift_ppm, options.arc_loss, setup.nominal.joint_types
+            )
     return (sweeps, counts, joint, t_ctrl, q, inside), cf
 
 
