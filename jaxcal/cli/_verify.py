@@ -1,6 +1,7 @@
 """`jaxcal verify RESULT DATASET`: a stop-and-shoot calibration against held-out samples (jaxcal.verification)."""
 
 import json
+import sys
 
 from rich.console import Console
 from rich.table import Table
@@ -38,6 +39,8 @@ def cmd_verify(args) -> int:
     check_output(args.plot, inputs, args.overwrite, "--plot")
     if args.cv == 1 or args.cv < 0:
         raise ValueError(f"--cv {args.cv}: give K >= 2 folds, or 0 for none")
+    cv = f", with its {args.cv}-fold cross-validation" if args.cv else ""
+    print(f"verifying {args.result} on {args.dataset}{cv} ...", file=sys.stderr, flush=True)
     v = verify(args.result, args.dataset, cv=args.cv)
     s = v.summary
     deg = s.calibrated_deg is not None
