@@ -5,11 +5,11 @@ Public data (`data/ur5_tracker`, from pauljac7700/serial_robots_datasets, MIT; s
 the tracker registered to the robot's base (`--device-is-base`).
 
 1. From the command line, as a user runs it (its entry, `jaxcal.cli.main`, called in this
-   process): `jaxcal calibrate data/ur5_tracker/grid --device-is-base` (geometric model; with `--terms compliance`; with every term
-   offered, `compliance,harmonic1,harmonic2`, the best model cross-validation keeps),
-   then `jaxcal verify RESULT data/ur5_tracker/test` on each: test mean, RMS and max
-   (mm), the 5-fold cross-validation on the grid, and the test RMS the calibration
-   predicts (covariance and residual scale) over the measured one.
+   process): `jaxcal calibrate data/ur5_tracker/grid --device-is-base` (geometric model; with
+   `--terms compliance`; with every term offered, `compliance,harmonic1,harmonic2`, the best
+   model cross-validation keeps), then `jaxcal verify RESULT data/ur5_tracker/test` on each:
+   test mean, RMS and max (mm), the 5-fold cross-validation on the grid, and the test RMS the
+   calibration predicts (covariance and residual scale) over the measured one.
 2. Side by side in the same run: an independent NumPy/SciPy implementation of the same
    model (`benchmarks/_scipy_tracker.py`: standard DH with Hayati's beta, base frame,
    tool point, identifiable columns by pivoted QR, `scipy.optimize.least_squares`) on

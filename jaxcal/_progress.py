@@ -17,9 +17,8 @@ class LineProgress:
     `LINE_EVERY_S`, and `description: N/N in t s` at the end. The subset of
     `rich.progress.Progress` that jaxcal's loops use: `add_task`, `advance`, `update`."""
 
-    def __init__(self, description: str, stream=None):
+    def __init__(self, description: str):
         self.description = description
-        self.stream = stream
         self.tasks: dict[int, list] = {}
 
     def __enter__(self):
@@ -49,8 +48,7 @@ class LineProgress:
         self.update(task, advance=advance)
 
     def _line(self, text: str) -> None:
-        stream = self.stream or sys.stdout
-        print(text, file=stream, flush=True)
+        print(text, flush=True)
 
 
 def progress(enabled: bool, description: str, *, transient: bool = False):
