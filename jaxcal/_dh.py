@@ -103,35 +103,44 @@ class DHTable(eqx.Module):
 # --------------------------------------------------------------------------- link transforms
 
 
-def _rx(angle) -> Float[Array, "3 3"]:
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    return jnp.stack([1.0, 0.0, 0.0, 0.0, c, -s, 0.0, s, c]).reshape(3, 3)
+def _rx(angle, xp=jnp) -> Float[Array, "3 3"]:
+    c, s = xp.cos(angle), xp.sin(angle)
+    return xp.stack([1.0, 0.0, 0.0, 0.0, c, -s, 0.0, s, c]).reshape(3, 3)
 
 
-def _ry(angle) -> Float[Array, "3 3"]:
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    return jnp.stack([c, 0.0, s, 0.0, 1.0, 0.0, -s, 0.0, c]).reshape(3, 3)
+def _ry(angle, xp=jnp) -> Float[Array, "3 3"]:
+    c, s = xp.cos(angle), xp.sin(angle)
+    return xp.stack([c, 0.0, s, 0.0, 1.0, 0.0, -s, 0.0, c]).reshape(3, 3)
+
+
+def _traced(*values) -> bool:
+    return any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves(values))
 
 
 def link_transform(convention: str, theta, d, a, alpha, beta) -> Float[Array, "4 4"]:
     """One row's transform: DH $R_z(\\theta)T_z(d)T_x(a)R_x(\\alpha)R_y(\\beta)$,
     MDH $R_x(\\alpha)T_x(a)R_y(\\beta)R_z(\\theta)T_z(d)$ (with the joint's $q$ in $\\theta$).
-    Written out (one 4x4 and a $R_y$) to keep the compiled programs small."""
-    ct, st, ca, sa = jnp.cos(theta), jnp.sin(theta), jnp.cos(alpha), jnp.sin(alpha)
-    zero, one = jnp.zeros_like(ct), jnp.ones_like(ct)
+    Written out (one 3x3 and a $R_y$) to keep the compiled programs small; in NumPy when
+    nothing is traced (loading a robot file compiles nothing)."""
+    xp = jnp if _traced(theta, d, a, alpha, beta) else np
+    ct, st, ca, sa = xp.cos(theta), xp.sin(theta), xp.cos(alpha), xp.sin(alpha)
+    zero, one = xp.zeros_like(ct), xp.ones_like(ct)
     if convention == "dh":
-        rows = [
-            [ct, -st * ca, st * sa, a * ct],
-            [st, ct * ca, -ct * sa, a * st],
-            [zero, sa, ca, d + zero],
-        ]
-        T = jnp.stack([jnp.stack(r) for r in rows] + [jnp.stack([zero, zero, zero, one])])
-        return T.at[:3, :3].set(T[:3, :3] @ _ry(beta))
-    if convention == "mdh":
-        R = _rx(alpha) @ _ry(beta) @ jnp.stack([ct, -st, zero, st, ct, zero, zero, zero, one]).reshape(3, 3)
-        t = jnp.stack([a + zero, zero, zero]) + R[:, 2] * d
-        return make_pose(R, t)
-    raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+        R = xp.stack(
+            [xp.stack([ct, -st * ca, st * sa]), xp.stack([st, ct * ca, -ct * sa]), xp.stack([zero, sa, ca])]
+        )
+        R, t = R @ _ry(beta, xp), xp.stack([a * ct, a * st, d + zero])
+    elif convention == "mdh":
+        R = (
+            _rx(alpha, xp)
+            @ _ry(beta, xp)
+            @ xp.stack([ct, -st, zero, st, ct, zero, zero, zero, one]).reshape(3, 3)
+        )
+        t = xp.stack([a + zero, zero, zero]) + R[:, 2] * d
+    else:
+        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+    bottom = xp.stack([zero, zero, zero, one])[None]
+    return xp.concatenate([xp.concatenate([R, t[:, None]], axis=1), bottom], axis=0)
 
 
 def table_frames(table: DHTable, q: Float[Array, " joints"] | None = None) -> Float[Array, "frames 4 4"]:
@@ -164,9 +173,11 @@ def table_to_model(
     (with `T_flange`) in `T_last_flange`. Its forward kinematics equals
     `table_forward_kinematics`."""
     n = table.theta.shape[0]
+    if not _traced(table):  # in NumPy: loading a robot file compiles nothing
+        table = jax.tree.map(np.asarray, table)
     origins = []
     carry = table.T_base
-    zero = jnp.zeros(())
+    zero = np.zeros(())
     for i in range(n):
         if table.convention == "dh":
             origins.append(carry @ link_transform("dh", table.theta[i], zero, zero, zero, zero))
@@ -177,7 +188,7 @@ def table_to_model(
             )
             carry = link_transform("mdh", zero, table.d[i], zero, zero, zero)
     return make_model(
-        jnp.stack(origins),
+        jnp.asarray(np.stack(origins)) if not _traced(table) else jnp.stack(origins),
         np.tile([0.0, 0.0, 1.0], (n, 1)),
         joint_names=table.joint_names,
         link_names=link_names,

@@ -266,27 +266,32 @@ def rpy_to_matrix(rpy: Float[Array, "3"]) -> Float[Array, "3 3"]:
     )
 
 
-def matrix_to_rpy(R: Float[Array, "3 3"]) -> Float[Array, "3"]:
-    """Inverse of `rpy_to_matrix` (pitch in [-pi/2, pi/2]).
+def matrix_to_rpy(R: Float[Array, "*batch 3 3"], xp=jnp) -> Float[Array, "*batch 3"]:
+    """Inverse of `rpy_to_matrix` (pitch in [-pi/2, pi/2]), of one rotation or a stack; `xp=np`
+    computes it in NumPy (host code that writes files compiles nothing).
 
     At gimbal lock (pitch = +-pi/2) only roll -+ yaw is defined; yaw is then
     chosen so that the rebuilt matrix is exact with the roll from `R`.
     """
-    cp = jnp.sqrt(R[0, 0] ** 2 + R[1, 0] ** 2)
-    pitch = jnp.arctan2(-R[2, 0], cp)
+
+    def r(a, b):
+        return R[..., a, b]
+
+    cp = xp.sqrt(r(0, 0) ** 2 + r(1, 0) ** 2)
+    pitch = xp.arctan2(-r(2, 0), cp)
     locked = cp < 1e-10
-    roll_free = jnp.arctan2(R[2, 1], R[2, 2])
-    yaw_free = jnp.arctan2(R[1, 0], R[0, 0])
+    roll_free = xp.arctan2(r(2, 1), r(2, 2))
+    yaw_free = xp.arctan2(r(1, 0), r(0, 0))
     # Locked: R[0,1] = sin(p) sin(r) cos(y) - sin(y) cos(r), R[1,1] = sin(p) sin(r) sin(y) + cos(y) cos(r).
-    roll_locked = jnp.where((R[2, 1] == 0) & (R[2, 2] == 0), 0.0, roll_free)
-    yaw_locked = jnp.where(
-        R[2, 0] < 0,
-        roll_locked - jnp.arctan2(R[0, 1], R[1, 1]),  # pitch = +pi/2
-        jnp.arctan2(-R[0, 1], R[1, 1]) - roll_locked,  # pitch = -pi/2
+    roll_locked = xp.where((r(2, 1) == 0) & (r(2, 2) == 0), 0.0, roll_free)
+    yaw_locked = xp.where(
+        r(2, 0) < 0,
+        roll_locked - xp.arctan2(r(0, 1), r(1, 1)),  # pitch = +pi/2
+        xp.arctan2(-r(0, 1), r(1, 1)) - roll_locked,  # pitch = -pi/2
     )
-    roll = jnp.where(locked, 0.0, roll_free)
-    yaw = jnp.where(locked, yaw_locked - roll_locked, yaw_free)
-    return jnp.stack([roll, pitch, yaw])
+    roll = xp.where(locked, 0.0, roll_free)
+    yaw = xp.where(locked, yaw_locked - roll_locked, yaw_free)
+    return xp.stack([roll, pitch, yaw], axis=-1)
 
 
 def orthonormal_basis(v: Float[Array, "3"]) -> Float[Array, "3 2"]:

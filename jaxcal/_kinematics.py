@@ -186,15 +186,10 @@ def origins_xyz_rpy(model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
     return T[:, :3, 3].copy(), rotations_to_rpy(T[:, :3, :3])
 
 
-#: `matrix_to_rpy` of a stack: one compiled program, not an eager operation per step and matrix.
-_matrices_to_rpy = jax.jit(jax.vmap(matrix_to_rpy))
-
-
 def rotations_to_rpy(R) -> np.ndarray:
     """URDF roll-pitch-yaw (`jaxcal._geometry.matrix_to_rpy`) of `(n, 3, 3)` rotations, `(n, 3)`
-    (of one `(3, 3)`, `(3,)`), by one compiled call: for host code that writes files."""
-    R = np.asarray(R, np.float64)
-    return np.asarray(_matrices_to_rpy(to_device(R.reshape(-1, 3, 3)))).reshape(R.shape[:-2] + (3,))
+    (of one `(3, 3)`, `(3,)`), in NumPy: for host code that writes files."""
+    return matrix_to_rpy(np.asarray(R, np.float64), np)
 
 
 def origin_from_xyz_rpy(xyz, rpy) -> Float[Array, "4 4"]:

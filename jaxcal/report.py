@@ -158,10 +158,10 @@ def plot_residuals(result):
 def plot_ee_errors(result):
     """End-effector error against the truth, nominal model vs calibrated, over the
     validation's random configurations (a `Figure`; `None` without a truth)."""
-    from matplotlib.figure import Figure
-
     if result.ee_errors is None:
         return None
+    from matplotlib.figure import Figure
+
     before, after = result.ee_errors.before, result.ee_errors.after
     fig = Figure(figsize=(7, 3.6))
     ax = fig.subplots()

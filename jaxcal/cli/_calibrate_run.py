@@ -11,15 +11,12 @@ from rich.console import Console
 from rich.table import Table
 
 from .._exported import warm_start
-from ..certification import certify
 from ..errors import CalibrationError
 from ..io._files import note_written, resolved, write_text_atomic
-from ..io.checks import certificate_json
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
 from ..robots import load_robot
 from ..summary import TextTable, clock_line, fmt, joints_table, refinement_line, terms_tables, truth_table
-from ._certify import print_certificate, region_of
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees
 from ._rosbag import dataset_of
 
@@ -161,11 +158,19 @@ def _clock_arg(console, args) -> str:
     return mode
 
 
+def _plots_expected(dataset) -> bool:
+    """Whether the result will have plots: a capture of images (arcs) or a simulated dataset (the
+    errors against its truth); a measuring device's samples without a truth have none."""
+    root = Path(dataset)
+    return not (root / "samples.csv").is_file() or (root / "truth.json").is_file()
+
+
 def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
-    # While it calibrates, matplotlib loads (the caller reads the programs ahead).
-    plots = warm_up_plots()
+    # While it calibrates, matplotlib loads where it will plot (the caller reads the programs ahead).
+    plots = warm_up_plots() if _plots_expected(dataset) else None
     code = _calibrate_and_write(console, dataset, out, args, overwrite=overwrite, checked=checked)
-    plots.join()
+    if plots is not None:
+        plots.join()
     return code
 
 
@@ -226,10 +231,14 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
 def _certificate(console, out: Path, args) -> list[str]:
     """With `--region` / `--joint-box`: the accuracy certificate over it, on the console, in
     `report.md` and `certificate.json` (the files written)."""
-    where = region_of(args)
-    if all(v is None for v in where.values()):
+    if not (getattr(args, "region", None) or getattr(args, "joint_box", None)):
         return []
-    c = certify(out, **where)
+    # Imported only here: a calibration without a certificate does not load its modules.
+    from ..certification import certify
+    from ..io.checks import certificate_json
+    from ._certify import print_certificate, region_of
+
+    c = certify(out, **region_of(args))
     print_certificate(console, c)
     write_text_atomic(out / "certificate.json", json.dumps(certificate_json(c), indent=1))
     note_written(out, "certificate.json")

@@ -37,6 +37,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from ruamel.yaml import YAMLError
@@ -184,7 +185,7 @@ def read_table_file(path) -> TableFile:
             f = [_numbers(path, f"flange.{k}", flange[k], ()) for k in ("theta", "d", "a", "alpha")]
         except (KeyError, TypeError):
             raise _fail(path, "field 'flange' must be {a, alpha, d, theta} or {matrix}") from None
-        T_flange = link_transform(convention, *(float(v) for v in f), 0.0)
+        T_flange = jnp.asarray(link_transform(convention, *(float(v) for v in f), 0.0))
     table = DHTable(
         *(jnp.asarray(cols[c]) for c in COLUMNS), T_base, T_flange, convention, tuple(names), tuple(parallel)
     )
@@ -236,7 +237,7 @@ def read_dh_table(path) -> tuple[DHTable, dict]:
 
 def _matrix(path: Path, field: str, value) -> jnp.ndarray:
     if value is None:
-        return jnp.eye(4)
+        return jnp.asarray(np.eye(4))
     T = np.asarray(value, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise DatasetError(f"DH table {shown(path)!r}: field {field!r} must be a finite 4x4 matrix")
@@ -270,7 +271,7 @@ def table_inertials(path) -> tuple[np.ndarray, np.ndarray]:
     t = read_table_file(path)
     if t.mass is None:
         raise ValueError(f"DH table {str(t.path)!r} gives no link masses (fields 'mass' and 'com')")
-    tab, zero = t.table, jnp.zeros(())
+    tab, zero = jax.tree.map(np.asarray, t.table), np.zeros(())
     coms = []
     for i in range(len(tab.joint_names)):
         if tab.convention == "dh":

@@ -40,6 +40,7 @@ import optimistix as optx
 
 from .._axisfit import AxisFitResult
 from .._correction import ParameterLayout, apply_correction, physical_parameters
+from .._exported import stored_jit
 from .._geometry import se3_exp
 from .._kinematics import PRISMATIC, KinematicModel, forward_kinematics
 from .._npgeom import fit_sandwich, kabsch, nearest_rotation
@@ -64,6 +65,7 @@ from .._terms import approach, signs
 from ..errors import CalibrationError
 from ..records import ModelRow, PointOutlier, RepeatedPose, ResidualStats, TermRow
 from ._observe import Observations
+from ._programs import compile_ahead
 from ._setup import Options, Setup
 from ._synchronise import Sync
 from ._terms import TERM_FLOOR as TERM_FLOOR
@@ -191,24 +193,56 @@ def candidates(layout: PointLayout, *, fixed_frame_free: bool, orientation: bool
     return cand
 
 
-@jax.jit
-def _fit(problem: PointProblem, cand, tol, scale=None):
+# The stage's programs are stored (`jaxcal._exported`): a second process neither traces nor
+# compiles them. They run many times per calibration and are what `benchmarks/real_tracker.py`
+# times against SciPy, so they keep XLA's optimisations (`compiler_options=None`).
+def _fit_program(problem: PointProblem, cand, tol, scale=None):
     return fit_points(problem, cand, tol=tol, scale=scale)
 
 
-@jax.jit
-def _radii(problem: PointProblem, fit: PointFitResult):
+def _radii_program(problem: PointProblem, fit: PointFitResult):
     return sample_radii(fit.x, fit.free, problem)
 
 
-@jax.jit
-def _robust(problem: PointProblem, fit: PointFitResult):
+def _robust_program(problem: PointProblem, fit: PointFitResult):
     return fit_points_robust(problem, fit, POINT_ROBUST)
 
 
-@jax.jit
-def _refit(problem: PointProblem, cand, free):
+def _refit_program(problem: PointProblem, cand, free):
     return fit_points(problem, cand, tol=0.0, free=free)
+
+
+def _cv_program(problem: PointProblem, cand, free, train):
+    return cross_validate(problem, cand, free, train)
+
+
+def _residuals_program(problem: PointProblem, x):
+    """The fitted points' distances from the measured ones (m) and, with orientations, their
+    angles (rad; zeros without)."""
+    dist = jnp.linalg.norm(predict(x, problem) - problem.data.y, axis=1)
+    angle = rotation_errors(x, problem) if problem.layout.orientation else jnp.zeros_like(dist)
+    return dist, angle
+
+
+_fit = stored_jit(_fit_program, "point_fit", compiler_options=None)
+_radii = stored_jit(_radii_program, "point_radii")
+_robust = stored_jit(_robust_program, "point_robust", (POINT_ROBUST,))
+_refit = stored_jit(_refit_program, "point_refit")
+_cv = stored_jit(_cv_program, "point_cv")
+_residuals = stored_jit(_residuals_program, "point_residuals")
+
+
+def _compile_ahead(problem: PointProblem, cand, tol, scale, folds: int) -> None:
+    """Compile, on background threads while the geometric fit compiles and runs, the programs the
+    stage calls after it on the same samples (`_programs.compile_ahead`): on a first run their
+    compiles share the cores instead of following one another."""
+    fit = _fit.out_info(problem, cand, tol, scale)
+    compile_ahead(_radii, problem, fit)
+    if folds:
+        train = jax.ShapeDtypeStruct((folds, problem.data.q.shape[0]), jnp.bool_)
+        compile_ahead(_cv, problem, cand, fit.free, train)
+    compile_ahead(_residuals, problem, fit.x)
+    compile_ahead(_axis_result, problem, fit, problem.nominal)
 
 
 def term_scale(problem: PointProblem) -> np.ndarray:
@@ -229,11 +263,6 @@ def term_effect_std(problem: PointProblem, fit: PointFitResult) -> np.ndarray:
     """Per non-geometric coefficient, its std times the RMS of its basis over the
     fitted samples: how well the data pin its effect on the joint angle (rad)."""
     return np.asarray(fit.std)[problem.layout.base.axis_size :] * term_scale(problem)
-
-
-@jax.jit
-def _cv(problem: PointProblem, cand, free, train):
-    return cross_validate(problem, cand, free, train)
 
 
 def _hold_implausible_terms(problem: PointProblem, cand, fit: PointFitResult) -> PointFitResult:
@@ -439,7 +468,11 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free, orientation=orientation)
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         scale = plausible_scale(layout, nominal, options.limits)
-        fit = jax.device_get(_fit(problem, jnp.asarray(cand), tol, jnp.asarray(scale)))
+        cand, scale = jnp.asarray(cand), jnp.asarray(scale)
+        if not terms:
+            _compile_ahead(problem, cand, tol, scale, folds)
+        fit = jax.device_get(_fit(problem, cand, tol, scale))
+        cand = np.asarray(cand)
         return layout, problem, cand, scale, fit
 
     options.say(
@@ -483,8 +516,8 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     layout, problem, cand, unseen, fit, *_ = best
     if not bool(fit.result == optx.RESULTS.successful):
         options.say("point fit: the solver did not converge")
-    dist = 1e3 * np.linalg.norm(np.asarray(predict(fit.x, problem)) - y, axis=1)
-    angle = np.degrees(np.asarray(rotation_errors(fit.x, problem)))[used] if orientation else None
+    dist, angle = (np.asarray(a) for a in _residuals(problem, fit.x))
+    dist, angle = 1e3 * dist, np.degrees(angle)[used] if orientation else None
     names = layout.names()
     free = np.asarray(fit.free)
     held = tuple(nm for nm, f, c in zip(names, free, cand) if not f and c)
@@ -511,27 +544,35 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
 
 def axis_result(pf: PointFit, nominal: KinematicModel) -> AxisFitResult:
     """The point fit's geometric part as an `AxisFitResult` (the record every kind's verdict and outputs read)."""
-    layout, fit, problem = pf.layout, pf.fit, pf.problem
+    return _axis_result(pf.problem, pf.fit, nominal)
+
+
+def _axis_result_program(
+    problem: PointProblem, fit: PointFitResult, nominal: KinematicModel
+) -> AxisFitResult:
+    layout = problem.layout
     k = layout.base.axis_size
-    params, _ = layout.split(jnp.asarray(fit.x))
+    params, _ = layout.split(fit.x)
     model, mounts = apply_correction(nominal, problem.T_flange_point0[None], params.correction)
-    cov = jnp.asarray(fit.cov)[:k, :k]
     return AxisFitResult(
         model=eqx.tree_at(lambda m: m.T_flange_tool, model, mounts[0]),
         T_flange_marker=mounts,
         T_cam_base=problem.T_dev_base0 @ se3_exp(params.cam),
         params=params,
-        std=jnp.asarray(fit.std)[:k],
-        cov=cov,
-        free=jnp.asarray(fit.free)[:k],
-        independence=jnp.asarray(fit.independence)[:k],
+        std=fit.std[:k],
+        cov=fit.cov[:k, :k],
+        free=fit.free[:k],
+        independence=fit.independence[:k],
         result=fit.result,
         num_steps=jnp.asarray(fit.num_steps),
-        residual_rms=jnp.sqrt(jnp.asarray(fit.sigma2)),
+        residual_rms=jnp.sqrt(fit.sigma2),
         singular_values=jnp.zeros(k),
         T_cam_base0=problem.T_dev_base0,
         T_flange_marker0=problem.T_flange_point0[None],
     )
+
+
+_axis_result = stored_jit(_axis_result_program, "point_axis_result")
 
 
 def parameters_of(pf: PointFit, setup: Setup, fit: AxisFitResult) -> list:
