@@ -19,6 +19,16 @@ from an empty one):
 - `ee_rms_mm_after_cold`, `ee_rms_mm_after_warm`: the validation's end-effector
   RMS after calibration of the first cold and the first warm run (equal to
   round-off).
+- `tracker_cold_cli_s`, `tracker_warm_cli_s`: `jaxcal calibrate data/ur5_tracker/grid
+  --device-is-base --out DIR` (the real UR5's 1000 laser-tracker poses, 5-fold
+  cross-validation and every output), with an empty and a warm cache;
+  `tracker_terms_warm_cli_s`: the same with `--terms compliance,harmonic1,harmonic2`;
+  `tracker_verify_warm_cli_s`: `jaxcal verify RESULT data/ur5_tracker/test` on the
+  geometric result; `tracker_cv_mean_mm`, `tracker_best_cv_mean_mm`: their
+  cross-validated errors (unchanged by any speed-up).
+- `stages_s`: where each warm command's seconds go (the median run's): its result's
+  `timings_s` (the pipeline's stages, in process) and `outside_s`, the wall time
+  around them (start-up, imports, parsing, writing the outputs, exit).
 
     python benchmarks/startup.py --json results/startup.json [--repeats 3] [--no-cold] [--cache DIR]
 
@@ -44,6 +54,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DATASET = ROOT / "data" / "ur5e_sweeps"
+TRACKER = ROOT / "data" / "ur5_tracker"
+TERMS = "compliance,harmonic1,harmonic2"
 JAXCAL = [sys.executable, "-m", "jaxcal"]
 
 INPROCESS = r"""
@@ -83,7 +95,62 @@ def _calibrate(env: dict, out: Path) -> tuple[float, float]:
     shutil.rmtree(out, ignore_errors=True)
     wall = _run([*JAXCAL, "calibrate", str(DATASET), "--out", str(out), "--quiet"], env)
     result = json.loads((out / "result.json").read_text())
+    STAGES.append(_stages(result, wall))
     return wall, result["validation"]["ee_rms_mm_after"]
+
+
+#: Per finished calibration (in order), its stages' seconds (`_stages`).
+STAGES: list[dict] = []
+
+
+def _stages(result: dict, wall: float) -> dict:
+    timings = {k: round(v, 3) for k, v in result["timings_s"].items()}
+    return timings | {"outside_s": round(wall - timings["total_s"], 3)}
+
+
+def _median_stages(walls: list[float], stages: list[dict]) -> dict:
+    """The stages of the run whose wall time is the median."""
+    return stages[sorted(range(len(walls)), key=walls.__getitem__)[len(walls) // 2]]
+
+
+def _tracker(env: dict, out: Path, *extra: str) -> tuple[float, float]:
+    """Wall time of one `jaxcal calibrate` of the real UR5's tracker grid and its CV mean (mm)."""
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [*JAXCAL, "calibrate", str(TRACKER / "grid"), "--device-is-base", "--out", str(out), *extra]
+    wall = _run(cmd, env)
+    result = json.loads((out / "result.json").read_text())
+    STAGES.append(_stages(result, wall))
+    kept = next(m for m in result["point_fit"]["models"] if m["kept"])
+    return wall, kept["cv_mean_mm"]
+
+
+def _tracker_figures(env: dict, work: Path, args, report: dict) -> None:
+    """The real UR5 tracker grid's cold and warm calibrations, with terms, and `verify` (warm)."""
+    out = work / "tracker"
+    cold = []
+    for _ in range(0 if args.cache else 1 if args.no_cold else args.repeats):
+        shutil.rmtree(work / "cache", ignore_errors=True)
+        report["load"].setdefault("tracker_cold_cli_s", _load())
+        cold.append(_tracker(env, out)[0])
+    if cold and not args.no_cold:
+        _figure("tracker_cold_cli_s", cold, report, CPU[-len(cold) :])
+    for name, extra, cv in (
+        ("tracker_warm_cli_s", (), "tracker_cv_mean_mm"),
+        ("tracker_terms_warm_cli_s", ("--terms", TERMS), "tracker_best_cv_mean_mm"),
+    ):
+        _tracker(env, out, *extra)  # fills the cache for these terms (a cold one's programs are stored)
+        report["load"][name] = _load()
+        runs = [_tracker(env, out, *extra) for _ in range(args.repeats)]
+        walls = [w for w, _ in runs]
+        _figure(name, walls, report, CPU[-len(runs) :])
+        report["stages_s"][name] = _median_stages(walls, STAGES[-len(runs) :])
+        report[cv] = runs[0][1]
+    _tracker(env, out)
+    verify = [*JAXCAL, "verify", str(out), str(TRACKER / "test")]
+    _run(verify, env)
+    report["load"]["tracker_verify_warm_cli_s"] = _load()
+    runs = [_run(verify, env) for _ in range(args.repeats)]
+    _figure("tracker_verify_warm_cli_s", runs, report, CPU[-len(runs) :])
 
 
 def _figure(name: str, runs: list[float], report: dict, cpu: list[float] | None = None) -> None:
@@ -117,6 +184,7 @@ def main(argv=None) -> None:
         "runs": {},
         "load": {},
         "cpu_s": {},
+        "stages_s": {},
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
     }
     try:
@@ -140,6 +208,7 @@ def main(argv=None) -> None:
         report["load"]["warm_cli_s"] = _load()
         warm = [_calibrate(env, work / "out") for _ in range(args.repeats)]
         _figure("warm_cli_s", [w for w, _ in warm], report, CPU[-len(warm) :])
+        report["stages_s"]["warm_cli_s"] = _median_stages([w for w, _ in warm], STAGES[-len(warm) :])
         report["ee_rms_mm_after_warm"] = warm[0][1]
         seconds = []
         for _ in range(args.repeats):
@@ -150,6 +219,7 @@ def main(argv=None) -> None:
             seconds.append(json.loads(run.stdout.strip().splitlines()[-1])["second_s"])
         _figure("inprocess_second_s", seconds, report)
         _handeye(env, work, args.repeats, report)
+        _tracker_figures(env, work, args, report)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     print(

@@ -48,13 +48,14 @@ joint positions and after the best rigid alignment, lies more than
 kinematics, whatever the joints are called).
 """
 
-import importlib
+import functools
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _distributions as distributions
 from ._correction import ParameterLayout, apply_correction
 from ._exported import stored_jit
 from ._geometry import so3_log
@@ -97,11 +98,6 @@ def _stats(d: np.ndarray) -> ResidualStats:
     return ResidualStats(mean=float(d.mean()), rms=float(np.sqrt(np.mean(d**2))), max=float(d.max()))
 
 
-def _scipy_stats():
-    """`scipy.stats`, imported when a verification first needs it."""
-    return importlib.import_module("scipy.stats")
-
-
 def read_point_result(path) -> CalibrationReference:
     """`result.json` (a result directory or the file) with its point fit, checked."""
     ref = read_calibration(path)
@@ -113,24 +109,33 @@ def read_point_result(path) -> CalibrationReference:
     return ref
 
 
-def _flange_points(model: KinematicModel, q: np.ndarray) -> np.ndarray:
-    return np.asarray(jax.vmap(lambda qq: forward_kinematics(model, qq)[-1, :3, 3])(jnp.asarray(q)))
+def _flange_points(model: KinematicModel, q) -> jax.Array:
+    return jax.vmap(lambda qq: forward_kinematics(model, qq)[-1, :3, 3])(q)
 
 
-def robot_gap_m(a: KinematicModel, b: KinematicModel, q: np.ndarray) -> float:
-    """The largest distance between the flange origins of models `a` and `b` at configurations
-    `q` `(S, joints)` after the best rigid alignment of one set onto the other (m); infinite for
-    models of other joint counts or types."""
-    if a.num_joints != b.num_joints or tuple(a.joint_types) != tuple(b.joint_types):
-        return float("inf")
-    pa, pb = _flange_points(a, q), _flange_points(b, q)
+def _gap(pa: np.ndarray, pb: np.ndarray) -> float:
+    """The largest distance between two sets of flange origins `(S, 3)` after the best rigid
+    alignment of one onto the other (m)."""
     T = kabsch(pb, pa)
     return float(np.max(np.linalg.norm(pb @ T[:3, :3].T + T[:3, 3] - pa, axis=1)))
 
 
+@functools.cache
+def _robot_points(layout: PointLayout):
+    """One stored program (`jaxcal._exported`): the flange origins at `q` of the dataset's robot,
+    the result's nominal one and its calibrated one (the point fit's `x` applied)."""
+
+    def robot_points(mine, nominal, x, T_flange_point0, q):
+        params, _ = layout.split(x)
+        calibrated, _ = apply_correction(nominal, T_flange_point0[None], params.correction)
+        return tuple(_flange_points(m, q) for m in (mine, nominal, calibrated))
+
+    return stored_jit(robot_points, "verify_robot_points", (layout,))
+
+
 def _same_robot(ref: CalibrationReference, ds: Dataset) -> tuple[str, ...]:
     """Refuse (`DatasetError`, exit 2) a dataset whose nominal robot is not the result's, by
-    kinematics (`robot_gap_m` against the result's nominal and calibrated models); a note when
+    kinematics (`_gap` against the result's nominal and calibrated models); a note when
     only the joints' names differ."""
     pf, meta = ref.point_fit, ds.root / "metadata.json"
     nominal, mine = pf.nominal, ds.load_model()
@@ -141,10 +146,12 @@ def _same_robot(ref: CalibrationReference, ds: Dataset) -> tuple[str, ...]:
         )
     q = np.asarray(ds.samples.q, np.float64)
     q = q[:: max(1, len(q) // ROBOT_POSES)]
-    layout = ParameterLayout.of(nominal, 1, fixed_name="T_device_base")
-    params, _ = PointLayout(layout, pf.terms).split(jnp.asarray(pf.x, jnp.float64))
-    calibrated, _ = apply_correction(nominal, jnp.asarray(pf.T_flange_point0)[None], params.correction)
-    gap = min(robot_gap_m(mine, nominal, q), robot_gap_m(mine, calibrated, q))
+    layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name="T_device_base"), pf.terms)
+    x, mount = (np.asarray(v, np.float64) for v in (pf.x, pf.T_flange_point0))
+    p_mine, p_nominal, p_calibrated = (
+        np.asarray(p) for p in _robot_points(layout)(mine, nominal, x, mount, q)
+    )
+    gap = min(_gap(p_mine, p_nominal), _gap(p_mine, p_calibrated))
     if gap > ROBOT_GAP_M:
         raise DatasetError(
             f"{ds.robot_urdf}: at the dataset's joint positions its flange lies up to {1e3 * gap:.1f} mm from the "
@@ -251,20 +258,26 @@ def whiten(e: np.ndarray, G: np.ndarray, cov: np.ndarray, var: np.ndarray) -> np
 
 def prediction_test(z: np.ndarray, dof_noise: int | None, alpha: float = ALPHA) -> PredictionTest:
     """The two tests of whitened errors `z` `(N, k)` (see the module docstring)."""
-    stats = _scipy_stats()
     N, k = z.shape
     T, dof = float(np.sum(z**2)), N * k
     if dof_noise is None:
-        p, limit, bound = stats.chi2.sf(T, dof), stats.chi2.ppf(1 - alpha, dof) / dof, stats.chi2.ppf(0.95, k)
+        p, limit, bound = (
+            distributions.chi2_sf(T, dof),
+            distributions.chi2_ppf(1 - alpha, dof) / dof,
+            distributions.chi2_ppf(0.95, k),
+        )
     else:
-        p = stats.f.sf(T / dof, dof, dof_noise)
-        limit, bound = stats.f.ppf(1 - alpha, dof, dof_noise), k * stats.f.ppf(0.95, k, dof_noise)
+        p = distributions.f_sf(T / dof, dof, dof_noise)
+        limit, bound = (
+            distributions.f_ppf(1 - alpha, dof, dof_noise),
+            k * distributions.f_ppf(0.95, k, dof_noise),
+        )
     inside = int(np.sum(np.sum(z**2, axis=1) <= bound))
-    p_inside = float(stats.binom.cdf(inside, N, 0.95))
+    p_inside = float(distributions.binom_cdf(inside, N, 0.95))
     return PredictionTest(
         samples=N, components=k, statistic=T, dof=dof, dof_noise=dof_noise, ratio=float(np.sqrt(T / dof)),
         ratio_limit=float(np.sqrt(limit)), p_value=float(p), inside=inside / N,
-        inside_limit=float(stats.binom.ppf(alpha, N, 0.95)) / N, p_inside=p_inside, alpha=alpha,
+        inside_limit=float(distributions.binom_ppf(alpha, N, 0.95)) / N, p_inside=p_inside, alpha=alpha,
         holds=bool(p >= alpha and p_inside >= alpha),
     )  # fmt: skip
 

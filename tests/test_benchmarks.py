@@ -195,7 +195,9 @@ RUNS = {
     "startup": Run(
         "startup",
         "--repeats 1 --no-cold --cache {cache}",
-        "import_s warm_cli_s inprocess_second_s handeye_warm_cli_s ee_rms_mm_after_warm cpu_s",
+        "import_s warm_cli_s inprocess_second_s handeye_warm_cli_s ee_rms_mm_after_warm cpu_s "
+        "tracker_warm_cli_s tracker_terms_warm_cli_s tracker_verify_warm_cli_s tracker_cv_mean_mm "
+        "tracker_best_cv_mean_mm stages_s.warm_cli_s stages_s.tracker_warm_cli_s",
     ),
     "real_tracker": Run(
         "real_tracker",
