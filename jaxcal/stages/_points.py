@@ -216,6 +216,14 @@ def _cv_program(problem: PointProblem, cand, free, train):
     return cross_validate(problem, cand, free, train)
 
 
+def _basis_rms_program(problem: PointProblem):
+    """The RMS of the term basis over the used samples, `(joints, k)`."""
+    d = problem.data
+    b = term_basis(problem.layout.terms, problem.nominal, d.q, d.masses, d.coms, d.approach)
+    w = d.mask.astype(b.dtype)[:, None, None]
+    return jnp.sqrt(jnp.sum(w * b**2, axis=0) / jnp.sum(w))
+
+
 def _residuals_program(problem: PointProblem, x):
     """The fitted points' distances from the measured ones (m) and, with orientations, their
     angles (rad; zeros without)."""
@@ -228,8 +236,9 @@ _fit = stored_jit(_fit_program, "point_fit", compiler_options=None)
 _radii = stored_jit(_radii_program, "point_radii")
 _robust = stored_jit(_robust_program, "point_robust", (POINT_ROBUST,))
 _refit = stored_jit(_refit_program, "point_refit")
-_cv = stored_jit(_cv_program, "point_cv")
+_cv = stored_jit(_cv_program, "point_cv", compiler_options=None)
 _residuals = stored_jit(_residuals_program, "point_residuals")
+_basis_rms = stored_jit(_basis_rms_program, "point_basis_rms")
 
 
 def _compile_ahead(problem: PointProblem, cand, tol, scale, folds: int) -> None:
@@ -247,10 +256,10 @@ def _compile_ahead(problem: PointProblem, cand, tol, scale, folds: int) -> None:
 
 def term_scale(problem: PointProblem) -> np.ndarray:
     """Per non-geometric coefficient (`PointLayout` order), the RMS of its basis over the fitted samples."""
-    layout, d = problem.layout, problem.data
-    b = np.asarray(term_basis(layout.terms, problem.nominal, d.q, d.masses, d.coms, d.approach))
-    b = b[np.asarray(d.mask)]
-    rms = np.sqrt(np.mean(b**2, axis=0))  # (joints, k): family-major below
+    layout = problem.layout
+    if not layout.terms:
+        return np.zeros(0)
+    rms = np.asarray(_basis_rms(problem))  # (joints, k): family-major below
     cols, start = [], 0
     for t in layout.terms:
         m = TERMS[t]
