@@ -205,6 +205,15 @@ RUNS = {
         "ur5_bad_rows_1_named ur5_bad_rows_1_named_correctly screen_ms ur5_test_mean_mm ur5_cv_mean_mm ur5_compliance_test_mean_mm ur5_best_test_mean_mm ur5_best_terms "
         "ur5_predicted_over_measured scipy_test_mean_mm fit_ms scipy_fit_ms speedup cold_fit_s",
     ),
+    # No peer environments here (they need the network): FIGAROH and robotkinecal come out null. Its work
+    # is all in child processes (jaxcal's CLI too): a process of its own, shared with no other run.
+    "peers": Run(
+        "peers",
+        "--repeats 1 --envs {work}/no_peers --cache {cache}",
+        "jaxcal.test_mean_mm jaxcal.fit_s jaxcal.whole_run_warm_s jaxcal.versions figaroh robotkinecal "
+        "reasons.figaroh reasons.robotkinecal",
+        process="peers",
+    ),
 }
 
 #: Captures a run would render that are `data/ur5e_sweeps` itself (its design and seed): copied

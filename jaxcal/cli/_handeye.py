@@ -103,9 +103,15 @@ def _handeye(args, out: Path, checked) -> int:
             np.radians(0.05 if args.robot_sigma_deg is None else args.robot_sigma_deg),
         )
     )
+    capture, reference = args.capture, None
+    if args.reference:  # read and checked before the calibration, against the capture's cameras
+        from ..io.handeye import load_hand_eye_capture, read_reference
+
+        capture = load_hand_eye_capture(args.capture)
+        reference = read_reference(args.reference, capture)
     t0 = time.perf_counter()
     run = calibrate_hand_eye_capture(
-        args.capture,
+        capture,
         robot_noise=args.robot_noise,
         robot_sigma_translation=None if robot is None else robot[0],
         robot_sigma_rotation=None if robot is None else robot[1],
@@ -137,6 +143,8 @@ def _handeye(args, out: Path, checked) -> int:
             console.print(
                 f"  against the truth: {1e3 * run.truth_error[c, 0]:.3f} mm, {np.degrees(run.truth_error[c, 1]):.4f} deg"
             )
+        if reference is not None:
+            console.print(f"  against {args.reference}: {against_reference(T, sd, reference[cam.name])}")
     console.print(
         f"reprojection RMS {float(r.pixel_rms):.3f} px (detector {run.observations.sigma_px:.3f} px), "
         f"{len(run.rejected)} frame(s) rejected of {run.frames}"
@@ -193,6 +201,33 @@ def cmd_simulate_handeye(args) -> int:
     return 0
 
 
+#: A result off a known answer by more than this many standard deviations on one axis is named.
+REFERENCE_Z = 2.0
+
+
+def against_reference(T: np.ndarray, std6: np.ndarray, T_ref: np.ndarray) -> str:
+    """How far a camera's pose `T` (its per-axis standard deviations `std6`: m, rad) lies from a
+    known answer `T_ref`, in millimetres and degrees and, per axis, in standard deviations (the
+    convention of `jaxcal._handeye.assess.pose_difference`)."""
+    from .._handeye.assess import pose_difference
+
+    e = pose_difference(T, T_ref)
+    z = e / np.where(np.asarray(std6) > 0, std6, np.nan)
+    worst = int(np.nanargmax(np.abs(z))) if np.any(np.isfinite(z)) else 0
+    axes = ("x", "y", "z", "rx", "ry", "rz")
+    words = (
+        f"within {REFERENCE_Z:g} standard deviations on every axis"
+        if np.nanmax(np.abs(z)) <= REFERENCE_Z
+        else f"off by {abs(z[worst]):.1f} standard deviations on {axes[worst]} (more than {REFERENCE_Z:g}: the "
+        "result or the reference is wrong, or the standard deviations are optimistic)"
+    )
+    return (
+        f"{1e3 * np.linalg.norm(e[:3]):.3f} mm / {np.degrees(np.linalg.norm(e[3:])):.4f} deg, per axis "
+        f"{np.round(z[:3], 2).tolist()} (translation) {np.round(z[3:], 2).tolist()} (rotation) standard "
+        f"deviations: {words}"
+    )
+
+
 def add_handeye_parsers(sub) -> None:
     p = sub.add_parser(
         "handeye",
@@ -243,6 +278,12 @@ def add_handeye_parsers(sub) -> None:
         type=count(1, MAX_WORKERS),
         default=None,
         help=f"threads for marker detection (default: all cores; at most {MAX_WORKERS})",
+    )
+    p.add_argument(
+        "--reference",
+        metavar="FILE",
+        help="a known answer (JSON: the camera's pose as a 4x4 matrix or [tx, ty, tz, rx, ry, rz] in m and "
+        "rad, or a jaxcal result.json): the result's difference from it in mm, deg and standard deviations",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_handeye)

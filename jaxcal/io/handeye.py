@@ -459,3 +459,90 @@ def write_hand_eye_description(
         w.writerow(["frame", *POSE_COLUMNS[pose_format]])
         for name, row in zip(frames, pose_rows(T_base_ee, pose_format, translation_unit, rotation_unit)):
             w.writerow([name, *(repr(float(v)) for v in row)])
+
+
+# --------------------------------------------------------------------------- a known answer
+
+#: The names a reference file may give a camera's pose on the robot, per arrangement.
+REFERENCE_KEYS = {
+    "eye_in_hand": ("T_robot_cam", "T_ee_cam", "T_flange_cam"),
+    "eye_to_hand": ("T_robot_cam", "T_base_cam"),
+}
+
+
+def _reference_pose(value, where: str) -> np.ndarray:
+    """A pose given as a 4x4 matrix (nested lists, or `{"matrix": ...}`) or as a 6-vector
+    `[tx, ty, tz, rx, ry, rz]` (m, and a rotation vector in rad: ViSP's `vpPoseVector`)."""
+    if isinstance(value, dict):
+        if "matrix" not in value:
+            raise DatasetError(f"{where}: a pose object needs a field 'matrix' (4x4)")
+        value, where = value["matrix"], f"{where}.matrix"
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(
+            f"{where}: a pose must be a 4x4 matrix or [tx, ty, tz, rx, ry, rz], got {value!r}"
+        ) from None
+    if a.shape == (6,) and np.all(np.isfinite(a)):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = rotvec_to_matrix(a[3:]), a[:3]
+        return T
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+        raise DatasetError(
+            f"{where}: a pose must be a finite 4x4 matrix or [tx, ty, tz, rx, ry, rz], got shape {a.shape}"
+        )
+    R = a[:3, :3]
+    if not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+        raise DatasetError(
+            f"{where}: not a rigid transform (its rotation is not orthonormal, or its last row is not 0 0 0 1)"
+        )
+    if np.linalg.norm(a[:3, 3]) > MAX_TRANSLATION_M:
+        raise DatasetError(f"{where}: translation {np.linalg.norm(a[:3, 3]):.4g} m: give metres")
+    return a
+
+
+def read_reference(path, capture: HandEyeCapture) -> dict[str, np.ndarray]:
+    """A known answer to compare a hand-eye result with (`jaxcal handeye --reference`): per camera
+    of `capture`, its pose on the robot (`T_ee_cam` eye-in-hand, `T_base_cam` eye-to-hand), m.
+
+    The file is JSON: a jaxcal hand-eye `result.json` (`cameras.<name>.T_robot_cam`), or an object
+    giving the pose under one of `REFERENCE_KEYS` of the capture's arrangement, directly or inside a
+    block named after the arrangement (`eye_in_hand` / `eye_to_hand`: one file for both captures),
+    and, with several cameras, per camera inside `cameras.<name>`. Raises `DatasetError` naming the
+    file and field."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read the reference ({e.strerror or e})") from None
+    except ValueError as e:
+        raise DatasetError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(doc, dict):
+        raise DatasetError(f"{path}: a reference must be a JSON object")
+    where = str(path)
+    if capture.arrangement in doc:
+        doc, where = doc[capture.arrangement], f"{where} field {capture.arrangement!r}"
+        if not isinstance(doc, dict):
+            raise DatasetError(f"{where}: must be an object")
+    names = [c.name for c in capture.cameras]
+    cameras = doc.get("cameras")
+    if cameras is None and len(names) > 1:
+        raise DatasetError(f"{where}: {len(names)} cameras ({names}): give each pose in 'cameras.<name>'")
+    if cameras is not None and not isinstance(cameras, dict):
+        raise DatasetError(f"{where}: field 'cameras' must be an object keyed by camera name")
+    out = {}
+    for name in names:
+        block, at = (
+            (doc, where) if cameras is None else (cameras.get(name), f"{where} field 'cameras.{name}'")
+        )
+        if not isinstance(block, dict):
+            raise DatasetError(f"{at}: no pose for camera {name!r}")
+        keys = [k for k in REFERENCE_KEYS[capture.arrangement] if k in block]
+        if not keys:
+            other = [k for ks in REFERENCE_KEYS.values() for k in ks if k in block]
+            raise DatasetError(
+                f"{at}: no {' / '.join(REFERENCE_KEYS[capture.arrangement])} (the {capture.arrangement} "
+                "camera's pose)" + (f"; it gives {other[0]}, another arrangement's pose" if other else "")
+            )
+        out[name] = _reference_pose(block[keys[0]], f"{at} field {keys[0]!r}")
+    return out
