@@ -192,18 +192,18 @@ RUNS = {
         "--workers 1 --cache {cache}",
         "cold_calibrate_s cold_jax_compile_s second_dataset_compile_s first second",
     ),
+    "real_tracker": Run(
+        "real_tracker",
+        "--rounds 1 --bad-rows 1 --cache {cache} --workdir {work}/real_tracker",
+        "ur5_bad_rows_1_named ur5_bad_rows_1_named_correctly screen_ms ur5_test_mean_mm ur5_cv_mean_mm ur5_compliance_test_mean_mm ur5_best_test_mean_mm ur5_best_terms "
+        "ur5_predicted_over_measured scipy_test_mean_mm fit_ms scipy_fit_ms speedup cold_fit_s",
+    ),
     "startup": Run(
         "startup",
         "--repeats 1 --no-cold --cache {cache}",
         "import_s warm_cli_s inprocess_second_s handeye_warm_cli_s ee_rms_mm_after_warm cpu_s "
         "tracker_warm_cli_s tracker_terms_warm_cli_s tracker_verify_warm_cli_s tracker_cv_mean_mm "
         "tracker_best_cv_mean_mm stages_s.warm_cli_s stages_s.tracker_warm_cli_s",
-    ),
-    "real_tracker": Run(
-        "real_tracker",
-        "--rounds 1 --bad-rows 1 --cache {cache} --workdir {work}/real_tracker",
-        "ur5_bad_rows_1_named ur5_bad_rows_1_named_correctly screen_ms ur5_test_mean_mm ur5_cv_mean_mm ur5_compliance_test_mean_mm ur5_best_test_mean_mm ur5_best_terms "
-        "ur5_predicted_over_measured scipy_test_mean_mm fit_ms scipy_fit_ms speedup cold_fit_s",
     ),
     # No peer environments here (they need the network): FIGAROH and robotkinecal come out null. Its work
     # is all in child processes (jaxcal's CLI too): a process of its own, shared with no other run.

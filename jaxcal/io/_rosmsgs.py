@@ -8,7 +8,6 @@ here opens a bag; `jaxcal.io.rosbag` does.
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from ..errors import BagEncodingError
@@ -56,6 +55,8 @@ def encode_raw(msg, where: str) -> EncodedImage:
     img = buf[: step * h].reshape(h, step)[:, : w * ch].reshape((h, w, ch) if ch > 1 else (h, w))
     if enc == "rgb8":
         img = img[..., ::-1]
+    import cv2  # here: a command that reads no bag's images does not load OpenCV for it
+
     ok, png = cv2.imencode(".png", np.ascontiguousarray(img))
     if not ok:  # pragma: no cover - OpenCV encodes any 8-bit array
         raise BagEncodingError(f"{where}: OpenCV could not encode the image as PNG")
@@ -69,6 +70,8 @@ def encode_compressed(msg, where: str) -> EncodedImage:
     fmt = str(msg.format).lower()
     if "compresseddepth" in fmt.replace(" ", ""):
         raise BagEncodingError(f"{where}: compressedDepth images ({msg.format!r}) are not supported")
+    import cv2
+
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise BagEncodingError(f"{where}: cv2.imdecode cannot decode the image (format {msg.format!r})")

@@ -37,10 +37,12 @@ import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.typesys import Stores, get_typestore
+
+if TYPE_CHECKING:
+    from rosbags.highlevel import AnyReader
 
 from ..errors import (
     BagError,
@@ -92,6 +94,10 @@ def open_bag(path):
     """Yield an opened `AnyReader` on the bag at `path` (ROS 2 bags without message definitions use
     ROS 2 Humble's types), closed at the end. Raises `BagError` naming the path when it is no bag
     `rosbags` can read."""
+    # rosbags is imported here: a dataset folder's commands (`is_bag` first) never load it.
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+
     path = Path(path)
     if not path.exists():
         raise BagError(f"{path}: bag not found")
@@ -106,12 +112,12 @@ def open_bag(path):
         reader.close()
 
 
-def bag_topics(reader: AnyReader) -> dict[str, tuple[str, int]]:
+def bag_topics(reader: "AnyReader") -> dict[str, tuple[str, int]]:
     """The bag's topics: `topic -> (message type, message count)`."""
     return {name: (info.msgtype, info.msgcount) for name, info in reader.topics.items()}
 
 
-def _connections(reader: AnyReader, bag: Path, topic: str, types: tuple[str, ...], option: str):
+def _connections(reader: "AnyReader", bag: Path, topic: str, types: tuple[str, ...], option: str):
     topics = bag_topics(reader)
     if topic not in topics:
         listing = "; ".join(f"{t} ({m}, {n} messages)" for t, (m, n) in sorted(topics.items())) or "none"
