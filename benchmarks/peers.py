@@ -64,6 +64,10 @@ GRID = ROOT / "data" / "ur5_tracker" / "grid"
 TEST = ROOT / "data" / "ur5_tracker" / "test"
 ENVS = Path.home() / ".cache" / "jaxcal-peers"
 
+#: Left out of every tool's environment: a user's Python keeps its bytecode (`__pycache__`), and a
+#: machine set up not to (as CI machines often are) would count compiling each tool's sources into
+#: every run.
+NO_BYTECODE = "PYTHONDONTWRITEBYTECODE"
 #: What each peer's environment installs, and the distributions whose versions it reports.
 REQUIREMENTS = {
     "figaroh": (["figaroh==1.0.2"], ["figaroh", "pin", "numpy", "scipy"]),
@@ -287,7 +291,7 @@ def peer(name: str, envs: Path, work: Path, repeats: int) -> tuple[dict | None, 
         json.dumps(dh["joint_names"]),
         json.dumps(REQUIREMENTS[name][1]),
     ]
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", NO_BYTECODE)}
     walls, outs = [], []
     for _ in range(1 + repeats):
         t0 = time.perf_counter()
@@ -307,7 +311,7 @@ def jaxcal_figures(work: Path, repeats: int, cache: str | None) -> dict:
     from importlib.metadata import version
 
     env = {**os.environ, "XDG_CACHE_HOME": str(work / "cache")}
-    for var in ("JAX_COMPILATION_CACHE_DIR", "JAXCAL_NO_CACHE"):
+    for var in ("JAX_COMPILATION_CACHE_DIR", "JAXCAL_NO_CACHE", NO_BYTECODE):
         env.pop(var, None)
     if cache:
         env["JAX_COMPILATION_CACHE_DIR"] = cache

@@ -176,7 +176,9 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="jaxcal-startup-"))
     env = {**os.environ, "XDG_CACHE_HOME": str(work / "cache")}
-    for var in ("JAX_COMPILATION_CACHE_DIR", "JAXCAL_NO_CACHE"):
+    # A user's Python keeps its bytecode (`__pycache__`); a machine set up not to (as CI machines
+    # often are) would count compiling jaxcal's sources into every start-up.
+    for var in ("JAX_COMPILATION_CACHE_DIR", "JAXCAL_NO_CACHE", "PYTHONDONTWRITEBYTECODE"):
         env.pop(var, None)
     if args.cache:
         env["JAX_COMPILATION_CACHE_DIR"] = args.cache
