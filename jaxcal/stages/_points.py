@@ -242,14 +242,19 @@ _basis_rms = stored_jit(_basis_rms_program, "point_basis_rms")
 
 
 def _compile_ahead(problem: PointProblem, cand, tol, scale, folds: int) -> None:
-    """Compile, on background threads while the geometric fit compiles and runs, the programs the
+    """Compile, on background threads while the model's fit compiles and runs, the programs the
     stage calls after it on the same samples (`_programs.compile_ahead`): on a first run their
-    compiles share the cores instead of following one another."""
+    compiles share the cores instead of following one another. The geometric model's are its
+    screening, cross-validation, residuals and record; a model with terms', its cross-validation
+    and the refit that holds the coefficients the data do not pin."""
     fit = _fit.out_info(problem, cand, tol, scale)
-    compile_ahead(_radii, problem, fit)
     if folds:
         train = jax.ShapeDtypeStruct((folds, problem.data.q.shape[0]), jnp.bool_)
         compile_ahead(_cv, problem, cand, fit.free, train)
+    if problem.layout.terms:
+        compile_ahead(_refit, problem, cand, fit.free)
+        return
+    compile_ahead(_radii, problem, fit)
     compile_ahead(_residuals, problem, fit.x)
     compile_ahead(_axis_result, problem, fit, problem.nominal)
 
@@ -478,8 +483,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         scale = plausible_scale(layout, nominal, options.limits)
         cand, scale = jnp.asarray(cand), jnp.asarray(scale)
-        if not terms:
-            _compile_ahead(problem, cand, tol, scale, folds)
+        _compile_ahead(problem, cand, tol, scale, folds)
         fit = jax.device_get(_fit(problem, cand, tol, scale))
         cand = np.asarray(cand)
         return layout, problem, cand, scale, fit
