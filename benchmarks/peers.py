@@ -59,6 +59,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).parent))
+from real_tracker import POINT_FIT_SETUP  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 GRID = ROOT / "data" / "ur5_tracker" / "grid"
 TEST = ROOT / "data" / "ur5_tracker" / "test"
@@ -169,23 +172,9 @@ report(fit_s, predicted, yt, iterations=result.nb_iterations_executed)
 
 #: jaxcal's point fit timed in one process (as benchmarks/real_tracker.py does): a first call
 #: compiles, the next `repeats` are timed.
-JAXCAL_FIT = """
-import json, sys, time
-import numpy as np
-import jax
-jax.config.update("jax_enable_x64", True)
-from jaxcal.io.dataset import load_dataset
-from jaxcal._correction import ParameterLayout
-from jaxcal._pointfit import PointLayout
-from jaxcal.stages._points import _fit, candidates, plausible_scale, point_problem
-from jaxcal.stages.limits import Limits
-ds = load_dataset(sys.argv[1])
-nominal, s = ds.load_model(), ds.samples
-layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name="T_device_base"))
-problem = point_problem(nominal, layout, s.q, s.position, s.sigma_m, np.ones(len(s.q), bool), np.eye(4),
-                        np.asarray(ds.point.T_link_target))
-cand = candidates(layout, fixed_frame_free=False)
-scale = plausible_scale(layout, nominal, Limits())
+JAXCAL_FIT = (
+    POINT_FIT_SETUP
+    + """
 jax.block_until_ready(_fit(problem, cand, 1e-3, scale))
 runs = []
 for _ in range(int(sys.argv[2])):
@@ -194,6 +183,7 @@ for _ in range(int(sys.argv[2])):
     runs.append(time.perf_counter() - t0)
 print(json.dumps(runs))
 """
+)
 
 
 def _row(a: float, alpha: float, d: float, theta: float) -> tuple:
