@@ -194,8 +194,9 @@ def candidates(layout: PointLayout, *, fixed_frame_free: bool, orientation: bool
 
 
 # The stage's programs are stored (`jaxcal._exported`): a second process neither traces nor
-# compiles them. They run many times per calibration and are what `benchmarks/real_tracker.py`
-# times against SciPy, so they keep XLA's optimisations (`compiler_options=None`).
+# compiles them. The fit (what `benchmarks/real_tracker.py` times against SciPy) and the
+# cross-validation run several times per calibration and keep XLA's optimisations
+# (`compiler_options=None`); the others run once or twice and compile quickly.
 def _fit_program(problem: PointProblem, cand, tol, scale=None):
     return fit_points(problem, cand, tol=tol, scale=scale)
 
