@@ -34,7 +34,10 @@ states stamped 2 ms late); `combined`: the `global-shutter` camera and the
 500 Hz (the issue's battery case: the log read between its samples while the
 sweeps accelerate). `physics_arm`: the `physics` arm (`jaxcal simulate --arm
 physics`: the realistic arm under MuJoCo's dynamics, `jaxcal.sim.physics`) on the
-ideal camera. Issue 48's correlated detector errors: `lens_remap_1x` (the lens of
+ideal camera; `ideal_two_speeds` and `physics_arm_two_speeds`: the ideal and the physics arm
+with each sweep filmed on the way back too, at half the speed (`SimConfig.sweep_back`), the
+capture that tells a compliant joint's lag under its inertial torques from its reduction
+ratio (their ratios are to `ideal_two_speeds`). Issue 48's correlated detector errors: `lens_remap_1x` (the lens of
 `distortion_given`, in the metadata, warped at the sensor's resolution by a bilinear
 `cv2.remap` after the render, as another renderer or a camera's own undistortion
 forms images), `rolling_shutter_coarse` (a 20 ms rolling shutter rendered in 16-row
@@ -128,6 +131,7 @@ ARMS = {
     "encoder_latency": ArmModel(name="encoder_latency", latency_s=REALISTIC_ARM.latency_s),
     "combined": REALISTIC_ARM,
     "physics_arm": ARM_PRESETS["physics"],
+    "physics_arm_two_speeds": ARM_PRESETS["physics"],
 }
 
 #: Case name -> (camera model, the metadata's distortion replaced by zeros); the arm is `ARMS[name]` or ideal.
@@ -159,6 +163,8 @@ CASES = {
     "encoder_latency": (CameraModel(), False),
     "combined": (PRESETS["global-shutter"], False),
     "physics_arm": (CameraModel(), False),
+    "ideal_two_speeds": (CameraModel(), False),
+    "physics_arm_two_speeds": (CameraModel(), False),
     # The lens warped at the sensor's resolution (`cv2.remap`, bilinear), as another renderer's
     # post-process or a camera's own undistortion forms images: corner errors that repeat.
     "lens_remap_1x": (CameraModel(name="lens_remap_1x", distortion=LENS, lens_supersample=1), False),
@@ -174,9 +180,13 @@ CASES = {
 #: Twice the capture's speed: the same 24 frames at the same poses of each sweep, the sweep in
 #: half the time (0.4 s; the camera at 60 fps).
 FAST = {"fps": 60.0}
+#: Each sweep filmed on the way back too, at half the speed (`SimConfig.sweep_back`): two speeds.
+TWO_SPEEDS = {"sweep_back": 2.0}
 #: Cases that change the capture's configuration itself: name -> `SimConfig` fields.
 CONFIGS = {
     "encoder_50hz": {"encoder_rate_hz": 50.0},
+    "ideal_two_speeds": TWO_SPEEDS,
+    "physics_arm_two_speeds": TWO_SPEEDS,
     "rolling_shutter_coarse": FAST,
     "exposure_10ms_fast": FAST,
 }
@@ -390,7 +400,8 @@ def run_case(dataset: Path, terms="auto") -> dict:
 
 def over_seeds(per_seed: dict, height: int = 600) -> dict:
     """Per case: the seeds' figures and statuses, their medians, the refined ratio of
-    medians and median of ratios to the ideal case (`None` where a seed was refused), the
+    medians and median of ratios to the ideal case (`ideal_two_speeds` for a two-speed case;
+    `None` where a seed was refused), the
     largest clock error and, where the line delay was estimated, its errors against the
     rendered camera's (`height` rows)."""
     out = {}
@@ -415,8 +426,9 @@ def over_seeds(per_seed: dict, height: int = 600) -> dict:
             err = [100.0 * (r["line_delay_s"] / true - 1.0) for r in rows]
             row["line_delay_true_s"], row["line_delay_error_pct"] = true, err
             row["max_abs_line_delay_error_pct"] = float(np.max(np.abs(err)))
-        if all("ideal" in cases for cases in per_seed.values()):
-            ideal = [cases["ideal"]["refined_mm"] for cases in per_seed.values()]
+        base = "ideal_two_speeds" if case.endswith("_two_speeds") else "ideal"
+        if all(base in cases for cases in per_seed.values()):
+            ideal = [cases[base]["refined_mm"] for cases in per_seed.values()]
             if row["median_refined_mm"] is not None and _median(ideal):
                 row["refined_ratio_of_medians"] = row["median_refined_mm"] / _median(ideal)
             row["refined_ratio"] = [a / b if a is not None and b else None for a, b in zip(refined, ideal)]

@@ -12,18 +12,25 @@ and $\\Delta$ linear in a few coefficients $e$ per joint over a basis $b$ of the
 pose and of how it was approached. The families (`TERMS`, names as
 `{joint}.{family}.{coefficient}`, `names`):
 
-- `compliance` (`rad_per_kNm`): $b = \\tau_j(q) / (1\\,\\mathrm{kN\\,m})$, the gravity torque
-  about joint $j$'s axis (`gravity_torques`) from the links' masses and centres of
-  mass in the robot file plus the payload the capture states (`with_payload`: the
-  plate's or tool's mass and centre on the flange). The joint yields $c_j \\tau_j$;
-  $e = c_j$, a physical compliance, is $\\ge 0$.
+- `compliance` (`rad_per_kNm`): $b = \\tau_j / (1\\,\\mathrm{kN\\,m})$, the torque joint $j$'s
+  transmission carries: gravity's about its axis (`gravity_torques`) from the links'
+  masses and centres of mass in the robot file plus the payload the capture states
+  (`with_payload`: the plate's or tool's mass and centre on the flange), and, where
+  the arm moves while it is observed (an encoder log), minus the torque that
+  accelerates the links beyond the joint (`transmission_torques`: `inertial_torques`
+  of the log's velocity and acceleration, `log_motion`, with the links' inertia
+  tensors and the payload's, `with_payload_tensors`). The joint yields $c_j \\tau_j$:
+  it sags where gravity pulls, lags its motor while the arm speeds up and leads it
+  while it slows down; $e = c_j$, a physical compliance, is $\\ge 0$.
 - `backlash` (`approach_rad`, `load_rad`): lost motion in the transmission. The
   link follows the motor through a dead band: where nothing preloads the joint,
   the link lags the motor's last motion, against the flank the motor pushed
   it with (`approach`, $a_j \\in [-1, 1]$: $+1$ after a move to larger angles, $-1$
-  after one to smaller, 0 before the joint first moves); a joint that gravity
-  preloads rests against the flank gravity pushes it to, whichever way it came
-  (`preload`, $\\tanh(\\tau_j / \\tau_p)$, $\\tau_p$ = `PRELOAD_NM`). The first
+  after one to smaller, 0 before the joint first moves); a joint that a torque
+  preloads rests against the flank the torque pushes it to, whichever way it came
+  (`preload`, $\\tanh(\\tau_j / \\tau_p)$, $\\tau_p$ = `PRELOAD_NM`, for still samples;
+  along a logged motion the flank of the last torque beyond $\\tau_p$, `relay`: a
+  moving arm's inertial torques press a joint gravity leaves free). The first
   coefficient is minus half the lost motion of the approach rule ($\\le 0$: the link
   lags), the second half that of the load rule ($\\ge 0$); a joint follows one rule
   or the other, and the fit finds which from the data.
@@ -75,6 +82,10 @@ BASIS_FLOOR = 1e-6
 #: to the other flank. Far above an encoder's noise (micro-radians), below any lost motion worth
 #: modelling (an arc minute is 2.9e-4 rad); only a reversal's first hundred micro-radians see it.
 APPROACH_WIDTH_RAD = 1e-4
+#: The span of the encoder log (s) each velocity and acceleration is fitted over (`log_motion`):
+#: a quadratic through ten 500 Hz rows, short against a sweep's speed-up (a tenth of a second
+#: and more), long enough to average an encoder's quantisation.
+MOTION_WINDOW_S = 0.02
 
 
 def check_terms(terms) -> tuple[str, ...]:
@@ -165,6 +176,54 @@ def gravity_torques(model: KinematicModel, q, masses, coms) -> Float[Array, " jo
     return jnp.einsum("ja,jka,jk->j", z, moment, down.astype(q.dtype))
 
 
+def inertial_torques(model: KinematicModel, q, qd, qdd, masses, coms, tensors) -> Float[Array, " joints"]:
+    """$\\tau^{in} = \\frac{d}{dt}\\frac{\\partial T}{\\partial \\dot q} - \\frac{\\partial T}{\\partial q}
+    = M(q)\\ddot q + C(q, \\dot q)\\dot q$ (N m, or N on a prismatic joint): the torques
+    the joints carry to move the links at `q` with velocity `qd` and acceleration `qdd`,
+    gravity left out (`gravity_torques`), from the kinetic energy $T$ of the links'
+    `masses`, centres of mass `coms` and inertia tensors about them `tensors (joints, 3,
+    3)`, each in its link's frame (Lagrange's equations, by automatic differentiation)."""
+
+    def kinetic(q, qd):
+        def frames(q):
+            links = forward_kinematics(model, q)[1:-1]
+            R = links[:, :3, :3]
+            return R, jnp.einsum("kab,kb->ka", R, coms) + links[:, :3, 3]
+
+        (R, _), (R_dot, v) = jax.jvp(frames, (q,), (qd,))
+        W = jnp.einsum("kab,kcb->kac", R_dot, R)  # the links' angular velocities, skew
+        w = jnp.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], axis=-1)
+        w_link = jnp.einsum("kba,kb->ka", R, w)
+        spin = jnp.einsum("ka,kab,kb->k", w_link, tensors, w_link)
+        return 0.5 * jnp.sum(masses * jnp.sum(v * v, axis=-1) + spin)
+
+    momentum = jax.grad(kinetic, argnums=1)
+    _, rate = jax.jvp(momentum, (q, qd), (qd, qdd))
+    return rate - jax.grad(kinetic, argnums=0)(q, qd)
+
+
+def transmission_torques(model: KinematicModel, q, qd, qdd, masses, coms, tensors) -> Float[Array, " joints"]:
+    """The torques the joints' transmissions carry at `q` moving with `qd`, `qdd` (N m):
+    gravity's (`gravity_torques`) less the inertial torques (`inertial_torques`), so that a
+    joint yields $c_j \\tau_j$ along them (the links' `tensors` about their centres of mass)."""
+    return gravity_torques(model, q, masses, coms) - inertial_torques(
+        model, q, qd, qdd, masses, coms, tensors
+    )
+
+
+def relay(torque, threshold: float = PRELOAD_NM) -> np.ndarray:
+    """The load rule's flank along a motion's rows of transmission torques `torque (T, joints)`
+    (NumPy): the sign of the last torque beyond `threshold` in size (a torque that presses a
+    joint across its dead band; smaller ones leave it where it was), 0 before the first."""
+    tau = np.asarray(torque, np.float64)
+    out = np.zeros_like(tau)
+    state = np.zeros(tau.shape[1:])
+    for k in range(len(tau)):
+        state = np.where(np.abs(tau[k]) > threshold, np.sign(tau[k]), state)
+        out[k] = state
+    return out
+
+
 def with_payload(model: KinematicModel, masses, coms, mass_kg: float, com_flange_m) -> tuple:
     """The links' masses and centres of mass with a payload on the flange (the plate's or
     tool's `mass_kg` at `com_flange_m`, flange frame) lumped into the last link (NumPy)."""
@@ -179,28 +238,78 @@ def with_payload(model: KinematicModel, masses, coms, mass_kg: float, com_flange
     return masses, coms
 
 
+def with_payload_tensors(
+    model: KinematicModel, masses, coms, tensors, mass_kg: float, com_flange_m, inertia_flange=None
+) -> np.ndarray:
+    """The links' inertia tensors about their centres of mass with the payload of `with_payload`
+    lumped into the last link (the parallel-axis rule; NumPy): its own inertia about its centre
+    `inertia_flange` (3x3, the flange's axes), or a point mass where None."""
+    tensors = np.array(tensors, np.float64)
+    if not mass_kg:
+        return tensors
+    T = np.asarray(model.T_last_flange, np.float64)
+    if inertia_flange is not None:
+        tensors[-1] = tensors[-1] + T[:3, :3] @ np.asarray(inertia_flange, np.float64) @ T[:3, :3].T
+    p = T[:3, :3] @ np.asarray(com_flange_m, np.float64) + T[:3, 3]
+    m0, c0 = float(masses[-1]), np.asarray(coms[-1], np.float64)
+    c = (m0 * c0 + mass_kg * p) / (m0 + mass_kg)
+
+    def shifted(m, d):
+        return m * (d @ d * np.eye(3) - np.outer(d, d))
+
+    tensors[-1] = tensors[-1] + shifted(m0, c0 - c) + shifted(mass_kg, p - c)
+    return tensors
+
+
+def log_motion(t_log, q_log, t, window_s: float = MOTION_WINDOW_S) -> tuple[np.ndarray, np.ndarray]:
+    """The velocity and acceleration of the motion logged as `q_log (T, joints)` at times
+    `t_log (T,)`, at times `t (N,)` (NumPy, `(N, joints)` each): at every log row a quadratic
+    fitted to the rows within `window_s` around it (at least one on each side), its slope
+    and twice its curvature, interpolated linearly between the rows (times outside the
+    log: its ends)."""
+    t_log, q_log = np.asarray(t_log, np.float64), np.asarray(q_log, np.float64)
+    t = np.asarray(t, np.float64)
+    n = len(t_log)
+    if n < 3:
+        return np.zeros((len(t), q_log.shape[1])), np.zeros((len(t), q_log.shape[1]))
+    h = max(1, int(round(0.5 * window_s / float(np.median(np.diff(t_log))))))
+    idx = np.clip(np.arange(n)[:, None] + np.arange(-h, h + 1)[None, :], 0, n - 1)  # (T, 2h+1)
+    tau = t_log[idx] - t_log[:, None]
+    V = np.stack([np.ones_like(tau), tau, tau * tau], axis=-1)  # (T, 2h+1, 3)
+    coef = np.linalg.solve(np.einsum("tka,tkb->tab", V, V), np.einsum("tka,tkj->taj", V, q_log[idx]))
+    qd, qdd = coef[:, 1], 2.0 * coef[:, 2]
+
+    def at(x):
+        return np.stack([np.interp(t, t_log, x[:, j]) for j in range(x.shape[1])], axis=-1)
+
+    return at(qd), at(qdd)
+
+
 def preload(tau: Float[Array, "... joints"]) -> Float[Array, "... joints"]:
     """The flank gravity pushes each joint to: $\\tanh(\\tau / \\tau_p)$ (`PRELOAD_NM`)."""
     return jnp.tanh(tau / PRELOAD_NM)
 
 
 def term_basis(
-    terms: tuple[str, ...], model: KinematicModel, q, masses, coms, approach=None
+    terms: tuple[str, ...], model: KinematicModel, q, masses, coms, approach=None, torque=None, load=None
 ) -> Float[Array, "samples joints k"]:
     """The terms' basis at every sample's commanded pose `q` `(samples, joints)`, on the
-    nominal `model` (`masses`, `coms`: the links', the payload lumped in, `with_payload`;
-    `approach` `(samples, joints)`: the approach rule's flank, `approach`, zero if None)."""
+    nominal `model` (`masses`, `coms`: the links', the payload lumped in, `with_payload`).
+    `approach` `(samples, joints)`: the approach rule's flank (`approach`; zero if None);
+    `torque`: the transmissions' torques of a logged motion (`transmission_torques`; None:
+    the arm stands still, gravity's at `q`); `load`: the load rule's flank along that motion
+    (`relay`; None: `preload` of the torque)."""
     need_tau = any(t in ("compliance", "backlash") for t in terms)
-    tau = (
-        jax.vmap(gravity_torques, in_axes=(None, 0, None, None))(model, q, masses, coms) if need_tau else None
-    )
+    if need_tau and torque is None:
+        torque = jax.vmap(gravity_torques, in_axes=(None, 0, None, None))(model, q, masses, coms)
     cols = []
     for t in terms:
         if t == "compliance":
-            cols.append(tau[..., None] / 1000.0)
+            cols.append(jnp.asarray(torque, q.dtype)[..., None] / 1000.0)
         elif t == "backlash":
             a = jnp.zeros_like(q) if approach is None else jnp.asarray(approach, q.dtype)
-            cols += [a[..., None], preload(tau)[..., None]]
+            flank = preload(jnp.asarray(torque, q.dtype)) if load is None else jnp.asarray(load, q.dtype)
+            cols += [a[..., None], flank[..., None]]
         else:
             k = 1.0 if t == "harmonic1" else 2.0
             cols += [jnp.sin(k * q)[..., None], jnp.cos(k * q)[..., None]]

@@ -76,10 +76,10 @@ RUNS = {
     # tests/test_camera_model.py, test_arm_model.py, test_covariance.py).
     "realism --cases": Run(
         "realism",
-        "--cases physics_arm lens_remap_1x rolling_shutter_coarse exposure_10ms_fast --resolution 320x240 "
-        "--frames-per-joint 6 --seed 0 --without-terms",
-        "cases.physics_arm cases.physics_arm_without_terms cases.lens_remap_1x cases.rolling_shutter_coarse "
-        "cases.exposure_10ms_fast",
+        "--cases physics_arm physics_arm_two_speeds lens_remap_1x rolling_shutter_coarse exposure_10ms_fast "
+        "--resolution 320x240 --frames-per-joint 6 --seed 0 --without-terms",
+        "cases.physics_arm cases.physics_arm_without_terms cases.physics_arm_two_speeds cases.lens_remap_1x "
+        "cases.rolling_shutter_coarse cases.exposure_10ms_fast",
     ),
     "noise_weights": Run(
         "noise_weights",

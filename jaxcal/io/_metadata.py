@@ -159,30 +159,65 @@ def read_robot(meta: dict, loc: Loc, root: Path):
 
 @dataclass(frozen=True, eq=False)
 class Payload:
-    """What the flange carries beyond the robot file's links (the plate, a tool): its mass (kg)
-    and centre of mass in the flange frame (m), `robot.payload` in the metadata."""
+    """What the flange carries beyond the robot file's links (the plate, a tool): its mass (kg),
+    centre of mass in the flange frame (m) and, when given, its inertia tensor about that centre
+    in the flange's axes (kg m^2; None: a point mass), `robot.payload` in the metadata."""
 
     mass_kg: float
     com_m: np.ndarray
+    inertia_kgm2: np.ndarray | None = None
 
 
 #: Heaviest payload `robot.payload.mass_kg` accepts (kg): more than any arm this tool calibrates lifts.
 MAX_PAYLOAD_KG = 1000.0
 
 
+#: Largest principal inertia `robot.payload.inertia_kgm2` accepts (kg m^2): a 1000 kg load 1 m across.
+MAX_PAYLOAD_INERTIA = 1000.0
+
+
 def read_payload(meta: dict, loc: Loc) -> Payload | None:
-    """`robot.payload` (`{"mass_kg": m, "com_m": [x, y, z]}`, the centre in the flange frame), or None."""
+    """`robot.payload` (`{"mass_kg": m, "com_m": [x, y, z]}`, the centre in the flange frame, and
+    optionally `"inertia_kgm2"`: `[Ixx, Iyy, Izz]` or a 3x3 tensor about the centre in the flange's
+    axes), or None."""
     p = meta["robot"].get("payload") if isinstance(meta.get("robot"), dict) else None
     if p is None:
         return None
-    p = sc.obj(p, loc, required=("mass_kg", "com_m"))
+    p = sc.obj(p, loc, required=("mass_kg", "com_m"), optional=("inertia_kgm2",))
     mass = sc.number(p["mass_kg"], loc.key("mass_kg"), 0.0, MAX_PAYLOAD_KG)
     com = sc.array(p["com_m"], loc.key("com_m"), (3,))
     if np.max(np.abs(com)) > 5.0:
         raise loc.key("com_m").fail(
             f"{com.tolist()} is over 5 m from the flange: millimetres given as metres?"
         )
-    return Payload(mass, com)
+    inertia = (
+        None
+        if p.get("inertia_kgm2") is None
+        else _payload_inertia(p["inertia_kgm2"], loc.key("inertia_kgm2"))
+    )
+    return Payload(mass, com, inertia)
+
+
+def _payload_inertia(x, loc: Loc) -> np.ndarray:
+    """An inertia tensor (kg m^2) from its principal values `[Ixx, Iyy, Izz]` or a symmetric 3x3
+    matrix, refused where no rigid body has it (negative, asymmetric, or one principal value
+    above the sum of the other two)."""
+    flat = isinstance(x, list) and len(x) == 3 and all(not isinstance(v, list) for v in x)
+    I = np.diag(sc.array(x, loc, (3,))) if flat else sc.array(x, loc, (3, 3))
+    if not np.allclose(I, I.T, rtol=0.0, atol=1e-9 * max(1.0, float(np.abs(I).max()))):
+        raise loc.fail(f"{I.tolist()} is not symmetric: an inertia tensor is")
+    principal = np.linalg.eigvalsh(0.5 * (I + I.T))
+    scale = max(float(principal.max()), 1e-12)
+    if principal.min() < -1e-9 * scale or principal.max() > principal.sum() - principal.max() + 1e-9 * scale:
+        raise loc.fail(
+            f"principal values {np.round(principal, 9).tolist()} kg m^2 are no rigid body's (each must be >= 0 "
+            "and at most the sum of the other two)"
+        )
+    if principal.max() > MAX_PAYLOAD_INERTIA:
+        raise loc.fail(
+            f"principal values up to {principal.max():g} kg m^2: grams or millimetres given as SI?"
+        )
+    return 0.5 * (I + I.T)
 
 
 def _read_table_robot(robot: dict, loc: Loc, root: Path):

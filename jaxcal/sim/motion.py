@@ -76,16 +76,36 @@ class Trajectory:
         rate = np.where(inside, 0.5 * np.pi * np.sin(np.pi * np.clip(s, 0.0, 1.0)) / h, 0.0)
         return (self.q[i + 1] - self.q[i]) * rate[..., None]
 
+    def acceleration(self, t) -> np.ndarray:
+        """The commanded acceleration at `t` (rad/s^2 or m/s^2; zero outside the waypoints' span;
+        at a waypoint, the leg that starts there)."""
+        t = np.asarray(t, np.float64)
+        i = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
+        h = self.times[i + 1] - self.times[i]
+        s = (t - self.times[i]) / h
+        inside = (t >= self.times[0]) & (t <= self.times[-1])
+        rate = np.where(inside, 0.5 * np.pi**2 * np.cos(np.pi * np.clip(s, 0.0, 1.0)) / h**2, 0.0)
+        return (self.q[i + 1] - self.q[i]) * rate[..., None]
+
 
 def joint_sweeps(
-    joint_names, range_deg=40.0, sweep_s: float = 1.5, move_s: float = 0.8, joints=None, home=None
+    joint_names,
+    range_deg=40.0,
+    sweep_s: float = 1.5,
+    move_s: float = 0.8,
+    joints=None,
+    home=None,
+    back_s: float | None = None,
 ) -> Trajectory:
     """Joint-by-joint sweeps about the zero configuration (or `home`, rad).
 
     Each joint in turn goes 0 -> -range/2 (`move_s`), sweeps to +range/2
     (`sweep_s`, recorded), and returns to 0 (`move_s`); the others stay at 0
     (with `home`, every position is relative to it: the arm starts and rests
-    there, and each segment records it).
+    there, and each segment records it). With `back_s`, each joint also sweeps
+    back to -range/2 in `back_s` (recorded too) before it returns: a second speed,
+    which separates a compliant joint's lag under its inertial torques (the
+    speed squared) from its reduction ratio (none).
     `range_deg`: one angle for every joint, or one per joint (e.g. a wide
     sweep of the last joint of an eye-in-hand arm, which spins the camera
     about its own axis and keeps the board in view). `joints` (indices)
@@ -107,10 +127,16 @@ def joint_sweeps(
         half = halves[j]
         e = np.eye(n)[j]
         t = times[-1]
-        times += [t + move_s, t + move_s + sweep_s, t + 2 * move_s + sweep_s]
-        q += [h - half * e, h + half * e, h]
         seg_home = None if home is None else tuple(float(x) for x in h * (1.0 - e))
+        times += [t + move_s, t + move_s + sweep_s]
+        q += [h - half * e, h + half * e]
         segments.append(Segment(joint_names[j], t + move_s, t + move_s + sweep_s, seg_home))
+        if back_s:
+            times.append(times[-1] + back_s)
+            q.append(h - half * e)
+            segments.append(Segment(joint_names[j], times[-2], times[-1], seg_home))
+        times.append(times[-1] + move_s)
+        q.append(h)
     return Trajectory(times, q, segments)
 
 

@@ -119,6 +119,20 @@ def _plate_inertia(plate, mass: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return centre, T[:3, :3], inertia
 
 
+def flange_payload(plates, mass_kg: float, flange: str) -> dict | None:
+    """The metadata's `robot.payload` of the plates a physics arm carries on its `flange` link,
+    each `mass_kg` at its centre (`_plate_inertia`): their mass, centre in the flange frame and
+    inertia tensor about it (JSON-ready), or None where none rides on the flange."""
+    parts = [_plate_inertia(p, mass_kg) for p in plates if p.link == flange]
+    if not parts or mass_kg <= 0.0:
+        return None
+    total = mass_kg * len(parts)
+    com = sum(c for c, _, _ in parts) / len(parts)
+    inertia = sum(R @ np.diag(d) @ R.T + mass_kg * ((c - com) @ (c - com) * np.eye(3) - np.outer(c - com, c - com))
+                  for c, R, d in parts)  # fmt: skip
+    return {"mass_kg": total, "com_m": com.tolist(), "inertia_kgm2": inertia.tolist()}
+
+
 def _build(arm: ArmModel, true, inertias, plates):
     """The compiled MuJoCo model and the indices `(link_dof, rotor_dof, link_qpos, rotor_qpos)`."""
     dyn = arm.dynamics

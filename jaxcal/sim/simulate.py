@@ -38,12 +38,12 @@ from ..io.urdf import load_urdf, save_urdf
 from ..markers import TargetSpec
 from ..planning._layout import facing_mount as facing_mount
 from ..planning._layout import look_at as look_at
-from ..robots import link_inertials, link_inertias, robot_path, shipped
+from ..robots import link_inertias, robot_path, shipped
 from .arm import ArmModel, ArmMotion, arm_model
 from .camera import CameraModel, camera_model
 from .motion import ClockModel, check_finite, encoder_stream, joint_sweeps, true_angles
 from .motion import frame_times as frame_times_of
-from .physics import PhysicsMotion
+from .physics import PhysicsMotion, flange_payload
 from .scene import CameraSpec, PlateSpec, build_scene
 
 
@@ -57,7 +57,9 @@ class SimConfig:
     mount and the camera placement. `grayscale` writes 8-bit single-channel
     PNGs (what a machine-vision camera gives; a third of the size).
     A sweep turns a revolute joint through `range_deg` and moves a prismatic
-    one through `range_mm` (its entry of `range_deg` is ignored).
+    one through `range_mm` (its entry of `range_deg` is ignored); with
+    `sweep_back` > 0 it is filmed on the way back too, that many times slower
+    (`jaxcal.sim.motion.joint_sweeps`' `back_s`: two speeds).
     `camera`: how the cameras expose and degrade their frames, a preset's
     name (`jaxcal.sim.camera.PRESETS`) or a `CameraModel`; `ideal` (one
     instant, noise-free) by default. `arm`: how the arm deviates from a rigid
@@ -86,6 +88,7 @@ class SimConfig:
     range_mm: float = 100.0
     home_deg: tuple[float, ...] | None = None
     fps: float = 30.0
+    sweep_back: float = 0.0
     clock_offset_ms: float = 0.0
     clock_drift_ppm: float = 0.0
     clock_jitter_ms: float = 0.0
@@ -117,6 +120,10 @@ class SimConfig:
             raise ValueError("eye-in-hand simulates one camera on the flange")
         if self.frames_per_joint < 2:
             raise ValueError("frames_per_joint must be at least 2")
+        if self.sweep_back < 0.0:
+            raise ValueError(
+                f"sweep_back must be >= 0 (0: the way back is not filmed), got {self.sweep_back}"
+            )
         if not 0.0 <= self.drop_rate < 1.0:
             raise ValueError(f"drop_rate must be in [0, 1), got {self.drop_rate}")
         if self.markers not in ("charuco", "aruco"):
@@ -469,6 +476,7 @@ def sweeps_trajectory(nominal, config: SimConfig):
         sweep_ranges(nominal, config),
         sweep_s=config.frames_per_joint / config.fps,
         home=home,
+        back_s=config.sweep_back * config.frames_per_joint / config.fps or None,
     )
 
 
@@ -480,7 +488,7 @@ def angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates=
 def arm_motion(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates=()):
     """`(angles_at, motor_at)`: the true arm's joint angles at controller times `t` and the
     motor angles its encoders read there (`None`: the command's, `encoder_stream`'s default).
-    Rigid; `jaxcal.sim.arm.ArmMotion` with the robot file's masses for compliance; or, for an
+    Rigid; `jaxcal.sim.arm.ArmMotion` with the robot file's inertias for compliance; or, for an
     arm with `dynamics`, MuJoCo's physics (`jaxcal.sim.physics.PhysicsMotion`: the robot
     file's inertias, the target `plates` on links as payload), whose encoders read the motors."""
     if arm.dynamics is not None:
@@ -491,7 +499,7 @@ def arm_motion(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates
             true_angles, trajectory, nominal_ratio=nominal_ratio, true_ratio=true.reduction_ratio,
             true_zero_offset=true.zero_offset,
         ), None  # fmt: skip
-    inertials = link_inertials(urdf_path) if arm.compliance is not None else None
+    inertials = link_inertias(urdf_path) if arm.compliance is not None else None
     return ArmMotion(arm, trajectory, nominal_ratio, true, inertials).angles, None
 
 
@@ -544,6 +552,13 @@ def _metadata(
         for c in cameras_nominal
     ]
     targets_meta = [TargetInfo(p.target, p.link, p.T_link_target).to_dict() for p in plates_nominal]
+    dynamics = arm_model(config.arm).dynamics
+    # What a physics arm's flange carries, as its user would state it: the plates' design.
+    payload = (
+        None
+        if dynamics is None
+        else flange_payload(plates_nominal, dynamics.payload_kg, nominal.link_names[-1])
+    )
     return {
         "schema": SCHEMA,
         "schema_version": SCHEMA_VERSION,
@@ -553,7 +568,8 @@ def _metadata(
             "base_link": nominal.link_names[0],
             "flange_link": nominal.link_names[-1],
             "joints": list(nominal.joint_names),
-        },
+        }
+        | ({} if payload is None else {"payload": payload}),
         "cameras": cameras_meta,
         "targets": targets_meta,
         "encoders": {

@@ -33,7 +33,7 @@ from .._exported import stored_jit
 from .._kinematics import forward_kinematics
 from .._options import RobustOptions
 from .._refine import identifiable_mask, refine
-from .._terms import column_map, gravity_torques
+from .._terms import column_map, gravity_torques, transmission_torques
 from .._terms import term_basis as _term_basis_of
 from .._uncertainty import ee_sigma, joint_travel, on_travel, random_configurations
 
@@ -313,27 +313,65 @@ def arm_score(use_poses: bool):
 
 
 @functools.cache
-def _term_basis(terms: tuple[str, ...]):
-    def term_basis(nominal, q, approach, masses, coms):
-        return _term_basis_of(terms, nominal, q, masses, coms, approach)
+def _term_basis(terms: tuple[str, ...], moving: bool):
+    if moving:
 
-    return stored_jit(term_basis, "term_basis", (terms,))
+        def term_basis(nominal, q, approach, masses, coms, torque, load):
+            return _term_basis_of(terms, nominal, q, masses, coms, approach, torque, load)
+
+    else:
+
+        def term_basis(nominal, q, approach, masses, coms):
+            return _term_basis_of(terms, nominal, q, masses, coms, approach)
+
+    return stored_jit(term_basis, "term_basis", (terms, moving))
 
 
-def term_basis(terms, nominal, q, approach, masses, coms) -> np.ndarray:
+def _padded(n: int, *arrays) -> list:
+    """Each `(n, joints)` array on the device, zero-padded to `n`'s size bucket."""
+    out = []
+    for a in arrays:
+        a = np.asarray(a, np.float64)
+        p = np.zeros((bucket(n), a.shape[1]))
+        p[:n] = a
+        out.append(to_device(p))
+    return out
+
+
+def term_basis(terms, nominal, q, approach, masses, coms, torque=None, load=None) -> np.ndarray:
     """`jaxcal._terms.term_basis` of the families `terms` at commanded positions `q (n, joints)`
-    with approach flanks `approach (n, joints)` (computed on both padded to a bucket), `(n,
-    joints, k)`."""
+    with approach flanks `approach (n, joints)` and, along a logged motion, the transmissions'
+    torques `torque` and load flanks `load` (`(n, joints)` each; None: the arm still), computed
+    on all padded to a bucket: `(n, joints, k)`."""
     q = np.asarray(q, np.float64)
-    size = bucket(len(q))
-    padded = np.zeros((size, q.shape[1]))
-    flank = np.zeros((size, q.shape[1]))
-    padded[: len(q)], flank[: len(q)] = q, approach
-    out = _term_basis(tuple(terms))(
-        nominal, to_device(padded), to_device(flank), to_device(np.asarray(masses, np.float64)),
-        to_device(np.asarray(coms, np.float64)),
-    )  # fmt: skip
+    moving = torque is not None
+    rows = (q, approach, torque, load) if moving else (q, approach)
+    padded = _padded(len(q), *rows)
+    inert = [to_device(np.asarray(masses, np.float64)), to_device(np.asarray(coms, np.float64))]
+    out = _term_basis(tuple(terms), moving)(nominal, *padded[:2], *inert, *padded[2:])
     return np.array(out)[: len(q)]
+
+
+@functools.cache
+def _transmission_torques():
+    def torques(nominal, q, qd, qdd, masses, coms, tensors):
+        return jax.vmap(transmission_torques, in_axes=(None, 0, 0, 0, None, None, None))(
+            nominal, q, qd, qdd, masses, coms, tensors
+        )
+
+    return stored_jit(torques, "transmission_torques")
+
+
+def motion_torques(nominal, q, qd, qdd, masses, coms, tensors) -> np.ndarray:
+    """`jaxcal._terms.transmission_torques` at every row of `q`, `qd`, `qdd` `(n, joints)`
+    (padded to a bucket), `(n, joints)`."""
+    n = len(q)
+    out = _transmission_torques()(
+        nominal,
+        *_padded(n, q, qd, qdd),
+        *(to_device(np.asarray(a, np.float64)) for a in (masses, coms, tensors)),
+    )
+    return np.array(out)[:n]
 
 
 @functools.cache

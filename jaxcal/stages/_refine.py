@@ -641,7 +641,8 @@ def _with_terms(setup: Setup, sync: Sync, problem, res, layout, cand, free, term
     x, std = np.asarray(res.params.terms), np.asarray(res.std)[idx]
     rows = coefficient_rows(kept, setup.nominal.joint_names, x, std, free[idx])
     summary = dataclasses.replace(summary, coefficients=rows)
-    return problem, res, layout, cand, free, TermFit(kept, x, *inert, summary)
+    masses, coms, tensors = inert
+    return problem, res, layout, cand, free, TermFit(kept, x, masses, coms, summary, tensors)
 
 
 def summary_record(figures: dict, **typed) -> RefinementSummary:

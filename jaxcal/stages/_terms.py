@@ -49,13 +49,16 @@ from .._terms import (
     column_map,
     correction,
     family_of,
+    log_motion,
     names,
+    relay,
     signs,
     with_payload,
+    with_payload_tensors,
 )
 from ..errors import CalibrationError
 from ..records import ModelRow, TermRow, TermsSummary
-from ..robots import link_inertials
+from ..robots import link_inertials, link_inertias
 from . import _programs
 from ._setup import Options, Setup
 from ._synchronise import interpolate
@@ -107,6 +110,54 @@ def inertials(setup: Setup) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
+def inertia_tensors(setup: Setup, masses, coms) -> np.ndarray:
+    """The links' inertia tensors about their centres of mass (the inertial torques') from the
+    robot file, the metadata's payload lumped in (its own inertia where stated, else a point
+    mass; `inertials`' masses and centres of mass are after the lumping)."""
+    ds = setup.dataset
+    try:
+        raw_masses, raw_coms, tensors = link_inertias(ds.robot_urdf)
+    except (ValueError, KeyError, OSError) as e:
+        raise CalibrationError(
+            f"{ds.robot_urdf}: the inertial torques need every link's inertia: {e}"
+        ) from None
+    p = ds.payload
+    if p is None:
+        return tensors
+    return with_payload_tensors(
+        setup.nominal, raw_masses, raw_coms, tensors, p.mass_kg, p.com_m, p.inertia_kgm2
+    )
+
+
+@dataclass(frozen=True)
+class LogTorques:
+    """The transmissions' torques along an encoder log (`jaxcal._terms.transmission_torques`
+    at every row: the log's positions, velocities and accelerations times the joints' rates)
+    and the load rule's flank there (`jaxcal._terms.relay`), read at any controller time."""
+
+    t: np.ndarray
+    torque: np.ndarray
+    flank: np.ndarray
+
+    @classmethod
+    def of_log(cls, nominal, enc_t, enc_q, rate, masses, coms, tensors) -> "LogTorques":
+        enc_t, enc_q = np.asarray(enc_t, np.float64), np.asarray(enc_q, np.float64)
+        r = np.asarray(rate, np.float64)
+        qd, qdd = log_motion(enc_t, enc_q, enc_t)
+        torque = _programs.motion_torques(nominal, enc_q * r, qd * r, qdd * r, masses, coms, tensors)
+        return cls(enc_t, torque, relay(torque))
+
+    def at(self, t) -> tuple[np.ndarray, np.ndarray]:
+        """`(torque, flank)` at controller times `t (N,)`: the torque interpolated, the flank of
+        the log row at or before (times outside the log: its ends)."""
+        t = np.clip(np.asarray(t, np.float64), self.t[0], self.t[-1])
+        torque = np.stack(
+            [np.interp(t, self.t, self.torque[:, j]) for j in range(self.torque.shape[1])], axis=-1
+        )
+        i = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 1)
+        return torque, self.flank[i]
+
+
 @dataclass(frozen=True, eq=False)
 class TermFit:
     """The terms the refinement kept, with what the encoder log's correction needs.
@@ -114,6 +165,7 @@ class TermFit:
     - `terms`: the kept families; `x`: their coefficients (`jaxcal._terms.names` order; held
       ones zero); `masses`, `coms`: the inertials of the basis (payload included).
     - `summary`: the result's `TermsSummary` (the models compared and why).
+    - `tensors`: the links' inertia tensors (`inertia_tensors`; None: gravity's torques alone).
     """
 
     terms: tuple[str, ...]
@@ -121,6 +173,7 @@ class TermFit:
     masses: np.ndarray
     coms: np.ndarray
     summary: TermsSummary
+    tensors: np.ndarray | None = None
 
     @property
     def kept(self) -> bool:
@@ -130,16 +183,24 @@ class TermFit:
         """The kept terms' joint-angle correction (rad) at every row of an encoder log
         `(T, joints)` of commanded positions (the approach rule along the log itself)."""
         enc_q = np.asarray(enc_q, np.float64)
+        torque, load = None, None
+        if self.tensors is not None:
+            log = LogTorques.of_log(
+                nominal, enc_t, enc_q, np.ones(enc_q.shape[1]), self.masses, self.coms, self.tensors
+            )
+            torque, load = log.torque, log.flank
         basis = view_basis(
-            self.terms, nominal, enc_q, approach_at(enc_t, enc_q, enc_t), self.masses, self.coms
+            self.terms, nominal, enc_q, approach_at(enc_t, enc_q, enc_t), self.masses, self.coms, torque, load
         )
         return np.asarray(correction(self.terms, self.x, basis))
 
 
-def view_basis(terms, nominal, q, a, masses, coms) -> np.ndarray:
-    """`jaxcal._terms.term_basis` at commanded positions `q (N, joints)` and approach flanks
-    `a`, as one compiled program on `q` padded to a size bucket (NumPy out, `(N, joints, k)`)."""
-    return _programs.term_basis(terms, nominal, q, a, masses, coms)
+def view_basis(terms, nominal, q, a, masses, coms, torque=None, load=None) -> np.ndarray:
+    """`jaxcal._terms.term_basis` at commanded positions `q (N, joints)`, approach flanks `a` and,
+    along a logged motion, the transmissions' torques and load flanks (`LogTorques.at`; None:
+    the arm still), as one compiled program on `q` padded to a size bucket (NumPy out, `(N,
+    joints, k)`)."""
+    return _programs.term_basis(terms, nominal, q, a, masses, coms, torque, load)
 
 
 def fold_of_views(frames: np.ndarray, t_cam: np.ndarray, real: np.ndarray, folds: int) -> np.ndarray:
@@ -249,17 +310,22 @@ def _independent(A: np.ndarray, base: np.ndarray, cand: np.ndarray, tol: float) 
     return np.array(keep, int)
 
 
-def _linearised(setup: Setup, sync, problem, res, terms, folds: int, masses, coms):
-    """`(_Linear, basis (views, joints, k))`: every view's basis at its commanded pose and
-    approach (the encoder log at the refined clock and rates) and the term columns, each
-    joint's angle column times its basis."""
+def _linearised(setup: Setup, sync, problem, res, terms, folds: int, masses, coms, tensors=None):
+    """`(_Linear, basis (views, joints, k))`: every view's basis at its commanded pose, approach
+    and (given the links' inertia `tensors`) the transmissions' torques and load flanks along the
+    encoder log (at the refined clock and rates), and the term columns, each joint's angle column
+    times its basis."""
     n = setup.nominal.num_joints
     data = problem.data
     real = np.asarray(data.frame) >= 0
     enc_t, enc_q = sync.log_q
     t_ctrl = (np.asarray(data.t_cam) - float(res.offset_s)) / (1.0 + 1e-6 * setup.dataset.clock_drift_ppm)
-    q = interpolate(t_ctrl, enc_t, enc_q) * np.asarray(res.params.rate)
-    basis = view_basis(terms, setup.nominal, q, approach_at(enc_t, enc_q, t_ctrl), masses, coms)
+    rate = np.asarray(res.params.rate)
+    q = interpolate(t_ctrl, enc_t, enc_q) * rate
+    torque, load = None, None
+    if tensors is not None:
+        torque, load = LogTorques.of_log(setup.nominal, enc_t, enc_q, rate, masses, coms, tensors).at(t_ctrl)
+    basis = view_basis(terms, setup.nominal, q, approach_at(enc_t, enc_q, t_ctrl), masses, coms, torque, load)
     basis[~real] = 0.0
     joint, col = column_map(terms, n)
     V, P = np.asarray(data.mask).shape
@@ -372,7 +438,8 @@ def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str,
     Jacobians, `refine(..., jacobian=True)`) of `problem` with the `free` mask.
 
     **Returns:** `(kept families, their basis (views, joints, k), the kept coefficients'
-    free mask, the TermsSummary, (masses, coms))`.
+    free mask, the TermsSummary, (masses, coms, tensors))` (`tensors` None without compliance
+    or lost motion).
     """
     folds = int(options.cv_folds)
     if folds < 2:
@@ -384,7 +451,8 @@ def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str,
             None,
         )
     masses, coms = inertials(setup)
-    lin, basis = _linearised(setup, sync, problem, res, terms, folds, masses, coms)
+    tensors = inertia_tensors(setup, masses, coms) if {"compliance", "backlash"} & set(terms) else None
+    lin, basis = _linearised(setup, sync, problem, res, terms, folds, masses, coms, tensors)
     models, best_cols, kept_families = _compare(lin, terms, folds, setup.kind.identifiability_tol)
     kept = tuple(t for t in terms if t in kept_families)
     # The kept families' basis columns and coefficient mask, in the kept layout's order.
@@ -399,8 +467,9 @@ def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str,
         block_frames=BLOCK_FRAMES, payload_kg=None if payload is None else payload.mass_kg,
     )  # fmt: skip
     if not kept:
-        return (), None, None, summary, (masses, coms)
-    return kept, basis[:, :, np.concatenate(basis_cols)], np.concatenate(kept_free), summary, (masses, coms)
+        return (), None, None, summary, (masses, coms, tensors)
+    inert = (masses, coms, tensors)
+    return kept, basis[:, :, np.concatenate(basis_cols)], np.concatenate(kept_free), summary, inert
 
 
 def coefficient_rows(terms, joints, x, std, free) -> tuple[TermRow, ...]:
