@@ -17,16 +17,12 @@ $\\theta_0 = q\\,\\rho_{nom}/\\rho_{true} + \\delta$. Between motor and link:
   the leg from waypoint $t_i$. A gear that gravity preloads stays against
   one flank whichever way it turns; that is not modelled here, so the lost
   motion of loaded joints (a shoulder, an elbow) is a pessimistic case.
-- **compliance** (`compliance`, rad per kN m per joint, $c_j$): the joint
-  yields by $c_j\\,\\tau_j$, with $\\tau_j$ the torque its transmission carries:
-  gravity's about its axis from the robot file's link masses and centres of mass
-  (`jaxcal._pointfit.gravity_torques`, gravity along the base's $-z$) less the
-  torque that accelerates the links beyond it along the commanded motion
-  (`jaxcal._terms.inertial_torques`, the robot file's inertia tensors: a compliant
-  joint lags while the arm speeds up), evaluated at the unloaded angles (first
-  order: deflections are milliradians):
-  $\\theta = \\theta_b + 10^{-3} c_j\\,\\tau_j(\\theta_b, \\dot\\theta_0, \\ddot\\theta_0)$.
-  Quasi-static: the transmission's own ringing is MuJoCo's (`physics`).
+- **gravity compliance** (`compliance`, rad per kN m per joint, $c_j$): the
+  joint yields by $c_j\\,\\tau_j$, with $\\tau_j$ the gravity torque about its
+  axis from the robot file's link masses and centres of mass
+  (`jaxcal._pointfit.gravity_torques`, gravity along the base's $-z$),
+  evaluated at the unloaded angles (first order: deflections are milliradians):
+  $\\theta = \\theta_b + 10^{-3} c_j\\,\\tau_j(\\theta_b)$.
 
 With `dynamics` (a `Dynamics`, the `physics` preset), none of these formulas: MuJoCo's
 physics moves the arm (`jaxcal.sim.physics`): servoed motors behind compliant
@@ -67,7 +63,6 @@ import numpy as np
 
 from .._compliance import play as play
 from .._pointfit import gravity_torques
-from .._terms import transmission_torques
 from ..records_capture import ArmFigures
 from .motion import EncoderModel, Trajectory
 
@@ -246,26 +241,14 @@ class ArmModel:
         )
 
 
-def gravity_deflection(true, theta, zero_offset, compliance, inertials, motion=None) -> np.ndarray:
+def gravity_deflection(true, theta, zero_offset, compliance, inertials) -> np.ndarray:
     """$10^{-3} c_j \\tau_j$ (rad) at true joint angles `theta` `(..., joints)`: each joint's
-    yield under the torque (N m) its transmission carries: gravity's on the links it carries
-    (`inertials`: masses, centres of mass, as `jaxcal.robots.link_inertials`) and, with
-    `motion` (the joints' velocities and accelerations, shaped as `theta`) and the links'
-    inertia tensors as `inertials`' third item (`jaxcal.robots.link_inertias`), less the
-    inertial torques (`jaxcal._terms.transmission_torques`)."""
-    masses, coms = (jnp.asarray(a, jnp.float64) for a in inertials[:2])
+    yield under the gravity torque (N m) of the links it carries (`inertials`: masses,
+    centres of mass, as `jaxcal.robots.link_inertials`)."""
+    masses, coms = (jnp.asarray(a, jnp.float64) for a in inertials)
     theta = np.asarray(theta, np.float64)
     q = jnp.asarray(theta.reshape(-1, theta.shape[-1]) - np.asarray(zero_offset, np.float64))
-    if motion is None or len(inertials) < 3:
-        tau = np.asarray(jax.vmap(lambda qq: gravity_torques(true, qq, masses, coms))(q))
-    else:
-        tensors = jnp.asarray(inertials[2], jnp.float64)
-        qd, qdd = (jnp.asarray(np.asarray(m, np.float64).reshape(q.shape)) for m in motion)
-        tau = np.asarray(
-            jax.vmap(transmission_torques, in_axes=(None, 0, 0, 0, None, None, None))(
-                true, q, qd, qdd, masses, coms, tensors
-            )
-        )
+    tau = np.asarray(jax.vmap(lambda qq: gravity_torques(true, qq, masses, coms))(q))
     return (1e-3 * tau * np.asarray(compliance, np.float64)).reshape(theta.shape)
 
 
@@ -275,8 +258,7 @@ class ArmMotion:
     **Arguments:** `arm` (`ArmModel`); `trajectory` (commanded positions);
     `nominal_ratio`, `true` (the true `KinematicModel`: its ratios, zero
     offsets and, for compliance, its kinematics); `inertials` (masses and
-    centres of mass, needed with compliance; with the inertia tensors third, the
-    joints also yield under the motion's inertial torques).
+    centres of mass, needed with compliance).
 
     `angles(t)` `(..., joints)`: the true joint angles $\\theta$ (rad), as the
     renderer poses them; `rigid_angles(t)`: without compliance and backlash.
@@ -319,10 +301,7 @@ class ArmMotion:
         theta = self.backlash_angles(t)
         if not np.any(self.compliance):
             return theta
-        motion = (self.trajectory.velocity(t) * self.scale, self.trajectory.acceleration(t) * self.scale)
-        return theta + gravity_deflection(
-            self.true, theta, self.zero, self.compliance, self.inertials, motion
-        )
+        return theta + gravity_deflection(self.true, theta, self.zero, self.compliance, self.inertials)
 
 
 #: The named arms (see the module docstring for their sources).

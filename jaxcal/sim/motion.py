@@ -76,17 +76,6 @@ class Trajectory:
         rate = np.where(inside, 0.5 * np.pi * np.sin(np.pi * np.clip(s, 0.0, 1.0)) / h, 0.0)
         return (self.q[i + 1] - self.q[i]) * rate[..., None]
 
-    def acceleration(self, t) -> np.ndarray:
-        """The commanded acceleration at `t` (rad/s^2 or m/s^2; zero outside the waypoints' span;
-        at a waypoint, the leg that starts there)."""
-        t = np.asarray(t, np.float64)
-        i = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
-        h = self.times[i + 1] - self.times[i]
-        s = (t - self.times[i]) / h
-        inside = (t >= self.times[0]) & (t <= self.times[-1])
-        rate = np.where(inside, 0.5 * np.pi**2 * np.cos(np.pi * np.clip(s, 0.0, 1.0)) / h**2, 0.0)
-        return (self.q[i + 1] - self.q[i]) * rate[..., None]
-
 
 def joint_sweeps(
     joint_names,

@@ -38,7 +38,7 @@ from ..io.urdf import load_urdf, save_urdf
 from ..markers import TargetSpec
 from ..planning._layout import facing_mount as facing_mount
 from ..planning._layout import look_at as look_at
-from ..robots import link_inertias, robot_path, shipped
+from ..robots import link_inertials, link_inertias, robot_path, shipped
 from .arm import ArmModel, ArmMotion, arm_model
 from .camera import CameraModel, camera_model
 from .motion import ClockModel, check_finite, encoder_stream, joint_sweeps, true_angles
@@ -488,7 +488,7 @@ def angles_at(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates=
 def arm_motion(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates=()):
     """`(angles_at, motor_at)`: the true arm's joint angles at controller times `t` and the
     motor angles its encoders read there (`None`: the command's, `encoder_stream`'s default).
-    Rigid; `jaxcal.sim.arm.ArmMotion` with the robot file's inertias for compliance; or, for an
+    Rigid; `jaxcal.sim.arm.ArmMotion` with the robot file's masses for compliance; or, for an
     arm with `dynamics`, MuJoCo's physics (`jaxcal.sim.physics.PhysicsMotion`: the robot
     file's inertias, the target `plates` on links as payload), whose encoders read the motors."""
     if arm.dynamics is not None:
@@ -499,7 +499,7 @@ def arm_motion(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates
             true_angles, trajectory, nominal_ratio=nominal_ratio, true_ratio=true.reduction_ratio,
             true_zero_offset=true.zero_offset,
         ), None  # fmt: skip
-    inertials = link_inertias(urdf_path) if arm.compliance is not None else None
+    inertials = link_inertials(urdf_path) if arm.compliance is not None else None
     return ArmMotion(arm, trajectory, nominal_ratio, true, inertials).angles, None
 
 

@@ -73,6 +73,9 @@ TERM_STD_RAD = 1e-3
 TERM_FLOOR = BASIS_FLOOR
 #: A family's per-block gain must stand out by this many standard errors (see the module docstring).
 MIN_Z_BLOCKS = 1.0
+#: A capture sweeps a joint at two speeds when its segments' peak speeds differ by this factor:
+#: then the terms' torques include the inertial ones (`two_speeds`).
+TWO_SPEEDS = 1.5
 #: Consecutive frames of the capture left out together by the cross-validation.
 BLOCK_FRAMES = 6
 #: A model's held-out fit solves its normal equations on Jacobi-scaled columns, dropping
@@ -108,6 +111,31 @@ def inertials(setup: Setup) -> tuple[np.ndarray, np.ndarray]:
     return with_payload(
         setup.nominal, masses, coms, 0.0 if p is None else p.mass_kg, (0, 0, 0) if p is None else p.com_m
     )
+
+
+def speeds(setup: Setup, log_q) -> dict[str, list[float]]:
+    """Each joint's peak speed (rad/s or m/s) in every recorded segment where it moves alone
+    (`dataset.segments`), from the encoder log `log_q = (t, q)` (commanded positions)."""
+    enc_t, enc_q = (np.asarray(a, np.float64) for a in log_q)
+    qd = np.gradient(enc_q, enc_t, axis=0) if len(enc_t) > 2 else np.zeros_like(enc_q)
+    names = list(setup.nominal.joint_names)
+    out: dict[str, list[float]] = {}
+    for name, start, end in setup.dataset.segments:
+        rows = (enc_t >= start) & (enc_t <= end)
+        if name in names and np.count_nonzero(rows) > 2:
+            out.setdefault(name, []).append(float(np.abs(qd[rows, names.index(name)]).max()))
+    return out
+
+
+def two_speeds(setup: Setup, log_q) -> str | None:
+    """The joint filmed sweeping at two speeds (`TWO_SPEEDS` apart; the first such joint's name), or
+    None: then a compliant joint's lag under its inertial torques cannot be told from its reduction
+    ratio (on a raised-cosine sweep the acceleration is proportional to the angle swept), and the
+    terms' torques are gravity's alone."""
+    for name, peaks in speeds(setup, log_q).items():
+        if min(peaks) > 0 and max(peaks) / min(peaks) >= TWO_SPEEDS:
+            return name
+    return None
 
 
 def inertia_tensors(setup: Setup, masses, coms) -> np.ndarray:
@@ -451,7 +479,8 @@ def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str,
             None,
         )
     masses, coms = inertials(setup)
-    tensors = inertia_tensors(setup, masses, coms) if {"compliance", "backlash"} & set(terms) else None
+    moving = two_speeds(setup, sync.log_q) if {"compliance", "backlash"} & set(terms) else None
+    tensors = None if moving is None else inertia_tensors(setup, masses, coms)
     lin, basis = _linearised(setup, sync, problem, res, terms, folds, masses, coms, tensors)
     models, best_cols, kept_families = _compare(lin, terms, folds, setup.kind.identifiability_tol)
     kept = tuple(t for t in terms if t in kept_families)
@@ -462,9 +491,20 @@ def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str,
     basis_cols = [np.arange(first[terms.index(t)], first[terms.index(t) + 1]) for t in kept]
     kept_free = [keep_mask[lin.family == terms.index(t)] for t in kept]
     payload = setup.dataset.payload
+    torques = (
+        (f"the transmissions' torques include the links' inertial ones ({moving} is filmed at two speeds)",)
+        if moving
+        else (
+            "the torques are gravity's alone: no joint is filmed at two speeds, so a compliant joint's lag "
+            "while the arm speeds up cannot be told from its reduction ratio (film each sweep both ways, "
+            "the second at another speed)",
+        )
+        if {"compliance", "backlash"} & set(kept)
+        else ()
+    )
     summary = TermsSummary(
         tried=terms, kept=kept, models=tuple(ModelRow(**m) for m in models), coefficients=(), folds=folds,
-        block_frames=BLOCK_FRAMES, payload_kg=None if payload is None else payload.mass_kg,
+        block_frames=BLOCK_FRAMES, payload_kg=None if payload is None else payload.mass_kg, notes=torques,
     )  # fmt: skip
     if not kept:
         return (), None, None, summary, (masses, coms, tensors)
