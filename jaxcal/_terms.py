@@ -16,8 +16,9 @@ pose and of how it was approached. The families (`TERMS`, names as
   transmission carries: gravity's about its axis (`gravity_torques`) from the links'
   masses and centres of mass in the robot file plus the payload the capture states
   (`with_payload`: the plate's or tool's mass and centre on the flange), and, where
-  the arm moves while it is observed (an encoder log), minus the torque that
-  accelerates the links beyond the joint (`transmission_torques`: `inertial_torques`
+  the motion observed can tell it (a camera capture filming a joint at two speeds,
+  `jaxcal.stages._terms.two_speeds`), minus the torque that accelerates the links
+  beyond the joint (`transmission_torques`: `inertial_torques`
   of the log's velocity and acceleration, `log_motion`, with the links' inertia
   tensors and the payload's, `with_payload_tensors`). The joint yields $c_j \\tau_j$:
   it sags where gravity pulls, lags its motor while the arm speeds up and leads it

@@ -163,3 +163,63 @@ def test_the_metadata_states_a_payloads_inertia(dataset_copy):
         _with_payload(dataset_copy, {"mass_kg": 0.35, "com_m": [0, 0, 0.01], "inertia_kgm2": bad})
         with pytest.raises(DatasetError, match=rf"robot\.payload\.inertia_kgm2.*{words}"):
             load_dataset(dataset_copy)
+
+
+def test_a_capture_filmed_at_two_speeds_is_told_apart(tmp_path):
+    """`SimConfig.sweep_back` films every sweep on the way back too, twice as slowly: each joint's
+    segments' peak speeds differ by two, so the terms' torques take the inertial ones; the design
+    capture of data/ur5e_sweeps sweeps each joint once, and they stay gravity's."""
+    from jaxcal import stages
+    from jaxcal.sim.simulate import SimConfig, simulate
+    from jaxcal.stages._synchronise import commanded_positions
+    from jaxcal.stages._terms import speeds, two_speeds
+
+    def setup_and_log(root):
+        setup = stages.setup(root, stages.Options(progress=False))
+        return setup, commanded_positions(setup.dataset, setup.nominal)
+
+    config = SimConfig(
+        resolution=(64, 48), frames_per_joint=3, range_deg=40.0, sweep_back=2.0, grayscale=True
+    )
+    setup, log = setup_and_log(simulate(config, tmp_path / "ds", progress=False))
+    peaks = speeds(setup, log)
+    assert list(peaks) == list(NOMINAL.joint_names) and all(len(p) == 2 for p in peaks.values())
+    for fast, slow in peaks.values():  # a raised cosine's peak: pi/2 x 40 deg / 0.1 s, then half that
+        np.testing.assert_allclose(
+            [fast, slow], [0.5 * np.pi * np.radians(40.0) / 0.1 * r for r in (1, 0.5)], rtol=0.05
+        )
+    assert two_speeds(setup, log) == NOMINAL.joint_names[0]
+    assert two_speeds(*setup_and_log(ROOT / "data" / "ur5e_sweeps")) is None
+
+
+def test_a_physics_arm_states_the_plates_it_carries_as_its_payload():
+    """`jaxcal.sim.physics.flange_payload`: the plates on the flange (not those elsewhere) as one
+    payload, their mass, centre and inertia about it as a user would state them from the design."""
+    from jaxcal.markers import TargetSpec
+    from jaxcal.sim.physics import _plate_inertia, flange_payload
+    from jaxcal.sim.scene import PlateSpec
+
+    spec = TargetSpec(
+        kind="charuco", dictionary="DICT_4X4_50", squares=(5, 4), square_length=0.04, marker_length=0.03
+    )
+    T = [np.eye(4), np.eye(4)]
+    T[1][:3, 3] = [0.1, 0.0, 0.02]
+    T[1][:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    plates = [
+        PlateSpec(spec, "flange", T[0]),
+        PlateSpec(spec, "flange", T[1]),
+        PlateSpec(spec, "wrist_3_link", T[0]),
+    ]
+    p = flange_payload(plates, 0.35, "flange")
+    parts = [_plate_inertia(q, 0.35) for q in plates[:2]]
+    centre = 0.5 * (parts[0][0] + parts[1][0])
+    assert p["mass_kg"] == pytest.approx(0.7) and np.allclose(p["com_m"], centre)
+    want = sum(
+        R @ np.diag(d) @ R.T
+        + 0.35 * ((c - centre) @ (c - centre) * np.eye(3) - np.outer(c - centre, c - centre))
+        for c, R, d in parts
+    )
+    np.testing.assert_allclose(p["inertia_kgm2"], want, rtol=1e-12)
+    assert (
+        flange_payload(plates[2:], 0.35, "flange") is None and flange_payload(plates, 0.0, "flange") is None
+    )

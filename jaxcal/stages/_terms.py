@@ -2,7 +2,9 @@
 
 A real arm sags under gravity and loses motion in its gears
 (`jaxcal._terms`: every view's joint angles gain $\\Delta_j = \\sum_k e_{j,k} b_{j,k}$,
-the basis from the view's commanded pose and approach). The rigid refinement
+the basis from the view's commanded pose and approach). Where a joint is filmed at two
+speeds (`two_speeds`) the torques of the basis are the transmissions' along the encoder
+log, the inertial ones included (`LogTorques`); elsewhere gravity's at the view's pose. The rigid refinement
 (`stages.refine`) runs first; its Jacobian at the solution, in the free
 parameters and in every joint's angle, gives every term's column (the joint's
 angle column times its basis, per view), so the models are compared without
