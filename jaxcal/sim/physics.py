@@ -128,8 +128,10 @@ def flange_payload(plates, mass_kg: float, flange: str) -> dict | None:
         return None
     total = mass_kg * len(parts)
     com = sum(c for c, _, _ in parts) / len(parts)
-    inertia = sum(R @ np.diag(d) @ R.T + mass_kg * ((c - com) @ (c - com) * np.eye(3) - np.outer(c - com, c - com))
-                  for c, R, d in parts)  # fmt: skip
+    inertia = np.zeros((3, 3))
+    for c, R, d in parts:  # each plate's own inertia, moved to the common centre
+        r = c - com
+        inertia += R @ np.diag(d) @ R.T + mass_kg * (r @ r * np.eye(3) - np.outer(r, r))
     return {"mass_kg": total, "com_m": com.tolist(), "inertia_kgm2": inertia.tolist()}
 
 
