@@ -25,6 +25,11 @@ found so that a figure can be checked by eye:
   `info`, `fisher`, `normal`, `hess`), or any of these assigned to a name with
   `cov` in it. (Inverting a pose is not a site.)
 
+And issue 50's: `package_lines` (lines of `jaxcal/`), `modules_over_500_lines`, `fmt_skips`
+(`# fmt: skip` comments in `jaxcal/`), and from the command line's parser (`jaxcal.cli`, which
+builds it without JAX): `cli_options`, the options over all subcommands, and
+`option_names_with_two_meanings` (`jaxcal.cli.option_meanings`).
+
     python benchmarks/codebase_counts.py [--json OUT] [--brief]
 
 `--brief` prints the totals only.
@@ -229,8 +234,32 @@ def covariance_sites() -> list[str]:
     return out
 
 
+def package_sizes() -> tuple[int, list[str], int]:
+    """Lines of `jaxcal/`, its modules over 500 lines (`path (lines)`), and its `# fmt: skip` comments."""
+    lines, long, skips = 0, [], 0
+    for p in sorted(PACKAGE.rglob("*.py")):
+        text = p.read_text()
+        n = text.count("\n")
+        lines += n
+        skips += text.count("# fmt: skip")
+        if n > 500:
+            long.append(f"{_rel(p)} ({n})")
+    return lines, long, skips
+
+
+def cli_vocabulary() -> tuple[int, list[str]]:
+    """Options over all subcommands, and the option names with more than one meaning."""
+    from jaxcal.cli import option_meanings
+
+    meanings = option_meanings()
+    options = sum(len(by_command) for by_command in meanings.values())
+    return options, sorted(n for n, by_command in meanings.items() if len(set(by_command.values())) > 1)
+
+
 def counts() -> dict:
     records = record_fields()
+    lines, long_modules, skips = package_sizes()
+    options, two_meanings = cli_vocabulary()
     reads, gets = string_keys()
     modes = mode_test_sites()
     longs = long_functions()
@@ -248,6 +277,11 @@ def counts() -> dict:
         "mode_test_files": len({m.split(":")[0] for m in modes}),
         "long_functions": len(longs),
         "covariance_sites": len(covs),
+        "package_lines": lines,
+        "modules_over_500_lines": len(long_modules),
+        "fmt_skips": skips,
+        "cli_options": options,
+        "option_names_with_two_meanings": len(two_meanings),
         "detail": {
             "records": records,
             "string_key_reads": dict(sorted(reads.items(), key=lambda kv: -kv[1])),
@@ -255,6 +289,8 @@ def counts() -> dict:
             "mode_tests": modes,
             "long_functions": longs,
             "covariance_sites": covs,
+            "modules_over_500_lines": long_modules,
+            "option_names_with_two_meanings": two_meanings,
         },
     }
 

@@ -84,7 +84,7 @@ def main(argv=None) -> None:
         command = [
             sys.executable, "-m", "jaxcal", "import-csv", str(table), "--robot", "ur5_dh",
             "--out", str(work / "dataset"), "--overwrite",
-            "--joints", "joint_1,joint_2,joint_3,joint_4,joint_5,joint_6", "--joint-unit", "deg",
+            "--joint-columns", "joint_1,joint_2,joint_3,joint_4,joint_5,joint_6", "--joint-unit", "deg",
             "--xyz", "x_t+x_dif,y_t+y_dif,z_t+z_dif", "--length-unit", "mm",
             "--sigma-mm", "0.02", "--point-mm", "0,0.09,31.0", "--point-name", "smr",
         ]  # fmt: skip

@@ -29,7 +29,7 @@ The arm's cases (`jaxcal.sim.arm`, ideal camera): `compliance` (the
 arcmin per joint), `encoder_quantisation` (a coarse motor encoder, 1024 counts
 per motor turn: a 256-line quadrature encoder), `encoder_latency` (joint
 states stamped 2 ms late); `combined`: the `global-shutter` camera and the
-`realistic` arm (`jaxcal simulate --camera global-shutter --arm realistic`).
+`realistic` arm (`jaxcal simulate --camera-model global-shutter --arm realistic`).
 `encoder_50hz`: the ideal capture with its encoder log at 50 Hz instead of
 500 Hz (the issue's battery case: the log read between its samples while the
 sweeps accelerate). `physics_arm`: the `physics` arm (`jaxcal simulate --arm

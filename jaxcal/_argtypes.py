@@ -39,3 +39,21 @@ def count(lo: int, hi: int):
         return v
 
     return parse
+
+
+def resolution(max_side: int, max_pixels: int):
+    """The type of a `WxH` option: each side from 1 to `max_side` pixels and at most `max_pixels`
+    in all (what the dataset reader takes: `jaxcal.io._images`)."""
+
+    def parse(text: str) -> tuple[int, int]:
+        try:
+            w, h = (int(v) for v in text.lower().split("x"))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"resolution must look like 640x480, got {text!r}") from None
+        if not (1 <= w <= max_side and 1 <= h <= max_side and w * h <= max_pixels):
+            raise argparse.ArgumentTypeError(
+                f"resolution {text!r}: each side from 1 to {max_side} pixels, at most {max_pixels / 1e6:g} megapixels"
+            )
+        return w, h
+
+    return parse

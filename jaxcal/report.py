@@ -25,7 +25,7 @@ from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
 from .io.ros import write_static_transform
 from .io.urdf import save_urdf
 from .records import PoseFigures
-from .summary import clock_line, fmt, joints_table, refinement_line, terms_tables, truth_table
+from .summary import clock_line, fmt, joints_table, refinement_line, terms_tables, truth_line, truth_table
 
 
 class ArcGeometry(NamedTuple):
@@ -370,6 +370,7 @@ def _truth_section(result) -> list[str]:
         "",
         *table.markdown(),
         "",
+        *((line, "") if (line := truth_line(result)) is not None else ()),
         f"{result.kind.fixed_frame} error in the estimator's gauge ({c.gauge}); against the truth's own "
         f"pose: {c.raw_trans_mm:.3f} mm, {c.raw_rot_deg:.4f} deg.",
         "",

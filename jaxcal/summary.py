@@ -89,6 +89,39 @@ def truth_table(result) -> TextTable | None:
     return TextTable(title, header, tuple(rows))
 
 
+def truth_line(result) -> str | None:
+    """Against the truth, the refined and the two-stage (or closed-form start) EE RMS read against
+    the refined result's claimed uncertainty (the verdict's `ee_sigma_mm`: the propagated 1-sigma
+    tool-point error, RMS over random configurations): which one is nearer the truth means
+    something only when they differ by more than that. None without a truth, a refinement or
+    the claim."""
+    v = result.validation
+    if v is None or not v.refined or result.verdict is None:
+        return None
+    sigma = next((c.value for c in result.verdict.checks if c.check == "ee_sigma_mm"), None)
+    if sigma is None or not sigma > 0:
+        return None
+    start = "two-stage" if result.kind.has_arcs else "closed-form start"
+    after, before = v.ee_rms_mm_after, v.ee_rms_mm_two_stage
+    diff = abs(after - before)
+    line = (
+        f"Against the truth: refined {after:.3f} mm, {start} {before:.3f} mm (EE RMS); the refined result "
+        f"claims {sigma:.3f} mm (1-sigma RMS), so the measured error is {after / sigma:.2f}x its claim"
+    )
+    if diff <= sigma:
+        better = "refined" if after < before else start
+        return line + (
+            f"; the two differ by {diff:.3f} mm, within that claim: the {better} being nearer the truth on this "
+            "capture is within the noise, not a sign of a better or a worse stage."
+        )
+    if after < before:
+        return line + f"; the refinement is nearer the truth by {diff:.3f} mm, more than the claimed 1-sigma."
+    return line + (
+        f"; the refinement is further from the truth by {diff:.3f} mm, more than the claimed 1-sigma: a model "
+        "error the refinement follows (see the reasons) or a claim too small."
+    )
+
+
 def clock_line(result) -> str:
     """The clock offset used, estimated (with its std) or given."""
     c = result.clock

@@ -51,7 +51,8 @@ RUNS = {
     "codebase_counts": Run(
         "codebase_counts",
         "--brief",
-        "record_fields bag_fields string_key_reads mode_tests long_functions covariance_sites",
+        "record_fields bag_fields string_key_reads mode_tests long_functions covariance_sites package_lines "
+        "modules_over_500_lines fmt_skips cli_options option_names_with_two_meanings",
     ),
     "render": Run("render", "--frames 2 --resolutions 160x120", "frames backend resolutions"),
     "vision": Run(

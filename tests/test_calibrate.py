@@ -553,3 +553,43 @@ def test_the_two_stage_programs_compile_while_the_clock_fit_runs(monkeypatch, tm
     assert bool(fit.result == optx.RESULTS.successful) and bool(
         np.all(arcs.result == optx.RESULTS.successful)
     )
+
+
+@pytest.mark.parametrize(
+    ("after", "before", "sigma", "says"),
+    [
+        (
+            0.580,
+            0.538,
+            0.923,
+            "within that claim: the two-stage being nearer the truth on this capture is within",
+        ),
+        (
+            0.180,
+            0.900,
+            0.300,
+            "the refinement is nearer the truth by 0.720 mm, more than the claimed 1-sigma",
+        ),
+        (1.790, 0.900, 0.300, "further from the truth by 0.890 mm, more than the claimed 1-sigma"),
+    ],
+)
+def test_the_truth_line_reads_the_two_stages_against_the_claim(after, before, sigma, says):
+    """On simulated data the console and report.md say whether the refined and the two-stage EE
+    errors differ by more than the refined result claims (data/ur5e_sweeps: 0.580 against
+    0.538 mm, a claim of 0.92 mm: noise, not a worse refinement)."""
+    from types import SimpleNamespace as NS
+
+    from jaxcal.summary import truth_line
+
+    result = NS(
+        validation=NS(refined=True, ee_rms_mm_after=after, ee_rms_mm_two_stage=before),
+        verdict=NS(checks=[NS(check="ee_rms_px", value=0.1), NS(check="ee_sigma_mm", value=sigma)]),
+        kind=NS(has_arcs=True),
+    )
+    line = truth_line(result)
+    assert (
+        line.startswith(f"Against the truth: refined {after:.3f} mm, two-stage {before:.3f} mm")
+        and says in line
+    )
+    assert f"{after / sigma:.2f}x its claim" in line
+    assert truth_line(NS(validation=None, verdict=result.verdict, kind=result.kind)) is None

@@ -43,7 +43,7 @@ from jaxcal.stages._two_stage import term_note
 ROOT = Path(__file__).resolve().parents[1]
 BAG = ROOT / "data" / "ros" / "ur5e_sweeps_mcap"
 UR5_TEST = ROOT / "data" / "ur5_tracker" / "source" / "3D_UR5_uncalibrated_random_cleaned.csv"
-UR5_COLUMNS = ["--joints", "joint_1,joint_2,joint_3,joint_4,joint_5,joint_6", "--joint-unit", "deg",
+UR5_COLUMNS = ["--joint-columns", "joint_1,joint_2,joint_3,joint_4,joint_5,joint_6", "--joint-unit", "deg",
                "--xyz", "x_t+x_dif,y_t+y_dif,z_t+z_dif", "--length-unit", "mm", "--sigma-mm", "0.02",
                "--point-mm", "0,0.09,31.0"]  # fmt: skip
 

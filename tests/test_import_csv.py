@@ -357,7 +357,16 @@ def test_outputs_never_overwrite_an_input(tmp_path, table):
 
 def test_command_line(tmp_path, table, capsys):
     csv = _write(tmp_path / "poses.csv", *table)
-    common = ["import-csv", str(csv), "--robot", "ur5e", "--joints", ",".join(JOINTS), "--xyz", ",".join(XYZ)]
+    common = [
+        "import-csv",
+        str(csv),
+        "--robot",
+        "ur5e",
+        "--joint-columns",
+        ",".join(JOINTS),
+        "--xyz",
+        ",".join(XYZ),
+    ]
     common += ["--sigma-mm", "0.02", "--point-mm", "0,20,50", "--length-unit", "mm"]
     assert main([*common, "--out", str(tmp_path / "ds"), "--joint-unit", "deg"]) == 0
     assert f"wrote {tmp_path / 'ds'}: {ROWS} samples" in capsys.readouterr().out
@@ -369,9 +378,9 @@ def test_command_line(tmp_path, table, capsys):
     header, rows = _pose_table(table[1], "quat-wxyz", "device-in-point")
     poses = _write(tmp_path / "pnp.csv", header, rows)
     common[1] = str(poses)
-    common += ["--joint-unit", "deg", "--orientation", "qw,qx,qy,qz", "--sigma-deg", "0.01"]
+    common += ["--joint-unit", "deg", "--orientation-columns", "qw,qx,qy,qz", "--sigma-deg", "0.01"]
     assert main([*common, "--out", str(tmp_path / "ds4"), "--orientation-format", "quat-wxyz"]) == 2
-    assert "--orientation needs --pose-direction" in capsys.readouterr().err
+    assert "--orientation-columns needs --pose-direction" in capsys.readouterr().err
     common += ["--orientation-format", "quat-wxyz", "--pose-direction", "device-in-point"]
     assert main([*common, "--out", str(tmp_path / "ds4"), "--point-rotvec-deg", "0,0,90"]) == 0
     ds = load_dataset(tmp_path / "ds4")

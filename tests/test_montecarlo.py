@@ -145,7 +145,9 @@ def test_montecarlo_detail_and_json(tmp_path, capsys):
     atomically. Here, not in test_cli.py: the command's trials are `SETUP`'s
     program, which this file's tests have traced and compiled already."""
     out = tmp_path / "mc.json"
-    assert main(["montecarlo", "--detail", "--trials", "8", "--frames", "24", "--json", str(out)]) == 0
+    assert (
+        main(["montecarlo", "--detail", "--trials", "8", "--frames-per-joint", "24", "--json", str(out)]) == 0
+    )
     text = capsys.readouterr().out
     assert "Before / after" in text and "Identifiability" in text
     assert "shoulder_pan_joint.zero_offset" in text  # named as held at nominal

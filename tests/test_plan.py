@@ -378,7 +378,7 @@ def test_plan_command_never_writes_over_inputs_or_existing_files(ur5e, tmp_path,
     cam_before = camera.read_bytes()
     argv = [
         "plan",
-        "--camera",
+        "--camera-file",
         str(camera),
         "--frames",
         "24",
@@ -391,7 +391,7 @@ def test_plan_command_never_writes_over_inputs_or_existing_files(ur5e, tmp_path,
     assert camera.read_bytes() == cam_before
     argv = [
         "plan",
-        "--camera",
+        "--camera-file",
         str(camera),
         "--eye-in-hand",
         "--frames",

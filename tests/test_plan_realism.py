@@ -160,7 +160,7 @@ def test_cli_reports_the_arms_bias(planned, tmp_path, capsys, monkeypatch):
             [
                 "simulate-plan",
                 str(path),
-                "--camera",
+                "--camera-model",
                 "rolling-shutter",
                 "--arm",
                 "realistic",

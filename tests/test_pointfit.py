@@ -87,8 +87,8 @@ CAMERA = dict(
 STOPS, HELD_OUT = 100, 40
 #: `import-csv` of the camera's PnP table: the board's pose in the camera's frame, a quaternion w first.
 IMPORT = [
-    "--robot", "panda", "--joints", ",".join(f"j{i}" for i in range(1, 8)), "--joint-unit", "deg",
-    "--xyz", "bx,by,bz", "--length-unit", "mm", "--sigma-mm", "0.01", "--orientation", "qw,qx,qy,qz",
+    "--robot", "panda", "--joint-columns", ",".join(f"j{i}" for i in range(1, 8)), "--joint-unit", "deg",
+    "--xyz", "bx,by,bz", "--length-unit", "mm", "--sigma-mm", "0.01", "--orientation-columns", "qw,qx,qy,qz",
     "--orientation-format", "quat-wxyz", "--pose-direction", "device-in-point", "--sigma-deg", "0.005",
     "--point-name", "smr",
 ]  # fmt: skip

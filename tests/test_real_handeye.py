@@ -84,6 +84,11 @@ def test_real_captures_agree_with_visps_solver(capture, key, tmp_path, capsys):
     assert [float(v) for v in re.findall(r"-?[0-9.]+", said[3])] == pytest.approx(np.round(z, 2), abs=0.011)
     assert said[4] == ("within" if np.max(np.abs(z)) <= 2 else "off"), said[0]
     assert np.max(np.abs(z)) == pytest.approx({"eye_in_hand": 0.41, "eye_to_hand": 4.09}[capture], abs=0.05)
+    # ... and next to the status, which judges the capture, not this difference.
+    tied = (
+        f"{reference} disagrees with camera(s) cam0 beyond 2 standard deviations (above): the status judges"
+    )
+    assert (tied in text) == (capture == "eye_to_hand"), text
     # The default kept the estimate: exact poses predict the frames left out 15-17 % better on these
     # 8 frames, but by 1.1-1.5 standard errors of the per-frame differences (2 needed), and land
     # 3.4 deg (eye-in-hand) from ViSP's answer and every pose-pair method's.

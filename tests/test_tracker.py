@@ -266,7 +266,7 @@ def test_inspect_describes_a_tracker_dataset(captures, capsys):
     assert main(["inspect", str(root)]) == 0
     text = capsys.readouterr().out
     assert "samples in samples.csv" in text and "external measuring device" in text
-    assert main(["inspect", str(root), "--json"]) == 0
+    assert main(["inspect", str(root), "--json", "-"]) == 0
     s = json.loads(capsys.readouterr().out)
     counts = [g["samples"] for g in s["joints"]]
     assert counts == [300] * 6 and s["device"]["samples"] == 1800 and s["unassigned_samples"] == 0

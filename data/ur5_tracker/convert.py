@@ -7,7 +7,7 @@ writes `grid/` (1000 poses, for calibration) and `test/` (20 random poses, for
 
     .venv/bin/jaxcal import-csv data/ur5_tracker/source/3D_UR5_uncalibrated_grid_cleaned.csv \\
         --robot ur5_dh --out data/ur5_tracker/grid --overwrite \\
-        --joints joint_1,joint_2,joint_3,joint_4,joint_5,joint_6 --joint-unit deg \\
+        --joint-columns joint_1,joint_2,joint_3,joint_4,joint_5,joint_6 --joint-unit deg \\
         --xyz x_t+x_dif,y_t+y_dif,z_t+z_dif --length-unit mm \\
         --sigma-mm 0.02 --point-mm 0,0.09,31.0 --point-name smr
 

@@ -22,6 +22,7 @@ import logging
 import os
 import re
 import sys
+from pathlib import Path
 
 from .. import _interrupt
 from .._cache import enable_compilation_cache
@@ -64,7 +65,7 @@ def show_defaults(parser: argparse.ArgumentParser) -> None:
                 show_defaults(sub)
 
 
-#: `jaxcal simulate --camera` (the names of `jaxcal.sim.camera.PRESETS`, which the CLI imports only to render).
+#: `jaxcal simulate --camera-model` (the names of `jaxcal.sim.camera.PRESETS`, which the CLI imports only to render).
 CAMERAS = ("ideal", "global-shutter", "rolling-shutter")
 #: `jaxcal simulate --arm` (the names of `jaxcal.sim.arm.ARM_PRESETS`).
 ARMS = ("ideal", "realistic", "physics")
@@ -151,7 +152,7 @@ def _add_capture_models(p) -> None:
     `simulate-plan`)."""
     p.add_argument("--grayscale", action="store_true", help="write single-channel PNGs")
     p.add_argument(
-        "--camera",
+        "--camera-model",
         choices=CAMERAS,
         default="ideal",
         help="the camera model (jaxcal.sim.camera): exposure, rolling shutter, sensor noise, JPEG; "
@@ -260,11 +261,11 @@ def _add_calibration_parsers(sub) -> None:
         help="a plate on every link, every joint moving at once (random waypoints, as many frames as the "
         "sweeps would take); sequential initialisation, then the refinement",
     )
-    p.add_argument(  # `--camera` names the two-stage fit's camera here (`add_calibrate_args`)
+    p.add_argument(
         "--camera-model",
         choices=CAMERAS,
         default="ideal",
-        help="the camera model, as `jaxcal simulate --camera` (e.g. global-shutter: 2 ms exposure, sensor noise)",
+        help="the camera model, as `jaxcal simulate --camera-model` (e.g. global-shutter: 2 ms exposure, sensor noise)",
     )
     p.add_argument(
         "--arm",
@@ -388,6 +389,34 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+#: Converters of one vocabulary that differ in what a command can use: `plan --terms` takes the
+#: term families `calibrate --terms` takes, but not `auto` (which chooses from a capture's data, and
+#: a plan comes before any capture).
+SAME_VOCABULARY = {"_terms_arg": "terms_arg"}
+
+
+def option_meanings() -> dict[str, dict[str, tuple]]:
+    """Per long option name, per subcommand taking it, what the option is apart from its help
+    text and default: the kind of action, the type converting its value (by its qualified name:
+    `count(1, N)` and `count(3, M)` are one type with other bounds), its choices and how many
+    values it takes. One name, one meaning: `tests/test_cli_vocabulary.py`."""
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    out: dict[str, dict[str, tuple]] = {}
+    for command, parser in sub.choices.items():
+        for action in parser._actions:
+            kind = getattr(action.type, "__qualname__", action.type)
+            meaning = (
+                type(action).__name__,
+                SAME_VOCABULARY.get(kind, kind),
+                tuple(action.choices or ()),
+                action.nargs,
+            )
+            for name in action.option_strings:
+                if name.startswith("--") and name != "--help":
+                    out.setdefault(name, {})[command] = meaning
+    return out
+
+
 def _command(argv: list[str]) -> str | None:
     """The subcommand `argv` names: its first word that is not an option."""
     return next((a for a in argv if not a.startswith("-")), None)
@@ -450,6 +479,49 @@ def _deprecated_simulate(argv: list[str]) -> list[str]:
     return argv if kind is None else [*head, "simulate", *kept]
 
 
+#: Option spellings that meant something else in another subcommand, renamed so that one option
+#: name has one meaning everywhere (`tests/test_cli_vocabulary.py`); the old spelling still works
+#: for one release, with a warning. `(command, old): new`.
+RENAMED = {
+    ("simulate", "--camera"): "--camera-model",
+    ("simulate-plan", "--camera"): "--camera-model",
+    ("plan", "--camera"): "--camera-file",
+    ("montecarlo", "--frames"): "--frames-per-joint",
+    ("import-csv", "--joints"): "--joint-columns",
+    ("import-csv", "--orientation"): "--orientation-columns",
+    ("simulate-handeye", "--target"): "--target-kind",
+}
+
+
+def _renamed(argv: list[str]) -> list[str]:
+    """`argv` with the old spellings of `RENAMED` (and `inspect`'s bare `--json`, now
+    `--json -`) written the new way, each named in a warning on stderr."""
+    command = _command(argv)
+    out = []
+    for k, a in enumerate(argv):
+        name, eq, value = a.partition("=")
+        new = RENAMED.get((command, name))
+        if new is not None:
+            note = f"`jaxcal {command} {name}` is now `{new}`; {name} goes in the next release"
+            print(f"jaxcal: warning: {note}", file=sys.stderr)
+            a = new + eq + value
+        elif command == "inspect" and a == "--json" and _bare(argv[k + 1 :]):
+            print(
+                "jaxcal: warning: `jaxcal inspect --json` is now `--json -` (or `--json FILE`)",
+                file=sys.stderr,
+            )
+            out.append("--json=-")
+            continue
+        out.append(a)
+    return out
+
+
+def _bare(rest: list[str]) -> bool:
+    """Whether `inspect --json` followed by `rest` is the old flag: nothing or another option
+    follows, or the dataset (a folder, never a JSON file to write)."""
+    return not rest or (rest[0].startswith("-") and rest[0] != "-") or Path(rest[0]).is_dir()
+
+
 def _refusal(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str | None:
     """The one policy for options another command takes: named and refused (exit 2), with the
     command's reason (its `foreign` default, a template of `{options}`) where it has one."""
@@ -465,7 +537,7 @@ def _refusal(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str |
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = _deprecated_simulate(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
+    argv = _renamed(_deprecated_simulate(_join_negative_lists(sys.argv[1:] if argv is None else list(argv))))
     parser = build_parser(_command(argv))
     args, unknown = parser.parse_known_args(argv)
     refusal = _refusal(parser, args, unknown)

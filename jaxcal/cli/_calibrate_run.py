@@ -16,7 +16,16 @@ from ..io._files import note_written, resolved, write_text_atomic
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
 from ..robots import load_robot
-from ..summary import TextTable, clock_line, fmt, joints_table, refinement_line, terms_tables, truth_table
+from ..summary import (
+    TextTable,
+    clock_line,
+    fmt,
+    joints_table,
+    refinement_line,
+    terms_tables,
+    truth_line,
+    truth_table,
+)
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees
 from ._rosbag import dataset_of
 
@@ -129,6 +138,9 @@ def _result_tables(console, result) -> None:
     table = truth_table(result)
     if table is not None:
         console.print(_rich(table))
+        line = truth_line(result)
+        if line is not None:
+            console.print(line)
     if result.refinement is not None:
         console.print(f"refinement: {refinement_line(result)}")
     if result.point_fit is None:  # a point fit's terms are in its own table

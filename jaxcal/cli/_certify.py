@@ -2,11 +2,13 @@
 
 import importlib
 import json
+import sys
 
 import numpy as np
 from rich.console import Console
 
 from .._exported import warm_start
+from .._progress import working
 from ..certification import MAX_POSES, certify, plot_certificate, read_poses
 from ..io._files import atomic_file, check_output_file, resolved, write_text_atomic
 from ..io.checks import certificate_json, drift_check_json, read_calibration
@@ -154,8 +156,11 @@ def cmd_certify(args) -> int:
     if args.poses:
         names = read_calibration(args.result).joint_names
         poses = read_poses(args.poses, names, degrees=args.degrees)
+    what = "its poses" if args.poses else "the region" if args.region or args.joint_box else "its workspace"
+    say = f"certifying {args.result} over {what}"
+    print(f"{say} ...", file=sys.stderr, flush=True)
     # The programs the last certificate of this result called are read while this one starts.
-    with warm_start(f"jaxcal certify {resolved(args.result)}"):
+    with warm_start(f"jaxcal certify {resolved(args.result)}"), working(True, say, stream=sys.stderr):
         c = certify(args.result, **where, poses=poses, samples=args.samples, frame=args.frame, seed=args.seed)
     console = Console(width=max(Console().width, 110))
     print_certificate(console, c)
@@ -170,7 +175,10 @@ def cmd_certify(args) -> int:
 
 def cmd_check(args) -> int:
     check_output(args.json, [args.result, args.capture], args.overwrite, "--json")
-    c = check(args.result, args.capture, joint_offsets=args.joint_offsets, workers=args.workers)
+    say = f"checking {args.capture} against {args.result}"
+    print(f"{say} ...", file=sys.stderr, flush=True)
+    with working(True, say, stream=sys.stderr):
+        c = check(args.result, args.capture, joint_offsets=args.joint_offsets, workers=args.workers)
     console = Console(width=max(Console().width, 110))
     colour = "red" if c.exit_code else "green"
     unit = "images" if c.what == "camera" else "samples"

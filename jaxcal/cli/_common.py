@@ -6,6 +6,7 @@ import numpy as np
 
 from .._argtypes import count as count
 from .._argtypes import finite as finite
+from .._argtypes import resolution as _resolution
 from ..io._images import MAX_PIXELS, MAX_SIDE
 
 #: Bounds of the options that size a simulated capture (work, memory and disk grow with them).
@@ -17,6 +18,8 @@ MAX_MOTION_S = 600.0
 MAX_WORKERS = 256
 #: `--seed`: what NumPy's and JAX's generators take.
 seed = count(0, 2**32 - 1)
+#: `--resolution`: `WxH` pixels, as the dataset reader takes them.
+resolution = _resolution(MAX_SIDE, MAX_PIXELS)
 
 
 def seconds(hi: float):
@@ -29,20 +32,6 @@ def seconds(hi: float):
         return v
 
     return parse
-
-
-def resolution(text: str) -> tuple[int, int]:
-    """`WxH` pixels, each side from 1 to `MAX_SIDE` and at most `MAX_PIXELS` in all (what the
-    dataset reader takes)."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"resolution must look like 640x480, got {text!r}") from None
-    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE and w * h <= MAX_PIXELS):
-        raise argparse.ArgumentTypeError(
-            f"resolution {text!r}: each side from 1 to {MAX_SIDE} pixels, at most {MAX_PIXELS / 1e6:g} megapixels"
-        )
-    return w, h
 
 
 def degrees(text: str) -> float | tuple[float, ...]:

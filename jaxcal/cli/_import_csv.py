@@ -53,7 +53,7 @@ def add_import_csv_parser(sub) -> None:
     p.add_argument("--out", required=True, help="dataset directory (absent or empty)")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset jaxcal wrote")
     p.add_argument(
-        "--joints",
+        "--joint-columns",
         required=True,
         type=_columns(None),
         help="the joint position columns, one per robot joint in the robot's order (COL,COL,...)",
@@ -84,27 +84,27 @@ def add_import_csv_parser(sub) -> None:
         "none), e.g. 0,0,90 for a camera turned a quarter turn about its axis",
     )
     p.add_argument(
-        "--orientation",
+        "--orientation-columns",
         type=_columns(None),
         help="the orientation's columns, as many as --orientation-format has (a full pose per row)",
     )
     p.add_argument(
         "--orientation-format",
         choices=sorted(ORIENTATION_FORMATS),
-        help="with --orientation: quat-xyzw or quat-wxyz (a unit quaternion, scalar last or first), rotvec-rad "
+        help="with --orientation-columns: quat-xyzw or quat-wxyz (a unit quaternion, scalar last or first), rotvec-rad "
         "or rotvec-deg (a rotation vector), matrix (9 columns, row by row: r11,r12,...,r33)",
     )
     p.add_argument(
         "--pose-direction",
         choices=POSE_DIRECTIONS,
-        help="with --orientation: each row is the point's pose in the device frame (a 6-DoF probe, a mocap "
+        help="with --orientation-columns: each row is the point's pose in the device frame (a 6-DoF probe, a mocap "
         "body, a flange camera's pose in the board's frame), or the device's in the point's (PnP's board "
         "pose in the camera frame; inverted on import)",
     )
     p.add_argument(
         "--sigma-deg",
         type=finite,
-        help="orientation noise, 1-sigma per axis (deg; required with --orientation)",
+        help="orientation noise, 1-sigma per axis (deg; required with --orientation-columns)",
     )
     p.add_argument("--time", help="a timestamp column (s, strictly increasing; default: the row index)")
     p.add_argument("--device-name", default="tracker", help="the device's name (names its frame)")
@@ -116,7 +116,7 @@ def add_import_csv_parser(sub) -> None:
 
 
 def cmd_import_csv(args) -> int:
-    if args.orientation:
+    if args.orientation_columns:
         missing = [
             o
             for o, v in (
@@ -127,16 +127,18 @@ def cmd_import_csv(args) -> int:
             if v is None
         ]
         if missing:
-            raise ValueError(f"--orientation needs {', '.join(missing)} (no defaults: state the convention)")
+            raise ValueError(
+                f"--orientation-columns needs {', '.join(missing)} (no defaults: state the convention)"
+            )
     elif args.orientation_format or args.pose_direction:
         raise ValueError(
-            "--orientation-format and --pose-direction describe --orientation columns: none given"
+            "--orientation-format and --pose-direction describe --orientation-columns: none given"
         )
     r = import_csv(
         args.csv,
         args.out,
         robot=robot_file(args.robot),
-        joints=args.joints,
+        joints=args.joint_columns,
         joint_unit=args.joint_unit,
         xyz=args.xyz,
         length_unit=args.length_unit,
@@ -145,7 +147,7 @@ def cmd_import_csv(args) -> int:
         point_rotvec_rad=None
         if args.point_rotvec_deg is None
         else [math.radians(v) for v in args.point_rotvec_deg],
-        orientation=args.orientation,
+        orientation=args.orientation_columns,
         orientation_format=args.orientation_format,
         pose_direction=args.pose_direction,
         sigma_rad=None if args.sigma_deg is None else math.radians(args.sigma_deg),

@@ -4,6 +4,7 @@ import dataclasses
 import json
 
 from ..inspection import format_inspection, inspect_dataset
+from ..io._files import check_output_file, write_text_atomic
 from ..io.rosbag import bag_topics, is_bag, open_bag
 from ..records import plain
 from ._common import count
@@ -16,12 +17,14 @@ def add_inspect_parser(sub) -> None:
     p.add_argument(
         "--sample", type=count(1, 1000), default=5, help="frames per camera tried for detection, at most 1000"
     )
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", help="write the summary as JSON here (atomically; - prints it)")
     add_bag_args(p, required=False)
     p.set_defaults(func=cmd_inspect)
 
 
 def cmd_inspect(args) -> int:
+    if args.json not in (None, "-"):
+        check_output_file(args.json, inputs=[args.dataset], overwrite=True, what="--json")
     if is_bag(args.dataset):
         with open_bag(args.dataset) as reader:
             topics = bag_topics(reader)
@@ -34,5 +37,11 @@ def cmd_inspect(args) -> int:
     with dataset_of(args) as dataset:
         summary = inspect_dataset(dataset, sample=args.sample)
     summary = dataclasses.replace(summary, dataset=str(args.dataset))  # the bag, not its temporary dataset
-    print(json.dumps(plain(summary), indent=1) if args.json else format_inspection(summary))
+    if args.json is None:
+        print(format_inspection(summary))
+    elif args.json == "-":
+        print(json.dumps(plain(summary), indent=1))
+    else:
+        write_text_atomic(args.json, json.dumps(plain(summary), indent=1))
+        print(f"wrote {args.json}")
     return 0

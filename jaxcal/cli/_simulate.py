@@ -40,7 +40,7 @@ def cmd_simulate(args) -> int:
         grayscale=args.grayscale,
         encoders=not args.no_encoders,
         distortion=tuple(args.distortion),
-        camera=args.camera,
+        camera=args.camera_model,
         arm=args.arm,
     )
     trajectory = None
@@ -108,7 +108,7 @@ def cmd_simulate_plan(args) -> int:
             overwrite=args.overwrite,
             progress=not args.quiet,
             grayscale=args.grayscale,
-            camera=args.camera,
+            camera=args.camera_model,
             arm=args.arm,
         )
     ds = load_dataset(out)
@@ -143,6 +143,8 @@ def cmd_simulate_tracker(args) -> int:
         orientation=args.orientation,
         **{k: v for k, v in given.items() if v is not None},
     )
+    if not args.quiet:
+        print(f"simulating {robot}'s tracker sweeps into {args.out} ...", flush=True)
     start = time.perf_counter()
     with output_lock(args.out, what="--out"):
         out = simulate_tracker(config, args.out, overwrite=args.overwrite)

@@ -16,7 +16,7 @@ from .._axisfit import parameter_names
 from .._progress import working
 from ..io._files import check_output_file, write_text_atomic
 from ..robots import load_robot_file
-from ._common import count, finite, seed
+from ._common import count, degrees, finite, seed
 
 
 def add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
@@ -39,9 +39,11 @@ def add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
     p.add_argument("--noise-mm", type=finite, default=0.1, help="marker position noise (mm)")
     p.add_argument("--noise-deg", type=finite, default=0.05, help="marker orientation noise (deg)")
     p.add_argument("--encoder-noise-deg", type=finite, default=0.0)
-    p.add_argument("--sweep-deg", type=finite, default=60.0, help="angle each joint sweeps (deg)")
     p.add_argument(
-        "--frames",
+        "--sweep-deg", type=degrees, default=60.0, help="angle each joint sweeps (deg), one for every joint"
+    )
+    p.add_argument(
+        "--frames-per-joint",
         type=count(3, mc.MAX_FRAMES),
         default=40,
         help=f"camera frames per joint sweep, at most {mc.MAX_FRAMES}",
@@ -52,7 +54,9 @@ def _setup(args):
     noise = mc.NoiseModel(
         position_mm=args.noise_mm, orientation_deg=args.noise_deg, encoder_deg=args.encoder_noise_deg
     )
-    plan = mc.SweepPlan(range_deg=args.sweep_deg, frames=args.frames)
+    if isinstance(args.sweep_deg, tuple):
+        raise ValueError("montecarlo --sweep-deg: one angle, every joint sweeps it (got one per joint)")
+    plan = mc.SweepPlan(range_deg=args.sweep_deg, frames=args.frames_per_joint)
     return mc.default_setup(load_robot_file(args.robot), noise=noise, plan=plan)
 
 

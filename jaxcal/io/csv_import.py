@@ -221,7 +221,7 @@ def _read(path: Path, specs: dict) -> tuple[dict, np.ndarray]:
         twice = sorted({header[c] for c in used if used.count(c) > 1})
         if twice:
             raise CsvImportError(
-                f"{path}: column(s) {twice} named twice (in --joints, --xyz, --orientation, --time)"
+                f"{path}: column(s) {twice} named twice (in --joints, --xyz, --orientation-columns, --time)"
             )
         return sorted(set(used)), []
 
@@ -268,9 +268,9 @@ def _read_table(
 ) -> _Table:
     """The CSV's columns in SI units, each checked for numbers, time order, joint limits and
     rotations; `pose_format`: `(orientation_format, pose_direction)` with an orientation."""
-    specs = {f"q{j}": ("--joints", s) for j, s in enumerate(joints)}
+    specs = {f"q{j}": ("--joint-columns", s) for j, s in enumerate(joints)}
     specs |= {f"p{i}": ("--xyz", s) for i, s in enumerate(xyz)}
-    specs |= {f"o{i}": ("--orientation", s) for i, s in enumerate(orientation or ())}
+    specs |= {f"o{i}": ("--orientation-columns", s) for i, s in enumerate(orientation or ())}
     if time is not None:
         specs["t"] = ("--time", time)
     v, lines = _read(path, specs)

@@ -1,12 +1,12 @@
 """`jaxcal plan`: its arguments, its run and its tables (`jaxcal.cli` adds the MuJoCo checker).
 
-- `jaxcal plan --robot ur5e [--camera CAMERA_YAML] [--target TARGET_JSON] --frames 240 --out plan.json`
+- `jaxcal plan --robot ur5e [--camera-file CAMERA_YAML] [--target TARGET_JSON] --frames 240 --out plan.json`
   plans a pose-based capture and writes it (nothing is written on any error).
 - `jaxcal plan --evaluate plan.json [--region x0,y0,z0,x1,y1,z1] [--plot ee.png] [--json out.json]`
   pre-evaluates a plan: per-parameter standard deviations, what it leaves
   unidentifiable, the predicted EE error over the workspace.
 - Both take `--camera-model PRESET` and `--arm PRESET` (`jaxcal simulate`'s
-  `--camera` and `--arm` presets): the prediction then adds the camera's corner
+  `--camera-model` and `--arm` presets): the prediction then adds the camera's corner
   noise and the arm's bias (`jaxcal.planning._realism`). The presets' figures
   come from the simulator, which this module may not import: `run_plan`'s
   `capture_models(camera, arm)` gives them (`jaxcal.cli`).
@@ -22,7 +22,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from .._argtypes import count, finite
+from .._argtypes import count, finite, resolution
 from .._terms import check_terms
 from ..errors import OutputError, PlanError, PlanFileError
 from ..io._files import check_output_file, resolved, write_text_atomic
@@ -38,6 +38,10 @@ from ._scene import FeasibilityLimits
 #: Bounds of the options that size a plan's work and memory (the candidates' and the frames'
 #: Jacobians are held at once): ten to twenty times their defaults.
 MAX_FRAMES, MAX_CANDIDATES, MAX_STARTS, MAX_STEPS, MAX_BUDGET = 5000, 50_000, 100, 100_000, 1000
+
+
+#: `--resolution`: `WxH` pixels, as the dataset reader takes them (`jaxcal.cli`'s type).
+_RESOLUTION = resolution(MAX_SIDE, MAX_PIXELS)
 
 
 def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
@@ -64,7 +68,7 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
     p.add_argument(
         "--robot", default="ur5e", help="shipped robot (ur5e, panda; revolute joints only) or a URDF file"
     )
-    p.add_argument("--camera", help="camera YAML (camera_matrix, image size, T_base_cam or T_flange_cam); "
+    p.add_argument("--camera-file", help="camera YAML (camera_matrix, image size, T_base_cam or T_flange_cam); "
                    "default: the demo's camera at the taught pose")  # fmt: skip
     p.add_argument(
         "--target", help="target JSON (spec, link, T_link_target); default: the demo's plate (board)"
@@ -73,7 +77,7 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
         "--eye-in-hand", action="store_true", help="default layout: camera on the flange, board in the world"
     )
     p.add_argument(
-        "--resolution", type=_resolution, default=(1280, 960), help="WxH pixels of the default camera"
+        "--resolution", type=_RESOLUTION, default=(1280, 960), help="WxH pixels of the default camera"
     )
     p.add_argument(
         "--distance", type=finite, help="default camera to target distance, m (0.9; eye-in-hand 0.6)"
@@ -91,10 +95,10 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
     )
     p.add_argument("--region", help="x0,y0,z0,x1,y1,z1: box (m, base frame) where EE accuracy matters")
     p.add_argument("--sigma-px", type=finite, default=DEFAULT_SIGMA_PX, help="detector corner noise, px")
-    p.add_argument(  # `--camera` is the camera file here
+    p.add_argument(
         "--camera-model",
         choices=cameras,
-        help="the camera model, as `jaxcal simulate --camera`: its corner noise (sensor noise, JPEG) joins "
+        help="the camera model, as `jaxcal simulate --camera-model`: its corner noise (sensor noise, JPEG) joins "
         "--sigma-px, and frames it would blur are left out (default: --sigma-px alone)",
     )
     p.add_argument(
@@ -137,27 +141,17 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
     p.add_argument("--seed", type=count(0, 2**32 - 1), default=0)
     p.add_argument("--plot", help="write the plan's predicted EE sigma plot (PNG) here")
     p.add_argument("--json", help="write the plan's predicted figures (JSON) here")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=func)
 
 
 def _terms_arg(text: str) -> tuple[str, ...]:
+    """`--terms`: the families the calibration will fit, named as `jaxcal calibrate --terms` names
+    them (`auto` chooses from a capture's data, which a plan comes before)."""
     try:
         return check_terms(t.strip() for t in text.split(",") if t.strip())
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
-
-
-def _resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"resolution must look like 1280x960, got {text!r}") from None
-    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE and w * h <= MAX_PIXELS):
-        raise argparse.ArgumentTypeError(
-            f"resolution {text!r}: each side from 1 to {MAX_SIDE} pixels, at most {MAX_PIXELS / 1e6:g} megapixels"
-        )
-    return w, h
 
 
 def _free(path, overwrite: bool, what: str, inputs=()) -> Path | None:
@@ -361,17 +355,17 @@ def run_plan(args, console: Console, checker_factory=None, capture_models=None) 
         return run_check_plan(args, console)
     if args.out is None:
         raise PlanError("jaxcal plan: give --out PLAN.json (or --evaluate PLAN.json)")
-    inputs = [args.camera, args.target, args.robot if Path(args.robot).is_file() else None]
+    inputs = [args.camera_file, args.target, args.robot if Path(args.robot).is_file() else None]
     out = _free(args.out, args.overwrite, "--out", inputs)
     plot, out_json = _outputs(args, inputs)
     robot = Robot.load(args.robot)
     flange = robot.model.link_names[-1]
     taught = None if args.taught is None else parse_pose(args.taught, robot.model.num_joints)
-    camera = None if args.camera is None else read_camera(args.camera, flange, args.resolution)
+    camera = None if args.camera_file is None else read_camera(args.camera_file, flange, args.resolution)
     target = None if args.target is None else read_target(args.target)
     if args.eye_in_hand and camera is not None and camera.mount == "world":
         raise PlanFileError(
-            f"--eye-in-hand: camera file {args.camera} places a fixed camera (T_base_cam / T_cam_base); "
+            f"--eye-in-hand: camera file {args.camera_file} places a fixed camera (T_base_cam / T_cam_base); "
             "give T_flange_cam for a camera on the flange, or drop --eye-in-hand"
         )
     eye_in_hand = args.eye_in_hand or (camera is not None and camera.mount != "world")
