@@ -144,6 +144,22 @@ def test_cli_reports_the_arms_bias(planned, tmp_path, capsys, monkeypatch):
     assert "EE bias RMS mm (arm)" in text and f"{1e3 * ev.ee_bias_rms:.4f}" in text
     assert "EE RMS noise + bias mm" in text and "camera model" in text
     assert "exposure blur and the rolling shutter do not apply" in figures["camera_note"]
+    # Its plot maps the whole error, noise and the arm's bias (which dominates), not the noise alone.
+    import matplotlib.axes
+
+    coloured, scatter = [], matplotlib.axes.Axes.scatter
+
+    def recorded(self, *args, c=None, **kwargs):
+        coloured.append(np.asarray(c))
+        return scatter(self, *args, c=c, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "scatter", recorded)
+    png = tmp_path / "ee.png"
+    assert main([*argv, "--plot", str(png)]) == 0 and png.stat().st_size > 10_000
+    np.testing.assert_allclose(coloured[0], 1e3 * ev.ee_total, rtol=1e-9)
+    assert ev.ee_bias_rms > 3.0 * ev.ee_rms  # the picture the noise-only map hid
+    monkeypatch.setattr(matplotlib.axes.Axes, "scatter", scatter)
+    capsys.readouterr()
     # Without the options, the figures are what they were: no model rows, no model keys.
     assert main(["plan", "--evaluate", str(path), "--json", str(out), "--overwrite"]) == 0
     assert "EE bias" not in capsys.readouterr().out and "ee_bias_rms_mm" not in json.loads(out.read_text())

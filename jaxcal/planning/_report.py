@@ -42,10 +42,15 @@ def workspace_points(scene: PlanScene, configs) -> np.ndarray:
 
 
 def plot_evaluation(ev: PlanEvaluation, scene: PlanScene, configs, path, title: str = "") -> Path:
-    """Predicted EE 1-sigma across the workspace: top view and side view of the EE
-    points coloured by their sigma (mm), and its histogram; written to `path` (PNG)."""
+    """Predicted EE error across the workspace: top view and side view of the EE points coloured
+    by it (mm), and its histogram; written to `path` (PNG). With an arm model (`ev.ee_bias`) the
+    maps show the whole error, noise and the arm's bias together (the bias usually dominates), and
+    the histogram each part and the total; without one, the noise's 1-sigma."""
     p = workspace_points(scene, configs)
-    s = 1e3 * np.asarray(ev.ee_sigma)
+    sigma = 1e3 * np.asarray(ev.ee_sigma)
+    biased = ev.ee_bias.size > 0
+    s = 1e3 * np.asarray(ev.ee_total) if biased else sigma
+    what = "predicted EE error, noise and the arm's bias (mm)" if biased else "predicted EE 1-sigma (mm)"
     from matplotlib.figure import Figure  # only when a report is drawn: importing jaxcal stays light
 
     fig = Figure(figsize=(15, 4.6), layout="constrained")  # no pyplot: no global state, any backend
@@ -56,11 +61,23 @@ def plot_evaluation(ev: PlanEvaluation, scene: PlanScene, configs, path, title: 
         a.set_xlabel(lab[0])
         a.set_ylabel(lab[1])
         a.set_aspect("equal")
-    fig.colorbar(sc, ax=ax[:2], label="predicted EE 1-sigma (mm)")
-    ax[2].hist(s, bins=40, color="#4060a0")
-    ax[2].axvline(1e3 * ev.ee_rms, color="k", ls="--", label=f"RMS {1e3 * ev.ee_rms:.3f} mm")
-    ax[2].axvline(1e3 * ev.ee_p95, color="r", ls=":", label=f"p95 {1e3 * ev.ee_p95:.3f} mm")
-    ax[2].set_xlabel("predicted EE 1-sigma (mm)")
+    fig.colorbar(sc, ax=ax[:2], label=what)
+    if biased:
+        bins = np.linspace(0.0, float(np.max(s)), 41)
+        parts = (
+            (sigma, "#4060a0", "noise 1-sigma", ev.ee_rms),
+            (1e3 * ev.ee_bias, "#d08020", "arm's bias", ev.ee_bias_rms),
+        )
+        for values, colour, name, rms in parts:
+            ax[2].hist(values, bins=bins, color=colour, alpha=0.7, label=f"{name}, RMS {1e3 * rms:.3f} mm")
+        total = 1e3 * ev.ee_total_rms
+        ax[2].axvline(total, color="k", ls="--", label=f"total RMS {total:.3f} mm")
+        ax[2].set_xlabel("predicted EE error (mm)")
+    else:
+        ax[2].hist(s, bins=40, color="#4060a0")
+        ax[2].axvline(1e3 * ev.ee_rms, color="k", ls="--", label=f"RMS {1e3 * ev.ee_rms:.3f} mm")
+        ax[2].axvline(1e3 * ev.ee_p95, color="r", ls=":", label=f"p95 {1e3 * ev.ee_p95:.3f} mm")
+        ax[2].set_xlabel("predicted EE 1-sigma (mm)")
     ax[2].legend()
     fig.suptitle(
         title or f"{ev.frames} frames, sigma {ev.sigma_px:g} px: predicted EE error over the workspace"
