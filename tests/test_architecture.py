@@ -30,6 +30,7 @@
 """
 
 import ast
+import re
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "jaxcal"
@@ -323,3 +324,25 @@ def test_result_records_are_typed():
         if not any(f"{f}:" in s for t in modules.values() for s in _record_bag_fields(t))
     ]
     assert stale == [], "typed now: remove from UNTYPED_FIELDS"
+
+
+def test_the_package_layout_names_every_module_and_subcommand():
+    """docs/architecture.md's "Package layout" names every module and package at the top of
+    `jaxcal/` and every `jaxcal` subcommand, so that someone new finds where each part lives."""
+    from jaxcal.cli import option_meanings
+
+    doc = (PACKAGE.parent / "docs" / "architecture.md").read_text()
+    block = doc[doc.index("## Package layout") :]
+    block = block[: block.index("```", block.index("```") + 3)]
+    named = set(re.findall(r"[\w.]+(?:\.py|/)", block))
+    package = PACKAGE
+    top = [p.name for p in package.glob("*.py")] + [
+        f"{p.name}/" for p in package.iterdir() if (p / "__init__.py").exists()
+    ]
+    assert sorted(set(top) - named) == []
+    commands = {c for by_command in option_meanings().values() for c in by_command}
+    cli = block[block.index("  cli/") : block.index("benchmarks/")]
+    assert (
+        len(commands) >= 15
+        and sorted(c for c in commands if f" {c} " not in cli.replace("\n", " ") + " ") == []
+    )
