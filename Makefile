@@ -8,7 +8,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint format bench clean gl
+.PHONY: demo test lint format bench clean gl notebooks
 
 # Headless OpenGL for MuJoCo (EGL + Mesa; OSMesa as the fallback).
 GL_PACKAGES := libegl1 libgl1-mesa-dri
@@ -45,6 +45,11 @@ demo: $(STAMP) gl
 # OpenBLAS's spinning threads only steal from the other worker.
 test: $(STAMP) gl
 	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q --durations=15 -n auto --maxprocesses 2 --dist loadfile --no-loadscope-reorder
+
+# The notebooks are run at full size and stored with their outputs (plots included), so a reader
+# sees the results first; tests/test_notebooks.py fails when a notebook's code changed since.
+notebooks: $(STAMP) gl
+	$(PY) notebooks/refresh.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff format --check jaxcal tests benchmarks

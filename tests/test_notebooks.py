@@ -1,5 +1,6 @@
 """Notebooks are executed, so they never rot."""
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -29,3 +30,24 @@ def test_notebook_executes(path, monkeypatch, tmp_path):
     ]
     assert not errors
     assert os.path.exists(path)  # the notebook on disk is never modified by the run
+
+
+def _source_hash(nb) -> str:
+    spec = importlib.util.spec_from_file_location("refresh", NOTEBOOKS[0].parent / "refresh.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.source_hash(nb)
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+def test_stored_outputs_are_those_of_the_code_shown(path):
+    """The notebooks are committed with their outputs (`make notebooks`: full size, plots included),
+    stored with the hash of the code that made them: a code change without a refresh fails here."""
+    nb = nbformat.read(path, as_version=4)
+    stored = nb.metadata.get("jaxcal", {}).get("source_sha256")
+    assert stored == _source_hash(nb), (
+        f"{path.name}: its code changed after its outputs were stored: make notebooks"
+    )
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert any("image/png" in o.get("data", {}) for o in outputs)  # its plots are there to see
+    assert path.stat().st_size < 1_500_000  # small enough to read on GitHub
