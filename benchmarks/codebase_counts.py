@@ -27,7 +27,8 @@ found so that a figure can be checked by eye:
 
 And issue 50's: `package_lines` (lines of `jaxcal/`), `modules_over_500_lines`, `fmt_skips`
 (`# fmt: skip` comments in `jaxcal/`), and from the command line's parser (`jaxcal.cli`, which
-builds it without JAX): `cli_options`, the options over all subcommands, and
+builds it without JAX): `cli_options`, the options over all subcommands (flags), `config_keys`,
+the configuration keys (`--config`, `jaxcal._configkeys`), and
 `option_names_with_two_meanings` (`jaxcal.cli.option_meanings`).
 
     python benchmarks/codebase_counts.py [--json OUT] [--brief]
@@ -247,19 +248,21 @@ def package_sizes() -> tuple[int, list[str], int]:
     return lines, long, skips
 
 
-def cli_vocabulary() -> tuple[int, list[str]]:
-    """Options over all subcommands, and the option names with more than one meaning."""
+def cli_vocabulary() -> tuple[int, int, list[str]]:
+    """Options over all subcommands (the flags), their configuration keys (`--config`), and the
+    names, flags and keys together, with more than one meaning."""
     from jaxcal.cli import option_meanings
 
     meanings = option_meanings()
-    options = sum(len(by_command) for by_command in meanings.values())
-    return options, sorted(n for n, by_command in meanings.items() if len(set(by_command.values())) > 1)
+    flags = sum(len(by_command) for by_command in option_meanings(keys=False).values())
+    keys = sum(len(by_command) for by_command in meanings.values()) - flags
+    return flags, keys, sorted(n for n, by_command in meanings.items() if len(set(by_command.values())) > 1)
 
 
 def counts() -> dict:
     records = record_fields()
     lines, long_modules, skips = package_sizes()
-    options, two_meanings = cli_vocabulary()
+    options, keys, two_meanings = cli_vocabulary()
     reads, gets = string_keys()
     modes = mode_test_sites()
     longs = long_functions()
@@ -281,6 +284,7 @@ def counts() -> dict:
         "modules_over_500_lines": len(long_modules),
         "fmt_skips": skips,
         "cli_options": options,
+        "config_keys": keys,
         "option_names_with_two_meanings": len(two_meanings),
         "detail": {
             "records": records,

@@ -57,7 +57,7 @@ from ._geometry import (
 from ._kinematics import PRISMATIC, REVOLUTE
 from ._linemodel import MIN_TRAVEL_MM, initialise_line, line_free_mask, line_residuals, line_terms
 from ._lsq import LMOptions
-from ._options import RobustOptions, fit_options, robust_terms
+from ._options import RobustOptions, robust_terms
 from ._robust import (
     deletion_residuals,
     irls_rounds_evaluated,
@@ -156,7 +156,6 @@ def fit_arc(
     options: LMOptions = ARC_OPTIONS,
     throw: bool = False,
     scale_covariance: bool = True,
-    **deprecated,
 ) -> ArcFitResult:
     """Fit one joint's axis (and rate) to a sweep; pure, jittable and vmappable.
 
@@ -202,28 +201,23 @@ def fit_arc(
       leaves the iterate ~`atol**2` from the optimum; tighter tolerances only
       chase float64 round-off in the loss). `throw`: raise (through
       `eqx.error_if`) when a round does not converge.
-    - `deprecated`: the keywords `loss`, `c`, `reject`, `rounds`, `rtol`,
-      `atol`, `max_steps` of the previous release (`jaxcal._options.fit_options`).
 
     **Returns:** an `ArcFitResult`.
     """
-    options, robust = fit_options("fit_arc", options, robust, deprecated)
-    loss, c, reject, rounds = robust_terms(robust)
     params0, ref = initialise_arc(data)
     solve = functools.partial(_solve_dense, model=_ARC) if data.encoder is not None else _solve_blocks
-    return _fit(
-        _ARC, solve, params0, ref, free_mask(params0, data, ref), data,
-        loss=loss, c=c, reject=reject, rounds=rounds, rtol=options.rtol, atol=options.atol,
-        max_steps=options.max_steps,
-        throw=throw, scale_covariance=scale_covariance, name="fit_arc",
-    )  # fmt: skip
+    fit = functools.partial(
+        _fit, robust=robust, options=options, throw=throw, scale_covariance=scale_covariance
+    )
+    return fit(_ARC, solve, params0, ref, free_mask(params0, data, ref), data, name="fit_arc")
 
 
 def _fit(
-    model, solve, params0, ref, free, data, *, loss, c, reject, rounds, rtol, atol, max_steps, throw,
-    scale_covariance, name,
-) -> ArcFitResult:  # fmt: skip
+    model, solve, params0, ref, free, data, *, robust, options: LMOptions, throw, scale_covariance, name
+) -> ArcFitResult:
     """The IRLS rounds and the summary shared by `fit_arc` and `fit_line`."""
+    loss, c, reject, rounds = robust_terms(robust)
+    rtol, atol, max_steps = options.rtol, options.atol, options.max_steps
     hard_flags = round_plan(loss, rounds, reject)
     mask = data.mask
     mask_f = mask.astype(params0.line.dtype)
@@ -274,7 +268,6 @@ def fit_line(
     options: LMOptions = ARC_OPTIONS,
     throw: bool = False,
     scale_covariance: bool = True,
-    **deprecated,
 ) -> ArcFitResult:
     """Fit one prismatic joint's direction and scale to a sweep; pure, jittable and vmappable.
 
@@ -300,15 +293,12 @@ def fit_line(
             "fit_line: a prismatic sweep needs encoder positions: without them the scale "
             "(travel per commanded travel) is not observable"
         )
-    options, robust = fit_options("fit_line", options, robust, deprecated)
-    loss, c, reject, rounds = robust_terms(robust)
     params0, ref = initialise_line(data)
-    res = _fit(
-        _LINE, functools.partial(_solve_dense, model=_LINE), params0, ref, line_free_mask(params0, data), data,
-        loss=loss, c=c, reject=reject, rounds=rounds, rtol=options.rtol, atol=options.atol,
-        max_steps=options.max_steps,
-        throw=throw, scale_covariance=scale_covariance, name="fit_line",
-    )  # fmt: skip
+    fit = functools.partial(
+        _fit, robust=robust, options=options, throw=throw, scale_covariance=scale_covariance
+    )
+    solve = functools.partial(_solve_dense, model=_LINE)
+    res = fit(_LINE, solve, params0, ref, line_free_mask(params0, data), data, name="fit_line")
     eye_w = jnp.zeros(res.meas.shape[0]).at[2:4].set(1.0)
     return eqx.tree_at(
         lambda r: (r.point, r.meas_cov), res, (jnp.full(3, jnp.nan), res.meas_cov + jnp.diag(eye_w))

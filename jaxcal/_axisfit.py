@@ -44,7 +44,6 @@ from ._geometry import make_pose, matmul, pose_inverse, se3_exp, skew, so3_log, 
 from ._kinematics import PRISMATIC, REVOLUTE, KinematicModel, forward_kinematics, joint_axes, joint_motion
 from ._linalg import after, nearest_rotation
 from ._lsq import LMOptions
-from ._options import fit_options
 
 
 class AxisFitParams(eqx.Module):
@@ -526,7 +525,6 @@ def fit_axes(
     search: Bool[Array, ""] | None = None,
     options: LMOptions = AXIS_OPTIONS,
     throw: bool = False,
-    **deprecated,
 ) -> AxisFitResult:
     """Solve the axis-to-kinematics problem; pure, jittable and vmappable.
 
@@ -553,12 +551,9 @@ def fit_axes(
       and one that reuses its mask (the search runs in both).
     - `options`: the solver's `LMOptions` (whitened residuals: `atol` in noise
       units); `throw`: raise when the solve does not converge (optimistix's).
-    - `deprecated`: the keywords `rtol`, `atol`, `max_steps` of the previous
-      release (`jaxcal._options.fit_options`).
 
     **Returns:** an `AxisFitResult`.
     """
-    options, _ = fit_options("fit_axes", options, None, deprecated, robust_fit=False)
     n_axes = arcs.direction.shape[0] if arcs.direction.ndim == 2 else 0
     if arcs.direction.ndim != 2 or n_axes != nominal.num_joints:
         raise ValueError(

@@ -29,7 +29,7 @@ from . import _lsq
 from ._arcdata import ArcData
 from ._arcmodel import arc_residuals, free_mask, initialise_arc
 from ._lsq import LMOptions
-from ._options import RobustOptions, fit_options, robust_terms
+from ._options import RobustOptions, robust_terms
 from ._robust import (
     deletion_residuals,
     irls_rounds_evaluated,
@@ -167,7 +167,6 @@ def fit_clock_offset(
     robust: RobustOptions | None = None,
     options: LMOptions = CLOCK_OPTIONS,
     throw: bool = False,
-    **deprecated,
 ) -> ClockFit:
     """Estimate the camera-controller clock offset from the joint sweeps; pure and jittable.
 
@@ -196,12 +195,9 @@ def fit_clock_offset(
     - `robust`: a `RobustOptions`, as `fit_arc`'s (default `None`: plain least squares).
     - `options`: the solver's `LMOptions` (`max_steps` per round); `throw`: raise
       (`eqx.error_if`) when a round does not converge.
-    - `deprecated`: the keywords `loss`, `c`, `reject`, `rounds`, `rtol`, `atol`,
-      `max_steps` of the previous release (`jaxcal._options.fit_options`).
 
     **Returns:** a `ClockFit`.
     """
-    options, robust = fit_options("fit_clock_offset", options, robust, deprecated)
     loss, c, reject, rounds = robust_terms(robust)
     hard_flags = round_plan(loss, rounds, reject)
     residuals, params0, free = _joint_problem(data, t_cam, enc_t, enc_q, offset0_s, drift_ppm)

@@ -225,9 +225,17 @@ def _from_columns(convention, a, alpha, d, theta, joint_names, flange, T_base, r
 
 
 def from_dh(
-    a, alpha, d, theta, *, joint_names: Sequence[str], flange=None, T_base=None, reduction_ratio=None,
+    a,
+    alpha,
+    d,
+    theta,
+    *,
+    joint_names: Sequence[str],
+    flange=None,
+    T_base=None,
+    reduction_ratio=None,
     link_names: Sequence[str] | None = None,
-) -> KinematicModel:  # fmt: skip
+) -> KinematicModel:
     """A revolute chain from a standard DH table, $T_i = R_z(\\theta_i+q_i) T_z(d_i) T_x(a_i) R_x(\\alpha_i)$
     (`table_to_model` of that `DHTable`).
 
@@ -243,9 +251,17 @@ def from_dh(
 
 
 def from_mdh(
-    a, alpha, d, theta, *, joint_names: Sequence[str], flange=None, T_base=None, reduction_ratio=None,
+    a,
+    alpha,
+    d,
+    theta,
+    *,
+    joint_names: Sequence[str],
+    flange=None,
+    T_base=None,
+    reduction_ratio=None,
     link_names: Sequence[str] | None = None,
-) -> KinematicModel:  # fmt: skip
+) -> KinematicModel:
     """A revolute chain from a modified (Craig) DH table, $T_i = R_x(\\alpha_{i-1}) T_x(a_{i-1}) R_z(\\theta_i+q_i) T_z(d_i)$.
 
     Row $i$ holds $(a_{i-1}, \\alpha_{i-1}, d_i, \\theta_i)$ as in Craig's

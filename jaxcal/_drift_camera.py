@@ -259,11 +259,18 @@ def camera_reference(
     else:
         T_fixed = cam
     return CameraReference(
-        problem=problem, x=jnp.asarray(x), zero=jnp.asarray(zero), U=jnp.asarray(U),
-        s=s, sigma_px=float(sigma_px), corners=int(num_corners),
-        views=int(data.points.shape[0]), joint_names=tuple(lay.joints), T_fixed=T_fixed,
+        problem=problem,
+        x=jnp.asarray(x),
+        zero=jnp.asarray(zero),
+        U=jnp.asarray(U),
+        s=s,
+        sigma_px=float(sigma_px),
+        corners=int(num_corners),
+        views=int(data.points.shape[0]),
+        joint_names=tuple(lay.joints),
+        T_fixed=T_fixed,
         eye_in_hand=lay.eye_in_hand,
-    )  # fmt: skip
+    )
 
 
 def fit(ref: CameraReference, *, joint_offsets: bool) -> tuple[np.ndarray, np.ndarray, float, float, float]:

@@ -43,7 +43,6 @@ from ._kinematics import (
     perturb_model,
 )
 from ._lsq import LMOptions
-from ._options import LM_KEYWORDS, fit_options
 from ._scoring import score as score  # re-exported
 
 _MM = 1e-3
@@ -132,10 +131,7 @@ def fit_sweeps(
 ) -> tuple:
     """Arc fits of every joint (vmapped; a prismatic joint's sweep by its line
     fit, `jaxcal._arcfit.fit_joint_sweeps`) followed by the axis fit, each solve with
-    `options`; `axis_kwargs` go to `fit_axes`. The keywords `rtol`, `atol`, `max_steps`
-    of the previous release still work (`jaxcal._options.fit_options`)."""
-    old = {k: axis_kwargs.pop(k) for k in LM_KEYWORDS if k in axis_kwargs}
-    options, _ = fit_options("fit_sweeps", options, None, old, robust_fit=False)
+    `options`; `axis_kwargs` go to `fit_axes`."""
     arcs = fit_joint_sweeps(data, nominal.joint_types, scale_covariance=False, options=options)
     return arcs, fit_axes(nominal, arcs, free=free, options=options, **axis_kwargs)
 

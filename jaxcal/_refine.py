@@ -49,7 +49,7 @@ from ._correction import KinematicCorrection, ParameterLayout, apply_correction,
 from ._geometry import se3_exp
 from ._kinematics import KinematicModel
 from ._lsq import LMOptions
-from ._options import RobustOptions, fit_options, robust_terms
+from ._options import RobustOptions, robust_terms
 from ._reprojection import (  # re-exported: the model the refinement solves
     CornerData as CornerData,
 )
@@ -255,7 +255,6 @@ def refine(
     options: LMOptions = REFINE_OPTIONS,
     robust: RobustOptions | None = REFINE_ROBUST,
     jacobian: bool = False,
-    **deprecated,
 ) -> RefineResult:
     """Minimise the reprojection error of every corner; pure, jittable, vmappable.
 
@@ -283,12 +282,9 @@ def refine(
     - `jacobian`: also return the Jacobians at the solution (`RefineResult.jacobian`,
       `angle_jacobian`): what a linearised refit (cross-validation of the non-geometric
       terms, `jaxcal.stages._terms`) needs.
-    - `deprecated`: the keywords `loss`, `rounds`, `c`, `reject`, `rtol`, `atol`,
-      `max_steps` of the previous release (`jaxcal._options.fit_options`).
 
     **Returns:** a `RefineResult`.
     """
-    options, robust = fit_options("refine", options, robust, deprecated)
     loss, c, reject, rounds = robust_terms(robust)
     flat0, unravel, free, idx = _checked(problem, params0, free, loss)
     mask = problem.data.mask

@@ -35,7 +35,6 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _lsq
 from ._geometry import normalize, orthonormal_basis, safe_norm
 from ._lsq import LMOptions
-from ._options import fit_options
 from .errors import ToolOffsetInputError
 
 MIN_POINTS = 3
@@ -114,7 +113,6 @@ def fit_circle(
     mask: Bool[Array, " n"] | None = None,
     *,
     options: LMOptions = CIRCLE_OPTIONS,
-    **deprecated,
 ) -> CircleFit:
     """Fit a circle to 2D points (pixels, in the image plane) or 3D points (a circle in space).
 
@@ -126,12 +124,10 @@ def fit_circle(
     **Arguments:**
     - `points`: `(n, 2)` or `(n, 3)`; rows where `mask` is False are ignored.
     - `options`: the solver's `LMOptions` (the residuals are in the points'
-      unit, not whitened: tight tolerances); `deprecated`: the keywords
-      `rtol`, `atol`, `max_steps` of the previous release.
+      unit, not whitened: tight tolerances).
 
     **Returns:** a `CircleFit` (centre in the points' dimension).
     """
-    options, _ = fit_options("fit_circle", options, None, deprecated, robust_fit=False)
     planar = points.shape[-1] == 2
     w = jnp.ones(points.shape[0]) if mask is None else mask.astype(points.dtype)
     P = _as_3d(jnp.where(w[:, None] > 0, points, 0.0))

@@ -546,11 +546,24 @@ def certify(
             "the first-order prediction is all that supports it"
         )
     return Certificate(
-        result=pred.result, kind=pred.kind, frame=frame, region=desc, joint_names=pred.joint_names, q=q,
-        points=points, rms_mm=1e3 * rms, bound95_mm=1e3 * b95, summary=summary, extrapolation=ext,
-        caveats=pred.caveats, notes=tuple(notes), covariance_model=pred.covariance_model,
-        rotation=rotation, rms_deg=rms_deg, bound95_deg=b95_deg,
-    )  # fmt: skip
+        result=pred.result,
+        kind=pred.kind,
+        frame=frame,
+        region=desc,
+        joint_names=pred.joint_names,
+        q=q,
+        points=points,
+        rms_mm=1e3 * rms,
+        bound95_mm=1e3 * b95,
+        summary=summary,
+        extrapolation=ext,
+        caveats=pred.caveats,
+        notes=tuple(notes),
+        covariance_model=pred.covariance_model,
+        rotation=rotation,
+        rms_deg=rms_deg,
+        bound95_deg=b95_deg,
+    )
 
 
 def _rotation_part(pred: Predictor, q, frame: str):

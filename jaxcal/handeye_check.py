@@ -127,15 +127,25 @@ def check_data(
         f"{cap.root}: the target was found in {len(seen)} image(s) of camera {name!r}: a check needs a few",
     )
     obs = hand_eye_from_detections(
-        dets, cap.target, cap.T_base_ee, K, dist, eye_in_hand=cap.eye_in_hand, sigma_px=1.0,
-        frame_names=cap.frames, pad=False,
-    )  # fmt: skip
+        dets,
+        cap.target,
+        cap.T_base_ee,
+        K,
+        dist,
+        eye_in_hand=cap.eye_in_hand,
+        sigma_px=1.0,
+        frame_names=cap.frames,
+        pad=False,
+    )
     d = obs.data
     data = HandEyeCheckData(
-        T_base_ee=jnp.asarray(d.T_base_ee), pixels=jnp.nan_to_num(jnp.asarray(d.pixels[0])),
-        mask=jnp.asarray(d.mask[0]), K=jnp.asarray(K), board_points=jnp.asarray(d.board_points),
+        T_base_ee=jnp.asarray(d.T_base_ee),
+        pixels=jnp.nan_to_num(jnp.asarray(d.pixels[0])),
+        mask=jnp.asarray(d.mask[0]),
+        K=jnp.asarray(K),
+        board_points=jnp.asarray(d.board_points),
         eye_in_hand=jnp.asarray(cap.eye_in_hand),
-    )  # fmt: skip
+    )
     return data, entry, len(seen)
 
 
@@ -174,9 +184,19 @@ def fit_check(
     # The per-view components rest on the views' 6 (views - 1) redundant pose coordinates: the F
     # test's denominator degrees of freedom (the corners' 2 m - 6 are many more).
     return HandEyeCheckFit(
-        theta, C, float(T), float(rss), 2 * corners - 6, views, np.asarray(T_now), frame, camera, nu, view,
+        theta,
+        C,
+        float(T),
+        float(rss),
+        2 * corners - 6,
+        views,
+        np.asarray(T_now),
+        frame,
+        camera,
+        nu,
+        view,
         6 * (views - 1),
-    )  # fmt: skip
+    )
 
 
 def fit_hand_eye_check(ref: HandEyeReference, capture, *, workers=None) -> HandEyeCheckFit:
@@ -184,10 +204,16 @@ def fit_hand_eye_check(ref: HandEyeReference, capture, *, workers=None) -> HandE
     result `ref` (`read_hand_eye_result`); raises `DatasetError` naming the field when they do not match."""
     data, entry, views = check_data(ref, capture, workers=workers)
     return fit_check(
-        data, entry.T_cam_robot, ref.T_robot_target,
+        data,
+        entry.T_cam_robot,
+        ref.T_robot_target,
         larger_covariance(entry.covariance, entry.covariance_frames),
-        robot_sigma(ref), ref.sigma_px, eye_in_hand=ref.eye_in_hand, camera=entry.name, views=views,
-    )  # fmt: skip
+        robot_sigma(ref),
+        ref.sigma_px,
+        eye_in_hand=ref.eye_in_hand,
+        camera=entry.name,
+        views=views,
+    )
 
 
 def read_hand_eye_result(path) -> HandEyeReference | None:

@@ -266,9 +266,10 @@ def _format_tracker(s: TrackerInspection) -> str:
     lines = [
         f"{s.dataset}: {s.robot.file}, joints {', '.join(s.robot.joints)}",
         f"device {d.name} ({d.kind}): {d.samples} samples in {d.file} of point {d.point} on "
-        f"{d.link}; " + ("orientations" if d.orientations else "positions only")
+        f"{d.link}; "
+        + ("orientations" if d.orientations else "positions only")
         + (", joint positions given" if d.joint_positions else ", no joint positions"),
-    ]  # fmt: skip
+    ]
     poses = "stop-and-shoot" in s.kind
     for g in s.joints:
         span = f", {g.time_s[0]:.3f}-{g.time_s[1]:.3f} s" if g.time_s is not None else ""

@@ -11,7 +11,6 @@ device's samples) -> validate
 """
 
 import time
-import warnings
 
 from . import stages
 from ._cache import enable_compilation_cache
@@ -43,8 +42,6 @@ def calibrate(
     identifiability_tol: float | None = None,
     strict: bool = False,
     log=None,
-    estimate_clock: bool | None = None,
-    trust_clock: bool | None = None,
 ) -> CalibrationResult:
     """Calibrate the robot and camera of `dataset` (a path or a loaded `Dataset`).
 
@@ -60,8 +57,6 @@ def calibrate(
       metadata offset that disagrees is a warning, otherwise the metadata's;
       `"estimate"`: estimated, an error when it cannot be; `"given"`: the
       metadata's offset as it is (estimated only when the metadata has none).
-      (`estimate_clock=True` and `trust_clock=True` are the old spellings of
-      `"estimate"` and `"given"`: deprecated, they still work for one release.)
     - `refine_intrinsics`: free the first camera's intrinsics in the
       refinement (focal lengths, principal point and the distortion the data
       support; default: when they were self-calibrated because the metadata
@@ -117,41 +112,32 @@ def calibrate(
     (`CalibrationError`, `DatasetError`, `VisionError`; all `ValueError`)
     naming the problem.
     """
+    if clock not in stages.CLOCK_MODES:
+        raise ValueError(f"clock must be one of {', '.join(map(repr, stages.CLOCK_MODES))}, got {clock!r}")
     enable_compilation_cache()
     t_start = time.perf_counter()
     options = stages.Options(
-        camera=camera, workers=workers, progress=progress, clock=_clock_mode(clock, estimate_clock, trust_clock),
-        validate=validate, refine=refine, other_cameras=other_cameras, log=log,
-        refine_intrinsics=refine_intrinsics, estimate_line_delay=estimate_line_delay,
-        limits=stages.Limits() if limits is None else limits, arc_loss=arc_loss, device_is_base=device_is_base,
-        terms=terms if isinstance(terms, str) else tuple(terms), cv_folds=int(cv_folds),
+        camera=camera,
+        workers=workers,
+        progress=progress,
+        clock=clock,
+        validate=validate,
+        refine=refine,
+        other_cameras=other_cameras,
+        log=log,
+        refine_intrinsics=refine_intrinsics,
+        estimate_line_delay=estimate_line_delay,
+        limits=stages.Limits() if limits is None else limits,
+        arc_loss=arc_loss,
+        device_is_base=device_is_base,
+        terms=terms if isinstance(terms, str) else tuple(terms),
+        cv_folds=int(cv_folds),
         identifiability_tol=identifiability_tol,
-    )  # fmt: skip
+    )
     # The programs the last calibration of this dataset called are read while it loads and detects.
     root = getattr(dataset, "root", dataset)
     with warm_start(f"calibrate {resolved(root)}"):
         return _stages(dataset, options, strict, t_start)
-
-
-def _clock_mode(clock: str, estimate_clock: bool | None, trust_clock: bool | None) -> str:
-    """`calibrate`'s `clock`, from it or from the deprecated flags it replaces."""
-    if clock not in stages.CLOCK_MODES:
-        raise ValueError(f"clock must be one of {', '.join(map(repr, stages.CLOCK_MODES))}, got {clock!r}")
-    old = {"estimate_clock": estimate_clock, "trust_clock": trust_clock}
-    given = {k: v for k, v in old.items() if v is not None}
-    if not given:
-        return clock
-    warnings.warn(
-        f"calibrate({', '.join(given)}=...) is deprecated: use clock='estimate' (estimate_clock=True) "
-        "or clock='given' (trust_clock=True)",
-        DeprecationWarning,
-        stacklevel=3,
-    )
-    if estimate_clock and trust_clock:
-        raise ValueError("estimate_clock=True and trust_clock=True contradict each other")
-    if clock != "auto" and (estimate_clock or trust_clock):
-        raise ValueError(f"give the clock mode once: clock={clock!r} and {', '.join(given)}")
-    return "estimate" if estimate_clock else "given" if trust_clock else clock
 
 
 def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult:

@@ -641,10 +641,13 @@ def _device_files(tmp: Path, result) -> None:
     """A measuring device's pose in the base link as a ROS static transform (not with `device_is_base`)."""
     if result.kind.fixed_frame_free:
         write_static_transform(
-            tmp, result.camera, np.linalg.inv(np.asarray(result.T_cam_base, np.float64)),
-            result.model.link_names[0], result.camera,
+            tmp,
+            result.camera,
+            np.linalg.inv(np.asarray(result.T_cam_base, np.float64)),
+            result.model.link_names[0],
+            result.camera,
             f"jaxcal calibration ({result.kind.describe()}, status {result.status})",
-        )  # fmt: skip
+        )
 
 
 def _camera_files(tmp: Path, result) -> None:

@@ -73,11 +73,19 @@ def truth_table(result) -> TextTable | None:
     header = ("", "nominal model", *start, "refined" if refined else "calibrated")
     pad = ("",) if refined else ()
     rows = [
-        ("EE RMS mm", f"{v.ee_rms_mm_before:.3f}", *((f"{v.ee_rms_mm_two_stage:.3f}",) if refined else ()),
-         f"{v.ee_rms_mm_after:.3f}"),
-        ("EE max mm", f"{v.ee_max_mm_before:.3f}", *((f"{v.ee_max_mm_two_stage:.3f}",) if refined else ()),
-         f"{v.ee_max_mm_after:.3f}"),
-    ]  # fmt: skip
+        (
+            "EE RMS mm",
+            f"{v.ee_rms_mm_before:.3f}",
+            *((f"{v.ee_rms_mm_two_stage:.3f}",) if refined else ()),
+            f"{v.ee_rms_mm_after:.3f}",
+        ),
+        (
+            "EE max mm",
+            f"{v.ee_max_mm_before:.3f}",
+            *((f"{v.ee_max_mm_two_stage:.3f}",) if refined else ()),
+            f"{v.ee_max_mm_after:.3f}",
+        ),
+    ]
     c = v.T_cam_base_error
     rows.append((f"{result.kind.fixed_frame} error", "", *pad, f"{c.trans_mm:.3f} mm, {c.rot_deg:.4f} deg"))
     ratio = [abs(e.ratio_percent) for e in v.parameter_errors if e.ratio_percent is not None]

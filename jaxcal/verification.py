@@ -195,9 +195,18 @@ def _problem_for(ref: CalibrationReference, ds: Dataset):
         raise DatasetError(f"{file}: point_fit.x has {len(pf.x)} entries, its layout {layout.size}")
     used = np.all(np.isfinite(s.q), axis=1)
     problem = point_problem(
-        nominal, layout, s.q, s.position, s.sigma_m, used, pf.T_device_base0, pf.T_flange_point0,
-        (pf.masses, pf.coms), s.orientation if orientation else None, s.sigma_rad if orientation else None,
-    )  # fmt: skip
+        nominal,
+        layout,
+        s.q,
+        s.position,
+        s.sigma_m,
+        used,
+        pf.T_device_base0,
+        pf.T_flange_point0,
+        (pf.masses, pf.coms),
+        s.orientation if orientation else None,
+        s.sigma_rad if orientation else None,
+    )
     return problem, layout, tuple(notes)
 
 
@@ -275,11 +284,20 @@ def prediction_test(z: np.ndarray, dof_noise: int | None, alpha: float = ALPHA) 
     inside = int(np.sum(np.sum(z**2, axis=1) <= bound))
     p_inside = float(distributions.binom_cdf(inside, N, 0.95))
     return PredictionTest(
-        samples=N, components=k, statistic=T, dof=dof, dof_noise=dof_noise, ratio=float(np.sqrt(T / dof)),
-        ratio_limit=float(np.sqrt(limit)), p_value=float(p), inside=inside / N,
-        inside_limit=float(distributions.binom_ppf(alpha, N, 0.95)) / N, p_inside=p_inside, alpha=alpha,
+        samples=N,
+        components=k,
+        statistic=T,
+        dof=dof,
+        dof_noise=dof_noise,
+        ratio=float(np.sqrt(T / dof)),
+        ratio_limit=float(np.sqrt(limit)),
+        p_value=float(p),
+        inside=inside / N,
+        inside_limit=float(distributions.binom_ppf(alpha, N, 0.95)) / N,
+        p_inside=p_inside,
+        alpha=alpha,
         holds=bool(p >= alpha and p_inside >= alpha),
-    )  # fmt: skip
+    )
 
 
 def verify(result, dataset, *, cv: int = 0) -> Verification:

@@ -52,7 +52,11 @@ RUNS = {
         "codebase_counts",
         "--brief",
         "record_fields bag_fields string_key_reads mode_tests long_functions covariance_sites package_lines "
-        "modules_over_500_lines fmt_skips cli_options option_names_with_two_meanings",
+        "modules_over_500_lines fmt_skips cli_options config_keys option_names_with_two_meanings",
+    ),
+    # Two quick commands, once each: the harness tests/test_progress.py shares runs whole.
+    "first_line": Run(
+        "first_line", "--repeats 1 --commands inspect,verify", "pipe_s terminal_s slowest_s over_2s lines"
     ),
     "render": Run("render", "--frames 2 --resolutions 160x120", "frames backend resolutions"),
     "vision": Run(

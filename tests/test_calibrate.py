@@ -225,7 +225,7 @@ def test_self_calibrated_intrinsics_without_refinement_are_suspect(dataset, tmp_
     _edit_json(ds / "metadata.json", lambda m: m["cameras"][0].update(K=None))
     r = calibrate(ds, progress=False, workers=1, refine=False)
     assert r.status == "suspect"
-    assert any("self-calibrated" in s and "drop --no-refine" in s for s in r.reasons), r.reasons
+    assert any("self-calibrated" in s and "drop no-refine" in s for s in r.reasons), r.reasons
 
 
 @pytest.mark.slow
@@ -261,14 +261,27 @@ def test_without_encoders_ratios_are_not_identifiable(dataset, tmp_path):
 def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
     before = _digest(dataset)
     out = tmp_path / "res"
-    assert main(["calibrate", str(dataset), "--out", str(out), "--quiet", "--workers", "1"]) == 0
+    assert main(["calibrate", str(dataset), "--out", str(out), "--quiet", "--config", "workers=1"]) == 0
     assert _digest(dataset) == before  # input files are never modified
     assert (out / "result.json").is_file() and not list(tmp_path.glob(".res.*"))
     assert main(["calibrate", str(dataset), "--out", str(out), "--quiet"]) == 2  # not empty
     assert "not empty" in capsys.readouterr().err
     two = tmp_path / "two_stage"
     assert (
-        main(["calibrate", str(dataset), "--out", str(two), "--quiet", "--workers", "1", "--no-refine"]) == 0
+        main(
+            [
+                "calibrate",
+                str(dataset),
+                "--out",
+                str(two),
+                "--quiet",
+                "--config",
+                "workers=1",
+                "--config",
+                "no-refine=true",
+            ]
+        )
+        == 0
     )
     r_two, r_ref = (json.loads((d / "result.json").read_text()) for d in (two, out))
     assert r_two["refinement"] is None and r_ref["refinement"] is not None
@@ -276,9 +289,9 @@ def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
     assert r_two["validation"]["ee_rms_mm_after"] == pytest.approx(r_ref["validation"]["ee_rms_mm_two_stage"])
     # The demo, filmed by two fixed cameras: the two-stage fit from the first,
     # the refinement over both (one robot, one T_cam_base each).
-    demo = ["demo", "--out", str(tmp_path / "demo"), "--resolution", "640x480"]
-    demo += ["--frames-per-joint", "12", "--sweep-deg", "60", "--cameras", "2"]
-    assert main([*demo, "--quiet", "--workers", "1"]) == 0
+    demo = ["demo", "--out", str(tmp_path / "demo"), "--cameras", "2", "--config", "resolution=640x480"]
+    demo += ["--config", "frames-per-joint=12", "--config", "sweep-deg=60"]
+    assert main([*demo, "--quiet", "--config", "workers=1"]) == 0
     text = capsys.readouterr().out
     assert "Before / after" in text and "EE RMS mm" in text and "T_cam_base of cam1" in text
     assert "calibration ok" in text  # the verdict is said, not only its exit code
@@ -465,7 +478,17 @@ def test_a_mis_sized_board_is_suspect_and_strict_writes_nothing(dataset, tmp_pat
         ),
     )
     out = tmp_path / "res"
-    args = ["calibrate", str(ds), "--out", str(out), "--quiet", "--workers", "1", "--no-refine"]
+    args = [
+        "calibrate",
+        str(ds),
+        "--out",
+        str(out),
+        "--quiet",
+        "--config",
+        "workers=1",
+        "--config",
+        "no-refine=true",
+    ]
     assert main(args) == 3
     r = json.loads((out / "result.json").read_text())
     assert r["status"] == "suspect"

@@ -193,7 +193,9 @@ def test_calibrate_with_a_joint_box_certifies_it(tracker, tmp_path):
     _, ds, _, _ = tracker
     out = tmp_path / "res"
     box = ",".join(["-30:30"] * 6)
-    code = main(["calibrate", str(ds), "--out", str(out), "--cv-folds", "0", "--quiet", "--joint-box", box])
+    code = main(
+        ["calibrate", str(ds), "--out", str(out), "--config", "cv-folds=0", "--quiet", "--joint-box", box]
+    )
     assert code in (0, 1, 2)  # the status is not the point here
     report = (out / "report.md").read_text()
     assert "## Accuracy certificate" in report and report.index("## Accuracy certificate") < report.index(

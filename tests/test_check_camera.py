@@ -117,7 +117,18 @@ def test_eye_in_hand_a_moved_camera_mount_is_detected(tmp_path):
 def test_plan_check_proposes_poses_better_than_random(captures, tmp_path):
     res, _, _ = captures
     out = tmp_path / "poses.csv"
-    argv = ["plan", "--check", str(res), "--budget", "4", "--candidates", "150", "--out", str(out), "--quiet"]
+    argv = [
+        "plan",
+        "--check",
+        str(res),
+        "--budget",
+        "4",
+        "--config",
+        "candidates=150",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     assert main(argv) == 0
     lines = out.read_text().splitlines()
     assert lines[0].split(",")[0] == "shoulder_pan_joint" and len(lines) == 5

@@ -210,7 +210,9 @@ def rendered(tmp_path_factory):
     six-frame check captures of the same rig at other poses: the camera unmoved, and moved."""
     root = tmp_path_factory.mktemp("check_handeye")
     capture = simulate_hand_eye(CONFIG, root / "capture")
-    assert main(["handeye", str(capture), "--out", str(root / "result"), "--folds", "0", "--quiet"]) in (0, 3)
+    assert main(
+        ["handeye", str(capture), "--out", str(root / "result"), "--config", "folds=0", "--quiet"]
+    ) in (0, 3)
     still = simulate_hand_eye(replace(CONFIG, frames=6, seed=11), root / "still")
     moved = simulate_hand_eye(replace(CONFIG, frames=6, seed=11, camera_move=MOVE), root / "moved")
     return root / "result", still, moved

@@ -71,10 +71,10 @@ def test_a_camera_name_that_escapes_is_refused_before_anything_is_written(tmp_pa
     err = _refused(
         ["import-bag", BAG, "--out", tmp_path / "a" / "b" / "out", "--images", "/camera/image_raw/compressed",
          "--joints", "/joint_states", "--robot", ROBOTS_DIR / "ur5e.urdf", "--target", BAG.parent / "plate0.json",
-         "--camera-name", "../../x_escape"],
+         "--config", "camera-name=../../x_escape"],
         capsys,
     )  # fmt: skip
-    assert "--camera-name" in err and "'../../x_escape'" in err, err
+    assert "camera-name" in err and "'../../x_escape'" in err, err
     assert _files(tmp_path) == ["a", "a/b"]
 
 
@@ -85,7 +85,7 @@ def test_every_name_that_forms_a_path_is_checked(tmp_path):
         with pytest.raises(DatasetError, match="it names output files"):
             _schema.file_name(name, "camera")
     assert _schema.file_name("cam_0.left-1", "camera") == "cam_0.left-1"
-    with pytest.raises(JaxcalError, match=r"device_name \(--device-name\).*'\.\./x'"):
+    with pytest.raises(JaxcalError, match=r"device_name \(device-name\).*'\.\./x'"):
         import_csv(UR5_TEST, tmp_path / "out", robot=robot_file("ur5_dh"), joints=["a"] * 6, joint_unit="deg",
                    xyz=["x", "y", "z"], length_unit="mm", sigma_m=2e-5, device_name="../x")  # fmt: skip
     capture = tmp_path / "capture"
@@ -195,16 +195,19 @@ def test_every_number_option_is_finite_and_every_count_bounded():
     "argv, words",
     [
         (
-            ["certify", "res", "--samples", "2000000"],
-            "--samples: expected a positive integer of at most 100,000",
+            ["certify", "res", "--config", "samples=2000000"],
+            "samples=2000000: expected a positive integer of at most 100,000",
         ),
         (["montecarlo", "--trials", "5000000"], "--trials: expected a positive integer of at most 1,000,000"),
         (["simulate", "--out", "{out}", "--resolution", "100000x100000"], "each side from 1 to 65535"),
         (["simulate-tracker", "--out", "{out}", "--noise-um", "inf"], "--noise-um: expected a finite number"),
-        (["plan", "--candidates", "10000000"], "--candidates: expected a positive integer of at most 50,000"),
         (
-            ["calibrate", "ds", "--out", "{out}", "--cv-folds", "100000"],
-            "--cv-folds: expected a non-negative",
+            ["plan", "--config", "candidates=10000000"],
+            "candidates=10000000: expected a positive integer of at most 50,000",
+        ),
+        (
+            ["calibrate", "ds", "--out", "{out}", "--config", "cv-folds=100000"],
+            "cv-folds=100000: expected a non-negative",
         ),
         (
             [
@@ -231,8 +234,8 @@ def test_sizes_and_non_finite_numbers_are_refused_up_front(argv, words, tmp_path
 
 def test_simulate_refuses_a_non_finite_option_before_writing(tmp_path, capsys):
     """`simulate --distortion nan 0 0 0 0` rendered a whole dataset, refused it on read-back and left it."""
-    err = _refused(["simulate", "--out", tmp_path / "out", "--distortion", "nan", "0", "0", "0", "0"], capsys)
-    assert "argument --distortion: expected a finite number, got 'nan'" in err
+    err = _refused(["simulate", "--out", tmp_path / "out", "--config", "distortion=nan,0,0,0,0"], capsys)
+    assert "--config distortion=nan,0,0,0,0: expected a finite number, got 'nan'" in err
     assert _files(tmp_path) == []
     with pytest.raises(ValueError, match="SimConfig: distortion must be finite"):
         SimConfig(distortion=(math.nan, 0.0, 0.0, 0.0, 0.0)).check()

@@ -1,6 +1,5 @@
 """The fits take their settings as objects (`LMOptions`, `RobustOptions`); the keywords
-they replaced still work for one release, with a `DeprecationWarning`, and give the
-same result bit for bit (the same values reach the same compiled solver)."""
+they replaced, deprecated for one release, are gone."""
 
 import warnings
 from dataclasses import replace
@@ -17,7 +16,6 @@ from jaxcal._arcdata import make_arc_data
 from jaxcal._arcfit import ARC_OPTIONS
 from jaxcal._axisfit import AXIS_OPTIONS
 from jaxcal._montecarlo import SWEEP_OPTIONS
-from jaxcal._options import fit_options
 from jaxcal._refine import REFINE_OPTIONS, REFINE_ROBUST
 from jaxcal._tooloffset import fit_circle
 
@@ -48,62 +46,29 @@ def test_the_objects_are_exported_frozen_and_checked():
         RobustOptions(rounds=0)
 
 
-def test_old_keywords_warn_and_give_the_same_arc_fit():
-    data = _noisy_sweep()
-    new = jaxcal.fit_arc(
-        data, robust=RobustOptions("huber", c=2.5, reject=4.0, rounds=2), options=LMOptions(1e-9, 1e-2, 40)
-    )
-    with pytest.warns(
-        DeprecationWarning, match=r"fit_arc\(loss=, c=, reject=, rounds=, rtol=, atol=, max_steps=\)"
-    ):
-        old = jaxcal.fit_arc(
-            data, loss="huber", c=2.5, reject=4.0, rounds=2, rtol=1e-9, atol=1e-2, max_steps=40
-        )  # fmt: skip
-    _same(new, old)
-    assert int(new.num_steps) > 0 and not np.all(np.asarray(new.inlier)[np.asarray(data.mask)])
-
-
-def test_the_defaults_and_plain_least_squares_are_kept():
-    """`loss=None` (and `c`, `reject`, `rounds` without a loss, which never applied) is
-    `robust=None`; `max_steps` alone keeps the fit's other defaults."""
+def test_the_objects_reach_the_fit_and_do_not_warn():
     data = _noisy_sweep()
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # the new spelling does not warn
-        plain = jaxcal.fit_arc(data)
-        capped = jaxcal.fit_arc(data, options=LMOptions(1e-8, 3e-2, 7))
-    with pytest.warns(DeprecationWarning, match="robust=RobustOptions"):
-        _same(jaxcal.fit_arc(data, loss=None, c=2.0), plain)
-    with pytest.warns(DeprecationWarning, match=r"options=LMOptions\(max_steps=\.\.\.\)"):
-        _same(jaxcal.fit_arc(data, max_steps=7), capped)
+        warnings.simplefilter("error")
+        fit = jaxcal.fit_arc(
+            data,
+            robust=RobustOptions("huber", c=2.5, reject=4.0, rounds=2),
+            options=LMOptions(1e-9, 1e-2, 40),
+        )
+        capped = jaxcal.fit_arc(data, options=LMOptions(1e-8, 3e-2, 1))
+    assert int(fit.num_steps) > 0 and not np.all(np.asarray(fit.inlier)[np.asarray(data.mask)])
+    # max_steps reaches every solve: 3 rounds and the inlier solve, 1 step each.
+    assert int(capped.num_steps) <= 4
 
 
-def test_the_mapping_fills_the_objects():
-    base = LMOptions(1e-8, 3e-2, 50)
-    with pytest.warns(DeprecationWarning):
-        options, robust = fit_options("f", base, None, {"atol": 1e-3, "loss": "cauchy", "reject": None})
-    assert (options.rtol, options.atol, options.max_steps) == (1e-8, 1e-3, 50)
-    assert robust == RobustOptions("cauchy", 3.0, None, 3)
-    with pytest.warns(DeprecationWarning):  # a fit whose default is robust keeps its loss
-        _, robust = fit_options("f", base, RobustOptions("huber"), {"c": 1.5})
-    assert robust == RobustOptions("huber", 1.5)
-    assert fit_options("f", base, None, {}) == (base, None)
-
-
-def test_unknown_keywords_and_robust_keywords_of_plain_fits_are_type_errors():
-    with pytest.raises(TypeError, match="fit_arc\\(\\) got an unexpected keyword argument 'tol'"):
-        jaxcal.fit_arc(_noisy_sweep(), tol=1e-3)
-    with pytest.raises(TypeError, match="fit_circle\\(\\) got an unexpected keyword argument 'loss'"):
-        fit_circle(jnp.zeros((8, 2)), loss="cauchy")
-
-
-def test_old_keywords_of_the_plain_fits_warn_and_agree():
-    t = np.linspace(0.0, 2.0, 12)
-    points = jnp.asarray(np.c_[0.3 + 0.1 * np.cos(t), -0.2 + 0.1 * np.sin(t)])
-    new = fit_circle(points, options=LMOptions(1e-10, 1e-10, 20))
-    with pytest.warns(DeprecationWarning, match="fit_circle"):
-        old = fit_circle(points, max_steps=20)
-    _same(new, old)
-    np.testing.assert_allclose(np.asarray(new.centre), [0.3, -0.2], atol=1e-9)  # exact points
+@pytest.mark.parametrize("old", [{"loss": "huber"}, {"c": 2.5}, {"rtol": 1e-9}, {"max_steps": 7}])
+def test_the_keywords_the_objects_replaced_are_gone(old):
+    """They worked for one release with a `DeprecationWarning`; now Python's own error."""
+    (name,) = old
+    with pytest.raises(TypeError, match=f"unexpected keyword argument '{name}'"):
+        jaxcal.fit_arc(_noisy_sweep(), **old)
+    with pytest.raises(TypeError, match=f"unexpected keyword argument '{name}'"):
+        fit_circle(jnp.zeros((8, 2)), **old)
 
 
 def test_the_sweeps_and_the_refinement_keep_their_defaults():

@@ -951,10 +951,10 @@ def test_jaxcal_check_takes_the_held_out_noise_of_an_exact_pose_result():
 
 def test_the_command_refuses_robot_noise_options_that_do_not_go_together(tmp_path, capsys):
     for options, match in (
-        (["--robot-noise", "given"], "--robot-noise given needs --robot-sigma-mm"),
+        (["--robot-noise", "given"], "--robot-noise given needs robot-sigma-mm"),
         (
-            ["--robot-noise", "exact", "--robot-sigma-mm", "1"],
-            "--robot-noise exact takes no --robot-sigma-mm",
+            ["--robot-noise", "exact", "--config", "robot-sigma-mm=1"],
+            "--robot-noise exact takes no robot-sigma-mm",
         ),
     ):
         assert main(["handeye", str(tmp_path / "none"), "--out", str(tmp_path / "out"), *options]) == 2

@@ -210,7 +210,7 @@ BAD_POSES = [
         "quat-xyzw",
         None,
         dict(point_rotvec_rad=None),
-        ["turn the point's frame 90 deg", "none given: not turned", "--point-rotvec-deg 0,0,90"],
+        ["turn the point's frame 90 deg", "none given: not turned", "--config point-rotvec-deg=0,0,90"],
     ),
 ]
 
@@ -382,7 +382,7 @@ def test_command_line(tmp_path, table, capsys):
     assert main([*common, "--out", str(tmp_path / "ds4"), "--orientation-format", "quat-wxyz"]) == 2
     assert "--orientation-columns needs --pose-direction" in capsys.readouterr().err
     common += ["--orientation-format", "quat-wxyz", "--pose-direction", "device-in-point"]
-    assert main([*common, "--out", str(tmp_path / "ds4"), "--point-rotvec-deg", "0,0,90"]) == 0
+    assert main([*common, "--out", str(tmp_path / "ds4"), "--config", "point-rotvec-deg=0,0,90"]) == 0
     ds = load_dataset(tmp_path / "ds4")
     np.testing.assert_allclose(ds.samples.orientation, _device_poses(table[1])[:, :3, :3], atol=1e-9)
 

@@ -146,7 +146,20 @@ def test_montecarlo_detail_and_json(tmp_path, capsys):
     program, which this file's tests have traced and compiled already."""
     out = tmp_path / "mc.json"
     assert (
-        main(["montecarlo", "--detail", "--trials", "8", "--frames-per-joint", "24", "--json", str(out)]) == 0
+        main(
+            [
+                "montecarlo",
+                "--config",
+                "detail=true",
+                "--trials",
+                "8",
+                "--frames-per-joint",
+                "24",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
     )
     text = capsys.readouterr().out
     assert "Before / after" in text and "Identifiability" in text

@@ -1,4 +1,4 @@
-"""Capture planning (`jaxcal.plan`, `jaxcal.evaluate_plan`, `jaxcal plan`, `simulate --plan`).
+"""Capture planning (`jaxcal.plan`, `jaxcal.evaluate_plan`, `jaxcal plan`, `simulate-plan`).
 
 Small cases: the Fisher information against the refinement's own Cramer-Rao
 bound, its gradient against finite differences, the feasibility checks'
@@ -270,9 +270,24 @@ def test_sweep_plans_film_what_the_simulator_films():
 
 def test_bad_input_is_refused_with_exit_code_2_and_nothing_written(ur5e, tmp_path, capsys):
     out = tmp_path / "plan.json"
-    assert main(["plan", "--frames", "1", "--out", str(out), "--no-mujoco"]) == 2
+    assert main(["plan", "--frames", "1", "--out", str(out), "--config", "no-mujoco=true"]) == 2
     assert "too few to identify anything" in capsys.readouterr().err and not out.exists()
-    assert main(["plan", "--region", "3,3,3,4,4,4", "--frames", "24", "--out", str(out), "--no-mujoco"]) == 2
+    assert (
+        main(
+            [
+                "plan",
+                "--region",
+                "3,3,3,4,4,4",
+                "--frames",
+                "24",
+                "--out",
+                str(out),
+                "--config",
+                "no-mujoco=true",
+            ]
+        )
+        == 2
+    )
     assert "give a region the arm can reach" in capsys.readouterr().err and not out.exists()
     bad = plan_to_dict(_plan(ur5e))
     bad["segments"][0]["speed_rad"] = 1.0
@@ -291,7 +306,10 @@ def test_bad_input_is_refused_with_exit_code_2_and_nothing_written(ur5e, tmp_pat
         jaxcal.evaluate_plan(_plan(ur5e), region=([2.0, 2.0, 2.0], [3.0, 3.0, 3.0]))
     with pytest.raises(UnreachableRegionError, match="wholly below the floor at z = -0.6 m"):
         jaxcal.evaluate_plan(_plan(ur5e), region=([-0.5, -0.5, -0.9], [0.5, 0.5, -0.7]))
-    assert main(["plan", "--robot", "scara", "--frames", "24", "--out", str(out), "--no-mujoco"]) == 2
+    assert (
+        main(["plan", "--robot", "scara", "--frames", "24", "--out", str(out), "--config", "no-mujoco=true"])
+        == 2
+    )
     assert "['joint3'] are prismatic" in capsys.readouterr().err and not out.exists()
 
 
@@ -382,7 +400,7 @@ def test_plan_command_never_writes_over_inputs_or_existing_files(ur5e, tmp_path,
         str(camera),
         "--frames",
         "24",
-        "--no-mujoco",
+        "--config=no-mujoco=true",
         "--overwrite",
         "--out",
         str(camera),
@@ -425,46 +443,28 @@ def test_plan_command_never_writes_over_inputs_or_existing_files(ur5e, tmp_path,
 
 def test_simulate_plan_refuses_options_the_plan_fixes(ur5e, tmp_path, capsys):
     plan_path = save_plan(_plan(ur5e), tmp_path / "plan.json")
-    argv = ["simulate", "--plan", str(plan_path), "--robot", "panda", "--resolution", "640x480"]
+    argv = ["simulate-plan", str(plan_path), "--robot", "panda", "--resolution", "640x480"]
     assert main([*argv, "--out", str(tmp_path / "ds")]) == 2
     err = capsys.readouterr().err
-    assert "--robot, --resolution cannot change a plan" in err and not (tmp_path / "ds").exists()
+    assert f"jaxcal simulate-plan {plan_path}: --robot, --resolution cannot change a plan" in err
     # The camera and arm models are the capture's, not the plan's: they go with it.
-    argv = [
-        "simulate",
-        "--plan",
-        str(plan_path),
-        "--camera",
-        "global-shutter",
-        "--arm",
-        "realistic",
-        "--robot",
-        "panda",
-    ]
-    assert main([*argv, "--out", str(tmp_path / "ds")]) == 2
-    err = capsys.readouterr().err
-    assert "--robot cannot change a plan" in err and "is now `jaxcal simulate-plan PLAN`" in err
-    # The command that replaces `simulate --plan`: the same refusal, by the same policy.
-    assert main(["simulate-plan", str(plan_path), "--resolution=640x480", "--out", str(tmp_path / "ds")]) == 2
-    assert f"jaxcal simulate-plan {plan_path}: --resolution cannot change a plan" in capsys.readouterr().err
+    argv = ["simulate-plan", str(plan_path), "--camera-model", "global-shutter", "--arm", "realistic"]
+    assert main([*argv, "--robot", "panda", "--out", str(tmp_path / "ds")]) == 2
+    assert "--robot cannot change a plan" in capsys.readouterr().err
     assert not (tmp_path / "ds").exists()
 
 
-def test_simulate_kinds_are_commands_and_the_old_spellings_still_work(tmp_path, capsys):
-    """`simulate --kind tracker` is `simulate-tracker` (one release more, with a warning); an
-    image option given to tracker data is refused by name, not ignored."""
-    assert (
-        main(["simulate", "--kind", "tracker", "--out", str(tmp_path / "a"), "--samples-per-joint", "20"])
-        == 0
-    )
-    err = capsys.readouterr().err
-    assert "`simulate --kind tracker` is now `jaxcal simulate-tracker`" in err
-    assert main(["simulate-tracker", "--out", str(tmp_path / "b"), "--samples-per-joint", "20"]) == 0
-    # The same command, the same seed: the same samples.
-    assert (tmp_path / "a" / "samples.csv").read_bytes() == (tmp_path / "b" / "samples.csv").read_bytes()
+def test_simulate_kinds_are_commands_and_the_old_spellings_are_gone(tmp_path, capsys):
+    """`simulate --kind tracker` and `simulate --plan` were replaced by `simulate-tracker` and
+    `simulate-plan PLAN` (and worked one release more); an image option given to tracker data is
+    refused by name, not ignored."""
+    for old in (["--kind", "tracker"], ["--plan", str(tmp_path / "plan.json")]):
+        with pytest.raises(SystemExit):
+            main(["simulate", *old, "--out", str(tmp_path / "a")])
+        assert f"takes no option {old[0]}" in capsys.readouterr().err
     assert main(["simulate-tracker", "--out", str(tmp_path / "c"), "--resolution", "640x480"]) == 2
     assert "--resolution: not options of tracker data" in capsys.readouterr().err
-    assert not (tmp_path / "c").exists()
+    assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
 
 
 def test_negative_numbers_start_a_region_or_a_taught_pose():

@@ -602,7 +602,7 @@ def test_wrong_joint_cells_are_rejected_named_and_left_out(ur5, tmp_path, capsys
 
     bad = _rewritten(path, tmp_path / "bad", turn)
     out = tmp_path / "result"
-    assert main(["calibrate", str(bad), "--out", str(out), "--cv-folds", "0", "--quiet"]) == 0
+    assert main(["calibrate", str(bad), "--out", str(out), "--config", "cv-folds=0", "--quiet"]) == 0
     console = capsys.readouterr().out
     assert "rejected by the robust fit (3 of 200 poses)" in " ".join(console.split())
     doc = json.loads((out / "result.json").read_text())
@@ -722,18 +722,18 @@ def test_a_parameter_the_samples_cannot_see_is_held_and_named(tmp_path_factory):
     assert r.validation["ee_rms_mm_after"] < 0.2 < 1.0 < r.validation["ee_rms_mm_before"]
 
 
-def test_the_identifiability_tolerance_is_an_option_and_the_advice_names_it(ur5):
+def test_the_identifiability_tolerance_is_an_option_and_the_advice_names_it(ur5, capsys):
     path, clean = ur5
     loose = jaxcal.calibrate(path, cv_folds=0, identifiability_tol=0.5)
     assert len(loose.frozen) > len(clean.frozen) and set(clean.frozen) < set(loose.frozen)
     with pytest.raises(CalibrationError, match=r"identifiability_tol must be in \(0, 1\)"):
         jaxcal.calibrate(path, identifiability_tol=1.5)
-    with pytest.raises(SystemExit):
-        main(["calibrate", str(path), "--out", "unused", "--identifiability-tol", "0"])
+    assert main(["calibrate", str(path), "--out", "unused", "--config", "identifiability-tol=0"]) == 2
+    assert "identifiability-tol=0: must be in (0, 1), got 0" in capsys.readouterr().err
     row = next(p for p in clean.parameters if p.name.endswith(".zero_offset") and p.free)
     c = _Checks()
     _uncertainties(c, (dataclasses.replace(row, std=0.1),), Limits(), 1e-3)
-    assert len(c.reasons) == 1 and "--identifiability-tol" in c.reasons[0]
+    assert len(c.reasons) == 1 and "--config identifiability-tol=TOL" in c.reasons[0]
     assert "identifiability_tol=" in c.reasons[0] and "now 0.001" in c.reasons[0]
 
 

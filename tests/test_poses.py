@@ -30,7 +30,7 @@ def dataset(tmp_path_factory):
 
 def test_poses_calibrate_from_the_nominal_robot_and_a_hand_eye_start(dataset, tmp_path):
     out = tmp_path / "res"
-    assert main(["calibrate", str(dataset), "--out", str(out), "--quiet", "--workers", "1"]) == 0
+    assert main(["calibrate", str(dataset), "--out", str(out), "--quiet", "--config", "workers=1"]) == 0
     r = json.loads((out / "result.json").read_text())
     v = r["validation"]
     assert "poses of the flange target" in r["capture"] and r["arcs"] == []

@@ -1,15 +1,7 @@
 """Progress where no bar can be drawn (a pipe, a log file): a line at once, a line now and
 then, a line at the end; and the long commands announce their work before doing it."""
 
-import fcntl
-import os
-import pty
-import re
-import select
-import struct
-import subprocess
-import sys
-import termios
+import importlib.util
 import time
 from pathlib import Path
 
@@ -46,82 +38,20 @@ def test_an_interrupted_loop_prints_no_last_line(capsys):
 
 
 ROOT = Path(__file__).resolve().parents[1]
-SWEEPS, TRACKER = ROOT / "data" / "ur5e_sweeps", ROOT / "data" / "ur5_tracker"
-ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07|[\r\x07]")
+_spec = importlib.util.spec_from_file_location("first_line", ROOT / "benchmarks" / "first_line.py")
+_bench = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_bench)
+#: The commands `benchmarks/first_line.py` times, each with the start of its first line.
+FIRST_LINES = _bench.FIRST_LINES
 
 
 def _first_line(args: list[str], tmp_path, terminal: bool = False) -> str:
-    """The first line a `jaxcal` command writes (stdout and stderr together; on a pseudo-terminal
-    with `terminal`, rich's control codes removed); the command is then stopped."""
-    if terminal:
-        out_fd, in_fd = pty.openpty()  # the child writes to `in_fd`, a terminal of 200 columns
-        fcntl.ioctl(in_fd, termios.TIOCSWINSZ, struct.pack("HHHH", 50, 200, 0, 0))
-        stdout = in_fd
-    else:
-        out_fd, stdout = None, subprocess.PIPE
-    env = dict(os.environ, COLUMNS="200", TERM="xterm-256color")
-    argv = [sys.executable, "-m", "jaxcal", *args]
-    p = subprocess.Popen(
-        argv, stdout=stdout, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, cwd=tmp_path, env=env
-    )
-    fd = out_fd if terminal else p.stdout.fileno()
-    if terminal:
-        os.close(in_fd)
-    text = b""
-    try:
-        deadline = time.monotonic() + 120.0  # a bound on a hung process, not a timing check
-        while time.monotonic() < deadline:
-            if select.select([fd], [], [], 1.0)[0]:
-                try:
-                    chunk = os.read(fd, 4096)
-                except OSError:  # the terminal closed: the child ended
-                    chunk = b""
-                text += chunk
-                line = ANSI.sub("", text.decode(errors="replace")).strip()
-                if line and ("\n" in line or not chunk):
-                    return line.splitlines()[0].strip("─ ")
-                if not chunk:
-                    return line
-            elif p.poll() is not None and not terminal:
-                return p.stdout.read().decode()
-        return ""
-    finally:
-        p.kill()
-        p.wait()
-        if terminal:
-            os.close(out_fd)
-        else:
-            p.stdout.close()
+    """The first line a `jaxcal` command writes (`benchmarks/first_line.py`'s harness; its time
+    is the benchmark's business, not a test's)."""
+    return _bench.first_line(args, tmp_path, terminal=terminal)[0]
 
 
-#: Every subcommand that can run longer than a few seconds, and the start of the line it writes
-#: before its work: before compiling (montecarlo: one call that compiles for most of a minute),
-#: building a scene and rendering (simulate), detecting, planning or reading its inputs (verify,
-#: certify and check name what they read before they read it: a result that is not there is
-#: refused after the line).
-FIRST_LINES = {
-    "calibrate": (["calibrate", str(SWEEPS), "--out", "res"], "detecting plate0 in 144 frames"),
-    "calibrate-tracker": (
-        ["calibrate", str(TRACKER / "grid"), "--device-is-base", "--out", "res"],
-        "point fit: 1000 stop-and-shoot poses",
-    ),
-    "demo": (["demo", "--out", "demo"], "jaxcal demo: a perturbed UR5e"),
-    "montecarlo": (["montecarlo", "--trials", "4"], "Monte Carlo: 4 trials of "),
-    "simulate": (
-        ["simulate", "--out", "sim", "--resolution", "160x120"],
-        "simulating a perturbed ur5e into sim",
-    ),
-    "simulate-tracker": (["simulate-tracker", "--out", "trk"], "simulating ur3's tracker sweeps into trk"),
-    "simulate-handeye": (["simulate-handeye", "--out", "he"], "rendering 16 frames of a chessboard"),
-    "handeye": (["handeye", str(ROOT / "data" / "visp_handeye" / "eye_in_hand"), "--out", "he"], "detecting"),
-    "plan": (["plan", "--out", "plan.json", "--frames", "24"], "candidates: 2000 random poses"),
-    "verify": (["verify", "res", str(TRACKER / "test")], "verifying res on"),
-    "certify": (["certify", "res"], "certifying res over its workspace"),
-    "check": (["check", "res", str(TRACKER / "test")], "checking"),
-}
-
-
-@pytest.mark.parametrize("name", list(FIRST_LINES))
+@pytest.mark.parametrize("name", [n for n, (_, first) in FIRST_LINES.items() if first])
 def test_long_commands_say_what_they_do_before_doing_it(name, tmp_path):
     args, first = FIRST_LINES[name]
     assert _first_line(args, tmp_path).startswith(first)

@@ -17,7 +17,7 @@ import optimistix as optx
 import pytest
 from jax.flatten_util import ravel_pytree
 
-from jaxcal import LMOptions, RobustOptions
+from jaxcal import RobustOptions
 from jaxcal._axisfit import apply_correction
 from jaxcal._correction import ParameterLayout
 from jaxcal._geometry import make_pose, se3_exp, so3_exp
@@ -240,20 +240,16 @@ def test_robust_loss_resists_misdetections(solve, clean_run, truth, free):
     assert report["solver"]["result"] == "successful"
 
 
-def test_old_keywords_warn_and_trace_the_same_program(free):
-    """`loss=None` (and the other keywords of the previous release) map onto the objects
-    with a warning, and trace the very program the objects do: the same compiled shapes
-    (one round without a loss, whatever `rounds`) and so the same numbers."""
+def test_plain_least_squares_is_one_round_whatever_else(free):
+    """`robust=None` traces one plain round; the keywords of the release before the objects
+    (`loss=`, `rounds=`, ...) are Python's `TypeError`."""
 
     def program(**kw):
         return str(jax.make_jaxpr(lambda pb, s: refine(pb, s, free, **kw))(PROBLEM, P0))
 
-    with pytest.warns(DeprecationWarning, match="robust=RobustOptions"):
-        old = program(loss=None, rounds=5, reject=2.0)
-    assert old == program(robust=None)
-    with pytest.warns(DeprecationWarning, match="options=LMOptions"):
-        old = program(c=2.0, max_steps=20)
-    assert old == program(robust=RobustOptions(c=2.0), options=LMOptions(rtol=1e-7, atol=1e-7, max_steps=20))
+    assert program(robust=None) != program()
+    with pytest.raises(TypeError, match="unexpected keyword argument 'loss'"):
+        program(loss=None)
 
 
 def test_bad_arguments(free):

@@ -201,7 +201,9 @@ def std_ratio(kfold: KFoldSpread, result: HandEyeResult) -> np.ndarray:
 MAX_ROBOT_SIGMA_M = 5e-3
 MAX_ROBOT_SIGMA_DEG = 0.5
 #: The option of `jaxcal handeye` that sets the robot pose noise model, for messages.
-ROBOT_SIGMA_OPTIONS = "--robot-noise exact|estimate|given (given: --robot-sigma-mm/--robot-sigma-deg)"
+ROBOT_SIGMA_OPTIONS = (
+    "--robot-noise exact|estimate|given (given: --config robot-sigma-mm=MM, robot-sigma-deg=DEG)"
+)
 
 
 def robot_noise(result: HandEyeResult) -> "tuple[float, float] | None":

@@ -13,7 +13,6 @@ from jaxtyping import Array, Bool, Float, Int
 from .._geometry import pose_inverse
 from .._linalg import after
 from .._lsq import LMOptions, normal_pinv
-from .._options import fit_options
 from .blocks import block_bread, solve_by_blocks
 from .closed import initialise_hand_eye
 from .common import least_squares, pose_error
@@ -168,7 +167,6 @@ def calibrate_hand_eye(
     closed_form_jacobian: bool = True,
     estimate_robot_noise: bool | Bool[Array, ""] = False,
     start: tuple[Float[Array, "cameras 4 4"], Float[Array, "4 4"]] | None = None,
-    **deprecated,
 ) -> HandEyeResult:
     """Hand-eye calibration (eye-to-hand or eye-in-hand, one or more cameras); pure, jittable, vmappable.
 
@@ -210,11 +208,9 @@ def calibrate_hand_eye(
       re-solves of a subset); None: the closed form (`initialise_hand_eye`). The start is also
       the result's `T_cam_robot_start`, `T_robot_board_start`.
 
-    - `deprecated`: the keywords `rtol`, `atol`, `max_steps` of the previous release.
 
     **Returns:** a `HandEyeResult`.
     """
-    options, _ = fit_options("calibrate_hand_eye", options, None, deprecated, robust_fit=False)
     data = _estimation_start(data, estimate_robot_noise, by_blocks)
     estimate = jnp.asarray(estimate_robot_noise, bool)
     X0, Y0 = initialise_hand_eye(data) if start is None else start

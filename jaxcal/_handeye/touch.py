@@ -13,7 +13,6 @@ from jaxtyping import Array, Bool, Float, Int
 from .._geometry import make_pose, se3_exp
 from .._linalg import nearest_rotation
 from .._lsq import LMOptions, normal_pinv, residual_variance
-from .._options import fit_options
 from ..errors import DegenerateMotionError, LengthMismatchError, NonFiniteError, ShapeError, TooFewPosesError
 from .checks import check_motion_diversity, check_rotations
 from .common import least_squares, pose_error
@@ -237,17 +236,14 @@ def calibrate_touch(
     options: LMOptions = TOUCH_OPTIONS,
     throw: bool = False,
     scale_covariance: bool = True,
-    **deprecated,
 ) -> TouchResult:
     """TCP-touch hand-eye calibration (seed 5), eye-to-hand or eye-in-hand; pure and jittable.
 
     Closed-form start (`initialise_touch`), then Levenberg-Marquardt on
     `touch_residuals` over $X = X_0 \\exp(\\xi)$ and, when `data.tcp` is None,
     the TCP offset. Covariance from the Jacobian as in `calibrate_hand_eye`.
-    `options`: the solver's `LMOptions`; `throw`: optimistix's; `deprecated`: the
-    keywords `rtol`, `atol`, `max_steps` of the previous release.
+    `options`: the solver's `LMOptions`; `throw`: optimistix's.
     """
-    options, _ = fit_options("calibrate_touch", options, None, deprecated, robust_fit=False)
     X0, tcp0 = initialise_touch(data)
     params0 = TouchParams(robot_cam=jnp.zeros(6), tcp=None if data.tcp is not None else tcp0)
     options = dataclasses.replace(options, throw=throw or options.throw)

@@ -24,8 +24,10 @@ import re
 import sys
 from pathlib import Path
 
+from .. import _configkeys as _config
 from .. import _interrupt
 from .._cache import enable_compilation_cache
+from .._configkeys import knob
 from ._common import (
     EYE_IN_HAND_SWEEP,
     MAX_CAMERAS,
@@ -44,7 +46,11 @@ from ._common import (
 
 
 class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """argparse's defaults formatter, except where the help already says its default in words."""
+    """argparse's defaults formatter, except where the help already says its default in words;
+    the epilog (the configuration keys, `_config.epilog`) keeps its lines."""
+
+    def _fill_text(self, text, width, indent):
+        return "\n".join(indent + line for line in text.splitlines())
 
     def _get_help_string(self, action):
         text = action.help or ""
@@ -59,6 +65,7 @@ def show_defaults(parser: argparse.ArgumentParser) -> None:
         if isinstance(action, argparse._SubParsersAction):
             for sub in action.choices.values():
                 sub.formatter_class = DefaultsFormatter
+                sub.epilog = _config.epilog(sub)
                 for a in sub._actions:
                     if a.help is None and a.option_strings:  # an option nobody described: its name shows
                         a.help = a.dest.replace("_", " ")
@@ -106,16 +113,17 @@ def _add_simulate_parser(sub) -> None:
     p.add_argument(
         "--sweep-deg", type=degrees, default=80.0, help="angle each joint sweeps (deg), one or one per joint"
     )
-    p.add_argument("--sweep-mm", type=finite, default=100.0, help="travel each prismatic joint sweeps (mm)")
-    p.add_argument(
+    knob(p, "--sweep-mm", type=finite, default=100.0, help="travel each prismatic joint sweeps (mm)")
+    knob(
+        p,
         "--home-deg",
         type=home,
         default=None,
         help="the configuration every sweep starts from and the others hold, one angle per joint "
         "(deg, e.g. 0,-20,30,-15,20,0; default zero)",
     )
-    p.add_argument("--markers", choices=("charuco", "aruco"), default="charuco")
-    p.add_argument("--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
+    knob(p, "--markers", choices=("charuco", "aruco"), default="charuco")
+    knob(p, "--dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary")
     p.add_argument(
         "--cameras",
         type=count(1, MAX_CAMERAS),
@@ -131,18 +139,14 @@ def _add_simulate_parser(sub) -> None:
         help="move every joint at once through random waypoints for this long, filmed throughout "
         f"(at most {MAX_MOTION_S:g} s; default: joint-by-joint sweeps); calibrated with --markers-on-links",
     )
-    p.add_argument(
-        "--motion-amplitude-deg", type=finite, default=25.0, help="random motion range, +- about zero"
-    )
-    p.add_argument("--clock-offset-ms", type=finite, default=0.0, help="camera clock minus controller clock")
-    p.add_argument("--clock-drift-ppm", type=finite, default=0.0)
-    p.add_argument("--clock-jitter-ms", type=finite, default=0.0)
-    p.add_argument("--unknown-clock-offset", action="store_true", help="leave the offset out of the metadata")
-    p.add_argument("--drop-rate", type=finite, default=0.0, help="probability that a frame is lost")
-    p.add_argument("--no-encoders", action="store_true", help="write no encoder log")
-    p.add_argument(
-        "--distortion", type=finite, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
-    )
+    knob(p, "--motion-amplitude-deg", type=finite, default=25.0, help="random motion range, +- about zero")
+    knob(p, "--clock-offset-ms", type=finite, default=0.0, help="camera clock minus controller clock")
+    knob(p, "--clock-drift-ppm", type=finite, default=0.0)
+    knob(p, "--clock-jitter-ms", type=finite, default=0.0)
+    knob(p, "--unknown-clock-offset", action="store_true", help="leave the offset out of the metadata")
+    knob(p, "--drop-rate", type=finite, default=0.0, help="probability that a frame is lost")
+    knob(p, "--no-encoders", action="store_true", help="write no encoder log")
+    knob(p, "--distortion", type=finite, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3"))
     _add_capture_models(p)
     p.set_defaults(func=_module("._simulate").cmd_simulate)
 
@@ -150,7 +154,7 @@ def _add_simulate_parser(sub) -> None:
 def _add_capture_models(p) -> None:
     """The camera and arm models and the image options a rendered capture takes (`simulate`,
     `simulate-plan`)."""
-    p.add_argument("--grayscale", action="store_true", help="write single-channel PNGs")
+    knob(p, "--grayscale", action="store_true", help="write single-channel PNGs")
     p.add_argument(
         "--camera-model",
         choices=CAMERAS,
@@ -180,7 +184,8 @@ def _add_simulate_tracker_parser(sub) -> None:
     p.add_argument(
         "--sweep-deg", type=degrees, default=None, help="angle each joint sweeps (deg; default 120)"
     )
-    p.add_argument(
+    knob(
+        p,
         "--home-deg",
         type=home,
         default=None,
@@ -193,8 +198,8 @@ def _add_simulate_tracker_parser(sub) -> None:
         help=f"samples per joint sweep, at most {MAX_SAMPLES_PER_JOINT:,}",
     )
     p.add_argument("--noise-um", type=finite, default=10.0, help="position noise, 1-sigma per axis (um)")
-    p.add_argument(
-        "--bad-fraction", type=finite, default=0.02, help="bad samples (0.3-0.5 mm off) at the sweep ends"
+    knob(
+        p, "--bad-fraction", type=finite, default=0.02, help="bad samples (0.3-0.5 mm off) at the sweep ends"
     )
     p.add_argument("--device-is-base", action="store_true", help="the device frame is the robot's base frame")
     p.add_argument("--orientation", action="store_true", help="also measure an orientation (6-DoF probe)")
@@ -231,14 +236,16 @@ def _add_calibration_parsers(sub) -> None:
     )
     p.add_argument("--out", default="jaxcal-demo", help="where the dataset and the results go")
     p.add_argument("--seed", type=seed, default=0)
-    p.add_argument("--resolution", type=resolution, default=(1280, 960), help="WxH pixels")
-    p.add_argument(
+    knob(p, "--resolution", type=resolution, default=(1280, 960), help="WxH pixels")
+    knob(
+        p,
         "--frames-per-joint",
         type=count(2, MAX_FRAMES_PER_JOINT),
         default=40,
         help=f"frames per joint sweep, at most {MAX_FRAMES_PER_JOINT}",
     )
-    p.add_argument(
+    knob(
+        p,
         "--sweep-deg",
         type=degrees,
         default=None,
@@ -274,7 +281,7 @@ def _add_calibration_parsers(sub) -> None:
         help="the arm model, as `jaxcal simulate --arm` (realistic: gravity compliance, backlash, encoder counts; "
         "physics: the same arm under MuJoCo's dynamics)",
     )
-    calibrate.add_calibrate_args(p)
+    calibrate.add_calibrate_args(p, demo=True)
     p.set_defaults(func=calibrate.cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
     p.add_argument(
@@ -314,7 +321,7 @@ def _add_montecarlo_parser(sub) -> None:
     study = _module("._study")
     study.add_study_args(p, trials=1000)
     p.add_argument("--json", help="write the summary here (atomically)")
-    p.add_argument("--detail", action="store_true", help="first show one trial in detail")
+    knob(p, "--detail", action="store_true", help="first show one trial in detail")
     p.set_defaults(func=study.cmd_montecarlo)
 
 
@@ -363,10 +370,15 @@ class _Parser(argparse.ArgumentParser):
             import difflib
 
             known = [o for o in self._option_string_actions if o.startswith("--")]
+            keys = ["--" + k for k in _config.keys(self)]
             named = []
             for o in unknown:
-                close = difflib.get_close_matches(o, known, n=1, cutoff=0.6)
-                named.append(o + (f" (did you mean {close[0]}?)" if close else ""))
+                close = difflib.get_close_matches(o, known + keys, n=1, cutoff=0.6)
+                if close and close[0] in keys:
+                    key = close[0][2:]
+                    named.append(f"{o} (did you mean the configuration key {key}: --config {key}=VALUE?)")
+                else:
+                    named.append(o + (f" (did you mean {close[0]}?)" if close else ""))
             first = f"{self.prog} takes no option {', '.join(named)}; see {self.prog} --help"
             message = first if message.startswith("unrecognized arguments") else f"{first}. Also: {message}"
         super().error(message)
@@ -395,15 +407,24 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 SAME_VOCABULARY = {"_terms_arg": "terms_arg"}
 
 
-def option_meanings() -> dict[str, dict[str, tuple]]:
+def subcommands() -> dict[str, argparse.ArgumentParser]:
+    """Every subcommand's parser, by name."""
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def option_meanings(*, keys: bool = True) -> dict[str, dict[str, tuple]]:
     """Per long option name, per subcommand taking it, what the option is apart from its help
     text and default: the kind of action, the type converting its value (by its qualified name:
     `count(1, N)` and `count(3, M)` are one type with other bounds), its choices and how many
-    values it takes. One name, one meaning: `tests/test_cli_vocabulary.py`."""
-    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    values it takes; with `keys`, the configuration keys too, by their flag's spelling
+    (`_config`: a key is converted as the flag it replaced). One name, one meaning:
+    `tests/test_cli_vocabulary.py`."""
     out: dict[str, dict[str, tuple]] = {}
-    for command, parser in sub.choices.items():
-        for action in parser._actions:
+    for command, parser in subcommands().items():
+        knobs = _config.knobs_of(parser)
+        actions = parser._actions + (knobs._actions if keys and knobs is not None else [])
+        for action in actions:
             kind = getattr(action.type, "__qualname__", action.type)
             meaning = (
                 type(action).__name__,
@@ -449,36 +470,6 @@ def _join_negative_lists(argv: list[str]) -> list[str]:
     return out
 
 
-def _deprecated_simulate(argv: list[str]) -> list[str]:
-    """`jaxcal simulate --kind tracker ...` and `jaxcal simulate --plan PLAN ...` (one release more,
-    with a warning) as the commands that replace them: `simulate-tracker`, `simulate-plan PLAN`."""
-    if _command(argv) != "simulate":
-        return argv
-    i = argv.index("simulate")
-    head, rest = argv[:i], argv[i + 1 :]
-    kind, plan, kept, k = None, None, [], 0
-    while k < len(rest):
-        a = rest[k]
-        name, eq, value = a.partition("=")
-        if name in ("--kind", "--plan"):
-            if not eq:
-                k += 1
-                value = rest[k] if k < len(rest) else ""
-            kind, plan = (value, plan) if name == "--kind" else (kind, value)
-        else:
-            kept.append(a)
-        k += 1
-    if plan is not None:
-        print("jaxcal: warning: `simulate --plan PLAN` is now `jaxcal simulate-plan PLAN`", file=sys.stderr)
-        return [*head, "simulate-plan", plan, *kept]
-    if kind == "tracker":
-        print("jaxcal: warning: `simulate --kind tracker` is now `jaxcal simulate-tracker`", file=sys.stderr)
-        return [*head, "simulate-tracker", *kept]
-    if kind is not None and kind != "images":
-        return argv  # argparse names the bad value
-    return argv if kind is None else [*head, "simulate", *kept]
-
-
 #: Option spellings that meant something else in another subcommand, renamed so that one option
 #: name has one meaning everywhere (`tests/test_cli_vocabulary.py`); the old spelling still works
 #: for one release, with a warning. `(command, old): new`.
@@ -522,6 +513,16 @@ def _bare(rest: list[str]) -> bool:
     return not rest or (rest[0].startswith("-") and rest[0] != "-") or Path(rest[0]).is_dir()
 
 
+#: Every subcommand's name (`GROUPS`): a `--config` file's tables.
+COMMANDS = tuple(name for names, _ in GROUPS for name in names)
+
+
+def _subparser(parser: argparse.ArgumentParser, command: str | None) -> argparse.ArgumentParser | None:
+    """`command`'s parser within `parser`, or None (no such subcommand: argparse says so)."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices.get(command)
+
+
 def _refusal(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str | None:
     """The one policy for options another command takes: named and refused (exit 2), with the
     command's reason (its `foreign` default, a template of `{options}`) where it has one."""
@@ -536,13 +537,36 @@ def _refusal(parser: argparse.ArgumentParser, args, unknown: list[str]) -> str |
     return f"{what}: " + reason.format(options=", ".join(options))
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = _renamed(_deprecated_simulate(_join_negative_lists(sys.argv[1:] if argv is None else list(argv))))
-    parser = build_parser(_command(argv))
+class Refused(ValueError):
+    """A command line refused before any work: the message says why (exit 2)."""
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    """The namespace `argv`'s command runs on: the old spellings rewritten (with a warning),
+    the subcommand's options parsed, then its configuration (`--config`, and the flags the keys
+    replaced) applied (`_config`). `Refused` names what cannot be used; argparse's own errors
+    exit as argparse does."""
+    argv = _renamed(_join_negative_lists(list(argv)))
+    command = _command(argv)
+    parser = build_parser(command)
+    chosen = _subparser(parser, command)
+    argv, moved = _config.extract_moved(chosen, command, argv) if chosen is not None else (argv, [])
     args, unknown = parser.parse_known_args(argv)
     refusal = _refusal(parser, args, unknown)
     if refusal is not None:
-        print(refusal, file=sys.stderr)
+        raise Refused(refusal)
+    try:
+        _config.apply(chosen, args, COMMANDS, moved)
+    except _config.ConfigError as e:
+        raise Refused(f"jaxcal: error: {e}") from None
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = parse(sys.argv[1:] if argv is None else argv)
+    except Refused as e:
+        print(e, file=sys.stderr)
         return 2
     enable_compilation_cache()
     try:

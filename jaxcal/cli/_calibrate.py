@@ -4,8 +4,10 @@ the programs' load overlap."""
 
 import argparse
 import sys
+from functools import partial
 from pathlib import Path
 
+from .._configkeys import knob
 from .._exported import warm_start
 from ..io._files import check_output_dir, marked_directory, output_lock, resolved
 from ._common import CLOCK_MODES, MAX_WORKERS, count
@@ -72,20 +74,24 @@ def cmd_demo(args) -> int:
         return demo(out, args)
 
 
-def add_calibrate_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--camera", help="fixed camera of the two-stage fit (default: the first)")
-    p.add_argument(
+def add_calibrate_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
+    """The calibration's options, of `calibrate` and `demo` (where `strict` is a configuration key)."""
+    knob(p, "--camera", help="fixed camera of the two-stage fit (default: the first)")
+    knob(
+        p,
         "--single-camera",
         action="store_true",
-        help="refine with --camera's images only (by default every fixed camera joins the refinement, "
+        help="refine with the camera key's images only (by default every fixed camera joins the refinement, "
         "each with its own T_cam_base)",
     )
-    p.add_argument(
+    knob(
+        p,
         "--workers",
         type=count(1, MAX_WORKERS),
         help=f"threads for marker detection, 1 to {MAX_WORKERS} (default: all cores)",
     )
-    p.add_argument(
+    knob(
+        p,
         "--clock",
         choices=CLOCK_MODES,
         default="auto",
@@ -93,34 +99,35 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         "log and moving joints, and a metadata offset that disagrees is a warning; estimate: always, an "
         "error when it cannot be; given: metadata.json's offset as it is",
     )
-    # The flags --clock replaced, kept for one release (they say so when used).
-    p.add_argument("--estimate-clock", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--trust-clock", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument(
+    knob(
+        p,
         "--refine-intrinsics",
         action=argparse.BooleanOptionalAction,
         default=None,
         help="free the camera's intrinsics in the refinement (default: when metadata.json has no K and "
         "they are self-calibrated from the sweep images)",
     )
-    p.add_argument(
+    knob(
+        p,
         "--estimate-line-delay",
         action="store_true",
         help="take cameras whose line_delay_s metadata.json leaves null for rolling shutters and estimate their "
         'line delay in the refinement (as line_delay_s: "estimate")',
     )
-    p.add_argument(
+    (partial(knob, p) if demo else p.add_argument)(
         "--strict",
         action="store_true",
         help="write nothing and exit 3 (1 if a solver failed) when a plausibility check fails",
     )
-    p.add_argument(
+    knob(
+        p,
         "--no-refine",
         action="store_true",
         help="stop at the two-stage result (arc + axis fits); by default every corner's reprojection "
         "error is then minimised over all parameters",
     )
-    p.add_argument(
+    knob(
+        p,
         "--arc-loss",
         choices=("cauchy", "huber", "none"),
         default="cauchy",
@@ -137,14 +144,16 @@ def add_calibrate_args(p: argparse.ArgumentParser) -> None:
         "if cross-validation improves (camera views left out in blocks of consecutive frames). auto (default): "
         "compliance,backlash for camera captures with an encoder log, none for tracker data; none: a rigid arm",
     )
-    p.add_argument(
+    knob(
+        p,
         "--cv-folds",
         type=count(0, MAX_CV_FOLDS),
         default=5,
         help="folds of the cross-validation that gates --terms and is reported "
         f"(0: none, and no term is kept; at most {MAX_CV_FOLDS}: each fold is a fit, all held at once)",
     )
-    p.add_argument(
+    knob(
+        p,
         "--identifiability-tol",
         type=_tolerance,
         default=None,

@@ -11,7 +11,6 @@ from rich.console import Console
 from rich.table import Table
 
 from .._exported import warm_start
-from ..errors import CalibrationError
 from ..io._files import note_written, resolved, write_text_atomic
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
@@ -156,20 +155,6 @@ def _result_tables(console, result) -> None:
 EXIT_CODES = {"ok": 0, "failed": 1, "suspect": 3}
 
 
-def _clock_arg(console, args) -> str:
-    """`--clock`, or the deprecated flag it replaced (with a note saying so)."""
-    old = [
-        f for f, on in (("--estimate-clock", args.estimate_clock), ("--trust-clock", args.trust_clock)) if on
-    ]
-    if not old:
-        return args.clock
-    if len(old) > 1 or args.clock != "auto":
-        raise CalibrationError(f"give the clock mode once: --clock {args.clock} and {' '.join(old)}")
-    mode = "estimate" if args.estimate_clock else "given"
-    console.print(f"[yellow]note:[/yellow] {old[0]} is deprecated: use --clock {mode}")
-    return mode
-
-
 def _plots_expected(dataset) -> bool:
     """Whether the result will have plots: a capture of images (arcs) or a simulated dataset (the
     errors against its truth); a measuring device's samples without a truth have none."""
@@ -201,7 +186,7 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
         camera=args.camera,
         workers=args.workers,
         progress=not args.quiet,
-        clock=_clock_arg(console, args),
+        clock=args.clock,
         refine_intrinsics=args.refine_intrinsics,
         estimate_line_delay=getattr(args, "estimate_line_delay", False),
         refine=not args.no_refine,

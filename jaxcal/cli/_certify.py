@@ -7,6 +7,7 @@ import sys
 import numpy as np
 from rich.console import Console
 
+from .._configkeys import knob
 from .._exported import warm_start
 from .._progress import working
 from ..certification import MAX_POSES, certify, plot_certificate, read_poses
@@ -62,15 +63,17 @@ def add_certify_parsers(sub) -> None:
     g.add_argument(
         "--poses", help="CSV of configurations: a header naming the joints, or one column per joint"
     )
-    p.add_argument("--degrees", action="store_true", help="--poses are in degrees (else rad)")
-    p.add_argument(
+    knob(p, "--degrees", action="store_true", help="--poses are in degrees (else rad)")
+    knob(
+        p,
         "--samples",
         type=count(1, MAX_POSES),
         default=1000,
         help=f"configurations drawn in a box, at most {MAX_POSES:,}",
     )
-    p.add_argument("--seed", type=seed, default=0, help="seed of the configurations drawn")
-    p.add_argument(
+    knob(p, "--seed", type=seed, default=0, help="seed of the configurations drawn")
+    knob(
+        p,
         "--frame",
         choices=("fixed", "base"),
         default="fixed",

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._configkeys import knob
 from .._exported import warm_start
 from ..io._files import check_output_dir, output_lock, resolved
 from ._common import MAX_WORKERS, count, finite, resolution, seed
@@ -54,19 +55,19 @@ def cmd_handeye(args) -> int:
 
     if args.robot_sigma_mm is None and args.robot_sigma_deg is not None:
         print(
-            "jaxcal: error: --robot-sigma-deg needs --robot-sigma-mm (the robot noise of --robot-noise given)",
+            "jaxcal: error: robot-sigma-deg needs robot-sigma-mm (--config robot-sigma-mm=MM: the robot noise of --robot-noise given)",
             file=sys.stderr,
         )
         return 2
     if args.robot_noise == "given" and args.robot_sigma_mm is None:
         print(
-            "jaxcal: error: --robot-noise given needs --robot-sigma-mm (and --robot-sigma-deg)",
+            "jaxcal: error: --robot-noise given needs robot-sigma-mm (--config robot-sigma-mm=MM, and robot-sigma-deg)",
             file=sys.stderr,
         )
         return 2
     if args.robot_noise in ("exact", "estimate") and args.robot_sigma_mm is not None:
         print(
-            f"jaxcal: error: --robot-noise {args.robot_noise} takes no --robot-sigma-mm/--robot-sigma-deg "
+            f"jaxcal: error: --robot-noise {args.robot_noise} takes no robot-sigma-mm/robot-sigma-deg "
             "(they are the noise of --robot-noise given, and of auto's given candidate)",
             file=sys.stderr,
         )
@@ -256,41 +257,44 @@ def add_handeye_parsers(sub) -> None:
     p.add_argument("capture", help="capture directory (handeye.json, poses.csv, images/)")
     p.add_argument("--out", required=True, help="result directory (must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
-    p.add_argument(
-        "--sigma-px", type=finite, help="detector noise, px (default: estimated from per-view PnP)"
-    )
+    knob(p, "--sigma-px", type=finite, help="detector noise, px (default: estimated from per-view PnP)")
     p.add_argument(
         "--robot-noise",
         choices=("auto", "exact", "estimate", "given"),
         default=None,
         help="model of the robot's reported poses: exact (no corrections), estimate (a correction per pose, "
-        "the noise estimated from the data), given (a correction per pose with --robot-sigma-mm/-deg), or "
-        "auto: the one that predicts frames left out best (default; given alone when --robot-sigma-mm is)",
+        "the noise estimated from the data), given (a correction per pose with the keys robot-sigma-mm/-deg), or "
+        "auto: the one that predicts frames left out best (default; given alone when robot-sigma-mm is)",
     )
-    p.add_argument(
+    knob(
+        p,
         "--robot-sigma-mm",
         type=finite,
         help="robot pose noise per axis, mm, of --robot-noise given: each pose gets a correction with this prior",
     )
-    p.add_argument(
+    knob(
+        p,
         "--robot-sigma-deg",
         type=finite,
-        help="robot pose noise per axis, deg (with --robot-sigma-mm; 0.05 when only that is given)",
+        help="robot pose noise per axis, deg (with robot-sigma-mm; 0.05 when only that is given)",
     )
-    p.add_argument(
+    knob(
+        p,
         "--folds",
         type=count(0, MAX_FOLDS),
         default=10,
         help=f"k of the k-fold spread and of the held-out comparison of --robot-noise auto (0: skip both; "
         f"auto then estimates the noise; at most {MAX_FOLDS})",
     )
-    p.add_argument(
+    knob(
+        p,
         "--max-steps",
         type=count(1, MAX_STEPS),
         default=200,
         help=f"Levenberg-Marquardt steps per stage, at most {MAX_STEPS:,}",
     )
-    p.add_argument(
+    knob(
+        p,
         "--workers",
         type=count(1, MAX_WORKERS),
         default=None,
@@ -310,9 +314,7 @@ def add_handeye_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="capture directory (must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
     p.add_argument("--target-kind", choices=tuple(SIM_TARGETS), default="chessboard")
-    p.add_argument(
-        "--dictionary", help="ArUco/AprilTag dictionary of a marker target (e.g. DICT_APRILTAG_36h11)"
-    )
+    knob(p, "--dictionary", help="ArUco/AprilTag dictionary of a marker target (e.g. DICT_APRILTAG_36h11)")
     p.add_argument("--arrangement", choices=("eye-in-hand", "eye-to-hand"), default="eye-in-hand")
     p.add_argument(
         "--frames", type=count(3, MAX_FRAMES), default=16, help=f"robot poses, at most {MAX_FRAMES}"
@@ -320,30 +322,26 @@ def add_handeye_parsers(sub) -> None:
     p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--resolution", type=resolution, default=(640, 480), help="WxH pixels")
     p.add_argument("--distance", type=finite, default=0.5, help="camera to target, m")
-    p.add_argument(
-        "--distortion", type=finite, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3")
-    )
-    p.add_argument(
-        "--pose-format", choices=("matrix", "xyz_quat", "xyz_rpy", "xyz_rotvec"), default="xyz_quat"
-    )
-    p.add_argument("--translation-unit", choices=("m", "mm"), default="m")
-    p.add_argument("--rotation-unit", choices=("rad", "deg"), default="rad")
-    p.add_argument(
-        "--robot-error-fraction", type=finite, default=0.0, help="share of robot poses recorded wrong"
-    )
-    p.add_argument("--robot-error-deg", type=finite, default=2.0)
-    p.add_argument("--robot-error-mm", type=finite, default=5.0)
-    p.add_argument(
+    knob(p, "--distortion", type=finite, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3"))
+    knob(p, "--pose-format", choices=("matrix", "xyz_quat", "xyz_rpy", "xyz_rotvec"), default="xyz_quat")
+    knob(p, "--translation-unit", choices=("m", "mm"), default="m")
+    knob(p, "--rotation-unit", choices=("rad", "deg"), default="rad")
+    knob(p, "--robot-error-fraction", type=finite, default=0.0, help="share of robot poses recorded wrong")
+    knob(p, "--robot-error-deg", type=finite, default=2.0)
+    knob(p, "--robot-error-mm", type=finite, default=5.0)
+    knob(
+        p,
         "--robot-noise-mm",
         type=finite,
         default=0.0,
         help="robot pose noise on every recorded pose, mm per axis",
     )
-    p.add_argument(
+    knob(
+        p,
         "--robot-noise-deg",
         type=finite,
         default=0.0,
         help="robot pose noise on every recorded pose, deg per axis",
     )
-    p.add_argument("--unknown-intrinsics", action="store_true", help="write K = null (self-calibrated)")
+    knob(p, "--unknown-intrinsics", action="store_true", help="write K = null (self-calibrated)")
     p.set_defaults(func=cmd_simulate_handeye)

@@ -4,6 +4,7 @@
 import argparse
 import math
 
+from .._configkeys import knob
 from ..io._tracker import DEVICE_KINDS
 from ..io.csv_import import ANGLE_UNITS, LENGTH_UNITS, ORIENTATION_FORMATS, POSE_DIRECTIONS, import_csv
 from ..robots import robot_file
@@ -77,7 +78,8 @@ def add_import_csv_parser(sub) -> None:
     p.add_argument(
         "--point-mm", type=_triple("mm"), help="the point's offset on --link, x,y,z (mm; default unknown)"
     )
-    p.add_argument(
+    knob(
+        p,
         "--point-rotvec-deg",
         type=_triple("deg"),
         help="the point frame's rotation on --link, a rotation vector x,y,z (deg; with --point-mm; default "
@@ -106,12 +108,12 @@ def add_import_csv_parser(sub) -> None:
         type=finite,
         help="orientation noise, 1-sigma per axis (deg; required with --orientation-columns)",
     )
-    p.add_argument("--time", help="a timestamp column (s, strictly increasing; default: the row index)")
-    p.add_argument("--device-name", default="tracker", help="the device's name (names its frame)")
-    p.add_argument("--device-kind", default="laser_tracker", choices=DEVICE_KINDS)
+    knob(p, "--time", help="a timestamp column (s, strictly increasing; default: the row index)")
+    knob(p, "--device-name", default="tracker", help="the device's name (names its frame)")
+    knob(p, "--device-kind", default="laser_tracker", choices=DEVICE_KINDS)
     p.add_argument("--point-name", default="point", help="the measured point's name (smr, probe)")
     p.add_argument("--link", help="the link the point rides on (default: the robot's flange)")
-    p.add_argument("--description", help="the dataset's description")
+    knob(p, "--description", help="the dataset's description")
     p.set_defaults(func=cmd_import_csv)
 
 

@@ -7,6 +7,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .. import _interrupt
+from .._configkeys import knob
 from ..errors import BagError
 from ..io._rosmsgs import SegmentOptions
 from ._common import finite
@@ -30,13 +31,12 @@ def add_bag_args(p: argparse.ArgumentParser, *, required: bool) -> None:
         required=required,
         help="JSON file: the target(s) as metadata.json's 'targets' (docs/dataset.md)" + need,
     )
-    p.add_argument("--camera-name", default="cam0", help="the camera's name in the dataset")
-    p.add_argument(
-        "--camera-mount", default="world", help="'world' (eye-to-hand) or the flange link (eye-in-hand)"
-    )
-    p.add_argument("--base-link", help="the chain's base link (default: the URDF's root)")
-    p.add_argument("--flange-link", help="the chain's flange link (default: the URDF's one leaf)")
-    p.add_argument(
+    knob(p, "--camera-name", default="cam0", help="the camera's name in the dataset")
+    knob(p, "--camera-mount", default="world", help="'world' (eye-to-hand) or the flange link (eye-in-hand)")
+    knob(p, "--base-link", help="the chain's base link (default: the URDF's root)")
+    knob(p, "--flange-link", help="the chain's flange link (default: the URDF's one leaf)")
+    knob(
+        p,
         "--velocity-threshold",
         type=finite,
         default=SegmentOptions.velocity_threshold,

@@ -126,9 +126,12 @@ def cmd_simulate_tracker(args) -> int:
 
     robot = args.robot or "ur3"
     check_output_dir(
-        args.out, inputs=[robot] if Path(robot).exists() else [], overwrite=args.overwrite, kind="dataset",
+        args.out,
+        inputs=[robot] if Path(robot).exists() else [],
+        overwrite=args.overwrite,
+        kind="dataset",
         what="--out",
-    )  # fmt: skip
+    )
     given = {
         "home_deg": args.home_deg,
         "range_deg": args.sweep_deg,

@@ -13,6 +13,7 @@ from rich.table import Table
 
 from .. import _montecarlo as mc
 from .._axisfit import parameter_names
+from .._configkeys import knob
 from .._progress import working
 from ..io._files import check_output_file, write_text_atomic
 from ..robots import load_robot_file
@@ -28,7 +29,8 @@ def add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
     p.add_argument(
         "--trials", type=count(1, mc.MAX_TRIALS), default=trials, help=f"trials, at most {mc.MAX_TRIALS:,}"
     )
-    p.add_argument(
+    knob(
+        p,
         "--chunk",
         type=count(1, mc.MAX_TRIALS),
         default=None,
@@ -38,7 +40,7 @@ def add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
     p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--noise-mm", type=finite, default=0.1, help="marker position noise (mm)")
     p.add_argument("--noise-deg", type=finite, default=0.05, help="marker orientation noise (deg)")
-    p.add_argument("--encoder-noise-deg", type=finite, default=0.0)
+    knob(p, "--encoder-noise-deg", type=finite, default=0.0)
     p.add_argument(
         "--sweep-deg", type=degrees, default=60.0, help="angle each joint sweeps (deg), one for every joint"
     )

@@ -139,12 +139,12 @@ def check_orientations(
         )
     if mount is not None and rotation_angle(mount.T @ B) > math.radians(MOUNT_TOL_DEG):
         w, w0 = (",".join(f"{round(v, 2) + 0.0:g}" for v in np.degrees(so3_log(M))) for M in (B, mount))
-        stated = f"--point-rotvec-deg {w0}" if rotation_angle(mount) > 0 else "none given: not turned"
+        stated = f"point-rotvec-deg {w0}" if rotation_angle(mount) > 0 else "none given: not turned"
         raise CsvImportError(
             f"{path} {where}: the orientations turn the point's frame {math.degrees(rotation_angle(B)):.3g} deg on "
             f"its link (rotation vector {w} deg), {math.degrees(rotation_angle(mount.T @ B)):.3g} deg from the "
             f"stated mount ({stated}; tolerance {MOUNT_TOL_DEG:g} deg, beyond which the calibration is "
-            f"suspect): give the mount's rotation, --point-rotvec-deg {w}"
+            f"suspect): give the mount's rotation, --config point-rotvec-deg={w}"
         )
     return B
 

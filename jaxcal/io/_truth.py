@@ -111,16 +111,28 @@ def true_poses(truth: dict) -> TruePoses:
 def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:
     truth = sc.read_json(path, "truth file")
     loc = Loc(path)
-    sc.obj(truth, loc, required=("model", "cameras", "targets", "clock"),
-           optional=("T_world_base", "dropped_frames", "frames", "bad_samples", "compliance_rad_per_kNm", "arm"))  # fmt: skip
+    sc.obj(
+        truth,
+        loc,
+        required=("model", "cameras", "targets", "clock"),
+        optional=("T_world_base", "dropped_frames", "frames", "bad_samples", "compliance_rad_per_kNm", "arm"),
+    )
     n = len(joints)
     m = loc.key("model")
     model = sc.obj(
         truth["model"],
         m,
-        required=("joint_names", "joint_types", "link_names", "T_parent_joint", "axis", "zero_offset",
-                  "reduction_ratio", "T_last_flange"),
-    )  # fmt: skip
+        required=(
+            "joint_names",
+            "joint_types",
+            "link_names",
+            "T_parent_joint",
+            "axis",
+            "zero_offset",
+            "reduction_ratio",
+            "T_last_flange",
+        ),
+    )
     if sc.names(model["joint_names"], m.key("joint_names")) != list(joints):
         raise m.key("joint_names").fail(f"{model['joint_names']} differ from robot.joints {list(joints)}")
     types = model["joint_types"]

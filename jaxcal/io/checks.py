@@ -236,17 +236,32 @@ def drift_check_from_json(d: Mapping) -> DriftCheck:
     ]
     frame = next(k for k in d if k.endswith("_now"))[: -len("_now")]
     return DriftCheck(
-        result=d["result"], capture=d["capture"], samples=d["samples"], theta=theta,
-        cov=np.asarray(d["covariance"], np.float64), statistic=d["statistic"], dof=d["dof"],
-        threshold=d["threshold"], p_value=d["p_value"], detected=d["detected"],
+        result=d["result"],
+        capture=d["capture"],
+        samples=d["samples"],
+        theta=theta,
+        cov=np.asarray(d["covariance"], np.float64),
+        statistic=d["statistic"],
+        dof=d["dof"],
+        threshold=d["threshold"],
+        p_value=d["p_value"],
+        detected=d["detected"],
         translation_mm=(d["translation_mm"]["size"], d["translation_mm"]["std"]),
-        rotation_deg=(d["rotation_deg"]["size"], d["rotation_deg"]["std"]), joint_offsets_deg=rows,
-        detectable=from_plain(Detectable, d["detectable"]), residual=from_plain(DriftResidual, d["residual"]),
-        T_device_base=np.asarray(d[f"{frame}_now"], np.float64), message=d["message"], advice=d["advice"],
-        alpha=d["alpha"], what=d["moved"], frame=frame, dof_noise=d["dof_noise"],
-        rotation_residual_deg=None if d.get("rotation_residual_deg") is None
+        rotation_deg=(d["rotation_deg"]["size"], d["rotation_deg"]["std"]),
+        joint_offsets_deg=rows,
+        detectable=from_plain(Detectable, d["detectable"]),
+        residual=from_plain(DriftResidual, d["residual"]),
+        T_device_base=np.asarray(d[f"{frame}_now"], np.float64),
+        message=d["message"],
+        advice=d["advice"],
+        alpha=d["alpha"],
+        what=d["moved"],
+        frame=frame,
+        dof_noise=d["dof_noise"],
+        rotation_residual_deg=None
+        if d.get("rotation_residual_deg") is None
         else from_plain(ResidualStats, d["rotation_residual_deg"]),
-    )  # fmt: skip
+    )
 
 
 # --------------------------------------------------------------------------- jaxcal certify --json
@@ -289,16 +304,24 @@ def certificate_from_json(d: Mapping) -> Certificate:
     column = lambda key, shape: np.asarray([p[key] for p in poses], np.float64).reshape(shape)  # noqa: E731
     deg = bool(poses) and "rms_deg" in poses[0]
     return Certificate(
-        result=d["result"], kind=d["kind"], frame=d["frame"], region=from_plain(Region, d["region"]),
-        joint_names=names, q=column("q", (len(poses), -1) if poses else (0, len(names))),
-        points=column("point_m", (len(poses), 3)), rms_mm=column("rms_mm", (len(poses),)),
-        bound95_mm=column("bound95_mm", (len(poses),)), summary=from_plain(CertificateSummary, d["summary"]),
+        result=d["result"],
+        kind=d["kind"],
+        frame=d["frame"],
+        region=from_plain(Region, d["region"]),
+        joint_names=names,
+        q=column("q", (len(poses), -1) if poses else (0, len(names))),
+        points=column("point_m", (len(poses), 3)),
+        rms_mm=column("rms_mm", (len(poses),)),
+        bound95_mm=column("bound95_mm", (len(poses),)),
+        summary=from_plain(CertificateSummary, d["summary"]),
         extrapolation=None if d["extrapolation"] is None else from_plain(Extrapolation, d["extrapolation"]),
-        caveats=tuple(d["caveats"]), notes=tuple(d["notes"]), covariance_model=d.get("covariance_model"),
+        caveats=tuple(d["caveats"]),
+        notes=tuple(d["notes"]),
+        covariance_model=d.get("covariance_model"),
         rotation=None if d.get("rotation") is None else from_plain(CertificateRotation, d["rotation"]),
         rms_deg=column("rms_deg", (len(poses),)) if deg else None,
         bound95_deg=column("bound95_deg", (len(poses),)) if deg else None,
-    )  # fmt: skip
+    )
 
 
 # --------------------------------------------------------------------------- jaxcal verify --json
@@ -338,13 +361,20 @@ def verification_from_json(d: Mapping) -> Verification:
     angles = bool(rows) and "error_deg" in rows[0]
     deg = lambda key: column(key) if angles else None  # noqa: E731
     return Verification(
-        result=d["result"], dataset=d["dataset"], samples=column("sample", np.int64),
-        errors_mm=column("error_mm"), nominal_mm=column("nominal_mm"), predicted_mm=column("predicted_rms_mm"),
+        result=d["result"],
+        dataset=d["dataset"],
+        samples=column("sample", np.int64),
+        errors_mm=column("error_mm"),
+        nominal_mm=column("nominal_mm"),
+        predicted_mm=column("predicted_rms_mm"),
         summary=from_plain(VerificationSummary, d["summary"]),
-        cv=None if d["cv"] is None else from_plain(CrossValidation, d["cv"]), notes=tuple(d["notes"]),
+        cv=None if d["cv"] is None else from_plain(CrossValidation, d["cv"]),
+        notes=tuple(d["notes"]),
         test=None if d.get("test") is None else from_plain(PredictionTest, d["test"]),
-        errors_deg=deg("error_deg"), nominal_deg=deg("nominal_deg"), predicted_deg=deg("predicted_rms_deg"),
-    )  # fmt: skip
+        errors_deg=deg("error_deg"),
+        nominal_deg=deg("nominal_deg"),
+        predicted_deg=deg("predicted_rms_deg"),
+    )
 
 
 # --------------------------------------------------------------------------- any of the three

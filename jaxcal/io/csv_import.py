@@ -221,7 +221,7 @@ def _read(path: Path, specs: dict) -> tuple[dict, np.ndarray]:
         twice = sorted({header[c] for c in used if used.count(c) > 1})
         if twice:
             raise CsvImportError(
-                f"{path}: column(s) {twice} named twice (in --joints, --xyz, --orientation-columns, --time)"
+                f"{path}: column(s) {twice} named twice (in --joint-columns, --xyz, --orientation-columns, time)"
             )
         return sorted(set(used)), []
 
@@ -272,7 +272,7 @@ def _read_table(
     specs |= {f"p{i}": ("--xyz", s) for i, s in enumerate(xyz)}
     specs |= {f"o{i}": ("--orientation-columns", s) for i, s in enumerate(orientation or ())}
     if time is not None:
-        specs["t"] = ("--time", time)
+        specs["t"] = ("time", time)
     v, lines = _read(path, specs)
     lin = np.array(
         [
@@ -287,7 +287,7 @@ def _read_table(
     if bad.size:
         k = bad[0] + 1
         raise CsvImportError(
-            f"{path} line {lines[k]} column {time!r} (--time): {t[k]!r} s is not after line {lines[k - 1]}'s "
+            f"{path} line {lines[k]} column {time!r} (time): {t[k]!r} s is not after line {lines[k - 1]}'s "
             f"{t[k - 1]!r}; timestamps must increase strictly"
         )
     P = np.stack([v[f"p{i}"] for i in range(3)], axis=1) / LENGTH_UNITS[length_unit]
@@ -473,7 +473,7 @@ def _check_arguments(*, joint_unit, length_unit, device_kind, device_name, sigma
             )
     if device_kind not in DEVICE_KINDS:
         raise ValueError(f"device_kind must be one of {DEVICE_KINDS}, got {device_kind!r}")
-    file_name(device_name, "device_name (--device-name)")  # it names output files (ros_<device>.txt)
+    file_name(device_name, "device_name (device-name)")  # it names output files (ros_<device>.txt)
     if not (isinstance(sigma_m, (int, float)) and 0.0 < sigma_m <= 1.0):
         raise ValueError(f"sigma_m (the position noise, m) must be in (0, 1], got {sigma_m!r}")
     if len(xyz) != 3:
@@ -545,13 +545,76 @@ def import_csv(
         out, inputs=[csv, robot_file], overwrite=overwrite, kind="dataset", what="--out"
     )
     point = _check_arguments(
-        joint_unit=joint_unit, length_unit=length_unit, device_kind=device_kind, device_name=device_name,
-        sigma_m=sigma_m, xyz=xyz, point_m=point_m,
-    )  # fmt: skip
+        joint_unit=joint_unit,
+        length_unit=length_unit,
+        device_kind=device_kind,
+        device_name=device_name,
+        sigma_m=sigma_m,
+        xyz=xyz,
+        point_m=point_m,
+    )
     mount = check_orientation_arguments(
         orientation, orientation_format, pose_direction, sigma_rad, point, point_rotvec_rad
     )
     model, limits, robot_name, robot_obj = robot_model(robot_file)
+    link = _chain_link(model, robot_file, joints, link)
+    columns = dict(
+        joints=joints,
+        joint_unit=joint_unit,
+        xyz=xyz,
+        length_unit=length_unit,
+        orientation=orientation,
+        time=time,
+    )
+    pose_format = (orientation_format, pose_direction)
+    table = _read_table(csv, **columns, model=model, limits=limits, pose_format=pose_format)
+    T_link = _link_frames(model, table.q, list(model.link_names).index(link))
+    reach = reach_m(model, limits, point)
+    tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
+    origin = np.asarray(model.T_parent_joint)[0, :3, 3]
+    args = (xyz, length_unit, (origin, reach, tol), (orientation, orientation_format, pose_direction))
+    r = _check_readings(csv, table, T_link, point, mount, args)
+    rms, warnings = float(np.sqrt(np.mean(r**2))), _far_rows(csv, table, r)
+    del T_link  # a large table's read-back (`load_dataset`) needs the memory
+    meta = _metadata(
+        csv,
+        table,
+        model,
+        robot_obj,
+        **columns,
+        link=link,
+        point=None if point is None else pose(mount, point),
+        device=(device_name, device_kind, point_name),
+        sigma=(sigma_m, sigma_rad),
+        description=description,
+        pose_format=pose_format,
+    )
+    with atomic_directory(
+        out, overwrite=overwrite, inputs=[csv, robot_file], kind="dataset", what="--out", checked=checked
+    ) as tmp:
+        shutil.copyfile(robot_file, tmp / robot_name)
+        _write_samples(tmp / "samples.csv", table, model.joint_names)
+        samples, table = len(table.t), None  # a large table's read-back (`load_dataset`) needs the memory
+        write_json(tmp / "metadata.json", meta)
+        load_dataset(tmp)  # the format's every check, before the rename
+    notes = _nominal_like(rms, sigma_m, xyz)
+    return CsvImport(Path(out), samples, reach, rms, notes, tuple(warnings))
+
+
+def _nominal_like(rms: float, sigma_m: float, xyz) -> tuple[str, ...]:
+    """A note when the points lie as near the nominal robot's as their noise: commanded points?"""
+    if rms >= NOMINAL_LIKE * sigma_m:
+        return ()
+    return (
+        f"the points lie only {rms * 1e3:.3g} mm RMS from the nominal robot's, within {NOMINAL_LIKE:g}x their "
+        f"stated noise ({sigma_m * 1e3:.3g} mm): are {xyz} the commanded (nominal) points rather than "
+        "measured ones? A real arm is typically 0.5-5 mm off its datasheet, and a calibration on these "
+        "points learns nothing",
+    )
+
+
+def _chain_link(model, robot_file: Path, joints: Sequence[str], link: str | None) -> str:
+    """The link the point rides on (default the flange), once the joint columns match the chain."""
     if len(joints) != len(model.joint_names):
         raise ValueError(
             f"{len(joints)} joint column(s) {list(joints)} for the {len(model.joint_names)} joints of {shown(robot_file)}: "
@@ -562,49 +625,28 @@ def import_csv(
         raise ValueError(
             f"link {link!r} is not a link of the chain of {shown(robot_file)}: {list(model.link_names)}"
         )
-    table = _read_table(
-        csv, joints=joints, joint_unit=joint_unit, xyz=xyz, length_unit=length_unit,
-        orientation=orientation, time=time, model=model, limits=limits,
-        pose_format=(orientation_format, pose_direction),
-    )  # fmt: skip
-    T_link = _link_frames(model, table.q, list(model.link_names).index(link))
-    reach = reach_m(model, limits, point)
-    tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
-    origin = np.asarray(model.T_parent_joint)[0, :3, 3]
-    args = (xyz, length_unit, (origin, reach, tol), (orientation, orientation_format, pose_direction))
-    r = _check_readings(csv, table, T_link, point, mount, args)
-    rms, warnings = float(np.sqrt(np.mean(r**2))), _far_rows(csv, table, r)
-    del T_link  # a large table's read-back (`load_dataset`) needs the memory
-    meta = _metadata(
-        csv, table, model, robot_obj, joints=joints, joint_unit=joint_unit, xyz=xyz,
-        length_unit=length_unit, orientation=orientation, time=time, link=link,
-        point=None if point is None else pose(mount, point),
-        device=(device_name, device_kind, point_name), sigma=(sigma_m, sigma_rad), description=description,
-        pose_format=(orientation_format, pose_direction),
-    )  # fmt: skip
-    with atomic_directory(
-        out, overwrite=overwrite, inputs=[csv, robot_file], kind="dataset", what="--out", checked=checked
-    ) as tmp:
-        shutil.copyfile(robot_file, tmp / robot_name)
-        _write_samples(tmp / "samples.csv", table, model.joint_names)
-        samples, table = len(table.t), None  # a large table's read-back (`load_dataset`) needs the memory
-        write_json(tmp / "metadata.json", meta)
-        load_dataset(tmp)  # the format's every check, before the rename
-    notes = []
-    if rms < NOMINAL_LIKE * sigma_m:
-        notes.append(
-            f"the points lie only {rms * 1e3:.3g} mm RMS from the nominal robot's, within {NOMINAL_LIKE:g}x their "
-            f"stated noise ({sigma_m * 1e3:.3g} mm): are {xyz} the commanded (nominal) points rather than "
-            "measured ones? A real arm is typically 0.5-5 mm off its datasheet, and a calibration on these "
-            "points learns nothing"
-        )
-    return CsvImport(Path(out), samples, reach, rms, tuple(notes), tuple(warnings))
+    return link
 
 
 def _metadata(
-    csv: Path, table, model, robot_obj, *, joints, joint_unit, xyz, length_unit, orientation, time, link, point,
-    device, sigma, description, pose_format,
-) -> dict:  # fmt: skip
+    csv: Path,
+    table,
+    model,
+    robot_obj,
+    *,
+    joints,
+    joint_unit,
+    xyz,
+    length_unit,
+    orientation,
+    time,
+    link,
+    point,
+    device,
+    sigma,
+    description,
+    pose_format,
+) -> dict:
     """The imported dataset's `metadata.json`: the device (`device`: its name, kind and point
     name; `sigma`: the position and orientation noise) and the CSV's provenance (`x_csv`)."""
     device_name, device_kind, point_name = device

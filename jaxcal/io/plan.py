@@ -406,8 +406,10 @@ def _camera(x, loc: Loc) -> PlanCamera:
 def target_from_dict(x, loc: Loc) -> PlanTarget:
     obj(x, loc, required=("spec", "link", "T_link_target"))
     try:
-        spec = TargetSpec.from_dict(obj(x["spec"], loc.key("spec"), optional=TargetSpec.__dataclass_fields__),
-                                    where=str(loc.key("spec")))  # fmt: skip
+        spec = TargetSpec.from_dict(
+            obj(x["spec"], loc.key("spec"), optional=TargetSpec.__dataclass_fields__),
+            where=str(loc.key("spec")),
+        )
     except (TypeError, ValueError) as e:
         raise PlanFileError(str(e) if str(loc.file) in str(e) else f"{loc.key('spec')}: {e}") from None
     T = check_placement(pose(x["T_link_target"], loc.key("T_link_target")), loc.key("T_link_target"))

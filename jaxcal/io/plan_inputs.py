@@ -143,7 +143,7 @@ def read_camera(path, flange: str, resolution: tuple[int, int] | None = None) ->
     if w is None or h is None:
         if resolution is None:
             raise PlanFileError(
-                f"{path}: missing fields 'image_width' and 'image_height' (or pass --resolution)"
+                f"{path}: missing fields 'image_width' and 'image_height' (or set resolution: --config resolution=WxH)"
             )
         w, h = resolution
     poses = {k: _matrix(fields, k, path, (4, 4)) for k in ("T_base_cam", "T_cam_base", "T_flange_cam")}
@@ -209,8 +209,8 @@ def parse_pose(text: str, joints: int) -> np.ndarray:
         q = np.array([float(x) for x in text.split(",")])
     except ValueError:
         raise PlanFileError(
-            f"--taught: expected {joints} comma-separated joint values (rad), got {text!r}"
+            f"taught: expected {joints} comma-separated joint values (rad), got {text!r}"
         ) from None
     if q.shape != (joints,) or not np.all(np.isfinite(q)):
-        raise PlanFileError(f"--taught: expected {joints} joint values (rad), got {q.size}")
+        raise PlanFileError(f"taught: expected {joints} joint values (rad), got {q.size}")
     return q

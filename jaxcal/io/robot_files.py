@@ -202,8 +202,13 @@ def write_ros_camera_files(folder: Path, result) -> list[str]:
     for name, frame, T_frame_cam in poses:
         ros.write_static_transform(folder, name, T_frame_cam, frame, name, comment)
         ros.write_easy_handeye(
-            folder / f"easy_handeye_{name}.yaml", T_frame_cam, eye_on_hand=result.eye_in_hand,
-            base_frame=links[0], effector_frame=links[-1], camera_frame=name, marker_frame=str(marker),
-        )  # fmt: skip
+            folder / f"easy_handeye_{name}.yaml",
+            T_frame_cam,
+            eye_on_hand=result.eye_in_hand,
+            base_frame=links[0],
+            effector_frame=links[-1],
+            camera_frame=name,
+            marker_frame=str(marker),
+        )
         files += [f"ros_{name}.launch.yaml", f"ros_{name}.txt", f"easy_handeye_{name}.yaml"]
     return files

@@ -320,9 +320,7 @@ def import_bag(
     checks (nothing is then left at `out`), `OutputError` for `out`.
     """
     bag, robot = Path(bag), Path(robot)
-    file_name(
-        camera, "camera (--camera-name)"
-    )  # it names images/<camera>/: checked before anything is written
+    file_name(camera, "camera (camera-name)")  # it names images/<camera>/: checked before anything is written
     target_list = read_targets(targets) if isinstance(targets, (str, Path)) else list(targets)
     model, movable, ratio, robot_key, robot_name = _robot_model(robot, base_link, flange_link)
     chain = tuple(model.joint_names)

@@ -12,6 +12,7 @@ the prediction falls short.
 
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -76,7 +77,7 @@ class Robot:
         if prismatic:
             raise PlanError(
                 f"robot {robot!r}: capture planning handles revolute joints only, and {prismatic} are "
-                "prismatic; plan the sweeps by hand (jaxcal simulate --sweep-mm renders them)"
+                "prismatic; plan the sweeps by hand (jaxcal simulate --config sweep-mm=MM renders them)"
             )
         limits = urdf_outline(path, model.joint_names).limits
         lower = np.array([-np.inf if limits[j].lower is None else limits[j].lower for j in model.joint_names])
@@ -93,8 +94,10 @@ def scene_of(robot: Robot, camera: PlanCamera, target: PlanTarget, floor_z, wher
             f"{where}: camera.mount must be 'world' or the flange {flange!r}, got {camera.mount!r}"
         )
     if not eye_in_hand and target.link != flange:
-        raise PlanFileError(f"{where}: target.link must be the flange {flange!r} (a fixed camera films it), "
-                            f"got {target.link!r}")  # fmt: skip
+        raise PlanFileError(
+            f"{where}: target.link must be the flange {flange!r} (a fixed camera films it), "
+            f"got {target.link!r}"
+        )
     spec = target.spec
     T_fixed = np.linalg.inv(target.T_link_target) if eye_in_hand else np.linalg.inv(camera.T_mount_cam)
     T_mount = camera.T_mount_cam if eye_in_hand else target.T_link_target
@@ -231,9 +234,14 @@ def evaluate_plan(
         )
     if camera_model is None and arm is None:
         return evaluate_views(
-            scene, q[m], t[m], workspace(robot, scene, region), sweeps=sweeps, sigma_px=sigma_px,
+            scene,
+            q[m],
+            t[m],
+            workspace(robot, scene, region),
+            sweeps=sweeps,
+            sigma_px=sigma_px,
             terms=term_inputs(plan, robot, t[m], terms),
-        )  # fmt: skip
+        )
     q, t = q[m], t[m]
     kept, offsets, joint_std, note = capture_terms(
         plan, robot.source, scene, q, t, camera_model, arm, design(scene, sweeps).kind.single_joint_sweeps
@@ -242,15 +250,24 @@ def evaluate_plan(
         raise BudgetTooSmallError(f"plan: {note}; fewer than {MIN_POSES} frames are left")
     added = 0.0 if camera_model is None else float(camera_model.added_sigma_px)
     ev = evaluate_views(
-        scene, q[kept], t[kept], workspace(robot, scene, region), sweeps=sweeps,
-        sigma_px=float(np.hypot(sigma_px, added)), offsets=offsets, joint_std=joint_std,
+        scene,
+        q[kept],
+        t[kept],
+        workspace(robot, scene, region),
+        sweeps=sweeps,
+        sigma_px=float(np.hypot(sigma_px, added)),
+        offsets=offsets,
+        joint_std=joint_std,
         terms=term_inputs(plan, robot, t[kept], terms),
-    )  # fmt: skip
+    )
     return replace(
-        ev, camera_model=None if camera_model is None else camera_model.name,
-        arm_model=None if arm is None else arm.name, added_sigma_px=added, camera_note=note,
+        ev,
+        camera_model=None if camera_model is None else camera_model.name,
+        arm_model=None if arm is None else arm.name,
+        added_sigma_px=added,
+        camera_note=note,
         frames_lost_to_blur=int(np.sum(~kept)),
-    )  # fmt: skip
+    )
 
 
 def term_inputs(plan: CapturePlan, robot: Robot, t: np.ndarray, terms) -> TermInputs | None:
@@ -312,7 +329,8 @@ def _check_taught(scene, limits, q0, checker) -> None:
         hint = (
             "the camera must see the target at the taught pose (move the camera, or teach another pose)"
             if why[0] in ("distance", "view_angle", "in_image", "corner_spacing", "occlusion")
-            else "teach another pose" + (", or check --floor-z" if why[0] == "scene_collision" else "")
+            else "teach another pose"
+            + (", or check the floor height, --config floor-z=M" if why[0] == "scene_collision" else "")
         )
         raise CameraViewError(f"taught pose {np.round(q0, 4).tolist()}: {detail}; {hint}")
 
@@ -360,15 +378,34 @@ def _finish(scene, limits, q0, q, checker) -> tuple[np.ndarray, list[Correction]
 
 
 def _choose(
-    scene, limits, q0, cands, frames, configs, *, method, starts, steps, sigma_px, seed, checker, timings,
+    scene,
+    limits,
+    q0,
+    cands,
+    frames,
+    configs,
+    *,
+    method,
+    starts,
+    steps,
+    sigma_px,
+    seed,
+    checker,
+    timings,
     terms=None,
-):  # fmt: skip
+):
     """The frames by `method` from the feasible candidates; returns (poses, corrections, evaluation, greedy eval).
     `terms`: a `TermModel` the plan must tell from the geometry (nuisance parameters of the objective)."""
     rng = np.random.default_rng(seed)
     n = min(frames, len(cands))
-    probe = evaluate_views(scene, _pick(cands, frames, rng), np.arange(frames, dtype=float), configs, sweeps=False,
-                           sigma_px=sigma_px)  # fmt: skip
+    probe = evaluate_views(
+        scene,
+        _pick(cands, frames, rng),
+        np.arange(frames, dtype=float),
+        configs,
+        sweeps=False,
+        sigma_px=sigma_px,
+    )
     idx = np.flatnonzero(probe.free)
     t0 = time.perf_counter()
     if method == "greedy":
@@ -390,12 +427,21 @@ def _choose(
             continue
         flank = None
         if terms is not None:
-            flank = TermInputs(terms.terms, np.asarray(terms.masses), np.asarray(terms.coms),
-                               approach(np.vstack([q0, poses]))[1:])  # fmt: skip
+            flank = TermInputs(
+                terms.terms,
+                np.asarray(terms.masses),
+                np.asarray(terms.coms),
+                approach(np.vstack([q0, poses]))[1:],
+            )
         ev = evaluate_views(
-            scene, poses, np.arange(len(poses), dtype=float), configs, sweeps=False, sigma_px=sigma_px,
+            scene,
+            poses,
+            np.arange(len(poses), dtype=float),
+            configs,
+            sweeps=False,
+            sigma_px=sigma_px,
             terms=flank,
-        )  # fmt: skip
+        )
         if best is None or ev.ee_rms_with_held < best[2].ee_rms_with_held:
             best = (poses, corrections, ev)
     if best is None:
@@ -474,22 +520,21 @@ def plan(
         camera, target = camera or c, target or t
     scene = scene_of(rob, camera, target, floor_z, where="plan")
     limits = FeasibilityLimits() if limits is None else limits
+    # The plan's layout at the taught pose: what a checker of lines of sight is built on.
+    draft = CapturePlan(
+        robot, tuple(rob.model.joint_names), camera, target, q0, (PoseSet(q0[None]),), floor_z
+    )
     if checker_factory is not None:
-        checker = checker_factory(
-            CapturePlan(
-                robot, tuple(rob.model.joint_names), camera, target, q0, (PoseSet(q0[None]),), floor_z
-            )
-        )
+        checker = checker_factory(draft)
     _budget(scene, frames, sweeps=False)
     _check_taught(scene, limits, q0, checker)
     configs = workspace(rob, scene, region)
     amplitude = np.radians(amplitude_deg)
     terms = check_terms(terms)
-    tm = None
-    if terms:
-        masses, coms = link_inertials(rob.source)
-        zero = tuple(int(i) for i in design(scene, False).layout.index("zero"))
-        tm = TermModel(jnp.asarray(masses), jnp.asarray(coms), terms, zero)
+    tm = _term_model(rob, scene, terms) if terms else None
+    choose = partial(
+        _choose, scene, limits, q0, configs=configs, sigma_px=sigma_px, checker=checker, timings=timings
+    )
     best, greedy = None, None
     for attempt in range(3 if goal_mm is not None else 1):
         cands, counts = _feasible_candidates(
@@ -497,8 +542,9 @@ def plan(
         )
         say(f"choosing {frames} of {len(cands)} poses ({method}; the first plan compiles its programs)")
         with working(log is not None, f"choosing {frames} poses", say=say):
-            got = _choose(scene, limits, q0, cands, frames, configs, method=method, starts=starts, steps=steps,
-                          sigma_px=sigma_px, seed=seed + attempt, checker=checker, timings=timings, terms=tm)  # fmt: skip
+            got = choose(
+                cands, frames, method=method, starts=starts, steps=steps, seed=seed + attempt, terms=tm
+            )
         if best is None or got[2].ee_rms_with_held < best[2].ee_rms_with_held:
             best = got
         if goal_mm is None or 1e3 * best[2].ee_rms_with_held <= goal_mm:
@@ -506,18 +552,27 @@ def plan(
         amplitude *= 1.5
         say(f"predicted EE RMS {1e3 * best[2].ee_rms:.3f} mm > goal {goal_mm} mm: regenerating wider")
     if greedy_baseline and method == "gradient":
-        greedy = _choose(scene, limits, q0, cands, frames, configs, method="greedy", starts=1, steps=0,
-                         sigma_px=sigma_px, seed=seed, checker=checker, timings=timings)[2]  # fmt: skip
+        greedy = choose(cands, frames, method="greedy", starts=1, steps=0, seed=seed)[2]
     poses, corrections, ev = best
     timings["plan_s"] = time.perf_counter() - t_start
-    result = CapturePlan(
-        robot, tuple(rob.model.joint_names), camera, target, q0, (PoseSet(poses),), floor_z,
-        checks=limits.to_dict(), corrections=tuple(corrections),
-        prediction=ev.summary() | {"method": method, "workspace": "region" if region is not None else "random"}
+    result = replace(
+        draft,
+        segments=(PoseSet(poses),),
+        checks=limits.to_dict(),
+        corrections=tuple(corrections),
+        prediction=ev.summary()
+        | {"method": method, "workspace": "region" if region is not None else "random"}
         | ({"planned_for_terms": list(terms)} if terms else {}),
         description=f"{len(poses)} stop-and-shoot poses planned by jaxcal plan ({method})",
-    )  # fmt: skip
+    )
     return PlanResult(result, ev, greedy, counts, timings)
+
+
+def _term_model(rob: Robot, scene, terms: tuple[str, ...]) -> TermModel:
+    """The non-geometric terms a plan is chosen for, with the robot file's link inertials."""
+    masses, coms = link_inertials(rob.source)
+    zero = tuple(int(i) for i in design(scene, False).layout.index("zero"))
+    return TermModel(jnp.asarray(masses), jnp.asarray(coms), terms, zero)
 
 
 def _feasible_candidates(

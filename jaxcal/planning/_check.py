@@ -156,7 +156,7 @@ def plan_check(result, budget: int = 10, *, candidates: int = 400, seed: int = 0
     if len(keep) < budget:
         raise PlanError(
             f"{file}: {len(keep)} of {candidates} random configurations of the calibrated joint ranges show the "
-            f"whole target: too few for {budget} poses (draw more: --candidates)"
+            f"whole target: too few for {budget} poses (draw more: --config candidates=N)"
         )
     # The calibration's covariance as the check uses it (kappa, see `jaxcal._drift_camera`).
     cov = ref.factor * np.asarray(est.cov, np.float64)[: J.shape[-1], : J.shape[-1]]
@@ -196,9 +196,15 @@ def plan_check(result, budget: int = 10, *, candidates: int = 400, seed: int = 0
     draws = [figures(rng.choice(len(keep), budget, replace=False)) for _ in range(20)]
     random = CheckFigures(*(float(np.median(column)) for column in zip(*(astuple(d) for d in draws))))
     return CheckPlan(
-        result=str(file), joint_names=tuple(est.nominal.joint_names), q=q[keep[chosen]], steps=tuple(steps),
-        random=random, candidates=candidates, visible=len(keep), sigma_px=ref.sigma_px,
-    )  # fmt: skip
+        result=str(file),
+        joint_names=tuple(est.nominal.joint_names),
+        q=q[keep[chosen]],
+        steps=tuple(steps),
+        random=random,
+        candidates=candidates,
+        visible=len(keep),
+        sigma_px=ref.sigma_px,
+    )
 
 
 def write_poses(plan: CheckPlan, path) -> None:

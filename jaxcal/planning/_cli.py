@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .._argtypes import count, finite, resolution
+from .._configkeys import knob
 from .._terms import check_terms
 from ..errors import OutputError, PlanError, PlanFileError
 from ..io._files import check_output_file, resolved, write_text_atomic
@@ -68,21 +69,20 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
     p.add_argument(
         "--robot", default="ur5e", help="shipped robot (ur5e, panda; revolute joints only) or a URDF file"
     )
-    p.add_argument("--camera-file", help="camera YAML (camera_matrix, image size, T_base_cam or T_flange_cam); "
-                   "default: the demo's camera at the taught pose")  # fmt: skip
+    p.add_argument(
+        "--camera-file",
+        help="camera YAML (camera_matrix, image size, T_base_cam or T_flange_cam); default: the demo's camera "
+        "at the taught pose",
+    )
     p.add_argument(
         "--target", help="target JSON (spec, link, T_link_target); default: the demo's plate (board)"
     )
     p.add_argument(
         "--eye-in-hand", action="store_true", help="default layout: camera on the flange, board in the world"
     )
-    p.add_argument(
-        "--resolution", type=_RESOLUTION, default=(1280, 960), help="WxH pixels of the default camera"
-    )
-    p.add_argument(
-        "--distance", type=finite, help="default camera to target distance, m (0.9; eye-in-hand 0.6)"
-    )
-    p.add_argument("--taught", help="taught pose q1,q2,... (rad; default the robot's)")
+    knob(p, "--resolution", type=_RESOLUTION, default=(1280, 960), help="WxH pixels of the default camera")
+    knob(p, "--distance", type=finite, help="default camera to target distance, m (0.9; eye-in-hand 0.6)")
+    knob(p, "--taught", help="taught pose q1,q2,... (rad; default the robot's)")
     p.add_argument(
         "--frames",
         type=count(1, MAX_FRAMES),
@@ -94,12 +94,12 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
         "--overwrite", action="store_true", help="replace --out, --plot and --json (never an input)"
     )
     p.add_argument("--region", help="x0,y0,z0,x1,y1,z1: box (m, base frame) where EE accuracy matters")
-    p.add_argument("--sigma-px", type=finite, default=DEFAULT_SIGMA_PX, help="detector corner noise, px")
+    knob(p, "--sigma-px", type=finite, default=DEFAULT_SIGMA_PX, help="detector corner noise, px")
     p.add_argument(
         "--camera-model",
         choices=cameras,
         help="the camera model, as `jaxcal simulate --camera-model`: its corner noise (sensor noise, JPEG) joins "
-        "--sigma-px, and frames it would blur are left out (default: --sigma-px alone)",
+        "sigma-px, and frames it would blur are left out (default: sigma-px alone)",
     )
     p.add_argument(
         "--arm",
@@ -117,27 +117,22 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
         "be told from the geometry (gravity-torque variety, approaches from both sides); --evaluate, the "
         "prediction counts them and the arm's bias is what they leave, the bias without them beside",
     )
-    p.add_argument("--method", choices=("gradient", "greedy"), default="gradient")
-    p.add_argument("--baseline", action="store_true", help="also run the greedy D-optimal baseline")
-    p.add_argument(
-        "--starts", type=count(1, MAX_STARTS), default=3, help=f"gradient starts, at most {MAX_STARTS}"
-    )
-    p.add_argument(
-        "--steps", type=count(1, MAX_STEPS), default=150, help=f"gradient steps, at most {MAX_STEPS:,}"
-    )
-    p.add_argument(
+    knob(p, "--method", choices=("gradient", "greedy"), default="gradient")
+    knob(p, "--baseline", action="store_true", help="also run the greedy D-optimal baseline")
+    knob(p, "--starts", type=count(1, MAX_STARTS), default=3, help=f"gradient starts, at most {MAX_STARTS}")
+    knob(p, "--steps", type=count(1, MAX_STEPS), default=150, help=f"gradient steps, at most {MAX_STEPS:,}")
+    knob(
+        p,
         "--candidates",
         type=count(1, MAX_CANDIDATES),
         default=2000,
         help=f"random poses drawn about the taught pose, at most {MAX_CANDIDATES:,}",
     )
-    p.add_argument(
-        "--amplitude-deg", type=finite, default=60.0, help="candidates within this of the taught pose"
-    )
+    knob(p, "--amplitude-deg", type=finite, default=60.0, help="candidates within this of the taught pose")
     p.add_argument("--goal-mm", type=finite, help="regenerate wider while the predicted EE RMS is above this")
-    p.add_argument("--floor-z", type=finite, default=-0.6, help="floor height, m (base frame)")
-    p.add_argument("--view-angle-deg", type=finite, default=60.0, help="largest plate view angle")
-    p.add_argument("--no-mujoco", action="store_true", help="skip MuJoCo's contact and line-of-sight checks")
+    knob(p, "--floor-z", type=finite, default=-0.6, help="floor height, m (base frame)")
+    knob(p, "--view-angle-deg", type=finite, default=60.0, help="largest plate view angle")
+    knob(p, "--no-mujoco", action="store_true", help="skip MuJoCo's contact and line-of-sight checks")
     p.add_argument("--seed", type=count(0, 2**32 - 1), default=0)
     p.add_argument("--plot", help="write the plan's predicted EE sigma plot (PNG) here")
     p.add_argument("--json", help="write the plan's predicted figures (JSON) here")
@@ -245,9 +240,12 @@ def model_rows(ev: PlanEvaluation) -> list[tuple[str, str]]:
         )
     lo, hi = ev.total_interval() if ev.error_eigenvalues.size else (np.nan, np.nan)
     rows.append(
-        ("EE RMS noise + bias mm", f"{1e3 * ev.ee_total_rms:.4f} (p95 {1e3 * ev.ee_total_p95:.4f}; one capture "
-         f"90 % in {1e3 * lo:.4f} .. {1e3 * hi:.4f})")
-    )  # fmt: skip
+        (
+            "EE RMS noise + bias mm",
+            f"{1e3 * ev.ee_total_rms:.4f} (p95 {1e3 * ev.ee_total_p95:.4f}; one capture "
+            f"90 % in {1e3 * lo:.4f} .. {1e3 * hi:.4f})",
+        )
+    )
     return rows
 
 
@@ -324,9 +322,11 @@ def run_check_plan(args, console: Console) -> int:
         table.add_column(col, justify="right")
     for k, (q, st) in enumerate(zip(cp.q, cp.steps)):
         table.add_row(
-            str(k + 1), *(f"{np.degrees(v):.1f}" for v in q),
-            f"{st.translation_mm_worst:.3f}", f"{st.rotation_deg_worst:.4f}",
-        )  # fmt: skip
+            str(k + 1),
+            *(f"{np.degrees(v):.1f}" for v in q),
+            f"{st.translation_mm_worst:.3f}",
+            f"{st.rotation_deg_worst:.4f}",
+        )
     console.print(table)
     last = cp.steps[-1]
     console.print(
@@ -375,18 +375,39 @@ def run_plan(args, console: Console, checker_factory=None, capture_models=None) 
     factory = None if args.no_mujoco else checker_factory
     t0 = time.perf_counter()
     res = plan(
-        args.robot, camera=camera, target=target, taught=taught, frames=args.frames, eye_in_hand=eye_in_hand,
-        distance=args.distance, resolution=args.resolution, floor_z=args.floor_z, region=region, limits=limits,
-        sigma_px=args.sigma_px, method=args.method, starts=args.starts, steps=args.steps,
-        candidates=args.candidates, amplitude_deg=args.amplitude_deg, goal_mm=args.goal_mm,
-        greedy_baseline=args.baseline, seed=args.seed, checker_factory=factory,
-        log=None if args.quiet else (lambda text: console.print(f"[dim]{text}[/dim]")), terms=args.terms,
-    )  # fmt: skip
+        args.robot,
+        camera=camera,
+        target=target,
+        taught=taught,
+        frames=args.frames,
+        eye_in_hand=eye_in_hand,
+        distance=args.distance,
+        resolution=args.resolution,
+        floor_z=args.floor_z,
+        region=region,
+        limits=limits,
+        sigma_px=args.sigma_px,
+        method=args.method,
+        starts=args.starts,
+        steps=args.steps,
+        candidates=args.candidates,
+        amplitude_deg=args.amplitude_deg,
+        goal_mm=args.goal_mm,
+        greedy_baseline=args.baseline,
+        seed=args.seed,
+        checker_factory=factory,
+        log=None if args.quiet else (lambda text: console.print(f"[dim]{text}[/dim]")),
+        terms=args.terms,
+    )
     if models != (None, None):  # the optimiser minimised the noise part; the prediction adds the models
         ev = evaluate_plan(
-            res.plan, region=region, sigma_px=args.sigma_px, camera_model=models[0], arm=models[1],
+            res.plan,
+            region=region,
+            sigma_px=args.sigma_px,
+            camera_model=models[0],
+            arm=models[1],
             terms=args.terms,
-        )  # fmt: skip
+        )
         res = replace(
             res, plan=replace(res.plan, prediction=res.plan.prediction | ev.summary()), evaluation=ev
         )

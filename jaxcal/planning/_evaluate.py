@@ -465,13 +465,16 @@ def evaluate_views(
     vis = None if visible is None else jnp.asarray(visible)
     names = tuple(d.layout.names())
     cand_idx = np.flatnonzero(d.candidates)
-    free, J, G, corners = (
-        np.asarray(a)
-        for a in _evaluation_terms(
-            scene, jnp.asarray(q), jnp.asarray(t), vis, jnp.asarray(d.candidates), cand_idx,
-            jnp.asarray(configs), d.tol,
-        )
-    )  # fmt: skip
+    frames = (
+        jnp.asarray(q),
+        jnp.asarray(t),
+        vis,
+        jnp.asarray(d.candidates),
+        cand_idx,
+        jnp.asarray(configs),
+        d.tol,
+    )
+    free, J, G, corners = (np.asarray(a) for a in _evaluation_terms(scene, *frames))
     in_free = free[cand_idx]
     corners = int(corners)
     n = len(names)
@@ -481,26 +484,12 @@ def evaluate_views(
     Gc[:, :, axis] = G[:, :, cand_idx[axis]]
     Jf, Gf = J[:, in_free], Gc[:, :, in_free]
     if not in_free.any():
-        ee = np.full(len(configs), np.inf)
-        return PlanEvaluation(names, d.candidates, free, std, ee, np.inf, np.inf, {}, float(sigma_px), len(q), corners,
-                              np.zeros(0))  # fmt: skip
+        return _nothing_free(names, d.candidates, free, len(configs), sigma_px, len(q), corners)
     pinv, sv = least_squares_map(Jf)
     rigid, with_terms = pinv, None
     mask = np.ones((len(q), scene.points.shape[0]), bool) if visible is None else np.asarray(visible, bool)
     if terms is not None:
-        T = np.asarray(
-            term_columns(scene, jnp.asarray(q), jnp.asarray(terms.approach), jnp.asarray(terms.masses),
-                         jnp.asarray(terms.coms), tuple(terms.terms))
-        ) * np.repeat(mask.reshape(-1), 2)[:, None]  # fmt: skip
-        # As the refinement: a coefficient whose basis does not vary over the frames is no candidate.
-        varied = np.asarray(
-            basis_rms(jnp.asarray(q), jnp.asarray(terms.approach), jnp.asarray(terms.masses),
-                      jnp.asarray(terms.coms), scene.nominal, tuple(terms.terms))
-        ) >= BASIS_FLOOR  # fmt: skip
-        aug, sv = least_squares_map(np.concatenate([Jf, T[:, varied]], axis=1))
-        pinv, pinv_t = aug[: Jf.shape[1]], aug[Jf.shape[1] :]
-        names_t = np.array(term_names(terms.terms, names_of(scene)))[varied]
-        with_terms = (tuple(terms.terms), dict(zip(names_t, sigma_px * np.linalg.norm(pinv_t, axis=1))))
+        pinv, sv, with_terms = _with_terms(scene, q, terms, mask, Jf, sigma_px)
     cov_f = sigma_px**2 * (pinv @ pinv.T)
     parts, bias, parts_rigid, bias_rigid = {}, np.zeros(0), {}, np.zeros(0)
     if len(offsets) or joint_std is not None:
@@ -543,6 +532,39 @@ def evaluate_views(
         ee_bias_rigid=bias_rigid,
         bias_parts_rigid=parts_rigid,
     )
+
+
+def _nothing_free(names, candidates, free, configs: int, sigma_px: float, frames: int, corners: int):
+    """The evaluation of frames that determine no parameter: every EE sigma infinite."""
+    n = len(names)
+    ee = np.full(configs, np.inf)
+    return PlanEvaluation(
+        names,
+        candidates,
+        free,
+        np.zeros(n),
+        ee,
+        np.inf,
+        np.inf,
+        {},
+        float(sigma_px),
+        frames,
+        corners,
+        np.zeros(0),
+    )
+
+
+def _with_terms(scene: PlanScene, q, terms: TermInputs, mask, Jf, sigma_px: float):
+    """The free parameters' least-squares map with the terms' coefficients fitted beside
+    them, its singular values, and the terms with their coefficients' standard deviations."""
+    frames = (jnp.asarray(q), jnp.asarray(terms.approach), jnp.asarray(terms.masses), jnp.asarray(terms.coms))
+    T = np.asarray(term_columns(scene, *frames, tuple(terms.terms))) * np.repeat(mask.reshape(-1), 2)[:, None]
+    # As the refinement: a coefficient whose basis does not vary over the frames is no candidate.
+    varied = np.asarray(basis_rms(*frames, scene.nominal, tuple(terms.terms))) >= BASIS_FLOOR
+    aug, sv = least_squares_map(np.concatenate([Jf, T[:, varied]], axis=1))
+    names_t = np.array(term_names(terms.terms, names_of(scene)))[varied]
+    term_std = dict(zip(names_t, sigma_px * np.linalg.norm(aug[Jf.shape[1] :], axis=1)))
+    return aug[: Jf.shape[1]], sv, (tuple(terms.terms), term_std)
 
 
 def names_of(scene: PlanScene) -> tuple[str, ...]:

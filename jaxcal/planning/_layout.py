@@ -65,8 +65,13 @@ def demo_plate(board: bool = False) -> TargetSpec:
     """The demo's 5x4 ChArUco plate (40 mm squares, 30 mm markers), or with
     `board` the 7x6 board an eye-in-hand camera films."""
     squares = (7, 6) if board else (5, 4)
-    return TargetSpec(kind="charuco", squares=squares, square_length=0.04, marker_length=0.03,
-                      name="board0" if board else "plate0")  # fmt: skip
+    return TargetSpec(
+        kind="charuco",
+        squares=squares,
+        square_length=0.04,
+        marker_length=0.03,
+        name="board0" if board else "plate0",
+    )
 
 
 def default_layout(

@@ -105,8 +105,11 @@ def candidate_poses(
     q = np.clip(q0 + u * np.asarray(amplitude), lo + limits.joint_margin, hi - limits.joint_margin)
     qn, frac, reason = correct_toward(scene, limits, q0, q, extra)
     counts = {k: sum(r == k for r in reason) for k in sorted({r for r in reason if r is not None})}
-    counts |= {"passed": int(np.sum(frac == 1.0)), "moved": int(np.sum((frac > 0) & (frac < 1))),
-               "dropped": int(np.sum(frac == 0))}  # fmt: skip
+    counts |= {
+        "passed": int(np.sum(frac == 1.0)),
+        "moved": int(np.sum((frac > 0) & (frac < 1))),
+        "dropped": int(np.sum(frac == 0)),
+    }
     return qn[frac > 0], counts
 
 

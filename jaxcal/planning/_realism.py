@@ -87,9 +87,14 @@ def blurred(P: np.ndarray, qdot: np.ndarray, exposure_s: float) -> np.ndarray:
 
 
 def arm_offsets(
-    plan: CapturePlan, robot_source: str, scene: PlanScene, q: np.ndarray, t: np.ndarray, qdot: np.ndarray,
+    plan: CapturePlan,
+    robot_source: str,
+    scene: PlanScene,
+    q: np.ndarray,
+    t: np.ndarray,
+    qdot: np.ndarray,
     arm: ArmFigures,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """`(gravity, backlash, latency (V, joints), quantisation std (joints,))` of frames at commanded
     `q (V, joints)`, times `t (V,)`, velocities `qdot (V, joints)` (see the module docstring)."""
     model = scene.nominal
@@ -129,9 +134,15 @@ def propagate(
 
 
 def capture_terms(
-    plan: CapturePlan, robot_source: str, scene: PlanScene, q: np.ndarray, t: np.ndarray,
-    camera: CameraNoise | None, arm: ArmFigures | None, clock_free: bool,
-) -> tuple[np.ndarray, tuple, np.ndarray | None, str]:  # fmt: skip
+    plan: CapturePlan,
+    robot_source: str,
+    scene: PlanScene,
+    q: np.ndarray,
+    t: np.ndarray,
+    camera: CameraNoise | None,
+    arm: ArmFigures | None,
+    clock_free: bool,
+) -> tuple[np.ndarray, tuple, np.ndarray | None, str]:
     """What the camera and arm models do to frames at `q (V, joints)`, `t (V,)`: `(kept (V,),
     offsets, joint_std, note)`: the frames not lost to blur, the arm's named offsets and reading
     noise at them (`evaluate_views`' arguments; empty / None without an arm; the latency left out

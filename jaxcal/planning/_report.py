@@ -36,8 +36,11 @@ def parameter_rows(ev: PlanEvaluation, top: int | None = None) -> list[tuple[str
 def workspace_points(scene: PlanScene, configs) -> np.ndarray:
     """The EE point (base frame, m) at every workspace configuration."""
     n = scene.nominal.num_joints
-    f = jax.jit(lambda q: tool_points(scene.nominal, jnp.eye(4), scene.T_mount[None], jnp.zeros(6),
-                                      zero_correction(n, 1), q))  # fmt: skip
+    f = jax.jit(
+        lambda q: tool_points(
+            scene.nominal, jnp.eye(4), scene.T_mount[None], jnp.zeros(6), zero_correction(n, 1), q
+        )
+    )
     return np.asarray(f(jnp.asarray(configs)))
 
 

@@ -213,9 +213,12 @@ class ArmModel:
         """The figures a capture plan's prediction takes (`jaxcal.evaluate_plan(..., arm=)`)."""
         compliance = () if self.compliance is None else tuple(np.atleast_1d(self.compliance).tolist())
         return ArmFigures(
-            self.name, compliance, tuple(np.atleast_1d(self.backlash_deg).tolist()),
-            int(self.counts_per_rev), float(self.latency_s),
-        )  # fmt: skip
+            self.name,
+            compliance,
+            tuple(np.atleast_1d(self.backlash_deg).tolist()),
+            int(self.counts_per_rev),
+            float(self.latency_s),
+        )
 
     def metadata(self, joint_types) -> dict:
         """What `truth.json` records of the arm (`arm`), per joint of `joint_types`."""

@@ -162,9 +162,13 @@ def capture_truth(dataset, arm: ArmModel | None = None) -> CaptureTruth:
     truth = true_poses(ds.truth)
     nominal = ds.load_model()
     config = SimConfig(
-        robot=sim.robot, frames_per_joint=sim.frames_per_joint, fps=sim.fps, range_deg=sim.range_deg,
-        range_mm=sim.range_mm, home_deg=sim.home_deg,
-    )  # fmt: skip
+        robot=sim.robot,
+        frames_per_joint=sim.frames_per_joint,
+        fps=sim.fps,
+        range_deg=sim.range_deg,
+        range_mm=sim.range_mm,
+        home_deg=sim.home_deg,
+    )
     trajectory = sweeps_trajectory(nominal, config)
     recorded = ArmModel.from_metadata(truth.arm)
     arm = recorded if arm is None else arm
@@ -194,7 +198,7 @@ def capture_truth(dataset, arm: ArmModel | None = None) -> CaptureTruth:
             lens,
             int(c.width),
             int(c.height),
-        )  # fmt: skip
+        )
         for c in ds.cameras
         if c.name in truth.T_mount_cam
     }

@@ -67,9 +67,13 @@ def render_check_capture(
     moved = [replace(cameras[0], T_mount_cam=cameras[0].T_mount_cam @ E), *cameras[1:]]
     trajectory, shots = stop_and_shoot(np.asarray(q, np.float64))
     return simulate(
-        config, Path(out), trajectory=trajectory, frame_times=shots, layout=(plates_nominal, moved),
+        config,
+        Path(out),
+        trajectory=trajectory,
+        frame_times=shots,
+        layout=(plates_nominal, moved),
         progress=progress,
-    )  # fmt: skip
+    )
 
 
 def truth_result(config: SimConfig, capture, out, *, scales=None, sigma_px: float = 0.05) -> Path:
@@ -97,11 +101,16 @@ def truth_result(config: SimConfig, capture, out, *, scales=None, sigma_px: floa
         T_fixed, mount = np.linalg.inv(cams[0].T_mount_cam), plates_true[0].T_link_target
     cam = load_dataset(capture).cameras[0]
     est = Estimate(
-        x=jnp.asarray(x), cov=jnp.asarray(np.diag(sd**2)), free=jnp.asarray(sd > 0), nominal=true,
-        T_flange_marker0=jnp.asarray(mount)[None], T_cam_base0=jnp.asarray(T_fixed),
-        reduction_ratio=jnp.asarray(true.reduction_ratio), layout=layout,
+        x=jnp.asarray(x),
+        cov=jnp.asarray(np.diag(sd**2)),
+        free=jnp.asarray(sd > 0),
+        nominal=true,
+        T_flange_marker0=jnp.asarray(mount)[None],
+        T_cam_base0=jnp.asarray(T_fixed),
+        reduction_ratio=jnp.asarray(true.reduction_ratio),
+        layout=layout,
         mount_names=(cam.name if eih else plates[0].target.name,),
-    )  # fmt: skip
+    )
     out = Path(out)
     out.mkdir(parents=True)
     write_estimate(out / "estimate.npz", est)

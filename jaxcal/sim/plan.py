@@ -55,8 +55,15 @@ def plan_layout(plan: CapturePlan, exact: bool = True) -> tuple[list, list]:
     """The plan's target and camera as the renderer's `PlateSpec` / `CameraSpec`
     (`exact`: see `fovy_of`)."""
     cam, tgt = plan.camera, plan.target
-    camera = CameraSpec(cam.name, cam.width, cam.height, fovy_of(cam, exact), np.asarray(cam.T_mount_cam), cam.mount,
-                        tuple(np.asarray(cam.distortion, float)))  # fmt: skip
+    camera = CameraSpec(
+        cam.name,
+        cam.width,
+        cam.height,
+        fovy_of(cam, exact),
+        np.asarray(cam.T_mount_cam),
+        cam.mount,
+        tuple(np.asarray(cam.distortion, float)),
+    )
     return [PlateSpec(tgt.spec, tgt.link, np.asarray(tgt.T_link_target))], [camera]
 
 
@@ -112,8 +119,11 @@ class MujocoChecker:
                     pairs.add(tuple(b))
             for p in pairs:
                 counts[p] = counts.get(p, 0) + 1
-        return [(self.model.body(a).name, self.model.body(b).name) for (a, b), k in counts.items()
-                if k > ALWAYS * samples and 0 not in (a, b)]  # fmt: skip
+        return [
+            (self.model.body(a).name, self.model.body(b).name)
+            for (a, b), k in counts.items()
+            if k > ALWAYS * samples and 0 not in (a, b)
+        ]
 
     def _pose(self, q) -> None:
         self.data.qpos[self.qpos] = np.asarray(q, np.float64) + np.asarray(self.nominal.zero_offset)
@@ -190,6 +200,12 @@ def render_plan(
     text = json.dumps(plan_to_dict(plan), indent=1) + "\n"
     notes = {"metadata": {"x_plan": "plan.json"}, "segments": seg_notes, "files": {"plan.json": text}}
     return simulate(
-        cfg, Path(out), trajectory=trajectory, overwrite=overwrite, progress=progress, frame_times=t_frames,
-        layout=plan_layout(plan), notes=notes,
-    )  # fmt: skip
+        cfg,
+        Path(out),
+        trajectory=trajectory,
+        overwrite=overwrite,
+        progress=progress,
+        frame_times=t_frames,
+        layout=plan_layout(plan),
+        notes=notes,
+    )

@@ -368,9 +368,14 @@ def simulate(
     nominal_ratio = np.asarray(nominal.reduction_ratio)
     arm = arm_model(config.arm)
     trajectory, angles, clock, encoder, (enc_t, enc_motor), t_frames, keep = _motion(
-        config, nominal, arm, trajectory, frame_times, rng,
+        config,
+        nominal,
+        arm,
+        trajectory,
+        frame_times,
+        rng,
         lambda traj: arm_motion(arm, traj, nominal_ratio, true, urdf_path, plates_true),
-    )  # fmt: skip
+    )
     theta = angles(t_frames)
     noise_rng = np.random.default_rng([config.seed, 1])  # the camera's own draws: the capture stays the same
     q_true = theta - np.asarray(true.zero_offset)
@@ -496,9 +501,12 @@ def arm_motion(arm: ArmModel, trajectory, nominal_ratio, true, urdf_path, plates
         return motion.angles, motion.motor
     if arm.rigid:
         return partial(
-            true_angles, trajectory, nominal_ratio=nominal_ratio, true_ratio=true.reduction_ratio,
+            true_angles,
+            trajectory,
+            nominal_ratio=nominal_ratio,
+            true_ratio=true.reduction_ratio,
             true_zero_offset=true.zero_offset,
-        ), None  # fmt: skip
+        ), None
     inertials = link_inertials(urdf_path) if arm.compliance is not None else None
     return ArmMotion(arm, trajectory, nominal_ratio, true, inertials).angles, None
 

@@ -276,15 +276,24 @@ def simulate_tracker(config: TrackerSimConfig, out, *, overwrite: bool = False) 
         "schema_version": SCHEMA_VERSION,
         "description": f"synthetic {config.robot} tracker {'poses' if config.poses else 'sweeps'} written by "
         f"jaxcal simulate (seed {config.seed})",
-        "robot": {("table" if table else "urdf"): robot_name, "base_link": nominal.link_names[0],
-                  "flange_link": nominal.link_names[-1], "joints": names},
+        "robot": {
+            ("table" if table else "urdf"): robot_name,
+            "base_link": nominal.link_names[0],
+            "flange_link": nominal.link_names[-1],
+            "joints": names,
+        },
         "device": {
-            "name": device, "kind": "laser_tracker", "file": "samples.csv", "link": nominal.link_names[-1],
-            "point": "smr", "T_link_point_nominal": T_point_nominal, "sigma_m": 1e-6 * config.noise_um,
+            "name": device,
+            "kind": "laser_tracker",
+            "file": "samples.csv",
+            "link": nominal.link_names[-1],
+            "point": "smr",
+            "T_link_point_nominal": T_point_nominal,
+            "sigma_m": 1e-6 * config.noise_um,
             "sigma_rad": float(np.radians(config.noise_deg)) if config.orientation else None,
         },
         "simulation": asdict(config),
-    }  # fmt: skip
+    }
     truth = {
         "model": model_to_json(true),
         "T_world_base": np.eye(4),

@@ -246,10 +246,17 @@ def observe_camera(
     t_frame = frame_times(ds, camera, rows)
     t_poses = pose_times(t_frame, dets, camera.line_delay_s)
     return CameraObservations(
-        camera, rows, tuple(map(ByTarget.of, dets)), tuple(map(ByTarget.of, poses)), t_poses, np.asarray(K),
-        dist, intrinsics, dropped,
+        camera,
+        rows,
+        tuple(map(ByTarget.of, dets)),
+        tuple(map(ByTarget.of, poses)),
+        t_poses,
+        np.asarray(K),
+        dist,
+        intrinsics,
+        dropped,
         t_first_row=None if t_poses is t_frame else t_frame,
-    )  # fmt: skip
+    )
 
 
 def frame_times(ds: Dataset, camera: CameraInfo, rows) -> np.ndarray:
@@ -316,9 +323,13 @@ def observe(setup: Setup, options: Options, detections: dict | None = None) -> O
     if not setup.kind.images:
         return Observations(observe_device(setup), (), {"observe_s": time.perf_counter() - t0})
     primary = observe_camera(
-        ds, setup.camera, setup.targets, options, invert=setup.kind.inverts_poses,
+        ds,
+        setup.camera,
+        setup.targets,
+        options,
+        invert=setup.kind.inverts_poses,
         detections=given.get(setup.camera.name),
-    )  # fmt: skip
+    )
     if not primary.found.any():
         raise CalibrationError(
             f"{ds.root}: no target was found in any of the {len(primary.rows)} images of camera "

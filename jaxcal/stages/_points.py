@@ -443,20 +443,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     n = nominal.num_joints
     q, y = np.asarray(sync.q, np.float64), np.asarray(s.position, np.float64)
     valid = np.asarray(sync.inside, bool) & np.all(np.isfinite(q), axis=1)
-    rep = repeated_poses(q, valid)
-    first = valid & (rep == np.arange(len(q)))
-    n_poses = int(first.sum())
-    copies = int(valid.sum()) - n_poses
-    if n_poses < 4 * n:
-        raise CalibrationError(
-            f"{ds.root / ds.device.file}: {n_poses} distinct stop-and-shoot poses"
-            + (
-                f" ({int(valid.sum())} samples, {copies} repeating another's joint positions)"
-                if copies
-                else ""
-            )
-            + f"; a {n}-joint arm needs at least {4 * n} (and several times that for a trustworthy result)"
-        )
+    rep, first, n_poses, copies = _distinct_poses(ds, q, valid, n)
     y, orient = _merged(rep, y, s.orientation)
     repeats = tuple(
         RepeatedPose(*_row_name(ds, i), of_sample=_row_name(ds, rep[i])[0])
@@ -467,9 +454,15 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(nominal, q[first], y[first], Tp0)
     if orient is not None:
         T0, Tp0 = _orient_start(
-            nominal, q[first], y[first], orient[first], T0, Tp0,
-            frame_free=kind.fixed_frame_free, mount_known=point.T_link_target is not None,
-        )  # fmt: skip
+            nominal,
+            q[first],
+            y[first],
+            orient[first],
+            T0,
+            Tp0,
+            frame_free=kind.fixed_frame_free,
+            mount_known=point.T_link_target is not None,
+        )
     base = ParameterLayout.of(nominal, 1, fixed_name=kind.fixed_frame)
     terms = resolve(setup, options)
     masses = inertials(setup) if {"compliance", "backlash"} & set(terms) else None
@@ -556,6 +549,24 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     )
 
 
+def _distinct_poses(ds, q: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Per sample the first sample of its pose (`repeated_poses`), the mask of those firsts,
+    the distinct poses and the copies; too few poses for an `n`-joint arm are refused."""
+    rep = repeated_poses(q, valid)
+    first = valid & (rep == np.arange(len(q)))
+    n_poses = int(first.sum())
+    copies = int(valid.sum()) - n_poses
+    if n_poses < 4 * n:
+        samples = (
+            f" ({int(valid.sum())} samples, {copies} repeating another's joint positions)" if copies else ""
+        )
+        raise CalibrationError(
+            f"{ds.root / ds.device.file}: {n_poses} distinct stop-and-shoot poses{samples}; a {n}-joint arm "
+            f"needs at least {4 * n} (and several times that for a trustworthy result)"
+        )
+    return rep, first, n_poses, copies
+
+
 def axis_result(pf: PointFit, nominal: KinematicModel) -> AxisFitResult:
     """The point fit's geometric part as an `AxisFitResult` (the record every kind's verdict and outputs read)."""
     return _axis_result(pf.problem, pf.fit, nominal)
@@ -592,6 +603,13 @@ _axis_result = stored_jit(_axis_result_program, "point_axis_result")
 def parameters_of(pf: PointFit, setup: Setup, fit: AxisFitResult) -> list:
     """The physical parameter table of the point fit's geometric part."""
     return physical_parameters(
-        pf.layout.base, setup.nominal, fit.T_flange_marker0, fit.T_cam_base0, fit.params.cam,
-        fit.params.correction, fit.cov, np.asarray(fit.free), [setup.targets[0].name],
-    )  # fmt: skip
+        pf.layout.base,
+        setup.nominal,
+        fit.T_flange_marker0,
+        fit.T_cam_base0,
+        fit.params.cam,
+        fit.params.correction,
+        fit.cov,
+        np.asarray(fit.free),
+        [setup.targets[0].name],
+    )

@@ -90,9 +90,16 @@ def axis_fit(use_poses: bool):
             np.isin(np.arange(layout.axis_size), layout.index("cam"))
         )
         return fit_axes(
-            nominal, arcs, T_flange_marker=mount, T_cam_base0=T0, use_poses=use_poses, free=free, home=home,
-            candidates=cand, search=search,
-        )  # fmt: skip
+            nominal,
+            arcs,
+            T_flange_marker=mount,
+            T_cam_base0=T0,
+            use_poses=use_poses,
+            free=free,
+            home=home,
+            candidates=cand,
+            search=search,
+        )
 
     program = stored_jit(program, "axis_fit", (use_poses,))
 
@@ -422,8 +429,14 @@ def end_effector_sigma(
     families, masses, coms = terms if terms is not None else ((), np.zeros(0), np.zeros(0))
     return np.asarray(
         _ee_sigma(tuple(families))(
-            nominal, to_device(T_cam_base0), to_device(mounts0), cam, correction, to_device(cov),
-            to_device(joint_travel(nominal, limits)), to_device(np.asarray(masses, np.float64)),
+            nominal,
+            to_device(T_cam_base0),
+            to_device(mounts0),
+            cam,
+            correction,
+            to_device(cov),
+            to_device(joint_travel(nominal, limits)),
+            to_device(np.asarray(masses, np.float64)),
             to_device(np.asarray(coms, np.float64)),
         )
-    )  # fmt: skip
+    )

@@ -353,9 +353,14 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
     angle_names = []
     if kind.per_view_angles:
         a0 = sweep_angles(
-            np.stack(corners.pnp), corners.target, corners.sweep, fit.model, jnp.asarray(fit.T_cam_base),
-            fit.T_flange_marker, sync.homes,
-        )  # fmt: skip
+            np.stack(corners.pnp),
+            corners.target,
+            corners.sweep,
+            fit.model,
+            jnp.asarray(fit.T_cam_base),
+            fit.T_flange_marker,
+            sync.homes,
+        )
         a0 = np.concatenate([a0, np.zeros(bucket(V) - V)])  # padded views: zero columns, never free
         params0 = eqx.tree_at(lambda p: p.angles, params0, jnp.asarray(a0), is_leaf=lambda x: x is None)
         angle_names = [f"frame{f}.{nominal.joint_names[j]}" for f, j in zip(corners.frame, corners.sweep)]
@@ -387,9 +392,16 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
     n_ax = layout.axis_size
     mount_names = [t.name for t in setup.targets]
     parameters = physical_parameters(
-        layout, nominal, problem.T_flange_marker0, problem.T_cam_base0, res.params.cam, res.params.correction,
-        np.asarray(res.cov)[:n_ax, :n_ax], free[:n_ax], mount_names,
-    )  # fmt: skip
+        layout,
+        nominal,
+        problem.T_flange_marker0,
+        problem.T_cam_base0,
+        res.params.cam,
+        res.params.correction,
+        np.asarray(res.cov)[:n_ax, :n_ax],
+        free[:n_ax],
+        mount_names,
+    )
     ratios = None
     if kind.fits_rates:
         rate, nominal_ratio = np.asarray(res.params.rate), np.asarray(nominal.reduction_ratio)

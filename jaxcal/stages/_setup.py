@@ -195,10 +195,19 @@ def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: fl
             "not estimated): the base height d1 and joint 1's origin become identifiable"
         )
     return Setup(
-        dataset=ds, nominal=nominal, kind=kind, camera=ds.device, targets=(point,), board=None,
-        target_link=None, per_joint=None, extra_cameras=(), notes=tuple(notes),
-        timings={"load_s": time.perf_counter() - t0}, identifiability_tol=_tolerance(options, kind),
-    )  # fmt: skip
+        dataset=ds,
+        nominal=nominal,
+        kind=kind,
+        camera=ds.device,
+        targets=(point,),
+        board=None,
+        target_link=None,
+        per_joint=None,
+        extra_cameras=(),
+        notes=tuple(notes),
+        timings={"load_s": time.perf_counter() - t0},
+        identifiability_tol=_tolerance(options, kind),
+    )
 
 
 def _line_delay_estimated(camera: CameraInfo) -> CameraInfo:

@@ -437,7 +437,7 @@ def _compare_clock(ds: Dataset, given: float, clock: Clock) -> list[str]:
     return [
         f"{ds.root / 'metadata.json'}: clock.offset_s is {1e3 * given:.3f} ms but the sweeps say "
         f"{1e3 * clock.offset_s:.3f} +- {1e3 * clock.std_s:.3f} ms ({1e3 * diff:+.3f} ms apart); "
-        "using the estimate (pass --trust-clock to use the metadata's)"
+        "using the estimate (--config clock=given uses the metadata's)"
     ]
 
 
@@ -449,9 +449,14 @@ def _compile_ahead(setup: Setup, options: Options, sweeps: Sweeps, joint, q, ins
     except CalibrationError:  # at the start offset: the fitted one decides
         home = False
     _programs.compile_two_stage_ahead(
-        options.arc_loss, setup.nominal, sweeps.arc_data(), len(setup.fit_targets),
-        setup.kind.axis_fit_uses_poses, setup.kind.fixed_frame_free, home,
-    )  # fmt: skip
+        options.arc_loss,
+        setup.nominal,
+        sweeps.arc_data(),
+        len(setup.fit_targets),
+        setup.kind.axis_fit_uses_poses,
+        setup.kind.fixed_frame_free,
+        home,
+    )
 
 
 def _placed(

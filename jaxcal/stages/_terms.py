@@ -371,10 +371,19 @@ def _linearised(setup: Setup, sync, problem, res, terms, folds: int, masses, com
     fold = fold_of_views(np.asarray(data.frame), np.asarray(data.t_cam), real, folds)[view_of_row]
     block = block_of_views(np.asarray(data.frame), np.asarray(data.t_cam), real)[view_of_row]
     lin = _Linear(
-        A=A, b=raw_r * sw, scale=np.where(scale > 0, scale, 1.0), raw_r=raw_r, raw_J=raw_J, used=used,
-        fold=fold, n_geo=int(np.asarray(res.jacobian).shape[1]), family=family_of(terms, n),
-        sign=signs(terms, n), b_rms=np.sqrt(np.mean(basis[real][:, joint, col] ** 2, axis=0)), block=block,
-    )  # fmt: skip
+        A=A,
+        b=raw_r * sw,
+        scale=np.where(scale > 0, scale, 1.0),
+        raw_r=raw_r,
+        raw_J=raw_J,
+        used=used,
+        fold=fold,
+        n_geo=int(np.asarray(res.jacobian).shape[1]),
+        family=family_of(terms, n),
+        sign=signs(terms, n),
+        b_rms=np.sqrt(np.mean(basis[real][:, joint, col] ** 2, axis=0)),
+        block=block,
+    )
     return lin, basis
 
 
@@ -505,9 +514,15 @@ def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str,
         else ()
     )
     summary = TermsSummary(
-        tried=terms, kept=kept, models=tuple(ModelRow(**m) for m in models), coefficients=(), folds=folds,
-        block_frames=BLOCK_FRAMES, payload_kg=None if payload is None else payload.mass_kg, notes=torques,
-    )  # fmt: skip
+        tried=terms,
+        kept=kept,
+        models=tuple(ModelRow(**m) for m in models),
+        coefficients=(),
+        folds=folds,
+        block_frames=BLOCK_FRAMES,
+        payload_kg=None if payload is None else payload.mass_kg,
+        notes=torques,
+    )
     if not kept:
         return (), None, None, summary, (masses, coms, tensors)
     inert = (masses, coms, tensors)
@@ -524,5 +539,11 @@ def coefficient_rows(terms, joints, x, std, free) -> tuple[TermRow, ...]:
 
 def not_tried(terms: tuple[str, ...], why: str) -> TermsSummary:
     """A summary of terms asked for but not tried, saying why."""
-    return TermsSummary(tried=(), kept=(), models=(), coefficients=(), folds=0, notes=(f"non-geometric terms "
-                        f"{list(terms)} not tried: {why}",))  # fmt: skip
+    return TermsSummary(
+        tried=(),
+        kept=(),
+        models=(),
+        coefficients=(),
+        folds=0,
+        notes=(f"non-geometric terms {list(terms)} not tried: {why}",),
+    )

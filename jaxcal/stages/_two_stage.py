@@ -92,9 +92,15 @@ def _sequential(setup: Setup, obs: Observations, sync: Sync, loss: str | None):
     n = setup.nominal.num_joints
     F = bucket(sel.size)
     Ps, Os, Cs, mk, arc_list = sequential_sweeps(
-        p.rows[sel], [p.poses[i] for i in sel], setup.targets, setup.per_joint, sync.q[sel], p.t_cam[sel],
-        _programs.arc_fit(loss), frames=F,
-    )  # fmt: skip
+        p.rows[sel],
+        [p.poses[i] for i in sel],
+        setup.targets,
+        setup.per_joint,
+        sync.q[sel],
+        p.t_cam[sel],
+        _programs.arc_fit(loss),
+        frames=F,
+    )
     pad = F - sel.size
     rows = np.concatenate([p.rows[sel], np.full(pad, -1)])
     t_cam = np.concatenate([p.t_cam[sel], np.full(pad, p.t_cam[sel][-1])])
@@ -336,10 +342,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     layout = kind.layout(nominal, len(setup.fit_targets))
     names = layout.names(refine=False)
     free = np.asarray(fit.free)
-    parameters = physical_parameters(
-        layout, nominal, fit.T_flange_marker0, fit.T_cam_base0, fit.params.cam, fit.params.correction,
-        fit.cov, free, [t.name for t in setup.fit_targets],
-    )  # fmt: skip
+    parameters = _parameters(layout, nominal, fit, free, setup.fit_targets)
     ok_arc = np.asarray(arcs.result == optx.RESULTS.successful)
     rows = arc_rows(setup, arcs, sweeps)
     notes = (
@@ -373,16 +376,21 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     )
 
 
+def _parameters(layout, nominal, fit, free, targets) -> list[dict]:
+    """The axis fit `fit`'s parameters in physical units (`physical_parameters`)."""
+    cam, correction, names = fit.params.cam, fit.params.correction, [t.name for t in targets]
+    return physical_parameters(
+        layout, nominal, fit.T_flange_marker0, fit.T_cam_base0, cam, correction, fit.cov, free, names
+    )
+
+
 def _poses(setup: Setup, obs: Observations, sync: Sync, options: Options) -> TwoStage:
     """The two-stage record of a pose-based capture: no arcs, no axis fit."""
     t0 = time.perf_counter()
     options.say("pose-based capture: closed-form hand-eye start (camera and mount) from the nominal robot")
     fit, poses = _pose_start(setup, obs, sync)
     layout = setup.kind.layout(setup.nominal, len(setup.targets))
-    parameters = physical_parameters(
-        layout, setup.nominal, fit.T_flange_marker0, fit.T_cam_base0, fit.params.cam, fit.params.correction,
-        fit.cov, np.asarray(fit.free), [t.name for t in setup.targets],
-    )  # fmt: skip
+    parameters = _parameters(layout, setup.nominal, fit, np.asarray(fit.free), setup.targets)
     return TwoStage(
         sweeps=None,
         counts=(Named("poses", poses),),

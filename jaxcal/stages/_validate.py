@@ -94,9 +94,16 @@ def _exact_sweeps(frames: int, use_encoders: bool):
         plan = SweepPlan(range_deg=40.0, frames=frames)
         tiny = NoiseModel(position_mm=1e-3, orientation_deg=1e-4, encoder_deg=0.0)
         return synthesize_sweeps(
-            true, T_cam_base, mounts, plan, tiny, jax.random.key(1),
-            nominal_ratio=nominal_ratio, use_encoders=use_encoders, home=home,
-        )  # fmt: skip
+            true,
+            T_cam_base,
+            mounts,
+            plan,
+            tiny,
+            jax.random.key(1),
+            nominal_ratio=nominal_ratio,
+            use_encoders=use_encoders,
+            home=home,
+        )
 
     return stored_jit(exact_sweeps, "exact_sweeps", (frames, use_encoders))
 

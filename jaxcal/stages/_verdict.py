@@ -192,7 +192,7 @@ def _uncertainties(c: _Checks, parameters: tuple[ParameterRow, ...], limits: Lim
             1.0,
             f"{text}: freed but barely determined (a third of its plausible correction or more); the capture "
             f"does not pin it: add poses that move it, or hold it with a larger identifiability tolerance "
-            f"(calibrate --identifiability-tol, Python identifiability_tol=; now {tol:g})",
+            f"(calibrate --config identifiability-tol=TOL, Python identifiability_tol=; now {tol:g})",
         )
 
 
@@ -515,7 +515,7 @@ def verdict(
             0.0,
             f"camera(s) {self_calibrated}: intrinsics self-calibrated from the sweep images and not refined with "
             "the robot (the refinement did not run): the two-stage result inherits their error, often tens of "
-            "millimetres; run the refinement (drop --no-refine) or give K and the distortion in metadata.json",
+            "millimetres; run the refinement (drop no-refine) or give K and the distortion in metadata.json",
         )
     for o in (obs.primary, *obs.others):
         rms_px = o.intrinsics.rms_px

@@ -215,10 +215,14 @@ def _rectify_margins(K: np.ndarray, dist: np.ndarray, shape: tuple) -> tuple[int
     are left out."""
     h, w = shape
     s = np.linspace(0.0, 1.0, 65)
-    border = np.concatenate([
-        np.c_[s * (w - 1), np.zeros_like(s)], np.c_[s * (w - 1), np.full_like(s, h - 1)],
-        np.c_[np.zeros_like(s), s * (h - 1)], np.c_[np.full_like(s, w - 1), s * (h - 1)],
-    ])  # fmt: skip
+    border = np.concatenate(
+        [
+            np.c_[s * (w - 1), np.zeros_like(s)],
+            np.c_[s * (w - 1), np.full_like(s, h - 1)],
+            np.c_[np.zeros_like(s), s * (h - 1)],
+            np.c_[np.full_like(s, w - 1), s * (h - 1)],
+        ]
+    )
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     flat = cv2.undistortPointsIter(border.reshape(-1, 1, 2), K, dist, None, K, criteria).reshape(-1, 2)
     rays = np.c_[flat, np.ones(len(flat))] @ np.linalg.inv(K).T
