@@ -43,10 +43,10 @@ BOUND_S = 2.0
 #: certify and check name what they read before they read it: a result that is not there is
 #: refused after the line).
 FIRST_LINES = {
-    "calibrate": (["calibrate", str(SWEEPS), "--out", "res"], "detecting plate0 in 144 frames"),
+    "calibrate": (["calibrate", str(SWEEPS), "--out", "res"], f"calibrating {SWEEPS} into res"),
     "calibrate-tracker": (
         ["calibrate", str(TRACKER / "grid"), "--device-is-base", "--out", "res"],
-        "point fit: 1000 stop-and-shoot poses",
+        f"calibrating {TRACKER / 'grid'} into res",
     ),
     "demo": (["demo", "--out", "demo"], "jaxcal demo: a perturbed UR5e"),
     "montecarlo": (["montecarlo", "--trials", "4"], "Monte Carlo: 4 trials of "),
@@ -56,8 +56,11 @@ FIRST_LINES = {
     ),
     "simulate-tracker": (["simulate-tracker", "--out", "trk"], "simulating ur3's tracker sweeps into trk"),
     "simulate-handeye": (["simulate-handeye", "--out", "he"], "rendering 16 frames of a chessboard"),
-    "handeye": (["handeye", str(ROOT / "data" / "visp_handeye" / "eye_in_hand"), "--out", "he"], "detecting"),
-    "plan": (["plan", "--out", "plan.json", "--frames", "24"], "candidates: 2000 random poses"),
+    "handeye": (
+        ["handeye", str(ROOT / "data" / "visp_handeye" / "eye_in_hand"), "--out", "he"],
+        "hand-eye calibration of ",
+    ),
+    "plan": (["plan", "--out", "plan.json", "--frames", "24"], "planning 24 stop-and-shoot poses of ur5e"),
     "verify": (["verify", "res", str(TRACKER / "test")], "verifying res on"),
     "certify": (["certify", "res"], "certifying res over its workspace"),
     "check": (["check", "res", str(TRACKER / "test")], "checking"),
@@ -66,9 +69,9 @@ FIRST_LINES = {
         ["import-bag", str(ROOT / "data" / "ros" / "ur5e_sweeps_mcap"), "--out", "bag"]
         + ["--images", "/camera/image_raw/compressed", "--joints", "/joint_states"]
         + ["--robot", str(SWEEPS / "robot.urdf"), "--target", str(ROOT / "data" / "ros" / "plate0.json")],
-        "",
+        "importing ",
     ),
-    "simulate-plan": (["simulate-plan", "plan.json", "--out", "sim"], ""),
+    "simulate-plan": (["simulate-plan", "plan.json", "--out", "sim"], "simulating plan plan.json into sim"),
 }
 
 
@@ -101,8 +104,9 @@ def first_line(args: list[str], cwd, terminal: bool = False) -> tuple[str, float
                 except OSError:  # the terminal closed: the child ended
                     chunk = b""
                 text += chunk
-                line = ANSI.sub("", text.decode(errors="replace")).strip()
-                if line and ("\n" in line or not chunk):
+                shown = ANSI.sub("", text.decode(errors="replace"))
+                line = shown.strip()
+                if line and ("\n" in shown.lstrip() or not chunk):  # a whole line is out
                     return line.splitlines()[0].strip("─ "), time.perf_counter() - t0
                 if not chunk:
                     return line, time.perf_counter() - t0

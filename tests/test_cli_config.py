@@ -266,6 +266,17 @@ def test_the_configuration_keys_are_fewer_flags():
     assert flags <= 150 and everything - flags > 90
 
 
+def test_the_plans_help_states_the_planners_default_noise():
+    """`jaxcal plan`'s parser imports nothing of the planner: its help states the default noise
+    the planner applies (`sigma-px` not given)."""
+    from jaxcal.cli._plan import SIGMA_PX_HELP
+    from jaxcal.planning import DEFAULT_SIGMA_PX
+
+    assert f"default {DEFAULT_SIGMA_PX:g}" in SIGMA_PX_HELP
+    assert parse(["plan", "--out", "p.json"]).sigma_px is None  # run_plan's DEFAULT_SIGMA_PX
+    assert parse(["plan", "--out", "p.json", "--config", "sigma-px=0.1"]).sigma_px == 0.1
+
+
 if __name__ == "__main__":
     text = DOC.read_text(encoding="utf-8")
     head = text.split(MARK)[0]

@@ -340,9 +340,7 @@ GROUPS = (
     (("handeye", "simulate-handeye"), lambda sub: _module("._handeye").add_handeye_parsers(sub)),
     (
         ("plan",),
-        lambda sub: _module("..planning._cli").add_plan_parser(
-            sub, _module("._simulate").cmd_plan, CAMERAS, ARMS
-        ),
+        lambda sub: _module("._plan").add_plan_parser(sub, _module("._simulate").cmd_plan, CAMERAS, ARMS),
     ),
 )
 

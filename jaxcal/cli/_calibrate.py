@@ -47,6 +47,8 @@ def cmd_calibrate(args) -> int:
     checked = check_output_dir(
         out, inputs=[args.dataset], overwrite=args.overwrite, kind="result", what="--out"
     )
+    if not args.quiet:  # before the calibration's modules are imported and the dataset is read: seconds
+        print(f"calibrating {args.dataset} into {out} ...", flush=True)
     # The programs the last run on DATASET called are read ahead from here on, while the
     # calibration's modules are imported and the images detected (`jaxcal._exported.warm_start`).
     with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {resolved(args.dataset)}"):
@@ -69,6 +71,12 @@ def cmd_demo(args) -> int:
     # The demo directory (absent, empty or an earlier demo's) holds dataset/ and result/,
     # each replaced atomically; anything else there is refused before any work.
     with marked_directory(out, kind="demo", what="--out"):
+        from rich.console import Console
+
+        # Before the simulator's and the calibration's modules are imported: seconds.
+        Console(width=max(Console().width, 132)).rule(
+            "[bold]jaxcal demo: a perturbed UR5e, rendered, calibrated from its images"
+        )
         from ._calibrate_run import demo
 
         return demo(out, args)

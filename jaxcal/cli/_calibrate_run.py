@@ -250,8 +250,7 @@ def demo(out: Path, args) -> int:
     """`jaxcal demo`'s work, inside its --out directory: render, calibrate, write."""
     from ..sim.simulate import SimConfig, simulate
 
-    console = Console(width=max(Console().width, 132))
-    console.rule("[bold]jaxcal demo: a perturbed UR5e, rendered, calibrated from its images")
+    console = Console(width=max(Console().width, 132))  # its first line is `cmd_demo`'s
     sweep = (
         args.sweep_deg if args.sweep_deg is not None else (EYE_IN_HAND_SWEEP if args.eye_in_hand else 80.0)
     )

@@ -76,6 +76,8 @@ def cmd_handeye(args) -> int:
     checked = check_output_dir(
         out, inputs=[args.capture], overwrite=args.overwrite, kind="result", what="--out"
     )
+    if not args.quiet:  # before the calibration's modules are imported: seconds
+        print(f"hand-eye calibration of {args.capture} into {out} ...", flush=True)
     # The solver the last run on this capture called is read from the first moment the capture is
     # known, while the calibration's modules are imported and the images detected.
     with output_lock(out, what="--out"), warm_start(f"jaxcal handeye {resolved(args.capture)}"):
@@ -175,6 +177,10 @@ def _handeye(args, out: Path, checked) -> int:
 
 
 def cmd_simulate_handeye(args) -> int:
+    print(
+        f"rendering {args.frames} frames of a {args.target_kind}, {args.arrangement}, into {args.out} ...",
+        flush=True,
+    )  # before the simulator's modules are imported: seconds
     from ..markers import TargetSpec
     from ..sim.handeye import HandEyeSimConfig, simulate_hand_eye
 
@@ -198,10 +204,6 @@ def cmd_simulate_handeye(args) -> int:
         robot_noise_mm=args.robot_noise_mm,
         robot_noise_deg=args.robot_noise_deg,
         intrinsics_known=not args.unknown_intrinsics,
-    )
-    print(
-        f"rendering {args.frames} frames of a {args.target_kind}, {args.arrangement}, into {args.out} ...",
-        flush=True,
     )
     start = time.perf_counter()
     try:

@@ -70,6 +70,7 @@ def _import(args, bag, out, *, overwrite: bool):
 
 
 def cmd_import_bag(args) -> int:
+    print(f"importing {args.bag} into {args.out} ...", flush=True)
     r = _import(args, args.bag, args.out, overwrite=args.overwrite)
     print(f"wrote {r.path}: {r.frames} images, {r.joint_samples} joint states (stamps from {r.epoch_ns} ns)")
     for note in r.notes:

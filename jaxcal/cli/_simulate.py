@@ -1,23 +1,24 @@
-"""`jaxcal simulate` (a rendered dataset), `simulate-tracker`, `simulate-plan` and `jaxcal plan`."""
+"""`jaxcal simulate` (a rendered dataset), `simulate-tracker`, `simulate-plan` and `jaxcal plan`.
+
+Built into the parser of each of these commands, this module imports only what the parser needs:
+a command says what it does first, then imports the simulator, the planner and the dataset
+reader (seconds)."""
 
 import time
 from pathlib import Path
 
-from rich.console import Console
-
 from ..io._files import check_output_dir, output_lock
-from ..io.dataset import load_dataset, true_poses
-from ..planning import load_plan, plan_robot
-from ..planning._cli import run_plan
 
 
 def cmd_simulate(args) -> int:
     """`jaxcal simulate`: a rendered camera dataset."""
-    from ..sim.simulate import SimConfig, simulate
-
     args.robot = args.robot or "ur5e"
     robot_file = [args.robot] if Path(args.robot).exists() else []
     check_output_dir(args.out, inputs=robot_file, overwrite=args.overwrite, kind="dataset", what="--out")
+    if not args.quiet:
+        print(f"simulating a perturbed {args.robot} into {args.out}: building the scene ...", flush=True)
+    from ..io.dataset import load_dataset, true_poses
+    from ..sim.simulate import SimConfig, simulate
 
     config = SimConfig(
         robot=args.robot,
@@ -51,8 +52,6 @@ def cmd_simulate(args) -> int:
         names = nominal_robot(args.robot)[0].joint_names
         trajectory = random_motion(names, args.random_motion, args.motion_amplitude_deg, seed=args.seed)
     start = time.perf_counter()
-    if not args.quiet:
-        print(f"simulating a perturbed {config.robot} into {args.out}: building the scene ...", flush=True)
     with output_lock(args.out, what="--out"):
         out = simulate(
             config, args.out, trajectory=trajectory, overwrite=args.overwrite, progress=not args.quiet
@@ -74,6 +73,9 @@ def cmd_simulate(args) -> int:
 
 def cmd_plan(args) -> int:
     """`jaxcal plan` (docs/plan.md), with MuJoCo's contact and line-of-sight checks."""
+    from rich.console import Console
+
+    from ..planning._cli import run_plan
     from ..sim.plan import MujocoChecker
 
     return run_plan(args, Console(width=max(Console().width, 120)), MujocoChecker, capture_models)
@@ -94,9 +96,16 @@ def capture_models(camera: str | None, arm: str | None):
 def cmd_simulate_plan(args) -> int:
     """`jaxcal simulate-plan PLAN --out DIR`: render exactly the plan (options the plan fixes are
     refused by the command line, `jaxcal.cli._refusal`)."""
+    check_output_dir(args.out, inputs=[args.plan], overwrite=args.overwrite, kind="dataset", what="--out")
+    if not args.quiet:  # before MuJoCo's import and the plan's scene: seconds
+        print(
+            f"simulating plan {args.plan} into {args.out}: loading the plan and building its scene ...",
+            flush=True,
+        )
+    from ..io.dataset import load_dataset, true_poses
+    from ..planning import load_plan, plan_robot
     from ..sim.plan import render_plan
 
-    check_output_dir(args.out, inputs=[args.plan], overwrite=args.overwrite, kind="dataset", what="--out")
     p = load_plan(args.plan)
     plan_robot(p, args.plan)  # its joints and limits, the error naming the file
     start = time.perf_counter()
@@ -122,16 +131,14 @@ def cmd_simulate_plan(args) -> int:
 
 def cmd_simulate_tracker(args) -> int:
     """`jaxcal simulate-tracker`: laser-tracker sweeps of a perturbed arm (no rendering)."""
+    robot = args.robot or "ur3"
+    inputs = [robot] if Path(robot).exists() else []
+    check_output_dir(args.out, inputs=inputs, overwrite=args.overwrite, kind="dataset", what="--out")
+    if not args.quiet:
+        print(f"simulating {robot}'s tracker sweeps into {args.out} ...", flush=True)
+    from ..io.dataset import load_dataset, true_poses
     from ..sim.tracker import TrackerSimConfig, simulate_tracker
 
-    robot = args.robot or "ur3"
-    check_output_dir(
-        args.out,
-        inputs=[robot] if Path(robot).exists() else [],
-        overwrite=args.overwrite,
-        kind="dataset",
-        what="--out",
-    )
     given = {
         "home_deg": args.home_deg,
         "range_deg": args.sweep_deg,
@@ -146,8 +153,6 @@ def cmd_simulate_tracker(args) -> int:
         orientation=args.orientation,
         **{k: v for k, v in given.items() if v is not None},
     )
-    if not args.quiet:
-        print(f"simulating {robot}'s tracker sweeps into {args.out} ...", flush=True)
     start = time.perf_counter()
     with output_lock(args.out, what="--out"):
         out = simulate_tracker(config, args.out, overwrite=args.overwrite)

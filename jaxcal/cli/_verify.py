@@ -7,8 +7,6 @@ from rich.console import Console
 from rich.table import Table
 
 from ..io._files import atomic_file, write_text_atomic
-from ..io.checks import verification_json
-from ..verification import plot_verification, verify
 from ._calibrate import MAX_CV_FOLDS
 from ._certify import check_output
 from ._common import count
@@ -41,6 +39,9 @@ def cmd_verify(args) -> int:
         raise ValueError(f"--cv {args.cv}: give K >= 2 folds, or 0 for none")
     cv = f", with its {args.cv}-fold cross-validation" if args.cv else ""
     print(f"verifying {args.result} on {args.dataset}{cv} ...", file=sys.stderr, flush=True)
+    from ..io.checks import verification_json  # after the line: the verification's modules take seconds
+    from ..verification import plot_verification, verify
+
     v = verify(args.result, args.dataset, cv=args.cv)
     s = v.summary
     deg = s.calibrated_deg is not None
