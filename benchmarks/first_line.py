@@ -49,7 +49,7 @@ FIRST_LINES = {
         f"calibrating {TRACKER / 'grid'} into res",
     ),
     "demo": (["demo", "--out", "demo"], "jaxcal demo: a perturbed UR5e"),
-    "montecarlo": (["montecarlo", "--trials", "4"], "Monte Carlo: 4 trials of "),
+    "montecarlo": (["montecarlo", "--trials", "4"], "Monte Carlo study of ur5e: 4 trials"),
     "simulate": (
         ["simulate", "--out", "sim", "--resolution", "160x120"],
         "simulating a perturbed ur5e into sim",

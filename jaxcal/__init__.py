@@ -1,7 +1,7 @@
 """jaxcal: robot kinematic and hand-eye calibration from fiducial markers, in JAX.
 
 The names below are imported when first used (PEP 562 `__getattr__`): `import
-jaxcal` sets JAX up and loads nothing else, so that a script or a command that
+jaxcal` sets JAX up without importing it and loads nothing else, so that a script or a command that
 needs the hand-eye solver never pays for OpenCV, matplotlib, ROS bags or the
 planner. The `TYPE_CHECKING` block is the public API, for readers, type checkers
 and `__getattr__` alike.
@@ -13,22 +13,18 @@ import importlib.metadata
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import jax as _jax
-
+from ._cache import configure_jax as _configure_jax
 from ._xla import configure_xla as _configure_xla
 
 # XLA compiler defaults for jaxcal's programs (before any backend starts; opt
 # out: JAXCAL_XLA_DEFAULTS=0; see jaxcal._xla).
 _configure_xla()
 
-# Calibration maths needs float64 (sub-millimetre over metre-scale arms);
-# importing jaxcal turns it on for the whole process.
-_jax.config.update("jax_enable_x64", True)
-
-from ._cache import enable_compilation_cache as _enable_compilation_cache  # noqa: E402
-
-# Compiled programs persist across processes (opt out: JAXCAL_NO_CACHE=1; see jaxcal._cache).
-_enable_compilation_cache()
+# Calibration maths needs float64 (sub-millimetre over metre-scale arms), and
+# compiled programs persist across processes (opt out: JAXCAL_NO_CACHE=1; see
+# jaxcal._cache). Both hold for the whole process; JAX itself is imported by the
+# first module that computes, not here, so that a command's first line comes first.
+_configure_jax()
 
 if TYPE_CHECKING:
     from . import vision as vision

@@ -18,9 +18,8 @@ stage program once or a few times, so the passes cost more than they save.
 """
 
 import os
+import sys
 from pathlib import Path
-
-import jax
 
 #: `jax.jit`'s `compiler_options` for `quick_jit`: LLVM at -O0 and without its
 #: expensive passes. On `data/ur5e_sweeps` (`benchmarks/compile.py`, 2 cores)
@@ -35,18 +34,44 @@ def quick_jit(fun, **kwargs):
     """`jax.jit(fun, **kwargs)` compiled with `QUICK_COMPILE`: for programs that run
     a few times per process, where compile time dominates run time. Top-level
     programs only: JAX refuses `compiler_options` on a jit called inside a trace."""
+    import jax
+
     return jax.jit(fun, compiler_options=QUICK_COMPILE, **kwargs)
+
+
+def _cache_settings() -> dict:
+    """JAX's settings for jaxcal's persistent cache: none where the user chose a cache
+    directory (`JAX_COMPILATION_CACHE_DIR` or JAX's config) or set `JAXCAL_NO_CACHE`."""
+    if os.environ.get("JAXCAL_NO_CACHE", "").strip() not in ("", "0"):
+        return {}
+    jax = sys.modules.get("jax")
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR") or (jax and jax.config.jax_compilation_cache_dir):
+        return {}
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "jaxcal" / "xla"
+    # Every program, however quick to compile: a warm run otherwise compiles its ~100
+    # small eager operations again in every process.
+    return {"jax_compilation_cache_dir": str(cache), "jax_persistent_cache_min_compile_time_secs": 0.0}
+
+
+def _apply(settings: dict) -> None:
+    """`settings` in JAX's config if JAX is imported, else in the environment it reads
+    them from when it is (`JAX_ENABLE_X64`, ...): so that `import jaxcal` need not
+    import JAX, which takes a second, before a command has said what it does."""
+    jax = sys.modules.get("jax")
+    for name, value in settings.items():
+        if jax is not None:
+            jax.config.update(name, value)
+        else:
+            os.environ[name.upper()] = str(int(value) if isinstance(value, bool) else value)
 
 
 def enable_compilation_cache() -> None:
     """Point JAX's persistent cache at jaxcal's directory, unless the user chose
     one or set `JAXCAL_NO_CACHE`."""
-    if os.environ.get("JAXCAL_NO_CACHE", "").strip() not in ("", "0"):
-        return
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir:
-        return
-    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "jaxcal" / "xla"
-    jax.config.update("jax_compilation_cache_dir", str(cache))
-    # Every program, however quick to compile: a warm run otherwise compiles its ~100
-    # small eager operations again in every process.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    _apply(_cache_settings())
+
+
+def configure_jax() -> None:
+    """float64 for the calibration maths and jaxcal's persistent cache, for the whole
+    process: in JAX's config if it is imported, else for when it is."""
+    _apply({"jax_enable_x64": True} | _cache_settings())

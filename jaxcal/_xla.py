@@ -27,8 +27,10 @@ library), and only when
 - `JAXCAL_XLA_DEFAULTS=0` is not set (the opt-out).
 """
 
+import importlib.util
 import mmap
 import os
+import sys
 from pathlib import Path
 
 #: The flags and their values; see the module docstring.
@@ -41,12 +43,11 @@ FEW_CORES = 4
 def _jaxlib_knows(flag_names: list[str]) -> set[str]:
     """Those of `flag_names` that a shared library of the installed jaxlib contains
     (XLA's flags are registered by name in its binary)."""
-    try:
-        import jaxlib
-    except ImportError:
+    spec = importlib.util.find_spec("jaxlib")  # not imported: its extension takes a tenth of a second
+    if spec is None or spec.origin is None:
         return set()
     missing, found = set(flag_names), set()
-    for path in Path(jaxlib.__file__).parent.glob("*.so"):
+    for path in Path(spec.origin).parent.glob("*.so"):
         try:
             if path.stat().st_size < 1 << 20:  # the thin Python-extension stubs
                 continue
@@ -78,10 +79,11 @@ def configure_xla() -> list[str]:
     the flags added."""
     if os.environ.get("JAXCAL_XLA_DEFAULTS", "").strip() == "0":
         return []
-    from jax._src import xla_bridge
+    if "jax" in sys.modules:  # else no backend can be running, and JAX is not imported for the check
+        from jax._src import xla_bridge
 
-    if xla_bridge.backends_are_initialized():
-        return []
+        if xla_bridge.backends_are_initialized():
+            return []
     flags = os.environ.get("XLA_FLAGS", "")
     wanted = {flag.split("=")[0].lstrip("-"): flag for flag in defaults()}
     wanted = {name: flag for name, flag in wanted.items() if name not in flags}

@@ -16,6 +16,7 @@ from ._kinematics import REVOLUTE
 from ._tables import PhysicalTable, base_flange_std, physical_table
 from .compensation import compensation_of
 from .io._files import atomic_directory
+from .io._provenance import made_by
 from .io.camera_yaml import intrinsics_fields, pose_fields, write_camera_yaml
 from .io.compensation import COMPENSATION_FILE, compensation_json
 from .io.dataset import write_json
@@ -286,7 +287,7 @@ def _dh_section(tables: dict[str, PhysicalTable]) -> list[str]:
     return lines + [""]
 
 
-def _markdown(result, figs, tables=None) -> str:
+def _markdown(result, figs, tables=None, run=None) -> str:
     lines = [
         f"# jaxcal calibration of `{result.dataset}`",
         "",
@@ -295,6 +296,7 @@ def _markdown(result, figs, tables=None) -> str:
         f"solvers: {'all successful' if result.ok else '**FAILED**'}; status **{result.status}**.",
         "",
     ]
+    lines += made_by(run)
     if result.reasons:
         lines += ["## Why the result is " + result.status, ""] + [f"- {r}" for r in result.reasons] + [""]
     notes = () if result.verdict is None else result.verdict.notes
@@ -541,7 +543,7 @@ def _frames_section(result) -> list[str]:
     return lines
 
 
-def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=None) -> Path:
+def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=None, run=None) -> Path:
     """Write `result` into directory `out` (atomically): `result.json`,
     `calibrated.urdf`, `estimate.npz` (the final solve's vector, covariance and
     references: `jaxcal.io.result.write_estimate`), `camera_<name>.yaml`, the camera's pose for ROS
@@ -556,7 +558,9 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
     only with `overwrite` and only when it is a result jaxcal wrote (its
     `.jaxcal` marker). `checked`: the `jaxcal.io._files.OutputDir` found when
     the run started, so that a directory that appeared since is refused (see
-    `jaxcal.io._files.atomic_directory`). Raises `OutputError` naming `out`.
+    `jaxcal.io._files.atomic_directory`). `run`: how the result was made (the command line's
+    `jaxcal.cli._common.run_record`), kept as `result.json`'s `run` and named in `report.md`.
+    Raises `OutputError` naming `out`.
     """
     out = Path(out)
     inputs = (result.dataset,) if inputs is None else tuple(inputs)
@@ -567,7 +571,7 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
         # The DH tables compile their Jacobian (seconds, mostly without Python's lock):
         # on a thread of their own while the other files and the plots are written.
         tables_pending = pool.submit(dh_tables, result)
-        write_json(tmp / "result.json", result.to_json())
+        write_json(tmp / "result.json", result.to_json() | ({} if run is None else {"run": run}))
         if result.estimate is not None:
             write_estimate(tmp / ESTIMATE_FILE, result.estimate)
         # A dataset whose robot is a DH/MDH table has no URDF to copy: a minimal one from the model.
@@ -586,7 +590,7 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
         tables = tables_pending.result()
         for convention, table in tables.items():
             write_json(tmp / f"calibrated_{convention}.json", dh_table_document(result, table))
-        (tmp / "report.md").write_text(_markdown(result, figs, tables))
+        (tmp / "report.md").write_text(_markdown(result, figs, tables, run))
     return out
 
 

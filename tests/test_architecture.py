@@ -106,8 +106,13 @@ def _imports(module: str, tree: ast.Module, *, top_level: bool):
 
 
 #: Modules that may import jaxcal modules inside functions (module docstring): the command line,
-#: and `jaxcal.io`'s lazy re-export of the URDF reader.
-LOCAL_IMPORTS = {"jaxcal.io": ("jaxcal.io.urdf",)}
+#: `jaxcal.io`'s lazy re-export of the URDF reader, and the metadata reader's robot-file readers
+#: (JAX's robot model), so that the command line's parsers, which read the datasets' vocabulary,
+#: import no JAX (tests/test_cli_config.py).
+LOCAL_IMPORTS = {
+    "jaxcal.io": ("jaxcal.io.urdf",),
+    "jaxcal.io._metadata": ("jaxcal.io.urdf", "jaxcal.io.dh_tables"),
+}
 
 
 def _local_import_allowed(name: str, target: str) -> bool:

@@ -26,6 +26,7 @@ from conftest import CACHE_DIR
 from helpers import ur5e_setup
 from jax._src import dispatch, monitoring
 
+import jaxcal
 from jaxcal._montecarlo import trial_sweeps
 from jaxcal.cli import main
 from jaxcal.io.dataset import DatasetError
@@ -264,6 +265,12 @@ def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
     assert main(["calibrate", str(dataset), "--out", str(out), "--quiet", "--config", "workers=1"]) == 0
     assert _digest(dataset) == before  # input files are never modified
     assert (out / "result.json").is_file() and not list(tmp_path.glob(".res.*"))
+    # How it was made: the command as given, every option after the configuration, the versions.
+    run = json.loads((out / "result.json").read_text())["run"]
+    assert run["command"] == f"jaxcal calibrate {dataset} --out {out} --quiet --config workers=1"
+    assert run["options"]["workers"] == 1 and run["options"]["cv_folds"] == 5
+    assert run["options"]["dataset"] == str(dataset) and run["jaxcal"] == jaxcal.__version__
+    assert run["command"] in (out / "report.md").read_text()
     assert main(["calibrate", str(dataset), "--out", str(out), "--quiet"]) == 2  # not empty
     assert "not empty" in capsys.readouterr().err
     two = tmp_path / "two_stage"

@@ -6,6 +6,8 @@ still work for one release, with a warning; docs/config.md lists every key.
 
 `python tests/test_cli_config.py` rewrites docs/config.md's list of keys."""
 
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -275,6 +277,42 @@ def test_the_plans_help_states_the_planners_default_noise():
     assert f"default {DEFAULT_SIGMA_PX:g}" in SIGMA_PX_HELP
     assert parse(["plan", "--out", "p.json"]).sigma_px is None  # run_plan's DEFAULT_SIGMA_PX
     assert parse(["plan", "--out", "p.json", "--config", "sigma-px=0.1"]).sigma_px == 0.1
+
+
+def test_the_parsers_import_no_jax():
+    """`import jaxcal` and every subcommand's parser (all of them, as `jaxcal --help` builds them)
+    import neither JAX nor SciPy nor matplotlib: each takes a second, before a command has said what
+    it does. JAX is still set up for the process: float64 and jaxcal's cache, once imported."""
+    script = (
+        "import sys\n"
+        "from jaxcal.cli import build_parser\n"
+        "from jaxcal.cli import parse\n"
+        "build_parser()\n"
+        "parse(['calibrate', 'data/ur5e_sweeps', '--out', 'r', '--terms', 'compliance'])\n"
+        "parse(['demo', '--out', 'd'])\n"
+        "heavy = sorted({'jax', 'scipy', 'matplotlib', 'equinox'} & set(sys.modules))\n"
+        "assert not heavy, heavy\n"
+        "import jax, jax.numpy as jnp\n"
+        "assert jnp.ones(1).dtype == jnp.float64\n"
+        "print(jax.config.jax_compilation_cache_dir)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_ENABLE_X64", "JAX_COMPILATION_CACHE_DIR")}
+    env["XDG_CACHE_HOME"] = "/nonexistent-cache-home"
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "/nonexistent-cache-home/jaxcal/xla"
+
+
+def test_the_parsers_bounds_are_the_modules():
+    """The bounds the light parsers state equal those of the modules they stand for."""
+    from jaxcal import _montecarlo, _terms, certification
+    from jaxcal.cli import _calibrate, _certify, _study
+
+    assert (_study.MAX_TRIALS, _study.MAX_FRAMES) == (_montecarlo.MAX_TRIALS, _montecarlo.MAX_FRAMES)
+    assert _certify.MAX_POSES == certification.MAX_POSES
+    assert _calibrate.TERMS == tuple(_terms.TERMS)
 
 
 if __name__ == "__main__":

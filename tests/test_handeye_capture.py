@@ -765,6 +765,8 @@ def test_rendered_capture_calibrates_through_the_command(tmp_path, capsys, targe
     }
     assert {p.name for p in out.iterdir()} == names
     s = json.loads((out / "result.json").read_text())
+    assert s["run"]["command"] == f"jaxcal handeye {capture} --out {out} --quiet"  # how it was made
+    assert s["run"]["options"]["folds"] == 10 and s["run"]["command"] in (out / "report.md").read_text()
     cam = s["cameras"]["cam0"]
     print(
         f"{target} eye_in_hand={eye_in_hand}: truth error {cam['truth_error']}, k-fold/std {cam['kfold_over_std']}"

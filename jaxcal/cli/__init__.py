@@ -543,8 +543,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
     """The namespace `argv`'s command runs on: the old spellings rewritten (with a warning),
     the subcommand's options parsed, then its configuration (`--config`, and the flags the keys
     replaced) applied (`_config`). `Refused` names what cannot be used; argparse's own errors
-    exit as argparse does."""
-    argv = _renamed(_join_negative_lists(list(argv)))
+    exit as argparse does. The namespace keeps `argv` as given (`_argv`: `run_record`)."""
+    given = list(argv)
+    argv = _renamed(_join_negative_lists(given))
     command = _command(argv)
     parser = build_parser(command)
     chosen = _subparser(parser, command)
@@ -557,6 +558,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
         _config.apply(chosen, args, COMMANDS, moved)
     except _config.ConfigError as e:
         raise Refused(f"jaxcal: error: {e}") from None
+    args._argv = given
     return args
 
 

@@ -8,18 +8,17 @@ from functools import partial
 from pathlib import Path
 
 from .._configkeys import knob
-from .._exported import warm_start
 from ..io._files import check_output_dir, marked_directory, output_lock, resolved
 from ._common import CLOCK_MODES, MAX_WORKERS, count
 
 #: `--cv-folds`: the folds' fits are solved at once (one vmap), memory growing with them.
 MAX_CV_FOLDS = 100
+#: The families of `jaxcal._terms.TERMS`, here so that the parser imports no JAX (a test keeps them equal).
+TERMS = ("compliance", "backlash", "harmonic1", "harmonic2")
 
 
 def terms_arg(text: str) -> tuple[str, ...] | str:
-    """`--terms`: `auto`, `none`, or families comma-separated (`jaxcal._terms.TERMS`)."""
-    from .._terms import TERMS
-
+    """`--terms`: `auto`, `none`, or families comma-separated (`TERMS`)."""
     if text.strip() in ("auto", "none"):
         return "auto" if text.strip() == "auto" else ()
     names = tuple(t.strip() for t in text.split(",") if t.strip())
@@ -51,6 +50,8 @@ def cmd_calibrate(args) -> int:
         print(f"calibrating {args.dataset} into {out} ...", flush=True)
     # The programs the last run on DATASET called are read ahead from here on, while the
     # calibration's modules are imported and the images detected (`jaxcal._exported.warm_start`).
+    from .._exported import warm_start  # JAX: after the first line
+
     with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {resolved(args.dataset)}"):
         from ._calibrate_run import calibrate_dataset
 

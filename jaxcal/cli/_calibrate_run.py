@@ -25,7 +25,7 @@ from ..summary import (
     truth_line,
     truth_table,
 )
-from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees
+from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, run_record
 from ._rosbag import dataset_of
 
 
@@ -207,7 +207,7 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
     if args.strict and code != 0:
         console.print(f"[red]--strict: the calibration is {result.status}; nothing written[/red]")
         return code
-    write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked)
+    write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked, run=run_record(args))
     extra = _certificate(console, out, args)
     console.print(
         f"wrote {out}/: {', '.join(output_files(result) + extra)}, report.md ({time.perf_counter() - t0:.1f} s)"

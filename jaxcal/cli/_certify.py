@@ -8,12 +8,12 @@ import numpy as np
 from rich.console import Console
 
 from .._configkeys import knob
-from .._exported import warm_start
 from .._progress import working
-from ..certification import MAX_POSES, certify, plot_certificate, read_poses
 from ..io._files import atomic_file, check_output_file, resolved, write_text_atomic
-from ..io.checks import certificate_json, drift_check_json, read_calibration
 from ._common import MAX_WORKERS, count, seed
+
+#: `jaxcal.certification.MAX_POSES`, here so that the parser imports no JAX (a test keeps them equal).
+MAX_POSES = 100_000
 
 
 def check(*args, **kwargs):
@@ -108,6 +108,8 @@ def add_certify_parsers(sub) -> None:
 
 
 def _write_plot(c, path: str) -> None:
+    from ..certification import plot_certificate
+
     with atomic_file(path) as tmp:
         plot_certificate(c, tmp)
 
@@ -155,19 +157,25 @@ def cmd_certify(args) -> int:
     for opt, what in ((args.json, "--json"), (args.plot, "--plot")):
         check_output(opt, [args.result], args.overwrite, what)
     where = region_of(args)
+    what = "its poses" if args.poses else "the region" if args.region or args.joint_box else "its workspace"
+    say = f"certifying {args.result} over {what}"
+    print(f"{say} ...", file=sys.stderr, flush=True)
+    from .._exported import warm_start  # JAX: after the first line
+    from ..certification import certify, read_poses
+    from ..io.checks import read_calibration
+
     poses = None
     if args.poses:
         names = read_calibration(args.result).joint_names
         poses = read_poses(args.poses, names, degrees=args.degrees)
-    what = "its poses" if args.poses else "the region" if args.region or args.joint_box else "its workspace"
-    say = f"certifying {args.result} over {what}"
-    print(f"{say} ...", file=sys.stderr, flush=True)
     # The programs the last certificate of this result called are read while this one starts.
     with warm_start(f"jaxcal certify {resolved(args.result)}"), working(True, say, stream=sys.stderr):
         c = certify(args.result, **where, poses=poses, samples=args.samples, frame=args.frame, seed=args.seed)
     console = Console(width=max(Console().width, 110))
     print_certificate(console, c)
     if args.json:
+        from ..io.checks import certificate_json
+
         write_text_atomic(args.json, json.dumps(certificate_json(c), indent=1))
         console.print(f"wrote {args.json}")
     if args.plot:
@@ -195,6 +203,8 @@ def cmd_check(args) -> int:
         )
     console.print(f"next: {c.advice}")
     if args.json:
+        from ..io.checks import drift_check_json
+
         write_text_atomic(args.json, json.dumps(drift_check_json(c), indent=1))
         console.print(f"wrote {args.json}")
     return c.exit_code

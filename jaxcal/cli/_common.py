@@ -73,3 +73,16 @@ LINKS_AMPLITUDE_DEG = 25.0
 #: `--clock`'s choices: `jaxcal.stages.CLOCK_MODES`, here so that building the parser imports no
 #: stage (tests/test_clock_option.py checks that the two agree).
 CLOCK_MODES = ("auto", "estimate", "given")
+
+
+def run_record(args) -> dict:
+    """How a result was made (`jaxcal.io._provenance.run_record`) from the command line's
+    namespace: the command as given and every option after the configuration."""
+    from ..io._provenance import run_record as record
+
+    options = {
+        k: v
+        for k, v in vars(args).items()
+        if not k.startswith("_") and k not in ("func", "foreign", "command")
+    }
+    return record(["jaxcal", *getattr(args, "_argv", [args.command])], options)

@@ -7,9 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from .._configkeys import knob
-from .._exported import warm_start
 from ..io._files import check_output_dir, output_lock, resolved
-from ._common import MAX_WORKERS, count, finite, resolution, seed
+from ._common import MAX_WORKERS, count, finite, resolution, run_record, seed
 
 # --------------------------------------------------------------------------- hand-eye
 
@@ -80,6 +79,8 @@ def cmd_handeye(args) -> int:
         print(f"hand-eye calibration of {args.capture} into {out} ...", flush=True)
     # The solver the last run on this capture called is read from the first moment the capture is
     # known, while the calibration's modules are imported and the images detected.
+    from .._exported import warm_start  # JAX: after the first line
+
     with output_lock(out, what="--out"), warm_start(f"jaxcal handeye {resolved(args.capture)}"):
         from ..report import warm_up_plots
 
@@ -125,7 +126,7 @@ def _handeye(args, out: Path, checked) -> int:
         progress=not args.quiet,
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
     )
-    write_hand_eye_outputs(run, out, overwrite=args.overwrite, checked=checked)
+    write_hand_eye_outputs(run, out, overwrite=args.overwrite, checked=checked, made=run_record(args))
     r = run.result
     cap = run.capture
     what = "T_ee_cam (camera on the flange)" if cap.eye_in_hand else "T_base_cam (fixed camera)"

@@ -5,9 +5,8 @@ import argparse
 import math
 
 from .._configkeys import knob
+from ..io._csv_poses import ANGLE_UNITS, LENGTH_UNITS, ORIENTATION_FORMATS, POSE_DIRECTIONS
 from ..io._tracker import DEVICE_KINDS
-from ..io.csv_import import ANGLE_UNITS, LENGTH_UNITS, ORIENTATION_FORMATS, POSE_DIRECTIONS, import_csv
-from ..robots import robot_file
 from ._common import finite
 
 
@@ -136,6 +135,9 @@ def cmd_import_csv(args) -> int:
         raise ValueError(
             "--orientation-format and --pose-direction describe --orientation-columns: none given"
         )
+    from ..io.csv_import import import_csv  # JAX (the robot's kinematics): after the options are checked
+    from ..robots import robot_file
+
     r = import_csv(
         args.csv,
         args.out,

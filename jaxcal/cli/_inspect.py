@@ -2,11 +2,9 @@
 
 import dataclasses
 import json
+import sys
 
-from ..inspection import format_inspection, inspect_dataset
 from ..io._files import check_output_file, write_text_atomic
-from ..io.rosbag import bag_topics, is_bag, open_bag
-from ..records import plain
 from ._common import count
 from ._rosbag import add_bag_args, dataset_of
 
@@ -25,6 +23,11 @@ def add_inspect_parser(sub) -> None:
 def cmd_inspect(args) -> int:
     if args.json not in (None, "-"):
         check_output_file(args.json, inputs=[args.dataset], overwrite=True, what="--json")
+    print(f"inspecting {args.dataset} ...", file=sys.stderr, flush=True)
+    from ..inspection import format_inspection, inspect_dataset  # JAX (the robot model): after the first line
+    from ..io.rosbag import bag_topics, is_bag, open_bag
+    from ..records import plain
+
     if is_bag(args.dataset):
         with open_bag(args.dataset) as reader:
             topics = bag_topics(reader)

@@ -73,6 +73,15 @@ def cmd_simulate(args) -> int:
 
 def cmd_plan(args) -> int:
     """`jaxcal plan` (docs/plan.md), with MuJoCo's contact and line-of-sight checks."""
+    if not args.quiet:  # before the planner, the robot, the scene and MuJoCo's checker: seconds
+        doing = (
+            f"evaluating plan {args.evaluate}"
+            if args.evaluate
+            else f"checking plan {args.check}"
+            if args.check
+            else f"planning {args.frames} stop-and-shoot poses of {args.robot} into {args.out}"
+        )
+        print(f"{doing} ...", flush=True)
     from rich.console import Console
 
     from ..planning._cli import run_plan

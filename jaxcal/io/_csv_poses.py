@@ -21,6 +21,11 @@ from .._npgeom import fit_sandwich, quaternion_to_matrix, rotation_angle, rotvec
 from ..errors import CsvImportError
 from ._tracker import QUATERNION_TOL
 
+#: `joint_unit` choices, to rad; `length_unit` choices, units per metre (a division keeps
+#: 0.432471963 from 432.471963 mm, where a product by 1e-3 adds round-off digits).
+ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+LENGTH_UNITS = {"m": 1.0, "mm": 1000.0}
+
 #: Largest angle between a measured orientation and the nominal robot's after the best device-frame
 #: and mount rotations (deg). A real arm's joint errors turn the flange by a few degrees (the
 #: simulator's Panda at 0.5 deg zero offsets and 0.2 deg origins: up to 5.1 deg); a quaternion in

@@ -13,8 +13,6 @@ from . import _schema as sc
 from ._files import atomic_directory as atomic_directory
 from ._images import MAX_PIXELS, MAX_SIDE
 from ._schema import Loc
-from .dh_tables import TABLE_SUFFIXES, read_table_file
-from .urdf import urdf_outline
 
 #: |clock.drift_ppm| bound (0.1 %: ten times a poor crystal).
 MAX_DRIFT_PPM = 1000.0
@@ -106,6 +104,8 @@ def read_robot(meta: dict, loc: Loc, root: Path):
     if not urdf.is_file():
         raise DatasetError(f"{urdf}: robot file missing (named by {loc.key('urdf')})")
     joints = sc.names(robot["joints"], loc.key("joints"))
+    from .urdf import urdf_outline  # with the robot model's JAX: not for the parsers that import this module
+
     try:
         outline = urdf_outline(urdf)
     except (OSError, ValueError) as e:
@@ -223,6 +223,8 @@ def _payload_inertia(x, loc: Loc) -> np.ndarray:
 def _read_table_robot(robot: dict, loc: Loc, root: Path):
     """`read_robot` for `robot.table`: the joints are the table's, in its order; `base_link` and
     `flange_link`, if given, its own; the limits are the table's `lower` / `upper` / `velocity`."""
+    from .dh_tables import TABLE_SUFFIXES, read_table_file  # JAX: only for a robot given by its table
+
     where = loc.key("table")
     rel = sc.relative_path(sc.string(robot["table"], where), where)
     path = root / rel

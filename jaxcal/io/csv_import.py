@@ -68,6 +68,8 @@ from .._npgeom import (
 )
 from ..errors import CsvImportError, DatasetError
 from . import _encoders as enc
+from ._csv_poses import ANGLE_UNITS as ANGLE_UNITS
+from ._csv_poses import LENGTH_UNITS as LENGTH_UNITS
 from ._csv_poses import ORIENTATION_FORMATS as ORIENTATION_FORMATS
 from ._csv_poses import POSE_DIRECTIONS as POSE_DIRECTIONS
 from ._csv_poses import (
@@ -85,10 +87,6 @@ from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_json
 from .dh_tables import dh_table_model, is_table_file, read_table_file
 from .urdf import load_urdf, urdf_outline
 
-#: `joint_unit` choices, to rad; `length_unit` choices, units per metre (a division keeps
-#: 0.432471963 from 432.471963 mm, where a product by 1e-3 adds round-off digits).
-ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
-LENGTH_UNITS = {"m": 1.0, "mm": 1000.0}
 #: The measured points' RMS spread may differ from the nominal robot's by this factor
 #: (a unit mistake is a factor 1000); compared only where the nominal spread exceeds
 #: `MIN_SPREAD_M`.

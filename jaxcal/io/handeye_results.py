@@ -23,6 +23,7 @@ import optimistix as optx
 from .._npgeom import matrix_to_quaternion
 from . import ros
 from ._files import atomic_directory
+from ._provenance import made_by
 from .camera_yaml import intrinsics_fields, pose_fields, write_camera_yaml
 
 #: `result.json`'s schema for a `jaxcal handeye` result (what `jaxcal check` recognises).
@@ -404,6 +405,7 @@ def report_markdown(summary: dict) -> str:
         f"Capture `{s['capture']}` ({s['arrangement'].replace('_', '-')}), status **{s['status']}**.",
         "",
     ]
+    lines += made_by(s.get("run"))
     if s["reasons"]:
         lines += ["Why it is suspect:", ""] + [f"- {x}" for x in s["reasons"]] + [""]
     if s["notes"]:
@@ -469,15 +471,16 @@ def report_markdown(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def write_hand_eye_outputs(run, out, *, overwrite: bool = False, checked=None) -> Path:
+def write_hand_eye_outputs(run, out, *, overwrite: bool = False, checked=None, made=None) -> Path:
     """Write every output of `run` (a `HandEyeRun`) into directory `out`, atomically.
 
     `out` may not be, contain or lie inside the capture; `overwrite` replaces
-    only a result jaxcal wrote (see `jaxcal.io._files.atomic_directory`).
+    only a result jaxcal wrote (see `jaxcal.io._files.atomic_directory`). `made`: how the
+    result was made (`jaxcal.io._provenance.run_record`), kept as `result.json`'s `run`.
 
     **Returns:** `out`.
     """
-    summary = hand_eye_summary(run)
+    summary = hand_eye_summary(run) | ({} if made is None else {"run": made})
     inputs = (run.capture.root,)
     with atomic_directory(out, overwrite=overwrite, inputs=inputs, kind="result", checked=checked) as tmp:
         (tmp / "result.json").write_text(json.dumps(summary, indent=1) + "\n")

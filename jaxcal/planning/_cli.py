@@ -244,10 +244,6 @@ def run_plan(args, console: Console, checker_factory=None, capture_models=None) 
     inputs = [args.camera_file, args.target, args.robot if Path(args.robot).is_file() else None]
     out = _free(args.out, args.overwrite, "--out", inputs)
     plot, out_json = _outputs(args, inputs)
-    if not args.quiet:  # before the robot, the scene and MuJoCo's checker are built: seconds
-        console.print(
-            f"[dim]planning {args.frames} stop-and-shoot poses of {args.robot} into {out} ...[/dim]"
-        )
     robot = Robot.load(args.robot)
     flange = robot.model.link_names[-1]
     taught = None if args.taught is None else parse_pose(args.taught, robot.model.num_joints)
