@@ -38,7 +38,7 @@ def main(argv=None) -> int:
 
     import jaxcal
 
-    r = jaxcal.calibrate(args.dataset, progress=False)
+    r = jaxcal.calibrate(args.dataset, progress=False, log=print)  # the stages, and a line while one is long
     if r.refine_fit is None or r.validation is None:
         print(
             f"{args.dataset}: needs a refined calibration of a synthetic dataset (truth.json)",
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
         "ee_rms_mm_two_stage": r.validation["ee_rms_mm_two_stage"],
         "free_parameters": int(np.asarray(est.free).sum()),
     }
-    print(json.dumps(out, indent=2))
+    print(json.dumps(out, indent=2) if not args.json else f"wrote {args.json}")
     if args.json:
         from jaxcal.io._files import write_text_atomic
 

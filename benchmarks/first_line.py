@@ -72,6 +72,20 @@ FIRST_LINES = {
         "importing ",
     ),
     "simulate-plan": (["simulate-plan", "plan.json", "--out", "sim"], "simulating plan plan.json into sim"),
+    "import-csv": (
+        ["import-csv", str(TRACKER / "source" / "3D_UR5_uncalibrated_grid_cleaned.csv"), "--robot", "ur5_dh"]
+        + [
+            "--out",
+            "grid",
+            "--joint-columns",
+            ",".join(f"joint_{k}" for k in range(1, 7)),
+            "--joint-unit",
+            "deg",
+        ]
+        + ["--xyz", "x_t+x_dif,y_t+y_dif,z_t+z_dif", "--length-unit", "mm", "--sigma-mm", "0.02"]
+        + ["--point-mm", "0,0.09,31.0", "--point-name", "smr"],
+        "importing ",
+    ),
 }
 
 

@@ -292,9 +292,13 @@ def main(argv=None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.workdir) if args.workdir else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
+        print("calibrating the real UR5 with each model, and verifying on its held-out poses ...", flush=True)
         models = cli_models(work)
+        print(f"the grid with {', '.join(map(str, args.bad_rows))} rows turned ...", flush=True)
         bad = bad_rows(work, args.bad_rows)
+    print(f"timing the point fit ({args.rounds} rounds, a fresh process) ...", flush=True)
     timing = jaxcal_timing(args.rounds, args.cache)
+    print("SciPy's fit of the same model ...", flush=True)
     scipy = scipy_reference()
     geo, comp, best = models["geometric"], models["compliance"], models["best"]
     out = {
@@ -328,7 +332,7 @@ def main(argv=None) -> dict:
         "date": time.strftime("%Y-%m-%d"),
     }
     text = json.dumps(out, indent=1)
-    print(text)
+    print(text if not args.json else f"held-out mean {out['ur5_test_mean_mm']:.4f} mm; wrote {args.json}")
     if args.json:
         from jaxcal.io._files import write_text_atomic
 

@@ -22,8 +22,8 @@ _configure_xla()
 
 # Calibration maths needs float64 (sub-millimetre over metre-scale arms), and
 # compiled programs persist across processes (opt out: JAXCAL_NO_CACHE=1; see
-# jaxcal._cache). Both hold for the whole process; JAX itself is imported by the
-# first module that computes, not here, so that a command's first line comes first.
+# jaxcal._cache). Both hold for the whole process, set the moment JAX is imported: by
+# the first module that computes, not here, so that a command's first line comes first.
 _configure_jax()
 
 if TYPE_CHECKING:

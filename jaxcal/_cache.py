@@ -17,6 +17,8 @@ command line and the Python API alike.
 stage program once or a few times, so the passes cost more than they save.
 """
 
+import importlib.abc
+import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -53,16 +55,45 @@ def _cache_settings() -> dict:
     return {"jax_compilation_cache_dir": str(cache), "jax_persistent_cache_min_compile_time_secs": 0.0}
 
 
+class _WhenJaxImports(importlib.abc.MetaPathFinder):
+    """Applies `settings` to JAX's config the moment `jax` is first imported (its module run,
+    before anything can use it), then leaves `sys.meta_path`: so that `import jaxcal` need not
+    import JAX, which takes a second, and leaves the environment, which child processes would
+    inherit, as it found it."""
+
+    def __init__(self):
+        self.settings: dict = {}
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "jax":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)  # by the finders after this one
+        if spec is not None and spec.loader is not None:
+            run, settings = spec.loader.exec_module, self.settings
+
+            def exec_module(module):
+                run(module)
+                for key, value in settings.items():
+                    module.config.update(key, value)
+
+            spec.loader.exec_module = exec_module
+        return spec
+
+
+_PENDING = _WhenJaxImports()
+
+
 def _apply(settings: dict) -> None:
-    """`settings` in JAX's config if JAX is imported, else in the environment it reads
-    them from when it is (`JAX_ENABLE_X64`, ...): so that `import jaxcal` need not
-    import JAX, which takes a second, before a command has said what it does."""
+    """`settings` in JAX's config: now if JAX is imported, else when it is (`_WhenJaxImports`)."""
     jax = sys.modules.get("jax")
-    for name, value in settings.items():
-        if jax is not None:
+    if jax is not None:
+        for name, value in settings.items():
             jax.config.update(name, value)
-        else:
-            os.environ[name.upper()] = str(int(value) if isinstance(value, bool) else value)
+        return
+    _PENDING.settings.update(settings)
+    if _PENDING not in sys.meta_path:
+        sys.meta_path.insert(0, _PENDING)
 
 
 def enable_compilation_cache() -> None:

@@ -17,6 +17,7 @@ like with like.
 
 import functools
 import os
+import sys
 from dataclasses import replace
 
 import equinox as eqx
@@ -43,6 +44,7 @@ from ._kinematics import (
     perturb_model,
 )
 from ._lsq import LMOptions
+from ._progress import working
 from ._scoring import score as score  # re-exported
 
 _MM = 1e-3
@@ -443,8 +445,11 @@ def monte_carlo(
     *,
     chunk: int | None = None,
     devices=None,
+    progress: bool = False,
 ) -> TrialResult:
-    """Run `trials` seeded trials in one jitted call, sharded over devices.
+    """Run `trials` seeded trials in one jitted call, sharded over devices; `progress`: say so, and
+    that it is still working every few seconds while it compiles and runs (on stderr; the call
+    then returns with the results computed).
 
     **Layout** (`map_over_devices`). With $D$ devices (`devices`, default
     `default_devices()`: every GPU of every host, or part of the CPU's), the trial
@@ -517,7 +522,14 @@ def monte_carlo(
     setup = dynamic_setup(setup)
     # A host value (uncommitted): jit places it on the mesh, on every process.
     free = np.asarray(_free_mask_jit(setup))
-    return _sharded_trials(setup, key, free, trials=trials, chunk=min(chunk, per_device), mesh=mesh)
+    if not progress:
+        return _sharded_trials(setup, key, free, trials=trials, chunk=min(chunk, per_device), mesh=mesh)
+    what = f"Monte Carlo: {trials:,} trials in one compiled call (compiling it first, the first run only)"
+    print(f"{what} ...", file=sys.stderr, flush=True)
+    with working(True, "Monte Carlo", stream=sys.stderr):
+        return jax.block_until_ready(
+            _sharded_trials(setup, key, free, trials=trials, chunk=min(chunk, per_device), mesh=mesh)
+        )
 
 
 _free_mask_jit = jax.jit(nominal_free_mask)

@@ -10,6 +10,26 @@ import time
 #: silence of more than 10 s.
 LINE_EVERY_S = 8.0
 
+#: When jaxcal last wrote a line of progress (`time.monotonic`), and how many live displays (rich
+#: bars and spinners, which show life themselves) are on screen: what `watchdog` reads.
+_LAST_LINE = [time.monotonic()]
+_LIVE = [0]
+
+
+def _said() -> None:
+    _LAST_LINE[0] = time.monotonic()
+
+
+@contextlib.contextmanager
+def _live(display):
+    """`display` (a rich bar or spinner) entered, counted as live while it is."""
+    _LIVE[0] += 1
+    try:
+        with display as shown:
+            yield shown
+    finally:
+        _LIVE[0] -= 1
+
 
 class LineProgress:
     """What a rich bar shows, as plain lines for a pipe or a log file (where a bar is drawn
@@ -48,6 +68,7 @@ class LineProgress:
         self.update(task, advance=advance)
 
     def _line(self, text: str) -> None:
+        _said()
         print(text, flush=True)
 
 
@@ -65,8 +86,14 @@ def progress(enabled: bool, description: str, *, transient: bool = False):
         return LineProgress(description)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    return Progress(
-        TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=transient
+    return _live(
+        Progress(
+            TextColumn(description),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+            transient=transient,
+        )
     )
 
 
@@ -85,7 +112,7 @@ def working(enabled: bool, description: str, *, stream=None, say=None):
 
         console = Console(stderr=stream is sys.stderr)
         if console.is_terminal:
-            with console.status(description):
+            with _live(console.status(description)):
                 yield
             return
 
@@ -97,12 +124,57 @@ def working(enabled: bool, description: str, *, stream=None, say=None):
 
     def tick():
         while not done.wait(LINE_EVERY_S):
+            _said()  # for `watchdog`
             say(f"{description}: still working ({time.monotonic() - start:.0f} s)")
 
     thread = threading.Thread(target=tick, name="jaxcal progress", daemon=True)
     thread.start()
     try:
         yield
+    finally:
+        done.set()
+        thread.join()
+
+
+class _Watchdog:
+    """`watchdog`'s state: the stage now running and since when."""
+
+    def __init__(self, log):
+        self._log = log
+        self.name, self.since = "starting", time.monotonic()
+
+    def log(self, text: str) -> None:
+        _said()
+        self._log(text)
+
+    def stage(self, name: str) -> None:
+        self.name, self.since = name, time.monotonic()
+
+
+@contextlib.contextmanager
+def watchdog(log):
+    """Around a run of stages that report through `log` (a callable taking a line, or None: no
+    watchdog): yields an object whose `log` is `log` noted, and whose `stage(name)` names the
+    stage now running. Whenever jaxcal has written no line of progress for `LINE_EVERY_S` and no
+    live display (bar, spinner) is on screen, a line `name: still working (t s)` goes to `log`:
+    a stage that runs long without a word of its own (a compile, a search) is never silent."""
+    beat = _Watchdog(log if log is not None else (lambda text: None))
+    if log is None:
+        yield beat
+        return
+    done = threading.Event()
+    _said()
+
+    def tick():
+        while not done.wait(min(0.5, LINE_EVERY_S / 4)):
+            now = time.monotonic()
+            if _LIVE[0] == 0 and now - _LAST_LINE[0] >= LINE_EVERY_S:
+                beat.log(f"{beat.name}: still working ({now - beat.since:.0f} s)")
+
+    thread = threading.Thread(target=tick, name="jaxcal watchdog", daemon=True)
+    thread.start()
+    try:
+        yield beat
     finally:
         done.set()
         thread.join()

@@ -10,11 +10,13 @@ device's samples) -> validate
 `jaxcal demo`) and the Python API share this one code path.
 """
 
+import dataclasses
 import time
 
 from . import stages
 from ._cache import enable_compilation_cache
 from ._exported import warm_start
+from ._progress import watchdog
 from .errors import CalibrationError as CalibrationError  # re-exported
 from .errors import SuspectResultError
 from .io._files import resolved
@@ -136,19 +138,25 @@ def calibrate(
     )
     # The programs the last calibration of this dataset called are read while it loads and detects.
     root = getattr(dataset, "root", dataset)
-    with warm_start(f"calibrate {resolved(root)}"):
-        return _stages(dataset, options, strict, t_start)
+    with warm_start(f"calibrate {resolved(root)}"), watchdog(log) as beat:
+        return _stages(dataset, dataclasses.replace(options, log=beat.log), strict, t_start, beat.stage)
 
 
-def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult:
+def _stages(dataset, options, strict: bool, t_start: float, at=lambda stage: None) -> CalibrationResult:
+    """The stages in order; `at(name)` names each as it starts (`jaxcal._progress.watchdog`)."""
+    at("reading the dataset")
     setup = stages.setup(dataset, options)
+    at("detecting the targets" if setup.kind.images else "reading the samples")
     obs = stages.observe(setup, options)
+    at("the clock offset")
     sync = stages.synchronise(setup, obs, options)
+    at("the two-stage fit" if setup.kind.has_arcs else "the point fit")
     two = stages.two_stage(setup, obs, sync, options)
     # The verdict's arm-rigidity test: its terms need only the two-stage fit; their program compiles
     # now beside the refinement's and runs after it (`stages.start_arm_score`).
     arm_score = stages.start_arm_score(setup, sync, two) if setup.kind.has_arcs else None
     # Tracker data have no corners: the two-stage fit is the result (see `stages.TWO_STAGE_IS_FINAL`).
+    at("the refinement")
     refined = (
         stages.refine(setup, obs, sync, two, options)
         if options.refine and setup.kind.refines_corners
@@ -157,22 +165,27 @@ def _stages(dataset, options, strict: bool, t_start: float) -> CalibrationResult
     if refined is not None and refined.terms is not None and refined.terms.kept and setup.kind.has_arcs:
         # The non-geometric terms the refinement kept correct the encoder log: the clock fit, the arcs and
         # the axes again on where the joints stood, so that the verdict tests what the terms leave.
+        at("the clock offset and the two-stage fit again, with the terms")
         sync = stages.synchronise(setup, obs, options, refined.terms)
         two = stages.two_stage(setup, obs, sync, options)
         arm_score = stages.start_arm_score(setup, sync, two)
     # The arm test's last part: the arcs fitted again at the refinement's clock.
     if arm_score is not None:
+        at("the arm's rigidity test")
         arm_score = stages.finish_arm_score(setup, sync, two, refined, arm_score)
     # The validation against the truth needs no verdict (`stages.run_ahead`: inline, see its docstring).
+    at("the validation against truth.json")
     validation = (
         stages.run_ahead("validation", stages.validate, setup, sync, two, refined, options)
         if options.validate and setup.dataset.truth is not None
         else None
     )
+    at("the verdict")
     verdict = stages.verdict(setup, obs, sync, two, refined, options.limits, arm_score)
     if strict and verdict.status != "ok":
         raise SuspectResultError(
             f"{setup.root}: the calibration is {verdict.status}: " + "; ".join(verdict.reasons)
         )
+    at("the result")
     validation = None if validation is None else validation.result()
     return stages.assemble(setup, obs, sync, two, refined, verdict, validation, t_start)

@@ -54,6 +54,13 @@ RUNS = {
         "record_fields bag_fields string_key_reads mode_tests long_functions covariance_sites package_lines "
         "modules_over_500_lines fmt_skips cli_options config_keys option_names_with_two_meanings",
     ),
+    # Three units of tests/test_fleet.py's design, one of them also alone.
+    "fleet": Run(
+        "fleet",
+        "--units 3 --poses 48 --singles 1 --cv-folds 0",
+        "fleet_s single_s speedup max_parameter_difference statuses outliers population_std_mm",
+        process="fleet",
+    ),
     # Two quick commands, once each: the harness tests/test_progress.py shares runs whole.
     "first_line": Run(
         "first_line", "--repeats 1 --commands inspect,verify", "pipe_s terminal_s slowest_s over_2s lines"

@@ -292,6 +292,8 @@ def test_the_parsers_import_no_jax():
         "parse(['demo', '--out', 'd'])\n"
         "heavy = sorted({'jax', 'scipy', 'matplotlib', 'equinox'} & set(sys.modules))\n"
         "assert not heavy, heavy\n"
+        "import os\n"
+        "assert not {'JAX_ENABLE_X64', 'JAX_COMPILATION_CACHE_DIR'} & set(os.environ)  # children inherit it\n"
         "import jax, jax.numpy as jnp\n"
         "assert jnp.ones(1).dtype == jnp.float64\n"
         "print(jax.config.jax_compilation_cache_dir)\n"

@@ -69,7 +69,12 @@ def no_calibration(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the calibration started although the output check should have failed first")
 
+    # The command's work module binds `calibrate` when first imported: imported here, before the
+    # patch, so that it does not keep the refusing stand-in for the tests after this one.
+    import jaxcal.cli._calibrate_run  # noqa: F401
+
     monkeypatch.setattr("jaxcal.pipeline.calibrate", refuse)
+    monkeypatch.setattr("jaxcal.cli._calibrate_run.calibrate", refuse)
     monkeypatch.setattr("jaxcal.sim.simulate.simulate", refuse)
 
 

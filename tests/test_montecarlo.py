@@ -49,8 +49,9 @@ def test_noise_free_trials_are_exact():
     assert float(np.min(res.ee_rms_mm_nominal)) > 1.0
 
 
-def test_noisy_trials_improve_and_are_reproducible():
-    res = monte_carlo(SETUP, jax.random.key(1), TRIALS)
+def test_noisy_trials_improve_and_are_reproducible(capsys):
+    res = monte_carlo(SETUP, jax.random.key(1), TRIALS, progress=True)  # says what it does on stderr
+    assert capsys.readouterr().err.startswith(f"Monte Carlo: {TRIALS} trials in one compiled call")
     arc_ok = np.asarray(res.arc_result == optx.RESULTS.successful)
     assert arc_ok.shape == (TRIALS, 6) and arc_ok.all()
     s = summarize(res)

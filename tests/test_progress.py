@@ -97,3 +97,38 @@ def test_a_long_call_reports_through_the_callers_own_channel(monkeypatch):
         while not lines and time.monotonic() < deadline:
             time.sleep(0.01)
     assert lines and lines[0].startswith("choosing 24 poses: still working (")
+
+
+def test_a_run_of_stages_is_never_silent(monkeypatch):
+    """`watchdog`: after `LINE_EVERY_S` without a line, `STAGE: still working (t s)` through the
+    run's own log; not while a live display (a bar, a spinner) shows life, and not while the
+    stages speak for themselves; nothing after the run."""
+    import contextlib
+
+    monkeypatch.setattr(_progress, "LINE_EVERY_S", 0.2)
+    lines = []
+
+    def wait_for(n):
+        deadline = time.monotonic() + 30.0
+        while len(lines) < n and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    with _progress.watchdog(lines.append) as beat:
+        beat.stage("the point fit")
+        wait_for(1)
+        assert lines[0].startswith("the point fit: still working (")
+        with _progress._live(contextlib.nullcontext()):
+            n = len(lines)
+            time.sleep(0.8)
+            assert len(lines) == n  # the bar shows life
+        n = len(lines)
+        for _ in range(8):
+            beat.log("arc fits")
+            time.sleep(0.05)
+        assert lines[n:] == ["arc fits"] * 8
+    n = len(lines)
+    time.sleep(0.5)
+    assert len(lines) == n
+    with _progress.watchdog(None) as beat:  # no log: nothing, and no thread
+        beat.stage("x")
+        beat.log("y")

@@ -285,7 +285,12 @@ def _add_calibration_parsers(sub) -> None:
     p.set_defaults(func=calibrate.cmd_demo)
     p = sub.add_parser("calibrate", help="calibrate robot and camera from a dataset (docs/dataset.md)")
     p.add_argument(
-        "dataset", help="dataset directory, or a ROS bag (with --images, --joints, --robot, --target)"
+        "dataset",
+        help="dataset directory, or a ROS bag (with --images, --joints, --robot, --target), or a folder of "
+        "datasets (a fleet: one result per unit and the fleet's summary, docs/fleet.md)",
+    )
+    p.add_argument(
+        "more", nargs="*", metavar="DATASET", help="more datasets: a fleet of units of one robot model"
     )
     p.add_argument(
         "--out",

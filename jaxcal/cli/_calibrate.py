@@ -8,6 +8,7 @@ from functools import partial
 from pathlib import Path
 
 from .._configkeys import knob
+from ..fleet import is_fleet
 from ..io._files import check_output_dir, marked_directory, output_lock, resolved
 from ._common import CLOCK_MODES, MAX_WORKERS, count
 
@@ -41,21 +42,40 @@ def _tolerance(text: str) -> float:
 def cmd_calibrate(args) -> int:
 
     out = Path(args.out)
+    datasets = [args.dataset, *args.more]
+    fleet = is_fleet(datasets)
+    if fleet:
+        _refuse_in_fleet(args)
     # Before any work: --out may not hold or overlap the dataset, and --overwrite replaces
     # only a result jaxcal wrote; the lock makes a second run on the same --out fail at once.
-    checked = check_output_dir(
-        out, inputs=[args.dataset], overwrite=args.overwrite, kind="result", what="--out"
-    )
+    checked = check_output_dir(out, inputs=datasets, overwrite=args.overwrite, kind="result", what="--out")
     if not args.quiet:  # before the calibration's modules are imported and the dataset is read: seconds
-        print(f"calibrating {args.dataset} into {out} ...", flush=True)
+        what = f"a fleet ({', '.join(datasets)})" if fleet else args.dataset
+        print(f"calibrating {what} into {out} ...", flush=True)
     # The programs the last run on DATASET called are read ahead from here on, while the
     # calibration's modules are imported and the images detected (`jaxcal._exported.warm_start`).
     from .._exported import warm_start  # JAX: after the first line
 
     with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {resolved(args.dataset)}"):
-        from ._calibrate_run import calibrate_dataset
+        from ._calibrate_run import calibrate_dataset, calibrate_fleet_datasets
 
+        if fleet:
+            return calibrate_fleet_datasets(args, datasets, out, checked)
         return calibrate_dataset(args, out, checked)
+
+
+def _refuse_in_fleet(args) -> None:
+    """What a fleet's calibration cannot take, refused before any work (exit 2)."""
+    bag = [f for f in ("images", "joints", "camera_info", "robot", "target") if getattr(args, f, None)]
+    if bag:
+        raise ValueError(
+            f"--{bag[0].replace('_', '-')} reads one ROS bag; a fleet reads dataset folders: import each bag with "
+            "jaxcal import-bag first"
+        )
+    if args.region or args.joint_box:
+        raise ValueError(
+            "--region / --joint-box certify one result; certify a fleet's unit with jaxcal certify OUT/UNIT"
+        )
 
 
 def cmd_demo(args) -> int:

@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .._exported import warm_start
+from .._progress import working
 from ..io._files import note_written, resolved, write_text_atomic
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
@@ -171,6 +172,48 @@ def _run_calibration(console, dataset, out: Path, args, *, overwrite: bool, chec
     return code
 
 
+def calibrate_fleet_datasets(args, datasets: list, out: Path, checked) -> int:
+    """`jaxcal calibrate DS1 DS2 ...` (or a folder of datasets): every unit calibrated in this
+    process and written into `out/<unit>/`, then the fleet's summary (`jaxcal.fleet`)."""
+    from ..fleet import calibrate_fleet, fleet_datasets
+
+    console = Console(width=max(Console().width, 132))
+    units, run = fleet_datasets(datasets), run_record(args)
+    say = (lambda text: None) if args.quiet else (lambda text: console.print(text, highlight=False))
+    say(f"{len(units)} units: {', '.join(u.name for u in units[:8])}{' ...' if len(units) > 8 else ''}")
+
+    def one(path):
+        first = path == units[0]  # its compiles (the first run only) show their progress; the rest are quick
+        return calibrate(path, progress=first and not args.quiet, **_options(args))
+
+    def write(result, folder):
+        write_outputs(result, folder, inputs=[result.dataset], run=run)
+
+    summary = calibrate_fleet(
+        units,
+        out,
+        calibrate=one,
+        write=write,
+        overwrite=args.overwrite,
+        checked=checked,
+        strict=args.strict,
+        say=say,
+    )
+    for o in summary.outliers[:10]:
+        console.print(
+            f"[yellow]stands out:[/yellow] {o.unit} {o.parameter} {o.z:+.1f} robust spreads from the fleet"
+        )
+    counts = ", ".join(
+        f"{sum(u.status == k for u in summary.units)} {k}" for k in ("ok", "suspect", "failed", "refused")
+    )
+    console.print(
+        f"wrote {out}/: one folder per calibrated unit, fleet.json, fleet.md ({counts}; "
+        f"{len(summary.outliers)} outliers{'; ' + summary.note if summary.note else ''}; "
+        f"{summary.timings_s['total']:.1f} s)"
+    )
+    return summary.exit_code
+
+
 def calibrate_dataset(args, out: Path, checked) -> int:
     """`jaxcal calibrate`'s work, inside its lock on --out: DATASET (or its bag, imported) calibrated
     and written."""
@@ -179,13 +222,11 @@ def calibrate_dataset(args, out: Path, checked) -> int:
         return _run_calibration(console, dataset, out, args, overwrite=args.overwrite, checked=checked)
 
 
-def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
-    t0 = time.perf_counter()
-    result = calibrate(
-        dataset,
+def _options(args) -> dict:
+    """`jaxcal.calibrate`'s keywords from the command line's options."""
+    return dict(
         camera=args.camera,
         workers=args.workers,
-        progress=not args.quiet,
         clock=args.clock,
         refine_intrinsics=args.refine_intrinsics,
         estimate_line_delay=getattr(args, "estimate_line_delay", False),
@@ -196,7 +237,16 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
         terms=args.terms,
         cv_folds=args.cv_folds,
         identifiability_tol=args.identifiability_tol,
+    )
+
+
+def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, checked=None) -> int:
+    t0 = time.perf_counter()
+    result = calibrate(
+        dataset,
+        progress=not args.quiet,
         log=lambda text: console.print(f"[dim]{text}[/dim]"),
+        **_options(args),
     )
     _calibration_tables(console, result)
     code = EXIT_CODES[result.status]
@@ -207,7 +257,11 @@ def _calibrate_and_write(console, dataset, out: Path, args, *, overwrite: bool, 
     if args.strict and code != 0:
         console.print(f"[red]--strict: the calibration is {result.status}; nothing written[/red]")
         return code
-    write_outputs(result, out, overwrite=overwrite, inputs=[dataset], checked=checked, run=run_record(args))
+    # The DH tables' Jacobian and the plots: seconds the first time.
+    with working(not args.quiet, f"writing {out}", say=lambda text: console.print(f"[dim]{text}[/dim]")):
+        write_outputs(
+            result, out, overwrite=overwrite, inputs=[dataset], checked=checked, run=run_record(args)
+        )
     extra = _certificate(console, out, args)
     console.print(
         f"wrote {out}/: {', '.join(output_files(result) + extra)}, report.md ({time.perf_counter() - t0:.1f} s)"

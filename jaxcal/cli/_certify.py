@@ -160,17 +160,20 @@ def cmd_certify(args) -> int:
     what = "its poses" if args.poses else "the region" if args.region or args.joint_box else "its workspace"
     say = f"certifying {args.result} over {what}"
     print(f"{say} ...", file=sys.stderr, flush=True)
-    from .._exported import warm_start  # JAX: after the first line
-    from ..certification import certify, read_poses
-    from ..io.checks import read_calibration
+    with working(True, say, stream=sys.stderr):
+        from .._exported import warm_start  # JAX: after the first line
+        from ..certification import certify, read_poses
+        from ..io.checks import read_calibration
 
-    poses = None
-    if args.poses:
-        names = read_calibration(args.result).joint_names
-        poses = read_poses(args.poses, names, degrees=args.degrees)
-    # The programs the last certificate of this result called are read while this one starts.
-    with warm_start(f"jaxcal certify {resolved(args.result)}"), working(True, say, stream=sys.stderr):
-        c = certify(args.result, **where, poses=poses, samples=args.samples, frame=args.frame, seed=args.seed)
+        poses = None
+        if args.poses:
+            names = read_calibration(args.result).joint_names
+            poses = read_poses(args.poses, names, degrees=args.degrees)
+        # The programs the last certificate of this result called are read while this one starts.
+        with warm_start(f"jaxcal certify {resolved(args.result)}"):
+            c = certify(
+                args.result, **where, poses=poses, samples=args.samples, frame=args.frame, seed=args.seed
+            )
     console = Console(width=max(Console().width, 110))
     print_certificate(console, c)
     if args.json:

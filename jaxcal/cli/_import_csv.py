@@ -135,6 +135,7 @@ def cmd_import_csv(args) -> int:
         raise ValueError(
             "--orientation-format and --pose-direction describe --orientation-columns: none given"
         )
+    print(f"importing {args.csv} into {args.out} ...", flush=True)
     from ..io.csv_import import import_csv  # JAX (the robot's kinematics): after the options are checked
     from ..robots import robot_file
 

@@ -77,7 +77,7 @@ def cmd_plan(args) -> int:
         doing = (
             f"evaluating plan {args.evaluate}"
             if args.evaluate
-            else f"checking plan {args.check}"
+            else f"choosing {args.budget} poses for a drift check of {args.check}"
             if args.check
             else f"planning {args.frames} stop-and-shoot poses of {args.robot} into {args.out}"
         )

@@ -22,6 +22,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from .._progress import working
 from ..errors import OutputError, PlanError, PlanFileError
 from ..io._files import check_output_file, resolved, write_text_atomic
 from ..io.plan_inputs import parse_pose, parse_region, read_camera, read_target
@@ -185,9 +186,15 @@ def run_evaluate(args, console: Console, capture_models=None) -> int:
     p = load_plan(args.evaluate)
     region = None if args.region is None else parse_region(args.region)
     camera, arm = _models(args, capture_models)
-    ev = evaluate_plan(
-        args.evaluate, region=region, sigma_px=args.sigma_px, camera_model=camera, arm=arm, terms=args.terms
-    )
+    with working(not args.quiet, f"evaluating {args.evaluate}", say=console.print):
+        ev = evaluate_plan(
+            args.evaluate,
+            region=region,
+            sigma_px=args.sigma_px,
+            camera_model=camera,
+            arm=arm,
+            terms=args.terms,
+        )
     where = "over the region" if region is not None else "over the workspace"
     evaluation_table(
         console, ev, f"{args.evaluate}: pre-evaluation ({len(views(p)[0])} planned frames, EE {where})"
@@ -200,7 +207,8 @@ def run_check_plan(args, console: Console) -> int:
     """`jaxcal plan --check RESULT`: the poses of a sensitive drift check (`jaxcal.planning._check`)."""
     out = _free(args.out, args.overwrite, "--out", [args.check]) if args.out else None
     out_json = _free(args.json, args.overwrite, "--json", [args.check]) if args.json else None
-    cp = plan_check(args.check, args.budget, candidates=args.candidates, seed=args.seed)
+    with working(not args.quiet, f"choosing {args.budget} poses", say=console.print):
+        cp = plan_check(args.check, args.budget, candidates=args.candidates, seed=args.seed)
     table = Table(title=f"jaxcal plan --check: {args.budget} poses for a drift check of {cp.result}")
     for col in ("pose", *cp.joint_names, "detectable mm (worst)", "deg (worst)"):
         table.add_column(col, justify="right")

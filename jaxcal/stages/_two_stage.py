@@ -330,7 +330,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     timings["arc_fit_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    options.say("axis fit: kinematic parameters and camera-to-base")
+    options.say(f"axis fit: kinematic parameters and {kind.fixed_frame}")
     mounts0 = _start_mounts(setup, arcs, sync.homes)
     home = None if sync.homes is None else jnp.asarray(sync.homes)
     fit = _programs.axis_fit(kind.axis_fit_uses_poses)(

@@ -1,0 +1,124 @@
+"""Benchmark: a fleet of simulated units calibrated in one `jaxcal calibrate` against one process
+per unit (issue 52).
+
+`--units` UR5e units are simulated (`jaxcal.sim.tracker`, `--poses` stop-and-shoot tracker poses
+each, the tracker 2 m from the base and turned, 10 um noise; each unit's joint origins, axes and zero
+offsets drawn at the simulator's scales: a population), then:
+
+- `fleet_s`: the wall time of one `jaxcal calibrate FOLDER --out DIR` over all of
+  them (a fresh process, the compilation cache warm from a first, untimed run on one unit);
+- `single_s`: the wall times of `jaxcal calibrate UNIT --out DIR` for the first
+  `--singles` units, one fresh process each (the same warm cache): what calibrating the fleet
+  unit by unit costs, `single_s_mean` x units (`singles_extrapolated_s`); `speedup` the ratio;
+- `max_parameter_difference`: the largest difference between a unit's parameters in the fleet's
+  result and in its own calibration (SI units: m, rad), over the single runs;
+- `outliers`, `statuses`: what the fleet's summary named; `population_std_mm`: the fleet's
+  estimated spread of the robots' joint origins (the median over the origin translations, mm),
+  against the simulator's 1 mm per axis (`origin_mm`).
+
+    python benchmarks/fleet.py --units 20 --poses 1000 --singles 3 --json results/fleet.json
+"""
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+KW = dict(
+    robot="ur5e", noise_um=10.0, bad_fraction=0.0, home_deg=None, pose_range_deg=120.0, device_is_base=True
+)
+
+
+def _jaxcal(args: list[str], env: dict) -> float:
+    """Seconds of a fresh `python -m jaxcal ARGS` (quiet), which must not fail to run (exit 0 or 3)."""
+    t0 = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, "-m", "jaxcal", *args, "--quiet"], capture_output=True, text=True, env=env
+    )
+    seconds = time.perf_counter() - t0
+    if done.returncode not in (0, 3):
+        raise RuntimeError(f"jaxcal {' '.join(args)} exited {done.returncode}: {done.stderr[-2000:]}")
+    return seconds
+
+
+def _parameters(result_json: Path) -> dict[str, float]:
+    return {p["name"]: p["estimate"] for p in json.loads(result_json.read_text())["parameters"]}
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--units", type=int, default=20, help="units in the fleet (at least 2)")
+    parser.add_argument("--poses", type=int, default=1000, help="tracker poses per unit (at least 10)")
+    parser.add_argument("--singles", type=int, default=3, help="units also calibrated one process each")
+    parser.add_argument("--cv-folds", type=int, default=5, help="each calibration's cross-validation folds")
+    parser.add_argument("--json", metavar="OUT", help="also write the JSON here")
+    args = parser.parse_args(argv)
+    if args.units < 2 or args.poses < 10 or not 1 <= args.singles <= args.units:
+        parser.error("--units >= 2, --poses >= 10, 1 <= --singles <= --units")
+    from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
+
+    env = dict(os.environ)
+    config = ["--config", f"cv-folds={args.cv_folds}"]
+    with tempfile.TemporaryDirectory(prefix="jaxcal-fleet-") as tmp:
+        work = Path(tmp)
+        print(f"simulating {args.units} UR5e units of {args.poses} tracker poses ...", flush=True)
+        for k in range(args.units):
+            simulate_tracker(
+                TrackerSimConfig(seed=100 + k, poses=args.poses, **KW), work / "fleet" / f"unit{k:03d}"
+            )
+        print("a first calibration of one unit (not timed: it fills the compilation cache) ...", flush=True)
+        _jaxcal(["calibrate", str(work / "fleet" / "unit000"), "--out", str(work / "warm"), *config], env)
+        print(f"the fleet in one process: jaxcal calibrate {work / 'fleet'} ...", flush=True)
+        fleet_s = _jaxcal(["calibrate", str(work / "fleet"), "--out", str(work / "out"), *config], env)
+        single_s, differences = [], []
+        for k in range(args.singles):
+            name = f"unit{k:03d}"
+            print(f"unit {name} alone ({k + 1}/{args.singles}) ...", flush=True)
+            single_s.append(
+                _jaxcal(["calibrate", str(work / "fleet" / name), "--out", str(work / name), *config], env)
+            )
+            mine, alone = (_parameters(d / "result.json") for d in (work / "out" / name, work / name))
+            differences += [abs(mine[n] - alone[n]) for n in alone]
+        summary = json.loads((work / "out" / "fleet.json").read_text())
+    origins = [
+        p["population_std"] * 1e3
+        for p in summary["parameters"]
+        if ".origin." in p["name"] and p["name"].rsplit(".", 1)[1] in ("x", "y", "z") and p["unit"] == "m"
+    ]
+    mean = float(np.mean(single_s))
+    report = {
+        "units": args.units,
+        "poses": args.poses,
+        "cv_folds": args.cv_folds,
+        "fleet_s": fleet_s,
+        "fleet_per_unit_s": fleet_s / args.units,
+        "single_s": single_s,
+        "single_s_mean": mean,
+        "singles_extrapolated_s": mean * args.units,
+        "speedup": mean * args.units / fleet_s,
+        "max_parameter_difference": float(max(differences)),
+        "statuses": {u["name"]: u["status"] for u in summary["units"]},
+        "outliers": [(o["unit"], o["parameter"], round(o["z"], 1)) for o in summary["outliers"]],
+        "population_std_mm": float(np.median(origins)) if origins else None,
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+    }
+    print(
+        f"{args.units} units: fleet {fleet_s:.1f} s ({fleet_s / args.units:.2f} s a unit), one process a unit "
+        f"{mean:.2f} s ({report['speedup']:.1f}x); largest parameter difference "
+        f"{report['max_parameter_difference']:.2e}; outliers {report['outliers']}"
+    )
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=1))
+    return report
+
+
+if __name__ == "__main__":
+    main()

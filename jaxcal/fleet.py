@@ -1,0 +1,406 @@
+"""A fleet: many robots of one model calibrated in one run, and what their results say together.
+
+`calibrate_fleet(datasets, out)` (`jaxcal calibrate DS1 DS2 ...`, or a folder of datasets)
+calibrates every unit in one process, so that the compiled programs one unit loads serve the
+next, and writes each unit's result as `jaxcal calibrate` would (`OUT/<unit>/`), then the fleet's
+summary (`fleet.json`, `fleet.md`, `fleet.png`). A unit whose data are refused, or whose
+calibration fails, does not stop the others: its reason is in the summary.
+
+The summary, per parameter that every calibrated unit estimated:
+
+- the fleet's median and its robust spread ($1.4826\\,\\mathrm{MAD}$), the mean and the sample
+  standard deviation, the units' own uncertainty (the RMS of their standard deviations) and
+  the population's spread with that uncertainty removed,
+  $\\sqrt{\\max(s^2 - \\overline{\\sigma_i^2}, 0)}$: how much the robots differ, not how well
+  each was measured;
+- the units that stand out: $|x_i - \\mathrm{median}| / \\max(\\text{robust spread}, \\sigma_i)$
+  above `outlier_threshold` (set so that a fleet of ordinary units has one named with chance
+  `FALSE_ALARM`), named with the parameter, the value and how far; and units whose residual
+  stands out from the fleet's the same way (a unit measured badly, or not of this model).
+
+Outliers are judged only with at least `MIN_UNITS` calibrated units: fewer cannot say what is
+usual.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ._records_base import Record, plain
+from .errors import DatasetError
+from .io._files import atomic_directory, write_text_atomic
+
+#: The chance that a fleet of normal units, none out of the ordinary, has a unit named anyway
+#: (per family: the parameters together, the residuals apart).
+FALSE_ALARM = 0.01
+#: The fewest calibrated units that say what is usual.
+MIN_UNITS = 5
+#: Normal consistency of the median absolute deviation.
+MAD_SIGMA = 1.4826
+
+
+@dataclass(frozen=True, eq=False)
+class FleetUnit(Record):
+    """One unit of the fleet: where its data are, what became of it."""
+
+    name: str
+    dataset: str
+    #: `ok`, `suspect` or `failed` (the calibration's status), or `refused` (its data).
+    status: str
+    #: The calibration's first reason, or why the data were refused ("" when ok).
+    reason: str
+    #: The fit's residual RMS (`residual_unit`), or None when not calibrated.
+    residual: float | None
+    residual_unit: str
+    seconds: float
+
+
+@dataclass(frozen=True, eq=False)
+class FleetParameter(Record):
+    """One parameter across the calibrated units that estimated it (SI units: `unit`)."""
+
+    name: str
+    unit: str
+    units: int
+    nominal: float
+    median: float
+    robust_spread: float
+    mean: float
+    std: float
+    #: The RMS of the units' own standard deviations.
+    measurement_std: float
+    #: The spread of the robots themselves: the sample variance less the measurement variance.
+    population_std: float
+    #: Each calibrated unit's estimate, in `FleetSummary.calibrated`'s order.
+    values: tuple[float, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class FleetOutlier(Record):
+    """A unit that stands out: its `parameter` (or `residual`) `z` robust spreads from the median."""
+
+    unit: str
+    parameter: str
+    value: float
+    median: float
+    z: float
+
+
+@dataclass(frozen=True, eq=False)
+class FleetSummary(Record):
+    units: tuple[FleetUnit, ...]
+    parameters: tuple[FleetParameter, ...]
+    outliers: tuple[FleetOutlier, ...]
+    #: How far (robust spreads) a parameter lies from the median to be named (`outlier_threshold`;
+    #: None: not judged).
+    limit: float | None
+    #: Why outliers were not judged (too few units), else "".
+    note: str = ""
+    timings_s: dict = field(default_factory=dict)
+
+    @property
+    def calibrated(self) -> tuple[FleetUnit, ...]:
+        return tuple(u for u in self.units if u.residual is not None)
+
+    @property
+    def exit_code(self) -> int:
+        """0 when every unit is ok and none stands out, else 3 (as a suspect calibration)."""
+        return 0 if all(u.status == "ok" for u in self.units) and not self.outliers else 3
+
+
+def fleet_datasets(paths: Sequence) -> list[Path]:
+    """The datasets named: each path a dataset (its `metadata.json`) or a folder of datasets
+    (its subfolders that have one, in name order). Raises `DatasetError` for a path that is
+    neither, or for two units of one name (their results would share a folder)."""
+    found = []
+    for p in map(Path, paths):
+        if (p / "metadata.json").is_file() or not p.is_dir():
+            found.append(p)  # a dataset, or what the reader will refuse by name
+            continue
+        inside = sorted(d for d in p.iterdir() if (d / "metadata.json").is_file())
+        if not inside:
+            raise DatasetError(f"{p}: neither a dataset (no metadata.json) nor a folder of datasets")
+        found += inside
+    names = [d.name for d in found]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise DatasetError(
+            f"units named alike {twice}: each unit's result is OUT/<its folder's name>; rename them"
+        )
+    return found
+
+
+def is_fleet(paths: Sequence) -> bool:
+    """Several datasets, or one folder of datasets (`fleet_datasets`)."""
+    if len(paths) > 1:
+        return True
+    p = Path(paths[0])
+    return (
+        p.is_dir()
+        and not (p / "metadata.json").exists()
+        and any((d / "metadata.json").is_file() for d in p.iterdir())
+    )
+
+
+@functools.cache
+def outlier_threshold(units: int, parameters: int, alpha: float = FALSE_ALARM) -> float:
+    """How far (in robust spreads) from the median a value must lie to be named, so that a fleet of
+    `units` normal units, compared over `parameters` parameters, has one named with chance `alpha`:
+    the $1 - \\alpha$ quantile of the largest $|x_i - \\mathrm{median}| / (1.4826\\,\\mathrm{MAD})$,
+    by simulation (fixed seed). The median and MAD of a few units are themselves uncertain, so
+    the threshold is far above the normal one for small fleets (about 36 at 7 units and 30
+    parameters, 8.5 at 20, 5.4 at 100)."""
+    rng = np.random.default_rng(0)
+    draws = int(min(2000, max(200, 2e7 // (units * parameters))))
+    largest = []
+    for start in range(0, draws, 100):
+        x = rng.standard_normal((min(100, draws - start), parameters, units))
+        med = np.median(x, axis=2, keepdims=True)
+        spread = MAD_SIGMA * np.median(np.abs(x - med), axis=2, keepdims=True)
+        largest.append(np.max(np.abs(x - med) / spread, axis=(1, 2)))
+    return float(np.quantile(np.concatenate(largest), 1.0 - alpha))
+
+
+def _robust(x: np.ndarray) -> tuple[float, float]:
+    med = float(np.median(x))
+    return med, MAD_SIGMA * float(np.median(np.abs(x - med)))
+
+
+def summarize(units: Sequence[FleetUnit], parameters: dict[str, list]) -> FleetSummary:
+    """The fleet's summary from its units and, per calibrated unit name, its `ParameterRow`s."""
+    calibrated = [u.name for u in units if u.residual is not None]
+    rows_by_name: dict[str, list] = {}
+    for unit in calibrated:
+        for r in parameters[unit]:
+            if r.free:
+                rows_by_name.setdefault(r.name, []).append((unit, r))
+    stats, outliers = [], []
+    judge = len(calibrated) >= MIN_UNITS
+    common = [n for n, rows in rows_by_name.items() if len(rows) == len(calibrated)]  # comparable
+    limit = outlier_threshold(len(calibrated), max(len(common), 1)) if judge else None
+    for name in common:
+        rows = rows_by_name[name]
+        x = np.array([r.estimate for _, r in rows])
+        s = np.array([r.std for _, r in rows])
+        med, spread = _robust(x)
+        std = float(np.std(x, ddof=1)) if len(x) > 1 else 0.0
+        meas = float(np.sqrt(np.mean(s**2)))
+        stats.append(
+            FleetParameter(
+                name=name,
+                unit=rows[0][1].unit,
+                units=len(rows),
+                nominal=float(rows[0][1].nominal),
+                median=med,
+                robust_spread=spread,
+                mean=float(np.mean(x)),
+                std=std,
+                measurement_std=meas,
+                population_std=float(np.sqrt(max(std**2 - meas**2, 0.0))),
+                values=tuple(float(v) for v in x),
+            )
+        )
+        z = (x - med) / np.maximum(np.maximum(spread, s), np.finfo(float).tiny)
+        outliers += [
+            FleetOutlier(unit=u, parameter=name, value=float(v), median=med, z=float(zi))
+            for (u, _), v, zi in zip(rows, x, z, strict=True)
+            if limit is not None and abs(zi) > limit
+        ]
+    if judge:
+        res = np.array([u.residual for u in units if u.residual is not None])
+        med, spread = _robust(np.log(res))  # residuals are positive and skewed: compared as ratios
+        for u in units:
+            z = (np.log(u.residual) - med) / spread if u.residual is not None and spread > 0 else 0.0
+            if z > outlier_threshold(len(res), 1):
+                outliers.append(
+                    FleetOutlier(
+                        unit=u.name,
+                        parameter="residual",
+                        value=u.residual,
+                        median=float(np.exp(med)),
+                        z=float(z),
+                    )
+                )
+    note = "" if judge else f"{len(calibrated)} calibrated units: outliers are judged from {MIN_UNITS} on"
+    outliers.sort(key=lambda o: -abs(o.z))
+    return FleetSummary(
+        units=tuple(units), parameters=tuple(stats), outliers=tuple(outliers), limit=limit, note=note
+    )
+
+
+def _unit_of(name: str, dataset: Path, result, seconds: float) -> FleetUnit:
+    if result.point_fit is not None:
+        residual, unit = float(result.point_fit.residual_mm.rms), "mm"
+    elif result.refinement is not None:
+        residual, unit = float(result.refinement.inlier_rms_px), "px"
+    else:
+        residual, unit = float("nan"), ""
+    return FleetUnit(
+        name=name,
+        dataset=str(dataset),
+        status=result.status,
+        reason=result.reasons[0] if result.reasons else "",
+        residual=residual,
+        residual_unit=unit,
+        seconds=seconds,
+    )
+
+
+def calibrate_fleet(
+    datasets: Sequence,
+    out,
+    *,
+    calibrate: Callable,
+    write: Callable,
+    overwrite: bool = False,
+    checked=None,
+    strict: bool = False,
+    say: Callable[[str], None] = print,
+) -> FleetSummary:
+    """Calibrate every dataset (`calibrate(path) -> CalibrationResult`) and write each result with
+    `write(result, folder)` into `out/<unit>/`, then the fleet's summary, all atomically (`out`
+    appears whole or not at all). `strict`: a unit that is not ok is not written (its reason is
+    in the summary). `say`: one line per unit. **Returns:** the `FleetSummary`."""
+    datasets = fleet_datasets(datasets)
+    units, parameters, t0 = [], {}, time.perf_counter()
+    with atomic_directory(
+        out, overwrite=overwrite, inputs=datasets, kind="result", what="--out", checked=checked
+    ) as tmp:
+        for k, path in enumerate(datasets):
+            name, start = path.name, time.perf_counter()
+            try:
+                result = calibrate(path)
+            except (ValueError, OSError) as e:  # jaxcal's errors name the file, field or frame
+                status = "refused" if isinstance(e, (DatasetError, OSError)) else "failed"
+                units.append(
+                    FleetUnit(name, str(path), status, str(e), None, "", time.perf_counter() - start)
+                )
+                say(f"unit {k + 1}/{len(datasets)} {name}: {status}: {e}")
+                continue
+            unit = _unit_of(name, path, result, time.perf_counter() - start)
+            if not np.isfinite(unit.residual):
+                unit = FleetUnit(name, str(path), result.status, unit.reason, None, "", unit.seconds)
+            units.append(unit)
+            if unit.residual is not None:
+                parameters[name] = result.parameters
+            if not (strict and result.status != "ok"):
+                write(result, tmp / name)
+            residual = (
+                "" if unit.residual is None else f", residual {unit.residual:.4g} {unit.residual_unit} RMS"
+            )
+            say(f"unit {k + 1}/{len(datasets)} {name}: {result.status}{residual} ({unit.seconds:.1f} s)")
+        summary = summarize(units, parameters)
+        summary = dataclasses.replace(summary, timings_s={"total": time.perf_counter() - t0})
+        write_text_atomic(tmp / "fleet.json", json.dumps(fleet_json(summary), indent=1))
+        plotted = plot_fleet(summary, tmp / "fleet.png")
+        (tmp / "fleet.md").write_text(fleet_markdown(summary, plotted))
+    return summary
+
+
+def fleet_json(summary: FleetSummary) -> dict:
+    return {"schema": "jaxcal.fleet", "schema_version": 1, **plain(summary)}
+
+
+def _fmt(v: float, unit: str) -> str:
+    scale, shown = {"m": (1e3, "mm"), "rad": (np.degrees(1.0), "deg")}.get(unit, (1.0, unit))
+    return f"{v * scale:.4g} {shown}".strip()
+
+
+def fleet_markdown(summary: FleetSummary, plotted: bool) -> str:
+    s = summary
+    counts = {k: sum(u.status == k for u in s.units) for k in ("ok", "suspect", "failed", "refused")}
+    lines = [
+        "# jaxcal fleet calibration",
+        "",
+        f"{len(s.units)} units: " + ", ".join(f"{v} {k}" for k, v in counts.items() if v) + ". Each unit's "
+        "result is in its own folder, as `jaxcal calibrate` writes it.",
+        "",
+    ]
+    if s.note:
+        lines += [f"Note: {s.note}.", ""]
+    lines += ["## Units that stand out", ""]
+    if s.outliers:
+        lines += [
+            "| unit | parameter | value | fleet median | robust spreads off |",
+            "| --- | --- | --- | --- | ---: |",
+        ]
+        units = {p.name: p.unit for p in s.parameters} | {"residual": ""}
+        for o in s.outliers:
+            u = units.get(o.parameter, "")
+            lines.append(
+                f"| {o.unit} | {o.parameter} | {_fmt(o.value, u)} | {_fmt(o.median, u)} | {o.z:+.1f} |"
+            )
+    else:
+        lines.append("None." if not s.note else "Not judged (too few units).")
+    lines += [
+        "",
+        "## Units",
+        "",
+        "| unit | status | residual RMS | seconds | reason |",
+        "| --- | --- | --- | ---: | --- |",
+    ]
+    for u in s.units:
+        res = "" if u.residual is None else f"{u.residual:.4g} {u.residual_unit}"
+        lines.append(f"| {u.name} | {u.status} | {res} | {u.seconds:.1f} | {u.reason.replace('|', '/')} |")
+    lines += [
+        "",
+        "## Parameters across the fleet",
+        "",
+        "Median, robust spread (1.4826 MAD), the units' own uncertainty (RMS of their standard "
+        "deviations) and the spread of the robots themselves (the sample's, less that uncertainty).",
+        "",
+        "| parameter | nominal | median | robust spread | measurement std | population std |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for p in s.parameters:
+        cells = (p.nominal, p.median, p.robust_spread, p.measurement_std, p.population_std)
+        lines.append(f"| {p.name} | " + " | ".join(_fmt(v, p.unit) for v in cells) + " |")
+    if plotted:
+        lines += ["", "![each unit's parameters, in robust spreads from the fleet's median](fleet.png)", ""]
+    return "\n".join(lines) + "\n"
+
+
+def plot_fleet(summary: FleetSummary, path) -> bool:
+    """Each parameter's units as dots, in robust spreads from the fleet's median (outliers red and
+    named). **Returns:** whether a plot was written (none without parameters)."""
+    params = [p for p in summary.parameters if p.robust_spread > 0]
+    if not params:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    named = {(o.unit, o.parameter): o.z for o in summary.outliers}
+    fig, ax = plt.subplots(figsize=(8, 0.28 * len(params) + 1.5))
+    for i, p in enumerate(params):
+        z = (np.asarray(p.values) - p.median) / p.robust_spread
+        ax.scatter(z, np.full(len(z), i), color="0.45", s=8, alpha=0.6)
+        for (u, q), zu in named.items():
+            if q == p.name:
+                ax.scatter([zu], [i], color="tab:red", s=18, zorder=3)
+                ax.annotate(
+                    u, (zu, i), xytext=(3, 3), textcoords="offset points", fontsize=7, color="tab:red"
+                )
+    if summary.limit is not None:
+        lim = summary.limit
+        ax.axvspan(
+            -lim, lim, color="tab:green", alpha=0.08, label=f"within {lim:.3g} robust spreads: not named"
+        )
+    ax.set_yticks(range(len(params)), [p.name for p in params], fontsize=7)
+    ax.set_xlabel("robust spreads from the fleet's median (outliers named)")
+    ax.set_title(f"{len(summary.calibrated)} calibrated units")
+    if summary.limit is not None:
+        ax.legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
