@@ -13,7 +13,8 @@ The summary, per parameter that every calibrated unit estimated:
   the population's spread with that uncertainty removed,
   $\\sqrt{\\max(s^2 - \\overline{\\sigma_i^2}, 0)}$: how much the robots differ, not how well
   each was measured;
-- the units that stand out: $|x_i - \\mathrm{median}| / \\max(\\text{robust spread}, \\sigma_i)$
+- the units that stand out: $|x_i - \\mathrm{median}| / \\max(\\text{robust spread}, \\sigma_i,
+  10^{-5})$ (`RESOLUTION`: 10 micrometres, 10 microradians)
   above `outlier_threshold` (set so that a fleet of ordinary units has one named with chance
   `FALSE_ALARM`), named with the parameter, the value and how far; and units whose residual
   stands out from the fleet's the same way (a unit measured badly, or not of this model).
@@ -45,6 +46,12 @@ FALSE_ALARM = 0.01
 MIN_UNITS = 5
 #: Normal consistency of the median absolute deviation.
 MAD_SIGMA = 1.4826
+#: The smallest difference between robots that counts (m, rad, or relative for unitless
+#: parameters: 10 um, 10 urad), far below the spread of a model's robots (tenths of a
+#: millimetre, tenths of a degree) and below what a calibration is used for: parameters a capture
+#: barely moves (an offset along parallel axes, which the gauge fixes) scatter by nanometres to
+#: micrometres across units, heavy-tailed, a difference no robot has.
+RESOLUTION = 1e-5
 
 
 @dataclass(frozen=True, eq=False)
@@ -208,7 +215,7 @@ def summarize(units: Sequence[FleetUnit], parameters: dict[str, list]) -> FleetS
                 values=tuple(float(v) for v in x),
             )
         )
-        z = (x - med) / np.maximum(np.maximum(spread, s), np.finfo(float).tiny)
+        z = (x - med) / np.maximum(np.maximum(spread, s), RESOLUTION)
         outliers += [
             FleetOutlier(unit=u, parameter=name, value=float(v), median=med, z=float(zi))
             for (u, _), v, zi in zip(rows, x, z, strict=True)

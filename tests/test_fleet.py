@@ -53,6 +53,14 @@ def test_a_unit_off_the_fleet_is_named_alone():
     assert summary.outliers[0].z > limit and summary.limit == pytest.approx(limit)
 
 
+def test_round_off_is_not_a_difference_between_robots():
+    """A parameter the capture barely moves scatters by nanometres across units (a spread of
+    round-off, its MAD tinier still): no unit stands out by it."""
+    rng = np.random.default_rng(4)
+    values = np.c_[rng.normal(0.0, 1e-3, 20), rng.standard_t(1, 20) * 1e-10]
+    assert not summarize(*_fleet(values, np.full(values.shape, 1e-11))).outliers
+
+
 def test_the_population_spread_is_the_robots_not_their_measurement():
     """300 units whose parameter differs by 2 mm (the robots) and is measured to 1 mm: the
     population's spread 2 mm (within 10 %), the measurement's 1 mm."""
