@@ -14,9 +14,18 @@ offsets drawn at the simulator's scales: a population), then:
   result and in its own calibration (SI units: m, rad), over the single runs;
 - `outliers`, `statuses`: what the fleet's summary named; `population_std_mm`: the fleet's
   estimated spread of the robots' joint origins (the median over the origin translations, mm),
-  against the simulator's 1 mm per axis (`origin_mm`).
+  against the simulator's 1 mm per axis (`origin_mm`);
+- the fleet as prior (`--prior-poses`, 0: skipped): a new unit of the same population measured at
+  `--prior-poses` poses, calibrated with `--prior fleet.json` and without, and at `--poses` without:
+  each one's end-effector error against the simulator's truth (`ee_rms_mm`, the validation's) and
+  its cross-validated distance from the measured points (`cv_mean_mm`, what the data show);
+  `prior_30_over_full_1000` (named for the issue's sizes) is the first ratio with the prior,
+  `noprior_30_over_full_1000` without; `prior_share_mean` the prior's mean share of the
+  parameters' information. `--population-scale` scales the population's spread (the simulator's
+  origin, axis and zero-offset scales).
 
     python benchmarks/fleet.py --units 20 --poses 1000 --singles 3 --json results/fleet.json
+    python benchmarks/fleet.py --units 20 --poses 1000 --singles 1 --population-scale 0.05 --json OUT
 """
 
 import argparse
@@ -58,10 +67,25 @@ def main(argv=None) -> dict:
     parser.add_argument("--poses", type=int, default=1000, help="tracker poses per unit (at least 10)")
     parser.add_argument("--singles", type=int, default=3, help="units also calibrated one process each")
     parser.add_argument("--cv-folds", type=int, default=5, help="each calibration's cross-validation folds")
+    parser.add_argument(
+        "--prior-poses", type=int, default=30, help="the new unit's short capture (0: no prior part)"
+    )
+    parser.add_argument(
+        "--population-scale",
+        type=float,
+        default=1.0,
+        help="the population's spread over the simulator's scales",
+    )
     parser.add_argument("--json", metavar="OUT", help="also write the JSON here")
     args = parser.parse_args(argv)
     if args.units < 2 or args.poses < 10 or not 1 <= args.singles <= args.units:
         parser.error("--units >= 2, --poses >= 10, 1 <= --singles <= --units")
+    if args.prior_poses and (args.prior_poses < 24 or args.units < 5):
+        parser.error("--prior-poses: at least 24 (four per joint), and a fleet of at least 5 units")
+    kw = KW | {
+        k: v * args.population_scale
+        for k, v in dict(origin_mm=1.0, origin_deg=0.2, axis_tilt_deg=0.2, zero_offset_deg=0.5).items()
+    }
     from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
 
     env = dict(os.environ)
@@ -71,7 +95,7 @@ def main(argv=None) -> dict:
         print(f"simulating {args.units} UR5e units of {args.poses} tracker poses ...", flush=True)
         for k in range(args.units):
             simulate_tracker(
-                TrackerSimConfig(seed=100 + k, poses=args.poses, **KW), work / "fleet" / f"unit{k:03d}"
+                TrackerSimConfig(seed=100 + k, poses=args.poses, **kw), work / "fleet" / f"unit{k:03d}"
             )
         print("a first calibration of one unit (not timed: it fills the compilation cache) ...", flush=True)
         _jaxcal(["calibrate", str(work / "fleet" / "unit000"), "--out", str(work / "warm"), *config], env)
@@ -87,6 +111,7 @@ def main(argv=None) -> dict:
             mine, alone = (_parameters(d / "result.json") for d in (work / "out" / name, work / name))
             differences += [abs(mine[n] - alone[n]) for n in alone]
         summary = json.loads((work / "out" / "fleet.json").read_text())
+        prior = _prior_part(work, args, kw, config, env) if args.prior_poses else {}
     origins = [
         p["population_std"] * 1e3
         for p in summary["parameters"]
@@ -107,6 +132,8 @@ def main(argv=None) -> dict:
         "statuses": {u["name"]: u["status"] for u in summary["units"]},
         "outliers": [(o["unit"], o["parameter"], round(o["z"], 1)) for o in summary["outliers"]],
         "population_std_mm": float(np.median(origins)) if origins else None,
+        "population_scale": args.population_scale,
+        **prior,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
         "date": time.strftime("%Y-%m-%d %H:%M"),
     }
@@ -115,9 +142,50 @@ def main(argv=None) -> dict:
         f"{mean:.2f} s ({report['speedup']:.1f}x); largest parameter difference "
         f"{report['max_parameter_difference']:.2e}; outliers {report['outliers']}"
     )
+    if prior:
+        print(
+            f"a new unit, end-effector error against the truth: {args.prior_poses} poses with the fleet's prior "
+            f"{prior['ee_rms_mm']['short_prior']:.4f} mm, without {prior['ee_rms_mm']['short']:.4f} mm, "
+            f"{args.poses} poses without {prior['ee_rms_mm']['full']:.4f} mm (ratios "
+            f"{prior['prior_30_over_full_1000']:.2f}, {prior['noprior_30_over_full_1000']:.2f}); the prior gave "
+            f"{prior['prior_share_mean']:.0%} of the information"
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))
     return report
+
+
+def _prior_part(work: Path, args, kw: dict, config: list, env: dict) -> dict:
+    """A new unit of the population, short with the fleet's prior and without, and full without."""
+    from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
+
+    runs = {"short_prior": args.prior_poses, "short": args.prior_poses, "full": args.poses}
+    docs = {}
+    for name, poses in runs.items():
+        data = work / f"new_{poses}"
+        if not data.exists():
+            simulate_tracker(TrackerSimConfig(seed=999, poses=poses, **kw), data)
+        extra = ["--prior", str(work / "out" / "fleet.json")] if name == "short_prior" else []
+        print(f"a new unit, {poses} poses{' with the prior' if extra else ''} ...", flush=True)
+        _jaxcal(["calibrate", str(data), "--out", str(work / name), *config, *extra], env)
+        docs[name] = json.loads((work / name / "result.json").read_text())
+    ee = {k: d["validation"]["ee_rms_mm_after"] for k, d in docs.items()}
+    cv = {
+        k: next(m.get("cv_mean_mm") for m in d["point_fit"]["models"] if m["kept"]) for k, d in docs.items()
+    }
+    folds = args.cv_folds > 0
+    share = docs["short_prior"]["point_fit"]["prior"]["share"]
+    return {
+        "prior_poses": args.prior_poses,
+        "ee_rms_mm": ee,
+        "cv_mean_mm": cv,
+        "prior_30_over_full_1000": ee["short_prior"] / ee["full"],
+        "noprior_30_over_full_1000": ee["short"] / ee["full"],
+        "cv_prior_30_over_full_1000": cv["short_prior"] / cv["full"] if folds else None,
+        "cv_noprior_30_over_full_1000": cv["short"] / cv["full"] if folds else None,
+        "prior_share_mean": float(np.mean(share)),
+        "prior_parameters": len(share),
+    }
 
 
 if __name__ == "__main__":

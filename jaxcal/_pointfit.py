@@ -149,14 +149,25 @@ def _basis(problem: "PointProblem") -> Float[Array, "samples joints k"]:
     return term_basis(problem.layout.terms, problem.nominal, d.q, d.masses, d.coms, d.approach)
 
 
+class PointPrior(eqx.Module):
+    """A Gaussian prior on the vector `x` (`PointLayout` order; a fleet's, `jaxcal.fleet`): mean
+    `mean`, precision `root.T @ root` (zero where it says nothing). Its rows `root @ (x - mean)`
+    join the whitened residuals: the fit is the posterior's mode, its covariance the posterior's."""
+
+    root: Float[Array, "n n"]
+    mean: Float[Array, " n"]
+
+
 class PointProblem(eqx.Module):
-    """A point fit: the nominal model, the references the corrections are relative to, the data."""
+    """A point fit: the nominal model, the references the corrections are relative to, the data
+    and, optionally, a prior on the parameters."""
 
     nominal: KinematicModel
     T_dev_base0: Float[Array, "4 4"]
     T_flange_point0: Float[Array, "4 4"]
     data: PointData
     layout: PointLayout = eqx.field(static=True)
+    prior: PointPrior | None = None
 
 
 def _rotations(
@@ -340,9 +351,24 @@ def _residuals_primal(x, problem):
     return r
 
 
+def _prior_rows(x, problem, keep) -> tuple[Float[Array, " q"], Float[Array, "q n"]]:
+    """The prior's rows at `x` over the columns `keep` and their Jacobian (empty without a prior)."""
+    n = x.shape[0]
+    if problem.prior is None:
+        return jnp.zeros(0, x.dtype), jnp.zeros((0, n), x.dtype)
+    U = problem.prior.root * keep[None, :]
+    return U @ (x - problem.prior.mean), U
+
+
+def _with_prior(x, problem, keep, r, H, e) -> tuple[Array, Array, Array]:
+    """The residuals `r`, normal matrix `H` and gradient `e` with the prior's rows added."""
+    rp, U = _prior_rows(x, problem, keep)
+    return jnp.concatenate([r, rp]), H + U.T @ U, e + U.T @ rp
+
+
 def _normal(x, problem, keep) -> tuple[Array, NormalEquations]:
-    """The whitened residuals (positions `(3, s)`-ordered, then the orientations')
-    and their normal equations over the columns `keep` (the others zero): the
+    """The whitened residuals (positions `(3, s)`-ordered, then the orientations', then the
+    prior's rows) and their normal equations over the columns `keep` (the others zero): the
     positions' from `_jacobian_factors`, the orientations' (when measured) by
     forward-mode autodiff."""
     w = _weights(problem)
@@ -356,6 +382,7 @@ def _normal(x, problem, keep) -> tuple[Array, NormalEquations]:
         rr = _rotation_residuals(x, problem)
         Jr = jax.jacfwd(_rotation_residuals)(x, problem) * keep[None, :]
         r, H, e = jnp.concatenate([r, rr]), H + Jr.T @ Jr, e + Jr.T @ rr
+    r, H, e = _with_prior(x, problem, keep, r, H, e)
     return r, NormalEquations(H=H, e=e)
 
 
@@ -486,7 +513,9 @@ def fit_points(
         keep, indep = jnp.asarray(free, bool), jnp.full(layout.size, jnp.nan)
         std_alone = jnp.full(layout.size, jnp.nan)
     kf = keep.astype(x0.dtype)
-    if free is None:  # the search's linearisation is the solver's first, over the kept columns
+    if free is None and problem.prior is None:
+        # The search's linearisation is the solver's first, over the kept columns (a prior's
+        # rows over all columns are not their rows over the kept ones: evaluated again).
         first = (r0, NormalEquations(H=ne0.H * kf[:, None] * kf[None, :], e=ne0.e * kf))
     x, sol = _solve(problem, kf, x0, options, first)
     solved = (sol.residuals, sol.normal.H, problem.data.weight)
@@ -514,8 +543,19 @@ def _summary(problem, x, search, solved, result, steps) -> PointFitResult:
     r, H, w = solved
     inlier = problem.data.mask & (w > 0)
     k = 6 if problem.layout.orientation else 3
-    sigma2 = _lsq.residual_variance(r, k * jnp.sum(inlier), jnp.sum(keep))
-    cov = _lsq.covariance_normal(H, keep, sigma2)
+    if problem.prior is None:
+        sigma2 = _lsq.residual_variance(r, k * jnp.sum(inlier), jnp.sum(keep))
+        cov = _lsq.covariance_normal(H, keep, sigma2)
+    else:
+        # The data's variance factor from the data's rows, over the parameters the data determine
+        # (the trace of their share of the posterior); the posterior's covariance
+        # $(H_d / \hat\sigma^2 + P)^{-1}$, the prior's precision $P$ as stated.
+        _, U = _prior_rows(jnp.zeros_like(H[0]), problem, keep.astype(H.dtype))
+        P = U.T @ U
+        Hd = H - P
+        seen = jnp.trace(_lsq.covariance_normal(H, keep) @ Hd)
+        sigma2 = _lsq.residual_variance(r[: r.shape[0] - U.shape[0]], k * jnp.sum(inlier), seen)
+        cov = _lsq.covariance_normal(Hd + sigma2 * P, keep, sigma2)
     S = w.shape[0]  # the positions lead `r`, `(3, samples)`-ordered, weighted by the root of `w`
     unweighted = problem.data.sigma / jnp.sqrt(jnp.where(inlier, w, 1.0))
     dist2 = jnp.sum((r[: 3 * S].reshape(3, S) * unweighted) ** 2, axis=0)
@@ -546,11 +586,13 @@ def _deletion(x, keep, problem):
     n, k, S = J.shape
     Jf = J.reshape(n, k * S)
     H = (Jf * jnp.tile(w, k)[None, :]) @ Jf.T
+    rw = (r * jnp.sqrt(w)).reshape(-1)  # positions first, as `_normal`'s
+    rw, H, _ = _with_prior(x, problem, keep.astype(x.dtype), rw, H, jnp.zeros_like(x))
     # G_i = J_i C J_i^T, the samples last: one product and a sum over the parameters.
     CJ = (_lsq.covariance_normal(H, keep) @ Jf).reshape(n, k, S)
     G = jnp.moveaxis(jnp.sum(CJ[:, :, None, :] * J[:, None, :, :], axis=0), -1, 0)
     dist, nu = deletion_residuals(r.T, G, d.weight, d.mask)
-    return dist, nu, (r * jnp.sqrt(w)).reshape(-1), H  # positions first, as `_normal`'s
+    return dist, nu, rw, H
 
 
 def sample_radii(

@@ -21,12 +21,22 @@ The summary, per parameter that every calibrated unit estimated:
 
 Outliers are judged only with at least `MIN_UNITS` calibrated units: fewer cannot say what is
 usual.
+
+**The fleet as prior.** A fleet of point-fit units (tracker, motion capture, the controller's
+tool point) also writes `prior` into `fleet.json`: over the robot's own parameters (joint
+origins, zero offsets, terms) that every usable unit (ok, not named) estimated, their mean and
+the population's covariance, the units' own covariance removed (empirical Bayes,
+`fleet_prior`). `jaxcal calibrate --prior
+fleet.json` (`read_prior`) then fits a new unit of the same model with it as a Gaussian prior
+(`jaxcal._pointfit.PointPrior`): a short capture borrows what the fleet knows. The frame the unit
+is measured in and its point's mount differ per unit: no prior on them.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -35,9 +45,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ._records_base import Record, plain
+from ._records_base import Record, from_plain, plain
 from .errors import DatasetError
 from .io._files import atomic_directory, write_text_atomic
+from .io._schema import read_json
 
 #: The chance that a fleet of normal units, none out of the ordinary, has a unit named anyway
 #: (per family: the parameters together, the residuals apart).
@@ -112,6 +123,8 @@ class FleetSummary(Record):
     #: Why outliers were not judged (too few units), else "".
     note: str = ""
     timings_s: dict = field(default_factory=dict)
+    #: The fleet's prior (`FleetPrior`; None: too few usable point-fit units).
+    prior: "FleetPrior | None" = None
 
     @property
     def calibrated(self) -> tuple[FleetUnit, ...]:
@@ -121,6 +134,143 @@ class FleetSummary(Record):
     def exit_code(self) -> int:
         """0 when every unit is ok and none stands out, else 3 (as a suspect calibration)."""
         return 0 if all(u.status == "ok" for u in self.units) and not self.outliers else 3
+
+
+@dataclass(frozen=True, eq=False)
+class FleetPrior(Record):
+    """A robot model's parameters across a fleet, as a Gaussian prior for the next unit: `names`
+    (the point fit's, `jaxcal._pointfit.PointLayout.names`), their `mean` and the population's
+    `covariance` (the units' own removed), from `units` units of the robot whose joints are `joints`
+    and whose nominal model's digest is `nominal` (`model_digest`); `file`: where it was read."""
+
+    units: int
+    joints: tuple[str, ...]
+    nominal: str
+    names: tuple[str, ...]
+    mean: np.ndarray
+    covariance: np.ndarray
+    file: str = ""
+
+
+#: The nominal model's fields a prior depends on: the robot's, not the tool the dataset mounts.
+DIGESTED = ("T_parent_joint", "axis", "zero_offset", "reduction_ratio", "T_last_flange")
+
+
+def model_digest(model) -> str:
+    """A short digest of a nominal `KinematicModel`'s joints and geometry (to 1e-12): a prior is for
+    the model it was learnt on."""
+    h = hashlib.sha256(json.dumps([model.joint_names, model.joint_types]).encode())
+    for name in DIGESTED:
+        h.update(np.round(np.asarray(getattr(model, name), np.float64), 12).tobytes())
+    return h.hexdigest()[:16]
+
+
+def prior_parameter(name: str, fixed_frame: str) -> bool:
+    """Whether a point-fit parameter is the robot's own (a prior carries it), not the frame the unit
+    is measured in or its point's mount, which differ per unit."""
+    return not name.startswith((f"{fixed_frame}.", "marker.mount.", "camera.mount."))
+
+
+def fleet_prior(fits: dict, joints: Sequence[str], nominal: str, fixed_frame: str) -> FleetPrior | None:
+    """The fleet's prior from its usable units' point fits (`fits[unit] = (names, x, cov, free)`):
+    over the robot's parameters every unit estimated, the mean and the population's covariance:
+    each parameter's variance $S_{ii} - \\overline{C_{ii}}$ (the sample's less the units' own), no
+    smaller than $\\overline{C_{ii}}$ or `RESOLUTION`$^2$, and the sample's correlations shrunk
+    towards none by parameters over units. None with fewer than `MIN_UNITS` units (or no such
+    parameter)."""
+    if len(fits) < MIN_UNITS:
+        return None
+    first = next(iter(fits.values()))[0]
+    common = [
+        n
+        for n in first
+        if prior_parameter(n, fixed_frame)
+        and all(n in names and free[names.index(n)] for names, _, _, free in fits.values())
+    ]
+    if not common:
+        return None
+    X, C = [], []
+    for names, x, cov, _ in fits.values():
+        idx = [names.index(n) for n in common]
+        X.append(np.asarray(x)[idx])
+        C.append(np.asarray(cov)[np.ix_(idx, idx)])
+    X, k, n = np.asarray(X), len(common), len(fits)
+    S = np.cov(X, rowvar=False, ddof=1).reshape(k, k)
+    meas = np.mean([np.diag(c) for c in C], axis=0)
+    # Each parameter's population variance, no smaller than the units' own measurement variance
+    # (a fleet cannot say its robots are closer than it measured them), nor RESOLUTION^2.
+    var = np.maximum(np.diag(S) - meas, np.maximum(meas, RESOLUTION**2))
+    # Their correlations, shrunk towards none by parameters / units: fewer units than parameters
+    # leave most directions unseen, and a prior must not claim them known.
+    d = np.sqrt(np.diag(S))
+    R = S / np.outer(d, d) if np.all(d > 0) else np.eye(k)
+    shrink = min(1.0, k / n)
+    R = (1.0 - shrink) * R + shrink * np.eye(k)
+    pop = R * np.sqrt(np.outer(var, var))
+    return FleetPrior(
+        units=len(fits),
+        joints=tuple(joints),
+        nominal=nominal,
+        names=tuple(common),
+        mean=X.mean(axis=0),
+        covariance=pop,
+    )
+
+
+def read_prior(path) -> FleetPrior:
+    """The `FleetPrior` of a `fleet.json` (or the folder `jaxcal calibrate` wrote it in); raises
+    `DatasetError` naming the file and the field when it has none or is not one jaxcal wrote."""
+    p = Path(path)
+    file = p / "fleet.json" if p.is_dir() else p
+    doc = read_json(file, "fleet summary (--prior takes the fleet.json a fleet's calibration wrote)")
+    if not isinstance(doc, dict) or doc.get("schema") != "jaxcal.fleet":
+        raise DatasetError(f"{file}: not a fleet.json jaxcal wrote (schema is not 'jaxcal.fleet')")
+    if not doc.get("prior"):
+        raise DatasetError(
+            f"{file}: 'prior' is empty: the fleet had fewer than {MIN_UNITS} usable units calibrated "
+            "from points (a tracker, motion capture or the controller's tool point)"
+        )
+    try:
+        prior = from_plain(FleetPrior, doc["prior"])
+        k = len(prior.names)
+        if prior.mean.shape != (k,) or prior.covariance.shape != (k, k):
+            raise ValueError(f"mean {prior.mean.shape} and covariance {prior.covariance.shape} for {k} names")
+        if not (np.all(np.isfinite(prior.mean)) and np.all(np.isfinite(prior.covariance))):
+            raise ValueError("values that are not finite")
+        np.linalg.cholesky(prior.covariance)
+    except (KeyError, TypeError, ValueError, np.linalg.LinAlgError) as e:
+        raise DatasetError(
+            f"{file}: field 'prior' is not one jaxcal wrote ({type(e).__name__}: {e})"
+        ) from None
+    return dataclasses.replace(prior, file=str(file))
+
+
+def prior_rows(prior: FleetPrior, names: Sequence[str], joints: Sequence[str], nominal: str):
+    """The prior over a point fit's vector `names` (`jaxcal._pointfit.PointPrior`'s `root` and
+    `mean`, full length, zero where the prior says nothing). Raises `DatasetError` naming the file
+    when it was learnt on another robot model."""
+    if tuple(joints) != prior.joints or nominal != prior.nominal:
+        what = "joints" if tuple(joints) != prior.joints else "nominal model"
+        raise DatasetError(
+            f"{prior.file}: this prior was learnt on another robot ({what} differ: the fleet's joints "
+            f"{list(prior.joints)}, model {prior.nominal}; this dataset's {list(joints)}, model {nominal})"
+        )
+    missing = [n for n in prior.names if n not in names]
+    if missing:
+        raise DatasetError(f"{prior.file}: prior parameters {missing} are not in this calibration's model")
+    return gaussian_rows(prior.names, prior.mean, prior.covariance, names)
+
+
+def gaussian_rows(covered: Sequence[str], mean, covariance, names: Sequence[str]):
+    """`jaxcal._pointfit.PointPrior`'s `root` and `mean` over the vector `names` of a Gaussian of
+    `mean` and `covariance` over the parameters `covered` (each one of `names`)."""
+    idx = np.array([list(names).index(n) for n in covered])
+    w, V = np.linalg.eigh(np.asarray(covariance))
+    root = np.zeros((len(idx), len(names)))
+    root[:, idx] = (V / np.sqrt(w)).T  # root.T @ root = covariance^-1 on the prior's columns
+    full = np.zeros(len(names))
+    full[idx] = mean
+    return root, full
 
 
 def fleet_datasets(paths: Sequence) -> list[Path]:
@@ -277,7 +427,7 @@ def calibrate_fleet(
     appears whole or not at all). `strict`: a unit that is not ok is not written (its reason is
     in the summary). `say`: one line per unit. **Returns:** the `FleetSummary`."""
     datasets = fleet_datasets(datasets)
-    units, parameters, t0 = [], {}, time.perf_counter()
+    units, parameters, fits, robot, t0 = [], {}, {}, None, time.perf_counter()
     with atomic_directory(
         out, overwrite=overwrite, inputs=datasets, kind="result", what="--out", checked=checked
     ) as tmp:
@@ -298,6 +448,11 @@ def calibrate_fleet(
             units.append(unit)
             if unit.residual is not None:
                 parameters[name] = result.parameters
+            if unit.status == "ok" and result.point_fit is not None:
+                pf = result.point_fit
+                names = pf.layout.names()
+                fits[name] = (names, *(np.asarray(a) for a in (pf.fit.x, pf.fit.cov, pf.fit.free)))
+                robot = (pf.layout.base.joints, model_digest(pf.problem.nominal), pf.layout.base.fixed_frame)
             if not (strict and result.status != "ok"):
                 write(result, tmp / name)
             residual = (
@@ -305,7 +460,10 @@ def calibrate_fleet(
             )
             say(f"unit {k + 1}/{len(datasets)} {name}: {result.status}{residual} ({unit.seconds:.1f} s)")
         summary = summarize(units, parameters)
-        summary = dataclasses.replace(summary, timings_s={"total": time.perf_counter() - t0})
+        named = {o.unit for o in summary.outliers}
+        usable = {u: f for u, f in fits.items() if u not in named}
+        prior = None if robot is None else fleet_prior(usable, *robot)
+        summary = dataclasses.replace(summary, prior=prior, timings_s={"total": time.perf_counter() - t0})
         write_text_atomic(tmp / "fleet.json", json.dumps(fleet_json(summary), indent=1))
         plotted = plot_fleet(summary, tmp / "fleet.png")
         (tmp / "fleet.md").write_text(fleet_markdown(summary, plotted))
@@ -370,6 +528,15 @@ def fleet_markdown(summary: FleetSummary, plotted: bool) -> str:
     for p in s.parameters:
         cells = (p.nominal, p.median, p.robust_spread, p.measurement_std, p.population_std)
         lines.append(f"| {p.name} | " + " | ".join(_fmt(v, p.unit) for v in cells) + " |")
+    if s.prior is not None:
+        lines += [
+            "",
+            "## The fleet as prior",
+            "",
+            f"fleet.json's `prior`: {len(s.prior.names)} of the robot's parameters, their mean and the "
+            f"population's covariance over {s.prior.units} units (ok, none named). A new unit of this model: "
+            "`jaxcal calibrate NEW --prior fleet.json` (a short capture borrows what the fleet knows).",
+        ]
     if plotted:
         lines += ["", "![each unit's parameters, in robust spreads from the fleet's median](fleet.png)", ""]
     return "\n".join(lines) + "\n"

@@ -11,6 +11,7 @@ device's samples) -> validate
 """
 
 import dataclasses
+import os
 import time
 
 from . import stages
@@ -19,6 +20,7 @@ from ._exported import warm_start
 from ._progress import watchdog
 from .errors import CalibrationError as CalibrationError  # re-exported
 from .errors import SuspectResultError
+from .fleet import read_prior
 from .io._files import resolved
 from .stages import CalibrationResult as CalibrationResult  # re-exported
 from .stages import Limits
@@ -42,6 +44,7 @@ def calibrate(
     terms: tuple[str, ...] | str = "auto",
     cv_folds: int = 5,
     identifiability_tol: float | None = None,
+    prior=None,
     strict: bool = False,
     log=None,
 ) -> CalibrationResult:
@@ -101,14 +104,15 @@ def calibrate(
       with encoders, 1e-3 otherwise). Whatever it is, a stop-and-shoot parameter
       the samples cannot see (alone it would be known no better than a third of its
       plausible correction, `limits`) is held and named.
+    - `prior`: a fleet's `fleet.json` (its folder, or a `jaxcal.fleet.FleetPrior`): a Gaussian
+      prior of a stop-and-shoot point fit on the robot's parameters (`jaxcal.fleet`).
     - `limits`: the plausibility checks' limits (`jaxcal.stages.Limits`); a
       result that fails one has `status == "suspect"` and its `reasons`.
-    - `strict`: raise `SuspectResultError` instead of returning a suspect or
-      failed result.
+    - `strict`: raise `SuspectResultError` instead of returning a suspect or failed result.
     - `log`: a callable taking one line of progress text (default silent).
 
-    Compiled solvers are kept in JAX's persistent cache (see `jaxcal._cache`),
-    so a second call on data of the same shapes skips compilation.
+    Compiled solvers are kept (`jaxcal._cache`): a second call on data of the same shapes
+    skips compilation.
 
     **Returns:** a `CalibrationResult`. Raises a `jaxcal.JaxcalError`
     (`CalibrationError`, `DatasetError`, `VisionError`; all `ValueError`)
@@ -135,6 +139,7 @@ def calibrate(
         terms=terms if isinstance(terms, str) else tuple(terms),
         cv_folds=int(cv_folds),
         identifiability_tol=identifiability_tol,
+        prior=read_prior(prior) if isinstance(prior, (str, os.PathLike)) else prior,
     )
     # The programs the last calibration of this dataset called are read while it loads and detects.
     root = getattr(dataset, "root", dataset)

@@ -391,6 +391,22 @@ class ShutterTest(Record):
 
 
 @dataclass(frozen=True, eq=False)
+class PriorUse(Record):
+    """How much a fleet's prior (`jaxcal.fleet`) gave a point fit: the `file` it came from, the
+    `units` it was learnt on and, per parameter it covers (`names`), the prior's share of the
+    posterior's information (`share`: the diagonal of $C P$, the posterior covariance times
+    the prior's precision; the data gave the rest: 0, the data alone; 1, the prior alone)."""
+
+    file: str
+    units: int
+    names: tuple[str, ...]
+    share: tuple[float, ...]
+    #: The prior itself (its mean and covariance over `names`): `jaxcal verify --cv` fits with it.
+    mean: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class ModelRow(Record):
     """One model the cross-validation of the non-geometric terms compared: its terms, free
     parameters, cross-validated errors (a tracker's point distances in mm and, with measured

@@ -24,7 +24,7 @@ import numpy as np
 
 from ._kinematics import KinematicModel
 from .markers import TargetSpec
-from .records import NAMED, Intrinsics, Named, Record, ResidualStats, optional
+from .records import NAMED, Intrinsics, Named, PriorUse, Record, ResidualStats, optional
 
 #: Exit status of `jaxcal check` when drift is detected.
 EXIT_DRIFT = 3
@@ -60,6 +60,8 @@ class PointFitModel:
     sigma_rad: float | None = None
     samples: int | None = None
     mount_given: bool = True
+    #: The fleet's prior the fit took, or None.
+    prior: PriorUse | None = None
 
     @property
     def dof(self) -> int | None:

@@ -359,6 +359,15 @@ def _point_fit_section(result) -> list[str]:
         ]
     if pf.unseen:
         lines += ["", f"Held at nominal because the samples cannot see them: {', '.join(pf.unseen)}."]
+    if pf.prior is not None:
+        share = np.asarray(pf.prior.share)
+        most = np.argsort(-share)[:3]
+        lines += [
+            "",
+            f"A fleet's prior ({pf.prior.file}, learnt on {pf.prior.units} units) covers {len(share)} "
+            f"parameters; of their information it gave {share.mean():.0%} on average (the data the rest), "
+            "most to " + ", ".join(f"{pf.prior.names[i]} ({share[i]:.0%})" for i in most) + ".",
+        ]
     return lines + [""]
 
 

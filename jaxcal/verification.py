@@ -70,6 +70,7 @@ from ._pointfit import (
     rotation_jacobian,
 )
 from .errors import DatasetError
+from .fleet import gaussian_rows
 from .io.checks import read_calibration
 from .io.dataset import Dataset, load_dataset
 from .records import ResidualStats
@@ -206,6 +207,9 @@ def _problem_for(ref: CalibrationReference, ds: Dataset):
         (pf.masses, pf.coms),
         s.orientation if orientation else None,
         s.sigma_rad if orientation else None,
+        None
+        if pf.prior is None
+        else gaussian_rows(pf.prior.names, pf.prior.mean, pf.prior.covariance, layout.names()),
     )
     return problem, layout, tuple(notes)
 

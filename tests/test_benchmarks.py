@@ -54,11 +54,12 @@ RUNS = {
         "record_fields bag_fields string_key_reads mode_tests long_functions covariance_sites package_lines "
         "modules_over_500_lines fmt_skips cli_options config_keys option_names_with_two_meanings",
     ),
-    # Three units of tests/test_fleet.py's design, one of them also alone.
+    # Five units of tests/test_fleet.py's design, one of them also alone; a new unit with their prior.
     "fleet": Run(
         "fleet",
-        "--units 3 --poses 48 --singles 1 --cv-folds 0",
-        "fleet_s single_s speedup max_parameter_difference statuses outliers population_std_mm",
+        "--units 5 --poses 48 --singles 1 --cv-folds 0 --prior-poses 24 --population-scale 0.5",
+        "fleet_s single_s speedup max_parameter_difference statuses outliers population_std_mm "
+        "prior_30_over_full_1000 noprior_30_over_full_1000 prior_share_mean ee_rms_mm",
         process="fleet",
     ),
     # Two quick commands, once each: the harness tests/test_progress.py shares runs whole.

@@ -8,8 +8,18 @@ import numpy as np
 import pytest
 
 import jaxcal
+from jaxcal._records_base import plain
 from jaxcal.cli import main
-from jaxcal.fleet import FleetUnit, fleet_datasets, outlier_threshold, summarize
+from jaxcal.errors import CalibrationError, DatasetError
+from jaxcal.fleet import (
+    FleetUnit,
+    fleet_datasets,
+    fleet_prior,
+    outlier_threshold,
+    prior_rows,
+    read_prior,
+    summarize,
+)
 from jaxcal.records import ParameterRow
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
 
@@ -100,6 +110,82 @@ def _digest(root) -> str:
     return h.hexdigest()
 
 
+def _prior_fits(units: int, cov: np.ndarray, meas: float, seed: int = 0) -> dict:
+    """Point fits of `units` units whose robot parameters `j.origin.tx...` are drawn from a population
+    of covariance `cov`, each measured with standard deviation `meas`; a device frame beside them."""
+    rng = np.random.default_rng(seed)
+    k = len(cov)
+    names = ["T_device_base.tx", *(f"j{i}.origin.tx" for i in range(k)), "marker.mount.tx"]
+    fits = {}
+    for u in range(units):
+        x = np.concatenate([[rng.normal()], rng.multivariate_normal(np.zeros(k), cov), [rng.normal()]])
+        x[1:-1] += meas * rng.standard_normal(k)
+        fits[f"u{u}"] = (names, x, meas**2 * np.eye(k + 2), np.ones(k + 2, bool))
+    return fits
+
+
+def test_the_fleet_prior_is_the_population_not_the_measurement():
+    """`fleet_prior` (empirical Bayes): 400 units of a correlated population measured with a third of
+    its spread give its covariance back, the measurement removed, within the sampling error;
+    the frame each unit is measured in and its point's mount carry no prior."""
+    A = np.array([[1.0, 0.6, 0.0], [0.6, 1.0, -0.3], [0.0, -0.3, 1.0]]) * 1e-6  # (1 mm)^2, correlated
+    prior = fleet_prior(_prior_fits(400, A, 3.3e-4), ("j0", "j1", "j2"), "abc", "T_device_base")
+    assert prior.names == ("j0.origin.tx", "j1.origin.tx", "j2.origin.tx") and prior.units == 400
+    # Sampling error of a variance over 400 units: sqrt(2/400) = 7 %; the shrinkage 3/400 of the correlations.
+    np.testing.assert_allclose(np.diag(prior.covariance), np.diag(A), rtol=0.25)
+    np.testing.assert_allclose(prior.covariance, A, atol=0.25e-6)
+    assert np.all(np.abs(prior.mean) < 4 * 1e-3 / np.sqrt(400))
+
+
+def test_a_small_fleet_claims_no_direction_it_has_not_seen():
+    """Six units of eighteen parameters span five directions: the prior keeps each parameter's
+    variance but not their correlations (shrunk by parameters over units), and no variance under
+    the units' own measurement's, so that no combination is claimed known to a micrometre."""
+    A = 1e-6 * np.eye(18)
+    fits = _prior_fits(6, A, 2e-4, seed=1)
+    for k, (_, x, _, _) in enumerate(fits.values()):  # robots alike in one parameter: measurement alone
+        x[1] = 2e-4 * np.random.default_rng(k).standard_normal()
+    prior = fleet_prior(fits, tuple(f"j{i}" for i in range(18)), "abc", "T_device_base")
+    np.testing.assert_allclose(prior.covariance, np.diag(np.diag(prior.covariance)), atol=0)
+    assert np.min(np.diag(prior.covariance)) >= (1 - 1e-9) * (2e-4) ** 2
+    assert np.linalg.eigvalsh(prior.covariance).min() >= (1 - 1e-9) * (2e-4) ** 2
+    assert (
+        fleet_prior(dict(list(fits.items())[:4]), ("j0",), "abc", "T_device_base") is None
+    )  # under MIN_UNITS
+
+
+def test_a_prior_is_refused_by_name_for_another_robot_or_file(tmp_path):
+    prior = fleet_prior(_prior_fits(8, 1e-6 * np.eye(2), 1e-5), ("j0", "j1"), "abc", "T_device_base")
+    doc = {"schema": "jaxcal.fleet", "schema_version": 1, "prior": plain(prior)}
+    (tmp_path / "fleet.json").write_text(json.dumps(doc))
+    got = read_prior(tmp_path)  # the folder or the file
+    assert got.file == str(tmp_path / "fleet.json") and got.names == prior.names
+    names = ["T_device_base.tx", "j1.origin.tx", "j0.origin.tx", "j0.zero_offset"]
+    root, mean = prior_rows(got, names, ("j0", "j1"), "abc")
+    P = root.T @ root
+    np.testing.assert_allclose(P[np.ix_([2, 1], [2, 1])], np.linalg.inv(prior.covariance), rtol=1e-9)
+    assert not P[0].any() and not P[3].any() and mean[[2, 1]].tolist() == prior.mean.tolist()
+    with pytest.raises(
+        DatasetError, match=r"fleet\.json: this prior was learnt on another robot \(nominal model"
+    ):
+        prior_rows(got, names, ("j0", "j1"), "other")
+    with pytest.raises(DatasetError, match=r"another robot \(joints differ"):
+        prior_rows(got, names, ("a", "b"), "abc")
+    doc["prior"] = None
+    (tmp_path / "fleet.json").write_text(json.dumps(doc))
+    with pytest.raises(DatasetError, match=r"fleet\.json: 'prior' is empty"):
+        read_prior(tmp_path / "fleet.json")
+    doc["prior"] = plain(prior) | {"covariance": [[1.0, 2.0], [2.0, 1.0]]}
+    (tmp_path / "fleet.json").write_text(json.dumps(doc))
+    with pytest.raises(DatasetError, match=r"field 'prior' is not one jaxcal wrote"):
+        read_prior(tmp_path / "fleet.json")
+    with pytest.raises(DatasetError, match=r"none\.json: fleet summary \(--prior takes the fleet\.json"):
+        read_prior(tmp_path / "none.json")
+    (tmp_path / "x.json").write_text(json.dumps({"schema": "jaxcal.result"}))
+    with pytest.raises(DatasetError, match=r"x\.json: not a fleet\.json"):
+        read_prior(tmp_path / "x.json")
+
+
 @pytest.mark.slow
 def test_a_fleet_calibrates_each_unit_as_alone_and_names_the_odd_one(tmp_path):
     """12 simulated UR5e units (48 tracker poses each), one whose joint origins are 20x the
@@ -138,3 +224,35 @@ def test_a_fleet_calibrates_each_unit_as_alone_and_names_the_odd_one(tmp_path):
     assert mine["run"]["command"].startswith(f"jaxcal calibrate {fleet} --out {out}")
     p = {q["name"]: q for q in s["parameters"]}["elbow_joint.origin.x"]
     assert len(p["values"]) == 11 and p["units"] == 11
+    # The fleet as prior (issue 52 item 2): the 10 ok units' (the suspect one is not the population).
+    prior = s["prior"]
+    assert prior["units"] == 10 and prior["joints"] == list(alone.nominal.joint_names)
+    assert prior["names"] and not any(n.startswith(("T_device_base", "marker.mount")) for n in prior["names"])
+    new = simulate_tracker(TrackerSimConfig(seed=80, **KW), tmp_path / "new")
+    with_prior = tmp_path / "with_prior"
+    assert (
+        main(["calibrate", str(new), "--out", str(with_prior), "--prior", str(out / "fleet.json"), "--quiet"])
+        == 0
+    )
+    used = json.loads((with_prior / "result.json").read_text())
+    share = np.array(used["point_fit"]["prior"]["share"])
+    assert used["point_fit"]["prior"]["names"] == prior["names"] and len(share) == len(prior["names"])
+    assert np.all((share > -1e-9) & (share < 1 + 1e-9))
+    # 48 poses at 10 um see the robot far better than a population 1 mm wide: the data's answer, mostly.
+    assert share.mean() < 0.5
+    plain_fit = jaxcal.calibrate(new, progress=False)
+    assert used["validation"]["ee_rms_mm_after"] < 1.05 * plain_fit.validation.ee_rms_mm_after
+    assert "A fleet's prior" in (with_prior / "report.md").read_text()
+    # `verify --cv` refits the folds as the calibration did, with the prior its result.json carries.
+    v = tmp_path / "v.json"
+    assert main(["verify", str(with_prior), str(new), "--cv", "5", "--json", str(v)]) == 0
+    kept = next(m for m in used["point_fit"]["models"] if m["kept"])
+    assert json.loads(v.read_text())["cv"]["mean"] == pytest.approx(kept["cv_mean_mm"], rel=1e-9)
+    # Sweeps are the arc fits', not a point fit's: refused before any work.
+    sweeps = simulate_tracker(
+        TrackerSimConfig(robot="ur5e", seed=1, samples_per_joint=12, bad_fraction=0.0), tmp_path / "sweeps"
+    )
+    with pytest.raises(
+        CalibrationError, match="applies to stop-and-shoot poses; these samples are joint sweeps"
+    ):
+        jaxcal.calibrate(sweeps, prior=out / "fleet.json", progress=False)

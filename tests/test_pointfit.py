@@ -29,7 +29,9 @@ from jaxcal._kinematics import forward_kinematics
 from jaxcal._linalg import concurrent_decompositions
 from jaxcal._npgeom import matrix_to_quaternion, pose_inverse, rotation_angle, rotvec_to_matrix
 from jaxcal._pointfit import (
+    SETTLED,
     PointLayout,
+    PointPrior,
     PointProblem,
     _residuals_autodiff,
     _sample_blocks,
@@ -283,6 +285,64 @@ def test_sample_blocks_are_the_residuals_and_their_jacobian(ur5):
     np.testing.assert_allclose(
         jnp.moveaxis(Jb, -1, 0).swapaxes(1, 2), Ja, atol=1e-9 * float(jnp.max(abs(Ja)))
     )
+
+
+def test_a_prior_gives_the_posterior_mode_and_covariance(ur5):
+    """The point fit with a Gaussian prior (`PointPrior`, issue 52) against the posterior worked
+    out here from the model's Jacobian: Gauss-Newton on the data's whitened residuals stacked with
+    the prior's rows $U(x - m)$; the covariance $(J^TJ / \\hat\\sigma^2 + P)^{-1}$ with
+    $\\hat\\sigma^2$ over the parameters the data determine. The prior covers four parameters: one
+    tight (the fit lands on its mean, the prior's share of its information is 1), three loose."""
+    _, r = ur5
+    pf = r.point_fit
+    p0, free = pf.problem, np.asarray(pf.fit.free)
+    names = pf.layout.names()
+    n = len(names)
+    robot = [i for i in np.flatnonzero(free) if ".origin." in names[i] or names[i].endswith(".zero_offset")]
+    picked = robot[:: len(robot) // 4][:4]
+    x_fit, std = np.asarray(pf.fit.x), np.asarray(pf.fit.std)
+    prior_std = np.array([1e-7, 10.0, 3.0, 3.0]) * std[picked]  # the first tight, the others loose
+    mean = np.zeros(n)
+    mean[picked] = x_fit[picked] + np.array([1.5, 1.0, -1.0, 2.0]) * std[picked]
+    U = np.zeros((4, n))
+    U[np.arange(4), picked] = 1.0 / prior_std
+    problem = eqx.tree_at(
+        lambda q: q.prior, p0, PointPrior(jnp.asarray(U), jnp.asarray(mean)), is_leaf=lambda v: v is None
+    )
+    got = jax.device_get(
+        jax.jit(fit_points, static_argnames="tol")(
+            problem, jnp.asarray(pf.candidates), tol=0.0, free=jnp.asarray(free)
+        )
+    )
+    # The posterior worked out here: Gauss-Newton over the free columns.
+    d = p0.data
+    w = np.where(np.asarray(d.mask), 1.0 / np.asarray(d.sigma), 0.0)
+    f = free.astype(float)
+    x = np.zeros(n)
+    for _ in range(20):
+        rd = ((np.asarray(predict(jnp.asarray(x), p0)) - np.asarray(d.y)) * w[:, None]).reshape(-1)
+        Jd = (np.asarray(point_jacobian(jnp.asarray(x), p0)) * w[:, None, None]).reshape(-1, n) * f
+        Up = U * f
+        rr, JJ = np.concatenate([rd, Up @ (x - mean)]), np.concatenate([Jd, Up])
+        A = JJ.T @ JJ + np.diag(1.0 - f)
+        x = x - np.linalg.solve(A, JJ.T @ rr) * f
+    P = Up.T @ Up
+    Hd = Jd.T @ Jd
+    idx = np.flatnonzero(free)
+    C1 = np.linalg.inv((Hd + P)[np.ix_(idx, idx)])
+    seen = np.trace(C1 @ Hd[np.ix_(idx, idx)])
+    sigma2 = float(rd @ rd) / (3 * int(np.sum(d.mask)) - seen)
+    cov = np.zeros((n, n))
+    cov[np.ix_(idx, idx)] = np.linalg.inv((Hd / sigma2 + P)[np.ix_(idx, idx)])
+    # The solver stops once its steps are a hundredth of a standard deviation (`SETTLED`).
+    post = np.sqrt(np.diag(cov))[idx]
+    assert np.max(np.abs(got.x - x)[idx] / post) < SETTLED
+    np.testing.assert_allclose(got.sigma2, sigma2, rtol=1e-3)
+    np.testing.assert_allclose(got.cov, cov, rtol=1e-3, atol=1e-3 * np.outer(post, post).max())
+    share = np.diag(np.asarray(got.cov) @ P)[picked]
+    assert abs(got.x[picked[0]] - mean[picked[0]]) < 1e-3 * std[picked[0]]  # the tight prior holds it
+    assert share[0] > 1 - 1e-6 and np.all(share[1:] < 0.2)  # the loose ones: the data's, mostly
+    assert abs(got.x[picked[1]] - x_fit[picked[1]]) < 0.1 * std[picked[1]]
 
 
 def test_cross_validation_keeps_lapack_calls_ordered(ur5):

@@ -191,7 +191,8 @@ def _add_simulate_tracker_parser(sub) -> None:
         default=None,
         help="the configuration every sweep starts from (deg, one per joint; default 0,0,-90,0,90,0)",
     )
-    p.add_argument(
+    knob(
+        p,
         "--samples-per-joint",
         type=count(2, MAX_SAMPLES_PER_JOINT),
         default=300,

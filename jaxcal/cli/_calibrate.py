@@ -191,6 +191,15 @@ def add_calibrate_args(p: argparse.ArgumentParser, *, demo: bool = False) -> Non
         "only when its normalised Jacobian column lies farther than TOL from those freed before it; larger "
         "holds more (default: 1e-6 for single-joint sweeps with encoders, else 1e-3)",
     )
+    if not demo:
+        p.add_argument(
+            "--prior",
+            metavar="FLEET_JSON",
+            help="a fleet's prior on the robot's parameters: the fleet.json (or its folder) that calibrating "
+            "several units of this robot model wrote; the point fit of a stop-and-shoot capture takes it as a "
+            "Gaussian prior, so a short capture borrows what the fleet knows (result.json's point_fit.prior "
+            "says how much of each parameter it gave)",
+        )
     g = p.add_mutually_exclusive_group()
     g.add_argument(
         "--region",

@@ -237,6 +237,7 @@ def _options(args) -> dict:
         terms=args.terms,
         cv_folds=args.cv_folds,
         identifiability_tol=args.identifiability_tol,
+        prior=getattr(args, "prior", None),
     )
 
 

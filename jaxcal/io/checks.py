@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..markers import TargetSpec
-from ..records import Intrinsics, ResidualStats, from_plain, plain
+from ..records import Intrinsics, PriorUse, ResidualStats, from_plain, plain
 from ..records_check import (
     CalibrationReference,
     Certificate,
@@ -90,6 +90,7 @@ def point_fit_model(pf: Mapping) -> PointFitModel:
         sigma_rad=None if pf.get("sigma_rad") is None else float(pf["sigma_rad"]),
         samples=None if pf.get("samples") is None else int(pf["samples"]),
         mount_given=bool(pf.get("mount_given", True)),
+        prior=from_plain(PriorUse, pf["prior"]) if pf.get("prior") else None,
     )
 
 

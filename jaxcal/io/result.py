@@ -210,6 +210,7 @@ def point_fit_json(pf) -> dict:
         "coms": np.asarray(prob.data.coms).tolist(),
         "nominal_model": model_to_json(prob.nominal),
         "mount_given": bool(pf.mount_given),
+        **({"prior": plain(pf.prior)} if pf.prior is not None else {}),
         **(
             {
                 "orientation": True,

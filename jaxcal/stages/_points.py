@@ -50,6 +50,7 @@ from .._pointfit import (
     PointData,
     PointFitResult,
     PointLayout,
+    PointPrior,
     PointProblem,
     cross_validate,
     fit_points,
@@ -63,7 +64,8 @@ from .._pointfit import (
 from .._selection import improves_on_samples, paired_z
 from .._terms import approach, signs
 from ..errors import CalibrationError
-from ..records import ModelRow, PointOutlier, RepeatedPose, ResidualStats, TermRow
+from ..fleet import model_digest, prior_rows
+from ..records import ModelRow, PointOutlier, PriorUse, RepeatedPose, ResidualStats, TermRow
 from ._observe import Observations
 from ._programs import compile_ahead
 from ._setup import Options, Setup
@@ -130,6 +132,8 @@ class PointFit:
     unseen: tuple[str, ...]
     residual_deg: ResidualStats | None = None
     mount_given: bool = True
+    #: With a fleet's prior, how much of each parameter it gave.
+    prior: PriorUse | None = None
     #: Seconds per step (`point_fit_s`): free-form.
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -156,10 +160,11 @@ def point_problem(
     inertials: tuple[np.ndarray, np.ndarray] | None = None,
     R: np.ndarray | None = None,
     sigma_rad: np.ndarray | None = None,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PointProblem:
     """A `PointProblem` from NumPy arrays (`inertials`: masses and centres of mass, for
     compliance and backlash's preload, the payload lumped in; `R`, `sigma_rad`: measured
-    orientations, when `layout.orientation`). With a `backlash` term every joint's
+    orientations, when `layout.orientation`; `prior`: a `PointPrior`'s root and mean). With a `backlash` term every joint's
     approach flank follows the samples' order (`jaxcal._terms.approach`)."""
     n = nominal.num_joints
     S = len(q)
@@ -178,7 +183,8 @@ def point_problem(
         sigma_rad=jnp.asarray(np.ones(S) if sigma_rad is None else sigma_rad, jnp.float64),
         approach=jnp.asarray(approach(q), jnp.float64) if "backlash" in layout.terms else None,
     )
-    return PointProblem(nominal, jnp.asarray(T_dev_base0), jnp.asarray(T_flange_point0), data, layout)
+    gauss = None if prior is None else PointPrior(*(jnp.asarray(a, jnp.float64) for a in prior))
+    return PointProblem(nominal, jnp.asarray(T_dev_base0), jnp.asarray(T_flange_point0), data, layout, gauss)
 
 
 def candidates(layout: PointLayout, *, fixed_frame_free: bool, orientation: bool = False) -> np.ndarray:
@@ -472,7 +478,10 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
 
     def fitted(terms, used):
         layout = PointLayout(base, terms, orientation)
-        problem = point_problem(nominal, layout, q, y, s.sigma_m, used, T0, Tp0, masses, orient, s.sigma_rad)
+        prior = _prior_rows(options, layout, nominal)
+        problem = point_problem(
+            nominal, layout, q, y, s.sigma_m, used, T0, Tp0, masses, orient, s.sigma_rad, prior
+        )
         cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free, orientation=orientation)
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         scale = plausible_scale(layout, nominal, options.limits)
@@ -545,7 +554,37 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         outliers=_outliers(ds, dist, radius, first & ~used),
         robust_scale=robust_scale,
         unseen=unseen,
+        prior=_prior_use(options, problem, fit, names),
         timings={"point_fit_s": time.perf_counter() - t0},
+    )
+
+
+def _prior_rows(options: Options, layout: PointLayout, nominal: KinematicModel):
+    """The fleet's prior (`options.prior`) over `layout`'s vector (`jaxcal.fleet.prior_rows`), or None."""
+    if options.prior is None:
+        return None
+    return prior_rows(options.prior, layout.names(), nominal.joint_names, model_digest(nominal))
+
+
+def _prior_use(options: Options, problem: PointProblem, fit: PointFitResult, names) -> PriorUse | None:
+    """How much the fleet's prior gave each parameter it covers: the diagonal of the posterior
+    covariance times the prior's precision (said in a line), or None without a prior."""
+    prior = options.prior
+    if prior is None:
+        return None
+    U = np.asarray(problem.prior.root) * np.asarray(fit.free)[None, :]
+    share = np.diag(np.asarray(fit.cov) @ (U.T @ U))[[names.index(n) for n in prior.names]]
+    options.say(
+        f"point fit: the fleet's prior ({prior.units} units) gave {np.mean(share):.0%} of its "
+        f"{len(share)} parameters' information on average"
+    )
+    return PriorUse(
+        file=prior.file,
+        units=prior.units,
+        names=tuple(prior.names),
+        share=tuple(float(v) for v in share),
+        mean=np.asarray(prior.mean),
+        covariance=np.asarray(prior.covariance),
     )
 
 

@@ -40,6 +40,8 @@ class Options:
     terms: tuple[str, ...] | str = "auto"
     cv_folds: int = 5
     identifiability_tol: float | None = None
+    #: The fleet's prior on the robot's parameters (`jaxcal.fleet.FleetPrior`; point fits only).
+    prior: object | None = None
 
     def say(self, text: str) -> None:
         if self.log is not None:
@@ -182,6 +184,11 @@ def _device_setup(ds: Dataset, nominal: KinematicModel, options: Options, t0: fl
             f"point on the flange link {flange!r}"
         )
     kind = device_kind(ds, options.device_is_base)
+    if options.prior is not None and not kind.fits_points:
+        raise CalibrationError(
+            f"{ds.root}: a fleet's prior (--prior) applies to stop-and-shoot poses; these samples are joint "
+            "sweeps (the arc fits take them)"
+        )
     if kind.fits_points and ds.samples.q is None:
         raise CalibrationError(
             f"{ds.root / ds.device.file}: stop-and-shoot samples (no 'joint' cell names a sweeping joint"
@@ -263,6 +270,11 @@ def setup(dataset, options: Options) -> Setup:
     extra: list[CameraInfo] = []
     if kind.unsupported:
         raise CalibrationError(f"{ds.root}: {kind.unsupported}")
+    if options.prior is not None:
+        raise CalibrationError(
+            f"{ds.root}: a fleet's prior (--prior) applies to measured points (a tracker, motion capture, "
+            f"the controller's tool point) at stop-and-shoot poses, not to camera captures (this one is {kind.label})"
+        )
     if not kind.has_arcs:
         notes.append(
             "pose-based capture (arbitrary motion, no plate on the links): the refinement starts from the nominal "
