@@ -103,6 +103,13 @@ def cmd_demo(args) -> int:
         return demo(out, args)
 
 
+PRIOR_HELP = (
+    "a fleet's prior on the robot's parameters: the fleet.json (or its folder) that calibrating several "
+    "units of this robot model wrote; a stop-and-shoot capture's point fit takes it as a Gaussian prior "
+    "(result.json's point_fit.prior says how much of each parameter it gave)"
+)
+
+
 def add_calibrate_args(p: argparse.ArgumentParser, *, demo: bool = False) -> None:
     """The calibration's options, of `calibrate` and `demo` (where `strict` is a configuration key)."""
     knob(p, "--camera", help="fixed camera of the two-stage fit (default: the first)")
@@ -191,15 +198,8 @@ def add_calibrate_args(p: argparse.ArgumentParser, *, demo: bool = False) -> Non
         "only when its normalised Jacobian column lies farther than TOL from those freed before it; larger "
         "holds more (default: 1e-6 for single-joint sweeps with encoders, else 1e-3)",
     )
-    if not demo:
-        p.add_argument(
-            "--prior",
-            metavar="FLEET_JSON",
-            help="a fleet's prior on the robot's parameters: the fleet.json (or its folder) that calibrating "
-            "several units of this robot model wrote; the point fit of a stop-and-shoot capture takes it as a "
-            "Gaussian prior, so a short capture borrows what the fleet knows (result.json's point_fit.prior "
-            "says how much of each parameter it gave)",
-        )
+    if not demo:  # docs/fleet.md
+        p.add_argument("--prior", metavar="FLEET_JSON", help=PRIOR_HELP)
     g = p.add_mutually_exclusive_group()
     g.add_argument(
         "--region",

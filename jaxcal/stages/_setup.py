@@ -12,6 +12,7 @@ from .._kinematics import KinematicModel
 from .._links import arm_targets
 from .._robust import LOSSES
 from ..errors import CalibrationError
+from ..fleet import FleetPrior
 from ..io.dataset import CameraInfo, Dataset, DeviceInfo, TargetInfo, load_dataset
 from .kinds import CaptureKind, device_poses, single_joint_share
 from .limits import Limits
@@ -40,8 +41,8 @@ class Options:
     terms: tuple[str, ...] | str = "auto"
     cv_folds: int = 5
     identifiability_tol: float | None = None
-    #: The fleet's prior on the robot's parameters (`jaxcal.fleet.FleetPrior`; point fits only).
-    prior: object | None = None
+    #: The fleet's prior on the robot's parameters (point fits only).
+    prior: FleetPrior | None = None
 
     def say(self, text: str) -> None:
         if self.log is not None:
@@ -230,6 +231,20 @@ def _tolerance(options: Options, kind: CaptureKind) -> float:
     return kind.identifiability_tol if options.identifiability_tol is None else options.identifiability_tol
 
 
+def _refuse_tracker_options(ds: Dataset, options: Options) -> None:
+    """The options of measured points, refused for a dataset filmed by cameras."""
+    if options.device_is_base:
+        raise CalibrationError(
+            f"{ds.root / 'metadata.json'}: device_is_base applies to tracker data (a 'device' in the metadata); "
+            "this dataset is filmed by cameras, whose pose is estimated"
+        )
+    if options.prior is not None:
+        raise CalibrationError(
+            f"{ds.root}: a fleet's prior (--prior) applies to measured points (a tracker, motion capture, "
+            "the controller's tool point) at stop-and-shoot poses, not to camera captures"
+        )
+
+
 def setup(dataset, options: Options) -> Setup:
     """Load `dataset` (a path or a `Dataset`) and resolve the capture kind,
     the camera, the targets and the further cameras (see `Setup`)."""
@@ -251,11 +266,7 @@ def setup(dataset, options: Options) -> Setup:
         )
     if ds.device is not None:
         return _device_setup(ds, nominal, options, t0)
-    if options.device_is_base:
-        raise CalibrationError(
-            f"{ds.root / 'metadata.json'}: device_is_base applies to tracker data (a 'device' in the metadata); "
-            "this dataset is filmed by cameras, whose pose is estimated"
-        )
+    _refuse_tracker_options(ds, options)
     flange = nominal.link_names[-1]
     cam = _choose_camera(ds, options.camera, flange)
     link_targets = any(t.link not in (flange, "world") for t in ds.targets)
@@ -270,11 +281,6 @@ def setup(dataset, options: Options) -> Setup:
     extra: list[CameraInfo] = []
     if kind.unsupported:
         raise CalibrationError(f"{ds.root}: {kind.unsupported}")
-    if options.prior is not None:
-        raise CalibrationError(
-            f"{ds.root}: a fleet's prior (--prior) applies to measured points (a tracker, motion capture, "
-            f"the controller's tool point) at stop-and-shoot poses, not to camera captures (this one is {kind.label})"
-        )
     if not kind.has_arcs:
         notes.append(
             "pose-based capture (arbitrary motion, no plate on the links): the refinement starts from the nominal "
