@@ -144,6 +144,8 @@ def test_capture_kind():
 def test_device_is_base_on_a_camera_dataset_is_refused():
     with pytest.raises(CalibrationError, match="device_is_base applies to tracker data"):
         jaxcal.calibrate("data/ur5e_sweeps", device_is_base=True, progress=False)
+    with pytest.raises(CalibrationError, match=r"ur5e_sweeps: a fleet's prior \(--prior\) applies to measured"):
+        jaxcal.calibrate("data/ur5e_sweeps", prior=object(), progress=False)
 
 
 def test_cli_end_to_end(captures, tmp_path):
