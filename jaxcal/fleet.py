@@ -38,6 +38,7 @@ import dataclasses
 import functools
 import hashlib
 import json
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -243,6 +244,15 @@ def read_prior(path) -> FleetPrior:
             f"{file}: field 'prior' is not one jaxcal wrote ({type(e).__name__}: {e})"
         ) from None
     return dataclasses.replace(prior, file=str(file))
+
+
+def as_prior(prior) -> FleetPrior | None:
+    """`jaxcal.calibrate`'s `prior`: None, a `FleetPrior`, or the `fleet.json` to read (`read_prior`)."""
+    if prior is None or isinstance(prior, FleetPrior):
+        return prior
+    if isinstance(prior, (str, os.PathLike)):
+        return read_prior(prior)
+    raise TypeError(f"prior: a fleet.json path or a jaxcal.fleet.FleetPrior, got {type(prior).__name__}")
 
 
 def prior_rows(prior: FleetPrior, names: Sequence[str], joints: Sequence[str], nominal: str):

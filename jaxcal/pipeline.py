@@ -11,7 +11,6 @@ device's samples) -> validate
 """
 
 import dataclasses
-import os
 import time
 
 from . import stages
@@ -20,7 +19,7 @@ from ._exported import warm_start
 from ._progress import watchdog
 from .errors import CalibrationError as CalibrationError  # re-exported
 from .errors import SuspectResultError
-from .fleet import read_prior
+from .fleet import as_prior
 from .io._files import resolved
 from .stages import CalibrationResult as CalibrationResult  # re-exported
 from .stages import Limits
@@ -139,7 +138,7 @@ def calibrate(
         terms=terms if isinstance(terms, str) else tuple(terms),
         cv_folds=int(cv_folds),
         identifiability_tol=identifiability_tol,
-        prior=read_prior(prior) if isinstance(prior, (str, os.PathLike)) else prior,
+        prior=as_prior(prior),
     )
     # The programs the last calibration of this dataset called are read while it loads and detects.
     root = getattr(dataset, "root", dataset)

@@ -18,6 +18,7 @@ import jaxcal
 from jaxcal._kinematics import joint_axes
 from jaxcal.cli import main
 from jaxcal.errors import CalibrationError, DatasetError
+from jaxcal.fleet import FleetPrior
 from jaxcal.io.dataset import load_dataset
 from jaxcal.io.model_json import model_from_json
 from jaxcal.sim.tracker import TrackerSimConfig, bad_samples, simulate_tracker
@@ -144,8 +145,12 @@ def test_capture_kind():
 def test_device_is_base_on_a_camera_dataset_is_refused():
     with pytest.raises(CalibrationError, match="device_is_base applies to tracker data"):
         jaxcal.calibrate("data/ur5e_sweeps", device_is_base=True, progress=False)
-    with pytest.raises(CalibrationError, match=r"ur5e_sweeps: a fleet's prior \(--prior\) applies to measured"):
-        jaxcal.calibrate("data/ur5e_sweeps", prior=object(), progress=False)
+    with pytest.raises(
+        CalibrationError, match=r"ur5e_sweeps: a fleet's prior \(--prior\) applies to measured"
+    ):
+        jaxcal.calibrate("data/ur5e_sweeps", prior=FleetPrior(5, (), "", (), np.zeros(0), np.zeros((0, 0))))
+    with pytest.raises(TypeError, match="prior: a fleet.json path or a jaxcal.fleet.FleetPrior, got dict"):
+        jaxcal.calibrate("data/ur5e_sweeps", prior={})
 
 
 def test_cli_end_to_end(captures, tmp_path):
