@@ -508,6 +508,12 @@ def fit_points(
         cand = jnp.asarray(candidates, bool)
         if scale is not None:
             cand = cand & (std_alone <= jnp.asarray(scale))
+        if problem.prior is not None:  # a parameter the prior does not cover: freed where the data free it
+            _, U = _prior_rows(x0, problem, jnp.ones(layout.size, x0.dtype))
+            seen, _ = _lsq.independent_columns_normal(
+                ne0.H - U.T @ U, layout.priority(), tol=tol, candidates=cand
+            )
+            cand = cand & (seen | jnp.any(U != 0, axis=0))
         keep, indep = _lsq.independent_columns_normal(ne0.H, layout.priority(), tol=tol, candidates=cand)
     else:
         keep, indep = jnp.asarray(free, bool), jnp.full(layout.size, jnp.nan)

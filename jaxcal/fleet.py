@@ -51,6 +51,8 @@ from .errors import DatasetError
 from .io._files import atomic_directory, write_text_atomic
 from .io._schema import read_json
 
+#: `fleet.json`'s schema version.
+FLEET_SCHEMA_VERSION = 1
 #: The chance that a fleet of normal units, none out of the ordinary, has a unit named anyway
 #: (per family: the parameters together, the residuals apart).
 FALSE_ALARM = 0.01
@@ -150,6 +152,8 @@ class FleetPrior(Record):
     names: tuple[str, ...]
     mean: np.ndarray
     covariance: np.ndarray
+    #: The units' fixed frame was estimated (not `--device-is-base`): the parameters' gauge.
+    frame_free: bool = True
     file: str = ""
 
 
@@ -172,7 +176,9 @@ def prior_parameter(name: str, fixed_frame: str) -> bool:
     return not name.startswith((f"{fixed_frame}.", "marker.mount.", "camera.mount."))
 
 
-def fleet_prior(fits: dict, joints: Sequence[str], nominal: str, fixed_frame: str) -> FleetPrior | None:
+def fleet_prior(
+    fits: dict, joints: Sequence[str], nominal: str, fixed_frame: str, frame_free: bool = True
+) -> FleetPrior | None:
     """The fleet's prior from its usable units' point fits (`fits[unit] = (names, x, cov, free)`):
     over the robot's parameters every unit estimated, the mean and the population's covariance:
     each parameter's variance $S_{ii} - \\overline{C_{ii}}$ (the sample's less the units' own), no
@@ -215,6 +221,7 @@ def fleet_prior(fits: dict, joints: Sequence[str], nominal: str, fixed_frame: st
         names=tuple(common),
         mean=X.mean(axis=0),
         covariance=pop,
+        frame_free=frame_free,
     )
 
 
@@ -231,18 +238,35 @@ def read_prior(path) -> FleetPrior:
             f"{file}: 'prior' is empty: the fleet had fewer than {MIN_UNITS} usable units calibrated "
             "from points (a tracker, motion capture or the controller's tool point)"
         )
+    if doc.get("schema_version") != FLEET_SCHEMA_VERSION:
+        raise DatasetError(
+            f"{file}: schema_version {doc.get('schema_version')!r}, this jaxcal reads {FLEET_SCHEMA_VERSION}"
+        )
     try:
         prior = from_plain(FleetPrior, doc["prior"])
-        k = len(prior.names)
-        if prior.mean.shape != (k,) or prior.covariance.shape != (k, k):
-            raise ValueError(f"mean {prior.mean.shape} and covariance {prior.covariance.shape} for {k} names")
-        if not (np.all(np.isfinite(prior.mean)) and np.all(np.isfinite(prior.covariance))):
-            raise ValueError("values that are not finite")
-        np.linalg.cholesky(prior.covariance)
-    except (KeyError, TypeError, ValueError, np.linalg.LinAlgError) as e:
+    except (KeyError, TypeError, ValueError) as e:
         raise DatasetError(
             f"{file}: field 'prior' is not one jaxcal wrote ({type(e).__name__}: {e})"
         ) from None
+    k, C = len(prior.names), prior.covariance
+    bad = {
+        "prior.names": "names repeated" if len(set(prior.names)) < k else "",
+        "prior.units": f"{prior.units} units, a prior is learnt on {MIN_UNITS} or more"
+        if prior.units < MIN_UNITS
+        else "",
+        "prior.mean": f"shape {prior.mean.shape} for {k} names" if prior.mean.shape != (k,) else "",
+        "prior.covariance": f"shape {C.shape} for {k} names" if C.shape != (k, k) else "",
+    }
+    if not any(bad.values()):
+        finite = np.all(np.isfinite(prior.mean)) and np.all(np.isfinite(C))
+        bad["prior.mean"] = "" if finite else "values that are not finite"
+        if finite and not np.allclose(C, C.T, rtol=1e-9, atol=0.0):
+            bad["prior.covariance"] = "not symmetric"
+        elif finite and np.linalg.eigvalsh(C).min() <= 0:
+            bad["prior.covariance"] = "not positive definite"
+    for where, why in bad.items():
+        if why:
+            raise DatasetError(f"{file}: field '{where}' is not one jaxcal wrote ({why})")
     return dataclasses.replace(prior, file=str(file))
 
 
@@ -255,15 +279,28 @@ def as_prior(prior) -> FleetPrior | None:
     raise TypeError(f"prior: a fleet.json path or a jaxcal.fleet.FleetPrior, got {type(prior).__name__}")
 
 
-def prior_rows(prior: FleetPrior, names: Sequence[str], joints: Sequence[str], nominal: str):
+def prior_rows(
+    prior: FleetPrior, names: Sequence[str], joints: Sequence[str], nominal: str, frame_free: bool
+):
     """The prior over a point fit's vector `names` (`jaxcal._pointfit.PointPrior`'s `root` and
-    `mean`, full length, zero where the prior says nothing). Raises `DatasetError` naming the file
-    when it was learnt on another robot model."""
-    if tuple(joints) != prior.joints or nominal != prior.nominal:
-        what = "joints" if tuple(joints) != prior.joints else "nominal model"
+    `mean`, full length, zero where the prior says nothing; `frame_free`: the unit's fixed frame is
+    estimated). Raises `DatasetError` naming the file when it was learnt on another robot model, or
+    with the fixed frame held where this unit estimates it (or the reverse)."""
+    if tuple(joints) != prior.joints:
         raise DatasetError(
-            f"{prior.file}: this prior was learnt on another robot ({what} differ: the fleet's joints "
-            f"{list(prior.joints)}, model {prior.nominal}; this dataset's {list(joints)}, model {nominal})"
+            f"{prior.file}: this prior was learnt on another robot (the fleet's joints {list(prior.joints)}, "
+            f"this dataset's {list(joints)})"
+        )
+    if nominal != prior.nominal:
+        raise DatasetError(
+            f"{prior.file}: this prior was learnt on another robot model: the same joints, but the robot file's "
+            f"joint origins, axes or zero offsets differ (digest {prior.nominal} against this dataset's {nominal})"
+        )
+    if frame_free != prior.frame_free:
+        given = "with" if not prior.frame_free else "without"
+        raise DatasetError(
+            f"{prior.file}: the fleet was calibrated {given} --device-is-base and this unit is not: its "
+            "parameters are in another gauge; calibrate the two alike"
         )
     missing = [n for n in prior.names if n not in names]
     if missing:
@@ -462,7 +499,13 @@ def calibrate_fleet(
                 pf = result.point_fit
                 names = pf.layout.names()
                 fits[name] = (names, *(np.asarray(a) for a in (pf.fit.x, pf.fit.cov, pf.fit.free)))
-                robot = (pf.layout.base.joints, model_digest(pf.problem.nominal), pf.layout.base.fixed_frame)
+                frame_free = bool(pf.candidates[pf.layout.base.index("cam")].any())
+                robot = (
+                    pf.layout.base.joints,
+                    model_digest(pf.problem.nominal),
+                    pf.layout.base.fixed_frame,
+                    frame_free,
+                )
             if not (strict and result.status != "ok"):
                 write(result, tmp / name)
             residual = (
@@ -481,7 +524,7 @@ def calibrate_fleet(
 
 
 def fleet_json(summary: FleetSummary) -> dict:
-    return {"schema": "jaxcal.fleet", "schema_version": 1, **plain(summary)}
+    return {"schema": "jaxcal.fleet", "schema_version": FLEET_SCHEMA_VERSION, **plain(summary)}
 
 
 def _fmt(v: float, unit: str) -> str:
@@ -538,7 +581,13 @@ def fleet_markdown(summary: FleetSummary, plotted: bool) -> str:
     for p in s.parameters:
         cells = (p.nominal, p.median, p.robust_spread, p.measurement_std, p.population_std)
         lines.append(f"| {p.name} | " + " | ".join(_fmt(v, p.unit) for v in cells) + " |")
-    if s.prior is not None:
+    if s.prior is None:
+        lines += [
+            "",
+            f"No prior for a new unit (fleet.json's `prior` is empty): it needs {MIN_UNITS} or more `ok` units "
+            "calibrated from points (a tracker, motion capture, the controller's tool point) that do not stand out.",
+        ]
+    else:
         lines += [
             "",
             "## The fleet as prior",

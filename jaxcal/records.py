@@ -404,6 +404,8 @@ class PriorUse(Record):
     #: The prior itself (its mean and covariance over `names`): `jaxcal verify --cv` fits with it.
     mean: np.ndarray
     covariance: np.ndarray
+    #: Per parameter, the fit's distance from the prior's mean in the prior's standard deviations.
+    z: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)

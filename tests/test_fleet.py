@@ -161,23 +161,42 @@ def test_a_prior_is_refused_by_name_for_another_robot_or_file(tmp_path):
     got = read_prior(tmp_path)  # the folder or the file
     assert got.file == str(tmp_path / "fleet.json") and got.names == prior.names
     names = ["T_device_base.tx", "j1.origin.tx", "j0.origin.tx", "j0.zero_offset"]
-    root, mean = prior_rows(got, names, ("j0", "j1"), "abc")
+    root, mean = prior_rows(got, names, ("j0", "j1"), "abc", True)
     P = root.T @ root
     np.testing.assert_allclose(P[np.ix_([2, 1], [2, 1])], np.linalg.inv(prior.covariance), rtol=1e-9)
     assert not P[0].any() and not P[3].any() and mean[[2, 1]].tolist() == prior.mean.tolist()
     with pytest.raises(
-        DatasetError, match=r"fleet\.json: this prior was learnt on another robot \(nominal model"
+        DatasetError, match=r"fleet\.json: this prior was learnt on another robot model: the same"
     ):
-        prior_rows(got, names, ("j0", "j1"), "other")
-    with pytest.raises(DatasetError, match=r"another robot \(joints differ"):
-        prior_rows(got, names, ("a", "b"), "abc")
+        prior_rows(got, names, ("j0", "j1"), "other", True)
+    with pytest.raises(
+        DatasetError, match=r"another robot \(the fleet's joints \['j0', 'j1'\], this dataset's"
+    ):
+        prior_rows(got, names, ("a", "b"), "abc", True)
+    with pytest.raises(DatasetError, match=r"calibrated without --device-is-base and this unit is not"):
+        prior_rows(got, names, ("j0", "j1"), "abc", False)
+    edits = {
+        "prior.names": ({"names": [prior.names[0]] * 2}, "names repeated"),
+        "prior.units": ({"units": 3}, "3 units, a prior is learnt on 5 or more"),
+        "prior.covariance": ({"covariance": [[1e-6, 1e-7], [0.0, 1e-6]]}, "not symmetric"),
+    }
+    for field, (change, why) in edits.items():
+        doc["prior"] = plain(prior) | change
+        (tmp_path / "fleet.json").write_text(json.dumps(doc))
+        with pytest.raises(DatasetError, match=rf"field '{field}' is not one jaxcal wrote \({why}"):
+            read_prior(tmp_path)
+    (tmp_path / "fleet.json").write_text(json.dumps(doc | {"schema_version": 99}))
+    with pytest.raises(DatasetError, match="schema_version 99, this jaxcal reads 1"):
+        read_prior(tmp_path)
     doc["prior"] = None
     (tmp_path / "fleet.json").write_text(json.dumps(doc))
     with pytest.raises(DatasetError, match=r"fleet\.json: 'prior' is empty"):
         read_prior(tmp_path / "fleet.json")
     doc["prior"] = plain(prior) | {"covariance": [[1.0, 2.0], [2.0, 1.0]]}
     (tmp_path / "fleet.json").write_text(json.dumps(doc))
-    with pytest.raises(DatasetError, match=r"field 'prior' is not one jaxcal wrote"):
+    with pytest.raises(
+        DatasetError, match=r"field 'prior.covariance' is not one jaxcal wrote \(not positive"
+    ):
         read_prior(tmp_path / "fleet.json")
     with pytest.raises(DatasetError, match=r"none\.json: fleet summary \(--prior takes the fleet\.json"):
         read_prior(tmp_path / "none.json")
@@ -242,6 +261,24 @@ def test_a_fleet_calibrates_each_unit_as_alone_and_names_the_odd_one(tmp_path):
     assert share.mean() < 0.5
     plain_fit = jaxcal.calibrate(new, progress=False)
     assert used["validation"]["ee_rms_mm_after"] < 1.05 * plain_fit.validation.ee_rms_mm_after
+    # The data's gauge is kept: the prior frees only parameters it covers (a parameter collinear
+    # with a covered one, held by the fleet, stays held).
+    pf = used["point_fit"]
+    freed = {n for n, f in zip(pf["names"], pf["free"]) if f}
+    alone_free = {n for n, f in zip(plain_fit.point_fit.layout.names(), plain_fit.point_fit.fit.free) if f}
+    assert freed - alone_free <= set(prior["names"]) and alone_free <= freed
+    assert used["status"] == "ok"
+    # A prior the data contradict (one mean moved by 50 of its standard deviations) is a reason.
+    moved = json.loads((out / "fleet.json").read_text())
+    moved["prior"]["mean"][0] += 50 * np.sqrt(moved["prior"]["covariance"][0][0])
+    (tmp_path / "moved.json").write_text(json.dumps(moved))
+    wrong = jaxcal.calibrate(new, prior=tmp_path / "moved.json", progress=False)
+    assert wrong.status == "suspect"
+    assert any(
+        f"the data contradict the fleet's prior ({tmp_path / 'moved.json'}): {prior['names'][0]}" in r
+        for r in wrong.reasons
+    )
+    assert main(["calibrate", str(fleet), "--out", str(tmp_path / "o2"), "--prior", str(out), "--quiet"]) == 2
     assert "A fleet's prior" in (with_prior / "report.md").read_text()
     # `verify --cv` refits the folds as the calibration did, with the prior its result.json carries.
     v = tmp_path / "v.json"

@@ -198,6 +198,14 @@ def _add_simulate_tracker_parser(sub) -> None:
         default=300,
         help=f"samples per joint sweep, at most {MAX_SAMPLES_PER_JOINT:,}",
     )
+    knob(
+        p,
+        "--poses",
+        type=count(0, MAX_SAMPLES_PER_JOINT),
+        default=0,
+        help="stop-and-shoot poses drawn within the joint limits instead of the sweeps (0, the default: sweeps; "
+        f"at most {MAX_SAMPLES_PER_JOINT:,})",
+    )
     p.add_argument("--noise-um", type=finite, default=10.0, help="position noise, 1-sigma per axis (um)")
     knob(
         p, "--bad-fraction", type=finite, default=0.02, help="bad samples (0.3-0.5 mm off) at the sweep ends"

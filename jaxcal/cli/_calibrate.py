@@ -76,6 +76,11 @@ def _refuse_in_fleet(args) -> None:
         raise ValueError(
             "--region / --joint-box certify one result; certify a fleet's unit with jaxcal certify OUT/UNIT"
         )
+    if args.prior:
+        raise ValueError(
+            "--prior calibrates one new unit; a fleet's units are calibrated without one (a unit of the prior's "
+            "fleet would count its data twice, and the new fleet's prior would be the old one's)"
+        )
 
 
 def cmd_demo(args) -> int:
@@ -104,9 +109,10 @@ def cmd_demo(args) -> int:
 
 
 PRIOR_HELP = (
-    "a fleet's prior on the robot's parameters: the fleet.json (or its folder) that calibrating several "
-    "units of this robot model wrote; a stop-and-shoot capture's point fit takes it as a Gaussian prior "
-    "(result.json's point_fit.prior says how much of each parameter it gave)"
+    "a fleet's prior on the robot's parameters: the fleet.json (or its folder) that calibrating 5 or more "
+    "units of this robot model from points wrote; a new stop-and-shoot unit's point fit takes it as a Gaussian "
+    "prior (result.json's point_fit.prior says how much of each parameter it gave); not for camera captures, "
+    "sweeps or a fleet's own run"
 )
 
 

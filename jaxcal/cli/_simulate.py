@@ -144,7 +144,8 @@ def cmd_simulate_tracker(args) -> int:
     inputs = [robot] if Path(robot).exists() else []
     check_output_dir(args.out, inputs=inputs, overwrite=args.overwrite, kind="dataset", what="--out")
     if not args.quiet:
-        print(f"simulating {robot}'s tracker sweeps into {args.out} ...", flush=True)
+        kind = f"{args.poses} stop-and-shoot poses" if args.poses else "sweeps"
+        print(f"simulating {robot}'s tracker {kind} into {args.out} ...", flush=True)
     from ..io.dataset import load_dataset, true_poses
     from ..sim.tracker import TrackerSimConfig, simulate_tracker
 
@@ -156,6 +157,7 @@ def cmd_simulate_tracker(args) -> int:
         robot=robot,
         seed=args.seed,
         samples_per_joint=args.samples_per_joint,
+        poses=args.poses,
         noise_um=args.noise_um,
         bad_fraction=args.bad_fraction,
         device_is_base=args.device_is_base,
@@ -166,8 +168,9 @@ def cmd_simulate_tracker(args) -> int:
     with output_lock(args.out, what="--out"):
         out = simulate_tracker(config, args.out, overwrite=args.overwrite)
     ds = load_dataset(out)
+    what = f"{args.poses} stop-and-shoot poses" if args.poses else f"{len(ds.joint_names)} joint sweeps"
     print(
-        f"wrote {out}: {len(ds.samples.sample)} tracker samples of {len(ds.joint_names)} joint sweeps, "
+        f"wrote {out}: {len(ds.samples.sample)} tracker samples of {what}, "
         f"{len(true_poses(ds.truth).bad_samples)} bad ({time.perf_counter() - start:.1f} s)"
     )
     return 0

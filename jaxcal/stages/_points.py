@@ -478,7 +478,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
 
     def fitted(terms, used):
         layout = PointLayout(base, terms, orientation)
-        prior = _prior_rows(options, layout, nominal)
+        prior = _prior_rows(options, layout, nominal, kind.fixed_frame_free)
         problem = point_problem(
             nominal, layout, q, y, s.sigma_m, used, T0, Tp0, masses, orient, s.sigma_rad, prior
         )
@@ -559,11 +559,11 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     )
 
 
-def _prior_rows(options: Options, layout: PointLayout, nominal: KinematicModel):
+def _prior_rows(options: Options, layout: PointLayout, nominal: KinematicModel, frame_free: bool):
     """The fleet's prior (`options.prior`) over `layout`'s vector (`jaxcal.fleet.prior_rows`), or None."""
     if options.prior is None:
         return None
-    return prior_rows(options.prior, layout.names(), nominal.joint_names, model_digest(nominal))
+    return prior_rows(options.prior, layout.names(), nominal.joint_names, model_digest(nominal), frame_free)
 
 
 def _prior_use(options: Options, problem: PointProblem, fit: PointFitResult, names) -> PriorUse | None:
@@ -573,7 +573,9 @@ def _prior_use(options: Options, problem: PointProblem, fit: PointFitResult, nam
     if prior is None:
         return None
     U = np.asarray(problem.prior.root) * np.asarray(fit.free)[None, :]
-    share = np.diag(np.asarray(fit.cov) @ (U.T @ U))[[names.index(n) for n in prior.names]]
+    idx = [names.index(n) for n in prior.names]
+    share = np.diag(np.asarray(fit.cov) @ (U.T @ U))[idx]
+    z = (np.asarray(fit.x)[idx] - prior.mean) / np.sqrt(np.diag(prior.covariance))
     options.say(
         f"point fit: the fleet's prior ({prior.units} units) gave {np.mean(share):.0%} of its "
         f"{len(share)} parameters' information on average"
@@ -585,6 +587,7 @@ def _prior_use(options: Options, problem: PointProblem, fit: PointFitResult, nam
         share=tuple(float(v) for v in share),
         mean=np.asarray(prior.mean),
         covariance=np.asarray(prior.covariance),
+        z=tuple(float(v) for v in z),
     )
 
 

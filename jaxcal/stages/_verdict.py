@@ -196,6 +196,31 @@ def _uncertainties(c: _Checks, parameters: tuple[ParameterRow, ...], limits: Lim
         )
 
 
+#: The chance that a unit of the fleet has a parameter called contradicting the fleet's prior.
+PRIOR_FALSE_ALARM = 0.01
+
+
+def _prior(c: _Checks, prior) -> None:
+    """A fleet's prior the data contradict: a parameter fitted farther from the fleet's mean, in the
+    fleet's standard deviations, than a unit of that fleet lies with chance `PRIOR_FALSE_ALARM`
+    over the prior's parameters (normal): the unit is not of that fleet, or the prior is not its
+    model's (a reason: the result leans on a wrong prior)."""
+    z = np.abs(np.asarray(prior.z))
+    if not len(z):
+        return
+    limit = float(jax.scipy.special.ndtri(1.0 - PRIOR_FALSE_ALARM / (2 * len(z))))
+    worst = int(np.argmax(z))
+    c.add(
+        "point_fit.prior_z",
+        float(z[worst]),
+        limit,
+        f"the data contradict the fleet's prior ({prior.file}): {prior.names[worst]} is fitted "
+        f"{z[worst]:.1f} of the fleet's standard deviations from its mean (at most {limit:.1f} for a unit of "
+        "that fleet); the unit is not like the fleet's, or the prior is another model's: calibrate it "
+        "without --prior",
+    )
+
+
 def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
     """Stop-and-shoot poses: the samples the robust point fit rejected (a note, or a reason past
     `limits.outlier_fraction`), the parameters held because the data cannot see them (a note),
@@ -220,6 +245,8 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
     c.rows.append(
         Check("point_fit.rejected_share", share, limits.outlier_fraction, share <= limits.outlier_fraction)
     )
+    if pf.prior is not None:
+        _prior(c, pf.prior)
     if pf.unseen:
         c.notes.append(
             "held at nominal because the samples cannot see them (each moves the measured point so little that, "
