@@ -154,13 +154,12 @@ class PointPrior(eqx.Module):
     `mean`, precision `root.T @ root` (zero where it says nothing). Its rows `root @ (x - mean)`
     join the whitened residuals: the fit is the posterior's mode, its covariance the posterior's."""
 
-    root: Float[Array, "n n"]
+    root: Float[Array, "q n"]
     mean: Float[Array, " n"]
 
 
 class PointProblem(eqx.Module):
-    """A point fit: the nominal model, the references the corrections are relative to, the data
-    and, optionally, a prior on the parameters."""
+    """A point fit: the nominal model, the references the corrections are relative to, the data, a prior."""
 
     nominal: KinematicModel
     T_dev_base0: Float[Array, "4 4"]
@@ -353,9 +352,8 @@ def _residuals_primal(x, problem):
 
 def _prior_rows(x, problem, keep) -> tuple[Float[Array, " q"], Float[Array, "q n"]]:
     """The prior's rows at `x` over the columns `keep` and their Jacobian (empty without a prior)."""
-    n = x.shape[0]
     if problem.prior is None:
-        return jnp.zeros(0, x.dtype), jnp.zeros((0, n), x.dtype)
+        return jnp.zeros(0, x.dtype), jnp.zeros((0, x.shape[0]), x.dtype)
     U = problem.prior.root * keep[None, :]
     return U @ (x - problem.prior.mean), U
 
@@ -495,7 +493,9 @@ def fit_points(
       axis runs through the measured point). Ignored with `free`.
 
     **Returns:** a `PointFitResult`; the covariance is
-    $\\hat\\sigma^2 (J^TWJ)^{+}$ over the free columns.
+    $\\hat\\sigma^2 (J^TWJ)^{+}$ over the free columns, or with a prior (`problem.prior`) the
+    posterior's, and the search frees a parameter the prior does not cover only where the
+    data alone would.
     """
     layout = problem.layout
     options = LM_OPTIONS if options is None else options
@@ -510,18 +510,15 @@ def fit_points(
             cand = cand & (std_alone <= jnp.asarray(scale))
         if problem.prior is not None:  # a parameter the prior does not cover: freed where the data free it
             _, U = _prior_rows(x0, problem, jnp.ones(layout.size, x0.dtype))
-            seen, _ = _lsq.independent_columns_normal(
-                ne0.H - U.T @ U, layout.priority(), tol=tol, candidates=cand
-            )
+            Hd = ne0.H - U.T @ U
+            seen, _ = _lsq.independent_columns_normal(Hd, layout.priority(), tol=tol, candidates=cand)
             cand = cand & (seen | jnp.any(U != 0, axis=0))
         keep, indep = _lsq.independent_columns_normal(ne0.H, layout.priority(), tol=tol, candidates=cand)
     else:
         keep, indep = jnp.asarray(free, bool), jnp.full(layout.size, jnp.nan)
         std_alone = jnp.full(layout.size, jnp.nan)
     kf = keep.astype(x0.dtype)
-    if free is None and problem.prior is None:
-        # The search's linearisation is the solver's first, over the kept columns (a prior's
-        # rows over all columns are not their rows over the kept ones: evaluated again).
+    if free is None and problem.prior is None:  # the search's linearisation, over the kept columns
         first = (r0, NormalEquations(H=ne0.H * kf[:, None] * kf[None, :], e=ne0.e * kf))
     x, sol = _solve(problem, kf, x0, options, first)
     solved = (sol.residuals, sol.normal.H, problem.data.weight)
@@ -553,9 +550,7 @@ def _summary(problem, x, search, solved, result, steps) -> PointFitResult:
         sigma2 = _lsq.residual_variance(r, k * jnp.sum(inlier), jnp.sum(keep))
         cov = _lsq.covariance_normal(H, keep, sigma2)
     else:
-        # The data's variance factor from the data's rows, over the parameters the data determine
-        # (the trace of their share of the posterior); the posterior's covariance
-        # $(H_d / \hat\sigma^2 + P)^{-1}$, the prior's precision $P$ as stated.
+        # sigma^2 from the data's rows over what the data determine; the posterior (H_d / sigma^2 + P)^-1.
         _, U = _prior_rows(jnp.zeros_like(H[0]), problem, keep.astype(H.dtype))
         P = U.T @ U
         Hd = H - P
