@@ -155,7 +155,7 @@ def test_device_is_base_on_a_camera_dataset_is_refused():
 
 def test_simulate_tracker_draws_stop_and_shoot_poses_from_the_command_line(tmp_path, capsys):
     ds = tmp_path / "ds"
-    assert main(["simulate-tracker", "--out", str(ds), "--robot", "ur5e", "--config", "poses=30"]) == 0
+    assert main(["simulate-tracker", "--out", str(ds), "--robot", "ur5e", "--config", "random-poses=30"]) == 0
     assert "30 tracker samples of 30 stop-and-shoot poses" in capsys.readouterr().out
     q = load_dataset(ds).samples.q
     assert q.shape == (30, 6) and np.all(np.ptp(q, axis=0) > np.radians(20))  # every joint moves

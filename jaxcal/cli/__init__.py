@@ -200,7 +200,7 @@ def _add_simulate_tracker_parser(sub) -> None:
     )
     knob(
         p,
-        "--poses",
+        "--random-poses",
         type=count(0, MAX_SAMPLES_PER_JOINT),
         default=0,
         help="stop-and-shoot poses drawn within the joint limits instead of the sweeps (0, the default: sweeps; "

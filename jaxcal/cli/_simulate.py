@@ -144,7 +144,7 @@ def cmd_simulate_tracker(args) -> int:
     inputs = [robot] if Path(robot).exists() else []
     check_output_dir(args.out, inputs=inputs, overwrite=args.overwrite, kind="dataset", what="--out")
     if not args.quiet:
-        kind = f"{args.poses} stop-and-shoot poses" if args.poses else "sweeps"
+        kind = f"{args.random_poses} stop-and-shoot poses" if args.random_poses else "sweeps"
         print(f"simulating {robot}'s tracker {kind} into {args.out} ...", flush=True)
     from ..io.dataset import load_dataset, true_poses
     from ..sim.tracker import TrackerSimConfig, simulate_tracker
@@ -157,7 +157,7 @@ def cmd_simulate_tracker(args) -> int:
         robot=robot,
         seed=args.seed,
         samples_per_joint=args.samples_per_joint,
-        poses=args.poses,
+        poses=args.random_poses,
         noise_um=args.noise_um,
         bad_fraction=args.bad_fraction,
         device_is_base=args.device_is_base,
@@ -168,7 +168,11 @@ def cmd_simulate_tracker(args) -> int:
     with output_lock(args.out, what="--out"):
         out = simulate_tracker(config, args.out, overwrite=args.overwrite)
     ds = load_dataset(out)
-    what = f"{args.poses} stop-and-shoot poses" if args.poses else f"{len(ds.joint_names)} joint sweeps"
+    what = (
+        f"{args.random_poses} stop-and-shoot poses"
+        if args.random_poses
+        else f"{len(ds.joint_names)} joint sweeps"
+    )
     print(
         f"wrote {out}: {len(ds.samples.sample)} tracker samples of {what}, "
         f"{len(true_poses(ds.truth).bad_samples)} bad ({time.perf_counter() - start:.1f} s)"
