@@ -404,7 +404,8 @@ class PriorUse(Record):
     #: The prior itself (its mean and covariance over `names`): `jaxcal verify --cv` fits with it.
     mean: np.ndarray
     covariance: np.ndarray
-    #: Per parameter, the fit's distance from the prior's mean in the prior's standard deviations.
+    #: Per parameter, the fit's distance from the prior's mean in its standard deviation under the
+    #: prior ($\sqrt{\Sigma_{ii} - C_{ii}}$, $C$ the posterior's covariance).
     z: tuple[float, ...] = ()
 
 

@@ -278,6 +278,14 @@ def test_a_fleet_calibrates_each_unit_as_alone_and_names_the_odd_one(tmp_path):
         f"the data contradict the fleet's prior ({tmp_path / 'moved.json'}): {prior['names'][0]}" in r
         for r in wrong.reasons
     )
+    # ... and so is a prior that claims too much (the fleet's covariance shrunk 10^8 times: 0.1 um).
+    tight = json.loads((out / "fleet.json").read_text())
+    tight["prior"]["covariance"] = (1e-8 * np.asarray(tight["prior"]["covariance"])).tolist()
+    (tmp_path / "tight.json").write_text(json.dumps(tight))
+    pinned = jaxcal.calibrate(new, prior=tmp_path / "tight.json", progress=False)
+    assert pinned.status == "suspect" and any(
+        "the data contradict the fleet's prior" in r for r in pinned.reasons
+    )
     assert main(["calibrate", str(fleet), "--out", str(tmp_path / "o2"), "--prior", str(out), "--quiet"]) == 2
     assert "A fleet's prior" in (with_prior / "report.md").read_text()
     # `verify --cv` refits the folds as the calibration did, with the prior its result.json carries.

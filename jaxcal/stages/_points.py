@@ -575,7 +575,10 @@ def _prior_use(options: Options, problem: PointProblem, fit: PointFitResult, nam
     U = np.asarray(problem.prior.root) * np.asarray(fit.free)[None, :]
     idx = [names.index(n) for n in prior.names]
     share = np.diag(np.asarray(fit.cov) @ (U.T @ U))[idx]
-    z = (np.asarray(fit.x)[idx] - prior.mean) / np.sqrt(np.diag(prior.covariance))
+    # Under the prior the fit's distance from its mean has variance Sigma - C (the posterior's C):
+    # a tight prior the data pull against is as far off as a loose one the fit leaves.
+    spread = np.diag(prior.covariance) - np.diag(np.asarray(fit.cov))[idx]
+    z = (np.asarray(fit.x)[idx] - prior.mean) / np.sqrt(np.maximum(spread, 1e-12 * np.diag(prior.covariance)))
     options.say(
         f"point fit: the fleet's prior ({prior.units} units) gave {np.mean(share):.0%} of its "
         f"{len(share)} parameters' information on average"

@@ -201,10 +201,10 @@ PRIOR_FALSE_ALARM = 0.01
 
 
 def _prior(c: _Checks, prior) -> None:
-    """A fleet's prior the data contradict: a parameter fitted farther from the fleet's mean, in the
-    fleet's standard deviations, than a unit of that fleet lies with chance `PRIOR_FALSE_ALARM`
-    over the prior's parameters (normal): the unit is not of that fleet, or the prior is not its
-    model's (a reason: the result leans on a wrong prior)."""
+    """A fleet's prior the data contradict: a parameter fitted farther from the fleet's mean (in its
+    standard deviation under the prior, `PriorUse.z`) than a unit of that fleet lies with chance
+    `PRIOR_FALSE_ALARM` over the prior's parameters (normal): the unit is not of that fleet, or the
+    prior is not its model's (a reason: the result leans on a wrong prior)."""
     z = np.abs(np.asarray(prior.z))
     if not len(z):
         return
@@ -215,9 +215,9 @@ def _prior(c: _Checks, prior) -> None:
         float(z[worst]),
         limit,
         f"the data contradict the fleet's prior ({prior.file}): {prior.names[worst]} is fitted "
-        f"{z[worst]:.1f} of the fleet's standard deviations from its mean (at most {limit:.1f} for a unit of "
-        "that fleet); the unit is not like the fleet's, or the prior is another model's: calibrate it "
-        "without --prior",
+        f"{z[worst]:.1f} standard deviations from the fleet's mean (at most {limit:.1f} for a unit of that "
+        "fleet); the unit is not like the fleet's, or the prior is another model's or claims too much: "
+        "calibrate it without --prior",
     )
 
 
