@@ -164,8 +164,9 @@ def point_problem(
 ) -> PointProblem:
     """A `PointProblem` from NumPy arrays (`inertials`: masses and centres of mass, for
     compliance and backlash's preload, the payload lumped in; `R`, `sigma_rad`: measured
-    orientations, when `layout.orientation`; `prior`: a `PointPrior`'s root and mean). With a `backlash` term every joint's
-    approach flank follows the samples' order (`jaxcal._terms.approach`)."""
+    orientations, when `layout.orientation`; `prior`: a `PointPrior`'s root and mean). With a
+    `backlash` term every joint's approach flank follows the samples' order
+    (`jaxcal._terms.approach`)."""
     n = nominal.num_joints
     S = len(q)
     masses, coms = (np.zeros(n), np.zeros((n, 3))) if inertials is None else inertials
