@@ -23,9 +23,15 @@ offsets drawn at the simulator's scales: a population), then:
   `noprior_30_over_full_1000` without; `prior_share_mean` the prior's mean share of the
   parameters' information. `--population-scale` scales the population's spread (the simulator's
   origin, axis and zero-offset scales).
+- across processes (`--processes N`, 1: skipped): the same fleet calibrated by N local processes of one
+  distributed run (`jaxcal.distributed.run_local`, the units dealt between them): `processes.fleet_s`,
+  `processes.wall_ratio` (one process's wall time over theirs), `processes.max_parameter_difference`
+  (every unit against the one-process fleet's) and `processes.summary_equal` (`fleet.json` the same,
+  timings apart).
 
     python benchmarks/fleet.py --units 20 --poses 1000 --singles 3 --json results/fleet.json
     python benchmarks/fleet.py --units 20 --poses 1000 --singles 1 --population-scale 0.05 --json OUT
+    python benchmarks/fleet.py --units 20 --poses 1000 --singles 1 --prior-poses 0 --processes 2 --json OUT
 """
 
 import argparse
@@ -76,10 +82,13 @@ def main(argv=None) -> dict:
         default=1.0,
         help="the population's spread over the simulator's scales",
     )
+    parser.add_argument(
+        "--processes", type=int, default=1, help="also the fleet over this many local processes (1: not)"
+    )
     parser.add_argument("--json", metavar="OUT", help="also write the JSON here")
     args = parser.parse_args(argv)
-    if args.units < 2 or args.poses < 10 or not 1 <= args.singles <= args.units:
-        parser.error("--units >= 2, --poses >= 10, 1 <= --singles <= --units")
+    if args.units < 2 or args.poses < 10 or not 1 <= args.singles <= args.units or args.processes < 1:
+        parser.error("--units >= 2, --poses >= 10, 1 <= --singles <= --units, --processes >= 1")
     if args.prior_poses and (args.prior_poses < 24 or args.units < 5):
         parser.error("--prior-poses: at least 24 (four per joint), and a fleet of at least 5 units")
     kw = KW | {
@@ -112,6 +121,7 @@ def main(argv=None) -> dict:
             differences += [abs(mine[n] - alone[n]) for n in alone]
         summary = json.loads((work / "out" / "fleet.json").read_text())
         prior = _prior_part(work, args, kw, config, env) if args.prior_poses else {}
+        processes = _processes_part(work, args, config, env, fleet_s) if args.processes > 1 else {}
     origins = [
         p["population_std"] * 1e3
         for p in summary["parameters"]
@@ -134,6 +144,7 @@ def main(argv=None) -> dict:
         "population_std_mm": float(np.median(origins)) if origins else None,
         "population_scale": args.population_scale,
         **prior,
+        **processes,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
         "date": time.strftime("%Y-%m-%d %H:%M"),
     }
@@ -150,9 +161,65 @@ def main(argv=None) -> dict:
             f"{prior['prior_30_over_full_1000']:.2f}, {prior['noprior_30_over_full_1000']:.2f}); the prior gave "
             f"{prior['prior_share_mean']:.0%} of the information"
         )
+    if processes:
+        q = processes["processes"]
+        print(
+            f"the fleet over {q['count']} local processes: {q['fleet_s']:.1f} s ({q['wall_ratio']:.2f}x one "
+            f"process's); largest parameter difference {q['max_parameter_difference']:.1e}, summary "
+            f"{'the same' if q['summary_equal'] else 'DIFFERENT'}"
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))
     return report
+
+
+def _without_timings(doc):
+    if isinstance(doc, dict):
+        return {k: _without_timings(v) for k, v in doc.items() if k not in ("seconds", "timings_s")}
+    if isinstance(doc, list):
+        return [_without_timings(v) for v in doc]
+    return doc
+
+
+def _processes_part(work: Path, args, config: list, env: dict, fleet_s: float) -> dict:
+    """The fleet calibrated again by `--processes` local processes of one distributed run."""
+    from jaxcal.distributed import run_local
+
+    out = work / "out_processes"
+    print(f"the fleet over {args.processes} local processes ...", flush=True)
+    argv = [
+        sys.executable,
+        "-m",
+        "jaxcal",
+        "calibrate",
+        str(work / "fleet"),
+        "--out",
+        str(out),
+        *config,
+        "--quiet",
+    ]
+    t0 = time.perf_counter()
+    runs = run_local(argv, args.processes, env=env, capture=True)
+    seconds = time.perf_counter() - t0
+    if any(r.returncode not in (0, 3) for r in runs):
+        raise RuntimeError("the distributed fleet failed: " + " | ".join(r.stderr[-1500:] for r in runs))
+    differences = [
+        abs(mine[n] - theirs[n])
+        for unit in sorted(p.name for p in (work / "out").iterdir() if (p / "result.json").exists())
+        for mine, theirs in [tuple(_parameters(d / unit / "result.json") for d in (work / "out", out))]
+        for n in mine
+    ]
+    one, many = (_without_timings(json.loads((d / "fleet.json").read_text())) for d in (work / "out", out))
+    return {
+        "processes": {
+            "count": args.processes,
+            "fleet_s": seconds,
+            "wall_ratio": fleet_s / seconds,
+            "max_parameter_difference": float(max(differences)),
+            "summary_equal": one == many,
+            "exit_codes": [r.returncode for r in runs],
+        }
+    }
 
 
 def _prior_part(work: Path, args, kw: dict, config: list, env: dict) -> dict:

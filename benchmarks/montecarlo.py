@@ -32,12 +32,18 @@ noise, encoders and orientations).
   of `device_scaling` holds `devices`, `trials_per_s` (best of `--repeats`
   after the compiling call), `compile_s`, and the largest difference of any
   trial's `ee_rms_mm` from the one-device run (`max_abs_diff_ee_rms_mm`).
+- Processes (`--processes N`): the same call in N local processes of one distributed
+  run (`jaxcal.distributed.run_local`; each process's devices, the mesh over all of
+  them) against one process of one device: `process_scaling` holds both entries (as
+  `device_scaling`'s), the largest difference of any trial's `ee_rms_mm`
+  (`max_abs_diff_ee_rms_mm`) and `wall_ratio`, one process's run time over theirs.
 
 How to run (from the repository root)::
 
     .venv/bin/python benchmarks/montecarlo.py --trials 200 --scipy-trials 10 --json results/montecarlo.json
     .venv/bin/python benchmarks/montecarlo.py --quick      # smoke run
     .venv/bin/python benchmarks/montecarlo.py --scaling-only --trials 64 --device-counts 1,4
+    .venv/bin/python benchmarks/montecarlo.py --scaling-only --trials 64 --device-counts '' --processes 2
 
 The JSON (printed, and written atomically with `--json`) holds `trials`,
 `jaxcal_s`, `compile_s`, `scipy_s`, `speedup`, `success_rate`,
@@ -96,6 +102,7 @@ from jaxcal._montecarlo import (
     synthesize_sweeps,
     trial_mesh,
 )
+from jaxcal.distributed import join, run_local
 from jaxcal.robots import load_robot
 
 # --------------------------------------------------------------------------- the trials' inputs
@@ -463,9 +470,10 @@ def run(trials: int, n_scipy: int, repeats: int, seed: int, frames: int) -> dict
 
 
 def scaling_worker(devices: int, trials: int, repeats: int, seed: int, frames: int) -> dict:
-    """One device count's timing (run in a process started by `device_scaling`)."""
+    """One device count's timing (run in a process started by `device_scaling`; 0: every
+    device of every process, in a distributed run that `process_scaling` starts)."""
     setup = default_setup(load_robot("ur5e"), plan=SweepPlan(frames=frames))
-    key, mesh = jax.random.key(seed), jax.devices()[:devices]
+    key, mesh = jax.random.key(seed), jax.devices()[: devices or None]
     t0 = time.perf_counter()
     result = jax.block_until_ready(monte_carlo(setup, key, trials, devices=mesh))
     first_s = time.perf_counter() - t0
@@ -487,26 +495,69 @@ def scaling_worker(devices: int, trials: int, repeats: int, seed: int, frames: i
     )
 
 
+def _worker_args(devices: int, trials: int, repeats: int, seed: int, frames: int) -> list[str]:
+    return [
+        __file__,
+        "--scaling-worker",
+        str(devices),
+        "--trials",
+        str(trials),
+        "--repeats",
+        str(repeats),
+    ] + [
+        "--seed",
+        str(seed),
+        "--frames",
+        str(frames),
+    ]
+
+
+def _one_count(n: int, trials: int, repeats: int, seed: int, frames: int) -> dict:
+    """`scaling_worker(n, ...)` in a fresh process; on a CPU-only host with forced devices (twice
+    the count: spare pool threads)."""
+    env = dict(os.environ)
+    if jax.devices()[0].platform == "cpu":
+        env["XLA_FLAGS"] = (
+            env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={2 * n if n > 1 else 1}"
+        ).strip()
+    proc = subprocess.run(
+        [sys.executable, *_worker_args(n, trials, repeats, seed, frames)],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def device_scaling(counts: list[int], trials: int, repeats: int, seed: int, frames: int) -> list[dict]:
-    """`scaling_worker` for every device count, each in a fresh process; on a
-    CPU-only host with forced devices (twice the count: spare pool threads)."""
-    out = []
-    for n in counts:
-        env = dict(os.environ)
-        if jax.devices()[0].platform == "cpu":
-            env["XLA_FLAGS"] = (
-                env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={2 * n if n > 1 else 1}"
-            ).strip()
-        args = ["--scaling-worker", str(n), "--trials", str(trials), "--repeats", str(repeats)]
-        args += ["--seed", str(seed), "--frames", str(frames)]
-        proc = subprocess.run(
-            [sys.executable, __file__, *args], env=env, capture_output=True, text=True, check=True
-        )
-        out.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    """`scaling_worker` for every device count, each in a fresh process (`_one_count`)."""
+    out = [_one_count(n, trials, repeats, seed, frames) for n in counts]
     ref = np.asarray(out[0]["ee_rms_mm"])
     for entry in out:
         entry["max_abs_diff_ee_rms_mm"] = float(np.max(np.abs(np.asarray(entry.pop("ee_rms_mm")) - ref)))
     return out
+
+
+def process_scaling(processes: int, trials: int, repeats: int, seed: int, frames: int) -> dict:
+    """`scaling_worker` in one process of one device, then in `processes` local processes of one
+    distributed run over every device (`jaxcal.distributed.run_local`, each process its own)."""
+    one = _one_count(1, trials, repeats, seed, frames) | {"processes": 1}
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    argv = [sys.executable, *_worker_args(0, trials, repeats, seed, frames)]
+    runs = run_local(argv, processes, env=env, capture=True)
+    if any(r.returncode for r in runs):
+        raise RuntimeError(
+            "the distributed Monte Carlo failed: " + " | ".join(r.stderr[-1500:] for r in runs)
+        )
+    many = json.loads(runs[0].stdout.strip().splitlines()[-1]) | {"processes": processes}
+    diff = np.max(np.abs(np.asarray(many.pop("ee_rms_mm")) - np.asarray(one.pop("ee_rms_mm"))))
+    return {
+        "one": one,
+        "many": many,
+        "max_abs_diff_ee_rms_mm": float(diff),
+        "wall_ratio": one["run_s"] / many["run_s"],
+    }
 
 
 def _new_stats() -> dict:
@@ -534,13 +585,19 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--device-counts", default="1,4", help="devices of device_scaling, comma-separated ('' to skip)"
     )
-    parser.add_argument("--scaling-only", action="store_true", help="only device_scaling (no SciPy)")
+    parser.add_argument(
+        "--scaling-only", action="store_true", help="only device_scaling and process_scaling (no SciPy)"
+    )
+    parser.add_argument(
+        "--processes", type=int, default=1, help="process_scaling over this many local processes (1: not)"
+    )
     parser.add_argument("--scaling-worker", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    if args.scaling_worker:
-        print(
-            json.dumps(scaling_worker(args.scaling_worker, args.trials, args.repeats, args.seed, args.frames))
-        )
+    if args.scaling_worker is not None:
+        processes = join()  # a distributed run where `process_scaling` started this one
+        report = scaling_worker(args.scaling_worker, args.trials, args.repeats, args.seed, args.frames)
+        if processes.first:
+            print(json.dumps(report))
         return
     if args.quick:
         args.trials, args.scipy_trials, args.repeats = 8, 2, 1
@@ -554,6 +611,10 @@ def main(argv=None) -> None:
         result["device_scaling_note"] = (
             f"{os.cpu_count()} cores; on the CPU each count runs on twice as many forced host devices "
             "(spare intra-op pool threads for jaxlib's LAPACK kernels), in its own process"
+        )
+    if args.processes > 1:
+        result["process_scaling"] = process_scaling(
+            args.processes, args.trials, args.repeats, args.seed, args.frames
         )
     if args.json:
         write_json(result, args.json)

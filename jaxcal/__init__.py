@@ -27,6 +27,7 @@ _configure_xla()
 _configure_jax()
 
 if TYPE_CHECKING:
+    from . import distributed as distributed
     from . import vision as vision
     from ._arcdata import ArcData as ArcData
     from ._arcdata import make_arc_data as make_arc_data

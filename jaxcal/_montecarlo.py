@@ -44,6 +44,7 @@ from ._kinematics import (
     perturb_model,
 )
 from ._lsq import LMOptions
+from ._processes import current
 from ._progress import working
 from ._scoring import score as score  # re-exported
 
@@ -477,25 +478,21 @@ def monte_carlo(
     `ACCELERATOR_CHUNK`) on an accelerator. `trials` and the sweeps' frames are bounded
     (`MAX_TRIALS`, `MAX_FRAMES`): the memory a call takes grows with both.
 
-    **Several hosts.** Start the same script on every host, and initialise JAX's
-    distributed runtime before anything else touches JAX; `jax.devices()` then
-    lists every host's devices and the one call shards over all of them:
+    **Several processes or hosts** (`jaxcal.distributed`). Start the same script in every
+    process, with the environment of a distributed run, and join it before anything else touches
+    JAX; `jax.devices()` then lists every process's devices and the one call shards over all of
+    them, compiled first and run once every process has compiled it (`Processes.meet`):
 
     ```python
-    import os
-
     import jax
 
-    jax.distributed.initialize(  # arguments can be omitted on SLURM, Cloud TPU, Open MPI
-        coordinator_address="10.0.0.1:1234", num_processes=2, process_id=int(os.environ["RANK"])
-    )
-    jax.config.update("jax_enable_x64", True)
     import jaxcal
     from jaxcal._montecarlo import default_setup, summarize
 
+    processes = jaxcal.distributed.join()  # JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID; or srun
     setup = default_setup(jaxcal.robots.load_robot("ur5e"))
-    result = jaxcal.monte_carlo(setup, jax.random.key(0), 100_000)  # every host's GPUs
-    if jax.process_index() == 0:
+    result = jaxcal.monte_carlo(setup, jax.random.key(0), 100_000)  # every process's devices
+    if processes.first:
         print(summarize(result))
     ```
 
@@ -522,14 +519,24 @@ def monte_carlo(
     setup = dynamic_setup(setup)
     # A host value (uncommitted): jit places it on the mesh, on every process.
     free = np.asarray(_free_mask_jit(setup))
+    static = {"trials": trials, "chunk": min(chunk, per_device), "mesh": mesh}
     if not progress:
-        return _sharded_trials(setup, key, free, trials=trials, chunk=min(chunk, per_device), mesh=mesh)
+        return _run_trials(setup, key, free, static)
     what = f"Monte Carlo: {trials:,} trials in one compiled call (compiling it first, the first run only)"
     print(f"{what} ...", file=sys.stderr, flush=True)
     with working(True, "Monte Carlo", stream=sys.stderr):
-        return jax.block_until_ready(
-            _sharded_trials(setup, key, free, trials=trials, chunk=min(chunk, per_device), mesh=mesh)
-        )
+        return jax.block_until_ready(_run_trials(setup, key, free, static))
+
+
+def _run_trials(setup, key, free, static: dict) -> TrialResult:
+    """`_sharded_trials`; over several processes compiled first, and run once every process has
+    compiled it (`jaxcal.distributed.Processes.meet`)."""
+    processes = current()
+    if processes.count == 1:
+        return _sharded_trials(setup, key, free, **static)
+    compiled = _sharded_trials.lower(setup, key, free, **static).compile()
+    processes.meet("monte_carlo")
+    return compiled(setup, key, free)
 
 
 _free_mask_jit = jax.jit(nominal_free_mask)

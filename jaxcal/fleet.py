@@ -34,6 +34,7 @@ is measured in and its point's mount differ per unit: no prior on them.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -46,8 +47,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ._processes import ONE, Processes
 from ._records_base import Record, from_plain, plain
-from .errors import DatasetError
+from .errors import DatasetError, OutputError
 from .io._files import atomic_directory, write_text_atomic
 from .io._schema import read_json
 
@@ -468,59 +470,104 @@ def calibrate_fleet(
     checked=None,
     strict: bool = False,
     say: Callable[[str], None] = print,
+    processes: Processes = ONE,
 ) -> FleetSummary:
     """Calibrate every dataset (`calibrate(path) -> CalibrationResult`) and write each result with
     `write(result, folder)` into `out/<unit>/`, then the fleet's summary, all atomically (`out`
     appears whole or not at all). `strict`: a unit that is not ok is not written (its reason is
-    in the summary). `say`: one line per unit. **Returns:** the `FleetSummary`."""
+    in the summary). `say`: one line per unit. `processes` (`jaxcal.distributed.join()`): this
+    process's place in a distributed run; each process calibrates its share of the units
+    (`Processes.share`), the first writes the summary, and every process returns it.
+    **Returns:** the `FleetSummary`."""
     datasets = fleet_datasets(datasets)
-    units, parameters, fits, robot, t0 = [], {}, {}, None, time.perf_counter()
-    with atomic_directory(
-        out, overwrite=overwrite, inputs=datasets, kind="result", what="--out", checked=checked
+    t0 = time.perf_counter()
+    with _shared_folder(
+        out, processes, overwrite=overwrite, inputs=datasets, kind="result", what="--out", checked=checked
     ) as tmp:
-        for k, path in enumerate(datasets):
-            name, start = path.name, time.perf_counter()
-            try:
-                result = calibrate(path)
-            except (ValueError, OSError) as e:  # jaxcal's errors name the file, field or frame
-                status = "refused" if isinstance(e, (DatasetError, OSError)) else "failed"
-                units.append(
-                    FleetUnit(name, str(path), status, str(e), None, "", time.perf_counter() - start)
-                )
-                say(f"unit {k + 1}/{len(datasets)} {name}: {status}: {e}")
-                continue
-            unit = _unit_of(name, path, result, time.perf_counter() - start)
-            if not np.isfinite(unit.residual):
-                unit = FleetUnit(name, str(path), result.status, unit.reason, None, "", unit.seconds)
-            units.append(unit)
-            if unit.residual is not None:
-                parameters[name] = result.parameters
-            if unit.status == "ok" and result.point_fit is not None:
-                pf = result.point_fit
-                names = pf.layout.names()
-                fits[name] = (names, *(np.asarray(a) for a in (pf.fit.x, pf.fit.cov, pf.fit.free)))
-                frame_free = bool(pf.candidates[pf.layout.base.index("cam")].any())
-                robot = (
-                    pf.layout.base.joints,
-                    model_digest(pf.problem.nominal),
-                    pf.layout.base.fixed_frame,
-                    frame_free,
-                )
-            if not (strict and result.status != "ok"):
-                write(result, tmp / name)
-            residual = (
-                "" if unit.residual is None else f", residual {unit.residual:.4g} {unit.residual_unit} RMS"
-            )
-            say(f"unit {k + 1}/{len(datasets)} {name}: {result.status}{residual} ({unit.seconds:.1f} s)")
+        mine = [
+            _calibrate_unit(k, datasets, calibrate, write, tmp, strict=strict, say=say)
+            for k in processes.share(len(datasets))
+        ]
+        done = sorted((d for share in processes.gather(mine) for d in share), key=lambda d: d[0])
+        units = [d[1] for d in done]
+        parameters = {d[1].name: d[2] for d in done if d[2] is not None}
+        fits = {d[1].name: d[3] for d in done if d[3] is not None}
+        robot = next((d[4] for d in reversed(done) if d[4] is not None), None)
         summary = summarize(units, parameters)
         named = {o.unit for o in summary.outliers}
         usable = {u: f for u, f in fits.items() if u not in named}
         prior = None if robot is None else fleet_prior(usable, *robot)
         summary = dataclasses.replace(summary, prior=prior, timings_s={"total": time.perf_counter() - t0})
-        write_text_atomic(tmp / "fleet.json", json.dumps(fleet_json(summary), indent=1))
-        plotted = plot_fleet(summary, tmp / "fleet.png")
-        (tmp / "fleet.md").write_text(fleet_markdown(summary, plotted))
+        if processes.first:
+            write_text_atomic(tmp / "fleet.json", json.dumps(fleet_json(summary), indent=1))
+            plotted = plot_fleet(summary, tmp / "fleet.png")
+            (tmp / "fleet.md").write_text(fleet_markdown(summary, plotted))
+    processes.meet("fleet written")
     return summary
+
+
+def _calibrate_unit(k: int, datasets: list[Path], calibrate, write, tmp: Path, *, strict: bool, say) -> tuple:
+    """Unit `k` calibrated and written into `tmp/<unit>/`: `(k, FleetUnit, parameters or None,
+    the point fit's (names, x, cov, free) or None, the robot's (joints, digest, fixed frame,
+    frame free) or None)`."""
+    path = datasets[k]
+    name, start, where = path.name, time.perf_counter(), f"unit {k + 1}/{len(datasets)} {path.name}"
+    try:
+        result = calibrate(path)
+    except (ValueError, OSError) as e:  # jaxcal's errors name the file, field or frame
+        status = "refused" if isinstance(e, (DatasetError, OSError)) else "failed"
+        say(f"{where}: {status}: {e}")
+        return (
+            k,
+            FleetUnit(name, str(path), status, str(e), None, "", time.perf_counter() - start),
+            None,
+            None,
+            None,
+        )
+    unit = _unit_of(name, path, result, time.perf_counter() - start)
+    if not np.isfinite(unit.residual):
+        unit = FleetUnit(name, str(path), result.status, unit.reason, None, "", unit.seconds)
+    fit = robot = None
+    if unit.status == "ok" and result.point_fit is not None:
+        pf = result.point_fit
+        fit = (pf.layout.names(), *(np.asarray(a) for a in (pf.fit.x, pf.fit.cov, pf.fit.free)))
+        frame_free = bool(pf.candidates[pf.layout.base.index("cam")].any())
+        robot = (
+            pf.layout.base.joints,
+            model_digest(pf.problem.nominal),
+            pf.layout.base.fixed_frame,
+            frame_free,
+        )
+    if not (strict and result.status != "ok"):
+        write(result, tmp / name)
+    residual = "" if unit.residual is None else f", residual {unit.residual:.4g} {unit.residual_unit} RMS"
+    say(f"{where}: {result.status}{residual} ({unit.seconds:.1f} s)")
+    return k, unit, (result.parameters if unit.residual is not None else None), fit, robot
+
+
+@contextlib.contextmanager
+def _shared_folder(out, processes: Processes, **check):
+    """`atomic_directory(out, **check)` held by the first process, its temporary folder shared
+    with the others (which raise the first's error where it refuses `out`)."""
+    if processes.count == 1:
+        with atomic_directory(out, **check) as tmp:
+            yield tmp
+        return
+    with contextlib.ExitStack() as stack:
+        tmp = error = None
+        if processes.first:
+            try:
+                tmp = stack.enter_context(atomic_directory(out, **check))
+            except (ValueError, OSError) as e:
+                error = e
+        first = processes.gather((None if tmp is None else str(tmp), None if error is None else str(error)))[
+            0
+        ]
+        if error is not None:
+            raise error
+        if first[1] is not None:
+            raise OutputError(first[1])
+        yield Path(first[0])
 
 
 def fleet_json(summary: FleetSummary) -> dict:

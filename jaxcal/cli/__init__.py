@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 
 from .. import _configkeys as _config
-from .. import _interrupt
+from .. import _interrupt, distributed
 from .._cache import enable_compilation_cache
 from .._configkeys import knob
 from ._common import (
@@ -584,6 +584,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     enable_compilation_cache()
     try:
+        _join(args)
         return args.func(args)
     except (ValueError, OSError) as e:
         print(f"jaxcal: error: {e}", file=sys.stderr)
@@ -592,6 +593,25 @@ def main(argv: list[str] | None = None) -> int:
         if not _interrupt.interrupted():  # not the command line's own handling (`run`): as Python does
             raise
         return _interrupt.report()
+
+
+#: The commands that share their work over the processes of a distributed run (`jaxcal.distributed`).
+DISTRIBUTED = ("montecarlo", "calibrate")
+
+
+def _join(args) -> None:
+    """Join the distributed run the environment asks for (`jaxcal.distributed`), before any work;
+    refused by the commands that run in one process."""
+    count = distributed.requested()
+    if count == 1:
+        return
+    if args.command not in DISTRIBUTED:
+        raise ValueError(
+            f"jaxcal {args.command} runs in one process, and the environment asks for {count} "
+            f"({distributed.PROCESSES} or SLURM's {distributed.SLURM_TASKS}): start one, or run "
+            f"{' or '.join(DISTRIBUTED)} (a fleet) over several"
+        )
+    distributed.join()
 
 
 def run() -> None:

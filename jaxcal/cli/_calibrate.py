@@ -3,10 +3,12 @@ is imported once the command has begun to read its programs ahead, so that the m
 the programs' load overlap."""
 
 import argparse
+import contextlib
 import sys
 from functools import partial
 from pathlib import Path
 
+from .. import distributed
 from .._configkeys import knob
 from ..fleet import is_fleet
 from ..io._files import check_output_dir, marked_directory, output_lock, resolved
@@ -43,20 +45,27 @@ def cmd_calibrate(args) -> int:
 
     out = Path(args.out)
     datasets = [args.dataset, *args.more]
-    fleet = is_fleet(datasets)
+    fleet, processes = is_fleet(datasets), distributed.current()
     if fleet:
         _refuse_in_fleet(args)
+    elif processes.count > 1:
+        raise ValueError(
+            f"a distributed run ({processes.count} processes) calibrates a fleet (several datasets, or a folder "
+            f"of them); {args.dataset} is one dataset: calibrate it in one process"
+        )
     # Before any work: --out may not hold or overlap the dataset, and --overwrite replaces
-    # only a result jaxcal wrote; the lock makes a second run on the same --out fail at once.
+    # only a result jaxcal wrote; the lock makes a second run on the same --out fail at once
+    # (in a distributed run, the first process holds it).
     checked = check_output_dir(out, inputs=datasets, overwrite=args.overwrite, kind="result", what="--out")
-    if not args.quiet:  # before the calibration's modules are imported and the dataset is read: seconds
+    if not args.quiet and processes.first:  # before the calibration's modules are imported: seconds
         what = f"a fleet ({', '.join(datasets)})" if fleet else args.dataset
         print(f"calibrating {what} into {out} ...", flush=True)
     # The programs the last run on DATASET called are read ahead from here on, while the
     # calibration's modules are imported and the images detected (`jaxcal._exported.warm_start`).
     from .._exported import warm_start  # JAX: after the first line
 
-    with output_lock(out, what="--out"), warm_start(f"jaxcal calibrate {resolved(args.dataset)}"):
+    lock = output_lock(out, what="--out") if processes.first else contextlib.nullcontext()
+    with lock, warm_start(f"jaxcal calibrate {resolved(args.dataset)}"):
         from ._calibrate_run import calibrate_dataset, calibrate_fleet_datasets
 
         if fleet:

@@ -10,6 +10,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from .. import distributed
 from .._exported import warm_start
 from .._progress import working
 from ..io._files import note_written, resolved, write_text_atomic
@@ -178,12 +179,16 @@ def calibrate_fleet_datasets(args, datasets: list, out: Path, checked) -> int:
     from ..fleet import calibrate_fleet, fleet_datasets
 
     console = Console(width=max(Console().width, 132))
-    units, run = fleet_datasets(datasets), run_record(args)
-    say = (lambda text: None) if args.quiet else (lambda text: console.print(text, highlight=False))
-    say(f"{len(units)} units: {', '.join(u.name for u in units[:8])}{' ...' if len(units) > 8 else ''}")
+    units, run, processes = fleet_datasets(datasets), run_record(args), distributed.current()
+    tag = f"(process {processes.index + 1}/{processes.count}) " if processes.count > 1 else ""
+    say = (lambda text: None) if args.quiet else (lambda text: console.print(tag + text, highlight=False))
+    if processes.first:
+        say(f"{len(units)} units: {', '.join(u.name for u in units[:8])}{' ...' if len(units) > 8 else ''}")
+    started = []
 
     def one(path):
-        first = path == units[0]  # its compiles (the first run only) show their progress; the rest are quick
+        first = not started  # its compiles (the first run only) show their progress; the rest are quick
+        started.append(path)
         return calibrate(path, progress=first and not args.quiet, **_options(args))
 
     def write(result, folder):
@@ -198,7 +203,10 @@ def calibrate_fleet_datasets(args, datasets: list, out: Path, checked) -> int:
         checked=checked,
         strict=args.strict,
         say=say,
+        processes=processes,
     )
+    if not processes.first:
+        return summary.exit_code
     for o in summary.outliers[:10]:
         console.print(
             f"[yellow]stands out:[/yellow] {o.unit} {o.parameter} {o.z:+.1f} robust spreads from the fleet"

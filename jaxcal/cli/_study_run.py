@@ -1,5 +1,6 @@
 """`jaxcal montecarlo`'s work (its options: `._study`): the vmapped sensitivity study and its tables."""
 
+import io
 import json
 import sys
 import time
@@ -11,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .. import _montecarlo as mc
+from .. import distributed
 from .._axisfit import parameter_names
 from .._progress import working
 from ..io._files import check_output_file, write_text_atomic
@@ -112,15 +114,15 @@ def _summary_table(console, summary: dict, title: str):
 def run_montecarlo(args) -> int:
     check_output_file(args.json, overwrite=True, what="--json")
     setup = _setup(args)
-    ok = True
-    if args.detail:
+    ok, first = True, distributed.current().first  # a distributed run: the first process reports
+    if args.detail and first:
         console = Console(width=max(Console().width, 132))
         console.rule("[bold]One trial in detail: UR5e, joint-by-joint sweeps, analytic marker poses")
         t0 = time.perf_counter()
         ok = _single_trial_report(console, setup, args.seed)
         console.print(f"(single trial incl. compilation: {time.perf_counter() - t0:.1f} s)")
     else:
-        console = Console(stderr=True)
+        console = Console(stderr=True) if first else Console(file=io.StringIO())
     console.print(
         f"Monte Carlo: {args.trials} trials of {setup.plan.frames} frames per sweep in one compiled call "
         "(compiling it comes first, the first run only: most of a minute on a few cores) ...",
@@ -128,7 +130,7 @@ def run_montecarlo(args) -> int:
         soft_wrap=True,
     )
     t0 = time.perf_counter()
-    with working(True, f"Monte Carlo: {args.trials} trials", stream=sys.stderr):
+    with working(first, f"Monte Carlo: {args.trials} trials", stream=sys.stderr):
         result = mc.monte_carlo(setup, jax.random.key(args.seed), args.trials, chunk=args.chunk)
         jax.block_until_ready(result)
     summary = mc.summarize(result) | {"seconds": time.perf_counter() - t0}
@@ -137,7 +139,7 @@ def run_montecarlo(args) -> int:
         summary,
         f"Monte Carlo: {args.trials} trials in one jit call ('seconds' includes compiling it, unless cached)",
     )
-    if args.json:
+    if args.json and first:
         write_text_atomic(args.json, json.dumps(summary, indent=2))
     rate = float(np.asarray(result.success).mean())  # summary's success_rate
     ok = ok and rate == 1.0 if args.detail else rate > 0

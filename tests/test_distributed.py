@@ -1,0 +1,137 @@
+"""Across processes (`jaxcal.distributed`): the environment that asks for a distributed run, and
+two local processes of one run giving what one process gives, for a Monte Carlo study and a
+fleet's calibration (issue 52 item 3)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from jaxcal import distributed
+from jaxcal.cli import main
+from jaxcal.distributed import ADDRESS, PROCESS_ID, PROCESSES, SLURM_TASKS, Processes, requested, run_local
+from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
+
+ROOT = Path(__file__).resolve().parents[1]
+# test_fleet.py's tracker capture (its compiled programs serve both files).
+KW = dict(robot="ur5e", noise_um=10.0, bad_fraction=0.0, home_deg=None, pose_range_deg=120.0, poses=48)
+NAMES = (ADDRESS, PROCESSES, PROCESS_ID, SLURM_TASKS)
+
+
+@pytest.fixture
+def clean_env(monkeypatch):
+    for name in NAMES:
+        monkeypatch.delenv(name, raising=False)
+    return monkeypatch
+
+
+def test_the_environment_asks_for_a_distributed_run_by_name(clean_env):
+    assert requested() == 1
+    clean_env.setenv(SLURM_TASKS, "4")  # srun with four tasks
+    assert requested() == 4
+    clean_env.setenv(PROCESSES, "2")
+    with pytest.raises(ValueError, match=f"{ADDRESS}, {PROCESS_ID} missing"):
+        requested()
+    clean_env.setenv(ADDRESS, "127.0.0.1:1234")
+    clean_env.setenv(PROCESS_ID, "2")
+    with pytest.raises(ValueError, match=f"{PROCESS_ID}: from 0 to 1, got 2"):
+        requested()
+    clean_env.setenv(PROCESS_ID, "one")
+    with pytest.raises(ValueError, match=f"{PROCESS_ID}: not a whole number"):
+        requested()
+    clean_env.setenv(PROCESS_ID, "1")
+    assert requested() == 2
+    # Dealt round-robin: every item to exactly one process.
+    shares = [list(Processes(i, 3).share(8)) for i in range(3)]
+    assert shares == [[0, 3, 6], [1, 4, 7], [2, 5]]
+    assert Processes().gather({"a": 1}) == [{"a": 1}]
+
+
+def test_a_command_of_one_process_refuses_a_distributed_run(clean_env, capsys):
+    clean_env.setenv(SLURM_TASKS, "2")
+    assert main(["verify", "nowhere", "nothing"]) == 2
+    err = capsys.readouterr().err
+    assert "jaxcal verify runs in one process, and the environment asks for 2" in err
+    assert SLURM_TASKS in err
+
+
+def _without_timings(doc):
+    if isinstance(doc, dict):
+        return {k: _without_timings(v) for k, v in doc.items() if k not in ("seconds", "timings_s")}
+    if isinstance(doc, list):
+        return [_without_timings(v) for v in doc]
+    return doc
+
+
+def _env() -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in (*NAMES, "XLA_FLAGS")}
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+@pytest.mark.slow
+def test_two_processes_calibrate_a_fleet_as_one_does(tmp_path):
+    """Two local processes of one distributed `jaxcal calibrate FLEET`: the units dealt between
+    them, the folder written once, equal to one process's (timings apart; every unit's parameters
+    bit for bit), nothing left beside it, and both processes exit with the fleet's code. (Their
+    Monte Carlo: `benchmarks/montecarlo.py --processes 2`, in tests/test_benchmarks.py.)"""
+    fleet = tmp_path / "fleet"
+    for seed in range(4):
+        simulate_tracker(TrackerSimConfig(seed=40 + seed, **KW), fleet / f"unit{seed:02d}")
+    (fleet / "broken").mkdir()
+    (fleet / "broken" / "metadata.json").write_text((fleet / "unit00" / "metadata.json").read_text())
+    two = tmp_path / "two"
+    argv = [
+        sys.executable,
+        "-m",
+        "jaxcal",
+        "calibrate",
+        str(fleet),
+        "--out",
+        str(two),
+        "--config",
+        "cv-folds=0",
+    ]
+    runs = run_local(argv, 2, env=_env(), timeout=600, capture=True)
+    assert [r.returncode for r in runs] == [3, 3], (
+        runs[0].stderr[-3000:] + runs[1].stderr[-3000:]
+    )  # a refused unit
+    # Each process says its own units (dealt round-robin); the first, the fleet's summary.
+    assert "(process 2/2) unit 2/5 unit00: ok" in runs[1].stdout and "unit 2/5" not in runs[0].stdout
+    assert "(process 1/2) unit 1/5 broken: refused" in runs[0].stdout and "wrote" not in runs[1].stdout
+    single = tmp_path / "one"
+    assert main(["calibrate", str(fleet), "--out", str(single), "--config", "cv-folds=0", "--quiet"]) == 3
+    docs = [json.loads((d / "fleet.json").read_text()) for d in (single, two)]
+    assert _without_timings(docs[0]) == _without_timings(docs[1])
+    assert sorted(p.name for p in two.iterdir()) == sorted(p.name for p in single.iterdir())
+    for unit in ("unit00", "unit03"):
+        a, b = (json.loads((d / unit / "result.json").read_text())["parameters"] for d in (single, two))
+        assert [p["estimate"] for p in a] == [p["estimate"] for p in b]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fleet", "one", "two"], "a lock or temporary left"
+
+
+def test_a_refused_output_stops_every_process(tmp_path):
+    """An --out jaxcal did not write: each process refuses it by name, none waits for another."""
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    argv = [sys.executable, "-m", "jaxcal", "calibrate", str(tmp_path / "a"), str(tmp_path / "b")]
+    argv += ["--out", str(tmp_path / "mine"), "--quiet"]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    runs = run_local(argv, 2, env=_env(), timeout=300, capture=True)
+    assert [r.returncode for r in runs] == [2, 2]
+    for r in runs:
+        assert f"--out {tmp_path / 'mine'}" in r.stderr, r.stderr[-2000:]
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "mine"
+
+
+def test_the_local_launcher_gives_each_process_its_place():
+    code = "from jaxcal.distributed import join; p = join(); print(p.index, p.count)"
+    runs = run_local([sys.executable, "-c", code], 2, env=_env(), timeout=120, capture=True)
+    assert [r.stdout.split() for r in runs] == [["0", "2"], ["1", "2"]], [r.stderr[-1000:] for r in runs]
+    assert distributed.current() == distributed.ONE  # this process joined nothing
+    with pytest.raises(subprocess.TimeoutExpired):
+        run_local([sys.executable, "-c", "import time; time.sleep(30)"], 2, env=_env(), timeout=0.5)
