@@ -156,6 +156,13 @@ def install() -> None:
     _installed = True
 
 
+def also_on(signum: int) -> None:
+    """Handle `signum` (SIGTERM) as SIGINT where `install()` ran (the command line), else restore
+    its default (the process ends): what a scheduler's cancel expects, whatever a library set."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signum, _handler if _installed else signal.SIG_DFL)
+
+
 def report() -> int:
     """After an interrupt reached the command's top: say so, and the exit code."""
     print("jaxcal: interrupted; nothing unfinished was kept", file=sys.stderr)

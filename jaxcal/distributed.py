@@ -21,12 +21,16 @@ module imports no JAX until asked to join (the command line's parser reads `requ
 """
 
 import os
+import signal
 import socket
 import subprocess
+import sys
+import time
 
-from ._processes import ONE, Processes, current
+from . import _interrupt
+from ._processes import ONE, PeerError, Processes, current
 
-__all__ = ["ONE", "Processes", "current", "free_port", "join", "requested", "run_local"]
+__all__ = ["ONE", "PeerError", "Processes", "current", "free_port", "join", "leave", "requested", "run_local"]
 
 #: The variables of an explicit start (JAX reads the first itself).
 ADDRESS, PROCESSES, PROCESS_ID = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
@@ -65,20 +69,56 @@ def requested() -> int:
     return 1
 
 
-def join() -> Processes:
+#: How long a process waits for the others to join (s): a process that was never started is
+#: reported then, with what this one was told.
+JOIN_TIMEOUT_S = 120
+
+
+def join(say=None) -> Processes:
     """Join JAX's distributed runtime if the environment asks for it (`requested`; once per
-    process, before anything else touches JAX) and return this process's place."""
+    process, before anything else touches JAX) and return this process's place. `say`: where to
+    tell that it is joining (a line; default stderr). SIGTERM (a scheduler's cancel, `timeout`)
+    then ends the process as Ctrl-C does, not JAX's preemption notice, which would ignore it."""
     count = requested()
     if count == 1:
         return ONE
     import jax
 
     if not jax.distributed.is_initialized():
-        if os.environ.get(PROCESSES, "").strip():
-            jax.distributed.initialize(num_processes=count, process_id=_int(PROCESS_ID, 0))
-        else:
-            jax.distributed.initialize()  # SLURM: the job's variables
+        explicit = bool(os.environ.get(PROCESSES, "").strip())
+        where = (
+            f"process {_int(PROCESS_ID, 0)} of {count} at {os.environ.get(ADDRESS)}"
+            if explicit
+            else f"{count} SLURM tasks"
+        )
+        (say or (lambda text: print(text, file=sys.stderr, flush=True)))(
+            f"joining a distributed run: {where} ..."
+        )
+        try:
+            if explicit:
+                jax.distributed.initialize(
+                    num_processes=count, process_id=_int(PROCESS_ID, 0), initialization_timeout=JOIN_TIMEOUT_S
+                )
+            else:  # SLURM: the job's variables
+                jax.distributed.initialize(initialization_timeout=JOIN_TIMEOUT_S)
+        except Exception as e:  # noqa: BLE001 - the runtime's errors name no variable
+            raise ValueError(
+                f"could not join a distributed run ({where}) within {JOIN_TIMEOUT_S} s: every process must "
+                f"start, with {PROCESS_ID} 0 to {count - 1} each once and one {ADDRESS} that process 0's "
+                f"host can open ({type(e).__name__}: {str(e).splitlines()[0][:200]})"
+            ) from None
+        _interrupt.also_on(signal.SIGTERM)
     return Processes(jax.process_index(), jax.process_count())
+
+
+def leave() -> None:
+    """Leave the distributed run this process joined, once every process leaves (JAX's shutdown
+    barrier): process 0 holds the runtime, and a process still in it when process 0 is gone is
+    ended by JAX. Python's exit does it too; the command line, which ends its process at once
+    (`jaxcal.cli.run`), calls it."""
+    jax = sys.modules.get("jax")
+    if jax is not None and jax.distributed.is_initialized():
+        jax.distributed.shutdown()
 
 
 def free_port() -> int:
@@ -98,9 +138,9 @@ def run_local(
 ) -> list[subprocess.CompletedProcess]:
     """Start `argv` as `processes` processes of one distributed run on this host (a coordinator on
     a free local port; `env`: their environment, default this one's) and wait for them all, at
-    most `timeout` seconds each (then all are ended and `subprocess.TimeoutExpired` raised): the
-    way to try a distributed command on one machine. `capture`: keep their output (text), else it
-    is this process's. **Returns:** their `CompletedProcess`es, in process order."""
+    most `timeout` seconds in all (then `subprocess.TimeoutExpired`, the processes interrupted, or
+    killed): the way to try a distributed command on one machine. `capture`: keep their output
+    (text), else it is this process's. **Returns:** their `CompletedProcess`es, in process order."""
     base = dict(os.environ if env is None else env)
     base[ADDRESS] = f"127.0.0.1:{free_port()}"
     pipe = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True} if capture else {}
@@ -108,14 +148,30 @@ def run_local(
         subprocess.Popen(argv, env=base | {PROCESSES: str(processes), PROCESS_ID: str(i)}, **pipe)
         for i in range(processes)
     ]
+    deadline = None if timeout is None else time.monotonic() + timeout
     done = []
     try:
         for p in running:
-            out, err = p.communicate(timeout=timeout)
+            left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+            out, err = p.communicate(timeout=left)
             done.append(subprocess.CompletedProcess(argv, p.returncode, out, err))
     finally:
-        for p in running:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
+        _end(running)
     return done
+
+
+def _end(running: list) -> None:
+    """End what still runs: Ctrl-C first (jaxcal leaves nothing behind then), then a kill."""
+    for p in running:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in running:
+        try:
+            p.communicate(timeout=STOP_S)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.communicate()
+
+
+#: How long `run_local` gives an interrupted process to stop before it kills it (s).
+STOP_S = 10

@@ -40,6 +40,7 @@ import functools
 import hashlib
 import json
 import os
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -484,10 +485,10 @@ def calibrate_fleet(
     with _shared_folder(
         out, processes, overwrite=overwrite, inputs=datasets, kind="result", what="--out", checked=checked
     ) as tmp:
-        mine = [
-            _calibrate_unit(k, datasets, calibrate, write, tmp, strict=strict, say=say)
-            for k in processes.share(len(datasets))
-        ]
+        mine = []
+        for k in processes.share(len(datasets)):
+            processes.check()  # another process stopped: so does this one
+            mine.append(_calibrate_unit(k, datasets, calibrate, write, tmp, strict=strict, say=say))
         done = sorted((d for share in processes.gather(mine) for d in share), key=lambda d: d[0])
         units = [d[1] for d in done]
         parameters = {d[1].name: d[2] for d in done if d[2] is not None}
@@ -560,14 +561,18 @@ def _shared_folder(out, processes: Processes, **check):
                 tmp = stack.enter_context(atomic_directory(out, **check))
             except (ValueError, OSError) as e:
                 error = e
-        first = processes.gather((None if tmp is None else str(tmp), None if error is None else str(error)))[
-            0
-        ]
+        shared = (None if tmp is None else str(tmp), None if error is None else str(error))
+        folder, refused = processes.gather(shared)[0]
         if error is not None:
             raise error
-        if first[1] is not None:
-            raise OutputError(first[1])
-        yield Path(first[0])
+        if refused is not None:
+            raise OutputError(refused)
+        try:
+            yield Path(folder)
+        except BaseException:
+            if not processes.first:  # what it wrote after the first removed the folder goes too
+                shutil.rmtree(folder, ignore_errors=True)
+            raise
 
 
 def fleet_json(summary: FleetSummary) -> dict:

@@ -100,8 +100,8 @@ def test_two_processes_calibrate_a_fleet_as_one_does(tmp_path):
         runs[0].stderr[-3000:] + runs[1].stderr[-3000:]
     )  # a refused unit
     # Each process says its own units (dealt round-robin); the first, the fleet's summary.
-    assert "(process 2/2) unit 2/5 unit00: ok" in runs[1].stdout and "unit 2/5" not in runs[0].stdout
-    assert "(process 1/2) unit 1/5 broken: refused" in runs[0].stdout and "wrote" not in runs[1].stdout
+    assert "(process 1 of 2) unit 2/5 unit00: ok" in runs[1].stdout and "unit 2/5" not in runs[0].stdout
+    assert "(process 0 of 2) unit 1/5 broken: refused" in runs[0].stdout and "wrote" not in runs[1].stdout
     single = tmp_path / "one"
     assert main(["calibrate", str(fleet), "--out", str(single), "--config", "cv-folds=0", "--quiet"]) == 3
     docs = [json.loads((d / "fleet.json").read_text()) for d in (single, two)]
@@ -126,6 +126,41 @@ def test_a_refused_output_stops_every_process(tmp_path):
     for r in runs:
         assert f"--out {tmp_path / 'mine'}" in r.stderr, r.stderr[-2000:]
     assert (tmp_path / "mine" / "notes.txt").read_text() == "mine"
+
+
+def test_the_processes_of_a_run_run_one_command_line(tmp_path):
+    """Processes given different options (here --out) are refused before any work, by name."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    argv = ["calibrate", str(tmp_path / "a"), str(tmp_path / "b"), "--out"]
+    code = f"import sys, os; from jaxcal.cli import main; sys.exit(main({argv!r} + [{str(tmp_path)!r} + '/out' + os.environ['JAX_PROCESS_ID']]))"
+    runs = run_local([sys.executable, "-c", code], 2, env=_env(), timeout=120, capture=True)
+    assert [r.returncode for r in runs] == [2, 2]
+    assert "must run one command line; process 0 of 2 has" in runs[0].stderr, runs[0].stderr[-2000:]
+    assert f"--out {tmp_path}/out1" in runs[0].stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]
+
+
+_STOPS = """
+import sys
+from jaxcal.distributed import PeerError, join
+p = join()
+if p.index == 1:
+    p.fail("its robot file is missing")
+    sys.exit(2)
+try:
+    p.gather("mine")
+except PeerError as e:
+    print(e)
+    sys.exit(2)
+"""
+
+
+def test_a_process_that_stops_stops_the_others():
+    """The others are told (`Processes.fail`), instead of waiting for a process that has gone."""
+    runs = run_local([sys.executable, "-c", _STOPS], 2, env=_env(), timeout=120, capture=True)
+    assert [r.returncode for r in runs] == [2, 2], [r.stderr[-1500:] for r in runs]
+    assert runs[0].stdout.strip() == "process 1 of 2 stopped: its robot file is missing"
 
 
 def test_the_local_launcher_gives_each_process_its_place():

@@ -21,6 +21,7 @@ import importlib
 import logging
 import os
 import re
+import shlex
 import sys
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from .. import _configkeys as _config
 from .. import _interrupt, distributed
 from .._cache import enable_compilation_cache
 from .._configkeys import knob
+from ..fleet import is_fleet
 from ._common import (
     EYE_IN_HAND_SWEEP,
     MAX_CAMERAS,
@@ -584,34 +586,59 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     enable_compilation_cache()
     try:
-        _join(args)
+        _join(args, sys.argv[1:] if argv is None else argv)
         return args.func(args)
     except (ValueError, OSError) as e:
+        _stopped(str(e))
         print(f"jaxcal: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # what was being written is gone (`jaxcal.io._files`)
+        _stopped("interrupted")
         if not _interrupt.interrupted():  # not the command line's own handling (`run`): as Python does
             raise
         return _interrupt.report()
+    except BaseException as e:
+        _stopped(f"{type(e).__name__}: {e}")
+        raise
 
 
 #: The commands that share their work over the processes of a distributed run (`jaxcal.distributed`).
 DISTRIBUTED = ("montecarlo", "calibrate")
 
 
-def _join(args) -> None:
+def _join(args, argv: list[str]) -> None:
     """Join the distributed run the environment asks for (`jaxcal.distributed`), before any work;
-    refused by the commands that run in one process."""
+    refused by the commands that run in one process, and where the processes were not all given
+    the same command line."""
     count = distributed.requested()
     if count == 1:
         return
-    if args.command not in DISTRIBUTED:
-        raise ValueError(
-            f"jaxcal {args.command} runs in one process, and the environment asks for {count} "
-            f"({distributed.PROCESSES} or SLURM's {distributed.SLURM_TASKS}): start one, or run "
-            f"{' or '.join(DISTRIBUTED)} (a fleet) over several"
+    if args.command not in DISTRIBUTED or (
+        args.command == "calibrate" and not is_fleet([args.dataset, *args.more])
+    ):
+        what = (
+            f"jaxcal {args.command}"
+            if args.command != "calibrate"
+            else f"calibrating one dataset ({args.dataset})"
         )
-    distributed.join()
+        raise ValueError(
+            f"{what} runs in one process, and the environment asks for {count} "
+            f"({distributed.PROCESSES} or SLURM's {distributed.SLURM_TASKS}): start one, or run "
+            f"{' or '.join(DISTRIBUTED)} (a fleet: several datasets, or a folder of them) over several"
+        )
+    processes = distributed.join()
+    lines = processes.gather(argv)
+    other = next((i for i, line in enumerate(lines) if line != argv), None)
+    if other is not None:
+        raise ValueError(
+            f"the processes of a distributed run must run one command line; process {processes.index} of "
+            f"{processes.count} has `jaxcal {shlex.join(argv)}`, process {other} `jaxcal {shlex.join(lines[other])}`"
+        )
+
+
+def _stopped(why: str) -> None:
+    """In a distributed run, tell the other processes that this one stopped (they stop too)."""
+    distributed.current().fail(why)
 
 
 def run() -> None:
@@ -631,6 +658,7 @@ def run() -> None:
             programs.wait_ahead()
         if "jax" in sys.modules:
             sys.modules["jax"].effects_barrier()
+    distributed.leave()  # a distributed run's processes end together
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()

@@ -45,14 +45,9 @@ def cmd_calibrate(args) -> int:
 
     out = Path(args.out)
     datasets = [args.dataset, *args.more]
-    fleet, processes = is_fleet(datasets), distributed.current()
+    fleet, processes = is_fleet(datasets), distributed.current()  # one dataset: one process (`main`)
     if fleet:
         _refuse_in_fleet(args)
-    elif processes.count > 1:
-        raise ValueError(
-            f"a distributed run ({processes.count} processes) calibrates a fleet (several datasets, or a folder "
-            f"of them); {args.dataset} is one dataset: calibrate it in one process"
-        )
     # Before any work: --out may not hold or overlap the dataset, and --overwrite replaces
     # only a result jaxcal wrote; the lock makes a second run on the same --out fail at once
     # (in a distributed run, the first process holds it).

@@ -180,7 +180,7 @@ def calibrate_fleet_datasets(args, datasets: list, out: Path, checked) -> int:
 
     console = Console(width=max(Console().width, 132))
     units, run, processes = fleet_datasets(datasets), run_record(args), distributed.current()
-    tag = f"(process {processes.index + 1}/{processes.count}) " if processes.count > 1 else ""
+    tag = f"(process {processes.index} of {processes.count}) " if processes.count > 1 else ""
     say = (lambda text: None) if args.quiet else (lambda text: console.print(tag + text, highlight=False))
     if processes.first:
         say(f"{len(units)} units: {', '.join(u.name for u in units[:8])}{' ...' if len(units) > 8 else ''}")
