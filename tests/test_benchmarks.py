@@ -205,7 +205,7 @@ RUNS = {
     "montecarlo --processes": Run(
         "montecarlo",
         "--scaling-only --trials 8 --repeats 1 --frames 24 --device-counts '' --processes 2",
-        "process_scaling.wall_ratio process_scaling.max_abs_diff_ee_rms_mm<=1e-12 process_scaling.many.devices==2",
+        "process_scaling.wall_ratio process_scaling.max_abs_diff_ee_rms_mm<=1e-10 process_scaling.many.devices==2",
     ),
     "compile": Run(
         "compile",
