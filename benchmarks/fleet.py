@@ -173,17 +173,10 @@ def main(argv=None) -> dict:
     return report
 
 
-def _without_timings(doc):
-    if isinstance(doc, dict):
-        return {k: _without_timings(v) for k, v in doc.items() if k not in ("seconds", "timings_s")}
-    if isinstance(doc, list):
-        return [_without_timings(v) for v in doc]
-    return doc
-
-
 def _processes_part(work: Path, args, config: list, env: dict, fleet_s: float) -> dict:
     """The fleet calibrated again by `--processes` local processes of one distributed run."""
     from jaxcal.distributed import run_local
+    from jaxcal.fleet import without_timings
 
     out = work / "out_processes"
     print(f"the fleet over {args.processes} local processes ...", flush=True)
@@ -209,7 +202,7 @@ def _processes_part(work: Path, args, config: list, env: dict, fleet_s: float) -
         for mine, theirs in [tuple(_parameters(d / unit / "result.json") for d in (work / "out", out))]
         for n in mine
     ]
-    one, many = (_without_timings(json.loads((d / "fleet.json").read_text())) for d in (work / "out", out))
+    one, many = (without_timings(json.loads((d / "fleet.json").read_text())) for d in (work / "out", out))
     return {
         "processes": {
             "count": args.processes,

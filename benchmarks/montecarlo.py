@@ -514,11 +514,12 @@ def _worker_args(devices: int, trials: int, repeats: int, seed: int, frames: int
 
 def _one_count(n: int, trials: int, repeats: int, seed: int, frames: int) -> dict:
     """`scaling_worker(n, ...)` in a fresh process; on a CPU-only host with forced devices (twice
-    the count: spare pool threads)."""
+    the count: spare pool threads; none for one device, so that its program is this process's,
+    cached)."""
     env = dict(os.environ)
-    if jax.devices()[0].platform == "cpu":
+    if jax.devices()[0].platform == "cpu" and n > 1:
         env["XLA_FLAGS"] = (
-            env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={2 * n if n > 1 else 1}"
+            env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={2 * n}"
         ).strip()
     proc = subprocess.run(
         [sys.executable, *_worker_args(n, trials, repeats, seed, frames)],

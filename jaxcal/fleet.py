@@ -575,6 +575,15 @@ def _shared_folder(out, processes: Processes, **check):
             raise
 
 
+def without_timings(doc):
+    """`doc` (a `fleet.json` or `result.json`, read) without its seconds: what two runs give alike."""
+    if isinstance(doc, dict):
+        return {k: without_timings(v) for k, v in doc.items() if k not in ("seconds", "timings_s")}
+    if isinstance(doc, list):
+        return [without_timings(v) for v in doc]
+    return doc
+
+
 def fleet_json(summary: FleetSummary) -> dict:
     return {"schema": "jaxcal.fleet", "schema_version": FLEET_SCHEMA_VERSION, **plain(summary)}
 

@@ -13,6 +13,7 @@ import pytest
 from jaxcal import distributed
 from jaxcal.cli import main
 from jaxcal.distributed import ADDRESS, PROCESS_ID, PROCESSES, SLURM_TASKS, Processes, requested, run_local
+from jaxcal.fleet import without_timings
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,14 +59,6 @@ def test_a_command_of_one_process_refuses_a_distributed_run(clean_env, capsys):
     assert SLURM_TASKS in err
 
 
-def _without_timings(doc):
-    if isinstance(doc, dict):
-        return {k: _without_timings(v) for k, v in doc.items() if k not in ("seconds", "timings_s")}
-    if isinstance(doc, list):
-        return [_without_timings(v) for v in doc]
-    return doc
-
-
 def _env() -> dict:
     env = {k: v for k, v in os.environ.items() if k not in (*NAMES, "XLA_FLAGS")}
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
@@ -105,7 +98,7 @@ def test_two_processes_calibrate_a_fleet_as_one_does(tmp_path):
     single = tmp_path / "one"
     assert main(["calibrate", str(fleet), "--out", str(single), "--config", "cv-folds=0", "--quiet"]) == 3
     docs = [json.loads((d / "fleet.json").read_text()) for d in (single, two)]
-    assert _without_timings(docs[0]) == _without_timings(docs[1])
+    assert without_timings(docs[0]) == without_timings(docs[1])
     assert sorted(p.name for p in two.iterdir()) == sorted(p.name for p in single.iterdir())
     for unit in ("unit00", "unit03"):
         a, b = (json.loads((d / unit / "result.json").read_text())["parameters"] for d in (single, two))
