@@ -117,6 +117,34 @@ def test_atomic_directory_mode_marker_and_failure(tmp_path, umask_022):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
+def test_a_killed_runs_temporary_directory_is_removed_by_the_next_run(tmp_path):
+    """A run killed outright (SIGKILL: nothing of it runs again) leaves its temporary directory
+    beside the output; the next run on that output removes it once it holds the lock, and
+    nothing else: not another output's, nor a file or folder that only looks like one."""
+    dest = tmp_path / "out"
+    killed = textwrap.dedent(
+        f"""
+        import os, signal
+        from jaxcal.io._files import atomic_directory
+        with atomic_directory({str(dest)!r}, kind="result") as tmp:
+            (tmp / "half.json").write_text("{{")
+            os.kill(os.getpid(), signal.SIGKILL)
+        """
+    )
+    run = subprocess.run([sys.executable, "-c", killed], capture_output=True, check=False)
+    assert run.returncode == -9, run.stderr
+    left = [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+    assert len(left) == 1 and left[0].startswith(".out."), left
+    kept = [".outer.abcdefgh.tmp", ".out.abcdefghi.tmp", ".out.x.tmp"]  # other names, not ours
+    for name in kept:
+        (tmp_path / name).mkdir()
+    (tmp_path / ".out.abcdefgh.tmp").write_text("a user's file")
+    with atomic_directory(dest, kind="result") as tmp:
+        (tmp / "result.json").write_text("{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*kept, ".out.abcdefgh.tmp", "out"])
+    assert (tmp_path / ".out.abcdefgh.tmp").read_text() == "a user's file"
+
+
 def test_atomic_directory_creates_missing_parents_and_removes_them_on_failure(tmp_path):
     dest = tmp_path / "a" / "b" / "out"
     with pytest.raises(RuntimeError), atomic_directory(dest, kind="result"):

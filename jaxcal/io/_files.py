@@ -18,7 +18,9 @@ renamed into place (`atomic_directory`):
   second run on the same output fails at once;
 - the final rename refuses (Linux `renameat2(RENAME_NOREPLACE)`) a directory
   that appeared at the output during the run; on any failure nothing partial
-  is left and an existing output is untouched.
+  is left and an existing output is untouched; a temporary directory that a
+  killed run (SIGKILL, power loss) left beside the output is removed by the
+  next run that takes the lock (`_remove_stale_temps`).
 
 Output files (`--json`, `--plot`, `plan --out`) follow the same rules by
 `check_output_file` before any work, and are written through `atomic_file`.
@@ -33,6 +35,7 @@ import ctypes.util
 import errno
 import json
 import os
+import re
 import secrets
 import shutil
 import tempfile
@@ -555,6 +558,7 @@ def atomic_directory(
                 f"{label}: a different directory is there than when the run started; refusing to replace it"
             )
         parent = resolved(dest, what, error=OutputError).parent
+        _remove_stale_temps(parent, dest.name)
         tmp = make_temp_dir(parent, dest.name)
         with _interrupt.partial(lambda: _remove_tree(tmp)):
             try:
@@ -565,6 +569,16 @@ def atomic_directory(
             except BaseException:
                 shutil.rmtree(tmp, ignore_errors=True)
                 raise
+
+
+def _remove_stale_temps(parent: Path, name: str) -> None:
+    """Remove the temporary directories of output `name` (`make_temp_dir`'s `.NAME.XXXXXXXX.tmp`)
+    that runs killed outright left in `parent`: whoever holds the output's lock is the only run
+    that writes one, so those found while holding it are dead runs'."""
+    stale = re.compile(rf"\.{re.escape(name)}\.[a-z0-9_]{{8}}\.tmp")
+    for entry in parent.iterdir():
+        if stale.fullmatch(entry.name) and entry.is_dir() and not entry.is_symlink():
+            _remove_tree(entry)
 
 
 def _remove_tree(path: Path) -> None:
