@@ -59,7 +59,7 @@ def plain(x):
 def _decode(tp, value):
     """`value` (plain JSON) as type `tp`: records, tuples of them, arrays, optionals."""
     if value is None:
-        return None
+        return float("nan") if tp is float else None  # a number JSON cannot hold (`finite_json`)
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin in (typing.Union, types.UnionType):
         inner = [a for a in args if a is not type(None)]
@@ -67,10 +67,20 @@ def _decode(tp, value):
     if origin is tuple:
         return tuple(_decode(args[0], v) for v in value)
     if tp is np.ndarray:
-        return np.asarray(value, np.float64)
+        return np.asarray(_nan_for_null(value), np.float64)
     if isinstance(tp, type) and is_dataclass(tp):
         return from_plain(tp, value)
     return value
+
+
+def _nan_for_null(value):
+    return (
+        float("nan")
+        if value is None
+        else [_nan_for_null(v) for v in value]
+        if isinstance(value, list)
+        else value
+    )
 
 
 def _row_type(tp):

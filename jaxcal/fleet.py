@@ -1,10 +1,11 @@
 """A fleet: many robots of one model calibrated in one run, and what their results say together.
 
 `calibrate_fleet(datasets, out)` (`jaxcal calibrate DS1 DS2 ...`, or a folder of datasets)
-calibrates every unit in one process, so that the compiled programs one unit loads serve the
-next, and writes each unit's result as `jaxcal calibrate` would (`OUT/<unit>/`), then the fleet's
-summary (`fleet.json`, `fleet.md`, `fleet.png`). A unit whose data are refused, or whose
-calibration fails, does not stop the others: its reason is in the summary.
+calibrates every unit in one process (the compiled programs one unit loads serve the next), or
+shares them out over the processes of a distributed run (`jaxcal.distributed`), writes each
+unit's result as `jaxcal calibrate` would (`OUT/<unit>/`), then the fleet's summary (`fleet.json`,
+`fleet.md`, `fleet.png`). A unit whose data are refused, or whose calibration fails, does not stop
+the others: its reason is in the summary.
 
 The summary, per parameter that every calibrated unit estimated:
 
@@ -14,22 +15,20 @@ The summary, per parameter that every calibrated unit estimated:
   $\\sqrt{\\max(s^2 - \\overline{\\sigma_i^2}, 0)}$: how much the robots differ, not how well
   each was measured;
 - the units that stand out: $|x_i - \\mathrm{median}| / \\max(\\text{robust spread}, \\sigma_i,
-  10^{-5})$ (`RESOLUTION`: 10 micrometres, 10 microradians)
-  above `outlier_threshold` (set so that a fleet of ordinary units has one named with chance
-  `FALSE_ALARM`), named with the parameter, the value and how far; and units whose residual
-  stands out from the fleet's the same way (a unit measured badly, or not of this model).
+  10^{-5})$ (`RESOLUTION`: 10 micrometres, 10 microradians) above `outlier_threshold` (set so
+  that a fleet of ordinary units has one named with chance `FALSE_ALARM`), named with the
+  parameter, the value and how far; and units whose residual stands out from the fleet's the
+  same way (a unit measured badly, or not of this model).
 
-Outliers are judged only with at least `MIN_UNITS` calibrated units: fewer cannot say what is
-usual.
+Outliers are judged only with at least `MIN_UNITS` calibrated units: fewer cannot say what is usual.
 
 **The fleet as prior.** A fleet of point-fit units (tracker, motion capture, the controller's
 tool point) also writes `prior` into `fleet.json`: over the robot's own parameters (joint
 origins, zero offsets, terms) that every usable unit (ok, not named) estimated, their mean and
-the population's covariance, the units' own covariance removed (empirical Bayes,
-`fleet_prior`). `jaxcal calibrate --prior
-fleet.json` (`read_prior`) then fits a new unit of the same model with it as a Gaussian prior
-(`jaxcal._pointfit.PointPrior`): a short capture borrows what the fleet knows. The frame the unit
-is measured in and its point's mount differ per unit: no prior on them.
+the population's covariance, the units' own covariance removed (empirical Bayes, `fleet_prior`).
+`jaxcal calibrate --prior fleet.json` (`read_prior`) then fits a new unit of the same model with
+it as a Gaussian prior (`jaxcal._pointfit.PointPrior`): a short capture borrows what the fleet
+knows. The frame the unit is measured in and its point's mount differ per unit: no prior on them.
 """
 
 from __future__ import annotations
@@ -41,6 +40,7 @@ import hashlib
 import json
 import os
 import shutil
+import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -518,13 +518,8 @@ def _calibrate_unit(k: int, datasets: list[Path], calibrate, write, tmp: Path, *
     except (ValueError, OSError) as e:  # jaxcal's errors name the file, field or frame
         status = "refused" if isinstance(e, (DatasetError, OSError)) else "failed"
         say(f"{where}: {status}: {e}")
-        return (
-            k,
-            FleetUnit(name, str(path), status, str(e), None, "", time.perf_counter() - start),
-            None,
-            None,
-            None,
-        )
+        unit = FleetUnit(name, str(path), status, str(e), None, "", time.perf_counter() - start)
+        return k, unit, None, None, None
     unit = _unit_of(name, path, result, time.perf_counter() - start)
     if not np.isfinite(unit.residual):
         unit = FleetUnit(name, str(path), result.status, unit.reason, None, "", unit.seconds)
@@ -549,7 +544,8 @@ def _calibrate_unit(k: int, datasets: list[Path], calibrate, write, tmp: Path, *
 @contextlib.contextmanager
 def _shared_folder(out, processes: Processes, **check):
     """`atomic_directory(out, **check)` held by the first process, its temporary folder shared
-    with the others (which raise the first's error where it refuses `out`)."""
+    with the others (which raise the first's error where it refuses `out`, and all raise where one
+    cannot see the folder: a folder local to one host)."""
     if processes.count == 1:
         with atomic_directory(out, **check) as tmp:
             yield tmp
@@ -567,6 +563,12 @@ def _shared_folder(out, processes: Processes, **check):
             raise error
         if refused is not None:
             raise OutputError(refused)
+        seen = processes.gather((socket.gethostname(), Path(folder).is_dir()))
+        if blind := [f"{i} (on {host})" for i, (host, sees) in enumerate(seen) if not sees]:
+            raise OutputError(
+                f"--out {out}: process {', '.join(blind)} of {processes.count} cannot see {folder}, which process "
+                f"0 ({seen[0][0]}) made: the output must be on a file system every process shares"
+            )
         try:
             yield Path(folder)
         except BaseException:
@@ -684,16 +686,14 @@ def plot_fleet(summary: FleetSummary, path) -> bool:
                 ax.annotate(
                     u, (zu, i), xytext=(3, 3), textcoords="offset points", fontsize=7, color="tab:red"
                 )
-    if summary.limit is not None:
-        lim = summary.limit
+    if (lim := summary.limit) is not None:
         ax.axvspan(
             -lim, lim, color="tab:green", alpha=0.08, label=f"within {lim:.3g} robust spreads: not named"
         )
+        ax.legend(loc="lower right", fontsize=7)
     ax.set_yticks(range(len(params)), [p.name for p in params], fontsize=7)
     ax.set_xlabel("robust spreads from the fleet's median (outliers named)")
     ax.set_title(f"{len(summary.calibrated)} calibrated units")
-    if summary.limit is not None:
-        ax.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

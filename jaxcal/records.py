@@ -269,7 +269,11 @@ class JointError(Record):
     axis_position_mm: float | None = optional()
     #: The reduction ratio's error (%), None when it was not estimated.
     ratio_percent: float | None = None
-    #: The zero offset's error: deg (revolute) or mm (prismatic).
+    #: The zero offset's estimate less the truth's: deg (revolute) or mm (prismatic). Not an
+    #: error to hold against its standard deviation: a zero offset trades with the joint origins'
+    #: rotations about the axis and, along parallel axes, with the next origins' offsets, which the
+    #: estimator holds at nominal (its gauge) and the truth perturbs; the axes' and the tool
+    #: point's errors are the ones that gauge leaves alone.
     zero_offset_deg: float | None = optional()
     zero_offset_mm: float | None = optional()
 

@@ -19,7 +19,7 @@ from .io._files import atomic_directory
 from .io._provenance import made_by
 from .io.camera_yaml import intrinsics_fields, pose_fields, write_camera_yaml
 from .io.compensation import COMPENSATION_FILE, compensation_json
-from .io.dataset import write_json
+from .io.dataset import finite_json, write_json
 from .io.dh_tables import dh_table_json, is_table_file
 from .io.result import ESTIMATE_FILE, pose_figures, write_estimate
 from .io.robot_files import is_ur, ur_kinematics_text, write_ros_camera_files
@@ -580,7 +580,7 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
         # The DH tables compile their Jacobian (seconds, mostly without Python's lock):
         # on a thread of their own while the other files and the plots are written.
         tables_pending = pool.submit(dh_tables, result)
-        write_json(tmp / "result.json", result.to_json() | ({} if run is None else {"run": run}))
+        write_json(tmp / "result.json", finite_json(result.to_json() | ({} if run is None else {"run": run})))
         if result.estimate is not None:
             write_estimate(tmp / ESTIMATE_FILE, result.estimate)
         # A dataset whose robot is a DH/MDH table has no URDF to copy: a minimal one from the model.
@@ -594,11 +594,11 @@ def write_outputs(result, out, *, overwrite: bool = False, inputs=None, checked=
             (tmp / "ur_calibration.yaml").write_text(ur_kinematics_text(result.model, result.nominal)[0])
         comp = compensation_of(result)
         if comp is not None:
-            write_json(tmp / COMPENSATION_FILE, compensation_json(comp))
+            write_json(tmp / COMPENSATION_FILE, finite_json(compensation_json(comp)))
         figs = _plots(result, tmp)
         tables = tables_pending.result()
         for convention, table in tables.items():
-            write_json(tmp / f"calibrated_{convention}.json", dh_table_document(result, table))
+            write_json(tmp / f"calibrated_{convention}.json", finite_json(dh_table_document(result, table)))
         (tmp / "report.md").write_text(_markdown(result, figs, tables, run))
     return out
 

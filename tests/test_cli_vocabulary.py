@@ -62,14 +62,26 @@ def test_inspect_json_writes_a_file_or_prints_and_the_bare_flag_still_prints(tmp
     assert "--json" in capsys.readouterr().err and sorted(p.name for p in TRACKER.iterdir()) == before
 
 
-def test_plan_terms_are_calibrates_names_without_auto(capsys):
-    for terms in ("auto", "sag"):
-        with pytest.raises(SystemExit):
-            main(["plan", "--terms", terms, "--out", "never.json"])
-        assert f"unknown non-geometric terms ['{terms}']" in capsys.readouterr().err
-    assert not Path("never.json").exists()
-
-
 def test_montecarlo_sweeps_one_angle(capsys):
     assert main(["montecarlo", "--sweep-deg", "40,40,40,40,40,40", "--trials", "1"]) == 2
     assert "montecarlo --sweep-deg: one angle" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["calibrate", "x", "--terms", "auto,backlash"], "'auto' stands alone (it is not a family)"),
+        (["calibrate", "x", "--terms", "backlash,compliance,backlash"], "a family named twice"),
+        (["calibrate", "x", "--terms", "complaince"], "unknown terms ['complaince']"),
+        (["plan", "--terms", "auto", "--out", "never.json"], "'auto' chooses terms from a capture's data"),
+        (["plan", "--terms", "sag", "--out", "never.json"], "unknown terms ['sag']"),
+    ],
+)
+def test_terms_take_one_vocabulary_and_say_what_is_wrong(argv, message, capsys):
+    """`--terms` means the same in `calibrate` and `plan` (`none` in both); what one cannot take
+    is refused saying why, not with a list that names it as known."""
+    assert build_parser().parse_args(["plan", "--terms", "none"]).terms == ()
+    with pytest.raises(SystemExit):
+        main(argv)
+    assert message in capsys.readouterr().err
+    assert not Path("never.json").exists()

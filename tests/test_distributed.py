@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from jaxcal import distributed
+from jaxcal import distributed, fleet
 from jaxcal.cli import main
 from jaxcal.distributed import ADDRESS, PROCESS_ID, PROCESSES, SLURM_TASKS, Processes, requested, run_local
+from jaxcal.errors import OutputError
 from jaxcal.fleet import without_timings
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
 
@@ -119,6 +120,27 @@ def test_a_refused_output_stops_every_process(tmp_path):
     for r in runs:
         assert f"--out {tmp_path / 'mine'}" in r.stderr, r.stderr[-2000:]
     assert (tmp_path / "mine" / "notes.txt").read_text() == "mine"
+
+
+class _PeerElsewhere(Processes):
+    """Process 0 of 2 whose peer runs on another host and does not see process 0's folders."""
+
+    def gather(self, obj):
+        sees = isinstance(obj, tuple) and isinstance(obj[1], bool)  # (host, sees the folder)
+        return [obj, ("host-b", False) if sees else (None, None)]
+
+
+def test_an_output_folder_one_process_cannot_see_is_refused_by_every_process(tmp_path):
+    """A fleet's --out on a disk of one host only: refused before any unit, naming the process,
+    its host and the folder; nothing is left beside --out."""
+    with pytest.raises(
+        OutputError, match=r"--out .*out: process 1 \(on host-b\) of 2 cannot see .*\.out\..*\.tmp"
+    ):
+        with fleet._shared_folder(
+            tmp_path / "out", _PeerElsewhere(0, 2), inputs=(), kind="result", what="--out"
+        ):
+            raise AssertionError("a unit was calibrated")
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_the_processes_of_a_run_run_one_command_line(tmp_path):

@@ -220,6 +220,53 @@ def test_compensate_puts_each_joint_where_the_rigid_model_does():
     assert np.abs(q_c - q_t).max() > 1e-3  # the shoulder's sag is milliradians
 
 
+def test_compensate_refuses_what_no_robot_could_mean(tmp_path):
+    """`jaxcal.compensate` from a compensation.json as the robot side reads it: the same commands
+    as the terms give; joints or an approach that are not finite, of another arm, in degrees or
+    off the flanks refused by name; a file whose coefficient is NaN refused naming it; a result
+    of no kind it knows refused, not taken for "no terms"."""
+    import json
+
+    from jaxcal.errors import DatasetError
+    from jaxcal.io.compensation import Compensation, compensation_json
+    from jaxcal.io.dataset import finite_json, write_json
+
+    terms = ("compliance", "backlash")
+    x = np.r_[[0.0, 0.03, 0.03, 0.2, 0.2, 0.2], np.tile([-1.5e-4, 2e-4], N)]
+    std = np.full(len(x), np.nan)  # unknown: written as null, read back as NaN
+    path = tmp_path / "compensation.json"
+    write_json(
+        path, finite_json(compensation_json(Compensation(terms, x, std, NOMINAL, MASSES, COMS, np.ones(N))))
+    )
+    json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"{c} in strict JSON"))
+    q = np.random.default_rng(4).uniform(-1.5, 1.5, (3, N))
+    np.testing.assert_array_equal(
+        jaxcal.compensate(path, q), _terms.compensate(terms, x, NOMINAL, MASSES, COMS, q)
+    )
+    bad = q.copy()
+    bad[1, 5] = np.nan
+    for joints, approach, match in [
+        (bad, None, r"joints\[1, 5\] is nan"),
+        (q[:, :5], None, "this arm has 6 joints"),
+        (np.degrees(q), None, r"joints\[0, \d\] = .* more than two turns: joints are radians"),
+        (q, np.full(N, 2.0), "from -1 to \\+1"),
+        (q, np.ones(N - 1), r"approach of shape \(5,\)"),
+        (q, np.r_[np.ones(N - 1), np.inf], r"approach\[5\] is inf"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            jaxcal.compensate(path, joints, approach=approach)
+    for result in (None, {}, q):
+        with pytest.raises(TypeError, match="give a CalibrationResult"):
+            jaxcal.compensate(result, q)
+    doc = json.loads(path.read_text())
+    doc["coefficients"]["shoulder_lift_joint.compliance.rad_per_kNm"] = float("nan")
+    path.write_text(json.dumps(doc))
+    with pytest.raises(
+        DatasetError, match="'shoulder_lift_joint.compliance.rad_per_kNm' is not a finite number"
+    ):
+        jaxcal.compensate(path, q)
+
+
 @pytest.mark.slow
 def test_a_sagging_arm_with_lost_motion_is_calibrated_with_its_terms(tmp_path):
     """The realistic arm's sag, lost motion and late encoder stamps on analytic corners of
@@ -230,7 +277,9 @@ def test_a_sagging_arm_with_lost_motion_is_calibrated_with_its_terms(tmp_path):
     bound), and its terms are in `result.json` and `compensation.json`."""
     import json
 
+    from jaxcal.errors import DatasetError
     from jaxcal.io.dataset import load_dataset
+    from jaxcal.io.result import read_result
     from jaxcal.sim.arm import ARM_PRESETS
     from jaxcal.sim.corners import analytic_detections, capture_truth
     from jaxcal.stages import _observe
@@ -254,6 +303,7 @@ def test_a_sagging_arm_with_lost_motion_is_calibrated_with_its_terms(tmp_path):
         )
         fit = jaxcal.calibrate(design, progress=False)
     assert "backlash" in fit.terms.kept and fit.status == "ok", fit.reasons
+    assert not [w for w in fit.warnings if "home configuration" in w], fit.warnings  # swept from zero
     assert fit.validation.ee_rms_mm_after < 1.3 * 1.00
     # The lost motion recovered: the approach coefficients are minus half an arc minute, within 4 std.
     approach = [c for c in fit.terms.coefficients if c.free and c.name.endswith("approach_rad")]
@@ -266,3 +316,15 @@ def test_a_sagging_arm_with_lost_motion_is_calibrated_with_its_terms(tmp_path):
     q = np.zeros((2, N))
     q[1, 1] = 0.3
     np.testing.assert_allclose(jaxcal.compensate(out, q), jaxcal.compensate(fit, q), atol=1e-15)
+    # Strict JSON (a check without a limit is null, not Infinity); read back, the result names
+    # what compensation needs; a folder whose calibration kept no term compensates nothing.
+    for name in ("result.json", "compensation.json"):
+        json.loads((out / name).read_text(), parse_constant=lambda c: pytest.fail(f"{c} in {name}"))
+    with pytest.raises(ValueError, match="give its folder or its compensation.json"):
+        jaxcal.compensate(read_result(out), q)  # the folder read as its result.json
+    (out / "compensation.json").unlink()
+    with pytest.raises(DatasetError, match="compensation.json: no such file, though the calibration kept"):
+        jaxcal.compensate(out, q)
+    saved["terms"]["kept"] = []
+    (out / "result.json").write_text(json.dumps(saved))
+    np.testing.assert_array_equal(jaxcal.compensate(out, q), q)

@@ -25,9 +25,13 @@ def terms_arg(text: str) -> tuple[str, ...] | str:
     if text.strip() in ("auto", "none"):
         return "auto" if text.strip() == "auto" else ()
     names = tuple(t.strip() for t in text.split(",") if t.strip())
+    if alone := [t for t in names if t in ("auto", "none")]:
+        raise argparse.ArgumentTypeError(f"{alone[0]!r} stands alone (it is not a family): {text!r}")
     unknown = [t for t in names if t not in TERMS]
     if unknown:
         raise argparse.ArgumentTypeError(f"unknown terms {unknown}; known: auto, none, {', '.join(TERMS)}")
+    if len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"a family named twice: {text!r}")
     return names
 
 

@@ -6,6 +6,7 @@ import argparse
 from .._argtypes import count, finite, resolution
 from .._configkeys import knob
 from ..io._images import MAX_PIXELS, MAX_SIDE
+from ._calibrate import TERMS, terms_arg
 
 #: `sigma-px`'s default in `--help`: `jaxcal.planning.DEFAULT_SIGMA_PX` (a test keeps them equal).
 SIGMA_PX_HELP = "detector corner noise, px (default 0.045: jaxcal.planning.DEFAULT_SIGMA_PX)"
@@ -116,10 +117,10 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
 
 def _terms_arg(text: str) -> tuple[str, ...]:
     """`--terms`: the families the calibration will fit, named as `jaxcal calibrate --terms` names
-    them (`auto` chooses from a capture's data, which a plan comes before)."""
-    from .._terms import check_terms  # only when --terms is given: the term models take a second to import
-
-    try:
-        return check_terms(t.strip() for t in text.split(",") if t.strip())
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
+    them, `none` included; not `auto`, which chooses from a capture's data, and a plan comes first."""
+    if text.strip() == "auto":
+        raise argparse.ArgumentTypeError(
+            "'auto' chooses terms from a capture's data, which a plan comes before: name the families the "
+            f"calibration will fit ({', '.join(TERMS)}), or none"
+        )
+    return terms_arg(text)

@@ -91,7 +91,7 @@ def read_compensation(path) -> Compensation:
         c = Compensation(
             terms=terms,
             x=np.array([float(d["coefficients"][k]) for k in wanted]),
-            std=np.array([float(d["std"].get(k, np.nan)) for k in wanted]),
+            std=np.array([np.nan if d["std"].get(k) is None else float(d["std"][k]) for k in wanted]),
             nominal=nominal,
             masses=np.asarray(d["masses_kg"], np.float64).reshape(n),
             coms=np.asarray(d["coms_m"], np.float64).reshape(n, 3),
@@ -99,6 +99,19 @@ def read_compensation(path) -> Compensation:
         )
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise DatasetError(f"{path}: not a compensation file jaxcal wrote ({e})") from None
+    bad = [f"'coefficients' {k!r}" for k, v in zip(wanted, c.x, strict=True) if not np.isfinite(v)]
+    bad += [
+        f"'{k}'"
+        for k, v in (("masses_kg", c.masses), ("coms_m", c.coms), ("rate", c.rate))
+        if not np.isfinite(v).all()
+    ]
+    if bad or (c.rate <= 0).any() or (c.masses < 0).any():
+        why = (
+            f"{bad[0]} is not a finite number"
+            if bad
+            else "'rate' must be positive and 'masses_kg' not negative"
+        )
+        raise DatasetError(f"{path}: {why}")
     if d.get("preload_nm") != PRELOAD_NM or d.get("approach_width_rad") != APPROACH_WIDTH_RAD:
         raise DatasetError(
             f"{path}: written with preload_nm {d.get('preload_nm')} and approach_width_rad "

@@ -187,6 +187,20 @@ def write_json(path: Path, payload: dict) -> None:
     Path(path).write_text(json.dumps(payload, indent=1, default=_json_default) + "\n")
 
 
+def finite_json(x):
+    """`x` (plain JSON, NumPy arrays and scalars allowed) with every infinite or NaN number as
+    null: JSON has none (`Infinity` and `NaN` are Python's extension, which strict readers, a
+    robot's among them, refuse). `jaxcal._records_base.from_plain` reads null back as NaN where
+    a number is due."""
+    if isinstance(x, dict):
+        return {k: finite_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [finite_json(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    return x.item() if isinstance(x, np.generic) else x
+
+
 def write_frames(path: Path, camera, frame, timestamp, file) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)

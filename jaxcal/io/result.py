@@ -6,6 +6,7 @@ record's field names), `read_result` reads them back as a `ResultFile`.
 """
 
 import json
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -164,8 +165,9 @@ def result_from_json(payload: dict) -> ResultFile:
 
 
 def read_result(path) -> ResultFile:
-    """The typed blocks of the `result.json` at `path` (raises `DatasetError` naming the file
-    when it is missing or not one jaxcal wrote)."""
+    """The typed blocks of the `result.json` at `path`, or in the result folder `path` (raises
+    `DatasetError` naming the file when it is missing or not one jaxcal wrote)."""
+    path = Path(path) / "result.json" if Path(path).is_dir() else path
     try:
         with open(path) as f:
             payload = loads(f.read())

@@ -594,7 +594,9 @@ def synchronise(setup: Setup, obs: Observations, options: Options, terms=None) -
             notes += _compare_clock(ds, offset, clock)
     corrected = log_q is not commanded
     homes = sweep_homes(ds, joint, q, inside, corrected) if setup.kind.single_joint_sweeps else None
-    if homes is not None:
+    # A home off zero as the encoders logged it: not the terms' sag and lost motion (`corrected`).
+    moved = 0.0 if not corrected else float(np.abs(log_q[1] - commanded[1]).max())
+    if homes is not None and np.degrees(np.abs(homes).max() - moved) >= AT_ZERO_DEG:
         notes.append(
             "sweeps from a home configuration other than zero: "
             + "; ".join(

@@ -407,7 +407,8 @@ def _better(current: np.ndarray, candidate: np.ndarray, current_px: float, candi
 
 def _gain_words(gain: float, z: float, blocks: int) -> str:
     return (
-        f"{100 * gain:+.1f} %, {min(z, 999.0):.1f} standard errors over {blocks} blocks of frames; kept above "
+        f"{100 * abs(gain):.1f} % {'lower' if gain >= 0 else 'higher'} with it, {min(z, 999.0):.1f} standard errors "
+        f"over {blocks} blocks of frames; kept above "
         f"{100 * CV_GAIN:g} % and {MIN_Z_BLOCKS:g} standard error"
     )
 
@@ -464,7 +465,7 @@ def _eliminate(lin: _Linear, terms, folds: int, models: list[dict], best: tuple,
         rest = tuple(u for u in kept if u != t)
         why = (
             f"{t} left out again: held-out reprojection error {row['cv_mean_px']:.4f} px mean against "
-            f"{best['cv_mean_px']:.4f} with it (its gain {_gain_words(gain, paired_z(blocks, best_blocks), len(blocks))})"
+            f"{best['cv_mean_px']:.4f} with it ({_gain_words(gain, paired_z(blocks, best_blocks), len(blocks))})"
         )
         models.append(dict(terms=rest, free=lin.n_geo + len(cols), why=why, **row))
         if not _better(blocks, best_blocks, row["cv_mean_px"], best["cv_mean_px"]):
