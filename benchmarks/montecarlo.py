@@ -544,7 +544,8 @@ def process_scaling(processes: int, trials: int, repeats: int, seed: int, frames
     """`scaling_worker` in one process of one device, then in `processes` local processes of one
     distributed run over every device (`jaxcal.distributed.run_local`, each process its own)."""
     one = _one_count(1, trials, repeats, seed, frames) | {"processes": 1}
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env = dict(os.environ)  # one device a process: no forced device count, the other XLA flags kept
+    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split() if "force_host_platform" not in f)
     argv = [sys.executable, *_worker_args(0, trials, repeats, seed, frames)]
     runs = run_local(argv, processes, env=env, capture=True)
     if any(r.returncode for r in runs):
