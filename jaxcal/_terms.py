@@ -89,6 +89,15 @@ APPROACH_WIDTH_RAD = 1e-4
 MOTION_WINDOW_S = 0.02
 
 
+#: A non-geometric coefficient stays free only when the data pin its effect on the joint
+#: angle (its std times the RMS of its basis over the samples) to this (rad): a
+#: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
+#: only to more than that is not identified (e.g. wrist 3's, when the point sits on its axis).
+#: The calibrations hold the others at zero (`jaxcal.stages._terms`, `_points`), and a plan's
+#: prediction counts them so (`jaxcal.planning`).
+TERM_STD_RAD = 1e-3
+
+
 def check_terms(terms) -> tuple[str, ...]:
     """`terms` as a tuple of known family names (a `ValueError` naming the unknown ones)."""
     terms = tuple(terms)

@@ -185,3 +185,19 @@ def test_cli_reports_the_arms_bias(planned, tmp_path, capsys, monkeypatch):
             ]
         )
     assert seen["camera"] == "rolling-shutter" and seen["arm"] == "realistic"
+
+
+def test_terms_the_frames_cannot_pin_are_held_and_named():
+    """A plan's prediction with non-geometric terms holds, as the calibration does, the
+    coefficients the frames do not pin (their effect on the joint known to no better than 1 mrad:
+    `jaxcal._terms.TERM_STD_RAD`) and names them, instead of counting them free with standard
+    deviations no arm has (wrist 2's compliance, which no varying gravity torque shows on sweeps)."""
+    from jaxcal.planning import evaluate_plan, sweep_plan
+
+    plan = sweep_plan("ur5e", frames_per_joint=12, range_deg=80.0, resolution=(640, 480))
+    ev = evaluate_plan(plan, terms=("compliance", "backlash"))
+    assert "wrist_2_joint.compliance.rad_per_kNm" in ev.terms_unpinned
+    assert not set(ev.terms_unpinned) & set(ev.term_std)
+    assert 0.0 < max(ev.term_std.values()) < 1.0  # rad/kN m or rad: within what an arm can have
+    assert ev.summary()["terms_unpinned"] == list(ev.terms_unpinned)
+    json.dumps(ev.summary())

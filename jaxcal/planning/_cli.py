@@ -77,6 +77,12 @@ def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
             + ", ".join(f"{k} {v:.2g}" for k, v in worst)
             + ")",
         )
+        if ev.terms_unpinned:
+            t.add_row(
+                "terms the frames cannot pin",
+                f"{', '.join(ev.terms_unpinned)}: held at zero, as the calibration will hold them "
+                "(their effect on the joint known to no better than 1 mrad)",
+            )
     for name, text in model_rows(ev):
         t.add_row(name, text)
     unidentifiable = len(ev.unidentifiable)

@@ -45,7 +45,7 @@ from .._correction import ParameterLayout
 from .._exported import stored_jit
 from .._refine import CornerData, RefineProblem, identifiable_mask, zero_params
 from .._reprojection import reprojection_residuals
-from .._terms import BASIS_FLOOR, column_map, term_basis
+from .._terms import BASIS_FLOOR, TERM_STD_RAD, column_map, term_basis
 from .._terms import names as term_names
 from .._uncertainty import tool_points
 from ..stages.kinds import CaptureKind
@@ -267,6 +267,9 @@ class PlanEvaluation:
     bias_parts: dict = field(default_factory=dict)
     terms: tuple[str, ...] = ()
     term_std: dict | None = None
+    #: The candidate coefficients the frames do not pin (`jaxcal._terms.TERM_STD_RAD`): held at
+    #: zero, as the calibration will hold them.
+    terms_unpinned: tuple[str, ...] = ()
     ee_bias_rigid: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bias_parts_rigid: dict = field(default_factory=dict)
 
@@ -403,6 +406,7 @@ class PlanEvaluation:
             out |= {
                 "terms": list(self.terms),
                 "term_std": dict(self.term_std or {}),
+                "terms_unpinned": list(self.terms_unpinned),
                 "ee_bias_rms_mm_without_terms": 1e3 * self.ee_bias_rigid_rms,
                 "ee_bias_parts_mm_without_terms": {k: 1e3 * v for k, v in self.bias_parts_rigid.items()},
             }
@@ -529,6 +533,7 @@ def evaluate_views(
         bias_parts=parts,
         terms=() if with_terms is None else with_terms[0],
         term_std=None if with_terms is None else with_terms[1],
+        terms_unpinned=() if with_terms is None else with_terms[2],
         ee_bias_rigid=bias_rigid,
         bias_parts_rigid=parts_rigid,
     )
@@ -559,12 +564,21 @@ def _with_terms(scene: PlanScene, q, terms: TermInputs, mask, Jf, sigma_px: floa
     them, its singular values, and the terms with their coefficients' standard deviations."""
     frames = (jnp.asarray(q), jnp.asarray(terms.approach), jnp.asarray(terms.masses), jnp.asarray(terms.coms))
     T = np.asarray(term_columns(scene, *frames, tuple(terms.terms))) * np.repeat(mask.reshape(-1), 2)[:, None]
-    # As the refinement: a coefficient whose basis does not vary over the frames is no candidate.
-    varied = np.asarray(basis_rms(*frames, scene.nominal, tuple(terms.terms))) >= BASIS_FLOOR
-    aug, sv = least_squares_map(np.concatenate([Jf, T[:, varied]], axis=1))
-    names_t = np.array(term_names(terms.terms, names_of(scene)))[varied]
-    term_std = dict(zip(names_t, sigma_px * np.linalg.norm(aug[Jf.shape[1] :], axis=1)))
-    return aug[: Jf.shape[1]], sv, (tuple(terms.terms), term_std)
+    # As the calibrations: a coefficient whose basis does not vary over the frames is no candidate,
+    # and one the frames do not pin (`TERM_STD_RAD`) is held at zero.
+    rms = np.asarray(basis_rms(*frames, scene.nominal, tuple(terms.terms)))
+    free = rms >= BASIS_FLOOR
+    while True:  # until every coefficient left is pinned (the set only shrinks)
+        aug, sv = least_squares_map(np.concatenate([Jf, T[:, free]], axis=1))
+        std = sigma_px * np.linalg.norm(aug[Jf.shape[1] :], axis=1)
+        loose = np.flatnonzero(free)[std * rms[free] > TERM_STD_RAD]
+        if not loose.size:
+            break
+        free[loose] = False
+    names_t = np.array(term_names(terms.terms, names_of(scene)))
+    unpinned = tuple(str(n) for n in names_t[(rms >= BASIS_FLOOR) & ~free])
+    term_std = {str(n): float(v) for n, v in zip(names_t[free], std, strict=True)}
+    return aug[: Jf.shape[1]], sv, (tuple(terms.terms), term_std, unpinned)
 
 
 def names_of(scene: PlanScene) -> tuple[str, ...]:

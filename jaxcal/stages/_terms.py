@@ -45,6 +45,7 @@ import numpy as np
 from .._selection import CV_GAIN, improves, paired_z
 from .._terms import (
     BASIS_FLOOR,
+    TERM_STD_RAD,
     TERMS,
     approach_at,
     check_terms,
@@ -65,11 +66,6 @@ from . import _programs
 from ._setup import Options, Setup
 from ._synchronise import interpolate
 
-#: A non-geometric coefficient stays free only when the data pin its effect on the joint
-#: angle (its std times the RMS of its basis over the samples) to this (rad): a
-#: transmission's error or a joint's sag is a fraction of a milliradian, so a term known
-#: only to more than that is not identified (e.g. wrist 3's, when the point sits on its axis).
-TERM_STD_RAD = 1e-3
 #: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
 #: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
 TERM_FLOOR = BASIS_FLOOR
