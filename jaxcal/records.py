@@ -269,11 +269,12 @@ class JointError(Record):
     axis_position_mm: float | None = optional()
     #: The reduction ratio's error (%), None when it was not estimated.
     ratio_percent: float | None = None
-    #: The zero offset's estimate less the truth's: deg (revolute) or mm (prismatic). Not an
-    #: error to hold against its standard deviation: a zero offset trades with the joint origins'
-    #: rotations about the axis and, along parallel axes, with the next origins' offsets, which the
-    #: estimator holds at nominal (its gauge) and the truth perturbs; the axes' and the tool
-    #: point's errors are the ones that gauge leaves alone.
+    #: The zero offset's error: deg (revolute) or mm (prismatic). A zero offset trades with the
+    #: joint origins' rotations about the axis and, along parallel axes, with the next origins'
+    #: offsets, which the estimator holds at nominal (its gauge) and the truth perturbs: with sweeps
+    #: it is taken against the truth as the estimator sees it (the same axis fit on exact sweeps of
+    #: the truth), an error to hold against its standard deviation; without sweeps it is the raw
+    #: difference, which is not.
     zero_offset_deg: float | None = optional()
     zero_offset_mm: float | None = optional()
 

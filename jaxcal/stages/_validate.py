@@ -129,8 +129,8 @@ _score = stored_jit(_score, "validation_score")
 
 
 def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true, loss):
-    """The estimator's gauge for the fixed frame: the same axis fit on (nearly)
-    exact sweeps of the truth, with the same parameters frozen. The sweeps have
+    """The estimator's gauge: the same axis fit on (nearly) exact sweeps of the truth, with the
+    same parameters frozen (its fixed frame and model: the truth as the estimator sees it). The sweeps have
     the dataset's shapes, so the arc and axis fits reuse their compiled code."""
     nominal, fit = setup.nominal, two.fit
     mounts0 = fit.T_flange_marker0
@@ -145,7 +145,7 @@ def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true
     arcs_exact = _programs.arc_fits(loss, nominal.joint_types)(exact)
     return _programs.axis_fit(setup.kind.axis_fit_uses_poses)(
         nominal, arcs_exact, mounts0, fit.free, home, setup.kind.fixed_frame_free
-    ).T_cam_base
+    )
 
 
 def _pose_gauge(nominal, true, free, T_cb_true, mount_true, travel):
@@ -228,7 +228,8 @@ def other_camera_errors(
 
 
 def _joint_errors(nominal, true, model, s) -> tuple[JointError, ...]:
-    """Per joint its axis, ratio and zero-offset errors against the truth (`score`'s figures `s`);
+    """Per joint its axis, ratio and zero-offset errors against the truth (`score`'s figures `s`;
+    the zero offsets against `true`'s: with sweeps, the truth in the estimator's gauge, `_gauge`);
     a prismatic joint has a direction (no axis position), the scale's error and mm."""
     ratio_err = np.asarray(s.ratio_err_percent)
     rows = []
@@ -272,9 +273,14 @@ def validate(
     ee = EEErrors(**{k: np.asarray(v) for k, v in err.items()})
     # The estimator's gauge: the axis fit's frozen parameters (a pose-based capture has no axis fit,
     # and the refinement holds joint 1's frame at nominal, as the truth does).
-    T_gauge = (
+    gauge = (
         _gauge(setup, sync, two, true, T_cb_true, mounts_true, options.arc_loss)
         if setup.kind.has_arcs
+        else None
+    )
+    T_gauge = (
+        np.asarray(gauge.T_cam_base)
+        if gauge is not None
         else _pose_gauge(
             nominal,
             true,
@@ -311,7 +317,7 @@ def validate(
             raw_trans_mm=float(np.linalg.norm(dT_raw[:3, 3]) * 1e3),
             raw_rot_deg=_rot_deg(dT_raw[:3, :3]),
         ),
-        parameter_errors=_joint_errors(nominal, true, fit.model, s),
+        parameter_errors=_joint_errors(nominal, true if gauge is None else gauge.model, fit.model, s),
         true_ratios=tuple(np.asarray(true.reduction_ratio).tolist()),
         true_clock_offset_s=true_offset,
         T_cam_base_error_two_stage=None
