@@ -129,9 +129,11 @@ def working(enabled: bool, description: str, *, stream=None, say=None):
 
     thread = threading.Thread(target=tick, name="jaxcal progress", daemon=True)
     thread.start()
+    _LIVE[0] += 1  # its own lines: `watchdog` says nothing over them
     try:
         yield
     finally:
+        _LIVE[0] -= 1
         done.set()
         thread.join()
 

@@ -129,6 +129,16 @@ def test_a_run_of_stages_is_never_silent(monkeypatch):
     n = len(lines)
     time.sleep(0.5)
     assert len(lines) == n
+    # A call that says it is still working in its own lines (`working`) is not said twice.
+    with _progress.watchdog(lines.append) as beat:
+        beat.stage("clock offset")
+        n = len(lines)
+        beat.log("estimating the clock offset")
+        time.sleep(0.1)  # the watchdog's next line is due before the call's first
+        with _progress.working(True, "the clock offset", say=beat.log):
+            time.sleep(1.0)
+        said = lines[n + 1 :]
+        assert said and all(line.startswith("the clock offset: still working (") for line in said), said
     with _progress.watchdog(None) as beat:  # no log: nothing, and no thread
         beat.stage("x")
         beat.log("y")
