@@ -80,7 +80,9 @@ def compensate(result, joints, approach=None) -> np.ndarray:
             ) from None
         _finite("approach", a)
         if (np.abs(a) > 1.0).any():
-            raise ValueError(f"compensate: approach {a.max():.6g}..{a.min():.6g}: from -1 to +1 (the flank)")
+            raise ValueError(
+                f"compensate: approach {a.min():.6g} to {a.max():.6g}; the flank is from -1 to +1"
+            )
     return _compensate(comp.terms, comp.x, comp.nominal, comp.masses, comp.coms, q, approach, comp.rate)
 
 
