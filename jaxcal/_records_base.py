@@ -74,13 +74,10 @@ def _decode(tp, value):
 
 
 def _nan_for_null(value):
-    return (
-        float("nan")
-        if value is None
-        else [_nan_for_null(v) for v in value]
-        if isinstance(value, list)
-        else value
-    )
+    """A JSON array (nested lists) with its nulls as NaN: an array's numbers JSON cannot hold."""
+    if isinstance(value, list):
+        return [_nan_for_null(v) for v in value]
+    return float("nan") if value is None else value
 
 
 def _row_type(tp):
