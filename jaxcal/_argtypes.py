@@ -21,6 +21,14 @@ def finite(text: str) -> float:
     return v
 
 
+def positive(text: str) -> float:
+    """An argparse type: a finite number above zero (a distance, a size)."""
+    v = finite(text)
+    if v <= 0.0:
+        raise argparse.ArgumentTypeError(f"expected a number above zero, got {text!r}")
+    return v
+
+
 def count(lo: int, hi: int):
     """An argparse type: an integer from `lo` to `hi` (the bound of an option that sizes work
     or memory, documented in its help)."""

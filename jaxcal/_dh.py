@@ -53,8 +53,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._device import to_device
 from ._geometry import make_pose, matmul, matrix_to_rpy, pose_inverse, safe_norm
-from ._kinematics import REVOLUTE, KinematicModel, forward_kinematics, joint_axes, make_model
+from ._kinematics import REVOLUTE, KinematicModel, forward_kinematics, joint_axes_at_zero, make_model
 
 #: Consecutive axes closer than this (degrees) get Hayati's parallel-axis row.
 PARALLEL_TOL_DEG = 10.0
@@ -188,7 +189,7 @@ def table_to_model(
             )
             carry = link_transform("mdh", zero, table.d[i], zero, zero, zero)
     return make_model(
-        jnp.asarray(np.stack(origins)) if not _traced(table) else jnp.stack(origins),
+        to_device(np.stack(origins)) if not _traced(table) else jnp.stack(origins),
         np.tile([0.0, 0.0, 1.0], (n, 1)),
         joint_names=table.joint_names,
         link_names=link_names,
@@ -345,16 +346,11 @@ def _end_row(frame, T_flange):
     return (_angle_about(x, xe, z), d, zero, zero, zero), (xe, z, o + d * z)
 
 
-#: `joint_axes` as one compiled program for host callers (an eager call is a program per step).
-_joint_axes = jax.jit(joint_axes)
-
-
 def parallel_pairs(model: KinematicModel, tol_deg: float = PARALLEL_TOL_DEG) -> tuple[bool, ...]:
     """Per DH row $i$ ($< n$), whether axes $i$ and $i+1$ are within `tol_deg` of
     parallel (or antiparallel) at the zero configuration; the last row is False.
     Needs concrete numbers (call it outside `jit` / `jacfwd`)."""
-    _, dirs = _joint_axes(model, np.zeros(model.num_joints))
-    dirs = np.asarray(dirs)
+    _, dirs = joint_axes_at_zero(model)
     sines = np.linalg.norm(np.cross(dirs[:-1], dirs[1:]), axis=1)
     return tuple(bool(s < np.sin(np.radians(tol_deg))) for s in sines) + (False,)
 
@@ -438,7 +434,14 @@ def to_mdh(table: DHTable) -> DHTable:
     $\\beta$ one row later (row 1's zero: frame 0 already has its z on axis 1)."""
     if table.convention == "mdh":
         return table
-    shift = lambda c: jnp.concatenate([jnp.zeros(1), c[:-1]])  # noqa: E731
+
+    def shift(c):  # one row later; host values in NumPy (no compiled program)
+        return (
+            jnp.concatenate([jnp.zeros(1), c[:-1]])
+            if _traced(c)
+            else to_device(np.r_[0.0, np.asarray(c)[:-1]])
+        )
+
     return DHTable(
         table.theta,
         table.d,

@@ -27,6 +27,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._device import to_device
 from ._geometry import make_pose, matmul, matrix_to_rpy, normalize, rpy_to_matrix, se3_exp, so3_exp
+from ._npgeom import rotvec_to_matrix
 
 REVOLUTE = "revolute"
 PRISMATIC = "prismatic"
@@ -178,6 +179,26 @@ def joint_axes(
     T_joint = jnp.einsum("jab,jbc->jac", frames[:-2], model.T_parent_joint)
     dirs = jnp.einsum("jab,jb->ja", T_joint[:, :3, :3], model.axis)
     return T_joint[:, :3, 3], dirs
+
+
+def joint_axes_at_zero(model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
+    """`joint_axes(model, 0)` in NumPy, `(joints, 3)` points and unit directions: a host
+    caller's few small products need no compiled program."""
+    Tp, axis, theta = (
+        np.asarray(a, np.float64) for a in (model.T_parent_joint, model.axis, model.zero_offset)
+    )
+    T, points, dirs = np.eye(4), [], []
+    for i, kind in enumerate(model.joint_types):
+        T = T @ Tp[i]
+        points.append(T[:3, 3])
+        dirs.append(T[:3, :3] @ axis[i])
+        motion = np.eye(4)
+        if kind == REVOLUTE:
+            motion[:3, :3] = rotvec_to_matrix(axis[i] * theta[i])
+        else:
+            motion[:3, 3] = axis[i] * theta[i]
+        T = T @ motion
+    return np.stack(points), np.stack(dirs)
 
 
 def origins_xyz_rpy(model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:

@@ -39,6 +39,19 @@ def rotvec_to_matrix(w) -> np.ndarray:
     return np.eye(3) + a * Kx + b * (Kx @ Kx)
 
 
+def se3_exp(xi) -> np.ndarray:
+    """`jaxcal._geometry.se3_exp` in NumPy: the pose of a twist `(v, w)` (translation first,
+    m and rad), `(4, 4)`."""
+    xi = np.asarray(xi, np.float64)
+    v, w = xi[:3], xi[3:]
+    theta, K = np.linalg.norm(w), skew(w)
+    if theta < 1e-8:
+        V = np.eye(3) + 0.5 * K + (K @ K) / 6.0
+    else:
+        V = np.eye(3) + (1.0 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * (K @ K)
+    return pose(rotvec_to_matrix(w), V @ v)
+
+
 def rotation_angle(R) -> np.ndarray:
     """Rotation angle of `(..., 3, 3)` rotations (rad), accurate near 0 and pi."""
     R = np.asarray(R, np.float64)

@@ -46,6 +46,7 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _lsq
 from ._correction import INTRINSIC_NAMES as INTRINSIC_NAMES  # re-exported
 from ._correction import KinematicCorrection, ParameterLayout, apply_correction, zero_correction
+from ._device import result_is
 from ._geometry import se3_exp
 from ._kinematics import KinematicModel
 from ._lsq import LMOptions
@@ -546,7 +547,7 @@ def summarize_refinement(
     out_frames = sorted({int(f) for f, p in zip(np.asarray(data.frame), per_view) if p > outlier_fraction})
     return {
         "solver": {
-            "result": "successful" if bool(res.result == optx.RESULTS.successful) else "failed",
+            "result": "successful" if result_is(res.result) else "failed",
             "steps": int(res.num_steps),
         },
         "sigma_px": float(res.sigma_px),

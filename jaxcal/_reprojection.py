@@ -271,7 +271,7 @@ def make_corner_data(
         t_cam=to_device(padded(t_cam, float(np.asarray(t_cam)[0]), np.float64)),
         enc_t=to_device(enc_t),
         enc_q=to_device(enc_q),
-        drift_ppm=jnp.asarray(float(drift_ppm)),
+        drift_ppm=to_device(np.float64(drift_ppm)),
         camera=None if camera is None else to_device(camera, np.int64),
         sweep_joint=None if sweep_joint is None else to_device(sweep_joint, np.int64),
         sweep_home=None if sweep_home is None else to_device(sweep_home),

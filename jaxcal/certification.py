@@ -169,11 +169,20 @@ def _rotation_covariances(x, cov, problem):
     return jnp.einsum("sai,ij,sbj->sab", J, cov, J)
 
 
+def _point_model(x, problem):
+    """The point fit's calibrated model and device-to-base pose."""
+    layout = problem.layout
+    params, _ = layout.split(x)
+    model, _ = apply_correction(problem.nominal, problem.T_flange_point0[None], params.correction)
+    return model, problem.T_dev_base0 @ se3_exp(x[layout.base.index("cam")])
+
+
 # The tracker predictor's programs, stored (a later `jaxcal certify` reloads them) and with XLA's
 # optimisations (they sweep a whole region), as the camera predictor's below.
 _point_covariances = stored_jit(_point_covariances, "point_covariances", compiler_options=None)
 _tracker_points = stored_jit(predict, "tracker_points", compiler_options=None)
 _rotation_covariances = stored_jit(_rotation_covariances, "rotation_covariances", compiler_options=None)
+_point_model = stored_jit(_point_model, "point_model")
 
 
 def tracker_predictor(ref: CalibrationReference) -> Predictor:
@@ -183,11 +192,10 @@ def tracker_predictor(ref: CalibrationReference) -> Predictor:
     layout = PointLayout(ParameterLayout.of(nominal, 1, fixed_name="T_device_base"), pf.terms)
     if len(pf.x) != layout.size:
         raise DatasetError(f"{file}: point_fit.x has {len(pf.x)} entries, its layout {layout.size}")
-    x = jnp.asarray(pf.x, jnp.float64)
+    x = to_device(pf.x, np.float64)
     cov = np.asarray(pf.covariance, np.float64)
     cam = layout.base.index("cam")
     T0, Tp0 = pf.T_device_base0, pf.T_flange_point0
-    T_db = np.asarray(T0 @ se3_exp(x[cam]))
     inertials = (pf.masses, pf.coms)
 
     def problem(q):
@@ -201,7 +209,7 @@ def tracker_predictor(ref: CalibrationReference) -> Predictor:
         if frame == "base":
             c[cam, :] = 0.0
             c[:, cam] = 0.0
-        return jnp.asarray(c)
+        return to_device(c)
 
     def covariances(q, frame="fixed"):
         return np.asarray(_point_covariances(x, in_frame(frame), problem(np.asarray(q))))
@@ -213,8 +221,8 @@ def tracker_predictor(ref: CalibrationReference) -> Predictor:
         y = np.asarray(_tracker_points(x, problem(np.asarray(q))))
         return (y - T_db[:3, 3]) @ T_db[:3, :3]
 
-    params, _ = layout.split(x)
-    model, _ = apply_correction(nominal, jnp.asarray(Tp0)[None], params.correction)
+    model, T_db = _point_model(x, problem(np.zeros((1, nominal.num_joints))))
+    T_db = np.asarray(T_db)
     ws, note, limits = _workspace(ref, np.ones(nominal.num_joints))
     excess = max(pf.residual_variance_factor - 1.0, 0.0)
     scatter = excess * pf.sigma_m**2

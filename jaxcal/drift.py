@@ -47,12 +47,14 @@ import numpy as np
 
 from ._buckets import bucket, pad_log
 from ._correction import ParameterLayout
+from ._device import to_device
 from ._drift_camera import CameraReference, camera_reference, drift_least_squares, pad_corners
 from ._drift_camera import fit as fit_camera
 from ._drift_orientation import orientation_residuals
 from ._exported import stored_jit
 from ._geometry import se3_exp
 from ._lsq import normal_inverse
+from ._npgeom import se3_exp as np_se3_exp
 from ._pointfit import PointLayout, point_jacobian, predict, predict_rotation, rotation_jacobian
 from ._reprojection import make_corner_data
 from .errors import DatasetError
@@ -118,7 +120,7 @@ def reference(
     `sigma` `(S,)` (m) and, for orientations when the calibration fitted them, `sigma_rad` (rad)."""
     pf = as_reference(result).point_fit
     layout = PointLayout(ParameterLayout.of(pf.nominal, 1, fixed_name="T_device_base"), pf.terms)
-    x = jnp.asarray(pf.x, jnp.float64)
+    x = to_device(pf.x, np.float64)
     S = len(q)
     problem = point_problem(
         pf.nominal, layout, np.asarray(q, np.float64), np.zeros((S, 3)), np.ones(S), np.ones(S, bool),
@@ -129,7 +131,7 @@ def reference(
     Jf = J.reshape(3 * S, -1)
     scatter = pf.residual_variance_factor * np.repeat(np.asarray(sigma, np.float64) ** 2, 3)
     R = np.diag(scatter) + Jf @ pf.covariance @ Jf.T
-    T_db = np.asarray(jnp.asarray(pf.T_device_base0) @ se3_exp(x[layout.base.index("cam")]))
+    T_db = np.asarray(pf.T_device_base0) @ np_se3_exp(np.asarray(pf.x)[layout.base.index("cam")])
     ref = DriftReference(y_hat, Z, R, tuple(pf.nominal.joint_names), T_db)
     if not pf.orientation or sigma_rad is None:
         return ref
@@ -270,9 +272,11 @@ def check_samples(
     W = whitening(ref.R)
     theta, C, T, rss = (
         np.asarray(a)
-        for a in fit_drift(jnp.asarray(y), ref.y_hat, ref.Z, jnp.asarray(W), offsets=joint_offsets)
+        for a in fit_drift(
+            to_device(y, np.float64), ref.y_hat, ref.Z, to_device(W, np.float64), offsets=joint_offsets
+        )
     )
-    T_base_dev = np.linalg.inv(ref.T_device_base) @ np.asarray(se3_exp(jnp.asarray(theta[:6])))
+    T_base_dev = np.linalg.inv(ref.T_device_base) @ np_se3_exp(theta[:6])
     c = verdict(
         theta, C, float(T), float(rss), 3 * S - k, samples=S, joint_names=ref.joint_names,
         T_now=np.linalg.inv(T_base_dev), names=names,
@@ -605,7 +609,7 @@ def check_camera(
     corners = ref.corners
     theta, C, T, rss, nu = fit_camera(ref, joint_offsets=joint_offsets)
     dof_r = 2 * corners - len(theta)
-    eps = np.asarray(se3_exp(jnp.asarray(theta[:6])))
+    eps = np_se3_exp(theta[:6])
     if est.layout.eye_in_hand:
         T_now, frame = ref.T_fixed @ eps, "T_flange_cam"
     else:

@@ -57,6 +57,7 @@ import numpy as np
 
 from . import _distributions as distributions
 from ._correction import ParameterLayout, apply_correction
+from ._device import to_device
 from ._exported import stored_jit
 from ._geometry import so3_log
 from ._kinematics import KinematicModel, forward_kinematics
@@ -219,7 +220,7 @@ def set_up_only(x, layout: PointLayout, mount: bool):
     keep = np.zeros(layout.size, bool)
     keep[layout.base.index("cam")] = True
     keep[layout.base.index("tool")] = mount
-    return jnp.where(jnp.asarray(keep), x, 0.0)
+    return to_device(np.where(keep, np.asarray(x, np.float64), 0.0))
 
 
 def _rotation_error(x, problem):
@@ -315,12 +316,12 @@ def verify(result, dataset, *, cv: int = 0) -> Verification:
     problem, layout, notes = _problem_for(ref, ds)
     notes = list(notes)
     pf = ref.point_fit
-    x = jnp.asarray(pf.x, jnp.float64)
+    x = to_device(pf.x, np.float64)
     cov = np.asarray(pf.covariance, np.float64)
     s = ds.samples
     y = np.asarray(s.position)
     x_nom = set_up_only(x, layout, not pf.mount_given)
-    out = {k: np.asarray(v) for k, v in _PREDICTIONS(x, x_nom, jnp.asarray(cov), problem).items()}
+    out = {k: np.asarray(v) for k, v in _PREDICTIONS(x, x_nom, to_device(cov), problem).items()}
     e = y - out["y"]
     err = 1e3 * np.linalg.norm(e, axis=1)
     nominal = 1e3 * np.linalg.norm(y - out["y_nominal"], axis=1)

@@ -13,6 +13,7 @@ import json
 import shutil
 from dataclasses import replace
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -268,8 +269,16 @@ def test_hand_eye_check_refuses_another_camera_or_target(rendered, tmp_path):
     def resized(meta):
         meta["cameras"][0]["width"] *= 2
 
+    wide = variant("resized", resized)
+    for image in (wide / "images" / "cam0").iterdir():  # the images as wide as the camera now says
+        cv2.imwrite(str(image), cv2.resize(cv2.imread(str(image)), (640, 240)))
     with pytest.raises(DatasetError, match="handeye.json: cameras\\[0\\] .* is 640x240.*another camera"):
-        check(res, variant("resized", resized))
+        check(res, wide)
+    # The JSON alone widened: the images are not the camera's it states, whatever was calibrated.
+    with pytest.raises(
+        DatasetError, match=r"0000.png: image is 320x240 pixels, handeye.json gives .* 640x240"
+    ):
+        check(res, variant("resized_json", resized))
 
     def flipped(meta):
         meta["arrangement"] = "eye_in_hand"

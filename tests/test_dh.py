@@ -4,6 +4,7 @@ One synthetic estimate on the UR5e's datasheet table serves every covariance
 test (one compiled Jacobian, one compiled batch of table evaluations).
 """
 
+import dataclasses
 import json
 
 import jax
@@ -243,3 +244,16 @@ def test_a_table_file_reads_back_as_the_same_table_and_model(estimate, dh, tmp_p
         path.write_text(json.dumps(bad))
         with pytest.raises(DatasetError, match=match):
             dh_table_model(path)
+
+
+def test_joint_axes_at_zero_in_numpy_are_the_compiled_ones():
+    """`parallel_pairs`' and the verdict's axes in NumPy equal the compiled `joint_axes` at
+    q = 0, zero offsets and a prismatic joint included."""
+    from jaxcal._kinematics import PRISMATIC, joint_axes, joint_axes_at_zero
+
+    scales = PerturbationScales(zero_offset_deg=20.0, axis_tilt_deg=5.0)  # offsets that turn the axes after
+    model = perturb_model(load_robot("ur5e"), jax.random.key(3), scales)
+    types = (*model.joint_types[:2], PRISMATIC, *model.joint_types[3:])
+    for m in (model, dataclasses.replace(model, joint_types=types)):
+        for host, compiled in zip(joint_axes_at_zero(m), joint_axes(m, jnp.zeros(m.num_joints))):
+            np.testing.assert_allclose(host, np.asarray(compiled), atol=1e-14)

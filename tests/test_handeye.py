@@ -671,3 +671,53 @@ def test_touch_bad_input():
     bent[2, :3, :3] *= 2.0
     with pytest.raises(he.NotARotationError, match=r"T_base_ee_touch: pose \(2,\)"):
         he.make_touch_data(P, bent, tcp=tcp)
+
+
+def _scaled_capture(eye_in_hand: bool, scale: float, frames: int = 12, seed: int = 0):
+    """The `image_scale` inputs of a synthetic capture: robot poses, the PnP poses they imply with
+    the translations `scale` times too long (a target printed or declared that much smaller),
+    robot pose noise of 0.3 mm / 0.03 deg."""
+    from types import SimpleNamespace
+
+    from jaxcal._npgeom import pose, rotvec_to_matrix
+
+    rng = np.random.default_rng(seed)
+    X = pose(rotvec_to_matrix([0.1, -0.2, 1.5]), [0.05, -0.03, 0.08])  # the camera on the robot
+    Y = pose(rotvec_to_matrix([3.0, 0.1, 0.2]), [0.6, 0.1, 0.0])  # the board
+    T_be, poses = [], []
+    for _ in range(frames):
+        A = pose(rotvec_to_matrix(rng.normal(0, 0.35, 3)), [0.45, 0.0, 0.4] + rng.normal(0, 0.08, 3))
+        if eye_in_hand:  # the camera looks down at the board in the base frame
+            A = pose(rotvec_to_matrix([np.pi, 0, 0]) @ A[:3, :3], A[:3, 3])
+            T_cb = np.linalg.inv(X) @ np.linalg.inv(A) @ Y
+        else:
+            T_cb = np.linalg.inv(X) @ A @ Y
+        T_cb[:3, 3] *= scale
+        noisy = pose(rotvec_to_matrix(rng.normal(0, 5e-4, 3)) @ A[:3, :3], A[:3, 3] + rng.normal(0, 3e-4, 3))
+        T_be.append(noisy)
+        poses.append(SimpleNamespace(T_cam_target=T_cb))
+    observed = SimpleNamespace(
+        observations=SimpleNamespace(
+            data=SimpleNamespace(T_base_ee=np.stack(T_be)), frames=frames, poses=[poses]
+        ),
+        capture=SimpleNamespace(cameras=[SimpleNamespace(name="cam0")], eye_in_hand=eye_in_hand),
+    )
+    solved = SimpleNamespace(result=SimpleNamespace(T_robot_cam=X[None]), rejected={})
+    return observed, solved
+
+
+@pytest.mark.parametrize("eye_in_hand", [True, False])
+def test_the_images_scale_against_the_robots_names_a_wrong_target_size(eye_in_hand):
+    """A target 3 % smaller than declared (or a focal length 3 % long) makes every PnP translation 3 %
+    long: the solve cannot see it, the scale fit against the robot's motion can. Right sizes pass."""
+    from jaxcal.handeye._verdict import SCALE_TOLERANCE, image_scale, scale_reasons
+
+    ((name, s, std),) = image_scale(*_scaled_capture(eye_in_hand, 1.0))
+    assert name == "cam0" and abs(s - 1.0) < 4 * std and std < SCALE_TOLERANCE / 5
+    assert scale_reasons([(name, s, std)]) == ()
+    ((_, s, std),) = image_scale(*_scaled_capture(eye_in_hand, 1.03))
+    assert abs(s - 1.03) < 4 * std
+    (reason,) = scale_reasons([(name, s, std)])
+    assert "cam0" in reason and "+3.0 %" in reason and "square_length" in reason
+    # Too few frames for a scale and a jackknife: nothing said.
+    assert image_scale(*_scaled_capture(eye_in_hand, 1.03, frames=5)) == []

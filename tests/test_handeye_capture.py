@@ -600,7 +600,7 @@ def _write_capture(root, fmt="xyz_quat", unit="m", rot_unit="rad", frames=4, ima
     if images:
         (root / "images" / "cam0").mkdir(parents=True)
         for n in names:
-            cv2.imwrite(str(root / "images" / "cam0" / f"{n}.png"), np.zeros((48, 64), np.uint8))
+            cv2.imwrite(str(root / "images" / "cam0" / f"{n}.png"), np.zeros((480, 640), np.uint8))
     return T
 
 
@@ -670,7 +670,19 @@ def _set(row, i, value):
             ),
             r"camera 'cam0' field 'K': principal point \(9000, 240\) lies outside",
         ),
-        (lambda r, m: (r / "images" / "cam0" / "f2.png").unlink(), r"no image for frame\(s\) \['f2'\]"),
+        (
+            lambda r, m: (r / "images" / "cam0" / "f2.png").unlink(),
+            r"no image for frame\(s\) \['f2'\] .* the folder holds f0.png, f1.png, f3.png\)",
+        ),
+        (  # the images' size against the camera's (its K is for that size)
+            lambda r, m: cv2.imwrite(str(r / "images" / "cam0" / "f1.png"), np.zeros((600, 800), np.uint8)),
+            r"cam0/f1.png: image is 800x600 pixels, handeye.json gives camera 'cam0' 640x480 \(fields 'width', "
+            r"'height'\); 1 of 4 images differ$",
+        ),
+        (
+            lambda r, m: m["cameras"][0].update(width=480, height=640),
+            r"f0.png: image is 640x480 pixels, .* 480x640 .* 4 of 4 images differ; every image: a K calibrated",
+        ),
         (lambda r, m: m.update(schema_version=7), r"unknown schema_version 7"),
         (
             lambda r, m: m["target"].update(square_length=30),
@@ -1028,3 +1040,19 @@ def test_a_misread_capture_is_named_with_its_fix(corrupted_capture, tmp_path):
 def test_pose_rows_columns():
     T = _pose([0.1, 0.2, 0.3], [1.0, 2.0, 3.0])[None]
     assert pose_rows(T, "xyz_quat", "mm")[0][:3] == [1000.0, 2000.0, 3000.0]
+
+
+def test_simulate_handeye_refuses_a_view_that_cannot_hold_the_target(tmp_path, capsys):
+    """A camera distance of zero or less is refused by its option; a target that never fits the
+    image (too close, too few pixels) by one line naming the resolution and the distance, exit 2,
+    nothing written (it was a traceback advising a lower distance)."""
+    with pytest.raises(SystemExit) as e:
+        main(["simulate-handeye", "--out", str(tmp_path / "a"), "--distance", "-1"])
+    assert e.value.code == 2 and "expected a number above zero, got '-1'" in capsys.readouterr().err
+    for option, value in (("--resolution", "10x10"), ("--distance", "0.05")):
+        assert main(["simulate-handeye", "--out", str(tmp_path / "b"), "--frames", "3", option, value]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("jaxcal: error: simulate_hand_eye: the whole target never fits a "), err
+        assert ("10x10 image" if option == "--resolution" else "from 0.05 m") in err
+        assert "raise the distance or the resolution" in err and "Traceback" not in err
+        assert not (tmp_path / "b").exists()

@@ -269,7 +269,12 @@ MALFORMED = [
     ("non-numeric cell", _text, {}, ["line 4 column 'j5'", "not a number"]),
     ("out-of-reach point", _far, {}, ["line 9 column 'X+dX'", "beyond the robot's reach"]),
     ("point off its nominal", _off, {}, ["line 11 column 'Z+dZ'", "from where the nominal robot puts it"]),
-    ("time going back", _back_in_time, dict(time="t"), ["line 8 column 't'", "increase strictly"]),
+    (
+        "time going back",
+        _back_in_time,
+        dict(time="t"),
+        ["line 8 column 't'", "(time): 0.5 s is not after", "increase strictly"],
+    ),
 ]
 
 

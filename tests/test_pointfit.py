@@ -437,6 +437,22 @@ def test_real_ur5_calibration_meets_the_independent_reference(ur5_real, tmp_path
     )
 
 
+def test_a_noise_stated_a_thousand_times_too_small_makes_the_result_suspect(ur5_real, tmp_path):
+    """The real UR5's samples scatter 3.1 times the 0.02 mm they state (the model's own error, the
+    covariance scaled by it); stated in metres as millimetres (0.00002 mm) they scatter about 3,000
+    times it, and the result says so, naming the likely slip (it was ok)."""
+    assert json.loads((ur5_real / "result.json").read_text())["point_fit"]["robust_scale"] < 4.0
+    data = tmp_path / "grid"
+    shutil.copytree("data/ur5_tracker/grid", data)
+    meta = json.loads((data / "metadata.json").read_text())
+    meta["device"]["sigma_m"] = 2e-8
+    (data / "metadata.json").write_text(json.dumps(meta))
+    result = jaxcal.calibrate(data, progress=False, device_is_base=True)
+    assert result.status == "suspect"
+    (reason,) = [r for r in result.reasons if "times the noise they state" in r]
+    assert reason.startswith("the samples scatter 3") and "(2e-05 mm)" in reason and "--sigma-mm" in reason
+
+
 def test_a_check_freeing_the_joint_offsets_reaches_the_least_squares_optimum(ur5_real):
     """The real UR5's held-out poses checked with the joints' zero offsets free: the device's
     rotation about the base's vertical and the first joint's offset are nearly one direction, and
@@ -719,6 +735,33 @@ def test_repeated_rows_are_one_pose(ur5, tmp_path):
     np.testing.assert_allclose(pf.fit.std[6:], ref.std[6:], rtol=1e-6)  # not shrunk by the copies
     T_ref = clean.point_fit.problem.T_dev_base0 @ se3_exp(ref.x[:6])
     np.testing.assert_allclose(r.T_cam_base, T_ref, atol=1e-9)
+
+
+def test_a_repeat_whose_point_disagrees_is_fitted_apart_and_only_it_rejected(ur5, tmp_path, capsys):
+    """The last row repeats row 5's joint positions with its point 30 mm off: averaged with the good
+    row, the pose would sit 15 mm off and both be lost; fitted apart, the robust fit rejects the
+    wrong row alone, and the log names both lines."""
+    path, _ = ur5
+
+    def repeat(header, rows):
+        column = header.index("x")
+        rows[-1] = rows[-1][:3] + rows[5][3:]
+        rows[-1][column] = repr(float(rows[5][column]) + 0.03)
+        return rows
+
+    data = _rewritten(path, tmp_path / "disagree", repeat)
+    said = []
+    r = jaxcal.calibrate(data, cv_folds=0, log=said.append, progress=False)
+    pf = r.point_fit
+    last = len(pf.used) - 1
+    assert [o.line for o in pf.outliers] == [f"samples.csv line {last + 2}"]
+    assert pf.used[5] and not pf.used[last] and pf.repeats == ()
+    assert abs(pf.outliers[0].distance_mm - 30.0) < 0.5
+    assert any(
+        f"samples.csv line 7, samples.csv line {last + 2} repeat one pose but their points differ by up to 30 mm"
+        in t
+        for t in said
+    ), said
 
 
 def test_copies_of_few_poses_are_refused_as_few_poses(ur5, tmp_path):

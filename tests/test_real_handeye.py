@@ -41,16 +41,25 @@ def test_the_captures_are_what_convert_makes_of_visps_files(capture, tmp_path):
 
 @pytest.mark.parametrize(("capture", "key"), [("eye_in_hand", "T_ee_cam"), ("eye_to_hand", "T_base_cam")])
 def test_real_captures_agree_with_visps_solver(capture, key, tmp_path, capsys):
-    """Status ok on all 8 frames, and the camera pose within twice its own reported uncertainty
+    """All 8 frames kept, and the camera pose within twice its own reported uncertainty
     (the norm of the per-axis std) of ViSP's answer on the same data: two estimators of one
     8-frame capture differ by about their uncertainty, a misread convention (units, the pose's
     direction, the tag's corner order) by centimetres and degrees. Before the 4-corner homography
     fix the one-tag capture was refused as "robot poses and images disagree"."""
     out = tmp_path / "out"
     reference = str(ROOT / "reference.json")
-    assert main(["handeye", str(ROOT / capture), "--out", str(out), "--quiet", "--reference", reference]) == 0
+    code = main(["handeye", str(ROOT / capture), "--out", str(out), "--quiet", "--reference", reference])
     r = json.loads((out / "result.json").read_text())
-    assert r["status"] == "ok" and not r["reasons"]
+    if capture == "eye_to_hand":
+        assert code == 0 and r["status"] == "ok" and not r["reasons"]
+    else:
+        # The chessboard's PnP distances fall 12.7 % short of those the Franka's motion implies, 6.4
+        # standard errors (the jackknife's over the 8 frames): the square size ViSP states (23.6 mm), the
+        # focal length or the robot's kinematics is off, and the camera's depth with it, in ViSP's answer
+        # as in jaxcal's. The tag's eye-to-hand capture, same camera and robot, is at 1.00.
+        assert code == 3 and r["status"] == "suspect"
+        (reason,) = r["reasons"]
+        assert "PnP's distances are -12.7 % (+/- 2.0 %)" in reason, reason
     assert len(r["frames"]) == 8 and not any(f["rejected"] for f in r["frames"])
     cam = r["cameras"]["cam0"]
     T = np.asarray(cam["T_robot_cam"]["matrix"])

@@ -532,3 +532,46 @@ def test_the_command_ends_with_its_code_and_its_output_out(tmp_path):
     assert bad.returncode == 2
     assert bad.stderr.strip() == f"jaxcal: error: {tmp_path / 'none'}: dataset directory not found"
     assert not (tmp_path / "out").exists()
+
+
+def test_a_warm_tracker_calibration_and_its_checks_lower_no_program_of_their_own(tmp_path, monkeypatch):
+    """The host code moves arrays with `to_device` and reads solver codes with `result_is`
+    (`jaxcal._device`): a warm calibration, its outputs, `verify`, `certify` and `check` then
+    lower nothing beside their stored programs (a fresh process's first lowering loads JAX's
+    lowering machinery: most of the time a warm `jaxcal verify` has left)."""
+    from jax._src import pjit
+
+    import jaxcal
+    from jaxcal.certification import certify
+    from jaxcal.drift import check
+    from jaxcal.verification import verify
+
+    tracker = ROOT / "data" / "ur5_tracker"
+    box = np.radians([[-30, 60], [-100, -30], [30, 140], [-120, 30], [50, 145], [-30, 20]])
+
+    def run(out):
+        result = jaxcal.calibrate(tracker / "grid", progress=False, device_is_base=True)
+        jaxcal.write_outputs(result, out)
+        figures = (
+            verify(out, tracker / "test").summary["calibrated_mm"]["mean"],
+            certify(out, joint_box=box, samples=200),
+        )
+        return result, figures, check(out, tracker / "test")
+
+    first = run(tmp_path / "first")  # the stored programs, warm
+    jax.clear_caches()  # every eager program as in a fresh process
+    lowered, real = [], pjit._pjit_call_impl_python
+
+    def counted(*args, **kwargs):
+        lowered.append(kwargs.get("name"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pjit, "_pjit_call_impl_python", counted)
+    again = run(tmp_path / "again")
+    assert lowered == []
+    assert again[0].status == first[0].status == "ok"
+    assert [m.cv_mean_mm for m in again[0].point_fit.models] == [
+        m.cv_mean_mm for m in first[0].point_fit.models
+    ]
+    assert again[1][0] == first[1][0] and again[1][1].summary.mean_mm == first[1][1].summary.mean_mm
+    assert again[2].statistic == first[2].statistic

@@ -228,7 +228,11 @@ def _meta(root, edit) -> None:
         ),
         (
             lambda r: _edit(r, 5, "timestamp", "0"),
-            ["samples.csv line 5", "timestamps must increase strictly"],
+            [
+                "samples.csv line 5",
+                "timestamp 0.0 is not after line 4's",
+                "timestamps must increase strictly",
+            ],
         ),
         (lambda r: _edit(r, 2, "sample", "-1"), ["samples.csv line 2 column 'sample'", "'-1'"]),
         (

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import equinox as eqx
 import jax
 import numpy as np
-import optimistix as optx
 
+from .._device import result_is
 from .._npgeom import rotation_angle
 from ..records import Judgement
 from .consistency import MotionConsistency
@@ -140,7 +140,7 @@ def kfold_spread(
         r = solve(eqx.tree_at(lambda d: d.mask, data, np.asarray(m)))
         X.append(np.asarray(r.T_robot_cam))
         Y.append(np.asarray(r.T_robot_board))
-        ok.append(bool(r.result == optx.RESULTS.successful))
+        ok.append(bool(result_is(r.result)))
         if pixels:
             out = np.zeros(per_group.shape[1], bool)
             out[list(block)] = True
@@ -171,9 +171,9 @@ class HandEyeVerdict(Judgement):
 
 
 def _message(code) -> str:
-    if bool(code == optx.RESULTS.nonlinear_max_steps_reached):
+    if result_is(code, "nonlinear_max_steps_reached"):
         return "it stopped at its step cap"
-    if bool(code == optx.RESULTS.nonlinear_divergence):
+    if result_is(code, "nonlinear_divergence"):
         return "it diverged"
     return "optimistix reported failure"
 
@@ -345,7 +345,7 @@ def _solver_reasons(result: HandEyeResult, max_steps: int | None) -> list[str]:
     steps = np.asarray(result.stage_steps)
     for i, name in enumerate(STAGES):
         code_i = jax.tree.map(lambda x, i=i: x[i], result.stage_result)
-        if not bool(code_i == optx.RESULTS.successful):
+        if not result_is(code_i):
             cap = f" (max_steps={max_steps})" if max_steps is not None else ""
             reasons.append(
                 f"the {name} solve did not converge: {_message(code_i)} after {int(steps[i])} steps{cap}"

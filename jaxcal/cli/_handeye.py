@@ -8,7 +8,7 @@ import numpy as np
 
 from .._configkeys import knob
 from ..io._files import check_output_dir, output_lock, resolved
-from ._common import MAX_WORKERS, count, finite, resolution, run_record, seed
+from ._common import MAX_WORKERS, count, finite, positive, resolution, run_record, seed
 
 # --------------------------------------------------------------------------- hand-eye
 
@@ -324,7 +324,7 @@ def add_handeye_parsers(sub) -> None:
     )
     p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--resolution", type=resolution, default=(640, 480), help="WxH pixels")
-    p.add_argument("--distance", type=finite, default=0.5, help="camera to target, m")
+    p.add_argument("--distance", type=positive, default=0.5, help="camera to target, m")
     knob(p, "--distortion", type=finite, nargs=5, default=[0.0] * 5, metavar=("K1", "K2", "P1", "P2", "K3"))
     knob(p, "--pose-format", choices=("matrix", "xyz_quat", "xyz_rpy", "xyz_rotvec"), default="xyz_quat")
     knob(p, "--translation-unit", choices=("m", "mm"), default="m")

@@ -3,7 +3,7 @@ what it does first (`jaxcal.planning._cli.run_plan`)."""
 
 import argparse
 
-from .._argtypes import count, finite, resolution
+from .._argtypes import count, finite, positive, resolution
 from .._configkeys import knob
 from ..io._images import MAX_PIXELS, MAX_SIDE
 from ._calibrate import TERMS, terms_arg
@@ -56,7 +56,7 @@ def add_plan_parser(sub, func, cameras=("ideal",), arms=("ideal",)) -> None:
         "--eye-in-hand", action="store_true", help="default layout: camera on the flange, board in the world"
     )
     knob(p, "--resolution", type=_RESOLUTION, default=(1280, 960), help="WxH pixels of the default camera")
-    knob(p, "--distance", type=finite, help="default camera to target distance, m (0.9; eye-in-hand 0.6)")
+    knob(p, "--distance", type=positive, help="default camera to target distance, m (0.9; eye-in-hand 0.6)")
     knob(p, "--taught", help="taught pose q1,q2,... (rad; default the robot's)")
     p.add_argument(
         "--frames",

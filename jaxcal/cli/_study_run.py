@@ -7,13 +7,13 @@ import time
 
 import jax
 import numpy as np
-import optimistix as optx
 from rich.console import Console
 from rich.table import Table
 
 from .. import _montecarlo as mc
 from .. import distributed
 from .._axisfit import parameter_names
+from .._device import result_is
 from .._progress import working
 from ..io._files import check_output_file, write_text_atomic
 from ..robots import load_robot_file
@@ -62,7 +62,7 @@ def _single_trial_report(console, setup, seed: int) -> bool:
         "solver",
     ):
         t.add_column(col, justify="right")
-    arc_ok = np.asarray(arcs.result == optx.RESULTS.successful)
+    arc_ok = result_is(arcs.result)
     for j, name in enumerate(setup.nominal.joint_names):
         code = "ok" if arc_ok[j] else "FAILED"
         t.add_row(
@@ -95,7 +95,7 @@ def _single_trial_report(console, setup, seed: int) -> bool:
         f"T_cam_base: t = {np.round(T[:3, 3] * 1e3, 2).tolist()} mm "
         f"(std {np.round(sd[:3] * 1e3, 3).tolist()} mm, {np.round(np.degrees(sd[3:]), 4).tolist()} deg)"
     )
-    ok = bool(fit.result == optx.RESULTS.successful) and bool(arc_ok.all())
+    ok = bool(result_is(fit.result)) and bool(arc_ok.all())
     console.print(
         f"Axis fit: {'ok' if ok else 'FAILED'} in {int(fit.num_steps)} steps, residual RMS {float(fit.residual_rms):.3f}"
     )

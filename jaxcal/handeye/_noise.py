@@ -37,7 +37,6 @@ from .._handeye import (
     describe_robot_noise,
     robot_noise,
     robot_pixel_scale,
-    robot_sigma6,
 )
 from .._handeye.checks import check_sigma
 from .._selection import CV_GAIN, MIN_Z, improves_on_samples, paired_z
@@ -113,7 +112,7 @@ def model_data(data, model: str, sigma: tuple[float, float] | None):
     if model == "exact":
         return eqx.tree_at(lambda d: d.robot_sigma, data, None, is_leaf=lambda x: x is None), False
     value = ROBOT_SIGMA_START if model == "estimate" else sigma
-    s = np.asarray(robot_sigma6(*value), np.asarray(data.T_base_ee).dtype)
+    s = np.repeat(np.asarray(value, np.asarray(data.T_base_ee).dtype), 3)  # `robot_sigma6`'s, on the host
     return eqx.tree_at(lambda d: d.robot_sigma, data, s, is_leaf=lambda x: x is None), model == "estimate"
 
 

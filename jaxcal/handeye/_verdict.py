@@ -147,6 +147,10 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerd
         if found:
             log(f"the poses fit the images once read differently: {found}")
             verdict = replace(verdict, reasons=verdict.reasons + (found,))
+    found = scale_reasons(image_scale(observed, solved))
+    if found:
+        log(found[0])
+        verdict = replace(verdict, status="suspect", reasons=verdict.reasons + found)
     cameras = observed.capture.cameras
     guessed = [c.name for c, k in zip(cameras, observed.intrinsics) if k.source == "self-calibrated"]
     if guessed:
@@ -164,6 +168,65 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerd
             ),
         )
     return verdict
+
+
+#: The images' scale against the robot's (`image_scale`): off by more than this fraction and by
+#: `SCALE_Z` standard errors, the target's size or the focal length is wrong. The solve cannot see
+#: it (its standard deviations and k-fold spread hold both exact): the camera moves along its
+#: axis by the fraction times the target's distance.
+SCALE_TOLERANCE = 0.005
+SCALE_Z = 5.0
+#: Frames a camera needs for its scale (7 unknowns, three equations per frame, and a jackknife).
+SCALE_MIN_FRAMES = 6
+
+
+def image_scale(observed: Observed, solved: Solved) -> list[tuple[str, float, float]]:
+    """Per camera `(name, k, std)`: PnP's distances over those the robot's motion implies (1 when
+    the target's size and the focal length are right; a target declared 2 % too small: 0.98), and
+    its standard error. PnP's translations scaled by $s = 1/k$ follow the robot: at the solve's
+    camera rotation $R_x$ the hand-eye translations are linear in the camera's and the board's
+    offsets and in $s$: per frame (robot pose $R_a, t_a$, PnP
+    translation $t_p$) $R_a^T t_y - t_x - s R_x t_p = R_a^T t_a$ eye-in-hand, $R_a t_y - t_x -
+    s R_x t_p = -t_a$ eye-to-hand; least squares over the frames the solve kept. The standard
+    error is the larger of least squares' and the jackknife's over frames (a robot pose's error
+    is shared by its frame's three equations). The mean distance goes into the camera's offset:
+    $s$ rests on how the target's distance varies over the frames."""
+    obs, capture = observed.observations, observed.capture
+    T_be, rejected = np.asarray(obs.data.T_base_ee)[: obs.frames], set(solved.rejected)
+    out = []
+    for c, camera in enumerate(capture.cameras):
+        frames = [f for f, pose in enumerate(obs.poses[c]) if pose is not None and f not in rejected]
+        if len(frames) < SCALE_MIN_FRAMES:
+            continue
+        R_x = np.asarray(solved.result.T_robot_cam)[c, :3, :3]
+        A, y = [], []
+        for f in frames:
+            R_a, t_a = T_be[f, :3, :3], T_be[f, :3, 3]
+            M, b = (R_a.T, R_a.T @ t_a) if capture.eye_in_hand else (R_a, -t_a)
+            A.append(np.hstack([-np.eye(3), M, -(R_x @ obs.poses[c][f].T_cam_target[:3, 3])[:, None]]))
+            y.append(b)
+        A, y = np.vstack(A), np.concatenate(y)
+        scale = lambda rows: np.linalg.lstsq(A[rows], y[rows], rcond=None)[0]  # noqa: E731
+        x, F = scale(slice(None)), len(frames)
+        var = np.sum((A @ x - y) ** 2) / (len(y) - A.shape[1])
+        left_out = np.array([scale(np.r_[0 : 3 * i, 3 * i + 3 : 3 * F])[6] for i in range(F)])
+        jackknife = (F - 1) / F * np.sum((left_out - left_out.mean()) ** 2)
+        std = np.sqrt(max(var * np.linalg.pinv(A.T @ A)[6, 6], jackknife))
+        out.append((camera.name, float(1.0 / x[6]), float(std / x[6] ** 2)))
+    return out
+
+
+def scale_reasons(scales) -> tuple[str, ...]:
+    """What `image_scale` finds wrong: a scale off by `SCALE_TOLERANCE` and `SCALE_Z` standard errors."""
+    return tuple(
+        f"camera {name}: PnP's distances are {100 * (s - 1):+.1f} % (+/- {100 * std:.1f} %) off those the "
+        "robot's motion implies: the target's size (handeye.json target.square_length / marker_length) or the camera's focal "
+        "length (K) is wrong, or the robot's own kinematics are; the camera's position is then off along its "
+        "axis by about that fraction of the target's distance, which neither the standard deviations nor the "
+        "k-fold spread show"
+        for name, s, std in scales
+        if abs(s - 1.0) > max(SCALE_TOLERANCE, SCALE_Z * std)
+    )
 
 
 def noise_model_note(choice: NoiseChoice) -> str:

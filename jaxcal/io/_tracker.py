@@ -254,8 +254,8 @@ def read_samples(root: Path, device: DeviceInfo, joints: tuple[str, ...], limits
         if bad.size:
             k = bad[0]
             raise DatasetError(
-                f"{path} line {lines[k + 1]}: {header[c]} {values[k + 1, c]!r} is not after line {lines[k]}'s "
-                f"{values[k, c]!r}; {what} must increase strictly"
+                f"{path} line {lines[k + 1]}: {header[c]} {float(values[k + 1, c])!r} is not after line {lines[k]}'s "
+                f"{float(values[k, c])!r}; {what} must increase strictly"
             )
     P = values[:, 2:5]
     far = np.flatnonzero(np.abs(P).max(axis=1) > MAX_COORDINATE_M)

@@ -285,8 +285,8 @@ def _read_table(
     if bad.size:
         k = bad[0] + 1
         raise CsvImportError(
-            f"{path} line {lines[k]} column {time!r} (time): {t[k]!r} s is not after line {lines[k - 1]}'s "
-            f"{t[k - 1]!r}; timestamps must increase strictly"
+            f"{path} line {lines[k]} column {time!r} (time): {float(t[k])!r} s is not after line {lines[k - 1]}'s "
+            f"{float(t[k - 1])!r}; timestamps must increase strictly"
         )
     P = np.stack([v[f"p{i}"] for i in range(3)], axis=1) / LENGTH_UNITS[length_unit]
     if not orientation:

@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from ruamel.yaml import YAMLError
 
+from .._device import to_device
 from .._dh import COLUMNS, DHTable, link_transform, table_to_model
 from .._kinematics import KinematicModel
 from ..errors import DatasetError
@@ -185,9 +186,14 @@ def read_table_file(path) -> TableFile:
             f = [_numbers(path, f"flange.{k}", flange[k], ()) for k in ("theta", "d", "a", "alpha")]
         except (KeyError, TypeError):
             raise _fail(path, "field 'flange' must be {a, alpha, d, theta} or {matrix}") from None
-        T_flange = jnp.asarray(link_transform(convention, *(float(v) for v in f), 0.0))
+        T_flange = to_device(link_transform(convention, *(float(v) for v in f), 0.0), np.float64)
     table = DHTable(
-        *(jnp.asarray(cols[c]) for c in COLUMNS), T_base, T_flange, convention, tuple(names), tuple(parallel)
+        *(to_device(cols[c], np.float64) for c in COLUMNS),
+        T_base,
+        T_flange,
+        convention,
+        tuple(names),
+        tuple(parallel),
     )
     base_link = _link_name(path, doc, "base_link", DEFAULT_BASE_LINK)
     flange_link = _link_name(path, doc, "flange_link", DEFAULT_FLANGE_LINK)
@@ -237,11 +243,11 @@ def read_dh_table(path) -> tuple[DHTable, dict]:
 
 def _matrix(path: Path, field: str, value) -> jnp.ndarray:
     if value is None:
-        return jnp.asarray(np.eye(4))
+        return to_device(np.eye(4))
     T = np.asarray(value, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise DatasetError(f"DH table {shown(path)!r}: field {field!r} must be a finite 4x4 matrix")
-    return jnp.asarray(T)
+    return to_device(T)
 
 
 def dh_table_model(path, name: str | None = None) -> KinematicModel:

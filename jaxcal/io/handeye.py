@@ -36,6 +36,7 @@ from ..errors import DatasetError
 from ..markers import TargetSpec
 from . import _schema as sc
 from ._files import resolved
+from ._images import image_size
 
 SCHEMA = "jaxcal.handeye"
 SCHEMA_VERSION = 1
@@ -313,12 +314,32 @@ def _images(root: Path, cameras, frames) -> tuple[tuple[Path, ...], ...]:
                 found[p.stem] = p
         missing = [f for f in frames if f not in found]
         if missing:
+            there = [found[k].name for k in sorted(found)[:5]]
+            holds = ", ".join(there) + (" ..." if len(found) > 5 else "") if there else "no image"
             raise DatasetError(
                 f"{folder}: no image for frame(s) {missing[:10]} of poses.csv "
-                f"(expected {folder}/<frame>{{{','.join(IMAGE_SUFFIXES)}}})"
+                f"(expected {folder}/<frame>{{{','.join(IMAGE_SUFFIXES)}}}; the folder holds {holds})"
             )
         out.append(tuple(found[f] for f in frames))
+        _sizes(cam, out[-1])
     return tuple(out)
+
+
+def _sizes(cam, paths) -> None:
+    """Every image of `cam` of the size `handeye.json` gives it (its K is for that size)."""
+    sizes = [image_size(path) for path in paths]
+    wrong = [(path, size) for path, size in zip(paths, sizes) if size != (cam.width, cam.height)]
+    if wrong:
+        (path, (w, h)), n = wrong[0], len(wrong)
+        every = (
+            "; every image: a K calibrated at another resolution? give the images' size and K for it"
+            if n == len(paths)
+            else ""
+        )
+        raise DatasetError(
+            f"{path}: image is {w}x{h} pixels, handeye.json gives camera {cam.name!r} {cam.width}x{cam.height} "
+            f"(fields 'width', 'height'); {n} of {len(paths)} images differ{every}"
+        )
 
 
 def _name(d: dict, key: str, default: str, where: str) -> str:

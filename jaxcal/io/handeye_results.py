@@ -18,8 +18,8 @@ from pathlib import Path
 
 import jax
 import numpy as np
-import optimistix as optx
 
+from .._device import result_is
 from .._npgeom import matrix_to_quaternion
 from . import ros
 from ._files import atomic_directory
@@ -31,9 +31,9 @@ HANDEYE_RESULT_SCHEMA = "jaxcal.handeye_result"
 
 
 def _code(code) -> str:
-    if bool(code == optx.RESULTS.successful):
+    if result_is(code):
         return "successful"
-    if bool(code == optx.RESULTS.nonlinear_max_steps_reached):
+    if result_is(code, "nonlinear_max_steps_reached"):
         return "max_steps_reached"
     return "failed"
 

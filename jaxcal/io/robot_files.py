@@ -53,10 +53,9 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from .._device import to_device
-from .._geometry import rpy_to_matrix, so3_exp
+from .._geometry import rpy_to_matrix
 from .._kinematics import KinematicModel, rotations_to_rpy
-from .._npgeom import pose
+from .._npgeom import pose, rotvec_to_matrix
 from . import ros
 
 #: ur_description's joint names and the file's segment names, base to flange.
@@ -90,7 +89,7 @@ def _align(a: np.ndarray) -> np.ndarray:
     s, c = np.linalg.norm(w), float(z @ a)
     if s < 1e-15:
         return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    return np.asarray(so3_exp(to_device(w / s * np.arctan2(s, c))))
+    return rotvec_to_matrix(w / s * np.arctan2(s, c))
 
 
 def _tz(s: float) -> np.ndarray:
@@ -105,10 +104,7 @@ def ur_origins(model: KinematicModel, nominal: KinematicModel) -> tuple[np.ndarr
     delta = np.asarray(model.zero_offset, np.float64)
     n = len(T)
     A = [np.eye(3)] + [_align(a) for a in axis]
-    E = [
-        pose(A[i].T) @ T[i] @ pose(np.asarray(so3_exp(to_device(axis[i] * delta[i])))) @ pose(A[i + 1])
-        for i in range(n)
-    ]
+    E = [pose(A[i].T) @ T[i] @ pose(rotvec_to_matrix(axis[i] * delta[i])) @ pose(A[i + 1]) for i in range(n)]
     F = pose(A[n].T) @ np.asarray(model.T_last_flange, np.float64)
     nom_axis = np.asarray(nominal.axis, np.float64)
     nom_R = np.asarray(nominal.T_parent_joint, np.float64)[:, :3, :3]

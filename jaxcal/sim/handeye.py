@@ -204,6 +204,15 @@ def _in_view(points_base, T_base_cam, K, size, margin: float = 12.0) -> bool:
     return bool(np.all((uv >= margin) & (uv <= np.asarray(size) - 1 - margin)))
 
 
+def _unplaced(config: HandEyeSimConfig) -> str:
+    w, h = config.resolution
+    return (
+        f"simulate_hand_eye: the whole target never fits a {w}x{h} image from {config.distance:g} m "
+        f"(tilt up to {config.tilt_deg:g} deg, a {config.fovy_deg:g} deg field of view): raise the distance "
+        "or the resolution, or lower the tilt"
+    )
+
+
 def _views(config: HandEyeSimConfig, rng, K, T_ee_board, T_base_board):
     """True flange poses `(frames, 4, 4)` and the fixed camera pose (eye-to-hand) or None."""
     spec = config.target
@@ -216,7 +225,7 @@ def _views(config: HandEyeSimConfig, rng, K, T_ee_board, T_base_board):
         while len(poses) < config.frames:
             tries += 1
             if tries > 200 * config.frames:
-                raise RuntimeError("simulate_hand_eye: could not place the views; lower tilt_deg or distance")
+                raise ValueError(_unplaced(config))
             look = c0 + np.append(rng.uniform(-0.03, 0.03, 2), 0.0)
             eye = look + config.distance * rng.uniform(0.85, 1.15) * _tilted(n0, rng, config.tilt_deg)
             up = _turn(look - eye, np.radians(rng.uniform(-config.roll_deg, config.roll_deg))) @ [
@@ -234,7 +243,7 @@ def _views(config: HandEyeSimConfig, rng, K, T_ee_board, T_base_board):
     while len(poses) < config.frames:
         tries += 1
         if tries > 200 * config.frames:
-            raise RuntimeError("simulate_hand_eye: could not place the views; lower tilt_deg or distance")
+            raise ValueError(_unplaced(config))
         centre = BOARD_CENTRE_EYE_TO_HAND + rng.uniform(-0.1, 0.1, 3) * config.distance
         to_cam = camera - centre
         n = _tilted(to_cam / np.linalg.norm(to_cam), rng, config.tilt_deg)
@@ -271,6 +280,10 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
     width, height = config.resolution
     T_ee_board = facing_mount(spec, (0.0, 0.0, 1.0), (0.0, 0.0, 0.03), up=(1.0, 0.0, 0.0))
     T_base_board = facing_mount(spec, (0.0, 0.0, 1.0), BOARD_CENTRE_EYE_IN_HAND, up=(1.0, 0.0, 0.0))
+    if not (np.isfinite(config.distance) and config.distance > 0):
+        raise ValueError(
+            f"simulate_hand_eye: distance must be a number of metres above zero, got {config.distance}"
+        )
     probe = CameraSpec("cam0", width, height, config.fovy_deg, np.eye(4), "world", tuple(config.distortion))
     T_true, T_base_cam = _views(config, rng, probe.K, T_ee_board, T_base_board)
     move = twist_matrix(*config.camera_move)

@@ -9,7 +9,8 @@ kind's tolerance); the rest are held at nominal and named.
 The samples are judged as poses: rows whose joint positions repeat an earlier
 row's are merged into its pose (the mean of their points, weighted once) and named,
 so copies neither shrink the standard deviations nor count towards the minimum,
-and cross-validation folds hold whole poses. The fit is robust (`POINT_ROBUST`):
+and cross-validation folds hold whole poses; a row whose point disagrees with its
+pose's others (`REPEAT_SIGMAS`) is fitted apart, for the robust fit to judge. The fit is robust (`POINT_ROBUST`):
 after least squares, a sample whose deletion residual lies beyond the rejection
 radius starts the arc fits' reweighted rounds (`jaxcal._pointfit.fit_points_robust`),
 and the samples they reject are left out of everything after (the models with
@@ -36,10 +37,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from .._axisfit import AxisFitResult
 from .._correction import ParameterLayout, apply_correction, physical_parameters
+from .._device import result_is, to_device
 from .._exported import stored_jit
 from .._geometry import se3_exp
 from .._kinematics import PRISMATIC, KinematicModel, forward_kinematics
@@ -86,6 +87,10 @@ POINT_ROBUST = RobustOptions("cauchy", reject=6.0)
 #: (a controller logging one stop twice, a table holding a row twice): far under any pose
 #: difference a capture plans, far over a text file's rounding.
 SAME_POSE = 1e-6
+#: Rows of one pose whose points lie farther than this many of their stated 3-D noise from the pose's
+#: median point are not merged: each is fitted alone, so the robust fit rejects the wrong one and keeps
+#: the others (a mean would carry the error into the good measurement, and both would be lost).
+REPEAT_SIGMAS = 10.0
 #: A term's gain in standard errors (`ModelRow.cv_gain_z`) is recorded up to this (a gain without
 #: spread is infinitely many).
 Z_SHOWN = 1e3
@@ -172,20 +177,21 @@ def point_problem(
     masses, coms = (np.zeros(n), np.zeros((n, 3))) if inertials is None else inertials
     if layout.orientation and (R is None or sigma_rad is None):
         raise ValueError("a layout with orientations needs R and sigma_rad")
+    f64 = lambda a: to_device(a, np.float64)  # noqa: E731 - moved, not a program per array
     data = PointData(
-        q=jnp.asarray(q, jnp.float64),
-        y=jnp.asarray(y, jnp.float64),
-        sigma=jnp.asarray(sigma, jnp.float64),
-        mask=jnp.asarray(used, bool),
-        weight=jnp.ones(S),
-        masses=jnp.asarray(masses, jnp.float64),
-        coms=jnp.asarray(coms, jnp.float64),
-        R=jnp.asarray(np.broadcast_to(np.eye(3), (S, 3, 3)) if R is None else R, jnp.float64),
-        sigma_rad=jnp.asarray(np.ones(S) if sigma_rad is None else sigma_rad, jnp.float64),
-        approach=jnp.asarray(approach(q), jnp.float64) if "backlash" in layout.terms else None,
+        q=f64(q),
+        y=f64(y),
+        sigma=f64(sigma),
+        mask=to_device(used, bool),
+        weight=f64(np.ones(S)),
+        masses=f64(masses),
+        coms=f64(coms),
+        R=f64(np.broadcast_to(np.eye(3), (S, 3, 3)) if R is None else R),
+        sigma_rad=f64(np.ones(S) if sigma_rad is None else sigma_rad),
+        approach=f64(approach(q)) if "backlash" in layout.terms else None,
     )
-    gauss = None if prior is None else PointPrior(*(jnp.asarray(a, jnp.float64) for a in prior))
-    return PointProblem(nominal, jnp.asarray(T_dev_base0), jnp.asarray(T_flange_point0), data, layout, gauss)
+    gauss = None if prior is None else PointPrior(*(f64(a) for a in prior))
+    return PointProblem(nominal, f64(T_dev_base0), f64(T_flange_point0), data, layout, gauss)
 
 
 def candidates(layout: PointLayout, *, fixed_frame_free: bool, orientation: bool = False) -> np.ndarray:
@@ -324,7 +330,7 @@ def _held_out(problem, cand, free, train) -> tuple[ResidualStats, ResidualStats 
     """The held-out distances (mm) and, with orientations, angles (deg) of K-fold
     cross-validation with the free parameters `free` over the training masks `train`, and each
     held-out sample's distance (mm) in sample order."""
-    dist, test, angle = (np.asarray(a) for a in _cv(problem, cand, free, jnp.asarray(train)))
+    dist, test, angle = (np.asarray(a) for a in _cv(problem, cand, free, to_device(train)))
     deg = _stats(np.degrees(angle[test])) if problem.layout.orientation else None
     per_sample = 1e3 * np.sum(np.where(test, dist, 0.0), axis=0)[test.any(0)]
     return _stats(1e3 * dist[test]), deg, per_sample
@@ -450,7 +456,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     n = nominal.num_joints
     q, y = np.asarray(sync.q, np.float64), np.asarray(s.position, np.float64)
     valid = np.asarray(sync.inside, bool) & np.all(np.isfinite(q), axis=1)
-    rep, first, n_poses, copies = _distinct_poses(ds, q, valid, n)
+    rep, first, n_poses, copies = _distinct_poses(ds, q, valid, n, y, options.say)
     y, orient = _merged(rep, y, s.orientation)
     repeats = tuple(
         RepeatedPose(*_row_name(ds, i), of_sample=_row_name(ds, rep[i])[0])
@@ -486,11 +492,10 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         cand = candidates(layout, fixed_frame_free=kind.fixed_frame_free, orientation=orientation)
         cand[base.axis_size :] &= term_scale(problem) >= TERM_FLOOR
         scale = plausible_scale(layout, nominal, options.limits)
-        cand, scale = jnp.asarray(cand), jnp.asarray(scale)
-        _compile_ahead(problem, cand, tol, scale, folds)
-        fit = jax.device_get(_fit(problem, cand, tol, scale))
-        cand = np.asarray(cand)
-        return layout, problem, cand, scale, fit
+        cand_d, scale_d = to_device(cand), to_device(scale, np.float64)  # moved, not compiled
+        _compile_ahead(problem, cand_d, tol, scale_d, folds)
+        fit = jax.device_get(_fit(problem, cand_d, tol, scale_d))
+        return layout, problem, cand, np.asarray(scale, np.float64), fit
 
     options.say(
         f"point fit: {n_poses} stop-and-shoot poses"
@@ -531,7 +536,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         if improves_on_samples(best[6], trial[6], best[5].cv_mean_mm, trial[5].cv_mean_mm):
             best, kept = trial, len(models) - 1
     layout, problem, cand, unseen, fit, *_ = best
-    if not bool(fit.result == optx.RESULTS.successful):
+    if not result_is(fit.result):
         options.say("point fit: the solver did not converge")
     dist, angle = (np.asarray(a) for a in _residuals(problem, fit.x))
     dist, angle = 1e3 * dist, np.degrees(angle)[used] if orientation else None
@@ -595,10 +600,34 @@ def _prior_use(options: Options, problem: PointProblem, fit: PointFitResult, nam
     )
 
 
-def _distinct_poses(ds, q: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Per sample the first sample of its pose (`repeated_poses`), the mask of those firsts,
-    the distinct poses and the copies; too few poses for an `n`-joint arm are refused."""
-    rep = repeated_poses(q, valid)
+def _apart(ds, rep: np.ndarray, y: np.ndarray, say) -> np.ndarray:
+    """`rep` with every row of a repeated pose whose point lies over `REPEAT_SIGMAS` of its noise
+    from the pose's median point made a pose of its own (named through `say`)."""
+    rep, sigma = rep.copy(), np.sqrt(3.0) * np.asarray(ds.samples.sigma_m, np.float64)
+    for head in np.unique(rep[rep >= 0]):
+        rows = np.flatnonzero(rep == head)
+        if len(rows) < 2:
+            continue
+        d = np.linalg.norm(y[rows] - np.median(y[rows], axis=0), axis=1)
+        far = rows[d > REPEAT_SIGMAS * sigma[rows]]
+        if len(far):
+            rep[far] = far
+            lines = ", ".join(_row_name(ds, i)[1] for i in rows)
+            spread = np.max(np.linalg.norm(y[rows, None] - y[None, rows], axis=-1))
+            say(
+                f"point fit: {lines} repeat one pose but their points differ by up to {1e3 * spread:.3g} mm; "
+                "fitted apart, not averaged (the robust fit judges each)"
+            )
+    return rep
+
+
+def _distinct_poses(
+    ds, q: np.ndarray, valid: np.ndarray, n: int, y: np.ndarray, say
+) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Per sample the first sample of its pose (`repeated_poses`; rows that disagree with their
+    pose's point apart, `_apart`), the mask of those firsts, the distinct poses and the copies;
+    too few poses for an `n`-joint arm are refused."""
+    rep = _apart(ds, repeated_poses(q, valid), y, say)
     first = valid & (rep == np.arange(len(q)))
     n_poses = int(first.sum())
     copies = int(valid.sum()) - n_poses

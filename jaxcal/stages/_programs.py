@@ -106,7 +106,7 @@ def axis_fit(use_poses: bool):
     def axis_fit(nominal, arcs, mount, free=None, home=None, fixed_frame_free=True):
         layout = ParameterLayout.sized(nominal.num_joints, mount.shape[0])
         search = free is None
-        free = jnp.ones(layout.axis_size, bool) if search else jnp.asarray(free, bool)
+        free = to_device(np.ones(layout.axis_size, bool) if search else free, bool)
         return program(nominal, arcs, mount, free, search, home, fixed_frame_free)
 
     axis_fit.program = program  # the compiled program both cases share

@@ -23,15 +23,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
-from jax.flatten_util import ravel_pytree
 
 from .._buckets import bucket, pad_log
 from .._clocksync import controller_time
 from .._correction import INTRINSIC_NAMES, Estimate, ParameterLayout, physical_parameters
-from .._device import to_device
-from .._geometry import so3_log
+from .._device import flat_on_device, result_is, to_device
 from .._links import average_pose, start_mounts
+from .._npgeom import so3_log
 from .._progress import working
 from .._refine import (
     OtherCameras,
@@ -176,9 +174,7 @@ def sweep_angles(R_pnp, target, joint, model, T_cam_base, mounts, homes=None) ->
     q = np.concatenate([home, home + np.eye(n)])
     T = _programs.chains(T_cam_base, model, q)[:, -1]
     R_home, R_turned = T[:n, :3, :3], T[n:, :3, :3]
-    w = np.asarray(
-        jax.vmap(lambda A, B: so3_log(A @ B.T))(jnp.asarray(R_turned), jnp.asarray(R_home))
-    )  # (n, 3)
+    w = so3_log(np.einsum("nab,ncb->nac", np.asarray(R_turned), np.asarray(R_home)))  # (n, 3)
     joint, target = np.asarray(joint), np.asarray(target)
     R0 = np.einsum("vab,vbc->vac", R_home[joint], np.asarray(mounts)[target][:, :3, :3])  # (V, 3, 3)
     M = np.einsum("vab,vcb->vac", np.asarray(R_pnp), R0)
@@ -211,7 +207,9 @@ def _collect(setup: Setup, obs: Observations, sync: Sync, two: TwoStage) -> _Cor
     ds, kind = setup.dataset, setup.kind
     no_encoders = kind.per_view_angles
     offset = sync.clock.offset_s
-    rate0 = jnp.asarray(two.arcs.rate) if kind.rates_from_arcs else jnp.ones(setup.nominal.num_joints)
+    rate0 = to_device(
+        two.arcs.rate if kind.rates_from_arcs else np.ones(setup.nominal.num_joints), np.float64
+    )
     pts = {t.name: np.asarray(t.spec.points(), np.float64) for t in setup.targets}
     rolling = any(rolling_shutter(v.camera) for v in (obs.primary, *obs.others))
     out = _Corners(used=[obs.primary])
@@ -327,28 +325,28 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
         correction = eqx.tree_at(lambda c: c.tool, correction, jnp.zeros((M, 6)))
     problem = RefineProblem(
         nominal=nominal,
-        T_flange_marker0=jnp.asarray(mounts0),
-        T_cam_base0=jnp.asarray(fit.T_cam_base0),
-        K0=jnp.asarray(K, jnp.float64),
+        T_flange_marker0=to_device(mounts0),
+        T_cam_base0=to_device(fit.T_cam_base0),
+        K0=to_device(K, np.float64),
         dist0=to_device(d5),
-        offset0_s=jnp.asarray(sync.clock.offset_s),
+        offset0_s=to_device(np.float64(sync.clock.offset_s)),
         data=data,
-        other_cameras=OtherCameras(*(jnp.asarray(np.stack(a)) for a in zip(*corners.others)))
+        other_cameras=OtherCameras(*(to_device(np.stack(a)) for a in zip(*corners.others)))
         if corners.others
         else None,
         eye_in_hand=kind.inverts_poses,
-        target_link=jnp.asarray(setup.target_link) if kind.sequential else None,
-        line_delay0_s=None if delays is None else jnp.asarray(delays[0]),
+        target_link=to_device(setup.target_link) if kind.sequential else None,
+        line_delay0_s=None if delays is None else to_device(delays[0], np.float64),
     )
     params0 = RefineParams(
         cam=fit.params.cam,
         correction=correction,
-        rate=jnp.asarray(two.arcs.rate) if kind.rates_from_arcs else jnp.ones(n),
-        clock_ms=jnp.zeros(()),
-        intrinsics=jnp.zeros(9),
-        other_cams=jnp.zeros((len(corners.others), 6)) if corners.others else None,
+        rate=to_device(two.arcs.rate if kind.rates_from_arcs else np.ones(n), np.float64),
+        clock_ms=to_device(np.zeros(())),
+        intrinsics=to_device(np.zeros(9)),
+        other_cams=to_device(np.zeros((len(corners.others), 6))) if corners.others else None,
         angles=None,
-        line_delay_us=None if delays is None else jnp.zeros(len(delays[0])),
+        line_delay_us=None if delays is None else to_device(np.zeros(len(delays[0]))),
     )
     angle_names = []
     if kind.per_view_angles:
@@ -357,12 +355,14 @@ def _problem(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, corners
             corners.target,
             corners.sweep,
             fit.model,
-            jnp.asarray(fit.T_cam_base),
+            to_device(fit.T_cam_base),
             fit.T_flange_marker,
             sync.homes,
         )
         a0 = np.concatenate([a0, np.zeros(bucket(V) - V)])  # padded views: zero columns, never free
-        params0 = eqx.tree_at(lambda p: p.angles, params0, jnp.asarray(a0), is_leaf=lambda x: x is None)
+        params0 = eqx.tree_at(
+            lambda p: p.angles, params0, to_device(a0, np.float64), is_leaf=lambda x: x is None
+        )
         angle_names = [f"frame{f}.{nominal.joint_names[j]}" for f, j in zip(corners.frame, corners.sweep)]
         angle_names += [f"{PADDING}{k}" for k in range(bucket(V) - V)]
     layout = kind.layout(
@@ -474,13 +474,13 @@ def _outcome(setup: Setup, sync: Sync, two: TwoStage, corners, problem, res, lay
         other_cameras=tuple(others),
         warnings=tuple(warnings),
         estimate=Estimate(
-            x=ravel_pytree(res.params)[0],
+            x=flat_on_device(res.params),
             cov=to_device(res.cov),
             free=to_device(free),
             nominal=nominal,
-            T_flange_marker0=jnp.asarray(problem.T_flange_marker0),
-            T_cam_base0=jnp.asarray(problem.T_cam_base0),
-            reduction_ratio=jnp.asarray(res.model.reduction_ratio),
+            T_flange_marker0=to_device(problem.T_flange_marker0),
+            T_cam_base0=to_device(problem.T_cam_base0),
+            reduction_ratio=to_device(res.model.reduction_ratio),
             layout=layout,
             mount_names=tuple(mount_names),
         ),
@@ -672,6 +672,4 @@ def succeeded(refined: Refined) -> bool:
     res = refined.fit
     if res is None:
         return False
-    return bool(res.result == optx.RESULTS.successful) and bool(
-        np.all(np.isfinite(np.asarray(res.T_cam_base)))
-    )
+    return bool(result_is(res.result)) and bool(np.all(np.isfinite(np.asarray(res.T_cam_base))))

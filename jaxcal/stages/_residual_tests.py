@@ -14,6 +14,7 @@ import numpy as np
 
 from .._correction import INTRINSIC_NAMES, ParameterLayout
 from .._diagnostics import residual_correlation
+from .._distributions import chi2_sf
 from .._lsq import larger_covariance_np, newey_west_lags
 from .._refine import RefineProblem
 from ..records import ErrorCorrelation, LensTest, ShutterTest
@@ -150,7 +151,7 @@ def error_correlation(corners, res, limits, information):
         pairs=tuple(int(x) for x in count),
         q_statistic=q,
         dof=lags,
-        p_value=float(jax.scipy.special.gammaincc(0.5 * lags, 0.5 * q)),
+        p_value=float(chi2_sf(q, lags)),
         sigmas=sigmas,
         pose_sigmas=pose_sigmas,
     )

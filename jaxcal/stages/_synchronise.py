@@ -12,12 +12,11 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from .._arcdata import make_arc_data
 from .._buckets import bucket, pad_log
 from .._clocksync import LINEAR_UP_TO_S, controller_time, interpolate_encoders
-from .._device import to_device
+from .._device import result_is, to_device
 from .._kinematics import PRISMATIC
 from .._links import link_poses
 from .._progress import working
@@ -500,7 +499,7 @@ def _fit_clock(
     ds = setup.dataset
 
     def failed(cf) -> bool:
-        return not bool(cf.result == optx.RESULTS.successful) or not np.isfinite(float(cf.offset_s))
+        return not result_is(cf.result) or not np.isfinite(float(cf.offset_s))
 
     start, coarse = offset0, None
     if _share_inside(setup, obs, log_q, offset0) < COARSE_BELOW_INSIDE:

@@ -13,14 +13,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jax.flatten_util import ravel_pytree
 
 from .._arcdata import MIN_SWEEP_DEG
 from .._arcfit import ArcFitResult, arc_outliers, sweep_span_deg, validate_arc_data
 from .._axisfit import AxisFitParams, AxisFitResult, register_lines
 from .._buckets import bucket
 from .._correction import Estimate, ParameterLayout, physical_parameters, zero_correction
-from .._device import to_device
+from .._device import flat_on_device, result_is, to_device
 from .._geometry import pose_inverse
 from .._handeye import check_motion_diversity, solve_axzb
 from .._kinematics import PRISMATIC, forward_kinematics
@@ -256,7 +255,7 @@ def arc_rows(setup: Setup, arcs, sweeps: Sweeps) -> tuple[ArcRow, ...]:
     the samples a robust fit rejected and the noise scale it saw)."""
     arcs = jax.device_get(arcs)  # host arrays: per-joint indexing compiles nothing
     nominal_ratio = np.asarray(setup.nominal.reduction_ratio)
-    ok = np.asarray(arcs.result == optx.RESULTS.successful)
+    ok = result_is(arcs.result)
     has = bool(arcs.has_encoder)
     rows = []
     for j, name in enumerate(setup.dataset.joint_names):
@@ -343,7 +342,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
     names = layout.names(refine=False)
     free = np.asarray(fit.free)
     parameters = _parameters(layout, nominal, fit, free, setup.fit_targets)
-    ok_arc = np.asarray(arcs.result == optx.RESULTS.successful)
+    ok_arc = result_is(arcs.result)
     rows = arc_rows(setup, arcs, sweeps)
     notes = (
         ()
@@ -362,7 +361,7 @@ def two_stage(setup: Setup, obs: Observations, sync: Sync, options: Options) -> 
         frozen=tuple(n for n, f in zip(names, free) if not f),
         arc_rows=rows,
         solver=SolverInfo(
-            success=bool(ok_arc.all() and bool(fit.result == optx.RESULTS.successful)),
+            success=bool(ok_arc.all() and result_is(fit.result)),
             arc_fits_ok=tuple(ok_arc.tolist()),
             axis_fit=result_name(fit.result),
             axis_fit_steps=int(fit.num_steps),
@@ -461,7 +460,7 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
         frozen=tuple(pf.held),
         arc_rows=(),
         solver=SolverInfo(
-            success=bool(fit.result == optx.RESULTS.successful),
+            success=bool(result_is(fit.result)),
             arc_fits_ok=(),
             axis_fit="not run (stop-and-shoot samples: point fit)",
             point_fit=result_name(fit.result),
@@ -478,13 +477,13 @@ def _points(setup: Setup, obs: Observations, sync: Sync, options: Options) -> Tw
 def fit_estimate(layout: ParameterLayout, setup: Setup, fit, mount_names: list[str]) -> Estimate:
     """The axis fit's (or the pose-based start's) `Estimate`."""
     return Estimate(
-        x=ravel_pytree(fit.params)[0],
-        cov=jnp.asarray(fit.cov),
-        free=jnp.asarray(fit.free),
+        x=flat_on_device(fit.params),
+        cov=to_device(fit.cov),
+        free=to_device(fit.free),
         nominal=setup.nominal,
-        T_flange_marker0=jnp.asarray(fit.T_flange_marker0),
-        T_cam_base0=jnp.asarray(fit.T_cam_base0),
-        reduction_ratio=jnp.asarray(fit.model.reduction_ratio),
+        T_flange_marker0=to_device(fit.T_flange_marker0),
+        T_cam_base0=to_device(fit.T_cam_base0),
+        reduction_ratio=to_device(fit.model.reduction_ratio),
         layout=layout,
         mount_names=tuple(mount_names),
     )
@@ -492,4 +491,4 @@ def fit_estimate(layout: ParameterLayout, setup: Setup, fit, mount_names: list[s
 
 def result_name(result) -> str:
     """`"successful"` or `"failed"` for an optimistix result code."""
-    return "successful" if bool(result == optx.RESULTS.successful) else "failed"
+    return "successful" if result_is(result) else "failed"

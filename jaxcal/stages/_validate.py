@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._correction import KinematicCorrection, apply_correction
+from .._device import to_device
 from .._exported import stored_jit
 from .._geometry import se3_exp
 from .._geometry import so3_log as jax_so3_log
@@ -55,11 +56,11 @@ def _truth_poses(setup: Setup, truth: TruePoses):
         if cam not in truth.T_mount_cam or board not in truth.T_link_target:
             return None
         T_cb = np.linalg.inv(truth.T_link_target[board]) @ truth.T_world_base
-        return jnp.asarray(T_cb), jnp.asarray(truth.T_mount_cam[cam])[None]
+        return to_device(T_cb, np.float64), to_device(np.asarray(truth.T_mount_cam[cam])[None], np.float64)
     if cam not in truth.T_cam_base:
         return None
-    mounts = jnp.stack([jnp.asarray(truth.T_link_target[t.name]) for t in setup.targets])
-    return jnp.asarray(truth.T_cam_base[cam]), mounts
+    mounts = np.stack([np.asarray(truth.T_link_target[t.name]) for t in setup.targets])
+    return to_device(truth.T_cam_base[cam], np.float64), to_device(mounts, np.float64)
 
 
 #: The pose capture's gauge fit (`_pose_gauge`): configurations, Gauss-Newton steps, and the lever
@@ -231,15 +232,15 @@ def _joint_errors(nominal, true, model, s) -> tuple[JointError, ...]:
     """Per joint its axis, ratio and zero-offset errors against the truth (`score`'s figures `s`;
     the zero offsets against `true`'s: with sweeps, the truth in the estimator's gauge, `_gauge`);
     a prismatic joint has a direction (no axis position), the scale's error and mm."""
-    ratio_err = np.asarray(s.ratio_err_percent)
-    rows = []
+    ratio_err, dir_deg, pos_mm = (np.asarray(a) for a in (s.ratio_err_percent, s.axis_dir_deg, s.axis_pos_mm))
+    rows, zero_err = [], np.asarray(model.zero_offset) - np.asarray(true.zero_offset)
     for k, (j, kind) in enumerate(zip(nominal.joint_names, nominal.joint_types)):
-        dz = float(model.zero_offset[k] - true.zero_offset[k])
+        dz = float(zero_err[k])
         rows.append(
             JointError(
                 joint=j,
-                axis_direction_deg=float(s.axis_dir_deg[k]),
-                axis_position_mm=float(s.axis_pos_mm[k]) if kind == REVOLUTE else None,
+                axis_direction_deg=float(dir_deg[k]),
+                axis_position_mm=float(pos_mm[k]) if kind == REVOLUTE else None,
                 ratio_percent=None if not np.isfinite(ratio_err[k]) else float(ratio_err[k]),
                 zero_offset_deg=float(np.degrees(dz)) if kind == REVOLUTE else None,
                 zero_offset_mm=None if kind == REVOLUTE else 1e3 * dz,
@@ -263,10 +264,11 @@ def validate(
     true = truth.model
     res = refined.fit if refined is not None else None
     fit = res if res is not None else two_fit
+    first = lambda mounts: to_device(np.asarray(mounts)[0])  # noqa: E731 - on the host: no program
     fits = {
-        "before": (nominal, fit.T_cam_base, fit.T_flange_marker[0]),
-        "two_stage": (two_fit.model, two_fit.T_cam_base, two_fit.T_flange_marker[0]),
-        "after": (fit.model, fit.T_cam_base, fit.T_flange_marker[0]),
+        "before": (nominal, fit.T_cam_base, first(fit.T_flange_marker)),
+        "two_stage": (two_fit.model, two_fit.T_cam_base, first(two_fit.T_flange_marker)),
+        "after": (fit.model, fit.T_cam_base, first(fit.T_flange_marker)),
     }
     travel = joint_travel(nominal, setup.dataset.joint_limits)
     err, s = _score(fit, true, T_cb_true, mounts_true, nominal, travel, fits)

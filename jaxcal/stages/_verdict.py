@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .._kinematics import PRISMATIC, joint_axes
+from .._kinematics import PRISMATIC, joint_axes_at_zero
 from .._npgeom import line_distance
 from ..records import Judgement, ParameterRow
 from ..records_stages import Check
@@ -49,10 +49,6 @@ def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
-#: One compiled program, not a few dozen eager operations, per process.
-_joint_axes = jax.jit(joint_axes)
-
-
 def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float, float]]]:
     """How far apart consecutive joint axes are measured, over the nominal
     robot's spacing: the median ratio over pairs at least 5 cm apart (near
@@ -60,7 +56,7 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
     skew ones by the common normal), and the pairs `(joints, measured,
     nominal)` (m)."""
     nominal = setup.nominal
-    p_nom, d_nom = (np.asarray(a) for a in _joint_axes(nominal, np.zeros(nominal.num_joints)))
+    p_nom, d_nom = joint_axes_at_zero(nominal)
     p_meas, d_meas = np.asarray(arcs.point), np.asarray(arcs.direction)
     names = nominal.joint_names
     pairs = []
@@ -245,6 +241,14 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
     c.rows.append(
         Check("point_fit.rejected_share", share, limits.outlier_fraction, share <= limits.outlier_fraction)
     )
+    sigma_mm = 1e3 * float(np.median(np.asarray(pf.problem.data.sigma)[pf.used]))
+    c.add(
+        "point_fit.noise_scale",
+        pf.robust_scale,
+        limits.noise_scale,
+        f"the samples scatter {pf.robust_scale:.0f} times the noise they state ({sigma_mm:.3g} mm): a noise in "
+        "metres given as millimetres (import-csv --sigma-mm), or a model that misses most of the error",
+    )
     if pf.prior is not None:
         _prior(c, pf.prior)
     if pf.unseen:
@@ -348,7 +352,7 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, timed_rows: R
         seen = "the joint axes measured through the target are"
     else:
         model = timed_rows.fit.model
-        point, direction = (np.asarray(a) for a in _joint_axes(model, np.zeros(model.num_joints)))
+        point, direction = joint_axes_at_zero(model)
         point = np.where(np.asarray(model.joint_types)[:, None] == PRISMATIC, np.nan, point)
         scale, pairs = axis_spacing_ratio(setup, SimpleNamespace(point=point, direction=direction))
         seen = "the refined robot's joint axes (every corner timed at its row) are"

@@ -55,7 +55,9 @@ class Limits:
       that stays put leaves its zero offset and the geometry it carries
       undetermined, whatever the other joints do.
     - `outlier_fraction` also bounds the share of stop-and-shoot poses the robust
-      point fit rejects.
+      point fit rejects; `noise_scale`, their residuals' robust scatter over the noise
+      the samples state (a noise in metres given as millimetres, or a model that misses
+      most of the error, makes every figure that uses the stated noise wrong).
     """
 
     origin_mm: float = 15.0
@@ -81,3 +83,4 @@ class Limits:
     ee_sigma_mm: float = 3.0
     joint_span_deg: float = 5.0
     joint_span_mm: float = 10.0
+    noise_scale: float = 30.0

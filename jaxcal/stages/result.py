@@ -302,7 +302,7 @@ def assemble(
         nominal=setup.nominal,
         model=jax.device_get(res.model if ran else fit.model),
         T_cam_base=np.asarray(res.T_cam_base if ran else fit.T_cam_base),
-        std_cam=np.asarray(res.std[:6] if ran else fit.std[:6]),
+        std_cam=np.asarray(res.std if ran else fit.std)[:6],
         T_flange_target=np.asarray(res.T_flange_marker if ran else fit.T_flange_marker),
         parameters=refined.parameters if ran else two.parameters,
         frozen=refined.frozen if ran else two.frozen,
