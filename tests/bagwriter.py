@@ -103,6 +103,7 @@ def write_bag(
     joints_shift_s: float = 0.0,
     camera_info: bool = True,
     image_type: str | None = None,
+    joint_scale: float = 1.0,
 ) -> Path:
     """Write `dataset` (a directory) as the bag `bag` (a `.bag` file for ROS 1, a directory for ROS 2).
 
@@ -110,7 +111,8 @@ def write_bag(
     CompressedImage, else a raw Image encoding; `joint_names`: the names the
     joint states carry (default the robot's); `joints_shift_s`: added to the
     joint states' stamps (to break the overlap); `image_type`: a message type
-    to put on the image topic instead (to test the wrong-type error).
+    to put on the image topic instead (to test the wrong-type error); `joint_scale`: the joint
+    positions' factor (degrees: `180 / pi`, a driver that breaks the message's radians).
     """
     ds = load_dataset(dataset)
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -136,7 +138,7 @@ def write_bag(
         JointState = ts.types["sensor_msgs/msg/JointState"]
         for t, m in zip(ds.encoder_t, ds.encoder_motor):
             ns = to_ns(t + joints_shift_s, epoch_s)
-            pos = np.asarray(m / ratio, np.float64)
+            pos = np.asarray(joint_scale * m / ratio, np.float64)
             msg = JointState(
                 header=_stamp(ts, ns, ros1),
                 name=names,

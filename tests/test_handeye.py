@@ -721,3 +721,29 @@ def test_the_images_scale_against_the_robots_names_a_wrong_target_size(eye_in_ha
     assert "cam0" in reason and "+3.0 %" in reason and "square_length" in reason
     # Too few frames for a scale and a jackknife: nothing said.
     assert image_scale(*_scaled_capture(eye_in_hand, 1.03, frames=5)) == []
+
+
+def test_a_noise_model_worse_on_the_frames_left_out_is_said_to_be_worse():
+    """The default's choice between robot-noise models names a model that predicts the frames left
+    out worse as worse (it read "better than estimate by 0 standard errors")."""
+    from types import SimpleNamespace
+
+    from jaxcal.handeye._noise import RobotNoiseSetting, choose
+
+    def fit(model, squares):
+        squares = np.asarray(squares, float)
+        return SimpleNamespace(
+            model=model,
+            held_out=SimpleNamespace(rms_px=float(np.sqrt(squares.mean()))),
+            kfold=SimpleNamespace(frame_squares=lambda: squares),
+        )
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0.5, 1.5, 12)
+    worse, better = fit("exact", 1.3 * base), fit("exact", 0.5 * base)
+    index, basis = choose((fit("estimate", base), worse), RobotNoiseSetting("auto"), folds=12)
+    assert index == 0 and "exact 1.16 px, not kept: worse than estimate on the frames left out" in basis, (
+        basis
+    )
+    index, basis = choose((fit("estimate", base), better), RobotNoiseSetting("auto"), folds=12)
+    assert index == 1 and "kept: better than estimate by" in basis, basis

@@ -684,6 +684,31 @@ def _set(row, i, value):
             r"f0.png: image is 640x480 pixels, .* 480x640 .* 4 of 4 images differ; every image: a K calibrated",
         ),
         (lambda r, m: m.update(schema_version=7), r"unknown schema_version 7"),
+        (  # a key jaxcal does not read is refused, not ignored; notes go under x_ keys
+            lambda r, m: m.update(robot_noise_mm=1.0),
+            r"handeye.json: unknown field 'robot_noise_mm'; known fields are 'arrangement', .* starting with 'x_'",
+        ),
+        (lambda r, m: m["cameras"][0].update(fx=600), r"handeye.json: cameras\[0\]: unknown field 'fx'"),
+        (  # metres declared millimetres: a flange that never leaves the base
+            lambda r, m: m["poses"].update(translation_unit="mm"),
+            r"poses.csv: every frame's flange lies within 0.\d+ mm of the base, no arm's reach; .*'translation_unit' "
+            r"\('mm'\) right \(metres declared millimetres\?\)",
+        ),
+        (  # a pose file is the capture's own: no name leaves its folder
+            lambda r, m: m["poses"].update(file="../other/poses.csv"),
+            r"handeye.json: field 'poses.file': expected a path relative to the dataset directory that stays "
+            r"inside it, got '../other/poses.csv'",
+        ),
+        (
+            lambda r, m: m["poses"].update(file=str(r / "poses.csv")),
+            r"field 'poses.file': expected a path relative",
+        ),
+        (
+            lambda r, m: (r / "poses.csv").write_bytes(
+                (r / "poses.csv").read_bytes().replace(b"frame", b"fr\xe9me")
+            ),
+            r"poses.csv: not UTF-8 text \(invalid continuation byte at byte 2\)",
+        ),
         (
             lambda r, m: m["target"].update(square_length=30),
             r"target 'board': square_length = 30 m; lengths are in metres \(millimetres given\?",
@@ -698,6 +723,17 @@ def test_bad_captures_name_file_field_and_value(tmp_path, breakage, match):
     (root / "handeye.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match=match):
         load_hand_eye_capture(root)
+
+
+def test_a_pose_file_with_a_byte_order_mark_and_crlf_reads_as_without(tmp_path):
+    """Spreadsheets write a byte-order mark and CRLF line ends: the same poses as without them."""
+    _write_capture(tmp_path / "c")
+    plain = load_hand_eye_capture(tmp_path / "c")
+    text = (tmp_path / "c" / "poses.csv").read_text()
+    (tmp_path / "c" / "poses.csv").write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    marked = load_hand_eye_capture(tmp_path / "c")
+    assert marked.frames == plain.frames
+    np.testing.assert_array_equal(marked.T_base_ee, plain.T_base_ee)
 
 
 def test_millimetres_written_as_metres_are_caught(tmp_path):

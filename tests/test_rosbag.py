@@ -11,7 +11,14 @@ import pytest
 from bagwriter import COMPRESSED, IMAGES, INFO, JOINTS, write_bag
 
 from jaxcal.cli import main
-from jaxcal.errors import BagEncodingError, BagJointError, BagMessageTypeError, BagTimeError, BagTopicError
+from jaxcal.errors import (
+    BagEncodingError,
+    BagJointError,
+    BagMessageTypeError,
+    BagTimeError,
+    BagTopicError,
+    DatasetError,
+)
 from jaxcal.io._rosmsgs import encode_raw, find_segments
 from jaxcal.io.dataset import load_dataset
 from jaxcal.io.rosbag import import_bag, is_bag
@@ -190,6 +197,18 @@ def test_joint_names_not_in_the_urdf(source, tmp_path):
     bag = write_bag(SOURCE, tmp_path / "bag", rows=SUBSET, joint_names=names)
     with pytest.raises(BagJointError, match="gripper_finger_joint"):
         _import(bag, tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
+
+
+def test_joint_states_in_degrees_are_named_by_bag_and_topic(tmp_path):
+    """A driver that publishes degrees: refused naming the bag and its joint-state topic, not the
+    temporary folder the import builds (gone once it is refused) or a field the user never wrote."""
+    bag = write_bag(SOURCE, tmp_path / "bag", rows=SUBSET, joint_scale=180.0 / np.pi)
+    with pytest.raises(DatasetError) as e:
+        _import(bag, tmp_path / "ds")
+    text = str(e.value)
+    assert f"{bag} topic /joint_states" in text and "radians (sensor_msgs/JointState)" in text, text
+    assert "degrees" in text and ".tmp" not in text and "encoders.unit" not in text, text
     assert not (tmp_path / "ds").exists()
 
 

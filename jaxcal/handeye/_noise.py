@@ -189,11 +189,15 @@ def choose(fits: tuple[NoiseModelFit, ...], setting: RobotNoiseSetting, folds: i
         kept = improves_on_samples(
             a.kfold.frame_squares(), b.kfold.frame_squares(), a.held_out.rms_px, b.held_out.rms_px
         )
+        if b.held_out.rms_px >= a.held_out.rms_px:  # worse on the frames left out: no gain to weigh
+            why = f"worse than {a.model} on the frames left out"
+        else:
+            why = (
+                f"better than {a.model} by {z:.2g} standard errors of the per-frame differences ({MIN_Z:g} "
+                f"needed, with a gain over {100 * CV_GAIN:g} %)"
+            )
         words.append(
-            f"{b.model} {b.held_out.rms_px:.3g} px, "
-            + ("kept" if kept else "not kept")
-            + f": better than {a.model} by {z:.2g} standard errors of the per-frame differences ({MIN_Z:g} "
-            f"needed, with a gain over {100 * CV_GAIN:g} %)"
+            f"{b.model} {b.held_out.rms_px:.3g} px, " + ("kept" if kept else "not kept") + f": {why}"
         )
         best = k if kept else best
     return best, f"chosen by held-out reprojection ({'; '.join(words)})"

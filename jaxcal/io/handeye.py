@@ -48,8 +48,15 @@ POSE_COLUMNS = {
     "xyz_rotvec": ("x", "y", "z", "rx", "ry", "rz"),
 }
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+#: `handeye.json`'s fields, its `poses`' and a camera's.
+FIELDS = ("schema", "schema_version", "description", "arrangement", "frames", "poses", "cameras", "target")
+POSES_FIELDS = ("file", "format", "translation_unit", "rotation_unit")
+CAMERA_FIELDS = ("name", "width", "height", "K", "distortion", "frame_id")
 #: A translation above this many metres is taken for a unit mistake.
 MAX_TRANSLATION_M = 20.0
+#: Every frame's flange nearer the base than this (m): no arm's poses, a unit misread (metres
+#: declared millimetres) or a pose of the wrong frame.
+MIN_REACH_M = 0.02
 
 
 @dataclass(frozen=True, eq=False)
@@ -211,8 +218,11 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
     )
     if not path.is_file():
         raise DatasetError(f"{path}: pose file missing (named by {where} field 'file')")
-    with open(path, newline="") as f:
-        rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    try:  # a byte-order mark is no part of the header (spreadsheets write one)
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    except UnicodeDecodeError as e:
+        raise DatasetError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     want = POSE_COLUMNS[fmt]
     if not rows:
         raise DatasetError(f"{path}: empty; expected a header 'frame,{','.join(want)}'")
@@ -295,6 +305,12 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
             f"{path} line {i + 2} (frame {frames[i]}): translation {np.linalg.norm(T[i, :3, 3]):.1f} m from the "
             f"base; is {where} field 'translation_unit' ({unit_t!r}) right?"
         )
+    reach = float(np.max(np.linalg.norm(T[:, :3, 3], axis=1)))
+    if reach < MIN_REACH_M:
+        raise DatasetError(
+            f"{path}: every frame's flange lies within {1e3 * reach:.3g} mm of the base, no arm's reach; is {where} "
+            f"field 'translation_unit' ({unit_t!r}) right (metres declared millimetres?)"
+        )
     return tuple(frames), T
 
 
@@ -373,6 +389,13 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
         raise DatasetError(
             f"{where}: unknown schema_version {meta.get('schema_version')!r}; this jaxcal reads {SCHEMA_VERSION}"
         )
+    # A misspelt or foreign key is refused, not ignored (notes go under keys starting with 'x_').
+    sc.obj(meta, sc.Loc(meta_path), optional=FIELDS)
+    if isinstance(meta.get("poses"), dict):
+        sc.obj(meta["poses"], sc.Loc(meta_path, "field 'poses'"), optional=POSES_FIELDS)
+    for i, c in enumerate(meta.get("cameras") or ()):
+        if isinstance(c, dict):
+            sc.obj(c, sc.Loc(meta_path, f"cameras[{i}]"), optional=CAMERA_FIELDS)
     arrangement = _choice(meta, "arrangement", ARRANGEMENTS, where)
     cameras = _cameras(meta, where)
     target = _require(meta, "target", where)
@@ -384,8 +407,8 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
         raise DatasetError(f"{where}: field 'target': {e}") from None
     poses = _require(meta, "poses", where)
     pw = f"{where}: poses"
-    file = _require(poses, "file", pw)
-    frames, T = _read_poses(root / str(file), poses, pw)
+    file = sc.relative_path(str(_require(poses, "file", pw)), sc.Loc(meta_path, "field 'poses.file'"))
+    frames, T = _read_poses(root / file, poses, pw)
     images = _images(root, cameras, frames)
     names = meta.get("frames", {})
     if not isinstance(names, dict):

@@ -287,6 +287,17 @@ def _robot_model(robot: Path, base_link, flange_link):
     return model, movable, ratio, "urdf", "robot.urdf"
 
 
+def _checked(tmp: Path, bag: Path, joints: str) -> None:
+    """`load_dataset`'s every check of the dataset built in `tmp`, before the rename; what it finds
+    is said of the bag and its topics (the folder is gone once the import is refused)."""
+    try:
+        load_dataset(tmp)
+    except DatasetError as e:
+        text = str(e).replace(str(tmp / "encoders.csv"), f"{bag} topic {joints}")
+        text = text.replace("encoders.unit is 'rad'", "the joint states are radians (sensor_msgs/JointState)")
+        raise DatasetError(text.replace(str(tmp), f"the dataset imported from {bag}")) from None
+
+
 def import_bag(
     bag,
     out,
@@ -386,6 +397,6 @@ def import_bag(
             },
         }
         write_json(tmp / "metadata.json", meta)
-        load_dataset(tmp)  # the format's every check, before the rename
+        _checked(tmp, bag, joints)
     seg = tuple((s["joint"], s["start"], s["end"]) for s in motion)
     return BagImport(Path(out), len(rows), len(enc_ns), seg, epoch, tuple(notes))
