@@ -241,13 +241,18 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
     c.rows.append(
         Check("point_fit.rejected_share", share, limits.outlier_fraction, share <= limits.outlier_fraction)
     )
-    sigma_mm = 1e3 * float(np.median(np.asarray(pf.problem.data.sigma)[pf.used]))
+    # The calibrated model's (terms kept included) residual scale over the stated noise.
+    scale, sigma_mm = (
+        np.sqrt(float(pf.fit.sigma2)),
+        1e3 * float(np.median(np.asarray(pf.problem.data.sigma)[pf.used])),
+    )
     c.add(
         "point_fit.noise_scale",
-        pf.robust_scale,
+        scale,
         limits.noise_scale,
-        f"the samples scatter {pf.robust_scale:.0f} times the noise they state ({sigma_mm:.3g} mm): a noise in "
-        "metres given as millimetres (import-csv --sigma-mm), or a model that misses most of the error",
+        f"the samples scatter {scale:.0f} times the noise they state ({sigma_mm:.3g} mm) about the calibrated "
+        "model: a noise in metres given as millimetres (import-csv --sigma-mm), or a model that misses most of the "
+        "error",
     )
     if pf.prior is not None:
         _prior(c, pf.prior)

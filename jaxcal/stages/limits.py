@@ -55,8 +55,8 @@ class Limits:
       that stays put leaves its zero offset and the geometry it carries
       undetermined, whatever the other joints do.
     - `outlier_fraction` also bounds the share of stop-and-shoot poses the robust
-      point fit rejects; `noise_scale`, their residuals' robust scatter over the noise
-      the samples state (a noise in metres given as millimetres, or a model that misses
+      point fit rejects; `noise_scale`, the calibrated model's residual scale over the
+      noise the samples state (a noise in metres given as millimetres, or a model that misses
       most of the error, makes every figure that uses the stated noise wrong).
     """
 
