@@ -27,6 +27,7 @@ from jaxcal.io.handeye import (
     matrix_to_quaternion,
     pose_rows,
     quaternion_to_matrix,
+    repeated_poses,
     write_hand_eye_description,
 )
 from jaxcal.io.ros import read_easy_handeye, read_static_transform
@@ -313,6 +314,11 @@ def test_bad_fit_and_far_from_start_are_suspect():
     )
     v = jaxcal.assess_hand_eye(r, held_out=dataclasses.replace(noisy, rms_px=6.0))
     assert v.status == "suspect" and any("do not belong to these images" in x for x in v.reasons), v.reasons
+    # Views predicted from near or behind the camera: the bound in words, no absurd figure.
+    v = jaxcal.assess_hand_eye(r, held_out=dataclasses.replace(noisy, rms_px=5.89e10))
+    text = " ".join(v.reasons)
+    assert "predicted from their reported robot poses to over 1e+05 px (far off the image) RMS" in text, text
+    assert "over 1000 mm / 180 deg per axis" in text and "e+" not in text.replace("1e+05", ""), text
 
 
 @pytest.mark.slow
@@ -736,6 +742,26 @@ def test_a_pose_file_with_a_byte_order_mark_and_crlf_reads_as_without(tmp_path):
     np.testing.assert_array_equal(marked.T_base_ee, plain.T_base_ee)
 
 
+def test_images_no_pose_row_names_are_noted_not_used(tmp_path):
+    _write_capture(tmp_path / "c")
+    assert load_hand_eye_capture(tmp_path / "c").notes == ()
+    assert repeated_poses(np.stack([np.eye(4), 2 * np.eye(4), np.eye(4), np.eye(4)])) == {2: 0, 3: 0}
+    cam = tmp_path / "c" / "images" / "cam0"
+    for name in ("f9.png", "g1.jpg", "readme.txt"):  # two images of frames poses.csv lacks, one other file
+        (cam / name).write_bytes((cam / "f0.png").read_bytes())
+    cap = load_hand_eye_capture(tmp_path / "c")
+    assert cap.frames == ("f0", "f1", "f2", "f3") and [p.name for p in cap.images[0]] == [
+        "f0.png",
+        "f1.png",
+        "f2.png",
+        "f3.png",
+    ]
+    assert cap.notes == (
+        f"{cam}: 2 image(s) not used, no row of poses.csv names their frame: f9.png, g1.jpg "
+        "(a pose row missing, or files that do not belong to this capture?)",
+    )
+
+
 def test_millimetres_written_as_metres_are_caught(tmp_path):
     _write_capture(tmp_path / "c", unit="mm")
     meta = json.loads((tmp_path / "c" / "handeye.json").read_text())
@@ -913,6 +939,16 @@ def corrupted_capture(tmp_path_factory):
     root = tmp_path_factory.mktemp("corrupted")
     clean = _render(root / "clean", "chessboard", True, seed=11)
     bad = _render(root / "bad", "chessboard", True, seed=11, robot_error_fraction=0.1)
+    first = sorted((bad / "images" / "cam0").iterdir())[0]
+    shutil.copyfile(first, first.with_name("stray" + first.suffix))  # an image no pose row names
+    # One corrupted frame's pose is its predecessor's, as a logger that wrote the previous pose again.
+    frame = json.loads((bad / "truth.json").read_text())["corrupted_frames"][0]
+
+    def copy_previous(rows):
+        i = [r[0] for r in rows].index(frame)
+        rows[i][1:] = rows[i - 1][1:]
+
+    _edit(bad / "poses.csv", copy_previous)
     return clean, bad
 
 
@@ -930,6 +966,19 @@ def test_corrupted_robot_poses_are_flagged(corrupted_capture, robot_noise):
     assert [r_bad.capture.frames[f] for f in r_bad.rejected] == truth["corrupted_frames"]
     assert all("robot pose does not fit" in why for why in r_bad.rejected.values())
     assert r_bad.verdict.ok and any("rejected as outliers" in n for n in r_bad.verdict.notes)
+    frames = r_bad.capture.frames
+    copied = frames.index(truth["corrupted_frames"][0])
+    assert r_bad.rejected[copied].endswith(
+        f"it repeats frame {frames[copied - 1]}'s pose exactly (a pose logged twice?)"
+    ), r_bad.rejected
+    assert r_bad.verdict.notes[0].endswith(
+        f"poses.csv: 1 frame(s) repeat an earlier frame's pose exactly: {frames[copied]} = {frames[copied - 1]} "
+        "(a robot that came back to a commanded pose, or a logger that wrote the previous pose again: the views "
+        "will tell)"
+    ) and r_bad.verdict.notes[1].endswith(
+        "cam0: 1 image(s) not used, no row of poses.csv names their frame: stray.png (a pose row missing, or "
+        "files that do not belong to this capture?)"
+    ), r_bad.verdict.notes
     trans, rot = _err(r_bad.T_robot_cam[0], r_clean.T_robot_cam[0])
     std = np.asarray(r_bad.result.std_robot_cam[0])
     assert trans < np.linalg.norm(std[:3]) and rot < np.linalg.norm(std[3:])

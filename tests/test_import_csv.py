@@ -7,6 +7,7 @@ laser-tracker datasets (data/ur5_tracker) loading with their sample counts.
 """
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -267,8 +268,13 @@ MALFORMED = [
     ("unknown column in a sum", None, dict(xyz=["X+dX", "Y+dQ", "Z+dZ"]), ["line 1", "no column 'dQ'"]),
     ("NaN cell", _nan, {}, ["line 6 column 'j3'", "NaN"]),
     ("non-numeric cell", _text, {}, ["line 4 column 'j5'", "not a number"]),
-    ("out-of-reach point", _far, {}, ["line 9 column 'X+dX'", "beyond the robot's reach"]),
-    ("point off its nominal", _off, {}, ["line 11 column 'Z+dZ'", "from where the nominal robot puts it"]),
+    ("out-of-reach point", _far, {}, ["line 9 (columns", "beyond the robot's reach", "X+dX +"]),
+    (
+        "point off its nominal",
+        _off,
+        {},
+        ["line 11 (columns", "from where the nominal robot puts it", "Z+dZ +0.", "check that row's cells"],
+    ),
     (
         "time going back",
         _back_in_time,
@@ -307,6 +313,32 @@ def test_radians_declared_as_degrees_are_refused(tmp_path, table):
     csv = _write(tmp_path / "poses.csv", header, rows)
     with pytest.raises(CsvImportError, match=r"'X\+dX'.*lines 2-41.*no length unit fits.*--joint-unit"):
         _import(csv, tmp_path / "ds")
+
+
+def test_one_row_in_radians_is_named_as_such(tmp_path, table):
+    """A row typed in radians in a table of degrees stays within every joint limit; the points
+    tell, and the message says which unit fits that row rather than blaming a coordinate."""
+    header, rows = table
+    rows = rows.copy()
+    rows[5, 1:7] = np.radians(rows[5, 1:7])
+    csv = _write(tmp_path / "poses.csv", header, rows)
+    with pytest.raises(CsvImportError) as e:
+        _import(csv, tmp_path / "ds")
+    assert "line 7 (columns" in str(e.value) and "most likely in radians, the others' in degrees" in str(
+        e.value
+    )
+    d = float(re.search(r"read as radians, its joints put the point ([\d.]+) mm", str(e.value)).group(1))
+    assert d < 5.0  # the row's ~1 mm deviation, not the hundreds of mm read as degrees
+    try:  # the offset unknown: refused, or imported with a warning, as far as the row lies
+        text = " ".join(_import(csv, tmp_path / "ds", point_m=None).warnings)
+    except CsvImportError as e:
+        text = str(e)
+    assert "line 7 (" in text and "most likely in radians" in text, text
+    rows[5, 1:7] = np.degrees(rows[5, 1:7]) + 20.0  # a row wrong in no unit is not called one
+    csv = _write(tmp_path / "poses2.csv", header, rows)
+    with pytest.raises(CsvImportError) as e:
+        _import(csv, tmp_path / "ds2")
+    assert "line 7 (columns" in str(e.value) and "most likely" not in str(e.value), str(e.value)
 
 
 def test_arguments_are_checked(tmp_path, table):

@@ -95,6 +95,7 @@ from .data import make_hand_eye_poses as make_hand_eye_poses
 from .data import pad_hand_eye as pad_hand_eye
 from .data import validate_hand_eye as validate_hand_eye
 from .heldout import HeldOut as HeldOut
+from .heldout import px_text as px_text
 from .heldout import reprojection_squares as reprojection_squares
 from .heldout import robot_pixel_scale as robot_pixel_scale
 from .model import HandEyeParams as HandEyeParams

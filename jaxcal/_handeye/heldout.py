@@ -26,6 +26,15 @@ from .noise import ROBOT_SIGMA_START
 #: far above float64's round-off on metre-scale poses.
 _STEP = 1e-7
 
+#: A reprojection error beyond this (px) means only that the views land far off the image (a
+#: point projected from near or behind the camera): no figure is given, only the bound.
+ABSURD_PX = 1e5
+
+
+def px_text(value: float) -> str:
+    """`X px` for a reprojection error; beyond `ABSURD_PX`, the bound in words instead of a figure."""
+    return f"{value:.3g} px" if value < ABSURD_PX else f"over {ABSURD_PX:.0e} px (far off the image)"
+
 
 def _project(A: np.ndarray, data: HandEyePixels) -> np.ndarray:
     """Pixels `(cameras, frames, points, 2)` of the board points seen at board poses `A`
@@ -118,12 +127,14 @@ class HeldOut:
     def noise_text(self) -> str:
         """`about X mm / Y deg per axis`, the robot pose noise of `level`."""
         mm, deg = self.noise
+        if mm > 1e3 or deg > 180.0:
+            return "over 1000 mm / 180 deg per axis"
         return f"about {mm:.2g} mm / {deg:.2g} deg per axis"
 
     def figures(self) -> str:
         """The held-out and in-sample reprojection RMS and the detector's noise, in words."""
         return (
             f"frames left out ({self.folds} folds of consecutive frames) are predicted from their reported "
-            f"robot poses to {self.rms_px:.3g} px RMS (in-sample {self.in_sample_px:.3g} px, detector "
+            f"robot poses to {px_text(self.rms_px)} RMS (in-sample {px_text(self.in_sample_px)}, detector "
             f"{self.sigma_px:.3g} px)"
         )

@@ -35,6 +35,7 @@ from .._handeye import (
     HeldOut,
     KFoldSpread,
     describe_robot_noise,
+    px_text,
     robot_noise,
     robot_pixel_scale,
 )
@@ -133,9 +134,9 @@ class NoiseModelFit:
 
     def describe(self) -> str:
         """`model: held-out X px (in-sample Y px), noise` for messages."""
-        held = "" if self.held_out is None else f"held out {self.held_out.rms_px:.3g} px, "
+        held = "" if self.held_out is None else f"held out {px_text(self.held_out.rms_px)}, "
         return (
-            f"{self.model}: {held}in-sample {float(self.result.pixel_rms):.3g} px, "
+            f"{self.model}: {held}in-sample {px_text(float(self.result.pixel_rms))}, "
             f"{describe_robot_noise(self.result)}"
         )
 
@@ -182,7 +183,7 @@ def choose(fits: tuple[NoiseModelFit, ...], setting: RobotNoiseSetting, folds: i
     if any(f.held_out is None for f in fits):
         why = "no folds (folds=0)" if folds < 2 else f"fewer than {MIN_FRAMES} frames kept"
         return 0, f"the default, with nothing to compare the models on ({why})"
-    best, words = 0, [f"{fits[0].model} {fits[0].held_out.rms_px:.3g} px"]
+    best, words = 0, [f"{fits[0].model} {px_text(fits[0].held_out.rms_px)}"]
     for k in range(1, len(fits)):
         a, b = fits[best], fits[k]
         z = paired_z(a.kfold.frame_squares(), b.kfold.frame_squares())
@@ -197,7 +198,7 @@ def choose(fits: tuple[NoiseModelFit, ...], setting: RobotNoiseSetting, folds: i
                 f"needed, with a gain over {100 * CV_GAIN:g} %)"
             )
         words.append(
-            f"{b.model} {b.held_out.rms_px:.3g} px, " + ("kept" if kept else "not kept") + f": {why}"
+            f"{b.model} {px_text(b.held_out.rms_px)}, " + ("kept" if kept else "not kept") + f": {why}"
         )
         best = k if kept else best
     return best, f"chosen by held-out reprojection ({'; '.join(words)})"

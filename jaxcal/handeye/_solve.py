@@ -19,8 +19,10 @@ from .._handeye import (
     describe_robot_noise,
     initialise_hand_eye,
     kfold_spread,
+    px_text,
 )
 from .._handeye.solve import HAND_EYE_OPTIONS
+from ..io.handeye import repeated_poses
 from ._noise import MIN_FRAMES, NoiseChoice, solve_models
 from ._observe import Observed
 
@@ -88,7 +90,7 @@ def rejection_reasons(result, observations, threshold: float) -> dict[int, str]:
         cams = np.flatnonzero(rejected[:, f])
         worst = float(np.nanmax(rms[cams, f]))
         out[int(f)] = (
-            f"reprojection RMS {worst:.3g} px against a median of {median:.3g} px over the kept views "
+            f"reprojection RMS {px_text(worst)} against a median of {median:.3g} px over the kept views "
             f"(rejected above {threshold:g}x the median, and above {threshold * MIN_OUTLIER_PX:g} px); "
             "its robot pose does not fit the others"
         )
@@ -151,4 +153,10 @@ def solve(observed: Observed, *, folds: int, max_steps: int, log: Callable[[str]
     fit = choice.fit
     log(describe_robot_noise(fit.result))  # the model kept and why: the verdict's note
     rejected = rejection_reasons(fit.result, obs, OUTLIER_THRESHOLD)
+    capture = observed.capture
+    for f, earlier in repeated_poses(capture.T_base_ee).items():
+        if f in rejected:
+            rejected[f] += (
+                f"; it repeats frame {capture.frames[earlier]}'s pose exactly (a pose logged twice?)"
+            )
     return Solved(fit.result, fit.kfold, rejected, solver, seconds, choice)

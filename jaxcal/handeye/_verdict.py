@@ -250,7 +250,7 @@ def judge(
         max_steps=max_steps,
         held_out=solved.noise.fit.held_out,
     )
-    verdict = replace(verdict, notes=verdict.notes + (noise_model_note(solved.noise),))
+    verdict = replace(verdict, notes=capture.notes + verdict.notes + (noise_model_note(solved.noise),))
     t0 = time.perf_counter()
     verdict = input_hints(verdict, observed, solved, log)
     return verdict, {"hints": time.perf_counter() - t0}

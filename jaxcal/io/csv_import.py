@@ -55,6 +55,7 @@ import math
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -68,6 +69,7 @@ from .._npgeom import (
 )
 from ..errors import CsvImportError, DatasetError
 from . import _encoders as enc
+from ._csv_points import FAR_FACTOR, FAR_MIN_M, far_rows, reread_hint, rigid_alignment
 from ._csv_poses import ANGLE_UNITS as ANGLE_UNITS
 from ._csv_poses import LENGTH_UNITS as LENGTH_UNITS
 from ._csv_poses import ORIENTATION_FORMATS as ORIENTATION_FORMATS
@@ -96,9 +98,6 @@ MIN_SPREAD_M = 0.01
 ALIGN_TOL_M = 0.05
 #: ... plus this when the point's mount on the link is not given (the link's origin stands in).
 UNKNOWN_POINT_M = 0.5
-#: A row further from the nominal robot (after the rigid alignment) than this many times the median
-#: row, and than `FAR_MIN_M`, is warned of: one wrong joint cell puts a point tens of mm off.
-FAR_FACTOR, FAR_MIN_M = 5.0, 0.01
 #: Points closer to the nominal robot than this many times their stated noise are noted: a real
 #: arm's points are millimetres off its datasheet, a table's commanded points are not.
 NOMINAL_LIKE = 2.0
@@ -300,30 +299,17 @@ def _read_table(
 # --------------------------------------------------------------------------- plausibility
 
 
-def _rigid_alignment(P: np.ndarray, Q: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The nominal points `Q` moved rigidly onto the measured `P` (Kabsch, least squares), and per row
-    the distance between them; fitted again twice on the rows within max(tol, 3 x median) so that a
-    few wild rows cannot skew it. **Returns:** `(Q moved (N, 3), distances (N,), rotation R)`, the
-    move being `(Q - mean) @ R.T + mean'`."""
-    keep = np.ones(len(P), bool)
-    for _ in range(3):
-        mp, mq = P[keep].mean(0), Q[keep].mean(0)
-        U, _, Vt = np.linalg.svd((Q[keep] - mq).T @ (P[keep] - mp))
-        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
-        moved = (Q - mq) @ R.T + mp
-        r = np.linalg.norm(P - moved, axis=1)
-        keep = r <= max(tol, 3.0 * np.median(r))
-    return moved, r, R
-
-
-def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str, robot: tuple) -> np.ndarray:
+def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str, robot: tuple):
     """The points against the nominal robot's: spread (units), coordinates, reach, rigid alignment.
 
-    `robot`: `(origin of joint 1 in the base frame (3,), reach bound (m), alignment tolerance (m))`.
-    **Returns:** each point's distance from the aligned nominal one (m).
+    `robot`: `(origin of joint 1 in the base frame (3,), reach bound (m), alignment tolerance (m),
+    reread)`; `reread(k)`: row `k`'s nominal point with its angles read in the other unit, that
+    unit's name and the stated one's (None: no revolute joint; `reread` None: not tried).
+    **Returns:** `(r, hint)`: each point's distance from the aligned nominal one (m), and `hint(k)`,
+    why row `k` lies far from it where a unit explains it (`reread_hint`, else "").
     """
     P, lines, cols = table.P, table.lines, f"columns {list(xyz)} (--xyz, --length-unit {unit})"
-    origin, reach, tol = robot
+    origin, reach, tol, reread = robot
     s_m = np.sqrt(((P - P.mean(0)) ** 2).sum(1).mean())
     s_n = np.sqrt(((nominal - nominal.mean(0)) ** 2).sum(1).mean())
     if s_n > MIN_SPREAD_M and not 1 / SPREAD_FACTOR <= s_m / s_n <= SPREAD_FACTOR:
@@ -346,61 +332,48 @@ def _check_points(path: Path, table: _Table, nominal: np.ndarray, xyz, unit: str
             f"{path} line {lines[bad[0]]} {cols}: a coordinate of {P[bad[0]].tolist()} m lies beyond "
             f"{MAX_COORDINATE_M:g} m of the device"
         )
-    moved, r, R = _rigid_alignment(P, nominal, tol)
+    moved, r, R = rigid_alignment(P, nominal, tol)
     base = nominal + (P - moved) @ R  # the measured points in the base frame (the alignment undone)
     d = np.linalg.norm(base - origin, axis=1)
     limit = 1.1 * reach + 0.1
+    far = max(FAR_MIN_M, FAR_FACTOR * float(np.median(r)))
+    hint = partial(reread_hint, P=P, aligned=(nominal, moved, R), reread=reread, limit=far)
     for bad, why in (
         (np.flatnonzero(d > limit), "beyond the robot's reach"),
         (np.flatnonzero(r > tol), "too far from where the nominal robot puts it"),
     ):
         if bad.size:
             k = bad[np.argmax(r[bad])]
-            c = int(np.argmax(np.abs(P[k] - moved[k])))
+            off = ", ".join(f"{a} {v:+.4g}" for a, v in zip(xyz, P[k] - moved[k]))
             raise CsvImportError(
-                f"{path} line {lines[k]} column {xyz[c]!r} ({cols}): the point lies {why}: {r[k]:.4g} m from its "
-                f"nominal after the best rigid alignment of all points (tolerance {tol:.3g} m), {d[k]:.4g} m "
-                f"from joint 1's origin (reach {reach:.3g} m, limit 1.1 x reach + 0.1 m = {limit:.3g} m); "
-                f"{bad.size} of {len(P)} rows; check that row's cells (column {xyz[c]!r} is off by "
-                f"{P[k, c] - moved[k, c]:+.4g} m), the joint columns' order and the point's offset"
+                f"{path} line {lines[k]} ({cols}): the point lies {why}: {r[k]:.4g} m from its nominal after the "
+                f"best rigid alignment of all points (tolerance {tol:.3g} m; off by {off} m), {d[k]:.4g} m from "
+                f"joint 1's origin (reach {reach:.3g} m, limit 1.1 x reach + 0.1 m = {limit:.3g} m); "
+                f"{bad.size} of {len(P)} rows"
+                + (
+                    hint(k)
+                    or "; check that row's cells (its joints and point), the joint columns' order and the "
+                    "point's offset"
+                )
             )
-    return r
+    return r, hint
 
 
-def _far_rows(path: Path, table: _Table, r: np.ndarray) -> list[str]:
-    """A warning for the rows much further from the nominal robot than the others (after the rigid
-    alignment): `FAR_FACTOR` x the median row and at least `FAR_MIN_M`, the worst five named."""
-    limit = max(FAR_MIN_M, FAR_FACTOR * float(np.median(r)))
-    far = np.flatnonzero(r > limit)
-    if not far.size:
-        return []
-    worst = far[np.argsort(-r[far])][:5]
-    rows = ", ".join(f"line {table.lines[k]} ({1e3 * r[k]:.1f} mm)" for k in worst)
-    more = f" and {far.size - len(worst)} more" if far.size > len(worst) else ""
-    return [
-        f"{path}: {far.size} row(s) lie far from where the nominal robot puts them after the best rigid "
-        f"alignment: {rows}{more}, against {1e3 * np.median(r):.2g} mm for the median row. A real arm is "
-        "0.5-5 mm off its datasheet, so such a row most likely holds a wrong cell (a joint mistyped or "
-        "from another pose, a swapped column): check it, and remove or correct it before calibrating"
-    ]
-
-
-def _check_pose(path: Path, table: _Table, frames: np.ndarray, point, mount, args) -> float:
+def _check_pose(path: Path, table: _Table, frames: np.ndarray, point, mount, args) -> tuple:
     """The points (`_check_points`) and, with them, the orientations (`_check_orientations`) of
     `table` against the nominal link frames `frames` `(N, 4, 4)`; `point`: the mount's offset
     (None: unknown), `mount`: its rotation (None: unknown). `args`: `(xyz, length_unit,
-    (origin, reach, tol), orientation spec)`. **Returns:** each point's distance from its nominal
-    one after the rigid alignment (m)."""
+    (origin, reach, tol, reread), orientation spec)`. **Returns:** `_check_points`' `(r, hint)`."""
     xyz, unit, robot, spec = args
     nominal = frames[:, :3, 3] + frames[:, :3, :3] @ (point if point is not None else np.zeros(3))
-    r = _check_points(path, table, nominal, xyz, unit, robot)
+    r, hint = _check_points(path, table, nominal, xyz, unit, robot)
     if table.R is not None:
-        A0 = _rigid_alignment(table.P, nominal, robot[2])[2]
+        A0 = rigid_alignment(table.P, nominal, robot[2])[2]
         check_orientations(path, table.R, table.lines, frames[:, :3, :3], A0, mount, spec)
-    return r
+    return r, hint
 
 
-def _check_readings(path: Path, table: _Table, frames: np.ndarray, point, mount, args) -> np.ndarray:
+def _check_readings(path: Path, table: _Table, frames: np.ndarray, point, mount, args) -> tuple:
     """`_check_pose`; where it refuses a table with orientations, the error also names another
     reading of the columns (format, direction) under which the rows would pass."""
     try:
@@ -451,6 +424,21 @@ def _link_frames(model: KinematicModel, q: np.ndarray, link: int) -> np.ndarray:
         padded = np.concatenate([part, np.repeat(part[-1:], ROWS_AT_ONCE - n, axis=0)])
         out[s : s + n] = np.asarray(batch(model, jnp.asarray(padded)))[:n]
     return out
+
+
+def _reread_row(k: int, *, model: KinematicModel, q: np.ndarray, link: str, point, unit: str):
+    """Row `k`'s nominal point (the base frame, m) with its revolute joints' numbers read in the
+    angle unit other than `unit`, that unit's name and `unit`'s; None for a robot without revolute
+    joints (`_check_points`' `reread`)."""
+    revolute = np.array([kind != "prismatic" for kind in model.joint_types])
+    if not revolute.any():
+        return None
+    other = "deg" if unit == "rad" else "rad"
+    qk = q[k].copy()
+    qk[revolute] *= ANGLE_UNITS[other] / ANGLE_UNITS[unit]
+    T = _link_frames(model, qk[None], list(model.link_names).index(link))[0]
+    names = {"deg": "degrees", "rad": "radians"}
+    return T[:3, 3] + T[:3, :3] @ (point if point is not None else np.zeros(3)), names[other], names[unit]
 
 
 def _sha256(path: Path) -> str:
@@ -570,9 +558,10 @@ def import_csv(
     reach = reach_m(model, limits, point)
     tol = ALIGN_TOL_M + 0.05 * reach + (UNKNOWN_POINT_M if point is None else 0.0)
     origin = np.asarray(model.T_parent_joint)[0, :3, 3]
-    args = (xyz, length_unit, (origin, reach, tol), (orientation, orientation_format, pose_direction))
-    r = _check_readings(csv, table, T_link, point, mount, args)
-    rms, warnings = float(np.sqrt(np.mean(r**2))), _far_rows(csv, table, r)
+    reread = partial(_reread_row, model=model, q=table.q, link=link, point=point, unit=joint_unit)
+    args = (xyz, length_unit, (origin, reach, tol, reread), (orientation, orientation_format, pose_direction))
+    r, hint = _check_readings(csv, table, T_link, point, mount, args)
+    rms, warnings = float(np.sqrt(np.mean(r**2))), far_rows(csv, table.lines, r, hint)
     del T_link  # a large table's read-back (`load_dataset`) needs the memory
     meta = _metadata(
         csv,

@@ -94,6 +94,7 @@ class HandEyeCapture:
     - `base_frame`, `ee_frame`, `target_frame`: frame names for the ROS outputs.
     - `truth`: the parsed `truth.json` of a synthetic capture, else `None`.
     - `pose_format`: the pose table's `poses.format` (`POSE_COLUMNS`).
+    - `notes`: remarks from reading it (poses repeated exactly, images no pose row names).
     """
 
     root: Path
@@ -109,6 +110,7 @@ class HandEyeCapture:
     description: str = ""
     truth: dict | None = field(default=None)
     pose_format: str = "matrix"
+    notes: tuple[str, ...] = ()
 
     @property
     def arrangement(self) -> str:
@@ -314,8 +316,33 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
     return tuple(frames), T
 
 
-def _images(root: Path, cameras, frames) -> tuple[tuple[Path, ...], ...]:
-    out = []
+def repeated_poses(T: np.ndarray) -> dict[int, int]:
+    """`{frame: earlier frame}` for each frame whose pose equals an earlier frame's exactly: a robot
+    that came back to a commanded pose, or a logger that wrote the previous pose again."""
+    first, out = {}, {}
+    for i, row in enumerate(np.ascontiguousarray(T).reshape(len(T), -1)):
+        if (key := row.tobytes()) in first:
+            out[i] = first[key]
+        else:
+            first[key] = i
+    return out
+
+
+def _repeat_note(path: Path, frames, T: np.ndarray) -> tuple[str, ...]:
+    if not (same := repeated_poses(T)):
+        return ()
+    pairs = ", ".join(f"{frames[i]} = {frames[j]}" for i, j in list(same.items())[:5])
+    more = f" and {len(same) - 5} more" if len(same) > 5 else ""
+    return (
+        f"{path}: {len(same)} frame(s) repeat an earlier frame's pose exactly: {pairs}{more} (a robot that came "
+        "back to a commanded pose, or a logger that wrote the previous pose again: the views will tell)",
+    )
+
+
+def _images(root: Path, cameras, frames) -> tuple[tuple[tuple[Path, ...], ...], tuple[str, ...]]:
+    """Per camera, per frame of `poses.csv`, its image; and a note per camera whose folder holds
+    images of frames `poses.csv` does not name (not used: a pose row lost, or a stray file)."""
+    out, notes, named = [], [], set(frames)
     for cam in cameras:
         folder = root / "images" / cam.name
         if not folder.is_dir():
@@ -338,7 +365,13 @@ def _images(root: Path, cameras, frames) -> tuple[tuple[Path, ...], ...]:
             )
         out.append(tuple(found[f] for f in frames))
         _sizes(cam, out[-1])
-    return tuple(out)
+        if extra := sorted(found[k].name for k in found if k not in named):
+            shown_extra = ", ".join(extra[:5]) + (f" and {len(extra) - 5} more" if len(extra) > 5 else "")
+            notes.append(
+                f"{folder}: {len(extra)} image(s) not used, no row of poses.csv names their frame: {shown_extra} "
+                "(a pose row missing, or files that do not belong to this capture?)"
+            )
+    return tuple(out), tuple(notes)
 
 
 def _sizes(cam, paths) -> None:
@@ -409,7 +442,8 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
     pw = f"{where}: poses"
     file = sc.relative_path(str(_require(poses, "file", pw)), sc.Loc(meta_path, "field 'poses.file'"))
     frames, T = _read_poses(root / file, poses, pw)
-    images = _images(root, cameras, frames)
+    images, notes = _images(root, cameras, frames)
+    notes = _repeat_note(root / file, frames, T) + notes
     names = meta.get("frames", {})
     if not isinstance(names, dict):
         raise DatasetError(f"{where}: field 'frames' must be an object, got {names!r}")
@@ -433,6 +467,7 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
         description=str(meta.get("description", "")),
         truth=truth,
         pose_format=str(poses["format"]),
+        notes=notes,
     )
 
 
