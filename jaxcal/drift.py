@@ -61,6 +61,7 @@ from .errors import DatasetError
 from .handeye_check import HandEyeCheckFit, fit_hand_eye_check
 from .io.checks import calibration_reference, drift_check_json, read_calibration, read_hand_eye_reference
 from .io.dataset import Dataset, load_dataset
+from .io.handeye import HandEyeCapture
 from .io.result import ESTIMATE_FILE, read_estimate
 from .records_check import EXIT_DRIFT as EXIT_DRIFT
 from .records_check import (
@@ -656,8 +657,8 @@ def hand_eye_verdict(f: HandEyeCheckFit, names=("", "")) -> DriftCheck:
 def check_hand_eye(ref: HandEyeReference, capture, *, workers=None) -> DriftCheck:
     """The drift check of a `jaxcal handeye` result (`jaxcal.io.checks.read_hand_eye_reference`)
     against a later capture of the same kind (`jaxcal.handeye_check`): the camera's pose the only unknown."""
-    f = fit_hand_eye_check(ref, capture, workers=workers)
-    return hand_eye_verdict(f, (str(ref.file), str(getattr(capture, "root", capture))))
+    root = capture.root if isinstance(capture, HandEyeCapture) else capture  # a Path's `.root` is "/"
+    return hand_eye_verdict(fit_hand_eye_check(ref, capture, workers=workers), (str(ref.file), str(root)))
 
 
 def check(result, capture, *, joint_offsets: bool = False, workers=None) -> DriftCheck:

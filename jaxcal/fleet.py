@@ -36,9 +36,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import hashlib
 import json
-import os
 import shutil
 import socket
 import time
@@ -49,26 +47,27 @@ from pathlib import Path
 import numpy as np
 
 from ._processes import ONE, Processes
-from ._records_base import Record, from_plain, plain
+from ._records_base import Record, plain
 from .errors import DatasetError, OutputError
+from .fleet_prior import FLEET_SCHEMA_VERSION as FLEET_SCHEMA_VERSION
+from .fleet_prior import MIN_UNITS as MIN_UNITS
+from .fleet_prior import RESOLUTION as RESOLUTION
+from .fleet_prior import FleetPrior as FleetPrior
+from .fleet_prior import as_prior as as_prior
+from .fleet_prior import data_digest as data_digest
+from .fleet_prior import fleet_prior as fleet_prior
+from .fleet_prior import gaussian_rows as gaussian_rows
+from .fleet_prior import model_digest as model_digest
+from .fleet_prior import prior_parameter as prior_parameter
+from .fleet_prior import prior_rows as prior_rows
+from .fleet_prior import read_prior as read_prior
 from .io._files import atomic_directory, write_text_atomic
-from .io._schema import read_json
 
-#: `fleet.json`'s schema version.
-FLEET_SCHEMA_VERSION = 1
 #: The chance that a fleet of normal units, none out of the ordinary, has a unit named anyway
 #: (per family: the parameters together, the residuals apart).
 FALSE_ALARM = 0.01
-#: The fewest calibrated units that say what is usual.
-MIN_UNITS = 5
 #: Normal consistency of the median absolute deviation.
 MAD_SIGMA = 1.4826
-#: The smallest difference between robots that counts (m, rad, or relative for unitless
-#: parameters: 10 um, 10 urad), far below the spread of a model's robots (tenths of a
-#: millimetre, tenths of a degree) and below what a calibration is used for: parameters a capture
-#: barely moves (an offset along parallel axes, which the gauge fixes) scatter by nanometres to
-#: micrometres across units, heavy-tailed, a difference no robot has.
-RESOLUTION = 1e-5
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,6 +84,8 @@ class FleetUnit(Record):
     residual: float | None
     residual_unit: str
     seconds: float
+    #: The calibration's verdict notes (samples the robust fit rejected, parameters held, ...).
+    notes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,199 +143,28 @@ class FleetSummary(Record):
         return 0 if all(u.status == "ok" for u in self.units) and not self.outliers else 3
 
 
-@dataclass(frozen=True, eq=False)
-class FleetPrior(Record):
-    """A robot model's parameters across a fleet, as a Gaussian prior for the next unit: `names`
-    (the point fit's, `jaxcal._pointfit.PointLayout.names`), their `mean` and the population's
-    `covariance` (the units' own removed), from `units` units of the robot whose joints are `joints`
-    and whose nominal model's digest is `nominal` (`model_digest`); `file`: where it was read."""
-
-    units: int
-    joints: tuple[str, ...]
-    nominal: str
-    names: tuple[str, ...]
-    mean: np.ndarray
-    covariance: np.ndarray
-    #: The units' fixed frame was estimated (not `--device-is-base`): the parameters' gauge.
-    frame_free: bool = True
-    file: str = ""
-
-
-#: The nominal model's fields a prior depends on: the robot's, not the tool the dataset mounts.
-DIGESTED = ("T_parent_joint", "axis", "zero_offset", "reduction_ratio", "T_last_flange")
-
-
-def model_digest(model) -> str:
-    """A short digest of a nominal `KinematicModel`'s joints and geometry (to 1e-12): a prior is for
-    the model it was learnt on."""
-    h = hashlib.sha256(json.dumps([model.joint_names, model.joint_types]).encode())
-    for name in DIGESTED:
-        h.update(np.round(np.asarray(getattr(model, name), np.float64), 12).tobytes())
-    return h.hexdigest()[:16]
-
-
-def prior_parameter(name: str, fixed_frame: str) -> bool:
-    """Whether a point-fit parameter is the robot's own (a prior carries it), not the frame the unit
-    is measured in or its point's mount, which differ per unit."""
-    return not name.startswith((f"{fixed_frame}.", "marker.mount.", "camera.mount."))
-
-
-def fleet_prior(
-    fits: dict, joints: Sequence[str], nominal: str, fixed_frame: str, frame_free: bool = True
-) -> FleetPrior | None:
-    """The fleet's prior from its usable units' point fits (`fits[unit] = (names, x, cov, free)`):
-    over the robot's parameters every unit estimated, the mean and the population's covariance:
-    each parameter's variance $S_{ii} - \\overline{C_{ii}}$ (the sample's less the units' own), no
-    smaller than $\\overline{C_{ii}}$ or `RESOLUTION`$^2$, and the sample's correlations shrunk
-    towards none by parameters over units. None with fewer than `MIN_UNITS` units (or no such
-    parameter)."""
-    if len(fits) < MIN_UNITS:
-        return None
-    first = next(iter(fits.values()))[0]
-    common = [
-        n
-        for n in first
-        if prior_parameter(n, fixed_frame)
-        and all(n in names and free[names.index(n)] for names, _, _, free in fits.values())
-    ]
-    if not common:
-        return None
-    X, C = [], []
-    for names, x, cov, _ in fits.values():
-        idx = [names.index(n) for n in common]
-        X.append(np.asarray(x)[idx])
-        C.append(np.asarray(cov)[np.ix_(idx, idx)])
-    X, k, n = np.asarray(X), len(common), len(fits)
-    S = np.cov(X, rowvar=False, ddof=1).reshape(k, k)
-    meas = np.mean([np.diag(c) for c in C], axis=0)
-    # Each parameter's population variance, no smaller than the units' own measurement variance
-    # (a fleet cannot say its robots are closer than it measured them), nor RESOLUTION^2.
-    var = np.maximum(np.diag(S) - meas, np.maximum(meas, RESOLUTION**2))
-    # Their correlations, shrunk towards none by parameters / units: fewer units than parameters
-    # leave most directions unseen, and a prior must not claim them known.
-    d = np.sqrt(np.diag(S))
-    R = S / np.outer(d, d) if np.all(d > 0) else np.eye(k)
-    shrink = min(1.0, k / n)
-    R = (1.0 - shrink) * R + shrink * np.eye(k)
-    pop = R * np.sqrt(np.outer(var, var))
-    return FleetPrior(
-        units=len(fits),
-        joints=tuple(joints),
-        nominal=nominal,
-        names=tuple(common),
-        mean=X.mean(axis=0),
-        covariance=pop,
-        frame_free=frame_free,
-    )
-
-
-def read_prior(path) -> FleetPrior:
-    """The `FleetPrior` of a `fleet.json` (or the folder `jaxcal calibrate` wrote it in); raises
-    `DatasetError` naming the file and the field when it has none or is not one jaxcal wrote."""
-    p = Path(path)
-    file = p / "fleet.json" if p.is_dir() else p
-    doc = read_json(file, "fleet summary (--prior takes the fleet.json a fleet's calibration wrote)")
-    if not isinstance(doc, dict) or doc.get("schema") != "jaxcal.fleet":
-        raise DatasetError(f"{file}: not a fleet.json jaxcal wrote (schema is not 'jaxcal.fleet')")
-    if not doc.get("prior"):
-        raise DatasetError(
-            f"{file}: 'prior' is empty: the fleet had fewer than {MIN_UNITS} usable units calibrated "
-            "from points (a tracker, motion capture or the controller's tool point)"
-        )
-    if doc.get("schema_version") != FLEET_SCHEMA_VERSION:
-        raise DatasetError(
-            f"{file}: schema_version {doc.get('schema_version')!r}, this jaxcal reads {FLEET_SCHEMA_VERSION}"
-        )
-    try:
-        prior = from_plain(FleetPrior, doc["prior"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise DatasetError(
-            f"{file}: field 'prior' is not one jaxcal wrote ({type(e).__name__}: {e})"
-        ) from None
-    k, C = len(prior.names), prior.covariance
-    bad = {
-        "prior.names": "names repeated" if len(set(prior.names)) < k else "",
-        "prior.units": f"{prior.units} units, a prior is learnt on {MIN_UNITS} or more"
-        if prior.units < MIN_UNITS
-        else "",
-        "prior.mean": f"shape {prior.mean.shape} for {k} names" if prior.mean.shape != (k,) else "",
-        "prior.covariance": f"shape {C.shape} for {k} names" if C.shape != (k, k) else "",
-    }
-    if not any(bad.values()):
-        finite = np.all(np.isfinite(prior.mean)) and np.all(np.isfinite(C))
-        bad["prior.mean"] = "" if finite else "values that are not finite"
-        if finite and not np.allclose(C, C.T, rtol=1e-9, atol=0.0):
-            bad["prior.covariance"] = "not symmetric"
-        elif finite and np.linalg.eigvalsh(C).min() <= 0:
-            bad["prior.covariance"] = "not positive definite"
-    for where, why in bad.items():
-        if why:
-            raise DatasetError(f"{file}: field '{where}' is not one jaxcal wrote ({why})")
-    return dataclasses.replace(prior, file=str(file))
-
-
-def as_prior(prior) -> FleetPrior | None:
-    """`jaxcal.calibrate`'s `prior`: None, a `FleetPrior`, or the `fleet.json` to read (`read_prior`)."""
-    if prior is None or isinstance(prior, FleetPrior):
-        return prior
-    if isinstance(prior, (str, os.PathLike)):
-        return read_prior(prior)
-    raise TypeError(f"prior: a fleet.json path or a jaxcal.fleet.FleetPrior, got {type(prior).__name__}")
-
-
-def prior_rows(
-    prior: FleetPrior, names: Sequence[str], joints: Sequence[str], nominal: str, frame_free: bool
-):
-    """The prior over a point fit's vector `names` (`jaxcal._pointfit.PointPrior`'s `root` and
-    `mean`, full length, zero where the prior says nothing; `frame_free`: the unit's fixed frame is
-    estimated). Raises `DatasetError` naming the file when it was learnt on another robot model, or
-    with the fixed frame held where this unit estimates it (or the reverse)."""
-    if tuple(joints) != prior.joints:
-        raise DatasetError(
-            f"{prior.file}: this prior was learnt on another robot (the fleet's joints {list(prior.joints)}, "
-            f"this dataset's {list(joints)})"
-        )
-    if nominal != prior.nominal:
-        raise DatasetError(
-            f"{prior.file}: this prior was learnt on another robot model: the same joints, but the robot file's "
-            f"joint origins, axes or zero offsets differ (digest {prior.nominal} against this dataset's {nominal})"
-        )
-    if frame_free != prior.frame_free:
-        given = "with" if not prior.frame_free else "without"
-        raise DatasetError(
-            f"{prior.file}: the fleet was calibrated {given} --device-is-base and this unit is not: its "
-            "parameters are in another gauge; calibrate the two alike"
-        )
-    missing = [n for n in prior.names if n not in names]
-    if missing:
-        raise DatasetError(f"{prior.file}: prior parameters {missing} are not in this calibration's model")
-    return gaussian_rows(prior.names, prior.mean, prior.covariance, names)
-
-
-def gaussian_rows(covered: Sequence[str], mean, covariance, names: Sequence[str]):
-    """`jaxcal._pointfit.PointPrior`'s `root` and `mean` over the vector `names` of a Gaussian of
-    `mean` and `covariance` over the parameters `covered` (each one of `names`)."""
-    idx = np.array([list(names).index(n) for n in covered])
-    w, V = np.linalg.eigh(np.asarray(covariance))
-    root = np.zeros((len(idx), len(names)))
-    root[:, idx] = (V / np.sqrt(w)).T  # root.T @ root = covariance^-1 on the prior's columns
-    full = np.zeros(len(names))
-    full[idx] = mean
-    return root, full
+def _subfolders(p: Path) -> list[Path]:
+    """`p`'s subfolders in name order, hidden ones (`.name`) left out."""
+    return sorted(d for d in p.iterdir() if d.is_dir() and not d.name.startswith("."))
 
 
 def fleet_datasets(paths: Sequence) -> list[Path]:
-    """The datasets named: each path a dataset (its `metadata.json`) or a folder of datasets
-    (its subfolders that have one, in name order). Raises `DatasetError` for a path that is
-    neither, or for two units of one name (their results would share a folder)."""
+    """The datasets named: each path a dataset (its `metadata.json`) or a folder of datasets (every
+    subfolder, in name order: one without `metadata.json` is a unit the reader refuses by name,
+    not one left out unsaid). Raises `DatasetError` for a folder none of whose subfolders is a
+    dataset, or for two units of one name (their results would share a folder)."""
     found = []
     for p in map(Path, paths):
         if (p / "metadata.json").is_file() or not p.is_dir():
             found.append(p)  # a dataset, or what the reader will refuse by name
             continue
-        inside = sorted(d for d in p.iterdir() if (d / "metadata.json").is_file())
-        if not inside:
-            raise DatasetError(f"{p}: neither a dataset (no metadata.json) nor a folder of datasets")
+        inside = _subfolders(p)
+        if not any((d / "metadata.json").is_file() for d in inside):
+            some = ", ".join(d.name for d in inside[:5]) + (" ..." if len(inside) > 5 else "")
+            raise DatasetError(
+                f"{p}: neither a dataset (no metadata.json) nor a folder of datasets (none of its "
+                f"{len(inside)} subfolders{' (' + some + ')' if some else ''} holds a metadata.json)"
+            )
         found += inside
     names = [d.name for d in found]
     twice = sorted({n for n in names if names.count(n) > 1})
@@ -346,15 +176,27 @@ def fleet_datasets(paths: Sequence) -> list[Path]:
 
 
 def is_fleet(paths: Sequence) -> bool:
-    """Several datasets, or one folder of datasets (`fleet_datasets`)."""
+    """Several datasets, or one folder of datasets (`fleet_datasets`): a folder with no
+    `metadata.json` (nor a hand-eye capture's `handeye.json`) and subfolders."""
     if len(paths) > 1:
         return True
     p = Path(paths[0])
-    return (
-        p.is_dir()
-        and not (p / "metadata.json").exists()
-        and any((d / "metadata.json").is_file() for d in p.iterdir())
-    )
+    if not p.is_dir() or (p / "metadata.json").exists() or (p / "handeye.json").exists():
+        return False
+    return bool(_subfolders(p))
+
+
+def copies(datasets: Sequence[Path]) -> dict[int, int]:
+    """`{k: j}` for each dataset `k` whose data (`data_digest`) are an earlier dataset `j`'s."""
+    first, out = {}, {}
+    for k, d in enumerate(datasets):
+        if not Path(d).is_dir():
+            continue
+        if (digest := data_digest(d)) in first:
+            out[k] = first[digest]
+        else:
+            first[digest] = k
+    return out
 
 
 @functools.cache
@@ -458,6 +300,7 @@ def _unit_of(name: str, dataset: Path, result, seconds: float) -> FleetUnit:
         residual=residual,
         residual_unit=unit,
         seconds=seconds,
+        notes=tuple(result.verdict.notes) if result.verdict is not None else (),
     )
 
 
@@ -482,14 +325,23 @@ def calibrate_fleet(
     **Returns:** the `FleetSummary`."""
     datasets = fleet_datasets(datasets)
     t0 = time.perf_counter()
+    twice = copies(datasets)
     with _shared_folder(
         out, processes, overwrite=overwrite, inputs=datasets, kind="result", what="--out", checked=checked
     ) as tmp:
         mine = []
         for k in processes.share(len(datasets)):
             processes.check()  # another process stopped: so does this one
+            if k in twice:  # one unit's data twice would narrow the fleet's spread
+                why = (
+                    f"{datasets[k]}: the same data as unit {datasets[twice[k]].name} (every file but metadata.json, "
+                    "byte for byte): one unit counted twice; remove the copy"
+                )
+                mine.append(_refused(k, datasets, why, 0.0, say))
+                continue
             mine.append(_calibrate_unit(k, datasets, calibrate, write, tmp, strict=strict, say=say))
         done = sorted((d for share in processes.gather(mine) for d in share), key=lambda d: d[0])
+        done = _one_model(done, tmp if processes.first else None, say)
         units = [d[1] for d in done]
         parameters = {d[1].name: d[2] for d in done if d[2] is not None}
         fits = {d[1].name: d[3] for d in done if d[3] is not None}
@@ -497,7 +349,8 @@ def calibrate_fleet(
         summary = summarize(units, parameters)
         named = {o.unit for o in summary.outliers}
         usable = {u: f for u, f in fits.items() if u not in named}
-        prior = None if robot is None else fleet_prior(usable, *robot)
+        data = [data_digest(datasets[d[0]]) for d in done if d[1].name in usable]
+        prior = None if robot is None else fleet_prior(usable, *robot, data=data)
         summary = dataclasses.replace(summary, prior=prior, timings_s={"total": time.perf_counter() - t0})
         if processes.first:
             write_text_atomic(tmp / "fleet.json", json.dumps(fleet_json(summary), indent=1))
@@ -507,19 +360,63 @@ def calibrate_fleet(
     return summary
 
 
+def _refused(k: int, datasets: list[Path], why: str, seconds: float, say, status: str = "refused") -> tuple:
+    """Unit `k` not calibrated, for `why` (`_calibrate_unit`'s tuple)."""
+    path = datasets[k]
+    say(f"unit {k + 1}/{len(datasets)} {path.name}: {status}: {why}")
+    return k, FleetUnit(path.name, str(path), status, why, None, "", seconds), None, None, None, None
+
+
+def _one_model(done: list, tmp: Path | None, say) -> list:
+    """`done` (`_calibrate_unit`'s tuples) with each calibrated unit of a robot model other than
+    most units' (its joints and `model_digest`; a tie goes to the first unit's) refused: its
+    parameters are another robot's, and would widen the fleet's spread. Its folder is removed
+    from `tmp` (None: not this process's to remove)."""
+    models = [d[5] for d in done if d[5] is not None]
+    if len(set(models)) < 2:
+        return done
+    fleet = max(dict.fromkeys(models), key=models.count)  # dict keeps the first unit's first
+    out = []
+    for d in done:
+        if d[5] is None or d[5] == fleet:
+            out.append(d)
+            continue
+        other = (
+            f"its joints {list(d[5][0])}"
+            if d[5][0] != fleet[0]
+            else "the same joints, but its robot file's joint origins, axes or zero offsets differ"
+        )
+        why = (
+            f"{d[1].dataset}: not this fleet's robot model: {other}, against the {models.count(fleet)} unit(s) of "
+            f"the fleet's (joints {list(fleet[0])}); calibrate it apart"
+        )
+        if tmp is not None:
+            shutil.rmtree(tmp / d[1].name, ignore_errors=True)
+        say(f"{d[1].name}: refused: {why}")
+        out.append(
+            (
+                d[0],
+                dataclasses.replace(d[1], status="refused", reason=why, residual=None, residual_unit=""),
+                None,
+                None,
+                None,
+                None,
+            )
+        )
+    return out
+
+
 def _calibrate_unit(k: int, datasets: list[Path], calibrate, write, tmp: Path, *, strict: bool, say) -> tuple:
     """Unit `k` calibrated and written into `tmp/<unit>/`: `(k, FleetUnit, parameters or None,
     the point fit's (names, x, cov, free) or None, the robot's (joints, digest, fixed frame,
-    frame free) or None)`."""
+    frame free) or None, the robot model's (joints, digest) or None)`."""
     path = datasets[k]
     name, start, where = path.name, time.perf_counter(), f"unit {k + 1}/{len(datasets)} {path.name}"
     try:
         result = calibrate(path)
     except (ValueError, OSError) as e:  # jaxcal's errors name the file, field or frame
         status = "refused" if isinstance(e, (DatasetError, OSError)) else "failed"
-        say(f"{where}: {status}: {e}")
-        unit = FleetUnit(name, str(path), status, str(e), None, "", time.perf_counter() - start)
-        return k, unit, None, None, None
+        return _refused(k, datasets, str(e), time.perf_counter() - start, say, status)
     unit = _unit_of(name, path, result, time.perf_counter() - start)
     if not np.isfinite(unit.residual):
         unit = FleetUnit(name, str(path), result.status, unit.reason, None, "", unit.seconds)
@@ -537,8 +434,10 @@ def _calibrate_unit(k: int, datasets: list[Path], calibrate, write, tmp: Path, *
     if not (strict and result.status != "ok"):
         write(result, tmp / name)
     residual = "" if unit.residual is None else f", residual {unit.residual:.4g} {unit.residual_unit} RMS"
-    say(f"{where}: {result.status}{residual} ({unit.seconds:.1f} s)")
-    return k, unit, (result.parameters if unit.residual is not None else None), fit, robot
+    notes = f"; {len(unit.notes)} verdict note(s) in its result.json" if unit.notes else ""
+    say(f"{where}: {result.status}{residual} ({unit.seconds:.1f} s){notes}")
+    model = (tuple(result.nominal.joint_names), model_digest(result.nominal))
+    return k, unit, (result.parameters if unit.residual is not None else None), fit, robot, model
 
 
 @contextlib.contextmanager
@@ -625,12 +524,13 @@ def fleet_markdown(summary: FleetSummary, plotted: bool) -> str:
         "",
         "## Units",
         "",
-        "| unit | status | residual RMS | seconds | reason |",
+        "| unit | status | residual RMS | seconds | reason, or the verdict's notes |",
         "| --- | --- | --- | ---: | --- |",
     ]
     for u in s.units:
         res = "" if u.residual is None else f"{u.residual:.4g} {u.residual_unit}"
-        lines.append(f"| {u.name} | {u.status} | {res} | {u.seconds:.1f} | {u.reason.replace('|', '/')} |")
+        why = u.reason or "; ".join(f"note: {n}" for n in u.notes)
+        lines.append(f"| {u.name} | {u.status} | {res} | {u.seconds:.1f} | {why.replace('|', '/')} |")
     lines += [
         "",
         "## Parameters across the fleet",

@@ -19,8 +19,9 @@ from ._exported import warm_start
 from ._progress import watchdog
 from .errors import CalibrationError as CalibrationError  # re-exported
 from .errors import SuspectResultError
-from .fleet import as_prior
+from .fleet_prior import as_prior, check_not_a_unit
 from .io._files import resolved
+from .io.dataset import Dataset
 from .stages import CalibrationResult as CalibrationResult  # re-exported
 from .stages import Limits
 
@@ -141,7 +142,8 @@ def calibrate(
         prior=as_prior(prior),
     )
     # The programs the last calibration of this dataset called are read while it loads and detects.
-    root = getattr(dataset, "root", dataset)
+    root = dataset.root if isinstance(dataset, Dataset) else dataset  # a Path's own `.root` is "/"
+    check_not_a_unit(options.prior, root)
     with warm_start(f"calibrate {resolved(root)}"), watchdog(log) as beat:
         return _stages(dataset, dataclasses.replace(options, log=beat.log), strict, t_start, beat.stage)
 

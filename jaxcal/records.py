@@ -409,9 +409,14 @@ class PriorUse(Record):
     #: The prior itself (its mean and covariance over `names`): `jaxcal verify --cv` fits with it.
     mean: np.ndarray
     covariance: np.ndarray
-    #: Per parameter, the fit's distance from the prior's mean in its standard deviation under the
-    #: prior ($\sqrt{\Sigma_{ii} - C_{ii}}$, $C$ the posterior's covariance).
+    #: Per parameter, the data-alone fit's distance from the prior's mean in the standard deviation
+    #: of that difference ($\sqrt{\Sigma_{ii} + D_{ii}}$, $D$ the data-alone fit's covariance); NaN
+    #: where the data alone do not estimate the parameter.
     z: tuple[float, ...] = ()
+    #: The same over the parameters the data alone estimate, together: $\chi^2$ with `dof` degrees
+    #: of freedom under a unit of the prior's fleet (`jaxcal.stages._prior.prior_use`).
+    chi2: float | None = optional()
+    dof: int | None = optional()
 
 
 @dataclass(frozen=True, eq=False)

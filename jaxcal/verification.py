@@ -71,7 +71,7 @@ from ._pointfit import (
     rotation_jacobian,
 )
 from .errors import DatasetError
-from .fleet import gaussian_rows
+from .fleet_prior import gaussian_rows
 from .io.checks import read_calibration
 from .io.dataset import Dataset, load_dataset
 from .records import ResidualStats

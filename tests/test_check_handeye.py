@@ -228,6 +228,7 @@ def test_a_moved_hand_eye_camera_is_detected_and_an_unmoved_one_is_not(rendered,
     )
     c0 = check(res, still)
     assert not c0.detected and c0.exit_code == 0 and c0.what == "camera" and c0.samples == 6
+    assert c0.capture == str(still) and c0.result.endswith("result.json")  # a Path's own `.root` is "/"
     out = tmp_path / "drift.json"
     assert main(["check", str(res), str(moved), "--json", str(out), "--workers", "1"]) == 3
     d = json.loads(out.read_text())

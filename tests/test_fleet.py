@@ -3,11 +3,15 @@ fleet's summary says: the population's spread, and the units that stand out."""
 
 import hashlib
 import json
+import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import jaxcal
+from jaxcal._distributions import chi2_ppf
 from jaxcal._records_base import plain
 from jaxcal.cli import main
 from jaxcal.errors import CalibrationError, DatasetError
@@ -15,15 +19,19 @@ from jaxcal.fleet import (
     FleetUnit,
     fleet_datasets,
     fleet_prior,
+    is_fleet,
     outlier_threshold,
     prior_rows,
     read_prior,
     summarize,
 )
+from jaxcal.io.dataset import load_dataset
 from jaxcal.records import ParameterRow
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
+from jaxcal.verification import verify
 
 # test_certify.py's tracker capture (its compiled programs serve both files).
+ROOT = Path(__file__).resolve().parents[1]
 KW = dict(robot="ur5e", noise_um=10.0, bad_fraction=0.0, home_deg=None, pose_range_deg=120.0, poses=48)
 
 
@@ -88,18 +96,21 @@ def test_a_few_units_are_not_judged():
     assert s.limit is None and not s.outliers and "4 calibrated units" in s.note
 
 
-def test_the_datasets_a_fleet_reads(tmp_path):
+def test_the_datasets_a_fleet_reads(tmp_path, capsys):
     for name in ("b", "a"):
         (tmp_path / "f" / name).mkdir(parents=True)
         (tmp_path / "f" / name / "metadata.json").write_text("{}")
-    (tmp_path / "f" / "notes").mkdir()  # not a dataset: left out
-    assert [d.name for d in fleet_datasets([tmp_path / "f"])] == ["a", "b"]
+    (tmp_path / "f" / "notes").mkdir()  # not a dataset: a unit the reader refuses by name, not left out
+    (tmp_path / "f" / ".cache").mkdir()  # hidden: no unit
+    assert [d.name for d in fleet_datasets([tmp_path / "f"])] == ["a", "b", "notes"]
     (tmp_path / "g" / "a").mkdir(parents=True)
     (tmp_path / "g" / "a" / "metadata.json").write_text("{}")
     with pytest.raises(jaxcal.errors.DatasetError, match=r"units named alike \['a'\]"):
         fleet_datasets([tmp_path / "f", tmp_path / "g"])
     with pytest.raises(jaxcal.errors.DatasetError, match="neither a dataset"):
         fleet_datasets([tmp_path / "f" / "notes"])
+    assert main(["inspect", str(tmp_path / "f")]) == 2  # a fleet is inspected unit by unit
+    assert f"{tmp_path / 'f'}: a folder of datasets" in capsys.readouterr().err
 
 
 def _digest(root) -> str:
@@ -192,6 +203,9 @@ def test_a_prior_is_refused_by_name_for_another_robot_or_file(tmp_path):
     (tmp_path / "fleet.json").write_text(json.dumps(doc))
     with pytest.raises(DatasetError, match=r"fleet\.json: 'prior' is empty"):
         read_prior(tmp_path / "fleet.json")
+    (tmp_path / "fleet.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "prior"}))
+    with pytest.raises(DatasetError, match=r"fleet\.json: no field 'prior' \(not a fleet\.json as jaxcal"):
+        read_prior(tmp_path / "fleet.json")
     doc["prior"] = plain(prior) | {"covariance": [[1.0, 2.0], [2.0, 1.0]]}
     (tmp_path / "fleet.json").write_text(json.dumps(doc))
     with pytest.raises(
@@ -274,10 +288,13 @@ def test_a_fleet_calibrates_each_unit_as_alone_and_names_the_odd_one(tmp_path):
     (tmp_path / "moved.json").write_text(json.dumps(moved))
     wrong = jaxcal.calibrate(new, prior=tmp_path / "moved.json", progress=False)
     assert wrong.status == "suspect"
-    assert any(
-        f"the data contradict the fleet's prior ({tmp_path / 'moved.json'}): {prior['names'][0]}" in r
-        for r in wrong.reasons
-    )
+    said = next(r for r in wrong.reasons if r.startswith("the data contradict the fleet's prior"))
+    assert (
+        f"({tmp_path / 'moved.json'}): over the " in said and f"farthest {prior['names'][0]} at " in said
+    ), said
+    # ... read from the data alone: the prior's 50 standard deviations less what the unit's own add.
+    z = float(re.search(r"farthest \S+ at ([\d.]+) standard deviations", said).group(1))
+    assert 20 < z < 50, said
     # ... and so is a prior that claims too much (the fleet's covariance shrunk 10^8 times: 0.1 um).
     tight = json.loads((out / "fleet.json").read_text())
     tight["prior"]["covariance"] = (1e-8 * np.asarray(tight["prior"]["covariance"])).tolist()
@@ -301,3 +318,84 @@ def test_a_fleet_calibrates_each_unit_as_alone_and_names_the_odd_one(tmp_path):
         CalibrationError, match="applies to stop-and-shoot poses; these samples are joint sweeps"
     ):
         jaxcal.calibrate(sweeps, prior=out / "fleet.json", progress=False)
+
+
+def _split(source: Path, rows: list[str], folder: Path) -> Path:
+    """A dataset of `source`'s metadata and robot file with the samples `rows` (header first)."""
+    folder.mkdir(parents=True)
+    for name in ("metadata.json", "robot_dh.json"):
+        shutil.copyfile(source / name, folder / name)
+    (folder / "samples.csv").write_text("\n".join(rows) + "\n")
+    return folder
+
+
+@pytest.mark.slow
+def test_a_real_robots_prior_lends_to_its_short_captures_without_false_alarms(tmp_path):
+    """The real UR5's grid as a fleet of 6 units (its rows dealt out; one robot, so they agree to
+    their measurement, and the fleet's spread is its floor) and 3 new 30-pose captures of rows the
+    fleet never saw: each new capture is `ok` with the prior (the data alone within the fleet's
+    spread plus their own: a real arm's model error in a short capture must not read as a unit
+    unlike the fleet), and no worse on the held-out test set than without it."""
+    grid = ROOT / "data" / "ur5_tracker" / "grid"
+    header, *body = (grid / "samples.csv").read_text().splitlines()
+    held, rest = body[::10], [r for i, r in enumerate(body) if i % 10]
+    for k in range(6):
+        _split(grid, [header, *rest[k::6]], tmp_path / "units" / f"ur5_{k}")
+    out = tmp_path / "fleet"
+    assert main(["calibrate", str(tmp_path / "units"), "--device-is-base", "--out", str(out), "--quiet"]) == 0
+    test = load_dataset(ROOT / "data" / "ur5_tracker" / "test")
+    for k in range(3):
+        new = _split(grid, [header, *held[k::3][:30]], tmp_path / f"new{k}")
+        args = ["calibrate", str(new), "--device-is-base", "--quiet", "--out"]
+        assert main([*args, str(tmp_path / f"prior{k}"), "--prior", str(out / "fleet.json")]) == 0
+        assert main([*args, str(tmp_path / f"alone{k}")]) == 0
+        use = json.loads((tmp_path / f"prior{k}" / "result.json").read_text())["point_fit"]["prior"]
+        assert use["dof"] >= 15 and use["chi2"] < chi2_ppf(0.99, use["dof"]), use
+        errs = [float(np.mean(verify(tmp_path / f"{w}{k}", test).errors_mm)) for w in ("prior", "alone")]
+        assert errs[0] < 1.02 * errs[1], errs
+
+
+@pytest.mark.slow
+def test_a_fleet_refuses_by_name_what_is_not_one_of_its_units(tmp_path):
+    """In a folder of five UR5e units: a UR3 (the same joints, another robot file), a byte-for-byte
+    copy of a unit under another name, a subfolder without metadata.json and an empty one. Each is
+    refused in the summary with its reason (not left out unsaid, nor counted in the fleet's
+    spread), the UR3's folder is not written, the others' results are; and the fleet's prior
+    refuses one of its own units calibrated alone (its data would count twice)."""
+    fleet = tmp_path / "fleet"
+    for seed in range(5):
+        simulate_tracker(TrackerSimConfig(seed=90 + seed, **KW), fleet / f"unit{seed}")
+    simulate_tracker(TrackerSimConfig(seed=95, **(KW | {"robot": "ur3"})), fleet / "ur3")
+    shutil.copytree(fleet / "unit2", fleet / "unit2 copy")
+    (fleet / "empty").mkdir()
+    (fleet / "no_metadata").mkdir()
+    shutil.copyfile(fleet / "unit0" / "samples.csv", fleet / "no_metadata" / "samples.csv")
+    (fleet / ".hidden").mkdir()  # hidden folders are no units
+    before = _digest(fleet)
+    out = tmp_path / "out"
+    assert main(["calibrate", str(fleet), "--out", str(out), "--config", "cv-folds=0", "--quiet"]) == 3
+    assert _digest(fleet) == before
+    s = json.loads((out / "fleet.json").read_text())
+    units = {u["name"]: u for u in s["units"]}
+    assert set(units) == {f"unit{k}" for k in range(5)} | {"ur3", "unit2 copy", "empty", "no_metadata"}
+    assert {n for n, u in units.items() if u["status"] == "ok"} == {f"unit{k}" for k in range(5)}
+    why = {n: u["reason"] for n, u in units.items() if u["status"] == "refused"}
+    assert set(why) == {"ur3", "unit2 copy", "empty", "no_metadata"}
+    assert "not this fleet's robot model: the same joints, but its robot file's" in why["ur3"]
+    assert "against the 5 unit(s) of the fleet's" in why["ur3"]
+    assert "the same data as unit unit2 (every file but metadata.json, byte for byte)" in why["unit2 copy"]
+    assert "metadata.json" in why["empty"] and "metadata.json" in why["no_metadata"]
+    assert not (out / "ur3").exists() and not (out / "unit2 copy").exists() and (out / "unit4").is_dir()
+    assert all(len(p["values"]) == 5 for p in s["parameters"])  # the fleet's spread: its five units
+    assert s["prior"]["units"] == 5 and len(s["prior"]["data"]) == 5
+    with pytest.raises(
+        DatasetError, match=r"unit3: this dataset is one of the units the prior .* count twice"
+    ):
+        jaxcal.calibrate(fleet / "unit3", prior=out / "fleet.json", progress=False)
+    # A folder none of whose subfolders is a dataset is named as such, not read as one dataset.
+    (tmp_path / "none" / "a").mkdir(parents=True)
+    with pytest.raises(
+        DatasetError, match=r"none: neither a dataset .* \(none of its 1 subfolders \(a\) holds"
+    ):
+        fleet_datasets([tmp_path / "none"])
+    assert is_fleet([tmp_path / "none"]) and not is_fleet([fleet / "unit0"])

@@ -413,7 +413,7 @@ def test_frames_table_shape(ds):
 
 def test_encoder_values_a_billion_times_too_large(ds):
     edit_encoders(ds, lambda t, m: m.__imul__(1e9))
-    fails(ds, "encoders.csv column 'shoulder_pan_joint'", "outside the URDF limits")
+    fails(ds, "encoders.csv column 'shoulder_pan_joint'", "outside the robot file's limits")
 
 
 def test_encoder_log_in_degrees_while_unit_says_rad(ds):
@@ -563,7 +563,7 @@ def test_joint_limits_from_a_transmission_ratio(ds):
     start = urdf.index('<transmission name="elbow_joint_trans">')
     end = urdf.index("</transmission>", start) + len("</transmission>")
     (ds / "robot.urdf").write_text(urdf[:start] + urdf[end:])
-    fails(ds, "column 'elbow_joint'", "reduction ratio 1", "outside the URDF limits")
+    fails(ds, "column 'elbow_joint'", "reduction ratio 1", "outside the robot file's limits")
 
 
 def test_robot_file_errors(ds):

@@ -21,6 +21,8 @@ from jaxcal.errors import CalibrationError, DatasetError
 from jaxcal.fleet import FleetPrior
 from jaxcal.io.dataset import load_dataset
 from jaxcal.io.model_json import model_from_json
+from jaxcal.io.urdf import urdf_outline
+from jaxcal.robots import robot_file
 from jaxcal.sim.tracker import TrackerSimConfig, bad_samples, simulate_tracker
 from jaxcal.stages import CaptureKind
 
@@ -237,7 +239,12 @@ def _meta(root, edit) -> None:
         (lambda r: _edit(r, 2, "sample", "-1"), ["samples.csv line 2 column 'sample'", "'-1'"]),
         (
             lambda r: _edit(r, 2, "elbow_joint", "60"),
-            ["samples.csv column 'elbow_joint'", "joint positions", "outside the URDF limits"],
+            [  # one cell in degrees among radians: named by line, not as the column's unit
+                "samples.csv column 'elbow_joint'",
+                "joint positions",
+                "line 2: 60 (a commanded joint position of 60 rad) lies outside the robot file's limits",
+                "1 row(s) (line 2) hold a wrong value; read as degrees it lies within them: that row in degrees",
+            ],
         ),
         (
             lambda r: _meta(r, lambda m: m["device"].pop("sigma_m")),
@@ -292,3 +299,18 @@ def test_inspect_describes_a_tracker_dataset(captures, capsys):
     for g in s["joints"]:
         lo, hi = g["range_deg"]
         assert 110.0 < hi - lo < 130.0  # the simulator's +-60 deg sweeps
+
+
+def test_the_default_home_suits_an_arm_of_another_number_of_joints(tmp_path):
+    """The default home is a UR's six angles; a 7-joint Panda sweeps about the middle of its joints'
+    limits (its joint 4 has no zero within them), every sample within them."""
+    ds = load_dataset(simulate_tracker(TrackerSimConfig(robot="panda", samples_per_joint=10), tmp_path / "p"))
+    names = list(ds.joint_names)
+    lim = urdf_outline(robot_file("panda"), names).limits
+    mid = np.array([(lim[n].lower + lim[n].upper) / 2 for n in names])
+    q = ds.samples.q
+    assert q.shape == (70, 7)
+    held = np.ones_like(q, bool)
+    held[np.arange(70), np.repeat(np.arange(7), 10)] = False  # each sweep's own joint moves
+    np.testing.assert_allclose(q[held], np.broadcast_to(mid, q.shape)[held], atol=1e-9)
+    assert all(lim[n].lower <= q[:, j].min() and q[:, j].max() <= lim[n].upper for j, n in enumerate(names))

@@ -195,7 +195,7 @@ def calibrate_fleet_datasets(args, datasets: list, out: Path, checked) -> int:
         write_outputs(result, folder, inputs=[result.dataset], run=run)
 
     summary = calibrate_fleet(
-        units,
+        datasets,  # expanded again there, as named (a unit without metadata.json is refused, not expanded)
         out,
         calibrate=one,
         write=write,
@@ -216,10 +216,19 @@ def calibrate_fleet_datasets(args, datasets: list, out: Path, checked) -> int:
     )
     console.print(
         f"wrote {out}/: one folder per calibrated unit, fleet.json, fleet.md ({counts}; "
-        f"{len(summary.outliers)} outliers{'; ' + summary.note if summary.note else ''}; "
+        f"{_standing_out(summary)}{'; ' + summary.note if summary.note else ''}; "
         f"{summary.timings_s['total']:.1f} s)"
     )
     return summary.exit_code
+
+
+def _standing_out(summary) -> str:
+    """`N unit(s) stand out (M figure(s))`: the units the summary names, and in how many parameters
+    or residuals."""
+    units = len({o.unit for o in summary.outliers})
+    return f"{units} unit{'' if units == 1 else 's'} standing out" + (
+        f" ({len(summary.outliers)} figure{'' if len(summary.outliers) == 1 else 's'})" if units else ""
+    )
 
 
 def calibrate_dataset(args, out: Path, checked) -> int:

@@ -4,6 +4,8 @@ import dataclasses
 import json
 import sys
 
+from ..errors import DatasetError
+from ..fleet import fleet_datasets, is_fleet
 from ..io._files import check_output_file, write_text_atomic
 from ._common import count
 from ._rosbag import add_bag_args, dataset_of
@@ -28,6 +30,11 @@ def cmd_inspect(args) -> int:
     from ..io.rosbag import bag_topics, is_bag, open_bag
     from ..records import plain
 
+    if is_fleet([args.dataset]):
+        raise DatasetError(
+            f"{args.dataset}: a folder of datasets (a fleet; `jaxcal calibrate` takes it whole), not one dataset: "
+            f"inspect each, e.g. jaxcal inspect {fleet_datasets([args.dataset])[0]}"
+        )
     if is_bag(args.dataset):
         with open_bag(args.dataset) as reader:
             topics = bag_topics(reader)

@@ -68,12 +68,31 @@ def _fits(q: np.ndarray, limits) -> bool:
     return limits.lower - m <= lo and hi <= limits.upper + m
 
 
-def unit_problem(raw: np.ndarray, factor: float, unit: str, counts_per_rev, limits) -> str | None:
+#: Values beyond a joint's limits in at most this share of a column's rows (or in one row) are
+#: wrong cells, named by line; more are the column's unit. A column in the wrong unit puts every
+#: value far from zero out of the limits, a sweep's tenths of them or more; values near zero
+#: fit in either unit, so that the other rows fitting says nothing of the unit.
+FEW_CELLS = 0.02
+
+
+def _outside(q: np.ndarray, limits) -> np.ndarray:
+    """Per value, whether it lies beyond `limits` and their margin (or absurd without limits)."""
+    if limits.lower is None or limits.upper is None:
+        return np.abs(q) > ABSURD[limits.joint_type]
+    m = margin(limits.joint_type, limits.lower, limits.upper)
+    return (q < limits.lower - m) | (q > limits.upper + m)
+
+
+def unit_problem(
+    raw: np.ndarray, factor: float, unit: str, counts_per_rev, limits, lines=None, stated: str | None = None
+) -> str | None:
     """Why the logged values of one joint do not fit its limits in `unit`, or `None` if they do.
 
     **Arguments:** `raw` (T,) the logged values in `unit`; `factor`: `unit` to
     radians; `counts_per_rev`: `encoders.counts_per_rev` or `None`; `limits`:
-    the joint's `jaxcal.io.urdf.JointLimits`.
+    the joint's `jaxcal.io.urdf.JointLimits`; `lines`: each value's line in its file (then a
+    few values out of a column that otherwise fits are named by line, as wrong cells, not as the
+    column's unit); `stated`: where the unit is stated (default `encoders.unit is 'UNIT'`).
 
     **Returns:** a sentence naming the range, the limits and the unit that would fit.
     """
@@ -81,20 +100,34 @@ def unit_problem(raw: np.ndarray, factor: float, unit: str, counts_per_rev, limi
     q = raw * factor / ratio
     if _fits(q, limits):
         return None
+    stated = stated or f"encoders.unit is {unit!r}"
     lin = "m" if limits.joint_type == "prismatic" else "rad"
-    span = f"[{q.min():.4g}, {q.max():.4g}] {lin}"
-    what = (
-        f"the commanded joint positions (logged value x {factor:.6g} / reduction ratio {ratio:g}) span {span}"
-    )
     if limits.lower is None or limits.upper is None:
         bound = ABSURD[limits.joint_type]
         where = f"beyond {bound:g} {lin} ({'100 turns' if lin == 'rad' else '100 m'}), absurd for any joint"
     else:
         m = margin(limits.joint_type, limits.lower, limits.upper)
         where = (
-            f"outside the URDF limits [{limits.lower:.4g}, {limits.upper:.4g}] {lin} by more than the "
+            f"outside the robot file's limits [{limits.lower:.4g}, {limits.upper:.4g}] {lin} by more than the "
             f"{m:.3g} {lin} margin"
         )
+    out = np.flatnonzero(_outside(q, limits))
+    if lines is not None and out.size <= max(
+        1, FEW_CELLS * q.size
+    ):  # a few wrong cells, not the column's unit
+        k, named = out[0], ", ".join(str(lines[i]) for i in out[:5]) + (" ..." if out.size > 5 else "")
+        hint = ""
+        if lin == "rad" and unit != "deg" and not _outside(np.radians(raw[k] * factor) / ratio, limits):
+            hint = f"; read as degrees it lies within them: that row in degrees, the others in {unit}?"
+        return (
+            f"line {lines[k]}: {raw[k]:.6g} (a commanded joint position of {q[k]:.4g} {lin}) lies {where}, "
+            f"where the other {q.size - out.size} of {q.size} rows fit: {out.size} row(s) (line {named}) hold a "
+            f"wrong value{hint}"
+        )
+    span = f"[{q.min():.4g}, {q.max():.4g}] {lin}"
+    what = (
+        f"the commanded joint positions (logged value x {factor:.6g} / reduction ratio {ratio:g}) span {span}"
+    )
     guesses = []
     for other in UNITS:
         if other == unit or (other == "counts" and not counts_per_rev):
@@ -102,28 +135,43 @@ def unit_problem(raw: np.ndarray, factor: float, unit: str, counts_per_rev, limi
         if _fits(raw * to_radians(other, counts_per_rev) / ratio, limits):
             guesses.append("degrees" if other == "deg" else "radians" if other == "rad" else "encoder counts")
     if guesses:
-        hint = f"encoders.unit is {unit!r} but the values look like {' or '.join(guesses)}"
+        hint = f"{stated} but the values look like {' or '.join(guesses)}"
     elif np.all(raw == np.round(raw)) and np.abs(raw).max() > 1000:
         hint = (
-            f"encoders.unit is {unit!r} but the values are whole numbers: encoder counts? (set unit 'counts' "
+            f"{stated} but the values are whole numbers: encoder counts? (set unit 'counts' "
             "and counts_per_rev)"
         )
     else:
-        hint = f"no unit fits; check encoders.unit ({unit!r}) and the joint's reduction ratio in the URDF"
+        hint = f"no unit fits; check the unit ({stated}) and the joint's reduction ratio in the robot file"
     return f"{what}, {where}; {hint}"
+
+
+def _one_sided(rate: np.ndarray, k: int, half: int) -> float:
+    """The trend of `rate` at step `k` from the steps within `half` of it, where the window is not
+    centred on `k` (a log's first and last steps): each step's rate carried to `k` along the
+    window's median pairwise slope (Theil-Sen), then their median. A plain median lags a rate
+    that changes (a fast sweep's end reads as a jump); this one does not, and a glitch's one or
+    two steps move neither median."""
+    lo, hi = max(0, k - half), min(len(rate), k + half + 1)
+    idx, r = np.arange(lo, hi), rate[lo:hi]
+    if len(r) < 3:
+        return float(np.median(r))
+    i, j = np.triu_indices(len(r), 1)
+    slope = np.median((r[j] - r[i]) / (idx[j] - idx[i]))
+    return float(np.median(r + slope * (k - idx)))
 
 
 def local_rate(t: np.ndarray, x: np.ndarray, half: int = 3) -> np.ndarray:
     """The local trend of `x`'s rate of change: the median of the step rates over
-    `2 half + 1` steps (fewer at the ends), (T - 1,)."""
+    `2 half + 1` steps (at the ends, where fewer lie on one side, `_one_sided`), (T - 1,)."""
     rate = np.diff(x) / np.diff(t)
     m, width = len(rate), 2 * half + 1
     if m < width:
-        return np.array([np.median(rate[max(0, k - half) : k + half + 1]) for k in range(m)])
+        return np.array([_one_sided(rate, k, half) for k in range(m)])
     out = np.empty(m)
     out[half : m - half] = np.median(sliding_window_view(rate, width), axis=1)
     for k in (*range(half), *range(m - half, m)):
-        out[k] = np.median(rate[max(0, k - half) : k + half + 1])
+        out[k] = _one_sided(rate, k, half)
     return out
 
 

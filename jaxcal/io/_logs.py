@@ -439,7 +439,14 @@ def read_encoders(root: Path, emeta: dict, loc: Loc, joints: tuple[str, ...], li
     reliable = not jumps and len(glitches) <= enc.GLITCH_MAX_COUNT and drop.mean() <= enc.GLITCH_MAX_FRACTION
     keep = ~drop if reliable else np.ones(len(t), bool)
     for j, name in enumerate(joints):
-        problem = enc.unit_problem(raw[keep, j], factor, emeta["unit"], emeta["counts_per_rev"], limits[name])
+        problem = enc.unit_problem(
+            raw[keep, j],
+            factor,
+            emeta["unit"],
+            emeta["counts_per_rev"],
+            limits[name],
+            np.asarray(lines)[keep],
+        )
         if problem is not None:
             raise DatasetError(f"{path} column {name!r}: {problem}")
     if jumps:

@@ -270,7 +270,15 @@ def read_samples(root: Path, device: DeviceInfo, joints: tuple[str, ...], limits
     if cols["joints"] is not None:
         q = values[:, cols["joints"]]
         for j, name in enumerate(joints):
-            problem = enc.unit_problem(q[:, j], limits[name].reduction_ratio, "rad", None, limits[name])
+            problem = enc.unit_problem(
+                q[:, j],
+                limits[name].reduction_ratio,
+                "rad",
+                None,
+                limits[name],
+                lines,
+                f"{path.name}'s joint columns are SI (rad, m)",
+            )
             if problem is not None:
                 raise DatasetError(f"{path} column {name!r} (joint positions, rad or m): {problem}")
     return TrackerSamples(

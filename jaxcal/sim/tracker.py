@@ -20,7 +20,7 @@ clock). Everything the calibration should recover goes to `truth.json` (its
 
 import csv
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import jax
@@ -48,7 +48,8 @@ class TrackerSimConfig:
     """What `simulate_tracker` draws (lengths in the units named).
 
     - `samples_per_joint` evenly spaced samples while each joint sweeps
-      `range_deg` centred on its `home_deg` entry (the others hold `home_deg`).
+      `range_deg` centred on its `home_deg` entry (the others hold `home_deg`). The default is a
+      UR's home; a robot of another number of joints sweeps about the middle of its joints' limits.
     - `noise_um`: isotropic position noise (1-sigma per axis); `orientation`:
       also a measured orientation (a 6-DoF probe) with `noise_deg`.
     - `bad_fraction` of each sweep's samples, half at each end, are
@@ -248,6 +249,8 @@ def simulate_tracker(config: TrackerSimConfig, out, *, overwrite: bool = False) 
     table = is_table_file(urdf)
     nominal = load_robot_file(urdf)
     names = list(nominal.joint_names)
+    if config.home_deg == UR3_HOME_DEG and len(names) != len(UR3_HOME_DEG):  # the default, for another arm
+        config = replace(config, home_deg=tuple(np.degrees(_limits(urdf, nominal).mean(axis=1)).tolist()))
     config.check(len(names))
     true = perturb_model(nominal, jax.random.key(config.seed), config.scales)
     if not config.device_is_base:

@@ -32,6 +32,7 @@ the outputs are those of every other kind.
 import dataclasses
 import time
 from dataclasses import dataclass, field
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -65,9 +66,9 @@ from .._pointfit import (
 from .._selection import improves_on_samples, paired_z
 from .._terms import approach, signs
 from ..errors import CalibrationError
-from ..fleet import model_digest, prior_rows
 from ..records import ModelRow, PointOutlier, PriorUse, RepeatedPose, ResidualStats, TermRow
 from ._observe import Observations
+from ._prior import prior_rows_of, prior_use
 from ._programs import compile_ahead
 from ._setup import Options, Setup
 from ._synchronise import Sync
@@ -485,7 +486,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
 
     def fitted(terms, used):
         layout = PointLayout(base, terms, orientation)
-        prior = _prior_rows(options, layout, nominal, kind.fixed_frame_free)
+        prior = prior_rows_of(options, layout, nominal, kind.fixed_frame_free)
         problem = point_problem(
             nominal, layout, q, y, s.sigma_m, used, T0, Tp0, masses, orient, s.sigma_rad, prior
         )
@@ -560,44 +561,19 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
         outliers=_outliers(ds, dist, radius, first & ~used),
         robust_scale=robust_scale,
         unseen=unseen,
-        prior=_prior_use(options, problem, fit, names),
+        prior=prior_use(
+            options, problem, fit, names, partial(_data_alone, problem, cand, tol, layout, options)
+        ),
         timings={"point_fit_s": time.perf_counter() - t0},
     )
 
 
-def _prior_rows(options: Options, layout: PointLayout, nominal: KinematicModel, frame_free: bool):
-    """The fleet's prior (`options.prior`) over `layout`'s vector (`jaxcal.fleet.prior_rows`), or None."""
-    if options.prior is None:
-        return None
-    return prior_rows(options.prior, layout.names(), nominal.joint_names, model_digest(nominal), frame_free)
-
-
-def _prior_use(options: Options, problem: PointProblem, fit: PointFitResult, names) -> PriorUse | None:
-    """How much the fleet's prior gave each parameter it covers: the diagonal of the posterior
-    covariance times the prior's precision (said in a line), or None without a prior."""
-    prior = options.prior
-    if prior is None:
-        return None
-    U = np.asarray(problem.prior.root) * np.asarray(fit.free)[None, :]
-    idx = [names.index(n) for n in prior.names]
-    share = np.diag(np.asarray(fit.cov) @ (U.T @ U))[idx]
-    # Under the prior the fit's distance from its mean has variance Sigma - C (the posterior's C):
-    # a tight prior the data pull against is as far off as a loose one the fit leaves.
-    spread = np.diag(prior.covariance) - np.diag(np.asarray(fit.cov))[idx]
-    z = (np.asarray(fit.x)[idx] - prior.mean) / np.sqrt(np.maximum(spread, 1e-12 * np.diag(prior.covariance)))
-    options.say(
-        f"point fit: the fleet's prior ({prior.units} units) gave {np.mean(share):.0%} of its "
-        f"{len(share)} parameters' information on average"
-    )
-    return PriorUse(
-        file=prior.file,
-        units=prior.units,
-        names=tuple(prior.names),
-        share=tuple(float(v) for v in share),
-        mean=np.asarray(prior.mean),
-        covariance=np.asarray(prior.covariance),
-        z=tuple(float(v) for v in z),
-    )
+def _data_alone(
+    problem: PointProblem, cand, tol: float, layout: PointLayout, options: Options
+) -> PointFitResult:
+    """`problem`'s fit without its prior: the same candidates, identifiability search and samples."""
+    scale = plausible_scale(layout, problem.nominal, options.limits)
+    return _fit(dataclasses.replace(problem, prior=None), to_device(cand), tol, to_device(scale, np.float64))
 
 
 def _apart(ds, rep: np.ndarray, y: np.ndarray, say) -> np.ndarray:

@@ -12,7 +12,7 @@ from .._kinematics import KinematicModel
 from .._links import arm_targets
 from .._robust import LOSSES
 from ..errors import CalibrationError
-from ..fleet import FleetPrior
+from ..fleet_prior import FleetPrior
 from ..io.dataset import CameraInfo, Dataset, DeviceInfo, TargetInfo, load_dataset
 from .kinds import CaptureKind, device_poses, single_joint_share
 from .limits import Limits

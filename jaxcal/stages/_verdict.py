@@ -17,9 +17,9 @@ from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
 import equinox as eqx
-import jax
 import numpy as np
 
+from .. import _distributions as distributions
 from .._kinematics import PRISMATIC, joint_axes_at_zero
 from .._npgeom import line_distance
 from ..records import Judgement, ParameterRow
@@ -197,23 +197,25 @@ PRIOR_FALSE_ALARM = 0.01
 
 
 def _prior(c: _Checks, prior) -> None:
-    """A fleet's prior the data contradict: a parameter fitted farther from the fleet's mean (in its
-    standard deviation under the prior, `PriorUse.z`) than a unit of that fleet lies with chance
-    `PRIOR_FALSE_ALARM` over the prior's parameters (normal): the unit is not of that fleet, or the
-    prior is not its model's (a reason: the result leans on a wrong prior)."""
-    z = np.abs(np.asarray(prior.z))
-    if not len(z):
+    """A fleet's prior the data contradict: the data alone farther from the fleet's mean, over the
+    parameters they estimate together (`PriorUse.chi2`), than a unit of that fleet lies with chance
+    `PRIOR_FALSE_ALARM`: the unit is not of that fleet, or the prior is not its model's or claims
+    more than the fleet knows (a reason: the result leans on a wrong prior). The parameter named is
+    the one farthest on its own (`PriorUse.z`)."""
+    if not prior.dof:
         return
-    limit = float(jax.scipy.special.ndtri(1.0 - PRIOR_FALSE_ALARM / (2 * len(z))))
+    z = np.abs(np.nan_to_num(np.asarray(prior.z, np.float64), nan=0.0))
+    limit = float(distributions.chi2_ppf(1.0 - PRIOR_FALSE_ALARM, prior.dof))
     worst = int(np.argmax(z))
     c.add(
-        "point_fit.prior_z",
-        float(z[worst]),
+        "point_fit.prior_chi2",
+        float(prior.chi2),
         limit,
-        f"the data contradict the fleet's prior ({prior.file}): {prior.names[worst]} is fitted "
-        f"{z[worst]:.1f} standard deviations from the fleet's mean (at most {limit:.1f} for a unit of that "
-        "fleet); the unit is not like the fleet's, or the prior is another model's or claims too much: "
-        "calibrate it without --prior",
+        f"the data contradict the fleet's prior ({prior.file}): over the {prior.dof} parameters the data alone "
+        f"estimate, they lie chi2 = {prior.chi2:.1f} from the fleet's mean (at most {limit:.1f} for a unit of "
+        f"that fleet, {100 * PRIOR_FALSE_ALARM:g} % false alarms), farthest {prior.names[worst]} at "
+        f"{z[worst]:.1f} standard deviations; the unit is not like the fleet's, or the prior is another "
+        "model's or claims too much: calibrate it without --prior",
     )
 
 
