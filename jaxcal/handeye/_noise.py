@@ -40,6 +40,7 @@ from .._handeye import (
     robot_pixel_scale,
 )
 from .._handeye.checks import check_sigma
+from .._handeye.heldout import ABSURD_PX
 from .._selection import CV_GAIN, MIN_Z, improves_on_samples, paired_z
 
 #: `robot_noise` settings: `auto` chooses among the models by held-out reprojection.
@@ -190,7 +191,11 @@ def choose(fits: tuple[NoiseModelFit, ...], setting: RobotNoiseSetting, folds: i
         kept = improves_on_samples(
             a.kfold.frame_squares(), b.kfold.frame_squares(), a.held_out.rms_px, b.held_out.rms_px
         )
-        if b.held_out.rms_px >= a.held_out.rms_px:  # worse on the frames left out: no gain to weigh
+        if (
+            a.held_out.rms_px >= ABSURD_PX > b.held_out.rms_px
+        ):  # a's frames far off the image: no test weighs it
+            kept, why = True, f"{a.model} predicts the frames left out far off the image"
+        elif b.held_out.rms_px >= a.held_out.rms_px:  # worse on the frames left out: no gain to weigh
             why = f"worse than {a.model} on the frames left out"
         else:
             why = (
