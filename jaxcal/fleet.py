@@ -186,15 +186,14 @@ def is_fleet(paths: Sequence) -> bool:
     return bool(_subfolders(p))
 
 
-def copies(datasets: Sequence[Path]) -> dict[int, int]:
-    """`{k: j}` for each dataset `k` whose data (`data_digest`) are an earlier dataset `j`'s."""
+def copies(digests: Sequence[str | None]) -> dict[int, int]:
+    """`{k: j}` for each dataset `k` whose data's digest (`data_digest`; None: not read) is an
+    earlier dataset `j`'s."""
     first, out = {}, {}
-    for k, d in enumerate(datasets):
-        if not Path(d).is_dir():
-            continue
-        if (digest := data_digest(d)) in first:
+    for k, digest in enumerate(digests):
+        if digest is not None and digest in first:
             out[k] = first[digest]
-        else:
+        elif digest is not None:
             first[digest] = k
     return out
 
@@ -325,7 +324,8 @@ def calibrate_fleet(
     **Returns:** the `FleetSummary`."""
     datasets = fleet_datasets(datasets)
     t0 = time.perf_counter()
-    twice = copies(datasets)
+    digests = [data_digest(d) if d.is_dir() else None for d in datasets]
+    twice = copies(digests)
     with _shared_folder(
         out, processes, overwrite=overwrite, inputs=datasets, kind="result", what="--out", checked=checked
     ) as tmp:
@@ -349,7 +349,7 @@ def calibrate_fleet(
         summary = summarize(units, parameters)
         named = {o.unit for o in summary.outliers}
         usable = {u: f for u, f in fits.items() if u not in named}
-        data = [data_digest(datasets[d[0]]) for d in done if d[1].name in usable]
+        data = [digests[d[0]] for d in done if d[1].name in usable]
         prior = None if robot is None else fleet_prior(usable, *robot, data=data)
         summary = dataclasses.replace(summary, prior=prior, timings_s={"total": time.perf_counter() - t0})
         if processes.first:
