@@ -294,11 +294,33 @@ def calibrate_tool_offset(
     **Returns:** a `ToolOffsetResult`. Raises `ToolOffsetInputError` on a bad measurement.
     """
     tcp = np.asarray(tcp0, np.float64).copy()
+    if tcp.shape != (2,) or not np.all(np.isfinite(tcp)):
+        raise ToolOffsetInputError(
+            f"tcp0: the start's x, y in the axis frame (m), 2 finite numbers, got {tcp0!r}"
+        )
+    if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
+        raise ToolOffsetInputError(
+            f"metres_per_unit: the length of one unit of the measured points (m per px at the tool; 1.0 for points "
+            f"in metres), a positive number, got {metres_per_unit!r}"
+        )
+    if not (tol > 0 and tol_change > 0 and max_iter >= 1):
+        raise ToolOffsetInputError(
+            f"tol, tol_change must be positive and max_iter at least 1: {tol}, {tol_change}, {max_iter}"
+        )
     tcps, radii = [tcp.copy()], []
     converged = False
-    for _ in range(max_iter):
+    for k in range(max_iter):
         points, angles, mask = measure(tcp)
-        validate_arc_points(points, angles, mask)
+        try:
+            validate_arc_points(points, angles, mask)
+        except ToolOffsetInputError as e:
+            if not k:
+                raise
+            step = 1e3 * np.linalg.norm(tcps[-1] - tcps[-2])
+            raise ToolOffsetInputError(
+                f"rotation {k + 1}, after the axis moved {step:.3g} mm to {tcp.tolist()} m (the last arc's radius "
+                f"{1e3 * radii[-1]:.3g} mm): {e}; a move this large for that arc: is metres_per_unit right?"
+            ) from None
         est = _estimate(
             jnp.asarray(points, jnp.float64),
             jnp.asarray(angles, jnp.float64),

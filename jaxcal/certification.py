@@ -42,7 +42,7 @@ there than over the calibration's own configurations.
 """
 
 import importlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import jax
@@ -317,13 +317,20 @@ def camera_predictor(ref: CalibrationReference) -> Predictor:
 def load_predictor(result) -> Predictor:
     """The `Predictor` of a result directory (or its `result.json`): tracker or camera."""
     ref = read_calibration(result)
-    if ref.point_fit is not None:
-        return tracker_predictor(ref)
-    if ref.tracker:
+    if ref.status == "failed":  # a solver that did not converge: its covariance describes nothing
+        raise DatasetError(
+            f"{ref.file}: the calibration failed (status 'failed': {ref.reason or 'see its reasons'}): there is "
+            "nothing to certify; calibrate again"
+        )
+    if ref.point_fit is None and ref.tracker:
         raise DatasetError(
             f"{ref.file}: a tracker result without a 'point_fit' block (sweeps): not supported yet"
         )
-    return camera_predictor(ref)
+    pred = tracker_predictor(ref) if ref.point_fit is not None else camera_predictor(ref)
+    if ref.status == "suspect":
+        said = f"the calibration is suspect ({ref.reason or 'see result.json reasons'}): these figures take it as right"
+        pred = replace(pred, notes=(said, *pred.notes))
+    return pred
 
 
 def norm_quantiles(

@@ -575,13 +575,8 @@ def camera_check_reference(cap: CameraCapture, pixels: list | None = None) -> tu
     that check captures share the compiled fit) and the number of views kept; `pixels`: per
     view other detections in place of the capture's (a benchmark's shifted copies)."""
     ref, est, ds = cap.reference, cap.est, cap.ds
-    pts, pix, tgt, frm, tc = (
-        cap.points,
-        cap.pixels if pixels is None else pixels,
-        cap.target,
-        cap.row,
-        cap.t_cam,
-    )
+    pts, tgt, frm, tc = cap.points, cap.target, cap.row, cap.t_cam
+    pix = cap.pixels if pixels is None else pixels
     _, _, K0, dist0 = result_intrinsics(ref)
     enc_q = np.asarray(ds.encoder_motor, np.float64) / np.asarray(est.nominal.reduction_ratio)
     offset = ds.clock_offset_s if ds.clock_offset_s is not None else ref.clock_offset_s
@@ -619,6 +614,10 @@ def check_camera(
         theta, C, T, rss, dof_r, samples=views, joint_names=ref.joint_names,
         T_now=T_now, names=(str(cap.file), str(ds.root)), what="camera", frame=frame, dof_noise=dof_r,
     )  # fmt: skip
+    if others := [
+        cam.name for cam in ds.cameras if cam.name != cap.reference.camera
+    ]:  # said, not skipped unsaid
+        c = replace(c, message=f"{c.message}; camera {cap.reference.camera!r} only: {others} not tested")
     return _noise_note(c, nu, ref.factor)
 
 

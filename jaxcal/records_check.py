@@ -101,6 +101,9 @@ class CalibrationReference:
     point_fit: PointFitModel | None = None
     #: Which covariance the result carries (`jaxcal.io.result.COVARIANCE_MODELS`; None: written before).
     covariance_model: str | None = None
+    #: The calibration's verdict (`ok`, `suspect`, `failed`; None: not given) and its first reason.
+    status: str | None = None
+    reason: str = ""
 
     @property
     def tracker(self) -> bool:

@@ -233,3 +233,24 @@ def test_a_capture_no_rigid_move_explains_leads_with_the_mismatch(move_mm):
     good = verdict(theta, C, T, rss=50.0, dof_r=54, **kw)
     assert good.residual.fits_rigidly and good.exit_code == (EXIT_DRIFT if move_mm else 0)
     assert good.message.startswith("the camera moved by" if move_mm else "no drift detected")
+
+
+def test_a_failed_calibration_is_not_certified_and_a_suspect_one_is_said(tracker, tmp_path):
+    """A result whose solver failed has no covariance worth a bound: refused, naming the file and its
+    reason; a suspect one is certified with the suspicion stated first."""
+    _, _, res, _ = tracker
+    doc = json.loads((res / "result.json").read_text())
+    for status in ("failed", "suspect"):
+        shutil.copytree(res, tmp_path / status)
+        (tmp_path / status / "result.json").write_text(
+            json.dumps(doc | {"status": status, "reasons": [f"the solver {status} here"]})
+        )
+    with pytest.raises(
+        DatasetError, match=r"failed/result.json: the calibration failed \(status 'failed': the solver"
+    ):
+        certify(tmp_path / "failed", samples=50)
+    c = certify(tmp_path / "suspect", samples=50)
+    assert (
+        c.notes[0] == "the calibration is suspect (the solver suspect here): these figures take it as right"
+    )
+    assert "is suspect" not in " ".join(certify(res, samples=50).notes)

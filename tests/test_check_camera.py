@@ -10,6 +10,7 @@ statistics on analytic corners: the rendered capture's detections replaced by th
 prediction with a drawn calibration error and corner noise, against the F laws.
 """
 
+import dataclasses
 import json
 import shutil
 
@@ -47,7 +48,14 @@ def test_a_moved_camera_is_detected_and_an_unmoved_one_is_not(captures, tmp_path
     res, still, moved = captures
     c0 = check(res, still)
     assert not c0.detected and c0.exit_code == 0 and "no drift detected" in c0.message
-    assert c0.what == "camera" and c0.samples == 10
+    assert c0.what == "camera" and c0.samples == 10 and "not tested" not in c0.message
+    # A capture of more cameras than the one the result calibrated: the others are said untested.
+    cap = camera_capture(*read_result(res), load_dataset(still))
+    two = dataclasses.replace(
+        cap.ds, cameras=(*cap.ds.cameras, dataclasses.replace(cap.ds.cameras[0], name="cam1"))
+    )
+    said = check_camera(dataclasses.replace(cap, ds=two)).message
+    assert said.endswith("; camera 'cam0' only: ['cam1'] not tested"), said
     assert c0.detectable["translation_mm_worst"] < 1.0
     c1 = check(res, moved)
     assert c1.detected and c1.exit_code == 3 and "the camera moved by" in c1.message

@@ -582,7 +582,9 @@ def test_a_model_replaces_the_estimate_only_on_a_steady_gain():
     wild[0] = 1e22
     fits = (_fake_fit("estimate", wild, 5.89e10), _fake_fit("exact", 2 * base, 57.5))
     k, basis = choose(fits, auto, folds=8)
-    assert fits[k].model == "exact" and "kept: estimate predicts the frames left out far off the image" in basis
+    assert (
+        fits[k].model == "exact" and "kept: estimate predicts the frames left out far off the image" in basis
+    )
     bare = tuple(dataclasses.replace(f, kfold=None, held_out=None) for f in fits)  # folds=0
     assert choose(bare, auto, folds=0) == (
         0,

@@ -205,3 +205,26 @@ def test_lost_tip_is_an_error():
         to.align_to_principal_point(
             lambda xy: np.full(2, np.nan), np.zeros(2), (160.0, 120.0), metres_per_px=1e-3
         )
+
+
+def test_the_loop_refuses_an_impossible_scale_or_start_and_names_a_lost_tip():
+    """A scale of zero or below, or a start that is not a point, is refused before any rotation (it
+    once came back `converged` at the start); a scale 1000x too large moves the axis so far that the
+    tip leaves the view, named as such with the move, not only as "0 points"."""
+    tip = np.array([0.004, -0.007])
+    measure = _synthetic_measure(tip, 0.3, 1.0, 5e-4)
+    for scale in (0.0, -5e-4, np.nan):
+        with pytest.raises(to.ToolOffsetInputError, match="metres_per_unit: the length of one unit"):
+            to.calibrate_tool_offset(measure, np.zeros(2), metres_per_unit=scale)
+    with pytest.raises(to.ToolOffsetInputError, match=r"tcp0: the start's x, y"):
+        to.calibrate_tool_offset(measure, np.array([np.nan, 0.0]), metres_per_unit=5e-4)
+
+    def in_view(tcp):  # the camera sees 400 x 300 px: beyond, the tip is lost
+        points, angles, _ = measure(tcp)
+        return points, angles, np.all((points >= 0) & (points <= [400.0, 300.0]), axis=1)
+
+    with pytest.raises(
+        to.ToolOffsetInputError,
+        match=r"rotation 2, after the axis moved 8\.06e\+03 mm .* is metres_per_unit right",
+    ):
+        to.calibrate_tool_offset(in_view, np.zeros(2), metres_per_unit=0.5)

@@ -115,6 +115,8 @@ def calibration_reference(doc: Mapping, file) -> CalibrationReference:
             sigma_px=None if "sigma_px" not in refinement else float(refinement["sigma_px"]),
             point_fit=point_fit_model(doc["point_fit"]) if "point_fit" in doc else None,
             covariance_model=doc.get("covariance_model"),
+            status=doc.get("status"),
+            reason=str((doc.get("reasons") or [""])[0]),
         )
     except (KeyError, TypeError, ValueError) as e:
         raise DatasetError(f"{file}: not a result.json jaxcal wrote ({type(e).__name__}: {e})") from None
