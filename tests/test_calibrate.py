@@ -418,6 +418,21 @@ def test_motion_segments_outside_the_encoder_log(dataset, tmp_path):
     )
 
 
+def test_an_encoder_log_cut_short_is_named_not_the_target(dataset, tmp_path):
+    """The log's last third lost: the joints swept after it have no angles, and the refusal says
+    their sweep lies beyond the log (the frames showed the target all along)."""
+    ds = _copy(dataset, tmp_path)
+    lines = (ds / "encoders.csv").read_text().splitlines()
+    (ds / "encoders.csv").write_text("\n".join(lines[: 2 * len(lines) // 3]) + "\n")
+    _fails(
+        ds,
+        CalibrationError,
+        "its sweep [",
+        "(metadata.json motion) lies outside the encoder log [0, ",
+        "cut short",
+    )
+
+
 def test_a_controller_clock_1000_s_off_is_found(dataset, tmp_path):
     """The controller's log and segments 1000 s later than the camera's stamps, nothing in the
     metadata: the motion-matching search starts the clock fit there, and the offset is the

@@ -174,13 +174,13 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: tuple[Named, ...], data,
     for j, name in enumerate(ds.joint_names):
         if used[name] == 0:
             none = f"no frame of camera {setup.camera.name!r} shows a target while this joint sweeps alone"
-            cause = "" if obs is None else lost_to_blur(setup, obs, sync, j)
+            cause = _outside_log(ds, name) or ("" if obs is None else lost_to_blur(setup, obs, sync, j))
             raise CalibrationError(f"{ds.root}: joint {name!r}: " + (f"{cause} ({none})" if cause else none))
         data_j = jax.tree.map(lambda x, j=j: x[j], data)
         try:
             validate_arc_data(data_j, name, setup.nominal.joint_types[j])
         except ValueError as e:
-            cause = "" if obs is None else lost_to_blur(setup, obs, sync, j)
+            cause = _outside_log(ds, name) or ("" if obs is None else lost_to_blur(setup, obs, sync, j))
             if cause:  # the cause first, what it did after
                 e = f"joint {name!r}: {cause} ({str(e).removeprefix(f'joint {name!r}: ')})"
             elif _radians_read_as_degrees(ds, data_j, setup.nominal.joint_types[j]):
@@ -189,6 +189,22 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: tuple[Named, ...], data,
                     f"{np.degrees(sweep_span_deg(data_j)):.0f} degrees: is the log in radians?"
                 )
             raise CalibrationError(f"{ds.root}: {e}") from None
+
+
+def _outside_log(ds, joint: str) -> str:
+    """Where `joint`'s sweep (its motion segments) reaches beyond the encoder log, why its frames have
+    no joint angles, in words; else ""."""
+    if ds.encoder_t is None or not len(ds.encoder_t):
+        return ""
+    t0, t1 = float(ds.encoder_t[0]), float(ds.encoder_t[-1])
+    for name, start, end in ds.segments:
+        if name == joint and (start < t0 or end > t1):
+            part = "" if end < t0 or start > t1 else "partly "
+            return (
+                f"its sweep [{start:g}, {end:g}] s (metadata.json motion) lies {part}outside the encoder log "
+                f"[{t0:g}, {t1:g}] s: the log cut short, or the two stamped on different clocks"
+            )
+    return ""
 
 
 def _radians_read_as_degrees(ds, data_j, joint_type: str) -> bool:
