@@ -126,7 +126,8 @@ def fit_circle(
     - `options`: the solver's `LMOptions` (the residuals are in the points'
       unit, not whitened: tight tolerances).
 
-    **Returns:** a `CircleFit` (centre in the points' dimension).
+    **Returns:** a `CircleFit` (centre in the points' dimension); its `result` is `singular`
+    with fewer than `MIN_POINTS` points.
     """
     planar = points.shape[-1] == 2
     w = jnp.ones(points.shape[0]) if mask is None else mask.astype(points.dtype)
@@ -139,12 +140,14 @@ def fit_circle(
     r = _circle_residuals(p, (P, w, n0, planar))
     rms = jnp.sqrt(jnp.sum(r**2) / jnp.maximum(jnp.sum(w), 1.0))
     centre = p.centre[:2] if planar else p.centre
+    # Fewer than three points fit circles without end: no solver's success makes one of them the answer.
+    result = optx.RESULTS.where(jnp.sum(w) >= MIN_POINTS, sol.result, optx.RESULTS.singular)
     return CircleFit(
         centre=centre,
         normal=n,
         radius=p.radius,
         rms=rms,
-        result=sol.result,
+        result=result,
         num_steps=sol.stats["num_steps"],
     )
 
@@ -303,9 +306,9 @@ def calibrate_tool_offset(
             f"metres_per_unit: the length of one unit of the measured points (m per px at the tool; 1.0 for points "
             f"in metres), a positive number, got {metres_per_unit!r}"
         )
-    if not (tol > 0 and tol_change > 0 and max_iter >= 1):
+    if not (tol >= 0 and tol_change >= 0 and max_iter >= 1):
         raise ToolOffsetInputError(
-            f"tol, tol_change must be positive and max_iter at least 1: {tol}, {tol_change}, {max_iter}"
+            f"tol, tol_change must not be negative and max_iter at least 1: {tol}, {tol_change}, {max_iter}"
         )
     tcps, radii = [tcp.copy()], []
     converged = False

@@ -631,6 +631,10 @@ def certificate_section(c) -> list[str]:
     return lines + ([""] if c.caveats or c.notes else [])
 
 
+#: `write_ros_camera_files`' files per camera: `<kind>_<camera>.<ext>`.
+ROS_CAMERA_FILES = (("ros", "launch.yaml"), ("ros", "txt"), ("easy_handeye", "yaml"))
+
+
 def output_files(result) -> list[str]:
     """The files `write_outputs` writes besides `report.md` and its plots."""
     names = ["result.json", "calibrated.urdf"] + ([ESTIMATE_FILE] if result.estimate is not None else [])
@@ -640,11 +644,7 @@ def output_files(result) -> list[str]:
     else:
         cams = [result.camera] + [c.camera for c in result.other_cameras]
         names += [f"camera_{c}.yaml" for c in cams]
-        names += [
-            f"ros_{result.camera}.launch.yaml",
-            f"ros_{result.camera}.txt",
-            f"easy_handeye_{result.camera}.yaml",
-        ]
+        names += [f"{kind}_{c}.{ext}" for c in cams for kind, ext in ROS_CAMERA_FILES]  # every camera's
     names += ["ur_calibration.yaml"] if is_ur(result.model) else []
     names += [COMPENSATION_FILE] if compensation_of(result) is not None else []
     return names + (["calibrated_dh.json", "calibrated_mdh.json"] if has_dh_tables(result) else [])

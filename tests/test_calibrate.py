@@ -310,6 +310,9 @@ def test_cli_calibrate_and_demo(dataset, tmp_path, capsys):
     assert "Before / after" in text and "EE RMS mm" in text and "T_cam_base of cam1" in text
     assert "calibration ok" in text  # the verdict is said, not only its exit code
     res = tmp_path / "demo" / "result"
+    said = [w.strip() for w in text.split(f"wrote {res}/: ")[1].split(" (")[0].split(",")]
+    assert {"ros_cam1.launch.yaml", "ros_cam1.txt", "easy_handeye_cam1.yaml"} <= set(said)  # every camera's
+    assert all((res / name).is_file() for name in said), said
     assert (res / "report.md").is_file() and "Camera cam1" in (res / "report.md").read_text()
     r = json.loads((res / "result.json").read_text())
     v, ref = r["validation"], r["refinement"]

@@ -207,6 +207,12 @@ def test_lost_tip_is_an_error():
         )
 
 
+def test_a_circle_through_two_points_is_not_a_success():
+    fit = to.fit_circle(jnp.asarray([[0.0, 0.0], [1.0, 0.0], [5.0, 5.0]]), jnp.asarray([True, True, False]))
+    assert fit.result == optx.RESULTS.singular
+    assert to.fit_circle(jnp.asarray([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])).result == optx.RESULTS.successful
+
+
 def test_the_loop_refuses_an_impossible_scale_or_start_and_names_a_lost_tip():
     """A scale of zero or below, or a start that is not a point, is refused before any rotation (it
     once came back `converged` at the start); a scale 1000x too large moves the axis so far that the
