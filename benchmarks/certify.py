@@ -37,6 +37,7 @@ import numpy as np
 
 import jaxcal
 from jaxcal.certification import certify
+from jaxcal.errors import DatasetError
 from jaxcal.io._files import write_text_atomic
 from jaxcal.io.model_json import model_from_json
 from jaxcal.report import write_outputs
@@ -52,13 +53,17 @@ def true_points(truth: dict, fixed: str, target: str, q: np.ndarray) -> np.ndarr
     return np.einsum("ab,nbc,cd->nad", T, F, p)[:, :3, 3]
 
 
-def score(res: Path, configs: int, seed: int) -> dict:
-    """Certify `res` and score it against its dataset's truth."""
+def score(res: Path, configs: int, seed: int) -> dict | None:
+    """Certify `res` and score it against its dataset's truth (None: refused, a failed calibration)."""
     doc = json.loads((res / "result.json").read_text())
     truth = json.loads((Path(doc["dataset"]) / "truth.json").read_text())
     fixed = doc["T_device_base" if "T_device_base" in doc else "T_cam_base"]["matrix"]
     t0 = time.perf_counter()
-    c = certify(res, samples=configs, seed=seed)
+    try:
+        c = certify(res, samples=configs, seed=seed)
+    except DatasetError as e:  # a calibration that failed has nothing to certify: left out, said
+        print(f"not certified: {e}", flush=True)
+        return None
     seconds = time.perf_counter() - t0
     T = np.asarray(fixed)
     y_cal = c.points @ T[:3, :3].T + T[:3, 3]
@@ -198,10 +203,11 @@ def main(argv=None) -> int:
             score(r, args.configs, k)
             for k, r in enumerate(tracker_results(args.seeds, args.poses, Path(tmp)))
         ]
+        rows = [r for r in rows if r is not None]
         designs["tracker_poses"] = rows
         print(f"tracker: {args.seeds} calibrations in {time.perf_counter() - t0:.0f} s", flush=True)
     if args.camera:
-        designs["camera"] = [score(r, args.configs, k) for k, r in enumerate(args.camera)]
+        designs["camera"] = [row for k, r in enumerate(args.camera) if (row := score(r, args.configs, k))]
     if args.render:
         with tempfile.TemporaryDirectory() as tmp:
             work = args.workdir or Path(tmp)
@@ -209,7 +215,9 @@ def main(argv=None) -> int:
                 args.render_seeds, work, args.render, args.reuse, args.first_seed, args.plan, args.smoke
             )
             for name, results in rendered.items():
-                designs[name] = [score(r, args.configs, args.first_seed + k) for k, r in enumerate(results)]
+                designs[name] = [
+                    row for k, r in enumerate(results) if (row := score(r, args.configs, args.first_seed + k))
+                ]
     out = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, CPU only",
         "configs": args.configs,
