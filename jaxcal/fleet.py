@@ -53,12 +53,9 @@ from .fleet_prior import FLEET_SCHEMA_VERSION as FLEET_SCHEMA_VERSION
 from .fleet_prior import MIN_UNITS as MIN_UNITS
 from .fleet_prior import RESOLUTION as RESOLUTION
 from .fleet_prior import FleetPrior as FleetPrior
-from .fleet_prior import as_prior as as_prior
 from .fleet_prior import data_digest as data_digest
 from .fleet_prior import fleet_prior as fleet_prior
-from .fleet_prior import gaussian_rows as gaussian_rows
 from .fleet_prior import model_digest as model_digest
-from .fleet_prior import prior_parameter as prior_parameter
 from .fleet_prior import prior_rows as prior_rows
 from .fleet_prior import read_prior as read_prior
 from .io._files import atomic_directory, write_text_atomic

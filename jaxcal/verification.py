@@ -315,6 +315,11 @@ def verify(result, dataset, *, cv: int = 0) -> Verification:
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     problem, layout, notes = _problem_for(ref, ds)
     notes = list(notes)
+    if ref.status in (
+        "failed",
+        "suspect",
+    ):  # measured all the same: what a suspect result does is worth knowing
+        notes.insert(0, f"the calibration is {ref.status} ({ref.reason or 'see result.json reasons'})")
     pf = ref.point_fit
     x = to_device(pf.x, np.float64)
     cov = np.asarray(pf.covariance, np.float64)

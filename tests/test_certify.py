@@ -29,6 +29,7 @@ from jaxcal.io.checks import drift_check_from_json, drift_check_json, product_js
 from jaxcal.io.model_json import model_from_json
 from jaxcal.report import write_outputs
 from jaxcal.sim.tracker import TrackerSimConfig, simulate_tracker
+from jaxcal.verification import verify
 
 
 def _reference(rng, samples=10, joints=6, sigma=1e-5) -> DriftReference:
@@ -237,8 +238,8 @@ def test_a_capture_no_rigid_move_explains_leads_with_the_mismatch(move_mm):
 
 def test_a_failed_calibration_is_not_certified_and_a_suspect_one_is_said(tracker, tmp_path):
     """A result whose solver failed has no covariance worth a bound: refused, naming the file and its
-    reason; a suspect one is certified with the suspicion stated first."""
-    _, _, res, _ = tracker
+    reason; a suspect one is certified with the suspicion stated first; `verify` measures either, saying so."""
+    _, _, res, later = tracker
     doc = json.loads((res / "result.json").read_text())
     for status in ("failed", "suspect"):
         shutil.copytree(res, tmp_path / status)
@@ -254,3 +255,8 @@ def test_a_failed_calibration_is_not_certified_and_a_suspect_one_is_said(tracker
         c.notes[0] == "the calibration is suspect (the solver suspect here): these figures take it as right"
     )
     assert "is suspect" not in " ".join(certify(res, samples=50).notes)
+    # `verify` measures either all the same, and says what the result is first.
+    for status in ("failed", "suspect"):
+        v = verify(tmp_path / status, later)
+        assert v.notes[0] == f"the calibration is {status} (the solver {status} here)", v.notes
+    assert not any(n.startswith("the calibration is") for n in verify(res, later).notes)
