@@ -60,14 +60,6 @@ def margin(joint_type: str, lower: float, upper: float) -> float:
     return max(LIMIT_MARGIN_ABS[_kind(joint_type)], LIMIT_MARGIN_REL * (upper - lower))
 
 
-def _fits(q: np.ndarray, limits) -> bool:
-    lo, hi = float(q.min()), float(q.max())
-    if limits.lower is None or limits.upper is None:
-        return max(abs(lo), abs(hi)) <= ABSURD[limits.joint_type]
-    m = margin(limits.joint_type, limits.lower, limits.upper)
-    return limits.lower - m <= lo and hi <= limits.upper + m
-
-
 #: Values beyond a joint's limits in at most this share of a column's rows (or in one row) are
 #: wrong cells, named by line; more are the column's unit. A column in the wrong unit puts every
 #: value far from zero out of the limits, a sweep's tenths of them or more; values near zero
@@ -81,6 +73,10 @@ def _outside(q: np.ndarray, limits) -> np.ndarray:
         return np.abs(q) > ABSURD[limits.joint_type]
     m = margin(limits.joint_type, limits.lower, limits.upper)
     return (q < limits.lower - m) | (q > limits.upper + m)
+
+
+def _fits(q: np.ndarray, limits) -> bool:
+    return not _outside(q, limits).any()
 
 
 def unit_problem(
@@ -112,9 +108,8 @@ def unit_problem(
             f"{m:.3g} {lin} margin"
         )
     out = np.flatnonzero(_outside(q, limits))
-    if lines is not None and out.size <= max(
-        1, FEW_CELLS * q.size
-    ):  # a few wrong cells, not the column's unit
+    # A few wrong cells, not the column's unit.
+    if lines is not None and out.size <= max(1, FEW_CELLS * q.size):
         k, named = out[0], ", ".join(str(lines[i]) for i in out[:5]) + (" ..." if out.size > 5 else "")
         hint = ""
         if lin == "rad" and unit != "deg" and not _outside(np.radians(raw[k] * factor) / ratio, limits):
