@@ -193,9 +193,19 @@ CONFIGS = {
 
 #: Cases that are another case's images with the metadata's cameras edited: name -> (that case, edit).
 EDITED = {
+    # metadata.json's K 2 % longer than the rendering camera's, or its principal point 20 px right.
+    "focal_2pct": ("ideal", lambda cam: cam | {"K": _scaled(cam["K"], 1.02, 0.0)}),
+    "principal_20px": ("ideal", lambda cam: cam | {"K": _scaled(cam["K"], 1.0, 20.0)}),
     "rolling_shutter_estimated": ("rolling_shutter_given", lambda cam: cam | {"line_delay_s": "estimate"}),
     "rolling_shutter_unknown": ("rolling_shutter_given", lambda cam: cam | {"line_delay_s": None}),
 }
+
+
+def _scaled(K, focal: float, cx_px: float) -> list:
+    """`K` (rows) with its focal lengths times `focal` and its principal point `cx_px` right."""
+    K = np.array(K, np.float64)
+    K[0, 0], K[1, 1], K[0, 2] = focal * K[0, 0], focal * K[1, 1], K[0, 2] + cx_px
+    return K.tolist()
 
 
 def edited(case: str, config: SimConfig, workdir: Path) -> Path:
@@ -395,6 +405,11 @@ def run_case(dataset: Path, terms="auto") -> dict:
         "line_delay_estimated": bool(delays and delays[0].estimated),
         "terms_kept": [] if result.terms is None else list(result.terms.kept),
         "terms_why": [] if result.terms is None else [m.why for m in result.terms.models if m.why],
+        # The score tests of the first camera's held lens and intrinsics (sigmas; null: not tested).
+        "camera_model_sigmas": {
+            "lens": getattr(getattr(result.refinement, "lens_test", None), "sigmas", None),
+            "intrinsics": getattr(getattr(result.refinement, "intrinsics_test", None), "sigmas", None),
+        },
     }
 
 

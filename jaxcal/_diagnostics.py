@@ -1,10 +1,11 @@
 """The refinement's residuals tested at its solution (pure; the stages run them:
 `jaxcal.stages._residual_tests`).
 
-- `line_delay_test`, `lens_test`, `score_tests`: score (Lagrange-multiplier) tests of a
-  parameter the refinement held: a rolling shutter's line delay on a global-shutter solution,
-  the first camera's radial distortion beyond the given lens; one reverse pass of the corner
-  model for both (`score_tests`).
+- `line_delay_test`, `lens_test`, `intrinsics_test`, `score_tests`: score (Lagrange-multiplier)
+  tests of parameters the refinement held: a rolling shutter's line delay on a global-shutter
+  solution, the first camera's radial distortion beyond the given lens, its focal lengths and
+  principal point beyond the given ones; one reverse pass of the corner model for all three
+  (`score_tests`).
 - `view_information`: each view's information $J_v^TJ_v$ at the solution, for sandwiches that
   group views (`jaxcal._lsq.hac_covariance`).
 - `residual_correlation` (NumPy): each corner's residual against its own in later frames.
@@ -131,8 +132,10 @@ class LensTest(eqx.Module):
     sigmas: Float[Array, ""]
 
 
-#: The flattened `RefineParams` index of $k_1$ and $k_2$ within the intrinsics' increments.
-_RADIAL = (INTRINSIC_NAMES.index("k1"), INTRINSIC_NAMES.index("k2"))
+#: The held intrinsics each test frees (`INTRINSIC_NAMES`): the radial distortion's first two
+#: coefficients, and the pinhole's focal lengths and principal point.
+RADIAL = ("k1", "k2")
+PINHOLE = ("fx", "fy", "cx", "cy")
 
 
 def lens_test(problem: RefineProblem, res: RefineResult) -> LensTest:
@@ -146,42 +149,78 @@ def lens_test(problem: RefineProblem, res: RefineResult) -> LensTest:
     $S = \\hat d^TD\\hat d / \\hat\\sigma^2 \\sim \\chi^2_2$ under a right lens, reported as the
     standard normal quantile of its p-value (`sigmas`). Pure.
     """
-    J_d, r = _radial_columns(problem, res)
+    J_d, r = _held_columns(problem, res, RADIAL)
     return _lens(J_d, _pulled(problem, res, J_d), r, res)
+
+
+class IntrinsicsTest(eqx.Module):
+    """The score test of a refinement for focal lengths and a principal point beyond its given
+    ones (`intrinsics_test`).
+
+    - `step`: the $(f_x, f_y, c_x, c_y)$ increments (px) one Gauss-Newton step from the solution
+      would add, the other parameters following; `(4,)`.
+    - `chi2`: the score statistic $\\hat d^T D \\hat d / \\hat\\sigma^2$ ($\\chi^2$ on four degrees
+      of freedom when the intrinsics are right; the stage states it as a normal's size).
+    """
+
+    step: Float[Array, "4"]
+    chi2: Float[Array, ""]
+
+
+def intrinsics_test(problem: RefineProblem, res: RefineResult) -> IntrinsicsTest:
+    """Do a refinement's residuals point to other focal lengths or another principal point than
+    the first camera's given ones (the metadata's `K`, held)? The score test of `lens_test` on
+    $(f_x, f_y, c_x, c_y)$: a wrong focal length scales the image about its centre, which the
+    camera's distance and the link lengths absorb only in part. Pure."""
+    J_k, r = _held_columns(problem, res, PINHOLE)
+    return _intrinsics(J_k, _pulled(problem, res, J_k), r, res)
 
 
 def score_tests(
     problem: RefineProblem, res: RefineResult, rows: Float[Array, "views corners"] | None = None
-) -> tuple[ShutterTest, LensTest]:
-    """`(line_delay_test(problem, res, rows), lens_test(problem, res))` with one reverse pass of
-    the model for both (the stage's program). Pure."""
+) -> tuple[ShutterTest, LensTest, IntrinsicsTest]:
+    """`(line_delay_test(problem, res, rows), lens_test(problem, res), intrinsics_test(problem,
+    res))` with one reverse pass of the model for all three (the stage's program). Pure."""
     J_ell, r = _delay_columns(problem, res, rows)
-    J_d, _ = _radial_columns(problem, res)
-    G = _pulled(problem, res, jnp.concatenate([J_ell, J_d], axis=1))
-    C = J_ell.shape[1]
-    return _shutter(J_ell, G[:, :C], r, res), _lens(J_d, G[:, C:], r, res)
+    J_dk, _ = _held_columns(problem, res, RADIAL + PINHOLE)
+    G = _pulled(problem, res, jnp.concatenate([J_ell, J_dk], axis=1))
+    C, R = J_ell.shape[1], len(RADIAL)
+    J_d, J_k, G_d, G_k = J_dk[:, :R], J_dk[:, R:], G[:, C : C + R], G[:, C + R :]
+    return _shutter(J_ell, G[:, :C], r, res), _lens(J_d, G_d, r, res), _intrinsics(J_k, G_k, r, res)
 
 
-def _radial_columns(problem: RefineProblem, res: RefineResult):
-    """`(J_d (N, 2), r (N,))`: the residuals' derivative along the first camera's $k_1, k_2$."""
+def _held_columns(problem: RefineProblem, res: RefineResult, names: tuple[str, ...]):
+    """`(J (N, len(names)), r (N,))`: the residuals' derivative along the first camera's
+    intrinsics `names` (`INTRINSIC_NAMES`) and the residuals."""
     flat, unravel = ravel_pytree(res.params)
-    radial = np.asarray(layout(problem, res.params).index("intr"))[list(_RADIAL)]
+    intr = np.asarray(layout(problem, res.params).index("intr"))
+    rows = intr[[INTRINSIC_NAMES.index(n) for n in names]]
 
     def along(x):
         return reprojection_residuals(unravel(x), problem, res.weights).reshape(-1)
 
-    E = jnp.zeros((flat.shape[0], 2)).at[radial, np.arange(2)].set(1.0)
+    E = jnp.zeros((flat.shape[0], len(names))).at[rows, np.arange(len(names))].set(1.0)
     r = along(flat)
     return jax.vmap(lambda e: jax.jvp(along, (flat,), (e,))[1], in_axes=1, out_axes=1)(E), r
 
 
+def _statistic(J_x, G, r, res):
+    """`(step, chi2)`: the score test's step along `J_x` and its statistic $\\hat d^TD\\hat d/\\hat\\sigma^2$."""
+    d, D = _step(J_x, G, r, res)
+    return d, jnp.maximum(d @ D @ d / jnp.maximum(res.sigma_px**2, 1e-30), 0.0)
+
+
 def _lens(J_d, G, r, res) -> LensTest:
-    d, D = _step(J_d, G, r, res)
-    chi2 = jnp.maximum(d @ D @ d / jnp.maximum(res.sigma_px**2, 1e-30), 0.0)
+    d, chi2 = _statistic(J_d, G, r, res)
     # chi^2 on 2 dof: p = exp(-S/2); its normal quantile, sqrt(S) beyond a few sigmas' precision.
     sigmas = jnp.sqrt(2.0) * jax.scipy.special.erfinv(jnp.maximum(1.0 - 2.0 * jnp.exp(-0.5 * chi2), 0.0))
     sigmas = jnp.where(chi2 > 60.0, jnp.sqrt(jnp.maximum(chi2 - 2.0 * jnp.log(chi2) - 2.0, 0.0)), sigmas)
     return LensTest(distortion=d, sigmas=sigmas)
+
+
+def _intrinsics(J_k, G, r, res) -> IntrinsicsTest:
+    step, chi2 = _statistic(J_k, G, r, res)
+    return IntrinsicsTest(step=step, chi2=chi2)
 
 
 def residual_correlation(

@@ -17,6 +17,12 @@ def chi2_ppf(q, dof):
     return special.chdtri(dof, 1.0 - np.asarray(q))
 
 
+def normal_isf(p):
+    """The standard normal's upper `p` quantile (a p-value as a size in sigmas), finite for `p`
+    down to the smallest double."""
+    return -special.ndtri(np.maximum(np.asarray(p, np.float64), np.finfo(np.float64).tiny))
+
+
 def f_sf(x, dfn, dfd):
     """$P(F_{dfn, dfd} > x)$."""
     return special.fdtrc(dfn, dfd, x)

@@ -488,6 +488,23 @@ class LensTest(Record):
 
 
 @dataclass(frozen=True, eq=False)
+class IntrinsicsTest(Record):
+    """The focal lengths and principal point a refinement's residuals point to, beyond those it was
+    given (a score test on $f_x, f_y, c_x, c_y$; `jaxcal._diagnostics.intrinsics_test`): their
+    increments (px)."""
+
+    camera: str
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    #: The shift they imply at the image's farthest corner (px).
+    shift_px: float
+    #: Their size in standard deviations (the four-degree-of-freedom score statistic as a normal's).
+    sigmas: float
+
+
+@dataclass(frozen=True, eq=False)
 class ErrorCorrelation(Record):
     """Whether the refinement's residuals repeat along the capture and between the views of one
     pose (`jaxcal._diagnostics.residual_correlation`, `jaxcal.stages._residual_tests`)."""
@@ -543,6 +560,7 @@ class RefinementSummary(Record):
     line_delay: tuple[LineDelay, ...] | None = optional()
     rolling_shutter_test: tuple[ShutterTest, ...] | None = optional()
     lens_test: LensTest | None = optional()
+    intrinsics_test: IntrinsicsTest | None = optional()
     error_correlation: ErrorCorrelation | None = optional()
 
 

@@ -79,7 +79,8 @@ RUNS = {
         "realism",
         "--cases ideal --seeds 2 --seed 0 --resolution 800x600 --frames-per-joint 24 --detection-errors "
         "--workdir {work}/realism",
-        "cases.ideal.refined_mm cases.ideal.detection over_seeds.ideal.median_refined_mm",
+        "cases.ideal.refined_mm cases.ideal.detection over_seeds.ideal.median_refined_mm "
+        "cases.ideal.camera_model_sigmas.intrinsics<=3 cases.ideal.camera_model_sigmas.lens<=3",
     ),
     "realism --analytic-seeds": Run(
         "realism",

@@ -18,9 +18,10 @@ import numpy as np
 import optimistix as optx
 import pytest
 from jax.flatten_util import ravel_pytree
+from scipy import stats
 
 from jaxcal._correction import Estimate, ParameterLayout
-from jaxcal._diagnostics import lens_test, line_delay_test, view_information
+from jaxcal._diagnostics import intrinsics_test, lens_test, line_delay_test, view_information
 from jaxcal._montecarlo import default_setup
 from jaxcal._refine import (
     RefineProblem,
@@ -172,12 +173,14 @@ def test_refinement_recovers_the_line_delay(given):
     assert np.sqrt(np.mean(off[np.asarray(seen.data.mask)] ** 2)) > 1.0
 
 
-def test_global_shutter_refinement_flags_the_rows_and_the_lens():
-    """The score tests of a global-shutter refinement (`line_delay_test`, `lens_test`): on a
-    rolling shutter's corners the first finds the line delay (the other parameters absorb
-    none of the within-view skew) far beyond its noise; on corners through a stronger lens
-    than the one given the second finds the difference; on a global shutter's through the
-    given lens both stay within a few sigmas."""
+def test_global_shutter_refinement_flags_the_rows_the_lens_and_the_intrinsics():
+    """The score tests of a global-shutter refinement (`line_delay_test`, `lens_test`,
+    `intrinsics_test`): on a rolling shutter's corners the first finds the line delay (the other
+    parameters absorb none of the within-view skew) far beyond its noise; on corners through a
+    stronger lens than the one given the second finds the difference; on corners of a camera whose
+    focal length is 6 % longer than the one given, or whose principal point is 25 px to the right,
+    the third finds them; on a global shutter's through the given camera all stay within a few
+    sigmas."""
     rolling_problem = _problem(True, DELAY_S)
     truth = _params(True)
     seen = _seen(truth, rolling_problem)
@@ -192,17 +195,23 @@ def test_global_shutter_refinement_flags_the_rows_and_the_lens():
     lens = eqx.tree_at(
         lambda p: p.dist0, _problem(False), _problem(False).dist0 + jnp.array([-0.1, 0, 0, 0, 0])
     )
+    K0 = _problem(False).K0
+    focal = eqx.tree_at(lambda p: p.K0, _problem(False), K0.at[0, 0].mul(1.06).at[1, 1].mul(1.06))
+    principal = eqx.tree_at(lambda p: p.K0, _problem(False), K0.at[0, 2].add(25.0))
     cases = (
         ("rolling", seen.data.pixels),
         ("global", projected_corners(p0, _problem(False))),
         ("lens", projected_corners(p0, lens)),
+        ("focal", projected_corners(p0, focal)),
+        ("principal", projected_corners(p0, principal)),
     )
-    out, radial = {}, {}
+    out, radial, pinhole = {}, {}, {}
+    tests = jax.jit(lambda pb, r: (line_delay_test(pb, r), lens_test(pb, r), intrinsics_test(pb, r)))
     solve = jax.jit(lambda pb, s: refine(pb, s, free, robust=None))
     for name, pixels in cases:
         glob = eqx.tree_at(lambda p: p.data.pixels, _problem(False), pixels + noise)
         res = solve(glob, p0)
-        out[name], radial[name] = jax.jit(lambda pb, r: (line_delay_test(pb, r), lens_test(pb, r)))(glob, res)
+        out[name], radial[name], pinhole[name] = tests(glob, res)
         if name == "global":  # the views' information adds up to the normal matrix the covariance inverts
             info = np.asarray(jax.jit(lambda pb, r: view_information(pb, r, free))(glob, res)).sum(axis=0)
             f = np.flatnonzero(free)
@@ -217,6 +226,17 @@ def test_global_shutter_refinement_flags_the_rows_and_the_lens():
     assert abs(float(radial["lens"].distortion[0]) / -0.1 - 1.0) < 0.15
     assert float(radial["lens"].sigmas) > 1.5 * Limits().lens_sigmas
     assert float(radial["global"].sigmas) < 4.0
+    # The intrinsics' score test (chi^2 on 4 dof): its step points along the error (the camera's
+    # distance absorbs most of a focal length's, so only its sign and size within a factor of 3
+    # are checked; a principal point's within 25 %), past the limit; none on the right camera.
+    limit = Limits().intrinsics_sigmas
+    chi2_limit = float(stats.chi2.isf(stats.norm.sf(limit), 4))
+    f_step = np.asarray(pinhole["focal"].step[:2]) / np.diag(np.asarray(K0))[:2]
+    assert np.all((f_step > 0.06 / 3) & (f_step < 0.06 * 3)), f_step
+    assert float(pinhole["focal"].chi2) > chi2_limit
+    step = np.asarray(pinhole["principal"].step)
+    assert abs(step[2] / 25.0 - 1.0) < 0.25 and float(pinhole["principal"].chi2) > chi2_limit, step
+    assert float(pinhole["global"].chi2) < float(stats.chi2.isf(0.001, 4))
 
 
 def test_pose_times_and_the_metadata():

@@ -426,7 +426,7 @@ def test_the_causes_lead_the_reasons():
     c.add("correlated_errors_sigmas", 7.0, 5.0, "errors repeat", cause="correlated_errors")
     c.add("axis_residual", 1.0, 5.0, "passes")
     c.add("cam0.rolling_shutter_sigmas", 41.0, 10.0, "rolling shutter", cause="rolling_shutter")
-    c.add("cam0.lens_sigmas", 12.0, 10.0, "lens", cause="lens")
+    c.add("cam0.lens_sigmas", 12.0, 10.0, "lens", cause="camera_model")
     assert c.reasons == ["rolling shutter", "lens", "errors repeat", "origin moved"]
     assert [r.passed for r in c.rows] == [False, False, True, False, False]
-    assert CAUSES == ("rolling_shutter", "lens", "blur", "arm", "correlated_errors")
+    assert CAUSES == ("rolling_shutter", "camera_model", "blur", "arm", "correlated_errors")

@@ -213,6 +213,23 @@ def test_a_circle_through_two_points_is_not_a_success():
     assert to.fit_circle(jnp.asarray([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])).result == optx.RESULTS.successful
 
 
+def test_points_on_a_line_are_not_a_circle():
+    """Collinear points, in the image or in space, are no success (the solver's radius grows
+    without end); a short arc of 2 degrees, exact or with noise well under its 38 um sagitta, is."""
+    t = np.linspace(0.0, 1.0, 12)
+    for pts in (
+        np.stack([3.0 * t, 1.0 - 2.0 * t], axis=1),
+        np.stack([3.0 * t, 1.0 - 2.0 * t, 0.5 * t], axis=1),
+    ):
+        assert to.fit_circle(jnp.asarray(pts)).result != optx.RESULTS.successful
+    a = np.radians(np.linspace(0.0, 2.0, 12))
+    arc = 0.5 * np.stack([np.cos(a), np.sin(a)], axis=1)
+    fit = to.fit_circle(jnp.asarray(arc))
+    assert fit.result == optx.RESULTS.successful and abs(float(fit.radius) - 0.5) < 1e-6
+    noisy = to.fit_circle(jnp.asarray(arc + 2e-6 * np.random.default_rng(0).standard_normal(arc.shape)))
+    assert noisy.result == optx.RESULTS.successful and abs(float(noisy.radius) - 0.5) < 0.05
+
+
 def test_the_loop_refuses_an_impossible_scale_or_start_and_names_a_lost_tip():
     """A scale of zero or below, or a start that is not a point, is refused before any rotation (it
     once came back `converged` at the start); a scale 1000x too large moves the axis so far that the

@@ -249,7 +249,7 @@ def refinement(free: np.ndarray, jacobian: bool = False):
 
 @functools.cache
 def score_tests():
-    """`jaxcal._diagnostics.score_tests(problem, res)`: the rolling-shutter and the lens's score tests of
+    """`jaxcal._diagnostics.score_tests(problem, res)`: the rolling-shutter, lens and intrinsics score tests of
     a global-shutter refinement."""
     return stored_jit(score_tests_of, "score_tests")
 

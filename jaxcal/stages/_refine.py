@@ -42,6 +42,7 @@ from .._refine import (
 from ..records import (
     ClockEstimate,
     ErrorCorrelation,
+    IntrinsicsTest,
     JointAngles,
     LensTest,
     LineDelay,
@@ -92,8 +93,9 @@ class Refined:
       row), std (None when given), whether it was estimated, and the readout
       (the delay times the image height, s).
     - `shutter_test`: without one, per camera the rolling shutter its residuals
-      point to (`score_tests`); None when not tested. `lens_test`: the radial
-      distortion they point to beyond the first camera's given lens.
+      point to (`score_tests`); None when not tested. `lens_test`, `intrinsics_test`: the
+      radial distortion, focal lengths and principal point they point to beyond the first
+      camera's given ones.
     - `error_correlation`: the test of errors that repeat along the capture and
       between the views of one pose (`error_correlation`), and where it passed,
       `cov_views`, the covariance its kernel sandwich replaced.
@@ -123,6 +125,7 @@ class Refined:
     shutter_test: tuple[ShutterTest, ...] | None = None
     terms: TermFit | None = None
     lens_test: LensTest | None = None
+    intrinsics_test: IntrinsicsTest | None = None
     error_correlation: ErrorCorrelation | None = None
     #: Where the residuals' errors are correlated, the covariance of the free parameters
     #: the kernel sandwich replaced (the views' sandwich or the model's).
@@ -588,7 +591,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         )
     elif terms:
         fit_terms = TermFit((), np.zeros(0), None, None, not_tried(terms, "the capture has no encoder log"))
-    # The shutter's and the lens's score tests, in the `Future` the verdict reads (`run_ahead`
+    # The shutter's, the lens's and the intrinsics' score tests, in the `Future` the verdict reads (`run_ahead`
     # runs it inline).
     pending = _programs.run_ahead("score tests", score_tests, setup, corners, problem, res, layout, free)
     jax.block_until_ready(res)
@@ -603,14 +606,15 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     delays = _delay_rows(corners, res, layout, free)
     timings = {"refine_s": time.perf_counter() - t0}
     t0 = time.perf_counter()
-    test, lens = pending.result()
-    if test is not None or lens is not None:
+    test, lens, pinhole = pending.result()
+    if test is not None:
         timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for them, past the refinement
     summary = dataclasses.replace(
         out.summary,
         line_delay=delays or None,
         rolling_shutter_test=test,
         lens_test=lens,
+        intrinsics_test=pinhole,
         error_correlation=correlation,
     )
     return dataclasses.replace(
@@ -620,6 +624,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         line_delays=delays,
         shutter_test=test,
         lens_test=lens,
+        intrinsics_test=pinhole,
         error_correlation=correlation,
         cov_views=cov_views,
         timings=timings,

@@ -1,5 +1,5 @@
 """The refinement's residuals tested at its solution: the score tests of a rolling shutter
-and of a lens beyond the given one, and the test of errors that repeat along the capture or
+and of a lens and intrinsics beyond the given ones, and the test of errors that repeat along the capture or
 between the views of one pose, with the covariance that then accounts for them
 (`jaxcal.stages.refine` runs them; the verdict names what they find).
 
@@ -14,10 +14,10 @@ import numpy as np
 
 from .._correction import INTRINSIC_NAMES, ParameterLayout
 from .._diagnostics import residual_correlation
-from .._distributions import chi2_sf
+from .._distributions import chi2_sf, normal_isf
 from .._lsq import larger_covariance_np, newey_west_lags
 from .._refine import RefineProblem
-from ..records import ErrorCorrelation, LensTest, ShutterTest
+from ..records import ErrorCorrelation, IntrinsicsTest, LensTest, ShutterTest
 from . import _programs
 from ._setup import Setup
 
@@ -27,19 +27,20 @@ SIGNIFICANT_LAG_Z = 3.0
 
 def score_tests(
     setup: Setup, corners, problem: RefineProblem, res, layout: ParameterLayout, free
-) -> tuple[tuple[ShutterTest, ...] | None, LensTest | None]:
+) -> tuple[tuple[ShutterTest, ...] | None, LensTest | None, IntrinsicsTest | None]:
     """The score tests of a global-shutter refinement (one program, `_programs.score_tests`).
 
     Per camera, the rolling shutter its residuals point to (`jaxcal._diagnostics.line_delay_test`):
     the line delay (s per row), the readout it implies (times the image height, s) and its
     size in standard deviations. For the first camera, when its radial distortion was held
     (the metadata's lens), the radial distortion they point to (`jaxcal._diagnostics.lens_test`):
-    $k_1, k_2$, the shift they imply at the image's corner (px) and their size in sigmas.
-    `(None, None)` when a line delay was modelled, or without an encoder log (each view's
-    angle is then an unknown of its own)."""
+    $k_1, k_2$, the shift they imply at the image's corner (px) and their size in sigmas; when its
+    focal lengths and principal point were held, the ones they point to
+    (`jaxcal._diagnostics.intrinsics_test`), likewise. `(None, None, None)` when a line delay was
+    modelled, or without an encoder log (each view's angle is then an unknown of its own)."""
     if problem.line_delay0_s is not None or setup.kind.per_view_angles:
-        return None, None
-    shutter, radial = jax.device_get(_programs.score_tests()(problem, res))
+        return None, None, None
+    shutter, radial, pinhole = jax.device_get(_programs.score_tests()(problem, res))
     tests = tuple(
         ShutterTest(
             camera=v.camera.name,
@@ -49,21 +50,38 @@ def score_tests(
         )
         for c, v in enumerate(corners.used)
     )
-    lens = None
     intr = layout.index("intr")
-    if not any(free[intr[INTRINSIC_NAMES.index(k)]] for k in ("k1", "k2")):
-        cam = corners.used[0].camera
-        K = np.asarray(problem.K0, np.float64)
-        k1, k2 = (float(x) for x in radial.distortion)
-        # The image's corner, normalised: the farthest a corner can be from the principal point.
-        rho2 = max(
-            ((x - K[0, 2]) / K[0, 0]) ** 2 + ((y - K[1, 2]) / K[1, 1]) ** 2
+    held = [not free[intr[INTRINSIC_NAMES.index(k)]] for k in INTRINSIC_NAMES]
+    cam = corners.used[0].camera
+    K = np.asarray(problem.K0, np.float64)
+    # The image's corners, normalised: the farthest a corner can be from the principal point.
+    edges = np.array(
+        [
+            ((x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1])
             for x in (0.0, cam.width - 1.0)
             for y in (0.0, cam.height - 1.0)
-        )
+        ]
+    )
+    lens = None
+    if all(held[INTRINSIC_NAMES.index(k)] for k in ("k1", "k2")):
+        k1, k2 = (float(x) for x in radial.distortion)
+        rho2 = float(np.max(np.sum(edges**2, axis=1)))
         shift = float(np.sqrt(rho2) * K[0, 0] * abs(k1 * rho2 + k2 * rho2**2))
         lens = LensTest(camera=cam.name, k1=k1, k2=k2, shift_px=shift, sigmas=float(radial.sigmas))
-    return tests, lens
+    intrinsics = None
+    if all(held[INTRINSIC_NAMES.index(k)] for k in ("fx", "fy", "cx", "cy")):
+        dfx, dfy, dcx, dcy = (float(x) for x in pinhole.step)
+        moved = np.stack([dfx * edges[:, 0] + dcx, dfy * edges[:, 1] + dcy], axis=1)
+        intrinsics = IntrinsicsTest(
+            camera=cam.name,
+            fx_px=dfx,
+            fy_px=dfy,
+            cx_px=dcx,
+            cy_px=dcy,
+            shift_px=float(np.max(np.linalg.norm(moved, axis=1))),
+            sigmas=float(normal_isf(chi2_sf(float(pinhole.chi2), 4))),
+        )
+    return tests, lens, intrinsics
 
 
 #: The correlation test's lags along the capture (frames).

@@ -79,7 +79,7 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
 
 #: The causes a failed check names, in the order its reason leads the others: they explain the
 #: symptoms (corrections out of tolerance, large residuals) that follow them.
-CAUSES = ("rolling_shutter", "lens", "blur", "arm", "correlated_errors")
+CAUSES = ("rolling_shutter", "camera_model", "blur", "arm", "correlated_errors")
 
 
 class _Checks:
@@ -418,24 +418,43 @@ def _shutter(c: _Checks, refined: Refined, limits: Limits) -> None:
         )
 
 
-def _lens(c: _Checks, refined: Refined, limits: Limits) -> None:
-    """The residuals against a radial distortion beyond the first camera's given lens
-    (`jaxcal._diagnostics.lens_test`): a shift growing with the distance from the image's centre."""
-    t = refined.lens_test
-    if t is None:
-        return
-    big = t.shift_px >= limits.lens_px
-    c.add(
-        f"{t.camera}.lens_sigmas",
-        t.sigmas if big else 0.0,
-        limits.lens_sigmas,
-        f"camera {t.camera!r}: the residuals grow with the distance from the image's centre, as a lens's radial "
-        f"distortion does ({t.sigmas:.0f} sigmas): a distortion of k1 {t.k1:+.3g}, k2 {t.k2:+.3g} beyond the "
-        f"metadata's would shift the image's corners by {t.shift_px:.1f} px, and the calibration bent the robot to "
-        "fit it; give cameras[].distortion (and K) from the camera's own calibration in metadata.json, or leave "
-        "cameras[].K out to have the intrinsics self-calibrated",
-        cause="lens",
-    )
+def _camera_model(c: _Checks, refined: Refined, limits: Limits) -> None:
+    """The residuals against a radial distortion beyond the first camera's given lens, and against
+    other focal lengths or another principal point than its given ones (`jaxcal._diagnostics`'
+    `lens_test` and `intrinsics_test`): the larger first, where both fail."""
+    rows = []
+    if (t := refined.lens_test) is not None:
+        rows.append(
+            (
+                t.sigmas,
+                f"{t.camera}.lens_sigmas",
+                t.sigmas if t.shift_px >= limits.lens_px else 0.0,
+                limits.lens_sigmas,
+                f"camera {t.camera!r}: the residuals grow with the distance from the image's centre, as a lens's radial "
+                f"distortion does ({t.sigmas:.0f} sigmas): a distortion of k1 {t.k1:+.3g}, k2 {t.k2:+.3g} beyond the "
+                f"metadata's would shift the image's corners by {t.shift_px:.1f} px, and the calibration bent the robot "
+                "to fit it; give cameras[].distortion (and K) from the camera's own calibration in metadata.json, or "
+                "leave cameras[].K out to have the intrinsics self-calibrated",
+            )
+        )
+    if (t := refined.intrinsics_test) is not None:
+        f = refined.problem.K0[0, 0], refined.problem.K0[1, 1]
+        rows.append(
+            (
+                t.sigmas,
+                f"{t.camera}.intrinsics_sigmas",
+                t.sigmas if t.shift_px >= limits.intrinsics_px else 0.0,
+                limits.intrinsics_sigmas,
+                f"camera {t.camera!r}: the residuals point to other intrinsics than metadata.json's ({t.sigmas:.0f} "
+                f"sigmas): focal lengths fx {100 * t.fx_px / f[0]:+.2f} %, fy {100 * t.fy_px / f[1]:+.2f} % and the "
+                f"principal point moved ({t.cx_px:+.1f}, {t.cy_px:+.1f}) px would shift the image's corners by "
+                f"{t.shift_px:.1f} px, and the calibration moved the camera and bent the robot to fit them; give "
+                "cameras[].K from the camera's own calibration at this resolution and focus, or leave cameras[].K out "
+                "to have the intrinsics self-calibrated",
+            )
+        )
+    for _, *row in sorted(rows, key=lambda r: -r[0]):
+        c.add(*row, cause="camera_model")
 
 
 def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limits: Limits) -> None:
@@ -533,7 +552,7 @@ def verdict(
     if ran:
         _refinement(c, refined, limits)
         _shutter(c, refined, limits)
-        _lens(c, refined, limits)
+        _camera_model(c, refined, limits)
         _correlation(c, setup, two, refined, limits)
     sigma = _ee_sigma_mm(setup, two, refined if ran else None)
     c.add(
