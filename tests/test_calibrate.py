@@ -29,7 +29,7 @@ from jax._src import dispatch, monitoring
 import jaxcal
 from jaxcal._montecarlo import trial_sweeps
 from jaxcal.cli import main
-from jaxcal.io.dataset import DatasetError
+from jaxcal.io.dataset import DatasetError, load_dataset
 from jaxcal.io.result import COVARIANCE_MODELS, covariance_model, read_result
 from jaxcal.io.ros import read_easy_handeye, read_static_transform
 from jaxcal.pipeline import CalibrationError, calibrate
@@ -359,6 +359,15 @@ def test_missing_image(dataset, tmp_path):
     victim = sorted((ds / "images" / "cam0").iterdir())[3]
     victim.unlink()
     _fails(ds, DatasetError, victim.name, "missing")  # at load, before any detection
+    # As the error advises, its line of frames.csv deleted: the dataset loads, and truth.json's
+    # frames follow the rows that moved up (matched by camera and capture index), the deleted one gone.
+    lines = (ds / "frames.csv").read_text().splitlines(keepends=True)
+    (ds / "frames.csv").write_text("".join(line for line in lines if victim.name not in line))
+    loaded = load_dataset(ds)
+    truth = loaded.truth["frames"]
+    assert len(truth) == len(loaded.frames.file) == len(lines) - 2
+    assert [(f["camera"], f["frame"]) for f in truth] == list(zip(loaded.frames.camera, loaded.frames.frame))
+    assert [f["row"] for f in truth] == list(range(len(truth))) and 3 not in loaded.frames.frame
 
 
 def test_unreadable_image(dataset, tmp_path):

@@ -108,7 +108,11 @@ def true_poses(truth: dict) -> TruePoses:
     )
 
 
-def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:
+def read_truth(path: Path, joints, cameras, targets, rows: tuple[np.ndarray, np.ndarray]) -> dict:
+    """`truth.json` checked against the dataset's joints, cameras and targets. Its `frames` are
+    matched to the frame table's `rows` (`(camera, capture index)` per row) by camera and capture
+    index: an entry whose frame the table no longer lists (a row deleted with its image) is
+    dropped, and every kept entry's `row` is its row now."""
     truth = sc.read_json(path, "truth file")
     loc = Loc(path)
     sc.obj(
@@ -197,12 +201,16 @@ def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:
     frames = truth.get("frames", [])
     if not isinstance(frames, list):
         raise loc.key("frames").expected("a list with one entry per row of frames.csv", frames)
+    row_of = {(str(c), int(k)): r for r, (c, k) in enumerate(zip(*rows))}
+    kept = []
     for i, f in enumerate(frames):
         w = loc.key("frames").index(i)
         sc.obj(f, w, required=("row", "camera", "frame", "t", "theta", "q", "T_cam_target", "visible"))
-        sc.integer(f["row"], w.key("row"), 0, n_rows - 1)
+        sc.integer(f["row"], w.key("row"), 0, MAX_FRAME_INDEX)
         sc.string(f["camera"], w.key("camera"), choices=cam_names)
         sc.integer(f["frame"], w.key("frame"), 0, MAX_FRAME_INDEX)
+        if (row := row_of.get((f["camera"], f["frame"]))) is not None:
+            kept.append(f | {"row": row})
         sc.number(f["t"], w.key("t"))
         sc.array(f["theta"], w.key("theta"), (n,))
         sc.array(f["q"], w.key("q"), (n,))
@@ -218,4 +226,4 @@ def read_truth(path: Path, joints, cameras, targets, n_rows: int) -> dict:
                         raise w.key(key).key(name).expected("true or false", v)
                 else:
                     check(v, w.key(key).key(name))
-    return truth
+    return truth | ({"frames": kept} if "frames" in truth else {})

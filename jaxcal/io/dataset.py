@@ -306,7 +306,7 @@ def load_dataset(path) -> Dataset:
         named = (
             ((device,), (PointTarget(device.point, device.link, None),)) if tracker else (cameras, targets)
         )
-        truth = read_truth(truth_path, joints, *named, len(frames.file))
+        truth = read_truth(truth_path, joints, *named, (frames.camera, frames.frame))
     enc_t = enc_m = None
     glitches = ()
     if emeta is not None:
