@@ -67,6 +67,10 @@ def aruco_dictionary(name: str):
     return cv2.aruco.getPredefinedDictionary(code)
 
 
+#: Pixels per bit cell (a marker's bits and its black border) below which ArUco markers are lost:
+#: rendered 4x4 markers 8 or 12 px wide (1.3, 2 px a cell; their shorter side, median over the
+#: capture) are found in none of the images, 17 px wide (2.8) in 80-100 % of them.
+MIN_PX_PER_CELL = 2.5
 #: A target length above this (m) is taken for millimetres given as metres and refused.
 MAX_LENGTH_M = 2.0
 
@@ -151,6 +155,14 @@ class TargetSpec:
                 f"{where}: marker ids {self.first_id}..{self.first_id + n - 1} do not fit in "
                 f"{self.dictionary} ({size} markers)"
             )
+
+    @property
+    def min_marker_px(self) -> float | None:
+        """The least side (px) a marker needs in an image to be found: `MIN_PX_PER_CELL` times its
+        bit cells and black border. None for kinds without markers."""
+        if self.kind in GRID_KINDS:
+            return None
+        return MIN_PX_PER_CELL * (int(aruco_dictionary(self.dictionary).markerSize) + 2)
 
     # ------------------------------------------------------------------ structure
 

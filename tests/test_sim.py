@@ -1,6 +1,8 @@
 """The MuJoCo synthetic arm: kinematics oracle, camera model, textures, clocks, datasets."""
 
 import json
+import re
+from pathlib import Path
 
 import cv2
 import jax
@@ -9,13 +11,16 @@ import pytest
 
 from jaxcal import forward_kinematics
 from jaxcal.errors import OutputError
-from jaxcal.io.dataset import DatasetError, load_dataset
+from jaxcal.io._truth import small_markers
+from jaxcal.io.dataset import DatasetError, load_dataset, true_poses
 from jaxcal.io.model_json import model_from_json
 from jaxcal.markers import TargetSpec
 from jaxcal.robots import load_robot
 from jaxcal.sim import CameraSpec, PlateSpec, build_scene
 from jaxcal.sim._gl import no_backend_error
 from jaxcal.sim.simulate import SimConfig, draw_truth, facing_mount, look_at, simulate
+
+ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.slow
 
@@ -362,7 +367,19 @@ def test_cli_simulate(tmp_path, capsys):
     out = tmp_path / "cli"
     args = ["simulate", "--out", str(out), "--resolution", "160x120", "--frames-per-joint", "2", "--quiet"]
     assert main(args) == 0
-    assert "12 images" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "12 images" in said
+    # At 160x120 the plate's markers are a few pixels wide: said when rendered, and named when
+    # calibrating finds none (not only the dictionary); data/ur5e_sweeps' (21 px) are not.
+    small = re.search(r"markers about (\d+) px wide \(median\), under the 15 px a DICT_4X4_50", said)
+    assert small and 2 <= int(small.group(1)) <= 6, said
+    assert main(["calibrate", str(out), "--out", str(tmp_path / "res"), "--quiet"]) == 2
+    assert (
+        "whether the markers are big enough in the images: a 30 mm marker is under the 15 px"
+        in capsys.readouterr().err
+    )
+    ds = load_dataset(ROOT / "data" / "ur5e_sweeps")
+    assert small_markers(true_poses(ds.truth), ds.cameras, ds.targets) == []
     assert main(args) == 2
     assert "not empty" in capsys.readouterr().err
 

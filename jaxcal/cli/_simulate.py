@@ -17,6 +17,7 @@ def cmd_simulate(args) -> int:
     check_output_dir(args.out, inputs=robot_file, overwrite=args.overwrite, kind="dataset", what="--out")
     if not args.quiet:
         print(f"simulating a perturbed {args.robot} into {args.out}: building the scene ...", flush=True)
+    from ..io._truth import small_markers
     from ..io.dataset import load_dataset, true_poses
     from ..sim.simulate import SimConfig, simulate
 
@@ -65,6 +66,8 @@ def cmd_simulate(args) -> int:
         f"{len(truth.dropped_frames)} dropped, targets fully in view in {visible} "
         f"({time.perf_counter() - start:.1f} s)"
     )
+    for warning in small_markers(truth, ds.cameras, ds.targets):
+        print(f"warning: {warning}")
     return 0
 
 

@@ -227,3 +227,31 @@ def read_truth(path: Path, joints, cameras, targets, rows: tuple[np.ndarray, np.
                 else:
                     check(v, w.key(key).key(name))
     return truth | ({"frames": kept} if "frames" in truth else {})
+
+
+def small_markers(truth: TruePoses, cameras, targets) -> list[str]:
+    """Warnings for targets whose markers a rendered capture shows smaller than they need to be
+    found (`TargetSpec.min_marker_px`): per camera and target, the median over the frames it is
+    wholly in view of a marker's shorter side (px), a marker-sized square at the plate's origin
+    seen through the camera's pinhole, foreshortening included."""
+    K = {c.name: np.asarray(c.K, np.float64) for c in cameras if c.K is not None}
+    out = []
+    for cam, Kc in K.items():
+        for t in targets:
+            need = t.spec.min_marker_px
+            if need is None:
+                continue
+            square = 0.5 * t.spec.marker_length * np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]])
+            sides = []
+            for poses, seen, name in zip(truth.T_cam_target, truth.visible, truth.frame_cameras):
+                if name == cam and seen.get(t.name) and t.name in poses:
+                    P = square @ poses[t.name][:3, :3].T + poses[t.name][:3, 3]
+                    uv = P[:, :2] / P[:, 2:] @ Kc[:2, :2].T
+                    sides.append(float(np.min(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1))))
+            if sides and (side := float(np.median(sides))) < need:
+                out.append(
+                    f"camera {cam!r} sees target {t.name!r}'s markers about {side:.0f} px wide (median), under "
+                    f"the {need:g} px a {t.spec.dictionary} marker needs to be found: calibrating it will find "
+                    "few or none; render at a higher --resolution or with a larger target"
+                )
+    return out

@@ -307,6 +307,21 @@ def observe_device(setup: Setup) -> SampleObservations:
     )
 
 
+def _too_small(camera, targets) -> str:
+    """The distance from `camera` beyond which the smallest of `targets`' markers is too small
+    to be found (`TargetSpec.min_marker_px`), as a clause of an error; "" without markers or `K`."""
+    sizes = [(t.spec.marker_length, t.spec.min_marker_px) for t in targets if t.spec.min_marker_px]
+    if camera.K is None or not sizes:
+        return ""
+    length, px = min(sizes)
+    far = float(camera.K[0, 0]) * length / px
+    return (
+        f", or whether the markers are big enough in the images: a {1e3 * length:g} mm marker is under "
+        f"the {px:g} px a side it needs to be found beyond {far:.2f} m from this camera (fx "
+        f"{float(camera.K[0, 0]):.0f} px): film it closer, at a higher resolution, or print it larger"
+    )
+
+
 def observe(setup: Setup, options: Options, detections: dict | None = None) -> Observations:
     """Observe the two-stage camera (and, for the refinement, every further
     camera): a `CalibrationError` when no target is found at all. A measuring
@@ -335,6 +350,7 @@ def observe(setup: Setup, options: Options, detections: dict | None = None) -> O
             f"{ds.root}: no target was found in any of the {len(primary.rows)} images of camera "
             f"{setup.camera.name!r}; check the targets' dictionary "
             f"({', '.join(sorted({t.spec.dictionary for t in setup.targets}))}), ids and sizes in metadata.json"
+            + _too_small(setup.camera, setup.targets)
         )
     timings = {"detect_s": time.perf_counter() - t0}
     t0 = time.perf_counter()
