@@ -12,6 +12,7 @@ Run as a script to write data/'s example bag:
 
 import argparse
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -104,6 +105,11 @@ def write_bag(
     camera_info: bool = True,
     image_type: str | None = None,
     joint_scale: float = 1.0,
+    extra_joints: tuple[str, ...] = (),
+    gripper: str | None = None,
+    nan_message: int | None = None,
+    zero_stamps: bool = False,
+    focal_from: tuple[int, float] | None = None,
 ) -> Path:
     """Write `dataset` (a directory) as the bag `bag` (a `.bag` file for ROS 1, a directory for ROS 2).
 
@@ -112,7 +118,12 @@ def write_bag(
     joint states carry (default the robot's); `joints_shift_s`: added to the
     joint states' stamps (to break the overlap); `image_type`: a message type
     to put on the image topic instead (to test the wrong-type error); `joint_scale`: the joint
-    positions' factor (degrees: `180 / pi`, a driver that breaks the message's radians).
+    positions' factor (degrees: `180 / pi`, a driver that breaks the message's radians);
+    `extra_joints`: more names (at 0 rad) in every joint state (a gripper's); `gripper`: a joint
+    published alone on the joint-state topic between the arm's messages (a gripper driver's);
+    `nan_message`: that joint state's first position NaN; `zero_stamps`: every header stamp
+    zero (unset); `focal_from`: `(k, f)`, the camera info's focal lengths times `f` from its k-th
+    message on (a camera recalibrated within the bag).
     """
     ds = load_dataset(dataset)
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -136,20 +147,25 @@ def write_bag(
         if camera_info:
             conn["info"] = writer.add_connection(INFO, "sensor_msgs/msg/CameraInfo", typestore=ts)
         JointState = ts.types["sensor_msgs/msg/JointState"]
-        for t, m in zip(ds.encoder_t, ds.encoder_motor):
-            ns = to_ns(t + joints_shift_s, epoch_s)
-            pos = np.asarray(joint_scale * m / ratio, np.float64)
+
+        def state(ns, names, pos):
+            header = _stamp(ts, 0 if zero_stamps else ns, ros1)
             msg = JointState(
-                header=_stamp(ts, ns, ros1),
-                name=names,
-                position=pos,
-                velocity=np.zeros(0),
-                effort=np.zeros(0),
+                header=header, name=names, position=pos, velocity=np.zeros(0), effort=np.zeros(0)
             )
             writer.write(conn["joints"], ns, ser(msg, "sensor_msgs/msg/JointState"))
-        for i in rows:
+
+        for k, (t, m) in enumerate(zip(ds.encoder_t, ds.encoder_motor)):
+            ns = to_ns(t + joints_shift_s, epoch_s)
+            pos = np.r_[np.asarray(joint_scale * m / ratio, np.float64), np.zeros(len(extra_joints))]
+            if k == nan_message:
+                pos[0] = np.nan
+            state(ns, [*names, *extra_joints], pos)
+            if gripper is not None:
+                state(ns + 1, [gripper], np.zeros(1))
+        for n, i in enumerate(rows):
             ns = to_ns(float(ds.frames["timestamp"][i]), epoch_s)
-            header = _stamp(ts, ns, ros1)
+            header = _stamp(ts, 0 if zero_stamps else ns, ros1)
             if image_type is not None:
                 msg = JointState(
                     header=header, name=[], position=np.zeros(0), velocity=np.zeros(0), effort=np.zeros(0)
@@ -158,8 +174,14 @@ def write_bag(
                 msg = _image_msg(ts, header, ds.image_path(i), encoding)
             writer.write(conn["img"], ns, ser(msg, image_type or image_msgtype))
             if camera_info:
+                seen = cam
+                if focal_from is not None and n >= focal_from[0]:
+                    K = np.asarray(cam.K, np.float64) * np.array(
+                        [[focal_from[1]] * 2 + [1.0], [1.0, focal_from[1], 1.0], [1.0] * 3]
+                    )
+                    seen = SimpleNamespace(K=K, dist=cam.dist, width=cam.width, height=cam.height)
                 writer.write(
-                    conn["info"], ns, ser(_info_msg(ts, header, cam, ros1), "sensor_msgs/msg/CameraInfo")
+                    conn["info"], ns, ser(_info_msg(ts, header, seen, ros1), "sensor_msgs/msg/CameraInfo")
                 )
     return Path(bag)
 

@@ -13,6 +13,7 @@ from bagwriter import COMPRESSED, IMAGES, INFO, JOINTS, write_bag
 from jaxcal.cli import main
 from jaxcal.errors import (
     BagEncodingError,
+    BagError,
     BagJointError,
     BagMessageTypeError,
     BagTimeError,
@@ -132,6 +133,14 @@ def test_rgb8_is_written_in_opencv_order():
     msg = SimpleNamespace(encoding="rgb8", height=2, width=3, step=9, data=rgb.reshape(-1))
     img = cv2.imdecode(np.frombuffer(encode_raw(msg, "m").data, np.uint8), cv2.IMREAD_UNCHANGED)
     assert img[0, 0].tolist() == [0, 0, 200]  # BGR
+    # bgr8 pixels labelled mono8: the rows are three times as long as mono8's; named, not cut to a third.
+    bgr = SimpleNamespace(encoding="mono8", height=2, width=3, step=9, data=rgb.reshape(-1))
+    with pytest.raises(
+        BagEncodingError, match=r"step 9: 3 times the 3 bytes a mono8 row holds, as the rows of bgr8 or rgb8"
+    ):
+        encode_raw(bgr, "m")
+    padded = SimpleNamespace(encoding="mono8", height=2, width=3, step=4, data=np.zeros(8, np.uint8))
+    assert encode_raw(padded, "m").width == 3  # a row padded for alignment is no mislabel
 
 
 def test_stop_and_shoot_is_one_pose_segment():
@@ -192,12 +201,73 @@ def test_wrong_message_type_of_camera_info(small_bag, tmp_path):
         _import(small_bag, tmp_path / "ds", camera_info=JOINTS)
 
 
+def test_a_grippers_joints_are_left_out(source, small_bag, tmp_path):
+    """A gripper's joints on the joint-state topic, in the arm's messages or in its own between
+    them (a second driver publishing there): the chain's joints are picked by name, the rest said,
+    and the encoder log is the arm's alone."""
+    plain = load_dataset(_import(small_bag, tmp_path / "plain").path)
+    for kw in ({"extra_joints": ("finger_joint", "left_inner_knuckle_joint")}, {"gripper": "finger_joint"}):
+        bag = write_bag(
+            SOURCE,
+            tmp_path / f"bag{len(kw['extra_joints']) if 'extra_joints' in kw else 1}",
+            rows=SUBSET,
+            **kw,
+        )
+        done = _import(bag, tmp_path / f"ds_{next(iter(kw))}")
+        ds = load_dataset(done.path)
+        np.testing.assert_array_equal(ds.encoder_motor, plain.encoder_motor)
+        np.testing.assert_array_equal(ds.encoder_t, plain.encoder_t)
+        said = " ".join(done.notes)
+        assert ("left out: ['finger_joint', 'left_inner_knuckle_joint']" in said) == ("extra_joints" in kw), (
+            said
+        )
+        assert ("messages holding only ['finger_joint']" in said) == ("gripper" in kw), said
+
+
 def test_joint_names_not_in_the_urdf(source, tmp_path):
+    """Joint states that hold none of the chain's joints (a driver's name prefix) are refused
+    naming the names that are not the robot file's; a message lacking some of them, naming those."""
+    bag = write_bag(
+        SOURCE, tmp_path / "bag", rows=SUBSET, joint_names=[f"ur_{n}" for n in source.joint_names]
+    )
+    with pytest.raises(
+        BagJointError,
+        match=r"no message of /joint_states holds the robot's joints.*ur_elbow_joint.*not joints of the robot file",
+    ):
+        _import(bag, tmp_path / "ds")
     names = list(source.joint_names[:5]) + ["gripper_finger_joint"]
-    bag = write_bag(SOURCE, tmp_path / "bag", rows=SUBSET, joint_names=names)
-    with pytest.raises(BagJointError, match="gripper_finger_joint"):
+    bag = write_bag(SOURCE, tmp_path / "bag2", rows=SUBSET, joint_names=names)
+    with pytest.raises(
+        BagJointError, match=r"message 0: the joint states lack the robot's joints \['wrist_3_joint'\]"
+    ):
         _import(bag, tmp_path / "ds")
     assert not (tmp_path / "ds").exists()
+
+
+def test_a_nan_joint_state_is_named_by_message_and_joint(source, tmp_path):
+    bag = write_bag(SOURCE, tmp_path / "bag", rows=SUBSET, nan_message=7)
+    with pytest.raises(
+        BagJointError,
+        match=r"/joint_states message 7 \(stamp .* s\): joint position\(s\) of \['shoulder_pan_joint'\]",
+    ):
+        _import(bag, tmp_path / "ds")
+
+
+def test_unset_stamps_are_named(tmp_path):
+    bag = write_bag(SOURCE, tmp_path / "bag", rows=SUBSET, zero_stamps=True)
+    with pytest.raises(
+        BagTimeError, match=r"all \d+ joint states have the header stamp 0.000000000 s; is header.stamp set"
+    ):
+        _import(bag, tmp_path / "ds")
+
+
+def test_a_camera_info_that_changes_within_the_bag_is_refused(tmp_path):
+    """A camera recalibrated (or refocused) within the bag: one capture, one camera model."""
+    bag = write_bag(SOURCE, tmp_path / "bag", rows=SUBSET, focal_from=(6, 1.1))
+    with pytest.raises(
+        BagError, match=r"/camera/camera_info message 6 gives other intrinsics than message 0"
+    ):
+        _import(bag, tmp_path / "ds")
 
 
 def test_joint_states_in_degrees_are_named_by_bag_and_topic(tmp_path):

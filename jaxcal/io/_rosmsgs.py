@@ -52,6 +52,13 @@ def encode_raw(msg, where: str) -> EncodedImage:
             f"{where}: {msg.encoding} image of {w}x{h} with step {step} holds {buf.size} bytes "
             f"(expected at least {w * ch} per row and {step * h} in all)"
         )
+    if step >= 2 * w * ch:  # row padding is a few bytes of alignment, not whole rows' worth
+        guess = {1: "mono8", 3: "bgr8 or rgb8"}.get(step // w, f"{step // w} bytes a pixel")
+        raise BagEncodingError(
+            f"{where}: {msg.encoding} image of {w}x{h} with step {step}: {step / (w * ch):g} times the "
+            f"{w * ch} bytes a {msg.encoding} row holds, as the rows of {guess} are; is the encoding "
+            "field right?"
+        )
     img = buf[: step * h].reshape(h, step)[:, : w * ch].reshape((h, w, ch) if ch > 1 else (h, w))
     if enc == "rgb8":
         img = img[..., ::-1]

@@ -162,42 +162,67 @@ class BagImport:
 def _read_joints(
     reader, conns, bag: Path, topic: str, chain, urdf_joints
 ) -> tuple[np.ndarray, np.ndarray, list]:
-    """`(stamps ns (T,), positions (T, chain))` of the joint states, sorted, repeated stamps dropped."""
-    stamps, rows, names, index = [], [], None, None
+    """`(stamps ns (T,), positions (T, chain))` of the joint states, sorted, repeated stamps dropped.
+    The chain's joints are picked by name: other joints in a message (a gripper's) are left out,
+    and messages holding none of the chain's (a gripper's own, on the same topic) are skipped."""
+    stamps, rows, names, index, other, skipped = [], [], None, None, set(), {}
     for k, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
         msg = reader.deserialize(raw, conn.msgtype)
         where = f"{bag}: {topic} message {k}"
         if list(msg.name) != names:
             names = list(msg.name)
-            unknown = [n for n in names if n not in urdf_joints]
-            if unknown:
+            held = [n for n in chain if n in names]
+            if held and len(held) < len(chain):
                 raise BagJointError(
-                    f"{where}: joint names {unknown} are not joints of the robot file (its movable joints: "
-                    f"{sorted(urdf_joints)})"
+                    f"{where}: the joint states lack the robot's joints "
+                    f"{[n for n in chain if n not in names]} (they hold {names})"
                 )
-            missing = [n for n in chain if n not in names]
-            if missing:
-                raise BagJointError(
-                    f"{where}: the joint states lack the robot's joints {missing} (they hold {names})"
-                )
-            index = [names.index(n) for n in chain]
+            index = [names.index(n) for n in chain] if held else None
         pos = np.asarray(msg.position, np.float64)
         if pos.size != len(names):
             raise BagJointError(f"{where}: {len(names)} joint names but {pos.size} positions")
+        if index is None:
+            skipped.setdefault(tuple(names), k)
+            continue
+        other.update(n for n in names if n not in chain)
+        if not np.all(np.isfinite(pos[index])):
+            bad = [n for n, x in zip(chain, pos[index]) if not np.isfinite(x)]
+            raise BagJointError(
+                f"{where} (stamp {stamp_ns(msg.header) / 1e9:.6f} s): joint position(s) of {bad} are NaN or "
+                "infinite"
+            )
         stamps.append(stamp_ns(msg.header))
         rows.append(pos[index])
-    if len(stamps) < 2:
-        raise BagTimeError(
-            f"{bag}: topic {topic!r} holds {len(stamps)} joint state(s); a log needs at least two"
+    if not stamps and skipped:
+        held = sorted({n for names in skipped for n in names})
+        unknown = [n for n in held if n not in urdf_joints]
+        raise BagJointError(
+            f"{bag}: no message of {topic} holds the robot's joints {list(chain)} (they hold {held}"
+            + (f"; {unknown} are not joints of the robot file" if unknown else "")
+            + ")"
         )
+    _distinct(stamps, bag, topic, "joint state")
     stamps = np.asarray(stamps, np.int64)
     order = np.argsort(stamps, kind="stable")
     stamps, q = stamps[order], np.asarray(rows)[order]
     keep = np.r_[True, np.diff(stamps) > 0]
     notes = [] if keep.all() else [f"{int((~keep).sum())} joint state(s) repeating an earlier stamp dropped"]
-    if not np.all(np.isfinite(q[keep])):
-        raise BagJointError(f"{bag}: topic {topic!r} holds NaN or infinite joint positions")
+    if other:
+        notes.append(f"joints of {topic} not in the robot's chain, left out: {sorted(other)}")
+    for names, k in skipped.items():
+        notes.append(f"{topic} messages holding only {list(names)} (the first: message {k}) skipped")
     return stamps[keep], q[keep], notes
+
+
+def _distinct(stamps: list[int], bag: Path, topic: str, what: str) -> None:
+    """Refuse a topic whose messages do not have two different header stamps (unset stamps)."""
+    if len(stamps) < 2:
+        raise BagTimeError(f"{bag}: topic {topic!r} holds {len(stamps)} {what}(s); a log needs at least two")
+    if len(set(stamps)) < 2:
+        raise BagTimeError(
+            f"{bag}: topic {topic!r}: all {len(stamps)} {what}s have the header stamp {stamps[0] / 1e9:.9f} s; "
+            "is header.stamp set by the publisher?"
+        )
 
 
 def _read_images(reader, conns, bag: Path, topic: str, folder: Path, camera: str) -> tuple[list, list, tuple]:
@@ -219,6 +244,7 @@ def _read_images(reader, conns, bag: Path, topic: str, folder: Path, camera: str
         written.append((stamp_ns(msg.header), tmp))
     if not written:
         raise BagTimeError(f"{bag}: topic {topic!r} holds no images")
+    _distinct([t for t, _ in written], bag, topic, "image")
     written.sort(key=lambda x: x[0])
     rows, notes, last = [], [], None
     for stamp, tmp in written:
@@ -249,8 +275,19 @@ def _camera(reader, bag: Path, topic: str | None, size, camera: str, mount: str)
     infos = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections=conns)]
     if not infos:
         raise BagTimeError(f"{bag}: topic {topic!r} (--camera-info) holds no messages")
-    calibrated = [m for m in infos if np.any(np.asarray(getattr(m, "k", getattr(m, "K", ()))) != 0)]
-    K, dist, w, h = camera_intrinsics((calibrated or infos)[0], f"{bag}: {topic}")
+    calibrated = [
+        (k, m) for k, m in enumerate(infos) if np.any(np.asarray(getattr(m, "k", getattr(m, "K", ()))) != 0)
+    ]
+    first, msg = (calibrated or [(0, infos[0])])[0]
+    K, dist, w, h = camera_intrinsics(msg, f"{bag}: {topic}")
+    for k, m in calibrated[1:]:  # a camera recalibrated, refocused or resized within the bag
+        K2, dist2, w2, h2 = camera_intrinsics(m, f"{bag}: {topic} message {k}")
+        if (w2, h2) != (w, h) or not np.allclose(K2, K, rtol=1e-9, atol=0.0) or not np.allclose(dist2, dist):
+            raise BagError(
+                f"{bag}: {topic} message {k} gives other intrinsics than message {first} (K {np.asarray(K2).tolist()} "
+                f"against {np.asarray(K).tolist()}, {w2}x{h2} against {w}x{h}): one capture needs one camera "
+                "model; cut the bag where it changed, or give the right one in the dataset's metadata.json"
+            )
     if (w, h) != tuple(size) and (w, h) != (0, 0):
         raise BagError(f"{bag}: {topic} says {w}x{h} but the images are {size[0]}x{size[1]}")
     cam.update(K=K, distortion=dist)
