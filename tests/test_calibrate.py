@@ -391,6 +391,10 @@ def test_sweep_with_too_few_frames(dataset, tmp_path):
     seg["end"] = seg["start"] + 0.25 * span  # only the first few frames of the sweep count
     (ds / "metadata.json").write_text(json.dumps(meta))
     _fails(ds, CalibrationError, "elbow_joint", "valid frames")
+    # No sweep of it at all (a capture that ended before it): said so, before what it leads to.
+    meta["motion"] = [s for s in meta["motion"] if s["joint"] != "elbow_joint"]
+    (ds / "metadata.json").write_text(json.dumps(meta))
+    _fails(ds, CalibrationError, "joint 'elbow_joint': the capture has no sweep of it", "ends before its sweep")
 
 
 def test_sweep_under_five_degrees(dataset, tmp_path):

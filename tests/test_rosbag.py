@@ -301,6 +301,12 @@ def test_cli_import_bag(small_bag, tmp_path, capsys):
     assert main(args) == 0
     assert "wrote" in capsys.readouterr().out
     assert len(load_dataset(tmp_path / "ds").frames["file"]) == SUBSET.size
+    # Calibrated directly, a bag too short to calibrate (12 frames) is refused naming the bag, not the
+    # temporary folder it was imported into (gone by the time the error is read).
+    calib = ["calibrate", str(small_bag), *args[2:-1], str(tmp_path / "res"), "--quiet"]
+    assert main(calib) == 2
+    err = capsys.readouterr().err
+    assert f"the dataset imported from {small_bag}" in err and "jaxcal-bag-" not in err, err
     assert main(args) == 2  # the output exists: refused, exit code 2
     assert main([*args[:3], "/nope", *args[4:-1], str(tmp_path / "ds2")]) == 2
     assert "no topic '/nope'" in capsys.readouterr().err

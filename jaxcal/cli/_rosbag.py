@@ -8,7 +8,7 @@ from pathlib import Path
 
 from .. import _interrupt
 from .._configkeys import knob
-from ..errors import BagError
+from ..errors import BagError, JaxcalError
 from ..io._rosmsgs import SegmentOptions
 from ._common import finite
 
@@ -95,4 +95,8 @@ def dataset_of(args, say=print):
         say(f"imported {args.dataset}: {r.frames} images, {r.joint_samples} joint states")
         for note in r.notes:
             say(note)
-        yield r.path
+        try:
+            yield r.path
+        except JaxcalError as e:  # said of the bag, not of the temporary folder (gone by then)
+            e.args = (str(e).replace(str(r.path), f"the dataset imported from {args.dataset}"), *e.args[1:])
+            raise

@@ -192,8 +192,14 @@ def _check_sweeps(setup: Setup, sweeps: Sweeps, counts: tuple[Named, ...], data,
 
 
 def _outside_log(ds, joint: str) -> str:
-    """Where `joint`'s sweep (its motion segments) reaches beyond the encoder log, why its frames have
-    no joint angles, in words; else ""."""
+    """Why `joint`'s sweep has no frames, in words, where the motion says: the capture has no sweep
+    of it, or its sweep (its motion segments) reaches beyond the encoder log; else ""."""
+    swept = [name for name, _, _ in ds.segments if name is not None]
+    if swept and joint not in swept:
+        return (
+            f"the capture has no sweep of it (metadata.json's motion sweeps {list(dict.fromkeys(swept))} alone): "
+            "a capture or bag that ends before its sweep?"
+        )
     if ds.encoder_t is None or not len(ds.encoder_t):
         return ""
     t0, t1 = float(ds.encoder_t[0]), float(ds.encoder_t[-1])
