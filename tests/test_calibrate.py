@@ -394,7 +394,9 @@ def test_sweep_with_too_few_frames(dataset, tmp_path):
     # No sweep of it at all (a capture that ended before it): said so, before what it leads to.
     meta["motion"] = [s for s in meta["motion"] if s["joint"] != "elbow_joint"]
     (ds / "metadata.json").write_text(json.dumps(meta))
-    _fails(ds, CalibrationError, "joint 'elbow_joint': the capture has no sweep of it", "ends before its sweep")
+    _fails(
+        ds, CalibrationError, "joint 'elbow_joint': the capture has no sweep of it", "ends before its sweep"
+    )
 
 
 def test_sweep_under_five_degrees(dataset, tmp_path):
@@ -565,6 +567,25 @@ def test_a_wrong_focal_length_is_named_first(dataset, tmp_path):
     assert t.sigmas > Limits().intrinsics_sigmas
     f = 1.02 * json.loads((dataset / "metadata.json").read_text())["cameras"][0]["K"][0][0]
     assert -0.03 < t.fx_px / f < -0.01 and -0.03 < t.fy_px / f < -0.01, (t.fx_px / f, t.fy_px / f)
+
+
+@pytest.mark.slow
+def test_an_encoder_log_too_slow_for_the_sweeps_is_named_first(dataset, result, tmp_path):
+    """The joint log thinned from 500 to 10 Hz (a ROS joint_states topic throttled): between its
+    samples the sweeps' accelerations are lost to linear interpolation, and the verdict names the
+    log's rate first, not the sag or backlash the arcs' clock then suggests."""
+    ds = _copy(dataset, tmp_path)
+    lines = (ds / "encoders.csv").read_text().splitlines(keepends=True)
+    (ds / "encoders.csv").write_text("".join([lines[0], *lines[1::50]]))
+    _edit_json(ds / "metadata.json", lambda m: m["encoders"].update(rate_hz=10.0))
+    r = calibrate(ds, progress=False, workers=1, refine=False)
+    check = next(c for c in r.verdict.checks if c.check == "encoder_interpolation")
+    assert check.value > 2 * Limits().encoder_interpolation, check
+    assert r.status == "suspect" and r.reasons[0].startswith(
+        "the encoder log samples every 100 ms (10 Hz)"
+    ), r.reasons
+    clean = next(c for c in result.verdict.checks if c.check == "encoder_interpolation")
+    assert clean.value < 0.1 * Limits().encoder_interpolation, clean
 
 
 @pytest.mark.slow

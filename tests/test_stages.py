@@ -31,7 +31,7 @@ from jaxcal.io.dataset import load_dataset
 from jaxcal.robots import load_robot
 from jaxcal.stages import kinds
 from jaxcal.stages._synchronise import assign_frames, usable
-from jaxcal.stages._verdict import CAUSES, _Checks, axis_spacing_ratio
+from jaxcal.stages._verdict import CAUSES, _Checks, axis_spacing_ratio, interpolation_error
 from jaxcal.stages.kinds import Motion, Mount
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "ur5e_sweeps"
@@ -427,6 +427,19 @@ def test_the_causes_lead_the_reasons():
     c.add("axis_residual", 1.0, 5.0, "passes")
     c.add("cam0.rolling_shutter_sigmas", 41.0, 10.0, "rolling shutter", cause="rolling_shutter")
     c.add("cam0.lens_sigmas", 12.0, 10.0, "lens", cause="camera_model")
-    assert c.reasons == ["rolling shutter", "lens", "errors repeat", "origin moved"]
-    assert [r.passed for r in c.rows] == [False, False, True, False, False]
-    assert CAUSES == ("rolling_shutter", "camera_model", "blur", "arm", "correlated_errors")
+    c.add("encoder_interpolation", 1.7, 0.5, "log too slow", cause="encoder_log")
+    assert c.reasons == ["rolling shutter", "lens", "log too slow", "errors repeat", "origin moved"]
+    assert [r.passed for r in c.rows] == [False, False, True, False, False, False]
+    assert CAUSES == ("rolling_shutter", "camera_model", "encoder_log", "blur", "arm", "correlated_errors")
+
+
+def test_the_interpolation_error_of_a_log():
+    """Linear interpolation of $t^2$ between samples $h$ apart misses by $h^2 s(1 - s)$ at the
+    fraction $s$ of an interval (the formula is exact on a parabola, unevenly sampled too), and
+    nothing on a line."""
+    t = np.array([0.0, 0.1, 0.3, 0.35, 0.5])
+    at = np.array([0.05, 0.2, 0.31, 0.45])
+    k = np.searchsorted(t, at) - 1
+    h, s = t[k + 1] - t[k], (at - t[k]) / (t[k + 1] - t[k])
+    np.testing.assert_allclose(interpolation_error(t, t**2, at), h**2 * s * (1 - s), rtol=1e-12)
+    np.testing.assert_allclose(interpolation_error(t, 3.0 * t + 1.0, at), 0.0, atol=1e-12)
