@@ -570,10 +570,11 @@ def test_a_wrong_focal_length_is_named_first(dataset, tmp_path):
 
 
 @pytest.mark.slow
-def test_an_encoder_log_too_slow_for_the_sweeps_is_named_first(dataset, result, tmp_path):
+def test_an_encoder_log_too_slow_or_stamps_that_jitter_are_named_first(dataset, result, tmp_path):
     """The joint log thinned from 500 to 10 Hz (a ROS joint_states topic throttled): between its
     samples the sweeps' accelerations are lost to linear interpolation, and the verdict names the
-    log's rate first, not the sag or backlash the arcs' clock then suggests."""
+    log's rate first, not the sag or backlash the arcs' clock then suggests. Likewise the camera's
+    stamps jittering by 5 ms."""
     ds = _copy(dataset, tmp_path)
     lines = (ds / "encoders.csv").read_text().splitlines(keepends=True)
     (ds / "encoders.csv").write_text("".join([lines[0], *lines[1::50]]))
@@ -586,6 +587,18 @@ def test_an_encoder_log_too_slow_for_the_sweeps_is_named_first(dataset, result, 
     ), r.reasons
     clean = next(c for c in result.verdict.checks if c.check == "encoder_interpolation")
     assert clean.value < 0.1 * Limits().encoder_interpolation, clean
+    assert not any(c.check == "stamp_jitter" for c in result.verdict.checks)  # exact stamps: no jitter
+    # The log as it was, the camera's stamps jittering by 5 ms (stamped on arrival): the jitter is
+    # measured from the stamps alone and named first.
+    (ds / "encoders.csv").write_text("".join(lines))
+    _edit_json(ds / "metadata.json", lambda m: m["encoders"].update(rate_hz=500.0))
+    rows = list(csv.reader((ds / "frames.csv").read_text().splitlines()))
+    rng = np.random.default_rng(1)
+    for row in rows[1:]:
+        row[2] = repr(float(row[2]) + 0.005 * rng.standard_normal())
+    (ds / "frames.csv").write_text("\n".join(",".join(row) for row in rows) + "\n")
+    r = calibrate(ds, progress=False, workers=1, refine=False)
+    assert r.reasons[0].startswith("camera 'cam0''s stamps jitter by 5."), r.reasons
 
 
 @pytest.mark.slow

@@ -31,7 +31,8 @@ from jaxcal.io.dataset import load_dataset
 from jaxcal.robots import load_robot
 from jaxcal.stages import kinds
 from jaxcal.stages._synchronise import assign_frames, usable
-from jaxcal.stages._verdict import CAUSES, _Checks, axis_spacing_ratio, interpolation_error
+from jaxcal.stages._timing import interpolation_error, stamp_jitter_s
+from jaxcal.stages._verdict import CAUSES, _Checks, axis_spacing_ratio
 from jaxcal.stages.kinds import Motion, Mount
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "ur5e_sweeps"
@@ -427,10 +428,10 @@ def test_the_causes_lead_the_reasons():
     c.add("axis_residual", 1.0, 5.0, "passes")
     c.add("cam0.rolling_shutter_sigmas", 41.0, 10.0, "rolling shutter", cause="rolling_shutter")
     c.add("cam0.lens_sigmas", 12.0, 10.0, "lens", cause="camera_model")
-    c.add("encoder_interpolation", 1.7, 0.5, "log too slow", cause="encoder_log")
+    c.add("encoder_interpolation", 1.7, 0.5, "log too slow", cause="timing")
     assert c.reasons == ["rolling shutter", "lens", "log too slow", "errors repeat", "origin moved"]
     assert [r.passed for r in c.rows] == [False, False, True, False, False, False]
-    assert CAUSES == ("rolling_shutter", "camera_model", "encoder_log", "blur", "arm", "correlated_errors")
+    assert CAUSES == ("rolling_shutter", "camera_model", "timing", "blur", "arm", "correlated_errors")
 
 
 def test_the_interpolation_error_of_a_log():
@@ -443,3 +444,13 @@ def test_the_interpolation_error_of_a_log():
     h, s = t[k + 1] - t[k], (at - t[k]) / (t[k + 1] - t[k])
     np.testing.assert_allclose(interpolation_error(t, t**2, at), h**2 * s * (1 - s), rtol=1e-12)
     np.testing.assert_allclose(interpolation_error(t, 3.0 * t + 1.0, at), 0.0, atol=1e-12)
+
+
+def test_the_jitter_of_a_cameras_stamps():
+    """Stamps at 30 fps with 2 ms of jitter and every tenth frame dropped: the jitter within 10 %
+    (2000 frames), the drops ignored; steady stamps have none."""
+    t = np.arange(2000) / 30.0
+    keep = np.arange(2000) % 10 != 5
+    noisy = t + 0.002 * np.random.default_rng(0).standard_normal(t.size)
+    assert abs(stamp_jitter_s(noisy[keep]) / 0.002 - 1.0) < 0.1
+    assert stamp_jitter_s(t[keep]) < 1e-12

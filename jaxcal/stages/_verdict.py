@@ -31,6 +31,7 @@ from ._observe import Observations
 from ._refine import Refined, succeeded
 from ._setup import Setup
 from ._synchronise import Sync
+from ._timing import timing_checks
 from ._two_stage import TwoStage, listed
 from .limits import Limits
 
@@ -79,7 +80,7 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
 
 #: The causes a failed check names, in the order its reason leads the others: they explain the
 #: symptoms (corrections out of tolerance, large residuals) that follow them.
-CAUSES = ("rolling_shutter", "camera_model", "encoder_log", "blur", "arm", "correlated_errors")
+CAUSES = ("rolling_shutter", "camera_model", "timing", "blur", "arm", "correlated_errors")
 
 
 class _Checks:
@@ -309,61 +310,6 @@ def _ee_sigma_mm(setup: Setup, two: TwoStage, refined: Refined | None) -> float:
         setup.nominal, *refs, cam, corr, cov, setup.dataset.joint_limits, terms
     )
     return float(1e3 * np.sqrt(np.mean(sigma**2)))
-
-
-def interpolation_error(t: np.ndarray, q: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """How far linear interpolation of a log `q` (T,) sampled at `t` misses a smooth motion at the
-    times `at` (the interpolated less the true): $\\ddot q\\,h^2 s(1 - s)/2$ at the fraction $s$ of
-    its interval $h$, with $\\ddot q$ the mean of the log's second divided differences at the
-    interval's ends (exact on a parabola)."""
-    h0, h1 = np.diff(t)[:-1], np.diff(t)[1:]
-    acc = 2.0 * (np.diff(q)[1:] / h1 - np.diff(q)[:-1] / h0) / (h0 + h1)
-    acc = np.r_[acc[0], acc, acc[-1]]  # the log's ends: their neighbours' (the first and last intervals)
-    k = np.clip(np.searchsorted(t, at) - 1, 0, t.size - 2)
-    h = t[k + 1] - t[k]
-    s = np.clip((at - t[k]) / h, 0.0, 1.0)
-    return 0.5 * (acc[k] + acc[k + 1]) * h**2 * s * (1.0 - s) / 2.0
-
-
-def _encoder_log(c: _Checks, setup: Setup, sync: Sync, two: TwoStage, limits: Limits) -> None:
-    """The encoder log's sampling against the sweeps' accelerations: each frame's joint angle is
-    interpolated linearly between two samples, which misses where the joint speeds up or slows
-    down (`interpolation_error`). What of it is affine in the angle the arc's zero and ratio
-    absorb; the rest, at the target's distance from the joint's measured axis, is an error of the
-    target's positions the model cannot hold, against their noise (the arc's position RMS); the
-    largest ratio over the joints."""
-    if sync.log_q is None or len(sync.log_q[0]) < 3 or two.arcs is None:
-        return
-    t, q = (np.asarray(a, np.float64) for a in sync.log_q)
-    rows_of = {r.joint: r for r in two.arc_rows}
-    worst = (0.0, 0.0, 0.0, "")
-    for j, name in enumerate(setup.dataset.joint_names):
-        point, d = np.asarray(two.arcs.point[j]), np.asarray(two.arcs.direction[j])
-        rows = (np.asarray(sync.joint) == j) & np.asarray(sync.inside)
-        arc = rows_of.get(name)
-        if rows.sum() < 3 or not np.all(np.isfinite(point)) or arc is None or not arc.position_rms_mm > 0:
-            continue
-        markers = np.asarray(two.arcs.T_cam_marker0[j])[..., :3, 3] - point
-        radius = float(np.max(np.linalg.norm(markers - np.outer(markers @ d, d), axis=1)))
-        e = interpolation_error(t, q[:, j], np.asarray(sync.t_ctrl)[rows])
-        X = np.stack([np.ones(e.size), np.asarray(sync.q)[rows, j]], axis=1)
-        rest = e - X @ np.linalg.lstsq(X, e, rcond=None)[0]
-        mm = 1e3 * radius * float(np.sqrt(np.mean(rest**2)))
-        if mm / arc.position_rms_mm > worst[0]:
-            worst = (mm / arc.position_rms_mm, mm, arc.position_rms_mm, name)
-    ratio, mm, noise, joint = worst
-    dt = float(np.median(np.diff(t)))
-    c.add(
-        "encoder_interpolation",
-        ratio,
-        limits.encoder_interpolation,
-        f"the encoder log samples every {1e3 * dt:.0f} ms ({1 / dt:.0f} Hz): between samples a joint's angle is "
-        f"interpolated linearly, which misses the sweeps' accelerations by {mm:.2f} mm RMS at the target over "
-        f"{joint!r}'s frames beyond what its zero and ratio absorb, {ratio:.2f} times the frames' own scatter "
-        f"({noise:.2f} mm; limit {limits.encoder_interpolation:g}); log the joint states faster (100 Hz or more), or "
-        "sweep with gentler accelerations",
-        cause="encoder_log",
-    )
 
 
 def _ratios(c: _Checks, setup: Setup, two: TwoStage, refined: Refined | None, limits: Limits) -> None:
@@ -600,7 +546,7 @@ def verdict(
     # result when the refinement timed every corner at its row.
     skewed = ran and bool(refined.line_delays)
     if setup.kind.has_arcs:
-        _encoder_log(c, setup, sync, two, limits)
+        timing_checks(c, setup, sync, two, limits)
         _axes(c, setup, two, limits, refined if skewed else None)
         arm_check(c, setup, sync, two, refined, limits, arm_score)
         for row in blur_rows(setup, obs.primary, sync):  # sweeps that lost most of their frames to blur

@@ -56,7 +56,9 @@ class Limits:
       (`_verdict.interpolation_error` at the target's distance from the axis, RMS over the
       joint's frames), against the frames' own scatter (the arc's position RMS).
       `data/ur5e_sweeps`' log thinned to 10, 20 and 50 Hz reads 1.67, 1.27 and 0.11; the first
-      two double the tool point's error or more.
+      two double the tool point's error or more. `stamp_jitter`: likewise, the camera stamps'
+      jitter around a steady frame rate times the sweeps' speed, at the target
+      (`_timing.stamp_jitter_s`).
     - `ee_sigma_mm`: the tool point's 1-sigma uncertainty the covariance
       implies (RMS over random configurations): above it, the capture does
       not determine the robot well enough to trust it.
@@ -92,6 +94,7 @@ class Limits:
     lens_px: float = 0.5
     intrinsics_sigmas: float = 5.0
     encoder_interpolation: float = 0.5
+    stamp_jitter: float = 0.5
     intrinsics_px: float = 0.5
     ee_sigma_mm: float = 3.0
     joint_span_deg: float = 5.0
