@@ -11,6 +11,7 @@ import csv
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -598,7 +599,8 @@ def test_an_encoder_log_too_slow_or_stamps_that_jitter_are_named_first(dataset, 
         row[2] = repr(float(row[2]) + 0.005 * rng.standard_normal())
     (ds / "frames.csv").write_text("\n".join(",".join(row) for row in rows) + "\n")
     r = calibrate(ds, progress=False, workers=1, refine=False)
-    assert r.reasons[0].startswith("camera 'cam0''s stamps jitter by 5."), r.reasons
+    said = re.match(r"camera 'cam0''s stamps jitter by (\d+\.\d) ms around a steady frame rate", r.reasons[0])
+    assert said and 3.5 < float(said.group(1)) < 6.5, r.reasons  # ~60 second differences: +-15 %
 
 
 @pytest.mark.slow
