@@ -420,7 +420,7 @@ def import_bag(
                 "file": "encoders.csv",
                 "quantity": "motor_angle",
                 "unit": "rad",
-                "rate_hz": float(1.0 / np.median(np.diff(t_enc))),
+                "rate_hz": float(np.round(1.0 / np.median(np.diff(t_enc)), 6)),
             },
             "clock": {"offset_s": None},
             "motion": motion or None,
