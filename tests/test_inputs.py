@@ -594,7 +594,10 @@ def test_robot_file_errors(ds):
         (lambda t: t["targets"]["plate0"].update(T_link_target="I"), ["targets.plate0.T_link_target", "'I'"]),
         (lambda t: t["clock"].update(offset_s=None), ["clock.offset_s", "None"]),
         (lambda t: t.update(dropped_frames=[-1]), ["dropped_frames[0]", "-1"]),
-        (lambda t: t["frames"][3].update(row=500), ["frames[3].row", "500"]),
+        (
+            lambda t: t["frames"][3].update(row=-1),
+            ["frames[3].row", "-1"],
+        ),  # rows follow the table: any row >= 0
         (lambda t: t["frames"][3]["visible"].update(plate0="yes"), ["frames[3].visible.plate0", "'yes'"]),
         (lambda t: t["frames"][3].update(q=[0.0] * 5), ["frames[3].q", "6 array"]),
     ],
