@@ -161,10 +161,13 @@ class IntrinsicsTest(eqx.Module):
       would add, the other parameters following; `(4,)`.
     - `chi2`: the score statistic $\\hat d^T D \\hat d / \\hat\\sigma^2$ ($\\chi^2$ on four degrees
       of freedom when the intrinsics are right; the stage states it as a normal's size).
+    - `sensitivity`: how the solution moves per px of each held intrinsic,
+      $-(J^TJ)^{-1}J^TJ_k$ over the flattened parameters (zero where held); `(n, 4)`.
     """
 
     step: Float[Array, "4"]
     chi2: Float[Array, ""]
+    sensitivity: Float[Array, "n 4"]
 
 
 def intrinsics_test(problem: RefineProblem, res: RefineResult) -> IntrinsicsTest:
@@ -220,7 +223,8 @@ def _lens(J_d, G, r, res) -> LensTest:
 
 def _intrinsics(J_k, G, r, res) -> IntrinsicsTest:
     step, chi2 = _statistic(J_k, G, r, res)
-    return IntrinsicsTest(step=step, chi2=chi2)
+    bread = res.cov_model / jnp.maximum(res.sigma_px**2, 1e-30)  # (J^T J)^+ over the free parameters
+    return IntrinsicsTest(step=step, chi2=chi2, sensitivity=-bread @ G)
 
 
 def residual_correlation(

@@ -568,6 +568,17 @@ def test_a_wrong_focal_length_is_named_first(dataset, tmp_path):
     assert t.sigmas > Limits().intrinsics_sigmas
     f = 1.02 * json.loads((dataset / "metadata.json").read_text())["cameras"][0]["K"][0][0]
     assert -0.03 < t.fx_px / f < -0.01 and -0.03 < t.fy_px / f < -0.01, (t.fx_px / f, t.fy_px / f)
+    # The note of how far the result leans on K: linear in the focal error, 20 times its 0.1 % move
+    # is the tool point's error against the truth (the noise's share is small beside it).
+    said = next(
+        re.search(r"0.1 % longer, the tool point would move (\d+\.\d+) mm RMS", n)
+        for n in r.verdict.notes
+        if "leans on" in n
+    )
+    assert abs(20.0 * float(said.group(1)) / r.validation["ee_rms_mm_after"] - 1.0) < 0.3, (
+        said.group(0),
+        r.validation,
+    )
 
 
 @pytest.mark.slow

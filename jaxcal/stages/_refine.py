@@ -126,6 +126,8 @@ class Refined:
     terms: TermFit | None = None
     lens_test: LensTest | None = None
     intrinsics_test: IntrinsicsTest | None = None
+    #: How the solution (flattened) moves were the first camera's held focal lengths 0.1 % longer.
+    focal_shift: np.ndarray | None = None
     error_correlation: ErrorCorrelation | None = None
     #: Where the residuals' errors are correlated, the covariance of the free parameters
     #: the kernel sandwich replaced (the views' sandwich or the model's).
@@ -606,7 +608,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     delays = _delay_rows(corners, res, layout, free)
     timings = {"refine_s": time.perf_counter() - t0}
     t0 = time.perf_counter()
-    test, lens, pinhole = pending.result()
+    test, lens, pinhole, focal_shift = pending.result()
     if test is not None:
         timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for them, past the refinement
     summary = dataclasses.replace(
@@ -625,6 +627,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         shutter_test=test,
         lens_test=lens,
         intrinsics_test=pinhole,
+        focal_shift=focal_shift,
         error_correlation=correlation,
         cov_views=cov_views,
         timings=timings,

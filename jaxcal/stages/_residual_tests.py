@@ -27,7 +27,7 @@ SIGNIFICANT_LAG_Z = 3.0
 
 def score_tests(
     setup: Setup, corners, problem: RefineProblem, res, layout: ParameterLayout, free
-) -> tuple[tuple[ShutterTest, ...] | None, LensTest | None, IntrinsicsTest | None]:
+) -> tuple[tuple[ShutterTest, ...] | None, LensTest | None, IntrinsicsTest | None, np.ndarray | None]:
     """The score tests of a global-shutter refinement (one program, `_programs.score_tests`).
 
     Per camera, the rolling shutter its residuals point to (`jaxcal._diagnostics.line_delay_test`):
@@ -37,9 +37,11 @@ def score_tests(
     $k_1, k_2$, the shift they imply at the image's corner (px) and their size in sigmas; when its
     focal lengths and principal point were held, the ones they point to
     (`jaxcal._diagnostics.intrinsics_test`), likewise. `(None, None, None)` when a line delay was
-    modelled, or without an encoder log (each view's angle is then an unknown of its own)."""
+    modelled, or without an encoder log (each view's angle is then an unknown of its own).
+    Fourth: with the intrinsics tested, how the solution moves (its flattened parameters) were the
+    held focal lengths 0.1 % longer (`jaxcal._diagnostics.IntrinsicsTest.sensitivity`), else None."""
     if problem.line_delay0_s is not None or setup.kind.per_view_angles:
-        return None, None, None
+        return None, None, None, None
     shutter, radial, pinhole = jax.device_get(_programs.score_tests()(problem, res))
     tests = tuple(
         ShutterTest(
@@ -68,8 +70,9 @@ def score_tests(
         rho2 = float(np.max(np.sum(edges**2, axis=1)))
         shift = float(np.sqrt(rho2) * K[0, 0] * abs(k1 * rho2 + k2 * rho2**2))
         lens = LensTest(camera=cam.name, k1=k1, k2=k2, shift_px=shift, sigmas=float(radial.sigmas))
-    intrinsics = None
+    intrinsics = focal_shift = None
     if all(held[INTRINSIC_NAMES.index(k)] for k in ("fx", "fy", "cx", "cy")):
+        focal_shift = np.asarray(pinhole.sensitivity) @ np.array([1e-3 * K[0, 0], 1e-3 * K[1, 1], 0.0, 0.0])
         dfx, dfy, dcx, dcy = (float(x) for x in pinhole.step)
         moved = np.stack([dfx * edges[:, 0] + dcx, dfy * edges[:, 1] + dcy], axis=1)
         intrinsics = IntrinsicsTest(
@@ -81,7 +84,7 @@ def score_tests(
             shift_px=float(np.max(np.linalg.norm(moved, axis=1))),
             sigmas=float(normal_isf(chi2_sf(float(pinhole.chi2), 4))),
         )
-    return tests, lens, intrinsics
+    return tests, lens, intrinsics, focal_shift
 
 
 #: The correlation test's lags along the capture (frames).

@@ -458,6 +458,25 @@ def _camera_model(c: _Checks, refined: Refined, limits: Limits) -> None:
         c.add(*row, cause="camera_model")
 
 
+def _focal_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma: float) -> None:
+    """How far the result leans on the first camera's held focal lengths: the tool point's RMS move
+    were they 0.1 % longer (`Refined.focal_shift` through the tool point's Jacobian), noted where
+    it is half the claimed 1-sigma or more (a claim that takes `K` as exact)."""
+    if refined.focal_shift is None:
+        return
+    shift = np.asarray(refined.focal_shift, np.float64)
+    moved = _ee_sigma_mm(
+        setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, np.outer(shift, shift)))
+    )
+    if moved >= 0.5 * sigma:
+        c.notes.append(
+            f"the result leans on metadata.json's K: were its focal lengths 0.1 % longer, the tool point would "
+            f"move {moved:.2f} mm RMS, against a claimed 1-sigma of {sigma:.2f} mm that takes K as exact; give K "
+            "from a camera calibration good to a few hundredths of a percent, or leave cameras[].K out to have "
+            "the intrinsics self-calibrated"
+        )
+
+
 def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limits: Limits) -> None:
     """The residuals' errors that repeat along the capture or are shared by a pose's views
     (`stages._refine.error_correlation`): named, with how much the kernel sandwich grew the
@@ -564,6 +583,8 @@ def verdict(
         f"the data pin the tool point only to {sigma:.2f} mm (1-sigma RMS over random configurations, limit "
         f"{limits.ee_sigma_mm:g} mm): too little motion, too few frames, or intrinsics the capture cannot fix",
     )
+    if ran:
+        _focal_note(c, setup, two, refined, sigma)
     self_calibrated = [o.camera.name for o in (obs.primary, *obs.others) if o.intrinsics.rms_px is not None]
     if self_calibrated and not ran:
         # Intrinsics fitted to the sweep images alone trade off against the camera's pose and
