@@ -324,7 +324,8 @@ def test_load_urdf_errors(tmp_path):
         urdf_xml(FOLDED_LINKS + ["cam"], FOLDED_JOINTS + [joint_xml("cam_joint", "revolute", "l1", "cam")]),
     )
     with pytest.raises(
-        ValueError, match=r"branched\.urdf.*pass tip_link, one of the leaves \['cam', 'tip'\]"
+        ValueError,
+        match=r"branched\.urdf.*name the flange link, one of the leaves \['cam', 'tip'\].*flange-link=NAME",
     ):
         load_urdf(branched)
     assert load_urdf(branched, tip_link="cam").joint_names == ("j1", "cam_joint")

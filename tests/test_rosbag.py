@@ -224,6 +224,30 @@ def test_a_grippers_joints_are_left_out(source, small_bag, tmp_path):
         assert ("messages holding only ['finger_joint']" in said) == ("gripper" in kw), said
 
 
+def test_a_gripper_in_the_robot_file_is_not_the_arm(source, small_bag, tmp_path):
+    """A URDF whose chain goes on past the flange to a gripper's finger (its one leaf), the finger's
+    joint in the joint states: the chain ends where the targets ride (the flange), not at the leaf,
+    and the finger is left out as a joint of the topic beyond the chain."""
+    text = ROBOT.read_text()
+    finger = (
+        '<link name="finger_link"/><joint name="finger_joint" type="prismatic"><parent link="flange"/>'
+        '<child link="finger_link"/><axis xyz="0 1 0"/><limit lower="0" upper="0.04" effort="10" velocity="0.1"/>'
+        "</joint></robot>"
+    )
+    robot = tmp_path / "gripper.urdf"
+    robot.write_text(text[: text.rindex("</robot>")] + finger)
+    bag = write_bag(SOURCE, tmp_path / "bag", rows=SUBSET, extra_joints=("finger_joint",))
+    done = import_bag(
+        bag, tmp_path / "ds", images=COMPRESSED, joints=JOINTS, camera_info=INFO, robot=robot, targets=TARGETS
+    )
+    ds = load_dataset(done.path)
+    assert ds.joint_names == source.joint_names and ds.flange_link == "flange"
+    assert any("left out: ['finger_joint']" in n for n in done.notes), done.notes
+    np.testing.assert_array_equal(
+        ds.encoder_motor, load_dataset(_import(small_bag, tmp_path / "plain").path).encoder_motor
+    )
+
+
 def test_joint_names_not_in_the_urdf(source, tmp_path):
     """Joint states that hold none of the chain's joints (a driver's name prefix) are refused
     naming the names that are not the robot file's; a message lacking some of them, naming those."""

@@ -64,7 +64,7 @@ from ._rosmsgs import (
 from ._schema import file_name, loads
 from .dataset import SCHEMA, SCHEMA_VERSION, load_dataset, write_encoders, write_frames, write_json
 from .dh_tables import dh_table_model, is_table_file, read_table_file
-from .urdf import load_urdf, urdf_outline
+from .urdf import load_urdf, urdf_link_names, urdf_outline
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 JOINT_TYPE = "sensor_msgs/msg/JointState"
@@ -306,6 +306,20 @@ def _unused_camera_info(reader, bag: Path) -> list[str]:
     ]
 
 
+def _flange(robot: Path, flange_link, targets: list) -> str | None:
+    """The chain's last link: `flange_link` when given; else, for a URDF whose targets all ride on
+    one of its links, that link (a gripper's joints beyond it are then not the arm's); else None
+    (the URDF's one leaf)."""
+    links = {t.get("link") for t in targets if isinstance(t, dict)}
+    if flange_link is not None or is_table_file(robot) or len(links) != 1:
+        return flange_link
+    (link,) = links
+    try:
+        return link if link in urdf_link_names(robot) else None
+    except (OSError, ValueError):
+        return None  # the robot file's own error comes from loading it
+
+
 def _robot_model(robot: Path, base_link, flange_link):
     """The robot file's model, its movable joints, the chain's reduction ratios, and the
     metadata key and file name it is copied under (`urdf`, `robot.urdf`, or `table`, `robot_dh.json`)."""
@@ -370,7 +384,9 @@ def import_bag(
     bag, robot = Path(bag), Path(robot)
     file_name(camera, "camera (camera-name)")  # it names images/<camera>/: checked before anything is written
     target_list = read_targets(targets) if isinstance(targets, (str, Path)) else list(targets)
-    model, movable, ratio, robot_key, robot_name = _robot_model(robot, base_link, flange_link)
+    model, movable, ratio, robot_key, robot_name = _robot_model(
+        robot, base_link, _flange(robot, flange_link, target_list)
+    )
     chain = tuple(model.joint_names)
     inputs = [bag, robot] + ([targets] if isinstance(targets, (str, Path)) else [])
     with (

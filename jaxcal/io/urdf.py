@@ -187,6 +187,11 @@ def urdf_outline(path, joint_names=()) -> UrdfOutline:
     return UrdfOutline(links, parent_joint, limits)
 
 
+def urdf_link_names(path) -> set[str]:
+    """The names of a URDF file's links."""
+    return {el.get("name") for el in _parse_xml(Path(path)).getroot().iter("link")}
+
+
 def _leaves_with_motion(children: dict[str, list], base: str) -> list[str]:
     """Leaf links below `base` whose path from `base` crosses a non-fixed joint."""
     leaves, stack, seen = [], [(base, False)], set()
@@ -226,8 +231,9 @@ def _chain(robot, path: Path, base_link: str | None, tip_link: str | None) -> tu
             raise ValueError(f"URDF file {shown(path)!r}: no movable joint below base link {base_link!r}")
         if len(leaves) > 1:
             raise ValueError(
-                f"URDF file {shown(path)!r}: the tree branches below {base_link!r}; pass tip_link, "
-                f"one of the leaves {leaves}"
+                f"URDF file {shown(path)!r}: the tree branches below {base_link!r}; name the flange link, "
+                f"one of the leaves {leaves} or a link above one (metadata.json's robot.flange_link, the CLI's "
+                "--config flange-link=NAME, the API's tip_link)"
             )
         tip_link = leaves[0]
     elif tip_link not in links:
