@@ -1,7 +1,9 @@
 """The capture's timing against its motion, for the verdict (`stages._verdict`): an encoder log
 too slow for the sweeps' accelerations, and camera stamps that jitter. Each is an error of the
-target's positions the model cannot hold, compared with the frames' own scatter (the arcs'
-position RMS); `c` is the verdict's checks (`_verdict._Checks`)."""
+target's positions the model cannot hold, compared with the frames' own scatter about their arc
+(its position RMS): where it is half of it or more, it shapes the arc. (The scatter grows with the
+error, so the ratio saturates near 1: the millimetres say how large it is.) `c` is the verdict's
+checks (`_verdict._Checks`)."""
 
 import numpy as np
 
@@ -15,8 +17,80 @@ def timing_checks(c, setup: Setup, sync: Sync, two: TwoStage, limits: Limits) ->
     """The encoder log's rate and the camera stamps' jitter against the sweeps (see the module)."""
     if sync.log_q is None or len(sync.log_q[0]) < 3 or two.arcs is None:
         return
-    _encoder_log(c, setup, sync, two, limits)
-    _stamp_jitter(c, setup, sync, two, limits)
+    t, q = (np.asarray(a, np.float64) for a in sync.log_q)
+    dt = float(np.median(np.diff(t)))
+
+    def interpolation_m(j, rows):  # what of the interpolation error the zero and ratio cannot absorb
+        e = interpolation_error(t, q[:, j], np.asarray(sync.t_ctrl)[rows])
+        X = np.stack([np.ones(e.size), np.asarray(sync.q)[rows, j]], axis=1)
+        return float(np.sqrt(np.mean((e - X @ np.linalg.lstsq(X, e, rcond=None)[0]) ** 2)))
+
+    _check(
+        c,
+        setup,
+        sync,
+        two,
+        "encoder_interpolation",
+        limits.encoder_interpolation,
+        interpolation_m,
+        f"the encoder log samples every {1e3 * dt:.0f} ms ({1 / dt:.0f} Hz): between samples a joint's angle is "
+        "interpolated linearly, which misses the sweeps' accelerations, beyond what a joint's zero and ratio "
+        "absorb, by {mm}; log the joint states faster (100 Hz or more), or sweep with gentler accelerations",
+    )
+    jitter = stamp_jitter_s(np.asarray(sync.t_ctrl)[np.asarray(sync.inside)])
+    if jitter > 0.0:
+
+        def jitter_m(j, rows):  # the sweep's speed times the jitter
+            return jitter * float(np.median(np.abs(np.diff(sync.q[rows, j]) / np.diff(sync.t_ctrl[rows]))))
+
+        _check(
+            c,
+            setup,
+            sync,
+            two,
+            "stamp_jitter",
+            limits.stamp_jitter,
+            jitter_m,
+            f"camera {setup.camera.name!r}'s stamps jitter by {1e3 * jitter:.1f} ms around a steady frame rate, which "
+            "at the sweeps' speeds moves the target by {mm}; stamp the frames at exposure (the camera's or driver's "
+            "hardware stamps, not their arrival), or sweep slower",
+        )
+
+
+def _check(c, setup: Setup, sync: Sync, two: TwoStage, name: str, limit: float, error_rad, says: str) -> None:
+    """One timing check: per swept joint, `error_rad(j, rows)` (rad, RMS over its frames `rows`) at
+    the target's distance from its measured axis, against its arc's position RMS; the largest
+    ratio is the check's value, and `says` (its `{mm}`: the joints' largest millimetres and that
+    ratio) the reason."""
+    rows_of = {r.joint: r for r in two.arc_rows}
+    rows_all = np.asarray(sync.joint)
+    found = []  # (ratio, mm, scatter mm, joint)
+    for j, joint in enumerate(setup.dataset.joint_names):
+        rows = np.flatnonzero((rows_all == j) & np.asarray(sync.inside))
+        arc = rows_of.get(joint)
+        if (
+            rows.size < 3
+            or arc is None
+            or not arc.position_rms_mm > 0
+            or not np.all(np.isfinite(two.arcs.point[j]))
+        ):
+            continue
+        mm = 1e3 * _radius(two, j) * error_rad(j, rows)
+        found.append((mm / arc.position_rms_mm, mm, arc.position_rms_mm, joint))
+    if not found:
+        return
+    ratio, _, scatter, worst = max(found)
+    _, mm, _, largest = max(found, key=lambda f: f[1])
+    c.add(
+        name,
+        ratio,
+        limit,
+        says.format(
+            mm=f"up to {mm:.2f} mm RMS ({largest!r}'s frames): on {worst!r}'s, {ratio:.2f} times the frames' scatter "
+            f"about its arc ({scatter:.2f} mm; limit {limit:g})"
+        ),
+        cause="timing",
+    )
 
 
 def _radius(two: TwoStage, j: int) -> float:
@@ -40,95 +114,16 @@ def interpolation_error(t: np.ndarray, q: np.ndarray, at: np.ndarray) -> np.ndar
     return 0.5 * (acc[k] + acc[k + 1]) * h**2 * s * (1.0 - s) / 2.0
 
 
-def _encoder_log(c, setup: Setup, sync: Sync, two: TwoStage, limits: Limits) -> None:
-    """The encoder log's sampling against the sweeps' accelerations: each frame's joint angle is
-    interpolated linearly between two samples, which misses where the joint speeds up or slows
-    down (`interpolation_error`). What of it is affine in the angle the arc's zero and ratio
-    absorb; the rest, at the target's distance from the joint's measured axis, is an error of the
-    target's positions the model cannot hold, against their noise (the arc's position RMS); the
-    largest ratio over the joints."""
-    t, q = (np.asarray(a, np.float64) for a in sync.log_q)
-    rows_of = {r.joint: r for r in two.arc_rows}
-    worst = (0.0, 0.0, 0.0, "")
-    for j, name in enumerate(setup.dataset.joint_names):
-        rows = (np.asarray(sync.joint) == j) & np.asarray(sync.inside)
-        arc = rows_of.get(name)
-        if (
-            rows.sum() < 3
-            or not np.all(np.isfinite(two.arcs.point[j]))
-            or arc is None
-            or not arc.position_rms_mm > 0
-        ):
-            continue
-        radius = _radius(two, j)
-        e = interpolation_error(t, q[:, j], np.asarray(sync.t_ctrl)[rows])
-        X = np.stack([np.ones(e.size), np.asarray(sync.q)[rows, j]], axis=1)
-        rest = e - X @ np.linalg.lstsq(X, e, rcond=None)[0]
-        mm = 1e3 * radius * float(np.sqrt(np.mean(rest**2)))
-        if mm / arc.position_rms_mm > worst[0]:
-            worst = (mm / arc.position_rms_mm, mm, arc.position_rms_mm, name)
-    ratio, mm, noise, joint = worst
-    dt = float(np.median(np.diff(t)))
-    c.add(
-        "encoder_interpolation",
-        ratio,
-        limits.encoder_interpolation,
-        f"the encoder log samples every {1e3 * dt:.0f} ms ({1 / dt:.0f} Hz): between samples a joint's angle is "
-        f"interpolated linearly, which misses the sweeps' accelerations by {mm:.2f} mm RMS at the target over "
-        f"{joint!r}'s frames beyond what its zero and ratio absorb, {ratio:.2f} times the frames' own scatter "
-        f"({noise:.2f} mm; limit {limits.encoder_interpolation:g}); log the joint states faster (100 Hz or more), or "
-        "sweep with gentler accelerations",
-        cause="timing",
-    )
-
-
 def stamp_jitter_s(t: np.ndarray) -> float:
     """The jitter (s, one standard deviation) of stamps `t` of a camera filming at a steady rate,
     from their second differences ($\\Delta^2 t$ of independent jitter $\\sigma$ has variance
-    $6\\sigma^2$) between intervals within half the median interval of it (none across a dropped
+    $6\\sigma^2$) between intervals within 3/4 of the median interval of it (none across a dropped
     frame or a pause), robustly."""
     dt = np.diff(np.sort(np.asarray(t, np.float64)))
     if dt.size < 9:
         return 0.0
-    steady = np.abs(dt / np.median(dt) - 1.0) < 0.5  # not across a dropped frame or a pause
+    steady = np.abs(dt / np.median(dt) - 1.0) < 0.75  # not across a dropped frame (+1) or a pause
     d2 = np.diff(dt)[steady[:-1] & steady[1:]]
     if d2.size < 8:
         return 0.0
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
-
-
-def _stamp_jitter(c, setup: Setup, sync: Sync, two: TwoStage, limits: Limits) -> None:
-    """The camera's stamps against a steady frame rate: a stamp off by its jitter puts the joint's
-    angle off by the sweep's speed times it, at the target's distance from the axis an error of
-    its position the model cannot hold (independent from frame to frame), against the frames' own
-    scatter (the arc's position RMS, which it inflates); the largest ratio over the joints."""
-    jitter = stamp_jitter_s(sync.t_ctrl[np.asarray(sync.inside)])
-    if jitter <= 0.0:
-        return
-    rows_of = {r.joint: r for r in two.arc_rows}
-    worst = (0.0, 0.0, 0.0, "")
-    for j, name in enumerate(setup.dataset.joint_names):
-        rows = np.flatnonzero((np.asarray(sync.joint) == j) & np.asarray(sync.inside))
-        arc = rows_of.get(name)
-        if (
-            rows.size < 3
-            or not np.all(np.isfinite(two.arcs.point[j]))
-            or arc is None
-            or not arc.position_rms_mm > 0
-        ):
-            continue
-        speed = float(np.median(np.abs(np.diff(sync.q[rows, j]) / np.diff(sync.t_ctrl[rows]))))
-        mm = 1e3 * _radius(two, j) * speed * jitter
-        if mm / arc.position_rms_mm > worst[0]:
-            worst = (mm / arc.position_rms_mm, mm, arc.position_rms_mm, name)
-    ratio, mm, noise, joint = worst
-    c.add(
-        "stamp_jitter",
-        ratio,
-        limits.stamp_jitter,
-        f"camera {setup.camera.name!r}'s stamps jitter by {1e3 * jitter:.1f} ms around a steady frame rate: at "
-        f"{joint!r}'s sweep speed that moves the target {mm:.2f} mm, {ratio:.2f} times the frames' own scatter "
-        f"({noise:.2f} mm; limit {limits.stamp_jitter:g}); stamp the frames at exposure (the camera's or driver's "
-        "hardware stamps, not their arrival), or sweep slower",
-        cause="timing",
-    )
