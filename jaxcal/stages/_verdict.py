@@ -472,8 +472,8 @@ def _focal_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma
         c.notes.append(
             f"the result leans on metadata.json's K: were its focal lengths 0.1 % longer, the tool point would "
             f"move {moved:.2f} mm RMS, against a claimed 1-sigma of {sigma:.2f} mm that takes K as exact; give K "
-            "from a camera calibration good to a few hundredths of a percent, or leave cameras[].K out to have "
-            "the intrinsics self-calibrated"
+            "from a camera calibration good to a few hundredths of a percent, or leave cameras[].K out: the "
+            "intrinsics are then self-calibrated and their uncertainty counted in the claim"
         )
 
 
