@@ -432,6 +432,10 @@ def test_the_causes_lead_the_reasons():
     assert c.reasons == ["rolling shutter", "lens", "log too slow", "errors repeat", "origin moved"]
     assert [r.passed for r in c.rows] == [False, False, True, False, False, False]
     assert CAUSES == ("rolling_shutter", "camera_model", "timing", "blur", "arm", "correlated_errors")
+    # An arm's reason after a timing cause says the timing makes its signs too.
+    c.add("arm_clock_sigmas", 6.7, 2.58, "sags", cause="arm")
+    c.also_from("timing", "arm", "see the timing: ")
+    assert c.reasons[:4] == ["rolling shutter", "lens", "log too slow", "see the timing: sags"]
 
 
 def test_the_interpolation_error_of_a_log():

@@ -98,6 +98,13 @@ class _Checks:
             else:
                 self.causes.append((CAUSES.index(cause), len(self.causes), message))
 
+    def also_from(self, cause: str, symptom: str, prefix: str) -> None:
+        """Where a check naming `cause` failed, prefix the failed reasons naming `symptom` (a cause
+        whose signs the first makes too: a slow encoder log's, read as a sagging arm's)."""
+        if any(i == CAUSES.index(cause) for i, _, _ in self.causes):
+            k = CAUSES.index(symptom)
+            self.causes = [(i, n, prefix + m if i == k else m) for i, n, m in self.causes]
+
     @property
     def reasons(self) -> list[str]:
         return [m for _, _, m in sorted(self.causes)] + self.symptoms
@@ -568,6 +575,7 @@ def verdict(
         timing_checks(c, setup, sync, two, limits)
         _axes(c, setup, two, limits, refined if skewed else None)
         arm_check(c, setup, sync, two, refined, limits, arm_score)
+        c.also_from("timing", "arm", "the timing named above moves the arcs so too, and may be all of it: ")
         for row in blur_rows(setup, obs.primary, sync):  # sweeps that lost most of their frames to blur
             c.add(*row, cause="blur")
     if ran:
