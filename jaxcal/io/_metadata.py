@@ -32,7 +32,9 @@ class CameraInfo:
     next) and `stamp` (what a frame's timestamp marks: `"start"`, `"middle"` or
     `"end"` of the first row's exposure): `None` when not given.
     `estimate_line_delay`: `line_delay_s` is `"estimate"` in the metadata (the
-    refinement estimates it; `line_delay_s` is then `None`)."""
+    refinement estimates it; `line_delay_s` is then `None`). `K_std`: the standard
+    deviations (px) of `K`'s $f_x, f_y, c_x, c_y$ (its own calibration's), which the
+    calibration's covariance then counts; `None` takes `K` as exact."""
 
     name: str
     width: int
@@ -44,10 +46,12 @@ class CameraInfo:
     line_delay_s: float | None = None
     stamp: str | None = None
     estimate_line_delay: bool = False
+    K_std: tuple[float, float, float, float] | None = None
 
     def to_dict(self) -> dict:
         delay = "estimate" if self.estimate_line_delay else self.line_delay_s
-        optional = {"exposure_s": self.exposure_s, "line_delay_s": delay, "stamp": self.stamp}
+        K_std = None if self.K_std is None else list(self.K_std)
+        optional = {"exposure_s": self.exposure_s, "line_delay_s": delay, "stamp": self.stamp, "K_std": K_std}
         return {
             "name": self.name,
             "width": self.width,
@@ -259,7 +263,7 @@ def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
             c,
             w,
             required=("name", "width", "height"),
-            optional=("K", "distortion", "mount", "exposure_s", "line_delay_s", "stamp"),
+            optional=("K", "K_std", "distortion", "mount", "exposure_s", "line_delay_s", "stamp"),
         )
         name = sc.file_name(c["name"], w.key("name"))
         width = sc.integer(c["width"], w.key("width"), 1, MAX_SIDE)
@@ -274,11 +278,25 @@ def read_cameras(meta: dict, loc: Loc, links) -> tuple[CameraInfo, ...]:
         mount = sc.string(c.get("mount", "world"), w.key("mount"))
         if mount != "world" and mount not in links:
             raise w.key("mount").fail(f"{mount!r} is neither 'world' nor a link of the robot")
-        out.append(CameraInfo(name, width, height, K, dist, mount, **_exposure(c, w, height)))
+        K_std = _K_std(c.get("K_std"), K, w.key("K_std"))
+        out.append(CameraInfo(name, width, height, K, dist, mount, **_exposure(c, w, height), K_std=K_std))
     names = [c.name for c in out]
     if len(set(names)) != len(names):
         raise loc.fail(f"camera names are not unique: {names}")
     return tuple(out)
+
+
+def _K_std(value, K, loc) -> tuple[float, float, float, float] | None:
+    """`cameras[].K_std`: four standard deviations (px) of `K`'s fx, fy, cx, cy, each under a tenth of
+    the focal length; only beside a `K`."""
+    if value is None:
+        return None
+    if K is None:
+        raise loc.fail("is given, but K is not: the uncertainty of which intrinsics?")
+    std = sc.array(value, loc, (4,))
+    for i, x in enumerate(std):
+        sc.number(float(x), loc.index(i), 0.0, 0.1 * float(K[0, 0]))
+    return tuple(float(x) for x in std)
 
 
 def _exposure(c: dict, loc: Loc, height: int) -> dict:

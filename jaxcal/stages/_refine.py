@@ -600,17 +600,21 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     correlation, cov_free, cov_views = error_correlation(
         corners, res, options.limits, lambda: _programs.view_information(free)(problem, res)
     )
+    cov = np.array(res.cov, np.float64)
     if cov_free is not None:  # the kernel sandwich's covariance, where larger than the views'
-        cov = np.array(res.cov, np.float64)
         cov[np.ix_(*2 * [np.flatnonzero(np.asarray(free))])] = cov_free
+    timings = {"refine_s": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    test, lens, pinhole, sensitivity = pending.result()
+    if test is not None:
+        timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for them, past the refinement
+    focal_shift = None if sensitivity is None else sensitivity[:, :2] @ (1e-3 * np.diag(problem.K0)[:2])
+    if sensitivity is not None and setup.camera.K_std is not None:  # the held K's own uncertainty
+        cov += sensitivity @ np.diag(np.square(setup.camera.K_std)) @ sensitivity.T
+    if cov_free is not None or (sensitivity is not None and setup.camera.K_std is not None):
         res = eqx.tree_at(lambda r: (r.cov, r.std), res, (cov, np.sqrt(np.maximum(np.diag(cov), 0.0))))
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
     delays = _delay_rows(corners, res, layout, free)
-    timings = {"refine_s": time.perf_counter() - t0}
-    t0 = time.perf_counter()
-    test, lens, pinhole, focal_shift = pending.result()
-    if test is not None:
-        timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for them, past the refinement
     summary = dataclasses.replace(
         out.summary,
         line_delay=delays or None,

@@ -38,8 +38,8 @@ def score_tests(
     focal lengths and principal point were held, the ones they point to
     (`jaxcal._diagnostics.intrinsics_test`), likewise. `(None, None, None)` when a line delay was
     modelled, or without an encoder log (each view's angle is then an unknown of its own).
-    Fourth: with the intrinsics tested, how the solution moves (its flattened parameters) were the
-    held focal lengths 0.1 % longer (`jaxcal._diagnostics.IntrinsicsTest.sensitivity`), else None."""
+    Fourth: with the intrinsics tested, how the solution (its flattened parameters) moves per px of
+    the held fx, fy, cx, cy (`jaxcal._diagnostics.IntrinsicsTest.sensitivity`, `(n, 4)`), else None."""
     if problem.line_delay0_s is not None or setup.kind.per_view_angles:
         return None, None, None, None
     shutter, radial, pinhole = jax.device_get(_programs.score_tests()(problem, res))
@@ -70,9 +70,9 @@ def score_tests(
         rho2 = float(np.max(np.sum(edges**2, axis=1)))
         shift = float(np.sqrt(rho2) * K[0, 0] * abs(k1 * rho2 + k2 * rho2**2))
         lens = LensTest(camera=cam.name, k1=k1, k2=k2, shift_px=shift, sigmas=float(radial.sigmas))
-    intrinsics = focal_shift = None
+    intrinsics = sensitivity = None
     if all(held[INTRINSIC_NAMES.index(k)] for k in ("fx", "fy", "cx", "cy")):
-        focal_shift = np.asarray(pinhole.sensitivity) @ np.array([1e-3 * K[0, 0], 1e-3 * K[1, 1], 0.0, 0.0])
+        sensitivity = np.asarray(pinhole.sensitivity, np.float64)
         dfx, dfy, dcx, dcy = (float(x) for x in pinhole.step)
         moved = np.stack([dfx * edges[:, 0] + dcx, dfy * edges[:, 1] + dcy], axis=1)
         intrinsics = IntrinsicsTest(
@@ -84,7 +84,7 @@ def score_tests(
             shift_px=float(np.max(np.linalg.norm(moved, axis=1))),
             sigmas=float(normal_isf(chi2_sf(float(pinhole.chi2), 4))),
         )
-    return tests, lens, intrinsics, focal_shift
+    return tests, lens, intrinsics, sensitivity
 
 
 #: The correlation test's lags along the capture (frames).

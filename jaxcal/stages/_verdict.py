@@ -468,8 +468,8 @@ def _camera_model(c: _Checks, refined: Refined, limits: Limits) -> None:
 def _focal_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma: float) -> None:
     """How far the result leans on the first camera's held focal lengths: the tool point's RMS move
     were they 0.1 % longer (`Refined.focal_shift` through the tool point's Jacobian), noted where
-    it is half the claimed 1-sigma or more (a claim that takes `K` as exact)."""
-    if refined.focal_shift is None:
+    it is half the claimed 1-sigma or more (a claim that takes `K` as exact: `cameras[].K_std` not given)."""
+    if refined.focal_shift is None or setup.camera.K_std is not None:
         return
     shift = np.asarray(refined.focal_shift, np.float64)
     moved = _ee_sigma_mm(
@@ -478,9 +478,9 @@ def _focal_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma
     if moved >= 0.5 * sigma:
         c.notes.append(
             f"the result leans on metadata.json's K: were its focal lengths 0.1 % longer, the tool point would "
-            f"move {moved:.2f} mm RMS, against a claimed 1-sigma of {sigma:.2f} mm that takes K as exact; give K "
-            "from a camera calibration good to a few hundredths of a percent, or leave cameras[].K out: the "
-            "intrinsics are then self-calibrated and their uncertainty counted in the claim"
+            f"move {moved:.2f} mm RMS, against a claimed 1-sigma of {sigma:.2f} mm that takes K as exact; state "
+            "K's uncertainty as cameras[].K_std to have it counted, or leave cameras[].K out: the intrinsics are "
+            "then self-calibrated and their uncertainty counted"
         )
 
 
