@@ -36,7 +36,7 @@ def score_tests(
     (the metadata's lens), the radial distortion they point to (`jaxcal._diagnostics.lens_test`):
     $k_1, k_2$, the shift they imply at the image's corner (px) and their size in sigmas; when its
     focal lengths and principal point were held, the ones they point to
-    (`jaxcal._diagnostics.intrinsics_test`), likewise. `(None, None, None)` when a line delay was
+    (`jaxcal._diagnostics.intrinsics_test`), likewise. All `None` when a line delay was
     modelled, or without an encoder log (each view's angle is then an unknown of its own).
     Fourth: with the intrinsics tested, how the solution (its flattened parameters) moves per px of
     the held fx, fy, cx, cy (`jaxcal._diagnostics.IntrinsicsTest.sensitivity`, `(n, 4)`), else None."""
