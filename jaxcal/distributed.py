@@ -145,7 +145,7 @@ def run_local(
     base[ADDRESS] = f"127.0.0.1:{free_port()}"
     pipe = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True} if capture else {}
     running = [
-        subprocess.Popen(argv, env=base | {PROCESSES: str(processes), PROCESS_ID: str(i)}, **pipe)
+        subprocess.Popen(argv, env=base | {PROCESSES: str(processes), PROCESS_ID: str(i)}, **pipe, **RESTORE)
         for i in range(processes)
     ]
     deadline = None if timeout is None else time.monotonic() + timeout
@@ -160,14 +160,24 @@ def run_local(
     return done
 
 
+def _interruptible() -> None:
+    """In a started process, before it runs: SIGINT at its default. A process started from one that
+    ignores SIGINT (a shell's background job, a test runner's worker) inherits the ignoring, and
+    Python then installs no `KeyboardInterrupt`: `_end`'s Ctrl-C would be lost and each process
+    killed only after `STOP_S`."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _end(running: list) -> None:
-    """End what still runs: Ctrl-C first (jaxcal leaves nothing behind then), then a kill."""
+    """End what still runs: Ctrl-C first (jaxcal leaves nothing behind then), then, for what has
+    not ended `STOP_S` seconds later (all of them together), a kill."""
     for p in running:
         if p.poll() is None:
             p.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + STOP_S
     for p in running:
         try:
-            p.communicate(timeout=STOP_S)
+            p.communicate(timeout=max(deadline - time.monotonic(), 0.0))
         except subprocess.TimeoutExpired:
             p.kill()
             p.communicate()
@@ -175,3 +185,5 @@ def _end(running: list) -> None:
 
 #: How long `run_local` gives an interrupted process to stop before it kills it (s).
 STOP_S = 10
+#: `Popen`'s option that starts each process with SIGINT at its default (POSIX; `_interruptible`).
+RESTORE = {"preexec_fn": _interruptible} if os.name == "posix" else {}

@@ -181,10 +181,26 @@ def test_a_process_that_stops_stops_the_others():
     assert runs[0].stdout.strip() == "process 1 of 2 stopped: its robot file is missing"
 
 
+def test_processes_past_their_time_are_interrupted_even_from_a_process_that_ignores_ctrl_c(monkeypatch):
+    """A launcher that ignores SIGINT (a shell's background job, pytest-xdist's worker) passes the
+    ignoring on: its processes must still take `run_local`'s Ctrl-C, not wait out `STOP_S` and die."""
+    import signal
+
+    killed = []
+    monkeypatch.setattr(
+        subprocess.Popen, "kill", lambda self: killed.append(self.pid) or os.kill(self.pid, 9)
+    )
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with pytest.raises(subprocess.TimeoutExpired):
+            run_local([sys.executable, "-c", "import time; time.sleep(60)"], 2, env=_env(), timeout=3.0)
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert killed == []
+
+
 def test_the_local_launcher_gives_each_process_its_place():
     code = "from jaxcal.distributed import join; p = join(); print(p.index, p.count)"
     runs = run_local([sys.executable, "-c", code], 2, env=_env(), timeout=120, capture=True)
     assert [r.stdout.split() for r in runs] == [["0", "2"], ["1", "2"]], [r.stderr[-1000:] for r in runs]
     assert distributed.current() == distributed.ONE  # this process joined nothing
-    with pytest.raises(subprocess.TimeoutExpired):
-        run_local([sys.executable, "-c", "import time; time.sleep(30)"], 2, env=_env(), timeout=0.5)
