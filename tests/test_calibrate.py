@@ -581,6 +581,22 @@ def test_a_wrong_focal_length_is_named_first(dataset, tmp_path):
         said.group(0),
         r.validation,
     )
+    # With K's uncertainty stated (cameras[].K_std), the step is held against it: 2 % of the focal
+    # length covers the step (a note, the claim counts it); 0.1 % does not (the reason says how far).
+    f0 = json.loads((dataset / "metadata.json").read_text())["cameras"][0]["K"][0][0]
+    for share, named in ((0.02, False), (0.001, True)):
+        _edit_json(
+            ds / "metadata.json", lambda m: m["cameras"][0].update(K_std=[share * f0, share * f0, 5.0, 5.0])
+        )
+        r = calibrate(ds, progress=False, workers=1)
+        check = next(c for c in r.verdict.checks if c.check == "cam0.intrinsics_sigmas")
+        reason = [m for m in r.reasons if "other intrinsics" in m]
+        if named:
+            assert not check.passed and reason and "times the largest of cameras[].K_std" in reason[0], r.reasons
+            assert float(re.search(r"sigmas\): .*, (\d+) times", reason[0]).group(1)) > 10, reason
+        else:
+            assert check.passed and not reason, r.reasons
+            assert any("within" in n and "cameras[].K_std" in n for n in r.verdict.notes), r.verdict.notes
 
 
 @pytest.mark.slow

@@ -426,10 +426,11 @@ def _shutter(c: _Checks, refined: Refined, limits: Limits) -> None:
         )
 
 
-def _camera_model(c: _Checks, refined: Refined, limits: Limits) -> None:
+def _camera_model(c: _Checks, refined: Refined, K_std: np.ndarray | None, limits: Limits) -> None:
     """The residuals against a radial distortion beyond the first camera's given lens, and against
     other focal lengths or another principal point than its given ones (`jaxcal._diagnostics`'
-    `lens_test` and `intrinsics_test`): the larger first, where both fail."""
+    `lens_test` and `intrinsics_test`; against `K_std`, that K's stated uncertainty, where given):
+    the larger first, where both fail."""
     rows = []
     if (t := refined.lens_test) is not None:
         rows.append(
@@ -446,23 +447,50 @@ def _camera_model(c: _Checks, refined: Refined, limits: Limits) -> None:
             )
         )
     if (t := refined.intrinsics_test) is not None:
-        f = refined.problem.K0[0, 0], refined.problem.K0[1, 1]
-        rows.append(
-            (
-                t.sigmas,
-                f"{t.camera}.intrinsics_sigmas",
-                t.sigmas if t.shift_px >= limits.intrinsics_px else 0.0,
-                limits.intrinsics_sigmas,
-                f"camera {t.camera!r}: the residuals point to other intrinsics than metadata.json's ({t.sigmas:.0f} "
-                f"sigmas): focal lengths fx {100 * t.fx_px / f[0]:+.2f} %, fy {100 * t.fy_px / f[1]:+.2f} % and the "
-                f"principal point moved ({t.cx_px:+.1f}, {t.cy_px:+.1f}) px would shift the image's corners by "
-                f"{t.shift_px:.1f} px, and the calibration moved the camera and bent the robot to fit them; give "
-                "cameras[].K from the camera's own calibration at this resolution and focus, or leave cameras[].K out "
-                "to have the intrinsics self-calibrated",
-            )
-        )
+        rows.append(_intrinsics_row(c, t, refined, K_std, limits))
     for _, *row in sorted(rows, key=lambda r: -r[0]):
         c.add(*row, cause="camera_model")
+
+
+def _intrinsics_row(c: _Checks, t, refined: Refined, K_std: np.ndarray | None, limits: Limits) -> tuple:
+    """The intrinsics test's check row. Where `cameras[].K_std` is stated, the claimed uncertainty
+    already counts K's errors up to it: the step the residuals point to is then held against it
+    (in its standard deviations), and one within `limits.intrinsics_sigmas` of them passes (a note)."""
+    f = refined.problem.K0[0, 0], refined.problem.K0[1, 1]
+    step = (
+        f"focal lengths fx {100 * t.fx_px / f[0]:+.2f} %, fy {100 * t.fy_px / f[1]:+.2f} % and the principal point "
+        f"moved ({t.cx_px:+.1f}, {t.cy_px:+.1f}) px"
+    )
+    value = t.sigmas if t.shift_px >= limits.intrinsics_px else 0.0
+    fix = "give cameras[].K from the camera's own calibration at this resolution and focus"
+    if K_std is not None:
+        beyond = float(np.max(np.abs([t.fx_px, t.fy_px, t.cx_px, t.cy_px]) / np.asarray(K_std)))
+        if beyond <= limits.intrinsics_sigmas:  # within K's stated uncertainty: counted, a pass
+            if value > limits.intrinsics_sigmas:
+                c.notes.append(
+                    f"camera {t.camera!r}: the residuals point to other intrinsics than metadata.json's ({step}), "
+                    f"within {beyond:.1f} of cameras[].K_std's standard deviations: counted in the claimed uncertainty"
+                )
+            value = 0.0
+        return (
+            t.sigmas,
+            f"{t.camera}.intrinsics_sigmas",
+            value,
+            limits.intrinsics_sigmas,
+            f"camera {t.camera!r}: the residuals point to other intrinsics than metadata.json's ({t.sigmas:.0f} "
+            f"sigmas): {step}, {beyond:.0f} times the largest of cameras[].K_std's standard deviations, would shift "
+            f"the image's corners by {t.shift_px:.1f} px; {fix}, with its own uncertainty as K_std",
+        )
+    return (
+        t.sigmas,
+        f"{t.camera}.intrinsics_sigmas",
+        value,
+        limits.intrinsics_sigmas,
+        f"camera {t.camera!r}: the residuals point to other intrinsics than metadata.json's ({t.sigmas:.0f} "
+        f"sigmas): {step} would shift the image's corners by {t.shift_px:.1f} px, and the calibration moved the "
+        f"camera and bent the robot to fit them; {fix}, or state how well K is known as cameras[].K_std (px) to "
+        "have it counted in the claimed uncertainty, or leave cameras[].K out to have the intrinsics self-calibrated",
+    )
 
 
 def _focal_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma: float) -> None:
@@ -581,7 +609,7 @@ def verdict(
     if ran:
         _refinement(c, refined, limits)
         _shutter(c, refined, limits)
-        _camera_model(c, refined, limits)
+        _camera_model(c, refined, setup.camera.K_std, limits)
         _correlation(c, setup, two, refined, limits)
     sigma = _ee_sigma_mm(setup, two, refined if ran else None)
     c.add(
