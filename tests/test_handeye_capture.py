@@ -878,6 +878,32 @@ def test_rendered_capture_calibrates_through_the_command(tmp_path, capsys, targe
 
 
 @pytest.mark.slow
+def test_a_lens_left_out_of_handeye_json_is_named(tmp_path, capsys):
+    """Rendered through a lens (k1 -0.08, k2 0.05), the capture's handeye.json states it: the lens
+    test finds nothing. The same images with the distortion left out: the camera's pose moves by
+    a millimetre against a claimed 0.04 mm, which nothing else sees; the test names the lens and
+    the k1 it points to, and the result is suspect."""
+    from jaxcal.handeye._observe import observe
+    from jaxcal.handeye._verdict import LENS_SIGMAS, lens_tests
+
+    capture = _render(tmp_path / "capture", "charuco", True, seed=7, distortion=(-0.08, 0.05, 0.0, 0.0, 0.0))
+    quiet = dict(noise=None, sigma_px=None, workers=1, progress=False, log=lambda m: None)
+    ((_, _, _, _, sigmas),) = lens_tests(observe(capture, **quiet))
+    assert sigmas < 5.0, sigmas
+    meta = json.loads((capture / "handeye.json").read_text())
+    meta["cameras"][0]["distortion"] = [0.0] * 5
+    (capture / "handeye.json").write_text(json.dumps(meta))
+    ((_, k1, _, shift, sigmas),) = lens_tests(observe(capture, **quiet))
+    assert sigmas > 2 * LENS_SIGMAS and shift > 2.0 and -0.10 < k1 < -0.06, (k1, shift, sigmas)
+    assert main(["handeye", str(capture), "--out", str(tmp_path / "out"), "--quiet"]) == 3
+    s = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert any(
+        "as a lens's radial distortion does" in r and "cameras[].distortion" in r for r in s["reasons"]
+    )
+    assert s["cameras"]["cam0"]["truth_error"]["translation_mm"] > 0.5  # what the reason is about
+
+
+@pytest.mark.slow
 def test_self_calibrated_intrinsics_make_the_result_suspect(tmp_path, capsys):
     """A capture without K (`"K": null`): the intrinsics are calibrated from the same 16 images,
     whose focal-length error moves the camera by millimetres that neither the standard deviations

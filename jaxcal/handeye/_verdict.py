@@ -8,6 +8,7 @@ from dataclasses import replace
 import jax
 import numpy as np
 
+from .._distributions import chi2_sf, normal_isf
 from .._handeye import (
     ROBOT_SIGMA_OPTIONS,
     HandEyeVerdict,
@@ -151,6 +152,10 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerd
     if found:
         log(found[0])
         verdict = replace(verdict, status="suspect", reasons=verdict.reasons + found)
+    found = lens_reasons(lens_tests(observed))
+    if found:
+        log(found[0])
+        verdict = replace(verdict, status="suspect", reasons=verdict.reasons + found)
     cameras = observed.capture.cameras
     guessed = [c.name for c, k in zip(cameras, observed.intrinsics) if k.source == "self-calibrated"]
     if guessed:
@@ -226,6 +231,87 @@ def scale_reasons(scales) -> tuple[str, ...]:
         "k-fold spread show"
         for name, s, std in scales
         if abs(s - 1.0) > max(SCALE_TOLERANCE, SCALE_Z * std)
+    )
+
+
+#: A lens beyond the given one (`lens_tests`) is named past this many standard deviations and this
+#: shift (px) at the image's farthest corner: `jaxcal calibrate`'s limits (`Limits.lens_sigmas`,
+#: `lens_px`).
+LENS_SIGMAS = 10.0
+LENS_PX = 0.5
+
+
+def lens_tests(observed: Observed) -> list[tuple[str, float, float, float, float]]:
+    """Per camera with a given K: `(name, k1, k2, shift_px, sigmas)`, the score test of a radial
+    distortion beyond handeye.json's. The pixels the solve fits are undistorted with the given lens;
+    a lens left out leaves residuals that grow with the distance from the image's centre, which
+    each view's PnP pose takes up only in part. Per view (its pose free, pinhole model at PnP's
+    pose): residuals $r$, their derivatives $J_p$ along the pose's six increments and $J_d$ along
+    $(k_1, k_2)$, $x_d = x(1 + k_1\\rho^2 + k_2\\rho^4)$. Summed over views, $D = \\sum J_d^TJ_d -
+    J_d^TJ_p(J_p^TJ_p)^{-1}J_p^TJ_d$ and $g = \\sum J_d^T(I - P_p)r$; the step $\\hat d = D^{-1}g$,
+    $S = g^TD^{-1}g/\\hat\\sigma^2 \\sim \\chi^2_2$ under a right lens (stated as a normal's
+    quantile, `sigmas`); `shift_px` is the step's move at the image's farthest corner."""
+    obs, capture = observed.observations, observed.capture
+    data, out = obs.data, []
+    pixels, mask, points = np.asarray(data.pixels), np.asarray(data.mask), np.asarray(data.board_points)
+    for c, (camera, intr) in enumerate(zip(capture.cameras, observed.intrinsics)):
+        if intr.source != "given":
+            continue
+        K = np.asarray(data.K[c], np.float64)
+        D, g, rr, n, views = np.zeros((2, 2)), np.zeros(2), 0.0, 0, 0
+        for f, pose in enumerate(obs.poses[c]):
+            if pose is None or mask[c, f].sum() < 6:
+                continue
+            T = np.asarray(pose.T_cam_target, np.float64)
+            P = points[mask[c, f]] @ T[:3, :3].T + T[:3, 3]
+            x, y, z = P[:, 0] / P[:, 2], P[:, 1] / P[:, 2], P[:, 2]
+            fx, fy = K[0, 0], K[1, 1]
+            r = (pixels[c, f][mask[c, f]] - np.stack([fx * x + K[0, 2], fy * y + K[1, 2]], -1)).reshape(-1)
+            # d(u, v)/dP (pinhole), then along the pose's increments: dP = dt - [P]x dtheta.
+            dudP = np.zeros((len(P), 2, 3))
+            dudP[:, 0, 0], dudP[:, 0, 2] = fx / z, -fx * x / z
+            dudP[:, 1, 1], dudP[:, 1, 2] = fy / z, -fy * y / z
+            skew = np.zeros((len(P), 3, 3))
+            skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -P[:, 2], P[:, 1], -P[:, 0]
+            skew -= skew.transpose(0, 2, 1)
+            Jp = np.concatenate([dudP, -dudP @ skew], axis=2).reshape(-1, 6)
+            rho2 = x * x + y * y
+            Jd = np.stack([np.stack([fx * x, fy * y], -1) * rho2[:, None] ** k for k in (1, 2)], -1).reshape(
+                -1, 2
+            )
+            A_inv = np.linalg.pinv(Jp.T @ Jp)
+            B = Jp.T @ Jd
+            D += Jd.T @ Jd - B.T @ A_inv @ B
+            g += Jd.T @ r - B.T @ A_inv @ (Jp.T @ r)
+            rr += float(r @ r - (Jp.T @ r) @ A_inv @ (Jp.T @ r))
+            n, views = n + len(r), views + 1
+        if views < 3 or n <= 6 * views + 2:
+            continue
+        step = np.linalg.solve(D, g)
+        score = float(g @ step)
+        sigma2 = max(rr - score, 1e-300) / (n - 6 * views - 2)
+        k1, k2 = float(step[0]), float(step[1])
+        corners = np.array(
+            [[0, 0], [camera.width, 0], [0, camera.height], [camera.width, camera.height]], float
+        )
+        xn = (corners - K[:2, 2]) / np.diag(K)[:2]
+        rho2 = np.sum(xn**2, axis=1)
+        shift = float(np.max(np.linalg.norm(xn * np.diag(K)[:2], axis=1) * np.abs(k1 * rho2 + k2 * rho2**2)))
+        sigmas = float(normal_isf(chi2_sf(score / sigma2, 2)))
+        out.append((camera.name, k1, k2, shift, sigmas))
+    return out
+
+
+def lens_reasons(tests) -> tuple[str, ...]:
+    """What `lens_tests` finds wrong: a lens beyond the given one past `LENS_SIGMAS` and `LENS_PX`."""
+    return tuple(
+        f"camera {name}: the residuals grow with the distance from the image's centre, as a lens's radial "
+        f"distortion does ({sigmas:.0f} sigmas): a distortion of k1 {k1:+.3g}, k2 {k2:+.3g} beyond handeye.json's "
+        f"would shift the image's corners by {shift:.1f} px, and the solve fits the camera's pose to them, which "
+        "neither the standard deviations nor the k-fold spread show; give handeye.json cameras[].distortion from "
+        "the camera's own calibration"
+        for name, k1, k2, shift, sigmas in tests
+        if sigmas > LENS_SIGMAS and shift >= LENS_PX
     )
 
 
