@@ -592,7 +592,9 @@ def test_a_wrong_focal_length_is_named_first(dataset, tmp_path):
         check = next(c for c in r.verdict.checks if c.check == "cam0.intrinsics_sigmas")
         reason = [m for m in r.reasons if "other intrinsics" in m]
         if named:
-            assert not check.passed and reason and "times the largest of cameras[].K_std" in reason[0], r.reasons
+            assert not check.passed and reason and "times the largest of cameras[].K_std" in reason[0], (
+                r.reasons
+            )
             assert float(re.search(r"sigmas\): .*, (\d+) times", reason[0]).group(1)) > 10, reason
         else:
             assert check.passed and not reason, r.reasons

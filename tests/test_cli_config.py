@@ -272,10 +272,14 @@ def test_the_plans_help_states_the_planners_default_noise():
     """`jaxcal plan`'s parser imports nothing of the planner: its help states the default noise
     the planner applies (`sigma-px` not given)."""
     from jaxcal.cli._plan import SIGMA_PX_HELP
-    from jaxcal.planning import DEFAULT_SIGMA_PX
+    from jaxcal.planning import DEFAULT_SIGMA_PX, sigma_for
 
-    assert f"default {DEFAULT_SIGMA_PX:g}" in SIGMA_PX_HELP
-    assert parse(["plan", "--out", "p.json"]).sigma_px is None  # run_plan's DEFAULT_SIGMA_PX
+    assert sigma_for(1280) == DEFAULT_SIGMA_PX and sigma_for(1280, 0.1) == 0.1
+    assert f"{sigma_for(1280):g} at 1280 px, {sigma_for(640):.3f} at 640" in SIGMA_PX_HELP
+    # The rendered captures' corner noise it stands for (the refinement's: data/ur5e_sweeps at 800 px,
+    # 0.054; a planned capture at 640 px, 0.056 and 0.061).
+    assert 0.052 < sigma_for(800) < 0.056 and 0.056 < sigma_for(640) < 0.061
+    assert parse(["plan", "--out", "p.json"]).sigma_px is None  # the planner's sigma_for
     assert parse(["plan", "--out", "p.json", "--config", "sigma-px=0.1"]).sigma_px == 0.1
 
 

@@ -740,6 +740,20 @@ def test_bad_captures_name_file_field_and_value(tmp_path, breakage, match):
         load_hand_eye_capture(root)
 
 
+def test_radians_declared_degrees_are_named(tmp_path):
+    """Rotation vectors in radians, handeye.json saying `deg`: read as degrees the flange would
+    barely turn (the pose checks would then ask for a second rotation axis); the unit is named."""
+    root = tmp_path / "c"
+    _write_capture(root, "xyz_rotvec", "m", "rad")
+    meta = json.loads((root / "handeye.json").read_text())
+    meta["poses"]["rotation_unit"] = "deg"
+    (root / "handeye.json").write_text(json.dumps(meta))
+    with pytest.raises(
+        DatasetError, match=r"poses.csv: no rotation value exceeds .*'rotation_unit' \('deg'\) right"
+    ):
+        load_hand_eye_capture(root)
+
+
 def test_a_pose_file_with_a_byte_order_mark_and_crlf_reads_as_without(tmp_path):
     """Spreadsheets write a byte-order mark and CRLF line ends: the same poses as without them."""
     _write_capture(tmp_path / "c")

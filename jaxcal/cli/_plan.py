@@ -8,8 +8,12 @@ from .._configkeys import knob
 from ..io._images import MAX_PIXELS, MAX_SIDE
 from ._calibrate import TERMS, terms_arg
 
-#: `sigma-px`'s default in `--help`: `jaxcal.planning.DEFAULT_SIGMA_PX` (a test keeps them equal).
-SIGMA_PX_HELP = "detector corner noise, px (default 0.045: jaxcal.planning.DEFAULT_SIGMA_PX)"
+#: `sigma-px`'s default in `--help`: `jaxcal.planning.DEFAULT_SIGMA_PX` at 1280 px wide, growing as the
+#: image narrows (`jaxcal.planning.sigma_for`; a test keeps them equal).
+SIGMA_PX_HELP = (
+    "detector corner noise, px (default: rendered captures' at the camera's image width, 0.045 at 1280 px, "
+    "0.058 at 640: jaxcal.planning.sigma_for)"
+)
 
 #: Bounds of the options that size a plan's work and memory (the candidates' and the frames'
 #: Jacobians are held at once): ten to twenty times their defaults.

@@ -292,6 +292,17 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
             T[:, :3, :3] = rpy_to_matrix(V[:, 3:] * scale_r)
         else:
             T[:, :3, :3] = rotvec_to_matrix(V[:, 3:] * scale_r)
+        turn = (
+            float(np.max(np.abs(V[:, 3:])))
+            if fmt == "xyz_rpy"
+            else float(np.max(np.linalg.norm(V[:, 3:], axis=1)))
+        )
+        if unit_r == "deg" and turn <= 2.0 * math.pi:
+            raise DatasetError(
+                f"{path}: no rotation value exceeds {turn:.3g}: as degrees the flange barely turns, as radians "
+                f"(at most 2 pi) they are an arm's; is {where} field 'rotation_unit' ('deg') right (radians declared "
+                "degrees?)"
+            )
     err = _rotation_error(T[:, :3, :3])
     bad = np.flatnonzero((err > 1e-5) | (np.linalg.det(T[:, :3, :3]) < 0))
     if bad.size:

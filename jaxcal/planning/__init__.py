@@ -27,6 +27,7 @@ from ._api import workspace as workspace
 from ._evaluate import DEFAULT_SIGMA_PX as DEFAULT_SIGMA_PX
 from ._evaluate import PlanEvaluation as PlanEvaluation
 from ._evaluate import evaluate_views as evaluate_views
+from ._evaluate import sigma_for as sigma_for
 from ._layout import default_layout as default_layout
 from ._plan import load_plan as load_plan
 from ._plan import save_plan as save_plan

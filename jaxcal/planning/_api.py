@@ -29,13 +29,13 @@ from ..io.urdf import load_urdf, urdf_outline
 from ..records_capture import ArmFigures, CameraNoise
 from ..robots import link_inertials, robot_path, shipped
 from ._evaluate import (
-    DEFAULT_SIGMA_PX,
     PlanEvaluation,
     TermInputs,
     design,
     ee_gram,
     ee_jacobians,
     evaluate_views,
+    sigma_for,
 )
 from ._layout import default_layout
 from ._optimise import (
@@ -191,7 +191,7 @@ def evaluate_plan(
     plan: "CapturePlan | str | Path",
     *,
     region=None,
-    sigma_px: float = DEFAULT_SIGMA_PX,
+    sigma_px: float | None = None,
     limits: FeasibilityLimits | None = None,
     camera_model: CameraNoise | None = None,
     arm: ArmFigures | None = None,
@@ -203,7 +203,8 @@ def evaluate_plan(
     - `plan`: a `CapturePlan` or a plan file.
     - `region`: `(lo, hi)` corners of a box in the base frame (m) where the EE
       accuracy matters (default: the validation's 1000 random configurations).
-    - `sigma_px`: the detector's corner noise (px per coordinate).
+    - `sigma_px`: the detector's corner noise (px per coordinate; default: rendered captures' at the
+      plan camera's image width, `sigma_for`).
     - `limits`: the feasibility limits (default the plan's own `checks`): frames
       that fail them are left out, as the detector would miss them.
     - `camera_model`, `arm`: the capture's camera and arm (`jaxcal.records_capture`;
@@ -225,6 +226,7 @@ def evaluate_plan(
     plan = load_plan(plan) if isinstance(plan, (str, Path)) else plan
     robot = plan_robot(plan, where)
     scene = scene_of(robot, plan.camera, plan.target, plan.floor_z, where)
+    sigma_px = sigma_for(plan.camera.width, sigma_px)
     limits = FeasibilityLimits(**plan.checks) if limits is None else limits
     q, t, sweeps = views(plan)
     m = correct_toward(scene, limits, plan.taught, q)[1] == 1.0
@@ -464,7 +466,7 @@ def plan(
     floor_z: float | None = -0.6,
     region=None,
     limits: FeasibilityLimits | None = None,
-    sigma_px: float = DEFAULT_SIGMA_PX,
+    sigma_px: float | None = None,
     method: str = "gradient",
     starts: int = 3,
     steps: int = 150,
@@ -488,7 +490,8 @@ def plan(
       `eye_in_hand`).
     - `floor_z`: the floor's height (m, base frame; `None`: no floor).
     - `region`: `(lo, hi)` box (m, base frame) where the EE accuracy matters.
-    - `limits`: `FeasibilityLimits`; `sigma_px`: the detector's corner noise.
+    - `limits`: `FeasibilityLimits`; `sigma_px`: the detector's corner noise (default: rendered
+      captures' at the camera's image width, `sigma_for`).
     - `method`: `"gradient"` (descent from `starts` random feasible subsets,
       `steps` Adam steps) or `"greedy"` (D-optimal selection); `candidates`
       random draws within `amplitude_deg` of the taught pose.
@@ -519,6 +522,7 @@ def plan(
         c, t = default_layout(rob.model, q0, resolution=resolution, distance=dist, eye_in_hand=eye_in_hand)
         camera, target = camera or c, target or t
     scene = scene_of(rob, camera, target, floor_z, where="plan")
+    sigma_px = sigma_for(camera.width, sigma_px)
     limits = FeasibilityLimits() if limits is None else limits
     # The plan's layout at the taught pose: what a checker of lines of sight is built on.
     draft = CapturePlan(

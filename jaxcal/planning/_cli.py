@@ -28,7 +28,7 @@ from ..io._files import check_output_file, resolved, write_text_atomic
 from ..io.plan_inputs import parse_pose, parse_region, read_camera, read_target
 from ._api import Robot, evaluate_plan, plan, scene_of, views, workspace
 from ._check import plan_check, write_poses
-from ._evaluate import DEFAULT_SIGMA_PX, PlanEvaluation
+from ._evaluate import PlanEvaluation
 from ._plan import load_plan, save_plan
 from ._report import parameter_rows, plot_evaluation
 from ._scene import FeasibilityLimits
@@ -247,8 +247,6 @@ def run_check_plan(args, console: Console) -> int:
 def run_plan(args, console: Console, checker_factory=None, capture_models=None) -> int:
     """`jaxcal plan`; `checker_factory(plan) -> checker` adds MuJoCo's checks;
     `capture_models(camera, arm)`: the records of `--camera-model` / `--arm` presets."""
-    if args.sigma_px is None:
-        args.sigma_px = DEFAULT_SIGMA_PX
     if args.evaluate:
         return run_evaluate(args, console, capture_models)
     if args.check:

@@ -55,6 +55,18 @@ from ._scene import PlanScene, frame_geometry
 #: Corner noise of the detector on rendered images (px, per coordinate): the
 #: inlier RMS of the refinement of `jaxcal demo`'s capture (1280x960, 0.9 m).
 DEFAULT_SIGMA_PX = 0.045
+#: ... at other image widths it grows as the corners' pixels coarsen: the refinement's corner noise
+#: on rendered captures of the demo's layout, 0.045 px at 1280 px wide, 0.054 at 800 (`data/ur5e_sweeps`)
+#: and 0.056-0.061 at 640, follows $\sigma = 0.045\,(1280 / w)^{0.37}$ (`sigma_for`).
+SIGMA_PX_WIDTH, SIGMA_PX_EXPONENT = 1280, 0.37
+
+
+def sigma_for(width: int, sigma_px: float | None = None) -> float:
+    """The corner noise a plan is evaluated at: `sigma_px` where given, else the rendered
+    captures' at an image `width` px wide (`DEFAULT_SIGMA_PX` at 1280)."""
+    if sigma_px is not None:
+        return float(sigma_px)
+    return DEFAULT_SIGMA_PX * (SIGMA_PX_WIDTH / width) ** SIGMA_PX_EXPONENT
 
 
 @dataclass(frozen=True, eq=False)
