@@ -712,13 +712,21 @@ def test_the_images_scale_against_the_robots_names_a_wrong_target_size(eye_in_ha
     long: the solve cannot see it, the scale fit against the robot's motion can. Right sizes pass."""
     from jaxcal.handeye._verdict import SCALE_TOLERANCE, image_scale, scale_reasons
 
-    ((name, s, std),) = image_scale(*_scaled_capture(eye_in_hand, 1.0))
+    ((name, s, std, distance),) = image_scale(*_scaled_capture(eye_in_hand, 1.0))
     assert name == "cam0" and abs(s - 1.0) < 4 * std and std < SCALE_TOLERANCE / 5
-    assert scale_reasons([(name, s, std)]) == ()
-    ((_, s, std),) = image_scale(*_scaled_capture(eye_in_hand, 1.03))
+    assert scale_reasons([(name, s, std, distance)], {"cam0": 0.05}) == ()
+    ((_, s, std, distance),) = image_scale(*_scaled_capture(eye_in_hand, 1.03))
     assert abs(s - 1.03) < 4 * std
-    (reason,) = scale_reasons([(name, s, std)])
+    (reason,) = scale_reasons([(name, s, std, distance)])
     assert "cam0" in reason and "+3.0 %" in reason and "square_length" in reason
+    # Below the 0.5 % tolerance, a scale many standard errors off is named where the camera's move
+    # it implies is past twice the claimed standard deviation, not where the claim covers it.
+    ((_, s, std, distance),) = image_scale(*_scaled_capture(eye_in_hand, 1.004, frames=48))
+    move = 1e3 * abs(s - 1.0) * distance
+    assert abs(s - 1.0) > 5 * std and move > 1.0, (s, std, move)
+    (reason,) = scale_reasons([(name, s, std, distance)], {"cam0": move / 4})
+    assert f"{move:.1f} mm at {distance:.2f} m, against a claimed {move / 4:.2f} mm" in reason, reason
+    assert scale_reasons([(name, s, std, distance)], {"cam0": move}) == ()
     # Too few frames for a scale and a jackknife: nothing said.
     assert image_scale(*_scaled_capture(eye_in_hand, 1.03, frames=5)) == []
 

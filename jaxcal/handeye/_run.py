@@ -34,6 +34,8 @@ class HandEyeRun:
     - `truth_error`: synthetic captures: per camera the error of
       `T_robot_cam` against the truth, `(translation m, rotation rad)`, else None.
     - `seconds`: wall time per step.
+    - `checks`: per camera name, the images' scale against the robot's and the lens test
+      (`jaxcal.handeye._verdict.input_hints`).
     """
 
     capture: HandEyeCapture
@@ -48,6 +50,7 @@ class HandEyeRun:
     max_steps: int
     noise: NoiseChoice
     seconds: dict[str, float] = field(default_factory=dict)
+    checks: dict[str, dict] = field(default_factory=dict)
 
     @property
     def frames(self) -> int:
@@ -134,7 +137,7 @@ def calibrate_hand_eye_capture(
         log("solving (the first run on a capture of this size compiles its programs) ...")
         with working(progress, "solving", say=log):
             solved = solve(observed, folds=folds, max_steps=max_steps, log=log)
-        verdict, hint_seconds = judge(observed, solved, max_steps=max_steps, log=log)
+        verdict, hint_seconds, checks = judge(observed, solved, max_steps=max_steps, log=log)
     return HandEyeRun(
         capture=observed.capture,
         intrinsics=observed.intrinsics,
@@ -148,4 +151,5 @@ def calibrate_hand_eye_capture(
         max_steps=max_steps,
         noise=solved.noise,
         seconds={**observed.seconds, **solved.seconds, **hint_seconds},
+        checks=checks,
     )

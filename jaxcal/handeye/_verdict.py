@@ -135,11 +135,12 @@ def robot_noise_hint(verdict, data, result, solve, log) -> HandEyeVerdict:
     return replace(verdict, notes=verdict.notes + (text,))
 
 
-def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerdict:
+def input_hints(verdict, observed: Observed, solved: Solved, log) -> tuple[HandEyeVerdict, dict]:
     """The verdict with what the input itself explains: robot poses noisier than given
     (`robot_noise_hint`), the misreading that fits when the poses and images do not
-    (`diagnose_misfit`), and intrinsics self-calibrated from the capture, which make any
-    result suspect."""
+    (`diagnose_misfit`), the images' scale against the robot's (`image_scale`), a lens beyond
+    the given one (`lens_tests`), and intrinsics self-calibrated from the capture, which make any
+    result suspect; and per camera name the scale's and the lens test's figures (`result.json`)."""
     result, solve = solved.result, solved.solver
     verdict = robot_noise_hint(verdict, observed.observations.data, result, solve, log)
     # An exact-pose fit whose frames left out are predicted as a robot's noise allows is no misfit.
@@ -148,11 +149,19 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerd
         if found:
             log(f"the poses fit the images once read differently: {found}")
             verdict = replace(verdict, reasons=verdict.reasons + (found,))
-    found = scale_reasons(image_scale(observed, solved))
+    scales, lenses = image_scale(observed, solved), lens_tests(observed)
+    std_mm = 1e3 * np.linalg.norm(np.asarray(solved.result.std_robot_cam)[:, :3], axis=1)
+    claimed = {c.name: float(std_mm[i]) for i, c in enumerate(observed.capture.cameras)}
+    found = scale_reasons(scales, claimed)
     if found:
         log(found[0])
         verdict = replace(verdict, status="suspect", reasons=verdict.reasons + found)
-    found = lens_reasons(lens_tests(observed))
+    checks = {
+        name: {"image_scale": {"factor": k, "std": std, "target_distance_m": d}} for name, k, std, d in scales
+    }
+    for name, k1, k2, shift, sigmas in lenses:
+        checks.setdefault(name, {})["lens_test"] = {"k1": k1, "k2": k2, "shift_px": shift, "sigmas": sigmas}
+    found = lens_reasons(lenses)
     if found:
         log(found[0])
         verdict = replace(verdict, status="suspect", reasons=verdict.reasons + found)
@@ -172,7 +181,7 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerd
                 "calibration",
             ),
         )
-    return verdict
+    return verdict, checks
 
 
 #: The images' scale against the robot's (`image_scale`): off by more than this fraction and by
@@ -181,14 +190,17 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> HandEyeVerd
 #: axis by the fraction times the target's distance.
 SCALE_TOLERANCE = 0.005
 SCALE_Z = 5.0
+#: ... or, below the tolerance, off by enough to move the camera this many times the translation's
+#: claimed standard deviation (a square 0.4 % small: 1.7 mm against a claimed 0.2 mm).
+SCALE_CLAIMS = 2.0
 #: Frames a camera needs for its scale (7 unknowns, three equations per frame, and a jackknife).
 SCALE_MIN_FRAMES = 6
 
 
-def image_scale(observed: Observed, solved: Solved) -> list[tuple[str, float, float]]:
-    """Per camera `(name, k, std)`: PnP's distances over those the robot's motion implies (1 when
-    the target's size and the focal length are right; a target declared 2 % too small: 0.98), and
-    its standard error. PnP's translations scaled by $s = 1/k$ follow the robot: at the solve's
+def image_scale(observed: Observed, solved: Solved) -> list[tuple[str, float, float, float]]:
+    """Per camera `(name, k, std, distance)`: PnP's distances over those the robot's motion implies
+    (1 when the target's size and the focal length are right; a target declared 2 % too small:
+    0.98), its standard error, and the target's mean distance (m). PnP's translations scaled by $s = 1/k$ follow the robot: at the solve's
     camera rotation $R_x$ the hand-eye translations are linear in the camera's and the board's
     offsets and in $s$: per frame (robot pose $R_a, t_a$, PnP
     translation $t_p$) $R_a^T t_y - t_x - s R_x t_p = R_a^T t_a$ eye-in-hand, $R_a t_y - t_x -
@@ -217,21 +229,31 @@ def image_scale(observed: Observed, solved: Solved) -> list[tuple[str, float, fl
         left_out = np.array([scale(np.r_[0 : 3 * i, 3 * i + 3 : 3 * F])[6] for i in range(F)])
         jackknife = (F - 1) / F * np.sum((left_out - left_out.mean()) ** 2)
         std = np.sqrt(max(var * np.linalg.pinv(A.T @ A)[6, 6], jackknife))
-        out.append((camera.name, float(1.0 / x[6]), float(std / x[6] ** 2)))
+        distance = np.mean([np.linalg.norm(obs.poses[c][f].T_cam_target[:3, 3]) for f in frames])
+        out.append((camera.name, float(1.0 / x[6]), float(std / x[6] ** 2), float(distance)))
     return out
 
 
-def scale_reasons(scales) -> tuple[str, ...]:
-    """What `image_scale` finds wrong: a scale off by `SCALE_TOLERANCE` and `SCALE_Z` standard errors."""
-    return tuple(
-        f"camera {name}: PnP's distances are {100 * (s - 1):+.1f} % (+/- {100 * std:.1f} %) off those the "
-        "robot's motion implies: the target's size (handeye.json target.square_length / marker_length) or the camera's focal "
-        "length (K) is wrong, or the robot's own kinematics are; the camera's position is then off along its "
-        "axis by about that fraction of the target's distance, which neither the standard deviations nor the "
-        "k-fold spread show"
-        for name, s, std in scales
-        if abs(s - 1.0) > max(SCALE_TOLERANCE, SCALE_Z * std)
-    )
+def scale_reasons(scales, claimed_mm: dict[str, float] | None = None) -> tuple[str, ...]:
+    """What `image_scale` finds wrong: a scale off by `SCALE_Z` standard errors and either by
+    `SCALE_TOLERANCE`, or by enough to move the camera (the fraction times the target's distance)
+    `SCALE_CLAIMS` times the translation's claimed standard deviation (`claimed_mm`, per camera)."""
+    out = []
+    for name, s, std, distance in scales:
+        off, move = abs(s - 1.0), 1e3 * abs(s - 1.0) * distance
+        claim = (claimed_mm or {}).get(name)
+        big = off > SCALE_TOLERANCE or (claim is not None and move > SCALE_CLAIMS * claim)
+        if off > SCALE_Z * std and big:
+            against = "" if claim is None else f", against a claimed {claim:.2f} mm"
+            d = 1 if 100 * std >= 0.1 or 100 * off >= 1.0 else 2  # a fine scale: two digits
+            out.append(
+                f"camera {name}: PnP's distances are {100 * (s - 1):+.{d}f} % (+/- {100 * std:.{d}f} %) off those the "
+                "robot's motion implies: the target's size (handeye.json target.square_length / marker_length) or the "
+                "camera's focal length (K) is wrong, or the robot's own kinematics are; the camera's position is then "
+                f"off along its axis by about that fraction of the target's distance ({move:.1f} mm at "
+                f"{distance:.2f} m{against}), which neither the standard deviations nor the k-fold spread show"
+            )
+    return tuple(out)
 
 
 #: A lens beyond the given one (`lens_tests`) is named past this many standard deviations and this
@@ -323,9 +345,9 @@ def noise_model_note(choice: NoiseChoice) -> str:
 
 def judge(
     observed: Observed, solved: Solved, *, max_steps: int, log
-) -> tuple[HandEyeVerdict, dict[str, float]]:
+) -> tuple[HandEyeVerdict, dict[str, float], dict]:
     """`assess_hand_eye` of the solve (residuals, convergence, k-fold against std, the rotation-angle
-    check), then `input_hints`; returns the verdict and `{"hints": seconds}`."""
+    check), then `input_hints`; returns the verdict, `{"hints": seconds}` and `input_hints`' checks."""
     capture = observed.capture
     verdict = assess_hand_eye(
         solved.result,
@@ -338,5 +360,5 @@ def judge(
     )
     verdict = replace(verdict, notes=capture.notes + verdict.notes + (noise_model_note(solved.noise),))
     t0 = time.perf_counter()
-    verdict = input_hints(verdict, observed, solved, log)
-    return verdict, {"hints": time.perf_counter() - t0}
+    verdict, checks = input_hints(verdict, observed, solved, log)
+    return verdict, {"hints": time.perf_counter() - t0}, checks

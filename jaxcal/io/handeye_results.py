@@ -84,6 +84,9 @@ def _camera_entry(run, c: int) -> dict:
         "width": cam.width,
         "height": cam.height,
         "check": _check_block(r, c, len(cap.cameras)),
+        # The images' scale against the robot's (1: the target's size and K agree with the arm's
+        # motion) and the lens test (`jaxcal.handeye._verdict`), where the capture allows them.
+        **run.checks.get(cam.name, {}),
     }
     if run.kfold is not None:
         entry["kfold_std"] = _std(run.kfold.std_robot_cam[c])
