@@ -198,7 +198,10 @@ def estimate_offset(
       or `(n, 3)` positions in the camera frame (use `metres_per_unit=1`).
     - `angles`: `(n,)` commanded rotation angles (rad) about the axis.
     - `metres_per_unit`: the image scale at the tip (m/px, e.g. depth / focal length).
-    - `camera_roll`: nominal roll $\\gamma$ of the image axes about the rotation axis (rad).
+    - `camera_roll`: $\\gamma$ (rad), the image angle (from the image's $x$ towards its $y$) at which
+      the axis frame's $+x$ direction appears: for a camera looking along the axis with its $x$ turned
+      by $\\rho$ from the axis frame's (`jaxcal.sim.tool.ToolScene(camera_roll=rho)`), $\\gamma = -\\rho$
+      (`ToolScene.image_roll`). It need only be rough (module docstring); beyond 60 deg off the loop diverges.
     """
     w = jnp.ones(points.shape[0]) if mask is None else mask.astype(points.dtype)
     circle = fit_circle(points, None if mask is None else mask)
@@ -272,6 +275,15 @@ class ToolOffsetResult(eqx.Module):
     iterations: int
 
 
+def _check_roll(camera_roll) -> None:
+    """`camera_roll` is an angle in radians: finite, within one turn (a larger one is degrees)."""
+    if not (np.isfinite(camera_roll) and abs(camera_roll) <= 2 * np.pi):
+        raise ToolOffsetInputError(
+            f"camera_roll: the image angle of the axis frame's +x, in radians within one turn, got {camera_roll!r}"
+            + (f" (degrees? {np.radians(camera_roll):.4g} rad)" if np.isfinite(camera_roll) else "")
+        )
+
+
 def calibrate_tool_offset(
     measure: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray | None]],
     tcp0,
@@ -296,6 +308,7 @@ def calibrate_tool_offset(
 
     **Returns:** a `ToolOffsetResult`. Raises `ToolOffsetInputError` on a bad measurement.
     """
+    _check_roll(camera_roll)
     tcp = np.asarray(tcp0, np.float64).copy()
     if tcp.shape != (2,) or not np.all(np.isfinite(tcp)):
         raise ToolOffsetInputError(
@@ -332,6 +345,17 @@ def calibrate_tool_offset(
             camera_roll=camera_roll,
         )
         r = float(est.radius)
+        if not (np.isfinite(r) and np.all(np.isfinite(np.asarray(est.offset)))):
+            raise ToolOffsetInputError(
+                f"rotation {k + 1}: the tip's arc gives no circle (its points on a line?)"
+            )
+        if len(radii) > 1 and r > radii[-1] > radii[-2]:
+            raise ToolOffsetInputError(
+                f"rotation {k + 1}: the arc's radius grew from {1e3 * radii[-2]:.3g} to {1e3 * radii[-1]:.3g} to "
+                f"{1e3 * r:.3g} mm as the axis moved toward each estimate: camera_roll ({float(camera_roll):.4g} rad: the "
+                "image angle of the axis frame's +x, minus a camera's own roll) is off by over 60 deg, or "
+                "metres_per_unit by over 2x"
+            )
         radii.append(r)
         if r < tol or (len(radii) > 1 and abs(radii[-2] - r) < tol_change):
             converged = True
@@ -381,6 +405,7 @@ def align_to_principal_point(
       the stylus axis's image point (px, `(2,)`).
     - `position0` (m), `principal_point` (px): start and target.
     """
+    _check_roll(camera_roll)
     c = np.asarray(principal_point, np.float64)
     pos = np.asarray(position0, np.float64).copy()
     start = pos.copy()

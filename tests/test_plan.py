@@ -251,6 +251,14 @@ def test_plan_files_round_trip_and_refuse_unknown_fields_and_wrong_types(ur5e, t
     (tmp_path / "bad.json").write_text(json.dumps(d))
     with pytest.raises(PlanFileError, match=r"bad.json: segments\[0\].poses"):
         load_plan(tmp_path / "bad.json")
+    # A URDF path that does not resolve from the plan file's folder: the file, the field, where it looked.
+    d = plan_to_dict(p)
+    d["robot"] = "../../robots/ur5e.urdf"
+    (tmp_path / "moved.json").write_text(json.dumps(d))
+    with pytest.raises(
+        PlanFileError, match=r"moved.json: field 'robot': '../../robots/ur5e.urdf' .* \(looked for "
+    ):
+        load_plan(tmp_path / "moved.json")
 
 
 def test_sweep_plans_film_what_the_simulator_films():

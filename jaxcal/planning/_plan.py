@@ -36,6 +36,12 @@ def load_plan(path) -> CapturePlan:
     except DatasetError as e:
         raise PlanFileError(str(e)) from None
     robot = Path(plan.robot)
-    if plan.robot not in shipped() and not robot.is_absolute() and (path.parent / robot).is_file():
-        plan = replace(plan, robot=str(resolved(path.parent / robot)))
-    return plan
+    if plan.robot in shipped():
+        return plan
+    found = robot if robot.is_absolute() else path.parent / robot
+    if not found.is_file():
+        raise PlanFileError(
+            f"{path}: field 'robot': {plan.robot!r} is neither a shipped robot ({shipped()}) nor a URDF file "
+            f"(looked for {found}; a relative path is read from the plan file's folder)"
+        )
+    return replace(plan, robot=str(resolved(found)))

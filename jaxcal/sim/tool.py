@@ -40,6 +40,9 @@ class ToolScene:
     ):
         self.tip_xy = np.asarray(tip_xy, np.float64)
         self.camera_roll = float(camera_roll)
+        #: What `jaxcal.calibrate_tool_offset`'s `camera_roll` takes for this camera (looking up the
+        #: axis, its x turned by `camera_roll`): the image angle of the axis frame's +x.
+        self.image_roll = -self.camera_roll
         self.height = height
         self.stylus_length = stylus_length
         c, s = np.cos(camera_roll), np.sin(camera_roll)

@@ -10,6 +10,7 @@ import functools
 import time
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -150,10 +151,11 @@ def _gauge(setup: Setup, sync: Sync, two: TwoStage, true, T_cb_true, mounts_true
 
 
 def _pose_gauge(nominal, true, free, T_cb_true, mount_true, travel):
-    """The estimator's gauge for a capture without sweeps: the estimator's own parameters (its
-    fixed frame, the joint origins and zero offsets it freed, the first mount) fitted to the
-    truth's marker poses at the validation's configurations, those it held at nominal held
-    there too. The truth's perturbations of the held parameters then move the fitted fixed frame
+    """The estimator's gauge for a capture without sweeps, `(T_cam_base, zero offsets)`: the
+    estimator's own parameters (its fixed frame, the joint origins and zero offsets it freed, the
+    first mount) fitted to the truth's marker poses at the validation's configurations, those it
+    held at nominal held there too (a joint origin's spin about its axis, held, and the zero offset
+    are one direction: the truth's spin comes out in the gauge's zero offset). The truth's perturbations of the held parameters then move the fitted fixed frame
     as they moved the estimate, and nothing else does (Gauss-Newton from the nominal robot at the
     true fixed frame and mount, `GAUGE_STEPS` steps: the fit is exact where only the gauge differs)."""
     n = nominal.num_joints
@@ -195,7 +197,7 @@ def _pose_gauge_program(n: int):
         # From the nominal robot at the true fixed frame and mount (corrections of a few mm and
         # tenths of a degree: Gauss-Newton converges in a few steps).
         x, _ = jax.lax.scan(step, jnp.zeros(7 * n + 12), None, length=GAUGE_STEPS)
-        return T_cb_true @ se3_exp(x[:6])
+        return T_cb_true @ se3_exp(x[:6]), nominal.zero_offset + x[6 + 6 * n : 7 * n + 6]
 
     return stored_jit(fit, "pose_gauge", (n,))
 
@@ -230,7 +232,8 @@ def other_camera_errors(
 
 def _joint_errors(nominal, true, model, s) -> tuple[JointError, ...]:
     """Per joint its axis, ratio and zero-offset errors against the truth (`score`'s figures `s`;
-    the zero offsets against `true`'s: with sweeps, the truth in the estimator's gauge, `_gauge`);
+    the zero offsets against `true`'s: the truth in the estimator's gauge, `_gauge` with sweeps,
+    `_pose_gauge` without);
     a prismatic joint has a direction (no axis position), the scale's error and mm."""
     ratio_err, dir_deg, pos_mm = (np.asarray(a) for a in (s.ratio_err_percent, s.axis_dir_deg, s.axis_pos_mm))
     rows, zero_err = [], np.asarray(model.zero_offset) - np.asarray(true.zero_offset)
@@ -280,20 +283,14 @@ def validate(
         if setup.kind.has_arcs
         else None
     )
-    T_gauge = (
-        np.asarray(gauge.T_cam_base)
-        if gauge is not None
-        else _pose_gauge(
-            nominal,
-            true,
-            np.asarray(fit.free)[: 7 * nominal.num_joints + 12],
-            T_cb_true,
-            mounts_true[0],
-            travel,
-        )
-        if setup.kind.images  # a tracker's point has no orientation to fit; its truth is anchored
-        else T_cb_true
-    )
+    if gauge is not None:
+        T_gauge, true_gauge = np.asarray(gauge.T_cam_base), gauge.model
+    elif setup.kind.images:  # the truth seen through the parameters the estimator held
+        free = np.asarray(fit.free)[: 7 * nominal.num_joints + 12]
+        T_gauge, zero = _pose_gauge(nominal, true, free, T_cb_true, mounts_true[0], travel)
+        true_gauge = eqx.tree_at(lambda m: m.zero_offset, true, jnp.asarray(zero))
+    else:  # a tracker's point has no orientation to fit; its truth is anchored
+        T_gauge, true_gauge = T_cb_true, true
     dT = pose_inverse(T_gauge) @ np.asarray(fit.T_cam_base)
     dT_raw = pose_inverse(T_cb_true) @ np.asarray(fit.T_cam_base)
     rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
@@ -319,7 +316,7 @@ def validate(
             raw_trans_mm=float(np.linalg.norm(dT_raw[:3, 3]) * 1e3),
             raw_rot_deg=_rot_deg(dT_raw[:3, :3]),
         ),
-        parameter_errors=_joint_errors(nominal, true if gauge is None else gauge.model, fit.model, s),
+        parameter_errors=_joint_errors(nominal, true_gauge, fit.model, s),
         true_ratios=tuple(np.asarray(true.reduction_ratio).tolist()),
         true_clock_offset_s=true_offset,
         T_cam_base_error_two_stage=None
