@@ -82,14 +82,16 @@ def key():
 #: pytest-xdist otherwise queues the files by their number of tests, which put
 #: the notebooks (3 tests, minutes) near the end. CPU seconds per file from
 #: `JAXCAL_TEST_CPU` on a fresh clone (2026-12-02, after the merges of issues 48,
-#: 49, 54 and 55): benchmarks 830 (every benchmark mode, one process: first, so
-#: the other worker takes the rest meanwhile instead of waiting on it at the end),
+#: 49, 54 and 55): benchmarks 830 (every benchmark mode; now in two files of about
+#: 420 and 300, first: each worker starts on one, longest first, instead of one
+#: worker running them all while the other takes the rest),
 #: pointfit 164, notebooks 157, calibrate 156, arcfit 144, handeye_capture 129,
 #: axisfit 107, plan 100, montecarlo 95, prismatic 92, armcheck 78, links 77,
 #: refine 64, handeye 58, arm_model 57, eye_in_hand 55, terms 55, home 51,
 #: startup 39, certify 37, then less.
 SLOW_FIRST = (
     "test_benchmarks",
+    "test_benchmarks_captures",
     "test_pointfit",
     "test_notebooks",
     "test_calibrate",

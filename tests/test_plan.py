@@ -509,6 +509,21 @@ def test_cli_evaluates_a_plan_file_with_the_spread_of_one_capture(ur5e, tmp_path
     assert abs(ev.ratio_percentile(1e-3 * median) - 0.5) < 0.002
     assert "one capture's EE RMS mm" in text and f"{median:.4f} median" in text
     assert 0.1 < figures["outside_0.6_1.5_probability"] < 0.4
+    # Frames that fail the checks are counted and the first's reason named, on the console and in the
+    # JSON, not silently dropped: 4 of these 12 (the demo's camera does not see them whole) ...
+    assert figures["frames_infeasible"] == len(POSES) - figures["frames"] > 0
+    assert "frames left out" in text and figures["infeasible_note"].startswith("4 of its 12 frames fail")
+    # ... and more of them on a UR3 (same joint names, a smaller arm).
+    d = plan_to_dict(_plan(ur5e))
+    d["robot"] = "ur3"
+    (tmp_path / "ur3.json").write_text(json.dumps(d))
+    ev3 = jaxcal.evaluate_plan(tmp_path / "ur3.json")
+    assert (
+        ev3.frames + ev3.frames_infeasible == len(POSES)
+        and ev3.frames_infeasible > figures["frames_infeasible"]
+    )
+    assert ev3.infeasible_note.startswith(f"{ev3.frames_infeasible} of its {len(POSES)} frames fail")
+    assert "robot 'ur3'" in ev3.infeasible_note and "planned for this robot" in ev3.infeasible_note
 
 
 def test_an_eye_in_hand_plan_is_rendered_and_calibrated(tmp_path):

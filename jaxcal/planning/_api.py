@@ -230,12 +230,12 @@ def evaluate_plan(
     limits = FeasibilityLimits(**plan.checks) if limits is None else limits
     q, t, sweeps = views(plan)
     m = correct_toward(scene, limits, plan.taught, q)[1] == 1.0
+    failing = "" if m.all() else _infeasible(scene, limits, q, m, plan.robot)
     if m.sum() < MIN_POSES:
-        raise BudgetTooSmallError(
-            f"plan: {int(m.sum())} of its {len(q)} frames pass the feasibility checks; at least {MIN_POSES} are needed"
-        )
+        raise BudgetTooSmallError(f"plan: {failing}; at least {MIN_POSES} frames are needed")
+    lost = {"frames_infeasible": int(np.sum(~m)), "infeasible_note": failing}
     if camera_model is None and arm is None:
-        return evaluate_views(
+        ev = evaluate_views(
             scene,
             q[m],
             t[m],
@@ -244,6 +244,7 @@ def evaluate_plan(
             sigma_px=sigma_px,
             terms=term_inputs(plan, robot, t[m], terms),
         )
+        return replace(ev, **lost)
     q, t = q[m], t[m]
     kept, offsets, joint_std, note = capture_terms(
         plan, robot.source, scene, q, t, camera_model, arm, design(scene, sweeps).kind.single_joint_sweeps
@@ -269,6 +270,17 @@ def evaluate_plan(
         added_sigma_px=added,
         camera_note=note,
         frames_lost_to_blur=int(np.sum(~kept)),
+        **lost,
+    )
+
+
+def _infeasible(scene: PlanScene, limits: FeasibilityLimits, q: np.ndarray, m: np.ndarray, robot: str) -> str:
+    """How many of a plan's frames `q` fail the feasibility checks (`m` False) and why the first
+    does (`explain`): a plan made for another robot or scene fails many."""
+    first = int(np.flatnonzero(~m)[0])
+    return (
+        f"{int(np.sum(~m))} of its {len(q)} frames fail the feasibility checks on robot {robot!r} and are left "
+        f"out (frame {first}: {explain(scene, limits, q[first])}); were they planned for this robot and layout?"
     )
 
 

@@ -62,6 +62,8 @@ def evaluation_table(console: Console, ev: PlanEvaluation, title: str) -> None:
     t.add_column("")
     t.add_column("predicted", justify="right")
     t.add_row("frames / corners", f"{ev.frames} / {ev.corners}")
+    if ev.frames_infeasible:
+        t.add_row("frames left out", ev.infeasible_note)
     t.add_row("EE RMS (1-sigma) mm", f"{1e3 * ev.ee_rms:.4f}")
     t.add_row("EE p95 mm", f"{1e3 * ev.ee_p95:.4f}")
     if ev.error_eigenvalues.size and np.isfinite(ev.ee_rms):

@@ -284,6 +284,10 @@ class PlanEvaluation:
     terms_unpinned: tuple[str, ...] = ()
     ee_bias_rigid: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bias_parts_rigid: dict = field(default_factory=dict)
+    #: A plan's frames that fail its feasibility checks on this robot and scene (left out, as the
+    #: detector would miss them), and why the first fails (`jaxcal.planning.evaluate_plan`).
+    frames_infeasible: int = 0
+    infeasible_note: str = ""
 
     @property
     def ee_bias_rms(self) -> float:
@@ -396,6 +400,8 @@ class PlanEvaluation:
             if spread
             else None,
         }
+        if self.frames_infeasible:
+            out |= {"frames_infeasible": self.frames_infeasible, "infeasible_note": self.infeasible_note}
         if self.camera_model is not None or self.arm_model is not None:
             out |= {
                 "camera_model": self.camera_model,
