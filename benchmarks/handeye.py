@@ -697,7 +697,9 @@ def main(argv=None) -> dict:
         help="comma-separated: protocol, rendered, captures, real, speed, noise (noise is not in the default)",
     )
     p.add_argument(
-        "--quick", action="store_true", help="a smoke run: 3 trials, 10 poses, 12 frames, 1 capture, 1 timed solve"
+        "--quick",
+        action="store_true",
+        help="a smoke run: 3 trials, 10 poses, 12 frames, 1 capture, 1 timed solve",
     )
     p.add_argument("--no-dense", action="store_true", help="speed: skip the dense reference solve")
     p.add_argument(
