@@ -166,6 +166,16 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> tuple[HandE
         log(found[0])
         verdict = replace(verdict, status="suspect", reasons=verdict.reasons + found)
     cameras = observed.capture.cameras
+    tested = {t[0] for t in lenses}
+    untested = [
+        c.name for c, k in zip(cameras, observed.intrinsics) if k.source == "given" and c.name not in tested
+    ]
+    if untested:
+        note = (
+            f"camera {', '.join(untested)}: the lens test did not run (it needs 3 views of {LENS_MIN_CORNERS} "
+            "corners or more; a single tag shows 4): a lens beyond handeye.json's would go unnamed"
+        )
+        verdict = replace(verdict, notes=verdict.notes + (note,))
     guessed = [c.name for c, k in zip(cameras, observed.intrinsics) if k.source == "self-calibrated"]
     if guessed:
         # The solve, its standard deviations and the k-fold spread all hold K exact: a focal length
