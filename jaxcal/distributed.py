@@ -20,11 +20,13 @@ fleet's output folder must be on a file system every process sees (a cluster's s
 module imports no JAX until asked to join (the command line's parser reads `requested`).
 """
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 from . import _interrupt
@@ -144,10 +146,11 @@ def run_local(
     base = dict(os.environ if env is None else env)
     base[ADDRESS] = f"127.0.0.1:{free_port()}"
     pipe = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True} if capture else {}
-    running = [
-        subprocess.Popen(argv, env=base | {PROCESSES: str(processes), PROCESS_ID: str(i)}, **pipe, **RESTORE)
-        for i in range(processes)
-    ]
+    with _ctrl_c_passed_on():
+        running = [
+            subprocess.Popen(argv, env=base | {PROCESSES: str(processes), PROCESS_ID: str(i)}, **pipe)
+            for i in range(processes)
+        ]
     deadline = None if timeout is None else time.monotonic() + timeout
     done = []
     try:
@@ -160,12 +163,23 @@ def run_local(
     return done
 
 
-def _interruptible() -> None:
-    """In a started process, before it runs: SIGINT at its default. A process started from one that
-    ignores SIGINT (a shell's background job, a test runner's worker) inherits the ignoring, and
-    Python then installs no `KeyboardInterrupt`: `_end`'s Ctrl-C would be lost and each process
-    killed only after `STOP_S`."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+@contextlib.contextmanager
+def _ctrl_c_passed_on():
+    """While processes start: SIGINT handled here, where this process ignores it (a shell's background
+    job, a test runner's worker). An ignored signal is inherited across `exec`, a handled one is reset
+    to its default: the started processes then take `_end`'s Ctrl-C (Python installs no
+    `KeyboardInterrupt` where SIGINT starts ignored), instead of being killed `STOP_S` later. (A
+    `preexec_fn` would do it in the child, but forks a multithreaded process the slow, unsafe way.)"""
+    ignoring = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) in (
+        signal.SIG_IGN,
+    )
+    if ignoring:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        if ignoring:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _end(running: list) -> None:
@@ -185,5 +199,3 @@ def _end(running: list) -> None:
 
 #: How long `run_local` gives an interrupted process to stop before it kills it (s).
 STOP_S = 10
-#: `Popen`'s option that starts each process with SIGINT at its default (POSIX; `_interruptible`).
-RESTORE = {"preexec_fn": _interruptible} if os.name == "posix" else {}

@@ -383,7 +383,7 @@ def test_a_pose_captures_gauge_moves_the_fixed_frame_by_the_truths_held_perturba
     travel = joint_travel(nominal)
     held = free.copy()
     held[12 + 1] = held[12 + 4] = held[12 + 5] = False  # shoulder_lift_joint.origin.ty, ry, rz
-    dT = np.linalg.inv(T_cb) @ np.asarray(_pose_gauge(nominal, true, held, T_cb, mount, travel))
+    dT = np.linalg.inv(T_cb) @ np.asarray(_pose_gauge(nominal, true, held, T_cb, mount, travel)[0])
     np.testing.assert_allclose(np.abs(dT[:3, 3]), [0.0, 0.0, 1e-3], atol=1e-9)  # 1 mm along joint 1's axis
     np.testing.assert_allclose(dT[:3, :3], np.eye(3), atol=1e-9)
     # A truth off in a parameter the estimator frees (elbow_joint.origin.tx): the gauge is its own pose.
@@ -391,7 +391,7 @@ def test_a_pose_captures_gauge_moves_the_fixed_frame_by_the_truths_held_perturba
         origin=corr.origin.at[1, 1].set(0.0).at[2, 0].set(1e-3), zero_offset=corr.zero_offset, tool=corr.tool
     )
     true, _ = apply_correction(nominal, np.eye(4)[None], corr)
-    dT = np.linalg.inv(T_cb) @ np.asarray(_pose_gauge(nominal, true, held, T_cb, mount, travel))
+    dT = np.linalg.inv(T_cb) @ np.asarray(_pose_gauge(nominal, true, held, T_cb, mount, travel)[0])
     np.testing.assert_allclose(dT, np.eye(4), atol=1e-9)
 
 
