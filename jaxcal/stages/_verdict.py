@@ -463,6 +463,11 @@ def _intrinsics_row(c: _Checks, t, refined: Refined, K_std: np.ndarray | None, l
     )
     value = t.sigmas if t.shift_px >= limits.intrinsics_px else 0.0
     fix = "give cameras[].K from the camera's own calibration at this resolution and focus"
+    message = (
+        f"sigmas): {step} would shift the image's corners by {t.shift_px:.1f} px, and the calibration moved the "
+        f"camera and bent the robot to fit them; {fix}, or state how well K is known as cameras[].K_std (px) to "
+        "have it counted in the claimed uncertainty, or leave cameras[].K out to have the intrinsics self-calibrated"
+    )
     if K_std is not None:
         beyond = float(np.max(np.abs([t.fx_px, t.fy_px, t.cx_px, t.cy_px]) / np.asarray(K_std)))
         if beyond <= limits.intrinsics_sigmas:  # within K's stated uncertainty: counted, a pass
@@ -472,25 +477,14 @@ def _intrinsics_row(c: _Checks, t, refined: Refined, K_std: np.ndarray | None, l
                     f"within {beyond:.1f} of cameras[].K_std's standard deviations: counted in the claimed uncertainty"
                 )
             value = 0.0
-        return (
-            t.sigmas,
-            f"{t.camera}.intrinsics_sigmas",
-            value,
-            limits.intrinsics_sigmas,
-            f"camera {t.camera!r}: the residuals point to other intrinsics than metadata.json's ({t.sigmas:.0f} "
+        message = (
             f"sigmas): {step}, {beyond:.0f} times the largest of cameras[].K_std's standard deviations, would shift "
-            f"the image's corners by {t.shift_px:.1f} px; {fix}, with its own uncertainty as K_std",
+            f"the image's corners by {t.shift_px:.1f} px; {fix}, with its own uncertainty as K_std"
         )
-    return (
-        t.sigmas,
-        f"{t.camera}.intrinsics_sigmas",
-        value,
-        limits.intrinsics_sigmas,
+    prefix = (
         f"camera {t.camera!r}: the residuals point to other intrinsics than metadata.json's ({t.sigmas:.0f} "
-        f"sigmas): {step} would shift the image's corners by {t.shift_px:.1f} px, and the calibration moved the "
-        f"camera and bent the robot to fit them; {fix}, or state how well K is known as cameras[].K_std (px) to "
-        "have it counted in the claimed uncertainty, or leave cameras[].K out to have the intrinsics self-calibrated",
     )
+    return t.sigmas, f"{t.camera}.intrinsics_sigmas", value, limits.intrinsics_sigmas, prefix + message
 
 
 def _focal_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma: float) -> None:
