@@ -62,7 +62,7 @@ from ._observe import CameraObservations, Observations
 from ._residual_tests import error_correlation, score_tests
 from ._setup import Options, Setup
 from ._synchronise import Sync, interpolate, usable
-from ._terms import TermFit, coefficient_rows, not_tried, resolve, select
+from ._terms import TermFit, not_tried, resolve, with_terms
 from ._two_stage import TwoStage
 
 #: Names of the per-view angles of padding views (never free, never reported).
@@ -132,6 +132,8 @@ class Refined:
     #: Where the residuals' errors are correlated, the covariance of the free parameters
     #: the kernel sandwich replaced (the views' sandwich or the model's).
     cov_views: np.ndarray | None = None
+    #: What the covariance counts beside the noise (`_considered`; flat): None where nothing.
+    considered: np.ndarray | None = None
 
 
 def dist5(dist) -> np.ndarray | None:
@@ -588,7 +590,7 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         res = _programs.refinement(free, jacobian=bool(tried))(problem, params0)
     fit_terms = None
     if tried:
-        problem, res, layout, cand, free, fit_terms = _with_terms(
+        problem, res, layout, cand, free, fit_terms = with_terms(
             setup, sync, problem, res, layout, cand, free, tried, options
         )
     elif terms:
@@ -609,9 +611,10 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     if test is not None:
         timings["shutter_test_s"] = time.perf_counter() - t0  # the wait for them, past the refinement
     focal_shift = None if sensitivity is None else sensitivity[:, :2] @ (1e-3 * np.diag(problem.K0)[:2])
-    if sensitivity is not None and setup.camera.K_std is not None:  # the held K's own uncertainty
-        cov += sensitivity @ np.diag(np.square(setup.camera.K_std)) @ sensitivity.T
-    if cov_free is not None or (sensitivity is not None and setup.camera.K_std is not None):
+    considered = _considered(cov.shape, setup, sensitivity, fit_terms)
+    if considered is not None:  # what the model takes as exact, counted
+        cov += considered
+    if cov_free is not None or considered is not None:
         res = eqx.tree_at(lambda r: (r.cov, r.std), res, (cov, np.sqrt(np.maximum(np.diag(cov), 0.0))))
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
     delays = _delay_rows(corners, res, layout, free)
@@ -634,39 +637,25 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
         focal_shift=focal_shift,
         error_correlation=correlation,
         cov_views=cov_views,
+        considered=considered,
         timings=timings,
         terms=fit_terms,
     )
 
 
-def _with_terms(setup: Setup, sync: Sync, problem, res, layout, cand, free, terms, options: Options):
-    """The non-geometric `terms` tried on the rigid refinement `res` (`stages._terms.select`)
-    and, where a family is kept, the refinement again with its coefficients free: `(problem,
-    res, layout, cand, free, TermFit)` of the refinement that stands (the rigid one's when
-    nothing is kept, its Jacobians dropped)."""
-    options.say(f"refinement: non-geometric terms {list(terms)}, each kept only if held-out views improve")
-    jax.block_until_ready(res)
-    kept, basis, kept_free, summary, inert = select(
-        setup, sync, problem, jax.device_get(res), free, terms, options
-    )
-    res = eqx.tree_at(lambda r: (r.jacobian, r.angle_jacobian), res, (None, None))
-    if not kept:
-        return problem, res, layout, cand, free, TermFit((), np.zeros(0), None, None, summary)
-    options.say(f"refinement: kept {'+'.join(kept)}; refining again with them")
-    problem = dataclasses.replace(
-        problem, terms=kept, data=dataclasses.replace(problem.data, term_basis=to_device(basis))
-    )
-    params = dataclasses.replace(res.params, terms=jnp.zeros(kept_free.size))
-    layout = dataclasses.replace(layout, terms=kept)
-    free = np.concatenate([free, kept_free])
-    cand = np.concatenate([cand, np.ones(kept_free.size, bool)])
-    res = _programs.refinement(free)(problem, params)
-    idx = layout.index("terms")
-    x, std = np.asarray(res.params.terms), np.asarray(res.std)[idx]
-    rows = coefficient_rows(kept, setup.nominal.joint_names, x, std, free[idx])
-    summary = dataclasses.replace(summary, coefficients=rows)
-    masses, coms, tensors = inert
-    return problem, res, layout, cand, free, TermFit(kept, x, masses, coms, summary, tensors)
+def _considered(shape, setup: Setup, sensitivity, fit_terms: TermFit | None) -> np.ndarray | None:
+    """The covariance of what the refinement holds but may be wrong (a consider covariance, in the
+    flat parameters, `shape`), or None: the held `K`'s own uncertainty (`cameras[].K_std`, through
+    the score tests' `sensitivity`) and the geometry's shifts that what the non-geometric terms
+    cannot tell from it would make (`stages._terms.unresolved`)."""
+    out, counted = np.zeros(shape), False
+    if sensitivity is not None and setup.camera.K_std is not None:
+        out += sensitivity @ np.diag(np.square(setup.camera.K_std)) @ sensitivity.T
+        counted = True
+    if fit_terms is not None and fit_terms.shift is not None:
+        out[np.ix_(*2 * [fit_terms.shift_at])] += fit_terms.shift @ fit_terms.shift.T
+        counted = True
+    return out if counted else None
 
 
 def summary_record(figures: dict, **typed) -> RefinementSummary:

@@ -38,10 +38,15 @@ another solve:
    them); with none, the rigid refinement stands, unchanged.
 """
 
+import dataclasses
 from dataclasses import dataclass
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from .._device import to_device
 from .._selection import CV_GAIN, improves, paired_z
 from .._terms import (
     BASIS_FLOOR,
@@ -64,7 +69,7 @@ from ..records import ModelRow, TermRow, TermsSummary
 from ..robots import link_inertials, link_inertias
 from . import _programs
 from ._setup import Options, Setup
-from ._synchronise import interpolate
+from ._synchronise import Sync, interpolate
 
 #: A non-geometric coefficient whose basis has an RMS over the samples under this is not a
 #: candidate: the joint carries no gravity load (compliance, in kN m), e.g. a vertical axis.
@@ -203,6 +208,11 @@ class TermFit:
     coms: np.ndarray
     summary: TermsSummary
     tensors: np.ndarray | None = None
+    #: The geometry's shifts `(free, r)` that what the model cannot tell from the geometry would
+    #: make (`unresolved`), at the flat parameters `shift_at`; their causes `shift_of` (r).
+    shift: np.ndarray | None = None
+    shift_at: np.ndarray | None = None
+    shift_of: tuple[str, ...] = ()
 
     @property
     def kept(self) -> bool:
@@ -315,6 +325,12 @@ class _Linear:
         cov = sigma2 * np.linalg.pinv(An.T @ An, rcond=RCOND, hermitian=True)
         std = np.sqrt(np.maximum(np.diag(cov)[self.n_geo :], 0.0)) / self.scale[idx[self.n_geo :]]
         return d[self.n_geo :], std
+
+    def shift(self, term_cols, extra_cols) -> np.ndarray:
+        """How far the all-views fit's geometry (its `n_geo` columns, in their own units) moves
+        when the term columns `extra_cols` join the columns `term_cols`."""
+        cols = np.concatenate([term_cols, extra_cols]).astype(int)
+        return self.fit(self.columns(cols))[: self.n_geo] - self.fit(self.columns(term_cols))[: self.n_geo]
 
     def held(self, term_cols) -> np.ndarray:
         """The term columns left free once those the views do not pin (`TERM_STD_RAD`) and those
@@ -491,29 +507,102 @@ def _eliminate(lin: _Linear, terms, folds: int, models: list[dict], best: tuple,
     return best, best_cols, kept
 
 
-def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str, ...], options: Options):
-    """The cross-validation of the module docstring on the rigid refinement `res` (with its
-    Jacobians, `refine(..., jacobian=True)`) of `problem` with the `free` mask.
+def left_out(lin: _Linear, terms, kept, best_cols, tol: float) -> np.ndarray:
+    """The term columns of the families the cross-validation left out that a fit could free (as
+    `_compare` frees them: independent of the geometry and the kept columns, pinned by the views, of
+    an arm's sign); empty where none."""
+    dropped = [i for i, t in enumerate(terms) if t not in kept]
+    own = np.flatnonzero(np.isin(lin.family, dropped) & (lin.b_rms >= TERM_FLOOR))
+    if not len(own):
+        return own
+    cand = _independent(lin.A, lin.columns(best_cols), lin.n_geo + own, tol) - lin.n_geo
+    return np.setdiff1d(lin.held(np.concatenate([best_cols, cand])), best_cols) if len(cand) else cand
 
-    **Returns:** `(kept families, their basis (views, joints, k), the kept coefficients'
-    free mask, the TermsSummary, (masses, coms, tensors))` (`tensors` None without compliance
-    or lost motion).
-    """
+
+#: The cause `unresolved` names for a compliance's lag under the arm's own acceleration.
+LAG = "lag"
+
+
+def unresolved(lin: _Linear, terms, kept, best_cols, tol: float, lagging=None):
+    """What the views cannot tell from the geometry would move it: `(the geometry's shifts (free,
+    r), their causes (r))`, or `(None, ())`.
+
+    Each column is the kept model's all-views fit against a fuller one the views cannot reject:
+    with the families left out (`left_out`); and, where a compliance is free and sweeps at one speed
+    hold the terms to gravity's torques, with the linearisation `lagging()` (the transmissions'
+    torques, the inertial ones included; None without the robot's inertias) and the families it
+    frees: the compliance's lag while the arm speeds up, which one speed cannot tell from the
+    reduction ratios (`two_speeds`), cause `LAG`.
+
+    A family left out because the held-out views cannot tell it from the geometry (a sag the link
+    lengths absorb, on a capture of few poses) still moves the geometry, and a claim that takes the
+    kept model as exact misses it. Each shift is a random vector of covariance the difference of the
+    two fits' covariances where the effect is absent, its bias where it is not; the refinement
+    counts their outer products in the covariance (`stages._refine.refine`: a consider covariance,
+    the coefficients taken at their own estimates, every model the views cannot reject counted: the
+    estimates of a capture that cannot tell them apart are noisy, and one model's may miss what the
+    other's catches)."""
+    base = lin.fit(lin.columns(best_cols))[: lin.n_geo]
+    shifts, causes = [], []
+    extra = left_out(lin, terms, kept, best_cols, tol)
+    if len(extra):
+        shifts.append(lin.shift(best_cols, extra))
+        causes.append("+".join(terms[i] for i in sorted(set(lin.family[extra]))))
+    cols = np.concatenate([best_cols, extra]).astype(int)
+    if (
+        lagging is not None
+        and "compliance" in terms
+        and np.any(lin.family[cols] == terms.index("compliance"))
+    ):
+        full = lagging()
+        if full is not None:  # the columns it frees judged on its own torques, as the kept ones
+            cols = np.concatenate([best_cols, left_out(full, terms, kept, best_cols, tol)]).astype(int)
+            shifts.append(full.fit(full.columns(cols))[: lin.n_geo] - base)
+            causes.append(LAG)
+    return (np.stack(shifts, axis=1), tuple(causes)) if shifts else (None, ())
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """`select`'s outcome: the `summary`; the `kept` families, their `basis` (views, joints, k) and
+    coefficients' free mask `kept_free`; the basis's inertials `inert` (masses, coms, tensors:
+    `tensors` None without two speeds); the geometry's shifts `shift` `(free, r)` that what the
+    views cannot tell from the geometry would make, and their causes `shift_of` (`unresolved`)."""
+
+    summary: TermsSummary
+    kept: tuple[str, ...] = ()
+    basis: np.ndarray | None = None
+    kept_free: np.ndarray | None = None
+    inert: tuple | None = None
+    shift: np.ndarray | None = None
+    shift_of: tuple[str, ...] = ()
+
+
+def select(setup: Setup, sync, problem, res, terms: tuple[str, ...], options: Options) -> Selection:
+    """The cross-validation of the module docstring on the rigid refinement `res` (with its
+    Jacobians, `refine(..., jacobian=True)`) of `problem`."""
     folds = int(options.cv_folds)
     if folds < 2:
-        return (
-            (),
-            None,
-            None,
-            not_tried(terms, "they are kept only when cross-validation improves (cv_folds >= 2)"),
-            None,
+        return Selection(
+            not_tried(terms, "they are kept only when cross-validation improves (cv_folds >= 2)")
         )
     masses, coms = inertials(setup)
     moving = two_speeds(setup, sync.log_q) if {"compliance", "backlash"} & set(terms) else None
     tensors = None if moving is None else inertia_tensors(setup, masses, coms)
     lin, basis = _linearised(setup, sync, problem, res, terms, folds, masses, coms, tensors)
-    models, best_cols, kept_families = _compare(lin, terms, folds, setup.kind.identifiability_tol)
+    tol = setup.kind.identifiability_tol
+    models, best_cols, kept_families = _compare(lin, terms, folds, tol)
     kept = tuple(t for t in terms if t in kept_families)
+
+    def lagging() -> _Linear | None:  # the terms at one speed hold gravity's torques alone: the lag beside
+        try:
+            full = inertia_tensors(setup, masses, coms)
+        except CalibrationError:  # a robot file without inertias: no lag to count
+            return None
+        return _linearised(setup, sync, problem, res, terms, folds, masses, coms, full)[0]
+
+    swept = moving is None and setup.kind.has_arcs  # frames taken while the arm moves, at one speed
+    shift, shift_of = unresolved(lin, terms, kept, best_cols, tol, lagging if swept else None)
     # The kept families' basis columns and coefficient mask, in the kept layout's order.
     keep_mask = np.zeros(len(lin.family), bool)
     keep_mask[best_cols] = True
@@ -529,7 +618,7 @@ def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str,
             "while the arm speeds up cannot be told from its reduction ratio (film each sweep both ways, "
             "the second at another speed)",
         )
-        if {"compliance", "backlash"} & set(kept)
+        if {"compliance", "backlash"} & set(kept) and setup.kind.has_arcs
         else ()
     )
     summary = TermsSummary(
@@ -542,10 +631,48 @@ def select(setup: Setup, sync, problem, res, free: np.ndarray, terms: tuple[str,
         payload_kg=None if payload is None else payload.mass_kg,
         notes=torques,
     )
-    if not kept:
-        return (), None, None, summary, (masses, coms, tensors)
     inert = (masses, coms, tensors)
-    return kept, basis[:, :, np.concatenate(basis_cols)], np.concatenate(kept_free), summary, inert
+    if not kept:
+        return Selection(summary, inert=inert, shift=shift, shift_of=shift_of)
+    return Selection(
+        summary,
+        kept,
+        basis[:, :, np.concatenate(basis_cols)],
+        np.concatenate(kept_free),
+        inert,
+        shift,
+        shift_of,
+    )
+
+
+def with_terms(setup: Setup, sync: Sync, problem, res, layout, cand, free, terms, options: Options):
+    """The non-geometric `terms` tried on the rigid refinement `res` (`select`)
+    and, where a family is kept, the refinement again with its coefficients free: `(problem,
+    res, layout, cand, free, TermFit)` of the refinement that stands (the rigid one's when
+    nothing is kept, its Jacobians dropped)."""
+    options.say(f"refinement: non-geometric terms {list(terms)}, each kept only if held-out views improve")
+    jax.block_until_ready(res)
+    sel = select(setup, sync, problem, jax.device_get(res), terms, options)
+    res = eqx.tree_at(lambda r: (r.jacobian, r.angle_jacobian), res, (None, None))
+    left = dict(shift=sel.shift, shift_at=np.flatnonzero(free), shift_of=sel.shift_of)
+    if not sel.kept:
+        return problem, res, layout, cand, free, TermFit((), np.zeros(0), None, None, sel.summary, **left)
+    kept, kept_free = sel.kept, sel.kept_free
+    options.say(f"refinement: kept {'+'.join(kept)}; refining again with them")
+    problem = dataclasses.replace(
+        problem, terms=kept, data=dataclasses.replace(problem.data, term_basis=to_device(sel.basis))
+    )
+    params = dataclasses.replace(res.params, terms=jnp.zeros(kept_free.size))
+    layout = dataclasses.replace(layout, terms=kept)
+    free = np.concatenate([free, kept_free])
+    cand = np.concatenate([cand, np.ones(kept_free.size, bool)])
+    res = _programs.refinement(free)(problem, params)
+    idx = layout.index("terms")
+    x, std = np.asarray(res.params.terms), np.asarray(res.std)[idx]
+    rows = coefficient_rows(kept, setup.nominal.joint_names, x, std, free[idx])
+    summary = dataclasses.replace(sel.summary, coefficients=rows)
+    masses, coms, tensors = sel.inert
+    return problem, res, layout, cand, free, TermFit(kept, x, masses, coms, summary, tensors, **left)
 
 
 def coefficient_rows(terms, joints, x, std, free) -> tuple[TermRow, ...]:

@@ -31,6 +31,7 @@ from ._observe import Observations
 from ._refine import Refined, succeeded
 from ._setup import Setup
 from ._synchronise import Sync
+from ._terms import LAG
 from ._timing import timing_checks
 from ._two_stage import TwoStage, listed
 from .limits import Limits
@@ -506,6 +507,53 @@ def _focal_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma
         )
 
 
+#: What would separate each non-geometric family from the geometry, for the note on those left out.
+_SEPARATES = {
+    "compliance": "poses whose gravity torques differ more (the arm stretched and folded, the wrist up and down)",
+    "backlash": "each pose approached from both directions",
+    "harmonic1": "each joint at more angles over its turn",
+    "harmonic2": "each joint at more angles over its turn",
+}
+
+
+def _cause_words(cause: str) -> tuple[str, str]:
+    """A `stages._terms.unresolved` cause in words, and what capture would resolve it."""
+    if cause == LAG:
+        return (
+            "the compliance's lag under the arm's own acceleration, which sweeps at one speed cannot tell from "
+            "the reduction ratios",
+            "each sweep filmed both ways, the second at another speed",
+        )
+    families = cause.split("+")
+    return (
+        f"{' and '.join(families)}, left out because the held-out views could not tell "
+        f"{'it' if len(families) == 1 else 'them'} from the geometry",
+        "; ".join(_SEPARATES.get(f, f"{f} varied") for f in families),
+    )
+
+
+def _left_out_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma: float) -> None:
+    """The claim's share from what the non-geometric terms cannot tell from the geometry
+    (`stages._terms.unresolved`: the geometry's shift, counted in the covariance), noted where the
+    tool point's RMS move is half the claimed 1-sigma or more."""
+    t = refined.terms
+    if t is None or t.shift is None:
+        return
+    cov = np.zeros_like(np.asarray(refined.fit.cov))
+    cov[np.ix_(t.shift_at, t.shift_at)] = t.shift @ t.shift.T
+    moved = _ee_sigma_mm(setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov)))
+    if moved < 0.5 * sigma:
+        return
+    words = [_cause_words(cause) for cause in t.shift_of]
+    c.notes.append(
+        f"the claimed 1-sigma of {sigma:.2f} mm counts what the model cannot tell from the geometry, "
+        + "; ".join(w for w, _ in words)
+        + f": with {'it' if len(words) == 1 else 'them'} the geometry moves the tool point {moved:.2f} mm RMS (the "
+        f"model alone would claim {np.sqrt(max(sigma**2 - moved**2, 0.0)):.2f} mm); to tell them apart, capture "
+        + "; ".join(fix for _, fix in words)
+    )
+
+
 def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limits: Limits) -> None:
     """The residuals' errors that repeat along the capture or are shared by a pose's views
     (`stages._refine.error_correlation`): named, with how much the kernel sandwich grew the
@@ -514,18 +562,18 @@ def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limi
     if t is None:
         return
     grew, growth = "", 1.0
-    if refined.cov_views is not None:
+    if refined.cov_views is not None:  # the noise's share alone, without what the claim considers
         free = np.flatnonzero(np.asarray(refined.fit.free))
-        cov = np.array(refined.fit.cov)
+        cov = np.array(refined.fit.cov) - (0.0 if refined.considered is None else refined.considered)
+        after = _ee_sigma_mm(setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov)))
         cov[np.ix_(free, free)] = refined.cov_views
         before = _ee_sigma_mm(
             setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov))
         )
-        after = _ee_sigma_mm(setup, two, refined)
         growth = after / before if before > 0 else float("inf")
         grew = (
-            f"; the covariance now accounts for them (a kernel sandwich over {t.kernel_lags} frames: the tool "
-            f"point's 1-sigma {before:.2f} -> {after:.2f} mm), but the estimate carries their bias"
+            f"; the covariance now accounts for them (a kernel sandwich over {t.kernel_lags} frames: the noise's "
+            f"share of the tool point's 1-sigma {before:.2f} -> {after:.2f} mm), but the estimate carries their bias"
         )
     lags = ", ".join(f"{r:.2f}" for r in t.autocorrelation)
     found = []
@@ -615,6 +663,7 @@ def verdict(
     )
     if ran:
         _focal_note(c, setup, two, refined, sigma)
+        _left_out_note(c, setup, two, refined, sigma)
     self_calibrated = [o.camera.name for o in (obs.primary, *obs.others) if o.intrinsics.rms_px is not None]
     if self_calibrated and not ran:
         # Intrinsics fitted to the sweep images alone trade off against the camera's pose and
