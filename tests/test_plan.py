@@ -524,6 +524,18 @@ def test_cli_evaluates_a_plan_file_with_the_spread_of_one_capture(ur5e, tmp_path
     )
     assert ev3.infeasible_note.startswith(f"{ev3.frames_infeasible} of its {len(POSES)} frames fail")
     assert "robot 'ur3'" in ev3.infeasible_note and "planned for this robot" in ev3.infeasible_note
+    counts = re.findall(r"(joint_limits|self_collision|scene_collision|distance|view_angle|[a-z_]+) (\d+)[,;]",
+                        ev3.infeasible_note)  # fmt: skip
+    assert sum(int(n) for _, n in counts) == ev3.frames_infeasible, (
+        ev3.infeasible_note
+    )  # every frame, per check
+    # Most of a plan's frames left out: the figures are another capture's, and the exit status says so.
+    away = [[3.0, -0.2 * k, 0.1 * k, 0.0, 0.0, 0.0] for k in range(7)]  # the target turned from the camera
+    d["robot"], d["segments"][0]["poses"] = "ur5e", d["segments"][0]["poses"] + away
+    (tmp_path / "folded.json").write_text(json.dumps(d))
+    capsys.readouterr()
+    assert main(["plan", "--evaluate", str(tmp_path / "folded.json")]) == 3
+    assert "most of the plan's frames fail the feasibility checks" in capsys.readouterr().out
 
 
 def test_an_eye_in_hand_plan_is_rendered_and_calibrated(tmp_path):

@@ -11,6 +11,7 @@ the prediction falls short.
 """
 
 import time
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -229,8 +230,9 @@ def evaluate_plan(
     sigma_px = sigma_for(plan.camera.width, sigma_px)
     limits = FeasibilityLimits(**plan.checks) if limits is None else limits
     q, t, sweeps = views(plan)
-    m = correct_toward(scene, limits, plan.taught, q)[1] == 1.0
-    failing = "" if m.all() else _infeasible(scene, limits, q, m, plan.robot)
+    _, fraction, reasons = correct_toward(scene, limits, plan.taught, q)
+    m = fraction == 1.0
+    failing = "" if m.all() else _infeasible(scene, limits, q, reasons, plan.robot)
     if m.sum() < MIN_POSES:
         raise BudgetTooSmallError(f"plan: {failing}; at least {MIN_POSES} frames are needed")
     lost = {"frames_infeasible": int(np.sum(~m)), "infeasible_note": failing}
@@ -274,13 +276,17 @@ def evaluate_plan(
     )
 
 
-def _infeasible(scene: PlanScene, limits: FeasibilityLimits, q: np.ndarray, m: np.ndarray, robot: str) -> str:
-    """How many of a plan's frames `q` fail the feasibility checks (`m` False) and why the first
-    does (`explain`): a plan made for another robot or scene fails many."""
-    first = int(np.flatnonzero(~m)[0])
+def _infeasible(scene: PlanScene, limits: FeasibilityLimits, q: np.ndarray, reasons: list, robot: str) -> str:
+    """How many of a plan's frames `q` fail the feasibility checks (`reasons`: each frame's first
+    failing check, None where it passes), how many fail each check, and why the first does
+    (`explain`): a plan made for another robot or scene fails many."""
+    failed = [i for i, r in enumerate(reasons) if r is not None]
+    counts = Counter(reasons[i] for i in failed)
+    per_check = ", ".join(f"{k} {n}" for k, n in counts.most_common())
     return (
-        f"{int(np.sum(~m))} of its {len(q)} frames fail the feasibility checks on robot {robot!r} and are left "
-        f"out (frame {first}: {explain(scene, limits, q[first])}); were they planned for this robot and layout?"
+        f"{len(failed)} of its {len(q)} frames fail the feasibility checks on robot {robot!r} and are left "
+        f"out ({per_check}; frame {failed[0]}: {explain(scene, limits, q[failed[0]])}); were they planned for "
+        "this robot and layout?"
     )
 
 

@@ -208,6 +208,13 @@ def run_evaluate(args, console: Console, capture_models=None) -> int:
         console, ev, f"{args.evaluate}: pre-evaluation ({len(views(p)[0])} planned frames, EE {where})"
     )
     _write_evaluation(console, ev, p, region, plot, out_json)
+    if 2 * ev.frames_infeasible > ev.frames + ev.frames_infeasible:  # the figures are another capture's
+        console.print(
+            f"[bold]most of the plan's frames fail the feasibility checks[/bold] ({ev.frames_infeasible} of "
+            f"{ev.frames + ev.frames_infeasible}): the figures are those of the {ev.frames} left, not of the "
+            "capture the plan describes (exit 3)"
+        )
+        return 3
     return 0
 
 
