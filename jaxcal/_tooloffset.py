@@ -9,8 +9,13 @@ direction of the error. Because the camera is not calibrated to the robot,
 that direction is known only up to the camera's roll about the axis: the
 correction is applied with a nominal roll, the axis moved, and the rotation
 repeated until the radius is below a threshold or stops changing. With a
-roll error $\\epsilon$ each step shrinks the error by $2\\sin(\\epsilon/2)$, so
-the loop converges for $|\\epsilon| < 60^\\circ$.
+roll error $\\epsilon$ each step alone would shrink the error by $2\\sin(\\epsilon/2)$
+(and diverge beyond $60^\\circ$); but the second arc shows what the first move did, and
+the loop learns from it: written as complex numbers, the measured offset is $m$ times the
+true one ($m$ turns by the roll's error and scales by the image scale's), so a move $a$
+between offsets $o_1$ and $o_2$ gives $m = (o_1 - o_2)/a$ exactly, and every later move is
+$o/m$ (`_learned`). A roll off by any angle, or an image scale off by up to 5x, then costs one
+rotation more than the right one; the result reports the roll and scale found.
 
 The second offset (stylus axis to the camera's principal point) is iterated
 the same way: the vector from the principal point to the stylus's image is
@@ -39,6 +44,9 @@ from .errors import ToolOffsetInputError
 
 MIN_POINTS = 3
 MIN_SPAN_DEG = 30.0
+#: The loops learn the image's turn and scale (`_learned`) from a move this many times `tol` or
+#: longer: shorter ones are within the arcs' noise.
+LEARN_MOVE = 20.0
 
 
 class CircleFit(eqx.Module):
@@ -201,7 +209,7 @@ def estimate_offset(
     - `camera_roll`: $\\gamma$ (rad), the image angle (from the image's $x$ towards its $y$) at which
       the axis frame's $+x$ direction appears: for a camera looking along the axis with its $x$ turned
       by $\\rho$ from the axis frame's (`jaxcal.sim.tool.ToolScene(camera_roll=rho)`), $\\gamma = -\\rho$
-      (`ToolScene.image_roll`). It need only be rough (module docstring); beyond 60 deg off the loop diverges.
+      (`ToolScene.image_roll`). It need not be right: the loops learn it from their moves (module docstring).
     """
     w = jnp.ones(points.shape[0]) if mask is None else mask.astype(points.dtype)
     circle = fit_circle(points, None if mask is None else mask)
@@ -266,6 +274,8 @@ class ToolOffsetResult(eqx.Module):
       estimate used for that rotation); `tcps`: the estimate at every iteration.
     - `converged`: the last radius is below `tol` or changed by less than `tol_change`.
     - `iterations`: how many rotations were measured.
+    - `camera_roll_found`, `metres_per_unit_found`: the roll and image scale the moves showed
+      (`_learned`; the ones given where no move was long enough to tell): give them next time.
     """
 
     tcp: np.ndarray
@@ -273,6 +283,17 @@ class ToolOffsetResult(eqx.Module):
     radii: np.ndarray
     converged: bool
     iterations: int
+    camera_roll_found: float
+    metres_per_unit_found: float
+
+
+def _learned(m: complex, before: complex, after: complex, move: complex) -> complex:
+    """The measured offsets' turn and scale against the true ones, `m` (measured = m x true, as
+    x + iy), from the offsets `before` and `after` one `move`: `after = before - m move`. A pair
+    whose `m` is beyond 0.2-5 in size (the noise of a short move, a tip found elsewhere) keeps the
+    last `m`."""
+    new = (before - after) / move
+    return new if 0.2 < abs(new) < 5.0 else m
 
 
 def _check_roll(camera_roll) -> None:
@@ -324,7 +345,7 @@ def calibrate_tool_offset(
             f"tol, tol_change must not be negative and max_iter at least 1: {tol}, {tol_change}, {max_iter}"
         )
     tcps, radii = [tcp.copy()], []
-    converged = False
+    converged, m, last, hand = False, 1.0 + 0.0j, None, 1.0
     for k in range(max_iter):
         points, angles, mask = measure(tcp)
         try:
@@ -349,21 +370,33 @@ def calibrate_tool_offset(
             raise ToolOffsetInputError(
                 f"rotation {k + 1}: the tip's arc gives no circle (its points on a line?)"
             )
+        o = complex(*np.asarray(est.offset))
+        hand = float(est.handedness) if not k else hand  # the first, widest arc's
+        if last is not None and abs(last[1]) >= LEARN_MOVE * tol:
+            m = _learned(m, last[0], o, last[1])
         if len(radii) > 1 and r > radii[-1] > radii[-2]:
             raise ToolOffsetInputError(
                 f"rotation {k + 1}: the arc's radius grew from {1e3 * radii[-2]:.3g} to {1e3 * radii[-1]:.3g} to "
-                f"{1e3 * r:.3g} mm as the axis moved toward each estimate: camera_roll ({float(camera_roll):.4g} rad: the "
-                "image angle of the axis frame's +x, minus a camera's own roll) is off by over 60 deg, or "
-                "metres_per_unit by over 2x"
+                f"{1e3 * r:.3g} mm as the axis moved toward each estimate, each move turned and scaled by what the "
+                f"one before showed: metres_per_unit ({metres_per_unit:.4g}) is off by over 5x, or the tip is not "
+                "where the moves put it (a tool that slips, another tip found, an axis other than the one moved)"
             )
         radii.append(r)
         if r < tol or (len(radii) > 1 and abs(radii[-2] - r) < tol_change):
             converged = True
             break
-        tcp = tcp + np.asarray(est.offset)
+        move = o / m
+        tcp = tcp + np.array([move.real, move.imag])
         tcps.append(tcp.copy())
+        last = (o, move)
     return ToolOffsetResult(
-        tcp=tcp, tcps=np.stack(tcps), radii=np.asarray(radii), converged=converged, iterations=len(radii)
+        tcp=tcp,
+        tcps=np.stack(tcps),
+        radii=np.asarray(radii),
+        converged=converged,
+        iterations=len(radii),
+        camera_roll_found=float(np.angle(np.exp(1j * (camera_roll + hand * np.angle(m))))),
+        metres_per_unit_found=float(metres_per_unit / abs(m)),
     )
 
 
@@ -398,7 +431,8 @@ def align_to_principal_point(
     The image vector $q - c$ (stylus image minus principal point, px) becomes
     the robot move $-m\\,R(\\gamma)^{-1} \\mathrm{diag}(1, s)(q - c)$ with the
     image scale $m$, the nominal roll $\\gamma$ and handedness $s$ (from
-    `estimate_offset`), iterated while $\\|q - c\\| >$ `tol_px`.
+    `estimate_offset`), iterated while $\\|q - c\\| >$ `tol_px`; from the second move on, turned and
+    scaled by what the first showed (`_learned`), so a wrong roll or scale costs one move.
 
     **Arguments:**
     - `measure(position)`: moves the stylus to `position` (m, $xy$) and returns
@@ -411,7 +445,7 @@ def align_to_principal_point(
     start = pos.copy()
     cr, sr = np.cos(camera_roll), np.sin(camera_roll)
     R = np.array([[cr, -sr], [sr, cr]])  # axis frame -> image axes
-    errors, converged = [], False
+    errors, converged, m, last = [], False, 1.0 + 0.0j, None
     for _ in range(max_iter):
         q = np.asarray(measure(pos), np.float64)
         if q.shape != (2,) or not np.all(np.isfinite(q)):
@@ -421,8 +455,14 @@ def align_to_principal_point(
         if errors[-1] < tol_px:
             converged = True
             break
-        # Image offset -> axis frame: undo the roll, then the handedness flip.
-        pos = pos - metres_per_px * np.diag([1.0, handedness]) @ (R.T @ e)
+        # Image offset -> axis frame: undo the roll, then the handedness flip; turned and scaled by
+        # what the moves so far showed (`_learned`).
+        o = complex(*(-metres_per_px * np.diag([1.0, handedness]) @ (R.T @ e)))
+        if last is not None and abs(last[1]) >= LEARN_MOVE * tol_px * metres_per_px:
+            m = _learned(m, last[0], o, last[1])
+        move = o / m
+        pos = pos + np.array([move.real, move.imag])
+        last = (o, move)
     return AlignmentResult(
         position=pos,
         offset=pos - start,

@@ -122,11 +122,13 @@ def _synthetic_pointer(target, roll, handedness, scale, centre=(160.0, 120.0)):
     return measure
 
 
-@pytest.mark.parametrize("roll_error_deg", [0.0, 25.0])
-def test_align_to_principal_point_exact(roll_error_deg):
-    """The second offset: one move with the exact roll; converging (ratio 2 sin(12.5 deg)) with a 25 deg error."""
+@pytest.mark.parametrize("roll_error_deg, scale_error", [(0.0, 1.0), (25.0, 1.0), (135.0, 2.5)])
+def test_align_to_principal_point_exact(roll_error_deg, scale_error):
+    """The second offset: one move with the exact roll; with a roll 25 or 135 deg off (and a scale
+    2.5x off), the first move's error (2 sin(12.5 deg) of the start, or more) is learned from the
+    second measurement, and the next move lands: three measurements."""
     target, roll, scale = np.array([0.012, -0.005]), 0.3, 4e-4
-    measure = _synthetic_pointer(target, roll + np.radians(roll_error_deg), -1.0, scale)
+    measure = _synthetic_pointer(target, roll + np.radians(roll_error_deg), -1.0, scale * scale_error)
     al = to.align_to_principal_point(
         measure,
         np.zeros(2),
@@ -140,24 +142,26 @@ def test_align_to_principal_point_exact(roll_error_deg):
     assert al.converged
     np.testing.assert_allclose(al.position, target, atol=1e-9)
     np.testing.assert_allclose(al.offset, target)
-    if roll_error_deg == 0.0:
-        assert al.iterations == 2
-    else:
-        ratios = al.errors_px[1:] / al.errors_px[:-1]
-        np.testing.assert_allclose(ratios, 2 * np.sin(np.radians(12.5)), rtol=1e-6)
+    assert al.iterations == (2 if roll_error_deg == 0.0 else 3)
+    if roll_error_deg == 25.0:
+        assert al.errors_px[1] / al.errors_px[0] == pytest.approx(2 * np.sin(np.radians(12.5)), rel=1e-6)
 
 
-def test_iteration_converges_with_wrong_roll():
-    """The camera's roll is off by 25 deg: each step shrinks the error by 2 sin(12.5 deg) = 0.43."""
-    tip = np.array([0.004, -0.007])
-    measure = _synthetic_measure(tip, 0.3 + np.radians(25.0), 1.0, 5e-4)
-    r = to.calibrate_tool_offset(
-        measure, np.zeros(2), metres_per_unit=5e-4, camera_roll=0.3, tol=1e-6, max_iter=20
-    )
-    assert r.converged and 10 <= r.iterations <= 13  # 8.1 mm x 0.433^n < 1 um
-    ratios = r.radii[1:] / r.radii[:-1]
-    np.testing.assert_allclose(ratios, 2 * np.sin(np.radians(12.5)), rtol=1e-6)
-    assert np.linalg.norm(r.tcp - tip) < 1e-6
+@pytest.mark.parametrize("handedness", [1.0, -1.0])
+@pytest.mark.parametrize(
+    "roll_error_deg, scale_error", [(25.0, 1.0), (57.0, 1.0), (120.0, 1.0), (-170.0, 3.0)]
+)
+def test_iteration_learns_a_wrong_roll_and_scale(handedness, roll_error_deg, scale_error):
+    """The camera's roll off by 25 to 170 deg (each move alone would shrink the error by 2 sin(eps/2):
+    0.43 for 25 deg, ten rotations to a micrometre; 0.95 for 57 deg; growing beyond 60 deg), the
+    image scale up to 3x off: the second arc shows what the first move did, and the third rotation
+    is on the tip. The roll and scale the loop found are the rig's."""
+    tip, roll = np.array([0.004, -0.007]), 0.3
+    measure = _synthetic_measure(tip, roll + np.radians(roll_error_deg), handedness, 5e-4 * scale_error)
+    r = to.calibrate_tool_offset(measure, np.zeros(2), metres_per_unit=5e-4, camera_roll=roll, tol=1e-6)
+    assert r.converged and r.iterations == 3 and np.linalg.norm(r.tcp - tip) < 1e-12
+    wrapped = np.angle(np.exp(1j * (r.camera_roll_found - roll - np.radians(roll_error_deg))))
+    assert abs(wrapped) < 1e-9 and r.metres_per_unit_found == pytest.approx(5e-4 * scale_error, rel=1e-9)
     # Stopping when the radius stops changing (here: at most two rotations).
     r2 = to.calibrate_tool_offset(measure, np.zeros(2), metres_per_unit=5e-4, tol=0.0, tol_change=1.0)
     assert r2.converged and r2.iterations == 2
@@ -240,9 +244,10 @@ def test_points_on_a_line_are_not_a_circle():
     assert noisy.result == optx.RESULTS.successful and abs(float(noisy.radius) - 0.5) < 0.05
 
 
-def test_a_roll_in_degrees_or_far_off_is_named():
-    """`camera_roll` in degrees is refused before any rotation; one off by 120 deg makes each
-    move overshoot (x 2 sin 60 deg): the loop stops when the arc grows twice, naming the roll."""
+def test_a_roll_in_degrees_or_a_slipping_tool_is_named():
+    """`camera_roll` in degrees is refused before any rotation; a tip that is not where the moves
+    put it (a tool slipping 6 mm further at every rotation) makes the arc grow in spite of what the
+    loop learns: it stops when the arc grows twice, naming the scale and the tip."""
     tip = np.array([0.004, -0.007])
     measure = _synthetic_measure(tip, 0.3, 1.0, 5e-4)
     with pytest.raises(to.ToolOffsetInputError, match=r"camera_roll: .* got 17.2 \(degrees\? 0.3002 rad\)"):
@@ -251,12 +256,17 @@ def test_a_roll_in_degrees_or_far_off_is_named():
         to.align_to_principal_point(
             lambda xy: xy, np.zeros(2), np.zeros(2), metres_per_px=1.0, camera_roll=np.nan
         )
+    calls = []
+
+    def slipping(tcp):
+        calls.append(1)
+        return _synthetic_measure(tip + 0.006 * len(calls), 0.3, 1.0, 5e-4)(tcp)
+
     with pytest.raises(
-        to.ToolOffsetInputError, match=r"rotation 3: the arc's radius grew .* camera_roll \(-1.794 rad"
+        to.ToolOffsetInputError,
+        match=r"rotation \d+: the arc's radius grew .* the tip is not where the moves put",
     ):
-        to.calibrate_tool_offset(
-            measure, np.zeros(2), metres_per_unit=5e-4, camera_roll=0.3 - np.radians(120.0)
-        )
+        to.calibrate_tool_offset(slipping, np.zeros(2), metres_per_unit=5e-4, camera_roll=0.3)
 
 
 def test_the_loop_refuses_an_impossible_scale_or_start_and_names_a_lost_tip():
