@@ -549,6 +549,21 @@ def test_a_mis_sized_board_is_suspect_and_strict_writes_nothing(dataset, tmp_pat
     strict = tmp_path / "strict"
     assert main([*args[:3], str(strict), *args[4:], "--strict"]) == 3
     assert not strict.exists() and "nothing written" in capsys.readouterr().out
+    # Stated 1 % small (a print 1 % large): the tool point 15 mm off, which the former 2 % limit let
+    # pass as ok; the spacing is measured to about 0.1 % (the capture as given: 0.094 %).
+    shutil.rmtree(ds)
+    ds = _copy(dataset, tmp_path)
+    _edit_json(
+        ds / "metadata.json",
+        lambda m: m["targets"][0].update(
+            square_length=0.99 * m["targets"][0]["square_length"],
+            marker_length=0.99 * m["targets"][0]["marker_length"],
+        ),
+    )
+    r = calibrate(ds, progress=False, workers=1, refine=False)
+    (board,) = [c for c in r.verdict.checks if c.check == "board_scale"]
+    assert r.status == "suspect" and 0.9 < board.value < 1.3, board
+    assert any("printed size" in reason for reason in r.reasons), r.reasons
 
 
 @pytest.mark.slow

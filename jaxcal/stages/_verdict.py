@@ -53,10 +53,11 @@ def _wrap(a):
 
 def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float, float]]]:
     """How far apart consecutive joint axes are measured, over the nominal
-    robot's spacing: the median ratio over pairs at least 5 cm apart (near
+    robot's spacing: the ratio of the sums over pairs at least 5 cm apart (near
     parallel pairs by the distance of one axis point from the other line,
-    skew ones by the common normal), and the pairs `(joints, measured,
-    nominal)` (m)."""
+    skew ones by the common normal; the long links weigh most, as a millimetre
+    of a real arm's own deviation is least of them), and the pairs `(joints,
+    measured, nominal)` (m)."""
     nominal = setup.nominal
     p_nom, d_nom = joint_axes_at_zero(nominal)
     p_meas, d_meas = np.asarray(arcs.point), np.asarray(arcs.direction)
@@ -76,7 +77,7 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
         pairs.append((f"{names[i]}/{names[i + 1]}", meas, nom))
     if not pairs:
         return float("nan"), pairs
-    return float(np.median([m / n for _, m, n in pairs])), pairs
+    return float(sum(m for _, m, _ in pairs) / sum(n for _, _, n in pairs)), pairs
 
 
 #: The causes a failed check names, in the order its reason leads the others: they explain the
