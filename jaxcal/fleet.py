@@ -214,6 +214,13 @@ def outlier_threshold(units: int, parameters: int, alpha: float = FALSE_ALARM) -
     return float(np.quantile(np.concatenate(largest), 1.0 - alpha))
 
 
+def _unwrapped(x: np.ndarray) -> np.ndarray:
+    """Angles (rad) within half a turn of their circular mean: a fleet whose values straddle +-pi
+    (a plate mounted upside down: roll about 180 deg) is one cluster, not two a turn apart."""
+    centre = float(np.angle(np.mean(np.exp(1j * x))))
+    return centre + np.angle(np.exp(1j * (x - centre)))
+
+
 def _robust(x: np.ndarray) -> tuple[float, float]:
     med = float(np.median(x))
     return med, MAD_SIGMA * float(np.median(np.abs(x - med)))
@@ -234,6 +241,7 @@ def summarize(units: Sequence[FleetUnit], parameters: dict[str, list]) -> FleetS
     for name in common:
         rows = rows_by_name[name]
         x = np.array([r.estimate for _, r in rows])
+        x = _unwrapped(x) if rows[0][1].unit == "rad" else x
         s = np.array([r.std for _, r in rows])
         med, spread = _robust(x)
         std = float(np.std(x, ddof=1)) if len(x) > 1 else 0.0

@@ -35,15 +35,15 @@ ROOT = Path(__file__).resolve().parents[1]
 KW = dict(robot="ur5e", noise_um=10.0, bad_fraction=0.0, home_deg=None, pose_range_deg=120.0, poses=48)
 
 
-def _fleet(values: np.ndarray, stds: np.ndarray) -> tuple[list[FleetUnit], dict]:
-    """Units `u0...` whose parameters `p0...` take `values[unit, parameter]` with `stds`."""
+def _fleet(values: np.ndarray, stds: np.ndarray, unit: str = "m") -> tuple[list[FleetUnit], dict]:
+    """Units `u0...` whose parameters `p0...` (in `unit`) take `values[unit, parameter]` with `stds`."""
     units, params = [], {}
     for i, (row, sd) in enumerate(zip(values, stds, strict=True)):
         name = f"u{i}"
         units.append(FleetUnit(name, f"/data/{name}", "ok", "", 0.01 * (1 + 0.05 * np.sin(i)), "mm", 1.0))
         params[name] = tuple(
             ParameterRow(
-                name=f"p{j}", unit="m", group="correction", nominal=0.0, estimate=v, std=s, free=True
+                name=f"p{j}", unit=unit, group="correction", nominal=0.0, estimate=v, std=s, free=True
             )
             for j, (v, s) in enumerate(zip(row, sd, strict=True))
         )
@@ -69,6 +69,22 @@ def test_a_unit_off_the_fleet_is_named_alone():
     summary = summarize(*_fleet(values, np.full(values.shape, 1e-5)))
     assert [(o.unit, o.parameter) for o in summary.outliers] == [("u7", "p3")]
     assert summary.outliers[0].z > limit and summary.limit == pytest.approx(limit)
+
+
+def test_angles_that_straddle_half_a_turn_are_one_cluster():
+    """A plate mounted upside down: its roll about +-180 deg, one unit's just past +180 (found by a
+    new user as "+795 robust spreads" and a population spread of 160 deg). Angles are compared
+    within half a turn of their circular mean: no unit stands out, the spread is the units' own;
+    a unit 10 deg off is still named."""
+    rng = np.random.default_rng(6)
+    roll = np.pi - 0.01 + rng.normal(0.0, 0.005, (12, 1))
+    roll[4] = -np.pi + 0.005  # 179.4 deg against the others' -179.x: 1 deg apart, not 359
+    summary = summarize(*_fleet(np.angle(np.exp(1j * roll)), np.full(roll.shape, 1e-4), unit="rad"))
+    (p,) = summary.parameters
+    assert not summary.outliers and np.degrees(p.std) < 1.0, (summary.outliers, np.degrees(p.std))
+    roll[4] = np.pi - 0.01 + np.radians(10.0)
+    summary = summarize(*_fleet(np.angle(np.exp(1j * roll)), np.full(roll.shape, 1e-4), unit="rad"))
+    assert [o.unit for o in summary.outliers] == ["u4"]
 
 
 def test_round_off_is_not_a_difference_between_robots():
