@@ -190,6 +190,10 @@ def test_metadata_not_json_not_utf8_nan(ds):
         ),
         (lambda m: m["targets"][0].update(dictionary="DICT_9X9"), ["targets[0]", "DICT_9X9"]),
         (
+            lambda m: m["targets"].append(dict(m["targets"][0], name="plate1", first_id=5, link="world")),
+            ["targets[1].first_id", "'plate1'", "overlap target 'plate0'", "cannot tell which plate"],
+        ),
+        (
             lambda m: m["targets"][0].__delitem__("marker_length"),
             ["targets[0]", "missing field 'marker_length'"],
         ),

@@ -371,7 +371,28 @@ def read_targets(meta: dict, loc: Loc, links) -> tuple[TargetInfo, ...]:
     names = [t.name for t in out]
     if len(set(names)) != len(names):
         raise loc.fail(f"target names are not unique: {names}")
+    _distinct_ids(out, loc)
     return tuple(out)
+
+
+def _distinct_ids(targets: list[TargetInfo], loc: Loc) -> None:
+    """Two targets of one dictionary whose marker ids overlap are refused, naming both: a detector
+    cannot tell which of them it sees (a plate's `first_id` copied from another's)."""
+    for j, b in enumerate(targets):
+        for a in targets[:j]:
+            if a.spec.dictionary != b.spec.dictionary or not a.spec.num_markers or not b.spec.num_markers:
+                continue
+            if np.intersect1d(a.spec.marker_ids, b.spec.marker_ids).size:
+                ids = lambda s: f"{s.marker_ids[0]}..{s.marker_ids[-1]}"  # noqa: E731
+                raise (
+                    loc.index(j)
+                    .key("first_id")
+                    .fail(
+                        f"target {b.spec.name!r}'s marker ids {ids(b.spec)} overlap target {a.spec.name!r}'s "
+                        f"({ids(a.spec)}) in {b.spec.dictionary}: a detector cannot tell which plate it sees; give "
+                        "each plate its own ids (first_id: the id of its first marker)"
+                    )
+                )
 
 
 def read_encoder_meta(meta: dict, loc: Loc) -> dict | None:
