@@ -617,6 +617,10 @@ def refine(setup: Setup, obs: Observations, sync: Sync, two: TwoStage, options: 
     if cov_free is not None or considered is not None:
         res = eqx.tree_at(lambda r: (r.cov, r.std), res, (cov, np.sqrt(np.maximum(np.diag(cov), 0.0))))
     out = _outcome(setup, sync, two, corners, problem, res, layout, cand, free)
+    if considered is not None and out.clock is not None:  # the clock's std in the noise (the arm test's)
+        i = layout.index("clock")[0]
+        noise = 1e-3 * np.sqrt(max(cov[i, i] - considered[i, i], 0.0))
+        out = dataclasses.replace(out, clock=dataclasses.replace(out.clock, std_s=float(noise)))
     delays = _delay_rows(corners, res, layout, free)
     summary = dataclasses.replace(
         out.summary,
