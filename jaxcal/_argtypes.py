@@ -29,6 +29,14 @@ def positive(text: str) -> float:
     return v
 
 
+def non_negative(text: str) -> float:
+    """An argparse type: a finite number, zero or above (a noise's standard deviation)."""
+    v = finite(text)
+    if v < 0.0:
+        raise argparse.ArgumentTypeError(f"expected a number of zero or more, got {text!r}")
+    return v
+
+
 def count(lo: int, hi: int):
     """An argparse type: an integer from `lo` to `hi` (the bound of an option that sizes work
     or memory, documented in its help)."""

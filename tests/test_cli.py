@@ -11,6 +11,17 @@ def test_unknown_robot_is_a_clear_error(capsys):
     assert "kuka" in capsys.readouterr().err
 
 
+def test_a_negative_noise_is_refused_and_the_noise_is_said_per_axis(capsys):
+    """A standard deviation below zero once ran (a new user's typo); the help says what the number is."""
+    for option in ("--noise-mm", "--noise-deg"):
+        with pytest.raises(SystemExit):
+            main(["montecarlo", option, "-0.5", "--trials", "2"])
+        assert f"argument {option}: expected a number of zero or more, got '-0.5'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["montecarlo", "--help"])
+    assert "1-sigma per axis" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize(
     ("argv", "words"),
     [

@@ -6,6 +6,7 @@ import numpy as np
 
 from .._argtypes import count as count
 from .._argtypes import finite as finite
+from .._argtypes import non_negative as non_negative
 from .._argtypes import positive as positive
 from .._argtypes import resolution as _resolution
 from ..io._images import MAX_PIXELS, MAX_SIDE

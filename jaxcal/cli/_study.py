@@ -5,7 +5,7 @@ import argparse
 import sys
 
 from .._configkeys import knob
-from ._common import count, degrees, finite, seed
+from ._common import count, degrees, non_negative, seed
 
 #: `jaxcal._montecarlo.MAX_TRIALS` and `.MAX_FRAMES`, here so that the parser imports no JAX (a
 #: test keeps them equal).
@@ -30,9 +30,20 @@ def add_study_args(p: argparse.ArgumentParser, trials: int) -> None:
         "up to 10,000; see monte_carlo)",
     )
     p.add_argument("--seed", type=seed, default=0)
-    p.add_argument("--noise-mm", type=finite, default=0.1, help="marker position noise (mm)")
-    p.add_argument("--noise-deg", type=finite, default=0.05, help="marker orientation noise (deg)")
-    knob(p, "--encoder-noise-deg", type=finite, default=0.0)
+    p.add_argument(
+        "--noise-mm",
+        type=non_negative,
+        default=0.1,
+        help="marker position noise, 1-sigma per axis, the same on every axis (mm); a calibration's arc fits "
+        "report position_rms_mm, the 3-D RMS: about 1.7x this, and more along the camera's line of sight",
+    )
+    p.add_argument(
+        "--noise-deg",
+        type=non_negative,
+        default=0.05,
+        help="marker orientation noise, 1-sigma per axis (deg); rotation_rms_deg is the 3-D RMS",
+    )
+    knob(p, "--encoder-noise-deg", type=non_negative, default=0.0)
     p.add_argument(
         "--sweep-deg", type=degrees, default=60.0, help="angle each joint sweeps (deg), one for every joint"
     )
