@@ -77,7 +77,10 @@ def link_poses(poses, targets, cands):
     t = targets[cands[int(np.argmax(seen))]]
     idx = np.array([f for f, p in enumerate(poses) if t.name in p], int)
     if idx.size == 0:
-        raise ValueError(f"target {t.name!r} is never seen")
+        raise ValueError(
+            f"target {t.name!r} is never seen: no image shows its markers as metadata.json describes them; "
+            "check its dictionary, first_id and squares against the printed plate"
+        )
     P = np.stack([poses[f][t.name].T_cam_target[:3, 3] for f in idx])
     O = np.stack([poses[f][t.name].T_cam_target[:3, :3] for f in idx])
     C = np.stack([poses[f][t.name].cov for f in idx])

@@ -563,7 +563,9 @@ def test_a_mis_sized_board_is_suspect_and_strict_writes_nothing(dataset, tmp_pat
     r = calibrate(ds, progress=False, workers=1, refine=False)
     (board,) = [c for c in r.verdict.checks if c.check == "board_scale"]
     assert r.status == "suspect" and 0.9 < board.value < 1.3, board
-    assert any("printed size" in reason for reason in r.reasons), r.reasons
+    reason = next(reason for reason in r.reasons if "printed size" in reason)
+    fit = re.search(r"'plate0''s square of ([0-9.]+) mm would fit", reason)
+    assert fit and abs(float(fit.group(1)) - 40.0) < 0.2, reason  # the printed 40 mm, the target named
 
 
 @pytest.mark.slow

@@ -104,3 +104,17 @@ def test_undo_joint_inverts_a_turn_about_the_axis():
     np.testing.assert_allclose(P2, P, atol=1e-12)
     np.testing.assert_allclose(O2, O, atol=1e-12)
     np.testing.assert_allclose(C2, C, atol=1e-10)
+
+
+def test_a_target_no_image_shows_names_the_fields_to_check():
+    """A plate whose `first_id` is one off (a new user's) is found in no image: the message says which
+    of its fields decide what the detector looks for, not only that it is never seen."""
+    from types import SimpleNamespace
+
+    from jaxcal._links import link_poses
+
+    targets = [SimpleNamespace(name="plate0"), SimpleNamespace(name="plate2")]
+    with pytest.raises(
+        ValueError, match=r"target 'plate2' is never seen: .* dictionary, first_id and squares"
+    ):
+        link_poses([{"plate0": None}, {}], targets, [1])

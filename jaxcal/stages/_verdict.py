@@ -377,11 +377,12 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, timed_rows: R
         return
     pct = 100.0 * abs(scale - 1.0)
     square = [t.spec for t in setup.targets if getattr(t.spec, "square_length", None)]
-    hint = (
-        f"; a square of {1e3 * square[0].square_length / scale:.2f} mm would fit"
-        if square and scale > 0
-        else ""
+    hint = "; ".join(
+        f"{t.name!r}'s square of {1e3 * t.square_length / scale:.2f} mm would fit"
+        for t in square
+        if scale > 0
     )
+    hint = f"; {hint}" + (" (were every target's size off alike)" if len(square) > 1 else "") if hint else ""
     c.add(
         "board_scale",
         pct,
