@@ -326,12 +326,6 @@ class _Linear:
         std = np.sqrt(np.maximum(np.diag(cov)[self.n_geo :], 0.0)) / self.scale[idx[self.n_geo :]]
         return d[self.n_geo :], std
 
-    def shift(self, term_cols, extra_cols) -> np.ndarray:
-        """How far the all-views fit's geometry (its `n_geo` columns, in their own units) moves
-        when the term columns `extra_cols` join the columns `term_cols`."""
-        cols = np.concatenate([term_cols, extra_cols]).astype(int)
-        return self.fit(self.columns(cols))[: self.n_geo] - self.fit(self.columns(term_cols))[: self.n_geo]
-
     def held(self, term_cols) -> np.ndarray:
         """The term columns left free once those the views do not pin (`TERM_STD_RAD`) and those
         of a sign no arm has (`SIGNS`) are held, one round at a time."""
@@ -542,13 +536,13 @@ def unresolved(lin: _Linear, terms, kept, best_cols, tol: float, lagging=None):
     the coefficients taken at their own estimates, every model the views cannot reject counted: the
     estimates of a capture that cannot tell them apart are noisy, and one model's may miss what the
     other's catches)."""
-    base = lin.fit(lin.columns(best_cols))[: lin.n_geo]
+    base = lin.fit(lin.columns(best_cols))[: lin.n_geo]  # the geometry's step of the kept model
     shifts, causes = [], []
     extra = left_out(lin, terms, kept, best_cols, tol)
-    if len(extra):
-        shifts.append(lin.shift(best_cols, extra))
-        causes.append("+".join(terms[i] for i in sorted(set(lin.family[extra]))))
     cols = np.concatenate([best_cols, extra]).astype(int)
+    if len(extra):
+        shifts.append(lin.fit(lin.columns(cols))[: lin.n_geo] - base)
+        causes.append("+".join(terms[i] for i in sorted(set(lin.family[extra]))))
     if (
         lagging is not None
         and "compliance" in terms
