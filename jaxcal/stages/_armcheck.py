@@ -376,7 +376,8 @@ def arm_check(c, setup, sync, two, refined, limits, score: ArmScore | Future | N
         f"Gravity sag moves them so: {joint}'s torque changes by {span[j]:.0f} N m between sweeps (from "
         f"{setup.dataset.robot_urdf.name}'s masses) and the axes fit an apparent compliance of {got.c_hat[j]:.3g} "
         "rad/kN m there (a UR5's shoulder: 0.031); backlash does too (a resting joint stands where its last move "
-        "left it within its lost motion). " + TO_CHANGE,
+        "left it within its lost motion), and so do camera stamps that jump between sweeps (each sweep then at a "
+        "clock of its own: see frames.csv where the arc fits below do not fit). " + TO_CHANGE,
         cause="arm",
     )
     if got.clock_z is None:
