@@ -321,6 +321,11 @@ def _ee_sigma_mm(setup: Setup, two: TwoStage, refined: Refined | None) -> float:
     return float(1e3 * np.sqrt(np.mean(sigma**2)))
 
 
+def _ee_sigma_of(setup: Setup, two: TwoStage, refined: Refined, cov) -> float:
+    """`_ee_sigma_mm` of the refined result with the covariance `cov` (flat) in place of its own."""
+    return _ee_sigma_mm(setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov)))
+
+
 def _ratios(c: _Checks, setup: Setup, two: TwoStage, refined: Refined | None, limits: Limits) -> None:
     """The reported reduction ratios (refined when the refinement ran) against the nominal ones."""
     nominal = np.asarray(setup.nominal.reduction_ratio)
@@ -497,9 +502,7 @@ def _focal_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, sigma
     if refined.focal_shift is None or setup.camera.K_std is not None:
         return
     shift = np.asarray(refined.focal_shift, np.float64)
-    moved = _ee_sigma_mm(
-        setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, np.outer(shift, shift)))
-    )
+    moved = _ee_sigma_of(setup, two, refined, np.outer(shift, shift))
     if moved >= 0.5 * sigma:
         c.notes.append(
             f"the result leans on metadata.json's K: were its focal lengths 0.1 % longer, the tool point would "
@@ -543,7 +546,7 @@ def _left_out_note(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, si
         return
     cov = np.zeros_like(np.asarray(refined.fit.cov))
     cov[np.ix_(t.shift_at, t.shift_at)] = t.shift @ t.shift.T
-    moved = _ee_sigma_mm(setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov)))
+    moved = _ee_sigma_of(setup, two, refined, cov)
     if moved < 0.5 * sigma:
         return
     words = [_cause_words(cause) for cause in t.shift_of]
@@ -567,11 +570,9 @@ def _correlation(c: _Checks, setup: Setup, two: TwoStage, refined: Refined, limi
     if refined.cov_views is not None:  # the noise's share alone, without what the claim considers
         free = np.flatnonzero(np.asarray(refined.fit.free))
         cov = np.array(refined.fit.cov) - (0.0 if refined.considered is None else refined.considered)
-        after = _ee_sigma_mm(setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov)))
+        after = _ee_sigma_of(setup, two, refined, cov)
         cov[np.ix_(free, free)] = refined.cov_views
-        before = _ee_sigma_mm(
-            setup, two, replace(refined, fit=eqx.tree_at(lambda r: r.cov, refined.fit, cov))
-        )
+        before = _ee_sigma_of(setup, two, refined, cov)
         growth = after / before if before > 0 else float("inf")
         grew = (
             f"; the covariance now accounts for them (a kernel sandwich over {t.kernel_lags} frames: the noise's "
