@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._files import write_text_atomic
+
 
 @dataclass(frozen=True)
 class Joint:
@@ -116,3 +118,62 @@ def read_tree(root: ET.Element, path: Path) -> Tree:
         return Tree(links, joints)
     except (KeyError, AttributeError, TypeError, ValueError, IndexError) as e:
         raise ValueError(f"URDF file {str(path)!r} could not be read: {e!r}") from None
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def fmt(values) -> str:
+    """Floats as Python `repr` (the shortest string that round-trips exactly)."""
+    return " ".join(repr(float(v)) for v in np.ravel(values))
+
+
+def rpy_error(R: np.ndarray, rpy: np.ndarray) -> float:
+    return float(np.abs(origin_matrix((0.0, 0.0, 0.0), rpy)[:3, :3] - R).max())
+
+
+def rpy_exact(R: np.ndarray, rpy: np.ndarray) -> np.ndarray:
+    """`rpy`, or gimbal-lock-safe angles where those reproduce `R` better.
+
+    At pitch $= \\pm\\pi/2$ only roll $\\mp$ yaw is determined, and
+    `matrix_to_rpy` takes roll and yaw separately from entries that are pure
+    round-off. Here roll comes from those small entries and yaw from the
+    $O(1)$ entries $R_{01}, R_{11}$, which fixes the difference to full
+    precision (error $O(\\cos^2 \\text{pitch})$).
+    """
+    err = rpy_error(R, rpy)
+    if err <= 1e-15 or abs(R[2, 0]) < 1.0 - 1e-10:
+        return rpy
+    pitch = math.atan2(-R[2, 0], math.hypot(R[0, 0], R[1, 0]))
+    roll = math.atan2(R[2, 1], R[2, 2]) if (R[2, 1] != 0.0 or R[2, 2] != 0.0) else 0.0
+    if R[2, 0] < 0.0:  # pitch near +pi/2: R01 = sin(roll - yaw), R11 = cos(roll - yaw)
+        yaw = roll - math.atan2(R[0, 1], R[1, 1])
+    else:  # pitch near -pi/2: R01 = -sin(roll + yaw), R11 = cos(roll + yaw)
+        yaw = math.atan2(-R[0, 1], R[1, 1]) - roll
+    safe = np.array([roll, pitch, math.atan2(math.sin(yaw), math.cos(yaw))])
+    return safe if rpy_error(R, safe) < err else rpy
+
+
+def checked_rpy(T: np.ndarray, xyz: np.ndarray, rpy: np.ndarray, what: str) -> np.ndarray:
+    """`rpy` repaired at gimbal lock and checked to reproduce `T` to 1e-12."""
+    rpy = rpy_exact(T[:3, :3], np.asarray(rpy, dtype=np.float64))
+    back = origin_matrix(xyz, rpy)
+    if not np.abs(back - T).max() <= 1e-12:
+        raise ValueError(f"{what} is not a rigid transform and cannot be written as xyz/rpy:\n{T}")
+    return rpy
+
+
+def set_origin(joint_el: ET.Element, xyz: np.ndarray, rpy: np.ndarray) -> None:
+    origin = joint_el.find("origin")
+    if origin is None:
+        origin = ET.Element("origin")
+        joint_el.insert(0, origin)
+    origin.set("xyz", fmt(xyz))
+    origin.set("rpy", fmt(rpy))
+
+
+def write_atomic(tree: ET.ElementTree, path: Path) -> None:
+    ET.indent(tree, space="  ")
+    write_text_atomic(
+        path, '<?xml version="1.0"?>\n' + ET.tostring(tree.getroot(), encoding="unicode") + "\n"
+    )

@@ -35,11 +35,11 @@ from .._kinematics import (
     origins_xyz_rpy,
     rotations_to_rpy,
 )
-from ._files import shown, write_text_atomic
+from ._files import shown
 from ._urdf_checks import check_joint_element, check_joint_links, limit_range, limit_value
-from ._urdf_tree import origin_matrix, read_tree
+from ._urdf_tree import checked_rpy, fmt, read_tree, set_origin, write_atomic
 
-_MOVABLE = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC}
+MOVABLE = {"revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC}
 _UNSUPPORTED = ("floating", "planar")
 # Fixed transforms folded into a joint origin count as identity below this (max abs entry).
 _IDENTITY_ATOL = 1e-12
@@ -48,7 +48,7 @@ _IDENTITY_ATOL = 1e-12
 # --------------------------------------------------------------------------- reading
 
 
-def _parse_xml(path: Path) -> ET.ElementTree:
+def parse_urdf(path: Path) -> ET.ElementTree:
     """Parse `path` as XML with comments kept; ValueError on a missing file or bad XML."""
     if not path.is_file():
         raise ValueError(f"URDF file {shown(path)!r} does not exist")
@@ -154,7 +154,7 @@ def urdf_outline(path, joint_names=()) -> UrdfOutline:
     `joint_names` that is not a movable joint, or one of those joints that fails
     `check_joint_element` (no `<limit>`, lower >= upper, a non-finite value)."""
     path = Path(path)
-    root = _parse_xml(path).getroot()
+    root = parse_urdf(path).getroot()
     check_joint_links(root, path)
     links = frozenset(el.get("name") for el in root.findall("link") if el.get("name"))
     parent_joint, elements = {}, {}
@@ -170,7 +170,7 @@ def urdf_outline(path, joint_names=()) -> UrdfOutline:
         if el is None:
             raise ValueError(f"URDF file {shown(path)!r} has no joint {name!r}")
         kind = el.get("type")
-        if kind not in _MOVABLE:
+        if kind not in MOVABLE:
             raise ValueError(f"URDF file {shown(path)!r}: joint {name!r} is {kind}, not a movable joint")
         check_joint_element(el, path)
         lower, upper = (None, None) if kind == "continuous" else limit_range(el, path)
@@ -189,7 +189,7 @@ def urdf_outline(path, joint_names=()) -> UrdfOutline:
 
 def urdf_link_names(path) -> set[str]:
     """The names of a URDF file's links."""
-    return {el.get("name") for el in _parse_xml(Path(path)).getroot().iter("link")}
+    return {el.get("name") for el in parse_urdf(Path(path)).getroot().iter("link")}
 
 
 def _leaves_with_motion(children: dict[str, list], base: str) -> list[str]:
@@ -256,17 +256,19 @@ def _origin(joint) -> np.ndarray:
     return np.eye(4) if joint.origin is None else np.asarray(joint.origin, dtype=np.float64)
 
 
-def _check_joint(joint, path: Path) -> None:
+def check_joint_type(joint, path: Path, *, mimic: bool = False) -> None:
+    """Refuse a joint a chain (`mimic`: a tree, which may couple joints) cannot hold, naming it."""
     if joint.type in _UNSUPPORTED:
         raise ValueError(
             f"URDF file {shown(path)!r}: joint {joint.name!r} is {joint.type}; only revolute, "
             "continuous, prismatic and fixed joints are supported"
         )
-    if joint.type != "fixed" and joint.type not in _MOVABLE:
+    if joint.type != "fixed" and joint.type not in MOVABLE:
         raise ValueError(f"URDF file {shown(path)!r}: joint {joint.name!r} has unknown type {joint.type!r}")
-    if joint.mimic is not None:
+    if joint.mimic is not None and not mimic:
         raise ValueError(
-            f"URDF file {shown(path)!r}: joint {joint.name!r} mimics another joint (unsupported)"
+            f"URDF file {shown(path)!r}: joint {joint.name!r} mimics another joint, which a serial chain "
+            "cannot hold: read the robot as a tree (jaxcal.io.urdf_tree.load_urdf_tree)"
         )
 
 
@@ -292,7 +294,7 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
     lower >= upper: see `check_joint_element`).
     """
     path = Path(path)
-    root = _parse_xml(path).getroot()
+    root = parse_urdf(path).getroot()
     check_joint_links(root, path)
     joints, base_link, tip_link = _chain(read_tree(root, path), path, base_link, tip_link)
     transmissions = _transmissions_by_joint(root)
@@ -301,7 +303,7 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
     origins, axes, types, names, child_links, offsets, ratios = [], [], [], [], [], [], []
     pending = np.eye(4)
     for joint in joints:
-        _check_joint(joint, path)
+        check_joint_type(joint, path)
         check_joint_element(elements[joint.name], path)
         if joint.type == "fixed":
             pending = pending @ _origin(joint)
@@ -315,7 +317,7 @@ def load_urdf(path, base_link: str | None = None, tip_link: str | None = None) -
         origins.append(pending @ _origin(joint))
         pending = np.eye(4)
         axes.append(axis / norm)
-        types.append(_MOVABLE[joint.type])
+        types.append(MOVABLE[joint.type])
         names.append(joint.name)
         child_links.append(joint.child)
         offsets.append(0.0 if joint.rising is None else joint.rising)
@@ -365,7 +367,7 @@ def urdf_inertias(
     $I + m(|d|^2 E - d d^T)$; a link without an `<inertia>` is a point mass.
     """
     path = Path(path)
-    root = _parse_xml(path).getroot()
+    root = parse_urdf(path).getroot()
     check_joint_links(root, path)
     tree = read_tree(root, path)
     joints, _, _ = _chain(tree, path, base_link, tip_link)
@@ -408,61 +410,12 @@ def urdf_inertias(
 # --------------------------------------------------------------------------- writing
 
 
-def _fmt(values) -> str:
-    """Floats as Python `repr` (the shortest string that round-trips exactly)."""
-    return " ".join(repr(float(v)) for v in np.ravel(values))
-
-
-def _rpy_error(R: np.ndarray, rpy: np.ndarray) -> float:
-    return float(np.abs(origin_matrix((0.0, 0.0, 0.0), rpy)[:3, :3] - R).max())
-
-
-def _rpy_exact(R: np.ndarray, rpy: np.ndarray) -> np.ndarray:
-    """`rpy`, or gimbal-lock-safe angles where those reproduce `R` better.
-
-    At pitch $= \\pm\\pi/2$ only roll $\\mp$ yaw is determined, and
-    `matrix_to_rpy` takes roll and yaw separately from entries that are pure
-    round-off. Here roll comes from those small entries and yaw from the
-    $O(1)$ entries $R_{01}, R_{11}$, which fixes the difference to full
-    precision (error $O(\\cos^2 \\text{pitch})$).
-    """
-    err = _rpy_error(R, rpy)
-    if err <= 1e-15 or abs(R[2, 0]) < 1.0 - 1e-10:
-        return rpy
-    pitch = math.atan2(-R[2, 0], math.hypot(R[0, 0], R[1, 0]))
-    roll = math.atan2(R[2, 1], R[2, 2]) if (R[2, 1] != 0.0 or R[2, 2] != 0.0) else 0.0
-    if R[2, 0] < 0.0:  # pitch near +pi/2: R01 = sin(roll - yaw), R11 = cos(roll - yaw)
-        yaw = roll - math.atan2(R[0, 1], R[1, 1])
-    else:  # pitch near -pi/2: R01 = -sin(roll + yaw), R11 = cos(roll + yaw)
-        yaw = math.atan2(-R[0, 1], R[1, 1]) - roll
-    safe = np.array([roll, pitch, math.atan2(math.sin(yaw), math.cos(yaw))])
-    return safe if _rpy_error(R, safe) < err else rpy
-
-
-def _checked_rpy(T: np.ndarray, xyz: np.ndarray, rpy: np.ndarray, what: str) -> np.ndarray:
-    """`rpy` repaired at gimbal lock and checked to reproduce `T` to 1e-12."""
-    rpy = _rpy_exact(T[:3, :3], np.asarray(rpy, dtype=np.float64))
-    back = origin_matrix(xyz, rpy)
-    if not np.abs(back - T).max() <= 1e-12:
-        raise ValueError(f"save_urdf: {what} is not a rigid transform and cannot be written as xyz/rpy:\n{T}")
-    return rpy
-
-
-def _set_origin(joint_el: ET.Element, xyz: np.ndarray, rpy: np.ndarray) -> None:
-    origin = joint_el.find("origin")
-    if origin is None:
-        origin = ET.Element("origin")
-        joint_el.insert(0, origin)
-    origin.set("xyz", _fmt(xyz))
-    origin.set("rpy", _fmt(rpy))
-
-
 def _joint_origins(model: KinematicModel, arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """xyz/rpy of every joint origin of `model`, exact to 1e-12."""
     xyz, rpy = origins_xyz_rpy(model)
     rpy = np.stack(
         [
-            _checked_rpy(T, x, r, f"origin of joint {name!r}")
+            checked_rpy(T, x, r, f"save_urdf: origin of joint {name!r}")
             for T, x, r, name in zip(arrays["T_parent_joint"], xyz, rpy, model.joint_names)
         ]
     )
@@ -472,7 +425,7 @@ def _joint_origins(model: KinematicModel, arrays: dict[str, np.ndarray]) -> tupl
 def _flange_origin(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xyz = T[:3, 3].copy()
     rpy = rotations_to_rpy(T[:3, :3])
-    return xyz, _checked_rpy(T, xyz, rpy, "T_last_flange")
+    return xyz, checked_rpy(T, xyz, rpy, "save_urdf: T_last_flange")
 
 
 def _set_child(parent: ET.Element, tag: str, **attrib: str) -> ET.Element:
@@ -535,20 +488,20 @@ def _model_arrays(model: KinematicModel) -> dict[str, np.ndarray]:
 
 
 def _fill_from_source(model: KinematicModel, arrays: dict[str, np.ndarray], source: Path) -> ET.ElementTree:
-    tree = _parse_xml(source)
+    tree = parse_urdf(source)
     root = tree.getroot()
     check_joint_links(root, source)
     joints, _, _ = _chain(read_tree(root, source), source, model.link_names[0], model.link_names[-1])
     movable = [j for j in joints if j.type != "fixed"]
     for j in joints:
-        _check_joint(j, source)
+        check_joint_type(j, source)
     if tuple(j.name for j in movable) != model.joint_names:
         raise ValueError(
             f"save_urdf: the chain {model.link_names[0]!r} -> {model.link_names[-1]!r} of source "
             f"{str(source)!r} has joints {[j.name for j in movable]}, the model has {list(model.joint_names)}"
         )
     for j, kind in zip(movable, model.joint_types):
-        if _MOVABLE[j.type] != kind:
+        if MOVABLE[j.type] != kind:
             raise ValueError(
                 f"save_urdf: joint {j.name!r} is {j.type} in {str(source)!r} but {kind} in the model"
             )
@@ -570,8 +523,8 @@ def _fill_from_source(model: KinematicModel, arrays: dict[str, np.ndarray], sour
                 )
         folded = []
         el = elements[j.name]
-        _set_origin(el, xyz[i], rpy[i])
-        _set_child(el, "axis", xyz=_fmt(arrays["axis"][i]))
+        set_origin(el, xyz[i], rpy[i])
+        _set_child(el, "axis", xyz=fmt(arrays["axis"][i]))
         _set_child(el, "calibration", rising=repr(float(arrays["zero_offset"][i])))
         ratio = float(arrays["reduction_ratio"][i])
         _reduction_ratio(j.name, transmissions, source)  # rejects ambiguous transmissions
@@ -591,7 +544,7 @@ def _fill_from_source(model: KinematicModel, arrays: dict[str, np.ndarray], sour
         rest = np.eye(4)
         for f in folded[1:]:
             rest = rest @ _origin(f)
-        _set_origin(elements[folded[0].name], *_flange_origin(arrays["T_last_flange"] @ np.linalg.inv(rest)))
+        set_origin(elements[folded[0].name], *_flange_origin(arrays["T_last_flange"] @ np.linalg.inv(rest)))
     return tree
 
 
@@ -614,8 +567,8 @@ def _minimal_tree(model: KinematicModel, arrays: dict[str, np.ndarray], robot_na
         el = ET.SubElement(root, "joint", name=name, type=kind)
         ET.SubElement(el, "parent", link=links[i])
         ET.SubElement(el, "child", link=links[i + 1])
-        _set_origin(el, xyz[i], rpy[i])
-        ET.SubElement(el, "axis", xyz=_fmt(arrays["axis"][i]))
+        set_origin(el, xyz[i], rpy[i])
+        ET.SubElement(el, "axis", xyz=fmt(arrays["axis"][i]))
         lim = math.pi if kind == REVOLUTE else 1.0  # rad, or m for a prismatic joint
         ET.SubElement(el, "limit", lower=repr(-lim), upper=repr(lim), effort="0.0", velocity="0.0")
         ET.SubElement(el, "calibration", rising=repr(float(arrays["zero_offset"][i])))
@@ -626,17 +579,10 @@ def _minimal_tree(model: KinematicModel, arrays: dict[str, np.ndarray], robot_na
         el = ET.SubElement(root, "joint", name=fixed_name, type="fixed")
         ET.SubElement(el, "parent", link=links[-2])
         ET.SubElement(el, "child", link=links[-1])
-        _set_origin(el, *_flange_origin(arrays["T_last_flange"]))
+        set_origin(el, *_flange_origin(arrays["T_last_flange"]))
     for name, ratio in zip(model.joint_names, arrays["reduction_ratio"]):
         root.append(_new_transmission(name, ratio))
     return ET.ElementTree(root)
-
-
-def _write_atomic(tree: ET.ElementTree, path: Path) -> None:
-    ET.indent(tree, space="  ")
-    write_text_atomic(
-        path, '<?xml version="1.0"?>\n' + ET.tostring(tree.getroot(), encoding="unicode") + "\n"
-    )
 
 
 def save_urdf(model: KinematicModel, path, *, source=None) -> None:
@@ -666,4 +612,4 @@ def save_urdf(model: KinematicModel, path, *, source=None) -> None:
         tree = _fill_from_source(model, arrays, Path(source))
     else:
         tree = _minimal_tree(model, arrays, robot_name=path.stem)
-    _write_atomic(tree, path)
+    write_atomic(tree, path)

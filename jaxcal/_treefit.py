@@ -1,0 +1,466 @@
+"""Calibrating a kinematic tree from points measured on several tips at once.
+
+A tracker (or motion capture) sees a reflector on each hand of a body at stop-and-shoot poses;
+one sample may carry several tips. The model of tip $t$ at pose $i$ is
+
+$$ y_{it} = T_{dev,root} \\exp(\\xi_{dev})\\, T_{root,tip_t}(q_i;\\ \\text{tree}, \\text{elastic})\\, (p_t + \\delta p_t), $$
+
+with every joint origin corrected by a twist, every joint's zero offset, each coupled joint's
+multipliers, and three families of non-geometric terms (`FAMILIES`):
+
+* `joint`: joint compliance, $\\delta\\theta_j = k_j\\, \\tau_j \\cdot a_j$, the gravity torque
+  $\\tau_j$ of every link below joint $j$ (both arms load the torso: `jaxcal._tree.gravity_torques`);
+* `lateral`: the joint's bending about the two axes normal to it by $k^{\\perp}$ times the
+  torque's components about them;
+* `harmonic`: a once-per-turn angle error $c_j \\cos\\theta_j + s_j \\sin\\theta_j$ (an eccentric
+  encoder).
+
+Parameters are scaled by a typical size each (`TreeLayout.scales`) and the residuals whitened by
+the noise, so a parameter's conditional standard deviation is in units of its typical size.
+`identifiable` keeps a parameter (in a fixed priority order: the device, the tips' points, the
+joints root first, couplings, then the terms) only where the data determine it to within
+`DETERMINED` typical sizes, given those kept before it: exact redundancies (a gauge, a branch no
+tip measures) and directions the data hardly see stay at their nominal values, named. (Holding
+what the data see only poorly costs more: on the simulated upper body, holding every parameter
+not determined to half its size biased the compliances far outside their uncertainty.) `cross_validate_terms` keeps a family of
+terms only where it lowers the K-fold held-out error; every fold is one vmapped solve.
+"""
+
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from . import _lsq
+from ._geometry import pose_inverse, se3_exp, se3_log, skew
+from ._tree import KinematicTree, frames_at, gravity_torques, joint_positions, normal_axes, tips_from_frames
+
+FAMILIES = ("joint", "lateral", "harmonic")
+#: A parameter is freed where the data determine it to within this many typical sizes: a
+#: parameter held at nominal takes its real deviation (about one typical size) into the others,
+#: so only what the data barely see (or not at all: a gauge, a branch no tip measures) is held.
+DETERMINED = 10.0
+LM = _lsq.LMOptions(rtol=1e-6, atol=1e-2, max_steps=100, normal_cholesky=True)
+#: Gauss-Newton steps after it (and from the fit to all samples, for a cross-validation fold).
+POLISH = 4
+
+
+class Elastic(eqx.Module):
+    """Compliances (rad per N m): `joint` about each joint's axis, `lateral` about the two
+    axes normal to it (`jaxcal._tree.normal_axes`)."""
+
+    joint: Float[Array, " joints"]
+    lateral: Float[Array, "joints 2"]
+
+
+@dataclass(frozen=True)
+class TreeSamples:
+    """Stop-and-shoot samples: commanded actuated positions `q` `(n, actuated)`, the measured
+    points `(n, tips, 3)` (m, device frame), which were `measured` `(n, tips)`, and, from a
+    simulator, the noise-free `truth`."""
+
+    q: np.ndarray
+    points: np.ndarray
+    measured: np.ndarray
+    truth: np.ndarray | None = None
+
+    def subset(self, rows) -> "TreeSamples":
+        return TreeSamples(
+            self.q[rows],
+            self.points[rows],
+            self.measured[rows],
+            None if self.truth is None else self.truth[rows],
+        )
+
+
+def _tip_points(tree, q, points, T_dev, elastic, harmonic):
+    theta = joint_positions(tree, q)
+    if harmonic is not None:
+        theta = theta + harmonic[:, 0] * jnp.cos(theta) + harmonic[:, 1] * jnp.sin(theta)
+    frames = frames_at(tree, theta)
+    if elastic is not None:
+        tau = gravity_torques(tree, frames)
+        R = frames[1:, :3, :3]
+        about = jnp.einsum("jab,jb,ja->j", R, tree.axis, tau)
+        local = jnp.einsum("jba,jb->ja", R, tau)
+        normals = normal_axes(tree.axis)
+        bend = jnp.einsum("jk,jkc->jc", elastic.lateral * jnp.einsum("jkc,jc->jk", normals, local), normals)
+        frames = frames_at(tree, theta + elastic.joint * about, bend)
+    tips = tips_from_frames(tree, frames)
+    p = jnp.einsum("tab,tb->ta", tips[:, :3, :3], points) + tips[:, :3, 3]
+    return p @ T_dev[:3, :3].T + T_dev[:3, 3]
+
+
+def deflected_tips(tree, elastic, q, points, T_device_root, harmonic=None) -> Float[Array, "n tips 3"]:
+    """The tips' points `(tips, 3)` (tip frames) seen from the device at configurations `q`
+    `(n, actuated)`, the body bent by gravity (`elastic`, None: rigid)."""
+    points, T = jnp.asarray(points, jnp.float64), jnp.asarray(T_device_root, jnp.float64)
+    return jax.vmap(_tip_points, (None, 0, None, None, None, None))(tree, q, points, T, elastic, harmonic)
+
+
+@dataclass(frozen=True)
+class TreeLayout:
+    """The flattened vector: each parameter's name, typical size (its unit: m, rad, rad/(N m), or
+    relative for a multiplier) and group (`device`, `point`, `origin`, `zero`, `coupling`, or a
+    family of `FAMILIES`), grouped (each group a slice), and `order`: the identifiability
+    search's priority order (the device, the tips' points, each joint root first with its zero
+    offset before its origin, couplings, then the terms)."""
+
+    names: tuple[str, ...]
+    scales: np.ndarray
+    groups: tuple[str, ...]
+    joints: tuple[int, ...]  # the joint a parameter belongs to (-1: none)
+    couplings: tuple[tuple[int, int], ...]  # (joint, actuated) of each coupling multiplier
+    slices: dict = field(compare=False)
+    order: np.ndarray = field(compare=False, default=None)
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+    def family(self, *groups: str) -> np.ndarray:
+        return np.isin(np.asarray(self.groups), groups)
+
+
+def tree_layout(tree: KinematicTree) -> TreeLayout:
+    """The parameters of `tree`'s calibration (see the module docstring for their order)."""
+    rows: list[tuple[str, float, str, int]] = []
+    slices = {}
+
+    def add(group, entries):
+        start = len(rows)
+        rows.extend((name, scale, group, j) for name, scale, j in entries)
+        slices[group] = slice(start, len(rows))
+
+    add("device", [(f"device.{a}", 1e-2, -1) for a in ("x", "y", "z", "rx", "ry", "rz")])
+    add("point", [(f"{t}.point.{a}", 5e-3, -1) for t in tree.tip_names for a in "xyz"])
+    add("origin", [(f"{n}.origin.{a}", s, j) for j, n in enumerate(tree.joint_names) for a, s in
+                   zip(("x", "y", "z", "rx", "ry", "rz"), (1e-3,) * 3 + (3e-3,) * 3)])  # fmt: skip
+    add("zero", [(f"{n}.zero_offset", 5e-3, j) for j, n in enumerate(tree.joint_names)])
+    C = np.asarray(tree.coupling)
+    couplings = tuple((int(j), int(a)) for j in tree.coupled for a in np.flatnonzero(C[j]))
+    add(
+        "coupling",
+        [(f"{tree.joint_names[j]}.multiplier.{tree.actuated_names[a]}", 1e-2, j) for j, a in couplings],
+    )
+    add("joint", [(f"{n}.compliance", 2e-4, j) for j, n in enumerate(tree.joint_names)])
+    add(
+        "lateral",
+        [(f"{n}.lateral_compliance.{k}", 1e-4, j) for j, n in enumerate(tree.joint_names) for k in "12"],
+    )
+    add(
+        "harmonic",
+        [(f"{n}.harmonic.{k}", 1e-3, j) for j, n in enumerate(tree.joint_names) for k in ("cos", "sin")],
+    )
+    names, scales, groups, joints = zip(*rows)
+    rank = {"device": 0, "point": 1, "zero": 2, "origin": 2, "coupling": 3}
+    within = {"zero": 0, "origin": 1}
+    key = [
+        (rank.get(g, 4), j if g in within else 0, within.get(g, 0), i)
+        for i, (g, j) in enumerate(zip(groups, joints))
+    ]
+    order = np.array([k[-1] for k in sorted(key)])
+    return TreeLayout(names, np.asarray(scales), groups, joints, couplings, slices, order)
+
+
+class TreeProblem(eqx.Module):
+    """A tree calibration's data and start: `u` (scaled corrections) maps to a body."""
+
+    tree: KinematicTree
+    T_device_root: Float[Array, "4 4"]
+    points0: Float[Array, "tips 3"]
+    q: Float[Array, "n actuated"]
+    y: Float[Array, "n tips 3"]
+    weight: Float[Array, "n tips"]
+    scales: Float[Array, " p"]
+    sigma: float
+    couplings: tuple = eqx.field(static=True)
+    slices: tuple = eqx.field(static=True)  # (group, start, stop)
+
+
+def problem_of(
+    tree, layout: TreeLayout, samples: TreeSamples, T_device_root, points, noise_mm: float
+) -> TreeProblem:
+    """The problem of `samples` about a start `tree`, device pose and tip points."""
+    return TreeProblem(
+        tree=tree,
+        T_device_root=jnp.asarray(T_device_root, jnp.float64),
+        points0=jnp.asarray(points, jnp.float64),
+        q=jnp.asarray(samples.q, jnp.float64),
+        y=jnp.asarray(np.where(samples.measured[..., None], samples.points, 0.0), jnp.float64),
+        weight=jnp.asarray(samples.measured, jnp.float64),
+        scales=jnp.asarray(layout.scales),
+        sigma=1e-3 * noise_mm,
+        couplings=layout.couplings,
+        slices=tuple((g, s.start, s.stop) for g, s in layout.slices.items()),
+    )
+
+
+def body_of(u: Float[Array, " p"], problem: TreeProblem):
+    """`(tree, T_device_root, points, elastic, harmonic)` at scaled corrections `u`."""
+    x = u * problem.scales
+    part = {g: x[a:b] for g, a, b in problem.slices}
+    tree = problem.tree
+    n = tree.num_joints
+    T = jax.vmap(lambda T0, xi: T0 @ se3_exp(xi))(tree.T_parent_joint, part["origin"].reshape(n, 6))
+    C = tree.coupling
+    for k, (j, a) in enumerate(problem.couplings):
+        C = C.at[j, a].add(part["coupling"][k] * jnp.abs(tree.coupling[j, a]))
+    tree = eqx.tree_at(
+        lambda t: (t.T_parent_joint, t.zero_offset, t.coupling), tree, (T, tree.zero_offset + part["zero"], C)
+    )
+    elastic = Elastic(part["joint"], part["lateral"].reshape(n, 2))
+    points = problem.points0 + part["point"].reshape(-1, 3)
+    return (
+        tree,
+        problem.T_device_root @ se3_exp(part["device"]),
+        points,
+        elastic,
+        part["harmonic"].reshape(n, 2),
+    )
+
+
+def predict(u, problem: TreeProblem, q=None) -> Float[Array, "n tips 3"]:
+    """The tips' points in the device frame at `q` (default: the problem's poses)."""
+    tree, T, points, elastic, harmonic = body_of(u, problem)
+    return deflected_tips(tree, elastic, problem.q if q is None else q, points, T, harmonic)
+
+
+def _residuals_autodiff(u, args) -> Float[Array, " m"]:
+    free, weight, problem = args
+    r = (predict(u * free, problem) - problem.y) / problem.sigma
+    return (r * (weight * problem.weight)[..., None]).ravel()
+
+
+def _right_jacobian(xi: Float[Array, "6"]) -> Float[Array, "6 6"]:
+    """$d\\,\\log(e^{-\\xi} e^{\\xi + \\delta}) / d\\delta$ at 0: a twist's change as a local one."""
+    local = lambda d: se3_log(pose_inverse(se3_exp(xi)) @ se3_exp(xi + d))  # noqa: E731
+    return jax.jacfwd(local)(jnp.zeros(6, xi.dtype))
+
+
+def _sample_columns(tree, T_dev, points, elastic, harmonic, C0, couplings, q):
+    """One pose's tip points `(tips, 3)` (device frame) and their derivatives `(tips, 3, p)`
+    with respect to the parameters in `TreeLayout` order, in their own units, local twists on
+    the device and the joint origins (the caller applies the right Jacobians). The gravity
+    torques are held fixed (their change with the geometry moves a compliance's deflection by
+    the fraction of a millimetre that the geometry moves over the lever arm)."""
+    n, tips = tree.num_joints, len(tree.tip_names)
+    theta0 = joint_positions(tree, q)
+    dh = 1.0 - harmonic[:, 0] * jnp.sin(theta0) + harmonic[:, 1] * jnp.cos(theta0)
+    theta = theta0 + harmonic[:, 0] * jnp.cos(theta0) + harmonic[:, 1] * jnp.sin(theta0)
+    rigid = frames_at(tree, theta)
+    tau = gravity_torques(tree, rigid)
+    about = jnp.einsum("jab,jb,ja->j", rigid[1:, :3, :3], tree.axis, tau)
+    normals = normal_axes(tree.axis)
+    torque = jnp.einsum("jka,jba,jb->jk", normals, rigid[1:, :3, :3], tau)  # about the normals
+    bend = jnp.einsum("jk,jkc->jc", elastic.lateral * torque, normals)
+    frames = frames_at(tree, theta + elastic.joint * about, bend)
+    F = jnp.einsum("jab,jbc->jac", frames[jnp.asarray(tree.parent) + 1], tree.T_parent_joint)
+    tip = tips_from_frames(tree, frames)
+    p = jnp.einsum("tab,tb->ta", tip[:, :3, :3], points) + tip[:, :3, 3]
+    on = jnp.asarray([[j in tree.path(t) for j in range(n)] for t in range(tips)], p.dtype)[..., None]
+    d = p[:, None, :] - F[None, :, :3, 3]  # (tips, joints, 3): from each joint's origin
+    a = jnp.einsum("jab,jb->ja", F[:, :3, :3], tree.axis)
+    revolute = jnp.asarray([k == "revolute" for k in tree.joint_types])[:, None]
+    dtheta = on * jnp.where(revolute, jnp.cross(a[None], d), a[None])  # (tips, joints, 3)
+    R = jnp.broadcast_to(F[None, :, :3, :3], (tips, n, 3, 3))
+    origin = on[..., None] * jnp.concatenate([R, -jnp.einsum("tjab,tjbc->tjac", skew(d), R)], axis=-1)
+    bent = jnp.einsum("jab,jkb->jka", frames[1:, :3, :3], normals)  # the bending axes, root frame
+    dc = p[:, None, :] - frames[None, 1:, :3, 3]  # from each child link's origin
+    lateral = on[..., None] * torque[None, :, :, None] * jnp.cross(bent[None], dc[:, :, None, :])
+    tip_rows = [jnp.eye(tips)[:, t, None, None] * tip[:, :3, :3] for t in range(tips)]
+    parts = [
+        origin.transpose(0, 2, 1, 3).reshape(tips, 3, 6 * n),
+        (dtheta * dh[None, :, None]).transpose(0, 2, 1),
+        jnp.stack([dtheta[:, j] * dh[j] * q[k] * jnp.abs(C0[j, k]) for j, k in couplings], axis=-1)
+        if couplings
+        else jnp.zeros((tips, 3, 0)),
+        (dtheta * about[None, :, None]).transpose(0, 2, 1),
+        lateral.transpose(0, 3, 1, 2).reshape(tips, 3, 2 * n),
+        jnp.stack([dtheta * jnp.cos(theta0)[None, :, None], dtheta * jnp.sin(theta0)[None, :, None]], axis=-1)
+        .transpose(0, 2, 1, 3)
+        .reshape(tips, 3, 2 * n),
+    ]
+    device = jnp.concatenate([jnp.broadcast_to(jnp.eye(3), (tips, 3, 3)), -skew(p)], axis=-1)
+    J = jnp.einsum("ab,tbp->tap", T_dev[:3, :3], jnp.concatenate([device, *tip_rows, *parts], axis=-1))
+    return p @ T_dev[:3, :3].T + T_dev[:3, 3], J
+
+
+def _residuals_terms(u, args) -> tuple[Float[Array, " m"], Float[Array, "m p"]]:
+    free, weight, problem = args
+    x = u * free
+    tree, T_dev, points, elastic, harmonic = body_of(x, problem)
+    pred, J = jax.vmap(
+        lambda q: _sample_columns(
+            tree, T_dev, points, elastic, harmonic, problem.tree.coupling, problem.couplings, q
+        )
+    )(problem.q)
+    part = dict((g, (a, b)) for g, a, b in problem.slices)
+    (d0, d1), (o0, o1) = part["device"], part["origin"]
+    scaled = x * problem.scales
+    J = J.at[..., d0:d1].set(J[..., d0:d1] @ _right_jacobian(scaled[d0:d1]))
+    M = jax.vmap(_right_jacobian)(scaled[o0:o1].reshape(-1, 6))
+    origin = jnp.einsum("ntajk,jkl->ntajl", J[..., o0:o1].reshape(*J.shape[:3], -1, 6), M)
+    J = J.at[..., o0:o1].set(origin.reshape(*J.shape[:3], o1 - o0))
+    w = (weight * problem.weight)[..., None] / problem.sigma
+    r = (pred - problem.y) * w
+    return r.ravel(), (J * (w[..., None] * problem.scales * free)).reshape(r.size, -1)
+
+
+def _residuals_primal(u, args) -> Float[Array, " m"]:
+    return _residuals_autodiff(u, args)
+
+
+#: Whitened residuals of the measured tips, `args = (free, weight, problem)`, with a Jacobian
+#: written out (`_sample_columns`): autodiff's of the whole body made a program XLA's CPU
+#: compiler could not build, and costs a pass per parameter.
+residuals = _lsq.closed_form_jvp(_residuals_primal, _residuals_terms, _residuals_autodiff)
+
+
+def _gauss_newton(u, free, weight, problem, steps: int):
+    """`steps` Gauss-Newton steps over the free parameters (a held one: an identity row)."""
+
+    def step(_, u):
+        r, J = _residuals_terms(u, (free, weight, problem))
+        H = J.T @ J + jnp.diag(1.0 - free)
+        return u - jnp.linalg.solve(H, J.T @ r) * free
+
+    return jax.lax.fori_loop(0, steps, step, u * free)
+
+
+@eqx.filter_jit
+def _solve(free, weight, problem, u0):
+    """optimistix's Levenberg-Marquardt from `u0` to a hundredth of each parameter's typical
+    size, then `POLISH` Gauss-Newton steps. The Jacobian holds the gravity torques fixed, so
+    near the optimum its predicted decreases fall under the true ones' round-off and a trust
+    region's ratio test alone would go on damping step after step."""
+    sol = _lsq.solve(residuals, u0 * free, (free, weight, problem), LM)
+    return _gauss_newton(sol.value, free, weight, problem, POLISH), sol.stats["num_steps"]
+
+
+@eqx.filter_jit
+def _linearised(u, free, problem):
+    """The whitened residuals and their Jacobian at `u`."""
+    return _residuals_terms(u, (free, 1.0, problem))
+
+
+def identifiable(problem: TreeProblem, layout: TreeLayout, candidates: np.ndarray) -> np.ndarray:
+    """Which candidate parameters the data determine (see the module docstring), greedily in
+    the layout's order, from the whitened Jacobian at the start."""
+    J = np.asarray(_linearised(jnp.zeros(layout.size), jnp.ones(layout.size), problem)[1])
+    basis, free = np.zeros((J.shape[0], 0)), np.zeros(layout.size, bool)
+    for c in (c for c in layout.order if candidates[c]):
+        col = J[:, c]
+        for _ in range(2):
+            col = col - basis @ (basis.T @ col)
+        norm = np.linalg.norm(col)
+        if norm * DETERMINED > 1.0:  # conditional std below DETERMINED typical sizes
+            free[c] = True
+            basis = np.column_stack([basis, col / norm])
+    return free
+
+
+@dataclass(frozen=True)
+class TreeFit:
+    """A tree calibration: the scaled corrections `u`, which were `free`, their standard
+    deviations in each parameter's unit (`std`, 0 where held), the residuals' estimated noise
+    (mm per axis), the term families kept and the cross-validation's scores (mm)."""
+
+    u: np.ndarray
+    free: np.ndarray
+    std: np.ndarray
+    noise_mm: float
+    steps: int
+    families: tuple[str, ...] = ()
+    cv_mm: dict = field(default_factory=dict)
+
+    def values(self, layout: TreeLayout) -> dict[str, float]:
+        return dict(zip(layout.names, (self.u * layout.scales).tolist()))
+
+
+def fit_tree(problem: TreeProblem, layout: TreeLayout, families=()) -> TreeFit:
+    """Least squares over the identifiable parameters of the geometry and `families`."""
+    candidates = ~layout.family(*FAMILIES) | layout.family(*families)
+    free = identifiable(problem, layout, candidates)
+    u, steps = _solve(jnp.asarray(free, jnp.float64), 1.0, problem, jnp.zeros(layout.size))
+    r, J = _linearised(u, jnp.asarray(free, jnp.float64), problem)
+    dof = max(int(np.asarray(problem.weight).sum()) * 3 - int(free.sum()), 1)
+    s2 = float(r @ r) / dof
+    cov, _, _ = _lsq.covariance(J, jnp.asarray(free), s2)
+    std = np.sqrt(np.maximum(np.diag(np.asarray(cov)), 0.0)) * layout.scales
+    return TreeFit(np.asarray(u), free, std, 1e3 * problem.sigma * np.sqrt(s2), int(steps), tuple(families))
+
+
+@eqx.filter_jit
+def _folds(free, weights, problem, u0):
+    return jax.vmap(lambda w: _gauss_newton(u0, free, w[:, None], problem, POLISH))(weights)
+
+
+def cv_error_mm(problem: TreeProblem, free: np.ndarray, folds: int = 5, seed: int = 0) -> float:
+    """K-fold held-out error: the mean distance (mm) between each held-out tip's measured and
+    predicted point, every fold's fit one vmapped solve started from the fit to all samples."""
+    n = problem.q.shape[0]
+    fold = np.random.default_rng(seed).permutation(n) % folds
+    weights = np.stack([fold != k for k in range(folds)]).astype(np.float64)
+    free = jnp.asarray(free, jnp.float64)
+    whole, _ = _solve(free, 1.0, problem, jnp.zeros_like(problem.scales))
+    us = np.asarray(_folds(free, jnp.asarray(weights), problem, whole))
+    errors = []
+    for k in range(folds):
+        rows = fold == k
+        pred = np.asarray(predict(jnp.asarray(us[k]), problem))[rows]
+        d = np.linalg.norm(pred - np.asarray(problem.y)[rows], axis=-1)
+        errors.append(d[np.asarray(problem.weight)[rows] > 0])
+    return 1e3 * float(np.concatenate(errors).mean())
+
+
+def cross_validate_terms(
+    problem: TreeProblem, layout: TreeLayout, families=FAMILIES, gain: float = 0.01, advance=None
+) -> TreeFit:
+    """Forward selection of term families by K-fold held-out error: the family that lowers it
+    most is kept while it lowers it by more than `gain` (relative); then the final fit.
+    `advance()` is called after each cross-validation (progress)."""
+    advance = advance or (lambda: None)
+    geometric = ~layout.family(*FAMILIES)
+    kept: list[str] = []
+    scores = {"geometric": cv_error_mm(problem, identifiable(problem, layout, geometric))}
+    advance()
+    best = scores["geometric"]
+    while True:
+        trial = {}
+        for fam in (f for f in families if f not in kept):
+            candidates = geometric | layout.family(*kept, fam)
+            trial[fam] = cv_error_mm(problem, identifiable(problem, layout, candidates))
+            scores["+".join([*kept, fam])] = trial[fam]
+            advance()
+        if not trial:
+            break
+        fam = min(trial, key=trial.get)
+        if trial[fam] > best * (1.0 - gain):
+            break
+        kept.append(fam)
+        best = trial[fam]
+    fit = fit_tree(problem, layout, kept)
+    return TreeFit(fit.u, fit.free, fit.std, fit.noise_mm, fit.steps, tuple(kept), scores)
+
+
+def held_by_branch(tree: KinematicTree, layout: TreeLayout, free: np.ndarray, candidates: np.ndarray) -> dict:
+    """The candidate parameters held at nominal, by where they sit: `shared` (a joint on several
+    tips' paths), a tip's name (a joint on that tip's path only; its point), `unmeasured` (a
+    joint on no tip's path: a head when only the hands are tips), or `device`."""
+    paths = {t: set(tree.path(t)) for t in tree.tip_names}
+    held: dict[str, list[str]] = {}
+    for i in np.flatnonzero(candidates & ~free):
+        j, name = layout.joints[i], layout.names[i]
+        if layout.groups[i] == "device":
+            where = "device"
+        elif layout.groups[i] == "point":
+            where = name.split(".point.")[0]
+        else:
+            on = [t for t, p in paths.items() if j in p]
+            where = "shared" if len(on) > 1 else (on[0] if on else "unmeasured")
+        held.setdefault(where, []).append(name)
+    return held

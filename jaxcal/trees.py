@@ -1,0 +1,333 @@
+"""Calibrating robots that are trees: a humanoid's torso and two arms, a dual-arm cell.
+
+    tree = load_urdf_tree("robot.urdf", tips=["left_hand", "right_hand"])
+    samples = read_tree_samples("poses.csv", tree)
+    result = calibrate_tree(tree, samples, noise_mm=0.05)
+    save_tree_calibration(result, "out/", source_urdf="robot.urdf")
+
+A tracker (or motion capture) measures a point on several tips at once, at stop-and-shoot poses;
+the torso's errors are then seen through both arms and separated from each arm's. The fit
+(`jaxcal._treefit`) recovers every joint origin, zero offset and coupled joint's multiplier the
+data determine, the measured points on the tips, the device's pose, and the gravity-driven
+elasticity of joints and links that cross-validation keeps. What the data cannot see is held at
+its robot-file value and named by branch (`held`: `shared` for joints on several tips' paths, a
+tip's name for its own branch, and each tip no sample measures).
+"""
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._dh import dh_table
+from ._npgeom import kabsch
+from ._progress import progress
+from ._tree import KinematicTree, branch, tip_poses
+from ._treefit import (
+    FAMILIES,
+    Elastic,
+    TreeFit,
+    TreeLayout,
+    TreeSamples,
+    body_of,
+    cross_validate_terms,
+    fit_tree,
+    held_by_branch,
+    predict,
+    problem_of,
+    tree_layout,
+)
+from .io._files import atomic_directory, shown
+from .io.dh_tables import dh_table_json
+from .io.urdf_tree import save_urdf_tree
+
+__all__ = [
+    "TreeCalibration",
+    "TreeSamples",
+    "calibrate_tree",
+    "read_tree_samples",
+    "save_tree_calibration",
+]
+
+#: The estimated noise may exceed the stated one by this factor before the result is suspect.
+NOISE_FACTOR = 2.0
+#: A compliance this many standard deviations below zero is a negative stiffness: suspect.
+NEGATIVE_SIGMAS = 3.0
+
+
+@dataclass(frozen=True)
+class TreeCalibration:
+    """A calibrated tree: `tree` (geometry: origins, zero offsets, couplings), the device's
+    pose `T_device_root`, the measured `points` on the tips (tip frames, m), the `elastic`
+    compliances and `harmonic` angle errors (zero where not kept), the fit itself, what was
+    `held` by branch, and a `status` (`ok`, or `suspect` with `notes` saying why)."""
+
+    tree: KinematicTree
+    nominal: KinematicTree
+    T_device_root: np.ndarray
+    points: np.ndarray
+    elastic: Elastic
+    harmonic: np.ndarray
+    fit: TreeFit
+    layout: TreeLayout
+    held: dict
+    status: str
+    notes: tuple[str, ...]
+    _problem: object
+
+    def parameters(self) -> dict[str, tuple[float, float]]:
+        """Every freed parameter's correction from the robot file and its standard deviation,
+        in its own unit (m, rad, rad/(N m), or relative for a multiplier)."""
+        values = self.fit.values(self.layout)
+        return {
+            n: (values[n], float(self.fit.std[i]))
+            for i, n in enumerate(self.layout.names)
+            if self.fit.free[i]
+        }
+
+    def predict(self, q) -> np.ndarray:
+        """The measured points predicted at commanded positions `q` `(n, actuated)`, device frame."""
+        return np.asarray(predict(jnp.asarray(self.fit.u), self._problem, jnp.asarray(q, jnp.float64)))
+
+
+def initial_device_pose(tree: KinematicTree, samples: TreeSamples, points: np.ndarray) -> np.ndarray:
+    """The device's pose from the robot file's predictions of the measured points and the
+    measurements (a rigid fit over every measured tip), for the least squares to start from."""
+    tips = np.asarray(jnp.stack([tip_poses(tree, jnp.asarray(q)) for q in samples.q]))
+    model = np.einsum("ntab,tb->nta", tips[..., :3, :3], points) + tips[..., :3, 3]
+    return kabsch(model[samples.measured], samples.points[samples.measured])
+
+
+def _check(tree: KinematicTree, samples: TreeSamples, noise_mm: float, limits) -> None:
+    n, a = np.shape(samples.q)[0], tree.num_actuated
+    if np.shape(samples.q) != (n, a):
+        raise ValueError(
+            f"samples.q has shape {np.shape(samples.q)}; the tree has {a} actuated joints {tree.actuated_names}"
+        )
+    if np.shape(samples.points) != (n, len(tree.tip_names), 3) or np.shape(samples.measured) != (
+        n,
+        len(tree.tip_names),
+    ):
+        raise ValueError(f"samples.points must be ({n}, {len(tree.tip_names)}, 3) for tips {tree.tip_names}")
+    if not np.all(np.isfinite(samples.q)):
+        row, col = np.argwhere(~np.isfinite(samples.q))[0]
+        raise ValueError(f"sample {row}: joint {tree.actuated_names[col]!r} is not a number")
+    bad = samples.measured & ~np.all(np.isfinite(samples.points), axis=-1)
+    if bad.any():
+        row, t = np.argwhere(bad)[0]
+        raise ValueError(
+            f"sample {row}: tip {tree.tip_names[t]!r} is marked measured but its point is not finite"
+        )
+    if not noise_mm > 0:
+        raise ValueError(f"noise_mm must be positive, got {noise_mm}")
+    if limits is not None:
+        lo, hi = np.asarray(limits)[:, 0], np.asarray(limits)[:, 1]
+        out = (samples.q < lo - 1e-9) | (samples.q > hi + 1e-9)
+        if out.any():
+            row, col = np.argwhere(out)[0]
+            raise ValueError(
+                f"sample {row}: joint {tree.actuated_names[col]!r} at {samples.q[row, col]:.6g} is outside its limits "
+                f"[{lo[col]:.6g}, {hi[col]:.6g}] (radians or metres: a file in degrees?)"
+            )
+
+
+def _verdict(
+    fit: TreeFit, layout: TreeLayout, noise_mm: float, samples: TreeSamples, tree
+) -> tuple[str, tuple[str, ...]]:
+    notes = []
+    if fit.noise_mm > NOISE_FACTOR * noise_mm:
+        notes.append(
+            f"the residuals' noise {fit.noise_mm:.3g} mm is over {NOISE_FACTOR:g}x the stated {noise_mm:.3g} mm: "
+            "the model does not explain the data (a bad sample, a loose mount, a term missing) or the noise is understated"
+        )
+    values = fit.u * layout.scales
+    compliance = layout.family("joint", "lateral") & fit.free
+    negative = compliance & (values < -NEGATIVE_SIGMAS * np.where(fit.std > 0, fit.std, np.inf))
+    if negative.any():
+        notes.append(
+            "negative compliance (a stiffness below zero) for "
+            + ", ".join(layout.names[i] for i in np.flatnonzero(negative))
+            + ": gravity's load is not what the robot file's masses say"
+        )
+    unseen = [t for t, seen in zip(tree.tip_names, samples.measured.any(axis=0)) if not seen]
+    if unseen:
+        notes.append(f"tips {unseen} were never measured: their branches keep the robot file's values")
+    return ("suspect" if notes[: len(notes) - bool(unseen)] else "ok"), tuple(notes)
+
+
+def calibrate_tree(
+    tree: KinematicTree,
+    samples: TreeSamples,
+    *,
+    noise_mm: float = 0.1,
+    families=None,
+    points=None,
+    T_device_root=None,
+    limits=None,
+    show_progress: bool = True,
+) -> TreeCalibration:
+    """Calibrate `tree` from points measured on its tips.
+
+    **Arguments:**
+    - `tree`: the robot file's tree (`jaxcal.io.urdf_tree.load_urdf_tree`), its tips those the
+      samples measure.
+    - `samples`: the poses and measured points (`read_tree_samples`).
+    - `noise_mm`: the device's noise (1-sigma per axis), which weighs the samples and judges
+      what the data determine.
+    - `families`: the non-geometric terms to fit (of `jaxcal._treefit.FAMILIES`); default
+      `None` lets K-fold cross-validation choose.
+    - `points`: the measured points' nominal positions on the tips `(tips, 3)` (m, tip frame;
+      default the tips' origins); `T_device_root`: the device's pose (default: a rigid fit).
+    - `limits`: `(actuated, 2)` joint limits to check the poses against
+      (`jaxcal.io.urdf_tree.actuated_limits`).
+
+    Raises `ValueError` naming the sample and joint or tip for malformed input.
+    """
+    _check(tree, samples, noise_mm, limits)
+    layout = tree_layout(tree)
+    points = np.zeros((len(tree.tip_names), 3)) if points is None else np.asarray(points, np.float64)
+    if T_device_root is None:
+        T_device_root = initial_device_pose(tree, samples, points)
+    problem = problem_of(tree, layout, samples, T_device_root, points, noise_mm)
+    if families is None:
+        steps = 1 + sum(range(1, len(FAMILIES) + 1)) + 1
+        with progress(show_progress, "tree calibration: cross-validating terms") as bar:
+            task = bar.add_task("", total=steps) if bar is not None else None
+            fit = cross_validate_terms(
+                problem, layout, advance=(lambda: bar.advance(task)) if bar is not None else None
+            )
+    else:
+        unknown = set(families) - set(FAMILIES)
+        if unknown:
+            raise ValueError(f"unknown term families {sorted(unknown)}; known: {FAMILIES}")
+        fit = fit_tree(problem, layout, tuple(families))
+    calibrated, T_dev, pts, elastic, harmonic = body_of(jnp.asarray(fit.u), problem)
+    candidates = ~layout.family(*FAMILIES) | layout.family(*fit.families)
+    status, notes = _verdict(fit, layout, noise_mm, samples, tree)
+    return TreeCalibration(
+        tree=calibrated,
+        nominal=tree,
+        T_device_root=np.asarray(T_dev),
+        points=np.asarray(pts),
+        elastic=Elastic(np.asarray(elastic.joint), np.asarray(elastic.lateral)),
+        harmonic=np.asarray(harmonic),
+        fit=fit,
+        layout=layout,
+        held=held_by_branch(tree, layout, fit.free, candidates),
+        status=status,
+        notes=notes,
+        _problem=problem,
+    )
+
+
+def read_tree_samples(path, tree: KinematicTree) -> TreeSamples:
+    """Stop-and-shoot samples from a CSV file: a column per actuated joint (its name; rad or m)
+    and, per measured tip, columns `TIP.x`, `TIP.y`, `TIP.z` (m, device frame). An empty cell
+    in a tip's columns marks the tip unmeasured in that row. Raises `ValueError` naming the
+    file, the row and the column of what cannot be read."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"tree samples {shown(path)!r} do not exist")
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"tree samples {shown(path)!r}: no rows")
+    header = set(rows[0])
+    missing = [n for n in tree.actuated_names if n not in header]
+    if missing:
+        raise ValueError(f"tree samples {shown(path)!r}: no column for joint(s) {missing}")
+    tips = [t for t in tree.tip_names if all(f"{t}.{a}" in header for a in "xyz")]
+    if not tips:
+        raise ValueError(
+            f"tree samples {shown(path)!r}: no tip's columns; expected TIP.x, TIP.y, TIP.z for a tip of {tree.tip_names}"
+        )
+
+    def number(row: int, column: str, text: str) -> float:
+        try:
+            return float(text)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"tree samples {shown(path)!r}: row {row + 2}, column {column!r}: {text!r} is not a number"
+            ) from None
+
+    q = np.array([[number(i, n, r[n]) for n in tree.actuated_names] for i, r in enumerate(rows)])
+    points = np.full((len(rows), len(tree.tip_names), 3), np.nan)
+    measured = np.zeros((len(rows), len(tree.tip_names)), bool)
+    for i, r in enumerate(rows):
+        for t in tips:
+            cells = [r[f"{t}.{a}"] for a in "xyz"]
+            if all(c in ("", None) for c in cells):
+                continue
+            k = tree.tip_names.index(t)
+            points[i, k] = [number(i, f"{t}.{a}", c) for a, c in zip("xyz", cells)]
+            measured[i, k] = True
+    return TreeSamples(q, points, measured)
+
+
+def _json(result: TreeCalibration) -> dict:
+    tree = result.tree
+    return {
+        "status": result.status,
+        "notes": list(result.notes),
+        "noise_mm": result.fit.noise_mm,
+        "terms_kept": list(result.fit.families),
+        "cross_validation_mm": result.fit.cv_mm,
+        "parameters": {n: {"value": v, "std": s} for n, (v, s) in result.parameters().items()},
+        "held": result.held,
+        "T_device_root": np.asarray(result.T_device_root).tolist(),
+        "tip_points_m": {t: p.tolist() for t, p in zip(tree.tip_names, result.points)},
+        "coupling": {
+            tree.joint_names[j]: {
+                tree.actuated_names[a]: float(tree.coupling[j, a])
+                for a in np.flatnonzero(np.asarray(tree.coupling)[j])
+            }
+            for j in tree.coupled
+        },
+    }
+
+
+def save_tree_calibration(result: TreeCalibration, folder, *, source_urdf, overwrite: bool = False) -> Path:
+    """Write `calibrated.urdf` (a copy of `source_urdf` with the calibrated geometry and the
+    mimic laws kept), `tree_result.json` (every parameter with its standard deviation, the
+    terms kept, what was held by branch, the verdict) and each tip's branch as a modified-DH
+    table (`TIP_mdh.json`, `branch_table`) into `folder`, atomically: an existing
+    result folder is replaced only with `overwrite`, and never one that holds the input."""
+    folder = Path(folder)
+    with atomic_directory(folder, overwrite=overwrite, inputs=(Path(source_urdf),)) as tmp:
+        save_urdf_tree(result.tree, tmp / "calibrated.urdf", source=source_urdf)
+        (tmp / "tree_result.json").write_text(json.dumps(_json(result), indent=2) + "\n")
+        for tip in result.tree.tip_names:
+            doc = branch_table(result, tip)
+            if doc is not None:
+                (tmp / f"{tip}_mdh.json").write_text(json.dumps(doc, indent=2) + "\n")
+    return folder
+
+
+def branch_table(result: TreeCalibration, tip: str) -> dict | None:
+    """The modified-DH table (a table file's JSON, `jaxcal.io.dh_tables`) of the calibrated
+    chain from the root to `tip`, its rows matched to the robot file's; `coupled` names each
+    row whose joint follows others (its $q$ is the law's, not a command). None where the branch
+    holds a prismatic joint (no DH table here)."""
+    chain, C = branch(result.tree, tip)
+    nominal, _ = branch(result.nominal, tip)
+    if any(kind != "revolute" for kind in chain.joint_types):
+        return None
+    reference = dh_table(nominal, "mdh")
+    doc = dh_table_json(
+        dh_table(chain, "mdh", reference=reference),
+        robot=f"{result.tree.link_names[0]} to {tip}",
+        base_link=result.tree.link_names[0],
+        flange_link=tip,
+        nominal=reference,
+        source="jaxcal calibrate_tree",
+    )
+    tree = result.tree
+    doc["coupled"] = {
+        name: {tree.actuated_names[a]: float(C[i, a]) for a in np.flatnonzero(C[i])}
+        for i, name in enumerate(chain.joint_names)
+        if name not in tree.actuated_names
+    }
+    return doc

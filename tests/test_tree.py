@@ -1,0 +1,229 @@
+"""Kinematic trees (issue 51): branched robot files with coupled joints, their forward kinematics,
+and the calibration of a humanoid upper body from both hands measured at once.
+
+The forward kinematics is checked against yourdfpy (which implements `<mimic>`) on a robot
+file written by others (`data/robots/trees/panda_arm_hand.urdf`) and on the synthetic upper
+body; the hand-written Jacobian of the tree fit against autodiff; the fit against a simulated
+body bent by gravity, whose truth it must recover within its standard deviations.
+"""
+
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import yourdfpy
+
+from jaxcal import _treefit as tf
+from jaxcal._dh import dh_table, table_forward_kinematics
+from jaxcal._kinematics import forward_kinematics
+from jaxcal._npgeom import rotvec_to_matrix
+from jaxcal._tree import branch, tip_poses
+from jaxcal.io.urdf import load_urdf
+from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree, save_urdf_tree
+from jaxcal.sim.humanoid import (
+    elastic_truth,
+    perturb_tree,
+    random_poses,
+    tree_tracker_samples,
+    upper_body_urdf,
+)
+from jaxcal.trees import calibrate_tree, read_tree_samples, save_tree_calibration
+
+ROOT = Path(__file__).resolve().parents[1]
+PANDA_HAND = ROOT / "data" / "robots" / "trees" / "panda_arm_hand.urdf"
+HANDS = ["left_hand", "right_hand"]
+
+
+@pytest.fixture(scope="module")
+def body(tmp_path_factory):
+    path = tmp_path_factory.mktemp("body") / "upper_body.urdf"
+    path.write_text(upper_body_urdf())
+    return path
+
+
+def _agrees_with_yourdfpy(path: Path, tree, seed: int) -> float:
+    robot = yourdfpy.URDF.load(str(path), load_meshes=False)
+    limits = actuated_limits(path, tree)
+    worst = 0.0
+    for q in random_poses(limits, 5, np.random.default_rng(seed)):
+        robot.update_cfg(dict(zip(tree.actuated_names, q)))
+        ours = np.asarray(tip_poses(tree, jnp.asarray(q)))
+        for t, name in enumerate(tree.tip_names):
+            worst = max(worst, float(np.abs(robot.get_transform(name, tree.link_names[0]) - ours[t]).max()))
+    return worst
+
+
+def test_tree_forward_kinematics_matches_yourdfpy_on_a_robot_file_written_by_others():
+    """Franka's arm and hand: two fingers (two tips), the second a prismatic mimic of the first."""
+    tree = load_urdf_tree(PANDA_HAND)
+    assert tree.tip_names == ("panda_leftfinger", "panda_rightfinger")
+    assert tree.actuated_names[-1] == "panda_finger_joint1" and tree.num_joints == tree.num_actuated + 1
+    assert [tree.joint_names[j] for j in tree.coupled] == ["panda_finger_joint2"]
+    assert _agrees_with_yourdfpy(PANDA_HAND, tree, seed=0) < 1e-12
+
+
+def test_upper_body_forward_kinematics_and_its_branches(body):
+    tree = load_urdf_tree(body)
+    assert set(tree.tip_names) == {"camera", "left_hand", "right_hand"}
+    assert [tree.joint_names[j] for j in tree.coupled] == ["torso_upper_pitch"]
+    assert _agrees_with_yourdfpy(body, tree, seed=1) < 1e-12
+    # The branch to a hand is a serial chain whose coupled joint follows the law.
+    chain, C = branch(tree, "left_hand")
+    assert chain.joint_names[:4] == ("torso_yaw", "torso_pitch", "torso_roll", "torso_upper_pitch")
+    q = np.random.default_rng(2).uniform(-0.3, 0.3, tree.num_actuated)
+    hand = np.asarray(tip_poses(tree, jnp.asarray(q)))[tree.tip_names.index("left_hand")]
+    assert np.abs(np.asarray(forward_kinematics(chain, jnp.asarray(C @ q)))[-1] - hand).max() < 1e-12
+    # Gravity: every link's mass is carried into the tree once.
+    assert float(np.asarray(tree.masses).sum()) == pytest.approx(43.0)
+
+
+def test_urdf_tree_round_trip_keeps_structure_and_mimic(body, tmp_path):
+    nominal = load_urdf_tree(body)
+    true = perturb_tree(nominal, np.random.default_rng(3))
+    out = tmp_path / "written.urdf"
+    before = body.read_bytes()
+    save_urdf_tree(true, out, source=body)
+    assert body.read_bytes() == before  # the source is never touched
+    back = load_urdf_tree(out)
+
+    # A coupled joint's zero offset goes into its law's offset: the sum is what the file holds.
+    def same(t):
+        return t.T_parent_joint, t.axis, t.coupling, t.T_link_tip, t.masses, t.zero_offset + t.coupling_offset
+
+    for a, b in zip(same(true), same(back)):
+        assert np.abs(np.asarray(a) - np.asarray(b)).max() < 1e-12
+    assert (back.parent, back.joint_names, back.tip_names) == (true.parent, true.joint_names, true.tip_names)
+    mimic = ET.parse(out).getroot().find("joint[@name='torso_upper_pitch']/mimic")
+    assert mimic.get("joint") == "torso_pitch"
+    assert float(mimic.get("multiplier")) == pytest.approx(float(true.coupling[3, 1]), abs=1e-15)
+    # The fixed shoulder mounts stay as they were: the arms' origins are written below them.
+    mount = ET.parse(out).getroot().find("joint[@name='left_shoulder_mount_joint']/origin")
+    assert mount.get("rpy") == ET.parse(body).getroot().find(
+        "joint[@name='left_shoulder_mount_joint']/origin"
+    ).get("rpy")
+
+
+def test_tree_files_refuse_what_they_cannot_hold_by_name(body, tmp_path):
+    with pytest.raises(ValueError, match=r"torso_upper_pitch.*mimics another joint.*load_urdf_tree"):
+        load_urdf(body, tip_link="left_hand")
+    bad = tmp_path / "bad.urdf"
+    bad.write_text(upper_body_urdf().replace('mimic joint="torso_pitch"', 'mimic joint="torso_pich"'))
+    with pytest.raises(ValueError, match=r"bad.urdf.*torso_upper_pitch.*mimics 'torso_pich'"):
+        load_urdf_tree(bad)
+    with pytest.raises(ValueError, match=r"tip link\(s\) \['left_foot'\]"):
+        load_urdf_tree(body, tips=["left_hand", "left_foot"])
+
+
+def _problem(body, seed, poses, noise_mm=0.1, test=0):
+    nominal = load_urdf_tree(body, tips=HANDS)
+    limits = actuated_limits(body, nominal)
+    rng = np.random.default_rng(seed)
+    true, elastic = perturb_tree(nominal, rng), elastic_truth(nominal, rng)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rotvec_to_matrix(np.array([0.0, 0.0, np.pi])), [2.0, 0.1, -0.4]
+    points = np.array([[0.02, 0.0, -0.01]] * 2) + 2e-3 * rng.standard_normal((2, 3))
+    q = random_poses(limits, poses + test, rng)
+    samples = tree_tracker_samples(true, q, points, T, rng, noise_mm=noise_mm, elastic=elastic)
+    return nominal, limits, elastic, samples.subset(slice(0, poses)), samples.subset(slice(poses, None))
+
+
+def test_tree_jacobian_matches_autodiff(body):
+    """Exact for a rigid body; with compliance the gravity torques are held fixed, which moves
+    only the columns through which the torques change, by a fraction of a percent."""
+    nominal, _, _, samples, _ = _problem(body, seed=4, poses=12)
+    layout = tf.tree_layout(nominal)
+    problem = tf.problem_of(nominal, layout, samples, np.eye(4), np.zeros((2, 3)), 0.1)
+    u = jnp.asarray(np.random.default_rng(5).standard_normal(layout.size))
+    rigid = u.at[layout.slices["joint"]].set(0.0).at[layout.slices["lateral"]].set(0.0)
+    args = (jnp.ones(layout.size), 1.0, problem)
+    for point, tol in ((rigid, 1e-10), (0.3 * u, 2e-2)):
+        r, J = tf._residuals_terms(point, args)
+        J_auto = jax.jacfwd(tf._residuals_autodiff)(point, args)
+        assert np.abs(np.asarray(r - tf._residuals_autodiff(point, args))).max() < 1e-9
+        scale = np.abs(np.asarray(J_auto)).max(axis=0) + 1e-9
+        own = ~layout.family("origin", "zero", "harmonic") if tol > 1e-6 else np.ones(layout.size, bool)
+        assert (np.abs(np.asarray(J - J_auto)).max(axis=0) / scale)[own].max() < tol
+
+
+def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path):
+    """Both hands measured at 200 poses (0.1 mm): the torso seen through both arms, the
+    compliances recovered within their standard deviations, the harmonic the truth lacks left out."""
+    nominal, limits, elastic, fit, test = _problem(body, seed=6, poses=200, test=60)
+    result = calibrate_tree(
+        nominal, fit, noise_mm=0.1, points=[[0.02, 0.0, -0.01]] * 2, limits=limits, show_progress=False
+    )
+    assert set(result.fit.families) == {"joint", "lateral"}, result.fit.cv_mm
+    assert result.status == "ok", result.notes
+    held_out = 1e3 * np.linalg.norm(result.predict(test.q) - test.truth, axis=-1).mean()
+    assert held_out < 0.07  # the noise is 0.16 mm per point; geometry alone leaves millimetres
+    geometric = calibrate_tree(
+        nominal, fit, noise_mm=0.1, points=[[0.02, 0.0, -0.01]] * 2, families=(), show_progress=False
+    )
+    assert 1e3 * np.linalg.norm(geometric.predict(test.q) - test.truth, axis=-1).mean() > 1.0
+    assert geometric.status == "suspect"  # its residuals are far above the stated noise
+    params = result.parameters()
+    z = [
+        (params[f"{n}.compliance"][0] - elastic.joint[j]) / params[f"{n}.compliance"][1]
+        for j, n in enumerate(nominal.joint_names)
+        if f"{n}.compliance" in params
+    ]
+    assert len(z) >= 12 and np.abs(z).max() < 4.0, np.round(z, 1)
+    assert result.fit.noise_mm == pytest.approx(0.1, rel=0.15)
+    # Both arms' and the torso's parameters are freed; what is held is named by branch.
+    assert (
+        "torso_roll.zero_offset" in params
+        and "left_elbow.zero_offset" in params
+        and "right_elbow.zero_offset" in params
+    )
+    assert "shared" in result.held and all(
+        k in ("shared", "device", "unmeasured", *HANDS) for k in result.held
+    )
+    assert {n.split(".")[0] for n in result.held.get("unmeasured", [])} == {"neck_yaw", "neck_pitch"}
+    save_tree_calibration(result, tmp_path / "out", source_urdf=body)
+    doc = json.loads((tmp_path / "out" / "tree_result.json").read_text())
+    assert doc["terms_kept"] == list(result.fit.families) and doc["status"] == "ok"
+    assert doc["coupling"]["torso_upper_pitch"]["torso_pitch"] == pytest.approx(0.5, abs=0.05)
+    # Each hand's branch as a modified-DH table whose forward kinematics is the tree's.
+    table = json.loads((tmp_path / "out" / "left_hand_mdh.json").read_text())
+    assert table["joint_names"][3] == "torso_upper_pitch" and list(table["coupled"]) == ["torso_upper_pitch"]
+    chain, C = branch(result.tree, "left_hand")
+    mdh = dh_table(chain, "mdh", reference=dh_table(branch(nominal, "left_hand")[0], "mdh"))
+    assert np.allclose(table["a"], np.asarray(mdh.a), atol=1e-15)
+    q = jnp.asarray(C @ test.q[0])
+    assert (
+        np.abs(
+            np.asarray(table_forward_kinematics(mdh, q)) - np.asarray(forward_kinematics(chain, q))[-1]
+        ).max()
+        < 1e-12
+    )
+    back = load_urdf_tree(tmp_path / "out" / "calibrated.urdf", tips=HANDS)
+    q = jnp.asarray(test.q[0])
+    assert np.abs(np.asarray(tip_poses(back, q)) - np.asarray(tip_poses(result.tree, q))).max() < 1e-12
+    with pytest.raises(Exception, match="exists|overwrite"):
+        save_tree_calibration(result, tmp_path / "out", source_urdf=body)
+
+
+def test_tree_samples_from_csv_and_bad_input_named(body, tmp_path):
+    nominal, limits, _, samples, _ = _problem(body, seed=7, poses=6)
+    path = tmp_path / "poses.csv"
+    header = list(nominal.actuated_names) + [f"{t}.{a}" for t in HANDS for a in "xyz"]
+    rows = [list(q) + list(p.ravel()) for q, p in zip(samples.q, samples.points)]
+    rows[2][-3:] = ["", "", ""]  # the right hand not seen in the third row
+    path.write_text(",".join(header) + "\n" + "\n".join(",".join(map(str, r)) for r in rows) + "\n")
+    read = read_tree_samples(path, nominal)
+    assert np.allclose(read.q, samples.q) and read.measured.sum() == 11 and not read.measured[2, 1]
+    text = path.read_text().splitlines()
+    text[4] = text[4].replace(text[4].split(",")[3], "abc", 1)
+    (tmp_path / "bad.csv").write_text("\n".join(text) + "\n")
+    with pytest.raises(ValueError, match=r"bad.csv.*row 5, column 'neck_yaw'.*'abc'"):
+        read_tree_samples(tmp_path / "bad.csv", nominal)
+    degrees = samples.subset(slice(0, 6))
+    degrees.q[1, 5] = 57.0
+    with pytest.raises(
+        ValueError, match=r"sample 1: joint 'left_shoulder_pitch' at 57.*outside its limits.*degrees"
+    ):
+        calibrate_tree(nominal, degrees, limits=limits, show_progress=False)
