@@ -137,8 +137,11 @@ def tree_layout(tree: KinematicTree) -> TreeLayout:
 
     add("device", [(f"device.{a}", 1e-2, -1) for a in ("x", "y", "z", "rx", "ry", "rz")])
     add("point", [(f"{t}.point.{a}", 5e-3, -1) for t in tree.tip_names for a in "xyz"])
-    add("origin", [(f"{n}.origin.{a}", s, j) for j, n in enumerate(tree.joint_names) for a, s in
-                   zip(("x", "y", "z", "rx", "ry", "rz"), (1e-3,) * 3 + (3e-3,) * 3)])  # fmt: skip
+    twist = {"x": 1e-3, "y": 1e-3, "z": 1e-3, "rx": 3e-3, "ry": 3e-3, "rz": 3e-3}
+    add(
+        "origin",
+        [(f"{n}.origin.{a}", s, j) for j, n in enumerate(tree.joint_names) for a, s in twist.items()],
+    )
     add("zero", [(f"{n}.zero_offset", 5e-3, j) for j, n in enumerate(tree.joint_names)])
     C = np.asarray(tree.coupling)
     couplings = tuple((int(j), int(a)) for j in tree.coupled for a in np.flatnonzero(C[j]))
@@ -418,16 +421,13 @@ def cv_error_mm(problem: TreeProblem, free: np.ndarray, folds: int = 5, seed: in
 
 
 def cross_validate_terms(
-    problem: TreeProblem, layout: TreeLayout, families=FAMILIES, gain: float = 0.01, advance=None
+    problem: TreeProblem, layout: TreeLayout, families=FAMILIES, gain: float = 0.01
 ) -> TreeFit:
     """Forward selection of term families by K-fold held-out error: the family that lowers it
-    most is kept while it lowers it by more than `gain` (relative); then the final fit.
-    `advance()` is called after each cross-validation (progress)."""
-    advance = advance or (lambda: None)
+    most is kept while it lowers it by more than `gain` (relative); then the final fit."""
     geometric = ~layout.family(*FAMILIES)
     kept: list[str] = []
     scores = {"geometric": cv_error_mm(problem, identifiable(problem, layout, geometric))}
-    advance()
     best = scores["geometric"]
     while True:
         trial = {}
@@ -435,7 +435,6 @@ def cross_validate_terms(
             candidates = geometric | layout.family(*kept, fam)
             trial[fam] = cv_error_mm(problem, identifiable(problem, layout, candidates))
             scores["+".join([*kept, fam])] = trial[fam]
-            advance()
         if not trial:
             break
         fam = min(trial, key=trial.get)

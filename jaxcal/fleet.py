@@ -174,11 +174,11 @@ def fleet_datasets(paths: Sequence) -> list[Path]:
 
 def is_fleet(paths: Sequence) -> bool:
     """Several datasets, or one folder of datasets (`fleet_datasets`): a folder with no
-    `metadata.json` (nor a hand-eye capture's `handeye.json`) and subfolders."""
+    `metadata.json` (nor a hand-eye capture's `handeye.json`, a tree dataset's `tree.json`) and subfolders."""
     if len(paths) > 1:
         return True
     p = Path(paths[0])
-    if not p.is_dir() or (p / "metadata.json").exists() or (p / "handeye.json").exists():
+    if not p.is_dir() or any((p / f).exists() for f in ("metadata.json", "handeye.json", "tree.json")):
         return False
     return bool(_subfolders(p))
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from ._dh import dh_table
 from ._npgeom import kabsch
-from ._progress import progress
+from ._progress import working
 from ._tree import KinematicTree, branch, tip_poses
 from ._treefit import (
     FAMILIES,
@@ -42,7 +42,7 @@ from ._treefit import (
 )
 from .io._files import atomic_directory, shown
 from .io.dh_tables import dh_table_json
-from .io.urdf_tree import save_urdf_tree
+from .io.urdf_tree import actuated_limits, load_urdf_tree, save_urdf_tree
 
 __all__ = [
     "TreeCalibration",
@@ -193,12 +193,9 @@ def calibrate_tree(
         T_device_root = initial_device_pose(tree, samples, points)
     problem = problem_of(tree, layout, samples, T_device_root, points, noise_mm)
     if families is None:
-        steps = 1 + sum(range(1, len(FAMILIES) + 1)) + 1
-        with progress(show_progress, "tree calibration: cross-validating terms") as bar:
-            task = bar.add_task("", total=steps) if bar is not None else None
-            fit = cross_validate_terms(
-                problem, layout, advance=(lambda: bar.advance(task)) if bar is not None else None
-            )
+        # A minute on a 2-core CPU (the first solve compiles): a line every few seconds in a pipe.
+        with working(show_progress, "tree calibration: cross-validating the terms"):
+            fit = cross_validate_terms(problem, layout)
     else:
         unknown = set(families) - set(FAMILIES)
         if unknown:
@@ -267,6 +264,136 @@ def read_tree_samples(path, tree: KinematicTree) -> TreeSamples:
     return TreeSamples(q, points, measured)
 
 
+#: A tree dataset is a folder with this file (besides its robot file and samples CSV).
+TREE_FILE = "tree.json"
+
+
+@dataclass(frozen=True)
+class TreeDataset:
+    """A tree dataset read by `load_tree_dataset`: the robot file, its tree (with the tips the
+    samples measure), the samples, the device's noise (mm per axis), the points' nominal
+    positions on the tips (m), the term families (None: cross-validation chooses), the
+    actuated joints' limits, and the truth a simulator wrote (`truth.json`, or None)."""
+
+    folder: Path
+    urdf: Path
+    tree: KinematicTree
+    samples: TreeSamples
+    noise_mm: float
+    points: np.ndarray
+    families: tuple[str, ...] | None
+    limits: np.ndarray
+    truth: dict | None
+
+
+def is_tree_dataset(path) -> bool:
+    return (Path(path) / TREE_FILE).is_file()
+
+
+def _field(doc: dict, name: str, path: Path, kind, required: bool = True, default=None):
+    if name not in doc:
+        if required:
+            raise ValueError(f"tree dataset {shown(path)!r}: no field {name!r}")
+        return default
+    value = doc[name]
+    if not isinstance(value, kind) or isinstance(value, bool):
+        raise ValueError(f"tree dataset {shown(path)!r}: field {name!r} is {value!r}, not a {kind.__name__}")
+    return value
+
+
+def load_tree_dataset(folder) -> TreeDataset:
+    """Read a tree dataset folder: `tree.json` names the robot file (`robot`), the measured
+    `tips`, the `samples` CSV (default `samples.csv`, `read_tree_samples`' format), the device's
+    `noise_mm` (1-sigma per axis), optionally `points_m` (each tip's point, m, tip frame),
+    `terms` (`"auto"`, or a list of `jaxcal._treefit.FAMILIES`) and `base_link`. Raises
+    `ValueError` naming the file and field of what is missing or malformed."""
+    folder = Path(folder)
+    path = folder / TREE_FILE
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"tree dataset {shown(path)!r} cannot be read: {e}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"tree dataset {shown(path)!r}: not a JSON object")
+    urdf = folder / _field(doc, "robot", path, str)
+    tips = _field(doc, "tips", path, list)
+    if not tips or not all(isinstance(t, str) for t in tips):
+        raise ValueError(
+            f"tree dataset {shown(path)!r}: field 'tips' must list the measured tips' link names"
+        )
+    noise = doc.get("noise_mm")
+    if not isinstance(noise, (int, float)) or isinstance(noise, bool) or not noise > 0:
+        raise ValueError(
+            f"tree dataset {shown(path)!r}: field 'noise_mm' must be the device's positive noise (mm per axis), got {noise!r}"
+        )
+    tree = load_urdf_tree(urdf, base_link=_field(doc, "base_link", path, str, required=False), tips=tips)
+    points = np.zeros((len(tips), 3))
+    for t, xyz in _field(doc, "points_m", path, dict, required=False, default={}).items():
+        if t not in tips or np.shape(xyz) != (3,) or not np.all(np.isfinite(np.asarray(xyz, float))):
+            raise ValueError(
+                f"tree dataset {shown(path)!r}: points_m[{t!r}] must be a tip's [x, y, z] (m), got {xyz!r}"
+            )
+        points[tips.index(t)] = xyz
+    terms = doc.get("terms", "auto")
+    if terms != "auto" and (not isinstance(terms, list) or set(terms) - set(FAMILIES)):
+        raise ValueError(
+            f"tree dataset {shown(path)!r}: field 'terms' must be \"auto\" or a list of {list(FAMILIES)}, got {terms!r}"
+        )
+    truth_path = folder / "truth.json"
+    return TreeDataset(
+        folder=folder,
+        urdf=urdf,
+        tree=tree,
+        samples=read_tree_samples(
+            folder / _field(doc, "samples", path, str, required=False, default="samples.csv"), tree
+        ),
+        noise_mm=float(noise),
+        points=points,
+        families=None if terms == "auto" else tuple(terms),
+        limits=actuated_limits(urdf, tree),
+        truth=json.loads(truth_path.read_text()) if truth_path.is_file() else None,
+    )
+
+
+def write_tree_dataset(
+    folder,
+    *,
+    urdf_text: str,
+    tips,
+    samples: TreeSamples,
+    tree: KinematicTree,
+    noise_mm: float,
+    points,
+    truth: dict | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a tree dataset (`load_tree_dataset`'s format) atomically: `robot.urdf`, `tree.json`,
+    `samples.csv` (unmeasured tips' cells empty) and, from a simulator, `truth.json`."""
+    folder = Path(folder)
+    header = list(tree.actuated_names) + [f"{t}.{a}" for t in tips for a in "xyz"]
+    rows = []
+    for q, p, seen in zip(samples.q, samples.points, samples.measured):
+        cells = [repr(float(v)) for v in q]
+        for k in range(len(tips)):
+            cells += [repr(float(v)) for v in p[k]] if seen[k] else ["", "", ""]
+        rows.append(",".join(cells))
+    doc = {
+        "robot": "robot.urdf",
+        "tips": list(tips),
+        "samples": "samples.csv",
+        "noise_mm": noise_mm,
+        "points_m": {t: np.asarray(x, float).tolist() for t, x in zip(tips, points)},
+        "terms": "auto",
+    }
+    with atomic_directory(folder, overwrite=overwrite, kind="dataset") as tmp:
+        (tmp / "robot.urdf").write_text(urdf_text)
+        (tmp / TREE_FILE).write_text(json.dumps(doc, indent=2) + "\n")
+        (tmp / "samples.csv").write_text(",".join(header) + "\n" + "\n".join(rows) + "\n")
+        if truth is not None:
+            (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+    return folder
+
+
 def _json(result: TreeCalibration) -> dict:
     tree = result.tree
     return {
@@ -289,14 +416,19 @@ def _json(result: TreeCalibration) -> dict:
     }
 
 
-def save_tree_calibration(result: TreeCalibration, folder, *, source_urdf, overwrite: bool = False) -> Path:
+def save_tree_calibration(
+    result: TreeCalibration, folder, *, source_urdf, overwrite: bool = False, inputs=(), checked=None
+) -> Path:
     """Write `calibrated.urdf` (a copy of `source_urdf` with the calibrated geometry and the
     mimic laws kept), `tree_result.json` (every parameter with its standard deviation, the
     terms kept, what was held by branch, the verdict) and each tip's branch as a modified-DH
     table (`TIP_mdh.json`, `branch_table`) into `folder`, atomically: an existing
-    result folder is replaced only with `overwrite`, and never one that holds the input."""
+    result folder is replaced only with `overwrite`, and never one that holds the robot file or
+    `inputs` (`checked`: `check_output_dir`'s answer when the run began)."""
     folder = Path(folder)
-    with atomic_directory(folder, overwrite=overwrite, inputs=(Path(source_urdf),)) as tmp:
+    with atomic_directory(
+        folder, overwrite=overwrite, inputs=(Path(source_urdf), *inputs), checked=checked
+    ) as tmp:
         save_urdf_tree(result.tree, tmp / "calibrated.urdf", source=source_urdf)
         (tmp / "tree_result.json").write_text(json.dumps(_json(result), indent=2) + "\n")
         for tip in result.tree.tip_names:

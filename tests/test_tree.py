@@ -22,6 +22,7 @@ from jaxcal._dh import dh_table, table_forward_kinematics
 from jaxcal._kinematics import forward_kinematics
 from jaxcal._npgeom import rotvec_to_matrix
 from jaxcal._tree import branch, tip_poses
+from jaxcal.cli import main
 from jaxcal.io.urdf import load_urdf
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree, save_urdf_tree
 from jaxcal.sim.humanoid import (
@@ -31,7 +32,7 @@ from jaxcal.sim.humanoid import (
     tree_tracker_samples,
     upper_body_urdf,
 )
-from jaxcal.trees import calibrate_tree, read_tree_samples, save_tree_calibration
+from jaxcal.trees import calibrate_tree, load_tree_dataset, read_tree_samples, save_tree_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
 PANDA_HAND = ROOT / "data" / "robots" / "trees" / "panda_arm_hand.urdf"
@@ -227,3 +228,28 @@ def test_tree_samples_from_csv_and_bad_input_named(body, tmp_path):
         ValueError, match=r"sample 1: joint 'left_shoulder_pitch' at 57.*outside its limits.*degrees"
     ):
         calibrate_tree(nominal, degrees, limits=limits, show_progress=False)
+
+
+def test_tree_dataset_from_the_command_line(tmp_path, capsys):
+    """`jaxcal simulate-tracker --robot upper_body` writes a tree dataset; `jaxcal calibrate` on it
+    writes the tree's outputs and judges them against the simulator's held-out truth."""
+    ds, out = tmp_path / "body", tmp_path / "out"
+    code = main(["simulate-tracker", "--robot", "upper_body", "--out", str(ds), "--noise-um", "100",
+                 "--config", "random-poses=150", "--seed", "3", "--quiet"])  # fmt: skip
+    assert code == 0 and (ds / "tree.json").is_file()
+    doc = json.loads((ds / "tree.json").read_text())
+    (ds / "tree.json").write_text(json.dumps(doc | {"terms": ["joint", "lateral"]}))
+    before = {p.name: p.read_bytes() for p in ds.iterdir() if p.is_file()}
+    assert main(["calibrate", str(ds), "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    error = float(printed.split("against the simulator's truth: ")[1].split(" mm")[0])
+    assert error < 0.08, printed  # geometry alone leaves millimetres (the test above)
+    assert {p.name for p in out.iterdir()} >= {"calibrated.urdf", "tree_result.json", "left_hand_mdh.json"}
+    assert {p.name: p.read_bytes() for p in ds.iterdir() if p.is_file()} == before
+    # Malformed dataset files are refused naming the file and the field (exit 2, nothing written).
+    (ds / "tree.json").write_text(json.dumps(doc | {"noise_mm": 0}))
+    with pytest.raises(ValueError, match=r"tree.json.*'noise_mm' must be the device's positive noise"):
+        load_tree_dataset(ds)
+    (ds / "tree.json").write_text(json.dumps(doc | {"terms": ["compliance"]}))
+    assert main(["calibrate", str(ds), "--out", str(tmp_path / "never"), "--quiet"]) == 2
+    assert "field 'terms'" in capsys.readouterr().err and not (tmp_path / "never").exists()

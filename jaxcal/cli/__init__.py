@@ -182,7 +182,11 @@ def _add_simulate_tracker_parser(sub) -> None:
         help="laser-tracker samples of a perturbed arm's flange point, joint by joint (docs/dataset.md; "
         "no rendering)",
     )
-    _add_simulate_common(p, robot_help="shipped robot (ur5e, ur3, panda, scara) or a URDF file (default ur3)")
+    _add_simulate_common(
+        p,
+        robot_help="shipped robot (ur5e, ur3, panda, scara) or a URDF file (default ur3); upper_body: the "
+        "synthetic humanoid, a tree whose two hands are measured at once (random-poses, default 500)",
+    )
     p.add_argument(
         "--sweep-deg", type=degrees, default=None, help="angle each joint sweeps (deg; default 120)"
     )

@@ -65,8 +65,10 @@ def cmd_calibrate(args) -> int:
 
     lock = output_lock(out, what="--out") if processes.first else contextlib.nullcontext()
     with lock, warm_start(f"jaxcal calibrate {resolved(args.dataset)}"):
-        from ._calibrate_run import calibrate_dataset, calibrate_fleet_datasets
+        from ._calibrate_run import calibrate_dataset, calibrate_fleet_datasets, calibrate_tree_dataset
 
+        if (Path(args.dataset) / "tree.json").is_file() and not fleet:
+            return calibrate_tree_dataset(args, out, checked)
         if fleet:
             return calibrate_fleet_datasets(args, datasets, out, checked)
         return calibrate_dataset(args, out, checked)

@@ -27,6 +27,7 @@ from ..summary import (
     truth_line,
     truth_table,
 )
+from ..trees import calibrate_tree, load_tree_dataset, save_tree_calibration
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, run_record
 from ._rosbag import dataset_of
 
@@ -367,3 +368,46 @@ def demo(out: Path, args) -> int:
     # The programs the last demo with this dataset called are read ahead while it calibrates.
     with warm_start(f"jaxcal calibrate {resolved(dataset)}"):
         return _run_calibration(console, dataset, out / "result", args, overwrite=True)
+
+
+def calibrate_tree_dataset(args, out: Path, checked) -> int:
+    """`jaxcal calibrate` on a tree dataset (`tree.json`: `jaxcal.trees`): the tree calibrated from
+    its tips' points and written into `out` (calibrated.urdf, tree_result.json, a table per tip)."""
+    console = Console(width=max(Console().width, 132))
+    t0 = time.perf_counter()
+    ds = load_tree_dataset(args.dataset)
+    result = calibrate_tree(
+        ds.tree,
+        ds.samples,
+        noise_mm=ds.noise_mm,
+        families=ds.families,
+        points=ds.points,
+        limits=ds.limits,
+        show_progress=not args.quiet,
+    )
+    held = ", ".join(f"{len(v)} {k}" for k, v in result.held.items())
+    console.print(
+        f"{len(ds.samples.q)} poses of {', '.join(ds.tree.tip_names)}: residual noise {result.fit.noise_mm:.4f} mm "
+        f"(stated {ds.noise_mm:g}); terms kept: {', '.join(result.fit.families) or 'none'}; "
+        f"{int(result.fit.free.sum())} parameters freed, held ({held})"
+    )
+    if ds.truth is not None and "test" in ds.truth:
+        test = np.asarray(ds.truth["test"]["points_m"])
+        error = np.linalg.norm(result.predict(ds.truth["test"]["q"]) - test, axis=-1).mean()
+        console.print(
+            f"against the simulator's truth: {1e3 * error:.4f} mm mean over {len(test)} held-out poses"
+        )
+    for note in result.notes:
+        console.print(f"[yellow]{result.status}:[/yellow] {note}")
+    if args.strict and result.status != "ok":
+        console.print(f"[red]--strict: the calibration is {result.status}; nothing written[/red]")
+        return EXIT_CODES[result.status]
+    save_tree_calibration(
+        result, out, source_urdf=ds.urdf, overwrite=args.overwrite, inputs=(ds.folder,), checked=checked
+    )
+    console.print(
+        f"wrote {out}/: calibrated.urdf, tree_result.json, "
+        + ", ".join(f"{t}_mdh.json" for t in ds.tree.tip_names)
+        + f" ({time.perf_counter() - t0:.1f} s); calibration {result.status}"
+    )
+    return EXIT_CODES[result.status]

@@ -146,6 +146,8 @@ def cmd_simulate_tracker(args) -> int:
     robot = args.robot or "ur3"
     inputs = [robot] if Path(robot).exists() else []
     check_output_dir(args.out, inputs=inputs, overwrite=args.overwrite, kind="dataset", what="--out")
+    if robot == "upper_body":
+        return _simulate_upper_body(args)
     if not args.quiet:
         kind = f"{args.random_poses} stop-and-shoot poses" if args.random_poses else "sweeps"
         print(f"simulating {robot}'s tracker {kind} into {args.out} ...", flush=True)
@@ -179,5 +181,25 @@ def cmd_simulate_tracker(args) -> int:
     print(
         f"wrote {out}: {len(ds.samples.sample)} tracker samples of {what}, "
         f"{len(true_poses(ds.truth).bad_samples)} bad ({time.perf_counter() - start:.1f} s)"
+    )
+    return 0
+
+
+def _simulate_upper_body(args) -> int:
+    """`jaxcal simulate-tracker --robot upper_body`: a tree dataset of the synthetic humanoid."""
+    poses = args.random_poses or 500
+    if not args.quiet:
+        print(
+            f"simulating the upper body's tracker: both hands at {poses} stop-and-shoot poses into {args.out} ..."
+        )
+    from ..sim.humanoid import simulate_upper_body
+
+    start = time.perf_counter()
+    with output_lock(args.out, what="--out"):
+        out = simulate_upper_body(
+            args.out, poses=poses, noise_mm=1e-3 * args.noise_um, seed=args.seed, overwrite=args.overwrite
+        )
+    print(
+        f"wrote {out}: a tree dataset (tree.json, robot.urdf, samples.csv, truth.json; {time.perf_counter() - start:.1f} s)"
     )
     return 0

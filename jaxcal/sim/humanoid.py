@@ -12,7 +12,9 @@ stiffnesses; `tree_tracker_samples` measures a reflector on each hand at random
 stop-and-shoot poses inside the joints' limits, with Gaussian noise, the body bent by gravity.
 """
 
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -21,6 +23,8 @@ import numpy as np
 from .._npgeom import rotvec_to_matrix
 from .._tree import KinematicTree
 from .._treefit import Elastic, TreeSamples, deflected_tips
+from ..io.urdf_tree import actuated_limits, load_urdf_tree
+from ..trees import write_tree_dataset
 
 #: Joint name, axis, parent link, child link, origin xyz (m), origin rpy (rad), limits (rad).
 _TORSO = [
@@ -65,6 +69,9 @@ SHOULDER_XYZ, SHOULDER_RPY = (0.0, 0.19, 0.22), (-0.25, 0.15, 0.0)
 #: The hands' tool frames (a reflector, a marker plate) below the last wrist joint (m).
 HAND_XYZ = (0.0, 0.0, -0.10)
 MIMIC_MULTIPLIER = 0.5
+#: The measured tips, and the reflectors' nominal position on each hand (m, hand frame).
+HANDS = ("left_hand", "right_hand")
+HAND_POINT = (0.02, 0.0, -0.01)
 
 
 def _joint(name, axis, parent, child, xyz, rpy, limit, mimic="") -> str:
@@ -211,3 +218,50 @@ def tree_tracker_samples(
     clean = np.asarray(deflected_tips(true, elastic, jax.numpy.asarray(q), points, T_device_root))
     noisy = clean + 1e-3 * noise_mm * rng.standard_normal(clean.shape)
     return TreeSamples(q=np.asarray(q), points=noisy, measured=np.ones(noisy.shape[:2], bool), truth=clean)
+
+
+def simulate_upper_body(
+    out,
+    *,
+    poses: int = 500,
+    test_poses: int = 200,
+    noise_mm: float = 0.1,
+    seed: int = 0,
+    overwrite: bool = False,
+) -> Path:
+    """A tree dataset (`jaxcal.trees.load_tree_dataset`) of the upper body: a tracker measures a
+    reflector on each hand at `poses` stop-and-shoot poses (`noise_mm` per axis) of a drawn body
+    bent by gravity. `truth.json` holds the drawn compliances, the device's pose, the reflectors'
+    mounts and `test_poses` more poses with the hands' noise-free points, to judge a calibration."""
+    rng = np.random.default_rng(seed)
+    text = upper_body_urdf()
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "upper_body.urdf"
+        path.write_text(text)
+        nominal = load_urdf_tree(path, tips=list(HANDS))
+        limits = actuated_limits(path, nominal)
+    true, elastic = perturb_tree(nominal, rng), elastic_truth(nominal, rng)
+    T = np.eye(4)
+    T[:3, :3] = rotvec_to_matrix(np.array([0.0, 0.0, np.pi]) + 0.05 * rng.standard_normal(3))
+    T[:3, 3] = [2.0, 0.1, -0.4]
+    points = np.asarray(HAND_POINT) + 2e-3 * rng.standard_normal((len(HANDS), 3))
+    q = random_poses(limits, poses + test_poses, rng)
+    samples = tree_tracker_samples(true, q, points, T, rng, noise_mm=noise_mm, elastic=elastic)
+    truth = {
+        "compliance_rad_per_Nm": dict(zip(nominal.joint_names, np.asarray(elastic.joint).tolist())),
+        "lateral_compliance_rad_per_Nm": dict(zip(nominal.joint_names, np.asarray(elastic.lateral).tolist())),
+        "T_device_root": T.tolist(),
+        "points_m": dict(zip(HANDS, points.tolist())),
+        "test": {"q": q[poses:].tolist(), "points_m": samples.truth[poses:].tolist()},
+    }
+    return write_tree_dataset(
+        out,
+        urdf_text=text,
+        tips=HANDS,
+        samples=samples.subset(slice(0, poses)),
+        tree=nominal,
+        noise_mm=noise_mm,
+        points=[HAND_POINT] * len(HANDS),
+        truth=truth,
+        overwrite=overwrite,
+    )
