@@ -76,7 +76,16 @@ class TreeSamples:
         )
 
 
-def _tip_points(tree, q, points, T_dev, elastic, harmonic):
+def _seen(tips, p, T_dev, device_tip: int):
+    """Points `p` (root frame) in the device's frame: a fixed device's `T_dev` maps the root into it;
+    a device on tip `device_tip` (a head camera) sits at `T_dev` in that tip's frame."""
+    if device_tip < 0:
+        return p @ T_dev[:3, :3].T + T_dev[:3, 3]
+    D = tips[device_tip] @ T_dev
+    return (p - D[:3, 3]) @ D[:3, :3]
+
+
+def _tip_points(tree, q, points, T_dev, elastic, harmonic, device_tip: int = -1):
     theta = joint_positions(tree, q)
     if harmonic is not None:
         theta = theta + harmonic[:, 0] * jnp.cos(theta) + harmonic[:, 1] * jnp.sin(theta)
@@ -91,14 +100,19 @@ def _tip_points(tree, q, points, T_dev, elastic, harmonic):
         frames = frames_at(tree, theta + elastic.joint * about, bend)
     tips = tips_from_frames(tree, frames)
     p = jnp.einsum("tab,tb->ta", tips[:, :3, :3], points) + tips[:, :3, 3]
-    return p @ T_dev[:3, :3].T + T_dev[:3, 3]
+    return _seen(tips, p, T_dev, device_tip)
 
 
-def deflected_tips(tree, elastic, q, points, T_device_root, harmonic=None) -> Float[Array, "n tips 3"]:
+def deflected_tips(
+    tree, elastic, q, points, T_device, harmonic=None, device_tip: int = -1
+) -> Float[Array, "n tips 3"]:
     """The tips' points `(tips, 3)` (tip frames) seen from the device at configurations `q`
-    `(n, actuated)`, the body bent by gravity (`elastic`, None: rigid)."""
-    points, T = jnp.asarray(points, jnp.float64), jnp.asarray(T_device_root, jnp.float64)
-    return jax.vmap(_tip_points, (None, 0, None, None, None, None))(tree, q, points, T, elastic, harmonic)
+    `(n, actuated)`, the body bent by gravity (`elastic`, None: rigid). `T_device`: the fixed
+    device's `T_device_root`, or with `device_tip` (an index of `tree.tip_names`: a camera on the
+    head) the device's pose in that tip's frame."""
+    points, T = jnp.asarray(points, jnp.float64), jnp.asarray(T_device, jnp.float64)
+    tip = lambda q: _tip_points(tree, q, points, T, elastic, harmonic, device_tip)  # noqa: E731
+    return jax.vmap(tip)(q)
 
 
 @dataclass(frozen=True)
@@ -182,12 +196,20 @@ class TreeProblem(eqx.Module):
     sigma: float
     couplings: tuple = eqx.field(static=True)
     slices: tuple = eqx.field(static=True)  # (group, start, stop)
+    device_tip: int = eqx.field(static=True, default=-1)  # -1: a fixed device
 
 
 def problem_of(
-    tree, layout: TreeLayout, samples: TreeSamples, T_device_root, points, noise_mm: float
+    tree,
+    layout: TreeLayout,
+    samples: TreeSamples,
+    T_device_root,
+    points,
+    noise_mm: float,
+    device_tip: int = -1,
 ) -> TreeProblem:
-    """The problem of `samples` about a start `tree`, device pose and tip points."""
+    """The problem of `samples` about a start `tree`, device pose and tip points (`device_tip`:
+    the device rides on that tip, `T_device_root` is then its pose in the tip's frame)."""
     return TreeProblem(
         tree=tree,
         T_device_root=jnp.asarray(T_device_root, jnp.float64),
@@ -199,6 +221,7 @@ def problem_of(
         sigma=1e-3 * noise_mm,
         couplings=layout.couplings,
         slices=tuple((g, s.start, s.stop) for g, s in layout.slices.items()),
+        device_tip=device_tip,
     )
 
 
@@ -229,7 +252,9 @@ def body_of(u: Float[Array, " p"], problem: TreeProblem):
 def predict(u, problem: TreeProblem, q=None) -> Float[Array, "n tips 3"]:
     """The tips' points in the device frame at `q` (default: the problem's poses)."""
     tree, T, points, elastic, harmonic = body_of(u, problem)
-    return deflected_tips(tree, elastic, problem.q if q is None else q, points, T, harmonic)
+    return deflected_tips(
+        tree, elastic, problem.q if q is None else q, points, T, harmonic, problem.device_tip
+    )
 
 
 def _residuals_autodiff(u, args) -> Float[Array, " m"]:
@@ -244,7 +269,7 @@ def _right_jacobian(xi: Float[Array, "6"]) -> Float[Array, "6 6"]:
     return jax.jacfwd(local)(jnp.zeros(6, xi.dtype))
 
 
-def _sample_columns(tree, T_dev, points, elastic, harmonic, C0, couplings, q):
+def _sample_columns(tree, T_dev, points, elastic, harmonic, C0, couplings, q, device_tip: int = -1):
     """One pose's tip points `(tips, 3)` (device frame) and their derivatives `(tips, 3, p)`
     with respect to the parameters in `TreeLayout` order, in their own units, local twists on
     the device and the joint origins (the caller applies the right Jacobians). The gravity
@@ -264,7 +289,11 @@ def _sample_columns(tree, T_dev, points, elastic, harmonic, C0, couplings, q):
     F = jnp.einsum("jab,jbc->jac", frames[jnp.asarray(tree.parent) + 1], tree.T_parent_joint)
     tip = tips_from_frames(tree, frames)
     p = jnp.einsum("tab,tb->ta", tip[:, :3, :3], points) + tip[:, :3, 3]
-    on = jnp.asarray([[j in tree.path(t) for j in range(n)] for t in range(tips)], p.dtype)[..., None]
+    # A perturbation at joint j moves the tips below it; seen from a device on a tip, it counts
+    # with the opposite sign where it moves the device, and not at all where it moves both.
+    below = np.array([[j in tree.path(t) for j in range(n)] for t in range(tips)], float)
+    moves_device = below[device_tip] if device_tip >= 0 else np.zeros(n)
+    on = jnp.asarray(below - moves_device[None, :], p.dtype)[..., None]
     d = p[:, None, :] - F[None, :, :3, 3]  # (tips, joints, 3): from each joint's origin
     a = jnp.einsum("jab,jb->ja", F[:, :3, :3], tree.axis)
     revolute = jnp.asarray([k == "revolute" for k in tree.joint_types])[:, None]
@@ -287,9 +316,18 @@ def _sample_columns(tree, T_dev, points, elastic, harmonic, C0, couplings, q):
         .transpose(0, 2, 1, 3)
         .reshape(tips, 3, 2 * n),
     ]
-    device = jnp.concatenate([jnp.broadcast_to(jnp.eye(3), (tips, 3, 3)), -skew(p)], axis=-1)
-    J = jnp.einsum("ab,tbp->tap", T_dev[:3, :3], jnp.concatenate([device, *tip_rows, *parts], axis=-1))
-    return p @ T_dev[:3, :3].T + T_dev[:3, 3], J
+    y = _seen(tip, p, T_dev, device_tip)
+    if device_tip < 0:
+        device = jnp.concatenate([jnp.broadcast_to(jnp.eye(3), (tips, 3, 3)), -skew(p)], axis=-1)
+        return y, jnp.einsum(
+            "ab,tbp->tap", T_dev[:3, :3], jnp.concatenate([device, *tip_rows, *parts], axis=-1)
+        )
+    # y = D^-1 p with D = T_root_tip T_dev exp(eta): dy = -eta_v - eta_w x y, in the device's frame.
+    device = jnp.concatenate([-jnp.broadcast_to(jnp.eye(3), (tips, 3, 3)), skew(y)], axis=-1)
+    R_D = (tip[device_tip] @ T_dev)[:3, :3]
+    return y, jnp.concatenate(
+        [device, jnp.einsum("ba,tbp->tap", R_D, jnp.concatenate([*tip_rows, *parts], axis=-1))], axis=-1
+    )
 
 
 def _residuals_terms(u, args) -> tuple[Float[Array, " m"], Float[Array, "m p"]]:
@@ -298,7 +336,15 @@ def _residuals_terms(u, args) -> tuple[Float[Array, " m"], Float[Array, "m p"]]:
     tree, T_dev, points, elastic, harmonic = body_of(x, problem)
     pred, J = jax.vmap(
         lambda q: _sample_columns(
-            tree, T_dev, points, elastic, harmonic, problem.tree.coupling, problem.couplings, q
+            tree,
+            T_dev,
+            points,
+            elastic,
+            harmonic,
+            problem.tree.coupling,
+            problem.couplings,
+            q,
+            problem.device_tip,
         )
     )(problem.q)
     part = dict((g, (a, b)) for g, a, b in problem.slices)

@@ -77,6 +77,7 @@ class TreeCalibration:
     status: str
     notes: tuple[str, ...]
     _problem: object
+    device_on: str | None = None
 
     def parameters(self) -> dict[str, tuple[float, float]]:
         """Every freed parameter's correction from the robot file and its standard deviation,
@@ -135,7 +136,7 @@ def _check(tree: KinematicTree, samples: TreeSamples, noise_mm: float, limits) -
 
 
 def _verdict(
-    fit: TreeFit, layout: TreeLayout, noise_mm: float, samples: TreeSamples, tree
+    fit: TreeFit, layout: TreeLayout, noise_mm: float, samples: TreeSamples, tree, device_on=None
 ) -> tuple[str, tuple[str, ...]]:
     notes = []
     if fit.noise_mm > NOISE_FACTOR * noise_mm:
@@ -152,7 +153,9 @@ def _verdict(
             + ", ".join(layout.names[i] for i in np.flatnonzero(negative))
             + ": gravity's load is not what the robot file's masses say"
         )
-    unseen = [t for t, seen in zip(tree.tip_names, samples.measured.any(axis=0)) if not seen]
+    unseen = [
+        t for t, seen in zip(tree.tip_names, samples.measured.any(axis=0)) if not seen and t != device_on
+    ]
     if unseen:
         notes.append(f"tips {unseen} were never measured: their branches keep the robot file's values")
     return ("suspect" if notes[: len(notes) - bool(unseen)] else "ok"), tuple(notes)
@@ -166,6 +169,7 @@ def calibrate_tree(
     families=None,
     points=None,
     T_device_root=None,
+    device_on: str | None = None,
     limits=None,
     show_progress: bool = True,
 ) -> TreeCalibration:
@@ -181,17 +185,27 @@ def calibrate_tree(
       `None` lets K-fold cross-validation choose.
     - `points`: the measured points' nominal positions on the tips `(tips, 3)` (m, tip frame;
       default the tips' origins); `T_device_root`: the device's pose (default: a rigid fit).
+    - `device_on`: the tip the device rides on (a head camera seeing the hands); the points are
+      then in its frame, `T_device_root` is its pose in that tip's frame (default: the tip's
+      frame itself), and joints that move both it and a measured tip are not seen (held).
     - `limits`: `(actuated, 2)` joint limits to check the poses against
       (`jaxcal.io.urdf_tree.actuated_limits`).
 
     Raises `ValueError` naming the sample and joint or tip for malformed input.
     """
     _check(tree, samples, noise_mm, limits)
+    device_tip = -1
+    if device_on is not None:
+        if device_on not in tree.tip_names:
+            raise ValueError(f"device_on {device_on!r} is not one of the tips {tree.tip_names}")
+        device_tip = tree.tip_names.index(device_on)
+        if samples.measured[:, device_tip].any():
+            raise ValueError(f"the device rides on tip {device_on!r}: no sample may measure that tip's point")
     layout = tree_layout(tree)
     points = np.zeros((len(tree.tip_names), 3)) if points is None else np.asarray(points, np.float64)
     if T_device_root is None:
-        T_device_root = initial_device_pose(tree, samples, points)
-    problem = problem_of(tree, layout, samples, T_device_root, points, noise_mm)
+        T_device_root = initial_device_pose(tree, samples, points) if device_tip < 0 else np.eye(4)
+    problem = problem_of(tree, layout, samples, T_device_root, points, noise_mm, device_tip)
     if families is None:
         # A minute on a 2-core CPU (the first solve compiles): a line every few seconds in a pipe.
         with working(show_progress, "tree calibration: cross-validating the terms"):
@@ -203,7 +217,7 @@ def calibrate_tree(
         fit = fit_tree(problem, layout, tuple(families))
     calibrated, T_dev, pts, elastic, harmonic = body_of(jnp.asarray(fit.u), problem)
     candidates = ~layout.family(*FAMILIES) | layout.family(*fit.families)
-    status, notes = _verdict(fit, layout, noise_mm, samples, tree)
+    status, notes = _verdict(fit, layout, noise_mm, samples, tree, device_on)
     return TreeCalibration(
         tree=calibrated,
         nominal=tree,
@@ -217,6 +231,7 @@ def calibrate_tree(
         status=status,
         notes=notes,
         _problem=problem,
+        device_on=device_on,
     )
 
 
@@ -284,6 +299,7 @@ class TreeDataset:
     families: tuple[str, ...] | None
     limits: np.ndarray
     truth: dict | None
+    device_on: str | None = None
 
 
 def is_tree_dataset(path) -> bool:
@@ -305,7 +321,8 @@ def load_tree_dataset(folder) -> TreeDataset:
     """Read a tree dataset folder: `tree.json` names the robot file (`robot`), the measured
     `tips`, the `samples` CSV (default `samples.csv`, `read_tree_samples`' format), the device's
     `noise_mm` (1-sigma per axis), optionally `points_m` (each tip's point, m, tip frame),
-    `terms` (`"auto"`, or a list of `jaxcal._treefit.FAMILIES`) and `base_link`. Raises
+    `terms` (`"auto"`, or a list of `jaxcal._treefit.FAMILIES`), `base_link` and `device_on` (the
+    tip the device rides on: a head camera; it is then one of `tips`, and never measured). Raises
     `ValueError` naming the file and field of what is missing or malformed."""
     folder = Path(folder)
     path = folder / TREE_FILE
@@ -352,6 +369,7 @@ def load_tree_dataset(folder) -> TreeDataset:
         families=None if terms == "auto" else tuple(terms),
         limits=actuated_limits(urdf, tree),
         truth=json.loads(truth_path.read_text()) if truth_path.is_file() else None,
+        device_on=_field(doc, "device_on", path, str, required=False),
     )
 
 
@@ -404,7 +422,9 @@ def _json(result: TreeCalibration) -> dict:
         "cross_validation_mm": result.fit.cv_mm,
         "parameters": {n: {"value": v, "std": s} for n, (v, s) in result.parameters().items()},
         "held": result.held,
-        "T_device_root": np.asarray(result.T_device_root).tolist(),
+        # A fixed device's T_device_root, or with device_on its pose in that tip's frame.
+        "device_on": result.device_on,
+        "T_device": np.asarray(result.T_device_root).tolist(),
         "tip_points_m": {t: p.tolist() for t, p in zip(tree.tip_names, result.points)},
         "coupling": {
             tree.joint_names[j]: {

@@ -253,3 +253,50 @@ def test_tree_dataset_from_the_command_line(tmp_path, capsys):
     (ds / "tree.json").write_text(json.dumps(doc | {"terms": ["compliance"]}))
     assert main(["calibrate", str(ds), "--out", str(tmp_path / "never"), "--quiet"]) == 2
     assert "field 'terms'" in capsys.readouterr().err and not (tmp_path / "never").exists()
+
+
+def test_a_head_camera_seeing_both_hands(body):
+    """The device rides on a tip (a head camera measuring both hands' points in its own frame):
+    the Jacobian stays exact, the torso (which moves the camera and the hands alike) is held as
+    unseen, and the neck and both arms are calibrated to the noise."""
+    nominal = load_urdf_tree(body, tips=[*HANDS, "camera"])
+    limits = actuated_limits(body, nominal)
+    rng = np.random.default_rng(8)
+    true, elastic = perturb_tree(nominal, rng), elastic_truth(nominal, rng)
+    points = np.array([[0.02, 0.0, -0.01]] * 2 + [[0.0, 0.0, 0.0]])
+    q = random_poses(limits, 260, rng)
+    samples = tree_tracker_samples(
+        true,
+        q,
+        points + np.array([[1e-3, -2e-3, 1e-3]] * 2 + [[0.0, 0.0, 0.0]]),
+        np.eye(4),
+        rng,
+        noise_mm=0.2,
+        elastic=elastic,
+        device_tip=2,
+    )
+    layout = tf.tree_layout(nominal)
+    problem = tf.problem_of(
+        nominal, layout, samples.subset(slice(0, 8)), np.eye(4), points, 0.2, device_tip=2
+    )
+    u = jnp.asarray(rng.standard_normal(layout.size))
+    rigid = u.at[layout.slices["joint"]].set(0.0).at[layout.slices["lateral"]].set(0.0)
+    args = (jnp.ones(layout.size), 1.0, problem)
+    J, J_auto = tf._residuals_terms(rigid, args)[1], jax.jacfwd(tf._residuals_autodiff)(rigid, args)
+    assert np.abs(np.asarray(J - J_auto)).max() < 1e-10 * np.abs(np.asarray(J_auto)).max()
+    fit, test = samples.subset(slice(0, 200)), samples.subset(slice(200, None))
+    result = calibrate_tree(
+        nominal, fit, noise_mm=0.2, points=points, device_on="camera", families=("joint", "lateral"),
+        limits=limits, show_progress=False,
+    )  # fmt: skip
+    assert result.status == "ok", result.notes
+    error = 1e3 * np.linalg.norm(result.predict(test.q)[:, :2] - test.truth[:, :2], axis=-1).mean()
+    assert error < 0.15, error  # 0.2 mm per axis of noise; geometry alone leaves millimetres
+    params = result.parameters()
+    # (the last neck joint's zero offset turns the camera as its mount does: the mount takes it)
+    assert "neck_yaw.zero_offset" in params and "left_elbow.zero_offset" in params
+    assert not any(n.startswith(("torso_yaw.", "torso_pitch.", "torso_roll.")) for n in params)
+    with pytest.raises(ValueError, match="rides on tip 'camera': no sample may measure"):
+        bad = samples.subset(slice(0, 5))
+        bad.measured[:, 2] = True
+        calibrate_tree(nominal, bad, device_on="camera", show_progress=False)

@@ -383,6 +383,7 @@ def calibrate_tree_dataset(args, out: Path, checked) -> int:
         families=ds.families,
         points=ds.points,
         limits=ds.limits,
+        device_on=ds.device_on,
         show_progress=not args.quiet,
     )
     held = ", ".join(f"{len(v)} {k}" for k, v in result.held.items())

@@ -206,18 +206,26 @@ def tree_tracker_samples(
     true: KinematicTree,
     q: np.ndarray,
     points: np.ndarray,
-    T_device_root: np.ndarray,
+    T_device: np.ndarray,
     rng: np.random.Generator,
     *,
     noise_mm: float = 0.1,
     elastic: Elastic | None = None,
+    device_tip: int = -1,
 ) -> TreeSamples:
-    """A tracker's measurements of a reflector on every tip (`points`: `(tips, 3)`, m, tip
-    frame) at configurations `q` of the true body bent by gravity (`elastic`), with isotropic
-    Gaussian noise of `noise_mm` per axis; `truth` holds the noise-free positions."""
-    clean = np.asarray(deflected_tips(true, elastic, jax.numpy.asarray(q), points, T_device_root))
+    """A device's measurements of a point on every tip (`points`: `(tips, 3)`, m, tip frames) at
+    configurations `q` of the true body bent by gravity (`elastic`), with isotropic Gaussian
+    noise of `noise_mm` per axis; `truth` holds the noise-free positions. `T_device`: a fixed
+    device's `T_device_root`, or with `device_tip` (a camera on the head) its pose in that tip's
+    frame, whose own tip is then not measured."""
+    clean = np.asarray(
+        deflected_tips(true, elastic, jax.numpy.asarray(q), points, T_device, None, device_tip)
+    )
     noisy = clean + 1e-3 * noise_mm * rng.standard_normal(clean.shape)
-    return TreeSamples(q=np.asarray(q), points=noisy, measured=np.ones(noisy.shape[:2], bool), truth=clean)
+    measured = np.ones(noisy.shape[:2], bool)
+    if device_tip >= 0:
+        measured[:, device_tip] = False
+    return TreeSamples(q=np.asarray(q), points=noisy, measured=measured, truth=clean)
 
 
 def simulate_upper_body(
