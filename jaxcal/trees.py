@@ -102,47 +102,83 @@ def initial_device_pose(tree: KinematicTree, samples: TreeSamples, points: np.nd
     return kabsch(model[samples.measured], samples.points[samples.measured])
 
 
-def _check(tree: KinematicTree, samples: TreeSamples, noise_mm: float, limits) -> None:
-    n, a = np.shape(samples.q)[0], tree.num_actuated
-    if np.shape(samples.q) != (n, a):
+def _checked(tree: KinematicTree, samples: TreeSamples, noise_mm: float, limits, points) -> TreeSamples:
+    """`samples` as float and bool arrays, refused naming the sample (0-based), joint or tip when
+    they cannot be the tree's: shapes, non-finite numbers, poses outside the limits (a
+    continuous joint has none), too few measurements for what is fitted."""
+    try:
+        q, pts = np.asarray(samples.q, np.float64), np.asarray(samples.points, np.float64)
+        measured = np.asarray(samples.measured)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"samples must hold numbers: {e}") from None
+    n, a, tips = len(q), tree.num_actuated, len(tree.tip_names)
+    if q.shape != (n, a) or n == 0:
         raise ValueError(
-            f"samples.q has shape {np.shape(samples.q)}; the tree has {a} actuated joints {tree.actuated_names}"
+            f"samples.q has shape {q.shape}; expected (poses, {a}) for the actuated joints {tree.actuated_names}"
         )
-    if np.shape(samples.points) != (n, len(tree.tip_names), 3) or np.shape(samples.measured) != (
-        n,
-        len(tree.tip_names),
-    ):
-        raise ValueError(f"samples.points must be ({n}, {len(tree.tip_names)}, 3) for tips {tree.tip_names}")
-    if not np.all(np.isfinite(samples.q)):
-        row, col = np.argwhere(~np.isfinite(samples.q))[0]
+    if pts.shape != (n, tips, 3) or measured.shape != (n, tips) or measured.dtype != bool:
+        raise ValueError(
+            f"samples.points must be ({n}, {tips}, 3) and samples.measured a ({n}, {tips}) bool array for the tips "
+            f"{tree.tip_names}; got {pts.shape} and {measured.shape} {measured.dtype}"
+        )
+    if points is not None and np.shape(points) != (tips, 3):
+        raise ValueError(
+            f"points must be ({tips}, 3): one [x, y, z] per tip of {tree.tip_names}; got {np.shape(points)}"
+        )
+    if not np.all(np.isfinite(q)):
+        row, col = np.argwhere(~np.isfinite(q))[0]
         raise ValueError(f"sample {row}: joint {tree.actuated_names[col]!r} is not a number")
-    bad = samples.measured & ~np.all(np.isfinite(samples.points), axis=-1)
+    bad = measured & ~np.all(np.isfinite(pts), axis=-1)
     if bad.any():
         row, t = np.argwhere(bad)[0]
         raise ValueError(
             f"sample {row}: tip {tree.tip_names[t]!r} is marked measured but its point is not finite"
         )
+    if not measured.any():
+        raise ValueError("no sample measures any tip")
     if not noise_mm > 0:
         raise ValueError(f"noise_mm must be positive, got {noise_mm}")
     if limits is not None:
-        lo, hi = np.asarray(limits)[:, 0], np.asarray(limits)[:, 1]
-        out = (samples.q < lo - 1e-9) | (samples.q > hi + 1e-9)
+        limits = np.asarray(limits, np.float64)
+        if limits.shape != (a, 2):
+            raise ValueError(
+                f"limits must be ({a}, 2): lower and upper of each actuated joint; got {limits.shape}"
+            )
+        out = (q < limits[:, 0] - 1e-9) | (q > limits[:, 1] + 1e-9)
         if out.any():
             row, col = np.argwhere(out)[0]
             raise ValueError(
-                f"sample {row}: joint {tree.actuated_names[col]!r} at {samples.q[row, col]:.6g} is outside its limits "
-                f"[{lo[col]:.6g}, {hi[col]:.6g}] (radians or metres: a file in degrees?)"
+                f"sample {row}: joint {tree.actuated_names[col]!r} at {q[row, col]:.6g} is outside its limits "
+                f"[{limits[col, 0]:.6g}, {limits[col, 1]:.6g}] (radians or metres: a file in degrees?)"
             )
+    return TreeSamples(q, pts, measured, samples.truth)
 
 
 def _verdict(
     fit: TreeFit, layout: TreeLayout, noise_mm: float, samples: TreeSamples, tree, device_on=None
 ) -> tuple[str, tuple[str, ...]]:
     notes = []
+    coordinates, freed = 3 * int(samples.measured.sum()), int(fit.free.sum())
+    if coordinates - freed < freed:
+        notes.append(
+            f"{coordinates} measured coordinates for {freed} freed parameters: too few to check the fit against "
+            "(fewer than two per parameter); measure more poses"
+        )
     if fit.noise_mm > NOISE_FACTOR * noise_mm:
         notes.append(
             f"the residuals' noise {fit.noise_mm:.3g} mm is over {NOISE_FACTOR:g}x the stated {noise_mm:.3g} mm: "
             "the model does not explain the data (a bad sample, a loose mount, a term missing) or the noise is understated"
+            + (
+                "; a thousandfold gap means wrong units (joints in radians or metres, points in metres)"
+                if fit.noise_mm > 1e3 * noise_mm
+                else ""
+            )
+            + (
+                "; with compliance kept, the links' centres of mass also depend on what the rigid geometry cannot see, "
+                "which this fit holds (docs/trees.md)"
+                if {"joint", "lateral"} & set(fit.families)
+                else ""
+            )
         )
     values = fit.u * layout.scales
     compliance = layout.family("joint", "lateral") & fit.free
@@ -193,7 +229,11 @@ def calibrate_tree(
 
     Raises `ValueError` naming the sample and joint or tip for malformed input.
     """
-    _check(tree, samples, noise_mm, limits)
+    if isinstance(families, str):
+        raise ValueError(
+            f"families must be a list of {list(FAMILIES)} (or None), got the string {families!r}"
+        )
+    samples = _checked(tree, samples, noise_mm, limits, points)
     device_tip = -1
     if device_on is not None:
         if device_on not in tree.tip_names:
@@ -243,15 +283,30 @@ def read_tree_samples(path, tree: KinematicTree) -> TreeSamples:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"tree samples {shown(path)!r} do not exist")
-    with path.open(newline="") as f:
+    with path.open(newline="", encoding="utf-8-sig") as f:  # a spreadsheet's byte-order mark
+        header = next(csv.reader(f), [])
+        f.seek(0)
         rows = list(csv.DictReader(f))
     if not rows:
         raise ValueError(f"tree samples {shown(path)!r}: no rows")
-    header = set(rows[0])
+    twice = sorted({h for h in header if header.count(h) > 1})
+    if twice:
+        raise ValueError(f"tree samples {shown(path)!r}: column(s) {twice} appear more than once")
     missing = [n for n in tree.actuated_names if n not in header]
     if missing:
         raise ValueError(f"tree samples {shown(path)!r}: no column for joint(s) {missing}")
-    tips = [t for t in tree.tip_names if all(f"{t}.{a}" in header for a in "xyz")]
+    groups = {h.rsplit(".", 1)[0] for h in header if h.rsplit(".", 1)[-1] in ("x", "y", "z") and "." in h}
+    unknown = sorted(groups - set(tree.tip_names))
+    if unknown:
+        raise ValueError(
+            f"tree samples {shown(path)!r}: columns for {unknown}, which are not tips of the tree {tree.tip_names}"
+        )
+    partial = sorted(t for t in groups if not all(f"{t}.{a}" in header for a in "xyz"))
+    if partial:
+        raise ValueError(
+            f"tree samples {shown(path)!r}: tip(s) {partial} lack one of their .x, .y, .z columns"
+        )
+    tips = [t for t in tree.tip_names if t in groups]
     if not tips:
         raise ValueError(
             f"tree samples {shown(path)!r}: no tip's columns; expected TIP.x, TIP.y, TIP.z for a tip of {tree.tip_names}"
@@ -259,11 +314,14 @@ def read_tree_samples(path, tree: KinematicTree) -> TreeSamples:
 
     def number(row: int, column: str, text: str) -> float:
         try:
-            return float(text)
+            value = float(text)
         except (TypeError, ValueError):
+            value = float("nan")
+        if not np.isfinite(value):
             raise ValueError(
-                f"tree samples {shown(path)!r}: row {row + 2}, column {column!r}: {text!r} is not a number"
-            ) from None
+                f"tree samples {shown(path)!r}: row {row + 2}, column {column!r}: {text!r} is not a finite number"
+            )
+        return value
 
     q = np.array([[number(i, n, r[n]) for n in tree.actuated_names] for i, r in enumerate(rows)])
     points = np.full((len(rows), len(tree.tip_names), 3), np.nan)

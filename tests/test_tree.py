@@ -21,7 +21,7 @@ from jaxcal import _treefit as tf
 from jaxcal._dh import dh_table, table_forward_kinematics
 from jaxcal._kinematics import forward_kinematics
 from jaxcal._npgeom import rotvec_to_matrix
-from jaxcal._tree import branch, tip_poses
+from jaxcal._tree import branch, tip_poses, tree_frames
 from jaxcal.cli import main
 from jaxcal.io.urdf import load_urdf
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree, save_urdf_tree
@@ -90,17 +90,30 @@ def test_urdf_tree_round_trip_keeps_structure_and_mimic(body, tmp_path):
     save_urdf_tree(true, out, source=body)
     assert body.read_bytes() == before  # the source is never touched
     back = load_urdf_tree(out)
-
-    # A coupled joint's zero offset goes into its law's offset: the sum is what the file holds.
-    def same(t):
-        return t.T_parent_joint, t.axis, t.coupling, t.T_link_tip, t.masses, t.zero_offset + t.coupling_offset
-
-    for a, b in zip(same(true), same(back)):
-        assert np.abs(np.asarray(a) - np.asarray(b)).max() < 1e-12
+    # Zero offsets are turned into the origins (and a coupled joint's into its law's offset):
+    # every URDF reader, yourdfpy here, then sees the calibrated robot.
+    robot = yourdfpy.URDF.load(str(out), load_meshes=False)
+    for q in random_poses(actuated_limits(body, nominal), 4, np.random.default_rng(4)):
+        ours = np.asarray(tree_frames(true, jnp.asarray(q)))
+        assert np.abs(np.asarray(tree_frames(back, jnp.asarray(q))) - ours).max() < 1e-12
+        robot.update_cfg(dict(zip(true.actuated_names, q)))
+        for t, name in enumerate(true.tip_names):
+            assert (
+                np.abs(
+                    robot.get_transform(name, "pelvis") - np.asarray(tip_poses(true, jnp.asarray(q)))[t]
+                ).max()
+                < 1e-12
+            )
+    assert np.abs(np.asarray(back.zero_offset)).max() == 0.0
     assert (back.parent, back.joint_names, back.tip_names) == (true.parent, true.joint_names, true.tip_names)
     mimic = ET.parse(out).getroot().find("joint[@name='torso_upper_pitch']/mimic")
     assert mimic.get("joint") == "torso_pitch"
     assert float(mimic.get("multiplier")) == pytest.approx(float(true.coupling[3, 1]), abs=1e-15)
+    # A source that is not this tree's robot file is refused, naming what differs.
+    other = tmp_path / "other.urdf"
+    other.write_text(upper_body_urdf().replace('mimic joint="torso_pitch"', 'mimic joint="torso_roll"'))
+    with pytest.raises(ValueError, match="not this tree's robot file: its mimic joints follow other joints"):
+        save_urdf_tree(true, tmp_path / "never.urdf", source=other)
     # The fixed shoulder mounts stay as they were: the arms' origins are written below them.
     mount = ET.parse(out).getroot().find("joint[@name='left_shoulder_mount_joint']/origin")
     assert mount.get("rpy") == ET.parse(body).getroot().find(
@@ -300,3 +313,44 @@ def test_a_head_camera_seeing_both_hands(body):
         bad = samples.subset(slice(0, 5))
         bad.measured[:, 2] = True
         calibrate_tree(nominal, bad, device_on="camera", show_progress=False)
+
+
+def test_what_a_user_gets_wrong_is_named(body, tmp_path):
+    """A new user's mistakes (trial 6): misnamed tip columns, a spreadsheet's byte-order mark, NaN
+    cells, too few poses for what is freed, a continuous joint beyond a turn."""
+    nominal, limits, _, samples, _ = _problem(body, seed=9, poses=6)
+    header = list(nominal.actuated_names) + [f"{t}.{a}" for t in HANDS for a in "xyz"]
+    rows = [",".join(map(str, list(q) + list(p.ravel()))) for q, p in zip(samples.q, samples.points)]
+
+    def csv_of(header, rows, name, bom=False):
+        path = tmp_path / name
+        path.write_text(("\ufeff" if bom else "") + ",".join(header) + "\n" + "\n".join(rows) + "\n")
+        return path
+
+    assert read_tree_samples(csv_of(header, rows, "bom.csv", bom=True), nominal).measured.all()
+    typo = [h.replace("right_hand", "rigth_hand") for h in header]
+    with pytest.raises(ValueError, match=r"typo.csv.*columns for \['rigth_hand'\], which are not tips"):
+        read_tree_samples(csv_of(typo, rows, "typo.csv"), nominal)
+    with pytest.raises(ValueError, match=r"twice.csv.*\['torso_yaw'\] appear more than once"):
+        read_tree_samples(csv_of(header + ["torso_yaw"], [r + ",0" for r in rows], "twice.csv"), nominal)
+    nan = [rows[0], rows[1].replace(rows[1].split(",")[-1], "nan")] + rows[2:]
+    with pytest.raises(
+        ValueError, match=r"nan.csv.*row 3, column 'right_hand.z': 'nan' is not a finite number"
+    ):
+        read_tree_samples(csv_of(header, nan, "nan.csv"), nominal)
+    # Six poses cannot check the 50-odd parameters they would free: suspect, and said why.
+    few = calibrate_tree(nominal, samples, families=(), show_progress=False)
+    assert few.status == "suspect" and any("too few to check the fit" in n for n in few.notes), few.notes
+    # A continuous joint has no limits: four radians is a valid pose.
+    loose = tmp_path / "loose.urdf"
+    loose.write_text(
+        upper_body_urdf().replace(
+            'name="left_wrist_roll" type="revolute"', 'name="left_wrist_roll" type="continuous"'
+        )
+    )
+    tree = load_urdf_tree(loose, tips=HANDS)
+    lim = actuated_limits(loose, tree)
+    assert np.isinf(lim[tree.actuated_names.index("left_wrist_roll")]).all()
+    turned = tf.TreeSamples(samples.q.copy(), samples.points, samples.measured)
+    turned.q[:, tree.actuated_names.index("left_wrist_roll")] = 4.0
+    assert calibrate_tree(tree, turned, families=(), limits=lim, show_progress=False).fit.steps >= 0

@@ -1,14 +1,15 @@
 """A URDF with branches and coupled joints read as a `jaxcal._tree.KinematicTree`, and written back.
 
-`load_urdf_tree` keeps every movable joint below the base link, in the file's order with parents
-first; fixed joints fold into the next movable joint's origin (or into a tip's frame), and a
-link's mass and centre of mass fold into the link that carries it. A `<mimic joint multiplier
-offset>` joint follows its leader: $\\theta = m\\, \\theta_{leader} + o$ (a mimic of a mimic
-composes). Tips are the links named, or every leaf reached through a movable joint.
+`load_urdf_tree` keeps every movable joint below the base link, in the file's order (breadth-first
+from the base where the file lists a child before its parent). Fixed joints fold into the next
+movable joint's origin (or into a tip's frame), and a link's mass and centre of mass fold into the
+link that carries it. A `<mimic joint multiplier offset>` joint follows its leader:
+$\\theta = m\\, \\theta_{leader} + o$ (a mimic of a mimic composes). Tips are the links named, or
+every leaf reached through a movable joint.
 
-`save_urdf_tree` writes a copy of the source file with the tree's joint origins, axes, zero
-offsets (`<calibration rising>`) and mimic laws; the fixed joints stay as they are (a movable
-joint's origin is written relative to them), so the written file's structure is the source's.
+`save_urdf_tree` writes a copy of the source file with the tree's joint origins (zero offsets
+turned into them), axes and mimic laws; the fixed joints stay as they are (a movable joint's
+origin is written relative to them), so the written file's structure is the source's.
 """
 
 import xml.etree.ElementTree as ET
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._kinematics import rotations_to_rpy
+from .._kinematics import joint_motion, rotations_to_rpy
 from .._tree import KinematicTree, make_tree
 from ._files import shown
 from ._urdf_checks import check_joint_element, check_joint_links, limit_range
@@ -57,6 +58,21 @@ def _walk(robot, path: Path, base: str):
     return movable, frames
 
 
+def _ordered_walk(robot, path: Path, base: str):
+    """`_walk`, the movable joints then put in the file's order where every parent comes first
+    there (as most files list them, and as yourdfpy orders its joints); else breadth-first."""
+    movable, frames = _walk(robot, path, base)
+    position = {j.name: i for i, j in enumerate(robot.joints)}
+    order = sorted(range(len(movable)), key=lambda i: position[movable[i][0].name])
+    new = {old: k for k, old in enumerate(order)}
+    remap = lambda f: _Frame(-1 if f.owner < 0 else new[f.owner], f.T, f.fixed)  # noqa: E731
+    if any(movable[old][1].owner >= 0 and new[movable[old][1].owner] >= k for k, old in enumerate(order)):
+        return movable, frames
+    return [(movable[old][0], remap(movable[old][1])) for old in order], {
+        k: remap(f) for k, f in frames.items()
+    }
+
+
 def _coupling(movable, path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """The coupling matrix and offsets of the movable joints, and the actuated joints' names."""
     index = {j.name: i for i, (j, _) in enumerate(movable)}
@@ -68,6 +84,9 @@ def _coupling(movable, path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
         if j.mimic is None:
             return np.eye(len(actuated))[actuated.index(j.name)], 0.0
         leader = j.mimic.get("joint")
+        if leader is None or leader == j.name:
+            what = "names no joint (joint=)" if leader is None else "names the joint itself"
+            raise ValueError(f"URDF file {shown(path)!r}: joint {j.name!r}'s <mimic> {what}")
         if leader not in index or depth > len(movable):
             raise ValueError(
                 f"URDF file {shown(path)!r}: joint {j.name!r} mimics {leader!r}, which is not a movable joint "
@@ -127,7 +146,7 @@ def load_urdf_tree(path, base_link: str | None = None, tips=None) -> KinematicTr
         raise ValueError(
             f"URDF file {shown(path)!r}: unknown base link {base_link!r}; links are {sorted(names)}"
         )
-    movable, frames = _walk(robot, path, base_link)
+    movable, frames = _ordered_walk(robot, path, base_link)
     if not movable:
         raise ValueError(f"URDF file {shown(path)!r}: no movable joint below base link {base_link!r}")
     elements = {el.get("name"): el for el in root.findall("joint")}
@@ -164,13 +183,13 @@ def load_urdf_tree(path, base_link: str | None = None, tips=None) -> KinematicTr
 
 def actuated_limits(path, tree: KinematicTree) -> np.ndarray:
     """`(actuated, 2)` lower and upper limits of the tree's actuated joints in its URDF file
-    (continuous joints: +-pi)."""
+    (a continuous joint has none: -inf, inf)."""
     root = parse_urdf(Path(path)).getroot()
     elements = {el.get("name"): el for el in root.findall("joint")}
     rows = []
     for name in tree.actuated_names:
         el = elements[name]
-        rows.append((-np.pi, np.pi) if el.get("type") == "continuous" else limit_range(el, Path(path)))
+        rows.append((-np.inf, np.inf) if el.get("type") == "continuous" else limit_range(el, Path(path)))
     return np.asarray(rows, np.float64)
 
 
@@ -179,13 +198,30 @@ def _xyz_rpy(T: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
     return xyz, checked_rpy(T, xyz, rotations_to_rpy(T[:3, :3]), f"save_urdf_tree: {what}")
 
 
+def _same_structure(tree: KinematicTree, source_tree: KinematicTree, source: Path) -> None:
+    """Refuse a `source` whose robot is not the tree's, naming the first difference."""
+    for what in ("joint_names", "parent", "joint_types", "actuated_names", "tip_link"):
+        if getattr(tree, what) != getattr(source_tree, what):
+            raise ValueError(
+                f"save_urdf_tree: {shown(source)!r} is not this tree's robot file: its {what} are "
+                f"{getattr(source_tree, what)}, the tree's {getattr(tree, what)}"
+            )
+    if not np.array_equal(np.asarray(tree.coupling) != 0, np.asarray(source_tree.coupling) != 0):
+        raise ValueError(
+            f"save_urdf_tree: {shown(source)!r} is not this tree's robot file: its mimic joints follow other joints"
+        )
+
+
 def save_urdf_tree(tree: KinematicTree, path, *, source) -> None:
     """Write `tree` as a copy of `source` (the URDF it was read from), atomically.
 
     Each movable joint gets the tree's origin (relative to the fixed joints above it, which
-    stay), axis and `<calibration rising>` (an actuated joint's zero offset); a mimic joint
-    its law's multiplier and offset (its zero offset folded in). A tip's frame goes into the
-    last fixed joint above it. `load_urdf_tree` of the written file gives back the tree to 1e-12.
+    stay) and axis; an actuated joint's zero offset is turned into its origin (a `<calibration
+    rising>` becomes 0: robot_state_publisher, MoveIt and yourdfpy ignore that tag), a mimic
+    joint's goes into its law's offset, beside the law's multiplier. A tip's frame goes into
+    the last fixed joint above it. `load_urdf_tree` of the written file gives back the tree's
+    forward kinematics to 1e-12, and so does any URDF reader. `source` must have the tree's
+    structure (joints, parents, types, couplings, tips), else `ValueError` says what differs.
     """
     path, source = Path(path), Path(source)
     if not path.parent.is_dir():
@@ -193,27 +229,27 @@ def save_urdf_tree(tree: KinematicTree, path, *, source) -> None:
     xml = parse_urdf(source)
     root = xml.getroot()
     robot = read_tree(root, source)
-    movable, frames = _walk(robot, source, tree.link_names[0])
-    if [j.name for j, _ in movable] != list(tree.joint_names):
-        raise ValueError(
-            f"save_urdf_tree: {shown(source)!r} does not hold the tree's joints {tree.joint_names}"
-        )
+    _same_structure(
+        tree, load_urdf_tree(source, base_link=tree.link_names[0], tips=list(tree.tip_names)), source
+    )
+    movable, frames = _ordered_walk(robot, source, tree.link_names[0])
     elements = {el.get("name"): el for el in root.findall("joint")}
     T_joint, axes = np.asarray(tree.T_parent_joint), np.asarray(tree.axis)
     zero, C, d = (np.asarray(a) for a in (tree.zero_offset, tree.coupling, tree.coupling_offset))
     for i, (j, above) in enumerate(movable):
         el = elements[j.name]
-        set_origin(el, *_xyz_rpy(np.linalg.solve(above.T, T_joint[i]), f"origin of joint {j.name!r}"))
+        T = T_joint[i]
+        if j.mimic is None:  # the zero offset turned into the origin: what every URDF reader applies
+            T = T @ np.asarray(joint_motion(tree.joint_types[i], axes[i], zero[i]))
+            calibration = el.find("calibration")
+            if calibration is not None and calibration.get("rising") is not None:
+                calibration.set("rising", "0.0")
+        set_origin(el, *_xyz_rpy(np.linalg.solve(above.T, T), f"origin of joint {j.name!r}"))
         axis = el.find("axis")
         if axis is None:
             axis = ET.SubElement(el, "axis")
         axis.set("xyz", fmt(axes[i]))
-        if j.mimic is None:
-            calibration = el.find("calibration")
-            if calibration is None:
-                calibration = ET.SubElement(el, "calibration")
-            calibration.set("rising", fmt(zero[i]))
-        else:
+        if j.mimic is not None:
             leader = j.mimic.get("joint")
             while leader not in tree.actuated_names:
                 leader = elements[leader].find("mimic").get("joint")

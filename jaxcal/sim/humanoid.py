@@ -146,21 +146,20 @@ def upper_body_urdf(name: str = "upper_body") -> str:
 @dataclass(frozen=True)
 class BodyScales:
     """Standard deviations of a real body's deviations from its robot file: joint origins
-    (mm per axis, deg per axis), zero offsets (deg), the coupling's multiplier (relative), the
-    tips' points (mm per axis)."""
+    (mm per axis, deg per axis), zero offsets (deg), the coupling's multiplier (relative). (The
+    measured points' mounts on the tips are drawn by the caller.)"""
 
     origin_mm: float = 1.0
     origin_deg: float = 0.2
     zero_offset_deg: float = 0.3
     coupling_rel: float = 0.01
-    tip_mm: float = 2.0
 
 
 def perturb_tree(
     tree: KinematicTree, rng: np.random.Generator, scales: BodyScales = BodyScales()
 ) -> KinematicTree:
     """A "true" body drawn from `tree`: every joint origin moved and turned, zero offsets and
-    the coupled joints' multipliers changed, tip frames moved (NumPy draws, `rng` seeded)."""
+    the coupled joints' multipliers changed (NumPy draws, `rng` seeded)."""
     n = tree.num_joints
     T = np.array(tree.T_parent_joint)
     for j in range(n):
@@ -169,13 +168,11 @@ def perturb_tree(
     C = np.array(tree.coupling)
     for j in tree.coupled:
         C[j] *= 1.0 + scales.coupling_rel * rng.standard_normal()
-    tips = np.array(tree.T_link_tip)
-    tips[:, :3, 3] += 1e-3 * scales.tip_mm * rng.standard_normal((len(tips), 3))
     zero = np.array(tree.zero_offset) + np.deg2rad(scales.zero_offset_deg) * rng.standard_normal(n)
     return eqx.tree_at(
-        lambda t: (t.T_parent_joint, t.zero_offset, t.coupling, t.T_link_tip),
+        lambda t: (t.T_parent_joint, t.zero_offset, t.coupling),
         tree,
-        tuple(jax.device_put(a) for a in (T, zero, C, tips)),
+        tuple(jax.device_put(a) for a in (T, zero, C)),
     )
 
 
@@ -197,7 +194,8 @@ def random_poses(
     limits: np.ndarray, count: int, rng: np.random.Generator, fraction: float = 0.8
 ) -> np.ndarray:
     """`count` configurations drawn uniformly inside `fraction` of each actuated joint's range
-    (`limits`: `(actuated, 2)` lower and upper, rad)."""
+    (`limits`: `(actuated, 2)` lower and upper, rad; a continuous joint's +-inf: a turn)."""
+    limits = np.clip(limits, -np.pi, np.pi)
     mid, half = limits.mean(axis=1), 0.5 * fraction * np.diff(limits, axis=1)[:, 0]
     return mid + half * rng.uniform(-1.0, 1.0, (count, len(limits)))
 
