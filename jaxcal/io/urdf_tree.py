@@ -133,6 +133,8 @@ def load_urdf_tree(path, base_link: str | None = None, tips=None) -> KinematicTr
     (but `<mimic>`), a mimic of a joint that is not in the tree, and an unknown tip.
     """
     path = Path(path)
+    if isinstance(tips, str):
+        raise ValueError(f"tips must be a list of link names, got the string {tips!r} (write [{tips!r}])")
     root = parse_urdf(path).getroot()
     check_joint_links(root, path)
     robot = read_tree(root, path)
