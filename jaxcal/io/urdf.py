@@ -208,6 +208,22 @@ def _leaves_with_motion(children: dict[str, list], base: str) -> list[str]:
     return sorted(leaves)
 
 
+def base_link_of(robot, path: Path, base_link: str | None) -> str:
+    """`base_link`, checked to be a link of `robot` (a `jaxcal.io._urdf_tree.Tree`), or its one
+    root link; `ValueError` naming the file otherwise."""
+    links = {link.name for link in robot.links}
+    if base_link is None:
+        roots = sorted(links - {j.child for j in robot.joints})
+        if len(roots) != 1:
+            raise ValueError(f"URDF file {shown(path)!r}: expected one root link, found {roots}")
+        return roots[0]
+    if base_link not in links:
+        raise ValueError(
+            f"URDF file {shown(path)!r}: unknown base link {base_link!r}; links are {sorted(links)}"
+        )
+    return base_link
+
+
 def _chain(robot, path: Path, base_link: str | None, tip_link: str | None) -> tuple[list, str, str]:
     """The joints from `base_link` to `tip_link` (base first), and the two link names, of
     `robot` (a `jaxcal.io._urdf_tree.Tree`)."""
@@ -216,15 +232,7 @@ def _chain(robot, path: Path, base_link: str | None, tip_link: str | None) -> tu
     children: dict[str, list] = {}
     for j in robot.joints:
         children.setdefault(j.parent, []).append(j)
-    if base_link is None:
-        roots = sorted(links - set(parent_joint))
-        if len(roots) != 1:
-            raise ValueError(f"URDF file {shown(path)!r}: expected one root link, found {roots}")
-        base_link = roots[0]
-    elif base_link not in links:
-        raise ValueError(
-            f"URDF file {shown(path)!r}: unknown base link {base_link!r}; links are {sorted(links)}"
-        )
+    base_link = base_link_of(robot, path, base_link)
     if tip_link is None:
         leaves = _leaves_with_motion(children, base_link)
         if not leaves:

@@ -23,7 +23,7 @@ from .._tree import KinematicTree, make_tree
 from ._files import shown
 from ._urdf_checks import check_joint_element, check_joint_links, limit_range
 from ._urdf_tree import checked_rpy, fmt, read_tree, set_origin, write_atomic
-from .urdf import MOVABLE, check_joint_type, parse_urdf
+from .urdf import MOVABLE, base_link_of, check_joint_type, parse_urdf
 
 
 @dataclass(frozen=True)
@@ -138,16 +138,7 @@ def load_urdf_tree(path, base_link: str | None = None, tips=None) -> KinematicTr
     root = parse_urdf(path).getroot()
     check_joint_links(root, path)
     robot = read_tree(root, path)
-    names = [link.name for link in robot.links]
-    if base_link is None:
-        roots = sorted(set(names) - {j.child for j in robot.joints})
-        if len(roots) != 1:
-            raise ValueError(f"URDF file {shown(path)!r}: expected one root link, found {roots}")
-        base_link = roots[0]
-    elif base_link not in names:
-        raise ValueError(
-            f"URDF file {shown(path)!r}: unknown base link {base_link!r}; links are {sorted(names)}"
-        )
+    base_link = base_link_of(robot, path, base_link)
     movable, frames = _ordered_walk(robot, path, base_link)
     if not movable:
         raise ValueError(f"URDF file {shown(path)!r}: no movable joint below base link {base_link!r}")
