@@ -204,21 +204,26 @@ def tip_poses(tree: KinematicTree, q: Float[Array, " actuated"]) -> Float[Array,
 
 
 def gravity_torques(
-    tree: KinematicTree, frames: Float[Array, "links 4 4"], gravity=GRAVITY
+    tree: KinematicTree, frames: Float[Array, "links 4 4"], gravity=GRAVITY, moments=None
 ) -> Float[Array, "joints 3"]:
     """The torque vector (N m, root frame) that gravity on every link below joint $j$ puts about
-    joint $j$'s origin, for the links' poses `frames`; the joint's own link included."""
+    joint $j$'s origin, for the links' poses `frames`; the joint's own link included. `moments`
+    `(links, 3)`: corrections to the links' first moments of mass (kg m, link frames; a centre
+    of mass moved by $\\delta c$ is $m\\,\\delta c$), which add $R_l \\delta_l \\times g$ to every
+    joint above link $l$."""
     g = jnp.asarray(gravity, frames.dtype)
     centres = jnp.einsum("lab,lb->la", frames[:, :3, :3], tree.centres) + frames[:, :3, 3]
     forces = tree.masses[:, None] * g
-    below = _descendants(tree)
+    below = jnp.asarray(descendants(tree), frames.dtype)
     origins = frames[1:, :3, 3]  # joint j's frame sits at its child link's origin
     arms = centres[None, :, :] - origins[:, None, :]
-    moments = jnp.cross(arms, forces[None, :, :])
-    return jnp.einsum("jl,jla->ja", jnp.asarray(below, frames.dtype), moments)
+    tau = jnp.einsum("jl,jla->ja", below, jnp.cross(arms, forces[None, :, :]))
+    if moments is not None:
+        tau = tau + below @ jnp.cross(jnp.einsum("lab,lb->la", frames[:, :3, :3], moments), g)
+    return tau
 
 
-def _descendants(tree: KinematicTree) -> np.ndarray:
+def descendants(tree: KinematicTree) -> np.ndarray:
     """`below[j, l]`: link `l` (root first) moves with joint `j`."""
     n = tree.num_joints
     below = np.zeros((n, n + 1))

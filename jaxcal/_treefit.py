@@ -13,7 +13,10 @@ multipliers, and three families of non-geometric terms (`FAMILIES`):
 * `lateral`: the joint's bending about the two axes normal to it by $k^{\\perp}$ times the
   torque's components about them;
 * `harmonic`: a once-per-turn angle error $c_j \\cos\\theta_j + s_j \\sin\\theta_j$ (an eccentric
-  encoder).
+  encoder);
+* `mass`: corrections to the robot file's masses where the sag sees them: each link's first
+  moment of mass (its centre of mass times its mass) and gravity's tilt against the root. They
+  act only through the compliances, so they are tried only once a compliance is kept.
 
 Parameters are scaled by a typical size each (`TreeLayout.scales`) and the residuals whitened by
 the noise, so a parameter's conditional standard deviation is in units of its typical size.
@@ -35,14 +38,29 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import _lsq
-from ._geometry import pose_inverse, se3_exp, se3_log, skew
-from ._tree import KinematicTree, frames_at, gravity_torques, joint_positions, normal_axes, tips_from_frames
+from ._geometry import pose_inverse, se3_exp, se3_log, skew, so3_exp, so3_right_jacobian
+from ._tree import (
+    GRAVITY,
+    KinematicTree,
+    descendants,
+    frames_at,
+    gravity_torques,
+    joint_positions,
+    normal_axes,
+    tips_from_frames,
+)
 
-FAMILIES = ("joint", "lateral", "harmonic")
+FAMILIES = ("joint", "lateral", "harmonic", "mass")
+#: The families that make the tree sag under gravity (the `mass` corrections act through them).
+COMPLIANT = ("joint", "lateral")
 #: A parameter is freed where the data determine it to within this many typical sizes: a
 #: parameter held at nominal takes its real deviation (about one typical size) into the others,
 #: so only what the data barely see (or not at all: a gauge, a branch no tip measures) is held.
 DETERMINED = 10.0
+#: The `mass` corrections, seen only through the sag, are freed where the data determine them to
+#: within one typical size: more loosely held, they trade off against each other and the
+#: compliances, and the solve wanders along those directions.
+MASS_DETERMINED = 1.0
 LM = _lsq.LMOptions(rtol=1e-6, atol=1e-2, max_steps=100, normal_cholesky=True)
 #: Gauss-Newton steps after it (and from the fit to all samples, for a cross-validation fold).
 POLISH = 4
@@ -50,10 +68,26 @@ POLISH = 4
 
 class Elastic(eqx.Module):
     """Compliances (rad per N m): `joint` about each joint's axis, `lateral` about the two
-    axes normal to it (`jaxcal._tree.normal_axes`)."""
+    axes normal to it (`jaxcal._tree.normal_axes`); the loads' corrections: `moments`, the
+    links' first moments of mass (kg m, link frames, `jaxcal._tree.gravity_torques`), and
+    `tilt`, gravity's tilt about the root's x and y (rad); None: the robot file's."""
 
     joint: Float[Array, " joints"]
     lateral: Float[Array, "joints 2"]
+    moments: Float[Array, "links 3"] | None = None
+    tilt: Float[Array, "2"] | None = None
+
+
+def _loads(tree, rigid, elastic: Elastic):
+    """The gravity torque about each joint's axis `(joints,)` and about its two normals
+    `(joints, 2)`, for the links' rigid poses `rigid`."""
+    g = jnp.asarray(GRAVITY, rigid.dtype)
+    if elastic.tilt is not None:
+        g = so3_exp(jnp.concatenate([elastic.tilt, jnp.zeros(1, rigid.dtype)])) @ g
+    tau = gravity_torques(tree, rigid, g, elastic.moments)
+    R = rigid[1:, :3, :3]
+    about = jnp.einsum("jab,jb,ja->j", R, tree.axis, tau)
+    return about, jnp.einsum("jka,jba,jb->jk", normal_axes(tree.axis), R, tau)
 
 
 @dataclass(frozen=True)
@@ -91,12 +125,8 @@ def _tip_points(tree, q, points, T_dev, elastic, harmonic, device_tip: int = -1)
         theta = theta + harmonic[:, 0] * jnp.cos(theta) + harmonic[:, 1] * jnp.sin(theta)
     frames = frames_at(tree, theta)
     if elastic is not None:
-        tau = gravity_torques(tree, frames)
-        R = frames[1:, :3, :3]
-        about = jnp.einsum("jab,jb,ja->j", R, tree.axis, tau)
-        local = jnp.einsum("jba,jb->ja", R, tau)
-        normals = normal_axes(tree.axis)
-        bend = jnp.einsum("jk,jkc->jc", elastic.lateral * jnp.einsum("jkc,jc->jk", normals, local), normals)
+        about, torque = _loads(tree, frames, elastic)
+        bend = jnp.einsum("jk,jkc->jc", elastic.lateral * torque, normal_axes(tree.axis))
         frames = frames_at(tree, theta + elastic.joint * about, bend)
     tips = tips_from_frames(tree, frames)
     p = jnp.einsum("tab,tb->ta", tips[:, :3, :3], points) + tips[:, :3, 3]
@@ -172,6 +202,11 @@ def tree_layout(tree: KinematicTree) -> TreeLayout:
         "harmonic",
         [(f"{n}.harmonic.{k}", 1e-3, j) for j, n in enumerate(tree.joint_names) for k in ("cos", "sin")],
     )
+    add(
+        "mass",
+        [(f"gravity.tilt.{a}", 3e-3, -1) for a in "xy"]
+        + [(f"{link}.moment.{a}", 1e-2, j - 1) for j, link in enumerate(tree.link_names) for a in "xyz"],
+    )
     names, scales, groups, joints = zip(*rows)
     rank = {"device": 0, "point": 1, "zero": 2, "origin": 2, "coupling": 3}
     within = {"zero": 0, "origin": 1}
@@ -238,7 +273,8 @@ def body_of(u: Float[Array, " p"], problem: TreeProblem):
     tree = eqx.tree_at(
         lambda t: (t.T_parent_joint, t.zero_offset, t.coupling), tree, (T, tree.zero_offset + part["zero"], C)
     )
-    elastic = Elastic(part["joint"], part["lateral"].reshape(n, 2))
+    mass = part["mass"]
+    elastic = Elastic(part["joint"], part["lateral"].reshape(n, 2), mass[2:].reshape(n + 1, 3), mass[:2])
     points = problem.points0 + part["point"].reshape(-1, 3)
     return (
         tree,
@@ -269,21 +305,79 @@ def _right_jacobian(xi: Float[Array, "6"]) -> Float[Array, "6 6"]:
     return jax.jacfwd(local)(jnp.zeros(6, xi.dtype))
 
 
+def _load_columns(tree, elastic, rigid, theta0, dh, C0, couplings, q):
+    """The loads' derivatives (`_loads`: `(joints, p)` and `(joints, 2, p)`) with respect to the
+    parameters they depend on, in `TreeLayout` order: local origin twists, zero offsets, coupling
+    multipliers, the harmonics, then the `mass` corrections; at the links' rigid poses `rigid`.
+    A parameter the rigid tips cannot see (a shift along a joint's axis) still moves a link's
+    centre of mass, so it moves the sag.
+
+    With $M_l$ a link's first moment of mass (root frame), $A_j = \\sum_{l \\succeq j} (M_l - m_l
+    o_j)$ and $\\tau_j = A_j \\times g$: a motion $(\\omega, v)$ about $p$ of the links below joint
+    $i$ turns $A_j$ by $\\omega$ for a joint $j$ that moves with it, and moves the sum of those
+    links' moments for a joint $j$ above it."""
+    n, dtype = tree.num_joints, rigid.dtype
+    below = jnp.asarray(descendants(tree), dtype)  # below[j, l]: link l moves with joint j
+    sub = below[:, 1:]  # sub[i, j]: joint j moves with joint i (or is it)
+    above = sub.T - jnp.eye(n, dtype=dtype)  # above[i, j]: joint j lies above joint i
+    R, pos = rigid[:, :3, :3], rigid[:, :3, 3]
+    tilt = jnp.concatenate([elastic.tilt, jnp.zeros(1, dtype)])
+    g0 = jnp.asarray(GRAVITY, dtype)
+    g = so3_exp(tilt) @ g0
+    M = tree.masses[:, None] * (jnp.einsum("lab,lb->la", R, tree.centres) + pos)
+    M = M + jnp.einsum("lab,lb->la", R, elastic.moments)
+    mass_below, B = below @ tree.masses, below @ M
+    A = B - mass_below[:, None] * pos[1:]
+    tau = jnp.cross(A, g)
+    F = jnp.einsum("jab,jbc->jac", rigid[jnp.asarray(tree.parent) + 1], tree.T_parent_joint)
+    RF, P = F[:, :3, :3], F[:, :3, 3]
+    # About the joint's axis, then its two normals (root frame, moving with the child link).
+    units = jnp.einsum(
+        "jab,jkb->jka", R[1:], jnp.concatenate([tree.axis[:, None], normal_axes(tree.axis)], axis=1)
+    )
+    axis = units[:, 0]
+    revolute = jnp.asarray([k == "revolute" for k in tree.joint_types])[:, None]
+    none = jnp.zeros((n, 3, 3), dtype)
+    # Each joint's seven motions: its origin's local twist (v, then w), then its angle.
+    omega = jnp.concatenate([none, RF.transpose(0, 2, 1), jnp.where(revolute, axis, 0.0)[:, None]], axis=1)
+    v = jnp.concatenate([RF.transpose(0, 2, 1), none, jnp.where(revolute, 0.0, axis)[:, None]], axis=1)
+    moving = jnp.cross(jnp.cross(omega[:, :, None], A[None, None]), g)  # (i, k, j, 3)
+    carried = jnp.cross(
+        jnp.cross(omega, (B - mass_below[:, None] * P)[:, None]) + mass_below[:, None, None] * v, g
+    )
+    dtau = sub[:, None, :, None] * moving + above[:, None, :, None] * carried[:, :, None]
+    d = sub[:, None, :, None] * jnp.einsum("ikc,juc->ikju", omega, jnp.cross(units, tau[:, None]))
+    d = d + jnp.einsum("juc,ikjc->ikju", units, dtau)  # (i, k, j, u)
+    angle = d[:, 6].transpose(1, 2, 0)  # (j, u, i)
+    coupled = [angle[..., j] * dh[j] * q[a] * jnp.abs(C0[j, a]) for j, a in couplings]
+    dG = so3_exp(tilt) @ jnp.cross(so3_right_jacobian(tilt)[:, :2].T, g0).T  # (3, 2)
+    moments = jnp.einsum("juv,jl,lcv->julc", units, below, jnp.cross(R.transpose(0, 2, 1), g))
+    cols = jnp.concatenate(
+        [
+            d[:, :6].transpose(2, 3, 0, 1).reshape(n, 3, 6 * n),
+            angle * dh,
+            jnp.stack(coupled, axis=-1) if coupled else jnp.zeros((n, 3, 0), dtype),
+            jnp.stack([angle * jnp.cos(theta0), angle * jnp.sin(theta0)], axis=-1).reshape(n, 3, 2 * n),
+            jnp.einsum("juc,jck->juk", units, jnp.cross(A[:, :, None], dG[None], axis=1)),
+            moments.reshape(n, 3, 3 * (n + 1)),
+        ],
+        axis=-1,
+    )
+    return cols[:, 0], cols[:, 1:]
+
+
 def _sample_columns(tree, T_dev, points, elastic, harmonic, C0, couplings, q, device_tip: int = -1):
     """One pose's tip points `(tips, 3)` (device frame) and their derivatives `(tips, 3, p)`
     with respect to the parameters in `TreeLayout` order, in their own units, local twists on
-    the device and the joint origins (the caller applies the right Jacobians). The gravity
-    torques are held fixed (their change with the geometry moves a compliance's deflection by
-    the fraction of a millimetre that the geometry moves over the lever arm)."""
+    the device and the joint origins (the caller applies the right Jacobians); exact, the
+    gravity torques' change with the geometry included (`_load_columns`)."""
     n, tips = tree.num_joints, len(tree.tip_names)
     theta0 = joint_positions(tree, q)
     dh = 1.0 - harmonic[:, 0] * jnp.sin(theta0) + harmonic[:, 1] * jnp.cos(theta0)
     theta = theta0 + harmonic[:, 0] * jnp.cos(theta0) + harmonic[:, 1] * jnp.sin(theta0)
     rigid = frames_at(tree, theta)
-    tau = gravity_torques(tree, rigid)
-    about = jnp.einsum("jab,jb,ja->j", rigid[1:, :3, :3], tree.axis, tau)
+    about, torque = _loads(tree, rigid, elastic)
     normals = normal_axes(tree.axis)
-    torque = jnp.einsum("jka,jba,jb->jk", normals, rigid[1:, :3, :3], tau)  # about the normals
     bend = jnp.einsum("jk,jkc->jc", elastic.lateral * torque, normals)
     frames = frames_at(tree, theta + elastic.joint * about, bend)
     F = jnp.einsum("jab,jbc->jac", frames[jnp.asarray(tree.parent) + 1], tree.T_parent_joint)
@@ -300,21 +394,38 @@ def _sample_columns(tree, T_dev, points, elastic, harmonic, C0, couplings, q, de
     dtheta = on * jnp.where(revolute, jnp.cross(a[None], d), a[None])  # (tips, joints, 3)
     R = jnp.broadcast_to(F[None, :, :3, :3], (tips, n, 3, 3))
     origin = on[..., None] * jnp.concatenate([R, -jnp.einsum("tjab,tjbc->tjac", skew(d), R)], axis=-1)
-    bent = jnp.einsum("jab,jkb->jka", frames[1:, :3, :3], normals)  # the bending axes, root frame
+    # The bending axes in the root frame (a change of the bend `b` turns the link about J_r(b) db).
+    bent = jnp.einsum("jab,jbc,jkc->jka", frames[1:, :3, :3], jax.vmap(so3_right_jacobian)(bend), normals)
     dc = p[:, None, :] - frames[None, 1:, :3, 3]  # from each child link's origin
-    lateral = on[..., None] * torque[None, :, :, None] * jnp.cross(bent[None], dc[:, :, None, :])
+    bends = on[..., None] * jnp.cross(bent[None], dc[:, :, None, :])  # (tips, joints, 2, 3)
+    # The sag moves with the loads: through them, with the geometry (exactly, not held fixed).
+    d_about, d_torque = _load_columns(tree, elastic, rigid, theta0, dh, C0, couplings, q)
+    through_loads = jnp.einsum("tjc,j,jg->tcg", dtheta, elastic.joint, d_about) + jnp.einsum(
+        "tjkc,jk,jkg->tcg", bends, elastic.lateral, d_torque
+    )
     tip_rows = [jnp.eye(tips)[:, t, None, None] * tip[:, :3, :3] for t in range(tips)]
-    parts = [
-        origin.transpose(0, 2, 1, 3).reshape(tips, 3, 6 * n),
-        (dtheta * dh[None, :, None]).transpose(0, 2, 1),
-        jnp.stack([dtheta[:, j] * dh[j] * q[k] * jnp.abs(C0[j, k]) for j, k in couplings], axis=-1)
-        if couplings
-        else jnp.zeros((tips, 3, 0)),
-        (dtheta * about[None, :, None]).transpose(0, 2, 1),
-        lateral.transpose(0, 3, 1, 2).reshape(tips, 3, 2 * n),
+    geometry = jnp.concatenate(
+        [
+            origin.transpose(0, 2, 1, 3).reshape(tips, 3, 6 * n),
+            (dtheta * dh[None, :, None]).transpose(0, 2, 1),
+            jnp.stack([dtheta[:, j] * dh[j] * q[k] * jnp.abs(C0[j, k]) for j, k in couplings], axis=-1)
+            if couplings
+            else jnp.zeros((tips, 3, 0)),
+        ],
+        axis=-1,
+    )
+    harmonics = (
         jnp.stack([dtheta * jnp.cos(theta0)[None, :, None], dtheta * jnp.sin(theta0)[None, :, None]], axis=-1)
         .transpose(0, 2, 1, 3)
-        .reshape(tips, 3, 2 * n),
+        .reshape(tips, 3, 2 * n)
+    )
+    g = geometry.shape[-1]
+    parts = [
+        geometry + through_loads[..., :g],
+        (dtheta * about[None, :, None]).transpose(0, 2, 1),
+        (bends * torque[None, :, :, None]).transpose(0, 3, 1, 2).reshape(tips, 3, 2 * n),
+        harmonics + through_loads[..., g : g + 2 * n],
+        through_loads[..., g + 2 * n :],
     ]
     y = _seen(tip, p, T_dev, device_tip)
     if device_tip < 0:
@@ -396,17 +507,22 @@ def _linearised(u, free, problem):
     return _residuals_terms(u, (free, 1.0, problem))
 
 
-def identifiable(problem: TreeProblem, layout: TreeLayout, candidates: np.ndarray) -> np.ndarray:
+def identifiable(
+    problem: TreeProblem, layout: TreeLayout, candidates: np.ndarray, at=None, determined=DETERMINED
+) -> np.ndarray:
     """Which candidate parameters the data determine (see the module docstring), greedily in
-    the layout's order, from the whitened Jacobian at the start."""
-    J = np.asarray(_linearised(jnp.zeros(layout.size), jnp.ones(layout.size), problem)[1])
+    the layout's order, from the whitened Jacobian at `at` (default: the start); a `mass`
+    correction to within `MASS_DETERMINED` typical sizes."""
+    within = np.where(layout.family("mass"), MASS_DETERMINED, determined)
+    at = jnp.zeros(layout.size) if at is None else jnp.asarray(at)
+    J = np.asarray(_linearised(at, jnp.ones(layout.size), problem)[1])
     basis, free = np.zeros((J.shape[0], 0)), np.zeros(layout.size, bool)
     for c in (c for c in layout.order if candidates[c]):
         col = J[:, c]
         for _ in range(2):
             col = col - basis @ (basis.T @ col)
         norm = np.linalg.norm(col)
-        if norm * DETERMINED > 1.0:  # conditional std below DETERMINED typical sizes
+        if norm * within[c] > 1.0:  # conditional std below that many typical sizes
             free[c] = True
             basis = np.column_stack([basis, col / norm])
     return free
@@ -430,17 +546,42 @@ class TreeFit:
         return dict(zip(layout.names, (self.u * layout.scales).tolist()))
 
 
-def fit_tree(problem: TreeProblem, layout: TreeLayout, families=()) -> TreeFit:
-    """Least squares over the identifiable parameters of the geometry and `families`."""
+def _fit_free(problem: TreeProblem, layout: TreeLayout, families) -> tuple[np.ndarray, jax.Array, int]:
+    """The identifiable parameters of the geometry and `families` (`free`), the least-squares fit
+    over them and its steps. The `mass` corrections are seen only through the sag, which is nil
+    at the start: with them, the terms are chosen again at the fit, and the fit resumed where that
+    frees more."""
     candidates = ~layout.family(*FAMILIES) | layout.family(*families)
     free = identifiable(problem, layout, candidates)
     u, steps = _solve(jnp.asarray(free, jnp.float64), 1.0, problem, jnp.zeros(layout.size))
+    if "mass" in families and set(COMPLIANT) & set(families):
+        again = identifiable(problem, layout, free | layout.family(*families), at=u)
+        if (again != free).any():
+            resumed, more = _solve(jnp.asarray(again, jnp.float64), 1.0, problem, u)
+            steps += more
+            if _cost(resumed, again, problem) < _cost(u, free, problem):  # never a worse fit
+                free, u = again, resumed
+    return free, u, int(steps)
+
+
+def _cost(u, free, problem) -> float:
+    r = _linearised(u, jnp.asarray(free, jnp.float64), problem)[0]
+    return float(r @ r)
+
+
+def _tree_fit(problem, layout, free, u, steps, families, scores=None) -> TreeFit:
     r, J = _linearised(u, jnp.asarray(free, jnp.float64), problem)
     dof = max(int(np.asarray(problem.weight).sum()) * 3 - int(free.sum()), 1)
     s2 = float(r @ r) / dof
     cov, _, _ = _lsq.covariance(J, jnp.asarray(free), s2)
     std = np.sqrt(np.maximum(np.diag(np.asarray(cov)), 0.0)) * layout.scales
-    return TreeFit(np.asarray(u), free, std, 1e3 * problem.sigma * np.sqrt(s2), int(steps), tuple(families))
+    noise_mm = 1e3 * problem.sigma * np.sqrt(s2)
+    return TreeFit(np.asarray(u), free, std, noise_mm, steps, tuple(families), dict(scores or {}))
+
+
+def fit_tree(problem: TreeProblem, layout: TreeLayout, families=()) -> TreeFit:
+    """Least squares over the identifiable parameters of the geometry and `families`."""
+    return _tree_fit(problem, layout, *_fit_free(problem, layout, families), families)
 
 
 @eqx.filter_jit
@@ -448,14 +589,14 @@ def _folds(free, weights, problem, u0):
     return jax.vmap(lambda w: _gauss_newton(u0, free, w[:, None], problem, POLISH))(weights)
 
 
-def cv_error_mm(problem: TreeProblem, free: np.ndarray, folds: int = 5, seed: int = 0) -> float:
+def cv_error_mm(problem: TreeProblem, free: np.ndarray, whole, folds: int = 5, seed: int = 0) -> float:
     """K-fold held-out error: the mean distance (mm) between each held-out tip's measured and
-    predicted point, every fold's fit one vmapped solve started from the fit to all samples."""
+    predicted point, every fold's fit one vmapped solve started from `whole`, the fit to all
+    samples over the `free` parameters."""
     n = problem.q.shape[0]
     fold = np.random.default_rng(seed).permutation(n) % folds
     weights = np.stack([fold != k for k in range(folds)]).astype(np.float64)
     free = jnp.asarray(free, jnp.float64)
-    whole, _ = _solve(free, 1.0, problem, jnp.zeros_like(problem.scales))
     us = np.asarray(_folds(free, jnp.asarray(weights), problem, whole))
     errors = []
     for k in range(folds):
@@ -471,15 +612,21 @@ def cross_validate_terms(
 ) -> TreeFit:
     """Forward selection of term families by K-fold held-out error: the family that lowers it
     most is kept while it lowers it by more than `gain` (relative); then the final fit."""
-    geometric = ~layout.family(*FAMILIES)
+    fits: dict[tuple[str, ...], tuple] = {}
+
+    def score(kept: tuple[str, ...]) -> float:
+        fits[kept] = _fit_free(problem, layout, kept)
+        return cv_error_mm(problem, *fits[kept][:2])
+
     kept: list[str] = []
-    scores = {"geometric": cv_error_mm(problem, identifiable(problem, layout, geometric))}
+    scores = {"geometric": score(())}
     best = scores["geometric"]
     while True:
         trial = {}
-        for fam in (f for f in families if f not in kept):
-            candidates = geometric | layout.family(*kept, fam)
-            trial[fam] = cv_error_mm(problem, identifiable(problem, layout, candidates))
+        # The mass corrections act through a compliance: tried once one is kept.
+        tried = [f for f in families if f not in kept and (f != "mass" or set(COMPLIANT) & set(kept))]
+        for fam in tried:
+            trial[fam] = score((*kept, fam))
             scores["+".join([*kept, fam])] = trial[fam]
         if not trial:
             break
@@ -488,8 +635,7 @@ def cross_validate_terms(
             break
         kept.append(fam)
         best = trial[fam]
-    fit = fit_tree(problem, layout, kept)
-    return TreeFit(fit.u, fit.free, fit.std, fit.noise_mm, fit.steps, tuple(kept), scores)
+    return _tree_fit(problem, layout, *fits[tuple(kept)], kept, scores)
 
 
 def held_by_branch(tree: KinematicTree, layout: TreeLayout, free: np.ndarray, candidates: np.ndarray) -> dict:

@@ -62,7 +62,8 @@ NEGATIVE_SIGMAS = 3.0
 class TreeCalibration:
     """A calibrated tree: `tree` (geometry: origins, zero offsets, couplings), the device's
     pose `T_device_root`, the measured `points` on the tips (tip frames, m), the `elastic`
-    compliances and `harmonic` angle errors (zero where not kept), the fit itself, what was
+    compliances with the loads' `mass` corrections, and `harmonic` angle errors (zero where not
+    kept), the fit itself, what was
     `held` by branch, and a `status` (`ok`, or `suspect` with `notes` saying why)."""
 
     tree: KinematicTree
@@ -174,8 +175,8 @@ def _verdict(
                 else ""
             )
             + (
-                "; with compliance kept, the links' centres of mass also depend on what the rigid geometry cannot see, "
-                "which this fit holds (docs/trees.md)"
+                "; with compliance kept, the robot file's centres of mass (family `mass`), or on a very soft body "
+                "where along its joint's axis a link bends, which the rigid geometry cannot place (docs/trees.md)"
                 if {"joint", "lateral"} & set(fit.families)
                 else ""
             )
@@ -263,7 +264,9 @@ def calibrate_tree(
         nominal=tree,
         T_device_root=np.asarray(T_dev),
         points=np.asarray(pts),
-        elastic=Elastic(np.asarray(elastic.joint), np.asarray(elastic.lateral)),
+        elastic=Elastic(
+            *(np.asarray(a) for a in (elastic.joint, elastic.lateral, elastic.moments, elastic.tilt))
+        ),
         harmonic=np.asarray(harmonic),
         fit=fit,
         layout=layout,

@@ -11,6 +11,7 @@ import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -146,21 +147,19 @@ def _problem(body, seed, poses, noise_mm=0.1, test=0):
 
 
 def test_tree_jacobian_matches_autodiff(body):
-    """Exact for a rigid body; with compliance the gravity torques are held fixed, which moves
-    only the columns through which the torques change, by a fraction of a percent."""
+    """Exact, for a rigid body and a sagging one: the gravity torques move with the geometry."""
     nominal, _, _, samples, _ = _problem(body, seed=4, poses=12)
     layout = tf.tree_layout(nominal)
     problem = tf.problem_of(nominal, layout, samples, np.eye(4), np.zeros((2, 3)), 0.1)
     u = jnp.asarray(np.random.default_rng(5).standard_normal(layout.size))
     rigid = u.at[layout.slices["joint"]].set(0.0).at[layout.slices["lateral"]].set(0.0)
     args = (jnp.ones(layout.size), 1.0, problem)
-    for point, tol in ((rigid, 1e-10), (0.3 * u, 2e-2)):
+    for point in (rigid, 0.3 * u):
         r, J = tf._residuals_terms(point, args)
         J_auto = jax.jacfwd(tf._residuals_autodiff)(point, args)
         assert np.abs(np.asarray(r - tf._residuals_autodiff(point, args))).max() < 1e-9
         scale = np.abs(np.asarray(J_auto)).max(axis=0) + 1e-9
-        own = ~layout.family("origin", "zero", "harmonic") if tol > 1e-6 else np.ones(layout.size, bool)
-        assert (np.abs(np.asarray(J - J_auto)).max(axis=0) / scale)[own].max() < tol
+        assert (np.abs(np.asarray(J - J_auto)).max(axis=0) / scale).max() < 1e-8
 
 
 def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path):
@@ -219,6 +218,31 @@ def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path)
     assert np.abs(np.asarray(tip_poses(back, q)) - np.asarray(tip_poses(result.tree, q))).max() < 1e-12
     with pytest.raises(Exception, match="exists|overwrite"):
         save_tree_calibration(result, tmp_path / "out", source_urdf=body)
+
+
+def test_wrong_centres_of_mass_are_corrected_where_the_sag_sees_them(body):
+    """The robot file's centres of mass 3 cm off (1 sigma per axis): the sag then follows other
+    torques than the file's, and a fit of the compliances alone absorbs it only in part; the
+    `mass` family's first-moment corrections take the held-out error back to the noise."""
+    nominal = load_urdf_tree(body, tips=HANDS)
+    rng = np.random.default_rng(8)
+    true, elastic = perturb_tree(nominal, rng), elastic_truth(nominal, rng)
+    centres = np.asarray(true.centres) + 0.03 * rng.standard_normal(np.asarray(true.centres).shape)
+    true = eqx.tree_at(lambda t: t.centres, true, jnp.asarray(centres))
+    T, points = np.eye(4), np.array([[0.02, 0.0, -0.01]] * 2)
+    T[:3, 3] = [2.0, 0.1, -0.4]
+    q = random_poses(actuated_limits(body, nominal), 260, rng)
+    samples = tree_tracker_samples(true, q, points, T, rng, noise_mm=0.1, elastic=elastic)
+    fit, test = samples.subset(slice(0, 200)), samples.subset(slice(200, None))
+    error = {}
+    for families in (("joint", "lateral"), ("joint", "lateral", "mass")):
+        result = calibrate_tree(
+            nominal, fit, noise_mm=0.1, points=points, families=families, show_progress=False
+        )
+        error[families[-1]] = 1e3 * np.linalg.norm(result.predict(test.q) - test.truth, axis=-1).mean()
+    assert result.status == "ok" and result.fit.noise_mm < 0.12, result.notes
+    assert (result.fit.free & result.layout.family("mass")).sum() >= 20
+    assert error["mass"] < 0.11 and error["lateral"] > 2 * error["mass"], error
 
 
 def test_tree_samples_from_csv_and_bad_input_named(body, tmp_path):
