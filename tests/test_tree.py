@@ -7,6 +7,7 @@ body; the hand-written Jacobian of the tree fit against autodiff; the fit agains
 body bent by gravity, whose truth it must recover within its standard deviations.
 """
 
+import dataclasses
 import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -23,6 +24,7 @@ from jaxcal._dh import dh_table, table_forward_kinematics
 from jaxcal._kinematics import forward_kinematics
 from jaxcal._npgeom import rotvec_to_matrix
 from jaxcal._tree import branch, tip_poses, tree_frames
+from jaxcal._treefit import TreeSamples
 from jaxcal.cli import main
 from jaxcal.io.urdf import load_urdf
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree, save_urdf_tree
@@ -33,7 +35,14 @@ from jaxcal.sim.humanoid import (
     tree_tracker_samples,
     upper_body_urdf,
 )
-from jaxcal.trees import calibrate_tree, load_tree_dataset, read_tree_samples, save_tree_calibration
+from jaxcal.trees import (
+    calibrate_tree,
+    load_tree_calibration,
+    load_tree_dataset,
+    read_tree_samples,
+    save_tree_calibration,
+    write_tree_dataset,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 PANDA_HAND = ROOT / "data" / "robots" / "trees" / "panda_arm_hand.urdf"
@@ -216,6 +225,17 @@ def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path)
     back = load_urdf_tree(tmp_path / "out" / "calibrated.urdf", tips=HANDS)
     q = jnp.asarray(test.q[0])
     assert np.abs(np.asarray(tip_poses(back, q)) - np.asarray(tip_poses(result.tree, q))).max() < 1e-12
+    # The folder read back predicts what the calibration did, a once-per-turn harmonic's phase
+    # (which the written origins' zero offsets shift) included.
+    harmonic = result.layout.family("harmonic")
+    fit = dataclasses.replace(
+        result.fit, u=np.where(harmonic, 0.5, result.fit.u), free=result.fit.free | harmonic
+    )
+    wobbly = dataclasses.replace(result, fit=fit)
+    save_tree_calibration(wobbly, tmp_path / "wobbly", source_urdf=body)
+    read = load_tree_calibration(tmp_path / "wobbly")
+    assert np.abs(read.predict(test.q) - wobbly.predict(test.q)).max() < 1e-9
+    assert np.abs(wobbly.predict(test.q) - result.predict(test.q)).max() > 1e-5  # the harmonic counts
     with pytest.raises(Exception, match="exists|overwrite"):
         save_tree_calibration(result, tmp_path / "out", source_urdf=body)
 
@@ -269,7 +289,8 @@ def test_tree_samples_from_csv_and_bad_input_named(body, tmp_path):
 
 def test_tree_dataset_from_the_command_line(tmp_path, capsys):
     """`jaxcal simulate-tracker --robot upper_body` writes a tree dataset; `jaxcal calibrate` on it
-    writes the tree's outputs and judges them against the simulator's held-out truth."""
+    writes the tree's outputs and judges them against the simulator's held-out truth; `jaxcal verify`
+    checks them on samples they were not fitted on."""
     ds, out = tmp_path / "body", tmp_path / "out"
     code = main(["simulate-tracker", "--robot", "upper_body", "--out", str(ds), "--noise-um", "100",
                  "--config", "random-poses=150", "--seed", "3", "--quiet"])  # fmt: skip
@@ -283,6 +304,25 @@ def test_tree_dataset_from_the_command_line(tmp_path, capsys):
     assert error < 0.08, printed  # geometry alone leaves millimetres (the test above)
     assert {p.name for p in out.iterdir()} >= {"calibrated.urdf", "tree_result.json", "left_hand_mdh.json"}
     assert {p.name: p.read_bytes() for p in ds.iterdir() if p.is_file()} == before
+    # `jaxcal verify` on samples the calibration was not fitted on: the simulator's held-out poses
+    # with the tracker's noise hold; with the right hand's reflector moved by 0.5 mm they do not.
+    truth, loaded = json.loads((ds / "truth.json").read_text()), load_tree_dataset(ds)
+    q, points = np.asarray(truth["test"]["q"]), np.asarray(truth["test"]["points_m"])
+    noisy = points + 1e-4 * np.random.default_rng(0).standard_normal(points.shape)
+    for name, moved in (("same", 0.0), ("moved", 5e-4)):
+        write_tree_dataset(
+            tmp_path / name, urdf_text=(ds / "robot.urdf").read_text(), tips=doc["tips"], tree=loaded.tree,
+            samples=TreeSamples(q, noisy + [[0.0, 0.0, 0.0], [moved, 0.0, 0.0]], np.ones(points.shape[:2], bool)),
+            noise_mm=0.1, points=loaded.points,
+        )  # fmt: skip
+    figures = tmp_path / "verify.json"
+    assert main(["verify", str(out), str(tmp_path / "same"), "--json", str(figures)]) == 0
+    v = json.loads(figures.read_text())
+    assert v["holds"] and 0.8 < v["ratio"] < 1.3, v
+    for tip in ("left_hand", "right_hand"):
+        assert v["tips"][tip]["calibrated_mean_mm"] < 0.25 < 1.0 < v["tips"][tip]["nominal_mean_mm"]
+    assert main(["verify", str(out), str(tmp_path / "moved")]) == 3
+    assert "does NOT hold" in capsys.readouterr().out
     # Malformed dataset files are refused naming the file and the field (exit 2, nothing written).
     (ds / "tree.json").write_text(json.dumps(doc | {"noise_mm": 0}))
     with pytest.raises(ValueError, match=r"tree.json.*'noise_mm' must be the device's positive noise"):

@@ -2,6 +2,7 @@
 
 import json
 import sys
+from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
@@ -35,6 +36,8 @@ def cmd_verify(args) -> int:
     inputs = [args.result, args.dataset]
     check_output(args.json, inputs, args.overwrite, "--json")
     check_output(args.plot, inputs, args.overwrite, "--plot")
+    if (Path(args.result) / "tree_result.json").is_file():
+        return _verify_tree(args)
     if args.cv == 1 or args.cv < 0:
         raise ValueError(f"--cv {args.cv}: give K >= 2 folds, or 0 for none")
     cv = f", with its {args.cv}-fold cross-validation" if args.cv else ""
@@ -95,3 +98,40 @@ def cmd_verify(args) -> int:
             plot_verification(v, tmp)
         console.print(f"wrote {args.plot}")
     return v.exit_code
+
+
+def _verify_tree(args) -> int:
+    """A tree calibration's folder against a tree dataset of the same robot (`jaxcal.trees.verify_tree`)."""
+    for flag, given in (("--cv", args.cv), ("--plot", args.plot)):
+        if given:
+            raise ValueError(f"{flag}: not available for a tree calibration ({args.result}); use --json")
+    from ..trees import HOLDS_FACTOR, is_tree_dataset, load_tree_dataset, verify_tree
+
+    if not is_tree_dataset(args.dataset):
+        raise ValueError(
+            f"{args.dataset}: {args.result} is a tree calibration; give a tree dataset (a folder with tree.json)"
+        )
+    v = verify_tree(args.result, load_tree_dataset(args.dataset))
+    console = Console(width=max(Console().width, 110))
+    t = Table(title=f"jaxcal verify: {args.result} on {args.dataset}")
+    for col in ("tip", "samples", "calibrated mean mm", "RMS mm", "max mm", "robot file mean mm"):
+        t.add_column(col, justify="left" if col == "tip" else "right")
+    for tip, f in v["tips"].items():
+        t.add_row(
+            tip,
+            str(f["samples"]),
+            *(
+                f"{f[k]:.4f}"
+                for k in ("calibrated_mean_mm", "calibrated_rms_mm", "calibrated_max_mm", "nominal_mean_mm")
+            ),
+        )
+    console.print(t)
+    verdict = "holds on this dataset" if v["holds"] else "does NOT hold on this dataset (exit 3)"
+    console.print(
+        f"the calibration {verdict}: residuals {v['rms_per_axis_mm']:.4f} mm RMS per axis against the fit's "
+        f"{v['fit_noise_mm']:.4f} mm (ratio {v['ratio']:.2f}, limit {HOLDS_FACTOR:g})"
+    )
+    if args.json:
+        write_text_atomic(args.json, json.dumps(v, indent=1))
+        console.print(f"wrote {args.json}")
+    return 0 if v["holds"] else 3
