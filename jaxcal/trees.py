@@ -19,12 +19,10 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from ._dh import dh_table
-from ._kinematics import joint_motion
 from ._npgeom import kabsch
 from ._progress import working
 from ._tree import KinematicTree, branch, tip_poses
@@ -36,7 +34,6 @@ from ._treefit import (
     TreeSamples,
     body_of,
     cross_validate_terms,
-    deflected_tips,
     fit_tree,
     held_by_branch,
     predict,
@@ -48,14 +45,11 @@ from .io.dh_tables import dh_table_json
 from .io.urdf_tree import actuated_limits, load_urdf_tree, save_urdf_tree
 
 __all__ = [
-    "CalibratedTree",
     "TreeCalibration",
     "TreeSamples",
     "calibrate_tree",
-    "load_tree_calibration",
     "read_tree_samples",
     "save_tree_calibration",
-    "verify_tree",
 ]
 
 #: The estimated noise may exceed the stated one by this factor before the result is suspect.
@@ -109,7 +103,9 @@ def initial_device_pose(tree: KinematicTree, samples: TreeSamples, points: np.nd
     return kabsch(model[samples.measured], samples.points[samples.measured])
 
 
-def _checked(tree: KinematicTree, samples: TreeSamples, noise_mm: float, limits, points) -> TreeSamples:
+def checked_samples(
+    tree: KinematicTree, samples: TreeSamples, noise_mm: float, limits, points
+) -> TreeSamples:
     """`samples` as float and bool arrays, refused naming the sample (0-based), joint or tip when
     they cannot be the tree's: shapes, non-finite numbers, poses outside the limits (a
     continuous joint has none), too few measurements for what is fitted."""
@@ -240,7 +236,7 @@ def calibrate_tree(
         raise ValueError(
             f"families must be a list of {list(FAMILIES)} (or None), got the string {families!r}"
         )
-    samples = _checked(tree, samples, noise_mm, limits, points)
+    samples = checked_samples(tree, samples, noise_mm, limits, points)
     device_tip = -1
     if device_on is not None:
         if device_on not in tree.tip_names:
@@ -504,140 +500,6 @@ def _json(result: TreeCalibration) -> dict:
             }
             for j in tree.coupled
         },
-    }
-
-
-@dataclass(frozen=True)
-class CalibratedTree:
-    """A tree calibration read back from the folder `save_tree_calibration` wrote
-    (`load_tree_calibration`): the calibrated tree, its loads and terms, the device and the
-    measured points, and the fit's verdict and residual noise (mm per axis)."""
-
-    tree: KinematicTree
-    elastic: Elastic
-    harmonic: np.ndarray
-    points: np.ndarray
-    T_device_root: np.ndarray
-    device_on: str | None
-    noise_mm: float
-    status: str
-
-    def predict(self, q) -> np.ndarray:
-        """The measured points predicted at commanded positions `q` `(n, actuated)`, device frame."""
-        tip = self.tree.tip_names.index(self.device_on) if self.device_on else -1
-        return np.asarray(
-            deflected_tips(
-                self.tree, self.elastic, jnp.asarray(q, jnp.float64), self.points, self.T_device_root,
-                jnp.asarray(self.harmonic), tip,
-            )
-        )  # fmt: skip
-
-
-def load_tree_calibration(folder) -> CalibratedTree:
-    """Read a tree calibration's folder (`calibrated.urdf` and `tree_result.json`) back into a
-    model that predicts what the calibration predicted. Raises `ValueError` naming the file and
-    field of what is missing or malformed."""
-    folder = Path(folder)
-    path = folder / RESULT_FILE
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"tree calibration {shown(path)!r} cannot be read: {e}") from None
-    if not isinstance(doc, dict):
-        raise ValueError(f"tree calibration {shown(path)!r}: not a JSON object")
-    points = _field(doc, "tip_points_m", path, dict)
-    zero = _field(doc, "zero_offsets_rad", path, dict)
-    tree = load_urdf_tree(
-        folder / "calibrated.urdf", base_link=_field(doc, "base_link", path, str), tips=list(points)
-    )
-    # calibrated.urdf holds each actuated joint's zero offset in its origin: turned back into the
-    # offset, so that a harmonic's phase is the fit's.
-    offsets = np.array(
-        [float(zero.get(n, 0.0)) if j not in tree.coupled else 0.0 for j, n in enumerate(tree.joint_names)]
-    )
-    T = np.stack([
-        np.asarray(T0) @ np.asarray(joint_motion(kind, a, -z))
-        for T0, kind, a, z in zip(np.asarray(tree.T_parent_joint), tree.joint_types, np.asarray(tree.axis), offsets)
-    ])  # fmt: skip
-    tree = eqx.tree_at(
-        lambda t: (t.T_parent_joint, t.zero_offset), tree, (jnp.asarray(T), jnp.asarray(offsets))
-    )
-    values = {n: v["value"] for n, v in _field(doc, "parameters", path, dict).items()}
-    n, links = tree.num_joints, tree.link_names
-
-    def of(names) -> np.ndarray:
-        return np.array([values.get(name, 0.0) for name in names], np.float64)
-
-    elastic = Elastic(
-        of(f"{j}.compliance" for j in tree.joint_names),
-        of(f"{j}.lateral_compliance.{k}" for j in tree.joint_names for k in "12").reshape(n, 2),
-        of(f"{link}.moment.{a}" for link in links for a in "xyz").reshape(n + 1, 3),
-        of(f"gravity.tilt.{a}" for a in "xy"),
-    )
-    return CalibratedTree(
-        tree=tree,
-        elastic=elastic,
-        harmonic=of(f"{j}.harmonic.{k}" for j in tree.joint_names for k in ("cos", "sin")).reshape(n, 2),
-        points=np.asarray(list(points.values()), np.float64),
-        T_device_root=np.asarray(_field(doc, "T_device", path, list), np.float64),
-        device_on=doc.get("device_on"),
-        noise_mm=float(_field(doc, "noise_mm", path, float)),
-        status=_field(doc, "status", path, str),
-    )
-
-
-#: A tree calibration holds on new samples while their residuals' RMS per axis stays within this
-#: factor of the fit's own residual noise (the parameters' uncertainty adds a few percent).
-HOLDS_FACTOR = 1.5
-
-
-def verify_tree(folder, dataset: TreeDataset) -> dict:
-    """A tree calibration (`folder`) against samples it was not fitted on (`dataset`, of the same
-    robot and device): per tip, the measured points' distance (mm) from the calibration's
-    predictions and from the robot file's (rigid, in the calibrated device frame), and whether it
-    holds (`HOLDS_FACTOR`)."""
-    model = load_tree_calibration(folder)
-    samples = dataset.samples
-    if (
-        dataset.tree.tip_names != model.tree.tip_names
-        or dataset.tree.actuated_names != model.tree.actuated_names
-    ):
-        raise ValueError(
-            f"dataset {shown(dataset.folder)!r} measures tips {list(dataset.tree.tip_names)} of joints "
-            f"{list(dataset.tree.actuated_names)}; the calibration {shown(folder)!r} has tips "
-            f"{list(model.tree.tip_names)} and joints {list(model.tree.actuated_names)}"
-        )
-    rigid = Elastic(np.zeros_like(model.elastic.joint), np.zeros_like(model.elastic.lateral))
-    device_tip = model.tree.tip_names.index(model.device_on) if model.device_on else -1
-    nominal = np.asarray(
-        deflected_tips(
-            dataset.tree, rigid, jnp.asarray(samples.q), model.points, model.T_device_root, None, device_tip
-        )
-    )
-    calibrated = model.predict(samples.q)
-    tips = {}
-    for t, name in enumerate(model.tree.tip_names):
-        seen = samples.measured[:, t]
-        if not seen.any():
-            continue
-        d = {
-            k: 1e3 * np.linalg.norm(p[seen, t] - samples.points[seen, t], axis=-1)
-            for k, p in (("calibrated", calibrated), ("nominal", nominal))
-        }
-        tips[name] = {"samples": int(seen.sum())} | {
-            f"{k}_{stat}_mm": float(f(v))
-            for k, v in d.items()
-            for stat, f in (("mean", np.mean), ("rms", lambda x: np.sqrt(np.mean(x**2))), ("max", np.max))
-        }
-    residual = (calibrated - samples.points)[samples.measured]
-    rms_axis = 1e3 * float(np.sqrt(np.mean(residual**2)))
-    return {
-        "tips": tips,
-        "rms_per_axis_mm": rms_axis,
-        "fit_noise_mm": model.noise_mm,
-        "ratio": rms_axis / model.noise_mm,
-        "holds": bool(rms_axis <= HOLDS_FACTOR * model.noise_mm),
-        "calibration_status": model.status,
     }
 
 

@@ -9,6 +9,7 @@ body bent by gravity, whose truth it must recover within its standard deviations
 
 import dataclasses
 import json
+import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -35,9 +36,9 @@ from jaxcal.sim.humanoid import (
     tree_tracker_samples,
     upper_body_urdf,
 )
+from jaxcal.tree_verification import load_tree_calibration
 from jaxcal.trees import (
     calibrate_tree,
-    load_tree_calibration,
     load_tree_dataset,
     read_tree_samples,
     save_tree_calibration,
@@ -323,6 +324,20 @@ def test_tree_dataset_from_the_command_line(tmp_path, capsys):
         assert v["tips"][tip]["calibrated_mean_mm"] < 0.25 < 1.0 < v["tips"][tip]["nominal_mean_mm"]
     assert main(["verify", str(out), str(tmp_path / "moved")]) == 3
     assert "does NOT hold" in capsys.readouterr().out
+    # A damaged result file is refused naming the field (exit 2), never taken for a changed robot.
+    result = json.loads((out / "tree_result.json").read_text())
+    compliance = next(k for k in result["parameters"] if k.endswith(".compliance"))
+    typo = dict(result["parameters"])
+    typo[compliance.replace("compliance", "complianse")] = typo.pop(compliance)
+    for damage, field in (
+        ({"T_device": np.eye(3).tolist()}, "T_device"),
+        ({"parameters": typo}, "complianse"),
+        ({"parameters": result["parameters"] | {compliance: {"value": "soft"}}}, compliance),
+    ):
+        shutil.copytree(out, tmp_path / "damaged", dirs_exist_ok=True)
+        (tmp_path / "damaged" / "tree_result.json").write_text(json.dumps(result | damage))
+        assert main(["verify", str(tmp_path / "damaged"), str(tmp_path / "same")]) == 2
+        assert field in capsys.readouterr().err
     # Malformed dataset files are refused naming the file and the field (exit 2, nothing written).
     (ds / "tree.json").write_text(json.dumps(doc | {"noise_mm": 0}))
     with pytest.raises(ValueError, match=r"tree.json.*'noise_mm' must be the device's positive noise"):

@@ -36,7 +36,10 @@ def cmd_verify(args) -> int:
     inputs = [args.result, args.dataset]
     check_output(args.json, inputs, args.overwrite, "--json")
     check_output(args.plot, inputs, args.overwrite, "--plot")
-    if (Path(args.result) / "tree_result.json").is_file():
+    result = Path(args.result)
+    if result.name == "tree_result.json" or (
+        (result / "calibrated.urdf").is_file() and not (result / "result.json").is_file()
+    ):
         return _verify_tree(args)
     if args.cv == 1 or args.cv < 0:
         raise ValueError(f"--cv {args.cv}: give K >= 2 folds, or 0 for none")
@@ -105,7 +108,8 @@ def _verify_tree(args) -> int:
     for flag, given in (("--cv", args.cv), ("--plot", args.plot)):
         if given:
             raise ValueError(f"{flag}: not available for a tree calibration ({args.result}); use --json")
-    from ..trees import HOLDS_FACTOR, is_tree_dataset, load_tree_dataset, verify_tree
+    from ..tree_verification import HOLDS_FACTOR, verify_tree
+    from ..trees import is_tree_dataset, load_tree_dataset
 
     if not is_tree_dataset(args.dataset):
         raise ValueError(
@@ -131,6 +135,8 @@ def _verify_tree(args) -> int:
         f"the calibration {verdict}: residuals {v['rms_per_axis_mm']:.4f} mm RMS per axis against the fit's "
         f"{v['fit_noise_mm']:.4f} mm (ratio {v['ratio']:.2f}, limit {HOLDS_FACTOR:g})"
     )
+    for note in v["notes"]:
+        console.print(f"[yellow]note:[/yellow] {note}")
     if args.json:
         write_text_atomic(args.json, json.dumps(v, indent=1))
         console.print(f"wrote {args.json}")
