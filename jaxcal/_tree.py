@@ -204,16 +204,17 @@ def tip_poses(tree: KinematicTree, q: Float[Array, " actuated"]) -> Float[Array,
 
 
 def gravity_torques(
-    tree: KinematicTree, frames: Float[Array, "links 4 4"], gravity=GRAVITY, moments=None
+    tree: KinematicTree, frames: Float[Array, "links 4 4"], gravity=GRAVITY, moments=None, masses=None
 ) -> Float[Array, "joints 3"]:
     """The torque vector (N m, root frame) that gravity on every link below joint $j$ puts about
     joint $j$'s origin, for the links' poses `frames`; the joint's own link included. `moments`
     `(links, 3)`: corrections to the links' first moments of mass (kg m, link frames; a centre
     of mass moved by $\\delta c$ is $m\\,\\delta c$), which add $R_l \\delta_l \\times g$ to every
-    joint above link $l$."""
+    joint above link $l$; `masses` `(links,)`: corrections to the links' masses (kg, at their
+    centres of mass)."""
     g = jnp.asarray(gravity, frames.dtype)
     centres = jnp.einsum("lab,lb->la", frames[:, :3, :3], tree.centres) + frames[:, :3, 3]
-    forces = tree.masses[:, None] * g
+    forces = (tree.masses if masses is None else tree.masses + masses)[:, None] * g
     below = jnp.asarray(descendants(tree), frames.dtype)
     origins = frames[1:, :3, 3]  # joint j's frame sits at its child link's origin
     arms = centres[None, :, :] - origins[:, None, :]

@@ -14,8 +14,8 @@ multipliers, and three families of non-geometric terms (`FAMILIES`):
   torque's components about them;
 * `harmonic`: a once-per-turn angle error $c_j \\cos\\theta_j + s_j \\sin\\theta_j$ (an eccentric
   encoder);
-* `mass`: corrections to the robot file's masses where the sag sees them: each link's first
-  moment of mass (its centre of mass times its mass) and gravity's tilt against the root. They
+* `mass`: corrections to the robot file's masses where the sag sees them: each link's mass and
+  first moment of mass (its centre of mass times its mass), and gravity's tilt against the root. They
   act only through the compliances, so they are tried only once a compliance is kept.
 
 Parameters are scaled by a typical size each (`TreeLayout.scales`) and the residuals whitened by
@@ -71,12 +71,14 @@ class Elastic(eqx.Module):
     """Compliances (rad per N m): `joint` about each joint's axis, `lateral` about the two
     axes normal to it (`jaxcal._tree.normal_axes`); the loads' corrections: `moments`, the
     links' first moments of mass (kg m, link frames, `jaxcal._tree.gravity_torques`), and
-    `tilt`, gravity's tilt about the root's x and y (rad); None: the robot file's."""
+    `tilt`, gravity's tilt about the root's x and y (rad), and `masses`, the links' masses (kg,
+    added at their centres of mass); None: the robot file's."""
 
     joint: Float[Array, " joints"]
     lateral: Float[Array, "joints 2"]
     moments: Float[Array, "links 3"] | None = None
     tilt: Float[Array, "2"] | None = None
+    masses: Float[Array, " links"] | None = None
 
 
 def _loads(tree, rigid, elastic: Elastic):
@@ -85,7 +87,7 @@ def _loads(tree, rigid, elastic: Elastic):
     g = jnp.asarray(GRAVITY, rigid.dtype)
     if elastic.tilt is not None:
         g = so3_exp(jnp.concatenate([elastic.tilt, jnp.zeros(1, rigid.dtype)])) @ g
-    tau = gravity_torques(tree, rigid, g, elastic.moments)
+    tau = gravity_torques(tree, rigid, g, elastic.moments, elastic.masses)
     R = rigid[1:, :3, :3]
     about = jnp.einsum("jab,jb,ja->j", R, tree.axis, tau)
     return about, jnp.einsum("jka,jba,jb->jk", normal_axes(tree.axis), R, tau)
@@ -203,10 +205,16 @@ def tree_layout(tree: KinematicTree) -> TreeLayout:
         "harmonic",
         [(f"{n}.harmonic.{k}", 1e-3, j) for j, n in enumerate(tree.joint_names) for k in ("cos", "sin")],
     )
+    links = list(zip(tree.link_names, np.asarray(tree.masses).tolist()))
     add(
         "mass",
         [(f"gravity.tilt.{a}", 3e-3, -1) for a in "xy"]
-        + [(f"{link}.moment.{a}", 1e-2, j - 1) for j, link in enumerate(tree.link_names) for a in "xyz"],
+        + [
+            (f"{link}.moment.{a}", max(2e-2 * m, 1e-3), j - 1)
+            for j, (link, m) in enumerate(links)
+            for a in "xyz"
+        ]
+        + [(f"{link}.mass", max(0.05 * m, 0.05), j - 1) for j, (link, m) in enumerate(links)],
     )
     names, scales, groups, joints = zip(*rows)
     rank = {"device": 0, "point": 1, "zero": 2, "origin": 2, "coupling": 3}
@@ -275,7 +283,8 @@ def body_of(u: Float[Array, " p"], problem: TreeProblem):
         lambda t: (t.T_parent_joint, t.zero_offset, t.coupling), tree, (T, tree.zero_offset + part["zero"], C)
     )
     mass = part["mass"]
-    elastic = Elastic(part["joint"], part["lateral"].reshape(n, 2), mass[2:].reshape(n + 1, 3), mass[:2])
+    moments, masses = mass[2 : 2 + 3 * (n + 1)].reshape(n + 1, 3), mass[2 + 3 * (n + 1) :]
+    elastic = Elastic(part["joint"], part["lateral"].reshape(n, 2), moments, mass[:2], masses)
     points = problem.points0 + part["point"].reshape(-1, 3)
     return (
         tree,
@@ -325,9 +334,10 @@ def _load_columns(tree, elastic, rigid, theta0, dh, C0, couplings, q):
     tilt = jnp.concatenate([elastic.tilt, jnp.zeros(1, dtype)])
     g0 = jnp.asarray(GRAVITY, dtype)
     g = so3_exp(tilt) @ g0
-    M = tree.masses[:, None] * (jnp.einsum("lab,lb->la", R, tree.centres) + pos)
-    M = M + jnp.einsum("lab,lb->la", R, elastic.moments)
-    mass_below, B = below @ tree.masses, below @ M
+    centres = jnp.einsum("lab,lb->la", R, tree.centres) + pos
+    m = tree.masses + elastic.masses
+    M = m[:, None] * centres + jnp.einsum("lab,lb->la", R, elastic.moments)
+    mass_below, B = below @ m, below @ M
     A = B - mass_below[:, None] * pos[1:]
     tau = jnp.cross(A, g)
     F = jnp.einsum("jab,jbc->jac", rigid[jnp.asarray(tree.parent) + 1], tree.T_parent_joint)
@@ -361,6 +371,7 @@ def _load_columns(tree, elastic, rigid, theta0, dh, C0, couplings, q):
             jnp.stack([angle * jnp.cos(theta0), angle * jnp.sin(theta0)], axis=-1).reshape(n, 3, 2 * n),
             jnp.einsum("juc,jck->juk", units, jnp.cross(A[:, :, None], dG[None], axis=1)),
             moments.reshape(n, 3, 3 * (n + 1)),
+            jnp.einsum("juv,jl,jlv->jul", units, below, jnp.cross(centres[None] - pos[1:, None], g)),
         ],
         axis=-1,
     )

@@ -138,6 +138,7 @@ def load_tree_calibration(folder) -> CalibratedTree:
         of(f"{j}.lateral_compliance.{k}" for j in tree.joint_names for k in "12").reshape(n, 2),
         of(f"{link}.moment.{a}" for link in tree.link_names for a in "xyz").reshape(n + 1, 3),
         of(f"gravity.tilt.{a}" for a in "xy"),
+        of(f"{link}.mass" for link in tree.link_names),
     )
     device_on = doc.get("device_on")
     if device_on is not None and device_on not in tree.tip_names:

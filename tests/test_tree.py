@@ -242,14 +242,17 @@ def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path)
 
 
 def test_wrong_centres_of_mass_are_corrected_where_the_sag_sees_them(body):
-    """The robot file's centres of mass 3 cm off (1 sigma per axis): the sag then follows other
-    torques than the file's, and a fit of the compliances alone absorbs it only in part; the
-    `mass` family's first-moment corrections take the held-out error back to the noise."""
+    """The robot file's centres of mass 3 cm off (1 sigma per axis) and three of its heaviest
+    links' masses 30 % low: the sag then follows other torques than the file's, and a fit of the
+    compliances alone absorbs it only in part (and says `ok`); the `mass` family's corrections
+    take the held-out error back to the noise."""
     nominal = load_urdf_tree(body, tips=HANDS)
     rng = np.random.default_rng(8)
     true, elastic = perturb_tree(nominal, rng), elastic_truth(nominal, rng)
     centres = np.asarray(true.centres) + 0.03 * rng.standard_normal(np.asarray(true.centres).shape)
-    true = eqx.tree_at(lambda t: t.centres, true, jnp.asarray(centres))
+    masses = np.asarray(true.masses).copy()
+    masses[np.argsort(masses)[-6:][::2]] *= 1.3
+    true = eqx.tree_at(lambda t: (t.centres, t.masses), true, (jnp.asarray(centres), jnp.asarray(masses)))
     T, points = np.eye(4), np.array([[0.02, 0.0, -0.01]] * 2)
     T[:3, 3] = [2.0, 0.1, -0.4]
     q = random_poses(actuated_limits(body, nominal), 260, rng)
@@ -263,7 +266,7 @@ def test_wrong_centres_of_mass_are_corrected_where_the_sag_sees_them(body):
         error[families[-1]] = 1e3 * np.linalg.norm(result.predict(test.q) - test.truth, axis=-1).mean()
     assert result.status == "ok" and result.fit.noise_mm < 0.12, result.notes
     assert (result.fit.free & result.layout.family("mass")).sum() >= 20
-    assert error["mass"] < 0.11 and error["lateral"] > 2 * error["mass"], error
+    assert error["mass"] < 0.09 and error["lateral"] > 3 * error["mass"], error
 
 
 def test_tree_samples_from_csv_and_bad_input_named(body, tmp_path):
