@@ -9,7 +9,6 @@ not a finite number are refused by name), so a damaged file is never taken for a
 `verify_tree` compares the model's predictions with new samples, per tip.
 """
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +21,7 @@ from ._tree import KinematicTree
 from ._treefit import Elastic, deflected_tips, tree_layout
 from .io._files import shown
 from .io.urdf_tree import load_urdf_tree
-from .trees import NOISE_FACTOR, TreeDataset, checked_samples
+from .trees import NOISE_FACTOR, TreeDataset, checked_samples, read_json_object
 
 __all__ = ["CalibratedTree", "load_tree_calibration", "verify_tree"]
 
@@ -52,10 +51,15 @@ class CalibratedTree:
         tip = self.tree.tip_names.index(self.device_on) if self.device_on else -1
         return np.asarray(
             deflected_tips(
-                self.tree, self.elastic, jnp.asarray(q, jnp.float64), self.points, self.T_device_root,
-                jnp.asarray(self.harmonic), tip,
+                self.tree,
+                self.elastic,
+                jnp.asarray(q, jnp.float64),
+                self.points,
+                self.T_device_root,
+                jnp.asarray(self.harmonic),
+                tip,
             )
-        )  # fmt: skip
+        )
 
 
 def _numbers(value, shape: tuple, path: Path, field: str) -> np.ndarray:
@@ -85,12 +89,7 @@ def load_tree_calibration(folder) -> CalibratedTree:
     folder = Path(folder)
     folder = folder.parent if folder.name == RESULT_FILE else folder
     path = folder / RESULT_FILE
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"tree calibration {shown(path)!r} cannot be read: {e}") from None
-    if not isinstance(doc, dict):
-        raise ValueError(f"tree calibration {shown(path)!r}: not a JSON object")
+    doc = read_json_object(path, "tree calibration")
     points, zero = _object(doc, "tip_points_m", path), _object(doc, "zero_offsets_rad", path)
     base = doc.get("base_link")
     if not isinstance(base, str):
@@ -105,14 +104,22 @@ def load_tree_calibration(folder) -> CalibratedTree:
         )
     # calibrated.urdf holds each actuated joint's zero offset in its origin: turned back into the
     # offset, so that a harmonic's phase is the fit's.
-    offsets = np.array([
-        0.0 if j in tree.coupled else float(_numbers(zero.get(n, 0.0), (), path, f"zero_offsets_rad[{n!r}]"))
-        for j, n in enumerate(tree.joint_names)
-    ])  # fmt: skip
-    T = np.stack([
-        np.asarray(T0) @ np.asarray(joint_motion(kind, a, -z))
-        for T0, kind, a, z in zip(np.asarray(tree.T_parent_joint), tree.joint_types, np.asarray(tree.axis), offsets)
-    ])  # fmt: skip
+    offsets = np.array(
+        [
+            0.0
+            if j in tree.coupled
+            else float(_numbers(zero.get(n, 0.0), (), path, f"zero_offsets_rad[{n!r}]"))
+            for j, n in enumerate(tree.joint_names)
+        ]
+    )
+    T = np.stack(
+        [
+            np.asarray(T0) @ np.asarray(joint_motion(kind, a, -z))
+            for T0, kind, a, z in zip(
+                np.asarray(tree.T_parent_joint), tree.joint_types, np.asarray(tree.axis), offsets
+            )
+        ]
+    )
     tree = eqx.tree_at(
         lambda t: (t.T_parent_joint, t.zero_offset), tree, (jnp.asarray(T), jnp.asarray(offsets))
     )

@@ -381,6 +381,17 @@ def _field(doc: dict, name: str, path: Path, kind, required: bool = True, defaul
     return value
 
 
+def read_json_object(path: Path, what: str) -> dict:
+    """The JSON object in `path` (`what` it is, for the errors), or a `ValueError` naming it."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{what} {shown(path)!r} cannot be read: {e}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{what} {shown(path)!r}: not a JSON object")
+    return doc
+
+
 def load_tree_dataset(folder) -> TreeDataset:
     """Read a tree dataset folder: `tree.json` names the robot file (`robot`), the measured
     `tips`, the `samples` CSV (default `samples.csv`, `read_tree_samples`' format), the device's
@@ -390,12 +401,7 @@ def load_tree_dataset(folder) -> TreeDataset:
     `ValueError` naming the file and field of what is missing or malformed."""
     folder = Path(folder)
     path = folder / TREE_FILE
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"tree dataset {shown(path)!r} cannot be read: {e}") from None
-    if not isinstance(doc, dict):
-        raise ValueError(f"tree dataset {shown(path)!r}: not a JSON object")
+    doc = read_json_object(path, "tree dataset")
     urdf = folder / _field(doc, "robot", path, str)
     tips = _field(doc, "tips", path, list)
     if not tips or not all(isinstance(t, str) for t in tips):
