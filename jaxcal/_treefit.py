@@ -6,7 +6,7 @@ one sample may carry several tips. The model of tip $t$ at pose $i$ is
 $$ y_{it} = T_{dev,root} \\exp(\\xi_{dev})\\, T_{root,tip_t}(q_i;\\ \\text{tree}, \\text{elastic})\\, (p_t + \\delta p_t), $$
 
 with every joint origin corrected by a twist, every joint's zero offset, each coupled joint's
-multipliers, and three families of non-geometric terms (`FAMILIES`):
+multipliers, and four families of non-geometric terms (`FAMILIES`):
 
 * `joint`: joint compliance, $\\delta\\theta_j = k_j\\, \\tau_j \\cdot a_j$, the gravity torque
   $\\tau_j$ of every link below joint $j$ (both arms load the torso: `jaxcal._tree.gravity_torques`);

@@ -327,6 +327,24 @@ def test_tree_dataset_from_the_command_line(tmp_path, capsys):
         assert v["tips"][tip]["calibrated_mean_mm"] < 0.25 < 1.0 < v["tips"][tip]["nominal_mean_mm"]
     assert main(["verify", str(out), str(tmp_path / "moved")]) == 3
     assert "does NOT hold" in capsys.readouterr().out
+    # The result file's own path; the tips in another order (or only some of them); joints in
+    # degrees refused with a hint; a folder without its tree_result.json refused naming it.
+    assert main(["verify", str(out / "tree_result.json"), str(tmp_path / "same")]) == 0
+    swapped = TreeSamples(q, noisy[:, ::-1], np.ones(points.shape[:2], bool))
+    degrees = TreeSamples(np.rad2deg(q), noisy, np.ones(points.shape[:2], bool))
+    for name, tips, samples in (("swapped", doc["tips"][::-1], swapped), ("degrees", doc["tips"], degrees)):
+        write_tree_dataset(
+            tmp_path / name, urdf_text=(ds / "robot.urdf").read_text(), tips=tips, tree=loaded.tree,
+            samples=samples, noise_mm=0.1, points=loaded.points[::-1] if name == "swapped" else loaded.points,
+        )  # fmt: skip
+    assert main(["verify", str(out), str(tmp_path / "swapped"), "--json", str(figures), "--overwrite"]) == 0
+    assert json.loads(figures.read_text())["tips"] == v["tips"]
+    assert main(["verify", str(out), str(tmp_path / "degrees")]) == 2
+    assert "degrees" in capsys.readouterr().err
+    shutil.copytree(out, tmp_path / "no_result")
+    (tmp_path / "no_result" / "tree_result.json").unlink()
+    assert main(["verify", str(tmp_path / "no_result"), str(tmp_path / "same")]) == 2
+    assert "tree_result.json" in capsys.readouterr().err
     # A damaged result file is refused naming the field (exit 2), never taken for a changed robot.
     result = json.loads((out / "tree_result.json").read_text())
     compliance = next(k for k in result["parameters"] if k.endswith(".compliance"))
