@@ -21,11 +21,10 @@ from ._tree import KinematicTree
 from ._treefit import Elastic, deflected_tips, tree_layout
 from .io._files import shown
 from .io.urdf_tree import load_urdf_tree
-from .trees import NOISE_FACTOR, TreeDataset, checked_samples, read_json_object
+from .trees import NOISE_FACTOR, RESULT_FILE, TreeDataset, checked_samples, read_json_object
 
 __all__ = ["CalibratedTree", "load_tree_calibration", "verify_tree"]
 
-RESULT_FILE = "tree_result.json"
 #: A tree calibration holds on new samples while their residuals' RMS per axis stays within this
 #: factor of the fit's own residual noise (the parameters' uncertainty adds a few percent).
 HOLDS_FACTOR = 1.5
