@@ -17,13 +17,25 @@ Each is judged by its held-out tips' mean distance from the noise-free truth (mm
 compliances are compared with the truth in their standard deviations. The calibrated URDF is
 written, read back and compared, mimic law included.
 
+Then the seed's method on the same kind of body (`jaxcal.sim.head_camera`): the head camera
+(640x480) films a ChArUco plate on each hand at `--camera-poses` poses where both are in view,
+rendered by MuJoCo; OpenCV detects the plates and solves their PnP; the tree fit (the body's
+joint and lateral compliances) weighs each plate's origin by its PnP covariance. It is judged
+per hand on `--camera-test-poses` more frames: the EE RMS against the truth, and the mean of
+the errors' squared Mahalanobis distance over 3 under the covariance the fit claims for its
+predictions (1 when the claim is right).
+
 How to run (from the repository root)::
 
     .venv/bin/python benchmarks/tree.py --json results/tree.json
 
 The JSON holds `tree_test_mean_mm`, `tree_floor_mm`, `tree_geometric_mm`, `tree_over_floor`,
 `tree_terms_kept`, `elastic_within_3sigma` (share of freed compliances within 3 sigma of the
-truth), `elastic_max_abs_z`, `urdf_roundtrip_max_m`, `calibrate_s`, per seed and as means.
+truth), `elastic_max_abs_z`, `urdf_roundtrip_max_m`, `calibrate_s`, per seed and as means, and
+`camera` (per seed): `status`, `ee_rms_mm` and `prediction_z2` per hand, `elastic_within_3sigma`,
+`noise_ratio` (the residuals' noise over PnP's), `sigma_px`, `seen` (frames per plate); over
+the seeds `camera_ee_rms_mm` and `camera_prediction_z2` (means of the worse hand's), and
+`camera_statuses`.
 """
 
 import argparse
@@ -40,7 +52,9 @@ from jaxcal._npgeom import rotvec_to_matrix
 from jaxcal._tree import tip_poses
 from jaxcal.io._files import write_text_atomic
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree
+from jaxcal.sim.head_camera import CAMERA_TIP, film_upper_body
 from jaxcal.sim.humanoid import (
+    compliance_z,
     elastic_truth,
     perturb_tree,
     random_poses,
@@ -56,18 +70,6 @@ POINTS = np.array([[0.02, 0.0, -0.01], [0.02, 0.0, -0.01]])
 
 def _held_out_mm(result, test) -> float:
     return 1e3 * float(np.linalg.norm(result.predict(test.q) - test.truth, axis=-1).mean())
-
-
-def _elastic_z(result, truth) -> np.ndarray:
-    """Freed compliances' (estimate - truth) / std."""
-    params, z = result.parameters(), []
-    for j, name in enumerate(result.tree.joint_names):
-        for key, true in [(f"{name}.compliance", truth.joint[j])] + [
-            (f"{name}.lateral_compliance.{k + 1}", truth.lateral[j, k]) for k in range(2)
-        ]:
-            if key in params and params[key][1] > 0:
-                z.append((params[key][0] - true) / params[key][1])
-    return np.asarray(z)
 
 
 def _roundtrip_m(result, urdf: Path, work: Path) -> float:
@@ -94,6 +96,44 @@ def _roundtrip_m(result, urdf: Path, work: Path) -> float:
     )
 
 
+def run_camera(seed: int, poses: int, test_poses: int) -> dict:
+    """The head camera's capture of seed `seed`'s body, calibrated and judged (module docstring)."""
+    t0 = time.perf_counter()
+    body = film_upper_body(poses + test_poses, seed=seed)
+    film_s = time.perf_counter() - t0
+    samples = body.capture.samples
+    fit, test = samples.subset(slice(0, poses)), samples.subset(slice(poses, None))
+    t0 = time.perf_counter()
+    result = calibrate_tree(
+        body.nominal, fit, points=body.points, device_on=CAMERA_TIP, families=("joint", "lateral"),
+        limits=body.limits, show_progress=False,
+    )  # fmt: skip
+    seconds = time.perf_counter() - t0
+    predicted, cov = result.predict(test.q), result.predict_covariance(test.q)
+    rms, z2 = {}, {}
+    for t, hand in enumerate(TIPS):
+        rows = test.measured[:, t]
+        e = predicted[rows, t] - test.truth[rows, t]
+        rms[hand] = 1e3 * float(np.sqrt((e**2).sum(axis=-1).mean()))
+        z2[hand] = float(np.einsum("na,nab,nb->n", e, np.linalg.inv(cov[rows, t]), e).mean() / 3.0)
+    stated = 1e3 * np.sqrt(np.trace(fit.covariance[fit.measured], axis1=1, axis2=2).mean() / 3.0)
+    z = np.asarray(list(compliance_z(result, body.elastic).values()))
+    return {
+        "status": result.status,
+        "notes": list(result.notes),
+        "ee_rms_mm": rms,
+        "prediction_z2": z2,
+        "elastic_within_3sigma": float(np.mean(np.abs(z) <= 3.0)) if z.size else None,
+        "noise_ratio": result.fit.noise_mm / stated,
+        "pnp_noise_mm": stated,
+        "sigma_px": body.capture.sigma_px,
+        "seen": body.capture.seen,
+        "held": {k: len(v) for k, v in result.held.items()},
+        "film_s": film_s,
+        "calibrate_s": seconds,
+    }
+
+
 def run_seed(seed: int, poses: int, test_poses: int, noise_mm: float, work: Path) -> dict:
     urdf = work / "upper_body.urdf"
     urdf.write_text(upper_body_urdf())
@@ -114,7 +154,7 @@ def run_seed(seed: int, poses: int, test_poses: int, noise_mm: float, work: Path
     seconds = time.perf_counter() - t0
     floor = calibrate_tree(nominal, fit, noise_mm=noise_mm, points=POINTS, families=("joint", "lateral"))
     geometric = calibrate_tree(nominal, fit, noise_mm=noise_mm, points=POINTS, families=())
-    z = _elastic_z(auto, elastic)
+    z = np.asarray(list(compliance_z(auto, elastic).values()))
     return {
         "seed": seed,
         "tree_test_mean_mm": _held_out_mm(auto, test),
@@ -134,7 +174,7 @@ def run_seed(seed: int, poses: int, test_poses: int, noise_mm: float, work: Path
     }
 
 
-def run(seeds, poses: int, test_poses: int, noise_mm: float) -> dict:
+def run(seeds, poses: int, test_poses: int, noise_mm: float, camera_poses: int, camera_test: int) -> dict:
     rows = []
     for seed in seeds:
         with tempfile.TemporaryDirectory() as tmp:
@@ -144,6 +184,12 @@ def run(seeds, poses: int, test_poses: int, noise_mm: float) -> dict:
             f"seed {seed}: held-out {r['tree_test_mean_mm']:.4f} mm (floor {r['tree_floor_mm']:.4f}, "
             f"geometry alone {r['tree_geometric_mm']:.3f}), terms {r['tree_terms_kept']}, "
             f"elastic within 3 sigma {r['elastic_within_3sigma']}, {r['calibrate_s']:.1f} s",
+            flush=True,
+        )
+        r["camera"] = c = run_camera(seed, camera_poses, camera_test)
+        print(
+            f"seed {seed}, head camera: {c['status']}, EE RMS {c['ee_rms_mm']} mm, claim ratio "
+            f"{c['prediction_z2']}, elastic within 3 sigma {c['elastic_within_3sigma']}",
             flush=True,
         )
     mean = lambda k: float(np.mean([r[k] for r in rows]))  # noqa: E731
@@ -161,6 +207,9 @@ def run(seeds, poses: int, test_poses: int, noise_mm: float) -> dict:
         "elastic_max_abs_z": max(r["elastic_max_abs_z"] for r in rows),
         "urdf_roundtrip_max_m": max(r["urdf_roundtrip_max_m"] for r in rows),
         "calibrate_s": mean("calibrate_s"),
+        "camera_ee_rms_mm": float(np.mean([max(r["camera"]["ee_rms_mm"].values()) for r in rows])),
+        "camera_prediction_z2": float(np.mean([max(r["camera"]["prediction_z2"].values()) for r in rows])),
+        "camera_statuses": [r["camera"]["status"] for r in rows],
         "seeds": rows,
     }
 
@@ -170,6 +219,8 @@ def main(argv=None) -> None:
     parser.add_argument("--poses", type=int, default=500, help="stop-and-shoot poses fitted")
     parser.add_argument("--test-poses", type=int, default=200, help="poses held out")
     parser.add_argument("--noise-mm", type=float, default=0.1, help="tracker noise, 1-sigma per axis")
+    parser.add_argument("--camera-poses", type=int, default=200, help="head camera: poses fitted")
+    parser.add_argument("--camera-test-poses", type=int, default=50, help="head camera: poses held out")
     parser.add_argument("--seeds", type=int, default=1, help="bodies drawn")
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--json", metavar="OUT", help="also write the JSON here")
@@ -179,7 +230,7 @@ def main(argv=None) -> None:
         f"{args.seeds} upper bodies, {args.poses} poses each (cross-validation: a minute each) ...",
         flush=True,
     )
-    result = run(seeds, args.poses, args.test_poses, args.noise_mm)
+    result = run(seeds, args.poses, args.test_poses, args.noise_mm, args.camera_poses, args.camera_test_poses)
     if args.json:
         write_text_atomic(Path(args.json), json.dumps(result, indent=2) + "\n")
     print(json.dumps({k: v for k, v in result.items() if k != "seeds"}, indent=2))

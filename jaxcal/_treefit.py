@@ -96,20 +96,20 @@ def _loads(tree, rigid, elastic: Elastic):
 @dataclass(frozen=True)
 class TreeSamples:
     """Stop-and-shoot samples: commanded actuated positions `q` `(n, actuated)`, the measured
-    points `(n, tips, 3)` (m, device frame), which were `measured` `(n, tips)`, and, from a
-    simulator, the noise-free `truth`."""
+    points `(n, tips, 3)` (m, device frame), which were `measured` `(n, tips)`, from a
+    simulator the noise-free `truth`, and each point's noise `covariance` `(n, tips, 3, 3)`
+    (m^2, device frame: a camera's PnP sees across better than in depth; None: isotropic)."""
 
     q: np.ndarray
     points: np.ndarray
     measured: np.ndarray
     truth: np.ndarray | None = None
+    covariance: np.ndarray | None = None
 
     def subset(self, rows) -> "TreeSamples":
+        part = lambda a: None if a is None else a[rows]  # noqa: E731
         return TreeSamples(
-            self.q[rows],
-            self.points[rows],
-            self.measured[rows],
-            None if self.truth is None else self.truth[rows],
+            self.q[rows], self.points[rows], self.measured[rows], part(self.truth), part(self.covariance)
         )
 
 
@@ -122,7 +122,9 @@ def _seen(tips, p, T_dev, device_tip: int):
     return (p - D[:3, 3]) @ D[:3, :3]
 
 
-def _tip_points(tree, q, points, T_dev, elastic, harmonic, device_tip: int = -1):
+def deflected_frames(tree, q, elastic=None, harmonic=None) -> Float[Array, "links 4 4"]:
+    """The links' poses (root frame) at commanded actuated positions `q`, the body bent by
+    gravity (`elastic`, None: rigid) and the joints' harmonics (`(joints, 2)`, None: none)."""
     theta = joint_positions(tree, q)
     if harmonic is not None:
         theta = theta + harmonic[:, 0] * jnp.cos(theta) + harmonic[:, 1] * jnp.sin(theta)
@@ -131,11 +133,16 @@ def _tip_points(tree, q, points, T_dev, elastic, harmonic, device_tip: int = -1)
         about, torque = _loads(tree, frames, elastic)
         bend = jnp.einsum("jk,jkc->jc", elastic.lateral * torque, normal_axes(tree.axis))
         frames = frames_at(tree, theta + elastic.joint * about, bend)
-    tips = tips_from_frames(tree, frames)
+    return frames
+
+
+def _tip_points(tree, q, points, T_dev, elastic, harmonic, device_tip: int = -1):
+    tips = tips_from_frames(tree, deflected_frames(tree, q, elastic, harmonic))
     p = jnp.einsum("tab,tb->ta", tips[:, :3, :3], points) + tips[:, :3, 3]
     return _seen(tips, p, T_dev, device_tip)
 
 
+@eqx.filter_jit
 def deflected_tips(
     tree, elastic, q, points, T_device, harmonic=None, device_tip: int = -1
 ) -> Float[Array, "n tips 3"]:
@@ -241,6 +248,15 @@ class TreeProblem(eqx.Module):
     couplings: tuple = eqx.field(static=True)
     slices: tuple = eqx.field(static=True)  # (group, start, stop)
     device_tip: int = eqx.field(static=True, default=-1)  # -1: a fixed device
+    #: `sigma` times the inverse Cholesky factor of each point's covariance; None: isotropic.
+    whiten: Float[Array, "n tips 3 3"] | None = None
+
+
+def _whitened(problem: TreeProblem, e):
+    """Residuals (or Jacobian rows) `e` `(n, tips, 3, ...)` in units of the stated `sigma`."""
+    if problem.whiten is None:
+        return e
+    return jnp.einsum("ntab,ntb...->nta...", problem.whiten, e)
 
 
 def problem_of(
@@ -254,6 +270,10 @@ def problem_of(
 ) -> TreeProblem:
     """The problem of `samples` about a start `tree`, device pose and tip points (`device_tip`:
     the device rides on that tip, `T_device_root` is then its pose in the tip's frame)."""
+    whiten = None
+    if samples.covariance is not None:
+        cov = np.where(samples.measured[..., None, None], samples.covariance, np.eye(3))
+        whiten = 1e-3 * noise_mm * np.linalg.inv(np.linalg.cholesky(cov))
     return TreeProblem(
         tree=tree,
         T_device_root=jnp.asarray(T_device_root, jnp.float64),
@@ -266,6 +286,7 @@ def problem_of(
         couplings=layout.couplings,
         slices=tuple((g, s.start, s.stop) for g, s in layout.slices.items()),
         device_tip=device_tip,
+        whiten=None if whiten is None else jnp.asarray(whiten),
     )
 
 
@@ -305,7 +326,7 @@ def predict(u, problem: TreeProblem, q=None) -> Float[Array, "n tips 3"]:
 
 def _residuals_autodiff(u, args) -> Float[Array, " m"]:
     free, weight, problem = args
-    r = (predict(u * free, problem) - problem.y) / problem.sigma
+    r = _whitened(problem, predict(u * free, problem) - problem.y) / problem.sigma
     return (r * (weight * problem.weight)[..., None]).ravel()
 
 
@@ -478,8 +499,9 @@ def _residuals_terms(u, args) -> tuple[Float[Array, " m"], Float[Array, "m p"]]:
     origin = jnp.einsum("ntajk,jkl->ntajl", J[..., o0:o1].reshape(*J.shape[:3], -1, 6), M)
     J = J.at[..., o0:o1].set(origin.reshape(*J.shape[:3], o1 - o0))
     w = (weight * problem.weight)[..., None] / problem.sigma
-    r = (pred - problem.y) * w
-    return r.ravel(), (J * (w[..., None] * problem.scales * free)).reshape(r.size, -1)
+    r = _whitened(problem, pred - problem.y) * w
+    J = _whitened(problem, J) * (w[..., None] * problem.scales * free)
+    return r.ravel(), J.reshape(r.size, -1)
 
 
 def _residuals_primal(u, args) -> Float[Array, " m"]:
@@ -513,7 +535,7 @@ def _solve(free, weight, problem, u0):
 
 
 @eqx.filter_jit
-def _linearised(u, free, problem):
+def linearised(u, free, problem):
     """The whitened residuals and their Jacobian at `u`."""
     return _residuals_terms(u, (free, 1.0, problem))
 
@@ -526,7 +548,7 @@ def identifiable(
     correction to within `MASS_DETERMINED` typical sizes."""
     within = np.where(layout.family("mass"), MASS_DETERMINED, determined)
     at = jnp.zeros(layout.size) if at is None else jnp.asarray(at)
-    J = np.asarray(_linearised(at, jnp.ones(layout.size), problem)[1])
+    J = np.asarray(linearised(at, jnp.ones(layout.size), problem)[1])
     basis, free = np.zeros((J.shape[0], 0)), np.zeros(layout.size, bool)
     for c in (c for c in layout.order if candidates[c]):
         col = J[:, c]
@@ -543,7 +565,8 @@ def identifiable(
 class TreeFit:
     """A tree calibration: the scaled corrections `u`, which were `free`, their standard
     deviations in each parameter's unit (`std`, 0 where held), the residuals' estimated noise
-    (mm per axis), the term families kept and the cross-validation's scores (mm)."""
+    (mm per axis), the term families kept, the cross-validation's scores (mm) and the
+    covariance of `u` (`cov`, zero where held)."""
 
     u: np.ndarray
     free: np.ndarray
@@ -552,19 +575,23 @@ class TreeFit:
     steps: int
     families: tuple[str, ...] = ()
     cv_mm: dict = field(default_factory=dict)
+    cov: np.ndarray | None = None
 
     def values(self, layout: TreeLayout) -> dict[str, float]:
         return dict(zip(layout.names, (self.u * layout.scales).tolist()))
 
 
-def _fit_free(problem: TreeProblem, layout: TreeLayout, families) -> tuple[np.ndarray, jax.Array, int]:
+def _fit_free(
+    problem: TreeProblem, layout: TreeLayout, families, start=None
+) -> tuple[np.ndarray, jax.Array, int]:
     """The identifiable parameters of the geometry and `families` (`free`), the least-squares fit
-    over them and its steps. The `mass` corrections are seen only through the sag, which is nil
-    at the start: with them, the terms are chosen again at the fit, and the fit resumed where that
-    frees more."""
+    over them from `start` (default: the nominal body) and its steps. The `mass` corrections are
+    seen only through the sag, which is nil at the start: with them, the terms are chosen again
+    at the fit, and the fit resumed where that frees more."""
     candidates = ~layout.family(*FAMILIES) | layout.family(*families)
     free = identifiable(problem, layout, candidates)
-    u, steps = _solve(jnp.asarray(free, jnp.float64), 1.0, problem, jnp.zeros(layout.size))
+    u0 = jnp.zeros(layout.size) if start is None else jnp.asarray(start)
+    u, steps = _solve(jnp.asarray(free, jnp.float64), 1.0, problem, u0)
     if "mass" in families and set(COMPLIANT) & set(families):
         again = identifiable(problem, layout, free | layout.family(*families), at=u)
         if (again != free).any():
@@ -576,18 +603,35 @@ def _fit_free(problem: TreeProblem, layout: TreeLayout, families) -> tuple[np.nd
 
 
 def _cost(u, free, problem) -> float:
-    r = _linearised(u, jnp.asarray(free, jnp.float64), problem)[0]
+    r = linearised(u, jnp.asarray(free, jnp.float64), problem)[0]
     return float(r @ r)
 
 
 def _tree_fit(problem, layout, free, u, steps, families, scores=None) -> TreeFit:
-    r, J = _linearised(u, jnp.asarray(free, jnp.float64), problem)
+    r, J = linearised(u, jnp.asarray(free, jnp.float64), problem)
     dof = max(int(np.asarray(problem.weight).sum()) * 3 - int(free.sum()), 1)
     s2 = float(r @ r) / dof
     cov, _, _ = _lsq.covariance(J, jnp.asarray(free), s2)
     std = np.sqrt(np.maximum(np.diag(np.asarray(cov)), 0.0)) * layout.scales
     noise_mm = 1e3 * problem.sigma * np.sqrt(s2)
-    return TreeFit(np.asarray(u), free, std, noise_mm, steps, tuple(families), dict(scores or {}))
+    return TreeFit(
+        np.asarray(u), free, std, noise_mm, steps, tuple(families), dict(scores or {}), np.asarray(cov)
+    )
+
+
+def predicted_covariance(u, cov, problem: TreeProblem, q) -> np.ndarray:
+    """The covariance `(n, tips, 3, 3)` (m^2, device frame) of the points predicted at `q`
+    `(n, actuated)` from the fit `u` with covariance `cov` (of `u`)."""
+    n, tips = len(q), problem.y.shape[1]
+    at = eqx.tree_at(
+        lambda p: (p.q, p.y, p.weight, p.whiten),
+        problem,
+        (jnp.asarray(q, jnp.float64), jnp.zeros((n, tips, 3)), jnp.ones((n, tips)), None),
+        is_leaf=lambda x: x is None,
+    )
+    J = np.asarray(linearised(jnp.asarray(u), jnp.ones(len(u)), at)[1]).reshape(n, tips, 3, -1)
+    J = J * problem.sigma  # the rows were whitened by it
+    return np.einsum("ntap,pq,ntbq->ntab", J, cov, J)
 
 
 def fit_tree(problem: TreeProblem, layout: TreeLayout, families=()) -> TreeFit:
@@ -597,23 +641,27 @@ def fit_tree(problem: TreeProblem, layout: TreeLayout, families=()) -> TreeFit:
 
 @eqx.filter_jit
 def _folds(free, weights, problem, u0):
-    return jax.vmap(lambda w: _gauss_newton(u0, free, w[:, None], problem, POLISH))(weights)
+    """Each fold's fit (a row of `weights`) and its prediction of every sample."""
+    fit = lambda w: predict(_gauss_newton(u0, free, w[:, None], problem, POLISH), problem)  # noqa: E731
+    return jax.vmap(fit)(weights)
 
 
 def cv_error_mm(problem: TreeProblem, free: np.ndarray, whole, folds: int = 5, seed: int = 0) -> float:
     """K-fold held-out error: the mean distance (mm) between each held-out tip's measured and
     predicted point, every fold's fit one vmapped solve started from `whole`, the fit to all
-    samples over the `free` parameters."""
+    samples over the `free` parameters. Points with their own covariance count their distance
+    whitened (in units of the stated noise): a camera's depth noise would drown the rest."""
     n = problem.q.shape[0]
     fold = np.random.default_rng(seed).permutation(n) % folds
     weights = np.stack([fold != k for k in range(folds)]).astype(np.float64)
     free = jnp.asarray(free, jnp.float64)
-    us = np.asarray(_folds(free, jnp.asarray(weights), problem, whole))
+    e = np.asarray(_folds(free, jnp.asarray(weights), problem, whole)) - np.asarray(problem.y)
+    if problem.whiten is not None:
+        e = np.einsum("ntab,kntb->knta", np.asarray(problem.whiten), e)
     errors = []
     for k in range(folds):
         rows = fold == k
-        pred = np.asarray(predict(jnp.asarray(us[k]), problem))[rows]
-        d = np.linalg.norm(pred - np.asarray(problem.y)[rows], axis=-1)
+        d = np.linalg.norm(e[k][rows], axis=-1)
         errors.append(d[np.asarray(problem.weight)[rows] > 0])
     return 1e3 * float(np.concatenate(errors).mean())
 
@@ -626,7 +674,8 @@ def cross_validate_terms(
     fits: dict[tuple[str, ...], tuple] = {}
 
     def score(kept: tuple[str, ...]) -> float:
-        fits[kept] = _fit_free(problem, layout, kept)
+        # From the fit without the family tried last: its geometry is most of the answer.
+        fits[kept] = _fit_free(problem, layout, kept, fits[kept[:-1]][1] if kept else None)
         return cv_error_mm(problem, *fits[kept][:2])
 
     kept: list[str] = []
@@ -647,22 +696,3 @@ def cross_validate_terms(
         kept.append(fam)
         best = trial[fam]
     return _tree_fit(problem, layout, *fits[tuple(kept)], kept, scores)
-
-
-def held_by_branch(tree: KinematicTree, layout: TreeLayout, free: np.ndarray, candidates: np.ndarray) -> dict:
-    """The candidate parameters held at nominal, by where they sit: `shared` (a joint on several
-    tips' paths), a tip's name (a joint on that tip's path only; its point), `unmeasured` (a
-    joint on no tip's path: a head when only the hands are tips), or `device`."""
-    paths = {t: set(tree.path(t)) for t in tree.tip_names}
-    held: dict[str, list[str]] = {}
-    for i in np.flatnonzero(candidates & ~free):
-        j, name = layout.joints[i], layout.names[i]
-        if layout.groups[i] == "device":
-            where = "device"
-        elif layout.groups[i] == "point":
-            where = name.split(".point.")[0]
-        else:
-            on = [t for t, p in paths.items() if j in p]
-            where = "shared" if len(on) > 1 else (on[0] if on else "unmeasured")
-        held.setdefault(where, []).append(name)
-    return held

@@ -15,6 +15,7 @@ tip's name for its own branch, and each tip no sample measures).
 """
 
 import csv
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,8 +36,9 @@ from ._treefit import (
     body_of,
     cross_validate_terms,
     fit_tree,
-    held_by_branch,
+    linearised,
     predict,
+    predicted_covariance,
     problem_of,
     tree_layout,
 )
@@ -56,6 +58,10 @@ __all__ = [
 NOISE_FACTOR = 2.0
 #: A compliance this many standard deviations below zero is a negative stiffness: suspect.
 NEGATIVE_SIGMAS = 3.0
+#: A measured point this many sigmas from the fit (its whitened residual's norm; sigma: the
+#: stated noise, or the residuals' own robust scale where larger) is left out as a bad sample
+#: (a misread marker); more than `OUTLIER_SHARE` of the points left out makes the result suspect.
+OUTLIER_SIGMAS, OUTLIER_SHARE = 6.0, 0.05
 
 
 @dataclass(frozen=True)
@@ -93,6 +99,11 @@ class TreeCalibration:
     def predict(self, q) -> np.ndarray:
         """The measured points predicted at commanded positions `q` `(n, actuated)`, device frame."""
         return np.asarray(predict(jnp.asarray(self.fit.u), self._problem, jnp.asarray(q, jnp.float64)))
+
+    def predict_covariance(self, q) -> np.ndarray:
+        """The covariance `(n, tips, 3, 3)` (m^2, device frame) of `predict(q)`: what the fit's
+        uncertainty leaves in the predicted points."""
+        return predicted_covariance(self.fit.u, self.fit.cov, self._problem, q)
 
 
 def initial_device_pose(tree: KinematicTree, samples: TreeSamples, points: np.ndarray) -> np.ndarray:
@@ -141,6 +152,21 @@ def checked_samples(
         raise ValueError("no sample measures any tip")
     if not noise_mm > 0:
         raise ValueError(f"noise_mm must be positive, got {noise_mm}")
+    cov = samples.covariance
+    if cov is not None:
+        cov = np.asarray(cov, np.float64)
+        if cov.shape != (n, tips, 3, 3):
+            raise ValueError(f"samples.covariance must be ({n}, {tips}, 3, 3), got {cov.shape}")
+        sym = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+        finite = np.all(np.isfinite(sym), axis=(-1, -2))
+        smallest = np.linalg.eigvalsh(np.where(finite[..., None, None], sym, np.eye(3))).min(axis=-1)
+        ok = finite & (smallest > 0)
+        if (measured & ~ok).any():
+            row, t = np.argwhere(measured & ~ok)[0]
+            raise ValueError(
+                f"sample {row}: tip {tree.tip_names[t]!r}'s covariance is not finite and positive definite"
+            )
+        cov = sym
     if limits is not None:
         limits = np.asarray(limits, np.float64)
         if limits.shape != (a, 2):
@@ -154,7 +180,26 @@ def checked_samples(
                 f"sample {row}: joint {tree.actuated_names[col]!r} at {q[row, col]:.6g} is outside its limits "
                 f"[{limits[col, 0]:.6g}, {limits[col, 1]:.6g}] (radians or metres: a file in degrees?)"
             )
-    return TreeSamples(q, pts, measured, samples.truth)
+    return TreeSamples(q, pts, measured, samples.truth, cov)
+
+
+def held_by_branch(tree: KinematicTree, layout: TreeLayout, free: np.ndarray, candidates: np.ndarray) -> dict:
+    """The candidate parameters held at nominal, by where they sit: `shared` (a joint on several
+    tips' paths), a tip's name (a joint on that tip's path only; its point), `unmeasured` (a
+    joint on no tip's path: a head when only the hands are tips), or `device`."""
+    paths = {t: set(tree.path(t)) for t in tree.tip_names}
+    held: dict[str, list[str]] = {}
+    for i in np.flatnonzero(candidates & ~free):
+        j, name = layout.joints[i], layout.names[i]
+        if layout.groups[i] == "device":
+            where = "device"
+        elif layout.groups[i] == "point":
+            where = name.split(".point.")[0]
+        else:
+            on = [t for t, p in paths.items() if j in p]
+            where = "shared" if len(on) > 1 else (on[0] if on else "unmeasured")
+        held.setdefault(where, []).append(name)
+    return held
 
 
 def _verdict(
@@ -200,11 +245,32 @@ def _verdict(
     return ("suspect" if notes[: len(notes) - bool(unseen)] else "ok"), tuple(notes)
 
 
+def _leave_out_outliers(problem, layout, samples: TreeSamples, fit: TreeFit):
+    """Refit without the points `OUTLIER_SIGMAS` from the fit, the grossest first (a round
+    leaves out those within a tenth of the worst's squared distance), until none is left:
+    the problem, samples and fit, and the points left out as (sample, tip, sigmas). Where the
+    residuals' robust scale is over `NOISE_FACTOR` times the noise, the model misfits them
+    all: nothing is left out, and the verdict says so."""
+    left = []
+    for _ in range(5):
+        r = linearised(jnp.asarray(fit.u), jnp.asarray(fit.free, jnp.float64), problem)[0]
+        z2 = (np.asarray(r).reshape(*samples.measured.shape, 3) ** 2).sum(axis=-1)
+        scale2 = max(1.0, float(np.median(z2[samples.measured])) / 2.366)  # chi-square(3)'s median
+        bad = z2 > max(OUTLIER_SIGMAS**2 * scale2, 0.1 * z2.max())
+        if not bad.any() or scale2 > NOISE_FACTOR**2:  # a model that misfits them all: the verdict's
+            break
+        left += [(int(i), int(t), float(np.sqrt(z2[i, t] / scale2))) for i, t in np.argwhere(bad)]
+        samples = dataclasses.replace(samples, measured=samples.measured & ~bad)
+        problem = dataclasses.replace(problem, weight=jnp.asarray(samples.measured, jnp.float64))
+        fit = dataclasses.replace(fit_tree(problem, layout, fit.families), cv_mm=fit.cv_mm)
+    return problem, samples, fit, left
+
+
 def calibrate_tree(
     tree: KinematicTree,
     samples: TreeSamples,
     *,
-    noise_mm: float = 0.1,
+    noise_mm: float | None = None,
     families=None,
     points=None,
     T_device_root=None,
@@ -218,8 +284,9 @@ def calibrate_tree(
     - `tree`: the robot file's tree (`jaxcal.io.urdf_tree.load_urdf_tree`), its tips those the
       samples measure.
     - `samples`: the poses and measured points (`read_tree_samples`).
-    - `noise_mm`: the device's noise (1-sigma per axis), which weighs the samples and judges
-      what the data determine.
+    - `noise_mm`: the device's noise (1-sigma per axis, default 0.1 mm), which weighs the
+      samples and judges what the data determine; samples with their own `covariance` (a
+      camera's PnP) are weighed by it instead, and their stated noise is its RMS per axis.
     - `families`: the non-geometric terms to fit (of `jaxcal._treefit.FAMILIES`); default
       `None` lets K-fold cross-validation choose.
     - `points`: the measured points' nominal positions on the tips `(tips, 3)` (m, tip frame;
@@ -236,7 +303,13 @@ def calibrate_tree(
         raise ValueError(
             f"families must be a list of {list(FAMILIES)} (or None), got the string {families!r}"
         )
-    samples = checked_samples(tree, samples, noise_mm, limits, points)
+    if samples.covariance is not None and noise_mm is not None:
+        raise ValueError("the samples carry their own covariance: noise_mm is not used with them")
+    samples = checked_samples(tree, samples, 0.1 if noise_mm is None else noise_mm, limits, points)
+    if samples.covariance is not None:  # the stated noise: their RMS per axis
+        seen = samples.covariance[samples.measured]
+        noise_mm = 1e3 * float(np.sqrt(np.trace(seen, axis1=-2, axis2=-1).mean() / 3.0))
+    noise_mm = 0.1 if noise_mm is None else noise_mm
     device_tip = -1
     if device_on is not None:
         if device_on not in tree.tip_names:
@@ -258,9 +331,25 @@ def calibrate_tree(
         if unknown:
             raise ValueError(f"unknown term families {sorted(unknown)}; known: {FAMILIES}")
         fit = fit_tree(problem, layout, tuple(families))
+    measured = int(samples.measured.sum())
+    problem, samples, fit, left = _leave_out_outliers(problem, layout, samples, fit)
     calibrated, T_dev, pts, elastic, harmonic = body_of(jnp.asarray(fit.u), problem)
     candidates = ~layout.family(*FAMILIES) | layout.family(*fit.families)
     status, notes = _verdict(fit, layout, noise_mm, samples, tree, device_on)
+    if left:
+        many = len(left) > OUTLIER_SHARE * measured
+        status = "suspect" if many else status
+        notes += (
+            f"{len(left)} of {measured} measured points left out as bad samples (over {OUTLIER_SIGMAS:g} sigma "
+            + (
+                "from the fit: too many to trust the rest, check the device and the mounts"
+                if many
+                else "from the fit"
+            )
+            + "): "
+            + ", ".join(f"sample {i} tip {tree.tip_names[t]!r} ({z:.0f} sigma)" for i, t, z in left[:10])
+            + (" ..." if len(left) > 10 else ""),
+        )
     return TreeCalibration(
         tree=calibrated,
         nominal=tree,

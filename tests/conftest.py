@@ -88,10 +88,11 @@ def key():
 #: pointfit 164, notebooks 157, calibrate 156, arcfit 144, handeye_capture 129,
 #: axisfit 107, plan 100, montecarlo 95, prismatic 92, armcheck 78, links 77,
 #: refine 64, handeye 58, arm_model 57, eye_in_hand 55, terms 55, home 51,
-#: startup 39, certify 37, then less.
+#: startup 39, certify 37, then less; tree (2026-12-05) about 200.
 SLOW_FIRST = (
     "test_benchmarks",
     "test_benchmarks_captures",
+    "test_tree",
     "test_pointfit",
     "test_notebooks",
     "test_calibrate",

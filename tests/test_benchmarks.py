@@ -54,12 +54,13 @@ RUNS = {
         "record_fields bag_fields string_key_reads mode_tests long_functions covariance_sites package_lines "
         "modules_over_500_lines fmt_skips cli_options config_keys option_names_with_two_meanings",
     ),
-    # The humanoid upper body at 120 poses: cross-validation, the floor, geometry alone, the URDF read back.
+    # The humanoid upper body at 120 poses: cross-validation, the floor, geometry alone, the URDF read
+    # back; its head camera filming both hands at 60 poses.
     "tree": Run(
         "tree",
-        "--poses 120 --test-poses 20",
+        "--poses 120 --test-poses 20 --camera-poses 60 --camera-test-poses 20",
         "tree_test_mean_mm tree_floor_mm tree_geometric_mm tree_over_floor tree_terms_kept elastic_within_3sigma "
-        "urdf_roundtrip_max_m<=1e-9",
+        "urdf_roundtrip_max_m<=1e-9 camera_ee_rms_mm camera_prediction_z2 camera_statuses",
     ),
     # Five units of tests/test_fleet.py's design, one of them also alone; a new unit with their prior.
     "fleet": Run(

@@ -190,6 +190,19 @@ def elastic_truth(tree: KinematicTree, rng: np.random.Generator, *, lateral: boo
     return Elastic(joint=1.0 / stiff, lateral=lateral_k)
 
 
+def compliance_z(result, truth: Elastic) -> dict[str, float]:
+    """How a calibration (`jaxcal.trees.TreeCalibration`) of a drawn body did: each freed
+    compliance's (estimate - `truth`) over its standard deviation, by parameter name
+    (`JOINT.compliance`, `JOINT.lateral_compliance.1` and `.2`)."""
+    params, z = result.parameters(), {}
+    for j, name in enumerate(result.tree.joint_names):
+        lateral = [(f"{name}.lateral_compliance.{k + 1}", truth.lateral[j, k]) for k in range(2)]
+        for key, true in [(f"{name}.compliance", truth.joint[j]), *lateral]:
+            if key in params and params[key][1] > 0:
+                z[key] = (params[key][0] - float(true)) / params[key][1]
+    return z
+
+
 def random_poses(
     limits: np.ndarray, count: int, rng: np.random.Generator, fraction: float = 0.8
 ) -> np.ndarray:

@@ -131,6 +131,15 @@ class Scene:
         mujoco.mj_kinematics(self.model, self.data)
         mujoco.mj_camlight(self.model, self.data)
 
+    def set_poses(self, poses) -> None:
+        """Place a `mocap_scene`'s bodies at `poses` `(bodies, 4, 4)` (world frame, in
+        `link_names`' order)."""
+        for name, T in zip(self.link_names, np.asarray(poses, np.float64)):
+            k = self.model.body(name).mocapid[0]
+            self.data.mocap_pos[k], self.data.mocap_quat[k] = T[:3, 3], mujoco_quat(T[:3, :3])
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+
     def body_pose(self, name: str) -> np.ndarray:
         body = self.data.body(name)
         T = np.eye(4)
@@ -368,6 +377,12 @@ def build_scene(
     spec = _environment(cameras, floor_z, shadows)
     bodies = add_arm(spec.worldbody, model, T_world_base, link_radius)
 
+    _mount(spec, bodies, plates, cameras)
+    return Scene(spec, plates, cameras, links, joints)
+
+
+def _mount(spec, bodies: dict, plates, cameras) -> None:
+    """The plates and cameras on their bodies (`bodies`: by name)."""
     for i, plate in enumerate(plates):
         add_plate(spec, bodies[plate.link], plate, i)
     for cam in cameras:
@@ -375,7 +390,22 @@ def build_scene(
         bodies[cam.mount].add_camera(
             name=cam.name, pos=T[:3, 3], quat=mujoco_quat(T[:3, :3] @ _CV_FROM_MJ), fovy=float(cam.fovy_deg)
         )
-    return Scene(spec, plates, cameras, links, joints)
+
+
+def mocap_scene(links: dict, plates=(), cameras=(CameraSpec(),), link_radius: float = 0.02) -> Scene:
+    """A scene of free bodies posed directly (MuJoCo mocap bodies; `Scene.set_poses`), for a
+    body no chain of hinges describes (a tree bent by gravity: a link's lateral bend is no
+    joint). `links` maps each body's name to the offsets (m, its own frame) its capsules run to
+    from its origin; `plates` and `cameras` mount on the bodies by name."""
+    spec = _environment(cameras, None, False)
+    bodies = {"world": spec.worldbody}
+    grey = ([0.78, 0.78, 0.8, 1.0], [0.62, 0.64, 0.68, 1.0])
+    for k, (name, offsets) in enumerate(links.items()):
+        bodies[name] = spec.worldbody.add_body(name=name, mocap=True)
+        for offset in offsets:
+            _add_link_geometry(bodies[name], np.asarray(offset, np.float64), None, link_radius, grey[k % 2])
+    _mount(spec, bodies, plates, cameras)
+    return Scene(spec, plates, cameras, tuple(links), ())
 
 
 def _environment(cameras, floor_z: float | None, shadows: bool) -> "mujoco.MjSpec":
