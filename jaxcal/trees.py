@@ -266,6 +266,21 @@ def _leave_out_outliers(problem, layout, samples: TreeSamples, fit: TreeFit):
     return problem, samples, fit, left
 
 
+def _left_out_note(left, measured: int, tips) -> str:
+    """The verdict's note on the points `_leave_out_outliers` left out of `measured`."""
+    many = len(left) > OUTLIER_SHARE * measured
+    why = (
+        "from the fit: too many to trust the rest, check the device and the mounts"
+        if many
+        else "from the fit"
+    )
+    return (
+        f"{len(left)} of {measured} measured points left out as bad samples (over {OUTLIER_SIGMAS:g} sigma {why}): "
+        + ", ".join(f"sample {i} tip {tips[t]!r} ({z:.0f} sigma)" for i, t, z in left[:10])
+        + (" ..." if len(left) > 10 else "")
+    )
+
+
 def calibrate_tree(
     tree: KinematicTree,
     samples: TreeSamples,
@@ -337,19 +352,8 @@ def calibrate_tree(
     candidates = ~layout.family(*FAMILIES) | layout.family(*fit.families)
     status, notes = _verdict(fit, layout, noise_mm, samples, tree, device_on)
     if left:
-        many = len(left) > OUTLIER_SHARE * measured
-        status = "suspect" if many else status
-        notes += (
-            f"{len(left)} of {measured} measured points left out as bad samples (over {OUTLIER_SIGMAS:g} sigma "
-            + (
-                "from the fit: too many to trust the rest, check the device and the mounts"
-                if many
-                else "from the fit"
-            )
-            + "): "
-            + ", ".join(f"sample {i} tip {tree.tip_names[t]!r} ({z:.0f} sigma)" for i, t, z in left[:10])
-            + (" ..." if len(left) > 10 else ""),
-        )
+        status = "suspect" if len(left) > OUTLIER_SHARE * measured else status
+        notes += (_left_out_note(left, measured, tree.tip_names),)
     return TreeCalibration(
         tree=calibrated,
         nominal=tree,

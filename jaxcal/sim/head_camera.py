@@ -69,9 +69,13 @@ def hand_plate(tip: str, first_id: int, offset: float = 0.03) -> PlateSpec:
     """A 3x3 ChArUco plate (4 cm squares) on tip `tip`, its printed face along the tip's +x,
     `offset` (m) out from the tip's origin, centred on that axis."""
     target = TargetSpec(
-        kind="charuco", squares=(3, 3), square_length=0.04, marker_length=0.03, first_id=first_id,
-        margin=0.008, name=f"{tip}_plate",
-    )  # fmt: skip
+        squares=(3, 3),
+        square_length=0.04,
+        marker_length=0.03,
+        first_id=first_id,
+        margin=0.008,
+        name=f"{tip}_plate",
+    )
     R = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # face (target -z) along +x
     centre = target.image()[1].mean(axis=0)
     T = np.eye(4)
