@@ -247,20 +247,22 @@ def normal_axes(axis: Float[Array, "joints 3"]) -> Float[Array, "joints 2 3"]:
 def branch(tree: KinematicTree, tip: int | str) -> tuple[KinematicModel, np.ndarray]:
     """The serial chain from the root to `tip`: a `KinematicModel` over the path's joints (the
     tip as its flange) and the `(path joints, actuated)` map $C$ from actuated commands to the
-    chain's joint positions (its zero offsets take $d + \\delta$)."""
+    chain's joint positions (its zero offsets take $d + \\delta$). Traceable in the tree's
+    geometry (a table's derivatives with respect to a fit's parameters)."""
     path = list(tree.path(tip))
     t = tree.tip_names.index(tip) if isinstance(tip, str) else tip
     if not path:
         raise ValueError(f"tip {tree.tip_names[t]!r} sits on the root link: no joint moves it")
+    rows = jnp.asarray(path)
     return (
         make_model(
-            np.asarray(tree.T_parent_joint)[path],
+            tree.T_parent_joint[rows],
             np.asarray(tree.axis)[path],
             joint_names=[tree.joint_names[j] for j in path],
             joint_types=[tree.joint_types[j] for j in path],
             link_names=[tree.link_names[0], *(tree.link_names[j + 1] for j in path), tree.tip_names[t]],
-            zero_offset=np.asarray(tree.zero_offset + tree.coupling_offset)[path],
-            T_last_flange=np.asarray(tree.T_link_tip)[t],
+            zero_offset=(tree.zero_offset + tree.coupling_offset)[rows],
+            T_last_flange=tree.T_link_tip[t],
         ),
-        np.asarray(tree.coupling)[path],
+        tree.coupling[rows],
     )

@@ -20,6 +20,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -624,6 +626,25 @@ def save_tree_calibration(
     return folder
 
 
+def _table_jacobian(u, problem, tip: str, reference):
+    """The derivatives of a branch's MDH columns (theta, d, a, alpha, beta) by the fit's `u`
+    (not compiled: the robot file's axes stay concrete, which `make_model` checks)."""
+
+    def columns(u):
+        table = dh_table(branch(body_of(u, problem)[0], tip)[0], "mdh", reference=reference)
+        return jnp.stack([table.theta, table.d, table.a, table.alpha, table.beta])
+
+    return jax.jacfwd(columns)(u)
+
+
+def _table_std(result: TreeCalibration, tip: str, reference):
+    """The standard deviations of the branch's MDH table (a `DHTable` of them), propagated from
+    the fit's covariance."""
+    J = np.asarray(_table_jacobian(jnp.asarray(result.fit.u), result._problem, tip, reference))
+    std = np.sqrt(np.maximum(np.einsum("knp,pq,knq->kn", J, result.fit.cov, J), 0.0))
+    return eqx.tree_at(lambda t: (t.theta, t.d, t.a, t.alpha, t.beta), reference, tuple(jnp.asarray(std)))
+
+
 def branch_table(result: TreeCalibration, tip: str) -> dict | None:
     """The modified-DH table (a table file's JSON, `jaxcal.io.dh_tables`) of the calibrated
     chain from the root to `tip`, its rows matched to the robot file's; `coupled` names each
@@ -639,8 +660,9 @@ def branch_table(result: TreeCalibration, tip: str) -> dict | None:
         robot=f"{result.tree.link_names[0]} to {tip}",
         base_link=result.tree.link_names[0],
         flange_link=tip,
+        std=None if result.fit.cov is None else _table_std(result, tip, reference),
         nominal=reference,
-        source="jaxcal calibrate_tree",
+        source="jaxcal calibrate_tree (std propagated from the fit's covariance)",
     )
     tree = result.tree
     doc["coupled"] = {

@@ -215,6 +215,9 @@ def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path)
     # Each hand's branch as a modified-DH table whose forward kinematics is the tree's.
     table = json.loads((tmp_path / "out" / "left_hand_mdh.json").read_text())
     assert table["joint_names"][3] == "torso_upper_pitch" and list(table["coupled"]) == ["torso_upper_pitch"]
+    # ... with standard deviations from the fit's covariance: the arm's lengths to tens of microns.
+    std_a = np.asarray(table["std"]["a"])
+    assert np.isfinite(std_a).all() and 1e-7 < std_a[-3:].max() < 2e-4, std_a
     chain, C = branch(result.tree, "left_hand")
     mdh = dh_table(chain, "mdh", reference=dh_table(branch(nominal, "left_hand")[0], "mdh"))
     assert np.allclose(table["a"], np.asarray(mdh.a), atol=1e-15)
