@@ -266,3 +266,22 @@ def branch(tree: KinematicTree, tip: int | str) -> tuple[KinematicModel, np.ndar
         ),
         tree.coupling[rows],
     )
+
+
+def held_by_branch(tree: KinematicTree, layout, free: np.ndarray, candidates: np.ndarray) -> dict:
+    """The candidate parameters (of a `jaxcal._treefit.TreeLayout`) held at nominal, by where they sit: `shared` (a joint on several
+    tips' paths), a tip's name (a joint on that tip's path only; its point), `unmeasured` (a
+    joint on no tip's path: a head when only the hands are tips), or `device`."""
+    paths = {t: set(tree.path(t)) for t in tree.tip_names}
+    held: dict[str, list[str]] = {}
+    for i in np.flatnonzero(candidates & ~free):
+        j, name = layout.joints[i], layout.names[i]
+        if layout.groups[i] == "device":
+            where = "device"
+        elif layout.groups[i] == "point":
+            where = name.split(".point.")[0]
+        else:
+            on = [t for t, p in paths.items() if j in p]
+            where = "shared" if len(on) > 1 else (on[0] if on else "unmeasured")
+        held.setdefault(where, []).append(name)
+    return held

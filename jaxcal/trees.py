@@ -28,7 +28,7 @@ import numpy as np
 from ._dh import dh_table
 from ._npgeom import kabsch
 from ._progress import working
-from ._tree import KinematicTree, branch, tip_poses
+from ._tree import KinematicTree, branch, held_by_branch, tip_poses
 from ._treefit import (
     FAMILIES,
     Elastic,
@@ -64,6 +64,12 @@ NEGATIVE_SIGMAS = 3.0
 #: stated noise, or the residuals' own robust scale where larger) is left out as a bad sample
 #: (a misread marker); more than `OUTLIER_SHARE` of the points left out makes the result suspect.
 OUTLIER_SIGMAS, OUTLIER_SHARE = 6.0, 0.05
+#: Where every residual is large, a point this many of their robust sigmas from the fit is
+#: still a bad sample (the few that pulled the fit), not the model's misfit.
+FAR_BEYOND = 10.0
+#: The residuals' noise below the stated one by this factor: the noise is overstated (which
+#: frees too little and claims too much): suspect.
+OVERSTATED = 3.0
 
 
 @dataclass(frozen=True)
@@ -98,13 +104,25 @@ class TreeCalibration:
             if self.fit.free[i]
         }
 
+    def _poses(self, q) -> np.ndarray:
+        q = np.asarray(q, np.float64)
+        if q.ndim != 2 or q.shape[1] != self.tree.num_actuated:
+            raise ValueError(
+                f"q must be (poses, {self.tree.num_actuated}): one row per pose of the actuated joints "
+                f"{self.tree.actuated_names}; got shape {q.shape}"
+            )
+        return q
+
     def predict(self, q) -> np.ndarray:
         """The measured points predicted at commanded positions `q` `(n, actuated)`, device frame."""
-        return np.asarray(predict(jnp.asarray(self.fit.u), self._problem, jnp.asarray(q, jnp.float64)))
+        return np.asarray(predict(jnp.asarray(self.fit.u), self._problem, jnp.asarray(self._poses(q))))
 
     def predict_covariance(self, q) -> np.ndarray:
         """The covariance `(n, tips, 3, 3)` (m^2, device frame) of `predict(q)`: what the fit's
         uncertainty leaves in the predicted points."""
+        q = self._poses(q)
+        if not len(q):
+            return np.zeros((0, len(self.tree.tip_names), 3, 3))
         return predicted_covariance(self.fit.u, self.fit.cov, self._problem, q)
 
 
@@ -185,25 +203,6 @@ def checked_samples(
     return TreeSamples(q, pts, measured, samples.truth, cov)
 
 
-def held_by_branch(tree: KinematicTree, layout: TreeLayout, free: np.ndarray, candidates: np.ndarray) -> dict:
-    """The candidate parameters held at nominal, by where they sit: `shared` (a joint on several
-    tips' paths), a tip's name (a joint on that tip's path only; its point), `unmeasured` (a
-    joint on no tip's path: a head when only the hands are tips), or `device`."""
-    paths = {t: set(tree.path(t)) for t in tree.tip_names}
-    held: dict[str, list[str]] = {}
-    for i in np.flatnonzero(candidates & ~free):
-        j, name = layout.joints[i], layout.names[i]
-        if layout.groups[i] == "device":
-            where = "device"
-        elif layout.groups[i] == "point":
-            where = name.split(".point.")[0]
-        else:
-            on = [t for t, p in paths.items() if j in p]
-            where = "shared" if len(on) > 1 else (on[0] if on else "unmeasured")
-        held.setdefault(where, []).append(name)
-    return held
-
-
 def _verdict(
     fit: TreeFit, layout: TreeLayout, noise_mm: float, samples: TreeSamples, tree, device_on=None
 ) -> tuple[str, tuple[str, ...]]:
@@ -230,6 +229,17 @@ def _verdict(
                 else ""
             )
         )
+    if fit.noise_mm < noise_mm / OVERSTATED:
+        notes.append(
+            f"the residuals' noise {fit.noise_mm:.3g} mm is under 1/{OVERSTATED:g} of the stated {noise_mm:.3g} mm: "
+            "the stated noise (or the samples' covariances) is overstated, so the fit frees too little and its "
+            "claims are too wide"
+            + (
+                "; a thousandfold gap means wrong units (mm or mm^2 given for m or m^2)"
+                if fit.noise_mm < 1e-3 * noise_mm
+                else ""
+            )
+        )
     values = fit.u * layout.scales
     compliance = layout.family("joint", "lateral") & fit.free
     negative = compliance & (values < -NEGATIVE_SIGMAS * np.where(fit.std > 0, fit.std, np.inf))
@@ -251,15 +261,18 @@ def _leave_out_outliers(problem, layout, samples: TreeSamples, fit: TreeFit):
     """Refit without the points `OUTLIER_SIGMAS` from the fit, the grossest first (a round
     leaves out those within a tenth of the worst's squared distance), until none is left:
     the problem, samples and fit, and the points left out as (sample, tip, sigmas). Where the
-    residuals' robust scale is over `NOISE_FACTOR` times the noise, the model misfits them
-    all: nothing is left out, and the verdict says so."""
+    residuals' robust scale is over `NOISE_FACTOR` times the noise and no point lies
+    `FAR_BEYOND` of it from the fit, the model misfits them all: nothing is left out, and the
+    verdict says so."""
     left = []
-    for _ in range(5):
+    for _ in range(8):
         r = linearised(jnp.asarray(fit.u), jnp.asarray(fit.free, jnp.float64), problem)[0]
         z2 = (np.asarray(r).reshape(*samples.measured.shape, 3) ** 2).sum(axis=-1)
         scale2 = max(1.0, float(np.median(z2[samples.measured])) / 2.366)  # chi-square(3)'s median
         bad = z2 > max(OUTLIER_SIGMAS**2 * scale2, 0.1 * z2.max())
-        if not bad.any() or scale2 > NOISE_FACTOR**2:  # a model that misfits them all: the verdict's
+        # Residuals all large and none far beyond the rest: the model misfits (the verdict's
+        # case); a few far beyond a large bulk: they are what inflates it.
+        if not bad.any() or (scale2 > NOISE_FACTOR**2 and z2.max() < FAR_BEYOND**2 * scale2):
             break
         left += [(int(i), int(t), float(np.sqrt(z2[i, t] / scale2))) for i, t in np.argwhere(bad)]
         samples = dataclasses.replace(samples, measured=samples.measured & ~bad)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree
-from jaxcal.sim.head_camera import CAMERA_TIP, film_upper_body
+from jaxcal.sim.head_camera import CAMERA_TIP, film_upper_body, hand_plate, tree_scene
 from jaxcal.sim.humanoid import HANDS, compliance_z, random_poses, tree_tracker_samples, upper_body_urdf
 from jaxcal.trees import calibrate_tree
 
@@ -93,3 +93,28 @@ def test_covariances_are_checked_and_the_stated_noise_refused_beside_them(tmp_pa
     ok = good.copy()  # an unmeasured tip's covariance (the camera's own) is not read
     ok[:, 2] = np.nan
     assert run(with_cov(ok), families=()).status in ("ok", "suspect")
+
+
+def test_what_a_camera_user_gets_wrong_is_named(filmed):
+    """Trial 8's mistakes: covariances in mm^2 for m^2 (overstated: suspect, not a confident
+    wrong answer), a tenth of the plates misread (each left out and named, and too many to
+    trust: suspect), two plates sharing marker ids, a plate on a link that is not a tip, poses
+    of the wrong shape."""
+    fit = filmed.capture.samples.subset(slice(0, FIT))
+    kw = dict(points=filmed.points, device_on=CAMERA_TIP, families=("joint", "lateral"), show_progress=False)
+    mm2 = calibrate_tree(filmed.nominal, dataclasses.replace(fit, covariance=fit.covariance * 1e6), **kw)
+    assert mm2.status == "suspect" and "overstated" in mm2.notes[0], mm2.notes
+    rng = np.random.default_rng(1)
+    misread = dataclasses.replace(fit, points=fit.points.copy())
+    rows = rng.choice(np.flatnonzero(misread.measured[:, 0]), FIT // 10, replace=False)
+    misread.points[rows, 0, 2] += rng.uniform(0.04, 0.15, len(rows))
+    result = calibrate_tree(filmed.nominal, misread, **kw)
+    assert result.status == "suspect" and "too many to trust the rest" in result.notes[-1], result.notes
+    assert all(f"sample {i} tip 'left_hand'" in result.notes[-1] for i in sorted(rows)[:3]), result.notes
+    with pytest.raises(ValueError, match=r"share marker ids \[0, 1, 2, 3\]"):
+        tree_scene(filmed.nominal, [hand_plate(HANDS[0], 0), hand_plate(HANDS[1], 0)])
+    with pytest.raises(ValueError, match=r"'left_forearm', which is not a tip of the tree: tips are"):
+        tree_scene(filmed.nominal, [hand_plate("left_forearm", 0)])
+    with pytest.raises(ValueError, match=r"q must be \(poses, 19\)"):
+        result.predict_covariance(fit.q[0])
+    assert result.predict_covariance(fit.q[:0]).shape == (0, 3, 3, 3)

@@ -95,6 +95,27 @@ class Capture:
     seen: dict
 
 
+def _check(tree: KinematicTree, plates, camera: CameraSpec) -> None:
+    """Refuse plates or a camera on what is not a tip of `tree`, and plates whose markers share
+    ids (a detector would take one for the other)."""
+    for what, on in [
+        *((f"plate {p.target.name!r}", p.link) for p in plates),
+        (f"camera {camera.name!r}", camera.mount),
+    ]:
+        if on not in tree.tip_names:
+            raise ValueError(
+                f"{what} sits on {on!r}, which is not a tip of the tree: tips are {tree.tip_names}"
+            )
+    for k, a in enumerate(plates):
+        for b in plates[k + 1 :]:
+            shared = sorted(set(a.target.marker_ids.tolist()) & set(b.target.marker_ids.tolist()))
+            if a.target.dictionary == b.target.dictionary and shared:
+                raise ValueError(
+                    f"plates {a.target.name!r} and {b.target.name!r} share marker ids {shared}: give each its own "
+                    "first_id (hand_plate's)"
+                )
+
+
 def tree_scene(tree: KinematicTree, plates, camera: CameraSpec = CAMERA) -> Scene:
     """The MuJoCo scene of `tree` (`jaxcal.sim.scene.mocap_scene`): a body per link, drawn to
     its children's joint origins, then one per tip (`tip:NAME`, carrying the `plates` on that
@@ -103,6 +124,7 @@ def tree_scene(tree: KinematicTree, plates, camera: CameraSpec = CAMERA) -> Scen
         name: [np.asarray(tree.T_parent_joint[j][:3, 3]) for j, p in enumerate(tree.parent) if p + 1 == k]
         for k, name in enumerate(tree.link_names)
     }
+    _check(tree, plates, camera)
     links.update({f"tip:{t}": [] for t in tree.tip_names})
     plates = [PlateSpec(p.target, f"tip:{p.link}", p.T_link_target) for p in plates]
     return mocap_scene(links, plates, [dataclasses.replace(camera, mount=f"tip:{camera.mount}")])
@@ -132,6 +154,10 @@ def poses_in_view(
     project `margin_px` inside the picture of `camera` (on its tip of `tree`) and the plate
     faces it (the cosine between its printed face's normal and the ray to the camera at least
     `facing`). Raises `ValueError` when fewer qualify."""
+    _check(tree, plates, camera)
+    candidates = np.asarray(candidates, np.float64)
+    if candidates.ndim != 2 or candidates.shape[1] != tree.num_actuated:
+        raise ValueError(f"candidates must be (poses, {tree.num_actuated}), got shape {candidates.shape}")
     tips = np.asarray(jax.vmap(tip_poses, in_axes=(None, 0))(tree, jnp.asarray(candidates)))
     cam = tips[:, tree.tip_names.index(camera.mount)] @ np.asarray(camera.T_mount_cam)
     ok = np.ones(len(candidates), bool)
