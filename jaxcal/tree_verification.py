@@ -20,8 +20,9 @@ from ._kinematics import joint_motion
 from ._tree import KinematicTree
 from ._treefit import Elastic, deflected_tips, tree_layout
 from .io._files import shown
+from .io.tree_dataset import TreeDataset, read_json_object
 from .io.urdf_tree import load_urdf_tree
-from .trees import NOISE_FACTOR, RESULT_FILE, TreeDataset, checked_samples, read_json_object
+from .trees import NOISE_FACTOR, RESULT_FILE, checked_samples
 
 __all__ = ["CalibratedTree", "load_tree_calibration", "verify_tree"]
 
@@ -170,7 +171,8 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
     """A tree calibration (`folder`) against samples it was not fitted on (`dataset`, of the same
     robot and device): per tip, the measured points' distance (mm) from the calibration's
     predictions and from the robot file's (rigid, in the calibrated device frame), and whether it
-    holds (`HOLDS_FACTOR`). The samples are checked as `calibrate_tree` checks them (joint limits,
+    holds (`HOLDS_FACTOR`; points that carry covariances weighed by them, as the fit weighed
+    its own). The samples are checked as `calibrate_tree` checks them (joint limits,
     with a hint where they look like degrees)."""
     model = load_tree_calibration(folder)
     if dataset.tree.actuated_names != model.tree.actuated_names:
@@ -216,7 +218,12 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
                 f"{kind}_rms_mm": float(np.sqrt(np.mean(d**2))),
             }
             tips[name][f"{kind}_max_mm"] = float(d.max())
-    rms_axis = 1e3 * float(np.sqrt(np.mean((calibrated - points)[measured] ** 2)))
+    residual = calibrated - points
+    if samples.covariance is not None:  # each point in units of its own noise, scaled to the dataset's
+        cov = np.stack([samples.covariance[:, max(k, 0)] for k in order], 1)
+        L = np.linalg.cholesky(np.where(measured[..., None, None], cov, np.eye(3)))
+        residual = 1e-3 * dataset.noise_mm * np.linalg.solve(L, residual[..., None])[..., 0]
+    rms_axis = 1e3 * float(np.sqrt(np.mean(residual[measured] ** 2)))
     notes = []
     if model.status != "ok":
         notes.append(f"the calibration itself was {model.status}")

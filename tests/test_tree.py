@@ -27,6 +27,7 @@ from jaxcal._npgeom import rotvec_to_matrix
 from jaxcal._tree import branch, tip_poses, tree_frames
 from jaxcal._treefit import TreeSamples
 from jaxcal.cli import main
+from jaxcal.io.tree_dataset import load_tree_dataset, write_tree_dataset
 from jaxcal.io.urdf import load_urdf
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree, save_urdf_tree
 from jaxcal.sim.humanoid import (
@@ -38,13 +39,7 @@ from jaxcal.sim.humanoid import (
     upper_body_urdf,
 )
 from jaxcal.tree_verification import load_tree_calibration
-from jaxcal.trees import (
-    calibrate_tree,
-    load_tree_dataset,
-    read_tree_samples,
-    save_tree_calibration,
-    write_tree_dataset,
-)
+from jaxcal.trees import calibrate_tree, read_tree_samples, save_tree_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
 PANDA_HAND = ROOT / "data" / "robots" / "trees" / "panda_arm_hand.urdf"

@@ -4,10 +4,14 @@ finds the plates and solves their PnP, and the tree fit weighs each plate's orig
 covariance PnP gives it (a camera sees across far better than in depth)."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
 
+from jaxcal._treefit import TreeSamples
+from jaxcal.cli import main
+from jaxcal.io.tree_dataset import covariance_noise_mm, load_tree_dataset, write_tree_dataset
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree
 from jaxcal.sim.head_camera import CAMERA_TIP, film_upper_body, hand_plate, tree_scene
 from jaxcal.sim.humanoid import HANDS, compliance_z, random_poses, tree_tracker_samples, upper_body_urdf
@@ -118,3 +122,85 @@ def test_what_a_camera_user_gets_wrong_is_named(filmed):
     with pytest.raises(ValueError, match=r"q must be \(poses, 19\)"):
         result.predict_covariance(fit.q[0])
     assert result.predict_covariance(fit.q[:0]).shape == (0, 3, 3, 3)
+
+
+def test_a_head_camera_dataset_from_the_command_line(tmp_path, capsys):
+    """`jaxcal simulate --robot upper_body` writes the head camera's capture as a tree dataset whose
+    points carry their PnP covariances; `jaxcal calibrate` weighs them and `jaxcal verify` judges
+    the result on held-out poses of the capture, in units of their own covariances."""
+    ds = tmp_path / "filmed"
+    assert main(["simulate", "--robot", "upper_body", "--out", str(ds), "--resolution", "320x240"]) == 2
+    assert "--resolution: not options of the upper body's head-camera capture" in capsys.readouterr().err
+    assert main(["simulate", "--robot", "upper_body", "--out", str(ds), "--seed", "5", "--quiet"]) == 0
+    filmed = load_tree_dataset(ds)
+    cov, measured = filmed.samples.covariance, filmed.samples.measured
+    assert cov is not None and filmed.device_on == CAMERA_TIP and not measured[:, 2].any()
+    # The stated noise is the covariances' RMS: about a millimetre in depth, a tenth across.
+    assert (
+        filmed.noise_mm == pytest.approx(covariance_noise_mm(filmed.samples)) and 0.2 < filmed.noise_mm < 1.5
+    )
+    depth, across = (1e3 * np.sqrt(cov[measured][:, k, k]) for k in (2, 0))
+    assert np.median(depth) > 3 * np.median(across)
+    # The capture's first 150 poses calibrate, the rest verify (the terms given: no cross-validation).
+    urdf, split = (ds / "robot.urdf").read_text(), {"fit": slice(0, 150), "held": slice(150, None)}
+    for name, rows in split.items():
+        write_tree_dataset(
+            tmp_path / name, urdf_text=urdf, tips=filmed.tree.tip_names, tree=filmed.tree,
+            samples=filmed.samples.subset(rows), noise_mm=None, points=filmed.points, device_on=CAMERA_TIP,
+            truth=filmed.truth,
+        )  # fmt: skip
+    doc = json.loads((tmp_path / "fit" / "tree.json").read_text())
+    assert "noise_mm" not in doc and doc["device_on"] == CAMERA_TIP
+    (tmp_path / "fit" / "tree.json").write_text(json.dumps(doc | {"terms": ["joint", "lateral"]}))
+    out = tmp_path / "out"
+    assert main(["calibrate", str(tmp_path / "fit"), "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "poses of left_hand, right_hand: " in printed and "the covariances RMS" in printed, printed
+    error = float(printed.split("against the simulator's truth: ")[1].split(" mm")[0])
+    assert error < 0.3, printed  # the robot file's geometry leaves 8-14 mm
+    figures = tmp_path / "verify.json"
+    assert main(["verify", str(out), str(tmp_path / "held"), "--json", str(figures)]) == 0
+    v = json.loads(figures.read_text())
+    assert v["holds"] and 0.5 < v["ratio"] < 1.6, v
+    # A hand's plate moved 2 mm across the picture after the calibration: its points no longer hold.
+    held = load_tree_dataset(tmp_path / "held")
+    moved = dataclasses.replace(
+        held.samples, points=held.samples.points + [[0, 0, 0], [2e-3, 0, 0], [0, 0, 0]]
+    )
+    write_tree_dataset(tmp_path / "moved", urdf_text=urdf, tips=held.tree.tip_names, tree=held.tree, samples=moved,
+                       noise_mm=None, points=held.points, device_on=CAMERA_TIP)  # fmt: skip
+    assert main(["verify", str(out), str(tmp_path / "moved")]) == 3
+
+
+def test_covariance_columns_are_read_whole_or_refused_by_name(tmp_path):
+    """Each point's covariance in six columns (m^2): all six for every tip or none; a dataset that
+    also states `noise_mm` is refused naming the field."""
+    nominal = load_urdf_tree(_urdf(tmp_path), tips=list(HANDS))
+    q = np.zeros((2, nominal.num_actuated))
+    cov = np.tile(np.diag([1e-8, 2e-8, 9e-8]), (2, 2, 1, 1))
+    samples = TreeSamples(q, np.ones((2, 2, 3)), np.array([[True, True], [True, False]]), covariance=cov)
+    ds = write_tree_dataset(tmp_path / "ds", urdf_text=upper_body_urdf(), tips=list(HANDS), tree=nominal,
+                            samples=samples, noise_mm=None, points=np.zeros((2, 3)))  # fmt: skip
+    read = load_tree_dataset(ds).samples
+    np.testing.assert_array_equal(read.covariance[read.measured], cov[samples.measured])
+    assert read.measured.tolist() == samples.measured.tolist()
+    text = (ds / "samples.csv").read_text().splitlines()
+    header = text[0].split(",")
+    cut = header.index("right_hand.cov_zz")
+    (ds / "samples.csv").write_text("\n".join(",".join(r.split(",")[:cut]) for r in text) + "\n")
+    with pytest.raises(ValueError, match=r"samples.csv.*all six.*right_hand"):
+        load_tree_dataset(ds)
+    (ds / "samples.csv").write_text("\n".join(text) + "\n")
+    doc = json.loads((ds / "tree.json").read_text())
+    (ds / "tree.json").write_text(json.dumps(doc | {"noise_mm": 0.1}))
+    with pytest.raises(ValueError, match=r"tree.json.*'noise_mm' is given, but the samples carry"):
+        load_tree_dataset(ds)
+    with pytest.raises(ValueError, match="not both"):
+        write_tree_dataset(tmp_path / "both", urdf_text=upper_body_urdf(), tips=list(HANDS), tree=nominal,
+                           samples=samples, noise_mm=0.1, points=np.zeros((2, 3)))  # fmt: skip
+
+
+def _urdf(tmp_path):
+    path = tmp_path / "upper_body.urdf"
+    path.write_text(upper_body_urdf())
+    return path

@@ -101,7 +101,9 @@ def _add_simulate_parser(sub) -> None:
         "simulate", help="render a perturbed arm's calibration dataset (MuJoCo) into a directory"
     )
     _add_simulate_common(
-        p, robot_help="shipped robot (ur5e, ur3, panda, scara) or a URDF file (default ur5e)"
+        p,
+        robot_help="shipped robot (ur5e, ur3, panda, scara) or a URDF file (default ur5e); upper_body: the "
+        "synthetic humanoid's head camera filming plates on both hands (a tree dataset)",
     )
     # The defaults film the demo's capture (EE RMS 0.19 mm refined; the former 640x480, 30 frames per
     # 40-degree sweep gave 1.2 mm): see docs/plan.md, and `simulate-plan` for a planned capture (0.04 mm).

@@ -14,6 +14,7 @@ from .. import distributed
 from .._exported import warm_start
 from .._progress import working
 from ..io._files import note_written, resolved, write_text_atomic
+from ..io.tree_dataset import load_tree_dataset
 from ..pipeline import calibrate
 from ..report import certificate_section, output_files, warm_up_plots, write_outputs
 from ..robots import load_robot
@@ -27,7 +28,7 @@ from ..summary import (
     truth_line,
     truth_table,
 )
-from ..trees import calibrate_tree, load_tree_dataset, save_tree_calibration
+from ..trees import calibrate_tree, save_tree_calibration
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, run_record
 from ._rosbag import dataset_of
 
@@ -379,7 +380,7 @@ def calibrate_tree_dataset(args, out: Path, checked) -> int:
     result = calibrate_tree(
         ds.tree,
         ds.samples,
-        noise_mm=ds.noise_mm,
+        noise_mm=None if ds.samples.covariance is not None else ds.noise_mm,
         families=ds.families,
         points=ds.points,
         limits=ds.limits,
@@ -388,13 +389,14 @@ def calibrate_tree_dataset(args, out: Path, checked) -> int:
     )
     held = ", ".join(f"{len(v)} {k}" for k, v in result.held.items())
     console.print(
-        f"{len(ds.samples.q)} poses of {', '.join(ds.tree.tip_names)}: residual noise {result.fit.noise_mm:.4f} mm "
-        f"(stated {ds.noise_mm:g}); terms kept: {', '.join(result.fit.families) or 'none'}; "
+        f"{len(ds.samples.q)} poses of {', '.join(t for t in ds.tree.tip_names if t != ds.device_on)}: residual noise {result.fit.noise_mm:.4f} mm "
+        f"(stated {ds.noise_mm:.4g}{', the covariances RMS' if ds.samples.covariance is not None else ''}); terms kept: {', '.join(result.fit.families) or 'none'}; "
         f"{int(result.fit.free.sum())} parameters freed, held ({held})"
     )
     if ds.truth is not None and "test" in ds.truth:
         test = np.asarray(ds.truth["test"]["points_m"])
-        error = np.linalg.norm(result.predict(ds.truth["test"]["q"]) - test, axis=-1).mean()
+        measured = [k for k, t in enumerate(ds.tree.tip_names) if t != ds.device_on]
+        error = np.linalg.norm((result.predict(ds.truth["test"]["q"]) - test)[:, measured], axis=-1).mean()
         console.print(
             f"against the simulator's truth: {1e3 * error:.4f} mm mean over {len(test)} held-out poses"
         )

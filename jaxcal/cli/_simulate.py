@@ -13,6 +13,8 @@ from ..io._files import check_output_dir, output_lock
 def cmd_simulate(args) -> int:
     """`jaxcal simulate`: a rendered camera dataset."""
     args.robot = args.robot or "ur5e"
+    if args.robot == "upper_body":
+        return _simulate_head_camera(args)
     robot_file = [args.robot] if Path(args.robot).exists() else []
     check_output_dir(args.out, inputs=robot_file, overwrite=args.overwrite, kind="dataset", what="--out")
     if not args.quiet:
@@ -201,5 +203,36 @@ def _simulate_upper_body(args) -> int:
         )
     print(
         f"wrote {out}: a tree dataset (tree.json, robot.urdf, samples.csv, truth.json; {time.perf_counter() - start:.1f} s)"
+    )
+    return 0
+
+
+#: What `jaxcal simulate --robot upper_body` takes: its capture is the head camera's, fixed.
+HEAD_CAMERA_OPTIONS = ("--robot", "--out", "--overwrite", "--seed", "--quiet")
+
+
+def _simulate_head_camera(args) -> int:
+    """`jaxcal simulate --robot upper_body`: the synthetic humanoid's head camera filming plates on
+    both hands (`jaxcal.sim.head_camera`), written as a tree dataset with each point's covariance."""
+    given = [a.split("=")[0] for a in getattr(args, "_argv", ()) if a.startswith("--")]
+    other = [a for a in given if a not in HEAD_CAMERA_OPTIONS]
+    if other:
+        raise ValueError(
+            f"{', '.join(other)}: not options of the upper body's head-camera capture (640x480, plates on both "
+            f"hands, 200 poses and 50 held out; it takes {', '.join(HEAD_CAMERA_OPTIONS)})"
+        )
+    check_output_dir(args.out, inputs=[], overwrite=args.overwrite, kind="dataset", what="--out")
+    if not args.quiet:
+        print(f"simulating the upper body's head camera filming both hands into {args.out} ...", flush=True)
+    from ..sim.head_camera import simulate_head_camera
+
+    start = time.perf_counter()
+    with output_lock(args.out, what="--out"):
+        out = simulate_head_camera(
+            args.out, seed=args.seed, overwrite=args.overwrite, show_progress=not args.quiet
+        )
+    print(
+        f"wrote {out}: a tree dataset of the head camera's PnP points with their covariances (tree.json, "
+        f"robot.urdf, samples.csv, truth.json; {time.perf_counter() - start:.1f} s)"
     )
     return 0

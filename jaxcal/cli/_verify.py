@@ -108,8 +108,8 @@ def _verify_tree(args) -> int:
     for flag, given in (("--cv", args.cv), ("--plot", args.plot)):
         if given:
             raise ValueError(f"{flag}: not available for a tree calibration ({args.result}); use --json")
+    from ..io.tree_dataset import is_tree_dataset, load_tree_dataset
     from ..tree_verification import HOLDS_FACTOR, verify_tree
-    from ..trees import is_tree_dataset, load_tree_dataset
 
     if not is_tree_dataset(args.dataset):
         raise ValueError(

@@ -10,7 +10,8 @@ the capture): `TreeSamples` in the camera's frame, for
 `jaxcal.trees.calibrate_tree(..., device_on=CAMERA_TIP)`, which weighs each point by its
 covariance (PnP sees across the image far better than in depth). `reaching_poses` and
 `poses_in_view` draw poses at which every plate is inside the picture and faces the camera;
-`film_upper_body` does it all for a drawn synthetic upper body.
+`film_upper_body` does it all for a drawn synthetic upper body, and `simulate_head_camera`
+writes it as a tree dataset (`jaxcal simulate --robot upper_body`).
 """
 
 import dataclasses
@@ -26,6 +27,7 @@ import numpy as np
 from .._progress import progress
 from .._tree import KinematicTree, tip_poses, tips_from_frames
 from .._treefit import Elastic, TreeSamples, deflected_frames
+from ..io.tree_dataset import write_tree_dataset
 from ..io.urdf_tree import actuated_limits, load_urdf_tree
 from ..markers import TargetSpec
 from ..vision import detect, estimate_pose
@@ -271,3 +273,42 @@ def film_upper_body(
         capture = film_hands(scene, true, q, elastic, show_progress=show_progress)
     points = np.array([p.T_link_target[:3, 3] for p in drawn] + [[0.0, 0.0, 0.0]])
     return FilmedBody(nominal, limits, true, elastic, capture, points)
+
+
+def simulate_head_camera(
+    out,
+    *,
+    poses: int = 200,
+    test_poses: int = 50,
+    seed: int = 0,
+    overwrite: bool = False,
+    show_progress: bool = True,
+) -> Path:
+    """A tree dataset (`jaxcal.io.tree_dataset`) of the upper body's head camera filming both
+    hands: `film_upper_body` at `poses` poses, each plate's origin with its PnP covariance
+    (`TIP.cov_xx` ... columns), the device on the camera's tip. `truth.json` holds the drawn
+    compliances and `test_poses` more filmed poses with the plates' noise-free origins (camera
+    frame), to judge a calibration."""
+    body = film_upper_body(poses + test_poses, seed=seed, show_progress=show_progress)
+    samples, tips = body.capture.samples, body.nominal.tip_names
+    fit, test = samples.subset(slice(0, poses)), samples.subset(slice(poses, None))
+    truth = {
+        "compliance_rad_per_Nm": dict(zip(body.nominal.joint_names, np.asarray(body.elastic.joint).tolist())),
+        "lateral_compliance_rad_per_Nm": dict(
+            zip(body.nominal.joint_names, np.asarray(body.elastic.lateral).tolist())
+        ),
+        "corner_noise_px": body.capture.sigma_px,
+        "test": {"q": test.q.tolist(), "points_m": test.truth.tolist()},
+    }
+    return write_tree_dataset(
+        out,
+        urdf_text=upper_body_urdf(),
+        tips=list(tips),
+        samples=dataclasses.replace(fit, truth=None),
+        tree=body.nominal,
+        noise_mm=None,
+        points=body.points,
+        truth=truth,
+        device_on=CAMERA_TIP,
+        overwrite=overwrite,
+    )

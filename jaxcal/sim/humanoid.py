@@ -23,8 +23,8 @@ import numpy as np
 from .._npgeom import rotvec_to_matrix
 from .._tree import KinematicTree
 from .._treefit import Elastic, TreeSamples, deflected_tips
+from ..io.tree_dataset import write_tree_dataset
 from ..io.urdf_tree import actuated_limits, load_urdf_tree
-from ..trees import write_tree_dataset
 
 #: Joint name, axis, parent link, child link, origin xyz (m), origin rpy (rad), limits (rad).
 _TORSO = [
@@ -248,7 +248,7 @@ def simulate_upper_body(
     seed: int = 0,
     overwrite: bool = False,
 ) -> Path:
-    """A tree dataset (`jaxcal.trees.load_tree_dataset`) of the upper body: a tracker measures a
+    """A tree dataset (`jaxcal.io.tree_dataset.load_tree_dataset`) of the upper body: a tracker measures a
     reflector on each hand at `poses` stop-and-shoot poses (`noise_mm` per axis) of a drawn body
     bent by gravity. `truth.json` holds the drawn compliances, the device's pose, the reflectors'
     mounts and `test_poses` more poses with the hands' noise-free points, to judge a calibration."""

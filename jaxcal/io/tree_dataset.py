@@ -1,0 +1,276 @@
+"""Tree datasets: a folder with `tree.json`, the robot file and a samples CSV (`jaxcal.trees`).
+
+    tree.json     {"robot": "robot.urdf", "tips": ["left_hand", "right_hand"], "noise_mm": 0.1}
+    samples.csv   torso_yaw,...,left_hand.x,left_hand.y,left_hand.z,right_hand.x,...
+
+Each row is a stop-and-shoot pose: the actuated joints (rad or m) and each measured tip's point
+(m, device frame). A device whose points carry their own covariance (a camera's PnP sees across
+the image far better than in depth) adds `TIP.cov_xx`, `TIP.cov_xy`, `TIP.cov_xz`, `TIP.cov_yy`,
+`TIP.cov_yz`, `TIP.cov_zz` per tip (m^2, device frame) and states no `noise_mm`.
+"""
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .._tree import KinematicTree
+from .._treefit import FAMILIES, TreeSamples
+from ._files import atomic_directory, shown
+from .urdf_tree import actuated_limits, load_urdf_tree
+
+#: A point's covariance columns (`TIP.cov_xx` ...: m^2), and where each sits in the 3x3 matrix.
+COVARIANCE = {
+    "cov_xx": (0, 0),
+    "cov_xy": (0, 1),
+    "cov_xz": (0, 2),
+    "cov_yy": (1, 1),
+    "cov_yz": (1, 2),
+    "cov_zz": (2, 2),
+}
+
+
+def read_tree_samples(path, tree: KinematicTree) -> TreeSamples:
+    """Stop-and-shoot samples from a CSV file: a column per actuated joint (its name; rad or m)
+    and, per measured tip, columns `TIP.x`, `TIP.y`, `TIP.z` (m, device frame). An empty cell
+    in a tip's columns marks the tip unmeasured in that row; `TIP.cov_xx` ... `TIP.cov_zz` (m^2,
+    every tip or none) give each point's covariance. Raises `ValueError` naming the file, the row
+    and the column of what cannot be read."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"tree samples {shown(path)!r} do not exist")
+    with path.open(newline="", encoding="utf-8-sig") as f:  # a spreadsheet's byte-order mark
+        header = next(csv.reader(f), [])
+        f.seek(0)
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"tree samples {shown(path)!r}: no rows")
+    twice = sorted({h for h in header if header.count(h) > 1})
+    if twice:
+        raise ValueError(f"tree samples {shown(path)!r}: column(s) {twice} appear more than once")
+    missing = [n for n in tree.actuated_names if n not in header]
+    if missing:
+        raise ValueError(f"tree samples {shown(path)!r}: no column for joint(s) {missing}")
+    suffixes = ("x", "y", "z", *COVARIANCE)
+    groups = {h.rsplit(".", 1)[0] for h in header if h.rsplit(".", 1)[-1] in suffixes and "." in h}
+    unknown = sorted(groups - set(tree.tip_names))
+    if unknown:
+        raise ValueError(
+            f"tree samples {shown(path)!r}: columns for {unknown}, which are not tips of the tree {tree.tip_names}"
+        )
+    partial = sorted(t for t in groups if not all(f"{t}.{a}" in header for a in "xyz"))
+    if partial:
+        raise ValueError(
+            f"tree samples {shown(path)!r}: tip(s) {partial} lack one of their .x, .y, .z columns"
+        )
+    with_cov = sorted(t for t in groups if any(f"{t}.{c}" in header for c in COVARIANCE))
+    partial = [t for t in with_cov if not all(f"{t}.{c}" in header for c in COVARIANCE)]
+    if partial or (with_cov and set(with_cov) != groups):
+        raise ValueError(
+            f"tree samples {shown(path)!r}: every tip needs all six of {[f'TIP.{c}' for c in COVARIANCE]} "
+            f"or none; {sorted(set(partial) | (groups - set(with_cov)))} lack some"
+        )
+    tips = [t for t in tree.tip_names if t in groups]
+    if not tips:
+        raise ValueError(
+            f"tree samples {shown(path)!r}: no tip's columns; expected TIP.x, TIP.y, TIP.z for a tip of {tree.tip_names}"
+        )
+
+    def number(row: int, column: str, text: str) -> float:
+        try:
+            value = float(text)
+        except (TypeError, ValueError):
+            value = float("nan")
+        if not np.isfinite(value):
+            raise ValueError(
+                f"tree samples {shown(path)!r}: row {row + 2}, column {column!r}: {text!r} is not a finite number"
+            )
+        return value
+
+    q = np.array([[number(i, n, r[n]) for n in tree.actuated_names] for i, r in enumerate(rows)])
+    points = np.full((len(rows), len(tree.tip_names), 3), np.nan)
+    measured = np.zeros((len(rows), len(tree.tip_names)), bool)
+    cov = np.tile(np.eye(3), (len(rows), len(tree.tip_names), 1, 1))
+    for i, r in enumerate(rows):
+        for t in tips:
+            cells = [r[f"{t}.{a}"] for a in "xyz"]
+            if all(c in ("", None) for c in cells):
+                continue
+            k = tree.tip_names.index(t)
+            points[i, k] = [number(i, f"{t}.{a}", c) for a, c in zip("xyz", cells)]
+            measured[i, k] = True
+            for c, (a, b) in COVARIANCE.items() if with_cov else ():
+                cov[i, k, a, b] = cov[i, k, b, a] = number(i, f"{t}.{c}", r[f"{t}.{c}"])
+    return TreeSamples(q, points, measured, covariance=cov if with_cov else None)
+
+
+#: A tree dataset is a folder with this file (besides its robot file and samples CSV).
+TREE_FILE = "tree.json"
+
+
+@dataclass(frozen=True)
+class TreeDataset:
+    """A tree dataset read by `load_tree_dataset`: the robot file, its tree (with the tips the
+    samples measure), the samples, the device's noise (mm per axis: the covariances' RMS
+    where the samples carry them), the points' nominal
+    positions on the tips (m), the term families (None: cross-validation chooses), the
+    actuated joints' limits, and the truth a simulator wrote (`truth.json`, or None)."""
+
+    folder: Path
+    urdf: Path
+    tree: KinematicTree
+    samples: TreeSamples
+    noise_mm: float
+    points: np.ndarray
+    families: tuple[str, ...] | None
+    limits: np.ndarray
+    truth: dict | None
+    device_on: str | None = None
+
+
+def is_tree_dataset(path) -> bool:
+    return (Path(path) / TREE_FILE).is_file()
+
+
+def _field(doc: dict, name: str, path: Path, kind, required: bool = True, default=None):
+    if name not in doc:
+        if required:
+            raise ValueError(f"{shown(path)!r}: no field {name!r}")
+        return default
+    value = doc[name]
+    if not isinstance(value, kind) or isinstance(value, bool):
+        raise ValueError(f"{shown(path)!r}: field {name!r} is {value!r}, not a {kind.__name__}")
+    return value
+
+
+def read_json_object(path: Path, what: str) -> dict:
+    """The JSON object in `path` (`what` it is, for the errors), or a `ValueError` naming it."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{what} {shown(path)!r} cannot be read: {e}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{what} {shown(path)!r}: not a JSON object")
+    return doc
+
+
+def covariance_noise_mm(samples: TreeSamples) -> float:
+    """The measured points' covariances as one noise, mm per axis: their RMS (`calibrate_tree`'s
+    stated noise where the samples carry covariances)."""
+    seen = np.asarray(samples.covariance)[np.asarray(samples.measured)]
+    return 1e3 * float(np.sqrt(np.trace(seen, axis1=-2, axis2=-1).mean() / 3.0))
+
+
+def load_tree_dataset(folder) -> TreeDataset:
+    """Read a tree dataset folder: `tree.json` names the robot file (`robot`), the measured
+    `tips`, the `samples` CSV (default `samples.csv`, `read_tree_samples`' format), the device's
+    `noise_mm` (1-sigma per axis; none where the samples carry covariances), optionally `points_m` (each tip's point, m, tip frame),
+    `terms` (`"auto"`, or a list of `jaxcal._treefit.FAMILIES`), `base_link` and `device_on` (the
+    tip the device rides on: a head camera; it is then one of `tips`, and never measured). Raises
+    `ValueError` naming the file and field of what is missing or malformed."""
+    folder = Path(folder)
+    path = folder / TREE_FILE
+    doc = read_json_object(path, "tree dataset")
+    urdf = folder / _field(doc, "robot", path, str)
+    tips = _field(doc, "tips", path, list)
+    if not tips or not all(isinstance(t, str) for t in tips):
+        raise ValueError(
+            f"tree dataset {shown(path)!r}: field 'tips' must list the measured tips' link names"
+        )
+    noise = doc.get("noise_mm")
+    if noise is not None and (
+        not isinstance(noise, (int, float)) or isinstance(noise, bool) or not noise > 0
+    ):
+        raise ValueError(
+            f"tree dataset {shown(path)!r}: field 'noise_mm' must be the device's positive noise (mm per axis), got {noise!r}"
+        )
+    tree = load_urdf_tree(urdf, base_link=_field(doc, "base_link", path, str, required=False), tips=tips)
+    samples = read_tree_samples(
+        folder / _field(doc, "samples", path, str, required=False, default="samples.csv"), tree
+    )
+    if samples.covariance is not None and noise is not None:
+        raise ValueError(
+            f"tree dataset {shown(path)!r}: field 'noise_mm' is given, but the samples carry their own "
+            "covariances (TIP.cov_xx ...): state one or the other"
+        )
+    if samples.covariance is None and noise is None:
+        raise ValueError(
+            f"tree dataset {shown(path)!r}: no field 'noise_mm' (the device's noise, mm per axis) and no "
+            "covariance columns (TIP.cov_xx ...) in the samples"
+        )
+    points = np.zeros((len(tips), 3))
+    for t, xyz in _field(doc, "points_m", path, dict, required=False, default={}).items():
+        if t not in tips or np.shape(xyz) != (3,) or not np.all(np.isfinite(np.asarray(xyz, float))):
+            raise ValueError(
+                f"tree dataset {shown(path)!r}: points_m[{t!r}] must be a tip's [x, y, z] (m), got {xyz!r}"
+            )
+        points[tips.index(t)] = xyz
+    terms = doc.get("terms", "auto")
+    if terms != "auto" and (not isinstance(terms, list) or set(terms) - set(FAMILIES)):
+        raise ValueError(
+            f"tree dataset {shown(path)!r}: field 'terms' must be \"auto\" or a list of {list(FAMILIES)}, got {terms!r}"
+        )
+    truth_path = folder / "truth.json"
+    return TreeDataset(
+        folder=folder,
+        urdf=urdf,
+        tree=tree,
+        samples=samples,
+        noise_mm=float(noise) if noise is not None else covariance_noise_mm(samples),
+        points=points,
+        families=None if terms == "auto" else tuple(terms),
+        limits=actuated_limits(urdf, tree),
+        truth=json.loads(truth_path.read_text()) if truth_path.is_file() else None,
+        device_on=_field(doc, "device_on", path, str, required=False),
+    )
+
+
+def write_tree_dataset(
+    folder,
+    *,
+    urdf_text: str,
+    tips,
+    samples: TreeSamples,
+    tree: KinematicTree,
+    noise_mm: float | None,
+    points,
+    truth: dict | None = None,
+    device_on: str | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a tree dataset (`load_tree_dataset`'s format) atomically: `robot.urdf`, `tree.json`,
+    `samples.csv` (unmeasured tips' cells empty; each point's covariance where the samples carry
+    one, and then no `noise_mm`) and, from a simulator, `truth.json`. `device_on`: the tip the
+    device rides on (a head camera), which has no columns."""
+    folder = Path(folder)
+    cov = samples.covariance
+    if (cov is None) == (noise_mm is None):
+        raise ValueError("give noise_mm, or samples that carry their covariances, not both")
+    columns = [k for k, t in enumerate(tips) if t != device_on]
+    names = ("x", "y", "z", *(COVARIANCE if cov is not None else ()))
+    header = list(tree.actuated_names) + [f"{tips[k]}.{a}" for k in columns for a in names]
+    rows = []
+    for i, (q, p, seen) in enumerate(zip(samples.q, samples.points, samples.measured)):
+        cells = [repr(float(v)) for v in q]
+        for k in columns:
+            values = [*p[k], *(cov[i, k][ab] for ab in COVARIANCE.values())] if cov is not None else p[k]
+            cells += [repr(float(v)) for v in values] if seen[k] else [""] * len(names)
+        rows.append(",".join(cells))
+    doc = {
+        "robot": "robot.urdf",
+        "tips": list(tips),
+        "samples": "samples.csv",
+        **({"noise_mm": noise_mm} if cov is None else {}),
+        **({"device_on": device_on} if device_on else {}),
+        "points_m": {t: np.asarray(x, float).tolist() for t, x in zip(tips, points)},
+        "terms": "auto",
+    }
+    with atomic_directory(folder, overwrite=overwrite, kind="dataset") as tmp:
+        (tmp / "robot.urdf").write_text(urdf_text)
+        (tmp / TREE_FILE).write_text(json.dumps(doc, indent=2) + "\n")
+        (tmp / "samples.csv").write_text(",".join(header) + "\n" + "\n".join(rows) + "\n")
+        if truth is not None:
+            (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+    return folder
