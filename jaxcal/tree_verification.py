@@ -9,7 +9,8 @@ not a finite number are refused by name), so a damaged file is never taken for a
 `verify_tree` compares the model's predictions with new samples, per tip.
 """
 
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import equinox as eqx
@@ -18,16 +19,25 @@ import numpy as np
 
 from ._kinematics import joint_motion
 from ._tree import KinematicTree
-from ._treefit import Elastic, deflected_tips, tree_layout
+from ._treefit import (
+    FAMILIES,
+    Elastic,
+    TreeSamples,
+    deflected_tips,
+    predicted_covariance,
+    problem_of,
+    tree_layout,
+)
+from .certification import Predictor
 from .io._files import shown
 from .io.tree_dataset import TreeDataset, read_json_object
-from .io.urdf_tree import load_urdf_tree
-from .trees import NOISE_FACTOR, RESULT_FILE, checked_samples
+from .io.urdf_tree import actuated_limits, load_urdf_tree
+from .trees import COVARIANCE_FILE, NOISE_FACTOR, RESULT_FILE, checked_samples
 
-__all__ = ["CalibratedTree", "load_tree_calibration", "verify_tree"]
+__all__ = ["CalibratedTree", "load_tree_calibration", "tip_predictors", "verify_tree"]
 
 #: A tree calibration holds on new samples while their residuals' RMS per axis stays within this
-#: factor of the fit's own residual noise (the parameters' uncertainty adds a few percent).
+#: factor of what the fit expects: its own residual noise and its parameters' uncertainty there.
 HOLDS_FACTOR = 1.5
 
 
@@ -35,7 +45,10 @@ HOLDS_FACTOR = 1.5
 class CalibratedTree:
     """A tree calibration read back from the folder `save_tree_calibration` wrote: the calibrated
     tree, its loads and terms, the device and the measured points, and the fit's verdict and
-    residual noise (mm per axis)."""
+    residual noise (mm per axis); the freed parameters' `values`, and from `tree_covariance.json`
+    their `covariance` (names, matrix, the configurations fitted) and the noise the fit was
+    given (`stated_noise_mm`; None in a folder written before they were kept), and whether the
+    points were weighed by their own covariances (`point_covariances`)."""
 
     tree: KinematicTree
     elastic: Elastic
@@ -45,6 +58,34 @@ class CalibratedTree:
     device_on: str | None
     noise_mm: float
     status: str
+    values: dict = field(default_factory=dict)
+    covariance: tuple | None = None
+    stated_noise_mm: float | None = None
+    point_covariances: bool = False
+
+    def predict_covariance(self, q) -> np.ndarray:
+        """The covariance `(n, tips, 3, 3)` (m^2, device frame) of `predict(q)` from the fit's
+        (`tree_covariance.json`): to first order about the calibrated body, as the calibration's
+        own `predict_covariance` gives it."""
+        if self.covariance is None:
+            raise ValueError(f"the tree calibration has no {COVARIANCE_FILE} (written before jaxcal kept it)")
+        names, cov, _ = self.covariance
+        layout = tree_layout(self.tree)
+        index = [layout.names.index(n) for n in names]
+        q = np.asarray(q, np.float64)
+        tips, a = len(self.tree.tip_names), self.tree.num_actuated
+        # The geometry is the calibrated tree's own: only the terms' values lie in the vector.
+        terms = layout.family(*FAMILIES)
+        x = np.array([self.values.get(n, 0.0) if t else 0.0 for n, t in zip(layout.names, terms)])
+        one = TreeSamples(np.zeros((1, a)), np.zeros((1, tips, 3)), np.ones((1, tips), bool))
+        device_tip = self.tree.tip_names.index(self.device_on) if self.device_on else -1
+        problem = problem_of(
+            self.tree, layout, one, self.T_device_root, self.points, self.noise_mm, device_tip
+        )
+        s = layout.scales[index]
+        cov_u = np.zeros((layout.size, layout.size))
+        cov_u[np.ix_(index, index)] = cov / np.outer(s, s)
+        return predicted_covariance(jnp.asarray(x / layout.scales), cov_u, problem, q)
 
     def predict(self, q) -> np.ndarray:
         """The measured points predicted at commanded positions `q` `(n, actuated)`, device frame."""
@@ -80,6 +121,31 @@ def _object(doc, name: str, path: Path) -> dict:
             f"tree calibration {shown(path)!r}: field {name!r} must be an object, got {doc.get(name)!r}"
         )
     return doc[name]
+
+
+def _covariance(path: Path, tree: KinematicTree) -> tuple | None:
+    """`tree_covariance.json`'s parameter names, matrix and configurations fitted (None where the
+    folder has none)."""
+    if not path.is_file():
+        return None
+    doc = read_json_object(path, "tree calibration's covariance")
+    names = doc.get("parameters")
+    if not isinstance(names, list) or set(names) - set(tree_layout(tree).names):
+        raise ValueError(
+            f"{shown(path)!r}: field 'parameters' must name parameters of calibrated.urdf's tree"
+        )
+    cov = _numbers(doc.get("matrix"), (len(names), len(names)), path, "'matrix'")
+    q = doc.get("configurations")
+    rows = len(q) if isinstance(q, list) else -1
+    q = None if q is None else _numbers(q, (rows, tree.num_actuated), path, "'configurations'")
+    if (
+        not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0)
+        or np.linalg.eigvalsh(cov).min() < -1e-9 * abs(cov).max()
+    ):
+        raise ValueError(
+            f"{shown(path)!r}: field 'matrix' is not a symmetric positive semi-definite covariance"
+        )
+    return tuple(names), cov, q
 
 
 def load_tree_calibration(folder) -> CalibratedTree:
@@ -155,7 +221,12 @@ def load_tree_calibration(folder) -> CalibratedTree:
     noise = _numbers(doc.get("noise_mm"), (), path, "'noise_mm'")
     if not noise > 0:
         raise ValueError(f"tree calibration {shown(path)!r}: field 'noise_mm' must be positive, got {noise}")
+    stated = doc.get("stated_noise_mm")
     return CalibratedTree(
+        values=values,
+        covariance=_covariance(folder / COVARIANCE_FILE, tree),
+        stated_noise_mm=None if stated is None else float(_numbers(stated, (), path, "'stated_noise_mm'")),
+        point_covariances=doc.get("point_covariances") is True,
         tree=tree,
         elastic=elastic,
         harmonic=of(f"{j}.harmonic.{k}" for j in tree.joint_names for k in ("cos", "sin")).reshape(n, 2),
@@ -171,8 +242,9 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
     """A tree calibration (`folder`) against samples it was not fitted on (`dataset`, of the same
     robot and device): per tip, the measured points' distance (mm) from the calibration's
     predictions and from the robot file's (rigid, in the calibrated device frame), and whether it
-    holds (`HOLDS_FACTOR`; points that carry covariances weighed by them, as the fit weighed
-    its own). The samples are checked as `calibrate_tree` checks them (joint limits,
+    holds: the residuals' RMS per axis (points that carry covariances weighed by them, as the fit
+    weighed its own) within `HOLDS_FACTOR` of what the fit expects there, its residual noise and
+    its parameters' uncertainty at these poses (`expected_mm`). The samples are checked as `calibrate_tree` checks them (joint limits,
     with a hint where they look like degrees)."""
     model = load_tree_calibration(folder)
     if dataset.tree.actuated_names != model.tree.actuated_names:
@@ -224,10 +296,18 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
         L = np.linalg.cholesky(np.where(measured[..., None, None], cov, np.eye(3)))
         residual = 1e-3 * dataset.noise_mm * np.linalg.solve(L, residual[..., None])[..., 0]
     rms_axis = 1e3 * float(np.sqrt(np.mean(residual[measured] ** 2)))
+    # What the fit's own uncertainty adds at these poses (per axis, RMS over the measured points).
+    param_mm = 0.0
+    if model.covariance is not None:
+        var = np.trace(model.predict_covariance(samples.q), axis1=-2, axis2=-1)[measured] / 3.0
+        param_mm = 1e3 * float(np.sqrt(var.mean()))
+    expected = float(np.hypot(model.noise_mm, param_mm))
     notes = []
     if model.status != "ok":
         notes.append(f"the calibration itself was {model.status}")
-    if rms_axis > NOISE_FACTOR * dataset.noise_mm and rms_axis <= HOLDS_FACTOR * model.noise_mm:
+    if model.covariance is None:
+        notes.append(f"the calibration has no {COVARIANCE_FILE}: its parameters' uncertainty is not weighed")
+    if rms_axis > NOISE_FACTOR * dataset.noise_mm and rms_axis <= HOLDS_FACTOR * expected:
         notes.append(
             f"the residuals are over {NOISE_FACTOR:g}x the dataset's stated noise {dataset.noise_mm:g} mm"
         )
@@ -235,8 +315,69 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
         "tips": tips,
         "rms_per_axis_mm": rms_axis,
         "fit_noise_mm": model.noise_mm,
-        "ratio": rms_axis / model.noise_mm,
-        "holds": bool(rms_axis <= HOLDS_FACTOR * model.noise_mm),
+        "parameters_mm": param_mm if model.covariance is not None else None,
+        "expected_mm": expected,
+        "ratio": rms_axis / expected,
+        "holds": bool(rms_axis <= HOLDS_FACTOR * expected),
         "calibration_status": model.status,
         "notes": notes,
     }
+
+
+def tip_predictors(folder) -> dict[str, Predictor]:
+    """A `jaxcal.certification.Predictor` per measured tip of a tree calibration's folder, for
+    `certify`: each tip's point and its covariance from the fit's (`tree_covariance.json`), the
+    fit's residual noise beyond the stated one as the unexplained scatter, over the robot file's
+    joint limits. Only the device's frame (`frame="fixed"`)."""
+    folder = Path(folder)
+    folder = folder.parent if folder.name == RESULT_FILE else folder
+    model = load_tree_calibration(folder)
+    if model.covariance is None:
+        raise ValueError(
+            f"{shown(folder)!r}: no {COVARIANCE_FILE}: calibrate again with this jaxcal to certify it"
+        )
+    if model.status == "failed":
+        raise ValueError(f"{shown(folder)!r}: the calibration failed: there is nothing to certify")
+    notes = (
+        [] if model.status == "ok" else [f"the calibration is {model.status}: these figures take it as right"]
+    )
+    stated = model.stated_noise_mm or model.noise_mm
+    excess = max(model.noise_mm**2 - stated**2, 0.0)
+    if model.stated_noise_mm is None:
+        notes.append("the result does not state the device's noise: the residuals' scatter is not counted")
+    elif model.point_covariances and excess > 0:
+        # The points' own covariances (a camera's PnP) understated, not the model: that is in the
+        # parameters' covariance already (scaled by the residuals), and adds nothing isotropic.
+        notes.append(
+            f"the residuals are {model.noise_mm / stated:.2f}x what the points' covariances say: taken as "
+            "those covariances understated (the parameters' covariance is scaled by it)"
+        )
+        excess = 0.0
+    travel = actuated_limits(folder / "calibrated.urdf", model.tree)
+    out = {}
+    for t, tip in enumerate(model.tree.tip_names):
+        if tip == model.device_on:
+            continue
+
+        def covariances(q, frame="fixed", t=t):
+            if frame != "fixed":
+                raise ValueError("a tree calibration is certified in its device's frame only (frame 'fixed')")
+            return model.predict_covariance(q)[:, t]
+
+        def base_points(q, t=t):
+            root = dataclasses.replace(model, T_device_root=np.eye(4), device_on=None)
+            return root.predict(q)[:, t]
+
+        out[tip] = Predictor(
+            kind=f"tree tip {tip!r}",
+            result=str(folder / RESULT_FILE),
+            joint_names=tuple(model.tree.actuated_names),
+            covariances=covariances,
+            base_points=base_points,
+            scatter_var=1e-6 * excess,
+            model=None,
+            travel=travel,
+            workspace=model.covariance[2],
+            notes=tuple(notes),
+        )
+    return out

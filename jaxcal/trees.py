@@ -387,8 +387,9 @@ def calibrate_tree(
     )
 
 
-#: What `save_tree_calibration` writes the result into.
+#: What `save_tree_calibration` writes the result into, and the freed parameters' covariance.
 RESULT_FILE = "tree_result.json"
+COVARIANCE_FILE = "tree_covariance.json"
 
 
 def _json(result: TreeCalibration) -> dict:
@@ -397,6 +398,8 @@ def _json(result: TreeCalibration) -> dict:
         "status": result.status,
         "notes": list(result.notes),
         "noise_mm": result.fit.noise_mm,
+        "stated_noise_mm": 1e3 * float(result._problem.sigma),
+        "point_covariances": result._problem.whiten is not None,
         "terms_kept": list(result.fit.families),
         "cross_validation_mm": result.fit.cv_mm,
         "parameters": {n: {"value": v, "std": s} for n, (v, s) in result.parameters().items()},
@@ -418,12 +421,25 @@ def _json(result: TreeCalibration) -> dict:
     }
 
 
+def _covariance_json(result: TreeCalibration) -> dict:
+    """What `certify` needs beside the result: the freed parameters' covariance in their own units
+    (`tree_result.json`'s), by name, and the configurations fitted (the calibrated workspace)."""
+    free = np.flatnonzero(result.fit.free)
+    s = result.layout.scales[free]
+    return {
+        "parameters": [result.layout.names[i] for i in free],
+        "matrix": (np.asarray(result.fit.cov)[np.ix_(free, free)] * np.outer(s, s)).tolist(),
+        "configurations": np.asarray(result._problem.q).tolist(),
+    }
+
+
 def save_tree_calibration(
     result: TreeCalibration, folder, *, source_urdf, overwrite: bool = False, inputs=(), checked=None
 ) -> Path:
     """Write `calibrated.urdf` (a copy of `source_urdf` with the calibrated geometry and the
     mimic laws kept), `tree_result.json` (every parameter with its standard deviation, the
-    terms kept, what was held by branch, the verdict) and each tip's branch as a modified-DH
+    terms kept, what was held by branch, the verdict), `tree_covariance.json` (the freed
+    parameters' covariance, for `certify` and `verify`) and each tip's branch as a modified-DH
     table (`TIP_mdh.json`, `branch_table`) into `folder`, atomically: an existing
     result folder is replaced only with `overwrite`, and never one that holds the robot file or
     `inputs` (`checked`: `check_output_dir`'s answer when the run began)."""
@@ -433,6 +449,7 @@ def save_tree_calibration(
     ) as tmp:
         save_urdf_tree(result.tree, tmp / "calibrated.urdf", source=source_urdf)
         (tmp / RESULT_FILE).write_text(json.dumps(_json(result), indent=2) + "\n")
+        (tmp / COVARIANCE_FILE).write_text(json.dumps(_covariance_json(result)) + "\n")
         for tip in result.tree.tip_names:
             doc = branch_table(result, tip)
             if doc is not None:

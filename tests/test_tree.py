@@ -236,6 +236,9 @@ def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path)
     save_tree_calibration(wobbly, tmp_path / "wobbly", source_urdf=body)
     read = load_tree_calibration(tmp_path / "wobbly")
     assert np.abs(read.predict(test.q) - wobbly.predict(test.q)).max() < 1e-9
+    # ... and its predictions' covariance, from the saved parameters' covariance, to first order.
+    claimed, reread = (np.trace(m.predict_covariance(test.q[:8]), axis1=-2, axis2=-1) for m in (wobbly, read))
+    assert np.abs(np.sqrt(reread / claimed) - 1.0).max() < 0.05  # the origins re-linearised about the fit
     assert np.abs(wobbly.predict(test.q) - result.predict(test.q)).max() > 1e-5  # the harmonic counts
     with pytest.raises(Exception, match="exists|overwrite"):
         save_tree_calibration(result, tmp_path / "out", source_urdf=body)

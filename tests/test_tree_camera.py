@@ -15,6 +15,7 @@ from jaxcal.io.tree_dataset import covariance_noise_mm, load_tree_dataset, write
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree
 from jaxcal.sim.head_camera import CAMERA_TIP, film_upper_body, hand_plate, tree_scene
 from jaxcal.sim.humanoid import HANDS, compliance_z, random_poses, tree_tracker_samples, upper_body_urdf
+from jaxcal.tree_verification import load_tree_calibration
 from jaxcal.trees import calibrate_tree
 
 #: Poses fitted and held out.
@@ -170,6 +171,23 @@ def test_a_head_camera_dataset_from_the_command_line(tmp_path, capsys):
     write_tree_dataset(tmp_path / "moved", urdf_text=urdf, tips=held.tree.tip_names, tree=held.tree, samples=moved,
                        noise_mm=None, points=held.points, device_on=CAMERA_TIP)  # fmt: skip
     assert main(["verify", str(out), str(tmp_path / "moved")]) == 3
+    # `jaxcal certify` per hand at the simulator's held-out poses: the error it predicts there is the
+    # error the calibration makes against the truth (within the spread of 44 poses' RMS).
+    test = filmed.truth["test"]
+    poses = tmp_path / "poses.csv"
+    poses.write_text(
+        ",".join(filmed.tree.actuated_names) + "\n" + "\n".join(",".join(map(repr, q)) for q in test["q"])
+    )
+    cert = tmp_path / "cert.json"
+    assert main(["certify", str(out), "--poses", str(poses), "--json", str(cert)]) == 0
+    tips = json.loads(cert.read_text())["tips"]
+    assert set(tips) == set(HANDS)
+    error = load_tree_calibration(out).predict(test["q"]) - np.asarray(test["points_m"])
+    for k, hand in enumerate(HANDS):
+        measured = 1e3 * np.sqrt(np.mean(np.sum(error[:, k] ** 2, axis=-1)))
+        assert 0.5 < tips[hand]["summary"]["rms_mm"] / measured < 2.0, (hand, tips[hand]["summary"], measured)
+        assert tips[hand]["extrapolation"]["share_of_poses_outside_joint_ranges"] < 0.5
+    assert main(["certify", str(out), "--plot", str(tmp_path / "map.png")]) == 2
 
 
 def test_covariance_columns_are_read_whole_or_refused_by_name(tmp_path):

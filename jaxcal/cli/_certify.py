@@ -3,6 +3,7 @@
 import importlib
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 from rich.console import Console
@@ -153,10 +154,49 @@ def region_of(args) -> dict:
     }
 
 
+def _is_tree_result(path: str) -> bool:
+    p = Path(path)
+    return p.name == "tree_result.json" or (p / "tree_result.json").is_file()
+
+
+def _certify_tree(args, where: dict) -> int:
+    """`jaxcal certify` of a tree calibration: a certificate per measured tip (its device's frame)."""
+    if args.plot or args.frame != "fixed":
+        raise ValueError(
+            f"{'--plot' if args.plot else '--frame base'}: not available for a tree calibration ({args.result}); "
+            "each tip is certified in the device's frame, --json writes the figures"
+        )
+    say = f"certifying {args.result}'s tips"
+    print(f"{say} ...", file=sys.stderr, flush=True)
+    with working(True, say, stream=sys.stderr):
+        from ..certification import certify, read_poses
+        from ..tree_verification import tip_predictors
+
+        tips = tip_predictors(args.result)
+        names = next(iter(tips.values())).joint_names
+        poses = None if not args.poses else read_poses(args.poses, names, degrees=args.degrees)
+        certs = {
+            tip: certify(pred, **where, poses=poses, samples=args.samples, seed=args.seed)
+            for tip, pred in tips.items()
+        }
+    console = Console(width=max(Console().width, 110))
+    for c in certs.values():
+        print_certificate(console, c)
+    if args.json:
+        from ..io.checks import certificate_json
+
+        doc = {"tips": {tip: certificate_json(c) for tip, c in certs.items()}}
+        write_text_atomic(args.json, json.dumps(doc, indent=1))
+        console.print(f"wrote {args.json}")
+    return 0
+
+
 def cmd_certify(args) -> int:
     for opt, what in ((args.json, "--json"), (args.plot, "--plot")):
         check_output(opt, [args.result], args.overwrite, what)
     where = region_of(args)
+    if _is_tree_result(args.result):
+        return _certify_tree(args, where)
     what = "its poses" if args.poses else "the region" if args.region or args.joint_box else "its workspace"
     say = f"certifying {args.result} over {what}"
     print(f"{say} ...", file=sys.stderr, flush=True)
