@@ -32,7 +32,15 @@ from .certification import Predictor
 from .io._files import shown
 from .io.tree_dataset import TreeDataset, read_json_object
 from .io.urdf_tree import actuated_limits, load_urdf_tree
-from .trees import COVARIANCE_FILE, NOISE_FACTOR, RESULT_FILE, checked_samples
+from .trees import (
+    COVARIANCE_FILE,
+    FAR_BEYOND,
+    NOISE_FACTOR,
+    OUTLIER_SHARE,
+    OUTLIER_SIGMAS,
+    RESULT_FILE,
+    checked_samples,
+)
 
 __all__ = ["CalibratedTree", "load_tree_calibration", "tip_predictors", "verify_tree"]
 
@@ -238,6 +246,18 @@ def load_tree_calibration(folder) -> CalibratedTree:
     )
 
 
+def _bad_points(residual, measured, sigma_m: float) -> list[tuple[int, int, float]]:
+    """The points `OUTLIER_SIGMAS` beyond the calibration (sigma: the larger of `sigma_m` per axis and
+    the residuals' robust scale), as (sample, tip, sigmas); none where every residual is large and
+    none lies `FAR_BEYOND` of the rest (the calibration does not hold: that is the verdict's)."""
+    z2 = (residual**2).sum(axis=-1) / sigma_m**2
+    scale2 = max(1.0, float(np.median(z2[measured])) / 2.366)  # chi-square(3)'s median
+    if scale2 > NOISE_FACTOR**2 and z2[measured].max() < FAR_BEYOND**2 * scale2:
+        return []
+    bad = measured & (z2 > OUTLIER_SIGMAS**2 * scale2)
+    return [(int(i), int(t), float(np.sqrt(z2[i, t] / scale2))) for i, t in np.argwhere(bad)]
+
+
 def verify_tree(folder, dataset: TreeDataset) -> dict:
     """A tree calibration (`folder`) against samples it was not fitted on (`dataset`, of the same
     robot and device): per tip, the measured points' distance (mm) from the calibration's
@@ -256,6 +276,12 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
         raise ValueError(
             f"dataset {shown(dataset.folder)!r} measures tips {sorted(set(dataset.tree.tip_names) - set(model.tree.tip_names))} "
             f"that the calibration {shown(folder)!r} did not calibrate (its tips: {list(model.tree.tip_names)})"
+        )
+    if dataset.device_on != model.device_on:
+        raise ValueError(
+            f"dataset {shown(dataset.folder)!r} is measured by a device on {dataset.device_on or 'no tip (fixed)'}; "
+            f"the calibration {shown(folder)!r} by one on {model.device_on or 'no tip (fixed)'}: give samples of "
+            "the device the calibration was fitted to"
         )
     samples = checked_samples(dataset.tree, dataset.samples, dataset.noise_mm, dataset.limits, None)
     # The dataset's tips, in the calibration's order (a tip it does not measure: never seen).
@@ -277,6 +303,34 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
         )
     )
     calibrated = model.predict(samples.q)
+    residual = calibrated - points
+    if samples.covariance is not None:  # each point in units of its own noise, scaled to the dataset's
+        cov = np.stack([samples.covariance[:, max(k, 0)] for k in order], 1)
+        L = np.linalg.cholesky(np.where(measured[..., None, None], cov, np.eye(3)))
+        residual = 1e-3 * dataset.noise_mm * np.linalg.solve(L, residual[..., None])[..., 0]
+    # What the fit's own uncertainty adds at these poses (per axis, RMS over the measured points).
+    param_mm = 0.0
+    if model.covariance is not None:
+        var = np.trace(model.predict_covariance(samples.q), axis1=-2, axis2=-1)[measured] / 3.0
+        param_mm = 1e3 * float(np.sqrt(var.mean()))
+    expected = float(np.hypot(model.noise_mm, param_mm))
+    left = _bad_points(residual, measured, 1e-3 * expected)
+    notes = []
+    if len(left) > OUTLIER_SHARE * measured.sum():
+        notes.append(
+            f"{len(left)} points lie over {OUTLIER_SIGMAS:g} sigma from the calibration: too many to be bad samples"
+        )
+        left = []
+    elif left:
+        notes.append(
+            f"{len(left)} of {int(measured.sum())} points left out as bad samples (over {OUTLIER_SIGMAS:g} sigma): "
+            + ", ".join(
+                f"sample {i} tip {model.tree.tip_names[t]!r} ({z:.0f} sigma)" for i, t, z in left[:10]
+            )
+        )
+    for i, t, _ in left:
+        measured[i, t] = False
+    rms_axis = 1e3 * float(np.sqrt(np.mean(residual[measured] ** 2)))
     tips = {}
     for t, name in enumerate(model.tree.tip_names):
         seen = measured[:, t]
@@ -290,19 +344,6 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
                 f"{kind}_rms_mm": float(np.sqrt(np.mean(d**2))),
             }
             tips[name][f"{kind}_max_mm"] = float(d.max())
-    residual = calibrated - points
-    if samples.covariance is not None:  # each point in units of its own noise, scaled to the dataset's
-        cov = np.stack([samples.covariance[:, max(k, 0)] for k in order], 1)
-        L = np.linalg.cholesky(np.where(measured[..., None, None], cov, np.eye(3)))
-        residual = 1e-3 * dataset.noise_mm * np.linalg.solve(L, residual[..., None])[..., 0]
-    rms_axis = 1e3 * float(np.sqrt(np.mean(residual[measured] ** 2)))
-    # What the fit's own uncertainty adds at these poses (per axis, RMS over the measured points).
-    param_mm = 0.0
-    if model.covariance is not None:
-        var = np.trace(model.predict_covariance(samples.q), axis1=-2, axis2=-1)[measured] / 3.0
-        param_mm = 1e3 * float(np.sqrt(var.mean()))
-    expected = float(np.hypot(model.noise_mm, param_mm))
-    notes = []
     if model.status != "ok":
         notes.append(f"the calibration itself was {model.status}")
     if model.covariance is None:
@@ -314,12 +355,14 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
     return {
         "tips": tips,
         "rms_per_axis_mm": rms_axis,
+        "weighted_by_covariances": samples.covariance is not None,
         "fit_noise_mm": model.noise_mm,
         "parameters_mm": param_mm if model.covariance is not None else None,
         "expected_mm": expected,
         "ratio": rms_axis / expected,
         "holds": bool(rms_axis <= HOLDS_FACTOR * expected),
         "calibration_status": model.status,
+        "left_out": [{"sample": i, "tip": model.tree.tip_names[t], "sigmas": z} for i, t, z in left],
         "notes": notes,
     }
 

@@ -184,7 +184,7 @@ def checked_samples(
         if (measured & ~ok).any():
             row, t = np.argwhere(measured & ~ok)[0]
             raise ValueError(
-                f"sample {row}: tip {tree.tip_names[t]!r}'s covariance is not finite and positive definite"
+                f"sample {row}: the covariance of tip {tree.tip_names[t]!r} is not finite and positive definite"
             )
         cov = sym
     if limits is not None:
@@ -237,6 +237,8 @@ def _verdict(
             + (
                 "; a thousandfold gap means wrong units (mm or mm^2 given for m or m^2)"
                 if fit.noise_mm < 1e-3 * noise_mm
+                else "; covariances in mm^2 where m^2 is meant?"
+                if samples.covariance is not None and fit.noise_mm < 0.1 * noise_mm
                 else ""
             )
         )
@@ -279,6 +281,18 @@ def _leave_out_outliers(problem, layout, samples: TreeSamples, fit: TreeFit):
         problem = dataclasses.replace(problem, weight=jnp.asarray(samples.measured, jnp.float64))
         fit = dataclasses.replace(fit_tree(problem, layout, fit.families), cv_mm=fit.cv_mm)
     return problem, samples, fit, left
+
+
+def _terms_fit(problem, layout, families, show_progress: bool) -> TreeFit:
+    """The fit with the term `families`, or (None) with those cross-validation keeps."""
+    if families is None:
+        # A minute on a 2-core CPU (the first solve compiles): a line every few seconds in a pipe.
+        with working(show_progress, "tree calibration: cross-validating the terms"):
+            return cross_validate_terms(problem, layout)
+    unknown = set(families) - set(FAMILIES)
+    if unknown:
+        raise ValueError(f"unknown term families {sorted(unknown)}; known: {FAMILIES}")
+    return fit_tree(problem, layout, tuple(families))
 
 
 def _left_out_note(left, measured: int, tips) -> str:
@@ -351,17 +365,13 @@ def calibrate_tree(
     if T_device_root is None:
         T_device_root = initial_device_pose(tree, samples, points) if device_tip < 0 else np.eye(4)
     problem = problem_of(tree, layout, samples, T_device_root, points, noise_mm, device_tip)
-    if families is None:
-        # A minute on a 2-core CPU (the first solve compiles): a line every few seconds in a pipe.
-        with working(show_progress, "tree calibration: cross-validating the terms"):
-            fit = cross_validate_terms(problem, layout)
-    else:
-        unknown = set(families) - set(FAMILIES)
-        if unknown:
-            raise ValueError(f"unknown term families {sorted(unknown)}; known: {FAMILIES}")
-        fit = fit_tree(problem, layout, tuple(families))
+    fit = _terms_fit(problem, layout, families, show_progress)
     measured = int(samples.measured.sum())
     problem, samples, fit, left = _leave_out_outliers(problem, layout, samples, fit)
+    if left and families is None:  # the bad points swayed the terms' choice: chosen again without them
+        fit = _terms_fit(problem, layout, None, show_progress)
+        problem, samples, fit, more = _leave_out_outliers(problem, layout, samples, fit)
+        left += more
     calibrated, T_dev, pts, elastic, harmonic = body_of(jnp.asarray(fit.u), problem)
     candidates = ~layout.family(*FAMILIES) | layout.family(*fit.families)
     status, notes = _verdict(fit, layout, noise_mm, samples, tree, device_on)

@@ -21,6 +21,7 @@ import pytest
 import yourdfpy
 
 from jaxcal import _treefit as tf
+from jaxcal import trees
 from jaxcal._dh import dh_table, table_forward_kinematics
 from jaxcal._kinematics import forward_kinematics
 from jaxcal._npgeom import rotvec_to_matrix
@@ -458,3 +459,21 @@ def test_what_a_user_gets_wrong_is_named(body, tmp_path):
     turned = tf.TreeSamples(samples.q.copy(), samples.points, samples.measured)
     turned.q[:, tree.actuated_names.index("left_wrist_roll")] = 4.0
     assert calibrate_tree(tree, turned, families=(), limits=lim, show_progress=False).fit.steps >= 0
+
+
+def test_the_terms_are_chosen_again_without_the_bad_samples(body, monkeypatch):
+    """A cross-validation over samples with gross misreads is swayed by them (each fold's held-out
+    error is the misreads'): once they are left out, the terms are chosen again without them."""
+    nominal, limits, _, fit, _ = _problem(body, seed=8, poses=80)
+    fit = dataclasses.replace(fit, points=fit.points.copy())
+    fit.points[[3, 10, 20], 0] += [0.0, 0.0, 0.1]
+    seen = []
+
+    def choose(problem, layout):  # the fit cross-validation would keep, and what it was shown
+        seen.append(int(np.asarray(problem.weight).sum()))
+        return tf.fit_tree(problem, layout, ("joint", "lateral"))
+
+    monkeypatch.setattr(trees, "cross_validate_terms", choose)
+    result = calibrate_tree(nominal, fit, noise_mm=0.1, limits=limits, show_progress=False)
+    assert seen == [160, 157], seen
+    assert result.status == "ok" and "3 of 160 measured points left out" in " ".join(result.notes)

@@ -90,7 +90,7 @@ def test_covariances_are_checked_and_the_stated_noise_refused_beside_them(tmp_pa
     flat = good.copy()
     flat[2, 1] = np.diag([1e-8, 1e-8, 0.0])
     with pytest.raises(
-        ValueError, match="sample 2: tip 'right_hand''s covariance is not finite and positive"
+        ValueError, match="sample 2: the covariance of tip 'right_hand' is not finite and positive"
     ):
         run(with_cov(flat))
     with pytest.raises(ValueError, match="noise_mm is not used"):
@@ -171,6 +171,15 @@ def test_a_head_camera_dataset_from_the_command_line(tmp_path, capsys):
     write_tree_dataset(tmp_path / "moved", urdf_text=urdf, tips=held.tree.tip_names, tree=held.tree, samples=moved,
                        noise_mm=None, points=held.points, device_on=CAMERA_TIP)  # fmt: skip
     assert main(["verify", str(out), str(tmp_path / "moved")]) == 3
+    # One plate misread by 5 cm among the held-out points is named and left out, not held against it.
+    misread, row = held.samples.points.copy(), int(np.flatnonzero(held.samples.measured[:, 0])[3])
+    misread[row, 0] += [0.0, 0.0, 0.05]
+    write_tree_dataset(tmp_path / "misread", urdf_text=urdf, tips=held.tree.tip_names, tree=held.tree,
+                       samples=dataclasses.replace(held.samples, points=misread), noise_mm=None,
+                       points=held.points, device_on=CAMERA_TIP)  # fmt: skip
+    assert main(["verify", str(out), str(tmp_path / "misread"), "--json", str(figures), "--overwrite"]) == 0
+    v = json.loads(figures.read_text())
+    assert [(x["sample"], x["tip"]) for x in v["left_out"]] == [(row, "left_hand")] and v["holds"], v
     # `jaxcal certify` per hand at the simulator's held-out poses: the error it predicts there is the
     # error the calibration makes against the truth (within the spread of 44 poses' RMS).
     test = filmed.truth["test"]
@@ -188,6 +197,15 @@ def test_a_head_camera_dataset_from_the_command_line(tmp_path, capsys):
         assert 0.5 < tips[hand]["summary"]["rms_mm"] / measured < 2.0, (hand, tips[hand]["summary"], measured)
         assert tips[hand]["extrapolation"]["share_of_poses_outside_joint_ranges"] < 0.5
     assert main(["certify", str(out), "--plot", str(tmp_path / "map.png")]) == 2
+    # Samples of another device (a tracker's, fixed) are refused by name, not judged; so are options
+    # the upper body's tracker capture does not take.
+    tracker = tmp_path / "tracker"
+    argv = ["simulate-tracker", "--robot", "upper_body", "--out", str(tracker), "--config", "random-poses=20"]
+    assert main([*argv, "--orientation"]) == 2 and not tracker.exists()
+    assert "--orientation: not options of the upper body's tracker capture" in capsys.readouterr().err
+    assert main([*argv, "--quiet"]) == 0
+    assert main(["verify", str(out), str(tracker)]) == 2
+    assert "by a device on no tip (fixed); the calibration" in capsys.readouterr().err
 
 
 def test_covariance_columns_are_read_whole_or_refused_by_name(tmp_path):
@@ -213,6 +231,13 @@ def test_covariance_columns_are_read_whole_or_refused_by_name(tmp_path):
     (ds / "tree.json").write_text(json.dumps(doc | {"noise_mm": 0.1}))
     with pytest.raises(ValueError, match=r"tree.json.*'noise_mm' is given, but the samples carry"):
         load_tree_dataset(ds)
+    # A device riding on a tip measures the others: columns for its own tip are refused by name.
+    on_hand = write_tree_dataset(tmp_path / "on_hand", urdf_text=upper_body_urdf(), tips=list(HANDS), tree=nominal,
+                                 samples=samples, noise_mm=None, points=np.zeros((2, 3)))  # fmt: skip
+    doc = json.loads((on_hand / "tree.json").read_text())
+    (on_hand / "tree.json").write_text(json.dumps(doc | {"device_on": "right_hand"}))
+    with pytest.raises(ValueError, match=r"columns \['right_hand.x'.*which the device rides on"):
+        load_tree_dataset(on_hand)
     with pytest.raises(ValueError, match="not both"):
         write_tree_dataset(tmp_path / "both", urdf_text=upper_body_urdf(), tips=list(HANDS), tree=nominal,
                            samples=samples, noise_mm=0.1, points=np.zeros((2, 3)))  # fmt: skip

@@ -149,6 +149,7 @@ def cmd_simulate_tracker(args) -> int:
     inputs = [robot] if Path(robot).exists() else []
     check_output_dir(args.out, inputs=inputs, overwrite=args.overwrite, kind="dataset", what="--out")
     if robot == "upper_body":
+        _refuse_other_options(args, UPPER_BODY_TRACKER_OPTIONS, "the upper body's tracker capture")
         return _simulate_upper_body(args)
     if not args.quiet:
         kind = f"{args.random_poses} stop-and-shoot poses" if args.random_poses else "sweeps"
@@ -207,20 +208,40 @@ def _simulate_upper_body(args) -> int:
     return 0
 
 
-#: What `jaxcal simulate --robot upper_body` takes: its capture is the head camera's, fixed.
-HEAD_CAMERA_OPTIONS = ("--robot", "--out", "--overwrite", "--seed", "--quiet")
+#: What `jaxcal simulate --robot upper_body` takes (its capture is the head camera's, fixed), and
+#: what `simulate-tracker --robot upper_body` takes (both hands measured at random poses).
+HEAD_CAMERA_OPTIONS = ("robot", "out", "overwrite", "seed", "quiet")
+UPPER_BODY_TRACKER_OPTIONS = (*HEAD_CAMERA_OPTIONS, "noise_um", "random_poses")
+
+
+def _refuse_other_options(args, allowed, what: str) -> None:
+    """Refuse, naming them, the options (flags or configuration keys) given values other than
+    their defaults that `what` does not take."""
+    from . import build_parser
+
+    defaults = vars(build_parser(args.command).parse_args([args.command, "--out", "-"]))
+    other = [
+        "--" + k.replace("_", "-")
+        for k, v in vars(args).items()
+        if k in defaults
+        and k not in allowed
+        and k not in ("func", "foreign", "command", "config")
+        and v != defaults[k]
+    ]
+    if other:
+        raise ValueError(
+            f"{', '.join(other)}: not options of {what} (it takes {', '.join('--' + a.replace('_', '-') for a in allowed)})"
+        )
 
 
 def _simulate_head_camera(args) -> int:
     """`jaxcal simulate --robot upper_body`: the synthetic humanoid's head camera filming plates on
     both hands (`jaxcal.sim.head_camera`), written as a tree dataset with each point's covariance."""
-    given = [a.split("=")[0] for a in getattr(args, "_argv", ()) if a.startswith("--")]
-    other = [a for a in given if a not in HEAD_CAMERA_OPTIONS]
-    if other:
-        raise ValueError(
-            f"{', '.join(other)}: not options of the upper body's head-camera capture (640x480, plates on both "
-            f"hands, 200 poses and 50 held out; it takes {', '.join(HEAD_CAMERA_OPTIONS)})"
-        )
+    _refuse_other_options(
+        args,
+        HEAD_CAMERA_OPTIONS,
+        "the upper body's head-camera capture (640x480, plates on both hands, 200 poses and 50 held out)",
+    )
     check_output_dir(args.out, inputs=[], overwrite=args.overwrite, kind="dataset", what="--out")
     if not args.quiet:
         print(f"simulating the upper body's head camera filming both hands into {args.out} ...", flush=True)

@@ -132,7 +132,9 @@ def _verify_tree(args) -> int:
     console.print(t)
     verdict = "holds on this dataset" if v["holds"] else "does NOT hold on this dataset (exit 3)"
     console.print(
-        f"the calibration {verdict}: residuals {v['rms_per_axis_mm']:.4f} mm RMS per axis against the "
+        f"the calibration {verdict}: residuals {v['rms_per_axis_mm']:.4f} mm RMS per axis"
+        + (" (each point weighed by its covariance)" if v["weighted_by_covariances"] else "")
+        + " against the "
         f"{v['expected_mm']:.4f} mm it expects (its residual noise {v['fit_noise_mm']:.4f} mm"
         + ("" if v["parameters_mm"] is None else f", its parameters' uncertainty {v['parameters_mm']:.4f} mm")
         + f"; ratio {v['ratio']:.2f}, limit {HOLDS_FACTOR:g})"

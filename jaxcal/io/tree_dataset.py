@@ -187,6 +187,10 @@ def load_tree_dataset(folder) -> TreeDataset:
             f"tree dataset {shown(path)!r}: field 'noise_mm' must be the device's positive noise (mm per axis), got {noise!r}"
         )
     tree = load_urdf_tree(urdf, base_link=_field(doc, "base_link", path, str, required=False), tips=tips)
+    device_on = _field(doc, "device_on", path, str, required=False)
+    _no_device_columns(
+        folder / _field(doc, "samples", path, str, required=False, default="samples.csv"), device_on
+    )
     samples = read_tree_samples(
         folder / _field(doc, "samples", path, str, required=False, default="samples.csv"), tree
     )
@@ -223,8 +227,22 @@ def load_tree_dataset(folder) -> TreeDataset:
         families=None if terms == "auto" else tuple(terms),
         limits=actuated_limits(urdf, tree),
         truth=json.loads(truth_path.read_text()) if truth_path.is_file() else None,
-        device_on=_field(doc, "device_on", path, str, required=False),
+        device_on=device_on,
     )
+
+
+def _no_device_columns(path: Path, device_on: str | None) -> None:
+    """Refuse a samples CSV with columns for the tip the device rides on (it measures the others)."""
+    if device_on is None or not path.is_file():
+        return
+    with path.open(newline="", encoding="utf-8-sig") as f:
+        header = next(csv.reader(f), [])
+    own = [h for h in header if h.startswith(f"{device_on}.")]
+    if own:
+        raise ValueError(
+            f"tree samples {shown(path)!r}: columns {own[:3]}{' ...' if len(own) > 3 else ''} are for tip "
+            f"{device_on!r}, which the device rides on (tree.json's device_on): drop them"
+        )
 
 
 def write_tree_dataset(

@@ -167,7 +167,10 @@ def nominal_robot(robot: str):
     else:
         path = Path(robot)
         if not path.is_file():
-            raise ValueError(f"robot {robot!r} is neither a shipped robot ({shipped()}) nor a file")
+            raise ValueError(
+                f"robot {robot!r} is neither a shipped robot ({shipped()}; and upper_body, the synthetic humanoid) "
+                "nor a file"
+            )
     return load_urdf(path), path
 
 
