@@ -18,20 +18,23 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._kinematics import joint_motion
+from ._npgeom import se3_exp as np_se3_exp
 from ._tree import KinematicTree
 from ._treefit import (
     FAMILIES,
     Elastic,
     TreeSamples,
     deflected_tips,
-    predicted_covariance,
+    linearised,
     problem_of,
     tree_layout,
 )
 from .certification import Predictor
+from .drift import fit_drift, verdict, whitening
 from .io._files import shown
 from .io.tree_dataset import TreeDataset, read_json_object
 from .io.urdf_tree import actuated_limits, load_urdf_tree
+from .records_check import DriftCheck
 from .trees import (
     COVARIANCE_FILE,
     FAR_BEYOND,
@@ -42,7 +45,7 @@ from .trees import (
     checked_samples,
 )
 
-__all__ = ["CalibratedTree", "load_tree_calibration", "tip_predictors", "verify_tree"]
+__all__ = ["CalibratedTree", "check_tree", "load_tree_calibration", "tip_predictors", "verify_tree"]
 
 #: A tree calibration holds on new samples while their residuals' RMS per axis stays within this
 #: factor of what the fit expects: its own residual noise and its parameters' uncertainty there.
@@ -71,17 +74,17 @@ class CalibratedTree:
     stated_noise_mm: float | None = None
     point_covariances: bool = False
 
-    def predict_covariance(self, q) -> np.ndarray:
-        """The covariance `(n, tips, 3, 3)` (m^2, device frame) of `predict(q)` from the fit's
-        (`tree_covariance.json`): to first order about the calibrated body, as the calibration's
-        own `predict_covariance` gives it."""
+    def prediction_jacobian(self, q) -> tuple[np.ndarray, np.ndarray]:
+        """`(G, cov)`: the derivatives `(n, tips, 3, k)` (device frame) of `predict(q)` by the freed
+        parameters of `tree_covariance.json` (in their own units), to first order about the
+        calibrated body, and those parameters' covariance `(k, k)`."""
         if self.covariance is None:
             raise ValueError(f"the tree calibration has no {COVARIANCE_FILE} (written before jaxcal kept it)")
         names, cov, _ = self.covariance
         layout = tree_layout(self.tree)
         index = [layout.names.index(n) for n in names]
         q = np.asarray(q, np.float64)
-        tips, a = len(self.tree.tip_names), self.tree.num_actuated
+        n, tips, a = len(q), len(self.tree.tip_names), self.tree.num_actuated
         # The geometry is the calibrated tree's own: only the terms' values lie in the vector.
         terms = layout.family(*FAMILIES)
         x = np.array([self.values.get(n, 0.0) if t else 0.0 for n, t in zip(layout.names, terms)])
@@ -90,10 +93,21 @@ class CalibratedTree:
         problem = problem_of(
             self.tree, layout, one, self.T_device_root, self.points, self.noise_mm, device_tip
         )
-        s = layout.scales[index]
-        cov_u = np.zeros((layout.size, layout.size))
-        cov_u[np.ix_(index, index)] = cov / np.outer(s, s)
-        return predicted_covariance(jnp.asarray(x / layout.scales), cov_u, problem, q)
+        at = eqx.tree_at(
+            lambda p: (p.q, p.y, p.weight),
+            problem,
+            (jnp.asarray(q), jnp.zeros((n, tips, 3)), jnp.ones((n, tips))),
+        )
+        J = linearised(jnp.asarray(x / layout.scales), jnp.ones(layout.size), at)[1]
+        J = np.asarray(J).reshape(n, tips, 3, -1)[..., index]
+        return J * (problem.sigma / layout.scales[index]), cov  # the rows were whitened by sigma
+
+    def predict_covariance(self, q) -> np.ndarray:
+        """The covariance `(n, tips, 3, 3)` (m^2, device frame) of `predict(q)` from the fit's
+        (`tree_covariance.json`): to first order about the calibrated body, as the calibration's
+        own `predict_covariance` gives it."""
+        G, cov = self.prediction_jacobian(q)
+        return np.einsum("ntak,kl,ntbl->ntab", G, cov, G)
 
     def predict(self, q) -> np.ndarray:
         """The measured points predicted at commanded positions `q` `(n, actuated)`, device frame."""
@@ -258,15 +272,10 @@ def _bad_points(residual, measured, sigma_m: float) -> list[tuple[int, int, floa
     return [(int(i), int(t), float(np.sqrt(z2[i, t] / scale2))) for i, t in np.argwhere(bad)]
 
 
-def verify_tree(folder, dataset: TreeDataset) -> dict:
-    """A tree calibration (`folder`) against samples it was not fitted on (`dataset`, of the same
-    robot and device): per tip, the measured points' distance (mm) from the calibration's
-    predictions and from the robot file's (rigid, in the calibrated device frame), and whether it
-    holds: the residuals' RMS per axis (points that carry covariances weighed by them, as the fit
-    weighed its own) within `HOLDS_FACTOR` of what the fit expects there, its residual noise and
-    its parameters' uncertainty at these poses (`expected_mm`). The samples are checked as `calibrate_tree` checks them (joint limits,
-    with a hint where they look like degrees)."""
-    model = load_tree_calibration(folder)
+def _aligned(model: CalibratedTree, folder, dataset: TreeDataset):
+    """`dataset`'s samples checked against the calibration's robot and device, and its measured
+    mask, points and covariances (None: none) in the calibration's tip order (a tip it does not
+    measure: never seen)."""
     if dataset.tree.actuated_names != model.tree.actuated_names:
         raise ValueError(
             f"dataset {shown(dataset.folder)!r} has the joints {list(dataset.tree.actuated_names)}; the "
@@ -292,6 +301,22 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
         [samples.measured[:, k] if k >= 0 else np.zeros(len(samples.q), bool) for k in order], 1
     )
     points = np.stack([samples.points[:, max(k, 0)] for k in order], 1)
+    cov = None
+    if samples.covariance is not None:
+        cov = np.stack([samples.covariance[:, max(k, 0)] for k in order], 1)
+    return samples, measured, points, cov
+
+
+def verify_tree(folder, dataset: TreeDataset) -> dict:
+    """A tree calibration (`folder`) against samples it was not fitted on (`dataset`, of the same
+    robot and device): per tip, the measured points' distance (mm) from the calibration's
+    predictions and from the robot file's (rigid, in the calibrated device frame), and whether it
+    holds: the residuals' RMS per axis (points that carry covariances weighed by them, as the fit
+    weighed its own) within `HOLDS_FACTOR` of what the fit expects there, its residual noise and
+    its parameters' uncertainty at these poses (`expected_mm`). The samples are checked as `calibrate_tree` checks them (joint limits,
+    with a hint where they look like degrees)."""
+    model = load_tree_calibration(folder)
+    samples, measured, points, cov = _aligned(model, folder, dataset)
     rigid = Elastic(np.zeros_like(model.elastic.joint), np.zeros_like(model.elastic.lateral))
     device_tip = model.tree.tip_names.index(model.device_on) if model.device_on else -1
     nominal_tree = load_urdf_tree(
@@ -304,8 +329,7 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
     )
     calibrated = model.predict(samples.q)
     residual = calibrated - points
-    if samples.covariance is not None:  # each point in units of its own noise, scaled to the dataset's
-        cov = np.stack([samples.covariance[:, max(k, 0)] for k in order], 1)
+    if cov is not None:  # each point in units of its own noise, scaled to the dataset's
         L = np.linalg.cholesky(np.where(measured[..., None, None], cov, np.eye(3)))
         residual = 1e-3 * dataset.noise_mm * np.linalg.solve(L, residual[..., None])[..., 0]
     # What the fit's own uncertainty adds at these poses (per axis, RMS over the measured points).
@@ -424,3 +448,61 @@ def tip_predictors(folder) -> dict[str, Predictor]:
             notes=tuple(notes),
         )
     return out
+
+
+def check_tree(folder, dataset: TreeDataset) -> DriftCheck:
+    """`jaxcal check` of a tree calibration (`folder`) on a short later capture (`dataset`): has its
+    device moved since? `jaxcal.drift`'s test: the device's pose fitted as a twist against the
+    calibrated predictions, the residuals whitened by the points' scatter (the fit's residual
+    variance times the stated noise, or the points' own covariances) and the calibration's own
+    uncertainty at these poses (`prediction_jacobian`), and its chi-square against what a device
+    that stayed would give. A device on a tip (a head camera) moves on that tip's mount."""
+    model = load_tree_calibration(folder)
+    if model.covariance is None:
+        raise ValueError(
+            f"{shown(folder)!r}: no {COVARIANCE_FILE}: calibrate again with this jaxcal to check it"
+        )
+    samples, measured, points, cov = _aligned(model, folder, dataset)
+    S = int(measured.sum())
+    if 3 * S <= 6:
+        raise ValueError(
+            f"{shown(dataset.folder)!r}: a check of the device's pose needs 3 measured points, got {S}"
+        )
+    G, Sigma = model.prediction_jacobian(samples.q)
+    G = G[measured].reshape(3 * S, -1)
+    factor2 = (model.noise_mm / (model.stated_noise_mm or model.noise_mm)) ** 2
+    blocks = (
+        factor2 * cov[measured]
+        if cov is not None
+        else np.tile((1e-3 * model.noise_mm) ** 2 * np.eye(3), (S, 1, 1))
+    )
+    R = G @ Sigma @ G.T
+    for i in range(S):
+        R[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += blocks[i]
+    theta, C, T, rss = (
+        np.asarray(a)
+        for a in fit_drift(
+            points[measured],
+            model.predict(samples.q)[measured],
+            np.zeros((S, 3, 0)),
+            whitening(R),
+            offsets=False,
+        )
+    )
+    move = np_se3_exp(theta[:6])
+    T_now = model.T_device_root @ move if model.device_on else np.linalg.inv(move) @ model.T_device_root
+    names, what = (str(folder), str(dataset.folder)), "camera" if model.device_on else "device"
+    samples_seen = int(measured.any(axis=1).sum())
+    return verdict(
+        theta,
+        C,
+        float(T),
+        float(rss),
+        3 * S - 6,
+        samples=samples_seen,
+        joint_names=model.tree.actuated_names,
+        T_now=T_now,
+        names=names,
+        what=what,
+        frame="T_device",
+    )

@@ -180,6 +180,17 @@ def test_a_head_camera_dataset_from_the_command_line(tmp_path, capsys):
     assert main(["verify", str(out), str(tmp_path / "misread"), "--json", str(figures), "--overwrite"]) == 0
     v = json.loads(figures.read_text())
     assert [(x["sample"], x["tip"]) for x in v["left_out"]] == [(row, "left_hand")] and v["holds"], v
+    # `jaxcal check`: the held-out poses find no drift; the camera moved 1 mm on its mount afterwards
+    # (every point seen 1 mm back along its x) is found, and measured.
+    assert main(["check", str(out), str(tmp_path / "held")]) == 0
+    shifted = dataclasses.replace(held.samples, points=held.samples.points - [1e-3, 0.0, 0.0])
+    write_tree_dataset(tmp_path / "shifted", urdf_text=urdf, tips=held.tree.tip_names, tree=held.tree,
+                       samples=shifted, noise_mm=None, points=held.points, device_on=CAMERA_TIP)  # fmt: skip
+    drift = tmp_path / "drift.json"
+    assert main(["check", str(out), str(tmp_path / "shifted"), "--json", str(drift)]) == 3
+    d = json.loads(drift.read_text())
+    assert d["detected"] and abs(d["translation_mm"]["size"] - 1.0) < 3 * d["translation_mm"]["std"] + 0.05, d
+    assert np.allclose(d["device_translation_m"], [1e-3, 0, 0], atol=3e-4) and d["moved"] == "camera"
     # `jaxcal certify` per hand at the simulator's held-out poses: the error it predicts there is the
     # error the calibration makes against the truth (within the spread of 44 poses' RMS).
     test = filmed.truth["test"]

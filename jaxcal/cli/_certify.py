@@ -227,12 +227,29 @@ def cmd_certify(args) -> int:
     return 0
 
 
+def _check_tree(args):
+    """`jaxcal check` of a tree calibration on a tree dataset (`jaxcal.tree_verification.check_tree`)."""
+    if args.joint_offsets:
+        raise ValueError(f"--joint-offsets: not available for a tree calibration ({args.result})")
+    from ..io.tree_dataset import is_tree_dataset, load_tree_dataset
+    from ..tree_verification import check_tree
+
+    if not is_tree_dataset(args.capture):
+        raise ValueError(
+            f"{args.capture}: {args.result} is a tree calibration; give a tree dataset (a folder with tree.json)"
+        )
+    return check_tree(args.result, load_tree_dataset(args.capture))
+
+
 def cmd_check(args) -> int:
     check_output(args.json, [args.result, args.capture], args.overwrite, "--json")
     say = f"checking {args.capture} against {args.result}"
     print(f"{say} ...", file=sys.stderr, flush=True)
     with working(True, say, stream=sys.stderr):
-        c = check(args.result, args.capture, joint_offsets=args.joint_offsets, workers=args.workers)
+        if _is_tree_result(args.result):
+            c = _check_tree(args)
+        else:
+            c = check(args.result, args.capture, joint_offsets=args.joint_offsets, workers=args.workers)
     console = Console(width=max(Console().width, 110))
     colour = "red" if c.exit_code else "green"
     unit = "images" if c.what == "camera" else "samples"
