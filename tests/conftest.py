@@ -96,6 +96,7 @@ SLOW_FIRST = (
     "test_pointfit",
     "test_notebooks",
     "test_calibrate",
+    "test_tree_camera",
     "test_arcfit",
     "test_handeye_capture",
     "test_axisfit",
