@@ -13,7 +13,7 @@ from jaxcal._treefit import TreeSamples
 from jaxcal.cli import main
 from jaxcal.io.tree_dataset import covariance_noise_mm, load_tree_dataset, write_tree_dataset
 from jaxcal.io.urdf_tree import actuated_limits, load_urdf_tree
-from jaxcal.sim.head_camera import CAMERA_TIP, film_upper_body, hand_plate, tree_scene
+from jaxcal.sim.head_camera import CAMERA_TIP, film_upper_body, hand_plate, poses_in_view, tree_scene
 from jaxcal.sim.humanoid import HANDS, compliance_z, random_poses, tree_tracker_samples, upper_body_urdf
 from jaxcal.tree_verification import load_tree_calibration
 from jaxcal.trees import calibrate_tree
@@ -258,3 +258,10 @@ def _urdf(tmp_path):
     path = tmp_path / "upper_body.urdf"
     path.write_text(upper_body_urdf())
     return path
+
+
+def test_candidate_poses_in_degrees_are_refused(filmed):
+    candidates = np.degrees(random_poses(filmed.limits, 10, np.random.default_rng(0)))
+    plates = [hand_plate(hand, 10 * k) for k, hand in enumerate(HANDS)]
+    with pytest.raises(ValueError, match="at a revolute joint: degrees"):
+        poses_in_view(filmed.nominal, candidates, plates, 1)

@@ -160,6 +160,12 @@ def poses_in_view(
     candidates = np.asarray(candidates, np.float64)
     if candidates.ndim != 2 or candidates.shape[1] != tree.num_actuated:
         raise ValueError(f"candidates must be (poses, {tree.num_actuated}), got shape {candidates.shape}")
+    kinds = dict(zip(tree.joint_names, tree.joint_types))
+    revolute = np.asarray([kinds[n] != "prismatic" for n in tree.actuated_names])
+    if len(candidates) and np.abs(candidates[:, revolute]).max(initial=0.0) > 2 * np.pi:
+        raise ValueError(
+            f"candidates reach {np.abs(candidates[:, revolute]).max():.4g} rad at a revolute joint: degrees? give radians"
+        )
     tips = np.asarray(jax.vmap(tip_poses, in_axes=(None, 0))(tree, jnp.asarray(candidates)))
     cam = tips[:, tree.tip_names.index(camera.mount)] @ np.asarray(camera.T_mount_cam)
     ok = np.ones(len(candidates), bool)
