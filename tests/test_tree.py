@@ -9,6 +9,7 @@ body bent by gravity, whose truth it must recover within its standard deviations
 
 import dataclasses
 import json
+import re
 import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -477,3 +478,42 @@ def test_the_terms_are_chosen_again_without_the_bad_samples(body, monkeypatch):
     result = calibrate_tree(nominal, fit, noise_mm=0.1, limits=limits, show_progress=False)
     assert seen == [160, 157], seen
     assert result.status == "ok" and "3 of 160 measured points left out" in " ".join(result.notes)
+
+
+def test_a_tree_is_imported_from_a_csv_in_its_own_units(body, tmp_path, capsys):
+    """`jaxcal import-csv --link left_hand,right_hand`: degrees and millimetres, the user's column
+    names, a column summed from two, a hand not seen in some rows; what a user gets wrong named."""
+    nominal, _, _, samples, _ = _problem(body, seed=9, poses=30)
+    names = [f"J{k}" for k in range(nominal.num_actuated)]
+    hands = [f"{h}_{a}" for h in ("L", "R") for a in "xyz"]
+    points = 1e3 * samples.points
+    points[4, 1] = np.nan  # the right hand hidden in row 4
+    lines = [",".join([*names, *hands, "R_z_offset"])]
+    for q, p in zip(np.degrees(samples.q), points.reshape(len(points), 6)):
+        cells = [repr(float(v)) for v in q] + ["" if np.isnan(v) else repr(float(v)) for v in p]
+        z = ["", ""] if np.isnan(p[-1]) else [repr(float(p[-1] - 5.0)), "5.0"]  # the right z, summed
+        lines.append(",".join([*cells[:-1], *z]))
+    table = tmp_path / "poses.csv"
+    table.write_text("\n".join(lines) + "\n")
+    argv = ["import-csv", str(table), "--robot", str(body), "--link", "left_hand,right_hand", "--joint-unit", "deg",
+            "--length-unit", "mm", "--sigma-mm", "0.1", "--joint-columns", ",".join(names)]  # fmt: skip
+    xyz = ",".join(hands[:-1] + ["R_z+R_z_offset"])
+    assert main([*argv, "--xyz", xyz, "--out", str(tmp_path / "ds")]) == 0
+    assert "mm RMS from the robot file's link origins" in capsys.readouterr().out
+    ds = load_tree_dataset(tmp_path / "ds")
+    assert ds.noise_mm == 0.1 and list(ds.tree.tip_names) == list(HANDS)
+    np.testing.assert_allclose(ds.samples.q, samples.q, atol=1e-12)
+    seen = ds.samples.measured
+    assert seen.sum() == 59 and not seen[4, 1]
+    np.testing.assert_allclose(ds.samples.points[seen], samples.points[seen], atol=1e-12)
+    wrong = {
+        "--joint-unit rad": (["--joint-unit", "rad"], "line 2 column 'J0'.*outside the limits.*degrees"),
+        "five --xyz": (["--xyz", ",".join(hands[:5])], "5 columns for 2 links"),
+        "a column not there": (["--xyz", xyz.replace("L_y", "L_yy")], "no column \\['L_yy'\\]"),
+        "a joint short": (["--joint-columns", ",".join(names[:-1])], "18 columns for the tree's 19 actuated"),
+        "--time": (["--time", "J0"], "--time: not options of a tree's import"),
+    }
+    for what, (extra, message) in wrong.items():
+        assert main([*argv, "--xyz", xyz, *extra, "--out", str(tmp_path / "bad")]) == 2, what
+        assert re.search(message, capsys.readouterr().err), what
+        assert not (tmp_path / "bad").exists()

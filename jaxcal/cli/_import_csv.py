@@ -64,8 +64,9 @@ def add_import_csv_parser(sub) -> None:
     p.add_argument(
         "--xyz",
         required=True,
-        type=_columns(3),
-        help="the measured point's x,y,z columns in the device frame; a column may be a sum (x_t+x_dif)",
+        type=_columns(None),
+        help="the measured point's x,y,z columns in the device frame; a column may be a sum (x_t+x_dif); "
+        "for a tree (several --link), x,y,z of each link's point in turn",
     )
     p.add_argument(
         "--length-unit",
@@ -111,12 +112,65 @@ def add_import_csv_parser(sub) -> None:
     knob(p, "--device-name", default="tracker", help="the device's name (names its frame)")
     knob(p, "--device-kind", default="laser_tracker", choices=DEVICE_KINDS)
     p.add_argument("--point-name", default="point", help="the measured point's name (smr, probe)")
-    p.add_argument("--link", help="the link the point rides on (default: the robot's flange)")
+    p.add_argument(
+        "--link",
+        help="the link the point rides on (default: the robot's flange); several, comma-separated, for a robot "
+        "that is a tree measured on several links at once (a tree dataset, docs/trees.md)",
+    )
     knob(p, "--description", help="the dataset's description")
     p.set_defaults(func=cmd_import_csv)
 
 
+def _import_tree(args) -> int:
+    """`import-csv --link A,B ...`: a tree dataset (`jaxcal.io.tree_dataset.import_tree_csv`)."""
+    chain_only = {
+        "--orientation-columns": args.orientation_columns,
+        "--point-mm": args.point_mm,
+        "--point-rotvec-deg": args.point_rotvec_deg,
+        "--time": args.time,
+    }
+    given = [k for k, v in chain_only.items() if v is not None]
+    if given:
+        raise ValueError(f"{', '.join(given)}: not options of a tree's import (several --link)")
+    from ..io._files import check_output_dir
+    from ..robots import robot_file
+
+    robot = robot_file(args.robot)
+    check_output_dir(
+        args.out, inputs=[args.csv, robot], overwrite=args.overwrite, kind="dataset", what="--out"
+    )
+    print(f"importing {args.csv} into {args.out} (a tree dataset) ...", flush=True)
+    from ..io.tree_dataset import IMPORT_FAR_M, import_tree_csv  # JAX: after the options are checked
+
+    links = [s.strip() for s in args.link.split(",")]
+    units = {"joint_unit": args.joint_unit, "length_unit": args.length_unit, "sigma_m": 1e-3 * args.sigma_mm}
+    folder, rows, rms = import_tree_csv(
+        args.csv,
+        args.out,
+        robot=robot,
+        links=links,
+        joints=args.joint_columns,
+        xyz=args.xyz,
+        overwrite=args.overwrite,
+        **units,
+    )
+    print(
+        f"wrote {folder}: {rows} rows of {', '.join(links)}; after the best rigid alignment the points lie "
+        f"{1e3 * rms:.3g} mm RMS from the robot file's link origins"
+    )
+    if rms > IMPORT_FAR_M:
+        print(
+            f"warning: over {1e3 * IMPORT_FAR_M:g} mm: check the columns (--xyz in link order), --length-unit and "
+            "--joint-unit before calibrating"
+        )
+    return 0
+
+
 def cmd_import_csv(args) -> int:
+    if args.link and "," in args.link:
+        return _import_tree(args)
+    if len(args.xyz) != 3:
+        raise ValueError(f"--xyz: expected 3 comma-separated column names (x,y,z), got {len(args.xyz)}")
     if args.orientation_columns:
         missing = [
             o

@@ -14,10 +14,13 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
-from .._tree import KinematicTree
+from .._npgeom import kabsch
+from .._tree import KinematicTree, tip_poses
 from .._treefit import FAMILIES, TreeSamples
+from ._csv_poses import ANGLE_UNITS, LENGTH_UNITS
 from ._files import atomic_directory, shown
 from .urdf_tree import actuated_limits, load_urdf_tree
 
@@ -292,3 +295,140 @@ def write_tree_dataset(
         if truth is not None:
             (tmp / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
     return folder
+
+
+#: Points further than this from the robot file's (after the best rigid alignment, RMS) are
+#: named when a CSV is imported: wrong columns or units, not a robot's errors.
+IMPORT_FAR_M = 0.05
+
+
+def import_tree_csv(
+    path,
+    out,
+    *,
+    robot,
+    links,
+    joints,
+    joint_unit: str,
+    xyz,
+    length_unit: str,
+    sigma_m: float,
+    overwrite=False,
+) -> tuple[Path, int, float]:
+    """`jaxcal import-csv` for a robot that is a tree: a table of joint positions and a point per
+    link in `links` (`xyz`: three column specs per link, `a` or a sum `a+b`; a link's three cells
+    empty where it was not measured) into a tree dataset. Joints in `joint_unit` (revolute) or
+    `length_unit` (prismatic), points in `length_unit`, `sigma_m` the device's noise per axis.
+    Returns the folder, the rows and the points' RMS distance (m) from the robot file's after the
+    best rigid alignment. Raises `ValueError` naming the file, line and column of what is wrong."""
+    path, robot = Path(path), Path(robot)
+    tree = load_urdf_tree(robot, tips=list(links))
+    if len(joints) != tree.num_actuated:
+        raise ValueError(
+            f"--joint-columns: {len(joints)} columns for the tree's {tree.num_actuated} actuated joints "
+            f"{list(tree.actuated_names)} (in that order)"
+        )
+    if len(xyz) != 3 * len(links):
+        raise ValueError(
+            f"--xyz: {len(xyz)} columns for {len(links)} links {list(links)}: give x,y,z of each"
+        )
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"{shown(path)!r}: cannot read the CSV table ({e})") from None
+    header = [h.strip() for h in (rows[0] if rows else [])]
+    rows = [r for r in rows[1:] if any(c.strip() for c in r)]
+    if len(rows) < 2:
+        raise ValueError(f"{shown(path)!r}: {len(rows)} data row(s); a dataset needs at least 2")
+
+    def columns(spec: str, option: str) -> list[int]:
+        missing = [p.strip() for p in spec.split("+") if p.strip() not in header]
+        if missing or not spec.strip():
+            raise ValueError(
+                f"{shown(path)!r} line 1: no column {missing or spec!r} (named by {option}); the header has {header}"
+            )
+        return [header.index(p.strip()) for p in spec.split("+")]
+
+    def value(row: list[str], line: int, spec: str, cols: list[int]) -> float | None:
+        cells = [row[c].strip() if c < len(row) else "" for c in cols]
+        if all(not c for c in cells):
+            return None
+        try:
+            v = sum(float(c) for c in cells)
+        except ValueError:
+            v = float("nan")
+        if not np.isfinite(v):
+            raise ValueError(
+                f"{shown(path)!r} line {line} column {spec!r}: {'+'.join(cells)!r} is not a finite number"
+            )
+        return v
+
+    jcols = [columns(s, "--joint-columns") for s in joints]
+    pcols = [columns(s, "--xyz") for s in xyz]
+    kinds = dict(zip(tree.joint_names, tree.joint_types))
+    scale = np.array(
+        [
+            1 / LENGTH_UNITS[length_unit] if kinds[n] == "prismatic" else ANGLE_UNITS[joint_unit]
+            for n in tree.actuated_names
+        ]
+    )
+    q = np.zeros((len(rows), tree.num_actuated))
+    points = np.full((len(rows), len(links), 3), np.nan)
+    for i, row in enumerate(rows):
+        line = i + 2
+        for j, (spec, cols) in enumerate(zip(joints, jcols)):
+            v = value(row, line, spec, cols)
+            if v is None:
+                raise ValueError(
+                    f"{shown(path)!r} line {line} column {spec!r}: empty (every joint is needed)"
+                )
+            q[i, j] = v * scale[j]
+        for k in range(len(links)):
+            cells = [value(row, line, xyz[3 * k + a], pcols[3 * k + a]) for a in range(3)]
+            if any(c is None for c in cells) and not all(c is None for c in cells):
+                raise ValueError(
+                    f"{shown(path)!r} line {line}: link {links[k]!r} has some of its x, y, z and not all"
+                )
+            if cells[0] is not None:
+                points[i, k] = np.asarray(cells) / LENGTH_UNITS[length_unit]
+    _within_limits(path, q, actuated_limits(robot, tree), tree, joints, joint_unit)
+    measured = np.isfinite(points).all(axis=-1)
+    if not measured.any():
+        raise ValueError(f"{shown(path)!r}: no row measures any link's point")
+    tips = np.stack([np.asarray(tip_poses(tree, jnp.asarray(qi))) for qi in q])
+    nominal = tips[..., :3, 3]  # each link's origin: the points' offsets on them are unknown yet
+    T = kabsch(nominal[measured], points[measured])
+    rms = float(
+        np.sqrt(np.mean(np.sum((nominal[measured] @ T[:3, :3].T + T[:3, 3] - points[measured]) ** 2, -1)))
+    )
+    samples = TreeSamples(q, np.where(measured[..., None], points, 0.0), measured)
+    folder = write_tree_dataset(
+        out,
+        urdf_text=robot.read_text(),
+        tips=list(links),
+        samples=samples,
+        tree=tree,
+        noise_mm=1e3 * sigma_m,
+        points=np.zeros((len(links), 3)),
+        overwrite=overwrite,
+    )
+    return folder, len(rows), rms
+
+
+def _within_limits(
+    path: Path, q: np.ndarray, limits: np.ndarray, tree: KinematicTree, joints, unit: str
+) -> None:
+    """Refuse joint positions outside the robot file's limits, naming the line and column (and
+    degrees where the values would fit as degrees)."""
+    bad = (q < limits[:, 0] - 1e-9) | (q > limits[:, 1] + 1e-9)
+    if not bad.any():
+        return
+    i, j = np.argwhere(bad)[0]
+    hint = ""
+    if unit == "rad" and np.all(np.abs(np.radians(q[:, j])) <= np.maximum(np.abs(limits[j]).max(), np.pi)):
+        hint = "; the values look like degrees: --joint-unit deg?"
+    raise ValueError(
+        f"{shown(path)!r} line {i + 2} column {joints[j]!r} ({tree.actuated_names[j]}): {q[i, j]:.6g} is outside "
+        f"the limits [{limits[j, 0]:.6g}, {limits[j, 1]:.6g}] ({bad.sum()} cells){hint}"
+    )
