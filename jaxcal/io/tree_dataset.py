@@ -332,6 +332,42 @@ def import_tree_csv(
         raise ValueError(
             f"--xyz: {len(xyz)} columns for {len(links)} links {list(links)}: give x,y,z of each"
         )
+    kinds = dict(zip(tree.joint_names, tree.joint_types))
+    scale = np.array(
+        [
+            1 / LENGTH_UNITS[length_unit] if kinds[n] == "prismatic" else ANGLE_UNITS[joint_unit]
+            for n in tree.actuated_names
+        ]
+    )
+    q, points = _read_table(path, joints, xyz, scale, len(links))
+    points = points / LENGTH_UNITS[length_unit]
+    _within_limits(path, q, actuated_limits(robot, tree), tree, joints, joint_unit)
+    measured = np.isfinite(points).all(axis=-1)
+    if not measured.any():
+        raise ValueError(f"{shown(path)!r}: no row measures any link's point")
+    tips = np.stack([np.asarray(tip_poses(tree, jnp.asarray(qi))) for qi in q])
+    nominal = tips[..., :3, 3]  # each link's origin: the points' offsets on them are unknown yet
+    T = kabsch(nominal[measured], points[measured])
+    rms = float(
+        np.sqrt(np.mean(np.sum((nominal[measured] @ T[:3, :3].T + T[:3, 3] - points[measured]) ** 2, -1)))
+    )
+    samples = TreeSamples(q, np.where(measured[..., None], points, 0.0), measured)
+    folder = write_tree_dataset(
+        out,
+        urdf_text=robot.read_text(),
+        tips=list(links),
+        samples=samples,
+        tree=tree,
+        noise_mm=1e3 * sigma_m,
+        points=np.zeros((len(links), 3)),
+        overwrite=overwrite,
+    )
+    return folder, len(q), rms
+
+
+def _read_table(path: Path, joints, xyz, scale: np.ndarray, links: int) -> tuple[np.ndarray, np.ndarray]:
+    """`import_tree_csv`'s table: the joints times `scale` `(rows, actuated)`, and each link's
+    point `(rows, links, 3)` in the table's unit (NaN where its three cells are empty)."""
     try:
         with path.open(newline="", encoding="utf-8-sig") as f:
             rows = list(csv.reader(f))
@@ -366,15 +402,8 @@ def import_tree_csv(
 
     jcols = [columns(s, "--joint-columns") for s in joints]
     pcols = [columns(s, "--xyz") for s in xyz]
-    kinds = dict(zip(tree.joint_names, tree.joint_types))
-    scale = np.array(
-        [
-            1 / LENGTH_UNITS[length_unit] if kinds[n] == "prismatic" else ANGLE_UNITS[joint_unit]
-            for n in tree.actuated_names
-        ]
-    )
-    q = np.zeros((len(rows), tree.num_actuated))
-    points = np.full((len(rows), len(links), 3), np.nan)
+    q = np.zeros((len(rows), len(joints)))
+    points = np.full((len(rows), links, 3), np.nan)
     for i, row in enumerate(rows):
         line = i + 2
         for j, (spec, cols) in enumerate(zip(joints, jcols)):
@@ -384,36 +413,15 @@ def import_tree_csv(
                     f"{shown(path)!r} line {line} column {spec!r}: empty (every joint is needed)"
                 )
             q[i, j] = v * scale[j]
-        for k in range(len(links)):
+        for k in range(links):
             cells = [value(row, line, xyz[3 * k + a], pcols[3 * k + a]) for a in range(3)]
             if any(c is None for c in cells) and not all(c is None for c in cells):
                 raise ValueError(
                     f"{shown(path)!r} line {line}: link {links[k]!r} has some of its x, y, z and not all"
                 )
             if cells[0] is not None:
-                points[i, k] = np.asarray(cells) / LENGTH_UNITS[length_unit]
-    _within_limits(path, q, actuated_limits(robot, tree), tree, joints, joint_unit)
-    measured = np.isfinite(points).all(axis=-1)
-    if not measured.any():
-        raise ValueError(f"{shown(path)!r}: no row measures any link's point")
-    tips = np.stack([np.asarray(tip_poses(tree, jnp.asarray(qi))) for qi in q])
-    nominal = tips[..., :3, 3]  # each link's origin: the points' offsets on them are unknown yet
-    T = kabsch(nominal[measured], points[measured])
-    rms = float(
-        np.sqrt(np.mean(np.sum((nominal[measured] @ T[:3, :3].T + T[:3, 3] - points[measured]) ** 2, -1)))
-    )
-    samples = TreeSamples(q, np.where(measured[..., None], points, 0.0), measured)
-    folder = write_tree_dataset(
-        out,
-        urdf_text=robot.read_text(),
-        tips=list(links),
-        samples=samples,
-        tree=tree,
-        noise_mm=1e3 * sigma_m,
-        points=np.zeros((len(links), 3)),
-        overwrite=overwrite,
-    )
-    return folder, len(rows), rms
+                points[i, k] = cells
+    return q, points
 
 
 def _within_limits(
