@@ -133,7 +133,9 @@ def _numbers(value, shape: tuple, path: Path, field: str) -> np.ndarray:
         a = None
     if a is None or a.shape != shape or not np.all(np.isfinite(a)) or isinstance(value, bool):
         want = "a number" if shape == () else f"finite numbers of shape {list(shape)}"
-        raise ValueError(f"tree calibration {shown(path)!r}: field {field} must be {want}, got {value!r}")
+        got = repr(value)
+        got = got if len(got) <= 80 else f"{got[:60]} ... ({len(got):,} characters)"
+        raise ValueError(f"tree calibration {shown(path)!r}: field {field} must be {want}, got {got}")
     return a
 
 
@@ -145,9 +147,9 @@ def _object(doc, name: str, path: Path) -> dict:
     return doc[name]
 
 
-def _covariance(path: Path, tree: KinematicTree) -> tuple | None:
+def _covariance(path: Path, tree: KinematicTree, std: dict) -> tuple | None:
     """`tree_covariance.json`'s parameter names, matrix and configurations fitted (None where the
-    folder has none)."""
+    folder has none), checked against `tree_result.json`'s standard deviations (`std`)."""
     if not path.is_file():
         return None
     doc = read_json_object(path, "tree calibration's covariance")
@@ -159,13 +161,20 @@ def _covariance(path: Path, tree: KinematicTree) -> tuple | None:
     cov = _numbers(doc.get("matrix"), (len(names), len(names)), path, "'matrix'")
     q = doc.get("configurations")
     rows = len(q) if isinstance(q, list) else -1
-    q = None if q is None else _numbers(q, (rows, tree.num_actuated), path, "'configurations'")
+    q = _numbers(q, (rows, tree.num_actuated), path, "'configurations'")
     if (
         not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0)
         or np.linalg.eigvalsh(cov).min() < -1e-9 * abs(cov).max()
     ):
         raise ValueError(
             f"{shown(path)!r}: field 'matrix' is not a symmetric positive semi-definite covariance"
+        )
+    stated = np.array([std.get(n, np.nan) for n in names], np.float64)
+    if not np.allclose(np.sqrt(np.diag(cov)), stated, rtol=1e-6, atol=1e-300):
+        k = int(np.argmax(~np.isclose(np.sqrt(np.diag(cov)), stated, rtol=1e-6, atol=1e-300)))
+        raise ValueError(
+            f"{shown(path)!r}: the standard deviation of {names[k]!r} is {np.sqrt(cov[k, k]):.6g} there, "
+            f"{stated[k]:.6g} in {RESULT_FILE}: the two files are not one calibration's"
         )
     return tuple(names), cov, q
 
@@ -246,7 +255,11 @@ def load_tree_calibration(folder) -> CalibratedTree:
     stated = doc.get("stated_noise_mm")
     return CalibratedTree(
         values=values,
-        covariance=_covariance(folder / COVARIANCE_FILE, tree),
+        covariance=_covariance(
+            folder / COVARIANCE_FILE,
+            tree,
+            {n: v.get("std") for n, v in parameters.items() if isinstance(v, dict)},
+        ),
         stated_noise_mm=None if stated is None else float(_numbers(stated, (), path, "'stated_noise_mm'")),
         point_covariances=doc.get("point_covariances") is True,
         tree=tree,
@@ -260,22 +273,16 @@ def load_tree_calibration(folder) -> CalibratedTree:
     )
 
 
-def _bad_points(residual, measured, sigma_m: float) -> list[tuple[int, int, float]]:
-    """The points `OUTLIER_SIGMAS` beyond the calibration (sigma: the larger of `sigma_m` per axis and
-    the residuals' robust scale), as (sample, tip, sigmas); none where every residual is large and
-    none lies `FAR_BEYOND` of the rest (the calibration does not hold: that is the verdict's)."""
-    z2 = (residual**2).sum(axis=-1) / sigma_m**2
-    scale2 = max(1.0, float(np.median(z2[measured])) / 2.366)  # chi-square(3)'s median
-    if scale2 > NOISE_FACTOR**2 and z2[measured].max() < FAR_BEYOND**2 * scale2:
-        return []
-    bad = measured & (z2 > OUTLIER_SIGMAS**2 * scale2)
-    return [(int(i), int(t), float(np.sqrt(z2[i, t] / scale2))) for i, t in np.argwhere(bad)]
-
-
 def _aligned(model: CalibratedTree, folder, dataset: TreeDataset):
     """`dataset`'s samples checked against the calibration's robot and device, and its measured
     mask, points and covariances (None: none) in the calibration's tip order (a tip it does not
     measure: never seen)."""
+    if dataset.device_on != model.device_on:
+        raise ValueError(
+            f"dataset {shown(dataset.folder)!r} is measured by a device on {dataset.device_on or 'no tip (fixed)'}; "
+            f"the calibration {shown(folder)!r} by one on {model.device_on or 'no tip (fixed)'}: give samples of "
+            "the device the calibration was fitted to"
+        )
     if dataset.tree.actuated_names != model.tree.actuated_names:
         raise ValueError(
             f"dataset {shown(dataset.folder)!r} has the joints {list(dataset.tree.actuated_names)}; the "
@@ -285,12 +292,6 @@ def _aligned(model: CalibratedTree, folder, dataset: TreeDataset):
         raise ValueError(
             f"dataset {shown(dataset.folder)!r} measures tips {sorted(set(dataset.tree.tip_names) - set(model.tree.tip_names))} "
             f"that the calibration {shown(folder)!r} did not calibrate (its tips: {list(model.tree.tip_names)})"
-        )
-    if dataset.device_on != model.device_on:
-        raise ValueError(
-            f"dataset {shown(dataset.folder)!r} is measured by a device on {dataset.device_on or 'no tip (fixed)'}; "
-            f"the calibration {shown(folder)!r} by one on {model.device_on or 'no tip (fixed)'}: give samples of "
-            "the device the calibration was fitted to"
         )
     samples = checked_samples(dataset.tree, dataset.samples, dataset.noise_mm, dataset.limits, None)
     # The dataset's tips, in the calibration's order (a tip it does not measure: never seen).
@@ -338,7 +339,13 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
         var = np.trace(model.predict_covariance(samples.q), axis1=-2, axis2=-1)[measured] / 3.0
         param_mm = 1e3 * float(np.sqrt(var.mean()))
     expected = float(np.hypot(model.noise_mm, param_mm))
-    left = _bad_points(residual, measured, 1e-3 * expected)
+    where = np.argwhere(measured)
+    far = _far_points(
+        residual[measured],
+        np.tile((1e-3 * expected) ** 2 * np.eye(3), (len(where), 1, 1)),
+        np.ones(len(where), bool),
+    )
+    left = [(int(where[k][0]), int(where[k][1]), z) for k, z in far]
     notes = []
     if len(left) > OUTLIER_SHARE * measured.sum():
         notes.append(
@@ -469,36 +476,32 @@ def check_tree(folder, dataset: TreeDataset) -> DriftCheck:
             f"{shown(dataset.folder)!r}: a check of the device's pose needs 3 measured points, got {S}"
         )
     G, Sigma = model.prediction_jacobian(samples.q)
-    G = G[measured].reshape(3 * S, -1)
+    G = G[measured]
     factor2 = (model.noise_mm / (model.stated_noise_mm or model.noise_mm)) ** 2
     blocks = (
         factor2 * cov[measured]
         if cov is not None
         else np.tile((1e-3 * model.noise_mm) ** 2 * np.eye(3), (S, 1, 1))
     )
-    R = G @ Sigma @ G.T
-    for i in range(S):
-        R[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += blocks[i]
-    theta, C, T, rss = (
-        np.asarray(a)
-        for a in fit_drift(
-            points[measured],
-            model.predict(samples.q)[measured],
-            np.zeros((S, 3, 0)),
-            whitening(R),
-            offsets=False,
-        )
-    )
+    y, y_hat, where = points[measured], model.predict(samples.q)[measured], np.argwhere(measured)
+    keep, left = np.ones(S, bool), []
+    for rounds in range(4):  # bad samples (a misread plate) left out as `verify` leaves them out
+        theta, C, T, rss, _ = _fit_device(y[keep], y_hat[keep], G[keep], Sigma, blocks[keep])
+        bad = _far_points(y - _moved(theta, y_hat), blocks + np.einsum("sak,kl,sbl->sab", G, Sigma, G), keep)
+        if rounds == 3 or not bad or len(left) + len(bad) > OUTLIER_SHARE * S or keep.sum() - len(bad) < 3:
+            break
+        left += bad
+        keep[[k for k, _ in bad]] = False
     move = np_se3_exp(theta[:6])
     T_now = model.T_device_root @ move if model.device_on else np.linalg.inv(move) @ model.T_device_root
     names, what = (str(folder), str(dataset.folder)), "camera" if model.device_on else "device"
     samples_seen = int(measured.any(axis=1).sum())
-    return verdict(
+    c = verdict(
         theta,
         C,
         float(T),
         float(rss),
-        3 * S - 6,
+        3 * int(keep.sum()) - 6,
         samples=samples_seen,
         joint_names=model.tree.actuated_names,
         T_now=T_now,
@@ -506,3 +509,53 @@ def check_tree(folder, dataset: TreeDataset) -> DriftCheck:
         what=what,
         frame="T_device",
     )
+    notes = []
+    if left:
+        notes.append(
+            f"{len(left)} of {S} points left out as bad samples (over {OUTLIER_SIGMAS:g} sigma): "
+            + ", ".join(
+                f"sample {where[k][0]} tip {model.tree.tip_names[where[k][1]]!r} ({z:.0f} sigma)"
+                for k, z in left
+            )
+        )
+    if model.status != "ok":
+        notes.append(f"the calibration itself was {model.status}: what it misfits may read as a move")
+    advice = c.advice
+    if not c.residual.fits_rigidly:
+        advice = (
+            "check that the capture is of the same robot, device and points (reflectors, plates); if it is, "
+            "something else changed (the robot, a mount): calibrate again"
+        )
+    return dataclasses.replace(c, message="; ".join([c.message, *notes]), advice=advice)
+
+
+def _far_points(e: np.ndarray, B: np.ndarray, keep: np.ndarray) -> list[tuple[int, float]]:
+    """The kept points whose residuals `e` `(S, 3)` lie `OUTLIER_SIGMAS` beyond their covariances
+    `B` (scaled by the residuals' robust scale where that is larger), as (point, sigmas); none
+    where every residual is large and none lies `FAR_BEYOND` of the rest."""
+    z2 = np.einsum("sa,sa->s", e, np.linalg.solve(B, e[..., None])[..., 0])
+    scale2 = max(1.0, float(np.median(z2[keep])) / 2.366)  # chi-square(3)'s median
+    if scale2 > NOISE_FACTOR**2 and z2[keep].max() < FAR_BEYOND**2 * scale2:
+        return []
+    return [
+        (int(k), float(np.sqrt(z2[k] / scale2)))
+        for k in np.flatnonzero(keep & (z2 > OUTLIER_SIGMAS**2 * scale2))
+    ]
+
+
+def _moved(theta, y_hat):
+    """The points `y_hat` seen from the device moved by the twist `theta[:6]` (`jaxcal.drift`'s model)."""
+    T = np.linalg.inv(np_se3_exp(theta[:6]))
+    return y_hat @ T[:3, :3].T + T[:3, 3]
+
+
+def _fit_device(y, y_hat, G, Sigma, blocks):
+    """`jaxcal.drift.fit_drift` of the device's twist, the residuals' covariance `R` being the
+    points' `blocks` and the calibration's uncertainty `G Sigma G^T` (`G` `(S, 3, k)`)."""
+    S = len(y)
+    G = G.reshape(3 * S, -1)
+    R = G @ Sigma @ G.T
+    for i in range(S):
+        R[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += blocks[i]
+    out = fit_drift(y, y_hat, np.zeros((S, 3, 0)), whitening(R), offsets=False)
+    return (*(np.asarray(a) for a in out), R)

@@ -5,6 +5,7 @@ covariance PnP gives it (a camera sees across far better than in depth)."""
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -208,6 +209,26 @@ def test_a_head_camera_dataset_from_the_command_line(tmp_path, capsys):
         assert 0.5 < tips[hand]["summary"]["rms_mm"] / measured < 2.0, (hand, tips[hand]["summary"], measured)
         assert tips[hand]["extrapolation"]["share_of_poses_outside_joint_ranges"] < 0.5
     assert main(["certify", str(out), "--plot", str(tmp_path / "map.png")]) == 2
+    degrees = tmp_path / "degrees.csv"
+    degrees.write_text(
+        ",".join(filmed.tree.actuated_names)
+        + "\n"
+        + "\n".join(",".join(repr(float(v)) for v in np.degrees(q)) for q in test["q"])
+    )
+    assert main(["certify", str(out), "--poses", str(degrees)]) == 2
+    assert "degrees? give --config degrees=true" in capsys.readouterr().err
+    # A covariance file that is not the result's (scaled, another calibration's) is refused by name.
+    damaged = tmp_path / "damaged"
+    shutil.copytree(out, damaged)
+    doc = json.loads((damaged / "tree_covariance.json").read_text())
+    (damaged / "tree_covariance.json").write_text(
+        json.dumps(doc | {"matrix": (1e6 * np.asarray(doc["matrix"])).tolist()})
+    )
+    assert main(["certify", str(damaged)]) == 2
+    assert "the two files are not one calibration's" in capsys.readouterr().err
+    # `check` leaves the misread plate out by name, as `verify` does, and finds no drift.
+    assert main(["check", str(out), str(tmp_path / "misread")]) == 0
+    assert f"sample {row} tip 'left_hand'" in capsys.readouterr().out
     # Samples of another device (a tracker's, fixed) are refused by name, not judged; so are options
     # the upper body's tracker capture does not take.
     tracker = tmp_path / "tracker"

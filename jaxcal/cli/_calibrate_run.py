@@ -409,7 +409,7 @@ def calibrate_tree_dataset(args, out: Path, checked) -> int:
         result, out, source_urdf=ds.urdf, overwrite=args.overwrite, inputs=(ds.folder,), checked=checked
     )
     console.print(
-        f"wrote {out}/: calibrated.urdf, tree_result.json, "
+        f"wrote {out}/: calibrated.urdf, tree_result.json, tree_covariance.json, "
         + ", ".join(f"{t}_mdh.json" for t in ds.tree.tip_names)
         + f" ({time.perf_counter() - t0:.1f} s); calibration {result.status}"
     )

@@ -159,6 +159,23 @@ def _is_tree_result(path: str) -> bool:
     return p.name == "tree_result.json" or (p / "tree_result.json").is_file()
 
 
+#: How far (rad, or m) a pose to certify may lie beyond its joint's limits before it is refused.
+BEYOND_LIMITS = 0.1
+
+
+def _within_travel(path: str, q: np.ndarray, pred, degrees: bool) -> None:
+    """Refuse poses beyond the joints' limits (by `BEYOND_LIMITS`): a file in the other unit."""
+    lo, hi = pred.travel[:, 0] - BEYOND_LIMITS, pred.travel[:, 1] + BEYOND_LIMITS
+    out = (q < lo) | (q > hi)
+    if out.any():
+        i, j = np.argwhere(out)[0]
+        hint = "check the file's columns and unit" if degrees else "degrees? give --config degrees=true"
+        raise ValueError(
+            f"{path}: configuration {i + 1}, joint {pred.joint_names[j]!r} at {q[i, j]:.4g} (rad or m) is beyond its "
+            f"limits [{pred.travel[j, 0]:.4g}, {pred.travel[j, 1]:.4g}] ({out.any(axis=1).sum()} configurations): {hint}"
+        )
+
+
 def _certify_tree(args, where: dict) -> int:
     """`jaxcal certify` of a tree calibration: a certificate per measured tip (its device's frame)."""
     if args.plot or args.frame != "fixed":
@@ -175,6 +192,8 @@ def _certify_tree(args, where: dict) -> int:
         tips = tip_predictors(args.result)
         names = next(iter(tips.values())).joint_names
         poses = None if not args.poses else read_poses(args.poses, names, degrees=args.degrees)
+        if poses is not None:
+            _within_travel(args.poses, poses, next(iter(tips.values())), args.degrees)
         certs = {
             tip: certify(pred, **where, poses=poses, samples=args.samples, seed=args.seed)
             for tip, pred in tips.items()
