@@ -619,18 +619,18 @@ def _tree_fit(problem, layout, free, u, steps, families, scores=None) -> TreeFit
     )
 
 
-def predicted_covariance(u, cov, problem: TreeProblem, q) -> np.ndarray:
-    """The covariance `(n, tips, 3, 3)` (m^2, device frame) of the points predicted at `q`
-    `(n, actuated)` from the fit `u` with covariance `cov` (of `u`)."""
+def prediction_jacobian(u, problem: TreeProblem, q) -> np.ndarray:
+    """`(n, tips, 3, p)`: the derivatives by `u` of the points predicted at `q` (m per unit of `u`)."""
     n, tips = len(q), problem.y.shape[1]
-    at = eqx.tree_at(
-        lambda p: (p.q, p.y, p.weight, p.whiten),
-        problem,
-        (jnp.asarray(q, jnp.float64), jnp.zeros((n, tips, 3)), jnp.ones((n, tips)), None),
-        is_leaf=lambda x: x is None,
-    )
+    leaves = (jnp.asarray(q, jnp.float64), jnp.zeros((n, tips, 3)), jnp.ones((n, tips)), None)
+    at = eqx.tree_at(lambda p: (p.q, p.y, p.weight, p.whiten), problem, leaves, is_leaf=lambda x: x is None)
     J = np.asarray(linearised(jnp.asarray(u), jnp.ones(len(u)), at)[1]).reshape(n, tips, 3, -1)
-    J = J * problem.sigma  # the rows were whitened by it
+    return J * problem.sigma  # the rows were whitened by it
+
+
+def predicted_covariance(u, cov, problem: TreeProblem, q) -> np.ndarray:
+    """`(n, tips, 3, 3)` (m^2, device frame): the points predicted at `q` from `u` of covariance `cov`."""
+    J = prediction_jacobian(u, problem, q)
     return np.einsum("ntap,pq,ntbq->ntab", J, cov, J)
 
 

@@ -25,7 +25,7 @@ from ._treefit import (
     Elastic,
     TreeSamples,
     deflected_tips,
-    linearised,
+    prediction_jacobian,
     problem_of,
     tree_layout,
 )
@@ -83,8 +83,7 @@ class CalibratedTree:
         names, cov, _ = self.covariance
         layout = tree_layout(self.tree)
         index = [layout.names.index(n) for n in names]
-        q = np.asarray(q, np.float64)
-        n, tips, a = len(q), len(self.tree.tip_names), self.tree.num_actuated
+        tips, a = len(self.tree.tip_names), self.tree.num_actuated
         # The geometry is the calibrated tree's own: only the terms' values lie in the vector.
         terms = layout.family(*FAMILIES)
         x = np.array([self.values.get(n, 0.0) if t else 0.0 for n, t in zip(layout.names, terms)])
@@ -93,14 +92,8 @@ class CalibratedTree:
         problem = problem_of(
             self.tree, layout, one, self.T_device_root, self.points, self.noise_mm, device_tip
         )
-        at = eqx.tree_at(
-            lambda p: (p.q, p.y, p.weight),
-            problem,
-            (jnp.asarray(q), jnp.zeros((n, tips, 3)), jnp.ones((n, tips))),
-        )
-        J = linearised(jnp.asarray(x / layout.scales), jnp.ones(layout.size), at)[1]
-        J = np.asarray(J).reshape(n, tips, 3, -1)[..., index]
-        return J * (problem.sigma / layout.scales[index]), cov  # the rows were whitened by sigma
+        J = prediction_jacobian(x / layout.scales, problem, np.asarray(q, np.float64))[..., index]
+        return J / layout.scales[index], cov
 
     def predict_covariance(self, q) -> np.ndarray:
         """The covariance `(n, tips, 3, 3)` (m^2, device frame) of `predict(q)` from the fit's
@@ -486,7 +479,7 @@ def check_tree(folder, dataset: TreeDataset) -> DriftCheck:
     y, y_hat, where = points[measured], model.predict(samples.q)[measured], np.argwhere(measured)
     keep, left = np.ones(S, bool), []
     for rounds in range(4):  # bad samples (a misread plate) left out as `verify` leaves them out
-        theta, C, T, rss, _ = _fit_device(y[keep], y_hat[keep], G[keep], Sigma, blocks[keep])
+        theta, C, T, rss = _fit_device(y[keep], y_hat[keep], G[keep], Sigma, blocks[keep])
         bad = _far_points(y - _moved(theta, y_hat), blocks + np.einsum("sak,kl,sbl->sab", G, Sigma, G), keep)
         if rounds == 3 or not bad or len(left) + len(bad) > OUTLIER_SHARE * S or keep.sum() - len(bad) < 3:
             break
@@ -558,4 +551,4 @@ def _fit_device(y, y_hat, G, Sigma, blocks):
     for i in range(S):
         R[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += blocks[i]
     out = fit_drift(y, y_hat, np.zeros((S, 3, 0)), whitening(R), offsets=False)
-    return (*(np.asarray(a) for a in out), R)
+    return tuple(np.asarray(a) for a in out)
