@@ -227,22 +227,31 @@ def _robust(x: np.ndarray) -> tuple[float, float]:
 
 
 def summarize(units: Sequence[FleetUnit], parameters: dict[str, list]) -> FleetSummary:
-    """The fleet's summary from its units and, per calibrated unit name, its `ParameterRow`s."""
+    """The fleet's summary from its units and, per calibrated unit name, its `ParameterRow`s. Units
+    whose residual stands out are named first; the parameters' statistics and outliers are then
+    over the usable units (ok, their residual not named), as the prior's are: a unit measured
+    badly (misaligned rows, another robot) would otherwise set the fleet's spread."""
     calibrated = [u.name for u in units if u.residual is not None]
+    judge = len(calibrated) >= MIN_UNITS
+    outliers = _residual_outliers(units) if judge else []
+    named = {o.unit for o in outliers}
+    usable = [u.name for u in units if u.residual is not None and u.status == "ok" and u.name not in named]
+    counted = usable if len(usable) >= 2 else calibrated
     rows_by_name: dict[str, list] = {}
     for unit in calibrated:
         for r in parameters[unit]:
             if r.free:
                 rows_by_name.setdefault(r.name, []).append((unit, r))
-    stats, outliers = [], []
-    judge = len(calibrated) >= MIN_UNITS
-    common = [n for n, rows in rows_by_name.items() if len(rows) == len(calibrated)]  # comparable
-    limit = outlier_threshold(len(calibrated), max(len(common), 1)) if judge else None
+    stats = []
+    common = [n for n, rows in rows_by_name.items() if {u for u, _ in rows} >= set(counted)]  # comparable
+    limit = outlier_threshold(len(counted), max(len(common), 1)) if len(counted) >= MIN_UNITS else None
     for name in common:
-        rows = rows_by_name[name]
-        x = np.array([r.estimate for _, r in rows])
-        x = _unwrapped(x) if rows[0][1].unit == "rad" else x
-        s = np.array([r.std for _, r in rows])
+        every = rows_by_name[name]  # the units left out are judged against the counted ones
+        x_all = np.array([r.estimate for _, r in every])
+        x_all = _unwrapped(x_all) if every[0][1].unit == "rad" else x_all
+        mine = np.array([u in counted for u, _ in every])
+        rows = [row for row, m in zip(every, mine, strict=True) if m]
+        x, s = x_all[mine], np.array([r.std for _, r in rows])
         med, spread = _robust(x)
         std = float(np.std(x, ddof=1)) if len(x) > 1 else 0.0
         meas = float(np.sqrt(np.mean(s**2)))
@@ -261,32 +270,45 @@ def summarize(units: Sequence[FleetUnit], parameters: dict[str, list]) -> FleetS
                 values=tuple(float(v) for v in x),
             )
         )
-        z = (x - med) / np.maximum(np.maximum(spread, s), RESOLUTION)
+        s_all = np.array([r.std for _, r in every])
+        z = (x_all - med) / np.maximum(np.maximum(spread, s_all), RESOLUTION)
         outliers += [
             FleetOutlier(unit=u, parameter=name, value=float(v), median=med, z=float(zi))
-            for (u, _), v, zi in zip(rows, x, z, strict=True)
-            if limit is not None and abs(zi) > limit
+            for (u, _), v, zi in zip(every, x_all, z, strict=True)
+            if limit is not None and abs(zi) > limit and u not in named
         ]
-    if judge:
-        res = np.array([u.residual for u in units if u.residual is not None])
-        med, spread = _robust(np.log(res))  # residuals are positive and skewed: compared as ratios
-        for u in units:
-            z = (np.log(u.residual) - med) / spread if u.residual is not None and spread > 0 else 0.0
-            if z > outlier_threshold(len(res), 1):
-                outliers.append(
-                    FleetOutlier(
-                        unit=u.name,
-                        parameter="residual",
-                        value=u.residual,
-                        median=float(np.exp(med)),
-                        z=float(z),
-                    )
-                )
-    note = "" if judge else f"{len(calibrated)} calibrated units: outliers are judged from {MIN_UNITS} on"
+    notes = [] if judge else [f"{len(calibrated)} calibrated units: outliers are judged from {MIN_UNITS} on"]
+    left = [u for u in calibrated if u not in counted]
+    if left:
+        notes.append(
+            f"the parameters' statistics are over the {len(counted)} usable units (ok, their residual not "
+            f"named); left out: {', '.join(left)}"
+        )
     outliers.sort(key=lambda o: -abs(o.z))
     return FleetSummary(
-        units=tuple(units), parameters=tuple(stats), outliers=tuple(outliers), limit=limit, note=note
+        units=tuple(units),
+        parameters=tuple(stats),
+        outliers=tuple(outliers),
+        limit=limit,
+        note="; ".join(notes),
     )
+
+
+def _residual_outliers(units: Sequence[FleetUnit]) -> list[FleetOutlier]:
+    """The units whose residual stands out from the fleet's (compared as ratios: residuals are
+    positive and skewed)."""
+    res = np.array([u.residual for u in units if u.residual is not None])
+    med, spread = _robust(np.log(res))
+    out = []
+    for u in units:
+        z = (np.log(u.residual) - med) / spread if u.residual is not None and spread > 0 else 0.0
+        if z > outlier_threshold(len(res), 1):
+            out.append(
+                FleetOutlier(
+                    unit=u.name, parameter="residual", value=u.residual, median=float(np.exp(med)), z=float(z)
+                )
+            )
+    return out
 
 
 def _unit_of(name: str, dataset: Path, result, seconds: float) -> FleetUnit:
@@ -339,8 +361,8 @@ def calibrate_fleet(
             processes.check()  # another process stopped: so does this one
             if k in twice:  # one unit's data twice would narrow the fleet's spread
                 why = (
-                    f"{datasets[k]}: the same data as unit {datasets[twice[k]].name} (every file but metadata.json, "
-                    "byte for byte): one unit counted twice; remove the copy"
+                    f"{datasets[k]}: the same data as unit {datasets[twice[k]].name} (its data files alike; metadata, "
+                    "notes and line ends aside): one unit counted twice; remove the copy"
                 )
                 mine.append(_refused(k, datasets, why, 0.0, say))
                 continue
@@ -524,7 +546,7 @@ def fleet_markdown(summary: FleetSummary, plotted: bool) -> str:
                 f"| {o.unit} | {o.parameter} | {_fmt(o.value, u)} | {_fmt(o.median, u)} | {o.z:+.1f} |"
             )
     else:
-        lines.append("None." if not s.note else "Not judged (too few units).")
+        lines.append("None." if s.limit is not None else "Not judged (too few units).")
     lines += [
         "",
         "## Units",

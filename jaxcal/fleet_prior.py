@@ -69,15 +69,37 @@ def model_digest(model) -> str:
 WHOLE_BYTES, EDGE_BYTES = 1 << 20, 1 << 16
 
 
+#: What is not a dataset's data: its metadata, a simulator's answer key, notes beside it, a
+#: system's droppings. Two units differing only in these are one unit's data twice.
+NOT_DATA = ("metadata.json", "truth.json")
+NOTES = (".md", ".txt", ".rst", ".pdf", ".html")
+#: Text whose line ends a copy may have changed (Windows' CRLF): compared line by line.
+TEXT = (".csv", ".tsv", ".json", ".yaml", ".yml", ".urdf", ".xml")
+
+
+def _is_data(path: Path) -> bool:
+    return not (
+        path.name in NOT_DATA
+        or path.suffix.lower() in NOTES
+        or path.name.lower().startswith("readme")
+        or any(part.startswith(".") for part in path.parts)
+    )
+
+
 def data_digest(root) -> str:
-    """A short digest of a dataset's data: every file under `root` but `metadata.json` (its name
-    relative to `root` and its bytes). Two units of one digest are one unit's data twice."""
+    """A short digest of a dataset's data: every data file under `root` (not its metadata, a
+    simulator's `truth.json`, notes or hidden files; `_is_data`), its name relative to `root` and
+    its bytes, text with its line ends, trailing spaces and blank lines normalised. Two units of one digest
+    are one unit's data twice."""
     root, h = Path(root), hashlib.sha256()
-    for path in sorted(p for p in root.rglob("*") if p.is_file() and p.name != "metadata.json"):
+    files = sorted(p for p in root.rglob("*") if p.is_file() and _is_data(p.relative_to(root)))
+    for path in files:
         h.update(path.relative_to(root).as_posix().encode() + b"\0")
         size = path.stat().st_size
         with open(path, "rb") as f:
-            if size <= WHOLE_BYTES:
+            if path.suffix.lower() in TEXT and size <= WHOLE_BYTES:
+                h.update(b"\n".join(line.rstrip() for line in f.read().splitlines() if line.strip()))
+            elif size <= WHOLE_BYTES:
                 h.update(f.read())
             else:
                 h.update(str(size).encode() + f.read(EDGE_BYTES))
