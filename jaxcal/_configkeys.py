@@ -96,7 +96,8 @@ def _words(action: argparse.Action, value, where: str) -> list[str]:
     if isinstance(value, bool):
         raise ConfigError(f"{where}: expected a value, not {str(value).lower()}")
     if isinstance(action.nargs, int):  # a fixed number of values
-        items = value if isinstance(value, list) else str(value).replace(",", " ").split()
+        # KEY=[a,b,...] as the help and a TOML file write it, or KEY=a,b,...
+        items = value if isinstance(value, list) else str(value).strip("[] ").replace(",", " ").split()
         return [flag, *(str(v) for v in items)]
     if isinstance(value, list):
         value = ",".join(str(v) for v in value)

@@ -633,7 +633,7 @@ def _noise_note(c: DriftCheck, nu: float, factor: float) -> DriftCheck:
     if nu > NOISE_ALARM:
         return replace(
             c,
-            advice=c.advice
+            advice=(c.advice if c.detected else "no move seen, but it may hide one")
             + f"; the check images' corners scatter {np.sqrt(nu):.1f}x the calibration's noise: "
             "something else changed (focus, light, the target, the robot): look at the images, or calibrate again",
         )

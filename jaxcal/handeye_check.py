@@ -16,6 +16,7 @@ import numpy as np
 
 from ._drift_handeye import HandEyeCheckData, covariance_terms, fit_handeye_drift, variance_components
 from ._geometry import se3_exp
+from ._handeye.assess import MAX_ROBOT_SIGMA_DEG, MAX_ROBOT_SIGMA_M
 from ._lsq import larger_covariance_np as larger_covariance
 from .errors import DatasetError
 from .io.checks import is_hand_eye_result as is_hand_eye_result
@@ -203,7 +204,7 @@ def fit_hand_eye_check(ref: HandEyeReference, capture, *, workers=None) -> HandE
     """The drift fit of a hand-eye check `capture` (a directory or a `HandEyeCapture`) against the
     result `ref` (`read_hand_eye_result`); raises `DatasetError` naming the field when they do not match."""
     data, entry, views = check_data(ref, capture, workers=workers)
-    return fit_check(
+    fit = fit_check(
         data,
         entry.T_cam_robot,
         ref.T_robot_target,
@@ -214,6 +215,33 @@ def fit_hand_eye_check(ref: HandEyeReference, capture, *, workers=None) -> HandE
         camera=entry.name,
         views=views,
     )
+    root = capture.root if isinstance(capture, HandEyeCapture) else capture
+    return _judgeable(fit, root)
+
+
+#: What the poses should have been checked for when a check capture fits no robot's poses (as
+#: `jaxcal handeye` says it of a calibration capture).
+MISREAD = (
+    "the poses are not these images' as read: check the arrangement, that the poses are the flange in "
+    "the base frame and not inverted, the quaternion component order, the rotation and translation "
+    "units (`jaxcal handeye` on this capture names a misreading that fits)"
+)
+
+
+def _judgeable(fit: HandEyeCheckFit, root) -> HandEyeCheckFit:
+    """`fit`, or a `DatasetError` naming the capture where no drift can be judged from it: the fit
+    did not converge, or each view's pose error it needs is beyond any robot's (a misread pose
+    file, whose "move" of the camera would be a confident wrong answer)."""
+    if not (np.isfinite(fit.theta).all() and np.isfinite(fit.C).all() and np.isfinite(fit.T)):
+        raise DatasetError(f"{root}: the camera's drift could not be fitted to this capture: {MISREAD}")
+    mm, deg = 1e3 * fit.view_sigma[0], float(np.degrees(fit.view_sigma[1]))
+    if mm > 1e3 * MAX_ROBOT_SIGMA_M or deg > MAX_ROBOT_SIGMA_DEG:
+        raise DatasetError(
+            f"{root}: its robot poses and images fit the calibration only with each view's pose {mm:.3g} mm / "
+            f"{deg:.3g} deg off (limits {1e3 * MAX_ROBOT_SIGMA_M:g} mm, {MAX_ROBOT_SIGMA_DEG:g} deg, any robot's): "
+            + MISREAD
+        )
+    return fit
 
 
 def read_hand_eye_result(path) -> HandEyeReference | None:

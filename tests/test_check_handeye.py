@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
+from scipy.spatial.transform import Rotation
 
 from jaxcal._drift_camera import GN_STEPS
 from jaxcal._drift_handeye import COMPONENT_ROUNDS, VIEW_START, HandEyeCheckData, residuals
@@ -286,6 +287,21 @@ def test_hand_eye_check_refuses_another_camera_or_target(rendered, tmp_path):
 
     with pytest.raises(DatasetError, match="handeye.json: arrangement 'eye_in_hand'"):
         check(res, variant("flipped", flipped))
+    # Poses written inverted (T_ee_base) fit only with each view's pose centimetres off: no camera
+    # "move" from them (it was 565 mm, and `re-register`), but the misreadings to look for.
+    inverted = variant("inverted", lambda meta: None)
+    rows = [line.split(",") for line in (inverted / "poses.csv").read_text().splitlines()]
+    for row in rows[1:]:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat([float(v) for v in row[4:8]]).as_matrix()
+        T[:3, 3] = [float(v) for v in row[1:4]]
+        Ti = np.linalg.inv(T)
+        row[1:8] = [repr(float(v)) for v in (*Ti[:3, 3], *Rotation.from_matrix(Ti[:3, :3]).as_quat())]
+    (inverted / "poses.csv").write_text("\n".join(",".join(r) for r in rows) + "\n")
+    with pytest.raises(
+        DatasetError, match=r"inverted: its robot poses and images fit .* mm / .* deg off .*inverted"
+    ):
+        check(res, inverted)
 
 
 def test_the_f_law_of_an_estimated_noise_scale():

@@ -91,6 +91,9 @@ def test_values_of_every_shape_convert_as_the_flags(tmp_path, capsys):
         ]
         + ["--no-encoders", "--clock-offset-ms", "20"]
     )
+    # ... and a list as the help (and a TOML file) writes it.
+    bracketed = parse(["simulate", "--out", "X", "--config", "distortion=[0.1, 0, 0, 0.002, 0]"])
+    assert bracketed.distortion == [0.1, 0.0, 0.0, 0.002, 0.0]
     for args in (by_file, inline, old):
         assert (
             args.distortion == [0.1, 0.0, 0.0, 0.002, 0.0]

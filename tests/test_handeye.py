@@ -718,7 +718,10 @@ def test_the_images_scale_against_the_robots_names_a_wrong_target_size(eye_in_ha
     ((_, s, std, distance),) = image_scale(*_scaled_capture(eye_in_hand, 1.03))
     assert abs(s - 1.03) < 4 * std
     (reason,) = scale_reasons([(name, s, std, distance)])
-    assert "cam0" in reason and "+3.0 %" in reason and "square_length" in reason
+    assert "cam0" in reason and "+3.0 %" in reason and "square_length" in reason and "unit" not in reason
+    # Ten times off is a unit (centimetres declared millimetres), not a size.
+    (reason,) = scale_reasons([(name, 9.9, 0.01, distance)])
+    assert "a factor of 10: a unit, not a size, is wrong" in reason and "translation_unit" in reason
     # Below the 0.5 % tolerance, a scale many standard errors off is named where the camera's move
     # it implies is past twice the claimed standard deviation, not where the claim covers it.
     ((_, s, std, distance),) = image_scale(*_scaled_capture(eye_in_hand, 1.004, frames=48))

@@ -742,7 +742,8 @@ def test_bad_captures_name_file_field_and_value(tmp_path, breakage, match):
 
 def test_radians_declared_degrees_are_named(tmp_path):
     """Rotation vectors in radians, handeye.json saying `deg`: read as degrees the flange would
-    barely turn (the pose checks would then ask for a second rotation axis); the unit is named."""
+    barely turn (the pose checks would then ask for a second rotation axis); the unit is named,
+    as it is for degrees declared radians (rotation vectors and Euler angles beyond a turn)."""
     root = tmp_path / "c"
     _write_capture(root, "xyz_rotvec", "m", "rad")
     meta = json.loads((root / "handeye.json").read_text())
@@ -752,6 +753,16 @@ def test_radians_declared_degrees_are_named(tmp_path):
         DatasetError, match=r"poses.csv: no rotation value exceeds .*'rotation_unit' \('deg'\) right"
     ):
         load_hand_eye_capture(root)
+    # ... and the other way: degrees declared radians reach beyond a turn.
+    for fmt in ("xyz_rotvec", "xyz_rpy"):
+        _write_capture(tmp_path / fmt, fmt, "m", "deg")
+        meta = json.loads((tmp_path / fmt / "handeye.json").read_text())
+        meta["poses"]["rotation_unit"] = "rad"
+        (tmp_path / fmt / "handeye.json").write_text(json.dumps(meta))
+        with pytest.raises(
+            DatasetError, match=r"poses.csv: a rotation value reaches .* \(degrees declared radians\?\)"
+        ):
+            load_hand_eye_capture(tmp_path / fmt)
 
 
 def test_a_pose_file_with_a_byte_order_mark_and_crlf_reads_as_without(tmp_path):

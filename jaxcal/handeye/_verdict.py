@@ -262,8 +262,22 @@ def scale_reasons(scales, claimed_mm: dict[str, float] | None = None) -> tuple[s
                 "camera's focal length (K) is wrong, or the robot's own kinematics are; the camera's position is then "
                 f"off along its axis by about that fraction of the target's distance ({move:.1f} mm at "
                 f"{distance:.2f} m{against}), which neither the standard deviations nor the k-fold spread show"
+                + _unit_factor(s)
             )
     return tuple(out)
+
+
+def _unit_factor(s: float) -> str:
+    """A hint where the scale `s` is a unit's factor (10, 100, 1000, 25.4) to within 10 %: a unit
+    misdeclared, not a target or a lens a few percent off."""
+    ratio = max(s, 1.0 / s)
+    factor = next((f for f in (10.0, 100.0, 1000.0, 25.4) if abs(ratio / f - 1.0) < 0.1), None)
+    if factor is None:
+        return ""
+    return (
+        f"; that is a factor of {factor:g}: a unit, not a size, is wrong (the robot poses' translations in "
+        "another unit than handeye.json's poses.translation_unit, or the target's size not in metres)"
+    )
 
 
 #: A lens beyond the given one (`lens_tests`) is named past this many standard deviations and this

@@ -35,15 +35,16 @@ def rigid_alignment(P: np.ndarray, Q: np.ndarray, tol: float) -> tuple[np.ndarra
 def reread_hint(k: int, P: np.ndarray, aligned: tuple, reread, limit: float) -> str:
     """Why row `k` may lie far from the nominal robot: `reread(k)` is the row's nominal point with
     its angles read in the other unit (None: no revolute joint); where that point lies within
-    `limit` of the measured one (after the alignment `aligned = (nominal, moved, R)`), the row's
-    joints are in that unit."""
+    `limit` of the measured one (after the alignment `aligned = (nominal, moved, R)`) and ten
+    times closer than as read, the row's joints are in that unit (where every row is far, the
+    limit is, and a point a metre off as read and as re-read says nothing of the unit)."""
     alt = None if reread is None else reread(k)
     if alt is None:
         return ""
     nominal, moved, R = aligned
     point, other, stated = alt
     d = float(np.linalg.norm(P[k] - (moved[k] + (point - nominal[k]) @ R.T)))
-    if d > limit:
+    if d > limit or d > 0.1 * float(np.linalg.norm(P[k] - moved[k])):
         return ""
     return (
         f"; read as {other}, its joints put the point {1e3 * d:.3g} mm from where it was measured: that row's "

@@ -286,6 +286,11 @@ def camera_matrix(x, loc: Loc, width: int, height: int) -> np.ndarray:
             f"principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image "
             "(pixel centres run from 0 to width - 1)"
         )
+    if not (0.1 * width <= cx <= 0.9 * width and 0.1 * height <= cy <= 0.9 * height):
+        raise loc.fail(
+            f"principal point ({cx:g}, {cy:g}) lies at the edge of the {width}x{height} image, where no lens "
+            "puts it: a K of another resolution (the images resized or cropped since)?"
+        )
     return K
 
 

@@ -303,6 +303,13 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
                 f"(at most 2 pi) they are an arm's; is {where} field 'rotation_unit' ('deg') right (radians declared "
                 "degrees?)"
             )
+        # Euler angles within +-pi and a rotation vector's length within pi are radians; beyond
+        # 2 pi (a turn and more) they are degrees declared radians.
+        if unit_r == "rad" and turn > 2.0 * math.pi:
+            raise DatasetError(
+                f"{path}: a rotation value reaches {turn:.4g}, beyond a turn (2 pi) as radians; as degrees it "
+                f"is an arm's: is {where} field 'rotation_unit' ('rad') right (degrees declared radians?)"
+            )
     err = _rotation_error(T[:, :3, :3])
     bad = np.flatnonzero((err > 1e-5) | (np.linalg.det(T[:, :3, :3]) < 0))
     if bad.size:
