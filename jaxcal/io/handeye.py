@@ -211,6 +211,25 @@ def _rotation_error(R: np.ndarray) -> np.ndarray:
     return np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)), axis=(-1, -2))
 
 
+def _check_rotation_unit(path, where: str, V: np.ndarray, fmt: str, unit_r: str) -> None:
+    """Refuses `poses.rotation_unit` where the rotations `V` (Euler angles or rotation vectors, as
+    written) say otherwise: degrees that never pass 2 pi turn the flange too little; Euler angles
+    within +-pi and a rotation vector's length within pi are radians, and beyond a turn they are
+    degrees declared radians."""
+    turn = float(np.max(np.abs(V))) if fmt == "xyz_rpy" else float(np.max(np.linalg.norm(V, axis=1)))
+    if unit_r == "deg" and turn <= 2.0 * math.pi:
+        raise DatasetError(
+            f"{path}: no rotation value exceeds {turn:.3g}: as degrees the flange barely turns, as radians "
+            f"(at most 2 pi) they are an arm's; is {where} field 'rotation_unit' ('deg') right (radians declared "
+            "degrees?)"
+        )
+    if unit_r == "rad" and turn > 2.0 * math.pi:
+        raise DatasetError(
+            f"{path}: a rotation value reaches {turn:.4g}, beyond a turn (2 pi) as radians; as degrees it "
+            f"is an arm's: is {where} field 'rotation_unit' ('rad') right (degrees declared radians?)"
+        )
+
+
 def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np.ndarray]:
     """`(frames, T_base_ee (frames, 4, 4) in metres)` from the pose table."""
     fmt = _choice(spec, "format", POSE_COLUMNS, where)
@@ -292,24 +311,7 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
             T[:, :3, :3] = rpy_to_matrix(V[:, 3:] * scale_r)
         else:
             T[:, :3, :3] = rotvec_to_matrix(V[:, 3:] * scale_r)
-        turn = (
-            float(np.max(np.abs(V[:, 3:])))
-            if fmt == "xyz_rpy"
-            else float(np.max(np.linalg.norm(V[:, 3:], axis=1)))
-        )
-        if unit_r == "deg" and turn <= 2.0 * math.pi:
-            raise DatasetError(
-                f"{path}: no rotation value exceeds {turn:.3g}: as degrees the flange barely turns, as radians "
-                f"(at most 2 pi) they are an arm's; is {where} field 'rotation_unit' ('deg') right (radians declared "
-                "degrees?)"
-            )
-        # Euler angles within +-pi and a rotation vector's length within pi are radians; beyond
-        # 2 pi (a turn and more) they are degrees declared radians.
-        if unit_r == "rad" and turn > 2.0 * math.pi:
-            raise DatasetError(
-                f"{path}: a rotation value reaches {turn:.4g}, beyond a turn (2 pi) as radians; as degrees it "
-                f"is an arm's: is {where} field 'rotation_unit' ('rad') right (degrees declared radians?)"
-            )
+        _check_rotation_unit(path, where, V[:, 3:], fmt, unit_r)
     err = _rotation_error(T[:, :3, :3])
     bad = np.flatnonzero((err > 1e-5) | (np.linalg.det(T[:, :3, :3]) < 0))
     if bad.size:
