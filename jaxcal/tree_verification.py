@@ -25,10 +25,11 @@ from ._treefit import (
     Elastic,
     TreeSamples,
     deflected_tips,
+    local_twists,
     prediction_jacobian,
     problem_of,
-    tree_layout,
 )
+from ._treelayout import tree_layout
 from .certification import Predictor
 from .drift import fit_drift, verdict, whitening
 from .io._files import shown
@@ -92,8 +93,10 @@ class CalibratedTree:
         problem = problem_of(
             self.tree, layout, one, self.T_device_root, self.points, self.noise_mm, device_tip
         )
-        J = prediction_jacobian(x / layout.scales, problem, np.asarray(q, np.float64))[..., index]
-        return J / layout.scales[index], cov
+        J = prediction_jacobian(x / layout.scales, problem, np.asarray(q, np.float64)) / layout.scales
+        # ... and by the fit's own parameters (the covariance's), whose twists were about the nominal body.
+        fitted = np.array([self.values.get(n, 0.0) for n in layout.names])
+        return (J @ local_twists(layout, fitted))[..., index], cov
 
     def predict_covariance(self, q) -> np.ndarray:
         """The covariance `(n, tips, 3, 3)` (m^2, device frame) of `predict(q)` from the fit's

@@ -32,7 +32,6 @@ from ._treefit import (
     FAMILIES,
     Elastic,
     TreeFit,
-    TreeLayout,
     TreeSamples,
     body_of,
     cross_validate_terms,
@@ -41,8 +40,8 @@ from ._treefit import (
     predict,
     predicted_covariance,
     problem_of,
-    tree_layout,
 )
+from ._treelayout import TreeLayout, tree_layout
 from .io._files import atomic_directory
 from .io.dh_tables import dh_table_json
 from .io.tree_dataset import covariance_noise_mm, read_tree_samples

@@ -236,7 +236,10 @@ def test_harmless_extra_fields_are_accepted(ds):
         ([[643.35, 0, 900.0], [0, 643.35, 299.5], [0, 0, 1]], ["principal point (900, 299.5)", "800x600"]),
         ([[643.35, 0, 399.5], [0, 643.35, -3], [0, 0, 1]], ["principal point"]),
         # A K for images twice as large: its principal point at this image's corner.
-        ([[1286.7, 0, 799.0], [0, 1286.7, 599.0], [0, 0, 1]], ["at the edge of the 800x600 image", "resized"]),
+        (
+            [[1286.7, 0, 799.0], [0, 1286.7, 599.0], [0, 0, 1]],
+            ["at the edge of the 800x600 image", "resized"],
+        ),
         ([[643.35, 0, 399.5], [0, 643.35, 299.5]], ["cameras[0].K", "3x3 array"]),
         ([[643.35, 0, 399.5], [0, 643.35, 299.5], [0, 0, "1"]], ["cameras[0].K[2][2]", "'1'"]),
     ],

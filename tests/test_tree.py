@@ -28,6 +28,7 @@ from jaxcal._kinematics import forward_kinematics
 from jaxcal._npgeom import rotvec_to_matrix
 from jaxcal._tree import branch, tip_poses, tree_frames
 from jaxcal._treefit import TreeSamples
+from jaxcal._treelayout import tree_layout
 from jaxcal.cli import main
 from jaxcal.io.tree_dataset import load_tree_dataset, write_tree_dataset
 from jaxcal.io.urdf import load_urdf
@@ -162,7 +163,7 @@ AUTODIFF_JACOBIAN = eqx.filter_jit(jax.jacfwd(tf._residuals_autodiff))
 def test_tree_jacobian_matches_autodiff(body):
     """Exact, for a rigid body and a sagging one: the gravity torques move with the geometry."""
     nominal, _, _, samples, _ = _problem(body, seed=4, poses=12)
-    layout = tf.tree_layout(nominal)
+    layout = tree_layout(nominal)
     problem = tf.problem_of(nominal, layout, samples, np.eye(4), np.zeros((2, 3)), 0.1)
     u = jnp.asarray(np.random.default_rng(5).standard_normal(layout.size))
     rigid = u.at[layout.slices["joint"]].set(0.0).at[layout.slices["lateral"]].set(0.0)
@@ -240,7 +241,9 @@ def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path)
     assert np.abs(read.predict(test.q) - wobbly.predict(test.q)).max() < 1e-9
     # ... and its predictions' covariance, from the saved parameters' covariance, to first order.
     claimed, reread = (np.trace(m.predict_covariance(test.q[:8]), axis1=-2, axis2=-1) for m in (wobbly, read))
-    assert np.abs(np.sqrt(reread / claimed) - 1.0).max() < 0.05  # the origins re-linearised about the fit
+    # The twists of the fit (about the nominal body) and of the body read back differ: their
+    # right Jacobians relate them (without: up to 88 % off where gravity alone shows the base's tilt).
+    assert np.abs(np.sqrt(reread / claimed) - 1.0).max() < 5e-3
     assert np.abs(wobbly.predict(test.q) - result.predict(test.q)).max() > 1e-5  # the harmonic counts
     with pytest.raises(Exception, match="exists|overwrite"):
         save_tree_calibration(result, tmp_path / "out", source_urdf=body)
@@ -393,7 +396,7 @@ def test_a_head_camera_seeing_both_hands(body):
         elastic=elastic,
         device_tip=2,
     )
-    layout = tf.tree_layout(nominal)
+    layout = tree_layout(nominal)
     problem = tf.problem_of(
         nominal, layout, samples.subset(slice(0, 8)), np.eye(4), points, 0.2, device_tip=2
     )
@@ -414,7 +417,14 @@ def test_a_head_camera_seeing_both_hands(body):
     params = result.parameters()
     # (the last neck joint's zero offset turns the camera as its mount does: the mount takes it)
     assert "neck_yaw.zero_offset" in params and "left_elbow.zero_offset" in params
-    assert not any(n.startswith(("torso_yaw.", "torso_pitch.", "torso_roll.")) for n in params)
+    # The torso moves the camera and both hands alike: only the sag shows it (its tilt against
+    # gravity bends the arms), and what of it is freed, to within a typical size.
+    size = dict(zip(result.layout.names, result.layout.scales))
+    torso = {
+        n: sd for n, (_, sd) in params.items() if n.startswith(("torso_yaw.", "torso_pitch.", "torso_roll."))
+    }
+    assert all(sd < size[n] for n, sd in torso.items()), torso
+    assert len(torso) < 6 and any(n.startswith("torso_") for n in result.held["shared"])
     with pytest.raises(ValueError, match="rides on tip 'camera': no sample may measure"):
         bad = samples.subset(slice(0, 5))
         bad.measured[:, 2] = True

@@ -67,8 +67,11 @@ def test_the_head_camera_calibrates_both_arms_from_rendered_plates(filmed):
     params = result.parameters()
     z = [v for k, v in compliance_z(result, elastic).items() if k.endswith(".compliance")]
     assert len(z) >= 12 and np.abs(z).max() < 3.0, np.round(z, 1)
-    # The torso moves the camera and both hands alike: held, and named as shared.
-    assert not any(n.startswith("torso_") for n in params)
+    # The torso moves the camera and both hands alike: held, and named as shared, but what the sag
+    # shows of it (its tilt against gravity bends the arms), to within a typical size.
+    size = dict(zip(result.layout.names, result.layout.scales))
+    torso = {n: sd for n, (_, sd) in params.items() if n.startswith("torso_")}
+    assert all(sd < size[n] for n, sd in torso.items()) and len(torso) < 6, torso
     assert any(n.startswith("torso_") for n in result.held["shared"]), result.held.keys()
     assert "left_elbow.zero_offset" in params and "right_elbow.zero_offset" in params
 
