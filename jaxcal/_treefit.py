@@ -269,12 +269,12 @@ def local_twists(layout: TreeLayout, x) -> np.ndarray:
     origin: `_right_jacobian`); the identity elsewhere. A derivative by the local twists (of the
     calibrated body read back), times it, is one by the fit's parameters, whose covariance the
     fit states."""
-    M = np.eye(layout.size)
+    M, x = np.eye(layout.size), np.asarray(x, np.float64)
     for group in ("device", "origin"):
         part = layout.slices[group]
-        for start in range(part.start, part.stop, 6):
-            block = slice(start, start + 6)
-            M[block, block] = np.asarray(_right_jacobian(jnp.asarray(np.asarray(x, np.float64)[block])))
+        blocks = np.asarray(jax.vmap(_right_jacobian)(jnp.asarray(x[part].reshape(-1, 6))))
+        for k, start in enumerate(range(part.start, part.stop, 6)):
+            M[start : start + 6, start : start + 6] = blocks[k]
     return M
 
 
@@ -575,11 +575,17 @@ def _fit_free(
     return free, u, int(steps)
 
 
-def _std(u, free, problem) -> np.ndarray:
-    """Each parameter's standard deviation (typical sizes; 0 where held) at the fit `u`."""
+def _covariance(u, free, problem) -> tuple[np.ndarray, float]:
+    """The covariance of the fit `u` (typical sizes; zero where held) and the residuals' variance
+    over the noise's."""
     r, J = linearised(u, jnp.asarray(free, jnp.float64), problem)
     s2 = float(r @ r) / max(int(np.asarray(problem.weight).sum()) * 3 - int(free.sum()), 1)
-    return np.sqrt(np.maximum(np.diag(np.asarray(_lsq.covariance(J, jnp.asarray(free), s2)[0])), 0.0))
+    return np.asarray(_lsq.covariance(J, jnp.asarray(free), s2)[0]), s2
+
+
+def _std(u, free, problem) -> np.ndarray:
+    """Each parameter's standard deviation (typical sizes; 0 where held) at the fit `u`."""
+    return np.sqrt(np.maximum(np.diag(_covariance(u, free, problem)[0]), 0.0))
 
 
 def _cost(u, free, problem) -> float:
@@ -588,11 +594,8 @@ def _cost(u, free, problem) -> float:
 
 
 def _tree_fit(problem, layout, free, u, steps, families, scores=None) -> TreeFit:
-    r, J = linearised(u, jnp.asarray(free, jnp.float64), problem)
-    dof = max(int(np.asarray(problem.weight).sum()) * 3 - int(free.sum()), 1)
-    s2 = float(r @ r) / dof
-    cov, _, _ = _lsq.covariance(J, jnp.asarray(free), s2)
-    std = np.sqrt(np.maximum(np.diag(np.asarray(cov)), 0.0)) * layout.scales
+    cov, s2 = _covariance(u, free, problem)
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0)) * layout.scales
     noise_mm = 1e3 * problem.sigma * np.sqrt(s2)
     return TreeFit(
         np.asarray(u), free, std, noise_mm, steps, tuple(families), dict(scores or {}), np.asarray(cov)
