@@ -141,6 +141,33 @@ def test_a_single_marker_passes_the_pose_check_and_solves_exactly():
     np.testing.assert_allclose(r.T_ee_cam[0], T_ee_cam, atol=1e-7)
 
 
+@pytest.mark.parametrize("lost", [None, 5])
+def test_robot_poses_shifted_against_the_images_are_named_with_the_shift(lost):
+    """Pose rows shifted against the images (every pose logged one frame late, or a row lost at
+    frame 5 and the rows after it renumbered) are refused naming the shift and where it starts,
+    not the generic advice; a shuffle matches no shift (`test_shuffled_robot_poses_...`)."""
+    rng = np.random.default_rng(2)
+    T_base_ee, A, _, _ = eye_in_hand_views(rng, CHESSBOARD, 12)
+    uv = project(CHESSBOARD, A)
+    ids = np.arange(CHESSBOARD.num_points)
+    if lost is None:  # row f holds the pose of image f - 1 (the first row repeated)
+        rows, images = T_base_ee[np.r_[0, 0:11]], range(12)
+        want = "from frame img00 on, each image's robot pose is written 1 row later (frame img00's in the row of frame img01)"
+    else:  # image 5's row is gone and the later rows renumbered: the last image has no row
+        rows, images = T_base_ee[np.r_[0:lost, lost + 1 : 12]], range(11)
+        want = "from frame img06 on, each image's robot pose is written 1 row earlier (frame img06's in the row of frame img05): the pose row of frame img05 is missing"
+    with pytest.raises(jaxcal.InconsistentPosesError, match="robot poses and images disagree") as e:
+        hand_eye_from_detections(
+            [Detection(ids, uv[f]) for f in images],
+            CHESSBOARD,
+            rows,
+            K,
+            eye_in_hand=True,
+            frame_names=[f"img{f:02d}" for f in images],
+        )
+    assert want in str(e.value) and "rotation unit" not in str(e.value), str(e.value)
+
+
 def test_a_target_read_from_json_takes_lists():
     """`squares` as JSON gives it (a list) is a tuple in the target: it hashes and detects."""
     target = TargetSpec("chessboard", squares=[8, 7], square_length=0.025)
@@ -1154,11 +1181,11 @@ def _rewrite_poses(path, fn):
 
 @pytest.mark.slow
 def test_a_misread_capture_is_named_with_its_fix(corrupted_capture, tmp_path):
-    """Two mistakes the input check cannot see (every relative rotation angle is kept): the
-    arrangement swapped, and quaternions written w, x, y, z under a qx, qy, qz, qw header. Each
-    is suspect (the robot noise estimated to absorb the misfit is beyond any robot's) with a
-    reason naming the field to fix, and read that way it fits as the clean capture does; the
-    clean capture gets no such reason."""
+    """Three mistakes the input check cannot see (every relative rotation angle is kept): the
+    arrangement swapped, quaternions written w, x, y, z under a qx, qy, qz, qw header, and 4x4
+    matrices' rotation blocks written by columns. Each is suspect (the robot noise estimated to
+    absorb the misfit is beyond any robot's) with a first reason naming the field to fix, and read
+    that way it fits as the clean capture does; the clean capture gets no such reason."""
     clean, _ = corrupted_capture
     r = jaxcal.calibrate_hand_eye_capture(clean, folds=0)
     assert r.verdict.ok and not any("the data fit if" in x for x in r.verdict.reasons)
@@ -1178,13 +1205,32 @@ def test_a_misread_capture_is_named_with_its_fix(corrupted_capture, tmp_path):
         return out
 
     _rewrite_poses(wxyz, as_wxyz)
-    for capture, names in ((swapped, "field 'arrangement' is 'eye_in_hand'"), (wxyz, "hold w, x, y, z")):
+    # 4x4 matrices whose rotation blocks are written by columns.
+    transposed = tmp_path / "transposed"
+    shutil.copytree(clean, transposed)
+    T = np.asarray(load_hand_eye_capture(clean).T_base_ee).copy()
+    T[:, :3, :3] = np.swapaxes(T[:, :3, :3], -1, -2)
+    with open(clean / "poses.csv", newline="") as f:
+        frames = [r[0] for r in list(csv.reader(f))[1:]]
+    with open(transposed / "poses.csv", "w", newline="") as f:
+        csv.writer(f).writerows(
+            [["frame", *POSE_COLUMNS["matrix"]]] + [[n, *r] for n, r in zip(frames, pose_rows(T, "matrix"))]
+        )
+    meta = json.loads((clean / "handeye.json").read_text())
+    meta["poses"] = {"file": "poses.csv", "format": "matrix", "translation_unit": "m"}
+    (transposed / "handeye.json").write_text(json.dumps(meta))
+    for capture, names in (
+        (swapped, "field 'arrangement' is 'eye_in_hand'"),
+        (wxyz, "hold w, x, y, z"),
+        (transposed, "rotation blocks are transposed"),
+    ):
         bad = jaxcal.calibrate_hand_eye_capture(capture, folds=0)
         # The robot noise, estimated, absorbs the misfit: it comes out beyond any robot's.
         assert bad.verdict.status == "suspect" and he.implausible_robot_noise(bad.result)
         assert any("more than any robot's pose error" in x for x in bad.verdict.reasons)
         found = [x for x in bad.verdict.reasons if "the data fit if" in x]
         assert len(found) == 1 and names in found[0], bad.verdict.reasons
+        assert bad.verdict.reasons[0] == found[0]  # the cause first, then its symptoms
         rms = float(found[0].split("reprojection RMS ")[1].split(" px")[0])
         assert abs(rms - float(r.result.pixel_rms)) < 0.05 * float(r.result.pixel_rms)
 

@@ -153,11 +153,7 @@ def motion_consistency(R_cam_board, views, T_base_ee, *, tolerance_deg: float = 
 
     **Returns:** a `MotionConsistency`.
     """
-    R = np.asarray(R_cam_board, float)
-    views = np.asarray(views, bool)
-    RB = np.asarray(T_base_ee, float)[:, :3, :3]
-    robot = np.degrees(rotation_angle(np.einsum("fji,gjk->fgik", RB, RB)))
-    cam = np.degrees(rotation_angle(np.einsum("cfji,cgjk->cfgik", R, R)))
+    cam, robot, views = _angles(R_cam_board, views, T_base_ee)
     both = views[:, :, None] & views[:, None, :]
     err = np.abs(cam - robot[None])
     count = both.sum(0)
@@ -181,6 +177,87 @@ def motion_consistency(R_cam_board, views, T_base_ee, *, tolerance_deg: float = 
     )
 
 
+def _angles(R_cam_board, views, T_base_ee) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair's relative rotation angle (deg): the camera's `(cameras, frames, frames)`, the
+    robot's `(poses, poses)`; and `views` as booleans."""
+    R = np.asarray(R_cam_board, float)
+    RB = np.asarray(T_base_ee, float)[:, :3, :3]
+    robot = np.degrees(rotation_angle(np.einsum("fji,gjk->fgik", RB, RB)))
+    cam = np.degrees(rotation_angle(np.einsum("cfji,cgjk->cfgik", R, R)))
+    return cam, robot, np.asarray(views, bool)
+
+
+#: Pose rows shifted by up to this many rows against the images are tried when most pairs disagree.
+MAX_ROW_SHIFT = 2
+#: A shifted pairing explains the refusal when at most this share of its pairs disagree ...
+SHIFT_FIT = 0.1
+#: ... and it pairs at least this share of the frames.
+SHIFT_PAIRED = 0.75
+
+
+def shifted_rows(R_cam_board, views, T_base_ee, *, tolerance_deg: float = CONSISTENCY_TOL_DEG):
+    """The pose rows' shift that makes robot and camera agree, when the rows as paired do not:
+    `(first, shift, disagreeing_fraction)` or None. From frame `first` on, frame `f` takes the
+    robot pose of row `f - shift` (`shift` > 0: rows lost before `first`, and the `shift` frames
+    before it have no pose; < 0: rows extra, or every pose logged a frame late), up to
+    `MAX_ROW_SHIFT` rows either way. Only a pairing that leaves at most `SHIFT_FIT` of its pairs
+    disagreeing, over at least `SHIFT_PAIRED` of the frames, is returned; the best of them."""
+    cam, robot, views = _angles(R_cam_board, views, T_base_ee)
+    n = robot.shape[0]
+    best = None
+    for shift in (s for k in range(1, MAX_ROW_SHIFT + 1) for s in (-k, k)):
+        for first in range(max(shift, 0), n):
+            rows = np.arange(n)
+            rows[first:] -= shift
+            rows[first - max(shift, 0) : first] = -1  # lost rows: these frames have no pose
+            paired = (rows >= 0) & (rows < n)
+            if paired.sum() < max(3, SHIFT_PAIRED * n):
+                continue
+            pose = rows[paired]
+            frac = _disagreeing(
+                cam[:, paired][:, :, paired], robot[np.ix_(pose, pose)], views[:, paired], tolerance_deg
+            )
+            if frac is not None and frac <= SHIFT_FIT and (best is None or frac < best[2]):
+                best = (first, shift, frac)
+    return best
+
+
+def _disagreeing(cam, robot, views, tolerance_deg) -> float | None:
+    """The share of compared pairs whose mean camera angle differs from the robot's by more than
+    `tolerance_deg` (None if no pair is compared): `motion_consistency`'s figure for one pairing."""
+    both = views[:, :, None] & views[:, None, :]
+    count = both.sum(0)
+    err = np.sum(np.where(both, np.abs(cam - robot[None]), 0.0), 0) / np.maximum(count, 1)
+    small = (robot < MIN_PAIR_ANGLE_DEG) & (np.max(np.where(both, cam, 0.0), 0) < MIN_PAIR_ANGLE_DEG)
+    compared = np.triu((count > 0) & ~small, 1)
+    return float(np.mean(err[compared] > tolerance_deg)) if compared.any() else None
+
+
+def _shift_advice(found, frame_names) -> str:
+    """What `shifted_rows`' finding says, naming the frames."""
+    first, shift, frac = found
+    name = (lambda f: str(frame_names[f])) if frame_names is not None else str
+    rows = f"{abs(shift)} row{'s' if abs(shift) > 1 else ''}"
+    if shift > 0:
+        how = (
+            f"from frame {name(first)} on, each image's robot pose is written {rows} earlier "
+            f"(frame {name(first)}'s in the row of frame {name(first - shift)}): the pose row of frame "
+            f"{', '.join(name(f) for f in range(first - shift, first))} is missing and the rows after it were "
+            "renumbered"
+        )
+    else:
+        how = (
+            f"from frame {name(first)} on, each image's robot pose is written {rows} later "
+            f"(frame {name(first)}'s in the row of frame {name(first - shift)}): "
+            + ("the poses were logged late against the images, or " if first == 0 else "")
+            + f"an extra pose row comes before frame {name(first - shift)}"
+        )
+    return (
+        f"The poses fit the images shifted: {how} ({100 * frac:.0f}% of the pairs disagree that way). "
+        "Pair each image with the pose the robot held when it was taken"
+    )
+
+
 def _names(frames, frame_names) -> str:
     labels = [str(frame_names[f]) if frame_names is not None else str(f) for f in frames]
     return ", ".join(labels[:30]) + (f" and {len(labels) - 30} more" if len(labels) > 30 else "")
@@ -197,10 +274,12 @@ def check_motion_consistency(
     mc = motion_consistency(R_cam_board, views, T_base_ee, tolerance_deg=tolerance_deg)
     if mc.disagreeing_fraction > 0.5:
         bad = mc.inconsistent_frames()
+        found = shifted_rows(R_cam_board, views, T_base_ee, tolerance_deg=tolerance_deg)
+        advice = _shift_advice(found, frame_names) if found is not None else REFUSAL_ADVICE
         raise InconsistentPosesError(
             f"robot poses and images disagree: for {100 * mc.disagreeing_fraction:.0f}% of the pairs of frames "
             f"the robot's relative rotation angle differs from the camera's by more than {tolerance_deg:g} deg "
             f"(mean {mc.mean_error_deg:.1f} deg), whatever the hand-eye transform; frames {_names(bad, frame_names)} "
-            f"disagree with most others. {REFUSAL_ADVICE}"
+            f"disagree with most others. {advice}"
         )
     return mc

@@ -33,7 +33,9 @@ MISFIT_RATIO = 3.0
 
 def misreadings(capture: HandEyeCapture) -> list[tuple[str, np.ndarray, bool]]:
     """The input mistakes that keep every relative rotation angle, so that the input check
-    passes and only the fit can see them: `(what to fix, T_base_ee, eye_in_hand)` each."""
+    passes and only the fit can see them: `(what to fix, T_base_ee, eye_in_hand)` each (an
+    arrangement swapped or the poses inverted; a matrix's rotation transposed; a quaternion's
+    components in another order)."""
     T = np.asarray(capture.T_base_ee, np.float64)
     other = "eye_to_hand" if capture.eye_in_hand else "eye_in_hand"
     out = [
@@ -44,6 +46,17 @@ def misreadings(capture: HandEyeCapture) -> list[tuple[str, np.ndarray, bool]]:
             not capture.eye_in_hand,
         )
     ]
+    if capture.pose_format == "matrix":
+        Tt = T.copy()
+        Tt[:, :3, :3] = np.swapaxes(T[:, :3, :3], -1, -2)
+        out.append(
+            (
+                "poses.csv's rotation blocks are transposed (m01 holds what belongs in m10: the matrices' "
+                "rotations written by columns; write row by row, m00 m01 m02 m03 m10 ...)",
+                Tt,
+                capture.eye_in_hand,
+            )
+        )
     if capture.pose_format == "xyz_quat":
         q = np.stack([matrix_to_quaternion(R) for R in T[:, :3, :3]])  # as read: x, y, z, w
         for shift, holds in ((-1, "w, x, y, z"), (1, "y, z, w, x")):
@@ -148,7 +161,7 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> tuple[HandE
         found = diagnose_misfit(observed, result, solve, solved.noise.fit.model)
         if found:
             log(f"the poses fit the images once read differently: {found}")
-            verdict = replace(verdict, reasons=verdict.reasons + (found,))
+            verdict = replace(verdict, reasons=(found, *verdict.reasons))  # the cause, before its symptoms
     scales, lenses = image_scale(observed, solved), lens_tests(observed)
     std_mm = 1e3 * np.linalg.norm(np.asarray(solved.result.std_robot_cam)[:, :3], axis=1)
     claimed = {c.name: float(std_mm[i]) for i, c in enumerate(observed.capture.cameras)}
