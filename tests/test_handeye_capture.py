@@ -152,10 +152,10 @@ def test_robot_poses_shifted_against_the_images_are_named_with_the_shift(lost):
     ids = np.arange(CHESSBOARD.num_points)
     if lost is None:  # row f holds the pose of image f - 1 (the first row repeated)
         rows, images = T_base_ee[np.r_[0, 0:11]], range(12)
-        want = "from frame img00 on, each image's robot pose is written 1 row later (frame img00's in the row of frame img01)"
+        want = "from frame img00 on, each frame's robot pose is written 1 row later (frame img00's in the row of frame img01)"
     else:  # image 5's row is gone and the later rows renumbered: the last image has no row
         rows, images = T_base_ee[np.r_[0:lost, lost + 1 : 12]], range(11)
-        want = "from frame img06 on, each image's robot pose is written 1 row earlier (frame img06's in the row of frame img05): the pose row of frame img05 is missing"
+        want = "from frame img06 on, each frame's robot pose is written 1 row earlier (frame img06's in the row of frame img05): the robot pose row of frame img05 is missing"
     with pytest.raises(jaxcal.InconsistentPosesError, match="robot poses and images disagree") as e:
         hand_eye_from_detections(
             [Detection(ids, uv[f]) for f in images],

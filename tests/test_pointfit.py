@@ -42,6 +42,7 @@ from jaxcal._pointfit import (
     predict,
     predict_rotation,
 )
+from jaxcal._rowshift import shifted_points
 from jaxcal.cli import main
 from jaxcal.errors import CalibrationError, DatasetError
 from jaxcal.inspection import inspect_dataset
@@ -710,6 +711,57 @@ def test_wrong_joint_cells_are_rejected_named_and_left_out(ur5, tmp_path, capsys
     T_ref = clean.point_fit.problem.T_dev_base0 @ se3_exp(ref.x[:6])
     np.testing.assert_allclose(r.T_cam_base, T_ref, atol=1e-9)
     assert r.validation["ee_rms_mm_after"] < 0.01
+
+
+@pytest.mark.parametrize(
+    "shift, first, want",
+    [
+        # Every point logged one row late: sample i's point is written in row i + 1.
+        (1, 0, "from sample 1 (line 3) on, each sample's robot pose is written 1 row earlier"),
+        # A row lost at sample 120 and the later points moved up: sample i's point in row i - 1.
+        (-1, 120, "from sample 120 (line 122) on, each sample's robot pose is written 1 row later"),
+        # From sample 60 on, each point written two rows late (60 and 61 repeat 58's and 59's).
+        (2, 60, "from sample 60 (line 62) on, each sample's robot pose is written 2 rows earlier"),
+    ],
+)
+def test_points_shifted_against_the_joints_are_refused_naming_the_shift(ur5, tmp_path, shift, first, want):
+    """The points column shifted against the joints by one or two rows, from the first row or from
+    the middle: refused (exit 2) naming the shift and the first sample it applies to, by the file's
+    line; the clean table and a shuffled one (no shift fits) are not refused by it."""
+    path, _ = ur5
+    xyz = ("x", "y", "z")
+
+    def shifted(header, rows):
+        cols = [header.index(c) for c in xyz]
+        points = [[r[c] for c in cols] for r in rows]
+        n = len(rows)
+        for i in range(first, n):
+            j = min(max(i - shift, 0), n - 1)
+            for c, v in zip(cols, points[j]):
+                rows[i][c] = v
+        return rows
+
+    bad = _rewritten(path, tmp_path / "bad", shifted)
+    with pytest.raises(DatasetError, match="fit no pose of the nominal robot") as e:
+        jaxcal.calibrate(bad, cv_folds=0)
+    assert want in str(e.value), str(e.value)
+    assert main(["calibrate", str(bad), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_clean_or_shuffled_table_is_not_taken_for_shifted_rows(ur5):
+    """The pairing search (`jaxcal._rowshift.shifted_points`) on the nominal robot: the clean
+    table passes as read, a shuffled one fits no shift (it is left to the fit's verdict), a table
+    shifted by one row is found from its first row."""
+    path, _ = ur5
+    ds = load_dataset(path)
+    m = ds.load_model()
+    q, y = np.asarray(ds.samples.q), np.asarray(ds.samples.position)
+    F = np.asarray(jax.vmap(lambda qq: forward_kinematics(m, qq)[-1])(jnp.asarray(q)))
+    assert shifted_points(F, y) is None
+    order = np.random.default_rng(0).permutation(len(y))
+    assert shifted_points(F, y[order]) is None
+    assert shifted_points(F[:-1], y[1:]) == (0, -1, 0.0)  # point i belongs to row i + 1
 
 
 def test_repeated_rows_are_one_pose(ur5, tmp_path):

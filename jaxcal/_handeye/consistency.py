@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._npgeom import rotation_angle
+from .._rowshift import describe, pairings
 from ..errors import InconsistentPosesError
 from .checks import plane_frame, spanning_views
 
@@ -187,38 +188,26 @@ def _angles(R_cam_board, views, T_base_ee) -> tuple[np.ndarray, np.ndarray, np.n
     return cam, robot, np.asarray(views, bool)
 
 
-#: Pose rows shifted by up to this many rows against the images are tried when most pairs disagree.
-MAX_ROW_SHIFT = 2
-#: A shifted pairing explains the refusal when at most this share of its pairs disagree ...
+#: A shifted pairing (`jaxcal._rowshift.pairings`) explains a refusal when at most this share of
+#: its pairs of frames disagree.
 SHIFT_FIT = 0.1
-#: ... and it pairs at least this share of the frames.
-SHIFT_PAIRED = 0.75
 
 
 def shifted_rows(R_cam_board, views, T_base_ee, *, tolerance_deg: float = CONSISTENCY_TOL_DEG):
     """The pose rows' shift that makes robot and camera agree, when the rows as paired do not:
     `(first, shift, disagreeing_fraction)` or None. From frame `first` on, frame `f` takes the
-    robot pose of row `f - shift` (`shift` > 0: rows lost before `first`, and the `shift` frames
-    before it have no pose; < 0: rows extra, or every pose logged a frame late), up to
-    `MAX_ROW_SHIFT` rows either way. Only a pairing that leaves at most `SHIFT_FIT` of its pairs
-    disagreeing, over at least `SHIFT_PAIRED` of the frames, is returned; the best of them."""
+    robot pose of row `f - shift` (`jaxcal._rowshift.pairings`). Only a pairing that leaves at
+    most `SHIFT_FIT` of its pairs disagreeing is returned; the best of them."""
     cam, robot, views = _angles(R_cam_board, views, T_base_ee)
-    n = robot.shape[0]
     best = None
-    for shift in (s for k in range(1, MAX_ROW_SHIFT + 1) for s in (-k, k)):
-        for first in range(max(shift, 0), n):
-            rows = np.arange(n)
-            rows[first:] -= shift
-            rows[first - max(shift, 0) : first] = -1  # lost rows: these frames have no pose
-            paired = (rows >= 0) & (rows < n)
-            if paired.sum() < max(3, SHIFT_PAIRED * n):
-                continue
-            pose = rows[paired]
-            frac = _disagreeing(
-                cam[:, paired][:, :, paired], robot[np.ix_(pose, pose)], views[:, paired], tolerance_deg
-            )
-            if frac is not None and frac <= SHIFT_FIT and (best is None or frac < best[2]):
-                best = (first, shift, frac)
+    for first, shift, rows in pairings(robot.shape[0]):
+        paired = rows >= 0
+        pose = rows[paired]
+        frac = _disagreeing(
+            cam[:, paired][:, :, paired], robot[np.ix_(pose, pose)], views[:, paired], tolerance_deg
+        )
+        if frac is not None and frac <= SHIFT_FIT and (best is None or frac < best[2]):
+            best = (first, shift, frac)
     return best
 
 
@@ -233,31 +222,6 @@ def _disagreeing(cam, robot, views, tolerance_deg) -> float | None:
     return float(np.mean(err[compared] > tolerance_deg)) if compared.any() else None
 
 
-def _shift_advice(found, frame_names) -> str:
-    """What `shifted_rows`' finding says, naming the frames."""
-    first, shift, frac = found
-    name = (lambda f: str(frame_names[f])) if frame_names is not None else str
-    rows = f"{abs(shift)} row{'s' if abs(shift) > 1 else ''}"
-    if shift > 0:
-        how = (
-            f"from frame {name(first)} on, each image's robot pose is written {rows} earlier "
-            f"(frame {name(first)}'s in the row of frame {name(first - shift)}): the pose row of frame "
-            f"{', '.join(name(f) for f in range(first - shift, first))} is missing and the rows after it were "
-            "renumbered"
-        )
-    else:
-        how = (
-            f"from frame {name(first)} on, each image's robot pose is written {rows} later "
-            f"(frame {name(first)}'s in the row of frame {name(first - shift)}): "
-            + ("the poses were logged late against the images, or " if first == 0 else "")
-            + f"an extra pose row comes before frame {name(first - shift)}"
-        )
-    return (
-        f"The poses fit the images shifted: {how} ({100 * frac:.0f}% of the pairs disagree that way). "
-        "Pair each image with the pose the robot held when it was taken"
-    )
-
-
 def _names(frames, frame_names) -> str:
     labels = [str(frame_names[f]) if frame_names is not None else str(f) for f in frames]
     return ", ".join(labels[:30]) + (f" and {len(labels) - 30} more" if len(labels) > 30 else "")
@@ -269,13 +233,20 @@ def check_motion_consistency(
     """`motion_consistency`, raising `InconsistentPosesError` when most pairs disagree.
 
     The message names the frames most of whose pairs disagree (by
-    `frame_names` when given, else by index) and the mean disagreement.
+    `frame_names` when given, else by index) and the mean disagreement, and the
+    pose rows' shift that explains it when one does (`shifted_rows`).
     """
     mc = motion_consistency(R_cam_board, views, T_base_ee, tolerance_deg=tolerance_deg)
     if mc.disagreeing_fraction > 0.5:
         bad = mc.inconsistent_frames()
         found = shifted_rows(R_cam_board, views, T_base_ee, tolerance_deg=tolerance_deg)
-        advice = _shift_advice(found, frame_names) if found is not None else REFUSAL_ADVICE
+        name = (lambda f: str(frame_names[f])) if frame_names is not None else str
+        advice = (
+            f"The data fit shifted: {describe(found, name, 'frame', 'robot pose')}. Pair each image with the pose the robot "
+            "held when it was taken"
+            if found is not None
+            else REFUSAL_ADVICE
+        )
         raise InconsistentPosesError(
             f"robot poses and images disagree: for {100 * mc.disagreeing_fraction:.0f}% of the pairs of frames "
             f"the robot's relative rotation angle differs from the camera's by more than {tolerance_deg:g} deg "

@@ -63,9 +63,10 @@ from .._pointfit import (
     sample_radii,
     term_basis,
 )
+from .._rowshift import describe, shifted_points
 from .._selection import improves_on_samples, paired_z
 from .._terms import approach, signs
-from ..errors import CalibrationError
+from ..errors import CalibrationError, DatasetError
 from ..records import ModelRow, PointOutlier, PriorUse, RepeatedPose, ResidualStats, TermRow
 from ._observe import Observations
 from ._prior import prior_rows_of, prior_use
@@ -421,6 +422,22 @@ def _merged(rep: np.ndarray, y: np.ndarray, R: np.ndarray | None):
     return y, R
 
 
+def _check_pairing(ds, nominal: KinematicModel, q: np.ndarray, y: np.ndarray, valid: np.ndarray) -> None:
+    """Refuse (`DatasetError`) points that fit the nominal robot only with the rows shifted against
+    the joint positions (`jaxcal._rowshift.shifted_points`), naming the shift and where it starts."""
+    rows = np.flatnonzero(valid)
+    F = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q[rows])))
+    found = shifted_points(F, y[rows])
+    if found is not None:
+        s = ds.samples
+        name = lambda k: f"{int(s.sample[rows[k]])} (line {int(s.lines[rows[k]])})"  # noqa: E731
+        raise DatasetError(
+            f"{ds.device.file}: most measured points fit no pose of the nominal robot at their row's joint "
+            f"positions, but they do with the rows shifted: {describe(found, name, 'sample', 'robot pose')}. "
+            "Pair each point with the joint positions the robot held when it was measured"
+        )
+
+
 def _row_name(ds, i: int) -> tuple[int, str]:
     """A sample's index (the table's `sample` column) and its line in the samples file."""
     s = ds.samples
@@ -465,6 +482,8 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     )
     point = setup.targets[0]
     Tp0 = np.eye(4) if point.T_link_target is None else np.asarray(point.T_link_target, np.float64)
+    if kind.fixed_frame_free:
+        _check_pairing(ds, nominal, q, y, valid)
     T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(nominal, q[first], y[first], Tp0)
     if orient is not None:
         T0, Tp0 = _orient_start(
