@@ -25,9 +25,11 @@ from jaxcal.io.handeye import (
     HandEyeCamera,
     load_hand_eye_capture,
     matrix_to_quaternion,
+    matrix_to_rpy,
     pose_rows,
     quaternion_to_matrix,
     repeated_poses,
+    rpy_to_matrix,
     write_hand_eye_description,
 )
 from jaxcal.io.ros import read_easy_handeye, read_static_transform
@@ -1233,6 +1235,36 @@ def test_a_misread_capture_is_named_with_its_fix(corrupted_capture, tmp_path):
         assert bad.verdict.reasons[0] == found[0]  # the cause first, then its symptoms
         rms = float(found[0].split("reprojection RMS ")[1].split(" px")[0])
         assert abs(rms - float(r.result.pixel_rms)) < 0.05 * float(r.result.pixel_rms)
+
+
+@pytest.mark.slow
+def test_rotations_read_in_another_convention_are_refused_naming_it(corrupted_capture, tmp_path):
+    """Euler angles written intrinsic x-y-z (R = Rx Ry Rz) under xyz_rpy's fixed axes, and
+    roll-pitch-yaw written under xyz_rotvec: the relative rotation angles change, so the input
+    check refuses them; the refusal names the reading under which the poses and images agree."""
+    clean, _ = corrupted_capture
+    T = np.asarray(load_hand_eye_capture(clean).T_base_ee)
+    with open(clean / "poses.csv", newline="") as f:
+        frames = [r[0] for r in list(csv.reader(f))[1:]]
+    meta = json.loads((clean / "handeye.json").read_text())
+    intrinsic = -matrix_to_rpy(np.swapaxes(T[:, :3, :3], -1, -2))  # R = Rx(r) Ry(p) Rz(y)
+    np.testing.assert_allclose(np.swapaxes(rpy_to_matrix(-intrinsic), -1, -2), T[:, :3, :3], atol=1e-12)
+    for fmt, values, want in (
+        ("xyz_rpy", intrinsic, "the angles are intrinsic x-y-z"),
+        ("xyz_rotvec", matrix_to_rpy(T[:, :3, :3]), "the columns rx, ry, rz hold roll, pitch, yaw"),
+    ):
+        capture = tmp_path / fmt
+        shutil.copytree(clean, capture)
+        with open(capture / "poses.csv", "w", newline="") as f:
+            csv.writer(f).writerows(
+                [["frame", *POSE_COLUMNS[fmt]]]
+                + [[n, *t, *v] for n, t, v in zip(frames, T[:, :3, 3].tolist(), values.tolist())]
+            )
+        spec = {"file": "poses.csv", "format": fmt, "translation_unit": "m", "rotation_unit": "rad"}
+        (capture / "handeye.json").write_text(json.dumps(meta | {"poses": spec}))
+        with pytest.raises(jaxcal.InconsistentPosesError, match="robot poses and images disagree") as e:
+            jaxcal.calibrate_hand_eye_capture(capture, folds=0)
+        assert f"They agree when read otherwise: {want}" in str(e.value), str(e.value)
 
 
 def test_pose_rows_columns():

@@ -7,8 +7,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..errors import CalibrationError
-from ..io.handeye import HandEyeCapture, load_hand_eye_capture
+from ..errors import CalibrationError, HandEyeInputError, InconsistentPosesError
+from ..io.handeye import HandEyeCapture, load_hand_eye_capture, rpy_to_matrix
 from ..records import Intrinsics
 from ..vision import HandEyeObservations, calibrate_intrinsics, detect_frames, hand_eye_from_detections
 from ._noise import RobotNoiseSetting
@@ -130,8 +130,65 @@ def observe(
     t0 = time.perf_counter()
     intrinsics = camera_intrinsics(capture, detections, log)
     observed = Observed(capture, detections, detected, intrinsics, None, noise, seconds)
-    observed = replace(
-        observed, observations=_observations(observed, capture.T_base_ee, capture.eye_in_hand, sigma_px)
-    )
+    try:
+        observations = _observations(observed, capture.T_base_ee, capture.eye_in_hand, sigma_px)
+    except InconsistentPosesError as e:
+        raise InconsistentPosesError(_read_otherwise(observed, str(e), sigma_px)) from None
+    observed = replace(observed, observations=observations)
     seconds["prepare"] = time.perf_counter() - t0
     return observed
+
+
+def rotation_readings(capture: HandEyeCapture) -> list[tuple[str, np.ndarray]]:
+    """The rotations of `capture`'s poses read otherwise than its `poses.format` says, where the
+    relative rotation angles then change (so that the input check tells): `(what to fix,
+    T_base_ee)` each, from the values as written (`HandEyeCapture.rotations`): Euler angles as
+    intrinsic x-y-z (R = Rx Ry Rz) or in the columns' reverse order; a rotation vector as roll,
+    pitch, yaw."""
+    T = np.asarray(capture.T_base_ee, np.float64)
+    v = capture.rotations
+    if v is None or len(v) != len(T):  # a capture built in code
+        return []
+    if capture.pose_format == "xyz_rpy":
+        alternatives = [
+            (
+                "the angles are intrinsic x-y-z (R = Rx(roll) Ry(pitch) Rz(yaw)), not xyz_rpy's fixed axes "
+                "(R = Rz(yaw) Ry(pitch) Rx(roll)): convert them, or write the poses as matrices or quaternions",
+                np.swapaxes(rpy_to_matrix(-v), -1, -2),
+            ),
+            (
+                "the columns poses.csv's header names roll, pitch, yaw hold yaw, pitch, roll (label the columns "
+                "in the order the values are written)",
+                rpy_to_matrix(v[:, ::-1]),
+            ),
+        ]
+    elif capture.pose_format == "xyz_rotvec":
+        alternatives = [
+            (
+                "the columns rx, ry, rz hold roll, pitch, yaw (fixed axes): handeye.json field 'poses.format' "
+                "is 'xyz_rpy'",
+                rpy_to_matrix(v),
+            )
+        ]
+    else:
+        return []
+    out = []
+    for fix, Ra in alternatives:
+        Ta = T.copy()
+        Ta[:, :3, :3] = Ra
+        out.append((fix, Ta))
+    return out
+
+
+def _read_otherwise(observed: Observed, message: str, sigma_px) -> str:
+    """The input check's refusal `message`, with the reading of the rotations under which the poses
+    and images agree (`rotation_readings`), when one does and the refusal found no shifted rows."""
+    if "The data fit shifted" in message:
+        return message
+    for fix, T in rotation_readings(observed.capture):
+        try:
+            _observations(observed, T, observed.capture.eye_in_hand, sigma_px)
+        except HandEyeInputError:
+            continue
+        return f"{message}. They agree when read otherwise: {fix}"
+    return message

@@ -95,6 +95,8 @@ class HandEyeCapture:
     - `truth`: the parsed `truth.json` of a synthetic capture, else `None`.
     - `pose_format`: the pose table's `poses.format` (`POSE_COLUMNS`).
     - `notes`: remarks from reading it (poses repeated exactly, images no pose row names).
+    - `rotations`: `(frames, 3)` the rotation columns as written, in radians, for `xyz_rpy` and
+      `xyz_rotvec` (read otherwise when the poses and images disagree); else None.
     """
 
     root: Path
@@ -111,6 +113,7 @@ class HandEyeCapture:
     truth: dict | None = field(default=None)
     pose_format: str = "matrix"
     notes: tuple[str, ...] = ()
+    rotations: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def arrangement(self) -> str:
@@ -230,8 +233,9 @@ def _check_rotation_unit(path, where: str, V: np.ndarray, fmt: str, unit_r: str)
         )
 
 
-def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np.ndarray]:
-    """`(frames, T_base_ee (frames, 4, 4) in metres)` from the pose table."""
+def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np.ndarray, np.ndarray | None]:
+    """`(frames, T_base_ee (frames, 4, 4) in metres, the rotation columns as written in radians
+    (Euler angles or rotation vectors; None for matrices and quaternions))` from the pose table."""
     fmt = _choice(spec, "format", POSE_COLUMNS, where)
     unit_t = _choice(spec, "translation_unit", ("m", "mm"), where)
     unit_r = (
@@ -333,7 +337,7 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
             f"{path}: every frame's flange lies within {1e3 * reach:.3g} mm of the base, no arm's reach; is {where} "
             f"field 'translation_unit' ({unit_t!r}) right (metres declared millimetres?)"
         )
-    return tuple(frames), T
+    return tuple(frames), T, (V[:, 3:] * scale_r if fmt in ("xyz_rpy", "xyz_rotvec") else None)
 
 
 def repeated_poses(T: np.ndarray) -> dict[int, int]:
@@ -461,7 +465,7 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
     poses = _require(meta, "poses", where)
     pw = f"{where}: poses"
     file = sc.relative_path(str(_require(poses, "file", pw)), sc.Loc(meta_path, "field 'poses.file'"))
-    frames, T = _read_poses(root / file, poses, pw)
+    frames, T, rotations = _read_poses(root / file, poses, pw)
     images, notes = _images(root, cameras, frames)
     notes = _repeat_note(root / file, frames, T) + notes
     names = meta.get("frames", {})
@@ -488,6 +492,7 @@ def load_hand_eye_capture(path) -> HandEyeCapture:
         truth=truth,
         pose_format=str(poses["format"]),
         notes=notes,
+        rotations=rotations,
     )
 
 
