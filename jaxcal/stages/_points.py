@@ -352,22 +352,23 @@ def _cv_row(problem, cand, fit, train) -> tuple[dict, np.ndarray]:
     return row, per_sample
 
 
-def start_frame(
-    nominal: KinematicModel, q: np.ndarray, y: np.ndarray, T_flange_point0: np.ndarray
-) -> np.ndarray:
-    """A start for $T_{dev,base}$: the rigid registration of the nominal model's
-    points onto the measured ones (Kabsch)."""
-    T = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q)))
-    p = np.einsum("nab,b->na", T, np.asarray(T_flange_point0)[:, 3])[:, :3]
+def flange_frames(nominal: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """The nominal robot's flange frames `(samples, 4, 4)` at the joint positions `q` (NumPy)."""
+    return np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q)))
+
+
+def start_frame(F: np.ndarray, y: np.ndarray, T_flange_point0: np.ndarray) -> np.ndarray:
+    """A start for $T_{dev,base}$: the rigid registration of the nominal model's points (on its
+    flange frames `F`) onto the measured ones (Kabsch)."""
+    p = np.einsum("nab,b->na", F, np.asarray(T_flange_point0)[:, 3])[:, :3]
     return kabsch(p, y)
 
 
-def _orient_start(nominal, q, y, R, T0, Tp0, *, frame_free: bool, mount_known: bool):
+def _orient_start(F, y, R, T0, Tp0, *, frame_free: bool, mount_known: bool):
     """With measured orientations $R_i \\approx R_{db} F_i R_{mount}$ (`F`: the nominal flange's), the
     starts of the device frame's rotation (when free) and of the mount's (when the metadata gives
     none) fitted to them (`fit_sandwich`), the device frame's translation then re-fitted to the
     points `y`. **Returns:** `(T0, Tp0)`."""
-    F = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q)))
     A, B = T0[:3, :3], Tp0[:3, :3]
     if frame_free:
         A, B, _ = fit_sandwich(R, F[:, :3, :3], A, B if mount_known else None)
@@ -422,12 +423,12 @@ def _merged(rep: np.ndarray, y: np.ndarray, R: np.ndarray | None):
     return y, R
 
 
-def _check_pairing(ds, nominal: KinematicModel, q: np.ndarray, y: np.ndarray, valid: np.ndarray) -> None:
-    """Refuse (`DatasetError`) points that fit the nominal robot only with the rows shifted against
-    the joint positions (`jaxcal._rowshift.shifted_points`), naming the shift and where it starts."""
+def _check_pairing(ds, F: np.ndarray, y: np.ndarray, valid: np.ndarray) -> None:
+    """Refuse (`DatasetError`) points `y` that fit the nominal robot (its flange frames `F`) only
+    with the rows shifted against the joint positions (`jaxcal._rowshift.shifted_points`), naming
+    the shift and where it starts."""
     rows = np.flatnonzero(valid)
-    F = np.asarray(jax.vmap(lambda qq: forward_kinematics(nominal, qq)[-1])(jnp.asarray(q[rows])))
-    found = shifted_points(F, y[rows])
+    found = shifted_points(F[rows], np.asarray(y, np.float64)[rows])
     if found is not None:
         s = ds.samples
         name = lambda k: f"{int(s.sample[rows[k]])} (line {int(s.lines[rows[k]])})"  # noqa: E731
@@ -482,13 +483,13 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     )
     point = setup.targets[0]
     Tp0 = np.eye(4) if point.T_link_target is None else np.asarray(point.T_link_target, np.float64)
+    F = flange_frames(nominal, q) if kind.fixed_frame_free or orient is not None else None
     if kind.fixed_frame_free:
-        _check_pairing(ds, nominal, q, y, valid)
-    T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(nominal, q[first], y[first], Tp0)
+        _check_pairing(ds, F, s.position, valid)
+    T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(F[first], y[first], Tp0)
     if orient is not None:
         T0, Tp0 = _orient_start(
-            nominal,
-            q[first],
+            F[first],
             y[first],
             orient[first],
             T0,
