@@ -63,8 +63,9 @@ DETERMINED = 10.0
 MASS_DETERMINED = 1.0
 LM = _lsq.LMOptions(rtol=1e-6, atol=1e-2, max_steps=100, normal_cholesky=True)
 #: ... and the fit resumed with what only the sag shows, whose directions the data see weakly: the
-#: trust region walks them in many short steps (about 350 at 10 um of tracker noise).
-LM_SAG = _lsq.LMOptions(rtol=1e-6, atol=1e-2, max_steps=500, normal_cholesky=True)
+#: trust region walks them in many short steps (about 350 at 10 um of tracker noise), so it is
+#: resumed up to this many times `LM`'s steps (`_solve_long`: `LM`'s compiled program again).
+SAG_RESUMES = 5
 #: ... resumed at most this many times, each without the new parameters the last left looser
 #: than a typical size (a parameter held is off by about one: freed, it must do better).
 SAG_ROUNDS = 4
@@ -476,6 +477,18 @@ def _solve(free, weight, problem, u0, options=LM):
     return _gauss_newton(sol.value, free, weight, problem, POLISH), sol.stats["num_steps"]
 
 
+def _solve_long(free, problem, u, resumes: int = SAG_RESUMES):
+    """`_solve` from `u`, resumed where it stopped at its step cap, at most `resumes` times:
+    `(u, steps, converged)`. One compiled program for every solve of a tree."""
+    total = 0
+    for _ in range(resumes):
+        u, k = _solve(free, 1.0, problem, u)
+        total += int(k)
+        if int(k) < LM.max_steps:
+            return u, total, True
+    return u, total, False
+
+
 @eqx.filter_jit
 def linearised(u, free, problem):
     """The whitened residuals and their Jacobian at `u`."""
@@ -561,12 +574,12 @@ def _fit_free(
             free, u = again, resumed
         return free, u, int(steps + more)
     for _ in range(SAG_ROUNDS):  # the sag's geometry: again without what the fit left loose
-        resumed, more = _solve(jnp.asarray(again, jnp.float64), 1.0, problem, u, LM_SAG)
+        resumed, more, done = _solve_long(jnp.asarray(again, jnp.float64), problem, u)
         steps += more
         loose = again & ~free & (_std(resumed, again, problem) > MASS_DETERMINED)
         # Never a worse fit, one the solve left unfinished, nor one whose new parameters wander: the
         # greedy search's conditional spread can hide a marginal one of several typical sizes.
-        if int(more) < LM_SAG.max_steps and _cost(resumed, again, problem) < _cost(u, free, problem):
+        if done and _cost(resumed, again, problem) < _cost(u, free, problem):
             if not loose.any():
                 return again, resumed, int(steps)
         again = again & ~loose

@@ -92,6 +92,9 @@ ALPHA = 1e-3
 #: and its calibrated model, after the best rigid alignment) is of another robot (`jaxcal check`'s
 #: `ROBOT_TOLERANCE_M`, there between joint origins): a real arm is millimetres off its datasheet.
 ROBOT_GAP_M = 0.01
+#: ... and one within it whose flange differs from the result's nominal one by more than this (m)
+#: is named in a note: the same robot, another robot file.
+ROBOT_SAME_M = 1e-6
 #: The robots are compared at up to this many of the dataset's configurations.
 ROBOT_POSES = 1000
 
@@ -137,8 +140,8 @@ def _robot_points(layout: PointLayout):
 
 def _same_robot(ref: CalibrationReference, ds: Dataset) -> tuple[str, ...]:
     """Refuse (`DatasetError`, exit 2) a dataset whose nominal robot is not the result's, by
-    kinematics (`_gap` against the result's nominal and calibrated models); a note when
-    only the joints' names differ."""
+    kinematics (`_gap` against the result's nominal and calibrated models); a note when its robot
+    file differs from the calibrated one within that, and when the joints' names differ."""
     pf, meta = ref.point_fit, ds.root / "metadata.json"
     nominal, mine = pf.nominal, ds.load_model()
     if mine.num_joints != nominal.num_joints or tuple(mine.joint_types) != tuple(nominal.joint_types):
@@ -160,12 +163,20 @@ def _same_robot(ref: CalibrationReference, ds: Dataset) -> tuple[str, ...]:
             f"robot {ref.file} calibrated (after the best rigid alignment; tolerance {1e3 * ROBOT_GAP_M:g} mm): "
             "another robot; verify a result on data of its own robot"
         )
-    if tuple(ds.joint_names) != tuple(nominal.joint_names):
-        return (
-            f"the dataset's joints {list(ds.joint_names)} are named otherwise than the calibrated robot's "
-            f"{list(nominal.joint_names)}; the kinematics agree (within {1e3 * gap:.2g} mm): matched in order",
+    notes = []
+    if (differ := _gap(p_mine, p_nominal)) > ROBOT_SAME_M:
+        notes.append(
+            f"{ds.robot_urdf} is not the robot file of {ref.file}: at the dataset's joint positions "
+            f"their flanges differ by up to {1e3 * differ:.3g} mm (after the best rigid alignment), within "
+            f"{1e3 * ROBOT_GAP_M:g} mm: taken for the same robot, verified with the result's nominal model "
+            "(if the robot file was updated, calibrate again with it)"
         )
-    return ()
+    if tuple(ds.joint_names) != tuple(nominal.joint_names):
+        notes.append(
+            f"the dataset's joints {list(ds.joint_names)} are named otherwise than the calibrated robot's "
+            f"{list(nominal.joint_names)}; the kinematics agree (within {1e3 * gap:.2g} mm): matched in order"
+        )
+    return tuple(notes)
 
 
 def _problem_for(ref: CalibrationReference, ds: Dataset):

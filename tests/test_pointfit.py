@@ -545,7 +545,8 @@ def test_verify_exits_3_outside_its_prediction_and_2_on_another_robot(ur5_real, 
     """Issue 49: `verify` exits 0 when the calibration holds, 3 when the errors are outside what it
     predicts (the real UR5's held-out poses with the tracker moved 141 mm: 0 % inside), 2 for a
     dataset of another robot with the same joint names (a UR3's table named as a UR5's, compared by
-    kinematics); a dataset of the same robot whose joints are named otherwise is verified."""
+    kinematics); a dataset of the same robot whose joints are named otherwise, or whose robot file
+    was edited by millimetres, is verified (the latter with a note)."""
     ur3 = json.loads((jaxcal.robots.ROBOTS_DIR / "ur3_dh.json").read_text())
     another = _copy_test_set(tmp_path / "ur3", edit_table=lambda t: t.update(a=ur3["a"], d=ur3["d"]))
     assert main(["verify", str(ur5_real), str(another)]) == 2
@@ -574,6 +575,15 @@ def test_verify_exits_3_outside_its_prediction_and_2_on_another_robot(ur5_real, 
     (renamed / "metadata.json").write_text(json.dumps(meta))
     v = verify(ur5_real, renamed)
     assert v.exit_code == 0 and v.summary.calibrated_mm.mean <= 0.1010 and "named otherwise" in v.notes[0]
+    # The robot file edited by 2 mm (an updated nominal): the same robot, verified with the result's
+    # model (the same figures), and the difference named.
+    edited = _copy_test_set(
+        tmp_path / "edited", edit_table=lambda t: t["a"].__setitem__(1, t["a"][1] - 0.002)
+    )
+    v2 = verify(ur5_real, edited)
+    assert v2.summary.calibrated_mm.mean == v.summary.calibrated_mm.mean
+    assert len(v2.notes) == 1 and "is not the robot file of" in v2.notes[0], v2.notes
+    assert 0.3 < float(v2.notes[0].split("differ by up to ")[1].split(" mm")[0]) <= 2.0, v2.notes  # aligned
 
 
 def test_the_prediction_test_is_exact_under_its_model_and_rejects_a_worse_calibration():
