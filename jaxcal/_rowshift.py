@@ -19,7 +19,7 @@ import numpy as np
 from ._npgeom import kabsch
 
 #: Rows shifted by up to this many rows either way are tried.
-MAX_ROW_SHIFT = 2
+MAX_ROW_SHIFT = 3
 #: A shifted pairing must pair at least this share of the rows.
 MIN_PAIRED = 0.75
 
@@ -64,10 +64,13 @@ def describe(found: tuple[int, int, float], name, what: str, robot: str) -> str:
 #: median of every row's best fit, fits.
 POINT_TOL_M = 0.01
 POINT_TOL_MEDIANS = 4.0
-#: ... the table as read is shifted when under this share of its rows fit ...
-AS_READ_FITS = 0.8
-#: ... and a shifted pairing leaves at most this share of its rows unfitted.
+#: ... the table as read may be shifted when this many of its rows misfit (fewer: bad samples the
+#: robust fit leaves out, or two rows swapped) ...
+AS_READ_MISFITS = 3
+#: ... and is when a shifted pairing leaves at most this share of its rows unfitted, and at most
+#: this share of the rows that misfit as read.
 SHIFT_MISFITS = 0.05
+SHIFT_GAIN = 0.25
 
 
 def _align(F: np.ndarray, y: np.ndarray, keep: float, rounds: int = 12) -> tuple[np.ndarray, np.ndarray]:
@@ -97,8 +100,9 @@ def _align(F: np.ndarray, y: np.ndarray, keep: float, rounds: int = 12) -> tuple
 def shifted_points(F: np.ndarray, y: np.ndarray) -> tuple[int, int, float] | None:
     """Stop-and-shoot points shifted against the robot's rows: `(first, shift, misfit share)` or
     None. `F` `(n, 4, 4)`: the nominal robot's flange frames, row by row; `y` `(n, 3)` the points
-    measured (m). When fewer than `AS_READ_FITS` of the rows fit the nominal robot as paired, and
-    a pairing of `pairings` fits all but `SHIFT_MISFITS` of its rows, the best such pairing."""
+    measured (m). When `AS_READ_MISFITS` rows or more misfit the nominal robot as paired, and a
+    pairing of `pairings` fits all but `SHIFT_MISFITS` of its rows and `SHIFT_GAIN` of those, the
+    best such pairing."""
     F, y = np.asarray(F, np.float64), np.asarray(y, np.float64)
     n = len(y)
     if n < 8:
@@ -125,13 +129,15 @@ def shifted_points(F: np.ndarray, y: np.ndarray) -> tuple[int, int, float] | Non
     E = min((aligned(s) for s in shifts), key=lambda m: m[0])[1]
     tol = max(POINT_TOL_M, POINT_TOL_MEDIANS * float(np.median(E.min(1))))
     fit = E <= tol
-    if np.mean(fit[:, MAX_ROW_SHIFT]) >= AS_READ_FITS:
+    misfits = int(np.sum(~fit[:, MAX_ROW_SHIFT]))
+    if misfits < AS_READ_MISFITS:
         return None
     found = None
     for first, shift, rows in pairings(n):
         k = np.where(np.arange(n) < first, MAX_ROW_SHIFT, MAX_ROW_SHIFT + shift)
         paired = rows >= 0
-        bad = float(np.mean(~fit[np.flatnonzero(paired), k[paired]]))
-        if bad <= SHIFT_MISFITS and (found is None or bad < found[2]):
+        wrong = ~fit[np.flatnonzero(paired), k[paired]]
+        bad = float(np.mean(wrong))
+        if bad <= SHIFT_MISFITS and wrong.sum() <= SHIFT_GAIN * misfits and (found is None or bad < found[2]):
             found = (first, shift, bad)
     return found
