@@ -1233,6 +1233,7 @@ def test_a_misread_capture_is_named_with_its_fix(corrupted_capture, tmp_path):
         found = [x for x in bad.verdict.reasons if "the data fit if" in x]
         assert len(found) == 1 and names in found[0], bad.verdict.reasons
         assert bad.verdict.reasons[0] == found[0]  # the cause first, then its symptoms
+        assert not any("PnP's distances" in x for x in bad.verdict.reasons)  # no scale off misread poses
         rms = float(found[0].split("reprojection RMS ")[1].split(" px")[0])
         assert abs(rms - float(r.result.pixel_rms)) < 0.05 * float(r.result.pixel_rms)
 
@@ -1265,6 +1266,27 @@ def test_rotations_read_in_another_convention_are_refused_naming_it(corrupted_ca
         with pytest.raises(jaxcal.InconsistentPosesError, match="robot poses and images disagree") as e:
             jaxcal.calibrate_hand_eye_capture(capture, folds=0)
         assert f"They agree when read otherwise: {want}" in str(e.value), str(e.value)
+
+
+@pytest.mark.slow
+def test_matrices_written_by_columns_are_refused_naming_the_order(corrupted_capture, tmp_path):
+    """4x4 matrices written column-major (the translation in the bottom row) are refused at
+    load, line and frame named, with the order to write them in."""
+    clean, _ = corrupted_capture
+    T = np.asarray(load_hand_eye_capture(clean).T_base_ee)
+    with open(clean / "poses.csv", newline="") as f:
+        frames = [r[0] for r in list(csv.reader(f))[1:]]
+    capture = tmp_path / "columns"
+    shutil.copytree(clean, capture)
+    with open(capture / "poses.csv", "w", newline="") as f:
+        rows = [[n, *np.swapaxes(M, 0, 1).ravel().tolist()] for n, M in zip(frames, T)]
+        csv.writer(f).writerows([["frame", *POSE_COLUMNS["matrix"]], *rows])
+    meta = json.loads((clean / "handeye.json").read_text())
+    meta["poses"] = {"file": "poses.csv", "format": "matrix", "translation_unit": "m"}
+    (capture / "handeye.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"poses.csv line 2 \(frame 0000\): bottom row") as e:
+        load_hand_eye_capture(capture)
+    assert "written by columns (column-major); write each row by row" in str(e.value)
 
 
 def test_pose_rows_columns():

@@ -438,20 +438,26 @@ def test_real_ur5_calibration_meets_the_independent_reference(ur5_real, tmp_path
     )
 
 
-def test_a_noise_stated_a_thousand_times_too_small_makes_the_result_suspect(ur5_real, tmp_path):
+@pytest.mark.parametrize(
+    "sigma_m, starts, stated", [(2e-8, "scatter 3", "2e-05 mm"), (0.02, "scatter only 0.003", "20 mm")]
+)
+def test_a_noise_stated_a_thousand_times_off_makes_the_result_suspect(
+    ur5_real, tmp_path, sigma_m, starts, stated
+):
     """The real UR5's samples scatter 3.1 times the 0.02 mm they state (the model's own error, the
     covariance scaled by it); stated in metres as millimetres (0.00002 mm) they scatter about 3,000
-    times it, and the result says so, naming the likely slip (it was ok)."""
+    times it, in millimetres as metres (20 mm) 0.003 times it, and the result says so, naming the
+    likely slip (both were ok)."""
     assert json.loads((ur5_real / "result.json").read_text())["point_fit"]["residual_variance_factor"] < 16.0
     data = tmp_path / "grid"
     shutil.copytree("data/ur5_tracker/grid", data)
     meta = json.loads((data / "metadata.json").read_text())
-    meta["device"]["sigma_m"] = 2e-8
+    meta["device"]["sigma_m"] = sigma_m
     (data / "metadata.json").write_text(json.dumps(meta))
     result = jaxcal.calibrate(data, progress=False, device_is_base=True)
     assert result.status == "suspect"
     (reason,) = [r for r in result.reasons if "times the noise they state" in r]
-    assert reason.startswith("the samples scatter 3") and "(2e-05 mm) about the calibrated model" in reason
+    assert reason.startswith(f"the samples {starts}") and f"({stated}) about the calibrated model" in reason
     assert "--sigma-mm" in reason
 
 
@@ -730,6 +736,8 @@ def test_wrong_joint_cells_are_rejected_named_and_left_out(ur5, tmp_path, capsys
         (1, 0, "from sample 1 (line 3) on, each sample's robot pose is written 1 row earlier"),
         # A row lost at sample 120 and the later points moved up: sample i's point in row i - 1.
         (-1, 120, "from sample 120 (line 122) on, each sample's robot pose is written 1 row later"),
+        # A point lost near the end: the last ten rows shifted (the robust fit would drop them as bad).
+        (-1, 190, "from sample 190 (line 192) on, each sample's robot pose is written 1 row later"),
         # From sample 60 on, each point written two rows late (60 and 61 repeat 58's and 59's).
         (2, 60, "from sample 60 (line 62) on, each sample's robot pose is written 2 rows earlier"),
     ],

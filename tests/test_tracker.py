@@ -256,6 +256,15 @@ def _meta(root, edit) -> None:
         ),
         (lambda r: _meta(r, lambda m: m.update(cameras=[])), ["metadata.json", "unknown field 'cameras'"]),
         (lambda r: _meta(r, lambda m: m["device"].update(sigma_m=-1)), ["device.sigma_m", "greater than 0"]),
+        (  # the point's mount in millimetres
+            lambda r: _meta(
+                r,
+                lambda m: m["device"].update(
+                    T_link_point_nominal=[[1, 0, 0, 80], [0, 1, 0, 0], [0, 0, 1, 60], [0, 0, 0, 1]]
+                ),
+            ),
+            ["device.T_link_point_nominal", "the point lies 100 m from link 'flange'", "millimetres written"],
+        ),
         (lambda r: (r / "samples.csv").unlink(), ["samples.csv: samples table", "missing"]),
     ],
 )

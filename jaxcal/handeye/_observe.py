@@ -165,8 +165,8 @@ def rotation_readings(capture: HandEyeCapture) -> list[tuple[str, np.ndarray]]:
     elif capture.pose_format == "xyz_rotvec":
         alternatives = [
             (
-                "the columns rx, ry, rz hold roll, pitch, yaw (fixed axes): handeye.json field 'poses.format' "
-                "is 'xyz_rpy'",
+                "the columns rx, ry, rz hold roll, pitch, yaw (fixed axes): set handeye.json field "
+                "'poses.format' to 'xyz_rpy' (and the header to x, y, z, roll, pitch, yaw)",
                 rpy_to_matrix(v),
             )
         ]

@@ -157,15 +157,17 @@ def input_hints(verdict, observed: Observed, solved: Solved, log) -> tuple[HandE
     result, solve = solved.result, solved.solver
     verdict = robot_noise_hint(verdict, observed.observations.data, result, solve, log)
     # An exact-pose fit whose frames left out are predicted as a robot's noise allows is no misfit.
+    misread = None
     if misfit(result) and not (result.robot_sigma is None and noise_explains_fit(solved.noise.fit.held_out)):
-        found = diagnose_misfit(observed, result, solve, solved.noise.fit.model)
-        if found:
-            log(f"the poses fit the images once read differently: {found}")
-            verdict = replace(verdict, reasons=(found, *verdict.reasons))  # the cause, before its symptoms
+        misread = diagnose_misfit(observed, result, solve, solved.noise.fit.model)
+        if misread:
+            log(f"the poses fit the images once read differently: {misread}")
+            verdict = replace(verdict, reasons=(misread, *verdict.reasons))  # the cause, before its symptoms
     scales, lenses = image_scale(observed, solved), lens_tests(observed)
     std_mm = 1e3 * np.linalg.norm(np.asarray(solved.result.std_robot_cam)[:, :3], axis=1)
     claimed = {c.name: float(std_mm[i]) for i, c in enumerate(observed.capture.cameras)}
-    found = scale_reasons(scales, claimed)
+    # A scale read off poses that are misread says nothing of the target or the lens.
+    found = () if misread else scale_reasons(scales, claimed)
     if found:
         log(found[0])
         verdict = replace(verdict, status="suspect", reasons=verdict.reasons + found)
@@ -263,6 +265,8 @@ def scale_reasons(scales, claimed_mm: dict[str, float] | None = None) -> tuple[s
     `SCALE_CLAIMS` times the translation's claimed standard deviation (`claimed_mm`, per camera)."""
     out = []
     for name, s, std, distance in scales:
+        if not s > 0:  # no scale: the motions the fit left do not correlate (a misfit named elsewhere)
+            continue
         off, move = abs(s - 1.0), 1e3 * abs(s - 1.0) * distance
         claim = (claimed_mm or {}).get(name)
         big = off > SCALE_TOLERANCE or (claim is not None and move > SCALE_CLAIMS * claim)

@@ -99,6 +99,10 @@ class TrackerSamples:
         return var[:, :, None] * np.eye(k)
 
 
+#: A measured point this far (m) from its link's frame is no tool's: a length in millimetres.
+MAX_POINT_OFFSET_M = 2.0
+
+
 def read_device(meta: dict, loc: Loc, links) -> DeviceInfo:
     """`device`: the measuring device, its samples file, the measured point and the default noise."""
     d = sc.obj(
@@ -112,6 +116,13 @@ def read_device(meta: dict, loc: Loc, links) -> DeviceInfo:
     if link not in links:
         raise loc.key("link").fail(f"{link!r} is not a link of the robot (links: {sorted(links)})")
     T = d.get("T_link_point_nominal")
+    if T is not None:
+        T = sc.pose(T, loc.key("T_link_point_nominal"))
+        if np.linalg.norm(T[:3, 3]) > MAX_POINT_OFFSET_M:
+            raise loc.key("T_link_point_nominal").fail(
+                f"the point lies {np.linalg.norm(T[:3, 3]):.4g} m from link {link!r}'s frame, beyond any tool's "
+                f"{MAX_POINT_OFFSET_M:g} m: give its translation in metres (millimetres written?)"
+            )
     sig = {}
     for key, hi in (("sigma_m", 1.0), ("sigma_rad", 1.0)):
         v = d.get(key)
@@ -122,7 +133,7 @@ def read_device(meta: dict, loc: Loc, links) -> DeviceInfo:
         file=sc.relative_path(sc.string(d.get("file", "samples.csv"), loc.key("file")), loc.key("file")),
         link=link,
         point=sc.string(d.get("point", "point"), loc.key("point")),
-        T_link_point=None if T is None else sc.pose(T, loc.key("T_link_point_nominal")),
+        T_link_point=T,
         sigma_m=sig["sigma_m"],
         sigma_rad=sig["sigma_rad"],
     )

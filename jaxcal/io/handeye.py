@@ -295,8 +295,16 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
         bad = np.flatnonzero(bottom > 1e-6)
         if bad.size:
             i = bad[0]
+            # Written by columns: the translation in the bottom row, the last column 0, 0, 0, 1.
+            by_columns = np.allclose(M[:, :3, 3], 0.0, atol=1e-6) and np.allclose(M[:, 3, 3], 1.0, atol=1e-6)
             raise DatasetError(
                 f"{path} line {i + 2} (frame {frames[i]}): bottom row {M[i, 3].tolist()}, not [0, 0, 0, 1]"
+                + (
+                    "; every matrix holds its translation in the bottom row and 0, 0, 0, 1 in the last column: "
+                    "written by columns (column-major); write each row by row, m00 m01 m02 m03 m10 ... m33"
+                    if by_columns
+                    else ""
+                )
             )
         T[:, :3, :3], T[:, :3, 3] = M[:, :3, :3], M[:, :3, 3] * scale_t
     else:

@@ -433,7 +433,7 @@ def _check_pairing(ds, F: np.ndarray, y: np.ndarray, valid: np.ndarray) -> None:
         s = ds.samples
         name = lambda k: f"{int(s.sample[rows[k]])} (line {int(s.lines[rows[k]])})"  # noqa: E731
         raise DatasetError(
-            f"{ds.device.file}: most measured points fit no pose of the nominal robot at their row's joint "
+            f"{ds.device.file}: measured points fit no pose of the nominal robot at their row's joint "
             f"positions, but they do with the rows shifted: {describe(found, name, 'sample', 'robot pose')}. "
             "Pair each point with the joint positions the robot held when it was measured"
         )

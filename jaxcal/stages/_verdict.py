@@ -118,6 +118,9 @@ class _Checks:
         return ok
 
 
+#: Stop-and-shoot samples scattering less than this fraction of the noise they state about the
+#: calibrated model: the stated noise is wrong (a unit), not a good tracker.
+QUIET_NOISE_SCALE = 0.1
 #: A joint origin this many times past its limit suggests the wrong robot model, not a worn arm.
 WRONG_MODEL_FACTOR = 5.0
 
@@ -266,6 +269,13 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
         "model: a noise in metres given as millimetres (import-csv --sigma-mm), or a model that misses most of the "
         "error",
     )
+    if not c.at_least("point_fit.noise_scale_min", scale, QUIET_NOISE_SCALE):
+        c.symptoms.append(
+            f"the samples scatter only {scale:.2g} times the noise they state ({sigma_mm:.3g} mm) about the "
+            "calibrated model: the stated noise is too large (millimetres given as metres: metadata.json "
+            "device.sigma_m or the samples' sigma_m column, import-csv --sigma-mm), and every standard deviation, "
+            "the certificate and verify's prediction with it"
+        )
     if pf.prior is not None:
         _prior(c, pf.prior)
     if pf.unseen:
