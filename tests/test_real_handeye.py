@@ -114,7 +114,8 @@ def test_real_captures_agree_with_visps_solver(capture, key, tmp_path, capsys):
 
 def test_a_reference_file_is_read_as_the_capture_needs_it(tmp_path):
     """`jaxcal handeye --reference`: ViSP's file (one block per arrangement, 6-vectors in m and rad),
-    a 4x4 matrix, and a jaxcal result's own `cameras` block all give the same pose; a file of the
+    a 4x4 matrix (under its key, or alone), a jaxcal result's own `cameras` block and the pose keyed
+    by camera (a simulated capture's truth.json) all give the same pose; a file of the
     other arrangement's pose, or a pose that is not rigid, is refused naming the file and field."""
     from jaxcal.errors import DatasetError
     from jaxcal.io.handeye import load_hand_eye_capture, read_reference
@@ -126,6 +127,8 @@ def test_a_reference_file_is_read_as_the_capture_needs_it(tmp_path):
     for doc in (
         {"T_ee_cam": want.tolist()},
         {"cameras": {"cam0": {"T_robot_cam": {"matrix": want.tolist()}}}},
+        want.tolist(),  # the pose alone
+        {"T_robot_cam": {"cam0": want.tolist()}},  # simulate-handeye's truth.json
     ):
         (tmp_path / "ref.json").write_text(json.dumps(doc))
         np.testing.assert_allclose(read_reference(tmp_path / "ref.json", capture)["cam0"], want, atol=1e-12)

@@ -620,8 +620,9 @@ def read_reference(path, capture: HandEyeCapture) -> dict[str, np.ndarray]:
     The file is JSON: a jaxcal hand-eye `result.json` (`cameras.<name>.T_robot_cam`), or an object
     giving the pose under one of `REFERENCE_KEYS` of the capture's arrangement, directly or inside a
     block named after the arrangement (`eye_in_hand` / `eye_to_hand`: one file for both captures),
-    and, with several cameras, per camera inside `cameras.<name>`. Raises `DatasetError` naming the
-    file and field."""
+    and, with several cameras, per camera inside `cameras.<name>` (or the pose's field keyed by
+    camera name, as `jaxcal simulate-handeye`'s truth.json has it); with one camera, the pose alone
+    (a 4x4 matrix or a 6-vector). Raises `DatasetError` naming the file and field."""
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
@@ -629,14 +630,19 @@ def read_reference(path, capture: HandEyeCapture) -> dict[str, np.ndarray]:
         raise DatasetError(f"{path}: cannot read the reference ({e.strerror or e})") from None
     except ValueError as e:
         raise DatasetError(f"{path}: not valid JSON ({e})") from None
+    names = [c.name for c in capture.cameras]
+    if isinstance(doc, list) and len(names) == 1:  # the pose alone: a 4x4 matrix or a 6-vector
+        return {names[0]: _reference_pose(doc, str(path))}
     if not isinstance(doc, dict):
-        raise DatasetError(f"{path}: a reference must be a JSON object")
+        raise DatasetError(
+            f"{path}: a reference must be a JSON object, or (one camera) its pose alone as a 4x4 matrix or "
+            "[tx, ty, tz, rx, ry, rz]"
+        )
     where = str(path)
     if capture.arrangement in doc:
         doc, where = doc[capture.arrangement], f"{where} field {capture.arrangement!r}"
         if not isinstance(doc, dict):
             raise DatasetError(f"{where}: must be an object")
-    names = [c.name for c in capture.cameras]
     cameras = doc.get("cameras")
     if cameras is None and len(names) > 1:
         raise DatasetError(f"{where}: {len(names)} cameras ({names}): give each pose in 'cameras.<name>'")
@@ -656,5 +662,8 @@ def read_reference(path, capture: HandEyeCapture) -> dict[str, np.ndarray]:
                 f"{at}: no {' / '.join(REFERENCE_KEYS[capture.arrangement])} (the {capture.arrangement} "
                 "camera's pose)" + (f"; it gives {other[0]}, another arrangement's pose" if other else "")
             )
-        out[name] = _reference_pose(block[keys[0]], f"{at} field {keys[0]!r}")
+        value, at = block[keys[0]], f"{at} field {keys[0]!r}"
+        if isinstance(value, dict) and "matrix" not in value and name in value:  # per camera (a truth.json)
+            value, at = value[name], f"{at}.{name}"
+        out[name] = _reference_pose(value, at)
     return out
