@@ -356,6 +356,12 @@ def test_a_joint_origin_far_past_its_limit_asks_for_the_robot_model():
         _corrections(c, rows, limits, set())
         (reason,) = c.reasons
         assert "moved" in reason and ("is the robot model" in reason) == asks, reason
+        assert "--device-is-base" not in reason
+        # With the device's frame given as the base, the first joint's origin far off also asks that.
+        c = _Checks()
+        _corrections(c, rows, limits, set(), "shoulder_pan_joint.origin")
+        (reason,) = c.reasons
+        assert ("Or is the device's frame not its base? Calibrate without --device-is-base" in reason) == asks
 
 
 def test_a_pose_captures_gauge_moves_the_fixed_frame_by_the_truths_held_perturbations():

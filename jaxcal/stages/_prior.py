@@ -4,6 +4,7 @@ the fit and how far the data alone lie from it (`PriorUse`)."""
 import jax
 import numpy as np
 
+from .. import _distributions as distributions
 from .._kinematics import KinematicModel
 from .._pointfit import PointFitResult, PointLayout, PointProblem
 from ..fleet_prior import model_digest, prior_rows
@@ -55,4 +56,32 @@ def prior_use(options: Options, problem: PointProblem, fit: PointFitResult, name
         z=tuple(float(v) for v in z),
         chi2=float(d @ np.linalg.solve(V, d)) if d.size else 0.0,
         dof=int(d.size),
+    )
+
+
+#: The chance that a unit of the fleet has a parameter called contradicting the fleet's prior.
+PRIOR_FALSE_ALARM = 0.01
+
+
+def prior_row(prior: PriorUse):
+    """The verdict's check of a fleet's prior the data contradict, `(name, value, limit, reason)`
+    (None without one): the data alone farther from the fleet's mean, over the parameters they
+    estimate together (`PriorUse.chi2`), than a unit of that fleet lies with chance
+    `PRIOR_FALSE_ALARM`: the unit is not of that fleet, or the prior is not its model's or claims
+    more than the fleet knows (a reason: the result leans on a wrong prior). The parameter named is
+    the one farthest on its own (`PriorUse.z`)."""
+    if not prior.dof:
+        return None
+    z = np.abs(np.nan_to_num(np.asarray(prior.z, np.float64), nan=0.0))
+    limit = float(distributions.chi2_ppf(1.0 - PRIOR_FALSE_ALARM, prior.dof))
+    worst = int(np.argmax(z))
+    return (
+        "point_fit.prior_chi2",
+        float(prior.chi2),
+        limit,
+        f"the data contradict the fleet's prior ({prior.file}): over the {prior.dof} parameters the data alone "
+        f"estimate, they lie chi2 = {prior.chi2:.1f} from the fleet's mean (at most {limit:.1f} for a unit of "
+        f"that fleet, {100 * PRIOR_FALSE_ALARM:g} % false alarms), farthest {prior.names[worst]} at "
+        f"{z[worst]:.1f} standard deviations; the unit is not like the fleet's, or the prior is another "
+        "model's or claims too much: calibrate it without --prior",
     )

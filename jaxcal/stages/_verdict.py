@@ -19,15 +19,16 @@ from types import SimpleNamespace
 import equinox as eqx
 import numpy as np
 
-from .. import _distributions as distributions
 from .._kinematics import PRISMATIC, joint_axes_at_zero
 from .._npgeom import line_distance
+from ..io._tracker import DeviceInfo
 from ..records import Judgement, ParameterRow
 from ..records_stages import Check
 from . import _programs
 from ._armcheck import arm_check
 from ._blur import blur_rows
 from ._observe import Observations
+from ._prior import prior_row
 from ._refine import Refined, succeeded
 from ._setup import Setup
 from ._synchronise import Sync
@@ -121,14 +122,22 @@ class _Checks:
 #: Stop-and-shoot samples scattering less than this fraction of the noise they state about the
 #: calibrated model: the stated noise is wrong (a unit), not a good tracker.
 QUIET_NOISE_SCALE = 0.1
-#: A joint origin this many times past its limit suggests the wrong robot model, not a worn arm.
+#: A joint origin this many times past its limit suggests the wrong robot model, not a worn arm ...
 WRONG_MODEL_FACTOR = 5.0
+#: ... or, the first joint's with the device's frame given as the base, a device elsewhere.
+BASE = "Calibrate without --device-is-base (the device's pose is then fitted)"
 
 
 def _corrections(
-    c: _Checks, parameters: tuple[ParameterRow, ...], limits: Limits, measured_mounts: set
+    c: _Checks,
+    parameters: tuple[ParameterRow, ...],
+    limits: Limits,
+    measured_mounts: set,
+    base_given: str = "",
 ) -> None:
-    """Joint origins, zero offsets and mounts against their nominal values."""
+    """Joint origins, zero offsets and mounts against their nominal values; `base_given`: the first
+    joint's origin (`NAME.origin`) when the device's frame was given as the robot's base, which
+    takes up a device elsewhere."""
     rows = {p.name: p for p in parameters}
     groups: dict[str, dict] = {}
     for p in parameters:
@@ -145,12 +154,14 @@ def _corrections(
         lim_mm, lim_deg = (
             (limits.mount_mm, limits.mount_deg) if mount else (limits.origin_mm, limits.origin_deg)
         )
-        far = (
-            "; far beyond how much a real arm differs from its datasheet: is the robot model (URDF or DH "
-            "table) this arm's?"
-            if not mount and mm > WRONG_MODEL_FACTOR * lim_mm
-            else ""
-        )
+        far = ""
+        if not mount and mm > WRONG_MODEL_FACTOR * lim_mm:
+            far = "; far beyond how much a real arm differs from its datasheet: is the robot model (URDF or DH table) "
+            far += (
+                "this arm's?"
+                if owner != base_given
+                else f"this arm's? Or is the device's frame not its base? {BASE}"
+            )
         c.add(f"{owner}.mm", mm, lim_mm, f"{owner} moved {mm:.1f} mm from nominal (limit {lim_mm:g} mm){far}")
         c.add(
             f"{owner}.deg", deg, lim_deg, f"{owner} turned {deg:.2f} deg from nominal (limit {lim_deg:g} deg)"
@@ -205,33 +216,6 @@ def _uncertainties(c: _Checks, parameters: tuple[ParameterRow, ...], limits: Lim
         )
 
 
-#: The chance that a unit of the fleet has a parameter called contradicting the fleet's prior.
-PRIOR_FALSE_ALARM = 0.01
-
-
-def _prior(c: _Checks, prior) -> None:
-    """A fleet's prior the data contradict: the data alone farther from the fleet's mean, over the
-    parameters they estimate together (`PriorUse.chi2`), than a unit of that fleet lies with chance
-    `PRIOR_FALSE_ALARM`: the unit is not of that fleet, or the prior is not its model's or claims
-    more than the fleet knows (a reason: the result leans on a wrong prior). The parameter named is
-    the one farthest on its own (`PriorUse.z`)."""
-    if not prior.dof:
-        return
-    z = np.abs(np.nan_to_num(np.asarray(prior.z, np.float64), nan=0.0))
-    limit = float(distributions.chi2_ppf(1.0 - PRIOR_FALSE_ALARM, prior.dof))
-    worst = int(np.argmax(z))
-    c.add(
-        "point_fit.prior_chi2",
-        float(prior.chi2),
-        limit,
-        f"the data contradict the fleet's prior ({prior.file}): over the {prior.dof} parameters the data alone "
-        f"estimate, they lie chi2 = {prior.chi2:.1f} from the fleet's mean (at most {limit:.1f} for a unit of "
-        f"that fleet, {100 * PRIOR_FALSE_ALARM:g} % false alarms), farthest {prior.names[worst]} at "
-        f"{z[worst]:.1f} standard deviations; the unit is not like the fleet's, or the prior is another "
-        "model's or claims too much: calibrate it without --prior",
-    )
-
-
 def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
     """Stop-and-shoot poses: the samples the robust point fit rejected (a note, or a reason past
     `limits.outlier_fraction`), the parameters held because the data cannot see them (a note),
@@ -277,7 +261,8 @@ def _point_fit(c: _Checks, setup: Setup, two: TwoStage, limits: Limits) -> None:
             "the certificate and verify's prediction with it"
         )
     if pf.prior is not None:
-        _prior(c, pf.prior)
+        if (row := prior_row(pf.prior)) is not None:
+            c.add(*row)
     if pf.unseen:
         c.notes.append(
             "held at nominal because the samples cannot see them (each moves the measured point so little that, "
@@ -645,7 +630,8 @@ def verdict(
     measured = {t.name for t in setup.fit_targets if t.T_link_target is None}
     if setup.kind.sequential:
         measured |= {t.name for t in setup.targets}  # link mounts start from PnP
-    _corrections(c, refined.parameters if ran else two.parameters, limits, measured)
+    given = "" if setup.kind.fixed_frame_free else f"{setup.nominal.joint_names[0]}.origin"
+    _corrections(c, refined.parameters if ran else two.parameters, limits, measured, given)
     _uncertainties(c, refined.parameters if ran else two.parameters, limits, setup.identifiability_tol)
     if two.points is not None:
         _point_fit(c, setup, two, limits)
@@ -672,7 +658,12 @@ def verdict(
         sigma,
         limits.ee_sigma_mm,
         f"the data pin the tool point only to {sigma:.2f} mm (1-sigma RMS over random configurations, limit "
-        f"{limits.ee_sigma_mm:g} mm): too little motion, too few frames, or intrinsics the capture cannot fix",
+        f"{limits.ee_sigma_mm:g} mm): "
+        + (
+            "too few poses, joints that barely move, or a model the samples do not fit (the other reasons)"
+            if isinstance(setup.camera, DeviceInfo)
+            else "too little motion, too few frames, or intrinsics the capture cannot fix"
+        ),
     )
     if ran:
         _focal_note(c, setup, two, refined, sigma)
