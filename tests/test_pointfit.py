@@ -581,6 +581,19 @@ def test_verify_exits_3_outside_its_prediction_and_2_on_another_robot(ur5_real, 
     (renamed / "metadata.json").write_text(json.dumps(meta))
     v = verify(ur5_real, renamed)
     assert v.exit_code == 0 and v.summary.calibrated_mm.mean <= 0.1010 and "named otherwise" in v.notes[0]
+
+    # Two of the 20 held-out samples measured 3 mm off: left out of the test, named, and it holds.
+    def two_bad(lines):
+        x = lines[0].split(",").index("x")
+        cells = [line.split(",") for line in lines[1:]]
+        for k in (3, 11):
+            cells[k][x] = repr(float(cells[k][x]) + 0.003)
+        return [lines[0], *(",".join(c) for c in cells)]
+
+    bad = verify(ur5_real, _copy_test_set(tmp_path / "two_bad", edit_samples=two_bad))
+    assert bad.exit_code == 0 and bad.test.holds and bad.test.samples == 18
+    (said,) = [n for n in bad.notes if "left out of the test as bad measurements" in n]
+    assert said.startswith("2 of 20 samples") and "(line 5, " in said and "(line 13, " in said, said
     # The robot file edited by 2 mm (an updated nominal): the same robot, verified with the result's
     # model (the same figures), and the difference named.
     edited = _copy_test_set(
