@@ -1,4 +1,5 @@
-"""Measurements paired with the wrong robot rows: a table's rows shifted against the robot's.
+"""Measurements paired with the wrong robot rows (a table's rows shifted against the robot's), or
+read otherwise than written.
 
 A logger that writes each pose one frame late, a row lost and the rows after it renumbered, an
 extra row: from some row on, measurement `i` belongs to robot row `i - shift`. The checks that see
@@ -10,6 +11,8 @@ points) say which shift and from where makes them pass, instead of only that the
 - `shifted_points`: the stop-and-shoot check (NumPy): the nominal robot's flange frames against
   measured points, through one rigid device frame and one point on the flange.
 - `describe`: the finding in words, with the rows' names.
+- `misread_points`: a stop-and-shoot table that fits the nominal robot only with a joint's
+  positions negated, two joints' columns swapped, or the device's coordinates mirrored.
 """
 
 from collections.abc import Iterator
@@ -141,3 +144,54 @@ def shifted_points(F: np.ndarray, y: np.ndarray) -> tuple[int, int, float] | Non
         if bad <= SHIFT_MISFITS and wrong.sum() <= SHIFT_GAIN * misfits and (found is None or bad < found[2]):
             found = (first, shift, bad)
     return found
+
+
+#: A reading of the table explains it when at most this share of its rows lie farther than
+#: `MISREAD_TOL_M` from the nominal robot, where at least `MISREAD_AS_READ` did as read (a real arm
+#: is millimetres off its datasheet).
+MISREAD_FITS, MISREAD_AS_READ, MISREAD_TOL_M = 0.05, 0.5, 0.02
+
+
+def _misfit_share(F: np.ndarray, y: np.ndarray) -> float:
+    """The share of rows farther than `MISREAD_TOL_M` from the nominal robot (one device frame
+    and flange point, fitted to the better half)."""
+    T, t = _align(F, y, 0.5)
+    p = (np.einsum("nab,b->na", F[:, :3, :3], t) + F[:, :3, 3]) @ T[:3, :3].T + T[:3, 3]
+    return float(np.mean(np.linalg.norm(y - p, axis=1) > MISREAD_TOL_M))
+
+
+def misread_points(frames, q: np.ndarray, y: np.ndarray, joints: tuple[str, ...], F=None) -> str | None:
+    """What fixes a stop-and-shoot table whose points fit the nominal robot only read otherwise
+    (`frames(q)`: its flange frames `(n, 4, 4)` at joint positions `q`, `F` those of `q` when known;
+    `y` the points, m), or None:
+    a joint's positions negated (its direction opposite the robot file's axis), two joints' columns
+    swapped, the device's coordinates mirrored (left-handed). Tried only when at least
+    `MISREAD_AS_READ` of the rows misfit as read; a reading must fit all but `MISREAD_FITS`."""
+    q, y = np.asarray(q, np.float64), np.asarray(y, np.float64)
+    F = frames(q) if F is None else F  # as read
+    if len(y) < 8 or _misfit_share(F, y) < MISREAD_AS_READ:
+        return None
+    if _misfit_share(F, y * np.array([-1.0, 1.0, 1.0])) <= MISREAD_FITS:
+        return (
+            "the points fit the nominal robot mirrored: the device's coordinates are left-handed (one axis "
+            "reversed, or two swapped); write them in its right-handed frame"
+        )
+    n = q.shape[1]
+    for j in range(n):
+        flipped = q.copy()
+        flipped[:, j] *= -1.0
+        if _misfit_share(frames(flipped), y) <= MISREAD_FITS:
+            return (
+                f"the points fit the nominal robot with joint {joints[j]!r}'s positions negated: the log turns "
+                "it the other way than the robot file's axis (negate that column, or the robot file's axis)"
+            )
+    for i in range(n):
+        for j in range(i + 1, n):
+            swapped = q.copy()
+            swapped[:, [i, j]] = q[:, [j, i]]
+            if _misfit_share(frames(swapped), y) <= MISREAD_FITS:
+                return (
+                    f"the points fit the nominal robot with the columns of {joints[i]!r} and {joints[j]!r} "
+                    "swapped: the header names them the other way round"
+                )
+    return None

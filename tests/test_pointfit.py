@@ -780,6 +780,37 @@ def test_points_shifted_against_the_joints_are_refused_naming_the_shift(ur5, tmp
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(
+    "misread, want",
+    [
+        ("sign", "with joint 'wrist_2_joint''s positions negated"),
+        ("swap", "with the columns of 'wrist_1_joint' and 'wrist_2_joint' swapped"),
+        ("mirror", "mirrored: the device's coordinates are left-handed"),
+    ],
+)
+def test_a_table_read_otherwise_is_refused_naming_the_reading(ur5, tmp_path, misread, want):
+    """A joint logged the other way than the robot file's axis, two joint columns under each
+    other's names, the device's coordinates mirrored (x and y swapped): every pose is off the
+    nominal robot as read, and on it read that way; refused (exit 2) naming the reading."""
+    path, _ = ur5
+
+    def edit(header, rows):
+        w1, w2, x, y = (header.index(c) for c in ("wrist_1_joint", "wrist_2_joint", "x", "y"))
+        for r in rows:
+            if misread == "sign":
+                r[w2] = repr(-float(r[w2]))
+            elif misread == "swap":
+                r[w1], r[w2] = r[w2], r[w1]
+            else:
+                r[x], r[y] = r[y], r[x]
+        return rows
+
+    bad = _rewritten(path, tmp_path / "bad", edit)
+    with pytest.raises(DatasetError, match="fit no pose of the nominal robot as read") as e:
+        jaxcal.calibrate(bad, cv_folds=0)
+    assert want in str(e.value), str(e.value)
+
+
 def test_a_clean_or_shuffled_table_is_not_taken_for_shifted_rows(ur5):
     """The pairing search (`jaxcal._rowshift.shifted_points`) on the nominal robot: the clean
     table passes as read, a shuffled one fits no shift (it is left to the fit's verdict), a table

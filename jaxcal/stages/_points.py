@@ -63,7 +63,7 @@ from .._pointfit import (
     sample_radii,
     term_basis,
 )
-from .._rowshift import describe, shifted_points
+from .._rowshift import describe, misread_points, shifted_points
 from .._selection import improves_on_samples, paired_z
 from .._terms import approach, signs
 from ..errors import CalibrationError, DatasetError
@@ -423,12 +423,20 @@ def _merged(rep: np.ndarray, y: np.ndarray, R: np.ndarray | None):
     return y, R
 
 
-def _check_pairing(ds, F: np.ndarray, y: np.ndarray, valid: np.ndarray) -> None:
-    """Refuse (`DatasetError`) points `y` that fit the nominal robot (its flange frames `F`) only
-    with the rows shifted against the joint positions (`jaxcal._rowshift.shifted_points`), naming
-    the shift and where it starts."""
+def _check_pairing(ds, nominal, q, F: np.ndarray, y: np.ndarray, valid: np.ndarray) -> None:
+    """Refuse (`DatasetError`) points `y` that fit the nominal robot (its flange frames `F` at `q`)
+    only with the rows shifted against the joint positions (`jaxcal._rowshift.shifted_points`),
+    naming the shift and where it starts, or only read otherwise (`misread_points`: a joint's sign,
+    two joints' columns, mirrored coordinates)."""
     rows = np.flatnonzero(valid)
     found = shifted_points(F[rows], np.asarray(y, np.float64)[rows])
+    if found is None:
+        at = (q[rows], np.asarray(y)[rows], nominal.joint_names, F[rows])
+        read = misread_points(lambda qq: flange_frames(nominal, qq), *at)
+        if read is not None:
+            raise DatasetError(
+                f"{ds.device.file}: the measured points fit no pose of the nominal robot as read; {read}"
+            )
     if found is not None:
         s = ds.samples
         name = lambda k: f"{int(s.sample[rows[k]])} (line {int(s.lines[rows[k]])})"  # noqa: E731
@@ -485,7 +493,7 @@ def fit_point_samples(setup: Setup, obs: Observations, sync: Sync, options: Opti
     Tp0 = np.eye(4) if point.T_link_target is None else np.asarray(point.T_link_target, np.float64)
     F = flange_frames(nominal, q) if kind.fixed_frame_free or orient is not None else None
     if kind.fixed_frame_free:
-        _check_pairing(ds, F, s.position, valid)
+        _check_pairing(ds, nominal, q, F, s.position, valid)
     T0 = np.eye(4) if not kind.fixed_frame_free else start_frame(F[first], y[first], Tp0)
     if orient is not None:
         T0, Tp0 = _orient_start(
