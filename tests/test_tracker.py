@@ -218,6 +218,10 @@ def _meta(root, edit) -> None:
             ["samples.csv line 1", "header must start with sample,timestamp,joint,x,y,z"],
         ),
         (lambda r: _edit(r, 1, "elbow_joint", "elbo"), ["samples.csv line 1", "unknown column", "elbo"]),
+        (  # a spreadsheet's export with semicolons
+            lambda r: (r / "samples.csv").write_text((r / "samples.csv").read_text().replace(",", ";")),
+            ["samples.csv line 1", "the file is separated by ';': write it comma-separated"],
+        ),
         (
             lambda r: _edit(r, 3, "joint", "wrist_9"),
             ["samples.csv line 3 column 'joint'", "unknown joint 'wrist_9'"],

@@ -142,8 +142,14 @@ def read_device(meta: dict, loc: Loc, links) -> DeviceInfo:
 def _columns(header: list[str], path: Path, joints: tuple[str, ...]) -> dict:
     """Which optional columns the header has: `{"quaternion", "sigma_m", "sigma_rad", "joints"}` -> indices."""
     if tuple(header[: len(LEADING)]) != LEADING:
+        delimiter = next((d for d in (";", "\t") if d in ",".join(header)), None)
         raise DatasetError(
             f"{path} line 1: the header must start with {','.join(LEADING)}, got {','.join(header)}"
+            + (
+                f" (the file is separated by {delimiter!r}: write it comma-separated, with '.' decimals)"
+                if delimiter
+                else ""
+            )
         )
     rest = header[len(LEADING) :]
     index = {h: len(LEADING) + i for i, h in enumerate(rest)}
@@ -264,9 +270,13 @@ def read_samples(root: Path, device: DeviceInfo, joints: tuple[str, ...], limits
         bad = np.flatnonzero(np.diff(values[:, c]) <= 0)
         if bad.size:
             k = bad[0]
+            show = (lambda v: f"{int(v)}") if c == 0 else (lambda v: f"{float(v)!r}")
+            order = (
+                "; the rows run backwards: sort them ascending" if np.all(np.diff(values[:, c]) < 0) else ""
+            )
             raise DatasetError(
-                f"{path} line {lines[k + 1]}: {header[c]} {float(values[k + 1, c])!r} is not after line {lines[k]}'s "
-                f"{float(values[k, c])!r}; {what} must increase strictly"
+                f"{path} line {lines[k + 1]}: {header[c]} {show(values[k + 1, c])} is not after line {lines[k]}'s "
+                f"{show(values[k, c])}; {what} must increase strictly{order}"
             )
     P = values[:, 2:5]
     far = np.flatnonzero(np.abs(P).max(axis=1) > MAX_COORDINATE_M)
