@@ -44,8 +44,12 @@ def _robot_noise_support(r) -> str:
         return ""
     t, w = (float(d) for d in np.asarray(r.robot_dof)[:2])
     text = f", from {t:.0f} / {w:.0f} degrees of freedom (translation / rotation)"
-    if min(t, w) < 2.0:
-        text += ": the robot poses fit the images nearly exactly, so the estimate is only an upper bound"
+    thin = [what for what, d in (("translation", t), ("rotation", w)) if d < 2.0]
+    if thin:
+        text += (
+            f": the {' and '.join(thin)} noise rests on almost none (the fit takes up what the images leave), so "
+            "its figure is only an upper bound"
+        )
     return text + f" (set it with {ROBOT_SIGMA_OPTIONS})"
 
 
