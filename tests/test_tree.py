@@ -289,7 +289,7 @@ def test_tree_samples_from_csv_and_bad_input_named(body, tmp_path):
     text = path.read_text().splitlines()
     text[4] = text[4].replace(text[4].split(",")[3], "abc", 1)
     (tmp_path / "bad.csv").write_text("\n".join(text) + "\n")
-    with pytest.raises(ValueError, match=r"bad.csv.*row 5, column 'neck_yaw'.*'abc'"):
+    with pytest.raises(ValueError, match=r"bad.csv.*line 5, column 'neck_yaw'.*'abc'"):
         read_tree_samples(tmp_path / "bad.csv", nominal)
     degrees = samples.subset(slice(0, 6))
     degrees.q[1, 5] = 57.0
@@ -451,7 +451,7 @@ def test_what_a_user_gets_wrong_is_named(body, tmp_path):
         read_tree_samples(csv_of(header + ["torso_yaw"], [r + ",0" for r in rows], "twice.csv"), nominal)
     nan = [rows[0], rows[1].replace(rows[1].split(",")[-1], "nan")] + rows[2:]
     with pytest.raises(
-        ValueError, match=r"nan.csv.*row 3, column 'right_hand.z': 'nan' is not a finite number"
+        ValueError, match=r"nan.csv.*line 3, column 'right_hand.z': 'nan' is not a finite number"
     ):
         read_tree_samples(csv_of(header, nan, "nan.csv"), nominal)
     # Six poses cannot check the 50-odd parameters they would free: suspect, and said why.
@@ -512,6 +512,29 @@ def test_a_tree_is_imported_from_a_csv_in_its_own_units(body, tmp_path, capsys):
     assert "mm RMS from the robot file's link origins" in capsys.readouterr().out
     ds = load_tree_dataset(tmp_path / "ds")
     assert ds.noise_mm == 0.1 and list(ds.tree.tip_names) == list(HANDS)
+    # The dataset's own file edited: one joint past its limit, then every point in millimetres.
+    # Refused by line and column (the calibration named "sample 3", counting from 0).
+    text = (tmp_path / "ds" / "samples.csv").read_text().splitlines()
+    head = text[0].split(",")
+    past = list(text)
+    cells = past[4].split(",")
+    cells[head.index("left_elbow")] = "1.6"
+    past[4] = ",".join(cells)
+    shutil.copytree(tmp_path / "ds", tmp_path / "past")
+    (tmp_path / "past" / "samples.csv").write_text("\n".join(past) + "\n")
+    with pytest.raises(
+        ValueError, match=r"samples.csv'?: line 5, column 'left_elbow': 1.6 lies outside the robot"
+    ):
+        load_tree_dataset(tmp_path / "past")
+    coords = [k for k, h in enumerate(head) if h.rsplit(".", 1)[-1] in ("x", "y", "z")]
+    mm = [text[0]] + [
+        ",".join(repr(1e3 * float(c)) if k in coords and c else c for k, c in enumerate(line.split(",")))
+        for line in text[1:]
+    ]
+    shutil.copytree(tmp_path / "ds", tmp_path / "mm")
+    (tmp_path / "mm" / "samples.csv").write_text("\n".join(mm) + "\n")
+    with pytest.raises(ValueError, match=r"line 2, tip 'left_hand'.*give metres \(millimetres written\?\)"):
+        load_tree_dataset(tmp_path / "mm")
     np.testing.assert_allclose(ds.samples.q, samples.q, atol=1e-12)
     seen = ds.samples.measured
     assert seen.sum() == 59 and not seen[4, 1]

@@ -88,7 +88,7 @@ def read_tree_samples(path, tree: KinematicTree) -> TreeSamples:
             value = float("nan")
         if not np.isfinite(value):
             raise ValueError(
-                f"tree samples {shown(path)!r}: row {row + 2}, column {column!r}: {text!r} is not a finite number"
+                f"tree samples {shown(path)!r}: line {row + 2}, column {column!r}: {text!r} is not a finite number"
             )
         return value
 
@@ -166,6 +166,36 @@ def covariance_noise_mm(samples: TreeSamples) -> float:
     return 1e3 * float(np.sqrt(np.trace(seen, axis1=-2, axis2=-1).mean() / 3.0))
 
 
+#: A measured point farther than this (m) from the device is no robot's: millimetres as metres.
+MAX_POINT_M = 100.0
+
+
+def _plausible(path: Path, tree: KinematicTree, samples: TreeSamples, limits: np.ndarray) -> None:
+    """Refuse, by file, line and column, points no robot reaches (`MAX_POINT_M`: millimetres) and
+    joint positions outside the robot file's limits (in degrees where every such one reads as a
+    position within them in degrees)."""
+    far = np.argwhere(np.asarray(samples.measured) & (np.abs(samples.points).max(axis=-1) > MAX_POINT_M))
+    if far.size:
+        i, t = far[0]
+        raise ValueError(
+            f"tree samples {shown(path)!r}: line {i + 2}, tip {tree.tip_names[t]!r}: the point "
+            f"{samples.points[i, t].tolist()} lies more than {MAX_POINT_M:g} m from the device: give metres "
+            "(millimetres written?)"
+        )
+    q = np.asarray(samples.q)
+    out = (q < limits[:, 0] - 1e-9) | (q > limits[:, 1] + 1e-9)
+    if out.any():
+        i, j = np.argwhere(out)[0]
+        rad = np.radians(q[out[:, j], j])
+        degrees = bool(np.all((rad >= limits[j, 0] - 1e-9) & (rad <= limits[j, 1] + 1e-9)))
+        raise ValueError(
+            f"tree samples {shown(path)!r}: line {i + 2}, column {tree.actuated_names[j]!r}: {q[i, j]:.6g} lies "
+            f"outside the robot file's limits [{limits[j, 0]:.6g}, {limits[j, 1]:.6g}] (rad or m); {int(out[:, j].sum())} "
+            f"row(s) of that column do"
+            + ("; read as degrees they lie within them: the column in degrees?" if degrees else "")
+        )
+
+
 def load_tree_dataset(folder) -> TreeDataset:
     """Read a tree dataset folder: `tree.json` names the robot file (`robot`), the measured
     `tips`, the `samples` CSV (default `samples.csv`, `read_tree_samples`' format), the device's
@@ -194,9 +224,9 @@ def load_tree_dataset(folder) -> TreeDataset:
     _no_device_columns(
         folder / _field(doc, "samples", path, str, required=False, default="samples.csv"), device_on
     )
-    samples = read_tree_samples(
-        folder / _field(doc, "samples", path, str, required=False, default="samples.csv"), tree
-    )
+    table = folder / _field(doc, "samples", path, str, required=False, default="samples.csv")
+    samples = read_tree_samples(table, tree)
+    _plausible(table, tree, samples, actuated_limits(urdf, tree))
     if samples.covariance is not None and noise is not None:
         raise ValueError(
             f"tree dataset {shown(path)!r}: field 'noise_mm' is given, but the samples carry their own "
