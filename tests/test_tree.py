@@ -321,7 +321,7 @@ def test_tree_dataset_from_the_command_line(tmp_path, capsys):
     truth, loaded = json.loads((ds / "truth.json").read_text()), load_tree_dataset(ds)
     q, points = np.asarray(truth["test"]["q"]), np.asarray(truth["test"]["points_m"])
     noisy = points + 1e-4 * np.random.default_rng(0).standard_normal(points.shape)
-    for name, moved in (("same", 0.0), ("moved", 5e-4)):
+    for name, moved in (("same", 0.0), ("moved", 5e-4), ("right_off", 2.5e-4)):
         write_tree_dataset(
             tmp_path / name, urdf_text=(ds / "robot.urdf").read_text(), tips=doc["tips"], tree=loaded.tree,
             samples=TreeSamples(q, noisy + [[0.0, 0.0, 0.0], [moved, 0.0, 0.0]], np.ones(points.shape[:2], bool)),
@@ -335,6 +335,13 @@ def test_tree_dataset_from_the_command_line(tmp_path, capsys):
         assert v["tips"][tip]["calibrated_mean_mm"] < 0.25 < 1.0 < v["tips"][tip]["nominal_mean_mm"]
     assert main(["verify", str(out), str(tmp_path / "moved")]) == 3
     assert "does NOT hold" in capsys.readouterr().out
+    # The right hand 0.25 mm off: the two hands pooled would hold, the right one alone does not.
+    assert main(["verify", str(out), str(tmp_path / "right_off"), "--json", str(figures), "--overwrite"]) == 3
+    off = json.loads(figures.read_text())
+    assert (
+        off["ratio"] <= 1.5 and off["tips"]["left_hand"]["holds"] and not off["tips"]["right_hand"]["holds"]
+    )
+    assert "tip(s) ['right_hand'] do not hold on their own" in " ".join(capsys.readouterr().out.split())
     # The result file's own path; the tips in another order (or only some of them); joints in
     # degrees refused with a hint; a folder without its tree_result.json refused naming it.
     assert main(["verify", str(out / "tree_result.json"), str(tmp_path / "same")]) == 0
