@@ -160,7 +160,7 @@ def test_a_head_camera_dataset_from_the_command_line(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["calibrate", str(tmp_path / "fit"), "--out", str(out), "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "poses of left_hand, right_hand: " in printed and "the covariances RMS" in printed, printed
+    assert "poses measuring left_hand, right_hand: " in printed and "the covariances RMS" in printed, printed
     error = float(printed.split("against the simulator's truth: ")[1].split(" mm")[0])
     assert error < 0.3, printed  # the robot file's geometry leaves 8-14 mm
     figures = tmp_path / "verify.json"

@@ -388,8 +388,9 @@ def calibrate_tree_dataset(args, out: Path, checked) -> int:
         show_progress=not args.quiet,
     )
     held = ", ".join(f"{len(v)} {k}" for k, v in result.held.items())
+    seen = [t for t, s in zip(ds.tree.tip_names, ds.samples.measured.any(axis=0)) if s and t != ds.device_on]
     console.print(
-        f"{len(ds.samples.q)} poses of {', '.join(t for t in ds.tree.tip_names if t != ds.device_on)}: residual noise {result.fit.noise_mm:.4f} mm "
+        f"{len(ds.samples.q)} poses measuring {', '.join(seen)}: residual noise {result.fit.noise_mm:.4f} mm "
         f"(stated {ds.noise_mm:.4g}{', the covariances RMS' if ds.samples.covariance is not None else ''}); terms kept: {', '.join(result.fit.families) or 'none'}; "
         f"{int(result.fit.free.sum())} parameters freed, held ({held})"
     )
