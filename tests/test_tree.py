@@ -291,6 +291,22 @@ def test_tree_samples_from_csv_and_bad_input_named(body, tmp_path):
     (tmp_path / "bad.csv").write_text("\n".join(text) + "\n")
     with pytest.raises(ValueError, match=r"bad.csv.*line 5, column 'neck_yaw'.*'abc'"):
         read_tree_samples(tmp_path / "bad.csv", nominal)
+    # The coupled joint logged beside the others: read when it follows the robot file's law,
+    # refused naming the column and the line when it breaks it (a driven joint, or a wrong law).
+    j = nominal.joint_names.index("torso_upper_pitch")
+    law = samples.q @ np.asarray(nominal.coupling)[j] + float(nominal.coupling_offset[j])
+    for factor, ok in ((1.0, True), (1.8, False)):
+        logged = [f"{line},{float(factor * v)!r}" for line, v in zip(path.read_text().splitlines()[1:], law)]
+        (tmp_path / "coupled.csv").write_text(
+            "\n".join([",".join(header) + ",torso_upper_pitch", *logged]) + "\n"
+        )
+        if ok:
+            np.testing.assert_array_equal(read_tree_samples(tmp_path / "coupled.csv", nominal).q, read.q)
+        else:
+            with pytest.raises(
+                ValueError, match=r"column 'torso_upper_pitch' logs a joint the robot file couples"
+            ):
+                read_tree_samples(tmp_path / "coupled.csv", nominal)
     degrees = samples.subset(slice(0, 6))
     degrees.q[1, 5] = 57.0
     with pytest.raises(

@@ -93,6 +93,7 @@ def read_tree_samples(path, tree: KinematicTree) -> TreeSamples:
         return value
 
     q = np.array([[number(i, n, r[n]) for n in tree.actuated_names] for i, r in enumerate(rows)])
+    _coupled_columns(path, tree, header, rows, q)
     points = np.full((len(rows), len(tree.tip_names), 3), np.nan)
     measured = np.zeros((len(rows), len(tree.tip_names)), bool)
     cov = np.tile(np.eye(3), (len(rows), len(tree.tip_names), 1, 1))
@@ -164,6 +165,35 @@ def covariance_noise_mm(samples: TreeSamples) -> float:
     stated noise where the samples carry covariances)."""
     seen = np.asarray(samples.covariance)[np.asarray(samples.measured)]
     return 1e3 * float(np.sqrt(np.trace(seen, axis1=-2, axis2=-1).mean() / 3.0))
+
+
+#: A logged coupled joint off its robot file's law by more than this (rad or m) contradicts it.
+COUPLED_TOL = 1e-3
+
+
+def _coupled_columns(path: Path, tree: KinematicTree, header, rows, q: np.ndarray) -> None:
+    """Refuse a column that logs a coupled joint (a `<mimic>`) whose values break the robot file's
+    law (`COUPLED_TOL`): the law is wrong, or the joint is driven on its own."""
+    coupled = [j for j, n in enumerate(tree.joint_names) if n in header and n not in tree.actuated_names]
+    if not coupled:
+        return
+    law = q @ np.asarray(tree.coupling).T + np.asarray(tree.coupling_offset)
+    for j in coupled:
+        name = tree.joint_names[j]
+        cells = [(i, r[name]) for i, r in enumerate(rows) if r[name] not in ("", None)]
+        try:
+            logged = np.array([float(c) for _, c in cells])
+        except ValueError:
+            continue  # not numbers: the column is not used, as any other unknown one
+        gap = np.abs(logged - law[[i for i, _ in cells], j]) if cells else np.zeros(0)
+        if gap.size and np.nanmax(gap) > COUPLED_TOL:
+            k = int(np.nanargmax(gap))
+            raise ValueError(
+                f"tree samples {shown(path)!r}: column {name!r} logs a joint the robot file couples to others "
+                f"(<mimic>), and it breaks that law by up to {gap[k]:.4g} (line {cells[k][0] + 2}): the robot "
+                "file's multiplier or offset is wrong, or the joint is driven on its own (then it must not be a "
+                "<mimic>); drop the column to use the law as it is"
+            )
 
 
 #: A measured point farther than this (m) from the device is no robot's: millimetres as metres.
