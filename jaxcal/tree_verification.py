@@ -401,6 +401,12 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
             + " per axis (their branches barely measured, or never: held at the robot file's values), so "
             "holding says little there; calibrate with samples of them"
         )
+    worse = [n for n, v in tips.items() if v["calibrated_mean_mm"] > v["nominal_mean_mm"]]
+    if worse and len(worse) == len(tips):
+        notes.append(
+            "the calibration predicts these samples worse than the robot file does: they are of another robot "
+            "of this model, or the device moved since (`jaxcal check RESULT DATASET` tells a moved device)"
+        )
     failing = [n for n, v in tips.items() if not v["holds"]]
     if failing and rms_axis <= HOLDS_FACTOR * expected:
         notes.append(

@@ -351,6 +351,19 @@ def test_tree_dataset_from_the_command_line(tmp_path, capsys):
         assert v["tips"][tip]["calibrated_mean_mm"] < 0.25 < 1.0 < v["tips"][tip]["nominal_mean_mm"]
     assert main(["verify", str(out), str(tmp_path / "moved")]) == 3
     assert "does NOT hold" in capsys.readouterr().out
+    # Samples of the robot file's own body (another robot of the model, ideal): the calibration
+    # predicts them worse than the robot file, and says what that means.
+    model = load_tree_calibration(out)
+    rigid = tf.Elastic(np.zeros_like(model.elastic.joint), np.zeros_like(model.elastic.lateral))
+    ideal = np.asarray(
+        tf.deflected_tips(loaded.tree, rigid, jnp.asarray(q), model.points, model.T_device_root)
+    )
+    write_tree_dataset(tmp_path / "ideal", urdf_text=(ds / "robot.urdf").read_text(), tips=doc["tips"],
+                       tree=loaded.tree, samples=TreeSamples(q, ideal, np.ones(points.shape[:2], bool)),
+                       noise_mm=0.1, points=loaded.points)  # fmt: skip
+    assert main(["verify", str(out), str(tmp_path / "ideal")]) == 3
+    said = " ".join(capsys.readouterr().out.split())
+    assert "predicts these samples worse than the robot file does: they are of another robot" in said, said
     # The right hand 0.25 mm off: the two hands pooled would hold, the right one alone does not.
     assert main(["verify", str(out), str(tmp_path / "right_off"), "--json", str(figures), "--overwrite"]) == 3
     off = json.loads(figures.read_text())
