@@ -152,7 +152,7 @@ def shifted_points(F: np.ndarray, y: np.ndarray) -> tuple[int, int, float] | Non
 MISREAD_FITS, MISREAD_AS_READ, MISREAD_TOL_M = 0.05, 0.5, 0.02
 
 
-def _misfit_share(F: np.ndarray, y: np.ndarray) -> float:
+def misfit_share(F: np.ndarray, y: np.ndarray) -> float:
     """The share of rows farther than `MISREAD_TOL_M` from the nominal robot (one device frame
     and flange point, fitted to the better half)."""
     T, t = _align(F, y, 0.5)
@@ -169,9 +169,9 @@ def misread_points(frames, q: np.ndarray, y: np.ndarray, joints: tuple[str, ...]
     `MISREAD_AS_READ` of the rows misfit as read; a reading must fit all but `MISREAD_FITS`."""
     q, y = np.asarray(q, np.float64), np.asarray(y, np.float64)
     F = frames(q) if F is None else F  # as read
-    if len(y) < 8 or _misfit_share(F, y) < MISREAD_AS_READ:
+    if len(y) < 8 or misfit_share(F, y) < MISREAD_AS_READ:
         return None
-    if _misfit_share(F, y * np.array([-1.0, 1.0, 1.0])) <= MISREAD_FITS:
+    if misfit_share(F, y * np.array([-1.0, 1.0, 1.0])) <= MISREAD_FITS:
         return (
             "the points fit the nominal robot mirrored: the device's coordinates are left-handed (one axis "
             "reversed, or two swapped); write them in its right-handed frame"
@@ -180,7 +180,7 @@ def misread_points(frames, q: np.ndarray, y: np.ndarray, joints: tuple[str, ...]
     for j in range(n):
         flipped = q.copy()
         flipped[:, j] *= -1.0
-        if _misfit_share(frames(flipped), y) <= MISREAD_FITS:
+        if misfit_share(frames(flipped), y) <= MISREAD_FITS:
             return (
                 f"the points fit the nominal robot with joint {joints[j]!r}'s positions negated: the log turns "
                 "it the other way than the robot file's axis (negate that column, or the robot file's axis)"
@@ -189,7 +189,7 @@ def misread_points(frames, q: np.ndarray, y: np.ndarray, joints: tuple[str, ...]
         for j in range(i + 1, n):
             swapped = q.copy()
             swapped[:, [i, j]] = q[:, [j, i]]
-            if _misfit_share(frames(swapped), y) <= MISREAD_FITS:
+            if misfit_share(frames(swapped), y) <= MISREAD_FITS:
                 return (
                     f"the points fit the nominal robot with the columns of {joints[i]!r} and {joints[j]!r} "
                     "swapped: the header names them the other way round"

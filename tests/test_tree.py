@@ -364,6 +364,18 @@ def test_tree_dataset_from_the_command_line(tmp_path, capsys):
     assert main(["verify", str(out), str(tmp_path / "ideal")]) == 3
     said = " ".join(capsys.readouterr().out.split())
     assert "predicts these samples worse than the robot file does: they are of another robot" in said, said
+    # The hands' columns swapped, or the left hand's points a row late: refused at load, naming it.
+    late = noisy.copy()
+    late[1:, 0] = noisy[:-1, 0]
+    for name, wrong, said in (
+        ("hands_swapped", noisy[:, ::-1], "the columns left_hand.x, .y, .z and right_hand's are swapped"),
+        ("left_late", late, "tip 'left_hand''s points fit the robot file only with the rows shifted"),
+    ):
+        write_tree_dataset(tmp_path / name, urdf_text=(ds / "robot.urdf").read_text(), tips=doc["tips"],
+                           tree=loaded.tree, samples=TreeSamples(q, wrong, np.ones(points.shape[:2], bool)),
+                           noise_mm=0.1, points=loaded.points)  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(said)):
+            load_tree_dataset(tmp_path / name)
     # The right hand 0.25 mm off: the two hands pooled would hold, the right one alone does not.
     assert main(["verify", str(out), str(tmp_path / "right_off"), "--json", str(figures), "--overwrite"]) == 3
     off = json.loads(figures.read_text())

@@ -14,10 +14,12 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._npgeom import kabsch
+from .._rowshift import describe, misfit_share, shifted_points
 from .._tree import KinematicTree, tip_poses
 from .._treefit import FAMILIES, TreeSamples
 from ._csv_poses import ANGLE_UNITS, LENGTH_UNITS
@@ -226,6 +228,39 @@ def _plausible(path: Path, tree: KinematicTree, samples: TreeSamples, limits: np
         )
 
 
+#: A tip's points are another tip's when at least this share of them lie 20 mm or more from its
+#: own nominal tip (`jaxcal._rowshift.misfit_share`) and at most this share from the other's (a
+#: body is centimetres off its robot file where its joints sag: looser than a chain's).
+SWAP_AS_READ, SWAP_FITS = 0.75, 0.25
+
+
+def _paired(path: Path, tree: KinematicTree, samples: TreeSamples) -> None:
+    """Refuse, naming the fix, points that fit the robot file's tips (a fixed device's frame and
+    each tip's point fitted, `jaxcal._rowshift`) only shifted against the joint positions, or
+    only under another tip's columns (two tips' columns swapped)."""
+    frames = np.asarray(jax.vmap(lambda q: tip_poses(tree, q))(jnp.asarray(samples.q)))
+    measured = np.asarray(samples.measured)
+    for t, name in enumerate(tree.tip_names):
+        rows = np.flatnonzero(measured[:, t])
+        if rows.size < 8:
+            continue
+        found = shifted_points(frames[rows, t], samples.points[rows, t])
+        if found is not None:
+            where = describe(found, lambda k: str(rows[k] + 2), "line", "robot pose")
+            raise ValueError(
+                f"tree samples {shown(path)!r}: tip {name!r}'s points fit the robot file only with the rows "
+                f"shifted against the joint positions: {where}. Pair each point with the joints it was measured at"
+            )
+        if misfit_share(frames[rows, t], samples.points[rows, t]) < SWAP_AS_READ:
+            continue
+        for u, other in enumerate(tree.tip_names):
+            if u != t and misfit_share(frames[rows, u], samples.points[rows, t]) <= SWAP_FITS:
+                raise ValueError(
+                    f"tree samples {shown(path)!r}: tip {name!r}'s columns fit the robot file as {other!r}'s: "
+                    f"the columns {name}.x, .y, .z and {other}'s are swapped (label them as measured)"
+                )
+
+
 def load_tree_dataset(folder) -> TreeDataset:
     """Read a tree dataset folder: `tree.json` names the robot file (`robot`), the measured
     `tips`, the `samples` CSV (default `samples.csv`, `read_tree_samples`' format), the device's
@@ -257,6 +292,8 @@ def load_tree_dataset(folder) -> TreeDataset:
     table = folder / _field(doc, "samples", path, str, required=False, default="samples.csv")
     samples = read_tree_samples(table, tree)
     _plausible(table, tree, samples, actuated_limits(urdf, tree))
+    if device_on is None:  # a fixed device: the points against the robot file's tips
+        _paired(table, tree, samples)
     if samples.covariance is not None and noise is not None:
         raise ValueError(
             f"tree dataset {shown(path)!r}: field 'noise_mm' is given, but the samples carry their own "
