@@ -100,6 +100,11 @@ def _align(F: np.ndarray, y: np.ndarray, keep: float, rounds: int = 12) -> tuple
     return T, t
 
 
+def _predicted(F: np.ndarray, T: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The flange point `t` on the frames `F`, seen from the device frame `T`: `(n, 3)`."""
+    return (np.einsum("nab,b->na", F[:, :3, :3], t) + F[:, :3, 3]) @ T[:3, :3].T + T[:3, 3]
+
+
 def shifted_points(F: np.ndarray, y: np.ndarray) -> tuple[int, int, float] | None:
     """Stop-and-shoot points shifted against the robot's rows: `(first, shift, misfit share)` or
     None. `F` `(n, 4, 4)`: the nominal robot's flange frames, row by row; `y` `(n, 3)` the points
@@ -113,8 +118,7 @@ def shifted_points(F: np.ndarray, y: np.ndarray) -> tuple[int, int, float] | Non
     shifts = np.arange(-MAX_ROW_SHIFT, MAX_ROW_SHIFT + 1)
 
     def errors(T, t):  # (n, shifts): point i against the robot row i - s
-        p = np.einsum("nab,b->na", F[:, :3, :3], t) + F[:, :3, 3]
-        p = p @ T[:3, :3].T + T[:3, 3]
+        p = _predicted(F, T, t)
         E = np.full((n, len(shifts)), np.inf)
         for k, s in enumerate(shifts):
             i = np.arange(max(s, 0), n + min(s, 0))
@@ -155,9 +159,7 @@ MISREAD_FITS, MISREAD_AS_READ, MISREAD_TOL_M = 0.05, 0.5, 0.02
 def misfit_share(F: np.ndarray, y: np.ndarray) -> float:
     """The share of rows farther than `MISREAD_TOL_M` from the nominal robot (one device frame
     and flange point, fitted to the better half)."""
-    T, t = _align(F, y, 0.5)
-    p = (np.einsum("nab,b->na", F[:, :3, :3], t) + F[:, :3, 3]) @ T[:3, :3].T + T[:3, 3]
-    return float(np.mean(np.linalg.norm(y - p, axis=1) > MISREAD_TOL_M))
+    return float(np.mean(np.linalg.norm(y - _predicted(F, *_align(F, y, 0.5)), axis=1) > MISREAD_TOL_M))
 
 
 def misread_points(frames, q: np.ndarray, y: np.ndarray, joints: tuple[str, ...], F=None) -> str | None:
