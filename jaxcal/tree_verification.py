@@ -309,6 +309,35 @@ def _aligned(model: CalibratedTree, folder, dataset: TreeDataset):
 LOOSE_TIP = 5.0
 
 
+def _per_tip(model, measured, residual, var, points, **predicted) -> dict:
+    """Each measured tip's figures: its samples, RMS per axis against its own expectation (the
+    fit's noise and its parameters' `var` there) and whether it holds, and per prediction in
+    `predicted` the mean, RMS and largest distance (mm) from the measured `points`."""
+    tips = {}
+    for t, name in enumerate(model.tree.tip_names):
+        seen = measured[:, t]
+        if not seen.any():
+            continue
+        # Each tip against its own expectation too: a branch the calibration never measured (held
+        # at the robot file's values) must not pass under the other branches' figures.
+        rms_t = 1e3 * float(np.sqrt(np.mean(residual[seen, t] ** 2)))
+        expected_t = float(np.hypot(model.noise_mm, 1e3 * np.sqrt(var[seen, t].mean())))
+        tips[name] = {
+            "samples": int(seen.sum()),
+            "rms_per_axis_mm": rms_t,
+            "expected_mm": expected_t,
+            "holds": bool(rms_t <= HOLDS_FACTOR * expected_t),
+        }
+        for kind, p in predicted.items():
+            d = 1e3 * np.linalg.norm(p[seen, t] - points[seen, t], axis=-1)
+            tips[name] |= {
+                f"{kind}_mean_mm": float(d.mean()),
+                f"{kind}_rms_mm": float(np.sqrt(np.mean(d**2))),
+            }
+            tips[name][f"{kind}_max_mm"] = float(d.max())
+    return tips
+
+
 def verify_tree(folder, dataset: TreeDataset) -> dict:
     """A tree calibration (`folder`) against samples it was not fitted on (`dataset`, of the same
     robot and device): per tip, the measured points' distance (mm) from the calibration's
@@ -363,28 +392,7 @@ def verify_tree(folder, dataset: TreeDataset) -> dict:
     for i, t, _ in left:
         measured[i, t] = False
     rms_axis = 1e3 * float(np.sqrt(np.mean(residual[measured] ** 2)))
-    tips = {}
-    for t, name in enumerate(model.tree.tip_names):
-        seen = measured[:, t]
-        if not seen.any():
-            continue
-        # Each tip against its own expectation too: a branch the calibration never measured (held
-        # at the robot file's values) must not pass under the other branches' figures.
-        rms_t = 1e3 * float(np.sqrt(np.mean(residual[seen, t] ** 2)))
-        expected_t = float(np.hypot(model.noise_mm, 1e3 * np.sqrt(var[seen, t].mean())))
-        tips[name] = {
-            "samples": int(seen.sum()),
-            "rms_per_axis_mm": rms_t,
-            "expected_mm": expected_t,
-            "holds": bool(rms_t <= HOLDS_FACTOR * expected_t),
-        }
-        for kind, p in (("calibrated", calibrated), ("nominal", nominal)):
-            d = 1e3 * np.linalg.norm(p[seen, t] - points[seen, t], axis=-1)
-            tips[name] |= {
-                f"{kind}_mean_mm": float(d.mean()),
-                f"{kind}_rms_mm": float(np.sqrt(np.mean(d**2))),
-            }
-            tips[name][f"{kind}_max_mm"] = float(d.max())
+    tips = _per_tip(model, measured, residual, var, points, calibrated=calibrated, nominal=nominal)
     if model.status != "ok":
         notes.append(f"the calibration itself was {model.status}")
     if model.covariance is None:

@@ -489,7 +489,9 @@ def branch_table(result: TreeCalibration, tip: str) -> dict | None:
     """The modified-DH table (a table file's JSON, `jaxcal.io.dh_tables`) of the calibrated
     chain from the root to `tip`, its rows matched to the robot file's; `coupled` names each
     row whose joint follows others (its $q$ is the law's, not a command). None where the branch
-    holds a prismatic joint (no DH table here)."""
+    holds a prismatic joint (no DH table here). Parameters of the branch's own joints held at
+    the robot file's values are listed under `held`; a tip never measured is `measured: false`,
+    with a `note`."""
     chain, C = branch(result.tree, tip)
     nominal, _ = branch(result.nominal, tip)
     if any(kind != "revolute" for kind in chain.joint_types):
@@ -510,4 +512,23 @@ def branch_table(result: TreeCalibration, tip: str) -> dict | None:
         for i, name in enumerate(chain.joint_names)
         if name not in tree.actuated_names
     }
+    held = result.held.get(tip, [])
+    if held:
+        doc["held"] = list(held)
+    if tip in unmeasured_tips(result):
+        doc["measured"] = False
+        doc["note"] = (
+            "this tip was never measured: where the parameters in 'held' enter, the table is the robot file's, "
+            "and their std 0 means held, not exact"
+        )
     return doc
+
+
+def unmeasured_tips(result: TreeCalibration) -> list[str]:
+    """The tips no sample measured (their points held at the robot file's values; a measured
+    tip's point is always seen), the device's own tip apart."""
+    return [
+        t
+        for t in result.tree.tip_names
+        if t != result.device_on and any(n.startswith(f"{t}.point.") for n in result.held.get(t, []))
+    ]

@@ -328,6 +328,36 @@ def prediction_test(z: np.ndarray, dof_noise: int | None, alpha: float = ALPHA) 
     )
 
 
+def _tested(z: np.ndarray, dof: int, s, notes: list) -> PredictionTest:
+    """The prediction test of the whitened errors `z` (one row per sample of `s`), the bad samples
+    left out where the rest then hold; what it found is appended to `notes`."""
+    test = prediction_test(z, dof)
+    far = _bad_samples(z)
+    if not test.holds and far.size:  # bad measurements, which calibrate's robust fit leaves out too
+        kept = np.ones(len(z), bool)
+        kept[far] = False
+        test = prediction_test(z[kept], dof)
+        sigmas = np.sqrt(np.sum(z[far] ** 2, axis=1))
+        notes.append(
+            f"{far.size} of {len(z)} samples left out of the test as bad measurements (over {OUTLIER_SIGMAS:g} "
+            "whitened sigmas, as calibrate's robust fit rejects them): "
+            + ", ".join(
+                f"sample {int(s.sample[i])} (line {int(s.lines[i])}, {v:.0f} sigma)"
+                for i, v in zip(far, sigmas)
+            )
+            + f"; the rest {'hold' if test.holds else 'do not hold either'}"
+        )
+    if not test.holds:
+        worst = np.argsort(-np.sum(z**2, axis=1))[:3]
+        notes.append(
+            f"the errors are not what the calibration predicts: whitened measured / predicted RMS {test.ratio:.2f} "
+            f"(limit {test.ratio_limit:.2f}), {100 * test.inside:.0f} % of the samples inside their 95 % bound "
+            f"(at least {100 * test.inside_limit:.0f} %); worst samples {[int(s.sample[i]) for i in worst]} "
+            "(poses outside the calibrated workspace, a changed set-up, drift since, or bad measurements)"
+        )
+    return test
+
+
 def verify(result, dataset, *, cv: int = 0) -> Verification:
     """Check the stop-and-shoot calibration `result` (a directory or its
     `result.json`) against the tracker `dataset` (a path or a loaded `Dataset`);
@@ -399,30 +429,7 @@ def verify(result, dataset, *, cv: int = 0) -> Verification:
         ),
     )
     z = whiten(np.concatenate(errors, axis=1), np.concatenate(G, axis=1), cov, np.concatenate(var, axis=1))
-    test = prediction_test(z, pf.dof)
-    far = _bad_samples(z)
-    if not test.holds and far.size:  # bad measurements, which calibrate's robust fit leaves out too
-        kept = np.ones(len(z), bool)
-        kept[far] = False
-        test = prediction_test(z[kept], pf.dof)
-        sigmas = np.sqrt(np.sum(z[far] ** 2, axis=1))
-        notes.append(
-            f"{far.size} of {len(z)} samples left out of the test as bad measurements (over {OUTLIER_SIGMAS:g} "
-            "whitened sigmas, as calibrate's robust fit rejects them): "
-            + ", ".join(
-                f"sample {int(s.sample[i])} (line {int(s.lines[i])}, {v:.0f} sigma)"
-                for i, v in zip(far, sigmas)
-            )
-            + f"; the rest {'hold' if test.holds else 'do not hold either'}"
-        )
-    if not test.holds:
-        worst = np.argsort(-np.sum(z**2, axis=1))[:3]
-        notes.append(
-            f"the errors are not what the calibration predicts: whitened measured / predicted RMS {test.ratio:.2f} "
-            f"(limit {test.ratio_limit:.2f}), {100 * test.inside:.0f} % of the samples inside their 95 % bound "
-            f"(at least {100 * test.inside_limit:.0f} %); worst samples {[int(s.sample[i]) for i in worst]} "
-            "(poses outside the calibrated workspace, a changed set-up, drift since, or bad measurements)"
-        )
+    test = _tested(z, pf.dof, s, notes)
     cv_block = None
     if cv:
         cand = np.asarray(pf.free, bool)

@@ -213,6 +213,14 @@ def test_upper_body_calibration_recovers_geometry_and_elasticity(body, tmp_path)
     # Each hand's branch as a modified-DH table whose forward kinematics is the tree's.
     table = json.loads((tmp_path / "out" / "left_hand_mdh.json").read_text())
     assert table["joint_names"][3] == "torso_upper_pitch" and list(table["coupled"]) == ["torso_upper_pitch"]
+    # A measured hand's table is calibrated; a never-measured one's (its point held) says so: trial
+    # 13 found such a table written like the others.
+    assert "measured" not in table and trees.unmeasured_tips(result) == []
+    names = ["left_elbow.origin.x", "left_hand.point.x"]
+    unseen = dataclasses.replace(result, held={**result.held, "left_hand": names})
+    doc = trees.branch_table(unseen, "left_hand")
+    assert trees.unmeasured_tips(unseen) == ["left_hand"]
+    assert doc["held"] == names and not doc["measured"] and "std 0 means held, not exact" in doc["note"]
     # ... with standard deviations from the fit's covariance: the arm's lengths to tens of microns.
     std_a = np.asarray(table["std"]["a"])
     assert np.isfinite(std_a).all() and 1e-7 < std_a[-3:].max() < 2e-4, std_a

@@ -28,7 +28,7 @@ from ..summary import (
     truth_line,
     truth_table,
 )
-from ..trees import calibrate_tree, save_tree_calibration
+from ..trees import calibrate_tree, save_tree_calibration, unmeasured_tips
 from ._common import EYE_IN_HAND_BOARD_M, EYE_IN_HAND_SWEEP, LINKS_AMPLITUDE_DEG, fmt_degrees, run_record
 from ._rosbag import dataset_of
 
@@ -414,4 +414,10 @@ def calibrate_tree_dataset(args, out: Path, checked) -> int:
         + ", ".join(f"{t}_mdh.json" for t in ds.tree.tip_names)
         + f" ({time.perf_counter() - t0:.1f} s); calibration {result.status}"
     )
+    unseen = unmeasured_tips(result)
+    if unseen:
+        console.print(
+            f"[yellow]note:[/yellow] {', '.join(f'{t}_mdh.json' for t in unseen)}: tip(s) never measured, their "
+            "tables hold the robot file's values (their 'held' list)"
+        )
     return EXIT_CODES[result.status]

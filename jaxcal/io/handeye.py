@@ -241,6 +241,38 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
     unit_r = (
         _choice(spec, "rotation_unit", ("rad", "deg"), where) if fmt in ("xyz_rpy", "xyz_rotvec") else "rad"
     )
+    frames, V = _pose_table(path, POSE_COLUMNS[fmt], fmt, where)
+    scale_r = math.pi / 180.0 if unit_r == "deg" else 1.0
+    T = _poses(path, frames, V, fmt, 1e-3 if unit_t == "mm" else 1.0, scale_r)
+    if fmt in ("xyz_rpy", "xyz_rotvec"):
+        _check_rotation_unit(path, where, V[:, 3:], fmt, unit_r)
+    err = _rotation_error(T[:, :3, :3])
+    bad = np.flatnonzero((err > 1e-5) | (np.linalg.det(T[:, :3, :3]) < 0))
+    if bad.size:
+        i = bad[0]
+        raise DatasetError(
+            f"{path} line {i + 2} (frame {frames[i]}): the rotation is not a rotation matrix "
+            f"(max |R^T R - I| = {err[i]:.3g}, det = {np.linalg.det(T[i, :3, :3]):.6g})"
+        )
+    far = np.flatnonzero(np.linalg.norm(T[:, :3, 3], axis=1) > MAX_TRANSLATION_M)
+    if far.size:
+        i = far[0]
+        raise DatasetError(
+            f"{path} line {i + 2} (frame {frames[i]}): translation {np.linalg.norm(T[i, :3, 3]):.1f} m from the "
+            f"base; is {where} field 'translation_unit' ({unit_t!r}) right?"
+        )
+    reach = float(np.max(np.linalg.norm(T[:, :3, 3], axis=1)))
+    if reach < MIN_REACH_M:
+        raise DatasetError(
+            f"{path}: every frame's flange lies within {1e3 * reach:.3g} mm of the base, no arm's reach; is {where} "
+            f"field 'translation_unit' ({unit_t!r}) right (metres declared millimetres?)"
+        )
+    return tuple(frames), T, (V[:, 3:] * scale_r if fmt in ("xyz_rpy", "xyz_rotvec") else None)
+
+
+def _pose_table(path: Path, want: tuple, fmt: str, where: str) -> tuple[list[str], np.ndarray]:
+    """The pose file's frame names and its `want` columns as numbers `(frames, len(want))`, every
+    line checked (its fields, numbers and finite; each frame named once)."""
     if not path.is_file():
         raise DatasetError(f"{path}: pose file missing (named by {where} field 'file')")
     try:  # a byte-order mark is no part of the header (spreadsheets write one)
@@ -248,7 +280,6 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
             rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
     except UnicodeDecodeError as e:
         raise DatasetError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
-    want = POSE_COLUMNS[fmt]
     if not rows:
         raise DatasetError(f"{path}: empty; expected a header 'frame,{','.join(want)}'")
     header = [h.strip() for h in rows[0]]
@@ -285,9 +316,14 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
     dup = sorted({f for f in frames if frames.count(f) > 1})
     if dup:
         raise DatasetError(f"{path}: frame names repeat: {dup[:10]}")
-    V = np.asarray(values)
-    scale_t = 1e-3 if unit_t == "mm" else 1.0
-    scale_r = math.pi / 180.0 if unit_r == "deg" else 1.0
+    return frames, np.asarray(values)
+
+
+def _poses(
+    path: Path, frames: list[str], V: np.ndarray, fmt: str, scale_t: float, scale_r: float
+) -> np.ndarray:
+    """`(frames, 4, 4)` poses from the pose table's columns `V` in format `fmt`, translations times
+    `scale_t`, angles times `scale_r`; a matrix's bottom row and a quaternion's norm checked."""
     T = np.broadcast_to(np.eye(4), (len(V), 4, 4)).copy()
     if fmt == "matrix":
         M = V.reshape(-1, 4, 4)
@@ -323,29 +359,7 @@ def _read_poses(path: Path, spec: dict, where: str) -> tuple[tuple[str, ...], np
             T[:, :3, :3] = rpy_to_matrix(V[:, 3:] * scale_r)
         else:
             T[:, :3, :3] = rotvec_to_matrix(V[:, 3:] * scale_r)
-        _check_rotation_unit(path, where, V[:, 3:], fmt, unit_r)
-    err = _rotation_error(T[:, :3, :3])
-    bad = np.flatnonzero((err > 1e-5) | (np.linalg.det(T[:, :3, :3]) < 0))
-    if bad.size:
-        i = bad[0]
-        raise DatasetError(
-            f"{path} line {i + 2} (frame {frames[i]}): the rotation is not a rotation matrix "
-            f"(max |R^T R - I| = {err[i]:.3g}, det = {np.linalg.det(T[i, :3, :3]):.6g})"
-        )
-    far = np.flatnonzero(np.linalg.norm(T[:, :3, 3], axis=1) > MAX_TRANSLATION_M)
-    if far.size:
-        i = far[0]
-        raise DatasetError(
-            f"{path} line {i + 2} (frame {frames[i]}): translation {np.linalg.norm(T[i, :3, 3]):.1f} m from the "
-            f"base; is {where} field 'translation_unit' ({unit_t!r}) right?"
-        )
-    reach = float(np.max(np.linalg.norm(T[:, :3, 3], axis=1)))
-    if reach < MIN_REACH_M:
-        raise DatasetError(
-            f"{path}: every frame's flange lies within {1e3 * reach:.3g} mm of the base, no arm's reach; is {where} "
-            f"field 'translation_unit' ({unit_t!r}) right (metres declared millimetres?)"
-        )
-    return tuple(frames), T, (V[:, 3:] * scale_r if fmt in ("xyz_rpy", "xyz_rotvec") else None)
+    return T
 
 
 def repeated_poses(T: np.ndarray) -> dict[int, int]:

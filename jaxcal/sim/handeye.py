@@ -12,7 +12,7 @@ poses). Used by `benchmarks/handeye.py` and the tests.
 """
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -261,6 +261,21 @@ def _perturb(T, rng, deg: float, mm: float) -> np.ndarray:
     return T @ _pose(np.radians(deg) * a / np.linalg.norm(a), 1e-3 * mm * d / np.linalg.norm(d))
 
 
+#: Pixels between a target's features (squares; a marker kind's markers) at `distance`, below
+#: which the image is rendered finer and averaged (`CameraSpec.pixel_supersample`, up to 4
+#: times): a sensor integrates each pixel's light, MuJoCo samples the texture at its centre, and
+#: a chessboard drawn that way at 9-13 px per square lies larger than it is (docs/handeye.md,
+#: "The simulator").
+MIN_FEATURE_PX = 48.0
+
+
+def pixel_supersample(K: np.ndarray, target: TargetSpec, distance: float) -> int:
+    """How many times finer to render a view of `target` from `distance` (m) through `K`."""
+    feature = target.marker_length if target.kind in ("aruco", "aruco_grid") else target.square_length
+    side = float(K[1, 1]) * feature / distance
+    return int(np.clip(np.ceil(MIN_FEATURE_PX / side), 1, 4))
+
+
 def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False) -> Path:
     """Render a hand-eye capture with MuJoCo and write it in the capture format (`jaxcal.io.handeye`).
 
@@ -290,23 +305,15 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
     T_ee_cam = T_EE_CAM @ move
     if T_base_cam is not None:
         T_base_cam = T_base_cam @ move
-    if config.eye_in_hand:
-        cam = CameraSpec("cam0", width, height, config.fovy_deg, T_ee_cam, "flange", tuple(config.distortion))
-        plate = PlateSpec(spec, "world", T_base_board)
-    else:
-        cam = CameraSpec(
-            "cam0", width, height, config.fovy_deg, T_base_cam, "world", tuple(config.distortion)
-        )
-        plate = PlateSpec(spec, "flange", T_ee_board)
-    n_bad = int(round(config.robot_error_fraction * config.frames))
-    bad = np.sort(rng.choice(config.frames, n_bad, replace=False)) if n_bad else np.zeros(0, int)
-    T_recorded = T_true.copy()
-    for f in bad:
-        T_recorded[f] = _perturb(T_true[f], rng, config.robot_error_deg, config.robot_error_mm)
-    if config.robot_noise_mm > 0 or config.robot_noise_deg > 0:
-        for T in T_recorded:
-            T[:3, :3] = _turn_by(rng.normal(0.0, np.radians(config.robot_noise_deg), 3)) @ T[:3, :3]
-            T[:3, 3] += rng.normal(0.0, 1e-3 * config.robot_noise_mm, 3)
+    T_mount_cam, mount = (T_ee_cam, "flange") if config.eye_in_hand else (T_base_cam, "world")
+    cam = replace(probe, T_mount_cam=T_mount_cam, mount=mount)
+    cam = replace(cam, pixel_supersample=pixel_supersample(cam.K, spec, config.distance))
+    plate = (
+        PlateSpec(spec, "world", T_base_board)
+        if config.eye_in_hand
+        else PlateSpec(spec, "flange", T_ee_board)
+    )
+    T_recorded, bad = _recorded(config, rng, T_true)
     names = [f"{i:04d}" for i in range(config.frames)]
     scene = _mocap_scene(plate, cam)
     with atomic_directory(out, overwrite=overwrite, kind="dataset") as tmp:
@@ -356,6 +363,21 @@ def simulate_hand_eye(config: HandEyeSimConfig, out, *, overwrite: bool = False)
             json.dumps(truth, indent=1, default=lambda a: np.asarray(a).tolist()) + "\n"
         )
     return Path(out)
+
+
+def _recorded(config: HandEyeSimConfig, rng, T_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The robot poses as logged: `robot_error_fraction` of them off by the `robot_error_*`, then
+    every one with the `robot_noise_*`. **Returns:** `(T_recorded, the frames logged wrong)`."""
+    n_bad = int(round(config.robot_error_fraction * config.frames))
+    bad = np.sort(rng.choice(config.frames, n_bad, replace=False)) if n_bad else np.zeros(0, int)
+    T_recorded = T_true.copy()
+    for f in bad:
+        T_recorded[f] = _perturb(T_true[f], rng, config.robot_error_deg, config.robot_error_mm)
+    if config.robot_noise_mm > 0 or config.robot_noise_deg > 0:
+        for T in T_recorded:
+            T[:3, :3] = _turn_by(rng.normal(0.0, np.radians(config.robot_noise_deg), 3)) @ T[:3, :3]
+            T[:3, 3] += rng.normal(0.0, 1e-3 * config.robot_noise_mm, 3)
+    return T_recorded, bad
 
 
 class _MocapScene(Scene):

@@ -61,6 +61,9 @@ class CameraSpec:
 
     `distortion`: OpenCV's (k1, k2, p1, p2, k3), applied to the rendered image,
     rendered `lens_supersample` times finer for the warp (1: warped at its own resolution).
+    `pixel_supersample`: without a lens, the image is rendered that many times finer and
+    averaged over each pixel's area, as a sensor integrates light; MuJoCo samples the
+    texture at each pixel's centre, which moves the corners of squares a few pixels wide.
     """
 
     name: str = "cam0"
@@ -71,6 +74,7 @@ class CameraSpec:
     mount: str = "world"
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     lens_supersample: int = SUPERSAMPLE
+    pixel_supersample: int = 1
 
     @property
     def K(self) -> np.ndarray:
@@ -86,8 +90,9 @@ class CameraSpec:
 
     @property
     def supersample(self) -> int:
-        """How much finer the renderer draws this camera (`lens_supersample` with distortion, else 1)."""
-        return int(self.lens_supersample) if self.lens else 1
+        """How much finer the renderer draws this camera (`lens_supersample` with distortion, else
+        `pixel_supersample`)."""
+        return int(self.lens_supersample) if self.lens else int(self.pixel_supersample)
 
     @property
     def lens(self) -> bool:
@@ -196,7 +201,7 @@ class Scene:
         frustum's top and bottom are moved to the band's edges and a viewport of its
         height is drawn (square pixels keep the horizontal extent), which a rolling
         shutter's many renders per frame need. It equals the full image's rows to the
-        rasteriser's rounding. With distortion (or where the renderer hides its GL
+        rasteriser's rounding. With distortion, supersampled (or where the renderer hides its GL
         contexts) the full image is drawn and sliced."""
         cam = self.cameras[camera]
         r = self._renderer(cam)
@@ -205,7 +210,7 @@ class Scene:
             first, stop = int(rows[0]), int(rows[1])
             if not 0 <= first < stop <= cam.height:
                 raise ValueError(f"rows {rows} are not a band of camera {camera!r}'s {cam.height} rows")
-            if not cam.lens and (first, stop) != (0, cam.height):
+            if cam.supersample == 1 and (first, stop) != (0, cam.height):
                 band = _render_band(r, first, stop, cam.height)
                 if band is not None:
                     return band
@@ -213,8 +218,8 @@ class Scene:
         if cam.lens:
             mx, my = self._distortion_map(cam)
             image = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            if cam.supersample > 1:
-                image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        if cam.supersample > 1:
+            image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         return image if rows is None else image[first:stop]
 
     def close(self) -> None:

@@ -18,7 +18,7 @@ from .._handeye import (
 from ..errors import VisionError
 from ..markers import TargetSpec
 from ._detect import Detection, target_points
-from ._pose import PoseEstimate, estimate_pose
+from ._pose import CIRCLE_KINDS, PoseEstimate, circle_centre_shift, estimate_pose
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
 #: Floor on the estimated pixel noise (px): below it, numerical noise, not the detector's.
@@ -131,9 +131,15 @@ def _undistort(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarra
     return out.reshape(-1, 2)
 
 
+#: Steps of `circle_centre_shift` and PnP: the shift is redrawn at the pose the shifted blobs
+#: give (the first step leaves a pose error of second order, the second none that counts).
+CIRCLE_STEPS = 2
+
+
 def _views(det, target: TargetSpec, T: np.ndarray, K: np.ndarray, dist: np.ndarray):
     """Every camera's views: PnP (`estimate_pose`), the turn of a symmetric target that agrees
-    with the robot's motion (`_resolve_turns`, then PnP again on the turned ids) and the
+    with the robot's motion (`_resolve_turns`, then PnP again on the turned ids), a circle
+    grid's blobs moved to their circles' centres (`circle_centre_shift`, then PnP again) and the
     undistorted pixels. **Returns:** `(pixels (cameras, frames, points, 2)` (NaN where unseen),
     `poses` per camera and frame (None where unseen or PnP failed), `turned` `(camera, frame,
     deg)`, `sigmas` each view's pixel-noise estimate`)`."""
@@ -148,12 +154,17 @@ def _views(det, target: TargetSpec, T: np.ndarray, K: np.ndarray, dist: np.ndarr
             if d is None or row[f] is None:
                 row[f] = None
                 continue
-            ids = d.ids
+            ids, found = d.ids, d.pixels
             if turns[f]:
                 ids = perms[turns[f]][ids]
-                row[f] = estimate_pose(Detection(ids, d.pixels), target, K[c], dist[c])
+                row[f] = estimate_pose(Detection(ids, found), target, K[c], dist[c])
                 turned.append((c, f, target.rotation_angle(perms[turns[f]])))
-            pixels[c, f, ids] = _undistort(d.pixels, K[c], dist[c])
+            if row[f] is not None and target.kind in CIRCLE_KINDS:  # from the blobs to the circles' centres
+                for _ in range(CIRCLE_STEPS):
+                    shift = circle_centre_shift(target, ids, row[f].T_cam_target, K[c], dist[c])
+                    row[f] = estimate_pose(Detection(ids, d.pixels - shift), target, K[c], dist[c]) or row[f]
+                found = d.pixels - shift
+            pixels[c, f, ids] = _undistort(found, K[c], dist[c])
             sigmas.append(_view_sigma(row[f]))
         poses.append(tuple(row))
     return pixels, poses, turned, sigmas
@@ -178,7 +189,8 @@ def hand_eye_from_detections(
     Per view: PnP with the distortion model (`estimate_pose`) for the pose
     and the pixel-noise estimate; for a symmetric target (`TargetSpec.symmetric`)
     the ids are turned so that every view agrees with the robot's motion
-    (`_resolve_turns`); the pixels are undistorted (`cv2.undistortPointsIter`
+    (`_resolve_turns`); a circle grid's blob centres are moved to the images of
+    the circles' centres (`circle_centre_shift`); the pixels are undistorted (`cv2.undistortPointsIter`
     onto the same `K`), laid out densely with a mask, padded to a bucket of
     frames and points, and checked (`validate_hand_eye`, including the
     robot-versus-camera rotation-angle check that refuses mismatched data).
