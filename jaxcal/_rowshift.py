@@ -166,8 +166,8 @@ def misread_points(frames, q: np.ndarray, y: np.ndarray, joints: tuple[str, ...]
     """What fixes a stop-and-shoot table whose points fit the nominal robot only read otherwise
     (`frames(q)`: its flange frames `(n, 4, 4)` at joint positions `q`, `F` those of `q` when known;
     `y` the points, m), or None:
-    a joint's positions negated (its direction opposite the robot file's axis), two joints' columns
-    swapped, the device's coordinates mirrored (left-handed). Tried only when at least
+    one or two joints' positions negated (their direction opposite the robot file's axis), two
+    joints' columns swapped, the device's coordinates mirrored (left-handed). Tried only when at least
     `MISREAD_AS_READ` of the rows misfit as read; a reading must fit all but `MISREAD_FITS`."""
     q, y = np.asarray(q, np.float64), np.asarray(y, np.float64)
     F = frames(q) if F is None else F  # as read
@@ -179,13 +179,19 @@ def misread_points(frames, q: np.ndarray, y: np.ndarray, joints: tuple[str, ...]
             "reversed, or two swapped); write them in its right-handed frame"
         )
     n = q.shape[1]
-    for j in range(n):
+    for flip in [(j,) for j in range(n)] + [(i, j) for i in range(n) for j in range(i + 1, n)]:
         flipped = q.copy()
-        flipped[:, j] *= -1.0
+        flipped[:, list(flip)] *= -1.0
         if misfit_share(frames(flipped), y) <= MISREAD_FITS:
+            which = (
+                f"joint {joints[flip[0]]!r}'s positions"
+                if len(flip) == 1
+                else f"the positions of joints {joints[flip[0]]!r} and {joints[flip[1]]!r}"
+            )
             return (
-                f"the points fit the nominal robot with joint {joints[j]!r}'s positions negated: the log turns "
-                "it the other way than the robot file's axis (negate that column, or the robot file's axis)"
+                f"the points fit the nominal robot with {which} negated: the log turns "
+                f"{'it' if len(flip) == 1 else 'them'} the other way than the robot file's axis (negate "
+                f"{'that column' if len(flip) == 1 else 'those columns'}, or the robot file's axes)"
             )
     for i in range(n):
         for j in range(i + 1, n):

@@ -784,12 +784,13 @@ def test_points_shifted_against_the_joints_are_refused_naming_the_shift(ur5, tmp
     "misread, want",
     [
         ("sign", "with joint 'wrist_2_joint''s positions negated"),
+        ("two signs", "with the positions of joints 'wrist_1_joint' and 'wrist_2_joint' negated"),
         ("swap", "with the columns of 'wrist_1_joint' and 'wrist_2_joint' swapped"),
         ("mirror", "mirrored: the device's coordinates are left-handed"),
     ],
 )
 def test_a_table_read_otherwise_is_refused_naming_the_reading(ur5, tmp_path, misread, want):
-    """A joint logged the other way than the robot file's axis, two joint columns under each
+    """A joint (or two) logged the other way than the robot file's axis, two joint columns under each
     other's names, the device's coordinates mirrored (x and y swapped): every pose is off the
     nominal robot as read, and on it read that way; refused (exit 2) naming the reading."""
     path, _ = ur5
@@ -799,6 +800,8 @@ def test_a_table_read_otherwise_is_refused_naming_the_reading(ur5, tmp_path, mis
         for r in rows:
             if misread == "sign":
                 r[w2] = repr(-float(r[w2]))
+            elif misread == "two signs":
+                r[w1], r[w2] = repr(-float(r[w1])), repr(-float(r[w2]))
             elif misread == "swap":
                 r[w1], r[w2] = r[w2], r[w1]
             else:
