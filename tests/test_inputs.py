@@ -451,6 +451,13 @@ def test_documented_units_and_file_are_read(ds):
     np.testing.assert_allclose(load_dataset(ds).encoder_motor, rad, rtol=0, atol=2 * math.pi / 131072)
 
 
+def test_swapped_encoder_columns_are_named_before_the_clock(ds):
+    """The elbow's and wrist 1's columns swapped: during the elbow's sweep its column stands still
+    and wrist 1's turns, refused naming both at load (trial 14: a clock fit that did not converge)."""
+    edit_encoders(ds, lambda t, m: m.__setitem__(slice(None), m[:, [0, 1, 3, 2, 4, 5]]))
+    fails(ds, "motion[2]", "(elbow_joint)", "moves column 'wrist_1_joint' by 100 %", "swapped?")
+
+
 def test_a_log_cut_short_names_the_segments_it_misses(ds):
     """The encoder log ends before the last sweep: that segment's frames will have no joint
     angles, a note naming it (every segment outside the log is a clock mismatch, refused)."""

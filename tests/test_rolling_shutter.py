@@ -290,6 +290,12 @@ def test_a_sweep_that_lost_its_fast_frames_names_motion_blur():
     obs.camera.exposure_s = 1e-3
     assert lost_to_blur(None, obs, sync, 0) == ""
     assert lost_to_blur(None, *_sweep(lambda s: True)[:2], 0) == ""
+    # An exposure stated as 0 s is an instant (a simulator's), not an unknown one: no blur, and
+    # no "the metadata gives no exposure_s" (trial 14 found it blamed for a shifted clock).
+    obs.camera.exposure_s = 0.0
+    assert lost_to_blur(None, obs, sync, 0) == ""
+    obs.camera.exposure_s = None
+    assert "gives no exposure_s" in lost_to_blur(None, obs, sync, 0)
 
 
 def test_a_sweep_fast_throughout_names_motion_blur():

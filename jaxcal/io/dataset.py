@@ -242,6 +242,30 @@ def _segments_in_log(segments, enc_t: np.ndarray, loc, log: Path) -> list[str]:
     return [f"{w}: its frames have no joint angles" for w in words]
 
 
+#: A sweep's segment must move its own joint by at least this share of the joint's travel over
+#: the log while another joint moves by more than `SWAPPED_OTHER` of its own; else refused.
+SWAPPED_OWN, SWAPPED_OTHER = 0.1, 0.5
+
+
+def _segments_move_their_joints(segments, enc_t, enc_m, joints, loc, log: Path) -> None:
+    """Each sweep's segment against the encoder log (both on the controller clock): a segment
+    during which its own joint stands still while another sweeps says the log's columns, or the
+    segments' joints, are swapped. Refused naming both, before any clock fit fails on it."""
+    travel = np.ptp(enc_m, axis=0)
+    for k, (name, start, end) in enumerate(segments):
+        inside = (enc_t >= start) & (enc_t <= end)
+        if name not in joints or inside.sum() < 2:
+            continue
+        share = np.ptp(enc_m[inside], axis=0) / np.where(travel > 0, travel, np.inf)
+        j, m = joints.index(name), int(np.argmax(share))
+        if m != j and share[j] < SWAPPED_OWN and share[m] > SWAPPED_OTHER:
+            raise DatasetError(
+                f"{loc.index(k)}: during segment [{start:g}, {end:g}] s ({name}) the encoder log ({log}) moves "
+                f"column {joints[m]!r} by {100 * share[m]:.0f} % of its travel and {name!r} by {100 * share[j]:.0f} "
+                "%: are the log's columns, or the segments' joints, swapped?"
+            )
+
+
 def load_dataset(path) -> Dataset:
     """Read and check the dataset in directory `path` (nothing is modified).
 
@@ -316,6 +340,7 @@ def load_dataset(path) -> Dataset:
         notes.append(f"{root / 'encoders.csv'} is not used: {loc.key('encoders')} is null")
     if enc_t is not None:
         notes += _segments_in_log(segments, enc_t, loc.key("motion"), root / emeta["file"])
+        _segments_move_their_joints(segments, enc_t, enc_m, joints, loc.key("motion"), root / emeta["file"])
     return Dataset(
         root=root,
         metadata=meta,

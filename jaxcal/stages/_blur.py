@@ -77,8 +77,10 @@ def lost_to_blur(setup: Setup, obs: CameraObservations, sync: Sync, joint: int) 
     fast = float(np.median(speed[lost]))
     slow = float(np.median(speed[found])) if found.any() else 0.0
     exposure = getattr(obs.camera, "exposure_s", None)
+    if exposure is not None and exposure <= 0.0:  # stated instantaneous: nothing smears (trial 14)
+        return ""
     rate = image_rate(obs, sync, joint, rows)
-    smear = None if not exposure or rate is None else exposure * speed * rate  # px, per frame
+    smear = None if exposure is None or rate is None else exposure * speed * rate  # px, per frame
     top = float(np.max(speed[lost]))
     if fast > 0.0 and fast >= FASTER * slow:  # the lost frames are the fast ones
         text = (
@@ -108,7 +110,7 @@ def lost_to_blur(setup: Setup, obs: CameraObservations, sync: Sync, joint: int) 
             f"; with the {1e3 * exposure:g} ms exposure the target smears by up to {exposure * top * rate:.0f} px "
             f"there (it was found at {shown}{' median' if found.sum() > 1 else ''})"
         )
-    elif not exposure:
+    elif exposure is None:
         text += " (the metadata gives no exposure_s to tell the smear)"
     return (
         text

@@ -80,7 +80,7 @@ class Limits:
     ratio_percent: float = 5.0
     mount_mm: float = 30.0
     mount_deg: float = 10.0
-    board_scale_percent: float = 0.75
+    board_scale_percent: float = 0.4
     arc_residual: float = 5.0
     axis_residual: float = 5.0
     sigma_px: float = 2.0

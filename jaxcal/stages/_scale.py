@@ -1,0 +1,56 @@
+"""The result's scale. A camera measures lengths in units of the target's printed size, so a
+target printed larger or smaller than metadata.json says scales the whole calibrated arm, the
+tool point's error with it: `axis_spacing_ratio` measures the scale against the nominal robot's
+joint-axis spacing (the verdict's `board_scale` check), `reach_rms` turns a scale error into
+the tool point's."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._kinematics import forward_kinematics, joint_axes_at_zero
+from .._npgeom import line_distance
+from .._uncertainty import joint_travel, on_travel
+from ._setup import Setup
+
+#: How closely a real arm's joint-axis spacing agrees with its datasheet, %: about a millimetre
+#: over a UR5's 0.8 m of long links (docs/calibrate.md); clean simulated captures read 0.05-0.15 %.
+REAL_ARM_SPACING_PERCENT = 0.15
+
+
+def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float, float]]]:
+    """How far apart consecutive joint axes are measured, over the nominal
+    robot's spacing: the ratio of the sums over pairs at least 5 cm apart (near
+    parallel pairs by the distance of one axis point from the other line,
+    skew ones by the common normal; the long links weigh most, as a millimetre
+    of a real arm's own deviation is least of them), and the pairs `(joints,
+    measured, nominal)` (m)."""
+    nominal = setup.nominal
+    p_nom, d_nom = joint_axes_at_zero(nominal)
+    p_meas, d_meas = np.asarray(arcs.point), np.asarray(arcs.direction)
+    names = nominal.joint_names
+    pairs = []
+    for i in range(nominal.num_joints - 1):
+        if not np.all(np.isfinite(p_meas[i : i + 2])):  # a prismatic joint's line has no position
+            continue
+        nom = float(line_distance(p_nom[i], d_nom[i], p_nom[i + 1], d_nom[i + 1]))
+        if nom < 0.05:
+            continue
+        if abs(float(np.dot(d_meas[i], d_meas[i + 1]))) > np.cos(np.radians(5.0)):
+            dp = p_meas[i + 1] - p_meas[i]
+            meas = float(np.linalg.norm(dp - np.dot(dp, d_meas[i]) * d_meas[i]))
+        else:
+            meas = float(line_distance(p_meas[i], d_meas[i], p_meas[i + 1], d_meas[i + 1]))
+        pairs.append((f"{names[i]}/{names[i + 1]}", meas, nom))
+    if not pairs:
+        return float("nan"), pairs
+    return float(sum(m for _, m, _ in pairs) / sum(n for _, _, n in pairs)), pairs
+
+
+def reach_rms(model, limits=None, n: int = 256) -> float:
+    """RMS distance (m) of the flange from the base over `n` random configurations (seed 0; a
+    prismatic joint within its URDF `limits`): how far a scale error of 1 moves the tool point."""
+    q = jax.random.uniform(jax.random.PRNGKey(0), (n, model.num_joints), minval=-jnp.pi, maxval=jnp.pi)
+    q = on_travel(model, q, joint_travel(model, limits))
+    p = jax.vmap(lambda qq: forward_kinematics(model, qq)[-1][:3, 3])(q)
+    return float(np.sqrt(np.mean(np.sum(np.asarray(p) ** 2, axis=1))))
