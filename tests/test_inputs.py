@@ -11,6 +11,7 @@ import hashlib
 import io
 import json
 import math
+import re
 import shutil
 import struct
 import tempfile
@@ -456,6 +457,17 @@ def test_swapped_encoder_columns_are_named_before_the_clock(ds):
     and wrist 1's turns, refused naming both at load (trial 14: a clock fit that did not converge)."""
     edit_encoders(ds, lambda t, m: m.__setitem__(slice(None), m[:, [0, 1, 3, 2, 4, 5]]))
     fails(ds, "motion[2]", "(elbow_joint)", "moves column 'wrist_1_joint' by 100 %", "swapped?")
+
+
+def test_positions_past_the_joint_limits_are_noted(ds):
+    """The robot file's elbow limits narrowed to +-0.5 rad, its sweep reaching 0.7 (within the unit
+    check's margin): a note names the line, the value and the limits (trial 14 found it silent)."""
+    urdf = (ds / "robot.urdf").read_text()
+    head, tail = urdf.split('name="elbow_joint"', 1)
+    tail = re.sub(r'lower="[^"]*" upper="[^"]*"', 'lower="-0.5" upper="0.5"', tail, count=1)
+    (ds / "robot.urdf").write_text(head + 'name="elbow_joint"' + tail)
+    notes = [n for n in load_dataset(ds).notes if "outside its URDF limits [-0.5, 0.5]" in n]
+    assert len(notes) == 1 and "joint 'elbow_joint' reaches" in notes[0], load_dataset(ds).notes
 
 
 def test_a_log_cut_short_names_the_segments_it_misses(ds):

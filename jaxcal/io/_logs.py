@@ -479,6 +479,14 @@ def read_encoders(root: Path, emeta: dict, loc: Loc, joints: tuple[str, ...], li
                 f"({unit!r}) right?{hint}"
             )
     notes = [_glitch_note(path, glitches, int(drop.sum()))] if glitches else []
+    for j, name in enumerate(joints):  # within the unit check's margin, but past what the robot file allows
+        lo, hi = limits[name].lower, limits[name].upper
+        if lo is not None and hi is not None and (q[:, j].min() < lo or q[:, j].max() > hi):
+            k = int(np.argmax(np.maximum(lo - q[:, j], q[:, j] - hi)))
+            notes.append(
+                f"{path} line {lines[k]}: joint {name!r} reaches {q[k, j]:.4g} (rad or m, joint side), outside "
+                f"its URDF limits [{lo:.4g}, {hi:.4g}]: is the robot file this arm's (or its zero offset large)?"
+            )
     if emeta["rate_hz"] is not None:
         rate = 1.0 / float(np.median(np.diff(t)))
         if abs(rate / emeta["rate_hz"] - 1.0) > 0.1:

@@ -47,10 +47,16 @@ def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float
     return float(sum(m for _, m, _ in pairs) / sum(n for _, _, n in pairs)), pairs
 
 
-def reach_rms(model, limits=None, n: int = 256) -> float:
-    """RMS distance (m) of the flange from the base over `n` random configurations (seed 0; a
-    prismatic joint within its URDF `limits`): how far a scale error of 1 moves the tool point."""
+def reach_rms(model, limits=None, T_cam_base=None, n: int = 256) -> float:
+    """RMS distance (m) of the flange from the base, or from a fixed camera at `T_cam_base`, over
+    `n` random configurations (seed 0; a prismatic joint within its URDF `limits`): how far a
+    scale error of 1 moves the tool point. A mis-sized target scales the scene about the camera,
+    so the tool point seen from the camera (as the claimed uncertainty measures it) moves by the
+    scale error times its distance from the camera."""
     q = jax.random.uniform(jax.random.PRNGKey(0), (n, model.num_joints), minval=-jnp.pi, maxval=jnp.pi)
     q = on_travel(model, q, joint_travel(model, limits))
-    p = jax.vmap(lambda qq: forward_kinematics(model, qq)[-1][:3, 3])(q)
-    return float(np.sqrt(np.mean(np.sum(np.asarray(p) ** 2, axis=1))))
+    p = np.asarray(jax.vmap(lambda qq: forward_kinematics(model, qq)[-1][:3, 3])(q))
+    if T_cam_base is not None:
+        T = np.asarray(T_cam_base, np.float64)
+        p = p @ T[:3, :3].T + T[:3, 3]
+    return float(np.sqrt(np.mean(np.sum(p**2, axis=1))))

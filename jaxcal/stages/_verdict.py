@@ -363,7 +363,8 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, timed_rows: R
         f"printed size the one in metadata.json{hint}?",
     )
     if REAL_ARM_SPACING_PERCENT < pct <= limits.board_scale_percent:  # passed, but more than an arm's own
-        moved = 10.0 * pct * reach_rms(setup.nominal, setup.dataset.joint_limits)
+        seen_from = getattr(two.fit, "T_cam_base0", None) if setup.board is None else None  # a fixed camera
+        moved = 10.0 * pct * reach_rms(setup.nominal, setup.dataset.joint_limits, seen_from)
         c.notes.append(
             f"{seen} {100 * scale:.2f} % of the nominal robot's spacing, further off than a real arm's axes "
             f"miss their datasheet (about {REAL_ARM_SPACING_PERCENT:g} %): were the target's printed size that "
