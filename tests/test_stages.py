@@ -31,7 +31,7 @@ from jaxcal.errors import CalibrationError
 from jaxcal.io.dataset import load_dataset
 from jaxcal.robots import load_robot
 from jaxcal.stages import kinds
-from jaxcal.stages._scale import axis_spacing_ratio
+from jaxcal.stages._axes_check import axis_spacing_ratio, reversed_joints
 from jaxcal.stages._synchronise import assign_frames, usable
 from jaxcal.stages._timing import interpolation_error, stamp_jitter_s
 from jaxcal.stages._verdict import CAUSES, _Checks
@@ -210,6 +210,34 @@ def test_frames_in_an_encoder_glitch_are_not_usable():
 class _Arcs:
     def __init__(self, point, direction):
         self.point, self.direction = point, direction
+
+
+def test_a_joint_logged_the_other_way_is_named_by_its_parallel_neighbours():
+    """The UR5e's shoulder lift, elbow and wrist 1 are parallel: an axis measured (in the encoder
+    log's sense) against both others is that joint's log reversed; trial 14 found a reversed elbow
+    blamed on three other joints' reduction ratios. The measured axes may be turned as a whole."""
+    s = stages.setup(DATA, OPTIONS)
+    p, d = (np.asarray(a) for a in joint_axes(s.nominal, jnp.zeros(6)))
+    R = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
+    assert reversed_joints(s, _Arcs(p @ R.T, d @ R.T)) == []
+    for j in (1, 2, 3):
+        flipped = d.copy()
+        flipped[j] *= -1.0
+        assert reversed_joints(s, _Arcs(p @ R.T, flipped @ R.T)) == [(j, [k for k in (1, 2, 3) if k != j])]
+    flipped = d.copy()
+    flipped[0] *= -1.0  # the base has no parallel neighbour: nothing to tell it by
+    assert reversed_joints(s, _Arcs(p, flipped)) == []
+    from types import SimpleNamespace
+
+    from jaxcal.stages._verdict import _axes
+    from jaxcal.stages.limits import Limits
+
+    c = _Checks()
+    flipped = d.copy()
+    flipped[2] *= -1.0
+    two = SimpleNamespace(arc_rows=(), fit=SimpleNamespace(residual_rms=1.0), arcs=_Arcs(p, flipped))
+    _axes(c, s, two, Limits(), None)
+    assert c.reasons[0].startswith("joint 'elbow_joint' turns the other way than the robot file's axis")
 
 
 def test_the_axes_spacing_measures_a_mis_sized_target():
@@ -443,7 +471,15 @@ def test_the_causes_lead_the_reasons():
     c.add("encoder_interpolation", 1.7, 0.5, "log too slow", cause="timing")
     assert c.reasons == ["rolling shutter", "lens", "log too slow", "errors repeat", "origin moved"]
     assert [r.passed for r in c.rows] == [False, False, True, False, False, False]
-    assert CAUSES == ("rolling_shutter", "camera_model", "timing", "blur", "arm", "correlated_errors")
+    assert CAUSES == (
+        "encoder_sense",
+        "rolling_shutter",
+        "camera_model",
+        "timing",
+        "blur",
+        "arm",
+        "correlated_errors",
+    )
     # An arm's reason after a timing cause says the timing makes its signs too.
     c.add("arm_clock_sigmas", 6.7, 2.58, "sags", cause="arm")
     c.also_from("timing", "arm", "see the timing: ")

@@ -25,11 +25,11 @@ from ..records import Judgement, ParameterRow
 from ..records_stages import Check
 from . import _programs
 from ._armcheck import arm_check
+from ._axes_check import REAL_ARM_SPACING_PERCENT, axis_spacing_ratio, reach_rms, reversed_joints
 from ._blur import blur_rows
 from ._observe import Observations
 from ._prior import prior_row
 from ._refine import Refined, succeeded
-from ._scale import REAL_ARM_SPACING_PERCENT, axis_spacing_ratio, reach_rms
 from ._setup import Setup
 from ._synchronise import Sync
 from ._terms import LAG
@@ -54,7 +54,7 @@ def _wrap(a):
 
 #: The causes a failed check names, in the order its reason leads the others: they explain the
 #: symptoms (corrections out of tolerance, large residuals) that follow them.
-CAUSES = ("rolling_shutter", "camera_model", "timing", "blur", "arm", "correlated_errors")
+CAUSES = ("encoder_sense", "rolling_shutter", "camera_model", "timing", "blur", "arm", "correlated_errors")
 
 
 class _Checks:
@@ -334,6 +334,20 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, timed_rows: R
         limits.axis_residual,
         f"the axis fit's whitened residual RMS is {rms:.3g} (expected about 1): the measured axes do not fit the "
         "nominal robot's structure",
+    )
+    names = setup.nominal.joint_names
+    reversed_ = reversed_joints(setup, two.arcs)
+    c.add(
+        "encoder_sense",
+        len(reversed_),
+        0,
+        "; ".join(
+            f"joint {names[j]!r} turns the other way than the robot file's axis: its axis, measured through the "
+            f"target in the encoder log's sense, points against those of {', '.join(repr(names[k]) for k in others)}, "
+            "which the robot file has it agree with; negate its column of the encoder log (or its URDF axis)"
+            for j, others in reversed_
+        ),
+        cause="encoder_sense",
     )
     if timed_rows is None:
         scale, pairs = axis_spacing_ratio(setup, two.arcs)

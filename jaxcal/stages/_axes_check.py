@@ -1,8 +1,12 @@
-"""The result's scale. A camera measures lengths in units of the target's printed size, so a
-target printed larger or smaller than metadata.json says scales the whole calibrated arm, the
-tool point's error with it: `axis_spacing_ratio` measures the scale against the nominal robot's
-joint-axis spacing (the verdict's `board_scale` check), `reach_rms` turns a scale error into
-the tool point's."""
+"""The joint axes the arcs measured through the target, against the nominal robot's.
+
+Their spacing is the result's scale: a camera measures lengths in units of the target's printed
+size, so a target printed larger or smaller than metadata.json says scales the whole calibrated
+arm, the tool point's error with it. `axis_spacing_ratio` measures the scale against the nominal
+robot's joint-axis spacing (the verdict's `board_scale` check), `reach_rms` turns a scale error
+into the tool point's. Their senses follow the encoder log: `reversed_joints` finds a joint whose
+measured axis points against those the robot file makes parallel to it (its log's sign, or its
+URDF axis, reversed)."""
 
 import jax
 import jax.numpy as jnp
@@ -60,3 +64,33 @@ def reach_rms(model, limits=None, T_cam_base=None, n: int = 256) -> float:
         T = np.asarray(T_cam_base, np.float64)
         p = p @ T[:3, :3].T + T[:3, 3]
     return float(np.sqrt(np.mean(np.sum(p**2, axis=1))))
+
+
+def reversed_joints(setup: Setup, arcs) -> list[tuple[int, list[int]]]:
+    """The joints whose measured axis (`arcs.direction`, its sense the encoder's) points against
+    every other joint of its group of consecutive joints the nominal robot makes parallel (three
+    or more: with two, either could be the one), where the nominal robot has them agree:
+    `(joint, the group's others)` each."""
+    _, d_nom = joint_axes_at_zero(setup.nominal)
+    d_meas = np.asarray(arcs.direction, np.float64)
+    parallel = [
+        abs(float(np.dot(d_nom[i], d_nom[i + 1]))) > np.cos(np.radians(5.0)) for i in range(len(d_nom) - 1)
+    ]
+    groups, run = [], [0]
+    for i, p in enumerate(parallel):
+        if p:
+            run.append(i + 1)
+        else:
+            groups.append(run)
+            run = [i + 1]
+    groups.append(run)
+    out = []
+    for group in (g for g in groups if len(g) >= 3 and np.all(np.isfinite(d_meas[g]))):
+        for j in group:
+            others = [k for k in group if k != j]
+            against = [
+                np.sign(np.dot(d_meas[j], d_meas[k])) != np.sign(np.dot(d_nom[j], d_nom[k])) for k in others
+            ]
+            if all(against):
+                out.append((j, others))
+    return out
