@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._kinematics import forward_kinematics, joint_axes_at_zero
+from .._kinematics import PRISMATIC, forward_kinematics, joint_axes_at_zero
 from .._npgeom import line_distance
 from .._uncertainty import joint_travel, on_travel
 from ._setup import Setup
@@ -73,8 +73,11 @@ def reversed_joints(setup: Setup, arcs) -> list[tuple[int, list[int]]]:
     `(joint, the group's others)` each."""
     _, d_nom = joint_axes_at_zero(setup.nominal)
     d_meas = np.asarray(arcs.direction, np.float64)
+    revolute = np.asarray(setup.nominal.joint_types) != PRISMATIC  # a slide's line fit: left out
     parallel = [
-        abs(float(np.dot(d_nom[i], d_nom[i + 1]))) > np.cos(np.radians(5.0)) for i in range(len(d_nom) - 1)
+        bool(revolute[i] and revolute[i + 1])
+        and abs(float(np.dot(d_nom[i], d_nom[i + 1]))) > np.cos(np.radians(5.0))
+        for i in range(len(d_nom) - 1)
     ]
     groups, run = [], [0]
     for i, p in enumerate(parallel):
