@@ -17,9 +17,22 @@ from .._npgeom import line_distance
 from .._uncertainty import joint_travel, on_travel
 from ._setup import Setup
 
-#: How closely a real arm's joint-axis spacing agrees with its datasheet, %: about a millimetre
-#: over a UR5's 0.8 m of long links (docs/calibrate.md); clean simulated captures read 0.05-0.15 %.
-REAL_ARM_SPACING_PERCENT = 0.15
+#: How closely a real arm's joint-axis spacing agrees with its datasheet: about a millimetre over
+#: its long links (a UR5's 0.8 m: 0.125 %; docs/calibrate.md), and no closer than 0.15 % (clean
+#: simulated captures read 0.05-0.15 %). A reading past it is noted, were it the target's size.
+REAL_ARM_SPACING_MM, REAL_ARM_SPACING_PERCENT = 1.0, 0.15
+#: A spacing this far off (mm over the pairs measured) is not the arm's own: the limit is this or
+#: `Limits.board_scale_percent`, the larger (a SCARA's one 325 mm pair: 0.77 %).
+SPACING_LIMIT_MM = 2.5
+
+
+def spacing_limits(nominal_m: float, limit_percent: float) -> tuple[float, float]:
+    """`(limit, noted)`, %: the `board_scale` check's limit and the reading past which it notes the
+    tool point's move, for axes `nominal_m` apart in all (the pairs' nominal sum)."""
+    return (
+        max(limit_percent, 0.1 * SPACING_LIMIT_MM / nominal_m),
+        max(REAL_ARM_SPACING_PERCENT, 0.1 * REAL_ARM_SPACING_MM / nominal_m),
+    )
 
 
 def axis_spacing_ratio(setup: Setup, arcs) -> tuple[float, list[tuple[str, float, float]]]:

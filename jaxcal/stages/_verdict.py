@@ -25,7 +25,7 @@ from ..records import Judgement, ParameterRow
 from ..records_stages import Check
 from . import _programs
 from ._armcheck import arm_check
-from ._axes_check import REAL_ARM_SPACING_PERCENT, axis_spacing_ratio, reach_rms, reversed_joints
+from ._axes_check import axis_spacing_ratio, reach_rms, reversed_joints, spacing_limits
 from ._blur import blur_rows
 from ._observe import Observations
 from ._prior import prior_row
@@ -361,6 +361,7 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, timed_rows: R
     if not pairs:
         return
     pct = 100.0 * abs(scale - 1.0)
+    limit, noted = spacing_limits(sum(nm for _, _, nm in pairs), limits.board_scale_percent)
     square = [t.spec for t in setup.targets if getattr(t.spec, "square_length", None)]
     hint = "; ".join(
         f"{t.name!r}'s square of {1e3 * t.square_length / scale:.2f} mm would fit"
@@ -371,17 +372,17 @@ def _axes(c: _Checks, setup: Setup, two: TwoStage, limits: Limits, timed_rows: R
     c.add(
         "board_scale",
         pct,
-        limits.board_scale_percent,
+        limit,
         f"{seen} {100 * scale:.1f} % of the nominal robot's spacing "
         f"({', '.join(f'{n} {1e3 * m:.1f} vs {1e3 * nm:.1f} mm' for n, m, nm in pairs)}): is the target's "
         f"printed size the one in metadata.json{hint}?",
     )
-    if REAL_ARM_SPACING_PERCENT < pct <= limits.board_scale_percent:  # passed, but more than an arm's own
+    if noted < pct <= limit:  # passed, but further off than an arm's own
         seen_from = getattr(two.fit, "T_cam_base0", None) if setup.board is None else None  # a fixed camera
         moved = 10.0 * pct * reach_rms(setup.nominal, setup.dataset.joint_limits, seen_from)
         c.notes.append(
             f"{seen} {100 * scale:.2f} % of the nominal robot's spacing, further off than a real arm's axes "
-            f"miss their datasheet (about {REAL_ARM_SPACING_PERCENT:g} %): were the target's printed size that "
+            f"miss their datasheet (about {noted:.2g} % here): were the target's printed size that "
             f"far off{f' ({hint[2:]})' if hint else ''}, the tool point would lie {moved:.1f} mm RMS off, which "
             "the claimed uncertainty does not count; measure the printed target across its whole width"
         )
