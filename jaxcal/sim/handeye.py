@@ -264,8 +264,8 @@ def _perturb(T, rng, deg: float, mm: float) -> np.ndarray:
 #: Pixels between a target's features (squares; a marker kind's markers) at `distance`, below
 #: which the image is rendered finer and averaged (`CameraSpec.pixel_supersample`, up to 4
 #: times): a sensor integrates each pixel's light, MuJoCo samples the texture at its centre, and
-#: a chessboard drawn that way at 9-13 px per square lies larger than it is (docs/handeye.md,
-#: "The simulator").
+#: a chessboard drawn that way at 9-13 px per square lies larger than it is (docs/handeye.md, "The
+#: simulator's pixels").
 MIN_FEATURE_PX = 48.0
 
 
